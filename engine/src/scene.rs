@@ -1,0 +1,299 @@
+//! # scene: what a run models, and nothing more
+//!
+//! A scene file (TOML) names the lungs, the PV preset and timing, the mesh resolution and how the
+//! renderer draws. Every field has a default ([`Scene::default`], mirrored by `scenes/default.toml`),
+//! so an empty file is the default scene. Unknown keys are errors: a misspelt key must not silently
+//! fall back to a default in a clinical tool.
+
+use std::path::Path;
+
+use serde::{Deserialize, Serialize};
+
+use crate::mesh::Side;
+
+/// A complete scene.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields, default)]
+pub struct Scene {
+    /// Pressure–volume model.
+    pub pv: PvScene,
+    /// Engine timing.
+    pub engine: EngineScene,
+    /// Lung geometry.
+    pub lungs: LungsScene,
+    /// Rendering.
+    pub render: RenderScene,
+}
+
+/// `[pv]` table.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields, default)]
+pub struct PvScene {
+    /// Preset name from Table 5.1 (see `lungdyn pv` presets).
+    pub preset: String,
+    /// Breaths per minute.
+    pub breaths_per_min: f64,
+    /// I:E ratio as `[I, E]`.
+    pub ie_ratio: [f64; 2],
+}
+
+/// `[engine]` table.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields, default)]
+pub struct EngineScene {
+    /// Tick rate, Hz.
+    pub tick_hz: f64,
+    /// Ticks the patient pose may be held before it is reported stale.
+    pub pose_staleness_ticks: u32,
+}
+
+/// `[lungs]` table.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields, default)]
+pub struct LungsScene {
+    /// Which lungs the scene simulates and draws.
+    pub sides: Vec<Side>,
+    /// Vertices per generated lung.
+    pub vertices: usize,
+}
+
+/// How lungs are drawn.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize)]
+#[serde(rename_all = "lowercase")]
+pub enum DrawMode {
+    /// Shaded triangles.
+    Triangles,
+    /// Point splats (one camera-facing quad per vertex).
+    Points,
+}
+
+/// `[render]` table.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields, default)]
+pub struct RenderScene {
+    /// Triangles or point splats.
+    pub mode: DrawMode,
+    /// Side-by-side stereo from the HMD pose.
+    pub stereo: bool,
+    /// Inter-pupillary distance, mm.
+    pub ipd_mm: f32,
+    /// Width of one eye's image, pixels.
+    pub width: u32,
+    /// Height of the image, pixels.
+    pub height: u32,
+    /// Vertical field of view, degrees.
+    pub fov_y_deg: f32,
+    /// Point-splat diameter, mm.
+    pub splat_mm: f32,
+}
+
+impl Default for Scene {
+    fn default() -> Self {
+        Self {
+            pv: PvScene::default(),
+            engine: EngineScene::default(),
+            lungs: LungsScene::default(),
+            render: RenderScene::default(),
+        }
+    }
+}
+
+impl Default for PvScene {
+    fn default() -> Self {
+        Self {
+            preset: crate::pv::DEFAULT_PRESET.to_string(),
+            breaths_per_min: 12.0,
+            ie_ratio: [1.0, 1.0],
+        }
+    }
+}
+
+impl Default for EngineScene {
+    fn default() -> Self {
+        Self {
+            tick_hz: 60.0,
+            pose_staleness_ticks: 30,
+        }
+    }
+}
+
+impl Default for LungsScene {
+    fn default() -> Self {
+        Self {
+            sides: vec![Side::Right, Side::Left],
+            vertices: 20_000,
+        }
+    }
+}
+
+impl Default for RenderScene {
+    fn default() -> Self {
+        Self {
+            mode: DrawMode::Triangles,
+            stereo: false,
+            ipd_mm: 63.0,
+            width: 800,
+            height: 600,
+            fov_y_deg: 40.0,
+            splat_mm: 2.5,
+        }
+    }
+}
+
+/// Errors loading a scene.
+#[derive(Debug, thiserror::Error)]
+pub enum SceneError {
+    /// The file could not be read.
+    #[error("cannot read scene {path}: {source}")]
+    Read {
+        /// Path.
+        path: String,
+        /// OS error.
+        source: std::io::Error,
+    },
+    /// The TOML is malformed or has unknown keys.
+    #[error("scene {path} is invalid: {message}")]
+    Parse {
+        /// Path.
+        path: String,
+        /// Parser message (with line and column).
+        message: String,
+    },
+    /// A value is out of range.
+    #[error("scene {path}: {message}")]
+    Invalid {
+        /// Path.
+        path: String,
+        /// What is wrong.
+        message: String,
+    },
+}
+
+impl Scene {
+    /// Load a scene from a TOML file and validate it.
+    pub fn load(path: &Path) -> Result<Self, SceneError> {
+        let p = path.display().to_string();
+        let text = std::fs::read_to_string(path).map_err(|source| SceneError::Read {
+            path: p.clone(),
+            source,
+        })?;
+        Self::parse(&text, &p)
+    }
+
+    /// Parse and validate scene TOML; `origin` names it in errors.
+    pub fn parse(text: &str, origin: &str) -> Result<Self, SceneError> {
+        let scene: Scene = toml::from_str(text).map_err(|e| SceneError::Parse {
+            path: origin.to_string(),
+            message: e.to_string(),
+        })?;
+        scene.validate().map_err(|message| SceneError::Invalid {
+            path: origin.to_string(),
+            message,
+        })?;
+        Ok(scene)
+    }
+
+    /// Load `path` if given, else the default scene.
+    pub fn load_or_default(path: Option<&Path>) -> Result<Self, SceneError> {
+        match path {
+            Some(p) => Self::load(p),
+            None => Ok(Self::default()),
+        }
+    }
+
+    /// Range checks that serde cannot express.
+    pub fn validate(&self) -> Result<(), String> {
+        crate::pv::preset(&self.pv.preset).map_err(|e| format!("[pv] preset: {e}"))?;
+        self.timing()
+            .phase_ticks()
+            .map_err(|e| format!("[pv]/[engine] timing: {e}"))?;
+        if !(1.0..=1000.0).contains(&self.engine.tick_hz) {
+            return Err(format!(
+                "[engine] tick_hz = {} must be within 1..1000",
+                self.engine.tick_hz
+            ));
+        }
+        if self.lungs.sides.is_empty() {
+            return Err("[lungs] sides must name at least one lung (\"left\", \"right\")".into());
+        }
+        let mut seen = self.lungs.sides.clone();
+        seen.sort_by_key(|s| s.index());
+        seen.dedup();
+        if seen.len() != self.lungs.sides.len() {
+            return Err("[lungs] sides lists a lung twice".into());
+        }
+        if !(crate::mesh::generate::MIN_VERTICES..=crate::mesh::generate::MAX_VERTICES)
+            .contains(&self.lungs.vertices)
+        {
+            return Err(format!(
+                "[lungs] vertices = {} must be within {}..{}",
+                self.lungs.vertices,
+                crate::mesh::generate::MIN_VERTICES,
+                crate::mesh::generate::MAX_VERTICES
+            ));
+        }
+        let r = &self.render;
+        if !(16..=8192).contains(&r.width) || !(16..=8192).contains(&r.height) {
+            return Err(format!(
+                "[render] width/height {}x{} must be within 16..8192",
+                r.width, r.height
+            ));
+        }
+        if !(r.fov_y_deg > 1.0 && r.fov_y_deg < 170.0) {
+            return Err(format!(
+                "[render] fov_y_deg = {} must be within 1..170",
+                r.fov_y_deg
+            ));
+        }
+        if !(r.ipd_mm >= 0.0 && r.ipd_mm < 200.0) || !(r.splat_mm > 0.0 && r.splat_mm < 100.0) {
+            return Err("[render] ipd_mm must be within 0..200 and splat_mm within 0..100".into());
+        }
+        Ok(())
+    }
+
+    /// Breathing timing of this scene.
+    pub fn timing(&self) -> crate::pv::Timing {
+        crate::pv::Timing {
+            tick_hz: self.engine.tick_hz,
+            breaths_per_min: self.pv.breaths_per_min,
+            ie_inhale: self.pv.ie_ratio[0],
+            ie_exhale: self.pv.ie_ratio[1],
+        }
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn the_committed_default_scene_is_the_built_in_default() {
+        let path = Path::new(env!("CARGO_MANIFEST_DIR")).join("../scenes/default.toml");
+        assert_eq!(Scene::load(&path).unwrap(), Scene::default());
+        assert_eq!(Scene::parse("", "empty").unwrap(), Scene::default());
+    }
+
+    #[test]
+    fn bad_scenes_are_refused_with_the_key_named() {
+        let e = Scene::parse("[pv]\npresett = \"x\"\n", "s.toml")
+            .unwrap_err()
+            .to_string();
+        assert!(e.contains("presett"), "{e}");
+        let e = Scene::parse("[pv]\npreset = \"nope\"\n", "s.toml")
+            .unwrap_err()
+            .to_string();
+        assert!(e.contains("unknown PV preset"), "{e}");
+        let e = Scene::parse("[lungs]\nvertices = 5\n", "s.toml")
+            .unwrap_err()
+            .to_string();
+        assert!(e.contains("vertices"), "{e}");
+        let e = Scene::parse("[lungs]\nsides = [\"left\", \"left\"]\n", "s.toml")
+            .unwrap_err()
+            .to_string();
+        assert!(e.contains("twice"), "{e}");
+        let e = Scene::parse("[render]\nmode = \"voxels\"\n", "s.toml")
+            .unwrap_err()
+            .to_string();
+        assert!(e.contains("voxels"), "{e}");
+    }
+}

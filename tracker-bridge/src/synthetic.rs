@@ -1,0 +1,158 @@
+//! A synthetic optical tracker: a supine patient with slow, bounded orientation drift and an HMD
+//! worn by someone walking around the bed at head height, looking at the patient's chest.
+//!
+//! Tracker (room) frame, millimetres: +Z up, the bed's long axis along +X (the patient's head at
+//! +X), bed surface at z = 900 mm. The patient reference sits on the sternum. Body frame (the lung
+//! meshes' frame): +X patient left, +Y anterior, +Z superior; supine, that is room +Y, +Z, +X.
+//! Camera convention of the HMD pose: looks along its local −Z with +Y up (right-handed).
+//!
+//! A sample is a pure function of its frame number, so a synthetic session is exactly repeatable.
+
+use glam::{Mat3, Quat, Vec3};
+use ipc_types::{
+    tool_status, HopStamps, Pose, ToolPose, TrackerFrame, LAYOUT_VERSION, TOOL_HMD, TOOL_PATIENT,
+};
+
+/// Sternum (patient reference) position at rest, room frame, mm.
+pub const STERNUM_MM: Vec3 = Vec3::new(0.0, 0.0, 1120.0);
+/// Height of the HMD wearer's eyes, mm.
+pub const HEAD_HEIGHT_MM: f32 = 1650.0;
+
+/// Parameters of the synthetic scene.
+#[derive(Debug, Clone, Copy)]
+pub struct Synthetic {
+    /// Sample rate, Hz.
+    pub rate_hz: f64,
+    /// Peak patient rotation drift about each axis, degrees.
+    pub drift_deg: f32,
+    /// Seconds per walk around the bed.
+    pub walk_period_s: f32,
+}
+
+impl Default for Synthetic {
+    fn default() -> Self {
+        Self {
+            rate_hz: 60.0,
+            drift_deg: 3.0,
+            walk_period_s: 40.0,
+        }
+    }
+}
+
+/// Supine orientation: body → room rotation (body X→room Y, body Y→room Z, body Z→room X).
+pub fn supine() -> Quat {
+    Quat::from_mat3(&Mat3::from_cols(Vec3::Y, Vec3::Z, Vec3::X))
+}
+
+/// A camera pose at `eye` looking at `target` with room +Z up, as a camera → room rotation.
+pub fn look_at(eye: Vec3, target: Vec3) -> Quat {
+    let forward = (target - eye).normalize();
+    let right = forward.cross(Vec3::Z).normalize();
+    let up = right.cross(forward);
+    Quat::from_mat3(&Mat3::from_cols(right, up, -forward)).normalize()
+}
+
+fn pose(q: Quat, t: Vec3) -> Pose {
+    Pose {
+        quat: q.to_array(),
+        translation_mm: t.to_array(),
+        _pad: 0,
+    }
+}
+
+impl Synthetic {
+    /// Patient reference pose at time `t` seconds: supine with bounded drift (incommensurate periods
+    /// so the motion never repeats exactly within a session, amplitude ≤ `drift_deg` per axis).
+    pub fn patient_pose(&self, t: f32) -> Pose {
+        let a = self.drift_deg.to_radians();
+        let tau = std::f32::consts::TAU;
+        let drift = Quat::from_rotation_z(a * (tau * t / 23.0).sin())
+            * Quat::from_rotation_x(0.7 * a * (tau * t / 31.0).sin())
+            * Quat::from_rotation_y(0.5 * a * (tau * t / 37.0).sin());
+        let shift = Vec3::new(
+            4.0 * (tau * t / 29.0).sin(),
+            3.0 * (tau * t / 41.0).sin(),
+            0.0,
+        );
+        pose((drift * supine()).normalize(), STERNUM_MM + shift)
+    }
+
+    /// HMD pose at time `t`: walking an ellipse around the bed at head height, facing the chest
+    /// (a point 80 mm below the sternum reference, where the lungs are).
+    pub fn hmd_pose(&self, t: f32) -> Pose {
+        let angle = std::f32::consts::TAU * t / self.walk_period_s - std::f32::consts::FRAC_PI_2;
+        let eye = Vec3::new(1300.0 * angle.cos(), 950.0 * angle.sin(), HEAD_HEIGHT_MM);
+        let target = STERNUM_MM - Vec3::new(0.0, 0.0, 80.0);
+        pose(look_at(eye, target), eye)
+    }
+
+    /// The tracker frame with number `n` (its time is `n / rate`), capture stamp `capture_ns`.
+    pub fn frame(&self, n: u64, capture_ns: u64) -> TrackerFrame {
+        let t = (n as f64 / self.rate_hz) as f32;
+        let mut tools = [ToolPose::default(); ipc_types::MAX_TOOLS];
+        tools[TOOL_PATIENT] = ToolPose {
+            tool_id: 1,
+            status: tool_status::VALID,
+            pose: self.patient_pose(t),
+            rms_error_mm: 0.25,
+            _pad: 0,
+        };
+        tools[TOOL_HMD] = ToolPose {
+            tool_id: 2,
+            status: tool_status::VALID,
+            pose: self.hmd_pose(t),
+            rms_error_mm: 0.35,
+            _pad: 0,
+        };
+        TrackerFrame {
+            layout_version: LAYOUT_VERSION,
+            tool_count: 2,
+            frame_number: n,
+            stamps: HopStamps {
+                capture_ns,
+                ..HopStamps::default()
+            },
+            tools,
+        }
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn patient_drift_is_slow_and_bounded() {
+        let s = Synthetic::default();
+        let rest = supine();
+        let mut prev = Quat::from_array(s.patient_pose(0.0).quat);
+        for i in 0..(600 * 60) {
+            let q = Quat::from_array(s.patient_pose(i as f32 / 60.0).quat);
+            assert!(q.is_normalized());
+            assert!(q.angle_between(rest).to_degrees() <= 3.0 * 1.9, "bounded");
+            assert!(q.angle_between(prev).to_degrees() < 0.05, "slow");
+            prev = q;
+        }
+    }
+
+    #[test]
+    fn the_hmd_walks_around_the_bed_at_head_height_facing_the_patient() {
+        let s = Synthetic::default();
+        for i in 0..40 {
+            let p = s.hmd_pose(i as f32);
+            let eye = Vec3::from(p.translation_mm);
+            assert!((eye.z - HEAD_HEIGHT_MM).abs() < 1e-3);
+            assert!(eye.truncate().length() > 900.0, "stays off the bed");
+            let forward = Quat::from_array(p.quat) * Vec3::NEG_Z;
+            let to_chest = (STERNUM_MM - Vec3::new(0.0, 0.0, 80.0) - eye).normalize();
+            assert!(forward.dot(to_chest) > 0.9999);
+        }
+    }
+
+    #[test]
+    fn samples_are_a_pure_function_of_the_frame_number() {
+        let s = Synthetic::default();
+        assert_eq!(s.frame(1234, 5), s.frame(1234, 5));
+        assert_eq!(s.frame(7, 0).tools[TOOL_PATIENT].status, tool_status::VALID);
+    }
+}
