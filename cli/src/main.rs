@@ -1,1 +1,75 @@
-fn main() {}
+//! `lungdyn`: thin argument parsing around the library.
+use clap::{Parser, Subcommand};
+
+#[derive(Parser)]
+#[command(
+    name = "lungdyn",
+    version,
+    about = "lungdyn: real-time breathing lungs for AR overlays (PV model + deformation on the GPU)",
+    long_about = "lungdyn simulates a patient's lungs breathing and renders them registered to the \
+                  tracked patient. `lungdyn demo` runs the whole pipeline (tracker-bridge, engine, \
+                  renderer as three processes over iceoryx2 shared memory) on the built-in lungs and \
+                  prints how fast it was."
+)]
+struct Cli {
+    #[command(subcommand)]
+    command: Command,
+}
+
+#[derive(Subcommand)]
+enum Command {
+    /// Run the three processes on the built-in scene, write PNGs across a breath, print latency.
+    Demo(lungdyn::demo::DemoArgs),
+    /// Lung surface meshes.
+    #[command(subcommand)]
+    Mesh(MeshCommand),
+    /// Run only the tracker-bridge process (what `demo` starts).
+    TrackerBridge(tracker_bridge::BridgeArgs),
+    /// Run only the engine process (what `demo` starts).
+    Engine(engine::runtime::process::EngineArgs),
+    /// Run only the renderer process (what `demo` starts).
+    Renderer(renderer::process::RendererArgs),
+}
+
+#[derive(Subcommand)]
+enum MeshCommand {
+    /// Generate the built-in adult lung (closed, 2-manifold) as OBJ or PLY.
+    Generate(lungdyn::mesh_cmd::GenerateArgs),
+}
+
+fn main() -> std::process::ExitCode {
+    let cli = Cli::parse();
+    let result = match cli.command {
+        Command::Demo(args) => lungdyn::demo::run(&args).and_then(|report| {
+            let table = lungdyn::demo::table(&report);
+            if args.json {
+                eprint!("{table}");
+                println!("{}", serde_json::to_string(&report)?);
+            } else {
+                print!("{table}");
+            }
+            Ok(())
+        }),
+        Command::Mesh(MeshCommand::Generate(args)) => lungdyn::mesh_cmd::run(&args).and_then(|m| {
+            if args.json {
+                println!("{}", serde_json::to_string(&m)?);
+            } else {
+                println!(
+                    "wrote {}: {} lung, {} vertices, {} triangles, {:.1} ml, {:.0} x {:.0} x {:.0} mm (closed 2-manifold)",
+                    m.path, m.lung, m.vertices, m.triangles, m.volume_ml, m.size_mm[0], m.size_mm[1], m.size_mm[2]
+                );
+            }
+            Ok(())
+        }),
+        Command::TrackerBridge(args) => tracker_bridge::run(&args),
+        Command::Engine(args) => engine::runtime::run(&args),
+        Command::Renderer(args) => renderer::process::run(&args),
+    };
+    match result {
+        Ok(()) => std::process::ExitCode::SUCCESS,
+        Err(e) => {
+            eprintln!("lungdyn: error: {e:#}");
+            std::process::ExitCode::FAILURE
+        }
+    }
+}

@@ -121,7 +121,7 @@ impl Default for LungsScene {
     fn default() -> Self {
         Self {
             sides: vec![Side::Right, Side::Left],
-            vertices: 20_000,
+            vertices: 10_000,
         }
     }
 }
@@ -134,7 +134,7 @@ impl Default for RenderScene {
             ipd_mm: 63.0,
             width: 800,
             height: 600,
-            fov_y_deg: 40.0,
+            fov_y_deg: 30.0,
             splat_mm: 2.5,
         }
     }

@@ -390,6 +390,51 @@ impl Services {
         Ok(config)
     }
 
+    /// Remove the instance's persistent iceoryx2 management segment (a node counter that outlives
+    /// its nodes by design). Call only after every process of the instance has exited: the file
+    /// prefix is unique to the instance, so no other run can be using it.
+    pub fn remove_instance_segment(&self) -> Result<(), IpcError> {
+        let config = self.config()?;
+        // SAFETY: iceoryx2 requires that no process uses this domain; the caller guarantees that
+        // every process of this instance (the only users of its unique prefix) has exited.
+        unsafe { iceoryx2::testing::remove_global_mgmt_segment::<ipc::Service>(&config) }
+            .map(|_| ())
+            .map_err(|e| IpcError::Service {
+                service: self.file_prefix(),
+                detail: format!("{e:?}"),
+            })
+    }
+
+    /// Files of this instance still present in shared memory (`/dev/shm`) or under iceoryx2's root
+    /// folder. Empty after a clean shutdown.
+    pub fn leftovers(&self) -> Vec<std::path::PathBuf> {
+        let prefix = self.file_prefix();
+        let mut found = Vec::new();
+        let root = Config::default().global.root_path().as_str().to_string();
+        let mut stack = vec![
+            std::path::PathBuf::from("/dev/shm"),
+            std::path::PathBuf::from(root),
+        ];
+        while let Some(dir) = stack.pop() {
+            let Ok(entries) = std::fs::read_dir(&dir) else {
+                continue;
+            };
+            for entry in entries.flatten() {
+                let path = entry.path();
+                if entry.file_type().map(|t| t.is_dir()).unwrap_or(false)
+                    && !dir.starts_with("/dev/shm")
+                {
+                    stack.push(path.clone());
+                }
+                if entry.file_name().to_string_lossy().starts_with(&prefix) {
+                    found.push(path);
+                }
+            }
+        }
+        found.sort();
+        found
+    }
+
     /// Create an iceoryx2 node for `role` (e.g. "engine") in this instance.
     pub fn node(&self, role: &str) -> Result<Node<ipc::Service>, IpcError> {
         let name = NodeName::new(&format!("lungdyn-{}-{}", self.instance, role)).map_err(|_| {
@@ -853,7 +898,7 @@ mod tests {
 
     #[test]
     fn frame_report_layout_is_pinned() {
-        assert_eq!(size_of::<FrameReport>(), 112);
+        assert_eq!(size_of::<FrameReport>(), 104);
         assert_eq!(align_of::<FrameReport>(), 8);
         assert_eq!(offset_of!(FrameReport, flags), 4);
         assert_eq!(offset_of!(FrameReport, frame), 8);

@@ -1,1 +1,380 @@
+//! # renderer: the breathing lungs on the GPU
+//!
+//! Each frame: one compute pass deforms every vertex of both lungs (EQUATIONS.md §2.4, first mode:
+//! `p + s·u`), then one render pass draws the deformed buffer once per eye (mono, or side-by-side
+//! stereo from the HMD pose with a per-eye IPD offset), registered to the tracked patient pose.
+//! Headless: an offscreen texture, read back to PNG on request. GPU time comes from timestamp
+//! queries where the adapter has them.
+//!
+//! Allocation on the frame path: lungdyn allocates nothing per frame; wgpu itself allocates command
+//! buffers and staging memory for `write_buffer` inside its own pools.
 
+pub mod camera;
+pub mod deform;
+pub mod draw;
+pub mod gpu;
+pub mod process;
+
+use engine::deform::LungModel;
+use engine::scene::{DrawMode, RenderScene};
+use ipc_types::Pose;
+use wgpu::util::DeviceExt;
+
+use crate::gpu::Gpu;
+
+/// What one frame draws.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct DrawState {
+    /// Deformation scale per lung slot (right, left).
+    pub deform_scale: [f32; 2],
+    /// Patient reference pose (registration).
+    pub patient: Pose,
+    /// HMD pose (camera).
+    pub hmd: Pose,
+}
+
+/// Timing of one submitted frame.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub struct FrameTiming {
+    /// Monotonic time right after `queue.submit`.
+    pub submit_ns: u64,
+    /// GPU time from the first timestamp (compute begin) to the last (render end), if measured.
+    pub gpu_ns: Option<u64>,
+}
+
+struct Timestamps {
+    set: wgpu::QuerySet,
+    resolve: wgpu::Buffer,
+    read: wgpu::Buffer,
+    period_ns: f32,
+}
+
+/// The renderer's GPU state for a fixed set of lungs and a fixed output size.
+pub struct LungRenderer {
+    deform: deform::DeformPass,
+    draw: draw::DrawPipelines,
+    index: wgpu::Buffer,
+    index_count: u32,
+    color: wgpu::Texture,
+    color_view: wgpu::TextureView,
+    depth_view: wgpu::TextureView,
+    readback: wgpu::Buffer,
+    padded_row: u32,
+    eye_width: u32,
+    height: u32,
+    eyes: usize,
+    settings: RenderScene,
+    timestamps: Option<Timestamps>,
+}
+
+const BACKGROUND: wgpu::Color = wgpu::Color {
+    r: 0.015,
+    g: 0.018,
+    b: 0.024,
+    a: 1.0,
+};
+
+impl LungRenderer {
+    /// Upload `lungs` and create the target for `settings`.
+    pub fn new(gpu: &Gpu, settings: &RenderScene, lungs: &[LungModel]) -> Self {
+        let device = &gpu.device;
+        let deform = deform::DeformPass::new(device, lungs);
+        let draw = draw::DrawPipelines::new(device);
+        let mut indices: Vec<u32> = Vec::new();
+        let mut offset = 0u32;
+        for lung in lungs {
+            indices.extend(
+                lung.mesh
+                    .triangles
+                    .iter()
+                    .flat_map(|t| t.map(|i| i + offset)),
+            );
+            offset += lung.mesh.positions.len() as u32;
+        }
+        let index = device.create_buffer_init(&wgpu::util::BufferInitDescriptor {
+            label: Some("lungdyn indices"),
+            contents: bytemuck::cast_slice(&indices),
+            usage: wgpu::BufferUsages::INDEX,
+        });
+        let eyes = if settings.stereo { 2 } else { 1 };
+        let width = settings.width * eyes as u32;
+        let size = wgpu::Extent3d {
+            width,
+            height: settings.height,
+            depth_or_array_layers: 1,
+        };
+        let color = device.create_texture(&wgpu::TextureDescriptor {
+            label: Some("lungdyn colour"),
+            size,
+            mip_level_count: 1,
+            sample_count: 1,
+            dimension: wgpu::TextureDimension::D2,
+            format: draw::COLOR_FORMAT,
+            usage: wgpu::TextureUsages::RENDER_ATTACHMENT | wgpu::TextureUsages::COPY_SRC,
+            view_formats: &[],
+        });
+        let depth = device.create_texture(&wgpu::TextureDescriptor {
+            label: Some("lungdyn depth"),
+            size,
+            mip_level_count: 1,
+            sample_count: 1,
+            dimension: wgpu::TextureDimension::D2,
+            format: draw::DEPTH_FORMAT,
+            usage: wgpu::TextureUsages::RENDER_ATTACHMENT,
+            view_formats: &[],
+        });
+        let padded_row = (width * 4).div_ceil(wgpu::COPY_BYTES_PER_ROW_ALIGNMENT)
+            * wgpu::COPY_BYTES_PER_ROW_ALIGNMENT;
+        let readback = device.create_buffer(&wgpu::BufferDescriptor {
+            label: Some("lungdyn readback"),
+            size: padded_row as u64 * settings.height as u64,
+            usage: wgpu::BufferUsages::COPY_DST | wgpu::BufferUsages::MAP_READ,
+            mapped_at_creation: false,
+        });
+        let timestamps = gpu.timestamps.then(|| Timestamps {
+            set: device.create_query_set(&wgpu::QuerySetDescriptor {
+                label: Some("lungdyn timestamps"),
+                ty: wgpu::QueryType::Timestamp,
+                count: 2,
+            }),
+            resolve: device.create_buffer(&wgpu::BufferDescriptor {
+                label: Some("lungdyn timestamp resolve"),
+                size: 16,
+                usage: wgpu::BufferUsages::QUERY_RESOLVE | wgpu::BufferUsages::COPY_SRC,
+                mapped_at_creation: false,
+            }),
+            read: device.create_buffer(&wgpu::BufferDescriptor {
+                label: Some("lungdyn timestamp read"),
+                size: 16,
+                usage: wgpu::BufferUsages::COPY_DST | wgpu::BufferUsages::MAP_READ,
+                mapped_at_creation: false,
+            }),
+            period_ns: gpu.queue.get_timestamp_period(),
+        });
+        Self {
+            deform,
+            draw,
+            index,
+            index_count: indices.len() as u32,
+            color_view: color.create_view(&Default::default()),
+            color,
+            depth_view: depth.create_view(&Default::default()),
+            readback,
+            padded_row,
+            eye_width: settings.width,
+            height: settings.height,
+            eyes,
+            settings: settings.clone(),
+            timestamps,
+        }
+    }
+
+    /// Image size (both eyes side by side in stereo).
+    pub fn image_size(&self) -> (u32, u32) {
+        (self.eye_width * self.eyes as u32, self.height)
+    }
+
+    /// Vertices drawn per frame (both lungs).
+    pub fn vertex_count(&self) -> u32 {
+        self.deform.count
+    }
+
+    /// Deform, draw every eye, submit, and wait for the GPU. With `capture`, the image is also
+    /// copied for [`Self::read_image`].
+    pub fn render(&self, gpu: &Gpu, state: &DrawState, capture: bool) -> FrameTiming {
+        let queue = &gpu.queue;
+        self.deform.set_scales(queue, state.deform_scale);
+        let aspect = self.eye_width as f32 / self.height as f32;
+        let s = &self.settings;
+        let (eyes, n) = camera::eyes(
+            &state.hmd,
+            &state.patient,
+            self.eyes == 2,
+            s.ipd_mm,
+            s.fov_y_deg,
+            aspect,
+            s.splat_mm,
+        );
+        for (buffer, eye) in self.draw.eye_buffers.iter().zip(&eyes[..n]) {
+            queue.write_buffer(buffer, 0, bytemuck::bytes_of(eye));
+        }
+        let mut encoder = gpu
+            .device
+            .create_command_encoder(&wgpu::CommandEncoderDescriptor {
+                label: Some("lungdyn frame"),
+            });
+        self.deform.encode(
+            &mut encoder,
+            self.timestamps
+                .as_ref()
+                .map(|t| wgpu::ComputePassTimestampWrites {
+                    query_set: &t.set,
+                    beginning_of_pass_write_index: Some(0),
+                    end_of_pass_write_index: None,
+                }),
+        );
+        {
+            let mut pass = encoder.begin_render_pass(&wgpu::RenderPassDescriptor {
+                label: Some("lungdyn draw"),
+                color_attachments: &[Some(wgpu::RenderPassColorAttachment {
+                    view: &self.color_view,
+                    depth_slice: None,
+                    resolve_target: None,
+                    ops: wgpu::Operations {
+                        load: wgpu::LoadOp::Clear(BACKGROUND),
+                        store: wgpu::StoreOp::Store,
+                    },
+                })],
+                depth_stencil_attachment: Some(wgpu::RenderPassDepthStencilAttachment {
+                    view: &self.depth_view,
+                    depth_ops: Some(wgpu::Operations {
+                        load: wgpu::LoadOp::Clear(1.0),
+                        store: wgpu::StoreOp::Discard,
+                    }),
+                    stencil_ops: None,
+                }),
+                timestamp_writes: self.timestamps.as_ref().map(|t| {
+                    wgpu::RenderPassTimestampWrites {
+                        query_set: &t.set,
+                        beginning_of_pass_write_index: None,
+                        end_of_pass_write_index: Some(1),
+                    }
+                }),
+                occlusion_query_set: None,
+                multiview_mask: None,
+            });
+            pass.set_vertex_buffer(0, self.deform.deformed.slice(..));
+            match s.mode {
+                DrawMode::Triangles => {
+                    pass.set_pipeline(&self.draw.triangles);
+                    pass.set_index_buffer(self.index.slice(..), wgpu::IndexFormat::Uint32);
+                }
+                DrawMode::Points => pass.set_pipeline(&self.draw.splats),
+            }
+            for (i, group) in self.draw.eye_groups.iter().take(n).enumerate() {
+                pass.set_viewport(
+                    (i as u32 * self.eye_width) as f32,
+                    0.0,
+                    self.eye_width as f32,
+                    self.height as f32,
+                    0.0,
+                    1.0,
+                );
+                pass.set_bind_group(0, group, &[]);
+                match s.mode {
+                    DrawMode::Triangles => pass.draw_indexed(0..self.index_count, 0, 0..1),
+                    DrawMode::Points => pass.draw(0..6, 0..self.deform.count),
+                }
+            }
+        }
+        if let Some(t) = &self.timestamps {
+            encoder.resolve_query_set(&t.set, 0..2, &t.resolve, 0);
+            encoder.copy_buffer_to_buffer(&t.resolve, 0, &t.read, 0, 16);
+        }
+        if capture {
+            let (w, h) = self.image_size();
+            encoder.copy_texture_to_buffer(
+                wgpu::TexelCopyTextureInfo {
+                    texture: &self.color,
+                    mip_level: 0,
+                    origin: wgpu::Origin3d::ZERO,
+                    aspect: wgpu::TextureAspect::All,
+                },
+                wgpu::TexelCopyBufferInfo {
+                    buffer: &self.readback,
+                    layout: wgpu::TexelCopyBufferLayout {
+                        offset: 0,
+                        bytes_per_row: Some(self.padded_row),
+                        rows_per_image: Some(h),
+                    },
+                },
+                wgpu::Extent3d {
+                    width: w,
+                    height: h,
+                    depth_or_array_layers: 1,
+                },
+            );
+        }
+        let index = queue.submit(Some(encoder.finish()));
+        let submit_ns = ipc_types::now_ns();
+        // Headless: wait for this frame, so the next one never queues behind it (one frame in flight).
+        let _ = gpu.device.poll(wgpu::PollType::Wait {
+            submission_index: Some(index),
+            timeout: None,
+        });
+        let gpu_ns = self.timestamps.as_ref().and_then(|t| {
+            let ticks = read_mapped(gpu, &t.read, |bytes| {
+                let a = u64::from_le_bytes(bytes[0..8].try_into().unwrap());
+                let b = u64::from_le_bytes(bytes[8..16].try_into().unwrap());
+                b.saturating_sub(a)
+            })?;
+            Some((ticks as f64 * t.period_ns as f64) as u64)
+        });
+        FrameTiming { submit_ns, gpu_ns }
+    }
+
+    /// The image of the last [`Self::render`] called with `capture = true`, as tightly packed
+    /// sRGB RGBA8.
+    pub fn read_image(&self, gpu: &Gpu) -> Option<image::RgbaImage> {
+        let (w, h) = self.image_size();
+        let row = self.padded_row as usize;
+        let pixels = read_mapped(gpu, &self.readback, |bytes| {
+            let mut out = Vec::with_capacity((w * h * 4) as usize);
+            for y in 0..h as usize {
+                out.extend_from_slice(&bytes[y * row..y * row + w as usize * 4]);
+            }
+            out
+        })?;
+        image::RgbaImage::from_raw(w, h, pixels)
+    }
+
+    /// Read back the deformed vertex buffer (tests compare it with the CPU reference).
+    pub fn read_deformed(&self, gpu: &Gpu) -> Option<Vec<[f32; 4]>> {
+        let size = self.deform.count as u64 * 16;
+        let staging = gpu.device.create_buffer(&wgpu::BufferDescriptor {
+            label: Some("lungdyn deformed readback"),
+            size,
+            usage: wgpu::BufferUsages::COPY_DST | wgpu::BufferUsages::MAP_READ,
+            mapped_at_creation: false,
+        });
+        let mut encoder = gpu.device.create_command_encoder(&Default::default());
+        encoder.copy_buffer_to_buffer(&self.deform.deformed, 0, &staging, 0, size);
+        let index = gpu.queue.submit(Some(encoder.finish()));
+        let _ = gpu.device.poll(wgpu::PollType::Wait {
+            submission_index: Some(index),
+            timeout: None,
+        });
+        read_mapped(gpu, &staging, |bytes| {
+            bytemuck::cast_slice::<u8, [f32; 4]>(bytes).to_vec()
+        })
+    }
+}
+
+/// Map `buffer` for reading (after the GPU work that wrote it completed), run `f` on its bytes,
+/// unmap. `None` if mapping failed.
+fn read_mapped<T>(gpu: &Gpu, buffer: &wgpu::Buffer, f: impl FnOnce(&[u8]) -> T) -> Option<T> {
+    buffer.map_async(wgpu::MapMode::Read, .., |_| {});
+    gpu.device
+        .poll(wgpu::PollType::Wait {
+            submission_index: None,
+            timeout: None,
+        })
+        .ok()?;
+    let result = {
+        let view = buffer.get_mapped_range(..).ok()?;
+        f(&view)
+    };
+    buffer.unmap();
+    Some(result)
+}
+
+/// Write `img` as a PNG atomically (temporary file, then rename).
+pub fn write_png(
+    img: &image::RgbaImage,
+    path: &std::path::Path,
+) -> Result<(), engine::mesh::io::WriteError> {
+    engine::mesh::io::write_atomically(path, |w| {
+        img.write_to(w, image::ImageFormat::Png)
+            .map_err(std::io::Error::other)
+    })
+}

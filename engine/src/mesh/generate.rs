@@ -230,12 +230,14 @@ fn shape_point(s: DVec3, shape: &LungShape) -> DVec3 {
     let phi = s.y.atan2(s.x);
     let (sin_phi, cos_phi) = phi.sin_cos();
     // Horizontal profile: a narrowed round dome above, a flat-rimmed superellipse below.
-    let profile = if h < 0.5 {
-        let r = (1.0 - (1.0 - 2.0 * h).powi(2)).max(0.0).sqrt();
-        r * (0.55 + 0.45 * smoothstep(0.0, 0.8, h))
-    } else {
-        (1.0 - (2.0 * h - 1.0).powi(5)).max(0.0).powf(0.2)
-    };
+    // The taper spans both halves so the profile is continuous at h = 0.5 (no ridge).
+    let taper = 0.62 + 0.38 * smoothstep(0.0, 0.75, h);
+    let profile = taper
+        * if h < 0.5 {
+            (1.0 - (1.0 - 2.0 * h).powi(2)).max(0.0).powf(0.4)
+        } else {
+            (1.0 - (2.0 * h - 1.0).powi(5)).max(0.0).powf(0.2)
+        };
     // Costal side wider than medial; posterior deeper than anterior (both smooth in φ).
     let half_width = 0.5 * (shape.lateral_mm + shape.medial_mm)
         + 0.5 * (shape.lateral_mm - shape.medial_mm) * cos_phi;

@@ -1,0 +1,476 @@
+//! `lungdyn demo`: start the three processes, let the lungs breathe, measure, stop cleanly.
+//!
+//! The launcher re-executes its own binary once per role (`lungdyn tracker-bridge|engine|renderer`),
+//! so `cargo run --bin lungdyn` is enough on a fresh clone; each role is a separate OS process
+//! talking to the others only through iceoryx2. Children get `PR_SET_PDEATHSIG`, so they die with
+//! the launcher even if it is killed. On exit (or Ctrl-C) each child gets SIGINT, then SIGKILL after
+//! a grace period; dead-node resources are cleaned and the instance's files are checked to be gone.
+
+use std::path::{Path, PathBuf};
+use std::process::{Child, Command, Stdio};
+use std::time::Duration;
+
+use anyhow::{bail, Context};
+use ipc_types::{now_ns, FrameReport, Inlet, Services};
+use serde::Serialize;
+
+use crate::stats::{HopRow, LatencyStats, DEADLINE_NS};
+
+/// Options of `lungdyn demo`.
+#[derive(Debug, Clone, clap::Args)]
+pub struct DemoArgs {
+    /// Seconds to run once frames flow.
+    #[arg(long, default_value_t = 10.0)]
+    pub seconds: f64,
+    /// Folder for the PNG frames (created if missing).
+    #[arg(long, default_value = "out")]
+    pub out: PathBuf,
+    /// PNG frames to write, spread over one breathing cycle (0 for none).
+    #[arg(long, default_value_t = 6)]
+    pub snapshots: u32,
+    /// Scene file (TOML); the built-in default scene when omitted.
+    #[arg(long)]
+    pub scene: Option<PathBuf>,
+    /// Instance name (service and shared-memory names derive from it); unique per run by default.
+    #[arg(long)]
+    pub instance: Option<String>,
+    /// Print one JSON object with the results on stdout (the table goes to stderr).
+    #[arg(long)]
+    pub json: bool,
+    /// Pin tracker-bridge, engine and renderer to these three cores, e.g. `--cpus 0,1,1`.
+    #[arg(long, value_delimiter = ',', num_args = 3)]
+    pub cpus: Vec<usize>,
+    /// Seconds to wait for the first frame before giving up.
+    #[arg(long, default_value_t = 60.0)]
+    pub startup_timeout: f64,
+}
+
+/// The demo's machine-readable result.
+#[derive(Debug, Serialize)]
+pub struct DemoReport {
+    /// Frames the renderer drew and reported.
+    pub frames_rendered: u64,
+    /// Frames whose end-to-end latency exceeded 16.7 ms.
+    pub deadline_misses: u64,
+    /// End-to-end (tracker capture → renderer submit) median, ms.
+    pub end_to_end_p50_ms: f64,
+    /// End-to-end 99th percentile, ms.
+    pub end_to_end_p99_ms: f64,
+    /// End-to-end maximum, ms.
+    pub end_to_end_max_ms: f64,
+    /// PNG frames written.
+    pub pngs: Vec<String>,
+    /// Per-hop rows.
+    pub hops: Vec<HopRow>,
+    /// Seconds measured.
+    pub seconds: f64,
+    /// Frames per second drawn.
+    pub fps: f64,
+    /// Frames drawn without a fresh engine frame.
+    pub stale_frames: u64,
+    /// Engine ticks never drawn.
+    pub skipped_ticks: u64,
+    /// Reports lost between renderer and launcher.
+    pub lost_reports: u64,
+    /// Frames with incomplete or unordered hop stamps.
+    pub bad_stamps: u64,
+    /// Summed lung volume range drawn, ml.
+    pub volume_min_ml: f32,
+    /// Summed lung volume range drawn, ml.
+    pub volume_max_ml: f32,
+    /// Instance files left behind after shutdown (should be 0).
+    pub leftover_files: usize,
+    /// The instance name used.
+    pub instance: String,
+}
+
+struct Children {
+    procs: Vec<(&'static str, Child)>,
+}
+
+impl Children {
+    fn spawn(
+        exe: &Path,
+        role: &'static str,
+        args: &[String],
+    ) -> anyhow::Result<(&'static str, Child)> {
+        let mut cmd = Command::new(exe);
+        cmd.arg(role)
+            .args(args)
+            .stdin(Stdio::null())
+            .stdout(Stdio::null())
+            .stderr(Stdio::inherit());
+        // SAFETY: prctl is async-signal-safe; it only arms a signal for when the parent dies.
+        unsafe {
+            use std::os::unix::process::CommandExt;
+            cmd.pre_exec(|| {
+                libc::prctl(libc::PR_SET_PDEATHSIG, libc::SIGTERM);
+                Ok(())
+            });
+        }
+        let child = cmd
+            .spawn()
+            .with_context(|| format!("cannot start the {role} process ({})", exe.display()))?;
+        Ok((role, child))
+    }
+
+    /// The first child that exited, with its status.
+    fn exited(&mut self) -> Option<(&'static str, std::process::ExitStatus)> {
+        self.procs
+            .iter_mut()
+            .find_map(|(role, c)| c.try_wait().ok().flatten().map(|s| (*role, s)))
+    }
+
+    /// SIGINT everyone, wait up to `grace`, SIGKILL stragglers. Returns roles that had to be killed.
+    fn stop(&mut self, grace: Duration) -> Vec<&'static str> {
+        for (_, c) in &self.procs {
+            // SAFETY: signalling our own child by pid.
+            unsafe { libc::kill(c.id() as libc::pid_t, libc::SIGINT) };
+        }
+        let until = now_ns() + grace.as_nanos() as u64;
+        let mut killed = Vec::new();
+        for (role, c) in &mut self.procs {
+            loop {
+                match c.try_wait() {
+                    Ok(Some(_)) => break,
+                    Ok(None) if now_ns() < until => std::thread::sleep(Duration::from_millis(10)),
+                    _ => {
+                        let _ = c.kill();
+                        let _ = c.wait();
+                        killed.push(*role);
+                        break;
+                    }
+                }
+            }
+        }
+        killed
+    }
+}
+
+impl Drop for Children {
+    fn drop(&mut self) {
+        for (_, c) in &mut self.procs {
+            if let Ok(None) = c.try_wait() {
+                let _ = c.kill();
+                let _ = c.wait();
+            }
+        }
+    }
+}
+
+/// Check `dir` can take our PNGs: create it, write and remove a probe file.
+pub fn check_writable(dir: &Path) -> anyhow::Result<()> {
+    std::fs::create_dir_all(dir)
+        .with_context(|| format!("--out {}: cannot create the folder", dir.display()))?;
+    let probe = dir.join(format!(".lungdyn-write-probe-{}", std::process::id()));
+    std::fs::write(&probe, b"probe")
+        .with_context(|| format!("--out {}: the folder is not writable", dir.display()))?;
+    std::fs::remove_file(&probe).ok();
+    Ok(())
+}
+
+/// Engine ticks at which to take `count` snapshots across one breathing cycle within `run_ticks`.
+pub fn snapshot_ticks(count: u32, cycle_ticks: u64, run_ticks: u64, warmup_ticks: u64) -> Vec<u64> {
+    if count == 0 || run_ticks <= warmup_ticks {
+        return Vec::new();
+    }
+    // Start at the first cycle boundary after the warm-up if a whole cycle fits; otherwise spread
+    // over what the run has.
+    let first_cycle = warmup_ticks.div_ceil(cycle_ticks) * cycle_ticks;
+    let (start, span) = if first_cycle + cycle_ticks <= run_ticks {
+        (first_cycle, cycle_ticks)
+    } else {
+        (warmup_ticks, run_ticks - warmup_ticks)
+    };
+    (0..count as u64)
+        .map(|k| start + k * span / count as u64)
+        .collect()
+}
+
+/// Run the demo; returns the report (the caller prints it).
+pub fn run(args: &DemoArgs) -> anyhow::Result<DemoReport> {
+    if !(args.seconds.is_finite() && args.seconds > 0.0 && args.seconds <= 86_400.0) {
+        bail!(
+            "--seconds {} must be a number of seconds within (0, 86400]",
+            args.seconds
+        );
+    }
+    if !(args.startup_timeout.is_finite() && args.startup_timeout > 0.0) {
+        bail!(
+            "--startup-timeout {} must be a positive number of seconds",
+            args.startup_timeout
+        );
+    }
+    let scene = engine::scene::Scene::load_or_default(args.scene.as_deref())?;
+    check_writable(&args.out)?;
+    let instance = args
+        .instance
+        .clone()
+        .unwrap_or_else(|| format!("demo-{}", std::process::id()));
+    let services = Services::new(&instance)?;
+    let breathing =
+        engine::pv::Breathing::new(&engine::pv::preset(&scene.pv.preset)?, &scene.timing())?;
+    let tick_hz = scene.engine.tick_hz;
+    let run_ticks = (args.seconds * tick_hz) as u64;
+    let targets = snapshot_ticks(
+        args.snapshots,
+        breathing.cycle_ticks() as u64,
+        run_ticks,
+        tick_hz as u64,
+    );
+
+    // Subscribe to the reports before anything can publish them.
+    let node = services.node("launcher")?;
+    let reports: Inlet<FrameReport> = Inlet::new(
+        &node,
+        &services.report(),
+        &format!("{}-ready", services.report()),
+    )?;
+
+    let exe = std::env::current_exe()
+        .context("cannot find the lungdyn executable to start the processes")?;
+    let mut common = vec!["--instance".to_string(), instance.clone()];
+    // Children outlive a stuck launcher by at most this long.
+    let child_seconds = (args.seconds + args.startup_timeout + 30.0).to_string();
+    common.extend(["--seconds".to_string(), child_seconds]);
+    let with_scene = |mut v: Vec<String>| {
+        if let Some(s) = &args.scene {
+            v.extend(["--scene".to_string(), s.display().to_string()]);
+        }
+        v
+    };
+    let cpu = |i: usize| {
+        args.cpus
+            .get(i)
+            .map(|c| vec!["--cpu".to_string(), c.to_string()])
+            .unwrap_or_default()
+    };
+    let mut renderer_args = with_scene([common.clone(), cpu(2)].concat());
+    if !targets.is_empty() {
+        renderer_args.push("--snapshot-ticks".into());
+        renderer_args.push(
+            targets
+                .iter()
+                .map(|t| t.to_string())
+                .collect::<Vec<_>>()
+                .join(","),
+        );
+        renderer_args.extend(["--snapshot-dir".to_string(), args.out.display().to_string()]);
+    }
+    let existing: std::collections::HashSet<PathBuf> = list_pngs(&args.out).into_iter().collect();
+    let mut children = Children { procs: Vec::new() };
+    children
+        .procs
+        .push(Children::spawn(&exe, "renderer", &renderer_args)?);
+    children.procs.push(Children::spawn(
+        &exe,
+        "engine",
+        &with_scene([common.clone(), cpu(1)].concat()),
+    )?);
+    children.procs.push(Children::spawn(
+        &exe,
+        "tracker-bridge",
+        &[common.clone(), cpu(0)].concat(),
+    )?);
+
+    let mut stats = LatencyStats::new();
+    let started = now_ns();
+    let mut first_frame_ns: Option<u64> = None;
+    let mut interrupted = false;
+    let mut failure: Option<String> = None;
+    let mut last_progress = 0u64;
+    loop {
+        if node.wait(Duration::from_millis(5)).is_err() {
+            interrupted = true;
+            eprintln!("lungdyn: interrupted, stopping the processes");
+            break;
+        }
+        reports.drain(|r| {
+            if first_frame_ns.is_none() {
+                first_frame_ns = Some(now_ns());
+            }
+            stats.record(r);
+        })?;
+        let now = now_ns();
+        if let Some((role, status)) = children.exited() {
+            failure = Some(format!(
+                "the {role} process exited early ({status}); see its message above"
+            ));
+            break;
+        }
+        match first_frame_ns {
+            None if now - started > (args.startup_timeout * 1e9) as u64 => {
+                failure = Some(format!(
+                    "no frame reached the renderer within {} s: the pipeline did not start",
+                    args.startup_timeout
+                ));
+                break;
+            }
+            Some(t0) if now - t0 >= (args.seconds * 1e9) as u64 => break,
+            Some(t0) if !args.json && (now - t0) / 1_000_000_000 > last_progress => {
+                last_progress = (now - t0) / 1_000_000_000;
+                eprint!(
+                    "\rlungdyn: {last_progress:>4} s / {} s, {} frames",
+                    args.seconds, stats.frames
+                );
+            }
+            _ => {}
+        }
+    }
+    if last_progress > 0 {
+        eprintln!();
+    }
+    let measured_s = first_frame_ns
+        .map(|t0| (now_ns() - t0) as f64 / 1e9)
+        .unwrap_or(0.0);
+    let killed = children.stop(Duration::from_secs(5));
+    let _ = reports.drain(|r| stats.record(r));
+    drop(reports);
+    node.try_cleanup_dead_nodes();
+    drop(node);
+    services.remove_instance_segment().ok();
+    let leftovers = services.leftovers();
+    if !leftovers.is_empty() {
+        eprintln!(
+            "lungdyn: warning: {} shared-memory/iceoryx2 files of this run were left behind:",
+            leftovers.len()
+        );
+        for f in &leftovers {
+            eprintln!("  {}", f.display());
+        }
+    }
+    if !killed.is_empty() {
+        eprintln!("lungdyn: warning: had to kill {killed:?} after SIGINT");
+    }
+    if let Some(f) = failure {
+        bail!(f);
+    }
+    let mut pngs: Vec<String> = list_pngs(&args.out)
+        .into_iter()
+        .filter(|p| !existing.contains(p))
+        .map(|p| p.display().to_string())
+        .collect();
+    pngs.sort();
+    if interrupted && stats.frames == 0 {
+        bail!("interrupted before any frame was drawn");
+    }
+    let e2e = stats.end_to_end();
+    Ok(DemoReport {
+        frames_rendered: stats.frames,
+        deadline_misses: stats.deadline_misses,
+        end_to_end_p50_ms: e2e.p50_ms,
+        end_to_end_p99_ms: e2e.p99_ms,
+        end_to_end_max_ms: e2e.max_ms,
+        pngs,
+        hops: stats.rows(),
+        seconds: measured_s,
+        fps: if measured_s > 0.0 {
+            stats.frames as f64 / measured_s
+        } else {
+            0.0
+        },
+        stale_frames: stats.stale_frames,
+        skipped_ticks: stats.skipped_ticks,
+        lost_reports: stats.lost_reports,
+        bad_stamps: stats.bad_stamps,
+        volume_min_ml: if stats.frames > 0 {
+            stats.volume_range.0
+        } else {
+            0.0
+        },
+        volume_max_ml: if stats.frames > 0 {
+            stats.volume_range.1
+        } else {
+            0.0
+        },
+        leftover_files: leftovers.len(),
+        instance,
+    })
+}
+
+fn list_pngs(dir: &Path) -> Vec<PathBuf> {
+    std::fs::read_dir(dir)
+        .map(|rd| {
+            rd.flatten()
+                .map(|e| e.path())
+                .filter(|p| p.extension().is_some_and(|e| e == "png"))
+                .collect()
+        })
+        .unwrap_or_default()
+}
+
+/// The human-readable latency table.
+pub fn table(r: &DemoReport) -> String {
+    use std::fmt::Write;
+    let mut s = String::new();
+    let _ = writeln!(
+        s,
+        "lungdyn demo: {} frames in {:.1} s ({:.1} fps), lung volume {:.0}-{:.0} ml",
+        r.frames_rendered, r.seconds, r.fps, r.volume_min_ml, r.volume_max_ml
+    );
+    let _ = writeln!(
+        s,
+        "{:<42} {:>8} {:>9} {:>9} {:>9}",
+        "hop", "frames", "p50 ms", "p99 ms", "max ms"
+    );
+    for h in &r.hops {
+        let _ = writeln!(
+            s,
+            "{:<42} {:>8} {:>9.3} {:>9.3} {:>9.3}",
+            h.hop, h.count, h.p50_ms, h.p99_ms, h.max_ms
+        );
+    }
+    let pct = if r.frames_rendered > 0 {
+        100.0 * r.deadline_misses as f64 / r.frames_rendered as f64
+    } else {
+        0.0
+    };
+    let _ = writeln!(
+        s,
+        "deadline misses (end to end > {:.1} ms): {} of {} ({:.2} %)",
+        DEADLINE_NS as f64 / 1e6,
+        r.deadline_misses,
+        r.frames_rendered,
+        pct
+    );
+    let _ = writeln!(
+        s,
+        "stale frames {}, engine ticks not drawn {}, reports lost {}, leftover shm files {}",
+        r.stale_frames, r.skipped_ticks, r.lost_reports, r.leftover_files
+    );
+    if r.pngs.is_empty() {
+        let _ = writeln!(s, "PNG frames: none");
+    } else {
+        let _ = writeln!(s, "PNG frames across one breath:");
+        for p in &r.pngs {
+            let _ = writeln!(s, "  {p}");
+        }
+    }
+    s
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn snapshots_span_one_cycle_after_warm_up() {
+        assert_eq!(
+            snapshot_ticks(6, 300, 600, 60),
+            vec![300, 350, 400, 450, 500, 550]
+        );
+        // A short run spreads the snapshots over what it has.
+        assert_eq!(snapshot_ticks(3, 300, 180, 60), vec![60, 100, 140]);
+        assert!(snapshot_ticks(0, 300, 600, 60).is_empty());
+        assert!(snapshot_ticks(4, 300, 30, 60).is_empty());
+    }
+
+    #[test]
+    fn an_unwritable_out_folder_is_a_clear_error() {
+        let e = check_writable(Path::new("/proc/lungdyn-cannot-exist")).unwrap_err();
+        assert!(
+            format!("{e:#}").contains("--out /proc/lungdyn-cannot-exist"),
+            "{e:#}"
+        );
+    }
+}

@@ -1,0 +1,10 @@
+//! # lungdyn: the launcher and command-line tools
+//!
+//! `lungdyn demo` supervises the three processes and measures them ([`demo`], [`stats`]);
+//! `lungdyn mesh generate` writes the built-in lungs ([`mesh_cmd`]). The process roles themselves
+//! (`lungdyn tracker-bridge|engine|renderer`) are the same library entry points as the standalone
+//! binaries.
+
+pub mod demo;
+pub mod mesh_cmd;
+pub mod stats;

@@ -1,0 +1,105 @@
+//! GPU context: one wgpu instance, adapter, device and queue (Vulkan: lavapipe in CI, the real
+//! driver on the HMD workstation).
+
+use thiserror::Error;
+
+/// Environment variable that turns a missing adapter in tests into a failure (CI sets it).
+pub const REQUIRE_GPU_ENV: &str = "LUNGDYN_REQUIRE_GPU";
+
+/// An open GPU.
+pub struct Gpu {
+    /// The adapter the device was opened on.
+    pub adapter: wgpu::Adapter,
+    /// The device.
+    pub device: wgpu::Device,
+    /// Its queue.
+    pub queue: wgpu::Queue,
+    /// Adapter name, driver, backend.
+    pub info: wgpu::AdapterInfo,
+    /// Whether GPU timestamp queries are available (per-frame GPU time).
+    pub timestamps: bool,
+}
+
+/// Errors opening the GPU.
+#[derive(Debug, Error)]
+pub enum GpuError {
+    /// No Vulkan adapter.
+    #[error(
+        "no GPU adapter found ({detail}); on a machine without a GPU install Mesa's lavapipe \
+         (apt-get install mesa-vulkan-drivers libvulkan1) and set WGPU_BACKEND=vulkan"
+    )]
+    NoAdapter {
+        /// wgpu's reason.
+        detail: String,
+    },
+    /// The adapter refused the device.
+    #[error("the GPU adapter {adapter} refused to open a device: {detail}")]
+    Device {
+        /// Adapter name.
+        adapter: String,
+        /// wgpu's reason.
+        detail: String,
+    },
+}
+
+impl Gpu {
+    /// Open the best adapter (honours `WGPU_BACKEND`, `WGPU_ADAPTER_NAME`).
+    pub fn new() -> Result<Self, GpuError> {
+        let instance =
+            wgpu::Instance::new(wgpu::InstanceDescriptor::new_without_display_handle_from_env());
+        let adapter = pollster::block_on(instance.request_adapter(&wgpu::RequestAdapterOptions {
+            power_preference: wgpu::PowerPreference::HighPerformance,
+            ..Default::default()
+        }))
+        .map_err(|e| GpuError::NoAdapter {
+            detail: e.to_string(),
+        })?;
+        let info = adapter.get_info();
+        let timestamps = adapter.features().contains(wgpu::Features::TIMESTAMP_QUERY);
+        let required_features = if timestamps {
+            wgpu::Features::TIMESTAMP_QUERY
+        } else {
+            wgpu::Features::empty()
+        };
+        let (device, queue) = pollster::block_on(adapter.request_device(&wgpu::DeviceDescriptor {
+            label: Some("lungdyn"),
+            required_features,
+            required_limits: adapter.limits(),
+            ..Default::default()
+        }))
+        .map_err(|e| GpuError::Device {
+            adapter: info.name.clone(),
+            detail: e.to_string(),
+        })?;
+        Ok(Self {
+            adapter,
+            device,
+            queue,
+            info,
+            timestamps,
+        })
+    }
+
+    /// One line naming the adapter, for reports.
+    pub fn describe(&self) -> String {
+        format!(
+            "{} ({:?}, {} {})",
+            self.info.name, self.info.backend, self.info.driver, self.info.driver_info
+        )
+    }
+
+    /// For tests: the GPU, or `None` (with a note on stderr) when there is none — unless
+    /// `LUNGDYN_REQUIRE_GPU=1`, where a missing adapter is a test failure, never a silent skip.
+    pub fn for_tests() -> Option<Self> {
+        match Self::new() {
+            Ok(gpu) => Some(gpu),
+            Err(e) => {
+                if std::env::var(REQUIRE_GPU_ENV).as_deref() == Ok("1") {
+                    panic!("{REQUIRE_GPU_ENV}=1 but {e}");
+                }
+                eprintln!("SKIPPED (no GPU and {REQUIRE_GPU_ENV} is not 1): {e}");
+                None
+            }
+        }
+    }
+}

@@ -1,0 +1,164 @@
+//! The command line: clear errors and non-zero exits for bad input, never a panic; the demo and
+//! `mesh generate` produce what they promise.
+
+use std::process::Command;
+
+use lungdyn_tests::bin;
+
+fn lungdyn(args: &[&str]) -> (bool, String, String) {
+    let out = Command::new(bin("lungdyn")).args(args).output().unwrap();
+    (
+        out.status.success(),
+        String::from_utf8_lossy(&out.stdout).into_owned(),
+        String::from_utf8_lossy(&out.stderr).into_owned(),
+    )
+}
+
+fn assert_clean_failure(args: &[&str], needle: &str) {
+    let (ok, _, err) = lungdyn(args);
+    assert!(!ok, "{args:?} should fail");
+    assert!(
+        err.contains(needle),
+        "{args:?}: expected {needle:?} in: {err}"
+    );
+    assert!(!err.contains("panicked"), "{args:?} panicked: {err}");
+}
+
+#[test]
+fn bad_arguments_give_one_clear_message_and_a_non_zero_exit() {
+    assert_clean_failure(&["demo", "--bogus"], "unexpected argument '--bogus'");
+    assert_clean_failure(&["demo", "--seconds=-3"], "--seconds -3");
+    assert_clean_failure(&["demo", "--seconds", "nan"], "--seconds NaN");
+    assert_clean_failure(
+        &["demo", "--out", "/proc/lungdyn-no"],
+        "--out /proc/lungdyn-no",
+    );
+    assert_clean_failure(
+        &["demo", "--scene", "/nonexistent/scene.toml"],
+        "cannot read scene",
+    );
+    assert_clean_failure(&["demo", "--instance", "bad/name"], "instance name");
+    assert_clean_failure(
+        &["mesh", "generate", "--lung", "middle", "--out", "x.obj"],
+        "middle",
+    );
+    assert_clean_failure(
+        &[
+            "mesh",
+            "generate",
+            "--lung",
+            "left",
+            "--vertices",
+            "3",
+            "--out",
+            "/tmp/x.obj",
+        ],
+        "out of range",
+    );
+    assert_clean_failure(
+        &["mesh", "generate", "--lung", "left", "--out", "/tmp/x.stl"],
+        "must end in .obj or .ply",
+    );
+    assert_clean_failure(
+        &[
+            "mesh",
+            "generate",
+            "--lung",
+            "left",
+            "--out",
+            "/nonexistent-dir/x.obj",
+        ],
+        "cannot write",
+    );
+    assert_clean_failure(
+        &["engine", "--scene", "/nonexistent.toml"],
+        "cannot read scene",
+    );
+    assert_clean_failure(&["engine", "--cpu", "4096"], "cannot pin to CPU core 4096");
+}
+
+#[test]
+fn a_bad_scene_is_refused_naming_the_key() {
+    let path = std::env::temp_dir().join(format!("lungdyn-bad-scene-{}.toml", std::process::id()));
+    std::fs::write(&path, "[render]\nstereo = true\nwidht = 3\n").unwrap();
+    assert_clean_failure(&["demo", "--scene", path.to_str().unwrap()], "widht");
+    std::fs::remove_file(path).ok();
+}
+
+#[test]
+fn mesh_generate_writes_a_closed_lung_of_the_requested_size() {
+    let dir = std::env::temp_dir().join(format!("lungdyn-cli-mesh-{}", std::process::id()));
+    std::fs::create_dir_all(&dir).unwrap();
+    let out = dir.join("right.ply");
+    let (ok, stdout, err) = lungdyn(&[
+        "mesh",
+        "generate",
+        "--lung",
+        "right",
+        "--vertices",
+        "1000",
+        "--out",
+        out.to_str().unwrap(),
+        "--json",
+    ]);
+    assert!(ok, "{err}");
+    let v: serde_json::Value = serde_json::from_str(&stdout).unwrap();
+    assert!(v["vertices"].as_u64().unwrap() >= 1000);
+    assert!((v["volume_ml"].as_f64().unwrap() - 1300.0).abs() < 0.01);
+    assert!(out.exists());
+    std::fs::remove_dir_all(dir).ok();
+}
+
+#[test]
+fn the_demo_prints_json_with_frames_latency_and_pngs() {
+    if renderer::gpu::Gpu::for_tests().is_none() {
+        return;
+    }
+    let dir = std::env::temp_dir().join(format!("lungdyn-cli-demo-{}", std::process::id()));
+    let scene = dir.with_extension("toml");
+    std::fs::write(&scene, "[lungs]\nvertices = 2000\n[render]\nwidth = 320\nheight = 240\nstereo = true\nmode = \"points\"\n")
+        .unwrap();
+    let (ok, stdout, err) = lungdyn(&[
+        "demo",
+        "--seconds",
+        "3",
+        "--snapshots",
+        "3",
+        "--json",
+        "--out",
+        dir.to_str().unwrap(),
+        "--scene",
+        scene.to_str().unwrap(),
+    ]);
+    assert!(ok, "{err}");
+    let v: serde_json::Value =
+        serde_json::from_str(stdout.trim()).unwrap_or_else(|e| panic!("{e}: {stdout}"));
+    assert!(v["frames_rendered"].as_u64().unwrap() > 30, "{v}");
+    for key in [
+        "deadline_misses",
+        "end_to_end_p50_ms",
+        "end_to_end_p99_ms",
+        "end_to_end_max_ms",
+    ] {
+        assert!(v[key].is_number(), "{key} missing: {v}");
+    }
+    let p50 = v["end_to_end_p50_ms"].as_f64().unwrap();
+    assert!(p50 > 0.0 && p50 <= v["end_to_end_max_ms"].as_f64().unwrap());
+    let pngs = v["pngs"].as_array().unwrap();
+    assert_eq!(pngs.len(), 3, "{v}");
+    for p in pngs {
+        let img = image::open(p.as_str().unwrap()).unwrap();
+        assert_eq!(
+            (img.width(), img.height()),
+            (640, 240),
+            "stereo: two 320-wide eyes"
+        );
+    }
+    assert_eq!(v["leftover_files"].as_u64(), Some(0));
+    assert!(
+        err.contains("end to end"),
+        "the table goes to stderr with --json: {err}"
+    );
+    std::fs::remove_dir_all(&dir).ok();
+    std::fs::remove_file(&scene).ok();
+}
