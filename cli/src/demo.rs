@@ -60,6 +60,8 @@ pub struct DemoReport {
     pub end_to_end_max_ms: f64,
     /// PNG frames written.
     pub pngs: Vec<String>,
+    /// The breath's frames side by side plus a motion panel (absent with fewer than two PNGs).
+    pub strip: Option<String>,
     /// Per-hop rows.
     pub hops: Vec<HopRow>,
     /// Seconds measured.
@@ -256,6 +258,7 @@ pub fn run(args: &DemoArgs) -> anyhow::Result<DemoReport> {
                 .join(","),
         );
         renderer_args.extend(["--snapshot-dir".to_string(), args.out.display().to_string()]);
+        renderer_args.push("--snapshot-fixed-view".into());
     }
     let existing: std::collections::HashSet<PathBuf> = list_pngs(&args.out).into_iter().collect();
     let mut children = Children { procs: Vec::new() };
@@ -279,6 +282,7 @@ pub fn run(args: &DemoArgs) -> anyhow::Result<DemoReport> {
     let mut interrupted = false;
     let mut failure: Option<String> = None;
     let mut last_progress = 0u64;
+    let show_progress = !args.json && std::io::IsTerminal::is_terminal(&std::io::stderr());
     loop {
         if node.wait(Duration::from_millis(5)).is_err() {
             interrupted = true;
@@ -307,7 +311,7 @@ pub fn run(args: &DemoArgs) -> anyhow::Result<DemoReport> {
                 break;
             }
             Some(t0) if now - t0 >= (args.seconds * 1e9) as u64 => break,
-            Some(t0) if !args.json && (now - t0) / 1_000_000_000 > last_progress => {
+            Some(t0) if show_progress && (now - t0) / 1_000_000_000 > last_progress => {
                 last_progress = (now - t0) / 1_000_000_000;
                 eprint!(
                     "\rlungdyn: {last_progress:>4} s / {} s, {} frames",
@@ -317,7 +321,7 @@ pub fn run(args: &DemoArgs) -> anyhow::Result<DemoReport> {
             _ => {}
         }
     }
-    if last_progress > 0 {
+    if show_progress && last_progress > 0 {
         eprintln!();
     }
     let measured_s = first_frame_ns
@@ -351,6 +355,9 @@ pub fn run(args: &DemoArgs) -> anyhow::Result<DemoReport> {
         .map(|p| p.display().to_string())
         .collect();
     pngs.sort();
+    let frames: Vec<PathBuf> = pngs.iter().map(PathBuf::from).collect();
+    let strip = crate::strip::breath_strip(&frames, &args.out.join("breath_strip.png"))?
+        .map(|p| p.display().to_string());
     if interrupted && stats.frames == 0 {
         bail!("interrupted before any frame was drawn");
     }
@@ -362,6 +369,7 @@ pub fn run(args: &DemoArgs) -> anyhow::Result<DemoReport> {
         end_to_end_p99_ms: e2e.p99_ms,
         end_to_end_max_ms: e2e.max_ms,
         pngs,
+        strip,
         hops: stats.rows(),
         seconds: measured_s,
         fps: if measured_s > 0.0 {
@@ -393,7 +401,11 @@ fn list_pngs(dir: &Path) -> Vec<PathBuf> {
         .map(|rd| {
             rd.flatten()
                 .map(|e| e.path())
-                .filter(|p| p.extension().is_some_and(|e| e == "png"))
+                .filter(|p| {
+                    p.extension().is_some_and(|e| e == "png")
+                        && p.file_name()
+                            .is_some_and(|n| n.to_string_lossy().starts_with("lungs_"))
+                })
                 .collect()
         })
         .unwrap_or_default()
@@ -445,6 +457,9 @@ pub fn table(r: &DemoReport) -> String {
         for p in &r.pngs {
             let _ = writeln!(s, "  {p}");
         }
+    }
+    if let Some(strip) = &r.strip {
+        let _ = writeln!(s, "breath strip (frames + motion panel: green = newly covered at end-inspiration, red = vacated): {strip}");
     }
     s
 }

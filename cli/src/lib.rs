@@ -8,3 +8,4 @@
 pub mod demo;
 pub mod mesh_cmd;
 pub mod stats;
+pub mod strip;

@@ -36,6 +36,10 @@ pub struct RendererArgs {
     /// Folder for the PNG snapshots.
     #[arg(long, value_name = "DIR", default_value = ".")]
     pub snapshot_dir: PathBuf,
+    /// Draw every snapshot frame from the HMD pose of the first one, so the frames of a breath are
+    /// comparable (the walking HMD would otherwise change the view more than the breath does).
+    #[arg(long)]
+    pub snapshot_fixed_view: bool,
 }
 
 /// Run the renderer until terminated (or `--seconds` elapse).
@@ -43,7 +47,7 @@ pub fn run(args: &RendererArgs) -> anyhow::Result<()> {
     if std::env::var_os("XDG_RUNTIME_DIR").is_none() {
         // Mesa's window-system probing prints a scary "error: XDG_RUNTIME_DIR is invalid" line on
         // headless machines; a private runtime folder keeps it quiet. Done before any thread starts.
-        let dir = std::env::temp_dir().join(format!("lungdyn-runtime-{}", std::process::id()));
+        let dir = std::env::temp_dir().join("lungdyn-runtime");
         if std::fs::create_dir_all(&dir).is_ok() {
             std::env::set_var("XDG_RUNTIME_DIR", &dir);
         }
@@ -103,6 +107,7 @@ pub fn run(args: &RendererArgs) -> anyhow::Result<()> {
     let mut frame_no: u64 = 0;
     let mut next_target = 0usize;
     let mut written: u32 = 0;
+    let mut snapshot_view: Option<Pose> = None;
     loop {
         if termination_requested(&node) || stop_at.is_some_and(|t| now_ns() >= t) {
             break;
@@ -148,13 +153,17 @@ pub fn run(args: &RendererArgs) -> anyhow::Result<()> {
         if capture {
             flags |= report_flags::SNAPSHOT;
         }
+        let mut view = hmd;
+        if capture && args.snapshot_fixed_view {
+            view = *snapshot_view.get_or_insert(hmd);
+        }
         let state = DrawState {
             deform_scale: [
                 frame.lungs[LUNG_RIGHT].deform_scale,
                 frame.lungs[LUNG_LEFT].deform_scale,
             ],
             patient: frame.patient_pose,
-            hmd,
+            hmd: view,
         };
         let timing = renderer.render(&gpu, &state, capture);
         frame.stamps.renderer_submit_ns = timing.submit_ns;
