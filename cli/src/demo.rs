@@ -40,6 +40,12 @@ pub struct DemoArgs {
     /// Pin tracker-bridge, engine and renderer to these three cores, e.g. `--cpus 0,1,1`.
     #[arg(long, value_delimiter = ',', num_args = 3)]
     pub cpus: Vec<usize>,
+    /// Show the frames in a window (needs a display); closing it ends the demo. Headless otherwise.
+    #[arg(long)]
+    pub window: bool,
+    /// With --window: present on the display's vertical blank.
+    #[arg(long, requires = "window")]
+    pub vsync: bool,
     /// Seconds to wait for the first frame before giving up.
     #[arg(long, default_value_t = 60.0)]
     pub startup_timeout: f64,
@@ -80,8 +86,10 @@ pub struct DemoReport {
     pub volume_min_ml: f32,
     /// Summed lung volume range drawn, ml.
     pub volume_max_ml: f32,
-    /// Instance files left behind after shutdown (should be 0).
+    /// Instance files iceoryx2 left behind after shutdown, then removed by the launcher (should be 0).
     pub leftover_files: usize,
+    /// Instance files still present after the launcher's removal (must be 0).
+    pub remaining_files: usize,
     /// The instance name used.
     pub instance: String,
 }
@@ -203,6 +211,15 @@ pub fn run(args: &DemoArgs) -> anyhow::Result<DemoReport> {
             args.startup_timeout
         );
     }
+    if args.window
+        && std::env::var_os("DISPLAY").is_none()
+        && std::env::var_os("WAYLAND_DISPLAY").is_none()
+    {
+        bail!(
+            "--window needs a display, but DISPLAY is not set: run it on the workstation's desktop, \
+             under xvfb-run, or without --window (headless)"
+        );
+    }
     let scene = engine::scene::Scene::load_or_default(args.scene.as_deref())?;
     check_writable(&args.out)?;
     let instance = args
@@ -259,6 +276,12 @@ pub fn run(args: &DemoArgs) -> anyhow::Result<DemoReport> {
         );
         renderer_args.extend(["--snapshot-dir".to_string(), args.out.display().to_string()]);
         renderer_args.push("--snapshot-fixed-view".into());
+    }
+    if args.window {
+        renderer_args.push("--window".into());
+        if args.vsync {
+            renderer_args.push("--vsync".into());
+        }
     }
     let existing: std::collections::HashSet<PathBuf> = list_pngs(&args.out).into_iter().collect();
     let mut children = Children { procs: Vec::new() };
@@ -335,14 +358,18 @@ pub fn run(args: &DemoArgs) -> anyhow::Result<DemoReport> {
     services.remove_instance_segment().ok();
     let leftovers = services.leftovers();
     if !leftovers.is_empty() {
+        // Every process of the instance has exited and the prefix is the instance's own, so what
+        // iceoryx2's dead-node cleanup missed can be removed safely. Say so: it is worth knowing.
+        let removed = services.remove_leftovers();
         eprintln!(
-            "lungdyn: warning: {} shared-memory/iceoryx2 files of this run were left behind:",
+            "lungdyn: warning: iceoryx2 left {} files of this run behind; removed {removed}:",
             leftovers.len()
         );
         for f in &leftovers {
             eprintln!("  {}", f.display());
         }
     }
+    let remaining = services.leftovers().len();
     if !killed.is_empty() {
         eprintln!("lungdyn: warning: had to kill {killed:?} after SIGINT");
     }
@@ -392,6 +419,7 @@ pub fn run(args: &DemoArgs) -> anyhow::Result<DemoReport> {
             0.0
         },
         leftover_files: leftovers.len(),
+        remaining_files: remaining,
         instance,
     })
 }
@@ -447,8 +475,8 @@ pub fn table(r: &DemoReport) -> String {
     );
     let _ = writeln!(
         s,
-        "stale frames {}, engine ticks not drawn {}, reports lost {}, leftover shm files {}",
-        r.stale_frames, r.skipped_ticks, r.lost_reports, r.leftover_files
+        "stale frames {}, engine ticks not drawn {}, reports lost {}, shm files left by iceoryx2 {} (remaining {})",
+        r.stale_frames, r.skipped_ticks, r.lost_reports, r.leftover_files, r.remaining_files
     );
     if r.pngs.is_empty() {
         let _ = writeln!(s, "PNG frames: none");

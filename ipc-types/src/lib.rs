@@ -435,6 +435,23 @@ impl Services {
         found
     }
 
+    /// Delete the files [`Self::leftovers`] finds, and node folders left empty by that. Only for
+    /// after every process of the instance has exited (the prefix is unique to the instance).
+    /// Returns how many files were removed.
+    pub fn remove_leftovers(&self) -> usize {
+        let mut removed = 0;
+        for path in self.leftovers() {
+            if std::fs::remove_file(&path).is_ok() {
+                removed += 1;
+                if let Some(dir) = path.parent() {
+                    // Only succeeds when the folder is now empty.
+                    let _ = std::fs::remove_dir(dir);
+                }
+            }
+        }
+        removed
+    }
+
     /// Create an iceoryx2 node for `role` (e.g. "engine") in this instance.
     pub fn node(&self, role: &str) -> Result<Node<ipc::Service>, IpcError> {
         let name = NodeName::new(&format!("lungdyn-{}-{}", self.instance, role)).map_err(|_| {
@@ -996,5 +1013,13 @@ mod tests {
             .unwrap_err()
             .to_string()
             .contains("layout v7"));
+        drop(_ours);
+        drop(node);
+        services.remove_instance_segment().unwrap();
+        assert!(
+            services.leftovers().is_empty(),
+            "{:?}",
+            services.leftovers()
+        );
     }
 }

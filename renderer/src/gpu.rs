@@ -8,6 +8,8 @@ pub const REQUIRE_GPU_ENV: &str = "LUNGDYN_REQUIRE_GPU";
 
 /// An open GPU.
 pub struct Gpu {
+    /// The wgpu instance (kept for creating window surfaces).
+    pub instance: wgpu::Instance,
     /// The adapter the device was opened on.
     pub adapter: wgpu::Adapter,
     /// The device.
@@ -47,8 +49,31 @@ impl Gpu {
     pub fn new() -> Result<Self, GpuError> {
         let instance =
             wgpu::Instance::new(wgpu::InstanceDescriptor::new_without_display_handle_from_env());
+        Self::open(instance, None)
+    }
+
+    /// Open a GPU that can present to `window`, and the window's surface.
+    pub fn with_window(
+        window: std::sync::Arc<winit::window::Window>,
+    ) -> Result<(Self, wgpu::Surface<'static>), GpuError> {
+        let instance =
+            wgpu::Instance::new(wgpu::InstanceDescriptor::new_without_display_handle_from_env());
+        let surface = instance
+            .create_surface(window)
+            .map_err(|e| GpuError::NoAdapter {
+                detail: format!("cannot create a surface for the window: {e}"),
+            })?;
+        let gpu = Self::open(instance, Some(&surface))?;
+        Ok((gpu, surface))
+    }
+
+    fn open(
+        instance: wgpu::Instance,
+        surface: Option<&wgpu::Surface<'_>>,
+    ) -> Result<Self, GpuError> {
         let adapter = pollster::block_on(instance.request_adapter(&wgpu::RequestAdapterOptions {
             power_preference: wgpu::PowerPreference::HighPerformance,
+            compatible_surface: surface,
             ..Default::default()
         }))
         .map_err(|e| GpuError::NoAdapter {
@@ -72,6 +97,7 @@ impl Gpu {
             detail: e.to_string(),
         })?;
         Ok(Self {
+            instance,
             adapter,
             device,
             queue,

@@ -13,7 +13,9 @@ pub mod camera;
 pub mod deform;
 pub mod draw;
 pub mod gpu;
+pub mod present;
 pub mod process;
+pub mod window;
 
 use engine::deform::LungModel;
 use engine::scene::{DrawMode, RenderScene};
@@ -110,7 +112,9 @@ impl LungRenderer {
             sample_count: 1,
             dimension: wgpu::TextureDimension::D2,
             format: draw::COLOR_FORMAT,
-            usage: wgpu::TextureUsages::RENDER_ATTACHMENT | wgpu::TextureUsages::COPY_SRC,
+            usage: wgpu::TextureUsages::RENDER_ATTACHMENT
+                | wgpu::TextureUsages::COPY_SRC
+                | wgpu::TextureUsages::TEXTURE_BINDING,
             view_formats: &[],
         });
         let depth = device.create_texture(&wgpu::TextureDescriptor {
@@ -179,9 +183,26 @@ impl LungRenderer {
         self.deform.count
     }
 
+    /// The offscreen colour target (what the present pass samples).
+    pub fn color_view(&self) -> &wgpu::TextureView {
+        &self.color_view
+    }
+
     /// Deform, draw every eye, submit, and wait for the GPU. With `capture`, the image is also
     /// copied for [`Self::read_image`].
     pub fn render(&self, gpu: &Gpu, state: &DrawState, capture: bool) -> FrameTiming {
+        self.render_with(gpu, state, capture, |_| {})
+    }
+
+    /// As [`Self::render`], with `extra` recorded into the frame's command buffer after the draw
+    /// (the window's present pass), so it is submitted with the frame.
+    pub fn render_with(
+        &self,
+        gpu: &Gpu,
+        state: &DrawState,
+        capture: bool,
+        extra: impl FnOnce(&mut wgpu::CommandEncoder),
+    ) -> FrameTiming {
         let queue = &gpu.queue;
         self.deform.set_scales(queue, state.deform_scale);
         let aspect = self.eye_width as f32 / self.height as f32;
@@ -267,6 +288,7 @@ impl LungRenderer {
                 }
             }
         }
+        extra(&mut encoder);
         if let Some(t) = &self.timestamps {
             encoder.resolve_query_set(&t.set, 0..2, &t.resolve, 0);
             encoder.copy_buffer_to_buffer(&t.resolve, 0, &t.read, 0, 16);

@@ -1,9 +1,11 @@
 //! The renderer process: wake on engine frames, late-latch the HMD pose, draw, report.
 //!
-//! It sleeps on the engine's iceoryx2 event; a fresh engine frame is drawn at once, with the newest
-//! HMD pose taken from the tracker stream just before the draw (late latching). If the engine is late
-//! or gone, the deadline fallback redraws the last frame (flagged stale) so the display never freezes.
-//! Each frame's hop stamps and CPU/GPU times go out on the report service for the latency harness.
+//! A [`Session`] sleeps on the engine's iceoryx2 event; a fresh engine frame is drawn at once, with
+//! the newest HMD pose taken from the tracker stream just before the draw (late latching). If the
+//! engine is late or gone, the deadline fallback redraws the last frame (flagged stale) so the
+//! display never freezes. Each frame's hop stamps and CPU/GPU times go out on the report service for
+//! the latency harness. Headless, [`run`] drives the session in a loop; with `--window`,
+//! [`crate::window`] drives the same session from the window's event loop and presents each frame.
 
 use std::path::PathBuf;
 
@@ -40,122 +42,173 @@ pub struct RendererArgs {
     /// comparable (the walking HMD would otherwise change the view more than the breath does).
     #[arg(long)]
     pub snapshot_fixed_view: bool,
+    /// Show the frames in a window (needs a display, e.g. DISPLAY on X11); headless otherwise.
+    #[arg(long)]
+    pub window: bool,
+    /// With --window: wait for the display's vertical blank when presenting (adds up to a refresh
+    /// period of latency; off by default, frames are paced by the engine).
+    #[arg(long, requires = "window")]
+    pub vsync: bool,
 }
 
-/// Run the renderer until terminated (or `--seconds` elapse).
-pub fn run(args: &RendererArgs) -> anyhow::Result<()> {
+/// One renderer session: its GPU state, its ports and its frame loop state.
+pub struct Session {
+    /// The GPU.
+    pub gpu: Gpu,
+    /// The lungs' GPU state and offscreen target.
+    pub renderer: LungRenderer,
+    args: RendererArgs,
+    services: Services,
+    node: iceoryx2::prelude::Node<iceoryx2::prelude::ipc::Service>,
+    engine_in: Inlet<EngineFrame>,
+    tracker_in: Inlet<TrackerFrame>,
+    report_out: Outlet<FrameReport>,
+    period_ns: u64,
+    grace_ns: u64,
+    deadline: u64,
+    stop_at: Option<u64>,
+    last: Option<EngineFrame>,
+    hmd: Pose,
+    frame_no: u64,
+    targets: Vec<u64>,
+    next_target: usize,
+    written: u32,
+    snapshot_view: Option<Pose>,
+}
+
+/// Keep Mesa quiet on headless machines: without XDG_RUNTIME_DIR its window-system probing prints an
+/// alarming but harmless "error:" line. Call before any thread starts.
+pub fn quiet_mesa() {
     if std::env::var_os("XDG_RUNTIME_DIR").is_none() {
-        // Mesa's window-system probing prints a scary "error: XDG_RUNTIME_DIR is invalid" line on
-        // headless machines; a private runtime folder keeps it quiet. Done before any thread starts.
         let dir = std::env::temp_dir().join("lungdyn-runtime");
         if std::fs::create_dir_all(&dir).is_ok() {
             std::env::set_var("XDG_RUNTIME_DIR", &dir);
         }
     }
-    let scene = engine::scene::Scene::load_or_default(args.scene.as_deref())?;
-    let services = Services::new(&args.instance)?;
-    let mut targets = args.snapshot_ticks.clone();
-    targets.sort_unstable();
-    if !targets.is_empty() {
-        std::fs::create_dir_all(&args.snapshot_dir).map_err(|e| {
-            anyhow::anyhow!(
-                "cannot create the snapshot folder {}: {e}",
-                args.snapshot_dir.display()
-            )
-        })?;
-    }
-    let lungs = scene
-        .lungs
-        .sides
-        .iter()
-        .map(|&side| engine::runtime::build_lung(&scene, side))
-        .collect::<anyhow::Result<Vec<_>>>()?;
-    let gpu = Gpu::new()?;
-    let renderer = LungRenderer::new(&gpu, &scene.render, &lungs);
-    ipc_types::pin_to_core(args.cpu, "renderer")?;
-    let node = services.node("renderer")?;
-    let engine_in: Inlet<EngineFrame> =
-        Inlet::new(&node, &services.engine(), &services.engine_event())?;
-    let tracker_in: Inlet<TrackerFrame> =
-        Inlet::new(&node, &services.tracker(), &services.tracker_event())?;
-    // The report stream has no consumer that waits on an event, but Outlet keeps one code path.
-    let report_out: Outlet<FrameReport> = Outlet::new(
-        &node,
-        &services.report(),
-        &format!("{}-ready", services.report()),
-    )?;
+}
 
-    let period_ns = (1e9 / scene.engine.tick_hz).round() as u64;
-    let grace_ns = period_ns / 4;
-    let start = now_ns();
-    let stop_at = args.seconds.map(|s| start + (s * 1e9) as u64);
-    let (w, h) = renderer.image_size();
-    eprintln!(
-        "renderer[{}]: {} vertices, {}x{} {:?}{} on {}; waiting for engine frames on {:?}",
-        services.instance,
-        renderer.vertex_count(),
-        w,
-        h,
-        scene.render.mode,
-        if scene.render.stereo { " stereo" } else { "" },
-        gpu.describe(),
-        services.engine()
-    );
-    let mut last: Option<EngineFrame> = None;
-    let mut hmd = default_hmd();
-    let mut deadline = start + period_ns + grace_ns;
-    let mut frame_no: u64 = 0;
-    let mut next_target = 0usize;
-    let mut written: u32 = 0;
-    let mut snapshot_view: Option<Pose> = None;
-    loop {
-        if termination_requested(&node) || stop_at.is_some_and(|t| now_ns() >= t) {
-            break;
+impl Session {
+    /// Load the scene, build the lungs, upload them to `gpu` and open the ports.
+    pub fn new(args: &RendererArgs, gpu: Gpu) -> anyhow::Result<Self> {
+        let scene = engine::scene::Scene::load_or_default(args.scene.as_deref())?;
+        let services = Services::new(&args.instance)?;
+        let mut targets = args.snapshot_ticks.clone();
+        targets.sort_unstable();
+        if !targets.is_empty() {
+            std::fs::create_dir_all(&args.snapshot_dir).map_err(|e| {
+                anyhow::anyhow!(
+                    "cannot create the snapshot folder {}: {e}",
+                    args.snapshot_dir.display()
+                )
+            })?;
         }
-        engine_in.wait_until(deadline);
-        let fresh = engine_in.take_latest()?;
+        let lungs = scene
+            .lungs
+            .sides
+            .iter()
+            .map(|&side| engine::runtime::build_lung(&scene, side))
+            .collect::<anyhow::Result<Vec<_>>>()?;
+        let renderer = LungRenderer::new(&gpu, &scene.render, &lungs);
+        ipc_types::pin_to_core(args.cpu, "renderer")?;
+        let node = services.node("renderer")?;
+        let engine_in = Inlet::new(&node, &services.engine(), &services.engine_event())?;
+        let tracker_in = Inlet::new(&node, &services.tracker(), &services.tracker_event())?;
+        // The report stream has no consumer that waits on an event, but Outlet keeps one code path.
+        let report_out = Outlet::new(
+            &node,
+            &services.report(),
+            &format!("{}-ready", services.report()),
+        )?;
+        let period_ns = (1e9 / scene.engine.tick_hz).round() as u64;
+        let start = now_ns();
+        let (w, h) = renderer.image_size();
+        eprintln!(
+            "renderer[{}]: {} vertices, {}x{} {:?}{} on {}; waiting for engine frames on {:?}",
+            services.instance,
+            renderer.vertex_count(),
+            w,
+            h,
+            scene.render.mode,
+            if scene.render.stereo { " stereo" } else { "" },
+            gpu.describe(),
+            services.engine()
+        );
+        Ok(Self {
+            gpu,
+            renderer,
+            args: args.clone(),
+            services,
+            node,
+            engine_in,
+            tracker_in,
+            report_out,
+            period_ns,
+            grace_ns: period_ns / 4,
+            deadline: start + period_ns + period_ns / 4,
+            stop_at: args.seconds.map(|s| start + (s * 1e9) as u64),
+            last: None,
+            hmd: default_hmd(),
+            frame_no: 0,
+            targets,
+            next_target: 0,
+            written: 0,
+            snapshot_view: None,
+        })
+    }
+
+    /// True when the process was asked to stop or its time is up.
+    pub fn should_stop(&self) -> bool {
+        termination_requested(&self.node) || self.stop_at.is_some_and(|t| now_ns() >= t)
+    }
+
+    /// Wait for the next engine frame (or the deadline) and draw it, recording `extra` (the
+    /// window's present pass) into the frame. Returns whether a frame was drawn.
+    pub fn step(&mut self, extra: impl FnOnce(&mut wgpu::CommandEncoder)) -> anyhow::Result<bool> {
+        self.engine_in.wait_until(self.deadline);
+        let fresh = self.engine_in.take_latest()?;
         let now = now_ns();
-        if fresh.is_none() && now < deadline {
-            continue;
+        if fresh.is_none() && now < self.deadline {
+            return Ok(false);
         }
         let mut flags = 0u32;
-        let mut frame = match (fresh, last) {
+        let mut frame = match (fresh, self.last) {
             (Some(f), _) => {
                 ipc_types::check_layout("EngineFrame", f.layout_version)?;
-                if last.is_none() {
+                if self.last.is_none() {
                     eprintln!(
                         "renderer[{}]: engine connected (tick {})",
-                        services.instance, f.tick
+                        self.services.instance, f.tick
                     );
                 }
-                deadline = now + period_ns + grace_ns;
+                self.deadline = now + self.period_ns + self.grace_ns;
                 f
             }
             (None, Some(f)) => {
                 flags |= report_flags::STALE_ENGINE;
-                deadline += period_ns;
+                self.deadline += self.period_ns;
                 f
             }
             (None, None) => {
-                deadline += period_ns;
-                continue;
+                self.deadline += self.period_ns;
+                return Ok(false);
             }
         };
         frame.stamps.renderer_receive_ns = now;
         // Late latch: the freshest HMD pose at draw time.
-        if let Some(t) = tracker_in.take_latest()? {
+        if let Some(t) = self.tracker_in.take_latest()? {
             let tool = &t.tools[TOOL_HMD];
             if t.tool_count as usize > TOOL_HMD && tool.is_valid() && tool.pose.is_finite() {
-                hmd = tool.pose;
+                self.hmd = tool.pose;
             }
         }
-        let capture = next_target < targets.len() && frame.tick >= targets[next_target];
+        let targets = &self.targets;
+        let capture = self.next_target < targets.len() && frame.tick >= targets[self.next_target];
         if capture {
             flags |= report_flags::SNAPSHOT;
         }
-        let mut view = hmd;
-        if capture && args.snapshot_fixed_view {
-            view = *snapshot_view.get_or_insert(hmd);
+        let mut view = self.hmd;
+        if capture && self.args.snapshot_fixed_view {
+            view = *self.snapshot_view.get_or_insert(self.hmd);
         }
         let state = DrawState {
             deform_scale: [
@@ -165,16 +218,16 @@ pub fn run(args: &RendererArgs) -> anyhow::Result<()> {
             patient: frame.patient_pose,
             hmd: view,
         };
-        let timing = renderer.render(&gpu, &state, capture);
+        let timing = self.renderer.render_with(&self.gpu, &state, capture, extra);
         frame.stamps.renderer_submit_ns = timing.submit_ns;
         if timing.gpu_ns.is_some() {
             flags |= report_flags::GPU_TIMED;
         }
-        frame_no += 1;
-        report_out.publish(FrameReport {
+        self.frame_no += 1;
+        self.report_out.publish(FrameReport {
             layout_version: LAYOUT_VERSION,
             flags,
-            frame: frame_no,
+            frame: self.frame_no,
             engine_tick: frame.tick,
             tracker_frame: frame.tracker_frame,
             stamps: frame.stamps,
@@ -186,37 +239,58 @@ pub fn run(args: &RendererArgs) -> anyhow::Result<()> {
             ],
         })?;
         if capture {
-            while next_target < targets.len() && frame.tick >= targets[next_target] {
-                next_target += 1;
+            while self.next_target < self.targets.len()
+                && frame.tick >= self.targets[self.next_target]
+            {
+                self.next_target += 1;
             }
-            let img = renderer
-                .read_image(&gpu)
-                .ok_or_else(|| anyhow::anyhow!("could not read the frame back"))?;
-            let total = frame.lungs[LUNG_RIGHT].volume_ml + frame.lungs[LUNG_LEFT].volume_ml;
-            let path = args.snapshot_dir.join(format!(
-                "lungs_{:02}_tick{:05}_{:04.0}ml.png",
-                written, frame.tick, total
-            ));
-            crate::write_png(&img, &path)?;
-            written += 1;
+            self.write_snapshot(&frame)?;
         }
-        last = Some(frame);
+        self.last = Some(frame);
+        Ok(true)
     }
-    eprintln!(
-        "renderer[{}]: stopped after {frame_no} frames, {written} snapshots",
-        services.instance
-    );
+
+    fn write_snapshot(&mut self, frame: &EngineFrame) -> anyhow::Result<()> {
+        let img = self
+            .renderer
+            .read_image(&self.gpu)
+            .ok_or_else(|| anyhow::anyhow!("could not read the frame back from the GPU"))?;
+        let total = frame.lungs[LUNG_RIGHT].volume_ml + frame.lungs[LUNG_LEFT].volume_ml;
+        let path = self.args.snapshot_dir.join(format!(
+            "lungs_{:02}_tick{:05}_{:04.0}ml.png",
+            self.written, frame.tick, total
+        ));
+        crate::write_png(&img, &path)?;
+        self.written += 1;
+        Ok(())
+    }
+
+    /// Say goodbye on stderr.
+    pub fn finish(&self) {
+        eprintln!(
+            "renderer[{}]: stopped after {} frames, {} snapshots",
+            self.services.instance, self.frame_no, self.written
+        );
+    }
+}
+
+/// Run the renderer until terminated (or `--seconds` elapse): headless, or in a window.
+pub fn run(args: &RendererArgs) -> anyhow::Result<()> {
+    quiet_mesa();
+    if args.window {
+        return crate::window::run(args);
+    }
+    let mut session = Session::new(args, Gpu::new()?)?;
+    while !session.should_stop() {
+        session.step(|_| {})?;
+    }
+    session.finish();
     Ok(())
 }
 
 /// The HMD pose used until the tracker reports one: standing at the patient's right side.
 fn default_hmd() -> Pose {
-    let p = Pose {
-        quat: [0.0; 4],
-        translation_mm: [0.0, -1300.0, 1650.0],
-        _pad: 0,
-    };
-    let eye = glam::Vec3::from(p.translation_mm);
+    let eye = glam::Vec3::new(0.0, -1300.0, 1650.0);
     let target = glam::Vec3::new(0.0, 0.0, 1040.0);
     let forward = (target - eye).normalize();
     let right = forward.cross(glam::Vec3::Z).normalize();
@@ -224,6 +298,7 @@ fn default_hmd() -> Pose {
     let q = glam::Quat::from_mat3(&glam::Mat3::from_cols(right, up, -forward));
     Pose {
         quat: q.to_array(),
-        ..p
+        translation_mm: eye.to_array(),
+        _pad: 0,
     }
 }

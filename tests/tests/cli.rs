@@ -154,11 +154,81 @@ fn the_demo_prints_json_with_frames_latency_and_pngs() {
             "stereo: two 320-wide eyes"
         );
     }
-    assert_eq!(v["leftover_files"].as_u64(), Some(0));
+    assert_eq!(
+        v["leftover_files"].as_u64(),
+        Some(0),
+        "iceoryx2 cleaned up everything itself"
+    );
+    assert_eq!(v["remaining_files"].as_u64(), Some(0));
+    assert!(std::path::Path::new(v["strip"].as_str().unwrap()).exists());
     assert!(
         err.contains("end to end"),
         "the table goes to stderr with --json: {err}"
     );
     std::fs::remove_dir_all(&dir).ok();
     std::fs::remove_file(&scene).ok();
+}
+
+#[test]
+fn the_demo_shows_frames_in_a_window_when_a_display_exists() {
+    if renderer::gpu::Gpu::for_tests().is_none() {
+        return;
+    }
+    if Command::new("xvfb-run").arg("--help").output().is_err() {
+        assert_ne!(
+            std::env::var("LUNGDYN_REQUIRE_GPU").as_deref(),
+            Ok("1"),
+            "the windowed test needs xvfb-run (apt-get install xvfb), which .ci/run installs"
+        );
+        eprintln!("SKIPPED: no xvfb-run");
+        return;
+    }
+    let dir = std::env::temp_dir().join(format!("lungdyn-cli-window-{}", std::process::id()));
+    let scene = dir.with_extension("toml");
+    std::fs::write(
+        &scene,
+        "[lungs]\nvertices = 2000\n[render]\nwidth = 320\nheight = 240\n",
+    )
+    .unwrap();
+    let out = Command::new("xvfb-run")
+        .args(["-a", "-s", "-screen 0 1024x768x24"])
+        .arg(bin("lungdyn"))
+        .args([
+            "demo",
+            "--window",
+            "--seconds",
+            "2",
+            "--snapshots",
+            "2",
+            "--json",
+            "--out",
+        ])
+        .arg(&dir)
+        .arg("--scene")
+        .arg(&scene)
+        .output()
+        .unwrap();
+    let stdout = String::from_utf8_lossy(&out.stdout);
+    let stderr = String::from_utf8_lossy(&out.stderr);
+    assert!(out.status.success(), "{stderr}");
+    let v: serde_json::Value =
+        serde_json::from_str(stdout.trim()).unwrap_or_else(|e| panic!("{e}: {stdout}"));
+    assert!(v["frames_rendered"].as_u64().unwrap() > 20, "{v}");
+    assert_eq!(v["pngs"].as_array().unwrap().len(), 2);
+    assert_eq!(v["remaining_files"].as_u64(), Some(0));
+    std::fs::remove_dir_all(&dir).ok();
+    std::fs::remove_file(&scene).ok();
+}
+
+#[test]
+fn window_without_a_display_is_refused_up_front() {
+    let out = Command::new(bin("lungdyn"))
+        .args(["demo", "--window", "--seconds", "1"])
+        .env_remove("DISPLAY")
+        .env_remove("WAYLAND_DISPLAY")
+        .output()
+        .unwrap();
+    assert!(!out.status.success());
+    let err = String::from_utf8_lossy(&out.stderr);
+    assert!(err.contains("--window needs a display"), "{err}");
 }

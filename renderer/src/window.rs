@@ -1,0 +1,170 @@
+//! Windowed output: the renderer's [`Session`] driven from a winit event loop.
+//!
+//! Between window events the loop runs one session step (wait for the engine's frame or the deadline,
+//! draw offscreen) and records the present pass into the same command buffer, so a frame reaches the
+//! window in the same submit it is drawn in. Closing the window stops the renderer normally.
+
+use std::sync::Arc;
+
+use winit::application::ApplicationHandler;
+use winit::dpi::PhysicalSize;
+use winit::event::WindowEvent;
+use winit::event_loop::{ActiveEventLoop, ControlFlow, EventLoop};
+use winit::window::{Window, WindowId};
+
+use crate::gpu::Gpu;
+use crate::present::PresentPass;
+use crate::process::{RendererArgs, Session};
+
+struct Windowed {
+    session: Session,
+    window: Arc<Window>,
+    surface: wgpu::Surface<'static>,
+    config: wgpu::SurfaceConfiguration,
+    present: PresentPass,
+}
+
+struct App {
+    args: RendererArgs,
+    state: Option<Windowed>,
+    error: Option<anyhow::Error>,
+}
+
+impl App {
+    fn open(&mut self, event_loop: &ActiveEventLoop) -> anyhow::Result<()> {
+        let scene = engine::scene::Scene::load_or_default(self.args.scene.as_deref())?;
+        let eyes = if scene.render.stereo { 2 } else { 1 };
+        let size = PhysicalSize::new(scene.render.width * eyes, scene.render.height);
+        let window = Arc::new(
+            event_loop
+                .create_window(
+                    Window::default_attributes()
+                        .with_title("lungdyn")
+                        .with_inner_size(size),
+                )
+                .map_err(|e| anyhow::anyhow!("cannot open a window: {e}"))?,
+        );
+        let (gpu, surface) = Gpu::with_window(window.clone())?;
+        let mut config = surface
+            .get_default_config(&gpu.adapter, size.width, size.height)
+            .ok_or_else(|| {
+                anyhow::anyhow!(
+                    "the GPU adapter {} cannot present to this window",
+                    gpu.info.name
+                )
+            })?;
+        config.present_mode = if self.args.vsync {
+            wgpu::PresentMode::AutoVsync
+        } else {
+            wgpu::PresentMode::AutoNoVsync
+        };
+        surface.configure(&gpu.device, &config);
+        let session = Session::new(&self.args, gpu)?;
+        let present = PresentPass::new(
+            &session.gpu.device,
+            session.renderer.color_view(),
+            config.format,
+        );
+        self.state = Some(Windowed {
+            session,
+            window,
+            surface,
+            config,
+            present,
+        });
+        Ok(())
+    }
+
+    fn fail(&mut self, event_loop: &ActiveEventLoop, e: anyhow::Error) {
+        self.error = Some(e);
+        event_loop.exit();
+    }
+}
+
+impl ApplicationHandler for App {
+    fn resumed(&mut self, event_loop: &ActiveEventLoop) {
+        if self.state.is_none() {
+            if let Err(e) = self.open(event_loop) {
+                self.fail(event_loop, e);
+            }
+        }
+    }
+
+    fn window_event(&mut self, event_loop: &ActiveEventLoop, _id: WindowId, event: WindowEvent) {
+        let Some(w) = self.state.as_mut() else { return };
+        match event {
+            WindowEvent::CloseRequested => event_loop.exit(),
+            WindowEvent::Resized(size) if size.width > 0 && size.height > 0 => {
+                w.config.width = size.width;
+                w.config.height = size.height;
+                w.surface.configure(&w.session.gpu.device, &w.config);
+            }
+            _ => {}
+        }
+    }
+
+    fn about_to_wait(&mut self, event_loop: &ActiveEventLoop) {
+        let Some(w) = self.state.as_mut() else { return };
+        if w.session.should_stop() {
+            event_loop.exit();
+            return;
+        }
+        let Windowed {
+            session,
+            surface,
+            present,
+            config,
+            window,
+        } = w;
+        let mut acquired = None;
+        let mut reconfigure = false;
+        let result = session.step(|encoder| match surface.get_current_texture() {
+            wgpu::CurrentSurfaceTexture::Success(t)
+            | wgpu::CurrentSurfaceTexture::Suboptimal(t) => {
+                let view = t.texture.create_view(&Default::default());
+                present.encode(encoder, &view);
+                acquired = Some(t);
+            }
+            wgpu::CurrentSurfaceTexture::Outdated | wgpu::CurrentSurfaceTexture::Lost => {
+                reconfigure = true
+            }
+            // Timeout, occluded or validation: skip presenting this frame; the next one tries again.
+            _ => {}
+        });
+        if let Some(t) = acquired {
+            window.pre_present_notify();
+            session.gpu.queue.present(t);
+        }
+        if reconfigure {
+            surface.configure(&session.gpu.device, config);
+        }
+        if let Err(e) = result {
+            self.fail(event_loop, e);
+        }
+    }
+}
+
+/// Run the renderer in a window until it is closed, the process is signalled, or `--seconds` end.
+pub fn run(args: &RendererArgs) -> anyhow::Result<()> {
+    let event_loop = EventLoop::new().map_err(|e| {
+        anyhow::anyhow!(
+            "--window needs a display, but none could be opened ({e}); set DISPLAY or run headless"
+        )
+    })?;
+    event_loop.set_control_flow(ControlFlow::Poll);
+    let mut app = App {
+        args: args.clone(),
+        state: None,
+        error: None,
+    };
+    event_loop
+        .run_app(&mut app)
+        .map_err(|e| anyhow::anyhow!("window event loop failed: {e}"))?;
+    if let Some(state) = &app.state {
+        state.session.finish();
+    }
+    match app.error {
+        Some(e) => Err(e),
+        None => Ok(()),
+    }
+}
