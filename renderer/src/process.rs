@@ -20,18 +20,9 @@ use crate::{DrawState, LungRenderer};
 /// Command-line options of the `renderer` process.
 #[derive(Debug, Clone, clap::Args)]
 pub struct RendererArgs {
-    /// Instance name shared by the three processes of one run.
-    #[arg(long, default_value = "default")]
-    pub instance: String,
-    /// Scene file (TOML); the built-in default scene when omitted.
-    #[arg(long)]
-    pub scene: Option<PathBuf>,
-    /// Pin this process to CPU core N.
-    #[arg(long, value_name = "N")]
-    pub cpu: Option<usize>,
-    /// Stop after this many seconds (runs until SIGINT/SIGTERM when omitted).
-    #[arg(long)]
-    pub seconds: Option<f64>,
+    /// Instance, scene, pinning and run time.
+    #[command(flatten)]
+    pub process: engine::runtime::process::ProcessArgs,
     /// Write a PNG of the first frame at or after each of these engine ticks (comma-separated).
     #[arg(long, value_delimiter = ',', value_name = "TICKS")]
     pub snapshot_ticks: Vec<u64>,
@@ -90,8 +81,8 @@ pub fn quiet_mesa() {
 impl Session {
     /// Load the scene, build the lungs, upload them to `gpu` and open the ports.
     pub fn new(args: &RendererArgs, gpu: Gpu) -> anyhow::Result<Self> {
-        let scene = engine::scene::Scene::load_or_default(args.scene.as_deref())?;
-        let services = Services::new(&args.instance)?;
+        let scene = engine::scene::Scene::load_or_default(args.process.scene.as_deref())?;
+        let services = Services::new(&args.process.instance)?;
         let mut targets = args.snapshot_ticks.clone();
         targets.sort_unstable();
         if !targets.is_empty() {
@@ -109,7 +100,7 @@ impl Session {
             .map(|&side| engine::runtime::build_lung(&scene, side))
             .collect::<anyhow::Result<Vec<_>>>()?;
         let renderer = LungRenderer::new(&gpu, &scene.render, &lungs);
-        ipc_types::pin_to_core(args.cpu, "renderer")?;
+        ipc_types::pin_to_core(args.process.cpu, "renderer")?;
         let node = services.node("renderer")?;
         let engine_in = Inlet::new(&node, &services.engine(), &services.engine_event())?;
         let tracker_in = Inlet::new(&node, &services.tracker(), &services.tracker_event())?;
@@ -145,7 +136,7 @@ impl Session {
             period_ns,
             grace_ns: period_ns / 4,
             deadline: start + period_ns + period_ns / 4,
-            stop_at: args.seconds.map(|s| start + (s * 1e9) as u64),
+            stop_at: args.process.stop_at(start),
             last: None,
             hmd: default_hmd(),
             frame_no: 0,

@@ -32,7 +32,7 @@ struct App {
 
 impl App {
     fn open(&mut self, event_loop: &ActiveEventLoop) -> anyhow::Result<()> {
-        let scene = engine::scene::Scene::load_or_default(self.args.scene.as_deref())?;
+        let scene = engine::scene::Scene::load_or_default(self.args.process.scene.as_deref())?;
         let eyes = if scene.render.stereo { 2 } else { 1 };
         let size = PhysicalSize::new(scene.render.width * eyes, scene.render.height);
         let window = Arc::new(

@@ -13,9 +13,9 @@ use ipc_types::{
 use super::EngineCore;
 use crate::scene::Scene;
 
-/// Command-line options of the `engine` process.
+/// Options every lungdyn process that reads a scene takes (flattened into its own options).
 #[derive(Debug, Clone, clap::Args)]
-pub struct EngineArgs {
+pub struct ProcessArgs {
     /// Instance name shared by the three processes of one run (service and file names derive from it).
     #[arg(long, default_value = "default")]
     pub instance: String,
@@ -30,8 +30,24 @@ pub struct EngineArgs {
     pub seconds: Option<f64>,
 }
 
+impl ProcessArgs {
+    /// Absolute monotonic time at which `--seconds` ends, counted from `start_ns`.
+    pub fn stop_at(&self, start_ns: u64) -> Option<u64> {
+        self.seconds.map(|s| start_ns + (s * 1e9) as u64)
+    }
+}
+
+/// Command-line options of the `engine` process.
+#[derive(Debug, Clone, clap::Args)]
+pub struct EngineArgs {
+    /// Instance, scene, pinning and run time.
+    #[command(flatten)]
+    pub process: ProcessArgs,
+}
+
 /// Run the engine process until terminated (or `--seconds` elapse).
 pub fn run(args: &EngineArgs) -> anyhow::Result<()> {
+    let args = &args.process;
     let scene = Scene::load_or_default(args.scene.as_deref())?;
     let services = Services::new(&args.instance)?;
     let mut core = EngineCore::new(&scene)?;
@@ -47,7 +63,7 @@ pub fn run(args: &EngineArgs) -> anyhow::Result<()> {
     // tracker lets the deadline fire.
     let grace_ns = period_ns / 4;
     let start = now_ns();
-    let stop_at = args.seconds.map(|s| start + (s * 1e9) as u64);
+    let stop_at = args.stop_at(start);
     eprintln!(
         "engine[{}]: {} lung(s), {} ticks/breath at {} Hz; waiting for tracker frames on {:?} \
          (ticking on the deadline meanwhile)",
