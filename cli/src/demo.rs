@@ -227,8 +227,9 @@ pub fn run(args: &DemoArgs) -> anyhow::Result<DemoReport> {
         .clone()
         .unwrap_or_else(|| format!("demo-{}", std::process::id()));
     let services = Services::new(&instance)?;
+    let (inhale, exhale, boundary) = scene.pv_model()?;
     let breathing =
-        engine::pv::Breathing::new(&engine::pv::preset(&scene.pv.preset)?, &scene.timing())?;
+        engine::pv::Breathing::from_constants(&inhale, &exhale, boundary, &scene.timing())?;
     let tick_hz = scene.engine.tick_hz;
     let run_ticks = (args.seconds * tick_hz) as u64;
     let targets = snapshot_ticks(

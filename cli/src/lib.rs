@@ -7,5 +7,7 @@
 
 pub mod demo;
 pub mod mesh_cmd;
+pub mod plot;
+pub mod pv_cmd;
 pub mod stats;
 pub mod strip;

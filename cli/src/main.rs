@@ -23,6 +23,9 @@ enum Command {
     /// Lung surface meshes.
     #[command(subcommand)]
     Mesh(MeshCommand),
+    /// The pressure-volume relation: presets, simulate a breath, fit a measured loop.
+    #[command(subcommand)]
+    Pv(lungdyn::pv_cmd::PvCommand),
     /// Run only the tracker-bridge process (what `demo` starts).
     TrackerBridge(tracker_bridge::BridgeArgs),
     /// Run only the engine process (what `demo` starts).
@@ -61,6 +64,7 @@ fn main() -> std::process::ExitCode {
             }
             Ok(())
         }),
+        Command::Pv(cmd) => lungdyn::pv_cmd::run(&cmd),
         Command::TrackerBridge(args) => tracker_bridge::run(&args),
         Command::Engine(args) => engine::runtime::run(&args),
         Command::Renderer(args) => renderer::process::run(&args),

@@ -35,6 +35,10 @@ pub struct PvScene {
     pub breaths_per_min: f64,
     /// I:E ratio as `[I, E]`.
     pub ie_ratio: [f64; 2],
+    /// A constants file written by `lungdyn pv fit` (relative to the scene file); replaces the
+    /// preset's constants and boundary values when given.
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub constants: Option<std::path::PathBuf>,
 }
 
 /// `[engine]` table.
@@ -104,6 +108,7 @@ impl Default for PvScene {
             preset: crate::pv::DEFAULT_PRESET.to_string(),
             breaths_per_min: 12.0,
             ie_ratio: [1.0, 1.0],
+            constants: None,
         }
     }
 }
@@ -177,7 +182,19 @@ impl Scene {
             path: p.clone(),
             source,
         })?;
-        Self::parse(&text, &p)
+        let mut scene = Self::parse(&text, &p)?;
+        if let Some(c) = &scene.pv.constants {
+            // Relative to the scene file, so a scene and its patient files travel together.
+            let resolved = path.parent().unwrap_or(Path::new(".")).join(c);
+            crate::pv::files::PvConstantsFile::load(&resolved).map_err(|e| {
+                SceneError::Invalid {
+                    path: p.clone(),
+                    message: format!("[pv] constants: {e}"),
+                }
+            })?;
+            scene.pv.constants = Some(resolved);
+        }
+        Ok(scene)
     }
 
     /// Parse and validate scene TOML; `origin` names it in errors.
@@ -249,6 +266,26 @@ impl Scene {
             return Err("[render] ipd_mm must be within 0..200 and splat_mm within 0..100".into());
         }
         Ok(())
+    }
+
+    /// The PV constants and boundary values of this scene: the fitted file if named, else the preset.
+    pub fn pv_model(
+        &self,
+    ) -> anyhow::Result<(
+        crate::pv::PhaseConstants,
+        crate::pv::PhaseConstants,
+        crate::pv::Boundary,
+    )> {
+        match &self.pv.constants {
+            Some(path) => {
+                let f = crate::pv::files::PvConstantsFile::load(path)?;
+                Ok((f.inhale, f.exhale, f.boundary))
+            }
+            None => {
+                let p = crate::pv::preset(&self.pv.preset)?;
+                Ok((p.inhale, p.exhale, p.boundary))
+            }
+        }
     }
 
     /// Breathing timing of this scene.

@@ -16,6 +16,9 @@
 //! Assumptions: `N` odd and ≥ 3 (so `K = (N−1)/2 ≥ 1`); the phase's normalised volume is mapped onto
 //! the boundary values of Table 5.2 (FRC → FRC + TV). Fitting lives with issue #3's work.
 
+pub mod files;
+pub mod fit;
+
 use thiserror::Error;
 
 /// Substeps of the backward-Euler integration per engine tick: keeps the curve (nearly)
@@ -256,12 +259,114 @@ pub fn preset(name: &str) -> Result<Preset, PvError> {
     })
 }
 
-/// Normalised volume of one phase at `steps + 1` equally spaced phase times `t = i/steps`,
-/// from 0 (start) to 1 (end), monotonically non-decreasing.
-///
-/// Control function eq. 5.11 (normalised, EQUATIONS.md §1.1 Decision), dynamics eq. 2.12–2.16 in the
-/// stable backward-Euler form of EQUATIONS.md §1.1.
-pub fn phase_curve(constants: &PhaseConstants, steps: usize) -> Result<Vec<f64>, PvError> {
+/// Eq. 5.11 precomputed on a phase grid for fixed `c`, `T`, `T_ext`, `N`: the control function is
+/// linear in `χ`, `D_raw = M·(N·K − Σ_j χ_j·B_j)` with `B_j(t) = Σ_k sin^q(t·T·π / ((k·j)^c (T + T_ext)))`,
+/// and `sin^q = exp(q·ln sin)`. Keeping `ln sin` (per `c`) and `B_j` (per `q`) makes re-evaluating the
+/// curve for new `χ` or `β` (every fit iteration) a dot product per grid point.
+#[derive(Debug, Clone)]
+pub struct ControlBasis {
+    n: usize,
+    k_max: usize,
+    steps: usize,
+    key: (f64, f64, f64),
+    q: f64,
+    /// `ln sin` of every (point, j, k); points on the half-step grid `t = i / (2·steps)`.
+    log_sin: Vec<f64>,
+    /// `B_j` of every (point, j).
+    basis: Vec<f64>,
+}
+
+impl ControlBasis {
+    /// Terms for `N = n` constants, growth `c`, `T` and `T_ext`, on `steps` steps per phase.
+    pub fn new(n: usize, steps: usize, c: f64, t_steps: f64, t_ext: f64) -> Self {
+        let k_max = (n - 1) / 2;
+        let points = 2 * steps + 1;
+        let mut log_sin = Vec::with_capacity(points * n * k_max);
+        for i in 0..points {
+            let t = i as f64 / (2 * steps) as f64;
+            for j in 1..=n {
+                for k in 1..=k_max {
+                    let arg = t * t_steps * std::f64::consts::PI
+                        / (((k * j) as f64).powf(c) * (t_steps + t_ext));
+                    // arg ∈ [0, π] for c > 0: sin ≥ 0; ln 0 = −∞ gives sin^q = 0 exactly.
+                    log_sin.push(arg.sin().max(0.0).ln());
+                }
+            }
+        }
+        Self {
+            n,
+            k_max,
+            steps,
+            key: (c, t_steps, t_ext),
+            q: f64::NAN,
+            log_sin,
+            basis: vec![0.0; points * n],
+        }
+    }
+
+    /// Whether this basis serves `constants` at `steps` (up to `q`, which [`Self::set_q`] updates).
+    pub fn serves(&self, constants: &PhaseConstants, steps: usize) -> bool {
+        self.steps == steps
+            && self.n == constants.chi.len()
+            && self.key == (constants.c, constants.t_steps, constants.t_ext)
+    }
+
+    /// Recompute `B_j` for exponent `q` (no-op when unchanged).
+    pub fn set_q(&mut self, q: f64) {
+        if q.to_bits() == self.q.to_bits() {
+            return;
+        }
+        self.q = q;
+        let kk = self.k_max;
+        for (b, terms) in self.basis.iter_mut().zip(self.log_sin.chunks_exact(kk)) {
+            *b = terms.iter().map(|&l| (q * l).exp()).sum();
+        }
+    }
+
+    /// Normalised control function `(at, mid)`: `at[i] = D(i/steps)`, `mid[i] = D((i + ½)/steps)`,
+    /// normalised over both together (EQUATIONS.md §1.1 Decision).
+    pub fn control(&self, chi: &[f64]) -> Result<(Vec<f64>, Vec<f64>), PvError> {
+        let nk = (self.n * self.k_max) as f64;
+        let raw: Vec<f64> = self
+            .basis
+            .chunks_exact(self.n)
+            .map(|b| nk - b.iter().zip(chi).map(|(b, c)| b * c).sum::<f64>())
+            .collect();
+        let (lo, hi) = raw
+            .iter()
+            .fold((f64::INFINITY, f64::NEG_INFINITY), |(lo, hi), &d| {
+                (lo.min(d), hi.max(d))
+            });
+        if !(lo.is_finite() && hi.is_finite() && (hi - lo).is_finite()) {
+            return Err(PvError::NonFiniteControl);
+        }
+        if hi - lo <= 1e-12 * hi.abs().max(1.0) {
+            return Err(PvError::DegenerateControl);
+        }
+        let norm = |d: &f64| (d - lo) / (hi - lo);
+        Ok((
+            raw.iter().step_by(2).map(norm).collect(),
+            raw.iter().skip(1).step_by(2).map(norm).collect(),
+        ))
+    }
+
+    /// The phase's normalised volume curve (see [`phase_curve`]) for `constants` (their `c`, `T`,
+    /// `T_ext`, `N` must be this basis's: [`Self::serves`]).
+    pub fn phase_curve(&mut self, constants: &PhaseConstants) -> Result<Vec<f64>, PvError> {
+        constants.validate()?;
+        self.set_q(constants.q);
+        let (_, mid) = self.control(&constants.chi)?;
+        integrate_phase(&mid, constants.beta0, constants.beta1)
+    }
+}
+
+/// The normalised control function of eq. 5.11 over one phase: `(at, mid)` with `at[i] = D(i/steps)`
+/// (`steps + 1` values) and `mid[i] = D((i + ½)/steps)` (`steps` values). Normalised to [0, 1] over
+/// both grids together (EQUATIONS.md §1.1 Decision); a constant or overflowing `D_raw` is an error.
+pub fn control_curve(
+    constants: &PhaseConstants,
+    steps: usize,
+) -> Result<(Vec<f64>, Vec<f64>), PvError> {
     constants.validate()?;
     if steps == 0 {
         return Err(PvError::OutOfRange {
@@ -270,27 +375,52 @@ pub fn phase_curve(constants: &PhaseConstants, steps: usize) -> Result<Vec<f64>,
             range: ">= 1",
         });
     }
-    let raw: Vec<f64> = (0..=steps)
-        .map(|i| constants.control_raw(i as f64 / steps as f64))
-        .collect();
-    let (lo, hi) = raw
-        .iter()
-        .fold((f64::INFINITY, f64::NEG_INFINITY), |(lo, hi), &d| {
-            (lo.min(d), hi.max(d))
-        });
-    if !(hi - lo).is_finite() || hi - lo <= f64::EPSILON * hi.abs().max(1.0) {
-        return Err(PvError::DegenerateControl);
-    }
-    let h = 1.0 / steps as f64;
-    let mut volume = Vec::with_capacity(steps + 1);
+    let mut basis = ControlBasis::new(
+        constants.chi.len(),
+        steps,
+        constants.c,
+        constants.t_steps,
+        constants.t_ext,
+    );
+    basis.set_q(constants.q);
+    basis.control(&constants.chi)
+}
+
+/// Normalised volume of one phase at `steps + 1` equally spaced phase times `t = i/steps`,
+/// from 0 (start) to 1 (end), monotonically non-decreasing.
+///
+/// Control function eq. 5.11 (normalised, EQUATIONS.md §1.1 Decision); dynamics eq. 2.12–2.16 in the
+/// stable form `v' = F_E − R(t)·v` of EQUATIONS.md §1.1 (M = F_E = 1). **Changed (lungdyn):** each
+/// step is integrated exactly for `R` held at its midpoint value (exponential integrator) instead of
+/// by backward Euler: just as stable (any `R ≥ 0`, any step) but second-order, so the curve a fit
+/// evaluates at a few hundred steps is the curve the engine plays at 16 substeps per tick.
+pub fn phase_curve(constants: &PhaseConstants, steps: usize) -> Result<Vec<f64>, PvError> {
+    let (_, mid) = control_curve(constants, steps)?;
+    integrate_phase(&mid, constants.beta0, constants.beta1)
+}
+
+/// Integrate `v' = 1 − R·v`, `V' = v` over one phase with `R = max(0, β0 + β1·D)` held at each step's
+/// midpoint value `mid[i]`, exactly per step; returns `V` normalised to end at 1.
+fn integrate_phase(mid: &[f64], beta0: f64, beta1: f64) -> Result<Vec<f64>, PvError> {
+    let h = 1.0 / mid.len() as f64;
+    let mut volume = Vec::with_capacity(mid.len() + 1);
     let (mut v, mut vol) = (0.0_f64, 0.0_f64);
     volume.push(0.0);
-    for d_raw in raw.iter().skip(1) {
-        let d = (d_raw - lo) / (hi - lo);
-        let r = (constants.beta0 + constants.beta1 * d).max(0.0);
-        // Backward Euler on M·v' = F_E − R·v with M = F_E = 1: unconditionally stable for R ≥ 0.
-        v = (v + h) / (1.0 + h * r);
-        vol += h * v;
+    for &d in mid {
+        let r = (beta0 + beta1 * d).max(0.0);
+        let rh = r * h;
+        if rh < 1e-9 {
+            // R ≈ 0: free acceleration over the step.
+            vol += h * v + 0.5 * h * h;
+            v += h;
+        } else {
+            // Exact: v(τ) = 1/R + (v0 − 1/R)·e^(−Rτ), integrated over the step for the volume.
+            let decay = (-rh).exp();
+            let v_inf = 1.0 / r;
+            // ≥ 0 exactly (v stays between v0 ≥ 0 and 1/R); rounding can make it −1e−20 near v = 1/R.
+            vol += (h * v_inf + (v - v_inf) * (1.0 - decay) / r).max(0.0);
+            v = v_inf + (v - v_inf) * decay;
+        }
         volume.push(vol);
     }
     let end = vol;
@@ -478,6 +608,11 @@ pub enum PvError {
     /// The control function is constant over the phase (e.g. all χ = 0), so it cannot be normalised.
     #[error("the control function is constant over the phase (all control constants zero?): it cannot be normalised to [0, 1]")]
     DegenerateControl,
+    /// The control function overflows (constants too large to evaluate in f64).
+    #[error(
+        "the control function is not finite over the phase: the control constants are too large"
+    )]
+    NonFiniteControl,
     /// A timing parameter is invalid.
     #[error(
         "{name} must be a positive finite number giving at least 2 ticks per breath, got {value}"
@@ -602,6 +737,30 @@ mod tests {
     }
 
     #[test]
+    fn the_cached_basis_reproduces_eq_5_11_term_by_term() {
+        let k = PhaseConstants {
+            c: 1.3,
+            t_ext: 20.0,
+            q: 2.7,
+            ..PhaseConstants::from_table(&[0.65, 0.32, 0.14, 0.023, 0.045, 0.037, 0.031], 2.0)
+        };
+        let (at, _) = control_curve(&k, 50).unwrap();
+        let raw: Vec<f64> = (0..=100).map(|i| k.control_raw(i as f64 / 100.0)).collect();
+        let (lo, hi) = raw
+            .iter()
+            .fold((f64::INFINITY, f64::NEG_INFINITY), |(l, h), &d| {
+                (l.min(d), h.max(d))
+            });
+        for i in 0..=50 {
+            assert!(
+                (at[i] - (raw[2 * i] - lo) / (hi - lo)).abs() < 1e-12,
+                "t = {}",
+                i as f64 / 50.0
+            );
+        }
+    }
+
+    #[test]
     fn all_zero_constants_are_a_typed_error_not_nan() {
         let c = PhaseConstants::from_table(&[0.0; 7], 2.0);
         assert_eq!(phase_curve(&c, 100), Err(PvError::DegenerateControl));
@@ -642,6 +801,111 @@ mod tests {
         assert_eq!(b.volume_at(day - day % n), 2400.0);
     }
 
+    #[test]
+    fn extreme_constants_give_a_finite_curve_or_a_typed_error() {
+        let base = PhaseConstants::from_table(&[0.57, 0.46, 0.40, 0.35, 0.31, 0.30, 0.29], 2.0);
+        let mut cases: Vec<PhaseConstants> = Vec::new();
+        for q in [1.0, 2.0, 6.0, 12.0] {
+            for t_ext in [0.0, 1.0, 100.0] {
+                for c in [0.5, 1.0, 3.0] {
+                    for t_steps in [10.0, 100.0, 10_000.0] {
+                        cases.push(PhaseConstants {
+                            q,
+                            t_ext,
+                            c,
+                            t_steps,
+                            ..base.clone()
+                        });
+                    }
+                }
+            }
+        }
+        for n in [3usize, 5, 9, 15] {
+            cases.push(PhaseConstants {
+                chi: vec![0.3; n],
+                ..base.clone()
+            });
+            cases.push(PhaseConstants {
+                chi: (0..n).map(|j| 1.0 / (j + 1) as f64).collect(),
+                ..base.clone()
+            });
+        }
+        for chi in [
+            [0.0; 7],
+            [1.0; 7],
+            [-1.0; 7],
+            [1e6; 7],
+            [1e300; 7],
+            [-1e300; 7],
+            [1e-300; 7],
+        ] {
+            cases.push(PhaseConstants {
+                chi: chi.to_vec(),
+                ..base.clone()
+            });
+        }
+        for (b0, b1) in [
+            (0.0, 0.0),
+            (1e6, -1e6),
+            (-30.0, 0.0),
+            (1e-9, 0.0),
+            (1e300, 0.0),
+        ] {
+            cases.push(PhaseConstants {
+                beta0: b0,
+                beta1: b1,
+                ..base.clone()
+            });
+        }
+        for k in &cases {
+            for steps in [1usize, 10, 1000] {
+                match phase_curve(k, steps) {
+                    Ok(c) => {
+                        assert!(
+                            c.iter()
+                                .all(|v| v.is_finite() && (0.0..=1.0 + 1e-12).contains(v)),
+                            "{k:?}"
+                        );
+                        assert!(c.windows(2).all(|w| w[1] >= w[0]));
+                    }
+                    Err(e) => assert!(
+                        matches!(e, PvError::DegenerateControl | PvError::NonFiniteControl),
+                        "{k:?}: unexpected {e}"
+                    ),
+                }
+            }
+        }
+    }
+
+    #[test]
+    fn one_and_sixty_breaths_per_minute_keep_exact_integer_cycles() {
+        let p = preset(DEFAULT_PRESET).unwrap();
+        for (bpm, cycle) in [(1.0, 3600u32), (60.0, 60)] {
+            let b = Breathing::new(
+                &p,
+                &Timing {
+                    breaths_per_min: bpm,
+                    ..Timing::default()
+                },
+            )
+            .unwrap();
+            assert_eq!(b.cycle_ticks(), cycle);
+            for tick in 0..2 * cycle as u64 {
+                let v = b.volume_at(tick);
+                assert!(v.is_finite() && (2400.0..=2900.0).contains(&v));
+            }
+        }
+        // Faster than the tick rate can resolve: a typed error, not a zero-length phase.
+        let t = Timing {
+            breaths_per_min: 3600.0,
+            ..Timing::default()
+        };
+        assert!(matches!(
+            Breathing::new(&p, &t),
+            Err(PvError::BadTiming { .. })
+        ));
+    }
+
     proptest! {
         #[test]
         fn random_valid_constants_give_bounded_monotone_curves(
@@ -662,6 +926,23 @@ mod tests {
                     }
                 }
                 Err(e) => prop_assert_eq!(e, PvError::DegenerateControl),
+            }
+        }
+
+        #[test]
+        fn the_curve_is_nearly_independent_of_the_step_count(
+            chi in proptest::collection::vec(0.0f64..2.0, 7),
+            q in 1.0f64..6.0,
+            beta0 in 0.0f64..60.0,
+            beta1 in -60.0f64..0.0,
+        ) {
+            // A fit evaluates ~400 steps per phase; the engine plays 16 substeps per tick (2400 at
+            // 60 Hz, 12 breaths/min). The two curves must agree far inside the 1 % fit target.
+            let k = PhaseConstants { chi, q, beta0, beta1, ..PhaseConstants::from_table(&[0.0; 7], 2.0) };
+            if let (Ok(coarse), Ok(fine)) = (phase_curve(&k, 400), phase_curve(&k, 2400)) {
+                for i in 0..=400 {
+                    prop_assert!((coarse[i] - fine[i * 6]).abs() < 1e-3, "t = {}: {} vs {}", i as f64 / 400.0, coarse[i], fine[i * 6]);
+                }
             }
         }
     }

@@ -1,0 +1,513 @@
+//! `lungdyn pv presets | simulate | fit`: the pressure–volume relation on the command line.
+
+use std::path::PathBuf;
+
+use engine::pv::files::{read_curve, PvConstantsFile, VolumeUnit, CONSTANTS_FORMAT};
+use engine::pv::fit::{fit_curve, model_at, CurveFit, FitOptions, PhaseFit};
+use engine::pv::{control_curve, phase_curve, preset, Boundary, PhaseConstants, PRESET_NAMES};
+use serde::Serialize;
+
+use crate::plot::{self, Panel, Series, DATA, EXHALE, INHALE};
+
+/// Options of `lungdyn pv simulate`.
+#[derive(Debug, Clone, clap::Args)]
+pub struct SimulateArgs {
+    /// Preset (Table 5.1 row; `lungdyn pv presets` lists them).
+    #[arg(long, default_value = engine::pv::DEFAULT_PRESET)]
+    pub preset: String,
+    /// Or a constants file written by `lungdyn pv fit` (replaces the preset).
+    #[arg(long, conflicts_with = "preset")]
+    pub constants: Option<PathBuf>,
+    /// Override q (both phases).
+    #[arg(long)]
+    pub q: Option<f64>,
+    /// Override c (both phases).
+    #[arg(long)]
+    pub c: Option<f64>,
+    /// Override T_ext (both phases): hysteresis, 0 for normal breathing.
+    #[arg(long)]
+    pub t_ext: Option<f64>,
+    /// Override the inhalation control constants, comma-separated (N odd ≥ 3).
+    #[arg(long, value_delimiter = ',', allow_hyphen_values = true)]
+    pub chi_inhale: Option<Vec<f64>>,
+    /// Override the exhalation control constants, comma-separated.
+    #[arg(long, value_delimiter = ',', allow_hyphen_values = true)]
+    pub chi_exhale: Option<Vec<f64>>,
+    /// Override FRC, ml.
+    #[arg(long)]
+    pub frc: Option<f64>,
+    /// Override TV, ml.
+    #[arg(long)]
+    pub tv: Option<f64>,
+    /// Override the top pressure, cmH2O.
+    #[arg(long)]
+    pub tp: Option<f64>,
+    /// Samples per phase in the CSV.
+    #[arg(long, default_value_t = 100)]
+    pub samples: usize,
+    /// Output CSV (phase, t, pressure_cmh2o, volume_ml, damping).
+    #[arg(long)]
+    pub out: PathBuf,
+    /// Also plot the loop and the damping functions (PNG; an SVG is written beside it).
+    #[arg(long)]
+    pub plot: Option<PathBuf>,
+    /// Print a JSON summary on stdout.
+    #[arg(long)]
+    pub json: bool,
+}
+
+/// Options of `lungdyn pv fit`.
+#[derive(Debug, Clone, clap::Args)]
+pub struct FitArgs {
+    /// Measured curve CSV with a header row: pressure (cmH2O) and volume columns, found by name
+    /// ("pressure"/"cmH2O"/"pes"/"paw", "volume"/"vol"), else the first two numeric columns;
+    /// optional `phase` column (inhale/exhale), else split at the sample of maximum volume.
+    #[arg(long)]
+    pub input: PathBuf,
+    /// Unit of the volume column.
+    #[arg(long, default_value = "ml", value_parser = ["ml", "l"])]
+    pub volume_unit: String,
+    /// Fix q (else the fit chooses it).
+    #[arg(long)]
+    pub q: Option<f64>,
+    /// Fix c (else the fit chooses it).
+    #[arg(long)]
+    pub c: Option<f64>,
+    /// Hysteresis constant T_ext held during the fit.
+    #[arg(long, default_value_t = 0.0)]
+    pub t_ext: f64,
+    /// Write the constants as TOML (usable from a scene: `[pv] constants = "FILE"`).
+    #[arg(long)]
+    pub out: Option<PathBuf>,
+    /// Plot data and fit (PNG; an SVG is written beside it).
+    #[arg(long)]
+    pub plot: Option<PathBuf>,
+    /// Print one JSON object on stdout.
+    #[arg(long)]
+    pub json: bool,
+}
+
+/// `lungdyn pv` subcommands.
+#[derive(Debug, Clone, clap::Subcommand)]
+pub enum PvCommand {
+    /// List the presets of Table 5.1 (with Table 5.2 boundary values).
+    Presets,
+    /// Simulate one breathing cycle: CSV of the PV loop and damping curves, optional plots.
+    Simulate(SimulateArgs),
+    /// Fit a measured PV loop: constants per phase, RMS error, condition number, boundary values.
+    Fit(FitArgs),
+}
+
+/// Run a `lungdyn pv` subcommand.
+pub fn run(cmd: &PvCommand) -> anyhow::Result<()> {
+    match cmd {
+        PvCommand::Presets => presets(),
+        PvCommand::Simulate(a) => simulate(a),
+        PvCommand::Fit(a) => fit(a),
+    }
+}
+
+fn presets() -> anyhow::Result<()> {
+    for name in PRESET_NAMES {
+        let p = preset(name)?;
+        let fmt = |k: &PhaseConstants| {
+            k.chi
+                .iter()
+                .map(|c| c.to_string())
+                .collect::<Vec<_>>()
+                .join(", ")
+        };
+        println!("{name:<30} {}", p.source);
+        println!(
+            "{:<30} inhale  chi = [{}], q = {}",
+            "",
+            fmt(&p.inhale),
+            p.inhale.q
+        );
+        if p.exhale != p.inhale {
+            println!(
+                "{:<30} exhale  chi = [{}], q = {}",
+                "",
+                fmt(&p.exhale),
+                p.exhale.q
+            );
+        }
+        println!(
+            "{:<30} FRC {} ml, TV {} ml, RP {} cmH2O, TP {} cmH2O",
+            "", p.boundary.frc_ml, p.boundary.tv_ml, p.boundary.rp_cmh2o, p.boundary.tp_cmh2o
+        );
+    }
+    Ok(())
+}
+
+/// The constants `simulate` uses after overrides.
+pub fn simulate_constants(
+    a: &SimulateArgs,
+) -> anyhow::Result<(PhaseConstants, PhaseConstants, Boundary, String)> {
+    let (mut inhale, mut exhale, mut boundary, name) = match &a.constants {
+        Some(path) => {
+            let f = PvConstantsFile::load(path)?;
+            (f.inhale, f.exhale, f.boundary, path.display().to_string())
+        }
+        None => {
+            let p = preset(&a.preset)?;
+            (p.inhale, p.exhale, p.boundary, p.name.to_string())
+        }
+    };
+    for k in [&mut inhale, &mut exhale] {
+        if let Some(q) = a.q {
+            k.q = q;
+        }
+        if let Some(c) = a.c {
+            k.c = c;
+        }
+        if let Some(t) = a.t_ext {
+            k.t_ext = t;
+        }
+    }
+    if let Some(chi) = &a.chi_inhale {
+        inhale.chi = chi.clone();
+    }
+    if let Some(chi) = &a.chi_exhale {
+        exhale.chi = chi.clone();
+    }
+    boundary.frc_ml = a.frc.unwrap_or(boundary.frc_ml);
+    boundary.tv_ml = a.tv.unwrap_or(boundary.tv_ml);
+    boundary.tp_cmh2o = a.tp.unwrap_or(boundary.tp_cmh2o);
+    if !(boundary.frc_ml.is_finite()
+        && boundary.tv_ml.is_finite()
+        && boundary.frc_ml > 0.0
+        && boundary.tv_ml > 0.0)
+    {
+        anyhow::bail!("--frc and --tv must be positive numbers of ml");
+    }
+    if !boundary.tp_cmh2o.is_finite() {
+        anyhow::bail!("--tp must be a finite pressure");
+    }
+    Ok((inhale, exhale, boundary, name))
+}
+
+#[derive(Serialize)]
+struct SimulateSummary {
+    csv: String,
+    plots: Vec<String>,
+    rows: usize,
+}
+
+fn simulate(a: &SimulateArgs) -> anyhow::Result<()> {
+    if !(2..=100_000).contains(&a.samples) {
+        anyhow::bail!("--samples {} must be within 2..100000", a.samples);
+    }
+    let (inhale, exhale, b, name) = simulate_constants(a)?;
+    let steps = a.samples - 1;
+    let up =
+        phase_curve(&inhale, steps).map_err(|e| anyhow::anyhow!("inhalation constants: {e}"))?;
+    let down =
+        phase_curve(&exhale, steps).map_err(|e| anyhow::anyhow!("exhalation constants: {e}"))?;
+    let (d_up, _) = control_curve(&inhale, steps)?;
+    let (d_down, _) = control_curve(&exhale, steps)?;
+    let pressure = |x: f64| b.rp_cmh2o + (b.tp_cmh2o - b.rp_cmh2o) * x;
+    let mut rows = Vec::new();
+    for i in 0..=steps {
+        let t = i as f64 / steps as f64;
+        rows.push((
+            "inhale",
+            t,
+            pressure(t),
+            b.frc_ml + b.tv_ml * up[i],
+            d_up[i],
+        ));
+    }
+    for i in 0..=steps {
+        let s = i as f64 / steps as f64;
+        rows.push((
+            "exhale",
+            s,
+            pressure(1.0 - s),
+            b.frc_ml + b.tv_ml * (1.0 - down[i]),
+            d_down[i],
+        ));
+    }
+    engine::mesh::io::write_atomically(&a.out, |w| {
+        use std::io::Write;
+        writeln!(w, "phase,t,pressure_cmh2o,volume_ml,damping")?;
+        for (phase, t, p, v, d) in &rows {
+            writeln!(w, "{phase},{t},{p},{v},{d}")?;
+        }
+        Ok(())
+    })?;
+    let mut plots = Vec::new();
+    if let Some(png) = &a.plot {
+        let series =
+            |phase: &str, color, f: &dyn Fn(&(&str, f64, f64, f64, f64)) -> (f64, f64)| Series {
+                label: if phase == "inhale" {
+                    "inhalation"
+                } else {
+                    "exhalation"
+                }
+                .to_string(),
+                points: rows.iter().filter(|r| r.0 == phase).map(f).collect(),
+                color,
+                markers: false,
+            };
+        let k = &inhale;
+        let panels = [
+            Panel {
+                title: format!("PV loop: {name}"),
+                x_label: "pressure (cmH2O)".into(),
+                y_label: "volume (ml)".into(),
+                series: vec![
+                    series("inhale", INHALE, &|r| (r.2, r.3)),
+                    series("exhale", EXHALE, &|r| (r.2, r.3)),
+                ],
+            },
+            Panel {
+                title: format!(
+                    "damping D (eq. 5.11), q = {}, c = {}, T_ext = {}",
+                    k.q, k.c, k.t_ext
+                ),
+                x_label: "normalised phase time".into(),
+                y_label: "D (normalised)".into(),
+                series: vec![
+                    series("inhale", INHALE, &|r| (r.1, r.4)),
+                    series("exhale", EXHALE, &|r| (r.1, r.4)),
+                ],
+            },
+        ];
+        let (p, s) = plot::write(png, &panels)?;
+        plots = vec![p.display().to_string(), s.display().to_string()];
+    }
+    let summary = SimulateSummary {
+        csv: a.out.display().to_string(),
+        plots,
+        rows: rows.len(),
+    };
+    if a.json {
+        println!("{}", serde_json::to_string(&summary)?);
+    } else {
+        println!(
+            "wrote {} ({} rows: phase, t, pressure_cmh2o, volume_ml, damping)",
+            summary.csv, summary.rows
+        );
+        for p in &summary.plots {
+            println!("wrote {p}");
+        }
+    }
+    Ok(())
+}
+
+#[derive(Serialize)]
+struct PhaseJson {
+    constants: PhaseConstants,
+    rms_percent: f64,
+    max_error_percent: f64,
+    condition_number: f64,
+    samples: usize,
+}
+
+impl From<&PhaseFit> for PhaseJson {
+    fn from(f: &PhaseFit) -> Self {
+        Self {
+            constants: f.constants.clone(),
+            rms_percent: f.rms_percent,
+            max_error_percent: f.max_error_percent,
+            condition_number: f.condition_number,
+            samples: f.samples,
+        }
+    }
+}
+
+#[derive(Serialize)]
+struct FitJson {
+    rms_percent: f64,
+    inhale: PhaseJson,
+    exhale: PhaseJson,
+    boundary: Boundary,
+    driving_pressure_sign: f64,
+    volume_unit_assumed: String,
+    q_chosen_by_fit: bool,
+    c_chosen_by_fit: bool,
+    seconds: f64,
+    constants_file: Option<String>,
+    plots: Vec<String>,
+}
+
+fn fit(a: &FitArgs) -> anyhow::Result<()> {
+    let unit: VolumeUnit = a.volume_unit.parse().map_err(anyhow::Error::msg)?;
+    let curve = read_curve(&a.input, unit)?;
+    let max_v = curve
+        .samples
+        .iter()
+        .map(|s| s.volume)
+        .fold(f64::NEG_INFINITY, f64::max);
+    if unit == VolumeUnit::Ml && max_v < 20.0 {
+        eprintln!(
+            "lungdyn: note: volumes are read as ml (--volume-unit ml); the largest is {max_v}, which looks like litres: pass --volume-unit l if so"
+        );
+    }
+    let opts = FitOptions {
+        q: a.q,
+        c: a.c,
+        t_ext: a.t_ext,
+        ..Default::default()
+    };
+    if !a.json {
+        eprintln!(
+            "lungdyn: fitting {} samples ({} vs {}; volume in {}) ...",
+            curve.samples.len(),
+            curve.pressure_column,
+            curve.volume_column,
+            a.volume_unit
+        );
+    }
+    let start = std::time::Instant::now();
+    let fit = fit_curve(&curve.samples, &opts)
+        .map_err(|e| anyhow::anyhow!("{}: {e}", a.input.display()))?;
+    let seconds = start.elapsed().as_secs_f64();
+    if let Some(out) = &a.out {
+        PvConstantsFile {
+            format: CONSTANTS_FORMAT,
+            source: format!("lungdyn pv fit --input {}", a.input.display()),
+            boundary: fit.boundary,
+            inhale: fit.inhale.constants.clone(),
+            exhale: fit.exhale.constants.clone(),
+        }
+        .save(out)?;
+    }
+    let mut plots = Vec::new();
+    if let Some(png) = &a.plot {
+        let (p, s) = plot::write(png, &fit_panels(&fit, &curve.samples)?)?;
+        plots = vec![p.display().to_string(), s.display().to_string()];
+    }
+    let report = FitJson {
+        rms_percent: fit.rms_percent,
+        inhale: (&fit.inhale).into(),
+        exhale: (&fit.exhale).into(),
+        boundary: fit.boundary,
+        driving_pressure_sign: fit.driving_pressure_sign,
+        volume_unit_assumed: a.volume_unit.clone(),
+        q_chosen_by_fit: a.q.is_none(),
+        c_chosen_by_fit: a.c.is_none(),
+        seconds,
+        constants_file: a.out.as_ref().map(|p| p.display().to_string()),
+        plots,
+    };
+    if a.json {
+        println!("{}", serde_json::to_string(&report)?);
+        return Ok(());
+    }
+    println!("fit of {} ({:.2} s)", a.input.display(), seconds);
+    if fit.driving_pressure_sign < 0.0 {
+        println!(
+            "pressure falls as volume rises (oesophageal/pleural): fitted the driving pressure −P"
+        );
+    }
+    for (name, f) in [("inhalation", &fit.inhale), ("exhalation", &fit.exhale)] {
+        let k = &f.constants;
+        println!(
+            "  {name:<11} RMS {:.3} % (max {:.3} %) of the normalised range, {} samples, condition number {:.3e}",
+            f.rms_percent, f.max_error_percent, f.samples, f.condition_number
+        );
+        println!(
+            "              chi = [{}]",
+            k.chi
+                .iter()
+                .map(|c| format!("{c:.5}"))
+                .collect::<Vec<_>>()
+                .join(", ")
+        );
+        println!(
+            "              q = {:.4}{}, c = {:.4}{}, T_ext = {}, beta0 = {:.4}, beta1 = {:.4}",
+            k.q,
+            if a.q.is_none() {
+                " (chosen by the fit)"
+            } else {
+                ""
+            },
+            k.c,
+            if a.c.is_none() {
+                " (chosen by the fit)"
+            } else {
+                ""
+            },
+            k.t_ext,
+            k.beta0,
+            k.beta1
+        );
+    }
+    let b = &fit.boundary;
+    println!(
+        "  boundary    FRC {:.1} ml, TV {:.1} ml, RP {:.3} cmH2O, TP {:.3} cmH2O",
+        b.frc_ml, b.tv_ml, b.rp_cmh2o, b.tp_cmh2o
+    );
+    println!("  overall RMS (worse phase) {:.3} %", fit.rms_percent);
+    if let Some(out) = &a.out {
+        println!("wrote {}", out.display());
+    }
+    for p in &report.plots {
+        println!("wrote {p}");
+    }
+    Ok(())
+}
+
+fn fit_panels(fit: &CurveFit, samples: &[engine::pv::fit::PvSample]) -> anyhow::Result<[Panel; 2]> {
+    let grid: Vec<f64> = (0..=200).map(|i| i as f64 / 200.0).collect();
+    let mut loop_series = vec![Series {
+        label: "measured".into(),
+        points: samples.iter().map(|s| (s.pressure, s.volume)).collect(),
+        color: DATA,
+        markers: true,
+    }];
+    let mut norm_series = Vec::new();
+    for (i, (f, color, label)) in [
+        (&fit.inhale, INHALE, "inhalation"),
+        (&fit.exhale, EXHALE, "exhalation"),
+    ]
+    .into_iter()
+    .enumerate()
+    {
+        let model = model_at(&f.constants, &grid, 400)?;
+        let scale = &fit.scales[i];
+        loop_series.push(Series {
+            label: format!("{label} fit ({:.2} % RMS)", f.rms_percent),
+            points: grid
+                .iter()
+                .zip(&model)
+                .map(|(&t, &v)| scale.to_data(t, v))
+                .collect(),
+            color,
+            markers: false,
+        });
+        norm_series.push(Series {
+            label: format!("{label} data"),
+            points: fit.limbs[i]
+                .t
+                .iter()
+                .copied()
+                .zip(fit.limbs[i].v.iter().copied())
+                .collect(),
+            color: DATA,
+            markers: true,
+        });
+        norm_series.push(Series {
+            label: format!("{label} model"),
+            points: grid.iter().copied().zip(model).collect(),
+            color,
+            markers: false,
+        });
+    }
+    Ok([
+        Panel {
+            title: "PV loop: measured and fitted".into(),
+            x_label: "pressure (cmH2O)".into(),
+            y_label: "volume (ml)".into(),
+            series: loop_series,
+        },
+        Panel {
+            title: "limbs in model coordinates".into(),
+            x_label: "normalised phase time (driving pressure)".into(),
+            y_label: "normalised volume".into(),
+            series: norm_series,
+        },
+    ])
+}
