@@ -791,6 +791,25 @@ mod tests {
         }
     }
 
+    proptest::proptest! {
+        #![proptest_config(proptest::prelude::ProptestConfig::with_cases(6))]
+        #[test]
+        fn random_valid_constants_round_trip_through_simulate_and_fit(
+            chi in proptest::collection::vec(0.0f64..1.5, 7),
+            beta0 in 5.0f64..60.0,
+            ratio in -1.0f64..0.0,
+            q in proptest::sample::select(vec![2.0f64, 3.0]),
+        ) {
+            let truth = PhaseConstants { chi, q, beta0, beta1: ratio * beta0, ..PhaseConstants::from_table(&[0.0; 7], q) };
+            proptest::prop_assume!(phase_curve(&truth, 400).is_ok());
+            let t: Vec<f64> = (0..=120).map(|i| i as f64 / 120.0).collect();
+            let v = model_at(&truth, &t, 400).unwrap();
+            let fit = fit_limb(&Limb { t, v }, &FitOptions { q: Some(q), c: Some(1.0), ..Default::default() }).unwrap();
+            // The curve comes back (the constants need not: eq. 5.11 is nearly collinear in χ).
+            proptest::prop_assert!(fit.rms_percent < 0.1, "{} %", fit.rms_percent);
+        }
+    }
+
     #[test]
     fn bad_curves_give_typed_errors() {
         let s = |p: f64, v: f64| PvSample {
