@@ -31,3 +31,16 @@ pub fn unique_instance(tag: &str) -> String {
         ipc_types::now_ns() % 1_000_000
     )
 }
+
+/// Run the `lungdyn` binary with `args`: (success, stdout, stderr).
+pub fn lungdyn(args: &[&str]) -> (bool, String, String) {
+    let out = std::process::Command::new(bin("lungdyn"))
+        .args(args)
+        .output()
+        .expect("run lungdyn");
+    (
+        out.status.success(),
+        String::from_utf8_lossy(&out.stdout).into_owned(),
+        String::from_utf8_lossy(&out.stderr).into_owned(),
+    )
+}

@@ -3,16 +3,7 @@
 
 use std::process::Command;
 
-use lungdyn_tests::bin;
-
-fn lungdyn(args: &[&str]) -> (bool, String, String) {
-    let out = Command::new(bin("lungdyn")).args(args).output().unwrap();
-    (
-        out.status.success(),
-        String::from_utf8_lossy(&out.stdout).into_owned(),
-        String::from_utf8_lossy(&out.stderr).into_owned(),
-    )
-}
+use lungdyn_tests::{bin, lungdyn};
 
 fn assert_clean_failure(args: &[&str], needle: &str) {
     let (ok, _, err) = lungdyn(args);
