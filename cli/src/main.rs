@@ -38,6 +38,9 @@ enum Command {
 enum MeshCommand {
     /// Generate the built-in adult lung (closed, 2-manifold) as OBJ or PLY.
     Generate(lungdyn::mesh_cmd::GenerateArgs),
+    /// Import a patient lung surface (OBJ, PLY, STL), weld and repair what is safe, verify it is
+    /// closed, 2-manifold and consistently wound; optionally write the repaired mesh.
+    Check(lungdyn::mesh_cmd::CheckArgs),
 }
 
 fn main() -> std::process::ExitCode {
@@ -64,6 +67,26 @@ fn main() -> std::process::ExitCode {
             }
             Ok(())
         }),
+        Command::Mesh(MeshCommand::Check(args)) => lungdyn::mesh_cmd::check_mesh(&args).and_then(|c| {
+            if args.json {
+                println!("{}", serde_json::to_string(&c)?);
+            } else {
+                let r = &c.repairs;
+                println!(
+                    "{}: closed 2-manifold surface, {} vertices, {} triangles, Euler {}, {:.1} ml, {:.0} x {:.0} x {:.0} mm",
+                    c.path, c.vertices, c.triangles, c.euler, c.volume_ml, c.size_mm[0], c.size_mm[1], c.size_mm[2]
+                );
+                println!(
+                    "repairs: {} vertices welded, {} degenerate and {} duplicate triangles removed, {} unused vertices removed{}",
+                    r.welded_vertices,
+                    r.degenerate_triangles,
+                    r.duplicate_triangles,
+                    r.unused_vertices,
+                    if r.flipped_inside_out { ", winding flipped (was inside out)" } else { "" }
+                );
+            }
+            Ok(())
+        }),
         Command::Pv(cmd) => lungdyn::pv_cmd::run(&cmd),
         Command::TrackerBridge(args) => tracker_bridge::run(&args),
         Command::Engine(args) => engine::runtime::run(&args),
@@ -72,7 +95,7 @@ fn main() -> std::process::ExitCode {
     match result {
         Ok(()) => std::process::ExitCode::SUCCESS,
         Err(e) => {
-            eprintln!("lungdyn: error: {e:#}");
+            eprintln!("lungdyn: error: {}", ipc_types::describe_error(e.as_ref()));
             std::process::ExitCode::FAILURE
         }
     }

@@ -56,3 +56,60 @@ pub fn run(args: &GenerateArgs) -> anyhow::Result<MeshSummary> {
         size_mm: mesh.aabb().size(),
     })
 }
+
+/// Options of `lungdyn mesh check`.
+#[derive(Debug, Clone, clap::Args)]
+pub struct CheckArgs {
+    /// Mesh file: .obj, .ply or .stl (ASCII or binary).
+    #[arg(long)]
+    pub mesh: PathBuf,
+    /// Unit of the file's coordinates.
+    #[arg(long, default_value = "mm", value_parser = ["mm", "cm", "m"])]
+    pub units: String,
+    /// Write the welded, repaired mesh (in mm) as .obj or .ply.
+    #[arg(long)]
+    pub out: Option<PathBuf>,
+    /// Print one JSON object on stdout.
+    #[arg(long)]
+    pub json: bool,
+}
+
+/// What `mesh check` found.
+#[derive(Debug, Serialize)]
+pub struct CheckSummary {
+    /// Input path.
+    pub path: String,
+    /// Vertices after welding.
+    pub vertices: usize,
+    /// Triangles after repairs.
+    pub triangles: usize,
+    /// Euler characteristic (2: closed sphere-like surface).
+    pub euler: i64,
+    /// Enclosed volume, ml.
+    pub volume_ml: f64,
+    /// Bounding box size, mm.
+    pub size_mm: [f32; 3],
+    /// Repairs applied.
+    pub repairs: engine::mesh::import::Repairs,
+}
+
+/// Import, repair what is safe, verify, optionally export.
+pub fn check_mesh(args: &CheckArgs) -> anyhow::Result<CheckSummary> {
+    let units: engine::mesh::import::Units = args.units.parse().map_err(anyhow::Error::msg)?;
+    if let Some(out) = &args.out {
+        io::MeshFormat::from_path(out)?;
+    }
+    let imported = engine::mesh::import::import(&args.mesh, units)?;
+    if let Some(out) = &args.out {
+        io::write_mesh(&imported.mesh, out)?;
+    }
+    Ok(CheckSummary {
+        path: args.mesh.display().to_string(),
+        vertices: imported.topology.vertices,
+        triangles: imported.topology.triangles,
+        euler: imported.topology.euler,
+        volume_ml: imported.mesh.enclosed_volume_ml(),
+        size_mm: imported.mesh.aabb().size(),
+        repairs: imported.repairs,
+    })
+}

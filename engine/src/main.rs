@@ -16,7 +16,7 @@ fn main() -> std::process::ExitCode {
     match engine::runtime::run(&cli.args) {
         Ok(()) => std::process::ExitCode::SUCCESS,
         Err(e) => {
-            eprintln!("engine: error: {e:#}");
+            eprintln!("engine: error: {}", ipc_types::describe_error(e.as_ref()));
             std::process::ExitCode::FAILURE
         }
     }

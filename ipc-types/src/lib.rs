@@ -774,6 +774,22 @@ impl fmt::Display for PinError {
 
 impl std::error::Error for PinError {}
 
+/// One line for an error and its causes, skipping causes the message already contains (error types
+/// that embed their source's text would otherwise print it twice).
+pub fn describe_error(e: &(dyn std::error::Error + 'static)) -> String {
+    let mut text = e.to_string();
+    let mut cause = e.source();
+    while let Some(c) = cause {
+        let s = c.to_string();
+        if !text.contains(&s) {
+            text.push_str(": ");
+            text.push_str(&s);
+        }
+        cause = c.source();
+    }
+    text
+}
+
 /// Errors at the process boundary.
 #[derive(Debug, Clone, PartialEq, Eq)]
 pub enum IpcError {

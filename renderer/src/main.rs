@@ -16,7 +16,7 @@ fn main() -> std::process::ExitCode {
     match renderer::process::run(&cli.args) {
         Ok(()) => std::process::ExitCode::SUCCESS,
         Err(e) => {
-            eprintln!("renderer: error: {e:#}");
+            eprintln!("renderer: error: {}", ipc_types::describe_error(e.as_ref()));
             std::process::ExitCode::FAILURE
         }
     }

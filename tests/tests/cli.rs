@@ -223,3 +223,64 @@ fn window_without_a_display_is_refused_up_front() {
     let err = String::from_utf8_lossy(&out.stderr);
     assert!(err.contains("--window needs a display"), "{err}");
 }
+
+#[test]
+fn mesh_check_imports_repairs_and_refuses_with_one_clear_message() {
+    let dir = std::env::temp_dir().join(format!("lungdyn-cli-check-{}", std::process::id()));
+    std::fs::create_dir_all(&dir).unwrap();
+    let obj = dir.join("left.obj");
+    let (ok, _, err) = lungdyn(&[
+        "mesh",
+        "generate",
+        "--lung",
+        "left",
+        "--vertices",
+        "1000",
+        "--out",
+        obj.to_str().unwrap(),
+    ]);
+    assert!(ok, "{err}");
+    let ply = dir.join("left_mm.ply");
+    let (ok, stdout, err) = lungdyn(&[
+        "mesh",
+        "check",
+        "--mesh",
+        obj.to_str().unwrap(),
+        "--out",
+        ply.to_str().unwrap(),
+        "--json",
+    ]);
+    assert!(ok, "{err}");
+    let v: serde_json::Value = serde_json::from_str(stdout.trim()).unwrap();
+    assert_eq!(v["euler"].as_i64(), Some(2));
+    assert!((v["volume_ml"].as_f64().unwrap() - 1100.0).abs() < 0.01);
+    assert!(ply.exists());
+    let (ok, _, err) = lungdyn(&[
+        "mesh",
+        "check",
+        "--mesh",
+        dir.join("missing.stl").to_str().unwrap(),
+    ]);
+    assert!(!ok);
+    assert_eq!(
+        err.matches("No such file").count(),
+        1,
+        "the OS error appears once: {err}"
+    );
+    std::fs::write(
+        dir.join("open.obj"),
+        "v 0 0 0\nv 1 0 0\nv 0 1 0\nv 0 0 1\nf 1 3 2\nf 1 2 4\n",
+    )
+    .unwrap();
+    let (ok, _, err) = lungdyn(&[
+        "mesh",
+        "check",
+        "--mesh",
+        dir.join("open.obj").to_str().unwrap(),
+    ]);
+    assert!(
+        !ok && err.contains("open.obj") && err.contains("open boundary edges"),
+        "{err}"
+    );
+    std::fs::remove_dir_all(dir).ok();
+}

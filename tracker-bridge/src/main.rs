@@ -16,7 +16,10 @@ fn main() -> std::process::ExitCode {
     match tracker_bridge::run(&cli.args) {
         Ok(()) => std::process::ExitCode::SUCCESS,
         Err(e) => {
-            eprintln!("tracker-bridge: error: {e:#}");
+            eprintln!(
+                "tracker-bridge: error: {}",
+                ipc_types::describe_error(e.as_ref())
+            );
             std::process::ExitCode::FAILURE
         }
     }

@@ -10,6 +10,7 @@
 //! OBJ/PLY. Importing patient meshes is later work (issue #4).
 
 pub mod generate;
+pub mod import;
 pub mod io;
 
 use std::collections::HashMap;
