@@ -1,13 +1,13 @@
 //! The latency harness: per-hop and end-to-end histograms from the renderer's frame reports.
 
 use hdrhistogram::Histogram;
-use ipc_types::{report_flags, FrameReport, HopStamps};
+use ipc_types::{report_flags, FrameReport};
 use serde::Serialize;
 
 /// The 16.7 ms frame deadline (60 Hz), ns.
 pub const DEADLINE_NS: u64 = 16_666_667;
 
-/// Hops reported, as (label, from-stamp index, to-stamp index) into [`HopStamps::as_array`].
+/// Hops reported, as (label, from-stamp index, to-stamp index) into [`ipc_types::HopStamps::as_array`].
 pub const HOPS: [(&str, usize, usize); 6] = [
     ("tracker capture -> bridge publish", 0, 1),
     ("bridge publish -> engine receive", 1, 2),
@@ -167,14 +167,10 @@ impl HopRow {
     }
 }
 
-/// Check that stamps are set for every hop (used by tests as well).
-pub fn stamps_complete(s: &HopStamps) -> bool {
-    s.is_complete_and_ordered()
-}
-
 #[cfg(test)]
 mod tests {
     use super::*;
+    use ipc_types::HopStamps;
 
     fn report(frame: u64, tick: u64, e2e_ns: u64) -> FrameReport {
         let base = 1_000_000;
