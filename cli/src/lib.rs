@@ -5,6 +5,7 @@
 //! (`lungdyn tracker-bridge|engine|renderer`) are the same library entry points as the standalone
 //! binaries.
 
+pub mod bake_cmd;
 pub mod demo;
 pub mod mesh_cmd;
 pub mod plot;

@@ -26,6 +26,12 @@ enum Command {
     /// The pressure-volume relation: presets, simulate a breath, fit a measured loop.
     #[command(subcommand)]
     Pv(lungdyn::pv_cmd::PvCommand),
+    /// Bake a lung mesh into a kernel: spring nodes, elasticity, every Green's-function transfer
+    /// row (pitcher-catcher, in parallel), directions and the unit displacement.
+    Bake(lungdyn::bake_cmd::BakeArgs),
+    /// Kernel files.
+    #[command(subcommand)]
+    Kernel(KernelCommand),
     /// Run only the tracker-bridge process (what `demo` starts).
     TrackerBridge(tracker_bridge::BridgeArgs),
     /// Run only the engine process (what `demo` starts).
@@ -41,6 +47,12 @@ enum MeshCommand {
     /// Import a patient lung surface (OBJ, PLY, STL), weld and repair what is safe, verify it is
     /// closed, 2-manifold and consistently wound; optionally write the repaired mesh.
     Check(lungdyn::mesh_cmd::CheckArgs),
+}
+
+#[derive(Subcommand)]
+enum KernelCommand {
+    /// Verify a kernel file (every checksum and index) and print its metadata.
+    Inspect(lungdyn::bake_cmd::InspectArgs),
 }
 
 fn main() -> std::process::ExitCode {
@@ -84,6 +96,22 @@ fn main() -> std::process::ExitCode {
                     r.unused_vertices,
                     if r.flipped_inside_out { ", winding flipped (was inside out)" } else { "" }
                 );
+            }
+            Ok(())
+        }),
+        Command::Bake(args) => lungdyn::bake_cmd::bake(&args).and_then(|b| {
+            if args.json {
+                println!("{}", serde_json::to_string(&b)?);
+            } else {
+                print!("{}", lungdyn::bake_cmd::bake_text(&b));
+            }
+            Ok(())
+        }),
+        Command::Kernel(KernelCommand::Inspect(args)) => lungdyn::bake_cmd::inspect(&args).and_then(|i| {
+            if args.json {
+                println!("{}", serde_json::to_string(&i)?);
+            } else {
+                print!("{}", lungdyn::bake_cmd::inspect_text(&i));
             }
             Ok(())
         }),

@@ -3,7 +3,9 @@
 //! Stages, each a module named after it:
 //! * [`pv`] — the pressure–volume relation (seed ch. 5, eq. 2.12–2.16, 5.11);
 //! * [`mesh`] — lung surfaces: the procedural default lungs, checks, export;
+//! * [`operator`] — the Green's-function transfer operator (seed §6.2–6.3, eq. 6.7–6.13);
 //! * [`deform`] — per-vertex displacement (seed ch. 6, eq. 6.14–6.16, 6.18);
+//! * [`kernel`] — baking a lung (ch. 6 end to end) and the memory-mapped kernel file;
 //! * [`runtime`] — the fixed-tick engine loop and its pure core;
 //! * [`scene`] — what a run models.
 //!
@@ -11,7 +13,9 @@
 //! arguments and call into this library.
 
 pub mod deform;
+pub mod kernel;
 pub mod mesh;
+pub mod operator;
 pub mod pv;
 pub mod runtime;
 pub mod scene;

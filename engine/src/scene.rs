@@ -57,8 +57,49 @@ pub struct EngineScene {
 pub struct LungsScene {
     /// Which lungs the scene simulates and draws.
     pub sides: Vec<Side>,
-    /// Vertices per generated lung.
+    /// Vertices per generated lung (lungs without a kernel).
     pub vertices: usize,
+    /// Regional elasticity of the operator (`[lungs.elasticity]`: apex, base, dependent).
+    pub elasticity: crate::operator::Elasticity,
+    /// Pitcher tolerance of the transfer pass for a unit force.
+    pub transfer_tolerance: f64,
+    /// Motion constants written by `lungdyn fit-motion` (relative to the scene file); Table 6.1
+    /// when absent.
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub motion: Option<std::path::PathBuf>,
+    /// Baked kernels (`lungdyn bake`), relative to the scene file: `[lungs.kernels] left = "l.kernel"`.
+    /// A lung without one is generated and baked in memory at start-up.
+    pub kernels: KernelPaths,
+}
+
+/// `[lungs.kernels]` table.
+#[derive(Debug, Clone, PartialEq, Default, Serialize, Deserialize)]
+#[serde(deny_unknown_fields, default)]
+pub struct KernelPaths {
+    /// Left lung kernel.
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub left: Option<std::path::PathBuf>,
+    /// Right lung kernel.
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub right: Option<std::path::PathBuf>,
+}
+
+impl KernelPaths {
+    /// The kernel of `side`, if any.
+    pub fn get(&self, side: Side) -> Option<&std::path::Path> {
+        match side {
+            Side::Left => self.left.as_deref(),
+            Side::Right => self.right.as_deref(),
+        }
+    }
+
+    /// Set the kernel of `side`.
+    pub fn set(&mut self, side: Side, path: std::path::PathBuf) {
+        match side {
+            Side::Left => self.left = Some(path),
+            Side::Right => self.right = Some(path),
+        }
+    }
 }
 
 /// How lungs are drawn.
@@ -127,6 +168,10 @@ impl Default for LungsScene {
         Self {
             sides: vec![Side::Right, Side::Left],
             vertices: 10_000,
+            elasticity: crate::operator::Elasticity::default(),
+            transfer_tolerance: crate::kernel::DEFAULT_TOLERANCE,
+            motion: None,
+            kernels: KernelPaths::default(),
         }
     }
 }
@@ -194,6 +239,31 @@ impl Scene {
             })?;
             scene.pv.constants = Some(resolved);
         }
+        let base = path.parent().unwrap_or(Path::new("."));
+        if let Some(m) = &scene.lungs.motion {
+            let resolved = base.join(m);
+            crate::deform::MotionFile::load(&resolved).map_err(|e| SceneError::Invalid {
+                path: p.clone(),
+                message: format!("[lungs] motion: {e}"),
+            })?;
+            scene.lungs.motion = Some(resolved);
+        }
+        for side in [Side::Left, Side::Right] {
+            if let Some(k) = scene.lungs.kernels.get(side) {
+                let resolved = base.join(k);
+                if !resolved.is_file() {
+                    return Err(SceneError::Invalid {
+                        path: p.clone(),
+                        message: format!(
+                            "[lungs.kernels] {}: {} does not exist (bake it with `lungdyn bake`)",
+                            side.name(),
+                            resolved.display()
+                        ),
+                    });
+                }
+                scene.lungs.kernels.set(side, resolved);
+            }
+        }
         Ok(scene)
     }
 
@@ -249,6 +319,16 @@ impl Scene {
                 crate::mesh::generate::MAX_VERTICES
             ));
         }
+        self.lungs
+            .elasticity
+            .validate()
+            .map_err(|e| format!("[lungs.elasticity]: {e}"))?;
+        let t = self.lungs.transfer_tolerance;
+        if !(t.is_finite() && t > 0.0 && t < 1.0) {
+            return Err(format!(
+                "[lungs] transfer_tolerance = {t} must be within (0, 1); 1e-5 is the default"
+            ));
+        }
         let r = &self.render;
         if !(16..=8192).contains(&r.width) || !(16..=8192).contains(&r.height) {
             return Err(format!(
@@ -286,6 +366,19 @@ impl Scene {
                 Ok((p.inhale, p.exhale, p.boundary))
             }
         }
+    }
+
+    /// The bake settings of `side` in this scene (motion file or Table 6.1, elasticity, tolerance).
+    pub fn bake_settings(&self, side: Side) -> anyhow::Result<crate::kernel::BakeSettings> {
+        let motion = match &self.lungs.motion {
+            Some(path) => crate::deform::MotionFile::load(path)?.for_side(side),
+            None => crate::deform::MotionConstants::table_6_1(side),
+        };
+        Ok(crate::kernel::BakeSettings {
+            motion,
+            elasticity: self.lungs.elasticity,
+            tolerance: self.lungs.transfer_tolerance,
+        })
     }
 
     /// Breathing timing of this scene.

@@ -44,6 +44,53 @@ impl MotionConstants {
     }
 }
 
+/// Motion constants of both lungs as written by `lungdyn fit-motion` (TOML, `format = 1`).
+#[derive(Debug, Clone, PartialEq, serde::Serialize, serde::Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct MotionFile {
+    /// File format version (1).
+    pub format: u32,
+    /// Left lung `c1..c9`; Table 6.1 when absent.
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub left: Option<MotionConstants>,
+    /// Right lung `c1..c9`; Table 6.1 when absent.
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub right: Option<MotionConstants>,
+}
+
+impl MotionFile {
+    /// Read and validate `path`.
+    pub fn load(path: &std::path::Path) -> anyhow::Result<Self> {
+        use anyhow::Context;
+        let text = std::fs::read_to_string(path)
+            .with_context(|| format!("cannot read motion constants {}", path.display()))?;
+        let f: Self = toml::from_str(&text)
+            .with_context(|| format!("{} is not a motion constants file", path.display()))?;
+        if f.format != 1 {
+            anyhow::bail!(
+                "{}: motion constants format {} (this lungdyn reads 1)",
+                path.display(),
+                f.format
+            );
+        }
+        for (side, k) in [("left", &f.left), ("right", &f.right)] {
+            if let Some(k) = k {
+                check_constants(k).with_context(|| format!("{}: {side} lung", path.display()))?;
+            }
+        }
+        Ok(f)
+    }
+
+    /// Constants of `side` (Table 6.1 when the file has none).
+    pub fn for_side(&self, side: Side) -> MotionConstants {
+        match side {
+            Side::Left => self.left,
+            Side::Right => self.right,
+        }
+        .unwrap_or_else(|| MotionConstants::table_6_1(side))
+    }
+}
+
 /// Unit volume of EQUATIONS.md §2.4: TV / (steps per second × phase length) = 500 / (66.66 × 5) ml.
 pub const UNIT_VOLUME_ML: f64 = 500.0 / (66.66 * 5.0);
 
@@ -158,6 +205,22 @@ impl VolumeCubic {
     }
 }
 
+fn check_constants(k: &MotionConstants) -> Result<(), DeformError> {
+    // Exponents c2, c4, c6 must be ≥ 0 (x̂ = 0 occurs); the factors may carry a sign (a fitted
+    // data set whose axes run the other way), the volume check catches a field that does not expand.
+    if let Some((i, &v)) =
+        k.c.iter()
+            .enumerate()
+            .find(|(i, v)| !(v.is_finite() && (![1, 3, 5].contains(i) || **v >= 0.0)))
+    {
+        return Err(DeformError::BadConstant {
+            index: i + 1,
+            value: v,
+        });
+    }
+    Ok(())
+}
+
 /// One lung ready to deform: its mesh at FRC, its unit displacement field and its volume cubic.
 #[derive(Debug, Clone)]
 pub struct LungModel {
@@ -185,7 +248,7 @@ pub enum DeformError {
         slope_mm3: f64,
     },
     /// A constant is not finite or negative where the model needs it positive.
-    #[error("motion constant c{index} = {value} is invalid (must be finite and non-negative)")]
+    #[error("motion constant c{index} = {value} is invalid (must be finite; the exponents c2, c4, c6 also non-negative)")]
     BadConstant {
         /// 1-based index.
         index: usize,
@@ -195,27 +258,36 @@ pub enum DeformError {
 }
 
 impl LungModel {
-    /// Build the first-mode deformation of `mesh` (a closed, outward-wound lung surface).
+    /// Build the first-mode deformation of `mesh` (a closed, outward-wound lung surface): the eq. 6.18
+    /// applied force used directly as each node's force, without the transfer pass.
     pub fn build(side: Side, mesh: TriMesh, k: &MotionConstants) -> Result<Self, DeformError> {
-        if let Some((i, &v)) =
-            k.c.iter()
-                .enumerate()
-                .find(|(_, v)| !(v.is_finite() && **v >= 0.0))
-        {
-            return Err(DeformError::BadConstant {
-                index: i + 1,
-                value: v,
-            });
-        }
+        check_constants(k)?;
         let bb = mesh.aabb();
-        let raw: Vec<DVec3> = mesh
+        let force: Vec<f64> = mesh
             .positions
             .iter()
-            .map(|&p| {
-                let n = normalised_position(p, &bb, side);
-                direction(n, k, side) * applied_force(n, k)
-            })
+            .map(|&p| applied_force(normalised_position(p, &bb, side), k))
             .collect();
+        Ok(Self::from_force(side, mesh, k, &force)?.0)
+    }
+
+    /// The model whose unit displacement is `F[i]·d_i` (EQUATIONS §2.4), scaled so the enclosed
+    /// volume grows by exactly [`UNIT_VOLUME_ML`]. Returns the model, the unit directions and the
+    /// scale applied to `F`.
+    pub fn from_force(
+        side: Side,
+        mesh: TriMesh,
+        k: &MotionConstants,
+        force: &[f64],
+    ) -> Result<(Self, Vec<[f32; 3]>, f64), DeformError> {
+        check_constants(k)?;
+        let bb = mesh.aabb();
+        let dirs: Vec<DVec3> = mesh
+            .positions
+            .iter()
+            .map(|&p| direction(normalised_position(p, &bb, side), k, side))
+            .collect();
+        let raw: Vec<DVec3> = dirs.iter().zip(force).map(|(d, f)| *d * *f).collect();
         let cubic = VolumeCubic::of(&mesh, &raw);
         if !(cubic.coeffs[1] > 0.0) {
             return Err(DeformError::DoesNotExpand {
@@ -223,27 +295,41 @@ impl LungModel {
                 slope_mm3: cubic.coeffs[1],
             });
         }
-        // Scale k so the volume grows by exactly one unit volume at s = 1: V_raw(k) − V0 = unit.
+        // Scale so the volume grows by exactly one unit volume at s = 1: V_raw(k) − V0 = unit.
         let unit_mm3 = UNIT_VOLUME_ML * 1000.0;
         let scale = cubic.solve_delta(unit_mm3);
         let unit_displacement: Vec<[f32; 3]> = raw
             .iter()
             .map(|d| (*d * scale).as_vec3().to_array())
             .collect();
-        // Recompute the cubic from the stored f32 field, so run time matches what the GPU applies.
+        let model = Self::from_unit_displacement(side, mesh, unit_displacement);
+        Ok((
+            model,
+            dirs.iter().map(|d| d.as_vec3().to_array()).collect(),
+            scale,
+        ))
+    }
+
+    /// The model for a stored unit displacement field (a loaded kernel); the volume cubic is
+    /// computed from the f32 field, so run time matches what the GPU applies.
+    pub fn from_unit_displacement(
+        side: Side,
+        mesh: TriMesh,
+        unit_displacement: Vec<[f32; 3]>,
+    ) -> Self {
         let u64s: Vec<DVec3> = unit_displacement
             .iter()
             .map(|u| DVec3::from(u.map(|v| v as f64)))
             .collect();
         let cubic = VolumeCubic::of(&mesh, &u64s);
         let start_volume_ml = cubic.coeffs[0] / 1000.0;
-        Ok(Self {
+        Self {
             side,
             mesh,
             unit_displacement,
             cubic,
             start_volume_ml,
-        })
+        }
     }
 
     /// Deformation scale that makes the enclosed volume `start + delta_ml`.

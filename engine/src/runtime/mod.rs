@@ -14,7 +14,7 @@ use ipc_types::{
     engine_state, fault, EngineFrame, LungState, Pose, TrackerFrame, LAYOUT_VERSION, TOOL_PATIENT,
 };
 
-use crate::deform::{LungModel, MotionConstants};
+use crate::deform::LungModel;
 use crate::mesh::{generate, Side};
 use crate::pv::{self, Breathing};
 use crate::scene::Scene;
@@ -42,14 +42,28 @@ pub struct EngineCore {
     last_tracker_frame: u64,
 }
 
-/// Build the deformation model of `side` for `scene` (the built-in generated lung).
+/// The deformation model of `side` for `scene`: its baked kernel when the scene names one, else the
+/// generated lung baked in memory with the scene's settings.
 pub fn build_lung(scene: &Scene, side: Side) -> anyhow::Result<LungModel> {
+    if let Some(path) = scene.lungs.kernels.get(side) {
+        let file = crate::kernel::KernelFile::open(path)?;
+        if file.meta().side != side {
+            anyhow::bail!(
+                "{}: this kernel is of the {} lung, the scene uses it for the {} lung",
+                path.display(),
+                file.meta().side.name(),
+                side.name()
+            );
+        }
+        return Ok(file.lung_model());
+    }
     let mesh = generate::lung(side, scene.lungs.vertices)?;
-    Ok(LungModel::build(
+    let kernel = crate::kernel::bake(side, mesh, &scene.bake_settings(side)?, &|_| {})?;
+    Ok(LungModel::from_unit_displacement(
         side,
-        mesh,
-        &MotionConstants::table_6_1(side),
-    )?)
+        kernel.mesh,
+        kernel.unit_displacement,
+    ))
 }
 
 impl EngineCore {
@@ -269,7 +283,7 @@ mod tests {
     }
 
     /// FNV-1a over [`bits`] of the 900-tick reference replay at 1000 vertices per lung.
-    const REFERENCE_DIGEST: u64 = 0x834d691cab6fab64;
+    const REFERENCE_DIGEST: u64 = 0xd9cf7a77d6c0942c;
 
     #[test]
     fn missing_samples_hold_the_pose_and_flag_it() {

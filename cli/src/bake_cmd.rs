@@ -1,0 +1,254 @@
+//! `lungdyn bake` and `lungdyn kernel inspect`: a patient lung mesh → a kernel file, and what is in one.
+
+use std::path::PathBuf;
+use std::time::Instant;
+
+use anyhow::Context;
+use engine::kernel::{self, KernelFile};
+use engine::mesh::import::{self, Units};
+use engine::mesh::Side;
+use serde::Serialize;
+
+/// Options of `lungdyn bake`.
+#[derive(Debug, Clone, clap::Args)]
+pub struct BakeArgs {
+    /// Lung surface: .obj, .ply or .stl (checked and repaired as by `lungdyn mesh check`).
+    #[arg(long)]
+    pub mesh: PathBuf,
+    /// Which lung the mesh is (sets the direction model's lateral axis).
+    #[arg(long, value_parser = ["left", "right"])]
+    pub lung: String,
+    /// Unit of the mesh file's coordinates.
+    #[arg(long, default_value = "mm", value_parser = ["mm", "cm", "m"])]
+    pub units: String,
+    /// Scene whose [lungs] elasticity, transfer_tolerance and motion are used (defaults otherwise).
+    #[arg(long)]
+    pub scene: Option<PathBuf>,
+    /// Motion constants from `lungdyn fit-motion` (overrides the scene's; Table 6.1 otherwise).
+    #[arg(long)]
+    pub motion: Option<PathBuf>,
+    /// Pitcher tolerance for a unit force (overrides the scene's; default 1e-5). Smaller: more
+    /// non-zeros per row, less truncated force, longer bake.
+    #[arg(long)]
+    pub tolerance: Option<f64>,
+    /// Output kernel file (written atomically).
+    #[arg(long)]
+    pub out: PathBuf,
+    /// Print one JSON object on stdout (the progress bar stays on stderr).
+    #[arg(long)]
+    pub json: bool,
+}
+
+/// What a bake did.
+#[derive(Debug, Serialize)]
+pub struct BakeSummary {
+    /// Output path.
+    pub path: String,
+    /// Lung.
+    pub lung: String,
+    /// Vertices (mass nodes).
+    pub vertices: u64,
+    /// Spring nodes (edges).
+    pub spring_nodes: u64,
+    /// Stored transfer non-zeros.
+    pub nnz: u64,
+    /// Mean non-zeros per transfer row.
+    pub mean_row_nnz: f64,
+    /// Largest row.
+    pub max_row_nnz: u64,
+    /// Mean force per unit row left in pitchers below the tolerance.
+    pub truncated_force: f64,
+    /// Largest truncated force of a row.
+    pub truncated_force_max: f64,
+    /// Mean share of a row's force caught by mass nodes.
+    pub mass_caught: f64,
+    /// Worst |caught + truncated − applied| of a row.
+    pub conservation_error_max: f64,
+    /// Tolerance used.
+    pub tolerance: f64,
+    /// Enclosed volume of the mesh, ml.
+    pub volume_ml: f64,
+    /// Largest unit displacement, mm per unit volume.
+    pub max_unit_displacement_mm: f64,
+    /// Kernel file size, bytes.
+    pub file_bytes: u64,
+    /// Wall time of import + bake + write, seconds.
+    pub seconds: f64,
+    /// Peak resident memory of this process, MiB (Linux VmHWM; 0 when unknown).
+    pub peak_rss_mib: f64,
+}
+
+/// Peak resident set size of this process in MiB (Linux), 0 elsewhere.
+pub fn peak_rss_mib() -> f64 {
+    std::fs::read_to_string("/proc/self/status")
+        .ok()
+        .and_then(|s| {
+            s.lines()
+                .find(|l| l.starts_with("VmHWM:"))
+                .and_then(|l| l.split_whitespace().nth(1))
+                .and_then(|kb| kb.parse::<f64>().ok())
+        })
+        .map(|kb| kb / 1024.0)
+        .unwrap_or(0.0)
+}
+
+/// Import, bake, write.
+pub fn bake(args: &BakeArgs) -> anyhow::Result<BakeSummary> {
+    let start = Instant::now();
+    let side: Side = args.lung.parse().map_err(anyhow::Error::msg)?;
+    let units: Units = args.units.parse().map_err(anyhow::Error::msg)?;
+    if args.out.extension().and_then(|e| e.to_str()) != Some("kernel") {
+        anyhow::bail!("{}: the output must end in .kernel", args.out.display());
+    }
+    let scene = engine::scene::Scene::load_or_default(args.scene.as_deref())?;
+    let mut settings = scene.bake_settings(side)?;
+    if let Some(m) = &args.motion {
+        settings.motion = engine::deform::MotionFile::load(m)?.for_side(side);
+    }
+    if let Some(t) = args.tolerance {
+        if !(t.is_finite() && t > 0.0 && t < 1.0) {
+            anyhow::bail!("--tolerance {t} must be within (0, 1); 1e-5 is the default");
+        }
+        settings.tolerance = t;
+    }
+    let imported = import::import(&args.mesh, units)?;
+    let n = imported.mesh.positions.len() as u64;
+    let bar = indicatif::ProgressBar::new(n);
+    bar.set_style(
+        indicatif::ProgressStyle::with_template(
+            "baking {msg} [{bar:40}] {pos}/{len} rows, {per_sec}, eta {eta}",
+        )
+        .expect("valid template")
+        .progress_chars("=> "),
+    );
+    bar.set_message(format!("{} lung", side.name()));
+    let k = kernel::bake(side, imported.mesh, &settings, &|rows| bar.inc(rows as u64))
+        .with_context(|| format!("baking {}", args.mesh.display()))?;
+    bar.finish_and_clear();
+    let file_bytes = k.write(&args.out)?;
+    let max_u = k
+        .unit_displacement
+        .iter()
+        .map(|u| (u[0] as f64).hypot(u[1] as f64).hypot(u[2] as f64))
+        .fold(0.0, f64::max);
+    let s = &k.meta.transfer;
+    Ok(BakeSummary {
+        path: args.out.display().to_string(),
+        lung: side.name().into(),
+        vertices: k.meta.vertices,
+        spring_nodes: k.meta.spring_nodes,
+        nnz: k.meta.nnz,
+        mean_row_nnz: s.mean_row_nnz,
+        max_row_nnz: s.max_row_nnz,
+        truncated_force: s.truncated_force_mean,
+        truncated_force_max: s.truncated_force_max,
+        mass_caught: s.mass_caught_mean,
+        conservation_error_max: s.conservation_error_max,
+        tolerance: s.tolerance,
+        volume_ml: k.meta.start_volume_ml,
+        max_unit_displacement_mm: max_u,
+        file_bytes,
+        seconds: start.elapsed().as_secs_f64(),
+        peak_rss_mib: peak_rss_mib(),
+    })
+}
+
+/// Human-readable bake report.
+pub fn bake_text(b: &BakeSummary) -> String {
+    format!(
+        "wrote {} ({:.1} MiB): {} lung, {} vertices + {} spring nodes, {:.1} ml\n\
+         transfer: {} non-zeros, {:.1} per row (max {}), tolerance {:e}\n\
+         force per unit row: {:.1} % caught by mass nodes, truncated {:.2e} mean / {:.2e} max, conservation error {:.1e}\n\
+         largest unit displacement {:.3} mm per {:.2} ml; {:.1} s, peak memory {:.0} MiB\n",
+        b.path,
+        b.file_bytes as f64 / 1048576.0,
+        b.lung,
+        b.vertices,
+        b.spring_nodes,
+        b.volume_ml,
+        b.nnz,
+        b.mean_row_nnz,
+        b.max_row_nnz,
+        b.tolerance,
+        100.0 * b.mass_caught,
+        b.truncated_force,
+        b.truncated_force_max,
+        b.conservation_error_max,
+        b.max_unit_displacement_mm,
+        engine::deform::UNIT_VOLUME_ML,
+        b.seconds,
+        b.peak_rss_mib
+    )
+}
+
+/// Options of `lungdyn kernel inspect`.
+#[derive(Debug, Clone, clap::Args)]
+pub struct InspectArgs {
+    /// Kernel file.
+    pub file: PathBuf,
+    /// Print one JSON object on stdout.
+    #[arg(long)]
+    pub json: bool,
+}
+
+/// What `kernel inspect` reports.
+#[derive(Debug, Serialize)]
+pub struct InspectSummary {
+    /// Path.
+    pub path: String,
+    /// File size.
+    pub file_bytes: u64,
+    /// Format version.
+    pub format: u32,
+    /// The metadata section.
+    pub meta: kernel::KernelMeta,
+}
+
+/// Open (verifying every checksum) and summarise.
+pub fn inspect(args: &InspectArgs) -> anyhow::Result<InspectSummary> {
+    let f = KernelFile::open(&args.file)?;
+    Ok(InspectSummary {
+        path: args.file.display().to_string(),
+        file_bytes: f.len_bytes() as u64,
+        format: kernel::FORMAT_VERSION,
+        meta: f.meta().clone(),
+    })
+}
+
+/// Human-readable inspect report.
+pub fn inspect_text(i: &InspectSummary) -> String {
+    let m = &i.meta;
+    let c = &m.settings.motion.c;
+    let e = &m.settings.elasticity;
+    format!(
+        "{}: lungdyn kernel format {}, {:.1} MiB, checksums OK\n\
+         {} lung, {} vertices, {} triangles, {} spring nodes, {:.1} ml, units {}\n\
+         mesh hash {}\n\
+         transfer: {} non-zeros ({:.1} per row, max {}), tolerance {:e}, truncated {:.2e} mean / {:.2e} max\n\
+         motion c1..c9 = {:?}\n\
+         elasticity: apex {} base {} dependent {}\n\
+         unit volume {:.3} ml, written by {}\n",
+        i.path,
+        i.format,
+        i.file_bytes as f64 / 1048576.0,
+        m.side.name(),
+        m.vertices,
+        m.triangles,
+        m.spring_nodes,
+        m.start_volume_ml,
+        m.units,
+        m.mesh_hash,
+        m.nnz,
+        m.transfer.mean_row_nnz,
+        m.transfer.max_row_nnz,
+        m.transfer.tolerance,
+        m.transfer.truncated_force_mean,
+        m.transfer.truncated_force_max,
+        c,
+        e.apex,
+        e.base,
+        e.dependent,
+        m.unit_volume_ml,
+        m.written_by
+    )
+}
