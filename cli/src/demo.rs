@@ -90,6 +90,8 @@ pub struct DemoReport {
     pub leftover_files: usize,
     /// Instance files still present after the launcher's removal (must be 0).
     pub remaining_files: usize,
+    /// Kernel files the lungs ran from (baked now or reused).
+    pub kernels: Vec<KernelUse>,
     /// The instance name used.
     pub instance: String,
 }
@@ -197,6 +199,89 @@ pub fn snapshot_ticks(count: u32, cycle_ticks: u64, run_ticks: u64, warmup_ticks
         .collect()
 }
 
+/// A kernel the demo used.
+#[derive(Debug, Clone, Serialize)]
+pub struct KernelUse {
+    /// Lung.
+    pub lung: String,
+    /// File.
+    pub path: String,
+    /// Whether it was baked by this run (false: the scene's own or a cached bake).
+    pub baked_now: bool,
+    /// Bake seconds (0 when reused).
+    pub bake_seconds: f64,
+}
+
+/// Give every lung of `scene` a kernel file: lungs without one get the generated default lung, baked
+/// into `dir` under a name derived from its resolution and bake settings, or reused from an earlier
+/// run when that file exists and verifies. All paths in `scene` become absolute.
+pub fn ensure_kernels(
+    scene: &mut engine::scene::Scene,
+    dir: &Path,
+) -> anyhow::Result<Vec<KernelUse>> {
+    let absolute = |p: &Path| std::path::absolute(p).unwrap_or_else(|_| p.to_path_buf());
+    if let Some(c) = &scene.pv.constants {
+        scene.pv.constants = Some(absolute(c));
+    }
+    if let Some(m) = &scene.lungs.motion {
+        scene.lungs.motion = Some(absolute(m));
+    }
+    let mut used = Vec::new();
+    for side in scene.lungs.sides.clone() {
+        if let Some(k) = scene.lungs.kernels.get(side) {
+            let k = absolute(k);
+            used.push(KernelUse {
+                lung: side.name().into(),
+                path: k.display().to_string(),
+                baked_now: false,
+                bake_seconds: 0.0,
+            });
+            scene.lungs.kernels.set(side, k);
+            continue;
+        }
+        let settings = scene.bake_settings(side)?;
+        let key = xxhash_rust::xxh3::xxh3_64(
+            format!(
+                "{}:{}:{}",
+                scene.lungs.vertices,
+                serde_json::to_string(&settings)?,
+                engine::kernel::FORMAT_VERSION
+            )
+            .as_bytes(),
+        );
+        std::fs::create_dir_all(dir).with_context(|| format!("cannot create {}", dir.display()))?;
+        let path = absolute(&dir.join(format!(
+            "default_{}_{}_{key:016x}.kernel",
+            side.name(),
+            scene.lungs.vertices
+        )));
+        let reusable = engine::kernel::KernelFile::open(&path)
+            .map(|f| f.meta().side == side && f.meta().settings == settings)
+            .unwrap_or(false);
+        let mut seconds = 0.0;
+        if !reusable {
+            let t = std::time::Instant::now();
+            eprintln!(
+                "lungdyn: baking the default {} lung ({} vertices) into {}",
+                side.name(),
+                scene.lungs.vertices,
+                path.display()
+            );
+            let mesh = engine::mesh::generate::lung(side, scene.lungs.vertices)?;
+            engine::kernel::bake(side, mesh, &settings, &|_| {})?.write(&path)?;
+            seconds = t.elapsed().as_secs_f64();
+        }
+        used.push(KernelUse {
+            lung: side.name().into(),
+            path: path.display().to_string(),
+            baked_now: !reusable,
+            bake_seconds: seconds,
+        });
+        scene.lungs.kernels.set(side, path);
+    }
+    Ok(used)
+}
+
 /// Run the demo; returns the report (the caller prints it).
 pub fn run(args: &DemoArgs) -> anyhow::Result<DemoReport> {
     if !(args.seconds.is_finite() && args.seconds > 0.0 && args.seconds <= 86_400.0) {
@@ -220,8 +305,22 @@ pub fn run(args: &DemoArgs) -> anyhow::Result<DemoReport> {
              under xvfb-run, or without --window (headless)"
         );
     }
-    let scene = engine::scene::Scene::load_or_default(args.scene.as_deref())?;
+    let mut scene = engine::scene::Scene::load_or_default(args.scene.as_deref())?;
     check_writable(&args.out)?;
+    // Every lung runs from a kernel file: the scene's own, or the generated default baked once into
+    // <out>/kernels (reused while the scene's mesh and bake settings are unchanged).
+    let kernels = ensure_kernels(&mut scene, &args.out.join("kernels"))?;
+    std::fs::create_dir_all(args.out.join("kernels"))
+        .with_context(|| format!("cannot create {}", args.out.join("kernels").display()))?;
+    let resolved_scene = args.out.join("kernels").join("scene.resolved.toml");
+    engine::mesh::io::write_atomically(&resolved_scene, |w| {
+        use std::io::Write;
+        w.write_all(
+            toml::to_string(&scene)
+                .map_err(std::io::Error::other)?
+                .as_bytes(),
+        )
+    })?;
     let instance = args
         .instance
         .clone()
@@ -254,9 +353,7 @@ pub fn run(args: &DemoArgs) -> anyhow::Result<DemoReport> {
     let child_seconds = (args.seconds + args.startup_timeout + 30.0).to_string();
     common.extend(["--seconds".to_string(), child_seconds]);
     let with_scene = |mut v: Vec<String>| {
-        if let Some(s) = &args.scene {
-            v.extend(["--scene".to_string(), s.display().to_string()]);
-        }
+        v.extend(["--scene".to_string(), resolved_scene.display().to_string()]);
         v
     };
     let cpu = |i: usize| {
@@ -421,6 +518,7 @@ pub fn run(args: &DemoArgs) -> anyhow::Result<DemoReport> {
         },
         leftover_files: leftovers.len(),
         remaining_files: remaining,
+        kernels,
         instance,
     })
 }

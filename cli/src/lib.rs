@@ -8,6 +8,7 @@
 pub mod bake_cmd;
 pub mod demo;
 pub mod mesh_cmd;
+pub mod motion_cmd;
 pub mod plot;
 pub mod pv_cmd;
 pub mod stats;

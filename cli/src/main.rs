@@ -29,6 +29,9 @@ enum Command {
     /// Bake a lung mesh into a kernel: spring nodes, elasticity, every Green's-function transfer
     /// row (pitcher-catcher, in parallel), directions and the unit displacement.
     Bake(lungdyn::bake_cmd::BakeArgs),
+    /// Fit the direction model's c1..c6 to corresponding points (landmarks or meshes) of two or
+    /// more breathing phases; reports the residual error in mm beside the no-motion baseline.
+    FitMotion(lungdyn::motion_cmd::FitMotionArgs),
     /// Kernel files.
     #[command(subcommand)]
     Kernel(KernelCommand),
@@ -112,6 +115,14 @@ fn main() -> std::process::ExitCode {
                 println!("{}", serde_json::to_string(&i)?);
             } else {
                 print!("{}", lungdyn::bake_cmd::inspect_text(&i));
+            }
+            Ok(())
+        }),
+        Command::FitMotion(args) => lungdyn::motion_cmd::run(&args).and_then(|f| {
+            if args.json {
+                println!("{}", serde_json::to_string(&f)?);
+            } else {
+                print!("{}", lungdyn::motion_cmd::text(&f, &args));
             }
             Ok(())
         }),

@@ -6,6 +6,7 @@
 //! * [`operator`] — the Green's-function transfer operator (seed §6.2–6.3, eq. 6.7–6.13);
 //! * [`deform`] — per-vertex displacement (seed ch. 6, eq. 6.14–6.16, 6.18);
 //! * [`kernel`] — baking a lung (ch. 6 end to end) and the memory-mapped kernel file;
+//! * [`motion_fit`] — c1..c6 of eq. 6.14–6.16 from corresponding points (seed §6.4.2);
 //! * [`runtime`] — the fixed-tick engine loop and its pure core;
 //! * [`scene`] — what a run models.
 //!
@@ -15,6 +16,7 @@
 pub mod deform;
 pub mod kernel;
 pub mod mesh;
+pub mod motion_fit;
 pub mod operator;
 pub mod pv;
 pub mod runtime;

@@ -1,0 +1,439 @@
+//! Patient lung models end to end through the command line: a mesh bakes into a kernel that
+//! `kernel inspect` verifies and the demo renders breathing; `fit-motion` turns corresponding points
+//! into constants `bake --motion` uses; bad files fail clearly.
+
+use std::path::{Path, PathBuf};
+
+use glam::DVec3;
+use lungdyn_tests::{lungdyn, unique_instance};
+
+fn workdir(tag: &str) -> PathBuf {
+    let d = std::env::temp_dir().join(format!("lungdyn-models-{tag}-{}", std::process::id()));
+    std::fs::create_dir_all(&d).unwrap();
+    d
+}
+
+fn json(out: &str) -> serde_json::Value {
+    serde_json::from_str(out.trim()).unwrap_or_else(|e| panic!("not JSON ({e}): {out}"))
+}
+
+fn run_ok(args: &[&str]) -> String {
+    let (ok, out, err) = lungdyn(args);
+    assert!(ok, "{args:?} failed: {err}");
+    assert!(!err.contains("panicked"), "{err}");
+    out
+}
+
+fn run_err(args: &[&str], needle: &str) {
+    let (ok, _, err) = lungdyn(args);
+    assert!(!ok, "{args:?} should fail");
+    assert!(
+        err.contains(needle),
+        "{args:?}: expected {needle:?} in {err}"
+    );
+    assert!(!err.contains("panicked"), "{args:?} panicked: {err}");
+}
+
+fn s(p: &Path) -> &str {
+    p.to_str().unwrap()
+}
+
+#[test]
+fn a_patient_mesh_bakes_into_a_kernel_that_the_demo_renders() {
+    let d = workdir("bake");
+    let mesh = d.join("patient_left.ply");
+    run_ok(&[
+        "mesh",
+        "generate",
+        "--lung",
+        "left",
+        "--vertices",
+        "3000",
+        "--out",
+        s(&mesh),
+    ]);
+    let kernel = d.join("patient_left.kernel");
+    let b = json(&run_ok(&[
+        "bake",
+        "--mesh",
+        s(&mesh),
+        "--lung",
+        "left",
+        "--out",
+        s(&kernel),
+        "--json",
+    ]));
+    assert_eq!(b["vertices"].as_u64(), Some(3176));
+    assert!(b["mean_row_nnz"].as_f64().unwrap() > 10.0, "{b}");
+    let trunc = b["truncated_force"].as_f64().unwrap();
+    assert!(trunc > 0.0 && trunc < 1e-2, "{b}");
+    assert!(b["conservation_error_max"].as_f64().unwrap() < 1e-9);
+    assert!(b["seconds"].as_f64().unwrap() > 0.0);
+
+    let i = json(&run_ok(&["kernel", "inspect", s(&kernel), "--json"]));
+    assert_eq!(i["meta"]["side"], "left");
+    assert_eq!(i["meta"]["vertices"].as_u64(), Some(3176));
+    assert_eq!(i["meta"]["nnz"], b["nnz"]);
+    let text = run_ok(&["kernel", "inspect", s(&kernel)]);
+    assert!(text.contains("checksums OK"), "{text}");
+
+    // A scene that runs the patient's left lung from its kernel; the demo must draw it breathing.
+    let scene = d.join("patient.toml");
+    std::fs::write(
+        &scene,
+        "[lungs]\nsides = [\"left\"]\n[lungs.kernels]\nleft = \"patient_left.kernel\"\n",
+    )
+    .unwrap();
+    let out = d.join("out");
+    let inst = unique_instance("kernel");
+    let r = json(&run_ok(&[
+        "demo",
+        "--seconds",
+        "2",
+        "--snapshots",
+        "0",
+        "--scene",
+        s(&scene),
+        "--out",
+        s(&out),
+        "--instance",
+        &inst,
+        "--json",
+    ]));
+    assert!(r["frames_rendered"].as_u64().unwrap() > 30, "{r}");
+    assert_eq!(r["kernels"][0]["baked_now"], false);
+    assert!(r["kernels"][0]["path"]
+        .as_str()
+        .unwrap()
+        .ends_with("patient_left.kernel"));
+    assert!(r["volume_max_ml"].as_f64().unwrap() > r["volume_min_ml"].as_f64().unwrap());
+    assert_eq!(r["remaining_files"].as_u64(), Some(0));
+
+    // Using the left kernel for the right lung is refused, by name.
+    std::fs::write(
+        d.join("wrong.toml"),
+        "[lungs]\nsides = [\"right\"]\n[lungs.kernels]\nright = \"patient_left.kernel\"\n",
+    )
+    .unwrap();
+    let inst = unique_instance("wrong");
+    run_err(
+        &[
+            "demo",
+            "--seconds",
+            "1",
+            "--snapshots",
+            "0",
+            "--scene",
+            s(&d.join("wrong.toml")),
+            "--out",
+            s(&out),
+            "--instance",
+            &inst,
+            "--startup-timeout",
+            "20",
+        ],
+        "kernel is of the left lung",
+    );
+}
+
+#[test]
+fn bad_meshes_kernels_and_options_fail_clearly() {
+    let d = workdir("bad");
+    let garbage = d.join("garbage.obj");
+    std::fs::write(&garbage, b"\x00\x01binary junk\xff\xfe").unwrap();
+    let out = d.join("x.kernel");
+    run_err(
+        &[
+            "bake",
+            "--mesh",
+            s(&garbage),
+            "--lung",
+            "left",
+            "--out",
+            s(&out),
+        ],
+        "garbage.obj",
+    );
+    run_err(
+        &[
+            "bake",
+            "--mesh",
+            "/nonexistent.stl",
+            "--lung",
+            "left",
+            "--out",
+            s(&out),
+        ],
+        "nonexistent.stl",
+    );
+    let mesh = d.join("m.obj");
+    run_ok(&[
+        "mesh",
+        "generate",
+        "--lung",
+        "right",
+        "--vertices",
+        "200",
+        "--out",
+        s(&mesh),
+    ]);
+    run_err(
+        &[
+            "bake",
+            "--mesh",
+            s(&mesh),
+            "--lung",
+            "right",
+            "--out",
+            s(&d.join("x.bin")),
+        ],
+        ".kernel",
+    );
+    run_err(
+        &[
+            "bake",
+            "--mesh",
+            s(&mesh),
+            "--lung",
+            "right",
+            "--tolerance",
+            "0",
+            "--out",
+            s(&out),
+        ],
+        "--tolerance 0",
+    );
+    assert!(!out.exists(), "a failed bake must not leave a file");
+
+    run_ok(&[
+        "bake",
+        "--mesh",
+        s(&mesh),
+        "--lung",
+        "right",
+        "--out",
+        s(&out),
+    ]);
+    let mut bytes = std::fs::read(&out).unwrap();
+    let good = bytes.clone();
+    let n = bytes.len();
+    bytes[n - 100] ^= 0x40;
+    let bad = d.join("flipped.kernel");
+    std::fs::write(&bad, &bytes).unwrap();
+    run_err(&["kernel", "inspect", s(&bad)], "checksum mismatch");
+    let cut = d.join("cut.kernel");
+    std::fs::write(&cut, &good[..n / 2]).unwrap();
+    run_err(&["kernel", "inspect", s(&cut)], "truncated");
+    run_err(&["kernel", "inspect", s(&mesh)], "not a lungdyn kernel");
+    let empty = d.join("empty.kernel");
+    std::fs::write(&empty, b"").unwrap();
+    run_err(&["kernel", "inspect", s(&empty)], "empty");
+    // Bake over an existing kernel fails → the old file is untouched.
+    run_err(
+        &[
+            "bake",
+            "--mesh",
+            s(&garbage),
+            "--lung",
+            "right",
+            "--out",
+            s(&out),
+        ],
+        "garbage.obj",
+    );
+    assert_eq!(std::fs::read(&out).unwrap(), good);
+}
+
+/// Points of a generated lung moved by a known direction model (body frame, mm).
+fn known_motion(
+    side: engine::mesh::Side,
+    n: usize,
+    c: &[f64; 9],
+    scale: f64,
+) -> (Vec<DVec3>, Vec<DVec3>) {
+    let a: Vec<DVec3> = engine::mesh::generate::lung(side, n)
+        .unwrap()
+        .positions
+        .iter()
+        .map(|p| DVec3::from(p.map(|v| v as f64)))
+        .collect();
+    let lo = a.iter().fold(DVec3::splat(f64::INFINITY), |m, p| m.min(*p));
+    let hi = a
+        .iter()
+        .fold(DVec3::splat(f64::NEG_INFINITY), |m, p| m.max(*p));
+    let b = a
+        .iter()
+        .map(|&p| {
+            let u = (p - lo) / (hi - lo);
+            let x = match side {
+                engine::mesh::Side::Left => u.x,
+                engine::mesh::Side::Right => 1.0 - u.x,
+            };
+            let nrm = DVec3::new(x, u.y, 1.0 - u.z);
+            p + scale * engine::motion_fit::model_displacement(nrm, c, side)
+        })
+        .collect();
+    (a, b)
+}
+
+fn write_points(path: &Path, pts: &[DVec3], spacing: [f64; 3]) {
+    let mut t = String::from("# x y z\n");
+    for p in pts {
+        t += &format!(
+            "{} {} {}\n",
+            p.x / spacing[0],
+            p.y / spacing[1],
+            p.z / spacing[2]
+        );
+    }
+    std::fs::write(path, t).unwrap();
+}
+
+#[test]
+fn fit_motion_recovers_known_constants_and_its_output_bakes() {
+    use engine::mesh::Side;
+    let d = workdir("fit");
+    let truth = [2.0, 0.6, 5.0, 0.5, 12.0, 2.0, 0.01, 0.95, 0.07];
+    let (ra, rb) = known_motion(Side::Right, 600, &truth, 1.0);
+    let (la, lb) = known_motion(Side::Left, 600, &truth, 1.0);
+    let (_, rc) = known_motion(Side::Right, 600, &truth, 2.0);
+    let (_, lc) = known_motion(Side::Left, 600, &truth, 2.0);
+    let cat = |x: &[DVec3], y: &[DVec3]| x.iter().chain(y).copied().collect::<Vec<_>>();
+    let spacing = [0.8, 0.8, 2.5];
+    write_points(&d.join("a.txt"), &cat(&ra, &la), spacing);
+    write_points(&d.join("b.txt"), &cat(&rb, &lb), spacing);
+    write_points(&d.join("c.txt"), &cat(&rc, &lc), spacing);
+    let motion = d.join("motion.toml");
+    let f = json(&run_ok(&[
+        "fit-motion",
+        "--from",
+        s(&d.join("a.txt")),
+        "--to",
+        s(&d.join("b.txt")),
+        "--also",
+        s(&d.join("c.txt")),
+        "--spacing",
+        "0.8,0.8,2.5",
+        "--out",
+        s(&motion),
+        "--json",
+    ]));
+    assert!(f["mean_error_mm"].as_f64().unwrap() < 1e-3, "{f}");
+    assert!(f["max_error_mm"].as_f64().unwrap() < 1e-2, "{f}");
+    assert!(f["baseline_mean_mm"].as_f64().unwrap() > 2.0, "{f}");
+    assert!(
+        f["also"][0]["mean_error_mm"].as_f64().unwrap() < 1e-3,
+        "{f}"
+    );
+    let lungs = f["lungs"].as_array().unwrap();
+    assert_eq!(lungs.len(), 2);
+    for l in lungs {
+        let c: Vec<f64> = l["constants"]
+            .as_array()
+            .unwrap()
+            .iter()
+            .map(|v| v.as_f64().unwrap())
+            .collect();
+        for k in 0..6 {
+            assert!(
+                (c[k] - truth[k]).abs() < 1e-3,
+                "{}: c{} = {}",
+                l["lung"],
+                k + 1,
+                c[k]
+            );
+        }
+        assert!((l["also"][0]["scale"].as_f64().unwrap() - 2.0).abs() < 1e-6);
+    }
+    // The written constants bake.
+    let mesh = d.join("l.obj");
+    run_ok(&[
+        "mesh",
+        "generate",
+        "--lung",
+        "left",
+        "--vertices",
+        "500",
+        "--out",
+        s(&mesh),
+    ]);
+    let k = json(&run_ok(&[
+        "bake",
+        "--mesh",
+        s(&mesh),
+        "--lung",
+        "left",
+        "--motion",
+        s(&motion),
+        "--out",
+        s(&d.join("l.kernel")),
+        "--json",
+    ]));
+    assert!(k["vertices"].as_u64().unwrap() > 0);
+    let i = json(&run_ok(&[
+        "kernel",
+        "inspect",
+        s(&d.join("l.kernel")),
+        "--json",
+    ]));
+    let c1 = i["meta"]["settings"]["motion"]["c"][0].as_f64().unwrap();
+    assert!((c1 - 2.0).abs() < 1e-3, "{c1}");
+
+    // Bad point files.
+    std::fs::write(d.join("short.txt"), "1 2 3\n4 5 6\n").unwrap();
+    run_err(
+        &[
+            "fit-motion",
+            "--from",
+            s(&d.join("a.txt")),
+            "--to",
+            s(&d.join("short.txt")),
+        ],
+        "must correspond",
+    );
+    std::fs::write(d.join("nan.txt"), "1 2 3\n4 x 6\n").unwrap();
+    run_err(
+        &[
+            "fit-motion",
+            "--from",
+            s(&d.join("nan.txt")),
+            "--to",
+            s(&d.join("nan.txt")),
+        ],
+        "nan.txt:2",
+    );
+    std::fs::write(d.join("two.txt"), "1 2\n").unwrap();
+    run_err(
+        &[
+            "fit-motion",
+            "--from",
+            s(&d.join("two.txt")),
+            "--to",
+            s(&d.join("two.txt")),
+        ],
+        "three numbers",
+    );
+    write_points(&d.join("one.txt"), &la, [1.0; 3]);
+    run_err(
+        &[
+            "fit-motion",
+            "--from",
+            s(&d.join("one.txt")),
+            "--to",
+            s(&d.join("one.txt")),
+        ],
+        "--lung",
+    );
+    run_err(
+        &[
+            "fit-motion",
+            "--from",
+            s(&d.join("a.txt")),
+            "--to",
+            s(&d.join("b.txt")),
+            "--spacing",
+            "1,0,1",
+        ],
+        "--spacing",
+    );
+}
