@@ -252,3 +252,87 @@ pub fn inspect_text(i: &InspectSummary) -> String {
         m.written_by
     )
 }
+
+/// Options of `lungdyn kernel export`.
+#[derive(Debug, Clone, clap::Args)]
+pub struct ExportArgs {
+    /// Kernel file.
+    pub file: PathBuf,
+    /// Volume above the start (FRC) volume, ml; the surface is deformed so its enclosed volume
+    /// grows by exactly this much (EQUATIONS.md §2.4). Negative deflates.
+    #[arg(long, allow_negative_numbers = true)]
+    pub delta_ml: f64,
+    /// Output mesh, .obj or .ply (written atomically).
+    #[arg(long)]
+    pub out: PathBuf,
+    /// Print one JSON object on stdout.
+    #[arg(long)]
+    pub json: bool,
+}
+
+/// What `kernel export` wrote.
+#[derive(Debug, Serialize)]
+pub struct ExportSummary {
+    /// Output.
+    pub path: String,
+    /// Requested volume change, ml.
+    pub delta_ml: f64,
+    /// Enclosed volume of the written mesh, ml.
+    pub volume_ml: f64,
+    /// Start volume, ml.
+    pub start_volume_ml: f64,
+    /// Deformation scale applied to the unit displacement.
+    pub scale: f64,
+    /// Largest vertex displacement, mm.
+    pub max_displacement_mm: f64,
+}
+
+/// Deform a kernel's lung to `start + delta` and write the surface.
+pub fn export(args: &ExportArgs) -> anyhow::Result<ExportSummary> {
+    if !(args.delta_ml.is_finite() && args.delta_ml.abs() <= 10_000.0) {
+        anyhow::bail!(
+            "--delta-ml {} must be a volume within ±10000 ml",
+            args.delta_ml
+        );
+    }
+    engine::mesh::io::MeshFormat::from_path(&args.out)?;
+    let f = KernelFile::open(&args.file)?;
+    let model = f.lung_model();
+    if args.delta_ml < -0.9 * model.start_volume_ml {
+        anyhow::bail!(
+            "--delta-ml {} would empty the lung (start volume {:.1} ml)",
+            args.delta_ml,
+            model.start_volume_ml
+        );
+    }
+    let scale = model.scale_for_delta(args.delta_ml);
+    let mut out = vec![[0.0f32; 3]; model.mesh.positions.len()];
+    model.deform_into(scale as f32, &mut out);
+    let max_d = out
+        .iter()
+        .zip(&model.mesh.positions)
+        .map(|(a, b)| {
+            let d = [a[0] - b[0], a[1] - b[1], a[2] - b[2]];
+            ((d[0] * d[0] + d[1] * d[1] + d[2] * d[2]) as f64).sqrt()
+        })
+        .fold(0.0, f64::max);
+    let mesh = engine::mesh::TriMesh {
+        positions: out,
+        triangles: model.mesh.triangles.clone(),
+    };
+    if let Err(e) = engine::mesh::check(&mesh) {
+        anyhow::bail!(
+            "at {:+} ml the deformed surface is no longer valid ({e}): the linear model does not reach that far",
+            args.delta_ml
+        );
+    }
+    engine::mesh::io::write_mesh(&mesh, &args.out)?;
+    Ok(ExportSummary {
+        path: args.out.display().to_string(),
+        delta_ml: args.delta_ml,
+        volume_ml: mesh.enclosed_volume_ml(),
+        start_volume_ml: model.start_volume_ml,
+        scale,
+        max_displacement_mm: max_d,
+    })
+}

@@ -56,6 +56,8 @@ enum MeshCommand {
 enum KernelCommand {
     /// Verify a kernel file (every checksum and index) and print its metadata.
     Inspect(lungdyn::bake_cmd::InspectArgs),
+    /// Write the lung deformed to a volume (start + delta) as OBJ or PLY.
+    Export(lungdyn::bake_cmd::ExportArgs),
 }
 
 fn main() -> std::process::ExitCode {
@@ -123,6 +125,17 @@ fn main() -> std::process::ExitCode {
                 println!("{}", serde_json::to_string(&f)?);
             } else {
                 print!("{}", lungdyn::motion_cmd::text(&f, &args));
+            }
+            Ok(())
+        }),
+        Command::Kernel(KernelCommand::Export(args)) => lungdyn::bake_cmd::export(&args).and_then(|e| {
+            if args.json {
+                println!("{}", serde_json::to_string(&e)?);
+            } else {
+                println!(
+                    "wrote {}: {:+.1} ml -> {:.1} ml (start {:.1} ml), scale {:.3}, largest displacement {:.2} mm",
+                    e.path, e.delta_ml, e.volume_ml, e.start_volume_ml, e.scale, e.max_displacement_mm
+                );
             }
             Ok(())
         }),

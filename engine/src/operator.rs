@@ -301,6 +301,20 @@ impl NodeGraph {
         self.mass_keep[j]
     }
 
+    /// `(edge, Te[j→spring of edge])` for mass node `j`'s spring nodes.
+    pub fn mass_sends(&self, j: usize) -> impl Iterator<Item = (usize, f64)> + '_ {
+        let r = self.adj_ptr[j] as usize..self.adj_ptr[j + 1] as usize;
+        self.adj_edge[r.clone()]
+            .iter()
+            .map(|&k| k as usize)
+            .zip(self.mass_send[r].iter().copied())
+    }
+
+    /// Spring node of edge `k`: `(Te[k→k], [Te[k→a], Te[k→b]])` with `[a, b] = edges()[k]`.
+    pub fn spring_transfer(&self, k: usize) -> (f64, [f64; 2]) {
+        (self.spring_keep[k], self.spring_send[k])
+    }
+
     /// Sum of node `node`'s local transfer row (eq. 6.2: 1 up to rounding).
     pub fn local_row_sum(&self, node: usize) -> f64 {
         if node < self.mass_count {

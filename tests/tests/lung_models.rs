@@ -77,6 +77,42 @@ fn a_patient_mesh_bakes_into_a_kernel_that_the_demo_renders() {
     let text = run_ok(&["kernel", "inspect", s(&kernel)]);
     assert!(text.contains("checksums OK"), "{text}");
 
+    // The deformed state at +250 ml, exported as a mesh, encloses exactly that much more.
+    let deformed = d.join("left_plus250.obj");
+    let e = json(&run_ok(&[
+        "kernel",
+        "export",
+        s(&kernel),
+        "--delta-ml",
+        "250",
+        "--out",
+        s(&deformed),
+        "--json",
+    ]));
+    let got = e["volume_ml"].as_f64().unwrap() - e["start_volume_ml"].as_f64().unwrap();
+    assert!((got - 250.0).abs() < 0.1, "{e}");
+    assert!(e["max_displacement_mm"].as_f64().unwrap() > 1.0);
+    let c = json(&run_ok(&[
+        "mesh",
+        "check",
+        "--mesh",
+        s(&deformed),
+        "--json",
+    ]));
+    assert!((c["volume_ml"].as_f64().unwrap() - e["volume_ml"].as_f64().unwrap()).abs() < 0.5);
+    run_err(
+        &[
+            "kernel",
+            "export",
+            s(&kernel),
+            "--delta-ml",
+            "nan",
+            "--out",
+            s(&deformed),
+        ],
+        "--delta-ml",
+    );
+
     // A scene that runs the patient's left lung from its kernel; the demo must draw it breathing.
     let scene = d.join("patient.toml");
     std::fs::write(
