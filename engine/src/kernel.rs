@@ -363,7 +363,7 @@ pub struct KernelFile {
     path: PathBuf,
     map: memmap2::Mmap,
     meta: KernelMeta,
-    sections: Vec<(u32, u32, usize, usize)>,
+    sections: Vec<Section>,
 }
 
 impl std::fmt::Debug for KernelFile {
@@ -382,8 +382,11 @@ fn u64_at(b: &[u8], at: usize) -> u64 {
     u64::from_le_bytes(b[at..at + 8].try_into().unwrap())
 }
 
+/// A verified section: kind, element size, byte offset, byte length.
+pub type Section = (u32, u32, usize, usize);
+
 /// Why a byte image is not a valid kernel (no path; [`KernelFile::open`] adds it).
-pub fn verify_bytes(b: &[u8]) -> Result<(KernelMeta, Vec<(u32, u32, usize, usize)>), String> {
+pub fn verify_bytes(b: &[u8]) -> Result<(KernelMeta, Vec<Section>), String> {
     if b.len() < HEADER {
         return Err(format!(
             "truncated or empty: {} bytes, a kernel header needs {HEADER}",
@@ -428,7 +431,7 @@ pub fn verify_bytes(b: &[u8]) -> Result<(KernelMeta, Vec<(u32, u32, usize, usize
     if xxh3_64(table) != u64_at(b, 32) {
         return Err("section table checksum mismatch: the file is corrupted".into());
     }
-    let mut sections: Vec<(u32, u32, usize, usize)> = Vec::with_capacity(count);
+    let mut sections: Vec<Section> = Vec::with_capacity(count);
     for s in 0..count {
         let e = &table[s * ENTRY..(s + 1) * ENTRY];
         let (kind, elem) = (u32_at(e, 0), u32_at(e, 4));

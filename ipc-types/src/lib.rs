@@ -51,28 +51,23 @@ pub fn now_ns() -> u64 {
     ts.tv_sec as u64 * 1_000_000_000 + ts.tv_nsec as u64
 }
 
-/// Sleep until the monotonic clock reaches `deadline_ns` (absolute), so periodic loops never drift.
+/// Sleep until the monotonic clock reaches `deadline_ns` (absolute), so periodic loops never drift;
+/// returns early when a signal arrives.
 pub fn sleep_until_ns(deadline_ns: u64) {
     let ts = libc::timespec {
         tv_sec: (deadline_ns / 1_000_000_000) as libc::time_t,
         tv_nsec: (deadline_ns % 1_000_000_000) as libc::c_long,
     };
-    loop {
-        // SAFETY: plain syscall with a valid timespec; EINTR is retried below.
-        let rc = unsafe {
-            libc::clock_nanosleep(
-                libc::CLOCK_MONOTONIC,
-                libc::TIMER_ABSTIME,
-                &ts,
-                core::ptr::null_mut(),
-            )
-        };
-        if rc != libc::EINTR {
-            break;
-        }
-        // A signal woke us: let the caller's loop see a termination request promptly.
-        return;
-    }
+    // SAFETY: plain syscall with a valid timespec. A signal (EINTR) ends the sleep early on
+    // purpose, so the caller's loop sees a termination request promptly.
+    unsafe {
+        libc::clock_nanosleep(
+            libc::CLOCK_MONOTONIC,
+            libc::TIMER_ABSTIME,
+            &ts,
+            core::ptr::null_mut(),
+        )
+    };
 }
 
 /// Monotonic timestamps (ns) of each hop a sample passed. Zero means "not passed (yet)".
