@@ -186,6 +186,9 @@ pub fn bake_text(b: &BakeSummary) -> String {
 pub struct InspectArgs {
     /// Kernel file.
     pub file: PathBuf,
+    /// Also draw the kernel (PNG): unit displacement and two transfer rows (near base and apex).
+    #[arg(long)]
+    pub plot: Option<PathBuf>,
     /// Print one JSON object on stdout.
     #[arg(long)]
     pub json: bool,
@@ -207,6 +210,13 @@ pub struct InspectSummary {
 /// Open (verifying every checksum) and summarise.
 pub fn inspect(args: &InspectArgs) -> anyhow::Result<InspectSummary> {
     let f = KernelFile::open(&args.file)?;
+    if let Some(png) = &args.plot {
+        if png.extension().and_then(|e| e.to_str()) != Some("png") {
+            anyhow::bail!("--plot {}: the picture must be a .png", png.display());
+        }
+        crate::kernel_plot::write(&f, png)
+            .with_context(|| format!("cannot draw {}", png.display()))?;
+    }
     Ok(InspectSummary {
         path: args.file.display().to_string(),
         file_bytes: f.len_bytes() as u64,

@@ -9,7 +9,8 @@ use plotters::prelude::*;
 
 static FONT: &[u8] = include_bytes!("../assets/DejaVuSans.ttf");
 
-fn ensure_font() {
+/// Register the bundled font once (every plot's text uses it).
+pub fn ensure_font() {
     static ONCE: std::sync::Once = std::sync::Once::new();
     ONCE.call_once(|| {
         // The bundled font is valid; a failure here would only mean text-less plots.

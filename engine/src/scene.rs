@@ -404,6 +404,41 @@ mod tests {
     }
 
     #[test]
+    fn kernel_and_motion_paths_resolve_relative_to_the_scene_and_must_exist() {
+        let dir = std::env::temp_dir().join(format!("lungdyn-scene-{}", std::process::id()));
+        std::fs::create_dir_all(&dir).unwrap();
+        let scene = dir.join("s.toml");
+        std::fs::write(&scene, "[lungs.kernels]\nleft = \"missing.kernel\"\n").unwrap();
+        let e = Scene::load(&scene).unwrap_err().to_string();
+        assert!(
+            e.contains("missing.kernel") && e.contains("lungdyn bake"),
+            "{e}"
+        );
+        std::fs::write(dir.join("l.kernel"), b"x").unwrap();
+        std::fs::write(&scene, "[lungs.kernels]\nleft = \"l.kernel\"\n").unwrap();
+        let s = Scene::load(&scene).unwrap();
+        assert_eq!(
+            s.lungs.kernels.get(Side::Left),
+            Some(dir.join("l.kernel").as_path())
+        );
+        std::fs::write(&scene, "[lungs]\nmotion = \"m.toml\"\n").unwrap();
+        std::fs::write(dir.join("m.toml"), "format = 2\n").unwrap();
+        let e = Scene::load(&scene).unwrap_err().to_string();
+        assert!(e.contains("format 2"), "{e}");
+        std::fs::write(
+            dir.join("m.toml"),
+            "format = 1\n[left]\nc = [1.0, 0.5, 2.0, 0.5, 3.0, 2.0, 0.01, 0.95, 0.07]\n",
+        )
+        .unwrap();
+        let s = Scene::load(&scene).unwrap();
+        assert_eq!(s.bake_settings(Side::Left).unwrap().motion.c[0], 1.0);
+        assert_eq!(
+            s.bake_settings(Side::Right).unwrap().motion,
+            crate::deform::MotionConstants::table_6_1(Side::Right)
+        );
+    }
+
+    #[test]
     fn bad_scenes_are_refused_with_the_key_named() {
         let e = Scene::parse("[pv]\npresett = \"x\"\n", "s.toml")
             .unwrap_err()
@@ -421,6 +456,18 @@ mod tests {
             .unwrap_err()
             .to_string();
         assert!(e.contains("twice"), "{e}");
+        let e = Scene::parse("[lungs.elasticity]\napex = 0\n", "s.toml")
+            .unwrap_err()
+            .to_string();
+        assert!(e.contains("[lungs.elasticity]"), "{e}");
+        let e = Scene::parse("[lungs]\ntransfer_tolerance = 2\n", "s.toml")
+            .unwrap_err()
+            .to_string();
+        assert!(e.contains("transfer_tolerance"), "{e}");
+        let e = Scene::parse("[lungs.kernels]\nmiddle = \"m.kernel\"\n", "s.toml")
+            .unwrap_err()
+            .to_string();
+        assert!(e.contains("middle"), "{e}");
         let e = Scene::parse("[render]\nmode = \"voxels\"\n", "s.toml")
             .unwrap_err()
             .to_string();

@@ -76,6 +76,20 @@ fn a_patient_mesh_bakes_into_a_kernel_that_the_demo_renders() {
     assert_eq!(i["meta"]["nnz"], b["nnz"]);
     let text = run_ok(&["kernel", "inspect", s(&kernel)]);
     assert!(text.contains("checksums OK"), "{text}");
+    let png = d.join("kernel.png");
+    run_ok(&["kernel", "inspect", s(&kernel), "--plot", s(&png)]);
+    let img = image::open(&png).expect("the kernel picture is a PNG");
+    assert!(img.width() >= 1000 && img.height() >= 500);
+    run_err(
+        &[
+            "kernel",
+            "inspect",
+            s(&kernel),
+            "--plot",
+            s(&d.join("k.jpg")),
+        ],
+        ".png",
+    );
 
     // The deformed state at +250 ml, exported as a mesh, encloses exactly that much more.
     let deformed = d.join("left_plus250.obj");
