@@ -35,6 +35,9 @@ pub struct FitMotionArgs {
     /// Which lung, when the points are one lung (no mid-sagittal gap).
     #[arg(long, value_parser = ["left", "right"])]
     pub lung: Option<String>,
+    /// Scene whose [lungs] elasticity and transfer_tolerance the force fit uses (mesh input).
+    #[arg(long)]
+    pub scene: Option<PathBuf>,
     /// Write the constants (TOML, for `lungdyn bake --motion` or a scene's [lungs] motion).
     #[arg(long)]
     pub out: Option<PathBuf>,
@@ -110,6 +113,47 @@ pub fn read_points(path: &Path, spacing: Option<[f64; 3]>) -> anyhow::Result<Vec
     })
 }
 
+fn is_mesh(p: &Path) -> bool {
+    matches!(
+        p.extension()
+            .and_then(|e| e.to_str())
+            .map(|e| e.to_ascii_lowercase())
+            .as_deref(),
+        Some("obj" | "ply" | "stl")
+    )
+}
+
+/// The closed surface made of the triangles whose vertices are all in `keep` (reindexed), scaled.
+fn sub_mesh(
+    mesh: &engine::mesh::TriMesh,
+    keep: &[usize],
+    scale: [f64; 3],
+) -> anyhow::Result<engine::mesh::TriMesh> {
+    let mut map = vec![u32::MAX; mesh.positions.len()];
+    let mut positions = Vec::with_capacity(keep.len());
+    for &i in keep {
+        map[i] = positions.len() as u32;
+        let p = mesh.positions[i];
+        positions.push([
+            (p[0] as f64 * scale[0]) as f32,
+            (p[1] as f64 * scale[1]) as f32,
+            (p[2] as f64 * scale[2]) as f32,
+        ]);
+    }
+    let triangles: Vec<[u32; 3]> = mesh
+        .triangles
+        .iter()
+        .filter(|t| t.iter().all(|&v| map[v as usize] != u32::MAX))
+        .map(|t| t.map(|v| map[v as usize]))
+        .collect();
+    let sub = engine::mesh::TriMesh {
+        positions,
+        triangles,
+    };
+    engine::mesh::check(&sub)?;
+    Ok(sub)
+}
+
 /// Read, fit, optionally write.
 pub fn run(args: &FitMotionArgs) -> anyhow::Result<MotionFit> {
     let spacing = match args.spacing.as_slice() {
@@ -134,7 +178,33 @@ pub fn run(args: &FitMotionArgs) -> anyhow::Result<MotionFit> {
         .iter()
         .map(|p| Ok((p.display().to_string(), read_points(p, spacing)?)))
         .collect::<anyhow::Result<Vec<_>>>()?;
-    let fit = motion_fit::fit(&a, &b, &also, side)?;
+    let mut fit = motion_fit::fit(&a, &b, &also, side)?;
+    // Two meshes: the force constants c7..c9 through the operator, as the seed does (§6.4.2).
+    if is_mesh(&args.from) && is_mesh(&args.to) {
+        let scene = engine::scene::Scene::load_or_default(args.scene.as_deref())?;
+        let mesh = engine::mesh::import::import(&args.from, engine::mesh::import::Units::Mm)?.mesh;
+        let scale = spacing.unwrap_or([1.0; 3]);
+        for l in &mut fit.lungs {
+            let sub = sub_mesh(&mesh, &l.indices, scale).with_context(|| {
+                format!(
+                    "{}: the {} lung's part of the mesh",
+                    args.from.display(),
+                    l.lung.name()
+                )
+            })?;
+            let delta: Vec<DVec3> = l.indices.iter().map(|&i| b[i] - a[i]).collect();
+            let f = motion_fit::fit_force(
+                l.lung,
+                &sub,
+                &delta,
+                &l.constants,
+                &scene.lungs.elasticity,
+                scene.lungs.transfer_tolerance,
+            )?;
+            l.constants[6..9].copy_from_slice(&f.c789);
+            l.force = Some(f);
+        }
+    }
     if let Some(out) = &args.out {
         let mut file = MotionFile {
             format: 1,
@@ -147,9 +217,14 @@ pub fn run(args: &FitMotionArgs) -> anyhow::Result<MotionFit> {
                 Side::Right => file.right = Some(l.motion()),
             }
         }
+        let c789 = if fit.lungs.iter().all(|l| l.force.is_some()) {
+            "c7..c9 fitted through the operator from the two meshes"
+        } else {
+            "c7..c9 are Table 6.1 (not fitted from points)"
+        };
         let text = format!(
             "# lungdyn motion constants (fit-motion from {} to {}); c1, c3, c5 in mm at the fitted phase,\n\
-             # c7..c9 are Table 6.1 (not fitted from points). Use: lungdyn bake --motion this.toml\n{}",
+             # {c789}. Use: lungdyn bake --motion this.toml\n{}",
             args.from.display(),
             args.to.display(),
             toml::to_string(&file)?
@@ -183,6 +258,12 @@ pub fn text(f: &MotionFit, args: &FitMotionArgs) -> String {
             l.residuals.rms_error_mm,
             l.residuals.baseline_mean_mm
         );
+        if let Some(f) = &l.force {
+            s += &format!(
+                "  through the operator ({:.0} non-zeros per row): c7 {:.3} c8 {:.3} c9 {:.3}; kernel model error mean {:.2} mm, max {:.2} mm\n",
+                f.mean_row_nnz, f.c789[0], f.c789[1], f.c789[2], f.residuals.mean_error_mm, f.residuals.max_error_mm
+            );
+        }
         for (p, path) in l.also.iter().zip(&args.also) {
             s += &format!(
                 "  {}: scale {:.3}, error mean {:.2} mm, max {:.2} mm (baseline {:.2} mm)\n",
