@@ -44,3 +44,14 @@ pub fn lungdyn(args: &[&str]) -> (bool, String, String) {
         String::from_utf8_lossy(&out.stderr).into_owned(),
     )
 }
+
+/// Run `lungdyn args`, expecting a non-zero exit whose stderr contains `needle` and no panic.
+pub fn assert_clean_failure(args: &[&str], needle: &str) {
+    let (ok, _, err) = lungdyn(args);
+    assert!(!ok, "{args:?} should fail");
+    assert!(
+        err.contains(needle),
+        "{args:?}: expected {needle:?} in: {err}"
+    );
+    assert!(!err.contains("panicked"), "{args:?} panicked: {err}");
+}

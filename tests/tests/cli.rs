@@ -3,17 +3,7 @@
 
 use std::process::Command;
 
-use lungdyn_tests::{bin, lungdyn};
-
-fn assert_clean_failure(args: &[&str], needle: &str) {
-    let (ok, _, err) = lungdyn(args);
-    assert!(!ok, "{args:?} should fail");
-    assert!(
-        err.contains(needle),
-        "{args:?}: expected {needle:?} in: {err}"
-    );
-    assert!(!err.contains("panicked"), "{args:?} panicked: {err}");
-}
+use lungdyn_tests::{assert_clean_failure, bin, lungdyn};
 
 #[test]
 fn bad_arguments_give_one_clear_message_and_a_non_zero_exit() {

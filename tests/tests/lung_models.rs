@@ -5,7 +5,7 @@
 use std::path::{Path, PathBuf};
 
 use glam::DVec3;
-use lungdyn_tests::{lungdyn, unique_instance};
+use lungdyn_tests::{assert_clean_failure as run_err, lungdyn, unique_instance};
 
 fn workdir(tag: &str) -> PathBuf {
     let d = std::env::temp_dir().join(format!("lungdyn-models-{tag}-{}", std::process::id()));
@@ -22,16 +22,6 @@ fn run_ok(args: &[&str]) -> String {
     assert!(ok, "{args:?} failed: {err}");
     assert!(!err.contains("panicked"), "{err}");
     out
-}
-
-fn run_err(args: &[&str], needle: &str) {
-    let (ok, _, err) = lungdyn(args);
-    assert!(!ok, "{args:?} should fail");
-    assert!(
-        err.contains(needle),
-        "{args:?}: expected {needle:?} in {err}"
-    );
-    assert!(!err.contains("panicked"), "{args:?} panicked: {err}");
 }
 
 fn s(p: &Path) -> &str {
@@ -429,40 +419,22 @@ fn fit_motion_recovers_known_constants_and_its_output_bakes() {
     let c1 = i["meta"]["settings"]["motion"]["c"][0].as_f64().unwrap();
     assert!((c1 - 2.0).abs() < 1e-3, "{c1}");
 
-    // Bad point files.
-    std::fs::write(d.join("short.txt"), "1 2 3\n4 5 6\n").unwrap();
-    run_err(
-        &[
-            "fit-motion",
-            "--from",
-            s(&d.join("a.txt")),
-            "--to",
-            s(&d.join("short.txt")),
-        ],
-        "must correspond",
-    );
-    std::fs::write(d.join("nan.txt"), "1 2 3\n4 x 6\n").unwrap();
-    run_err(
-        &[
-            "fit-motion",
-            "--from",
-            s(&d.join("nan.txt")),
-            "--to",
-            s(&d.join("nan.txt")),
-        ],
-        "nan.txt:2",
-    );
-    std::fs::write(d.join("two.txt"), "1 2\n").unwrap();
-    run_err(
-        &[
-            "fit-motion",
-            "--from",
-            s(&d.join("two.txt")),
-            "--to",
-            s(&d.join("two.txt")),
-        ],
-        "three numbers",
-    );
+    // Bad point files: each as both phases (or against the good reference), with what must be said.
+    for (name, text, needle) in [
+        ("short.txt", "1 2 3\n4 5 6\n", "must correspond"),
+        ("nan.txt", "1 2 3\n4 x 6\n", "nan.txt:2"),
+        ("two.txt", "1 2\n", "three numbers"),
+        ("empty.txt", "# nothing\n", "no points"),
+    ] {
+        let bad = d.join(name);
+        std::fs::write(&bad, text).unwrap();
+        let from = if name == "short.txt" {
+            d.join("a.txt")
+        } else {
+            bad.clone()
+        };
+        run_err(&["fit-motion", "--from", s(&from), "--to", s(&bad)], needle);
+    }
     write_points(&d.join("one.txt"), &la, [1.0; 3]);
     run_err(
         &[
