@@ -268,7 +268,15 @@ pub fn ensure_kernels(
                 path.display()
             );
             let mesh = engine::mesh::generate::lung(side, scene.lungs.vertices)?;
-            engine::kernel::bake(side, mesh, &settings, &|_| {})?.write(&path)?;
+            let bar = indicatif::ProgressBar::new(mesh.positions.len() as u64);
+            bar.set_style(
+                indicatif::ProgressStyle::with_template("  [{bar:40}] {pos}/{len} rows, eta {eta}")
+                    .expect("valid template")
+                    .progress_chars("=> "),
+            );
+            let kernel = engine::kernel::bake(side, mesh, &settings, &|rows| bar.inc(rows as u64))?;
+            bar.finish_and_clear();
+            kernel.write(&path)?;
             seconds = t.elapsed().as_secs_f64();
         }
         used.push(KernelUse {

@@ -168,6 +168,9 @@ pub enum BakeError {
     /// The displacement field is unusable.
     #[error(transparent)]
     Deform(#[from] DeformError),
+    /// The surface is not a closed, consistently wound 2-manifold with positive volume.
+    #[error("the mesh cannot be baked: {0}")]
+    Mesh(#[from] crate::mesh::MeshError),
 }
 
 /// xxh3-64 of a mesh (positions then triangles, little-endian bytes).
@@ -178,7 +181,7 @@ pub fn mesh_hash(mesh: &TriMesh) -> u64 {
     h.digest()
 }
 
-/// Bake `mesh` (a checked, closed lung surface in mm). `progress(rows)` is called as transfer rows
+/// Bake `mesh` (a closed lung surface in mm; checked again here). `progress(rows)` is called as transfer rows
 /// finish (from worker threads).
 pub fn bake(
     side: Side,
@@ -186,6 +189,7 @@ pub fn bake(
     settings: &BakeSettings,
     progress: &(dyn Fn(usize) + Sync),
 ) -> Result<Kernel, BakeError> {
+    crate::mesh::check(&mesh)?;
     let bb = mesh.aabb();
     let norm = |p| normalised_position(p, &bb, side);
     let graph = NodeGraph::from_mesh(&mesh, &settings.elasticity, norm)?;
@@ -714,6 +718,67 @@ mod tests {
         let m = f.lung_model();
         let dv = m.cubic.volume(1.0) / 1000.0 - m.start_volume_ml;
         assert!((dv - UNIT_VOLUME_ML).abs() < 1e-3, "{dv}");
+    }
+
+    #[test]
+    fn extremes_bake_or_fail_clearly() {
+        // A tetrahedron: the smallest closed surface.
+        let tet = TriMesh {
+            positions: vec![
+                [0.0; 3],
+                [100.0, 0.0, 0.0],
+                [0.0, 100.0, 0.0],
+                [0.0, 0.0, 100.0],
+            ],
+            triangles: vec![[0, 2, 1], [0, 1, 3], [0, 3, 2], [1, 2, 3]],
+        };
+        let k = bake(
+            Side::Left,
+            tet.clone(),
+            &BakeSettings::default_for(Side::Left),
+            &|_| {},
+        )
+        .map_err(|e| e.to_string())
+        .unwrap();
+        assert!(k.unit_displacement.iter().flatten().all(|v| v.is_finite()));
+        // Tolerances at both ends: a huge one pitches each unit force once (rows hold only their
+        // own node, the rest is spring-caught or truncated, all accounted for); a tiny one converges.
+        let mut s = BakeSettings::default_for(Side::Left);
+        s.tolerance = 0.999;
+        let k = bake(
+            Side::Left,
+            generate::lung(Side::Left, 200).unwrap(),
+            &s,
+            &|_| {},
+        )
+        .map_err(|e| e.to_string())
+        .unwrap();
+        assert_eq!(k.meta.transfer.max_row_nnz, 1);
+        assert!(k.meta.transfer.conservation_error_max < 1e-9);
+        assert!(k.unit_displacement.iter().flatten().all(|v| v.is_finite()));
+        s.tolerance = 1e-12;
+        let k = bake(
+            Side::Left,
+            generate::lung(Side::Left, 200).unwrap(),
+            &s,
+            &|_| {},
+        )
+        .map_err(|e| e.to_string())
+        .unwrap();
+        assert!(k.meta.transfer.truncated_force_max < 1e-9);
+        assert!(k.meta.transfer.conservation_error_max < 1e-9);
+        // A degenerate, flat "lung" (all z equal) has no volume slope: refused, not NaN.
+        let mut flat = tet;
+        for p in &mut flat.positions {
+            p[2] = 0.0;
+        }
+        assert!(bake(
+            Side::Left,
+            flat,
+            &BakeSettings::default_for(Side::Left),
+            &|_| {}
+        )
+        .is_err());
     }
 
     #[test]
