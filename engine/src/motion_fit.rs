@@ -571,6 +571,10 @@ mod tests {
             .collect();
         let f = fit(&a, &b, &[], Some(Side::Left)).unwrap();
         let l = &f.lungs[0];
+        eprintln!(
+            "1 mm noise per axis, {} points: mean {:.2} mm, max {:.2} mm, baseline {:.2} mm, c = {:?}",
+            l.points, l.residuals.mean_error_mm, l.residuals.max_error_mm, l.residuals.baseline_mean_mm, &l.constants[..6]
+        );
         // 1 mm per axis noise → mean |e| ≈ 1.6 mm (chi with 3 dof); the fit must not do worse.
         assert!(l.residuals.mean_error_mm < 1.8, "{:?}", l.residuals);
         assert!(l.residuals.baseline_mean_mm > 4.0);
