@@ -36,7 +36,6 @@
 
 use std::path::{Path, PathBuf};
 
-use glam::DVec3;
 use serde::{Deserialize, Serialize};
 use thiserror::Error;
 use xxhash_rust::xxh3::{xxh3_64, Xxh3};
@@ -671,11 +670,6 @@ impl KernelFile {
             vals: self.vals().to_vec(),
             stats: self.meta.transfer,
         }
-    }
-
-    /// Per-vertex displacement direction at position `p` (for checks).
-    pub fn direction_at(&self, i: usize) -> DVec3 {
-        DVec3::from(self.directions()[i].map(|v| v as f64))
     }
 }
 
