@@ -35,6 +35,10 @@ pub struct FitMotionArgs {
     /// Which lung, when the points are one lung (no mid-sagittal gap).
     #[arg(long, value_parser = ["left", "right"])]
     pub lung: Option<String>,
+    /// Treat two meshes as surfaces without vertex correspondence (automatic when their vertex
+    /// counts differ): the model is fitted so the moved reference lies on the target surface.
+    #[arg(long)]
+    pub surface: bool,
     /// Scene whose [lungs] elasticity and transfer_tolerance the force fit uses (mesh input).
     #[arg(long)]
     pub scene: Option<PathBuf>,
@@ -154,6 +158,156 @@ fn sub_mesh(
     Ok(sub)
 }
 
+fn import_scaled(path: &Path, spacing: Option<[f64; 3]>) -> anyhow::Result<engine::mesh::TriMesh> {
+    let mut m = engine::mesh::import::import(path, engine::mesh::import::Units::Mm)?.mesh;
+    if let Some(s) = spacing {
+        for p in &mut m.positions {
+            for k in 0..3 {
+                p[k] = (p[k] as f64 * s[k]) as f32;
+            }
+        }
+    }
+    Ok(m)
+}
+
+fn lung_parts(
+    mesh: &engine::mesh::TriMesh,
+    side: Option<Side>,
+    what: &Path,
+) -> anyhow::Result<Vec<(Side, engine::mesh::TriMesh)>> {
+    let pts: Vec<DVec3> = mesh
+        .positions
+        .iter()
+        .map(|p| DVec3::from(p.map(|v| v as f64)))
+        .collect();
+    motion_fit::split_lungs(&pts, side)?
+        .into_iter()
+        .map(|(s, idx)| {
+            let sub = sub_mesh(mesh, &idx, [1.0; 3]).with_context(|| {
+                format!(
+                    "{}: the {} lung's part of the mesh",
+                    what.display(),
+                    s.name()
+                )
+            })?;
+            Ok((s, sub))
+        })
+        .collect()
+}
+
+/// Surface mode: fit each lung of `a` to the matching lung of `b` (and of each `--also` mesh).
+fn run_surface(
+    args: &FitMotionArgs,
+    a: &engine::mesh::TriMesh,
+    b: &engine::mesh::TriMesh,
+    spacing: Option<[f64; 3]>,
+    side: Option<Side>,
+) -> anyhow::Result<MotionFit> {
+    use engine::surface_fit::{fit_surface, Target};
+    let scene = engine::scene::Scene::load_or_default(args.scene.as_deref())?;
+    let parts_a = lung_parts(a, side, &args.from)?;
+    let parts_b = lung_parts(b, side, &args.to)?;
+    let also = args
+        .also
+        .iter()
+        .map(|p| {
+            if !is_mesh(p) {
+                anyhow::bail!(
+                    "{}: with two meshes, --also must be meshes too",
+                    p.display()
+                );
+            }
+            lung_parts(&import_scaled(p, spacing)?, side, p).map(|parts| (p, parts))
+        })
+        .collect::<anyhow::Result<Vec<_>>>()?;
+    let find = |parts: &[(Side, engine::mesh::TriMesh)], s: Side, what: &Path| {
+        parts
+            .iter()
+            .find(|(x, _)| *x == s)
+            .map(|(_, m)| m.clone())
+            .ok_or_else(|| {
+                anyhow::anyhow!(
+                    "{}: has no {} lung, but {} has one",
+                    what.display(),
+                    s.name(),
+                    args.from.display()
+                )
+            })
+    };
+    let mut lungs = Vec::new();
+    for (s, ma) in &parts_a {
+        let tb = Target::new(
+            &find(&parts_b, *s, &args.to)?,
+            &args.to.display().to_string(),
+        )?;
+        let tc = also
+            .iter()
+            .map(|(p, parts)| {
+                Target::new(&find(parts, *s, p)?, &p.display().to_string()).map_err(Into::into)
+            })
+            .collect::<anyhow::Result<Vec<_>>>()?;
+        let f = fit_surface(
+            *s,
+            ma,
+            &tb,
+            &tc,
+            &scene.lungs.elasticity,
+            scene.lungs.transfer_tolerance,
+        )?;
+        lungs.push(motion_fit::LungFit {
+            lung: *s,
+            points: ma.positions.len(),
+            constants: f.constants,
+            residuals: f.residuals,
+            also: f.also,
+            force: None,
+            indices: Vec::new(),
+        });
+    }
+    let fit = MotionFit::from_lungs("surface", args.also.len(), lungs);
+    if let Some(out) = &args.out {
+        write_motion(
+            out,
+            &fit,
+            args,
+            "c1..c9 fitted to the target surface through the operator",
+        )?;
+    }
+    Ok(fit)
+}
+
+fn write_motion(
+    out: &Path,
+    fit: &MotionFit,
+    args: &FitMotionArgs,
+    how: &str,
+) -> anyhow::Result<()> {
+    let mut file = MotionFile {
+        format: 1,
+        left: None,
+        right: None,
+    };
+    for l in &fit.lungs {
+        match l.lung {
+            Side::Left => file.left = Some(l.motion()),
+            Side::Right => file.right = Some(l.motion()),
+        }
+    }
+    let text = format!(
+        "# lungdyn motion constants (fit-motion from {} to {}, {} mode); {how}.\n\
+         # Use: lungdyn bake --motion this.toml\n{}",
+        args.from.display(),
+        args.to.display(),
+        fit.mode,
+        toml::to_string(&file)?
+    );
+    engine::mesh::io::write_atomically(out, |w| {
+        use std::io::Write;
+        w.write_all(text.as_bytes())
+    })?;
+    Ok(())
+}
+
 /// Read, fit, optionally write.
 pub fn run(args: &FitMotionArgs) -> anyhow::Result<MotionFit> {
     let spacing = match args.spacing.as_slice() {
@@ -171,6 +325,15 @@ pub fn run(args: &FitMotionArgs) -> anyhow::Result<MotionFit> {
         .as_deref()
         .map(|s| s.parse().map_err(anyhow::Error::msg))
         .transpose()?;
+    if is_mesh(&args.from) && is_mesh(&args.to) {
+        let ma = import_scaled(&args.from, spacing)?;
+        let mb = import_scaled(&args.to, spacing)?;
+        if args.surface || ma.positions.len() != mb.positions.len() {
+            return run_surface(args, &ma, &mb, spacing, side);
+        }
+    } else if args.surface {
+        anyhow::bail!("--surface needs two meshes (.obj, .ply, .stl) for --from and --to");
+    }
     let a = read_points(&args.from, spacing)?;
     let b = read_points(&args.to, spacing)?;
     let also = args
@@ -206,33 +369,12 @@ pub fn run(args: &FitMotionArgs) -> anyhow::Result<MotionFit> {
         }
     }
     if let Some(out) = &args.out {
-        let mut file = MotionFile {
-            format: 1,
-            left: None,
-            right: None,
-        };
-        for l in &fit.lungs {
-            match l.lung {
-                Side::Left => file.left = Some(l.motion()),
-                Side::Right => file.right = Some(l.motion()),
-            }
-        }
-        let c789 = if fit.lungs.iter().all(|l| l.force.is_some()) {
-            "c7..c9 fitted through the operator from the two meshes"
+        let how = if fit.lungs.iter().all(|l| l.force.is_some()) {
+            "c1, c3, c5 in mm at the fitted phase; c7..c9 fitted through the operator from the two meshes"
         } else {
-            "c7..c9 are Table 6.1 (not fitted from points)"
+            "c1, c3, c5 in mm at the fitted phase; c7..c9 are Table 6.1 (not fitted from points)"
         };
-        let text = format!(
-            "# lungdyn motion constants (fit-motion from {} to {}); c1, c3, c5 in mm at the fitted phase,\n\
-             # {c789}. Use: lungdyn bake --motion this.toml\n{}",
-            args.from.display(),
-            args.to.display(),
-            toml::to_string(&file)?
-        );
-        engine::mesh::io::write_atomically(out, |w| {
-            use std::io::Write;
-            w.write_all(text.as_bytes())
-        })?;
+        write_motion(out, &fit, args, how)?;
     }
     Ok(fit)
 }
@@ -240,10 +382,18 @@ pub fn run(args: &FitMotionArgs) -> anyhow::Result<MotionFit> {
 /// Human-readable report.
 pub fn text(f: &MotionFit, args: &FitMotionArgs) -> String {
     let mut s = String::new();
+    if f.mode == "surface" {
+        s += "surface mode: errors are distances of the moved reference to the target surface\n";
+    }
     for l in &f.lungs {
         let c = &l.constants;
+        let force = if f.mode == "surface" || l.force.is_some() {
+            "fitted"
+        } else {
+            "Table 6.1"
+        };
         s += &format!(
-            "{} lung, {} points: c1 {:.4} c2 {:.3} c3 {:.4} c4 {:.3} c5 {:.4} c6 {:.3}\n  \
+            "{} lung, {} points: c1 {:.4} c2 {:.3} c3 {:.4} c4 {:.3} c5 {:.4} c6 {:.3}; c7 {:.3} c8 {:.3} c9 {:.3} ({force})\n  \
              error mean {:.2} mm, max {:.2} mm, rms {:.2} mm (no-motion baseline {:.2} mm)\n",
             l.lung.name(),
             l.points,
@@ -253,6 +403,9 @@ pub fn text(f: &MotionFit, args: &FitMotionArgs) -> String {
             c[3],
             c[4],
             c[5],
+            c[6],
+            c[7],
+            c[8],
             l.residuals.mean_error_mm,
             l.residuals.max_error_mm,
             l.residuals.rms_error_mm,

@@ -7,6 +7,7 @@
 //! * [`deform`] — per-vertex displacement (seed ch. 6, eq. 6.14–6.16, 6.18);
 //! * [`kernel`] — baking a lung (ch. 6 end to end) and the memory-mapped kernel file;
 //! * [`motion_fit`] — c1..c6 of eq. 6.14–6.16 from corresponding points (seed §6.4.2);
+//! * [`surface_fit`] — the same constants from a second-phase surface without correspondences;
 //! * [`runtime`] — the fixed-tick engine loop and its pure core;
 //! * [`scene`] — what a run models.
 //!
@@ -24,3 +25,4 @@ pub mod operator;
 pub mod pv;
 pub mod runtime;
 pub mod scene;
+pub mod surface_fit;

@@ -348,6 +348,9 @@ pub fn fit_lung(
 /// The whole fit: per lung and over all points.
 #[derive(Debug, Clone, PartialEq, serde::Serialize)]
 pub struct MotionFit {
+    /// "points" (corresponding points: residuals are point-to-point) or "surface" (a second-phase
+    /// surface without correspondences: residuals are distances to that surface).
+    pub mode: &'static str,
     /// Over all points at phase B.
     #[serde(flatten)]
     pub residuals: Residuals,
@@ -386,44 +389,53 @@ pub fn fit(
         check(name, set)?;
     }
     let mut lungs = Vec::new();
-    let mut pooled_b: Vec<(Residuals, usize)> = Vec::new();
     for (s, idx) in split_lungs(a, side)? {
         let pick = |set: &[DVec3]| idx.iter().map(|&i| set[i]).collect::<Vec<_>>();
         let extra: Vec<Vec<DVec3>> = also.iter().map(|(_, set)| pick(set)).collect();
         let mut f = fit_lung(s, &pick(a), &pick(b), &extra)?;
         f.indices = idx.clone();
-        pooled_b.push((f.residuals, f.points));
         lungs.push(f);
     }
-    let pool = |items: Vec<(Residuals, usize)>| {
-        let total: usize = items.iter().map(|x| x.1).sum::<usize>().max(1);
-        let mut r = Residuals::default();
-        let mut sq = 0.0;
-        for (x, n) in items {
-            let w = n as f64 / total as f64;
-            r.mean_error_mm += w * x.mean_error_mm;
-            r.baseline_mean_mm += w * x.baseline_mean_mm;
-            r.max_error_mm = r.max_error_mm.max(x.max_error_mm);
-            sq += w * x.rms_error_mm * x.rms_error_mm;
+    Ok(MotionFit::from_lungs("points", also.len(), lungs))
+}
+
+/// Point-weighted pooling of per-lung residuals.
+fn pool(items: Vec<(Residuals, usize)>) -> Residuals {
+    let total: usize = items.iter().map(|x| x.1).sum::<usize>().max(1);
+    let mut r = Residuals::default();
+    let mut sq = 0.0;
+    for (x, n) in items {
+        let w = n as f64 / total as f64;
+        r.mean_error_mm += w * x.mean_error_mm;
+        r.baseline_mean_mm += w * x.baseline_mean_mm;
+        r.max_error_mm = r.max_error_mm.max(x.max_error_mm);
+        sq += w * x.rms_error_mm * x.rms_error_mm;
+    }
+    r.rms_error_mm = sq.sqrt();
+    r
+}
+
+impl MotionFit {
+    /// Pool per-lung fits (each with `also` further phases).
+    pub fn from_lungs(mode: &'static str, also: usize, lungs: Vec<LungFit>) -> Self {
+        let residuals = pool(lungs.iter().map(|l| (l.residuals, l.points)).collect());
+        let also = (0..also)
+            .map(|k| {
+                pool(
+                    lungs
+                        .iter()
+                        .map(|l| (l.also[k].residuals, l.points))
+                        .collect(),
+                )
+            })
+            .collect();
+        Self {
+            mode,
+            residuals,
+            also,
+            lungs,
         }
-        r.rms_error_mm = sq.sqrt();
-        r
-    };
-    let also_pooled = (0..also.len())
-        .map(|k| {
-            pool(
-                lungs
-                    .iter()
-                    .map(|l| (l.also[k].residuals, l.points))
-                    .collect(),
-            )
-        })
-        .collect();
-    Ok(MotionFit {
-        residuals: pool(pooled_b),
-        also: also_pooled,
-        lungs,
-    })
+    }
 }
 
 /// The applied-force constants of a lung fitted through the operator (seed §6.4.2, eq. 6.5/6.18).
@@ -451,19 +463,8 @@ pub fn fit_force(
     elasticity: &crate::operator::Elasticity,
     tolerance: f64,
 ) -> Result<ForceFit, crate::kernel::BakeError> {
-    use crate::deform::{direction, normalised_position};
-    use crate::operator::{NodeGraph, Schedule, Transfer};
-    let bb = mesh.aabb();
-    let norm: Vec<DVec3> = mesh
-        .positions
-        .iter()
-        .map(|&p| normalised_position(p, &bb, side))
-        .collect();
-    let graph = NodeGraph::from_mesh(mesh, elasticity, |p| normalised_position(p, &bb, side))?;
-    let t = Transfer::compute(&graph, tolerance, Schedule::SpringsForward, &|_| {})?;
-    let g: Vec<Vec<f64>> = (0..3)
-        .map(|a| t.elastostatic(&norm.iter().map(|n| n[a]).collect::<Vec<_>>()))
-        .collect();
+    use crate::deform::direction;
+    let (norm, g, mean_row_nnz) = operator_responses(side, mesh, elasticity, tolerance)?;
     let k = MotionConstants { c: *c };
     let dirs: Vec<DVec3> = norm.iter().map(|&n| direction(n, &k, side)).collect();
     let m: Vec<f64> = delta.iter().zip(&dirs).map(|(d, u)| d.dot(*u)).collect();
@@ -487,8 +488,36 @@ pub fn fit_force(
     Ok(ForceFit {
         c789: [w[0] / norm_by, w[1] / norm_by, w[2] / norm_by],
         residuals: residuals(delta, &model),
-        mean_row_nnz: t.stats.mean_row_nnz,
+        mean_row_nnz,
     })
+}
+
+/// Responses of the operator to the three coordinate fields: `G_a = Tᵀ x̂_a` (a = x̂, ŷ, ẑ), so the
+/// elastostatic force of `f = c7·x̂ + c8·ŷ + c9·ẑ` is `c7·G_x + c8·G_y + c9·G_z` (eq. 6.1 is linear).
+/// Also returns the normalised positions and the mean non-zeros per transfer row.
+pub(crate) type Responses = (Vec<DVec3>, Vec<Vec<f64>>, f64);
+
+pub(crate) fn operator_responses(
+    side: Side,
+    mesh: &crate::mesh::TriMesh,
+    elasticity: &crate::operator::Elasticity,
+    tolerance: f64,
+) -> Result<Responses, crate::kernel::BakeError> {
+    use crate::deform::normalised_position;
+    use crate::operator::{NodeGraph, Schedule, Transfer};
+    crate::mesh::check(mesh)?;
+    let bb = mesh.aabb();
+    let norm: Vec<DVec3> = mesh
+        .positions
+        .iter()
+        .map(|&p| normalised_position(p, &bb, side))
+        .collect();
+    let graph = NodeGraph::from_mesh(mesh, elasticity, |p| normalised_position(p, &bb, side))?;
+    let t = Transfer::compute(&graph, tolerance, Schedule::SpringsForward, &|_| {})?;
+    let g: Vec<Vec<f64>> = (0..3)
+        .map(|a| t.elastostatic(&norm.iter().map(|n| n[a]).collect::<Vec<_>>()))
+        .collect();
+    Ok((norm, g, t.stats.mean_row_nnz))
 }
 
 #[cfg(test)]

@@ -537,3 +537,122 @@ fn two_meshes_also_give_the_force_constants_through_the_operator() {
         .unwrap()
         .contains("fitted through the operator"));
 }
+
+#[test]
+fn a_second_phase_surface_without_correspondences_is_fitted() {
+    // The reference is a coarse segmentation, the targets a finer one moved by a kernel with known
+    // constants (+300 ml, +450 ml): different vertices, so surface mode is chosen by itself.
+    let d = workdir("surface");
+    let fine = d.join("fine.ply");
+    run_ok(&[
+        "mesh",
+        "generate",
+        "--lung",
+        "right",
+        "--vertices",
+        "6000",
+        "--out",
+        s(&fine),
+    ]);
+    let m = d.join("m.toml");
+    std::fs::write(
+        &m,
+        "format = 1\n[right]\nc = [0.12, 0.3, 0.4, 0.6, 0.15, 1.8, 0.1, 0.8, 0.1]\n",
+    )
+    .unwrap();
+    let k = d.join("fine.kernel");
+    run_ok(&[
+        "bake",
+        "--mesh",
+        s(&fine),
+        "--lung",
+        "right",
+        "--motion",
+        s(&m),
+        "--out",
+        s(&k),
+    ]);
+    let (b, c) = (d.join("b.ply"), d.join("c.obj"));
+    run_ok(&[
+        "kernel",
+        "export",
+        s(&k),
+        "--delta-ml",
+        "300",
+        "--out",
+        s(&b),
+    ]);
+    run_ok(&[
+        "kernel",
+        "export",
+        s(&k),
+        "--delta-ml",
+        "450",
+        "--out",
+        s(&c),
+    ]);
+    let a = d.join("a.obj");
+    run_ok(&[
+        "mesh",
+        "generate",
+        "--lung",
+        "right",
+        "--vertices",
+        "1500",
+        "--out",
+        s(&a),
+    ]);
+    let out = d.join("fitted.toml");
+    let f = json(&run_ok(&[
+        "fit-motion",
+        "--from",
+        s(&a),
+        "--to",
+        s(&b),
+        "--also",
+        s(&c),
+        "--lung",
+        "right",
+        "--out",
+        s(&out),
+        "--json",
+    ]));
+    assert_eq!(f["mode"], "surface");
+    let base = f["baseline_mean_mm"].as_f64().unwrap();
+    assert!(base > 3.0, "{f}");
+    assert!(f["mean_error_mm"].as_f64().unwrap() < 0.1 * base, "{f}");
+    let also = &f["lungs"][0]["also"][0];
+    assert!(
+        also["mean_error_mm"].as_f64().unwrap() < 0.1 * also["baseline_mean_mm"].as_f64().unwrap(),
+        "{f}"
+    );
+    assert!((also["scale"].as_f64().unwrap() - 1.5).abs() < 0.1, "{f}");
+    // A surface distance does not see motion along the surface, so the constants are not unique
+    // (EQUATIONS §2.4); what is checked is that they reproduce the surfaces, and that they bake.
+    let ka = d.join("a.kernel");
+    run_ok(&[
+        "bake",
+        "--mesh",
+        s(&a),
+        "--lung",
+        "right",
+        "--motion",
+        s(&out),
+        "--out",
+        s(&ka),
+    ]);
+    assert!(std::fs::read_to_string(&out)
+        .unwrap()
+        .contains("surface mode"));
+    run_err(
+        &[
+            "fit-motion",
+            "--from",
+            s(&d.join("x.txt")),
+            "--to",
+            s(&b),
+            "--surface",
+        ],
+        "two meshes",
+    );
+}
