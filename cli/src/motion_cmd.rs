@@ -174,7 +174,7 @@ fn lung_parts(
     mesh: &engine::mesh::TriMesh,
     side: Option<Side>,
     what: &Path,
-) -> anyhow::Result<Vec<(Side, engine::mesh::TriMesh)>> {
+) -> anyhow::Result<Vec<(Side, Vec<usize>, engine::mesh::TriMesh)>> {
     let pts: Vec<DVec3> = mesh
         .positions
         .iter()
@@ -190,7 +190,7 @@ fn lung_parts(
                     s.name()
                 )
             })?;
-            Ok((s, sub))
+            Ok((s, idx, sub))
         })
         .collect()
 }
@@ -202,8 +202,9 @@ fn run_surface(
     b: &engine::mesh::TriMesh,
     spacing: Option<[f64; 3]>,
     side: Option<Side>,
+    corresponding: bool,
 ) -> anyhow::Result<MotionFit> {
-    use engine::surface_fit::{fit_surface, Target};
+    use engine::surface_fit::{fit_surface, Goal, Target};
     let scene = engine::scene::Scene::load_or_default(args.scene.as_deref())?;
     let parts_a = lung_parts(a, side, &args.from)?;
     let parts_b = lung_parts(b, side, &args.to)?;
@@ -217,14 +218,23 @@ fn run_surface(
                     p.display()
                 );
             }
-            lung_parts(&import_scaled(p, spacing)?, side, p).map(|parts| (p, parts))
+            let m = import_scaled(p, spacing)?;
+            if corresponding && (m.positions.len() != a.positions.len() || m.triangles != a.triangles) {
+                anyhow::bail!(
+                    "{}: its vertices do not match {} (pass --surface to fit all phases as surfaces)",
+                    p.display(),
+                    args.from.display()
+                );
+            }
+            let parts = lung_parts(&m, side, p)?;
+            Ok((p, m, parts))
         })
         .collect::<anyhow::Result<Vec<_>>>()?;
-    let find = |parts: &[(Side, engine::mesh::TriMesh)], s: Side, what: &Path| {
+    let find = |parts: &[(Side, Vec<usize>, engine::mesh::TriMesh)], s: Side, what: &Path| {
         parts
             .iter()
-            .find(|(x, _)| *x == s)
-            .map(|(_, m)| m.clone())
+            .find(|(x, _, _)| *x == s)
+            .map(|(_, _, m)| m.clone())
             .ok_or_else(|| {
                 anyhow::anyhow!(
                     "{}: has no {} lung, but {} has one",
@@ -235,42 +245,75 @@ fn run_surface(
             })
     };
     let mut lungs = Vec::new();
-    for (s, ma) in &parts_a {
-        let tb = Target::new(
-            &find(&parts_b, *s, &args.to)?,
-            &args.to.display().to_string(),
-        )?;
-        let tc = also
-            .iter()
-            .map(|(p, parts)| {
-                Target::new(&find(parts, *s, p)?, &p.display().to_string()).map_err(Into::into)
-            })
-            .collect::<anyhow::Result<Vec<_>>>()?;
-        let f = fit_surface(
-            *s,
-            ma,
-            &tb,
-            &tc,
-            &scene.lungs.elasticity,
-            scene.lungs.transfer_tolerance,
-        )?;
+    for (s, idx, ma) in &parts_a {
+        // Corresponding meshes are cut with the reference's own vertex sets, so indices still match.
+        let (mb, mc) = if corresponding {
+            (
+                sub_mesh(b, idx, [1.0; 3])?,
+                also.iter()
+                    .map(|(_, m, _)| sub_mesh(m, idx, [1.0; 3]))
+                    .collect::<anyhow::Result<Vec<_>>>()?,
+            )
+        } else {
+            (
+                find(&parts_b, *s, &args.to)?,
+                also.iter()
+                    .map(|(p, _, parts)| find(parts, *s, p))
+                    .collect::<anyhow::Result<Vec<_>>>()?,
+            )
+        };
+        let f = if corresponding {
+            // Same vertices and triangles at every phase: point-to-point goals.
+            let pts = |m: &engine::mesh::TriMesh| -> Vec<DVec3> {
+                m.positions
+                    .iter()
+                    .map(|p| DVec3::from(p.map(|v| v as f64)))
+                    .collect()
+            };
+            let (pb, pc): (Vec<DVec3>, Vec<Vec<DVec3>>) = (pts(&mb), mc.iter().map(pts).collect());
+            let goals: Vec<Goal> = pc.iter().map(|p| Goal::Points(p)).collect();
+            fit_surface(
+                *s,
+                ma,
+                Goal::Points(&pb),
+                &goals,
+                &scene.lungs.elasticity,
+                scene.lungs.transfer_tolerance,
+            )?
+        } else {
+            let tb = Target::new(&mb, &args.to.display().to_string())?;
+            let tc = also
+                .iter()
+                .zip(&mc)
+                .map(|((p, _, _), m)| Target::new(m, &p.display().to_string()).map_err(Into::into))
+                .collect::<anyhow::Result<Vec<_>>>()?;
+            let goals: Vec<Goal> = tc.iter().map(Goal::Surface).collect();
+            fit_surface(
+                *s,
+                ma,
+                Goal::Surface(&tb),
+                &goals,
+                &scene.lungs.elasticity,
+                scene.lungs.transfer_tolerance,
+            )?
+        };
         lungs.push(motion_fit::LungFit {
             lung: *s,
             points: ma.positions.len(),
             constants: f.constants,
             residuals: f.residuals,
             also: f.also,
-            force: None,
             indices: Vec::new(),
         });
     }
-    let fit = MotionFit::from_lungs("surface", args.also.len(), lungs);
+    let mode = if corresponding { "mesh" } else { "surface" };
+    let fit = MotionFit::from_lungs(mode, args.also.len(), lungs);
     if let Some(out) = &args.out {
         write_motion(
             out,
             &fit,
             args,
-            "c1..c9 fitted to the target surface through the operator",
+            "c1..c9 of the kernel's model, fitted through the operator",
         )?;
     }
     Ok(fit)
@@ -328,9 +371,16 @@ pub fn run(args: &FitMotionArgs) -> anyhow::Result<MotionFit> {
     if is_mesh(&args.from) && is_mesh(&args.to) {
         let ma = import_scaled(&args.from, spacing)?;
         let mb = import_scaled(&args.to, spacing)?;
-        if args.surface || ma.positions.len() != mb.positions.len() {
-            return run_surface(args, &ma, &mb, spacing, side);
-        }
+        let same_vertices =
+            ma.positions.len() == mb.positions.len() && ma.triangles == mb.triangles;
+        return run_surface(
+            args,
+            &ma,
+            &mb,
+            spacing,
+            side,
+            same_vertices && !args.surface,
+        );
     } else if args.surface {
         anyhow::bail!("--surface needs two meshes (.obj, .ply, .stl) for --from and --to");
     }
@@ -341,40 +391,14 @@ pub fn run(args: &FitMotionArgs) -> anyhow::Result<MotionFit> {
         .iter()
         .map(|p| Ok((p.display().to_string(), read_points(p, spacing)?)))
         .collect::<anyhow::Result<Vec<_>>>()?;
-    let mut fit = motion_fit::fit(&a, &b, &also, side)?;
-    // Two meshes: the force constants c7..c9 through the operator, as the seed does (§6.4.2).
-    if is_mesh(&args.from) && is_mesh(&args.to) {
-        let scene = engine::scene::Scene::load_or_default(args.scene.as_deref())?;
-        let mesh = engine::mesh::import::import(&args.from, engine::mesh::import::Units::Mm)?.mesh;
-        let scale = spacing.unwrap_or([1.0; 3]);
-        for l in &mut fit.lungs {
-            let sub = sub_mesh(&mesh, &l.indices, scale).with_context(|| {
-                format!(
-                    "{}: the {} lung's part of the mesh",
-                    args.from.display(),
-                    l.lung.name()
-                )
-            })?;
-            let delta: Vec<DVec3> = l.indices.iter().map(|&i| b[i] - a[i]).collect();
-            let f = motion_fit::fit_force(
-                l.lung,
-                &sub,
-                &delta,
-                &l.constants,
-                &scene.lungs.elasticity,
-                scene.lungs.transfer_tolerance,
-            )?;
-            l.constants[6..9].copy_from_slice(&f.c789);
-            l.force = Some(f);
-        }
-    }
+    let fit = motion_fit::fit(&a, &b, &also, side)?;
     if let Some(out) = &args.out {
-        let how = if fit.lungs.iter().all(|l| l.force.is_some()) {
-            "c1, c3, c5 in mm at the fitted phase; c7..c9 fitted through the operator from the two meshes"
-        } else {
-            "c1, c3, c5 in mm at the fitted phase; c7..c9 are Table 6.1 (not fitted from points)"
-        };
-        write_motion(out, &fit, args, how)?;
+        write_motion(
+            out,
+            &fit,
+            args,
+            "c1, c3, c5 in mm at the fitted phase; c7..c9 are Table 6.1 (not fitted from points)",
+        )?;
     }
     Ok(fit)
 }
@@ -382,12 +406,14 @@ pub fn run(args: &FitMotionArgs) -> anyhow::Result<MotionFit> {
 /// Human-readable report.
 pub fn text(f: &MotionFit, args: &FitMotionArgs) -> String {
     let mut s = String::new();
-    if f.mode == "surface" {
-        s += "surface mode: errors are distances of the moved reference to the target surface\n";
+    match f.mode {
+        "surface" => s += "surface mode: errors are distances of the moved reference to the target surface\n",
+        "mesh" => s += "mesh mode: the kernel's model fitted through the operator; errors are point to point\n",
+        _ => {}
     }
     for l in &f.lungs {
         let c = &l.constants;
-        let force = if f.mode == "surface" || l.force.is_some() {
+        let force = if f.mode != "points" {
             "fitted"
         } else {
             "Table 6.1"
@@ -411,12 +437,6 @@ pub fn text(f: &MotionFit, args: &FitMotionArgs) -> String {
             l.residuals.rms_error_mm,
             l.residuals.baseline_mean_mm
         );
-        if let Some(f) = &l.force {
-            s += &format!(
-                "  through the operator ({:.0} non-zeros per row): c7 {:.3} c8 {:.3} c9 {:.3}; kernel model error mean {:.2} mm, max {:.2} mm\n",
-                f.mean_row_nnz, f.c789[0], f.c789[1], f.c789[2], f.residuals.mean_error_mm, f.residuals.max_error_mm
-            );
-        }
         for (p, path) in l.also.iter().zip(&args.also) {
             s += &format!(
                 "  {}: scale {:.3}, error mean {:.2} mm, max {:.2} mm (baseline {:.2} mm)\n",

@@ -224,16 +224,14 @@ pub struct LungFit {
     pub lung: Side,
     /// Points of this lung.
     pub points: usize,
-    /// `c1..c9` (c1, c3, c5 in mm at phase B; c7..c9 Table 6.1, not fitted from points).
+    /// `c1..c9` (points mode: c1, c3, c5 in mm at phase B and c7..c9 Table 6.1; mesh and surface
+    /// modes: the kernel's constants, c7..c9 fitted through the operator).
     pub constants: [f64; 9],
     /// Residuals at phase B.
     #[serde(flatten)]
     pub residuals: Residuals,
     /// Further phases, in the order given.
     pub also: Vec<PhaseFit>,
-    /// `c7..c9` fitted through the operator (mesh input only; see [`fit_force`]).
-    #[serde(skip_serializing_if = "Option::is_none")]
-    pub force: Option<ForceFit>,
     /// Indices of this lung's points in the input sets.
     #[serde(skip)]
     pub indices: Vec<usize>,
@@ -340,7 +338,6 @@ pub fn fit_lung(
         constants,
         residuals: residuals_b,
         also,
-        force: None,
         indices: Vec::new(),
     })
 }
@@ -348,8 +345,9 @@ pub fn fit_lung(
 /// The whole fit: per lung and over all points.
 #[derive(Debug, Clone, PartialEq, serde::Serialize)]
 pub struct MotionFit {
-    /// "points" (corresponding points: residuals are point-to-point) or "surface" (a second-phase
-    /// surface without correspondences: residuals are distances to that surface).
+    /// "points" (corresponding points, the point-wise power law), "mesh" (two meshes with the same
+    /// vertices, the kernel's model through the operator, point-to-point residuals) or "surface" (a
+    /// second-phase surface without correspondences: residuals are distances to that surface).
     pub mode: &'static str,
     /// Over all points at phase B.
     #[serde(flatten)]
@@ -436,60 +434,6 @@ impl MotionFit {
             lungs,
         }
     }
-}
-
-/// The applied-force constants of a lung fitted through the operator (seed §6.4.2, eq. 6.5/6.18).
-#[derive(Debug, Clone, PartialEq, serde::Serialize)]
-pub struct ForceFit {
-    /// `c7, c8, c9`, normalised so they sum to 1 (the force's range is then [0, 1]).
-    pub c789: [f64; 3],
-    /// Residuals of the kernel's own model at phase B: `δ ≈ F_i·d_i` with `F = Tᵀf` and the unit
-    /// directions of the fitted `c1..c6`.
-    #[serde(flatten)]
-    pub residuals: Residuals,
-    /// Mean non-zeros per transfer row of the operator used.
-    pub mean_row_nnz: f64,
-}
-
-/// Fit `c7..c9` for one lung from its reference mesh `mesh` (phase A) and the displacement of each
-/// vertex to phase B, given the direction constants `c` (`c1..c6` used): the elastostatic force is
-/// linear in the applied force, so `F = c7·Tᵀx̂ + c8·Tᵀŷ + c9·Tᵀẑ` and the displacement along each
-/// node's direction is fitted by linear least squares over the three responses.
-pub fn fit_force(
-    side: Side,
-    mesh: &crate::mesh::TriMesh,
-    delta: &[DVec3],
-    c: &[f64; 9],
-    elasticity: &crate::operator::Elasticity,
-    tolerance: f64,
-) -> Result<ForceFit, crate::kernel::BakeError> {
-    use crate::deform::direction;
-    let (norm, g, mean_row_nnz) = operator_responses(side, mesh, elasticity, tolerance)?;
-    let k = MotionConstants { c: *c };
-    let dirs: Vec<DVec3> = norm.iter().map(|&n| direction(n, &k, side)).collect();
-    let m: Vec<f64> = delta.iter().zip(&dirs).map(|(d, u)| d.dot(*u)).collect();
-    // Normal equations of the 3-parameter least squares.
-    let mut ata = nalgebra::Matrix3::<f64>::zeros();
-    let mut atb = nalgebra::Vector3::<f64>::zeros();
-    for i in 0..m.len() {
-        let row = nalgebra::Vector3::new(g[0][i], g[1][i], g[2][i]);
-        ata += row * row.transpose();
-        atb += row * m[i];
-    }
-    let w = ata
-        .svd(true, true)
-        .solve(&atb, 1e-12 * ata.norm())
-        .unwrap_or_else(|_| nalgebra::Vector3::zeros());
-    let model: Vec<DVec3> = (0..m.len())
-        .map(|i| dirs[i] * (w[0] * g[0][i] + w[1] * g[1][i] + w[2] * g[2][i]))
-        .collect();
-    let sum = w[0] + w[1] + w[2];
-    let norm_by = if sum.abs() > 1e-300 { sum } else { 1.0 };
-    Ok(ForceFit {
-        c789: [w[0] / norm_by, w[1] / norm_by, w[2] / norm_by],
-        residuals: residuals(delta, &model),
-        mean_row_nnz,
-    })
 }
 
 /// Responses of the operator to the three coordinate fields: `G_a = Tᵀ x̂_a` (a = x̂, ŷ, ẑ), so the
@@ -660,39 +604,6 @@ mod tests {
             fit(&a[..5], &a[..5], &[], Some(Side::Left)),
             Err(MotionFitError::TooFew { .. })
         ));
-    }
-
-    #[test]
-    fn the_force_constants_come_back_through_the_operator() {
-        // Phase B made by the kernel's own model with known c7..c9: the fit recovers them.
-        use crate::kernel::{bake, BakeSettings};
-        let side = Side::Left;
-        let mesh = generate::lung(side, 1500).unwrap();
-        let mut settings = BakeSettings::default_for(side);
-        settings.motion.c[6..9].copy_from_slice(&[0.2, 0.5, 0.3]);
-        let k = bake(side, mesh.clone(), &settings, &|_| {}).unwrap();
-        let delta: Vec<DVec3> = k
-            .unit_displacement
-            .iter()
-            .map(|u| 40.0 * DVec3::from(u.map(|v| v as f64)))
-            .collect();
-        let f = fit_force(
-            side,
-            &mesh,
-            &delta,
-            &settings.motion.c,
-            &settings.elasticity,
-            settings.tolerance,
-        )
-        .unwrap();
-        for (got, want) in f.c789.iter().zip([0.2, 0.5, 0.3]) {
-            assert!((got - want).abs() < 1e-4, "{:?}", f.c789);
-        }
-        assert!(
-            f.residuals.max_error_mm < 1e-3 * f.residuals.baseline_mean_mm.max(1.0),
-            "{:?}",
-            f.residuals
-        );
     }
 
     #[test]

@@ -87,6 +87,47 @@ impl Target {
     }
 }
 
+/// What the moved reference must reach at a phase.
+#[derive(Clone, Copy)]
+pub enum Goal<'a> {
+    /// A surface without correspondences: residuals are signed distances to it.
+    Surface(&'a Target),
+    /// The reference's own vertices at that phase (two meshes with the same vertex order):
+    /// residuals are the three coordinate differences.
+    Points(&'a [DVec3]),
+}
+
+impl Goal<'_> {
+    fn push_residuals(&self, i: usize, x: DVec3, out: &mut Vec<f64>) {
+        match self {
+            Goal::Surface(t) => out.push(t.signed_distance(x)),
+            Goal::Points(b) => {
+                let d = x - b[i];
+                out.extend([d.x, d.y, d.z]);
+            }
+        }
+    }
+
+    /// Error of `x` standing for reference vertex `i`, mm.
+    fn error(&self, i: usize, x: DVec3) -> f64 {
+        match self {
+            Goal::Surface(t) => t.signed_distance(x).abs(),
+            Goal::Points(b) => (x - b[i]).length(),
+        }
+    }
+
+    /// Enclosed volume at this phase, ml (`a` gives the triangles for point goals).
+    fn volume_ml(&self, a: &TriMesh) -> f64 {
+        match self {
+            Goal::Surface(t) => t.mesh_volume_ml(),
+            Goal::Points(b) => {
+                crate::mesh::enclosed_volume_with(&a.triangles, |i| b[i as usize].to_array())
+                    / 1000.0
+            }
+        }
+    }
+}
+
 /// Result of a surface fit for one lung.
 #[derive(Debug, Clone, PartialEq, serde::Serialize)]
 pub struct SurfaceFit {
@@ -143,7 +184,7 @@ impl Model<'_> {
 
 struct Problem<'a> {
     model: Model<'a>,
-    target: &'a Target,
+    target: Goal<'a>,
     sample: Vec<usize>,
     p: DVector<f64>,
 }
@@ -151,12 +192,12 @@ struct Problem<'a> {
 impl Problem<'_> {
     fn residuals_at(&self, p: &DVector<f64>) -> DVector<f64> {
         let (c, w) = self.model.constants(p);
-        DVector::from_iterator(
-            self.sample.len(),
-            self.sample
-                .iter()
-                .map(|&i| self.target.signed_distance(self.model.moved(i, &c, &w))),
-        )
+        let mut out = Vec::with_capacity(self.sample.len() * 3);
+        for &i in &self.sample {
+            self.target
+                .push_residuals(i, self.model.moved(i, &c, &w), &mut out);
+        }
+        DVector::from_vec(out)
     }
 }
 
@@ -180,7 +221,8 @@ impl LeastSquaresProblem<f64, Dyn, Dyn> for Problem<'_> {
     fn jacobian(&self) -> Option<DMatrix<f64>> {
         // Central differences; steps of 1e-4 relative stay above the f32 distance queries' noise.
         let base = &self.p;
-        let mut j = DMatrix::zeros(self.sample.len(), base.len());
+        let rows = self.residuals_at(base).len();
+        let mut j = DMatrix::zeros(rows, base.len());
         for k in 0..base.len() {
             let h = 1e-4 * base[k].abs().max(1e-2);
             let mut up = base.clone();
@@ -211,12 +253,13 @@ fn distance_residuals(dist: impl Iterator<Item = f64>, baseline: f64) -> Residua
     }
 }
 
-/// Fit one lung: reference surface `a` (phase A), target `b`, further phases `also`.
+/// Fit one lung: reference surface `a` (phase A), goal `b` at the fitted phase, further phases
+/// `also`.
 pub fn fit_surface(
     side: Side,
     a: &TriMesh,
-    b: &Target,
-    also: &[Target],
+    b: Goal,
+    also: &[Goal],
     elasticity: &Elasticity,
     tolerance: f64,
 ) -> Result<SurfaceFit, SurfaceFitError> {
@@ -241,7 +284,7 @@ pub fn fit_surface(
     let (unit, _, force_scale) =
         crate::deform::LungModel::from_force(side, a.clone(), &MotionConstants { c: table }, &f)
             .map_err(crate::kernel::BakeError::from)?;
-    let dv_ml = b.mesh_volume_ml() - unit.start_volume_ml;
+    let dv_ml = b.volume_ml(a) - unit.start_volume_ml;
     let s0 = unit.scale_for_delta(dv_ml) * force_scale;
     let start = DVector::from_vec(vec![
         table[0],
@@ -267,9 +310,9 @@ pub fn fit_surface(
         .minimize(problem);
     let (mut c, w) = problem.model.constants(&problem.p);
     let model = problem.model;
-    let baseline = pts.iter().map(|&p| b.signed_distance(p).abs()).sum::<f64>() / pts.len() as f64;
+    let baseline = (0..pts.len()).map(|i| b.error(i, pts[i])).sum::<f64>() / pts.len() as f64;
     let residuals = distance_residuals(
-        (0..pts.len()).map(|i| b.signed_distance(model.moved(i, &c, &w))),
+        (0..pts.len()).map(|i| b.error(i, model.moved(i, &c, &w))),
         baseline,
     );
     // Further phases: one scale k on the whole displacement, by golden section on the mean squared
@@ -281,7 +324,7 @@ pub fn fit_surface(
                 let wk = [w[0] * k, w[1] * k, w[2] * k];
                 (0..pts.len())
                     .step_by(stride)
-                    .map(|i| t.signed_distance(model.moved(i, &c, &wk)).powi(2))
+                    .map(|i| t.error(i, model.moved(i, &c, &wk)).powi(2))
                     .sum::<f64>()
             };
             let (mut lo, mut hi) = (0.0, 4.0);
@@ -296,12 +339,11 @@ pub fn fit_surface(
             }
             let k = 0.5 * (lo + hi);
             let wk = [w[0] * k, w[1] * k, w[2] * k];
-            let base =
-                pts.iter().map(|&p| t.signed_distance(p).abs()).sum::<f64>() / pts.len() as f64;
+            let base = (0..pts.len()).map(|i| t.error(i, pts[i])).sum::<f64>() / pts.len() as f64;
             PhaseFit {
                 scale: k,
                 residuals: distance_residuals(
-                    (0..pts.len()).map(|i| t.signed_distance(model.moved(i, &c, &wk))),
+                    (0..pts.len()).map(|i| t.error(i, model.moved(i, &c, &wk))),
                     base,
                 ),
             }
@@ -364,7 +406,15 @@ mod tests {
         };
         let b = Target::new(&moved(300.0), "B").unwrap();
         let c = Target::new(&moved(450.0), "C").unwrap();
-        let f = fit_surface(side, &a, &b, &[c], &settings.elasticity, settings.tolerance).unwrap();
+        let f = fit_surface(
+            side,
+            &a,
+            Goal::Surface(&b),
+            &[Goal::Surface(&c)],
+            &settings.elasticity,
+            settings.tolerance,
+        )
+        .unwrap();
         assert!(f.residuals.baseline_mean_mm > 5.0);
         for (k, want) in settings.motion.c.iter().enumerate() {
             assert!(
@@ -381,6 +431,41 @@ mod tests {
         );
         assert!((f.also[0].scale - 1.5).abs() < 0.1, "{:?}", f.also);
         assert!(f.also[0].residuals.mean_error_mm < 0.1 * f.also[0].residuals.baseline_mean_mm);
+    }
+
+    #[test]
+    fn the_same_vertices_at_the_other_phase_give_every_constant_back() {
+        let side = Side::Right;
+        let a = generate::lung(side, 1200).unwrap();
+        let mut settings = BakeSettings::default_for(side);
+        settings.motion.c = [0.2, 0.4, 0.39, 0.5, 0.1, 2.5, 0.2, 0.5, 0.3];
+        let k = bake(side, a.clone(), &settings, &|_| {}).unwrap();
+        let b: Vec<DVec3> = a
+            .positions
+            .iter()
+            .zip(&k.unit_displacement)
+            .map(|(p, u)| {
+                DVec3::from(p.map(|v| v as f64)) + 150.0 * DVec3::from(u.map(|v| v as f64))
+            })
+            .collect();
+        let f = fit_surface(
+            side,
+            &a,
+            Goal::Points(&b),
+            &[],
+            &settings.elasticity,
+            settings.tolerance,
+        )
+        .unwrap();
+        for (k, want) in settings.motion.c.iter().enumerate() {
+            assert!(
+                (f.constants[k] - want).abs() < 1e-3,
+                "c{} = {}",
+                k + 1,
+                f.constants[k]
+            );
+        }
+        assert!(f.residuals.max_error_mm < 1e-3, "{:?}", f.residuals);
     }
 
     #[test]

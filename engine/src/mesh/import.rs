@@ -156,7 +156,51 @@ fn read_obj(bytes: &[u8]) -> Result<Raw, String> {
             triangles.push([t[0] + base, t[1] + base, t[2] + base]);
         }
     }
+    // tobj numbers vertices in the order faces first use them; restore the file's `v` order, which
+    // is what ties two phases of one lung together (fit-motion's correspondences).
+    if let Some(perm) = obj_file_order(bytes, &positions) {
+        let mut ordered = vec![[0.0f32; 3]; positions.len()];
+        for (t, &n) in perm.iter().enumerate() {
+            ordered[n as usize] = positions[t];
+        }
+        positions = ordered;
+        for t in &mut triangles {
+            *t = t.map(|v| perm[v as usize]);
+        }
+    }
     Ok((positions, triangles))
+}
+
+/// For each vertex tobj returned, its rank among the file's `v` lines, matched by the exact parsed
+/// coordinates; `None` when the match is not one-to-one (duplicate coordinates), in which case
+/// tobj's order is kept.
+fn obj_file_order(bytes: &[u8], positions: &[[f32; 3]]) -> Option<Vec<u32>> {
+    let key = |p: &[f32; 3]| p.map(f32::to_bits);
+    let mut by_key: HashMap<[u32; 3], u32> = HashMap::with_capacity(positions.len());
+    for (i, p) in positions.iter().enumerate() {
+        if by_key.insert(key(p), i as u32).is_some() {
+            return None;
+        }
+    }
+    let text = std::str::from_utf8(bytes).ok()?;
+    let mut perm = vec![u32::MAX; positions.len()];
+    let mut next = 0u32;
+    for line in text.lines() {
+        let Some(rest) = line.strip_prefix("v ").or_else(|| line.strip_prefix("v\t")) else {
+            continue;
+        };
+        let mut f = rest.split_whitespace().map(|v| v.parse::<f32>());
+        let (Some(Ok(x)), Some(Ok(y)), Some(Ok(z))) = (f.next(), f.next(), f.next()) else {
+            return None;
+        };
+        if let Some(&t) = by_key.get(&key(&[x, y, z])) {
+            if perm[t as usize] == u32::MAX {
+                perm[t as usize] = next;
+                next += 1;
+            }
+        }
+    }
+    (next as usize == positions.len()).then_some(perm)
 }
 
 /// Element counts a PLY header claims, checked against the file size before anything is allocated.
@@ -329,19 +373,25 @@ pub fn repair(
         }
         kept.push(t);
     }
-    // Compact: drop unused vertices.
+    // Compact: drop unused vertices, keeping the file's vertex order (two phases of a lung
+    // correspond by it).
+    let mut used = vec![false; positions.len()];
+    for t in &kept {
+        for &i in t {
+            used[i as usize] = true;
+        }
+    }
     let mut new_index = vec![u32::MAX; positions.len()];
     let mut out_positions = Vec::new();
     let s = units.to_mm();
-    for t in &mut kept {
-        for i in t.iter_mut() {
-            if new_index[*i as usize] == u32::MAX {
-                new_index[*i as usize] = out_positions.len() as u32;
-                let p = positions[*i as usize];
-                out_positions.push([p[0] * s, p[1] * s, p[2] * s]);
-            }
-            *i = new_index[*i as usize];
+    for (i, p) in positions.iter().enumerate() {
+        if used[i] {
+            new_index[i] = out_positions.len() as u32;
+            out_positions.push([p[0] * s, p[1] * s, p[2] * s]);
         }
+    }
+    for t in &mut kept {
+        *t = t.map(|i| new_index[i as usize]);
     }
     repairs.unused_vertices = positions.len() - repairs.welded_vertices - out_positions.len();
     let mut mesh = TriMesh {
@@ -384,7 +434,30 @@ mod tests {
             assert_eq!(back.mesh.triangles.len(), mesh.triangles.len());
             assert_eq!(back.repairs, Repairs::default(), "{name}");
             assert!((back.mesh.enclosed_volume_ml() - 1100.0).abs() < 0.01);
+            // The file's vertex order survives (two phases of a lung correspond by it).
+            let first = back
+                .mesh
+                .positions
+                .iter()
+                .zip(&mesh.positions)
+                .position(|(a, b)| a != b);
+            assert!(first.is_none(), "{name}: vertex order changed at {first:?}");
+            assert!(
+                back.mesh.triangles == mesh.triangles,
+                "{name}: triangles changed"
+            );
         }
+        // A face order that first uses the last vertex still keeps the file order.
+        let p = tmp("reordered.obj");
+        std::fs::write(
+            &p,
+            "v 0 0 0\nv 1 0 0\nv 0 1 0\nv 0 0 1\nf 4 2 3\nf 1 3 2\nf 1 2 4\nf 1 4 3\n",
+        )
+        .unwrap();
+        let back = import(&p, Units::Mm).unwrap();
+        assert_eq!(back.mesh.positions[0], [0.0, 0.0, 0.0]);
+        assert_eq!(back.mesh.positions[3], [0.0, 0.0, 1.0]);
+        assert_eq!(back.mesh.triangles[0], [3, 1, 2]);
     }
 
     fn stl_binary(mesh: &TriMesh) -> Vec<u8> {
