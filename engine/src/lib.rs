@@ -19,6 +19,7 @@
 
 pub mod deform;
 pub mod kernel;
+pub mod lsq;
 pub mod mesh;
 pub mod motion_fit;
 pub mod operator;

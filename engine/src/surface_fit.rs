@@ -19,12 +19,13 @@
 //! the landmark error; they are reported beside the no-motion baseline (mean distance of `A` to `B`).
 
 use glam::DVec3;
-use levenberg_marquardt::{LeastSquaresProblem, LevenbergMarquardt};
-use nalgebra::{DMatrix, DVector, Dyn, Owned};
+use levenberg_marquardt::LevenbergMarquardt;
+use nalgebra::DVector;
 use parry3d::query::PointQuery;
 use thiserror::Error;
 
 use crate::deform::{direction, MotionConstants};
+use crate::lsq::{Numeric, ResidualModel};
 use crate::mesh::{Side, TriMesh};
 use crate::motion_fit::{operator_responses, PhaseFit, Residuals};
 use crate::operator::Elasticity;
@@ -186,7 +187,6 @@ struct Problem<'a> {
     model: Model<'a>,
     target: Goal<'a>,
     sample: Vec<usize>,
-    p: DVector<f64>,
 }
 
 impl Problem<'_> {
@@ -201,38 +201,14 @@ impl Problem<'_> {
     }
 }
 
-impl LeastSquaresProblem<f64, Dyn, Dyn> for Problem<'_> {
-    type ResidualStorage = Owned<f64, Dyn>;
-    type JacobianStorage = Owned<f64, Dyn, Dyn>;
-    type ParameterStorage = Owned<f64, Dyn>;
-
-    fn set_params(&mut self, x: &DVector<f64>) {
-        self.p.copy_from(x);
+impl ResidualModel for Problem<'_> {
+    fn residuals_at(&self, p: &DVector<f64>) -> DVector<f64> {
+        Problem::residuals_at(self, p)
     }
 
-    fn params(&self) -> DVector<f64> {
-        self.p.clone()
-    }
-
-    fn residuals(&self) -> Option<DVector<f64>> {
-        Some(self.residuals_at(&self.p))
-    }
-
-    fn jacobian(&self) -> Option<DMatrix<f64>> {
-        // Central differences; steps of 1e-4 relative stay above the f32 distance queries' noise.
-        let base = &self.p;
-        let rows = self.residuals_at(base).len();
-        let mut j = DMatrix::zeros(rows, base.len());
-        for k in 0..base.len() {
-            let h = 1e-4 * base[k].abs().max(1e-2);
-            let mut up = base.clone();
-            up[k] += h;
-            let mut down = base.clone();
-            down[k] -= h;
-            let col = (self.residuals_at(&up) - self.residuals_at(&down)) / (2.0 * h);
-            j.set_column(k, &col);
-        }
-        Some(j)
+    /// Steps of 1e-4 relative stay above the f32 distance queries' noise.
+    fn step(&self, v: f64) -> f64 {
+        1e-4 * v.abs().max(1e-2)
     }
 }
 
@@ -299,17 +275,19 @@ pub fn fit_surface(
     let stride = pts.len().div_ceil(MAX_FIT_POINTS).max(1);
     let sample: Vec<usize> = (0..pts.len()).step_by(stride).collect();
     let fit_points = sample.len();
-    let problem = Problem {
-        model,
-        target: b,
-        sample,
+    let problem = Numeric {
+        model: Problem {
+            model,
+            target: b,
+            sample,
+        },
         p: start,
     };
     let (problem, _report) = LevenbergMarquardt::new()
         .with_patience(40)
         .minimize(problem);
-    let (mut c, w) = problem.model.constants(&problem.p);
-    let model = problem.model;
+    let (mut c, w) = problem.model.model.constants(&problem.p);
+    let model = problem.model.model;
     let baseline = (0..pts.len()).map(|i| b.error(i, pts[i])).sum::<f64>() / pts.len() as f64;
     let residuals = distance_residuals(
         (0..pts.len()).map(|i| b.error(i, model.moved(i, &c, &w))),

@@ -15,7 +15,9 @@
 //! finite-difference damping curve is unusable, and the table starts already converge.
 
 use levenberg_marquardt::{LeastSquaresProblem, LevenbergMarquardt};
-use nalgebra::{DMatrix, DVector, Dyn, Owned};
+
+use crate::lsq::{Numeric, ResidualModel};
+use nalgebra::{DMatrix, DVector};
 use thiserror::Error;
 
 use std::cell::RefCell;
@@ -377,7 +379,6 @@ struct Problem<'a> {
     layout: &'a Layout,
     steps: usize,
     ridge_sqrt: f64,
-    p: DVector<f64>,
     /// Eq. 5.11 terms for the current `c` (and `q`), reused across evaluations.
     basis: RefCell<Option<ControlBasis>>,
 }
@@ -418,37 +419,14 @@ impl Problem<'_> {
     }
 }
 
-impl LeastSquaresProblem<f64, Dyn, Dyn> for Problem<'_> {
-    type ResidualStorage = Owned<f64, Dyn>;
-    type JacobianStorage = Owned<f64, Dyn, Dyn>;
-    type ParameterStorage = Owned<f64, Dyn>;
-
-    fn set_params(&mut self, x: &DVector<f64>) {
-        self.p.copy_from(x);
+impl ResidualModel for Problem<'_> {
+    fn residuals_at(&self, p: &DVector<f64>) -> DVector<f64> {
+        Problem::residuals_at(self, p)
     }
 
-    fn params(&self) -> DVector<f64> {
-        self.p.clone()
-    }
-
-    fn residuals(&self) -> Option<DVector<f64>> {
-        Some(self.residuals_at(&self.p))
-    }
-
-    fn jacobian(&self) -> Option<DMatrix<f64>> {
-        // Central differences: the model is smooth in every parameter; each column costs two curves.
-        let base = &self.p;
-        let mut j = DMatrix::zeros(self.limb.t.len() + self.layout.n, base.len());
-        for k in 0..base.len() {
-            let h = 1e-6 * base[k].abs().max(1.0);
-            let mut up = base.clone();
-            up[k] += h;
-            let mut down = base.clone();
-            down[k] -= h;
-            let col = (self.residuals_at(&up) - self.residuals_at(&down)) / (2.0 * h);
-            j.set_column(k, &col);
-        }
-        Some(j)
+    /// The model is smooth in every parameter; each Jacobian column costs two curves.
+    fn step(&self, v: f64) -> f64 {
+        1e-6 * v.abs().max(1.0)
     }
 }
 
@@ -548,13 +526,15 @@ fn fit_limb_from(
     let c_start = opts.c.unwrap_or(1.0);
     let beta_starts = [(10.0, -10.0), (30.0, -30.0), (90.0, -90.0), (5.0, 30.0)];
     let m = limb.t.len();
-    let make = |p: DVector<f64>| Problem {
-        limb,
-        layout: &layout,
-        steps: opts.steps,
-        ridge_sqrt: opts.ridge.sqrt(),
+    let make = |p: DVector<f64>| Numeric {
+        model: Problem {
+            limb,
+            layout: &layout,
+            steps: opts.steps,
+            ridge_sqrt: opts.ridge.sqrt(),
+            basis: RefCell::new(None),
+        },
         p,
-        basis: RefCell::new(None),
     };
     let mut scored: Vec<(f64, DVector<f64>)> = Vec::new();
     let scorer = make(layout.params(&chi_starts[0], beta_starts[0], q_starts[0], c_start));
@@ -565,7 +545,7 @@ fn fit_limb_from(
         for chi in &chi_starts {
             for &beta in &beta_starts {
                 let p = layout.params(chi, beta, q, c_start);
-                let cost = scorer.residuals_at(&p).norm_squared();
+                let cost = scorer.model.residuals_at(&p).norm_squared();
                 scored.push((cost, p));
             }
         }
@@ -575,7 +555,7 @@ fn fit_limb_from(
     let mut best: Option<(f64, DVector<f64>)> = None;
     for (_, start) in scored.into_iter().take(opts.refined_starts.max(1)) {
         let (problem, _report) = lm.minimize(make(start));
-        let r = problem.residuals_at(&problem.p);
+        let r = problem.model.residuals_at(&problem.p);
         let cost = r.norm_squared();
         if cost.is_finite() && best.as_ref().is_none_or(|(c, _)| cost < *c) {
             best = Some((cost, problem.p));
@@ -585,7 +565,7 @@ fn fit_limb_from(
     let problem = make(p.clone());
     let constants = layout.constants(&p);
     let model = model_at(&constants, &limb.t, opts.steps)?;
-    let r = problem.residuals_at(&p);
+    let r = problem.model.residuals_at(&p);
     let max_error = model
         .iter()
         .zip(&limb.v)
