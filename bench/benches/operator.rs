@@ -1,7 +1,9 @@
 //! The deformation operator at 10k / 100k / 400k vertices (generated left lung):
 //! bake time and peak memory, then the per-frame CPU cost of
+//!
 //! * the precomputed mode `out = p + s·u` (EQUATIONS §2.4, "3 additions per node"), single thread;
 //! * eq. 7.1, `F = Tᵀf` gathered per node (sparse transfer × force, rayon) plus `out = p + s·k·F·d`;
+//!
 //! and the precomputed mode's throughput as a fraction of a plain copy of the same number of bytes
 //! measured in the same run (36 bytes per vertex: read p and u, write out).
 //! Run: `cargo bench -p lungdyn-bench --bench operator` (about a minute on two cores).
