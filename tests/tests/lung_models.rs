@@ -460,50 +460,65 @@ fn fit_motion_recovers_known_constants_and_its_output_bakes() {
     );
 }
 
-#[test]
-fn two_meshes_with_the_same_vertices_give_the_whole_kernel_model_back() {
-    // Phase B is the kernel's own deformation with known constants; fit-motion on the two meshes
-    // fits the kernel's model through the operator and recovers all nine.
-    let d = workdir("meshes");
-    let a = d.join("a.ply");
+/// A generated `lung` at `vertices`, baked with motion constants `c`, and its surface exported at each
+/// (volume change in ml, file name): the reference mesh and the phases.
+fn kernel_phases(
+    d: &Path,
+    lung: &str,
+    vertices: usize,
+    c: [f64; 9],
+    deltas: &[(&str, &str)],
+) -> (PathBuf, Vec<PathBuf>) {
+    let mesh = d.join(format!("{lung}_{vertices}.ply"));
+    let n = vertices.to_string();
     run_ok(&[
         "mesh",
         "generate",
         "--lung",
-        "left",
+        lung,
         "--vertices",
-        "2000",
+        &n,
         "--out",
-        s(&a),
+        s(&mesh),
     ]);
-    let m = d.join("m.toml");
-    std::fs::write(
-        &m,
-        "format = 1\n[left]\nc = [0.09, 0.23, 0.4, 0.5, 0.1, 2.3, 0.2, 0.5, 0.3]\n",
-    )
-    .unwrap();
-    let k = d.join("a.kernel");
+    let m = d.join(format!("{lung}_motion.toml"));
+    std::fs::write(&m, format!("format = 1\n[{lung}]\nc = {c:?}\n")).unwrap();
+    let k = d.join(format!("{lung}_{vertices}.kernel"));
     run_ok(&[
         "bake",
         "--mesh",
-        s(&a),
+        s(&mesh),
         "--lung",
-        "left",
+        lung,
         "--motion",
         s(&m),
         "--out",
         s(&k),
     ]);
-    let b = d.join("b.obj");
-    run_ok(&[
-        "kernel",
-        "export",
-        s(&k),
-        "--delta-ml",
-        "300",
-        "--out",
-        s(&b),
-    ]);
+    let phases = deltas
+        .iter()
+        .map(|(dv, name)| {
+            let p = d.join(name);
+            run_ok(&["kernel", "export", s(&k), "--delta-ml", dv, "--out", s(&p)]);
+            p
+        })
+        .collect();
+    (mesh, phases)
+}
+
+#[test]
+fn two_meshes_with_the_same_vertices_give_the_whole_kernel_model_back() {
+    // Phase B is the kernel's own deformation with known constants; fit-motion on the two meshes
+    // fits the kernel's model through the operator and recovers all nine.
+    let d = workdir("meshes");
+    let (a, phases) = kernel_phases(
+        &d,
+        "left",
+        2000,
+        [0.09, 0.23, 0.4, 0.5, 0.1, 2.3, 0.2, 0.5, 0.3],
+        &[("300", "b.obj")],
+    );
+    let b = &phases[0];
     let out = d.join("fitted.toml");
     let f = json(&run_ok(&[
         "fit-motion",
@@ -549,54 +564,14 @@ fn a_second_phase_surface_without_correspondences_is_fitted() {
     // The reference is a coarse segmentation, the targets a finer one moved by a kernel with known
     // constants (+300 ml, +450 ml): different vertices, so surface mode is chosen by itself.
     let d = workdir("surface");
-    let fine = d.join("fine.ply");
-    run_ok(&[
-        "mesh",
-        "generate",
-        "--lung",
+    let (_, phases) = kernel_phases(
+        &d,
         "right",
-        "--vertices",
-        "6000",
-        "--out",
-        s(&fine),
-    ]);
-    let m = d.join("m.toml");
-    std::fs::write(
-        &m,
-        "format = 1\n[right]\nc = [0.12, 0.3, 0.4, 0.6, 0.15, 1.8, 0.1, 0.8, 0.1]\n",
-    )
-    .unwrap();
-    let k = d.join("fine.kernel");
-    run_ok(&[
-        "bake",
-        "--mesh",
-        s(&fine),
-        "--lung",
-        "right",
-        "--motion",
-        s(&m),
-        "--out",
-        s(&k),
-    ]);
-    let (b, c) = (d.join("b.ply"), d.join("c.obj"));
-    run_ok(&[
-        "kernel",
-        "export",
-        s(&k),
-        "--delta-ml",
-        "300",
-        "--out",
-        s(&b),
-    ]);
-    run_ok(&[
-        "kernel",
-        "export",
-        s(&k),
-        "--delta-ml",
-        "450",
-        "--out",
-        s(&c),
-    ]);
+        6000,
+        [0.12, 0.3, 0.4, 0.6, 0.15, 1.8, 0.1, 0.8, 0.1],
+        &[("300", "b.ply"), ("450", "c.obj")],
+    );
+    let (b, c) = (&phases[0], &phases[1]);
     let a = d.join("a.obj");
     run_ok(&[
         "mesh",
