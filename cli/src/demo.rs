@@ -314,6 +314,12 @@ pub fn run(args: &DemoArgs) -> anyhow::Result<DemoReport> {
         );
     }
     let mut scene = engine::scene::Scene::load_or_default(args.scene.as_deref())?;
+    // Every argument is checked before anything is written (kernels are baked below).
+    let instance = args
+        .instance
+        .clone()
+        .unwrap_or_else(|| format!("demo-{}", std::process::id()));
+    let services = Services::new(&instance)?;
     check_writable(&args.out)?;
     // Every lung runs from a kernel file: the scene's own, or the generated default baked once into
     // <out>/kernels (reused while the scene's mesh and bake settings are unchanged).
@@ -329,11 +335,6 @@ pub fn run(args: &DemoArgs) -> anyhow::Result<DemoReport> {
                 .as_bytes(),
         )
     })?;
-    let instance = args
-        .instance
-        .clone()
-        .unwrap_or_else(|| format!("demo-{}", std::process::id()));
-    let services = Services::new(&instance)?;
     let (inhale, exhale, boundary) = scene.pv_model()?;
     let breathing =
         engine::pv::Breathing::from_constants(&inhale, &exhale, boundary, &scene.timing())?;
