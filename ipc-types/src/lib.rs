@@ -1,32 +1,45 @@
-//! # ipc-types: what crosses a process boundary
+//! # ipc-types: the protocol between lungdyn's processes
 //!
-//! The three lungdyn processes (`tracker-bridge`, `engine`, `renderer`) and the launcher exchange
-//! only the fixed-size, `#[repr(C)]`, pointer-free payloads defined here, through iceoryx2
-//! zero-copy publish–subscribe services whose names are built here too.
+//! Everything that crosses a process boundary — and everything a recording or a replay stores — is
+//! one of the fixed-size, `#[repr(C)]`, pointer-free payloads defined here: [`TrackerFrame`]
+//! (tracker-bridge → engine, renderer), [`EngineFrame`] (engine → renderer) and [`FrameReport`]
+//! (renderer → launcher, latency harness, tests). They are [`bytemuck::Pod`], so a payload is its
+//! bytes: it can be written to a file and read back bit for bit, and any transport that moves bytes
+//! can carry it.
+//!
+//! This crate is only the protocol. How a payload travels (iceoryx2 shared memory, an in-process
+//! queue in tests, a recorded file) is the `transport` crate's business; this crate depends on
+//! nothing but `bytemuck`.
 //!
 //! Every payload carries [`HopStamps`]: the monotonic time (CLOCK_MONOTONIC, ns, shared by all
 //! processes on the host) at which it passed each hop, so the latency harness can attribute every
 //! microsecond of the tracker-sample-to-submitted-frame path.
 //!
 //! ## Layout versioning
-//! [`LAYOUT_VERSION`] is written into every payload and into every payload's iceoryx2 type name
-//! (`"lungdyn.TrackerFrame.v1"`). iceoryx2 refuses to open a service whose payload type name, size
-//! or alignment differ from the creator's, so a process built from another layout fails at start-up
-//! with [`IpcError::LayoutMismatch`] instead of reading garbage; the field in the payload is a
-//! second check for peers that bypass the type name. Bump both together (a test checks this).
+//! [`LAYOUT_VERSION`] is written into every payload ([`Message::layout_version`]) and into every
+//! payload's type name ([`Message::TYPE_NAME`], `"lungdyn.EngineFrame.v2"`), which the transport
+//! hands to iceoryx2: iceoryx2 refuses to open a service whose payload type name, size or alignment
+//! differ from the creator's, so a process built from another layout fails at start-up instead of
+//! reading garbage; the field in the payload is a second check for peers that bypass the type name.
+//! Sizes, alignments and every field offset are pinned by `const` assertions below: a layout change
+//! that forgets the version does not compile.
+//!
+//! Version history: v1 had one breathing state for both lungs; v2 gives each lung its own volume,
+//! phase, cycle, rigid offset, deformation coefficients and the identity of the kernel it was
+//! computed for ([`LungFrame`]).
 
-use core::fmt;
-use core::time::Duration;
+use core::mem::{align_of, offset_of, size_of};
 
-use iceoryx2::prelude::*;
+use bytemuck::{Pod, Zeroable};
 
-/// Version of every payload layout in this crate. Part of each iceoryx2 type name.
-pub const LAYOUT_VERSION: u32 = 1;
+/// Version of every payload layout in this crate. Part of each payload's type name.
+pub const LAYOUT_VERSION: u32 = 2;
 
 /// Maximum number of tracked tools in one [`TrackerFrame`].
 pub const MAX_TOOLS: usize = 4;
-/// Capacity for spherical-harmonic force coefficients per lung (8 bands).
-pub const MAX_SH_COEFFS: usize = 64;
+/// Capacity for deformation coefficients per lung in an [`EngineFrame`] (force weights of the basis
+/// mode, or spherical-harmonic force coefficients: 64 = 8 bands).
+pub const MAX_COEFFS: usize = 64;
 /// Number of lungs in an [`EngineFrame`]: index [`LUNG_RIGHT`] and [`LUNG_LEFT`].
 pub const NUM_LUNGS: usize = 2;
 /// Index of the right lung in per-lung arrays.
@@ -39,39 +52,23 @@ pub const TOOL_PATIENT: usize = 0;
 /// Conventional tool slot of the head-mounted display.
 pub const TOOL_HMD: usize = 1;
 
-/// Monotonic time in nanoseconds (CLOCK_MONOTONIC), comparable across processes on one host.
-#[inline]
-pub fn now_ns() -> u64 {
-    let mut ts = libc::timespec {
-        tv_sec: 0,
-        tv_nsec: 0,
-    };
-    // SAFETY: clock_gettime writes into the timespec we own; CLOCK_MONOTONIC always exists on Linux.
-    unsafe { libc::clock_gettime(libc::CLOCK_MONOTONIC, &mut ts) };
-    ts.tv_sec as u64 * 1_000_000_000 + ts.tv_nsec as u64
-}
-
-/// Sleep until the monotonic clock reaches `deadline_ns` (absolute), so periodic loops never drift;
-/// returns early when a signal arrives.
-pub fn sleep_until_ns(deadline_ns: u64) {
-    let ts = libc::timespec {
-        tv_sec: (deadline_ns / 1_000_000_000) as libc::time_t,
-        tv_nsec: (deadline_ns % 1_000_000_000) as libc::c_long,
-    };
-    // SAFETY: plain syscall with a valid timespec. A signal (EINTR) ends the sleep early on
-    // purpose, so the caller's loop sees a termination request promptly.
-    unsafe {
-        libc::clock_nanosleep(
-            libc::CLOCK_MONOTONIC,
-            libc::TIMER_ABSTIME,
-            &ts,
-            core::ptr::null_mut(),
-        )
-    };
+/// A payload of the protocol: plain bytes with a versioned name.
+pub trait Message: Pod + core::fmt::Debug + Send + 'static {
+    /// Short name used in messages ("EngineFrame").
+    const NAME: &'static str;
+    /// Versioned type name (`lungdyn.<NAME>.v<LAYOUT_VERSION>`): what the transport registers, so two
+    /// builds with different layouts never open each other's streams.
+    const TYPE_NAME: &'static str;
+    /// The layout version this payload claims (its first field).
+    fn layout_version(&self) -> u32;
+    /// `Ok` when the payload speaks this build's layout.
+    fn check_layout(&self) -> Result<(), LayoutError> {
+        check_layout(Self::NAME, self.layout_version())
+    }
 }
 
 /// Monotonic timestamps (ns) of each hop a sample passed. Zero means "not passed (yet)".
-#[derive(Debug, Clone, Copy, Default, PartialEq, Eq, ZeroCopySend)]
+#[derive(Debug, Clone, Copy, Default, PartialEq, Eq, Pod, Zeroable)]
 #[repr(C)]
 pub struct HopStamps {
     /// When the tracker captured the sample (for a synthetic source: when it was generated).
@@ -119,7 +116,7 @@ impl HopStamps {
 }
 
 /// A rigid pose: unit quaternion `(x, y, z, w)` and translation in millimetres.
-#[derive(Debug, Clone, Copy, PartialEq, ZeroCopySend)]
+#[derive(Debug, Clone, Copy, PartialEq, Pod, Zeroable)]
 #[repr(C)]
 pub struct Pose {
     /// Rotation as a unit quaternion, `[x, y, z, w]`.
@@ -168,7 +165,7 @@ pub mod tool_status {
 }
 
 /// One tool's pose in a tracker sample.
-#[derive(Debug, Clone, Copy, Default, PartialEq, ZeroCopySend)]
+#[derive(Debug, Clone, Copy, Default, PartialEq, Pod, Zeroable)]
 #[repr(C)]
 pub struct ToolPose {
     /// Tracker-assigned tool handle.
@@ -191,8 +188,7 @@ impl ToolPose {
 }
 
 /// One tracker sample, published by `tracker-bridge` at 60 Hz.
-#[derive(Debug, Clone, Copy, Default, PartialEq, ZeroCopySend)]
-#[type_name("lungdyn.TrackerFrame.v1")]
+#[derive(Debug, Clone, Copy, Default, PartialEq, Pod, Zeroable)]
 #[repr(C)]
 pub struct TrackerFrame {
     /// [`LAYOUT_VERSION`] of the publisher.
@@ -207,6 +203,15 @@ pub struct TrackerFrame {
     pub tools: [ToolPose; MAX_TOOLS],
 }
 
+impl TrackerFrame {
+    /// The pose in `slot` when the frame has that tool and it is valid and finite.
+    pub fn valid_tool(&self, slot: usize) -> Option<Pose> {
+        let tool = self.tools.get(slot)?;
+        (slot < self.tool_count as usize && tool.is_valid() && tool.pose.is_finite())
+            .then_some(tool.pose)
+    }
+}
+
 /// Bits of [`EngineFrame::state`].
 pub mod engine_state {
     /// The tick used a fresh tracker frame (woken by its arrival).
@@ -217,43 +222,77 @@ pub mod engine_state {
     pub const PATIENT_POSE_HELD: u32 = 1 << 2;
     /// The patient pose has been held longer than the allowed staleness.
     pub const PATIENT_POSE_STALE: u32 = 1 << 3;
-    /// Currently inhaling (clear: exhaling).
+    /// The first active lung is inhaling (per-lung phase: [`super::lung_flags::INHALING`]).
     pub const INHALING: u32 = 1 << 4;
     /// No tracker sample has been seen yet.
     pub const NO_TRACKER_YET: u32 = 1 << 5;
 }
 
-/// Per-lung state in an [`EngineFrame`].
-#[derive(Debug, Clone, Copy, PartialEq, ZeroCopySend)]
+/// Bits of [`LungFrame::flags`].
+pub mod lung_flags {
+    /// The lung is simulated in the current scene (clear: the slot is empty, draw nothing).
+    pub const ACTIVE: u32 = 1 << 0;
+    /// The lung is inhaling (clear: exhaling or not breathing).
+    pub const INHALING: u32 = 1 << 1;
+    /// The lung does not breathe: its volume is held (a collapsed or arrested lung).
+    pub const HELD: u32 = 1 << 2;
+    /// The lung's breathing changed at the start of this tick's cycle (rate, depth or constants).
+    pub const CYCLE_CHANGED: u32 = 1 << 3;
+}
+
+/// What [`LungFrame::coeffs`] hold.
+pub mod coeff_kind {
+    /// No coefficients: the lung deforms by `p + s·u` (precomputed mode).
+    pub const NONE: u32 = 0;
+    /// Applied-force weights `(w0, wx, wy, wz)` of the exact basis mode (EQUATIONS §3.3).
+    pub const FORCE_WEIGHTS: u32 = 1;
+    /// Spherical-harmonic force coefficients `F_lm`, `l < n`, `n²` values (eq. 7.2).
+    pub const SH_FORCE: u32 = 2;
+}
+
+/// One lung's state in an [`EngineFrame`]: enough for a renderer to deform this lung alone, and to
+/// check that it deforms the lung the engine computed.
+#[derive(Debug, Clone, Copy, PartialEq, Pod, Zeroable)]
 #[repr(C)]
-pub struct LungState {
-    /// Lung volume from the PV model, ml.
+pub struct LungFrame {
+    /// Identity of the kernel this state is for (the kernel file's header checksum; 0 when the slot
+    /// is empty). A renderer that loaded another kernel for this lung must not apply the state.
+    pub kernel_id: u64,
+    /// Lung volume, ml.
     pub volume_ml: f32,
     /// Scale applied to the lung's unit displacement field this tick.
     pub deform_scale: f32,
-    /// Number of used entries of `sh_force` (0 when the scene's deformation mode uses none).
-    pub sh_count: u32,
-    /// 1 when this lung is simulated in the current scene.
-    pub active: u32,
-    /// Spherical-harmonic force coefficients (eq. 7.2), room for 8 bands.
-    pub sh_force: [f32; MAX_SH_COEFFS],
+    /// Position in the lung's current breathing cycle, `[0, 1)` (0 = start of an inhalation).
+    pub phase: f32,
+    /// Breathing cycles this lung has completed since the engine started.
+    pub cycle: u32,
+    /// Rigid offset of the whole lung in the body frame, mm (mediastinal shift, a dropped lung).
+    pub offset_mm: [f32; 3],
+    /// [`lung_flags`] bits.
+    pub flags: u32,
+    /// What `coeffs` hold ([`coeff_kind`]).
+    pub coeff_kind: u32,
+    /// Number of used entries of `coeffs`.
+    pub coeff_count: u32,
+    /// Deformation coefficients of this tick (fixed capacity, [`MAX_COEFFS`]).
+    pub coeffs: [f32; MAX_COEFFS],
 }
 
-impl Default for LungState {
+impl Default for LungFrame {
     fn default() -> Self {
-        Self {
-            volume_ml: 0.0,
-            deform_scale: 0.0,
-            sh_count: 0,
-            active: 0,
-            sh_force: [0.0; MAX_SH_COEFFS],
-        }
+        Self::zeroed()
+    }
+}
+
+impl LungFrame {
+    /// True when the lung is simulated in the current scene.
+    pub fn is_active(&self) -> bool {
+        self.flags & lung_flags::ACTIVE != 0
     }
 }
 
 /// One engine tick's output, published by `engine` every tick.
-#[derive(Debug, Clone, Copy, Default, PartialEq, ZeroCopySend)]
-#[type_name("lungdyn.EngineFrame.v1")]
+#[derive(Debug, Clone, Copy, PartialEq, Pod, Zeroable)]
 #[repr(C)]
 pub struct EngineFrame {
     /// [`LAYOUT_VERSION`] of the publisher.
@@ -262,9 +301,9 @@ pub struct EngineFrame {
     pub state: u32,
     /// Fault word: 0 when healthy, else a [`fault`] code.
     pub fault: u32,
-    /// Ticks per breathing cycle in force (so consumers can derive the phase).
-    pub cycle_ticks: u32,
-    /// Integer tick counter since the engine started (tick 0 = start of an inhalation).
+    /// Explicit padding.
+    pub _pad: u32,
+    /// Integer tick counter since the engine started.
     pub tick: u64,
     /// `frame_number` of the tracker frame this tick used (0 when none yet).
     pub tracker_frame: u64,
@@ -273,7 +312,13 @@ pub struct EngineFrame {
     /// Patient reference pose used for registration (held when the tracker flagged it).
     pub patient_pose: Pose,
     /// Per-lung state, indexed by [`LUNG_RIGHT`] and [`LUNG_LEFT`].
-    pub lungs: [LungState; NUM_LUNGS],
+    pub lungs: [LungFrame; NUM_LUNGS],
+}
+
+impl Default for EngineFrame {
+    fn default() -> Self {
+        Self::zeroed()
+    }
 }
 
 /// Fault codes of [`EngineFrame::fault`].
@@ -294,11 +339,13 @@ pub mod report_flags {
     pub const GPU_TIMED: u32 = 1 << 1;
     /// The renderer drew without a fresh engine frame (deadline fallback).
     pub const STALE_ENGINE: u32 = 1 << 2;
+    /// The engine frame was computed for another kernel than the renderer loaded for at least one
+    /// lung; that lung was drawn at rest instead of with foreign displacements.
+    pub const KERNEL_MISMATCH: u32 = 1 << 3;
 }
 
 /// The renderer's per-frame report, consumed by the launcher's latency harness and by tests.
-#[derive(Debug, Clone, Copy, Default, PartialEq, ZeroCopySend)]
-#[type_name("lungdyn.FrameReport.v1")]
+#[derive(Debug, Clone, Copy, Default, PartialEq, Pod, Zeroable)]
 #[repr(C)]
 pub struct FrameReport {
     /// [`LAYOUT_VERSION`] of the publisher.
@@ -321,242 +368,148 @@ pub struct FrameReport {
     pub volume_ml: [f32; NUM_LUNGS],
 }
 
-/// The services of one lungdyn instance. Every process of an instance uses the same `instance`
-/// string; tests use a unique one so they never meet another run.
-#[derive(Debug, Clone)]
-pub struct Services {
-    /// Instance name (alphanumerics, `-`, `_`).
-    pub instance: String,
-}
+const VERSION_SUFFIX: &str = ".v2";
+const _: () = assert!(
+    LAYOUT_VERSION == 2,
+    "bump VERSION_SUFFIX with LAYOUT_VERSION"
+);
 
-impl Services {
-    /// Services of `instance`; the name must be 1–48 characters of `[A-Za-z0-9_-]`.
-    pub fn new(instance: &str) -> Result<Self, IpcError> {
-        let ok = !instance.is_empty()
-            && instance.len() <= 48
-            && instance
-                .bytes()
-                .all(|b| b.is_ascii_alphanumeric() || b == b'-' || b == b'_');
-        if !ok {
-            return Err(IpcError::BadInstanceName {
-                name: instance.to_string(),
-            });
-        }
-        Ok(Self {
-            instance: instance.to_string(),
-        })
-    }
-
-    /// Publish–subscribe service for [`TrackerFrame`]s.
-    pub fn tracker(&self) -> String {
-        format!("lungdyn/{}/tracker", self.instance)
-    }
-    /// Event service signalled after each tracker frame is published.
-    pub fn tracker_event(&self) -> String {
-        format!("lungdyn/{}/tracker-ready", self.instance)
-    }
-    /// Publish–subscribe service for [`EngineFrame`]s.
-    pub fn engine(&self) -> String {
-        format!("lungdyn/{}/engine", self.instance)
-    }
-    /// Event service signalled after each engine frame is published.
-    pub fn engine_event(&self) -> String {
-        format!("lungdyn/{}/engine-ready", self.instance)
-    }
-    /// Publish–subscribe service for [`FrameReport`]s.
-    pub fn report(&self) -> String {
-        format!("lungdyn/{}/report", self.instance)
-    }
-
-    /// The iceoryx2 file prefix of this instance: every shared-memory segment and file the
-    /// instance creates starts with it, so leftovers can be found and are never another run's.
-    pub fn file_prefix(&self) -> String {
-        format!("lungdyn_{}_", self.instance)
-    }
-
-    /// An iceoryx2 config whose files carry [`Self::file_prefix`].
-    pub fn config(&self) -> Result<Config, IpcError> {
-        let mut config = Config::default();
-        config.global.prefix = FileName::new(self.file_prefix().as_bytes()).map_err(|_| {
-            IpcError::BadInstanceName {
-                name: self.instance.clone(),
-            }
-        })?;
-        Ok(config)
-    }
-
-    /// Remove the instance's persistent iceoryx2 management segment (a node counter that outlives
-    /// its nodes by design). Call only after every process of the instance has exited: the file
-    /// prefix is unique to the instance, so no other run can be using it.
-    pub fn remove_instance_segment(&self) -> Result<(), IpcError> {
-        let config = self.config()?;
-        // SAFETY: iceoryx2 requires that no process uses this domain; the caller guarantees that
-        // every process of this instance (the only users of its unique prefix) has exited.
-        unsafe { iceoryx2::testing::remove_global_mgmt_segment::<ipc::Service>(&config) }
-            .map(|_| ())
-            .map_err(|e| IpcError::Service {
-                service: self.file_prefix(),
-                detail: format!("{e:?}"),
-            })
-    }
-
-    /// Files of this instance still present in shared memory (`/dev/shm`) or under iceoryx2's root
-    /// folder. Empty after a clean shutdown.
-    pub fn leftovers(&self) -> Vec<std::path::PathBuf> {
-        let prefix = self.file_prefix();
-        let mut found = Vec::new();
-        let root = Config::default().global.root_path().as_str().to_string();
-        let mut stack = vec![
-            std::path::PathBuf::from("/dev/shm"),
-            std::path::PathBuf::from(root),
-        ];
-        while let Some(dir) = stack.pop() {
-            let Ok(entries) = std::fs::read_dir(&dir) else {
-                continue;
-            };
-            for entry in entries.flatten() {
-                let path = entry.path();
-                if entry.file_type().map(|t| t.is_dir()).unwrap_or(false)
-                    && !dir.starts_with("/dev/shm")
-                {
-                    stack.push(path.clone());
-                }
-                if entry.file_name().to_string_lossy().starts_with(&prefix) {
-                    found.push(path);
-                }
-            }
-        }
-        found.sort();
-        found
-    }
-
-    /// Delete the files [`Self::leftovers`] finds, and node folders left empty by that. Only for
-    /// after every process of the instance has exited (the prefix is unique to the instance).
-    /// Returns how many files were removed.
-    pub fn remove_leftovers(&self) -> usize {
-        let mut removed = 0;
-        for path in self.leftovers() {
-            if std::fs::remove_file(&path).is_ok() {
-                removed += 1;
-                if let Some(dir) = path.parent() {
-                    // Only succeeds when the folder is now empty.
-                    let _ = std::fs::remove_dir(dir);
-                }
-            }
-        }
-        removed
-    }
-
-    /// Create an iceoryx2 node for `role` (e.g. "engine") in this instance.
-    pub fn node(&self, role: &str) -> Result<Node<ipc::Service>, IpcError> {
-        let name = NodeName::new(&format!("lungdyn-{}-{}", self.instance, role)).map_err(|_| {
-            IpcError::BadInstanceName {
-                name: self.instance.clone(),
-            }
-        })?;
-        NodeBuilder::new()
-            .name(&name)
-            .config(&self.config()?)
-            .create::<ipc::Service>()
-            .map_err(|e| IpcError::Node {
-                detail: format!("{e:?}"),
-            })
-    }
-}
-
-/// Queue depths shared by every opener of a service, so open_or_create never disagrees.
-const SUBSCRIBER_BUFFER: usize = 4;
-/// The report stream is drained in batches by the launcher; a deeper buffer keeps every frame.
-const REPORT_BUFFER: usize = 512;
-const MAX_SUBSCRIBERS: usize = 8;
-const MAX_PUBLISHERS: usize = 2;
-const MAX_NODES: usize = 16;
-
-/// Which buffer depth a payload's service uses.
-pub trait ServicePayload: ZeroCopySend + Copy + fmt::Debug + 'static {
-    /// Human-readable payload name used in error messages.
-    const NAME: &'static str;
-    /// Buffer depth per subscriber.
-    const BUFFER: usize;
-}
-impl ServicePayload for TrackerFrame {
+impl Message for TrackerFrame {
     const NAME: &'static str = "TrackerFrame";
-    const BUFFER: usize = SUBSCRIBER_BUFFER;
+    const TYPE_NAME: &'static str = "lungdyn.TrackerFrame.v2";
+    fn layout_version(&self) -> u32 {
+        self.layout_version
+    }
 }
-impl ServicePayload for EngineFrame {
+impl Message for EngineFrame {
     const NAME: &'static str = "EngineFrame";
-    const BUFFER: usize = SUBSCRIBER_BUFFER;
+    const TYPE_NAME: &'static str = "lungdyn.EngineFrame.v2";
+    fn layout_version(&self) -> u32 {
+        self.layout_version
+    }
 }
-impl ServicePayload for FrameReport {
+impl Message for FrameReport {
     const NAME: &'static str = "FrameReport";
-    const BUFFER: usize = REPORT_BUFFER;
+    const TYPE_NAME: &'static str = "lungdyn.FrameReport.v2";
+    fn layout_version(&self) -> u32 {
+        self.layout_version
+    }
 }
 
-/// The port factory type of a publish–subscribe service of payload `T`.
-pub type PubSub<T> =
-    iceoryx2::service::port_factory::publish_subscribe::PortFactory<ipc::Service, T, ()>;
-/// The port factory type of an event service.
-pub type EventService = iceoryx2::service::port_factory::event::PortFactory<ipc::Service>;
-
-/// Open (or create) the publish–subscribe service `name` carrying `T` with lungdyn's QoS.
-/// A peer built with another payload layout yields [`IpcError::LayoutMismatch`].
-pub fn open_pubsub<T: ServicePayload>(
-    node: &Node<ipc::Service>,
-    name: &str,
-) -> Result<PubSub<T>, IpcError> {
-    let service_name: ServiceName = name.try_into().map_err(|_| IpcError::BadServiceName {
-        name: name.to_string(),
-    })?;
-    node.service_builder(&service_name)
-        .publish_subscribe::<T>()
-        .history_size(1)
-        .subscriber_max_buffer_size(T::BUFFER)
-        .enable_safe_overflow(true)
-        .max_publishers(MAX_PUBLISHERS)
-        .max_subscribers(MAX_SUBSCRIBERS)
-        .max_nodes(MAX_NODES)
-        .open_or_create()
-        .map_err(|e| {
-            use iceoryx2::service::builder::publish_subscribe::{
-                PublishSubscribeOpenError as O, PublishSubscribeOpenOrCreateError as E,
-            };
-            match e {
-                E::PublishSubscribeOpenError(O::IncompatibleTypes) => IpcError::LayoutMismatch {
-                    service: name.to_string(),
-                    payload: T::NAME,
-                    ours: LAYOUT_VERSION,
-                },
-                other => IpcError::Service {
-                    service: name.to_string(),
-                    detail: format!("{other:?}"),
-                },
-            }
-        })
+const fn ends_with(s: &str, suffix: &str) -> bool {
+    let (s, x) = (s.as_bytes(), suffix.as_bytes());
+    if x.len() > s.len() {
+        return false;
+    }
+    let mut i = 0;
+    while i < x.len() {
+        if s[s.len() - x.len() + i] != x[i] {
+            return false;
+        }
+        i += 1;
+    }
+    true
 }
 
-/// Open (or create) the event service `name`.
-pub fn open_event(node: &Node<ipc::Service>, name: &str) -> Result<EventService, IpcError> {
-    let service_name: ServiceName = name.try_into().map_err(|_| IpcError::BadServiceName {
-        name: name.to_string(),
-    })?;
-    node.service_builder(&service_name)
-        .event()
-        .max_notifiers(MAX_PUBLISHERS)
-        .max_listeners(MAX_SUBSCRIBERS)
-        .max_nodes(MAX_NODES)
-        .open_or_create()
-        .map_err(|e| IpcError::Service {
-            service: name.to_string(),
-            detail: format!("{e:?}"),
-        })
+// The layout, pinned at compile time: a change to any payload must change these lines (and
+// LAYOUT_VERSION with them).
+const _: () = {
+    assert!(ends_with(TrackerFrame::TYPE_NAME, VERSION_SUFFIX));
+    assert!(ends_with(EngineFrame::TYPE_NAME, VERSION_SUFFIX));
+    assert!(ends_with(FrameReport::TYPE_NAME, VERSION_SUFFIX));
+
+    assert!(size_of::<HopStamps>() == 48 && align_of::<HopStamps>() == 8);
+    assert!(offset_of!(HopStamps, capture_ns) == 0);
+    assert!(offset_of!(HopStamps, bridge_publish_ns) == 8);
+    assert!(offset_of!(HopStamps, engine_receive_ns) == 16);
+    assert!(offset_of!(HopStamps, engine_publish_ns) == 24);
+    assert!(offset_of!(HopStamps, renderer_receive_ns) == 32);
+    assert!(offset_of!(HopStamps, renderer_submit_ns) == 40);
+
+    assert!(size_of::<Pose>() == 32 && align_of::<Pose>() == 4);
+    assert!(offset_of!(Pose, quat) == 0);
+    assert!(offset_of!(Pose, translation_mm) == 16);
+    assert!(offset_of!(Pose, _pad) == 28);
+
+    assert!(size_of::<ToolPose>() == 48 && align_of::<ToolPose>() == 4);
+    assert!(offset_of!(ToolPose, tool_id) == 0);
+    assert!(offset_of!(ToolPose, status) == 4);
+    assert!(offset_of!(ToolPose, pose) == 8);
+    assert!(offset_of!(ToolPose, rms_error_mm) == 40);
+    assert!(offset_of!(ToolPose, _pad) == 44);
+
+    assert!(size_of::<TrackerFrame>() == 256 && align_of::<TrackerFrame>() == 8);
+    assert!(offset_of!(TrackerFrame, layout_version) == 0);
+    assert!(offset_of!(TrackerFrame, tool_count) == 4);
+    assert!(offset_of!(TrackerFrame, frame_number) == 8);
+    assert!(offset_of!(TrackerFrame, stamps) == 16);
+    assert!(offset_of!(TrackerFrame, tools) == 64);
+
+    assert!(size_of::<LungFrame>() == 48 + 4 * MAX_COEFFS && align_of::<LungFrame>() == 8);
+    assert!(offset_of!(LungFrame, kernel_id) == 0);
+    assert!(offset_of!(LungFrame, volume_ml) == 8);
+    assert!(offset_of!(LungFrame, deform_scale) == 12);
+    assert!(offset_of!(LungFrame, phase) == 16);
+    assert!(offset_of!(LungFrame, cycle) == 20);
+    assert!(offset_of!(LungFrame, offset_mm) == 24);
+    assert!(offset_of!(LungFrame, flags) == 36);
+    assert!(offset_of!(LungFrame, coeff_kind) == 40);
+    assert!(offset_of!(LungFrame, coeff_count) == 44);
+    assert!(offset_of!(LungFrame, coeffs) == 48);
+
+    assert!(size_of::<EngineFrame>() == 720 && align_of::<EngineFrame>() == 8);
+    assert!(offset_of!(EngineFrame, layout_version) == 0);
+    assert!(offset_of!(EngineFrame, state) == 4);
+    assert!(offset_of!(EngineFrame, fault) == 8);
+    assert!(offset_of!(EngineFrame, _pad) == 12);
+    assert!(offset_of!(EngineFrame, tick) == 16);
+    assert!(offset_of!(EngineFrame, tracker_frame) == 24);
+    assert!(offset_of!(EngineFrame, stamps) == 32);
+    assert!(offset_of!(EngineFrame, patient_pose) == 80);
+    assert!(offset_of!(EngineFrame, lungs) == 112);
+
+    assert!(size_of::<FrameReport>() == 104 && align_of::<FrameReport>() == 8);
+    assert!(offset_of!(FrameReport, layout_version) == 0);
+    assert!(offset_of!(FrameReport, flags) == 4);
+    assert!(offset_of!(FrameReport, frame) == 8);
+    assert!(offset_of!(FrameReport, engine_tick) == 16);
+    assert!(offset_of!(FrameReport, tracker_frame) == 24);
+    assert!(offset_of!(FrameReport, stamps) == 32);
+    assert!(offset_of!(FrameReport, cpu_frame_ns) == 80);
+    assert!(offset_of!(FrameReport, gpu_frame_ns) == 88);
+    assert!(offset_of!(FrameReport, volume_ml) == 96);
+};
+
+/// A received payload claims another layout version than this build speaks.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub struct LayoutError {
+    /// Payload type.
+    pub payload: &'static str,
+    /// What the payload says.
+    pub theirs: u32,
+    /// What we speak.
+    pub ours: u32,
 }
+
+impl core::fmt::Display for LayoutError {
+    fn fmt(&self, f: &mut core::fmt::Formatter<'_>) -> core::fmt::Result {
+        write!(
+            f,
+            "received a {} with layout v{}, but this process speaks layout v{}: rebuild all lungdyn \
+             processes from one version",
+            self.payload, self.theirs, self.ours
+        )
+    }
+}
+
+impl std::error::Error for LayoutError {}
 
 /// Check the layout version a received payload claims.
-pub fn check_layout(payload: &'static str, theirs: u32) -> Result<(), IpcError> {
+pub fn check_layout(payload: &'static str, theirs: u32) -> Result<(), LayoutError> {
     if theirs == LAYOUT_VERSION {
         Ok(())
     } else {
-        Err(IpcError::PeerLayoutVersion {
+        Err(LayoutError {
             payload,
             theirs,
             ours: LAYOUT_VERSION,
@@ -564,407 +517,9 @@ pub fn check_layout(payload: &'static str, theirs: u32) -> Result<(), IpcError> 
     }
 }
 
-/// True when the process was asked to terminate (SIGINT/SIGTERM), as seen by iceoryx2's handler.
-pub fn termination_requested(node: &Node<ipc::Service>) -> bool {
-    node.wait(Duration::ZERO).is_err()
-}
-
-/// The sending end of a stream: a publisher plus the event that wakes its consumers.
-pub struct Outlet<T: ServicePayload> {
-    publisher: iceoryx2::port::publisher::Publisher<ipc::Service, T, ()>,
-    notifier: iceoryx2::port::notifier::Notifier<ipc::Service>,
-    name: String,
-    _data: PubSub<T>,
-    _event: EventService,
-}
-
-impl<T: ServicePayload> Outlet<T> {
-    /// Open the data service `data` and its wake-up event `event`.
-    pub fn new(node: &Node<ipc::Service>, data: &str, event: &str) -> Result<Self, IpcError> {
-        let data_service = open_pubsub::<T>(node, data)?;
-        let event_service = open_event(node, event)?;
-        let publisher =
-            data_service
-                .publisher_builder()
-                .create()
-                .map_err(|e| IpcError::Service {
-                    service: data.to_string(),
-                    detail: format!("{e:?}"),
-                })?;
-        let notifier =
-            event_service
-                .notifier_builder()
-                .create()
-                .map_err(|e| IpcError::Service {
-                    service: event.to_string(),
-                    detail: format!("{e:?}"),
-                })?;
-        Ok(Self {
-            publisher,
-            notifier,
-            name: data.to_string(),
-            _data: data_service,
-            _event: event_service,
-        })
-    }
-
-    /// Publish `value` (zero-copy loan, no allocation) and wake the consumers.
-    pub fn publish(&self, value: T) -> Result<(), IpcError> {
-        let sample = self
-            .publisher
-            .loan_uninit()
-            .map_err(|e| IpcError::Service {
-                service: self.name.clone(),
-                detail: format!("{e:?}"),
-            })?;
-        sample
-            .write_payload(value)
-            .send()
-            .map_err(|e| IpcError::Service {
-                service: self.name.clone(),
-                detail: format!("{e:?}"),
-            })?;
-        self.notifier.notify().map_err(|e| IpcError::Service {
-            service: self.name.clone(),
-            detail: format!("{e:?}"),
-        })?;
-        Ok(())
-    }
-}
-
-/// The receiving end of a stream: a subscriber plus the event listener that wakes us.
-pub struct Inlet<T: ServicePayload> {
-    subscriber: iceoryx2::port::subscriber::Subscriber<ipc::Service, T, ()>,
-    listener: iceoryx2::port::listener::Listener<ipc::Service>,
-    name: String,
-    _data: PubSub<T>,
-    _event: EventService,
-}
-
-impl<T: ServicePayload> Inlet<T> {
-    /// Open the data service `data` and its wake-up event `event`.
-    pub fn new(node: &Node<ipc::Service>, data: &str, event: &str) -> Result<Self, IpcError> {
-        let data_service = open_pubsub::<T>(node, data)?;
-        let event_service = open_event(node, event)?;
-        let subscriber =
-            data_service
-                .subscriber_builder()
-                .create()
-                .map_err(|e| IpcError::Service {
-                    service: data.to_string(),
-                    detail: format!("{e:?}"),
-                })?;
-        let listener =
-            event_service
-                .listener_builder()
-                .create()
-                .map_err(|e| IpcError::Service {
-                    service: event.to_string(),
-                    detail: format!("{e:?}"),
-                })?;
-        Ok(Self {
-            subscriber,
-            listener,
-            name: data.to_string(),
-            _data: data_service,
-            _event: event_service,
-        })
-    }
-
-    /// Sleep until the producer signals new data or the monotonic clock reaches `deadline_ns`
-    /// (absolute), whichever comes first. Returns at once if the deadline has passed.
-    pub fn wait_until(&self, deadline_ns: u64) {
-        let now = now_ns();
-        if deadline_ns <= now {
-            // Still consume pending wake-ups so they do not pile up.
-            let _ = self.listener.try_wait(|_| {});
-            return;
-        }
-        let _ = self
-            .listener
-            .timed_wait(|_| {}, Duration::from_nanos(deadline_ns - now));
-    }
-
-    /// Drain the subscriber and return the newest sample, if any arrived (a copy; `T` is small).
-    pub fn take_latest(&self) -> Result<Option<T>, IpcError> {
-        let mut latest = None;
-        loop {
-            match self.subscriber.receive() {
-                Ok(Some(sample)) => latest = Some(*sample.payload()),
-                Ok(None) => return Ok(latest),
-                Err(e) => {
-                    return Err(IpcError::Service {
-                        service: self.name.clone(),
-                        detail: format!("{e:?}"),
-                    })
-                }
-            }
-        }
-    }
-
-    /// Drain every pending sample into `f`, oldest first.
-    pub fn drain(&self, mut f: impl FnMut(&T)) -> Result<usize, IpcError> {
-        let mut n = 0;
-        loop {
-            match self.subscriber.receive() {
-                Ok(Some(sample)) => {
-                    f(sample.payload());
-                    n += 1;
-                }
-                Ok(None) => return Ok(n),
-                Err(e) => {
-                    return Err(IpcError::Service {
-                        service: self.name.clone(),
-                        detail: format!("{e:?}"),
-                    })
-                }
-            }
-        }
-    }
-}
-
-/// Pin the calling thread to CPU `core` if one is given (`role` names the process in errors).
-pub fn pin_to_core(core: Option<usize>, role: &str) -> Result<(), PinError> {
-    let Some(id) = core else { return Ok(()) };
-    let cores = core_affinity::get_core_ids().unwrap_or_default();
-    let available = cores.len();
-    let Some(c) = cores.into_iter().find(|c| c.id == id) else {
-        return Err(PinError {
-            role: role.to_string(),
-            core: id,
-            available,
-        });
-    };
-    if core_affinity::set_for_current(c) {
-        Ok(())
-    } else {
-        Err(PinError {
-            role: role.to_string(),
-            core: id,
-            available,
-        })
-    }
-}
-
-/// A process could not be pinned to the core it was given.
-#[derive(Debug, Clone, PartialEq, Eq)]
-pub struct PinError {
-    /// Process role.
-    pub role: String,
-    /// Core asked for.
-    pub core: usize,
-    /// Cores this process may use.
-    pub available: usize,
-}
-
-impl fmt::Display for PinError {
-    fn fmt(&self, f: &mut fmt::Formatter<'_>) -> fmt::Result {
-        write!(
-            f,
-            "{}: cannot pin to CPU core {} ({} cores available to this process)",
-            self.role, self.core, self.available
-        )
-    }
-}
-
-impl std::error::Error for PinError {}
-
-/// One line for an error and its causes, skipping causes the message already contains (error types
-/// that embed their source's text would otherwise print it twice).
-pub fn describe_error(e: &(dyn std::error::Error + 'static)) -> String {
-    let mut text = e.to_string();
-    let mut cause = e.source();
-    while let Some(c) = cause {
-        let s = c.to_string();
-        if !text.contains(&s) {
-            text.push_str(": ");
-            text.push_str(&s);
-        }
-        cause = c.source();
-    }
-    text
-}
-
-/// Errors at the process boundary.
-#[derive(Debug, Clone, PartialEq, Eq)]
-pub enum IpcError {
-    /// The instance name cannot be used in service and file names.
-    BadInstanceName {
-        /// The offending name.
-        name: String,
-    },
-    /// A service name was rejected by iceoryx2.
-    BadServiceName {
-        /// The offending name.
-        name: String,
-    },
-    /// The iceoryx2 node could not be created.
-    Node {
-        /// iceoryx2's reason.
-        detail: String,
-    },
-    /// The service exists with another payload layout (built from another lungdyn version).
-    LayoutMismatch {
-        /// Service name.
-        service: String,
-        /// Payload type.
-        payload: &'static str,
-        /// Our layout version.
-        ours: u32,
-    },
-    /// A received payload claims another layout version.
-    PeerLayoutVersion {
-        /// Payload type.
-        payload: &'static str,
-        /// What the payload says.
-        theirs: u32,
-        /// What we speak.
-        ours: u32,
-    },
-    /// Any other failure opening or using a service.
-    Service {
-        /// Service name.
-        service: String,
-        /// iceoryx2's reason.
-        detail: String,
-    },
-}
-
-impl fmt::Display for IpcError {
-    fn fmt(&self, f: &mut fmt::Formatter<'_>) -> fmt::Result {
-        match self {
-            IpcError::BadInstanceName { name } => write!(
-                f,
-                "instance name {name:?} is not usable: use 1-48 characters from A-Z, a-z, 0-9, '-' and '_'"
-            ),
-            IpcError::BadServiceName { name } => write!(f, "service name {name:?} was rejected by iceoryx2"),
-            IpcError::Node { detail } => write!(f, "cannot create the iceoryx2 node: {detail}"),
-            IpcError::LayoutMismatch { service, payload, ours } => write!(
-                f,
-                "service {service:?} already exists with a different {payload} layout (this process speaks \
-                 layout v{ours}): another lungdyn build is running with the same instance name; stop it or \
-                 rebuild all processes from one version"
-            ),
-            IpcError::PeerLayoutVersion { payload, theirs, ours } => write!(
-                f,
-                "received a {payload} with layout v{theirs}, but this process speaks layout v{ours}: \
-                 rebuild all lungdyn processes from one version"
-            ),
-            IpcError::Service { service, detail } => write!(f, "iceoryx2 service {service:?}: {detail}"),
-        }
-    }
-}
-
-impl std::error::Error for IpcError {}
-
 #[cfg(test)]
 mod tests {
     use super::*;
-    use core::mem::{align_of, offset_of, size_of};
-
-    #[test]
-    fn hop_stamps_layout_is_pinned() {
-        assert_eq!(size_of::<HopStamps>(), 48);
-        assert_eq!(align_of::<HopStamps>(), 8);
-        assert_eq!(offset_of!(HopStamps, capture_ns), 0);
-        assert_eq!(offset_of!(HopStamps, bridge_publish_ns), 8);
-        assert_eq!(offset_of!(HopStamps, engine_receive_ns), 16);
-        assert_eq!(offset_of!(HopStamps, engine_publish_ns), 24);
-        assert_eq!(offset_of!(HopStamps, renderer_receive_ns), 32);
-        assert_eq!(offset_of!(HopStamps, renderer_submit_ns), 40);
-    }
-
-    #[test]
-    fn pose_and_tool_layout_is_pinned() {
-        assert_eq!(size_of::<Pose>(), 32);
-        assert_eq!(align_of::<Pose>(), 4);
-        assert_eq!(offset_of!(Pose, quat), 0);
-        assert_eq!(offset_of!(Pose, translation_mm), 16);
-        assert_eq!(offset_of!(Pose, _pad), 28);
-        assert_eq!(size_of::<ToolPose>(), 48);
-        assert_eq!(offset_of!(ToolPose, tool_id), 0);
-        assert_eq!(offset_of!(ToolPose, status), 4);
-        assert_eq!(offset_of!(ToolPose, pose), 8);
-        assert_eq!(offset_of!(ToolPose, rms_error_mm), 40);
-    }
-
-    #[test]
-    fn tracker_frame_layout_is_pinned() {
-        assert_eq!(size_of::<TrackerFrame>(), 256);
-        assert_eq!(align_of::<TrackerFrame>(), 8);
-        assert_eq!(offset_of!(TrackerFrame, layout_version), 0);
-        assert_eq!(offset_of!(TrackerFrame, tool_count), 4);
-        assert_eq!(offset_of!(TrackerFrame, frame_number), 8);
-        assert_eq!(offset_of!(TrackerFrame, stamps), 16);
-        assert_eq!(offset_of!(TrackerFrame, tools), 64);
-    }
-
-    #[test]
-    fn lung_state_layout_is_pinned() {
-        assert_eq!(size_of::<LungState>(), 16 + 4 * MAX_SH_COEFFS);
-        assert_eq!(offset_of!(LungState, volume_ml), 0);
-        assert_eq!(offset_of!(LungState, deform_scale), 4);
-        assert_eq!(offset_of!(LungState, sh_count), 8);
-        assert_eq!(offset_of!(LungState, active), 12);
-        assert_eq!(offset_of!(LungState, sh_force), 16);
-    }
-
-    #[test]
-    fn engine_frame_layout_is_pinned() {
-        assert_eq!(size_of::<EngineFrame>(), 656);
-        assert_eq!(align_of::<EngineFrame>(), 8);
-        assert_eq!(offset_of!(EngineFrame, layout_version), 0);
-        assert_eq!(offset_of!(EngineFrame, state), 4);
-        assert_eq!(offset_of!(EngineFrame, fault), 8);
-        assert_eq!(offset_of!(EngineFrame, cycle_ticks), 12);
-        assert_eq!(offset_of!(EngineFrame, tick), 16);
-        assert_eq!(offset_of!(EngineFrame, tracker_frame), 24);
-        assert_eq!(offset_of!(EngineFrame, stamps), 32);
-        assert_eq!(offset_of!(EngineFrame, patient_pose), 80);
-        assert_eq!(offset_of!(EngineFrame, lungs), 112);
-    }
-
-    #[test]
-    fn frame_report_layout_is_pinned() {
-        assert_eq!(size_of::<FrameReport>(), 104);
-        assert_eq!(align_of::<FrameReport>(), 8);
-        assert_eq!(offset_of!(FrameReport, flags), 4);
-        assert_eq!(offset_of!(FrameReport, frame), 8);
-        assert_eq!(offset_of!(FrameReport, engine_tick), 16);
-        assert_eq!(offset_of!(FrameReport, tracker_frame), 24);
-        assert_eq!(offset_of!(FrameReport, stamps), 32);
-        assert_eq!(offset_of!(FrameReport, cpu_frame_ns), 80);
-        assert_eq!(offset_of!(FrameReport, gpu_frame_ns), 88);
-        assert_eq!(offset_of!(FrameReport, volume_ml), 96);
-    }
-
-    #[test]
-    fn type_names_carry_the_layout_version() {
-        let suffix = format!(".v{LAYOUT_VERSION}");
-        // SAFETY: type_name only returns the static string the derive generated.
-        unsafe {
-            assert!(<TrackerFrame as ZeroCopySend>::type_name().ends_with(&suffix));
-            assert!(<EngineFrame as ZeroCopySend>::type_name().ends_with(&suffix));
-            assert!(<FrameReport as ZeroCopySend>::type_name().ends_with(&suffix));
-        }
-    }
-
-    #[test]
-    fn instance_names_are_validated() {
-        assert!(Services::new("demo-1_a").is_ok());
-        assert!(matches!(
-            Services::new(""),
-            Err(IpcError::BadInstanceName { .. })
-        ));
-        assert!(matches!(
-            Services::new("a/b"),
-            Err(IpcError::BadInstanceName { .. })
-        ));
-        assert!(matches!(
-            Services::new(&"x".repeat(49)),
-            Err(IpcError::BadInstanceName { .. })
-        ));
-    }
 
     #[test]
     fn stamps_order_check_rejects_gaps_and_reversals() {
@@ -984,53 +539,54 @@ mod tests {
     }
 
     #[test]
-    fn monotonic_clock_advances() {
-        let a = now_ns();
-        let b = now_ns();
-        assert!(b >= a && a > 0);
-    }
-
-    /// A peer built with another layout version must be refused when it opens the service.
-    #[repr(C)]
-    #[derive(Debug, Clone, Copy, ZeroCopySend)]
-    #[type_name("lungdyn.TrackerFrame.v999")]
-    struct FutureTrackerFrame {
-        layout_version: u32,
-        other: u32,
-    }
-    impl ServicePayload for FutureTrackerFrame {
-        const NAME: &'static str = "TrackerFrame";
-        const BUFFER: usize = SUBSCRIBER_BUFFER;
+    fn payloads_round_trip_through_their_bytes() {
+        let mut f = EngineFrame {
+            layout_version: LAYOUT_VERSION,
+            tick: 77,
+            ..Default::default()
+        };
+        f.lungs[LUNG_LEFT].coeffs[63] = -1.5;
+        f.lungs[LUNG_LEFT].kernel_id = 0xdead_beef_0123_4567;
+        f.lungs[LUNG_RIGHT].offset_mm = [1.0, -2.0, 3.5];
+        let bytes = bytemuck::bytes_of(&f).to_vec();
+        assert_eq!(bytes.len(), 720);
+        let back: EngineFrame = bytemuck::pod_read_unaligned(&bytes);
+        assert_eq!(back, f);
+        // Little-endian on every supported host: the kernel id sits at byte 112 + 304 (left lung).
+        assert_eq!(
+            u64::from_le_bytes(bytes[416..424].try_into().unwrap()),
+            0xdead_beef_0123_4567
+        );
     }
 
     #[test]
-    fn a_peer_with_another_layout_version_is_refused_with_a_clear_error() {
-        let services = Services::new(&format!("layout-test-{}", std::process::id())).unwrap();
-        let node = services.node("test").unwrap();
-        let _ours = open_pubsub::<TrackerFrame>(&node, &services.tracker()).unwrap();
-        let err = open_pubsub::<FutureTrackerFrame>(&node, &services.tracker()).unwrap_err();
-        assert!(
-            matches!(
-                err,
-                IpcError::LayoutMismatch {
-                    ours: LAYOUT_VERSION,
-                    ..
-                }
-            ),
-            "{err:?}"
-        );
-        assert!(err.to_string().contains("different TrackerFrame layout"));
-        assert!(check_layout("EngineFrame", 7)
-            .unwrap_err()
-            .to_string()
-            .contains("layout v7"));
-        drop(_ours);
-        drop(node);
-        services.remove_instance_segment().unwrap();
-        assert!(
-            services.leftovers().is_empty(),
-            "{:?}",
-            services.leftovers()
-        );
+    fn a_payload_of_another_layout_is_refused_by_name() {
+        let f = EngineFrame {
+            layout_version: 7,
+            ..Default::default()
+        };
+        let e = f.check_layout().unwrap_err();
+        assert_eq!(e.theirs, 7);
+        assert!(e.to_string().contains("EngineFrame with layout v7"), "{e}");
+        assert!(TrackerFrame {
+            layout_version: LAYOUT_VERSION,
+            ..Default::default()
+        }
+        .check_layout()
+        .is_ok());
+    }
+
+    #[test]
+    fn a_tool_is_used_only_when_present_valid_and_finite() {
+        let mut f = TrackerFrame {
+            tool_count: 1,
+            ..Default::default()
+        };
+        f.tools[TOOL_PATIENT].status = tool_status::VALID;
+        assert!(f.valid_tool(TOOL_PATIENT).is_some());
+        assert!(f.valid_tool(TOOL_HMD).is_none(), "slot beyond tool_count");
+        assert!(f.valid_tool(99).is_none());
+        f.tools[TOOL_PATIENT].pose.quat[0] = f32::NAN;
+        assert!(f.valid_tool(TOOL_PATIENT).is_none());
     }
 }

@@ -1,0 +1,406 @@
+//! The product transport: iceoryx2 zero-copy shared memory.
+//!
+//! A stream is a publish–subscribe service carrying one [`Message`] plus an event service that wakes
+//! its consumers: [`Outlet`] (publisher + notifier) implements [`Publish`], [`Inlet`] (subscriber +
+//! listener) implements [`Receive`]. Payloads travel as [`Wire<T>`], a transparent wrapper that
+//! gives the protocol's `Pod` types iceoryx2's `ZeroCopySend` with their versioned type name, so
+//! iceoryx2 itself refuses a peer of another layout ([`PortError::LayoutMismatch`]).
+//!
+//! Each instance uses its own iceoryx2 file prefix ([`Instance::file_prefix`]), so leftovers are
+//! attributable and two runs never share a segment.
+
+use core::time::Duration;
+use std::path::PathBuf;
+
+use iceoryx2::prelude::*;
+use ipc_types::{EngineFrame, FrameReport, Message, TrackerFrame};
+
+use crate::clock::now_ns;
+use crate::instance::Instance;
+use crate::port::{PortError, Publish, Receive};
+
+/// A protocol payload as iceoryx2 carries it: the same bytes, with the payload's versioned type name.
+#[repr(transparent)]
+#[derive(Debug, Clone, Copy)]
+pub struct Wire<T>(pub T);
+
+// SAFETY: `Wire<T>` is `repr(transparent)` over a `Pod` payload: no pointers, no padding, a fixed
+// layout pinned by const assertions in `ipc-types`, valid in any process that maps the same bytes.
+// Its type name (iceoryx2 derives `TypeName` from this) carries the layout version.
+unsafe impl<T: Message> ZeroCopySend for Wire<T> {
+    unsafe fn type_name() -> &'static str {
+        T::TYPE_NAME
+    }
+}
+
+/// Per-stream quality of service: how many samples each subscriber keeps.
+pub trait Topic: Message {
+    /// Buffer depth per subscriber (the oldest sample is dropped when full).
+    const BUFFER: usize;
+}
+impl Topic for TrackerFrame {
+    const BUFFER: usize = 4;
+}
+impl Topic for EngineFrame {
+    const BUFFER: usize = 4;
+}
+impl Topic for FrameReport {
+    // Drained in batches by the launcher: a deeper buffer keeps every frame.
+    const BUFFER: usize = 512;
+}
+
+const MAX_SUBSCRIBERS: usize = 8;
+const MAX_PUBLISHERS: usize = 2;
+const MAX_NODES: usize = 16;
+
+/// An iceoryx2 node of this transport.
+pub type IoxNode = Node<ipc::Service>;
+
+/// iceoryx2's root folder (where node and service files live besides `/dev/shm`).
+pub fn root_path() -> PathBuf {
+    PathBuf::from(Config::default().global.root_path().as_str())
+}
+
+/// An iceoryx2 config whose files carry the instance's prefix.
+pub fn config(instance: &Instance) -> Result<Config, PortError> {
+    let mut config = Config::default();
+    config.global.prefix = FileName::new(instance.file_prefix().as_bytes()).map_err(|_| {
+        PortError::BadInstanceName {
+            name: instance.name().to_string(),
+        }
+    })?;
+    Ok(config)
+}
+
+/// Create the iceoryx2 node of process `role` (e.g. "engine") in `instance`.
+pub fn node(instance: &Instance, role: &str) -> Result<IoxNode, PortError> {
+    let name = format!("lungdyn-{}-{}", instance.name(), role);
+    let node_name = NodeName::new(&name).map_err(|_| PortError::BadInstanceName {
+        name: instance.name().to_string(),
+    })?;
+    NodeBuilder::new()
+        .name(&node_name)
+        .config(&config(instance)?)
+        .create::<ipc::Service>()
+        .map_err(|source| PortError::Node { node: name, source })
+}
+
+/// True when the process was asked to terminate (SIGINT/SIGTERM), as seen by iceoryx2's handler.
+pub fn termination_requested(node: &IoxNode) -> bool {
+    node.wait(Duration::ZERO).is_err()
+}
+
+/// Sleep up to `period` on the node; false when a termination was requested.
+pub fn idle(node: &IoxNode, period: Duration) -> bool {
+    node.wait(period).is_ok()
+}
+
+/// The port factory of a stream of `T`.
+pub type Stream<T> =
+    iceoryx2::service::port_factory::publish_subscribe::PortFactory<ipc::Service, Wire<T>, ()>;
+/// The port factory of a wake-up event.
+pub type Event = iceoryx2::service::port_factory::event::PortFactory<ipc::Service>;
+
+fn service_name(name: &str) -> Result<ServiceName, PortError> {
+    name.try_into().map_err(|_| PortError::BadServiceName {
+        name: name.to_string(),
+    })
+}
+
+/// Open (or create) the stream `name` carrying `T` with lungdyn's QoS. A peer built with another
+/// payload layout yields [`PortError::LayoutMismatch`].
+pub fn open_stream<T: Topic>(node: &IoxNode, name: &str) -> Result<Stream<T>, PortError> {
+    use iceoryx2::service::builder::publish_subscribe::{
+        PublishSubscribeOpenError as O, PublishSubscribeOpenOrCreateError as E,
+    };
+    node.service_builder(&service_name(name)?)
+        .publish_subscribe::<Wire<T>>()
+        .history_size(1)
+        .subscriber_max_buffer_size(T::BUFFER)
+        .enable_safe_overflow(true)
+        .max_publishers(MAX_PUBLISHERS)
+        .max_subscribers(MAX_SUBSCRIBERS)
+        .max_nodes(MAX_NODES)
+        .open_or_create()
+        .map_err(|e| match e {
+            E::PublishSubscribeOpenError(O::IncompatibleTypes) => PortError::LayoutMismatch {
+                service: name.to_string(),
+                payload: T::NAME,
+                ours: ipc_types::LAYOUT_VERSION,
+            },
+            source => PortError::OpenStream {
+                service: name.to_string(),
+                source,
+            },
+        })
+}
+
+/// Open (or create) the wake-up event `name`.
+pub fn open_event(node: &IoxNode, name: &str) -> Result<Event, PortError> {
+    node.service_builder(&service_name(name)?)
+        .event()
+        .max_notifiers(MAX_PUBLISHERS)
+        .max_listeners(MAX_SUBSCRIBERS)
+        .max_nodes(MAX_NODES)
+        .open_or_create()
+        .map_err(|source| PortError::OpenEvent {
+            service: name.to_string(),
+            source,
+        })
+}
+
+fn create_port<'a, E: std::error::Error + Send + Sync + 'static>(
+    port: &'static str,
+    service: &'a str,
+) -> impl FnOnce(E) -> PortError + 'a {
+    move |e| PortError::CreatePort {
+        port,
+        service: service.to_string(),
+        source: Box::new(e),
+    }
+}
+
+fn io<'a, E: std::error::Error + Send + Sync + 'static>(
+    operation: &'static str,
+    service: &'a str,
+) -> impl FnOnce(E) -> PortError + 'a {
+    move |e| PortError::Io {
+        operation,
+        service: service.to_string(),
+        source: Box::new(e),
+    }
+}
+
+/// The sending end of a stream: a publisher plus the event that wakes its consumers.
+pub struct Outlet<T: Topic> {
+    publisher: iceoryx2::port::publisher::Publisher<ipc::Service, Wire<T>, ()>,
+    notifier: iceoryx2::port::notifier::Notifier<ipc::Service>,
+    name: String,
+    _data: Stream<T>,
+    _event: Event,
+}
+
+impl<T: Topic> Outlet<T> {
+    /// Open the stream `data` and its wake-up event `event`.
+    pub fn new(node: &IoxNode, data: &str, event: &str) -> Result<Self, PortError> {
+        let data_service = open_stream::<T>(node, data)?;
+        let event_service = open_event(node, event)?;
+        let publisher = data_service
+            .publisher_builder()
+            .create()
+            .map_err(create_port("publisher", data))?;
+        let notifier = event_service
+            .notifier_builder()
+            .create()
+            .map_err(create_port("notifier", event))?;
+        Ok(Self {
+            publisher,
+            notifier,
+            name: data.to_string(),
+            _data: data_service,
+            _event: event_service,
+        })
+    }
+}
+
+impl<T: Topic> Publish<T> for Outlet<T> {
+    /// Zero-copy loan, no allocation; then wake the consumers.
+    fn publish(&mut self, value: &T) -> Result<(), PortError> {
+        let sample = self
+            .publisher
+            .loan_uninit()
+            .map_err(io("loan a sample", &self.name))?;
+        sample
+            .write_payload(Wire(*value))
+            .send()
+            .map_err(io("send", &self.name))?;
+        self.notifier.notify().map_err(io("notify", &self.name))?;
+        Ok(())
+    }
+}
+
+/// The receiving end of a stream: a subscriber plus the event listener that wakes us.
+pub struct Inlet<T: Topic> {
+    subscriber: iceoryx2::port::subscriber::Subscriber<ipc::Service, Wire<T>, ()>,
+    listener: iceoryx2::port::listener::Listener<ipc::Service>,
+    name: String,
+    _data: Stream<T>,
+    _event: Event,
+}
+
+impl<T: Topic> Inlet<T> {
+    /// Open the stream `data` and its wake-up event `event`.
+    pub fn new(node: &IoxNode, data: &str, event: &str) -> Result<Self, PortError> {
+        let data_service = open_stream::<T>(node, data)?;
+        let event_service = open_event(node, event)?;
+        let subscriber = data_service
+            .subscriber_builder()
+            .create()
+            .map_err(create_port("subscriber", data))?;
+        let listener = event_service
+            .listener_builder()
+            .create()
+            .map_err(create_port("listener", event))?;
+        Ok(Self {
+            subscriber,
+            listener,
+            name: data.to_string(),
+            _data: data_service,
+            _event: event_service,
+        })
+    }
+}
+
+impl<T: Topic> Receive<T> for Inlet<T> {
+    fn wait_until(&mut self, deadline_ns: u64) -> Result<(), PortError> {
+        use iceoryx2::port::listener::ListenerWaitError;
+        let now = now_ns();
+        let waited = if deadline_ns <= now {
+            // Still consume pending wake-ups so they do not pile up.
+            self.listener.try_wait(|_| {})
+        } else {
+            self.listener
+                .timed_wait(|_| {}, Duration::from_nanos(deadline_ns - now))
+        };
+        match waited {
+            // A signal (SIGINT/SIGTERM) ends the wait early on purpose: the loop checks for a
+            // termination request next.
+            Ok(_) | Err(ListenerWaitError::InterruptSignal) => Ok(()),
+            Err(e) => Err(io("wait", &self.name)(e)),
+        }
+    }
+
+    fn take_latest(&mut self) -> Result<Option<T>, PortError> {
+        let mut latest = None;
+        while let Some(sample) = self
+            .subscriber
+            .receive()
+            .map_err(io("receive", &self.name))?
+        {
+            latest = Some(sample.payload().0);
+        }
+        Ok(latest)
+    }
+
+    fn drain(&mut self, f: &mut dyn FnMut(&T)) -> Result<usize, PortError> {
+        let mut n = 0;
+        while let Some(sample) = self
+            .subscriber
+            .receive()
+            .map_err(io("receive", &self.name))?
+        {
+            f(&sample.payload().0);
+            n += 1;
+        }
+        Ok(n)
+    }
+}
+
+/// The three streams of a process, opened on its node.
+impl Instance {
+    /// Outlet of the tracker stream.
+    pub fn tracker_outlet(&self, node: &IoxNode) -> Result<Outlet<TrackerFrame>, PortError> {
+        Outlet::new(node, &self.tracker(), &self.tracker_event())
+    }
+    /// Inlet of the tracker stream.
+    pub fn tracker_inlet(&self, node: &IoxNode) -> Result<Inlet<TrackerFrame>, PortError> {
+        Inlet::new(node, &self.tracker(), &self.tracker_event())
+    }
+    /// Outlet of the engine stream.
+    pub fn engine_outlet(&self, node: &IoxNode) -> Result<Outlet<EngineFrame>, PortError> {
+        Outlet::new(node, &self.engine(), &self.engine_event())
+    }
+    /// Inlet of the engine stream.
+    pub fn engine_inlet(&self, node: &IoxNode) -> Result<Inlet<EngineFrame>, PortError> {
+        Inlet::new(node, &self.engine(), &self.engine_event())
+    }
+    /// Outlet of the report stream.
+    pub fn report_outlet(&self, node: &IoxNode) -> Result<Outlet<FrameReport>, PortError> {
+        Outlet::new(node, &self.report(), &self.report_event())
+    }
+    /// Inlet of the report stream.
+    pub fn report_inlet(&self, node: &IoxNode) -> Result<Inlet<FrameReport>, PortError> {
+        Inlet::new(node, &self.report(), &self.report_event())
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use bytemuck::{Pod, Zeroable};
+
+    /// A peer built with another layout version must be refused when it opens the stream.
+    #[repr(C)]
+    #[derive(Debug, Clone, Copy, Pod, Zeroable)]
+    struct FutureTrackerFrame {
+        layout_version: u32,
+        other: u32,
+    }
+    impl Message for FutureTrackerFrame {
+        const NAME: &'static str = "TrackerFrame";
+        const TYPE_NAME: &'static str = "lungdyn.TrackerFrame.v999";
+        fn layout_version(&self) -> u32 {
+            self.layout_version
+        }
+    }
+    impl Topic for FutureTrackerFrame {
+        const BUFFER: usize = 4;
+    }
+
+    #[test]
+    fn a_peer_with_another_layout_version_is_refused_with_a_clear_error() {
+        let instance = Instance::new(&format!("layout-test-{}", std::process::id())).unwrap();
+        let node = node(&instance, "test").unwrap();
+        let ours = open_stream::<TrackerFrame>(&node, &instance.tracker()).unwrap();
+        let err =
+            open_stream::<FutureTrackerFrame>(&node, &instance.tracker()).expect_err("refused");
+        assert!(
+            matches!(
+                err,
+                PortError::LayoutMismatch {
+                    ours: ipc_types::LAYOUT_VERSION,
+                    ..
+                }
+            ),
+            "{err:?}"
+        );
+        assert!(err.to_string().contains("different TrackerFrame layout"));
+        drop(ours);
+        drop(node);
+        let cleanup = instance.remove_leftovers();
+        assert!(cleanup.unexpected.is_empty(), "{cleanup:?}");
+        assert!(
+            instance.leftovers().is_empty(),
+            "{:?}",
+            instance.leftovers()
+        );
+    }
+
+    #[test]
+    fn samples_cross_a_stream_with_their_exact_bytes() {
+        let instance = Instance::new(&format!("wire-test-{}", std::process::id())).unwrap();
+        let node = node(&instance, "test").unwrap();
+        let mut rx = instance.engine_inlet(&node).unwrap();
+        let mut tx = instance.engine_outlet(&node).unwrap();
+        let mut f = EngineFrame {
+            layout_version: ipc_types::LAYOUT_VERSION,
+            tick: 9,
+            ..Default::default()
+        };
+        f.lungs[1].coeffs[5] = f32::from_bits(0x7f7f_1234);
+        tx.publish(&f).unwrap();
+        f.tick = 10;
+        tx.publish(&f).unwrap();
+        rx.wait_until(now_ns() + 1_000_000_000).unwrap();
+        let got = rx.take_latest().unwrap().expect("a sample");
+        assert_eq!(bytemuck::bytes_of(&got), bytemuck::bytes_of(&f));
+        assert_eq!(rx.take_latest().unwrap(), None, "drained");
+        drop((rx, tx, node));
+        let cleanup = instance.remove_leftovers();
+        assert!(
+            cleanup.node_counter && cleanup.unexpected.is_empty(),
+            "{cleanup:?}"
+        );
+        assert!(instance.leftovers().is_empty());
+    }
+}
