@@ -1,0 +1,566 @@
+//! Reading patient lung surfaces: OBJ (tobj), PLY (ply-rs-bw), STL ASCII and binary (stl_io).
+//!
+//! After reading, vertices at identical positions are welded (STL stores every triangle's corners
+//! separately), and what is safe to repair is repaired and reported: triangles that collapse after
+//! welding, exact duplicate triangles, unused vertices, a surface wound inside out. Everything else
+//! [`lung_model::mesh::check`] refuses (open edges, non-manifold edges, inconsistent winding, NaN) is an error
+//! naming the file and the problem. Header claims are checked against the file size before any
+//! reader allocates, so a file claiming 2^31 faces costs nothing.
+
+use std::collections::HashMap;
+use std::io::{BufRead, Cursor};
+use std::path::{Path, PathBuf};
+
+use lung_model::mesh::{check, MeshError, Topology, TriMesh};
+
+/// Length unit of the coordinates in a file.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub enum Units {
+    /// Millimetres (lungdyn's unit).
+    Mm,
+    /// Centimetres.
+    Cm,
+    /// Metres.
+    M,
+}
+
+impl Units {
+    /// Factor to millimetres.
+    pub fn to_mm(self) -> f32 {
+        match self {
+            Units::Mm => 1.0,
+            Units::Cm => 10.0,
+            Units::M => 1000.0,
+        }
+    }
+}
+
+impl std::str::FromStr for Units {
+    type Err = String;
+    fn from_str(s: &str) -> Result<Self, String> {
+        match s {
+            "mm" => Ok(Units::Mm),
+            "cm" => Ok(Units::Cm),
+            "m" => Ok(Units::M),
+            other => Err(format!("unknown unit {other:?}: use mm, cm or m")),
+        }
+    }
+}
+
+/// What was repaired while importing.
+#[derive(Debug, Clone, Default, PartialEq, Eq, serde::Serialize)]
+pub struct Repairs {
+    /// Vertices merged into an identical one.
+    pub welded_vertices: usize,
+    /// Triangles removed because two corners coincided.
+    pub degenerate_triangles: usize,
+    /// Exact duplicate triangles removed.
+    pub duplicate_triangles: usize,
+    /// Vertices no triangle used, removed.
+    pub unused_vertices: usize,
+    /// The whole surface was wound inside out and was flipped.
+    pub flipped_inside_out: bool,
+}
+
+/// An imported mesh.
+#[derive(Debug, Clone)]
+pub struct Imported {
+    /// The mesh in mm.
+    pub mesh: TriMesh,
+    /// Its topology.
+    pub topology: Topology,
+    /// What was repaired.
+    pub repairs: Repairs,
+}
+
+/// Import errors: each names the file.
+#[derive(Debug, thiserror::Error)]
+pub enum ImportError {
+    /// Unreadable file.
+    #[error("{}: {source}", path.display())]
+    Io {
+        /// Path.
+        path: PathBuf,
+        /// OS error.
+        source: std::io::Error,
+    },
+    /// Unknown extension.
+    #[error("{}: unknown mesh format: use .obj, .ply or .stl", path.display())]
+    Format {
+        /// Path.
+        path: PathBuf,
+    },
+    /// The reader rejected the content.
+    #[error("{}: not a valid {format} file: {message}", path.display())]
+    Parse {
+        /// Path.
+        path: PathBuf,
+        /// Format name.
+        format: &'static str,
+        /// Reader's message.
+        message: String,
+    },
+    /// The surface cannot be used (after safe repairs).
+    #[error("{}: {source}", path.display())]
+    Mesh {
+        /// Path.
+        path: PathBuf,
+        /// What is wrong.
+        source: MeshError,
+    },
+}
+
+/// Import `path` (format by extension), coordinates in `units`.
+pub fn import(path: &Path, units: Units) -> Result<Imported, ImportError> {
+    let bytes = std::fs::read(path).map_err(|source| ImportError::Io {
+        path: path.to_path_buf(),
+        source,
+    })?;
+    let ext = path
+        .extension()
+        .and_then(|e| e.to_str())
+        .map(|e| e.to_ascii_lowercase());
+    let parse = |format: &'static str, message: String| ImportError::Parse {
+        path: path.to_path_buf(),
+        format,
+        message,
+    };
+    let (positions, triangles) = match ext.as_deref() {
+        Some("obj") => read_obj(&bytes).map_err(|m| parse("OBJ", m))?,
+        Some("ply") => read_ply(&bytes).map_err(|m| parse("PLY", m))?,
+        Some("stl") => read_stl(&bytes).map_err(|m| parse("STL", m))?,
+        _ => {
+            return Err(ImportError::Format {
+                path: path.to_path_buf(),
+            })
+        }
+    };
+    repair(positions, triangles, units).map_err(|source| ImportError::Mesh {
+        path: path.to_path_buf(),
+        source,
+    })
+}
+
+type Raw = (Vec<[f32; 3]>, Vec<[u32; 3]>);
+
+fn read_obj(bytes: &[u8]) -> Result<Raw, String> {
+    let (models, _) = tobj::load_obj_buf(&mut Cursor::new(bytes), &tobj::GPU_LOAD_OPTIONS, |_| {
+        Err(tobj::LoadError::OpenFileFailed)
+    })
+    .map_err(|e| e.to_string())?;
+    let (mut positions, mut triangles) = (Vec::new(), Vec::new());
+    for m in models {
+        let base = positions.len() as u32;
+        positions.extend(m.mesh.positions.chunks_exact(3).map(|p| [p[0], p[1], p[2]]));
+        for t in m.mesh.indices.chunks_exact(3) {
+            triangles.push([t[0] + base, t[1] + base, t[2] + base]);
+        }
+    }
+    // tobj numbers vertices in the order faces first use them; restore the file's `v` order, which
+    // is what ties two phases of one lung together (fit-motion's correspondences).
+    if let Some(perm) = obj_file_order(bytes, &positions) {
+        let mut ordered = vec![[0.0f32; 3]; positions.len()];
+        for (t, &n) in perm.iter().enumerate() {
+            ordered[n as usize] = positions[t];
+        }
+        positions = ordered;
+        for t in &mut triangles {
+            *t = t.map(|v| perm[v as usize]);
+        }
+    }
+    Ok((positions, triangles))
+}
+
+/// For each vertex tobj returned, its rank among the file's `v` lines, matched by the exact parsed
+/// coordinates; `None` when the match is not one-to-one (duplicate coordinates), in which case
+/// tobj's order is kept.
+fn obj_file_order(bytes: &[u8], positions: &[[f32; 3]]) -> Option<Vec<u32>> {
+    let key = |p: &[f32; 3]| p.map(f32::to_bits);
+    let mut by_key: HashMap<[u32; 3], u32> = HashMap::with_capacity(positions.len());
+    for (i, p) in positions.iter().enumerate() {
+        if by_key.insert(key(p), i as u32).is_some() {
+            return None;
+        }
+    }
+    let text = std::str::from_utf8(bytes).ok()?;
+    let mut perm = vec![u32::MAX; positions.len()];
+    let mut next = 0u32;
+    for line in text.lines() {
+        let Some(rest) = line.strip_prefix("v ").or_else(|| line.strip_prefix("v\t")) else {
+            continue;
+        };
+        let mut f = rest.split_whitespace().map(|v| v.parse::<f32>());
+        let (Some(Ok(x)), Some(Ok(y)), Some(Ok(z))) = (f.next(), f.next(), f.next()) else {
+            return None;
+        };
+        if let Some(&t) = by_key.get(&key(&[x, y, z])) {
+            if perm[t as usize] == u32::MAX {
+                perm[t as usize] = next;
+                next += 1;
+            }
+        }
+    }
+    (next as usize == positions.len()).then_some(perm)
+}
+
+/// Element counts a PLY header claims, checked against the file size before anything is allocated.
+fn ply_claims(bytes: &[u8]) -> Result<(), String> {
+    let mut total: u64 = 0;
+    for line in bytes.lines().take(1000) {
+        let line = line.map_err(|_| "the header is not text".to_string())?;
+        if line.trim() == "end_header" {
+            // Every element takes at least one byte in any PLY encoding.
+            return if total <= bytes.len() as u64 {
+                Ok(())
+            } else {
+                Err(format!(
+                    "the header claims {total} elements, more than the file's {} bytes can hold",
+                    bytes.len()
+                ))
+            };
+        }
+        let mut words = line.split_whitespace();
+        if words.next() == Some("element") {
+            let count: u64 = words
+                .nth(1)
+                .and_then(|c| c.parse().ok())
+                .ok_or(format!("bad element line {line:?}"))?;
+            total = total.saturating_add(count);
+        }
+    }
+    Err("no end_header line".into())
+}
+
+fn read_ply(bytes: &[u8]) -> Result<Raw, String> {
+    use ply_rs_bw::ply::{DefaultElement, Property};
+    ply_claims(bytes)?;
+    let parser = ply_rs_bw::parser::Parser::<DefaultElement>::new();
+    let ply = parser
+        .read_ply(&mut Cursor::new(bytes))
+        .map_err(|e| e.to_string())?;
+    let scalar = |p: &Property| -> Option<f32> {
+        Some(match *p {
+            Property::Float(v) => v,
+            Property::Double(v) => v as f32,
+            Property::Int(v) => v as f32,
+            Property::UInt(v) => v as f32,
+            Property::Short(v) => v as f32,
+            Property::UShort(v) => v as f32,
+            Property::Char(v) => v as f32,
+            Property::UChar(v) => v as f32,
+            _ => return None,
+        })
+    };
+    let vertices = ply.payload.get("vertex").ok_or("no vertex element")?;
+    let mut positions = Vec::with_capacity(vertices.len());
+    for (i, v) in vertices.iter().enumerate() {
+        let get = |k: &str| {
+            v.get(k)
+                .and_then(scalar)
+                .ok_or(format!("vertex {i} has no numeric {k}"))
+        };
+        positions.push([get("x")?, get("y")?, get("z")?]);
+    }
+    let faces = ply.payload.get("face").ok_or("no face element")?;
+    let mut triangles = Vec::with_capacity(faces.len());
+    for (i, f) in faces.iter().enumerate() {
+        let list = f
+            .get("vertex_indices")
+            .or_else(|| f.get("vertex_index"))
+            .ok_or(format!("face {i} has no vertex_indices"))?;
+        let idx: Vec<i64> = match list {
+            Property::ListInt(v) => v.iter().map(|&x| x as i64).collect(),
+            Property::ListUInt(v) => v.iter().map(|&x| x as i64).collect(),
+            Property::ListShort(v) => v.iter().map(|&x| x as i64).collect(),
+            Property::ListUShort(v) => v.iter().map(|&x| x as i64).collect(),
+            Property::ListChar(v) => v.iter().map(|&x| x as i64).collect(),
+            Property::ListUChar(v) => v.iter().map(|&x| x as i64).collect(),
+            _ => return Err(format!("face {i}: vertex_indices is not an integer list")),
+        };
+        if idx.len() < 3 || idx.iter().any(|&x| x < 0 || x >= positions.len() as i64) {
+            return Err(format!(
+                "face {i} has fewer than 3 corners or an index outside 0..{}",
+                positions.len()
+            ));
+        }
+        // Polygons are fanned into triangles.
+        for k in 1..idx.len() - 1 {
+            triangles.push([idx[0] as u32, idx[k] as u32, idx[k + 1] as u32]);
+        }
+    }
+    Ok((positions, triangles))
+}
+
+fn read_stl(bytes: &[u8]) -> Result<Raw, String> {
+    // Binary STL: 80-byte header, u32 count, 50 bytes per triangle. Check the claim before reading.
+    let ascii = bytes.starts_with(b"solid")
+        && bytes.iter().take(1024).any(|&b| b == b'\n')
+        && !looks_binary(bytes);
+    if !ascii {
+        if bytes.len() < 84 {
+            return Err(format!(
+                "{} bytes is too short for a binary STL (84-byte header)",
+                bytes.len()
+            ));
+        }
+        let claimed = u32::from_le_bytes(bytes[80..84].try_into().unwrap()) as u64;
+        let expected = 84 + 50 * claimed;
+        if expected != bytes.len() as u64 {
+            return Err(format!("the header claims {claimed} triangles ({expected} bytes) but the file has {} bytes", bytes.len()));
+        }
+    }
+    let mesh = stl_io::read_stl(&mut Cursor::new(bytes)).map_err(|e| e.to_string())?;
+    let positions = mesh.vertices.iter().map(|v| v.0).collect();
+    let triangles = mesh
+        .faces
+        .iter()
+        .map(|f| f.vertices.map(|i| i as u32))
+        .collect();
+    Ok((positions, triangles))
+}
+
+/// A binary STL may also begin with "solid": it is binary when its size matches the count.
+fn looks_binary(bytes: &[u8]) -> bool {
+    bytes.len() >= 84 && {
+        let claimed = u32::from_le_bytes(bytes[80..84].try_into().unwrap()) as u64;
+        84 + 50 * claimed == bytes.len() as u64
+    }
+}
+
+/// Weld, repair what is safe, scale to mm, and check.
+pub fn repair(
+    positions: Vec<[f32; 3]>,
+    triangles: Vec<[u32; 3]>,
+    units: Units,
+) -> Result<Imported, MeshError> {
+    let mut repairs = Repairs::default();
+    if let Some(i) = positions
+        .iter()
+        .position(|p| p.iter().any(|v| !v.is_finite()))
+    {
+        return Err(MeshError::NonFinite { vertex: i });
+    }
+    if let Some(t) = triangles
+        .iter()
+        .position(|t| t.iter().any(|&i| i as usize >= positions.len()))
+    {
+        return Err(MeshError::IndexOutOfRange { triangle: t });
+    }
+    // Weld identical positions (−0.0 and 0.0 are the same point).
+    let key = |p: &[f32; 3]| p.map(|v| if v == 0.0 { 0u32 } else { v.to_bits() });
+    let mut first: HashMap<[u32; 3], u32> = HashMap::with_capacity(positions.len());
+    let mut remap = Vec::with_capacity(positions.len());
+    for (i, p) in positions.iter().enumerate() {
+        let id = *first.entry(key(p)).or_insert(i as u32);
+        if id != i as u32 {
+            repairs.welded_vertices += 1;
+        }
+        remap.push(id);
+    }
+    let mut seen = std::collections::HashSet::with_capacity(triangles.len());
+    let mut kept = Vec::with_capacity(triangles.len());
+    for t in &triangles {
+        let t = t.map(|i| remap[i as usize]);
+        if t[0] == t[1] || t[1] == t[2] || t[0] == t[2] {
+            repairs.degenerate_triangles += 1;
+            continue;
+        }
+        // Same triangle, same winding, any rotation.
+        let r = (0..3).min_by_key(|&k| t[k]).unwrap_or(0);
+        if !seen.insert([t[r], t[(r + 1) % 3], t[(r + 2) % 3]]) {
+            repairs.duplicate_triangles += 1;
+            continue;
+        }
+        kept.push(t);
+    }
+    // Compact: drop unused vertices, keeping the file's vertex order (two phases of a lung
+    // correspond by it).
+    let mut used = vec![false; positions.len()];
+    for t in &kept {
+        for &i in t {
+            used[i as usize] = true;
+        }
+    }
+    let mut new_index = vec![u32::MAX; positions.len()];
+    let mut out_positions = Vec::new();
+    let s = units.to_mm();
+    for (i, p) in positions.iter().enumerate() {
+        if used[i] {
+            new_index[i] = out_positions.len() as u32;
+            out_positions.push([p[0] * s, p[1] * s, p[2] * s]);
+        }
+    }
+    for t in &mut kept {
+        *t = t.map(|i| new_index[i as usize]);
+    }
+    repairs.unused_vertices = positions.len() - repairs.welded_vertices - out_positions.len();
+    let mut mesh = TriMesh {
+        positions: out_positions,
+        triangles: kept,
+    };
+    if !mesh.triangles.is_empty() && mesh.enclosed_volume_mm3() < 0.0 {
+        for t in &mut mesh.triangles {
+            t.swap(1, 2);
+        }
+        repairs.flipped_inside_out = true;
+    }
+    let topology = check(&mesh)?;
+    Ok(Imported {
+        mesh,
+        topology,
+        repairs,
+    })
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use lung_model::mesh::{generate, io, Side};
+    use proptest::prelude::*;
+
+    fn tmp(name: &str) -> PathBuf {
+        let dir = std::env::temp_dir().join(format!("lungdyn-import-{}", std::process::id()));
+        std::fs::create_dir_all(&dir).unwrap();
+        dir.join(name)
+    }
+
+    #[test]
+    fn our_own_obj_and_ply_round_trip() {
+        let mesh = generate::lung(Side::Left, 1000).unwrap();
+        for name in ["rt.obj", "rt.ply"] {
+            let p = tmp(name);
+            io::write_mesh(&mesh, &p).unwrap();
+            let back = import(&p, Units::Mm).unwrap();
+            assert_eq!(back.mesh.triangles.len(), mesh.triangles.len());
+            assert_eq!(back.repairs, Repairs::default(), "{name}");
+            assert!((back.mesh.enclosed_volume_ml() - 1100.0).abs() < 0.01);
+            // The file's vertex order survives (two phases of a lung correspond by it).
+            let first = back
+                .mesh
+                .positions
+                .iter()
+                .zip(&mesh.positions)
+                .position(|(a, b)| a != b);
+            assert!(first.is_none(), "{name}: vertex order changed at {first:?}");
+            assert!(
+                back.mesh.triangles == mesh.triangles,
+                "{name}: triangles changed"
+            );
+        }
+        // A face order that first uses the last vertex still keeps the file order.
+        let p = tmp("reordered.obj");
+        std::fs::write(
+            &p,
+            "v 0 0 0\nv 1 0 0\nv 0 1 0\nv 0 0 1\nf 4 2 3\nf 1 3 2\nf 1 2 4\nf 1 4 3\n",
+        )
+        .unwrap();
+        let back = import(&p, Units::Mm).unwrap();
+        assert_eq!(back.mesh.positions[0], [0.0, 0.0, 0.0]);
+        assert_eq!(back.mesh.positions[3], [0.0, 0.0, 1.0]);
+        assert_eq!(back.mesh.triangles[0], [3, 1, 2]);
+    }
+
+    fn stl_binary(mesh: &TriMesh) -> Vec<u8> {
+        let mut b = vec![0u8; 80];
+        b.extend((mesh.triangles.len() as u32).to_le_bytes());
+        for t in &mesh.triangles {
+            b.extend([0u8; 12]);
+            for &i in t {
+                for v in mesh.positions[i as usize] {
+                    b.extend(v.to_le_bytes());
+                }
+            }
+            b.extend([0u8; 2]);
+        }
+        b
+    }
+
+    #[test]
+    fn stl_is_welded_into_a_closed_surface_and_units_apply() {
+        let mesh = generate::lung(Side::Right, 1000).unwrap();
+        let p = tmp("lung.stl");
+        // In centimetres: coordinates / 10, then --units cm brings them back.
+        let cm = TriMesh {
+            positions: mesh.positions.iter().map(|p| p.map(|v| v / 10.0)).collect(),
+            ..mesh.clone()
+        };
+        std::fs::write(&p, stl_binary(&cm)).unwrap();
+        let back = import(&p, Units::Cm).unwrap();
+        // stl_io indexes identical corners itself; either way every corner is welded.
+        assert_eq!(back.mesh.positions.len(), mesh.positions.len());
+        assert!((back.mesh.enclosed_volume_ml() - 1300.0).abs() < 0.5);
+    }
+
+    #[test]
+    fn inside_out_and_duplicates_are_repaired_and_reported() {
+        let mut mesh = generate::lung(Side::Left, 200).unwrap();
+        for t in &mut mesh.triangles {
+            t.swap(1, 2);
+        }
+        mesh.triangles.push(mesh.triangles[0]);
+        let r = repair(mesh.positions.clone(), mesh.triangles.clone(), Units::Mm).unwrap();
+        assert!(r.repairs.flipped_inside_out);
+        assert_eq!(r.repairs.duplicate_triangles, 1);
+    }
+
+    #[test]
+    fn holes_and_garbage_are_refused_naming_file_and_problem() {
+        let mut mesh = generate::lung(Side::Left, 200).unwrap();
+        mesh.triangles.truncate(mesh.triangles.len() - 2);
+        let p = tmp("open.obj");
+        io::write_mesh(&mesh, &p).unwrap();
+        let e = import(&p, Units::Mm).unwrap_err().to_string();
+        assert!(
+            e.contains("open.obj") && e.contains("open boundary edges"),
+            "{e}"
+        );
+        let p = tmp("empty.stl");
+        std::fs::write(&p, b"").unwrap();
+        assert!(import(&p, Units::Mm)
+            .unwrap_err()
+            .to_string()
+            .contains("too short"));
+        let p = tmp("huge.stl");
+        let mut b = vec![0u8; 80];
+        b.extend((1u32 << 31).to_le_bytes());
+        std::fs::write(&p, &b).unwrap();
+        let e = import(&p, Units::Mm).unwrap_err().to_string();
+        assert!(e.contains("claims 2147483648 triangles"), "{e}");
+        let p = tmp("huge.ply");
+        std::fs::write(&p, b"ply\nformat ascii 1.0\nelement vertex 3\nproperty float x\nproperty float y\nproperty float z\nelement face 2147483648\nproperty list uchar int vertex_indices\nend_header\n").unwrap();
+        assert!(import(&p, Units::Mm)
+            .unwrap_err()
+            .to_string()
+            .contains("claims"));
+        let p = tmp("nan.obj");
+        std::fs::write(&p, b"v 0 0 0\nv 1 0 0\nv 0 nan 0\nf 1 2 3\n").unwrap();
+        assert!(import(&p, Units::Mm).is_err());
+        let p = tmp("x.dae");
+        std::fs::write(&p, b"").unwrap();
+        assert!(matches!(
+            import(&p, Units::Mm),
+            Err(ImportError::Format { .. })
+        ));
+    }
+
+    proptest! {
+        #![proptest_config(ProptestConfig::with_cases(300))]
+        #[test]
+        fn arbitrary_bytes_never_panic_any_reader(bytes in proptest::collection::vec(any::<u8>(), 0..600), ext in 0usize..3) {
+            let p = tmp(&format!("fuzz-{}.{}", std::process::id(), ["obj", "ply", "stl"][ext]));
+            std::fs::write(&p, &bytes).unwrap();
+            let _ = import(&p, Units::Mm);
+        }
+
+        #[test]
+        fn mutated_valid_files_never_panic(flips in proptest::collection::vec((0usize..4000, any::<u8>()), 1..8), ext in 0usize..2) {
+            let mesh = generate::lung(Side::Left, 100).unwrap();
+            let p = tmp(&format!("mut-{}.{}", std::process::id(), ["ply", "stl"][ext]));
+            if ext == 0 { io::write_mesh(&mesh, &p).unwrap(); } else { std::fs::write(&p, stl_binary(&mesh)).unwrap(); }
+            let mut bytes = std::fs::read(&p).unwrap();
+            for (at, v) in flips { let n = bytes.len(); bytes[at % n] = v; }
+            std::fs::write(&p, &bytes).unwrap();
+            let _ = import(&p, Units::Mm);
+        }
+    }
+}

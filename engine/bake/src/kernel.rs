@@ -1,0 +1,269 @@
+//! # kernel: baking a lung (seed ch. 6 end to end) into a kernel file
+//!
+//! [`bake`] runs the whole of seed ch. 6 for one lung mesh: the elasticity field and node graph
+//! (§6.2, eq. 6.7), every transfer row by the pitcher–catcher pass (eq. 6.11–6.13), the applied
+//! force of eq. 6.18 and the elastostatic force `F = Tᵀf` (eq. 6.1), the directions of
+//! eq. 6.14–6.16 and the unit displacement `F[i]·d_i` scaled to one unit volume (EQUATIONS §2.4).
+//! [`Kernel::write`] stores it in the format `lung_model::kernel` defines and reads.
+
+use std::path::Path;
+
+use thiserror::Error;
+
+use lung_model::deform::{
+    applied_force, normalised_position, DeformError, LungModel, UNIT_VOLUME_ML,
+};
+use lung_model::kernel::{mesh_hash, section, write_file};
+pub use lung_model::kernel::{BakeSettings, KernelError, KernelMeta, DEFAULT_TOLERANCE};
+use lung_model::mesh::{Side, TriMesh};
+
+use crate::operator::{compute_transfer, NodeGraph, OperatorError, Schedule, Transfer};
+
+/// A baked lung, in memory.
+#[derive(Debug, Clone)]
+pub struct Kernel {
+    /// Metadata.
+    pub meta: KernelMeta,
+    /// The mesh.
+    pub mesh: TriMesh,
+    /// Unit directions (eq. 6.14–6.16).
+    pub directions: Vec<[f32; 3]>,
+    /// Applied force (eq. 6.18).
+    pub applied_force: Vec<f32>,
+    /// Elastostatic force `F = Tᵀf` (eq. 6.1).
+    pub elastostatic: Vec<f32>,
+    /// Unit displacement, mm per unit volume.
+    pub unit_displacement: Vec<[f32; 3]>,
+    /// Transfer rows.
+    pub transfer: Transfer,
+}
+
+/// Errors baking.
+#[derive(Debug, Error)]
+pub enum BakeError {
+    /// The operator could not be built.
+    #[error(transparent)]
+    Operator(#[from] OperatorError),
+    /// The displacement field is unusable.
+    #[error(transparent)]
+    Deform(#[from] DeformError),
+    /// The surface is not a closed, consistently wound 2-manifold with positive volume.
+    #[error("the mesh cannot be baked: {0}")]
+    Mesh(#[from] lung_model::mesh::MeshError),
+}
+
+/// Bake `mesh` (a closed lung surface in mm; checked again here). `progress(rows)` is called as transfer rows
+/// finish (from worker threads).
+pub fn bake(
+    side: Side,
+    mesh: TriMesh,
+    settings: &BakeSettings,
+    progress: &(dyn Fn(usize) + Sync),
+) -> Result<Kernel, BakeError> {
+    lung_model::mesh::check(&mesh)?;
+    let bb = mesh.aabb();
+    let norm = |p| normalised_position(p, &bb, side);
+    let graph = NodeGraph::from_mesh(&mesh, &settings.elasticity, norm)?;
+    let transfer = compute_transfer(
+        &graph,
+        settings.tolerance,
+        Schedule::SpringsForward,
+        progress,
+    )?;
+    let force: Vec<f64> = mesh
+        .positions
+        .iter()
+        .map(|&p| applied_force(norm(p), &settings.motion))
+        .collect();
+    let elastostatic = transfer.elastostatic(&force);
+    let hash = mesh_hash(&mesh);
+    let (model, directions, force_scale) =
+        LungModel::from_force(side, mesh, &settings.motion, &elastostatic)?;
+    let meta = KernelMeta {
+        side,
+        units: "mm".into(),
+        vertices: model.mesh.positions.len() as u64,
+        triangles: model.mesh.triangles.len() as u64,
+        spring_nodes: graph.spring_count() as u64,
+        nnz: transfer.nnz() as u64,
+        mesh_hash: format!("{hash:016x}"),
+        settings: *settings,
+        transfer: transfer.stats,
+        unit_volume_ml: UNIT_VOLUME_ML,
+        force_scale,
+        start_volume_ml: model.start_volume_ml,
+        written_by: format!("lungdyn {}", env!("CARGO_PKG_VERSION")),
+    };
+    Ok(Kernel {
+        meta,
+        directions,
+        applied_force: force.iter().map(|&v| v as f32).collect(),
+        elastostatic: elastostatic.iter().map(|&v| v as f32).collect(),
+        unit_displacement: model.unit_displacement,
+        mesh: model.mesh,
+        transfer,
+    })
+}
+
+impl Kernel {
+    /// Write the kernel to `path` atomically (temporary sibling, then rename); returns its length.
+    pub fn write(&self, path: &Path) -> Result<u64, KernelError> {
+        write_file(
+            path,
+            &self.meta,
+            &[
+                (
+                    section::POSITIONS,
+                    12,
+                    bytemuck::cast_slice(&self.mesh.positions),
+                ),
+                (
+                    section::TRIANGLES,
+                    12,
+                    bytemuck::cast_slice(&self.mesh.triangles),
+                ),
+                (
+                    section::DIRECTIONS,
+                    12,
+                    bytemuck::cast_slice(&self.directions),
+                ),
+                (
+                    section::APPLIED_FORCE,
+                    4,
+                    bytemuck::cast_slice(&self.applied_force),
+                ),
+                (
+                    section::ELASTOSTATIC,
+                    4,
+                    bytemuck::cast_slice(&self.elastostatic),
+                ),
+                (
+                    section::UNIT_DISPLACEMENT,
+                    12,
+                    bytemuck::cast_slice(&self.unit_displacement),
+                ),
+                (
+                    section::ROW_PTR,
+                    8,
+                    bytemuck::cast_slice(&self.transfer.row_ptr),
+                ),
+                (section::COLS, 4, bytemuck::cast_slice(&self.transfer.cols)),
+                (section::VALS, 4, bytemuck::cast_slice(&self.transfer.vals)),
+            ],
+        )
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use lung_model::kernel::KernelFile;
+    use lung_model::mesh::generate;
+    use std::path::PathBuf;
+
+    fn small(side: Side) -> Kernel {
+        bake(
+            side,
+            generate::lung(side, 600).unwrap(),
+            &BakeSettings::default_for(side),
+            &|_| {},
+        )
+        .unwrap()
+    }
+
+    fn tmp(name: &str) -> PathBuf {
+        let dir = std::env::temp_dir().join(format!("lungdyn-kernel-{}", std::process::id()));
+        std::fs::create_dir_all(&dir).unwrap();
+        dir.join(name)
+    }
+
+    #[test]
+    fn write_then_open_round_trips_every_section() {
+        let k = small(Side::Left);
+        let path = tmp("rt.kernel");
+        let len = k.write(&path).unwrap();
+        let f = KernelFile::open(&path).unwrap();
+        assert_eq!(f.len_bytes() as u64, len);
+        assert_eq!(f.meta(), &k.meta);
+        assert_eq!(f.mesh(), k.mesh);
+        assert_eq!(f.directions(), &k.directions[..]);
+        assert_eq!(f.applied_force(), &k.applied_force[..]);
+        assert_eq!(f.elastostatic(), &k.elastostatic[..]);
+        assert_eq!(f.unit_displacement(), &k.unit_displacement[..]);
+        assert_eq!(f.transfer(), k.transfer);
+        // The loaded model adds exactly the unit volume at s = 1.
+        let m = f.lung_model();
+        let dv = m.cubic.volume(1.0) / 1000.0 - m.start_volume_ml;
+        assert!((dv - UNIT_VOLUME_ML).abs() < 1e-3, "{dv}");
+    }
+
+    #[test]
+    fn extremes_bake_or_fail_clearly() {
+        // A tetrahedron: the smallest closed surface.
+        let tet = TriMesh {
+            positions: vec![
+                [0.0; 3],
+                [100.0, 0.0, 0.0],
+                [0.0, 100.0, 0.0],
+                [0.0, 0.0, 100.0],
+            ],
+            triangles: vec![[0, 2, 1], [0, 1, 3], [0, 3, 2], [1, 2, 3]],
+        };
+        let k = bake(
+            Side::Left,
+            tet.clone(),
+            &BakeSettings::default_for(Side::Left),
+            &|_| {},
+        )
+        .map_err(|e| e.to_string())
+        .unwrap();
+        assert!(k.unit_displacement.iter().flatten().all(|v| v.is_finite()));
+        // Tolerances at both ends: a huge one pitches each unit force once (rows hold only their
+        // own node, the rest is spring-caught or truncated, all accounted for); a tiny one converges.
+        let mut s = BakeSettings::default_for(Side::Left);
+        s.tolerance = 0.999;
+        let k = bake(
+            Side::Left,
+            generate::lung(Side::Left, 200).unwrap(),
+            &s,
+            &|_| {},
+        )
+        .map_err(|e| e.to_string())
+        .unwrap();
+        assert_eq!(k.meta.transfer.max_row_nnz, 1);
+        assert!(k.meta.transfer.conservation_error_max < 1e-9);
+        assert!(k.unit_displacement.iter().flatten().all(|v| v.is_finite()));
+        s.tolerance = 1e-12;
+        let k = bake(
+            Side::Left,
+            generate::lung(Side::Left, 200).unwrap(),
+            &s,
+            &|_| {},
+        )
+        .map_err(|e| e.to_string())
+        .unwrap();
+        assert!(k.meta.transfer.truncated_force_max < 1e-9);
+        assert!(k.meta.transfer.conservation_error_max < 1e-9);
+        // A degenerate, flat "lung" (all z equal) has no volume slope: refused, not NaN.
+        let mut flat = tet;
+        for p in &mut flat.positions {
+            p[2] = 0.0;
+        }
+        assert!(bake(
+            Side::Left,
+            flat,
+            &BakeSettings::default_for(Side::Left),
+            &|_| {}
+        )
+        .is_err());
+    }
+
+    #[test]
+    fn baking_is_reproducible_byte_for_byte() {
+        let a = tmp("a.kernel");
+        let b = tmp("b.kernel");
+        small(Side::Right).write(&a).unwrap();
+        small(Side::Right).write(&b).unwrap();
+        assert_eq!(std::fs::read(a).unwrap(), std::fs::read(b).unwrap());
+    }
+}

@@ -1,0 +1,22 @@
+//! # lung-bake: everything done before a run
+//!
+//! Used by `lungdyn bake`, `fit-motion`, `pv fit`, `mesh check` and the launcher (which bakes the
+//! default lungs once and hands every process the same kernel file); never linked by the engine or
+//! renderer processes.
+//! * [`import`] — OBJ/PLY/STL import with welding and safe repairs;
+//! * [`operator`] — the node graph (eq. 6.7) and the pitcher–catcher pass (eq. 6.11–6.13);
+//! * [`kernel`] — the whole of seed ch. 6 for one lung, written as a kernel file;
+//! * [`motion_fit`] and [`surface_fit`] — the motion constants from landmarks or surfaces (§6.4.2);
+//! * [`pv`] — reading measured PV curves and fitting eq. 5.11 to them (§5.3.5);
+//! * [`lsq`] — the least-squares wrapper both fits use.
+
+// `!(x > 0.0)` is how this crate refuses NaN together with out-of-range values; keep it.
+#![allow(clippy::neg_cmp_op_on_partial_ord)]
+
+pub mod import;
+pub mod kernel;
+pub mod lsq;
+pub mod motion_fit;
+pub mod operator;
+pub mod pv;
+pub mod surface_fit;

@@ -1,0 +1,929 @@
+//! # kernel: the kernel file — a baked lung (mesh, operator, motion model) on disk
+//!
+//! A kernel holds the whole of seed ch. 6 for one lung: the mesh, every Green's-function transfer
+//! row (eq. 6.11–6.13), the applied force of eq. 6.18, the elastostatic force `F = Tᵀf` (eq. 6.1),
+//! the directions of eq. 6.14–6.16 and the unit displacement `F[i]·d_i` scaled to one unit volume
+//! (EQUATIONS §2.4). `lung-bake` computes it and writes it with [`write_file`]; the engine and the
+//! renderer map it with [`KernelFile::open`] and never bake. [`KernelFile::id`] identifies its
+//! content on the wire (`ipc_types::LungFrame::kernel_id`).
+//!
+//! ## File format, version 1 (little-endian throughout; every offset a multiple of 64)
+//!
+//! | offset | size | field |
+//! |---|---|---|
+//! | 0 | 8 | magic `LUNGDYNK` |
+//! | 8 | 4 | format version (u32) = 1 |
+//! | 12 | 4 | byte-order mark (u32) `0x0102_0304` as written by a little-endian machine |
+//! | 16 | 4 | section count (u32, at most 64) |
+//! | 20 | 4 | reserved, 0 |
+//! | 24 | 8 | file length in bytes (u64) |
+//! | 32 | 8 | xxh3-64 of the section table |
+//! | 40 | 8 | xxh3-64 of bytes 0..40 |
+//! | 48 | 16 | reserved, 0 |
+//! | 64 | 32 × count | section table: kind (u32), element size (u32), offset (u64), length (u64), xxh3-64 of the bytes (u64) |
+//!
+//! Sections (kind: content): 1 metadata (UTF-8 JSON, [`KernelMeta`]); 2 positions (f32 × 3 per
+//! vertex, mm, body frame); 3 triangles (u32 × 3, counter-clockwise from outside); 4 directions
+//! (f32 × 3, unit, eq. 6.14–6.16); 5 applied force (f32, eq. 6.18); 6 elastostatic force
+//! (f32, `F = Tᵀf`); 7 unit displacement (f32 × 3, mm per unit volume); 8 row offsets (u64,
+//! vertices + 1); 9 columns (u32 per non-zero); 10 values (f32 per non-zero, `T[j→i]`);
+//! 11 spherical-harmonic coefficients (reserved for seed ch. 7; absent in files baked now). A reader
+//! ignores kinds it does not know, so sections can be added without a new version; a change to any
+//! existing section's meaning bumps the version.
+//!
+//! Sections are 64-byte aligned, so a memory-mapped file is used in place ([`KernelFile`]). Every
+//! claim of the header is checked against the real file size before anything is read, every
+//! section's checksum is verified, and the content is checked (indices in range, offsets monotone,
+//! floats finite): a truncated, foreign or corrupted file is refused with a specific
+//! [`FormatError`].
+
+use std::path::{Path, PathBuf};
+
+use serde::{Deserialize, Serialize};
+use thiserror::Error;
+use xxhash_rust::xxh3::{xxh3_64, Xxh3};
+
+use crate::deform::{LungModel, MotionConstants};
+use crate::mesh::{Side, TriMesh};
+use crate::operator::{Elasticity, Transfer, TransferStats};
+
+/// File magic.
+pub const MAGIC: [u8; 8] = *b"LUNGDYNK";
+/// Format version this build writes and reads.
+pub const FORMAT_VERSION: u32 = 1;
+/// Byte-order mark as written by a little-endian machine.
+pub const BOM: u32 = 0x0102_0304;
+/// Header size, bytes.
+pub const HEADER: usize = 64;
+/// Section-table entry size, bytes.
+pub const ENTRY: usize = 32;
+/// Most sections a file may claim.
+pub const MAX_SECTIONS: usize = 64;
+/// Alignment of every section, bytes.
+pub const ALIGN: u64 = 64;
+
+/// Section kinds.
+pub mod section {
+    /// Metadata, JSON.
+    pub const META: u32 = 1;
+    /// Positions, f32 × 3.
+    pub const POSITIONS: u32 = 2;
+    /// Triangles, u32 × 3.
+    pub const TRIANGLES: u32 = 3;
+    /// Directions, f32 × 3.
+    pub const DIRECTIONS: u32 = 4;
+    /// Applied force, f32.
+    pub const APPLIED_FORCE: u32 = 5;
+    /// Elastostatic force, f32.
+    pub const ELASTOSTATIC: u32 = 6;
+    /// Unit displacement, f32 × 3.
+    pub const UNIT_DISPLACEMENT: u32 = 7;
+    /// CSR row offsets, u64.
+    pub const ROW_PTR: u32 = 8;
+    /// CSR columns, u32.
+    pub const COLS: u32 = 9;
+    /// CSR values, f32.
+    pub const VALS: u32 = 10;
+    /// Spherical-harmonic coefficients (reserved, seed ch. 7).
+    pub const SH: u32 = 11;
+}
+
+/// What a bake needs besides the mesh.
+#[derive(Debug, Clone, Copy, PartialEq, Serialize, Deserialize)]
+pub struct BakeSettings {
+    /// Direction and applied-force constants `c1..c9` (Table 6.1 by default).
+    pub motion: MotionConstants,
+    /// Regional elasticity.
+    pub elasticity: Elasticity,
+    /// Pitcher tolerance for a unit force.
+    pub tolerance: f64,
+}
+
+/// Default pitcher tolerance for a unit force (see `docs/EQUATIONS.md` §2.3 for what it gives).
+pub const DEFAULT_TOLERANCE: f64 = 1e-5;
+
+impl BakeSettings {
+    /// Table 6.1 constants, the default elasticity field and tolerance.
+    pub fn default_for(side: Side) -> Self {
+        Self {
+            motion: MotionConstants::table_6_1(side),
+            elasticity: Elasticity::default(),
+            tolerance: DEFAULT_TOLERANCE,
+        }
+    }
+}
+
+/// Metadata section.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct KernelMeta {
+    /// Which lung.
+    pub side: Side,
+    /// Length unit of positions and displacements (always "mm").
+    pub units: String,
+    /// Vertices (mass nodes).
+    pub vertices: u64,
+    /// Triangles.
+    pub triangles: u64,
+    /// Edges (spring nodes).
+    pub spring_nodes: u64,
+    /// Stored transfer non-zeros.
+    pub nnz: u64,
+    /// xxh3-64 of the input mesh (positions then triangles, little-endian), hex.
+    pub mesh_hash: String,
+    /// What the bake used.
+    pub settings: BakeSettings,
+    /// Figures of the transfer computation.
+    pub transfer: TransferStats,
+    /// Unit volume the unit displacement adds, ml.
+    pub unit_volume_ml: f64,
+    /// Factor from `F[i]·d_i` to the unit displacement.
+    pub force_scale: f64,
+    /// Enclosed volume of the mesh, ml.
+    pub start_volume_ml: f64,
+    /// Software that wrote the file.
+    pub written_by: String,
+}
+
+/// Errors reading or writing a kernel file.
+#[derive(Debug, Error)]
+pub enum KernelError {
+    /// Reading or writing failed.
+    #[error("{}: {source}", path.display())]
+    Io {
+        /// File.
+        path: PathBuf,
+        /// Cause.
+        source: std::io::Error,
+    },
+    /// The file is not a usable kernel.
+    #[error("{}: {source}", path.display())]
+    Invalid {
+        /// File.
+        path: PathBuf,
+        /// What is wrong.
+        source: FormatError,
+    },
+}
+
+/// Why a byte image is not a valid kernel.
+#[derive(Debug, Clone, PartialEq, Error)]
+pub enum FormatError {
+    /// Shorter than a header.
+    #[error("truncated or empty: {len} bytes, a kernel header needs {HEADER}")]
+    TooShort {
+        /// Bytes present.
+        len: u64,
+    },
+    /// Not our magic.
+    #[error("not a lungdyn kernel file (wrong magic; expected LUNGDYNK)")]
+    Magic,
+    /// Another format version.
+    #[error("kernel format version {found}; this lungdyn reads version {FORMAT_VERSION}: bake the mesh again")]
+    Version {
+        /// Version in the file.
+        found: u32,
+    },
+    /// Byte-order mark wrong.
+    #[error("byte-order mark is wrong: the file is corrupted or was not written by lungdyn")]
+    ByteOrder,
+    /// Header checksum wrong.
+    #[error("header checksum mismatch: the file is corrupted")]
+    HeaderChecksum,
+    /// Too many sections claimed.
+    #[error("header claims {count} sections (at most {MAX_SECTIONS})")]
+    SectionCount {
+        /// Sections claimed.
+        count: usize,
+    },
+    /// The file length differs from the header's claim.
+    #[error("truncated or padded: the header says {claimed} bytes, the file has {actual}")]
+    Length {
+        /// Length in the header.
+        claimed: u64,
+        /// Real length.
+        actual: u64,
+    },
+    /// The section table runs past the end.
+    #[error("truncated: the section table runs past the end of the file")]
+    TableTruncated,
+    /// Section table checksum wrong.
+    #[error("section table checksum mismatch: the file is corrupted")]
+    TableChecksum,
+    /// A section runs past the end.
+    #[error("section {index} (kind {kind}) runs past the end of the file")]
+    SectionPastEnd {
+        /// Table index.
+        index: usize,
+        /// Section kind.
+        kind: u32,
+    },
+    /// A section is unaligned or overlaps the table.
+    #[error("section {index} (kind {kind}) is misplaced at offset {offset}")]
+    SectionMisplaced {
+        /// Table index.
+        index: usize,
+        /// Section kind.
+        kind: u32,
+        /// Offset claimed.
+        offset: u64,
+    },
+    /// A section's length is not a whole number of elements.
+    #[error(
+        "section {index} (kind {kind}): length {len} is not a multiple of its element size {elem}"
+    )]
+    SectionElement {
+        /// Table index.
+        index: usize,
+        /// Section kind.
+        kind: u32,
+        /// Length, bytes.
+        len: u64,
+        /// Element size, bytes.
+        elem: u32,
+    },
+    /// A section's checksum is wrong.
+    #[error("section {index} (kind {kind}) checksum mismatch: the file is corrupted")]
+    SectionChecksum {
+        /// Table index.
+        index: usize,
+        /// Section kind.
+        kind: u32,
+    },
+    /// A section kind appears twice.
+    #[error("section kind {kind} appears twice")]
+    DuplicateSection {
+        /// Section kind.
+        kind: u32,
+    },
+    /// A required section is missing.
+    #[error("required section kind {kind} is missing")]
+    MissingSection {
+        /// Section kind.
+        kind: u32,
+    },
+    /// A section has the wrong element size.
+    #[error("section kind {kind} has element size {found}, expected {expected}")]
+    ElementSize {
+        /// Section kind.
+        kind: u32,
+        /// Element size in the file.
+        found: u32,
+        /// Element size expected.
+        expected: u32,
+    },
+    /// The metadata JSON does not parse as [`KernelMeta`].
+    #[error("metadata: {0}")]
+    Metadata(String),
+    /// Lengths are not in millimetres.
+    #[error("metadata: units {found:?}, expected \"mm\"")]
+    Units {
+        /// Units in the file.
+        found: String,
+    },
+    /// A section's element count disagrees with the metadata.
+    #[error("section kind {kind} holds {found} elements, the metadata implies {expected}")]
+    ElementCount {
+        /// Section kind.
+        kind: u32,
+        /// Elements present.
+        found: u64,
+        /// Elements implied.
+        expected: u64,
+    },
+    /// A float is NaN or infinite.
+    #[error("{what}: value {index} is not finite")]
+    NonFinite {
+        /// Which section.
+        what: &'static str,
+        /// Index of the float.
+        index: usize,
+    },
+    /// A triangle references a vertex that does not exist.
+    #[error("triangle {triangle} references a vertex out of range")]
+    TriangleIndex {
+        /// Triangle index.
+        triangle: usize,
+    },
+    /// A transfer column references a vertex that does not exist.
+    #[error("a transfer column references a vertex out of range")]
+    ColumnIndex,
+    /// Row offsets decrease.
+    #[error("transfer row offsets are not monotone at row {row}")]
+    RowOffsets {
+        /// Row.
+        row: usize,
+    },
+    /// Row offsets do not end at the non-zero count.
+    #[error("transfer row offsets end at {last}, the metadata says {nnz} non-zeros")]
+    RowEnd {
+        /// Last offset.
+        last: u64,
+        /// Non-zeros in the metadata.
+        nnz: u64,
+    },
+}
+
+/// xxh3-64 of a mesh (positions then triangles, little-endian bytes).
+pub fn mesh_hash(mesh: &TriMesh) -> u64 {
+    let mut h = Xxh3::new();
+    h.update(bytemuck::cast_slice(&mesh.positions));
+    h.update(bytemuck::cast_slice(&mesh.triangles));
+    h.digest()
+}
+
+/// One section to write: kind, element size, bytes.
+pub type SectionData<'a> = (u32, u32, &'a [u8]);
+
+/// Write a kernel file atomically (temporary sibling, then rename): the metadata section, then
+/// `sections` in order, each 64-byte aligned, with every checksum. Returns the file length.
+pub fn write_file(
+    path: &Path,
+    meta: &KernelMeta,
+    sections: &[SectionData<'_>],
+) -> Result<u64, KernelError> {
+    let meta = serde_json::to_vec_pretty(meta).map_err(|e| KernelError::Io {
+        path: path.to_path_buf(),
+        source: std::io::Error::other(e),
+    })?;
+    let mut all: Vec<SectionData<'_>> = vec![(section::META, 1, &meta)];
+    all.extend_from_slice(sections);
+    let sections = all;
+    let count = sections.len();
+    let mut offset = align((HEADER + ENTRY * count) as u64);
+    let mut table = Vec::with_capacity(ENTRY * count);
+    for (kind, elem, bytes) in &sections {
+        table.extend_from_slice(&kind.to_le_bytes());
+        table.extend_from_slice(&elem.to_le_bytes());
+        table.extend_from_slice(&offset.to_le_bytes());
+        table.extend_from_slice(&(bytes.len() as u64).to_le_bytes());
+        table.extend_from_slice(&xxh3_64(bytes).to_le_bytes());
+        offset = align(offset + bytes.len() as u64);
+    }
+    let file_len = offset;
+    let mut header = [0u8; HEADER];
+    header[0..8].copy_from_slice(&MAGIC);
+    header[8..12].copy_from_slice(&FORMAT_VERSION.to_le_bytes());
+    header[12..16].copy_from_slice(&BOM.to_le_bytes());
+    header[16..20].copy_from_slice(&(count as u32).to_le_bytes());
+    header[24..32].copy_from_slice(&file_len.to_le_bytes());
+    header[32..40].copy_from_slice(&xxh3_64(&table).to_le_bytes());
+    let head_sum = xxh3_64(&header[0..40]);
+    header[40..48].copy_from_slice(&head_sum.to_le_bytes());
+    crate::mesh::io::write_atomically(path, |w| {
+        use std::io::Write;
+        let mut at = 0u64;
+        let pad_to = |w: &mut std::io::BufWriter<std::fs::File>, at: &mut u64, to: u64| {
+            let zeros = [0u8; 64];
+            while *at < to {
+                let n = ((to - *at) as usize).min(64);
+                w.write_all(&zeros[..n])?;
+                *at += n as u64;
+            }
+            std::io::Result::Ok(())
+        };
+        w.write_all(&header)?;
+        w.write_all(&table)?;
+        at += (HEADER + table.len()) as u64;
+        for (_, _, bytes) in &sections {
+            let to = align(at);
+            pad_to(w, &mut at, to)?;
+            w.write_all(bytes)?;
+            at += bytes.len() as u64;
+        }
+        pad_to(w, &mut at, file_len)
+    })
+    .map_err(|e| match e {
+        crate::mesh::io::WriteError::Io { path, source } => KernelError::Io { path, source },
+        other => KernelError::Io {
+            path: path.to_path_buf(),
+            source: std::io::Error::other(other.to_string()),
+        },
+    })?;
+    Ok(file_len)
+}
+
+fn align(v: u64) -> u64 {
+    v.div_ceil(ALIGN) * ALIGN
+}
+
+/// A kernel file, memory-mapped and verified; accessors borrow the mapping.
+pub struct KernelFile {
+    path: PathBuf,
+    map: memmap2::Mmap,
+    id: u64,
+    meta: KernelMeta,
+    sections: Vec<Section>,
+}
+
+impl std::fmt::Debug for KernelFile {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        f.debug_struct("KernelFile")
+            .field("path", &self.path)
+            .field("meta", &self.meta)
+            .finish()
+    }
+}
+
+fn u32_at(b: &[u8], at: usize) -> u32 {
+    u32::from_le_bytes(b[at..at + 4].try_into().unwrap())
+}
+fn u64_at(b: &[u8], at: usize) -> u64 {
+    u64::from_le_bytes(b[at..at + 8].try_into().unwrap())
+}
+
+/// A verified section: kind, element size, byte offset, byte length.
+pub type Section = (u32, u32, usize, usize);
+
+/// Why a byte image is not a valid kernel (no path; [`KernelFile::open`] adds it).
+pub fn verify_bytes(b: &[u8]) -> Result<(KernelMeta, Vec<Section>), FormatError> {
+    if b.len() < HEADER {
+        return Err(FormatError::TooShort {
+            len: b.len() as u64,
+        });
+    }
+    if b[0..8] != MAGIC {
+        return Err(FormatError::Magic);
+    }
+    let version = u32_at(b, 8);
+    if version != FORMAT_VERSION {
+        return Err(FormatError::Version { found: version });
+    }
+    if u32_at(b, 12) != BOM {
+        return Err(FormatError::ByteOrder);
+    }
+    if xxh3_64(&b[0..40]) != u64_at(b, 40) {
+        return Err(FormatError::HeaderChecksum);
+    }
+    let count = u32_at(b, 16) as usize;
+    if count > MAX_SECTIONS {
+        return Err(FormatError::SectionCount { count });
+    }
+    let file_len = u64_at(b, 24);
+    if file_len != b.len() as u64 {
+        return Err(FormatError::Length {
+            claimed: file_len,
+            actual: b.len() as u64,
+        });
+    }
+    let table_end = HEADER + ENTRY * count;
+    if table_end > b.len() {
+        return Err(FormatError::TableTruncated);
+    }
+    let table = &b[HEADER..table_end];
+    if xxh3_64(table) != u64_at(b, 32) {
+        return Err(FormatError::TableChecksum);
+    }
+    let mut sections: Vec<Section> = Vec::with_capacity(count);
+    for s in 0..count {
+        let e = &table[s * ENTRY..(s + 1) * ENTRY];
+        let (kind, elem) = (u32_at(e, 0), u32_at(e, 4));
+        let (offset, len, sum) = (u64_at(e, 8), u64_at(e, 16), u64_at(e, 24));
+        let end = offset
+            .checked_add(len)
+            .filter(|&end| end <= b.len() as u64)
+            .ok_or(FormatError::SectionPastEnd { index: s, kind })?;
+        if offset % ALIGN != 0 || offset < table_end as u64 {
+            return Err(FormatError::SectionMisplaced {
+                index: s,
+                kind,
+                offset,
+            });
+        }
+        if elem == 0 || len % elem as u64 != 0 {
+            return Err(FormatError::SectionElement {
+                index: s,
+                kind,
+                len,
+                elem,
+            });
+        }
+        let bytes = &b[offset as usize..end as usize];
+        if xxh3_64(bytes) != sum {
+            return Err(FormatError::SectionChecksum { index: s, kind });
+        }
+        if sections.iter().any(|&(k, ..)| k == kind) {
+            return Err(FormatError::DuplicateSection { kind });
+        }
+        sections.push((kind, elem, offset as usize, len as usize));
+    }
+    let find = |kind: u32, elem: u32| {
+        sections
+            .iter()
+            .find(|s| s.0 == kind)
+            .ok_or(FormatError::MissingSection { kind })
+            .and_then(|s| {
+                if s.1 != elem {
+                    Err(FormatError::ElementSize {
+                        kind,
+                        found: s.1,
+                        expected: elem,
+                    })
+                } else {
+                    Ok(&b[s.2..s.2 + s.3])
+                }
+            })
+    };
+    let meta: KernelMeta = serde_json::from_slice(find(section::META, 1)?)
+        .map_err(|e| FormatError::Metadata(e.to_string()))?;
+    if meta.units != "mm" {
+        return Err(FormatError::Units { found: meta.units });
+    }
+    let v = meta.vertices as usize;
+    let checks: [(u32, u32, u64); 9] = [
+        (section::POSITIONS, 12, meta.vertices),
+        (section::TRIANGLES, 12, meta.triangles),
+        (section::DIRECTIONS, 12, meta.vertices),
+        (section::APPLIED_FORCE, 4, meta.vertices),
+        (section::ELASTOSTATIC, 4, meta.vertices),
+        (section::UNIT_DISPLACEMENT, 12, meta.vertices),
+        (section::ROW_PTR, 8, meta.vertices.saturating_add(1)),
+        (section::COLS, 4, meta.nnz),
+        (section::VALS, 4, meta.nnz),
+    ];
+    for (kind, elem, n) in checks {
+        let got = find(kind, elem)?.len() as u64 / elem as u64;
+        if got != n {
+            return Err(FormatError::ElementCount {
+                kind,
+                found: got,
+                expected: n,
+            });
+        }
+    }
+    // Content checks.
+    let floats = |kind: u32, elem: u32, what: &'static str| -> Result<(), FormatError> {
+        let bytes = find(kind, elem)?;
+        if let Some(i) = bytes
+            .chunks_exact(4)
+            .position(|c| !f32::from_le_bytes(c.try_into().unwrap()).is_finite())
+        {
+            return Err(FormatError::NonFinite { what, index: i });
+        }
+        Ok(())
+    };
+    floats(section::POSITIONS, 12, "positions")?;
+    floats(section::DIRECTIONS, 12, "directions")?;
+    floats(section::APPLIED_FORCE, 4, "applied force")?;
+    floats(section::ELASTOSTATIC, 4, "elastostatic force")?;
+    floats(section::UNIT_DISPLACEMENT, 12, "unit displacement")?;
+    floats(section::VALS, 4, "transfer values")?;
+    let tris = find(section::TRIANGLES, 12)?;
+    if let Some(t) = tris
+        .chunks_exact(4)
+        .position(|c| u32::from_le_bytes(c.try_into().unwrap()) as usize >= v)
+    {
+        return Err(FormatError::TriangleIndex { triangle: t / 3 });
+    }
+    let cols = find(section::COLS, 4)?;
+    if cols
+        .chunks_exact(4)
+        .any(|c| u32::from_le_bytes(c.try_into().unwrap()) as usize >= v)
+    {
+        return Err(FormatError::ColumnIndex);
+    }
+    let ptr = find(section::ROW_PTR, 8)?;
+    let mut last = 0u64;
+    for (i, c) in ptr.chunks_exact(8).enumerate() {
+        let p = u64::from_le_bytes(c.try_into().unwrap());
+        if (i == 0 && p != 0) || p < last {
+            return Err(FormatError::RowOffsets { row: i });
+        }
+        last = p;
+    }
+    if last != meta.nnz {
+        return Err(FormatError::RowEnd {
+            last,
+            nnz: meta.nnz,
+        });
+    }
+    Ok((meta, sections))
+}
+
+impl KernelFile {
+    /// Map and verify `path`.
+    pub fn open(path: &Path) -> Result<Self, KernelError> {
+        let io = |source| KernelError::Io {
+            path: path.to_path_buf(),
+            source,
+        };
+        let file = std::fs::File::open(path).map_err(io)?;
+        let len = file.metadata().map_err(io)?.len();
+        let invalid = |source: FormatError| KernelError::Invalid {
+            path: path.to_path_buf(),
+            source,
+        };
+        if len < HEADER as u64 {
+            return Err(invalid(FormatError::TooShort { len }));
+        }
+        // SAFETY: the mapping is read-only; lungdyn writes kernels atomically (new file + rename),
+        // so a kernel is never modified in place while mapped.
+        let map = unsafe { memmap2::Mmap::map(&file) }.map_err(io)?;
+        let (meta, sections) = verify_bytes(&map).map_err(invalid)?;
+        Ok(Self {
+            path: path.to_path_buf(),
+            id: u64_at(&map, 40),
+            map,
+            meta,
+            sections,
+        })
+    }
+
+    /// The kernel's identity: the header checksum, which covers the section table and through it
+    /// every section's checksum, so two files share an id only when their content is identical.
+    /// Travels as `ipc_types::LungFrame::kernel_id`.
+    pub fn id(&self) -> u64 {
+        self.id
+    }
+
+    /// The file this kernel was mapped from.
+    pub fn path(&self) -> &Path {
+        &self.path
+    }
+
+    /// Metadata.
+    pub fn meta(&self) -> &KernelMeta {
+        &self.meta
+    }
+
+    /// File size in bytes.
+    pub fn len_bytes(&self) -> usize {
+        self.map.len()
+    }
+
+    fn slice<T: bytemuck::AnyBitPattern>(&self, kind: u32) -> &[T] {
+        let s = self
+            .sections
+            .iter()
+            .find(|s| s.0 == kind)
+            .expect("verified at open");
+        // Sections are 64-byte aligned within a page-aligned mapping.
+        bytemuck::cast_slice(&self.map[s.2..s.2 + s.3])
+    }
+
+    /// Positions, mm.
+    pub fn positions(&self) -> &[[f32; 3]] {
+        self.slice(section::POSITIONS)
+    }
+    /// Triangles.
+    pub fn triangles(&self) -> &[[u32; 3]] {
+        self.slice(section::TRIANGLES)
+    }
+    /// Unit directions.
+    pub fn directions(&self) -> &[[f32; 3]] {
+        self.slice(section::DIRECTIONS)
+    }
+    /// Applied force (eq. 6.18).
+    pub fn applied_force(&self) -> &[f32] {
+        self.slice(section::APPLIED_FORCE)
+    }
+    /// Elastostatic force.
+    pub fn elastostatic(&self) -> &[f32] {
+        self.slice(section::ELASTOSTATIC)
+    }
+    /// Unit displacement.
+    pub fn unit_displacement(&self) -> &[[f32; 3]] {
+        self.slice(section::UNIT_DISPLACEMENT)
+    }
+    /// CSR row offsets.
+    pub fn row_ptr(&self) -> &[u64] {
+        self.slice(section::ROW_PTR)
+    }
+    /// CSR columns.
+    pub fn cols(&self) -> &[u32] {
+        self.slice(section::COLS)
+    }
+    /// CSR values.
+    pub fn vals(&self) -> &[f32] {
+        self.slice(section::VALS)
+    }
+
+    /// The mesh (copied out of the mapping).
+    pub fn mesh(&self) -> TriMesh {
+        TriMesh {
+            positions: self.positions().to_vec(),
+            triangles: self.triangles().to_vec(),
+        }
+    }
+
+    /// The run-time deformation model of this lung (carrying this kernel's [`Self::id`]).
+    pub fn lung_model(&self) -> LungModel {
+        let mut m = LungModel::from_unit_displacement(
+            self.meta.side,
+            self.mesh(),
+            self.unit_displacement().to_vec(),
+        );
+        m.kernel_id = self.id;
+        m
+    }
+
+    /// The transfer rows (copied out of the mapping).
+    pub fn transfer(&self) -> Transfer {
+        Transfer {
+            n: self.meta.vertices as usize,
+            row_ptr: self.row_ptr().to_vec(),
+            cols: self.cols().to_vec(),
+            vals: self.vals().to_vec(),
+            stats: self.meta.transfer,
+        }
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    /// The smallest valid kernel: a tetrahedron whose transfer rows keep all force at home.
+    fn tetra_kernel(path: &Path, scale: f32) -> u64 {
+        let positions: Vec<[f32; 3]> = vec![
+            [0.0; 3],
+            [100.0 * scale, 0.0, 0.0],
+            [0.0, 100.0 * scale, 0.0],
+            [0.0, 0.0, 100.0 * scale],
+        ];
+        let triangles: Vec<[u32; 3]> = vec![[0, 2, 1], [0, 1, 3], [0, 3, 2], [1, 2, 3]];
+        let dirs: Vec<[f32; 3]> = vec![[0.0, 0.0, 1.0]; 4];
+        let force = vec![1.0f32; 4];
+        let unit: Vec<[f32; 3]> = vec![[0.0, 0.0, 0.1]; 4];
+        let row_ptr: Vec<u64> = vec![0, 1, 2, 3, 4];
+        let cols: Vec<u32> = vec![0, 1, 2, 3];
+        let vals = vec![1.0f32; 4];
+        let mesh = TriMesh {
+            positions: positions.clone(),
+            triangles: triangles.clone(),
+        };
+        let meta = KernelMeta {
+            side: Side::Left,
+            units: "mm".into(),
+            vertices: 4,
+            triangles: 4,
+            spring_nodes: 6,
+            nnz: 4,
+            mesh_hash: format!("{:016x}", mesh_hash(&mesh)),
+            settings: BakeSettings::default_for(Side::Left),
+            transfer: TransferStats::default(),
+            unit_volume_ml: 1.5,
+            force_scale: 1.0,
+            start_volume_ml: mesh.enclosed_volume_ml(),
+            written_by: "test".into(),
+        };
+        write_file(
+            path,
+            &meta,
+            &[
+                (section::POSITIONS, 12, bytemuck::cast_slice(&positions)),
+                (section::TRIANGLES, 12, bytemuck::cast_slice(&triangles)),
+                (section::DIRECTIONS, 12, bytemuck::cast_slice(&dirs)),
+                (section::APPLIED_FORCE, 4, bytemuck::cast_slice(&force)),
+                (section::ELASTOSTATIC, 4, bytemuck::cast_slice(&force)),
+                (section::UNIT_DISPLACEMENT, 12, bytemuck::cast_slice(&unit)),
+                (section::ROW_PTR, 8, bytemuck::cast_slice(&row_ptr)),
+                (section::COLS, 4, bytemuck::cast_slice(&cols)),
+                (section::VALS, 4, bytemuck::cast_slice(&vals)),
+            ],
+        )
+        .unwrap()
+    }
+
+    fn tmp(name: &str) -> PathBuf {
+        let dir = std::env::temp_dir().join(format!("lungdyn-kernel-{}", std::process::id()));
+        std::fs::create_dir_all(&dir).unwrap();
+        dir.join(name)
+    }
+
+    #[test]
+    fn a_written_kernel_maps_back_with_every_section() {
+        let path = tmp("tetra.kernel");
+        let len = tetra_kernel(&path, 1.0);
+        let f = KernelFile::open(&path).unwrap();
+        assert_eq!(f.len_bytes() as u64, len);
+        assert_eq!(len % ALIGN, 0);
+        assert_eq!(f.positions()[1], [100.0, 0.0, 0.0]);
+        assert_eq!(f.triangles().len(), 4);
+        assert_eq!(f.row_ptr(), &[0, 1, 2, 3, 4]);
+        assert_eq!(f.transfer().row(2), (&[2u32][..], &[1.0f32][..]));
+        let m = f.lung_model();
+        assert_eq!(m.side, Side::Left);
+        assert!((m.start_volume_ml - 1e6 / 6.0 / 1000.0).abs() < 1e-9);
+    }
+
+    #[test]
+    fn the_kernel_id_follows_the_content() {
+        let (a, b, c) = (tmp("id-a.kernel"), tmp("id-b.kernel"), tmp("id-c.kernel"));
+        tetra_kernel(&a, 1.0);
+        tetra_kernel(&b, 1.0);
+        tetra_kernel(&c, 1.5);
+        let (a, b, c) = (
+            KernelFile::open(&a).unwrap(),
+            KernelFile::open(&b).unwrap(),
+            KernelFile::open(&c).unwrap(),
+        );
+        assert_eq!(a.id(), b.id(), "same content, same id");
+        assert_ne!(a.id(), c.id(), "other mesh, other id");
+        assert_ne!(a.id(), 0);
+    }
+
+    #[test]
+    fn truncated_foreign_and_corrupted_files_are_refused() {
+        let path = tmp("good.kernel");
+        tetra_kernel(&path, 1.0);
+        let good = std::fs::read(&path).unwrap();
+        assert!(verify_bytes(&good).is_ok());
+        let flip = |at: usize| {
+            let mut b = good.clone();
+            b[at] ^= 0x10;
+            b
+        };
+        let cases: Vec<(&str, Vec<u8>, &str)> = vec![
+            ("empty", vec![], "empty"),
+            ("short", good[..40].to_vec(), "truncated"),
+            ("truncated", good[..good.len() - 64].to_vec(), "truncated"),
+            (
+                "foreign",
+                b"solid lung\nfacet normal 0 0 1\n".repeat(4),
+                "magic",
+            ),
+            ("bit flip in values", flip(good.len() - 64 + 2), "checksum"),
+            ("bit flip in header", flip(24), "checksum"),
+            (
+                "version",
+                {
+                    let mut b = good.clone();
+                    b[8] = 9;
+                    b
+                },
+                "version",
+            ),
+        ];
+        for (name, bytes, needle) in cases {
+            let err = verify_bytes(&bytes).expect_err(name).to_string();
+            assert!(err.contains(needle), "{name}: {err}");
+            let p = tmp(&format!("{}.kernel", name.replace(' ', "_")));
+            std::fs::write(&p, &bytes).unwrap();
+            let e = KernelFile::open(&p).unwrap_err();
+            assert!(matches!(e, KernelError::Invalid { .. }), "{name}: {e:?}");
+            let e = e.to_string();
+            assert!(e.contains(p.file_name().unwrap().to_str().unwrap()), "{e}");
+        }
+        assert!(matches!(
+            KernelFile::open(&tmp("does-not-exist.kernel")),
+            Err(KernelError::Io { .. })
+        ));
+    }
+
+    proptest::proptest! {
+        #![proptest_config(proptest::prelude::ProptestConfig::with_cases(256))]
+        #[test]
+        fn the_reader_never_panics_on_arbitrary_bytes(bytes in proptest::collection::vec(proptest::prelude::any::<u8>(), 0..512)) {
+            let _ = verify_bytes(&bytes);
+        }
+
+        #[test]
+        fn the_reader_never_panics_on_mutated_kernels(at in 0usize..4096, val in proptest::prelude::any::<u8>(), cut in 0usize..4096) {
+            let mut b = GOOD.with(|g| g.clone());
+            let at = at % b.len();
+            b[at] = val;
+            b.truncate(b.len() - cut.min(b.len()));
+            let _ = verify_bytes(&b);
+        }
+
+        #[test]
+        fn the_reader_never_panics_on_mutated_resealed_kernels(at in 0usize..1_000_000, val in proptest::prelude::any::<u8>()) {
+            // Mutate, then recompute every checksum so the content checks (not the checksums) are hit.
+            let mut b = GOOD.with(|g| g.clone());
+            let at = at % b.len();
+            b[at] = val;
+            reseal(&mut b);
+            let _ = verify_bytes(&b);
+        }
+    }
+
+    /// Recompute section, table and header checksums where the table can be read.
+    fn reseal(b: &mut [u8]) {
+        let count = (u32_at(b, 16) as usize).min(MAX_SECTIONS);
+        let table_end = HEADER + ENTRY * count;
+        if table_end > b.len() {
+            return;
+        }
+        for s in 0..count {
+            let e = HEADER + s * ENTRY;
+            let (offset, len) = (u64_at(b, e + 8) as usize, u64_at(b, e + 16) as usize);
+            if let Some(end) = offset.checked_add(len).filter(|&end| end <= b.len()) {
+                let sum = xxh3_64(&b[offset..end]);
+                b[e + 24..e + 32].copy_from_slice(&sum.to_le_bytes());
+            }
+        }
+        let t = xxh3_64(&b[HEADER..table_end]);
+        b[32..40].copy_from_slice(&t.to_le_bytes());
+        let h = xxh3_64(&b[0..40]);
+        b[40..48].copy_from_slice(&h.to_le_bytes());
+    }
+
+    thread_local! {
+        static GOOD: Vec<u8> = {
+            let p = tmp(&format!("fuzz-{:?}.kernel", std::thread::current().id()));
+            tetra_kernel(&p, 1.0);
+            std::fs::read(p).unwrap()
+        };
+    }
+}

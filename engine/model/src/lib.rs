@@ -1,0 +1,23 @@
+//! # lung-model: the lung as the run time holds it
+//!
+//! What the engine and the renderer load and share — and nothing that bakes or fits (that is
+//! `lung-bake`, which the run-time processes do not link):
+//! * [`mesh`] — the triangle surface type, its checks (closed, 2-manifold, wound outwards), the
+//!   procedural default lungs, OBJ/PLY export and atomic writes;
+//! * [`kernel`] — the kernel file: format, verified memory-mapped reading, identity, raw writing;
+//! * [`operator`] — the transfer operator as stored (CSR rows of eq. 6.1), eq. 7.1's gather and the
+//!   elasticity field that shaped it;
+//! * [`deform`] — per-vertex displacement (eq. 6.14–6.18), the volume cubic, [`deform::LungModel`];
+//! * [`pv`] — the pressure–volume forward model (seed ch. 5, eq. 2.12–2.16, 5.11), presets and the
+//!   constants files a scene loads;
+//! * [`scene`] — what a run models.
+
+// `!(x > 0.0)` is how this crate refuses NaN together with out-of-range values; keep it.
+#![allow(clippy::neg_cmp_op_on_partial_ord)]
+
+pub mod deform;
+pub mod kernel;
+pub mod mesh;
+pub mod operator;
+pub mod pv;
+pub mod scene;

@@ -1,0 +1,182 @@
+//! Writing meshes: Wavefront OBJ (text) and PLY (binary little-endian), chosen by file extension.
+//!
+//! Files are written atomically: to a temporary file beside the target, flushed and synced, then
+//! renamed over it, so an interrupted run never leaves a half-written mesh where a good one was.
+//! (Import, with tobj/ply-rs/stl_io, belongs to issue #4.)
+
+use std::fs::File;
+use std::io::{BufWriter, Write};
+use std::path::{Path, PathBuf};
+
+use super::TriMesh;
+
+/// Mesh file formats lungdyn writes.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub enum MeshFormat {
+    /// Wavefront OBJ.
+    Obj,
+    /// Binary little-endian PLY.
+    Ply,
+}
+
+impl MeshFormat {
+    /// Format from the path's extension (`.obj` or `.ply`, any case).
+    pub fn from_path(path: &Path) -> Result<Self, WriteError> {
+        match path
+            .extension()
+            .and_then(|e| e.to_str())
+            .map(|e| e.to_ascii_lowercase())
+            .as_deref()
+        {
+            Some("obj") => Ok(MeshFormat::Obj),
+            Some("ply") => Ok(MeshFormat::Ply),
+            _ => Err(WriteError::UnknownFormat {
+                path: path.to_path_buf(),
+            }),
+        }
+    }
+}
+
+/// Errors writing a mesh.
+#[derive(Debug, thiserror::Error)]
+pub enum WriteError {
+    /// The extension names no supported format.
+    #[error("{}: unknown mesh format: the file name must end in .obj or .ply", path.display())]
+    UnknownFormat {
+        /// The path given.
+        path: PathBuf,
+    },
+    /// The file could not be written.
+    #[error("cannot write {}: {source}", path.display())]
+    Io {
+        /// The path.
+        path: PathBuf,
+        /// The OS error.
+        source: std::io::Error,
+    },
+}
+
+/// Write `mesh` to `path` in the format its extension names, atomically.
+pub fn write_mesh(mesh: &TriMesh, path: &Path) -> Result<MeshFormat, WriteError> {
+    let format = MeshFormat::from_path(path)?;
+    write_atomically(path, |w| match format {
+        MeshFormat::Obj => write_obj(mesh, w),
+        MeshFormat::Ply => write_ply(mesh, w),
+    })?;
+    Ok(format)
+}
+
+/// Write through `body` into a temporary sibling of `path`, then rename it into place.
+pub fn write_atomically(
+    path: &Path,
+    body: impl FnOnce(&mut BufWriter<File>) -> std::io::Result<()>,
+) -> Result<(), WriteError> {
+    let io = |source| WriteError::Io {
+        path: path.to_path_buf(),
+        source,
+    };
+    let file_name = path.file_name().ok_or_else(|| {
+        io(std::io::Error::new(
+            std::io::ErrorKind::InvalidInput,
+            "the path names no file",
+        ))
+    })?;
+    let tmp = path.with_file_name(format!(
+        ".{}.tmp-{}",
+        file_name.to_string_lossy(),
+        std::process::id()
+    ));
+    let result = (|| {
+        let mut w = BufWriter::new(File::create(&tmp)?);
+        body(&mut w)?;
+        let file = w.into_inner().map_err(|e| e.into_error())?;
+        file.sync_all()?;
+        std::fs::rename(&tmp, path)
+    })();
+    if let Err(e) = result {
+        let _ = std::fs::remove_file(&tmp);
+        return Err(io(e));
+    }
+    Ok(())
+}
+
+fn write_obj(mesh: &TriMesh, w: &mut impl Write) -> std::io::Result<()> {
+    writeln!(
+        w,
+        "# lungdyn mesh, millimetres, body frame (+X left, +Y anterior, +Z superior)"
+    )?;
+    for p in &mesh.positions {
+        writeln!(w, "v {} {} {}", p[0], p[1], p[2])?;
+    }
+    for t in &mesh.triangles {
+        writeln!(w, "f {} {} {}", t[0] + 1, t[1] + 1, t[2] + 1)?;
+    }
+    Ok(())
+}
+
+fn write_ply(mesh: &TriMesh, w: &mut impl Write) -> std::io::Result<()> {
+    write!(
+        w,
+        "ply\nformat binary_little_endian 1.0\ncomment lungdyn mesh, millimetres, body frame\n\
+         element vertex {}\nproperty float x\nproperty float y\nproperty float z\n\
+         element face {}\nproperty list uchar uint vertex_indices\nend_header\n",
+        mesh.positions.len(),
+        mesh.triangles.len()
+    )?;
+    for p in &mesh.positions {
+        for v in p {
+            w.write_all(&v.to_le_bytes())?;
+        }
+    }
+    for t in &mesh.triangles {
+        w.write_all(&[3u8])?;
+        for i in t {
+            w.write_all(&i.to_le_bytes())?;
+        }
+    }
+    Ok(())
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::mesh::{generate, Side};
+
+    #[test]
+    fn obj_and_ply_files_have_the_right_counts() {
+        let dir = std::env::temp_dir().join(format!("lungdyn-io-{}", std::process::id()));
+        std::fs::create_dir_all(&dir).unwrap();
+        let mesh = generate::lung(Side::Left, 1000).unwrap();
+        let obj = dir.join("l.obj");
+        write_mesh(&mesh, &obj).unwrap();
+        let text = std::fs::read_to_string(&obj).unwrap();
+        assert_eq!(
+            text.lines().filter(|l| l.starts_with("v ")).count(),
+            mesh.positions.len()
+        );
+        assert_eq!(
+            text.lines().filter(|l| l.starts_with("f ")).count(),
+            mesh.triangles.len()
+        );
+        let ply = dir.join("l.PLY");
+        write_mesh(&mesh, &ply).unwrap();
+        let bytes = std::fs::read(&ply).unwrap();
+        let header_end = bytes
+            .windows(11)
+            .position(|w| w == b"end_header\n")
+            .unwrap()
+            + 11;
+        assert_eq!(
+            bytes.len() - header_end,
+            mesh.positions.len() * 12 + mesh.triangles.len() * 13
+        );
+        assert!(matches!(
+            write_mesh(&mesh, &dir.join("l.stl")),
+            Err(WriteError::UnknownFormat { .. })
+        ));
+        // An unwritable target fails cleanly and leaves no temporary behind.
+        let err = write_mesh(&mesh, &dir.join("missing-dir").join("x.obj")).unwrap_err();
+        assert!(err.to_string().contains("missing-dir"));
+        std::fs::remove_dir_all(&dir).unwrap();
+    }
+}

@@ -1,0 +1,572 @@
+//! # scene: what a run models, and nothing more
+//!
+//! A scene file (TOML) names the lungs, the PV preset and timing, the mesh resolution and how the
+//! renderer draws. Every field has a default ([`Scene::default`], mirrored by `scenes/default.toml`),
+//! so an empty file is the default scene. Unknown keys are errors: a misspelt key must not silently
+//! fall back to a default in a clinical tool.
+
+use std::path::Path;
+
+use serde::{Deserialize, Serialize};
+
+use crate::mesh::Side;
+
+/// A complete scene.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields, default)]
+#[derive(Default)]
+pub struct Scene {
+    /// Pressure–volume model.
+    pub pv: PvScene,
+    /// Engine timing.
+    pub engine: EngineScene,
+    /// Lung geometry.
+    pub lungs: LungsScene,
+    /// Rendering.
+    pub render: RenderScene,
+}
+
+/// `[pv]` table.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields, default)]
+pub struct PvScene {
+    /// Preset name from Table 5.1 (see `lungdyn pv` presets).
+    pub preset: String,
+    /// Breaths per minute.
+    pub breaths_per_min: f64,
+    /// I:E ratio as `[I, E]`.
+    pub ie_ratio: [f64; 2],
+    /// A constants file written by `lungdyn pv fit` (relative to the scene file); replaces the
+    /// preset's constants and boundary values when given.
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub constants: Option<std::path::PathBuf>,
+}
+
+/// `[engine]` table.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields, default)]
+pub struct EngineScene {
+    /// Tick rate, Hz.
+    pub tick_hz: f64,
+    /// Ticks the patient pose may be held before it is reported stale.
+    pub pose_staleness_ticks: u32,
+}
+
+/// `[lungs]` table.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields, default)]
+pub struct LungsScene {
+    /// Which lungs the scene simulates and draws.
+    pub sides: Vec<Side>,
+    /// Vertices per generated default lung (what the launcher bakes for a lung without a kernel).
+    pub vertices: usize,
+    /// Regional elasticity of the operator (`[lungs.elasticity]`: apex, base, dependent).
+    pub elasticity: crate::operator::Elasticity,
+    /// Pitcher tolerance of the transfer pass for a unit force.
+    pub transfer_tolerance: f64,
+    /// Motion constants written by `lungdyn fit-motion` (relative to the scene file); Table 6.1
+    /// when absent.
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub motion: Option<std::path::PathBuf>,
+    /// Baked kernels (`lungdyn bake`), relative to the scene file: `[lungs.kernels] left = "l.kernel"`.
+    /// The engine and renderer processes need one per lung; the launcher (`lungdyn demo`,
+    /// `lungdyn scene prepare`) bakes the generated default lung for a lung without one, once.
+    pub kernels: KernelPaths,
+}
+
+/// `[lungs.kernels]` table.
+#[derive(Debug, Clone, PartialEq, Default, Serialize, Deserialize)]
+#[serde(deny_unknown_fields, default)]
+pub struct KernelPaths {
+    /// Left lung kernel.
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub left: Option<std::path::PathBuf>,
+    /// Right lung kernel.
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub right: Option<std::path::PathBuf>,
+}
+
+impl KernelPaths {
+    /// The kernel of `side`, if any.
+    pub fn get(&self, side: Side) -> Option<&std::path::Path> {
+        match side {
+            Side::Left => self.left.as_deref(),
+            Side::Right => self.right.as_deref(),
+        }
+    }
+
+    /// Set the kernel of `side`.
+    pub fn set(&mut self, side: Side, path: std::path::PathBuf) {
+        match side {
+            Side::Left => self.left = Some(path),
+            Side::Right => self.right = Some(path),
+        }
+    }
+}
+
+/// How lungs are drawn.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize)]
+#[serde(rename_all = "lowercase")]
+pub enum DrawMode {
+    /// Shaded triangles.
+    Triangles,
+    /// Point splats (one camera-facing quad per vertex).
+    Points,
+}
+
+/// `[render]` table.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields, default)]
+pub struct RenderScene {
+    /// Triangles or point splats.
+    pub mode: DrawMode,
+    /// Side-by-side stereo from the HMD pose.
+    pub stereo: bool,
+    /// Inter-pupillary distance, mm.
+    pub ipd_mm: f32,
+    /// Width of one eye's image, pixels.
+    pub width: u32,
+    /// Height of the image, pixels.
+    pub height: u32,
+    /// Vertical field of view, degrees.
+    pub fov_y_deg: f32,
+    /// Point-splat diameter, mm.
+    pub splat_mm: f32,
+}
+
+impl Default for PvScene {
+    fn default() -> Self {
+        Self {
+            preset: crate::pv::DEFAULT_PRESET.to_string(),
+            breaths_per_min: 12.0,
+            ie_ratio: [1.0, 1.0],
+            constants: None,
+        }
+    }
+}
+
+impl Default for EngineScene {
+    fn default() -> Self {
+        Self {
+            tick_hz: 60.0,
+            pose_staleness_ticks: 30,
+        }
+    }
+}
+
+impl Default for LungsScene {
+    fn default() -> Self {
+        Self {
+            sides: vec![Side::Right, Side::Left],
+            vertices: 10_000,
+            elasticity: crate::operator::Elasticity::default(),
+            transfer_tolerance: crate::kernel::DEFAULT_TOLERANCE,
+            motion: None,
+            kernels: KernelPaths::default(),
+        }
+    }
+}
+
+impl Default for RenderScene {
+    fn default() -> Self {
+        Self {
+            mode: DrawMode::Triangles,
+            stereo: false,
+            ipd_mm: 63.0,
+            width: 800,
+            height: 600,
+            fov_y_deg: 30.0,
+            splat_mm: 2.5,
+        }
+    }
+}
+
+/// Errors loading a scene.
+#[derive(Debug, thiserror::Error)]
+pub enum SceneError {
+    /// The file could not be read.
+    #[error("cannot read scene {path}: {source}")]
+    Read {
+        /// Path.
+        path: String,
+        /// OS error.
+        source: std::io::Error,
+    },
+    /// The TOML is malformed or has unknown keys.
+    #[error("scene {path} is invalid: {message}")]
+    Parse {
+        /// Path.
+        path: String,
+        /// Parser message (with line and column).
+        message: String,
+    },
+    /// A value is out of range or a file it names is unusable.
+    #[error("scene {path}: {source}")]
+    Invalid {
+        /// Path.
+        path: String,
+        /// What is wrong.
+        source: SceneValueError,
+    },
+}
+
+/// A scene value that parses but cannot be used; each names its key.
+#[derive(Debug, thiserror::Error)]
+pub enum SceneValueError {
+    /// The PV preset does not exist.
+    #[error("[pv] preset: {0}")]
+    Preset(#[source] crate::pv::PvError),
+    /// Breathing rate, I:E or tick rate give no usable cycle.
+    #[error("[pv]/[engine] timing: {0}")]
+    Timing(#[source] crate::pv::PvError),
+    /// The tick rate is out of range.
+    #[error("[engine] tick_hz = {0} must be within 1..1000")]
+    TickRate(f64),
+    /// No lungs.
+    #[error("[lungs] sides must name at least one lung (\"left\", \"right\")")]
+    NoLungs,
+    /// A lung twice.
+    #[error("[lungs] sides lists a lung twice")]
+    DuplicateLung,
+    /// Generated-lung resolution out of range.
+    #[error("[lungs] vertices = {0} must be within {min}..{max}", min = crate::mesh::generate::MIN_VERTICES, max = crate::mesh::generate::MAX_VERTICES)]
+    Vertices(usize),
+    /// The elasticity field is unusable.
+    #[error("[lungs.elasticity]: {0}")]
+    Elasticity(#[source] crate::operator::ElasticityError),
+    /// The transfer tolerance is out of range.
+    #[error("[lungs] transfer_tolerance = {0} must be within (0, 1); 1e-5 is the default")]
+    Tolerance(f64),
+    /// Image size out of range.
+    #[error("[render] width/height {width}x{height} must be within 16..8192")]
+    ImageSize {
+        /// Width of one eye.
+        width: u32,
+        /// Height.
+        height: u32,
+    },
+    /// Field of view out of range.
+    #[error("[render] fov_y_deg = {0} must be within 1..170")]
+    FieldOfView(f32),
+    /// IPD or splat size out of range.
+    #[error(
+        "[render] ipd_mm = {ipd_mm} must be within 0..200 and splat_mm = {splat_mm} within 0..100"
+    )]
+    EyeOrSplat {
+        /// IPD given.
+        ipd_mm: f32,
+        /// Splat size given.
+        splat_mm: f32,
+    },
+    /// The PV constants file named by `[pv] constants` is unusable.
+    #[error("[pv] constants: {0}")]
+    Constants(#[source] crate::pv::files::PvFileError),
+    /// The motion constants file named by `[lungs] motion` is unusable.
+    #[error("[lungs] motion: {0}")]
+    Motion(#[source] crate::deform::MotionFileError),
+    /// A kernel named by `[lungs.kernels]` does not exist.
+    #[error("[lungs.kernels] {side}: {} does not exist (bake it with `lungdyn bake`)", path.display())]
+    MissingKernel {
+        /// "left" or "right".
+        side: &'static str,
+        /// Resolved path.
+        path: std::path::PathBuf,
+    },
+}
+
+/// Why a lung of a scene could not be loaded by a run-time process.
+#[derive(Debug, thiserror::Error)]
+pub enum LungLoadError {
+    /// The scene names no kernel for a lung it simulates.
+    #[error(
+        "the scene names no kernel for the {side} lung: the engine and renderer never bake; bake one \
+         with `lungdyn bake --lung {side} ...` and name it in [lungs.kernels], or let the launcher do it \
+         (`lungdyn scene prepare [SCENE] --out DIR` writes DIR/kernels/scene.resolved.toml; `lungdyn demo` \
+         does the same and starts the processes)"
+    )]
+    NoKernel {
+        /// "left" or "right".
+        side: &'static str,
+    },
+    /// The kernel file is unusable.
+    #[error(transparent)]
+    Kernel(#[from] crate::kernel::KernelError),
+    /// The kernel is of the other lung.
+    #[error("{}: this kernel is of the {kernel} lung, the scene uses it for the {scene} lung", path.display())]
+    WrongSide {
+        /// Kernel file.
+        path: std::path::PathBuf,
+        /// Side in the kernel.
+        kernel: &'static str,
+        /// Side in the scene.
+        scene: &'static str,
+    },
+}
+
+impl Scene {
+    /// The run-time model of `side` from its kernel (memory-mapped, verified); a run-time process
+    /// never bakes, so a scene without a kernel for `side` is an error that says how to get one.
+    pub fn lung(&self, side: Side) -> Result<crate::deform::LungModel, LungLoadError> {
+        let path = self
+            .lungs
+            .kernels
+            .get(side)
+            .ok_or(LungLoadError::NoKernel { side: side.name() })?;
+        let file = crate::kernel::KernelFile::open(path)?;
+        if file.meta().side != side {
+            return Err(LungLoadError::WrongSide {
+                path: path.to_path_buf(),
+                kernel: file.meta().side.name(),
+                scene: side.name(),
+            });
+        }
+        Ok(file.lung_model())
+    }
+
+    /// Every lung the scene simulates, in scene order.
+    pub fn lung_models(&self) -> Result<Vec<crate::deform::LungModel>, LungLoadError> {
+        self.lungs.sides.iter().map(|&s| self.lung(s)).collect()
+    }
+
+    /// Load a scene from a TOML file and validate it.
+    pub fn load(path: &Path) -> Result<Self, SceneError> {
+        let p = path.display().to_string();
+        let invalid = |source| SceneError::Invalid {
+            path: p.clone(),
+            source,
+        };
+        let text = std::fs::read_to_string(path).map_err(|source| SceneError::Read {
+            path: p.clone(),
+            source,
+        })?;
+        let mut scene = Self::parse(&text, &p)?;
+        // Files a scene names are relative to the scene file, so a scene and its patient files
+        // travel together.
+        let base = path.parent().unwrap_or(Path::new("."));
+        if let Some(c) = &scene.pv.constants {
+            let resolved = base.join(c);
+            crate::pv::files::PvConstantsFile::load(&resolved)
+                .map_err(|e| invalid(SceneValueError::Constants(e)))?;
+            scene.pv.constants = Some(resolved);
+        }
+        if let Some(m) = &scene.lungs.motion {
+            let resolved = base.join(m);
+            crate::deform::MotionFile::load(&resolved)
+                .map_err(|e| invalid(SceneValueError::Motion(e)))?;
+            scene.lungs.motion = Some(resolved);
+        }
+        for side in [Side::Left, Side::Right] {
+            if let Some(k) = scene.lungs.kernels.get(side) {
+                let resolved = base.join(k);
+                if !resolved.is_file() {
+                    return Err(invalid(SceneValueError::MissingKernel {
+                        side: side.name(),
+                        path: resolved,
+                    }));
+                }
+                scene.lungs.kernels.set(side, resolved);
+            }
+        }
+        Ok(scene)
+    }
+
+    /// Parse and validate scene TOML; `origin` names it in errors.
+    pub fn parse(text: &str, origin: &str) -> Result<Self, SceneError> {
+        let scene: Scene = toml::from_str(text).map_err(|e| SceneError::Parse {
+            path: origin.to_string(),
+            message: e.to_string(),
+        })?;
+        scene.validate().map_err(|source| SceneError::Invalid {
+            path: origin.to_string(),
+            source,
+        })?;
+        Ok(scene)
+    }
+
+    /// Load `path` if given, else the default scene.
+    pub fn load_or_default(path: Option<&Path>) -> Result<Self, SceneError> {
+        match path {
+            Some(p) => Self::load(p),
+            None => Ok(Self::default()),
+        }
+    }
+
+    /// Range checks that serde cannot express.
+    pub fn validate(&self) -> Result<(), SceneValueError> {
+        use SceneValueError as E;
+        crate::pv::preset(&self.pv.preset).map_err(E::Preset)?;
+        self.timing().phase_ticks().map_err(E::Timing)?;
+        if !(1.0..=1000.0).contains(&self.engine.tick_hz) {
+            return Err(E::TickRate(self.engine.tick_hz));
+        }
+        if self.lungs.sides.is_empty() {
+            return Err(E::NoLungs);
+        }
+        let mut seen = self.lungs.sides.clone();
+        seen.sort_by_key(|s| s.index());
+        seen.dedup();
+        if seen.len() != self.lungs.sides.len() {
+            return Err(E::DuplicateLung);
+        }
+        if !(crate::mesh::generate::MIN_VERTICES..=crate::mesh::generate::MAX_VERTICES)
+            .contains(&self.lungs.vertices)
+        {
+            return Err(E::Vertices(self.lungs.vertices));
+        }
+        self.lungs.elasticity.validate().map_err(E::Elasticity)?;
+        let t = self.lungs.transfer_tolerance;
+        if !(t.is_finite() && t > 0.0 && t < 1.0) {
+            return Err(E::Tolerance(t));
+        }
+        let r = &self.render;
+        if !(16..=8192).contains(&r.width) || !(16..=8192).contains(&r.height) {
+            return Err(E::ImageSize {
+                width: r.width,
+                height: r.height,
+            });
+        }
+        if !(r.fov_y_deg > 1.0 && r.fov_y_deg < 170.0) {
+            return Err(E::FieldOfView(r.fov_y_deg));
+        }
+        if !(r.ipd_mm >= 0.0 && r.ipd_mm < 200.0) || !(r.splat_mm > 0.0 && r.splat_mm < 100.0) {
+            return Err(E::EyeOrSplat {
+                ipd_mm: r.ipd_mm,
+                splat_mm: r.splat_mm,
+            });
+        }
+        Ok(())
+    }
+
+    /// The PV constants and boundary values of this scene: the fitted file if named, else the preset.
+    pub fn pv_model(
+        &self,
+    ) -> Result<
+        (
+            crate::pv::PhaseConstants,
+            crate::pv::PhaseConstants,
+            crate::pv::Boundary,
+        ),
+        SceneValueError,
+    > {
+        match &self.pv.constants {
+            Some(path) => {
+                let f = crate::pv::files::PvConstantsFile::load(path)
+                    .map_err(SceneValueError::Constants)?;
+                Ok((f.inhale, f.exhale, f.boundary))
+            }
+            None => {
+                let p = crate::pv::preset(&self.pv.preset).map_err(SceneValueError::Preset)?;
+                Ok((p.inhale, p.exhale, p.boundary))
+            }
+        }
+    }
+
+    /// The bake settings of `side` in this scene (motion file or Table 6.1, elasticity, tolerance).
+    pub fn bake_settings(
+        &self,
+        side: Side,
+    ) -> Result<crate::kernel::BakeSettings, crate::deform::MotionFileError> {
+        let motion = match &self.lungs.motion {
+            Some(path) => crate::deform::MotionFile::load(path)?.for_side(side),
+            None => crate::deform::MotionConstants::table_6_1(side),
+        };
+        Ok(crate::kernel::BakeSettings {
+            motion,
+            elasticity: self.lungs.elasticity,
+            tolerance: self.lungs.transfer_tolerance,
+        })
+    }
+
+    /// Breathing timing of this scene.
+    pub fn timing(&self) -> crate::pv::Timing {
+        crate::pv::Timing {
+            tick_hz: self.engine.tick_hz,
+            breaths_per_min: self.pv.breaths_per_min,
+            ie_inhale: self.pv.ie_ratio[0],
+            ie_exhale: self.pv.ie_ratio[1],
+        }
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn the_committed_default_scene_is_the_built_in_default() {
+        let path = Path::new(env!("CARGO_MANIFEST_DIR")).join("../../scenes/default.toml");
+        assert_eq!(Scene::load(&path).unwrap(), Scene::default());
+        assert_eq!(Scene::parse("", "empty").unwrap(), Scene::default());
+    }
+
+    #[test]
+    fn kernel_and_motion_paths_resolve_relative_to_the_scene_and_must_exist() {
+        let dir = std::env::temp_dir().join(format!("lungdyn-scene-{}", std::process::id()));
+        std::fs::create_dir_all(&dir).unwrap();
+        let scene = dir.join("s.toml");
+        std::fs::write(&scene, "[lungs.kernels]\nleft = \"missing.kernel\"\n").unwrap();
+        let e = Scene::load(&scene).unwrap_err().to_string();
+        assert!(
+            e.contains("missing.kernel") && e.contains("lungdyn bake"),
+            "{e}"
+        );
+        std::fs::write(dir.join("l.kernel"), b"x").unwrap();
+        std::fs::write(&scene, "[lungs.kernels]\nleft = \"l.kernel\"\n").unwrap();
+        let s = Scene::load(&scene).unwrap();
+        assert_eq!(
+            s.lungs.kernels.get(Side::Left),
+            Some(dir.join("l.kernel").as_path())
+        );
+        std::fs::write(&scene, "[lungs]\nmotion = \"m.toml\"\n").unwrap();
+        std::fs::write(dir.join("m.toml"), "format = 2\n").unwrap();
+        let e = Scene::load(&scene).unwrap_err().to_string();
+        assert!(e.contains("format 2"), "{e}");
+        std::fs::write(
+            dir.join("m.toml"),
+            "format = 1\n[left]\nc = [1.0, 0.5, 2.0, 0.5, 3.0, 2.0, 0.01, 0.95, 0.07]\n",
+        )
+        .unwrap();
+        let s = Scene::load(&scene).unwrap();
+        assert_eq!(s.bake_settings(Side::Left).unwrap().motion.c[0], 1.0);
+        assert_eq!(
+            s.bake_settings(Side::Right).unwrap().motion,
+            crate::deform::MotionConstants::table_6_1(Side::Right)
+        );
+    }
+
+    #[test]
+    fn bad_scenes_are_refused_with_the_key_named() {
+        let e = Scene::parse("[pv]\npresett = \"x\"\n", "s.toml")
+            .unwrap_err()
+            .to_string();
+        assert!(e.contains("presett"), "{e}");
+        let e = Scene::parse("[pv]\npreset = \"nope\"\n", "s.toml")
+            .unwrap_err()
+            .to_string();
+        assert!(e.contains("unknown PV preset"), "{e}");
+        let e = Scene::parse("[lungs]\nvertices = 5\n", "s.toml")
+            .unwrap_err()
+            .to_string();
+        assert!(e.contains("vertices"), "{e}");
+        let e = Scene::parse("[lungs]\nsides = [\"left\", \"left\"]\n", "s.toml")
+            .unwrap_err()
+            .to_string();
+        assert!(e.contains("twice"), "{e}");
+        let e = Scene::parse("[lungs.elasticity]\napex = 0\n", "s.toml")
+            .unwrap_err()
+            .to_string();
+        assert!(e.contains("[lungs.elasticity]"), "{e}");
+        let e = Scene::parse("[lungs]\ntransfer_tolerance = 2\n", "s.toml")
+            .unwrap_err()
+            .to_string();
+        assert!(e.contains("transfer_tolerance"), "{e}");
+        let e = Scene::parse("[lungs.kernels]\nmiddle = \"m.kernel\"\n", "s.toml")
+            .unwrap_err()
+            .to_string();
+        assert!(e.contains("middle"), "{e}");
+        let e = Scene::parse("[render]\nmode = \"voxels\"\n", "s.toml")
+            .unwrap_err()
+            .to_string();
+        assert!(e.contains("voxels"), "{e}");
+    }
+}
