@@ -1,40 +1,166 @@
 //! # runtime: the engine's tick
 //!
 //! [`EngineCore`] is the deterministic heart: `step(tick, latest tracker frame)` → [`EngineFrame`],
-//! a pure function of its inputs and the scene (no clock, no randomness, no allocation), so a
-//! recorded session replays bit-identically. The breathing clock is the integer tick counter
-//! (PV volume from [`crate::pv::Breathing::volume_at`]), never an accumulated float time.
+//! a pure function of the scene, the kernels and the sequence of inputs (no clock, no randomness,
+//! no allocation), so a recorded session replays bit-identically. The breathing clock is the integer
+//! tick counter, never an accumulated float time.
 //!
-//! [`run`] is the process loop around it: it sleeps on the tracker's iceoryx2 event, so a fresh
-//! tracker sample is turned into an engine frame immediately (a tick is *driven* by the sample it
-//! consumes), and falls back to an absolute deadline (`period + grace`, then every `period`) when the
-//! tracker is late or silent, so the lung keeps breathing.
+//! Each lung has its own breathing state ([`LungBreath`]): its PV cycle (precomputed per phase from
+//! eq. 5.11 and EQUATIONS §1.1, [`Breathing`]), its share of the volume change, a held volume when it
+//! does not breathe, and a rigid offset. Today's scenes give both lungs one PV cycle split by their
+//! FRC volumes; a disease state changes one lung's state — stop it, shrink it, change its rate from
+//! its next cycle — while the other breathes on. Each lung's volume becomes a deformation scale by
+//! solving its volume cubic (EQUATIONS §2.4), so the drawn mesh encloses exactly that volume.
+//!
+//! [`process`] is the loop around it.
 
 use ipc_types::{
-    engine_state, fault, EngineFrame, LungState, Pose, TrackerFrame, LAYOUT_VERSION, TOOL_PATIENT,
+    engine_state, fault, lung_flags, EngineFrame, LungFrame, Pose, TrackerFrame, LAYOUT_VERSION,
+    NUM_LUNGS, TOOL_PATIENT,
 };
+use lung_model::deform::{LungModel, VolumeCubic};
+use lung_model::mesh::Side;
+use lung_model::pv::{Breathing, PvError};
+use lung_model::scene::{LungLoadError, Scene, SceneValueError};
+use thiserror::Error;
 
-use crate::deform::LungModel;
-use crate::mesh::{generate, Side};
-use crate::pv::{self, Breathing};
-use crate::scene::Scene;
+pub mod process;
+pub use process::run;
 
-/// What the engine needs of one lung at run time.
-#[derive(Debug, Clone)]
-pub struct LungRuntime {
+/// What the engine needs of one lung's geometry: its kernel's identity and volume cubic.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct LungGeometry {
     /// Which lung.
     pub side: Side,
-    /// Share of the total PV volume change this lung takes (its FRC volume / total FRC).
-    pub share: f64,
-    /// The lung's deformation model (its volume cubic is what the tick uses).
-    pub model: LungModel,
+    /// Identity of the kernel (travels in every frame so a renderer can check it drew the same lung).
+    pub kernel_id: u64,
+    /// Enclosed volume of `mesh + s·u` as a cubic in `s`.
+    pub cubic: VolumeCubic,
+    /// Enclosed volume of the mesh as baked (FRC), ml.
+    pub start_volume_ml: f64,
+}
+
+impl LungGeometry {
+    /// The geometry of a loaded lung model.
+    pub fn of(model: &LungModel) -> Self {
+        Self {
+            side: model.side,
+            kernel_id: model.kernel_id,
+            cubic: model.cubic,
+            start_volume_ml: model.start_volume_ml,
+        }
+    }
+
+    /// Deformation scale that makes the enclosed volume `start + delta_ml`.
+    #[inline]
+    pub fn scale_for_delta(&self, delta_ml: f64) -> f64 {
+        self.cubic.solve_delta(delta_ml * 1000.0)
+    }
+}
+
+/// One lung's breathing state.
+#[derive(Debug, Clone)]
+pub struct LungBreath {
+    breathing: Breathing,
+    next: Option<Breathing>,
+    share: f64,
+    held_ml: Option<f64>,
+    offset_mm: [f64; 3],
+    cycle_start: u64,
+    cycle: u32,
+    changed_at: Option<u64>,
+}
+
+impl LungBreath {
+    /// A lung following `breathing`, taking `share` of its volume change above FRC.
+    pub fn new(breathing: Breathing, share: f64) -> Self {
+        Self {
+            breathing,
+            next: None,
+            share,
+            held_ml: None,
+            offset_mm: [0.0; 3],
+            cycle_start: 0,
+            cycle: 0,
+            changed_at: None,
+        }
+    }
+
+    /// The cycle in force.
+    pub fn breathing(&self) -> &Breathing {
+        &self.breathing
+    }
+
+    /// Breathe `next` from the start of this lung's next cycle (a rate or depth change never cuts a
+    /// breath short).
+    pub fn set_breathing_from_next_cycle(&mut self, next: Breathing) {
+        self.next = Some(next);
+    }
+
+    /// Stop breathing and hold the lung's volume at `volume_ml` (absolute, ml); `None` resumes.
+    pub fn hold(&mut self, volume_ml: Option<f64>) {
+        self.held_ml = volume_ml;
+    }
+
+    /// Share of the PV volume change above FRC this lung takes.
+    pub fn set_share(&mut self, share: f64) {
+        self.share = share;
+    }
+
+    /// Rigid offset of the whole lung, body frame, mm.
+    pub fn set_offset_mm(&mut self, offset_mm: [f64; 3]) {
+        self.offset_mm = offset_mm;
+    }
+
+    /// Advance the cycle bookkeeping to `tick`; returns the tick within the current cycle.
+    fn local_tick(&mut self, tick: u64) -> u64 {
+        let mut local = tick.saturating_sub(self.cycle_start);
+        let ct = self.breathing.cycle_ticks() as u64;
+        if local >= ct {
+            // The cycle that started at `cycle_start` is over: a pending change takes effect at
+            // the boundary, later whole cycles of the new breathing are skipped arithmetically.
+            self.cycle_start += ct;
+            self.cycle = self.cycle.wrapping_add(1);
+            if let Some(n) = self.next.take() {
+                self.breathing = n;
+                self.changed_at = Some(self.cycle_start);
+            }
+            local = tick.saturating_sub(self.cycle_start);
+            let ct = self.breathing.cycle_ticks() as u64;
+            let whole = local / ct;
+            self.cycle_start += whole * ct;
+            self.cycle = self.cycle.wrapping_add(whole as u32);
+            local -= whole * ct;
+        }
+        local
+    }
+
+    /// Volume change above this lung's FRC volume at `local` (ml), and whether it is inhaling.
+    fn delta_at(&self, local: u64) -> (f64, bool) {
+        let b = &self.breathing;
+        let delta = (b.volume_at(local) - b.boundary().frc_ml) * self.share;
+        (delta, local < b.inhale_ticks() as u64)
+    }
+}
+
+/// Why the engine could not be built for a scene.
+#[derive(Debug, Error)]
+pub enum CoreError {
+    /// The scene's PV model cannot be used.
+    #[error("the scene's PV model: {0}")]
+    Pv(#[source] SceneValueError),
+    /// The breathing cycle cannot be precomputed.
+    #[error("the breathing cycle: {0}")]
+    Breathing(#[source] PvError),
+    /// A lung could not be loaded.
+    #[error(transparent)]
+    Lung(#[from] LungLoadError),
 }
 
 /// The deterministic engine state.
 #[derive(Debug, Clone)]
 pub struct EngineCore {
-    breathing: Breathing,
-    lungs: Vec<LungRuntime>,
+    lungs: Vec<(LungGeometry, LungBreath)>,
     staleness_ticks: u64,
     patient_pose: Pose,
     last_good_pose_tick: Option<u64>,
@@ -42,81 +168,79 @@ pub struct EngineCore {
     last_tracker_frame: u64,
 }
 
-/// The deformation model of `side` for `scene`: its baked kernel when the scene names one, else the
-/// generated lung baked in memory with the scene's settings.
-pub fn build_lung(scene: &Scene, side: Side) -> anyhow::Result<LungModel> {
-    if let Some(path) = scene.lungs.kernels.get(side) {
-        let file = crate::kernel::KernelFile::open(path)?;
-        if file.meta().side != side {
-            anyhow::bail!(
-                "{}: this kernel is of the {} lung, the scene uses it for the {} lung",
-                path.display(),
-                file.meta().side.name(),
-                side.name()
-            );
-        }
-        return Ok(file.lung_model());
-    }
-    let mesh = generate::lung(side, scene.lungs.vertices)?;
-    let kernel = crate::kernel::bake(side, mesh, &scene.bake_settings(side)?, &|_| {})?;
-    Ok(LungModel::from_unit_displacement(
-        side,
-        kernel.mesh,
-        kernel.unit_displacement,
-    ))
-}
-
 impl EngineCore {
-    /// Build the engine for `scene`: precompute the breathing cycle and each active lung's model.
-    pub fn new(scene: &Scene) -> anyhow::Result<Self> {
-        let (inhale, exhale, boundary) = scene.pv_model()?;
-        let breathing = Breathing::from_constants(&inhale, &exhale, boundary, &scene.timing())?;
-        let frc = breathing.boundary().frc_ml;
+    /// Build the engine for `scene`: precompute the breathing cycle and load each lung's kernel
+    /// (never baking: a lung without a kernel is an error that says how to get one).
+    pub fn new(scene: &Scene) -> Result<Self, CoreError> {
         let lungs = scene
-            .lungs
-            .sides
+            .lung_models()?
             .iter()
-            .map(|&side| {
-                let model = build_lung(scene, side)?;
-                Ok(LungRuntime {
-                    side,
-                    share: model.start_volume_ml / frc,
-                    model,
-                })
-            })
-            .collect::<anyhow::Result<Vec<_>>>()?;
-        Ok(Self::from_parts(
-            breathing,
-            lungs,
-            scene.engine.pose_staleness_ticks as u64,
-        ))
+            .map(LungGeometry::of)
+            .collect::<Vec<_>>();
+        Self::with_geometry(scene, lungs)
     }
 
-    /// Assemble from precomputed parts (tests, benchmarks).
-    pub fn from_parts(breathing: Breathing, lungs: Vec<LungRuntime>, staleness_ticks: u64) -> Self {
-        Self {
-            breathing,
+    /// Build from a scene and lung geometries already loaded (tests, benchmarks, tools that hold
+    /// the lung models): today's behaviour, both lungs on the scene's PV cycle split by FRC volume.
+    pub fn with_geometry(scene: &Scene, lungs: Vec<LungGeometry>) -> Result<Self, CoreError> {
+        let (inhale, exhale, boundary) = scene.pv_model().map_err(CoreError::Pv)?;
+        let breathing = Breathing::from_constants(&inhale, &exhale, boundary, &scene.timing())
+            .map_err(CoreError::Breathing)?;
+        let frc = breathing.boundary().frc_ml;
+        let lungs = lungs
+            .into_iter()
+            .map(|g| {
+                let share = g.start_volume_ml / frc;
+                (g, LungBreath::new(breathing.clone(), share))
+            })
+            .collect();
+        Ok(Self {
             lungs,
-            staleness_ticks,
+            staleness_ticks: scene.engine.pose_staleness_ticks as u64,
             patient_pose: Pose::IDENTITY,
             last_good_pose_tick: None,
             last_tracker_tick: None,
             last_tracker_frame: 0,
-        }
+        })
     }
 
-    /// The precomputed breathing cycle.
-    pub fn breathing(&self) -> &Breathing {
-        &self.breathing
+    /// The active lungs' geometry.
+    pub fn geometry(&self) -> impl Iterator<Item = &LungGeometry> {
+        self.lungs.iter().map(|(g, _)| g)
     }
 
-    /// The active lungs.
-    pub fn lungs(&self) -> &[LungRuntime] {
-        &self.lungs
+    /// Number of active lungs.
+    pub fn lung_count(&self) -> usize {
+        self.lungs.len()
     }
 
-    /// One tick. `input` is the latest tracker frame if one arrived since the previous tick.
-    /// Writes every field of `out` except the engine's own hop stamps (set by the process loop).
+    /// The breathing state of `side`, if the scene simulates it.
+    pub fn lung(&self, side: Side) -> Option<&LungBreath> {
+        self.lungs
+            .iter()
+            .find(|(g, _)| g.side == side)
+            .map(|l| &l.1)
+    }
+
+    /// The breathing state of `side` to change it (disease states, interventions).
+    pub fn lung_mut(&mut self, side: Side) -> Option<&mut LungBreath> {
+        self.lungs
+            .iter_mut()
+            .find(|(g, _)| g.side == side)
+            .map(|l| &mut l.1)
+    }
+
+    /// Ticks per breathing cycle of the first lung (for reports and snapshot planning).
+    pub fn cycle_ticks(&self) -> u32 {
+        self.lungs
+            .first()
+            .map(|(_, b)| b.breathing.cycle_ticks())
+            .unwrap_or(0)
+    }
+
+    /// One tick. `input` is the latest tracker frame if one arrived since the previous tick; ticks
+    /// must not go backwards. Writes every field of `out` except the engine's own hop stamps (set
+    /// by the process loop). No allocation.
     pub fn step(&mut self, tick: u64, input: Option<&TrackerFrame>, out: &mut EngineFrame) {
         let mut state = 0u32;
         let mut fault_word = fault::NONE;
@@ -126,12 +250,8 @@ impl EngineCore {
                 self.last_tracker_tick = Some(tick);
                 self.last_tracker_frame = frame.frame_number;
                 out.stamps = frame.stamps;
-                let patient = &frame.tools[TOOL_PATIENT];
-                if frame.tool_count as usize > TOOL_PATIENT
-                    && patient.is_valid()
-                    && patient.pose.is_finite()
-                {
-                    self.patient_pose = patient.pose;
+                if let Some(pose) = frame.valid_tool(TOOL_PATIENT) {
+                    self.patient_pose = pose;
                     self.last_good_pose_tick = Some(tick);
                 }
             }
@@ -152,176 +272,56 @@ impl EngineCore {
             }
             None => state |= engine_state::PATIENT_POSE_HELD | engine_state::PATIENT_POSE_STALE,
         }
-        if self.breathing.phase_at(tick) == pv::Phase::Inhale {
-            state |= engine_state::INHALING;
-        }
-        let total = self.breathing.volume_at(tick);
-        let delta_total = total - self.breathing.boundary().frc_ml;
-        out.lungs = [LungState::default(); ipc_types::NUM_LUNGS];
-        for lung in &self.lungs {
-            let slot = &mut out.lungs[lung.side.index()];
-            let delta = delta_total * lung.share;
-            let scale = lung.model.scale_for_delta(delta);
-            if scale.is_finite() {
-                slot.volume_ml = (lung.model.start_volume_ml + delta) as f32;
+        out.lungs = [LungFrame::default(); NUM_LUNGS];
+        for (k, (geometry, breath)) in self.lungs.iter_mut().enumerate() {
+            let local = breath.local_tick(tick);
+            let ct = breath.breathing.cycle_ticks();
+            let slot = &mut out.lungs[geometry.side.index()];
+            let mut flags = lung_flags::ACTIVE;
+            let volume = match breath.held_ml {
+                Some(v) => {
+                    flags |= lung_flags::HELD;
+                    v
+                }
+                None => {
+                    let (delta, inhaling) = breath.delta_at(local);
+                    if inhaling {
+                        flags |= lung_flags::INHALING;
+                    }
+                    geometry.start_volume_ml + delta
+                }
+            };
+            if breath.changed_at == Some(tick) {
+                flags |= lung_flags::CYCLE_CHANGED;
+            }
+            if k == 0 && flags & lung_flags::INHALING != 0 {
+                state |= engine_state::INHALING;
+            }
+            let scale = geometry.scale_for_delta(volume - geometry.start_volume_ml);
+            if scale.is_finite() && volume.is_finite() {
+                slot.volume_ml = volume as f32;
                 slot.deform_scale = scale as f32;
             } else {
                 // Unreachable for validated scenes; a NaN must never reach a frame.
                 fault_word = fault::NON_FINITE_VOLUME;
-                slot.volume_ml = lung.model.start_volume_ml as f32;
+                slot.volume_ml = geometry.start_volume_ml as f32;
                 slot.deform_scale = 0.0;
             }
-            slot.active = 1;
+            slot.kernel_id = geometry.kernel_id;
+            slot.phase = (local as f64 / ct as f64) as f32;
+            slot.cycle = breath.cycle;
+            slot.offset_mm = breath.offset_mm.map(|v| v as f32);
+            slot.flags = flags;
         }
         out.layout_version = LAYOUT_VERSION;
         out.state = state;
         out.fault = fault_word;
-        out.cycle_ticks = self.breathing.cycle_ticks();
+        out._pad = 0;
         out.tick = tick;
         out.tracker_frame = self.last_tracker_frame;
         out.patient_pose = self.patient_pose;
     }
 }
 
-pub mod process;
-pub use process::run;
-
 #[cfg(test)]
-mod tests {
-    use super::*;
-    use ipc_types::{tool_status, ToolPose};
-
-    fn frame(n: u64, patient_valid: bool) -> TrackerFrame {
-        let mut f = TrackerFrame {
-            layout_version: LAYOUT_VERSION,
-            tool_count: 2,
-            frame_number: n,
-            ..Default::default()
-        };
-        f.stamps.capture_ns = 1000 + n;
-        f.tools[TOOL_PATIENT] = ToolPose {
-            tool_id: 1,
-            status: if patient_valid {
-                tool_status::VALID
-            } else {
-                tool_status::MISSING
-            },
-            pose: Pose {
-                quat: [0.0, 0.0, (n as f32 * 0.01).sin(), 1.0],
-                translation_mm: [n as f32, 0.0, 900.0],
-                _pad: 0,
-            },
-            rms_error_mm: 0.2,
-            _pad: 0,
-        };
-        f
-    }
-
-    fn small_scene() -> Scene {
-        let mut s = Scene::default();
-        s.lungs.vertices = 1000;
-        s
-    }
-
-    /// A recorded input sequence with gaps (deadline-fallback ticks) and bad patient samples.
-    fn replay(core: &mut EngineCore) -> Vec<EngineFrame> {
-        let mut out = Vec::new();
-        for tick in 0..900u64 {
-            let input = match tick % 37 {
-                5 | 6 => None,
-                9 => Some(frame(tick, false)),
-                _ => Some(frame(tick, true)),
-            };
-            let mut f = EngineFrame::default();
-            core.step(tick, input.as_ref(), &mut f);
-            out.push(f);
-        }
-        out
-    }
-
-    fn bits(f: &EngineFrame) -> Vec<u32> {
-        let mut v = vec![
-            f.state,
-            f.fault,
-            f.cycle_ticks,
-            f.tick as u32,
-            f.tracker_frame as u32,
-        ];
-        v.extend(
-            f.patient_pose
-                .quat
-                .iter()
-                .chain(&f.patient_pose.translation_mm)
-                .map(|x| x.to_bits()),
-        );
-        for l in &f.lungs {
-            v.extend([l.volume_ml.to_bits(), l.deform_scale.to_bits(), l.active]);
-        }
-        v
-    }
-
-    #[test]
-    fn same_inputs_replay_bitwise_identically() {
-        let scene = small_scene();
-        let a = replay(&mut EngineCore::new(&scene).unwrap());
-        let b = replay(&mut EngineCore::new(&scene).unwrap());
-        assert_eq!(a.len(), b.len());
-        for (x, y) in a.iter().zip(&b) {
-            assert_eq!(bits(x), bits(y), "tick {}", x.tick);
-        }
-        // A committed digest pins the reference run across builds and machines.
-        let digest = a
-            .iter()
-            .flat_map(bits)
-            .fold(0xcbf2_9ce4_8422_2325_u64, |h, w| {
-                (h ^ w as u64).wrapping_mul(0x0000_0100_0000_01b3)
-            });
-        assert_eq!(
-            digest, REFERENCE_DIGEST,
-            "reference run changed: digest {digest:#018x}"
-        );
-    }
-
-    /// FNV-1a over [`bits`] of the 900-tick reference replay at 1000 vertices per lung.
-    const REFERENCE_DIGEST: u64 = 0xd9cf7a77d6c0942c;
-
-    #[test]
-    fn missing_samples_hold_the_pose_and_flag_it() {
-        let mut core = EngineCore::new(&small_scene()).unwrap();
-        let mut f = EngineFrame::default();
-        core.step(0, None, &mut f);
-        assert_ne!(f.state & engine_state::NO_TRACKER_YET, 0);
-        core.step(1, Some(&frame(1, true)), &mut f);
-        let good = f.patient_pose;
-        assert_eq!(f.state & engine_state::PATIENT_POSE_HELD, 0);
-        core.step(2, Some(&frame(2, false)), &mut f);
-        assert_eq!(f.patient_pose, good);
-        assert_ne!(f.state & engine_state::PATIENT_POSE_HELD, 0);
-        for t in 3..40 {
-            core.step(t, None, &mut f);
-        }
-        assert_ne!(f.state & engine_state::PATIENT_POSE_STALE, 0);
-        assert_eq!(f.fault, fault::TRACKER_LOST);
-        assert_eq!(f.patient_pose, good);
-    }
-
-    #[test]
-    fn lung_volumes_follow_the_pv_model_and_stay_finite() {
-        let mut core = EngineCore::new(&small_scene()).unwrap();
-        let mut f = EngineFrame::default();
-        for tick in 0..600 {
-            core.step(tick, None, &mut f);
-            let total: f32 = f.lungs.iter().map(|l| l.volume_ml).sum();
-            let expect = core.breathing().volume_at(tick) as f32;
-            assert!(
-                (total - expect).abs() < 0.01 * expect / 100.0 + 0.5,
-                "tick {tick}: {total} vs {expect}"
-            );
-            for l in &f.lungs {
-                assert!(
-                    l.volume_ml.is_finite() && l.deform_scale.is_finite() && l.deform_scale >= 0.0
-                );
-            }
-        }
-    }
-}
+mod tests;
