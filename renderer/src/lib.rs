@@ -1,10 +1,13 @@
 //! # renderer: the breathing lungs on the GPU
 //!
-//! Each frame: one compute pass deforms every vertex of both lungs (EQUATIONS.md §2.4, first mode:
-//! `p + s·u`), then one render pass draws the deformed buffer once per eye (mono, or side-by-side
+//! Each frame: one compute pass deforms every vertex of both lungs (EQUATIONS.md §2.4, the precomputed
+//! mode `p + s·u`, plus each lung's rigid offset), then one render pass draws the deformed buffer once per eye (mono, or side-by-side
 //! stereo from the HMD pose with a per-eye IPD offset), registered to the tracked patient pose.
 //! Headless: an offscreen texture, read back to PNG on request. GPU time comes from timestamp
 //! queries where the adapter has them.
+//!
+//! The lungs come from the scene's kernel files (`lung-model`); the renderer never bakes. Frames
+//! arrive from the engine through the port traits of `transport` ([`process::Session`]).
 //!
 //! Allocation on the frame path: lungdyn allocates nothing per frame; wgpu itself allocates command
 //! buffers and staging memory for `write_buffer` inside its own pools.
@@ -17,9 +20,9 @@ pub mod present;
 pub mod process;
 pub mod window;
 
-use engine::deform::LungModel;
-use engine::scene::{DrawMode, RenderScene};
 use ipc_types::Pose;
+use lung_model::deform::LungModel;
+use lung_model::scene::{DrawMode, RenderScene};
 use wgpu::util::DeviceExt;
 
 use crate::gpu::Gpu;
@@ -29,6 +32,8 @@ use crate::gpu::Gpu;
 pub struct DrawState {
     /// Deformation scale per lung slot (right, left).
     pub deform_scale: [f32; 2],
+    /// Rigid offset per lung slot (right, left), body frame, mm.
+    pub offset_mm: [[f32; 3]; 2],
     /// Patient reference pose (registration).
     pub patient: Pose,
     /// HMD pose (camera).
@@ -204,7 +209,8 @@ impl LungRenderer {
         extra: impl FnOnce(&mut wgpu::CommandEncoder),
     ) -> FrameTiming {
         let queue = &gpu.queue;
-        self.deform.set_scales(queue, state.deform_scale);
+        self.deform
+            .set_lungs(queue, state.deform_scale, state.offset_mm);
         let aspect = self.eye_width as f32 / self.height as f32;
         let s = &self.settings;
         let (eyes, n) = camera::eyes(
@@ -318,7 +324,7 @@ impl LungRenderer {
             );
         }
         let index = queue.submit(Some(encoder.finish()));
-        let submit_ns = ipc_types::now_ns();
+        let submit_ns = transport::now_ns();
         // Headless: wait for this frame, so the next one never queues behind it (one frame in flight).
         let _ = gpu.device.poll(wgpu::PollType::Wait {
             submission_index: Some(index),
@@ -394,8 +400,8 @@ fn read_mapped<T>(gpu: &Gpu, buffer: &wgpu::Buffer, f: impl FnOnce(&[u8]) -> T) 
 pub fn write_png(
     img: &image::RgbaImage,
     path: &std::path::Path,
-) -> Result<(), engine::mesh::io::WriteError> {
-    engine::mesh::io::write_atomically(path, |w| {
+) -> Result<(), lung_model::mesh::io::WriteError> {
+    lung_model::mesh::io::write_atomically(path, |w| {
         img.write_to(w, image::ImageFormat::Png)
             .map_err(std::io::Error::other)
     })

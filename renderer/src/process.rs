@@ -1,20 +1,34 @@
 //! The renderer process: wake on engine frames, late-latch the HMD pose, draw, report.
 //!
-//! A [`Session`] sleeps on the engine's iceoryx2 event; a fresh engine frame is drawn at once, with
-//! the newest HMD pose taken from the tracker stream just before the draw (late latching). If the
-//! engine is late or gone, the deadline fallback redraws the last frame (flagged stale) so the
-//! display never freezes. Each frame's hop stamps and CPU/GPU times go out on the report service for
-//! the latency harness. Headless, [`run`] drives the session in a loop; with `--window`,
-//! [`crate::window`] drives the same session from the window's event loop and presents each frame.
+//! A [`Session`] paces itself on the engine stream with the same [`Pacer`] the engine uses on the
+//! tracker stream: a fresh engine frame is drawn at once, with the newest HMD pose taken from the
+//! tracker stream just before the draw (late latching); if the engine is late or gone, the deadline
+//! fallback redraws the last frame (flagged stale) so the display never freezes. Each frame's hop
+//! stamps and CPU/GPU times go out on the report stream for the latency harness.
+//!
+//! Every engine frame names, per lung, the kernel it was computed for. A lung whose kernel is not
+//! the one this renderer loaded is drawn at rest — never with another lung's displacements — and the
+//! frame is flagged [`report_flags::KERNEL_MISMATCH`], counted, and said once on stderr.
+//!
+//! Headless, [`run`] drives the session in a loop; with `--window`, [`crate::window`] drives the
+//! same session from the window's event loop and presents each frame.
 
 use std::path::PathBuf;
 
 use ipc_types::{
-    now_ns, report_flags, termination_requested, EngineFrame, FrameReport, Inlet, Outlet, Pose,
-    Services, TrackerFrame, LAYOUT_VERSION, LUNG_LEFT, LUNG_RIGHT, TOOL_HMD,
+    report_flags, EngineFrame, FrameReport, Message, Pose, TrackerFrame, LAYOUT_VERSION, LUNG_LEFT,
+    LUNG_RIGHT, NUM_LUNGS, TOOL_HMD,
 };
+use lung_model::mesh::io::WriteError;
+use lung_model::scene::{LungLoadError, Scene, SceneError};
+use thiserror::Error;
+use transport::clock::{Clock, Monotonic};
+use transport::iox::{self, IoxNode};
+use transport::pacer::{PacerConfig, Wake};
+use transport::process::{pin_to_core, ArgError, PinError, ProcessArgs};
+use transport::{Instance, Pacer, PortError, Publish, Receive};
 
-use crate::gpu::Gpu;
+use crate::gpu::{Gpu, GpuError};
 use crate::{DrawState, LungRenderer};
 
 /// Command-line options of the `renderer` process.
@@ -22,7 +36,7 @@ use crate::{DrawState, LungRenderer};
 pub struct RendererArgs {
     /// Instance, scene, pinning and run time.
     #[command(flatten)]
-    pub process: engine::runtime::process::ProcessArgs,
+    pub process: ProcessArgs,
     /// Write a PNG of the first frame at or after each of these engine ticks (comma-separated).
     #[arg(long, value_delimiter = ',', value_name = "TICKS")]
     pub snapshot_ticks: Vec<u64>,
@@ -42,28 +56,125 @@ pub struct RendererArgs {
     pub vsync: bool,
 }
 
+/// Why the renderer stopped with an error.
+#[derive(Debug, Error)]
+pub enum RendererError {
+    /// A bad command-line option.
+    #[error(transparent)]
+    Args(#[from] ArgError),
+    /// The scene could not be loaded.
+    #[error(transparent)]
+    Scene(#[from] SceneError),
+    /// A lung's kernel could not be loaded.
+    #[error(transparent)]
+    Lung(#[from] LungLoadError),
+    /// No usable GPU.
+    #[error(transparent)]
+    Gpu(#[from] GpuError),
+    /// Pinning failed.
+    #[error(transparent)]
+    Pin(#[from] PinError),
+    /// A stream failed.
+    #[error(transparent)]
+    Port(#[from] PortError),
+    /// The snapshot folder could not be created.
+    #[error("cannot create the snapshot folder {}: {source}", path.display())]
+    SnapshotDir {
+        /// Folder.
+        path: PathBuf,
+        /// OS error.
+        source: std::io::Error,
+    },
+    /// A frame could not be read back for a snapshot.
+    #[error("could not read frame {frame} back from the GPU for a snapshot")]
+    Readback {
+        /// Renderer frame.
+        frame: u64,
+    },
+    /// A snapshot could not be written.
+    #[error(transparent)]
+    Snapshot(#[from] WriteError),
+    /// No display for `--window`.
+    #[error("--window needs a display, but none could be opened ({source}); set DISPLAY or run headless")]
+    NoDisplay {
+        /// winit's reason.
+        source: winit::error::EventLoopError,
+    },
+    /// The window could not be created.
+    #[error("cannot open a window: {source}")]
+    Window {
+        /// winit's reason.
+        source: winit::error::OsError,
+    },
+    /// The adapter cannot present to the window.
+    #[error("the GPU adapter {adapter} cannot present to this window")]
+    CannotPresent {
+        /// Adapter name.
+        adapter: String,
+    },
+    /// The window's event loop failed.
+    #[error("the window's event loop failed: {source}")]
+    EventLoop {
+        /// winit's reason.
+        source: winit::error::EventLoopError,
+    },
+}
+
+/// The streams a session reads and writes.
+pub struct Ports {
+    /// Engine frames in.
+    pub engine: Box<dyn Receive<EngineFrame>>,
+    /// Tracker frames in (for the HMD pose).
+    pub tracker: Box<dyn Receive<TrackerFrame>>,
+    /// Frame reports out.
+    pub report: Box<dyn Publish<FrameReport>>,
+}
+
+/// Snapshot options of a session.
+#[derive(Debug, Clone, Default)]
+pub struct Snapshots {
+    /// Engine ticks at or after which to write a PNG.
+    pub ticks: Vec<u64>,
+    /// Folder for the PNGs.
+    pub dir: PathBuf,
+    /// Draw every snapshot from the first snapshot's HMD pose.
+    pub fixed_view: bool,
+}
+
+/// What the session has drawn so far.
+#[derive(Debug, Clone, Copy, Default, PartialEq, Eq)]
+pub struct SessionStats {
+    /// Frames drawn and reported.
+    pub frames: u64,
+    /// Frames drawn without a fresh engine frame.
+    pub stale_frames: u64,
+    /// Frames in which at least one lung's kernel did not match the engine's.
+    pub kernel_mismatch_frames: u64,
+    /// PNG snapshots written.
+    pub snapshots: u32,
+}
+
 /// One renderer session: its GPU state, its ports and its frame loop state.
 pub struct Session {
     /// The GPU.
     pub gpu: Gpu,
     /// The lungs' GPU state and offscreen target.
     pub renderer: LungRenderer,
-    args: RendererArgs,
-    services: Services,
-    node: iceoryx2::prelude::Node<iceoryx2::prelude::ipc::Service>,
-    engine_in: Inlet<EngineFrame>,
-    tracker_in: Inlet<TrackerFrame>,
-    report_out: Outlet<FrameReport>,
-    period_ns: u64,
-    grace_ns: u64,
-    deadline: u64,
+    instance: String,
+    node: Option<IoxNode>,
+    ports: Ports,
+    clock: Box<dyn Clock>,
+    pacer: Pacer<EngineFrame>,
     stop_at: Option<u64>,
     last: Option<EngineFrame>,
     hmd: Pose,
-    frame_no: u64,
-    targets: Vec<u64>,
+    /// Kernel id of each lung slot as loaded (0: this renderer has no such lung).
+    kernel_ids: [u64; NUM_LUNGS],
+    kernel_paths: [Option<PathBuf>; NUM_LUNGS],
+    mismatch_said: bool,
+    stats: SessionStats,
+    snapshots: Snapshots,
     next_target: usize,
-    written: u32,
     snapshot_view: Option<Pose>,
 }
 
@@ -79,133 +190,211 @@ pub fn quiet_mesa() {
 }
 
 impl Session {
-    /// Load the scene, build the lungs, upload them to `gpu` and open the ports.
-    pub fn new(args: &RendererArgs, gpu: Gpu) -> anyhow::Result<Self> {
-        let scene = engine::scene::Scene::load_or_default(args.process.scene.as_deref())?;
-        let services = Services::new(&args.process.instance)?;
-        let mut targets = args.snapshot_ticks.clone();
-        targets.sort_unstable();
-        if !targets.is_empty() {
-            std::fs::create_dir_all(&args.snapshot_dir).map_err(|e| {
-                anyhow::anyhow!(
-                    "cannot create the snapshot folder {}: {e}",
-                    args.snapshot_dir.display()
-                )
+    /// Load the scene's kernels (never baking), upload them to `gpu` and open the iceoryx2 ports.
+    pub fn new(args: &RendererArgs, gpu: Gpu) -> Result<Self, RendererError> {
+        let run_ns = args.process.run_ns()?;
+        let instance = Instance::new(&args.process.instance)?;
+        pin_to_core(args.process.cpu, "renderer")?;
+        let scene = Scene::load_or_default(args.process.scene.as_deref())?;
+        let mut snapshots = Snapshots {
+            ticks: args.snapshot_ticks.clone(),
+            dir: args.snapshot_dir.clone(),
+            fixed_view: args.snapshot_fixed_view,
+        };
+        snapshots.ticks.sort_unstable();
+        if !snapshots.ticks.is_empty() {
+            std::fs::create_dir_all(&snapshots.dir).map_err(|source| {
+                RendererError::SnapshotDir {
+                    path: snapshots.dir.clone(),
+                    source,
+                }
             })?;
         }
-        let lungs = scene
-            .lungs
-            .sides
-            .iter()
-            .map(|&side| engine::runtime::build_lung(&scene, side))
-            .collect::<anyhow::Result<Vec<_>>>()?;
+        let lungs = scene.lung_models()?;
         let renderer = LungRenderer::new(&gpu, &scene.render, &lungs);
-        ipc_types::pin_to_core(args.process.cpu, "renderer")?;
-        let node = services.node("renderer")?;
-        let engine_in = Inlet::new(&node, &services.engine(), &services.engine_event())?;
-        let tracker_in = Inlet::new(&node, &services.tracker(), &services.tracker_event())?;
-        // The report stream has no consumer that waits on an event, but Outlet keeps one code path.
-        let report_out = Outlet::new(
-            &node,
-            &services.report(),
-            &format!("{}-ready", services.report()),
-        )?;
-        let period_ns = (1e9 / scene.engine.tick_hz).round() as u64;
-        let start = now_ns();
-        let (w, h) = renderer.image_size();
+        let node = iox::node(&instance, "renderer")?;
+        let ports = Ports {
+            engine: Box::new(instance.engine_inlet(&node)?),
+            tracker: Box::new(instance.tracker_inlet(&node)?),
+            report: Box::new(instance.report_outlet(&node)?),
+        };
+        let mut session = Self::assemble(
+            gpu,
+            renderer,
+            &scene,
+            &lungs,
+            ports,
+            Box::new(Monotonic),
+            snapshots,
+            instance.name(),
+        );
+        session.stop_at = run_ns.map(|d| session.clock.now_ns().saturating_add(d));
+        session.node = Some(node);
+        let (w, h) = session.renderer.image_size();
         eprintln!(
             "renderer[{}]: {} vertices, {}x{} {:?}{} on {}; waiting for engine frames on {:?}",
-            services.instance,
-            renderer.vertex_count(),
+            instance.name(),
+            session.renderer.vertex_count(),
             w,
             h,
             scene.render.mode,
             if scene.render.stereo { " stereo" } else { "" },
-            gpu.describe(),
-            services.engine()
+            session.gpu.describe(),
+            instance.engine()
         );
-        Ok(Self {
+        Ok(session)
+    }
+
+    /// A session over any ports and clock (tests drive it with in-memory ports on a fake clock).
+    #[allow(clippy::too_many_arguments)]
+    pub fn assemble(
+        gpu: Gpu,
+        renderer: LungRenderer,
+        scene: &Scene,
+        lungs: &[lung_model::deform::LungModel],
+        ports: Ports,
+        clock: Box<dyn Clock>,
+        snapshots: Snapshots,
+        instance: &str,
+    ) -> Self {
+        let period_ns = (1e9 / scene.engine.tick_hz).round() as u64;
+        let mut kernel_ids = [0u64; NUM_LUNGS];
+        let mut kernel_paths: [Option<PathBuf>; NUM_LUNGS] = Default::default();
+        for lung in lungs {
+            kernel_ids[lung.side.index()] = lung.kernel_id;
+            kernel_paths[lung.side.index()] =
+                scene.lungs.kernels.get(lung.side).map(|p| p.to_path_buf());
+        }
+        let start = clock.now_ns();
+        Self {
             gpu,
             renderer,
-            args: args.clone(),
-            services,
-            node,
-            engine_in,
-            tracker_in,
-            report_out,
-            period_ns,
-            grace_ns: period_ns / 4,
-            deadline: start + period_ns + period_ns / 4,
-            stop_at: args.process.stop_at(start),
+            instance: instance.to_string(),
+            node: None,
+            ports,
+            pacer: Pacer::new(PacerConfig::for_period(period_ns), start),
+            clock,
+            stop_at: None,
             last: None,
             hmd: default_hmd(),
-            frame_no: 0,
-            targets,
+            kernel_ids,
+            kernel_paths,
+            mismatch_said: false,
+            stats: SessionStats::default(),
+            snapshots,
             next_target: 0,
-            written: 0,
             snapshot_view: None,
-        })
+        }
     }
 
     /// True when the process was asked to stop or its time is up.
     pub fn should_stop(&self) -> bool {
-        termination_requested(&self.node) || self.stop_at.is_some_and(|t| now_ns() >= t)
+        self.node.as_ref().is_some_and(iox::termination_requested)
+            || self.stop_at.is_some_and(|t| self.clock.now_ns() >= t)
+    }
+
+    /// What the session has drawn so far.
+    pub fn stats(&self) -> SessionStats {
+        self.stats
+    }
+
+    /// Per-lung scale and offset to draw, or `None` for a lung whose kernel does not match
+    /// (drawn at rest). Returns whether any lung mismatched.
+    fn lungs_to_draw(&mut self, frame: &EngineFrame) -> ([f32; 2], [[f32; 3]; 2], bool) {
+        let mut scales = [0.0f32; 2];
+        let mut offsets = [[0.0f32; 3]; 2];
+        let mut mismatch = false;
+        for slot in 0..NUM_LUNGS {
+            let lung = &frame.lungs[slot];
+            let loaded = self.kernel_ids[slot];
+            let engine_id = if lung.is_active() { lung.kernel_id } else { 0 };
+            if engine_id == loaded {
+                if loaded != 0 {
+                    scales[slot] = lung.deform_scale;
+                    offsets[slot] = lung.offset_mm;
+                }
+                continue;
+            }
+            mismatch = true;
+            if !self.mismatch_said {
+                self.mismatch_said = true;
+                let name = if slot == LUNG_LEFT { "left" } else { "right" };
+                let ours = match &self.kernel_paths[slot] {
+                    Some(p) => format!("kernel {loaded:016x} ({})", p.display()),
+                    None => "no kernel for it".to_string(),
+                };
+                eprintln!(
+                    "renderer[{}]: warning: the engine's {name} lung is {} but this renderer loaded \
+                     {ours}; drawing that lung at rest. Start the engine and the renderer with the \
+                     same scene (`lungdyn scene prepare` writes one).",
+                    self.instance,
+                    if engine_id == 0 {
+                        "not simulated".to_string()
+                    } else {
+                        format!("kernel {engine_id:016x}")
+                    },
+                );
+            }
+        }
+        (scales, offsets, mismatch)
     }
 
     /// Wait for the next engine frame (or the deadline) and draw it, recording `extra` (the
     /// window's present pass) into the frame. Returns whether a frame was drawn.
-    pub fn step(&mut self, extra: impl FnOnce(&mut wgpu::CommandEncoder)) -> anyhow::Result<bool> {
-        self.engine_in.wait_until(self.deadline);
-        let fresh = self.engine_in.take_latest()?;
-        let now = now_ns();
-        if fresh.is_none() && now < self.deadline {
+    pub fn step(
+        &mut self,
+        extra: impl FnOnce(&mut wgpu::CommandEncoder),
+    ) -> Result<bool, RendererError> {
+        let Some(tick) = self
+            .pacer
+            .poll(self.clock.as_ref(), self.ports.engine.as_mut())?
+        else {
             return Ok(false);
-        }
+        };
         let mut flags = 0u32;
-        let mut frame = match (fresh, self.last) {
-            (Some(f), _) => {
-                ipc_types::check_layout("EngineFrame", f.layout_version)?;
+        let mut frame = match (tick.wake, self.last) {
+            (Wake::Sample(f), _) => {
+                f.check_layout().map_err(PortError::from)?;
                 if self.last.is_none() {
                     eprintln!(
                         "renderer[{}]: engine connected (tick {})",
-                        self.services.instance, f.tick
+                        self.instance, f.tick
                     );
                 }
-                self.deadline = now + self.period_ns + self.grace_ns;
                 f
             }
-            (None, Some(f)) => {
+            (Wake::Deadline, Some(f)) => {
                 flags |= report_flags::STALE_ENGINE;
-                self.deadline += self.period_ns;
+                self.stats.stale_frames += 1;
                 f
             }
-            (None, None) => {
-                self.deadline += self.period_ns;
-                return Ok(false);
-            }
+            (Wake::Deadline, None) => return Ok(false),
         };
+        let now = tick.at_ns;
         frame.stamps.renderer_receive_ns = now;
         // Late latch: the freshest HMD pose at draw time.
-        if let Some(t) = self.tracker_in.take_latest()? {
-            let tool = &t.tools[TOOL_HMD];
-            if t.tool_count as usize > TOOL_HMD && tool.is_valid() && tool.pose.is_finite() {
-                self.hmd = tool.pose;
+        if let Some(t) = self.ports.tracker.take_latest()? {
+            if let Some(pose) = t.valid_tool(TOOL_HMD) {
+                self.hmd = pose;
             }
         }
-        let targets = &self.targets;
+        let (scales, offsets, mismatch) = self.lungs_to_draw(&frame);
+        if mismatch {
+            flags |= report_flags::KERNEL_MISMATCH;
+            self.stats.kernel_mismatch_frames += 1;
+        }
+        let targets = &self.snapshots.ticks;
         let capture = self.next_target < targets.len() && frame.tick >= targets[self.next_target];
         if capture {
             flags |= report_flags::SNAPSHOT;
         }
         let mut view = self.hmd;
-        if capture && self.args.snapshot_fixed_view {
+        if capture && self.snapshots.fixed_view {
             view = *self.snapshot_view.get_or_insert(self.hmd);
         }
         let state = DrawState {
-            deform_scale: [
-                frame.lungs[LUNG_RIGHT].deform_scale,
-                frame.lungs[LUNG_LEFT].deform_scale,
-            ],
+            deform_scale: scales,
+            offset_mm: offsets,
             patient: frame.patient_pose,
             hmd: view,
         };
@@ -214,11 +403,11 @@ impl Session {
         if timing.gpu_ns.is_some() {
             flags |= report_flags::GPU_TIMED;
         }
-        self.frame_no += 1;
-        self.report_out.publish(FrameReport {
+        self.stats.frames += 1;
+        self.ports.report.publish(&FrameReport {
             layout_version: LAYOUT_VERSION,
             flags,
-            frame: self.frame_no,
+            frame: self.stats.frames,
             engine_tick: frame.tick,
             tracker_frame: frame.tracker_frame,
             stamps: frame.stamps,
@@ -230,8 +419,8 @@ impl Session {
             ],
         })?;
         if capture {
-            while self.next_target < self.targets.len()
-                && frame.tick >= self.targets[self.next_target]
+            while self.next_target < self.snapshots.ticks.len()
+                && frame.tick >= self.snapshots.ticks[self.next_target]
             {
                 self.next_target += 1;
             }
@@ -241,36 +430,41 @@ impl Session {
         Ok(true)
     }
 
-    fn write_snapshot(&mut self, frame: &EngineFrame) -> anyhow::Result<()> {
+    fn write_snapshot(&mut self, frame: &EngineFrame) -> Result<(), RendererError> {
         let img = self
             .renderer
             .read_image(&self.gpu)
-            .ok_or_else(|| anyhow::anyhow!("could not read the frame back from the GPU"))?;
+            .ok_or(RendererError::Readback {
+                frame: self.stats.frames,
+            })?;
         let total = frame.lungs[LUNG_RIGHT].volume_ml + frame.lungs[LUNG_LEFT].volume_ml;
-        let path = self.args.snapshot_dir.join(format!(
+        let path = self.snapshots.dir.join(format!(
             "lungs_{:02}_tick{:05}_{:04.0}ml.png",
-            self.written, frame.tick, total
+            self.stats.snapshots, frame.tick, total
         ));
         crate::write_png(&img, &path)?;
-        self.written += 1;
+        self.stats.snapshots += 1;
         Ok(())
     }
 
     /// Say goodbye on stderr.
     pub fn finish(&self) {
+        let s = &self.stats;
         eprintln!(
-            "renderer[{}]: stopped after {} frames, {} snapshots",
-            self.services.instance, self.frame_no, self.written
+            "renderer[{}]: stopped after {} frames ({} stale, {} with a kernel mismatch), {} snapshots",
+            self.instance, s.frames, s.stale_frames, s.kernel_mismatch_frames, s.snapshots
         );
     }
 }
 
 /// Run the renderer until terminated (or `--seconds` elapse): headless, or in a window.
-pub fn run(args: &RendererArgs) -> anyhow::Result<()> {
+pub fn run(args: &RendererArgs) -> Result<(), RendererError> {
     quiet_mesa();
     if args.window {
         return crate::window::run(args);
     }
+    // Validate the options before opening the GPU (slow on software adapters).
+    args.process.run_ns()?;
     let mut session = Session::new(args, Gpu::new()?)?;
     while !session.should_stop() {
         session.step(|_| {})?;

@@ -14,7 +14,7 @@ use winit::window::{Window, WindowId};
 
 use crate::gpu::Gpu;
 use crate::present::PresentPass;
-use crate::process::{RendererArgs, Session};
+use crate::process::{RendererArgs, RendererError, Session};
 
 struct Windowed {
     session: Session,
@@ -27,12 +27,12 @@ struct Windowed {
 struct App {
     args: RendererArgs,
     state: Option<Windowed>,
-    error: Option<anyhow::Error>,
+    error: Option<RendererError>,
 }
 
 impl App {
-    fn open(&mut self, event_loop: &ActiveEventLoop) -> anyhow::Result<()> {
-        let scene = engine::scene::Scene::load_or_default(self.args.process.scene.as_deref())?;
+    fn open(&mut self, event_loop: &ActiveEventLoop) -> Result<(), RendererError> {
+        let scene = lung_model::scene::Scene::load_or_default(self.args.process.scene.as_deref())?;
         let eyes = if scene.render.stereo { 2 } else { 1 };
         let size = PhysicalSize::new(scene.render.width * eyes, scene.render.height);
         let window = Arc::new(
@@ -42,16 +42,13 @@ impl App {
                         .with_title("lungdyn")
                         .with_inner_size(size),
                 )
-                .map_err(|e| anyhow::anyhow!("cannot open a window: {e}"))?,
+                .map_err(|source| RendererError::Window { source })?,
         );
         let (gpu, surface) = Gpu::with_window(window.clone())?;
         let mut config = surface
             .get_default_config(&gpu.adapter, size.width, size.height)
-            .ok_or_else(|| {
-                anyhow::anyhow!(
-                    "the GPU adapter {} cannot present to this window",
-                    gpu.info.name
-                )
+            .ok_or_else(|| RendererError::CannotPresent {
+                adapter: gpu.info.name.clone(),
             })?;
         config.present_mode = if self.args.vsync {
             wgpu::PresentMode::AutoVsync
@@ -75,7 +72,7 @@ impl App {
         Ok(())
     }
 
-    fn fail(&mut self, event_loop: &ActiveEventLoop, e: anyhow::Error) {
+    fn fail(&mut self, event_loop: &ActiveEventLoop, e: RendererError) {
         self.error = Some(e);
         event_loop.exit();
     }
@@ -145,12 +142,9 @@ impl ApplicationHandler for App {
 }
 
 /// Run the renderer in a window until it is closed, the process is signalled, or `--seconds` end.
-pub fn run(args: &RendererArgs) -> anyhow::Result<()> {
-    let event_loop = EventLoop::new().map_err(|e| {
-        anyhow::anyhow!(
-            "--window needs a display, but none could be opened ({e}); set DISPLAY or run headless"
-        )
-    })?;
+pub fn run(args: &RendererArgs) -> Result<(), RendererError> {
+    args.process.run_ns()?;
+    let event_loop = EventLoop::new().map_err(|source| RendererError::NoDisplay { source })?;
     event_loop.set_control_flow(ControlFlow::Poll);
     let mut app = App {
         args: args.clone(),
@@ -159,7 +153,7 @@ pub fn run(args: &RendererArgs) -> anyhow::Result<()> {
     };
     event_loop
         .run_app(&mut app)
-        .map_err(|e| anyhow::anyhow!("window event loop failed: {e}"))?;
+        .map_err(|source| RendererError::EventLoop { source })?;
     if let Some(state) = &app.state {
         state.session.finish();
     }

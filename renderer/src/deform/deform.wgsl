@@ -1,9 +1,14 @@
-// First deformation mode (EQUATIONS.md §2.4): p' = p + s_lung · u, one multiply-add per coordinate.
-// Executed once per frame for every vertex of both lungs; both stereo eyes draw the result.
+// Precomputed deformation mode (EQUATIONS.md §2.4): p' = p + s_lung · u + o_lung, one multiply-add
+// per coordinate plus the lung's rigid offset (mediastinal shift, a dropped lung). Executed once per
+// frame for every vertex of both lungs; both stereo eyes draw the result.
 
 struct Params {
     // Deformation scale per lung: x = right lung (index 0), y = left lung (index 1).
     scale: vec4<f32>,
+    // Rigid offset of the right lung (xyz, mm).
+    offset_right: vec4<f32>,
+    // Rigid offset of the left lung (xyz, mm).
+    offset_left: vec4<f32>,
     count: u32,
     _pad0: u32,
     _pad1: u32,
@@ -24,6 +29,8 @@ fn main(@builtin(global_invocation_id) gid: vec3<u32>) {
         return;
     }
     let b = base[i];
-    let s = select(params.scale.x, params.scale.y, b.w > 0.5);
-    deformed[i] = vec4<f32>(b.xyz + s * unit_disp[i].xyz, b.w);
+    let left = b.w > 0.5;
+    let s = select(params.scale.x, params.scale.y, left);
+    let o = select(params.offset_right.xyz, params.offset_left.xyz, left);
+    deformed[i] = vec4<f32>(b.xyz + s * unit_disp[i].xyz + o, b.w);
 }

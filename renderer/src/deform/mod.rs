@@ -1,10 +1,10 @@
-//! The per-frame deformation compute pass (`deform.wgsl`): `p' = p + s_lung · u` for every vertex
-//! of both lungs, once per frame, into a buffer both eyes draw from (the seed deformed per eye in
-//! the vertex shader and lost half its stereo rate).
+//! The per-frame deformation compute pass (`deform.wgsl`): `p' = p + s_lung · u + o_lung` for every
+//! vertex of both lungs, once per frame, into a buffer both eyes draw from (the seed deformed per
+//! eye in the vertex shader and lost half its stereo rate).
 
 use wgpu::util::DeviceExt;
 
-use engine::deform::LungModel;
+use lung_model::deform::LungModel;
 
 /// Threads per workgroup; must match `@workgroup_size` in `deform.wgsl`.
 pub const WORKGROUP: u32 = 256;
@@ -15,6 +15,8 @@ pub const WORKGROUP: u32 = 256;
 pub struct DeformParams {
     /// Scale per lung slot (right, left, unused, unused).
     pub scale: [f32; 4],
+    /// Rigid offset per lung slot (xyz mm, w unused): right, then left.
+    pub offset: [[f32; 4]; 2],
     /// Vertex count.
     pub count: u32,
     /// Padding to 16 bytes.
@@ -73,6 +75,7 @@ impl DeformPass {
             label: Some("lungdyn deform params"),
             contents: bytemuck::bytes_of(&DeformParams {
                 scale: [0.0; 4],
+                offset: [[0.0; 4]; 2],
                 count,
                 _pad: [0; 3],
             }),
@@ -118,10 +121,12 @@ impl DeformPass {
         }
     }
 
-    /// Set this frame's per-lung scales (right, left).
-    pub fn set_scales(&self, queue: &wgpu::Queue, scales: [f32; 2]) {
+    /// Set this frame's per-lung scales and rigid offsets (right, left).
+    pub fn set_lungs(&self, queue: &wgpu::Queue, scales: [f32; 2], offsets: [[f32; 3]; 2]) {
+        let o = |v: [f32; 3]| [v[0], v[1], v[2], 0.0];
         let p = DeformParams {
             scale: [scales[0], scales[1], 0.0, 0.0],
+            offset: [o(offsets[0]), o(offsets[1])],
             count: self.count,
             _pad: [0; 3],
         };
