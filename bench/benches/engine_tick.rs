@@ -2,12 +2,12 @@
 //! cubic solve per lung), and the CPU reference of the deformation at several mesh sizes.
 
 use criterion::{criterion_group, criterion_main, BenchmarkId, Criterion, Throughput};
-use engine::deform::{LungModel, MotionConstants};
-use engine::mesh::{generate, Side};
-use engine::pv::{preset, Breathing, Timing, DEFAULT_PRESET};
-use engine::runtime::EngineCore;
-use engine::scene::Scene;
+use engine::runtime::{EngineCore, LungGeometry};
 use ipc_types::{EngineFrame, TrackerFrame};
+use lung_model::deform::{LungModel, MotionConstants};
+use lung_model::mesh::{generate, Side};
+use lung_model::pv::{preset, Breathing, Timing, DEFAULT_PRESET};
+use lung_model::scene::Scene;
 
 fn pv_tick(c: &mut Criterion) {
     let b = Breathing::new(&preset(DEFAULT_PRESET).unwrap(), &Timing::default()).unwrap();
@@ -24,9 +24,24 @@ fn pv_tick(c: &mut Criterion) {
 }
 
 fn engine_step(c: &mut Criterion) {
-    let mut scene = Scene::default();
-    scene.lungs.vertices = 2000;
-    let mut core = EngineCore::new(&scene).unwrap();
+    let lungs = [Side::Right, Side::Left]
+        .into_iter()
+        .map(|side| {
+            let k = lung_bake::kernel::bake(
+                side,
+                generate::lung(side, 2000).unwrap(),
+                &lung_bake::kernel::BakeSettings::default_for(side),
+                &|_| {},
+            )
+            .unwrap();
+            LungGeometry::of(&LungModel::from_unit_displacement(
+                side,
+                k.mesh,
+                k.unit_displacement,
+            ))
+        })
+        .collect();
+    let mut core = EngineCore::with_geometry(&Scene::default(), lungs).unwrap();
     let input = TrackerFrame::default();
     let mut out = EngineFrame::default();
     let mut tick = 0u64;

@@ -11,7 +11,10 @@ use std::process::Command;
 use std::time::Duration;
 
 use hdrhistogram::Histogram;
-use ipc_types::{now_ns, sleep_until_ns, Inlet, Outlet, Services, TrackerFrame, LAYOUT_VERSION};
+use ipc_types::{TrackerFrame, LAYOUT_VERSION};
+use transport::clock::{now_ns, sleep_until_ns};
+use transport::process::pin_to_core;
+use transport::{iox, Instance, Publish, Receive};
 
 const ROLE_ENV: &str = "LUNGDYN_HOP_ROLE";
 
@@ -23,11 +26,10 @@ fn samples() -> u64 {
 }
 
 fn publisher(instance: &str, mode: &str) {
-    ipc_types::pin_to_core(Some(0), "publisher").ok();
-    let services = Services::new(instance).unwrap();
-    let node = services.node("hop-pub").unwrap();
-    let out: Outlet<TrackerFrame> =
-        Outlet::new(&node, &services.tracker(), &services.tracker_event()).unwrap();
+    pin_to_core(Some(0), "publisher").ok();
+    let services = Instance::new(instance).unwrap();
+    let node = iox::node(&services, "hop-pub").unwrap();
+    let mut out = services.tracker_outlet(&node).unwrap();
     // Let the subscriber connect before the first sample.
     std::thread::sleep(Duration::from_millis(300));
     // 1 kHz: far below saturation, so each sample sees an idle subscriber (a latency, not a
@@ -43,17 +45,16 @@ fn publisher(instance: &str, mode: &str) {
             ..Default::default()
         };
         f.stamps.bridge_publish_ns = now_ns();
-        out.publish(f).unwrap();
+        out.publish(&f).unwrap();
     }
     let _ = mode;
     std::thread::sleep(Duration::from_millis(100));
 }
 
 fn subscriber(instance: &str, mode: &str) -> Histogram<u64> {
-    let services = Services::new(instance).unwrap();
-    let node = services.node("hop-sub").unwrap();
-    let inlet: Inlet<TrackerFrame> =
-        Inlet::new(&node, &services.tracker(), &services.tracker_event()).unwrap();
+    let services = Instance::new(instance).unwrap();
+    let node = iox::node(&services, "hop-sub").unwrap();
+    let mut inlet = services.tracker_inlet(&node).unwrap();
     let exe = std::env::current_exe().unwrap();
     let mut child = Command::new(exe)
         .env(ROLE_ENV, format!("{mode}:{instance}"))
@@ -61,16 +62,16 @@ fn subscriber(instance: &str, mode: &str) -> Histogram<u64> {
         .expect("start the publisher process");
     // Publisher on core 0, subscriber on core 1: each hop crosses cores, as between the pinned
     // product processes.
-    ipc_types::pin_to_core(Some(1), "subscriber").ok();
+    pin_to_core(Some(1), "subscriber").ok();
     let mut h = Histogram::<u64>::new_with_bounds(1, 10_000_000_000, 3).unwrap();
     let total = samples();
     let deadline = now_ns() + 120_000_000_000;
     while h.len() < total && now_ns() < deadline {
         if mode == "event" {
-            inlet.wait_until(now_ns() + 100_000_000);
+            inlet.wait_until(now_ns() + 100_000_000).unwrap();
         }
         inlet
-            .drain(|f| {
+            .drain(&mut |f: &TrackerFrame| {
                 let got = now_ns();
                 if f.frame_number > 1 {
                     let _ = h.record((got - f.stamps.bridge_publish_ns).max(1));
@@ -81,7 +82,7 @@ fn subscriber(instance: &str, mode: &str) -> Histogram<u64> {
     child.wait().unwrap();
     drop(inlet);
     drop(node);
-    services.remove_instance_segment().ok();
+    services.remove_leftovers();
     h
 }
 

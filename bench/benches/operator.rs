@@ -11,8 +11,8 @@
 use std::hint::black_box;
 use std::time::Instant;
 
-use engine::kernel::{bake, BakeSettings};
-use engine::mesh::{generate, Side};
+use lung_bake::kernel::{bake, BakeSettings};
+use lung_model::mesh::{generate, Side};
 
 fn peak_rss_mib() -> f64 {
     std::fs::read_to_string("/proc/self/status")
@@ -75,7 +75,7 @@ fn main() {
 
         // Precomputed mode, one thread: what the CPU reference of the GPU pass does.
         let p = &k.mesh.positions;
-        let model = engine::deform::LungModel::from_unit_displacement(
+        let model = lung_model::deform::LungModel::from_unit_displacement(
             Side::Left,
             k.mesh.clone(),
             k.unit_displacement.clone(),

@@ -1,7 +1,7 @@
 //! Time to fit a 1,000-sample PV loop (Venegas sigmoid limbs, closed loop), q and c chosen by the
 //! fit and fixed, three runs each. Run: `cargo bench -p lungdyn-bench --bench pv_fit`.
 
-use engine::pv::fit::{fit_curve, FitOptions, PvSample};
+use lung_bake::pv::fit::{fit_curve, FitOptions, PvSample};
 
 fn venegas(c: f64, d: f64) -> impl Fn(f64) -> f64 {
     move |p| 1500.0 + 3000.0 / (1.0 + (-(p - c) / d).exp())

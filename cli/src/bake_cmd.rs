@@ -4,9 +4,10 @@ use std::path::PathBuf;
 use std::time::Instant;
 
 use anyhow::Context;
-use engine::kernel::{self, KernelFile};
-use engine::mesh::import::{self, Units};
-use engine::mesh::Side;
+use lung_bake::import::{self, Units};
+use lung_bake::kernel;
+use lung_model::kernel::KernelFile;
+use lung_model::mesh::Side;
 use serde::Serialize;
 
 /// Options of `lungdyn bake`.
@@ -100,10 +101,10 @@ pub fn bake(args: &BakeArgs) -> anyhow::Result<BakeSummary> {
     if args.out.extension().and_then(|e| e.to_str()) != Some("kernel") {
         anyhow::bail!("{}: the output must end in .kernel", args.out.display());
     }
-    let scene = engine::scene::Scene::load_or_default(args.scene.as_deref())?;
+    let scene = lung_model::scene::Scene::load_or_default(args.scene.as_deref())?;
     let mut settings = scene.bake_settings(side)?;
     if let Some(m) = &args.motion {
-        settings.motion = engine::deform::MotionFile::load(m)?.for_side(side);
+        settings.motion = lung_model::deform::MotionFile::load(m)?.for_side(side);
     }
     if let Some(t) = args.tolerance {
         if !(t.is_finite() && t > 0.0 && t < 1.0) {
@@ -175,7 +176,7 @@ pub fn bake_text(b: &BakeSummary) -> String {
         b.truncated_force_max,
         b.conservation_error_max,
         b.max_unit_displacement_mm,
-        engine::deform::UNIT_VOLUME_ML,
+        lung_model::deform::UNIT_VOLUME_ML,
         b.seconds,
         b.peak_rss_mib
     )
@@ -220,7 +221,7 @@ pub fn inspect(args: &InspectArgs) -> anyhow::Result<InspectSummary> {
     Ok(InspectSummary {
         path: args.file.display().to_string(),
         file_bytes: f.len_bytes() as u64,
-        format: kernel::FORMAT_VERSION,
+        format: lung_model::kernel::FORMAT_VERSION,
         meta: f.meta().clone(),
     })
 }
@@ -305,7 +306,7 @@ pub fn export(args: &ExportArgs) -> anyhow::Result<ExportSummary> {
             args.delta_ml
         );
     }
-    engine::mesh::io::MeshFormat::from_path(&args.out)?;
+    lung_model::mesh::io::MeshFormat::from_path(&args.out)?;
     let f = KernelFile::open(&args.file)?;
     let model = f.lung_model();
     if args.delta_ml < -0.9 * model.start_volume_ml {
@@ -326,17 +327,17 @@ pub fn export(args: &ExportArgs) -> anyhow::Result<ExportSummary> {
             ((d[0] * d[0] + d[1] * d[1] + d[2] * d[2]) as f64).sqrt()
         })
         .fold(0.0, f64::max);
-    let mesh = engine::mesh::TriMesh {
+    let mesh = lung_model::mesh::TriMesh {
         positions: out,
         triangles: model.mesh.triangles.clone(),
     };
-    if let Err(e) = engine::mesh::check(&mesh) {
+    if let Err(e) = lung_model::mesh::check(&mesh) {
         anyhow::bail!(
             "at {:+} ml the deformed surface is no longer valid ({e}): the linear model does not reach that far",
             args.delta_ml
         );
     }
-    engine::mesh::io::write_mesh(&mesh, &args.out)?;
+    lung_model::mesh::io::write_mesh(&mesh, &args.out)?;
     Ok(ExportSummary {
         path: args.out.display().to_string(),
         delta_ml: args.delta_ml,

@@ -11,7 +11,10 @@ use std::process::{Child, Command, Stdio};
 use std::time::Duration;
 
 use anyhow::{bail, Context};
-use ipc_types::{now_ns, FrameReport, Inlet, Services};
+use ipc_types::FrameReport;
+use transport::{iox, now_ns, Instance, Receive};
+
+use crate::prepare::KernelUse;
 use serde::Serialize;
 
 use crate::stats::{HopRow, LatencyStats, DEADLINE_NS};
@@ -199,108 +202,15 @@ pub fn snapshot_ticks(count: u32, cycle_ticks: u64, run_ticks: u64, warmup_ticks
         .collect()
 }
 
-/// A kernel the demo used.
-#[derive(Debug, Clone, Serialize)]
-pub struct KernelUse {
-    /// Lung.
-    pub lung: String,
-    /// File.
-    pub path: String,
-    /// Whether it was baked by this run (false: the scene's own or a cached bake).
-    pub baked_now: bool,
-    /// Bake seconds (0 when reused).
-    pub bake_seconds: f64,
-}
-
-/// Give every lung of `scene` a kernel file: lungs without one get the generated default lung, baked
-/// into `dir` under a name derived from its resolution and bake settings, or reused from an earlier
-/// run when that file exists and verifies. All paths in `scene` become absolute.
-pub fn ensure_kernels(
-    scene: &mut engine::scene::Scene,
-    dir: &Path,
-) -> anyhow::Result<Vec<KernelUse>> {
-    let absolute = |p: &Path| std::path::absolute(p).unwrap_or_else(|_| p.to_path_buf());
-    if let Some(c) = &scene.pv.constants {
-        scene.pv.constants = Some(absolute(c));
-    }
-    if let Some(m) = &scene.lungs.motion {
-        scene.lungs.motion = Some(absolute(m));
-    }
-    let mut used = Vec::new();
-    for side in scene.lungs.sides.clone() {
-        if let Some(k) = scene.lungs.kernels.get(side) {
-            let k = absolute(k);
-            used.push(KernelUse {
-                lung: side.name().into(),
-                path: k.display().to_string(),
-                baked_now: false,
-                bake_seconds: 0.0,
-            });
-            scene.lungs.kernels.set(side, k);
-            continue;
-        }
-        let settings = scene.bake_settings(side)?;
-        let key = xxhash_rust::xxh3::xxh3_64(
-            format!(
-                "{}:{}:{}",
-                scene.lungs.vertices,
-                serde_json::to_string(&settings)?,
-                engine::kernel::FORMAT_VERSION
-            )
-            .as_bytes(),
-        );
-        std::fs::create_dir_all(dir).with_context(|| format!("cannot create {}", dir.display()))?;
-        let path = absolute(&dir.join(format!(
-            "default_{}_{}_{key:016x}.kernel",
-            side.name(),
-            scene.lungs.vertices
-        )));
-        let reusable = engine::kernel::KernelFile::open(&path)
-            .map(|f| f.meta().side == side && f.meta().settings == settings)
-            .unwrap_or(false);
-        let mut seconds = 0.0;
-        if !reusable {
-            let t = std::time::Instant::now();
-            eprintln!(
-                "lungdyn: baking the default {} lung ({} vertices) into {}",
-                side.name(),
-                scene.lungs.vertices,
-                path.display()
-            );
-            let mesh = engine::mesh::generate::lung(side, scene.lungs.vertices)?;
-            let bar = indicatif::ProgressBar::new(mesh.positions.len() as u64);
-            bar.set_style(
-                indicatif::ProgressStyle::with_template("  [{bar:40}] {pos}/{len} rows, eta {eta}")
-                    .expect("valid template")
-                    .progress_chars("=> "),
-            );
-            let kernel = engine::kernel::bake(side, mesh, &settings, &|rows| bar.inc(rows as u64))?;
-            bar.finish_and_clear();
-            kernel.write(&path)?;
-            seconds = t.elapsed().as_secs_f64();
-        }
-        used.push(KernelUse {
-            lung: side.name().into(),
-            path: path.display().to_string(),
-            baked_now: !reusable,
-            bake_seconds: seconds,
-        });
-        scene.lungs.kernels.set(side, path);
-    }
-    Ok(used)
-}
-
 /// Run the demo; returns the report (the caller prints it).
 pub fn run(args: &DemoArgs) -> anyhow::Result<DemoReport> {
-    if !(args.seconds.is_finite() && args.seconds > 0.0 && args.seconds <= 86_400.0) {
+    transport::process::run_ns(Some(args.seconds))?;
+    if !(args.startup_timeout.is_finite()
+        && args.startup_timeout > 0.0
+        && args.startup_timeout <= 3600.0)
+    {
         bail!(
-            "--seconds {} must be a number of seconds within (0, 86400]",
-            args.seconds
-        );
-    }
-    if !(args.startup_timeout.is_finite() && args.startup_timeout > 0.0) {
-        bail!(
-            "--startup-timeout {} must be a positive number of seconds",
+            "--startup-timeout {} must be a positive number of seconds, at most 3600",
             args.startup_timeout
         );
     }
@@ -313,31 +223,22 @@ pub fn run(args: &DemoArgs) -> anyhow::Result<DemoReport> {
              under xvfb-run, or without --window (headless)"
         );
     }
-    let mut scene = engine::scene::Scene::load_or_default(args.scene.as_deref())?;
     // Every argument is checked before anything is written (kernels are baked below).
+    let loaded = lung_model::scene::Scene::load_or_default(args.scene.as_deref())?;
     let instance = args
         .instance
         .clone()
         .unwrap_or_else(|| format!("demo-{}", std::process::id()));
-    let services = Services::new(&instance)?;
+    let services = Instance::new(&instance)?;
     check_writable(&args.out)?;
     // Every lung runs from a kernel file: the scene's own, or the generated default baked once into
-    // <out>/kernels (reused while the scene's mesh and bake settings are unchanged).
-    let kernels = ensure_kernels(&mut scene, &args.out.join("kernels"))?;
-    std::fs::create_dir_all(args.out.join("kernels"))
-        .with_context(|| format!("cannot create {}", args.out.join("kernels").display()))?;
-    let resolved_scene = args.out.join("kernels").join("scene.resolved.toml");
-    engine::mesh::io::write_atomically(&resolved_scene, |w| {
-        use std::io::Write;
-        w.write_all(
-            toml::to_string(&scene)
-                .map_err(std::io::Error::other)?
-                .as_bytes(),
-        )
-    })?;
+    // <out>/kernels (reused while the scene's mesh and bake settings are unchanged); all three
+    // processes read the same resolved scene.
+    let prepared = crate::prepare::prepare(loaded, &args.out.join("kernels"))?;
+    let (scene, kernels, resolved_scene) = (prepared.scene, prepared.kernels, prepared.path);
     let (inhale, exhale, boundary) = scene.pv_model()?;
     let breathing =
-        engine::pv::Breathing::from_constants(&inhale, &exhale, boundary, &scene.timing())?;
+        lung_model::pv::Breathing::from_constants(&inhale, &exhale, boundary, &scene.timing())?;
     let tick_hz = scene.engine.tick_hz;
     let run_ticks = (args.seconds * tick_hz) as u64;
     let targets = snapshot_ticks(
@@ -348,18 +249,16 @@ pub fn run(args: &DemoArgs) -> anyhow::Result<DemoReport> {
     );
 
     // Subscribe to the reports before anything can publish them.
-    let node = services.node("launcher")?;
-    let reports: Inlet<FrameReport> = Inlet::new(
-        &node,
-        &services.report(),
-        &format!("{}-ready", services.report()),
-    )?;
+    let node = iox::node(&services, "launcher")?;
+    let mut reports = services.report_inlet(&node)?;
 
     let exe = std::env::current_exe()
         .context("cannot find the lungdyn executable to start the processes")?;
     let mut common = vec!["--instance".to_string(), instance.clone()];
     // Children outlive a stuck launcher by at most this long.
-    let child_seconds = (args.seconds + args.startup_timeout + 30.0).to_string();
+    let child_seconds = (args.seconds + args.startup_timeout + 30.0)
+        .min(transport::process::MAX_SECONDS)
+        .to_string();
     common.extend(["--seconds".to_string(), child_seconds]);
     let with_scene = |mut v: Vec<String>| {
         v.extend(["--scene".to_string(), resolved_scene.display().to_string()]);
@@ -414,12 +313,12 @@ pub fn run(args: &DemoArgs) -> anyhow::Result<DemoReport> {
     let mut last_progress = 0u64;
     let show_progress = !args.json && std::io::IsTerminal::is_terminal(&std::io::stderr());
     loop {
-        if node.wait(Duration::from_millis(5)).is_err() {
+        if !iox::idle(&node, Duration::from_millis(5)) {
             interrupted = true;
             eprintln!("lungdyn: interrupted, stopping the processes");
             break;
         }
-        reports.drain(|r| {
+        reports.drain(&mut |r: &FrameReport| {
             if first_frame_ns.is_none() {
                 first_frame_ns = Some(now_ns());
             }
@@ -458,24 +357,24 @@ pub fn run(args: &DemoArgs) -> anyhow::Result<DemoReport> {
         .map(|t0| (now_ns() - t0) as f64 / 1e9)
         .unwrap_or(0.0);
     let killed = children.stop(Duration::from_secs(5));
-    let _ = reports.drain(|r| stats.record(r));
+    let _ = reports.drain(&mut |r: &FrameReport| stats.record(r));
     drop(reports);
     node.try_cleanup_dead_nodes();
     drop(node);
-    services.remove_instance_segment().ok();
-    let leftovers = services.leftovers();
-    if !leftovers.is_empty() {
-        // Every process of the instance has exited and the prefix is the instance's own, so what
-        // iceoryx2's dead-node cleanup missed can be removed safely. Say so: it is worth knowing.
-        let removed = services.remove_leftovers();
+    // Every process of the instance has exited and the prefix is the instance's own: remove its
+    // files. iceoryx2's node counter is expected; anything else a process failed to clean up is
+    // worth saying.
+    let cleanup = services.remove_leftovers();
+    if !cleanup.unexpected.is_empty() {
         eprintln!(
-            "lungdyn: warning: iceoryx2 left {} files of this run behind; removed {removed}:",
-            leftovers.len()
+            "lungdyn: warning: {} files of this run were left behind and have been removed:",
+            cleanup.unexpected.len()
         );
-        for f in &leftovers {
+        for f in &cleanup.unexpected {
             eprintln!("  {}", f.display());
         }
     }
+    let leftovers = cleanup.unexpected;
     let remaining = services.leftovers().len();
     if !killed.is_empty() {
         eprintln!("lungdyn: warning: had to kill {killed:?} after SIGINT");

@@ -7,7 +7,7 @@
 
 use std::path::Path;
 
-use engine::kernel::KernelFile;
+use lung_model::kernel::KernelFile;
 use plotters::prelude::*;
 
 /// Draw the three panels into `png` (drawn to a temporary sibling, then renamed).

@@ -35,6 +35,9 @@ enum Command {
     /// Kernel files.
     #[command(subcommand)]
     Kernel(KernelCommand),
+    /// Scenes: give every lung a kernel so the processes can be started on their own.
+    #[command(subcommand)]
+    Scene(SceneCommand),
     /// Run only the tracker-bridge process (what `demo` starts).
     TrackerBridge(tracker_bridge::BridgeArgs),
     /// Run only the engine process (what `demo` starts).
@@ -50,6 +53,14 @@ enum MeshCommand {
     /// Import a patient lung surface (OBJ, PLY, STL), weld and repair what is safe, verify it is
     /// closed, 2-manifold and consistently wound; optionally write the repaired mesh.
     Check(lungdyn::mesh_cmd::CheckArgs),
+}
+
+#[derive(Subcommand)]
+enum SceneCommand {
+    /// Bake the default lung for every lung the scene names no kernel for (once; reused while the
+    /// settings are unchanged) and write OUT/kernels/scene.resolved.toml, the scene to start the
+    /// engine and renderer with (`--scene`). The engine and the renderer never bake.
+    Prepare(lungdyn::prepare::PrepareArgs),
 }
 
 #[derive(Subcommand)]
@@ -139,15 +150,34 @@ fn main() -> std::process::ExitCode {
             }
             Ok(())
         }),
+        Command::Scene(SceneCommand::Prepare(args)) => lungdyn::prepare::run(&args).and_then(|p| {
+            if args.json {
+                println!("{}", serde_json::to_string(&p)?);
+            } else {
+                for k in &p.kernels {
+                    println!(
+                        "{} lung: {}{}",
+                        k.lung,
+                        k.path,
+                        if k.baked_now { format!(" (baked now, {:.1} s)", k.bake_seconds) } else { String::new() }
+                    );
+                }
+                println!("wrote {}: start the engine and the renderer with --scene {}", p.scene, p.scene);
+            }
+            Ok(())
+        }),
         Command::Pv(cmd) => lungdyn::pv_cmd::run(&cmd),
-        Command::TrackerBridge(args) => tracker_bridge::run(&args),
-        Command::Engine(args) => engine::runtime::run(&args),
-        Command::Renderer(args) => renderer::process::run(&args),
+        Command::TrackerBridge(args) => tracker_bridge::run(&args).map_err(Into::into),
+        Command::Engine(args) => engine::runtime::run(&args).map_err(Into::into),
+        Command::Renderer(args) => renderer::process::run(&args).map_err(Into::into),
     };
     match result {
         Ok(()) => std::process::ExitCode::SUCCESS,
         Err(e) => {
-            eprintln!("lungdyn: error: {}", ipc_types::describe_error(e.as_ref()));
+            eprintln!(
+                "lungdyn: error: {}",
+                transport::process::describe_error(e.as_ref())
+            );
             std::process::ExitCode::FAILURE
         }
     }

@@ -2,7 +2,7 @@
 
 use std::path::PathBuf;
 
-use engine::mesh::{check, generate, io, Side};
+use lung_model::mesh::{check, generate, io, Side};
 use serde::Serialize;
 
 /// Options of `lungdyn mesh generate`.
@@ -90,16 +90,16 @@ pub struct CheckSummary {
     /// Bounding box size, mm.
     pub size_mm: [f32; 3],
     /// Repairs applied.
-    pub repairs: engine::mesh::import::Repairs,
+    pub repairs: lung_bake::import::Repairs,
 }
 
 /// Import, repair what is safe, verify, optionally export.
 pub fn check_mesh(args: &CheckArgs) -> anyhow::Result<CheckSummary> {
-    let units: engine::mesh::import::Units = args.units.parse().map_err(anyhow::Error::msg)?;
+    let units: lung_bake::import::Units = args.units.parse().map_err(anyhow::Error::msg)?;
     if let Some(out) = &args.out {
         io::MeshFormat::from_path(out)?;
     }
-    let imported = engine::mesh::import::import(&args.mesh, units)?;
+    let imported = lung_bake::import::import(&args.mesh, units)?;
     if let Some(out) = &args.out {
         io::write_mesh(&imported.mesh, out)?;
     }

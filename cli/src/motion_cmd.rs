@@ -3,10 +3,10 @@
 use std::path::{Path, PathBuf};
 
 use anyhow::Context;
-use engine::deform::MotionFile;
-use engine::mesh::Side;
-use engine::motion_fit::{self, MotionFit};
 use glam::DVec3;
+use lung_bake::motion_fit::{self, MotionFit};
+use lung_model::deform::MotionFile;
+use lung_model::mesh::Side;
 
 /// Options of `lungdyn fit-motion`.
 #[derive(Debug, Clone, clap::Args)]
@@ -57,7 +57,7 @@ pub fn read_points(path: &Path, spacing: Option<[f64; 3]>) -> anyhow::Result<Vec
         .and_then(|e| e.to_str())
         .map(|e| e.to_ascii_lowercase());
     let raw: Vec<DVec3> = if matches!(ext.as_deref(), Some("obj" | "ply" | "stl")) {
-        let m = engine::mesh::import::import(path, engine::mesh::import::Units::Mm)?;
+        let m = lung_bake::import::import(path, lung_bake::import::Units::Mm)?;
         if m.repairs.welded_vertices > 0 || m.repairs.unused_vertices > 0 {
             anyhow::bail!(
                 "{}: the mesh needed vertex repairs (welded {}, unused {}), so its vertex order no longer \
@@ -129,10 +129,10 @@ fn is_mesh(p: &Path) -> bool {
 
 /// The closed surface made of the triangles whose vertices are all in `keep` (reindexed), scaled.
 fn sub_mesh(
-    mesh: &engine::mesh::TriMesh,
+    mesh: &lung_model::mesh::TriMesh,
     keep: &[usize],
     scale: [f64; 3],
-) -> anyhow::Result<engine::mesh::TriMesh> {
+) -> anyhow::Result<lung_model::mesh::TriMesh> {
     let mut map = vec![u32::MAX; mesh.positions.len()];
     let mut positions = Vec::with_capacity(keep.len());
     for &i in keep {
@@ -150,16 +150,19 @@ fn sub_mesh(
         .filter(|t| t.iter().all(|&v| map[v as usize] != u32::MAX))
         .map(|t| t.map(|v| map[v as usize]))
         .collect();
-    let sub = engine::mesh::TriMesh {
+    let sub = lung_model::mesh::TriMesh {
         positions,
         triangles,
     };
-    engine::mesh::check(&sub)?;
+    lung_model::mesh::check(&sub)?;
     Ok(sub)
 }
 
-fn import_scaled(path: &Path, spacing: Option<[f64; 3]>) -> anyhow::Result<engine::mesh::TriMesh> {
-    let mut m = engine::mesh::import::import(path, engine::mesh::import::Units::Mm)?.mesh;
+fn import_scaled(
+    path: &Path,
+    spacing: Option<[f64; 3]>,
+) -> anyhow::Result<lung_model::mesh::TriMesh> {
+    let mut m = lung_bake::import::import(path, lung_bake::import::Units::Mm)?.mesh;
     if let Some(s) = spacing {
         for p in &mut m.positions {
             for k in 0..3 {
@@ -171,10 +174,10 @@ fn import_scaled(path: &Path, spacing: Option<[f64; 3]>) -> anyhow::Result<engin
 }
 
 fn lung_parts(
-    mesh: &engine::mesh::TriMesh,
+    mesh: &lung_model::mesh::TriMesh,
     side: Option<Side>,
     what: &Path,
-) -> anyhow::Result<Vec<(Side, Vec<usize>, engine::mesh::TriMesh)>> {
+) -> anyhow::Result<Vec<(Side, Vec<usize>, lung_model::mesh::TriMesh)>> {
     let pts: Vec<DVec3> = mesh
         .positions
         .iter()
@@ -198,14 +201,14 @@ fn lung_parts(
 /// Surface mode: fit each lung of `a` to the matching lung of `b` (and of each `--also` mesh).
 fn run_surface(
     args: &FitMotionArgs,
-    a: &engine::mesh::TriMesh,
-    b: &engine::mesh::TriMesh,
+    a: &lung_model::mesh::TriMesh,
+    b: &lung_model::mesh::TriMesh,
     spacing: Option<[f64; 3]>,
     side: Option<Side>,
     corresponding: bool,
 ) -> anyhow::Result<MotionFit> {
-    use engine::surface_fit::{fit_surface, Goal, Target};
-    let scene = engine::scene::Scene::load_or_default(args.scene.as_deref())?;
+    use lung_bake::surface_fit::{fit_surface, Goal, Target};
+    let scene = lung_model::scene::Scene::load_or_default(args.scene.as_deref())?;
     let parts_a = lung_parts(a, side, &args.from)?;
     let parts_b = lung_parts(b, side, &args.to)?;
     let also = args
@@ -230,7 +233,7 @@ fn run_surface(
             Ok((p, m, parts))
         })
         .collect::<anyhow::Result<Vec<_>>>()?;
-    let find = |parts: &[(Side, Vec<usize>, engine::mesh::TriMesh)], s: Side, what: &Path| {
+    let find = |parts: &[(Side, Vec<usize>, lung_model::mesh::TriMesh)], s: Side, what: &Path| {
         parts
             .iter()
             .find(|(x, _, _)| *x == s)
@@ -264,7 +267,7 @@ fn run_surface(
         };
         let f = if corresponding {
             // Same vertices and triangles at every phase: point-to-point goals.
-            let pts = |m: &engine::mesh::TriMesh| -> Vec<DVec3> {
+            let pts = |m: &lung_model::mesh::TriMesh| -> Vec<DVec3> {
                 m.positions
                     .iter()
                     .map(|p| DVec3::from(p.map(|v| v as f64)))
@@ -344,7 +347,7 @@ fn write_motion(
         fit.mode,
         toml::to_string(&file)?
     );
-    engine::mesh::io::write_atomically(out, |w| {
+    lung_model::mesh::io::write_atomically(out, |w| {
         use std::io::Write;
         w.write_all(text.as_bytes())
     })?;

@@ -2,9 +2,10 @@
 
 use std::path::PathBuf;
 
-use engine::pv::files::{read_curve, PvConstantsFile, VolumeUnit, CONSTANTS_FORMAT};
-use engine::pv::fit::{fit_curve, model_at, CurveFit, FitOptions, PhaseFit};
-use engine::pv::{control_curve, phase_curve, preset, Boundary, PhaseConstants, PRESET_NAMES};
+use lung_bake::pv::curve::{read_curve, VolumeUnit};
+use lung_bake::pv::fit::{fit_curve, model_at, CurveFit, FitOptions, PhaseFit};
+use lung_model::pv::files::{PvConstantsFile, CONSTANTS_FORMAT};
+use lung_model::pv::{control_curve, phase_curve, preset, Boundary, PhaseConstants, PRESET_NAMES};
 use serde::Serialize;
 
 use crate::plot::{self, Panel, Series, DATA, EXHALE, INHALE};
@@ -13,7 +14,7 @@ use crate::plot::{self, Panel, Series, DATA, EXHALE, INHALE};
 #[derive(Debug, Clone, clap::Args)]
 pub struct SimulateArgs {
     /// Preset (Table 5.1 row; `lungdyn pv presets` lists them).
-    #[arg(long, default_value = engine::pv::DEFAULT_PRESET)]
+    #[arg(long, default_value = lung_model::pv::DEFAULT_PRESET)]
     pub preset: String,
     /// Or a constants file written by `lungdyn pv fit` (replaces the preset).
     #[arg(long, conflicts_with = "preset")]
@@ -228,7 +229,7 @@ fn simulate(a: &SimulateArgs) -> anyhow::Result<()> {
             d_down[i],
         ));
     }
-    engine::mesh::io::write_atomically(&a.out, |w| {
+    lung_model::mesh::io::write_atomically(&a.out, |w| {
         use std::io::Write;
         writeln!(w, "phase,t,pressure_cmh2o,volume_ml,damping")?;
         for (phase, t, p, v, d) in &rows {
@@ -450,7 +451,10 @@ fn fit(a: &FitArgs) -> anyhow::Result<()> {
     Ok(())
 }
 
-fn fit_panels(fit: &CurveFit, samples: &[engine::pv::fit::PvSample]) -> anyhow::Result<[Panel; 2]> {
+fn fit_panels(
+    fit: &CurveFit,
+    samples: &[lung_bake::pv::fit::PvSample],
+) -> anyhow::Result<[Panel; 2]> {
     let grid: Vec<f64> = (0..=200).map(|i| i as f64 / 200.0).collect();
     let mut loop_series = vec![Series {
         label: "measured".into(),

@@ -28,7 +28,7 @@ pub fn unique_instance(tag: &str) -> String {
     format!(
         "t-{tag}-{}-{}",
         std::process::id(),
-        ipc_types::now_ns() % 1_000_000
+        transport::now_ns() % 1_000_000
     )
 }
 
@@ -54,4 +54,105 @@ pub fn assert_clean_failure(args: &[&str], needle: &str) {
         "{args:?}: expected {needle:?} in: {err}"
     );
     assert!(!err.contains("panicked"), "{args:?} panicked: {err}");
+}
+
+/// A scene file made from `toml` in a fresh folder, prepared by `lungdyn scene prepare` (every lung
+/// baked into a kernel once): returns the resolved scene the processes can be started with.
+pub fn prepared_scene(tag: &str, toml: &str) -> PathBuf {
+    let dir = std::env::temp_dir().join(format!("lungdyn-{tag}-{}", std::process::id()));
+    std::fs::create_dir_all(&dir).expect("temp folder");
+    let scene = dir.join("scene.toml");
+    std::fs::write(&scene, toml).expect("write scene");
+    let (ok, out, err) = lungdyn(&[
+        "scene",
+        "prepare",
+        scene.to_str().expect("utf-8 path"),
+        "--out",
+        dir.to_str().expect("utf-8 path"),
+        "--json",
+    ]);
+    assert!(ok, "scene prepare failed: {err}");
+    let v: serde_json::Value = serde_json::from_str(out.trim()).expect("prepare --json");
+    PathBuf::from(v["scene"].as_str().expect("scene path"))
+}
+
+/// The frame count a renderer printed when it stopped ("renderer[..]: stopped after N frames").
+pub fn renderer_frames(stderr: &str) -> Option<u64> {
+    stderr
+        .lines()
+        .filter(|l| l.starts_with("renderer[") && l.contains("stopped after"))
+        .find_map(|l| {
+            l.split("stopped after ")
+                .nth(1)?
+                .split_whitespace()
+                .next()?
+                .parse()
+                .ok()
+        })
+}
+
+/// The lungs of `scene` baked in memory exactly as the launcher bakes them (no kernel file: their
+/// kernel id is 0).
+pub fn baked_models(scene: &lung_model::scene::Scene) -> Vec<lung_model::deform::LungModel> {
+    scene
+        .lungs
+        .sides
+        .iter()
+        .map(|&side| {
+            let k = lung_bake::kernel::bake(
+                side,
+                lung_model::mesh::generate::lung(side, scene.lungs.vertices)
+                    .expect("generated lung"),
+                &scene.bake_settings(side).expect("bake settings"),
+                &|_| {},
+            )
+            .expect("bake");
+            lung_model::deform::LungModel::from_unit_displacement(side, k.mesh, k.unit_displacement)
+        })
+        .collect()
+}
+
+/// What a `lungdyn demo --json` report must say of any run, fast or slow: frames were drawn, none
+/// were lost or had broken hop stamps, the rates and ranges agree with the counts, nothing of the
+/// instance is left in shared memory, and — given the launcher's stderr — the renderer's own count
+/// of the frames it drew equals the frames the launcher received.
+pub fn assert_demo_report_is_consistent(v: &serde_json::Value, stderr: &str) {
+    let n = |k: &str| {
+        v[k].as_f64()
+            .unwrap_or_else(|| panic!("{k} missing or not a number: {v}"))
+    };
+    let frames = n("frames_rendered");
+    assert!(frames >= 1.0, "no frame drawn: {v}");
+    assert_eq!(n("lost_reports"), 0.0, "{v}");
+    assert_eq!(n("bad_stamps"), 0.0, "{v}");
+    assert_eq!(n("leftover_files"), 0.0, "{v}");
+    assert_eq!(n("remaining_files"), 0.0, "{v}");
+    let (fps, secs) = (n("fps"), n("seconds"));
+    assert!(
+        secs > 0.0 && (fps * secs - frames).abs() <= 1.0 + 1e-6 * frames,
+        "{v}"
+    );
+    assert!(
+        n("deadline_misses") <= frames && n("stale_frames") <= frames,
+        "{v}"
+    );
+    let (lo, hi) = (n("volume_min_ml"), n("volume_max_ml"));
+    assert!(
+        lo.is_finite() && hi.is_finite() && 0.0 < lo && lo <= hi,
+        "{v}"
+    );
+    let (p50, p99, max) = (
+        n("end_to_end_p50_ms"),
+        n("end_to_end_p99_ms"),
+        n("end_to_end_max_ms"),
+    );
+    assert!(0.0 < p50 && p50 <= p99 && p99 <= max, "{v}");
+    if !stderr.is_empty() {
+        let drawn = renderer_frames(stderr)
+            .unwrap_or_else(|| panic!("the renderer did not report its frames: {stderr}"));
+        assert_eq!(
+            drawn as f64, frames,
+            "launcher received every frame drawn: {stderr}"
+        );
+    }
 }

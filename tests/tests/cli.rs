@@ -114,7 +114,7 @@ fn the_demo_prints_json_with_frames_latency_and_pngs() {
     assert!(ok, "{err}");
     let v: serde_json::Value =
         serde_json::from_str(stdout.trim()).unwrap_or_else(|e| panic!("{e}: {stdout}"));
-    assert!(v["frames_rendered"].as_u64().unwrap() > 30, "{v}");
+    lungdyn_tests::assert_demo_report_is_consistent(&v, &err);
     for key in [
         "deadline_misses",
         "end_to_end_p50_ms",
@@ -138,7 +138,7 @@ fn the_demo_prints_json_with_frames_latency_and_pngs() {
     assert_eq!(
         v["leftover_files"].as_u64(),
         Some(0),
-        "iceoryx2 cleaned up everything itself"
+        "no process left files behind"
     );
     assert_eq!(v["remaining_files"].as_u64(), Some(0));
     assert!(std::path::Path::new(v["strip"].as_str().unwrap()).exists());
@@ -194,7 +194,7 @@ fn the_demo_shows_frames_in_a_window_when_a_display_exists() {
     assert!(out.status.success(), "{stderr}");
     let v: serde_json::Value =
         serde_json::from_str(stdout.trim()).unwrap_or_else(|e| panic!("{e}: {stdout}"));
-    assert!(v["frames_rendered"].as_u64().unwrap() > 20, "{v}");
+    lungdyn_tests::assert_demo_report_is_consistent(&v, &stderr);
     assert_eq!(v["pngs"].as_array().unwrap().len(), 2);
     assert_eq!(v["remaining_files"].as_u64(), Some(0));
     std::fs::remove_dir_all(&dir).ok();

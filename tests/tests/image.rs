@@ -5,10 +5,10 @@
 
 use std::path::PathBuf;
 
-use engine::deform::LungModel;
-use engine::scene::{DrawMode, Scene};
 use glam::{Mat3, Quat, Vec3};
 use ipc_types::Pose;
+use lung_model::deform::LungModel;
+use lung_model::scene::{DrawMode, Scene};
 use renderer::gpu::Gpu;
 use renderer::{DrawState, LungRenderer};
 
@@ -24,12 +24,7 @@ fn reference(name: &str) -> PathBuf {
 }
 
 fn models(scene: &Scene) -> Vec<LungModel> {
-    scene
-        .lungs
-        .sides
-        .iter()
-        .map(|&s| engine::runtime::build_lung(scene, s).unwrap())
-        .collect()
+    lungdyn_tests::baked_models(scene)
 }
 
 /// Patient supine at bed height, HMD at the patient's right, above the chest.
@@ -48,6 +43,7 @@ fn fixed_state(scale: f32) -> DrawState {
     let q = Quat::from_mat3(&Mat3::from_cols(right, up, -forward));
     DrawState {
         deform_scale: [scale, scale],
+        offset_mm: [[0.0; 3]; 2],
         patient,
         hmd: Pose {
             quat: q.to_array(),

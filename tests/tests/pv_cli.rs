@@ -60,9 +60,17 @@ fn simulate_then_fit_round_trips_and_a_scene_uses_the_fit() {
     }
     assert!((v["boundary"]["frc_ml"].as_f64().unwrap() - 2400.0).abs() < 1e-6);
 
-    // A scene naming the fitted constants runs the engine on them.
+    // A scene naming the fitted constants runs the engine on them (the launcher bakes its lungs).
     let scene = tmp("scene.toml");
-    std::fs::write(&scene, "[pv]\nconstants = \"fit.toml\"\n").unwrap();
+    let resolved = lungdyn_tests::prepared_scene(
+        "pvscene",
+        &format!(
+            "[pv]\nconstants = {:?}\n[lungs]\nvertices = 1000\n",
+            tmp("fit.toml").to_str().unwrap()
+        ),
+    );
+    let text = std::fs::read_to_string(&resolved).unwrap();
+    assert!(text.contains("fit.toml"), "{text}");
     let out = Command::new(bin("engine"))
         .args([
             "--instance",
@@ -71,7 +79,7 @@ fn simulate_then_fit_round_trips_and_a_scene_uses_the_fit() {
             "0.3",
             "--scene",
         ])
-        .arg(&scene)
+        .arg(&resolved)
         .output()
         .unwrap();
     assert!(
@@ -87,8 +95,8 @@ fn simulate_then_fit_round_trips_and_a_scene_uses_the_fit() {
         .unwrap();
     assert!(!out.status.success());
     assert!(String::from_utf8_lossy(&out.stderr).contains("[pv] constants"));
-    let services = ipc_types::Services::new(&format!("pvscene-{}", std::process::id())).unwrap();
-    services.remove_instance_segment().ok();
+    let services = transport::Instance::new(&format!("pvscene-{}", std::process::id())).unwrap();
+    services.remove_leftovers();
 }
 
 #[test]

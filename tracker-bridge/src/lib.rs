@@ -6,9 +6,11 @@
 
 pub mod synthetic;
 
-use ipc_types::{
-    now_ns, sleep_until_ns, termination_requested, tool_status, Outlet, Services, TrackerFrame,
-};
+use ipc_types::{tool_status, TrackerFrame};
+use thiserror::Error;
+use transport::clock::{now_ns, sleep_until_ns};
+use transport::process::{pin_to_core, run_ns, ArgError, PinError};
+use transport::{iox, Instance, PortError, Publish};
 
 /// Command-line options of the `tracker-bridge` process.
 #[derive(Debug, Clone, clap::Args)]
@@ -25,9 +27,29 @@ pub struct BridgeArgs {
     /// Pin this process to CPU core N.
     #[arg(long, value_name = "N")]
     pub cpu: Option<usize>,
-    /// Stop after this many seconds (runs until SIGINT/SIGTERM when omitted).
-    #[arg(long)]
+    /// Stop after this many seconds (runs until SIGINT/SIGTERM when omitted); at most one week.
+    #[arg(long, value_name = "S")]
     pub seconds: Option<f64>,
+}
+
+/// Why the bridge stopped with an error.
+#[derive(Debug, Error)]
+pub enum BridgeError {
+    /// The sample rate is out of range.
+    #[error("--rate-hz {0} must be within 1..1000")]
+    Rate(f64),
+    /// The synthetic drift is out of range.
+    #[error("--drift-deg {0} must be within 0..45")]
+    Drift(f32),
+    /// A bad common option.
+    #[error(transparent)]
+    Args(#[from] ArgError),
+    /// Pinning failed.
+    #[error(transparent)]
+    Pin(#[from] PinError),
+    /// The stream failed.
+    #[error(transparent)]
+    Port(#[from] PortError),
 }
 
 /// Validate a frame in place: non-finite poses are rejected (flagged, never passed on as valid).
@@ -42,37 +64,37 @@ pub fn validate(frame: &mut TrackerFrame) {
 }
 
 /// Run the bridge until terminated (or `--seconds` elapse).
-pub fn run(args: &BridgeArgs) -> anyhow::Result<()> {
+pub fn run(args: &BridgeArgs) -> Result<(), BridgeError> {
     if !(args.rate_hz.is_finite() && (1.0..=1000.0).contains(&args.rate_hz)) {
-        anyhow::bail!("--rate-hz {} must be within 1..1000", args.rate_hz);
+        return Err(BridgeError::Rate(args.rate_hz));
     }
     if !(args.drift_deg.is_finite() && (0.0..=45.0).contains(&args.drift_deg)) {
-        anyhow::bail!("--drift-deg {} must be within 0..45", args.drift_deg);
+        return Err(BridgeError::Drift(args.drift_deg));
     }
-    let services = Services::new(&args.instance)?;
-    ipc_types::pin_to_core(args.cpu, "tracker-bridge")?;
+    let run_ns = run_ns(args.seconds)?;
+    let instance = Instance::new(&args.instance)?;
+    pin_to_core(args.cpu, "tracker-bridge")?;
     let source = synthetic::Synthetic {
         rate_hz: args.rate_hz,
         drift_deg: args.drift_deg,
         ..Default::default()
     };
-    let node = services.node("tracker-bridge")?;
-    let outlet: Outlet<TrackerFrame> =
-        Outlet::new(&node, &services.tracker(), &services.tracker_event())?;
+    let node = iox::node(&instance, "tracker-bridge")?;
+    let mut outlet = instance.tracker_outlet(&node)?;
     let period_ns = (1e9 / args.rate_hz).round() as u64;
     let start = now_ns();
-    let stop_at = args.seconds.map(|s| start + (s * 1e9) as u64);
+    let stop_at = run_ns.map(|d| start.saturating_add(d));
     eprintln!(
         "tracker-bridge[{}]: synthetic source at {} Hz publishing on {:?}",
-        services.instance,
+        instance.name(),
         args.rate_hz,
-        services.tracker()
+        instance.tracker()
     );
     let mut next = start;
     let mut n: u64 = 0;
     let mut skipped: u64 = 0;
     loop {
-        if termination_requested(&node) || stop_at.is_some_and(|t| now_ns() >= t) {
+        if iox::termination_requested(&node) || stop_at.is_some_and(|t| now_ns() >= t) {
             break;
         }
         sleep_until_ns(next);
@@ -80,7 +102,7 @@ pub fn run(args: &BridgeArgs) -> anyhow::Result<()> {
         let mut frame = source.frame(n, now_ns());
         validate(&mut frame);
         frame.stamps.bridge_publish_ns = now_ns();
-        outlet.publish(frame)?;
+        outlet.publish(&frame)?;
         next += period_ns;
         let now = now_ns();
         if now > next + period_ns {
@@ -92,7 +114,7 @@ pub fn run(args: &BridgeArgs) -> anyhow::Result<()> {
     }
     eprintln!(
         "tracker-bridge[{}]: stopped after {n} frames ({skipped} slots skipped)",
-        services.instance
+        instance.name()
     );
     Ok(())
 }

@@ -18,7 +18,7 @@ fn main() -> std::process::ExitCode {
         Err(e) => {
             eprintln!(
                 "tracker-bridge: error: {}",
-                ipc_types::describe_error(e.as_ref())
+                transport::process::describe_error(&e)
             );
             std::process::ExitCode::FAILURE
         }

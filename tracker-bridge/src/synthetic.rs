@@ -156,9 +156,20 @@ mod tests {
     }
 
     #[test]
-    fn samples_are_a_pure_function_of_the_frame_number() {
-        let s = Synthetic::default();
-        assert_eq!(s.frame(1234, 5), s.frame(1234, 5));
-        assert_eq!(s.frame(7, 0).tools[TOOL_PATIENT].status, tool_status::VALID);
+    fn a_sample_is_taken_at_its_frame_number_over_the_rate() {
+        let at_60 = Synthetic::default();
+        let at_120 = Synthetic {
+            rate_hz: 120.0,
+            ..Default::default()
+        };
+        // Frame 30 at 60 Hz and frame 60 at 120 Hz are both t = 0.5 s: the same poses.
+        assert_eq!(at_60.frame(30, 5).tools, at_120.frame(60, 9).tools);
+        // One frame later the patient and the HMD have moved.
+        let (a, b) = (at_60.frame(30, 0), at_60.frame(31, 0));
+        assert_ne!(a.tools[TOOL_HMD].pose, b.tools[TOOL_HMD].pose);
+        assert_ne!(a.tools[TOOL_PATIENT].pose, b.tools[TOOL_PATIENT].pose);
+        assert_eq!(b.frame_number, 31);
+        assert_eq!(b.stamps.capture_ns, 0);
+        assert!(b.tools[..2].iter().all(|t| t.status == tool_status::VALID));
     }
 }

@@ -1,0 +1,168 @@
+//! Give every lung of a scene a kernel file, once, so every process reads the same lungs.
+//!
+//! The engine and the renderer never bake. `lungdyn demo` and `lungdyn scene prepare` call
+//! [`prepare`]: a lung the scene names no kernel for gets the generated default lung, baked into
+//! `<dir>` under a name derived from its resolution and bake settings (reused while they are
+//! unchanged and the file verifies); every path becomes absolute and the result is written as
+//! `<dir>/scene.resolved.toml`, which the three processes are started with.
+
+use std::path::{Path, PathBuf};
+
+use anyhow::Context;
+use lung_model::scene::Scene;
+use serde::Serialize;
+
+/// A kernel the demo used.
+#[derive(Debug, Clone, Serialize)]
+pub struct KernelUse {
+    /// Lung.
+    pub lung: String,
+    /// File.
+    pub path: String,
+    /// Whether it was baked by this run (false: the scene's own or a cached bake).
+    pub baked_now: bool,
+    /// Bake seconds (0 when reused).
+    pub bake_seconds: f64,
+}
+
+/// Give every lung of `scene` a kernel file: lungs without one get the generated default lung, baked
+/// into `dir` under a name derived from its resolution and bake settings, or reused from an earlier
+/// run when that file exists and verifies. All paths in `scene` become absolute.
+pub fn ensure_kernels(
+    scene: &mut lung_model::scene::Scene,
+    dir: &Path,
+) -> anyhow::Result<Vec<KernelUse>> {
+    let absolute = |p: &Path| std::path::absolute(p).unwrap_or_else(|_| p.to_path_buf());
+    if let Some(c) = &scene.pv.constants {
+        scene.pv.constants = Some(absolute(c));
+    }
+    if let Some(m) = &scene.lungs.motion {
+        scene.lungs.motion = Some(absolute(m));
+    }
+    let mut used = Vec::new();
+    for side in scene.lungs.sides.clone() {
+        if let Some(k) = scene.lungs.kernels.get(side) {
+            let k = absolute(k);
+            used.push(KernelUse {
+                lung: side.name().into(),
+                path: k.display().to_string(),
+                baked_now: false,
+                bake_seconds: 0.0,
+            });
+            scene.lungs.kernels.set(side, k);
+            continue;
+        }
+        let settings = scene.bake_settings(side)?;
+        let key = xxhash_rust::xxh3::xxh3_64(
+            format!(
+                "{}:{}:{}",
+                scene.lungs.vertices,
+                serde_json::to_string(&settings)?,
+                lung_model::kernel::FORMAT_VERSION
+            )
+            .as_bytes(),
+        );
+        std::fs::create_dir_all(dir).with_context(|| format!("cannot create {}", dir.display()))?;
+        let path = absolute(&dir.join(format!(
+            "default_{}_{}_{key:016x}.kernel",
+            side.name(),
+            scene.lungs.vertices
+        )));
+        let reusable = lung_model::kernel::KernelFile::open(&path)
+            .map(|f| f.meta().side == side && f.meta().settings == settings)
+            .unwrap_or(false);
+        let mut seconds = 0.0;
+        if !reusable {
+            let t = std::time::Instant::now();
+            eprintln!(
+                "lungdyn: baking the default {} lung ({} vertices) into {}",
+                side.name(),
+                scene.lungs.vertices,
+                path.display()
+            );
+            let mesh = lung_model::mesh::generate::lung(side, scene.lungs.vertices)?;
+            let bar = indicatif::ProgressBar::new(mesh.positions.len() as u64);
+            bar.set_style(
+                indicatif::ProgressStyle::with_template("  [{bar:40}] {pos}/{len} rows, eta {eta}")
+                    .expect("valid template")
+                    .progress_chars("=> "),
+            );
+            let kernel =
+                lung_bake::kernel::bake(side, mesh, &settings, &|rows| bar.inc(rows as u64))?;
+            bar.finish_and_clear();
+            kernel.write(&path)?;
+            seconds = t.elapsed().as_secs_f64();
+        }
+        used.push(KernelUse {
+            lung: side.name().into(),
+            path: path.display().to_string(),
+            baked_now: !reusable,
+            bake_seconds: seconds,
+        });
+        scene.lungs.kernels.set(side, path);
+    }
+    Ok(used)
+}
+
+/// A scene whose every lung has a kernel, written where the processes can read it.
+#[derive(Debug, Clone)]
+pub struct Prepared {
+    /// The resolved scene (absolute paths, a kernel per lung).
+    pub scene: Scene,
+    /// Where it was written.
+    pub path: PathBuf,
+    /// The kernels it uses.
+    pub kernels: Vec<KernelUse>,
+}
+
+/// Bake what `scene` lacks into `dir` and write `dir/scene.resolved.toml` atomically.
+pub fn prepare(mut scene: Scene, dir: &Path) -> anyhow::Result<Prepared> {
+    let kernels = ensure_kernels(&mut scene, dir)?;
+    std::fs::create_dir_all(dir).with_context(|| format!("cannot create {}", dir.display()))?;
+    let path = std::path::absolute(dir.join("scene.resolved.toml"))
+        .unwrap_or_else(|_| dir.join("scene.resolved.toml"));
+    let text = toml::to_string(&scene).context("the resolved scene does not serialise")?;
+    lung_model::mesh::io::write_atomically(&path, |w| {
+        use std::io::Write;
+        w.write_all(b"# Written by lungdyn: every lung has a kernel; start the engine and the renderer with --scene <this file>\n")?;
+        w.write_all(text.as_bytes())
+    })?;
+    Ok(Prepared {
+        scene,
+        path,
+        kernels,
+    })
+}
+
+/// Options of `lungdyn scene prepare`.
+#[derive(Debug, Clone, clap::Args)]
+pub struct PrepareArgs {
+    /// Scene file (TOML); the built-in default scene when omitted.
+    pub scene: Option<PathBuf>,
+    /// Folder for the baked kernels and the resolved scene (`<out>/kernels/scene.resolved.toml`).
+    #[arg(long, default_value = "out")]
+    pub out: PathBuf,
+    /// Print one JSON object (`scene`, `kernels`) on stdout.
+    #[arg(long)]
+    pub json: bool,
+}
+
+/// What `lungdyn scene prepare` did.
+#[derive(Debug, Serialize)]
+pub struct PrepareReport {
+    /// The resolved scene to start the processes with.
+    pub scene: String,
+    /// The kernels it uses.
+    pub kernels: Vec<KernelUse>,
+}
+
+/// `lungdyn scene prepare`.
+pub fn run(args: &PrepareArgs) -> anyhow::Result<PrepareReport> {
+    let scene = Scene::load_or_default(args.scene.as_deref())?;
+    crate::demo::check_writable(&args.out)?;
+    let p = prepare(scene, &args.out.join("kernels"))?;
+    Ok(PrepareReport {
+        scene: p.path.display().to_string(),
+        kernels: p.kernels,
+    })
+}
