@@ -156,6 +156,9 @@ pub enum KernelError {
         /// Cause.
         source: std::io::Error,
     },
+    /// Not a regular file.
+    #[error(transparent)]
+    Input(crate::input::InputError),
     /// The file is not a usable kernel.
     #[error("{}: {source}", path.display())]
     Invalid {
@@ -608,7 +611,19 @@ impl KernelFile {
             source,
         };
         let file = std::fs::File::open(path).map_err(io)?;
-        let len = file.metadata().map_err(io)?.len();
+        let meta = file.metadata().map_err(io)?;
+        if !meta.is_file() {
+            // A device or pipe cannot be a kernel (and must not be mapped or read without bound).
+            return Err(KernelError::Input(crate::input::InputError::NotRegular {
+                path: path.to_path_buf(),
+                kind: if meta.is_dir() {
+                    "folder"
+                } else {
+                    "special file"
+                },
+            }));
+        }
+        let len = meta.len();
         let invalid = |source: FormatError| KernelError::Invalid {
             path: path.to_path_buf(),
             source,

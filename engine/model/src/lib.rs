@@ -10,14 +10,18 @@
 //! * [`deform`] — per-vertex displacement (eq. 6.14–6.18), the volume cubic, [`deform::LungModel`];
 //! * [`pv`] — the pressure–volume forward model (seed ch. 5, eq. 2.12–2.16, 5.11), presets and the
 //!   constants files a scene loads;
-//! * [`scene`] — what a run models.
+//! * [`scene`] — what a run models;
+//! * [`input`] — bounded reading of every input file; [`plausible`] — the physical ranges every input
+//!   is checked against, with their sources.
 
 // `!(x > 0.0)` is how this crate refuses NaN together with out-of-range values; keep it.
 #![allow(clippy::neg_cmp_op_on_partial_ord)]
 
 pub mod deform;
+pub mod input;
 pub mod kernel;
 pub mod mesh;
 pub mod operator;
+pub mod plausible;
 pub mod pv;
 pub mod scene;

@@ -184,13 +184,13 @@ impl Default for RenderScene {
 /// Errors loading a scene.
 #[derive(Debug, thiserror::Error)]
 pub enum SceneError {
-    /// The file could not be read.
+    /// The file could not be read within the limits.
     #[error("cannot read scene {path}: {source}")]
     Read {
         /// Path.
         path: String,
-        /// OS error.
-        source: std::io::Error,
+        /// Why.
+        source: crate::input::InputError,
     },
     /// The TOML is malformed or has unknown keys.
     #[error("scene {path} is invalid: {message}")]
@@ -219,6 +219,9 @@ pub enum SceneValueError {
     /// Breathing rate, I:E or tick rate give no usable cycle.
     #[error("[pv]/[engine] timing: {0}")]
     Timing(#[source] crate::pv::PvError),
+    /// A value outside human ranges.
+    #[error("[pv] breaths_per_min: {0}")]
+    Implausible(#[source] crate::plausible::Implausible),
     /// The tick rate is out of range.
     #[error("[engine] tick_hz = {0} must be within 1..1000")]
     TickRate(f64),
@@ -235,7 +238,7 @@ pub enum SceneValueError {
     #[error("[lungs.elasticity]: {0}")]
     Elasticity(#[source] crate::operator::ElasticityError),
     /// The transfer tolerance is out of range.
-    #[error("[lungs] transfer_tolerance = {0} must be within (0, 1); 1e-5 is the default")]
+    #[error("[lungs] transfer_tolerance = {0} must be within 1e-9..0.5; 1e-5 is the default")]
     Tolerance(f64),
     /// Image size out of range.
     #[error("[render] width/height {width}x{height} must be within 16..8192")]
@@ -291,6 +294,14 @@ pub enum LungLoadError {
     /// The kernel file is unusable.
     #[error(transparent)]
     Kernel(#[from] crate::kernel::KernelError),
+    /// The kernel's lung is not of a plausible size.
+    #[error("{}: {source}", path.display())]
+    Implausible {
+        /// Kernel file.
+        path: std::path::PathBuf,
+        /// The value out of range.
+        source: crate::plausible::Implausible,
+    },
     /// The kernel is of the other lung.
     #[error("{}: this kernel is of the {kernel} lung, the scene uses it for the {scene} lung", path.display())]
     WrongSide {
@@ -313,6 +324,15 @@ impl Scene {
             .get(side)
             .ok_or(LungLoadError::NoKernel { side: side.name() })?;
         let file = crate::kernel::KernelFile::open(path)?;
+        crate::plausible::LUNG_VOLUME_ML
+            .check(
+                file.meta().start_volume_ml,
+                Some("the kernel was baked from a mesh in the wrong unit? bake it again with the right --units".into()),
+            )
+            .map_err(|source| LungLoadError::Implausible {
+                path: path.to_path_buf(),
+                source,
+            })?;
         if file.meta().side != side {
             return Err(LungLoadError::WrongSide {
                 path: path.to_path_buf(),
@@ -335,10 +355,11 @@ impl Scene {
             path: p.clone(),
             source,
         };
-        let text = std::fs::read_to_string(path).map_err(|source| SceneError::Read {
-            path: p.clone(),
-            source,
-        })?;
+        let text = crate::input::read_text_bounded(path, crate::input::ReadLimits::CONFIG)
+            .map_err(|source| SceneError::Read {
+                path: p.clone(),
+                source,
+            })?;
         let mut scene = Self::parse(&text, &p)?;
         // Files a scene names are relative to the scene file, so a scene and its patient files
         // travel together.
@@ -395,6 +416,9 @@ impl Scene {
     pub fn validate(&self) -> Result<(), SceneValueError> {
         use SceneValueError as E;
         crate::pv::preset(&self.pv.preset).map_err(E::Preset)?;
+        crate::plausible::BREATHS_PER_MIN
+            .check(self.pv.breaths_per_min, None)
+            .map_err(E::Implausible)?;
         self.timing().phase_ticks().map_err(E::Timing)?;
         if !(1.0..=1000.0).contains(&self.engine.tick_hz) {
             return Err(E::TickRate(self.engine.tick_hz));
@@ -415,7 +439,7 @@ impl Scene {
         }
         self.lungs.elasticity.validate().map_err(E::Elasticity)?;
         let t = self.lungs.transfer_tolerance;
-        if !(t.is_finite() && t > 0.0 && t < 1.0) {
+        if !(t.is_finite() && (1e-9..=0.5).contains(&t)) {
             return Err(E::Tolerance(t));
         }
         let r = &self.render;

@@ -65,10 +65,8 @@ impl MotionFile {
     /// Read and validate `path`.
     pub fn load(path: &std::path::Path) -> Result<Self, MotionFileError> {
         let path_buf = || path.to_path_buf();
-        let text = std::fs::read_to_string(path).map_err(|source| MotionFileError::Io {
-            path: path_buf(),
-            source,
-        })?;
+        let text = crate::input::read_text_bounded(path, crate::input::ReadLimits::CONFIG)
+            .map_err(|source| MotionFileError::Input { source })?;
         let f: Self = toml::from_str(&text).map_err(|e| MotionFileError::Toml {
             path: path_buf(),
             message: e.to_string(),
@@ -104,13 +102,11 @@ impl MotionFile {
 /// Errors reading a motion constants file.
 #[derive(Debug, Error)]
 pub enum MotionFileError {
-    /// The file could not be read.
-    #[error("cannot read motion constants {}: {source}", path.display())]
-    Io {
-        /// Path.
-        path: std::path::PathBuf,
-        /// OS error.
-        source: std::io::Error,
+    /// The file could not be read within the limits.
+    #[error("motion constants: {source}")]
+    Input {
+        /// Why.
+        source: crate::input::InputError,
     },
     /// Not TOML of the motion format (the parser's message names line and column).
     #[error("{} is not a motion constants file: {message}", path.display())]

@@ -46,16 +46,17 @@ pub enum PvFileError {
         /// Why.
         source: PvError,
     },
-    /// The boundary values are not a positive FRC and TV.
-    #[error("{}: [boundary] needs FRC > 0 and TV > 0 (got {frc_ml} and {tv_ml})", path.display())]
+    /// The boundary values are outside human ranges.
+    #[error("{}: [boundary]: {source}", path.display())]
     Boundary {
         /// Path.
         path: PathBuf,
-        /// FRC given, ml.
-        frc_ml: f64,
-        /// TV given, ml.
-        tv_ml: f64,
+        /// The value out of range.
+        source: crate::plausible::Implausible,
     },
+    /// The file could not be read within the limits.
+    #[error(transparent)]
+    Input(#[from] crate::input::InputError),
 }
 
 /// Version of the constants file format.
@@ -80,10 +81,7 @@ pub struct PvConstantsFile {
 impl PvConstantsFile {
     /// Load and validate.
     pub fn load(path: &Path) -> Result<Self, PvFileError> {
-        let text = std::fs::read_to_string(path).map_err(|source| PvFileError::Io {
-            path: path.to_path_buf(),
-            source,
-        })?;
+        let text = crate::input::read_text_bounded(path, crate::input::ReadLimits::CONFIG)?;
         let path_buf = || path.to_path_buf();
         let file: Self = toml::from_str(&text).map_err(|e| PvFileError::Toml {
             path: path_buf(),
@@ -104,14 +102,12 @@ impl PvConstantsFile {
                     source,
                 })?;
         }
-        let b = &file.boundary;
-        if !(b.frc_ml.is_finite() && b.tv_ml.is_finite() && b.frc_ml > 0.0 && b.tv_ml > 0.0) {
-            return Err(PvFileError::Boundary {
+        file.boundary
+            .check_plausible()
+            .map_err(|source| PvFileError::Boundary {
                 path: path_buf(),
-                frc_ml: b.frc_ml,
-                tv_ml: b.tv_ml,
-            });
-        }
+                source,
+            })?;
         Ok(file)
     }
 

@@ -156,6 +156,20 @@ pub struct Boundary {
 }
 
 impl Boundary {
+    /// Check the boundary values against human ranges ([`crate::plausible`]): FRC, tidal volume,
+    /// each pressure, and a top pressure above the resting one by a plausible swing.
+    pub fn check_plausible(&self) -> Result<(), crate::plausible::Implausible> {
+        use crate::plausible::{FRC_ML, PRESSURE_CMH2O, PRESSURE_SWING_CMH2O, TIDAL_VOLUME_ML};
+        FRC_ML.check(self.frc_ml, None)?;
+        TIDAL_VOLUME_ML.check(self.tv_ml, None)?;
+        PRESSURE_CMH2O.check(self.rp_cmh2o, None)?;
+        PRESSURE_CMH2O.check(self.tp_cmh2o, None)?;
+        PRESSURE_SWING_CMH2O.check(
+            self.tp_cmh2o - self.rp_cmh2o,
+            Some("the top pressure (TP) must exceed the resting pressure (RP)".into()),
+        )
+    }
+
     /// Table 5.2, human subjects.
     pub const HUMAN: Boundary = Boundary {
         frc_ml: 2400.0,
