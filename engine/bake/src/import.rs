@@ -71,18 +71,84 @@ pub struct Imported {
     pub topology: Topology,
     /// What was repaired.
     pub repairs: Repairs,
+    /// Connected shells in the file (before `--component` picked one).
+    pub shells: usize,
+    /// Self-intersecting triangle pairs found (at most 16 counted); refused for a single lung, only
+    /// reported for point sets.
+    pub self_intersections: usize,
+    /// Which lung the geometry looks like (the medial surface is concave); set by [`import_with`].
+    pub side: Option<crate::surface_checks::SideEvidence>,
+}
+
+/// Which connected shells of a file to keep.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Default)]
+pub enum Shells {
+    /// Exactly one shell is expected: more is refused (two lungs, or two copies of one, in one file).
+    #[default]
+    One,
+    /// Keep shell `n` (1 = the largest by volume), drop the others (`--component N`).
+    Pick(usize),
+    /// Keep every shell (point sets for fitting, where both lungs may be in one file).
+    All,
+}
+
+/// How to import.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct ImportOptions {
+    /// Unit of the file's coordinates.
+    pub units: Units,
+    /// Size and line limits of the file.
+    pub limits: lung_model::input::ReadLimits,
+    /// Which shells to keep.
+    pub shells: Shells,
+    /// Check the result is the size of one lung (a single-lung surface: mesh check, bake); else only
+    /// that its size is that of lungs at all (point sets of both lungs).
+    pub one_lung: bool,
+}
+
+impl ImportOptions {
+    /// A single-lung surface in `units` with the default limits.
+    pub fn lung(units: Units) -> Self {
+        Self {
+            units,
+            limits: lung_model::input::ReadLimits::MESH,
+            shells: Shells::One,
+            one_lung: true,
+        }
+    }
 }
 
 /// Import errors: each names the file.
 #[derive(Debug, thiserror::Error)]
 pub enum ImportError {
-    /// Unreadable file.
+    /// Unreadable file, or not within the input limits.
+    #[error(transparent)]
+    Input(#[from] lung_model::input::InputError),
+    /// The size of the surface is not that of a lung in the stated unit.
     #[error("{}: {source}", path.display())]
-    Io {
+    Implausible {
         /// Path.
         path: PathBuf,
-        /// OS error.
-        source: std::io::Error,
+        /// The value out of range, with the likely unit mistake.
+        source: lung_model::plausible::Implausible,
+    },
+    /// `--component N` names a shell the file does not have.
+    #[error("{}: --component {asked}: the file has {count} shell(s); 1 is the largest", path.display())]
+    NoSuchComponent {
+        /// Path.
+        path: PathBuf,
+        /// Shell asked for.
+        asked: usize,
+        /// Shells in the file.
+        count: usize,
+    },
+    /// The surface checks refused it (shells, self-intersections).
+    #[error("{}: {source}", path.display())]
+    Surface {
+        /// Path.
+        path: PathBuf,
+        /// What is wrong.
+        source: crate::surface_checks::SurfaceProblem,
     },
     /// Unknown extension.
     #[error("{}: unknown mesh format: use .obj, .ply or .stl", path.display())]
@@ -110,12 +176,24 @@ pub enum ImportError {
     },
 }
 
-/// Import `path` (format by extension), coordinates in `units`.
+/// Import a single-lung surface `path` (format by extension), coordinates in `units`, with the
+/// default limits: [`import_with`] and [`ImportOptions::lung`].
 pub fn import(path: &Path, units: Units) -> Result<Imported, ImportError> {
-    let bytes = std::fs::read(path).map_err(|source| ImportError::Io {
-        path: path.to_path_buf(),
-        source,
-    })?;
+    import_with(path, &ImportOptions::lung(units))
+}
+
+/// Import `path` (format by extension) as `opts` says: bounded reading, parsing, welding and safe
+/// repairs, topology, shells, self-intersections, and the size of a lung in the stated unit.
+pub fn import_with(path: &Path, opts: &ImportOptions) -> Result<Imported, ImportError> {
+    let units = opts.units;
+    let bytes = lung_model::input::read_bounded(
+        path,
+        lung_model::input::ReadLimits {
+            // Binary PLY and STL have no lines; OBJ and ASCII files are checked by their parsers.
+            max_line_bytes: 0,
+            ..opts.limits
+        },
+    )?;
     let ext = path
         .extension()
         .and_then(|e| e.to_str())
@@ -135,10 +213,96 @@ pub fn import(path: &Path, units: Units) -> Result<Imported, ImportError> {
             })
         }
     };
-    repair(positions, triangles, units).map_err(|source| ImportError::Mesh {
+    let mut imported = repair(positions, triangles, units).map_err(|source| ImportError::Mesh {
         path: path.to_path_buf(),
         source,
-    })
+    })?;
+    let surface = |source| ImportError::Surface {
+        path: path.to_path_buf(),
+        source,
+    };
+    let comps = crate::surface_checks::components(&imported.mesh);
+    imported.shells = comps.count;
+    match opts.shells {
+        Shells::One if comps.count > 1 => {
+            return Err(surface(
+                crate::surface_checks::SurfaceProblem::MultipleComponents {
+                    count: comps.count,
+                    sizes_ml: comps.sizes.iter().map(|c| c.volume_ml).collect(),
+                },
+            ))
+        }
+        Shells::Pick(n) if n == 0 || n > comps.count => {
+            return Err(ImportError::NoSuchComponent {
+                path: path.to_path_buf(),
+                asked: n,
+                count: comps.count,
+            })
+        }
+        Shells::Pick(n) if comps.count > 1 => {
+            let mesh = crate::surface_checks::extract_component(&imported.mesh, &comps, n - 1);
+            let topology = check(&mesh).map_err(|source| ImportError::Mesh {
+                path: path.to_path_buf(),
+                source,
+            })?;
+            imported.mesh = mesh;
+            imported.topology = topology;
+        }
+        _ => {}
+    }
+    let hits = crate::surface_checks::self_intersections(&imported.mesh, 16);
+    imported.self_intersections = hits.count;
+    if let (true, Some(first)) = (opts.one_lung, hits.first) {
+        let t = imported.mesh.triangles[first.0 as usize];
+        let p = |i: u32| imported.mesh.positions[i as usize];
+        let at_mm = [0, 1, 2].map(|k| (p(t[0])[k] + p(t[1])[k] + p(t[2])[k]) / 3.0);
+        return Err(surface(
+            crate::surface_checks::SurfaceProblem::SelfIntersecting {
+                count: hits.count,
+                first,
+                at_mm,
+            },
+        ));
+    }
+    check_size(&imported.mesh, units, opts.one_lung).map_err(|source| {
+        ImportError::Implausible {
+            path: path.to_path_buf(),
+            source,
+        }
+    })?;
+    imported.side = Some(crate::surface_checks::infer_side(&imported.mesh));
+    Ok(imported)
+}
+
+/// Whether `mesh` (in mm, read in `units`) has the size of one lung (`one_lung`) or of lungs at all.
+pub fn check_size(
+    mesh: &TriMesh,
+    units: Units,
+    one_lung: bool,
+) -> Result<(), lung_model::plausible::Implausible> {
+    use lung_model::plausible::{
+        length_unit_hint, LANDMARK_SPREAD_MM, LUNG_EXTENT_MM, LUNG_VOLUME_ML,
+    };
+    let given = match units {
+        Units::Mm => "mm",
+        Units::Cm => "cm",
+        Units::M => "m",
+    };
+    let size = mesh.aabb().size();
+    let extent = size.iter().fold(0.0f64, |m, &v| m.max(v as f64));
+    let limit = if one_lung {
+        LUNG_EXTENT_MM
+    } else {
+        LANDMARK_SPREAD_MM
+    };
+    limit.check(extent, length_unit_hint(extent, given))?;
+    if one_lung {
+        LUNG_VOLUME_ML.check(
+            mesh.enclosed_volume_ml(),
+            Some("a lung's volume: is this one lung, in the stated unit?".into()),
+        )?;
+    }
+    Ok(())
 }
 
 type Raw = (Vec<[f32; 3]>, Vec<[u32; 3]>);
@@ -404,11 +568,22 @@ pub fn repair(
         }
         repairs.flipped_inside_out = true;
     }
+    if let Some(i) = mesh
+        .positions
+        .iter()
+        .position(|p| p.iter().any(|v| !v.is_finite()))
+    {
+        // Finite in the file, infinite once scaled to mm (coordinates near f32::MAX).
+        return Err(MeshError::NonFinite { vertex: i });
+    }
     let topology = check(&mesh)?;
     Ok(Imported {
         mesh,
         topology,
         repairs,
+        shells: 1,
+        self_intersections: 0,
+        side: None,
     })
 }
 
@@ -451,12 +626,12 @@ mod tests {
         let p = tmp("reordered.obj");
         std::fs::write(
             &p,
-            "v 0 0 0\nv 1 0 0\nv 0 1 0\nv 0 0 1\nf 4 2 3\nf 1 3 2\nf 1 2 4\nf 1 4 3\n",
+            "v 0 0 0\nv 100 0 0\nv 0 100 0\nv 0 0 100\nf 4 2 3\nf 1 3 2\nf 1 2 4\nf 1 4 3\n",
         )
         .unwrap();
         let back = import(&p, Units::Mm).unwrap();
         assert_eq!(back.mesh.positions[0], [0.0, 0.0, 0.0]);
-        assert_eq!(back.mesh.positions[3], [0.0, 0.0, 1.0]);
+        assert_eq!(back.mesh.positions[3], [0.0, 0.0, 100.0]);
         assert_eq!(back.mesh.triangles[0], [3, 1, 2]);
     }
 

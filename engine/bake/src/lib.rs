@@ -3,7 +3,9 @@
 //! Used by `lungdyn bake`, `fit-motion`, `pv fit`, `mesh check` and the launcher (which bakes the
 //! default lungs once and hands every process the same kernel file); never linked by the engine or
 //! renderer processes.
-//! * [`import`] — OBJ/PLY/STL import with welding and safe repairs;
+//! * [`import`] — OBJ/PLY/STL import with welding and safe repairs, bounded reading, and the size of
+//!   a lung in the stated unit; [`surface_checks`] — shells, self-intersections, degenerate
+//!   triangles and which lung the geometry is;
 //! * [`operator`] — the node graph (eq. 6.7) and the pitcher–catcher pass (eq. 6.11–6.13);
 //! * [`kernel`] — the whole of seed ch. 6 for one lung, written as a kernel file;
 //! * [`motion_fit`] and [`surface_fit`] — the motion constants from landmarks or surfaces (§6.4.2);
@@ -19,4 +21,5 @@ pub mod lsq;
 pub mod motion_fit;
 pub mod operator;
 pub mod pv;
+pub mod surface_checks;
 pub mod surface_fit;

@@ -20,8 +20,11 @@ pub enum CurveError {
         /// OS error.
         source: std::io::Error,
     },
-    /// Malformed CSV.
-    #[error("{}: line {line}: {message}", path.display())]
+    /// The file could not be read within the limits.
+    #[error(transparent)]
+    Input(#[from] lung_model::input::InputError),
+    /// Malformed or implausible CSV (line 0: the file as a whole).
+    #[error("{}{}: {message}", path.display(), if *line > 0 { format!(": line {line}") } else { String::new() })]
     Csv {
         /// Path.
         path: PathBuf,
@@ -63,23 +66,109 @@ pub struct CurveFile {
     pub volume_column: String,
     /// Whether a phase column was used.
     pub has_phase: bool,
+    /// Unit of the pressure column, converted to cmH2O.
+    pub pressure_unit: ColumnUnit,
+    /// Unit of the volume column, converted to ml.
+    pub volume_unit: ColumnUnit,
+    /// FRC added to every volume (`--frc`: the column held changes above FRC).
+    pub frc_added_ml: Option<f64>,
 }
 
-/// Read a PV curve CSV.
-pub fn read_curve(path: &Path, unit: VolumeUnit) -> Result<CurveFile, CurveError> {
-    let bytes = std::fs::read(path).map_err(|source| CurveError::Io {
-        path: path.to_path_buf(),
-        source,
-    })?;
-    parse_curve(&bytes, unit).map_err(|(line, message)| CurveError::Csv {
+/// A unit of a column and its factor to lungdyn's unit (cmH2O or ml).
+#[derive(Debug, Clone, Copy, PartialEq, serde::Serialize)]
+pub struct ColumnUnit {
+    /// The unit as recognised ("kPa", "L", ...).
+    pub name: &'static str,
+    /// Multiply by this to get cmH2O (pressure) or ml (volume).
+    pub factor: f64,
+    /// Where the unit came from: "header", "flag" or "default".
+    pub from: &'static str,
+}
+
+/// Pressure units recognised in a column header (token of the header, case-insensitive).
+const PRESSURE_UNITS: &[(&str, &str, f64)] = &[
+    ("cmh2o", "cmH2O", 1.0),
+    ("cmh20", "cmH2O", 1.0),
+    ("kpa", "kPa", 10.197_162),
+    ("hpa", "hPa", 1.019_716_2),
+    ("mbar", "mbar", 1.019_716_2),
+    ("pa", "Pa", 0.010_197_162),
+    ("mmhg", "mmHg", 1.359_51),
+    ("torr", "Torr", 1.359_51),
+    ("inh2o", "inH2O", 2.54),
+    ("psi", "psi", 70.306_958),
+];
+
+/// Volume units recognised in a column header.
+const VOLUME_UNITS: &[(&str, &str, f64)] = &[
+    ("ml", "ml", 1.0),
+    ("cc", "ml", 1.0),
+    ("cm3", "ml", 1.0),
+    ("l", "L", 1000.0),
+    ("litre", "L", 1000.0),
+    ("liter", "L", 1000.0),
+    ("litres", "L", 1000.0),
+    ("liters", "L", 1000.0),
+    ("dl", "dL", 100.0),
+];
+
+fn tokens(header: &str) -> impl Iterator<Item = String> + '_ {
+    header
+        .split(|c: char| !c.is_ascii_alphanumeric())
+        .filter(|t| !t.is_empty())
+        .map(|t| t.to_ascii_lowercase())
+}
+
+/// The unit a header names, from `table`.
+fn header_unit(header: &str, table: &[(&str, &'static str, f64)]) -> Option<(&'static str, f64)> {
+    tokens(header).find_map(|t| {
+        table
+            .iter()
+            .find(|(k, _, _)| *k == t)
+            .map(|(_, name, f)| (*name, *f))
+    })
+}
+
+/// Options of [`read_curve`].
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct CurveOptions {
+    /// The volume unit the user declared (`--volume-unit`); the header's unit otherwise, else ml.
+    pub volume_unit: Option<VolumeUnit>,
+    /// Volumes are changes above this FRC (ml): absolute volume = FRC + value (`--frc`).
+    pub frc_ml: Option<f64>,
+    /// Size and line limits of the file.
+    pub limits: lung_model::input::ReadLimits,
+}
+
+impl Default for CurveOptions {
+    fn default() -> Self {
+        Self {
+            volume_unit: None,
+            frc_ml: None,
+            limits: lung_model::input::ReadLimits::TABLE,
+        }
+    }
+}
+
+/// Read a PV curve CSV: bounded, units from the header (or the flag), every sample checked against
+/// the plausible ranges of [`lung_model::plausible`].
+pub fn read_curve(path: &Path, opts: &CurveOptions) -> Result<CurveFile, CurveError> {
+    let bytes = lung_model::input::read_bounded(path, opts.limits)?;
+    parse_curve(&bytes, opts).map_err(|(line, message)| CurveError::Csv {
         path: path.to_path_buf(),
         line,
         message,
     })
 }
 
-/// Parse PV curve CSV bytes; errors carry the 1-based line.
-pub fn parse_curve(bytes: &[u8], unit: VolumeUnit) -> Result<CurveFile, (u64, String)> {
+/// Parse PV curve CSV bytes; errors carry the 1-based line (0: the file as a whole).
+pub fn parse_curve(bytes: &[u8], opts: &CurveOptions) -> Result<CurveFile, (u64, String)> {
+    use lung_model::plausible::{
+        volume_unit_hint, LUNGS_VOLUME_ML, PRESSURE_CMH2O, PRESSURE_SWING_CMH2O, TIDAL_VOLUME_ML,
+    };
+    if lung_model::input::looks_binary(bytes) {
+        return Err((0, "this is binary data, not a CSV table".into()));
+    }
     let mut reader = csv::ReaderBuilder::new()
         .flexible(true)
         .trim(csv::Trim::All)
@@ -111,29 +200,79 @@ pub fn parse_curve(bytes: &[u8], unit: VolumeUnit) -> Result<CurveFile, (u64, St
     if numeric.len() < 2 {
         return Err((
             *first_line,
-            "need two numeric columns (pressure in cmH2O, then volume) in the first data row"
-                .into(),
+            "need two numeric columns (pressure, then volume) in the first data row".into(),
         ));
     }
     // Columns named for what they hold win (a time column often comes first); else the first two.
     let named = |keys: &[&str]| {
         numeric.iter().copied().find(|&i| {
-            let h = headers.get(i).unwrap_or("").to_ascii_lowercase();
-            keys.iter().any(|k| h.contains(k))
+            let h = headers.get(i).unwrap_or("");
+            let lower = h.to_ascii_lowercase();
+            keys.iter().any(|k| lower.contains(k))
+                || header_unit(h, PRESSURE_UNITS).is_some() && keys.contains(&"pressure")
         })
     };
-    let pc = named(&["pressure", "cmh2o", "pes", "paw", "ptp"]).unwrap_or(numeric[0]);
-    let vc = named(&["volume", "vol", "(ml)", "(l)", "_ml", "_l"])
-        .filter(|&v| v != pc)
-        .unwrap_or(
-            *numeric
-                .iter()
-                .find(|&&i| i != pc)
-                .expect("two numeric columns"),
-        );
-    let scale = match unit {
-        VolumeUnit::Ml => 1.0,
-        VolumeUnit::Litre => 1000.0,
+    let named_volume = |pc: usize| {
+        numeric.iter().copied().find(|&i| {
+            let h = headers.get(i).unwrap_or("");
+            i != pc
+                && (h.to_ascii_lowercase().contains("vol")
+                    || header_unit(h, VOLUME_UNITS).is_some())
+        })
+    };
+    let pc = named(&["pressure", "pes", "paw", "ptp", "pleural", "airway"]).unwrap_or(numeric[0]);
+    let vc = named_volume(pc).unwrap_or(
+        *numeric
+            .iter()
+            .find(|&&i| i != pc)
+            .expect("two numeric columns"),
+    );
+    let p_header = headers.get(pc).unwrap_or("").to_string();
+    let v_header = headers.get(vc).unwrap_or("").to_string();
+    let pressure_unit = match header_unit(&p_header, PRESSURE_UNITS) {
+        Some((name, factor)) => ColumnUnit {
+            name,
+            factor,
+            from: "header",
+        },
+        None => ColumnUnit {
+            name: "cmH2O",
+            factor: 1.0,
+            from: "default",
+        },
+    };
+    let header_volume = header_unit(&v_header, VOLUME_UNITS);
+    let volume_unit = match (header_volume, opts.volume_unit) {
+        (Some((name, _)), Some(flag)) if (flag == VolumeUnit::Litre) != (name == "L") => {
+            return Err((
+                1,
+                format!(
+                    "the volume column {v_header:?} says {name}, but --volume-unit says {}: drop the flag \
+                     or fix the header",
+                    if flag == VolumeUnit::Litre { "l" } else { "ml" }
+                ),
+            ));
+        }
+        (Some((name, factor)), _) => ColumnUnit {
+            name,
+            factor,
+            from: "header",
+        },
+        (None, Some(VolumeUnit::Litre)) => ColumnUnit {
+            name: "L",
+            factor: 1000.0,
+            from: "flag",
+        },
+        (None, Some(VolumeUnit::Ml)) => ColumnUnit {
+            name: "ml",
+            factor: 1.0,
+            from: "flag",
+        },
+        (None, None) => ColumnUnit {
+            name: "ml",
+            factor: 1.0,
+            from: "default",
+        },
     };
     let mut samples = Vec::with_capacity(records.len());
     for (line, rec) in &records {
@@ -159,17 +298,103 @@ pub fn parse_curve(bytes: &[u8], unit: VolumeUnit) -> Result<CurveFile, (u64, St
                 other => return Err((*line, format!("phase {other:?}: use inhale or exhale"))),
             },
         };
+        let pressure = value(pc, "pressure")? * pressure_unit.factor;
+        let raw_volume = value(vc, "volume")?;
+        let volume = raw_volume * volume_unit.factor + opts.frc_ml.unwrap_or(0.0);
+        if !PRESSURE_CMH2O.contains(pressure) {
+            // Swapped columns: the "pressure" looks like lung volumes and the "volume" like pressures.
+            let swapped = LUNGS_VOLUME_ML.contains(pressure)
+                && PRESSURE_CMH2O.contains(raw_volume * volume_unit.factor);
+            return Err((
+                *line,
+                format!(
+                    "{}{}",
+                    PRESSURE_CMH2O.check(pressure, None).unwrap_err(),
+                    if swapped {
+                        format!(
+                            ": column {p_header:?} (taken as pressure) holds lung volumes — are the columns \
+                             swapped? Name them in the header (e.g. pressure_cmH2O, volume_ml)"
+                        )
+                    } else if pressure_unit.from == "default" {
+                        format!(
+                            ": column {p_header:?} states no unit and was read as cmH2O; name its unit in the \
+                             header (pressure_kPa, pressure_mmHg, pressure_Pa, ...)"
+                        )
+                    } else {
+                        String::new()
+                    }
+                ),
+            ));
+        }
+        if !LUNGS_VOLUME_ML.contains(volume) {
+            let hint = if opts.frc_ml.is_none() && raw_volume <= 0.0 {
+                Some(format!(
+                    "a lung volume is absolute and above 0 ml; if column {v_header:?} holds changes \
+                     above FRC, pass --frc ML"
+                ))
+            } else if volume_unit.from != "header" {
+                volume_unit_hint(
+                    volume,
+                    if volume_unit.factor == 1000.0 {
+                        "l"
+                    } else {
+                        "ml"
+                    },
+                )
+            } else {
+                None
+            };
+            return Err((
+                *line,
+                LUNGS_VOLUME_ML.check(volume, hint).unwrap_err().to_string(),
+            ));
+        }
         samples.push(PvSample {
-            pressure: value(pc, "pressure")?,
-            volume: value(vc, "volume")? * scale,
+            pressure,
+            volume,
             phase,
         });
     }
+    let span = |f: fn(&PvSample) -> f64| {
+        samples
+            .iter()
+            .map(f)
+            .fold((f64::MAX, f64::MIN), |(lo, hi), v| (lo.min(v), hi.max(v)))
+    };
+    let (p_lo, p_hi) = span(|s| s.pressure);
+    let (v_lo, v_hi) = span(|s| s.volume);
+    // A loop with no change at all is the fit's to refuse (with its own message); a change of the
+    // wrong size is a unit question.
+    if samples.len() > 1 && p_hi > p_lo {
+        PRESSURE_SWING_CMH2O
+            .check(
+                p_hi - p_lo,
+                Some(format!(
+                    "pressure column {p_header:?} read in {} ({}); check its unit",
+                    pressure_unit.name, pressure_unit.from
+                )),
+            )
+            .map_err(|e| (0, e.to_string()))?;
+    }
+    if samples.len() > 1 && v_hi > v_lo {
+        TIDAL_VOLUME_ML
+            .check(
+                v_hi - v_lo,
+                Some(format!(
+                    "volume column {v_header:?} read in {} ({}); check its unit",
+                    volume_unit.name, volume_unit.from
+                )),
+            )
+            .map_err(|e| (0, e.to_string()))?;
+    }
     Ok(CurveFile {
         samples,
-        pressure_column: headers.get(pc).unwrap_or("").to_string(),
-        volume_column: headers.get(vc).unwrap_or("").to_string(),
+        pressure_column: p_header,
+        volume_column: v_header,
         has_phase: phase_col.is_some(),
+        pressure_unit,
+        volume_unit,
+        frc_added_ml: opts.frc_ml,
     })
 }
 
@@ -177,46 +402,111 @@ pub fn parse_curve(bytes: &[u8], unit: VolumeUnit) -> Result<CurveFile, (u64, St
 mod tests {
     use super::*;
 
+    fn with(unit: Option<VolumeUnit>) -> CurveOptions {
+        CurveOptions {
+            volume_unit: unit,
+            ..Default::default()
+        }
+    }
+
+    fn err(csv: &[u8], opts: &CurveOptions) -> (u64, String) {
+        parse_curve(csv, opts).unwrap_err()
+    }
+
     #[test]
     fn curves_parse_with_units_phase_and_extra_columns() {
         let csv = b"time_s, pressure (cmH2O), volume (L), phase\n0, 0.0, 2.4, inhale\n0.1, 1.5, 2.5, inhale\n\n0.2, 3.0, 2.9, exhale\n";
-        let c = parse_curve(csv, VolumeUnit::Litre).unwrap();
-        // A time column comes first, but the named columns win.
+        let c = parse_curve(csv, &with(None)).unwrap();
+        // A time column comes first, but the named columns win; the header's L is used.
         assert_eq!(c.pressure_column, "pressure (cmH2O)");
         assert_eq!(c.volume_column, "volume (L)");
+        assert_eq!((c.volume_unit.name, c.volume_unit.from), ("L", "header"));
         assert_eq!(c.samples[2].volume, 2900.0);
         // Unnamed columns: the first two numeric ones.
-        let c = parse_curve(b"a,b,c\n1,2,3\n", VolumeUnit::Ml).unwrap();
+        let c = parse_curve(b"a,b,c\n1,2400,3\n4,2900,1\n", &with(None)).unwrap();
         assert_eq!(
             (c.pressure_column.as_str(), c.volume_column.as_str()),
             ("a", "b")
         );
         let csv = b"pressure,volume,phase\n0,2400,inhale\n5,2900,exhale\n";
-        let c = parse_curve(csv, VolumeUnit::Ml).unwrap();
+        let c = parse_curve(csv, &with(Some(VolumeUnit::Ml))).unwrap();
         assert_eq!(c.samples.len(), 2);
         assert_eq!(c.samples[1].phase, Some(Phase::Exhale));
         assert!(c.has_phase);
     }
 
     #[test]
+    fn units_in_the_header_are_converted_and_reported() {
+        let c = parse_curve(b"pressure_kPa,volume_ml\n0,2400\n1,2900\n", &with(None)).unwrap();
+        assert_eq!(
+            (c.pressure_unit.name, c.pressure_unit.from),
+            ("kPa", "header")
+        );
+        assert!((c.samples[1].pressure - 10.197_162).abs() < 1e-9);
+        let c = parse_curve(b"Paw [mmHg],vol_L\n0,2.4\n7.4,2.9\n", &with(None)).unwrap();
+        assert_eq!(c.pressure_unit.name, "mmHg");
+        assert!((c.samples[1].pressure - 10.06).abs() < 0.01);
+        assert_eq!(c.samples[1].volume, 2900.0);
+        // A header that contradicts the flag is refused.
+        let (_, m) = err(
+            b"pressure,volume_L\n0,2.4\n5,2.9\n",
+            &with(Some(VolumeUnit::Ml)),
+        );
+        assert!(m.contains("says L") && m.contains("--volume-unit"), "{m}");
+    }
+
+    #[test]
+    fn silent_unit_mistakes_are_refused_with_the_fix() {
+        // Volume first in unnamed columns: the "pressure" is 2400.
+        let (line, m) = err(b"a,b\n2400,0\n2900,10\n", &with(None));
+        assert_eq!(line, 2);
+        assert!(m.contains("swapped"), "{m}");
+        // ml data declared as litres.
+        let (_, m) = err(
+            b"pressure,volume\n0,2400\n10,2900\n",
+            &with(Some(VolumeUnit::Litre)),
+        );
+        assert!(m.contains("drop --volume-unit l"), "{m}");
+        // Litres read as ml.
+        let (_, m) = err(b"pressure,volume\n0,2.4\n10,2.9\n", &with(None));
+        assert!(m.contains("--volume-unit l"), "{m}");
+        // Volumes shifted below zero: relative volumes need --frc.
+        let (_, m) = err(b"pressure,volume\n0,-200\n10,300\n", &with(None));
+        assert!(m.contains("--frc"), "{m}");
+        let c = parse_curve(
+            b"pressure,volume\n0,-200\n10,300\n",
+            &CurveOptions {
+                frc_ml: Some(2400.0),
+                ..Default::default()
+            },
+        )
+        .unwrap();
+        assert_eq!(c.samples[0].volume, 2200.0);
+        // One absurd sample names its line.
+        let (line, m) = err(b"pressure,volume\n0,2400\n5,1e308\n10,2900\n", &with(None));
+        assert_eq!(line, 3, "{m}");
+        // Pressure in Pa without a unit: far beyond any pressure.
+        let (_, m) = err(b"pressure,volume\n0,2400\n980,2900\n", &with(None));
+        assert!(m.contains("states no unit"), "{m}");
+        // A loop with a pressure change far too small for cmH2O (kPa without a unit?).
+        let (line, m) = err(b"pressure,volume\n1,2400\n1.1,2900\n", &with(None));
+        assert_eq!(line, 0);
+        assert!(m.contains("pressure range"), "{m}");
+    }
+
+    #[test]
     fn bad_csv_is_refused_with_the_line() {
-        let (line, msg) = parse_curve(b"p,v\n0,1\n1,nan\n", VolumeUnit::Ml).unwrap_err();
+        let o = with(None);
+        let (line, msg) = err(b"p,v\n0,1000\n1,nan\n", &o);
         assert_eq!(line, 3);
         assert!(msg.contains("finite"), "{msg}");
-        let (line, msg) = parse_curve(b"p,v\n0,1\n1,abc\n", VolumeUnit::Ml).unwrap_err();
+        let (line, msg) = err(b"p,v\n0,1000\n1,abc\n", &o);
         assert_eq!((line, msg.contains("not a number")), (3, true));
-        assert!(parse_curve(b"p,v\n", VolumeUnit::Ml)
-            .unwrap_err()
-            .1
-            .contains("no data"));
-        assert!(parse_curve(b"a,b\nx,y\n", VolumeUnit::Ml)
-            .unwrap_err()
-            .1
-            .contains("two numeric"));
-        assert!(parse_curve(b"p,v,phase\n0,1,sideways\n", VolumeUnit::Ml)
-            .unwrap_err()
+        assert!(err(b"p,v\n", &o).1.contains("no data"));
+        assert!(err(b"a,b\nx,y\n", &o).1.contains("two numeric"));
+        assert!(err(b"p,v,phase\n0,1000,sideways\n", &o)
             .1
             .contains("inhale or exhale"));
-        assert!(parse_curve(&[0xff, 0xfe, 0x00, 0x12], VolumeUnit::Ml).is_err());
+        assert!(err(&[0xff, 0xfe, 0x00, 0x12], &o).1.contains("binary"));
     }
 }
