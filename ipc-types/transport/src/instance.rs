@@ -122,6 +122,70 @@ impl Instance {
     }
 }
 
+/// Proof that this process is the only one of its role in its instance (an exclusive `flock` on a
+/// lock file, released by the kernel when the process exits, however it exits).
+#[derive(Debug)]
+pub struct InstanceLock {
+    _file: std::fs::File,
+    path: PathBuf,
+}
+
+impl InstanceLock {
+    /// The lock file.
+    pub fn path(&self) -> &std::path::Path {
+        &self.path
+    }
+}
+
+impl Instance {
+    /// Folder of the lock files.
+    pub fn lock_dir() -> PathBuf {
+        std::env::temp_dir().join("lungdyn-locks")
+    }
+
+    /// Take the exclusive lock of `role` ("launcher", "engine", "renderer", "tracker-bridge") in this
+    /// instance. A second process of the same role and instance is refused with a message naming
+    /// the one that holds it; never waits.
+    pub fn lock(&self, role: &str) -> Result<InstanceLock, PortError> {
+        use std::io::{Read, Seek, Write};
+        use std::os::fd::AsRawFd;
+        let dir = Self::lock_dir();
+        let io = |source| PortError::Lock {
+            instance: self.name.clone(),
+            source,
+        };
+        std::fs::create_dir_all(&dir).map_err(io)?;
+        let path = dir.join(format!("{}.{role}.lock", self.name));
+        let mut file = std::fs::OpenOptions::new()
+            .read(true)
+            .write(true)
+            .create(true)
+            .truncate(false)
+            .open(&path)
+            .map_err(io)?;
+        // SAFETY: flock on a file descriptor we own; non-blocking.
+        let r = unsafe { libc::flock(file.as_raw_fd(), libc::LOCK_EX | libc::LOCK_NB) };
+        if r != 0 {
+            let err = std::io::Error::last_os_error();
+            if err.raw_os_error() == Some(libc::EWOULDBLOCK) {
+                let mut holder = String::new();
+                let _ = file.read_to_string(&mut holder);
+                return Err(PortError::InstanceBusy {
+                    instance: self.name.clone(),
+                    role: role.to_string(),
+                    holder: holder.trim().to_string(),
+                });
+            }
+            return Err(io(err));
+        }
+        let cmdline = std::env::args().collect::<Vec<_>>().join(" ");
+        file.set_len(0).map_err(io)?;
+        file.rewind().map_err(io)?;
+        write!(file, "process {} ({cmdline})", std::process::id()).map_err(io)?;
+        Ok(InstanceLock { _file: file, path })
+    }
+}
+
 /// What [`Instance::remove_leftovers`] removed.
 #[derive(Debug, Clone, Default, PartialEq, Eq)]
 pub struct Cleanup {
@@ -146,6 +210,29 @@ mod tests {
         }
         assert!(Instance::new(&"x".repeat(48)).is_ok());
         assert!(Instance::new(&"x".repeat(49)).is_err());
+    }
+
+    #[test]
+    fn a_second_holder_of_a_role_is_refused_naming_the_first() {
+        let i = Instance::new(&format!("lock-test-{}", std::process::id())).unwrap();
+        let held = i.lock("engine").unwrap();
+        let e = i.lock("engine").unwrap_err();
+        let msg = e.to_string();
+        assert!(
+            matches!(&e, PortError::InstanceBusy { role, .. } if role == "engine"),
+            "{msg}"
+        );
+        assert!(
+            msg.contains(&format!("process {}", std::process::id())),
+            "{msg}"
+        );
+        // Other roles of the instance, and the same role of another instance, are free.
+        let _renderer = i.lock("renderer").unwrap();
+        let other = Instance::new(&format!("lock-test-b-{}", std::process::id())).unwrap();
+        let _o = other.lock("engine").unwrap();
+        drop(held);
+        let again = i.lock("engine").unwrap();
+        assert!(again.path().exists());
     }
 
     #[test]

@@ -130,6 +130,27 @@ pub enum PortError {
     /// A received payload speaks another layout.
     #[error(transparent)]
     Layout(#[from] LayoutError),
+    /// Another process already holds this role in this instance.
+    #[error(
+        "instance {instance:?} is already running: its {role} is {holder}; stop it, or give this run \
+         another name with --instance"
+    )]
+    InstanceBusy {
+        /// Instance name.
+        instance: String,
+        /// Role held.
+        role: String,
+        /// Who holds it ("process 1234 (lungdyn demo ...)").
+        holder: String,
+    },
+    /// The instance's lock file could not be used.
+    #[error("cannot take the lock of instance {instance:?}: {source}")]
+    Lock {
+        /// Instance name.
+        instance: String,
+        /// OS error.
+        source: std::io::Error,
+    },
     /// The producer of a finite stream (a recording, a scripted test source) has nothing more.
     #[error("the stream {stream:?} has ended")]
     Ended {
