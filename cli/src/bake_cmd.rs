@@ -4,7 +4,6 @@ use std::path::PathBuf;
 use std::time::Instant;
 
 use anyhow::Context;
-use lung_bake::import::{self, Units};
 use lung_bake::kernel;
 use lung_model::kernel::KernelFile;
 use lung_model::mesh::Side;
@@ -22,6 +21,12 @@ pub struct BakeArgs {
     /// Unit of the mesh file's coordinates.
     #[arg(long, default_value = "mm", value_parser = ["mm", "cm", "m"])]
     pub units: String,
+    /// Keep connected shell N (1 = the largest) of a file holding several.
+    #[arg(long, value_name = "N")]
+    pub component: Option<usize>,
+    /// Input size limit and special files.
+    #[command(flatten)]
+    pub input: crate::input_args::InputArgs,
     /// Scene whose [lungs] elasticity, transfer_tolerance and motion are used (defaults otherwise).
     #[arg(long)]
     pub scene: Option<PathBuf>,
@@ -77,6 +82,8 @@ pub struct BakeSummary {
     pub seconds: f64,
     /// Peak resident memory of this process, MiB (Linux VmHWM; 0 when unknown).
     pub peak_rss_mib: f64,
+    /// The warning when `--lung` disagrees with the geometry.
+    pub side_warning: Option<String>,
 }
 
 /// Peak resident set size of this process in MiB (Linux), 0 elsewhere.
@@ -97,7 +104,6 @@ pub fn peak_rss_mib() -> f64 {
 pub fn bake(args: &BakeArgs) -> anyhow::Result<BakeSummary> {
     let start = Instant::now();
     let side: Side = args.lung.parse().map_err(anyhow::Error::msg)?;
-    let units: Units = args.units.parse().map_err(anyhow::Error::msg)?;
     if args.out.extension().and_then(|e| e.to_str()) != Some("kernel") {
         anyhow::bail!("{}: the output must end in .kernel", args.out.display());
     }
@@ -107,12 +113,21 @@ pub fn bake(args: &BakeArgs) -> anyhow::Result<BakeSummary> {
         settings.motion = lung_model::deform::MotionFile::load(m)?.for_side(side);
     }
     if let Some(t) = args.tolerance {
-        if !(t.is_finite() && t > 0.0 && t < 1.0) {
-            anyhow::bail!("--tolerance {t} must be within (0, 1); 1e-5 is the default");
+        if !(t.is_finite() && (1e-9..=0.5).contains(&t)) {
+            anyhow::bail!(
+                "--tolerance {t} must be within 1e-9..0.5 (1e-5 is the default; 1e-6 doubles the bake time, \
+                 smaller values take far longer)"
+            );
         }
         settings.tolerance = t;
     }
-    let imported = import::import(&args.mesh, units)?;
+    let (imported, side_warning) = crate::mesh_cmd::import_lung(
+        &args.mesh,
+        &args.units,
+        args.component,
+        &args.input,
+        Some(side),
+    )?;
     let n = imported.mesh.positions.len() as u64;
     let bar = indicatif::ProgressBar::new(n);
     bar.set_style(
@@ -151,6 +166,7 @@ pub fn bake(args: &BakeArgs) -> anyhow::Result<BakeSummary> {
         file_bytes,
         seconds: start.elapsed().as_secs_f64(),
         peak_rss_mib: peak_rss_mib(),
+        side_warning,
     })
 }
 
@@ -296,6 +312,9 @@ pub struct ExportSummary {
     pub scale: f64,
     /// Largest vertex displacement, mm.
     pub max_displacement_mm: f64,
+    /// Self-intersecting triangle pairs of the deformed surface (counted up to 16): the linear model
+    /// `p + s·u` folds the surface where neighbouring vertices move very differently.
+    pub self_intersections: usize,
 }
 
 /// Deform a kernel's lung to `start + delta` and write the surface.
@@ -308,6 +327,10 @@ pub fn export(args: &ExportArgs) -> anyhow::Result<ExportSummary> {
     }
     lung_model::mesh::io::MeshFormat::from_path(&args.out)?;
     let f = KernelFile::open(&args.file)?;
+    lung_model::plausible::LUNG_VOLUME_ML.check(
+        f.meta().start_volume_ml,
+        Some("the kernel was baked from a mesh in the wrong unit? bake it again with the right --units".into()),
+    )?;
     let model = f.lung_model();
     if args.delta_ml < -0.9 * model.start_volume_ml {
         anyhow::bail!(
@@ -337,8 +360,31 @@ pub fn export(args: &ExportArgs) -> anyhow::Result<ExportSummary> {
             args.delta_ml
         );
     }
+    // The volume cubic must have reached the target; anything else is a kernel in the wrong unit or
+    // a change beyond the model's range, never something to write.
+    let reached = mesh.enclosed_volume_ml() - model.start_volume_ml;
+    if !(reached.is_finite() && (reached - args.delta_ml).abs() <= 0.5 + 1e-3 * args.delta_ml.abs())
+    {
+        anyhow::bail!(
+            "the deformed lung changes by {reached:+.1} ml instead of {:+} ml: this kernel cannot reach that volume",
+            args.delta_ml
+        );
+    }
+    lung_model::plausible::LUNG_VOLUME_ML.check(
+        mesh.enclosed_volume_ml(),
+        Some("--delta-ml takes the lung outside human volumes".into()),
+    )?;
+    let folds = lung_bake::surface_checks::self_intersections(&mesh, 16);
+    if let Some((a, b)) = folds.first {
+        eprintln!(
+            "lungdyn: warning: at {:+} ml the deformed surface intersects itself ({} crossing pair(s), first \
+             triangles {a} and {b}): the linear model folds it there; smaller volume changes do not",
+            args.delta_ml, folds.count
+        );
+    }
     lung_model::mesh::io::write_mesh(&mesh, &args.out)?;
     Ok(ExportSummary {
+        self_intersections: folds.count,
         path: args.out.display().to_string(),
         delta_ml: args.delta_ml,
         volume_ml: mesh.enclosed_volume_ml(),

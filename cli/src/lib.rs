@@ -7,6 +7,7 @@
 
 pub mod bake_cmd;
 pub mod demo;
+pub mod input_args;
 pub mod kernel_plot;
 pub mod mesh_cmd;
 pub mod motion_cmd;

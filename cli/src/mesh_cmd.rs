@@ -66,12 +66,65 @@ pub struct CheckArgs {
     /// Unit of the file's coordinates.
     #[arg(long, default_value = "mm", value_parser = ["mm", "cm", "m"])]
     pub units: String,
+    /// Which lung the file should be: checked against the geometry (its concave medial surface faces
+    /// the midline), with a warning when they disagree.
+    #[arg(long, value_parser = ["left", "right"])]
+    pub lung: Option<String>,
+    /// Keep connected shell N (1 = the largest by volume) of a file holding several; without it a
+    /// file of more than one shell is refused.
+    #[arg(long, value_name = "N")]
+    pub component: Option<usize>,
     /// Write the welded, repaired mesh (in mm) as .obj or .ply.
     #[arg(long)]
     pub out: Option<PathBuf>,
+    /// Input size limit and special files.
+    #[command(flatten)]
+    pub input: crate::input_args::InputArgs,
     /// Print one JSON object on stdout.
     #[arg(long)]
     pub json: bool,
+}
+
+/// Import a single-lung surface with the common options (`--units`, `--component`, input limits),
+/// and compare the geometry's side with `lung` when given: returns the import and a warning when
+/// they disagree (also printed on stderr).
+pub fn import_lung(
+    mesh: &std::path::Path,
+    units: &str,
+    component: Option<usize>,
+    input: &crate::input_args::InputArgs,
+    lung: Option<Side>,
+) -> anyhow::Result<(lung_bake::import::Imported, Option<String>)> {
+    use lung_bake::import::{ImportOptions, Shells};
+    let units: lung_bake::import::Units = units.parse().map_err(anyhow::Error::msg)?;
+    let imported = lung_bake::import::import_with(
+        mesh,
+        &ImportOptions {
+            units,
+            limits: input.limits(lung_model::input::ReadLimits::MESH),
+            shells: component.map_or(Shells::One, Shells::Pick),
+            one_lung: true,
+        },
+    )?;
+    let evidence = imported.side.as_ref();
+    let warning = match (lung, evidence.and_then(|e| e.side)) {
+        (Some(given), Some(seen)) if given != seen => {
+            let e = evidence.expect("side seen");
+            let w = format!(
+                "{}: --lung {} but the geometry looks like a {} lung ({}; confidence {:.2}): check the file \
+                 and its coordinate frame (+X = patient left)",
+                mesh.display(),
+                given.name(),
+                seen.name(),
+                e.reason,
+                e.confidence
+            );
+            eprintln!("lungdyn: warning: {w}");
+            Some(w)
+        }
+        _ => None,
+    };
+    Ok((imported, warning))
 }
 
 /// What `mesh check` found.
@@ -91,15 +144,29 @@ pub struct CheckSummary {
     pub size_mm: [f32; 3],
     /// Repairs applied.
     pub repairs: lung_bake::import::Repairs,
+    /// Connected shells in the file.
+    pub shells: usize,
+    /// Which lung the geometry looks like ("left", "right" or null when it cannot tell).
+    pub geometry_side: Option<String>,
+    /// Why (the evidence).
+    pub geometry_side_reason: String,
+    /// The warning when `--lung` disagrees with the geometry.
+    pub side_warning: Option<String>,
 }
 
 /// Import, repair what is safe, verify, optionally export.
 pub fn check_mesh(args: &CheckArgs) -> anyhow::Result<CheckSummary> {
-    let units: lung_bake::import::Units = args.units.parse().map_err(anyhow::Error::msg)?;
     if let Some(out) = &args.out {
         io::MeshFormat::from_path(out)?;
     }
-    let imported = lung_bake::import::import(&args.mesh, units)?;
+    let lung = args
+        .lung
+        .as_deref()
+        .map(str::parse::<Side>)
+        .transpose()
+        .map_err(anyhow::Error::msg)?;
+    let (imported, side_warning) =
+        import_lung(&args.mesh, &args.units, args.component, &args.input, lung)?;
     if let Some(out) = &args.out {
         io::write_mesh(&imported.mesh, out)?;
     }
@@ -111,5 +178,17 @@ pub fn check_mesh(args: &CheckArgs) -> anyhow::Result<CheckSummary> {
         volume_ml: imported.mesh.enclosed_volume_ml(),
         size_mm: imported.mesh.aabb().size(),
         repairs: imported.repairs,
+        shells: imported.shells,
+        geometry_side: imported
+            .side
+            .as_ref()
+            .and_then(|e| e.side)
+            .map(|s| s.name().to_string()),
+        geometry_side_reason: imported
+            .side
+            .as_ref()
+            .map(|e| e.reason.clone())
+            .unwrap_or_default(),
+        side_warning,
     })
 }

@@ -45,19 +45,34 @@ pub struct FitMotionArgs {
     /// Write the constants (TOML, for `lungdyn bake --motion` or a scene's [lungs] motion).
     #[arg(long)]
     pub out: Option<PathBuf>,
+    /// Input size limit and special files.
+    #[command(flatten)]
+    pub input: crate::input_args::InputArgs,
     /// Print one JSON object on stdout.
     #[arg(long)]
     pub json: bool,
 }
 
-/// Read a point file or a mesh's vertices, in mm.
-pub fn read_points(path: &Path, spacing: Option<[f64; 3]>) -> anyhow::Result<Vec<DVec3>> {
+/// Read a point file or a mesh's vertices, in mm (bounded reading; sizes checked against lungs).
+pub fn read_points(
+    path: &Path,
+    spacing: Option<[f64; 3]>,
+    input: &crate::input_args::InputArgs,
+) -> anyhow::Result<Vec<DVec3>> {
     let ext = path
         .extension()
         .and_then(|e| e.to_str())
         .map(|e| e.to_ascii_lowercase());
     let raw: Vec<DVec3> = if matches!(ext.as_deref(), Some("obj" | "ply" | "stl")) {
-        let m = lung_bake::import::import(path, lung_bake::import::Units::Mm)?;
+        let m = lung_bake::import::import_with(
+            path,
+            &lung_bake::import::ImportOptions {
+                units: lung_bake::import::Units::Mm,
+                limits: input.limits(lung_model::input::ReadLimits::MESH),
+                shells: lung_bake::import::Shells::All,
+                one_lung: false,
+            },
+        )?;
         if m.repairs.welded_vertices > 0 || m.repairs.unused_vertices > 0 {
             anyhow::bail!(
                 "{}: the mesh needed vertex repairs (welded {}, unused {}), so its vertex order no longer \
@@ -73,8 +88,10 @@ pub fn read_points(path: &Path, spacing: Option<[f64; 3]>) -> anyhow::Result<Vec
             .map(|p| DVec3::from(p.map(|v| v as f64)))
             .collect()
     } else {
-        let text = std::fs::read_to_string(path)
-            .with_context(|| format!("cannot read {}", path.display()))?;
+        let text = lung_model::input::read_text_bounded(
+            path,
+            input.limits(lung_model::input::ReadLimits::TABLE),
+        )?;
         let mut pts = Vec::new();
         for (i, line) in text.lines().enumerate() {
             let line = line.trim();
@@ -111,10 +128,65 @@ pub fn read_points(path: &Path, spacing: Option<[f64; 3]>) -> anyhow::Result<Vec
         }
         pts
     };
-    Ok(match spacing {
+    let pts: Vec<DVec3> = match spacing {
         Some(s) => raw.into_iter().map(|p| p * DVec3::from(s)).collect(),
         None => raw,
-    })
+    };
+    check_spread(path, &pts, spacing.is_some())?;
+    Ok(pts)
+}
+
+/// The landmarks must span a lung-sized region: points in metres span 0.3 "mm".
+fn check_spread(path: &Path, pts: &[DVec3], voxels: bool) -> anyhow::Result<()> {
+    use lung_model::plausible::LANDMARK_SPREAD_MM;
+    // Too few points to judge a spread (the fit refuses too few points itself).
+    if pts.len() < 4 {
+        return Ok(());
+    }
+    let (lo, hi) = pts.iter().fold(
+        (DVec3::splat(f64::MAX), DVec3::splat(f64::MIN)),
+        |(lo, hi), p| (lo.min(*p), hi.max(*p)),
+    );
+    let spread = (hi - lo).max_element();
+    let hint = if voxels {
+        Some("check --spacing (mm per voxel along x, y, z)".to_string())
+    } else if LANDMARK_SPREAD_MM.contains(spread * 1000.0) {
+        Some("the coordinates look like metres: convert them to mm (lungdyn reads mm)".into())
+    } else if LANDMARK_SPREAD_MM.contains(spread * 10.0) {
+        Some("the coordinates look like centimetres: convert them to mm (lungdyn reads mm)".into())
+    } else if spread < 1000.0 {
+        Some("voxel indices? pass --spacing sx,sy,sz".into())
+    } else {
+        None
+    };
+    LANDMARK_SPREAD_MM
+        .check(spread, hint)
+        .map_err(|e| anyhow::anyhow!("{}: {e}", path.display()))
+}
+
+/// Corresponding points must not move further than a lung can between two phases.
+fn check_motion(from: &[DVec3], to: &[DVec3], path: &Path) -> anyhow::Result<()> {
+    use lung_model::plausible::LANDMARK_MOTION_MM;
+    if let Some((i, d)) = from
+        .iter()
+        .zip(to)
+        .map(|(a, b)| a.distance(*b))
+        .enumerate()
+        .find(|(_, d)| !LANDMARK_MOTION_MM.contains(*d))
+    {
+        anyhow::bail!(
+            "{}: point {} moves {d:.1} mm from the reference phase; {}",
+            path.display(),
+            i + 1,
+            LANDMARK_MOTION_MM
+                .check(
+                    d,
+                    Some("are the two files in the same order, frame and unit?".into())
+                )
+                .unwrap_err()
+        );
+    }
+    Ok(())
 }
 
 fn is_mesh(p: &Path) -> bool {
@@ -161,8 +233,18 @@ fn sub_mesh(
 fn import_scaled(
     path: &Path,
     spacing: Option<[f64; 3]>,
+    input: &crate::input_args::InputArgs,
 ) -> anyhow::Result<lung_model::mesh::TriMesh> {
-    let mut m = lung_bake::import::import(path, lung_bake::import::Units::Mm)?.mesh;
+    let mut m = lung_bake::import::import_with(
+        path,
+        &lung_bake::import::ImportOptions {
+            units: lung_bake::import::Units::Mm,
+            limits: input.limits(lung_model::input::ReadLimits::MESH),
+            shells: lung_bake::import::Shells::All,
+            one_lung: false,
+        },
+    )?
+    .mesh;
     if let Some(s) = spacing {
         for p in &mut m.positions {
             for k in 0..3 {
@@ -221,7 +303,7 @@ fn run_surface(
                     p.display()
                 );
             }
-            let m = import_scaled(p, spacing)?;
+            let m = import_scaled(p, spacing, &args.input)?;
             if corresponding && (m.positions.len() != a.positions.len() || m.triangles != a.triangles) {
                 anyhow::bail!(
                     "{}: its vertices do not match {} (pass --surface to fit all phases as surfaces)",
@@ -372,8 +454,8 @@ pub fn run(args: &FitMotionArgs) -> anyhow::Result<MotionFit> {
         .map(|s| s.parse().map_err(anyhow::Error::msg))
         .transpose()?;
     if is_mesh(&args.from) && is_mesh(&args.to) {
-        let ma = import_scaled(&args.from, spacing)?;
-        let mb = import_scaled(&args.to, spacing)?;
+        let ma = import_scaled(&args.from, spacing, &args.input)?;
+        let mb = import_scaled(&args.to, spacing, &args.input)?;
         let same_vertices =
             ma.positions.len() == mb.positions.len() && ma.triangles == mb.triangles;
         return run_surface(
@@ -387,12 +469,21 @@ pub fn run(args: &FitMotionArgs) -> anyhow::Result<MotionFit> {
     } else if args.surface {
         anyhow::bail!("--surface needs two meshes (.obj, .ply, .stl) for --from and --to");
     }
-    let a = read_points(&args.from, spacing)?;
-    let b = read_points(&args.to, spacing)?;
+    let a = read_points(&args.from, spacing, &args.input)?;
+    let b = read_points(&args.to, spacing, &args.input)?;
+    if a.len() == b.len() {
+        check_motion(&a, &b, &args.to)?;
+    }
     let also = args
         .also
         .iter()
-        .map(|p| Ok((p.display().to_string(), read_points(p, spacing)?)))
+        .map(|p| {
+            let pts = read_points(p, spacing, &args.input)?;
+            if pts.len() == a.len() {
+                check_motion(&a, &pts, p)?;
+            }
+            Ok((p.display().to_string(), pts))
+        })
         .collect::<anyhow::Result<Vec<_>>>()?;
     let fit = motion_fit::fit(&a, &b, &also, side)?;
     if let Some(out) = &args.out {

@@ -60,14 +60,24 @@ pub struct SimulateArgs {
 /// Options of `lungdyn pv fit`.
 #[derive(Debug, Clone, clap::Args)]
 pub struct FitArgs {
-    /// Measured curve CSV with a header row: pressure (cmH2O) and volume columns, found by name
-    /// ("pressure"/"cmH2O"/"pes"/"paw", "volume"/"vol"), else the first two numeric columns;
-    /// optional `phase` column (inhale/exhale), else split at the sample of maximum volume.
+    /// Measured curve CSV with a header row: pressure and volume columns, found by name
+    /// ("pressure"/"pes"/"paw"/"ptp", "volume"/"vol"), else the first two numeric columns;
+    /// optional `phase` column (inhale/exhale), else split at the sample of maximum volume. Units
+    /// come from the header where it names them (pressure_kPa, Paw (mmHg), pressure_Pa, hPa, mbar,
+    /// cmH2O; volume_ml, volume (L), dL) and are converted to cmH2O and ml and reported; an
+    /// unnamed unit is cmH2O and ml. Every value is checked against human ranges.
     #[arg(long)]
     pub input: PathBuf,
-    /// Unit of the volume column.
-    #[arg(long, default_value = "ml", value_parser = ["ml", "l"])]
-    pub volume_unit: String,
+    /// Unit of the volume column when the header does not name one (a header that names another
+    /// unit is an error).
+    #[arg(long, value_parser = ["ml", "l"])]
+    pub volume_unit: Option<String>,
+    /// The volume column holds changes above FRC: add this FRC (ml) to every volume.
+    #[arg(long, value_name = "ML")]
+    pub frc: Option<f64>,
+    /// Input size limit and special files.
+    #[command(flatten)]
+    pub input_args: crate::input_args::InputArgs,
     /// Fix q (else the fit chooses it).
     #[arg(long)]
     pub q: Option<f64>,
@@ -175,16 +185,9 @@ pub fn simulate_constants(
     boundary.frc_ml = a.frc.unwrap_or(boundary.frc_ml);
     boundary.tv_ml = a.tv.unwrap_or(boundary.tv_ml);
     boundary.tp_cmh2o = a.tp.unwrap_or(boundary.tp_cmh2o);
-    if !(boundary.frc_ml.is_finite()
-        && boundary.tv_ml.is_finite()
-        && boundary.frc_ml > 0.0
-        && boundary.tv_ml > 0.0)
-    {
-        anyhow::bail!("--frc and --tv must be positive numbers of ml");
-    }
-    if !boundary.tp_cmh2o.is_finite() {
-        anyhow::bail!("--tp must be a finite pressure");
-    }
+    boundary
+        .check_plausible()
+        .map_err(|e| anyhow::anyhow!("--frc/--tv/--tp: {e}"))?;
     Ok((inhale, exhale, boundary, name))
 }
 
@@ -325,7 +328,8 @@ struct FitJson {
     exhale: PhaseJson,
     boundary: Boundary,
     driving_pressure_sign: f64,
-    volume_unit_assumed: String,
+    volume_unit: lung_bake::pv::curve::ColumnUnit,
+    pressure_unit: lung_bake::pv::curve::ColumnUnit,
     q_chosen_by_fit: bool,
     c_chosen_by_fit: bool,
     seconds: f64,
@@ -334,17 +338,47 @@ struct FitJson {
 }
 
 fn fit(a: &FitArgs) -> anyhow::Result<()> {
-    let unit: VolumeUnit = a.volume_unit.parse().map_err(anyhow::Error::msg)?;
-    let curve = read_curve(&a.input, unit)?;
-    let max_v = curve
-        .samples
-        .iter()
-        .map(|s| s.volume)
-        .fold(f64::NEG_INFINITY, f64::max);
-    if unit == VolumeUnit::Ml && max_v < 20.0 {
-        eprintln!(
-            "lungdyn: note: volumes are read as ml (--volume-unit ml); the largest is {max_v}, which looks like litres: pass --volume-unit l if so"
-        );
+    let unit: Option<VolumeUnit> = a
+        .volume_unit
+        .as_deref()
+        .map(str::parse)
+        .transpose()
+        .map_err(anyhow::Error::msg)?;
+    if let Some(frc) = a.frc {
+        lung_model::plausible::FRC_ML.check(frc, Some("--frc is the FRC in ml".into()))?;
+    }
+    let curve = read_curve(
+        &a.input,
+        &lung_bake::pv::curve::CurveOptions {
+            volume_unit: unit,
+            frc_ml: a.frc,
+            limits: a.input_args.limits(lung_model::input::ReadLimits::TABLE),
+        },
+    )?;
+    if !a.json {
+        for (col, what, u, to) in [
+            (
+                &curve.pressure_column,
+                "pressure",
+                curve.pressure_unit,
+                "cmH2O",
+            ),
+            (&curve.volume_column, "volume", curve.volume_unit, "ml"),
+        ] {
+            if u.factor != 1.0 {
+                eprintln!(
+                    "lungdyn: {what} column {col:?} is in {} ({}): converted to {to} (x{})",
+                    u.name, u.from, u.factor
+                );
+            } else if u.from == "default" {
+                eprintln!(
+                    "lungdyn: {what} column {col:?} names no unit: read as {to} (name it in the header to be sure)"
+                );
+            }
+        }
+        if let Some(frc) = curve.frc_added_ml {
+            eprintln!("lungdyn: volumes are changes above FRC: {frc} ml added to each");
+        }
     }
     let opts = FitOptions {
         q: a.q,
@@ -354,16 +388,19 @@ fn fit(a: &FitArgs) -> anyhow::Result<()> {
     };
     if !a.json {
         eprintln!(
-            "lungdyn: fitting {} samples ({} vs {}; volume in {}) ...",
+            "lungdyn: fitting {} samples ({} vs {}) ...",
             curve.samples.len(),
             curve.pressure_column,
             curve.volume_column,
-            a.volume_unit
         );
     }
     let start = std::time::Instant::now();
     let fit = fit_curve(&curve.samples, &opts)
         .map_err(|e| anyhow::anyhow!("{}: {e}", a.input.display()))?;
+    // What is written must be usable and plausible (the scene loader checks it again).
+    fit.boundary
+        .check_plausible()
+        .map_err(|e| anyhow::anyhow!("{}: the fitted boundary values: {e}", a.input.display()))?;
     let seconds = start.elapsed().as_secs_f64();
     if let Some(out) = &a.out {
         PvConstantsFile {
@@ -386,7 +423,8 @@ fn fit(a: &FitArgs) -> anyhow::Result<()> {
         exhale: (&fit.exhale).into(),
         boundary: fit.boundary,
         driving_pressure_sign: fit.driving_pressure_sign,
-        volume_unit_assumed: a.volume_unit.clone(),
+        volume_unit: curve.volume_unit,
+        pressure_unit: curve.pressure_unit,
         q_chosen_by_fit: a.q.is_none(),
         c_chosen_by_fit: a.c.is_none(),
         seconds,

@@ -1,4 +1,13 @@
-//! The latency harness: per-hop and end-to-end histograms from the renderer's frame reports.
+//! The latency harness: per-hop and end-to-end histograms from the renderer's frame reports, and the
+//! latency of every tracker sample on the schedule.
+//!
+//! Measuring only the frames that were drawn hides a stall (coordinated omission): a renderer frozen
+//! for two seconds draws no frame, so no frame reports a large latency, and the first frame after the
+//! freeze shows fresh data with a small one. The schedule view fixes that: the tracker samples at a
+//! fixed rate, and every sample — drawn or not — has a latency: the time from its capture until the
+//! first frame showing it *or newer data* was submitted. A report covering tracker frames
+//! `last+1 ..= n` settles all of them at once (the earlier ones' capture times follow from the
+//! schedule), so a 2-second freeze shows as ~120 samples over the deadline and a 2-second worst case.
 
 use hdrhistogram::Histogram;
 use ipc_types::{report_flags, FrameReport};
@@ -21,6 +30,16 @@ pub const HOPS: [(&str, usize, usize); 6] = [
 pub struct LatencyStats {
     hops: Vec<Histogram<u64>>,
     gpu: Histogram<u64>,
+    samples: Histogram<u64>,
+    period_ns: u64,
+    last_tracker: Option<(u64, u64)>,
+    last_submit: Option<u64>,
+    /// Tracker samples settled (each with its latency against the schedule).
+    pub tracker_samples: u64,
+    /// Tracker samples first shown more than [`DEADLINE_NS`] after their capture, drawn or not.
+    pub sample_deadline_misses: u64,
+    /// Display slots (one per period) in which no frame was submitted at all.
+    pub missed_frame_slots: u64,
     /// Frames recorded.
     pub frames: u64,
     /// Frames whose end-to-end latency exceeded [`DEADLINE_NS`].
@@ -47,17 +66,32 @@ impl Default for LatencyStats {
     }
 }
 
+/// The tracker's sample period the schedule assumes (60 Hz).
+pub const SCHEDULE_PERIOD_NS: u64 = DEADLINE_NS;
+
 fn histogram() -> Histogram<u64> {
     // 1 ns .. 60 s at 3 significant digits.
     Histogram::new_with_bounds(1, 60_000_000_000, 3).expect("static bounds are valid")
 }
 
 impl LatencyStats {
-    /// Empty statistics.
+    /// Empty statistics, on the 60 Hz schedule.
     pub fn new() -> Self {
+        Self::with_period(SCHEDULE_PERIOD_NS)
+    }
+
+    /// Empty statistics for a tracker sampling every `period_ns`.
+    pub fn with_period(period_ns: u64) -> Self {
         Self {
             hops: HOPS.iter().map(|_| histogram()).collect(),
             gpu: histogram(),
+            samples: histogram(),
+            period_ns: period_ns.max(1),
+            last_tracker: None,
+            last_submit: None,
+            tracker_samples: 0,
+            sample_deadline_misses: 0,
+            missed_frame_slots: 0,
             frames: 0,
             deadline_misses: 0,
             stale_frames: 0,
@@ -98,6 +132,11 @@ impl LatencyStats {
         for (h, &(_, a, b)) in self.hops.iter_mut().zip(HOPS.iter()) {
             let _ = h.record((s[b] - s[a]).max(1));
         }
+        self.settle_samples(
+            r.tracker_frame,
+            r.stamps.capture_ns,
+            r.stamps.renderer_submit_ns,
+        );
         if s[5] - s[0] > DEADLINE_NS {
             self.deadline_misses += 1;
         }
@@ -106,6 +145,41 @@ impl LatencyStats {
         }
         let v = r.volume_ml[0] + r.volume_ml[1];
         self.volume_range = (self.volume_range.0.min(v), self.volume_range.1.max(v));
+    }
+
+    /// The schedule view: tracker samples `last+1 ..= frame` are first shown by this submit.
+    fn settle_samples(&mut self, frame: u64, capture_ns: u64, submit_ns: u64) {
+        if let Some(prev) = self.last_submit {
+            // Display slots that passed without any frame.
+            let gap = submit_ns.saturating_sub(prev);
+            if gap > self.period_ns + self.period_ns / 2 {
+                self.missed_frame_slots += (gap - self.period_ns / 2) / self.period_ns;
+            }
+        }
+        self.last_submit = Some(self.last_submit.map_or(submit_ns, |p| p.max(submit_ns)));
+        let first_new = match self.last_tracker {
+            Some((last, _)) if frame <= last => return,
+            Some((last, _)) => last + 1,
+            None => frame,
+        };
+        for n in first_new..=frame {
+            let captured = capture_ns.saturating_sub((frame - n).saturating_mul(self.period_ns));
+            let latency = submit_ns.saturating_sub(captured).max(1);
+            let _ = self.samples.record(latency);
+            self.tracker_samples += 1;
+            if latency > DEADLINE_NS {
+                self.sample_deadline_misses += 1;
+            }
+        }
+        self.last_tracker = Some((frame, capture_ns));
+    }
+
+    /// Latency of every tracker sample against the schedule (drawn or not).
+    pub fn sample_latency(&self) -> HopRow {
+        HopRow::from_histogram(
+            "tracker sample -> first frame showing it (schedule, drawn or not)",
+            &self.samples,
+        )
     }
 
     /// Summary rows (ms).
@@ -120,6 +194,9 @@ impl LatencyStats {
                 "GPU time per frame (timestamp queries)",
                 &self.gpu,
             ));
+        }
+        if !self.samples.is_empty() {
+            rows.push(self.sample_latency());
         }
         rows
     }
@@ -208,5 +285,64 @@ mod tests {
         bad.stamps.engine_receive_ns = 0;
         s.record(&bad);
         assert_eq!(s.bad_stamps, 1);
+    }
+
+    /// A report of tracker sample `n` captured at `n·P`, drawn `e2e` later.
+    fn on_schedule(frame: u64, n: u64, e2e: u64) -> FrameReport {
+        let p = SCHEDULE_PERIOD_NS;
+        let c = 1_000_000_000 + n * p;
+        FrameReport {
+            frame,
+            engine_tick: n,
+            tracker_frame: n,
+            stamps: HopStamps {
+                capture_ns: c,
+                bridge_publish_ns: c + 10,
+                engine_receive_ns: c + 20,
+                engine_publish_ns: c + 30,
+                renderer_receive_ns: c + 40,
+                renderer_submit_ns: c + e2e,
+            },
+            volume_ml: [1300.0, 1100.0],
+            ..Default::default()
+        }
+    }
+
+    /// A renderer frozen for two seconds draws nothing and then fresh data: per drawn frame nothing
+    /// looks wrong, against the schedule ~120 samples are late and the worst waited ~2 s.
+    #[test]
+    fn a_two_second_stall_shows_as_missed_deadlines_and_a_two_second_worst_case() {
+        let mut s = LatencyStats::new();
+        let mut frame = 0;
+        for n in 1..=60 {
+            frame += 1;
+            s.record(&on_schedule(frame, n, 1_000_000));
+        }
+        // Frozen: samples 61..=180 are never drawn; the next frame shows sample 181, 1 ms old.
+        for n in 181..=240 {
+            frame += 1;
+            s.record(&on_schedule(frame, n, 1_000_000));
+        }
+        assert_eq!(s.deadline_misses, 0, "every drawn frame was on time");
+        assert!((s.end_to_end().max_ms - 1.0).abs() < 0.01);
+        assert_eq!(s.tracker_samples, 240);
+        assert_eq!(
+            s.sample_deadline_misses, 120,
+            "samples 61..=180 waited > 16.7 ms"
+        );
+        let worst = s.sample_latency().max_ms;
+        assert!((1990.0..=2010.0).contains(&worst), "{worst}");
+        assert_eq!(s.missed_frame_slots, 120);
+    }
+
+    #[test]
+    fn on_schedule_nothing_is_missed() {
+        let mut s = LatencyStats::new();
+        for n in 1..=600 {
+            s.record(&on_schedule(n, n, 3_000_000));
+        }
+        assert_eq!((s.sample_deadline_misses, s.missed_frame_slots), (0, 0));
+        assert_eq!(s.tracker_samples, 600);
+        assert!((s.sample_latency().max_ms - 3.0).abs() < 0.01);
     }
 }

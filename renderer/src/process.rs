@@ -161,6 +161,7 @@ pub struct Session {
     /// The lungs' GPU state and offscreen target.
     pub renderer: LungRenderer,
     instance: String,
+    lock: Option<transport::instance::InstanceLock>,
     node: Option<IoxNode>,
     ports: Ports,
     clock: Box<dyn Clock>,
@@ -194,6 +195,7 @@ impl Session {
     pub fn new(args: &RendererArgs, gpu: Gpu) -> Result<Self, RendererError> {
         let run_ns = args.process.run_ns()?;
         let instance = Instance::new(&args.process.instance)?;
+        let lock = instance.lock("renderer")?;
         pin_to_core(args.process.cpu, "renderer")?;
         let scene = Scene::load_or_default(args.process.scene.as_deref())?;
         let mut snapshots = Snapshots {
@@ -230,6 +232,7 @@ impl Session {
         );
         session.stop_at = run_ns.map(|d| session.clock.now_ns().saturating_add(d));
         session.node = Some(node);
+        session.lock = Some(lock);
         let (w, h) = session.renderer.image_size();
         eprintln!(
             "renderer[{}]: {} vertices, {}x{} {:?}{} on {}; waiting for engine frames on {:?}",
@@ -270,6 +273,7 @@ impl Session {
             gpu,
             renderer,
             instance: instance.to_string(),
+            lock: None,
             node: None,
             ports,
             pacer: Pacer::new(PacerConfig::for_period(period_ns), start),

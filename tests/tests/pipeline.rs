@@ -74,6 +74,17 @@ struct Run {
 }
 
 fn run(tag: &str, engine_scene: &str, renderer_scene: &str, seconds: u64) -> Option<Run> {
+    run_with(tag, engine_scene, renderer_scene, seconds, |_| {})
+}
+
+/// [`run`], calling `during(renderer_pid)` once the first frame has arrived.
+fn run_with(
+    tag: &str,
+    engine_scene: &str,
+    renderer_scene: &str,
+    seconds: u64,
+    during: impl FnOnce(u32),
+) -> Option<Run> {
     renderer::gpu::Gpu::for_tests()?;
     let instance = unique_instance(tag);
     let services = Instance::new(&instance).unwrap();
@@ -85,12 +96,19 @@ fn run(tag: &str, engine_scene: &str, renderer_scene: &str, seconds: u64) -> Opt
     let mut reports: Vec<FrameReport> = Vec::new();
     let start = now_ns();
     let mut first: Option<u64> = None;
+    let mut during = Some(during);
     while now_ns() - start < 60_000_000_000 {
         inlet
             .drain(&mut |r: &FrameReport| reports.push(*r))
             .unwrap();
         if first.is_none() && !reports.is_empty() {
             first = Some(now_ns());
+            if let Some(f) = during.take() {
+                f(renderer.id());
+                inlet
+                    .drain(&mut |r: &FrameReport| reports.push(*r))
+                    .unwrap();
+            }
         }
         if first.is_some_and(|t| now_ns() - t > seconds * 1_000_000_000) {
             break;
@@ -237,6 +255,101 @@ fn a_renderer_with_other_kernels_flags_every_frame_and_says_why() {
         mismatched, flagged,
         "the renderer's count matches the flagged reports"
     );
+}
+
+/// A renderer frozen for two seconds (SIGSTOP) draws nothing meanwhile; measured only on drawn
+/// frames that is invisible. Against the schedule it must show as ~120 late tracker samples and a
+/// worst case of about two seconds.
+#[test]
+fn a_frozen_renderer_shows_as_missed_deadlines_not_as_nothing() {
+    let scene = prepared_scene(
+        "freeze",
+        "[lungs]\nvertices = 1000\n[render]\nwidth = 160\nheight = 120\n",
+    );
+    let scene = scene.to_str().unwrap();
+    let Some(r) = run_with("freeze", scene, scene, 1, |pid| {
+        std::thread::sleep(Duration::from_millis(300));
+        // SAFETY: signalling our own child.
+        unsafe { libc::kill(pid as libc::pid_t, libc::SIGSTOP) };
+        std::thread::sleep(Duration::from_secs(2));
+        unsafe { libc::kill(pid as libc::pid_t, libc::SIGCONT) };
+    }) else {
+        return;
+    };
+    let mut stats = lungdyn::stats::LatencyStats::new();
+    for rep in &r.reports {
+        stats.record(rep);
+    }
+    let worst = stats.sample_latency().max_ms;
+    assert!(
+        stats.sample_deadline_misses >= 100,
+        "{} late samples, worst {worst} ms",
+        stats.sample_deadline_misses
+    );
+    assert!((1800.0..4000.0).contains(&worst), "worst {worst} ms");
+    assert!(
+        stats.missed_frame_slots >= 100,
+        "{}",
+        stats.missed_frame_slots
+    );
+}
+
+#[test]
+fn a_second_run_with_the_same_instance_is_refused_and_touches_nothing() {
+    let instance = unique_instance("twice");
+    let scene = prepared_scene("twice", "[lungs]\nvertices = 1000\n");
+    let mut first = Command::new(bin("engine"))
+        .args(["--instance", &instance, "--seconds", "20", "--scene"])
+        .arg(&scene)
+        .stderr(Stdio::piped())
+        .spawn()
+        .unwrap();
+    // Wait until the first one is up (it prints its waiting line).
+    std::thread::sleep(Duration::from_millis(1500));
+    let out = Command::new(bin("engine"))
+        .args(["--instance", &instance, "--seconds", "1", "--scene"])
+        .arg(&scene)
+        .output()
+        .unwrap();
+    let err = String::from_utf8_lossy(&out.stderr);
+    assert!(!out.status.success(), "{err}");
+    assert!(
+        err.contains("is already running") && err.contains(&format!("process {}", first.id())),
+        "{err}"
+    );
+    // The first is unharmed: its streams still exist and it stops cleanly.
+    let services = Instance::new(&instance).unwrap();
+    assert!(
+        !services.leftovers().is_empty(),
+        "the first run's shared memory is still there"
+    );
+    let first_err = interrupt_and_wait("engine", &mut first);
+    assert!(first_err.contains("stopped after"), "{first_err}");
+    assert!(services.remove_leftovers().unexpected.is_empty());
+    // Two launchers: while one holds the instance (here: this test), a demo with the same name is
+    // refused before it bakes, writes or removes anything.
+    let held = services.lock("launcher").unwrap();
+    let out_dir = std::env::temp_dir().join(format!("{instance}-out"));
+    let (ok, _, err) = lungdyn_tests::lungdyn(&[
+        "demo",
+        "--instance",
+        &instance,
+        "--seconds",
+        "1",
+        "--out",
+        out_dir.to_str().unwrap(),
+    ]);
+    assert!(!ok && err.contains("is already running"), "{err}");
+    assert!(
+        err.contains(&format!("process {}", std::process::id())),
+        "{err}"
+    );
+    assert!(
+        !out_dir.exists(),
+        "the refused demo wrote {}",
+        out_dir.display()
+    );
+    drop(held);
 }
 
 #[test]

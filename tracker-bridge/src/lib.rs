@@ -73,6 +73,7 @@ pub fn run(args: &BridgeArgs) -> Result<(), BridgeError> {
     }
     let run_ns = run_ns(args.seconds)?;
     let instance = Instance::new(&args.instance)?;
+    let _lock = instance.lock("tracker-bridge")?;
     pin_to_core(args.cpu, "tracker-bridge")?;
     let source = synthetic::Synthetic {
         rate_hz: args.rate_hz,

@@ -107,6 +107,7 @@ pub fn run(args: &EngineArgs) -> Result<(), EngineError> {
     let args = &args.process;
     let run_ns = args.run_ns()?;
     let instance = Instance::new(&args.instance)?;
+    let _lock = instance.lock("engine")?;
     pin_to_core(args.cpu, "engine")?;
     let scene = Scene::load_or_default(args.scene.as_deref())?;
     let mut core = EngineCore::new(&scene)?;
