@@ -77,8 +77,14 @@ pub fn bake(
         .collect();
     let elastostatic = transfer.elastostatic(&force);
     let hash = mesh_hash(&mesh);
-    let (model, directions, force_scale) =
-        LungModel::from_force(side, mesh, &settings.motion, &elastostatic)?;
+    let (model, directions, force_scale) = match &settings.direction_field {
+        // A field fitted to the patient's landmarks gives the directions (EQUATIONS §2.4, lungdyn).
+        Some(field) => {
+            let dirs = LungModel::field_directions(&mesh, field);
+            LungModel::from_force_and_directions(side, mesh, dirs, &elastostatic)?
+        }
+        None => LungModel::from_force(side, mesh, &settings.motion, &elastostatic)?,
+    };
     let meta = KernelMeta {
         side,
         units: "mm".into(),
@@ -87,7 +93,7 @@ pub fn bake(
         spring_nodes: graph.spring_count() as u64,
         nnz: transfer.nnz() as u64,
         mesh_hash: format!("{hash:016x}"),
-        settings: *settings,
+        settings: settings.clone(),
         transfer: transfer.stats,
         unit_volume_ml: UNIT_VOLUME_ML,
         force_scale,

@@ -9,6 +9,9 @@
 //! * [`operator`] — the node graph (eq. 6.7) and the pitcher–catcher pass (eq. 6.11–6.13);
 //! * [`kernel`] — the whole of seed ch. 6 for one lung, written as a kernel file;
 //! * [`motion_fit`] and [`surface_fit`] — the motion constants from landmarks or surfaces (§6.4.2);
+//!   [`motion_models`] — the power law, polynomial and thin-plate fields compared on held-out
+//!   landmarks, with the complexity chosen by inner cross-validation; [`landmarks`] — reading points
+//!   in a stated coordinate frame (body, LPS, RAS, voxel indices, DIR-Lab files);
 //! * [`pv`] — reading measured PV curves and fitting eq. 5.11 to them (§5.3.5);
 //! * [`lsq`] — the least-squares wrapper both fits use.
 
@@ -17,8 +20,10 @@
 
 pub mod import;
 pub mod kernel;
+pub mod landmarks;
 pub mod lsq;
 pub mod motion_fit;
+pub mod motion_models;
 pub mod operator;
 pub mod pv;
 pub mod surface_checks;

@@ -34,6 +34,14 @@ use lung_model::mesh::Side;
 /// Errors of the motion fit.
 #[derive(Debug, Clone, PartialEq, Error)]
 pub enum MotionFitError {
+    /// A model's equations have no unique solution (too few points for its complexity).
+    #[error(
+        "the {lung} lung's landmarks do not determine the model (too few, or all in one plane)"
+    )]
+    Singular {
+        /// Lung.
+        lung: &'static str,
+    },
     /// The point sets differ in length.
     #[error("{what} has {got} points but the reference has {expected}: the sets must correspond point by point")]
     Count {

@@ -89,10 +89,15 @@ pub mod section {
 }
 
 /// What a bake needs besides the mesh.
-#[derive(Debug, Clone, Copy, PartialEq, Serialize, Deserialize)]
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
 pub struct BakeSettings {
     /// Direction and applied-force constants `c1..c9` (Table 6.1 by default).
     pub motion: MotionConstants,
+    /// A displacement field fitted to the patient's landmarks (`lungdyn fit-motion`): when present,
+    /// it gives each vertex's direction `d_i` instead of eq. 6.14–6.16 (the applied force and the
+    /// operator are unchanged).
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub direction_field: Option<crate::deform::field::Field>,
     /// Regional elasticity.
     pub elasticity: Elasticity,
     /// Pitcher tolerance for a unit force.
@@ -107,6 +112,7 @@ impl BakeSettings {
     pub fn default_for(side: Side) -> Self {
         Self {
             motion: MotionConstants::table_6_1(side),
+            direction_field: None,
             elasticity: Elasticity::default(),
             tolerance: DEFAULT_TOLERANCE,
         }

@@ -490,12 +490,16 @@ impl Scene {
         &self,
         side: Side,
     ) -> Result<crate::kernel::BakeSettings, crate::deform::MotionFileError> {
-        let motion = match &self.lungs.motion {
-            Some(path) => crate::deform::MotionFile::load(path)?.for_side(side),
-            None => crate::deform::MotionConstants::table_6_1(side),
+        let (motion, direction_field) = match &self.lungs.motion {
+            Some(path) => {
+                let f = crate::deform::MotionFile::load(path)?;
+                (f.for_side(side), f.field_for_side(side).cloned())
+            }
+            None => (crate::deform::MotionConstants::table_6_1(side), None),
         };
         Ok(crate::kernel::BakeSettings {
             motion,
+            direction_field,
             elasticity: self.lungs.elasticity,
             tolerance: self.lungs.transfer_tolerance,
         })

@@ -21,6 +21,8 @@
 //! tracks the PV volume exactly while the per-vertex work stays "3 additions per node" (one
 //! multiply-add per coordinate) on the GPU.
 
+pub mod field;
+
 use glam::DVec3;
 use thiserror::Error;
 
@@ -47,11 +49,13 @@ impl MotionConstants {
     }
 }
 
-/// Motion constants of both lungs as written by `lungdyn fit-motion` (TOML, `format = 1`).
+/// Motion constants of both lungs as written by `lungdyn fit-motion` (TOML). Format 1: `c1..c9` per
+/// lung. Format 2 adds, per lung, the displacement field the fit chose by cross-validation
+/// (`[left_field]`, `[right_field]`: see [`field::Field`]) and what it was fitted from.
 #[derive(Debug, Clone, PartialEq, serde::Serialize, serde::Deserialize)]
 #[serde(deny_unknown_fields)]
 pub struct MotionFile {
-    /// File format version (1).
+    /// File format version (1 or 2).
     pub format: u32,
     /// Left lung `c1..c9`; Table 6.1 when absent.
     #[serde(skip_serializing_if = "Option::is_none")]
@@ -59,6 +63,21 @@ pub struct MotionFile {
     /// Right lung `c1..c9`; Table 6.1 when absent.
     #[serde(skip_serializing_if = "Option::is_none")]
     pub right: Option<MotionConstants>,
+    /// Format 2: the frame the landmarks were read in (information).
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub frame: Option<String>,
+    /// Format 2: the model chosen and its cross-validated mean error, mm (information).
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub chosen: Option<String>,
+    /// Format 2: cross-validated mean landmark error of the chosen model, mm.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub cv_mean_error_mm: Option<f64>,
+    /// Format 2: the left lung's displacement field (the kernel's directions).
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub left_field: Option<field::Field>,
+    /// Format 2: the right lung's displacement field.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub right_field: Option<field::Field>,
 }
 
 impl MotionFile {
@@ -71,11 +90,20 @@ impl MotionFile {
             path: path_buf(),
             message: e.to_string(),
         })?;
-        if f.format != 1 {
+        if !(1..=2).contains(&f.format) {
             return Err(MotionFileError::Format {
                 path: path_buf(),
                 found: f.format,
             });
+        }
+        for (side, field) in [("left", &f.left_field), ("right", &f.right_field)] {
+            if let Some(field) = field {
+                field.validate().map_err(|reason| MotionFileError::Field {
+                    path: path_buf(),
+                    side,
+                    reason,
+                })?;
+            }
         }
         for (side, k) in [("left", &f.left), ("right", &f.right)] {
             if let Some(k) = k {
@@ -87,6 +115,14 @@ impl MotionFile {
             }
         }
         Ok(f)
+    }
+
+    /// The displacement field of `side`, if the file has one (format 2).
+    pub fn field_for_side(&self, side: Side) -> Option<&field::Field> {
+        match side {
+            Side::Left => self.left_field.as_ref(),
+            Side::Right => self.right_field.as_ref(),
+        }
     }
 
     /// Constants of `side` (Table 6.1 when the file has none).
@@ -117,12 +153,22 @@ pub enum MotionFileError {
         message: String,
     },
     /// Another format version.
-    #[error("{}: motion constants format {found} (this lungdyn reads 1)", path.display())]
+    #[error("{}: motion constants format {found} (this lungdyn reads 1 and 2)", path.display())]
     Format {
         /// Path.
         path: std::path::PathBuf,
         /// Format in the file.
         found: u32,
+    },
+    /// A lung's field is unusable.
+    #[error("{}: {side}_field: {reason}", path.display())]
+    Field {
+        /// Path.
+        path: std::path::PathBuf,
+        /// "left" or "right".
+        side: &'static str,
+        /// What is wrong.
+        reason: &'static str,
     },
     /// A lung's constants are unusable.
     #[error("{}: {side} lung", path.display())]
@@ -335,6 +381,40 @@ impl LungModel {
             .iter()
             .map(|&p| direction(normalised_position(p, &bb, side), k, side))
             .collect();
+        Self::from_force_and_directions(side, mesh, dirs, force)
+    }
+
+    /// Directions from a fitted displacement field (normalised per vertex; the mesh's box is
+    /// mapped onto the field's landmark box) instead of eq. 6.14–6.16.
+    pub fn field_directions(mesh: &TriMesh, field: &field::Field) -> Vec<DVec3> {
+        let bb = mesh.aabb();
+        let (lo, hi) = (
+            DVec3::from(bb.min.map(|v| v as f64)),
+            DVec3::from(bb.max.map(|v| v as f64)),
+        );
+        mesh.positions
+            .iter()
+            .map(|&p| {
+                let d = field.displacement_in_box(DVec3::from(p.map(|v| v as f64)), lo, hi);
+                let len = d.length();
+                if len > 1e-300 && len.is_finite() {
+                    d / len
+                } else {
+                    DVec3::ZERO
+                }
+            })
+            .collect()
+    }
+
+    /// The model whose unit displacement is `F[i]·d_i` for given unit directions `dirs`, scaled so the
+    /// enclosed volume grows by exactly [`UNIT_VOLUME_ML`]. Returns the model, the directions and the
+    /// scale applied to `F`.
+    pub fn from_force_and_directions(
+        side: Side,
+        mesh: TriMesh,
+        dirs: Vec<DVec3>,
+        force: &[f64],
+    ) -> Result<(Self, Vec<[f32; 3]>, f64), DeformError> {
         let raw: Vec<DVec3> = dirs.iter().zip(force).map(|(d, f)| *d * *f).collect();
         let cubic = VolumeCubic::of(&mesh, &raw);
         if !(cubic.coeffs[1] > 0.0) {
