@@ -110,7 +110,9 @@ pub fn bake(args: &BakeArgs) -> anyhow::Result<BakeSummary> {
     let scene = lung_model::scene::Scene::load_or_default(args.scene.as_deref())?;
     let mut settings = scene.bake_settings(side)?;
     if let Some(m) = &args.motion {
-        settings.motion = lung_model::deform::MotionFile::load(m)?.for_side(side);
+        let f = lung_model::deform::MotionFile::load(m)?;
+        settings.motion = f.for_side(side);
+        settings.direction_field = f.field_for_side(side).cloned();
     }
     if let Some(t) = args.tolerance {
         if !(t.is_finite() && (1e-9..=0.5).contains(&t)) {

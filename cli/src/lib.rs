@@ -11,6 +11,7 @@ pub mod input_args;
 pub mod kernel_plot;
 pub mod mesh_cmd;
 pub mod motion_cmd;
+pub mod motion_plot;
 pub mod plot;
 pub mod prepare;
 pub mod pv_cmd;

@@ -29,8 +29,9 @@ enum Command {
     /// Bake a lung mesh into a kernel: spring nodes, elasticity, every Green's-function transfer
     /// row (pitcher-catcher, in parallel), directions and the unit displacement.
     Bake(lungdyn::bake_cmd::BakeArgs),
-    /// Fit the direction model's c1..c6 to corresponding points (landmarks or meshes) of two or
-    /// more breathing phases; reports the residual error in mm beside the no-motion baseline.
+    /// Fit the motion between breathing phases: landmarks (in a stated frame: body, LPS, RAS, voxel,
+    /// DIR-Lab) by every model with in-sample and cross-validated errors beside the no-motion
+    /// baseline, or two meshes by the kernel's own model; writes what `bake --motion` uses.
     FitMotion(lungdyn::motion_cmd::FitMotionArgs),
     /// Kernel files.
     #[command(subcommand)]

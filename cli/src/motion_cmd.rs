@@ -4,37 +4,68 @@ use std::path::{Path, PathBuf};
 
 use anyhow::Context;
 use glam::DVec3;
+use lung_bake::landmarks::{Frame, VoxelAxes};
 use lung_bake::motion_fit::{self, MotionFit};
+use lung_bake::motion_models::{self, ModelKind, ModelReport, PhaseReport};
 use lung_model::deform::MotionFile;
 use lung_model::mesh::Side;
+use serde::Serialize;
 
 /// Options of `lungdyn fit-motion`.
 #[derive(Debug, Clone, clap::Args)]
 #[command(
-    after_help = "Point files: one `x y z` per line (whitespace-separated; blank lines and \
-lines starting with # are skipped), the same points in the same order in every file. Coordinates \
-are in the body frame: +X patient left, +Y anterior, +Z superior; millimetres, or voxel indices \
-with --spacing. A mesh (.obj, .ply, .stl) stands for its vertices; two meshes of one lung must \
-share their vertex order. Sets covering both lungs are split at the mid-sagittal gap (the lung at \
-larger X is the left one).\n\nExample: lungdyn fit-motion --from exhale.txt --to mid.txt --also \
-inhale.txt --spacing 0.97,0.97,2.5 --out motion.toml"
+    after_help = "Point files: one `x y z` per line (spaces, tabs or commas; CRLF, blank lines and \
+lines starting with # are skipped), the same points in the same order in every file. State the frame: \
+--frame body (mm; +X patient left, +Y anterior, +Z superior; the default), lps (DICOM/ITK mm), ras \
+(3D Slicer mm), or voxel (indices, with --spacing, --voxel-axes and --index-base). --format dirlab \
+reads DIR-Lab landmark files: voxel indices, 1-based, axes R>L,A>P,S>I (slice 1 at the head). A mesh \
+(.obj, .ply, .stl) stands for its vertices; two meshes of one lung must share their vertex order. \
+Sets covering both lungs are split at the mid-sagittal gap (the lung at larger X is the left one).\n\n\
+Landmarks: every model (the seed's power law, an affine field, a polynomial, a thin-plate spline \
+'rbf') is fitted and cross-validated: in-sample and k-fold held-out errors are printed beside the \
+no-motion baseline and the best by held-out error is chosen (--model picks one). The frame is checked \
+against what breathing does (the base moves most, downwards on inspiration) and a disagreement is \
+said loudly.\n\nExample (DIR-Lab case 1): lungdyn fit-motion --format dirlab --spacing 0.97,0.97,2.5 \
+--from Case1_300_T50_xyz.txt --to Case1_300_T00_xyz.txt --out motion.toml --plot fit.png"
 )]
 pub struct FitMotionArgs {
-    /// Points (or mesh) at the reference phase, e.g. end-exhalation.
+    /// Points (or mesh) at the reference phase: end-exhalation (FRC).
     #[arg(long)]
     pub from: PathBuf,
-    /// The same points at the phase to fit.
+    /// The same points at the phase to fit (e.g. end-inhalation).
     #[arg(long)]
     pub to: PathBuf,
-    /// Further phases checked with one volume scale each (comma-separated files).
+    /// Further phases predicted from the fitted field with one scale each (comma-separated files).
     #[arg(long, value_delimiter = ',')]
     pub also: Vec<PathBuf>,
-    /// Voxel spacing in mm (sx,sy,sz): the files hold voxel indices.
+    /// Coordinate frame of the files: body, lps, ras or voxel.
+    #[arg(long, value_parser = ["body", "lps", "ras", "voxel"])]
+    pub frame: Option<String>,
+    /// File format preset: `dirlab` = voxel indices, 1-based, axes R>L,A>P,S>I (needs --spacing).
+    #[arg(long, value_parser = ["plain", "dirlab"], default_value = "plain")]
+    pub format: String,
+    /// Voxel size in mm along the file's three index axes (sx,sy,sz): with --frame voxel or --format dirlab.
     #[arg(long, value_delimiter = ',')]
     pub spacing: Vec<f64>,
+    /// How the voxel indices run, e.g. R>L,A>P,S>I (the index grows from the first letter to the second).
+    #[arg(long)]
+    pub voxel_axes: Option<String>,
+    /// First voxel index: 0 or 1.
+    #[arg(long, value_parser = clap::value_parser!(u8).range(0..=1))]
+    pub index_base: Option<u8>,
     /// Which lung, when the points are one lung (no mid-sagittal gap).
     #[arg(long, value_parser = ["left", "right"])]
     pub lung: Option<String>,
+    /// Landmark model: power (the seed's eq. 6.14-6.16), affine, poly, rbf (thin-plate spline), or
+    /// auto (fit all, choose the lowest cross-validated error).
+    #[arg(long, value_parser = ["power", "affine", "poly", "rbf", "auto"], default_value = "auto")]
+    pub model: String,
+    /// Folds of the cross-validation (held-out errors), 2..=20.
+    #[arg(long, default_value_t = 5, value_parser = clap::value_parser!(u64).range(2..=20))]
+    pub folds: u64,
+    /// Seed of the fold assignment (the same seed gives the same folds and numbers).
+    #[arg(long, default_value_t = 10)]
+    pub seed: u64,
     /// Treat two meshes as surfaces without vertex correspondence (automatic when their vertex
     /// counts differ): the model is fitted so the moved reference lies on the target surface.
     #[arg(long)]
@@ -42,9 +73,13 @@ pub struct FitMotionArgs {
     /// Scene whose [lungs] elasticity and transfer_tolerance the force fit uses (mesh input).
     #[arg(long)]
     pub scene: Option<PathBuf>,
-    /// Write the constants (TOML, for `lungdyn bake --motion` or a scene's [lungs] motion).
+    /// Write the constants and the chosen field (TOML, for `lungdyn bake --motion` or a scene's
+    /// [lungs] motion).
     #[arg(long)]
     pub out: Option<PathBuf>,
+    /// Draw each model's held-out error per landmark (three views) and their histograms (PNG).
+    #[arg(long)]
+    pub plot: Option<PathBuf>,
     /// Input size limit and special files.
     #[command(flatten)]
     pub input: crate::input_args::InputArgs,
@@ -53,17 +88,94 @@ pub struct FitMotionArgs {
     pub json: bool,
 }
 
-/// Read a point file or a mesh's vertices, in mm (bounded reading; sizes checked against lungs).
+/// The frame the options state.
+pub fn frame_of(args: &FitMotionArgs) -> anyhow::Result<Frame> {
+    let spacing = match args.spacing.as_slice() {
+        [] => None,
+        [x, y, z] => {
+            if ![x, y, z]
+                .iter()
+                .all(|v| v.is_finite() && **v > 0.0 && **v < 50.0)
+            {
+                anyhow::bail!(
+                    "--spacing {x},{y},{z}: each must be a voxel size in mm within (0, 50)"
+                );
+            }
+            Some([*x, *y, *z])
+        }
+        _ => anyhow::bail!("--spacing needs three numbers sx,sy,sz"),
+    };
+    let dirlab = args.format == "dirlab";
+    let frame = args
+        .frame
+        .as_deref()
+        .unwrap_or(if dirlab || args.voxel_axes.is_some() {
+            "voxel"
+        } else {
+            "body"
+        });
+    if dirlab && frame != "voxel" {
+        anyhow::bail!("--format dirlab files hold voxel indices: drop --frame {frame}");
+    }
+    match frame {
+        "voxel" => {
+            let spacing = spacing.ok_or_else(|| {
+                anyhow::anyhow!(
+                    "voxel indices need --spacing sx,sy,sz (mm per voxel along the file's three axes; \
+                     for DIR-Lab see the case's image header, e.g. 0.97,0.97,2.5 for case 1)"
+                )
+            })?;
+            let axes = match (&args.voxel_axes, dirlab) {
+                (Some(a), _) => a.parse::<VoxelAxes>().map_err(anyhow::Error::msg)?,
+                (None, true) => VoxelAxes::DIRLAB,
+                (None, false) => anyhow::bail!(
+                    "--frame voxel needs --voxel-axes (how the indices run in the patient, e.g. R>L,A>P,S>I \
+                     for axial DICOM order), or --format dirlab"
+                ),
+            };
+            let base = match (args.index_base, dirlab) {
+                (Some(b), _) => b,
+                (None, true) => 1,
+                (None, false) => anyhow::bail!(
+                    "--frame voxel needs --index-base 0 or 1 (whether the first voxel is numbered 0 or 1)"
+                ),
+            };
+            Ok(Frame::Voxel {
+                axes,
+                base,
+                spacing,
+            })
+        }
+        other => {
+            if spacing.is_some() || args.voxel_axes.is_some() || args.index_base.is_some() {
+                anyhow::bail!(
+                    "--spacing, --voxel-axes and --index-base describe voxel indices: add --frame voxel \
+                     (or --format dirlab), or drop them for coordinates in mm"
+                );
+            }
+            Ok(match other {
+                "lps" => Frame::Lps,
+                "ras" => Frame::Ras,
+                _ => Frame::Body,
+            })
+        }
+    }
+}
+
+/// Read a point file (in `frame`) or a mesh's vertices (mm, `frame` must be body, lps or ras), in
+/// the body frame, bounded, sizes checked against lungs.
 pub fn read_points(
     path: &Path,
-    spacing: Option<[f64; 3]>,
+    frame: &Frame,
     input: &crate::input_args::InputArgs,
 ) -> anyhow::Result<Vec<DVec3>> {
-    let ext = path
-        .extension()
-        .and_then(|e| e.to_str())
-        .map(|e| e.to_ascii_lowercase());
-    let raw: Vec<DVec3> = if matches!(ext.as_deref(), Some("obj" | "ply" | "stl")) {
+    let pts: Vec<DVec3> = if is_mesh(path) {
+        if matches!(frame, Frame::Voxel { .. }) {
+            anyhow::bail!(
+                "{}: a mesh holds coordinates in mm, not voxel indices: use --frame body, lps or ras",
+                path.display()
+            );
+        }
         let m = lung_bake::import::import_with(
             path,
             &lung_bake::import::ImportOptions {
@@ -85,54 +197,16 @@ pub fn read_points(
         m.mesh
             .positions
             .iter()
-            .map(|p| DVec3::from(p.map(|v| v as f64)))
+            .map(|p| frame.to_body(p.map(|v| v as f64)))
             .collect()
     } else {
-        let text = lung_model::input::read_text_bounded(
+        lung_bake::landmarks::read(
             path,
+            frame,
             input.limits(lung_model::input::ReadLimits::TABLE),
-        )?;
-        let mut pts = Vec::new();
-        for (i, line) in text.lines().enumerate() {
-            let line = line.trim();
-            if line.is_empty() || line.starts_with('#') {
-                continue;
-            }
-            let v: Vec<&str> = line.split_whitespace().collect();
-            if v.len() != 3 {
-                anyhow::bail!(
-                    "{}:{}: expected three numbers `x y z`, found {} fields",
-                    path.display(),
-                    i + 1,
-                    v.len()
-                );
-            }
-            let mut p = [0.0; 3];
-            for (k, f) in v.iter().enumerate() {
-                p[k] = f
-                    .parse::<f64>()
-                    .ok()
-                    .filter(|x| x.is_finite())
-                    .ok_or_else(|| {
-                        anyhow::anyhow!(
-                            "{}:{}: {f:?} is not a finite number",
-                            path.display(),
-                            i + 1
-                        )
-                    })?;
-            }
-            pts.push(DVec3::from(p));
-        }
-        if pts.is_empty() {
-            anyhow::bail!("{}: no points", path.display());
-        }
-        pts
+        )?
     };
-    let pts: Vec<DVec3> = match spacing {
-        Some(s) => raw.into_iter().map(|p| p * DVec3::from(s)).collect(),
-        None => raw,
-    };
-    check_spread(path, &pts, spacing.is_some())?;
+    check_spread(path, &pts, matches!(frame, Frame::Voxel { .. }))?;
     Ok(pts)
 }
 
@@ -232,9 +306,15 @@ fn sub_mesh(
 
 fn import_scaled(
     path: &Path,
-    spacing: Option<[f64; 3]>,
+    frame: &Frame,
     input: &crate::input_args::InputArgs,
 ) -> anyhow::Result<lung_model::mesh::TriMesh> {
+    if matches!(frame, Frame::Voxel { .. }) {
+        anyhow::bail!(
+            "{}: a mesh holds coordinates in mm, not voxel indices: use --frame body, lps or ras",
+            path.display()
+        );
+    }
     let mut m = lung_bake::import::import_with(
         path,
         &lung_bake::import::ImportOptions {
@@ -245,11 +325,13 @@ fn import_scaled(
         },
     )?
     .mesh;
-    if let Some(s) = spacing {
+    if *frame != Frame::Body {
         for p in &mut m.positions {
-            for k in 0..3 {
-                p[k] = (p[k] as f64 * s[k]) as f32;
-            }
+            *p = frame.to_body(p.map(|v| v as f64)).as_vec3().to_array();
+        }
+        // LPS and RAS each mirror one axis: keep the surface wound outwards.
+        for t in &mut m.triangles {
+            t.swap(1, 2);
         }
     }
     Ok(m)
@@ -285,7 +367,7 @@ fn run_surface(
     args: &FitMotionArgs,
     a: &lung_model::mesh::TriMesh,
     b: &lung_model::mesh::TriMesh,
-    spacing: Option<[f64; 3]>,
+    frame: &Frame,
     side: Option<Side>,
     corresponding: bool,
 ) -> anyhow::Result<MotionFit> {
@@ -303,7 +385,7 @@ fn run_surface(
                     p.display()
                 );
             }
-            let m = import_scaled(p, spacing, &args.input)?;
+            let m = import_scaled(p, frame, &args.input)?;
             if corresponding && (m.positions.len() != a.positions.len() || m.triangles != a.triangles) {
                 anyhow::bail!(
                     "{}: its vertices do not match {} (pass --surface to fit all phases as surfaces)",
@@ -399,6 +481,7 @@ fn run_surface(
             &fit,
             args,
             "c1..c9 of the kernel's model, fitted through the operator",
+            None,
         )?;
     }
     Ok(fit)
@@ -409,16 +492,33 @@ fn write_motion(
     fit: &MotionFit,
     args: &FitMotionArgs,
     how: &str,
+    chosen: Option<(&PointsReport, &ModelReport)>,
 ) -> anyhow::Result<()> {
     let mut file = MotionFile {
-        format: 1,
+        format: if chosen.is_some() { 2 } else { 1 },
         left: None,
         right: None,
+        frame: None,
+        chosen: None,
+        cv_mean_error_mm: None,
+        left_field: None,
+        right_field: None,
     };
     for l in &fit.lungs {
         match l.lung {
             Side::Left => file.left = Some(l.motion()),
             Side::Right => file.right = Some(l.motion()),
+        }
+    }
+    if let Some((report, model)) = chosen {
+        file.frame = Some(report.frame_description.clone());
+        file.chosen = Some(model.model.name().to_string());
+        file.cv_mean_error_mm = Some(model.cv.mean_mm);
+        for (side, field) in &model.fit.lungs {
+            match side {
+                Side::Left => file.left_field = Some(field.clone()),
+                Side::Right => file.right_field = Some(field.clone()),
+            }
         }
     }
     let text = format!(
@@ -436,41 +536,93 @@ fn write_motion(
     Ok(())
 }
 
+/// A further phase in the points report.
+#[derive(Debug, Serialize)]
+pub struct PhaseRow {
+    /// The file.
+    pub file: String,
+    /// The chosen model's prediction with one scale.
+    #[serde(flatten)]
+    pub report: PhaseReport,
+    /// In-sample mean error (compatibility with the power-law report).
+    pub mean_error_mm: f64,
+}
+
+/// What `fit-motion` reports for landmarks.
+#[derive(Debug, Serialize)]
+pub struct PointsReport {
+    /// "points".
+    pub mode: &'static str,
+    /// The frame the files were read in ("body", "lps", "ras", "voxel").
+    pub frame: &'static str,
+    /// How the coordinates were read.
+    pub frame_description: String,
+    /// What the motion says about the frame.
+    pub frame_check: motion_models::FrameCheck,
+    /// A warning when the data disagree with the stated frame or phase order.
+    pub frame_warning: Option<String>,
+    /// Mean landmark displacement (the no-motion error), mm.
+    pub baseline_mean_mm: f64,
+    /// Folds of the cross-validation and their seed.
+    pub folds: u64,
+    /// Seed of the folds.
+    pub seed: u64,
+    /// Every model fitted, with in-sample and cross-validated errors.
+    pub models: Vec<ModelReport>,
+    /// The model chosen (lowest held-out mean error, or `--model`).
+    pub chosen: &'static str,
+    /// The chosen model's held-out mean error, mm.
+    pub cv_mean_error_mm: f64,
+    /// The chosen model's held-out max error, mm.
+    pub cv_max_error_mm: f64,
+    /// The chosen model's in-sample mean error, mm.
+    pub mean_error_mm: f64,
+    /// The chosen model's in-sample max error, mm.
+    pub max_error_mm: f64,
+    /// The chosen model's in-sample RMS error, mm.
+    pub rms_error_mm: f64,
+    /// Further phases predicted by the chosen field with one scale.
+    pub also: Vec<PhaseRow>,
+    /// Per lung: the seed's power-law constants (what `bake` uses besides the field).
+    pub lungs: Vec<motion_fit::LungFit>,
+}
+
+/// What `fit-motion` did.
+#[derive(Debug, Serialize)]
+#[serde(untagged)]
+pub enum Outcome {
+    /// Landmarks: every model, cross-validated.
+    Points(Box<PointsReport>),
+    /// Meshes or surfaces: the kernel's own model through the operator.
+    Kernel(MotionFit),
+}
+
 /// Read, fit, optionally write.
-pub fn run(args: &FitMotionArgs) -> anyhow::Result<MotionFit> {
-    let spacing = match args.spacing.as_slice() {
-        [] => None,
-        [x, y, z] => {
-            if ![x, y, z].iter().all(|v| v.is_finite() && **v > 0.0) {
-                anyhow::bail!("--spacing {x},{y},{z}: each must be a positive number of mm");
-            }
-            Some([*x, *y, *z])
-        }
-        _ => anyhow::bail!("--spacing needs three numbers sx,sy,sz"),
-    };
+pub fn run(args: &FitMotionArgs) -> anyhow::Result<Outcome> {
+    let frame = frame_of(args)?;
     let side: Option<Side> = args
         .lung
         .as_deref()
         .map(|s| s.parse().map_err(anyhow::Error::msg))
         .transpose()?;
     if is_mesh(&args.from) && is_mesh(&args.to) {
-        let ma = import_scaled(&args.from, spacing, &args.input)?;
-        let mb = import_scaled(&args.to, spacing, &args.input)?;
+        let ma = import_scaled(&args.from, &frame, &args.input)?;
+        let mb = import_scaled(&args.to, &frame, &args.input)?;
         let same_vertices =
             ma.positions.len() == mb.positions.len() && ma.triangles == mb.triangles;
-        return run_surface(
+        return Ok(Outcome::Kernel(run_surface(
             args,
             &ma,
             &mb,
-            spacing,
+            &frame,
             side,
             same_vertices && !args.surface,
-        );
+        )?));
     } else if args.surface {
         anyhow::bail!("--surface needs two meshes (.obj, .ply, .stl) for --from and --to");
     }
-    let a = read_points(&args.from, spacing, &args.input)?;
-    let b = read_points(&args.to, spacing, &args.input)?;
+    let a = read_points(&args.from, &frame, &args.input)?;
+    let b = read_points(&args.to, &frame, &args.input)?;
     if a.len() == b.len() {
         check_motion(&a, &b, &args.to)?;
     }
@@ -478,27 +630,187 @@ pub fn run(args: &FitMotionArgs) -> anyhow::Result<MotionFit> {
         .also
         .iter()
         .map(|p| {
-            let pts = read_points(p, spacing, &args.input)?;
+            let pts = read_points(p, &frame, &args.input)?;
             if pts.len() == a.len() {
                 check_motion(&a, &pts, p)?;
             }
             Ok((p.display().to_string(), pts))
         })
         .collect::<anyhow::Result<Vec<_>>>()?;
-    let fit = motion_fit::fit(&a, &b, &also, side)?;
+    // The seed's power law with its per-lung constants (what a kernel's c1..c9 are)...
+    let power = motion_fit::fit(&a, &b, &also, side)?;
+    // ... and every model, cross-validated.
+    let delta: Vec<DVec3> = a.iter().zip(&b).map(|(p, q)| *q - *p).collect();
+    let (_, lungs, _) = motion_models::split(&a, &delta, side)?;
+    let frame_check = motion_models::check_frame(&lungs);
+    if let Some(w) = &frame_check.warning {
+        eprintln!("lungdyn: WARNING: {w}");
+    }
+    let k = args.folds as usize;
+    let kinds: Vec<ModelKind> = match args.model.as_str() {
+        "auto" => ModelKind::ALL.to_vec(),
+        "power" => vec![ModelKind::Power],
+        "affine" => vec![ModelKind::Power, ModelKind::Affine],
+        "poly" => vec![ModelKind::Power, ModelKind::Poly],
+        _ => vec![ModelKind::Power, ModelKind::Tps],
+    };
+    let models = kinds
+        .iter()
+        .map(|&kind| motion_models::evaluate(kind, &a, &delta, side, k, args.seed))
+        .collect::<Result<Vec<_>, _>>()?;
+    let chosen = if args.model == "auto" {
+        models
+            .iter()
+            .min_by(|x, y| x.cv.mean_mm.total_cmp(&y.cv.mean_mm))
+            .expect("at least one model")
+    } else {
+        models.last().expect("the asked model")
+    };
+    let phases = also
+        .iter()
+        .map(|(name, c)| {
+            let dc: Vec<DVec3> = a.iter().zip(c).map(|(p, q)| *q - *p).collect();
+            let r = motion_models::evaluate_phase(
+                chosen.model,
+                &chosen.fit,
+                &a,
+                &delta,
+                &dc,
+                side,
+                k,
+                args.seed,
+            )?;
+            Ok(PhaseRow {
+                file: name.clone(),
+                mean_error_mm: r.in_sample.mean_mm,
+                report: r,
+            })
+        })
+        .collect::<anyhow::Result<Vec<_>>>()?;
+    let report = PointsReport {
+        mode: "points",
+        frame: frame.name(),
+        frame_description: frame.describe(),
+        frame_warning: frame_check.warning.clone(),
+        frame_check,
+        baseline_mean_mm: power.residuals.baseline_mean_mm,
+        folds: args.folds,
+        seed: args.seed,
+        chosen: chosen.model.name(),
+        cv_mean_error_mm: chosen.cv.mean_mm,
+        cv_max_error_mm: chosen.cv.max_mm,
+        mean_error_mm: chosen.in_sample.mean_mm,
+        max_error_mm: chosen.in_sample.max_mm,
+        rms_error_mm: chosen.in_sample.rms_mm,
+        also: phases,
+        lungs: power.lungs.clone(),
+        models: Vec::new(),
+    };
+    let chosen_index = models
+        .iter()
+        .position(|m| m.model == chosen.model)
+        .expect("chosen is one of them");
+    let report = PointsReport { models, ..report };
+    if let Some(png) = &args.plot {
+        crate::motion_plot::write(png, &a, &report)?;
+    }
     if let Some(out) = &args.out {
         write_motion(
             out,
-            &fit,
+            &power,
             args,
-            "c1, c3, c5 in mm at the fitted phase; c7..c9 are Table 6.1 (not fitted from points)",
+            "c1, c3, c5 in mm at the fitted phase; c7..c9 are Table 6.1 (not fitted from points); \
+             [left_field]/[right_field] is the model chosen by cross-validation (the kernel's directions)",
+            Some((&report, &report.models[chosen_index])),
         )?;
     }
-    Ok(fit)
+    Ok(Outcome::Points(Box::new(report)))
 }
 
 /// Human-readable report.
-pub fn text(f: &MotionFit, args: &FitMotionArgs) -> String {
+pub fn text(outcome: &Outcome, args: &FitMotionArgs) -> String {
+    match outcome {
+        Outcome::Kernel(f) => kernel_text(f, args),
+        Outcome::Points(r) => points_text(r, args),
+    }
+}
+
+fn points_text(r: &PointsReport, args: &FitMotionArgs) -> String {
+    let mut s = format!("frame: {}\n", r.frame_description);
+    if let Some(w) = &r.frame_warning {
+        s += &format!("WARNING: {w}\n");
+    }
+    s += &format!(
+        "{} points; no-motion baseline {:.2} mm; {}-fold cross-validation (seed {})\n",
+        r.lungs.iter().map(|l| l.points).sum::<usize>(),
+        r.baseline_mean_mm,
+        r.folds,
+        r.seed
+    );
+    s += &format!(
+        "{:<8} {:>14} {:>14} {:>13} {:>11} {:>8}  configuration\n",
+        "model", "in-sample mm", "held-out mm", "held-out max", "parameters", "seconds"
+    );
+    for m in &r.models {
+        let cfg = match m.config {
+            motion_models::Config::Power => "eq. 6.14-6.16".to_string(),
+            motion_models::Config::Poly { degree, lambda } => {
+                format!("degree {degree}, ridge {lambda:.1e}")
+            }
+            motion_models::Config::Tps { s_z, lambda } => {
+                format!("Z stretch {s_z}, smoothing {lambda:.1e} mm")
+            }
+        };
+        s += &format!(
+            "{:<8} {:>14.3} {:>14.3} {:>13.2} {:>11} {:>8.2}  {cfg}{}\n",
+            m.model.name(),
+            m.in_sample.mean_mm,
+            m.cv.mean_mm,
+            m.cv.max_mm,
+            m.parameters,
+            m.seconds,
+            if m.model.name() == r.chosen {
+                "  <- chosen"
+            } else {
+                ""
+            }
+        );
+    }
+    for l in &r.lungs {
+        let c = &l.constants;
+        s += &format!(
+            "{} lung, {} points, power law: c1 {:.4} c2 {:.3} c3 {:.4} c4 {:.3} c5 {:.4} c6 {:.3}\n",
+            l.lung.name(),
+            l.points,
+            c[0],
+            c[1],
+            c[2],
+            c[3],
+            c[4],
+            c[5]
+        );
+    }
+    for p in &r.also {
+        s += &format!(
+            "{}: scale {:.3}, in-sample {:.2} mm, held-out {:.2} mm (baseline {:.2} mm)\n",
+            p.file,
+            p.report.scale,
+            p.report.in_sample.mean_mm,
+            p.report.cv.mean_mm,
+            p.report.baseline_mm
+        );
+    }
+    if let Some(out) = &args.out {
+        s += &format!("wrote {} (model {})\n", out.display(), r.chosen);
+    }
+    if let Some(p) = &args.plot {
+        s += &format!("plot {}\n", p.display());
+    }
+    s
+}
+
+/// Human-readable report of the kernel-model (mesh and surface) modes.
+fn kernel_text(f: &MotionFit, args: &FitMotionArgs) -> String {
     let mut s = String::new();
     match f.mode {
         "surface" => s += "surface mode: errors are distances of the moved reference to the target surface\n",

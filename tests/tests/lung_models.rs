@@ -338,9 +338,11 @@ fn write_points(path: &Path, pts: &[DVec3], spacing: [f64; 3]) {
     for p in pts {
         t += &format!(
             "{} {} {}\n",
-            p.x / spacing[0],
-            p.y / spacing[1],
-            p.z / spacing[2]
+            // Voxel indices start at 0: shift the lungs into positive indices (fits are translation
+            // invariant, so the constants do not change).
+            p.x / spacing[0] + 500.0,
+            p.y / spacing[1] + 500.0,
+            p.z / spacing[2] + 500.0
         );
     }
     std::fs::write(path, t).unwrap();
@@ -369,12 +371,29 @@ fn fit_motion_recovers_known_constants_and_its_output_bakes() {
         s(&d.join("b.txt")),
         "--also",
         s(&d.join("c.txt")),
+        "--frame",
+        "voxel",
+        "--voxel-axes",
+        "R>L,P>A,I>S",
+        "--index-base",
+        "0",
         "--spacing",
         "0.8,0.8,2.5",
         "--out",
         s(&motion),
         "--json",
     ]));
+    assert_eq!(f["chosen"], "power", "the truth is a power law: {f}");
+    // Held out, points outside the training box are clamped: not exact, but far inside the noise.
+    assert!(f["cv_mean_error_mm"].as_f64().unwrap() < 0.01, "{f}");
+    assert!(f["frame_warning"].is_null(), "{f}");
+    let names: Vec<&str> = f["models"]
+        .as_array()
+        .unwrap()
+        .iter()
+        .map(|m| m["model"].as_str().unwrap())
+        .collect();
+    assert_eq!(names, vec!["power", "affine", "poly", "rbf"]);
     assert!(f["mean_error_mm"].as_f64().unwrap() < 1e-3, "{f}");
     assert!(f["max_error_mm"].as_f64().unwrap() < 1e-2, "{f}");
     assert!(f["baseline_mean_mm"].as_f64().unwrap() > 2.0, "{f}");
@@ -475,6 +494,131 @@ fn fit_motion_recovers_known_constants_and_its_output_bakes() {
         ],
         "--spacing",
     );
+    // Voxel indices without saying how they run are refused, not read in a guessed frame.
+    run_err(
+        &[
+            "fit-motion",
+            "--from",
+            s(&d.join("a.txt")),
+            "--to",
+            s(&d.join("b.txt")),
+            "--spacing",
+            "0.8,0.8,2.5",
+        ],
+        "--frame voxel",
+    );
+}
+
+/// The same motion written in every frame lungdyn reads gives the same fit, to round-off; read in
+/// a frame whose Z runs the wrong way it gives a loud frame warning.
+#[test]
+fn one_motion_in_every_frame_gives_the_same_constants_and_a_wrong_frame_is_said() {
+    use lung_model::mesh::Side;
+    let d = workdir("frames");
+    let truth = [2.0, 0.6, 5.0, 0.5, 12.0, 2.0, 0.01, 0.95, 0.07];
+    let (ra, rb) = known_motion(Side::Right, 600, &truth, 1.0);
+    let (la, lb) = known_motion(Side::Left, 600, &truth, 1.0);
+    let a: Vec<DVec3> = ra.iter().chain(&la).copied().collect();
+    let b: Vec<DVec3> = rb.iter().chain(&lb).copied().collect();
+    let spacing = DVec3::new(0.97, 0.97, 2.5);
+    let write = |name: &str, pts: &[DVec3], f: &dyn Fn(DVec3) -> DVec3| {
+        let mut t = String::new();
+        for p in pts {
+            let q = f(*p);
+            t += &format!("{}\t{}\t{}\r\n", q.x, q.y, q.z);
+        }
+        std::fs::write(d.join(name), t).unwrap();
+    };
+    // DIR-Lab voxels: 1-based, columns right → left, rows anterior → posterior, slices downwards.
+    let voxel = |p: DVec3| {
+        DVec3::new(
+            p.x / spacing.x + 300.0,
+            -p.y / spacing.y + 300.0,
+            -p.z / spacing.z + 300.0,
+        )
+    };
+    let frames: Vec<(&str, Vec<&str>, Box<dyn Fn(DVec3) -> DVec3>)> = vec![
+        ("body", vec![], Box::new(|p| p)),
+        (
+            "lps",
+            vec!["--frame", "lps"],
+            Box::new(|p: DVec3| DVec3::new(p.x, -p.y, p.z)),
+        ),
+        (
+            "ras",
+            vec!["--frame", "ras"],
+            Box::new(|p: DVec3| DVec3::new(-p.x, p.y, p.z)),
+        ),
+        (
+            "dirlab",
+            vec!["--format", "dirlab", "--spacing", "0.97,0.97,2.5"],
+            Box::new(voxel),
+        ),
+    ];
+    let mut constants: Vec<Vec<f64>> = Vec::new();
+    for (name, flags, f) in &frames {
+        write(&format!("{name}_a.txt"), &a, f);
+        write(&format!("{name}_b.txt"), &b, f);
+        let from = d.join(format!("{name}_a.txt"));
+        let to = d.join(format!("{name}_b.txt"));
+        let mut args = vec![
+            "fit-motion",
+            "--from",
+            s(&from),
+            "--to",
+            s(&to),
+            "--model",
+            "power",
+            "--json",
+        ];
+        args.extend(flags.iter().copied());
+        let r = json(&run_ok(&args));
+        assert!(r["frame_warning"].is_null(), "{name}: {r}");
+        let c: Vec<f64> = r["lungs"]
+            .as_array()
+            .unwrap()
+            .iter()
+            .flat_map(|l| {
+                l["constants"]
+                    .as_array()
+                    .unwrap()
+                    .iter()
+                    .map(|v| v.as_f64().unwrap())
+            })
+            .collect();
+        constants.push(c);
+    }
+    for c in &constants[1..] {
+        for (x, y) in c.iter().zip(&constants[0]) {
+            assert!(
+                (x - y).abs() < 1e-6 * (1.0 + y.abs()),
+                "{c:?} vs {:?}",
+                constants[0]
+            );
+        }
+    }
+    // The DIR-Lab files read as if slices ran upwards: Z is reversed, the fit still runs, and says so.
+    let r = json(&run_ok(&[
+        "fit-motion",
+        "--from",
+        s(&d.join("dirlab_a.txt")),
+        "--to",
+        s(&d.join("dirlab_b.txt")),
+        "--frame",
+        "voxel",
+        "--voxel-axes",
+        "R>L,A>P,I>S",
+        "--index-base",
+        "1",
+        "--spacing",
+        "0.97,0.97,2.5",
+        "--json",
+    ]));
+    let w = r["frame_warning"]
+        .as_str()
+        .unwrap_or_else(|| panic!("no warning: {r}"));
+    assert!(w.contains("reversed"), "{w}");
+    assert!(r["frame_check"]["rho_z"].as_f64().unwrap() > 0.0);
 }
 
 /// A generated `lung` at `vertices`, baked with motion constants `c`, and its surface exported at each
