@@ -53,10 +53,11 @@ fn draw(kernel: &KernelFile, png: &Path) -> anyhow::Result<()> {
             .unwrap_or(0)
     };
     let (base, apex) = (pick(0.15), pick(0.85));
+    let (row_ptr, cols, vals) = (kernel.row_ptr()?, kernel.cols()?, kernel.vals()?);
     let row = |j: usize| {
-        let r = kernel.row_ptr()[j] as usize..kernel.row_ptr()[j + 1] as usize;
+        let r = row_ptr[j] as usize..row_ptr[j + 1] as usize;
         let mut v = vec![0.0f64; n];
-        for (&c, &t) in kernel.cols()[r.clone()].iter().zip(&kernel.vals()[r]) {
+        for (&c, &t) in cols[r.clone()].iter().zip(&vals[r]) {
             v[c as usize] = t as f64;
         }
         v

@@ -202,6 +202,27 @@ pub struct Columns {
 }
 
 impl Columns {
+    /// Number of nodes.
+    pub fn len(&self) -> usize {
+        self.ptr.len().saturating_sub(1)
+    }
+
+    /// No nodes.
+    pub fn is_empty(&self) -> bool {
+        self.len() == 0
+    }
+
+    /// Node `i`'s feeders: `(j, T[j→i])` as two slices.
+    pub fn column(&self, i: usize) -> (&[u32], &[f32]) {
+        let r = self.ptr[i] as usize..self.ptr[i + 1] as usize;
+        (&self.src[r.clone()], &self.vals[r])
+    }
+
+    /// Raw arrays `(ptr, src, vals)` (GPU upload).
+    pub fn raw(&self) -> (&[u64], &[u32], &[f32]) {
+        (&self.ptr, &self.src, &self.vals)
+    }
+
     /// Eq. 7.1, `out[i] = Σ_j f[j]·T[j→i]`, f32, parallel over nodes; no allocation.
     pub fn apply_into(&self, f: &[f32], out: &mut [f32]) {
         out.par_chunks_mut(4096).enumerate().for_each(|(c, chunk)| {

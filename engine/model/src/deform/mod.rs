@@ -22,6 +22,7 @@
 //! multiply-add per coordinate) on the GPU.
 
 pub mod field;
+pub mod modes;
 
 use glam::DVec3;
 use thiserror::Error;
