@@ -52,6 +52,21 @@ pub struct DemoArgs {
     /// Seconds to wait for the first frame before giving up.
     #[arg(long, default_value_t = 60.0)]
     pub startup_timeout: f64,
+    /// Deformation mode (overrides the scene's [lungs] mode): "precomputed" (one baked field,
+    /// supine only, 3 MACs per vertex), "basis" (exact for any orientation, 4 MACs), "sh" (eq. 7.7
+    /// with the scene's bands), "direct" (eq. 7.1 every frame, the accuracy reference).
+    #[arg(long, value_name = "MODE")]
+    pub mode: Option<lung_model::deform::modes::DeformMode>,
+    /// Roll the synthetic patient about the bed's long axis, sweeping ±DEG (90: onto each side,
+    /// 180: over to prone): in the orientation modes the breath follows gravity.
+    #[arg(long, value_name = "DEG", default_value_t = 0.0)]
+    pub roll_deg: f32,
+    /// Pitch the synthetic patient head-up/head-down, sweeping ±DEG (90: sitting up).
+    #[arg(long, value_name = "DEG", default_value_t = 0.0)]
+    pub pitch_deg: f32,
+    /// Seconds per roll/pitch sweep.
+    #[arg(long, value_name = "S", default_value_t = 20.0)]
+    pub sweep_period_s: f32,
 }
 
 /// The demo's machine-readable result.
@@ -108,6 +123,8 @@ pub struct DemoReport {
     pub kernels: Vec<KernelUse>,
     /// The instance name used.
     pub instance: String,
+    /// Deformation mode the lungs ran in.
+    pub mode: String,
 }
 
 struct Children {
@@ -234,8 +251,32 @@ pub fn run(args: &DemoArgs) -> anyhow::Result<DemoReport> {
              under xvfb-run, or without --window (headless)"
         );
     }
+    let ok_deg = |v: f32| v.is_finite() && (0.0..=180.0).contains(&v);
+    if !(ok_deg(args.roll_deg) && ok_deg(args.pitch_deg)) {
+        bail!(
+            "--roll-deg {} / --pitch-deg {} must be within 0..180 degrees",
+            args.roll_deg,
+            args.pitch_deg
+        );
+    }
+    if !(args.sweep_period_s.is_finite() && (1.0..=3600.0).contains(&args.sweep_period_s)) {
+        bail!(
+            "--sweep-period-s {} must be within 1..3600 seconds",
+            args.sweep_period_s
+        );
+    }
     // Every argument is checked before anything is written (kernels are baked below).
-    let loaded = lung_model::scene::Scene::load_or_default(args.scene.as_deref())?;
+    let mut loaded = lung_model::scene::Scene::load_or_default(args.scene.as_deref())?;
+    if let Some(mode) = args.mode {
+        loaded.lungs.mode = mode;
+    }
+    if (args.roll_deg > 0.0 || args.pitch_deg > 0.0) && !loaded.lungs.mode.follows_orientation() {
+        eprintln!(
+            "lungdyn: note: the {} mode keeps the supine breath whatever the patient's orientation; \
+             use --mode basis (or sh, direct) to see the breath follow the turns",
+            loaded.lungs.mode
+        );
+    }
     let instance = args
         .instance
         .clone()
@@ -313,10 +354,18 @@ pub fn run(args: &DemoArgs) -> anyhow::Result<DemoReport> {
         "engine",
         &with_scene([common.clone(), cpu(1)].concat()),
     )?);
+    let sweep = vec![
+        "--roll-deg".to_string(),
+        args.roll_deg.to_string(),
+        "--pitch-deg".to_string(),
+        args.pitch_deg.to_string(),
+        "--sweep-period-s".to_string(),
+        args.sweep_period_s.to_string(),
+    ];
     children.procs.push(Children::spawn(
         &exe,
         "tracker-bridge",
-        &[common.clone(), cpu(0)].concat(),
+        &[common.clone(), cpu(0), sweep].concat(),
     )?);
 
     let mut stats = LatencyStats::new();
@@ -448,6 +497,7 @@ pub fn run(args: &DemoArgs) -> anyhow::Result<DemoReport> {
         remaining_files: remaining,
         kernels,
         instance,
+        mode: scene.lungs.mode.name().to_string(),
     })
 }
 
@@ -472,8 +522,8 @@ pub fn table(r: &DemoReport) -> String {
     let mut s = String::new();
     let _ = writeln!(
         s,
-        "lungdyn demo: {} frames in {:.1} s ({:.1} fps), lung volume {:.0}-{:.0} ml",
-        r.frames_rendered, r.seconds, r.fps, r.volume_min_ml, r.volume_max_ml
+        "lungdyn demo: {} frames in {:.1} s ({:.1} fps), lung volume {:.0}-{:.0} ml, {} mode",
+        r.frames_rendered, r.seconds, r.fps, r.volume_min_ml, r.volume_max_ml, r.mode
     );
     let _ = writeln!(
         s,

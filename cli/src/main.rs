@@ -117,6 +117,13 @@ fn main() -> std::process::ExitCode {
             Ok(())
         }),
         Command::Bake(args) => lungdyn::bake_cmd::bake(&args).and_then(|b| {
+            if let (Some(budget), Some(false), Some(rms)) = (b.sh_budget_mm, b.sh_budget_met, b.sh_rms_mm) {
+                eprintln!(
+                    "lungdyn: warning: the spherical harmonics reach {rms:.3} mm RMS with {} bands, over the \
+                     {budget} mm budget; the \"basis\" mode is exact for this force (set [lungs] mode = \"basis\")",
+                    b.sh_bands
+                );
+            }
             if args.json {
                 println!("{}", serde_json::to_string(&b)?);
             } else {

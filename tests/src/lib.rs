@@ -156,3 +156,27 @@ pub fn assert_demo_report_is_consistent(v: &serde_json::Value, stderr: &str) {
         );
     }
 }
+
+/// `scene` with every lung baked in process (as the launcher bakes them) into kernel files under a
+/// fresh folder named by `tag`, named in `[lungs.kernels]`.
+pub fn scene_with_kernels(
+    mut scene: lung_model::scene::Scene,
+    tag: &str,
+) -> lung_model::scene::Scene {
+    let dir = std::env::temp_dir().join(format!("lungdyn-{tag}-{}", std::process::id()));
+    std::fs::create_dir_all(&dir).expect("temp folder");
+    for side in scene.lungs.sides.clone() {
+        let path = dir.join(format!("{}.kernel", side.name()));
+        lung_bake::kernel::bake(
+            side,
+            lung_model::mesh::generate::lung(side, scene.lungs.vertices).expect("generated lung"),
+            &scene.bake_settings(side).expect("bake settings"),
+            &|_| {},
+        )
+        .expect("bake")
+        .write(&path)
+        .expect("write kernel");
+        scene.lungs.kernels.set(side, path);
+    }
+    scene
+}

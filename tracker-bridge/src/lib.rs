@@ -24,6 +24,18 @@ pub struct BridgeArgs {
     /// Peak patient orientation drift per axis, degrees.
     #[arg(long, default_value_t = 3.0)]
     pub drift_deg: f32,
+    /// Synthetic source: roll the patient about the bed's long axis, sweeping ±DEG (90: onto each
+    /// side; 180: over to prone) once per --sweep-period-s. Shows the breath following gravity in
+    /// the orientation modes.
+    #[arg(long, value_name = "DEG", default_value_t = 0.0)]
+    pub roll_deg: f32,
+    /// Synthetic source: pitch the patient head-up/head-down, sweeping ±DEG (90: sitting up and
+    /// head down) once per --sweep-period-s, a quarter period after the roll.
+    #[arg(long, value_name = "DEG", default_value_t = 0.0)]
+    pub pitch_deg: f32,
+    /// Seconds per roll/pitch sweep.
+    #[arg(long, value_name = "S", default_value_t = 20.0)]
+    pub sweep_period_s: f32,
     /// Pin this process to CPU core N.
     #[arg(long, value_name = "N")]
     pub cpu: Option<usize>,
@@ -41,6 +53,16 @@ pub enum BridgeError {
     /// The synthetic drift is out of range.
     #[error("--drift-deg {0} must be within 0..45")]
     Drift(f32),
+    /// A sweep amplitude or period is out of range.
+    #[error("--roll-deg and --pitch-deg must be within 0..180 and --sweep-period-s within 1..3600 (got {roll}, {pitch}, {period})")]
+    Sweep {
+        /// Roll amplitude.
+        roll: f32,
+        /// Pitch amplitude.
+        pitch: f32,
+        /// Period.
+        period: f32,
+    },
     /// A bad common option.
     #[error(transparent)]
     Args(#[from] ArgError),
@@ -71,6 +93,18 @@ pub fn run(args: &BridgeArgs) -> Result<(), BridgeError> {
     if !(args.drift_deg.is_finite() && (0.0..=45.0).contains(&args.drift_deg)) {
         return Err(BridgeError::Drift(args.drift_deg));
     }
+    let ok_deg = |v: f32| v.is_finite() && (0.0..=180.0).contains(&v);
+    if !(ok_deg(args.roll_deg)
+        && ok_deg(args.pitch_deg)
+        && args.sweep_period_s.is_finite()
+        && (1.0..=3600.0).contains(&args.sweep_period_s))
+    {
+        return Err(BridgeError::Sweep {
+            roll: args.roll_deg,
+            pitch: args.pitch_deg,
+            period: args.sweep_period_s,
+        });
+    }
     let run_ns = run_ns(args.seconds)?;
     let instance = Instance::new(&args.instance)?;
     let _lock = instance.lock("tracker-bridge")?;
@@ -78,6 +112,9 @@ pub fn run(args: &BridgeArgs) -> Result<(), BridgeError> {
     let source = synthetic::Synthetic {
         rate_hz: args.rate_hz,
         drift_deg: args.drift_deg,
+        roll_deg: args.roll_deg,
+        pitch_deg: args.pitch_deg,
+        sweep_period_s: args.sweep_period_s,
         ..Default::default()
     };
     let node = iox::node(&instance, "tracker-bridge")?;
