@@ -111,6 +111,8 @@ pub struct DemoReport {
     pub lost_reports: u64,
     /// Frames with incomplete or unordered hop stamps.
     pub bad_stamps: u64,
+    /// Frames drawn before the first tracker sample reached the engine (no latency to measure).
+    pub untracked_frames: u64,
     /// Summed lung volume range drawn, ml.
     pub volume_min_ml: f32,
     /// Summed lung volume range drawn, ml.
@@ -483,6 +485,7 @@ pub fn run(args: &DemoArgs) -> anyhow::Result<DemoReport> {
         skipped_ticks: stats.skipped_ticks,
         lost_reports: stats.lost_reports,
         bad_stamps: stats.bad_stamps,
+        untracked_frames: stats.untracked_frames,
         volume_min_ml: if stats.frames > 0 {
             stats.volume_range.0
         } else {

@@ -17,3 +17,4 @@ pub mod prepare;
 pub mod pv_cmd;
 pub mod stats;
 pub mod strip;
+pub mod tradeoff;

@@ -39,6 +39,9 @@ enum Command {
     /// Scenes: give every lung a kernel so the processes can be started on their own.
     #[command(subcommand)]
     Scene(SceneCommand),
+    /// Measurements: the deformation modes' speed/accuracy trade.
+    #[command(subcommand)]
+    Bench(BenchCommand),
     /// Run only the tracker-bridge process (what `demo` starts).
     TrackerBridge(tracker_bridge::BridgeArgs),
     /// Run only the engine process (what `demo` starts).
@@ -62,6 +65,14 @@ enum SceneCommand {
     /// settings are unchanged) and write OUT/kernels/scene.resolved.toml, the scene to start the
     /// engine and renderer with (`--scene`). The engine and the renderer never bake.
     Prepare(lungdyn::prepare::PrepareArgs),
+}
+
+#[derive(Subcommand)]
+enum BenchCommand {
+    /// Every deformation mode's error against eq. 7.1 and its per-frame time on the CPU and GPU,
+    /// SH for 1..8 bands, the orientation methods, stereo vs mono: writes OUT.md, OUT.csv, OUT.png
+    /// (several minutes at the default sizes; --sizes 10000 for a quick look).
+    Tradeoff(lungdyn::tradeoff::TradeoffArgs),
 }
 
 #[derive(Subcommand)]
@@ -113,6 +124,14 @@ fn main() -> std::process::ExitCode {
                     r.unused_vertices,
                     if r.flipped_inside_out { ", winding flipped (was inside out)" } else { "" }
                 );
+            }
+            Ok(())
+        }),
+        Command::Bench(BenchCommand::Tradeoff(args)) => lungdyn::tradeoff::run(&args).and_then(|t| {
+            if args.json {
+                println!("{}", serde_json::to_string(&t)?);
+            } else {
+                print!("{}", lungdyn::tradeoff::text(&t));
             }
             Ok(())
         }),

@@ -223,6 +223,47 @@ impl LungRenderer {
         self.render_with(gpu, state, capture, |_| {})
     }
 
+    /// GPU time of the deformation pass alone (the mode's dispatches and the normals) for `state`,
+    /// from timestamp queries around that one compute pass; `None` without timestamps. For the
+    /// trade study: a frame's deformation cost apart from its drawing.
+    pub fn time_deform(&self, gpu: &Gpu, state: &DrawState) -> Option<u64> {
+        let t = self.timestamps.as_ref()?;
+        self.deform.set_lungs(
+            &gpu.queue,
+            &LungInputs {
+                scale: state.deform_scale,
+                offset: state.offset_mm,
+                coeffs: state.coeffs,
+            },
+        );
+        let mut encoder = gpu
+            .device
+            .create_command_encoder(&wgpu::CommandEncoderDescriptor {
+                label: Some("lungdyn deform timing"),
+            });
+        self.deform.encode(
+            &mut encoder,
+            Some(wgpu::ComputePassTimestampWrites {
+                query_set: &t.set,
+                beginning_of_pass_write_index: Some(0),
+                end_of_pass_write_index: Some(1),
+            }),
+        );
+        encoder.resolve_query_set(&t.set, 0..2, &t.resolve, 0);
+        encoder.copy_buffer_to_buffer(&t.resolve, 0, &t.read, 0, 16);
+        let index = gpu.queue.submit(Some(encoder.finish()));
+        let _ = gpu.device.poll(wgpu::PollType::Wait {
+            submission_index: Some(index),
+            timeout: None,
+        });
+        let ticks = read_mapped(gpu, &t.read, |bytes| {
+            let a = u64::from_le_bytes(bytes[0..8].try_into().unwrap());
+            let b = u64::from_le_bytes(bytes[8..16].try_into().unwrap());
+            b.saturating_sub(a)
+        })?;
+        Some((ticks as f64 * t.period_ns as f64) as u64)
+    }
+
     /// As [`Self::render`], with `extra` recorded into the frame's command buffer after the draw
     /// (the window's present pass), so it is submitted with the frame.
     pub fn render_with(

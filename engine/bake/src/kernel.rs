@@ -72,6 +72,9 @@ pub fn bake(
     settings: &BakeSettings,
     progress: &(dyn Fn(usize) + Sync),
 ) -> Result<Kernel, BakeError> {
+    if settings.sh_bands > lung_model::kernel::MAX_RUNTIME_BANDS {
+        return Err(BakeError::Bands(settings.sh_bands));
+    }
     lung_model::mesh::check(&mesh)?;
     let bb = mesh.aabb();
     let norm = |p| normalised_position(p, &bb, side);
@@ -97,9 +100,6 @@ pub fn bake(
         }
         None => LungModel::from_force(side, mesh, &settings.motion, &elastostatic)?,
     };
-    if settings.sh_bands > lung_model::kernel::MAX_RUNTIME_BANDS {
-        return Err(BakeError::Bands(settings.sh_bands));
-    }
     // Seed ch. 7: what the orientation-following modes need (EQUATIONS.md §3).
     let c = &settings.motion.c;
     let mut responses = Responses::compute(

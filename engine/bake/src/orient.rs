@@ -533,6 +533,46 @@ mod tests {
     }
 
     #[test]
+    fn a_lung_that_is_not_star_shaped_reports_its_fold_overs_and_stays_finite() {
+        // Dent the lateral face towards the centroid: the rim of the dent is seen from its back.
+        let side = Side::Left;
+        let mut mesh = generate::lung(side, 2000).unwrap();
+        let c = DVec3::from(volume_centroid(&mesh));
+        let axis = DVec3::X;
+        for p in &mut mesh.positions {
+            let v = DVec3::from(p.map(|x| x as f64)) - c;
+            let cos = v.normalize().dot(axis);
+            if cos > 0.8 {
+                let q = c + v * (1.0 - 0.85 * (cos - 0.8) / 0.2);
+                *p = q.as_vec3().to_array();
+            }
+        }
+        let k = bake(side, mesh, &BakeSettings::default_for(side), &|_| {}).unwrap();
+        let sh = k.meta.sh.as_ref().unwrap();
+        assert!(sh.foldover_nodes > 0, "the dent folds the projection");
+        assert!(sh.rms_mm.is_finite() && sh.max_mm.is_finite() && sh.alpha.is_finite());
+        assert!(k.sh.as_ref().unwrap().iter().all(|v| v.is_finite()));
+    }
+
+    #[test]
+    fn more_bands_than_a_frame_carries_are_refused_and_zero_bands_bake_none() {
+        let side = Side::Left;
+        let mut s = BakeSettings::default_for(side);
+        s.sh_bands = 16;
+        let e = bake(side, generate::lung(side, 300).unwrap(), &s, &|_| {}).unwrap_err();
+        assert!(e.to_string().contains("0 (none) to 8"), "{e}");
+        s.sh_bands = 0;
+        let k = bake(side, generate::lung(side, 300).unwrap(), &s, &|_| {}).unwrap();
+        assert!(k.sh.is_none() && k.meta.sh.is_none());
+        assert!(k.meta.orientation.as_ref().unwrap().basis_max_error_mm < 1e-3);
+        // One band: the constant harmonic only, still finite.
+        s.sh_bands = 1;
+        let k = bake(side, generate::lung(side, 300).unwrap(), &s, &|_| {}).unwrap();
+        assert_eq!(k.meta.sh.as_ref().unwrap().bands, 1);
+        assert!(k.meta.sh.as_ref().unwrap().rms_mm.is_finite());
+    }
+
+    #[test]
     fn sh_error_falls_with_bands_and_alpha_is_near_one() {
         let side = Side::Right;
         let k = bake(

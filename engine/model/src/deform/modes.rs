@@ -449,53 +449,55 @@ impl CpuLung {
         }
         let p = &self.positions;
         let kd = &self.scaled_directions;
-        let move_by = |i: usize, amount: f32, dir: &[f32; 3]| {
-            let q = p[i];
-            [
-                q[0] + amount * dir[0] + offset[0],
-                q[1] + amount * dir[1] + offset[1],
-                q[2] + amount * dir[2] + offset[2],
-            ]
-        };
         match &mut self.data {
             ModeData::Precomputed { unit } => {
-                let unit = &*unit;
                 out.par_chunks_mut(CHUNK)
-                    .enumerate()
-                    .for_each(|(c, chunk)| {
-                        for (k, o) in chunk.iter_mut().enumerate() {
-                            let i = c * CHUNK + k;
-                            *o = move_by(i, s, &unit[i]);
+                    .zip(p.par_chunks(CHUNK))
+                    .zip(unit.par_chunks(CHUNK))
+                    .for_each(|((out, p), u)| {
+                        for ((o, p), u) in out.iter_mut().zip(p).zip(u) {
+                            *o = moved(p, s, u, &offset);
                         }
                     });
             }
             ModeData::Basis { g } => {
                 let w = [coeffs[0], coeffs[1], coeffs[2], coeffs[3]];
-                let g = &*g;
                 out.par_chunks_mut(CHUNK)
-                    .enumerate()
-                    .for_each(|(c, chunk)| {
-                        for (k, o) in chunk.iter_mut().enumerate() {
-                            let i = c * CHUNK + k;
-                            let gi = g[i];
-                            let d = w[0] * gi[0] + w[1] * gi[1] + w[2] * gi[2] + w[3] * gi[3];
-                            *o = move_by(i, s * d, &kd[i]);
+                    .zip(p.par_chunks(CHUNK))
+                    .zip(g.par_chunks(CHUNK))
+                    .zip(kd.par_chunks(CHUNK))
+                    .for_each(|(((out, p), g), kd)| {
+                        for (((o, p), g), kd) in out.iter_mut().zip(p).zip(g).zip(kd) {
+                            let d = w[0] * g[0] + w[1] * g[1] + w[2] * g[2] + w[3] * g[3];
+                            *o = moved(p, s * d, kd, &offset);
                         }
                     });
             }
             ModeData::Sh { n_coeffs, t } => {
                 let n = *n_coeffs;
-                let t = &*t;
-                out.par_chunks_mut(CHUNK)
-                    .enumerate()
-                    .for_each(|(c, chunk)| {
-                        for (k, o) in chunk.iter_mut().enumerate() {
-                            let i = c * CHUNK + k;
-                            let row = &t[i * n..(i + 1) * n];
-                            let d: f32 = row.iter().zip(coeffs).map(|(a, b)| a * b).sum();
-                            *o = move_by(i, s * d, &kd[i]);
-                        }
-                    });
+                match n {
+                    1 => sh_pass::<1>(p, kd, t, coeffs, s, &offset, out),
+                    4 => sh_pass::<4>(p, kd, t, coeffs, s, &offset, out),
+                    9 => sh_pass::<9>(p, kd, t, coeffs, s, &offset, out),
+                    16 => sh_pass::<16>(p, kd, t, coeffs, s, &offset, out),
+                    25 => sh_pass::<25>(p, kd, t, coeffs, s, &offset, out),
+                    36 => sh_pass::<36>(p, kd, t, coeffs, s, &offset, out),
+                    49 => sh_pass::<49>(p, kd, t, coeffs, s, &offset, out),
+                    64 => sh_pass::<64>(p, kd, t, coeffs, s, &offset, out),
+                    _ => out
+                        .par_chunks_mut(CHUNK)
+                        .zip(p.par_chunks(CHUNK))
+                        .zip(t.par_chunks(CHUNK * n))
+                        .zip(kd.par_chunks(CHUNK))
+                        .for_each(|(((out, p), t), kd)| {
+                            for (((o, p), row), kd) in
+                                out.iter_mut().zip(p).zip(t.chunks_exact(n)).zip(kd)
+                            {
+                                let d: f32 = row.iter().zip(coeffs).map(|(a, b)| a * b).sum();
+                                *o = moved(p, s * d, kd, &offset);
+                            }
+                        }),
+                }
             }
             ModeData::Direct {
                 columns,
@@ -505,19 +507,21 @@ impl CpuLung {
             } => {
                 let w = [coeffs[0], coeffs[1], coeffs[2], coeffs[3]];
                 force
-                    .par_iter_mut()
-                    .zip(nhat.par_iter())
+                    .par_chunks_mut(CHUNK)
+                    .zip(nhat.par_chunks(CHUNK))
                     .for_each(|(f, n)| {
-                        *f = w[0] * n[0] + w[1] * n[1] + w[2] * n[2] + w[3] * n[3];
+                        for (f, n) in f.iter_mut().zip(n) {
+                            *f = w[0] * n[0] + w[1] * n[1] + w[2] * n[2] + w[3] * n[3];
+                        }
                     });
                 columns.apply_into(force, elastostatic);
-                let e = &*elastostatic;
                 out.par_chunks_mut(CHUNK)
-                    .enumerate()
-                    .for_each(|(c, chunk)| {
-                        for (k, o) in chunk.iter_mut().enumerate() {
-                            let i = c * CHUNK + k;
-                            *o = move_by(i, s * e[i], &kd[i]);
+                    .zip(p.par_chunks(CHUNK))
+                    .zip(elastostatic.par_chunks(CHUNK))
+                    .zip(kd.par_chunks(CHUNK))
+                    .for_each(|(((out, p), e), kd)| {
+                        for (((o, p), e), kd) in out.iter_mut().zip(p).zip(e).zip(kd) {
+                            *o = moved(p, s * e, kd, &offset);
                         }
                     });
             }
@@ -529,6 +533,45 @@ impl CpuLung {
     pub fn normals_into(&self, deformed: &[[f32; 3]], out: &mut [[f32; 3]]) {
         self.incidence.normals_into(&self.triangles, deformed, out);
     }
+}
+
+/// `p + amount·dir + offset`, the one multiply-add per coordinate every mode ends with.
+#[inline(always)]
+fn moved(p: &[f32; 3], amount: f32, dir: &[f32; 3], offset: &[f32; 3]) -> [f32; 3] {
+    [
+        p[0] + amount * dir[0] + offset[0],
+        p[1] + amount * dir[1] + offset[1],
+        p[2] + amount * dir[2] + offset[2],
+    ]
+}
+
+/// Eq. 7.7 for `N` coefficients per vertex: a fixed-length dot product with four partial sums
+/// (so the compiler can keep them in vector registers), then the move.
+fn sh_pass<const N: usize>(
+    p: &[[f32; 3]],
+    kd: &[[f32; 3]],
+    t: &[f32],
+    coeffs: &[f32],
+    s: f32,
+    offset: &[f32; 3],
+    out: &mut [[f32; 3]],
+) {
+    let c: &[f32; N] = coeffs.try_into().expect("N coefficients");
+    out.par_chunks_mut(CHUNK)
+        .zip(p.par_chunks(CHUNK))
+        .zip(t.par_chunks(CHUNK * N))
+        .zip(kd.par_chunks(CHUNK))
+        .for_each(|(((out, p), t), kd)| {
+            for (((o, p), row), kd) in out.iter_mut().zip(p).zip(t.chunks_exact(N)).zip(kd) {
+                let row: &[f32; N] = row.try_into().expect("N per vertex");
+                let mut acc = [0.0f32; 4];
+                for k in 0..N {
+                    acc[k % 4] += row[k] * c[k];
+                }
+                let d = (acc[0] + acc[1]) + (acc[2] + acc[3]);
+                *o = moved(p, s * d, kd, offset);
+            }
+        });
 }
 
 /// `(1, x̂, ŷ, ẑ)` of every vertex (the box coordinates of eq. 6.14–6.18 in the mesh's own box).
