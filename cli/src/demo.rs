@@ -28,7 +28,7 @@ pub struct DemoArgs {
     /// Folder for the PNG frames (created if missing).
     #[arg(long, default_value = "out")]
     pub out: PathBuf,
-    /// PNG frames to write, spread over one breathing cycle (0 for none).
+    /// PNG frames to write, spread over one breathing cycle (0 for none; at most 240).
     #[arg(long, default_value_t = 6)]
     pub snapshots: u32,
     /// Scene file (TOML); the built-in default scene when omitted.
@@ -67,6 +67,61 @@ pub struct DemoArgs {
     /// Seconds per roll/pitch sweep.
     #[arg(long, value_name = "S", default_value_t = 20.0)]
     pub sweep_period_s: f32,
+}
+
+/// Most `--snapshots`: one per 60 Hz display frame of a 4-second breath (15 breaths/min). More are
+/// frames of one breath closer together than the renderer draws them, and every one is a PNG of the
+/// window's size written to disk (a billion asked for ran a run to 16 GiB before this limit).
+pub const MAX_SNAPSHOTS: u32 = 240;
+
+/// Check the demo's count and core options before any work (nothing is baked, started or written
+/// for a bad one): `--snapshots` at most [`MAX_SNAPSHOTS`], every `--cpus` core one this process may
+/// run on.
+pub fn check_counts(args: &DemoArgs) -> anyhow::Result<()> {
+    if args.snapshots > MAX_SNAPSHOTS {
+        bail!(
+            "--snapshots {}: at most {MAX_SNAPSHOTS} PNG frames over one breath (one per display frame \
+             of a 4 s breath at 60 Hz)",
+            args.snapshots
+        );
+    }
+    if !args.cpus.is_empty() {
+        let allowed = allowed_cpus();
+        for (role, &core) in ["tracker-bridge", "engine", "renderer"]
+            .iter()
+            .zip(&args.cpus)
+        {
+            if let Some(allowed) = &allowed {
+                if !allowed.contains(&core) {
+                    bail!(
+                        "--cpus: core {core} for the {role} is not one this process may run on (cores {})",
+                        allowed
+                            .iter()
+                            .map(|c| c.to_string())
+                            .collect::<Vec<_>>()
+                            .join(", ")
+                    );
+                }
+            }
+        }
+    }
+    Ok(())
+}
+
+/// The cores this process may run on (`None` when the system does not say).
+fn allowed_cpus() -> Option<Vec<usize>> {
+    // SAFETY: sched_getaffinity fills a zeroed cpu_set_t of the size we pass; CPU_ISSET only reads it.
+    unsafe {
+        let mut set: libc::cpu_set_t = std::mem::zeroed();
+        if libc::sched_getaffinity(0, std::mem::size_of::<libc::cpu_set_t>(), &mut set) != 0 {
+            return None;
+        }
+        Some(
+            (0..libc::CPU_SETSIZE as usize)
+                .filter(|&c| libc::CPU_ISSET(c, &set))
+                .collect(),
+        )
+    }
 }
 
 /// The demo's machine-readable result.
@@ -234,6 +289,14 @@ pub fn snapshot_ticks(count: u32, cycle_ticks: u64, run_ticks: u64, warmup_ticks
 
 /// Run the demo; returns the report (the caller prints it).
 pub fn run(args: &DemoArgs) -> anyhow::Result<DemoReport> {
+    let s = args.seconds;
+    if !(s.is_finite() && s > 0.0 && s <= transport::process::MAX_SECONDS) {
+        bail!(
+            "--seconds {} must be a positive number of seconds, at most {} (one week)",
+            lung_model::plausible::compact(s),
+            transport::process::MAX_SECONDS
+        );
+    }
     transport::process::run_ns(Some(args.seconds))?;
     if !(args.startup_timeout.is_finite()
         && args.startup_timeout > 0.0
@@ -241,9 +304,10 @@ pub fn run(args: &DemoArgs) -> anyhow::Result<DemoReport> {
     {
         bail!(
             "--startup-timeout {} must be a positive number of seconds, at most 3600",
-            args.startup_timeout
+            lung_model::plausible::compact(args.startup_timeout)
         );
     }
+    check_counts(args)?;
     if args.window
         && std::env::var_os("DISPLAY").is_none()
         && std::env::var_os("WAYLAND_DISPLAY").is_none()
@@ -580,6 +644,26 @@ pub fn table(r: &DemoReport) -> String {
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    #[test]
+    fn counts_and_cores_are_checked_before_any_work() {
+        use clap::Parser;
+        #[derive(clap::Parser)]
+        struct Cli {
+            #[command(flatten)]
+            demo: DemoArgs,
+        }
+        let args =
+            |a: &[&str]| Cli::parse_from(std::iter::once("demo").chain(a.iter().copied())).demo;
+        assert!(check_counts(&args(&[])).is_ok());
+        assert!(check_counts(&args(&["--snapshots", "240"])).is_ok());
+        let e = check_counts(&args(&["--snapshots", "1000000000"])).unwrap_err();
+        assert!(e.to_string().contains("--snapshots 1000000000"), "{e}");
+        let e = check_counts(&args(&["--cpus", "4096", "0", "0"])).unwrap_err();
+        assert!(e.to_string().contains("core 4096"), "{e}");
+        let first = allowed_cpus().unwrap()[0].to_string();
+        assert!(check_counts(&args(&["--cpus", &first, &first, &first])).is_ok());
+    }
 
     #[test]
     fn snapshots_span_one_cycle_after_warm_up() {

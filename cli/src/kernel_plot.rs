@@ -12,6 +12,8 @@ use plotters::prelude::*;
 
 /// Draw the three panels into `png` (drawn to a temporary sibling, then renamed).
 pub fn write(kernel: &KernelFile, png: &Path) -> anyhow::Result<()> {
+    // A .png in a folder that takes a new file, or an error naming the path (not a drawing error).
+    crate::plot::check_path(png)?;
     let tmp = png.with_file_name(format!(
         ".{}.tmp-{}.png",
         png.file_name().unwrap_or_default().to_string_lossy(),

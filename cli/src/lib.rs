@@ -12,6 +12,7 @@ pub mod kernel_plot;
 pub mod mesh_cmd;
 pub mod motion_cmd;
 pub mod motion_plot;
+pub mod outputs;
 pub mod plot;
 pub mod prepare;
 pub mod pv_cmd;
