@@ -309,6 +309,10 @@ pub struct InspectSummary {
     pub format: u32,
     /// The metadata section.
     pub meta: kernel::KernelMeta,
+    /// Set when the kernel's surface looks like the other lung than the side it was baked as (the
+    /// bake warned too; a kernel keeps the side it was told).
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub side_warning: Option<String>,
 }
 
 /// Open (verifying every checksum) and summarise.
@@ -321,11 +325,31 @@ pub fn inspect(args: &InspectArgs) -> anyhow::Result<InspectSummary> {
         crate::kernel_plot::write(&f, png)
             .with_context(|| format!("cannot draw {}", png.display()))?;
     }
+    // Say it again on every inspect: the bake's warning scrolled past once, the kernel stays.
+    let baked = f.meta().side;
+    let evidence = lung_bake::surface_checks::infer_side(&f.mesh());
+    let side_warning = match evidence.side {
+        Some(seen) if seen != baked => {
+            let w = format!(
+                "{}: baked as the {} lung but its surface looks like a {} lung ({}; confidence {:.2}): \
+                 bake it again with the right --lung, or check the mesh's frame (+X = patient left)",
+                args.file.display(),
+                baked.name(),
+                seen.name(),
+                evidence.reason,
+                evidence.confidence
+            );
+            eprintln!("lungdyn: warning: {w}");
+            Some(w)
+        }
+        _ => None,
+    };
     Ok(InspectSummary {
         path: args.file.display().to_string(),
         file_bytes: f.len_bytes() as u64,
         format: lung_model::kernel::FORMAT_VERSION,
         meta: f.meta().clone(),
+        side_warning,
     })
 }
 
