@@ -4,6 +4,8 @@
 //! work). The loop is paced by an absolute deadline (`next += period; sleep_until(next)`), so the
 //! rate never drifts; a late wake-up skips missed slots instead of bursting.
 
+pub mod igtl;
+pub mod ndi;
 pub mod synthetic;
 
 use ipc_types::{tool_status, TrackerFrame};
