@@ -21,6 +21,7 @@
 pub mod assemble;
 pub mod igtl;
 pub mod ndi;
+pub mod ndi_sim;
 pub mod record;
 pub mod run;
 pub mod sample;

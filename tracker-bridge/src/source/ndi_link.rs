@@ -406,33 +406,7 @@ impl<'a> Session<'a> {
     }
 
     fn sample(&self, t: &ToolSample, receive_ns: u64) -> Sample {
-        let p = &t.port_status;
-        let mut flags = 0;
-        let has_pose = t.has_pose();
-        if !has_pose {
-            flags |= tool_status::MISSING;
-        }
-        if p.out_of_volume {
-            flags |= tool_status::OUT_OF_VOLUME;
-        }
-        if p.partially_out_of_volume {
-            flags |= tool_status::PARTIALLY_VISIBLE;
-        }
-        if p.sensor_broken || p.hardware_failure || p.processing_exception {
-            flags |= tool_status::DEVICE_FAULT;
-        }
-        let [w, x, y, z] = t.quat;
-        Sample {
-            receive_ns,
-            device_time_ns: 0,
-            device_frame: (t.frame != 0 || has_pose).then_some(u64::from(t.frame)),
-            name: self.name(t.handle),
-            tool_id: u32::from(t.handle),
-            rotation: if has_pose { Rotation::Quat([x, y, z, w]) } else { Rotation::None },
-            translation_mm: if has_pose { t.translation_mm } else { [0.0; 3] },
-            rms_error_mm: has_pose.then_some(t.rms_error_mm),
-            device_flags: flags,
-        }
+        sample_of(t, self.name(t.handle), receive_ns)
     }
 
     /// Poll until stopped or the link is lost; `Ok` means asked to stop.
@@ -545,6 +519,39 @@ fn session(link: &mut dyn Link, feed: &Feed, roms: &[Rom], use_tx: bool, poll_hz
         s.shutdown();
     }
     r
+}
+
+/// The sample of one tool of a `BX`/`TX` reply: handle status and port status become device flags
+/// (see the module docs), the per-handle frame number the device frame, NDI's `[q0, qx, qy, qz]`
+/// the `[x, y, z, w]` quaternion.
+pub fn sample_of(t: &ToolSample, name: ToolName, receive_ns: u64) -> Sample {
+    let p = &t.port_status;
+    let mut flags = 0;
+    let has_pose = t.has_pose();
+    if !has_pose {
+        flags |= tool_status::MISSING;
+    }
+    if p.out_of_volume {
+        flags |= tool_status::OUT_OF_VOLUME;
+    }
+    if p.partially_out_of_volume {
+        flags |= tool_status::PARTIALLY_VISIBLE;
+    }
+    if p.sensor_broken || p.hardware_failure || p.processing_exception {
+        flags |= tool_status::DEVICE_FAULT;
+    }
+    let [w, x, y, z] = t.quat;
+    Sample {
+        receive_ns,
+        device_time_ns: 0,
+        device_frame: (t.frame != 0 || has_pose).then_some(u64::from(t.frame)),
+        name,
+        tool_id: u32::from(t.handle),
+        rotation: if has_pose { Rotation::Quat([x, y, z, w]) } else { Rotation::None },
+        translation_mm: if has_pose { t.translation_mm } else { [0.0; 3] },
+        rms_error_mm: has_pose.then_some(t.rms_error_mm),
+        device_flags: flags,
+    }
 }
 
 /// How to open the link, again after each loss.
