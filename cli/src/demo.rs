@@ -52,6 +52,10 @@ pub struct DemoArgs {
     /// Seconds to wait for the first frame before giving up.
     #[arg(long, default_value_t = 60.0)]
     pub startup_timeout: f64,
+    /// Tracker source for the bridge (its --source): synthetic, igtl-client:HOST[:PORT],
+    /// igtl-server[:BIND[:PORT]], ndi-serial:DEVICE, ndi-tcp:HOST[:PORT], replay:FILE.
+    #[arg(long, default_value = "synthetic", value_name = "URI")]
+    pub tracker: String,
 }
 
 /// The demo's machine-readable result.
@@ -234,6 +238,7 @@ pub fn run(args: &DemoArgs) -> anyhow::Result<DemoReport> {
              under xvfb-run, or without --window (headless)"
         );
     }
+    tracker_bridge::source::SourceSpec::parse(&args.tracker)?;
     // Every argument is checked before anything is written (kernels are baked below).
     let loaded = lung_model::scene::Scene::load_or_default(args.scene.as_deref())?;
     let instance = args
@@ -316,7 +321,7 @@ pub fn run(args: &DemoArgs) -> anyhow::Result<DemoReport> {
     children.procs.push(Children::spawn(
         &exe,
         "tracker-bridge",
-        &[common.clone(), cpu(0)].concat(),
+        &[common.clone(), cpu(0), vec!["--source".to_string(), args.tracker.clone()]].concat(),
     )?);
 
     let mut stats = LatencyStats::new();

@@ -15,5 +15,7 @@ pub mod motion_plot;
 pub mod plot;
 pub mod prepare;
 pub mod pv_cmd;
+pub mod register_cmd;
 pub mod stats;
 pub mod strip;
+pub mod tracker_cmd;

@@ -19,6 +19,7 @@
 //! [`ipc_types::tool_status`] bits.
 
 pub mod assemble;
+pub mod head_motion;
 pub mod igtl;
 pub mod ndi;
 pub mod ndi_sim;
