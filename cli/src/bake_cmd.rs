@@ -37,6 +37,15 @@ pub struct BakeArgs {
     /// non-zeros per row, less truncated force, longer bake.
     #[arg(long)]
     pub tolerance: Option<f64>,
+    /// Spherical-harmonic bands to store for the "sh" mode (n² coefficients per vertex; 4 = the
+    /// seed's 16 coefficients; 0 = none, the basis and precomputed modes need none). Overrides the
+    /// scene's [lungs] bands.
+    #[arg(long, value_name = "N")]
+    pub bands: Option<u32>,
+    /// Error budget in mm (RMS displacement against eq. 7.1 at the reference volume over the
+    /// orientation set): keep the fewest bands, up to --bands (8 when not given), that meet it.
+    #[arg(long, value_name = "MM")]
+    pub max_error_mm: Option<f64>,
     /// Output kernel file (written atomically).
     #[arg(long)]
     pub out: PathBuf,
@@ -84,6 +93,28 @@ pub struct BakeSummary {
     pub peak_rss_mib: f64,
     /// The warning when `--lung` disagrees with the geometry.
     pub side_warning: Option<String>,
+    /// Spherical-harmonic bands stored (0: none).
+    pub sh_bands: u32,
+    /// Least-squares scale of eq. 7.7 against eq. 7.1.
+    pub alpha: Option<f64>,
+    /// RMS displacement error of the SH mode against eq. 7.1, % of the largest displacement.
+    pub sh_rms_percent: Option<f64>,
+    /// RMS displacement error of the SH mode against eq. 7.1, mm.
+    pub sh_rms_mm: Option<f64>,
+    /// Largest displacement error of the SH mode against eq. 7.1, mm.
+    pub sh_max_mm: Option<f64>,
+    /// The error budget, when one was given, and whether the stored bands meet it.
+    pub sh_budget_mm: Option<f64>,
+    /// Whether the budget was met (absent without one).
+    pub sh_budget_met: Option<bool>,
+    /// Vertices touching a triangle whose projection from the centroid folds over.
+    pub foldover_nodes: u64,
+    /// Largest displacement difference of the basis mode against eq. 7.1 (round-off), mm.
+    pub basis_max_error_mm: f64,
+    /// Volume change above FRC at which the errors are taken, ml.
+    pub reference_delta_ml: f64,
+    /// Orientations the errors are taken over.
+    pub orientations: u32,
 }
 
 /// Peak resident set size of this process in MiB (Linux), 0 elsewhere.
@@ -123,6 +154,27 @@ pub fn bake(args: &BakeArgs) -> anyhow::Result<BakeSummary> {
         }
         settings.tolerance = t;
     }
+    if let Some(e) = args.max_error_mm {
+        if !(e.is_finite() && e > 0.0 && e <= 50.0) {
+            anyhow::bail!("--max-error-mm {e} must be a positive number of millimetres up to 50");
+        }
+        settings.max_error_mm = Some(e);
+        settings.sh_bands = lung_model::kernel::MAX_RUNTIME_BANDS;
+    }
+    if let Some(b) = args.bands {
+        if b > lung_model::kernel::MAX_RUNTIME_BANDS {
+            anyhow::bail!(
+                "--bands {b}: 0 (none) to {} (64 coefficients per lung travel in every engine frame)",
+                lung_model::kernel::MAX_RUNTIME_BANDS
+            );
+        }
+        if b == 0 && args.max_error_mm.is_some() {
+            anyhow::bail!(
+                "--max-error-mm chooses a band count: it needs --bands ≥ 1 (or none: up to 8)"
+            );
+        }
+        settings.sh_bands = b;
+    }
     let (imported, side_warning) = crate::mesh_cmd::import_lung(
         &args.mesh,
         &args.units,
@@ -150,6 +202,8 @@ pub fn bake(args: &BakeArgs) -> anyhow::Result<BakeSummary> {
         .map(|u| (u[0] as f64).hypot(u[1] as f64).hypot(u[2] as f64))
         .fold(0.0, f64::max);
     let s = &k.meta.transfer;
+    let sh = k.meta.sh.as_ref();
+    let orientation = k.meta.orientation.as_ref();
     Ok(BakeSummary {
         path: args.out.display().to_string(),
         lung: side.name().into(),
@@ -169,6 +223,17 @@ pub fn bake(args: &BakeArgs) -> anyhow::Result<BakeSummary> {
         seconds: start.elapsed().as_secs_f64(),
         peak_rss_mib: peak_rss_mib(),
         side_warning,
+        sh_bands: sh.map_or(0, |s| s.bands),
+        alpha: sh.map(|s| s.alpha),
+        sh_rms_percent: sh.map(|s| s.rms_percent),
+        sh_rms_mm: sh.map(|s| s.rms_mm),
+        sh_max_mm: sh.map(|s| s.max_mm),
+        sh_budget_mm: sh.and_then(|s| s.budget_mm),
+        sh_budget_met: sh.and_then(|s| s.budget_mm.map(|b| s.rms_mm <= b)),
+        foldover_nodes: sh.map_or(0, |s| s.foldover_nodes),
+        basis_max_error_mm: orientation.map_or(0.0, |o| o.basis_max_error_mm),
+        reference_delta_ml: orientation.map_or(0.0, |o| o.reference_delta_ml),
+        orientations: orientation.map_or(0, |o| o.orientations_checked),
     })
 }
 
@@ -178,7 +243,8 @@ pub fn bake_text(b: &BakeSummary) -> String {
         "wrote {} ({:.1} MiB): {} lung, {} vertices + {} spring nodes, {:.1} ml\n\
          transfer: {} non-zeros, {:.1} per row (max {}), tolerance {:e}\n\
          force per unit row: {:.1} % caught by mass nodes, truncated {:.2e} mean / {:.2e} max, conservation error {:.1e}\n\
-         largest unit displacement {:.3} mm per {:.2} ml; {:.1} s, peak memory {:.0} MiB\n",
+         largest unit displacement {:.3} mm per {:.2} ml; {:.1} s, peak memory {:.0} MiB\n\
+         orientation (errors against eq. 7.1 at +{:.0} ml over {} orientations): basis mode {:.1e} mm (exact);\n{}",
         b.path,
         b.file_bytes as f64 / 1048576.0,
         b.lung,
@@ -196,7 +262,26 @@ pub fn bake_text(b: &BakeSummary) -> String {
         b.max_unit_displacement_mm,
         lung_model::deform::UNIT_VOLUME_ML,
         b.seconds,
-        b.peak_rss_mib
+        b.peak_rss_mib,
+        b.reference_delta_ml,
+        b.orientations,
+        b.basis_max_error_mm,
+        match (b.sh_bands, b.alpha, b.sh_rms_mm, b.sh_rms_percent, b.sh_max_mm) {
+            (0, ..) => "  no spherical harmonics stored (--bands 0): the sh mode is unavailable\n".to_string(),
+            (n, Some(alpha), Some(rms), Some(pct), Some(max)) => format!(
+                "  sh mode, {n} bands ({} coefficients): alpha {alpha:.4}, RMS {rms:.3} mm ({pct:.2} % of the largest displacement), max {max:.3} mm; {} fold-over nodes{}\n",
+                n * n,
+                b.foldover_nodes,
+                match (b.sh_budget_mm, b.sh_budget_met) {
+                    (Some(budget), Some(true)) => format!("; meets the {budget} mm budget"),
+                    (Some(budget), _) => format!(
+                        "; does NOT meet the {budget} mm budget with up to 8 bands: use the basis mode (exact for this force)"
+                    ),
+                    _ => String::new(),
+                }
+            ),
+            _ => String::new(),
+        }
     )
 }
 
@@ -224,6 +309,10 @@ pub struct InspectSummary {
     pub format: u32,
     /// The metadata section.
     pub meta: kernel::KernelMeta,
+    /// Set when the kernel's surface looks like the other lung than the side it was baked as (the
+    /// bake warned too; a kernel keeps the side it was told).
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub side_warning: Option<String>,
 }
 
 /// Open (verifying every checksum) and summarise.
@@ -236,11 +325,31 @@ pub fn inspect(args: &InspectArgs) -> anyhow::Result<InspectSummary> {
         crate::kernel_plot::write(&f, png)
             .with_context(|| format!("cannot draw {}", png.display()))?;
     }
+    // Say it again on every inspect: the bake's warning scrolled past once, the kernel stays.
+    let baked = f.meta().side;
+    let evidence = lung_bake::surface_checks::infer_side(&f.mesh());
+    let side_warning = match evidence.side {
+        Some(seen) if seen != baked => {
+            let w = format!(
+                "{}: baked as the {} lung but its surface looks like a {} lung ({}; confidence {:.2}): \
+                 bake it again with the right --lung, or check the mesh's frame (+X = patient left)",
+                args.file.display(),
+                baked.name(),
+                seen.name(),
+                evidence.reason,
+                evidence.confidence
+            );
+            eprintln!("lungdyn: warning: {w}");
+            Some(w)
+        }
+        _ => None,
+    };
     Ok(InspectSummary {
         path: args.file.display().to_string(),
         file_bytes: f.len_bytes() as u64,
         format: lung_model::kernel::FORMAT_VERSION,
         meta: f.meta().clone(),
+        side_warning,
     })
 }
 

@@ -28,7 +28,7 @@ pub struct DemoArgs {
     /// Folder for the PNG frames (created if missing).
     #[arg(long, default_value = "out")]
     pub out: PathBuf,
-    /// PNG frames to write, spread over one breathing cycle (0 for none).
+    /// PNG frames to write, spread over one breathing cycle (0 for none; at most 240).
     #[arg(long, default_value_t = 6)]
     pub snapshots: u32,
     /// Scene file (TOML); the built-in default scene when omitted.
@@ -56,6 +56,76 @@ pub struct DemoArgs {
     /// igtl-server[:BIND[:PORT]], ndi-serial:DEVICE, ndi-tcp:HOST[:PORT], replay:FILE.
     #[arg(long, default_value = "synthetic", value_name = "URI")]
     pub tracker: String,
+    /// Deformation mode (overrides the scene's [lungs] mode): "precomputed" (one baked field,
+    /// supine only, 3 MACs per vertex), "basis" (exact for any orientation, 4 MACs), "sh" (eq. 7.7
+    /// with the scene's bands), "direct" (eq. 7.1 every frame, the accuracy reference).
+    #[arg(long, value_name = "MODE")]
+    pub mode: Option<lung_model::deform::modes::DeformMode>,
+    /// Roll the synthetic patient about the bed's long axis, sweeping ±DEG (90: onto each side,
+    /// 180: over to prone): in the orientation modes the breath follows gravity.
+    #[arg(long, value_name = "DEG", default_value_t = 0.0)]
+    pub roll_deg: f32,
+    /// Pitch the synthetic patient head-up/head-down, sweeping ±DEG (90: sitting up).
+    #[arg(long, value_name = "DEG", default_value_t = 0.0)]
+    pub pitch_deg: f32,
+    /// Seconds per roll/pitch sweep.
+    #[arg(long, value_name = "S", default_value_t = 20.0)]
+    pub sweep_period_s: f32,
+}
+
+/// Most `--snapshots`: one per 60 Hz display frame of a 4-second breath (15 breaths/min). More are
+/// frames of one breath closer together than the renderer draws them, and every one is a PNG of the
+/// window's size written to disk (a billion asked for ran a run to 16 GiB before this limit).
+pub const MAX_SNAPSHOTS: u32 = 240;
+
+/// Check the demo's count and core options before any work (nothing is baked, started or written
+/// for a bad one): `--snapshots` at most [`MAX_SNAPSHOTS`], every `--cpus` core one this process may
+/// run on.
+pub fn check_counts(args: &DemoArgs) -> anyhow::Result<()> {
+    if args.snapshots > MAX_SNAPSHOTS {
+        bail!(
+            "--snapshots {}: at most {MAX_SNAPSHOTS} PNG frames over one breath (one per display frame \
+             of a 4 s breath at 60 Hz)",
+            args.snapshots
+        );
+    }
+    if !args.cpus.is_empty() {
+        let allowed = allowed_cpus();
+        for (role, &core) in ["tracker-bridge", "engine", "renderer"]
+            .iter()
+            .zip(&args.cpus)
+        {
+            if let Some(allowed) = &allowed {
+                if !allowed.contains(&core) {
+                    bail!(
+                        "--cpus: core {core} for the {role} is not one this process may run on (cores {})",
+                        allowed
+                            .iter()
+                            .map(|c| c.to_string())
+                            .collect::<Vec<_>>()
+                            .join(", ")
+                    );
+                }
+            }
+        }
+    }
+    Ok(())
+}
+
+/// The cores this process may run on (`None` when the system does not say).
+fn allowed_cpus() -> Option<Vec<usize>> {
+    // SAFETY: sched_getaffinity fills a zeroed cpu_set_t of the size we pass; CPU_ISSET only reads it.
+    unsafe {
+        let mut set: libc::cpu_set_t = std::mem::zeroed();
+        if libc::sched_getaffinity(0, std::mem::size_of::<libc::cpu_set_t>(), &mut set) != 0 {
+            return None;
+        }
+        Some(
+            (0..libc::CPU_SETSIZE as usize)
+                .filter(|&c| libc::CPU_ISSET(c, &set))
+                .collect(),
+        )
+    }
 }
 
 /// The demo's machine-readable result.
@@ -100,6 +170,8 @@ pub struct DemoReport {
     pub lost_reports: u64,
     /// Frames with incomplete or unordered hop stamps.
     pub bad_stamps: u64,
+    /// Frames drawn before the first tracker sample reached the engine (no latency to measure).
+    pub untracked_frames: u64,
     /// Summed lung volume range drawn, ml.
     pub volume_min_ml: f32,
     /// Summed lung volume range drawn, ml.
@@ -112,6 +184,8 @@ pub struct DemoReport {
     pub kernels: Vec<KernelUse>,
     /// The instance name used.
     pub instance: String,
+    /// Deformation mode the lungs ran in.
+    pub mode: String,
 }
 
 struct Children {
@@ -219,6 +293,14 @@ pub fn snapshot_ticks(count: u32, cycle_ticks: u64, run_ticks: u64, warmup_ticks
 
 /// Run the demo; returns the report (the caller prints it).
 pub fn run(args: &DemoArgs) -> anyhow::Result<DemoReport> {
+    let s = args.seconds;
+    if !(s.is_finite() && s > 0.0 && s <= transport::process::MAX_SECONDS) {
+        bail!(
+            "--seconds {} must be a positive number of seconds, at most {} (one week)",
+            lung_model::plausible::compact(s),
+            transport::process::MAX_SECONDS
+        );
+    }
     transport::process::run_ns(Some(args.seconds))?;
     if !(args.startup_timeout.is_finite()
         && args.startup_timeout > 0.0
@@ -226,9 +308,10 @@ pub fn run(args: &DemoArgs) -> anyhow::Result<DemoReport> {
     {
         bail!(
             "--startup-timeout {} must be a positive number of seconds, at most 3600",
-            args.startup_timeout
+            lung_model::plausible::compact(args.startup_timeout)
         );
     }
+    check_counts(args)?;
     if args.window
         && std::env::var_os("DISPLAY").is_none()
         && std::env::var_os("WAYLAND_DISPLAY").is_none()
@@ -239,8 +322,32 @@ pub fn run(args: &DemoArgs) -> anyhow::Result<DemoReport> {
         );
     }
     tracker_bridge::source::SourceSpec::parse(&args.tracker)?;
+    let ok_deg = |v: f32| v.is_finite() && (0.0..=180.0).contains(&v);
+    if !(ok_deg(args.roll_deg) && ok_deg(args.pitch_deg)) {
+        bail!(
+            "--roll-deg {} / --pitch-deg {} must be within 0..180 degrees",
+            args.roll_deg,
+            args.pitch_deg
+        );
+    }
+    if !(args.sweep_period_s.is_finite() && (1.0..=3600.0).contains(&args.sweep_period_s)) {
+        bail!(
+            "--sweep-period-s {} must be within 1..3600 seconds",
+            args.sweep_period_s
+        );
+    }
     // Every argument is checked before anything is written (kernels are baked below).
-    let loaded = lung_model::scene::Scene::load_or_default(args.scene.as_deref())?;
+    let mut loaded = lung_model::scene::Scene::load_or_default(args.scene.as_deref())?;
+    if let Some(mode) = args.mode {
+        loaded.lungs.mode = mode;
+    }
+    if (args.roll_deg > 0.0 || args.pitch_deg > 0.0) && !loaded.lungs.mode.follows_orientation() {
+        eprintln!(
+            "lungdyn: note: the {} mode keeps the supine breath whatever the patient's orientation; \
+             use --mode basis (or sh, direct) to see the breath follow the turns",
+            loaded.lungs.mode
+        );
+    }
     let instance = args
         .instance
         .clone()
@@ -318,10 +425,24 @@ pub fn run(args: &DemoArgs) -> anyhow::Result<DemoReport> {
         "engine",
         &with_scene([common.clone(), cpu(1)].concat()),
     )?);
+    let sweep = vec![
+        "--roll-deg".to_string(),
+        args.roll_deg.to_string(),
+        "--pitch-deg".to_string(),
+        args.pitch_deg.to_string(),
+        "--sweep-period-s".to_string(),
+        args.sweep_period_s.to_string(),
+    ];
     children.procs.push(Children::spawn(
         &exe,
         "tracker-bridge",
-        &[common.clone(), cpu(0), vec!["--source".to_string(), args.tracker.clone()]].concat(),
+        &[
+            common.clone(),
+            cpu(0),
+            sweep,
+            vec!["--source".to_string(), args.tracker.clone()],
+        ]
+        .concat(),
     )?);
 
     let mut stats = LatencyStats::new();
@@ -439,6 +560,7 @@ pub fn run(args: &DemoArgs) -> anyhow::Result<DemoReport> {
         skipped_ticks: stats.skipped_ticks,
         lost_reports: stats.lost_reports,
         bad_stamps: stats.bad_stamps,
+        untracked_frames: stats.untracked_frames,
         volume_min_ml: if stats.frames > 0 {
             stats.volume_range.0
         } else {
@@ -453,6 +575,7 @@ pub fn run(args: &DemoArgs) -> anyhow::Result<DemoReport> {
         remaining_files: remaining,
         kernels,
         instance,
+        mode: scene.lungs.mode.name().to_string(),
     })
 }
 
@@ -477,8 +600,8 @@ pub fn table(r: &DemoReport) -> String {
     let mut s = String::new();
     let _ = writeln!(
         s,
-        "lungdyn demo: {} frames in {:.1} s ({:.1} fps), lung volume {:.0}-{:.0} ml",
-        r.frames_rendered, r.seconds, r.fps, r.volume_min_ml, r.volume_max_ml
+        "lungdyn demo: {} frames in {:.1} s ({:.1} fps), lung volume {:.0}-{:.0} ml, {} mode",
+        r.frames_rendered, r.seconds, r.fps, r.volume_min_ml, r.volume_max_ml, r.mode
     );
     let _ = writeln!(
         s,
@@ -532,6 +655,26 @@ pub fn table(r: &DemoReport) -> String {
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    #[test]
+    fn counts_and_cores_are_checked_before_any_work() {
+        use clap::Parser;
+        #[derive(clap::Parser)]
+        struct Cli {
+            #[command(flatten)]
+            demo: DemoArgs,
+        }
+        let args =
+            |a: &[&str]| Cli::parse_from(std::iter::once("demo").chain(a.iter().copied())).demo;
+        assert!(check_counts(&args(&[])).is_ok());
+        assert!(check_counts(&args(&["--snapshots", "240"])).is_ok());
+        let e = check_counts(&args(&["--snapshots", "1000000000"])).unwrap_err();
+        assert!(e.to_string().contains("--snapshots 1000000000"), "{e}");
+        let e = check_counts(&args(&["--cpus", "4096", "0", "0"])).unwrap_err();
+        assert!(e.to_string().contains("core 4096"), "{e}");
+        let first = allowed_cpus().unwrap()[0].to_string();
+        assert!(check_counts(&args(&["--cpus", &first, &first, &first])).is_ok());
+    }
 
     #[test]
     fn snapshots_span_one_cycle_after_warm_up() {

@@ -12,6 +12,8 @@ use plotters::prelude::*;
 
 /// Draw the three panels into `png` (drawn to a temporary sibling, then renamed).
 pub fn write(kernel: &KernelFile, png: &Path) -> anyhow::Result<()> {
+    // A .png in a folder that takes a new file, or an error naming the path (not a drawing error).
+    crate::plot::check_path(png)?;
     let tmp = png.with_file_name(format!(
         ".{}.tmp-{}.png",
         png.file_name().unwrap_or_default().to_string_lossy(),
@@ -53,10 +55,11 @@ fn draw(kernel: &KernelFile, png: &Path) -> anyhow::Result<()> {
             .unwrap_or(0)
     };
     let (base, apex) = (pick(0.15), pick(0.85));
+    let (row_ptr, cols, vals) = (kernel.row_ptr()?, kernel.cols()?, kernel.vals()?);
     let row = |j: usize| {
-        let r = kernel.row_ptr()[j] as usize..kernel.row_ptr()[j + 1] as usize;
+        let r = row_ptr[j] as usize..row_ptr[j + 1] as usize;
         let mut v = vec![0.0f64; n];
-        for (&c, &t) in kernel.cols()[r.clone()].iter().zip(&kernel.vals()[r]) {
+        for (&c, &t) in cols[r.clone()].iter().zip(&vals[r]) {
             v[c as usize] = t as f64;
         }
         v

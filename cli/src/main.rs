@@ -48,6 +48,9 @@ enum Command {
     /// HMD optics files.
     #[command(subcommand)]
     Hmd(HmdCommand),
+    /// Measurements: the deformation modes' speed/accuracy trade.
+    #[command(subcommand)]
+    Bench(BenchCommand),
     /// Run only the tracker-bridge process (what `demo` starts).
     TrackerBridge(tracker_bridge::BridgeArgs),
     /// Run only the engine process (what `demo` starts).
@@ -88,6 +91,14 @@ enum TrackerCommand {
 enum HmdCommand {
     /// Load and check an HMD optics file (IPD, eye offsets, fields of view) and show the eyes.
     Check(lungdyn::register_cmd::HmdArgs),
+}
+
+#[derive(Subcommand)]
+enum BenchCommand {
+    /// Every deformation mode's error against eq. 7.1 and its per-frame time on the CPU and GPU,
+    /// SH for 1..8 bands, the orientation methods, stereo vs mono: writes OUT.md, OUT.csv, OUT.png
+    /// (several minutes at the default sizes; --sizes 10000 for a quick look).
+    Tradeoff(lungdyn::tradeoff::TradeoffArgs),
 }
 
 #[derive(Subcommand)]
@@ -142,7 +153,22 @@ fn main() -> std::process::ExitCode {
             }
             Ok(())
         }),
+        Command::Bench(BenchCommand::Tradeoff(args)) => lungdyn::tradeoff::run(&args).and_then(|t| {
+            if args.json {
+                println!("{}", serde_json::to_string(&t)?);
+            } else {
+                print!("{}", lungdyn::tradeoff::text(&t));
+            }
+            Ok(())
+        }),
         Command::Bake(args) => lungdyn::bake_cmd::bake(&args).and_then(|b| {
+            if let (Some(budget), Some(false), Some(rms)) = (b.sh_budget_mm, b.sh_budget_met, b.sh_rms_mm) {
+                eprintln!(
+                    "lungdyn: warning: the spherical harmonics reach {rms:.3} mm RMS with {} bands, over the \
+                     {budget} mm budget; the \"basis\" mode is exact for this force (set [lungs] mode = \"basis\")",
+                    b.sh_bands
+                );
+            }
             if args.json {
                 println!("{}", serde_json::to_string(&b)?);
             } else {

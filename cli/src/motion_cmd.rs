@@ -20,7 +20,9 @@ lines starting with # are skipped), the same points in the same order in every f
 (3D Slicer mm), or voxel (indices, with --spacing, --voxel-axes and --index-base). --format dirlab \
 reads DIR-Lab landmark files: voxel indices, 1-based, axes R>L,A>P,S>I (slice 1 at the head). A mesh \
 (.obj, .ply, .stl) stands for its vertices; two meshes of one lung must share their vertex order. \
-Sets covering both lungs are split at the mid-sagittal gap (the lung at larger X is the left one).\n\n\
+Sets covering both lungs are split at the mid-sagittal gap (the lung at larger X is the left one); with \
+--lung the set is that one lung and is never split. Coordinates that are all whole numbers >= 0 look like \
+voxel indices and need a stated frame.\n\n\
 Landmarks: every model (the seed's power law, an affine field, a polynomial, a thin-plate spline \
 'rbf') is fitted and cross-validated: in-sample and k-fold held-out errors are printed beside the \
 no-motion baseline and the best by held-out error is chosen (--model picks one). The frame is checked \
@@ -44,7 +46,8 @@ pub struct FitMotionArgs {
     /// File format preset: `dirlab` = voxel indices, 1-based, axes R>L,A>P,S>I (needs --spacing).
     #[arg(long, value_parser = ["plain", "dirlab"], default_value = "plain")]
     pub format: String,
-    /// Voxel size in mm along the file's three index axes (sx,sy,sz): with --frame voxel or --format dirlab.
+    /// Voxel size in mm along the file's three index axes (sx,sy,sz), each 0.1–20: with --frame voxel
+    /// or --format dirlab (landmark files only; meshes are in mm).
     #[arg(long, value_delimiter = ',')]
     pub spacing: Vec<f64>,
     /// How the voxel indices run, e.g. R>L,A>P,S>I (the index grows from the first letter to the second).
@@ -53,7 +56,8 @@ pub struct FitMotionArgs {
     /// First voxel index: 0 or 1.
     #[arg(long, value_parser = clap::value_parser!(u8).range(0..=1))]
     pub index_base: Option<u8>,
-    /// Which lung, when the points are one lung (no mid-sagittal gap).
+    /// The points (or meshes) are this one lung: never split at a gap; a warning when their motion
+    /// (points) or shape (meshes) says the other lung, a refusal when they clearly hold both lungs.
     #[arg(long, value_parser = ["left", "right"])]
     pub lung: Option<String>,
     /// Landmark model: power (the seed's eq. 6.14-6.16), affine, poly, rbf (thin-plate spline), or
@@ -88,17 +92,28 @@ pub struct FitMotionArgs {
     pub json: bool,
 }
 
+/// Plausible CT voxel sizes, mm: clinical CT has 0.3–1 mm pixels and 0.5–5 mm slices (4DCT often
+/// 2.5–3 mm); the range is that widened to 0.1–20 mm. A spacing outside it is a typo or a unit
+/// mistake (metres, or a count), and it would only turn into a lung of an impossible size later.
+pub const VOXEL_SPACING_MM: (f64, f64) = (0.1, 20.0);
+
 /// The frame the options state.
 pub fn frame_of(args: &FitMotionArgs) -> anyhow::Result<Frame> {
     let spacing = match args.spacing.as_slice() {
         [] => None,
         [x, y, z] => {
+            let (lo, hi) = VOXEL_SPACING_MM;
             if ![x, y, z]
                 .iter()
-                .all(|v| v.is_finite() && **v > 0.0 && **v < 50.0)
+                .all(|v| v.is_finite() && (lo..=hi).contains(*v))
             {
+                let c = lung_model::plausible::compact;
                 anyhow::bail!(
-                    "--spacing {x},{y},{z}: each must be a voxel size in mm within (0, 50)"
+                    "--spacing {},{},{}: each must be a CT voxel size in mm within {lo}–{hi} (clinical CT \
+                     has 0.3–1 mm pixels and 0.5–5 mm slices; DIR-Lab case 1 is 0.97,0.97,2.5)",
+                    c(*x),
+                    c(*y),
+                    c(*z)
                 );
             }
             Some([*x, *y, *z])
@@ -238,6 +253,104 @@ fn check_spread(path: &Path, pts: &[DVec3], voxels: bool) -> anyhow::Result<()> 
         .map_err(|e| anyhow::anyhow!("{}: {e}", path.display()))
 }
 
+/// Coordinates that are all whole numbers from 0 to 4095 look like CT voxel indices (a CT grid has at
+/// most a few thousand voxels per axis; coordinates in mm are almost never all whole and non-negative:
+/// the body frame's X changes sign between the lungs). Read as mm they would be fitted into a wrong
+/// answer, so without a stated frame they are refused, naming the options for voxels.
+fn check_not_voxel_indices(path: &Path, pts: &[DVec3]) -> anyhow::Result<()> {
+    if pts.len() < 4 {
+        return Ok(());
+    }
+    let whole = |v: f64| (0.0..4096.0).contains(&v) && v.fract() == 0.0;
+    if !pts.iter().all(|p| p.to_array().into_iter().all(whole)) {
+        return Ok(());
+    }
+    let (lo, hi) = pts.iter().fold(
+        (DVec3::splat(f64::INFINITY), DVec3::splat(f64::NEG_INFINITY)),
+        |(lo, hi), p| (lo.min(*p), hi.max(*p)),
+    );
+    anyhow::bail!(
+        "{}: every coordinate is a whole number from 0 to 4095 (x {}–{}, y {}–{}, z {}–{}), as CT voxel \
+         indices are, and no frame was stated (read as mm they would give a wrong answer): for voxel \
+         indices pass --frame voxel --spacing sx,sy,sz --voxel-axes AXES --index-base 0|1 (DIR-Lab \
+         files: --format dirlab --spacing sx,sy,sz); if they really are mm, say so with --frame body \
+         (or lps, ras)",
+        path.display(),
+        lo.x,
+        hi.x,
+        lo.y,
+        hi.y,
+        lo.z,
+        hi.z
+    )
+}
+
+/// Smallest largest-displacement between two phases taken as motion, mm (1 µm: below any imaging
+/// resolution, so less is the same phase twice).
+const MIN_MOTION_MM: f64 = 1e-3;
+
+/// The two phases must differ: the same points twice fit a motion of zero, written as if measured.
+fn check_some_motion(
+    from: &[DVec3],
+    to: &[DVec3],
+    path: &Path,
+    args: &FitMotionArgs,
+) -> anyhow::Result<()> {
+    let largest = from
+        .iter()
+        .zip(to)
+        .map(|(a, b)| a.distance(*b))
+        .fold(0.0, f64::max);
+    if largest < MIN_MOTION_MM {
+        anyhow::bail!(
+            "{}: no motion between the phases: every point is where it is in {} (largest displacement {} \
+             mm): is it the same phase twice? Give the end-exhale points as --from and the end-inhale \
+             points as --to",
+            path.display(),
+            args.from.display(),
+            lung_model::plausible::compact(largest)
+        );
+    }
+    Ok(())
+}
+
+/// Refuse `--from` and `--to` naming one file (nothing to fit), before reading either.
+fn check_distinct_files(args: &FitMotionArgs) -> anyhow::Result<()> {
+    let same = match (
+        std::fs::canonicalize(&args.from),
+        std::fs::canonicalize(&args.to),
+    ) {
+        (Ok(a), Ok(b)) => a == b,
+        _ => args.from == args.to,
+    };
+    if same {
+        anyhow::bail!(
+            "--from and --to are the same file ({}): no motion between the phases can be fitted from one \
+             phase; give the end-inhale file as --to",
+            args.to.display()
+        );
+    }
+    Ok(())
+}
+
+/// Warn (stderr) when `side` disagrees with what the evidence says; returns the warning.
+fn side_warning(path: &Path, side: Option<Side>, seen: Option<(Side, String)>) -> Option<String> {
+    match (side, seen) {
+        (Some(given), Some((seen, why))) if given != seen => {
+            let w = format!(
+                "{}: --lung {} but it looks like a {} lung ({why}): check --lung and the frame (+X = the \
+                 patient's left)",
+                path.display(),
+                given.name(),
+                seen.name()
+            );
+            eprintln!("lungdyn: warning: {w}");
+            Some(w)
+        }
+        _ => None,
+    }
+}
+
 /// Corresponding points must not move further than a lung can between two phases.
 fn check_motion(from: &[DVec3], to: &[DVec3], path: &Path) -> anyhow::Result<()> {
     use lung_model::plausible::LANDMARK_MOTION_MM;
@@ -249,9 +362,14 @@ fn check_motion(from: &[DVec3], to: &[DVec3], path: &Path) -> anyhow::Result<()>
         .find(|(_, d)| !LANDMARK_MOTION_MM.contains(*d))
     {
         anyhow::bail!(
-            "{}: point {} moves {d:.1} mm from the reference phase; {}",
+            "{}: point {} moves {} mm from the reference phase; {}",
             path.display(),
             i + 1,
+            if d.is_finite() && d.abs() < 1e7 {
+                format!("{d:.1}")
+            } else {
+                format!("{d:e}")
+            },
             LANDMARK_MOTION_MM
                 .check(
                     d,
@@ -347,7 +465,8 @@ fn lung_parts(
         .iter()
         .map(|p| DVec3::from(p.map(|v| v as f64)))
         .collect();
-    motion_fit::split_lungs(&pts, side)?
+    motion_fit::split_lungs(&pts, side)
+        .map_err(|e| anyhow::anyhow!("{}: {e}", what.display()))?
         .into_iter()
         .map(|(s, idx)| {
             let sub = sub_mesh(mesh, &idx, [1.0; 3]).with_context(|| {
@@ -374,6 +493,19 @@ fn run_surface(
     use lung_bake::surface_fit::{fit_surface, Goal, Target};
     let scene = lung_model::scene::Scene::load_or_default(args.scene.as_deref())?;
     let parts_a = lung_parts(a, side, &args.from)?;
+    if side.is_some() {
+        // --lung: the mesh is that lung; say so when its geometry says otherwise (as bake and mesh
+        // check do).
+        for (_, _, m) in &parts_a {
+            let e = lung_bake::surface_checks::infer_side(m);
+            side_warning(
+                &args.from,
+                side,
+                e.side
+                    .map(|s| (s, format!("{}; confidence {:.2}", e.reason, e.confidence))),
+            );
+        }
+    }
     let parts_b = lung_parts(b, side, &args.to)?;
     let also = args
         .also
@@ -561,6 +693,8 @@ pub struct PointsReport {
     pub frame_check: motion_models::FrameCheck,
     /// A warning when the data disagree with the stated frame or phase order.
     pub frame_warning: Option<String>,
+    /// A warning when the motion disagrees with `--lung`.
+    pub side_warning: Option<String>,
     /// Mean landmark displacement (the no-motion error), mm.
     pub baseline_mean_mm: f64,
     /// Folds of the cross-validation and their seed.
@@ -599,17 +733,54 @@ pub enum Outcome {
 
 /// Read, fit, optionally write.
 pub fn run(args: &FitMotionArgs) -> anyhow::Result<Outcome> {
+    let meshes = std::iter::once(&args.from)
+        .chain(std::iter::once(&args.to))
+        .chain(&args.also)
+        .any(|p| is_mesh(p));
+    if meshes && !args.spacing.is_empty() {
+        anyhow::bail!(
+            "--spacing applies to voxel landmark files only; a mesh (.obj, .ply, .stl) holds coordinates \
+             in mm, which --spacing must not rescale: drop --spacing"
+        );
+    }
     let frame = frame_of(args)?;
     let side: Option<Side> = args
         .lung
         .as_deref()
         .map(|s| s.parse().map_err(anyhow::Error::msg))
         .transpose()?;
+    check_distinct_files(args)?;
+    // Every output checked before any work.
+    let mut outputs = Vec::new();
+    if let Some(path) = &args.out {
+        outputs.push(crate::outputs::Output {
+            flag: "--out",
+            path,
+            extensions: &[],
+        });
+    }
+    if let Some(path) = &args.plot {
+        outputs.push(crate::outputs::Output {
+            flag: "--plot",
+            path,
+            extensions: &["png"],
+        });
+    }
+    crate::outputs::check_all(&outputs, &[])?;
     if is_mesh(&args.from) && is_mesh(&args.to) {
         let ma = import_scaled(&args.from, &frame, &args.input)?;
         let mb = import_scaled(&args.to, &frame, &args.input)?;
         let same_vertices =
             ma.positions.len() == mb.positions.len() && ma.triangles == mb.triangles;
+        if same_vertices {
+            let pts = |m: &lung_model::mesh::TriMesh| -> Vec<DVec3> {
+                m.positions
+                    .iter()
+                    .map(|p| DVec3::from(p.map(|v| v as f64)))
+                    .collect()
+            };
+            check_some_motion(&pts(&ma), &pts(&mb), &args.to, args)?;
+        }
         return Ok(Outcome::Kernel(run_surface(
             args,
             &ma,
@@ -623,8 +794,20 @@ pub fn run(args: &FitMotionArgs) -> anyhow::Result<Outcome> {
     }
     let a = read_points(&args.from, &frame, &args.input)?;
     let b = read_points(&args.to, &frame, &args.input)?;
+    let stated = args.frame.is_some()
+        || args.format == "dirlab"
+        || args.voxel_axes.is_some()
+        || args.index_base.is_some();
+    if !stated {
+        for (path, pts) in [(&args.from, &a), (&args.to, &b)] {
+            if !is_mesh(path) {
+                check_not_voxel_indices(path, pts)?;
+            }
+        }
+    }
     if a.len() == b.len() {
         check_motion(&a, &b, &args.to)?;
+        check_some_motion(&a, &b, &args.to, args)?;
     }
     let also = args
         .also
@@ -637,11 +820,18 @@ pub fn run(args: &FitMotionArgs) -> anyhow::Result<Outcome> {
             Ok((p.display().to_string(), pts))
         })
         .collect::<anyhow::Result<Vec<_>>>()?;
+    // --lung: the set is that one lung (refused, naming the file, when it clearly holds both).
+    if side.is_some() {
+        motion_fit::split_lungs(&a, side)
+            .map_err(|e| anyhow::anyhow!("{}: {e}", args.from.display()))?;
+    }
     // The seed's power law with its per-lung constants (what a kernel's c1..c9 are)...
     let power = motion_fit::fit(&a, &b, &also, side)?;
     // ... and every model, cross-validated.
     let delta: Vec<DVec3> = a.iter().zip(&b).map(|(p, q)| *q - *p).collect();
     let (_, lungs, _) = motion_models::split(&a, &delta, side)?;
+    // --lung: the set is that lung; say so when its motion says otherwise.
+    let side_warning = side_warning(&args.from, side, motion_fit::side_from_motion(&a, &delta));
     let frame_check = motion_models::check_frame(&lungs);
     if let Some(w) = &frame_check.warning {
         eprintln!("lungdyn: WARNING: {w}");
@@ -692,6 +882,7 @@ pub fn run(args: &FitMotionArgs) -> anyhow::Result<Outcome> {
         frame: frame.name(),
         frame_description: frame.describe(),
         frame_warning: frame_check.warning.clone(),
+        side_warning,
         frame_check,
         baseline_mean_mm: power.residuals.baseline_mean_mm,
         folds: args.folds,
@@ -738,6 +929,9 @@ pub fn text(outcome: &Outcome, args: &FitMotionArgs) -> String {
 fn points_text(r: &PointsReport, args: &FitMotionArgs) -> String {
     let mut s = format!("frame: {}\n", r.frame_description);
     if let Some(w) = &r.frame_warning {
+        s += &format!("WARNING: {w}\n");
+    }
+    if let Some(w) = &r.side_warning {
         s += &format!("WARNING: {w}\n");
     }
     s += &format!(

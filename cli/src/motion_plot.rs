@@ -12,9 +12,8 @@ use crate::motion_cmd::PointsReport;
 
 /// Draw into `png` (a temporary sibling, then renamed).
 pub fn write(png: &Path, start: &[DVec3], report: &PointsReport) -> anyhow::Result<()> {
-    if png.extension().and_then(|e| e.to_str()) != Some("png") {
-        anyhow::bail!("--plot {}: the plot must end in .png", png.display());
-    }
+    // A .png in a folder that takes a new file, or an error naming the path (not a drawing error).
+    crate::plot::check_path(png)?;
     let tmp = png.with_file_name(format!(
         ".{}.tmp-{}.png",
         png.file_name().unwrap_or_default().to_string_lossy(),

@@ -146,49 +146,88 @@ where
     Ok(())
 }
 
-/// Write `panels` side by side to `png` and to the SVG with the same stem; returns both paths.
-/// Each file is drawn to a temporary sibling first and renamed, so a failed plot never replaces a
-/// good one.
-pub fn write(png: &Path, panels: &[Panel]) -> anyhow::Result<(PathBuf, PathBuf)> {
-    ensure_font();
-    let ext = png
-        .extension()
-        .and_then(|e| e.to_str())
-        .map(|e| e.to_ascii_lowercase());
-    if ext.as_deref() != Some("png") {
-        anyhow::bail!(
-            "--plot {}: the plot file name must end in .png (an .svg is written beside it)",
-            png.display()
-        );
+/// Files drawn to temporary siblings and not yet in place: [`Staged::commit`] renames them over
+/// their targets; dropped uncommitted, the temporary files are removed and nothing is replaced.
+#[derive(Debug)]
+pub struct Staged {
+    files: Vec<(PathBuf, PathBuf)>,
+}
+
+impl Staged {
+    /// Put every file in place (renames within one folder); returns the final paths.
+    pub fn commit(mut self) -> anyhow::Result<Vec<PathBuf>> {
+        let files = std::mem::take(&mut self.files);
+        for (i, (tmp, path)) in files.iter().enumerate() {
+            if let Err(e) = std::fs::rename(tmp, path) {
+                for (t, _) in &files[i..] {
+                    let _ = std::fs::remove_file(t);
+                }
+                anyhow::bail!("cannot write {}: {e}", path.display());
+            }
+        }
+        Ok(files.into_iter().map(|(_, p)| p).collect())
     }
-    let svg = png.with_extension("svg");
+}
+
+impl Drop for Staged {
+    fn drop(&mut self) {
+        for (tmp, _) in &self.files {
+            let _ = std::fs::remove_file(tmp);
+        }
+    }
+}
+
+/// The SVG written beside a plot `png`.
+pub fn svg_of(png: &Path) -> PathBuf {
+    png.with_extension("svg")
+}
+
+/// Check a `--plot` path before any work: a `.png` in a writable folder (see [`crate::outputs`]).
+pub fn check_path(png: &Path) -> anyhow::Result<()> {
+    crate::outputs::check(&crate::outputs::Output {
+        flag: "--plot",
+        path: png,
+        extensions: &["png"],
+    })
+}
+
+/// Draw `panels` side by side to temporary siblings of `png` and of the SVG with the same stem;
+/// nothing is replaced until [`Staged::commit`]. A failure names the plot's path.
+pub fn render(png: &Path, panels: &[Panel]) -> anyhow::Result<Staged> {
+    ensure_font();
+    check_path(png)?;
+    let svg = svg_of(png);
     let size = (560 * panels.len() as u32, 480);
     let tmp = |p: &Path| {
         p.with_file_name(format!(
             ".{}.tmp-{}",
-            p.file_name().unwrap().to_string_lossy(),
+            p.file_name().unwrap_or_default().to_string_lossy(),
             std::process::id()
         ))
     };
-    let (png_tmp, svg_tmp) = (
-        tmp(png).with_extension("png"),
-        tmp(&svg).with_extension("svg"),
-    );
-    let result = (|| {
-        draw(
-            BitMapBackend::new(&png_tmp, size).into_drawing_area(),
-            panels,
-        )?;
-        draw(SVGBackend::new(&svg_tmp, size).into_drawing_area(), panels)?;
-        std::fs::rename(&png_tmp, png)
-            .map_err(|e| anyhow::anyhow!("cannot write {}: {e}", png.display()))?;
-        std::fs::rename(&svg_tmp, &svg)
-            .map_err(|e| anyhow::anyhow!("cannot write {}: {e}", svg.display()))?;
-        Ok(())
-    })();
-    if result.is_err() {
-        let _ = std::fs::remove_file(&png_tmp);
-        let _ = std::fs::remove_file(&svg_tmp);
-    }
-    result.map(|_| (png.to_path_buf(), svg))
+    let staged = Staged {
+        files: vec![
+            (tmp(png).with_extension("png"), png.to_path_buf()),
+            (tmp(&svg).with_extension("svg"), svg.clone()),
+        ],
+    };
+    draw(
+        BitMapBackend::new(&staged.files[0].0, size).into_drawing_area(),
+        panels,
+    )
+    .map_err(|e| anyhow::anyhow!("--plot {}: {e}", png.display()))?;
+    draw(
+        SVGBackend::new(&staged.files[1].0, size).into_drawing_area(),
+        panels,
+    )
+    .map_err(|e| anyhow::anyhow!("--plot {}: {e}", svg.display()))?;
+    Ok(staged)
+}
+
+/// Write `panels` side by side to `png` and to the SVG with the same stem; returns both paths.
+/// Each file is drawn to a temporary sibling first and renamed, so a failed plot never replaces a
+/// good one.
+pub fn write(png: &Path, panels: &[Panel]) -> anyhow::Result<(PathBuf, PathBuf)> {
+    let files = render(png, panels)?.commit()?;
+    Ok((files[0].clone(), files[1].clone()))
 }

@@ -9,6 +9,9 @@
 use std::path::{Path, PathBuf};
 
 use anyhow::Context;
+use lung_model::deform::modes::DeformMode;
+use lung_model::kernel::KernelMeta;
+use lung_model::mesh::Side;
 use lung_model::scene::Scene;
 use serde::Serialize;
 
@@ -23,6 +26,26 @@ pub struct KernelUse {
     pub baked_now: bool,
     /// Bake seconds (0 when reused).
     pub bake_seconds: f64,
+    /// Spherical-harmonic bands in the kernel (0: none).
+    pub sh_bands: u32,
+    /// RMS displacement error of the SH mode against eq. 7.1, mm (when it has bands).
+    pub sh_rms_mm: Option<f64>,
+    /// Largest displacement error of the basis mode against eq. 7.1, mm (round-off).
+    pub basis_max_error_mm: Option<f64>,
+}
+
+impl KernelUse {
+    fn of(side: Side, path: &Path, baked_now: bool, bake_seconds: f64, meta: &KernelMeta) -> Self {
+        Self {
+            lung: side.name().into(),
+            path: path.display().to_string(),
+            baked_now,
+            bake_seconds,
+            sh_bands: meta.sh.as_ref().map_or(0, |s| s.bands),
+            sh_rms_mm: meta.sh.as_ref().map(|s| s.rms_mm),
+            basis_max_error_mm: meta.orientation.as_ref().map(|o| o.basis_max_error_mm),
+        }
+    }
 }
 
 /// Give every lung of `scene` a kernel file: lungs without one get the generated default lung, baked
@@ -43,16 +66,28 @@ pub fn ensure_kernels(
     for side in scene.lungs.sides.clone() {
         if let Some(k) = scene.lungs.kernels.get(side) {
             let k = absolute(k);
-            used.push(KernelUse {
-                lung: side.name().into(),
-                path: k.display().to_string(),
-                baked_now: false,
-                bake_seconds: 0.0,
-            });
-            scene.lungs.kernels.set(side, k);
+            scene.lungs.kernels.set(side, k.clone());
+            // The scene's own kernel: verified now (every section), the right lung, and what the
+            // mode needs — so a bad kernel is refused here, not by the engine after the launch.
+            lung_model::kernel::KernelFile::open(&k)?;
+            // (The error budget is settled below, for every lung at once.)
+            let mut unbudgeted = scene.clone();
+            unbudgeted.lungs.max_error_mm = None;
+            let file = unbudgeted.lung_kernel(side)?;
+            used.push(KernelUse::of(side, &k, false, 0.0, file.meta()));
             continue;
         }
-        let settings = scene.bake_settings(side)?;
+        let mut settings = scene.bake_settings(side)?;
+        // Model only what the scene requires: spherical harmonics only for the sh mode (with a
+        // budget, up to 8 bands and the fewest that meet it).
+        settings.sh_bands = match (scene.lungs.mode, scene.lungs.max_error_mm) {
+            (DeformMode::Sh, Some(_)) => lung_model::kernel::MAX_RUNTIME_BANDS,
+            (DeformMode::Sh, None) => scene.lungs.bands,
+            _ => 0,
+        };
+        if scene.lungs.mode != DeformMode::Sh {
+            settings.max_error_mm = None;
+        }
         let key = xxhash_rust::xxh3::xxh3_64(
             format!(
                 "{}:{}:{}",
@@ -71,6 +106,7 @@ pub fn ensure_kernels(
         let reusable = lung_model::kernel::KernelFile::open(&path)
             .map(|f| f.meta().side == side && f.meta().settings == settings)
             .unwrap_or(false);
+        let mut meta = None;
         let mut seconds = 0.0;
         if !reusable {
             let t = std::time::Instant::now();
@@ -92,14 +128,47 @@ pub fn ensure_kernels(
             bar.finish_and_clear();
             kernel.write(&path)?;
             seconds = t.elapsed().as_secs_f64();
+            meta = Some(kernel.meta);
         }
-        used.push(KernelUse {
-            lung: side.name().into(),
-            path: path.display().to_string(),
-            baked_now: !reusable,
-            bake_seconds: seconds,
-        });
+        let meta = match meta {
+            Some(m) => m,
+            None => lung_model::kernel::KernelFile::open_lazy(&path)?
+                .meta()
+                .clone(),
+        };
+        used.push(KernelUse::of(side, &path, !reusable, seconds, &meta));
         scene.lungs.kernels.set(side, path);
+    }
+    // An error budget the spherical harmonics cannot meet: the force is linear in the box
+    // coordinates, so the exact basis mode serves it (EQUATIONS.md §3.2).
+    if let (DeformMode::Sh, Some(budget)) = (scene.lungs.mode, scene.lungs.max_error_mm) {
+        let missed: Vec<String> = used
+            .iter()
+            .filter(|u| u.sh_rms_mm.is_some_and(|e| e > budget))
+            .map(|u| {
+                format!(
+                    "{} lung {:.3} mm with {} bands",
+                    u.lung,
+                    u.sh_rms_mm.unwrap_or(f64::NAN),
+                    u.sh_bands
+                )
+            })
+            .collect();
+        if !missed.is_empty() {
+            eprintln!(
+                "lungdyn: the spherical harmonics cannot meet max_error_mm = {budget} ({}); running \
+                 the exact \"basis\" mode instead (error {:.1e} mm)",
+                missed.join(", "),
+                used.iter()
+                    .filter_map(|u| u.basis_max_error_mm)
+                    .fold(0.0, f64::max)
+            );
+            scene.lungs.mode = DeformMode::Basis;
+        }
+    }
+    // The resolved scene must load in every process: check it here.
+    for side in scene.lungs.sides.clone() {
+        scene.lung_kernel(side)?;
     }
     Ok(used)
 }

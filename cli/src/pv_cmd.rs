@@ -182,6 +182,37 @@ pub fn simulate_constants(
     if let Some(chi) = &a.chi_exhale {
         exhale.chi = chi.clone();
     }
+    // Every constant in its documented range before any work, naming where a bad one came from.
+    for (phase, k, chi_flag) in [
+        (
+            "inhalation",
+            &inhale,
+            a.chi_inhale.is_some().then_some("--chi-inhale"),
+        ),
+        (
+            "exhalation",
+            &exhale,
+            a.chi_exhale.is_some().then_some("--chi-exhale"),
+        ),
+    ] {
+        let flags: Vec<&str> = [
+            chi_flag,
+            a.q.map(|_| "--q"),
+            a.c.map(|_| "--c"),
+            a.t_ext.map(|_| "--t-ext"),
+        ]
+        .into_iter()
+        .flatten()
+        .collect();
+        k.validate().map_err(|e| {
+            let from = if flags.is_empty() {
+                name.clone()
+            } else {
+                format!("{} over {name}", flags.join(", "))
+            };
+            anyhow::anyhow!("{phase} constants ({from}): {e}")
+        })?;
+    }
     boundary.frc_ml = a.frc.unwrap_or(boundary.frc_ml);
     boundary.tv_ml = a.tv.unwrap_or(boundary.tv_ml);
     boundary.tp_cmh2o = a.tp.unwrap_or(boundary.tp_cmh2o);
@@ -198,10 +229,37 @@ struct SimulateSummary {
     rows: usize,
 }
 
+/// Check `--out` (any name) and `--plot` (a .png, with its .svg beside it) before any work.
+fn check_outputs(
+    out: Option<&std::path::Path>,
+    plot: Option<&std::path::Path>,
+) -> anyhow::Result<()> {
+    use crate::outputs::{check_all, Output};
+    let mut outputs = Vec::new();
+    if let Some(path) = out {
+        outputs.push(Output {
+            flag: "--out",
+            path,
+            extensions: &[],
+        });
+    }
+    let mut also = Vec::new();
+    if let Some(path) = plot {
+        outputs.push(Output {
+            flag: "--plot",
+            path,
+            extensions: &["png"],
+        });
+        also.push(("--plot", plot::svg_of(path)));
+    }
+    check_all(&outputs, &also)
+}
+
 fn simulate(a: &SimulateArgs) -> anyhow::Result<()> {
     if !(2..=100_000).contains(&a.samples) {
         anyhow::bail!("--samples {} must be within 2..100000", a.samples);
     }
+    check_outputs(Some(&a.out), a.plot.as_deref())?;
     let (inhale, exhale, b, name) = simulate_constants(a)?;
     let steps = a.samples - 1;
     let up =
@@ -232,15 +290,9 @@ fn simulate(a: &SimulateArgs) -> anyhow::Result<()> {
             d_down[i],
         ));
     }
-    lung_model::mesh::io::write_atomically(&a.out, |w| {
-        use std::io::Write;
-        writeln!(w, "phase,t,pressure_cmh2o,volume_ml,damping")?;
-        for (phase, t, p, v, d) in &rows {
-            writeln!(w, "{phase},{t},{p},{v},{d}")?;
-        }
-        Ok(())
-    })?;
-    let mut plots = Vec::new();
+    // The plot is drawn first (to temporary files), the CSV written, then the plot put in place:
+    // a plot that cannot be drawn leaves every output as it was.
+    let mut staged = None;
     if let Some(png) = &a.plot {
         let series =
             |phase: &str, color, f: &dyn Fn(&(&str, f64, f64, f64, f64)) -> (f64, f64)| Series {
@@ -278,9 +330,24 @@ fn simulate(a: &SimulateArgs) -> anyhow::Result<()> {
                 ],
             },
         ];
-        let (p, s) = plot::write(png, &panels)?;
-        plots = vec![p.display().to_string(), s.display().to_string()];
+        staged = Some(plot::render(png, &panels)?);
     }
+    lung_model::mesh::io::write_atomically(&a.out, |w| {
+        use std::io::Write;
+        writeln!(w, "phase,t,pressure_cmh2o,volume_ml,damping")?;
+        for (phase, t, p, v, d) in &rows {
+            writeln!(w, "{phase},{t},{p},{v},{d}")?;
+        }
+        Ok(())
+    })?;
+    let plots = match staged {
+        Some(s) => s
+            .commit()?
+            .iter()
+            .map(|p| p.display().to_string())
+            .collect(),
+        None => Vec::new(),
+    };
     let summary = SimulateSummary {
         csv: a.out.display().to_string(),
         plots,
@@ -347,6 +414,15 @@ fn fit(a: &FitArgs) -> anyhow::Result<()> {
     if let Some(frc) = a.frc {
         lung_model::plausible::FRC_ML.check(frc, Some("--frc is the FRC in ml".into()))?;
     }
+    // The constants held fixed, in their documented ranges, and every output, before any work.
+    if let Some(q) = a.q {
+        lung_model::pv::check_q(q).map_err(|e| anyhow::anyhow!("--q: {e}"))?;
+    }
+    if let Some(c) = a.c {
+        lung_model::pv::check_c(c).map_err(|e| anyhow::anyhow!("--c: {e}"))?;
+    }
+    lung_model::pv::check_t_ext(a.t_ext).map_err(|e| anyhow::anyhow!("--t-ext: {e}"))?;
+    check_outputs(a.out.as_deref(), a.plot.as_deref())?;
     let curve = read_curve(
         &a.input,
         &lung_bake::pv::curve::CurveOptions {
@@ -401,22 +477,48 @@ fn fit(a: &FitArgs) -> anyhow::Result<()> {
     fit.boundary
         .check_plausible()
         .map_err(|e| anyhow::anyhow!("{}: the fitted boundary values: {e}", a.input.display()))?;
+    for f in [&fit.inhale, &fit.exhale] {
+        if !(f.rms_percent.is_finite() && f.max_error_percent.is_finite()) {
+            anyhow::bail!(
+                "{}: the fit did not converge to a finite error (RMS {}): check the curve",
+                a.input.display(),
+                f.rms_percent
+            );
+        }
+    }
     let seconds = start.elapsed().as_secs_f64();
+    // Plot drawn first (temporary files), constants written, then the plot put in place.
+    let staged = match &a.plot {
+        Some(png) => Some(plot::render(png, &fit_panels(&fit, &curve.samples)?)?),
+        None => None,
+    };
     if let Some(out) = &a.out {
         PvConstantsFile {
             format: CONSTANTS_FORMAT,
-            source: format!("lungdyn pv fit --input {}", a.input.display()),
+            source: format!(
+                "lungdyn pv fit --input {}{}",
+                a.input.display(),
+                if fit.driving_pressure_sign < 0.0 {
+                    "; pressure fell as volume rose (oesophageal/pleural): RP and TP are the driving \
+                     pressure -P"
+                } else {
+                    ""
+                }
+            ),
             boundary: fit.boundary,
             inhale: fit.inhale.constants.clone(),
             exhale: fit.exhale.constants.clone(),
         }
         .save(out)?;
     }
-    let mut plots = Vec::new();
-    if let Some(png) = &a.plot {
-        let (p, s) = plot::write(png, &fit_panels(&fit, &curve.samples)?)?;
-        plots = vec![p.display().to_string(), s.display().to_string()];
-    }
+    let plots: Vec<String> = match staged {
+        Some(s) => s
+            .commit()?
+            .iter()
+            .map(|p| p.display().to_string())
+            .collect(),
+        None => Vec::new(),
+    };
     let report = FitJson {
         rms_percent: fit.rms_percent,
         inhale: (&fit.inhale).into(),
@@ -438,7 +540,8 @@ fn fit(a: &FitArgs) -> anyhow::Result<()> {
     println!("fit of {} ({:.2} s)", a.input.display(), seconds);
     if fit.driving_pressure_sign < 0.0 {
         println!(
-            "pressure falls as volume rises (oesophageal/pleural): fitted the driving pressure −P"
+            "pressure falls as volume rises (oesophageal/pleural): fitted the driving pressure −P \
+             (RP and TP below are −P)"
         );
     }
     for (name, f) in [("inhalation", &fit.inhale), ("exhalation", &fit.exhale)] {

@@ -52,6 +52,9 @@ pub struct LatencyStats {
     pub skipped_ticks: u64,
     /// Frames whose hop stamps were incomplete or out of order.
     pub bad_stamps: u64,
+    /// Frames drawn before any tracker sample reached the engine (no capture stamp: the lungs
+    /// breathe before the tracker connects); not latency samples, not bad stamps.
+    pub untracked_frames: u64,
     /// Frames that were out of order against the previous one.
     pub out_of_order: u64,
     last_frame: Option<u64>,
@@ -98,6 +101,7 @@ impl LatencyStats {
             lost_reports: 0,
             skipped_ticks: 0,
             bad_stamps: 0,
+            untracked_frames: 0,
             out_of_order: 0,
             last_frame: None,
             last_tick: None,
@@ -124,6 +128,12 @@ impl LatencyStats {
             }
         }
         self.last_tick = Some(r.engine_tick);
+        let v = r.volume_ml[0] + r.volume_ml[1];
+        self.volume_range = (self.volume_range.0.min(v), self.volume_range.1.max(v));
+        if r.stamps.capture_ns == 0 && r.stamps.bridge_publish_ns == 0 && r.tracker_frame == 0 {
+            self.untracked_frames += 1;
+            return;
+        }
         if !r.stamps.is_complete_and_ordered() {
             self.bad_stamps += 1;
             return;
@@ -143,8 +153,6 @@ impl LatencyStats {
         if r.flags & report_flags::GPU_TIMED != 0 && r.gpu_frame_ns > 0 {
             let _ = self.gpu.record(r.gpu_frame_ns);
         }
-        let v = r.volume_ml[0] + r.volume_ml[1];
-        self.volume_range = (self.volume_range.0.min(v), self.volume_range.1.max(v));
     }
 
     /// The schedule view: tracker samples `last+1 ..= frame` are first shown by this submit.

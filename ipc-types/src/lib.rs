@@ -248,6 +248,12 @@ pub mod engine_state {
     pub const INHALING: u32 = 1 << 4;
     /// No tracker sample has been seen yet.
     pub const NO_TRACKER_YET: u32 = 1 << 5;
+    /// The patient pose is not a rotation (NaN, not unit): the force follows the last good
+    /// gravity direction (supine before any).
+    pub const POSE_INVALID: u32 = 1 << 6;
+    /// The orientation is where the supine-fitted direction model barely expands a lung: its
+    /// force weights were limited towards supine (`lung_model::orientation::VolumeLimit`).
+    pub const ORIENTATION_LIMITED: u32 = 1 << 7;
 }
 
 /// Bits of [`LungFrame::flags`].

@@ -1,8 +1,10 @@
 //! # renderer: the breathing lungs on the GPU
 //!
-//! Each frame: one compute pass deforms every vertex of both lungs (EQUATIONS.md §2.4, the precomputed
-//! mode `p + s·u`, plus each lung's rigid offset), then one render pass draws the deformed buffer once per eye (mono, or side-by-side
-//! stereo from the HMD pose with a per-eye IPD offset), registered to the tracked patient pose.
+//! Each frame: one compute pass deforms every vertex of both lungs in the scene's mode (EQUATIONS.md
+//! §2.4 and §3: precomputed `p + s·u`, the exact basis, spherical harmonics eq. 7.7 or eq. 7.1 over
+//! the stored rows, plus each lung's rigid offset) and computes smooth vertex normals from the moved
+//! surface; then one render pass draws those buffers once per eye (mono, or side-by-side stereo from
+//! the HMD pose with a per-eye IPD offset), registered to the tracked patient pose.
 //! Headless: an offscreen texture, read back to PNG on request. GPU time comes from timestamp
 //! queries where the adapter has them.
 //!
@@ -20,8 +22,8 @@ pub mod present;
 pub mod process;
 pub mod window;
 
-use ipc_types::Pose;
-use lung_model::deform::LungModel;
+pub use deform::{LungInputs, RenderLung, UploadError};
+use ipc_types::{Pose, MAX_COEFFS};
 use lung_model::scene::{DrawMode, RenderScene};
 use wgpu::util::DeviceExt;
 
@@ -34,6 +36,9 @@ pub struct DrawState {
     pub deform_scale: [f32; 2],
     /// Rigid offset per lung slot (right, left), body frame, mm.
     pub offset_mm: [[f32; 3]; 2],
+    /// Deformation coefficients per lung slot: force weights (basis, direct) or SH force
+    /// coefficients (sh); unused in the precomputed mode.
+    pub coeffs: [[f32; MAX_COEFFS]; 2],
     /// Patient reference pose (registration).
     pub patient: Pose,
     /// HMD pose (camera).
@@ -82,21 +87,30 @@ const BACKGROUND: wgpu::Color = wgpu::Color {
 };
 
 impl LungRenderer {
-    /// Upload `lungs` and create the target for `settings`.
-    pub fn new(gpu: &Gpu, settings: &RenderScene, lungs: &[LungModel]) -> Self {
+    /// Upload `lungs` (what their mode needs) and create the target for `settings`.
+    pub fn new(
+        gpu: &Gpu,
+        settings: &RenderScene,
+        lungs: &[RenderLung],
+    ) -> Result<Self, UploadError> {
         let device = &gpu.device;
-        let deform = deform::DeformPass::new(device, lungs);
+        let deform = deform::DeformPass::new(
+            device,
+            &gpu.info.name,
+            lungs,
+            settings.mode == DrawMode::Triangles,
+        )?;
         let draw = draw::DrawPipelines::new(device);
         let mut indices: Vec<u32> = Vec::new();
         let mut offset = 0u32;
         for lung in lungs {
             indices.extend(
-                lung.mesh
+                lung.lung
                     .triangles
                     .iter()
                     .flat_map(|t| t.map(|i| i + offset)),
             );
-            offset += lung.mesh.positions.len() as u32;
+            offset += lung.lung.len() as u32;
         }
         let index = device.create_buffer_init(&wgpu::util::BufferInitDescriptor {
             label: Some("lungdyn indices"),
@@ -160,7 +174,7 @@ impl LungRenderer {
             }),
             period_ns: gpu.queue.get_timestamp_period(),
         });
-        Self {
+        Ok(Self {
             deform,
             draw,
             index,
@@ -175,7 +189,17 @@ impl LungRenderer {
             eyes,
             settings: settings.clone(),
             timestamps,
-        }
+        })
+    }
+
+    /// The deformation mode.
+    pub fn mode(&self) -> lung_model::deform::modes::DeformMode {
+        self.deform.mode()
+    }
+
+    /// Bytes of lung data uploaded to the GPU.
+    pub fn uploaded_bytes(&self) -> u64 {
+        self.deform.uploaded_bytes
     }
 
     /// Image size (both eyes side by side in stereo).
@@ -199,6 +223,47 @@ impl LungRenderer {
         self.render_with(gpu, state, capture, |_| {})
     }
 
+    /// GPU time of the deformation pass alone (the mode's dispatches and the normals) for `state`,
+    /// from timestamp queries around that one compute pass; `None` without timestamps. For the
+    /// trade study: a frame's deformation cost apart from its drawing.
+    pub fn time_deform(&self, gpu: &Gpu, state: &DrawState) -> Option<u64> {
+        let t = self.timestamps.as_ref()?;
+        self.deform.set_lungs(
+            &gpu.queue,
+            &LungInputs {
+                scale: state.deform_scale,
+                offset: state.offset_mm,
+                coeffs: state.coeffs,
+            },
+        );
+        let mut encoder = gpu
+            .device
+            .create_command_encoder(&wgpu::CommandEncoderDescriptor {
+                label: Some("lungdyn deform timing"),
+            });
+        self.deform.encode(
+            &mut encoder,
+            Some(wgpu::ComputePassTimestampWrites {
+                query_set: &t.set,
+                beginning_of_pass_write_index: Some(0),
+                end_of_pass_write_index: Some(1),
+            }),
+        );
+        encoder.resolve_query_set(&t.set, 0..2, &t.resolve, 0);
+        encoder.copy_buffer_to_buffer(&t.resolve, 0, &t.read, 0, 16);
+        let index = gpu.queue.submit(Some(encoder.finish()));
+        let _ = gpu.device.poll(wgpu::PollType::Wait {
+            submission_index: Some(index),
+            timeout: None,
+        });
+        let ticks = read_mapped(gpu, &t.read, |bytes| {
+            let a = u64::from_le_bytes(bytes[0..8].try_into().unwrap());
+            let b = u64::from_le_bytes(bytes[8..16].try_into().unwrap());
+            b.saturating_sub(a)
+        })?;
+        Some((ticks as f64 * t.period_ns as f64) as u64)
+    }
+
     /// As [`Self::render`], with `extra` recorded into the frame's command buffer after the draw
     /// (the window's present pass), so it is submitted with the frame.
     pub fn render_with(
@@ -209,8 +274,14 @@ impl LungRenderer {
         extra: impl FnOnce(&mut wgpu::CommandEncoder),
     ) -> FrameTiming {
         let queue = &gpu.queue;
-        self.deform
-            .set_lungs(queue, state.deform_scale, state.offset_mm);
+        self.deform.set_lungs(
+            queue,
+            &LungInputs {
+                scale: state.deform_scale,
+                offset: state.offset_mm,
+                coeffs: state.coeffs,
+            },
+        );
         let aspect = self.eye_width as f32 / self.height as f32;
         let s = &self.settings;
         let (eyes, n) = camera::eyes(
@@ -273,6 +344,7 @@ impl LungRenderer {
             pass.set_vertex_buffer(0, self.deform.deformed.slice(..));
             match s.mode {
                 DrawMode::Triangles => {
+                    pass.set_vertex_buffer(1, self.deform.normals.slice(..));
                     pass.set_pipeline(&self.draw.triangles);
                     pass.set_index_buffer(self.index.slice(..), wgpu::IndexFormat::Uint32);
                 }
@@ -358,6 +430,18 @@ impl LungRenderer {
 
     /// Read back the deformed vertex buffer (tests compare it with the CPU reference).
     pub fn read_deformed(&self, gpu: &Gpu) -> Option<Vec<[f32; 4]>> {
+        self.read_buffer(gpu, &self.deform.deformed)
+    }
+
+    /// Read back the vertex normals of the last frame (triangle drawing only).
+    pub fn read_normals(&self, gpu: &Gpu) -> Option<Vec<[f32; 4]>> {
+        self.deform
+            .has_normals()
+            .then(|| self.read_buffer(gpu, &self.deform.normals))
+            .flatten()
+    }
+
+    fn read_buffer(&self, gpu: &Gpu, buffer: &wgpu::Buffer) -> Option<Vec<[f32; 4]>> {
         let size = self.deform.count as u64 * 16;
         let staging = gpu.device.create_buffer(&wgpu::BufferDescriptor {
             label: Some("lungdyn deformed readback"),
@@ -366,7 +450,7 @@ impl LungRenderer {
             mapped_at_creation: false,
         });
         let mut encoder = gpu.device.create_command_encoder(&Default::default());
-        encoder.copy_buffer_to_buffer(&self.deform.deformed, 0, &staging, 0, size);
+        encoder.copy_buffer_to_buffer(buffer, 0, &staging, 0, size);
         let index = gpu.queue.submit(Some(encoder.finish()));
         let _ = gpu.device.poll(wgpu::PollType::Wait {
             submission_index: Some(index),

@@ -8,7 +8,9 @@
 //!
 //! Every engine frame names, per lung, the kernel it was computed for. A lung whose kernel is not
 //! the one this renderer loaded is drawn at rest — never with another lung's displacements — and the
-//! frame is flagged [`report_flags::KERNEL_MISMATCH`], counted, and said once on stderr.
+//! frame is flagged [`report_flags::KERNEL_MISMATCH`], counted, and said once on stderr. The same
+//! holds for a lung whose coefficients are not of the renderer's deformation mode (an engine started
+//! with another scene's `[lungs] mode`).
 //!
 //! Headless, [`run`] drives the session in a loop; with `--window`, [`crate::window`] drives the
 //! same session from the window's event loop and presents each frame.
@@ -68,6 +70,12 @@ pub enum RendererError {
     /// A lung's kernel could not be loaded.
     #[error(transparent)]
     Lung(#[from] LungLoadError),
+    /// A lung's kernel lacks its mode's data or a section failed verification.
+    #[error(transparent)]
+    Mode(#[from] lung_model::deform::modes::ModeLoadError),
+    /// The lungs do not fit the GPU.
+    #[error(transparent)]
+    Upload(#[from] crate::UploadError),
     /// No usable GPU.
     #[error(transparent)]
     Gpu(#[from] GpuError),
@@ -172,6 +180,8 @@ pub struct Session {
     /// Kernel id of each lung slot as loaded (0: this renderer has no such lung).
     kernel_ids: [u64; NUM_LUNGS],
     kernel_paths: [Option<PathBuf>; NUM_LUNGS],
+    /// Coefficient kind and count each slot's frames must carry.
+    coeff_shape: [(u32, u32); NUM_LUNGS],
     mismatch_said: bool,
     stats: SessionStats,
     snapshots: Snapshots,
@@ -212,8 +222,12 @@ impl Session {
                 }
             })?;
         }
-        let lungs = scene.lung_models()?;
-        let renderer = LungRenderer::new(&gpu, &scene.render, &lungs);
+        let mut lungs = Vec::new();
+        for &side in &scene.lungs.sides {
+            let kernel = scene.lung_kernel(side)?;
+            lungs.push(crate::RenderLung::from_kernel(&kernel, scene.lungs.mode)?);
+        }
+        let renderer = LungRenderer::new(&gpu, &scene.render, &lungs)?;
         let node = iox::node(&instance, "renderer")?;
         let ports = Ports {
             engine: Box::new(instance.engine_inlet(&node)?),
@@ -235,9 +249,11 @@ impl Session {
         session.lock = Some(lock);
         let (w, h) = session.renderer.image_size();
         eprintln!(
-            "renderer[{}]: {} vertices, {}x{} {:?}{} on {}; waiting for engine frames on {:?}",
+            "renderer[{}]: {} vertices in the {} mode ({:.1} MiB on the GPU), {}x{} {:?}{} on {}; waiting for engine frames on {:?}",
             instance.name(),
             session.renderer.vertex_count(),
+            session.renderer.mode(),
+            session.renderer.uploaded_bytes() as f64 / 1048576.0,
             w,
             h,
             scene.render.mode,
@@ -254,7 +270,7 @@ impl Session {
         gpu: Gpu,
         renderer: LungRenderer,
         scene: &Scene,
-        lungs: &[lung_model::deform::LungModel],
+        lungs: &[crate::RenderLung],
         ports: Ports,
         clock: Box<dyn Clock>,
         snapshots: Snapshots,
@@ -263,10 +279,13 @@ impl Session {
         let period_ns = (1e9 / scene.engine.tick_hz).round() as u64;
         let mut kernel_ids = [0u64; NUM_LUNGS];
         let mut kernel_paths: [Option<PathBuf>; NUM_LUNGS] = Default::default();
+        let mut coeff_shape = [(0u32, 0u32); NUM_LUNGS];
         for lung in lungs {
             kernel_ids[lung.side.index()] = lung.kernel_id;
             kernel_paths[lung.side.index()] =
                 scene.lungs.kernels.get(lung.side).map(|p| p.to_path_buf());
+            coeff_shape[lung.side.index()] =
+                (lung.mode().coeff_kind(), lung.lung.coeff_count() as u32);
         }
         let start = clock.now_ns();
         Self {
@@ -283,6 +302,7 @@ impl Session {
             hmd: default_hmd(),
             kernel_ids,
             kernel_paths,
+            coeff_shape,
             mismatch_said: false,
             stats: SessionStats::default(),
             snapshots,
@@ -302,20 +322,23 @@ impl Session {
         self.stats
     }
 
-    /// Per-lung scale and offset to draw, or `None` for a lung whose kernel does not match
-    /// (drawn at rest). Returns whether any lung mismatched.
-    fn lungs_to_draw(&mut self, frame: &EngineFrame) -> ([f32; 2], [[f32; 3]; 2], bool) {
-        let mut scales = [0.0f32; 2];
-        let mut offsets = [[0.0f32; 3]; 2];
+    /// Per-lung scale, offset and coefficients to draw; a lung whose kernel or coefficients do not
+    /// match what this renderer loaded is drawn at rest (scale 0). Returns whether any mismatched.
+    fn lungs_to_draw(&mut self, frame: &EngineFrame, state: &mut DrawState) -> bool {
+        state.deform_scale = [0.0; 2];
+        state.offset_mm = [[0.0; 3]; 2];
         let mut mismatch = false;
         for slot in 0..NUM_LUNGS {
             let lung = &frame.lungs[slot];
             let loaded = self.kernel_ids[slot];
             let engine_id = if lung.is_active() { lung.kernel_id } else { 0 };
-            if engine_id == loaded {
+            let (kind, count) = self.coeff_shape[slot];
+            let shape_ok = loaded == 0 || (lung.coeff_kind == kind && lung.coeff_count == count);
+            if engine_id == loaded && shape_ok {
                 if loaded != 0 {
-                    scales[slot] = lung.deform_scale;
-                    offsets[slot] = lung.offset_mm;
+                    state.deform_scale[slot] = lung.deform_scale;
+                    state.offset_mm[slot] = lung.offset_mm;
+                    state.coeffs[slot] = lung.coeffs;
                 }
                 continue;
             }
@@ -327,20 +350,25 @@ impl Session {
                     Some(p) => format!("kernel {loaded:016x} ({})", p.display()),
                     None => "no kernel for it".to_string(),
                 };
+                let theirs = if engine_id == 0 {
+                    "not simulated".to_string()
+                } else if engine_id != loaded {
+                    format!("kernel {engine_id:016x}")
+                } else {
+                    format!(
+                        "sent with {} coefficients of kind {} (this renderer's mode needs {count} of kind {kind})",
+                        lung.coeff_count, lung.coeff_kind
+                    )
+                };
                 eprintln!(
-                    "renderer[{}]: warning: the engine's {name} lung is {} but this renderer loaded \
+                    "renderer[{}]: warning: the engine's {name} lung is {theirs} but this renderer loaded \
                      {ours}; drawing that lung at rest. Start the engine and the renderer with the \
                      same scene (`lungdyn scene prepare` writes one).",
                     self.instance,
-                    if engine_id == 0 {
-                        "not simulated".to_string()
-                    } else {
-                        format!("kernel {engine_id:016x}")
-                    },
                 );
             }
         }
-        (scales, offsets, mismatch)
+        mismatch
     }
 
     /// Wait for the next engine frame (or the deadline) and draw it, recording `extra` (the
@@ -382,7 +410,14 @@ impl Session {
                 self.hmd = pose;
             }
         }
-        let (scales, offsets, mismatch) = self.lungs_to_draw(&frame);
+        let mut state = DrawState {
+            deform_scale: [0.0; 2],
+            offset_mm: [[0.0; 3]; 2],
+            coeffs: [[0.0; ipc_types::MAX_COEFFS]; 2],
+            patient: frame.patient_pose,
+            hmd: self.hmd,
+        };
+        let mismatch = self.lungs_to_draw(&frame, &mut state);
         if mismatch {
             flags |= report_flags::KERNEL_MISMATCH;
             self.stats.kernel_mismatch_frames += 1;
@@ -396,12 +431,7 @@ impl Session {
         if capture && self.snapshots.fixed_view {
             view = *self.snapshot_view.get_or_insert(self.hmd);
         }
-        let state = DrawState {
-            deform_scale: scales,
-            offset_mm: offsets,
-            patient: frame.patient_pose,
-            hmd: view,
-        };
+        state.hmd = view;
         let timing = self.renderer.render_with(&self.gpu, &state, capture, extra);
         frame.stamps.renderer_submit_ns = timing.submit_ns;
         if timing.gpu_ns.is_some() {

@@ -10,7 +10,7 @@ use ipc_types::Pose;
 use lung_model::deform::LungModel;
 use lung_model::scene::{DrawMode, Scene};
 use renderer::gpu::Gpu;
-use renderer::{DrawState, LungRenderer};
+use renderer::{DrawState, LungRenderer, RenderLung};
 
 /// A pixel differs when any channel differs by more than this (out of 255).
 const CHANNEL_TOLERANCE: u8 = 12;
@@ -25,6 +25,10 @@ fn reference(name: &str) -> PathBuf {
 
 fn models(scene: &Scene) -> Vec<LungModel> {
     lungdyn_tests::baked_models(scene)
+}
+
+fn render(lungs: &[LungModel]) -> Vec<RenderLung> {
+    lungs.iter().map(RenderLung::from_model).collect()
 }
 
 /// Patient supine at bed height, HMD at the patient's right, above the chest.
@@ -44,6 +48,7 @@ fn fixed_state(scale: f32) -> DrawState {
     DrawState {
         deform_scale: [scale, scale],
         offset_mm: [[0.0; 3]; 2],
+        coeffs: [[0.0; ipc_types::MAX_COEFFS]; 2],
         patient,
         hmd: Pose {
             quat: q.to_array(),
@@ -103,7 +108,7 @@ fn a_fixed_state_renders_like_the_reference_image() {
     scene.render.width = 320;
     scene.render.height = 240;
     let lungs = models(&scene);
-    let r = LungRenderer::new(&gpu, &scene.render, &lungs);
+    let r = LungRenderer::new(&gpu, &scene.render, &render(&lungs)).unwrap();
     // Mid-inspiration: 250 ml over both lungs.
     let scale = lungs[0].scale_for_delta(250.0 * lungs[0].start_volume_ml / 2400.0) as f32;
     r.render(&gpu, &fixed_state(scale), true);
@@ -121,7 +126,7 @@ fn stereo_point_splats_draw_both_eyes_from_one_deformation() {
     scene.render.stereo = true;
     scene.render.mode = DrawMode::Points;
     let lungs = models(&scene);
-    let r = LungRenderer::new(&gpu, &scene.render, &lungs);
+    let r = LungRenderer::new(&gpu, &scene.render, &render(&lungs)).unwrap();
     assert_eq!(r.image_size(), (320, 120));
     r.render(&gpu, &fixed_state(0.0), true);
     let img = r.read_image(&gpu).unwrap();
@@ -153,7 +158,7 @@ fn the_gpu_deformation_matches_the_cpu_reference() {
     scene.render.width = 64;
     scene.render.height = 64;
     let lungs = models(&scene);
-    let r = LungRenderer::new(&gpu, &scene.render, &lungs);
+    let r = LungRenderer::new(&gpu, &scene.render, &render(&lungs)).unwrap();
     for (scale_r, scale_l) in [
         (0.0f32, 0.0f32),
         (37.5, 12.25),

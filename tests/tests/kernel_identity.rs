@@ -10,7 +10,7 @@ use lung_model::scene::Scene;
 use lungdyn_tests::prepared_scene;
 use renderer::gpu::Gpu;
 use renderer::process::{Ports, Session, Snapshots};
-use renderer::LungRenderer;
+use renderer::{LungRenderer, RenderLung};
 use transport::memory::{Recorder, Scripted};
 use transport::FakeClock;
 
@@ -58,12 +58,13 @@ fn a_lung_of_another_kernel_is_drawn_at_rest_and_flagged() {
         tracker: Box::new(Scripted::new(&clock, vec![], 4)),
         report: Box::new(reports.clone()),
     };
-    let r = LungRenderer::new(&gpu, &b.render, &lungs_b);
+    let render_b: Vec<RenderLung> = lungs_b.iter().map(RenderLung::from_model).collect();
+    let r = LungRenderer::new(&gpu, &b.render, &render_b).unwrap();
     let mut session = Session::assemble(
         gpu,
         r,
         &b,
-        &lungs_b,
+        &render_b,
         ports,
         Box::new(clock.clone()),
         Snapshots::default(),
@@ -124,12 +125,13 @@ fn a_lung_the_engine_does_not_simulate_is_not_drawn_with_stale_state() {
         tracker: Box::new(Scripted::new(&clock, vec![], 4)),
         report: Box::new(reports.clone()),
     };
-    let r = LungRenderer::new(&gpu, &b.render, &lungs);
+    let render: Vec<RenderLung> = lungs.iter().map(RenderLung::from_model).collect();
+    let r = LungRenderer::new(&gpu, &b.render, &render).unwrap();
     let mut session = Session::assemble(
         gpu,
         r,
         &b,
-        &lungs,
+        &render,
         ports,
         Box::new(clock),
         Snapshots::default(),

@@ -82,6 +82,18 @@ pub struct SourceArgs {
     /// Synthetic source: peak patient orientation drift per axis, degrees.
     #[arg(long, default_value_t = 3.0)]
     pub drift_deg: f32,
+    /// Synthetic source: roll the patient about the bed's long axis, sweeping ±DEG (90: onto each
+    /// side; 180: over to prone) once per --sweep-period-s. Shows the breath following gravity in
+    /// the orientation modes.
+    #[arg(long, value_name = "DEG", default_value_t = 0.0)]
+    pub roll_deg: f32,
+    /// Synthetic source: pitch the patient head-up/head-down, sweeping ±DEG (90: sitting up and
+    /// head down) once per --sweep-period-s, a quarter period after the roll.
+    #[arg(long, value_name = "DEG", default_value_t = 0.0)]
+    pub pitch_deg: f32,
+    /// Synthetic source: seconds per roll/pitch sweep.
+    #[arg(long, value_name = "S", default_value_t = 20.0)]
+    pub sweep_period_s: f32,
     /// Record every received sample with its receive time to FILE (never overwritten).
     #[arg(long, value_name = "FILE")]
     pub record: Option<PathBuf>,
@@ -116,6 +128,9 @@ impl Default for SourceArgs {
             stale_ms: 50.0,
             rate_hz: 60.0,
             drift_deg: 3.0,
+            roll_deg: 0.0,
+            pitch_deg: 0.0,
+            sweep_period_s: 20.0,
             record: None,
             as_fast_as_possible: false,
             ndi_rom: Vec::new(),
@@ -145,6 +160,18 @@ impl SourceArgs {
         }
         if !(self.rate_hz.is_finite() && (1.0..=1000.0).contains(&self.rate_hz)) {
             return Err(BridgeError::Rate(self.rate_hz));
+        }
+        let ok_deg = |v: f32| v.is_finite() && (0.0..=180.0).contains(&v);
+        if !(ok_deg(self.roll_deg)
+            && ok_deg(self.pitch_deg)
+            && self.sweep_period_s.is_finite()
+            && (1.0..=3600.0).contains(&self.sweep_period_s))
+        {
+            return Err(BridgeError::Sweep {
+                roll: self.roll_deg,
+                pitch: self.pitch_deg,
+                period: self.sweep_period_s,
+            });
         }
         if !(self.stale_ms.is_finite() && (1.0..=10_000.0).contains(&self.stale_ms)) {
             return Err(BridgeError::Option(format!(
@@ -190,6 +217,9 @@ impl SourceArgs {
             synthetic: synthetic::Synthetic {
                 rate_hz: self.rate_hz,
                 drift_deg: self.drift_deg,
+                roll_deg: self.roll_deg,
+                pitch_deg: self.pitch_deg,
+                sweep_period_s: self.sweep_period_s,
                 ..Default::default()
             },
             ..SourceOptions::default()
@@ -258,6 +288,16 @@ pub enum BridgeError {
     /// The synthetic drift is out of range.
     #[error("--drift-deg {0} must be within 0..45")]
     Drift(f32),
+    /// A sweep amplitude or period is out of range.
+    #[error("--roll-deg and --pitch-deg must be within 0..180 and --sweep-period-s within 1..3600 (got {roll}, {pitch}, {period})")]
+    Sweep {
+        /// Roll amplitude.
+        roll: f32,
+        /// Pitch amplitude.
+        pitch: f32,
+        /// Period.
+        period: f32,
+    },
     /// Another option is out of range.
     #[error("{0}")]
     Option(String),

@@ -27,6 +27,12 @@ pub struct Synthetic {
     pub drift_deg: f32,
     /// Seconds per walk around the bed.
     pub walk_period_s: f32,
+    /// Roll sweep amplitude about the bed's long axis (room X), degrees (0: none).
+    pub roll_deg: f32,
+    /// Pitch sweep amplitude about the bed's cross axis (room Y), degrees (0: none).
+    pub pitch_deg: f32,
+    /// Seconds per roll/pitch sweep.
+    pub sweep_period_s: f32,
 }
 
 impl Default for Synthetic {
@@ -35,6 +41,9 @@ impl Default for Synthetic {
             rate_hz: 60.0,
             drift_deg: 3.0,
             walk_period_s: 40.0,
+            roll_deg: 0.0,
+            pitch_deg: 0.0,
+            sweep_period_s: 20.0,
         }
     }
 }
@@ -62,11 +71,17 @@ fn pose(q: Quat, t: Vec3) -> Pose {
 
 impl Synthetic {
     /// Patient reference pose at time `t` seconds: supine with bounded drift (incommensurate periods
-    /// so the motion never repeats exactly within a session, amplitude ≤ `drift_deg` per axis).
+    /// so the motion never repeats exactly within a session, amplitude ≤ `drift_deg` per axis),
+    /// turned by the roll and pitch sweeps (`roll_deg·sin(2πt/T)` about the bed's long axis, then
+    /// `pitch_deg·cos(2πt/T)` about its cross axis).
     pub fn patient_pose(&self, t: f32) -> Pose {
         let a = self.drift_deg.to_radians();
         let tau = std::f32::consts::TAU;
-        let drift = Quat::from_rotation_z(a * (tau * t / 23.0).sin())
+        let phase = tau * t / self.sweep_period_s;
+        let sweep = Quat::from_rotation_y(self.pitch_deg.to_radians() * phase.cos())
+            * Quat::from_rotation_x(self.roll_deg.to_radians() * phase.sin());
+        let drift = sweep
+            * Quat::from_rotation_z(a * (tau * t / 23.0).sin())
             * Quat::from_rotation_x(0.7 * a * (tau * t / 31.0).sin())
             * Quat::from_rotation_y(0.5 * a * (tau * t / 37.0).sin());
         let shift = Vec3::new(
@@ -139,6 +154,40 @@ mod tests {
             );
             prev = q;
         }
+    }
+
+    #[test]
+    fn the_sweeps_turn_the_patient_onto_its_side_and_upright() {
+        let s = Synthetic {
+            drift_deg: 0.0,
+            roll_deg: 90.0,
+            pitch_deg: 90.0,
+            sweep_period_s: 20.0,
+            ..Default::default()
+        };
+        let down = Vec3::new(0.0, 0.0, -1.0);
+        let gravity_in_body = |t: f32| Quat::from_array(s.patient_pose(t).quat).inverse() * down;
+        // t = 0: pitch 90° (roll 0): gravity along the body's long axis (sitting up / head down).
+        assert!(
+            gravity_in_body(0.0).z.abs() > 0.999,
+            "{}",
+            gravity_in_body(0.0)
+        );
+        // t = T/4: roll 90°, pitch 0: gravity across the body (lying on one side).
+        assert!(
+            gravity_in_body(5.0).x.abs() > 0.999,
+            "{}",
+            gravity_in_body(5.0)
+        );
+        // t = T/2: pitch −90°: the other end up.
+        assert!(gravity_in_body(10.0).z * gravity_in_body(0.0).z < -0.99);
+        // Without sweeps the patient stays supine: gravity towards the back.
+        let still = Synthetic {
+            drift_deg: 0.0,
+            ..Default::default()
+        };
+        let g = Quat::from_array(still.patient_pose(7.0).quat).inverse() * down;
+        assert!((g - Vec3::new(0.0, -1.0, 0.0)).length() < 1e-6);
     }
 
     #[test]

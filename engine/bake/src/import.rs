@@ -186,37 +186,56 @@ pub fn import(path: &Path, units: Units) -> Result<Imported, ImportError> {
 /// repairs, topology, shells, self-intersections, and the size of a lung in the stated unit.
 pub fn import_with(path: &Path, opts: &ImportOptions) -> Result<Imported, ImportError> {
     let units = opts.units;
-    let bytes = lung_model::input::read_bounded(
+    let ext = path
+        .extension()
+        .and_then(|e| e.to_str())
+        .map(|e| e.to_ascii_lowercase());
+    let format: Option<&'static str> = match ext.as_deref() {
+        Some("obj") => Some("OBJ"),
+        Some("ply") => Some("PLY"),
+        Some("stl") => Some("STL"),
+        _ => None,
+    };
+    // The first bytes must already look like the format: a 3 GiB sparse file of zeros named .stl
+    // is refused by its header, not after reading it all. (The path itself — a folder, a device, a
+    // file over the size limit — is judged first, whatever its name.)
+    let bytes = lung_model::input::read_bounded_with(
         path,
         lung_model::input::ReadLimits {
             // Binary PLY and STL have no lines; OBJ and ASCII files are checked by their parsers.
             max_line_bytes: 0,
             ..opts.limits
         },
-    )?;
-    let ext = path
-        .extension()
-        .and_then(|e| e.to_str())
-        .map(|e| e.to_ascii_lowercase());
-    let parse = |format: &'static str, message: String| ImportError::Parse {
+        |head, size| match format {
+            Some(f) => sniff(f, head, size).map_err(|m| format!("not a valid {f} file: {m}")),
+            None => Err(String::new()),
+        },
+    );
+    let Some(format) = format else {
+        return Err(match bytes {
+            Err(lung_model::input::InputError::Format { .. }) | Ok(_) => ImportError::Format {
+                path: path.to_path_buf(),
+            },
+            Err(e) => e.into(),
+        });
+    };
+    let bytes = bytes?;
+    let parse = |message: String| ImportError::Parse {
         path: path.to_path_buf(),
         format,
         message,
     };
-    let (positions, triangles) = match ext.as_deref() {
-        Some("obj") => read_obj(&bytes).map_err(|m| parse("OBJ", m))?,
-        Some("ply") => read_ply(&bytes).map_err(|m| parse("PLY", m))?,
-        Some("stl") => read_stl(&bytes).map_err(|m| parse("STL", m))?,
-        _ => {
-            return Err(ImportError::Format {
-                path: path.to_path_buf(),
-            })
-        }
+    let (positions, triangles, unused_in_file) = match format {
+        "OBJ" => read_obj(&bytes).map_err(parse)?,
+        "PLY" => read_ply(&bytes).map(|(p, t)| (p, t, 0)).map_err(parse)?,
+        _ => read_stl(&bytes).map(|(p, t)| (p, t, 0)).map_err(parse)?,
     };
     let mut imported = repair(positions, triangles, units).map_err(|source| ImportError::Mesh {
         path: path.to_path_buf(),
         source,
     })?;
+    // The OBJ reader already left out vertices no face uses: count them as removed too.
+    imported.repairs.unused_vertices += unused_in_file;
     let surface = |source| ImportError::Surface {
         path: path.to_path_buf(),
         source,
@@ -307,7 +326,65 @@ pub fn check_size(
 
 type Raw = (Vec<[f32; 3]>, Vec<[u32; 3]>);
 
-fn read_obj(bytes: &[u8]) -> Result<Raw, String> {
+/// An ASCII STL begins with `solid` and has a line end within this many bytes.
+const STL_ASCII_PROBE: usize = 1024;
+
+/// What the first bytes of a mesh file (`head`, the whole file when `size` equals its length) say
+/// before the rest is read: an `Err` is the reason it cannot be a file of `format`.
+fn sniff(format: &str, head: &[u8], size: Option<u64>) -> Result<(), String> {
+    match format {
+        "OBJ" => obj_text(head, size == Some(head.len() as u64)),
+        "PLY" => {
+            if !head.is_empty() && !head.starts_with(b"ply") {
+                return Err("it does not begin with the line \"ply\"".into());
+            }
+            let whole = size == Some(head.len() as u64);
+            // The claims are checked here when the header is in the head (it always is, but for
+            // a header longer than the head, which the full read checks).
+            match size {
+                Some(size) if whole || head.windows(10).any(|w| w == b"end_header") => {
+                    ply_claims(head, size)
+                }
+                _ => Ok(()),
+            }
+        }
+        _ => match size {
+            Some(size) => stl_claims(head, size),
+            None => Ok(()),
+        },
+    }
+}
+
+/// OBJ is UTF-8 text without NUL bytes: the reason `bytes` is not (`complete`: `bytes` is the whole
+/// file, so a character cut at its end is an error too).
+fn obj_text(bytes: &[u8], complete: bool) -> Result<(), String> {
+    let line_of = |offset: usize| bytes[..offset].iter().filter(|&&b| b == b'\n').count() + 1;
+    let nul = bytes.iter().position(|&b| b == 0);
+    let bad_utf8 = match std::str::from_utf8(bytes) {
+        Ok(_) => None,
+        // A character cut at the end of a head is not an error yet.
+        Err(e) if e.error_len().is_none() && !complete => None,
+        Err(e) => Some(e.valid_up_to()),
+    };
+    match (nul, bad_utf8) {
+        (Some(n), b) if b.is_none_or(|b| n < b) => Err(format!(
+            "binary data (a NUL byte at byte {n}, line {}), not OBJ text (UTF-8): no triangles can be \
+             read from it; is this the right file?",
+            line_of(n)
+        )),
+        (_, Some(b)) => Err(format!(
+            "line {} is not UTF-8 text (at byte {b}): an OBJ file is text; re-export it, or remove the \
+             non-UTF-8 characters (often in a comment or a name)",
+            line_of(b)
+        )),
+        _ => Ok(()),
+    }
+}
+
+/// Read an OBJ file: (positions, triangles, vertices of the file no face uses, which the reader
+/// leaves out).
+fn read_obj(bytes: &[u8]) -> Result<(Vec<[f32; 3]>, Vec<[u32; 3]>, usize), String> {
+    obj_text(bytes, true)?;
     let (models, _) = tobj::load_obj_buf(&mut Cursor::new(bytes), &tobj::GPU_LOAD_OPTIONS, |_| {
         Err(tobj::LoadError::OpenFileFailed)
     })
@@ -332,7 +409,18 @@ fn read_obj(bytes: &[u8]) -> Result<Raw, String> {
             *t = t.map(|v| perm[v as usize]);
         }
     }
-    Ok((positions, triangles))
+    let file_vertices = std::str::from_utf8(bytes)
+        .map(|text| {
+            text.lines()
+                .filter(|l| {
+                    let l = l.trim_start();
+                    l.starts_with("v ") || l.starts_with("v\t")
+                })
+                .count()
+        })
+        .unwrap_or(0);
+    let unused = file_vertices.saturating_sub(positions.len());
+    Ok((positions, triangles, unused))
 }
 
 /// For each vertex tobj returned, its rank among the file's `v` lines, matched by the exact parsed
@@ -368,18 +456,17 @@ fn obj_file_order(bytes: &[u8], positions: &[[f32; 3]]) -> Option<Vec<u32>> {
 }
 
 /// Element counts a PLY header claims, checked against the file size before anything is allocated.
-fn ply_claims(bytes: &[u8]) -> Result<(), String> {
+fn ply_claims(bytes: &[u8], size: u64) -> Result<(), String> {
     let mut total: u64 = 0;
     for line in bytes.lines().take(1000) {
         let line = line.map_err(|_| "the header is not text".to_string())?;
         if line.trim() == "end_header" {
             // Every element takes at least one byte in any PLY encoding.
-            return if total <= bytes.len() as u64 {
+            return if total <= size {
                 Ok(())
             } else {
                 Err(format!(
-                    "the header claims {total} elements, more than the file's {} bytes can hold",
-                    bytes.len()
+                    "the header claims {total} elements, more than the file's {size} bytes can hold"
                 ))
             };
         }
@@ -397,7 +484,7 @@ fn ply_claims(bytes: &[u8]) -> Result<(), String> {
 
 fn read_ply(bytes: &[u8]) -> Result<Raw, String> {
     use ply_rs_bw::ply::{DefaultElement, Property};
-    ply_claims(bytes)?;
+    ply_claims(bytes, bytes.len() as u64)?;
     let parser = ply_rs_bw::parser::Parser::<DefaultElement>::new();
     let ply = parser
         .read_ply(&mut Cursor::new(bytes))
@@ -455,24 +542,33 @@ fn read_ply(bytes: &[u8]) -> Result<Raw, String> {
     Ok((positions, triangles))
 }
 
-fn read_stl(bytes: &[u8]) -> Result<Raw, String> {
-    // Binary STL: 80-byte header, u32 count, 50 bytes per triangle. Check the claim before reading.
-    let ascii = bytes.starts_with(b"solid")
-        && bytes.iter().take(1024).any(|&b| b == b'\n')
-        && !looks_binary(bytes);
-    if !ascii {
-        if bytes.len() < 84 {
-            return Err(format!(
-                "{} bytes is too short for a binary STL (84-byte header)",
-                bytes.len()
-            ));
-        }
-        let claimed = u32::from_le_bytes(bytes[80..84].try_into().unwrap()) as u64;
-        let expected = 84 + 50 * claimed;
-        if expected != bytes.len() as u64 {
-            return Err(format!("the header claims {claimed} triangles ({expected} bytes) but the file has {} bytes", bytes.len()));
-        }
+/// A binary STL's header claim (80-byte header, u32 count, 50 bytes per triangle) against the file's
+/// `size`, from its first bytes `head`; an ASCII STL (`solid` and a line end early) passes.
+fn stl_claims(head: &[u8], size: u64) -> Result<(), String> {
+    let ascii = head.starts_with(b"solid")
+        && head.iter().take(STL_ASCII_PROBE).any(|&b| b == b'\n')
+        && !looks_binary(head, size);
+    if ascii {
+        return Ok(());
     }
+    if size < 84 || head.len() < 84 {
+        return Err(format!(
+            "{size} bytes is too short for a binary STL (84-byte header)"
+        ));
+    }
+    let claimed = u32::from_le_bytes(head[80..84].try_into().unwrap()) as u64;
+    let expected = 84 + 50 * claimed;
+    if expected != size {
+        return Err(format!(
+            "the header claims {claimed} triangles ({expected} bytes) but the file has {size} bytes"
+        ));
+    }
+    Ok(())
+}
+
+fn read_stl(bytes: &[u8]) -> Result<Raw, String> {
+    // Check the claim before reading.
+    stl_claims(bytes, bytes.len() as u64)?;
     let mesh = stl_io::read_stl(&mut Cursor::new(bytes)).map_err(|e| e.to_string())?;
     let positions = mesh.vertices.iter().map(|v| v.0).collect();
     let triangles = mesh
@@ -484,10 +580,10 @@ fn read_stl(bytes: &[u8]) -> Result<Raw, String> {
 }
 
 /// A binary STL may also begin with "solid": it is binary when its size matches the count.
-fn looks_binary(bytes: &[u8]) -> bool {
-    bytes.len() >= 84 && {
-        let claimed = u32::from_le_bytes(bytes[80..84].try_into().unwrap()) as u64;
-        84 + 50 * claimed == bytes.len() as u64
+fn looks_binary(head: &[u8], size: u64) -> bool {
+    head.len() >= 84 && {
+        let claimed = u32::from_le_bytes(head[80..84].try_into().unwrap()) as u64;
+        84 + 50 * claimed == size
     }
 }
 

@@ -18,6 +18,8 @@ pub use lung_model::kernel::{BakeSettings, KernelError, KernelMeta, DEFAULT_TOLE
 use lung_model::mesh::{Side, TriMesh};
 
 use crate::operator::{compute_transfer, NodeGraph, OperatorError, Schedule, Transfer};
+use crate::orient::{basis_error, orientation_set, reference_delta_ml, Responses, ShProjection};
+use lung_model::kernel::{OrientationMeta, ShMeta};
 
 /// A baked lung, in memory.
 #[derive(Debug, Clone)]
@@ -36,6 +38,10 @@ pub struct Kernel {
     pub unit_displacement: Vec<[f32; 3]>,
     /// Transfer rows.
     pub transfer: Transfer,
+    /// Basis responses `(G_0, G_x, G_y, G_z)` per vertex (EQUATIONS.md §3.3).
+    pub basis: Vec<[f32; 4]>,
+    /// SH transfer coefficients `T^I_lm`, `bands²` per vertex (when baked with bands).
+    pub sh: Option<Vec<f32>>,
 }
 
 /// Errors baking.
@@ -50,6 +56,12 @@ pub enum BakeError {
     /// The surface is not a closed, consistently wound 2-manifold with positive volume.
     #[error("the mesh cannot be baked: {0}")]
     Mesh(#[from] lung_model::mesh::MeshError),
+    /// The spherical-harmonic form cannot be baked.
+    #[error("spherical harmonics: {0}")]
+    Sh(#[from] crate::orient::ShError),
+    /// Band count out of range.
+    #[error("--bands {0}: 0 (none) to {max} are supported (n² ≤ 64 coefficients travel per lung per frame)", max = lung_model::kernel::MAX_RUNTIME_BANDS)]
+    Bands(u32),
 }
 
 /// Bake `mesh` (a closed lung surface in mm; checked again here). `progress(rows)` is called as transfer rows
@@ -60,6 +72,9 @@ pub fn bake(
     settings: &BakeSettings,
     progress: &(dyn Fn(usize) + Sync),
 ) -> Result<Kernel, BakeError> {
+    if settings.sh_bands > lung_model::kernel::MAX_RUNTIME_BANDS {
+        return Err(BakeError::Bands(settings.sh_bands));
+    }
     lung_model::mesh::check(&mesh)?;
     let bb = mesh.aabb();
     let norm = |p| normalised_position(p, &bb, side);
@@ -85,6 +100,70 @@ pub fn bake(
         }
         None => LungModel::from_force(side, mesh, &settings.motion, &elastostatic)?,
     };
+    // Seed ch. 7: what the orientation-following modes need (EQUATIONS.md §3).
+    let c = &settings.motion.c;
+    let mut responses = Responses::compute(
+        &model.mesh,
+        side,
+        &transfer,
+        &directions,
+        force_scale,
+        [c[6], c[7], c[8]],
+    );
+    let orientations = orientation_set();
+    let delta_ml = reference_delta_ml(model.start_volume_ml);
+    let exact_forms = responses.forms_of(&model.mesh, &responses.g);
+    responses.set_limit(&exact_forms);
+    let basis = responses.stored();
+    let basis_check = basis_error(
+        &transfer,
+        &responses,
+        &basis,
+        &directions,
+        force_scale,
+        &exact_forms,
+        &orientations,
+        delta_ml,
+    );
+    let (sh_meta, sh) = if settings.sh_bands > 0 {
+        let n_max = settings.sh_bands as usize;
+        let projection =
+            ShProjection::compute(&model.mesh, &transfer.transposed(), &responses.nhat, n_max)?;
+        let fit = |n| {
+            projection.fit(
+                n,
+                &model.mesh,
+                &responses,
+                &exact_forms,
+                &orientations,
+                delta_ml,
+            )
+        };
+        let chosen = match settings.max_error_mm {
+            None => fit(n_max),
+            Some(budget) => (1..=n_max)
+                .map(fit)
+                .find(|f| f.error.rms_mm <= budget)
+                .unwrap_or_else(|| fit(n_max)),
+        };
+        (
+            Some(ShMeta {
+                bands: chosen.n as u32,
+                centre_mm: projection.centre,
+                alpha: chosen.alpha,
+                projection: projection.projection(chosen.n),
+                volume_forms: chosen.forms.clone(),
+                rms_percent: chosen.error.rms_percent,
+                rms_mm: chosen.error.rms_mm,
+                max_mm: chosen.error.max_mm,
+                foldover_nodes: projection.weights.foldover_vertices.len() as u64,
+                budget_mm: settings.max_error_mm,
+            }),
+            Some(projection.stored(chosen.n)),
+        )
+    } else {
+        (None, None)
+    };
     let meta = KernelMeta {
         side,
         units: "mm".into(),
@@ -99,6 +178,13 @@ pub fn bake(
         force_scale,
         start_volume_ml: model.start_volume_ml,
         written_by: format!("lungdyn {}", env!("CARGO_PKG_VERSION")),
+        orientation: Some(OrientationMeta {
+            volume_forms: exact_forms,
+            basis_max_error_mm: basis_check.max_mm,
+            reference_delta_ml: delta_ml,
+            orientations_checked: orientations.len() as u32,
+        }),
+        sh: sh_meta,
     };
     Ok(Kernel {
         meta,
@@ -108,6 +194,8 @@ pub fn bake(
         unit_displacement: model.unit_displacement,
         mesh: model.mesh,
         transfer,
+        basis,
+        sh,
     })
 }
 
@@ -155,7 +243,16 @@ impl Kernel {
                 ),
                 (section::COLS, 4, bytemuck::cast_slice(&self.transfer.cols)),
                 (section::VALS, 4, bytemuck::cast_slice(&self.transfer.vals)),
-            ],
+                (section::BASIS, 16, bytemuck::cast_slice(&self.basis)),
+                (
+                    section::SH,
+                    4,
+                    bytemuck::cast_slice(self.sh.as_deref().unwrap_or(&[])),
+                ),
+            ]
+            .into_iter()
+            .filter(|s| s.0 != section::SH || self.sh.is_some())
+            .collect::<Vec<_>>(),
         )
     }
 }
@@ -193,10 +290,15 @@ mod tests {
         assert_eq!(f.meta(), &k.meta);
         assert_eq!(f.mesh(), k.mesh);
         assert_eq!(f.directions(), &k.directions[..]);
-        assert_eq!(f.applied_force(), &k.applied_force[..]);
-        assert_eq!(f.elastostatic(), &k.elastostatic[..]);
+        assert_eq!(f.applied_force().unwrap(), &k.applied_force[..]);
+        assert_eq!(f.elastostatic().unwrap(), &k.elastostatic[..]);
+        assert_eq!(f.basis_responses().unwrap().unwrap(), &k.basis[..]);
+        assert_eq!(
+            f.sh_coefficients().unwrap().unwrap(),
+            k.sh.as_deref().unwrap()
+        );
         assert_eq!(f.unit_displacement(), &k.unit_displacement[..]);
-        assert_eq!(f.transfer(), k.transfer);
+        assert_eq!(f.transfer().unwrap(), k.transfer);
         // The loaded model adds exactly the unit volume at s = 1.
         let m = f.lung_model();
         let dv = m.cubic.volume(1.0) / 1000.0 - m.start_volume_ml;

@@ -7,7 +7,9 @@
 //!   a lung in the stated unit; [`surface_checks`] — shells, self-intersections, degenerate
 //!   triangles and which lung the geometry is;
 //! * [`operator`] — the node graph (eq. 6.7) and the pitcher–catcher pass (eq. 6.11–6.13);
-//! * [`kernel`] — the whole of seed ch. 6 for one lung, written as a kernel file;
+//! * [`kernel`] — the whole of seed ch. 6 for one lung, written as a kernel file; [`orient`] — what the
+//!   orientation-following modes of seed ch. 7 need (basis responses, spherical-harmonic transfer
+//!   coefficients and `α`, volume forms) and their errors against eq. 7.1;
 //! * [`motion_fit`] and [`surface_fit`] — the motion constants from landmarks or surfaces (§6.4.2);
 //!   [`motion_models`] — the power law, polynomial and thin-plate fields compared on held-out
 //!   landmarks, with the complexity chosen by inner cross-validation; [`landmarks`] — reading points
@@ -25,6 +27,7 @@ pub mod lsq;
 pub mod motion_fit;
 pub mod motion_models;
 pub mod operator;
+pub mod orient;
 pub mod pv;
 pub mod surface_checks;
 pub mod surface_fit;

@@ -82,24 +82,44 @@ pub enum MotionFitError {
         /// Gap threshold.
         gap_mm: f64,
     },
+    /// A side was given (the set is one lung), but the set clearly holds both lungs.
+    #[error(
+        "--lung {side} says the points are one lung, but they look like both: a {gap_mm:.0} mm gap in X \
+         parts them into {right} and {left} points, and they span {x_mm:.0} mm from side to side against \
+         {y_mm:.0} mm from front to back (one lung is narrower than it is deep; both lungs together are \
+         wider): drop --lung to fit each lung, or give one lung's points"
+    )]
+    TwoLungsForOneSide {
+        /// The side given.
+        side: &'static str,
+        /// The gap between the parts, mm.
+        gap_mm: f64,
+        /// Points at smaller X (a right lung's side).
+        right: usize,
+        /// Points at larger X.
+        left: usize,
+        /// Extent in X (left–right), mm.
+        x_mm: f64,
+        /// Extent in Y (front–back), mm.
+        y_mm: f64,
+    },
 }
 
 /// Smallest gap in X (mm) taken as the space between the lungs.
 pub const MIN_GAP_MM: f64 = 10.0;
 
-/// Split `points` (indices) into lungs at the largest gap in X, when it is at least
-/// [`MIN_GAP_MM`] and lies in the middle 80 % of the X range. Returns (side, indices) per lung.
-pub fn split_lungs(
-    points: &[DVec3],
-    side: Option<Side>,
-) -> Result<Vec<(Side, Vec<usize>)>, MotionFitError> {
-    let mut order: Vec<usize> = (0..points.len()).collect();
-    order.sort_by(|&a, &b| points[a].x.total_cmp(&points[b].x));
-    let all = || order.clone();
+/// A set whose X extent (left–right) is at least this many times its Y extent (front–back) is as wide
+/// as two lungs side by side: one lung is narrower than it is deep (adult ≈ 10–13 cm wide, 16–20 cm
+/// deep; the default lungs 86 × 112 mm), both together ≈ 1.5–2× wider than deep [Gray-2016, ch. 54].
+pub const TWO_LUNGS_X_OVER_Y: f64 = 1.2;
+
+/// The largest gap in X between consecutive points (sorted by X) whose middle lies in the middle 80 %
+/// of the X range: (gap mm, split position in `order`).
+fn central_gap(points: &[DVec3], order: &[usize]) -> (f64, usize) {
+    let mut best = (0.0, 0);
     if points.len() >= 2 {
         let (lo, hi) = (points[order[0]].x, points[*order.last().unwrap()].x);
         let range = hi - lo;
-        let mut best = (0.0, 0);
         for w in 1..order.len() {
             let gap = points[order[w]].x - points[order[w - 1]].x;
             let mid = 0.5 * (points[order[w]].x + points[order[w - 1]].x);
@@ -107,19 +127,108 @@ pub fn split_lungs(
                 best = (gap, w);
             }
         }
-        if best.0 >= MIN_GAP_MM {
+    }
+    best
+}
+
+/// Split `points` (indices) into lungs. Without a side: at the largest gap in X, when it is at least
+/// [`MIN_GAP_MM`] and lies in the middle 80 % of the X range (else [`MotionFitError::SideNeeded`]).
+/// With a side the set is that one lung, never split (sparse landmarks of one lung have gaps too);
+/// a set that clearly holds both lungs — such a gap *and* an X extent of at least
+/// [`TWO_LUNGS_X_OVER_Y`] times its Y extent — is refused ([`MotionFitError::TwoLungsForOneSide`]).
+/// Returns (side, indices) per lung.
+pub fn split_lungs(
+    points: &[DVec3],
+    side: Option<Side>,
+) -> Result<Vec<(Side, Vec<usize>)>, MotionFitError> {
+    let mut order: Vec<usize> = (0..points.len()).collect();
+    order.sort_by(|&a, &b| points[a].x.total_cmp(&points[b].x));
+    let (gap, at) = central_gap(points, &order);
+    match side {
+        None if gap >= MIN_GAP_MM => {
             // +X is the patient's left: the lung at larger X is the left one.
-            let (right, left) = order.split_at(best.1);
-            return Ok(vec![
+            let (right, left) = order.split_at(at);
+            Ok(vec![
                 (Side::Right, right.to_vec()),
                 (Side::Left, left.to_vec()),
-            ]);
+            ])
+        }
+        None => Err(MotionFitError::SideNeeded { gap_mm: MIN_GAP_MM }),
+        Some(s) => {
+            let (lo, hi) = points.iter().fold(
+                (DVec3::splat(f64::INFINITY), DVec3::splat(f64::NEG_INFINITY)),
+                |(lo, hi), p| (lo.min(*p), hi.max(*p)),
+            );
+            let size = hi - lo;
+            if gap >= MIN_GAP_MM && size.x >= TWO_LUNGS_X_OVER_Y * size.y {
+                return Err(MotionFitError::TwoLungsForOneSide {
+                    side: s.name(),
+                    gap_mm: gap,
+                    right: at,
+                    left: points.len() - at,
+                    x_mm: size.x,
+                    y_mm: size.y,
+                });
+            }
+            Ok(vec![(s, order)])
         }
     }
-    match side {
-        Some(s) => Ok(vec![(s, all())]),
-        None => Err(MotionFitError::SideNeeded { gap_mm: MIN_GAP_MM }),
+}
+
+/// Which lung a set's motion suggests, when it says so clearly: on inspiration a lung's lateral wall
+/// moves outwards (the ribs swing out), so a left lung's points move towards +X on average and a
+/// right lung's towards −X (eq. 6.14's lateral term, `side.lateral_sign()`). The direction of the
+/// phases comes from the base (it moves down on inspiration); evidence needs a mean X motion of at
+/// least 0.5 mm and three standard errors. Returns the side and the numbers behind it.
+pub fn side_from_motion(start: &[DVec3], delta: &[DVec3]) -> Option<(Side, String)> {
+    let n = start.len().min(delta.len());
+    if n < 8 {
+        return None;
     }
+    let (lo, hi) = start[..n]
+        .iter()
+        .fold((f64::INFINITY, f64::NEG_INFINITY), |(lo, hi), p| {
+            (lo.min(p.z), hi.max(p.z))
+        });
+    let mid = 0.5 * (lo + hi);
+    let basal: Vec<f64> = start[..n]
+        .iter()
+        .zip(delta)
+        .filter(|(p, _)| p.z < mid)
+        .map(|(_, d)| d.z)
+        .collect();
+    let basal_dz = basal.iter().sum::<f64>() / basal.len().max(1) as f64;
+    if basal_dz == 0.0 || !basal_dz.is_finite() {
+        return None;
+    }
+    // Inspiration: the base moves down; from end-inhale to end-exhale every direction is reversed.
+    let towards_inspiration = -basal_dz.signum();
+    let dx: Vec<f64> = delta[..n]
+        .iter()
+        .map(|d| d.x * towards_inspiration)
+        .collect();
+    let mean = dx.iter().sum::<f64>() / n as f64;
+    let var = dx.iter().map(|x| (x - mean).powi(2)).sum::<f64>() / (n - 1) as f64;
+    let se = (var / n as f64).sqrt();
+    if !(mean.abs() >= 0.5 && mean.abs() >= 3.0 * se) {
+        return None;
+    }
+    let side = if mean > 0.0 { Side::Left } else { Side::Right };
+    Some((
+        side,
+        format!(
+            "on inspiration the points move towards {} by {:.1} mm on average (± {:.1} mm standard \
+             error), as a {} lung's lateral wall does",
+            if mean > 0.0 {
+                "+X (the patient's left)"
+            } else {
+                "-X (the patient's right)"
+            },
+            mean.abs(),
+            se,
+            side.name()
+        ),
+    ))
 }
 
 /// One axis's fitted power law `δ = factor · t^exponent`.
@@ -513,6 +622,50 @@ mod tests {
     }
 
     const TRUTH: [f64; 9] = [3.0, 0.8, 6.5, 0.5, 14.0, 2.2, 0.01, 0.95, 0.07];
+
+    #[test]
+    fn a_given_side_means_one_lung_and_both_lungs_are_refused_for_one_side() {
+        let right = lung_points(Side::Right, 800);
+        let left = lung_points(Side::Left, 800);
+        // Sparse landmarks of one lung (every 23rd vertex) have gaps of 10 mm and more in X: with
+        // --lung they stay one lung.
+        let sparse: Vec<DVec3> = left.iter().step_by(23).copied().collect();
+        let parts = split_lungs(&sparse, Some(Side::Left)).unwrap();
+        assert_eq!(parts.len(), 1);
+        assert_eq!((parts[0].0, parts[0].1.len()), (Side::Left, sparse.len()));
+        // Both lungs with one side: refused, naming --lung.
+        let both: Vec<DVec3> = right.iter().chain(&left).copied().collect();
+        let e = split_lungs(&both, Some(Side::Left)).unwrap_err();
+        assert!(
+            matches!(
+                e,
+                MotionFitError::TwoLungsForOneSide { right: r, left: l, .. }
+                    if r == right.len() && l == left.len()
+            ),
+            "{e}"
+        );
+        assert!(e.to_string().contains("--lung left"), "{e}");
+        // Without a side both lungs are still split at the gap.
+        assert_eq!(split_lungs(&both, None).unwrap().len(), 2);
+    }
+
+    #[test]
+    fn the_lateral_motion_tells_the_side() {
+        for side in [Side::Left, Side::Right] {
+            let a = lung_points(side, 400);
+            let b = move_points(&a, side, &TRUTH, 1.0);
+            let d: Vec<DVec3> = a.iter().zip(&b).map(|(p, q)| *q - *p).collect();
+            let (seen, why) = side_from_motion(&a, &d).unwrap();
+            assert_eq!(seen, side, "{why}");
+            // The phases reversed (inhale to exhale): still the same lung.
+            let back: Vec<DVec3> = d.iter().map(|v| -*v).collect();
+            assert_eq!(side_from_motion(&b, &back).unwrap().0, side);
+        }
+        // No lateral motion: no claim.
+        let a = lung_points(Side::Left, 400);
+        let d: Vec<DVec3> = a.iter().map(|_| DVec3::new(0.0, 0.0, -5.0)).collect();
+        assert_eq!(side_from_motion(&a, &d), None);
+    }
 
     #[test]
     fn known_constants_are_recovered_exactly_on_both_lungs() {

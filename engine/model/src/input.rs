@@ -6,6 +6,13 @@
 //! with `allow_special`, and even then at most `max_bytes` are read), its length is checked before
 //! anything is read, and text gets a line-length limit so a file without newlines cannot become one
 //! huge line in a parser.
+//!
+//! Two more things keep a wrong input from costing time or memory before it is refused:
+//! * special files are opened without blocking: opening a pipe (FIFO) that no program writes would
+//!   otherwise wait forever in `open(2)`; such a pipe reads as empty and is refused as such;
+//! * the first [`SNIFF_BYTES`] are looked at before the rest is read ([`read_bounded_with`]): a text
+//!   format with a NUL byte, or a binary format whose header contradicts the file size, is refused at
+//!   once instead of after reading gigabytes of a sparse file.
 
 use std::io::Read;
 use std::path::{Path, PathBuf};
@@ -123,10 +130,44 @@ pub enum InputError {
         /// First bad byte.
         offset: usize,
     },
+    /// A text file holds a NUL byte (seen in its first bytes, before the rest is read).
+    #[error(
+        "{}: binary data (a NUL byte at byte {offset}), not UTF-8 text: is this the right file?",
+        path.display()
+    )]
+    Binary {
+        /// Path.
+        path: PathBuf,
+        /// First NUL byte.
+        offset: usize,
+    },
+    /// A pipe (FIFO) that no program writes: nothing to read.
+    #[error(
+        "{}: the pipe gave no data (no program is writing it): start the writer first, or give a \
+         regular file",
+        path.display()
+    )]
+    EmptyPipe {
+        /// Path.
+        path: PathBuf,
+    },
+    /// The first bytes already show the file is not of the expected format (see
+    /// [`read_bounded_with`]).
+    #[error("{}: {message}", path.display())]
+    Format {
+        /// Path.
+        path: PathBuf,
+        /// What the first bytes show.
+        message: String,
+    },
 }
 
+/// Bytes looked at before the rest of a file is read (see [`read_bounded_with`]).
+pub const SNIFF_BYTES: usize = 64 << 10;
+
+use std::os::unix::fs::FileTypeExt;
+
 fn kind_of(meta: &std::fs::Metadata) -> &'static str {
-    use std::os::unix::fs::FileTypeExt;
     let t = meta.file_type();
     if t.is_dir() {
         "folder"
@@ -144,9 +185,23 @@ fn kind_of(meta: &std::fs::Metadata) -> &'static str {
 }
 
 /// Read `path` within `limits`: a regular file no larger than `max_bytes` (checked before reading),
-/// or, with `allow_special`, at most `max_bytes` of a special file. With a line limit, every line
-/// is checked too.
+/// or, with `allow_special`, at most `max_bytes` of a special file. With a line limit (text), a NUL
+/// byte in the first [`SNIFF_BYTES`] refuses the file before the rest is read, and every line is
+/// checked.
 pub fn read_bounded(path: &Path, limits: ReadLimits) -> Result<Vec<u8>, InputError> {
+    read_bounded_with(path, limits, |_, _| Ok(()))
+}
+
+/// [`read_bounded`] with a format check on the first bytes: `sniff(head, size)` gets the first
+/// [`SNIFF_BYTES`] (or the whole file, when shorter) and the file's size (`None` for a special file)
+/// before anything else is read; an `Err(message)` refuses the file at once
+/// ([`InputError::Format`]). A binary STL whose header claims another size, say, is refused without
+/// reading a sparse 3 GiB file.
+pub fn read_bounded_with(
+    path: &Path,
+    limits: ReadLimits,
+    sniff: impl FnOnce(&[u8], Option<u64>) -> Result<(), String>,
+) -> Result<Vec<u8>, InputError> {
     let p = || path.to_path_buf();
     let meta = std::fs::metadata(path).map_err(|source| InputError::Open { path: p(), source })?;
     let regular = meta.is_file();
@@ -163,13 +218,37 @@ pub fn read_bounded(path: &Path, limits: ReadLimits) -> Result<Vec<u8>, InputErr
             limit: limits.max_bytes,
         });
     }
-    let file =
-        std::fs::File::open(path).map_err(|source| InputError::Open { path: p(), source })?;
-    let mut bytes = Vec::with_capacity(if regular { meta.len() as usize } else { 0 });
+    let file = if regular {
+        std::fs::File::open(path)
+    } else {
+        open_special(path)
+    }
+    .map_err(|source| InputError::Open { path: p(), source })?;
     // One byte more than allowed tells a file that grew (or a special file) from one that fits.
-    file.take(limits.max_bytes.saturating_add(1))
+    let mut reader = file.take(limits.max_bytes.saturating_add(1));
+    let read = |e| InputError::Read {
+        path: p(),
+        source: e,
+    };
+    let mut bytes = Vec::new();
+    (&mut reader)
+        .take(SNIFF_BYTES as u64)
         .read_to_end(&mut bytes)
-        .map_err(|source| InputError::Read { path: p(), source })?;
+        .map_err(read)?;
+    if bytes.is_empty() && meta.file_type().is_fifo() {
+        return Err(InputError::EmptyPipe { path: p() });
+    }
+    if limits.max_line_bytes > 0 {
+        if let Some(offset) = bytes.iter().position(|&b| b == 0) {
+            return Err(InputError::Binary { path: p(), offset });
+        }
+    }
+    sniff(&bytes, regular.then_some(meta.len()))
+        .map_err(|message| InputError::Format { path: p(), message })?;
+    if regular {
+        bytes.reserve((meta.len() as usize).saturating_sub(bytes.len()));
+    }
+    reader.read_to_end(&mut bytes).map_err(read)?;
     if bytes.len() as u64 > limits.max_bytes {
         return Err(InputError::TooLarge {
             path: p(),
@@ -181,6 +260,28 @@ pub fn read_bounded(path: &Path, limits: ReadLimits) -> Result<Vec<u8>, InputErr
         check_lines(path, &bytes, limits.max_line_bytes)?;
     }
     Ok(bytes)
+}
+
+/// Open a device, pipe or socket for reading without blocking in `open(2)` (a FIFO without a writer
+/// would block there forever), then switch the descriptor back to blocking reads: a pipe with a
+/// writer is read as it comes, and one without a writer reads as empty at once.
+fn open_special(path: &Path) -> std::io::Result<std::fs::File> {
+    use std::os::unix::fs::OpenOptionsExt;
+    use std::os::unix::io::AsRawFd;
+    let file = std::fs::OpenOptions::new()
+        .read(true)
+        .custom_flags(libc::O_NONBLOCK)
+        .open(path)?;
+    let fd = file.as_raw_fd();
+    // SAFETY: fcntl on a descriptor we own; F_GETFL/F_SETFL only read and set its status flags.
+    let ok = unsafe {
+        let flags = libc::fcntl(fd, libc::F_GETFL);
+        flags >= 0 && libc::fcntl(fd, libc::F_SETFL, flags & !libc::O_NONBLOCK) >= 0
+    };
+    if !ok {
+        return Err(std::io::Error::last_os_error());
+    }
+    Ok(file)
 }
 
 /// [`read_bounded`] for text: the bytes must also be UTF-8.
@@ -311,6 +412,103 @@ mod tests {
         ));
         assert!(looks_binary(b"ply\0"));
         assert!(!looks_binary(b"ply\nformat ascii 1.0\n"));
+    }
+
+    fn fifo(name: &str) -> PathBuf {
+        let p = tmp(name);
+        std::fs::remove_file(&p).ok();
+        let c = std::ffi::CString::new(p.to_str().unwrap()).unwrap();
+        // SAFETY: mkfifo on a path in our own temporary folder.
+        assert_eq!(unsafe { libc::mkfifo(c.as_ptr(), 0o600) }, 0);
+        p
+    }
+
+    #[test]
+    fn a_fifo_without_a_writer_is_refused_at_once_never_waited_on() {
+        let p = fifo("nowriter.fifo");
+        let e = read_bounded(&p, ReadLimits::TABLE).unwrap_err();
+        assert!(
+            matches!(e, InputError::NotRegular { kind: "pipe", .. }),
+            "{e}"
+        );
+        // Allowed, it is opened without blocking and reads as empty: refused, naming the pipe.
+        let t = std::time::Instant::now();
+        let e = read_bounded(&p, ReadLimits::TABLE.with(None, true)).unwrap_err();
+        assert!(matches!(e, InputError::EmptyPipe { .. }), "{e}");
+        assert!(e.to_string().contains("nowriter.fifo"), "{e}");
+        assert!(t.elapsed() < std::time::Duration::from_secs(5));
+        // A pipe with a writer is read to its end.
+        let writer = {
+            let p = p.clone();
+            std::thread::spawn(move || {
+                use std::io::Write;
+                // Opening blocks until a reader has the pipe open; a reader that already saw an
+                // empty pipe and left makes the write fail: try again.
+                for _ in 0..200 {
+                    let w = std::fs::OpenOptions::new().write(true).open(&p);
+                    if w.and_then(|mut w| w.write_all(b"1 2 3\n")).is_ok() {
+                        return;
+                    }
+                }
+                panic!("no reader took the data");
+            })
+        };
+        // The reader may read before the writer has opened: retry until the data arrives.
+        let mut got = None;
+        for _ in 0..200 {
+            match read_bounded(&p, ReadLimits::TABLE.with(None, true)) {
+                Ok(b) => {
+                    got = Some(b);
+                    break;
+                }
+                Err(InputError::EmptyPipe { .. }) => {
+                    std::thread::sleep(std::time::Duration::from_millis(10))
+                }
+                Err(e) => panic!("{e}"),
+            }
+        }
+        writer.join().unwrap();
+        assert_eq!(got.as_deref(), Some(&b"1 2 3\n"[..]));
+        std::fs::remove_file(&p).ok();
+    }
+
+    #[test]
+    fn the_first_bytes_refuse_a_huge_wrong_file_without_reading_it() {
+        // A sparse 3 GiB text file of zeros with the limit raised: refused by its first NUL byte.
+        let p = tmp("sparse.csv");
+        let f = std::fs::File::create(&p).unwrap();
+        f.set_len(3 << 30).unwrap();
+        let limits = ReadLimits::TABLE.with(Some(4096), false);
+        let t = std::time::Instant::now();
+        let e = read_bounded(&p, limits).unwrap_err();
+        assert!(matches!(e, InputError::Binary { offset: 0, .. }), "{e}");
+        assert!(e.to_string().contains("sparse.csv"), "{e}");
+        assert!(t.elapsed() < std::time::Duration::from_secs(2));
+        // A format check sees the head and the size before the rest is read.
+        let limits = ReadLimits {
+            max_line_bytes: 0,
+            ..ReadLimits::MESH.with(Some(4096), false)
+        };
+        let e = read_bounded_with(&p, limits, |head, size| {
+            assert_eq!((head.len(), size), (SNIFF_BYTES, Some(3 << 30)));
+            Err("the header says 0 triangles".into())
+        })
+        .unwrap_err();
+        assert!(matches!(e, InputError::Format { .. }), "{e}");
+        assert!(
+            e.to_string()
+                .ends_with("sparse.csv: the header says 0 triangles"),
+            "{e}"
+        );
+        std::fs::remove_file(&p).ok();
+        // A small file: the head is the whole file, and it is returned whole.
+        let small = tmp("small2.txt");
+        std::fs::write(&small, "x y z\n").unwrap();
+        let got = read_bounded_with(&small, ReadLimits::TABLE, |head, size| {
+            assert_eq!((head, size), (&b"x y z\n"[..], Some(6)));
+            Ok(())
+        });
+        assert_eq!(got.unwrap(), b"x y z\n");
     }
 
     #[test]

@@ -27,9 +27,11 @@
 //! (f32 × 3, unit, eq. 6.14–6.16); 5 applied force (f32, eq. 6.18); 6 elastostatic force
 //! (f32, `F = Tᵀf`); 7 unit displacement (f32 × 3, mm per unit volume); 8 row offsets (u64,
 //! vertices + 1); 9 columns (u32 per non-zero); 10 values (f32 per non-zero, `T[j→i]`);
-//! 11 spherical-harmonic coefficients (reserved for seed ch. 7; absent in files baked now). A reader
-//! ignores kinds it does not know, so sections can be added without a new version; a change to any
-//! existing section's meaning bumps the version.
+//! 11 spherical-harmonic transfer coefficients (f32 × bands² per vertex, `T^I_lm` of seed eq. 7.4,
+//! present when [`KernelMeta::sh`] is); 12 basis responses (f32 × 4 per vertex, `G_0, G_x, G_y, G_z`
+//! of EQUATIONS.md §3.3, present when [`KernelMeta::orientation`] is). A reader ignores kinds it does
+//! not know, so sections can be added without a new version; a change to any existing section's
+//! meaning bumps the version.
 //!
 //! Sections are 64-byte aligned, so a memory-mapped file is used in place ([`KernelFile`]). Every
 //! claim of the header is checked against the real file size before anything is read, every
@@ -57,6 +59,8 @@ pub const BOM: u32 = 0x0102_0304;
 pub const HEADER: usize = 64;
 /// Section-table entry size, bytes.
 pub const ENTRY: usize = 32;
+/// Largest coordinate a kernel's positions may have, mm (10 m: a tracker room, not a body).
+pub const MAX_COORDINATE_MM: f32 = 1e4;
 /// Most sections a file may claim.
 pub const MAX_SECTIONS: usize = 64;
 /// Alignment of every section, bytes.
@@ -84,8 +88,10 @@ pub mod section {
     pub const COLS: u32 = 9;
     /// CSR values, f32.
     pub const VALS: u32 = 10;
-    /// Spherical-harmonic coefficients (reserved, seed ch. 7).
+    /// Spherical-harmonic transfer coefficients `T^I_lm`, f32 × bands² per vertex (seed eq. 7.4).
     pub const SH: u32 = 11;
+    /// Basis responses `(G_0, G_x, G_y, G_z)`, f32 × 4 per vertex (EQUATIONS.md §3.3).
+    pub const BASIS: u32 = 12;
 }
 
 /// What a bake needs besides the mesh.
@@ -102,6 +108,23 @@ pub struct BakeSettings {
     pub elasticity: Elasticity,
     /// Pitcher tolerance for a unit force.
     pub tolerance: f64,
+    /// Spherical-harmonic bands baked for the SH mode (`n`, `n²` coefficients per vertex; seed: 4);
+    /// 0 bakes none. With [`Self::max_error_mm`] this is the most the bake may use.
+    #[serde(default = "default_sh_bands")]
+    pub sh_bands: u32,
+    /// Error budget (mm, RMS displacement against eq. 7.1 at the reference volume over the
+    /// orientation set): the bake keeps the fewest bands that meet it (EQUATIONS.md §3.2).
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub max_error_mm: Option<f64>,
+}
+
+/// Bands baked by default (the seed's 16 coefficients).
+pub const DEFAULT_SH_BANDS: u32 = 4;
+/// Most bands a kernel may carry for the run time (`ipc_types::MAX_COEFFS` = 64 = 8²).
+pub const MAX_RUNTIME_BANDS: u32 = 8;
+
+fn default_sh_bands() -> u32 {
+    DEFAULT_SH_BANDS
 }
 
 /// Default pitcher tolerance for a unit force (see `docs/EQUATIONS.md` §2.3 for what it gives).
@@ -115,8 +138,55 @@ impl BakeSettings {
             direction_field: None,
             elasticity: Elasticity::default(),
             tolerance: DEFAULT_TOLERANCE,
+            sh_bands: DEFAULT_SH_BANDS,
+            max_error_mm: None,
         }
     }
+}
+
+/// What the orientation-dependent modes (direct eq. 7.1 and the exact basis) need beyond the
+/// sections: the enclosed volume as forms in the force weights (EQUATIONS.md §3.3), and how well
+/// the stored basis reproduces eq. 7.1.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct OrientationMeta {
+    /// Enclosed volume of `p + s·Σ_a w_a·k·G_a·d` as forms in `w = (w0, wx, wy, wz)`.
+    pub volume_forms: crate::deform::modes::VolumeForms,
+    /// Largest displacement difference of the basis mode (stored f32 responses) against eq. 7.1
+    /// evaluated in f64 from the transfer rows, at the reference volume over the orientation set, mm.
+    pub basis_max_error_mm: f64,
+    /// Volume change above FRC at which errors are reported, ml.
+    pub reference_delta_ml: f64,
+    /// Orientations the errors were taken over.
+    pub orientations_checked: u32,
+}
+
+/// The spherical-harmonic form (seed eq. 7.2–7.7, EQUATIONS.md §3.2) as baked.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct ShMeta {
+    /// Bands `n` (`l < n`, `n²` coefficients per vertex).
+    pub bands: u32,
+    /// Centre of projection (the mesh's volume centroid), mm.
+    pub centre_mm: [f64; 3],
+    /// Least-squares scale of eq. 7.7 against eq. 7.1.
+    pub alpha: f64,
+    /// Force projection: `projection[a·n² + k] = Σ_J w_J·x̂_a(J)·Y_k(J)` for `x̂_0 = 1, x̂, ŷ, ẑ`,
+    /// so the force coefficients of weights `w` are `F_k = Σ_a w_a·projection[a·n² + k]`.
+    pub projection: Vec<f64>,
+    /// Enclosed volume of the SH mode's displacement as forms in the weights.
+    pub volume_forms: crate::deform::modes::VolumeForms,
+    /// RMS displacement error against eq. 7.1 as % of the largest eq. 7.1 displacement.
+    pub rms_percent: f64,
+    /// RMS displacement error against eq. 7.1, mm.
+    pub rms_mm: f64,
+    /// Largest displacement error against eq. 7.1, mm.
+    pub max_mm: f64,
+    /// Vertices touching a triangle whose projection from the centre folds over (or contains it).
+    pub foldover_nodes: u64,
+    /// The error budget the bands were chosen for, if any.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub budget_mm: Option<f64>,
 }
 
 /// Metadata section.
@@ -149,6 +219,12 @@ pub struct KernelMeta {
     pub start_volume_ml: f64,
     /// Software that wrote the file.
     pub written_by: String,
+    /// The orientation-dependent modes' data (absent in kernels baked before them).
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub orientation: Option<OrientationMeta>,
+    /// The spherical-harmonic mode's data (absent when baked with 0 bands or before it existed).
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub sh: Option<ShMeta>,
 }
 
 /// Errors reading or writing a kernel file.
@@ -300,6 +376,14 @@ pub enum FormatError {
         /// Elements implied.
         expected: u64,
     },
+    /// A position is beyond any body (more than [`MAX_COORDINATE_MM`] from the origin on an axis).
+    #[error("positions: coordinate {index} = {value:e} mm is beyond any body (|x| ≤ {MAX_COORDINATE_MM:e} mm); was the mesh in another unit?")]
+    PositionRange {
+        /// Index of the float.
+        index: usize,
+        /// Its value.
+        value: f32,
+    },
     /// A float is NaN or infinite.
     #[error("{what}: value {index} is not finite")]
     NonFinite {
@@ -417,12 +501,21 @@ fn align(v: u64) -> u64 {
 }
 
 /// A kernel file, memory-mapped and verified; accessors borrow the mapping.
+///
+/// [`KernelFile::open`] verifies every section before returning. [`KernelFile::open_lazy`] (the
+/// run-time processes) verifies the header, the section table, the metadata and the sections every
+/// deformation mode reads (positions, triangles, directions, unit displacement) at once, and every
+/// other section (the transfer rows, the spherical-harmonic and basis coefficients, the forces) the
+/// first time it is asked for: a precomputed-mode run never reads, let alone checks, the transfer
+/// rows, which are most of the file. [`KernelFile::bytes_verified`] counts what was checked.
 pub struct KernelFile {
     path: PathBuf,
     map: memmap2::Mmap,
     id: u64,
     meta: KernelMeta,
     sections: Vec<Section>,
+    checked: Vec<std::sync::OnceLock<Result<(), FormatError>>>,
+    verified_bytes: std::sync::atomic::AtomicU64,
 }
 
 impl std::fmt::Debug for KernelFile {
@@ -441,11 +534,62 @@ fn u64_at(b: &[u8], at: usize) -> u64 {
     u64::from_le_bytes(b[at..at + 8].try_into().unwrap())
 }
 
-/// A verified section: kind, element size, byte offset, byte length.
-pub type Section = (u32, u32, usize, usize);
+/// A section as the table describes it: kind, element size, byte offset, byte length, checksum.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub struct Section {
+    /// Section kind ([`section`]).
+    pub kind: u32,
+    /// Element size, bytes.
+    pub elem: u32,
+    /// Byte offset in the file.
+    pub offset: usize,
+    /// Byte length.
+    pub len: usize,
+    /// xxh3-64 of the bytes, as the table claims.
+    pub checksum: u64,
+}
 
-/// Why a byte image is not a valid kernel (no path; [`KernelFile::open`] adds it).
+/// Sections every deformation mode reads: verified when a kernel is opened, even lazily.
+pub const CORE_SECTIONS: [u32; 4] = [
+    section::POSITIONS,
+    section::TRIANGLES,
+    section::DIRECTIONS,
+    section::UNIT_DISPLACEMENT,
+];
+
+/// Why a byte image is not a valid kernel (no path; [`KernelFile::open`] adds it): the layout and
+/// then every section.
 pub fn verify_bytes(b: &[u8]) -> Result<(KernelMeta, Vec<Section>), FormatError> {
+    let (meta, sections) = verify_layout(b)?;
+    for (index, s) in sections.iter().enumerate() {
+        verify_section(b, index, s, &meta)?;
+    }
+    Ok((meta, sections))
+}
+
+/// Element size and count a known section must have under `meta`; `None` for kinds this build does
+/// not know (ignored).
+fn expected_shape(kind: u32, meta: &KernelMeta) -> Option<(u32, u64)> {
+    let v = meta.vertices;
+    Some(match kind {
+        section::META => return None,
+        section::POSITIONS | section::DIRECTIONS | section::UNIT_DISPLACEMENT => (12, v),
+        section::TRIANGLES => (12, meta.triangles),
+        section::APPLIED_FORCE | section::ELASTOSTATIC => (4, v),
+        section::ROW_PTR => (8, v.saturating_add(1)),
+        section::COLS | section::VALS => (4, meta.nnz),
+        section::SH => {
+            let n = meta.sh.as_ref().map_or(0, |s| s.bands as u64);
+            (4, v.saturating_mul(n * n))
+        }
+        section::BASIS => (16, v),
+        _ => return None,
+    })
+}
+
+/// The header, the section table, the metadata and the shape of every known section (sizes and
+/// counts against the metadata) — everything but the other sections' bytes.
+pub fn verify_layout(b: &[u8]) -> Result<(KernelMeta, Vec<Section>), FormatError> {
     if b.len() < HEADER {
         return Err(FormatError::TooShort {
             len: b.len() as u64,
@@ -487,11 +631,12 @@ pub fn verify_bytes(b: &[u8]) -> Result<(KernelMeta, Vec<Section>), FormatError>
     for s in 0..count {
         let e = &table[s * ENTRY..(s + 1) * ENTRY];
         let (kind, elem) = (u32_at(e, 0), u32_at(e, 4));
-        let (offset, len, sum) = (u64_at(e, 8), u64_at(e, 16), u64_at(e, 24));
+        let (offset, len, checksum) = (u64_at(e, 8), u64_at(e, 16), u64_at(e, 24));
         let end = offset
             .checked_add(len)
             .filter(|&end| end <= b.len() as u64)
             .ok_or(FormatError::SectionPastEnd { index: s, kind })?;
+        let _ = end;
         if offset % ALIGN != 0 || offset < table_end as u64 {
             return Err(FormatError::SectionMisplaced {
                 index: s,
@@ -507,117 +652,230 @@ pub fn verify_bytes(b: &[u8]) -> Result<(KernelMeta, Vec<Section>), FormatError>
                 elem,
             });
         }
-        let bytes = &b[offset as usize..end as usize];
-        if xxh3_64(bytes) != sum {
-            return Err(FormatError::SectionChecksum { index: s, kind });
-        }
-        if sections.iter().any(|&(k, ..)| k == kind) {
+        if sections.iter().any(|x| x.kind == kind) {
             return Err(FormatError::DuplicateSection { kind });
         }
-        sections.push((kind, elem, offset as usize, len as usize));
+        sections.push(Section {
+            kind,
+            elem,
+            offset: offset as usize,
+            len: len as usize,
+            checksum,
+        });
     }
-    let find = |kind: u32, elem: u32| {
-        sections
-            .iter()
-            .find(|s| s.0 == kind)
-            .ok_or(FormatError::MissingSection { kind })
-            .and_then(|s| {
-                if s.1 != elem {
-                    Err(FormatError::ElementSize {
-                        kind,
-                        found: s.1,
-                        expected: elem,
-                    })
-                } else {
-                    Ok(&b[s.2..s.2 + s.3])
-                }
-            })
-    };
-    let meta: KernelMeta = serde_json::from_slice(find(section::META, 1)?)
-        .map_err(|e| FormatError::Metadata(e.to_string()))?;
+    let (meta_index, meta_section) = sections
+        .iter()
+        .enumerate()
+        .find(|(_, s)| s.kind == section::META)
+        .ok_or(FormatError::MissingSection {
+            kind: section::META,
+        })?;
+    if meta_section.elem != 1 {
+        return Err(FormatError::ElementSize {
+            kind: section::META,
+            found: meta_section.elem,
+            expected: 1,
+        });
+    }
+    let meta_bytes = &b[meta_section.offset..meta_section.offset + meta_section.len];
+    if xxh3_64(meta_bytes) != meta_section.checksum {
+        return Err(FormatError::SectionChecksum {
+            index: meta_index,
+            kind: section::META,
+        });
+    }
+    let meta: KernelMeta =
+        serde_json::from_slice(meta_bytes).map_err(|e| FormatError::Metadata(e.to_string()))?;
     if meta.units != "mm" {
         return Err(FormatError::Units { found: meta.units });
     }
-    let v = meta.vertices as usize;
-    let checks: [(u32, u32, u64); 9] = [
-        (section::POSITIONS, 12, meta.vertices),
-        (section::TRIANGLES, 12, meta.triangles),
-        (section::DIRECTIONS, 12, meta.vertices),
-        (section::APPLIED_FORCE, 4, meta.vertices),
-        (section::ELASTOSTATIC, 4, meta.vertices),
-        (section::UNIT_DISPLACEMENT, 12, meta.vertices),
-        (section::ROW_PTR, 8, meta.vertices.saturating_add(1)),
-        (section::COLS, 4, meta.nnz),
-        (section::VALS, 4, meta.nnz),
+    for (name, v) in [
+        ("unit_volume_ml", meta.unit_volume_ml),
+        ("start_volume_ml", meta.start_volume_ml),
+        ("force_scale", meta.force_scale),
+    ] {
+        if !(v.is_finite() && v > 0.0) {
+            return Err(FormatError::Metadata(format!(
+                "{name} = {v:e} must be a finite positive number"
+            )));
+        }
+    }
+    if let Some(sh) = &meta.sh {
+        if sh.bands == 0 || sh.bands as usize > crate::sh::MAX_BANDS {
+            return Err(FormatError::Metadata(format!(
+                "sh.bands = {} (1 to {})",
+                sh.bands,
+                crate::sh::MAX_BANDS
+            )));
+        }
+        let n2 = (sh.bands * sh.bands) as usize;
+        if sh.projection.len() != 4 * n2 || !sh.projection.iter().all(|v| v.is_finite()) {
+            return Err(FormatError::Metadata(format!(
+                "sh.projection must hold 4 × {n2} finite numbers"
+            )));
+        }
+        if !sh.alpha.is_finite() || !sh.volume_forms.is_finite() {
+            return Err(FormatError::Metadata(
+                "sh.alpha and sh.volume_forms must be finite".into(),
+            ));
+        }
+    }
+    if let Some(o) = &meta.orientation {
+        if !o.volume_forms.is_finite() {
+            return Err(FormatError::Metadata(
+                "orientation.volume_forms must be finite".into(),
+            ));
+        }
+    }
+    // Required sections, and the shape of every known one.
+    let required = [
+        section::POSITIONS,
+        section::TRIANGLES,
+        section::DIRECTIONS,
+        section::APPLIED_FORCE,
+        section::ELASTOSTATIC,
+        section::UNIT_DISPLACEMENT,
+        section::ROW_PTR,
+        section::COLS,
+        section::VALS,
     ];
-    for (kind, elem, n) in checks {
-        let got = find(kind, elem)?.len() as u64 / elem as u64;
-        if got != n {
-            return Err(FormatError::ElementCount {
-                kind,
-                found: got,
-                expected: n,
-            });
+    for kind in required {
+        if !sections.iter().any(|s| s.kind == kind) {
+            return Err(FormatError::MissingSection { kind });
         }
     }
-    // Content checks.
-    let floats = |kind: u32, elem: u32, what: &'static str| -> Result<(), FormatError> {
-        let bytes = find(kind, elem)?;
-        if let Some(i) = bytes
-            .chunks_exact(4)
-            .position(|c| !f32::from_le_bytes(c.try_into().unwrap()).is_finite())
-        {
-            return Err(FormatError::NonFinite { what, index: i });
+    for (kind, present) in [
+        (section::SH, meta.sh.is_some()),
+        (section::BASIS, meta.orientation.is_some()),
+    ] {
+        if present && !sections.iter().any(|s| s.kind == kind) {
+            return Err(FormatError::MissingSection { kind });
         }
-        Ok(())
-    };
-    floats(section::POSITIONS, 12, "positions")?;
-    floats(section::DIRECTIONS, 12, "directions")?;
-    floats(section::APPLIED_FORCE, 4, "applied force")?;
-    floats(section::ELASTOSTATIC, 4, "elastostatic force")?;
-    floats(section::UNIT_DISPLACEMENT, 12, "unit displacement")?;
-    floats(section::VALS, 4, "transfer values")?;
-    let tris = find(section::TRIANGLES, 12)?;
-    if let Some(t) = tris
-        .chunks_exact(4)
-        .position(|c| u32::from_le_bytes(c.try_into().unwrap()) as usize >= v)
-    {
-        return Err(FormatError::TriangleIndex { triangle: t / 3 });
     }
-    let cols = find(section::COLS, 4)?;
-    if cols
-        .chunks_exact(4)
-        .any(|c| u32::from_le_bytes(c.try_into().unwrap()) as usize >= v)
-    {
-        return Err(FormatError::ColumnIndex);
-    }
-    let ptr = find(section::ROW_PTR, 8)?;
-    let mut last = 0u64;
-    for (i, c) in ptr.chunks_exact(8).enumerate() {
-        let p = u64::from_le_bytes(c.try_into().unwrap());
-        if (i == 0 && p != 0) || p < last {
-            return Err(FormatError::RowOffsets { row: i });
+    for s in &sections {
+        if let Some((elem, n)) = expected_shape(s.kind, &meta) {
+            if s.elem != elem {
+                return Err(FormatError::ElementSize {
+                    kind: s.kind,
+                    found: s.elem,
+                    expected: elem,
+                });
+            }
+            let got = s.len as u64 / elem as u64;
+            if got != n {
+                return Err(FormatError::ElementCount {
+                    kind: s.kind,
+                    found: got,
+                    expected: n,
+                });
+            }
         }
-        last = p;
-    }
-    if last != meta.nnz {
-        return Err(FormatError::RowEnd {
-            last,
-            nnz: meta.nnz,
-        });
     }
     Ok((meta, sections))
 }
 
+/// One section's checksum and content (floats finite, indices in range, offsets monotone), given
+/// a layout [`verify_layout`] accepted.
+pub fn verify_section(
+    b: &[u8],
+    index: usize,
+    s: &Section,
+    meta: &KernelMeta,
+) -> Result<(), FormatError> {
+    let bytes = &b[s.offset..s.offset + s.len];
+    if xxh3_64(bytes) != s.checksum {
+        return Err(FormatError::SectionChecksum {
+            index,
+            kind: s.kind,
+        });
+    }
+    let floats = |what: &'static str| -> Result<(), FormatError> {
+        match bytes
+            .chunks_exact(4)
+            .position(|c| !f32::from_le_bytes(c.try_into().unwrap()).is_finite())
+        {
+            Some(i) => Err(FormatError::NonFinite { what, index: i }),
+            None => Ok(()),
+        }
+    };
+    let v = meta.vertices as usize;
+    match s.kind {
+        section::POSITIONS => {
+            floats("positions")?;
+            match bytes
+                .chunks_exact(4)
+                .map(|c| f32::from_le_bytes(c.try_into().unwrap()))
+                .enumerate()
+                .find(|(_, v)| v.abs() > MAX_COORDINATE_MM)
+            {
+                Some((index, value)) => Err(FormatError::PositionRange { index, value }),
+                None => Ok(()),
+            }
+        }
+        section::DIRECTIONS => floats("directions"),
+        section::APPLIED_FORCE => floats("applied force"),
+        section::ELASTOSTATIC => floats("elastostatic force"),
+        section::UNIT_DISPLACEMENT => floats("unit displacement"),
+        section::VALS => floats("transfer values"),
+        section::SH => floats("spherical-harmonic transfer coefficients"),
+        section::BASIS => floats("basis responses"),
+        section::TRIANGLES => match bytes
+            .chunks_exact(4)
+            .position(|c| u32::from_le_bytes(c.try_into().unwrap()) as usize >= v)
+        {
+            Some(t) => Err(FormatError::TriangleIndex { triangle: t / 3 }),
+            None => Ok(()),
+        },
+        section::COLS => {
+            if bytes
+                .chunks_exact(4)
+                .any(|c| u32::from_le_bytes(c.try_into().unwrap()) as usize >= v)
+            {
+                Err(FormatError::ColumnIndex)
+            } else {
+                Ok(())
+            }
+        }
+        section::ROW_PTR => {
+            let mut last = 0u64;
+            for (i, c) in bytes.chunks_exact(8).enumerate() {
+                let p = u64::from_le_bytes(c.try_into().unwrap());
+                if (i == 0 && p != 0) || p < last {
+                    return Err(FormatError::RowOffsets { row: i });
+                }
+                last = p;
+            }
+            if last != meta.nnz {
+                return Err(FormatError::RowEnd {
+                    last,
+                    nnz: meta.nnz,
+                });
+            }
+            Ok(())
+        }
+        _ => Ok(()),
+    }
+}
+
 impl KernelFile {
-    /// Map and verify `path`.
+    /// Map `path` and verify every section.
     pub fn open(path: &Path) -> Result<Self, KernelError> {
+        let f = Self::open_lazy(path)?;
+        for i in 0..f.sections.len() {
+            f.check(i)?;
+        }
+        Ok(f)
+    }
+
+    /// Map `path`, verify the layout, the metadata and [`CORE_SECTIONS`]; every other section is
+    /// verified the first time it is read.
+    pub fn open_lazy(path: &Path) -> Result<Self, KernelError> {
         let io = |source| KernelError::Io {
             path: path.to_path_buf(),
             source,
         };
-        let file = std::fs::File::open(path).map_err(io)?;
-        let meta = file.metadata().map_err(io)?;
+        // The type first, from the path: opening a FIFO with no writer would block for ever.
+        let meta = std::fs::metadata(path).map_err(io)?;
         if !meta.is_file() {
             // A device or pipe cannot be a kernel (and must not be mapped or read without bound).
             return Err(KernelError::Input(crate::input::InputError::NotRegular {
@@ -627,6 +885,15 @@ impl KernelFile {
                 } else {
                     "special file"
                 },
+            }));
+        }
+        let file = std::fs::File::open(path).map_err(io)?;
+        let meta = file.metadata().map_err(io)?;
+        if !meta.is_file() {
+            // Replaced between the two looks.
+            return Err(KernelError::Input(crate::input::InputError::NotRegular {
+                path: path.to_path_buf(),
+                kind: "special file",
             }));
         }
         let len = meta.len();
@@ -640,14 +907,85 @@ impl KernelFile {
         // SAFETY: the mapping is read-only; lungdyn writes kernels atomically (new file + rename),
         // so a kernel is never modified in place while mapped.
         let map = unsafe { memmap2::Mmap::map(&file) }.map_err(io)?;
-        let (meta, sections) = verify_bytes(&map).map_err(invalid)?;
-        Ok(Self {
+        let (meta, sections) = verify_layout(&map).map_err(invalid)?;
+        let checked = sections
+            .iter()
+            .map(|_| std::sync::OnceLock::new())
+            .collect();
+        let f = Self {
             path: path.to_path_buf(),
             id: u64_at(&map, 40),
             map,
             meta,
             sections,
-        })
+            checked,
+            verified_bytes: std::sync::atomic::AtomicU64::new(0),
+        };
+        for kind in CORE_SECTIONS {
+            f.section(kind)?;
+        }
+        Ok(f)
+    }
+
+    /// Verify section `index` once; later calls return the first answer.
+    fn check(&self, index: usize) -> Result<(), KernelError> {
+        self.checked[index]
+            .get_or_init(|| {
+                let s = &self.sections[index];
+                self.verified_bytes
+                    .fetch_add(s.len as u64, std::sync::atomic::Ordering::Relaxed);
+                verify_section(&self.map, index, s, &self.meta)
+            })
+            .clone()
+            .map_err(|source| KernelError::Invalid {
+                path: self.path.clone(),
+                source,
+            })
+    }
+
+    /// The bytes of section `kind`, verified.
+    fn section(&self, kind: u32) -> Result<&[u8], KernelError> {
+        let index = self
+            .sections
+            .iter()
+            .position(|s| s.kind == kind)
+            .ok_or_else(|| KernelError::Invalid {
+                path: self.path.clone(),
+                source: FormatError::MissingSection { kind },
+            })?;
+        self.check(index)?;
+        let s = &self.sections[index];
+        Ok(&self.map[s.offset..s.offset + s.len])
+    }
+
+    fn slice<T: bytemuck::AnyBitPattern>(&self, kind: u32) -> Result<&[T], KernelError> {
+        // Sections are 64-byte aligned within a page-aligned mapping.
+        Ok(bytemuck::cast_slice(self.section(kind)?))
+    }
+
+    fn core<T: bytemuck::AnyBitPattern>(&self, kind: u32) -> &[T] {
+        self.slice(kind)
+            .expect("core sections are verified when the kernel is opened")
+    }
+
+    /// Section bytes checksummed and checked so far (a precomputed-mode run stays at the core
+    /// sections' size).
+    pub fn bytes_verified(&self) -> u64 {
+        self.verified_bytes
+            .load(std::sync::atomic::Ordering::Relaxed)
+    }
+
+    /// Whether the section of `kind` has been verified (read) yet.
+    pub fn is_verified(&self, kind: u32) -> bool {
+        self.sections
+            .iter()
+            .position(|s| s.kind == kind)
+            .is_some_and(|i| self.checked[i].get().is_some())
+    }
+
+    /// The section table.
+    pub fn sections(&self) -> &[Section] {
+        &self.sections
     }
 
     /// The kernel's identity: the header checksum, which covers the section table and through it
@@ -672,51 +1010,57 @@ impl KernelFile {
         self.map.len()
     }
 
-    fn slice<T: bytemuck::AnyBitPattern>(&self, kind: u32) -> &[T] {
-        let s = self
-            .sections
-            .iter()
-            .find(|s| s.0 == kind)
-            .expect("verified at open");
-        // Sections are 64-byte aligned within a page-aligned mapping.
-        bytemuck::cast_slice(&self.map[s.2..s.2 + s.3])
-    }
-
     /// Positions, mm.
     pub fn positions(&self) -> &[[f32; 3]] {
-        self.slice(section::POSITIONS)
+        self.core(section::POSITIONS)
     }
     /// Triangles.
     pub fn triangles(&self) -> &[[u32; 3]] {
-        self.slice(section::TRIANGLES)
+        self.core(section::TRIANGLES)
     }
     /// Unit directions.
     pub fn directions(&self) -> &[[f32; 3]] {
-        self.slice(section::DIRECTIONS)
-    }
-    /// Applied force (eq. 6.18).
-    pub fn applied_force(&self) -> &[f32] {
-        self.slice(section::APPLIED_FORCE)
-    }
-    /// Elastostatic force.
-    pub fn elastostatic(&self) -> &[f32] {
-        self.slice(section::ELASTOSTATIC)
+        self.core(section::DIRECTIONS)
     }
     /// Unit displacement.
     pub fn unit_displacement(&self) -> &[[f32; 3]] {
-        self.slice(section::UNIT_DISPLACEMENT)
+        self.core(section::UNIT_DISPLACEMENT)
     }
-    /// CSR row offsets.
-    pub fn row_ptr(&self) -> &[u64] {
+    /// Applied force (eq. 6.18), verified on first use.
+    pub fn applied_force(&self) -> Result<&[f32], KernelError> {
+        self.slice(section::APPLIED_FORCE)
+    }
+    /// Elastostatic force, verified on first use.
+    pub fn elastostatic(&self) -> Result<&[f32], KernelError> {
+        self.slice(section::ELASTOSTATIC)
+    }
+    /// CSR row offsets, verified on first use.
+    pub fn row_ptr(&self) -> Result<&[u64], KernelError> {
         self.slice(section::ROW_PTR)
     }
-    /// CSR columns.
-    pub fn cols(&self) -> &[u32] {
+    /// CSR columns, verified on first use.
+    pub fn cols(&self) -> Result<&[u32], KernelError> {
         self.slice(section::COLS)
     }
-    /// CSR values.
-    pub fn vals(&self) -> &[f32] {
+    /// CSR values, verified on first use.
+    pub fn vals(&self) -> Result<&[f32], KernelError> {
         self.slice(section::VALS)
+    }
+    /// Spherical-harmonic transfer coefficients `T^I_lm` (`bands²` per vertex, row-major), if the
+    /// kernel has them; verified on first use.
+    pub fn sh_coefficients(&self) -> Result<Option<&[f32]>, KernelError> {
+        if self.meta.sh.is_none() {
+            return Ok(None);
+        }
+        self.slice(section::SH).map(Some)
+    }
+    /// Basis responses `(G_0, G_x, G_y, G_z)` per vertex (EQUATIONS.md §3.3), if the kernel has them;
+    /// verified on first use.
+    pub fn basis_responses(&self) -> Result<Option<&[[f32; 4]]>, KernelError> {
+        if self.meta.orientation.is_none() {
+            return Ok(None);
+        }
+        self.slice(section::BASIS).map(Some)
     }
 
     /// The mesh (copied out of the mapping).
@@ -738,15 +1082,15 @@ impl KernelFile {
         m
     }
 
-    /// The transfer rows (copied out of the mapping).
-    pub fn transfer(&self) -> Transfer {
-        Transfer {
+    /// The transfer rows (copied out of the mapping), verified on first use.
+    pub fn transfer(&self) -> Result<Transfer, KernelError> {
+        Ok(Transfer {
             n: self.meta.vertices as usize,
-            row_ptr: self.row_ptr().to_vec(),
-            cols: self.cols().to_vec(),
-            vals: self.vals().to_vec(),
+            row_ptr: self.row_ptr()?.to_vec(),
+            cols: self.cols()?.to_vec(),
+            vals: self.vals()?.to_vec(),
             stats: self.meta.transfer,
-        }
+        })
     }
 }
 
@@ -787,6 +1131,8 @@ mod tests {
             force_scale: 1.0,
             start_volume_ml: mesh.enclosed_volume_ml(),
             written_by: "test".into(),
+            orientation: None,
+            sh: None,
         };
         write_file(
             path,
@@ -821,11 +1167,71 @@ mod tests {
         assert_eq!(len % ALIGN, 0);
         assert_eq!(f.positions()[1], [100.0, 0.0, 0.0]);
         assert_eq!(f.triangles().len(), 4);
-        assert_eq!(f.row_ptr(), &[0, 1, 2, 3, 4]);
-        assert_eq!(f.transfer().row(2), (&[2u32][..], &[1.0f32][..]));
+        assert_eq!(f.row_ptr().unwrap(), &[0, 1, 2, 3, 4]);
+        assert_eq!(f.transfer().unwrap().row(2), (&[2u32][..], &[1.0f32][..]));
         let m = f.lung_model();
         assert_eq!(m.side, Side::Left);
         assert!((m.start_volume_ml - 1e6 / 6.0 / 1000.0).abs() < 1e-9);
+    }
+
+    #[test]
+    fn a_lazy_open_checks_only_the_core_until_more_is_read() {
+        let path = tmp("lazy.kernel");
+        tetra_kernel(&path, 1.0);
+        let f = KernelFile::open_lazy(&path).unwrap();
+        let core: u64 = f
+            .sections()
+            .iter()
+            .filter(|s| CORE_SECTIONS.contains(&s.kind))
+            .map(|s| s.len as u64)
+            .sum();
+        assert_eq!(f.bytes_verified(), core);
+        assert!(!f.is_verified(section::VALS) && !f.is_verified(section::COLS));
+        f.transfer().unwrap();
+        assert!(f.is_verified(section::VALS));
+        assert!(f.bytes_verified() > core);
+        // A corrupted transfer section: a lazy open still works (a precomputed run never reads
+        // it), reading it is refused, a full open is refused.
+        let mut bytes = std::fs::read(&path).unwrap();
+        let vals = f
+            .sections()
+            .iter()
+            .find(|s| s.kind == section::VALS)
+            .unwrap();
+        bytes[vals.offset] ^= 0x40;
+        let bad = tmp("lazy-bad.kernel");
+        std::fs::write(&bad, &bytes).unwrap();
+        let lazy = KernelFile::open_lazy(&bad).unwrap();
+        assert_eq!(
+            lazy.id(),
+            f.id(),
+            "the id is the header's: same table, same id"
+        );
+        let e = lazy.vals().unwrap_err().to_string();
+        assert!(e.contains("checksum") && e.contains("lazy-bad"), "{e}");
+        assert!(KernelFile::open(&bad).is_err());
+        // Core corruption is refused at once.
+        let pos = f
+            .sections()
+            .iter()
+            .find(|s| s.kind == section::POSITIONS)
+            .unwrap();
+        let mut bytes = std::fs::read(&path).unwrap();
+        bytes[pos.offset] ^= 0x40;
+        std::fs::write(&bad, &bytes).unwrap();
+        assert!(KernelFile::open_lazy(&bad).is_err());
+    }
+
+    #[test]
+    fn a_fifo_is_refused_without_blocking() {
+        let p = tmp("fifo.kernel");
+        let _ = std::fs::remove_file(&p);
+        let status = std::process::Command::new("mkfifo").arg(&p).status();
+        if !status.map(|s| s.success()).unwrap_or(false) {
+            return; // no mkfifo on this system: nothing to test
+        }
+        let e = KernelFile::open(&p).unwrap_err();
+        assert!(matches!(e, KernelError::Input(_)), "{e:?}");
     }
 
     #[test]

@@ -7,7 +7,11 @@
 //! * [`kernel`] — the kernel file: format, verified memory-mapped reading, identity, raw writing;
 //! * [`operator`] — the transfer operator as stored (CSR rows of eq. 6.1), eq. 7.1's gather and the
 //!   elasticity field that shaped it;
-//! * [`deform`] — per-vertex displacement (eq. 6.14–6.18), the volume cubic, [`deform::LungModel`];
+//! * [`deform`] — per-vertex displacement (eq. 6.14–6.18), the volume cubic, [`deform::LungModel`],
+//!   and the four deformation modes on the CPU with their volume forms ([`deform::modes`]);
+//! * [`orientation`] — the patient's pose → gravity in the body frame → the applied force's weights
+//!   (exact, and the seed's eq. 7.8–7.9 blend); [`sh`] — real spherical harmonics and projection
+//!   (seed ch. 7);
 //! * [`pv`] — the pressure–volume forward model (seed ch. 5, eq. 2.12–2.16, 5.11), presets and the
 //!   constants files a scene loads;
 //! * [`scene`] — what a run models;
@@ -22,6 +26,8 @@ pub mod input;
 pub mod kernel;
 pub mod mesh;
 pub mod operator;
+pub mod orientation;
 pub mod plausible;
 pub mod pv;
 pub mod scene;
+pub mod sh;

@@ -49,9 +49,10 @@ impl Elasticity {
         }
     }
 
-    /// Check the field gives a finite, positive modulus everywhere.
+    /// Check the field gives a finite, positive modulus everywhere: `apex` and `base` within
+    /// [`MODULUS_RANGE`], `dependent` in [0, 1).
     pub fn validate(&self) -> Result<(), ElasticityError> {
-        let ok = |v: f64| v.is_finite() && v > 0.0;
+        let ok = |v: f64| v.is_finite() && (MODULUS_RANGE.0..=MODULUS_RANGE.1).contains(&v);
         if !ok(self.apex) || !ok(self.base) {
             return Err(ElasticityError::Moduli {
                 apex: self.apex,
@@ -70,11 +71,22 @@ impl Elasticity {
     }
 }
 
+/// Range of the relative Young's moduli `apex` and `base`. Only their ratio shapes the operator (the
+/// defaults are 4 and 1, EQUATIONS.md §2.3); regional lung compliance varies a few times from apex to
+/// base, so 0.01–100 is ample. Outside it the apex-to-base ramp loses the modulus to rounding (apex
+/// 1e308 and base 1 give a modulus of exactly 0 at the base).
+pub const MODULUS_RANGE: (f64, f64) = (0.01, 100.0);
+
 /// The elasticity field is unusable.
 #[derive(Debug, Clone, PartialEq, Error)]
 pub enum ElasticityError {
-    /// A modulus is not finite and positive.
-    #[error("apex = {apex} and base = {base} must be finite and > 0")]
+    /// A modulus is not finite and within [`MODULUS_RANGE`].
+    #[error(
+        "apex = {} and base = {} must each be within 0.01–100 (relative Young's moduli: only their \
+         ratio matters; the default is apex 4, base 1)",
+        crate::plausible::compact(*.apex),
+        crate::plausible::compact(*.base)
+    )]
     Moduli {
         /// Modulus at the apex.
         apex: f64,
@@ -82,7 +94,7 @@ pub enum ElasticityError {
         base: f64,
     },
     /// The dependent softening is outside [0, 1).
-    #[error("dependent = {0} must be in [0, 1)")]
+    #[error("dependent = {} must be in [0, 1)", crate::plausible::compact(*.0))]
     Dependent(f64),
 }
 
@@ -202,6 +214,27 @@ pub struct Columns {
 }
 
 impl Columns {
+    /// Number of nodes.
+    pub fn len(&self) -> usize {
+        self.ptr.len().saturating_sub(1)
+    }
+
+    /// No nodes.
+    pub fn is_empty(&self) -> bool {
+        self.len() == 0
+    }
+
+    /// Node `i`'s feeders: `(j, T[j→i])` as two slices.
+    pub fn column(&self, i: usize) -> (&[u32], &[f32]) {
+        let r = self.ptr[i] as usize..self.ptr[i + 1] as usize;
+        (&self.src[r.clone()], &self.vals[r])
+    }
+
+    /// Raw arrays `(ptr, src, vals)` (GPU upload).
+    pub fn raw(&self) -> (&[u64], &[u32], &[f32]) {
+        (&self.ptr, &self.src, &self.vals)
+    }
+
     /// Eq. 7.1, `out[i] = Σ_j f[j]·T[j→i]`, f32, parallel over nodes; no allocation.
     pub fn apply_into(&self, f: &[f32], out: &mut [f32]) {
         out.par_chunks_mut(4096).enumerate().for_each(|(c, chunk)| {
@@ -264,6 +297,16 @@ mod tests {
             ..Default::default()
         };
         assert_eq!(bad.validate(), Err(ElasticityError::Dependent(1.0)));
+        // A modulus of 1e308 would cancel to 0 in the apex-to-base ramp: refused by its name.
+        let bad = Elasticity {
+            apex: 1e308,
+            ..Default::default()
+        };
+        let e = bad.validate().unwrap_err().to_string();
+        assert!(e.contains("apex = 1e308") && e.contains("0.01–100"), "{e}");
+        for ok in [MODULUS_RANGE.0, MODULUS_RANGE.1] {
+            assert!(Elasticity::uniform(ok).validate().is_ok());
+        }
         let e = Elasticity::default();
         assert_eq!(
             e.youngs_modulus(DVec3::new(0.5, 1.0, 0.0)),

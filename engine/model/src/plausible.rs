@@ -138,9 +138,10 @@ pub const BREATHS_PER_MIN: Limit = Limit {
     source: "slow deep breathing ≈ 4/min to neonatal tachypnoea ≈ 100/min",
 };
 
-/// A value outside its documented range.
+/// A value outside its documented range (a non-finite one is said to be no number at all, never
+/// printed as a quantity like "NaN ml").
 #[derive(Debug, Clone, PartialEq, Error)]
-#[error("{} = {} {} is outside the plausible range {}–{} {} ({}){}", .limit.what, fmt(*.value), .limit.unit, .limit.lo, .limit.hi, .limit.unit, .limit.source, hint_text(.hint))]
+#[error("{}{} {}–{} {} ({}){}", .limit.what, value_text(.limit, *.value), .limit.lo, .limit.hi, .limit.unit, .limit.source, hint_text(.hint))]
 pub struct Implausible {
     /// The range violated.
     pub limit: Limit,
@@ -150,11 +151,32 @@ pub struct Implausible {
     pub hint: Option<String>,
 }
 
+/// `v` for a message: up to three decimals within 1e-3..1e7, else in exponent form (`1e308`, not
+/// 309 digits).
+pub fn compact(v: f64) -> String {
+    fmt(v)
+}
+
 fn fmt(v: f64) -> String {
+    if v == 0.0 {
+        return "0".into();
+    }
     if v.is_finite() && v.abs() >= 1e-3 && v.abs() < 1e7 {
         format!("{}", (v * 1000.0).round() / 1000.0)
     } else {
         format!("{v:e}")
+    }
+}
+
+fn value_text(limit: &Limit, v: f64) -> String {
+    if v.is_finite() {
+        format!(
+            " = {} {} is outside the plausible range",
+            fmt(v),
+            limit.unit
+        )
+    } else {
+        format!(" is {v}, not a finite number: the plausible range is")
     }
 }
 
@@ -248,6 +270,20 @@ mod tests {
         assert!(e.contains("Quanjer") && e.ends_with(": pass --frc"), "{e}");
         let e = TIDAL_VOLUME_ML.check(f64::INFINITY, None).unwrap_err();
         assert!(e.to_string().contains("inf"), "{e}");
+        // Never a non-finite quantity ("inf ml", "NaN ml"): the value is no number of ml at all.
+        for v in [f64::NAN, f64::INFINITY, f64::NEG_INFINITY] {
+            let e = FRC_ML.check(v, None).unwrap_err().to_string();
+            assert!(
+                !e.contains(" ml is") && !e.contains("NaN ml") && !e.contains("inf ml"),
+                "{e}"
+            );
+            assert!(
+                e.starts_with("FRC is ") && e.contains("not a finite number"),
+                "{e}"
+            );
+        }
+        assert_eq!(compact(-1e308), "-1e308");
+        assert_eq!(compact(0.0), "0");
         assert!(TIDAL_VOLUME_ML.check(f64::NAN, None).is_err());
         assert!(FRC_ML.check(2400.0, None).is_ok());
     }

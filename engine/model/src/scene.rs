@@ -50,6 +50,12 @@ pub struct EngineScene {
     pub tick_hz: f64,
     /// Ticks the patient pose may be held before it is reported stale.
     pub pose_staleness_ticks: u32,
+    /// Gravity ("down") in the tracker's room frame, unit vector: the synthetic tracker's room has
+    /// +Z up. A real tracker's camera frame is mounted however it is: state it.
+    pub gravity_room: [f64; 3],
+    /// How the patient's pose becomes the applied force (EQUATIONS.md §3.3): "exact" (the rotated
+    /// weights), "seed" (eq. 7.8–7.9's blend, for comparison), or "fixed" (always supine).
+    pub orientation: crate::orientation::OrientationMethod,
 }
 
 /// `[lungs]` table.
@@ -68,6 +74,18 @@ pub struct LungsScene {
     /// when absent.
     #[serde(skip_serializing_if = "Option::is_none")]
     pub motion: Option<std::path::PathBuf>,
+    /// How the lungs deform (EQUATIONS.md §3): "precomputed" (one baked field, supine, 3 MACs per
+    /// vertex), "basis" (exact for any orientation, 4 MACs), "sh" (eq. 7.7 with `bands` bands),
+    /// "direct" (eq. 7.1 every frame, the accuracy reference). Only what the mode needs is loaded.
+    pub mode: crate::deform::modes::DeformMode,
+    /// Spherical-harmonic bands a bake stores (n² coefficients per vertex, 1..8; the seed's 16
+    /// coefficients are 4 bands).
+    pub bands: u32,
+    /// Error budget, mm (RMS displacement against eq. 7.1): the bake keeps the fewest bands that meet
+    /// it; with `mode` left at its default, the launcher picks the cheapest orientation-following mode
+    /// that meets it (the exact basis, whose error is round-off).
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub max_error_mm: Option<f64>,
     /// Baked kernels (`lungdyn bake`), relative to the scene file: `[lungs.kernels] left = "l.kernel"`.
     /// The engine and renderer processes need one per lung; the launcher (`lungdyn demo`,
     /// `lungdyn scene prepare`) bakes the generated default lung for a lung without one, once.
@@ -150,6 +168,8 @@ impl Default for EngineScene {
         Self {
             tick_hz: 60.0,
             pose_staleness_ticks: 30,
+            gravity_room: [0.0, 0.0, -1.0],
+            orientation: crate::orientation::OrientationMethod::Exact,
         }
     }
 }
@@ -162,6 +182,9 @@ impl Default for LungsScene {
             elasticity: crate::operator::Elasticity::default(),
             transfer_tolerance: crate::kernel::DEFAULT_TOLERANCE,
             motion: None,
+            mode: crate::deform::modes::DeformMode::Basis,
+            bands: crate::kernel::DEFAULT_SH_BANDS,
+            max_error_mm: None,
             kernels: KernelPaths::default(),
         }
     }
@@ -240,6 +263,15 @@ pub enum SceneValueError {
     /// The transfer tolerance is out of range.
     #[error("[lungs] transfer_tolerance = {0} must be within 1e-9..0.5; 1e-5 is the default")]
     Tolerance(f64),
+    /// Gravity is not a unit vector.
+    #[error("[engine] gravity_room = {0:?} must be a finite unit vector (the room's \"down\"; [0, 0, -1] when the tracker's +Z is up)")]
+    Gravity([f64; 3]),
+    /// Band count out of range.
+    #[error("[lungs] bands = {0} must be within 1..{max} (n² ≤ 64 coefficients travel per lung per frame)", max = crate::kernel::MAX_RUNTIME_BANDS)]
+    Bands(u32),
+    /// Error budget out of range.
+    #[error("[lungs] max_error_mm = {0} must be a positive number of millimetres up to 50")]
+    ErrorBudget(f64),
     /// Image size out of range.
     #[error("[render] width/height {width}x{height} must be within 16..8192")]
     ImageSize {
@@ -302,6 +334,30 @@ pub enum LungLoadError {
         /// The value out of range.
         source: crate::plausible::Implausible,
     },
+    /// The kernel lacks what the scene's deformation mode needs.
+    #[error("{}: the scene's mode is \"{mode}\" but this kernel has no {missing}; bake it again with this lungdyn ({hint}) or choose another [lungs] mode", path.display())]
+    ModeNeeds {
+        /// Kernel file.
+        path: std::path::PathBuf,
+        /// The scene's mode.
+        mode: crate::deform::modes::DeformMode,
+        /// What is missing.
+        missing: &'static str,
+        /// How to get it.
+        hint: &'static str,
+    },
+    /// The kernel's spherical harmonics do not meet the scene's error budget.
+    #[error("{}: the spherical harmonics reach {reached_mm:.3} mm RMS with {bands} bands, the scene's budget is max_error_mm = {budget_mm}; the \"basis\" mode is exact for this force (`lungdyn scene prepare` switches to it)", path.display())]
+    BudgetNotMet {
+        /// Kernel file.
+        path: std::path::PathBuf,
+        /// Bands in the kernel.
+        bands: u32,
+        /// RMS error reached, mm.
+        reached_mm: f64,
+        /// The scene's budget, mm.
+        budget_mm: f64,
+    },
     /// The kernel is of the other lung.
     #[error("{}: this kernel is of the {kernel} lung, the scene uses it for the {scene} lung", path.display())]
     WrongSide {
@@ -318,12 +374,20 @@ impl Scene {
     /// The run-time model of `side` from its kernel (memory-mapped, verified); a run-time process
     /// never bakes, so a scene without a kernel for `side` is an error that says how to get one.
     pub fn lung(&self, side: Side) -> Result<crate::deform::LungModel, LungLoadError> {
+        Ok(self.lung_kernel(side)?.lung_model())
+    }
+
+    /// The kernel of `side`, mapped lazily ([`crate::kernel::KernelFile::open_lazy`]: the sections
+    /// the scene's mode does not read are never checked or paged in) and checked: plausible size,
+    /// the right lung, and what the scene's `[lungs] mode` needs.
+    pub fn lung_kernel(&self, side: Side) -> Result<crate::kernel::KernelFile, LungLoadError> {
+        use crate::deform::modes::DeformMode;
         let path = self
             .lungs
             .kernels
             .get(side)
             .ok_or(LungLoadError::NoKernel { side: side.name() })?;
-        let file = crate::kernel::KernelFile::open(path)?;
+        let file = crate::kernel::KernelFile::open_lazy(path)?;
         crate::plausible::LUNG_VOLUME_ML
             .check(
                 file.meta().start_volume_ml,
@@ -340,7 +404,44 @@ impl Scene {
                 scene: side.name(),
             });
         }
-        Ok(file.lung_model())
+        let mode = self.lungs.mode;
+        let needs = |missing, hint| LungLoadError::ModeNeeds {
+            path: path.to_path_buf(),
+            mode,
+            missing,
+            hint,
+        };
+        if mode.follows_orientation() && file.meta().orientation.is_none() {
+            return Err(needs(
+                "basis responses (baked before the orientation modes)",
+                "`lungdyn bake`",
+            ));
+        }
+        if mode == DeformMode::Sh {
+            let sh = file.meta().sh.as_ref().ok_or_else(|| {
+                needs(
+                    "spherical-harmonic coefficients",
+                    "`lungdyn bake --bands N`, N = 1..8",
+                )
+            })?;
+            if sh.bands > crate::kernel::MAX_RUNTIME_BANDS {
+                return Err(needs(
+                    "spherical harmonics within 8 bands (64 coefficients per frame)",
+                    "`lungdyn bake --bands N`, N = 1..8",
+                ));
+            }
+            if let Some(budget) = self.lungs.max_error_mm {
+                if sh.rms_mm > budget {
+                    return Err(LungLoadError::BudgetNotMet {
+                        path: path.to_path_buf(),
+                        bands: sh.bands,
+                        reached_mm: sh.rms_mm,
+                        budget_mm: budget,
+                    });
+                }
+            }
+        }
+        Ok(file)
     }
 
     /// Every lung the scene simulates, in scene order.
@@ -442,6 +543,19 @@ impl Scene {
         if !(t.is_finite() && (1e-9..=0.5).contains(&t)) {
             return Err(E::Tolerance(t));
         }
+        let g = self.engine.gravity_room;
+        let len = (g[0] * g[0] + g[1] * g[1] + g[2] * g[2]).sqrt();
+        if !(g.iter().all(|v| v.is_finite()) && (len - 1.0).abs() <= 1e-3) {
+            return Err(E::Gravity(g));
+        }
+        if !(1..=crate::kernel::MAX_RUNTIME_BANDS).contains(&self.lungs.bands) {
+            return Err(E::Bands(self.lungs.bands));
+        }
+        if let Some(e) = self.lungs.max_error_mm {
+            if !(e.is_finite() && e > 0.0 && e <= 50.0) {
+                return Err(E::ErrorBudget(e));
+            }
+        }
         let r = &self.render;
         if !(16..=8192).contains(&r.width) || !(16..=8192).contains(&r.height) {
             return Err(E::ImageSize {
@@ -502,6 +616,8 @@ impl Scene {
             direction_field,
             elasticity: self.lungs.elasticity,
             tolerance: self.lungs.transfer_tolerance,
+            sh_bands: self.lungs.bands,
+            max_error_mm: self.lungs.max_error_mm,
         })
     }
 
@@ -546,9 +662,9 @@ mod tests {
             Some(dir.join("l.kernel").as_path())
         );
         std::fs::write(&scene, "[lungs]\nmotion = \"m.toml\"\n").unwrap();
-        std::fs::write(dir.join("m.toml"), "format = 2\n").unwrap();
+        std::fs::write(dir.join("m.toml"), "format = 3\n").unwrap();
         let e = Scene::load(&scene).unwrap_err().to_string();
-        assert!(e.contains("format 2"), "{e}");
+        assert!(e.contains("format 3"), "{e}");
         std::fs::write(
             dir.join("m.toml"),
             "format = 1\n[left]\nc = [1.0, 0.5, 2.0, 0.5, 3.0, 2.0, 0.01, 0.95, 0.07]\n",

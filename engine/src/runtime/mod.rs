@@ -12,14 +12,29 @@
 //! its next cycle — while the other breathes on. Each lung's volume becomes a deformation scale by
 //! solving its volume cubic (EQUATIONS §2.4), so the drawn mesh encloses exactly that volume.
 //!
+//! Orientation (seed ch. 7, EQUATIONS.md §3.3): in the modes that follow the patient
+//! (`basis`, `sh`, `direct`), each tick turns the patient reference pose into gravity in the body
+//! frame ([`lung_model::orientation::gravity_in_body`], the scene's `gravity_room`), that into each
+//! lung's force weights (exact rotation or the seed's eq. 7.8–7.9 blend, limited where the supine
+//! direction model stops expanding the lung), solves the volume cubic of *that* field from the
+//! kernel's volume forms, and publishes the coefficients the renderer needs: the four weights
+//! (basis, direct) or the `n²` spherical-harmonic force coefficients `F_lm = α·Σ_a w_a·P_a,lm` (sh).
+//! A pose that is not a rotation is refused like a missing sample (the last good pose is held and
+//! [`engine_state::POSE_INVALID`] set). Per tick and lung: a rotation, 84 multiply-adds for the
+//! cubic, at most 12 Newton steps, at most 256 multiply-adds for the SH coefficients.
+//!
 //! [`process`] is the loop around it.
 
+use glam::DVec3;
 use ipc_types::{
     engine_state, fault, lung_flags, EngineFrame, LungFrame, Pose, TrackerFrame, LAYOUT_VERSION,
     NUM_LUNGS, TOOL_PATIENT,
 };
+use lung_model::deform::modes::{DeformMode, VolumeForms};
 use lung_model::deform::{LungModel, VolumeCubic};
+use lung_model::kernel::KernelFile;
 use lung_model::mesh::Side;
+use lung_model::orientation::{gravity_in_body, Orientation, OrientationMethod, SUPINE_GRAVITY};
 use lung_model::pv::{Breathing, PvError};
 use lung_model::scene::{LungLoadError, Scene, SceneValueError};
 use thiserror::Error;
@@ -27,28 +42,112 @@ use thiserror::Error;
 pub mod process;
 pub use process::run;
 
-/// What the engine needs of one lung's geometry: its kernel's identity and volume cubic.
-#[derive(Debug, Clone, Copy, PartialEq)]
+/// What the engine needs of one lung's geometry: its kernel's identity, volume cubic, and for the
+/// orientation-following modes the volume forms, orientation model and SH projection.
+#[derive(Debug, Clone, PartialEq)]
 pub struct LungGeometry {
     /// Which lung.
     pub side: Side,
     /// Identity of the kernel (travels in every frame so a renderer can check it drew the same lung).
     pub kernel_id: u64,
-    /// Enclosed volume of `mesh + s·u` as a cubic in `s`.
+    /// Enclosed volume of `mesh + s·u` as a cubic in `s` (precomputed mode).
     pub cubic: VolumeCubic,
     /// Enclosed volume of the mesh as baked (FRC), ml.
     pub start_volume_ml: f64,
+    /// The orientation-following mode's data; `None`: precomputed.
+    pub follow: Option<Follow>,
+}
+
+/// What an orientation-following mode needs per tick.
+#[derive(Debug, Clone, PartialEq)]
+pub struct Follow {
+    /// The mode (basis, sh or direct).
+    pub mode: DeformMode,
+    /// Enclosed volume of the mode's field as forms in the force weights.
+    pub forms: VolumeForms,
+    /// Pose → force weights.
+    pub orientation: Orientation,
+    /// SH mode: `α` and the force projection `P` (`4 × n²`, row `a`).
+    pub sh: Option<(f64, Vec<f64>)>,
+}
+
+/// Why a kernel cannot serve an orientation-following mode.
+#[derive(Debug, Error)]
+pub enum GeometryError {
+    /// The kernel lacks the mode's data (the scene loader checks this first).
+    #[error("{path}: the kernel has no data for the {mode} mode")]
+    Missing {
+        /// Kernel.
+        path: String,
+        /// Mode.
+        mode: DeformMode,
+    },
 }
 
 impl LungGeometry {
-    /// The geometry of a loaded lung model.
+    /// The geometry of a loaded lung model (precomputed mode).
     pub fn of(model: &LungModel) -> Self {
         Self {
             side: model.side,
             kernel_id: model.kernel_id,
             cubic: model.cubic,
             start_volume_ml: model.start_volume_ml,
+            follow: None,
         }
+    }
+
+    /// The geometry of `kernel` for `mode`: only the metadata and the core sections are read.
+    pub fn from_kernel(
+        kernel: &KernelFile,
+        mode: DeformMode,
+        method: OrientationMethod,
+    ) -> Result<Self, GeometryError> {
+        let meta = kernel.meta();
+        let u64s: Vec<DVec3> = kernel
+            .unit_displacement()
+            .iter()
+            .map(|u| DVec3::from(u.map(|v| v as f64)))
+            .collect();
+        let cubic = VolumeCubic::of(&kernel.mesh(), &u64s);
+        let missing = || GeometryError::Missing {
+            path: kernel.path().display().to_string(),
+            mode,
+        };
+        let follow = match mode {
+            DeformMode::Precomputed => None,
+            _ => {
+                let o = meta.orientation.as_ref().ok_or_else(missing)?;
+                let c = &meta.settings.motion.c;
+                let orientation = Orientation::new(
+                    method,
+                    [c[6], c[7], c[8]],
+                    meta.side,
+                    Some(o.volume_forms.l),
+                );
+                let (forms, sh) = if mode == DeformMode::Sh {
+                    let sh = meta.sh.as_ref().ok_or_else(missing)?;
+                    (
+                        sh.volume_forms.clone(),
+                        Some((sh.alpha, sh.projection.clone())),
+                    )
+                } else {
+                    (o.volume_forms.clone(), None)
+                };
+                Some(Follow {
+                    mode,
+                    forms,
+                    orientation,
+                    sh,
+                })
+            }
+        };
+        Ok(Self {
+            side: meta.side,
+            kernel_id: kernel.id(),
+            cubic,
+            start_volume_ml: cubic.coeffs[0] / 1000.0,
+            follow,
+        })
     }
 
     /// Deformation scale that makes the enclosed volume `start + delta_ml`.
@@ -155,6 +254,9 @@ pub enum CoreError {
     /// A lung could not be loaded.
     #[error(transparent)]
     Lung(#[from] LungLoadError),
+    /// A kernel cannot serve the scene's mode.
+    #[error(transparent)]
+    Geometry(#[from] GeometryError),
 }
 
 /// The deterministic engine state.
@@ -162,6 +264,9 @@ pub enum CoreError {
 pub struct EngineCore {
     lungs: Vec<(LungGeometry, LungBreath)>,
     staleness_ticks: u64,
+    gravity_room: DVec3,
+    gravity_body: DVec3,
+    pose_invalid: bool,
     patient_pose: Pose,
     last_good_pose_tick: Option<u64>,
     last_tracker_tick: Option<u64>,
@@ -172,11 +277,15 @@ impl EngineCore {
     /// Build the engine for `scene`: precompute the breathing cycle and load each lung's kernel
     /// (never baking: a lung without a kernel is an error that says how to get one).
     pub fn new(scene: &Scene) -> Result<Self, CoreError> {
-        let lungs = scene
-            .lung_models()?
-            .iter()
-            .map(LungGeometry::of)
-            .collect::<Vec<_>>();
+        let mut lungs = Vec::new();
+        for &side in &scene.lungs.sides {
+            let kernel = scene.lung_kernel(side)?;
+            lungs.push(LungGeometry::from_kernel(
+                &kernel,
+                scene.lungs.mode,
+                scene.engine.orientation,
+            )?);
+        }
         Self::with_geometry(scene, lungs)
     }
 
@@ -197,6 +306,9 @@ impl EngineCore {
         Ok(Self {
             lungs,
             staleness_ticks: scene.engine.pose_staleness_ticks as u64,
+            gravity_room: DVec3::from(scene.engine.gravity_room).normalize(),
+            gravity_body: SUPINE_GRAVITY,
+            pose_invalid: false,
             patient_pose: Pose::IDENTITY,
             last_good_pose_tick: None,
             last_tracker_tick: None,
@@ -251,8 +363,17 @@ impl EngineCore {
                 self.last_tracker_frame = frame.frame_number;
                 out.stamps = frame.stamps;
                 if let Some(pose) = frame.valid_tool(TOOL_PATIENT) {
-                    self.patient_pose = pose;
-                    self.last_good_pose_tick = Some(tick);
+                    // A pose that is not a rotation is refused like a missing sample: it would
+                    // shear the registration and has no gravity direction.
+                    match gravity_in_body(pose.quat, self.gravity_room) {
+                        Ok(g) => {
+                            self.patient_pose = pose;
+                            self.gravity_body = g;
+                            self.last_good_pose_tick = Some(tick);
+                            self.pose_invalid = false;
+                        }
+                        Err(_) => self.pose_invalid = true,
+                    }
                 }
             }
             None => state |= engine_state::DEADLINE_FALLBACK,
@@ -272,6 +393,10 @@ impl EngineCore {
             }
             None => state |= engine_state::PATIENT_POSE_HELD | engine_state::PATIENT_POSE_STALE,
         }
+        if self.pose_invalid {
+            state |= engine_state::POSE_INVALID;
+        }
+        let gravity = self.gravity_body;
         out.lungs = [LungFrame::default(); NUM_LUNGS];
         for (k, (geometry, breath)) in self.lungs.iter_mut().enumerate() {
             let local = breath.local_tick(tick);
@@ -297,15 +422,47 @@ impl EngineCore {
             if k == 0 && flags & lung_flags::INHALING != 0 {
                 state |= engine_state::INHALING;
             }
-            let scale = geometry.scale_for_delta(volume - geometry.start_volume_ml);
-            if scale.is_finite() && volume.is_finite() {
+            let delta_mm3 = (volume - geometry.start_volume_ml) * 1000.0;
+            let scale = match &geometry.follow {
+                None => geometry.cubic.solve_delta(delta_mm3),
+                Some(follow) => {
+                    let (w, limited) = follow.orientation.weights(gravity);
+                    if limited {
+                        state |= engine_state::ORIENTATION_LIMITED;
+                    }
+                    slot.coeff_kind = follow.mode.coeff_kind();
+                    match &follow.sh {
+                        None => {
+                            slot.coeff_count = 4;
+                            for (c, w) in slot.coeffs.iter_mut().zip(w) {
+                                *c = w as f32;
+                            }
+                        }
+                        Some((alpha, p)) => {
+                            let n2 = p.len() / 4;
+                            slot.coeff_count = n2 as u32;
+                            for (k, c) in slot.coeffs.iter_mut().take(n2).enumerate() {
+                                let f = w[0] * p[k]
+                                    + w[1] * p[n2 + k]
+                                    + w[2] * p[2 * n2 + k]
+                                    + w[3] * p[3 * n2 + k];
+                                *c = (alpha * f) as f32;
+                            }
+                        }
+                    }
+                    follow.forms.cubic(&w).solve_delta(delta_mm3)
+                }
+            };
+            let coeffs_finite = slot.coeffs.iter().all(|c| c.is_finite());
+            if scale.is_finite() && volume.is_finite() && coeffs_finite {
                 slot.volume_ml = volume as f32;
                 slot.deform_scale = scale as f32;
             } else {
-                // Unreachable for validated scenes; a NaN must never reach a frame.
+                // Unreachable for validated scenes and kernels; a NaN must never reach a frame.
                 fault_word = fault::NON_FINITE_VOLUME;
                 slot.volume_ml = geometry.start_volume_ml as f32;
                 slot.deform_scale = 0.0;
+                slot.coeffs = [0.0; ipc_types::MAX_COEFFS];
             }
             slot.kernel_id = geometry.kernel_id;
             slot.phase = (local as f64 / ct as f64) as f32;

@@ -1,6 +1,7 @@
 use super::*;
 use ipc_types::{tool_status, ToolPose, LUNG_LEFT, LUNG_RIGHT};
 use lung_model::mesh::generate;
+use lung_model::orientation::OrientationMethod;
 
 fn frame(n: u64, patient_valid: bool) -> TrackerFrame {
     let mut f = TrackerFrame {
@@ -18,7 +19,7 @@ fn frame(n: u64, patient_valid: bool) -> TrackerFrame {
             tool_status::MISSING
         },
         pose: Pose {
-            quat: [0.0, 0.0, (n as f32 * 0.01).sin(), 1.0],
+            quat: unit_quat([0.0, 0.0, (n as f32 * 0.01).sin(), 1.0]),
             translation_mm: [n as f32, 0.0, 900.0],
             _pad: 0,
         },
@@ -26,6 +27,12 @@ fn frame(n: u64, patient_valid: bool) -> TrackerFrame {
         _pad: 0,
     };
     f
+}
+
+/// `q / |q|` in f32 (tracker quaternions are unit rotations).
+fn unit_quat(q: [f32; 4]) -> [f32; 4] {
+    let n = q.iter().map(|v| v * v).sum::<f32>().sqrt();
+    q.map(|v| v / n)
 }
 
 /// Both default lungs at 1000 vertices, baked in memory exactly as the launcher bakes them.
@@ -134,10 +141,14 @@ fn per_lung_state_reproduces_the_shared_cycle_exactly() {
 }
 
 /// FNV-1a over [`v1_words`] of the 900-tick reference replay at 1000 vertices per lung, as pinned
-/// by the v1 engine (one shared breathing state).
-const REFERENCE_DIGEST_V1: u64 = 0xd9cf7a77d6c0942c;
-/// FNV-1a over every byte of every v2 frame of the same replay.
-const REFERENCE_DIGEST_V2: u64 = 0x83ae09d79b4e1967;
+/// by the v1 engine (one shared breathing state): 0xd9cf7a77d6c0942c with the replay's original,
+/// not-quite-unit quaternions. The orientation modes refuse a pose that is not a rotation, so the
+/// replay now feeds unit quaternions; both digests were re-pinned by running the engine *before*
+/// the orientation change (commit 1508ae7) on the new replay, so they prove the precomputed mode
+/// unchanged by it.
+const REFERENCE_DIGEST_V1: u64 = 0x79219bf4fc346d87;
+/// FNV-1a over every byte of every v2 frame of the same replay (precomputed mode).
+const REFERENCE_DIGEST_V2: u64 = 0xf5880a7e074aa73e;
 
 #[test]
 fn missing_samples_hold_the_pose_and_flag_it() {
@@ -281,4 +292,204 @@ fn a_scene_without_kernels_is_refused_with_the_way_to_get_them() {
     let e = EngineCore::new(&Scene::default()).unwrap_err().to_string();
     assert!(e.contains("no kernel for the right lung"), "{e}");
     assert!(e.contains("lungdyn scene prepare"), "{e}");
+}
+
+/// Both default lungs at 1000 vertices baked with `bands` SH bands into kernel files (the engine
+/// reads the orientation data from a kernel's metadata), once per process.
+fn kernels(bands: u32) -> Vec<std::path::PathBuf> {
+    let dir = std::env::temp_dir().join(format!("lungdyn-engine-{}-{bands}", std::process::id()));
+    std::fs::create_dir_all(&dir).unwrap();
+    [Side::Right, Side::Left]
+        .into_iter()
+        .map(|side| {
+            let path = dir.join(format!("{}.kernel", side.name()));
+            if !path.exists() {
+                let mut s = lung_bake::kernel::BakeSettings::default_for(side);
+                s.sh_bands = bands;
+                lung_bake::kernel::bake(side, generate::lung(side, 1000).unwrap(), &s, &|_| {})
+                    .unwrap()
+                    .write(&path)
+                    .unwrap();
+            }
+            path
+        })
+        .collect()
+}
+
+fn core_in(mode: DeformMode, method: OrientationMethod) -> (EngineCore, Vec<KernelFile>) {
+    let files: Vec<KernelFile> = kernels(4)
+        .iter()
+        .map(|p| KernelFile::open_lazy(p).unwrap())
+        .collect();
+    let geometry = files
+        .iter()
+        .map(|k| LungGeometry::from_kernel(k, mode, method).unwrap())
+        .collect();
+    let mut scene = Scene::default();
+    scene.lungs.mode = mode;
+    scene.engine.orientation = method;
+    (EngineCore::with_geometry(&scene, geometry).unwrap(), files)
+}
+
+/// A tracker frame whose patient reference has rotation `q` (body → room).
+fn posed(n: u64, q: glam::DQuat) -> TrackerFrame {
+    let mut f = frame(n, true);
+    f.tools[TOOL_PATIENT].pose.quat = q.to_array().map(|v| v as f32);
+    f
+}
+
+/// Supine in the synthetic tracker's room (+Z up): body X → room Y, Y → Z, Z → X.
+fn supine() -> glam::DQuat {
+    glam::DQuat::from_mat3(&glam::DMat3::from_cols(
+        glam::DVec3::Y,
+        glam::DVec3::Z,
+        glam::DVec3::X,
+    ))
+}
+
+#[test]
+fn turning_the_patient_changes_the_breath_but_never_its_volume() {
+    use lung_model::deform::modes::CpuLung;
+    for mode in [DeformMode::Basis, DeformMode::Sh, DeformMode::Direct] {
+        let (mut core, files) = core_in(mode, OrientationMethod::Exact);
+        let mut lungs: Vec<CpuLung> = files
+            .iter()
+            .map(|k| CpuLung::from_kernel(k, mode).unwrap())
+            .collect();
+        // Supine, rolled 90° onto each side, pitched ±90° (sitting up, head down), prone, and
+        // gimbal-lock-like compound turns.
+        let turns = [
+            glam::DQuat::IDENTITY,
+            glam::DQuat::from_rotation_x(std::f64::consts::FRAC_PI_2),
+            glam::DQuat::from_rotation_x(-std::f64::consts::FRAC_PI_2),
+            glam::DQuat::from_rotation_y(std::f64::consts::FRAC_PI_2),
+            glam::DQuat::from_rotation_y(-std::f64::consts::FRAC_PI_2),
+            glam::DQuat::from_rotation_x(std::f64::consts::PI),
+            glam::DQuat::from_euler(glam::EulerRot::XYZ, 0.4, std::f64::consts::FRAC_PI_2, -1.2),
+        ];
+        let mut shapes = Vec::new();
+        let mut f = EngineFrame::default();
+        for (k, turn) in turns.iter().enumerate() {
+            // Tick 150: end of inspiration of the 300-tick cycle.
+            let tick = 150 + 300 * k as u64;
+            core.step(tick, Some(&posed(tick, *turn * supine())), &mut f);
+            assert_eq!(f.state & engine_state::POSE_INVALID, 0);
+            for (lung, cpu) in f.lungs.iter().zip(&mut lungs) {
+                assert_eq!(lung.coeff_kind, mode.coeff_kind());
+                assert!(lung.deform_scale.is_finite() && lung.volume_ml.is_finite());
+                let coeffs = &lung.coeffs[..lung.coeff_count as usize];
+                assert!(coeffs.iter().all(|c| c.is_finite()));
+                let mut out = vec![[0.0f32; 3]; cpu.len()];
+                cpu.deform_into(lung.deform_scale, coeffs, [0.0; 3], &mut out)
+                    .unwrap();
+                let v = lung_model::mesh::TriMesh {
+                    positions: out.clone(),
+                    triangles: cpu.triangles.clone(),
+                }
+                .enclosed_volume_ml();
+                // The mode's own volume forms make the drawn mesh enclose the PV volume.
+                assert!(
+                    (v - lung.volume_ml as f64).abs() < 0.05,
+                    "{mode} turn {k}: drawn {v} ml, PV {} ml",
+                    lung.volume_ml
+                );
+                shapes.push(out);
+            }
+        }
+        // The breath's shape differs between supine and a turned patient (same volume).
+        let n = lungs[0].len();
+        let moved = |a: &Vec<[f32; 3]>, b: &Vec<[f32; 3]>| {
+            a.iter()
+                .zip(b)
+                .map(|(p, q)| glam::Vec3::from(*p).distance(glam::Vec3::from(*q)))
+                .fold(0.0f32, f32::max)
+        };
+        assert_eq!(shapes[0].len(), n);
+        assert!(
+            moved(&shapes[0], &shapes[2]) > 1.0,
+            "{mode}: turning changed nothing"
+        );
+    }
+}
+
+#[test]
+fn a_pose_that_is_not_a_rotation_is_refused_and_the_last_gravity_kept() {
+    let (mut core, _files) = core_in(DeformMode::Basis, OrientationMethod::Exact);
+    let mut f = EngineFrame::default();
+    core.step(0, Some(&posed(0, supine())), &mut f);
+    let good = f;
+    for (k, quat) in [
+        [0.0, 0.0, 0.0, 0.0],
+        [0.0, 0.0, 0.0, 3.0],
+        [1.0, 1.0, 1.0, 1.0],
+    ]
+    .into_iter()
+    .enumerate()
+    {
+        let tick = 300 * (k as u64 + 1);
+        let mut bad = frame(tick, true);
+        bad.tools[TOOL_PATIENT].pose.quat = quat;
+        core.step(tick, Some(&bad), &mut f);
+        assert_ne!(f.state & engine_state::POSE_INVALID, 0, "{quat:?}");
+        assert_ne!(f.state & engine_state::PATIENT_POSE_HELD, 0);
+        assert_eq!(f.patient_pose, good.patient_pose);
+        // Same phase, same gravity: the same coefficients and scale as the good frame.
+        assert_eq!(f.lungs[LUNG_LEFT].coeffs, good.lungs[LUNG_LEFT].coeffs);
+        assert_eq!(
+            f.lungs[LUNG_LEFT].deform_scale,
+            good.lungs[LUNG_LEFT].deform_scale
+        );
+    }
+    core.step(1200, Some(&posed(1200, supine())), &mut f);
+    assert_eq!(f.state & engine_state::POSE_INVALID, 0);
+}
+
+#[test]
+fn every_orientation_method_stays_finite_at_the_extremes_and_replays_bitwise() {
+    for method in [
+        OrientationMethod::Exact,
+        OrientationMethod::Seed,
+        OrientationMethod::Fixed,
+    ] {
+        for mode in [DeformMode::Basis, DeformMode::Sh] {
+            let run = || {
+                let (mut core, _files) = core_in(mode, method);
+                let mut out = Vec::new();
+                let mut f = EngineFrame::default();
+                // A slow tumble through every orientation, including exactly ±90° pitch.
+                for tick in 0..720u64 {
+                    let a = tick as f64 * std::f64::consts::TAU / 360.0;
+                    let q = glam::DQuat::from_euler(
+                        glam::EulerRot::XYZ,
+                        a,
+                        (a * 0.5).sin() * std::f64::consts::FRAC_PI_2,
+                        0.3 * a,
+                    );
+                    core.step(tick, Some(&posed(tick, q * supine())), &mut f);
+                    for l in &f.lungs {
+                        assert!(
+                            l.deform_scale.is_finite() && l.coeffs.iter().all(|c| c.is_finite())
+                        );
+                        assert!(
+                            l.deform_scale.abs() < 1e4,
+                            "{method:?} {mode}: scale {}",
+                            l.deform_scale
+                        );
+                    }
+                    out.push(f);
+                }
+                out
+            };
+            let (a, b) = (run(), run());
+            for (x, y) in a.iter().zip(&b) {
+                assert_eq!(bytemuck::bytes_of(x), bytemuck::bytes_of(y));
+            }
+            if method == OrientationMethod::Fixed {
+                // Fixed: the coefficients never move.
+                assert!(a
+                    .windows(2)
+                    .all(|w| w[0].lungs[LUNG_LEFT].coeffs == w[1].lungs[LUNG_LEFT].coeffs));
+            }
+        }
+    }
 }

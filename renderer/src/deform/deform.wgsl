@@ -1,36 +1,153 @@
-// Precomputed deformation mode (EQUATIONS.md §2.4): p' = p + s_lung · u + o_lung, one multiply-add
-// per coordinate plus the lung's rigid offset (mediastinal shift, a dropped lung). Executed once per
-// frame for every vertex of both lungs; both stereo eyes draw the result.
+// The per-frame deformation pass (EQUATIONS.md §2.4 and §3): one compute pass per frame moves every
+// vertex of both lungs and then computes smooth vertex normals from the moved positions; every eye
+// draws from those two buffers. Entry points, one per mode (lungdyn_model::deform::modes):
+//
+//   deform_precomputed  p + s·u + o                               (3 MACs)
+//   deform_basis        p + s·(w·G)·kd + o                         (EQUATIONS §3.3, 4 MACs)
+//   deform_sh           p + s·(Σ_k F_k·T_k)·kd + o                 (eq. 7.7, n² MACs)
+//   direct_force        f_j = w·(1, x̂, ŷ, ẑ)_j                    (eq. 6.18 for this orientation)
+//   deform_direct       p + s·(Σ_j f_j·T(j, i))·kd + o             (eq. 7.1 over the stored rows)
+//   vertex_normals      n_i = normalize(Σ_t (b − a) × (c − a))     (area-weighted, smooth shading)
+//
+// The CPU reference of every entry point is lung_model::deform::modes::CpuLung; the two agree to
+// 1e-4 relative (tests/tests/modes_gpu.rs).
 
 struct Params {
-    // Deformation scale per lung: x = right lung (index 0), y = left lung (index 1).
+    // Deformation scale per lung slot: x = right lung (slot 0), y = left lung (slot 1).
     scale: vec4<f32>,
-    // Rigid offset of the right lung (xyz, mm).
-    offset_right: vec4<f32>,
-    // Rigid offset of the left lung (xyz, mm).
-    offset_left: vec4<f32>,
+    // Rigid offset per slot (xyz, mm).
+    offset: array<vec4<f32>, 2>,
+    // Force weights (w0, wx, wy, wz) per slot: basis and direct modes.
+    weights: array<vec4<f32>, 2>,
     count: u32,
     _pad0: u32,
     _pad1: u32,
     _pad2: u32,
+    // Per slot: x = first vertex, y = SH coefficients per vertex, z = first SH coefficient.
+    lung_info: array<vec4<u32>, 2>,
+    // SH force coefficients F_k per slot: slot s, k → sh_f[s·16 + k/4][k%4] (at most 64 each).
+    sh_f: array<vec4<f32>, 32>,
 };
 
 @group(0) @binding(0) var<uniform> params: Params;
-// xyz: FRC position (mm, body frame); w: lung index.
+// xyz: FRC position (mm, body frame); w: lung slot.
 @group(0) @binding(1) var<storage, read> base: array<vec4<f32>>;
-// xyz: unit displacement (mm per unit of scale); w unused.
+// xyz: unit displacement (precomputed mode).
 @group(0) @binding(2) var<storage, read> unit_disp: array<vec4<f32>>;
+// Deformed positions (xyz mm, w slot): the draw's vertex buffer.
 @group(0) @binding(3) var<storage, read_write> deformed: array<vec4<f32>>;
+// xyz: k·d_i, the direction scaled to one unit volume per unit of force.
+@group(0) @binding(4) var<storage, read> kd: array<vec4<f32>>;
+// Basis responses (G_0, G_x, G_y, G_z).
+@group(0) @binding(5) var<storage, read> basis: array<vec4<f32>>;
+// SH transfer coefficients T^i_k, lung_info.y per vertex.
+@group(0) @binding(6) var<storage, read> sh_t: array<f32>;
+// (1, x̂, ŷ, ẑ) per node (direct mode).
+@group(0) @binding(7) var<storage, read> nhat: array<vec4<f32>>;
+// Applied force per node for this frame (direct mode scratch).
+@group(0) @binding(8) var<storage, read_write> force: array<f32>;
+// Tᵀ in compressed rows: node i gathers (col_src[k], col_val[k]) for k in col_ptr[i]..col_ptr[i+1].
+@group(0) @binding(9) var<storage, read> col_ptr: array<u32>;
+@group(0) @binding(10) var<storage, read> col_src: array<u32>;
+@group(0) @binding(11) var<storage, read> col_val: array<f32>;
+// Smooth vertex normals (xyz unit, or 0 where the neighbourhood has no area).
+@group(0) @binding(12) var<storage, read_write> normals: array<vec4<f32>>;
+// Triangles incident to each vertex, and the triangles' vertex indices.
+@group(0) @binding(13) var<storage, read> inc_ptr: array<u32>;
+@group(0) @binding(14) var<storage, read> inc_tris: array<u32>;
+@group(0) @binding(15) var<storage, read> indices: array<u32>;
+
+fn slot_of(b: vec4<f32>) -> u32 {
+    return select(0u, 1u, b.w > 0.5);
+}
+
+fn scale_of(slot: u32) -> f32 {
+    return select(params.scale.x, params.scale.y, slot == 1u);
+}
 
 @compute @workgroup_size(256)
-fn main(@builtin(global_invocation_id) gid: vec3<u32>) {
+fn deform_precomputed(@builtin(global_invocation_id) gid: vec3<u32>) {
     let i = gid.x;
     if (i >= params.count) {
         return;
     }
     let b = base[i];
-    let left = b.w > 0.5;
-    let s = select(params.scale.x, params.scale.y, left);
-    let o = select(params.offset_right.xyz, params.offset_left.xyz, left);
-    deformed[i] = vec4<f32>(b.xyz + s * unit_disp[i].xyz + o, b.w);
+    let slot = slot_of(b);
+    deformed[i] = vec4<f32>(b.xyz + scale_of(slot) * unit_disp[i].xyz + params.offset[slot].xyz, b.w);
+}
+
+@compute @workgroup_size(256)
+fn deform_basis(@builtin(global_invocation_id) gid: vec3<u32>) {
+    let i = gid.x;
+    if (i >= params.count) {
+        return;
+    }
+    let b = base[i];
+    let slot = slot_of(b);
+    let d = dot(params.weights[slot], basis[i]);
+    deformed[i] = vec4<f32>(b.xyz + (scale_of(slot) * d) * kd[i].xyz + params.offset[slot].xyz, b.w);
+}
+
+@compute @workgroup_size(256)
+fn deform_sh(@builtin(global_invocation_id) gid: vec3<u32>) {
+    let i = gid.x;
+    if (i >= params.count) {
+        return;
+    }
+    let b = base[i];
+    let slot = slot_of(b);
+    let info = params.lung_info[slot];
+    let n = info.y;
+    let first = info.z + (i - info.x) * n;
+    var d = 0.0;
+    for (var k = 0u; k < n; k = k + 1u) {
+        d = d + sh_t[first + k] * params.sh_f[slot * 16u + k / 4u][k % 4u];
+    }
+    deformed[i] = vec4<f32>(b.xyz + (scale_of(slot) * d) * kd[i].xyz + params.offset[slot].xyz, b.w);
+}
+
+@compute @workgroup_size(256)
+fn direct_force(@builtin(global_invocation_id) gid: vec3<u32>) {
+    let j = gid.x;
+    if (j >= params.count) {
+        return;
+    }
+    force[j] = dot(params.weights[slot_of(base[j])], nhat[j]);
+}
+
+@compute @workgroup_size(256)
+fn deform_direct(@builtin(global_invocation_id) gid: vec3<u32>) {
+    let i = gid.x;
+    if (i >= params.count) {
+        return;
+    }
+    let b = base[i];
+    let slot = slot_of(b);
+    var d = 0.0;
+    for (var k = col_ptr[i]; k < col_ptr[i + 1u]; k = k + 1u) {
+        d = d + force[col_src[k]] * col_val[k];
+    }
+    deformed[i] = vec4<f32>(b.xyz + (scale_of(slot) * d) * kd[i].xyz + params.offset[slot].xyz, b.w);
+}
+
+@compute @workgroup_size(256)
+fn vertex_normals(@builtin(global_invocation_id) gid: vec3<u32>) {
+    let i = gid.x;
+    if (i >= params.count) {
+        return;
+    }
+    var n = vec3<f32>(0.0, 0.0, 0.0);
+    for (var k = inc_ptr[i]; k < inc_ptr[i + 1u]; k = k + 1u) {
+        let t = inc_tris[k] * 3u;
+        let a = deformed[indices[t]].xyz;
+        let b = deformed[indices[t + 1u]].xyz;
+        let c = deformed[indices[t + 2u]].xyz;
+        n = n + cross(b - a, c - a);
+    }
+    let len = length(n);
+    var unit = vec3<f32>(0.0, 0.0, 0.0);
+    if (len > 1e-30) {
+        unit = n / len;
+    }
+    normals[i] = vec4<f32>(unit, 0.0);
 }

@@ -1,13 +1,60 @@
-//! The per-frame deformation compute pass (`deform.wgsl`): `p' = p + s_lung · u + o_lung` for every
-//! vertex of both lungs, once per frame, into a buffer both eyes draw from (the seed deformed per
-//! eye in the vertex shader and lost half its stereo rate).
+//! The per-frame deformation compute pass (`deform.wgsl`): every vertex of both lungs in the scene's
+//! mode (precomputed, basis, sh or direct — EQUATIONS.md §2.4, §3), then smooth vertex normals from
+//! the moved positions, once per frame, into the buffers every eye draws from (the seed deformed
+//! per eye in the vertex shader and lost half its stereo rate). Only the mode's data is uploaded.
 
 use wgpu::util::DeviceExt;
 
+use ipc_types::MAX_COEFFS;
+use lung_model::deform::modes::{CpuLung, DeformMode, ModeData, ModeLoadError};
 use lung_model::deform::LungModel;
+use lung_model::kernel::KernelFile;
+use lung_model::mesh::Side;
 
 /// Threads per workgroup; must match `@workgroup_size` in `deform.wgsl`.
 pub const WORKGROUP: u32 = 256;
+
+/// One lung as the renderer holds it: which lung, its kernel's identity and its mode's data.
+#[derive(Debug, Clone)]
+pub struct RenderLung {
+    /// Which lung.
+    pub side: Side,
+    /// Identity of the kernel it was loaded from (0: built in memory).
+    pub kernel_id: u64,
+    /// Mesh and mode data (the CPU reference uses the same).
+    pub lung: CpuLung,
+}
+
+impl RenderLung {
+    /// The lung of `kernel` in `mode` (only the sections the mode needs are read).
+    pub fn from_kernel(kernel: &KernelFile, mode: DeformMode) -> Result<Self, ModeLoadError> {
+        Ok(Self {
+            side: kernel.meta().side,
+            kernel_id: kernel.id(),
+            lung: CpuLung::from_kernel(kernel, mode)?,
+        })
+    }
+
+    /// A precomputed-mode lung from a model built in memory (tests).
+    pub fn from_model(model: &LungModel) -> Self {
+        Self {
+            side: model.side,
+            kernel_id: model.kernel_id,
+            lung: CpuLung::new(
+                model.mesh.clone(),
+                Vec::new(),
+                ModeData::Precomputed {
+                    unit: model.unit_displacement.clone(),
+                },
+            ),
+        }
+    }
+
+    /// The deformation mode.
+    pub fn mode(&self) -> DeformMode {
+        self.lung.data.mode()
+    }
+}
 
 /// Uniform block of `deform.wgsl`.
 #[repr(C)]
@@ -15,125 +62,450 @@ pub const WORKGROUP: u32 = 256;
 pub struct DeformParams {
     /// Scale per lung slot (right, left, unused, unused).
     pub scale: [f32; 4],
-    /// Rigid offset per lung slot (xyz mm, w unused): right, then left.
+    /// Rigid offset per lung slot (xyz mm, w unused).
     pub offset: [[f32; 4]; 2],
+    /// Force weights per lung slot (basis, direct).
+    pub weights: [[f32; 4]; 2],
     /// Vertex count.
     pub count: u32,
     /// Padding to 16 bytes.
     pub _pad: [u32; 3],
+    /// Per slot: first vertex, SH coefficients per vertex, first SH coefficient, unused.
+    pub lung_info: [[u32; 4]; 2],
+    /// SH force coefficients, 64 per slot.
+    pub sh_f: [[f32; 4]; 32],
 }
 
-/// GPU buffers and pipeline of the deformation pass.
-pub struct DeformPass {
+/// Why the lungs cannot be put on this GPU.
+#[derive(Debug, thiserror::Error)]
+pub enum UploadError {
+    /// A buffer is larger than the adapter allows.
+    #[error("the {what} need a {mib:.0} MiB GPU buffer, the adapter ({adapter}) allows {limit_mib:.0} MiB; use a lighter [lungs] mode (basis or sh), or fewer vertices")]
+    TooLarge {
+        /// Which data.
+        what: &'static str,
+        /// Size needed, MiB.
+        mib: f64,
+        /// Adapter limit, MiB.
+        limit_mib: f64,
+        /// Adapter.
+        adapter: String,
+    },
+    /// The lungs are in different modes.
+    #[error("the lungs are loaded in different modes ({0} and {1})")]
+    MixedModes(DeformMode, DeformMode),
+    /// An index would not fit 32 bits.
+    #[error("the {0} exceed 2^32 entries")]
+    Index(&'static str),
+}
+
+/// Per-frame inputs of the pass: scale, rigid offset and coefficients per lung slot.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct LungInputs {
+    /// Deformation scale per slot (right, left).
+    pub scale: [f32; 2],
+    /// Rigid offset per slot, mm.
+    pub offset: [[f32; 3]; 2],
+    /// Coefficients per slot (weights or SH force coefficients, as the mode needs).
+    pub coeffs: [[f32; MAX_COEFFS]; 2],
+}
+
+struct Dispatch {
     pipeline: wgpu::ComputePipeline,
-    bind_group: wgpu::BindGroup,
+    group: wgpu::BindGroup,
+}
+
+/// GPU buffers and pipelines of the deformation pass.
+pub struct DeformPass {
+    mode: DeformMode,
+    dispatches: Vec<Dispatch>,
+    normals_pass: Option<Dispatch>,
     params: wgpu::Buffer,
-    /// Deformed positions (xyz mm, w lung index): the vertex buffer of the draw passes.
+    lung_info: [[u32; 4]; 2],
+    /// Deformed positions (xyz mm, w lung slot): the vertex buffer of the draw passes.
     pub deformed: wgpu::Buffer,
+    /// Smooth vertex normals (xyz, w 0): the draw's second vertex buffer.
+    pub normals: wgpu::Buffer,
     /// Vertex count over all lungs.
     pub count: u32,
-}
-
-/// Interleave the lungs' FRC positions (w = lung index) and unit displacements for the GPU.
-pub fn vertex_arrays(lungs: &[LungModel]) -> (Vec<[f32; 4]>, Vec<[f32; 4]>) {
-    let mut base = Vec::new();
-    let mut unit = Vec::new();
-    for lung in lungs {
-        let w = lung.side.index() as f32;
-        base.extend(lung.mesh.positions.iter().map(|p| [p[0], p[1], p[2], w]));
-        unit.extend(
-            lung.unit_displacement
-                .iter()
-                .map(|u| [u[0], u[1], u[2], 0.0]),
-        );
-    }
-    (base, unit)
+    /// Bytes uploaded for the mode's data (positions, directions, mode arrays, normals data).
+    pub uploaded_bytes: u64,
 }
 
 impl DeformPass {
-    /// Upload `lungs` and build the pass.
-    pub fn new(device: &wgpu::Device, lungs: &[LungModel]) -> Self {
-        let (base, unit) = vertex_arrays(lungs);
+    /// Upload `lungs` (all in one mode) and build the pass; `normals`: also compute vertex normals
+    /// each frame (triangle drawing).
+    pub fn new(
+        device: &wgpu::Device,
+        adapter: &str,
+        lungs: &[RenderLung],
+        normals: bool,
+    ) -> Result<Self, UploadError> {
+        let mode = lungs
+            .first()
+            .map(RenderLung::mode)
+            .unwrap_or(DeformMode::Precomputed);
+        if let Some(other) = lungs.iter().map(RenderLung::mode).find(|m| *m != mode) {
+            return Err(UploadError::MixedModes(mode, other));
+        }
+        let limit = device.limits().max_storage_buffer_binding_size as u64;
+        let mut uploaded = 0u64;
+        let mut storage =
+            |what: &'static str, label: &str, bytes: &[u8], extra: wgpu::BufferUsages| {
+                // wgpu refuses zero-sized bindings: keep one element.
+                let bytes: &[u8] = if bytes.is_empty() { &[0u8; 16] } else { bytes };
+                if bytes.len() as u64 > limit {
+                    return Err(UploadError::TooLarge {
+                        what,
+                        mib: bytes.len() as f64 / 1048576.0,
+                        limit_mib: limit as f64 / 1048576.0,
+                        adapter: adapter.to_string(),
+                    });
+                }
+                uploaded += bytes.len() as u64;
+                Ok(
+                    device.create_buffer_init(&wgpu::util::BufferInitDescriptor {
+                        label: Some(label),
+                        contents: bytes,
+                        usage: wgpu::BufferUsages::STORAGE | extra,
+                    }),
+                )
+            };
+        let none = wgpu::BufferUsages::empty();
+        // Vertex arrays, both lungs concatenated (w of a position = the lung's slot).
+        let mut base: Vec<[f32; 4]> = Vec::new();
+        let mut lung_info = [[0u32; 4]; 2];
+        let mut sh_first = 0u32;
+        for l in lungs {
+            let slot = l.side.index();
+            let n_coeffs = match &l.lung.data {
+                ModeData::Sh { n_coeffs, .. } => *n_coeffs as u32,
+                _ => 0,
+            };
+            lung_info[slot] = [base.len() as u32, n_coeffs, sh_first, 0];
+            sh_first = sh_first
+                .checked_add(n_coeffs.saturating_mul(l.lung.len() as u32))
+                .ok_or(UploadError::Index("spherical-harmonic coefficients"))?;
+            let w = slot as f32;
+            base.extend(l.lung.positions.iter().map(|p| [p[0], p[1], p[2], w]));
+        }
         let count = base.len() as u32;
-        let storage = |label, data: &[[f32; 4]]| {
-            device.create_buffer_init(&wgpu::util::BufferInitDescriptor {
-                label: Some(label),
-                contents: bytemuck::cast_slice(data),
-                usage: wgpu::BufferUsages::STORAGE,
+        let base_buf = storage(
+            "positions",
+            "lungdyn base positions",
+            bytemuck::cast_slice(&base),
+            none,
+        )?;
+        let deformed = storage(
+            "deformed positions",
+            "lungdyn deformed positions",
+            bytemuck::cast_slice(&base),
+            wgpu::BufferUsages::VERTEX | wgpu::BufferUsages::COPY_SRC,
+        )?;
+        let zeros = vec![[0.0f32; 4]; base.len()];
+        let normals_buf = storage(
+            "normals",
+            "lungdyn normals",
+            bytemuck::cast_slice(&zeros),
+            wgpu::BufferUsages::VERTEX | wgpu::BufferUsages::COPY_SRC,
+        )?;
+        drop(zeros);
+        let vec4s = |f: &dyn Fn(&RenderLung) -> Vec<[f32; 4]>| -> Vec<[f32; 4]> {
+            lungs.iter().flat_map(f).collect()
+        };
+        let kd = || {
+            vec4s(&|l| {
+                l.lung
+                    .scaled_directions
+                    .iter()
+                    .map(|d| [d[0], d[1], d[2], 0.0])
+                    .collect()
             })
         };
-        let base_buf = storage("lungdyn base positions", &base);
-        let unit_buf = storage("lungdyn unit displacement", &unit);
-        let deformed = device.create_buffer_init(&wgpu::util::BufferInitDescriptor {
-            label: Some("lungdyn deformed positions"),
-            contents: bytemuck::cast_slice(&base),
-            usage: wgpu::BufferUsages::STORAGE
-                | wgpu::BufferUsages::VERTEX
-                | wgpu::BufferUsages::COPY_SRC,
-        });
-        let params = device.create_buffer_init(&wgpu::util::BufferInitDescriptor {
-            label: Some("lungdyn deform params"),
-            contents: bytemuck::bytes_of(&DeformParams {
-                scale: [0.0; 4],
-                offset: [[0.0; 4]; 2],
-                count,
-                _pad: [0; 3],
-            }),
-            usage: wgpu::BufferUsages::UNIFORM | wgpu::BufferUsages::COPY_DST,
-        });
+        // Entry points and the bindings each uses (auto layouts hold exactly those).
         let module = device.create_shader_module(wgpu::include_wgsl!("deform.wgsl"));
-        let pipeline = device.create_compute_pipeline(&wgpu::ComputePipelineDescriptor {
-            label: Some("lungdyn deform"),
-            layout: None,
-            module: &module,
-            entry_point: Some("main"),
-            compilation_options: Default::default(),
-            cache: None,
+        let params = device.create_buffer(&wgpu::BufferDescriptor {
+            label: Some("lungdyn deform params"),
+            size: std::mem::size_of::<DeformParams>() as u64,
+            usage: wgpu::BufferUsages::UNIFORM | wgpu::BufferUsages::COPY_DST,
+            mapped_at_creation: false,
         });
-        let bind_group = device.create_bind_group(&wgpu::BindGroupDescriptor {
-            label: Some("lungdyn deform"),
-            layout: &pipeline.get_bind_group_layout(0),
-            entries: &[
-                wgpu::BindGroupEntry {
-                    binding: 0,
-                    resource: params.as_entire_binding(),
-                },
-                wgpu::BindGroupEntry {
-                    binding: 1,
-                    resource: base_buf.as_entire_binding(),
-                },
-                wgpu::BindGroupEntry {
-                    binding: 2,
-                    resource: unit_buf.as_entire_binding(),
-                },
-                wgpu::BindGroupEntry {
-                    binding: 3,
-                    resource: deformed.as_entire_binding(),
-                },
-            ],
-        });
-        Self {
-            pipeline,
-            bind_group,
-            params,
-            deformed,
-            count,
+        let make = |entry: &str, bindings: &[(u32, &wgpu::Buffer)]| {
+            let pipeline = device.create_compute_pipeline(&wgpu::ComputePipelineDescriptor {
+                label: Some(entry),
+                layout: None,
+                module: &module,
+                entry_point: Some(entry),
+                compilation_options: Default::default(),
+                cache: None,
+            });
+            let entries: Vec<wgpu::BindGroupEntry<'_>> = bindings
+                .iter()
+                .map(|(binding, buffer)| wgpu::BindGroupEntry {
+                    binding: *binding,
+                    resource: buffer.as_entire_binding(),
+                })
+                .collect();
+            let group = device.create_bind_group(&wgpu::BindGroupDescriptor {
+                label: Some(entry),
+                layout: &pipeline.get_bind_group_layout(0),
+                entries: &entries,
+            });
+            Dispatch { pipeline, group }
+        };
+        let mut dispatches = Vec::new();
+        match mode {
+            DeformMode::Precomputed => {
+                let unit = vec4s(&|l| match &l.lung.data {
+                    ModeData::Precomputed { unit } => {
+                        unit.iter().map(|u| [u[0], u[1], u[2], 0.0]).collect()
+                    }
+                    _ => unreachable!("one mode"),
+                });
+                let unit = storage(
+                    "unit displacements",
+                    "lungdyn unit displacement",
+                    bytemuck::cast_slice(&unit),
+                    none,
+                )?;
+                dispatches.push(make(
+                    "deform_precomputed",
+                    &[(0, &params), (1, &base_buf), (2, &unit), (3, &deformed)],
+                ));
+            }
+            DeformMode::Basis => {
+                let g = vec4s(&|l| match &l.lung.data {
+                    ModeData::Basis { g } => g.clone(),
+                    _ => unreachable!("one mode"),
+                });
+                let g = storage(
+                    "basis responses",
+                    "lungdyn basis responses",
+                    bytemuck::cast_slice(&g),
+                    none,
+                )?;
+                let kd = storage(
+                    "directions",
+                    "lungdyn directions",
+                    bytemuck::cast_slice(&kd()),
+                    none,
+                )?;
+                dispatches.push(make(
+                    "deform_basis",
+                    &[
+                        (0, &params),
+                        (1, &base_buf),
+                        (3, &deformed),
+                        (4, &kd),
+                        (5, &g),
+                    ],
+                ));
+            }
+            DeformMode::Sh => {
+                let t: Vec<f32> = lungs
+                    .iter()
+                    .flat_map(|l| match &l.lung.data {
+                        ModeData::Sh { t, .. } => t.iter().copied(),
+                        _ => unreachable!("one mode"),
+                    })
+                    .collect();
+                let t = storage(
+                    "spherical-harmonic transfer coefficients",
+                    "lungdyn sh coefficients",
+                    bytemuck::cast_slice(&t),
+                    none,
+                )?;
+                let kd = storage(
+                    "directions",
+                    "lungdyn directions",
+                    bytemuck::cast_slice(&kd()),
+                    none,
+                )?;
+                dispatches.push(make(
+                    "deform_sh",
+                    &[
+                        (0, &params),
+                        (1, &base_buf),
+                        (3, &deformed),
+                        (4, &kd),
+                        (6, &t),
+                    ],
+                ));
+            }
+            DeformMode::Direct => {
+                let mut ptr: Vec<u32> = Vec::with_capacity(base.len() + 1);
+                let mut src: Vec<u32> = Vec::new();
+                let mut val: Vec<f32> = Vec::new();
+                let mut nhat: Vec<[f32; 4]> = Vec::new();
+                ptr.push(0);
+                let mut first = 0u32;
+                for l in lungs {
+                    let ModeData::Direct {
+                        columns, nhat: nh, ..
+                    } = &l.lung.data
+                    else {
+                        unreachable!("one mode")
+                    };
+                    let (p, s, v) = columns.raw();
+                    let at = *ptr.last().unwrap_or(&0) as u64;
+                    for w in p.windows(2) {
+                        let end = at + w[1];
+                        ptr.push(
+                            u32::try_from(end).map_err(|_| UploadError::Index("transfer rows"))?,
+                        );
+                    }
+                    src.extend(s.iter().map(|&j| j + first));
+                    val.extend_from_slice(v);
+                    nhat.extend_from_slice(nh);
+                    first += l.lung.len() as u32;
+                }
+                let ptr = storage(
+                    "transfer rows",
+                    "lungdyn col ptr",
+                    bytemuck::cast_slice(&ptr),
+                    none,
+                )?;
+                let src = storage(
+                    "transfer rows",
+                    "lungdyn col src",
+                    bytemuck::cast_slice(&src),
+                    none,
+                )?;
+                let val = storage(
+                    "transfer rows",
+                    "lungdyn col val",
+                    bytemuck::cast_slice(&val),
+                    none,
+                )?;
+                let nhat = storage(
+                    "box coordinates",
+                    "lungdyn nhat",
+                    bytemuck::cast_slice(&nhat),
+                    none,
+                )?;
+                let force = storage(
+                    "forces",
+                    "lungdyn force",
+                    bytemuck::cast_slice(&vec![0.0f32; base.len()]),
+                    none,
+                )?;
+                let kd = storage(
+                    "directions",
+                    "lungdyn directions",
+                    bytemuck::cast_slice(&kd()),
+                    none,
+                )?;
+                dispatches.push(make(
+                    "direct_force",
+                    &[(0, &params), (1, &base_buf), (7, &nhat), (8, &force)],
+                ));
+                dispatches.push(make(
+                    "deform_direct",
+                    &[
+                        (0, &params),
+                        (1, &base_buf),
+                        (3, &deformed),
+                        (4, &kd),
+                        (8, &force),
+                        (9, &ptr),
+                        (10, &src),
+                        (11, &val),
+                    ],
+                ));
+            }
         }
+        let normals_pass = if normals {
+            let mut inc_ptr: Vec<u32> = vec![0];
+            let mut inc_tris: Vec<u32> = Vec::new();
+            let mut indices: Vec<u32> = Vec::new();
+            let (mut vfirst, mut tfirst) = (0u32, 0u32);
+            for l in lungs {
+                let inc = &l.lung.incidence;
+                let at = *inc_ptr.last().unwrap_or(&0);
+                inc_ptr.extend(inc.ptr[1..].iter().map(|&p| p + at));
+                inc_tris.extend(inc.tris.iter().map(|&t| t + tfirst));
+                indices.extend(l.lung.triangles.iter().flat_map(|t| t.map(|v| v + vfirst)));
+                vfirst += l.lung.len() as u32;
+                tfirst += l.lung.triangles.len() as u32;
+            }
+            let inc_ptr = storage(
+                "normal data",
+                "lungdyn inc ptr",
+                bytemuck::cast_slice(&inc_ptr),
+                none,
+            )?;
+            let inc_tris = storage(
+                "normal data",
+                "lungdyn inc tris",
+                bytemuck::cast_slice(&inc_tris),
+                none,
+            )?;
+            let indices = storage(
+                "normal data",
+                "lungdyn triangle indices",
+                bytemuck::cast_slice(&indices),
+                none,
+            )?;
+            Some(make(
+                "vertex_normals",
+                &[
+                    (0, &params),
+                    (3, &deformed),
+                    (12, &normals_buf),
+                    (13, &inc_ptr),
+                    (14, &inc_tris),
+                    (15, &indices),
+                ],
+            ))
+        } else {
+            None
+        };
+        Ok(Self {
+            mode,
+            dispatches,
+            normals_pass,
+            params,
+            lung_info,
+            deformed,
+            normals: normals_buf,
+            count,
+            uploaded_bytes: uploaded,
+        })
     }
 
-    /// Set this frame's per-lung scales and rigid offsets (right, left).
-    pub fn set_lungs(&self, queue: &wgpu::Queue, scales: [f32; 2], offsets: [[f32; 3]; 2]) {
+    /// The mode the pass runs.
+    pub fn mode(&self) -> DeformMode {
+        self.mode
+    }
+
+    /// Whether the pass computes vertex normals.
+    pub fn has_normals(&self) -> bool {
+        self.normals_pass.is_some()
+    }
+
+    /// Set this frame's per-lung scales, rigid offsets and coefficients.
+    pub fn set_lungs(&self, queue: &wgpu::Queue, inputs: &LungInputs) {
         let o = |v: [f32; 3]| [v[0], v[1], v[2], 0.0];
-        let p = DeformParams {
-            scale: [scales[0], scales[1], 0.0, 0.0],
-            offset: [o(offsets[0]), o(offsets[1])],
+        let mut p = DeformParams {
+            scale: [inputs.scale[0], inputs.scale[1], 0.0, 0.0],
+            offset: [o(inputs.offset[0]), o(inputs.offset[1])],
+            weights: [[0.0; 4]; 2],
             count: self.count,
             _pad: [0; 3],
+            lung_info: self.lung_info,
+            sh_f: [[0.0; 4]; 32],
         };
+        for slot in 0..2 {
+            let c = &inputs.coeffs[slot];
+            p.weights[slot] = [c[0], c[1], c[2], c[3]];
+            for k in 0..MAX_COEFFS {
+                p.sh_f[slot * 16 + k / 4][k % 4] = c[k];
+            }
+        }
         queue.write_buffer(&self.params, 0, bytemuck::bytes_of(&p));
     }
 
-    /// Record the compute pass.
+    /// Record the compute pass: the mode's dispatches, then the normals.
     pub fn encode(
         &self,
         encoder: &mut wgpu::CommandEncoder,
@@ -143,8 +515,11 @@ impl DeformPass {
             label: Some("lungdyn deform"),
             timestamp_writes: timestamps,
         });
-        pass.set_pipeline(&self.pipeline);
-        pass.set_bind_group(0, &self.bind_group, &[]);
-        pass.dispatch_workgroups(self.count.div_ceil(WORKGROUP), 1, 1);
+        let groups = self.count.div_ceil(WORKGROUP);
+        for d in self.dispatches.iter().chain(&self.normals_pass) {
+            pass.set_pipeline(&d.pipeline);
+            pass.set_bind_group(0, &d.group, &[]);
+            pass.dispatch_workgroups(groups, 1, 1);
+        }
     }
 }

@@ -18,6 +18,8 @@ struct VsOut {
     @location(0) world: vec3<f32>,
     @location(1) lung: f32,
     @location(2) corner: vec2<f32>,
+    // Smooth normal in the room frame (triangles; zero where the compute pass had no area).
+    @location(3) normal: vec3<f32>,
 };
 
 fn lung_colour(lung: f32) -> vec3<f32> {
@@ -27,7 +29,7 @@ fn lung_colour(lung: f32) -> vec3<f32> {
 
 fn shade(n_in: vec3<f32>, world: vec3<f32>, lung: f32) -> vec4<f32> {
     let to_eye = normalize(eye.eye_pos.xyz - world);
-    // Face the viewer whatever the winding: flat normals from derivatives have no fixed sign.
+    // Face the viewer (a silhouette vertex's interpolated normal may point slightly away).
     let n = select(-n_in, n_in, dot(n_in, to_eye) >= 0.0);
     let light = normalize(to_eye + vec3<f32>(0.0, 0.0, 0.6));
     let diffuse = max(dot(n, light), 0.0);
@@ -39,19 +41,26 @@ fn shade(n_in: vec3<f32>, world: vec3<f32>, lung: f32) -> vec4<f32> {
 }
 
 @vertex
-fn vs_triangles(@location(0) p: vec4<f32>) -> VsOut {
+fn vs_triangles(@location(0) p: vec4<f32>, @location(1) n: vec4<f32>) -> VsOut {
     var out: VsOut;
     let world = eye.model * vec4<f32>(p.xyz, 1.0);
     out.clip = eye.view_proj * world;
     out.world = world.xyz;
     out.lung = p.w;
     out.corner = vec2<f32>(0.0, 0.0);
+    // The registration is a rigid transform: its upper 3×3 rotates normals.
+    out.normal = (eye.model * vec4<f32>(n.xyz, 0.0)).xyz;
     return out;
 }
 
 @fragment
 fn fs_triangles(in: VsOut) -> @location(0) vec4<f32> {
-    let n = normalize(cross(dpdx(in.world), dpdy(in.world)));
+    let len = length(in.normal);
+    var n = in.normal / max(len, 1e-20);
+    if (len < 0.5) {
+        // A vertex with no area around it (degenerate neighbourhood): the face's own normal.
+        n = normalize(cross(dpdx(in.world), dpdy(in.world)));
+    }
     return shade(n, in.world, in.lung);
 }
 
@@ -72,6 +81,7 @@ fn vs_splats(@builtin(vertex_index) vi: u32, @location(0) p: vec4<f32>) -> VsOut
     out.world = world;
     out.lung = p.w;
     out.corner = corner;
+    out.normal = vec3<f32>(0.0, 0.0, 0.0);
     return out;
 }
 

@@ -1,5 +1,5 @@
-//! Draw pipelines (`draw.wgsl`): shaded triangles from the deformed vertex buffer with the lungs'
-//! index buffer, or one camera-facing splat per vertex (instanced quads).
+//! Draw pipelines (`draw.wgsl`): smooth-shaded triangles from the deformed vertex and normal buffers
+//! with the lungs' index buffer, or one camera-facing splat per vertex (instanced quads).
 
 use crate::camera::EyeUniform;
 
@@ -42,68 +42,81 @@ impl DrawPipelines {
             bind_group_layouts: &[Some(&layout_bg)],
             immediate_size: 0,
         });
-        let attributes = [wgpu::VertexAttribute {
+        let position = [wgpu::VertexAttribute {
             format: wgpu::VertexFormat::Float32x4,
             offset: 0,
             shader_location: 0,
         }];
-        let pipeline = |label, vs, fs, step_mode, cull_mode| {
-            device.create_render_pipeline(&wgpu::RenderPipelineDescriptor {
-                label: Some(label),
-                layout: Some(&layout),
-                vertex: wgpu::VertexState {
-                    module: &module,
-                    entry_point: Some(vs),
-                    compilation_options: Default::default(),
-                    buffers: &[Some(wgpu::VertexBufferLayout {
-                        array_stride: 16,
-                        step_mode,
-                        attributes: &attributes,
-                    })],
-                },
-                primitive: wgpu::PrimitiveState {
-                    topology: wgpu::PrimitiveTopology::TriangleList,
-                    front_face: wgpu::FrontFace::Ccw,
-                    cull_mode,
-                    ..Default::default()
-                },
-                depth_stencil: Some(wgpu::DepthStencilState {
-                    format: DEPTH_FORMAT,
-                    depth_write_enabled: Some(true),
-                    depth_compare: Some(wgpu::CompareFunction::Less),
-                    stencil: Default::default(),
-                    bias: Default::default(),
-                }),
-                multisample: Default::default(),
-                fragment: Some(wgpu::FragmentState {
-                    module: &module,
-                    entry_point: Some(fs),
-                    compilation_options: Default::default(),
-                    targets: &[Some(wgpu::ColorTargetState {
-                        format: COLOR_FORMAT,
-                        blend: None,
-                        write_mask: wgpu::ColorWrites::ALL,
-                    })],
-                }),
-                multiview_mask: None,
-                cache: None,
-            })
-        };
+        let normal = [wgpu::VertexAttribute {
+            format: wgpu::VertexFormat::Float32x4,
+            offset: 0,
+            shader_location: 1,
+        }];
+        let with_normals = [
+            Some(wgpu::VertexBufferLayout {
+                array_stride: 16,
+                step_mode: wgpu::VertexStepMode::Vertex,
+                attributes: &position,
+            }),
+            Some(wgpu::VertexBufferLayout {
+                array_stride: 16,
+                step_mode: wgpu::VertexStepMode::Vertex,
+                attributes: &normal,
+            }),
+        ];
+        let instanced = [Some(wgpu::VertexBufferLayout {
+            array_stride: 16,
+            step_mode: wgpu::VertexStepMode::Instance,
+            attributes: &position,
+        })];
+        let pipeline =
+            |label, vs, fs, buffers: &[Option<wgpu::VertexBufferLayout<'_>>], cull_mode| {
+                device.create_render_pipeline(&wgpu::RenderPipelineDescriptor {
+                    label: Some(label),
+                    layout: Some(&layout),
+                    vertex: wgpu::VertexState {
+                        module: &module,
+                        entry_point: Some(vs),
+                        compilation_options: Default::default(),
+                        buffers,
+                    },
+                    primitive: wgpu::PrimitiveState {
+                        topology: wgpu::PrimitiveTopology::TriangleList,
+                        front_face: wgpu::FrontFace::Ccw,
+                        cull_mode,
+                        ..Default::default()
+                    },
+                    depth_stencil: Some(wgpu::DepthStencilState {
+                        format: DEPTH_FORMAT,
+                        depth_write_enabled: Some(true),
+                        depth_compare: Some(wgpu::CompareFunction::Less),
+                        stencil: Default::default(),
+                        bias: Default::default(),
+                    }),
+                    multisample: Default::default(),
+                    fragment: Some(wgpu::FragmentState {
+                        module: &module,
+                        entry_point: Some(fs),
+                        compilation_options: Default::default(),
+                        targets: &[Some(wgpu::ColorTargetState {
+                            format: COLOR_FORMAT,
+                            blend: None,
+                            write_mask: wgpu::ColorWrites::ALL,
+                        })],
+                    }),
+                    multiview_mask: None,
+                    cache: None,
+                })
+            };
         // Closed, outward-wound surfaces: back faces are never visible, cull them.
         let triangles = pipeline(
             "lungdyn triangles",
             "vs_triangles",
             "fs_triangles",
-            wgpu::VertexStepMode::Vertex,
+            &with_normals,
             Some(wgpu::Face::Back),
         );
-        let splats = pipeline(
-            "lungdyn splats",
-            "vs_splats",
-            "fs_splats",
-            wgpu::VertexStepMode::Instance,
-            None,
-        );
+        let splats = pipeline("lungdyn splats", "vs_splats", "fs_splats", &instanced, None);
         let eye_buffer = |label| {
             device.create_buffer(&wgpu::BufferDescriptor {
                 label: Some(label),

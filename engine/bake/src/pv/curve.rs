@@ -169,6 +169,7 @@ pub fn parse_curve(bytes: &[u8], opts: &CurveOptions) -> Result<CurveFile, (u64,
     if lung_model::input::looks_binary(bytes) {
         return Err((0, "this is binary data, not a CSV table".into()));
     }
+    check_separators(bytes)?;
     let mut reader = csv::ReaderBuilder::new()
         .flexible(true)
         .trim(csv::Trim::All)
@@ -177,6 +178,7 @@ pub fn parse_curve(bytes: &[u8], opts: &CurveOptions) -> Result<CurveFile, (u64,
         .headers()
         .map_err(|e| (1, format!("cannot read the header row: {e}")))?
         .clone();
+    check_header(&headers)?;
     let records: Vec<(u64, csv::StringRecord)> = reader
         .records()
         .enumerate()
@@ -198,9 +200,18 @@ pub fn parse_curve(bytes: &[u8], opts: &CurveOptions) -> Result<CurveFile, (u64,
         .filter(|&i| Some(i) != phase_col && first.get(i).is_some_and(|f| f.parse::<f64>().is_ok()))
         .collect();
     if numeric.len() < 2 {
+        let tabs = headers.len() == 1 && headers.get(0).is_some_and(|h| h.contains('\t'));
         return Err((
             *first_line,
-            "need two numeric columns (pressure, then volume) in the first data row".into(),
+            format!(
+                "need two numeric columns (pressure, then volume) in the first data row{}",
+                if tabs {
+                    "; the columns are separated by tabs: lungdyn reads comma-separated values \
+                     (export as CSV with ',' between columns)"
+                } else {
+                    ""
+                }
+            ),
         ));
     }
     // Columns named for what they hold win (a time column often comes first); else the first two.
@@ -213,14 +224,32 @@ pub fn parse_curve(bytes: &[u8], opts: &CurveOptions) -> Result<CurveFile, (u64,
         })
     };
     let named_volume = |pc: usize| {
-        numeric.iter().copied().find(|&i| {
-            let h = headers.get(i).unwrap_or("");
-            i != pc
-                && (h.to_ascii_lowercase().contains("vol")
-                    || header_unit(h, VOLUME_UNITS).is_some())
-        })
+        numeric
+            .iter()
+            .copied()
+            .find(|&i| i != pc && looks_volume(headers.get(i).unwrap_or("")))
     };
-    let pc = named(&["pressure", "pes", "paw", "ptp", "pleural", "airway"]).unwrap_or(numeric[0]);
+    const PRESSURE_KEYS: &[&str] = &["pressure", "pes", "paw", "ptp", "pleural", "airway"];
+    // Two columns that both look like pressures (or volumes): which one is meant is a guess, and a
+    // wrong guess is a silently wrong fit.
+    let looks_pressure = |i: usize| {
+        let h = headers.get(i).unwrap_or("");
+        let lower = h.to_ascii_lowercase();
+        PRESSURE_KEYS.iter().any(|k| lower.contains(k)) || header_unit(h, PRESSURE_UNITS).is_some()
+    };
+    let pressures: Vec<usize> = numeric
+        .iter()
+        .copied()
+        .filter(|&i| looks_pressure(i))
+        .collect();
+    ambiguous(&headers, &pressures, "pressures")?;
+    let pc = named(PRESSURE_KEYS).unwrap_or(numeric[0]);
+    let volumes: Vec<usize> = numeric
+        .iter()
+        .copied()
+        .filter(|&i| i != pc && looks_volume(headers.get(i).unwrap_or("")))
+        .collect();
+    ambiguous(&headers, &volumes, "volumes")?;
     let vc = named_volume(pc).unwrap_or(
         *numeric
             .iter()
@@ -275,6 +304,8 @@ pub fn parse_curve(bytes: &[u8], opts: &CurveOptions) -> Result<CurveFile, (u64,
         },
     };
     let mut samples = Vec::with_capacity(records.len());
+    // The volume column as given, in ml, before --frc is added: (lowest, highest).
+    let mut raw_ml = (f64::INFINITY, f64::NEG_INFINITY);
     for (line, rec) in &records {
         let value = |col: usize, what: &str| -> Result<f64, (u64, String)> {
             let field = rec.get(col).unwrap_or("");
@@ -300,6 +331,10 @@ pub fn parse_curve(bytes: &[u8], opts: &CurveOptions) -> Result<CurveFile, (u64,
         };
         let pressure = value(pc, "pressure")? * pressure_unit.factor;
         let raw_volume = value(vc, "volume")?;
+        raw_ml = (
+            raw_ml.0.min(raw_volume * volume_unit.factor),
+            raw_ml.1.max(raw_volume * volume_unit.factor),
+        );
         let volume = raw_volume * volume_unit.factor + opts.frc_ml.unwrap_or(0.0);
         if !PRESSURE_CMH2O.contains(pressure) {
             // Swapped columns: the "pressure" looks like lung volumes and the "volume" like pressures.
@@ -355,6 +390,9 @@ pub fn parse_curve(bytes: &[u8], opts: &CurveOptions) -> Result<CurveFile, (u64,
             phase,
         });
     }
+    if let Some(frc) = opts.frc_ml {
+        check_relative(raw_ml, frc, &v_header)?;
+    }
     let span = |f: fn(&PvSample) -> f64| {
         samples
             .iter()
@@ -396,6 +434,122 @@ pub fn parse_curve(bytes: &[u8], opts: &CurveOptions) -> Result<CurveFile, (u64,
         volume_unit,
         frc_added_ml: opts.frc_ml,
     })
+}
+
+/// Whether a volume column's header names a volume (and not a flow, which shares its units).
+fn looks_volume(header: &str) -> bool {
+    let lower = header.to_ascii_lowercase();
+    !lower.contains("flow")
+        && !lower.contains("/s")
+        && !lower.contains("/min")
+        && (lower.contains("vol") || header_unit(header, VOLUME_UNITS).is_some())
+}
+
+/// Refuse two or more candidate columns `cols` for one quantity (`what`: "pressures", "volumes").
+fn ambiguous(headers: &csv::StringRecord, cols: &[usize], what: &str) -> Result<(), (u64, String)> {
+    if cols.len() < 2 {
+        return Ok(());
+    }
+    let list = cols
+        .iter()
+        .map(|&i| format!("{:?} (column {})", headers.get(i).unwrap_or(""), i + 1))
+        .collect::<Vec<_>>()
+        .join(", ");
+    Err((
+        1,
+        format!(
+            "{} columns look like {what}: {list}; which one to fit is ambiguous: keep one in the file \
+             (or rename the others so their names do not say {what})",
+            if cols.len() == 2 { "two".to_string() } else { cols.len().to_string() },
+        ),
+    ))
+}
+
+/// The first row must name the columns: a row of numbers there is data without a header (its
+/// first sample would become the column names and be lost, and no unit would be stated).
+fn check_header(headers: &csv::StringRecord) -> Result<(), (u64, String)> {
+    let fields: Vec<&str> = headers
+        .iter()
+        .map(|h| h.trim_start_matches('\u{feff}'))
+        .collect();
+    if fields.len() >= 2
+        && fields
+            .iter()
+            .all(|h| !h.is_empty() && h.parse::<f64>().is_ok())
+    {
+        return Err((
+            1,
+            format!(
+                "the first row holds numbers ({}), not a header: the first row must name each column \
+                 with its unit, e.g. pressure_cmH2O,volume_ml (every input states its units)",
+                fields.join(", ")
+            ),
+        ));
+    }
+    Ok(())
+}
+
+/// Semicolon-separated tables (often with decimal commas, as spreadsheets in many locales write
+/// them) would split into the wrong fields: refuse them naming the separator.
+fn check_separators(bytes: &[u8]) -> Result<(), (u64, String)> {
+    let text = String::from_utf8_lossy(&bytes[..bytes.len().min(64 << 10)]);
+    let mut lines = text
+        .lines()
+        .map(|l| l.trim_start_matches('\u{feff}').trim())
+        .filter(|l| !l.is_empty());
+    let Some(header) = lines.next() else {
+        return Ok(());
+    };
+    if !(header.contains(';') && header.split(';').count() > header.split(',').count()) {
+        return Ok(());
+    }
+    let decimal_comma = lines.take(20).any(|l| {
+        l.split(';').any(|f| {
+            let f = f.trim().trim_start_matches(['-', '+']);
+            f.split_once(',').is_some_and(|(a, b)| {
+                !a.is_empty()
+                    && !b.is_empty()
+                    && a.bytes().all(|c| c.is_ascii_digit())
+                    && b.bytes().all(|c| c.is_ascii_digit())
+            })
+        })
+    });
+    Err((
+        1,
+        format!(
+            "the columns are separated by semicolons (;){}: lungdyn reads comma-separated values with \
+             decimal points — export the table as CSV with ',' between columns and '.' in numbers \
+             (e.g. 0.5,2400.0)",
+            if decimal_comma {
+                " and the numbers use a decimal comma (0,5)"
+            } else {
+                ""
+            }
+        ),
+    ))
+}
+
+/// `--frc` declares the volume column as changes above FRC: a column whose lowest value is itself a
+/// plausible FRC and larger than the loop's whole swing holds absolute volumes already, and adding
+/// FRC would double it.
+fn check_relative(raw_ml: (f64, f64), frc: f64, header: &str) -> Result<(), (u64, String)> {
+    use lung_model::plausible::{compact, FRC_ML};
+    let (lo, hi) = raw_ml;
+    if FRC_ML.contains(lo) && lo >= hi - lo {
+        return Err((
+            0,
+            format!(
+                "--frc {} ml declares the volumes as changes above FRC, but column {header:?} already \
+                 looks absolute: its lowest value is {} ml (a plausible FRC) and the loop spans only {} ml; \
+                 with --frc the FRC would be {} ml. Drop --frc for absolute volumes",
+                compact(frc),
+                compact(lo),
+                compact(hi - lo),
+                compact(lo + frc)
+            ),
+        ));
+    }
+    Ok(())
 }
 
 #[cfg(test)]
@@ -492,6 +646,67 @@ mod tests {
         let (line, m) = err(b"pressure,volume\n1,2400\n1.1,2900\n", &with(None));
         assert_eq!(line, 0);
         assert!(m.contains("pressure range"), "{m}");
+    }
+
+    #[test]
+    fn tables_that_would_be_misread_are_refused_with_the_reason() {
+        let o = with(None);
+        // No header: the first sample would become the column names.
+        let (line, m) = err(b"0.0,2400.0\n5.0,2600.0\n10.0,2900.0\n", &o);
+        assert_eq!(line, 1);
+        assert!(
+            m.contains("not a header") && m.contains("pressure_cmH2O,volume_ml"),
+            "{m}"
+        );
+        // Two volume columns (the same name twice, or two names that both say volume).
+        let (_, m) = err(
+            b"pressure_cmH2O,volume_ml,volume_ml\n0,2400,2500\n10,2900,3000\n",
+            &o,
+        );
+        assert!(
+            m.contains("two columns look like volumes") && m.contains("column 3"),
+            "{m}"
+        );
+        let (_, m) = err(
+            b"paw_cmH2O,pes_cmH2O,volume_ml\n0,-5,2400\n10,-10,2900\n",
+            &o,
+        );
+        assert!(m.contains("two columns look like pressures"), "{m}");
+        // A flow column shares the volume units but is not a volume.
+        let c = parse_curve(
+            b"flow (L/s),pressure_cmH2O,volume_ml\n0.5,0,2400\n0.4,10,2900\n",
+            &o,
+        )
+        .unwrap();
+        assert_eq!(c.volume_column, "volume_ml");
+        // Semicolons with decimal commas, said as such (not "lung volume = 0 ml").
+        let (_, m) = err(b"pressure_cmH2O;volume_ml\n0,0;2400,00\n10,5;2900,0\n", &o);
+        assert!(
+            m.contains("semicolons") && m.contains("decimal comma"),
+            "{m}"
+        );
+        let (_, m) = err(b"pressure_cmH2O\tvolume_ml\n0\t2400\n10\t2900\n", &o);
+        assert!(
+            m.contains("two numeric columns") && m.contains("tabs"),
+            "{m}"
+        );
+        // --frc on volumes that are already absolute.
+        let frc = CurveOptions {
+            frc_ml: Some(2400.0),
+            ..Default::default()
+        };
+        let (_, m) = err(b"pressure,volume\n0,2400\n5,2650\n10,2900\n", &frc);
+        assert!(
+            m.contains("--frc") && m.contains("already") && m.contains("4800"),
+            "{m}"
+        );
+        // Changes above FRC, starting at 0 or a little off it, are what --frc is for.
+        for csv in [
+            &b"pressure,volume\n0,0\n10,500\n"[..],
+            b"pressure,volume\n0,120\n10,620\n",
+        ] {
+            assert!(parse_curve(csv, &frc).is_ok());
+        }
     }
 
     #[test]

@@ -23,7 +23,8 @@ use thiserror::Error;
 use std::cell::RefCell;
 
 use lung_model::pv::{
-    phase_curve, preset, Boundary, ControlBasis, Phase, PhaseConstants, PvError, PRESET_NAMES,
+    check_c, check_q, check_t_ext, phase_curve, preset, Boundary, ControlBasis, Phase,
+    PhaseConstants, PvError, MAX_CONTROL_CONSTANTS, PRESET_NAMES,
 };
 
 /// One measured sample.
@@ -129,8 +130,10 @@ pub struct CurveFit {
     pub inhale: PhaseFit,
     /// Exhalation limb.
     pub exhale: PhaseFit,
-    /// Boundary values read off the data (FRC = lowest volume, TV = range, RP/TP = pressures at the
-    /// lowest and highest volume).
+    /// Boundary values read off the data (FRC = lowest volume, TV = range, RP/TP = *driving*
+    /// pressures, `driving_pressure_sign × P`, at the lowest and highest volume: the model's
+    /// pressure rises from RP to TP on inhalation, so a falling oesophageal pressure P from −5 to −15
+    /// cmH2O gives RP 5, TP 15).
     pub boundary: Boundary,
     /// The worse of the two limbs' RMS, %.
     pub rms_percent: f64,
@@ -434,8 +437,33 @@ fn rms(r: &DVector<f64>, m: usize) -> f64 {
     (r.rows(0, m).norm_squared() / m as f64).sqrt()
 }
 
+/// Check the options before any work: `N` odd within 3..=[`MAX_CONTROL_CONSTANTS`], a given `q`
+/// or `c` and `T_ext` within their documented ranges ([`lung_model::pv::Q_RANGE`], ...), steps
+/// within 10..=100000.
+pub fn check_options(opts: &FitOptions) -> Result<(), FitError> {
+    let n = opts.n_constants;
+    if n < 3 || n.is_multiple_of(2) || n > MAX_CONTROL_CONSTANTS {
+        return Err(PvError::BadConstantCount { n }.into());
+    }
+    if let Some(q) = opts.q {
+        check_q(q)?;
+    }
+    if let Some(c) = opts.c {
+        check_c(c)?;
+    }
+    check_t_ext(opts.t_ext)?;
+    if !(10..=100_000).contains(&opts.steps) {
+        return Err(FitError::Options(format!(
+            "{} model steps: use 10..100000",
+            opts.steps
+        )));
+    }
+    Ok(())
+}
+
 /// Fit one limb (model coordinates).
 pub fn fit_limb(limb: &Limb, opts: &FitOptions) -> Result<PhaseFit, FitError> {
+    check_options(opts)?;
     if opts.q.is_some() && opts.c.is_some() {
         return fit_limb_from(limb, opts, None);
     }
@@ -480,26 +508,7 @@ fn fit_limb_from(
     opts: &FitOptions,
     start: Option<&PhaseConstants>,
 ) -> Result<PhaseFit, FitError> {
-    let n = opts.n_constants;
-    if n < 3 || n.is_multiple_of(2) || n > 31 {
-        return Err(FitError::Options(format!(
-            "N = {n} control constants: use an odd number from 3 to 31"
-        )));
-    }
-    for (name, v) in [("q", opts.q), ("c", opts.c)] {
-        if let Some(v) = v {
-            if !(v.is_finite() && v > 0.0) {
-                return Err(FitError::Options(format!(
-                    "{name} = {v} must be a positive number"
-                )));
-            }
-        }
-    }
-    if !(opts.t_ext.is_finite() && opts.t_ext >= 0.0) || !(10..=100_000).contains(&opts.steps) {
-        return Err(FitError::Options(
-            "T_ext must be >= 0 and steps within 10..100000".into(),
-        ));
-    }
+    check_options(opts)?;
     if limb.t.len() < MIN_LIMB_SAMPLES {
         return Err(FitError::TooFewSamples {
             limb: "given",
@@ -508,7 +517,7 @@ fn fit_limb_from(
         });
     }
     let layout = Layout {
-        n,
+        n: opts.n_constants,
         q: opts.q,
         c: opts.c,
         t_ext: opts.t_ext,
@@ -603,6 +612,7 @@ fn fit_limb_from(
 
 /// Fit a measured loop: split, normalise, fit both limbs, read the boundary values.
 pub fn fit_curve(samples: &[PvSample], opts: &FitOptions) -> Result<CurveFit, FitError> {
+    check_options(opts)?;
     let (inhale, exhale) = split(samples)?;
     // Driving pressure: the sign that makes pressure rise with volume along the inhalation limb.
     let n = inhale.len() as f64;
@@ -641,8 +651,8 @@ pub fn fit_curve(samples: &[PvSample], opts: &FitOptions) -> Result<CurveFit, Fi
     let boundary = Boundary {
         frc_ml: lowest.volume,
         tv_ml: highest.volume - lowest.volume,
-        rp_cmh2o: lowest.pressure,
-        tp_cmh2o: highest.pressure,
+        rp_cmh2o: sign * lowest.pressure,
+        tp_cmh2o: sign * highest.pressure,
     };
     Ok(CurveFit {
         rms_percent: fit_in.rms_percent.max(fit_ex.rms_percent),
@@ -748,8 +758,77 @@ mod tests {
         assert_eq!(fit.driving_pressure_sign, -1.0);
         assert!(fit.rms_percent < 1.0, "{}", fit.rms_percent);
         assert_eq!(fit.boundary.frc_ml, 2400.0);
-        assert_eq!(fit.boundary.rp_cmh2o, -5.0);
-        assert!((fit.boundary.tp_cmh2o + 13.0).abs() < 1e-9);
+        // The boundary pressures are driving pressures −P (5 → 13 cmH2O for P from −5 to −13):
+        // what the model's rising pressure means, and what a constants file must hold (TP > RP).
+        assert_eq!(fit.boundary.rp_cmh2o, 5.0);
+        assert!((fit.boundary.tp_cmh2o - 13.0).abs() < 1e-9);
+        assert_eq!(fit.boundary.check_plausible(), Ok(()));
+        // From zero: P 0 → −8 gives RP 0, TP 8 (never −0 > 0 confusion).
+        let mut data = closed_loop(60, 8.0, venegas(3.0, 2.0), venegas(2.0, 2.0));
+        for s in &mut data {
+            s.pressure = -s.pressure;
+        }
+        let fit = fit_curve(
+            &data,
+            &FitOptions {
+                q: Some(2.0),
+                c: Some(1.0),
+                ..Default::default()
+            },
+        )
+        .unwrap();
+        assert_eq!(fit.boundary.check_plausible(), Ok(()));
+        assert!((fit.boundary.tp_cmh2o - fit.boundary.rp_cmh2o - 8.0).abs() < 1e-9);
+    }
+
+    #[test]
+    fn options_outside_their_ranges_are_refused_before_any_work() {
+        let data = closed_loop(30, 10.0, venegas(14.0, 4.0), venegas(9.0, 4.0));
+        for (opts, words) in [
+            (
+                FitOptions {
+                    q: Some(1e308),
+                    ..Default::default()
+                },
+                "q = 1e308",
+            ),
+            (
+                FitOptions {
+                    c: Some(1e308),
+                    ..Default::default()
+                },
+                "c = 1e308",
+            ),
+            (
+                FitOptions {
+                    c: Some(-1.0),
+                    ..Default::default()
+                },
+                "c = -1",
+            ),
+            (
+                FitOptions {
+                    t_ext: 1e308,
+                    ..Default::default()
+                },
+                "T_ext = 1e308",
+            ),
+            (
+                FitOptions {
+                    t_ext: f64::NAN,
+                    ..Default::default()
+                },
+                "T_ext is not finite",
+            ),
+        ] {
+            let t = std::time::Instant::now();
+            let e = fit_curve(&data, &opts).unwrap_err().to_string();
+            assert!(e.contains(words), "{e}");
+            assert!(
+                t.elapsed().as_secs_f64() < 1.0,
+                "refused only after fitting"
+            );
+        }
     }
 
     #[test]
@@ -842,7 +921,7 @@ mod tests {
                     ..Default::default()
                 }
             ),
-            Err(FitError::Options(_))
+            Err(FitError::Model(PvError::BadConstantCount { n: 4 }))
         ));
     }
 

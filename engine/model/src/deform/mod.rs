@@ -22,6 +22,7 @@
 //! multiply-add per coordinate) on the GPU.
 
 pub mod field;
+pub mod modes;
 
 use glam::DVec3;
 use thiserror::Error;
@@ -30,9 +31,23 @@ use crate::mesh::{Side, TriMesh};
 
 /// Table 6.1 constants `c1..c9` of the direction model (eq. 6.14–6.16) and applied force (eq. 6.18).
 #[derive(Debug, Clone, Copy, PartialEq, serde::Serialize, serde::Deserialize)]
+#[serde(deny_unknown_fields)]
 pub struct MotionConstants {
-    /// `c1..c9`.
+    /// `c1..c9` (exactly nine: a longer list is refused, never cut to its first nine).
+    #[serde(deserialize_with = "exactly_nine")]
     pub c: [f64; 9],
+}
+
+/// `c` as exactly nine numbers. serde's fixed-size arrays read the first nine of a longer list and
+/// drop the rest silently; a file with twenty values is not the constants of eq. 6.14-6.18.
+fn exactly_nine<'de, D: serde::Deserializer<'de>>(d: D) -> Result<[f64; 9], D::Error> {
+    let v: Vec<f64> = serde::Deserialize::deserialize(d)?;
+    <[f64; 9]>::try_from(v.as_slice()).map_err(|_| {
+        serde::de::Error::custom(format!(
+            "c has {} values; the motion model takes exactly 9 (c1..c9 of eq. 6.14-6.18)",
+            v.len()
+        ))
+    })
 }
 
 impl MotionConstants {
@@ -94,6 +109,15 @@ impl MotionFile {
             return Err(MotionFileError::Format {
                 path: path_buf(),
                 found: f.format,
+            });
+        }
+        if f.format == 2 && f.frame.is_none() {
+            // Format 2 is what `fit-motion` writes from landmarks; it always says their frame. One
+            // without it was edited by hand from a format-1 file and claims a fit it does not carry.
+            return Err(MotionFileError::Incomplete {
+                path: path_buf(),
+                what: "format 2 names the frame its landmarks were read in (`frame = ...`, written by \
+                       `lungdyn fit-motion`); write `format = 1` for constants alone",
             });
         }
         for (side, field) in [("left", &f.left_field), ("right", &f.right_field)] {
@@ -159,6 +183,14 @@ pub enum MotionFileError {
         path: std::path::PathBuf,
         /// Format in the file.
         found: u32,
+    },
+    /// A format-2 file lacks what format 2 carries.
+    #[error("{}: {what}", path.display())]
+    Incomplete {
+        /// Path.
+        path: std::path::PathBuf,
+        /// What is missing.
+        what: &'static str,
     },
     /// A lung's field is unusable.
     #[error("{}: {side}_field: {reason}", path.display())]

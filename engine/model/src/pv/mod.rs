@@ -27,8 +27,63 @@ use thiserror::Error;
 /// independent of the tick rate while the table still lands exactly on ticks.
 pub const SUBSTEPS_PER_TICK: usize = 16;
 
+/// Most control constants `χ_1..χ_N` a phase may have. The seed uses N = 7 (Table 5.1), and eq.
+/// 5.11's `χ` basis is already nearly collinear at 7 (Jacobian condition number 1e9–1e11,
+/// EQUATIONS.md §1.2): more constants add no shape, only cost — the control function has
+/// `N·(N−1)/2` terms per grid point, so its time and memory grow with N² (1001 constants took 13.8 s
+/// and 769 MiB for one simulated breath). 15 is twice the seed's count.
+pub const MAX_CONTROL_CONSTANTS: usize = 15;
+
+/// Range of the motor-drive exponent `q` (eq. 5.11), wherever it enters (flags, constants files,
+/// scenes). The seed's tables use 2 and 3, Fig. 5.9 varies it around them, and the fit searches
+/// 0.5–16 (EQUATIONS.md §1.2); the range is that search widened by 2× each way. Beyond it
+/// `sin^q` is a spike (large q) or a step (small q): the curve degenerates without an error.
+pub const Q_RANGE: (f64, f64) = (0.25, 32.0);
+
+/// Range of the growth constant `c` (eq. 5.11; EQUATIONS.md §1.3: 1 unless fitted). The fit
+/// searches 0.25–4 (§1.2); the range is that widened by 2.5× each way. With `c` of 10 the term
+/// `(k·j)^c` already exceeds 1e8 for `k·j = 6`: every higher term is a constant.
+pub const C_RANGE: (f64, f64) = (0.1, 10.0);
+
+/// Range of the hysteresis constant `T_ext`, in control-function steps (eq. 5.10: `t = i/(T +
+/// T_ext)`). The seed raises it to 10, 20, 30 for Fig. 5.9b with `T = 100`; at 10·T the sine
+/// arguments are squeezed into a tenth of their range and the control function is nearly flat, and
+/// a huge `T_ext` makes it constant (an error that would blame the χ instead).
+pub const T_EXT_RANGE: (f64, f64) = (0.0, 1000.0);
+
+/// `q` within [`Q_RANGE`] ([`PvError::OutOfRange`] otherwise).
+pub fn check_q(q: f64) -> Result<(), PvError> {
+    check_range(
+        "q",
+        q,
+        Q_RANGE,
+        "within 0.25–32: the fit's search, 0.5–16, widened 2×",
+    )
+}
+
+/// `c` within [`C_RANGE`].
+pub fn check_c(c: f64) -> Result<(), PvError> {
+    check_range(
+        "c",
+        c,
+        C_RANGE,
+        "within 0.1–10: the fit's search, 0.25–4, widened 2.5×",
+    )
+}
+
+/// `T_ext` within [`T_EXT_RANGE`].
+pub fn check_t_ext(t_ext: f64) -> Result<(), PvError> {
+    check_range(
+        "T_ext",
+        t_ext,
+        T_EXT_RANGE,
+        "within 0–1000 control steps: the seed uses 10–30 with T = 100",
+    )
+}
+
 /// Control constants of one breathing phase (eq. 5.11) plus the resistance scale of §1.1.
 #[derive(Debug, Clone, PartialEq, serde::Serialize, serde::Deserialize)]
+#[serde(deny_unknown_fields)]
 pub struct PhaseConstants {
     /// Control constants `χ_1..χ_N` (N odd, ≥ 3).
     pub chi: Vec<f64>,
@@ -61,10 +116,12 @@ impl PhaseConstants {
         }
     }
 
-    /// Check the constants can produce a curve; every failure names the offending constant.
+    /// Check the constants can produce a curve; every failure names the offending constant. `q`,
+    /// `c` and `T_ext` must lie in [`Q_RANGE`], [`C_RANGE`] and [`T_EXT_RANGE`], and there are at
+    /// most [`MAX_CONTROL_CONSTANTS`] `χ`.
     pub fn validate(&self) -> Result<(), PvError> {
         let n = self.chi.len();
-        if n < 3 || n.is_multiple_of(2) {
+        if n < 3 || n.is_multiple_of(2) || n > MAX_CONTROL_CONSTANTS {
             return Err(PvError::BadConstantCount { n });
         }
         let named = [
@@ -91,27 +148,9 @@ impl PhaseConstants {
                 });
             }
         }
-        if self.q <= 0.0 {
-            return Err(PvError::OutOfRange {
-                name: "q",
-                value: self.q,
-                range: "> 0",
-            });
-        }
-        if self.c <= 0.0 {
-            return Err(PvError::OutOfRange {
-                name: "c",
-                value: self.c,
-                range: "> 0",
-            });
-        }
-        if self.t_ext < 0.0 {
-            return Err(PvError::OutOfRange {
-                name: "T_ext",
-                value: self.t_ext,
-                range: ">= 0",
-            });
-        }
+        check_q(self.q)?;
+        check_c(self.c)?;
+        check_t_ext(self.t_ext)?;
         if self.t_steps < 1.0 {
             return Err(PvError::OutOfRange {
                 name: "T",
@@ -142,8 +181,33 @@ impl PhaseConstants {
     }
 }
 
+/// `Ok` when `value` is within `range` (inclusive), else [`PvError::OutOfRange`] naming `name` and
+/// describing the range as `text`.
+pub fn check_range(
+    name: &'static str,
+    value: f64,
+    range: (f64, f64),
+    text: &'static str,
+) -> Result<(), PvError> {
+    if !value.is_finite() {
+        return Err(PvError::NonFinite {
+            name: name.to_string(),
+            value,
+        });
+    }
+    if value < range.0 || value > range.1 {
+        return Err(PvError::OutOfRange {
+            name,
+            value,
+            range: text,
+        });
+    }
+    Ok(())
+}
+
 /// Boundary values of a PV curve (Table 5.2).
 #[derive(Debug, Clone, Copy, PartialEq, serde::Serialize, serde::Deserialize)]
+#[serde(deny_unknown_fields)]
 pub struct Boundary {
     /// Functional residual capacity, ml (volume at the start of inhalation).
     pub frc_ml: f64,
@@ -449,6 +513,15 @@ fn integrate_phase(mid: &[f64], beta0: f64, beta1: f64) -> Result<Vec<f64>, PvEr
     Ok(volume)
 }
 
+/// Range of each part of an I:E ratio `[I, E]` (the parts are relative: 1:2 and 0.5:1 are one ratio;
+/// the range keeps them ordinary numbers).
+pub const IE_PART_RANGE: (f64, f64) = (0.1, 10.0);
+
+/// Range of the ratio I/E: from 1:5 (obstructive disease, prolonged expiration) to 4:1 (inverse-ratio
+/// ventilation); spontaneous breathing is about 1:2 and the seed's default 1:1 (Tobin MJ, Principles and
+/// Practice of Mechanical Ventilation, 3rd ed., 2013: I:E settings 1:1 to 1:4, inverse ratio to 4:1).
+pub const IE_RATIO_RANGE: (f64, f64) = (0.2, 4.0);
+
 /// Timing of the breathing cycle.
 #[derive(Debug, Clone, Copy, PartialEq, serde::Serialize, serde::Deserialize)]
 pub struct Timing {
@@ -477,6 +550,14 @@ impl Default for Timing {
 impl Timing {
     /// Integer ticks of (inhalation, exhalation). Each phase gets at least one tick.
     pub fn phase_ticks(&self) -> Result<(u32, u32), PvError> {
+        let (i, e) = (self.ie_inhale, self.ie_exhale);
+        let part = |v: f64| v.is_finite() && (IE_PART_RANGE.0..=IE_PART_RANGE.1).contains(&v);
+        if !(part(i) && part(e) && (IE_RATIO_RANGE.0..=IE_RATIO_RANGE.1).contains(&(i / e))) {
+            return Err(PvError::IeRatio {
+                inhale: i,
+                exhale: e,
+            });
+        }
         for (name, v) in [
             ("tick rate", self.tick_hz),
             ("breathing rate", self.breaths_per_min),
@@ -597,8 +678,11 @@ impl Breathing {
 /// Errors of the PV model; each names the constant or input at fault.
 #[derive(Debug, Clone, PartialEq, Error)]
 pub enum PvError {
-    /// N must be odd and at least 3 (K = (N−1)/2 ≥ 1).
-    #[error("the control function needs an odd number N >= 3 of control constants, got {n}")]
+    /// N must be odd, at least 3 (K = (N−1)/2 ≥ 1) and at most [`MAX_CONTROL_CONSTANTS`].
+    #[error(
+        "the control function needs an odd number N of control constants (chi), from 3 to \
+         {MAX_CONTROL_CONSTANTS}, got {n} (the seed uses 7)"
+    )]
     BadConstantCount {
         /// Number given.
         n: usize,
@@ -612,7 +696,7 @@ pub enum PvError {
         value: f64,
     },
     /// A constant is outside its valid range.
-    #[error("constant {name} = {value} is out of range (must be {range})")]
+    #[error("constant {name} = {} is out of range (must be {range})", crate::plausible::compact(*.value))]
     OutOfRange {
         /// Constant name.
         name: &'static str,
@@ -638,6 +722,20 @@ pub enum PvError {
         name: &'static str,
         /// Its value.
         value: f64,
+    },
+    /// The I:E ratio is outside [`IE_PART_RANGE`] / [`IE_RATIO_RANGE`].
+    #[error(
+        "ie_ratio = [{}, {}] (I:E) is not a breathing I:E ratio: each part must be within 0.1–10 and I/E \
+         within 1:5 (obstructive disease) to 4:1 (inverse-ratio ventilation); spontaneous breathing is \
+         about [1, 2]",
+        crate::plausible::compact(*.inhale),
+        crate::plausible::compact(*.exhale)
+    )]
+    IeRatio {
+        /// I.
+        inhale: f64,
+        /// E.
+        exhale: f64,
     },
     /// Boundary values are invalid.
     #[error("boundary values need FRC > 0 and TV > 0 (got FRC {frc_ml} ml, TV {tv_ml} ml)")]
@@ -834,6 +932,83 @@ mod tests {
     }
 
     #[test]
+    fn control_constants_outside_their_documented_ranges_are_refused_by_name() {
+        let base = PhaseConstants::from_table(&[0.57, 0.46, 0.40, 0.35, 0.31, 0.30, 0.29], 2.0);
+        for (k, words) in [
+            (
+                PhaseConstants {
+                    q: 1e308,
+                    ..base.clone()
+                },
+                "q = 1e308",
+            ),
+            (
+                PhaseConstants {
+                    q: 0.1,
+                    ..base.clone()
+                },
+                "q = 0.1",
+            ),
+            (
+                PhaseConstants {
+                    c: 1e308,
+                    ..base.clone()
+                },
+                "c = 1e308",
+            ),
+            (
+                PhaseConstants {
+                    c: -1e308,
+                    ..base.clone()
+                },
+                "c = -1e308",
+            ),
+            (
+                PhaseConstants {
+                    t_ext: 1e308,
+                    ..base.clone()
+                },
+                "T_ext = 1e308",
+            ),
+            (
+                PhaseConstants {
+                    t_ext: -1.0,
+                    ..base.clone()
+                },
+                "T_ext = -1",
+            ),
+        ] {
+            let e = k.validate().unwrap_err().to_string();
+            assert!(e.contains(words) && e.contains("out of range"), "{e}");
+            assert!(phase_curve(&k, 100).is_err());
+        }
+        // The ends of every range are valid.
+        for k in [
+            PhaseConstants {
+                q: Q_RANGE.0,
+                c: C_RANGE.1,
+                t_ext: T_EXT_RANGE.1,
+                ..base.clone()
+            },
+            PhaseConstants {
+                q: Q_RANGE.1,
+                c: C_RANGE.0,
+                t_ext: T_EXT_RANGE.0,
+                ..base.clone()
+            },
+        ] {
+            assert_eq!(k.validate(), Ok(()));
+        }
+        // At most MAX_CONTROL_CONSTANTS: 1001 constants are refused before any work.
+        let many = PhaseConstants::from_table(&[0.1; 1001], 2.0);
+        let e = many.validate().unwrap_err();
+        assert_eq!(e, PvError::BadConstantCount { n: 1001 });
+        assert!(e.to_string().contains("from 3 to 15"), "{e}");
+        let most = PhaseConstants::from_table(&[0.1; MAX_CONTROL_CONSTANTS], 2.0);
+        assert!(phase_curve(&most, 100).is_ok());
+    }
+
+    #[test]
     fn twenty_four_hours_at_60_hz_stay_periodic_and_bounded() {
         let b = default_breathing();
         let day = 24 * 3600 * 60_u64;
@@ -949,6 +1124,37 @@ mod tests {
             Breathing::new(&p, &t),
             Err(PvError::BadTiming { .. })
         ));
+    }
+
+    #[test]
+    fn an_ie_ratio_outside_breathing_is_refused_by_its_key() {
+        let t = |i: f64, e: f64| Timing {
+            ie_inhale: i,
+            ie_exhale: e,
+            ..Timing::default()
+        };
+        for (i, e) in [(1.0, 2.0), (1.0, 1.0), (4.0, 1.0), (1.0, 5.0), (0.5, 1.0)] {
+            assert!(t(i, e).phase_ticks().is_ok(), "{i}:{e}");
+        }
+        for (i, e) in [
+            (1e308, 1e-308),
+            (0.0, 1.0),
+            (-1.0, 1.0),
+            (f64::NAN, 1.0),
+            (5.0, 1.0),
+            (1.0, 6.0),
+            (20.0, 20.0),
+        ] {
+            let err = t(i, e).phase_ticks().unwrap_err();
+            assert!(matches!(err, PvError::IeRatio { .. }), "{i}:{e}: {err}");
+            assert!(err.to_string().starts_with("ie_ratio = ["), "{err}");
+        }
+        assert!(PvError::IeRatio {
+            inhale: 1e308,
+            exhale: 1e-308
+        }
+        .to_string()
+        .contains("[1e308, 1e-308]"));
     }
 
     proptest! {

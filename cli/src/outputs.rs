@@ -1,0 +1,178 @@
+//! Output paths are checked before any work, so a bad one never costs a computation or leaves half
+//! of a command's outputs written: the name and its extension, the folder (it must exist and take a
+//! new file), an existing path that is not a regular file (a folder, a device), and two outputs of
+//! one command that are the same file.
+
+use std::path::{Path, PathBuf};
+
+use anyhow::bail;
+
+/// One output of a command: the flag that names it and its path.
+#[derive(Debug, Clone, Copy)]
+pub struct Output<'a> {
+    /// The flag, e.g. `--plot`.
+    pub flag: &'a str,
+    /// The path given.
+    pub path: &'a Path,
+    /// Extensions it may have (lower case, without the dot); empty: any.
+    pub extensions: &'a [&'a str],
+}
+
+/// Check `out` can be written: see the module doc. Writes and removes a probe file in its folder.
+pub fn check(out: &Output) -> anyhow::Result<()> {
+    let (flag, path) = (out.flag, out.path);
+    if let Ok(meta) = std::fs::metadata(path) {
+        if meta.is_dir() {
+            bail!(
+                "{flag} {}: {} (give a file name)",
+                path.display(),
+                std::io::Error::from_raw_os_error(libc::EISDIR)
+            );
+        }
+        if !meta.is_file() {
+            bail!(
+                "{flag} {}: exists and is not a regular file (a device or pipe): give the path of a \
+                 file to write",
+                path.display()
+            );
+        }
+    }
+    if !out.extensions.is_empty() {
+        let ext = path
+            .extension()
+            .and_then(|e| e.to_str())
+            .map(|e| e.to_ascii_lowercase());
+        if !ext.as_deref().is_some_and(|e| out.extensions.contains(&e)) {
+            bail!(
+                "{flag} {}: the file name must end in {}",
+                path.display(),
+                out.extensions
+                    .iter()
+                    .map(|e| format!(".{e}"))
+                    .collect::<Vec<_>>()
+                    .join(" or ")
+            );
+        }
+    }
+    if path.file_name().is_none() {
+        bail!("{flag} {}: the path names no file", path.display());
+    }
+    let folder = match path.parent() {
+        Some(p) if !p.as_os_str().is_empty() => p.to_path_buf(),
+        _ => PathBuf::from("."),
+    };
+    if !folder.is_dir() {
+        bail!(
+            "{flag} {}: the folder {} does not exist (create it first)",
+            path.display(),
+            folder.display()
+        );
+    }
+    let probe = folder.join(format!(".lungdyn-probe-{}", std::process::id()));
+    match std::fs::OpenOptions::new()
+        .write(true)
+        .create_new(true)
+        .open(&probe)
+    {
+        Ok(_) => {
+            let _ = std::fs::remove_file(&probe);
+        }
+        Err(e) => bail!(
+            "{flag} {}: cannot write in the folder {}: {e}",
+            path.display(),
+            folder.display()
+        ),
+    }
+    Ok(())
+}
+
+/// Check every output (see [`check`]) and that no two are the same file; `also` are further files
+/// an output implies (a plot's SVG beside its PNG), with the flag that implies them.
+pub fn check_all(outputs: &[Output], also: &[(&str, PathBuf)]) -> anyhow::Result<()> {
+    for o in outputs {
+        check(o)?;
+    }
+    let mut seen: Vec<(&str, PathBuf)> = Vec::new();
+    let all = outputs
+        .iter()
+        .map(|o| (o.flag, o.path.to_path_buf()))
+        .chain(also.iter().map(|(f, p)| (*f, p.clone())));
+    for (flag, path) in all {
+        let key = normalise(&path);
+        if let Some((other, _)) = seen.iter().find(|(_, p)| *p == key) {
+            bail!(
+                "{flag} {}: the same file as {other}: give each output its own path",
+                path.display()
+            );
+        }
+        seen.push((flag, key));
+    }
+    Ok(())
+}
+
+/// The path with its folder made absolute and canonical where it exists (so `a.csv` and `./a.csv`
+/// are one file).
+fn normalise(path: &Path) -> PathBuf {
+    let folder = match path.parent() {
+        Some(p) if !p.as_os_str().is_empty() => p.to_path_buf(),
+        _ => PathBuf::from("."),
+    };
+    let folder = std::fs::canonicalize(&folder).unwrap_or(folder);
+    match path.file_name() {
+        Some(name) => folder.join(name),
+        None => folder,
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    fn out<'a>(flag: &'a str, path: &'a Path, extensions: &'a [&'a str]) -> Output<'a> {
+        Output {
+            flag,
+            path,
+            extensions,
+        }
+    }
+
+    #[test]
+    fn bad_output_paths_are_refused_naming_flag_and_path() {
+        let dir = std::env::temp_dir().join(format!("lungdyn-outputs-{}", std::process::id()));
+        std::fs::create_dir_all(&dir).unwrap();
+        let png = dir.join("p.png");
+        assert!(check(&out("--plot", &png, &["png"])).is_ok());
+        let cases: [(PathBuf, &[&str], &str); 5] = [
+            (dir.join("p.jpg"), &["png"], "must end in .png"),
+            (
+                PathBuf::from("/proc/lungdyn.png"),
+                &["png"],
+                "cannot write in the folder /proc",
+            ),
+            (dir.join("no/dir/c.csv"), &[], "no/dir does not exist"),
+            (dir.clone(), &[], "Is a directory"),
+            (PathBuf::from("/dev/null"), &[], "not a regular file"),
+        ];
+        for (path, ext, words) in cases {
+            let e = check(&out("--x", &path, ext)).unwrap_err().to_string();
+            assert!(e.starts_with("--x ") && e.contains(words), "{e}");
+            assert!(e.contains(&path.display().to_string()), "{e}");
+        }
+        // Two outputs that are one file.
+        let csv = dir.join("c.csv");
+        let same = dir.join(".").join("c.csv");
+        let e = check_all(
+            &[out("--out", &csv, &[]), out("--plot", &png, &["png"])],
+            &[("--plot", same)],
+        )
+        .unwrap_err()
+        .to_string();
+        assert!(e.contains("the same file as --out"), "{e}");
+        assert!(check_all(
+            &[out("--out", &csv, &[]), out("--plot", &png, &["png"])],
+            &[("--plot", png.with_extension("svg"))]
+        )
+        .is_ok());
+        std::fs::remove_dir_all(&dir).ok();
+    }
+}

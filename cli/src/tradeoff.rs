@@ -1,0 +1,936 @@
+//! `lungdyn bench tradeoff`: the speed/accuracy trade of the deformation modes, measured (seed ch. 7,
+//! EQUATIONS.md §3).
+//!
+//! For generated left lungs of the requested sizes: every mode's error against eq. 7.1 (RMS and max,
+//! mm and % of the largest displacement, at the reference volume over the 26-orientation set),
+//! per-frame time on the CPU (the rayon pool, its thread count stated) and on the GPU (the
+//! deformation pass alone, by timestamp queries, the adapter named), bake time and kernel size;
+//! SH for 1..8 bands beside the exact basis, the precomputed field and eq. 7.1 itself; the
+//! orientation methods (exact rotation, the seed's eq. 7.8–7.9 blend, a fixed supine force) over
+//! roll and pitch sweeps; and stereo against mono frame rate. Writes `<out>.md`, `<out>.csv` and
+//! `<out>.png` (+ `.svg`).
+
+use std::path::{Path, PathBuf};
+use std::time::Instant;
+
+use anyhow::{bail, Context};
+use glam::{DQuat, DVec3};
+use serde::Serialize;
+
+use lung_bake::kernel::{bake, BakeSettings};
+use lung_bake::orient::{
+    basis_error, orientation_set, reference_delta_ml, ErrorAccumulator, ErrorStats, Responses,
+    ShProjection,
+};
+use lung_model::deform::modes::{box_coordinates, CpuLung, ModeData};
+use lung_model::mesh::{generate, Side};
+use lung_model::orientation::{ForceWeights, SeedBlend, SUPINE_GRAVITY};
+
+/// Options of `lungdyn bench tradeoff`.
+#[derive(Debug, Clone, clap::Args)]
+pub struct TradeoffArgs {
+    /// Output path without extension: writes OUT.md, OUT.csv, OUT.png and OUT.svg.
+    #[arg(long, default_value = "docs/tradeoff")]
+    pub out: PathBuf,
+    /// Lung sizes (vertices of the generated left lung), comma-separated.
+    #[arg(long, value_delimiter = ',', default_value = "10000,100000,400000")]
+    pub sizes: Vec<usize>,
+    /// Most SH bands to measure (1..8).
+    #[arg(long, default_value_t = 8)]
+    pub max_bands: usize,
+    /// GPU timings: "auto" (when an adapter opens), "off", or "require" (fail without one).
+    #[arg(long, default_value = "auto", value_parser = ["auto", "off", "require"])]
+    pub gpu: String,
+    /// Timed repetitions per CPU/GPU figure (the median is reported).
+    #[arg(long, default_value_t = 31)]
+    pub runs: usize,
+    /// Print the rows as one JSON object on stdout.
+    #[arg(long)]
+    pub json: bool,
+}
+
+/// One measured configuration.
+#[derive(Debug, Clone, Serialize)]
+pub struct Row {
+    /// Vertices of the lung.
+    pub vertices: usize,
+    /// Mode.
+    pub mode: String,
+    /// SH bands (sh mode).
+    pub bands: Option<usize>,
+    /// Numbers per vertex the mode reads besides the position.
+    pub floats_per_vertex: f64,
+    /// Errors against eq. 7.1.
+    pub error: ErrorStats,
+    /// CPU time per frame, ms (median).
+    pub cpu_ms: f64,
+    /// GPU time of the deformation pass (with normals), ms (median); `None` without a GPU.
+    pub gpu_ms: Option<f64>,
+    /// Bake time of what this mode needs beyond the transfer rows (basis: the responses; sh: the
+    /// projection and the fit), s; the transfer bake itself is in `transfer_bake_s`.
+    pub mode_bake_s: f64,
+    /// Transfer bake (pitcher–catcher, all rows), s.
+    pub transfer_bake_s: f64,
+    /// Kernel file size with this mode's data, MiB.
+    pub kernel_mib: f64,
+    /// SH: least-squares α.
+    pub alpha: Option<f64>,
+}
+
+/// One orientation method over a sweep.
+#[derive(Debug, Clone, Serialize)]
+pub struct OrientationRow {
+    /// Method.
+    pub method: String,
+    /// Sweep ("roll" or "pitch").
+    pub sweep: String,
+    /// Errors against eq. 7.1 with the true orientation's force, over the sweep.
+    pub error: ErrorStats,
+    /// Per angle (degrees) the RMS error, mm.
+    pub series: Vec<(f64, f64)>,
+}
+
+/// What the trade study measured.
+#[derive(Debug, Clone, Serialize)]
+pub struct Tradeoff {
+    /// Rows.
+    pub rows: Vec<Row>,
+    /// Orientation methods (on the smallest lung).
+    pub orientation: Vec<OrientationRow>,
+    /// CPU threads of the pool.
+    pub cpu_threads: usize,
+    /// CPU model.
+    pub cpu: String,
+    /// GPU adapter, if any.
+    pub gpu: Option<String>,
+    /// Stereo vs mono (on the smallest lung): mono frame ms, stereo frame ms, ratio of rates.
+    pub stereo: Option<StereoFigure>,
+    /// Copy bandwidth reference at the largest size: (bytes per vertex, ms, GB/s) for the basis
+    /// mode's traffic.
+    pub copy: Vec<CopyFigure>,
+    /// Files written.
+    pub files: Vec<String>,
+}
+
+/// A memory-copy reference for a mode's traffic.
+#[derive(Debug, Clone, Serialize)]
+pub struct CopyFigure {
+    /// Vertices.
+    pub vertices: usize,
+    /// Mode.
+    pub mode: String,
+    /// Bytes per vertex the mode moves (reads + writes).
+    pub bytes_per_vertex: usize,
+    /// The mode's time, ms.
+    pub mode_ms: f64,
+    /// A plain copy of the same bytes, ms.
+    pub copy_ms: f64,
+    /// The mode's throughput as a fraction of the copy's.
+    pub fraction_of_copy: f64,
+}
+
+/// Stereo against mono.
+#[derive(Debug, Clone, Serialize)]
+pub struct StereoFigure {
+    /// Vertices drawn.
+    pub vertices: usize,
+    /// Eye image size.
+    pub eye: (u32, u32),
+    /// Mono frame (deform + one eye), GPU ms.
+    pub mono_ms: f64,
+    /// Stereo frame (deform once + two eyes), GPU ms.
+    pub stereo_ms: f64,
+    /// Deformation pass alone, GPU ms.
+    pub deform_ms: f64,
+    /// Stereo frame rate / mono frame rate.
+    pub rate_ratio: f64,
+}
+
+fn median(runs: usize, mut f: impl FnMut()) -> f64 {
+    f();
+    let mut t: Vec<f64> = (0..runs.max(1))
+        .map(|_| {
+            let s = Instant::now();
+            f();
+            s.elapsed().as_secs_f64()
+        })
+        .collect();
+    t.sort_by(f64::total_cmp);
+    t[t.len() / 2]
+}
+
+fn median_of(mut v: Vec<f64>) -> Option<f64> {
+    if v.is_empty() {
+        return None;
+    }
+    v.sort_by(f64::total_cmp);
+    Some(v[v.len() / 2])
+}
+
+fn cpu_model() -> String {
+    std::fs::read_to_string("/proc/cpuinfo")
+        .ok()
+        .and_then(|s| {
+            s.lines()
+                .find(|l| l.starts_with("model name"))
+                .and_then(|l| l.split(':').nth(1))
+                .map(|m| m.trim().to_string())
+        })
+        .unwrap_or_else(|| "unknown CPU".into())
+}
+
+/// The SH force coefficients `F_k = α·Σ_a w_a·P_ak` for `n` bands.
+fn sh_coeffs(alpha: f64, projection: &[f64], w: &ForceWeights) -> Vec<f32> {
+    let n2 = projection.len() / 4;
+    (0..n2)
+        .map(|k| {
+            (alpha
+                * (0..4)
+                    .map(|a| w[a] * projection[a * n2 + k])
+                    .sum::<f64>()) as f32
+        })
+        .collect()
+}
+
+/// Run the trade study.
+pub fn run(args: &TradeoffArgs) -> anyhow::Result<Tradeoff> {
+    if args.sizes.is_empty()
+        || args
+            .sizes
+            .iter()
+            .any(|&n| !(generate::MIN_VERTICES..=generate::MAX_VERTICES).contains(&n))
+    {
+        bail!(
+            "--sizes {:?}: each must be within {}..{} vertices",
+            args.sizes,
+            generate::MIN_VERTICES,
+            generate::MAX_VERTICES
+        );
+    }
+    if !(1..=lung_model::kernel::MAX_RUNTIME_BANDS as usize).contains(&args.max_bands) {
+        bail!("--max-bands {} must be within 1..8", args.max_bands);
+    }
+    if !(1..=1001).contains(&args.runs) {
+        bail!("--runs {} must be within 1..1001", args.runs);
+    }
+    let out_dir = args
+        .out
+        .parent()
+        .filter(|p| !p.as_os_str().is_empty())
+        .unwrap_or(Path::new("."));
+    crate::demo::check_writable(out_dir)?;
+    let gpu = match args.gpu.as_str() {
+        "off" => None,
+        want => match renderer::gpu::Gpu::new() {
+            Ok(g) => Some(g),
+            Err(e) if want == "require" => return Err(e.into()),
+            Err(e) => {
+                eprintln!("lungdyn: no GPU ({e}); CPU figures only");
+                None
+            }
+        },
+    };
+    let gpu_name = gpu.as_ref().map(|g| g.describe());
+    let side = Side::Left;
+    let settings = {
+        let mut s = BakeSettings::default_for(side);
+        s.sh_bands = 0;
+        s
+    };
+    let c = settings.motion.c;
+    let c789 = [c[6], c[7], c[8]];
+    let orientations = orientation_set();
+    let mut rows = Vec::new();
+    let mut copies = Vec::new();
+    let mut orientation_rows = Vec::new();
+    let mut stereo = None;
+    let mut sizes = args.sizes.clone();
+    sizes.sort_unstable();
+    for (size_index, &n) in sizes.iter().enumerate() {
+        eprintln!("lungdyn: {n} vertices: baking the transfer rows ...");
+        let t = Instant::now();
+        let k = bake(side, generate::lung(side, n)?, &settings, &|_| {})?;
+        let transfer_bake_s = t.elapsed().as_secs_f64();
+        let v = k.mesh.positions.len();
+        let base_bytes = {
+            // What every kernel holds: header, metadata and the ch. 6 sections.
+            let dir = std::env::temp_dir().join(format!("lungdyn-tradeoff-{}", std::process::id()));
+            std::fs::create_dir_all(&dir)?;
+            let path = dir.join("k.kernel");
+            let len = k.write(&path)?;
+            let _ = std::fs::remove_file(&path);
+            len as f64 - (v * 16) as f64 // minus the basis section, counted per mode
+        };
+        let mib = |extra_bytes: f64| (base_bytes + extra_bytes) / 1048576.0;
+        let t = Instant::now();
+        let mut responses = Responses::compute(
+            &k.mesh,
+            side,
+            &k.transfer,
+            &k.directions,
+            k.meta.force_scale,
+            c789,
+        );
+        let exact_forms = responses.forms_of(&k.mesh, &responses.g);
+        responses.set_limit(&exact_forms);
+        let basis_bake_s = t.elapsed().as_secs_f64();
+        let delta_ml = reference_delta_ml(k.meta.start_volume_ml);
+        let supine = responses.weights(SUPINE_GRAVITY);
+        let s_supine = exact_forms.cubic(&supine).solve_delta(delta_ml * 1000.0) as f32;
+        let kd: Vec<[f32; 3]> = k
+            .directions
+            .iter()
+            .map(|d| d.map(|x| x * k.meta.force_scale as f32))
+            .collect();
+        let mut outputs = vec![[0.0f32; 3]; v];
+        let time_cpu = |lung: &mut CpuLung, coeffs: &[f32], out: &mut [[f32; 3]]| {
+            median(args.runs, || {
+                lung.deform_into(s_supine, coeffs, [0.0; 3], out)
+                    .expect("coefficient count");
+                std::hint::black_box(&out);
+            }) * 1e3
+        };
+        let render_lung = |lung: &CpuLung| renderer::RenderLung {
+            side,
+            kernel_id: 0,
+            lung: lung.clone(),
+        };
+        let time_gpu = |lung: &CpuLung, coeffs: &[f32]| -> anyhow::Result<Option<f64>> {
+            let Some(gpu) = &gpu else { return Ok(None) };
+            let mut scene = lung_model::scene::RenderScene::default();
+            scene.width = 64;
+            scene.height = 64;
+            let r = match renderer::LungRenderer::new(gpu, &scene, &[render_lung(lung)]) {
+                Ok(r) => r,
+                Err(e) => {
+                    eprintln!("lungdyn: {n} vertices, {}: {e}", lung.data.mode());
+                    return Ok(None);
+                }
+            };
+            let mut state = renderer::DrawState {
+                deform_scale: [0.0; 2],
+                offset_mm: [[0.0; 3]; 2],
+                coeffs: [[0.0; ipc_types::MAX_COEFFS]; 2],
+                patient: ipc_types::Pose::IDENTITY,
+                hmd: ipc_types::Pose::IDENTITY,
+            };
+            let slot = side.index();
+            state.deform_scale[slot] = s_supine;
+            state.coeffs[slot][..coeffs.len()].copy_from_slice(coeffs);
+            let _ = r.time_deform(gpu, &state);
+            let times: Vec<f64> = (0..args.runs)
+                .filter_map(|_| r.time_deform(gpu, &state))
+                .map(|ns| ns as f64 / 1e6)
+                .collect();
+            Ok(median_of(times))
+        };
+        let threads = rayon::current_num_threads();
+        let mesh = k.mesh.clone();
+
+        // Precomputed: the supine field, error over the orientation set (it ignores them).
+        eprintln!("lungdyn: {n} vertices: precomputed, basis, eq. 7.1 ...");
+        let mut pre = CpuLung::new(
+            mesh.clone(),
+            Vec::new(),
+            ModeData::Precomputed {
+                unit: k.unit_displacement.clone(),
+            },
+        );
+        let pre_ms = time_cpu(&mut pre, &[], &mut outputs);
+        let pre_gpu = time_gpu(&pre, &[])?;
+        let pre_err = {
+            let mut acc = ErrorAccumulator::default();
+            let supine_force = responses.force(&supine);
+            for &g in &orientations {
+                let w = responses.weights(g);
+                let s_ref = exact_forms.cubic(&w).solve_delta(delta_ml * 1000.0);
+                let s_pre = exact_forms.cubic(&supine).solve_delta(delta_ml * 1000.0);
+                acc.add(&responses.kd, s_ref, &responses.force(&w), s_pre, &supine_force);
+            }
+            acc.stats()
+        };
+        rows.push(Row {
+            vertices: v,
+            mode: "precomputed".into(),
+            bands: None,
+            floats_per_vertex: 3.0,
+            error: pre_err,
+            cpu_ms: pre_ms,
+            gpu_ms: pre_gpu,
+            mode_bake_s: 0.0,
+            transfer_bake_s,
+            kernel_mib: mib(0.0),
+            alpha: None,
+        });
+        // Basis.
+        let basis = responses.stored();
+        let basis_err = basis_error(
+            &k.transfer,
+            &responses,
+            &basis,
+            &k.directions,
+            k.meta.force_scale,
+            &exact_forms,
+            &orientations,
+            delta_ml,
+        );
+        let w32 = supine.map(|x| x as f32);
+        let mut basis_lung = CpuLung::new(mesh.clone(), kd.clone(), ModeData::Basis { g: basis });
+        let basis_ms = time_cpu(&mut basis_lung, &w32, &mut outputs);
+        let basis_gpu = time_gpu(&basis_lung, &w32)?;
+        rows.push(Row {
+            vertices: v,
+            mode: "basis".into(),
+            bands: None,
+            floats_per_vertex: 7.0,
+            error: basis_err,
+            cpu_ms: basis_ms,
+            gpu_ms: basis_gpu,
+            mode_bake_s: basis_bake_s,
+            transfer_bake_s,
+            kernel_mib: mib((v * 16) as f64),
+            alpha: None,
+        });
+        // Memory-copy references of the same traffic, same run.
+        for (mode, bytes, ms) in [("precomputed", 36usize, pre_ms), ("basis", 52, basis_ms)] {
+            let half = v * bytes / 2;
+            let src = vec![1u8; half];
+            let mut dst = vec![0u8; half];
+            let copy_ms = median(args.runs, || {
+                dst.copy_from_slice(std::hint::black_box(&src));
+                std::hint::black_box(&dst);
+            }) * 1e3;
+            copies.push(CopyFigure {
+                vertices: v,
+                mode: mode.into(),
+                bytes_per_vertex: bytes,
+                mode_ms: ms,
+                copy_ms,
+                fraction_of_copy: copy_ms / ms,
+            });
+        }
+        // Eq. 7.1 itself: the reference (its error is the f32 evaluation's round-off).
+        let columns = k.transfer.transposed();
+        let mut direct = CpuLung::new(
+            mesh.clone(),
+            kd.clone(),
+            ModeData::Direct {
+                columns,
+                nhat: box_coordinates(&mesh, side),
+                force: vec![0.0; v],
+                elastostatic: vec![0.0; v],
+            },
+        );
+        let direct_ms = time_cpu(&mut direct, &w32, &mut outputs);
+        let direct_gpu = time_gpu(&direct, &w32)?;
+        rows.push(Row {
+            vertices: v,
+            mode: "direct (eq. 7.1)".into(),
+            bands: None,
+            floats_per_vertex: 2.0 * k.meta.transfer.mean_row_nnz + 7.0,
+            error: ErrorStats::default(),
+            cpu_ms: direct_ms,
+            gpu_ms: direct_gpu,
+            mode_bake_s: 0.0,
+            transfer_bake_s,
+            kernel_mib: mib(0.0),
+            alpha: None,
+        });
+        drop(direct);
+        // SH, 1..max bands: each band count projected and fitted on its own (bake time per n).
+        let columns = k.transfer.transposed();
+        for bands in 1..=args.max_bands {
+            eprintln!("lungdyn: {n} vertices: SH with {bands} bands ...");
+            let t = Instant::now();
+            let projection = ShProjection::compute(&mesh, &columns, &responses.nhat, bands)?;
+            let fit = projection.fit(
+                bands,
+                &mesh,
+                &responses,
+                &exact_forms,
+                &orientations,
+                delta_ml,
+            );
+            let sh_bake_s = t.elapsed().as_secs_f64();
+            let coeffs = sh_coeffs(fit.alpha, &projection.projection(bands), &supine);
+            let mut lung = CpuLung::new(
+                mesh.clone(),
+                kd.clone(),
+                ModeData::Sh {
+                    n_coeffs: bands * bands,
+                    t: projection.stored(bands),
+                },
+            );
+            let ms = time_cpu(&mut lung, &coeffs, &mut outputs);
+            let gpu_ms = time_gpu(&lung, &coeffs)?;
+            rows.push(Row {
+                vertices: v,
+                mode: "sh".into(),
+                bands: Some(bands),
+                floats_per_vertex: (bands * bands + 3) as f64,
+                error: fit.error,
+                cpu_ms: ms,
+                gpu_ms,
+                mode_bake_s: sh_bake_s,
+                transfer_bake_s,
+                kernel_mib: mib((v * 16 + v * bands * bands * 4) as f64),
+                alpha: Some(fit.alpha),
+            });
+        }
+        // Orientation methods and stereo, on the smallest lung.
+        if size_index == 0 {
+            orientation_rows = orientation_methods(&responses, &exact_forms, c789, delta_ml);
+            if let Some(gpu) = &gpu {
+                stereo = Some(stereo_figure(gpu, &basis_lung, s_supine, &w32, args.runs)?);
+            }
+        }
+        eprintln!(
+            "lungdyn: {n} vertices done ({threads} CPU threads{})",
+            gpu_name
+                .as_deref()
+                .map(|g| format!(", GPU {g}"))
+                .unwrap_or_default()
+        );
+    }
+    let mut result = Tradeoff {
+        rows,
+        orientation: orientation_rows,
+        cpu_threads: rayon::current_num_threads(),
+        cpu: cpu_model(),
+        gpu: gpu_name,
+        stereo,
+        copy: copies,
+        files: Vec::new(),
+    };
+    result.files = write_outputs(&args.out, &result)?;
+    Ok(result)
+}
+
+/// The orientation methods over roll and pitch sweeps, against eq. 7.1 with the true force.
+fn orientation_methods(
+    responses: &Responses,
+    forms: &lung_model::deform::modes::VolumeForms,
+    c789: [f64; 3],
+    delta_ml: f64,
+) -> Vec<OrientationRow> {
+    let seed = SeedBlend::new(c789, responses.side);
+    let limit = responses.limit;
+    let limited = |w: ForceWeights| match &limit {
+        Some(l) => l.apply(w).0,
+        None => w,
+    };
+    let sweeps: [(&str, fn(f64) -> DQuat); 2] = [
+        ("roll", |a| DQuat::from_rotation_z(a)),
+        ("pitch", |a| DQuat::from_rotation_x(a)),
+    ];
+    let methods: [(&str, &dyn Fn(DVec3) -> ForceWeights); 3] = [
+        ("exact rotation", &|g| responses.weights(g)),
+        ("seed eq. 7.8-7.9", &|g| limited(seed.weights(g))),
+        ("fixed (supine)", &|_| responses.weights(SUPINE_GRAVITY)),
+    ];
+    let mut out = Vec::new();
+    for (sweep, turn) in sweeps {
+        let (lo, hi) = if sweep == "roll" { (-180, 180) } else { (-90, 90) };
+        for (name, method) in &methods {
+            let mut acc = ErrorAccumulator::default();
+            let mut series = Vec::new();
+            for deg in (lo..=hi).step_by(15) {
+                // Body-frame gravity of a supine patient turned by `deg` about the long axis
+                // (roll: body Z) or the left-right axis (pitch: body X).
+                let g = turn((deg as f64).to_radians()) * SUPINE_GRAVITY;
+                let w_true = responses.weights(g);
+                let w = method(g);
+                let s_ref = forms.cubic(&w_true).solve_delta(delta_ml * 1000.0);
+                let s = forms.cubic(&w).solve_delta(delta_ml * 1000.0);
+                let mut one = ErrorAccumulator::default();
+                let (d_ref, d) = (responses.force(&w_true), responses.force(&w));
+                one.add(&responses.kd, s_ref, &d_ref, s, &d);
+                acc.add(&responses.kd, s_ref, &d_ref, s, &d);
+                series.push((deg as f64, one.stats().rms_mm));
+            }
+            out.push(OrientationRow {
+                method: name.to_string(),
+                sweep: sweep.into(),
+                error: acc.stats(),
+                series,
+            });
+        }
+    }
+    out
+}
+
+fn stereo_figure(
+    gpu: &renderer::gpu::Gpu,
+    lung: &CpuLung,
+    scale: f32,
+    w: &[f32; 4],
+    runs: usize,
+) -> anyhow::Result<StereoFigure> {
+    let render = |stereo: bool| -> anyhow::Result<(f64, f64)> {
+        let mut scene = lung_model::scene::RenderScene::default();
+        scene.width = 320;
+        scene.height = 240;
+        scene.stereo = stereo;
+        let r = renderer::LungRenderer::new(
+            gpu,
+            &scene,
+            &[renderer::RenderLung {
+                side: Side::Left,
+                kernel_id: 0,
+                lung: lung.clone(),
+            }],
+        )?;
+        let mut state = renderer::DrawState {
+            deform_scale: [0.0, scale],
+            offset_mm: [[0.0; 3]; 2],
+            coeffs: [[0.0; ipc_types::MAX_COEFFS]; 2],
+            patient: ipc_types::Pose::IDENTITY,
+            hmd: ipc_types::Pose {
+                quat: [0.0, 0.0, 0.0, 1.0],
+                translation_mm: [0.0, 0.0, 900.0],
+                _pad: 0,
+            },
+        };
+        state.coeffs[1][..4].copy_from_slice(w);
+        let frame: Vec<f64> = (0..runs)
+            .filter_map(|_| r.render(gpu, &state, false).gpu_ns)
+            .map(|ns| ns as f64 / 1e6)
+            .collect();
+        let deform: Vec<f64> = (0..runs)
+            .filter_map(|_| r.time_deform(gpu, &state))
+            .map(|ns| ns as f64 / 1e6)
+            .collect();
+        Ok((
+            median_of(frame).unwrap_or(f64::NAN),
+            median_of(deform).unwrap_or(f64::NAN),
+        ))
+    };
+    let (mono, deform_ms) = render(false)?;
+    let (stereo, _) = render(true)?;
+    Ok(StereoFigure {
+        vertices: lung.len(),
+        eye: (320, 240),
+        mono_ms: mono,
+        stereo_ms: stereo,
+        deform_ms,
+        rate_ratio: mono / stereo,
+    })
+}
+
+fn fmt_opt(v: Option<f64>, digits: usize) -> String {
+    v.filter(|x| x.is_finite())
+        .map(|x| format!("{x:.digits$}"))
+        .unwrap_or_else(|| "–".into())
+}
+
+fn markdown(t: &Tradeoff, stem: &str) -> String {
+    use std::fmt::Write;
+    let mut s = String::new();
+    let _ = writeln!(s, "# The deformation modes: speed against accuracy\n");
+    let _ = writeln!(
+        s,
+        "Written by `lungdyn bench tradeoff` (see `cli/src/tradeoff.rs`); regenerate with \
+         `cargo run --release --bin lungdyn -- bench tradeoff --out docs/tradeoff`. Generated left \
+         lung, Table 6.1 constants, default elasticity and tolerance. Errors are displacements \
+         against eq. 7.1 evaluated in f64, at the reference volume (+250 ml, a tidal breath's share \
+         of one lung) over 26 orientations (supine, prone, both lateral decubitus postures, upright, \
+         head-down and 20 seeded random ones), each mode's scale solved from its own volume forms \
+         (what is drawn). CPU: {} with a rayon pool of {} threads; GPU: {} (the deformation pass \
+         with the normals, by timestamp queries). Medians of repeated runs.\n",
+        t.cpu,
+        t.cpu_threads,
+        t.gpu.as_deref().unwrap_or("none on this machine")
+    );
+    let _ = writeln!(s, "![trade-off plot]({stem}.png)\n");
+    let _ = writeln!(
+        s,
+        "| vertices | mode | coefficients | RMS mm | max mm | RMS % | max % | CPU ms/frame | GPU ms/frame | mode bake s | kernel MiB | α |\n|---|---|---|---|---|---|---|---|---|---|---|---|"
+    );
+    for r in &t.rows {
+        let _ = writeln!(
+            s,
+            "| {} | {} | {} | {:.3} | {:.3} | {:.2} | {:.2} | {:.3} | {} | {:.2} | {:.1} | {} |",
+            r.vertices,
+            r.mode,
+            r.bands
+                .map(|b| format!("{} ({} bands)", b * b, b))
+                .unwrap_or_else(|| "–".into()),
+            r.error.rms_mm,
+            r.error.max_mm,
+            r.error.rms_percent,
+            r.error.max_percent,
+            r.cpu_ms,
+            fmt_opt(r.gpu_ms, 3),
+            r.mode_bake_s,
+            r.kernel_mib,
+            fmt_opt(r.alpha, 4)
+        );
+    }
+    let _ = writeln!(
+        s,
+        "\nThe transfer bake (pitcher–catcher, every row) itself: {}.\n",
+        {
+            let mut seen = Vec::new();
+            for r in &t.rows {
+                if !seen.iter().any(|(v, _)| *v == r.vertices) {
+                    seen.push((r.vertices, r.transfer_bake_s));
+                }
+            }
+            seen.iter()
+                .map(|(v, b)| format!("{v} vertices {b:.1} s"))
+                .collect::<Vec<_>>()
+                .join(", ")
+        }
+    );
+    let _ = writeln!(s, "## Memory bandwidth (CPU, same run)\n");
+    let _ = writeln!(
+        s,
+        "| vertices | mode | bytes/vertex | mode ms | copy of the same bytes ms | mode throughput / copy |\n|---|---|---|---|---|---|"
+    );
+    for c in &t.copy {
+        let _ = writeln!(
+            s,
+            "| {} | {} | {} | {:.3} | {:.3} | {:.0} % |",
+            c.vertices,
+            c.mode,
+            c.bytes_per_vertex,
+            c.mode_ms,
+            c.copy_ms,
+            100.0 * c.fraction_of_copy
+        );
+    }
+    let _ = writeln!(s, "\n## Orientation methods (smallest lung)\n");
+    let _ = writeln!(
+        s,
+        "The true force for an orientation is Table 6.1's weights rotated with gravity (EQUATIONS.md \
+         §3.3); each method's weights are fed to the same exact operator, so the error is the \
+         method's alone. Sweeps of 15°: roll about the long axis (−180…180°, through both sides to \
+         prone) and pitch about the left–right axis (−90…90°, head-down to sitting up).\n"
+    );
+    let _ = writeln!(
+        s,
+        "| method | sweep | RMS mm | max mm | RMS % |\n|---|---|---|---|---|"
+    );
+    for o in &t.orientation {
+        let _ = writeln!(
+            s,
+            "| {} | {} | {:.3} | {:.3} | {:.2} |",
+            o.method, o.sweep, o.error.rms_mm, o.error.max_mm, o.error.rms_percent
+        );
+    }
+    if let Some(st) = &t.stereo {
+        let _ = writeln!(
+            s,
+            "\n## Stereo\n\nOne deformation pass per frame, then each eye draws the result ({} vertices, \
+             {}×{} per eye, basis mode, GPU time per frame): mono {:.3} ms, stereo {:.3} ms, of which \
+             the deformation pass {:.3} ms; stereo/mono frame rate **{:.2}** (the seed: 75/148 = 0.51 \
+             point-based, 23/46 = 0.50 polygon-based, because it deformed in the vertex shader, once \
+             per eye).",
+            st.vertices, st.eye.0, st.eye.1, st.mono_ms, st.stereo_ms, st.deform_ms, st.rate_ratio
+        );
+    }
+    let _ = writeln!(
+        s,
+        "\n## Beside the seed's figures\n\n\
+         | figure | seed (ch. 7) | lungdyn (this run) |\n|---|---|---|\n\
+         | 16 coefficients, RMS error vs eq. 7.1 | < 1 % (< 1 mm), α = 1.03 | {} |\n\
+         | exact alternative | — | basis mode, max {} mm (round-off) |\n\
+         | eq. 7.7 frame rate, mono / stereo | 148 / 75 FPS point-based, 46 / 23 polygon-based (GeForce FX 5600) | see the GPU column and the stereo section |\n\
+         | per-node work, eq. 7.1 vs eq. 7.7 | 192 vs 16 MACs | {} |\n",
+        t.rows
+            .iter()
+            .filter(|r| r.bands == Some(4))
+            .map(|r| format!(
+                "{} vertices: {:.2} % ({:.3} mm), α = {:.3}",
+                r.vertices,
+                r.error.rms_percent,
+                r.error.rms_mm,
+                r.alpha.unwrap_or(f64::NAN)
+            ))
+            .collect::<Vec<_>>()
+            .join("; "),
+        t.rows
+            .iter()
+            .filter(|r| r.mode == "basis")
+            .map(|r| format!("{:.1e}", r.error.max_mm))
+            .collect::<Vec<_>>()
+            .join(" / "),
+        t.rows
+            .iter()
+            .filter(|r| r.mode.starts_with("direct"))
+            .map(|r| format!(
+                "{} vertices: {:.0} values/node for eq. 7.1, 16 + 3 for eq. 7.7, 4 + 3 for the basis",
+                r.vertices, r.floats_per_vertex
+            ))
+            .collect::<Vec<_>>()
+            .join("; ")
+    );
+    s
+}
+
+fn csv(t: &Tradeoff) -> String {
+    let mut s = String::from(
+        "vertices,mode,bands,coefficients,rms_mm,max_mm,rms_percent,max_percent,cpu_ms,cpu_threads,gpu_ms,mode_bake_s,transfer_bake_s,kernel_mib,alpha\n",
+    );
+    for r in &t.rows {
+        s.push_str(&format!(
+            "{},{},{},{},{:.6},{:.6},{:.4},{:.4},{:.4},{},{},{:.3},{:.3},{:.2},{}\n",
+            r.vertices,
+            r.mode,
+            r.bands.map(|b| b.to_string()).unwrap_or_default(),
+            r.bands.map(|b| (b * b).to_string()).unwrap_or_default(),
+            r.error.rms_mm,
+            r.error.max_mm,
+            r.error.rms_percent,
+            r.error.max_percent,
+            r.cpu_ms,
+            t.cpu_threads,
+            r.gpu_ms.map(|g| format!("{g:.4}")).unwrap_or_default(),
+            r.mode_bake_s,
+            r.transfer_bake_s,
+            r.kernel_mib,
+            r.alpha.map(|a| format!("{a:.5}")).unwrap_or_default()
+        ));
+    }
+    s
+}
+
+fn write_outputs(out: &Path, t: &Tradeoff) -> anyhow::Result<Vec<String>> {
+    use crate::plot::{Panel, Series};
+    use plotters::style::RGBColor;
+    let palette = [
+        RGBColor(31, 119, 180),
+        RGBColor(230, 110, 20),
+        RGBColor(44, 160, 44),
+        RGBColor(214, 39, 40),
+        RGBColor(148, 103, 189),
+    ];
+    let sizes: Vec<usize> = {
+        let mut v: Vec<usize> = t.rows.iter().map(|r| r.vertices).collect();
+        v.dedup();
+        v
+    };
+    let sh = |v: usize| t.rows.iter().filter(move |r| r.vertices == v && r.bands.is_some());
+    let mut error_panel = Panel {
+        title: "SH error against eq. 7.1".into(),
+        x_label: "bands (n² coefficients)".into(),
+        y_label: "RMS displacement error, % of max".into(),
+        series: Vec::new(),
+    };
+    let mut time_panel = Panel {
+        title: format!("CPU time per frame ({} threads)", t.cpu_threads),
+        x_label: "bands".into(),
+        y_label: "ms".into(),
+        series: Vec::new(),
+    };
+    let max_bands = t.rows.iter().filter_map(|r| r.bands).max().unwrap_or(1) as f64;
+    for (i, &v) in sizes.iter().enumerate() {
+        let color = palette[i % palette.len()];
+        error_panel.series.push(Series {
+            label: format!("sh, {v} vertices"),
+            points: sh(v)
+                .map(|r| (r.bands.unwrap_or(0) as f64, r.error.rms_percent))
+                .collect(),
+            color,
+            markers: false,
+        });
+        time_panel.series.push(Series {
+            label: format!("sh, {v}"),
+            points: sh(v)
+                .map(|r| (r.bands.unwrap_or(0) as f64, r.cpu_ms))
+                .collect(),
+            color,
+            markers: false,
+        });
+    }
+    if let Some(&largest) = sizes.last() {
+        for (mode, color) in [
+            ("basis", RGBColor(0, 0, 0)),
+            ("direct (eq. 7.1)", RGBColor(140, 86, 75)),
+        ] {
+            if let Some(r) = t.rows.iter().find(|r| r.vertices == largest && r.mode == mode) {
+                time_panel.series.push(Series {
+                    label: format!("{mode}, {largest}"),
+                    points: vec![(1.0, r.cpu_ms), (max_bands, r.cpu_ms)],
+                    color,
+                    markers: false,
+                });
+            }
+        }
+    }
+    error_panel.series.push(Series {
+        label: "seed's claim (< 1 %)".into(),
+        points: vec![(1.0, 1.0), (max_bands, 1.0)],
+        color: RGBColor(120, 120, 120),
+        markers: false,
+    });
+    let mut orient_panel = Panel {
+        title: "Orientation methods (roll sweep)".into(),
+        x_label: "roll about the long axis, degrees".into(),
+        y_label: "RMS displacement error, mm".into(),
+        series: Vec::new(),
+    };
+    for (i, o) in t.orientation.iter().filter(|o| o.sweep == "roll").enumerate() {
+        orient_panel.series.push(Series {
+            label: o.method.clone(),
+            points: o.series.clone(),
+            color: palette[i % palette.len()],
+            markers: true,
+        });
+    }
+    let stem = out
+        .file_name()
+        .and_then(|s| s.to_str())
+        .context("--out needs a file name")?
+        .to_string();
+    let png = out.with_file_name(format!("{stem}.png"));
+    let (png, svg) = crate::plot::write(&png, &[error_panel, time_panel, orient_panel])?;
+    let md = out.with_file_name(format!("{stem}.md"));
+    let csv_path = out.with_file_name(format!("{stem}.csv"));
+    for (path, text) in [(&md, markdown(t, &stem)), (&csv_path, csv(t))] {
+        lung_model::mesh::io::write_atomically(path, |w| {
+            use std::io::Write;
+            w.write_all(text.as_bytes())
+        })?;
+    }
+    Ok([md, csv_path, png, svg]
+        .iter()
+        .map(|p| p.display().to_string())
+        .collect())
+}
+
+/// A short summary for the terminal.
+pub fn text(t: &Tradeoff) -> String {
+    let mut s = String::new();
+    for r in &t.rows {
+        s.push_str(&format!(
+            "{:>8} {:<18} {:>4} RMS {:>8.3} mm ({:>6.2} %) max {:>8.3} mm  CPU {:>8.3} ms  GPU {:>8} ms\n",
+            r.vertices,
+            r.mode,
+            r.bands.map(|b| b.to_string()).unwrap_or_default(),
+            r.error.rms_mm,
+            r.error.rms_percent,
+            r.error.max_mm,
+            r.cpu_ms,
+            fmt_opt(r.gpu_ms, 3)
+        ));
+    }
+    for c in &t.copy {
+        s.push_str(&format!(
+            "{:>8} {:<18} {:.3} ms vs copy {:.3} ms: {:.0} % of copy bandwidth\n",
+            c.vertices,
+            c.mode,
+            c.mode_ms,
+            c.copy_ms,
+            100.0 * c.fraction_of_copy
+        ));
+    }
+    if let Some(st) = &t.stereo {
+        s.push_str(&format!(
+            "stereo/mono frame rate {:.2} (mono {:.3} ms, stereo {:.3} ms)\n",
+            st.rate_ratio, st.mono_ms, st.stereo_ms
+        ));
+    }
+    s.push_str(&format!("wrote {}\n", t.files.join(", ")));
+    s
+}

@@ -1,0 +1,677 @@
+//! # modes: the four deformation modes on the CPU, their volume forms, and smooth vertex normals
+//!
+//! Every mode moves vertex `i` to `p_i + s·D_i·k·d_i + o` (the precomputed mode: `p_i + s·u_i + o`),
+//! where `D_i` is the elastostatic force at the node for the current orientation's applied force
+//! `f = w0 + w·(x̂, ŷ, ẑ)` ([`crate::orientation`]), `k·d_i` the baked direction scaled to one unit
+//! volume (EQUATIONS.md §2.4), `s` the scale that makes the enclosed volume the PV volume, and `o` the
+//! lung's rigid offset. The modes differ in how `D_i` is obtained (EQUATIONS.md §3):
+//!
+//! | mode | `D_i` | per vertex | orientation |
+//! |---|---|---|---|
+//! | precomputed | baked for the supine force | 3 MACs | fixed |
+//! | direct | eq. 7.1, `Σ_J f(J)·T(J, i)` over the stored rows | ≈ nnz/row MACs | any |
+//! | sh | eq. 7.7, `Σ_k F_k·T^i_k` with `F_k = α·Σ_a w_a·P_ak` | n² MACs | any |
+//! | basis | `Σ_a w_a·G_a(i)` (exact, EQUATIONS.md §3.3) | 4 MACs | any |
+//!
+//! The coefficients a frame carries ([`ipc_types::LungFrame::coeffs`]) are `w` for direct and basis,
+//! `F_k` for sh, none for precomputed. [`CpuLung`] is the CPU implementation of all four (the
+//! reference the GPU pass is tested against, and the evaluator of `lungdyn bench tradeoff`);
+//! [`VertexTriangles`] gives smooth vertex normals from the deformed positions (area-weighted
+//! face normals), as the GPU's normal pass does. [`VolumeForms`] make `s` exact for every
+//! orientation with 84 multiply-adds per tick instead of a pass over the triangles.
+
+use glam::DVec3;
+use rayon::prelude::*;
+use serde::{Deserialize, Serialize};
+
+use crate::deform::VolumeCubic;
+use crate::mesh::TriMesh;
+use crate::operator::Columns;
+
+/// Vertices per parallel chunk of the CPU passes.
+const CHUNK: usize = 8192;
+
+/// How the lungs deform (scene `[lungs] mode`, `lungdyn demo --mode`).
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Hash, Serialize, Deserialize)]
+#[serde(rename_all = "lowercase")]
+pub enum DeformMode {
+    /// `p + s·u`: one baked field, the supine orientation (3 MACs per vertex).
+    Precomputed,
+    /// Eq. 7.1 every frame over the stored transfer rows: the accuracy reference.
+    Direct,
+    /// Eq. 7.7 with the kernel's SH bands.
+    Sh,
+    /// The exact basis responses (4 MACs per vertex).
+    Basis,
+}
+
+impl DeformMode {
+    /// Every mode, cheapest-to-load first.
+    pub const ALL: [DeformMode; 4] = [
+        DeformMode::Precomputed,
+        DeformMode::Basis,
+        DeformMode::Sh,
+        DeformMode::Direct,
+    ];
+
+    /// The scene/CLI name.
+    pub fn name(self) -> &'static str {
+        match self {
+            DeformMode::Precomputed => "precomputed",
+            DeformMode::Direct => "direct",
+            DeformMode::Sh => "sh",
+            DeformMode::Basis => "basis",
+        }
+    }
+
+    /// Whether the deformation follows the patient's orientation.
+    pub fn follows_orientation(self) -> bool {
+        self != DeformMode::Precomputed
+    }
+
+    /// What a frame's coefficients hold in this mode ([`ipc_types::coeff_kind`]).
+    pub fn coeff_kind(self) -> u32 {
+        match self {
+            DeformMode::Precomputed => ipc_types::coeff_kind::NONE,
+            DeformMode::Direct | DeformMode::Basis => ipc_types::coeff_kind::FORCE_WEIGHTS,
+            DeformMode::Sh => ipc_types::coeff_kind::SH_FORCE,
+        }
+    }
+}
+
+impl std::fmt::Display for DeformMode {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        f.write_str(self.name())
+    }
+}
+
+impl std::str::FromStr for DeformMode {
+    type Err = String;
+    fn from_str(s: &str) -> Result<Self, String> {
+        DeformMode::ALL
+            .into_iter()
+            .find(|m| m.name() == s)
+            .ok_or_else(|| format!("unknown mode {s:?} (precomputed, direct, sh, basis)"))
+    }
+}
+
+/// The enclosed volume of `p + s·u(w)` with `u(w) = Σ_a w_a·U_a` as forms in the weights:
+/// `V = v0 + s·Σ_a w_a·L_a + s²·Σ_ab w_a w_b·Q_ab + s³·Σ_abc w_a w_b w_c·C_abc` (mm³), exact for a
+/// closed mesh (divergence theorem, the same triple products as [`VolumeCubic::of`]).
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct VolumeForms {
+    /// Volume of the undeformed mesh, mm³.
+    pub v0: f64,
+    /// Linear form.
+    pub l: [f64; 4],
+    /// Quadratic form (not symmetrised).
+    pub q: [[f64; 4]; 4],
+    /// Cubic form (not symmetrised).
+    pub c: [[[f64; 4]; 4]; 4],
+}
+
+impl VolumeForms {
+    /// Forms for the four fields `fields[a][i]` (one displacement per vertex each).
+    pub fn of(mesh: &TriMesh, fields: [&[DVec3]; 4]) -> Self {
+        let p = |i: u32| DVec3::from(mesh.positions[i as usize].map(|v| v as f64));
+        let mut out = Self {
+            v0: 0.0,
+            l: [0.0; 4],
+            q: [[0.0; 4]; 4],
+            c: [[[0.0; 4]; 4]; 4],
+        };
+        for t in &mesh.triangles {
+            let (ia, ib, ic) = (t[0] as usize, t[1] as usize, t[2] as usize);
+            let (a, b, c) = (p(t[0]), p(t[1]), p(t[2]));
+            out.v0 += a.dot(b.cross(c));
+            let u = |f: usize, i: usize| fields[f][i];
+            for x in 0..4 {
+                let (ua, ub, uc) = (u(x, ia), u(x, ib), u(x, ic));
+                out.l[x] += ua.dot(b.cross(c)) + a.dot(ub.cross(c)) + a.dot(b.cross(uc));
+                for y in 0..4 {
+                    let (vb, vc) = (u(y, ib), u(y, ic));
+                    out.q[x][y] += ua.dot(vb.cross(c)) + ua.dot(b.cross(vc)) + a.dot(ub.cross(vc));
+                    for z in 0..4 {
+                        out.c[x][y][z] += ua.dot(vb.cross(u(z, ic)));
+                    }
+                }
+            }
+        }
+        let sixth = |v: &mut f64| *v /= 6.0;
+        sixth(&mut out.v0);
+        out.l.iter_mut().for_each(sixth);
+        out.q.iter_mut().flatten().for_each(sixth);
+        out.c.iter_mut().flatten().flatten().for_each(sixth);
+        out
+    }
+
+    /// The volume cubic in `s` for weights `w`. No allocation.
+    #[inline]
+    pub fn cubic(&self, w: &[f64; 4]) -> VolumeCubic {
+        let mut v1 = 0.0;
+        let mut v2 = 0.0;
+        let mut v3 = 0.0;
+        for x in 0..4 {
+            v1 += w[x] * self.l[x];
+            for y in 0..4 {
+                let wxy = w[x] * w[y];
+                v2 += wxy * self.q[x][y];
+                for z in 0..4 {
+                    v3 += wxy * w[z] * self.c[x][y][z];
+                }
+            }
+        }
+        VolumeCubic {
+            coeffs: [self.v0, v1, v2, v3],
+        }
+    }
+
+    /// Every number finite.
+    pub fn is_finite(&self) -> bool {
+        self.v0.is_finite()
+            && self.l.iter().all(|v| v.is_finite())
+            && self.q.iter().flatten().all(|v| v.is_finite())
+            && self.c.iter().flatten().flatten().all(|v| v.is_finite())
+    }
+}
+
+/// Triangles incident to each vertex (compressed rows), for smooth normals.
+#[derive(Debug, Clone, PartialEq)]
+pub struct VertexTriangles {
+    /// Row offsets, `vertices + 1`.
+    pub ptr: Vec<u32>,
+    /// Incident triangle indices.
+    pub tris: Vec<u32>,
+}
+
+impl VertexTriangles {
+    /// The incidence of `triangles` over `n_vertices` vertices (indices must be in range).
+    pub fn of(triangles: &[[u32; 3]], n_vertices: usize) -> Self {
+        let mut ptr = vec![0u32; n_vertices + 1];
+        for t in triangles {
+            for &v in t {
+                ptr[v as usize + 1] += 1;
+            }
+        }
+        for i in 0..n_vertices {
+            ptr[i + 1] += ptr[i];
+        }
+        let mut fill: Vec<u32> = ptr[..n_vertices].to_vec();
+        let mut tris = vec![0u32; ptr[n_vertices] as usize];
+        for (k, t) in triangles.iter().enumerate() {
+            for &v in t {
+                tris[fill[v as usize] as usize] = k as u32;
+                fill[v as usize] += 1;
+            }
+        }
+        Self { ptr, tris }
+    }
+
+    /// Smooth unit normals of the surface at `positions`: the normalised sum of the incident
+    /// triangles' area vectors `(b − a) × (c − a)` (f32, as on the GPU). A vertex whose sum vanishes
+    /// gets the zero vector (the fragment shader then shades it flat). Parallel, no allocation.
+    pub fn normals_into(
+        &self,
+        triangles: &[[u32; 3]],
+        positions: &[[f32; 3]],
+        out: &mut [[f32; 3]],
+    ) {
+        out.par_chunks_mut(CHUNK)
+            .enumerate()
+            .for_each(|(c, chunk)| {
+                for (k, o) in chunk.iter_mut().enumerate() {
+                    let i = c * CHUNK + k;
+                    *o = vertex_normal(
+                        &self.tris[self.ptr[i] as usize..self.ptr[i + 1] as usize],
+                        triangles,
+                        positions,
+                    );
+                }
+            });
+    }
+}
+
+/// The GPU's normal formula, in f32 (see [`VertexTriangles::normals_into`]).
+#[inline]
+pub fn vertex_normal(incident: &[u32], triangles: &[[u32; 3]], positions: &[[f32; 3]]) -> [f32; 3] {
+    let mut n = glam::Vec3::ZERO;
+    for &t in incident {
+        let [a, b, c] = triangles[t as usize].map(|v| glam::Vec3::from(positions[v as usize]));
+        n += (b - a).cross(c - a);
+    }
+    let len = n.length();
+    if len > 1e-30 && len.is_finite() {
+        (n / len).to_array()
+    } else {
+        [0.0; 3]
+    }
+}
+
+/// What one mode needs per vertex beyond positions and directions.
+#[derive(Debug, Clone)]
+pub enum ModeData {
+    /// The baked unit displacement `u_i`.
+    Precomputed {
+        /// `u_i`, mm per unit scale.
+        unit: Vec<[f32; 3]>,
+    },
+    /// The basis responses `(G_0, G_x, G_y, G_z)` per vertex.
+    Basis {
+        /// Responses.
+        g: Vec<[f32; 4]>,
+    },
+    /// The SH transfer coefficients, `n²` per vertex.
+    Sh {
+        /// Coefficients per vertex.
+        n_coeffs: usize,
+        /// `T^i_k`, row-major.
+        t: Vec<f32>,
+    },
+    /// The transfer rows as columns (eq. 7.1 gathers) and each node's `(1, x̂, ŷ, ẑ)`.
+    Direct {
+        /// `Tᵀ`.
+        columns: Columns,
+        /// `(1, x̂, ŷ, ẑ)` per node.
+        nhat: Vec<[f32; 4]>,
+        /// Scratch: the applied force per node.
+        force: Vec<f32>,
+        /// Scratch: the elastostatic force per node.
+        elastostatic: Vec<f32>,
+    },
+}
+
+impl ModeData {
+    /// The mode this data serves.
+    pub fn mode(&self) -> DeformMode {
+        match self {
+            ModeData::Precomputed { .. } => DeformMode::Precomputed,
+            ModeData::Basis { .. } => DeformMode::Basis,
+            ModeData::Sh { .. } => DeformMode::Sh,
+            ModeData::Direct { .. } => DeformMode::Direct,
+        }
+    }
+}
+
+/// One lung deformed on the CPU in any mode: the test reference of the GPU pass and the evaluator
+/// of the trade study. Per frame it allocates nothing.
+#[derive(Debug, Clone)]
+pub struct CpuLung {
+    /// FRC positions, mm.
+    pub positions: Vec<[f32; 3]>,
+    /// Triangles.
+    pub triangles: Vec<[u32; 3]>,
+    /// `k·d_i`: the direction scaled to one unit volume per unit of force (unused by precomputed).
+    pub scaled_directions: Vec<[f32; 3]>,
+    /// The mode's data.
+    pub data: ModeData,
+    /// Incident triangles, for normals.
+    pub incidence: VertexTriangles,
+}
+
+/// The frame's coefficients do not fit the mode.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, thiserror::Error)]
+#[error("{mode} mode needs {expected} coefficients, the frame has {found}")]
+pub struct CoeffError {
+    /// Mode.
+    pub mode: DeformMode,
+    /// Coefficients needed.
+    pub expected: usize,
+    /// Coefficients given.
+    pub found: usize,
+}
+
+/// Why a kernel cannot be deformed in a mode.
+#[derive(Debug, thiserror::Error)]
+pub enum ModeLoadError {
+    /// A section could not be read or failed verification.
+    #[error(transparent)]
+    Kernel(#[from] crate::kernel::KernelError),
+    /// The kernel lacks the mode's data.
+    #[error(
+        "{path}: the kernel has no {what} for the {mode} mode (bake it again with this lungdyn)"
+    )]
+    Missing {
+        /// Kernel.
+        path: String,
+        /// Mode.
+        mode: DeformMode,
+        /// What is missing.
+        what: &'static str,
+    },
+}
+
+impl CpuLung {
+    /// The lung of `kernel` in `mode`, reading only the sections the mode needs.
+    pub fn from_kernel(
+        kernel: &crate::kernel::KernelFile,
+        mode: DeformMode,
+    ) -> Result<Self, ModeLoadError> {
+        let missing = |what| ModeLoadError::Missing {
+            path: kernel.path().display().to_string(),
+            mode,
+            what,
+        };
+        let mesh = kernel.mesh();
+        let k = kernel.meta().force_scale as f32;
+        let scaled_directions = kernel
+            .directions()
+            .iter()
+            .map(|d| d.map(|v| v * k))
+            .collect();
+        let data = match mode {
+            DeformMode::Precomputed => ModeData::Precomputed {
+                unit: kernel.unit_displacement().to_vec(),
+            },
+            DeformMode::Basis => ModeData::Basis {
+                g: kernel
+                    .basis_responses()?
+                    .ok_or_else(|| missing("basis responses"))?
+                    .to_vec(),
+            },
+            DeformMode::Sh => {
+                let bands = kernel
+                    .meta()
+                    .sh
+                    .as_ref()
+                    .ok_or_else(|| missing("spherical harmonics"))?
+                    .bands as usize;
+                ModeData::Sh {
+                    n_coeffs: bands * bands,
+                    t: kernel
+                        .sh_coefficients()?
+                        .ok_or_else(|| missing("spherical harmonics"))?
+                        .to_vec(),
+                }
+            }
+            DeformMode::Direct => {
+                let columns = kernel.transfer()?.transposed();
+                let n = mesh.positions.len();
+                ModeData::Direct {
+                    columns,
+                    nhat: box_coordinates(&mesh, kernel.meta().side),
+                    force: vec![0.0; n],
+                    elastostatic: vec![0.0; n],
+                }
+            }
+        };
+        Ok(Self::new(mesh, scaled_directions, data))
+    }
+
+    /// A lung from its FRC mesh, `k·d_i` and the mode's data.
+    pub fn new(mesh: TriMesh, scaled_directions: Vec<[f32; 3]>, data: ModeData) -> Self {
+        let incidence = VertexTriangles::of(&mesh.triangles, mesh.positions.len());
+        Self {
+            positions: mesh.positions,
+            triangles: mesh.triangles,
+            scaled_directions,
+            data,
+            incidence,
+        }
+    }
+
+    /// Vertices.
+    pub fn len(&self) -> usize {
+        self.positions.len()
+    }
+
+    /// No vertices.
+    pub fn is_empty(&self) -> bool {
+        self.positions.is_empty()
+    }
+
+    /// Coefficients a frame must carry for this mode.
+    pub fn coeff_count(&self) -> usize {
+        match &self.data {
+            ModeData::Precomputed { .. } => 0,
+            ModeData::Basis { .. } | ModeData::Direct { .. } => 4,
+            ModeData::Sh { n_coeffs, .. } => *n_coeffs,
+        }
+    }
+
+    /// Deformed positions for scale `s`, coefficients `coeffs` (weights or SH force coefficients, as
+    /// [`DeformMode::coeff_kind`]) and rigid offset, into `out` (one per vertex). f32 throughout, as
+    /// the GPU; parallel over vertices.
+    pub fn deform_into(
+        &mut self,
+        s: f32,
+        coeffs: &[f32],
+        offset: [f32; 3],
+        out: &mut [[f32; 3]],
+    ) -> Result<(), CoeffError> {
+        let need = self.coeff_count();
+        if coeffs.len() != need {
+            return Err(CoeffError {
+                mode: self.data.mode(),
+                expected: need,
+                found: coeffs.len(),
+            });
+        }
+        let p = &self.positions;
+        let kd = &self.scaled_directions;
+        match &mut self.data {
+            ModeData::Precomputed { unit } => {
+                out.par_chunks_mut(CHUNK)
+                    .zip(p.par_chunks(CHUNK))
+                    .zip(unit.par_chunks(CHUNK))
+                    .for_each(|((out, p), u)| {
+                        for ((o, p), u) in out.iter_mut().zip(p).zip(u) {
+                            *o = moved(p, s, u, &offset);
+                        }
+                    });
+            }
+            ModeData::Basis { g } => {
+                let w = [coeffs[0], coeffs[1], coeffs[2], coeffs[3]];
+                out.par_chunks_mut(CHUNK)
+                    .zip(p.par_chunks(CHUNK))
+                    .zip(g.par_chunks(CHUNK))
+                    .zip(kd.par_chunks(CHUNK))
+                    .for_each(|(((out, p), g), kd)| {
+                        for (((o, p), g), kd) in out.iter_mut().zip(p).zip(g).zip(kd) {
+                            let d = w[0] * g[0] + w[1] * g[1] + w[2] * g[2] + w[3] * g[3];
+                            *o = moved(p, s * d, kd, &offset);
+                        }
+                    });
+            }
+            ModeData::Sh { n_coeffs, t } => {
+                let n = *n_coeffs;
+                match n {
+                    1 => sh_pass::<1>(p, kd, t, coeffs, s, &offset, out),
+                    4 => sh_pass::<4>(p, kd, t, coeffs, s, &offset, out),
+                    9 => sh_pass::<9>(p, kd, t, coeffs, s, &offset, out),
+                    16 => sh_pass::<16>(p, kd, t, coeffs, s, &offset, out),
+                    25 => sh_pass::<25>(p, kd, t, coeffs, s, &offset, out),
+                    36 => sh_pass::<36>(p, kd, t, coeffs, s, &offset, out),
+                    49 => sh_pass::<49>(p, kd, t, coeffs, s, &offset, out),
+                    64 => sh_pass::<64>(p, kd, t, coeffs, s, &offset, out),
+                    _ => out
+                        .par_chunks_mut(CHUNK)
+                        .zip(p.par_chunks(CHUNK))
+                        .zip(t.par_chunks(CHUNK * n))
+                        .zip(kd.par_chunks(CHUNK))
+                        .for_each(|(((out, p), t), kd)| {
+                            for (((o, p), row), kd) in
+                                out.iter_mut().zip(p).zip(t.chunks_exact(n)).zip(kd)
+                            {
+                                let d: f32 = row.iter().zip(coeffs).map(|(a, b)| a * b).sum();
+                                *o = moved(p, s * d, kd, &offset);
+                            }
+                        }),
+                }
+            }
+            ModeData::Direct {
+                columns,
+                nhat,
+                force,
+                elastostatic,
+            } => {
+                let w = [coeffs[0], coeffs[1], coeffs[2], coeffs[3]];
+                force
+                    .par_chunks_mut(CHUNK)
+                    .zip(nhat.par_chunks(CHUNK))
+                    .for_each(|(f, n)| {
+                        for (f, n) in f.iter_mut().zip(n) {
+                            *f = w[0] * n[0] + w[1] * n[1] + w[2] * n[2] + w[3] * n[3];
+                        }
+                    });
+                columns.apply_into(force, elastostatic);
+                out.par_chunks_mut(CHUNK)
+                    .zip(p.par_chunks(CHUNK))
+                    .zip(elastostatic.par_chunks(CHUNK))
+                    .zip(kd.par_chunks(CHUNK))
+                    .for_each(|(((out, p), e), kd)| {
+                        for (((o, p), e), kd) in out.iter_mut().zip(p).zip(e).zip(kd) {
+                            *o = moved(p, s * e, kd, &offset);
+                        }
+                    });
+            }
+        }
+        Ok(())
+    }
+
+    /// Smooth vertex normals of `deformed` (this lung's deformed positions).
+    pub fn normals_into(&self, deformed: &[[f32; 3]], out: &mut [[f32; 3]]) {
+        self.incidence.normals_into(&self.triangles, deformed, out);
+    }
+}
+
+/// `p + amount·dir + offset`, the one multiply-add per coordinate every mode ends with.
+#[inline(always)]
+fn moved(p: &[f32; 3], amount: f32, dir: &[f32; 3], offset: &[f32; 3]) -> [f32; 3] {
+    [
+        p[0] + amount * dir[0] + offset[0],
+        p[1] + amount * dir[1] + offset[1],
+        p[2] + amount * dir[2] + offset[2],
+    ]
+}
+
+/// Eq. 7.7 for `N` coefficients per vertex: a fixed-length dot product with four partial sums
+/// (so the compiler can keep them in vector registers), then the move.
+fn sh_pass<const N: usize>(
+    p: &[[f32; 3]],
+    kd: &[[f32; 3]],
+    t: &[f32],
+    coeffs: &[f32],
+    s: f32,
+    offset: &[f32; 3],
+    out: &mut [[f32; 3]],
+) {
+    let c: &[f32; N] = coeffs.try_into().expect("N coefficients");
+    out.par_chunks_mut(CHUNK)
+        .zip(p.par_chunks(CHUNK))
+        .zip(t.par_chunks(CHUNK * N))
+        .zip(kd.par_chunks(CHUNK))
+        .for_each(|(((out, p), t), kd)| {
+            for (((o, p), row), kd) in out.iter_mut().zip(p).zip(t.chunks_exact(N)).zip(kd) {
+                let row: &[f32; N] = row.try_into().expect("N per vertex");
+                let mut acc = [0.0f32; 4];
+                for k in 0..N {
+                    acc[k % 4] += row[k] * c[k];
+                }
+                let d = (acc[0] + acc[1]) + (acc[2] + acc[3]);
+                *o = moved(p, s * d, kd, offset);
+            }
+        });
+}
+
+/// `(1, x̂, ŷ, ẑ)` of every vertex (the box coordinates of eq. 6.14–6.18 in the mesh's own box).
+pub fn box_coordinates(mesh: &TriMesh, side: crate::mesh::Side) -> Vec<[f32; 4]> {
+    let bb = mesh.aabb();
+    mesh.positions
+        .iter()
+        .map(|&p| {
+            let n = super::normalised_position(p, &bb, side);
+            [1.0, n.x as f32, n.y as f32, n.z as f32]
+        })
+        .collect()
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::mesh::{generate, Side};
+
+    #[test]
+    fn forms_reproduce_the_cubic_of_the_combined_field() {
+        let mesh = generate::lung(Side::Left, 800).unwrap();
+        let n = mesh.positions.len();
+        let fields: Vec<Vec<DVec3>> = (0..4)
+            .map(|a| {
+                mesh.positions
+                    .iter()
+                    .enumerate()
+                    .map(|(i, p)| {
+                        DVec3::new(
+                            (p[0] as f64 * 0.01 + a as f64).sin(),
+                            (i as f64 * 0.37 + a as f64).cos(),
+                            0.3 * a as f64 - 0.5,
+                        )
+                    })
+                    .collect()
+            })
+            .collect();
+        let forms = VolumeForms::of(&mesh, [&fields[0], &fields[1], &fields[2], &fields[3]]);
+        for w in [
+            [0.0, 0.01, 0.95, 0.07],
+            [0.3, -0.2, 0.1, 0.9],
+            [1.0, 0.0, 0.0, 0.0],
+        ] {
+            let u: Vec<DVec3> = (0..n)
+                .map(|i| (0..4).map(|a| fields[a][i] * w[a]).sum())
+                .collect();
+            let direct = VolumeCubic::of(&mesh, &u);
+            let via = forms.cubic(&w);
+            for k in 0..4 {
+                let scale = direct.coeffs[k].abs().max(1.0);
+                assert!(
+                    (direct.coeffs[k] - via.coeffs[k]).abs() < 1e-9 * scale,
+                    "w {w:?} k {k}: {} vs {}",
+                    direct.coeffs[k],
+                    via.coeffs[k]
+                );
+            }
+        }
+    }
+
+    #[test]
+    fn normals_of_a_sphere_point_outwards() {
+        let mesh = generate::lung(Side::Right, 2000).unwrap();
+        let inc = VertexTriangles::of(&mesh.triangles, mesh.positions.len());
+        let mut n = vec![[0.0; 3]; mesh.positions.len()];
+        inc.normals_into(&mesh.triangles, &mesh.positions, &mut n);
+        let centroid = mesh
+            .positions
+            .iter()
+            .fold(glam::Vec3::ZERO, |a, p| a + glam::Vec3::from(*p))
+            / mesh.positions.len() as f32;
+        let outward = n
+            .iter()
+            .zip(&mesh.positions)
+            .filter(|(n, p)| glam::Vec3::from(**n).dot(glam::Vec3::from(**p) - centroid) > 0.0)
+            .count();
+        assert!(
+            outward as f64 > 0.9 * n.len() as f64,
+            "{outward} of {}",
+            n.len()
+        );
+        assert!(n.iter().all(|v| {
+            let l = glam::Vec3::from(*v).length();
+            (l - 1.0).abs() < 1e-5
+        }));
+        // A degenerate (zero-area) neighbourhood gives zero, never NaN.
+        let flat = vec![[0.0f32; 3]; mesh.positions.len()];
+        inc.normals_into(&mesh.triangles, &flat, &mut n);
+        assert!(n.iter().all(|v| *v == [0.0; 3]));
+    }
+
+    #[test]
+    fn modes_parse_and_name_round_trip() {
+        for m in DeformMode::ALL {
+            assert_eq!(m.name().parse::<DeformMode>().unwrap(), m);
+        }
+        assert!("fast"
+            .parse::<DeformMode>()
+            .unwrap_err()
+            .contains("precomputed"));
+    }
+}

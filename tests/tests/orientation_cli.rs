@@ -1,0 +1,157 @@
+//! The orientation-following modes from the command line: `bake --bands/--max-error-mm` and what
+//! it reports, the error-budget scene, and `lungdyn demo --mode` in every mode with the synthetic
+//! patient turning.
+
+use lungdyn_tests::{assert_clean_failure, lungdyn};
+
+fn temp(tag: &str) -> std::path::PathBuf {
+    let dir = std::env::temp_dir().join(format!("lungdyn-orient-{tag}-{}", std::process::id()));
+    std::fs::create_dir_all(&dir).unwrap();
+    dir
+}
+
+fn generated_mesh(dir: &std::path::Path) -> String {
+    let mesh = dir.join("left.obj");
+    let (ok, _, err) = lungdyn(&[
+        "mesh",
+        "generate",
+        "--lung",
+        "left",
+        "--vertices",
+        "1500",
+        "--out",
+        mesh.to_str().unwrap(),
+    ]);
+    assert!(ok, "{err}");
+    mesh.display().to_string()
+}
+
+#[test]
+fn bake_reports_the_sh_and_basis_errors_and_honours_bands_and_budgets() {
+    let dir = temp("bake");
+    let mesh = generated_mesh(&dir);
+    let out = dir.join("l.kernel");
+    let bake = |extra: &[&str]| {
+        let mut args = vec!["bake", "--mesh", &mesh, "--lung", "left", "--json", "--out"];
+        args.push(out.to_str().unwrap());
+        args.extend_from_slice(extra);
+        let (ok, stdout, err) = lungdyn(&args);
+        assert!(ok, "{extra:?}: {err}");
+        let v: serde_json::Value = serde_json::from_str(stdout.trim()).unwrap();
+        (v, err)
+    };
+    let (v, _) = bake(&["--bands", "4"]);
+    assert_eq!(v["sh_bands"], 4);
+    let alpha = v["alpha"].as_f64().unwrap();
+    assert!((0.8..1.25).contains(&alpha), "alpha {alpha}");
+    let pct = v["sh_rms_percent"].as_f64().unwrap();
+    let rms = v["sh_rms_mm"].as_f64().unwrap();
+    assert!(pct > 0.0 && pct < 20.0 && rms > 0.0, "{v}");
+    assert!(v["foldover_nodes"].as_u64().is_some());
+    let basis = v["basis_max_error_mm"].as_f64().unwrap();
+    assert!(basis < 1e-3, "the basis mode is exact to round-off: {basis} mm");
+    assert_eq!(v["orientations"], 26);
+    // No bands: no SH section, the basis is still there.
+    let (v, _) = bake(&["--bands", "0"]);
+    assert_eq!(v["sh_bands"], 0);
+    assert!(v["alpha"].is_null());
+    // A budget: the fewest bands that meet it, or a warning naming the basis mode.
+    let (v, err) = bake(&["--max-error-mm", "2.5"]);
+    let n = v["sh_bands"].as_u64().unwrap();
+    assert!((1..=8).contains(&n));
+    if v["sh_budget_met"] == true {
+        assert!(v["sh_rms_mm"].as_f64().unwrap() <= 2.5);
+    } else {
+        assert!(err.contains("basis"), "{err}");
+    }
+    let (v1, _) = bake(&["--max-error-mm", "40"]);
+    assert_eq!(v1["sh_bands"], 1, "a loose budget keeps one band: {v1}");
+    assert_clean_failure(
+        &["bake", "--mesh", &mesh, "--lung", "left", "--bands", "16", "--out", out.to_str().unwrap()],
+        "0 (none) to 8",
+    );
+    assert_clean_failure(
+        &["bake", "--mesh", &mesh, "--lung", "left", "--max-error-mm=-1", "--out", out.to_str().unwrap()],
+        "--max-error-mm",
+    );
+    std::fs::remove_dir_all(&dir).ok();
+}
+
+#[test]
+fn the_error_budget_scene_picks_bands_or_the_exact_basis_and_says_which() {
+    let dir = temp("budget");
+    let scene = dir.join("budget.toml");
+    // The shipped scene, at a test-sized lung.
+    let shipped = std::fs::read_to_string(
+        std::path::Path::new(env!("CARGO_MANIFEST_DIR")).join("../scenes/error_budget.toml"),
+    )
+    .unwrap();
+    std::fs::write(&scene, shipped.replace("[lungs]\n", "[lungs]\nvertices = 1500\n")).unwrap();
+    let (ok, stdout, err) = lungdyn(&[
+        "scene",
+        "prepare",
+        scene.to_str().unwrap(),
+        "--out",
+        dir.to_str().unwrap(),
+        "--json",
+    ]);
+    assert!(ok, "{err}");
+    let v: serde_json::Value = serde_json::from_str(stdout.trim()).unwrap();
+    let resolved = std::fs::read_to_string(v["scene"].as_str().unwrap()).unwrap();
+    for k in v["kernels"].as_array().unwrap() {
+        let rms = k["sh_rms_mm"].as_f64().unwrap();
+        let bands = k["sh_bands"].as_u64().unwrap();
+        assert!((1..=8).contains(&bands));
+        if rms > 1.0 {
+            // Not met: the resolved scene runs the exact basis, and the launcher said so.
+            assert!(resolved.contains("mode = \"basis\""), "{resolved}");
+            assert!(err.contains("cannot meet"), "{err}");
+        }
+    }
+    if !err.contains("cannot meet") {
+        assert!(resolved.contains("mode = \"sh\""), "{resolved}");
+    }
+    std::fs::remove_dir_all(&dir).ok();
+}
+
+#[test]
+fn every_mode_runs_in_the_demo_with_the_patient_turning() {
+    if renderer::gpu::Gpu::for_tests().is_none() {
+        return;
+    }
+    let dir = temp("demo");
+    let scene = dir.join("small.toml");
+    std::fs::write(&scene, "[lungs]\nvertices = 1500\n[render]\nwidth = 160\nheight = 120\n").unwrap();
+    for mode in ["precomputed", "basis", "sh", "direct"] {
+        let out = dir.join(mode);
+        let (ok, stdout, err) = lungdyn(&[
+            "demo",
+            "--seconds",
+            "2",
+            "--snapshots",
+            "0",
+            "--json",
+            "--mode",
+            mode,
+            "--roll-deg",
+            "90",
+            "--sweep-period-s",
+            "2",
+            "--out",
+            out.to_str().unwrap(),
+            "--scene",
+            scene.to_str().unwrap(),
+        ]);
+        assert!(ok, "{mode}: {err}");
+        let v: serde_json::Value = serde_json::from_str(stdout.trim()).unwrap();
+        lungdyn_tests::assert_demo_report_is_consistent(&v, &err);
+        assert_eq!(v["mode"], mode, "{v}");
+        assert!(!err.contains("drawing that lung at rest"), "{mode}: {err}");
+        if mode == "precomputed" {
+            assert!(err.contains("supine breath whatever"), "the note about a fixed mode: {err}");
+        }
+    }
+    assert_clean_failure(&["demo", "--mode", "fast"], "unknown mode");
+    assert_clean_failure(&["demo", "--roll-deg", "270"], "--roll-deg");
+    std::fs::remove_dir_all(&dir).ok();
+}
