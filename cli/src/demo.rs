@@ -52,6 +52,10 @@ pub struct DemoArgs {
     /// Seconds to wait for the first frame before giving up.
     #[arg(long, default_value_t = 60.0)]
     pub startup_timeout: f64,
+    /// Tracker source for the bridge (its --source): synthetic, igtl-client:HOST[:PORT],
+    /// igtl-server[:BIND[:PORT]], ndi-serial:DEVICE, ndi-tcp:HOST[:PORT], replay:FILE.
+    #[arg(long, default_value = "synthetic", value_name = "URI")]
+    pub tracker: String,
     /// Deformation mode (overrides the scene's [lungs] mode): "precomputed" (one baked field,
     /// supine only, 3 MACs per vertex), "basis" (exact for any orientation, 4 MACs), "sh" (eq. 7.7
     /// with the scene's bands), "direct" (eq. 7.1 every frame, the accuracy reference).
@@ -317,6 +321,7 @@ pub fn run(args: &DemoArgs) -> anyhow::Result<DemoReport> {
              under xvfb-run, or without --window (headless)"
         );
     }
+    tracker_bridge::source::SourceSpec::parse(&args.tracker)?;
     let ok_deg = |v: f32| v.is_finite() && (0.0..=180.0).contains(&v);
     if !(ok_deg(args.roll_deg) && ok_deg(args.pitch_deg)) {
         bail!(
@@ -431,7 +436,13 @@ pub fn run(args: &DemoArgs) -> anyhow::Result<DemoReport> {
     children.procs.push(Children::spawn(
         &exe,
         "tracker-bridge",
-        &[common.clone(), cpu(0), sweep].concat(),
+        &[
+            common.clone(),
+            cpu(0),
+            sweep,
+            vec!["--source".to_string(), args.tracker.clone()],
+        ]
+        .concat(),
     )?);
 
     let mut stats = LatencyStats::new();

@@ -16,6 +16,8 @@ pub mod outputs;
 pub mod plot;
 pub mod prepare;
 pub mod pv_cmd;
+pub mod register_cmd;
 pub mod stats;
 pub mod strip;
+pub mod tracker_cmd;
 pub mod tradeoff;

@@ -39,6 +39,15 @@ enum Command {
     /// Scenes: give every lung a kernel so the processes can be started on their own.
     #[command(subcommand)]
     Scene(SceneCommand),
+    /// Trackers: listen to a source, simulate head motion, evaluate pose prediction.
+    #[command(subcommand)]
+    Tracker(TrackerCommand),
+    /// Register the lungs' model frame onto the patient reference from fiducials (Horn/Umeyama) and
+    /// write the calibration file; reports each fiducial's registration error.
+    Register(lungdyn::register_cmd::RegisterArgs),
+    /// HMD optics files.
+    #[command(subcommand)]
+    Hmd(HmdCommand),
     /// Measurements: the deformation modes' speed/accuracy trade.
     #[command(subcommand)]
     Bench(BenchCommand),
@@ -65,6 +74,23 @@ enum SceneCommand {
     /// settings are unchanged) and write OUT/kernels/scene.resolved.toml, the scene to start the
     /// engine and renderer with (`--scene`). The engine and the renderer never bake.
     Prepare(lungdyn::prepare::PrepareArgs),
+}
+
+#[derive(Subcommand)]
+enum TrackerCommand {
+    /// Read a tracker source through the bridge's validation without publishing: each tool's rate,
+    /// latest pose and flags, rejections by reason, link events (for wiring a tracker).
+    Listen(lungdyn::tracker_cmd::ListenArgs),
+    /// Write a recording of realistic head motion at the bedside (for evaluating prediction).
+    Simulate(lungdyn::tracker_cmd::SimulateArgs),
+    /// Pose error at display time with and without prediction on a recording (mm, degrees).
+    Predict(lungdyn::tracker_cmd::PredictArgs),
+}
+
+#[derive(Subcommand)]
+enum HmdCommand {
+    /// Load and check an HMD optics file (IPD, eye offsets, fields of view) and show the eyes.
+    Check(lungdyn::register_cmd::HmdArgs),
 }
 
 #[derive(Subcommand)]
@@ -194,6 +220,47 @@ fn main() -> std::process::ExitCode {
             Ok(())
         }),
         Command::Pv(cmd) => lungdyn::pv_cmd::run(&cmd),
+        Command::Tracker(TrackerCommand::Listen(args)) => lungdyn::tracker_cmd::listen(&args).and_then(|v| {
+            if args.json {
+                println!("{}", serde_json::to_string(&v)?);
+            }
+            Ok(())
+        }),
+        Command::Tracker(TrackerCommand::Simulate(args)) => lungdyn::tracker_cmd::simulate(&args).and_then(|v| {
+            if args.json {
+                println!("{}", serde_json::to_string(&v)?);
+            } else {
+                println!(
+                    "wrote {}: {} samples per tool, {} s of head motion at {} Hz (seed {})",
+                    v["recording"].as_str().unwrap_or(""), v["samples_per_tool"], v["seconds"], v["rate_hz"], v["seed"]
+                );
+            }
+            Ok(())
+        }),
+        Command::Tracker(TrackerCommand::Predict(args)) => lungdyn::tracker_cmd::predict(&args).and_then(|v| {
+            if args.json {
+                println!("{}", serde_json::to_string(&v)?);
+            } else {
+                print!("{}", lungdyn::tracker_cmd::predict_text(&v));
+            }
+            Ok(())
+        }),
+        Command::Register(args) => lungdyn::register_cmd::run(&args).and_then(|v| {
+            if args.json {
+                println!("{}", serde_json::to_string(&v)?);
+            } else {
+                print!("{}", lungdyn::register_cmd::text(&v));
+            }
+            Ok(())
+        }),
+        Command::Hmd(HmdCommand::Check(args)) => lungdyn::register_cmd::hmd(&args).and_then(|v| {
+            if args.json {
+                println!("{}", serde_json::to_string(&v)?);
+            } else {
+                print!("{}", lungdyn::register_cmd::hmd_text(&v));
+            }
+            Ok(())
+        }),
         Command::TrackerBridge(args) => tracker_bridge::run(&args).map_err(Into::into),
         Command::Engine(args) => engine::runtime::run(&args).map_err(Into::into),
         Command::Renderer(args) => renderer::process::run(&args).map_err(Into::into),

@@ -151,6 +151,12 @@ impl Pose {
 }
 
 /// Status bits of a [`ToolPose`].
+///
+/// [`VALID`](tool_status::VALID) is the only bit a consumer needs: the bridge clears it whenever
+/// any other bit but `PARTIALLY_VISIBLE`, `FRAME_GAP` or `FRAME_REPEAT` is set, and then the pose
+/// is the tool's last good one (identity before any), never the rejected sample, so no NaN or
+/// non-rotation crosses the process boundary. The other bits say why. Bits 5..10 were added
+/// without a layout change (the field and its meaning as a bit set are unchanged).
 pub mod tool_status {
     /// The pose is valid and may be used.
     pub const VALID: u32 = 1 << 0;
@@ -162,6 +168,22 @@ pub mod tool_status {
     pub const NON_FINITE: u32 = 1 << 3;
     /// Only some of the tool's markers were seen (pose less accurate).
     pub const PARTIALLY_VISIBLE: u32 = 1 << 4;
+    /// The rotation was not one: a quaternion whose norm is off 1 by more than the bridge's
+    /// tolerance, a matrix that is not orthonormal with determinant +1, or no orientation at all.
+    pub const NOT_ROTATION: u32 = 1 << 5;
+    /// The tracker's RMS marker-fit error was above the bridge's threshold.
+    pub const HIGH_RMS: u32 = 1 << 6;
+    /// The device's frame counter skipped frames since the previous published frame (samples lost
+    /// on the way); the pose itself may be good.
+    pub const FRAME_GAP: u32 = 1 << 7;
+    /// The device's frame counter (or timestamp) repeated or went backwards: no new measurement.
+    pub const FRAME_REPEAT: u32 = 1 << 8;
+    /// No new sample for longer than the bridge's staleness bound: the pose is the last good one,
+    /// not valid any more.
+    pub const STALE: u32 = 1 << 9;
+    /// The tracker reported a fault for the tool (broken sensor, hardware failure, processing
+    /// exception).
+    pub const DEVICE_FAULT: u32 = 1 << 10;
 }
 
 /// One tool's pose in a tracker sample.

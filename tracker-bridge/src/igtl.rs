@@ -1728,6 +1728,11 @@ impl Decoder {
     pub fn is_failed(&self) -> bool {
         self.failed
     }
+
+    /// Bytes held for a message not yet complete (a link that closes now cut a message short).
+    pub fn buffered_len(&self) -> usize {
+        self.buf.len()
+    }
 }
 
 impl Iterator for Decoder {

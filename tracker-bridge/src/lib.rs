@@ -1,27 +1,85 @@
 //! # tracker-bridge: tracker samples in, validated and stamped tracker frames out at 60 Hz
 //!
-//! Sources: [`synthetic`] for now (NDI combined API, OpenIGTLink and recorded sessions are later
-//! work). The loop is paced by an absolute deadline (`next += period; sleep_until(next)`), so the
-//! rate never drifts; a late wake-up skips missed slots instead of bursting.
+//! The stages, in the order a sample passes them:
+//!
+//! * [`source`] — where samples come from, one module per source behind the [`source::Source`]
+//!   trait, chosen by `--source` (synthetic, OpenIGTLink client or server, NDI over a serial port
+//!   or TCP, a replayed recording); the wire codecs are [`igtl`] and [`ndi`];
+//! * [`sample`] — what a source hands over: fixed-size samples and link events;
+//! * [`validate`] — every sample checked (finite, a rotation, inside the tracking volume, RMS,
+//!   what the device said);
+//! * [`assemble`] — samples mapped to tool slots by name, frame-number gaps and repeats, staleness,
+//!   one [`TrackerFrame`] per tick;
+//! * [`record`] — `--record FILE`: every sample with its receive time, replayable bit for bit;
+//! * [`run`] — the shared loop on an absolute-deadline schedule;
+//! * [`stats`] — counters printed at exit and written as JSON.
+//!
+//! Nothing downstream of the bridge ever sees a rejected sample's numbers: a tool is `VALID` with
+//! its newest good pose, or not valid with its last good pose and the reasons as
+//! [`ipc_types::tool_status`] bits.
 
+pub mod assemble;
+pub mod head_motion;
+pub mod igtl;
+pub mod ndi;
+pub mod ndi_sim;
+pub mod record;
+pub mod run;
+pub mod sample;
+pub mod source;
+pub mod stats;
 pub mod synthetic;
+pub mod validate;
 
-use ipc_types::{tool_status, TrackerFrame};
+use std::path::PathBuf;
+
+use ipc_types::{TrackerFrame, MAX_TOOLS};
 use thiserror::Error;
-use transport::clock::{now_ns, sleep_until_ns};
 use transport::process::{pin_to_core, run_ns, ArgError, PinError};
-use transport::{iox, Instance, PortError, Publish};
+use transport::{iox, Instance, PortError};
 
-/// Command-line options of the `tracker-bridge` process.
+use crate::assemble::{BridgeConfig, ConfigError};
+use crate::record::{RecordError, RecordWriter};
+use crate::run::{run_loop, Ended, RealTime, Reporter};
+use crate::sample::{NameError, ToolName};
+use crate::source::{Source, SourceError, SourceOptions, SourceSpec};
+use crate::validate::{Validation, Volume};
+
+/// Options that choose and shape the source, shared by the bridge and `lungdyn tracker listen`.
 #[derive(Debug, Clone, clap::Args)]
-pub struct BridgeArgs {
-    /// Instance name shared by the three processes of one run.
-    #[arg(long, default_value = "default")]
-    pub instance: String,
-    /// Sample rate, Hz.
+pub struct SourceArgs {
+    /// Tracker source: synthetic, igtl-client:HOST[:PORT], igtl-server[:BIND[:PORT]] (default
+    /// 0.0.0.0:18944), ndi-serial:DEVICE, ndi-tcp:HOST[:PORT] (default port 8765), replay:FILE.
+    #[arg(long, default_value = "synthetic", value_name = "URI")]
+    pub source: String,
+    /// The patient reference tool's name at the source (slot 0): an OpenIGTLink device or tool
+    /// name, an NDI port handle (0A) or ROM file stem.
+    #[arg(long, default_value = "Patient", value_name = "NAME")]
+    pub patient_tool: String,
+    /// The HMD tool's name at the source (slot 1).
+    #[arg(long, default_value = "HMD", value_name = "NAME")]
+    pub hmd_tool: String,
+    /// Tracking volume in the tracker's frame: auto (the seed's cone, 1.5 m high, 0.5 m radius,
+    /// apex at the camera, axis along -Z, for trackers; none for synthetic), none,
+    /// cone:HEIGHT_MM,RADIUS_MM or box:XMIN,YMIN,ZMIN,XMAX,YMAX,ZMAX.
+    #[arg(long, default_value = "auto", value_name = "VOLUME")]
+    pub volume: String,
+    /// Samples whose tracker-reported RMS fit error exceeds this (mm) are not valid.
+    #[arg(long, default_value_t = 1.0, value_name = "MM")]
+    pub max_rms_mm: f32,
+    /// Largest accepted | |q| - 1 | of a quaternion.
+    #[arg(long, default_value_t = 1e-3, value_name = "T")]
+    pub quat_tolerance: f32,
+    /// Largest accepted deviation of a rotation matrix from orthonormal with determinant +1.
+    #[arg(long, default_value_t = 1e-3, value_name = "T")]
+    pub matrix_tolerance: f32,
+    /// A tool with no new sample for longer than this is stale (ms).
+    #[arg(long, default_value_t = 50.0, value_name = "MS")]
+    pub stale_ms: f64,
+    /// Sample (tick) rate, Hz.
     #[arg(long, default_value_t = 60.0)]
     pub rate_hz: f64,
-    /// Peak patient orientation drift per axis, degrees.
+    /// Synthetic source: peak patient orientation drift per axis, degrees.
     #[arg(long, default_value_t = 3.0)]
     pub drift_deg: f32,
     /// Synthetic source: roll the patient about the bed's long axis, sweeping ±DEG (90: onto each
@@ -33,15 +91,192 @@ pub struct BridgeArgs {
     /// head down) once per --sweep-period-s, a quarter period after the roll.
     #[arg(long, value_name = "DEG", default_value_t = 0.0)]
     pub pitch_deg: f32,
-    /// Seconds per roll/pitch sweep.
+    /// Synthetic source: seconds per roll/pitch sweep.
     #[arg(long, value_name = "S", default_value_t = 20.0)]
     pub sweep_period_s: f32,
+    /// Record every received sample with its receive time to FILE (never overwritten).
+    #[arg(long, value_name = "FILE")]
+    pub record: Option<PathBuf>,
+    /// replay: play without waiting for the schedule.
+    #[arg(long)]
+    pub as_fast_as_possible: bool,
+    /// NDI: a passive tool definition (.rom) to load; the tool is named by the file stem.
+    /// Repeat for several tools.
+    #[arg(long, value_name = "FILE")]
+    pub ndi_rom: Vec<PathBuf>,
+    /// NDI: poll with TX (ASCII) instead of BX (binary).
+    #[arg(long)]
+    pub ndi_tx: bool,
+    /// NDI: polling rate, Hz (default: the tick rate).
+    #[arg(long, value_name = "HZ")]
+    pub ndi_poll_hz: Option<f64>,
+    /// pyigtl POSITION items: quaternion component order as the sender packed them.
+    #[arg(long, default_value = "xyzw", value_parser = ["xyzw", "wxyz"])]
+    pub pyigtl_quat_order: String,
+}
+
+impl Default for SourceArgs {
+    fn default() -> Self {
+        SourceArgs {
+            source: "synthetic".into(),
+            patient_tool: "Patient".into(),
+            hmd_tool: "HMD".into(),
+            volume: "auto".into(),
+            max_rms_mm: 1.0,
+            quat_tolerance: 1e-3,
+            matrix_tolerance: 1e-3,
+            stale_ms: 50.0,
+            rate_hz: 60.0,
+            drift_deg: 3.0,
+            roll_deg: 0.0,
+            pitch_deg: 0.0,
+            sweep_period_s: 20.0,
+            record: None,
+            as_fast_as_possible: false,
+            ndi_rom: Vec::new(),
+            ndi_tx: false,
+            ndi_poll_hz: None,
+            pyigtl_quat_order: "xyzw".into(),
+        }
+    }
+}
+
+/// Everything needed to run a source: what it is, its options, and how samples become frames.
+#[derive(Debug, Clone)]
+pub struct Resolved {
+    /// The parsed `--source`.
+    pub spec: SourceSpec,
+    /// Options of the source.
+    pub options: SourceOptions,
+    /// Mapping, validation, staleness, rate (a replay uses its recorded one instead).
+    pub config: BridgeConfig,
+}
+
+impl SourceArgs {
+    /// Check every option and resolve `auto`.
+    pub fn resolve(&self) -> Result<Resolved, BridgeError> {
+        if !(self.drift_deg.is_finite() && (0.0..=45.0).contains(&self.drift_deg)) {
+            return Err(BridgeError::Drift(self.drift_deg));
+        }
+        if !(self.rate_hz.is_finite() && (1.0..=1000.0).contains(&self.rate_hz)) {
+            return Err(BridgeError::Rate(self.rate_hz));
+        }
+        let ok_deg = |v: f32| v.is_finite() && (0.0..=180.0).contains(&v);
+        if !(ok_deg(self.roll_deg)
+            && ok_deg(self.pitch_deg)
+            && self.sweep_period_s.is_finite()
+            && (1.0..=3600.0).contains(&self.sweep_period_s))
+        {
+            return Err(BridgeError::Sweep {
+                roll: self.roll_deg,
+                pitch: self.pitch_deg,
+                period: self.sweep_period_s,
+            });
+        }
+        if !(self.stale_ms.is_finite() && (1.0..=10_000.0).contains(&self.stale_ms)) {
+            return Err(BridgeError::Option(format!(
+                "--stale-ms {} must be within 1..10000",
+                self.stale_ms
+            )));
+        }
+        let spec = SourceSpec::parse(&self.source)?;
+        let volume = if self.volume.trim().eq_ignore_ascii_case("auto") {
+            if spec.is_device() {
+                Volume::SEED_CONE
+            } else {
+                Volume::Unbounded
+            }
+        } else {
+            Volume::parse(&self.volume).map_err(|e| BridgeError::Option(format!("--volume: {e}")))?
+        };
+        let mut slots = [None; MAX_TOOLS];
+        slots[ipc_types::TOOL_PATIENT] = Some(ToolName::new(&self.patient_tool)?);
+        slots[ipc_types::TOOL_HMD] = Some(ToolName::new(&self.hmd_tool)?);
+        let config = BridgeConfig {
+            rate_hz: self.rate_hz,
+            slots,
+            validation: Validation {
+                quat_tolerance: self.quat_tolerance,
+                matrix_tolerance: self.matrix_tolerance,
+                max_rms_mm: self.max_rms_mm,
+                volume,
+            },
+            stale_ns: (self.stale_ms * 1e6).round() as u64,
+        };
+        config.check()?;
+        let options = SourceOptions {
+            pyigtl_quat_order: if self.pyigtl_quat_order == "wxyz" {
+                igtl::QuatOrder::Wxyz
+            } else {
+                igtl::QuatOrder::Xyzw
+            },
+            ndi_roms: self.ndi_rom.clone(),
+            ndi_tx: self.ndi_tx,
+            ndi_poll_hz: self.ndi_poll_hz.unwrap_or(self.rate_hz),
+            as_fast_as_possible: self.as_fast_as_possible,
+            synthetic: synthetic::Synthetic {
+                rate_hz: self.rate_hz,
+                drift_deg: self.drift_deg,
+                roll_deg: self.roll_deg,
+                pitch_deg: self.pitch_deg,
+                sweep_period_s: self.sweep_period_s,
+                ..Default::default()
+            },
+            ..SourceOptions::default()
+        };
+        Ok(Resolved {
+            spec,
+            options,
+            config,
+        })
+    }
+}
+
+/// An opened source with the assembler that goes with it (its recorded configuration for a
+/// replay) and the recording, when asked for.
+pub struct Opened {
+    /// The source.
+    pub source: Box<dyn Source>,
+    /// The assembler.
+    pub assembler: assemble::Assembler,
+    /// The recording being written.
+    pub recorder: Option<RecordWriter>,
+}
+
+/// Open what `args` describe.
+pub fn open(args: &SourceArgs) -> Result<Opened, BridgeError> {
+    let r = args.resolve()?;
+    let source = source::open(&r.spec, &r.options)?;
+    let config = source.recorded_config().cloned().unwrap_or(r.config);
+    let recorder = match &args.record {
+        Some(path) => Some(RecordWriter::create(path, &config, &source.describe())?),
+        None => None,
+    };
+    Ok(Opened {
+        source,
+        assembler: assemble::Assembler::new(config),
+        recorder,
+    })
+}
+
+/// Command-line options of the `tracker-bridge` process.
+#[derive(Debug, Clone, clap::Args)]
+pub struct BridgeArgs {
+    /// Instance name shared by the three processes of one run.
+    #[arg(long, default_value = "default")]
+    pub instance: String,
     /// Pin this process to CPU core N.
     #[arg(long, value_name = "N")]
     pub cpu: Option<usize>,
     /// Stop after this many seconds (runs until SIGINT/SIGTERM when omitted); at most one week.
     #[arg(long, value_name = "S")]
     pub seconds: Option<f64>,
+    /// Write the statistics as JSON to FILE at exit.
+    #[arg(long, value_name = "FILE")]
+    pub stats_json: Option<PathBuf>,
+    /// The source and how its samples become frames.
+    #[command(flatten)]
+    pub source: SourceArgs,
 }
 
 /// Why the bridge stopped with an error.
@@ -63,6 +298,21 @@ pub enum BridgeError {
         /// Period.
         period: f32,
     },
+    /// Another option is out of range.
+    #[error("{0}")]
+    Option(String),
+    /// A tool name cannot be used.
+    #[error(transparent)]
+    Name(#[from] NameError),
+    /// The mapping or validation settings cannot be used.
+    #[error(transparent)]
+    Config(#[from] ConfigError),
+    /// The source could not start or failed.
+    #[error(transparent)]
+    Source(#[from] SourceError),
+    /// The recording could not be made.
+    #[error(transparent)]
+    Record(#[from] RecordError),
     /// A bad common option.
     #[error(transparent)]
     Args(#[from] ArgError),
@@ -72,89 +322,78 @@ pub enum BridgeError {
     /// The stream failed.
     #[error(transparent)]
     Port(#[from] PortError),
+    /// The statistics could not be written.
+    #[error("cannot write the statistics to {path}: {source}")]
+    Stats {
+        /// The file.
+        path: PathBuf,
+        /// The OS error.
+        source: std::io::Error,
+    },
 }
 
-/// Validate a frame in place: non-finite poses are rejected (flagged, never passed on as valid).
-pub fn validate(frame: &mut TrackerFrame) {
-    let count = (frame.tool_count as usize).min(ipc_types::MAX_TOOLS);
-    frame.tool_count = count as u32;
-    for tool in &mut frame.tools[..count] {
-        if !tool.pose.is_finite() || !tool.rms_error_mm.is_finite() {
-            tool.status = (tool.status & !tool_status::VALID) | tool_status::NON_FINITE;
-        }
-    }
-}
-
-/// Run the bridge until terminated (or `--seconds` elapse).
+/// Run the bridge until terminated (or `--seconds` elapse, or a replay ends).
 pub fn run(args: &BridgeArgs) -> Result<(), BridgeError> {
-    if !(args.rate_hz.is_finite() && (1.0..=1000.0).contains(&args.rate_hz)) {
-        return Err(BridgeError::Rate(args.rate_hz));
-    }
-    if !(args.drift_deg.is_finite() && (0.0..=45.0).contains(&args.drift_deg)) {
-        return Err(BridgeError::Drift(args.drift_deg));
-    }
-    let ok_deg = |v: f32| v.is_finite() && (0.0..=180.0).contains(&v);
-    if !(ok_deg(args.roll_deg)
-        && ok_deg(args.pitch_deg)
-        && args.sweep_period_s.is_finite()
-        && (1.0..=3600.0).contains(&args.sweep_period_s))
-    {
-        return Err(BridgeError::Sweep {
-            roll: args.roll_deg,
-            pitch: args.pitch_deg,
-            period: args.sweep_period_s,
-        });
-    }
     let run_ns = run_ns(args.seconds)?;
+    args.source.resolve()?;
     let instance = Instance::new(&args.instance)?;
     let _lock = instance.lock("tracker-bridge")?;
     pin_to_core(args.cpu, "tracker-bridge")?;
-    let source = synthetic::Synthetic {
-        rate_hz: args.rate_hz,
-        drift_deg: args.drift_deg,
-        roll_deg: args.roll_deg,
-        pitch_deg: args.pitch_deg,
-        sweep_period_s: args.sweep_period_s,
-        ..Default::default()
-    };
+    let Opened {
+        mut source,
+        mut assembler,
+        mut recorder,
+    } = open(&args.source)?;
     let node = iox::node(&instance, "tracker-bridge")?;
     let mut outlet = instance.tracker_outlet(&node)?;
-    let period_ns = (1e9 / args.rate_hz).round() as u64;
-    let start = now_ns();
-    let stop_at = run_ns.map(|d| start.saturating_add(d));
+    let prefix = format!("tracker-bridge[{}]", instance.name());
     eprintln!(
-        "tracker-bridge[{}]: synthetic source at {} Hz publishing on {:?}",
-        instance.name(),
-        args.rate_hz,
-        instance.tracker()
+        "{prefix}: {} at {} Hz publishing on {:?}{}",
+        source.describe(),
+        assembler.config().rate_hz,
+        instance.tracker(),
+        recorder
+            .as_ref()
+            .map(|r| format!(", recording to {}", r.path().display()))
+            .unwrap_or_default()
     );
-    let mut next = start;
-    let mut n: u64 = 0;
-    let mut skipped: u64 = 0;
-    loop {
-        if iox::termination_requested(&node) || stop_at.is_some_and(|t| now_ns() >= t) {
-            break;
-        }
-        sleep_until_ns(next);
-        n += 1;
-        let mut frame = source.frame(n, now_ns());
-        validate(&mut frame);
-        frame.stamps.bridge_publish_ns = now_ns();
-        outlet.publish(&frame)?;
-        next += period_ns;
-        let now = now_ns();
-        if now > next + period_ns {
-            // Overran by more than a period: drop the missed slots rather than bursting.
-            let missed = (now - next) / period_ns;
-            skipped += missed;
-            next += missed * period_ns;
-        }
+    let start = transport::now_ns();
+    let stop_at = run_ns.map(|d| start.saturating_add(d));
+    let mut reporter = Reporter::new(prefix.clone(), false);
+    let ended = run_loop(
+        source.as_mut(),
+        &mut assembler,
+        &mut outlet as &mut dyn transport::Publish<TrackerFrame>,
+        &mut recorder,
+        &RealTime,
+        &mut |now| iox::termination_requested(&node) || stop_at.is_some_and(|t| now >= t),
+        &mut |e, now| reporter.event(e, now),
+    )?;
+    drop(source);
+    let stats = &assembler.stats;
+    if ended == Ended::SourceEnded {
+        eprintln!("{prefix}: the source ended (end of the recording)");
     }
     eprintln!(
-        "tracker-bridge[{}]: stopped after {n} frames ({skipped} slots skipped)",
-        instance.name()
+        "{prefix}: stopped after {} frames ({} slots skipped)",
+        stats.frames, stats.ticks_skipped
     );
+    eprint!("{}", indent(&stats.text(), &prefix));
+    if let Some(r) = recorder.take() {
+        let path = r.finish()?;
+        eprintln!("{prefix}: recorded to {}", path.display());
+    }
+    if let Some(path) = &args.stats_json {
+        std::fs::write(path, format!("{}\n", stats.to_json())).map_err(|source| BridgeError::Stats {
+            path: path.clone(),
+            source,
+        })?;
+    }
     Ok(())
+}
+
+fn indent(text: &str, prefix: &str) -> String {
+    text.lines().map(|l| format!("{prefix}: {l}\n")).collect()
 }
 
 #[cfg(test)]
@@ -162,15 +401,25 @@ mod tests {
     use super::*;
 
     #[test]
-    fn non_finite_poses_are_flagged_not_passed_as_valid() {
-        let mut f = synthetic::Synthetic::default().frame(3, 1);
-        f.tools[1].pose.translation_mm[2] = f32::NAN;
-        validate(&mut f);
-        assert!(f.tools[0].is_valid());
-        assert!(!f.tools[1].is_valid());
-        assert_ne!(f.tools[1].status & tool_status::NON_FINITE, 0);
-        f.tool_count = 99;
-        validate(&mut f);
-        assert_eq!(f.tool_count as usize, ipc_types::MAX_TOOLS);
+    fn auto_volume_is_the_seed_cone_for_trackers_and_none_for_synthetic() {
+        let r = SourceArgs::default().resolve().unwrap();
+        assert_eq!(r.config.validation.volume, Volume::Unbounded);
+        let r = SourceArgs {
+            source: "igtl-server".into(),
+            ..Default::default()
+        }
+        .resolve()
+        .unwrap();
+        assert_eq!(r.config.validation.volume, Volume::SEED_CONE);
+        let bad = SourceArgs {
+            hmd_tool: "patient".into(),
+            ..Default::default()
+        };
+        assert!(bad.resolve().unwrap_err().to_string().contains("two slots"));
+        let bad = SourceArgs {
+            volume: "cone:1".into(),
+            ..Default::default()
+        };
+        assert!(bad.resolve().is_err());
     }
 }

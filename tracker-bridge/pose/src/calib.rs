@@ -1,0 +1,303 @@
+//! The calibration file `lungdyn register` writes: where the lungs' model frame is relative to the
+//! patient reference tool.
+//!
+//! # Format (TOML, version 1)
+//! ```toml
+//! format = 1
+//! kind = "model-to-reference"
+//! # p_reference = R · p_model + t, millimetres. Model frame: the lung meshes' body frame (+X patient
+//! # left, +Y anterior, +Z superior). Reference frame: the patient reference tool's own frame, as
+//! # the tracker reports the fiducials relative to it.
+//! [transform]
+//! rotation_xyzw = [0.0, 0.0, 0.0, 1.0]       # unit quaternion (x, y, z, w)
+//! translation_mm = [0.0, -80.0, 0.0]
+//! rotation_matrix = [[1.0, 0.0, 0.0], [0.0, 1.0, 0.0], [0.0, 0.0, 1.0]]  # the same, row-major (optional; checked)
+//! [registration]                               # how it was made (information; optional)
+//! fiducials = 6
+//! fre_rms_mm = 0.42
+//! fre_mm = [0.3, 0.5, 0.4, 0.2, 0.6, 0.4]
+//! spread_ratio = 0.61                          # σ₂/σ₁ of the centred model fiducials
+//! warnings = []
+//! model_points = "model.csv"
+//! tracker_points = "tracker.csv"
+//! ```
+//! Loading checks: `format = 1`, the kind, a finite quaternion within 1e-3 of unit length
+//! (renormalised), a finite translation within 5 m, and, when the matrix is present, that it is the
+//! quaternion's rotation within 1e-4. Unknown keys are refused (a typo must not be silently
+//! ignored). Files above 1 MiB are refused before reading.
+
+use std::path::Path;
+
+use nalgebra::{Quaternion, UnitQuaternion, Vector3};
+use serde::{Deserialize, Serialize};
+use thiserror::Error;
+
+use crate::registration::Registration;
+
+/// Largest calibration or optics file read, bytes.
+pub const MAX_FILE: u64 = 1 << 20;
+
+/// A file that cannot be used.
+#[derive(Debug, Error)]
+pub enum FileError {
+    /// It could not be read.
+    #[error("{path}: {source}")]
+    Io {
+        /// The file.
+        path: String,
+        /// The OS error.
+        source: std::io::Error,
+    },
+    /// It is not a regular file or too large.
+    #[error("{path}: {reason}")]
+    Unreadable {
+        /// The file.
+        path: String,
+        /// Why.
+        reason: String,
+    },
+    /// Not valid TOML of the expected shape.
+    #[error("{path}: {message}")]
+    Syntax {
+        /// The file.
+        path: String,
+        /// The parser's message (with line and column).
+        message: String,
+    },
+    /// A value is out of range or inconsistent.
+    #[error("{path}: {field}: {reason}")]
+    Invalid {
+        /// The file.
+        path: String,
+        /// The key.
+        field: &'static str,
+        /// What is wrong and what is expected.
+        reason: String,
+    },
+}
+
+/// Read a small text file: a regular file of at most [`MAX_FILE`] bytes.
+pub fn read_small(path: &Path) -> Result<String, FileError> {
+    let name = path.display().to_string();
+    let meta = std::fs::metadata(path).map_err(|source| FileError::Io {
+        path: name.clone(),
+        source,
+    })?;
+    if !meta.is_file() {
+        return Err(FileError::Unreadable {
+            path: name,
+            reason: "is not a regular file".into(),
+        });
+    }
+    if meta.len() > MAX_FILE {
+        return Err(FileError::Unreadable {
+            path: name,
+            reason: format!("is {} bytes; at most {MAX_FILE} are read", meta.len()),
+        });
+    }
+    std::fs::read_to_string(path).map_err(|source| FileError::Io { path: name, source })
+}
+
+#[derive(Debug, Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
+struct CalibFile {
+    format: u32,
+    kind: String,
+    transform: TransformText,
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    registration: Option<RegistrationText>,
+}
+
+#[derive(Debug, Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
+struct TransformText {
+    rotation_xyzw: [f64; 4],
+    translation_mm: [f64; 3],
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    rotation_matrix: Option<[[f64; 3]; 3]>,
+}
+
+/// How a calibration was made (kept in the file for the record).
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct RegistrationText {
+    /// Number of fiducials.
+    pub fiducials: usize,
+    /// RMS fiducial registration error, mm.
+    pub fre_rms_mm: f64,
+    /// Per-fiducial error, mm.
+    pub fre_mm: Vec<f64>,
+    /// σ₂/σ₁ of the centred model fiducials.
+    pub spread_ratio: f64,
+    /// Warnings given when it was made.
+    pub warnings: Vec<String>,
+    /// The model points file.
+    #[serde(default)]
+    pub model_points: String,
+    /// The tracker points file.
+    #[serde(default)]
+    pub tracker_points: String,
+}
+
+/// The model → patient reference transform.
+#[derive(Debug, Clone, PartialEq)]
+pub struct Calibration {
+    /// Rotation.
+    pub rotation: UnitQuaternion<f64>,
+    /// Translation, mm.
+    pub translation_mm: Vector3<f64>,
+    /// How it was made, when known.
+    pub registration: Option<RegistrationText>,
+}
+
+/// The kind written and accepted.
+pub const KIND: &str = "model-to-reference";
+
+impl Calibration {
+    /// From a registration of model fiducials onto fiducials measured in the reference's frame.
+    pub fn from_registration(r: &Registration, model_points: &str, tracker_points: &str) -> Self {
+        Calibration {
+            rotation: r.rotation,
+            translation_mm: r.translation_mm,
+            registration: Some(RegistrationText {
+                fiducials: r.fre_mm.len(),
+                fre_rms_mm: r.fre_rms_mm,
+                fre_mm: r.fre_mm.clone(),
+                spread_ratio: r.spread_ratio(),
+                warnings: r.warnings.clone(),
+                model_points: model_points.into(),
+                tracker_points: tracker_points.into(),
+            }),
+        }
+    }
+
+    /// The file text, with a comment saying what the numbers mean.
+    pub fn to_toml(&self) -> String {
+        let q = self.rotation.quaternion();
+        let m = self.rotation.to_rotation_matrix();
+        let m = m.matrix();
+        let file = CalibFile {
+            format: 1,
+            kind: KIND.into(),
+            transform: TransformText {
+                rotation_xyzw: [q.i, q.j, q.k, q.w],
+                translation_mm: [self.translation_mm.x, self.translation_mm.y, self.translation_mm.z],
+                rotation_matrix: Some(std::array::from_fn(|r| std::array::from_fn(|c| m[(r, c)]))),
+            },
+            registration: self.registration.clone(),
+        };
+        format!(
+            "# lungdyn calibration (format 1): the lungs' model frame in the patient reference tool's frame.\n\
+             # p_reference = R * p_model + t, millimetres; model frame = the meshes' body frame (+X left,\n\
+             # +Y anterior, +Z superior). Written by `lungdyn register`; see tracker-bridge/pose/src/calib.rs.\n{}",
+            toml::to_string(&file).unwrap_or_default()
+        )
+    }
+
+    /// Parse and check a calibration text (`path` names it in errors).
+    pub fn from_toml(text: &str, path: &str) -> Result<Self, FileError> {
+        let f: CalibFile = toml::from_str(text).map_err(|e| FileError::Syntax {
+            path: path.into(),
+            message: e.to_string(),
+        })?;
+        let invalid = |field, reason: String| FileError::Invalid {
+            path: path.into(),
+            field,
+            reason,
+        };
+        if f.format != 1 {
+            return Err(invalid("format", format!("{} is not 1, the only version this build reads", f.format)));
+        }
+        if f.kind != KIND {
+            return Err(invalid("kind", format!("{:?} is not {KIND:?}", f.kind)));
+        }
+        let [x, y, z, w] = f.transform.rotation_xyzw;
+        let q = Quaternion::new(w, x, y, z);
+        let n = q.norm();
+        if !(n.is_finite() && (n - 1.0).abs() <= 1e-3) {
+            return Err(invalid(
+                "transform.rotation_xyzw",
+                format!("|q| = {n}: not a unit quaternion (x, y, z, w)"),
+            ));
+        }
+        let rotation = UnitQuaternion::from_quaternion(q);
+        let t = Vector3::from(f.transform.translation_mm);
+        if !(t.iter().all(|v| v.is_finite()) && t.norm() <= 5000.0) {
+            return Err(invalid(
+                "transform.translation_mm",
+                format!("{:?} is not a finite offset within 5 m (millimetres expected)", f.transform.translation_mm),
+            ));
+        }
+        if let Some(m) = f.transform.rotation_matrix {
+            let r = rotation.to_rotation_matrix();
+            let worst = (0..3)
+                .flat_map(|i| (0..3).map(move |j| (i, j)))
+                .map(|(i, j)| (m[i][j] - r.matrix()[(i, j)]).abs())
+                .fold(0.0, f64::max);
+            if !(worst <= 1e-4) {
+                return Err(invalid(
+                    "transform.rotation_matrix",
+                    format!("differs from rotation_xyzw by up to {worst:.2e}: the file was edited inconsistently"),
+                ));
+            }
+        }
+        Ok(Calibration {
+            rotation,
+            translation_mm: t,
+            registration: f.registration,
+        })
+    }
+
+    /// Read and check a calibration file.
+    pub fn load(path: &Path) -> Result<Self, FileError> {
+        Self::from_toml(&read_small(path)?, &path.display().to_string())
+    }
+
+    /// Apply to a model point, mm.
+    pub fn apply(&self, p: [f64; 3]) -> [f64; 3] {
+        let b = self.rotation * Vector3::from(p) + self.translation_mm;
+        [b.x, b.y, b.z]
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn a_calibration_round_trips_through_its_file() {
+        let c = Calibration {
+            rotation: UnitQuaternion::from_euler_angles(0.1, 0.2, -0.3),
+            translation_mm: Vector3::new(1.5, -80.0, 12.25),
+            registration: None,
+        };
+        let text = c.to_toml();
+        assert!(text.starts_with("# lungdyn calibration"));
+        let back = Calibration::from_toml(&text, "c.toml").unwrap();
+        assert!(back.rotation.angle_to(&c.rotation) < 1e-12);
+        assert_eq!(back.translation_mm, c.translation_mm);
+    }
+
+    #[test]
+    fn bad_files_are_refused_with_the_key_named() {
+        let good = Calibration {
+            rotation: UnitQuaternion::identity(),
+            translation_mm: Vector3::zeros(),
+            registration: None,
+        }
+        .to_toml();
+        let cases = [
+            (good.replace("format = 1", "format = 2"), "format"),
+            (good.replace("model-to-reference", "reference-to-model"), "kind"),
+            (good.replace("rotation_xyzw = [0.0, 0.0, 0.0, 1.0]", "rotation_xyzw = [0.0, 0.0, 0.0, 2.0]"), "rotation_xyzw"),
+            (good.replace("translation_mm = [0.0, 0.0, 0.0]", "translation_mm = [0.0, 0.0, 9000.0]"), "translation_mm"),
+            (good.replace("[1.0, 0.0, 0.0]", "[0.0, 1.0, 0.0]"), "rotation_matrix"),
+            (format!("{good}\nextra = 1\n"), "unknown field"),
+            ("format = ".to_string(), "c.toml"),
+        ];
+        for (text, needle) in cases {
+            let e = Calibration::from_toml(&text, "c.toml").unwrap_err().to_string();
+            assert!(e.contains(needle), "{needle}: {e}");
+        }
+    }
+}

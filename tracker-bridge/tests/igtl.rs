@@ -1,0 +1,207 @@
+//! The OpenIGTLink sources against Rust peers on loopback: a server with several senders at once
+//! (TRANSFORM, QTDATA, TDATA), a bad CRC, garbage, a message cut short and an oversized header
+//! (never a published sample, never a large allocation, the server keeps serving); a client whose
+//! server goes away and comes back (reconnect with back-off); a slow sender that shows as stale.
+
+use std::io::Write;
+use std::net::{TcpListener, TcpStream};
+use std::time::{Duration, Instant};
+
+use ipc_types::{tool_status, TrackerFrame, TOOL_HMD, TOOL_PATIENT};
+use tracker_bridge::assemble::{Assembler, BridgeConfig};
+use tracker_bridge::igtl::{Body, Message, QtDataElement, TDataElement, Timestamp, Transform};
+use tracker_bridge::run::{run_loop, RealTime};
+use tracker_bridge::sample::Reject;
+use tracker_bridge::source::igtl_client::IgtlClient;
+use tracker_bridge::source::igtl_server::IgtlServer;
+use tracker_bridge::source::{Source, SourceOptions};
+use tracker_bridge::validate::{Validation, Volume};
+use transport::memory::Recorder;
+use transport::Monotonic;
+
+fn config() -> BridgeConfig {
+    BridgeConfig {
+        validation: Validation {
+            volume: Volume::SEED_CONE,
+            ..Validation::default()
+        },
+        ..BridgeConfig::default()
+    }
+}
+
+fn transform(name: &str, k: u32) -> Vec<u8> {
+    let t = Transform {
+        translation_mm: [k as f32, 0.0, -1000.0],
+        ..Transform::IDENTITY
+    };
+    Message::new(name, Timestamp::from_parts(1_700_000_000, k * 1000), Body::Transform(t))
+        .encode()
+        .unwrap()
+}
+
+fn qtdata(name: &str, k: u32) -> Vec<u8> {
+    Message::new(
+        "Tracker",
+        Timestamp::from_parts(1_700_000_000, k * 1000 + 1),
+        Body::QtData(vec![QtDataElement {
+            name: name.into(),
+            instrument_type: 2,
+            position_mm: [0.0, k as f32, -900.0],
+            quaternion: [0.0, 0.0, 0.0, 1.0],
+        }]),
+    )
+    .encode()
+    .unwrap()
+}
+
+/// Run the loop until `done()` or `limit`.
+fn run(source: &mut dyn Source, limit: Duration, mut done: impl FnMut() -> bool) -> (Vec<TrackerFrame>, Assembler) {
+    let mut asm = Assembler::new(config());
+    let mut out = Recorder::new(&Monotonic);
+    let start = Instant::now();
+    run_loop(
+        source,
+        &mut asm,
+        &mut out,
+        &mut None,
+        &RealTime,
+        &mut |_| start.elapsed() > limit || done(),
+        &mut |e, _| eprintln!("igtl test: {}", e.text),
+    )
+    .unwrap();
+    (out.values(), asm)
+}
+
+#[test]
+fn a_server_takes_several_senders_and_survives_every_kind_of_bad_input() {
+    let mut server = IgtlServer::bind("127.0.0.1", 0, &SourceOptions::default()).unwrap();
+    let addr = server.local_addr();
+    let senders = std::thread::spawn(move || {
+        let patient = std::thread::spawn(move || {
+            let mut s = TcpStream::connect(addr).unwrap();
+            for k in 0..40 {
+                s.write_all(&transform("Patient", k)).unwrap();
+                if k == 20 {
+                    let mut bad = transform("Patient", 999);
+                    bad[60] ^= 0x01; // a body bit: the CRC no longer matches
+                    s.write_all(&bad).unwrap();
+                }
+                std::thread::sleep(Duration::from_millis(16));
+            }
+        });
+        let hmd = std::thread::spawn(move || {
+            let mut s = TcpStream::connect(addr).unwrap();
+            for k in 0..40 {
+                // One message in two writes, split inside the header: a partial read is no message.
+                let m = qtdata("HMD", k);
+                s.write_all(&m[..30]).unwrap();
+                s.flush().unwrap();
+                std::thread::sleep(Duration::from_millis(3));
+                s.write_all(&m[30..]).unwrap();
+                std::thread::sleep(Duration::from_millis(13));
+            }
+        });
+        // Garbage: not OpenIGTLink (header version 0x4745 "GE"): the connection is dropped.
+        let mut g = TcpStream::connect(addr).unwrap();
+        g.write_all(b"GET / HTTP/1.1\r\nHost: x\r\n\r\nand some more bytes to fill a header....").unwrap();
+        // An oversized body announced: dropped before anything is allocated for it.
+        let mut o = TcpStream::connect(addr).unwrap();
+        let mut head = transform("Patient", 1)[..58].to_vec();
+        head[42..50].copy_from_slice(&(1u64 << 40).to_be_bytes());
+        o.write_all(&head).unwrap();
+        // Half a message, then the link closes.
+        let mut h = TcpStream::connect(addr).unwrap();
+        h.write_all(&transform("Patient", 5)[..80]).unwrap();
+        drop(h);
+        // A TDATA with a tool we do not map, and another sender's pointer.
+        let mut t = TcpStream::connect(addr).unwrap();
+        let td = Message::new(
+            "Tracker",
+            Timestamp::UNSET,
+            Body::TData(vec![TDataElement {
+                name: "Pointer".into(),
+                instrument_type: 2,
+                transform: Transform::IDENTITY,
+            }]),
+        );
+        t.write_all(&td.encode().unwrap()).unwrap();
+        patient.join().unwrap();
+        hmd.join().unwrap();
+        std::thread::sleep(Duration::from_millis(200));
+    });
+    let (frames, asm) = run(&mut server, Duration::from_secs(15), || senders.is_finished());
+    let s = &asm.stats;
+    eprintln!("{}", s.text());
+    assert_eq!(s.rejected_for(Reject::Crc), 1);
+    assert_eq!(s.rejected_for(Reject::Garbage), 1);
+    assert_eq!(s.rejected_for(Reject::Oversized), 1);
+    assert_eq!(s.rejected_for(Reject::Truncated), 1);
+    assert_eq!(s.rejected_for(Reject::Unmapped), 1);
+    assert_eq!(s.connects, 6);
+    assert!(s.disconnects >= 3, "garbage, oversized, half message");
+    let patient = s.tools.iter().find(|t| t.name.as_str() == "Patient").unwrap();
+    let hmd = s.tools.iter().find(|t| t.name.as_str() == "HMD").unwrap();
+    assert_eq!((patient.samples, patient.accepted), (40, 40), "the bad ones never became samples");
+    assert_eq!((hmd.samples, hmd.accepted), (40, 40));
+    assert_eq!(patient.last_pose.unwrap().translation_mm, [39.0, 0.0, -1000.0]);
+    assert_eq!(hmd.last_pose.unwrap().translation_mm, [0.0, 39.0, -900.0]);
+    // Every published pose is one that was sent.
+    for f in frames.iter().filter(|f| f.tools[TOOL_PATIENT].is_valid()) {
+        let x = f.tools[TOOL_PATIENT].pose.translation_mm;
+        assert!(x[0].fract() == 0.0 && (0.0..40.0).contains(&x[0]) && x[1..] == [0.0, -1000.0]);
+    }
+    assert!(frames.iter().filter(|f| f.tools[TOOL_HMD].is_valid()).count() > 20);
+}
+
+#[test]
+fn a_client_reconnects_with_backoff_when_its_server_goes_and_comes_back() {
+    // Find a free port, then let the client try it before anything listens.
+    let port = TcpListener::bind("127.0.0.1:0").unwrap().local_addr().unwrap().port();
+    let mut client = IgtlClient::start("127.0.0.1".into(), port, &SourceOptions::default());
+    let server = std::thread::spawn(move || {
+        std::thread::sleep(Duration::from_millis(500));
+        let l = TcpListener::bind(("127.0.0.1", port)).unwrap();
+        for round in 0..2u32 {
+            let (mut s, _) = l.accept().unwrap();
+            for k in 0..20 {
+                if s.write_all(&transform("Patient", round * 100 + k)).is_err() {
+                    break;
+                }
+                std::thread::sleep(Duration::from_millis(16));
+            }
+            drop(s); // the server goes away; the client must come back
+        }
+        std::thread::sleep(Duration::from_millis(300));
+    });
+    let (frames, asm) = run(&mut client, Duration::from_secs(15), || server.is_finished());
+    let s = &asm.stats;
+    eprintln!("{}", s.text());
+    assert!(s.retries >= 2, "tried while nothing listened: {}", s.retries);
+    assert!(s.connects >= 2 && s.disconnects >= 2);
+    let patient = s.tools.iter().find(|t| t.name.as_str() == "Patient").unwrap();
+    assert_eq!(patient.samples, 40);
+    assert_eq!(patient.last_pose.unwrap().translation_mm[0], 119.0);
+    // Between the rounds the tool went stale, and came back valid.
+    let stale = frames.iter().position(|f| f.tools[TOOL_PATIENT].status & tool_status::STALE != 0);
+    assert!(stale.is_some());
+    assert!(frames[stale.unwrap()..].iter().any(|f| f.tools[TOOL_PATIENT].is_valid()));
+}
+
+#[test]
+fn a_slow_sender_shows_as_stale_between_its_samples() {
+    let mut server = IgtlServer::bind("127.0.0.1", 0, &SourceOptions::default()).unwrap();
+    let addr = server.local_addr();
+    let sender = std::thread::spawn(move || {
+        let mut s = TcpStream::connect(addr).unwrap();
+        for k in 0..8 {
+            s.write_all(&transform("Patient", k)).unwrap();
+            std::thread::sleep(Duration::from_millis(150)); // 6.7 Hz against a 50 ms bound
+        }
+    });
+    let (frames, asm) = run(&mut server, Duration::from_secs(10), || sender.is_finished());
+    let stale = frames.iter().filter(|f| f.tools[TOOL_PATIENT].status & tool_status::STALE != 0).count();
+    let valid = frames.iter().filter(|f| f.tools[TOOL_PATIENT].is_valid()).count();
+    assert!(stale > valid, "stale {stale}, valid {valid}");
+    assert!(valid >= 8, "each sample is fresh for up to 50 ms: {valid}");
+    assert_eq!(asm.stats.stale as usize, stale);
+}
