@@ -18,6 +18,7 @@
 #![allow(clippy::neg_cmp_op_on_partial_ord)]
 
 pub mod deform;
+pub mod disease;
 pub mod input;
 pub mod kernel;
 pub mod mesh;
