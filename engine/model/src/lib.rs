@@ -10,7 +10,9 @@
 //! * [`deform`] — per-vertex displacement (eq. 6.14–6.18), the volume cubic, [`deform::LungModel`];
 //! * [`pv`] — the pressure–volume forward model (seed ch. 5, eq. 2.12–2.16, 5.11), presets and the
 //!   constants files a scene loads;
-//! * [`scene`] — what a run models;
+//! * [`disease`] — the seed's disease states (chapter 8): closed and tension pneumothorax with
+//!   interventions, tumour-influenced lungs;
+//! * [`scene`] — what a run models ([`scene_disease`]: its `[disease]` table);
 //! * [`input`] — bounded reading of every input file; [`plausible`] — the physical ranges every input
 //!   is checked against, with their sources.
 
@@ -26,3 +28,4 @@ pub mod operator;
 pub mod plausible;
 pub mod pv;
 pub mod scene;
+pub mod scene_disease;

@@ -188,7 +188,15 @@ impl ClosedPneumothorax {
                             base_volume_ml: base,
                             tidal_ml: if held { 0.0 } else { lung.share * tv_new },
                             held_ml: held.then_some(base),
-                            offset_mm: [0.0, 0.0, if drop.drop_mm > 0.0 { -drop.drop_mm } else { 0.0 }],
+                            offset_mm: [
+                                0.0,
+                                0.0,
+                                if drop.drop_mm > 0.0 {
+                                    -drop.drop_mm
+                                } else {
+                                    0.0
+                                },
+                            ],
                             resistance_dv: dv,
                         },
                         boundary: (!held).then_some(Boundary {
@@ -338,9 +346,15 @@ mod tests {
             .plan(&n, &lungs())
             .unwrap();
         assert_eq!(plan.timing, n.timing);
-        let reference = Breathing::from_constants(&n.inhale, &n.exhale, n.boundary, &n.timing).unwrap();
+        let reference =
+            Breathing::from_constants(&n.inhale, &n.exhale, n.boundary, &n.timing).unwrap();
         for (lp, base) in plan.lungs.iter().zip(lungs()) {
-            assert_eq!(lp.state, LungState::normal(&base, &n.boundary), "{:?}", lp.side);
+            assert_eq!(
+                lp.state,
+                LungState::normal(&base, &n.boundary),
+                "{:?}",
+                lp.side
+            );
             assert_eq!(lp.state.offset_mm.map(f64::to_bits), [0u64; 3]);
             assert_eq!(lp.inhale, n.inhale);
             assert_eq!(lp.exhale, n.exhale);
@@ -348,7 +362,10 @@ mod tests {
             let b = lp.breathing(&plan.timing).unwrap().unwrap();
             assert_eq!(b.cycle_ticks(), reference.cycle_ticks());
             for tick in 0..reference.cycle_ticks() as u64 {
-                assert_eq!(b.volume_at(tick).to_bits(), reference.volume_at(tick).to_bits());
+                assert_eq!(
+                    b.volume_at(tick).to_bits(),
+                    reference.volume_at(tick).to_bits()
+                );
             }
         }
     }
@@ -363,19 +380,35 @@ mod tests {
             (0.0, 0.0, 0.0, 250.0, 1100.0, 0.0, 2.5),
             // dV = 0.0010715; 250·0.9989285 = 249.73212; 1100·0.9989285 = 1098.82133;
             // c = 1 − 0.9989285^{1/3} = 0.00035730; T' = 2.5 − 5·0.0010715 = 2.4946424.
-            (1e-9, 0.001_071_5, 0.0, 249.732_12, 1098.821_33, 0.000_357_30, 2.494_642_4),
+            (
+                1e-9,
+                0.001_071_5,
+                0.0,
+                249.732_12,
+                1_098.821_33,
+                0.000_357_30,
+                2.494_642_4,
+            ),
             // dV = 0.351295; A = 0 (100·0.042 = 4.2); 250·0.648705 = 162.17619; 1100·0.648705 = 713.57524;
             // c = 1 − 0.648705^{1/3} = 1 − 0.865663 = 0.134337; raw T' = 0.743524 → clamped 0.75.
-            (0.042, 0.351_295, 0.0, 162.176_19, 713.575_24, 0.134_337, 0.75),
+            (
+                0.042, 0.351_295, 0.0, 162.176_19, 713.575_24, 0.134_337, 0.75,
+            ),
             // dV = 0.467735; A = 5.8/9.4 = 0.617021 cm; 250·0.532265 = 133.06621; 1100·0.532265 = 585.49134;
             // c = 0.189582; raw T' = 0.161324 → 0.75 (40 breaths/min).
-            (0.1, 0.467_735, 6.170_213, 133.066_21, 585.491_34, 0.189_582, 0.75),
+            (
+                0.1, 0.467_735, 6.170_213, 133.066_21, 585.491_34, 0.189_582, 0.75,
+            ),
             // dV = 0.587949; A = 15.8/9.4 = 1.680851 cm; 250·0.412051 = 103.01267; 1100·0.412051 = 453.25574;
             // c = 1 − 0.412051^{1/3} = 1 − 0.744132 = 0.255868.
-            (0.2, 0.587_949, 16.808_511, 103.012_67, 453.255_74, 0.255_868, 0.75),
+            (
+                0.2, 0.587_949, 16.808_511, 103.012_67, 453.255_74, 0.255_868, 0.75,
+            ),
             // dV = 0.795536; A = 45.8/9.4 = 4.872340 cm; 250·0.204464 = 51.11588; 1100·0.204464 = 224.90987;
             // c = 1 − 0.204464^{1/3} = 1 − 0.589122 = 0.410878.
-            (0.5, 0.795_536, 48.723_404, 51.115_88, 224.909_87, 0.410_878, 0.75),
+            (
+                0.5, 0.795_536, 48.723_404, 51.115_88, 224.909_87, 0.410_878, 0.75,
+            ),
             // dV = 1: A = 95.8/9.4 = 10.191489 cm; no tidal volume (held), base 0, collapse 1.
             (1.0, 1.0, 101.914_894, 0.0, 0.0, 1.0, 0.75),
         ];
@@ -387,16 +420,40 @@ mod tests {
             let l = plan.lung(Side::Left).unwrap();
             let close = |a: f64, b: f64, tol: f64| (a - b).abs() <= tol;
             assert!(close(l.dv, dv, 1e-6), "I {i}: dV {}", l.dv);
-            assert!(close(-l.state.offset_mm[2], drop, 1e-5), "I {i}: drop {:?}", l.state.offset_mm);
-            assert!(close(l.state.tidal_ml, tidal, 1e-4), "I {i}: tidal {}", l.state.tidal_ml);
-            assert!(close(l.state.base_volume_ml, base, 1e-4), "I {i}: base {}", l.state.base_volume_ml);
-            assert!(close(l.state.collapse, c, 1e-6), "I {i}: c {}", l.state.collapse);
-            assert!(close(plan.times.new_inhale_s, ti, 1e-6), "I {i}: T'_i {}", plan.times.new_inhale_s);
+            assert!(
+                close(-l.state.offset_mm[2], drop, 1e-5),
+                "I {i}: drop {:?}",
+                l.state.offset_mm
+            );
+            assert!(
+                close(l.state.tidal_ml, tidal, 1e-4),
+                "I {i}: tidal {}",
+                l.state.tidal_ml
+            );
+            assert!(
+                close(l.state.base_volume_ml, base, 1e-4),
+                "I {i}: base {}",
+                l.state.base_volume_ml
+            );
+            assert!(
+                close(l.state.collapse, c, 1e-6),
+                "I {i}: c {}",
+                l.state.collapse
+            );
+            assert!(
+                close(plan.times.new_inhale_s, ti, 1e-6),
+                "I {i}: T'_i {}",
+                plan.times.new_inhale_s
+            );
             assert_eq!(l.state.held_ml.is_some(), i == 1.0);
             // The unaffected right lung: tidal 250 + α = 350 ml whenever I > 0 (eq. 8.7).
             let r = plan.lung(Side::Right).unwrap();
             let want = if i > 0.0 { 350.0 } else { 250.0 };
-            assert!(close(r.state.tidal_ml, want, 1e-9), "I {i}: right tidal {}", r.state.tidal_ml);
+            assert!(
+                close(r.state.tidal_ml, want, 1e-9),
+                "I {i}: right tidal {}",
+                r.state.tidal_ml
+            );
             assert!(close(0.5 * r.boundary.unwrap().tv_ml, want, 1e-9));
             // Everything the engine gets is finite, and every breathing lung has a playable cycle.
             for lp in &plan.lungs {
@@ -418,9 +475,17 @@ mod tests {
         // Venegas χ_1 = 0.57, χ_2 = 0.46, x = 0.1·0.467735 = 0.0467735.
         // Inhalation (eq. 8.9): 0.46·ln(0.46·0.0467735)/ln(0.57·0.0467735)
         //   = 0.46·ln(0.0215158)/ln(0.0266609) = 0.46·(−3.838967)/(−3.624557) = 0.487211.
-        assert!((l.inhale.chi[1] - 0.487_211).abs() < 1e-6, "{}", l.inhale.chi[1]);
+        assert!(
+            (l.inhale.chi[1] - 0.487_211).abs() < 1e-6,
+            "{}",
+            l.inhale.chi[1]
+        );
         // Exhalation (eq. 8.8): 0.46·e^{(0.46 − 0.57)·0.0467735} = 0.46·e^{−0.00514509} = 0.457639.
-        assert!((l.exhale.chi[1] - 0.457_639).abs() < 1e-6, "{}", l.exhale.chi[1]);
+        assert!(
+            (l.exhale.chi[1] - 0.457_639).abs() < 1e-6,
+            "{}",
+            l.exhale.chi[1]
+        );
         assert_eq!(l.inhale.chi[0], 0.57);
         assert_eq!(plan.lung(Side::Right).unwrap().inhale, n.inhale);
         assert!((l.base_lift_mm - 0.189_582 * 120.0).abs() < 1e-3);
@@ -430,10 +495,22 @@ mod tests {
     fn bad_parameters_name_their_key() {
         let n = normal();
         let err = |c: ClosedPneumothorax| c.plan(&n, &lungs()).unwrap_err().to_string();
-        assert!(err(ClosedPneumothorax::unilateral(Side::Left, 1.5, 100.0, 0.1)).contains("index_left"));
-        assert!(err(ClosedPneumothorax::unilateral(Side::Left, f64::NAN, 100.0, 0.1)).contains("index_left"));
-        assert!(err(ClosedPneumothorax::unilateral(Side::Left, 0.1, -1.0, 0.1)).contains("alpha_ml"));
-        assert!(err(ClosedPneumothorax::unilateral(Side::Left, 0.1, 3000.0, 0.1)).contains("alpha_ml"));
+        assert!(
+            err(ClosedPneumothorax::unilateral(Side::Left, 1.5, 100.0, 0.1)).contains("index_left")
+        );
+        assert!(err(ClosedPneumothorax::unilateral(
+            Side::Left,
+            f64::NAN,
+            100.0,
+            0.1
+        ))
+        .contains("index_left"));
+        assert!(
+            err(ClosedPneumothorax::unilateral(Side::Left, 0.1, -1.0, 0.1)).contains("alpha_ml")
+        );
+        assert!(
+            err(ClosedPneumothorax::unilateral(Side::Left, 0.1, 3000.0, 0.1)).contains("alpha_ml")
+        );
         assert!(err(ClosedPneumothorax::unilateral(Side::Left, 0.1, 100.0, 2.0)).contains("phi"));
         let mut both = ClosedPneumothorax::bilateral(0.1, 0.2, 0.1);
         both.alpha_ml = 50.0;
@@ -460,7 +537,10 @@ mod tests {
         let plan = ClosedPneumothorax::bilateral(0.01, 0.001, 0.1)
             .plan(&n, &lungs())
             .unwrap();
-        let (l, r) = (plan.lung(Side::Left).unwrap(), plan.lung(Side::Right).unwrap());
+        let (l, r) = (
+            plan.lung(Side::Left).unwrap(),
+            plan.lung(Side::Right).unwrap(),
+        );
         // dV left = 0.01^0.33 = 0.218776, right = 0.001^0.33 = 0.102329; dT = 5·0.218776 = 1.093881.
         assert!((l.dv - 0.218_776).abs() < 1e-6 && (r.dv - 0.102_329).abs() < 1e-6);
         assert!((plan.times.new_inhale_s - (2.5 - 1.093_881)).abs() < 1e-6);

@@ -362,15 +362,14 @@ mod tests {
                 })
                 .collect();
             let v0 = mesh.enclosed_volume_mm3();
-            let moved = |c: f64, i: u32| {
-                p(i) + c * DVec3::from(w[i as usize].map(|v| v as f64))
-            };
+            let moved = |c: f64, i: u32| p(i) + c * DVec3::from(w[i as usize].map(|v| v as f64));
             let mut c = 0.0;
             let flipped = loop {
                 c += 0.0025;
                 let any = mesh.triangles.iter().any(|t| {
                     let before = (p(t[1]) - p(t[0])).cross(p(t[2]) - p(t[0]));
-                    let after = (moved(c, t[1]) - moved(c, t[0])).cross(moved(c, t[2]) - moved(c, t[0]));
+                    let after =
+                        (moved(c, t[1]) - moved(c, t[0])).cross(moved(c, t[2]) - moved(c, t[0]));
                     before.dot(after) <= 0.0
                 });
                 if any || c > 2.0 {
@@ -380,7 +379,10 @@ mod tests {
             let loss = 1.0 - volume_at(&mesh, &w, flipped) / v0;
             eprintln!("{side:?}: normal-only field inverts a triangle at c = {flipped:.4}, loss {loss:.3}");
             // Measured: left 2.2 % (c = 0.0075), right 3.7 % (c = 0.0125) — against the seed's 46.8 %.
-            assert!(loss < 0.05, "{side:?}: loss {loss} before the first inversion");
+            assert!(
+                loss < 0.05,
+                "{side:?}: loss {loss} before the first inversion"
+            );
         }
     }
 }

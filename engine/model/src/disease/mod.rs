@@ -73,7 +73,9 @@ pub enum DiseaseError {
         reason: &'static str,
     },
     /// The disease names a lung the scene does not simulate.
-    #[error("the disease affects the {side} lung, which the scene does not simulate ([lungs] sides)")]
+    #[error(
+        "the disease affects the {side} lung, which the scene does not simulate ([lungs] sides)"
+    )]
     MissingLung {
         /// "left" or "right".
         side: &'static str,
@@ -426,7 +428,10 @@ mod tests {
             let dv = volume_fraction_lost(i).unwrap();
             assert!((dv - want).abs() < 1e-6, "I = {i}: {dv} vs {want}");
         }
-        assert_eq!(volume_fraction_lost(0.0).unwrap().to_bits(), 0.0f64.to_bits());
+        assert_eq!(
+            volume_fraction_lost(0.0).unwrap().to_bits(),
+            0.0f64.to_bits()
+        );
         for bad in [-1e-12, 1.000_001, f64::NAN, f64::INFINITY] {
             assert!(matches!(
                 volume_fraction_lost(bad),
@@ -452,7 +457,10 @@ mod tests {
             (1.0, 101.914_894), // 95.8/9.4 = 10.1914894 cm
         ] {
             let d = drop_for_index(i);
-            assert!(!d.clamped && (d.drop_mm - mm).abs() < 1e-5, "I = {i}: {d:?}");
+            assert!(
+                !d.clamped && (d.drop_mm - mm).abs() < 1e-5,
+                "I = {i}: {d:?}"
+            );
         }
     }
 

@@ -248,7 +248,12 @@ mod tests {
         // d_3 = 0.2·e^{(0.2 − 2)·0.0467735} = 0.2·e^{−0.0841923} = 0.2·0.919254 = 0.183851;
         // d_7 = 0.08·e^{−1.92·0.0467735} = 0.08·e^{−0.0898051} = 0.08·0.914111 = 0.073129.
         for (i, want) in [(0, 2.0), (1, 1.155_927), (2, 0.183_851), (6, 0.073_129)] {
-            assert!((d[i] - want).abs() < 2e-6, "d_{} = {} vs {want}", i + 1, d[i]);
+            assert!(
+                (d[i] - want).abs() < 2e-6,
+                "d_{} = {} vs {want}",
+                i + 1,
+                d[i]
+            );
         }
         let mut e = Vec::new();
         transform_into(&SUBJECT_1, Transform::Logarithm, x, &mut e).unwrap();
@@ -258,7 +263,12 @@ mod tests {
         // e_3 = 0.2·ln(0.00935470)/(−2.369291) = 0.2·(−4.671876)/(−2.369291) = 0.394369;
         // e_7 = 0.08·ln(0.00374188)/(−2.369291) = 0.08·(−5.588167)/(−2.369291) = 0.188687.
         for (i, want) in [(0, 2.0), (1, 1.458_723), (2, 0.394_369), (6, 0.188_687)] {
-            assert!((e[i] - want).abs() < 2e-6, "e_{} = {} vs {want}", i + 1, e[i]);
+            assert!(
+                (e[i] - want).abs() < 2e-6,
+                "e_{} = {} vs {want}",
+                i + 1,
+                e[i]
+            );
         }
     }
 
@@ -298,7 +308,10 @@ mod tests {
         ));
         assert!(matches!(
             transform_into(&[0.0, 1e300, 1.0], Transform::Exponent, 0.5, &mut out),
-            Err(ResistanceError::NonFinite { eq: "8.8", index: 2 })
+            Err(ResistanceError::NonFinite {
+                eq: "8.8",
+                index: 2
+            })
         ));
     }
 
@@ -314,9 +327,16 @@ mod tests {
     /// Mean normalised volume over the phase (lower = the limb fills later = "more resistive") and
     /// the largest difference from `base`'s curve.
     fn filling(k: &PhaseConstants, base: &PhaseConstants) -> (f64, f64) {
-        let (c, b) = (phase_curve(k, 400).unwrap(), phase_curve(base, 400).unwrap());
+        let (c, b) = (
+            phase_curve(k, 400).unwrap(),
+            phase_curve(base, 400).unwrap(),
+        );
         let mean = c.iter().sum::<f64>() / c.len() as f64;
-        let max = c.iter().zip(&b).map(|(x, y)| (x - y).abs()).fold(0.0, f64::max);
+        let max = c
+            .iter()
+            .zip(&b)
+            .map(|(x, y)| (x - y).abs())
+            .fold(0.0, f64::max);
         (mean, max)
     }
 

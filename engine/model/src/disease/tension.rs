@@ -208,12 +208,42 @@ impl TensionParams {
 
     /// Check the parameters that do not depend on the lungs; errors name the scene key.
     pub fn validate(&self) -> Result<(), DiseaseError> {
-        check_range("v_p_ml", self.inflow_ml, f64::MIN_POSITIVE, 1000.0, "within (0, 1000] ml per cycle")?;
+        check_range(
+            "v_p_ml",
+            self.inflow_ml,
+            f64::MIN_POSITIVE,
+            1000.0,
+            "within (0, 1000] ml per cycle",
+        )?;
         check_range("tau", self.tau, 0.0, 10.0, "within 0..=10 per cycle")?;
-        check_range("beta_mm", self.beta_mm, f64::MIN_POSITIVE, 100.0, "within (0, 100] mm (seed: 18)")?;
-        check_range("alpha_ml", self.alpha_ml, 0.0, ALPHA_MAX_ML, "within 0..=2500 ml")?;
-        check_range("phi", self.phi, 0.0, super::resistance::PHI_MAX, "within 0..=1 (seed: 0.1)")?;
-        check_range("needle_residual", self.needle_residual, 0.0, 1.0, "within 0..=1")?;
+        check_range(
+            "beta_mm",
+            self.beta_mm,
+            f64::MIN_POSITIVE,
+            100.0,
+            "within (0, 100] mm (seed: 18)",
+        )?;
+        check_range(
+            "alpha_ml",
+            self.alpha_ml,
+            0.0,
+            ALPHA_MAX_ML,
+            "within 0..=2500 ml",
+        )?;
+        check_range(
+            "phi",
+            self.phi,
+            0.0,
+            super::resistance::PHI_MAX,
+            "within 0..=1 (seed: 0.1)",
+        )?;
+        check_range(
+            "needle_residual",
+            self.needle_residual,
+            0.0,
+            1.0,
+            "within 0..=1",
+        )?;
         check_range(
             "chest_tube_ml_per_cycle",
             self.chest_tube_ml_per_cycle,
@@ -375,8 +405,7 @@ impl Tension {
         // Y·Z face scales by k1².
         let k1 = (1.0 - v1_max_ml / v_aff).cbrt();
         let q = affected.fill_fraction();
-        let shift_mm_per_ml =
-            1000.0 / (q * k1 * k1 * affected.box_mm[1] * affected.box_mm[2]);
+        let shift_mm_per_ml = 1000.0 / (q * k1 * k1 * affected.box_mm[1] * affected.box_mm[2]);
         if !(shift_mm_per_ml.is_finite() && shift_mm_per_ml > 0.0) {
             return Err(DiseaseError::BadBaseline {
                 side: affected.side.name(),
@@ -564,9 +593,17 @@ impl Tension {
             },
             held_ml: stopped.then_some(base),
             offset_mm: [
-                if shift_mm > 0.0 { -lateral * shift_mm } else { 0.0 },
+                if shift_mm > 0.0 {
+                    -lateral * shift_mm
+                } else {
+                    0.0
+                },
                 0.0,
-                if drop.drop_mm > 0.0 { -drop.drop_mm } else { 0.0 },
+                if drop.drop_mm > 0.0 {
+                    -drop.drop_mm
+                } else {
+                    0.0
+                },
             ],
             resistance_dv: dv,
         };
@@ -681,8 +718,14 @@ mod tests {
 
     fn course(p: TensionParams) -> Tension {
         let (l, r) = lungs();
-        Tension::new(p, Timing::default(), preset(DEFAULT_PRESET).unwrap().boundary, l, Some(r))
-            .unwrap()
+        Tension::new(
+            p,
+            Timing::default(),
+            preset(DEFAULT_PRESET).unwrap().boundary,
+            l,
+            Some(r),
+        )
+        .unwrap()
     }
 
     /// V1max = 875 ml: the collapsed lung keeps 125 ml = 1/8, so k1 = 1/2 and the collapsed box's
@@ -719,7 +762,10 @@ mod tests {
         let m = course(hand(500.0, std::f64::consts::LN_2));
         assert_eq!(m.cycles_to_arrest(), Some(8));
         // τ = ln 2, V_p = 400 ml: P_∞ = 800 ml < 920: never.
-        assert_eq!(course(hand(400.0, std::f64::consts::LN_2)).cycles_to_arrest(), None);
+        assert_eq!(
+            course(hand(400.0, std::f64::consts::LN_2)).cycles_to_arrest(),
+            None
+        );
     }
 
     #[test]
@@ -761,10 +807,16 @@ mod tests {
             let mut out = Vec::new();
             for t in 0..600u64 {
                 if t == 250 {
-                    out.push(format!("{:?}", m.intervene(Intervention::NeedleDecompression, Side::Left, t * 90)));
+                    out.push(format!(
+                        "{:?}",
+                        m.intervene(Intervention::NeedleDecompression, Side::Left, t * 90)
+                    ));
                 }
                 if t == 400 {
-                    out.push(format!("{:?}", m.intervene(Intervention::ChestTube, Side::Left, t * 90)));
+                    out.push(format!(
+                        "{:?}",
+                        m.intervene(Intervention::ChestTube, Side::Left, t * 90)
+                    ));
                 }
                 let c = m.advance();
                 out.push(format!(
@@ -802,7 +854,10 @@ mod tests {
         assert_eq!(c.cycle, 14);
         // P = 1400 ml; the needle vents to 25 % = 350 ml over 10 cycles: −105 ml per cycle.
         let rec = m.intervene(Intervention::NeedleDecompression, Side::Left, 12_345);
-        assert_eq!((rec.outcome, rec.cycle, rec.tick), (Outcome::Applied, 15, 12_345));
+        assert_eq!(
+            (rec.outcome, rec.cycle, rec.tick),
+            (Outcome::Applied, 15, 12_345)
+        );
         let vented: Vec<TensionCycle> = (0..12).map(|_| m.advance()).collect();
         assert_eq!(vented[0].pleural_air_ml, 1295.0);
         assert_eq!(vented[0].inflow_ml, 0.0);
@@ -817,9 +872,19 @@ mod tests {
         // The left lung breathes again: dV = 350/875 = 0.4, tidal 250·0.6 = 150 ml.
         assert!((vented[11].affected.tidal_ml - 150.0).abs() < 1e-9);
         // A second needle does nothing; the wrong side does nothing; the chest tube drains the rest.
-        assert_eq!(m.intervene(Intervention::NeedleDecompression, Side::Left, 1).outcome, Outcome::AlreadyApplied);
-        assert_eq!(m.intervene(Intervention::ChestTube, Side::Right, 2).outcome, Outcome::WrongSide);
-        assert_eq!(m.intervene(Intervention::ChestTube, Side::Left, 3).outcome, Outcome::Applied);
+        assert_eq!(
+            m.intervene(Intervention::NeedleDecompression, Side::Left, 1)
+                .outcome,
+            Outcome::AlreadyApplied
+        );
+        assert_eq!(
+            m.intervene(Intervention::ChestTube, Side::Right, 2).outcome,
+            Outcome::WrongSide
+        );
+        assert_eq!(
+            m.intervene(Intervention::ChestTube, Side::Left, 3).outcome,
+            Outcome::Applied
+        );
         let drained: Vec<TensionCycle> = (0..8).map(|_| m.advance()).collect();
         // 350 ml at 50 ml per cycle: empty after 7 cycles, then exactly normal breathing.
         assert_eq!(drained[6].pleural_air_ml, 0.0);
@@ -842,13 +907,23 @@ mod tests {
         for _ in 0..50 {
             wound.advance();
         }
-        assert_eq!(wound.intervene(Intervention::OcclusiveDressing, Side::Left, 7).outcome, Outcome::Applied);
+        assert_eq!(
+            wound
+                .intervene(Intervention::OcclusiveDressing, Side::Left, 7)
+                .outcome,
+            Outcome::Applied
+        );
         let held = wound.advance().pleural_air_ml;
         // The wound is sealed: no more air, and none leaves either (the tension stays).
         for _ in 0..100 {
             assert_eq!(wound.advance().pleural_air_ml, held);
         }
-        assert_eq!(wound.intervene(Intervention::OcclusiveDressing, Side::Left, 8).outcome, Outcome::AlreadyApplied);
+        assert_eq!(
+            wound
+                .intervene(Intervention::OcclusiveDressing, Side::Left, 8)
+                .outcome,
+            Outcome::AlreadyApplied
+        );
     }
 
     #[test]
@@ -858,36 +933,142 @@ mod tests {
         let build = |p: TensionParams| Tension::new(p, Timing::default(), b, l, Some(r));
         let base = TensionParams::new(Side::Left);
         let cases: Vec<(TensionParams, &str)> = vec![
-            (TensionParams { inflow_ml: 0.0, ..base }, "v_p_ml"),
-            (TensionParams { inflow_ml: f64::NAN, ..base }, "v_p_ml"),
+            (
+                TensionParams {
+                    inflow_ml: 0.0,
+                    ..base
+                },
+                "v_p_ml",
+            ),
+            (
+                TensionParams {
+                    inflow_ml: f64::NAN,
+                    ..base
+                },
+                "v_p_ml",
+            ),
             (TensionParams { tau: -0.1, ..base }, "tau"),
-            (TensionParams { tau: f64::INFINITY, ..base }, "tau"),
-            (TensionParams { beta_mm: 0.0, ..base }, "beta_mm"),
-            (TensionParams { alpha_ml: 3000.0, ..base }, "alpha_ml"),
+            (
+                TensionParams {
+                    tau: f64::INFINITY,
+                    ..base
+                },
+                "tau",
+            ),
+            (
+                TensionParams {
+                    beta_mm: 0.0,
+                    ..base
+                },
+                "beta_mm",
+            ),
+            (
+                TensionParams {
+                    alpha_ml: 3000.0,
+                    ..base
+                },
+                "alpha_ml",
+            ),
             (TensionParams { phi: -0.1, ..base }, "phi"),
-            (TensionParams { needle_residual: 1.5, ..base }, "needle_residual"),
-            (TensionParams { needle_vent_cycles: 0, ..base }, "needle_vent_cycles"),
-            (TensionParams { chest_tube_ml_per_cycle: 0.0, ..base }, "chest_tube_ml_per_cycle"),
-            (TensionParams { v1_max_ml: Some(960.0), ..base }, "v1_max_ml"),
-            (TensionParams { v1_max_ml: Some(0.0), ..base }, "v1_max_ml"),
-            (TensionParams { v2_max_ml: Some(1000.0), ..base }, "v2_max_ml"),
-            (TensionParams { v2_max_ml: Some(7000.0), ..base }, "v2_max_ml"),
+            (
+                TensionParams {
+                    needle_residual: 1.5,
+                    ..base
+                },
+                "needle_residual",
+            ),
+            (
+                TensionParams {
+                    needle_vent_cycles: 0,
+                    ..base
+                },
+                "needle_vent_cycles",
+            ),
+            (
+                TensionParams {
+                    chest_tube_ml_per_cycle: 0.0,
+                    ..base
+                },
+                "chest_tube_ml_per_cycle",
+            ),
+            (
+                TensionParams {
+                    v1_max_ml: Some(960.0),
+                    ..base
+                },
+                "v1_max_ml",
+            ),
+            (
+                TensionParams {
+                    v1_max_ml: Some(0.0),
+                    ..base
+                },
+                "v1_max_ml",
+            ),
+            (
+                TensionParams {
+                    v2_max_ml: Some(1000.0),
+                    ..base
+                },
+                "v2_max_ml",
+            ),
+            (
+                TensionParams {
+                    v2_max_ml: Some(7000.0),
+                    ..base
+                },
+                "v2_max_ml",
+            ),
         ];
         for (p, key) in cases {
             let e = build(p).unwrap_err().to_string();
             assert!(e.contains(key), "{key}: {e}");
         }
-        let e = Tension::new(TensionParams::new(Side::Right), Timing::default(), b, l, Some(r)).unwrap_err();
+        let e = Tension::new(
+            TensionParams::new(Side::Right),
+            Timing::default(),
+            b,
+            l,
+            Some(r),
+        )
+        .unwrap_err();
         assert_eq!(e, DiseaseError::MissingLung { side: "right" });
-        let e = Tension::new(TensionParams { v2_max_ml: Some(3000.0), ..base }, Timing::default(), b, l, None)
-            .unwrap_err();
+        let e = Tension::new(
+            TensionParams {
+                v2_max_ml: Some(3000.0),
+                ..base
+            },
+            Timing::default(),
+            b,
+            l,
+            None,
+        )
+        .unwrap_err();
         assert!(e.to_string().contains("v2_max_ml"));
         // The extremes that are allowed give a finite course.
         for p in [
-            TensionParams { inflow_ml: 1000.0, tau: 0.0, hyperexpansion_cycles: 0, ..base },
-            TensionParams { inflow_ml: 1e-300, tau: 10.0, ..base },
-            TensionParams { v1_max_ml: Some(950.0), beta_mm: 100.0, ..base },
-            TensionParams { needle_residual: 1.0, alpha_ml: 2500.0, phi: 1.0, ..base },
+            TensionParams {
+                inflow_ml: 1000.0,
+                tau: 0.0,
+                hyperexpansion_cycles: 0,
+                ..base
+            },
+            TensionParams {
+                inflow_ml: 1e-300,
+                tau: 10.0,
+                ..base
+            },
+            TensionParams {
+                v1_max_ml: Some(950.0),
+                beta_mm: 100.0,
+                ..base
+            },
+            TensionParams {
+                needle_residual: 1.0,
+                alpha_ml: 2500.0,
+                phi: 1.0,
+                ..base
+            },
         ] {
             let mut m = build(p).unwrap();
             m.intervene(Intervention::NeedleDecompression, Side::Left, 0);
@@ -898,9 +1079,21 @@ mod tests {
     }
 
     fn finite(c: &TensionCycle) {
-        let mut v = vec![c.pleural_air_ml, c.dv, c.loss_fraction, c.shift_mm, c.timing.breaths_per_min, c.drop.drop_mm];
+        let mut v = vec![
+            c.pleural_air_ml,
+            c.dv,
+            c.loss_fraction,
+            c.shift_mm,
+            c.timing.breaths_per_min,
+            c.drop.drop_mm,
+        ];
         for l in std::iter::once(&c.affected).chain(c.unaffected.as_ref()) {
-            v.extend([l.collapse, l.base_volume_ml, l.tidal_ml, l.held_ml.unwrap_or(0.0)]);
+            v.extend([
+                l.collapse,
+                l.base_volume_ml,
+                l.tidal_ml,
+                l.held_ml.unwrap_or(0.0),
+            ]);
             v.extend(l.offset_mm);
         }
         assert!(v.iter().all(|x| x.is_finite()), "{c:?}");
@@ -914,10 +1107,19 @@ mod tests {
         let l = LungBaseline::of(&mesh, side, 1100.0 / 2400.0).unwrap();
         let rmesh = crate::mesh::generate::lung(Side::Right, 4000).unwrap();
         let r = LungBaseline::of(&rmesh, Side::Right, 1300.0 / 2400.0).unwrap();
-        let m = Tension::new(TensionParams::new(side), Timing::default(), preset(DEFAULT_PRESET).unwrap().boundary, l, Some(r)).unwrap();
+        let m = Tension::new(
+            TensionParams::new(side),
+            Timing::default(),
+            preset(DEFAULT_PRESET).unwrap().boundary,
+            l,
+            Some(r),
+        )
+        .unwrap();
         let cycles = m.cycles_to_arrest().unwrap();
         let mut run = m.untreated();
-        let seconds: f64 = (0..=cycles).map(|_| 60.0 / run.advance().timing.breaths_per_min).sum();
+        let seconds: f64 = (0..=cycles)
+            .map(|_| 60.0 / run.advance().timing.breaths_per_min)
+            .sum();
         eprintln!(
             "default left course: V1max {:.0} ml, SVC at {:.0} ml ({:.4} mm/ml), arrest in cycle {cycles}, {:.1} min",
             m.v1_max_ml(),

@@ -115,7 +115,9 @@ pub enum TumourError {
         got: usize,
     },
     /// The kernel has no off-diagonal entries, so it has no reach.
-    #[error("the kernel has no entry between distinct nodes: it has no reach to normalise distances by")]
+    #[error(
+        "the kernel has no entry between distinct nodes: it has no reach to normalise distances by"
+    )]
     NoReach,
     /// The mesh is unusable.
     #[error("the lung mesh is empty or not finite")]
@@ -164,15 +166,33 @@ impl Tumour {
     /// Check every parameter; errors name the scene key.
     pub fn validate(&self) -> Result<(), DiseaseError> {
         for &c in &self.centre {
-            check_range("centre", c, 0.0, 1.0, "each within 0..=1 (normalised lung coordinates)")?;
+            check_range(
+                "centre",
+                c,
+                0.0,
+                1.0,
+                "each within 0..=1 (normalised lung coordinates)",
+            )?;
         }
         for &r in &self.radii_mm {
             check_range("radii_mm", r, 0.5, 150.0, "each within 0.5..=150 mm")?;
         }
-        check_range("expandability", self.expandability, f64::MIN_POSITIVE, 1.0, "within (0, 1]")?;
+        check_range(
+            "expandability",
+            self.expandability,
+            f64::MIN_POSITIVE,
+            1.0,
+            "within (0, 1]",
+        )?;
         check_range("falloff", self.falloff, 0.0, 10.0, "within 0..=10 radii")?;
         check_range("coupling", self.coupling, 0.0, 10.0, "within 0..=10")?;
-        check_range("resistance_phi", self.resistance_phi, 0.0, resistance::PHI_MAX, "within 0..=1")?;
+        check_range(
+            "resistance_phi",
+            self.resistance_phi,
+            0.0,
+            resistance::PHI_MAX,
+            "within 0..=1",
+        )?;
         Ok(())
     }
 
@@ -231,7 +251,13 @@ impl Tumour {
         exhale: &PhaseConstants,
         lung_volume_ml: f64,
     ) -> Result<(PhaseConstants, PhaseConstants, [ResistanceReport; 2]), DiseaseError> {
-        check_range("lung volume (ml)", lung_volume_ml, f64::MIN_POSITIVE, f64::MAX, "> 0")?;
+        check_range(
+            "lung volume (ml)",
+            lung_volume_ml,
+            f64::MIN_POSITIVE,
+            f64::MAX,
+            "> 0",
+        )?;
         let x = self.resistance_phi * (self.volume_ml() / lung_volume_ml).min(1.0);
         let (mut i, mut e) = (inhale.clone(), exhale.clone());
         let ri = resistance::phase_into(inhale, resistance::TUMOUR.0, x, &mut i)?;
@@ -406,7 +432,11 @@ pub fn modify_rows(
     };
     for j in 0..n {
         let r = row_ptr[j] as usize..row_ptr[j + 1] as usize;
-        for ((&i, &v), o) in cols[r.clone()].iter().zip(&vals[r.clone()]).zip(&mut out[r]) {
+        for ((&i, &v), o) in cols[r.clone()]
+            .iter()
+            .zip(&vals[r.clone()])
+            .zip(&mut out[r])
+        {
             let i = i as usize;
             change.entries += 1;
             let e = a[j] - a[i];
@@ -482,8 +512,7 @@ pub fn winding_number(mesh: &TriMesh, x: [f64; 3]) -> f64 {
     let x = DVec3::from(x);
     let mut omega = 0.0;
     for t in &mesh.triangles {
-        let [a, b, c] =
-            t.map(|i| DVec3::from(mesh.positions[i as usize].map(|v| v as f64)) - x);
+        let [a, b, c] = t.map(|i| DVec3::from(mesh.positions[i as usize].map(|v| v as f64)) - x);
         let (la, lb, lc) = (a.length(), b.length(), c.length());
         let num = a.dot(b.cross(c));
         let den = la * lb * lc + a.dot(b) * lc + b.dot(c) * la + c.dot(a) * lb;
@@ -503,7 +532,11 @@ pub fn mean_value_weights(mesh: &TriMesh, x: [f64; 3]) -> Result<Vec<f64>, Tumou
     let n = mesh.positions.len();
     let mut d = vec![0.0; n];
     let mut u = vec![DVec3::ZERO; n];
-    let scale = mesh.aabb().size().iter().fold(0.0f64, |m, &s| m.max(s as f64));
+    let scale = mesh
+        .aabb()
+        .size()
+        .iter()
+        .fold(0.0f64, |m, &s| m.max(s as f64));
     let eps = 1e-12 * scale.max(1.0);
     for (k, p) in mesh.positions.iter().enumerate() {
         let v = DVec3::from(p.map(|c| c as f64)) - x;
@@ -612,7 +645,9 @@ impl TumourTrack {
     pub fn amplitude_mm(&self, scales: &[f64]) -> [f64; 3] {
         let (lo, hi) = scales
             .iter()
-            .fold((f64::INFINITY, f64::NEG_INFINITY), |(l, h), &s| (l.min(s), h.max(s)));
+            .fold((f64::INFINITY, f64::NEG_INFINITY), |(l, h), &s| {
+                (l.min(s), h.max(s))
+            });
         if !(lo.is_finite() && hi.is_finite()) {
             return [0.0; 3];
         }
@@ -697,9 +732,13 @@ pub fn tumour_lung(
         .map(|d| DVec3::from(d.map(|v| v as f64)))
         .collect();
     let normal_force = transfer.elastostatic(&f);
-    let (normal, _, _) =
-        LungModel::from_force_and_directions(tumour.side, mesh.clone(), dirs.clone(), &normal_force)
-            .map_err(|_| TumourError::BadMesh)?;
+    let (normal, _, _) = LungModel::from_force_and_directions(
+        tumour.side,
+        mesh.clone(),
+        dirs.clone(),
+        &normal_force,
+    )
+    .map_err(|_| TumourError::BadMesh)?;
     let force = changed.elastostatic(&f);
     let (model, _, _) = LungModel::from_force_and_directions(tumour.side, mesh, dirs, &force)
         .map_err(|_| TumourError::BadMesh)?;
@@ -728,12 +767,12 @@ mod tests {
         let c = [0.0; 3];
         assert_eq!(t.expandability_at([0.0; 3], c), 0.1);
         assert_eq!(t.expandability_at([10.0, 0.0, 0.0], c), 0.1); // ρ = 1: inside
-        // ρ = 1.5, falloff 1: t = 0.5, smoothstep 0.5 → a = 1 − 0.9·0.5 = 0.55.
+                                                                  // ρ = 1.5, falloff 1: t = 0.5, smoothstep 0.5 → a = 1 − 0.9·0.5 = 0.55.
         assert!((t.expandability_at([0.0, 30.0, 0.0], c) - 0.55).abs() < 1e-12);
         // ρ = 1.25: t = 0.25, 1 − t²(3 − 2t) = 1 − 0.0625·2.5 = 0.84375 → a = 1 − 0.9·0.84375 = 0.240625.
         assert!((t.expandability_at([0.0, 0.0, 37.5], c) - 0.240_625).abs() < 1e-12);
         assert_eq!(t.expandability_at([0.0, 0.0, 60.0], c), 1.0); // ρ = 2
-        // V = 4/3·π·10·20·30 mm³ = 25132.74 mm³ = 25.13274 ml.
+                                                                  // V = 4/3·π·10·20·30 mm³ = 25132.74 mm³ = 25.13274 ml.
         assert!((t.volume_ml() - 25.132_74).abs() < 1e-5);
     }
 
@@ -783,7 +822,18 @@ mod tests {
         let mut out = vec![0.0f32; vals.len()];
         // φ = 0.5 at node 1 only, no tumour: (0→1) has x = 1/(4π·0.6) = 0.132629,
         // g = (x·cos 0.5 + √(1 − x²)·sin 0.5)/x = 0.877583 + 0.991166·0.479426/0.132629 = 4.460432.
-        modify_rows(&p, &rp, &cols, &vals, &[1.0; 3], &[0.0, 0.5, 0.0], 0.25, reach, &mut out).unwrap();
+        modify_rows(
+            &p,
+            &rp,
+            &cols,
+            &vals,
+            &[1.0; 3],
+            &[0.0, 0.5, 0.0],
+            0.25,
+            reach,
+            &mut out,
+        )
+        .unwrap();
         assert!((out[1] as f64 - 0.3 * 4.460_432).abs() < 1e-5);
         // (1→1): d = 0 → clamped x = 1 on both sides: g = cos 0.5 = 0.877583.
         assert!((out[4] as f64 - 0.6 * 0.877_583).abs() < 1e-6);
@@ -794,14 +844,43 @@ mod tests {
     fn no_tumour_and_no_phi_leave_the_kernel_bit_for_bit() {
         let (p, rp, cols, vals) = line();
         let mut out = vec![0.0f32; vals.len()];
-        let ch = modify_rows(&p, &rp, &cols, &vals, &[1.0; 3], &[0.0; 3], 0.25, 16.0, &mut out).unwrap();
+        let ch = modify_rows(
+            &p, &rp, &cols, &vals, &[1.0; 3], &[0.0; 3], 0.25, 16.0, &mut out,
+        )
+        .unwrap();
         assert_eq!(out, vals);
         assert_eq!(ch.changed, 0);
         // Shapes that do not fit are typed errors.
-        assert!(modify_rows(&p, &rp[..3], &cols, &vals, &[1.0; 3], &[0.0; 3], 0.25, 16.0, &mut out).is_err());
-        assert!(modify_rows(&p, &rp, &cols, &vals, &[1.0; 2], &[0.0; 3], 0.25, 16.0, &mut out).is_err());
-        assert!(modify_rows(&p, &rp, &cols, &vals, &[f64::NAN; 3], &[0.0; 3], 0.25, 16.0, &mut out).is_err());
-        assert!(modify_rows(&p, &rp, &cols, &vals, &[1.0; 3], &[0.0; 3], -1.0, 16.0, &mut out).is_err());
+        assert!(modify_rows(
+            &p,
+            &rp[..3],
+            &cols,
+            &vals,
+            &[1.0; 3],
+            &[0.0; 3],
+            0.25,
+            16.0,
+            &mut out
+        )
+        .is_err());
+        assert!(
+            modify_rows(&p, &rp, &cols, &vals, &[1.0; 2], &[0.0; 3], 0.25, 16.0, &mut out).is_err()
+        );
+        assert!(modify_rows(
+            &p,
+            &rp,
+            &cols,
+            &vals,
+            &[f64::NAN; 3],
+            &[0.0; 3],
+            0.25,
+            16.0,
+            &mut out
+        )
+        .is_err());
+        assert!(
+            modify_rows(&p, &rp, &cols, &vals, &[1.0; 3], &[0.0; 3], -1.0, 16.0, &mut out).is_err()
+        );
         assert!(kernel_reach_mm(&p, &[0, 1, 2, 3], &[0, 1, 2]).is_err());
     }
 
@@ -813,7 +892,9 @@ mod tests {
         let mut s = [0.0; 3];
         let singular = column_scales_8_21(&rp, &cols, &vals, &f, &[2.6, 3.0, 0.1], &mut s).unwrap();
         assert_eq!(singular, 0);
-        assert!((s[0] - 2.0).abs() < 1e-6 && (s[1] - 2.0).abs() < 1e-6 && (s[2] - 0.5).abs() < 1e-6);
+        assert!(
+            (s[0] - 2.0).abs() < 1e-6 && (s[1] - 2.0).abs() < 1e-6 && (s[2] - 0.5).abs() < 1e-6
+        );
         let singular = column_scales_8_21(&rp, &cols, &vals, &[0.0; 3], &[1.0; 3], &mut s).unwrap();
         assert_eq!((singular, s), (3, [1.0; 3]));
     }
@@ -839,12 +920,10 @@ mod tests {
             assert!((winding_number(&mesh, c) - 1.0).abs() < 1e-9);
             let track = TumourTrack::new(&mesh, &field, c).unwrap();
             let want = affine(c);
-            for a in 0..3 {
+            for (got, want) in track.unit_displacement_mm.iter().zip(want) {
                 assert!(
-                    (track.unit_displacement_mm[a] - want[a]).abs() < 1e-4 * (1.0 + want[a].abs()),
-                    "{centre:?} axis {a}: {} vs {}",
-                    track.unit_displacement_mm[a],
-                    want[a]
+                    (got - want).abs() < 1e-4 * (1.0 + want.abs()),
+                    "{centre:?}: {got} vs {want}"
                 );
             }
         }
@@ -885,7 +964,10 @@ mod tests {
         let (mut row_ptr, mut cols, mut vals) = (vec![0u64], Vec::new(), Vec::new());
         for (j, ring) in nb.iter_mut().enumerate() {
             ring.sort_unstable();
-            let w: Vec<f64> = ring.iter().map(|&i| 1.0 / dist(&mesh.positions, j, i as usize)).collect();
+            let w: Vec<f64> = ring
+                .iter()
+                .map(|&i| 1.0 / dist(&mesh.positions, j, i as usize))
+                .collect();
             let total: f64 = w.iter().sum();
             cols.push(j as u32);
             vals.push(0.4f32);
@@ -911,7 +993,11 @@ mod tests {
         let dirs = mesh
             .positions
             .iter()
-            .map(|&p| direction(normalised_position(p, &bb, side), &k, side).as_vec3().to_array())
+            .map(|&p| {
+                direction(normalised_position(p, &bb, side), &k, side)
+                    .as_vec3()
+                    .to_array()
+            })
             .collect();
         let f = mesh
             .positions
@@ -934,7 +1020,9 @@ mod tests {
         let normal = LungModel::from_force_and_directions(
             side,
             mesh.clone(),
-            dirs.iter().map(|d| DVec3::from(d.map(|v| v as f64))).collect(),
+            dirs.iter()
+                .map(|d| DVec3::from(d.map(|v| v as f64)))
+                .collect(),
             &t.elastostatic(&f.iter().map(|&v| v as f64).collect::<Vec<_>>()),
         )
         .unwrap()
@@ -953,7 +1041,8 @@ mod tests {
         let ratio_n = mean(&normal, true) / mean(&normal, false);
         let mut ratios = vec![ratio_n, mean(&lung.model, true) / mean(&lung.model, false)];
         for coupling in [0.5, 1.0, 2.0] {
-            let l = tumour_lung(&Tumour { coupling, ..tumour }, mesh.clone(), &t, &dirs, &f).unwrap();
+            let l =
+                tumour_lung(&Tumour { coupling, ..tumour }, mesh.clone(), &t, &dirs, &f).unwrap();
             ratios.push(mean(&l.model, true) / mean(&l.model, false));
         }
         // Measured (EQUATIONS §4.4): normal 0.8795; B = 0.25, 0.5, 1, 2: 0.8764, 0.8736, 0.8682, 0.8580
@@ -961,7 +1050,13 @@ mod tests {
         eprintln!("tumour region / rest, mean unit displacement: normal, B = 0.25, 0.5, 1, 2: {ratios:.4?}");
         assert!(ratios.windows(2).all(|w| w[1] < w[0]), "{ratios:?}");
         // Same unit volume either way (the lung still breathes its tidal volume).
-        assert!((lung.model.cubic.volume(1.0) - lung.model.cubic.coeffs[0] - crate::deform::UNIT_VOLUME_ML * 1000.0).abs() < 1e-6 * 1000.0);
+        assert!(
+            (lung.model.cubic.volume(1.0)
+                - lung.model.cubic.coeffs[0]
+                - crate::deform::UNIT_VOLUME_ML * 1000.0)
+                .abs()
+                < 1e-6 * 1000.0
+        );
         // A lower-lobe tumour moves more along Z than an upper-lobe one (clinically: lower-lobe
         // tumours move most), both finite.
         let upper = Tumour::new(side, [0.5, 0.5, 0.2], [15.0; 3]);
@@ -995,21 +1090,63 @@ mod tests {
         let side = Side::Left;
         let (mesh, t, dirs, f) = lung_inputs(side);
         // The box corner (medial, posterior, apex) is outside the rounded lung.
-        let e = tumour_lung(&Tumour::new(side, [0.0, 0.0, 0.0], [5.0; 3]), mesh.clone(), &t, &dirs, &f)
-            .unwrap_err();
-        assert!(matches!(e, DiseaseError::Tumour(TumourError::CentreOutside { .. })), "{e}");
+        let e = tumour_lung(
+            &Tumour::new(side, [0.0, 0.0, 0.0], [5.0; 3]),
+            mesh.clone(),
+            &t,
+            &dirs,
+            &f,
+        )
+        .unwrap_err();
+        assert!(
+            matches!(e, DiseaseError::Tumour(TumourError::CentreOutside { .. })),
+            "{e}"
+        );
         for (tm, key) in [
             (Tumour::new(side, [1.5, 0.5, 0.5], [5.0; 3]), "centre"),
             (Tumour::new(side, [0.5, 0.5, 0.5], [0.0; 3]), "radii_mm"),
-            (Tumour { expandability: 0.0, ..Tumour::new(side, [0.5; 3], [5.0; 3]) }, "expandability"),
-            (Tumour { falloff: -1.0, ..Tumour::new(side, [0.5; 3], [5.0; 3]) }, "falloff"),
-            (Tumour { coupling: f64::NAN, ..Tumour::new(side, [0.5; 3], [5.0; 3]) }, "coupling"),
-            (Tumour { resistance_phi: 2.0, ..Tumour::new(side, [0.5; 3], [5.0; 3]) }, "resistance_phi"),
+            (
+                Tumour {
+                    expandability: 0.0,
+                    ..Tumour::new(side, [0.5; 3], [5.0; 3])
+                },
+                "expandability",
+            ),
+            (
+                Tumour {
+                    falloff: -1.0,
+                    ..Tumour::new(side, [0.5; 3], [5.0; 3])
+                },
+                "falloff",
+            ),
+            (
+                Tumour {
+                    coupling: f64::NAN,
+                    ..Tumour::new(side, [0.5; 3], [5.0; 3])
+                },
+                "coupling",
+            ),
+            (
+                Tumour {
+                    resistance_phi: 2.0,
+                    ..Tumour::new(side, [0.5; 3], [5.0; 3])
+                },
+                "resistance_phi",
+            ),
         ] {
-            let e = tumour_lung(&tm, mesh.clone(), &t, &dirs, &f).unwrap_err().to_string();
+            let e = tumour_lung(&tm, mesh.clone(), &t, &dirs, &f)
+                .unwrap_err()
+                .to_string();
             assert!(e.contains(key), "{key}: {e}");
         }
-        let e = tumour_lung(&Tumour::new(side, [0.5; 3], [5.0; 3]), mesh, &t, &dirs[1..], &f).unwrap_err();
+        let e = tumour_lung(
+            &Tumour::new(side, [0.5; 3], [5.0; 3]),
+            mesh,
+            &t,
+            &dirs[1..],
+            &f,
+        )
+        .unwrap_err();
         assert!(e.to_string().contains("directions"), "{e}");
     }
 
@@ -1024,7 +1161,12 @@ mod tests {
         assert!((i.chi[1] - 1.316_368).abs() < 1e-5, "{}", i.chi[1]);
         assert_eq!(i.chi, e.chi);
         // φ_r = 0: the normal constants.
-        let (i, _, _) = Tumour { resistance_phi: 0.0, ..t }.resistance(&p.inhale, &p.exhale, 1300.0).unwrap();
+        let (i, _, _) = Tumour {
+            resistance_phi: 0.0,
+            ..t
+        }
+        .resistance(&p.inhale, &p.exhale, 1300.0)
+        .unwrap();
         assert_eq!(i, p.inhale);
     }
 
