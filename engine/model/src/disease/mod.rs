@@ -149,11 +149,13 @@ pub struct Drop {
 
 /// Eq. 8.2, the vertical drop of the affected lung from the apex.
 ///
-/// **Decision (lungdyn), unit:** the seed gives none. `4.2` and `4.7` are Rhea et al.'s (Radiology
-/// 1982;144:733–736) `%PTX = 4.2 + 4.7·AID` with AID the average interpleural distance in **cm**,
-/// so `(100·I − 4.2)/4.7` is the AID in cm for `I` as a fraction, and `A` (half of it) is in cm. The
-/// drop is `10·A` mm along −Z (the seed's upright patient; body frame). `A < 0` (`I < 0.042`, where
-/// Rhea's line meets no separation) is clamped to 0 and reported.
+/// **Decision (lungdyn), unit:** the seed gives none. `4.2` and `4.7` are the regression of Collins
+/// et al. (AJR 1995;165:1127–1130), `%PTX = 4.2 + 4.7·(A + B + C)` with `A, B, C` the interpleural
+/// distances on an erect radiograph in **cm** (not Rhea et al. 1982, whose method is a nomogram of
+/// the average distance). So `(100·I − 4.2)/4.7` is
+/// a length in cm for `I` as a fraction, and `A` (half of it) is in cm. The drop is `10·A` mm along
+/// −Z (the seed's upright patient; body frame). `A < 0` (`I < 0.042`, where the regression meets no
+/// separation) is clamped to 0 and reported.
 pub fn drop_for_index(index: f64) -> Drop {
     let raw_cm = (index * 100.0 - 4.2) / (4.7 * 2.0);
     if raw_cm > 0.0 {

@@ -67,10 +67,12 @@ pub const V1MAX_FRACTION: f64 = 0.8;
 pub const V1MAX_FRACTION_MAX: f64 = 0.95;
 
 /// Default `V_p`, ml per cycle. **Decision (lungdyn), training time scale:** with
-/// [`TAU_PER_CYCLE`] the untreated default left lung reaches arrest after a few hundred cycles, a
-/// few minutes at the quickened rate (the test `default_course_reaches_arrest_in_minutes` pins the
-/// numbers; EQUATIONS §4.3) — inside "death can come within 30 minutes" of issue 13, with time for a
-/// trainee to act. 5 ml is 1 % of a 500 ml tidal volume per breath.
+/// [`TAU_PER_CYCLE`] the untreated default left lung reaches arrest in cycle 217, 7.3 minutes at the
+/// quickened rate (test `default_course_reaches_arrest_in_minutes`; EQUATIONS §4.3) — the minutes of a
+/// patient on positive-pressure ventilation rather than the hours of one breathing unassisted
+/// (Roberts et al., Ann Surg 2015;261:1068–1078; Leigh-Smith & Harris, Emerg Med J 2005;22:8–16),
+/// inside "death can come within 30 minutes" of issue 13 and with time for a trainee to act. 5 ml is
+/// 1 % of a 500 ml tidal volume per breath. Slower courses: lower `v_p_ml`/`tau`.
 pub const INFLOW_ML: f64 = 5.0;
 
 /// Default `τ`, per cycle: the inflow halves in about 700 cycles (the trans-pulmonary pressure range
