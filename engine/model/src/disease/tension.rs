@@ -48,12 +48,13 @@
 //!   other side has no effect ([`Outcome::WrongSide`]).
 
 use super::collapse::collapse_for_loss;
+use super::resistance;
 use super::{
     check_range, drop_for_index, equivalent_index, phase_times, DiseaseError, Drop, LungBaseline,
     LungState, PhaseTimes, ALPHA_MAX_ML, ALPHA_SEED_ML,
 };
 use crate::mesh::Side;
-use crate::pv::{Boundary, Timing};
+use crate::pv::{Boundary, PhaseConstants, Timing};
 
 /// Cardiovascular factor β, mm: the mean diameter of the vena cava (seed L3807–3809).
 pub const BETA_SEED_MM: f64 = 18.0;
@@ -648,6 +649,34 @@ impl Tension {
         }
     }
 
+    /// Check once (at scene start) that eq. 8.8–8.9 apply to the normal constants over the whole
+    /// course: `x = φ·dV_t` runs from 0 to `φ`, and both the domain of eq. 8.9 (`|χ_i|·x < 1`,
+    /// `χ_1·x > 0`) and the finiteness of eq. 8.8 are hardest at `x = φ`.
+    pub fn check_constants(
+        &self,
+        inhale: &PhaseConstants,
+        exhale: &PhaseConstants,
+    ) -> Result<(), DiseaseError> {
+        let (mut i, mut e) = (inhale.clone(), exhale.clone());
+        self.constants_into(1.0, (inhale, exhale), (&mut i, &mut e))
+    }
+
+    /// The affected lung's constants for a cycle with `dV_t = dv` ([`TensionCycle::dv`]): eq. 8.9
+    /// on the inhalation, eq. 8.8 on the exhalation ([`resistance::PNEUMOTHORAX`]), `x = φ·dv`, written
+    /// into `out` (no allocation when its `chi` have the capacity: the per-cycle path).
+    pub fn constants_into(
+        &self,
+        dv: f64,
+        normal: (&PhaseConstants, &PhaseConstants),
+        out: (&mut PhaseConstants, &mut PhaseConstants),
+    ) -> Result<(), DiseaseError> {
+        let x = self.params.phi * dv.clamp(0.0, 1.0);
+        let (t_in, t_ex) = resistance::PNEUMOTHORAX;
+        resistance::phase_into(normal.0, t_in, x, out.0)?;
+        resistance::phase_into(normal.1, t_ex, x, out.1)?;
+        Ok(())
+    }
+
     /// The same course from its onset, without interventions.
     pub fn untreated(&self) -> Self {
         Self {
@@ -895,6 +924,28 @@ mod tests {
         assert_eq!(last.affected.collapse, 0.0);
         assert_eq!(last.affected.tidal_ml, 250.0);
         assert_eq!(last.unaffected.unwrap().tidal_ml, 250.0);
+    }
+
+    #[test]
+    fn the_affected_constants_follow_dv_and_are_checked_once() {
+        let p = preset(DEFAULT_PRESET).unwrap();
+        let m = course(hand(100.0, 0.0));
+        m.check_constants(&p.inhale, &p.exhale).unwrap();
+        let (mut i, mut e) = (p.inhale.clone(), p.exhale.clone());
+        m.constants_into(0.0, (&p.inhale, &p.exhale), (&mut i, &mut e))
+            .unwrap();
+        assert_eq!((&i, &e), (&p.inhale, &p.exhale));
+        // dV_t = 0.5, φ = 0.1: x = 0.05; venegas χ_2 = 0.46 on inhalation (eq. 8.9):
+        // 0.46·ln(0.023)/ln(0.0285) = 0.46·(−3.772261)/(−3.557851) = 0.487721.
+        m.constants_into(0.5, (&p.inhale, &p.exhale), (&mut i, &mut e))
+            .unwrap();
+        assert!((i.chi[1] - 0.487_721).abs() < 1e-6, "{}", i.chi[1]);
+        // Constants for which eq. 8.9 is singular within the course are refused at the start.
+        let big = PhaseConstants::from_table(&[12.0, 1.0, 0.5], 2.0);
+        assert!(matches!(
+            m.check_constants(&big, &p.exhale),
+            Err(DiseaseError::Resistance(_))
+        ));
     }
 
     #[test]
