@@ -30,8 +30,8 @@
 use super::collapse::collapse_for_loss;
 use super::resistance::{self, ResistanceReport};
 use super::{
-    check_range, drop_for_index, phase_times, volume_fraction_lost, DiseaseError, Drop,
-    LungBaseline, LungState, NormalBreathing, PhaseTimes, ALPHA_MAX_ML,
+    check_range, drop_for_index, phase_times, volume_fraction_lost, DiseaseError, LungBaseline,
+    LungState, NormalBreathing, PhaseTimes, VerticalDrop, ALPHA_MAX_ML,
 };
 use crate::mesh::Side;
 use crate::pv::{Boundary, Breathing, PhaseConstants, PvError, Timing};
@@ -283,7 +283,7 @@ pub struct LungPlan {
     /// Eq. 8.1 volume fraction lost (0 for an unaffected lung).
     pub dv: f64,
     /// Eq. 8.2 drop with its clamp (`None` for an unaffected lung).
-    pub drop: Option<Drop>,
+    pub drop: Option<VerticalDrop>,
     /// Collapse, volumes, hold, offset.
     pub state: LungState,
     /// Boundary values whose TV gives this lung its tidal volume with its share (FRC, pressures

@@ -138,7 +138,7 @@ pub fn equivalent_index(dv: f64) -> f64 {
 
 /// The drop of eq. 8.2.
 #[derive(Debug, Clone, Copy, PartialEq)]
-pub struct Drop {
+pub struct VerticalDrop {
     /// `A = (100·I − 4.2)/(4.7·2)` as the seed writes it, cm (negative for `I < 0.042`).
     pub raw_cm: f64,
     /// The drop applied, mm, `≥ 0`: `10·max(A, 0)`.
@@ -156,16 +156,16 @@ pub struct Drop {
 /// a length in cm for `I` as a fraction, and `A` (half of it) is in cm. The drop is `10·A` mm along
 /// −Z (the seed's upright patient; body frame). `A < 0` (`I < 0.042`, where the regression meets no
 /// separation) is clamped to 0 and reported.
-pub fn drop_for_index(index: f64) -> Drop {
+pub fn drop_for_index(index: f64) -> VerticalDrop {
     let raw_cm = (index * 100.0 - 4.2) / (4.7 * 2.0);
     if raw_cm > 0.0 {
-        Drop {
+        VerticalDrop {
             raw_cm,
             drop_mm: 10.0 * raw_cm,
             clamped: false,
         }
     } else {
-        Drop {
+        VerticalDrop {
             raw_cm,
             drop_mm: 0.0,
             clamped: raw_cm < 0.0,

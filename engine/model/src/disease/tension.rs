@@ -50,8 +50,8 @@
 use super::collapse::collapse_for_loss;
 use super::resistance;
 use super::{
-    check_range, drop_for_index, equivalent_index, phase_times, DiseaseError, Drop, LungBaseline,
-    LungState, PhaseTimes, ALPHA_MAX_ML, ALPHA_SEED_ML,
+    check_range, drop_for_index, equivalent_index, phase_times, DiseaseError, LungBaseline,
+    LungState, PhaseTimes, VerticalDrop, ALPHA_MAX_ML, ALPHA_SEED_ML,
 };
 use crate::mesh::Side;
 use crate::pv::{Boundary, PhaseConstants, Timing};
@@ -293,7 +293,7 @@ pub struct TensionCycle {
     /// Fraction of the affected lung's volume lost, `min(P, V1max)/V`.
     pub loss_fraction: f64,
     /// Eq. 8.2 drop of the equivalent index.
-    pub drop: Drop,
+    pub drop: VerticalDrop,
     /// Mediastinal shift `X` (eq. 8.11–8.13, cumulative), mm.
     pub shift_mm: f64,
     /// `X ≥ β`.
