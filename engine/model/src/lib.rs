@@ -14,7 +14,9 @@
 //!   (seed ch. 7);
 //! * [`pv`] — the pressure–volume forward model (seed ch. 5, eq. 2.12–2.16, 5.11), presets and the
 //!   constants files a scene loads;
-//! * [`scene`] — what a run models;
+//! * [`disease`] — the seed's disease states (chapter 8): closed and tension pneumothorax with
+//!   interventions, tumour-influenced lungs;
+//! * [`scene`] — what a run models ([`scene_disease`]: its `[disease]` table);
 //! * [`input`] — bounded reading of every input file; [`plausible`] — the physical ranges every input
 //!   is checked against, with their sources.
 
@@ -22,6 +24,7 @@
 #![allow(clippy::neg_cmp_op_on_partial_ord)]
 
 pub mod deform;
+pub mod disease;
 pub mod input;
 pub mod kernel;
 pub mod mesh;
@@ -30,4 +33,5 @@ pub mod orientation;
 pub mod plausible;
 pub mod pv;
 pub mod scene;
+pub mod scene_disease;
 pub mod sh;

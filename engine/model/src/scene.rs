@@ -24,6 +24,9 @@ pub struct Scene {
     pub lungs: LungsScene,
     /// Rendering.
     pub render: RenderScene,
+    /// Disease state (`[disease]`, [`crate::scene_disease`]); none for normal breathing.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub disease: Option<crate::scene_disease::DiseaseScene>,
 }
 
 /// `[pv]` table.

@@ -1,0 +1,601 @@
+//! # scene_disease: the `[disease]` table of a scene
+//!
+//! What a scene says about a disease state (docs/EQUATIONS.md §4): its kind, the parameters of that
+//! kind and — for a tension pneumothorax — the trainee's interventions as timed events:
+//!
+//! ```toml
+//! [disease]
+//! kind = "tension-pneumothorax"   # "closed-pneumothorax" | "bilateral-pneumothorax" | "tumour"
+//! side = "left"
+//! v_p_ml = 5.0                    # eq. 8.10 V_p, ml in the first cycle
+//! tau = 0.001                     # eq. 8.10 τ, per cycle
+//!
+//! [[disease.events]]
+//! at_s = 30
+//! kind = "needle-decompression"   # | "occlusive-dressing" | "chest-tube"
+//! side = "left"
+//! ```
+//!
+//! Unknown keys are refused by serde (with the parser's line and column). A key that exists but does
+//! not apply to the kind, a missing key and a value out of range are refused by [`DiseaseScene::resolve`]
+//! with an error that names the key. Every key but the kind's required ones has a documented default
+//! (the `disease` module's constants). Checks that need the lungs (`v1_max_ml` against the affected
+//! lung's volume, the tumour centre inside the lung) are made when the state is built from them.
+//!
+//! Documented conversions: `at_s` becomes the engine tick `round(at_s·tick_hz)` ([`TimedEvent::tick`]);
+//! events are applied in time order (a stable sort: events at the same time keep the file's order).
+
+use serde::{Deserialize, Serialize};
+use thiserror::Error;
+
+use crate::disease::closed::ClosedPneumothorax;
+use crate::disease::tension::{Intervention, LeakSource, TensionParams};
+use crate::disease::tumour::{PhiVariant, Tumour};
+use crate::disease::{resistance::PHI_SEED, DiseaseError, ALPHA_SEED_ML};
+use crate::mesh::Side;
+
+/// Most events a scene may list (fixed capacity).
+pub const MAX_EVENTS: usize = 1000;
+
+/// Latest time an event or onset may name, s (≈ 116 days: far beyond any run, finite ticks).
+pub const MAX_TIME_S: f64 = 1.0e7;
+
+/// `[disease] kind`.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize)]
+#[serde(rename_all = "kebab-case")]
+pub enum DiseaseKind {
+    /// Closed pneumothorax of one lung (eq. 8.1–8.9).
+    ClosedPneumothorax,
+    /// Tension pneumothorax of one lung with interventions (eq. 8.10–8.13).
+    TensionPneumothorax,
+    /// Closed pneumothorax of both lungs.
+    BilateralPneumothorax,
+    /// Tumour-influenced lung (eq. 8.14–8.22).
+    Tumour,
+}
+
+impl DiseaseKind {
+    /// Name as in scenes.
+    pub fn name(self) -> &'static str {
+        match self {
+            DiseaseKind::ClosedPneumothorax => "closed-pneumothorax",
+            DiseaseKind::TensionPneumothorax => "tension-pneumothorax",
+            DiseaseKind::BilateralPneumothorax => "bilateral-pneumothorax",
+            DiseaseKind::Tumour => "tumour",
+        }
+    }
+}
+
+/// The `[disease]` table.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct DiseaseScene {
+    /// Which disease state.
+    pub kind: DiseaseKind,
+    /// Affected lung (closed, tension, tumour).
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub side: Option<Side>,
+    /// Pneumothorax index `I ∈ [0, 1]` (closed).
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub index: Option<f64>,
+    /// Left lung's index (bilateral).
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub index_left: Option<f64>,
+    /// Right lung's index (bilateral).
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub index_right: Option<f64>,
+    /// Extra effort α of eq. 8.7, ml (closed, tension; default 100, the seed's demo).
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub alpha_ml: Option<f64>,
+    /// φ of eq. 8.8–8.9 (closed, bilateral, tension; default 0.1).
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub phi: Option<f64>,
+    /// Onset of the tension pneumothorax, s from the scene's start (default 0).
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub onset_s: Option<f64>,
+    /// Where the air comes from, "lung" or "wound" (tension; default lung).
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub source: Option<LeakSource>,
+    /// `V_p` of eq. 8.10, ml in the first cycle (tension).
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub v_p_ml: Option<f64>,
+    /// `τ` of eq. 8.10, per cycle (tension).
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub tau: Option<f64>,
+    /// `V1max`, ml (tension; default 0.8 × the affected lung's volume).
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub v1_max_ml: Option<f64>,
+    /// `V2max`, ml (tension; default the unaffected lung's end-inspiratory volume with α).
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub v2_max_ml: Option<f64>,
+    /// β, mm (tension; default 18, the seed's).
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub beta_mm: Option<f64>,
+    /// Cycles a needle decompression vents over (tension).
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub needle_vent_cycles: Option<u32>,
+    /// Share of the pleural air a needle leaves (tension).
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub needle_residual: Option<f64>,
+    /// Chest-tube drainage, ml per cycle (tension).
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub chest_tube_ml_per_cycle: Option<f64>,
+    /// Cycles from the SVC's closure to arrest (tension).
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub hyperexpansion_cycles: Option<u32>,
+    /// `[disease.tumour]` (tumour).
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub tumour: Option<TumourScene>,
+    /// `[[disease.events]]` (tension).
+    #[serde(default, skip_serializing_if = "Vec::is_empty")]
+    pub events: Vec<EventScene>,
+}
+
+/// `[disease.tumour]`.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct TumourScene {
+    /// Centre in normalised lung coordinates `[x̂, ŷ, ẑ]` (mediastinum → lateral, posterior →
+    /// anterior, apex → base), each in [0, 1].
+    pub centre: [f64; 3],
+    /// Radii along the body X, Y, Z axes, mm.
+    pub radii_mm: [f64; 3],
+    /// Expandability inside the tumour, (0, 1] (default 0.1).
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub expandability: Option<f64>,
+    /// Falloff width in radii (default 1).
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub falloff: Option<f64>,
+    /// Structural constant `B` of eq. 8.19 (default 0.25).
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub coupling: Option<f64>,
+    /// `φ_I` variant: "none", "distance", "distance-squared" (default none).
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub phi_variant: Option<PhiVariant>,
+    /// φ of eq. 8.9 for the raised resistance (default 0.1).
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub resistance_phi: Option<f64>,
+}
+
+/// `[[disease.events]]`: an intervention at a time.
+#[derive(Debug, Clone, Copy, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct EventScene {
+    /// Time from the scene's start, s.
+    pub at_s: f64,
+    /// What is done.
+    pub kind: Intervention,
+    /// On which side.
+    pub side: Side,
+}
+
+/// An intervention at a validated time.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct TimedEvent {
+    /// Time from the scene's start, s.
+    pub at_s: f64,
+    /// What is done.
+    pub kind: Intervention,
+    /// On which side.
+    pub side: Side,
+}
+
+impl TimedEvent {
+    /// The engine tick the event arrives at: `round(at_s·tick_hz)`.
+    pub fn tick(&self, tick_hz: f64) -> u64 {
+        (self.at_s * tick_hz).round() as u64
+    }
+}
+
+/// A disease state ready to build against the scene's lungs.
+#[derive(Debug, Clone, PartialEq)]
+pub enum DiseaseSpec {
+    /// Closed pneumothorax of one or both lungs.
+    Closed(ClosedPneumothorax),
+    /// Tension pneumothorax.
+    Tension {
+        /// Its parameters.
+        params: TensionParams,
+        /// Onset, s from the scene's start.
+        onset_s: f64,
+        /// Interventions in time order.
+        events: Vec<TimedEvent>,
+    },
+    /// Tumour.
+    Tumour(Tumour),
+}
+
+impl DiseaseSpec {
+    /// The lungs this state affects.
+    pub fn affected(&self) -> Vec<Side> {
+        match self {
+            DiseaseSpec::Closed(c) => [Side::Right, Side::Left]
+                .into_iter()
+                .filter(|&s| c.index_of(s).is_some())
+                .collect(),
+            DiseaseSpec::Tension { params, .. } => vec![params.side],
+            DiseaseSpec::Tumour(t) => vec![t.side],
+        }
+    }
+}
+
+/// What is wrong with a `[disease]` table; every variant names the key.
+#[derive(Debug, Clone, PartialEq, Error)]
+pub enum DiseaseSceneError {
+    /// A key the kind needs is absent.
+    #[error("[disease] {key} is required for kind = \"{kind}\"")]
+    Missing {
+        /// The key.
+        key: &'static str,
+        /// The kind.
+        kind: &'static str,
+    },
+    /// A key is present that the kind does not use.
+    #[error("[disease] {key} does not apply to kind = \"{kind}\" (it uses: {uses})")]
+    NotApplicable {
+        /// The key.
+        key: &'static str,
+        /// The kind.
+        kind: &'static str,
+        /// The keys the kind uses.
+        uses: &'static str,
+    },
+    /// A value is out of range or inconsistent (the inner error names the key).
+    #[error("[disease] {0}")]
+    Value(#[source] DiseaseError),
+    /// An event is unusable.
+    #[error("[[disease.events]] number {number} (at_s = {at_s}): {reason}")]
+    Event {
+        /// 1-based position in the file.
+        number: usize,
+        /// Its time.
+        at_s: f64,
+        /// What is wrong.
+        reason: String,
+    },
+    /// Too many events.
+    #[error("[[disease.events]] lists {count} events; at most {MAX_EVENTS}")]
+    TooManyEvents {
+        /// Number given.
+        count: usize,
+    },
+    /// The state affects a lung the scene does not simulate.
+    #[error("[disease] affects the {side} lung, which [lungs] sides does not list")]
+    LungNotSimulated {
+        /// "left" or "right".
+        side: &'static str,
+    },
+}
+
+impl From<DiseaseError> for DiseaseSceneError {
+    fn from(e: DiseaseError) -> Self {
+        DiseaseSceneError::Value(e)
+    }
+}
+
+impl DiseaseScene {
+    /// The keys present, by name (for the applicability check).
+    fn present(&self) -> [(&'static str, bool); 19] {
+        [
+            ("side", self.side.is_some()),
+            ("index", self.index.is_some()),
+            ("index_left", self.index_left.is_some()),
+            ("index_right", self.index_right.is_some()),
+            ("alpha_ml", self.alpha_ml.is_some()),
+            ("phi", self.phi.is_some()),
+            ("onset_s", self.onset_s.is_some()),
+            ("source", self.source.is_some()),
+            ("v_p_ml", self.v_p_ml.is_some()),
+            ("tau", self.tau.is_some()),
+            ("v1_max_ml", self.v1_max_ml.is_some()),
+            ("v2_max_ml", self.v2_max_ml.is_some()),
+            ("beta_mm", self.beta_mm.is_some()),
+            ("needle_vent_cycles", self.needle_vent_cycles.is_some()),
+            ("needle_residual", self.needle_residual.is_some()),
+            (
+                "chest_tube_ml_per_cycle",
+                self.chest_tube_ml_per_cycle.is_some(),
+            ),
+            (
+                "hyperexpansion_cycles",
+                self.hyperexpansion_cycles.is_some(),
+            ),
+            ("tumour", self.tumour.is_some()),
+            ("events", !self.events.is_empty()),
+        ]
+    }
+
+    /// Validate and convert into a [`DiseaseSpec`] (everything that does not need the lungs).
+    pub fn resolve(&self) -> Result<DiseaseSpec, DiseaseSceneError> {
+        let kind = self.kind.name();
+        let uses: &'static str = match self.kind {
+            DiseaseKind::ClosedPneumothorax => "side, index, alpha_ml, phi",
+            DiseaseKind::BilateralPneumothorax => "index_left, index_right, phi",
+            DiseaseKind::TensionPneumothorax => {
+                "side, alpha_ml, phi, onset_s, source, v_p_ml, tau, v1_max_ml, v2_max_ml, beta_mm, \
+                 needle_vent_cycles, needle_residual, chest_tube_ml_per_cycle, hyperexpansion_cycles, events"
+            }
+            DiseaseKind::Tumour => "side, tumour",
+        };
+        for (key, present) in self.present() {
+            if present && !uses.split(", ").any(|k| k == key) {
+                return Err(DiseaseSceneError::NotApplicable { key, kind, uses });
+            }
+        }
+        let side = || {
+            self.side
+                .ok_or(DiseaseSceneError::Missing { key: "side", kind })
+        };
+        let phi = self.phi.unwrap_or(PHI_SEED);
+        let alpha = self.alpha_ml.unwrap_or(ALPHA_SEED_ML);
+        match self.kind {
+            DiseaseKind::ClosedPneumothorax => {
+                let index = self
+                    .index
+                    .ok_or(DiseaseSceneError::Missing { key: "index", kind })?;
+                // Validate under the scene's key name `index`.
+                crate::disease::volume_fraction_lost(index)?;
+                let c = ClosedPneumothorax::unilateral(side()?, index, alpha, phi);
+                c.validate()?;
+                Ok(DiseaseSpec::Closed(c))
+            }
+            DiseaseKind::BilateralPneumothorax => {
+                let l = self.index_left.ok_or(DiseaseSceneError::Missing {
+                    key: "index_left",
+                    kind,
+                })?;
+                let r = self.index_right.ok_or(DiseaseSceneError::Missing {
+                    key: "index_right",
+                    kind,
+                })?;
+                let c = ClosedPneumothorax::bilateral(l, r, phi);
+                c.validate()?;
+                Ok(DiseaseSpec::Closed(c))
+            }
+            DiseaseKind::TensionPneumothorax => {
+                let d = TensionParams::new(side()?);
+                let params = TensionParams {
+                    source: self.source.unwrap_or(d.source),
+                    inflow_ml: self.v_p_ml.unwrap_or(d.inflow_ml),
+                    tau: self.tau.unwrap_or(d.tau),
+                    v1_max_ml: self.v1_max_ml,
+                    v2_max_ml: self.v2_max_ml,
+                    beta_mm: self.beta_mm.unwrap_or(d.beta_mm),
+                    alpha_ml: alpha,
+                    phi,
+                    needle_vent_cycles: self.needle_vent_cycles.unwrap_or(d.needle_vent_cycles),
+                    needle_residual: self.needle_residual.unwrap_or(d.needle_residual),
+                    chest_tube_ml_per_cycle: self
+                        .chest_tube_ml_per_cycle
+                        .unwrap_or(d.chest_tube_ml_per_cycle),
+                    hyperexpansion_cycles: self
+                        .hyperexpansion_cycles
+                        .unwrap_or(d.hyperexpansion_cycles),
+                    ..d
+                };
+                params.validate()?;
+                for (key, v) in [
+                    ("v1_max_ml", params.v1_max_ml),
+                    ("v2_max_ml", params.v2_max_ml),
+                ] {
+                    if let Some(v) = v {
+                        crate::disease::check_range(
+                            key,
+                            v,
+                            f64::MIN_POSITIVE,
+                            6000.0,
+                            "within (0, 6000] ml",
+                        )?;
+                    }
+                }
+                let onset_s = crate::disease::check_range(
+                    "onset_s",
+                    self.onset_s.unwrap_or(0.0),
+                    0.0,
+                    MAX_TIME_S,
+                    "within 0..=1e7 s",
+                )?;
+                if self.events.len() > MAX_EVENTS {
+                    return Err(DiseaseSceneError::TooManyEvents {
+                        count: self.events.len(),
+                    });
+                }
+                let mut events = Vec::with_capacity(self.events.len());
+                for (k, e) in self.events.iter().enumerate() {
+                    let bad = |reason: String| DiseaseSceneError::Event {
+                        number: k + 1,
+                        at_s: e.at_s,
+                        reason,
+                    };
+                    if !(e.at_s.is_finite() && (0.0..=MAX_TIME_S).contains(&e.at_s)) {
+                        return Err(bad("at_s must be within 0..=1e7 s".into()));
+                    }
+                    if e.at_s < onset_s {
+                        return Err(bad(format!(
+                            "at_s is before onset_s = {onset_s} s: there is nothing to treat yet"
+                        )));
+                    }
+                    events.push(TimedEvent {
+                        at_s: e.at_s,
+                        kind: e.kind,
+                        side: e.side,
+                    });
+                }
+                // Stable: events at the same time keep the file's order.
+                events.sort_by(|a, b| a.at_s.total_cmp(&b.at_s));
+                Ok(DiseaseSpec::Tension {
+                    params,
+                    onset_s,
+                    events,
+                })
+            }
+            DiseaseKind::Tumour => {
+                let t = self.tumour.as_ref().ok_or(DiseaseSceneError::Missing {
+                    key: "tumour",
+                    kind,
+                })?;
+                let d = Tumour::new(side()?, t.centre, t.radii_mm);
+                let tumour = Tumour {
+                    expandability: t.expandability.unwrap_or(d.expandability),
+                    falloff: t.falloff.unwrap_or(d.falloff),
+                    coupling: t.coupling.unwrap_or(d.coupling),
+                    phi: t.phi_variant.unwrap_or(d.phi),
+                    resistance_phi: t.resistance_phi.unwrap_or(d.resistance_phi),
+                    ..d
+                };
+                tumour.validate()?;
+                Ok(DiseaseSpec::Tumour(tumour))
+            }
+        }
+    }
+
+    /// [`Self::resolve`] and check the affected lungs are among the scene's `sides`.
+    pub fn validate(&self, sides: &[Side]) -> Result<DiseaseSpec, DiseaseSceneError> {
+        let spec = self.resolve()?;
+        for s in spec.affected() {
+            if !sides.contains(&s) {
+                return Err(DiseaseSceneError::LungNotSimulated { side: s.name() });
+            }
+        }
+        Ok(spec)
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::scene::Scene;
+
+    fn disease(toml_text: &str) -> DiseaseScene {
+        let scene: Scene = toml::from_str(toml_text).unwrap();
+        scene.disease.unwrap()
+    }
+
+    #[test]
+    fn the_seeds_closed_pneumothorax_scene() {
+        let d = disease("[disease]\nkind = \"closed-pneumothorax\"\nside = \"left\"\nindex = 0.1\nalpha_ml = 100\n");
+        let spec = d.validate(&[Side::Right, Side::Left]).unwrap();
+        assert_eq!(
+            spec,
+            DiseaseSpec::Closed(ClosedPneumothorax::unilateral(Side::Left, 0.1, 100.0, 0.1))
+        );
+        assert!(matches!(
+            d.validate(&[Side::Right]),
+            Err(DiseaseSceneError::LungNotSimulated { side: "left" })
+        ));
+    }
+
+    #[test]
+    fn a_tension_scene_with_events_in_time_order() {
+        let d = disease(
+            "[disease]\nkind = \"tension-pneumothorax\"\nside = \"left\"\nsource = \"wound\"\ntau = 0\nonset_s = 5\n\
+             [[disease.events]]\nat_s = 60\nkind = \"chest-tube\"\nside = \"left\"\n\
+             [[disease.events]]\nat_s = 30.5\nkind = \"needle-decompression\"\nside = \"left\"\n\
+             [[disease.events]]\nat_s = 60\nkind = \"occlusive-dressing\"\nside = \"left\"\n",
+        );
+        let DiseaseSpec::Tension {
+            params,
+            onset_s,
+            events,
+        } = d.resolve().unwrap()
+        else {
+            panic!("not a tension spec");
+        };
+        assert_eq!(
+            (params.tau, params.source, onset_s),
+            (0.0, LeakSource::Wound, 5.0)
+        );
+        assert_eq!(params.inflow_ml, crate::disease::tension::INFLOW_ML);
+        let kinds: Vec<_> = events.iter().map(|e| e.kind).collect();
+        assert_eq!(
+            kinds,
+            [
+                Intervention::NeedleDecompression,
+                Intervention::ChestTube,
+                Intervention::OcclusiveDressing
+            ]
+        );
+        // 30.5 s at 60 Hz = tick 1830.
+        assert_eq!(events[0].tick(60.0), 1830);
+    }
+
+    #[test]
+    fn bilateral_and_tumour_scenes() {
+        let d = disease(
+            "[disease]\nkind = \"bilateral-pneumothorax\"\nindex_left = 0.1\nindex_right = 0.05\n",
+        );
+        assert!(matches!(d.resolve().unwrap(), DiseaseSpec::Closed(c) if c.alpha_ml == 0.0));
+        let d = disease(
+            "[disease]\nkind = \"tumour\"\nside = \"right\"\n[disease.tumour]\ncentre = [0.5, 0.4, 0.8]\n\
+             radii_mm = [15, 15, 20]\nphi_variant = \"distance-squared\"\n",
+        );
+        let DiseaseSpec::Tumour(t) = d.resolve().unwrap() else {
+            panic!("not a tumour");
+        };
+        assert_eq!((t.phi, t.expandability), (PhiVariant::DistanceSquared, 0.1));
+    }
+
+    #[test]
+    fn every_mistake_names_its_key() {
+        let err = |text: &str| -> String {
+            match toml::from_str::<Scene>(text) {
+                Err(e) => e.to_string(),
+                Ok(s) => s.disease.unwrap().resolve().unwrap_err().to_string(),
+            }
+        };
+        let cases = [
+            // Unknown keys: serde, with line and column.
+            ("[disease]\nkind = \"tumour\"\nsidee = \"left\"\n", "sidee"),
+            ("[disease]\nkind = \"appendicitis\"\n", "appendicitis"),
+            ("[disease]\nkind = \"tension-pneumothorax\"\nside = \"left\"\n[[disease.events]]\nat_s = 1\nkind = \"tourniquet\"\nside = \"left\"\n", "tourniquet"),
+            // Missing and inapplicable keys.
+            ("[disease]\nkind = \"closed-pneumothorax\"\nside = \"left\"\n", "index"),
+            ("[disease]\nkind = \"closed-pneumothorax\"\nindex = 0.1\n", "side"),
+            ("[disease]\nkind = \"closed-pneumothorax\"\nside = \"left\"\nindex = 0.1\ntau = 0.1\n", "tau"),
+            ("[disease]\nkind = \"bilateral-pneumothorax\"\nindex_left = 0.1\nindex_right = 0.1\nalpha_ml = 10\n", "alpha_ml"),
+            ("[disease]\nkind = \"bilateral-pneumothorax\"\nindex_left = 0.1\n", "index_right"),
+            ("[disease]\nkind = \"tumour\"\nside = \"left\"\n", "tumour"),
+            ("[disease]\nkind = \"closed-pneumothorax\"\nside = \"left\"\nindex = 0.1\n[[disease.events]]\nat_s = 1\nkind = \"chest-tube\"\nside = \"left\"\n", "events"),
+            // Values out of range.
+            ("[disease]\nkind = \"closed-pneumothorax\"\nside = \"left\"\nindex = 1.2\n", "index"),
+            ("[disease]\nkind = \"closed-pneumothorax\"\nside = \"left\"\nindex = 0.1\nalpha_ml = -5\n", "alpha_ml"),
+            ("[disease]\nkind = \"closed-pneumothorax\"\nside = \"left\"\nindex = 0.1\nphi = 3\n", "phi"),
+            ("[disease]\nkind = \"bilateral-pneumothorax\"\nindex_left = 0.1\nindex_right = -0.1\n", "index_right"),
+            ("[disease]\nkind = \"tension-pneumothorax\"\nside = \"left\"\nv_p_ml = 0\n", "v_p_ml"),
+            ("[disease]\nkind = \"tension-pneumothorax\"\nside = \"left\"\ntau = -1\n", "tau"),
+            ("[disease]\nkind = \"tension-pneumothorax\"\nside = \"left\"\nbeta_mm = 0\n", "beta_mm"),
+            ("[disease]\nkind = \"tension-pneumothorax\"\nside = \"left\"\nv1_max_ml = -3\n", "v1_max_ml"),
+            ("[disease]\nkind = \"tension-pneumothorax\"\nside = \"left\"\nv2_max_ml = 1e9\n", "v2_max_ml"),
+            ("[disease]\nkind = \"tension-pneumothorax\"\nside = \"left\"\nonset_s = -1\n", "onset_s"),
+            ("[disease]\nkind = \"tension-pneumothorax\"\nside = \"left\"\nneedle_vent_cycles = 0\n", "needle_vent_cycles"),
+            ("[disease]\nkind = \"tension-pneumothorax\"\nside = \"left\"\nneedle_residual = 2\n", "needle_residual"),
+            ("[disease]\nkind = \"tension-pneumothorax\"\nside = \"left\"\nchest_tube_ml_per_cycle = -1\n", "chest_tube_ml_per_cycle"),
+            ("[disease]\nkind = \"tension-pneumothorax\"\nside = \"left\"\nonset_s = 50\n[[disease.events]]\nat_s = 10\nkind = \"chest-tube\"\nside = \"left\"\n", "onset_s"),
+            ("[disease]\nkind = \"tension-pneumothorax\"\nside = \"left\"\n[[disease.events]]\nat_s = -1\nkind = \"chest-tube\"\nside = \"left\"\n", "at_s"),
+            ("[disease]\nkind = \"tumour\"\nside = \"left\"\n[disease.tumour]\ncentre = [0.5, 0.5, 1.5]\nradii_mm = [10, 10, 10]\n", "centre"),
+            ("[disease]\nkind = \"tumour\"\nside = \"left\"\n[disease.tumour]\ncentre = [0.5, 0.5, 0.5]\nradii_mm = [10, 0, 10]\n", "radii_mm"),
+            ("[disease]\nkind = \"tumour\"\nside = \"left\"\n[disease.tumour]\ncentre = [0.5, 0.5, 0.5]\nradii_mm = [10, 10, 10]\nexpandability = 0\n", "expandability"),
+            ("[disease]\nkind = \"tumour\"\nside = \"left\"\n[disease.tumour]\ncentre = [0.5, 0.5, 0.5]\nradii_mm = [10, 10, 10]\nradius = 3\n", "radius"),
+        ];
+        for (text, key) in cases {
+            let e = err(text);
+            assert!(e.contains(key), "{key}: {e}");
+        }
+        // The parser's errors carry the line.
+        let e = err("[disease]\nkind = \"tumour\"\nsidee = \"left\"\n");
+        assert!(e.contains("line 3"), "{e}");
+    }
+
+    #[test]
+    fn a_scene_without_disease_is_unchanged_and_round_trips() {
+        assert_eq!(Scene::parse("", "empty").unwrap().disease, None);
+        let d =
+            disease("[disease]\nkind = \"closed-pneumothorax\"\nside = \"left\"\nindex = 0.1\n");
+        let text = toml::to_string(&Scene {
+            disease: Some(d.clone()),
+            ..Scene::default()
+        })
+        .unwrap();
+        assert_eq!(toml::from_str::<Scene>(&text).unwrap().disease, Some(d));
+    }
+}
