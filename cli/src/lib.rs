@@ -17,6 +17,7 @@ pub mod plot;
 pub mod prepare;
 pub mod pv_cmd;
 pub mod register_cmd;
+pub mod scene_check;
 pub mod stats;
 pub mod strip;
 pub mod tracker_cmd;

@@ -74,6 +74,10 @@ enum SceneCommand {
     /// settings are unchanged) and write OUT/kernels/scene.resolved.toml, the scene to start the
     /// engine and renderer with (`--scene`). The engine and the renderer never bake.
     Prepare(lungdyn::prepare::PrepareArgs),
+    /// Validate a scene (every key, the files it names, its [disease] table) and report what it
+    /// simulates; for a disease state, the model's course: a closed pneumothorax's plan, a tension
+    /// pneumothorax cycle by cycle with the scene's interventions (--json for every number).
+    Check(lungdyn::scene_check::CheckArgs),
 }
 
 #[derive(Subcommand)]
@@ -200,6 +204,14 @@ fn main() -> std::process::ExitCode {
                     "wrote {}: {:+.1} ml -> {:.1} ml (start {:.1} ml), scale {:.3}, largest displacement {:.2} mm",
                     e.path, e.delta_ml, e.volume_ml, e.start_volume_ml, e.scale, e.max_displacement_mm
                 );
+            }
+            Ok(())
+        }),
+        Command::Scene(SceneCommand::Check(args)) => lungdyn::scene_check::run(&args).and_then(|v| {
+            if args.json {
+                println!("{}", serde_json::to_string(&v)?);
+            } else {
+                print!("{}", lungdyn::scene_check::text(&v));
             }
             Ok(())
         }),

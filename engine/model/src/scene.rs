@@ -302,6 +302,16 @@ pub enum SceneValueError {
     /// The motion constants file named by `[lungs] motion` is unusable.
     #[error("[lungs] motion: {0}")]
     Motion(#[source] crate::deform::MotionFileError),
+    /// The scene has a disease state the running engine does not apply yet.
+    #[error(
+        "[disease] kind = \"{0}\": the engine does not simulate disease states yet (the model is \
+         built and checked: `lungdyn scene check FILE` reports its course); remove [disease] to run \
+         the scene's lungs breathing normally"
+    )]
+    DiseaseNotSimulated(&'static str),
+    /// The `[disease]` table is unusable (the message names the key).
+    #[error("[disease]: {0}")]
+    Disease(#[source] crate::scene_disease::DiseaseSceneError),
     /// A kernel named by `[lungs.kernels]` does not exist.
     #[error("[lungs.kernels] {side}: {} does not exist (bake it with `lungdyn bake`)", path.display())]
     MissingKernel {
@@ -508,6 +518,20 @@ impl Scene {
         Ok(scene)
     }
 
+    /// Refuse a scene with a `[disease]` table in a process that would breathe it normally: the
+    /// disease model (`crate::disease`) is checked and summarised by `lungdyn scene check`, but the
+    /// engine's tick does not apply it yet, and a pneumothorax scene breathing like a healthy one
+    /// would be a silent wrong answer.
+    pub fn refuse_unsimulated_disease(&self, origin: &str) -> Result<(), SceneError> {
+        match &self.disease {
+            Some(d) => Err(SceneError::Invalid {
+                path: origin.to_string(),
+                source: SceneValueError::DiseaseNotSimulated(d.kind.name()),
+            }),
+            None => Ok(()),
+        }
+    }
+
     /// Load `path` if given, else the default scene.
     pub fn load_or_default(path: Option<&Path>) -> Result<Self, SceneError> {
         match path {
@@ -558,6 +582,9 @@ impl Scene {
             if !(e.is_finite() && e > 0.0 && e <= 50.0) {
                 return Err(E::ErrorBudget(e));
             }
+        }
+        if let Some(d) = &self.disease {
+            d.validate(&self.lungs.sides).map_err(E::Disease)?;
         }
         let r = &self.render;
         if !(16..=8192).contains(&r.width) || !(16..=8192).contains(&r.height) {

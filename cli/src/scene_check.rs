@@ -1,0 +1,337 @@
+//! `lungdyn scene check FILE`: validate a scene (every key, every file it names, the `[disease]`
+//! table against the scene's lungs) and report what it would simulate. For a disease state the
+//! report is the disease model's course computed from the tick-independent library
+//! (`lung_model::disease`, EQUATIONS.md §4): a closed pneumothorax's plan (eq. 8.1–8.9), a tension
+//! pneumothorax cycle by cycle with the scene's timed interventions (eq. 8.10–8.13), a tumour's
+//! parameters (eq. 8.14–8.22). The engine's tick does not apply disease states yet: the engine and
+//! the demo refuse a scene with `[disease]` instead of breathing it normally.
+
+use std::path::PathBuf;
+
+use anyhow::Context;
+use lung_model::disease::tension::{Outcome, Tension};
+use lung_model::disease::{LungBaseline, NormalBreathing};
+use lung_model::mesh::{Side, TriMesh};
+use lung_model::scene::Scene;
+use lung_model::scene_disease::DiseaseSpec;
+use serde_json::{json, Value};
+
+/// Options of `lungdyn scene check`.
+#[derive(Debug, Clone, clap::Args)]
+pub struct CheckArgs {
+    /// Scene file (TOML).
+    pub file: PathBuf,
+    /// Tension pneumothorax: breathing cycles to follow (the course stops earlier at arrest once
+    /// every timed intervention has arrived).
+    #[arg(long, default_value_t = 300, value_name = "N")]
+    pub cycles: u32,
+    /// Print one JSON object on stdout.
+    #[arg(long)]
+    pub json: bool,
+}
+
+/// Most cycles `--cycles` may ask for (about 10 hours of breathing at 15/min).
+pub const MAX_CYCLES: u32 = 10_000;
+
+/// The lung surface the scene would use for `side`: the named kernel's, else the built-in lung at
+/// the scene's resolution.
+fn lung_mesh(scene: &Scene, side: Side) -> anyhow::Result<TriMesh> {
+    match scene.lungs.kernels.get(side) {
+        Some(k) => Ok(lung_model::kernel::KernelFile::open(k)
+            .with_context(|| format!("{} lung kernel", side.name()))?
+            .mesh()),
+        None => lung_model::mesh::generate::lung(side, scene.lungs.vertices)
+            .with_context(|| format!("the built-in {} lung", side.name())),
+    }
+}
+
+fn r3(v: f64) -> f64 {
+    (v * 1000.0).round() / 1000.0
+}
+
+/// Validate `args.file` and report.
+pub fn run(args: &CheckArgs) -> anyhow::Result<Value> {
+    if !(1..=MAX_CYCLES).contains(&args.cycles) {
+        anyhow::bail!("--cycles {} must be within 1..{MAX_CYCLES}", args.cycles);
+    }
+    let scene = Scene::load(&args.file)?;
+    let origin = args.file.display().to_string();
+    let (inhale, exhale, boundary) = scene
+        .pv_model()
+        .with_context(|| format!("scene {origin}"))?;
+    let timing = scene.timing();
+    let sides: Vec<&str> = scene.lungs.sides.iter().map(|s| s.name()).collect();
+    let mut out = json!({
+        "scene": origin,
+        "valid": true,
+        "lungs": sides,
+        "mode": format!("{:?}", scene.lungs.mode).to_lowercase(),
+        "bands": scene.lungs.bands,
+        "pv": {
+            "preset": scene.pv.preset,
+            "constants": scene.pv.constants.as_ref().map(|p| p.display().to_string()),
+            "frc_ml": boundary.frc_ml,
+            "tidal_volume_ml": boundary.tv_ml,
+            "breaths_per_min": timing.breaths_per_min,
+        },
+        "disease": Value::Null,
+    });
+    let Some(d) = &scene.disease else {
+        return Ok(out);
+    };
+    let spec = d.validate(&scene.lungs.sides)?;
+    let normal = NormalBreathing {
+        inhale,
+        exhale,
+        boundary,
+        timing,
+    };
+    let mut baselines = Vec::new();
+    for &side in &scene.lungs.sides {
+        let mesh = lung_mesh(&scene, side)?;
+        let share = mesh.enclosed_volume_ml() / boundary.frc_ml;
+        baselines.push(
+            LungBaseline::of(&mesh, side, share)
+                .with_context(|| format!("the {} lung's baseline", side.name()))?,
+        );
+    }
+    out["disease"] = match &spec {
+        DiseaseSpec::Closed(c) => closed(c, &normal, &baselines)?,
+        DiseaseSpec::Tension {
+            params,
+            onset_s,
+            events,
+        } => tension(
+            *params,
+            *onset_s,
+            events,
+            &normal,
+            &baselines,
+            args.cycles,
+        )?,
+        DiseaseSpec::Tumour(t) => json!({
+            "kind": "tumour",
+            "side": t.side.name(),
+            "parameters": format!("{t:?}"),
+            "simulated": false,
+            "note": "the tumour's kernel change (eq. 8.14-8.22) needs a bake with the tumour region; \
+                     not wired into `lungdyn bake` yet",
+        }),
+    };
+    out["disease"]["kind"] = json!(d.kind.name());
+    out["disease"]["engine_applies_it"] = json!(false);
+    Ok(out)
+}
+
+fn closed(
+    c: &lung_model::disease::closed::ClosedPneumothorax,
+    normal: &NormalBreathing,
+    lungs: &[LungBaseline],
+) -> anyhow::Result<Value> {
+    let plan = c.plan(normal, lungs)?;
+    let per_lung: Vec<Value> = plan
+        .lungs
+        .iter()
+        .map(|l| {
+            json!({
+                "side": l.side.name(),
+                "pneumothorax_index": l.index,
+                "dV": r3(l.dv),
+                "drop_mm": l.drop.map(|d| r3(d.drop_mm)),
+                "drop_clamped": l.drop.map(|d| d.clamped),
+                "base_volume_ml": r3(l.state.base_volume_ml),
+                "tidal_volume_ml": r3(l.state.tidal_ml),
+                "held_ml": l.state.held_ml.map(r3),
+                "offset_mm": l.state.offset_mm.map(r3),
+                "base_lift_mm": r3(l.base_lift_mm),
+            })
+        })
+        .collect();
+    Ok(json!({
+        "breaths_per_min": r3(plan.times.breaths_per_min()),
+        "inhale_s": r3(plan.times.new_inhale_s),
+        "exhale_s": r3(plan.times.new_exhale_s),
+        "phase_clamped": plan.times.inhale_clamped || plan.times.exhale_clamped,
+        "lungs": per_lung,
+    }))
+}
+
+fn tension(
+    params: lung_model::disease::tension::TensionParams,
+    onset_s: f64,
+    events: &[lung_model::scene_disease::TimedEvent],
+    normal: &NormalBreathing,
+    lungs: &[LungBaseline],
+    cycles: u32,
+) -> anyhow::Result<Value> {
+    let affected = *lungs
+        .iter()
+        .find(|l| l.side == params.side)
+        .context("the affected lung is not simulated")?;
+    let other = lungs.iter().find(|l| l.side != params.side).copied();
+    let mut t = Tension::new(params, normal.timing, normal.boundary, affected, other)?;
+    let tick_hz = normal.timing.tick_hz;
+    let cycle_ticks = |timing: &lung_model::pv::Timing| -> anyhow::Result<u64> {
+        let (i, e) = timing.phase_ticks()?;
+        Ok(i as u64 + e as u64)
+    };
+    // Normal cycles until the onset, then the course; interventions in time order, each applied
+    // before the first cycle that starts at or after its tick (it shows from the next cycle).
+    let mut tick = 0u64;
+    let onset_tick = (onset_s * tick_hz).round() as u64;
+    let normal_cycle = cycle_ticks(&normal.timing)?;
+    let mut normal_cycles = 0u64;
+    while tick < onset_tick {
+        tick += normal_cycle;
+        normal_cycles += 1;
+    }
+    let mut pending: Vec<_> = events.to_vec();
+    pending.sort_by(|a, b| a.at_s.total_cmp(&b.at_s));
+    let mut pending = pending.into_iter().peekable();
+    let mut course = Vec::new();
+    let mut records = Vec::new();
+    for _ in 0..cycles {
+        while let Some(e) = pending.peek() {
+            let at = e.tick(tick_hz);
+            if at > tick {
+                break;
+            }
+            let r = t.intervene(e.kind, e.side, at);
+            records.push(json!({
+                "tick": r.tick,
+                "cycle": r.cycle,
+                "kind": r.kind.name(),
+                "side": r.side.name(),
+                "outcome": match r.outcome {
+                    Outcome::Applied => "applied".to_string(),
+                    Outcome::WrongSide => "wrong side: no effect".to_string(),
+                    Outcome::AlreadyApplied => "already applied".to_string(),
+                    Outcome::NoEffect(why) => format!("no effect: {why}"),
+                },
+            }));
+            pending.next();
+        }
+        let c = t.advance();
+        let affected_state = c.affected;
+        course.push(json!({
+            "cycle": c.cycle,
+            "start_tick": tick,
+            "pleural_air_ml": r3(c.pleural_air_ml),
+            "dV": r3(c.dv),
+            "drop_mm": r3(c.drop.drop_mm),
+            "shift_mm": r3(c.shift_mm),
+            "breaths_per_min": r3(c.times.breaths_per_min()),
+            "affected_tidal_ml": r3(affected_state.tidal_ml),
+            "other_tidal_ml": c.unaffected.map(|u| r3(u.tidal_ml)),
+            "svc_closed": c.svc_closed,
+            "arrest": c.arrest,
+        }));
+        tick += cycle_ticks(&c.timing).unwrap_or(normal_cycle);
+        if c.arrest && pending.peek().is_none() {
+            break;
+        }
+    }
+    let last = course.last().cloned().unwrap_or(Value::Null);
+    Ok(json!({
+        "side": params.side.name(),
+        "onset_s": onset_s,
+        "normal_cycles_before_onset": normal_cycles,
+        "v1_max_ml": r3(t.v1_max_ml()),
+        "v2_max_ml": r3(t.v2_max_ml()),
+        "shift_mm_per_ml": t.shift_mm_per_ml(),
+        "cycles_to_arrest": t.first_arrest(),
+        "events": records,
+        "final": last,
+        "course": course,
+    }))
+}
+
+/// The report as text.
+pub fn text(v: &Value) -> String {
+    let mut s = format!(
+        "{}: valid — lungs {}, mode {}, PV {} (FRC {} ml, TV {} ml, {} breaths/min)\n",
+        v["scene"].as_str().unwrap_or(""),
+        v["lungs"],
+        v["mode"].as_str().unwrap_or(""),
+        v["pv"]["preset"].as_str().unwrap_or(""),
+        v["pv"]["frc_ml"],
+        v["pv"]["tidal_volume_ml"],
+        v["pv"]["breaths_per_min"]
+    );
+    let d = &v["disease"];
+    if d.is_null() {
+        s += "no disease state: normal breathing\n";
+        return s;
+    }
+    s += &format!(
+        "disease: {} (the engine does not apply disease states yet: `demo`/`engine` refuse this scene)\n",
+        d["kind"].as_str().unwrap_or("")
+    );
+    if let Some(lungs) = d["lungs"].as_array() {
+        s += &format!(
+            "  breathing {} /min (inhale {} s, exhale {} s)\n",
+            d["breaths_per_min"], d["inhale_s"], d["exhale_s"]
+        );
+        for l in lungs {
+            if l["pneumothorax_index"].is_null() {
+                s += &format!(
+                    "  {} lung: unaffected, tidal {} ml, base volume {} ml\n",
+                    l["side"].as_str().unwrap_or(""),
+                    l["tidal_volume_ml"],
+                    l["base_volume_ml"]
+                );
+                continue;
+            }
+            s += &format!(
+                "  {} lung: I = {}, dV = {}, drop {} mm, tidal {} ml, base volume {} ml\n",
+                l["side"].as_str().unwrap_or(""),
+                l["pneumothorax_index"],
+                l["dV"],
+                l["drop_mm"],
+                l["tidal_volume_ml"],
+                l["base_volume_ml"]
+            );
+        }
+    }
+    if d.get("course").is_some() {
+        s += &format!(
+            "  {} side: V1max {} ml, V2max {} ml; {}; {} cycles followed\n",
+            d["side"].as_str().unwrap_or(""),
+            d["v1_max_ml"],
+            d["v2_max_ml"],
+            match d["cycles_to_arrest"].as_u64() {
+                Some(c) => format!("arrest at cycle {c}"),
+                None => "no arrest".to_string(),
+            },
+            d["course"].as_array().map_or(0, |c| c.len())
+        );
+        for e in d["events"].as_array().into_iter().flatten() {
+            s += &format!(
+                "  event at tick {} (cycle {}): {} {} — {}\n",
+                e["tick"],
+                e["cycle"],
+                e["kind"].as_str().unwrap_or(""),
+                e["side"].as_str().unwrap_or(""),
+                e["outcome"].as_str().unwrap_or("")
+            );
+        }
+        let f = &d["final"];
+        s += &format!(
+            "  last cycle {}: pleural air {} ml, dV {}, mediastinal shift {} mm, {} /min{}\n",
+            f["cycle"],
+            f["pleural_air_ml"],
+            f["dV"],
+            f["shift_mm"],
+            f["breaths_per_min"],
+            if f["arrest"].as_bool() == Some(true) {
+                ", ARREST"
+            } else {
+                ""
+            }
+        );
+    }
+    if let Some(n) = d["note"].as_str() {
+        s += &format!("  {n}\n");
+    }
+    s
+}

@@ -1,0 +1,147 @@
+//! The shipped disease scenes through `lungdyn scene check`, with figures computed by hand from the
+//! equations (EQUATIONS.md §4), and the engine and demo refusing a disease scene they would
+//! otherwise breathe normally.
+
+use std::path::{Path, PathBuf};
+use std::process::Command;
+
+fn lungdyn(args: &[&str]) -> (bool, String, String) {
+    let exe = Path::new(env!("CARGO_MANIFEST_DIR")).join("../target/release/lungdyn");
+    let o = Command::new(exe)
+        .args(args)
+        .output()
+        .expect("lungdyn built (cargo build --release -p lungdyn)");
+    (
+        o.status.success(),
+        String::from_utf8_lossy(&o.stdout).into_owned(),
+        String::from_utf8_lossy(&o.stderr).into_owned(),
+    )
+}
+
+fn scene(name: &str) -> PathBuf {
+    Path::new(env!("CARGO_MANIFEST_DIR"))
+        .join("../scenes")
+        .join(name)
+}
+
+fn check(path: &Path) -> serde_json::Value {
+    let (ok, out, err) = lungdyn(&["scene", "check", path.to_str().unwrap(), "--json"]);
+    assert!(ok, "{}: {err}", path.display());
+    serde_json::from_str(&out).unwrap()
+}
+
+fn tmp(name: &str) -> PathBuf {
+    let d = std::env::temp_dir().join(format!("lungdyn-disease-{}", std::process::id()));
+    std::fs::create_dir_all(&d).unwrap();
+    d.join(name)
+}
+
+#[test]
+fn the_seeds_closed_pneumothorax_follows_eq_8_1_and_8_2() {
+    let v = check(&scene("closed_pneumothorax.toml"));
+    let d = &v["disease"];
+    assert_eq!(d["kind"], "closed-pneumothorax");
+    assert_eq!(d["engine_applies_it"], false);
+    let left = d["lungs"]
+        .as_array()
+        .unwrap()
+        .iter()
+        .find(|l| l["side"] == "left")
+        .unwrap();
+    // eq. 8.1: dV = I^0.33 = 0.1^0.33 = 0.4677 (by hand: 10^-0.33).
+    assert!((left["dV"].as_f64().unwrap() - 0.468).abs() < 1e-3, "{left}");
+    // eq. 8.2: A = (100 I - 4.2) / (4.7 * 2) cm = (10 - 4.2) / 9.4 = 0.617 cm = 6.17 mm.
+    assert!((left["drop_mm"].as_f64().unwrap() - 6.17).abs() < 0.01, "{left}");
+    // The right lung is unaffected: no index, no drop.
+    let right = d["lungs"]
+        .as_array()
+        .unwrap()
+        .iter()
+        .find(|l| l["side"] == "right")
+        .unwrap();
+    assert!(right["pneumothorax_index"].is_null() && right["dV"] == 0.0, "{right}");
+    // Faster breathing than the scene's 12/min (eq. 8.3-8.5).
+    assert!(d["breaths_per_min"].as_f64().unwrap() > 12.0, "{d}");
+}
+
+#[test]
+fn a_tension_pneumothorax_arrests_without_help_and_not_after_a_needle() {
+    let v = check(&scene("tension_pneumothorax.toml"));
+    let d = &v["disease"];
+    assert!(d["cycles_to_arrest"].is_null(), "{d}");
+    let events = d["events"].as_array().unwrap();
+    assert_eq!(events.len(), 2);
+    assert_eq!(events[0]["kind"], "needle-decompression");
+    assert_eq!(events[0]["tick"], 3600); // 60 s at 60 Hz
+    assert_eq!(events[0]["outcome"], "applied");
+    // The same course without the interventions runs into arrest.
+    let no_help = tmp("tension_no_help.toml");
+    std::fs::write(
+        &no_help,
+        "[lungs]\nsides = [\"right\", \"left\"]\n[disease]\nkind = \"tension-pneumothorax\"\nside = \"left\"\n",
+    )
+    .unwrap();
+    let v = check(&no_help);
+    let d = &v["disease"];
+    let arrest = d["cycles_to_arrest"].as_u64().expect("arrest without help");
+    assert!(arrest > 0, "{d}");
+    let course = d["course"].as_array().unwrap();
+    // Pleural air never falls before arrest and the mediastinum shifts away from the affected side.
+    for w in course.windows(2) {
+        if w[1]["arrest"] == false {
+            assert!(w[1]["pleural_air_ml"].as_f64() >= w[0]["pleural_air_ml"].as_f64(), "{w:?}");
+        }
+    }
+    assert!(course.iter().all(|c| c["shift_mm"].as_f64().unwrap().is_finite()));
+}
+
+#[test]
+fn every_shipped_scene_checks_and_a_disease_scene_is_refused_by_the_engine_and_demo() {
+    for name in [
+        "default.toml",
+        "error_budget.toml",
+        "closed_pneumothorax.toml",
+        "bilateral_pneumothorax.toml",
+        "tension_pneumothorax.toml",
+        "tumour_right_lower.toml",
+    ] {
+        check(&scene(name));
+    }
+    let s = scene("closed_pneumothorax.toml");
+    let (ok, _, err) = lungdyn(&["demo", "--scene", s.to_str().unwrap(), "--seconds", "1"]);
+    assert!(!ok && err.contains("does not simulate disease states yet"), "{err}");
+    let (ok, _, err) = lungdyn(&[
+        "engine",
+        "--scene",
+        s.to_str().unwrap(),
+        "--seconds",
+        "1",
+        "--instance",
+        &format!("disease-{}", std::process::id()),
+    ]);
+    assert!(!ok && err.contains("does not simulate disease states yet"), "{err}");
+}
+
+#[test]
+fn bad_disease_tables_name_their_key() {
+    for (body, needle) in [
+        ("kind = \"closed-pneumothorax\"\nside = \"left\"\nindex = 1.5\n", "index"),
+        ("kind = \"closed-pneumothorax\"\nside = \"left\"\n", "index"),
+        ("kind = \"closed-pneumothorax\"\nside = \"left\"\nindex = 0.1\nbeta_mm = 18\n", "beta_mm"),
+        ("kind = \"tension-pneumothorax\"\nside = \"left\"\nwobble = 1\n", "wobble"),
+        ("kind = \"closed-pneumothorax\"\nside = \"middle\"\nindex = 0.1\n", "middle"),
+    ] {
+        let f = tmp("bad_disease.toml");
+        std::fs::write(&f, format!("[lungs]\nsides = [\"right\", \"left\"]\n[disease]\n{body}")).unwrap();
+        let (ok, _, err) = lungdyn(&["scene", "check", f.to_str().unwrap()]);
+        assert!(!ok && err.contains(needle), "{body}: {err}");
+    }
+    let f = tmp("one_lung.toml");
+    std::fs::write(
+        &f,
+        "[lungs]\nsides = [\"right\"]\n[disease]\nkind = \"closed-pneumothorax\"\nside = \"left\"\nindex = 0.1\n",
+    )
+    .unwrap();
+    let (ok, _, err) = lungdyn(&["scene", "check", f.to_str().unwrap()]);
+    assert!(!ok && err.contains("left lung"), "{err}");
+}
