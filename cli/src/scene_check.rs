@@ -3,8 +3,9 @@
 //! report is the disease model's course computed from the tick-independent library
 //! (`lung_model::disease`, EQUATIONS.md §4): a closed pneumothorax's plan (eq. 8.1–8.9), a tension
 //! pneumothorax cycle by cycle with the scene's timed interventions (eq. 8.10–8.13), a tumour's
-//! parameters (eq. 8.14–8.22). The engine's tick does not apply disease states yet: the engine and
-//! the demo refuse a scene with `[disease]` instead of breathing it normally.
+//! parameters (eq. 8.14–8.22). The engine runs the pneumothorax states (`engine::runtime::disease`,
+//! the same course); a tumour scene is refused by the engine and the demo (its kernel change is not
+//! baked yet) instead of breathing normally.
 
 use std::path::PathBuf;
 
@@ -119,7 +120,8 @@ pub fn run(args: &CheckArgs) -> anyhow::Result<Value> {
         }),
     };
     out["disease"]["kind"] = json!(d.kind.name());
-    out["disease"]["engine_applies_it"] = json!(false);
+    out["disease"]["engine_applies_it"] =
+        json!(d.kind != lung_model::scene_disease::DiseaseKind::Tumour);
     Ok(out)
 }
 
@@ -264,8 +266,13 @@ pub fn text(v: &Value) -> String {
         return s;
     }
     s += &format!(
-        "disease: {} (the engine does not apply disease states yet: `demo`/`engine` refuse this scene)\n",
-        d["kind"].as_str().unwrap_or("")
+        "disease: {}{}\n",
+        d["kind"].as_str().unwrap_or(""),
+        if d["engine_applies_it"].as_bool() == Some(true) {
+            " (run by `lungdyn demo --scene FILE`)"
+        } else {
+            " (not run by the engine yet: `demo`/`engine` refuse this scene)"
+        }
     );
     if let Some(lungs) = d["lungs"].as_array() {
         s += &format!(

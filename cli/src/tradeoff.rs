@@ -310,6 +310,8 @@ pub fn run(args: &TradeoffArgs) -> anyhow::Result<Tradeoff> {
             let mut state = renderer::DrawState {
                 deform_scale: [0.0; 2],
                 offset_mm: [[0.0; 3]; 2],
+                collapse: [0.0; 2],
+                hilum_mm: [[0.0; 3]; 2],
                 coeffs: [[0.0; ipc_types::MAX_COEFFS]; 2],
                 patient: ipc_types::Pose::IDENTITY,
                 hmd: ipc_types::Pose::IDENTITY,
@@ -583,6 +585,8 @@ fn stereo_figure(
         let mut state = renderer::DrawState {
             deform_scale: [0.0, scale],
             offset_mm: [[0.0; 3]; 2],
+            collapse: [0.0; 2],
+            hilum_mm: [[0.0; 3]; 2],
             coeffs: [[0.0; ipc_types::MAX_COEFFS]; 2],
             patient: ipc_types::Pose::IDENTITY,
             hmd: ipc_types::Pose {

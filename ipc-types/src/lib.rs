@@ -17,7 +17,7 @@
 //!
 //! ## Layout versioning
 //! [`LAYOUT_VERSION`] is written into every payload ([`Message::layout_version`]) and into every
-//! payload's type name ([`Message::TYPE_NAME`], `"lungdyn.EngineFrame.v2"`), which the transport
+//! payload's type name ([`Message::TYPE_NAME`], `"lungdyn.EngineFrame.v3"`), which the transport
 //! hands to iceoryx2: iceoryx2 refuses to open a service whose payload type name, size or alignment
 //! differ from the creator's, so a process built from another layout fails at start-up instead of
 //! reading garbage; the field in the payload is a second check for peers that bypass the type name.
@@ -26,14 +26,15 @@
 //!
 //! Version history: v1 had one breathing state for both lungs; v2 gives each lung its own volume,
 //! phase, cycle, rigid offset, deformation coefficients and the identity of the kernel it was
-//! computed for ([`LungFrame`]).
+//! computed for ([`LungFrame`]); v3 adds each lung's collapse towards its hilum (a pneumothorax,
+//! EQUATIONS.md §4: drawn at `h + (1 − c)(p − h) + s·u + offset`), zero for a healthy lung.
 
 use core::mem::{align_of, offset_of, size_of};
 
 use bytemuck::{Pod, Zeroable};
 
 /// Version of every payload layout in this crate. Part of each payload's type name.
-pub const LAYOUT_VERSION: u32 = 2;
+pub const LAYOUT_VERSION: u32 = 3;
 
 /// Maximum number of tracked tools in one [`TrackerFrame`].
 pub const MAX_TOOLS: usize = 4;
@@ -304,6 +305,12 @@ pub struct LungFrame {
     pub coeff_count: u32,
     /// Deformation coefficients of this tick (fixed capacity, [`MAX_COEFFS`]).
     pub coeffs: [f32; MAX_COEFFS],
+    /// Collapse towards the hilum, `c ∈ [0, 1]` (0: none): the lung is drawn at
+    /// `h + (1 − c)(p − h) + s·u + offset_mm` (EQUATIONS.md §4.1; `deform_scale` is solved on the
+    /// collapsed lung's volume cubic).
+    pub collapse: f32,
+    /// The hilum `h` the lung collapses towards, body frame, mm (0 when `collapse` is 0).
+    pub hilum_mm: [f32; 3],
 }
 
 impl Default for LungFrame {
@@ -396,29 +403,29 @@ pub struct FrameReport {
     pub volume_ml: [f32; NUM_LUNGS],
 }
 
-const VERSION_SUFFIX: &str = ".v2";
+const VERSION_SUFFIX: &str = ".v3";
 const _: () = assert!(
-    LAYOUT_VERSION == 2,
+    LAYOUT_VERSION == 3,
     "bump VERSION_SUFFIX with LAYOUT_VERSION"
 );
 
 impl Message for TrackerFrame {
     const NAME: &'static str = "TrackerFrame";
-    const TYPE_NAME: &'static str = "lungdyn.TrackerFrame.v2";
+    const TYPE_NAME: &'static str = "lungdyn.TrackerFrame.v3";
     fn layout_version(&self) -> u32 {
         self.layout_version
     }
 }
 impl Message for EngineFrame {
     const NAME: &'static str = "EngineFrame";
-    const TYPE_NAME: &'static str = "lungdyn.EngineFrame.v2";
+    const TYPE_NAME: &'static str = "lungdyn.EngineFrame.v3";
     fn layout_version(&self) -> u32 {
         self.layout_version
     }
 }
 impl Message for FrameReport {
     const NAME: &'static str = "FrameReport";
-    const TYPE_NAME: &'static str = "lungdyn.FrameReport.v2";
+    const TYPE_NAME: &'static str = "lungdyn.FrameReport.v3";
     fn layout_version(&self) -> u32 {
         self.layout_version
     }
@@ -473,7 +480,7 @@ const _: () = {
     assert!(offset_of!(TrackerFrame, stamps) == 16);
     assert!(offset_of!(TrackerFrame, tools) == 64);
 
-    assert!(size_of::<LungFrame>() == 48 + 4 * MAX_COEFFS && align_of::<LungFrame>() == 8);
+    assert!(size_of::<LungFrame>() == 64 + 4 * MAX_COEFFS && align_of::<LungFrame>() == 8);
     assert!(offset_of!(LungFrame, kernel_id) == 0);
     assert!(offset_of!(LungFrame, volume_ml) == 8);
     assert!(offset_of!(LungFrame, deform_scale) == 12);
@@ -484,8 +491,10 @@ const _: () = {
     assert!(offset_of!(LungFrame, coeff_kind) == 40);
     assert!(offset_of!(LungFrame, coeff_count) == 44);
     assert!(offset_of!(LungFrame, coeffs) == 48);
+    assert!(offset_of!(LungFrame, collapse) == 48 + 4 * MAX_COEFFS);
+    assert!(offset_of!(LungFrame, hilum_mm) == 52 + 4 * MAX_COEFFS);
 
-    assert!(size_of::<EngineFrame>() == 720 && align_of::<EngineFrame>() == 8);
+    assert!(size_of::<EngineFrame>() == 752 && align_of::<EngineFrame>() == 8);
     assert!(offset_of!(EngineFrame, layout_version) == 0);
     assert!(offset_of!(EngineFrame, state) == 4);
     assert!(offset_of!(EngineFrame, fault) == 8);
@@ -577,12 +586,12 @@ mod tests {
         f.lungs[LUNG_LEFT].kernel_id = 0xdead_beef_0123_4567;
         f.lungs[LUNG_RIGHT].offset_mm = [1.0, -2.0, 3.5];
         let bytes = bytemuck::bytes_of(&f).to_vec();
-        assert_eq!(bytes.len(), 720);
+        assert_eq!(bytes.len(), 752);
         let back: EngineFrame = bytemuck::pod_read_unaligned(&bytes);
         assert_eq!(back, f);
-        // Little-endian on every supported host: the kernel id sits at byte 112 + 304 (left lung).
+        // Little-endian on every supported host: the kernel id sits at byte 112 + 320 (left lung).
         assert_eq!(
-            u64::from_le_bytes(bytes[416..424].try_into().unwrap()),
+            u64::from_le_bytes(bytes[432..440].try_into().unwrap()),
             0xdead_beef_0123_4567
         );
     }

@@ -36,6 +36,10 @@ pub struct DrawState {
     pub deform_scale: [f32; 2],
     /// Rigid offset per lung slot (right, left), body frame, mm.
     pub offset_mm: [[f32; 3]; 2],
+    /// Collapse towards the hilum per lung slot, `c ∈ [0, 1]` (0: none; EQUATIONS.md §4.1).
+    pub collapse: [f32; 2],
+    /// The hilum per lung slot, body frame, mm (used where `collapse` is not 0).
+    pub hilum_mm: [[f32; 3]; 2],
     /// Deformation coefficients per lung slot: force weights (basis, direct) or SH force
     /// coefficients (sh); unused in the precomputed mode.
     pub coeffs: [[f32; MAX_COEFFS]; 2],
@@ -233,6 +237,8 @@ impl LungRenderer {
             &LungInputs {
                 scale: state.deform_scale,
                 offset: state.offset_mm,
+                collapse: state.collapse,
+                hilum: state.hilum_mm,
                 coeffs: state.coeffs,
             },
         );
@@ -279,6 +285,8 @@ impl LungRenderer {
             &LungInputs {
                 scale: state.deform_scale,
                 offset: state.offset_mm,
+                collapse: state.collapse,
+                hilum: state.hilum_mm,
                 coeffs: state.coeffs,
             },
         );

@@ -327,6 +327,8 @@ impl Session {
     fn lungs_to_draw(&mut self, frame: &EngineFrame, state: &mut DrawState) -> bool {
         state.deform_scale = [0.0; 2];
         state.offset_mm = [[0.0; 3]; 2];
+        state.collapse = [0.0; 2];
+        state.hilum_mm = [[0.0; 3]; 2];
         let mut mismatch = false;
         for slot in 0..NUM_LUNGS {
             let lung = &frame.lungs[slot];
@@ -339,6 +341,12 @@ impl Session {
                     state.deform_scale[slot] = lung.deform_scale;
                     state.offset_mm[slot] = lung.offset_mm;
                     state.coeffs[slot] = lung.coeffs;
+                    // A collapse outside [0, 1] or a non-finite hilum is never drawn.
+                    let h_ok = lung.hilum_mm.iter().all(|v| v.is_finite());
+                    if (0.0..=1.0).contains(&lung.collapse) && h_ok {
+                        state.collapse[slot] = lung.collapse;
+                        state.hilum_mm[slot] = lung.hilum_mm;
+                    }
                 }
                 continue;
             }
@@ -413,6 +421,8 @@ impl Session {
         let mut state = DrawState {
             deform_scale: [0.0; 2],
             offset_mm: [[0.0; 3]; 2],
+            collapse: [0.0; 2],
+            hilum_mm: [[0.0; 3]; 2],
             coeffs: [[0.0; ipc_types::MAX_COEFFS]; 2],
             patient: frame.patient_pose,
             hmd: self.hmd,

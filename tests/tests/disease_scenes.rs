@@ -1,6 +1,6 @@
 //! The shipped disease scenes through `lungdyn scene check`, with figures computed by hand from the
-//! equations (EQUATIONS.md §4), and the engine and demo refusing a disease scene they would
-//! otherwise breathe normally.
+//! equations (EQUATIONS.md §4); a pneumothorax scene through the demo; a tumour scene refused by the
+//! engine and the demo, which would otherwise breathe it normally.
 
 use std::path::{Path, PathBuf};
 use std::process::Command;
@@ -41,7 +41,7 @@ fn the_seeds_closed_pneumothorax_follows_eq_8_1_and_8_2() {
     let v = check(&scene("closed_pneumothorax.toml"));
     let d = &v["disease"];
     assert_eq!(d["kind"], "closed-pneumothorax");
-    assert_eq!(d["engine_applies_it"], false);
+    assert_eq!(d["engine_applies_it"], true);
     let left = d["lungs"]
         .as_array()
         .unwrap()
@@ -96,7 +96,7 @@ fn a_tension_pneumothorax_arrests_without_help_and_not_after_a_needle() {
 }
 
 #[test]
-fn every_shipped_scene_checks_and_a_disease_scene_is_refused_by_the_engine_and_demo() {
+fn every_shipped_scene_checks_a_pneumothorax_runs_and_a_tumour_is_refused() {
     for name in [
         "default.toml",
         "error_budget.toml",
@@ -107,9 +107,9 @@ fn every_shipped_scene_checks_and_a_disease_scene_is_refused_by_the_engine_and_d
     ] {
         check(&scene(name));
     }
-    let s = scene("closed_pneumothorax.toml");
+    let s = scene("tumour_right_lower.toml");
     let (ok, _, err) = lungdyn(&["demo", "--scene", s.to_str().unwrap(), "--seconds", "1"]);
-    assert!(!ok && err.contains("does not simulate disease states yet"), "{err}");
+    assert!(!ok && err.contains("does not simulate this disease state yet"), "{err}");
     let (ok, _, err) = lungdyn(&[
         "engine",
         "--scene",
@@ -119,7 +119,29 @@ fn every_shipped_scene_checks_and_a_disease_scene_is_refused_by_the_engine_and_d
         "--instance",
         &format!("disease-{}", std::process::id()),
     ]);
-    assert!(!ok && err.contains("does not simulate disease states yet"), "{err}");
+    assert!(!ok && err.contains("does not simulate this disease state yet"), "{err}");
+    // The seed's closed pneumothorax through the three processes: the left lung is collapsed and
+    // dropped in every frame, every frame finite.
+    let out = tmp("closed_demo");
+    let s = scene("closed_pneumothorax.toml");
+    let (ok, stdout, err) = lungdyn(&[
+        "demo",
+        "--scene",
+        s.to_str().unwrap(),
+        "--seconds",
+        "3",
+        "--snapshots",
+        "2",
+        "--out",
+        out.to_str().unwrap(),
+        "--instance",
+        &format!("closed-{}", std::process::id()),
+        "--json",
+    ]);
+    assert!(ok, "{err}");
+    let v: serde_json::Value = serde_json::from_str(&stdout).unwrap();
+    assert!(v["frames_rendered"].as_u64().unwrap() > 0, "{v}");
+    assert_eq!(v["pngs"].as_array().unwrap().len(), 2, "{v}");
 }
 
 #[test]

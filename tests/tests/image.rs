@@ -48,6 +48,8 @@ fn fixed_state(scale: f32) -> DrawState {
     DrawState {
         deform_scale: [scale, scale],
         offset_mm: [[0.0; 3]; 2],
+        collapse: [0.0; 2],
+        hilum_mm: [[0.0; 3]; 2],
         coeffs: [[0.0; ipc_types::MAX_COEFFS]; 2],
         patient,
         hmd: Pose {

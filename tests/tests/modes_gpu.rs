@@ -5,6 +5,7 @@
 
 use engine::runtime::{EngineCore, LungGeometry};
 use glam::{DMat3, DQuat, DVec3};
+use ipc_types::LUNG_LEFT;
 use ipc_types::{EngineFrame, Pose, ToolPose, TrackerFrame, LAYOUT_VERSION, TOOL_PATIENT};
 use lung_model::deform::modes::{CpuLung, DeformMode};
 use lung_model::kernel::section;
@@ -102,6 +103,8 @@ fn every_mode_on_the_gpu_matches_the_cpu_reference_at_extreme_orientations() {
             let mut state = DrawState {
                 deform_scale: [0.0; 2],
                 offset_mm: [[0.0; 3]; 2],
+                collapse: [0.0; 2],
+                hilum_mm: [[0.0; 3]; 2],
                 coeffs: [[0.0; ipc_types::MAX_COEFFS]; 2],
                 patient: f.patient_pose,
                 hmd: f.patient_pose,
@@ -148,6 +151,41 @@ fn every_mode_on_the_gpu_matches_the_cpu_reference_at_extreme_orientations() {
                 worst_n <= 1e-3,
                 "{mode} turn {k}: normals differ by {worst_n:e}"
             );
+            if k + 1 < turns.len() {
+                continue;
+            }
+            // A pneumothorax's collapse towards the hilum (EQUATIONS.md §4.1), left lung only:
+            // h + (1 − c)(p − h) + s·u + o = (drawn without collapse) + c·(h − p), p the rest
+            // position (drawn at scale 0, offset 0); the right lung is untouched.
+            let breathing = positions;
+            let mut rest = state;
+            rest.deform_scale = [0.0; 2];
+            rest.offset_mm = [[0.0; 3]; 2];
+            r.render(&gpu, &rest, false);
+            let p = r.read_deformed(&gpu).unwrap();
+            let (c, h) = (0.3f32, [-40.0f32, 10.0, 120.0]);
+            let mut collapsed = state;
+            collapsed.collapse[LUNG_LEFT] = c;
+            collapsed.hilum_mm[LUNG_LEFT] = h;
+            r.render(&gpu, &collapsed, false);
+            let got = r.read_deformed(&gpu).unwrap();
+            let mut at = 0;
+            let mut worst = 0.0f32;
+            for lung in &lungs {
+                let n = lung.lung.len();
+                for i in at..at + n {
+                    for a in 0..3 {
+                        let want = if lung.side.index() == LUNG_LEFT {
+                            breathing[i][a] + c * (h[a] - p[i][a])
+                        } else {
+                            breathing[i][a]
+                        };
+                        worst = worst.max((got[i][a] - want).abs() / want.abs().max(1.0));
+                    }
+                }
+                at += n;
+            }
+            assert!(worst <= 1e-5, "{mode}: collapse differs by {worst:e} relative");
         }
     }
 }

@@ -304,9 +304,9 @@ pub enum SceneValueError {
     Motion(#[source] crate::deform::MotionFileError),
     /// The scene has a disease state the running engine does not apply yet.
     #[error(
-        "[disease] kind = \"{0}\": the engine does not simulate disease states yet (the model is \
-         built and checked: `lungdyn scene check FILE` reports its course); remove [disease] to run \
-         the scene's lungs breathing normally"
+        "[disease] kind = \"{0}\": the engine does not simulate this disease state yet (the tumour's \
+         kernel change needs a bake with the tumour region; `lungdyn scene check FILE` validates the \
+         table); remove [disease] to run the scene's lungs breathing normally"
     )]
     DiseaseNotSimulated(&'static str),
     /// The `[disease]` table is unusable (the message names the key).
@@ -518,17 +518,16 @@ impl Scene {
         Ok(scene)
     }
 
-    /// Refuse a scene with a `[disease]` table in a process that would breathe it normally: the
-    /// disease model (`crate::disease`) is checked and summarised by `lungdyn scene check`, but the
-    /// engine's tick does not apply it yet, and a pneumothorax scene breathing like a healthy one
-    /// would be a silent wrong answer.
+    /// Refuse a scene whose disease state the engine does not run (a tumour: its kernel change needs
+    /// a bake with the tumour region, not built yet), where breathing it normally would be a silent
+    /// wrong answer. Pneumothorax scenes run.
     pub fn refuse_unsimulated_disease(&self, origin: &str) -> Result<(), SceneError> {
         match &self.disease {
-            Some(d) => Err(SceneError::Invalid {
+            Some(d) if d.kind == crate::scene_disease::DiseaseKind::Tumour => Err(SceneError::Invalid {
                 path: origin.to_string(),
                 source: SceneValueError::DiseaseNotSimulated(d.kind.name()),
             }),
-            None => Ok(()),
+            _ => Ok(()),
         }
     }
 

@@ -39,6 +39,7 @@ use lung_model::pv::{Breathing, PvError};
 use lung_model::scene::{LungLoadError, Scene, SceneValueError};
 use thiserror::Error;
 
+pub mod disease;
 pub mod process;
 pub use process::run;
 
@@ -56,6 +57,8 @@ pub struct LungGeometry {
     pub start_volume_ml: f64,
     /// The orientation-following mode's data; `None`: precomputed.
     pub follow: Option<Follow>,
+    /// The hilum a collapsing lung retracts towards, mm (found only for a disease scene).
+    pub hilum_mm: Option<[f64; 3]>,
 }
 
 /// What an orientation-following mode needs per tick.
@@ -93,6 +96,7 @@ impl LungGeometry {
             cubic: model.cubic,
             start_volume_ml: model.start_volume_ml,
             follow: None,
+            hilum_mm: None,
         }
     }
 
@@ -147,6 +151,7 @@ impl LungGeometry {
             cubic,
             start_volume_ml: cubic.coeffs[0] / 1000.0,
             follow,
+            hilum_mm: None,
         })
     }
 
@@ -165,6 +170,8 @@ pub struct LungBreath {
     share: f64,
     held_ml: Option<f64>,
     offset_mm: [f64; 3],
+    base_ml: Option<f64>,
+    collapse: f64,
     cycle_start: u64,
     cycle: u32,
     changed_at: Option<u64>,
@@ -179,6 +186,8 @@ impl LungBreath {
             share,
             held_ml: None,
             offset_mm: [0.0; 3],
+            base_ml: None,
+            collapse: 0.0,
             cycle_start: 0,
             cycle: 0,
             changed_at: None,
@@ -209,6 +218,32 @@ impl LungBreath {
     /// Rigid offset of the whole lung, body frame, mm.
     pub fn set_offset_mm(&mut self, offset_mm: [f64; 3]) {
         self.offset_mm = offset_mm;
+    }
+
+    /// Volume at the start of an inhalation, ml (`None`: the lung's own FRC volume): a collapsed
+    /// lung breathes from less, a hyper-expanded one from more (EQUATIONS.md §4).
+    pub fn set_base_volume_ml(&mut self, base_ml: Option<f64>) {
+        self.base_ml = base_ml;
+    }
+
+    /// Collapse towards the hilum, `c ∈ [0, 1]` (EQUATIONS.md §4.1; 0: none).
+    pub fn set_collapse(&mut self, collapse: f64) {
+        self.collapse = collapse.clamp(0.0, 1.0);
+    }
+
+    /// Breathing cycles completed.
+    pub fn cycle(&self) -> u32 {
+        self.cycle
+    }
+
+    /// Held volume, if the lung does not breathe.
+    pub fn held_ml(&self) -> Option<f64> {
+        self.held_ml
+    }
+
+    /// Collapse towards the hilum.
+    pub fn collapse(&self) -> f64 {
+        self.collapse
     }
 
     /// Advance the cycle bookkeeping to `tick`; returns the tick within the current cycle.
@@ -257,6 +292,12 @@ pub enum CoreError {
     /// A kernel cannot serve the scene's mode.
     #[error(transparent)]
     Geometry(#[from] GeometryError),
+    /// The scene's disease state cannot be run on these lungs.
+    #[error("the scene's [disease]: {0}")]
+    Disease(#[from] disease::DiseaseRunError),
+    /// The scene's `[disease]` table does not fit its lungs.
+    #[error("the scene's {0}")]
+    DiseaseScene(#[from] lung_model::scene_disease::DiseaseSceneError),
 }
 
 /// The deterministic engine state.
@@ -271,6 +312,7 @@ pub struct EngineCore {
     last_good_pose_tick: Option<u64>,
     last_tracker_tick: Option<u64>,
     last_tracker_frame: u64,
+    disease: Option<disease::DiseaseRun>,
 }
 
 impl EngineCore {
@@ -278,6 +320,7 @@ impl EngineCore {
     /// (never baking: a lung without a kernel is an error that says how to get one).
     pub fn new(scene: &Scene) -> Result<Self, CoreError> {
         let mut lungs = Vec::new();
+        let mut meshes = Vec::new();
         for &side in &scene.lungs.sides {
             let kernel = scene.lung_kernel(side)?;
             lungs.push(LungGeometry::from_kernel(
@@ -285,8 +328,60 @@ impl EngineCore {
                 scene.lungs.mode,
                 scene.engine.orientation,
             )?);
+            // Only a disease scene needs the surfaces (the hilum, the box): model only what the
+            // scene requires.
+            if scene.disease.is_some() {
+                meshes.push(kernel.mesh());
+            }
         }
-        Self::with_geometry(scene, lungs)
+        let mut core = Self::with_geometry(scene, lungs)?;
+        if scene.disease.is_some() {
+            core.start_disease(scene, &meshes)?;
+        }
+        Ok(core)
+    }
+
+    /// Prepare the scene's disease state on these lungs (`meshes` in the scene's lung order) and
+    /// apply what holds from the start (EQUATIONS.md §4; [`disease`]).
+    pub fn start_disease(
+        &mut self,
+        scene: &Scene,
+        meshes: &[lung_model::mesh::TriMesh],
+    ) -> Result<(), CoreError> {
+        let Some(d) = &scene.disease else {
+            return Ok(());
+        };
+        let spec = d.validate(&scene.lungs.sides)?;
+        let (inhale, exhale, boundary) = scene.pv_model().map_err(CoreError::Pv)?;
+        let normal = lung_model::disease::NormalBreathing {
+            inhale,
+            exhale,
+            boundary,
+            timing: scene.timing(),
+        };
+        let mut baselines = Vec::new();
+        for ((geometry, breath), mesh) in self.lungs.iter_mut().zip(meshes) {
+            let b = lung_model::disease::LungBaseline::of(mesh, geometry.side, breath.share)
+                .map_err(disease::DiseaseRunError::from)?;
+            geometry.hilum_mm = Some(b.hilum_mm);
+            baselines.push(b);
+        }
+        let mut run = disease::DiseaseRun::prepare(&spec, &normal, &baselines)?;
+        if let disease::DiseaseRun::Closed(setups) = &mut run {
+            for setup in setups.iter_mut() {
+                if let Some((_, breath)) = self.lungs.iter_mut().find(|(g, _)| g.side == setup.side)
+                {
+                    disease::apply(setup, breath, true);
+                }
+            }
+        }
+        self.disease = Some(run);
+        Ok(())
+    }
+
+    /// The disease state being run, if any.
+    pub fn disease(&self) -> Option<&disease::DiseaseRun> {
+        self.disease.as_ref()
     }
 
     /// Build from a scene and lung geometries already loaded (tests, benchmarks, tools that hold
@@ -313,6 +408,7 @@ impl EngineCore {
             last_good_pose_tick: None,
             last_tracker_tick: None,
             last_tracker_frame: 0,
+            disease: None,
         })
     }
 
@@ -397,6 +493,9 @@ impl EngineCore {
             state |= engine_state::POSE_INVALID;
         }
         let gravity = self.gravity_body;
+        if let Some(d) = &mut self.disease {
+            d.before_tick(tick, &mut self.lungs);
+        }
         out.lungs = [LungFrame::default(); NUM_LUNGS];
         for (k, (geometry, breath)) in self.lungs.iter_mut().enumerate() {
             let local = breath.local_tick(tick);
@@ -413,7 +512,7 @@ impl EngineCore {
                     if inhaling {
                         flags |= lung_flags::INHALING;
                     }
-                    geometry.start_volume_ml + delta
+                    breath.base_ml.unwrap_or(geometry.start_volume_ml) + delta
                 }
             };
             if breath.changed_at == Some(tick) {
@@ -423,8 +522,20 @@ impl EngineCore {
                 state |= engine_state::INHALING;
             }
             let delta_mm3 = (volume - geometry.start_volume_ml) * 1000.0;
+            // A collapsed lung (EQUATIONS.md §4.1): its breathing scale is solved on the collapsed
+            // cubic for the volume above the collapsed lung's own (exactly the healthy solve at 0).
+            let collapse = breath.collapse;
+            let solve = |cubic: &VolumeCubic| {
+                if collapse == 0.0 {
+                    cubic.solve_delta(delta_mm3)
+                } else {
+                    let k = 1.0 - collapse;
+                    let collapsed_ml = geometry.start_volume_ml * k * k * k;
+                    lung_model::disease::scale_on_collapsed(cubic, collapse, volume - collapsed_ml)
+                }
+            };
             let scale = match &geometry.follow {
-                None => geometry.cubic.solve_delta(delta_mm3),
+                None => solve(&geometry.cubic),
                 Some(follow) => {
                     let (w, limited) = follow.orientation.weights(gravity);
                     if limited {
@@ -450,7 +561,7 @@ impl EngineCore {
                             }
                         }
                     }
-                    follow.forms.cubic(&w).solve_delta(delta_mm3)
+                    solve(&follow.forms.cubic(&w))
                 }
             };
             let coeffs_finite = slot.coeffs.iter().all(|c| c.is_finite());
@@ -468,6 +579,10 @@ impl EngineCore {
             slot.phase = (local as f64 / ct as f64) as f32;
             slot.cycle = breath.cycle;
             slot.offset_mm = breath.offset_mm.map(|v| v as f32);
+            if collapse != 0.0 {
+                slot.collapse = collapse as f32;
+                slot.hilum_mm = geometry.hilum_mm.unwrap_or_default().map(|v| v as f32);
+            }
             slot.flags = flags;
         }
         out.layout_version = LAYOUT_VERSION;

@@ -119,14 +119,34 @@ fn same_inputs_replay_bitwise_identically() {
             x.tick
         );
     }
-    // Every byte of every frame, pinned across builds and machines.
-    let digest = fnv(a
-        .iter()
-        .flat_map(|f| bytemuck::bytes_of(f).iter().map(|&b| b as u64)));
+    // Every byte of every frame as layout v2 had it (v3 only appended each lung's collapse and
+    // hilum, zero for a healthy lung), pinned across builds and machines.
+    let digest = fnv(a.iter().flat_map(|f| v2_bytes(f).into_iter().map(|b| b as u64)));
     assert_eq!(
         digest, REFERENCE_DIGEST_V2,
         "reference run changed: digest {digest:#018x}"
     );
+    for f in &a {
+        for l in &f.lungs {
+            assert_eq!((l.collapse, l.hilum_mm), (0.0, [0.0; 3]));
+        }
+    }
+}
+
+/// The bytes of `f` in layout v2: the header (with version 2) and each lung without the v3 fields.
+fn v2_bytes(f: &EngineFrame) -> Vec<u8> {
+    let mut v2 = *f;
+    v2.layout_version = 2;
+    let bytes = bytemuck::bytes_of(&v2);
+    let header = core::mem::offset_of!(EngineFrame, lungs);
+    let lung = core::mem::size_of::<LungFrame>();
+    let v2_lung = core::mem::offset_of!(LungFrame, collapse);
+    let mut out = bytes[..header].to_vec();
+    for k in 0..NUM_LUNGS {
+        let at = header + k * lung;
+        out.extend_from_slice(&bytes[at..at + v2_lung]);
+    }
+    out
 }
 
 /// Per-lung state (layout v2) changed nothing of what v1 computed: the v1 fields of the same
@@ -492,4 +512,110 @@ fn every_orientation_method_stays_finite_at_the_extremes_and_replays_bitwise() {
             }
         }
     }
+}
+
+/// A scene with a `[disease]` table over the two baked test lungs (their meshes for the hilum).
+fn disease_core(disease: &str) -> EngineCore {
+    let scene = Scene::parse(
+        &format!("[lungs]\nsides = [\"right\", \"left\"]\n[disease]\n{disease}"),
+        "test",
+    )
+    .unwrap();
+    let meshes: Vec<_> = [Side::Right, Side::Left]
+        .into_iter()
+        .map(|side| generate::lung(side, 1000).unwrap())
+        .collect();
+    let mut core = EngineCore::with_geometry(&scene, baked_geometry()).unwrap();
+    core.start_disease(&scene, &meshes).unwrap();
+    core
+}
+
+#[test]
+fn a_closed_pneumothorax_collapses_the_affected_lung_by_eq_8_1_and_drops_it_by_eq_8_2() {
+    let mut c = disease_core("kind = \"closed-pneumothorax\"\nside = \"left\"\nindex = 0.1\n");
+    let healthy = core();
+    let start = healthy.geometry().map(|g| g.start_volume_ml).collect::<Vec<_>>();
+    let mut f = EngineFrame::default();
+    let mut min_left = f32::MAX;
+    for tick in 0..600 {
+        c.step(tick, None, &mut f);
+        let l = &f.lungs[LUNG_LEFT];
+        let r = &f.lungs[LUNG_RIGHT];
+        assert!(l.volume_ml.is_finite() && l.deform_scale.is_finite() && l.deform_scale >= 0.0);
+        // eq. 8.1: dV = 0.1^0.33 of the left lung's volume is lost: c = 1 − (1 − dV)^(1/3).
+        let dv = 0.1f64.powf(0.33);
+        let expect_c = 1.0 - (1.0 - dv).cbrt();
+        assert!((l.collapse as f64 - expect_c).abs() < 1e-6, "{}", l.collapse);
+        assert!(l.hilum_mm.iter().all(|v| v.is_finite()) && l.hilum_mm != [0.0; 3]);
+        // eq. 8.2: A = (100·0.1 − 4.2)/(4.7·2) cm = 6.17 mm downwards.
+        assert!((l.offset_mm[2] + 6.170).abs() < 0.01, "{:?}", l.offset_mm);
+        assert_eq!(r.collapse, 0.0);
+        min_left = min_left.min(l.volume_ml);
+    }
+    // The collapsed lung breathes from (1 − dV) of its volume.
+    let dv = 0.1f64.powf(0.33);
+    let base = start[1] * (1.0 - dv);
+    assert!((min_left as f64 - base).abs() < 0.5, "{min_left} vs {base}");
+}
+
+#[test]
+fn a_tension_pneumothorax_runs_to_arrest_and_a_needle_stops_it() {
+    let untreated = "kind = \"tension-pneumothorax\"\nside = \"left\"\n";
+    let mut c = disease_core(untreated);
+    let Some(disease::DiseaseRun::Tension(run)) = c.disease() else {
+        panic!("tension")
+    };
+    let arrest = run.first_arrest.expect("untreated: arrest");
+    assert!(run.cycles() as u64 > arrest);
+    let mut f = EngineFrame::default();
+    let mut tick = 0u64;
+    let mut held = false;
+    while tick < 200_000 {
+        c.step(tick, None, &mut f);
+        for l in &f.lungs {
+            assert!(l.volume_ml.is_finite() && l.deform_scale.is_finite());
+            assert!((0.0..=1.0).contains(&l.collapse));
+        }
+        if f.lungs[LUNG_LEFT].flags & lung_flags::HELD != 0 {
+            held = true;
+            break;
+        }
+        tick += 1;
+    }
+    assert!(held, "the untreated course ends with the lungs held (arrest)");
+    // A needle decompression at 30 s: no arrest, and the left lung re-expands.
+    let mut c = disease_core(&format!(
+        "{untreated}[[disease.events]]\nat_s = 30.0\nkind = \"needle-decompression\"\nside = \"left\"\n"
+    ));
+    let Some(disease::DiseaseRun::Tension(run)) = c.disease() else {
+        panic!("tension")
+    };
+    assert!(run.first_arrest.is_none());
+    assert_eq!(run.events.len(), 1);
+    assert_eq!(run.events[0].tick, 1800);
+    let mut max_c = 0.0f32;
+    let mut last_c = 0.0;
+    for tick in 0..60_000u64 {
+        c.step(tick, None, &mut f);
+        assert_eq!(f.lungs[LUNG_LEFT].flags & lung_flags::HELD, 0);
+        last_c = f.lungs[LUNG_LEFT].collapse;
+        max_c = max_c.max(last_c);
+    }
+    assert!(max_c > 0.0 && last_c < max_c, "{max_c} {last_c}");
+}
+
+#[test]
+fn a_disease_run_replays_bitwise() {
+    let scene = "kind = \"tension-pneumothorax\"\nside = \"left\"\n[[disease.events]]\nat_s = 40.0\nkind = \"chest-tube\"\nside = \"left\"\n";
+    let run = |mut c: EngineCore| {
+        let mut f = EngineFrame::default();
+        let mut h = Vec::new();
+        for tick in 0..20_000u64 {
+            let input = (tick % 3 != 0).then(|| frame(tick, true));
+            c.step(tick, input.as_ref(), &mut f);
+            h.push(fnv(bytemuck::bytes_of(&f).iter().map(|&b| b as u64)));
+        }
+        h
+    };
+    assert_eq!(run(disease_core(scene)), run(disease_core(scene)));
 }

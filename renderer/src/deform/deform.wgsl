@@ -2,6 +2,7 @@
 // vertex of both lungs and then computes smooth vertex normals from the moved positions; every eye
 // draws from those two buffers. Entry points, one per mode (lungdyn_model::deform::modes):
 //
+//   (each p below is (1 − c)·p for a lung collapsing towards its hilum, EQUATIONS §4.1)
 //   deform_precomputed  p + s·u + o                               (3 MACs)
 //   deform_basis        p + s·(w·G)·kd + o                         (EQUATIONS §3.3, 4 MACs)
 //   deform_sh           p + s·(Σ_k F_k·T_k)·kd + o                 (eq. 7.7, n² MACs)
@@ -13,7 +14,9 @@
 // 1e-4 relative (tests/tests/modes_gpu.rs).
 
 struct Params {
-    // Deformation scale per lung slot: x = right lung (slot 0), y = left lung (slot 1).
+    // Deformation scale per lung slot: x = right lung (slot 0), y = left lung (slot 1); z, w: the
+    // share of the rest position kept, 1 − c, of a lung collapsing towards its hilum (EQUATIONS §4.1:
+    // h + (1 − c)(p − h) + s·u + o, with c·h folded into the offset); 1 for a healthy lung.
     scale: vec4<f32>,
     // Rigid offset per slot (xyz, mm).
     offset: array<vec4<f32>, 2>,
@@ -65,6 +68,10 @@ fn scale_of(slot: u32) -> f32 {
     return select(params.scale.x, params.scale.y, slot == 1u);
 }
 
+fn keep_of(slot: u32) -> f32 {
+    return select(params.scale.z, params.scale.w, slot == 1u);
+}
+
 @compute @workgroup_size(256)
 fn deform_precomputed(@builtin(global_invocation_id) gid: vec3<u32>) {
     let i = gid.x;
@@ -73,7 +80,7 @@ fn deform_precomputed(@builtin(global_invocation_id) gid: vec3<u32>) {
     }
     let b = base[i];
     let slot = slot_of(b);
-    deformed[i] = vec4<f32>(b.xyz + scale_of(slot) * unit_disp[i].xyz + params.offset[slot].xyz, b.w);
+    deformed[i] = vec4<f32>(keep_of(slot) * b.xyz + scale_of(slot) * unit_disp[i].xyz + params.offset[slot].xyz, b.w);
 }
 
 @compute @workgroup_size(256)
@@ -85,7 +92,7 @@ fn deform_basis(@builtin(global_invocation_id) gid: vec3<u32>) {
     let b = base[i];
     let slot = slot_of(b);
     let d = dot(params.weights[slot], basis[i]);
-    deformed[i] = vec4<f32>(b.xyz + (scale_of(slot) * d) * kd[i].xyz + params.offset[slot].xyz, b.w);
+    deformed[i] = vec4<f32>(keep_of(slot) * b.xyz + (scale_of(slot) * d) * kd[i].xyz + params.offset[slot].xyz, b.w);
 }
 
 @compute @workgroup_size(256)
@@ -103,7 +110,7 @@ fn deform_sh(@builtin(global_invocation_id) gid: vec3<u32>) {
     for (var k = 0u; k < n; k = k + 1u) {
         d = d + sh_t[first + k] * params.sh_f[slot * 16u + k / 4u][k % 4u];
     }
-    deformed[i] = vec4<f32>(b.xyz + (scale_of(slot) * d) * kd[i].xyz + params.offset[slot].xyz, b.w);
+    deformed[i] = vec4<f32>(keep_of(slot) * b.xyz + (scale_of(slot) * d) * kd[i].xyz + params.offset[slot].xyz, b.w);
 }
 
 @compute @workgroup_size(256)
@@ -127,7 +134,7 @@ fn deform_direct(@builtin(global_invocation_id) gid: vec3<u32>) {
     for (var k = col_ptr[i]; k < col_ptr[i + 1u]; k = k + 1u) {
         d = d + force[col_src[k]] * col_val[k];
     }
-    deformed[i] = vec4<f32>(b.xyz + (scale_of(slot) * d) * kd[i].xyz + params.offset[slot].xyz, b.w);
+    deformed[i] = vec4<f32>(keep_of(slot) * b.xyz + (scale_of(slot) * d) * kd[i].xyz + params.offset[slot].xyz, b.w);
 }
 
 @compute @workgroup_size(256)

@@ -60,7 +60,7 @@ impl RenderLung {
 #[repr(C)]
 #[derive(Debug, Clone, Copy, bytemuck::Pod, bytemuck::Zeroable)]
 pub struct DeformParams {
-    /// Scale per lung slot (right, left, unused, unused).
+    /// Scale per lung slot (right, left), then `1 − collapse` per slot (right, left).
     pub scale: [f32; 4],
     /// Rigid offset per lung slot (xyz mm, w unused).
     pub offset: [[f32; 4]; 2],
@@ -106,6 +106,10 @@ pub struct LungInputs {
     pub scale: [f32; 2],
     /// Rigid offset per slot, mm.
     pub offset: [[f32; 3]; 2],
+    /// Collapse towards the hilum per slot, `c ∈ [0, 1]` (EQUATIONS.md §4.1).
+    pub collapse: [f32; 2],
+    /// The hilum per slot, mm.
+    pub hilum: [[f32; 3]; 2],
     /// Coefficients per slot (weights or SH force coefficients, as the mode needs).
     pub coeffs: [[f32; MAX_COEFFS]; 2],
 }
@@ -485,10 +489,25 @@ impl DeformPass {
 
     /// Set this frame's per-lung scales, rigid offsets and coefficients.
     pub fn set_lungs(&self, queue: &wgpu::Queue, inputs: &LungInputs) {
-        let o = |v: [f32; 3]| [v[0], v[1], v[2], 0.0];
+        // `h + (1 − c)(p − h) + s·u + o = (1 − c)·p + s·u + (o + c·h)`: the shader scales the rest
+        // position by `keep = 1 − c` (scale.zw) and the offset carries `c·h`; at c = 0 both are the
+        // healthy lung's exactly (×1.0, +0.0).
+        let o = |slot: usize| {
+            let (v, c, h) = (inputs.offset[slot], inputs.collapse[slot], inputs.hilum[slot]);
+            if c == 0.0 {
+                [v[0], v[1], v[2], 0.0]
+            } else {
+                [v[0] + c * h[0], v[1] + c * h[1], v[2] + c * h[2], 0.0]
+            }
+        };
         let mut p = DeformParams {
-            scale: [inputs.scale[0], inputs.scale[1], 0.0, 0.0],
-            offset: [o(inputs.offset[0]), o(inputs.offset[1])],
+            scale: [
+                inputs.scale[0],
+                inputs.scale[1],
+                1.0 - inputs.collapse[0],
+                1.0 - inputs.collapse[1],
+            ],
+            offset: [o(0), o(1)],
             weights: [[0.0; 4]; 2],
             count: self.count,
             _pad: [0; 3],
