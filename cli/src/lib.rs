@@ -18,6 +18,7 @@ pub mod prepare;
 pub mod pv_cmd;
 pub mod register_cmd;
 pub mod scene_check;
+pub mod scene_event;
 pub mod stats;
 pub mod strip;
 pub mod tracker_cmd;

@@ -78,6 +78,15 @@ enum SceneCommand {
     /// simulates; for a disease state, the model's course: a closed pneumothorax's plan, a tension
     /// pneumothorax cycle by cycle with the scene's interventions (--json for every number).
     Check(lungdyn::scene_check::CheckArgs),
+    /// Run a scene through the engine's tick function headless for --seconds of simulated time (no
+    /// processes, no GPU; bakes missing kernels once) and report per lung volumes, tidal volume, rate,
+    /// offset and collapse, the disease course with its events, and how often each stage worked.
+    /// `lungdyn demo --scene FILE` runs the same scene in the three processes with pictures.
+    Run(lungdyn::scene_check::RunArgs),
+    /// Send a trainee's intervention to a running scene (tension pneumothorax): e.g.
+    /// `lungdyn scene event default needle-decompression --side left`. The engine applies it at its
+    /// next disease cycle and prints the tick.
+    Event(lungdyn::scene_event::EventArgs),
 }
 
 #[derive(Subcommand)]
@@ -204,6 +213,15 @@ fn main() -> std::process::ExitCode {
                     "wrote {}: {:+.1} ml -> {:.1} ml (start {:.1} ml), scale {:.3}, largest displacement {:.2} mm",
                     e.path, e.delta_ml, e.volume_ml, e.start_volume_ml, e.scale, e.max_displacement_mm
                 );
+            }
+            Ok(())
+        }),
+        Command::Scene(SceneCommand::Event(args)) => lungdyn::scene_event::run(&args),
+        Command::Scene(SceneCommand::Run(args)) => lungdyn::scene_check::run_scene(&args).and_then(|v| {
+            if args.json {
+                println!("{}", serde_json::to_string(&v)?);
+            } else {
+                print!("{}", lungdyn::scene_check::run_text(&v));
             }
             Ok(())
         }),

@@ -177,8 +177,9 @@ fn tension(
         let (i, e) = timing.phase_ticks()?;
         Ok(i as u64 + e as u64)
     };
-    // Normal cycles until the onset, then the course; interventions in time order, each applied
-    // before the first cycle that starts at or after its tick (it shows from the next cycle).
+    // Normal cycles until the onset, then the course; interventions in time order with the
+    // engine's rule (`engine::runtime::disease`): one arriving at tick T with S(k-1) < T <= S(k)
+    // (cycle starts) is applied when cycle k + 1 is prepared, so it shows from cycle k + 1.
     let mut tick = 0u64;
     let onset_tick = (onset_s * tick_hz).round() as u64;
     let normal_cycle = cycle_ticks(&normal.timing)?;
@@ -192,10 +193,12 @@ fn tension(
     let mut pending = pending.into_iter().peekable();
     let mut course = Vec::new();
     let mut records = Vec::new();
+    let mut prev_start: Option<u64> = None;
+    let mut cur_ticks = normal_cycle;
     for _ in 0..cycles {
-        while let Some(e) = pending.peek() {
+        while let (Some(e), Some(prev)) = (pending.peek(), prev_start) {
             let at = e.tick(tick_hz);
-            if at > tick {
+            if at > prev {
                 break;
             }
             let r = t.intervene(e.kind, e.side, at);
@@ -228,7 +231,12 @@ fn tension(
             "svc_closed": c.svc_closed,
             "arrest": c.arrest,
         }));
-        tick += cycle_ticks(&c.timing).unwrap_or(normal_cycle);
+        prev_start = Some(tick);
+        // A held lung (arrest) keeps the cycle length it had, as in the engine.
+        if affected_state.held_ml.is_none() {
+            cur_ticks = cycle_ticks(&c.timing).unwrap_or(cur_ticks);
+        }
+        tick += cur_ticks;
         if c.arrest && pending.peek().is_none() {
             break;
         }
@@ -340,5 +348,210 @@ pub fn text(v: &Value) -> String {
     if let Some(n) = d["note"].as_str() {
         s += &format!("  {n}\n");
     }
+    s
+}
+
+/// Options of `lungdyn scene run`.
+#[derive(Debug, Clone, clap::Args)]
+pub struct RunArgs {
+    /// Scene file (TOML).
+    pub file: PathBuf,
+    /// Simulated seconds (the engine's tick function, as fast as it runs: no processes, no GPU).
+    #[arg(long, default_value_t = 60.0)]
+    pub seconds: f64,
+    /// Folder for the kernels the scene lacks (baked once, reused).
+    #[arg(long, default_value = "out")]
+    pub out: PathBuf,
+    /// Print one JSON object on stdout.
+    #[arg(long)]
+    pub json: bool,
+}
+
+/// Run `args.file` through the engine's tick function for `--seconds` of simulated time (fixed
+/// supine patient, the scene's timed interventions) and report per lung what the renderer would
+/// draw, the disease state's course and how often each stage of the tick did work.
+pub fn run_scene(args: &RunArgs) -> anyhow::Result<Value> {
+    let s = args.seconds;
+    if !(s.is_finite() && s > 0.0 && s <= 24.0 * 3600.0) {
+        anyhow::bail!(
+            "--seconds {} must be a positive number of seconds, at most 86400 (one day of simulated time)",
+            lung_model::plausible::compact(s)
+        );
+    }
+    let scene = Scene::load(&args.file)?;
+    let origin = args.file.display().to_string();
+    scene.refuse_unsimulated_disease(&origin)?;
+    let prepared = crate::prepare::prepare(scene, &args.out.join("kernels"))?;
+    let scene = prepared.scene;
+    let mut core = engine::runtime::EngineCore::new(&scene)?;
+    let ticks = (s * scene.engine.tick_hz).round().max(1.0) as u64;
+    let mut f = ipc_types::EngineFrame::default();
+    let n = ipc_types::NUM_LUNGS;
+    let (mut vmin, mut vmax) = (vec![f64::INFINITY; n], vec![f64::NEG_INFINITY; n]);
+    // The last complete breath of each lung: its volume range and length.
+    let mut cur: Vec<(f64, f64, u64)> = vec![(f64::INFINITY, f64::NEG_INFINITY, 0); n];
+    let mut last_breath: Vec<Option<(f64, f64, u64)>> = vec![None; n];
+    let mut last_cycle = vec![0u32; n];
+    let mut started = vec![0u64; n];
+    let mut non_finite = 0u64;
+    for tick in 0..ticks {
+        core.step(tick, None, &mut f);
+        for (k, l) in f.lungs.iter().enumerate() {
+            if !l.is_active() {
+                continue;
+            }
+            let v = l.volume_ml as f64;
+            if !(v.is_finite() && l.deform_scale.is_finite()) {
+                non_finite += 1;
+            }
+            vmin[k] = vmin[k].min(v);
+            vmax[k] = vmax[k].max(v);
+            if l.cycle != last_cycle[k] {
+                last_breath[k] = Some((cur[k].0, cur[k].1, tick - started[k]));
+                cur[k] = (f64::INFINITY, f64::NEG_INFINITY, 0);
+                started[k] = tick;
+                last_cycle[k] = l.cycle;
+            }
+            cur[k].0 = cur[k].0.min(v);
+            cur[k].1 = cur[k].1.max(v);
+        }
+        core.prepare_ahead()?;
+    }
+    let hz = scene.engine.tick_hz;
+    let mut lungs = Vec::new();
+    for &side in &scene.lungs.sides {
+        let k = side.index();
+        let l = &f.lungs[k];
+        let (tidal, bpm) = match last_breath[k] {
+            Some((lo, hi, len)) if len > 0 => (hi - lo, 60.0 * hz / len as f64),
+            _ => (vmax[k] - vmin[k], f64::NAN),
+        };
+        lungs.push(json!({
+            "side": side.name(),
+            "volume_min_ml": r3(vmin[k]),
+            "volume_max_ml": r3(vmax[k]),
+            "tidal_volume_ml": r3(tidal),
+            "breaths_per_min": if bpm.is_finite() { json!(r3(bpm)) } else { Value::Null },
+            "offset_mm": l.offset_mm.map(|v| r3(v as f64)),
+            "collapse": r3(l.collapse as f64),
+            "held": l.flags & ipc_types::lung_flags::HELD != 0,
+            "cycles": l.cycle,
+        }));
+    }
+    let mut out = json!({
+        "scene": origin,
+        "seconds": s,
+        "ticks": ticks,
+        "mode": format!("{:?}", scene.lungs.mode).to_lowercase(),
+        "lungs": lungs,
+        "non_finite_frames": non_finite,
+        "stage_counts": core.stage_counts(),
+        "kernels": prepared.kernels.iter().map(|k| k.path.clone()).collect::<Vec<_>>(),
+    });
+    if let Some(d) = &scene.disease {
+        let mut disease = json!({ "kind": d.kind.name() });
+        if let Some(engine::runtime::disease::DiseaseRun::Tension(run)) = core.disease() {
+            disease["cycles_run"] = json!(run.cycles_run);
+            disease["first_arrest_cycle"] = json!(run.first_arrest);
+            disease["events"] = run
+                .events
+                .iter()
+                .map(|e| {
+                    json!({
+                        "tick": e.tick,
+                        "cycle": e.cycle,
+                        "kind": e.kind.name(),
+                        "side": e.side.name(),
+                        "outcome": format!("{:?}", e.outcome),
+                    })
+                })
+                .collect();
+        }
+        if matches!(
+            d.kind,
+            lung_model::scene_disease::DiseaseKind::ClosedPneumothorax
+                | lung_model::scene_disease::DiseaseKind::BilateralPneumothorax
+        ) {
+            let sides: Vec<Side> = scene.lungs.sides.clone();
+            let spec = d.validate(&sides)?;
+            if let DiseaseSpec::Closed(c) = spec {
+                let per: Vec<Value> = sides
+                    .iter()
+                    .filter_map(|&side| {
+                        c.index_of(side).map(|i| {
+                            let dv = lung_model::disease::volume_fraction_lost(i).unwrap_or(f64::NAN);
+                            json!({
+                                "side": side.name(),
+                                "pneumothorax_index": i,
+                                "dV": r3(dv),
+                                "drop_mm": r3(lung_model::disease::drop_for_index(i).drop_mm),
+                            })
+                        })
+                    })
+                    .collect();
+                disease["affected"] = json!(per);
+            }
+        }
+        out["disease"] = disease;
+    }
+    Ok(out)
+}
+
+/// The `scene run` report as text.
+pub fn run_text(v: &Value) -> String {
+    let mut s = format!(
+        "{}: {} s simulated ({} ticks, mode {}){}\n",
+        v["scene"].as_str().unwrap_or(""),
+        v["seconds"],
+        v["ticks"],
+        v["mode"].as_str().unwrap_or(""),
+        if v["non_finite_frames"].as_u64() == Some(0) {
+            String::new()
+        } else {
+            format!(", {} NON-FINITE frames", v["non_finite_frames"])
+        }
+    );
+    for l in v["lungs"].as_array().into_iter().flatten() {
+        s += &format!(
+            "  {} lung: {}–{} ml, last breath {} ml at {} /min, offset {} mm, collapse {}{}\n",
+            l["side"].as_str().unwrap_or(""),
+            l["volume_min_ml"],
+            l["volume_max_ml"],
+            l["tidal_volume_ml"],
+            l["breaths_per_min"],
+            l["offset_mm"],
+            l["collapse"],
+            if l["held"].as_bool() == Some(true) {
+                ", HELD (not breathing)"
+            } else {
+                ""
+            }
+        );
+    }
+    if let Some(d) = v.get("disease") {
+        s += &format!("  disease {}", d["kind"].as_str().unwrap_or(""));
+        if let Some(c) = d.get("cycles_run") {
+            s += &format!(
+                ": {} cycles, {}",
+                c,
+                match d["first_arrest_cycle"].as_u64() {
+                    Some(a) => format!("arrest at cycle {a}"),
+                    None => "no arrest".to_string(),
+                }
+            );
+        }
+        s += "\n";
+        for e in d["events"].as_array().into_iter().flatten() {
+            s += &format!(
+                "  event at tick {} (cycle {}): {} {} — {}\n",
+                e["tick"],
+                e["cycle"],
+                e["kind"].as_str().unwrap_or(""),
+                e["side"].as_str().unwrap_or(""),
+                e["outcome"].as_str().unwrap_or("")
+            );
+        }
+    }
+    s += &format!("  stage counts: {}\n", v["stage_counts"]);
     s
 }

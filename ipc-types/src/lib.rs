@@ -403,6 +403,42 @@ pub struct FrameReport {
     pub volume_ml: [f32; NUM_LUNGS],
 }
 
+/// A trainee's action sent to a running engine (`lungdyn scene event`, a key in the window): an
+/// intervention on one lung. The engine applies it at its next disease cycle and reports it with its
+/// tick (EQUATIONS.md §4.3).
+#[derive(Debug, Clone, Copy, Default, PartialEq, Eq, Pod, Zeroable)]
+#[repr(C)]
+pub struct ControlPacket {
+    /// [`LAYOUT_VERSION`] of the publisher.
+    pub layout_version: u32,
+    /// [`control_kind`] code.
+    pub kind: u32,
+    /// Lung slot ([`LUNG_RIGHT`], [`LUNG_LEFT`]).
+    pub lung: u32,
+    /// Explicit padding.
+    pub _pad: u32,
+    /// Sender's sequence number (a repeated number is one action, not two).
+    pub sequence: u64,
+}
+
+/// Codes of [`ControlPacket::kind`].
+pub mod control_kind {
+    /// Needle decompression (tension pneumothorax).
+    pub const NEEDLE_DECOMPRESSION: u32 = 1;
+    /// Occlusive dressing of an open wound.
+    pub const OCCLUSIVE_DRESSING: u32 = 2;
+    /// Chest tube.
+    pub const CHEST_TUBE: u32 = 3;
+}
+
+impl Message for ControlPacket {
+    const NAME: &'static str = "ControlPacket";
+    const TYPE_NAME: &'static str = "lungdyn.ControlPacket.v3";
+    fn layout_version(&self) -> u32 {
+        self.layout_version
+    }
+}
+
 const VERSION_SUFFIX: &str = ".v3";
 const _: () = assert!(
     LAYOUT_VERSION == 3,
@@ -452,6 +488,11 @@ const _: () = {
     assert!(ends_with(TrackerFrame::TYPE_NAME, VERSION_SUFFIX));
     assert!(ends_with(EngineFrame::TYPE_NAME, VERSION_SUFFIX));
     assert!(ends_with(FrameReport::TYPE_NAME, VERSION_SUFFIX));
+    assert!(ends_with(ControlPacket::TYPE_NAME, VERSION_SUFFIX));
+    assert!(size_of::<ControlPacket>() == 24 && align_of::<ControlPacket>() == 8);
+    assert!(offset_of!(ControlPacket, kind) == 4);
+    assert!(offset_of!(ControlPacket, lung) == 8);
+    assert!(offset_of!(ControlPacket, sequence) == 16);
 
     assert!(size_of::<HopStamps>() == 48 && align_of::<HopStamps>() == 8);
     assert!(offset_of!(HopStamps, capture_ns) == 0);

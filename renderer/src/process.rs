@@ -187,6 +187,9 @@ pub struct Session {
     snapshots: Snapshots,
     next_target: usize,
     snapshot_view: Option<Pose>,
+    /// A tension pneumothorax scene's control stream and affected lung (the window's keys).
+    control: Option<(Box<dyn Publish<ipc_types::ControlPacket>>, lung_model::mesh::Side)>,
+    control_sequence: u64,
 }
 
 /// Keep Mesa quiet on headless machines: without XDG_RUNTIME_DIR its window-system probing prints an
@@ -245,6 +248,13 @@ impl Session {
             instance.name(),
         );
         session.stop_at = run_ns.map(|d| session.clock.now_ns().saturating_add(d));
+        if let Some(d) = &scene.disease {
+            if d.kind == lung_model::scene_disease::DiseaseKind::TensionPneumothorax {
+                if let Some(side) = d.side {
+                    session.control = Some((Box::new(instance.control_outlet(&node)?), side));
+                }
+            }
+        }
         session.node = Some(node);
         session.lock = Some(lock);
         let (w, h) = session.renderer.image_size();
@@ -308,7 +318,27 @@ impl Session {
             snapshots,
             next_target: 0,
             snapshot_view: None,
+            control: None,
+            control_sequence: 0,
         }
+    }
+
+    /// Send a trainee's intervention ([`ipc_types::control_kind`]) on the tension pneumothorax's
+    /// side to the engine; `None` when the scene has none, else the lung it was sent for.
+    pub fn send_action(&mut self, kind: u32) -> Result<Option<lung_model::mesh::Side>, RendererError> {
+        let Some((outlet, side)) = self.control.as_mut() else {
+            return Ok(None);
+        };
+        self.control_sequence += 1;
+        let packet = ipc_types::ControlPacket {
+            layout_version: LAYOUT_VERSION,
+            kind,
+            lung: side.index() as u32,
+            _pad: 0,
+            sequence: self.control_sequence,
+        };
+        outlet.publish(&packet)?;
+        Ok(Some(*side))
     }
 
     /// True when the process was asked to stop or its time is up.
@@ -494,10 +524,10 @@ impl Session {
     /// Say goodbye on stderr.
     pub fn finish(&self) {
         let s = &self.stats;
-        eprintln!(
+        transport::process::say(&format!(
             "renderer[{}]: stopped after {} frames ({} stale, {} with a kernel mismatch), {} snapshots",
             self.instance, s.frames, s.stale_frames, s.kernel_mismatch_frames, s.snapshots
-        );
+        ));
     }
 }
 

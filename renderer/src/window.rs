@@ -96,6 +96,32 @@ impl ApplicationHandler for App {
                 w.config.height = size.height;
                 w.surface.configure(&w.session.gpu.device, &w.config);
             }
+            // A trainee's interventions on a tension pneumothorax: N needle decompression, C chest
+            // tube, O occlusive dressing (sent to the engine, which reports the tick it applied).
+            WindowEvent::KeyboardInput { event, .. }
+                if event.state == winit::event::ElementState::Pressed && !event.repeat =>
+            {
+                use ipc_types::control_kind as k;
+                let action = match event.logical_key.to_text() {
+                    Some("n") | Some("N") => Some((k::NEEDLE_DECOMPRESSION, "needle decompression")),
+                    Some("c") | Some("C") => Some((k::CHEST_TUBE, "chest tube")),
+                    Some("o") | Some("O") => Some((k::OCCLUSIVE_DRESSING, "occlusive dressing")),
+                    _ => None,
+                };
+                if let Some((kind, name)) = action {
+                    match w.session.send_action(kind) {
+                        Ok(Some(side)) => {
+                            eprintln!("renderer: key: {name} on the {} lung sent", side.name())
+                        }
+                        Ok(None) => eprintln!(
+                            "renderer: key: {name} needs a tension pneumothorax scene; ignored"
+                        ),
+                        Err(e) => {
+                            self.fail(event_loop, e);
+                        }
+                    }
+                }
+            }
             _ => {}
         }
     }

@@ -167,3 +167,108 @@ fn bad_disease_tables_name_their_key() {
     let (ok, _, err) = lungdyn(&["scene", "check", f.to_str().unwrap()]);
     assert!(!ok && err.contains("left lung"), "{err}");
 }
+
+#[test]
+fn a_trainee_decompresses_a_running_tension_pneumothorax() {
+    let exe = Path::new(env!("CARGO_MANIFEST_DIR")).join("../target/release/lungdyn");
+    let instance = format!("tension-live-{}", std::process::id());
+    let out = tmp("tension_live");
+    let s = scene("tension_pneumothorax.toml");
+    let demo = Command::new(&exe)
+        .args([
+            "demo",
+            "--scene",
+            s.to_str().unwrap(),
+            "--seconds",
+            "12",
+            "--snapshots",
+            "0",
+            "--out",
+            out.to_str().unwrap(),
+            "--instance",
+            &instance,
+        ])
+        .stdout(std::process::Stdio::null())
+        .stderr(std::process::Stdio::piped())
+        .spawn()
+        .unwrap();
+    // Until the engine runs, the command refuses (nobody would listen); then it is sent once.
+    let start = std::time::Instant::now();
+    let mut sent = false;
+    while start.elapsed() < std::time::Duration::from_secs(10) {
+        let (ok, _, err) = lungdyn(&["scene", "event", &instance, "needle-decompression", "--side", "left"]);
+        if ok {
+            sent = true;
+            break;
+        }
+        assert!(err.contains("no engine is running"), "{err}");
+        std::thread::sleep(std::time::Duration::from_millis(200));
+    }
+    let o = demo.wait_with_output().unwrap();
+    let err = String::from_utf8_lossy(&o.stderr);
+    assert!(sent, "the engine never came up: {err}");
+    assert!(o.status.success(), "{err}");
+    assert!(
+        err.contains("needle-decompression on the left lung (arrived at tick") && err.contains("Applied"),
+        "{err}"
+    );
+    assert!(err.contains("disease cycles built on the worker thread"), "{err}");
+}
+
+fn scene_run(name: &str, seconds: &str) -> serde_json::Value {
+    let out = tmp("scene_run");
+    let s = scene(name);
+    let (ok, stdout, err) = lungdyn(&[
+        "scene",
+        "run",
+        s.to_str().unwrap(),
+        "--seconds",
+        seconds,
+        "--out",
+        out.to_str().unwrap(),
+        "--json",
+    ]);
+    assert!(ok, "{name}: {err}");
+    serde_json::from_str(&stdout).unwrap()
+}
+
+#[test]
+fn scene_run_reports_each_lung_and_computes_only_what_the_scene_needs() {
+    let v = scene_run("closed_pneumothorax.toml", "60");
+    assert_eq!(v["non_finite_frames"], 0);
+    let lungs = v["lungs"].as_array().unwrap();
+    let left = lungs.iter().find(|l| l["side"] == "left").unwrap();
+    let right = lungs.iter().find(|l| l["side"] == "right").unwrap();
+    // eq. 8.2's drop, the collapse of eq. 8.1's loss (c = 1 - (1 - 0.1^0.33)^(1/3) = 0.190), and the
+    // faster breathing of eq. 8.3-8.5 (clamped phases of 0.75 s: 40/min) in both lungs.
+    assert!((left["offset_mm"][2].as_f64().unwrap() + 6.17).abs() < 0.01, "{left}");
+    assert!((left["collapse"].as_f64().unwrap() - 0.190).abs() < 0.001, "{left}");
+    assert_eq!(right["collapse"], 0.0);
+    for l in lungs {
+        assert!((l["breaths_per_min"].as_f64().unwrap() - 40.0).abs() < 0.01, "{l}");
+    }
+    // A fixed patient: the orientation weights are computed once per lung, not per tick.
+    let c = &v["stage_counts"];
+    assert_eq!(c["ticks"], 3600);
+    assert_eq!(c["orientation_evaluations"], 2, "{c}");
+    assert_eq!(c["sh_projections"], 0, "{c}");
+    assert_eq!(c["disease_cycles"], 0, "{c}");
+    // The healthy scene breathes the PV model's tidal volume at its rate; runs are reproducible.
+    let a = scene_run("default.toml", "30");
+    let total: f64 = a["lungs"]
+        .as_array()
+        .unwrap()
+        .iter()
+        .map(|l| l["tidal_volume_ml"].as_f64().unwrap())
+        .sum();
+    assert!((total - 500.0).abs() < 0.5, "{a}");
+    let b = scene_run("default.toml", "30");
+    assert_eq!(a["lungs"], b["lungs"]);
+    // The tension scene: cycles are run and the needle at 60 s is reported with its tick.
+    let t = scene_run("tension_pneumothorax.toml", "90");
+    let d = &t["disease"];
+    assert!(d["cycles_run"].as_u64().unwrap() > 10, "{d}");
+    assert_eq!(d["events"][0]["tick"], 3600, "{d}");
+    assert_eq!(d["events"][0]["outcome"], "Applied", "{d}");
+    assert!(t["stage_counts"]["disease_cycles"].as_u64().unwrap() > 10);
+}

@@ -195,7 +195,7 @@ fn sender(port: u16, seconds: f64) -> std::thread::JoinHandle<u32> {
 fn the_bridge_process_publishes_what_an_openigtlink_sender_sends() {
     let instance = unique_instance("igtl");
     let port = free_port();
-    let mut bridge = std::process::Command::new(bin("tracker-bridge"))
+    let bridge = std::process::Command::new(bin("tracker-bridge"))
         .args(["--instance", &instance, "--seconds", "30", "--source", &format!("igtl-server:127.0.0.1:{port}")])
         .stderr(std::process::Stdio::piped())
         .spawn()

@@ -374,10 +374,10 @@ pub fn run(args: &BridgeArgs) -> Result<(), BridgeError> {
     if ended == Ended::SourceEnded {
         eprintln!("{prefix}: the source ended (end of the recording)");
     }
-    eprintln!(
+    transport::process::say(&format!(
         "{prefix}: stopped after {} frames ({} slots skipped)",
         stats.frames, stats.ticks_skipped
-    );
+    ));
     eprint!("{}", indent(&stats.text(), &prefix));
     if let Some(r) = recorder.take() {
         let path = r.finish()?;

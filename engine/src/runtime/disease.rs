@@ -8,20 +8,23 @@
 //!   engine is built: each lung breathes its plan's cycle (faster, eq. 8.3–8.5; its own tidal volume,
 //!   eq. 8.6–8.7; eq. 8.8–8.9 constants for an affected lung) from its collapsed base volume, collapsed
 //!   towards its hilum (`dV` of eq. 8.1 as an exact volume loss) and dropped (eq. 8.2).
-//! * **Tension pneumothorax**: the course is deterministic in breathing cycles, and the scene's
-//!   interventions are timed, so the whole course — every cycle's lung states and PV cycles, each
-//!   intervention applied at the first cycle that starts at or after its tick (it shows from that
-//!   cycle, [`Tension::intervene`]) — is computed when the engine is built, until arrest with every
-//!   intervention past, or [`MAX_COURSE_CYCLES`]. At run time each new cycle of the affected lung moves
-//!   the next prepared cycle into both lungs (a move, no allocation); the last state then stays.
-//!   Before the onset both lungs breathe normally.
+//! * **Tension pneumothorax**: deterministic in breathing cycles. The state machine
+//!   ([`Tension`]) advances once per cycle of the affected lung; each cycle's lung states and PV
+//!   cycles are *prepared one cycle ahead* by [`TensionRun::prepare_ahead`], which the process loop
+//!   calls after publishing a frame (where the slack of the tick period is; it allocates the cycle's
+//!   tables), and [`DiseaseRun::before_tick`] moves the prepared cycle into both lungs at the tick the
+//!   affected lung starts a new cycle (a move: the tick itself never allocates). Interventions — the
+//!   scene's `[[disease.events]]` at their time, and a trainee's actions arriving live
+//!   ([`TensionRun::intervene_live`], `lungdyn scene event`) — are applied to the state machine when
+//!   the next cycle is prepared: an intervention arriving at tick `T` with `S_{k−1} < T ≤ S_k` (cycle
+//!   starts) shows from cycle `k + 1`, i.e. within two breaths. The same rule in
+//!   `lungdyn scene check` gives the same course. Before the onset both lungs breathe normally.
 //!
-//! Events sent live to a running engine (a control channel) are not built: interventions come from the
-//! scene's `[[disease.events]]`. A tumour needs a kernel baked with the tumour region and is refused
-//! by the scene loader's caller (`Scene::refuse_unsimulated_disease`).
+//! A tumour needs a kernel baked with the tumour region and is refused by the engine and the demo
+//! (`Scene::refuse_unsimulated_disease`).
 
 use lung_model::disease::closed::ClosedPlan;
-use lung_model::disease::tension::{EventRecord, Tension};
+use lung_model::disease::tension::{EventRecord, Intervention, Tension};
 use lung_model::disease::{DiseaseError, LungBaseline, LungState, NormalBreathing};
 use lung_model::mesh::Side;
 use lung_model::pv::{Breathing, PhaseConstants, PvError};
@@ -29,10 +32,6 @@ use lung_model::scene_disease::{DiseaseSpec, TimedEvent};
 use thiserror::Error;
 
 use super::LungBreath;
-
-/// Most tension-pneumothorax cycles prepared (≈ 40 min at 25 breaths/min); the last one's state
-/// stays after that.
-pub const MAX_COURSE_CYCLES: usize = 1000;
 
 /// Why a scene's disease state cannot be run.
 #[derive(Debug, Error)]
@@ -51,6 +50,9 @@ pub enum DiseaseRunError {
     /// The kind is not run by the engine.
     #[error("[disease] kind {0} is not run by the engine")]
     NotRun(&'static str),
+    /// The thread that builds disease cycles stopped.
+    #[error("the disease worker thread stopped")]
+    WorkerGone,
 }
 
 /// What one lung does from one cycle on.
@@ -86,36 +88,89 @@ pub enum DiseaseRun {
     Tension(TensionRun),
 }
 
-/// A prepared tension-pneumothorax course.
+/// A tension pneumothorax being run, one cycle prepared ahead.
 #[derive(Debug, Clone)]
 pub struct TensionRun {
+    tension: Tension,
+    normal: NormalBreathing,
+    shares: Vec<(Side, f64)>,
     affected: Side,
     onset_tick: u64,
-    course: Vec<Option<CourseCycle>>,
-    next: usize,
-    /// The interventions as applied (tick, course cycle, outcome).
+    timed: Vec<TimedEvent>,
+    next_timed: usize,
+    live: Vec<(u64, Intervention, Side)>,
+    prepared: Option<CourseCycle>,
+    spent: Option<CourseCycle>,
+    started: bool,
+    last_start: u64,
+    inhale: PhaseConstants,
+    exhale: PhaseConstants,
+    /// Cycles moved into the lungs so far.
+    pub cycles_run: u64,
+    /// Cycles prepared so far.
+    pub prepared_count: u64,
+    requested: bool,
+    /// The interventions as applied (arrival tick, cycle, outcome), in order.
     pub events: Vec<EventRecord>,
+    /// Events reported by [`TensionRun::take_new_events`] so far.
+    reported: usize,
     /// First course cycle in arrest, if any.
     pub first_arrest: Option<u64>,
 }
 
-fn breathing_of(
-    side: Side,
-    inhale: &PhaseConstants,
-    exhale: &PhaseConstants,
-    state: &LungState,
-    normal: &NormalBreathing,
-    share: f64,
-    timing: &lung_model::pv::Timing,
-) -> Result<Option<Breathing>, DiseaseRunError> {
-    state
-        .boundary(&normal.boundary, share)
-        .map(|b| Breathing::from_constants(inhale, exhale, b, timing))
-        .transpose()
-        .map_err(|source| DiseaseRunError::Breathing {
-            side: side.name(),
-            source,
+/// Live actions queued between two preparations (more are refused, not queued: a trainee does not
+/// act 16 times in one breath).
+pub const MAX_QUEUED_ACTIONS: usize = 16;
+
+/// One lung's part of a [`Recipe`].
+#[derive(Debug, Clone)]
+pub struct LungRecipe {
+    /// The lung's state.
+    pub state: LungState,
+    /// Its PV cycle's inputs (`None` when held).
+    pub pv: Option<(PhaseConstants, PhaseConstants, lung_model::pv::Boundary, lung_model::pv::Timing)>,
+}
+
+/// Everything needed to build one prepared cycle (the expensive part: the PV cycles).
+#[derive(Debug, Clone)]
+pub struct Recipe {
+    /// The course's cycle number.
+    pub cycle: u64,
+    /// Arrest in this cycle.
+    pub arrest: bool,
+    /// Pleural air, ml.
+    pub pleural_air_ml: f64,
+    /// The lungs.
+    pub lungs: Vec<LungRecipe>,
+}
+
+impl Recipe {
+    /// Build the cycle's PV tables (allocates; ≈ 20 ms per lung on the 2-core VM).
+    pub fn build(self) -> Result<CourseCycle, DiseaseRunError> {
+        let mut lungs = Vec::with_capacity(self.lungs.len());
+        for l in self.lungs {
+            let breathing = match l.pv {
+                Some((i, e, b, t)) => Some(Breathing::from_constants(&i, &e, b, &t).map_err(
+                    |source| DiseaseRunError::Breathing {
+                        side: l.state.side.name(),
+                        source,
+                    },
+                )?),
+                None => None,
+            };
+            lungs.push(LungSetup {
+                side: l.state.side,
+                state: l.state,
+                breathing,
+            });
+        }
+        Ok(CourseCycle {
+            cycle: self.cycle,
+            lungs,
+            arrest: self.arrest,
+            pleural_air_ml: self.pleural_air_ml,
         })
+    }
 }
 
 impl DiseaseRun {
@@ -173,90 +228,151 @@ impl TensionRun {
                 side: params.side.name(),
             })?;
         let other = baselines.iter().find(|b| b.side != params.side).copied();
-        let mut t = Tension::new(params, normal.timing, normal.boundary, affected, other)?;
-        t.check_constants(&normal.inhale, &normal.exhale)?;
-        let tick_hz = normal.timing.tick_hz;
-        let onset_tick = (onset_s * tick_hz).round() as u64;
-        let normal_ticks = {
-            let (i, e) = normal.timing.phase_ticks().map_err(DiseaseError::from)?;
-            i as u64 + e as u64
-        };
-        // The affected lung's first cycle at or after the onset starts on a multiple of the normal
-        // cycle (both lungs breathe normally until then).
-        let mut tick = onset_tick.div_ceil(normal_ticks) * normal_ticks;
-        let mut cycle_ticks = normal_ticks;
-        let mut pending: Vec<TimedEvent> = events.to_vec();
-        pending.sort_by(|a, b| a.at_s.total_cmp(&b.at_s));
-        let mut pending = pending.into_iter().peekable();
-        let mut records = Vec::new();
-        let mut course = Vec::new();
-        let (mut inh, mut exh) = (normal.inhale.clone(), normal.exhale.clone());
-        while course.len() < MAX_COURSE_CYCLES {
-            while let Some(e) = pending.peek() {
-                let at = e.tick(tick_hz);
-                if at > tick {
-                    break;
-                }
-                records.push(t.intervene(e.kind, e.side, at));
-                pending.next();
-            }
-            let c = t.advance();
-            let mut lungs = Vec::new();
-            for state in std::iter::once(c.affected).chain(c.unaffected) {
-                let base = baselines
-                    .iter()
-                    .find(|b| b.side == state.side)
-                    .expect("the course's lungs are the scene's");
-                let (i, e) = if state.side == params.side {
-                    t.constants_into(
-                        state.resistance_dv,
-                        (&normal.inhale, &normal.exhale),
-                        (&mut inh, &mut exh),
-                    )?;
-                    (&inh, &exh)
-                } else {
-                    (&normal.inhale, &normal.exhale)
-                };
-                let breathing =
-                    breathing_of(state.side, i, e, &state, normal, base.share, &c.timing)?;
-                lungs.push(LungSetup {
-                    side: state.side,
-                    state,
-                    breathing,
-                });
-            }
-            // The affected lung's cycle length in force (a held lung keeps the last one).
-            if let Some(b) = lungs
-                .iter()
-                .find(|l| l.side == params.side)
-                .and_then(|l| l.breathing.as_ref())
-            {
-                cycle_ticks = b.cycle_ticks() as u64;
-            }
-            course.push(Some(CourseCycle {
-                cycle: c.cycle,
-                lungs,
-                arrest: c.arrest,
-                pleural_air_ml: c.pleural_air_ml,
-            }));
-            tick += cycle_ticks;
-            if c.arrest && pending.peek().is_none() {
-                break;
-            }
-        }
-        Ok(Self {
+        let tension = Tension::new(params, normal.timing, normal.boundary, affected, other)?;
+        tension.check_constants(&normal.inhale, &normal.exhale)?;
+        let mut timed = events.to_vec();
+        timed.sort_by(|a, b| a.at_s.total_cmp(&b.at_s));
+        let mut run = Self {
+            tension,
+            normal: normal.clone(),
+            shares: baselines.iter().map(|b| (b.side, b.share)).collect(),
             affected: params.side,
-            onset_tick,
-            course,
-            next: 0,
-            events: records,
-            first_arrest: t.first_arrest(),
-        })
+            onset_tick: (onset_s * normal.timing.tick_hz).round() as u64,
+            timed,
+            next_timed: 0,
+            live: Vec::with_capacity(MAX_QUEUED_ACTIONS),
+            prepared: None,
+            spent: None,
+            started: false,
+            last_start: 0,
+            inhale: normal.inhale.clone(),
+            exhale: normal.exhale.clone(),
+            cycles_run: 0,
+            prepared_count: 0,
+            requested: false,
+            events: Vec::with_capacity(64),
+            reported: 0,
+            first_arrest: None,
+        };
+        run.prepare_ahead()?;
+        Ok(run)
     }
 
-    /// Cycles prepared.
-    pub fn cycles(&self) -> usize {
-        self.course.len()
+    /// Queue a trainee's action that arrived at `tick`; it is applied when the next cycle is
+    /// prepared. `false` when the queue is full (the action is dropped and the caller says so).
+    pub fn intervene_live(&mut self, tick: u64, kind: Intervention, side: Side) -> bool {
+        if self.live.len() >= MAX_QUEUED_ACTIONS {
+            return false;
+        }
+        self.live.push((tick, kind, side));
+        true
+    }
+
+    /// The work of preparing the next cycle, split so the expensive part can run on another
+    /// thread: the state machine's step is taken here (the interventions due — timed ones at or
+    /// before the last cycle start, every queued live one — then one cycle; cheap), the PV cycles are
+    /// built by [`Recipe::build`]. `None` when a cycle is prepared or already requested.
+    pub fn next_recipe(&mut self) -> Result<Option<Recipe>, DiseaseRunError> {
+        self.spent = None;
+        if self.prepared.is_some() || self.requested {
+            return Ok(None);
+        }
+        let tick_hz = self.normal.timing.tick_hz;
+        if self.started {
+            while let Some(e) = self.timed.get(self.next_timed) {
+                if e.tick(tick_hz) > self.last_start {
+                    break;
+                }
+                let r = self.tension.intervene(e.kind, e.side, e.tick(tick_hz));
+                self.events.push(r);
+                self.next_timed += 1;
+            }
+            for (tick, kind, side) in self.live.drain(..) {
+                let r = self.tension.intervene(kind, side, tick);
+                self.events.push(r);
+            }
+        }
+        let c = self.tension.advance();
+        let mut lungs = Vec::with_capacity(2);
+        for state in std::iter::once(c.affected).chain(c.unaffected) {
+            let share = self
+                .shares
+                .iter()
+                .find(|(s, _)| *s == state.side)
+                .map(|&(_, s)| s)
+                .expect("the course's lungs are the scene's");
+            let normal = &self.normal;
+            let (inhale, exhale) = if state.side == self.affected {
+                self.tension.constants_into(
+                    state.resistance_dv,
+                    (&normal.inhale, &normal.exhale),
+                    (&mut self.inhale, &mut self.exhale),
+                )?;
+                (self.inhale.clone(), self.exhale.clone())
+            } else {
+                (normal.inhale.clone(), normal.exhale.clone())
+            };
+            lungs.push(LungRecipe {
+                state,
+                pv: state
+                    .boundary(&normal.boundary, share)
+                    .map(|b| (inhale, exhale, b, c.timing)),
+            });
+        }
+        self.first_arrest = self.tension.first_arrest();
+        self.requested = true;
+        Ok(Some(Recipe {
+            cycle: c.cycle,
+            arrest: c.arrest,
+            pleural_air_ml: c.pleural_air_ml,
+            lungs,
+        }))
+    }
+
+    /// Hand over the cycle built from the last [`Self::next_recipe`].
+    pub fn deliver(&mut self, cycle: CourseCycle) {
+        self.prepared = Some(cycle);
+        self.requested = false;
+        self.prepared_count += 1;
+    }
+
+    /// Prepare the next cycle here and now if it is not ready (tests, tools; the engine process
+    /// builds it on a worker thread instead).
+    pub fn prepare_ahead(&mut self) -> Result<(), DiseaseRunError> {
+        if let Some(r) = self.next_recipe()? {
+            let c = r.build()?;
+            self.deliver(c);
+        }
+        Ok(())
+    }
+
+    /// Whether a new cycle of the affected lung starts at `tick` with its preparation requested but
+    /// not delivered (the caller must deliver it before the tick, or the lungs would keep their
+    /// state and the run would depend on thread timing).
+    pub fn due_undelivered(&self, tick: u64, lungs: &[(super::LungGeometry, LungBreath)]) -> bool {
+        self.requested && self.prepared.is_none() && self.cycle_starts(tick, lungs)
+    }
+
+    fn cycle_starts(&self, tick: u64, lungs: &[(super::LungGeometry, LungBreath)]) -> bool {
+        if tick < self.onset_tick {
+            return false;
+        }
+        let Some((_, b)) = lungs.iter().find(|(g, _)| g.side == self.affected) else {
+            return false;
+        };
+        tick == 0 || tick.saturating_sub(b.cycle_start) >= b.breathing.cycle_ticks() as u64
+    }
+
+    /// Interventions applied since the last call (for the process's one line per action).
+    pub fn take_new_events(&mut self) -> &[EventRecord] {
+        let new = &self.events[self.reported..];
+        self.reported = self.events.len();
+        new
+    }
+
+    /// The affected lung.
+    pub fn affected(&self) -> Side {
+        self.affected
     }
 }
 
@@ -279,34 +395,67 @@ pub fn apply(setup: &mut LungSetup, breath: &mut LungBreath, now: bool) {
 
 impl DiseaseRun {
     /// Before a tick: at the start of each new cycle of the affected lung after the onset, move the
-    /// course's next cycle into the lungs. No allocation.
+    /// prepared cycle into the lungs. No allocation (a cycle not prepared in time leaves the lungs as
+    /// they are: the process loop prepares one after every frame).
     pub fn before_tick(&mut self, tick: u64, lungs: &mut [(super::LungGeometry, LungBreath)]) {
         let DiseaseRun::Tension(run) = self else {
             return;
         };
-        if tick < run.onset_tick || run.next >= run.course.len() {
+        if !run.cycle_starts(tick, lungs) {
             return;
         }
-        let Some(affected) = lungs.iter().find(|(g, _)| g.side == run.affected) else {
+        let Some(mut cycle) = run.prepared.take() else {
             return;
         };
-        let b = &affected.1;
-        // A new cycle of the affected lung starts at this tick (what `local_tick` rolls over to),
-        // or the course starts with the run.
-        let starts = tick == 0
-            || tick.saturating_sub(b.cycle_start) >= b.breathing.cycle_ticks() as u64;
-        if !starts {
-            return;
-        }
-        if let Some(mut cycle) = run.course[run.next].take() {
-            for setup in cycle.lungs.iter_mut() {
-                if let Some((_, breath)) = lungs.iter_mut().find(|(g, _)| g.side == setup.side) {
-                    apply(setup, breath, tick == 0);
-                }
+        for setup in cycle.lungs.iter_mut() {
+            if let Some((_, breath)) = lungs.iter_mut().find(|(g, _)| g.side == setup.side) {
+                apply(setup, breath, tick == 0);
             }
-            // Dropping the emptied cycle frees only its small lung list: keep it to free later.
-            run.course[run.next] = Some(cycle);
         }
-        run.next += 1;
+        // Freed by the next preparation, not in the tick.
+        run.spent = Some(cycle);
+        run.started = true;
+        run.last_start = tick;
+        run.cycles_run += 1;
+    }
+
+    /// Cycles prepared so far (changes when [`Self::prepare_ahead`] did work).
+    pub fn prepared_count(&self) -> u64 {
+        match self {
+            DiseaseRun::Tension(run) => run.prepared_count,
+            DiseaseRun::Closed(_) => 0,
+        }
+    }
+
+    /// See [`TensionRun::next_recipe`]; `None` for a closed pneumothorax.
+    pub fn next_recipe(&mut self) -> Result<Option<Recipe>, DiseaseRunError> {
+        match self {
+            DiseaseRun::Tension(run) => run.next_recipe(),
+            DiseaseRun::Closed(_) => Ok(None),
+        }
+    }
+
+    /// See [`TensionRun::deliver`].
+    pub fn deliver(&mut self, cycle: CourseCycle) {
+        if let DiseaseRun::Tension(run) = self {
+            run.deliver(cycle);
+        }
+    }
+
+    /// See [`TensionRun::due_undelivered`].
+    pub fn due_undelivered(&self, tick: u64, lungs: &[(super::LungGeometry, LungBreath)]) -> bool {
+        match self {
+            DiseaseRun::Tension(run) => run.due_undelivered(tick, lungs),
+            DiseaseRun::Closed(_) => false,
+        }
+    }
+
+    /// Prepare what the next cycle needs (see [`TensionRun::prepare_ahead`]); nothing for a closed
+    /// pneumothorax.
+    pub fn prepare_ahead(&mut self) -> Result<(), DiseaseRunError> {
+        match self {
+            DiseaseRun::Tension(run) => run.prepare_ahead(),
+            DiseaseRun::Closed(_) => Ok(()),
+        }
     }
 }

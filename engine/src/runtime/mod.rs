@@ -72,6 +72,9 @@ pub struct Follow {
     pub orientation: Orientation,
     /// SH mode: `α` and the force projection `P` (`4 × n²`, row `a`).
     pub sh: Option<(f64, Vec<f64>)>,
+    /// The last gravity (bits) with its weights, limit flag and volume cubic: a patient who has not
+    /// moved costs no orientation work (model only what the scene requires).
+    pub cache: Option<([u64; 3], [f64; 4], bool, VolumeCubic)>,
 }
 
 /// Why a kernel cannot serve an orientation-following mode.
@@ -142,6 +145,7 @@ impl LungGeometry {
                     forms,
                     orientation,
                     sh,
+                    cache: None,
                 })
             }
         };
@@ -300,6 +304,33 @@ pub enum CoreError {
     DiseaseScene(#[from] lung_model::scene_disease::DiseaseSceneError),
 }
 
+/// How often each stage of the tick did its work (`lungdyn scene run --json`): what a scene does
+/// not need is never computed.
+#[derive(Debug, Clone, Copy, Default, PartialEq, Eq, serde::Serialize)]
+pub struct StageCounts {
+    /// Ticks stepped.
+    pub ticks: u64,
+    /// Pose → force weights evaluations (orientation modes; only when gravity changed).
+    pub orientation_evaluations: u64,
+    /// Per-lung volume → scale solves.
+    pub volume_solves: u64,
+    /// SH force coefficient projections (sh mode).
+    pub sh_projections: u64,
+    /// Disease cycles moved into the lungs.
+    pub disease_cycles: u64,
+}
+
+/// What became of a live intervention.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub enum LiveAction {
+    /// Queued: applied when the next cycle is prepared.
+    Queued,
+    /// Dropped: too many actions within one breath.
+    QueueFull,
+    /// The scene has no tension pneumothorax to act on.
+    NoTension,
+}
+
 /// The deterministic engine state.
 #[derive(Debug, Clone)]
 pub struct EngineCore {
@@ -313,9 +344,19 @@ pub struct EngineCore {
     last_tracker_tick: Option<u64>,
     last_tracker_frame: u64,
     disease: Option<disease::DiseaseRun>,
+    counts: StageCounts,
 }
 
 impl EngineCore {
+    /// How often each stage did its work so far.
+    pub fn stage_counts(&self) -> StageCounts {
+        let mut c = self.counts;
+        if let Some(disease::DiseaseRun::Tension(run)) = &self.disease {
+            c.disease_cycles = run.cycles_run;
+        }
+        c
+    }
+
     /// Build the engine for `scene`: precompute the breathing cycle and load each lung's kernel
     /// (never baking: a lung without a kernel is an error that says how to get one).
     pub fn new(scene: &Scene) -> Result<Self, CoreError> {
@@ -384,6 +425,64 @@ impl EngineCore {
         self.disease.as_ref()
     }
 
+    /// The disease state being run, to read what happened (interventions applied).
+    pub fn disease_mut(&mut self) -> Option<&mut disease::DiseaseRun> {
+        self.disease.as_mut()
+    }
+
+    /// Prepare the disease state's next cycle (allocates; call after a frame is published, never in
+    /// the tick). Nothing to do without a disease state.
+    pub fn prepare_ahead(&mut self) -> Result<(), CoreError> {
+        match &mut self.disease {
+            Some(d) => Ok(d.prepare_ahead()?),
+            None => Ok(()),
+        }
+    }
+
+    /// The disease state's next cycle to build, if one is to be prepared (cheap; the build is
+    /// [`disease::Recipe::build`], for a worker thread).
+    pub fn next_recipe(&mut self) -> Result<Option<disease::Recipe>, CoreError> {
+        match &mut self.disease {
+            Some(d) => Ok(d.next_recipe()?),
+            None => Ok(None),
+        }
+    }
+
+    /// Hand over a cycle built from [`Self::next_recipe`].
+    pub fn deliver(&mut self, cycle: disease::CourseCycle) {
+        if let Some(d) = &mut self.disease {
+            d.deliver(cycle);
+        }
+    }
+
+    /// Whether the tick `tick` starts a disease cycle whose preparation was requested but not yet
+    /// delivered: the caller waits for it before stepping (determinism over thread timing).
+    pub fn due_undelivered(&self, tick: u64) -> bool {
+        self.disease
+            .as_ref()
+            .is_some_and(|d| d.due_undelivered(tick, &self.lungs))
+    }
+
+    /// A trainee's action arriving at `tick` (a live intervention). What became of it:
+    /// [`LiveAction`].
+    pub fn intervene(
+        &mut self,
+        tick: u64,
+        kind: lung_model::disease::tension::Intervention,
+        side: Side,
+    ) -> LiveAction {
+        match &mut self.disease {
+            Some(disease::DiseaseRun::Tension(run)) => {
+                if run.intervene_live(tick, kind, side) {
+                    LiveAction::Queued
+                } else {
+                    LiveAction::QueueFull
+                }
+            }
+            _ => LiveAction::NoTension,
+        }
+    }
+
     /// Build from a scene and lung geometries already loaded (tests, benchmarks, tools that hold
     /// the lung models): today's behaviour, both lungs on the scene's PV cycle split by FRC volume.
     pub fn with_geometry(scene: &Scene, lungs: Vec<LungGeometry>) -> Result<Self, CoreError> {
@@ -409,6 +508,7 @@ impl EngineCore {
             last_tracker_tick: None,
             last_tracker_frame: 0,
             disease: None,
+            counts: StageCounts::default(),
         })
     }
 
@@ -493,6 +593,8 @@ impl EngineCore {
             state |= engine_state::POSE_INVALID;
         }
         let gravity = self.gravity_body;
+        self.counts.ticks += 1;
+        self.counts.volume_solves += self.lungs.len() as u64;
         if let Some(d) = &mut self.disease {
             d.before_tick(tick, &mut self.lungs);
         }
@@ -534,10 +636,20 @@ impl EngineCore {
                     lung_model::disease::scale_on_collapsed(cubic, collapse, volume - collapsed_ml)
                 }
             };
-            let scale = match &geometry.follow {
+            let scale = match &mut geometry.follow {
                 None => solve(&geometry.cubic),
                 Some(follow) => {
-                    let (w, limited) = follow.orientation.weights(gravity);
+                    let key = gravity.to_array().map(f64::to_bits);
+                    let (w, limited, cubic) = match &follow.cache {
+                        Some((k, w, limited, cubic)) if *k == key => (*w, *limited, *cubic),
+                        _ => {
+                            let (w, limited) = follow.orientation.weights(gravity);
+                            let cubic = follow.forms.cubic(&w);
+                            follow.cache = Some((key, w, limited, cubic));
+                            self.counts.orientation_evaluations += 1;
+                            (w, limited, cubic)
+                        }
+                    };
                     if limited {
                         state |= engine_state::ORIENTATION_LIMITED;
                     }
@@ -550,6 +662,7 @@ impl EngineCore {
                             }
                         }
                         Some((alpha, p)) => {
+                            self.counts.sh_projections += 1;
                             let n2 = p.len() / 4;
                             slot.coeff_count = n2 as u32;
                             for (k, c) in slot.coeffs.iter_mut().take(n2).enumerate() {
@@ -561,7 +674,7 @@ impl EngineCore {
                             }
                         }
                     }
-                    solve(&follow.forms.cubic(&w))
+                    solve(&cubic)
                 }
             };
             let coeffs_finite = slot.coeffs.iter().all(|c| c.is_finite());

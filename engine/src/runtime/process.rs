@@ -7,7 +7,7 @@
 //! one zero-copy publish — no allocation, no lock, no logging beyond one line when the tracker
 //! connects. [`run`] wires the loop to iceoryx2 and the host's clock.
 
-use ipc_types::{EngineFrame, Message, TrackerFrame};
+use ipc_types::{control_kind, ControlPacket, EngineFrame, Message, TrackerFrame, LUNG_LEFT};
 use lung_model::scene::{Scene, SceneError};
 use thiserror::Error;
 use transport::clock::{now_ns, Clock, Monotonic};
@@ -52,20 +52,96 @@ pub struct LoopStats {
     pub ticks: u64,
     /// The pacer's counters (sample vs deadline ticks, held, coalesced, skipped deadlines).
     pub pacer: PacerStats,
+    /// Disease cycles prepared after a publish, and the longest preparation (ns): the work the
+    /// tick leaves to the slack of its period.
+    pub prepared_cycles: u64,
+    /// Longest preparation, ns.
+    pub prepare_max_ns: u64,
+    /// Ticks that had to wait for a disease cycle still being built.
+    pub late_preparations: u64,
+}
+
+/// The thread that builds disease cycles ([`super::disease::Recipe::build`], ≈ 40 ms for two lungs on
+/// the 2-core VM) so the loop never spends a tick on it.
+struct Worker {
+    tx: std::sync::mpsc::SyncSender<(super::disease::Recipe, u64)>,
+    rx: std::sync::mpsc::Receiver<Result<(super::disease::CourseCycle, u64), CoreError>>,
+    pending: bool,
+}
+
+impl Worker {
+    fn start() -> Self {
+        let (tx, work) = std::sync::mpsc::sync_channel::<(super::disease::Recipe, u64)>(1);
+        let (done, rx) = std::sync::mpsc::sync_channel(1);
+        std::thread::Builder::new()
+            .name("engine-disease".into())
+            .spawn(move || {
+                while let Ok((recipe, asked_ns)) = work.recv() {
+                    let built = recipe
+                        .build()
+                        .map(|c| (c, now_ns().saturating_sub(asked_ns)))
+                        .map_err(CoreError::from);
+                    if done.send(built).is_err() {
+                        break;
+                    }
+                }
+            })
+            .expect("spawn the disease worker");
+        Self {
+            tx,
+            rx,
+            pending: false,
+        }
+    }
+
+    fn request(&mut self, recipe: super::disease::Recipe, now: u64) {
+        // One request at a time (the core asks again only after a delivery).
+        if self.tx.send((recipe, now)).is_ok() {
+            self.pending = true;
+        }
+    }
+
+    fn try_take(&mut self) -> Result<Option<(super::disease::CourseCycle, u64)>, CoreError> {
+        if !self.pending {
+            return Ok(None);
+        }
+        match self.rx.try_recv() {
+            Ok(r) => {
+                self.pending = false;
+                r.map(Some)
+            }
+            Err(_) => Ok(None),
+        }
+    }
+
+    fn wait(&mut self) -> Result<(super::disease::CourseCycle, u64), CoreError> {
+        self.pending = false;
+        self.rx
+            .recv()
+            .map_err(|_| CoreError::Disease(super::disease::DiseaseRunError::WorkerGone))?
+    }
 }
 
 /// Run the engine loop until `stop()` says so: pace on `rx`, step `core`, publish on `tx`.
-/// `announce` names the instance in the one line printed when the first tracker frame arrives
-/// (`None`: silent, for tests).
+/// `announce` names the instance in the one line printed when the first tracker frame arrives and
+/// in the one line per applied intervention (`None`: silent, for tests). After each publish (the
+/// tick's slack): a trainee's actions from `control`, then the disease state's next cycle.
+#[allow(clippy::too_many_arguments)]
 pub fn run_loop(
     core: &mut EngineCore,
     rx: &mut dyn Receive<TrackerFrame>,
     tx: &mut dyn Publish<EngineFrame>,
+    control: Option<&mut dyn Receive<ControlPacket>>,
     clock: &dyn Clock,
     pacer: PacerConfig,
     stop: &mut dyn FnMut() -> bool,
     announce: Option<&str>,
-) -> Result<LoopStats, PortError> {
+) -> Result<LoopStats, EngineError> {
+    let mut control = control;
+    let mut last_sequence = None;
+    let (mut prepared_cycles, mut prepare_max_ns) = (0u64, 0u64);
+    let mut late_preparations = 0u64;
+    let mut worker: Option<Worker> = None;
     let mut pacer = Pacer::new(pacer, clock.now_ns());
     let mut frame = EngineFrame::default();
     let mut tick: u64 = 0;
@@ -76,7 +152,7 @@ pub fn run_loop(
         };
         let input = match t.wake {
             Wake::Sample(s) => {
-                s.check_layout()?;
+                s.check_layout().map_err(PortError::from)?;
                 if !announced {
                     announced = true;
                     if let Some(name) = announce {
@@ -90,16 +166,106 @@ pub fn run_loop(
             }
             Wake::Deadline => None,
         };
+        // A disease cycle that starts now must be in the core before the tick, whatever the worker's
+        // timing: wait for it (counted; the worker has a whole breath to build it).
+        if core.due_undelivered(tick) {
+            if let Some(w) = worker.as_mut() {
+                let (cycle, took) = w.wait()?;
+                core.deliver(cycle);
+                prepared_cycles += 1;
+                prepare_max_ns = prepare_max_ns.max(took);
+                late_preparations += 1;
+            }
+        }
         core.step(tick, input.as_ref(), &mut frame);
         frame.stamps.engine_receive_ns = t.at_ns;
         frame.stamps.engine_publish_ns = clock.now_ns();
         tx.publish(&frame)?;
+        if let Some(c) = control.as_deref_mut() {
+            let mut actions = [None; 8];
+            let mut n = 0;
+            c.drain(&mut |p: &ControlPacket| {
+                if n < actions.len() {
+                    actions[n] = Some(*p);
+                    n += 1;
+                }
+            })?;
+            for p in actions.iter().flatten() {
+                if last_sequence == Some(p.sequence) {
+                    continue;
+                }
+                last_sequence = Some(p.sequence);
+                live_action(core, tick, p, announce);
+            }
+        }
+        // The disease state's next cycle: its cheap step here, the PV tables on the worker.
+        if let Some(recipe) = core.next_recipe()? {
+            let worker = worker.get_or_insert_with(Worker::start);
+            worker.request(recipe, clock.now_ns());
+        }
+        if let Some(w) = worker.as_mut() {
+            if let Some((cycle, took)) = w.try_take()? {
+                core.deliver(cycle);
+                prepared_cycles += 1;
+                prepare_max_ns = prepare_max_ns.max(took);
+            }
+        }
+        if let (Some(name), Some(super::disease::DiseaseRun::Tension(run))) =
+            (announce, core.disease_mut())
+        {
+            let side = run.affected();
+            for e in run.take_new_events() {
+                eprintln!(
+                    "engine[{name}]: {} on the {} lung (arrived at tick {}, shows from disease cycle \
+                     {}): {:?}{}",
+                    e.kind.name(),
+                    e.side.name(),
+                    e.tick,
+                    e.cycle,
+                    e.outcome,
+                    if e.side != side { " (the pneumothorax is on the other side)" } else { "" }
+                );
+            }
+        }
         tick += 1;
     }
     Ok(LoopStats {
+        late_preparations,
+        prepared_cycles,
+        prepare_max_ns,
         ticks: tick,
         pacer: pacer.stats(),
     })
+}
+
+/// Hand one control packet to the engine core; a packet it cannot use is reported, never applied.
+fn live_action(core: &mut EngineCore, tick: u64, p: &ControlPacket, announce: Option<&str>) {
+    use lung_model::disease::tension::Intervention;
+    let kind = match p.kind {
+        control_kind::NEEDLE_DECOMPRESSION => Some(Intervention::NeedleDecompression),
+        control_kind::OCCLUSIVE_DRESSING => Some(Intervention::OcclusiveDressing),
+        control_kind::CHEST_TUBE => Some(Intervention::ChestTube),
+        _ => None,
+    };
+    let side = match p.lung as usize {
+        ipc_types::LUNG_RIGHT => Some(lung_model::mesh::Side::Right),
+        LUNG_LEFT => Some(lung_model::mesh::Side::Left),
+        _ => None,
+    };
+    let said = match (kind, side, p.check_layout()) {
+        (Some(kind), Some(side), Ok(())) => match core.intervene(tick, kind, side) {
+            super::LiveAction::Queued => None,
+            super::LiveAction::QueueFull => Some("dropped: too many actions within one breath"),
+            super::LiveAction::NoTension => Some("ignored: the scene has no tension pneumothorax"),
+        },
+        _ => Some("ignored: not an intervention this engine knows"),
+    };
+    if let (Some(why), Some(name)) = (said, announce) {
+        eprintln!(
+            "engine[{name}]: control packet {} (kind {}, lung {}) {why}",
+            p.sequence, p.kind, p.lung
+        );
+    }
 }
 
 /// Run the engine process until terminated (or `--seconds` elapse).
@@ -115,6 +281,7 @@ pub fn run(args: &EngineArgs) -> Result<(), EngineError> {
     let node = iox::node(&instance, "engine")?;
     let mut tracker = instance.tracker_inlet(&node)?;
     let mut outlet = instance.engine_outlet(&node)?;
+    let mut control = instance.control_inlet(&node)?;
     let period_ns = (1e9 / scene.engine.tick_hz).round() as u64;
     let stop_at = run_ns.map(|d| now_ns().saturating_add(d));
     eprintln!(
@@ -130,12 +297,13 @@ pub fn run(args: &EngineArgs) -> Result<(), EngineError> {
         &mut core,
         &mut tracker,
         &mut outlet,
+        Some(&mut control),
         &Monotonic,
         PacerConfig::for_period(period_ns),
         &mut || iox::termination_requested(&node) || stop_at.is_some_and(|t| now_ns() >= t),
         Some(instance.name()),
     )?;
-    eprintln!(
+    transport::process::say(&format!(
         "engine[{}]: stopped after {} ticks ({} on a tracker sample, {} on the deadline, {} deadlines \
          skipped)",
         instance.name(),
@@ -143,7 +311,17 @@ pub fn run(args: &EngineArgs) -> Result<(), EngineError> {
         stats.pacer.sample_ticks,
         stats.pacer.deadline_ticks,
         stats.pacer.skipped_deadlines
-    );
+    ));
+    if stats.prepared_cycles > 0 {
+        transport::process::say(&format!(
+            "engine[{}]: {} disease cycles built on the worker thread, the longest in {:.2} ms; {} \
+             tick(s) waited for one",
+            instance.name(),
+            stats.prepared_cycles,
+            stats.prepare_max_ns as f64 / 1e6,
+            stats.late_preparations
+        ));
+    }
     Ok(())
 }
 
@@ -199,6 +377,7 @@ mod tests {
             &mut core(),
             &mut rx,
             &mut tx,
+            None,
             &clock,
             PacerConfig::for_period(P),
             &mut || c.now_ns() >= until,
@@ -267,6 +446,7 @@ mod tests {
             &mut core(),
             &mut rx,
             &mut tx,
+            None,
             &clock,
             PacerConfig::for_period(P),
             &mut || false,

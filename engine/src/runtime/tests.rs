@@ -558,64 +558,100 @@ fn a_closed_pneumothorax_collapses_the_affected_lung_by_eq_8_1_and_drops_it_by_e
     assert!((min_left as f64 - base).abs() < 0.5, "{min_left} vs {base}");
 }
 
+/// Step `c` over `ticks` as the process loop does (the tick, then the next cycle prepared), with
+/// live actions at their ticks; returns every frame's FNV digest and whether the left lung was
+/// ever held (arrest).
+fn run_disease(
+    c: &mut EngineCore,
+    ticks: u64,
+    actions: &[(u64, lung_model::disease::tension::Intervention)],
+) -> (Vec<u64>, bool, f32, f32) {
+    let mut f = EngineFrame::default();
+    let (mut digests, mut held, mut max_c, mut last_c) = (Vec::new(), false, 0.0f32, 0.0f32);
+    for tick in 0..ticks {
+        let input = (tick % 3 != 0).then(|| frame(tick, true));
+        c.step(tick, input.as_ref(), &mut f);
+        for l in &f.lungs {
+            assert!(l.volume_ml.is_finite() && l.deform_scale.is_finite(), "tick {tick}");
+            assert!((0.0..=1.0).contains(&l.collapse), "tick {tick}");
+        }
+        held |= f.lungs[LUNG_LEFT].flags & lung_flags::HELD != 0;
+        last_c = f.lungs[LUNG_LEFT].collapse;
+        max_c = max_c.max(last_c);
+        digests.push(fnv(bytemuck::bytes_of(&f).iter().map(|&b| b as u64)));
+        for &(at, kind) in actions {
+            if at == tick {
+                assert_eq!(c.intervene(tick, kind, Side::Left), LiveAction::Queued);
+            }
+        }
+        c.prepare_ahead().unwrap();
+    }
+    (digests, held, max_c, last_c)
+}
+
 #[test]
 fn a_tension_pneumothorax_runs_to_arrest_and_a_needle_stops_it() {
+    use lung_model::disease::tension::Intervention;
     let untreated = "kind = \"tension-pneumothorax\"\nside = \"left\"\n";
+    // Untreated: the course ends in arrest (both lungs held) within the hour.
     let mut c = disease_core(untreated);
+    let (_, held, _, _) = run_disease(&mut c, 216_000, &[]);
+    assert!(held, "the untreated course ends with the lungs held (arrest)");
     let Some(disease::DiseaseRun::Tension(run)) = c.disease() else {
         panic!("tension")
     };
-    let arrest = run.first_arrest.expect("untreated: arrest");
-    assert!(run.cycles() as u64 > arrest);
-    let mut f = EngineFrame::default();
-    let mut tick = 0u64;
-    let mut held = false;
-    while tick < 200_000 {
-        c.step(tick, None, &mut f);
-        for l in &f.lungs {
-            assert!(l.volume_ml.is_finite() && l.deform_scale.is_finite());
-            assert!((0.0..=1.0).contains(&l.collapse));
-        }
-        if f.lungs[LUNG_LEFT].flags & lung_flags::HELD != 0 {
-            held = true;
-            break;
-        }
-        tick += 1;
-    }
-    assert!(held, "the untreated course ends with the lungs held (arrest)");
-    // A needle decompression at 30 s: no arrest, and the left lung re-expands.
+    assert!(run.first_arrest.is_some());
+    // A timed needle decompression at 30 s: no arrest, and the left lung re-expands.
     let mut c = disease_core(&format!(
         "{untreated}[[disease.events]]\nat_s = 30.0\nkind = \"needle-decompression\"\nside = \"left\"\n"
     ));
+    let (_, held, max_c, last_c) = run_disease(&mut c, 60_000, &[]);
+    assert!(!held);
+    assert!(max_c > 0.0 && last_c < max_c, "{max_c} {last_c}");
     let Some(disease::DiseaseRun::Tension(run)) = c.disease() else {
         panic!("tension")
     };
-    assert!(run.first_arrest.is_none());
     assert_eq!(run.events.len(), 1);
     assert_eq!(run.events[0].tick, 1800);
-    let mut max_c = 0.0f32;
-    let mut last_c = 0.0;
-    for tick in 0..60_000u64 {
-        c.step(tick, None, &mut f);
-        assert_eq!(f.lungs[LUNG_LEFT].flags & lung_flags::HELD, 0);
-        last_c = f.lungs[LUNG_LEFT].collapse;
-        max_c = max_c.max(last_c);
-    }
-    assert!(max_c > 0.0 && last_c < max_c, "{max_c} {last_c}");
+    assert!(run.first_arrest.is_none());
+    // The same needle as a trainee's live action at tick 1800: the same frames bit for bit (both
+    // are applied when the cycle after their arrival is prepared).
+    let mut live = disease_core(untreated);
+    let (a, ..) = run_disease(&mut live, 60_000, &[(1800, Intervention::NeedleDecompression)]);
+    let mut timed = disease_core(&format!(
+        "{untreated}[[disease.events]]\nat_s = 30.0\nkind = \"needle-decompression\"\nside = \"left\"\n"
+    ));
+    let (b, ..) = run_disease(&mut timed, 60_000, &[]);
+    assert_eq!(a, b);
 }
 
 #[test]
 fn a_disease_run_replays_bitwise() {
+    use lung_model::disease::tension::Intervention;
     let scene = "kind = \"tension-pneumothorax\"\nside = \"left\"\n[[disease.events]]\nat_s = 40.0\nkind = \"chest-tube\"\nside = \"left\"\n";
-    let run = |mut c: EngineCore| {
-        let mut f = EngineFrame::default();
-        let mut h = Vec::new();
-        for tick in 0..20_000u64 {
-            let input = (tick % 3 != 0).then(|| frame(tick, true));
-            c.step(tick, input.as_ref(), &mut f);
-            h.push(fnv(bytemuck::bytes_of(&f).iter().map(|&b| b as u64)));
-        }
-        h
-    };
-    assert_eq!(run(disease_core(scene)), run(disease_core(scene)));
+    let actions = [(2500, Intervention::NeedleDecompression)];
+    let (a, ..) = run_disease(&mut disease_core(scene), 20_000, &actions);
+    let (b, ..) = run_disease(&mut disease_core(scene), 20_000, &actions);
+    assert_eq!(a, b);
+}
+
+#[test]
+fn live_actions_without_a_tension_pneumothorax_are_refused() {
+    use lung_model::disease::tension::Intervention;
+    let mut c = core();
+    assert_eq!(
+        c.intervene(10, Intervention::ChestTube, Side::Left),
+        LiveAction::NoTension
+    );
+    let mut c = disease_core("kind = \"tension-pneumothorax\"\nside = \"left\"\n");
+    for k in 0..disease::MAX_QUEUED_ACTIONS {
+        assert_eq!(
+            c.intervene(k as u64, Intervention::ChestTube, Side::Left),
+            LiveAction::Queued
+        );
+    }
+    assert_eq!(
+        c.intervene(99, Intervention::ChestTube, Side::Left),
+        LiveAction::QueueFull
+    );
 }

@@ -61,6 +61,14 @@ impl Instance {
     pub fn report_event(&self) -> String {
         format!("lungdyn/{}/report-ready", self.name)
     }
+    /// Stream of [`ipc_types::ControlPacket`]s (a trainee's actions).
+    pub fn control(&self) -> String {
+        format!("lungdyn/{}/control", self.name)
+    }
+    /// Event signalled after each control packet.
+    pub fn control_event(&self) -> String {
+        format!("lungdyn/{}/control-ready", self.name)
+    }
 
     /// The transport's file prefix for this instance: every shared-memory segment and file the
     /// instance creates starts with it.

@@ -13,7 +13,7 @@ use core::time::Duration;
 use std::path::PathBuf;
 
 use iceoryx2::prelude::*;
-use ipc_types::{EngineFrame, FrameReport, Message, TrackerFrame};
+use ipc_types::{ControlPacket, EngineFrame, FrameReport, Message, TrackerFrame};
 
 use crate::clock::now_ns;
 use crate::instance::Instance;
@@ -44,13 +44,17 @@ impl Topic for TrackerFrame {
 impl Topic for EngineFrame {
     const BUFFER: usize = 4;
 }
+impl Topic for ControlPacket {
+    // Rare actions: a few queued between two ticks are all kept.
+    const BUFFER: usize = 8;
+}
 impl Topic for FrameReport {
     // Drained in batches by the launcher: a deeper buffer keeps every frame.
     const BUFFER: usize = 512;
 }
 
 const MAX_SUBSCRIBERS: usize = 8;
-const MAX_PUBLISHERS: usize = 2;
+const MAX_PUBLISHERS: usize = 4;
 const MAX_NODES: usize = 16;
 
 /// An iceoryx2 node of this transport.
@@ -321,6 +325,14 @@ impl Instance {
     /// Inlet of the report stream.
     pub fn report_inlet(&self, node: &IoxNode) -> Result<Inlet<FrameReport>, PortError> {
         Inlet::new(node, &self.report(), &self.report_event())
+    }
+    /// Outlet of the control stream (a trainee's actions).
+    pub fn control_outlet(&self, node: &IoxNode) -> Result<Outlet<ControlPacket>, PortError> {
+        Outlet::new(node, &self.control(), &self.control_event())
+    }
+    /// Inlet of the control stream.
+    pub fn control_inlet(&self, node: &IoxNode) -> Result<Inlet<ControlPacket>, PortError> {
+        Inlet::new(node, &self.control(), &self.control_event())
     }
 }
 

@@ -1,0 +1,90 @@
+//! `lungdyn scene event INSTANCE KIND --side SIDE`: a trainee's intervention sent to a running engine
+//! (a tension pneumothorax, EQUATIONS.md §4.3). The packet goes over the instance's control stream;
+//! the engine applies it when it prepares its next disease cycle (it shows within two breaths) and
+//! prints one line with the tick it arrived at and what it did.
+
+use anyhow::{bail, Context};
+use ipc_types::{control_kind, ControlPacket, LAYOUT_VERSION, LUNG_LEFT, LUNG_RIGHT};
+use lung_model::disease::tension::Intervention;
+use lung_model::mesh::Side;
+use transport::{iox, Instance, Publish};
+
+/// Options of `lungdyn scene event`.
+#[derive(Debug, Clone, clap::Args)]
+pub struct EventArgs {
+    /// The running instance (the `--instance` of `lungdyn demo`/`engine`; "default" when omitted there).
+    pub instance: String,
+    /// The intervention: needle-decompression, occlusive-dressing or chest-tube.
+    #[arg(value_parser = parse_kind)]
+    pub kind: Intervention,
+    /// The side it is done on.
+    #[arg(long, value_parser = parse_side)]
+    pub side: Side,
+}
+
+fn parse_kind(s: &str) -> Result<Intervention, String> {
+    match s {
+        "needle-decompression" => Ok(Intervention::NeedleDecompression),
+        "occlusive-dressing" => Ok(Intervention::OcclusiveDressing),
+        "chest-tube" => Ok(Intervention::ChestTube),
+        _ => Err(format!(
+            "{s:?} is not an intervention: needle-decompression, occlusive-dressing or chest-tube"
+        )),
+    }
+}
+
+fn parse_side(s: &str) -> Result<Side, String> {
+    match s {
+        "left" => Ok(Side::Left),
+        "right" => Ok(Side::Right),
+        _ => Err(format!("{s:?} is not a lung: left or right")),
+    }
+}
+
+/// The wire code of `kind`.
+pub fn kind_code(kind: Intervention) -> u32 {
+    match kind {
+        Intervention::NeedleDecompression => control_kind::NEEDLE_DECOMPRESSION,
+        Intervention::OcclusiveDressing => control_kind::OCCLUSIVE_DRESSING,
+        Intervention::ChestTube => control_kind::CHEST_TUBE,
+    }
+}
+
+/// Send the intervention; refuses when no engine runs in the instance.
+pub fn run(args: &EventArgs) -> anyhow::Result<()> {
+    let instance = Instance::new(&args.instance)?;
+    // The engine holds its role's lock while it runs: if we can take it, nobody would listen.
+    if let Ok(lock) = instance.lock("engine") {
+        drop(lock);
+        bail!(
+            "no engine is running in instance {:?}: start the scene first (`lungdyn demo --scene FILE \
+             --instance {}`)",
+            args.instance,
+            args.instance
+        );
+    }
+    let node = iox::node(&instance, "control").context("cannot join the instance")?;
+    let mut outlet = instance.control_outlet(&node)?;
+    let packet = ControlPacket {
+        layout_version: LAYOUT_VERSION,
+        kind: kind_code(args.kind),
+        lung: match args.side {
+            Side::Right => LUNG_RIGHT,
+            Side::Left => LUNG_LEFT,
+        } as u32,
+        _pad: 0,
+        sequence: transport::now_ns(),
+    };
+    outlet.publish(&packet)?;
+    // The engine drains the control stream after every tick (60 Hz): stay long enough for it to
+    // take the packet before this publisher goes away.
+    std::thread::sleep(std::time::Duration::from_millis(300));
+    eprintln!(
+        "lungdyn: sent {} on the {} lung to instance {:?}; the engine reports the tick it applied it \
+         at",
+        args.kind.name(),
+        args.side.name(),
+        args.instance
+    );
+    Ok(())
+}
