@@ -52,6 +52,10 @@ pub struct DemoArgs {
     /// Seconds to wait for the first frame before giving up.
     #[arg(long, default_value_t = 60.0)]
     pub startup_timeout: f64,
+    /// Draw the HMD pose predicted this many ms past the draw time (the renderer's --predict-ms;
+    /// 0 draws the newest sample).
+    #[arg(long, value_name = "MS", default_value_t = 16.7)]
+    pub predict_ms: f64,
     /// Tracker source for the bridge (its --source): synthetic, igtl-client:HOST[:PORT],
     /// igtl-server[:BIND[:PORT]], ndi-serial:DEVICE, ndi-tcp:HOST[:PORT], replay:FILE.
     #[arg(long, default_value = "synthetic", value_name = "URI")]
@@ -312,6 +316,12 @@ pub fn run(args: &DemoArgs) -> anyhow::Result<DemoReport> {
         );
     }
     check_counts(args)?;
+    if !(args.predict_ms.is_finite() && (0.0..=100.0).contains(&args.predict_ms)) {
+        bail!(
+            "--predict-ms {} must be within 0..100 ms (0 draws the newest HMD sample)",
+            args.predict_ms
+        );
+    }
     if args.window
         && std::env::var_os("DISPLAY").is_none()
         && std::env::var_os("WAYLAND_DISPLAY").is_none()
@@ -403,6 +413,8 @@ pub fn run(args: &DemoArgs) -> anyhow::Result<DemoReport> {
             .unwrap_or_default()
     };
     let mut renderer_args = with_scene([common.clone(), cpu(2)].concat());
+    renderer_args.push("--predict-ms".into());
+    renderer_args.push(args.predict_ms.to_string());
     if !targets.is_empty() {
         renderer_args.push("--snapshot-ticks".into());
         renderer_args.push(

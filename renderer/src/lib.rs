@@ -18,6 +18,7 @@ pub mod camera;
 pub mod deform;
 pub mod draw;
 pub mod gpu;
+pub mod predict;
 pub mod present;
 pub mod process;
 pub mod window;

@@ -56,6 +56,11 @@ pub struct RendererArgs {
     /// period of latency; off by default, frames are paced by the engine).
     #[arg(long, requires = "window")]
     pub vsync: bool,
+    /// Draw the HMD pose predicted this many ms past the draw time (constant linear and angular
+    /// velocity from the last two samples; ~ one display frame of scan-out): 0 draws the newest
+    /// sample. At most 100.
+    #[arg(long, value_name = "MS", default_value_t = 16.7)]
+    pub predict_ms: f64,
 }
 
 /// Why the renderer stopped with an error.
@@ -67,6 +72,9 @@ pub enum RendererError {
     /// The scene could not be loaded.
     #[error(transparent)]
     Scene(#[from] SceneError),
+    /// The prediction look-ahead is out of range.
+    #[error("--predict-ms {0} must be within 0..100 ms (0 draws the newest HMD sample)")]
+    PredictMs(f64),
     /// A lung's kernel could not be loaded.
     #[error(transparent)]
     Lung(#[from] LungLoadError),
@@ -177,6 +185,7 @@ pub struct Session {
     stop_at: Option<u64>,
     last: Option<EngineFrame>,
     hmd: Pose,
+    predictor: crate::predict::HmdPredictor,
     /// Kernel id of each lung slot as loaded (0: this renderer has no such lung).
     kernel_ids: [u64; NUM_LUNGS],
     kernel_paths: [Option<PathBuf>; NUM_LUNGS],
@@ -207,6 +216,7 @@ impl Session {
     /// Load the scene's kernels (never baking), upload them to `gpu` and open the iceoryx2 ports.
     pub fn new(args: &RendererArgs, gpu: Gpu) -> Result<Self, RendererError> {
         let run_ns = args.process.run_ns()?;
+        check_predict_ms(args.predict_ms)?;
         let instance = Instance::new(&args.process.instance)?;
         let lock = instance.lock("renderer")?;
         pin_to_core(args.process.cpu, "renderer")?;
@@ -248,6 +258,7 @@ impl Session {
             instance.name(),
         );
         session.stop_at = run_ns.map(|d| session.clock.now_ns().saturating_add(d));
+        session.predictor = crate::predict::HmdPredictor::new(args.predict_ms);
         if let Some(d) = &scene.disease {
             if d.kind == lung_model::scene_disease::DiseaseKind::TensionPneumothorax {
                 if let Some(side) = d.side {
@@ -310,6 +321,7 @@ impl Session {
             stop_at: None,
             last: None,
             hmd: default_hmd(),
+            predictor: crate::predict::HmdPredictor::new(16.7),
             kernel_ids,
             kernel_paths,
             coeff_shape,
@@ -446,6 +458,8 @@ impl Session {
         if let Some(t) = self.ports.tracker.take_latest()? {
             if let Some(pose) = t.valid_tool(TOOL_HMD) {
                 self.hmd = pose;
+                self.predictor
+                    .update(t.frame_number, t.stamps.capture_ns, pose);
             }
         }
         let mut state = DrawState {
@@ -467,7 +481,9 @@ impl Session {
         if capture {
             flags |= report_flags::SNAPSHOT;
         }
-        let mut view = self.hmd;
+        // Drawn where the head will be when the frame is shown (predict.rs); the snapshots of a
+        // breath keep the first frame's view.
+        let mut view = self.predictor.pose_at(now, self.hmd);
         if capture && self.snapshots.fixed_view {
             view = *self.snapshot_view.get_or_insert(self.hmd);
         }
@@ -525,15 +541,30 @@ impl Session {
     pub fn finish(&self) {
         let s = &self.stats;
         transport::process::say(&format!(
-            "renderer[{}]: stopped after {} frames ({} stale, {} with a kernel mismatch), {} snapshots",
-            self.instance, s.frames, s.stale_frames, s.kernel_mismatch_frames, s.snapshots
+            "renderer[{}]: stopped after {} frames ({} stale, {} with a kernel mismatch), {} snapshots, \
+             {} drawn with the HMD pose predicted to display time",
+            self.instance,
+            s.frames,
+            s.stale_frames,
+            s.kernel_mismatch_frames,
+            s.snapshots,
+            self.predictor.predicted_frames
         ));
+    }
+}
+
+fn check_predict_ms(ms: f64) -> Result<(), RendererError> {
+    if ms.is_finite() && (0.0..=crate::predict::MAX_LOOKAHEAD_MS).contains(&ms) {
+        Ok(())
+    } else {
+        Err(RendererError::PredictMs(ms))
     }
 }
 
 /// Run the renderer until terminated (or `--seconds` elapse): headless, or in a window.
 pub fn run(args: &RendererArgs) -> Result<(), RendererError> {
     quiet_mesa();
+    check_predict_ms(args.predict_ms)?;
     if args.window {
         return crate::window::run(args);
     }
