@@ -65,6 +65,19 @@ pub fn run(args: &EventArgs) -> anyhow::Result<()> {
     }
     let node = iox::node(&instance, "control").context("cannot join the instance")?;
     let mut outlet = instance.control_outlet(&node)?;
+    // The engine takes its lock first and subscribes once its lungs are loaded: a packet sent
+    // before that would be lost, so wait for the subscription.
+    let start = std::time::Instant::now();
+    while outlet.subscribers() == 0 {
+        if start.elapsed() > std::time::Duration::from_secs(60) {
+            bail!(
+                "the engine of instance {:?} is running but not listening for actions after 60 s \
+                 (still loading its lungs?); try again",
+                args.instance
+            );
+        }
+        std::thread::sleep(std::time::Duration::from_millis(20));
+    }
     let packet = ControlPacket {
         layout_version: LAYOUT_VERSION,
         kind: kind_code(args.kind),

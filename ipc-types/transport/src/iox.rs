@@ -207,6 +207,15 @@ impl<T: Topic> Outlet<T> {
     }
 }
 
+impl<T: Topic> Outlet<T> {
+    /// Subscribers connected to this stream now (a one-off sender waits for its reader: a sample
+    /// sent before anyone subscribes is not kept).
+    pub fn subscribers(&self) -> usize {
+        use iceoryx2::service::port_factory::PortFactory as _;
+        self._data.dynamic_config().number_of_subscribers()
+    }
+}
+
 impl<T: Topic> Publish<T> for Outlet<T> {
     /// Zero-copy loan, no allocation; then wake the consumers.
     fn publish(&mut self, value: &T) -> Result<(), PortError> {
