@@ -57,9 +57,10 @@ pub struct DemoArgs {
     #[arg(long, value_name = "MS", default_value_t = 16.7)]
     pub predict_ms: f64,
     /// Tracker source for the bridge (its --source): synthetic, igtl-client:HOST[:PORT],
-    /// igtl-server[:BIND[:PORT]], ndi-serial:DEVICE, ndi-tcp:HOST[:PORT], replay:FILE.
-    #[arg(long, default_value = "synthetic", value_name = "URI")]
-    pub tracker: String,
+    /// igtl-server[:BIND[:PORT]], ndi-serial:DEVICE, ndi-tcp:HOST[:PORT], replay:FILE. Default: the
+    /// scene's [tracker] source (synthetic).
+    #[arg(long, value_name = "URI")]
+    pub tracker: Option<String>,
     /// Deformation mode (overrides the scene's [lungs] mode): "precomputed" (one baked field,
     /// supine only, 3 MACs per vertex), "basis" (exact for any orientation, 4 MACs), "sh" (eq. 7.7
     /// with the scene's bands), "direct" (eq. 7.1 every frame, the accuracy reference).
@@ -331,7 +332,9 @@ pub fn run(args: &DemoArgs) -> anyhow::Result<DemoReport> {
              under xvfb-run, or without --window (headless)"
         );
     }
-    tracker_bridge::source::SourceSpec::parse(&args.tracker)?;
+    if let Some(t) = &args.tracker {
+        tracker_bridge::source::SourceSpec::parse(t)?;
+    }
     let ok_deg = |v: f32| v.is_finite() && (0.0..=180.0).contains(&v);
     if !(ok_deg(args.roll_deg) && ok_deg(args.pitch_deg)) {
         bail!(
@@ -357,6 +360,12 @@ pub fn run(args: &DemoArgs) -> anyhow::Result<DemoReport> {
     if let Some(mode) = args.mode {
         loaded.lungs.mode = mode;
     }
+    let tracker_source = args
+        .tracker
+        .clone()
+        .unwrap_or_else(|| loaded.tracker.source.clone());
+    tracker_bridge::source::SourceSpec::parse(&tracker_source)?;
+    let posture = loaded.tracker.posture.name();
     if (args.roll_deg > 0.0 || args.pitch_deg > 0.0) && !loaded.lungs.mode.follows_orientation() {
         eprintln!(
             "lungdyn: note: the {} mode keeps the supine breath whatever the patient's orientation; \
@@ -458,7 +467,12 @@ pub fn run(args: &DemoArgs) -> anyhow::Result<DemoReport> {
             common.clone(),
             cpu(0),
             sweep,
-            vec!["--source".to_string(), args.tracker.clone()],
+            vec![
+                "--source".to_string(),
+                tracker_source.clone(),
+                "--posture".to_string(),
+                posture.to_string(),
+            ],
         ]
         .concat(),
     )?);

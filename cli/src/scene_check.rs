@@ -394,8 +394,21 @@ pub fn run_scene(args: &RunArgs) -> anyhow::Result<Value> {
     let mut last_cycle = vec![0u32; n];
     let mut started = vec![0u64; n];
     let mut non_finite = 0u64;
+    // A fixed patient in the scene's posture (the synthetic source without drift): the headless run
+    // has no tracker, and a patient who does not move costs one orientation evaluation per lung.
+    let posture = tracker_bridge::synthetic::Posture::parse(scene.tracker.posture.name())
+        .unwrap_or_default();
+    let patient = tracker_bridge::synthetic::Synthetic {
+        rate_hz: scene.engine.tick_hz,
+        drift_deg: 0.0,
+        posture,
+        ..Default::default()
+    };
     for tick in 0..ticks {
-        core.step(tick, None, &mut f);
+        let mut input = patient.frame(tick, 0);
+        // The patient's pose only: its quaternion is constant, so is gravity.
+        input.tools[ipc_types::TOOL_PATIENT].pose.translation_mm = tracker_bridge::synthetic::STERNUM_MM.to_array();
+        core.step(tick, Some(&input), &mut f);
         for (k, l) in f.lungs.iter().enumerate() {
             if !l.is_active() {
                 continue;
@@ -435,11 +448,18 @@ pub fn run_scene(args: &RunArgs) -> anyhow::Result<Value> {
             "offset_mm": l.offset_mm.map(|v| r3(v as f64)),
             "collapse": r3(l.collapse as f64),
             "held": l.flags & ipc_types::lung_flags::HELD != 0,
+            // The mode's coefficients at the end (force weights for basis/direct): how gravity in
+            // this posture shapes the breath.
+            "coefficients": l.coeffs[..(l.coeff_count as usize).min(ipc_types::MAX_COEFFS)]
+                .iter()
+                .map(|&c| r3(c as f64))
+                .collect::<Vec<_>>(),
             "cycles": l.cycle,
         }));
     }
     let mut out = json!({
         "scene": origin,
+        "posture": scene.tracker.posture.name(),
         "seconds": s,
         "ticks": ticks,
         "mode": format!("{:?}", scene.lungs.mode).to_lowercase(),
@@ -500,11 +520,12 @@ pub fn run_scene(args: &RunArgs) -> anyhow::Result<Value> {
 /// The `scene run` report as text.
 pub fn run_text(v: &Value) -> String {
     let mut s = format!(
-        "{}: {} s simulated ({} ticks, mode {}){}\n",
+        "{}: {} s simulated ({} ticks, mode {}, patient {} and still){}\n",
         v["scene"].as_str().unwrap_or(""),
         v["seconds"],
         v["ticks"],
         v["mode"].as_str().unwrap_or(""),
+        v["posture"].as_str().unwrap_or(""),
         if v["non_finite_frames"].as_u64() == Some(0) {
             String::new()
         } else {

@@ -275,3 +275,33 @@ fn scene_run_reports_each_lung_and_computes_only_what_the_scene_needs() {
     assert_eq!(d["events"][0]["outcome"], "Applied", "{d}");
     assert!(t["stage_counts"]["disease_cycles"].as_u64().unwrap() > 10);
 }
+
+#[test]
+fn the_upright_scene_breathes_the_same_volume_with_gravity_from_head_to_feet() {
+    let up = scene_run("upright.toml", "20");
+    let supine = scene_run("default.toml", "20");
+    assert_eq!(up["posture"], "sitting");
+    assert_eq!(supine["posture"], "supine");
+    for (a, b) in up["lungs"]
+        .as_array()
+        .unwrap()
+        .iter()
+        .zip(supine["lungs"].as_array().unwrap())
+    {
+        // The PV model sets the volume in every posture (EQUATIONS §3: volume forms) ...
+        assert!(
+            (a["tidal_volume_ml"].as_f64().unwrap() - b["tidal_volume_ml"].as_f64().unwrap()).abs() < 0.01,
+            "{a} {b}"
+        );
+        // ... and gravity the force weights that shape it.
+        let (wa, wb) = (a["coefficients"].as_array().unwrap(), b["coefficients"].as_array().unwrap());
+        assert_eq!(wa.len(), 4);
+        let diff: f64 = wa
+            .iter()
+            .zip(wb)
+            .map(|(x, y)| (x.as_f64().unwrap() - y.as_f64().unwrap()).abs())
+            .sum();
+        assert!(diff > 0.01, "{wa:?} vs {wb:?}");
+    }
+    assert_eq!(up["stage_counts"]["orientation_evaluations"], 2);
+}

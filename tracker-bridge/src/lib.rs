@@ -94,6 +94,10 @@ pub struct SourceArgs {
     /// Synthetic source: seconds per roll/pitch sweep.
     #[arg(long, value_name = "S", default_value_t = 20.0)]
     pub sweep_period_s: f32,
+    /// Synthetic source: the patient's posture — supine, sitting, prone, left-lateral or
+    /// right-lateral (a fixed turn before the drift and the sweeps).
+    #[arg(long, default_value = "supine", value_parser = ["supine", "sitting", "prone", "left-lateral", "right-lateral"])]
+    pub posture: String,
     /// Record every received sample with its receive time to FILE (never overwritten).
     #[arg(long, value_name = "FILE")]
     pub record: Option<PathBuf>,
@@ -131,6 +135,7 @@ impl Default for SourceArgs {
             roll_deg: 0.0,
             pitch_deg: 0.0,
             sweep_period_s: 20.0,
+            posture: "supine".into(),
             record: None,
             as_fast_as_possible: false,
             ndi_rom: Vec::new(),
@@ -220,6 +225,7 @@ impl SourceArgs {
                 roll_deg: self.roll_deg,
                 pitch_deg: self.pitch_deg,
                 sweep_period_s: self.sweep_period_s,
+                posture: synthetic::Posture::parse(&self.posture).unwrap_or_default(),
                 ..Default::default()
             },
             ..SourceOptions::default()

@@ -33,6 +33,54 @@ pub struct Synthetic {
     pub pitch_deg: f32,
     /// Seconds per roll/pitch sweep.
     pub sweep_period_s: f32,
+    /// The patient's posture (a fixed turn before the drift and the sweeps).
+    pub posture: Posture,
+}
+
+/// A patient's posture on the bed.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Default)]
+pub enum Posture {
+    /// On the back.
+    #[default]
+    Supine,
+    /// Sitting upright: head up.
+    Sitting,
+    /// On the front.
+    Prone,
+    /// On the left side (patient's left down).
+    LeftLateral,
+    /// On the right side.
+    RightLateral,
+}
+
+impl Posture {
+    /// All postures with their names (`--posture`).
+    pub const ALL: [(&'static str, Posture); 5] = [
+        ("supine", Posture::Supine),
+        ("sitting", Posture::Sitting),
+        ("prone", Posture::Prone),
+        ("left-lateral", Posture::LeftLateral),
+        ("right-lateral", Posture::RightLateral),
+    ];
+
+    /// Parse a name of [`Self::ALL`].
+    pub fn parse(s: &str) -> Option<Posture> {
+        Self::ALL.iter().find(|(n, _)| *n == s).map(|&(_, p)| p)
+    }
+
+    /// The room-frame turn from supine (head at +X, +Z up): sitting turns the head up about the
+    /// bed's cross axis, prone rolls 180° about its long axis, the lateral postures roll 90°
+    /// (left-lateral puts the patient's left side, room +Y when supine, down).
+    pub fn turn(self) -> Quat {
+        use std::f32::consts::{FRAC_PI_2, PI};
+        match self {
+            Posture::Supine => Quat::IDENTITY,
+            Posture::Sitting => Quat::from_rotation_y(-FRAC_PI_2),
+            Posture::Prone => Quat::from_rotation_x(PI),
+            Posture::LeftLateral => Quat::from_rotation_x(-FRAC_PI_2),
+            Posture::RightLateral => Quat::from_rotation_x(FRAC_PI_2),
+        }
+    }
 }
 
 impl Default for Synthetic {
@@ -44,6 +92,7 @@ impl Default for Synthetic {
             roll_deg: 0.0,
             pitch_deg: 0.0,
             sweep_period_s: 20.0,
+            posture: Posture::Supine,
         }
     }
 }
@@ -89,7 +138,10 @@ impl Synthetic {
             3.0 * (tau * t / 41.0).sin(),
             0.0,
         );
-        pose((drift * supine()).normalize(), STERNUM_MM + shift)
+        pose(
+            (drift * self.posture.turn() * supine()).normalize(),
+            STERNUM_MM + shift,
+        )
     }
 
     /// HMD pose at time `t`: walking an ellipse around the bed at head height, facing the chest
@@ -220,5 +272,33 @@ mod tests {
         assert_eq!(b.frame_number, 31);
         assert_eq!(b.stamps.capture_ns, 0);
         assert!(b.tools[..2].iter().all(|t| t.status == tool_status::VALID));
+    }
+}
+
+#[cfg(test)]
+mod posture_tests {
+    use super::*;
+
+    /// Body axes in the room for each posture: sitting puts the head (body +Z) up, prone the front
+    /// (body +Y) down, left-lateral the patient's left (body +X) down.
+    #[test]
+    fn each_posture_turns_the_body_as_named() {
+        let still = |posture| Synthetic {
+            drift_deg: 0.0,
+            posture,
+            ..Default::default()
+        };
+        let q = |p: Posture| Quat::from_array(still(p).patient_pose(0.0).quat);
+        let down = Vec3::new(0.0, 0.0, -1.0);
+        let close = |a: Vec3, b: Vec3| (a - b).length() < 1e-5;
+        assert!(close(q(Posture::Supine) * Vec3::new(0.0, -1.0, 0.0), down));
+        assert!(close(q(Posture::Sitting) * Vec3::new(0.0, 0.0, -1.0), down));
+        assert!(close(q(Posture::Prone) * Vec3::new(0.0, 1.0, 0.0), down));
+        assert!(close(q(Posture::LeftLateral) * Vec3::new(1.0, 0.0, 0.0), down));
+        assert!(close(q(Posture::RightLateral) * Vec3::new(-1.0, 0.0, 0.0), down));
+        for (name, p) in Posture::ALL {
+            assert_eq!(Posture::parse(name), Some(p));
+        }
+        assert_eq!(Posture::parse("standing"), None);
     }
 }
