@@ -551,6 +551,11 @@ def make_scenes(tmp):
     s("binary", bytes(RNG.getrandbits(8) for _ in range(2048)))
     s("non_utf8", b"# Lunge \xfc\xe4\n" + SCENE_BASE.encode())
     s("empty_vertices_only", "[lungs]\nvertices = 100\n")
+    s("tracker_posture_standing", SCENE_BASE + "[tracker]\nposture = \"standing\"\n")
+    s("tracker_unknown_key", SCENE_BASE + "[tracker]\nwobble = 1\n")
+    s("tracker_source_bogus", SCENE_BASE + "[tracker]\nsource = \"bogus:1\"\n")
+    s("disease_index_1_5", "[disease]\nkind = \"closed-pneumothorax\"\nside = \"left\"\nindex = 1.5\n")
+    s("disease_tumour", "[disease]\nkind = \"tumour\"\nside = \"right\"\n[disease.tumour]\ncentre = [0.6, 0.3, 0.8]\nradii_mm = [15.0, 15.0, 15.0]\n")
     out("scene_not_toml.json", '{"lungs": {"vertices": 100}}\n')
 
 
