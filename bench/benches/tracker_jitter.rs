@@ -55,9 +55,13 @@ fn qtdata(k: u32) -> Vec<u8> {
         position_mm: [k as f32 * 0.01, 2.0, z],
         quaternion: [0.0, 0.0, 0.0, 1.0],
     };
-    Message::new("Tracker", Timestamp::from_parts(1_700_000_000, k), Body::QtData(vec![e("Patient", -1000.0), e("HMD", -900.0)]))
-        .encode()
-        .unwrap()
+    Message::new(
+        "Tracker",
+        Timestamp::from_parts(1_700_000_000, k),
+        Body::QtData(vec![e("Patient", -1000.0), e("HMD", -900.0)]),
+    )
+    .encode()
+    .unwrap()
 }
 
 /// Write a 60 Hz OpenIGTLink stream to `s` until `stop`.
@@ -104,7 +108,14 @@ fn serve_ndi(l: TcpListener, stop: Arc<AtomicBool>) {
     }
 }
 
-fn measure(name: &str, source: &mut dyn Source, config: BridgeConfig, seconds: f64, instance: &Instance, node: &iox::IoxNode) {
+fn measure(
+    name: &str,
+    source: &mut dyn Source,
+    config: BridgeConfig,
+    seconds: f64,
+    instance: &Instance,
+    node: &iox::IoxNode,
+) {
     let outlet = instance.tracker_outlet(node).unwrap();
     let mut timed = Timed {
         inner: outlet,
@@ -113,7 +124,16 @@ fn measure(name: &str, source: &mut dyn Source, config: BridgeConfig, seconds: f
     };
     let mut asm = Assembler::new(config);
     let stop_at = now_ns() + (seconds * 1e9) as u64;
-    run_loop(source, &mut asm, &mut timed, &mut None, &RealTime, &mut |now| now >= stop_at, &mut |_, _| {}).unwrap();
+    run_loop(
+        source,
+        &mut asm,
+        &mut timed,
+        &mut None,
+        &RealTime,
+        &mut |now| now >= stop_at,
+        &mut |_, _| {},
+    )
+    .unwrap();
     let s = &asm.stats;
     let us = |h: &Histogram<u64>, q: f64| h.value_at_quantile(q) as f64 / 1000.0;
     let valid = s.accepted;
@@ -131,7 +151,10 @@ fn measure(name: &str, source: &mut dyn Source, config: BridgeConfig, seconds: f
 }
 
 fn main() {
-    let seconds: f64 = std::env::var("TRACKER_JITTER_SECONDS").ok().and_then(|s| s.parse().ok()).unwrap_or(10.0);
+    let seconds: f64 = std::env::var("TRACKER_JITTER_SECONDS")
+        .ok()
+        .and_then(|s| s.parse().ok())
+        .unwrap_or(10.0);
     let instance = Instance::new(&format!("bench-jitter-{}", std::process::id())).unwrap();
     let node = iox::node(&instance, "bench").unwrap();
     let config = BridgeConfig::default();
@@ -145,7 +168,14 @@ fn main() {
     let mut synthetic = SyntheticSource::new(Default::default());
     let mut synthetic_config = config.clone();
     synthetic_config.validation.volume = tracker_bridge::validate::Volume::Unbounded;
-    measure("synthetic", &mut synthetic, synthetic_config.clone(), seconds, &instance, &node);
+    measure(
+        "synthetic",
+        &mut synthetic,
+        synthetic_config.clone(),
+        seconds,
+        &instance,
+        &node,
+    );
 
     let stop = Arc::new(AtomicBool::new(false));
     let mut server = IgtlServer::bind("127.0.0.1", 0, &SourceOptions::default()).unwrap();
@@ -154,7 +184,14 @@ fn main() {
         let stop = stop.clone();
         std::thread::spawn(move || stream(TcpStream::connect(addr).unwrap(), &stop))
     };
-    measure("igtl-server (60 Hz)", &mut server, config.clone(), seconds, &instance, &node);
+    measure(
+        "igtl-server (60 Hz)",
+        &mut server,
+        config.clone(),
+        seconds,
+        &instance,
+        &node,
+    );
     stop.store(true, Ordering::Relaxed);
     sender.join().unwrap();
     drop(server);
@@ -170,7 +207,14 @@ fn main() {
         })
     };
     let mut client = IgtlClient::start("127.0.0.1".into(), port, &SourceOptions::default());
-    measure("igtl-client (60 Hz)", &mut client, config.clone(), seconds, &instance, &node);
+    measure(
+        "igtl-client (60 Hz)",
+        &mut client,
+        config.clone(),
+        seconds,
+        &instance,
+        &node,
+    );
     stop.store(true, Ordering::Relaxed);
     peer.join().unwrap();
     drop(client);
@@ -183,7 +227,14 @@ fn main() {
         std::thread::spawn(move || serve_ndi(l, stop))
     };
     let mut ndi = NdiSource::tcp("127.0.0.1", port, &SourceOptions::default()).unwrap();
-    measure("ndi-tcp (simulated)", &mut ndi, ndi_config.clone(), seconds, &instance, &node);
+    measure(
+        "ndi-tcp (simulated)",
+        &mut ndi,
+        ndi_config.clone(),
+        seconds,
+        &instance,
+        &node,
+    );
     drop(ndi);
     stop.store(true, Ordering::Relaxed);
     sim.join().unwrap();

@@ -8,7 +8,9 @@
 use criterion::{criterion_group, criterion_main, Criterion};
 use ipc_types::TrackerFrame;
 use tracker_bridge::assemble::{Assembler, BridgeConfig};
-use tracker_bridge::igtl::{self, Body, Decoder, Limits, Message, QtDataElement, Timestamp, Transform};
+use tracker_bridge::igtl::{
+    self, Body, Decoder, Limits, Message, QtDataElement, Timestamp, Transform,
+};
 use tracker_bridge::ndi::{self, ReplyReader};
 use tracker_bridge::ndi_sim::{SimDevice, SimTool};
 use tracker_bridge::record::RecordWriter;
@@ -22,7 +24,13 @@ fn transform_bytes() -> Vec<u8> {
         rotation: [[0.0, -1.0, 0.0], [1.0, 0.0, 0.0], [0.0, 0.0, 1.0]],
         translation_mm: [10.0, -20.0, -1000.0],
     };
-    Message::new("Patient", Timestamp::from_parts(1_700_000_000, 5), Body::Transform(t)).encode().unwrap()
+    Message::new(
+        "Patient",
+        Timestamp::from_parts(1_700_000_000, 5),
+        Body::Transform(t),
+    )
+    .encode()
+    .unwrap()
 }
 
 fn qtdata_bytes() -> Vec<u8> {
@@ -32,18 +40,36 @@ fn qtdata_bytes() -> Vec<u8> {
         position_mm: [1.0, 2.0, z],
         quaternion: [0.0, 0.0, 0.38268343, 0.9238795],
     };
-    Message::new("Tracker", Timestamp::from_parts(1_700_000_000, 5), Body::QtData(vec![e("Patient", -1000.0), e("HMD", -900.0)]))
-        .encode()
-        .unwrap()
+    Message::new(
+        "Tracker",
+        Timestamp::from_parts(1_700_000_000, 5),
+        Body::QtData(vec![e("Patient", -1000.0), e("HMD", -900.0)]),
+    )
+    .encode()
+    .unwrap()
 }
 
 fn bx_bytes() -> Vec<u8> {
-    let mut dev = SimDevice::new(vec![SimTool::at(0x0A, [10.0, -20.0, -1000.0]), SimTool::at(0x0B, [0.0, 30.0, -900.0])]);
-    for c in [ndi::Command::Init, ndi::Command::Pinit(0x0A), ndi::Command::Pinit(0x0B)] {
+    let mut dev = SimDevice::new(vec![
+        SimTool::at(0x0A, [10.0, -20.0, -1000.0]),
+        SimTool::at(0x0B, [0.0, 30.0, -900.0]),
+    ]);
+    for c in [
+        ndi::Command::Init,
+        ndi::Command::Pinit(0x0A),
+        ndi::Command::Pinit(0x0B),
+    ] {
         dev.receive(&c.encode().unwrap());
     }
     for h in [0x0A, 0x0B] {
-        dev.receive(&ndi::Command::Pena { handle: h, priority: ndi::TrackingPriority::Dynamic }.encode().unwrap());
+        dev.receive(
+            &ndi::Command::Pena {
+                handle: h,
+                priority: ndi::TrackingPriority::Dynamic,
+            }
+            .encode()
+            .unwrap(),
+        );
     }
     dev.receive(&ndi::Command::Tstart.encode().unwrap());
     dev.receive(&ndi::Command::Bx(0x0801).encode().unwrap())
@@ -66,65 +92,81 @@ fn per_sample(c: &mut Criterion) {
     let bytes = transform_bytes();
     let mut asm = Assembler::new(BridgeConfig::default());
     let mut decoder = Decoder::new(Limits::default());
-    c.bench_function("OpenIGTLink TRANSFORM: decode + validate + assemble + publish", |b| {
-        b.iter(|| {
-            t += 16_666_667;
-            decoder.push(&bytes);
-            for m in decoder.by_ref() {
-                message_inputs(&m.unwrap(), t, igtl::QuatOrder::Xyzw, &mut |i| {
-                    if let Input::Sample(s) = i {
-                        asm.ingest(&s);
-                    }
-                });
-            }
-            asm.frame(t, &mut frame);
-            frame.stamps.bridge_publish_ns = t;
-            outlet.publish(&frame).unwrap();
-        })
-    });
+    c.bench_function(
+        "OpenIGTLink TRANSFORM: decode + validate + assemble + publish",
+        |b| {
+            b.iter(|| {
+                t += 16_666_667;
+                decoder.push(&bytes);
+                for m in decoder.by_ref() {
+                    message_inputs(&m.unwrap(), t, igtl::QuatOrder::Xyzw, &mut |i| {
+                        if let Input::Sample(s) = i {
+                            asm.ingest(&s);
+                        }
+                    });
+                }
+                asm.frame(t, &mut frame);
+                frame.stamps.bridge_publish_ns = t;
+                outlet.publish(&frame).unwrap();
+            })
+        },
+    );
 
     let bytes = qtdata_bytes();
     let mut asm = Assembler::new(BridgeConfig::default());
-    c.bench_function("OpenIGTLink QTDATA, 2 tools: decode + validate + assemble + publish", |b| {
-        b.iter(|| {
-            t += 16_666_667;
-            decoder.push(&bytes);
-            for m in decoder.by_ref() {
-                message_inputs(&m.unwrap(), t, igtl::QuatOrder::Xyzw, &mut |i| {
-                    if let Input::Sample(s) = i {
-                        asm.ingest(&s);
-                    }
-                });
-            }
-            asm.frame(t, &mut frame);
-            outlet.publish(&frame).unwrap();
-        })
-    });
+    c.bench_function(
+        "OpenIGTLink QTDATA, 2 tools: decode + validate + assemble + publish",
+        |b| {
+            b.iter(|| {
+                t += 16_666_667;
+                decoder.push(&bytes);
+                for m in decoder.by_ref() {
+                    message_inputs(&m.unwrap(), t, igtl::QuatOrder::Xyzw, &mut |i| {
+                        if let Input::Sample(s) = i {
+                            asm.ingest(&s);
+                        }
+                    });
+                }
+                asm.frame(t, &mut frame);
+                outlet.publish(&frame).unwrap();
+            })
+        },
+    );
 
     let bytes = bx_bytes();
     let mut asm = Assembler::new(ndi_config());
     let mut reader = ReplyReader::new();
     let names = [ToolName::new("0A").unwrap(), ToolName::new("0B").unwrap()];
-    c.bench_function("NDI BX, 2 tools: frame + CRC + parse + validate + assemble + publish", |b| {
-        b.iter(|| {
-            t += 16_666_667;
-            for r in reader.push(&bytes) {
-                let reply = ndi::parse_bx_reply(r.bytes(), 0x0801).unwrap();
-                for (tool, name) in reply.tools.iter().zip(names) {
-                    asm.ingest(&sample_of(tool, name, t));
+    c.bench_function(
+        "NDI BX, 2 tools: frame + CRC + parse + validate + assemble + publish",
+        |b| {
+            b.iter(|| {
+                t += 16_666_667;
+                for r in reader.push(&bytes) {
+                    let reply = ndi::parse_bx_reply(r.bytes(), 0x0801).unwrap();
+                    for (tool, name) in reply.tools.iter().zip(names) {
+                        asm.ingest(&sample_of(tool, name, t));
+                    }
                 }
-            }
-            asm.frame(t, &mut frame);
-            outlet.publish(&frame).unwrap();
-        })
-    });
+                asm.frame(t, &mut frame);
+                outlet.publish(&frame).unwrap();
+            })
+        },
+    );
 
     let s = Sample {
         rms_error_mm: Some(0.2),
-        ..Sample::quat(t, ToolName::new("Patient").unwrap(), [0.0, 0.0, 0.38268343, 0.9238795], [1.0, 2.0, -1000.0])
+        ..Sample::quat(
+            t,
+            ToolName::new("Patient").unwrap(),
+            [0.0, 0.0, 0.38268343, 0.9238795],
+            [1.0, 2.0, -1000.0],
+        )
     };
     let v = BridgeConfig::default().validation;
-    c.bench_function("validate one sample", |b| b.iter(|| std::hint::black_box(v.check(std::hint::black_box(&s)))));
+    c.bench_function("validate one sample", |b| {
+        b.iter(|| std::hint::black_box(v.check(std::hint::black_box(&s))))
+    });
     let mut asm = Assembler::new(BridgeConfig::default());
     c.bench_function("assemble one sample + frame", |b| {
         b.iter(|| {

@@ -70,7 +70,9 @@ pub fn parse_points(text: &str, path: &Path) -> anyhow::Result<Points> {
         let nums: Vec<Option<f64>> = fields.iter().map(|f| f.parse::<f64>().ok()).collect();
         let (label, xyz) = match fields.len() {
             3 if nums.iter().all(Option::is_some) => (None, [nums[0], nums[1], nums[2]]),
-            4 if nums[1..].iter().all(Option::is_some) => (Some(fields[0].to_string()), [nums[1], nums[2], nums[3]]),
+            4 if nums[1..].iter().all(Option::is_some) => {
+                (Some(fields[0].to_string()), [nums[1], nums[2], nums[3]])
+            }
             _ if points.is_empty() && !header_seen && nums.iter().any(Option::is_none) => {
                 header_seen = true;
                 continue;
@@ -83,7 +85,11 @@ pub fn parse_points(text: &str, path: &Path) -> anyhow::Result<Points> {
         };
         let xyz = xyz.map(|v| v.unwrap_or(f64::NAN));
         if !xyz.iter().all(|v| v.is_finite() && v.abs() <= 1e5) {
-            bail!("{}:{}: coordinates {xyz:?} must be finite and within 100 m (mm expected)", path.display(), i + 1);
+            bail!(
+                "{}:{}: coordinates {xyz:?} must be finite and within 100 m (mm expected)",
+                path.display(),
+                i + 1
+            );
         }
         match (labelled, label.is_some()) {
             (Some(a), b) if a != b => bail!(
@@ -111,15 +117,17 @@ pub fn parse_points(text: &str, path: &Path) -> anyhow::Result<Points> {
 }
 
 /// Pair the two lists (by label when both have labels): model points, tracker points, labels.
-pub fn pair(model: &Points, tracker: &Points) -> anyhow::Result<(Vec<[f64; 3]>, Vec<[f64; 3]>, Vec<String>)> {
+pub fn pair(
+    model: &Points,
+    tracker: &Points,
+) -> anyhow::Result<(Vec<[f64; 3]>, Vec<[f64; 3]>, Vec<String>)> {
     match (&model.labels, &tracker.labels) {
         (Some(ml), Some(tl)) => {
             let mut b = Vec::new();
             for l in ml {
-                let i = tl
-                    .iter()
-                    .position(|x| x == l)
-                    .with_context(|| format!("model fiducial {l:?} has no tracker point with that label"))?;
+                let i = tl.iter().position(|x| x == l).with_context(|| {
+                    format!("model fiducial {l:?} has no tracker point with that label")
+                })?;
                 b.push(tracker.points[i]);
             }
             if let Some(extra) = tl.iter().find(|l| !ml.contains(l)) {
@@ -141,7 +149,8 @@ pub fn pair(model: &Points, tracker: &Points) -> anyhow::Result<(Vec<[f64; 3]>, 
 /// Run `lungdyn register`; the result as JSON.
 pub fn run(args: &RegisterArgs) -> anyhow::Result<Value> {
     let limits = args.input.limits(ReadLimits::TABLE);
-    let read = |p: &Path| -> anyhow::Result<Points> { parse_points(&read_text_bounded(p, limits)?, p) };
+    let read =
+        |p: &Path| -> anyhow::Result<Points> { parse_points(&read_text_bounded(p, limits)?, p) };
     let model = read(&args.model_points)?;
     let tracker = read(&args.tracker_points)?;
     let (a, b, labels) = pair(&model, &tracker)?;
@@ -153,7 +162,8 @@ pub fn run(args: &RegisterArgs) -> anyhow::Result<Value> {
     );
     let text = calib.to_toml();
     // Check what is written reads back before replacing anything.
-    Calibration::from_toml(&text, "the new calibration").context("the calibration does not read back")?;
+    Calibration::from_toml(&text, "the new calibration")
+        .context("the calibration does not read back")?;
     lung_model::mesh::io::write_atomically(&args.out, |w| w.write_all(text.as_bytes()))?;
     let q = r.rotation.quaternion();
     let m = r.rotation.to_rotation_matrix();
@@ -176,13 +186,23 @@ pub fn run(args: &RegisterArgs) -> anyhow::Result<Value> {
 pub fn text(v: &Value) -> String {
     let mut s = format!(
         "registered {} fiducials (paired by {}): FRE RMS {:.3} mm\n",
-        v["fiducials"], v["paired_by"].as_str().unwrap_or(""), v["fre_rms_mm"].as_f64().unwrap_or(0.0)
+        v["fiducials"],
+        v["paired_by"].as_str().unwrap_or(""),
+        v["fre_rms_mm"].as_f64().unwrap_or(0.0)
     );
     for p in v["fre_mm"].as_array().into_iter().flatten() {
-        s += &format!("  {:<12} FRE {:>8.3} mm\n", p["label"].as_str().unwrap_or(""), p["fre_mm"].as_f64().unwrap_or(0.0));
+        s += &format!(
+            "  {:<12} FRE {:>8.3} mm\n",
+            p["label"].as_str().unwrap_or(""),
+            p["fre_mm"].as_f64().unwrap_or(0.0)
+        );
     }
     let f = |k: &str| -> Vec<String> {
-        v[k].as_array().into_iter().flatten().map(|x| format!("{:.6}", x.as_f64().unwrap_or(0.0))).collect()
+        v[k].as_array()
+            .into_iter()
+            .flatten()
+            .map(|x| format!("{:.6}", x.as_f64().unwrap_or(0.0)))
+            .collect()
     };
     s += &format!(
         "model -> reference: rotation (x y z w) [{}], translation [{}] mm\n",
@@ -270,12 +290,28 @@ mod tests {
 
     #[test]
     fn point_files_parse_with_labels_headers_and_comments() {
-        let p = parse_points("name,x,y,z\n# comment\nA, 1, 2, 3\nB;4;5;6 # trailing\n\nC 7 8 9\n", Path::new("a.csv")).unwrap();
-        assert_eq!(p.labels.as_deref(), Some(&["A".to_string(), "B".into(), "C".into()][..]));
-        assert_eq!(p.points, vec![[1.0, 2.0, 3.0], [4.0, 5.0, 6.0], [7.0, 8.0, 9.0]]);
+        let p = parse_points(
+            "name,x,y,z\n# comment\nA, 1, 2, 3\nB;4;5;6 # trailing\n\nC 7 8 9\n",
+            Path::new("a.csv"),
+        )
+        .unwrap();
+        assert_eq!(
+            p.labels.as_deref(),
+            Some(&["A".to_string(), "B".into(), "C".into()][..])
+        );
+        assert_eq!(
+            p.points,
+            vec![[1.0, 2.0, 3.0], [4.0, 5.0, 6.0], [7.0, 8.0, 9.0]]
+        );
         let q = parse_points("1 2 3\n4 5 6\n", Path::new("b.txt")).unwrap();
         assert_eq!(q.labels, None);
-        for bad in ["1 2\n", "A 1 2 3\n4 5 6\n", "1 2 nan\n", "A 1 2 3\nA 4 5 6\n", "1 2 3\nx y z\n"] {
+        for bad in [
+            "1 2\n",
+            "A 1 2 3\n4 5 6\n",
+            "1 2 nan\n",
+            "A 1 2 3\nA 4 5 6\n",
+            "1 2 3\nx y z\n",
+        ] {
             assert!(parse_points(bad, Path::new("c.txt")).is_err(), "{bad:?}");
         }
     }

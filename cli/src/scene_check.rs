@@ -102,14 +102,7 @@ pub fn run(args: &CheckArgs) -> anyhow::Result<Value> {
             params,
             onset_s,
             events,
-        } => tension(
-            *params,
-            *onset_s,
-            events,
-            &normal,
-            &baselines,
-            args.cycles,
-        )?,
+        } => tension(*params, *onset_s, events, &normal, &baselines, args.cycles)?,
         DiseaseSpec::Tumour(t) => json!({
             "kind": "tumour",
             "side": t.side.name(),
@@ -396,8 +389,8 @@ pub fn run_scene(args: &RunArgs) -> anyhow::Result<Value> {
     let mut non_finite = 0u64;
     // A fixed patient in the scene's posture (the synthetic source without drift): the headless run
     // has no tracker, and a patient who does not move costs one orientation evaluation per lung.
-    let posture = tracker_bridge::synthetic::Posture::parse(scene.tracker.posture.name())
-        .unwrap_or_default();
+    let posture =
+        tracker_bridge::synthetic::Posture::parse(scene.tracker.posture.name()).unwrap_or_default();
     let patient = tracker_bridge::synthetic::Synthetic {
         rate_hz: scene.engine.tick_hz,
         drift_deg: 0.0,
@@ -407,7 +400,8 @@ pub fn run_scene(args: &RunArgs) -> anyhow::Result<Value> {
     for tick in 0..ticks {
         let mut input = patient.frame(tick, 0);
         // The patient's pose only: its quaternion is constant, so is gravity.
-        input.tools[ipc_types::TOOL_PATIENT].pose.translation_mm = tracker_bridge::synthetic::STERNUM_MM.to_array();
+        input.tools[ipc_types::TOOL_PATIENT].pose.translation_mm =
+            tracker_bridge::synthetic::STERNUM_MM.to_array();
         core.step(tick, Some(&input), &mut f);
         for (k, l) in f.lungs.iter().enumerate() {
             if !l.is_active() {
@@ -499,7 +493,8 @@ pub fn run_scene(args: &RunArgs) -> anyhow::Result<Value> {
                     .iter()
                     .filter_map(|&side| {
                         c.index_of(side).map(|i| {
-                            let dv = lung_model::disease::volume_fraction_lost(i).unwrap_or(f64::NAN);
+                            let dv =
+                                lung_model::disease::volume_fraction_lost(i).unwrap_or(f64::NAN);
                             json!({
                                 "side": side.name(),
                                 "pneumothorax_index": i,

@@ -14,7 +14,9 @@ use tracker_bridge::record::{Record, RecordReader};
 use tracker_bridge::run::{run_loop, stop_on_signals, RealTime, Reporter};
 use tracker_bridge::sample::ToolName;
 use tracker_bridge::stats::status_names;
-use tracker_pose::predict::{evaluate, AlphaBeta, ConstantVelocity, Errors, Hold, Predictor, TimedPose};
+use tracker_pose::predict::{
+    evaluate, AlphaBeta, ConstantVelocity, Errors, Hold, Predictor, TimedPose,
+};
 use transport::{PortError, Publish};
 
 /// Options of `lungdyn tracker listen`.
@@ -56,7 +58,12 @@ impl Publish<TrackerFrame> for Watch {
                     status_names(t.status).join(",")
                 )
             };
-            eprintln!("frame {:>6}  patient {}  hmd {}", f.frame_number, tool(TOOL_PATIENT), tool(TOOL_HMD));
+            eprintln!(
+                "frame {:>6}  patient {}  hmd {}",
+                f.frame_number,
+                tool(TOOL_PATIENT),
+                tool(TOOL_HMD)
+            );
         }
         Ok(())
     }
@@ -88,7 +95,9 @@ pub fn listen(args: &ListenArgs) -> anyhow::Result<Value> {
         &mut watch,
         &mut recorder,
         &RealTime,
-        &mut |now| stop.load(std::sync::atomic::Ordering::Relaxed) || stop_at.is_some_and(|t| now >= t),
+        &mut |now| {
+            stop.load(std::sync::atomic::Ordering::Relaxed) || stop_at.is_some_and(|t| now >= t)
+        },
         &mut |e, now| reporter.event(e, now),
     )?;
     drop(source);
@@ -140,7 +149,10 @@ pub fn simulate(args: &SimulateArgs) -> anyhow::Result<Value> {
     if !(args.rate_hz.is_finite() && (10.0..=1000.0).contains(&args.rate_hz)) {
         bail!("--rate-hz {} must be within 10..1000", args.rate_hz);
     }
-    for (name, v, max) in [("--noise-mm", args.noise_mm, 10.0), ("--noise-deg", args.noise_deg, 5.0)] {
+    for (name, v, max) in [
+        ("--noise-mm", args.noise_mm, 10.0),
+        ("--noise-deg", args.noise_deg, 5.0),
+    ] {
         if !(v.is_finite() && (0.0..=max).contains(&v)) {
             bail!("{name} {v} must be within 0..{max}");
         }
@@ -169,13 +181,23 @@ pub struct PredictArgs {
     #[arg(long, value_name = "FILE")]
     pub recording: PathBuf,
     /// Look-ahead times (sample to display), ms.
-    #[arg(long, value_delimiter = ',', default_value = "16,33", value_name = "MS")]
+    #[arg(
+        long,
+        value_delimiter = ',',
+        default_value = "16,33",
+        value_name = "MS"
+    )]
     pub lookahead_ms: Vec<f64>,
     /// The tool to predict (default: the recording's HMD tool).
     #[arg(long, value_name = "NAME")]
     pub tool: Option<String>,
     /// Gains of the alpha-beta filters compared.
-    #[arg(long, value_delimiter = ',', default_value = "0.3,0.5,0.7", value_name = "A")]
+    #[arg(
+        long,
+        value_delimiter = ',',
+        default_value = "0.3,0.5,0.7",
+        value_name = "A"
+    )]
     pub alpha: Vec<f64>,
     /// Print the result as JSON.
     #[arg(long)]
@@ -189,23 +211,41 @@ fn summary_json(e: &Errors) -> Value {
 
 /// Run `lungdyn tracker predict`.
 pub fn predict(args: &PredictArgs) -> anyhow::Result<Value> {
-    if args.lookahead_ms.is_empty() || !args.lookahead_ms.iter().all(|l| l.is_finite() && (0.0..=500.0).contains(l)) {
-        bail!("--lookahead-ms {:?}: give look-aheads within 0..500 ms", args.lookahead_ms);
+    if args.lookahead_ms.is_empty()
+        || !args
+            .lookahead_ms
+            .iter()
+            .all(|l| l.is_finite() && (0.0..=500.0).contains(l))
+    {
+        bail!(
+            "--lookahead-ms {:?}: give look-aheads within 0..500 ms",
+            args.lookahead_ms
+        );
     }
-    if !args.alpha.iter().all(|a| a.is_finite() && *a > 0.0 && *a <= 1.0) {
+    if !args
+        .alpha
+        .iter()
+        .all(|a| a.is_finite() && *a > 0.0 && *a <= 1.0)
+    {
         bail!("--alpha {:?}: gains within (0, 1]", args.alpha);
     }
     let mut reader = RecordReader::open(&args.recording)?;
     let config = reader.header.config.clone();
     let name = match &args.tool {
         Some(n) => ToolName::new(n)?,
-        None => config.slots[TOOL_HMD].context("the recording maps no HMD tool: pass --tool NAME")?,
+        None => {
+            config.slots[TOOL_HMD].context("the recording maps no HMD tool: pass --tool NAME")?
+        }
     };
     let mut samples: Vec<TimedPose> = Vec::new();
     let mut rejected = 0usize;
     loop {
         match reader.next_record() {
-            Ok(Some(Record::Sample(s))) if s.name.matches(&name) => match config.validation.check(&s).pose {
+            Ok(Some(Record::Sample(s))) if s.name.matches(&name) => match config
+                .validation
+                .check(&s)
+                .pose
+            {
                 Some(p) => {
                     if samples.last().is_none_or(|l| s.receive_ns > l.t_ns) {
                         samples.push(TimedPose::from_xyzw(s.receive_ns, p.quat, p.translation_mm));
@@ -227,14 +267,22 @@ pub fn predict(args: &PredictArgs) -> anyhow::Result<Value> {
             "{} has {} valid samples of tool {name} (of the names it maps: {:?}); need at least 10",
             args.recording.display(),
             samples.len(),
-            config.slots.iter().flatten().map(|n| n.as_str().to_string()).collect::<Vec<_>>()
+            config
+                .slots
+                .iter()
+                .flatten()
+                .map(|n| n.as_str().to_string())
+                .collect::<Vec<_>>()
         );
     }
     let span = (samples.last().map_or(0, |s| s.t_ns) - samples[0].t_ns) as f64 / 1e9;
     let rate = (samples.len() - 1) as f64 / span.max(1e-9);
     // A gap of more than 3 sample periods restarts the predictors (tracking was lost).
     let max_gap = (3e9 / rate) as u64;
-    let mut predictors: Vec<Box<dyn Predictor>> = vec![Box::new(Hold::default()), Box::new(ConstantVelocity::default())];
+    let mut predictors: Vec<Box<dyn Predictor>> = vec![
+        Box::new(Hold::default()),
+        Box::new(ConstantVelocity::default()),
+    ];
     for a in &args.alpha {
         predictors.push(Box::new(AlphaBeta::new(*a)));
     }

@@ -183,12 +183,7 @@ fn cpu_model() -> String {
 fn sh_coeffs(alpha: f64, projection: &[f64], w: &ForceWeights) -> Vec<f32> {
     let n2 = projection.len() / 4;
     (0..n2)
-        .map(|k| {
-            (alpha
-                * (0..4)
-                    .map(|a| w[a] * projection[a * n2 + k])
-                    .sum::<f64>()) as f32
-        })
+        .map(|k| (alpha * (0..4).map(|a| w[a] * projection[a * n2 + k]).sum::<f64>()) as f32)
         .collect()
 }
 
@@ -347,7 +342,13 @@ pub fn run(args: &TradeoffArgs) -> anyhow::Result<Tradeoff> {
                 let w = responses.weights(g);
                 let s_ref = exact_forms.cubic(&w).solve_delta(delta_ml * 1000.0);
                 let s_pre = exact_forms.cubic(&supine).solve_delta(delta_ml * 1000.0);
-                acc.add(&responses.kd, s_ref, &responses.force(&w), s_pre, &supine_force);
+                acc.add(
+                    &responses.kd,
+                    s_ref,
+                    &responses.force(&w),
+                    s_pre,
+                    &supine_force,
+                );
             }
             acc.stats()
         };
@@ -532,7 +533,11 @@ fn orientation_methods(
     ];
     let mut out = Vec::new();
     for (sweep, turn) in sweeps {
-        let (lo, hi) = if sweep == "roll" { (-180, 180) } else { (-90, 90) };
+        let (lo, hi) = if sweep == "roll" {
+            (-180, 180)
+        } else {
+            (-90, 90)
+        };
         for (name, method) in &methods {
             let mut acc = ErrorAccumulator::default();
             let mut series = Vec::new();
@@ -814,7 +819,11 @@ fn write_outputs(out: &Path, t: &Tradeoff) -> anyhow::Result<Vec<String>> {
         v.dedup();
         v
     };
-    let sh = |v: usize| t.rows.iter().filter(move |r| r.vertices == v && r.bands.is_some());
+    let sh = |v: usize| {
+        t.rows
+            .iter()
+            .filter(move |r| r.vertices == v && r.bands.is_some())
+    };
     let mut error_panel = Panel {
         title: "SH error against eq. 7.1".into(),
         x_label: "bands (n² coefficients)".into(),
@@ -852,7 +861,11 @@ fn write_outputs(out: &Path, t: &Tradeoff) -> anyhow::Result<Vec<String>> {
             ("basis", RGBColor(0, 0, 0)),
             ("direct (eq. 7.1)", RGBColor(140, 86, 75)),
         ] {
-            if let Some(r) = t.rows.iter().find(|r| r.vertices == largest && r.mode == mode) {
+            if let Some(r) = t
+                .rows
+                .iter()
+                .find(|r| r.vertices == largest && r.mode == mode)
+            {
                 time_panel.series.push(Series {
                     label: format!("{mode}, {largest}"),
                     points: vec![(1.0, r.cpu_ms), (max_bands, r.cpu_ms)],
@@ -874,7 +887,12 @@ fn write_outputs(out: &Path, t: &Tradeoff) -> anyhow::Result<Vec<String>> {
         y_label: "RMS displacement error, mm".into(),
         series: Vec::new(),
     };
-    for (i, o) in t.orientation.iter().filter(|o| o.sweep == "roll").enumerate() {
+    for (i, o) in t
+        .orientation
+        .iter()
+        .filter(|o| o.sweep == "roll")
+        .enumerate()
+    {
         orient_panel.series.push(Series {
             label: o.method.clone(),
             points: o.series.clone(),

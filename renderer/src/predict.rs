@@ -56,8 +56,11 @@ impl HmdPredictor {
             // Time went backwards or the tracking had a gap: start again from this sample.
             self.predictor.reset();
         }
-        self.predictor
-            .update(&TimedPose::from_xyzw(capture_ns, pose.quat, pose.translation_mm));
+        self.predictor.update(&TimedPose::from_xyzw(
+            capture_ns,
+            pose.quat,
+            pose.translation_mm,
+        ));
         self.last_frame = frame_number;
         self.last_capture_ns = capture_ns;
         self.newest = Some(pose);
@@ -68,12 +71,13 @@ impl HmdPredictor {
         let Some(newest) = self.newest else {
             return fallback;
         };
-        if self.lookahead_ns == 0
-            || now_ns.saturating_sub(self.last_capture_ns) > MAX_SAMPLE_AGE_NS
+        if self.lookahead_ns == 0 || now_ns.saturating_sub(self.last_capture_ns) > MAX_SAMPLE_AGE_NS
         {
             return newest;
         }
-        let Some(p) = self.predictor.predict(now_ns.max(self.last_capture_ns) + self.lookahead_ns)
+        let Some(p) = self
+            .predictor
+            .predict(now_ns.max(self.last_capture_ns) + self.lookahead_ns)
         else {
             return newest;
         };
@@ -126,9 +130,15 @@ mod tests {
         // At last + 2 ms + 16 ms: x = 100 mm/s · (9·dt + 18 ms).
         let s = (9 * dt + 18_000_000) as f32 * 1e-9;
         let want = pose(100.0 * s, 0.5 * s);
-        assert!((drawn.translation_mm[0] - want.translation_mm[0]).abs() < 0.01, "{drawn:?}");
+        assert!(
+            (drawn.translation_mm[0] - want.translation_mm[0]).abs() < 0.01,
+            "{drawn:?}"
+        );
         for a in 0..4 {
-            assert!((drawn.quat[a] - want.quat[a]).abs() < 1e-4, "{drawn:?} vs {want:?}");
+            assert!(
+                (drawn.quat[a] - want.quat[a]).abs() < 1e-4,
+                "{drawn:?} vs {want:?}"
+            );
         }
         assert_eq!(p.predicted_frames, 1);
     }

@@ -197,7 +197,10 @@ pub struct Session {
     next_target: usize,
     snapshot_view: Option<Pose>,
     /// A tension pneumothorax scene's control stream and affected lung (the window's keys).
-    control: Option<(Box<dyn Publish<ipc_types::ControlPacket>>, lung_model::mesh::Side)>,
+    control: Option<(
+        Box<dyn Publish<ipc_types::ControlPacket>>,
+        lung_model::mesh::Side,
+    )>,
     control_sequence: u64,
 }
 
@@ -337,7 +340,10 @@ impl Session {
 
     /// Send a trainee's intervention ([`ipc_types::control_kind`]) on the tension pneumothorax's
     /// side to the engine; `None` when the scene has none, else the lung it was sent for.
-    pub fn send_action(&mut self, kind: u32) -> Result<Option<lung_model::mesh::Side>, RendererError> {
+    pub fn send_action(
+        &mut self,
+        kind: u32,
+    ) -> Result<Option<lung_model::mesh::Side>, RendererError> {
         let Some((outlet, side)) = self.control.as_mut() else {
             return Ok(None);
         };

@@ -103,7 +103,9 @@ impl ApplicationHandler for App {
             {
                 use ipc_types::control_kind as k;
                 let action = match event.logical_key.to_text() {
-                    Some("n") | Some("N") => Some((k::NEEDLE_DECOMPRESSION, "needle decompression")),
+                    Some("n") | Some("N") => {
+                        Some((k::NEEDLE_DECOMPRESSION, "needle decompression"))
+                    }
                     Some("c") | Some("C") => Some((k::CHEST_TUBE, "chest tube")),
                     Some("o") | Some("O") => Some((k::OCCLUSIVE_DRESSING, "occlusive dressing")),
                     _ => None,

@@ -49,9 +49,15 @@ fn the_seeds_closed_pneumothorax_follows_eq_8_1_and_8_2() {
         .find(|l| l["side"] == "left")
         .unwrap();
     // eq. 8.1: dV = I^0.33 = 0.1^0.33 = 0.4677 (by hand: 10^-0.33).
-    assert!((left["dV"].as_f64().unwrap() - 0.468).abs() < 1e-3, "{left}");
+    assert!(
+        (left["dV"].as_f64().unwrap() - 0.468).abs() < 1e-3,
+        "{left}"
+    );
     // eq. 8.2: A = (100 I - 4.2) / (4.7 * 2) cm = (10 - 4.2) / 9.4 = 0.617 cm = 6.17 mm.
-    assert!((left["drop_mm"].as_f64().unwrap() - 6.17).abs() < 0.01, "{left}");
+    assert!(
+        (left["drop_mm"].as_f64().unwrap() - 6.17).abs() < 0.01,
+        "{left}"
+    );
     // The right lung is unaffected: no index, no drop.
     let right = d["lungs"]
         .as_array()
@@ -59,7 +65,10 @@ fn the_seeds_closed_pneumothorax_follows_eq_8_1_and_8_2() {
         .iter()
         .find(|l| l["side"] == "right")
         .unwrap();
-    assert!(right["pneumothorax_index"].is_null() && right["dV"] == 0.0, "{right}");
+    assert!(
+        right["pneumothorax_index"].is_null() && right["dV"] == 0.0,
+        "{right}"
+    );
     // Faster breathing than the scene's 12/min (eq. 8.3-8.5).
     assert!(d["breaths_per_min"].as_f64().unwrap() > 12.0, "{d}");
 }
@@ -89,10 +98,15 @@ fn a_tension_pneumothorax_arrests_without_help_and_not_after_a_needle() {
     // Pleural air never falls before arrest and the mediastinum shifts away from the affected side.
     for w in course.windows(2) {
         if w[1]["arrest"] == false {
-            assert!(w[1]["pleural_air_ml"].as_f64() >= w[0]["pleural_air_ml"].as_f64(), "{w:?}");
+            assert!(
+                w[1]["pleural_air_ml"].as_f64() >= w[0]["pleural_air_ml"].as_f64(),
+                "{w:?}"
+            );
         }
     }
-    assert!(course.iter().all(|c| c["shift_mm"].as_f64().unwrap().is_finite()));
+    assert!(course
+        .iter()
+        .all(|c| c["shift_mm"].as_f64().unwrap().is_finite()));
 }
 
 #[test]
@@ -109,7 +123,10 @@ fn every_shipped_scene_checks_a_pneumothorax_runs_and_a_tumour_is_refused() {
     }
     let s = scene("tumour_right_lower.toml");
     let (ok, _, err) = lungdyn(&["demo", "--scene", s.to_str().unwrap(), "--seconds", "1"]);
-    assert!(!ok && err.contains("does not simulate this disease state yet"), "{err}");
+    assert!(
+        !ok && err.contains("does not simulate this disease state yet"),
+        "{err}"
+    );
     let (ok, _, err) = lungdyn(&[
         "engine",
         "--scene",
@@ -119,7 +136,10 @@ fn every_shipped_scene_checks_a_pneumothorax_runs_and_a_tumour_is_refused() {
         "--instance",
         &format!("disease-{}", std::process::id()),
     ]);
-    assert!(!ok && err.contains("does not simulate this disease state yet"), "{err}");
+    assert!(
+        !ok && err.contains("does not simulate this disease state yet"),
+        "{err}"
+    );
     // The seed's closed pneumothorax through the three processes: the left lung is collapsed and
     // dropped in every frame, every frame finite.
     let out = tmp("closed_demo");
@@ -147,14 +167,30 @@ fn every_shipped_scene_checks_a_pneumothorax_runs_and_a_tumour_is_refused() {
 #[test]
 fn bad_disease_tables_name_their_key() {
     for (body, needle) in [
-        ("kind = \"closed-pneumothorax\"\nside = \"left\"\nindex = 1.5\n", "index"),
+        (
+            "kind = \"closed-pneumothorax\"\nside = \"left\"\nindex = 1.5\n",
+            "index",
+        ),
         ("kind = \"closed-pneumothorax\"\nside = \"left\"\n", "index"),
-        ("kind = \"closed-pneumothorax\"\nside = \"left\"\nindex = 0.1\nbeta_mm = 18\n", "beta_mm"),
-        ("kind = \"tension-pneumothorax\"\nside = \"left\"\nwobble = 1\n", "wobble"),
-        ("kind = \"closed-pneumothorax\"\nside = \"middle\"\nindex = 0.1\n", "middle"),
+        (
+            "kind = \"closed-pneumothorax\"\nside = \"left\"\nindex = 0.1\nbeta_mm = 18\n",
+            "beta_mm",
+        ),
+        (
+            "kind = \"tension-pneumothorax\"\nside = \"left\"\nwobble = 1\n",
+            "wobble",
+        ),
+        (
+            "kind = \"closed-pneumothorax\"\nside = \"middle\"\nindex = 0.1\n",
+            "middle",
+        ),
     ] {
         let f = tmp("bad_disease.toml");
-        std::fs::write(&f, format!("[lungs]\nsides = [\"right\", \"left\"]\n[disease]\n{body}")).unwrap();
+        std::fs::write(
+            &f,
+            format!("[lungs]\nsides = [\"right\", \"left\"]\n[disease]\n{body}"),
+        )
+        .unwrap();
         let (ok, _, err) = lungdyn(&["scene", "check", f.to_str().unwrap()]);
         assert!(!ok && err.contains(needle), "{body}: {err}");
     }
@@ -197,7 +233,14 @@ fn a_trainee_decompresses_a_running_tension_pneumothorax() {
     let mut sent = false;
     // (A fresh checkout bakes both lungs before the processes start.)
     while start.elapsed() < std::time::Duration::from_secs(120) {
-        let (ok, _, err) = lungdyn(&["scene", "event", &instance, "needle-decompression", "--side", "left"]);
+        let (ok, _, err) = lungdyn(&[
+            "scene",
+            "event",
+            &instance,
+            "needle-decompression",
+            "--side",
+            "left",
+        ]);
         if ok {
             sent = true;
             break;
@@ -215,7 +258,10 @@ fn a_trainee_decompresses_a_running_tension_pneumothorax() {
         err.contains("needle-decompression on the left lung received at tick"),
         "{err}"
     );
-    assert!(err.contains("disease cycles built on the worker thread"), "{err}");
+    assert!(
+        err.contains("disease cycles built on the worker thread"),
+        "{err}"
+    );
 }
 
 fn scene_run(name: &str, seconds: &str) -> serde_json::Value {
@@ -244,11 +290,20 @@ fn scene_run_reports_each_lung_and_computes_only_what_the_scene_needs() {
     let right = lungs.iter().find(|l| l["side"] == "right").unwrap();
     // eq. 8.2's drop, the collapse of eq. 8.1's loss (c = 1 - (1 - 0.1^0.33)^(1/3) = 0.190), and the
     // faster breathing of eq. 8.3-8.5 (clamped phases of 0.75 s: 40/min) in both lungs.
-    assert!((left["offset_mm"][2].as_f64().unwrap() + 6.17).abs() < 0.01, "{left}");
-    assert!((left["collapse"].as_f64().unwrap() - 0.190).abs() < 0.001, "{left}");
+    assert!(
+        (left["offset_mm"][2].as_f64().unwrap() + 6.17).abs() < 0.01,
+        "{left}"
+    );
+    assert!(
+        (left["collapse"].as_f64().unwrap() - 0.190).abs() < 0.001,
+        "{left}"
+    );
     assert_eq!(right["collapse"], 0.0);
     for l in lungs {
-        assert!((l["breaths_per_min"].as_f64().unwrap() - 40.0).abs() < 0.01, "{l}");
+        assert!(
+            (l["breaths_per_min"].as_f64().unwrap() - 40.0).abs() < 0.01,
+            "{l}"
+        );
     }
     // A fixed patient: the orientation weights are computed once per lung, not per tick.
     let c = &v["stage_counts"];
@@ -290,11 +345,15 @@ fn the_upright_scene_breathes_the_same_volume_with_gravity_from_head_to_feet() {
     {
         // The PV model sets the volume in every posture (EQUATIONS §3: volume forms) ...
         assert!(
-            (a["tidal_volume_ml"].as_f64().unwrap() - b["tidal_volume_ml"].as_f64().unwrap()).abs() < 0.01,
+            (a["tidal_volume_ml"].as_f64().unwrap() - b["tidal_volume_ml"].as_f64().unwrap()).abs()
+                < 0.01,
             "{a} {b}"
         );
         // ... and gravity the force weights that shape it.
-        let (wa, wb) = (a["coefficients"].as_array().unwrap(), b["coefficients"].as_array().unwrap());
+        let (wa, wb) = (
+            a["coefficients"].as_array().unwrap(),
+            b["coefficients"].as_array().unwrap(),
+        );
         assert_eq!(wa.len(), 4);
         let diff: f64 = wa
             .iter()

@@ -185,7 +185,10 @@ fn every_mode_on_the_gpu_matches_the_cpu_reference_at_extreme_orientations() {
                 }
                 at += n;
             }
-            assert!(worst <= 1e-5, "{mode}: collapse differs by {worst:e} relative");
+            assert!(
+                worst <= 1e-5,
+                "{mode}: collapse differs by {worst:e} relative"
+            );
         }
     }
 }

@@ -49,7 +49,10 @@ fn bake_reports_the_sh_and_basis_errors_and_honours_bands_and_budgets() {
     assert!(pct > 0.0 && pct < 20.0 && rms > 0.0, "{v}");
     assert!(v["foldover_nodes"].as_u64().is_some());
     let basis = v["basis_max_error_mm"].as_f64().unwrap();
-    assert!(basis < 1e-3, "the basis mode is exact to round-off: {basis} mm");
+    assert!(
+        basis < 1e-3,
+        "the basis mode is exact to round-off: {basis} mm"
+    );
     assert_eq!(v["orientations"], 26);
     // No bands: no SH section, the basis is still there.
     let (v, _) = bake(&["--bands", "0"]);
@@ -67,11 +70,30 @@ fn bake_reports_the_sh_and_basis_errors_and_honours_bands_and_budgets() {
     let (v1, _) = bake(&["--max-error-mm", "40"]);
     assert_eq!(v1["sh_bands"], 1, "a loose budget keeps one band: {v1}");
     assert_clean_failure(
-        &["bake", "--mesh", &mesh, "--lung", "left", "--bands", "16", "--out", out.to_str().unwrap()],
+        &[
+            "bake",
+            "--mesh",
+            &mesh,
+            "--lung",
+            "left",
+            "--bands",
+            "16",
+            "--out",
+            out.to_str().unwrap(),
+        ],
         "0 (none) to 8",
     );
     assert_clean_failure(
-        &["bake", "--mesh", &mesh, "--lung", "left", "--max-error-mm=-1", "--out", out.to_str().unwrap()],
+        &[
+            "bake",
+            "--mesh",
+            &mesh,
+            "--lung",
+            "left",
+            "--max-error-mm=-1",
+            "--out",
+            out.to_str().unwrap(),
+        ],
         "--max-error-mm",
     );
     std::fs::remove_dir_all(&dir).ok();
@@ -86,7 +108,11 @@ fn the_error_budget_scene_picks_bands_or_the_exact_basis_and_says_which() {
         std::path::Path::new(env!("CARGO_MANIFEST_DIR")).join("../scenes/error_budget.toml"),
     )
     .unwrap();
-    std::fs::write(&scene, shipped.replace("[lungs]\n", "[lungs]\nvertices = 1500\n")).unwrap();
+    std::fs::write(
+        &scene,
+        shipped.replace("[lungs]\n", "[lungs]\nvertices = 1500\n"),
+    )
+    .unwrap();
     let (ok, stdout, err) = lungdyn(&[
         "scene",
         "prepare",
@@ -121,7 +147,11 @@ fn every_mode_runs_in_the_demo_with_the_patient_turning() {
     }
     let dir = temp("demo");
     let scene = dir.join("small.toml");
-    std::fs::write(&scene, "[lungs]\nvertices = 1500\n[render]\nwidth = 160\nheight = 120\n").unwrap();
+    std::fs::write(
+        &scene,
+        "[lungs]\nvertices = 1500\n[render]\nwidth = 160\nheight = 120\n",
+    )
+    .unwrap();
     for mode in ["precomputed", "basis", "sh", "direct"] {
         let out = dir.join(mode);
         let (ok, stdout, err) = lungdyn(&[
@@ -148,7 +178,10 @@ fn every_mode_runs_in_the_demo_with_the_patient_turning() {
         assert_eq!(v["mode"], mode, "{v}");
         assert!(!err.contains("drawing that lung at rest"), "{mode}: {err}");
         if mode == "precomputed" {
-            assert!(err.contains("supine breath whatever"), "the note about a fixed mode: {err}");
+            assert!(
+                err.contains("supine breath whatever"),
+                "the note about a fixed mode: {err}"
+            );
         }
     }
     assert_clean_failure(&["demo", "--mode", "fast"], "unknown mode");

@@ -133,7 +133,10 @@ fn bad_curve_files_are_refused_with_file_and_line() {
         "--out",
         tmp("x.csv").to_str().unwrap(),
     ]);
-    assert!(!ok && err.contains("odd number N of control constants"), "{err}");
+    assert!(
+        !ok && err.contains("odd number N of control constants"),
+        "{err}"
+    );
     let (ok, _, err) = lungdyn(&[
         "pv",
         "simulate",

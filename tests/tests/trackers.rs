@@ -28,20 +28,34 @@ fn tmp(name: &str) -> std::path::PathBuf {
     p
 }
 
-fn frames_of(source: &mut dyn Source, clock: &FakeClock, ticks: u64, record: Option<&std::path::Path>) -> Vec<TrackerFrame> {
+fn frames_of(
+    source: &mut dyn Source,
+    clock: &FakeClock,
+    ticks: u64,
+    record: Option<&std::path::Path>,
+) -> Vec<TrackerFrame> {
     let config = source.recorded_config().cloned().unwrap_or_else(|| {
         let mut c = tracker_bridge::assemble::BridgeConfig::default();
         c.validation.volume = tracker_bridge::validate::Volume::Unbounded;
         c
     });
-    let mut recorder = record.map(|p| RecordWriter::create(p, &config, &source.describe()).unwrap());
+    let mut recorder =
+        record.map(|p| RecordWriter::create(p, &config, &source.describe()).unwrap());
     let mut asm = Assembler::new(config);
     let mut out = Recorder::new(clock);
     let mut n = 0;
-    run_loop(source, &mut asm, &mut out, &mut recorder, clock, &mut |_| {
-        n += 1;
-        n > ticks
-    }, &mut |_, _| {})
+    run_loop(
+        source,
+        &mut asm,
+        &mut out,
+        &mut recorder,
+        clock,
+        &mut |_| {
+            n += 1;
+            n > ticks
+        },
+        &mut |_, _| {},
+    )
     .unwrap();
     if let Some(r) = recorder {
         r.finish().unwrap();
@@ -62,7 +76,11 @@ fn engine_frames(frames: &[TrackerFrame]) -> Vec<EngineFrame> {
                 &|_| {},
             )
             .unwrap();
-            LungGeometry::of(&LungModel::from_unit_displacement(side, k.mesh, k.unit_displacement))
+            LungGeometry::of(&LungModel::from_unit_displacement(
+                side,
+                k.mesh,
+                k.unit_displacement,
+            ))
         })
         .collect();
     let mut core = EngineCore::with_geometry(&scene, geometry).unwrap();
@@ -84,20 +102,46 @@ fn engine_frames(frames: &[TrackerFrame]) -> Vec<EngineFrame> {
 #[test]
 fn a_recorded_session_replays_into_the_same_tracker_and_engine_frames() {
     let path = tmp("engine.ldtr");
-    let live = frames_of(&mut SyntheticSource::new(Default::default()), &FakeClock::at(3_000_000_000), 300, Some(&path));
+    let live = frames_of(
+        &mut SyntheticSource::new(Default::default()),
+        &FakeClock::at(3_000_000_000),
+        300,
+        Some(&path),
+    );
     let mut replay = Replay::open(&path, false).unwrap();
     let again = frames_of(&mut replay, &FakeClock::at(90_000_000_000), u64::MAX, None);
     assert_eq!(live.len(), again.len());
     for (a, b) in live.iter().zip(&again) {
-        let (a, b) = (TrackerFrame { stamps: Default::default(), ..*a }, TrackerFrame { stamps: Default::default(), ..*b });
-        assert_eq!(bytemuck::bytes_of(&a), bytemuck::bytes_of(&b), "tracker frame {}", a.frame_number);
+        let (a, b) = (
+            TrackerFrame {
+                stamps: Default::default(),
+                ..*a
+            },
+            TrackerFrame {
+                stamps: Default::default(),
+                ..*b
+            },
+        );
+        assert_eq!(
+            bytemuck::bytes_of(&a),
+            bytemuck::bytes_of(&b),
+            "tracker frame {}",
+            a.frame_number
+        );
     }
     let (x, y) = (engine_frames(&live), engine_frames(&again));
     for (a, b) in x.iter().zip(&y) {
-        assert_eq!(bytemuck::bytes_of(a), bytemuck::bytes_of(b), "engine tick {}", a.tick);
+        assert_eq!(
+            bytemuck::bytes_of(a),
+            bytemuck::bytes_of(b),
+            "engine tick {}",
+            a.tick
+        );
     }
     // The engine used every sample's patient pose (none was held).
-    assert!(x.iter().all(|f| f.state & ipc_types::engine_state::PATIENT_POSE_HELD == 0));
+    assert!(x
+        .iter()
+        .all(|f| f.state & ipc_types::engine_state::PATIENT_POSE_HELD == 0));
     let _ = std::fs::remove_file(&path);
 }
 
@@ -105,7 +149,17 @@ fn a_recorded_session_replays_into_the_same_tracker_and_engine_frames() {
 fn listen_records_and_a_replay_through_the_command_gives_the_same_frames_digest() {
     let path = tmp("listen.ldtr");
     let p = path.to_str().unwrap();
-    let (ok, out, err) = lungdyn(&["tracker", "listen", "--source", "synthetic", "--seconds", "1", "--record", p, "--json"]);
+    let (ok, out, err) = lungdyn(&[
+        "tracker",
+        "listen",
+        "--source",
+        "synthetic",
+        "--seconds",
+        "1",
+        "--record",
+        p,
+        "--json",
+    ]);
     assert!(ok, "{err}");
     let live: serde_json::Value = serde_json::from_str(out.trim()).unwrap();
     assert!(live["frames"].as_u64().unwrap() >= 50, "{live}");
@@ -115,7 +169,10 @@ fn listen_records_and_a_replay_through_the_command_gives_the_same_frames_digest(
     for t in tools {
         assert!(t["frames"].as_u64().unwrap() >= 50);
         assert_eq!(t["last_pose"]["position_mm"].as_array().unwrap().len(), 3);
-        assert_eq!(t["last_pose"]["quaternion_xyzw"].as_array().unwrap().len(), 4);
+        assert_eq!(
+            t["last_pose"]["quaternion_xyzw"].as_array().unwrap().len(),
+            4
+        );
         assert!((t["rate_hz"].as_f64().unwrap() - 60.0).abs() < 3.0);
     }
     for fast in [true, false] {
@@ -128,7 +185,10 @@ fn listen_records_and_a_replay_through_the_command_gives_the_same_frames_digest(
         assert!(ok, "{err}");
         let back: serde_json::Value = serde_json::from_str(out.trim()).unwrap();
         assert_eq!(back["frames"], live["frames"]);
-        assert_eq!(back["frames_digest"], live["frames_digest"], "bit for bit (fast {fast})");
+        assert_eq!(
+            back["frames_digest"], live["frames_digest"],
+            "bit for bit (fast {fast})"
+        );
     }
     // A damaged recording is refused with the place named, never replayed.
     let mut bytes = std::fs::read(&path).unwrap();
@@ -136,8 +196,28 @@ fn listen_records_and_a_replay_through_the_command_gives_the_same_frames_digest(
     bytes[n - 100] ^= 0x40;
     let bad = tmp("bad.ldtr");
     std::fs::write(&bad, bytes).unwrap();
-    assert_clean_failure(&["tracker", "listen", "--source", &format!("replay:{}", bad.display())], "is corrupt");
-    assert_clean_failure(&["tracker", "listen", "--source", "synthetic", "--record", p, "--seconds", "1"], "exists");
+    assert_clean_failure(
+        &[
+            "tracker",
+            "listen",
+            "--source",
+            &format!("replay:{}", bad.display()),
+        ],
+        "is corrupt",
+    );
+    assert_clean_failure(
+        &[
+            "tracker",
+            "listen",
+            "--source",
+            "synthetic",
+            "--record",
+            p,
+            "--seconds",
+            "1",
+        ],
+        "exists",
+    );
     for f in [&path, &bad] {
         let _ = std::fs::remove_file(f);
     }
@@ -156,7 +236,11 @@ fn qtdata(k: u32) -> Vec<u8> {
         "Tracker",
         Timestamp::from_parts(1_700_000_000, k * 1000),
         Body::QtData(vec![
-            e("Patient", [k as f32 * 0.1, 0.0, -1200.0], [0.0, 0.0, 0.0, 1.0]),
+            e(
+                "Patient",
+                [k as f32 * 0.1, 0.0, -1200.0],
+                [0.0, 0.0, 0.0, 1.0],
+            ),
             e("HMD", [0.0, 100.0, -700.0], [0.0, 0.0, 0.0, 1.0]),
         ]),
     )
@@ -165,7 +249,11 @@ fn qtdata(k: u32) -> Vec<u8> {
 }
 
 fn free_port() -> u16 {
-    std::net::TcpListener::bind("127.0.0.1:0").unwrap().local_addr().unwrap().port()
+    std::net::TcpListener::bind("127.0.0.1:0")
+        .unwrap()
+        .local_addr()
+        .unwrap()
+        .port()
 }
 
 /// Stream QTDATA to `port` at 60 Hz for `seconds` (connecting as soon as the server listens).
@@ -175,7 +263,9 @@ fn sender(port: u16, seconds: f64) -> std::thread::JoinHandle<u32> {
         let mut s = loop {
             match TcpStream::connect(("127.0.0.1", port)) {
                 Ok(s) => break s,
-                Err(_) if start.elapsed() < Duration::from_secs(120) => std::thread::sleep(Duration::from_millis(20)),
+                Err(_) if start.elapsed() < Duration::from_secs(120) => {
+                    std::thread::sleep(Duration::from_millis(20))
+                }
                 Err(e) => panic!("the bridge never listened on {port}: {e}"),
             }
         };
@@ -196,7 +286,14 @@ fn the_bridge_process_publishes_what_an_openigtlink_sender_sends() {
     let instance = unique_instance("igtl");
     let port = free_port();
     let bridge = std::process::Command::new(bin("tracker-bridge"))
-        .args(["--instance", &instance, "--seconds", "30", "--source", &format!("igtl-server:127.0.0.1:{port}")])
+        .args([
+            "--instance",
+            &instance,
+            "--seconds",
+            "30",
+            "--source",
+            &format!("igtl-server:127.0.0.1:{port}"),
+        ])
         .stderr(std::process::Stdio::piped())
         .spawn()
         .unwrap();
@@ -207,7 +304,9 @@ fn the_bridge_process_publishes_what_an_openigtlink_sender_sends() {
     let mut frames = Vec::new();
     let start = std::time::Instant::now();
     while !send.is_finished() && start.elapsed() < Duration::from_secs(60) {
-        inlet.drain(&mut |f: &TrackerFrame| frames.push(*f)).unwrap();
+        inlet
+            .drain(&mut |f: &TrackerFrame| frames.push(*f))
+            .unwrap();
         std::thread::sleep(Duration::from_millis(5));
     }
     let sent = send.join().unwrap();
@@ -221,13 +320,24 @@ fn the_bridge_process_publishes_what_an_openigtlink_sender_sends() {
         .iter()
         .filter(|f| f.tools[TOOL_PATIENT].is_valid() && f.tools[TOOL_HMD].is_valid())
         .collect();
-    assert!(valid.len() > 60, "{} valid of {} frames: {err}", valid.len(), frames.len());
+    assert!(
+        valid.len() > 60,
+        "{} valid of {} frames: {err}",
+        valid.len(),
+        frames.len()
+    );
     for f in &valid {
         let x = f.tools[TOOL_PATIENT].pose.translation_mm[0];
-        assert!((x * 10.0).round() >= 1.0 && f.tools[TOOL_HMD].pose.translation_mm == [0.0, 100.0, -700.0]);
+        assert!(
+            (x * 10.0).round() >= 1.0
+                && f.tools[TOOL_HMD].pose.translation_mm == [0.0, 100.0, -700.0]
+        );
         assert!(f.stamps.capture_ns > 0 && f.stamps.capture_ns <= f.stamps.bridge_publish_ns);
     }
-    assert!(err.contains("sender 127.0.0.1:") && err.contains("connected"), "{err}");
+    assert!(
+        err.contains("sender 127.0.0.1:") && err.contains("connected"),
+        "{err}"
+    );
     assert!(err.contains("0 rejected"), "{err}");
     drop(inlet);
     drop(node);
@@ -241,7 +351,11 @@ fn the_demo_runs_on_a_device_source() {
     }
     let dir = std::env::temp_dir().join(format!("lungdyn-trackers-demo-{}", std::process::id()));
     let scene = dir.with_extension("toml");
-    std::fs::write(&scene, "[lungs]\nvertices = 1500\n[render]\nwidth = 160\nheight = 120\n").unwrap();
+    std::fs::write(
+        &scene,
+        "[lungs]\nvertices = 1500\n[render]\nwidth = 160\nheight = 120\n",
+    )
+    .unwrap();
     let port = free_port();
     let send = sender(port, 60.0);
     let (ok, stdout, err) = lungdyn(&[
@@ -262,8 +376,14 @@ fn the_demo_runs_on_a_device_source() {
     let v: serde_json::Value = serde_json::from_str(stdout.trim()).unwrap();
     lungdyn_tests::assert_demo_report_is_consistent(&v, &err);
     assert!(err.contains("OpenIGTLink server on 127.0.0.1"), "{err}");
-    let patient_line = err.lines().find(|l| l.contains("Patient") && l.contains("patient")).unwrap_or_default();
-    assert!(patient_line.contains("Hz"), "the bridge counted the sender's patient samples: {err}");
+    let patient_line = err
+        .lines()
+        .find(|l| l.contains("Patient") && l.contains("patient"))
+        .unwrap_or_default();
+    assert!(
+        patient_line.contains("Hz"),
+        "the bridge counted the sender's patient samples: {err}"
+    );
     drop(send); // the sender ends when the bridge is gone
     assert_clean_failure(&["demo", "--tracker", "polaris"], "--source \"polaris\"");
     std::fs::remove_dir_all(&dir).ok();
@@ -276,21 +396,42 @@ fn register_writes_a_calibration_with_fiducial_errors_and_warns_on_collinear_poi
     let tracker = tmp("tracker.csv");
     let out = tmp("calib.toml");
     // A known motion: 90° about Z, then (10, -80, 5) mm; 0.3 mm of error on one tracker point.
-    let pts = [("A", [0.0, 0.0, 0.0]), ("B", [120.0, 0.0, 0.0]), ("C", [0.0, 90.0, 0.0]), ("D", [30.0, 40.0, 70.0]), ("E", [90.0, 80.0, 40.0])];
+    let pts = [
+        ("A", [0.0, 0.0, 0.0]),
+        ("B", [120.0, 0.0, 0.0]),
+        ("C", [0.0, 90.0, 0.0]),
+        ("D", [30.0, 40.0, 70.0]),
+        ("E", [90.0, 80.0, 40.0]),
+    ];
     let mut m = String::from("label,x,y,z\n");
     let mut t = String::from("# tracker, in the reference's frame\n");
     for (i, (l, p)) in pts.iter().enumerate() {
         m += &format!("{l},{},{},{}\n", p[0], p[1], p[2]);
-        let q = [-p[1] + 10.0 + if i == 3 { 0.3 } else { 0.0 }, p[0] - 80.0, p[2] + 5.0];
+        let q = [
+            -p[1] + 10.0 + if i == 3 { 0.3 } else { 0.0 },
+            p[0] - 80.0,
+            p[2] + 5.0,
+        ];
         // Tracker list in another order: paired by label.
         t = format!("{l} {} {} {}\n", q[0], q[1], q[2]) + &t;
     }
     std::fs::write(&model, m).unwrap();
     std::fs::write(&tracker, t).unwrap();
-    let args = ["register", "--model-points", model.to_str().unwrap(), "--tracker-points", tracker.to_str().unwrap(), "--out", out.to_str().unwrap()];
+    let args = [
+        "register",
+        "--model-points",
+        model.to_str().unwrap(),
+        "--tracker-points",
+        tracker.to_str().unwrap(),
+        "--out",
+        out.to_str().unwrap(),
+    ];
     let (ok, text, err) = lungdyn(&args);
     assert!(ok, "{err}");
-    assert!(text.contains("registered 5 fiducials (paired by label)"), "{text}");
+    assert!(
+        text.contains("registered 5 fiducials (paired by label)"),
+        "{text}"
+    );
     let mut json_args = args.to_vec();
     json_args.push("--json");
     let (ok, stdout, err) = lungdyn(&json_args);
@@ -298,11 +439,24 @@ fn register_writes_a_calibration_with_fiducial_errors_and_warns_on_collinear_poi
     let v: serde_json::Value = serde_json::from_str(stdout.trim()).unwrap();
     let fre = v["fre_rms_mm"].as_f64().unwrap();
     assert!(fre > 0.01 && fre < 0.3, "{v}");
-    let worst = v["fre_mm"].as_array().unwrap().iter().max_by(|a, b| a["fre_mm"].as_f64().unwrap().total_cmp(&b["fre_mm"].as_f64().unwrap())).unwrap();
+    let worst = v["fre_mm"]
+        .as_array()
+        .unwrap()
+        .iter()
+        .max_by(|a, b| {
+            a["fre_mm"]
+                .as_f64()
+                .unwrap()
+                .total_cmp(&b["fre_mm"].as_f64().unwrap())
+        })
+        .unwrap();
     assert_eq!(worst["label"], "D");
     let c = tracker_pose::calib::Calibration::load(&out).unwrap();
     let b = c.apply([120.0, 0.0, 0.0]);
-    assert!((b[0] - 10.0).abs() < 0.2 && (b[1] - 40.0).abs() < 0.2 && (b[2] - 5.0).abs() < 0.2, "{b:?}");
+    assert!(
+        (b[0] - 10.0).abs() < 0.2 && (b[1] - 40.0).abs() < 0.2 && (b[2] - 5.0).abs() < 0.2,
+        "{b:?}"
+    );
     // Nearly collinear fiducials: written, with a warning.
     std::fs::write(&model, "0 0 0\n50 0.5 0\n100 0 0\n150 0.2 1\n").unwrap();
     std::fs::write(&tracker, "0 0 0\n50 0.5 0\n100 0 0\n150 0.2 1\n").unwrap();
@@ -322,9 +476,26 @@ fn register_writes_a_calibration_with_fiducial_errors_and_warns_on_collinear_poi
 #[test]
 fn prediction_on_simulated_head_motion_beats_holding_the_sample() {
     let rec = tmp("head.ldtr");
-    let (ok, _, err) = lungdyn(&["tracker", "simulate", "--out", rec.to_str().unwrap(), "--seconds", "20", "--seed", "3"]);
+    let (ok, _, err) = lungdyn(&[
+        "tracker",
+        "simulate",
+        "--out",
+        rec.to_str().unwrap(),
+        "--seconds",
+        "20",
+        "--seed",
+        "3",
+    ]);
     assert!(ok, "{err}");
-    let (ok, stdout, err) = lungdyn(&["tracker", "predict", "--recording", rec.to_str().unwrap(), "--lookahead-ms", "16,33", "--json"]);
+    let (ok, stdout, err) = lungdyn(&[
+        "tracker",
+        "predict",
+        "--recording",
+        rec.to_str().unwrap(),
+        "--lookahead-ms",
+        "16,33",
+        "--json",
+    ]);
     assert!(ok, "{err}");
     let v: serde_json::Value = serde_json::from_str(stdout.trim()).unwrap();
     assert_eq!(v["tool"], "HMD");
@@ -333,7 +504,10 @@ fn prediction_on_simulated_head_motion_beats_holding_the_sample() {
             .as_array()
             .unwrap()
             .iter()
-            .find(|r| r["lookahead_ms"].as_f64() == Some(la) && r["method"].as_str().unwrap().starts_with(method))
+            .find(|r| {
+                r["lookahead_ms"].as_f64() == Some(la)
+                    && r["method"].as_str().unwrap().starts_with(method)
+            })
             .unwrap_or_else(|| panic!("{la} {method}: {v}"))
             .clone()
     };
@@ -341,13 +515,32 @@ fn prediction_on_simulated_head_motion_beats_holding_the_sample() {
         let none = find(la, "none");
         let cv = find(la, "constant velocity");
         let mean = |r: &serde_json::Value, k: &str| r[k]["mean"].as_f64().unwrap();
-        assert!(mean(&cv, "rotation_deg") < mean(&none, "rotation_deg") / 2.0, "{la} ms: {v}");
-        assert!(mean(&cv, "translation_mm") < mean(&none, "translation_mm"), "{la} ms: {v}");
+        assert!(
+            mean(&cv, "rotation_deg") < mean(&none, "rotation_deg") / 2.0,
+            "{la} ms: {v}"
+        );
+        assert!(
+            mean(&cv, "translation_mm") < mean(&none, "translation_mm"),
+            "{la} ms: {v}"
+        );
     }
     let (ok, text, _) = lungdyn(&["tracker", "predict", "--recording", rec.to_str().unwrap()]);
     assert!(ok && text.contains("alpha-beta"), "{text}");
-    assert_clean_failure(&["tracker", "predict", "--recording", rec.to_str().unwrap(), "--tool", "Pointer"], "valid samples of tool Pointer");
-    assert_clean_failure(&["tracker", "simulate", "--out", rec.to_str().unwrap()], "exists");
+    assert_clean_failure(
+        &[
+            "tracker",
+            "predict",
+            "--recording",
+            rec.to_str().unwrap(),
+            "--tool",
+            "Pointer",
+        ],
+        "valid samples of tool Pointer",
+    );
+    assert_clean_failure(
+        &["tracker", "simulate", "--out", rec.to_str().unwrap()],
+        "exists",
+    );
     let _ = std::fs::remove_file(&rec);
 }
 
@@ -356,7 +549,10 @@ fn hmd_check_shows_the_seed_hmd_and_refuses_a_bad_file() {
     let (ok, stdout, err) = lungdyn(&["hmd", "check", "--json"]);
     assert!(ok, "{err}");
     let v: serde_json::Value = serde_json::from_str(stdout.trim()).unwrap();
-    assert_eq!((v["width_px"].as_u64(), v["height_px"].as_u64()), (Some(800), Some(600)));
+    assert_eq!(
+        (v["width_px"].as_u64(), v["height_px"].as_u64()),
+        (Some(800), Some(600))
+    );
     assert!((v["eyes"][0]["horizontal_fov_deg"].as_f64().unwrap() - 70.0).abs() < 1e-9);
     let f = tmp("hmd.toml");
     std::fs::write(&f, "format = 1\n[eyes]\nipd_mm = 0.064\n").unwrap();

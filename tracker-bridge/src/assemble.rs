@@ -75,7 +75,10 @@ impl BridgeConfig {
     pub fn check(&self) -> Result<(), ConfigError> {
         let v = &self.validation;
         if !(self.rate_hz.is_finite() && (1.0..=1000.0).contains(&self.rate_hz)) {
-            return Err(ConfigError(format!("rate {} Hz must be within 1..1000", self.rate_hz)));
+            return Err(ConfigError(format!(
+                "rate {} Hz must be within 1..1000",
+                self.rate_hz
+            )));
         }
         if !(v.quat_tolerance.is_finite() && (0.0..=0.5).contains(&v.quat_tolerance)) {
             return Err(ConfigError(format!(
@@ -149,7 +152,10 @@ impl BridgeConfig {
             }
         }
         if !(c.stale_ms.is_finite() && c.stale_ms >= 0.0 && c.stale_ms <= 1e7) {
-            return Err(ConfigError(format!("stale_ms {} is out of range", c.stale_ms)));
+            return Err(ConfigError(format!(
+                "stale_ms {} is out of range",
+                c.stale_ms
+            )));
         }
         let config = BridgeConfig {
             rate_hz: c.rate_hz,
@@ -320,7 +326,13 @@ impl Assembler {
         out.frame_number = self.frame_number;
         out.stamps = Default::default();
         out.tools = [ToolPose::default(); MAX_TOOLS];
-        for (i, (slot, tool)) in self.slots.iter_mut().zip(out.tools.iter_mut()).enumerate().take(count) {
+        for (i, (slot, tool)) in self
+            .slots
+            .iter_mut()
+            .zip(out.tools.iter_mut())
+            .enumerate()
+            .take(count)
+        {
             if self.config.slots[i].is_none() {
                 continue;
             }
@@ -379,7 +391,12 @@ mod tests {
             device_frame: frame,
             rms_error_mm: Some(0.2),
             tool_id: 7,
-            ..Sample::quat(t, ToolName::new(name).unwrap(), [0.0, 0.0, 0.0, 1.0], [x, 0.0, -1000.0])
+            ..Sample::quat(
+                t,
+                ToolName::new(name).unwrap(),
+                [0.0, 0.0, 0.0, 1.0],
+                [x, 0.0, -1000.0],
+            )
         }
     }
 
@@ -388,9 +405,16 @@ mod tests {
     #[test]
     fn samples_land_in_their_slots_by_name_and_unknown_names_are_counted() {
         let mut a = Assembler::new(config());
-        assert_eq!(a.ingest(&s("hmd", 1, None, 2.0)), Outcome::Accepted, "case-insensitive");
+        assert_eq!(
+            a.ingest(&s("hmd", 1, None, 2.0)),
+            Outcome::Accepted,
+            "case-insensitive"
+        );
         assert_eq!(a.ingest(&s("Patient", 2, None, 1.0)), Outcome::Accepted);
-        assert_eq!(a.ingest(&s("Pointer", 3, None, 9.0)), Outcome::Rejected(Reject::Unmapped));
+        assert_eq!(
+            a.ingest(&s("Pointer", 3, None, 9.0)),
+            Outcome::Rejected(Reject::Unmapped)
+        );
         let mut f = TrackerFrame::default();
         a.frame(5, &mut f);
         assert_eq!(f.tool_count, 2);
@@ -418,10 +442,17 @@ mod tests {
         a.frame(51 * MS, &mut f);
         assert!(!f.tools[0].is_valid());
         assert_eq!(f.tools[0].status, tool_status::STALE);
-        assert_eq!(f.tools[0].pose.translation_mm[0], 1.0, "the last good pose is kept");
+        assert_eq!(
+            f.tools[0].pose.translation_mm[0], 1.0,
+            "the last good pose is kept"
+        );
         a.ingest(&s("Patient", 60 * MS, None, 3.0));
         a.frame(61 * MS, &mut f);
-        assert_eq!(f.tools[0].status, tool_status::VALID, "a new sample heals it");
+        assert_eq!(
+            f.tools[0].status,
+            tool_status::VALID,
+            "a new sample heals it"
+        );
         assert_eq!(a.stats.stale, 1);
     }
 
@@ -450,19 +481,53 @@ mod tests {
         assert_eq!(f.tools[0].status, tool_status::VALID);
         assert_eq!(a.ingest(&s("Patient", 3, Some(15), 1.0)), Outcome::Accepted);
         a.frame(4, &mut f);
-        assert_eq!(f.tools[0].status, tool_status::VALID | tool_status::FRAME_GAP);
+        assert_eq!(
+            f.tools[0].status,
+            tool_status::VALID | tool_status::FRAME_GAP
+        );
         assert_eq!((a.stats.frame_gaps, a.stats.frames_lost), (1, 3));
         assert_eq!(a.ingest(&s("Patient", 5, Some(15), 9.0)), Outcome::Repeat);
         a.frame(6, &mut f);
-        assert_eq!(f.tools[0].status, tool_status::VALID | tool_status::FRAME_REPEAT);
-        assert_eq!(f.tools[0].pose.translation_mm[0], 1.0, "a repeat changes nothing");
+        assert_eq!(
+            f.tools[0].status,
+            tool_status::VALID | tool_status::FRAME_REPEAT
+        );
+        assert_eq!(
+            f.tools[0].pose.translation_mm[0], 1.0,
+            "a repeat changes nothing"
+        );
         a.frame(7, &mut f);
-        assert_eq!(f.tools[0].status, tool_status::VALID, "flags last one frame");
+        assert_eq!(
+            f.tools[0].status,
+            tool_status::VALID,
+            "flags last one frame"
+        );
         // Repeats by timestamp when there is no counter.
-        a.ingest(&Sample { device_time_ns: 100, ..s("HMD", 8, None, 1.0) });
-        assert_eq!(a.ingest(&Sample { device_time_ns: 100, ..s("HMD", 9, None, 1.0) }), Outcome::Repeat);
-        assert_eq!(a.ingest(&Sample { device_time_ns: 90, ..s("HMD", 9, None, 1.0) }), Outcome::Repeat);
-        assert_eq!(a.ingest(&Sample { device_time_ns: 101, ..s("HMD", 9, None, 1.0) }), Outcome::Accepted);
+        a.ingest(&Sample {
+            device_time_ns: 100,
+            ..s("HMD", 8, None, 1.0)
+        });
+        assert_eq!(
+            a.ingest(&Sample {
+                device_time_ns: 100,
+                ..s("HMD", 9, None, 1.0)
+            }),
+            Outcome::Repeat
+        );
+        assert_eq!(
+            a.ingest(&Sample {
+                device_time_ns: 90,
+                ..s("HMD", 9, None, 1.0)
+            }),
+            Outcome::Repeat
+        );
+        assert_eq!(
+            a.ingest(&Sample {
+                device_time_ns: 101,
+                ..s("HMD", 9, None, 1.0)
+            }),
+            Outcome::Accepted
+        );
         assert_eq!(a.stats.frame_repeats, 3);
     }
 

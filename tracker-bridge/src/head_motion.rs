@@ -118,23 +118,46 @@ pub fn session(m: &HeadMotion) -> Vec<(f64, (DQuat, DVec3), (DQuat, DVec3))> {
     let mut rng = Rng(m.seed ^ 0x6C75_6E67_6479_6E00);
     let n = (m.seconds * m.rate_hz).round().max(1.0) as usize;
     // Walking: station angle along the ellipse.
-    let mut station = Moves { segments: Vec::new() };
+    let mut station = Moves {
+        segments: Vec::new(),
+    };
     let (mut t, mut angle) = (0.0, rng.uniform(0.0, TAU));
     while t < m.seconds + 10.0 {
         let hold = rng.uniform(2.0, 6.0);
-        let step = rng.uniform(20f64.to_radians(), 70f64.to_radians()) * if rng.uniform(0.0, 1.0) < 0.5 { -1.0 } else { 1.0 };
+        let step = rng.uniform(20f64.to_radians(), 70f64.to_radians())
+            * if rng.uniform(0.0, 1.0) < 0.5 {
+                -1.0
+            } else {
+                1.0
+            };
         let dur = (step.abs() * 875.0 / 600.0).max(1.0); // arc on a ~875 mm mean radius at 0.6 m/s
         station.segments.push((t + hold, dur, angle, angle + step));
         angle += step;
         t += hold + dur;
     }
     // Gaze shifts: yaw and pitch offsets from the direction of the chest.
-    let (mut yaw, mut pitch) = (Moves { segments: Vec::new() }, Moves { segments: Vec::new() });
+    let (mut yaw, mut pitch) = (
+        Moves {
+            segments: Vec::new(),
+        },
+        Moves {
+            segments: Vec::new(),
+        },
+    );
     let (mut t, mut y0, mut p0) = (0.0, 0.0, 0.0);
     while t < m.seconds + 10.0 {
         t += rng.uniform(0.8, 3.0);
         let far = rng.uniform(0.0, 1.0) < 1.0 / 6.0;
-        let y1 = if far { rng.uniform(40.0, 60.0) * if rng.uniform(0.0, 1.0) < 0.5 { -1.0 } else { 1.0 } } else { rng.uniform(-25.0, 25.0) };
+        let y1 = if far {
+            rng.uniform(40.0, 60.0)
+                * if rng.uniform(0.0, 1.0) < 0.5 {
+                    -1.0
+                } else {
+                    1.0
+                }
+        } else {
+            rng.uniform(-25.0, 25.0)
+        };
         let p1 = rng.uniform(-15.0, 15.0);
         let amplitude = ((y1 - y0) * (y1 - y0) + (p1 - p0) * (p1 - p0)) as f64;
         let dur = 0.2 + 0.008 * amplitude.sqrt();
@@ -145,13 +168,30 @@ pub fn session(m: &HeadMotion) -> Vec<(f64, (DQuat, DVec3), (DQuat, DVec3))> {
     }
     // Tremor and sway: a few sinusoids with random phases.
     let waves: Vec<(f64, f64, f64)> = (0..12)
-        .map(|_| (rng.uniform(0.5, 3.0), rng.uniform(0.05, 0.15), rng.uniform(0.0, TAU)))
+        .map(|_| {
+            (
+                rng.uniform(0.5, 3.0),
+                rng.uniform(0.05, 0.15),
+                rng.uniform(0.0, TAU),
+            )
+        })
         .collect();
-    let sway: Vec<(f64, f64)> = (0..4).map(|_| (rng.uniform(0.1, 0.5), rng.uniform(0.0, TAU))).collect();
-    let chest = DVec3::new(f64::from(STERNUM_MM.x), f64::from(STERNUM_MM.y), f64::from(STERNUM_MM.z) - 80.0);
+    let sway: Vec<(f64, f64)> = (0..4)
+        .map(|_| (rng.uniform(0.1, 0.5), rng.uniform(0.0, TAU)))
+        .collect();
+    let chest = DVec3::new(
+        f64::from(STERNUM_MM.x),
+        f64::from(STERNUM_MM.y),
+        f64::from(STERNUM_MM.z) - 80.0,
+    );
     let supine = {
         let q = crate::synthetic::supine();
-        DQuat::from_xyzw(f64::from(q.x), f64::from(q.y), f64::from(q.z), f64::from(q.w))
+        DQuat::from_xyzw(
+            f64::from(q.x),
+            f64::from(q.y),
+            f64::from(q.z),
+            f64::from(q.w),
+        )
     };
     let noise_rad = m.noise_deg.to_radians();
     (0..n)
@@ -162,7 +202,10 @@ pub fn session(m: &HeadMotion) -> Vec<(f64, (DQuat, DVec3), (DQuat, DVec3))> {
             let forward = DVec3::new(-a.sin(), a.cos() * 0.75, 0.0).normalize_or_zero();
             let side = DVec3::new(forward.y, -forward.x, 0.0);
             let standing = 1.0 - walking;
-            let sway_v: f64 = sway.iter().map(|(f, ph)| (TAU * f * t + ph).sin()).sum::<f64>();
+            let sway_v: f64 = sway
+                .iter()
+                .map(|(f, ph)| (TAU * f * t + ph).sin())
+                .sum::<f64>();
             let mut head = DVec3::new(1000.0 * a.cos(), 750.0 * a.sin(), f64::from(HEAD_HEIGHT_MM))
                 + DVec3::Z * (15.0 * walking * (TAU * 2.0 * t).sin())
                 + side * (10.0 * walking * (TAU * 1.0 * t).sin() + 2.0 * standing * sway_v);
@@ -186,12 +229,19 @@ pub fn session(m: &HeadMotion) -> Vec<(f64, (DQuat, DVec3), (DQuat, DVec3))> {
                 * look
                 * DQuat::from_rotation_x(pitch.at(t).to_radians())
                 * DQuat::from_euler(glam::EulerRot::XYZ, tremor(0), tremor(1), tremor(2));
-            let jitter = |rng: &mut Rng, s: f64| DVec3::new(rng.gauss() * s, rng.gauss() * s, rng.gauss() * s);
+            let jitter = |rng: &mut Rng, s: f64| {
+                DVec3::new(rng.gauss() * s, rng.gauss() * s, rng.gauss() * s)
+            };
             let hq = DQuat::from_scaled_axis(jitter(&mut rng, noise_rad)) * q;
             let hp = head + jitter(&mut rng, m.noise_mm);
             let breath = DVec3::Z * (2.0 * (TAU * 0.25 * t).sin());
             let pq = DQuat::from_scaled_axis(jitter(&mut rng, noise_rad)) * supine;
-            let pp = DVec3::new(f64::from(STERNUM_MM.x), f64::from(STERNUM_MM.y), f64::from(STERNUM_MM.z)) + breath + jitter(&mut rng, m.noise_mm);
+            let pp = DVec3::new(
+                f64::from(STERNUM_MM.x),
+                f64::from(STERNUM_MM.y),
+                f64::from(STERNUM_MM.z),
+            ) + breath
+                + jitter(&mut rng, m.noise_mm);
             (t, (pq.normalize(), pp), (hq.normalize(), hp))
         })
         .collect()
@@ -213,12 +263,19 @@ pub fn config(rate_hz: f64) -> BridgeConfig {
 pub fn write(path: &std::path::Path, m: &HeadMotion) -> Result<usize, RecordError> {
     let poses = session(m);
     let config = config(m.rate_hz);
-    let mut w = RecordWriter::create(path, &config, &format!("lungdyn tracker simulate (head motion, seed {})", m.seed))?;
+    let mut w = RecordWriter::create(
+        path,
+        &config,
+        &format!("lungdyn tracker simulate (head motion, seed {})", m.seed),
+    )?;
     let io = |source| RecordError::Io {
         path: path.to_path_buf(),
         source,
     };
-    let names = [ToolName::new("Patient").expect("static"), ToolName::new("HMD").expect("static")];
+    let names = [
+        ToolName::new("Patient").expect("static"),
+        ToolName::new("HMD").expect("static"),
+    ];
     let t0: u64 = 1_000_000_000;
     for (k, (t, patient, hmd)) in poses.iter().enumerate() {
         let ns = t0 + (t * 1e9).round() as u64;
@@ -263,11 +320,20 @@ mod tests {
             .collect();
         let peak = speeds.iter().cloned().fold(0.0, f64::max);
         let mean = speeds.iter().sum::<f64>() / speeds.len() as f64;
-        assert!((80.0..300.0).contains(&peak), "peak head speed {peak} deg/s");
+        assert!(
+            (80.0..300.0).contains(&peak),
+            "peak head speed {peak} deg/s"
+        );
         assert!((5.0..60.0).contains(&mean), "mean head speed {mean} deg/s");
-        let lin: Vec<f64> = s.windows(2).map(|w| (w[1].2 .1 - w[0].2 .1).length() / dt).collect();
+        let lin: Vec<f64> = s
+            .windows(2)
+            .map(|w| (w[1].2 .1 - w[0].2 .1).length() / dt)
+            .collect();
         let lpeak = lin.iter().cloned().fold(0.0, f64::max);
-        assert!((300.0..1500.0).contains(&lpeak), "peak walking speed {lpeak} mm/s");
+        assert!(
+            (300.0..1500.0).contains(&lpeak),
+            "peak walking speed {lpeak} mm/s"
+        );
         for (_, _, (_, p)) in &s {
             assert!((p.z - 1600.0).abs() < 40.0 && p.truncate().length() > 650.0);
         }

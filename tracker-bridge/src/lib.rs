@@ -192,7 +192,8 @@ impl SourceArgs {
                 Volume::Unbounded
             }
         } else {
-            Volume::parse(&self.volume).map_err(|e| BridgeError::Option(format!("--volume: {e}")))?
+            Volume::parse(&self.volume)
+                .map_err(|e| BridgeError::Option(format!("--volume: {e}")))?
         };
         let mut slots = [None; MAX_TOOLS];
         slots[ipc_types::TOOL_PATIENT] = Some(ToolName::new(&self.patient_tool)?);
@@ -390,9 +391,11 @@ pub fn run(args: &BridgeArgs) -> Result<(), BridgeError> {
         eprintln!("{prefix}: recorded to {}", path.display());
     }
     if let Some(path) = &args.stats_json {
-        std::fs::write(path, format!("{}\n", stats.to_json())).map_err(|source| BridgeError::Stats {
-            path: path.clone(),
-            source,
+        std::fs::write(path, format!("{}\n", stats.to_json())).map_err(|source| {
+            BridgeError::Stats {
+                path: path.clone(),
+                source,
+            }
         })?;
     }
     Ok(())

@@ -51,7 +51,9 @@ impl SimTool {
     }
 
     fn port_status(&self) -> u32 {
-        0x01 | if self.initialized { 0x10 } else { 0 } | if self.enabled { 0x20 } else { 0 } | self.port_bits
+        0x01 | if self.initialized { 0x10 } else { 0 }
+            | if self.enabled { 0x20 } else { 0 }
+            | self.port_bits
     }
 }
 
@@ -177,7 +179,14 @@ impl SimDevice {
                 Self::ascii(&s, out)
             }
             "PHRQ" => {
-                let h = self.tools.iter().map(|t| t.handle).max().unwrap_or(0).saturating_add(1).max(0x0A);
+                let h = self
+                    .tools
+                    .iter()
+                    .map(|t| t.handle)
+                    .max()
+                    .unwrap_or(0)
+                    .saturating_add(1)
+                    .max(0x0A);
                 self.tools.push(SimTool::at(h, [0.0, 0.0, -1000.0]));
                 Self::ascii(&format!("{h:02X}"), out)
             }
@@ -221,9 +230,19 @@ impl SimDevice {
                         let start = out.len();
                         self.tracking_reply(name == "BX", out);
                         // The binary body CRC is the last two bytes; an ASCII CRC the 4 digits before CR.
-                        let i = if name == "BX" { out.len() - 1 } else { out.len() - 2 };
+                        let i = if name == "BX" {
+                            out.len() - 1
+                        } else {
+                            out.len() - 2
+                        };
                         if i >= start {
-                            out[i] = if out[i] == b'0' { b'1' } else if name == "BX" { out[i] ^ 0x5A } else { b'0' };
+                            out[i] = if out[i] == b'0' {
+                                b'1'
+                            } else if name == "BX" {
+                                out[i] ^ 0x5A
+                            } else {
+                                b'0'
+                            };
                         }
                     }
                     None => self.tracking_reply(name == "BX", out),
@@ -241,7 +260,12 @@ impl SimDevice {
                 body.push(t.handle);
                 body.push(if t.missing { 0x02 } else { 0x01 });
                 if !t.missing {
-                    for v in t.quat_wxyz.iter().chain(&t.translation_mm).chain([&t.rms_mm]) {
+                    for v in t
+                        .quat_wxyz
+                        .iter()
+                        .chain(&t.translation_mm)
+                        .chain([&t.rms_mm])
+                    {
                         body.extend_from_slice(&v.to_le_bytes());
                     }
                 }
@@ -259,7 +283,11 @@ impl SimDevice {
         } else {
             let fixed = |v: f32, scale: f32, digits: usize| {
                 let n = (v * scale).round() as i64;
-                format!("{}{:0digits$}", if n < 0 { '-' } else { '+' }, n.unsigned_abs())
+                format!(
+                    "{}{:0digits$}",
+                    if n < 0 { '-' } else { '+' },
+                    n.unsigned_abs()
+                )
             };
             let mut s = format!("{:02X}", tools.len());
             for t in &tools {
@@ -294,14 +322,29 @@ mod tests {
 
     #[test]
     fn the_simulator_speaks_what_the_codec_parses() {
-        let mut dev = SimDevice::new(vec![SimTool::at(0x0A, [10.5, -20.25, -1500.0]), SimTool::at(0x0B, [0.0, 0.0, -900.0])]);
+        let mut dev = SimDevice::new(vec![
+            SimTool::at(0x0A, [10.5, -20.25, -1500.0]),
+            SimTool::at(0x0B, [0.0, 0.0, -900.0]),
+        ]);
         assert_eq!(run(&mut dev, Command::Init), b"OKAYA896\r");
-        assert_eq!(run(&mut dev, Command::Bx(0x0801)), dev_error(0x0C), "no data before TSTART");
-        let need_init = ndi::parse_phsr_reply(&run(&mut dev, Command::Phsr(ndi::PhsrFilter::NeedInit))).unwrap();
+        assert_eq!(
+            run(&mut dev, Command::Bx(0x0801)),
+            dev_error(0x0C),
+            "no data before TSTART"
+        );
+        let need_init =
+            ndi::parse_phsr_reply(&run(&mut dev, Command::Phsr(ndi::PhsrFilter::NeedInit)))
+                .unwrap();
         assert_eq!(need_init.len(), 2);
         for h in [0x0A, 0x0B] {
             run(&mut dev, Command::Pinit(h));
-            run(&mut dev, Command::Pena { handle: h, priority: ndi::TrackingPriority::Dynamic });
+            run(
+                &mut dev,
+                Command::Pena {
+                    handle: h,
+                    priority: ndi::TrackingPriority::Dynamic,
+                },
+            );
         }
         run(&mut dev, Command::Tstart);
         dev.tool_mut(0x0B).unwrap().missing = true;

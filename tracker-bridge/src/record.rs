@@ -81,7 +81,11 @@ const fn crc_table() -> [u32; 256] {
         let mut c = i as u32;
         let mut k = 0;
         while k < 8 {
-            c = if c & 1 != 0 { 0xEDB8_8320 ^ (c >> 1) } else { c >> 1 };
+            c = if c & 1 != 0 {
+                0xEDB8_8320 ^ (c >> 1)
+            } else {
+                c >> 1
+            };
             k += 1;
         }
         t[i] = c;
@@ -399,7 +403,10 @@ impl RecordWriter {
         put_u64(&mut head, 16, created);
         put_u32(&mut head, 24, desc.len() as u32);
         let crc = !crc32_update(
-            crc32_update(crc32_update(0xFFFF_FFFF, &head[..28]), config_text.as_bytes()),
+            crc32_update(
+                crc32_update(0xFFFF_FFFF, &head[..28]),
+                config_text.as_bytes(),
+            ),
             desc,
         );
         put_u32(&mut head, 28, crc);
@@ -543,7 +550,9 @@ impl<R: Read> RecordReader<R> {
             return Err(RecordError::NotARecording { path });
         }
         if n < FIXED_HEADER {
-            return Err(header_err(format!("is {n} bytes, shorter than its {FIXED_HEADER}")));
+            return Err(header_err(format!(
+                "is {n} bytes, shorter than its {FIXED_HEADER}"
+            )));
         }
         let version = u16::from_le_bytes([head[8], head[9]]);
         if version != VERSION {
@@ -571,11 +580,17 @@ impl<R: Read> RecordReader<R> {
         {
             return Err(header_err("ends inside its texts".into()));
         }
-        let crc = !crc32_update(crc32_update(crc32_update(0xFFFF_FFFF, &head[..28]), &config), &desc);
+        let crc = !crc32_update(
+            crc32_update(crc32_update(0xFFFF_FFFF, &head[..28]), &config),
+            &desc,
+        );
         if crc != get_u32(&head, 28) {
-            return Err(header_err("CRC does not match (the file is damaged)".into()));
+            return Err(header_err(
+                "CRC does not match (the file is damaged)".into(),
+            ));
         }
-        let text = std::str::from_utf8(&config).map_err(|_| header_err("configuration is not UTF-8".into()))?;
+        let text = std::str::from_utf8(&config)
+            .map_err(|_| header_err("configuration is not UTF-8".into()))?;
         let config = BridgeConfig::from_toml(text).map_err(|source| RecordError::Config {
             path: path.clone(),
             source,
@@ -649,10 +664,11 @@ impl<R: Read> RecordReader<R> {
         if expected.is_some_and(|e| e != len) {
             return Err(self.corrupt(start, format!("kind {kind} with length {len}")));
         }
-        let got = read_full(&mut self.r, &mut buf[2..2 + len + 4]).map_err(|source| RecordError::Io {
-            path: self.path.clone(),
-            source,
-        })?;
+        let got =
+            read_full(&mut self.r, &mut buf[2..2 + len + 4]).map_err(|source| RecordError::Io {
+                path: self.path.clone(),
+                source,
+            })?;
         if got < len + 4 {
             return Err(truncated(self));
         }
@@ -718,7 +734,12 @@ mod tests {
     fn samples() -> Vec<Sample> {
         let n = ToolName::new("Patient").unwrap();
         vec![
-            Sample::quat(5, n, [0.0, -0.0, f32::from_bits(0x7fc0_0001), 1.0], [1.5, -2.25, 1e-30]),
+            Sample::quat(
+                5,
+                n,
+                [0.0, -0.0, f32::from_bits(0x7fc0_0001), 1.0],
+                [1.5, -2.25, 1e-30],
+            ),
             Sample {
                 device_time_ns: 99,
                 device_frame: Some(u64::MAX),
@@ -776,8 +797,21 @@ mod tests {
             }
             other => panic!("{other:?}"),
         }
-        assert_eq!(r.next_record().unwrap(), Some(Record::Tick { at_ns: 1000, frame_number: 1 }));
-        assert!(matches!(r.next_record().unwrap(), Some(Record::End { samples: 3, ticks: 1, events: 1 })));
+        assert_eq!(
+            r.next_record().unwrap(),
+            Some(Record::Tick {
+                at_ns: 1000,
+                frame_number: 1
+            })
+        );
+        assert!(matches!(
+            r.next_record().unwrap(),
+            Some(Record::End {
+                samples: 3,
+                ticks: 1,
+                events: 1
+            })
+        ));
         assert_eq!(r.next_record().unwrap(), None);
         assert!(matches!(
             RecordWriter::create(&path, &config, "again"),
@@ -831,7 +865,10 @@ mod tests {
             let mut b = good.clone();
             b[i] ^= 0x10;
             assert!(
-                matches!(read_all(&b), Err(RecordError::Corrupt { .. } | RecordError::Truncated { .. })),
+                matches!(
+                    read_all(&b),
+                    Err(RecordError::Corrupt { .. } | RecordError::Truncated { .. })
+                ),
                 "bit flip at {i}"
             );
         }
@@ -840,11 +877,20 @@ mod tests {
         assert!(matches!(read_all(&b), Err(RecordError::Corrupt { .. })));
         let mut b = good.clone();
         b[40] ^= 1;
-        assert!(matches!(read_all(&b), Err(RecordError::Header { .. } | RecordError::Config { .. })));
+        assert!(matches!(
+            read_all(&b),
+            Err(RecordError::Header { .. } | RecordError::Config { .. })
+        ));
         let mut b = good.clone();
         b[8] = 2;
-        assert!(matches!(read_all(&b), Err(RecordError::Version { found: 2, .. })));
-        assert!(matches!(read_all(b"not a recording at all"), Err(RecordError::NotARecording { .. })));
+        assert!(matches!(
+            read_all(&b),
+            Err(RecordError::Version { found: 2, .. })
+        ));
+        assert!(matches!(
+            read_all(b"not a recording at all"),
+            Err(RecordError::NotARecording { .. })
+        ));
         // A header that claims a huge configuration is refused before anything is allocated.
         let mut b = good.clone();
         b[12..16].copy_from_slice(&u32::MAX.to_le_bytes());

@@ -105,7 +105,10 @@ impl Reporter {
             self.last_summary_ns = now_ns;
             let n: u64 = self.hidden.iter().sum();
             if n > 0 {
-                eprintln!("{}: {n} more such messages (counted in the statistics)", self.prefix);
+                eprintln!(
+                    "{}: {n} more such messages (counted in the statistics)",
+                    self.prefix
+                );
                 self.hidden = [0; 16];
             }
         }
@@ -161,7 +164,9 @@ pub fn run_loop(
         }
         let now = pace.now_ns();
         if paced {
-            asm.stats.jitter.saturating_record(now.saturating_sub(next).max(1));
+            asm.stats
+                .jitter
+                .saturating_record(now.saturating_sub(next).max(1));
         }
         let mut record_error: Option<std::io::Error> = None;
         let poll = {
@@ -199,7 +204,8 @@ pub fn run_loop(
                 }
                 let capture = frame.stamps.capture_ns;
                 frame.stamps = Default::default();
-                asm.stats.frames_digest = fnv1a(asm.stats.frames_digest, bytemuck::bytes_of(&frame));
+                asm.stats.frames_digest =
+                    fnv1a(asm.stats.frames_digest, bytemuck::bytes_of(&frame));
                 // The stamps are this run's times: a replayed sample is as old at its tick as it
                 // was when recorded.
                 frame.stamps.capture_ns = now.saturating_sub(at_ns.saturating_sub(capture)).max(1);
@@ -208,10 +214,17 @@ pub fn run_loop(
             }
         }
         if let Some(e) = record_error {
-            let path = recorder.as_ref().map(|r| r.path().display().to_string()).unwrap_or_default();
+            let path = recorder
+                .as_ref()
+                .map(|r| r.path().display().to_string())
+                .unwrap_or_default();
             *recorder = None;
             report(
-                &Event::new(EventKind::Note, 0, format!("recording to {path} failed and stopped: {e}")),
+                &Event::new(
+                    EventKind::Note,
+                    0,
+                    format!("recording to {path} failed and stopped: {e}"),
+                ),
                 now,
             );
         }

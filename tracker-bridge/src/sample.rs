@@ -325,8 +325,12 @@ mod tests {
         assert_eq!(r.as_str(), "pat?ient");
         let long = ToolName::from_bytes_lossy(&[b'a'; 64]);
         assert_eq!(long.as_bytes().len(), NAME_CAP);
-        assert!(ToolName::new("0a").unwrap().matches(&ToolName::new("0A").unwrap()));
-        assert!(!ToolName::new("0A").unwrap().matches(&ToolName::new("0B").unwrap()));
+        assert!(ToolName::new("0a")
+            .unwrap()
+            .matches(&ToolName::new("0A").unwrap()));
+        assert!(!ToolName::new("0A")
+            .unwrap()
+            .matches(&ToolName::new("0B").unwrap()));
     }
 
     #[test]

@@ -345,7 +345,11 @@ impl Stats {
                 t.samples,
                 t.rate_hz(),
                 pose,
-                if t.last_flags == 0 { "ok".to_string() } else { status_names(t.last_flags).join(",") }
+                if t.last_flags == 0 {
+                    "ok".to_string()
+                } else {
+                    status_names(t.last_flags).join(",")
+                }
             );
         }
         s

@@ -294,8 +294,14 @@ mod posture_tests {
         assert!(close(q(Posture::Supine) * Vec3::new(0.0, -1.0, 0.0), down));
         assert!(close(q(Posture::Sitting) * Vec3::new(0.0, 0.0, -1.0), down));
         assert!(close(q(Posture::Prone) * Vec3::new(0.0, 1.0, 0.0), down));
-        assert!(close(q(Posture::LeftLateral) * Vec3::new(1.0, 0.0, 0.0), down));
-        assert!(close(q(Posture::RightLateral) * Vec3::new(-1.0, 0.0, 0.0), down));
+        assert!(close(
+            q(Posture::LeftLateral) * Vec3::new(1.0, 0.0, 0.0),
+            down
+        ));
+        assert!(close(
+            q(Posture::RightLateral) * Vec3::new(-1.0, 0.0, 0.0),
+            down
+        ));
         for (name, p) in Posture::ALL {
             assert_eq!(Posture::parse(name), Some(p));
         }

@@ -91,7 +91,11 @@ impl Volume {
         let nums = |s: &str, n: usize| -> Result<Vec<f32>, String> {
             let v: Vec<f32> = s
                 .split(',')
-                .map(|x| x.trim().parse::<f32>().map_err(|_| format!("{x:?} is not a number")))
+                .map(|x| {
+                    x.trim()
+                        .parse::<f32>()
+                        .map_err(|_| format!("{x:?} is not a number"))
+                })
                 .collect::<Result<_, _>>()?;
             if v.len() != n || !v.iter().all(|x| x.is_finite()) {
                 return Err(format!("expected {n} finite numbers (mm), got {s:?}"));
@@ -118,7 +122,9 @@ impl Volume {
             let v = nums(rest, 6)?;
             let (min_mm, max_mm) = ([v[0], v[1], v[2]], [v[3], v[4], v[5]]);
             if (0..3).any(|i| min_mm[i] >= max_mm[i]) {
-                return Err(format!("box minimum must be below its maximum on every axis: {rest:?}"));
+                return Err(format!(
+                    "box minimum must be below its maximum on every axis: {rest:?}"
+                ));
             }
             return Ok(Volume::Box { min_mm, max_mm });
         }
@@ -202,7 +208,11 @@ impl Validation {
         if !finite {
             flags |= tool_status::NON_FINITE;
         }
-        let quat = if finite { self.rotation(&s.rotation) } else { None };
+        let quat = if finite {
+            self.rotation(&s.rotation)
+        } else {
+            None
+        };
         if finite && quat.is_none() {
             flags |= tool_status::NOT_ROTATION;
         }
@@ -323,14 +333,20 @@ mod tests {
             let out = v.check(&sample(Rotation::Quat([0.0, 0.0, bad, 1.0]), INSIDE));
             assert_eq!(out.reason, Some(Reject::NonFinite));
             assert!(out.pose.is_none());
-            let out = v.check(&sample(Rotation::Quat([0.0, 0.0, 0.0, 1.0]), [0.0, bad, -900.0]));
+            let out = v.check(&sample(
+                Rotation::Quat([0.0, 0.0, 0.0, 1.0]),
+                [0.0, bad, -900.0],
+            ));
             assert_eq!(out.reason, Some(Reject::NonFinite));
             let mut s = sample(Rotation::Quat([0.0, 0.0, 0.0, 1.0]), INSIDE);
             s.rms_error_mm = Some(bad);
             assert_eq!(v.check(&s).reason, Some(Reject::NonFinite));
             let mut m = [[1.0, 0.0, 0.0], [0.0, 1.0, 0.0], [0.0, 0.0, 1.0]];
             m[1][2] = bad;
-            assert_eq!(v.check(&sample(Rotation::Matrix(m), INSIDE)).reason, Some(Reject::NonFinite));
+            assert_eq!(
+                v.check(&sample(Rotation::Matrix(m), INSIDE)).reason,
+                Some(Reject::NonFinite)
+            );
         }
     }
 
@@ -355,14 +371,21 @@ mod tests {
         let r = Mat3::from_quat(Quat::from_euler(glam::EulerRot::XYZ, 0.2, -0.4, 1.1));
         let rows = |m: Mat3| {
             let c = m.to_cols_array_2d();
-            [[c[0][0], c[1][0], c[2][0]], [c[0][1], c[1][1], c[2][1]], [c[0][2], c[1][2], c[2][2]]]
+            [
+                [c[0][0], c[1][0], c[2][0]],
+                [c[0][1], c[1][1], c[2][1]],
+                [c[0][2], c[1][2], c[2][2]],
+            ]
         };
         let good = v.check(&sample(Rotation::Matrix(rows(r)), INSIDE));
         assert_eq!(good.reason, None);
         let q = Quat::from_array(good.pose.unwrap().quat);
         assert!(q.dot(Quat::from_mat3(&r)).abs() > 1.0 - 1e-6);
         // A reflection is orthonormal but has determinant −1.
-        let mirror = v.check(&sample(Rotation::Matrix(rows(r * Mat3::from_diagonal([1.0, 1.0, -1.0].into()))), INSIDE));
+        let mirror = v.check(&sample(
+            Rotation::Matrix(rows(r * Mat3::from_diagonal([1.0, 1.0, -1.0].into()))),
+            INSIDE,
+        ));
         assert_eq!(mirror.reason, Some(Reject::NotRotation));
         // A scaled matrix (a transform with scale) is not orthonormal.
         let scaled = v.check(&sample(Rotation::Matrix(rows(r * 1.01)), INSIDE));
@@ -370,7 +393,10 @@ mod tests {
         // A sheared one neither.
         let mut m = rows(r);
         m[0][1] += 0.01;
-        assert_eq!(v.check(&sample(Rotation::Matrix(m), INSIDE)).reason, Some(Reject::NotRotation));
+        assert_eq!(
+            v.check(&sample(Rotation::Matrix(m), INSIDE)).reason,
+            Some(Reject::NotRotation)
+        );
     }
 
     #[test]
@@ -381,11 +407,17 @@ mod tests {
         assert!(!c.contains([0.0, 0.0, -1500.1]), "beyond the height");
         assert!(!c.contains([0.0, 0.0, 10.0]), "behind the camera");
         assert!(c.contains([499.0, 0.0, -1500.0]));
-        assert!(!c.contains([300.0, 300.0, -1200.0]), "outside the radius at that depth");
+        assert!(
+            !c.contains([300.0, 300.0, -1200.0]),
+            "outside the radius at that depth"
+        );
         assert!(c.contains([0.0, 330.0, -1000.0]));
         assert!(!c.contains([0.0, 340.0, -1000.0]));
         let v = Validation::default();
-        let out = v.check(&sample(Rotation::Quat([0.0, 0.0, 0.0, 1.0]), [0.0, 0.0, 100.0]));
+        let out = v.check(&sample(
+            Rotation::Quat([0.0, 0.0, 0.0, 1.0]),
+            [0.0, 0.0, 100.0],
+        ));
         assert_eq!(out.reason, Some(Reject::OutOfVolume));
     }
 
@@ -420,6 +452,10 @@ mod tests {
         s.device_flags = tool_status::DEVICE_FAULT | tool_status::VALID;
         let f = v.check(&s);
         assert_eq!(f.reason, Some(Reject::DeviceFault));
-        assert_eq!(f.flags & tool_status::VALID, 0, "a device cannot claim VALID");
+        assert_eq!(
+            f.flags & tool_status::VALID,
+            0,
+            "a device cannot claim VALID"
+        );
     }
 }

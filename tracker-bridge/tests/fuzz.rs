@@ -22,7 +22,9 @@ fn valid_messages() -> Vec<Vec<u8>> {
     v2.message_id = 9;
     v2.metadata = vec![igtl::MetaEntry::new("Status", "OK")];
     vec![
-        Message::new("Patient", Timestamp::from_parts(1, 2), Body::Transform(t)).encode().unwrap(),
+        Message::new("Patient", Timestamp::from_parts(1, 2), Body::Transform(t))
+            .encode()
+            .unwrap(),
         v2.encode().unwrap(),
         Message::new(
             "HMD",
@@ -42,7 +44,10 @@ const BX: &str = "c4a539003f43030a010000803f000000000000000000000000000028410000
 const TX: &[u8] = b"020A+10000+00000+00000+00000+001050-002025-150000+012500000003100001234\n0BMISSING0000007100001234\n00006938\r";
 
 fn bx() -> Vec<u8> {
-    (0..BX.len()).step_by(2).map(|i| u8::from_str_radix(&BX[i..i + 2], 16).unwrap()).collect()
+    (0..BX.len())
+        .step_by(2)
+        .map(|i| u8::from_str_radix(&BX[i..i + 2], 16).unwrap())
+        .collect()
 }
 
 proptest! {

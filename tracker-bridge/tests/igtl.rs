@@ -34,9 +34,13 @@ fn transform(name: &str, k: u32) -> Vec<u8> {
         translation_mm: [k as f32, 0.0, -1000.0],
         ..Transform::IDENTITY
     };
-    Message::new(name, Timestamp::from_parts(1_700_000_000, k * 1000), Body::Transform(t))
-        .encode()
-        .unwrap()
+    Message::new(
+        name,
+        Timestamp::from_parts(1_700_000_000, k * 1000),
+        Body::Transform(t),
+    )
+    .encode()
+    .unwrap()
 }
 
 fn qtdata(name: &str, k: u32) -> Vec<u8> {
@@ -55,7 +59,11 @@ fn qtdata(name: &str, k: u32) -> Vec<u8> {
 }
 
 /// Run the loop until `done()` or `limit`.
-fn run(source: &mut dyn Source, limit: Duration, mut done: impl FnMut() -> bool) -> (Vec<TrackerFrame>, Assembler) {
+fn run(
+    source: &mut dyn Source,
+    limit: Duration,
+    mut done: impl FnMut() -> bool,
+) -> (Vec<TrackerFrame>, Assembler) {
     let mut asm = Assembler::new(config());
     let mut out = Recorder::new(&Monotonic);
     let start = Instant::now();
@@ -103,7 +111,8 @@ fn a_server_takes_several_senders_and_survives_every_kind_of_bad_input() {
         });
         // Garbage: not OpenIGTLink (header version 0x4745 "GE"): the connection is dropped.
         let mut g = TcpStream::connect(addr).unwrap();
-        g.write_all(b"GET / HTTP/1.1\r\nHost: x\r\n\r\nand some more bytes to fill a header....").unwrap();
+        g.write_all(b"GET / HTTP/1.1\r\nHost: x\r\n\r\nand some more bytes to fill a header....")
+            .unwrap();
         // An oversized body announced: dropped before anything is allocated for it.
         let mut o = TcpStream::connect(addr).unwrap();
         let mut head = transform("Patient", 1)[..58].to_vec();
@@ -129,7 +138,9 @@ fn a_server_takes_several_senders_and_survives_every_kind_of_bad_input() {
         hmd.join().unwrap();
         std::thread::sleep(Duration::from_millis(200));
     });
-    let (frames, asm) = run(&mut server, Duration::from_secs(15), || senders.is_finished());
+    let (frames, asm) = run(&mut server, Duration::from_secs(15), || {
+        senders.is_finished()
+    });
     let s = &asm.stats;
     eprintln!("{}", s.text());
     assert_eq!(s.rejected_for(Reject::Crc), 1);
@@ -139,24 +150,45 @@ fn a_server_takes_several_senders_and_survives_every_kind_of_bad_input() {
     assert_eq!(s.rejected_for(Reject::Unmapped), 1);
     assert_eq!(s.connects, 6);
     assert!(s.disconnects >= 3, "garbage, oversized, half message");
-    let patient = s.tools.iter().find(|t| t.name.as_str() == "Patient").unwrap();
+    let patient = s
+        .tools
+        .iter()
+        .find(|t| t.name.as_str() == "Patient")
+        .unwrap();
     let hmd = s.tools.iter().find(|t| t.name.as_str() == "HMD").unwrap();
-    assert_eq!((patient.samples, patient.accepted), (40, 40), "the bad ones never became samples");
+    assert_eq!(
+        (patient.samples, patient.accepted),
+        (40, 40),
+        "the bad ones never became samples"
+    );
     assert_eq!((hmd.samples, hmd.accepted), (40, 40));
-    assert_eq!(patient.last_pose.unwrap().translation_mm, [39.0, 0.0, -1000.0]);
+    assert_eq!(
+        patient.last_pose.unwrap().translation_mm,
+        [39.0, 0.0, -1000.0]
+    );
     assert_eq!(hmd.last_pose.unwrap().translation_mm, [0.0, 39.0, -900.0]);
     // Every published pose is one that was sent.
     for f in frames.iter().filter(|f| f.tools[TOOL_PATIENT].is_valid()) {
         let x = f.tools[TOOL_PATIENT].pose.translation_mm;
         assert!(x[0].fract() == 0.0 && (0.0..40.0).contains(&x[0]) && x[1..] == [0.0, -1000.0]);
     }
-    assert!(frames.iter().filter(|f| f.tools[TOOL_HMD].is_valid()).count() > 20);
+    assert!(
+        frames
+            .iter()
+            .filter(|f| f.tools[TOOL_HMD].is_valid())
+            .count()
+            > 20
+    );
 }
 
 #[test]
 fn a_client_reconnects_with_backoff_when_its_server_goes_and_comes_back() {
     // Find a free port, then let the client try it before anything listens.
-    let port = TcpListener::bind("127.0.0.1:0").unwrap().local_addr().unwrap().port();
+    let port = TcpListener::bind("127.0.0.1:0")
+        .unwrap()
+        .local_addr()
+        .unwrap()
+        .port();
     let mut client = IgtlClient::start("127.0.0.1".into(), port, &SourceOptions::default());
     let server = std::thread::spawn(move || {
         std::thread::sleep(Duration::from_millis(500));
@@ -173,18 +205,32 @@ fn a_client_reconnects_with_backoff_when_its_server_goes_and_comes_back() {
         }
         std::thread::sleep(Duration::from_millis(300));
     });
-    let (frames, asm) = run(&mut client, Duration::from_secs(15), || server.is_finished());
+    let (frames, asm) = run(&mut client, Duration::from_secs(15), || {
+        server.is_finished()
+    });
     let s = &asm.stats;
     eprintln!("{}", s.text());
-    assert!(s.retries >= 2, "tried while nothing listened: {}", s.retries);
+    assert!(
+        s.retries >= 2,
+        "tried while nothing listened: {}",
+        s.retries
+    );
     assert!(s.connects >= 2 && s.disconnects >= 2);
-    let patient = s.tools.iter().find(|t| t.name.as_str() == "Patient").unwrap();
+    let patient = s
+        .tools
+        .iter()
+        .find(|t| t.name.as_str() == "Patient")
+        .unwrap();
     assert_eq!(patient.samples, 40);
     assert_eq!(patient.last_pose.unwrap().translation_mm[0], 119.0);
     // Between the rounds the tool went stale, and came back valid.
-    let stale = frames.iter().position(|f| f.tools[TOOL_PATIENT].status & tool_status::STALE != 0);
+    let stale = frames
+        .iter()
+        .position(|f| f.tools[TOOL_PATIENT].status & tool_status::STALE != 0);
     assert!(stale.is_some());
-    assert!(frames[stale.unwrap()..].iter().any(|f| f.tools[TOOL_PATIENT].is_valid()));
+    assert!(frames[stale.unwrap()..]
+        .iter()
+        .any(|f| f.tools[TOOL_PATIENT].is_valid()));
 }
 
 #[test]
@@ -198,9 +244,17 @@ fn a_slow_sender_shows_as_stale_between_its_samples() {
             std::thread::sleep(Duration::from_millis(150)); // 6.7 Hz against a 50 ms bound
         }
     });
-    let (frames, asm) = run(&mut server, Duration::from_secs(10), || sender.is_finished());
-    let stale = frames.iter().filter(|f| f.tools[TOOL_PATIENT].status & tool_status::STALE != 0).count();
-    let valid = frames.iter().filter(|f| f.tools[TOOL_PATIENT].is_valid()).count();
+    let (frames, asm) = run(&mut server, Duration::from_secs(10), || {
+        sender.is_finished()
+    });
+    let stale = frames
+        .iter()
+        .filter(|f| f.tools[TOOL_PATIENT].status & tool_status::STALE != 0)
+        .count();
+    let valid = frames
+        .iter()
+        .filter(|f| f.tools[TOOL_PATIENT].is_valid())
+        .count();
     assert!(stale > valid, "stale {stale}, valid {valid}");
     assert!(valid >= 8, "each sample is fresh for up to 50 ms: {valid}");
     assert_eq!(asm.stats.stale as usize, stale);

@@ -24,7 +24,10 @@ const PATIENT_AT: [f32; 3] = [10.5, -20.25, -1000.0];
 const HMD_AT: [f32; 3] = [-50.0, 30.0, -900.0];
 
 fn device() -> Arc<Mutex<SimDevice>> {
-    Arc::new(Mutex::new(SimDevice::new(vec![SimTool::at(0x0A, PATIENT_AT), SimTool::at(0x0B, HMD_AT)])))
+    Arc::new(Mutex::new(SimDevice::new(vec![
+        SimTool::at(0x0A, PATIENT_AT),
+        SimTool::at(0x0B, HMD_AT),
+    ])))
 }
 
 fn config() -> BridgeConfig {
@@ -43,7 +46,11 @@ fn config() -> BridgeConfig {
 
 /// Run the loop on `source` in real time, calling `control(polls answered)` each tick until it
 /// says stop (or 20 s pass).
-fn run(source: &mut dyn Source, dev: &Arc<Mutex<SimDevice>>, mut control: impl FnMut(&mut SimDevice, u32) -> bool) -> (Vec<TrackerFrame>, Assembler) {
+fn run(
+    source: &mut dyn Source,
+    dev: &Arc<Mutex<SimDevice>>,
+    mut control: impl FnMut(&mut SimDevice, u32) -> bool,
+) -> (Vec<TrackerFrame>, Assembler) {
     let mut asm = Assembler::new(config());
     let mut out = Recorder::new(&Monotonic);
     let start = Instant::now();
@@ -54,7 +61,10 @@ fn run(source: &mut dyn Source, dev: &Arc<Mutex<SimDevice>>, mut control: impl F
         &mut None,
         &RealTime,
         &mut |_| {
-            assert!(start.elapsed() < Duration::from_secs(20), "the session did not get through its script");
+            assert!(
+                start.elapsed() < Duration::from_secs(20),
+                "the session did not get through its script"
+            );
             let mut d = dev.lock().unwrap();
             let polls = d.frame - 1000;
             control(&mut d, polls)
@@ -66,7 +76,10 @@ fn run(source: &mut dyn Source, dev: &Arc<Mutex<SimDevice>>, mut control: impl F
 }
 
 fn count(frames: &[TrackerFrame], slot: usize, bit: u32) -> usize {
-    frames.iter().filter(|f| f.tools[slot].status & bit != 0).count()
+    frames
+        .iter()
+        .filter(|f| f.tools[slot].status & bit != 0)
+        .count()
 }
 
 fn serve_pty(master: libc::c_int, dev: Arc<Mutex<SimDevice>>, stop: Arc<AtomicBool>) {
@@ -105,14 +118,26 @@ fn a_serial_polaris_on_a_pty_is_initialised_polled_and_its_faults_flagged() {
     let (mut master, mut slave) = (0, 0);
     // SAFETY: openpty fills two fds; the name buffers are not used.
     let rc = unsafe {
-        libc::openpty(&mut master, &mut slave, std::ptr::null_mut(), std::ptr::null(), std::ptr::null())
+        libc::openpty(
+            &mut master,
+            &mut slave,
+            std::ptr::null_mut(),
+            std::ptr::null(),
+            std::ptr::null(),
+        )
     };
     assert_eq!(rc, 0, "openpty");
     let mut name = [0 as libc::c_char; 128];
     // SAFETY: ttyname_r writes a NUL-terminated path into our buffer.
-    assert_eq!(unsafe { libc::ttyname_r(slave, name.as_mut_ptr(), name.len()) }, 0);
+    assert_eq!(
+        unsafe { libc::ttyname_r(slave, name.as_mut_ptr(), name.len()) },
+        0
+    );
     // SAFETY: NUL-terminated by ttyname_r.
-    let path = unsafe { std::ffi::CStr::from_ptr(name.as_ptr()) }.to_str().unwrap().to_string();
+    let path = unsafe { std::ffi::CStr::from_ptr(name.as_ptr()) }
+        .to_str()
+        .unwrap()
+        .to_string();
 
     let dev = device();
     let stop = Arc::new(AtomicBool::new(false));
@@ -151,7 +176,19 @@ fn a_serial_polaris_on_a_pty_is_initialised_polled_and_its_faults_flagged() {
     let first: Vec<&str> = log.iter().take(11).copied().collect();
     assert_eq!(
         first,
-        ["INIT:", "COMM:50000", "PHSR:01", "PHSR:02", "PINIT:0A", "PINIT:0B", "PHSR:02", "PHSR:03", "PENA:0AD", "PENA:0BD", "PHSR:04"],
+        [
+            "INIT:",
+            "COMM:50000",
+            "PHSR:01",
+            "PHSR:02",
+            "PINIT:0A",
+            "PINIT:0B",
+            "PHSR:02",
+            "PHSR:03",
+            "PENA:0AD",
+            "PENA:0BD",
+            "PHSR:04"
+        ],
         "set-up sequence"
     );
     assert!(log.contains(&"TSTART:") && log.contains(&"BX:0801"));
@@ -170,7 +207,12 @@ fn a_serial_polaris_on_a_pty_is_initialised_polled_and_its_faults_flagged() {
         .iter()
         .filter(|f| f.tools[TOOL_PATIENT].is_valid() && f.tools[TOOL_HMD].is_valid())
         .collect();
-    assert!(good.len() > 40, "{} good frames of {}", good.len(), frames.len());
+    assert!(
+        good.len() > 40,
+        "{} good frames of {}",
+        good.len(),
+        frames.len()
+    );
     for f in good {
         assert_eq!(f.tools[TOOL_PATIENT].pose.translation_mm, PATIENT_AT);
         assert_eq!(f.tools[TOOL_HMD].pose.translation_mm, HMD_AT);
@@ -235,13 +277,30 @@ fn a_vega_over_tcp_that_only_knows_tx_and_drops_the_link_is_reconnected() {
     assert_eq!(s.disconnects, 1, "{}", s.text());
     let d = dev.lock().unwrap();
     assert!(d.commands.iter().any(|c| c == "TX:0801"), "fell back to TX");
-    assert!(!d.commands.iter().any(|c| c.starts_with("COMM")), "no baud change over TCP");
-    let valid_after = frames.iter().rev().take(20).filter(|f| f.tools[TOOL_PATIENT].is_valid()).count();
+    assert!(
+        !d.commands.iter().any(|c| c.starts_with("COMM")),
+        "no baud change over TCP"
+    );
+    let valid_after = frames
+        .iter()
+        .rev()
+        .take(20)
+        .filter(|f| f.tools[TOOL_PATIENT].is_valid())
+        .count();
     assert!(valid_after > 10, "tracking resumed after the reconnect");
     // TX carries 2 decimals of mm: the pose is the simulated one to that precision.
-    let p = frames.iter().rev().find(|f| f.tools[TOOL_PATIENT].is_valid()).unwrap().tools[TOOL_PATIENT].pose;
+    let p = frames
+        .iter()
+        .rev()
+        .find(|f| f.tools[TOOL_PATIENT].is_valid())
+        .unwrap()
+        .tools[TOOL_PATIENT]
+        .pose;
     assert_eq!(p.translation_mm, PATIENT_AT);
-    assert!(count(&frames, TOOL_PATIENT, tool_status::STALE) > 0, "the outage showed as stale");
+    assert!(
+        count(&frames, TOOL_PATIENT, tool_status::STALE) > 0,
+        "the outage showed as stale"
+    );
 }
 
 /// The research note's BX vector (handles 0A valid, 0B missing and out of volume, 0C disabled):
@@ -249,18 +308,33 @@ fn a_vega_over_tcp_that_only_knows_tx_and_drops_the_link_is_reconnected() {
 #[test]
 fn the_bx_test_vector_maps_to_samples_with_device_flags() {
     let hex = "c4a539003f43030a010000803f000000000000000000000000000028410000a2c10080bbc40000003e31000000341200000b0271000000341200000c040000ab69";
-    let bytes: Vec<u8> = (0..hex.len()).step_by(2).map(|i| u8::from_str_radix(&hex[i..i + 2], 16).unwrap()).collect();
+    let bytes: Vec<u8> = (0..hex.len())
+        .step_by(2)
+        .map(|i| u8::from_str_radix(&hex[i..i + 2], 16).unwrap())
+        .collect();
     let r = ndi::parse_bx_reply(&bytes, 0x0801).unwrap();
     let name = ToolName::new("x").unwrap();
     let a = sample_of(&r.tools[0], name, 5);
     assert_eq!(a.translation_mm, [10.5, -20.25, -1500.0]);
-    assert_eq!(a.rotation, tracker_bridge::sample::Rotation::Quat([0.0, 0.0, 0.0, 1.0]));
-    assert_eq!((a.rms_error_mm, a.device_frame, a.device_flags), (Some(0.125), Some(0x1234), 0));
+    assert_eq!(
+        a.rotation,
+        tracker_bridge::sample::Rotation::Quat([0.0, 0.0, 0.0, 1.0])
+    );
+    assert_eq!(
+        (a.rms_error_mm, a.device_frame, a.device_flags),
+        (Some(0.125), Some(0x1234), 0)
+    );
     let b = sample_of(&r.tools[1], name, 5);
     assert_eq!(r.tools[1].status, HandleStatus::Missing);
-    assert_eq!(b.device_flags, tool_status::MISSING | tool_status::OUT_OF_VOLUME);
+    assert_eq!(
+        b.device_flags,
+        tool_status::MISSING | tool_status::OUT_OF_VOLUME
+    );
     let c = sample_of(&r.tools[2], name, 5);
-    assert_eq!((c.device_flags, c.device_frame), (tool_status::MISSING, None));
+    assert_eq!(
+        (c.device_flags, c.device_frame),
+        (tool_status::MISSING, None)
+    );
     let v = Validation::default();
     assert_eq!(v.check(&a).reason, None, "inside the seed's cone at 1.5 m");
     assert_eq!(v.check(&b).reason, Some(Reject::Missing));

@@ -118,12 +118,20 @@ fn floats<const K: usize>(v: &serde_json::Value) -> [f32; K] {
 }
 
 /// Run the loop on `source`, recording, until the Python peer has printed `done` and exited.
-fn exchange(source: &mut dyn Source, mut child: Child, tag: &str) -> (Vec<Sent>, Vec<Sample>, Assembler) {
+fn exchange(
+    source: &mut dyn Source,
+    mut child: Child,
+    tag: &str,
+) -> (Vec<Sent>, Vec<Sample>, Assembler) {
     let stdout = child.stdout.take().unwrap();
     let reader = std::thread::spawn(move || {
-        BufReader::new(stdout).lines().map_while(Result::ok).collect::<Vec<String>>()
+        BufReader::new(stdout)
+            .lines()
+            .map_while(Result::ok)
+            .collect::<Vec<String>>()
     });
-    let path = std::env::temp_dir().join(format!("lungdyn-pyigtl-{}-{tag}.ldtr", std::process::id()));
+    let path =
+        std::env::temp_dir().join(format!("lungdyn-pyigtl-{}-{tag}.ldtr", std::process::id()));
     let _ = std::fs::remove_file(&path);
     let config = BridgeConfig::default();
     let mut recorder = Some(RecordWriter::create(&path, &config, &source.describe()).unwrap());
@@ -138,7 +146,10 @@ fn exchange(source: &mut dyn Source, mut child: Child, tag: &str) -> (Vec<Sent>,
         &mut recorder,
         &RealTime,
         &mut |_| {
-            assert!(start.elapsed() < Duration::from_secs(60), "pyigtl exchange took too long");
+            assert!(
+                start.elapsed() < Duration::from_secs(60),
+                "pyigtl exchange took too long"
+            );
             if exited_at.is_none() && child.try_wait().unwrap().is_some() {
                 exited_at = Some(Instant::now());
             }
@@ -176,20 +187,32 @@ fn exchange(source: &mut dyn Source, mut child: Child, tag: &str) -> (Vec<Sent>,
 
 fn check_exact(sent: &[Sent], got: &[Sample]) {
     assert_eq!(sent.len(), N);
-    let patient: Vec<&Sample> = got.iter().filter(|s| s.name.as_str() == "Patient").collect();
+    let patient: Vec<&Sample> = got
+        .iter()
+        .filter(|s| s.name.as_str() == "Patient")
+        .collect();
     let hmd: Vec<&Sample> = got.iter().filter(|s| s.name.as_str() == "HMD").collect();
     assert_eq!(patient.len(), N, "every TRANSFORM arrived once");
     assert_eq!(hmd.len(), N, "every POSITION arrived once");
     for (k, (s, (p, h))) in sent.iter().zip(patient.iter().zip(&hmd)).enumerate() {
         // The matrix in the rows Python built it in: rotation 3x3 and translation column.
-        let Rotation::Matrix(r) = p.rotation else { panic!("TRANSFORM {k} is not a matrix") };
+        let Rotation::Matrix(r) = p.rotation else {
+            panic!("TRANSFORM {k} is not a matrix")
+        };
         for row in 0..3 {
-            assert_eq!(r[row], [s.m[4 * row], s.m[4 * row + 1], s.m[4 * row + 2]], "TRANSFORM {k} row {row}");
+            assert_eq!(
+                r[row],
+                [s.m[4 * row], s.m[4 * row + 1], s.m[4 * row + 2]],
+                "TRANSFORM {k} row {row}"
+            );
             assert_eq!(p.translation_mm[row], s.m[4 * row + 3], "TRANSFORM {k}");
         }
         assert_eq!(h.translation_mm, s.pos, "POSITION {k}");
         assert_eq!(h.rotation, Rotation::Quat(s.quat), "POSITION {k}");
-        assert!(p.device_time_ns > 0 && h.device_time_ns > 0, "timestamps carried");
+        assert!(
+            p.device_time_ns > 0 && h.device_time_ns > 0,
+            "timestamps carried"
+        );
     }
     // In order: receive times and device times never go backwards per tool.
     for w in patient.windows(2) {
@@ -210,16 +233,37 @@ fn a_pyigtl_sender_streams_to_the_bridge_server_exactly_and_a_bad_crc_is_counted
         .unwrap();
     let (sent, got, asm) = exchange(&mut server, child, "sender");
     check_exact(&sent, &got);
-    assert_eq!(asm.stats.rejected_for(Reject::Crc), 1, "{}", asm.stats.text());
-    assert!(got.iter().any(|s| s.name.as_str() == "After"), "the stream went on after the bad CRC");
-    let hmd = asm.stats.tools.iter().find(|t| t.name.as_str() == "HMD").unwrap();
-    assert!((40.0..80.0).contains(&hmd.rate_hz()), "about 60 Hz: {}", hmd.rate_hz());
+    assert_eq!(
+        asm.stats.rejected_for(Reject::Crc),
+        1,
+        "{}",
+        asm.stats.text()
+    );
+    assert!(
+        got.iter().any(|s| s.name.as_str() == "After"),
+        "the stream went on after the bad CRC"
+    );
+    let hmd = asm
+        .stats
+        .tools
+        .iter()
+        .find(|t| t.name.as_str() == "HMD")
+        .unwrap();
+    assert!(
+        (40.0..80.0).contains(&hmd.rate_hz()),
+        "about 60 Hz: {}",
+        hmd.rate_hz()
+    );
 }
 
 #[test]
 fn the_bridge_as_client_of_a_pyigtl_server_receives_every_message_exactly() {
     let Some(script) = python() else { return };
-    let port = std::net::TcpListener::bind("127.0.0.1:0").unwrap().local_addr().unwrap().port();
+    let port = std::net::TcpListener::bind("127.0.0.1:0")
+        .unwrap()
+        .local_addr()
+        .unwrap()
+        .port();
     let child = Command::new("python3")
         .arg(&script)
         .args(["server", &port.to_string(), &N.to_string()])

@@ -54,7 +54,12 @@ fn sample(name: &str, t: u64, frame: u64, x: f32) -> Input {
     Input::Sample(Sample {
         device_frame: Some(frame),
         rms_error_mm: Some(0.2),
-        ..Sample::quat(t, ToolName::new(name).unwrap(), [0.0, 0.0, 0.6, 0.8], [x, 5.0, -1000.0])
+        ..Sample::quat(
+            t,
+            ToolName::new(name).unwrap(),
+            [0.0, 0.0, 0.6, 0.8],
+            [x, 5.0, -1000.0],
+        )
     })
 }
 
@@ -87,7 +92,10 @@ fn script(start: u64) -> Vec<(u64, Input)> {
         }
         if k == 100 {
             s.push((t, sample("Pointer", t, k, 0.0)));
-            s.push((t, Input::Event(Event::rejected(Reject::Crc, 1, "bad CRC from 127.0.0.1"))));
+            s.push((
+                t,
+                Input::Event(Event::rejected(Reject::Crc, 1, "bad CRC from 127.0.0.1")),
+            ));
         }
     }
     s
@@ -100,10 +108,17 @@ fn tmp(name: &str) -> std::path::PathBuf {
 }
 
 /// Run `source` on the fake clock for `ticks` ticks (or to its end); the frames and the assembler.
-fn run(source: &mut dyn Source, config: BridgeConfig, clock: &FakeClock, ticks: u64, record: Option<&std::path::Path>) -> (Vec<TrackerFrame>, Assembler) {
+fn run(
+    source: &mut dyn Source,
+    config: BridgeConfig,
+    clock: &FakeClock,
+    ticks: u64,
+    record: Option<&std::path::Path>,
+) -> (Vec<TrackerFrame>, Assembler) {
     let mut asm = Assembler::new(config.clone());
     let mut out = Recorder::new(clock);
-    let mut recorder = record.map(|p| RecordWriter::create(p, &config, &source.describe()).unwrap());
+    let mut recorder =
+        record.map(|p| RecordWriter::create(p, &config, &source.describe()).unwrap());
     let mut n = 0;
     let ended = run_loop(
         source,
@@ -152,11 +167,17 @@ fn the_synthetic_source_gives_the_frames_of_the_bridge_before_sources() {
     for f in &frames {
         let expected = old.frame(f.frame_number, f.stamps.capture_ns);
         assert_eq!(f.tools, expected.tools, "frame {}", f.frame_number);
-        assert_eq!((f.tool_count, f.layout_version), (2, expected.layout_version));
+        assert_eq!(
+            (f.tool_count, f.layout_version),
+            (2, expected.layout_version)
+        );
         assert!(f.stamps.bridge_publish_ns >= f.stamps.capture_ns);
     }
     assert_eq!(asm.stats.rejected_total(), 0);
-    assert_eq!(asm.stats.frame_gaps + asm.stats.frame_repeats + asm.stats.stale, 0);
+    assert_eq!(
+        asm.stats.frame_gaps + asm.stats.frame_repeats + asm.stats.stale,
+        0
+    );
     // On the fake clock every tick is exactly on its slot.
     assert_eq!(asm.stats.jitter_us(1.0), 0.001);
 }
@@ -182,13 +203,23 @@ fn a_recorded_session_replays_into_the_same_frames_bit_for_bit() {
     assert_eq!(s.rejected_for(Reject::Crc), 1);
     // Gaps: the silent quarter second (frames 30..=45 never came), frame 70 (its slot carried a
     // repeat of 69) and the jump 79 → 85.
-    assert_eq!((s.frame_repeats, s.frame_gaps, s.frames_lost), (1, 3, 16 + 1 + 5));
+    assert_eq!(
+        (s.frame_repeats, s.frame_gaps, s.frames_lost),
+        (1, 3, 16 + 1 + 5)
+    );
     assert!(s.stale > 5, "the silent quarter second: {}", s.stale);
-    let status = |bit| live_frames.iter().filter(|f| f.tools[TOOL_PATIENT].status & bit != 0).count();
+    let status = |bit| {
+        live_frames
+            .iter()
+            .filter(|f| f.tools[TOOL_PATIENT].status & bit != 0)
+            .count()
+    };
     assert_eq!(status(tool_status::NON_FINITE), 1);
     assert!(status(tool_status::STALE) > 5);
     assert_eq!(status(tool_status::FRAME_GAP), 3);
-    assert!(live_frames.iter().all(|f| f.tools.iter().all(|t| t.pose.is_finite())));
+    assert!(live_frames
+        .iter()
+        .all(|f| f.tools.iter().all(|t| t.pose.is_finite())));
     // A frame with a rejected patient sample keeps the previous good pose and is not valid.
     let nan_frame = live_frames
         .iter()
@@ -206,7 +237,12 @@ fn a_recorded_session_replays_into_the_same_frames_bit_for_bit() {
         assert_eq!(frames.len(), live_frames.len(), "paced {paced}");
         let (a, b) = (without_stamps(&live_frames), without_stamps(&frames));
         for (x, y) in a.iter().zip(&b) {
-            assert_eq!(bytemuck::bytes_of(x), bytemuck::bytes_of(y), "frame {}", x.frame_number);
+            assert_eq!(
+                bytemuck::bytes_of(x),
+                bytemuck::bytes_of(y),
+                "frame {}",
+                x.frame_number
+            );
         }
         assert_eq!(asm.stats.frames_digest, live_asm.stats.frames_digest);
         assert_eq!(asm.stats.rejected, live_asm.stats.rejected);
@@ -241,7 +277,10 @@ fn a_sender_that_falls_silent_goes_stale_within_the_bound() {
         let age = f.stamps.bridge_publish_ns as i64 - last_sample as i64;
         let valid = f.tools[TOOL_PATIENT].is_valid();
         if f.stamps.bridge_publish_ns > last_sample + 50 * MS {
-            assert!(!valid && f.tools[TOOL_PATIENT].status & tool_status::STALE != 0, "age {age}");
+            assert!(
+                !valid && f.tools[TOOL_PATIENT].status & tool_status::STALE != 0,
+                "age {age}"
+            );
         } else {
             assert!(valid, "frame {} age {}", f.frame_number, age);
         }

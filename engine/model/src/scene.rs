@@ -577,10 +577,12 @@ impl Scene {
     /// wrong answer. Pneumothorax scenes run.
     pub fn refuse_unsimulated_disease(&self, origin: &str) -> Result<(), SceneError> {
         match &self.disease {
-            Some(d) if d.kind == crate::scene_disease::DiseaseKind::Tumour => Err(SceneError::Invalid {
-                path: origin.to_string(),
-                source: SceneValueError::DiseaseNotSimulated(d.kind.name()),
-            }),
+            Some(d) if d.kind == crate::scene_disease::DiseaseKind::Tumour => {
+                Err(SceneError::Invalid {
+                    path: origin.to_string(),
+                    source: SceneValueError::DiseaseNotSimulated(d.kind.name()),
+                })
+            }
             _ => Ok(()),
         }
     }

@@ -128,7 +128,12 @@ pub struct LungRecipe {
     /// The lung's state.
     pub state: LungState,
     /// Its PV cycle's inputs (`None` when held).
-    pub pv: Option<(PhaseConstants, PhaseConstants, lung_model::pv::Boundary, lung_model::pv::Timing)>,
+    pub pv: Option<(
+        PhaseConstants,
+        PhaseConstants,
+        lung_model::pv::Boundary,
+        lung_model::pv::Timing,
+    )>,
 }
 
 /// Everything needed to build one prepared cycle (the expensive part: the PV cycles).
@@ -150,12 +155,14 @@ impl Recipe {
         let mut lungs = Vec::with_capacity(self.lungs.len());
         for l in self.lungs {
             let breathing = match l.pv {
-                Some((i, e, b, t)) => Some(Breathing::from_constants(&i, &e, b, &t).map_err(
-                    |source| DiseaseRunError::Breathing {
-                        side: l.state.side.name(),
-                        source,
-                    },
-                )?),
+                Some((i, e, b, t)) => {
+                    Some(Breathing::from_constants(&i, &e, b, &t).map_err(|source| {
+                        DiseaseRunError::Breathing {
+                            side: l.state.side.name(),
+                            source,
+                        }
+                    })?)
+                }
                 None => None,
             };
             lungs.push(LungSetup {
@@ -186,13 +193,12 @@ impl DiseaseRun {
                 let plan: ClosedPlan = c.plan(normal, baselines)?;
                 let mut lungs = Vec::new();
                 for l in &plan.lungs {
-                    let breathing = l
-                        .breathing(&plan.timing)
-                        .transpose()
-                        .map_err(|source| DiseaseRunError::Breathing {
+                    let breathing = l.breathing(&plan.timing).transpose().map_err(|source| {
+                        DiseaseRunError::Breathing {
                             side: l.side.name(),
                             source,
-                        })?;
+                        }
+                    })?;
                     lungs.push(LungSetup {
                         side: l.side,
                         state: l.state,
@@ -221,12 +227,13 @@ impl TensionRun {
         normal: &NormalBreathing,
         baselines: &[LungBaseline],
     ) -> Result<Self, DiseaseRunError> {
-        let affected = *baselines
-            .iter()
-            .find(|b| b.side == params.side)
-            .ok_or(DiseaseError::MissingLung {
-                side: params.side.name(),
-            })?;
+        let affected =
+            *baselines
+                .iter()
+                .find(|b| b.side == params.side)
+                .ok_or(DiseaseError::MissingLung {
+                    side: params.side.name(),
+                })?;
         let other = baselines.iter().find(|b| b.side != params.side).copied();
         let tension = Tension::new(params, normal.timing, normal.boundary, affected, other)?;
         tension.check_constants(&normal.inhale, &normal.exhale)?;

@@ -337,7 +337,10 @@ pub fn run(args: &EngineArgs) -> Result<(), EngineError> {
 
 /// How a scene is named in messages: its path, or the built-in default.
 fn scene_origin(path: Option<&std::path::Path>) -> String {
-    path.map_or_else(|| "(built-in default)".to_string(), |p| p.display().to_string())
+    path.map_or_else(
+        || "(built-in default)".to_string(),
+        |p| p.display().to_string(),
+    )
 }
 
 #[cfg(test)]

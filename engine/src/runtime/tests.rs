@@ -121,7 +121,9 @@ fn same_inputs_replay_bitwise_identically() {
     }
     // Every byte of every frame as layout v2 had it (v3 only appended each lung's collapse and
     // hilum, zero for a healthy lung), pinned across builds and machines.
-    let digest = fnv(a.iter().flat_map(|f| v2_bytes(f).into_iter().map(|b| b as u64)));
+    let digest = fnv(a
+        .iter()
+        .flat_map(|f| v2_bytes(f).into_iter().map(|b| b as u64)));
     assert_eq!(
         digest, REFERENCE_DIGEST_V2,
         "reference run changed: digest {digest:#018x}"
@@ -534,7 +536,10 @@ fn disease_core(disease: &str) -> EngineCore {
 fn a_closed_pneumothorax_collapses_the_affected_lung_by_eq_8_1_and_drops_it_by_eq_8_2() {
     let mut c = disease_core("kind = \"closed-pneumothorax\"\nside = \"left\"\nindex = 0.1\n");
     let healthy = core();
-    let start = healthy.geometry().map(|g| g.start_volume_ml).collect::<Vec<_>>();
+    let start = healthy
+        .geometry()
+        .map(|g| g.start_volume_ml)
+        .collect::<Vec<_>>();
     let mut f = EngineFrame::default();
     let mut min_left = f32::MAX;
     for tick in 0..600 {
@@ -545,7 +550,11 @@ fn a_closed_pneumothorax_collapses_the_affected_lung_by_eq_8_1_and_drops_it_by_e
         // eq. 8.1: dV = 0.1^0.33 of the left lung's volume is lost: c = 1 − (1 − dV)^(1/3).
         let dv = 0.1f64.powf(0.33);
         let expect_c = 1.0 - (1.0 - dv).cbrt();
-        assert!((l.collapse as f64 - expect_c).abs() < 1e-6, "{}", l.collapse);
+        assert!(
+            (l.collapse as f64 - expect_c).abs() < 1e-6,
+            "{}",
+            l.collapse
+        );
         assert!(l.hilum_mm.iter().all(|v| v.is_finite()) && l.hilum_mm != [0.0; 3]);
         // eq. 8.2: A = (100·0.1 − 4.2)/(4.7·2) cm = 6.17 mm downwards.
         assert!((l.offset_mm[2] + 6.170).abs() < 0.01, "{:?}", l.offset_mm);
@@ -572,7 +581,10 @@ fn run_disease(
         let input = (tick % 3 != 0).then(|| frame(tick, true));
         c.step(tick, input.as_ref(), &mut f);
         for l in &f.lungs {
-            assert!(l.volume_ml.is_finite() && l.deform_scale.is_finite(), "tick {tick}");
+            assert!(
+                l.volume_ml.is_finite() && l.deform_scale.is_finite(),
+                "tick {tick}"
+            );
             assert!((0.0..=1.0).contains(&l.collapse), "tick {tick}");
         }
         held |= f.lungs[LUNG_LEFT].flags & lung_flags::HELD != 0;
@@ -596,7 +608,10 @@ fn a_tension_pneumothorax_runs_to_arrest_and_a_needle_stops_it() {
     // Untreated: the course ends in arrest (both lungs held) within the hour.
     let mut c = disease_core(untreated);
     let (_, held, _, _) = run_disease(&mut c, 216_000, &[]);
-    assert!(held, "the untreated course ends with the lungs held (arrest)");
+    assert!(
+        held,
+        "the untreated course ends with the lungs held (arrest)"
+    );
     let Some(disease::DiseaseRun::Tension(run)) = c.disease() else {
         panic!("tension")
     };
@@ -617,7 +632,11 @@ fn a_tension_pneumothorax_runs_to_arrest_and_a_needle_stops_it() {
     // The same needle as a trainee's live action at tick 1800: the same frames bit for bit (both
     // are applied when the cycle after their arrival is prepared).
     let mut live = disease_core(untreated);
-    let (a, ..) = run_disease(&mut live, 60_000, &[(1800, Intervention::NeedleDecompression)]);
+    let (a, ..) = run_disease(
+        &mut live,
+        60_000,
+        &[(1800, Intervention::NeedleDecompression)],
+    );
     let mut timed = disease_core(&format!(
         "{untreated}[[disease.events]]\nat_s = 30.0\nkind = \"needle-decompression\"\nside = \"left\"\n"
     ));

@@ -493,7 +493,11 @@ impl DeformPass {
         // position by `keep = 1 − c` (scale.zw) and the offset carries `c·h`; at c = 0 both are the
         // healthy lung's exactly (×1.0, +0.0).
         let o = |slot: usize| {
-            let (v, c, h) = (inputs.offset[slot], inputs.collapse[slot], inputs.hilum[slot]);
+            let (v, c, h) = (
+                inputs.offset[slot],
+                inputs.collapse[slot],
+                inputs.hilum[slot],
+            );
             if c == 0.0 {
                 [v[0], v[1], v[2], 0.0]
             } else {

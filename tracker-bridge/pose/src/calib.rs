@@ -181,7 +181,11 @@ impl Calibration {
             kind: KIND.into(),
             transform: TransformText {
                 rotation_xyzw: [q.i, q.j, q.k, q.w],
-                translation_mm: [self.translation_mm.x, self.translation_mm.y, self.translation_mm.z],
+                translation_mm: [
+                    self.translation_mm.x,
+                    self.translation_mm.y,
+                    self.translation_mm.z,
+                ],
                 rotation_matrix: Some(std::array::from_fn(|r| std::array::from_fn(|c| m[(r, c)]))),
             },
             registration: self.registration.clone(),
@@ -206,7 +210,10 @@ impl Calibration {
             reason,
         };
         if f.format != 1 {
-            return Err(invalid("format", format!("{} is not 1, the only version this build reads", f.format)));
+            return Err(invalid(
+                "format",
+                format!("{} is not 1, the only version this build reads", f.format),
+            ));
         }
         if f.kind != KIND {
             return Err(invalid("kind", format!("{:?} is not {KIND:?}", f.kind)));
@@ -225,7 +232,10 @@ impl Calibration {
         if !(t.iter().all(|v| v.is_finite()) && t.norm() <= 5000.0) {
             return Err(invalid(
                 "transform.translation_mm",
-                format!("{:?} is not a finite offset within 5 m (millimetres expected)", f.transform.translation_mm),
+                format!(
+                    "{:?} is not a finite offset within 5 m (millimetres expected)",
+                    f.transform.translation_mm
+                ),
             ));
         }
         if let Some(m) = f.transform.rotation_matrix {
@@ -288,15 +298,35 @@ mod tests {
         .to_toml();
         let cases = [
             (good.replace("format = 1", "format = 2"), "format"),
-            (good.replace("model-to-reference", "reference-to-model"), "kind"),
-            (good.replace("rotation_xyzw = [0.0, 0.0, 0.0, 1.0]", "rotation_xyzw = [0.0, 0.0, 0.0, 2.0]"), "rotation_xyzw"),
-            (good.replace("translation_mm = [0.0, 0.0, 0.0]", "translation_mm = [0.0, 0.0, 9000.0]"), "translation_mm"),
-            (good.replace("[1.0, 0.0, 0.0]", "[0.0, 1.0, 0.0]"), "rotation_matrix"),
+            (
+                good.replace("model-to-reference", "reference-to-model"),
+                "kind",
+            ),
+            (
+                good.replace(
+                    "rotation_xyzw = [0.0, 0.0, 0.0, 1.0]",
+                    "rotation_xyzw = [0.0, 0.0, 0.0, 2.0]",
+                ),
+                "rotation_xyzw",
+            ),
+            (
+                good.replace(
+                    "translation_mm = [0.0, 0.0, 0.0]",
+                    "translation_mm = [0.0, 0.0, 9000.0]",
+                ),
+                "translation_mm",
+            ),
+            (
+                good.replace("[1.0, 0.0, 0.0]", "[0.0, 1.0, 0.0]"),
+                "rotation_matrix",
+            ),
             (format!("{good}\nextra = 1\n"), "unknown field"),
             ("format = ".to_string(), "c.toml"),
         ];
         for (text, needle) in cases {
-            let e = Calibration::from_toml(&text, "c.toml").unwrap_err().to_string();
+            let e = Calibration::from_toml(&text, "c.toml")
+                .unwrap_err()
+                .to_string();
             assert!(e.contains(needle), "{needle}: {e}");
         }
     }

@@ -145,10 +145,16 @@ impl Optics {
             reason,
         };
         if f.format != 1 {
-            return Err(invalid("format", format!("{} is not 1, the only version this build reads", f.format)));
+            return Err(invalid(
+                "format",
+                format!("{} is not 1, the only version this build reads", f.format),
+            ));
         }
         let d = &f.display;
-        for (field, v) in [("display.width_px", d.width_px), ("display.height_px", d.height_px)] {
+        for (field, v) in [
+            ("display.width_px", d.width_px),
+            ("display.height_px", d.height_px),
+        ] {
             if !(1..=16384).contains(&v) {
                 return Err(invalid(field, format!("{v} px is outside 1..=16384")));
             }
@@ -159,10 +165,18 @@ impl Optics {
                 format!("{} is outside 10..170 degrees", d.horizontal_fov_deg),
             ));
         }
-        if !(d.near_mm.is_finite() && d.far_mm.is_finite() && d.near_mm > 0.0 && d.near_mm < d.far_mm && d.far_mm <= 100_000.0) {
+        if !(d.near_mm.is_finite()
+            && d.far_mm.is_finite()
+            && d.near_mm > 0.0
+            && d.near_mm < d.far_mm
+            && d.far_mm <= 100_000.0)
+        {
             return Err(invalid(
                 "display.near_mm/far_mm",
-                format!("need 0 < near < far <= 100000 mm, got {} and {}", d.near_mm, d.far_mm),
+                format!(
+                    "need 0 < near < far <= 100000 mm, got {} and {}",
+                    d.near_mm, d.far_mm
+                ),
             ));
         }
         let ipd = f.eyes.ipd_mm;
@@ -178,14 +192,20 @@ impl Optics {
             let offset = e.offset_mm.unwrap_or([sign * ipd / 2.0, 0.0, 0.0]);
             let o = Vector3::from(offset);
             if !(o.iter().all(|v| v.is_finite()) && o.norm() <= 300.0) {
-                return Err(invalid(side_field(side, "offset_mm"), format!("{offset:?} is not within 300 mm of the tool")));
+                return Err(invalid(
+                    side_field(side, "offset_mm"),
+                    format!("{offset:?} is not within 300 mm of the tool"),
+                ));
             }
             let rotation = match e.rotation_xyzw {
                 None => UnitQuaternion::identity(),
                 Some([x, y, z, w]) => {
                     let q = Quaternion::new(w, x, y, z);
                     if !(q.norm().is_finite() && (q.norm() - 1.0).abs() <= 1e-3) {
-                        return Err(invalid(side_field(side, "rotation_xyzw"), format!("|q| = {}: not a unit quaternion", q.norm())));
+                        return Err(invalid(
+                            side_field(side, "rotation_xyzw"),
+                            format!("|q| = {}: not a unit quaternion", q.norm()),
+                        ));
                     }
                     UnitQuaternion::from_quaternion(q)
                 }
@@ -193,7 +213,12 @@ impl Optics {
             let frustum_tan = match e.frustum_deg {
                 None => [tan_h, tan_h, tan_v, tan_v],
                 Some(a) => {
-                    if !a.iter().all(|v| v.is_finite() && (-80.0..=80.0).contains(v)) || a[0] + a[1] <= 0.0 || a[2] + a[3] <= 0.0 {
+                    if !a
+                        .iter()
+                        .all(|v| v.is_finite() && (-80.0..=80.0).contains(v))
+                        || a[0] + a[1] <= 0.0
+                        || a[2] + a[3] <= 0.0
+                    {
                         return Err(invalid(side_field(side, "frustum_deg"), format!("{a:?}: half-angles [left, right, down, up] within -80..80 with a positive width and height")));
                     }
                     a.map(|v| v.to_radians().tan())
@@ -281,7 +306,9 @@ mod tests {
 
     fn project(p: &[[f32; 4]; 4], v: [f32; 3]) -> [f32; 3] {
         let x = [v[0], v[1], v[2], 1.0];
-        let c: Vec<f32> = (0..4).map(|r| (0..4).map(|k| p[k][r] * x[k]).sum()).collect();
+        let c: Vec<f32> = (0..4)
+            .map(|r| (0..4).map(|k| p[k][r] * x[k]).sum())
+            .collect();
         [c[0] / c[3], c[1] / c[3], c[2] / c[3]]
     }
 
@@ -297,8 +324,14 @@ mod tests {
         let p = o.projection(0);
         let edge = project(&p, [(35f32).to_radians().tan() * 1000.0, 0.0, -1000.0]);
         assert!((edge[0] - 1.0).abs() < 1e-5, "{edge:?}");
-        assert!(project(&p, [0.0, 0.0, -50.0])[2].abs() < 1e-5, "near plane at depth 0");
-        assert!((project(&p, [0.0, 0.0, -10_000.0])[2] - 1.0).abs() < 1e-5, "far plane at depth 1");
+        assert!(
+            project(&p, [0.0, 0.0, -50.0])[2].abs() < 1e-5,
+            "near plane at depth 0"
+        );
+        assert!(
+            (project(&p, [0.0, 0.0, -10_000.0])[2] - 1.0).abs() < 1e-5,
+            "far plane at depth 1"
+        );
     }
 
     #[test]

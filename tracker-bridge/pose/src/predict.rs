@@ -31,7 +31,12 @@ pub struct TimedPose {
 impl TimedPose {
     /// From the `[x, y, z, w]` quaternion and position of a tracker pose.
     pub fn from_xyzw(t_ns: u64, q: [f32; 4], p: [f32; 3]) -> Self {
-        let q = Quaternion::new(f64::from(q[3]), f64::from(q[0]), f64::from(q[1]), f64::from(q[2]));
+        let q = Quaternion::new(
+            f64::from(q[3]),
+            f64::from(q[0]),
+            f64::from(q[1]),
+            f64::from(q[2]),
+        );
         TimedPose {
             t_ns,
             rotation: UnitQuaternion::from_quaternion(q),
@@ -121,7 +126,13 @@ pub struct AlphaBeta {
     pub alpha: f64,
     /// Velocity gain; [`AlphaBeta::new`] sets β = α²/(2 − α).
     pub beta: f64,
-    state: Option<(u64, Vector3<f64>, Vector3<f64>, UnitQuaternion<f64>, Vector3<f64>)>,
+    state: Option<(
+        u64,
+        Vector3<f64>,
+        Vector3<f64>,
+        UnitQuaternion<f64>,
+        Vector3<f64>,
+    )>,
 }
 
 impl AlphaBeta {
@@ -142,7 +153,13 @@ impl Predictor for AlphaBeta {
     }
     fn update(&mut self, s: &TimedPose) {
         let Some((t0, x, v, q, w)) = self.state else {
-            self.state = Some((s.t_ns, s.position_mm, Vector3::zeros(), s.rotation, Vector3::zeros()));
+            self.state = Some((
+                s.t_ns,
+                s.position_mm,
+                Vector3::zeros(),
+                s.rotation,
+                Vector3::zeros(),
+            ));
             return;
         };
         let dt = secs(s.t_ns as i128 - t0 as i128);
@@ -241,7 +258,12 @@ pub fn pose_at(samples: &[TimedPose], t_ns: u64, max_gap_ns: u64) -> Option<Time
 
 /// Replay `samples` (times increasing) through `p`: after each, predict `lookahead_ns` ahead and
 /// compare with the recorded pose then. A gap longer than `max_gap_ns` resets the predictor.
-pub fn evaluate(samples: &[TimedPose], p: &mut dyn Predictor, lookahead_ns: u64, max_gap_ns: u64) -> Errors {
+pub fn evaluate(
+    samples: &[TimedPose],
+    p: &mut dyn Predictor,
+    lookahead_ns: u64,
+    max_gap_ns: u64,
+) -> Errors {
     p.reset();
     let (mut dt, mut dr) = (Vec::new(), Vec::new());
     let mut prev: Option<u64> = None;
@@ -252,7 +274,8 @@ pub fn evaluate(samples: &[TimedPose], p: &mut dyn Predictor, lookahead_ns: u64,
         prev = Some(s.t_ns);
         p.update(s);
         let target = s.t_ns + lookahead_ns;
-        let (Some(truth), Some(guess)) = (pose_at(samples, target, max_gap_ns), p.predict(target)) else {
+        let (Some(truth), Some(guess)) = (pose_at(samples, target, max_gap_ns), p.predict(target))
+        else {
             continue;
         };
         dt.push((guess.position_mm - truth.position_mm).norm());
@@ -295,7 +318,10 @@ mod tests {
         assert!((hold.translation_mm.mean - 16.67).abs() < 0.01, "{hold:?}");
         assert!((hold.rotation_deg.max - 3.0).abs() < 0.01);
         // Exact from the second sample on (the first has no velocity yet: it holds).
-        assert!(cv.translation_mm.p99 < 1e-6 && cv.rotation_deg.p99 < 1e-6, "{cv:?}");
+        assert!(
+            cv.translation_mm.p99 < 1e-6 && cv.rotation_deg.p99 < 1e-6,
+            "{cv:?}"
+        );
         assert!((cv.translation_mm.max - hold.translation_mm.max).abs() < 1e-9);
     }
 
@@ -313,7 +339,10 @@ mod tests {
                     .max(p.rotation.angle_to(&s[k + 1].rotation).to_degrees());
             }
         }
-        assert!(worst_late < 1e-6, "after its transient it tracks constant velocity: {worst_late}");
+        assert!(
+            worst_late < 1e-6,
+            "after its transient it tracks constant velocity: {worst_late}"
+        );
     }
 
     #[test]
@@ -322,6 +351,9 @@ mod tests {
         let mid = pose_at(&s, P / 2, 50_000_000).unwrap();
         assert!((mid.position_mm.x - 500.0 * (P / 2) as f64 * 1e-9).abs() < 1e-9);
         assert!(pose_at(&s, 10 * P, 50_000_000).is_none());
-        assert!(pose_at(&s, P / 2, P / 2).is_none(), "gap longer than allowed");
+        assert!(
+            pose_at(&s, P / 2, P / 2).is_none(),
+            "gap longer than allowed"
+        );
     }
 }

@@ -92,7 +92,10 @@ impl Registration {
 }
 
 /// Register `model` onto `tracker` (pairs by index).
-pub fn register(model: &[[f64; 3]], tracker: &[[f64; 3]]) -> Result<Registration, RegistrationError> {
+pub fn register(
+    model: &[[f64; 3]],
+    tracker: &[[f64; 3]],
+) -> Result<Registration, RegistrationError> {
     if model.len() != tracker.len() {
         return Err(RegistrationError::CountMismatch {
             model: model.len(),
@@ -165,7 +168,8 @@ pub fn register(model: &[[f64; 3]], tracker: &[[f64; 3]]) -> Result<Registration
     }
     if n == 3 {
         warnings.push(
-            "3 fiducials fit any rigid motion almost exactly: the FRE says little; use 4 or more".into(),
+            "3 fiducials fit any rigid motion almost exactly: the FRE says little; use 4 or more"
+                .into(),
         );
     }
     // One bad pair inflates the RMS too (its error is at most √n times the RMS), so each point is
@@ -241,12 +245,19 @@ mod tests {
     #[test]
     fn collinear_fiducials_are_refused_and_nearly_collinear_ones_warned() {
         let line: Vec<[f64; 3]> = (0..5).map(|i| [i as f64 * 10.0, 0.0, 0.0]).collect();
-        assert!(matches!(register(&line, &line), Err(RegistrationError::Degenerate { .. })));
+        assert!(matches!(
+            register(&line, &line),
+            Err(RegistrationError::Degenerate { .. })
+        ));
         let mut near = line.clone();
         near[2][1] = 2.0;
         let r = register(&near, &near).unwrap();
         assert!(r.spread_ratio() < COLLINEAR_RATIO);
-        assert!(r.warnings.iter().any(|w| w.contains("nearly collinear")), "{:?}", r.warnings);
+        assert!(
+            r.warnings.iter().any(|w| w.contains("nearly collinear")),
+            "{:?}",
+            r.warnings
+        );
     }
 
     #[test]
@@ -260,18 +271,31 @@ mod tests {
 
     #[test]
     fn bad_inputs_are_named() {
-        assert_eq!(register(&cube()[..2], &cube()[..2]), Err(RegistrationError::TooFew(2)));
-        assert!(matches!(register(&cube(), &cube()[..5]), Err(RegistrationError::CountMismatch { .. })));
+        assert_eq!(
+            register(&cube()[..2], &cube()[..2]),
+            Err(RegistrationError::TooFew(2))
+        );
+        assert!(matches!(
+            register(&cube(), &cube()[..5]),
+            Err(RegistrationError::CountMismatch { .. })
+        ));
         let mut b = cube();
         b[3][1] = f64::NAN;
         assert_eq!(
             register(&cube(), &b),
-            Err(RegistrationError::NonFinite { index: 3, which: "tracker" })
+            Err(RegistrationError::NonFinite {
+                index: 3,
+                which: "tracker"
+            })
         );
         let mut w = cube();
         w[4] = [500.0, 500.0, 500.0];
         let r = register(&cube(), &w).unwrap();
-        assert!(r.warnings.iter().any(|x| x.contains("point 5")), "{:?}", r.warnings);
+        assert!(
+            r.warnings.iter().any(|x| x.contains("point 5")),
+            "{:?}",
+            r.warnings
+        );
     }
 
     proptest! {

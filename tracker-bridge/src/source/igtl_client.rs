@@ -49,7 +49,12 @@ fn matrix(t: &Transform) -> Rotation {
 }
 
 /// The inputs one decoded message gives.
-pub fn message_inputs(msg: &Message, receive_ns: u64, order: QuatOrder, out: &mut dyn FnMut(Input)) {
+pub fn message_inputs(
+    msg: &Message,
+    receive_ns: u64,
+    order: QuatOrder,
+    out: &mut dyn FnMut(Input),
+) {
     let device = ToolName::from_bytes_lossy(msg.device_name.as_bytes());
     let device_time_ns = if msg.timestamp.is_unset() {
         0
@@ -93,13 +98,21 @@ pub fn message_inputs(msg: &Message, receive_ns: u64, order: QuatOrder, out: &mu
         Body::TData(elements) => {
             for e in elements {
                 let name = ToolName::from_bytes_lossy(e.name.as_bytes());
-                out(Input::Sample(sample(name, matrix(&e.transform), e.transform.translation_mm)));
+                out(Input::Sample(sample(
+                    name,
+                    matrix(&e.transform),
+                    e.transform.translation_mm,
+                )));
             }
         }
         Body::QtData(elements) => {
             for e in elements {
                 let name = ToolName::from_bytes_lossy(e.name.as_bytes());
-                out(Input::Sample(sample(name, Rotation::Quat(e.quaternion), e.position_mm)));
+                out(Input::Sample(sample(
+                    name,
+                    Rotation::Quat(e.quaternion),
+                    e.position_mm,
+                )));
             }
         }
         Body::Status(s) => out(Input::Event(Event::new(
@@ -133,10 +146,18 @@ pub enum PumpEnd {
 
 /// Read one OpenIGTLink connection until it ends, handing every message's inputs to `feed`.
 /// Returns how it ended and whether any message arrived.
-pub fn pump(stream: &mut TcpStream, feed: &Feed, peer: &str, options: &SourceOptions) -> (PumpEnd, bool) {
+pub fn pump(
+    stream: &mut TcpStream,
+    feed: &Feed,
+    peer: &str,
+    options: &SourceOptions,
+) -> (PumpEnd, bool) {
     let _ = stream.set_nodelay(true);
     if let Err(e) = stream.set_read_timeout(Some(READ_TIMEOUT)) {
-        return (PumpEnd::Lost(format!("cannot set a read timeout: {e}")), false);
+        return (
+            PumpEnd::Lost(format!("cannot set a read timeout: {e}")),
+            false,
+        );
     }
     let mut decoder = Decoder::new(options.igtl_limits);
     let mut buf = [0u8; 16 * 1024];
@@ -157,10 +178,18 @@ pub fn pump(stream: &mut TcpStream, feed: &Feed, peer: &str, options: &SourceOpt
                         ),
                     ));
                 }
-                return (PumpEnd::Lost(format!("{peer} closed the connection")), got_any);
+                return (
+                    PumpEnd::Lost(format!("{peer} closed the connection")),
+                    got_any,
+                );
             }
             Ok(n) => n,
-            Err(e) if matches!(e.kind(), ErrorKind::WouldBlock | ErrorKind::TimedOut | ErrorKind::Interrupted) => {
+            Err(e)
+                if matches!(
+                    e.kind(),
+                    ErrorKind::WouldBlock | ErrorKind::TimedOut | ErrorKind::Interrupted
+                ) =>
+            {
                 continue
             }
             Err(e) => return (PumpEnd::Lost(format!("reading from {peer}: {e}")), got_any),
@@ -171,14 +200,18 @@ pub fn pump(stream: &mut TcpStream, feed: &Feed, peer: &str, options: &SourceOpt
             match item {
                 Ok(msg) => {
                     got_any = true;
-                    message_inputs(&msg, receive_ns, options.pyigtl_quat_order, &mut |i| feed.send(i));
+                    message_inputs(&msg, receive_ns, options.pyigtl_quat_order, &mut |i| {
+                        feed.send(i)
+                    });
                 }
                 Err(e) => feed.event(Event::rejected(reject_of(&e), 1, format!("{peer}: {e}"))),
             }
         }
         if decoder.is_failed() {
             return (
-                PumpEnd::Lost(format!("{peer} sent something that is not OpenIGTLink; dropping the connection")),
+                PumpEnd::Lost(format!(
+                    "{peer} sent something that is not OpenIGTLink; dropping the connection"
+                )),
                 got_any,
             );
         }
@@ -226,7 +259,11 @@ fn client_thread(host: &str, port: u16, peer: &str, feed: &Feed, options: &Sourc
     while !feed.stopping() {
         match connect(host, port, Duration::from_secs(1)) {
             Ok(mut stream) => {
-                feed.event(Event::new(EventKind::Connected, 0, format!("connected to {peer}")));
+                feed.event(Event::new(
+                    EventKind::Connected,
+                    0,
+                    format!("connected to {peer}"),
+                ));
                 let (end, got_any) = pump(&mut stream, feed, peer, options);
                 if got_any {
                     backoff.reset();
@@ -241,7 +278,10 @@ fn client_thread(host: &str, port: u16, peer: &str, feed: &Feed, options: &Sourc
                 feed.event(Event::new(
                     EventKind::Retrying,
                     d.as_millis() as u32,
-                    format!("cannot connect to {peer}: {e}; retrying in {} ms", d.as_millis()),
+                    format!(
+                        "cannot connect to {peer}: {e}; retrying in {} ms",
+                        d.as_millis()
+                    ),
                 ));
                 if !feed.sleep(d) {
                     return;

@@ -75,7 +75,11 @@ fn accept_thread(listener: TcpListener, feed: &Feed, options: &SourceOptions) {
                     .name("igtl-sender".into())
                     .spawn(move || {
                         let name = peer.to_string();
-                        feed.event(Event::new(EventKind::Connected, 0, format!("sender {name} connected")));
+                        feed.event(Event::new(
+                            EventKind::Connected,
+                            0,
+                            format!("sender {name} connected"),
+                        ));
                         let (end, _) = pump(&mut stream, &feed, &name, &options);
                         if let PumpEnd::Lost(why) = end {
                             feed.event(Event::new(EventKind::Disconnected, 0, why));
@@ -93,7 +97,11 @@ fn accept_thread(listener: TcpListener, feed: &Feed, options: &SourceOptions) {
                 std::thread::sleep(Duration::from_millis(10));
             }
             Err(e) => {
-                feed.event(Event::new(EventKind::Note, 0, format!("accept failed: {e}")));
+                feed.event(Event::new(
+                    EventKind::Note,
+                    0,
+                    format!("accept failed: {e}"),
+                ));
                 std::thread::sleep(Duration::from_millis(100));
             }
         }

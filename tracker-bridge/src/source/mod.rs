@@ -150,7 +150,9 @@ fn host_port(text: &str, rest: &str, default_port: u16) -> Result<(String, u16),
         reason: reason.to_string(),
     };
     let (host, port) = if let Some(r) = rest.strip_prefix('[') {
-        let (h, after) = r.split_once(']').ok_or_else(|| bad("unclosed [ in an IPv6 address"))?;
+        let (h, after) = r
+            .split_once(']')
+            .ok_or_else(|| bad("unclosed [ in an IPv6 address"))?;
         match after.strip_prefix(':') {
             Some(p) => (h.to_string(), Some(p)),
             None if after.is_empty() => (h.to_string(), None),
@@ -199,7 +201,11 @@ impl SourceSpec {
                 } else {
                     host_port(text, rest, crate::igtl::DEFAULT_PORT)?
                 };
-                let bind = if bind.is_empty() { "0.0.0.0".to_string() } else { bind };
+                let bind = if bind.is_empty() {
+                    "0.0.0.0".to_string()
+                } else {
+                    bind
+                };
                 Ok(SourceSpec::IgtlServer { bind, port })
             }
             "ndi-serial" => {
@@ -247,9 +253,7 @@ pub struct Backoff {
 
 impl Default for Backoff {
     fn default() -> Self {
-        Backoff {
-            next: Self::MIN,
-        }
+        Backoff { next: Self::MIN }
     }
 }
 
@@ -424,11 +428,9 @@ impl Default for SourceOptions {
 pub fn open(spec: &SourceSpec, options: &SourceOptions) -> Result<Box<dyn Source>, SourceError> {
     Ok(match spec {
         SourceSpec::Synthetic => Box::new(synthetic::SyntheticSource::new(options.synthetic)),
-        SourceSpec::IgtlClient { host, port } => Box::new(igtl_client::IgtlClient::start(
-            host.clone(),
-            *port,
-            options,
-        )),
+        SourceSpec::IgtlClient { host, port } => {
+            Box::new(igtl_client::IgtlClient::start(host.clone(), *port, options))
+        }
         SourceSpec::IgtlServer { bind, port } => {
             Box::new(igtl_server::IgtlServer::bind(bind, *port, options)?)
         }
@@ -436,10 +438,9 @@ pub fn open(spec: &SourceSpec, options: &SourceOptions) -> Result<Box<dyn Source
         SourceSpec::NdiTcp { host, port } => {
             Box::new(ndi_link::NdiSource::tcp(host, *port, options)?)
         }
-        SourceSpec::Replay { path } => Box::new(replay::Replay::open(
-            path,
-            !options.as_fast_as_possible,
-        )?),
+        SourceSpec::Replay { path } => {
+            Box::new(replay::Replay::open(path, !options.as_fast_as_possible)?)
+        }
     })
 }
 
@@ -449,46 +450,82 @@ mod tests {
 
     #[test]
     fn source_uris_parse_with_their_default_ports() {
-        assert_eq!(SourceSpec::parse("synthetic").unwrap(), SourceSpec::Synthetic);
+        assert_eq!(
+            SourceSpec::parse("synthetic").unwrap(),
+            SourceSpec::Synthetic
+        );
         assert_eq!(
             SourceSpec::parse("igtl-client:plus.local").unwrap(),
-            SourceSpec::IgtlClient { host: "plus.local".into(), port: 18944 }
+            SourceSpec::IgtlClient {
+                host: "plus.local".into(),
+                port: 18944
+            }
         );
         assert_eq!(
             SourceSpec::parse("igtl-client:10.0.0.2:18945").unwrap(),
-            SourceSpec::IgtlClient { host: "10.0.0.2".into(), port: 18945 }
+            SourceSpec::IgtlClient {
+                host: "10.0.0.2".into(),
+                port: 18945
+            }
         );
         assert_eq!(
             SourceSpec::parse("igtl-server:0.0.0.0:18944").unwrap(),
-            SourceSpec::IgtlServer { bind: "0.0.0.0".into(), port: 18944 }
+            SourceSpec::IgtlServer {
+                bind: "0.0.0.0".into(),
+                port: 18944
+            }
         );
         assert_eq!(
             SourceSpec::parse("igtl-server").unwrap(),
-            SourceSpec::IgtlServer { bind: "0.0.0.0".into(), port: 18944 }
+            SourceSpec::IgtlServer {
+                bind: "0.0.0.0".into(),
+                port: 18944
+            }
         );
         assert_eq!(
             SourceSpec::parse("igtl-server:127.0.0.1").unwrap(),
-            SourceSpec::IgtlServer { bind: "127.0.0.1".into(), port: 18944 }
+            SourceSpec::IgtlServer {
+                bind: "127.0.0.1".into(),
+                port: 18944
+            }
         );
         assert_eq!(
             SourceSpec::parse("igtl-server:[::1]:5000").unwrap(),
-            SourceSpec::IgtlServer { bind: "::1".into(), port: 5000 }
+            SourceSpec::IgtlServer {
+                bind: "::1".into(),
+                port: 5000
+            }
         );
         assert_eq!(
             SourceSpec::parse("ndi-serial:/dev/ttyUSB0").unwrap(),
-            SourceSpec::NdiSerial { path: "/dev/ttyUSB0".into() }
+            SourceSpec::NdiSerial {
+                path: "/dev/ttyUSB0".into()
+            }
         );
         assert_eq!(
             SourceSpec::parse("ndi-tcp:vega").unwrap(),
-            SourceSpec::NdiTcp { host: "vega".into(), port: 8765 }
+            SourceSpec::NdiTcp {
+                host: "vega".into(),
+                port: 8765
+            }
         );
         assert_eq!(
             SourceSpec::parse("replay:/tmp/a b.ldtr").unwrap(),
-            SourceSpec::Replay { path: "/tmp/a b.ldtr".into() }
+            SourceSpec::Replay {
+                path: "/tmp/a b.ldtr".into()
+            }
         );
         for bad in [
-            "", "polaris", "synthetic:x", "igtl-client", "igtl-client:h:99999", "igtl-client:h:0",
-            "ndi-tcp:", "replay:", "igtl-server:::1:5", "igtl-client:[::1",
+            "",
+            "polaris",
+            "synthetic:x",
+            "igtl-client",
+            "igtl-client:h:99999",
+            "igtl-client:h:0",
+            "ndi-tcp:",
+            "replay:",
+            "igtl-server:::1:5",
+            "igtl-client:[::1",
         ] {
             let e = SourceSpec::parse(bad).unwrap_err().to_string();
             assert!(e.contains("use synthetic"), "{bad:?}: {e}");

@@ -39,8 +39,8 @@ use ipc_types::tool_status;
 use transport::now_ns;
 
 use crate::ndi::{
-    self, AsciiReply, Baud, Command, CommSettings, NdiError, PhsrFilter, RawReply,
-    ReplyReader, ToolSample, TrackingPriority,
+    self, AsciiReply, Baud, CommSettings, Command, NdiError, PhsrFilter, RawReply, ReplyReader,
+    ToolSample, TrackingPriority,
 };
 use crate::sample::{Event, EventKind, Input, Reject, Rotation, Sample, ToolName};
 use crate::source::{Backoff, Feed, Inbox, Poll, Source, SourceError, SourceOptions};
@@ -48,7 +48,8 @@ use crate::source::{Backoff, Feed, Inbox, Poll, Source, SourceError, SourceOptio
 /// Largest NDI tool definition (virtual SROM) file.
 pub const ROM_BYTES: usize = 1024;
 /// Reply-option word polled.
-pub const POLL_OPTIONS: u16 = ndi::reply_options::TRANSFORMS | ndi::reply_options::NOT_NORMALLY_REPORTED;
+pub const POLL_OPTIONS: u16 =
+    ndi::reply_options::TRANSFORMS | ndi::reply_options::NOT_NORMALLY_REPORTED;
 /// A poll unanswered for this long is a timeout.
 pub const POLL_TIMEOUT: Duration = Duration::from_millis(250);
 /// Timeouts in a row that drop the link.
@@ -138,7 +139,10 @@ impl Link for TcpLink {
     }
     fn recv(&mut self, buf: &mut [u8]) -> std::io::Result<usize> {
         match self.0.read(buf) {
-            Ok(0) => Err(std::io::Error::new(ErrorKind::UnexpectedEof, "the tracker closed the connection")),
+            Ok(0) => Err(std::io::Error::new(
+                ErrorKind::UnexpectedEof,
+                "the tracker closed the connection",
+            )),
             r => r,
         }
     }
@@ -260,7 +264,11 @@ impl<'a> Session<'a> {
                 return Err(SessionError::Timeout(what.to_string()));
             }
             self.link
-                .set_timeout((until - now).min(Duration::from_millis(50)).max(Duration::from_millis(1)))
+                .set_timeout(
+                    (until - now)
+                        .min(Duration::from_millis(50))
+                        .max(Duration::from_millis(1)),
+                )
                 .map_err(SessionError::Io)?;
             match self.link.recv(&mut buf) {
                 Ok(n) => {
@@ -268,14 +276,20 @@ impl<'a> Session<'a> {
                     self.ready.extend(replies);
                     self.report_garbage();
                 }
-                Err(e) if matches!(e.kind(), ErrorKind::TimedOut | ErrorKind::WouldBlock | ErrorKind::Interrupted) => {}
+                Err(e)
+                    if matches!(
+                        e.kind(),
+                        ErrorKind::TimedOut | ErrorKind::WouldBlock | ErrorKind::Interrupted
+                    ) => {}
                 Err(e) => return Err(SessionError::Io(e)),
             }
         }
     }
 
     fn send(&mut self, cmd: &Command) -> Result<String, SessionError> {
-        let bytes = cmd.encode().map_err(|e| SessionError::Ndi(cmd.name().to_string(), e))?;
+        let bytes = cmd
+            .encode()
+            .map_err(|e| SessionError::Ndi(cmd.name().to_string(), e))?;
         self.link.send(&bytes).map_err(SessionError::Io)?;
         Ok(cmd.name().to_string())
     }
@@ -314,13 +328,18 @@ impl<'a> Session<'a> {
     fn init(&mut self) -> Result<(), SessionError> {
         if self.link.is_serial() {
             self.link.set_baud(9600).map_err(SessionError::Io)?;
-            if self.expect_ok(&Command::Init, Duration::from_secs(1)).is_err() {
+            if self
+                .expect_ok(&Command::Init, Duration::from_secs(1))
+                .is_err()
+            {
                 self.feed.event(Event::new(
                     EventKind::Note,
                     0,
                     "no OKAY to INIT at 9600 baud: resetting the tracker with a serial break",
                 ));
-                self.link.send_break(Duration::from_millis(500)).map_err(SessionError::Io)?;
+                self.link
+                    .send_break(Duration::from_millis(500))
+                    .map_err(SessionError::Io)?;
                 self.reader.clear();
                 self.ready.clear();
                 let until = Instant::now() + Duration::from_secs(5);
@@ -334,7 +353,10 @@ impl<'a> Session<'a> {
                 std::thread::sleep(Duration::from_millis(100));
                 self.expect_ok(&Command::Init, Duration::from_secs(5))?;
             }
-            self.expect_ok(&Command::Comm(CommSettings::new_8n1(Baud::B115200)), Duration::from_secs(1))?;
+            self.expect_ok(
+                &Command::Comm(CommSettings::new_8n1(Baud::B115200)),
+                Duration::from_secs(1),
+            )?;
             std::thread::sleep(Duration::from_millis(100));
             self.link.set_baud(115_200).map_err(SessionError::Io)?;
             std::thread::sleep(Duration::from_millis(100));
@@ -349,14 +371,21 @@ impl<'a> Session<'a> {
             self.expect_ok(&Command::Phf(e.handle), Duration::from_secs(1))?;
         }
         for rom in roms {
-            let reply = self.ascii(&Command::Raw("PHRQ:*********1****".into()), Duration::from_secs(1))?;
+            let reply = self.ascii(
+                &Command::Raw("PHRQ:*********1****".into()),
+                Duration::from_secs(1),
+            )?;
             let AsciiReply::Data(text) = reply else {
-                return Err(SessionError::Timeout("PHRQ (no handle in the reply)".into()));
+                return Err(SessionError::Timeout(
+                    "PHRQ (no handle in the reply)".into(),
+                ));
             };
             let handle = u8::from_str_radix(text.trim(), 16)
                 .ok()
                 .filter(|&h| h != 0 && text.trim().len() == 2)
-                .ok_or_else(|| SessionError::Timeout(format!("PHRQ (reply {text:?} is not a handle)")))?;
+                .ok_or_else(|| {
+                    SessionError::Timeout(format!("PHRQ (reply {text:?} is not a handle)"))
+                })?;
             for (k, chunk) in rom.bytes.chunks(64).enumerate() {
                 let hex: String = chunk.iter().map(|b| format!("{b:02X}")).collect();
                 let cmd = Command::Raw(format!("PVWR:{handle:02X}{:04X}{hex}", k * 64));
@@ -370,7 +399,8 @@ impl<'a> Session<'a> {
                 break;
             }
             for e in pending {
-                if let Err(err) = self.expect_ok(&Command::Pinit(e.handle), Duration::from_secs(3)) {
+                if let Err(err) = self.expect_ok(&Command::Pinit(e.handle), Duration::from_secs(3))
+                {
                     self.feed.event(Event::new(
                         EventKind::Note,
                         u32::from(e.handle),
@@ -389,18 +419,31 @@ impl<'a> Session<'a> {
             )?;
         }
         let enabled = self.phsr(PhsrFilter::Enabled).unwrap_or_default();
-        let names: Vec<String> = enabled.iter().map(|e| self.name(e.handle).to_string()).collect();
+        let names: Vec<String> = enabled
+            .iter()
+            .map(|e| self.name(e.handle).to_string())
+            .collect();
         self.feed.event(Event::new(
             EventKind::Note,
             enabled.len() as u32,
-            format!("NDI tools enabled: {}", if names.is_empty() { "none".into() } else { names.join(", ") }),
+            format!(
+                "NDI tools enabled: {}",
+                if names.is_empty() {
+                    "none".into()
+                } else {
+                    names.join(", ")
+                }
+            ),
         ));
         Ok(())
     }
 
     fn name(&self, handle: u8) -> ToolName {
         self.names[usize::from(handle)].unwrap_or_else(|| {
-            let hex = [b"0123456789ABCDEF"[usize::from(handle >> 4)], b"0123456789ABCDEF"[usize::from(handle & 15)]];
+            let hex = [
+                b"0123456789ABCDEF"[usize::from(handle >> 4)],
+                b"0123456789ABCDEF"[usize::from(handle & 15)],
+            ];
             ToolName::from_bytes_lossy(&hex)
         })
     }
@@ -426,15 +469,25 @@ impl<'a> Session<'a> {
             if next + period < Instant::now() {
                 next = Instant::now() + period;
             }
-            let cmd = if use_tx { Command::Tx(POLL_OPTIONS) } else { Command::Bx(POLL_OPTIONS) };
+            let cmd = if use_tx {
+                Command::Tx(POLL_OPTIONS)
+            } else {
+                Command::Bx(POLL_OPTIONS)
+            };
             let name = self.send(&cmd)?;
             let reply = match self.reply(&name, POLL_TIMEOUT) {
                 Ok(r) => r,
                 Err(SessionError::Timeout(_)) => {
                     timeouts += 1;
-                    self.feed.event(Event::rejected(Reject::Timeout, 1, format!("no reply to {name} within {} ms", POLL_TIMEOUT.as_millis())));
+                    self.feed.event(Event::rejected(
+                        Reject::Timeout,
+                        1,
+                        format!("no reply to {name} within {} ms", POLL_TIMEOUT.as_millis()),
+                    ));
                     if timeouts >= MAX_TIMEOUTS {
-                        return Err(SessionError::Timeout(format!("{MAX_TIMEOUTS} polls in a row")));
+                        return Err(SessionError::Timeout(format!(
+                            "{MAX_TIMEOUTS} polls in a row"
+                        )));
                     }
                     continue;
                 }
@@ -477,7 +530,11 @@ impl<'a> Session<'a> {
                     }
                     self.last_system = Some(raw);
                     if r.system_status.port_occupied {
-                        self.feed.event(Event::new(EventKind::Note, 0, "a tool was plugged in: setting up the tools again"));
+                        self.feed.event(Event::new(
+                            EventKind::Note,
+                            0,
+                            "a tool was plugged in: setting up the tools again",
+                        ));
                         self.expect_ok(&Command::Tstop, Duration::from_secs(1))?;
                         self.tools(roms)?;
                         self.expect_ok(&Command::Tstart, Duration::from_secs(2))?;
@@ -489,7 +546,8 @@ impl<'a> Session<'a> {
                         NdiError::Device { .. } => Reject::DeviceError,
                         _ => Reject::Malformed,
                     };
-                    self.feed.event(Event::rejected(reason, 1, format!("{name} reply: {e}")));
+                    self.feed
+                        .event(Event::rejected(reason, 1, format!("{name} reply: {e}")));
                 }
             }
         }
@@ -499,7 +557,10 @@ impl<'a> Session<'a> {
         let _ = self.expect_ok(&Command::Tstop, Duration::from_millis(500));
         if self.link.is_serial()
             && self
-                .expect_ok(&Command::Comm(CommSettings::POWER_ON), Duration::from_millis(500))
+                .expect_ok(
+                    &Command::Comm(CommSettings::POWER_ON),
+                    Duration::from_millis(500),
+                )
                 .is_ok()
         {
             std::thread::sleep(Duration::from_millis(100));
@@ -508,7 +569,13 @@ impl<'a> Session<'a> {
     }
 }
 
-fn session(link: &mut dyn Link, feed: &Feed, roms: &[Rom], use_tx: bool, poll_hz: f64) -> Result<(), SessionError> {
+fn session(
+    link: &mut dyn Link,
+    feed: &Feed,
+    roms: &[Rom],
+    use_tx: bool,
+    poll_hz: f64,
+) -> Result<(), SessionError> {
     let mut s = Session::new(link, feed);
     s.init()?;
     s.tools(roms)?;
@@ -547,7 +614,11 @@ pub fn sample_of(t: &ToolSample, name: ToolName, receive_ns: u64) -> Sample {
         device_frame: (t.frame != 0 || has_pose).then_some(u64::from(t.frame)),
         name,
         tool_id: u32::from(t.handle),
-        rotation: if has_pose { Rotation::Quat([x, y, z, w]) } else { Rotation::None },
+        rotation: if has_pose {
+            Rotation::Quat([x, y, z, w])
+        } else {
+            Rotation::None
+        },
         translation_mm: if has_pose { t.translation_mm } else { [0.0; 3] },
         rms_error_mm: has_pose.then_some(t.rms_error_mm),
         device_flags: flags,
@@ -586,11 +657,19 @@ fn link_thread(target: &Target, feed: &Feed, roms: &[Rom], use_tx: bool, poll_hz
     while !feed.stopping() {
         match target.open() {
             Ok(mut link) => {
-                feed.event(Event::new(EventKind::Connected, 0, format!("opened {}", target.describe())));
+                feed.event(Event::new(
+                    EventKind::Connected,
+                    0,
+                    format!("opened {}", target.describe()),
+                ));
                 match session(link.as_mut(), feed, roms, use_tx, poll_hz) {
                     Ok(()) | Err(SessionError::Stopped) => return,
                     Err(e) => {
-                        feed.event(Event::new(EventKind::Disconnected, 0, format!("{}: {e}", target.describe())));
+                        feed.event(Event::new(
+                            EventKind::Disconnected,
+                            0,
+                            format!("{}: {e}", target.describe()),
+                        ));
                     }
                 }
                 let d = backoff.next_delay();

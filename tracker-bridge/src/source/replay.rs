@@ -50,7 +50,11 @@ impl Source for Replay {
             "replay of {} ({}){}",
             self.path.display(),
             self.reader.header.source,
-            if self.paced { "" } else { ", as fast as possible" }
+            if self.paced {
+                ""
+            } else {
+                ", as fast as possible"
+            }
         )
     }
 
