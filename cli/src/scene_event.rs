@@ -53,9 +53,9 @@ pub fn kind_code(kind: Intervention) -> u32 {
 /// Send the intervention; refuses when no engine runs in the instance.
 pub fn run(args: &EventArgs) -> anyhow::Result<()> {
     let instance = Instance::new(&args.instance)?;
-    // The engine holds its role's lock while it runs: if we can take it, nobody would listen.
-    if let Ok(lock) = instance.lock("engine") {
-        drop(lock);
+    // The engine holds its role's lock while it runs (read, never taken here: taking it even for
+    // an instant could refuse an engine that is starting).
+    if instance.holder("engine").is_none() {
         bail!(
             "no engine is running in instance {:?}: start the scene first (`lungdyn demo --scene FILE \
              --instance {}`)",

@@ -151,6 +151,23 @@ impl Instance {
         std::env::temp_dir().join("lungdyn-locks")
     }
 
+    /// The process that holds `role`'s lock in this instance, if one is running — read without
+    /// touching the lock (taking it to test, even for an instant, could refuse the real owner as it
+    /// starts). From the pid the holder wrote into its lock file, checked alive in `/proc`.
+    pub fn holder(&self, role: &str) -> Option<u32> {
+        let path = Self::lock_dir().join(format!("{}.{role}.lock", self.name));
+        let text = std::fs::read_to_string(path).ok()?;
+        let pid: u32 = text
+            .strip_prefix("process ")?
+            .split_whitespace()
+            .next()?
+            .parse()
+            .ok()?;
+        std::path::Path::new(&format!("/proc/{pid}"))
+            .exists()
+            .then_some(pid)
+    }
+
     /// Take the exclusive lock of `role` ("launcher", "engine", "renderer", "tracker-bridge") in this
     /// instance. A second process of the same role and instance is refused with a message naming
     /// the one that holds it; never waits.
