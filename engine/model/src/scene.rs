@@ -587,6 +587,14 @@ impl Scene {
         }
     }
 
+    /// How the scene at `path` (or the built-in default) is named in messages.
+    pub fn origin(path: Option<&Path>) -> String {
+        path.map_or_else(
+            || "(built-in default)".to_string(),
+            |p| p.display().to_string(),
+        )
+    }
+
     /// Load `path` if given, else the default scene.
     pub fn load_or_default(path: Option<&Path>) -> Result<Self, SceneError> {
         match path {

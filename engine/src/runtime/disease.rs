@@ -107,8 +107,6 @@ pub struct TensionRun {
     exhale: PhaseConstants,
     /// Cycles moved into the lungs so far.
     pub cycles_run: u64,
-    /// Cycles prepared so far.
-    pub prepared_count: u64,
     requested: bool,
     /// The interventions as applied (arrival tick, cycle, outcome), in order.
     pub events: Vec<EventRecord>,
@@ -255,7 +253,6 @@ impl TensionRun {
             inhale: normal.inhale.clone(),
             exhale: normal.exhale.clone(),
             cycles_run: 0,
-            prepared_count: 0,
             requested: false,
             events: Vec::with_capacity(64),
             reported: 0,
@@ -340,7 +337,6 @@ impl TensionRun {
     pub fn deliver(&mut self, cycle: CourseCycle) {
         self.prepared = Some(cycle);
         self.requested = false;
-        self.prepared_count += 1;
     }
 
     /// Prepare the next cycle here and now if it is not ready (tests, tools; the engine process
@@ -424,14 +420,6 @@ impl DiseaseRun {
         run.started = true;
         run.last_start = tick;
         run.cycles_run += 1;
-    }
-
-    /// Cycles prepared so far (changes when [`Self::prepare_ahead`] did work).
-    pub fn prepared_count(&self) -> u64 {
-        match self {
-            DiseaseRun::Tension(run) => run.prepared_count,
-            DiseaseRun::Closed(_) => 0,
-        }
     }
 
     /// See [`TensionRun::next_recipe`]; `None` for a closed pneumothorax.

@@ -286,7 +286,7 @@ pub fn run(args: &EngineArgs) -> Result<(), EngineError> {
     let _lock = instance.lock("engine")?;
     pin_to_core(args.cpu, "engine")?;
     let scene = Scene::load_or_default(args.scene.as_deref())?;
-    scene.refuse_unsimulated_disease(&scene_origin(args.scene.as_deref()))?;
+    scene.refuse_unsimulated_disease(&Scene::origin(args.scene.as_deref()))?;
     let mut core = EngineCore::new(&scene)?;
     let node = iox::node(&instance, "engine")?;
     let mut tracker = instance.tracker_inlet(&node)?;
@@ -333,14 +333,6 @@ pub fn run(args: &EngineArgs) -> Result<(), EngineError> {
         ));
     }
     Ok(())
-}
-
-/// How a scene is named in messages: its path, or the built-in default.
-fn scene_origin(path: Option<&std::path::Path>) -> String {
-    path.map_or_else(
-        || "(built-in default)".to_string(),
-        |p| p.display().to_string(),
-    )
 }
 
 #[cfg(test)]
