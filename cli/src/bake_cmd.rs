@@ -115,6 +115,10 @@ pub struct BakeSummary {
     pub reference_delta_ml: f64,
     /// Orientations the errors are taken over.
     pub orientations: u32,
+    /// The tumour baked in (`--scene` with a `[disease] kind = "tumour"` on this lung): what the
+    /// kernel change did and the centre's motion per unit scale.
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub tumour: Option<lung_model::disease::tumour::TumourMeta>,
 }
 
 /// Peak resident set size of this process in MiB (Linux), 0 elsewhere.
@@ -234,6 +238,7 @@ pub fn bake(args: &BakeArgs) -> anyhow::Result<BakeSummary> {
         basis_max_error_mm: orientation.map_or(0.0, |o| o.basis_max_error_mm),
         reference_delta_ml: orientation.map_or(0.0, |o| o.reference_delta_ml),
         orientations: orientation.map_or(0, |o| o.orientations_checked),
+        tumour: k.meta.tumour.clone(),
     })
 }
 

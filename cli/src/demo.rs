@@ -351,7 +351,6 @@ pub fn run(args: &DemoArgs) -> anyhow::Result<DemoReport> {
     }
     // Every argument is checked before anything is written (kernels are baked below).
     let mut loaded = lung_model::scene::Scene::load_or_default(args.scene.as_deref())?;
-    loaded.refuse_unsimulated_disease(&lung_model::scene::Scene::origin(args.scene.as_deref()))?;
     if let Some(mode) = args.mode {
         loaded.lungs.mode = mode;
     }

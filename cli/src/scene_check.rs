@@ -3,9 +3,10 @@
 //! report is the disease model's course computed from the tick-independent library
 //! (`lung_model::disease`, EQUATIONS.md §4): a closed pneumothorax's plan (eq. 8.1–8.9), a tension
 //! pneumothorax cycle by cycle with the scene's timed interventions (eq. 8.10–8.13), a tumour's
-//! parameters (eq. 8.14–8.22). The engine runs the pneumothorax states (`engine::runtime::disease`,
-//! the same course); a tumour scene is refused by the engine and the demo (its kernel change is not
-//! baked yet) instead of breathing normally.
+//! parameters and raised resistance (eq. 8.9, 8.14–8.22). The engine runs every state
+//! (`engine::runtime::disease`, the same course); a tumour's kernel change is baked into the affected
+//! lung's kernel (`lungdyn scene prepare`, or `lungdyn bake --scene`), and `scene run` reports the
+//! tumour centre's trajectory.
 
 use std::path::PathBuf;
 
@@ -103,19 +104,65 @@ pub fn run(args: &CheckArgs) -> anyhow::Result<Value> {
             onset_s,
             events,
         } => tension(*params, *onset_s, events, &normal, &baselines, args.cycles)?,
-        DiseaseSpec::Tumour(t) => json!({
-            "kind": "tumour",
-            "side": t.side.name(),
-            "parameters": format!("{t:?}"),
-            "simulated": false,
-            "note": "the tumour's kernel change (eq. 8.14-8.22) needs a bake with the tumour region; \
-                     not wired into `lungdyn bake` yet",
-        }),
+        DiseaseSpec::Tumour(t) => tumour(t, &scene, &normal, &baselines)?,
     };
     out["disease"]["kind"] = json!(d.kind.name());
-    out["disease"]["engine_applies_it"] =
-        json!(d.kind != lung_model::scene_disease::DiseaseKind::Tumour);
+    out["disease"]["engine_applies_it"] = json!(true);
     Ok(out)
+}
+
+/// A tumour's report without baking: where its centre is, that it lies inside the lung, how many
+/// surface vertices its expandability reaches, and the raised resistance (eq. 8.9).
+fn tumour(
+    t: &lung_model::disease::tumour::Tumour,
+    scene: &Scene,
+    normal: &NormalBreathing,
+    lungs: &[LungBaseline],
+) -> anyhow::Result<Value> {
+    use lung_model::disease::tumour as tu;
+    let mesh = lung_mesh(scene, t.side)?;
+    let centre = t.centre_mm(&mesh);
+    let winding = tu::winding_number(&mesh, centre);
+    if !(winding > 0.5) {
+        return Err(lung_model::disease::DiseaseError::from(
+            tu::TumourError::CentreOutside {
+                side: t.side.name(),
+                centre_mm: centre,
+                winding,
+            },
+        ))
+        .context("[disease.tumour] centre");
+    }
+    let lung = lungs
+        .iter()
+        .find(|b| b.side == t.side)
+        .context("the tumour's lung is not in the scene")?;
+    let (_, _, [ri, re]) = t.resistance(&normal.inhale, &normal.exhale, lung.start_volume_ml)?;
+    let affected = t
+        .expandability_of(&mesh)
+        .iter()
+        .filter(|&&a| a < 1.0)
+        .count();
+    Ok(json!({
+        "side": t.side.name(),
+        "centre": t.centre,
+        "centre_mm": centre.map(r3),
+        "radii_mm": t.radii_mm,
+        "volume_ml": r3(t.volume_ml()),
+        "expandability": t.expandability,
+        "falloff": t.falloff,
+        "coupling": t.coupling,
+        "phi_variant": format!("{:?}", t.phi).to_lowercase(),
+        "surface_vertices_affected": affected,
+        "resistance_x": { "inhale": ri.x, "exhale": re.x },
+        "note": if affected == 0 {
+            "no surface vertex lies within the tumour's reach (radius x (1 + falloff)): the kernel \
+             and the motion are unchanged; only the PV resistance rises"
+        } else {
+            "the kernel change (eq. 8.14-8.20) is baked into the lung's kernel by `lungdyn scene \
+             prepare`/`demo`/`scene run`; `scene run` reports the centre's motion"
+        },
+    }))
 }
 
 fn closed(
@@ -352,12 +399,130 @@ pub struct RunArgs {
     /// Simulated seconds (the engine's tick function, as fast as it runs: no processes, no GPU).
     #[arg(long, default_value_t = 60.0)]
     pub seconds: f64,
-    /// Folder for the kernels the scene lacks (baked once, reused).
+    /// Folder for the kernels the scene lacks (baked once, reused) and, for a tumour, the centre's
+    /// trajectory over the last complete breath (`tumour_trajectory.csv`).
     #[arg(long, default_value = "out")]
     pub out: PathBuf,
     /// Print one JSON object on stdout.
     #[arg(long)]
     pub json: bool,
+}
+
+/// A tumour centre followed through the run (the radiotherapy planner's output).
+struct TumourFollow {
+    slot: usize,
+    meta: lung_model::disease::tumour::TumourMeta,
+    mode: lung_model::deform::modes::DeformMode,
+    /// `(tick, cycle, volume ml, position mm, tumour-free position mm)` of the breath in progress.
+    current: Vec<(u64, u32, f64, [f64; 3], [f64; 3])>,
+    last: Vec<(u64, u32, f64, [f64; 3], [f64; 3])>,
+    cycle: u32,
+    bad: u64,
+}
+
+impl TumourFollow {
+    fn new(scene: &Scene) -> anyhow::Result<Option<Self>> {
+        let Some(t) = scene.tumour() else {
+            return Ok(None);
+        };
+        let kernel = scene.lung_kernel(t.side)?;
+        let meta = kernel.meta().tumour.clone().with_context(|| {
+            format!(
+                "{}: the kernel has no tumour record (baked before lungdyn recorded it); bake it again",
+                scene.lungs.kernels.get(t.side).map_or_else(String::new, |p| p.display().to_string())
+            )
+        })?;
+        Ok(Some(Self {
+            slot: t.side.index(),
+            meta,
+            mode: scene.lungs.mode,
+            current: Vec::new(),
+            last: Vec::new(),
+            cycle: 0,
+            bad: 0,
+        }))
+    }
+
+    fn record(&mut self, tick: u64, f: &ipc_types::EngineFrame) {
+        let l = &f.lungs[self.slot];
+        if !l.is_active() {
+            return;
+        }
+        let n = (l.coeff_count as usize).min(ipc_types::MAX_COEFFS);
+        let Some(d) = self.meta.displacement_mm(self.mode, &l.coeffs[..n]) else {
+            self.bad += 1;
+            return;
+        };
+        let (s, c) = (l.deform_scale as f64, l.collapse as f64);
+        let (h, o) = (l.hilum_mm.map(|v| v as f64), l.offset_mm.map(|v| v as f64));
+        let p = self.meta.position_mm(d, s, c, h, o);
+        let q = self
+            .meta
+            .position_mm(self.meta.normal_precomputed_mm, s, c, h, o);
+        if !p.iter().all(|v| v.is_finite()) {
+            self.bad += 1;
+            return;
+        }
+        if l.cycle != self.cycle {
+            self.last = std::mem::take(&mut self.current);
+            self.cycle = l.cycle;
+        }
+        self.current.push((tick, l.cycle, l.volume_ml as f64, p, q));
+    }
+
+    /// Motion amplitude per axis (max − min) over the last complete breath (the breath in progress
+    /// when none completed), mm: the tumour's and the tumour-free centre's.
+    fn amplitudes(&self) -> ([f64; 3], [f64; 3]) {
+        let rows = if self.last.is_empty() {
+            &self.current
+        } else {
+            &self.last
+        };
+        let range = |pick: &dyn Fn(&(u64, u32, f64, [f64; 3], [f64; 3])) -> [f64; 3]| {
+            [0, 1, 2].map(|a| {
+                let (lo, hi) = rows
+                    .iter()
+                    .fold((f64::INFINITY, f64::NEG_INFINITY), |(l, h), r| {
+                        (l.min(pick(r)[a]), h.max(pick(r)[a]))
+                    });
+                if lo.is_finite() {
+                    r3(hi - lo)
+                } else {
+                    0.0
+                }
+            })
+        };
+        (range(&|r| r.3), range(&|r| r.4))
+    }
+
+    /// The last complete breath as CSV, written atomically to `path`.
+    fn write_csv(&self, path: &std::path::Path, tick_hz: f64) -> anyhow::Result<()> {
+        let rows = if self.last.is_empty() {
+            &self.current
+        } else {
+            &self.last
+        };
+        lung_model::mesh::io::write_atomically(path, |w| {
+            use std::io::Write;
+            writeln!(
+                w,
+                "# tumour centre over one breath, body frame mm (+X left, +Y anterior, +Z superior); \
+                 normal_* = the same centre in the lung without the tumour"
+            )?;
+            writeln!(w, "tick,time_s,cycle,volume_ml,x_mm,y_mm,z_mm,normal_x_mm,normal_y_mm,normal_z_mm")?;
+            for (tick, cycle, v, p, q) in rows {
+                writeln!(
+                    w,
+                    "{tick},{:.6},{cycle},{v:.3},{:.4},{:.4},{:.4},{:.4},{:.4},{:.4}",
+                    *tick as f64 / tick_hz,
+                    p[0], p[1], p[2], q[0], q[1], q[2]
+                )?;
+            }
+            Ok(())
+        })
+        .with_context(|| format!("cannot write {}", path.display()))?;
+        Ok(())
+    }
 }
 
 /// Run `args.file` through the engine's tick function for `--seconds` of simulated time (fixed
@@ -373,10 +538,10 @@ pub fn run_scene(args: &RunArgs) -> anyhow::Result<Value> {
     }
     let scene = Scene::load(&args.file)?;
     let origin = args.file.display().to_string();
-    scene.refuse_unsimulated_disease(&origin)?;
     let prepared = crate::prepare::prepare(scene, &args.out.join("kernels"))?;
     let scene = prepared.scene;
     let mut core = engine::runtime::EngineCore::new(&scene)?;
+    let mut follow = TumourFollow::new(&scene)?;
     let ticks = (s * scene.engine.tick_hz).round().max(1.0) as u64;
     let mut f = ipc_types::EngineFrame::default();
     let n = ipc_types::NUM_LUNGS;
@@ -403,6 +568,9 @@ pub fn run_scene(args: &RunArgs) -> anyhow::Result<Value> {
         input.tools[ipc_types::TOOL_PATIENT].pose.translation_mm =
             tracker_bridge::synthetic::STERNUM_MM.to_array();
         core.step(tick, Some(&input), &mut f);
+        if let Some(t) = &mut follow {
+            t.record(tick, &f);
+        }
         for (k, l) in f.lungs.iter().enumerate() {
             if !l.is_active() {
                 continue;
@@ -481,6 +649,30 @@ pub fn run_scene(args: &RunArgs) -> anyhow::Result<Value> {
                 })
                 .collect();
         }
+        if let (Some(engine::runtime::disease::DiseaseRun::Tumour(run)), Some(t)) =
+            (core.disease(), &follow)
+        {
+            let (amp, normal_amp) = t.amplitudes();
+            let csv = args.out.join("tumour_trajectory.csv");
+            t.write_csv(&csv, hz)?;
+            let m = &t.meta;
+            disease["tumour"] = json!({
+                "side": run.side.name(),
+                "centre_mm": m.centre_mm.map(r3),
+                "volume_ml": r3(m.volume_ml),
+                "vertices_affected": m.vertices_affected,
+                "kernel_entries_changed": m.entries_changed,
+                "kernel_entries_clamped": m.entries_clamped,
+                "affected_motion_change_percent": { "mean": r3(m.affected_motion_change_percent[0]), "max": r3(m.affected_motion_change_percent[1]) },
+                "resistance_x": { "inhale": run.resistance[0].x, "exhale": run.resistance[1].x },
+                "trajectory_csv": csv.display().to_string(),
+                "trajectory_ticks": if t.last.is_empty() { t.current.len() } else { t.last.len() },
+                "non_finite_positions": t.bad,
+            });
+            disease["tumour_motion_mm"] = json!({ "x": amp[0], "y": amp[1], "z": amp[2] });
+            disease["tumour_motion_normal_mm"] =
+                json!({ "x": normal_amp[0], "y": normal_amp[1], "z": normal_amp[2] });
+        }
         if matches!(
             d.kind,
             lung_model::scene_disease::DiseaseKind::ClosedPneumothorax
@@ -557,6 +749,20 @@ pub fn run_text(v: &Value) -> String {
             );
         }
         s += "\n";
+        if let Some(m) = d.get("tumour_motion_mm") {
+            s += &format!(
+                "  tumour centre {} mm moves {} / {} / {} mm (x / y / z) over the last breath (without \
+                 the tumour: {} / {} / {} mm); trajectory in {}\n",
+                d["tumour"]["centre_mm"],
+                m["x"],
+                m["y"],
+                m["z"],
+                d["tumour_motion_normal_mm"]["x"],
+                d["tumour_motion_normal_mm"]["y"],
+                d["tumour_motion_normal_mm"]["z"],
+                d["tumour"]["trajectory_csv"].as_str().unwrap_or("")
+            );
+        }
         for e in d["events"].as_array().into_iter().flatten() {
             s += &format!(
                 "  event at tick {} (cycle {}): {} {} — {}\n",

@@ -289,6 +289,7 @@ pub fn run(args: &TradeoffArgs) -> anyhow::Result<Tradeoff> {
             side,
             kernel_id: 0,
             lung: lung.clone(),
+            tumour: None,
         };
         let time_gpu = |lung: &CpuLung, coeffs: &[f32]| -> anyhow::Result<Option<f64>> {
             let Some(gpu) = &gpu else { return Ok(None) };
@@ -585,6 +586,7 @@ fn stereo_figure(
                 side: Side::Left,
                 kernel_id: 0,
                 lung: lung.clone(),
+                tumour: None,
             }],
         )?;
         let mut state = renderer::DrawState {

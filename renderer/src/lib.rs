@@ -21,6 +21,7 @@ pub mod gpu;
 pub mod predict;
 pub mod present;
 pub mod process;
+pub mod tumour;
 pub mod window;
 
 pub use deform::{LungInputs, RenderLung, UploadError};
@@ -82,6 +83,7 @@ pub struct LungRenderer {
     eyes: usize,
     settings: RenderScene,
     timestamps: Option<Timestamps>,
+    tumours: Vec<tumour::TumourDraw>,
 }
 
 const BACKGROUND: wgpu::Color = wgpu::Color {
@@ -106,6 +108,18 @@ impl LungRenderer {
             settings.mode == DrawMode::Triangles,
         )?;
         let draw = draw::DrawPipelines::new(device);
+        let tumours = lungs
+            .iter()
+            .filter_map(|l| {
+                let t = l.tumour.as_ref()?;
+                Some(tumour::TumourDraw::new(
+                    device,
+                    l.side.index(),
+                    t,
+                    l.lung.data.mode(),
+                ))
+            })
+            .collect();
         let mut indices: Vec<u32> = Vec::new();
         let mut offset = 0u32;
         for lung in lungs {
@@ -194,6 +208,7 @@ impl LungRenderer {
             eyes,
             settings: settings.clone(),
             timestamps,
+            tumours,
         })
     }
 
@@ -305,6 +320,19 @@ impl LungRenderer {
         for (buffer, eye) in self.draw.eye_buffers.iter().zip(&eyes[..n]) {
             queue.write_buffer(buffer, 0, bytemuck::bytes_of(eye));
         }
+        for t in &self.tumours {
+            let k = t.slot;
+            t.update(
+                queue,
+                t.centre_mm(
+                    state.deform_scale[k],
+                    &state.coeffs[k],
+                    state.collapse[k],
+                    state.hilum_mm[k],
+                    state.offset_mm[k],
+                ),
+            );
+        }
         let mut encoder = gpu
             .device
             .create_command_encoder(&wgpu::CommandEncoderDescriptor {
@@ -350,16 +378,16 @@ impl LungRenderer {
                 occlusion_query_set: None,
                 multiview_mask: None,
             });
-            pass.set_vertex_buffer(0, self.deform.deformed.slice(..));
-            match s.mode {
-                DrawMode::Triangles => {
-                    pass.set_vertex_buffer(1, self.deform.normals.slice(..));
-                    pass.set_pipeline(&self.draw.triangles);
-                    pass.set_index_buffer(self.index.slice(..), wgpu::IndexFormat::Uint32);
-                }
-                DrawMode::Points => pass.set_pipeline(&self.draw.splats),
-            }
             for (i, group) in self.draw.eye_groups.iter().take(n).enumerate() {
+                pass.set_vertex_buffer(0, self.deform.deformed.slice(..));
+                match s.mode {
+                    DrawMode::Triangles => {
+                        pass.set_vertex_buffer(1, self.deform.normals.slice(..));
+                        pass.set_pipeline(&self.draw.triangles);
+                        pass.set_index_buffer(self.index.slice(..), wgpu::IndexFormat::Uint32);
+                    }
+                    DrawMode::Points => pass.set_pipeline(&self.draw.splats),
+                }
                 pass.set_viewport(
                     (i as u32 * self.eye_width) as f32,
                     0.0,
@@ -372,6 +400,14 @@ impl LungRenderer {
                 match s.mode {
                     DrawMode::Triangles => pass.draw_indexed(0..self.index_count, 0, 0..1),
                     DrawMode::Points => pass.draw(0..6, 0..self.deform.count),
+                }
+                // The tumour over the lungs it lies inside (no depth test): the planner's target.
+                for t in &self.tumours {
+                    pass.set_pipeline(&self.draw.tumour);
+                    pass.set_vertex_buffer(0, t.positions.slice(..));
+                    pass.set_vertex_buffer(1, t.normals.slice(..));
+                    pass.set_index_buffer(t.index.slice(..), wgpu::IndexFormat::Uint32);
+                    pass.draw_indexed(0..t.index_count, 0, 0..1);
                 }
             }
         }

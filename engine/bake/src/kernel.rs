@@ -19,6 +19,7 @@ use lung_model::mesh::{Side, TriMesh};
 
 use crate::operator::{compute_transfer, NodeGraph, OperatorError, Schedule, Transfer};
 use crate::orient::{basis_error, orientation_set, reference_delta_ml, Responses, ShProjection};
+use lung_model::disease::tumour::{RowChange, Tumour, TumourMeta};
 use lung_model::kernel::{OrientationMeta, ShMeta};
 
 /// A baked lung, in memory.
@@ -59,6 +60,17 @@ pub enum BakeError {
     /// The spherical-harmonic form cannot be baked.
     #[error("spherical harmonics: {0}")]
     Sh(#[from] crate::orient::ShError),
+    /// The tumour cannot be applied to this lung.
+    #[error("{0}")]
+    Tumour(#[from] lung_model::disease::DiseaseError),
+    /// The tumour is in the other lung.
+    #[error("the tumour is in the {tumour} lung; this bake is of the {lung} lung")]
+    TumourSide {
+        /// The tumour's lung.
+        tumour: &'static str,
+        /// The lung being baked.
+        lung: &'static str,
+    },
     /// Band count out of range.
     #[error("--bands {0}: 0 (none) to {max} are supported (n² ≤ 64 coefficients travel per lung per frame)", max = lung_model::kernel::MAX_RUNTIME_BANDS)]
     Bands(u32),
@@ -76,15 +88,26 @@ pub fn bake(
         return Err(BakeError::Bands(settings.sh_bands));
     }
     lung_model::mesh::check(&mesh)?;
+    if let Some(t) = &settings.tumour {
+        // Before the expensive pass: a tumour outside this lung is refused at once.
+        check_tumour(t, side, &mesh)?;
+    }
     let bb = mesh.aabb();
     let norm = |p| normalised_position(p, &bb, side);
     let graph = NodeGraph::from_mesh(&mesh, &settings.elasticity, norm)?;
-    let transfer = compute_transfer(
+    let mut transfer = compute_transfer(
         &graph,
         settings.tolerance,
         Schedule::SpringsForward,
         progress,
     )?;
+    // Seed §8.2: a tumour changes the transfer rows (eq. 8.14–8.20) before everything derived from
+    // them — the elastostatic force, the unit displacement, the basis responses and the SH
+    // coefficients — so every deformation mode draws the tumour-influenced lung (EQUATIONS §4.4).
+    let tumour_change = match &settings.tumour {
+        None => None,
+        Some(t) => Some(apply_tumour(t, &mesh, &mut transfer)?),
+    };
     let force: Vec<f64> = mesh
         .positions
         .iter()
@@ -164,6 +187,22 @@ pub fn bake(
     } else {
         (None, None)
     };
+    let tumour = match (tumour_change, &settings.tumour) {
+        (Some((change, normal_transfer)), Some(t)) => Some(tumour_meta(
+            t,
+            &change,
+            &normal_transfer,
+            &force,
+            settings,
+            &model,
+            &directions,
+            force_scale,
+            &basis,
+            sh.as_deref()
+                .map(|v| (v, sh_meta.as_ref().map_or(0, |m| m.bands as usize))),
+        )?),
+        _ => None,
+    };
     let meta = KernelMeta {
         side,
         units: "mm".into(),
@@ -185,6 +224,7 @@ pub fn bake(
             orientations_checked: orientations.len() as u32,
         }),
         sh: sh_meta,
+        tumour,
     };
     Ok(Kernel {
         meta,
@@ -196,6 +236,148 @@ pub fn bake(
         transfer,
         basis,
         sh,
+    })
+}
+
+/// The tumour's parameters, its lung and that its centre lies inside the surface (winding number).
+pub fn check_tumour(t: &Tumour, side: Side, mesh: &TriMesh) -> Result<(), BakeError> {
+    use lung_model::disease::tumour as tu;
+    if t.side != side {
+        return Err(BakeError::TumourSide {
+            tumour: t.side.name(),
+            lung: side.name(),
+        });
+    }
+    t.validate()?;
+    let centre = t.centre_mm(mesh);
+    let winding = tu::winding_number(mesh, centre);
+    if !(winding > 0.5) {
+        return Err(
+            lung_model::disease::DiseaseError::from(tu::TumourError::CentreOutside {
+                side: t.side.name(),
+                centre_mm: centre,
+                winding,
+            })
+            .into(),
+        );
+    }
+    Ok(())
+}
+
+/// Eq. 8.14–8.20 on `transfer` in place (the tumour kernel); returns what changed and the
+/// tumour-free rows (for the comparison track). The centre must lie inside the surface.
+fn apply_tumour(
+    t: &Tumour,
+    mesh: &TriMesh,
+    transfer: &mut Transfer,
+) -> Result<(RowChange, Transfer), BakeError> {
+    use lung_model::disease::tumour as tu;
+    let a = t.expandability_of(mesh);
+    let phi = tu::phi_values(mesh, t.side, t.phi);
+    let reach = tu::kernel_reach_mm(&mesh.positions, &transfer.row_ptr, &transfer.cols)
+        .map_err(lung_model::disease::DiseaseError::from)?;
+    let normal = transfer.clone();
+    let change = tu::modify_rows(
+        &mesh.positions,
+        &normal.row_ptr,
+        &normal.cols,
+        &normal.vals,
+        &a,
+        &phi,
+        t.coupling,
+        reach,
+        &mut transfer.vals,
+    )?;
+    Ok((change, normal))
+}
+
+/// The tumour's record in the kernel: its centre's response in every mode from the stored data
+/// (`TumourMeta`), and the track the same centre has in the tumour-free lung.
+#[allow(clippy::too_many_arguments)]
+fn tumour_meta(
+    t: &Tumour,
+    change: &RowChange,
+    normal_transfer: &Transfer,
+    force: &[f64],
+    settings: &BakeSettings,
+    model: &LungModel,
+    directions: &[[f32; 3]],
+    force_scale: f64,
+    basis: &[[f32; 4]],
+    sh: Option<(&[f32], usize)>,
+) -> Result<TumourMeta, BakeError> {
+    use lung_model::disease::tumour as tu;
+    let mesh = &model.mesh;
+    let centre = t.centre_mm(mesh);
+    let tumour_err = |e: tu::TumourError| BakeError::Tumour(e.into());
+    let weights = tu::mean_value_weights(mesh, centre).map_err(tumour_err)?;
+    let kd: Vec<[f32; 3]> = directions
+        .iter()
+        .map(|d| d.map(|v| v * force_scale as f32))
+        .collect();
+    let precomputed_mm = tu::TumourTrack::new(mesh, &model.unit_displacement, centre)
+        .map_err(tumour_err)?
+        .unit_displacement_mm;
+    let basis_flat: Vec<f32> = basis.iter().flatten().copied().collect();
+    let b = tu::weighted_rows(&weights, &basis_flat, 4, &kd);
+    let sh_mm = match sh {
+        Some((coeffs, bands)) if bands > 0 => {
+            tu::weighted_rows(&weights, coeffs, bands * bands, &kd)
+        }
+        _ => Vec::new(),
+    };
+    // The same centre in the lung without the tumour.
+    let normal_force = normal_transfer.elastostatic(force);
+    let (normal, _, _) = match &settings.direction_field {
+        Some(_) => LungModel::from_force_and_directions(
+            t.side,
+            mesh.clone(),
+            directions
+                .iter()
+                .map(|d| glam::DVec3::from(d.map(|v| v as f64)))
+                .collect(),
+            &normal_force,
+        )?,
+        None => LungModel::from_force(t.side, mesh.clone(), &settings.motion, &normal_force)?,
+    };
+    let normal_track =
+        tu::TumourTrack::new(mesh, &normal.unit_displacement, centre).map_err(tumour_err)?;
+    let a = t.expandability_of(mesh);
+    let (mut sum, mut max, mut count) = (0.0f64, 0.0f64, 0usize);
+    for ((u, v), &a) in model
+        .unit_displacement
+        .iter()
+        .zip(&normal.unit_displacement)
+        .zip(&a)
+    {
+        let norm = v.iter().map(|&x| (x as f64).powi(2)).sum::<f64>().sqrt();
+        if a >= 1.0 || norm == 0.0 {
+            continue;
+        }
+        let diff = (0..3)
+            .map(|k| (u[k] as f64 - v[k] as f64).powi(2))
+            .sum::<f64>()
+            .sqrt();
+        let change = 100.0 * diff / norm;
+        sum += change;
+        max = max.max(change);
+        count += 1;
+    }
+    Ok(TumourMeta {
+        tumour: *t,
+        centre_mm: centre,
+        volume_ml: t.volume_ml(),
+        vertices_affected: count as u64,
+        affected_motion_change_percent: [if count > 0 { sum / count as f64 } else { 0.0 }, max],
+        entries_changed: change.changed,
+        entries_clamped: change.clamped,
+        entries_nonpositive: change.nonpositive,
+        reach_mm: change.reach_mm,
+        factor_range: [change.min_factor, change.max_factor],
+        precomputed_mm,
+        normal_precomputed_mm: normal_track.unit_displacement_mm,
+        basis_mm: [b[0], b[1], b[2], b[3]],
+        sh_mm,
     })
 }
 

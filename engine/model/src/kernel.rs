@@ -116,6 +116,11 @@ pub struct BakeSettings {
     /// orientation set): the bake keeps the fewest bands that meet it (EQUATIONS.md §3.2).
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub max_error_mm: Option<f64>,
+    /// A tumour region (seed §8.2): the bake changes the transfer rows by eq. 8.14–8.20 before
+    /// everything derived from them (EQUATIONS §4.4). Part of the settings, so a kernel names the
+    /// tumour it carries and a cached bake is reused only for the same tumour.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub tumour: Option<crate::disease::tumour::Tumour>,
 }
 
 /// Bands baked by default (the seed's 16 coefficients).
@@ -140,6 +145,7 @@ impl BakeSettings {
             tolerance: DEFAULT_TOLERANCE,
             sh_bands: DEFAULT_SH_BANDS,
             max_error_mm: None,
+            tumour: None,
         }
     }
 }
@@ -225,6 +231,9 @@ pub struct KernelMeta {
     /// The spherical-harmonic mode's data (absent when baked with 0 bands or before it existed).
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub sh: Option<ShMeta>,
+    /// The tumour the kernel was baked with, and how its centre moves (seed §8.2).
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub tumour: Option<crate::disease::tumour::TumourMeta>,
 }
 
 /// Errors reading or writing a kernel file.
@@ -1133,6 +1142,7 @@ mod tests {
             written_by: "test".into(),
             orientation: None,
             sh: None,
+            tumour: None,
         };
         write_file(
             path,

@@ -356,13 +356,6 @@ pub enum SceneValueError {
     /// The motion constants file named by `[lungs] motion` is unusable.
     #[error("[lungs] motion: {0}")]
     Motion(#[source] crate::deform::MotionFileError),
-    /// The scene has a disease state the running engine does not apply yet.
-    #[error(
-        "[disease] kind = \"{0}\": the engine does not simulate this disease state yet (the tumour's \
-         kernel change needs a bake with the tumour region; `lungdyn scene check FILE` validates the \
-         table); remove [disease] to run the scene's lungs breathing normally"
-    )]
-    DiseaseNotSimulated(&'static str),
     /// The `[disease]` table is unusable (the message names the key).
     #[error("[disease]: {0}")]
     Disease(#[source] crate::scene_disease::DiseaseSceneError),
@@ -435,6 +428,36 @@ pub enum LungLoadError {
         /// Side in the scene.
         scene: &'static str,
     },
+    /// The kernel carries another tumour than the scene (or one where the scene has none, or none
+    /// where the scene has one): its breathing would silently be the wrong lung's.
+    #[error(
+        "{}: the kernel was baked {kernel} but the scene's {side} lung has {scene}; bake it with \
+         `lungdyn bake --scene <this scene>`, or leave [lungs] kernels out and let lungdyn bake it",
+        path.display()
+    )]
+    TumourMismatch {
+        /// Kernel file.
+        path: std::path::PathBuf,
+        /// Which lung.
+        side: &'static str,
+        /// What the kernel has.
+        kernel: String,
+        /// What the scene has.
+        scene: String,
+    },
+}
+
+fn describe_tumour(t: Option<&crate::disease::tumour::Tumour>, baked: bool) -> String {
+    match t {
+        None if baked => "without a tumour".into(),
+        None => "no tumour".into(),
+        Some(t) => format!(
+            "{}a tumour at centre {:?} with radii {:?} mm",
+            if baked { "with " } else { "" },
+            t.centre,
+            t.radii_mm
+        ),
+    }
 }
 
 impl Scene {
@@ -469,6 +492,15 @@ impl Scene {
                 path: path.to_path_buf(),
                 kernel: file.meta().side.name(),
                 scene: side.name(),
+            });
+        }
+        let wanted = self.tumour().filter(|t| t.side == side);
+        if file.meta().settings.tumour != wanted {
+            return Err(LungLoadError::TumourMismatch {
+                path: path.to_path_buf(),
+                side: side.name(),
+                kernel: describe_tumour(file.meta().settings.tumour.as_ref(), true),
+                scene: describe_tumour(wanted.as_ref(), false),
             });
         }
         let mode = self.lungs.mode;
@@ -570,21 +602,6 @@ impl Scene {
             source,
         })?;
         Ok(scene)
-    }
-
-    /// Refuse a scene whose disease state the engine does not run (a tumour: its kernel change needs
-    /// a bake with the tumour region, not built yet), where breathing it normally would be a silent
-    /// wrong answer. Pneumothorax scenes run.
-    pub fn refuse_unsimulated_disease(&self, origin: &str) -> Result<(), SceneError> {
-        match &self.disease {
-            Some(d) if d.kind == crate::scene_disease::DiseaseKind::Tumour => {
-                Err(SceneError::Invalid {
-                    path: origin.to_string(),
-                    source: SceneValueError::DiseaseNotSimulated(d.kind.name()),
-                })
-            }
-            _ => Ok(()),
-        }
     }
 
     /// How the scene at `path` (or the built-in default) is named in messages.
@@ -711,7 +728,16 @@ impl Scene {
             tolerance: self.lungs.transfer_tolerance,
             sh_bands: self.lungs.bands,
             max_error_mm: self.lungs.max_error_mm,
+            tumour: self.tumour().filter(|t| t.side == side),
         })
+    }
+
+    /// The scene's tumour, if its `[disease]` is one (validated when the scene was loaded).
+    pub fn tumour(&self) -> Option<crate::disease::tumour::Tumour> {
+        match self.disease.as_ref()?.resolve().ok()? {
+            crate::scene_disease::DiseaseSpec::Tumour(t) => Some(t),
+            _ => None,
+        }
     }
 
     /// Breathing timing of this scene.

@@ -20,8 +20,9 @@
 //!   starts) shows from cycle `k + 1`, i.e. within two breaths. The same rule in
 //!   `lungdyn scene check` gives the same course. Before the onset both lungs breathe normally.
 //!
-//! A tumour needs a kernel baked with the tumour region and is refused by the engine and the demo
-//! (`Scene::refuse_unsimulated_disease`).
+//! * **Tumour** (seed §8.2): the kernel carries the change of the lung's deformation (baked with the
+//!   tumour region; `Scene::lung_kernel` refuses a kernel with another tumour or none); the run
+//!   raises the affected lung's PV resistance in both phases ([`TumourRun`]), once, at the start.
 
 use lung_model::disease::closed::ClosedPlan;
 use lung_model::disease::tension::{EventRecord, Intervention, Tension};
@@ -86,6 +87,24 @@ pub enum DiseaseRun {
     Closed(Vec<LungSetup>),
     /// Tension pneumothorax.
     Tension(TensionRun),
+    /// Tumour-influenced lung: applied once when the engine is built.
+    Tumour(TumourRun),
+}
+
+/// A tumour-influenced lung (seed §8.2): its kernel change is in the kernel (baked with the tumour
+/// region, `lungdyn bake`/`scene prepare`); what the run adds is the raised resistance of both
+/// phases (eq. 8.9 with `x = φ_r·min(1, V_tumour/V_lung)`, §8.1.3) on the affected lung's PV
+/// cycle. The other lung breathes normally.
+#[derive(Debug, Clone)]
+pub struct TumourRun {
+    /// The affected lung.
+    pub side: Side,
+    /// Its PV cycle with the raised resistance (moved into the lung when the engine is built).
+    pub breathing: Option<Breathing>,
+    /// The changed constants, inhale and exhale.
+    pub constants: (PhaseConstants, PhaseConstants),
+    /// What eq. 8.9 did to each phase.
+    pub resistance: [lung_model::disease::resistance::ResistanceReport; 2],
 }
 
 /// A tension pneumothorax being run, one cycle prepared ahead.
@@ -212,7 +231,26 @@ impl DiseaseRun {
             } => Ok(DiseaseRun::Tension(TensionRun::prepare(
                 *params, *onset_s, events, normal, baselines,
             )?)),
-            DiseaseSpec::Tumour(_) => Err(DiseaseRunError::NotRun("tumour")),
+            DiseaseSpec::Tumour(t) => {
+                let lung = baselines.iter().find(|b| b.side == t.side).ok_or(
+                    DiseaseError::MissingLung {
+                        side: t.side.name(),
+                    },
+                )?;
+                let (i, e, resistance) =
+                    t.resistance(&normal.inhale, &normal.exhale, lung.start_volume_ml)?;
+                let breathing = Breathing::from_constants(&i, &e, normal.boundary, &normal.timing)
+                    .map_err(|source| DiseaseRunError::Breathing {
+                        side: t.side.name(),
+                        source,
+                    })?;
+                Ok(DiseaseRun::Tumour(TumourRun {
+                    side: t.side,
+                    breathing: Some(breathing),
+                    constants: (i, e),
+                    resistance,
+                }))
+            }
         }
     }
 }
@@ -426,7 +464,7 @@ impl DiseaseRun {
     pub fn next_recipe(&mut self) -> Result<Option<Recipe>, DiseaseRunError> {
         match self {
             DiseaseRun::Tension(run) => run.next_recipe(),
-            DiseaseRun::Closed(_) => Ok(None),
+            DiseaseRun::Closed(_) | DiseaseRun::Tumour(_) => Ok(None),
         }
     }
 
@@ -441,7 +479,7 @@ impl DiseaseRun {
     pub fn due_undelivered(&self, tick: u64, lungs: &[(super::LungGeometry, LungBreath)]) -> bool {
         match self {
             DiseaseRun::Tension(run) => run.due_undelivered(tick, lungs),
-            DiseaseRun::Closed(_) => false,
+            DiseaseRun::Closed(_) | DiseaseRun::Tumour(_) => false,
         }
     }
 
@@ -450,7 +488,7 @@ impl DiseaseRun {
     pub fn prepare_ahead(&mut self) -> Result<(), DiseaseRunError> {
         match self {
             DiseaseRun::Tension(run) => run.prepare_ahead(),
-            DiseaseRun::Closed(_) => Ok(()),
+            DiseaseRun::Closed(_) | DiseaseRun::Tumour(_) => Ok(()),
         }
     }
 }

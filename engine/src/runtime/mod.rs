@@ -416,6 +416,14 @@ impl EngineCore {
                 }
             }
         }
+        if let disease::DiseaseRun::Tumour(t) = &mut run {
+            if let (Some((_, breath)), Some(b)) = (
+                self.lungs.iter_mut().find(|(g, _)| g.side == t.side),
+                t.breathing.take(),
+            ) {
+                breath.breathing = b;
+            }
+        }
         self.disease = Some(run);
         Ok(())
     }

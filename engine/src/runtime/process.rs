@@ -286,7 +286,6 @@ pub fn run(args: &EngineArgs) -> Result<(), EngineError> {
     let _lock = instance.lock("engine")?;
     pin_to_core(args.cpu, "engine")?;
     let scene = Scene::load_or_default(args.scene.as_deref())?;
-    scene.refuse_unsimulated_disease(&Scene::origin(args.scene.as_deref()))?;
     let mut core = EngineCore::new(&scene)?;
     let node = iox::node(&instance, "engine")?;
     let mut tracker = instance.tracker_inlet(&node)?;

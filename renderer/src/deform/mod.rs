@@ -23,6 +23,8 @@ pub struct RenderLung {
     pub kernel_id: u64,
     /// Mesh and mode data (the CPU reference uses the same).
     pub lung: CpuLung,
+    /// The tumour the kernel was baked with, drawn in its own colour (seed §8.2).
+    pub tumour: Option<lung_model::disease::tumour::TumourMeta>,
 }
 
 impl RenderLung {
@@ -32,6 +34,7 @@ impl RenderLung {
             side: kernel.meta().side,
             kernel_id: kernel.id(),
             lung: CpuLung::from_kernel(kernel, mode)?,
+            tumour: kernel.meta().tumour.clone(),
         })
     }
 
@@ -47,6 +50,7 @@ impl RenderLung {
                     unit: model.unit_displacement.clone(),
                 },
             ),
+            tumour: None,
         }
     }
 

@@ -23,6 +23,10 @@ struct VsOut {
 };
 
 fn lung_colour(lung: f32) -> vec3<f32> {
+    // A tumour (w = 2, renderer/src/tumour.rs): yellow-green, far from the lungs' hues.
+    if (lung > 1.5) {
+        return vec3<f32>(0.62, 0.95, 0.22);
+    }
     // Right lung slightly warmer than the left, so the two read apart in an overlay.
     return select(vec3<f32>(0.93, 0.52, 0.50), vec3<f32>(0.88, 0.50, 0.62), lung > 0.5);
 }

@@ -14,6 +14,8 @@ pub struct DrawPipelines {
     pub triangles: wgpu::RenderPipeline,
     /// Point splats.
     pub splats: wgpu::RenderPipeline,
+    /// The tumour: shaded triangles drawn through the lung surface (no depth test or write).
+    pub tumour: wgpu::RenderPipeline,
     /// Uniform buffer per eye (left/mono, right).
     pub eye_buffers: [wgpu::Buffer; 2],
     /// Bind group per eye.
@@ -69,45 +71,53 @@ impl DrawPipelines {
             step_mode: wgpu::VertexStepMode::Instance,
             attributes: &position,
         })];
-        let pipeline =
-            |label, vs, fs, buffers: &[Option<wgpu::VertexBufferLayout<'_>>], cull_mode| {
-                device.create_render_pipeline(&wgpu::RenderPipelineDescriptor {
-                    label: Some(label),
-                    layout: Some(&layout),
-                    vertex: wgpu::VertexState {
-                        module: &module,
-                        entry_point: Some(vs),
-                        compilation_options: Default::default(),
-                        buffers,
-                    },
-                    primitive: wgpu::PrimitiveState {
-                        topology: wgpu::PrimitiveTopology::TriangleList,
-                        front_face: wgpu::FrontFace::Ccw,
+        let pipeline = |label,
+                        vs,
+                        fs,
+                        buffers: &[Option<wgpu::VertexBufferLayout<'_>>],
                         cull_mode,
-                        ..Default::default()
-                    },
-                    depth_stencil: Some(wgpu::DepthStencilState {
-                        format: DEPTH_FORMAT,
-                        depth_write_enabled: Some(true),
-                        depth_compare: Some(wgpu::CompareFunction::Less),
-                        stencil: Default::default(),
-                        bias: Default::default(),
+                        through: bool| {
+            device.create_render_pipeline(&wgpu::RenderPipelineDescriptor {
+                label: Some(label),
+                layout: Some(&layout),
+                vertex: wgpu::VertexState {
+                    module: &module,
+                    entry_point: Some(vs),
+                    compilation_options: Default::default(),
+                    buffers,
+                },
+                primitive: wgpu::PrimitiveState {
+                    topology: wgpu::PrimitiveTopology::TriangleList,
+                    front_face: wgpu::FrontFace::Ccw,
+                    cull_mode,
+                    ..Default::default()
+                },
+                depth_stencil: Some(wgpu::DepthStencilState {
+                    format: DEPTH_FORMAT,
+                    depth_write_enabled: Some(!through),
+                    depth_compare: Some(if through {
+                        wgpu::CompareFunction::Always
+                    } else {
+                        wgpu::CompareFunction::Less
                     }),
-                    multisample: Default::default(),
-                    fragment: Some(wgpu::FragmentState {
-                        module: &module,
-                        entry_point: Some(fs),
-                        compilation_options: Default::default(),
-                        targets: &[Some(wgpu::ColorTargetState {
-                            format: COLOR_FORMAT,
-                            blend: None,
-                            write_mask: wgpu::ColorWrites::ALL,
-                        })],
-                    }),
-                    multiview_mask: None,
-                    cache: None,
-                })
-            };
+                    stencil: Default::default(),
+                    bias: Default::default(),
+                }),
+                multisample: Default::default(),
+                fragment: Some(wgpu::FragmentState {
+                    module: &module,
+                    entry_point: Some(fs),
+                    compilation_options: Default::default(),
+                    targets: &[Some(wgpu::ColorTargetState {
+                        format: COLOR_FORMAT,
+                        blend: None,
+                        write_mask: wgpu::ColorWrites::ALL,
+                    })],
+                }),
+                multiview_mask: None,
+                cache: None,
+            })
+        };
         // Closed, outward-wound surfaces: back faces are never visible, cull them.
         let triangles = pipeline(
             "lungdyn triangles",
@@ -115,8 +125,24 @@ impl DrawPipelines {
             "fs_triangles",
             &with_normals,
             Some(wgpu::Face::Back),
+            false,
         );
-        let splats = pipeline("lungdyn splats", "vs_splats", "fs_splats", &instanced, None);
+        let splats = pipeline(
+            "lungdyn splats",
+            "vs_splats",
+            "fs_splats",
+            &instanced,
+            None,
+            false,
+        );
+        let tumour = pipeline(
+            "lungdyn tumour",
+            "vs_triangles",
+            "fs_triangles",
+            &with_normals,
+            Some(wgpu::Face::Back),
+            true,
+        );
         let eye_buffer = |label| {
             device.create_buffer(&wgpu::BufferDescriptor {
                 label: Some(label),
@@ -140,6 +166,7 @@ impl DrawPipelines {
         Self {
             triangles,
             splats,
+            tumour,
             eye_buffers,
             eye_groups,
         }

@@ -127,8 +127,10 @@ pub enum TumourError {
     OnSurface,
 }
 
-/// A tumour (scene keys in brackets).
-#[derive(Debug, Clone, Copy, PartialEq)]
+/// A tumour (scene keys in brackets). Serialised into a kernel's bake settings, so a kernel says
+/// which tumour it was baked with.
+#[derive(Debug, Clone, Copy, PartialEq, serde::Serialize, serde::Deserialize)]
+#[serde(deny_unknown_fields)]
 pub struct Tumour {
     /// Lung (`side`).
     pub side: Side,
@@ -752,6 +754,119 @@ pub fn tumour_lung(
         track,
         normal_track,
     })
+}
+
+/// What a kernel baked with a tumour records of it (`KernelMeta::tumour`): the region, what the
+/// kernel change did, and how the tumour centre moves in every deformation mode.
+///
+/// Every mode's displacement is linear in its per-vertex data, and the centre's displacement is the
+/// mean-value interpolation of the surface's (module Decisions), so the centre moves by the same
+/// linear form with the per-vertex data replaced by their mean-value sums:
+/// precomputed `s·Σ_i λ_i u_i`; basis (and direct, eq. 7.1, which the basis reproduces to
+/// round-off) `s·Σ_a w_a·Σ_i λ_i G_{i,a} k d_i`; SH (eq. 7.7) `s·Σ_k F_k·Σ_i λ_i T_{i,k} k d_i`.
+/// The sums are taken at bake time from the stored f32 data the run time deforms with.
+#[derive(Debug, Clone, PartialEq, serde::Serialize, serde::Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct TumourMeta {
+    /// The tumour as baked.
+    pub tumour: Tumour,
+    /// Centre at rest (FRC), body frame, mm.
+    pub centre_mm: [f64; 3],
+    /// Volume of the ellipsoid, ml.
+    pub volume_ml: f64,
+    /// Vertices with expandability below 1.
+    pub vertices_affected: u64,
+    /// Kernel entries changed by eq. 8.14–8.20.
+    pub entries_changed: u64,
+    /// Entries whose `d'` was clamped to the acos domain.
+    pub entries_clamped: u64,
+    /// Of those, entries where `B·e` made `d' ≤ 0`.
+    pub entries_nonpositive: u64,
+    /// Kernel reach ℓ, mm.
+    pub reach_mm: f64,
+    /// Smallest and largest entry factor applied.
+    pub factor_range: [f64; 2],
+    /// How much the tumour changed the surface motion where it reaches (vertices with `a < 1`):
+    /// mean and largest `|u − u_normal| / |u_normal|` of the unit displacement, %.
+    pub affected_motion_change_percent: [f64; 2],
+    /// Centre displacement per unit deformation scale, precomputed mode, mm.
+    pub precomputed_mm: [f64; 3],
+    /// The same centre in the lung baked without the tumour, mm per unit scale (for comparison).
+    pub normal_precomputed_mm: [f64; 3],
+    /// Centre displacement per unit scale per force weight `(w0, wx, wy, wz)`: basis and direct modes.
+    pub basis_mm: [[f64; 3]; 4],
+    /// Centre displacement per unit scale per SH force coefficient (`bands²`; empty without SH).
+    #[serde(default)]
+    pub sh_mm: Vec<[f64; 3]>,
+}
+
+impl TumourMeta {
+    /// The centre's displacement per unit deformation scale in `mode` with the frame's
+    /// coefficients (none for precomputed, 4 weights for basis/direct, `bands²` for SH); `None`
+    /// when the coefficients do not fit the mode.
+    pub fn displacement_mm(
+        &self,
+        mode: crate::deform::modes::DeformMode,
+        coeffs: &[f32],
+    ) -> Option<[f64; 3]> {
+        use crate::deform::modes::DeformMode as M;
+        let rows: &[[f64; 3]] = match mode {
+            M::Precomputed => return Some(self.precomputed_mm),
+            M::Basis | M::Direct => &self.basis_mm,
+            M::Sh => &self.sh_mm,
+        };
+        if rows.is_empty() || coeffs.len() != rows.len() {
+            return None;
+        }
+        let mut d = [0.0; 3];
+        for (r, &c) in rows.iter().zip(coeffs) {
+            for a in 0..3 {
+                d[a] += c as f64 * r[a];
+            }
+        }
+        Some(d)
+    }
+
+    /// The centre's position, mm, for deformation scale `scale`, the lung's collapse `collapse`
+    /// towards `hilum_mm` and rigid offset (EQUATIONS §4.1: `h + (1 − c)(p − h) + s·u + o`).
+    pub fn position_mm(
+        &self,
+        displacement_mm: [f64; 3],
+        scale: f64,
+        collapse: f64,
+        hilum_mm: [f64; 3],
+        offset_mm: [f64; 3],
+    ) -> [f64; 3] {
+        [0, 1, 2].map(|a| {
+            hilum_mm[a]
+                + (1.0 - collapse) * (self.centre_mm[a] - hilum_mm[a])
+                + scale * displacement_mm[a]
+                + offset_mm[a]
+        })
+    }
+}
+
+/// Mean-value sums of per-vertex data times `k·d_i` (the [`TumourMeta`] rows): `out[c] = Σ_i λ_i
+/// data[i·stride + c]·kd_i` for each of the `stride` columns.
+pub fn weighted_rows(
+    weights: &[f64],
+    data: &[f32],
+    stride: usize,
+    kd: &[[f32; 3]],
+) -> Vec<[f64; 3]> {
+    let mut out = vec![[0.0f64; 3]; stride];
+    for (i, (&l, kd)) in weights.iter().zip(kd).enumerate() {
+        if l == 0.0 {
+            continue;
+        }
+        for (c, o) in out.iter_mut().enumerate() {
+            let v = l * data[i * stride + c] as f64;
+            for a in 0..3 {
+                o[a] += v * kd[a] as f64;
+            }
+        }
+    }
+    out
 }
 
 #[cfg(test)]
