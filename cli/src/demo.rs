@@ -31,6 +31,10 @@ pub struct DemoArgs {
     /// PNG frames to write, spread over one breathing cycle (0 for none; at most 240).
     #[arg(long, default_value_t = 6)]
     pub snapshots: u32,
+    /// Take the snapshots over the breath that starts after this many seconds (default: after the
+    /// first second), e.g. to see a tension pneumothorax well into its course.
+    #[arg(long, value_name = "S")]
+    pub snapshot_at_s: Option<f64>,
     /// Scene file (TOML); the built-in default scene when omitted.
     #[arg(long)]
     pub scene: Option<PathBuf>,
@@ -40,7 +44,8 @@ pub struct DemoArgs {
     /// Print one JSON object with the results on stdout (the table goes to stderr).
     #[arg(long)]
     pub json: bool,
-    /// Pin tracker-bridge, engine and renderer to these three cores, e.g. `--cpus 0,1,1`.
+    /// Pin tracker-bridge, engine and renderer to these three cores, e.g. `--cpus 0,1,1` (overrides
+    /// the scene's `[processes] cpus`).
     #[arg(long, value_delimiter = ',', num_args = 3)]
     pub cpus: Vec<usize>,
     /// Show the frames in a window (needs a display); closing it ends the demo. Headless otherwise.
@@ -94,16 +99,18 @@ pub fn check_counts(args: &DemoArgs) -> anyhow::Result<()> {
             args.snapshots
         );
     }
-    if !args.cpus.is_empty() {
+    check_cpus(&args.cpus, "--cpus")
+}
+
+/// Every core of `cpus` one this process may run on (`what` names where they came from).
+fn check_cpus(cpus: &[usize], what: &str) -> anyhow::Result<()> {
+    if !cpus.is_empty() {
         let allowed = allowed_cpus();
-        for (role, &core) in ["tracker-bridge", "engine", "renderer"]
-            .iter()
-            .zip(&args.cpus)
-        {
+        for (role, &core) in ["tracker-bridge", "engine", "renderer"].iter().zip(cpus) {
             if let Some(allowed) = &allowed {
                 if !allowed.contains(&core) {
                     bail!(
-                        "--cpus: core {core} for the {role} is not one this process may run on (cores {})",
+                        "{what}: core {core} for the {role} is not one this process may run on (cores {})",
                         allowed
                             .iter()
                             .map(|c| c.to_string())
@@ -163,6 +170,10 @@ pub struct DemoReport {
     pub strip: Option<String>,
     /// Per-hop rows.
     pub hops: Vec<HopRow>,
+    /// Each process's per-sample time against the scene's `[processes] budget_ms`.
+    pub budgets: Vec<crate::stats::BudgetRow>,
+    /// Cores the three processes were pinned to (empty: not pinned).
+    pub cpus: Vec<usize>,
     /// Seconds measured.
     pub seconds: f64,
     /// Frames per second drawn.
@@ -354,6 +365,12 @@ pub fn run(args: &DemoArgs) -> anyhow::Result<DemoReport> {
     if let Some(mode) = args.mode {
         loaded.lungs.mode = mode;
     }
+    let cpus = if args.cpus.is_empty() {
+        check_cpus(&loaded.processes.cpus, "[processes] cpus")?;
+        loaded.processes.cpus.clone()
+    } else {
+        args.cpus.clone()
+    };
     let tracker_source = args
         .tracker
         .clone()
@@ -386,11 +403,22 @@ pub fn run(args: &DemoArgs) -> anyhow::Result<DemoReport> {
         lung_model::pv::Breathing::from_constants(&inhale, &exhale, boundary, &scene.timing())?;
     let tick_hz = scene.engine.tick_hz;
     let run_ticks = (args.seconds * tick_hz) as u64;
+    let warmup_ticks = match args.snapshot_at_s {
+        None => tick_hz as u64,
+        Some(at) if at.is_finite() && at >= 0.0 && at < args.seconds => {
+            ((at * tick_hz) as u64).max(tick_hz as u64)
+        }
+        Some(at) => anyhow::bail!(
+            "--snapshot-at-s {}: must be a number of seconds from 0 to below --seconds {}",
+            lung_model::plausible::compact(at),
+            args.seconds
+        ),
+    };
     let targets = snapshot_ticks(
         args.snapshots,
         breathing.cycle_ticks() as u64,
         run_ticks,
-        tick_hz as u64,
+        warmup_ticks,
     );
 
     // Subscribe to the reports before anything can publish them.
@@ -410,8 +438,7 @@ pub fn run(args: &DemoArgs) -> anyhow::Result<DemoReport> {
         v
     };
     let cpu = |i: usize| {
-        args.cpus
-            .get(i)
+        cpus.get(i)
             .map(|c| vec!["--cpu".to_string(), c.to_string()])
             .unwrap_or_default()
     };
@@ -576,6 +603,15 @@ pub fn run(args: &DemoArgs) -> anyhow::Result<DemoReport> {
         pngs,
         strip,
         hops: stats.rows(),
+        budgets: {
+            let b = scene.processes.budget_ms;
+            vec![
+                stats.budget_row("tracker-bridge", 0, b.tracker_bridge),
+                stats.budget_row("engine", 2, b.engine),
+                stats.budget_row("renderer", 4, b.renderer),
+            ]
+        },
+        cpus: cpus.clone(),
         seconds: measured_s,
         fps: if measured_s > 0.0 {
             stats.frames as f64 / measured_s
@@ -658,6 +694,31 @@ pub fn table(r: &DemoReport) -> String {
         r.worst_case_ms,
         r.missed_frame_slots,
         r.late_frames
+    );
+    let _ = writeln!(
+        s,
+        "per-process budgets (p99 / max against the scene's [processes] budget_ms{}): {}",
+        if r.cpus.is_empty() {
+            ", not pinned".to_string()
+        } else {
+            format!(", pinned to cores {:?}", r.cpus)
+        },
+        r.budgets
+            .iter()
+            .map(|b| format!(
+                "{} {:.3} / {:.3} of {} ms{}",
+                b.process,
+                b.p99_ms,
+                b.max_ms,
+                b.budget_ms,
+                if b.over_budget > 0 {
+                    format!(" ({} of {} samples OVER)", b.over_budget, b.samples)
+                } else {
+                    String::new()
+                }
+            ))
+            .collect::<Vec<_>>()
+            .join("; ")
     );
     let _ = writeln!(
         s,

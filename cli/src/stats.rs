@@ -213,6 +213,43 @@ impl LatencyStats {
     pub fn end_to_end(&self) -> HopRow {
         HopRow::from_histogram(HOPS[5].0, &self.hops[5])
     }
+
+    /// One process's per-sample time against its budget: `hop` indexes [`HOPS`] (0 bridge, 2 engine,
+    /// 4 renderer).
+    pub fn budget_row(&self, process: &str, hop: usize, budget_ms: f64) -> BudgetRow {
+        let h = &self.hops[hop];
+        let row = HopRow::from_histogram(HOPS[hop].0, h);
+        let limit = (budget_ms * 1e6) as u64;
+        BudgetRow {
+            process: process.to_string(),
+            budget_ms,
+            samples: h.len(),
+            p99_ms: row.p99_ms,
+            max_ms: row.max_ms,
+            over_budget: if h.is_empty() || h.max() <= limit {
+                0
+            } else {
+                h.count_between(limit + 1, h.max())
+            },
+        }
+    }
+}
+
+/// One process's per-sample time against its `[processes] budget_ms`.
+#[derive(Debug, Clone, Serialize)]
+pub struct BudgetRow {
+    /// Process.
+    pub process: String,
+    /// Budget, ms.
+    pub budget_ms: f64,
+    /// Samples measured.
+    pub samples: u64,
+    /// 99th percentile, ms.
+    pub p99_ms: f64,
+    /// Maximum, ms.
+    pub max_ms: f64,
+    /// Samples over the budget (at the histogram's 3 significant digits).
+    pub over_budget: u64,
 }
 
 /// One row of the latency table.

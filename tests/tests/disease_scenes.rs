@@ -1,6 +1,6 @@
 //! The shipped disease scenes through `lungdyn scene check`, with figures computed by hand from the
-//! equations (EQUATIONS.md §4); a pneumothorax scene through the demo; a tumour scene refused by the
-//! engine and the demo, which would otherwise breathe it normally.
+//! equations (EQUATIONS.md §4); a pneumothorax and a tumour scene through the demo; the tumour's
+//! centre trajectory from `scene run`; a kernel that does not carry the scene's tumour refused.
 
 use std::path::{Path, PathBuf};
 use std::process::Command;
@@ -110,7 +110,7 @@ fn a_tension_pneumothorax_arrests_without_help_and_not_after_a_needle() {
 }
 
 #[test]
-fn every_shipped_scene_checks_a_pneumothorax_runs_and_a_tumour_is_refused() {
+fn every_shipped_scene_checks_and_a_pneumothorax_and_a_tumour_run() {
     for name in [
         "default.toml",
         "error_budget.toml",
@@ -118,28 +118,54 @@ fn every_shipped_scene_checks_a_pneumothorax_runs_and_a_tumour_is_refused() {
         "bilateral_pneumothorax.toml",
         "tension_pneumothorax.toml",
         "tumour_right_lower.toml",
+        "upright.toml",
     ] {
         check(&scene(name));
     }
+    // The tumour through the three processes: it is drawn (PNG frames) and every frame is finite.
+    let out = tmp("tumour_demo");
     let s = scene("tumour_right_lower.toml");
-    let (ok, _, err) = lungdyn(&["demo", "--scene", s.to_str().unwrap(), "--seconds", "1"]);
-    assert!(
-        !ok && err.contains("does not simulate this disease state yet"),
-        "{err}"
-    );
-    let (ok, _, err) = lungdyn(&[
-        "engine",
+    let (ok, stdout, err) = lungdyn(&[
+        "demo",
         "--scene",
         s.to_str().unwrap(),
         "--seconds",
-        "1",
+        "3",
+        "--snapshots",
+        "2",
+        "--out",
+        out.to_str().unwrap(),
         "--instance",
-        &format!("disease-{}", std::process::id()),
+        &format!("tumour-{}", std::process::id()),
+        "--json",
     ]);
+    assert!(ok, "{err}");
+    let v: serde_json::Value = serde_json::from_str(&stdout).unwrap();
+    assert!(v["frames_rendered"].as_u64().unwrap() > 0, "{v}");
+    assert_eq!(v["pngs"].as_array().unwrap().len(), 2, "{v}");
+    // The tumour's colour (draw.wgsl: yellow-green, far from the lungs' pinks) is in the image.
+    let png = v["pngs"][0].as_str().unwrap();
+    let img = image::open(png).unwrap().to_rgb8();
+    let tumour_px = img
+        .pixels()
+        .filter(|p| p[1] > 120 && p[1] as i32 > p[0] as i32 + 30 && p[1] as i32 > p[2] as i32 + 60)
+        .count();
     assert!(
-        !ok && err.contains("does not simulate this disease state yet"),
-        "{err}"
+        tumour_px > 20,
+        "{tumour_px} tumour-coloured pixels in {png}"
     );
+    // Each process measured against the scene's [processes] budgets.
+    let budgets = v["budgets"].as_array().unwrap();
+    let names: Vec<&str> = budgets
+        .iter()
+        .map(|b| b["process"].as_str().unwrap())
+        .collect();
+    assert_eq!(names, ["tracker-bridge", "engine", "renderer"], "{v}");
+    for b in budgets {
+        assert!(b["samples"].as_u64().unwrap() > 0, "{b}");
+        assert!(b["p99_ms"].as_f64().unwrap().is_finite(), "{b}");
+        assert!(b["over_budget"].as_u64().unwrap() <= b["samples"].as_u64().unwrap());
+    }
     // The seed's closed pneumothorax through the three processes: the left lung is collapsed and
     // dropped in every frame, every frame finite.
     let out = tmp("closed_demo");
@@ -363,4 +389,100 @@ fn the_upright_scene_breathes_the_same_volume_with_gravity_from_head_to_feet() {
         assert!(diff > 0.01, "{wa:?} vs {wb:?}");
     }
     assert_eq!(up["stage_counts"]["orientation_evaluations"], 2);
+}
+
+#[test]
+fn scene_run_reports_the_tumour_centres_motion_and_writes_its_trajectory() {
+    let out = tmp("tumour_run");
+    let s = scene("tumour_right_lower.toml");
+    let (ok, stdout, err) = lungdyn(&[
+        "scene",
+        "run",
+        s.to_str().unwrap(),
+        "--seconds",
+        "12",
+        "--out",
+        out.to_str().unwrap(),
+        "--json",
+    ]);
+    assert!(ok, "{err}");
+    let v: serde_json::Value = serde_json::from_str(&stdout).unwrap();
+    let d = &v["disease"];
+    assert_eq!(d["kind"], "tumour");
+    assert_eq!(d["tumour"]["non_finite_positions"], 0);
+    assert!(
+        d["tumour"]["vertices_affected"].as_u64().unwrap() > 0,
+        "{d}"
+    );
+    let m = &d["tumour_motion_mm"];
+    let axes: Vec<f64> = ["x", "y", "z"]
+        .iter()
+        .map(|a| m[a].as_f64().unwrap())
+        .collect();
+    // The centre moves with the breath, by millimetres (not metres, not nothing).
+    assert!(
+        axes.iter()
+            .all(|&a| a.is_finite() && (0.0..100.0).contains(&a)),
+        "{m}"
+    );
+    assert!(axes.iter().any(|&a| a > 0.5), "{m}");
+    // The CSV holds one breath at the engine's tick rate (12 /min, 60 Hz: 300 ticks), and its
+    // ranges are the amplitudes reported.
+    let csv = std::fs::read_to_string(d["tumour"]["trajectory_csv"].as_str().unwrap()).unwrap();
+    let rows: Vec<Vec<f64>> = csv
+        .lines()
+        .filter(|l| !l.starts_with('#') && !l.starts_with("tick"))
+        .map(|l| l.split(',').map(|x| x.parse().unwrap()).collect())
+        .collect();
+    assert_eq!(rows.len(), 300);
+    for (a, col) in [4usize, 5, 6].iter().enumerate() {
+        let (lo, hi) = rows
+            .iter()
+            .fold((f64::INFINITY, f64::NEG_INFINITY), |(l, h), r| {
+                (l.min(r[*col]), h.max(r[*col]))
+            });
+        assert!(
+            (hi - lo - axes[a]).abs() < 2e-3,
+            "axis {a}: {} vs {}",
+            hi - lo,
+            axes[a]
+        );
+    }
+    // The tumour's kernel was baked into this run's kernels; a scene that names the healthy kernel
+    // with the same tumour is refused (its lung would silently breathe without the tumour).
+    let healthy = tmp("healthy_run");
+    let (ok, _, err) = lungdyn(&[
+        "scene",
+        "run",
+        scene("default.toml").to_str().unwrap(),
+        "--seconds",
+        "1",
+        "--out",
+        healthy.to_str().unwrap(),
+    ]);
+    assert!(ok, "{err}");
+    let right = std::fs::read_dir(healthy.join("kernels"))
+        .unwrap()
+        .map(|e| e.unwrap().path())
+        .find(|p| p.to_string_lossy().contains("default_right"))
+        .unwrap();
+    let mismatched = tmp("mismatch.toml");
+    std::fs::write(
+        &mismatched,
+        format!(
+            "[lungs]\nsides = [\"right\", \"left\"]\n[lungs.kernels]\nright = \"{}\"\n[disease]\nkind = \"tumour\"\nside = \"right\"\n[disease.tumour]\ncentre = [0.6, 0.3, 0.8]\nradii_mm = [15.0, 15.0, 15.0]\n",
+            right.display()
+        ),
+    )
+    .unwrap();
+    let (ok, _, err) = lungdyn(&[
+        "scene",
+        "run",
+        mismatched.to_str().unwrap(),
+        "--seconds",
+        "1",
+        "--out",
+        healthy.to_str().unwrap(),
+    ]);
+    assert!(!ok && err.contains("baked without a tumour"), "{err}");
 }

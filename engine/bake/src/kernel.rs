@@ -556,4 +556,169 @@ mod tests {
         small(Side::Right).write(&b).unwrap();
         assert_eq!(std::fs::read(a).unwrap(), std::fs::read(b).unwrap());
     }
+
+    fn tumour_settings(side: Side, t: Option<Tumour>) -> BakeSettings {
+        let mut s = BakeSettings::default_for(side);
+        s.tumour = t;
+        s
+    }
+
+    /// A 15 mm tumour low, posterior and lateral in the right lung (the shipped scene's).
+    fn tumour() -> Tumour {
+        Tumour::new(Side::Right, [0.7, 0.3, 0.75], [15.0, 15.0, 15.0])
+    }
+
+    #[test]
+    fn a_tumour_of_normal_expandability_changes_nothing_bit_for_bit() {
+        // a = 1 everywhere and φ = 0: e = 0 for every entry, so eq. 8.19 gives d' = d and every
+        // entry is kept as it is (module Decision "e = 0 and φ = 0 leave the entry bit for bit").
+        let mesh = generate::lung(Side::Right, 800).unwrap();
+        let normal = bake(
+            Side::Right,
+            mesh.clone(),
+            &tumour_settings(Side::Right, None),
+            &|_| {},
+        )
+        .unwrap();
+        let mut t = tumour();
+        t.expandability = 1.0;
+        let k = bake(
+            Side::Right,
+            mesh,
+            &tumour_settings(Side::Right, Some(t)),
+            &|_| {},
+        )
+        .unwrap();
+        assert_eq!(k.transfer.vals, normal.transfer.vals);
+        assert_eq!(k.unit_displacement, normal.unit_displacement);
+        assert_eq!(k.basis, normal.basis);
+        let m = k.meta.tumour.as_ref().unwrap();
+        assert_eq!((m.entries_changed, m.vertices_affected), (0, 0));
+        assert_eq!(m.precomputed_mm, m.normal_precomputed_mm);
+        assert!(normal.meta.tumour.is_none());
+    }
+
+    #[test]
+    fn the_tumour_centre_moves_as_the_mean_value_sum_of_the_surface_in_every_mode() {
+        use lung_model::deform::modes::{CpuLung, DeformMode, ModeData};
+        use lung_model::disease::tumour as tu;
+        let mesh = generate::lung(Side::Right, 1500).unwrap();
+        let k = bake(
+            Side::Right,
+            mesh,
+            &tumour_settings(Side::Right, Some(tumour())),
+            &|_| {},
+        )
+        .unwrap();
+        let m = k.meta.tumour.clone().unwrap();
+        assert!(m.vertices_affected > 0 && m.entries_changed > 0, "{m:?}");
+        assert_eq!(m.sh_mm.len(), 16, "4 bands by default");
+        let lambda = tu::mean_value_weights(&k.mesh, m.centre_mm).unwrap();
+        let kd: Vec<[f32; 3]> = k
+            .directions
+            .iter()
+            .map(|d| d.map(|v| v * k.meta.force_scale as f32))
+            .collect();
+        let cases: Vec<(DeformMode, ModeData, Vec<f32>)> = vec![
+            (
+                DeformMode::Precomputed,
+                ModeData::Precomputed {
+                    unit: k.unit_displacement.clone(),
+                },
+                vec![],
+            ),
+            (
+                DeformMode::Basis,
+                ModeData::Basis { g: k.basis.clone() },
+                vec![0.9, -0.3, 0.45, 0.2],
+            ),
+            (
+                DeformMode::Sh,
+                ModeData::Sh {
+                    n_coeffs: 16,
+                    t: k.sh.clone().unwrap(),
+                },
+                (0..16).map(|i| ((i * 7 % 5) as f32 - 2.0) * 0.3).collect(),
+            ),
+        ];
+        let s = 1.7f32;
+        for (mode, data, coeffs) in cases {
+            let mut lung = CpuLung::new(k.mesh.clone(), kd.clone(), data);
+            let mut out = vec![[0.0f32; 3]; lung.len()];
+            lung.deform_into(s, &coeffs, [0.0; 3], &mut out).unwrap();
+            // The reference: Σ λ_i (deformed_i − p_i), over the whole surface, per unit scale.
+            let mut want = [0.0f64; 3];
+            for ((l, o), p) in lambda.iter().zip(&out).zip(&k.mesh.positions) {
+                for a in 0..3 {
+                    want[a] += l * (o[a] as f64 - p[a] as f64) / s as f64;
+                }
+            }
+            let got = m.displacement_mm(mode, &coeffs).unwrap();
+            let scale = want.iter().fold(0.0f64, |a, v| a.max(v.abs())).max(1e-3);
+            for a in 0..3 {
+                // f32 positions minus f32 positions: round-off of order 1e-5 mm per vertex.
+                assert!(
+                    (got[a] - want[a]).abs() <= 1e-3 * scale + 1e-4,
+                    "{mode:?} axis {a}: {got:?} vs {want:?}"
+                );
+            }
+            // Coefficients that do not fit the mode give no position, not a wrong one.
+            if mode != DeformMode::Precomputed {
+                assert!(m
+                    .displacement_mm(mode, &coeffs[..coeffs.len() - 1])
+                    .is_none());
+            }
+        }
+        // Position: collapse 0 and zero offset give centre + s·d; a collapse moves it to the hilum.
+        let d = m.precomputed_mm;
+        let p = m.position_mm(d, 2.0, 0.0, [0.0; 3], [1.0, 2.0, 3.0]);
+        for a in 0..3 {
+            assert!((p[a] - (m.centre_mm[a] + 2.0 * d[a] + [1.0, 2.0, 3.0][a])).abs() < 1e-12);
+        }
+        assert_eq!(
+            m.position_mm(d, 0.0, 1.0, [5.0, 6.0, 7.0], [0.0; 3]),
+            [5.0, 6.0, 7.0]
+        );
+    }
+
+    #[test]
+    fn a_tumour_outside_the_lung_or_in_the_other_lung_is_refused_before_the_pass() {
+        let mesh = generate::lung(Side::Right, 600).unwrap();
+        let rows = std::sync::atomic::AtomicUsize::new(0);
+        let count = |n: usize| {
+            rows.fetch_add(n, std::sync::atomic::Ordering::Relaxed);
+        };
+        // The box corner is outside the rounded lung.
+        let outside = Tumour::new(Side::Right, [0.0, 0.0, 0.0], [10.0; 3]);
+        let e = bake(
+            Side::Right,
+            mesh.clone(),
+            &tumour_settings(Side::Right, Some(outside)),
+            &count,
+        )
+        .unwrap_err()
+        .to_string();
+        assert!(e.contains("not inside the right lung"), "{e}");
+        let e = bake(
+            Side::Left,
+            generate::lung(Side::Left, 600).unwrap(),
+            &tumour_settings(Side::Left, Some(tumour())),
+            &count,
+        )
+        .unwrap_err()
+        .to_string();
+        assert!(e.contains("the tumour is in the right lung"), "{e}");
+        let mut bad = tumour();
+        bad.radii_mm[1] = 0.0;
+        let e = bake(
+            Side::Right,
+            mesh,
+            &tumour_settings(Side::Right, Some(bad)),
+            &count,
+        )
+        .unwrap_err()
+        .to_string();
+        assert!(e.contains("radii_mm"), "{e}");
+        assert_eq!(rows.into_inner(), 0, "no transfer row was computed");
+    }
 }

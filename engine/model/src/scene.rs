@@ -29,7 +29,57 @@ pub struct Scene {
     pub disease: Option<crate::scene_disease::DiseaseScene>,
     /// Where the patient and HMD poses come from.
     pub tracker: TrackerScene,
+    /// Where each process runs and what it may spend per tracker sample.
+    pub processes: ProcessesScene,
 }
+
+/// `[processes]` table: the cores of the three processes and each one's share of the 16.7 ms frame.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields, default)]
+pub struct ProcessesScene {
+    /// Cores for tracker-bridge, engine and renderer, in that order (`lungdyn demo --cpus`
+    /// overrides); empty: not pinned.
+    pub cpus: Vec<usize>,
+    /// Per-sample time budgets, ms.
+    pub budget_ms: ProcessBudgets,
+}
+
+/// Per-sample time each process may spend, ms: the bridge from a sample's capture to its publish,
+/// the engine from receiving it to publishing the tick's frame, the renderer from receiving the
+/// frame to submitting it. Together with the transport they must fit the 16.7 ms frame deadline;
+/// `lungdyn demo` reports each process's p99 and the samples over its budget.
+#[derive(Debug, Clone, Copy, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields, default)]
+pub struct ProcessBudgets {
+    /// tracker-bridge, ms.
+    pub tracker_bridge: f64,
+    /// engine, ms.
+    pub engine: f64,
+    /// renderer, ms.
+    pub renderer: f64,
+}
+
+impl Default for ProcessBudgets {
+    fn default() -> Self {
+        Self {
+            tracker_bridge: 1.0,
+            engine: 2.0,
+            renderer: 10.0,
+        }
+    }
+}
+
+impl Default for ProcessesScene {
+    fn default() -> Self {
+        Self {
+            cpus: Vec::new(),
+            budget_ms: ProcessBudgets::default(),
+        }
+    }
+}
+
+/// The frame deadline the budgets share, ms (60 Hz).
+pub const FRAME_DEADLINE_MS: f64 = 1000.0 / 60.0;
 
 /// `[tracker]` table.
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
@@ -350,6 +400,14 @@ pub enum SceneValueError {
         /// Splat size given.
         splat_mm: f32,
     },
+    /// `[processes] cpus` is not three cores.
+    #[error(
+        "[processes] cpus = {0:?}: give three cores (tracker-bridge, engine, renderer), or none"
+    )]
+    ProcessCpus(Vec<usize>),
+    /// A budget is out of range, or together they exceed the frame deadline.
+    #[error("[processes] budget_ms: {0}")]
+    ProcessBudget(String),
     /// The PV constants file named by `[pv] constants` is unusable.
     #[error("[pv] constants: {0}")]
     Constants(#[source] crate::pv::files::PvFileError),
@@ -666,6 +724,30 @@ impl Scene {
         if let Some(d) = &self.disease {
             d.validate(&self.lungs.sides).map_err(E::Disease)?;
         }
+        let p = &self.processes;
+        if !(p.cpus.is_empty() || p.cpus.len() == 3) {
+            return Err(E::ProcessCpus(p.cpus.clone()));
+        }
+        let b = p.budget_ms;
+        for (name, v) in [
+            ("tracker_bridge", b.tracker_bridge),
+            ("engine", b.engine),
+            ("renderer", b.renderer),
+        ] {
+            if !(v.is_finite() && v > 0.0 && v <= FRAME_DEADLINE_MS) {
+                return Err(E::ProcessBudget(format!(
+                    "{name} = {} must be within (0, {FRAME_DEADLINE_MS:.1}] ms",
+                    crate::plausible::compact(v)
+                )));
+            }
+        }
+        let sum = b.tracker_bridge + b.engine + b.renderer;
+        if sum > FRAME_DEADLINE_MS {
+            return Err(E::ProcessBudget(format!(
+                "the three budgets sum to {sum:.2} ms, more than the {FRAME_DEADLINE_MS:.1} ms frame \
+                 deadline they share"
+            )));
+        }
         let r = &self.render;
         if !(16..=8192).contains(&r.width) || !(16..=8192).contains(&r.height) {
             return Err(E::ImageSize {
@@ -754,6 +836,38 @@ impl Scene {
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    #[test]
+    fn processes_take_three_cores_and_budgets_that_fit_the_frame() {
+        let ok = Scene::parse(
+            "[processes]\ncpus = [0, 1, 1]\n[processes.budget_ms]\ntracker_bridge = 0.5\nengine = 1.5\nrenderer = 12.0\n",
+            "s.toml",
+        )
+        .unwrap();
+        assert_eq!(ok.processes.cpus, vec![0, 1, 1]);
+        assert_eq!(ok.processes.budget_ms.renderer, 12.0);
+        // The defaults fit the 16.7 ms frame with room for the transport.
+        let d = ProcessBudgets::default();
+        assert!(d.tracker_bridge + d.engine + d.renderer < FRAME_DEADLINE_MS);
+        for (text, needle) in [
+            ("[processes]\ncpus = [0, 1]\n", "give three cores"),
+            (
+                "[processes.budget_ms]\nengine = 0\n",
+                "engine = 0 must be within",
+            ),
+            ("[processes.budget_ms]\nrenderer = -1\n", "renderer = -1"),
+            (
+                "[processes.budget_ms]\nrenderer = 16.0\n",
+                "sum to 19.00 ms",
+            ),
+            ("[processes.budget_ms]\nengine = nan\n", "engine = NaN"),
+            ("[processes]\ncpu = [0, 1, 1]\n", "cpu"),
+            ("[processes.budget_ms]\ngpu = 1.0\n", "gpu"),
+        ] {
+            let e = Scene::parse(text, "s.toml").unwrap_err().to_string();
+            assert!(e.contains(needle), "{text}: {e}");
+        }
+    }
 
     #[test]
     fn the_committed_default_scene_is_the_built_in_default() {

@@ -674,3 +674,56 @@ fn live_actions_without_a_tension_pneumothorax_are_refused() {
         LiveAction::QueueFull
     );
 }
+
+#[test]
+fn a_tumour_raises_the_affected_lungs_resistance_and_leaves_the_other_lung_alone() {
+    // A large tumour (60 mm radii, 905 ml) so eq. 8.9's x = φ·min(1, V_t/V_lung) is not tiny.
+    let scene = "kind = \"tumour\"\nside = \"right\"\n[disease.tumour]\ncentre = [0.5, 0.5, 0.5]\nradii_mm = [60.0, 60.0, 60.0]\n";
+    let mut c = disease_core(scene);
+    let Some(disease::DiseaseRun::Tumour(run)) = c.disease() else {
+        panic!("not a tumour run");
+    };
+    assert_eq!(run.side, Side::Right);
+    assert!(run.resistance.iter().all(|r| r.x > 0.01 && !r.identity));
+    let mut healthy = core();
+    let (mut f, mut g) = (EngineFrame::default(), EngineFrame::default());
+    let (mut differs, mut range_t, mut range_h) = (
+        false,
+        (f32::INFINITY, f32::NEG_INFINITY),
+        (f32::INFINITY, f32::NEG_INFINITY),
+    );
+    let ticks = 60 * 60; // one simulated minute
+    for tick in 0..ticks {
+        let input = frame(tick, true);
+        c.step(tick, Some(&input), &mut f);
+        healthy.step(tick, Some(&input), &mut g);
+        // The other lung breathes exactly as in a healthy patient.
+        assert_eq!(
+            bytemuck::bytes_of(&f.lungs[LUNG_LEFT]),
+            bytemuck::bytes_of(&g.lungs[LUNG_LEFT]),
+            "tick {tick}"
+        );
+        let (t, h) = (f.lungs[LUNG_RIGHT], g.lungs[LUNG_RIGHT]);
+        assert!(t.volume_ml.is_finite() && t.deform_scale.is_finite());
+        assert_eq!(t.cycle, h.cycle, "the rate is unchanged (tick {tick})");
+        differs |= t.volume_ml != h.volume_ml;
+        range_t = (range_t.0.min(t.volume_ml), range_t.1.max(t.volume_ml));
+        range_h = (range_h.0.min(h.volume_ml), range_h.1.max(h.volume_ml));
+        c.prepare_ahead().unwrap();
+    }
+    // The raised resistance reshapes the breath within the cycle; the PV boundary values (FRC and
+    // tidal volume) still bound it.
+    assert!(differs, "the resistance changed nothing");
+    assert!(
+        (range_t.0 - range_h.0).abs() < 1.0,
+        "{range_t:?} {range_h:?}"
+    );
+    assert!(
+        (range_t.1 - range_h.1).abs() < 1.0,
+        "{range_t:?} {range_h:?}"
+    );
+    // And the run replays bit for bit.
+    let (a, ..) = run_disease(&mut disease_core(scene), 5_000, &[]);
+    let (b, ..) = run_disease(&mut disease_core(scene), 5_000, &[]);
+    assert_eq!(a, b);
+}
