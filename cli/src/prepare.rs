@@ -62,6 +62,12 @@ pub fn ensure_kernels(
     if let Some(m) = &scene.lungs.motion {
         scene.lungs.motion = Some(absolute(m));
     }
+    if let Some(c) = &scene.render.calibration {
+        scene.render.calibration = Some(absolute(c));
+    }
+    if let Some(h) = &scene.render.hmd {
+        scene.render.hmd = Some(absolute(h));
+    }
     let mut used = Vec::new();
     for side in scene.lungs.sides.clone() {
         if let Some(k) = scene.lungs.kernels.get(side) {
