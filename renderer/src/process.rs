@@ -76,6 +76,9 @@ pub struct RendererArgs {
 impl RendererArgs {
     /// The scene and the calibration and optics files this renderer draws with, loaded and
     /// checked (before any GPU work: a bad file is refused at once).
+    // RendererError is large in every function that returns it (its scene and file errors carry
+    // their paths); boxing it here alone would not change that.
+    #[allow(clippy::result_large_err)]
     pub fn scene_and_rig(&self) -> Result<(Scene, crate::camera::RigFiles), RendererError> {
         let scene = Scene::load_or_default(self.process.scene.as_deref())?;
         let files = crate::camera::RigFiles::load(
