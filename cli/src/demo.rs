@@ -81,6 +81,15 @@ pub struct DemoArgs {
     /// Seconds per roll/pitch sweep.
     #[arg(long, value_name = "S", default_value_t = 20.0)]
     pub sweep_period_s: f32,
+    /// Calibration file (`lungdyn register`: the lungs' model frame on the patient reference);
+    /// overrides the scene's `[render] calibration`. Without either, the renderer places the lungs
+    /// at a fixed offset from the reference.
+    #[arg(long, value_name = "FILE")]
+    pub calibration: Option<PathBuf>,
+    /// HMD optics file (`lungdyn hmd check FILE`: per-eye offsets, frusta, resolution); overrides
+    /// the scene's `[render] hmd` and its ipd_mm, fov_y_deg, width and height.
+    #[arg(long, value_name = "FILE")]
+    pub hmd: Option<PathBuf>,
 }
 
 /// Most `--snapshots`: one per 60 Hz display frame of a 4-second breath (15 breaths/min). More are
@@ -202,6 +211,10 @@ pub struct DemoReport {
     pub instance: String,
     /// Deformation mode the lungs ran in.
     pub mode: String,
+    /// The calibration file the renderer placed the lungs by (none: the fixed offset).
+    pub calibration: Option<String>,
+    /// The HMD optics file the renderer drew the eyes from (none: the scene's IPD and field of view).
+    pub hmd: Option<String>,
 }
 
 struct Children {
@@ -371,6 +384,19 @@ pub fn run(args: &DemoArgs) -> anyhow::Result<DemoReport> {
     } else {
         args.cpus.clone()
     };
+    // The renderer's calibration and optics files (a flag replaces the scene's): checked now, and
+    // carried to the renderer in the resolved scene.
+    renderer::camera::RigFiles::load(
+        &loaded.render,
+        args.calibration.as_deref(),
+        args.hmd.as_deref(),
+    )?;
+    if let Some(c) = &args.calibration {
+        loaded.render.calibration = Some(c.clone());
+    }
+    if let Some(h) = &args.hmd {
+        loaded.render.hmd = Some(h.clone());
+    }
     let tracker_source = args
         .tracker
         .clone()
@@ -638,6 +664,12 @@ pub fn run(args: &DemoArgs) -> anyhow::Result<DemoReport> {
         kernels,
         instance,
         mode: scene.lungs.mode.name().to_string(),
+        calibration: scene
+            .render
+            .calibration
+            .as_ref()
+            .map(|p| p.display().to_string()),
+        hmd: scene.render.hmd.as_ref().map(|p| p.display().to_string()),
     })
 }
 
@@ -665,6 +697,12 @@ pub fn table(r: &DemoReport) -> String {
         "lungdyn demo: {} frames in {:.1} s ({:.1} fps), lung volume {:.0}-{:.0} ml, {} mode",
         r.frames_rendered, r.seconds, r.fps, r.volume_min_ml, r.volume_max_ml, r.mode
     );
+    if let Some(c) = &r.calibration {
+        let _ = writeln!(s, "lungs placed by the calibration {c}");
+    }
+    if let Some(h) = &r.hmd {
+        let _ = writeln!(s, "eyes drawn from the HMD optics {h}");
+    }
     let _ = writeln!(
         s,
         "{:<42} {:>8} {:>9} {:>9} {:>9}",

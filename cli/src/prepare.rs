@@ -62,6 +62,15 @@ pub fn ensure_kernels(
     if let Some(m) = &scene.lungs.motion {
         scene.lungs.motion = Some(absolute(m));
     }
+    if let Some(c) = &scene.render.calibration {
+        scene.render.calibration = Some(absolute(c));
+    }
+    if let Some(h) = &scene.render.hmd {
+        scene.render.hmd = Some(absolute(h));
+    }
+    // The calibration and HMD optics files are read by the renderer: check them here, before any
+    // bake, so a bad one is refused by the launcher rather than by the renderer after the launch.
+    renderer::camera::RigFiles::load(&scene.render, None, None)?;
     let mut used = Vec::new();
     for side in scene.lungs.sides.clone() {
         if let Some(k) = scene.lungs.kernels.get(side) {

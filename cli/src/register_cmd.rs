@@ -236,6 +236,11 @@ pub fn hmd(args: &HmdArgs) -> anyhow::Result<Value> {
         Some(p) => Optics::load(p)?,
         None => Optics::default(),
     };
+    Ok(optics_json(args.file.as_deref(), &o))
+}
+
+/// An optics file as `lungdyn hmd check --json` shows it (also in `lungdyn scene check`).
+pub fn optics_json(file: Option<&Path>, o: &Optics) -> Value {
     let eyes: Vec<Value> = (0..2)
         .map(|i| {
             let e = &o.eyes[i];
@@ -250,15 +255,29 @@ pub fn hmd(args: &HmdArgs) -> anyhow::Result<Value> {
             })
         })
         .collect();
-    Ok(json!({
-        "file": args.file.as_ref().map(|p| p.display().to_string()),
+    json!({
+        "file": file.map(|p| p.display().to_string()),
         "width_px": o.width_px,
         "height_px": o.height_px,
         "ipd_mm": o.ipd_mm,
         "near_mm": o.near_mm,
         "far_mm": o.far_mm,
         "eyes": eyes,
-    }))
+    })
+}
+
+/// A calibration as `lungdyn scene check` shows it.
+pub fn calibration_json(file: &Path, c: &Calibration) -> Value {
+    let q = c.rotation.quaternion();
+    let t = c.translation_mm;
+    json!({
+        "file": file.display().to_string(),
+        "rotation_xyzw": [q.i, q.j, q.k, q.w],
+        "rotation_deg": c.rotation.angle().to_degrees(),
+        "translation_mm": [t.x, t.y, t.z],
+        "fre_rms_mm": c.registration.as_ref().map(|r| r.fre_rms_mm),
+        "fiducials": c.registration.as_ref().map(|r| r.fiducials),
+    })
 }
 
 /// What `lungdyn hmd check` prints.

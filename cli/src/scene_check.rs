@@ -61,6 +61,13 @@ pub fn run(args: &CheckArgs) -> anyhow::Result<Value> {
     let (inhale, exhale, boundary) = scene
         .pv_model()
         .with_context(|| format!("scene {origin}"))?;
+    // The renderer's calibration and HMD optics files, loaded as the renderer loads them.
+    let rig = renderer::camera::RigFiles::load(&scene.render, None, None)
+        .with_context(|| format!("scene {origin}"))?;
+    let render = json!({
+        "calibration": rig.calibration.as_ref().map(|(p, _, c)| crate::register_cmd::calibration_json(p, c)),
+        "hmd": rig.optics.as_ref().map(|(p, _, o)| crate::register_cmd::optics_json(Some(p), o)),
+    });
     let timing = scene.timing();
     let sides: Vec<&str> = scene.lungs.sides.iter().map(|s| s.name()).collect();
     let mut out = json!({
@@ -76,6 +83,7 @@ pub fn run(args: &CheckArgs) -> anyhow::Result<Value> {
             "tidal_volume_ml": boundary.tv_ml,
             "breaths_per_min": timing.breaths_per_min,
         },
+        "render": render,
         "disease": Value::Null,
     });
     let Some(d) = &scene.disease else {
@@ -308,6 +316,25 @@ pub fn text(v: &Value) -> String {
         v["pv"]["tidal_volume_ml"],
         v["pv"]["breaths_per_min"]
     );
+    let c = &v["render"]["calibration"];
+    s += &match c["file"].as_str() {
+        Some(f) => format!(
+            "calibration: {f} (model -> patient reference: {:.2} deg, translation {} mm)\n",
+            c["rotation_deg"].as_f64().unwrap_or(0.0),
+            c["translation_mm"]
+        ),
+        None => "calibration: none (the lungs at the renderer's fixed offset from the patient reference)\n".into(),
+    };
+    let h = &v["render"]["hmd"];
+    s += &match h["file"].as_str() {
+        Some(f) => format!(
+            "HMD optics: {f} ({} x {} px per eye, IPD {} mm, near {} mm, far {} mm)\n",
+            h["width_px"], h["height_px"], h["ipd_mm"], h["near_mm"], h["far_mm"]
+        ),
+        None => {
+            "HMD optics: none (the scene's [render] ipd_mm, fov_y_deg, width and height)\n".into()
+        }
+    };
     let d = &v["disease"];
     if d.is_null() {
         s += "no disease state: normal breathing\n";

@@ -4,7 +4,8 @@
 //! §2.4 and §3: precomputed `p + s·u`, the exact basis, spherical harmonics eq. 7.7 or eq. 7.1 over
 //! the stored rows, plus each lung's rigid offset) and computes smooth vertex normals from the moved
 //! surface; then one render pass draws those buffers once per eye (mono, or side-by-side stereo from
-//! the HMD pose with a per-eye IPD offset), registered to the tracked patient pose.
+//! the HMD pose with a per-eye IPD offset, or each eye of an HMD optics file), registered to the
+//! tracked patient pose (by a fixed offset, or the patient's calibration file: [`camera::Rig`]).
 //! Headless: an offscreen texture, read back to PNG on request. GPU time comes from timestamp
 //! queries where the adapter has them.
 //!
@@ -82,6 +83,7 @@ pub struct LungRenderer {
     height: u32,
     eyes: usize,
     settings: RenderScene,
+    rig: camera::Rig,
     timestamps: Option<Timestamps>,
     tumours: Vec<tumour::TumourDraw>,
 }
@@ -94,13 +96,26 @@ const BACKGROUND: wgpu::Color = wgpu::Color {
 };
 
 impl LungRenderer {
-    /// Upload `lungs` (what their mode needs) and create the target for `settings`.
+    /// Upload `lungs` (what their mode needs) and create the target for `settings`, with the fixed
+    /// lung offset and the scene's IPD and field of view (no calibration or optics files).
     pub fn new(
         gpu: &Gpu,
         settings: &RenderScene,
         lungs: &[RenderLung],
     ) -> Result<Self, UploadError> {
+        Self::with_rig(gpu, settings, &camera::Rig::default(), lungs)
+    }
+
+    /// As [`Self::new`], placing the lungs and the eyes by `rig` (a calibration and HMD optics,
+    /// [`camera::RigFiles::rig`]); with optics, each eye's image has the optics file's size.
+    pub fn with_rig(
+        gpu: &Gpu,
+        settings: &RenderScene,
+        rig: &camera::Rig,
+        lungs: &[RenderLung],
+    ) -> Result<Self, UploadError> {
         let device = &gpu.device;
+        let (eye_width, eye_height) = rig.eye_size(settings);
         let deform = deform::DeformPass::new(
             device,
             &gpu.info.name,
@@ -137,10 +152,10 @@ impl LungRenderer {
             usage: wgpu::BufferUsages::INDEX,
         });
         let eyes = if settings.stereo { 2 } else { 1 };
-        let width = settings.width * eyes as u32;
+        let width = eye_width * eyes as u32;
         let size = wgpu::Extent3d {
             width,
-            height: settings.height,
+            height: eye_height,
             depth_or_array_layers: 1,
         };
         let color = device.create_texture(&wgpu::TextureDescriptor {
@@ -169,7 +184,7 @@ impl LungRenderer {
             * wgpu::COPY_BYTES_PER_ROW_ALIGNMENT;
         let readback = device.create_buffer(&wgpu::BufferDescriptor {
             label: Some("lungdyn readback"),
-            size: padded_row as u64 * settings.height as u64,
+            size: padded_row as u64 * eye_height as u64,
             usage: wgpu::BufferUsages::COPY_DST | wgpu::BufferUsages::MAP_READ,
             mapped_at_creation: false,
         });
@@ -203,10 +218,11 @@ impl LungRenderer {
             depth_view: depth.create_view(&Default::default()),
             readback,
             padded_row,
-            eye_width: settings.width,
-            height: settings.height,
+            eye_width,
+            height: eye_height,
             eyes,
             settings: settings.clone(),
+            rig: *rig,
             timestamps,
             tumours,
         })
@@ -308,7 +324,7 @@ impl LungRenderer {
         );
         let aspect = self.eye_width as f32 / self.height as f32;
         let s = &self.settings;
-        let (eyes, n) = camera::eyes(
+        let (eyes, n) = self.rig.eyes(
             &state.hmd,
             &state.patient,
             self.eyes == 2,

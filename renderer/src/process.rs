@@ -61,6 +61,33 @@ pub struct RendererArgs {
     /// sample. At most 100.
     #[arg(long, value_name = "MS", default_value_t = 16.7)]
     pub predict_ms: f64,
+    /// Calibration file (`lungdyn register`: the lungs' model frame on the patient reference);
+    /// overrides the scene's `[render] calibration`. Without either, the lungs sit at a fixed
+    /// offset from the reference.
+    #[arg(long, value_name = "FILE")]
+    pub calibration: Option<PathBuf>,
+    /// HMD optics file (`lungdyn hmd check FILE`): each eye's offset, rotation, frustum and the
+    /// per-eye resolution; overrides the scene's `[render] hmd` (and its ipd_mm, fov_y_deg, width
+    /// and height).
+    #[arg(long, value_name = "FILE")]
+    pub hmd: Option<PathBuf>,
+}
+
+impl RendererArgs {
+    /// The scene and the calibration and optics files this renderer draws with, loaded and
+    /// checked (before any GPU work: a bad file is refused at once).
+    // RendererError is large in every function that returns it (its scene and file errors carry
+    // their paths); boxing it here alone would not change that.
+    #[allow(clippy::result_large_err)]
+    pub fn scene_and_rig(&self) -> Result<(Scene, crate::camera::RigFiles), RendererError> {
+        let scene = Scene::load_or_default(self.process.scene.as_deref())?;
+        let files = crate::camera::RigFiles::load(
+            &scene.render,
+            self.calibration.as_deref(),
+            self.hmd.as_deref(),
+        )?;
+        Ok((scene, files))
+    }
 }
 
 /// Why the renderer stopped with an error.
@@ -72,6 +99,9 @@ pub enum RendererError {
     /// The scene could not be loaded.
     #[error(transparent)]
     Scene(#[from] SceneError),
+    /// A calibration or HMD optics file is unusable.
+    #[error(transparent)]
+    Rig(#[from] crate::camera::RigError),
     /// The prediction look-ahead is out of range.
     #[error("--predict-ms {0} must be within 0..100 ms (0 draws the newest HMD sample)")]
     PredictMs(f64),
@@ -223,7 +253,7 @@ impl Session {
         let instance = Instance::new(&args.process.instance)?;
         let lock = instance.lock("renderer")?;
         pin_to_core(args.process.cpu, "renderer")?;
-        let scene = Scene::load_or_default(args.process.scene.as_deref())?;
+        let (scene, rig_files) = args.scene_and_rig()?;
         let mut snapshots = Snapshots {
             ticks: args.snapshot_ticks.clone(),
             dir: args.snapshot_dir.clone(),
@@ -243,7 +273,7 @@ impl Session {
             let kernel = scene.lung_kernel(side)?;
             lungs.push(crate::RenderLung::from_kernel(&kernel, scene.lungs.mode)?);
         }
-        let renderer = LungRenderer::new(&gpu, &scene.render, &lungs)?;
+        let renderer = LungRenderer::with_rig(&gpu, &scene.render, &rig_files.rig(), &lungs)?;
         let node = iox::node(&instance, "renderer")?;
         let ports = Ports {
             engine: Box::new(instance.engine_inlet(&node)?),
@@ -273,7 +303,7 @@ impl Session {
         session.lock = Some(lock);
         let (w, h) = session.renderer.image_size();
         eprintln!(
-            "renderer[{}]: {} vertices in the {} mode ({:.1} MiB on the GPU), {}x{} {:?}{} on {}; waiting for engine frames on {:?}",
+            "renderer[{}]: {} vertices in the {} mode ({:.1} MiB on the GPU), {}x{} {:?}{} on {}{}; waiting for engine frames on {:?}",
             instance.name(),
             session.renderer.vertex_count(),
             session.renderer.mode(),
@@ -283,6 +313,7 @@ impl Session {
             scene.render.mode,
             if scene.render.stereo { " stereo" } else { "" },
             session.gpu.describe(),
+            rig_files.describe(),
             instance.engine()
         );
         Ok(session)
@@ -571,6 +602,8 @@ fn check_predict_ms(ms: f64) -> Result<(), RendererError> {
 pub fn run(args: &RendererArgs) -> Result<(), RendererError> {
     quiet_mesa();
     check_predict_ms(args.predict_ms)?;
+    // The scene and its calibration and optics files are checked before a window or the GPU opens.
+    args.scene_and_rig()?;
     if args.window {
         return crate::window::run(args);
     }

@@ -32,9 +32,10 @@ struct App {
 
 impl App {
     fn open(&mut self, event_loop: &ActiveEventLoop) -> Result<(), RendererError> {
-        let scene = lung_model::scene::Scene::load_or_default(self.args.process.scene.as_deref())?;
+        let (scene, rig) = self.args.scene_and_rig()?;
         let eyes = if scene.render.stereo { 2 } else { 1 };
-        let size = PhysicalSize::new(scene.render.width * eyes, scene.render.height);
+        let (eye_width, eye_height) = rig.rig().eye_size(&scene.render);
+        let size = PhysicalSize::new(eye_width * eyes, eye_height);
         let window = Arc::new(
             event_loop
                 .create_window(

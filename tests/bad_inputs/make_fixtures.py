@@ -562,6 +562,37 @@ def make_scenes(tmp):
     out("scene_not_toml.json", '{"lungs": {"vertices": 100}}\n')
 
 
+# ---------------------------------------------------------------- calibration and HMD optics
+
+HMD_GOOD = ("format = 1\n[display]\nwidth_px = 160\nheight_px = 120\nhorizontal_fov_deg = 70.0\n"
+            "[eyes]\nipd_mm = 64.0\n[eyes.left]\noffset_mm = [-32.0, 0.0, 0.0]\nfrustum_deg = [36.0, 34.0, 27.0, 28.0]\n"
+            "[eyes.right]\noffset_mm = [32.0, 0.0, 0.0]\nfrustum_deg = [34.0, 36.0, 27.0, 28.0]\n")
+
+
+def make_render_files(tmp):
+    """The renderer's files ([render] calibration / hmd, --calibration / --hmd): a calibration from
+    `lungdyn register` (five fiducials, the model 80 mm posterior of the reference) and an optics file
+    (the binary writes none: this text), then one defect each, and scenes naming them."""
+    rng = random.Random(20250612)  # its own stream: the fixtures above do not change with this section
+    model = [(0, 0, 0), (100, 0, 0), (0, 120, 0), (0, 0, 90), (60, 40, 30)]
+    with open(os.path.join(tmp, "model_fiducials.txt"), "w") as f:
+        f.writelines("%g %g %g\n" % p for p in model)
+    with open(os.path.join(tmp, "tracker_fiducials.txt"), "w") as f:
+        f.writelines("%g %g %g\n" % (x, y - 80, z) for x, y, z in model)
+    subprocess.run([BIN, "register", "--model-points", "model_fiducials.txt", "--tracker-points",
+                    "tracker_fiducials.txt", "--out", os.path.join(HERE, "calib_good.toml")],
+                   cwd=tmp, check=True, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
+    out("calib_garbage.toml", bytes(rng.getrandbits(8) for _ in range(512)))
+    out("hmd_good.toml", HMD_GOOD)
+    out("hmd_ipd_500.toml", HMD_GOOD.replace("ipd_mm = 64.0", "ipd_mm = 500.0"))
+    s = lambda name, text: out("scene_" + name + ".toml", text)
+    s("render_files_good", SCENE_BASE + '[render]\ncalibration = "calib_good.toml"\nhmd = "hmd_good.toml"\n')
+    s("calibration_missing", SCENE_BASE + '[render]\ncalibration = "no_such_calibration.toml"\n')
+    s("calibration_garbage", SCENE_BASE + '[render]\ncalibration = "calib_garbage.toml"\n')
+    s("hmd_ipd_500", SCENE_BASE + '[render]\nhmd = "hmd_ipd_500.toml"\n')
+    s("hmd_directory", SCENE_BASE + '[render]\nhmd = "."  # this folder\n')
+
+
 def main():
     if not os.path.exists(BIN):
         sys.exit("lungdyn binary not found: %s (pass its path)" % BIN)
@@ -573,6 +604,7 @@ def main():
         make_meshes(tmp)
         c = make_pv(tmp); make_constants(tmp, c)
         make_kernels(tmp); make_points(tmp); make_motion(tmp); make_scenes(tmp)
+        make_render_files(tmp)
     total = sum(os.path.getsize(os.path.join(HERE, n)) for n in os.listdir(HERE))
     print("%d files, %.0f KiB in %s" % (len(os.listdir(HERE)), total / 1024, HERE))
 

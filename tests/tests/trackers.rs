@@ -559,3 +559,136 @@ fn hmd_check_shows_the_seed_hmd_and_refuses_a_bad_file() {
     assert_clean_failure(&["hmd", "check", f.to_str().unwrap()], "eyes.ipd_mm");
     let _ = std::fs::remove_file(&f);
 }
+
+/// A calibration 80 mm posterior of the reference, turned 10° about the body's long axis, and an HMD
+/// with small mirror-image asymmetric eyes, in `dir`.
+fn calibration_and_hmd(dir: &std::path::Path) -> (std::path::PathBuf, std::path::PathBuf) {
+    std::fs::create_dir_all(dir).unwrap();
+    let calib = dir.join("calib.toml");
+    std::fs::write(
+        &calib,
+        "format = 1\nkind = \"model-to-reference\"\n[transform]\n\
+         rotation_xyzw = [0.0, 0.0, 0.0871557, 0.9961947]\ntranslation_mm = [0.0, -80.0, -20.0]\n",
+    )
+    .unwrap();
+    let hmd = dir.join("hmd.toml");
+    std::fs::write(
+        &hmd,
+        "format = 1\n[display]\nwidth_px = 144\nheight_px = 96\n[eyes]\nipd_mm = 62\n\
+         [eyes.left]\noffset_mm = [-31, 0, 0]\nfrustum_deg = [36, 30, 24, 24]\n\
+         [eyes.right]\noffset_mm = [31, 0, 0]\nfrustum_deg = [30, 36, 24, 24]\n",
+    )
+    .unwrap();
+    (calib, hmd)
+}
+
+#[test]
+fn scene_check_loads_and_reports_the_calibration_and_hmd_files() {
+    let dir = tmp("scene-render-files");
+    let (_, _) = calibration_and_hmd(&dir);
+    let scene = dir.join("scene.toml");
+    std::fs::write(
+        &scene,
+        "[lungs]\nvertices = 1500\n[render]\ncalibration = \"calib.toml\"\nhmd = \"hmd.toml\"\n",
+    )
+    .unwrap();
+    let (ok, stdout, err) = lungdyn(&["scene", "check", scene.to_str().unwrap(), "--json"]);
+    assert!(ok, "{err}");
+    let v: serde_json::Value = serde_json::from_str(stdout.trim()).unwrap();
+    let c = &v["render"]["calibration"];
+    assert_eq!(c["file"].as_str(), dir.join("calib.toml").to_str());
+    assert!(
+        (c["rotation_deg"].as_f64().unwrap() - 10.0).abs() < 1e-3,
+        "{c}"
+    );
+    assert_eq!(c["translation_mm"][1].as_f64(), Some(-80.0));
+    let h = &v["render"]["hmd"];
+    assert_eq!(h["file"].as_str(), dir.join("hmd.toml").to_str());
+    assert_eq!(
+        (h["width_px"].as_u64(), h["ipd_mm"].as_f64()),
+        (Some(144), Some(62.0))
+    );
+    assert!((h["eyes"][0]["horizontal_fov_deg"].as_f64().unwrap() - 66.0).abs() < 1e-9);
+    let (ok, text, err) = lungdyn(&["scene", "check", scene.to_str().unwrap()]);
+    assert!(ok, "{err}");
+    assert!(
+        text.contains("calibration: ")
+            && text.contains("HMD optics: ")
+            && text.contains("144 x 96 px per eye"),
+        "{text}"
+    );
+    // Without the keys, the text says what is used instead.
+    std::fs::write(&scene, "[lungs]\nvertices = 1500\n").unwrap();
+    let (ok, text, _) = lungdyn(&["scene", "check", scene.to_str().unwrap()]);
+    assert!(
+        ok && text.contains("calibration: none") && text.contains("HMD optics: none"),
+        "{text}"
+    );
+    std::fs::remove_dir_all(&dir).ok();
+}
+
+#[test]
+fn the_demo_draws_with_a_calibration_and_hmd_optics() {
+    if renderer::gpu::Gpu::for_tests().is_none() {
+        return;
+    }
+    let dir = tmp("demo-calibrated");
+    let (calib, hmd) = calibration_and_hmd(&dir);
+    let scene = dir.join("scene.toml");
+    // Stereo, and a [render] size the optics file must override.
+    std::fs::write(
+        &scene,
+        "[lungs]\nvertices = 1500\n[render]\nstereo = true\nwidth = 400\nheight = 300\n",
+    )
+    .unwrap();
+    let out = dir.join("out");
+    let (ok, stdout, err) = lungdyn(&[
+        "demo",
+        "--seconds",
+        "2",
+        "--snapshots",
+        "2",
+        "--json",
+        "--out",
+        out.to_str().unwrap(),
+        "--scene",
+        scene.to_str().unwrap(),
+        "--calibration",
+        calib.to_str().unwrap(),
+        "--hmd",
+        hmd.to_str().unwrap(),
+    ]);
+    assert!(ok, "{err}");
+    let v: serde_json::Value = serde_json::from_str(stdout.trim()).unwrap();
+    lungdyn_tests::assert_demo_report_is_consistent(&v, &err);
+    assert_eq!(v["calibration"].as_str(), calib.to_str());
+    assert_eq!(v["hmd"].as_str(), hmd.to_str());
+    let start = err
+        .lines()
+        .find(|l| l.starts_with("renderer[") && l.contains("waiting for engine frames"))
+        .unwrap_or_default();
+    assert!(
+        start.contains("288x96")
+            && start.contains("lungs placed by the calibration")
+            && start.contains(calib.to_str().unwrap())
+            && start.contains(hmd.to_str().unwrap())
+            && start.contains("144x96 px per eye from the file (overrides [render] width/height)"),
+        "{err}"
+    );
+    // (The launcher hands the files to the renderer in the resolved scene, as [render] keys.)
+    // The snapshots have the optics' size (both eyes side by side), and the lungs are in them.
+    let pngs = v["pngs"].as_array().unwrap();
+    assert_eq!(pngs.len(), 2, "{v}");
+    for p in pngs {
+        let img = image::open(p.as_str().unwrap()).unwrap().to_rgba8();
+        assert_eq!(img.dimensions(), (288, 96));
+        for eye in 0..2 {
+            let lit = (eye * 144..(eye + 1) * 144)
+                .flat_map(|x| (0..96).map(move |y| (x, y)))
+                .filter(|&(x, y)| img.get_pixel(x, y).0[..3].iter().any(|&c| c > 40))
+                .count();
+            assert!(lit > 50, "eye {eye} of {p}: {lit} lit pixels");
+        }
+    }
+    std::fs::remove_dir_all(&dir).ok();
+}

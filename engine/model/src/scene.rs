@@ -257,6 +257,16 @@ pub struct RenderScene {
     pub fov_y_deg: f32,
     /// Point-splat diameter, mm.
     pub splat_mm: f32,
+    /// The calibration file `lungdyn register` writes (relative to the scene file): where the lungs'
+    /// model frame (the meshes' body frame, mm) is relative to the patient reference tool. Without
+    /// one the renderer places the lungs at a fixed offset from the reference.
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub calibration: Option<std::path::PathBuf>,
+    /// The HMD optics file (relative to the scene file; `lungdyn hmd check FILE` shows it): each
+    /// eye's offset, orientation and frustum, and the per-eye resolution, which then replace
+    /// `ipd_mm`, `fov_y_deg`, `width` and `height`.
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub hmd: Option<std::path::PathBuf>,
 }
 
 impl Default for PvScene {
@@ -307,6 +317,8 @@ impl Default for RenderScene {
             height: 600,
             fov_y_deg: 30.0,
             splat_mm: 2.5,
+            calibration: None,
+            hmd: None,
         }
     }
 }
@@ -417,6 +429,19 @@ pub enum SceneValueError {
     /// The `[disease]` table is unusable (the message names the key).
     #[error("[disease]: {0}")]
     Disease(#[source] crate::scene_disease::DiseaseSceneError),
+    /// A file named by `[render] calibration` or `[render] hmd` does not exist or is not a regular
+    /// file (its content is checked by the renderer's loader, `renderer::camera::RigFiles`).
+    #[error("[render] {key}: {} {problem} ({hint})", path.display())]
+    RenderFile {
+        /// "calibration" or "hmd".
+        key: &'static str,
+        /// Resolved path.
+        path: std::path::PathBuf,
+        /// "does not exist" or "is not a regular file".
+        problem: &'static str,
+        /// What the file is and how to get one.
+        hint: &'static str,
+    },
     /// A kernel named by `[lungs.kernels]` does not exist.
     #[error("[lungs.kernels] {side}: {} does not exist (bake it with `lungdyn bake`)", path.display())]
     MissingKernel {
@@ -644,6 +669,39 @@ impl Scene {
                     }));
                 }
                 scene.lungs.kernels.set(side, resolved);
+            }
+        }
+        // The calibration and HMD optics files must exist here; their content is checked where they
+        // are read (the renderer, `lungdyn scene check`, the launcher), as lung-model does not know
+        // tracker files.
+        for (key, file, hint) in [
+            (
+                "calibration",
+                &mut scene.render.calibration,
+                "a calibration written by `lungdyn register`",
+            ),
+            (
+                "hmd",
+                &mut scene.render.hmd,
+                "an HMD optics file; `lungdyn hmd check FILE` shows one",
+            ),
+        ] {
+            if let Some(f) = file.as_ref() {
+                let resolved = base.join(f);
+                let problem = match std::fs::metadata(&resolved) {
+                    Err(_) => Some("does not exist"),
+                    Ok(m) if !m.is_file() => Some("is not a regular file"),
+                    Ok(_) => None,
+                };
+                if let Some(problem) = problem {
+                    return Err(invalid(SceneValueError::RenderFile {
+                        key,
+                        path: resolved,
+                        problem,
+                        hint,
+                    }));
+                }
+                *file = Some(resolved);
             }
         }
         Ok(scene)
@@ -909,6 +967,61 @@ mod tests {
             s.bake_settings(Side::Right).unwrap().motion,
             crate::deform::MotionConstants::table_6_1(Side::Right)
         );
+    }
+
+    #[test]
+    fn render_calibration_and_hmd_paths_resolve_relative_to_the_scene_and_must_be_files() {
+        let dir = std::env::temp_dir().join(format!("lungdyn-scene-render-{}", std::process::id()));
+        std::fs::create_dir_all(dir.join("patient")).unwrap();
+        let scene = dir.join("s.toml");
+        std::fs::write(dir.join("patient/calib.toml"), "format = 1\n").unwrap();
+        std::fs::write(dir.join("hmd.toml"), "format = 1\n").unwrap();
+        std::fs::write(
+            &scene,
+            "[render]\ncalibration = \"patient/calib.toml\"\nhmd = \"hmd.toml\"\n",
+        )
+        .unwrap();
+        let s = Scene::load(&scene).unwrap();
+        assert_eq!(s.render.calibration, Some(dir.join("patient/calib.toml")));
+        assert_eq!(s.render.hmd, Some(dir.join("hmd.toml")));
+        // Absent keys stay absent and are not written back.
+        let d = Scene::parse("", "empty").unwrap();
+        assert_eq!((d.render.calibration, d.render.hmd), (None, None));
+        let text = toml::to_string(&Scene::default()).unwrap();
+        assert!(
+            !text.contains("calibration") && !text.contains("hmd"),
+            "{text}"
+        );
+        // A written scene with the keys reads back the same.
+        let back = Scene::parse(&toml::to_string(&s).unwrap(), "back").unwrap();
+        assert_eq!(back, s);
+        std::fs::write(&scene, "[render]\ncalibration = \"none.toml\"\n").unwrap();
+        let e = Scene::load(&scene).unwrap_err().to_string();
+        assert!(
+            e.contains("[render] calibration")
+                && e.contains("none.toml")
+                && e.contains("does not exist"),
+            "{e}"
+        );
+        std::fs::write(&scene, "[render]\nhmd = \"patient\"\n").unwrap();
+        let e = Scene::load(&scene).unwrap_err().to_string();
+        assert!(
+            e.contains("[render] hmd") && e.contains("is not a regular file"),
+            "{e}"
+        );
+        for bad in [
+            "[render]\ncalibratoin = \"c.toml\"\n",
+            "[render]\nhmd_file = \"h.toml\"\n",
+            "[render.hmd]\nipd_mm = 64\n",
+        ] {
+            let e = Scene::parse(bad, "s.toml").unwrap_err().to_string();
+            assert!(e.contains("s.toml"), "{bad}: {e}");
+        }
+        let e = Scene::parse("[render]\ncalibratoin = \"c.toml\"\n", "s.toml")
+            .unwrap_err()
+            .to_string();
+        assert!(e.contains("calibratoin"), "{e}");
+        std::fs::remove_dir_all(&dir).ok();
     }
 
     #[test]

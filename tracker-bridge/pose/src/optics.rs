@@ -1,5 +1,6 @@
 //! The HMD's optics: where each eye is relative to the HMD's tracked tool, and each eye's
-//! projection. The renderer will draw each eye with `projection · inverse(hmd_pose · eye_from_hmd)`.
+//! projection. The renderer draws each eye with `projection · inverse(hmd_pose · eye_from_hmd)`
+//! (`renderer::camera::Rig`).
 //!
 //! # Format (TOML, version 1)
 //! ```toml
