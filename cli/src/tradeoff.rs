@@ -75,6 +75,9 @@ pub struct Row {
     pub kernel_mib: f64,
     /// SH: least-squares α.
     pub alpha: Option<f64>,
+    /// SH: how many times faster than eq. 7.1 on the CPU, both timed interleaved (run for run, so
+    /// a slow phase of the machine falls on both).
+    pub cpu_speedup_vs_direct: Option<f64>,
 }
 
 /// One orientation method over a sweep.
@@ -157,6 +160,26 @@ fn median(runs: usize, mut f: impl FnMut()) -> f64 {
         .collect();
     t.sort_by(f64::total_cmp);
     t[t.len() / 2]
+}
+
+/// Medians of `a` and `b` timed alternately (a, b, a, b, …), so a slow phase of a shared machine
+/// falls on both and their ratio holds.
+fn median_pair(runs: usize, mut a: impl FnMut(), mut b: impl FnMut()) -> (f64, f64) {
+    a();
+    b();
+    let (mut ta, mut tb) = (Vec::new(), Vec::new());
+    for _ in 0..runs.max(1) {
+        let s = Instant::now();
+        a();
+        ta.push(s.elapsed().as_secs_f64());
+        let s = Instant::now();
+        b();
+        tb.push(s.elapsed().as_secs_f64());
+    }
+    (
+        median_of(ta).unwrap_or(f64::NAN),
+        median_of(tb).unwrap_or(f64::NAN),
+    )
 }
 
 fn median_of(mut v: Vec<f64>) -> Option<f64> {
@@ -365,6 +388,7 @@ pub fn run(args: &TradeoffArgs) -> anyhow::Result<Tradeoff> {
             transfer_bake_s,
             kernel_mib: mib(0.0),
             alpha: None,
+            cpu_speedup_vs_direct: None,
         });
         // Basis.
         let basis = responses.stored();
@@ -394,16 +418,32 @@ pub fn run(args: &TradeoffArgs) -> anyhow::Result<Tradeoff> {
             transfer_bake_s,
             kernel_mib: mib((v * 16) as f64),
             alpha: None,
+            cpu_speedup_vs_direct: None,
         });
-        // Memory-copy references of the same traffic, same run.
-        for (mode, bytes, ms) in [("precomputed", 36usize, pre_ms), ("basis", 52, basis_ms)] {
+        // Memory-copy references of the same traffic, same run, timed alternately with the mode
+        // (a slow phase of a shared machine falls on both).
+        for (mode, bytes) in [("precomputed", 36usize), ("basis", 52)] {
             let half = v * bytes / 2;
             let src = vec![1u8; half];
             let mut dst = vec![0u8; half];
-            let copy_ms = median(args.runs, || {
-                dst.copy_from_slice(std::hint::black_box(&src));
-                std::hint::black_box(&dst);
-            }) * 1e3;
+            let (lung, coeffs): (&mut CpuLung, &[f32]) = if mode == "basis" {
+                (&mut basis_lung, &w32)
+            } else {
+                (&mut pre, &[])
+            };
+            let (ms, copy_ms) = median_pair(
+                args.runs,
+                || {
+                    lung.deform_into(s_supine, coeffs, [0.0; 3], &mut outputs)
+                        .expect("coefficient count");
+                    std::hint::black_box(&outputs);
+                },
+                || {
+                    dst.copy_from_slice(std::hint::black_box(&src));
+                    std::hint::black_box(&dst);
+                },
+            );
+            let (ms, copy_ms) = (ms * 1e3, copy_ms * 1e3);
             copies.push(CopyFigure {
                 vertices: v,
                 mode: mode.into(),
@@ -426,6 +466,7 @@ pub fn run(args: &TradeoffArgs) -> anyhow::Result<Tradeoff> {
             },
         );
         let direct_ms = time_cpu(&mut direct, &w32, &mut outputs);
+        let mut direct_out = vec![[0.0f32; 3]; v];
         let direct_gpu = time_gpu(&direct, &w32)?;
         rows.push(Row {
             vertices: v,
@@ -439,9 +480,9 @@ pub fn run(args: &TradeoffArgs) -> anyhow::Result<Tradeoff> {
             transfer_bake_s,
             kernel_mib: mib(0.0),
             alpha: None,
+            cpu_speedup_vs_direct: None,
         });
-        drop(direct);
-        // SH, 1..max bands: each band count projected and fitted on its own (bake time per n).
+        // SH, 1..max bands (eq. 7.1 stays loaded: each band's speed-up is timed against it): each band count projected and fitted on its own (bake time per n).
         let columns = k.transfer.transposed();
         for bands in 1..=args.max_bands {
             eprintln!("lungdyn: {n} vertices: SH with {bands} bands ...");
@@ -466,6 +507,21 @@ pub fn run(args: &TradeoffArgs) -> anyhow::Result<Tradeoff> {
                 },
             );
             let ms = time_cpu(&mut lung, &coeffs, &mut outputs);
+            let (sh_ms, direct_ms) = median_pair(
+                args.runs,
+                || {
+                    lung.deform_into(s_supine, &coeffs, [0.0; 3], &mut outputs)
+                        .expect("coefficient count");
+                    std::hint::black_box(&outputs);
+                },
+                || {
+                    direct
+                        .deform_into(s_supine, &w32, [0.0; 3], &mut direct_out)
+                        .expect("coefficient count");
+                    std::hint::black_box(&direct_out);
+                },
+            );
+            let direct_over_sh = direct_ms / sh_ms;
             let gpu_ms = time_gpu(&lung, &coeffs)?;
             rows.push(Row {
                 vertices: v,
@@ -479,6 +535,7 @@ pub fn run(args: &TradeoffArgs) -> anyhow::Result<Tradeoff> {
                 transfer_bake_s,
                 kernel_mib: mib((v * 16 + v * bands * bands * 4) as f64),
                 alpha: Some(fit.alpha),
+                cpu_speedup_vs_direct: Some(direct_over_sh),
             });
         }
         // Orientation methods and stereo, on the smallest lung.
@@ -655,12 +712,12 @@ fn markdown(t: &Tradeoff, stem: &str) -> String {
     let _ = writeln!(s, "![trade-off plot]({stem}.png)\n");
     let _ = writeln!(
         s,
-        "| vertices | mode | coefficients | RMS mm | max mm | RMS % | max % | CPU ms/frame | GPU ms/frame | mode bake s | kernel MiB | α |\n|---|---|---|---|---|---|---|---|---|---|---|---|"
+        "| vertices | mode | coefficients | RMS mm | max mm | RMS % | max % | CPU ms/frame | × faster than eq. 7.1 (CPU, interleaved) | GPU ms/frame | mode bake s | kernel MiB | α |\n|---|---|---|---|---|---|---|---|---|---|---|---|---|"
     );
     for r in &t.rows {
         let _ = writeln!(
             s,
-            "| {} | {} | {} | {:.3} | {:.3} | {:.2} | {:.2} | {:.3} | {} | {:.2} | {:.1} | {} |",
+            "| {} | {} | {} | {:.3} | {:.3} | {:.2} | {:.2} | {:.3} | {} | {} | {:.2} | {:.1} | {} |",
             r.vertices,
             r.mode,
             r.bands
@@ -671,6 +728,7 @@ fn markdown(t: &Tradeoff, stem: &str) -> String {
             r.error.rms_percent,
             r.error.max_percent,
             r.cpu_ms,
+            fmt_opt(r.cpu_speedup_vs_direct, 1),
             fmt_opt(r.gpu_ms, 3),
             r.mode_bake_s,
             r.kernel_mib,
@@ -693,7 +751,11 @@ fn markdown(t: &Tradeoff, stem: &str) -> String {
                 .join(", ")
         }
     );
-    let _ = writeln!(s, "## Memory bandwidth (CPU, same run)\n");
+    let _ = writeln!(
+        s,
+        "## Memory bandwidth (CPU, same run)\n\nThe mode and a one-thread copy of the same bytes, timed \
+         alternately (mode, copy, mode, …) so a slow phase of a shared machine falls on both.\n"
+    );
     let _ = writeln!(
         s,
         "| vertices | mode | bytes/vertex | mode ms | copy of the same bytes ms | mode throughput / copy |\n|---|---|---|---|---|---|"
@@ -781,11 +843,11 @@ fn markdown(t: &Tradeoff, stem: &str) -> String {
 
 fn csv(t: &Tradeoff) -> String {
     let mut s = String::from(
-        "vertices,mode,bands,coefficients,rms_mm,max_mm,rms_percent,max_percent,cpu_ms,cpu_threads,gpu_ms,mode_bake_s,transfer_bake_s,kernel_mib,alpha\n",
+        "vertices,mode,bands,coefficients,rms_mm,max_mm,rms_percent,max_percent,cpu_ms,cpu_threads,gpu_ms,mode_bake_s,transfer_bake_s,kernel_mib,alpha,cpu_speedup_vs_direct\n",
     );
     for r in &t.rows {
         s.push_str(&format!(
-            "{},{},{},{},{:.6},{:.6},{:.4},{:.4},{:.4},{},{},{:.3},{:.3},{:.2},{}\n",
+            "{},{},{},{},{:.6},{:.6},{:.4},{:.4},{:.4},{},{},{:.3},{:.3},{:.2},{},{}\n",
             r.vertices,
             r.mode,
             r.bands.map(|b| b.to_string()).unwrap_or_default(),
@@ -800,7 +862,10 @@ fn csv(t: &Tradeoff) -> String {
             r.mode_bake_s,
             r.transfer_bake_s,
             r.kernel_mib,
-            r.alpha.map(|a| format!("{a:.5}")).unwrap_or_default()
+            r.alpha.map(|a| format!("{a:.5}")).unwrap_or_default(),
+            r.cpu_speedup_vs_direct
+                .map(|x| format!("{x:.2}"))
+                .unwrap_or_default()
         ));
     }
     s
@@ -928,7 +993,7 @@ pub fn text(t: &Tradeoff) -> String {
     let mut s = String::new();
     for r in &t.rows {
         s.push_str(&format!(
-            "{:>8} {:<18} {:>4} RMS {:>8.3} mm ({:>6.2} %) max {:>8.3} mm  CPU {:>8.3} ms  GPU {:>8} ms\n",
+            "{:>8} {:<18} {:>4} RMS {:>8.3} mm ({:>6.2} %) max {:>8.3} mm  CPU {:>8.3} ms{}  GPU {:>8} ms\n",
             r.vertices,
             r.mode,
             r.bands.map(|b| b.to_string()).unwrap_or_default(),
@@ -936,6 +1001,9 @@ pub fn text(t: &Tradeoff) -> String {
             r.error.rms_percent,
             r.error.max_mm,
             r.cpu_ms,
+            r.cpu_speedup_vs_direct
+                .map(|x| format!(" ({x:.1}x eq. 7.1)"))
+                .unwrap_or_default(),
             fmt_opt(r.gpu_ms, 3)
         ));
     }

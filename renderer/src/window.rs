@@ -102,15 +102,7 @@ impl ApplicationHandler for App {
             WindowEvent::KeyboardInput { event, .. }
                 if event.state == winit::event::ElementState::Pressed && !event.repeat =>
             {
-                use ipc_types::control_kind as k;
-                let action = match event.logical_key.to_text() {
-                    Some("n") | Some("N") => {
-                        Some((k::NEEDLE_DECOMPRESSION, "needle decompression"))
-                    }
-                    Some("c") | Some("C") => Some((k::CHEST_TUBE, "chest tube")),
-                    Some("o") | Some("O") => Some((k::OCCLUSIVE_DRESSING, "occlusive dressing")),
-                    _ => None,
-                };
+                let action = event.logical_key.to_text().and_then(key_action);
                 if let Some((kind, name)) = action {
                     match w.session.send_action(kind) {
                         Ok(Some(side)) => {
@@ -167,6 +159,19 @@ impl ApplicationHandler for App {
         if let Err(e) = result {
             self.fail(event_loop, e);
         }
+    }
+}
+
+/// What a key sends to the engine: N a needle decompression, C a chest tube, O an occlusive
+/// dressing, for the scene's tension pneumothorax ([`ipc_types::control_kind`] and a name for the
+/// log); `None` for any other key.
+pub fn key_action(text: &str) -> Option<(u32, &'static str)> {
+    use ipc_types::control_kind as k;
+    match text {
+        "n" | "N" => Some((k::NEEDLE_DECOMPRESSION, "needle decompression")),
+        "c" | "C" => Some((k::CHEST_TUBE, "chest tube")),
+        "o" | "O" => Some((k::OCCLUSIVE_DRESSING, "occlusive dressing")),
+        _ => None,
     }
 }
 

@@ -486,3 +486,96 @@ fn scene_run_reports_the_tumour_centres_motion_and_writes_its_trajectory() {
     ]);
     assert!(!ok && err.contains("baked without a tumour"), "{err}");
 }
+
+/// The window's N/C/O keys: what each sends, and that what the window sends reaches a running
+/// engine. The key press itself needs a display; everything after it — the key's action, the
+/// renderer session's control stream, the engine's receipt — runs here with the renderer session
+/// the window uses, in this process.
+#[test]
+fn the_windows_intervention_keys_reach_a_running_engine() {
+    use clap::Parser;
+    use ipc_types::control_kind as k;
+    use renderer::window::key_action;
+    use std::io::BufRead;
+    #[derive(Parser)]
+    struct Cli {
+        #[command(flatten)]
+        args: renderer::process::RendererArgs,
+    }
+    assert_eq!(key_action("n").map(|a| a.0), Some(k::NEEDLE_DECOMPRESSION));
+    assert_eq!(key_action("N").map(|a| a.0), Some(k::NEEDLE_DECOMPRESSION));
+    assert_eq!(key_action("c").map(|a| a.0), Some(k::CHEST_TUBE));
+    assert_eq!(key_action("O").map(|a| a.0), Some(k::OCCLUSIVE_DRESSING));
+    assert!(key_action("x").is_none() && key_action("").is_none());
+    let Some(gpu) = renderer::gpu::Gpu::for_tests() else {
+        return;
+    };
+    let out = tmp("keys");
+    let (ok, stdout, err) = lungdyn(&[
+        "scene",
+        "prepare",
+        scene("tension_pneumothorax.toml").to_str().unwrap(),
+        "--out",
+        out.to_str().unwrap(),
+        "--json",
+    ]);
+    assert!(ok, "{err}");
+    let v: serde_json::Value = serde_json::from_str(&stdout).unwrap();
+    let resolved = v["scene"].as_str().unwrap().to_string();
+    let instance = format!("keys-{}", std::process::id());
+    let exe = Path::new(env!("CARGO_MANIFEST_DIR")).join("../target/release/lungdyn");
+    let mut engine = Command::new(exe)
+        .args([
+            "engine",
+            "--scene",
+            &resolved,
+            "--instance",
+            &instance,
+            "--seconds",
+            "60",
+        ])
+        .stdout(std::process::Stdio::null())
+        .stderr(std::process::Stdio::piped())
+        .spawn()
+        .unwrap();
+    let stderr = engine.stderr.take().unwrap();
+    let (tx, rx) = std::sync::mpsc::channel();
+    std::thread::spawn(move || {
+        for line in std::io::BufReader::new(stderr)
+            .lines()
+            .map_while(Result::ok)
+        {
+            let _ = tx.send(line);
+        }
+    });
+    let cli = Cli::parse_from([
+        "renderer",
+        "--scene",
+        &resolved,
+        "--instance",
+        &instance,
+        "--seconds",
+        "60",
+    ]);
+    let mut session = renderer::process::Session::new(&cli.args, gpu).unwrap();
+    let (kind, _) = key_action("n").unwrap();
+    let (mut log, mut received) = (String::new(), false);
+    let start = std::time::Instant::now();
+    // Until the engine subscribes to the control stream a packet has no reader: press again.
+    while !received && start.elapsed() < std::time::Duration::from_secs(50) {
+        let side = session.send_action(kind).unwrap();
+        assert_eq!(side.map(|s| s.name()), Some("left"));
+        std::thread::sleep(std::time::Duration::from_millis(300));
+        while let Ok(l) = rx.try_recv() {
+            received |= l.contains("needle-decompression on the left lung received at tick");
+            log += &l;
+            log.push('\n');
+        }
+    }
+    let _ = engine.kill();
+    let _ = engine.wait();
+    assert!(
+        received,
+        "the engine never acknowledged the key's action:\n{log}"
+    );
+}
