@@ -189,6 +189,10 @@ pub struct DemoReport {
     pub fps: f64,
     /// Frames drawn without a fresh engine frame.
     pub stale_frames: u64,
+    /// Frames drawn with the patient pose held by the engine (tinted amber on screen).
+    pub patient_pose_held_frames: u64,
+    /// Of those, frames whose held pose was stale or never arrived (tinted red on screen).
+    pub patient_pose_stale_frames: u64,
     /// Engine ticks never drawn.
     pub skipped_ticks: u64,
     /// Reports lost between renderer and launcher.
@@ -645,6 +649,8 @@ pub fn run(args: &DemoArgs) -> anyhow::Result<DemoReport> {
             0.0
         },
         stale_frames: stats.stale_frames,
+        patient_pose_held_frames: stats.pose_held_frames,
+        patient_pose_stale_frames: stats.pose_stale_frames,
         skipped_ticks: stats.skipped_ticks,
         lost_reports: stats.lost_reports,
         bad_stamps: stats.bad_stamps,
@@ -758,6 +764,14 @@ pub fn table(r: &DemoReport) -> String {
             .collect::<Vec<_>>()
             .join("; ")
     );
+    if r.patient_pose_held_frames > 0 {
+        let _ = writeln!(
+            s,
+            "PATIENT POSE HELD in {} of {} frames ({} of them stale: no patient sample in time, or \
+             none yet) — drawn over a tinted background, amber held, red stale",
+            r.patient_pose_held_frames, r.frames_rendered, r.patient_pose_stale_frames
+        );
+    }
     let _ = writeln!(
         s,
         "stale frames {}, engine ticks not drawn {}, reports lost {}, shm files left by iceoryx2 {} (remaining {})",

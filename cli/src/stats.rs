@@ -46,6 +46,10 @@ pub struct LatencyStats {
     pub deadline_misses: u64,
     /// Frames drawn on the deadline fallback (no fresh engine frame).
     pub stale_frames: u64,
+    /// Frames drawn with the patient pose held by the engine (samples missing or rejected).
+    pub pose_held_frames: u64,
+    /// Of those, frames whose held pose was stale (past the limit, or none ever arrived).
+    pub pose_stale_frames: u64,
     /// Reports missing from the stream (gaps in the renderer's frame counter).
     pub lost_reports: u64,
     /// Engine ticks never drawn (gaps in the drawn tick sequence).
@@ -98,6 +102,8 @@ impl LatencyStats {
             frames: 0,
             deadline_misses: 0,
             stale_frames: 0,
+            pose_held_frames: 0,
+            pose_stale_frames: 0,
             lost_reports: 0,
             skipped_ticks: 0,
             bad_stamps: 0,
@@ -120,6 +126,12 @@ impl LatencyStats {
             }
         }
         self.last_frame = Some(r.frame);
+        if r.flags & report_flags::PATIENT_POSE_HELD != 0 {
+            self.pose_held_frames += 1;
+        }
+        if r.flags & report_flags::PATIENT_POSE_STALE != 0 {
+            self.pose_stale_frames += 1;
+        }
         if r.flags & report_flags::STALE_ENGINE != 0 {
             self.stale_frames += 1;
         } else if let Some(prev) = self.last_tick {

@@ -334,6 +334,7 @@ pub fn run(args: &TradeoffArgs) -> anyhow::Result<Tradeoff> {
                 coeffs: [[0.0; ipc_types::MAX_COEFFS]; 2],
                 patient: ipc_types::Pose::IDENTITY,
                 hmd: ipc_types::Pose::IDENTITY,
+                pose_warning: Default::default(),
             };
             let slot = side.index();
             state.deform_scale[slot] = s_supine;
@@ -658,6 +659,7 @@ fn stereo_figure(
                 translation_mm: [0.0, 0.0, 900.0],
                 _pad: 0,
             },
+            pose_warning: Default::default(),
         };
         state.coeffs[1][..4].copy_from_slice(w);
         let frame: Vec<f64> = (0..runs)

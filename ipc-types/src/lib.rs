@@ -377,6 +377,12 @@ pub mod report_flags {
     /// The engine frame was computed for another kernel than the renderer loaded for at least one
     /// lung; that lung was drawn at rest instead of with foreign displacements.
     pub const KERNEL_MISMATCH: u32 = 1 << 3;
+    /// The engine held the last good patient pose for this frame (samples missing or rejected):
+    /// the lungs are drawn where the patient was, and the frame says so (tinted background).
+    pub const PATIENT_POSE_HELD: u32 = 1 << 4;
+    /// The held pose is older than the scene's `pose_staleness_ticks`, or no patient sample ever
+    /// arrived: the overlay's placement is not to be trusted (red-tinted background).
+    pub const PATIENT_POSE_STALE: u32 = 1 << 5;
 }
 
 /// The renderer's per-frame report, consumed by the launcher's latency harness and by tests.

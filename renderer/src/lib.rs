@@ -50,6 +50,54 @@ pub struct DrawState {
     pub patient: Pose,
     /// HMD pose (camera).
     pub hmd: Pose,
+    /// How far to trust the patient pose: the background says so on screen.
+    pub pose_warning: PoseWarning,
+}
+
+/// What the frame shows about the patient pose (the engine's `PATIENT_POSE_HELD`/`_STALE`): in an
+/// optical see-through HMD black is transparent, so a held pose veils the view amber and a stale
+/// one red, and the lungs are never shown as if placed on a live pose.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Default)]
+pub enum PoseWarning {
+    /// Live pose: the normal background.
+    #[default]
+    None,
+    /// The last good pose, held within the scene's staleness limit.
+    Held,
+    /// Held past the limit, or none ever arrived.
+    Stale,
+}
+
+impl PoseWarning {
+    /// From the engine frame's state bits.
+    pub fn of_engine_state(state: u32) -> Self {
+        use ipc_types::engine_state as e;
+        if state & e::PATIENT_POSE_STALE != 0 {
+            PoseWarning::Stale
+        } else if state & e::PATIENT_POSE_HELD != 0 {
+            PoseWarning::Held
+        } else {
+            PoseWarning::None
+        }
+    }
+
+    fn background(self) -> wgpu::Color {
+        match self {
+            PoseWarning::None => BACKGROUND,
+            PoseWarning::Held => wgpu::Color {
+                r: 0.16,
+                g: 0.09,
+                b: 0.0,
+                a: 1.0,
+            },
+            PoseWarning::Stale => wgpu::Color {
+                r: 0.22,
+                g: 0.01,
+                b: 0.01,
+                a: 1.0,
+            },
+        }
+    }
 }
 
 /// Timing of one submitted frame.
@@ -372,7 +420,7 @@ impl LungRenderer {
                     depth_slice: None,
                     resolve_target: None,
                     ops: wgpu::Operations {
-                        load: wgpu::LoadOp::Clear(BACKGROUND),
+                        load: wgpu::LoadOp::Clear(state.pose_warning.background()),
                         store: wgpu::StoreOp::Store,
                     },
                 })],

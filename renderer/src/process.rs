@@ -507,7 +507,15 @@ impl Session {
             coeffs: [[0.0; ipc_types::MAX_COEFFS]; 2],
             patient: frame.patient_pose,
             hmd: self.hmd,
+            pose_warning: crate::PoseWarning::of_engine_state(frame.state),
         };
+        match state.pose_warning {
+            crate::PoseWarning::None => {}
+            crate::PoseWarning::Held => flags |= report_flags::PATIENT_POSE_HELD,
+            crate::PoseWarning::Stale => {
+                flags |= report_flags::PATIENT_POSE_HELD | report_flags::PATIENT_POSE_STALE
+            }
+        }
         let mismatch = self.lungs_to_draw(&frame, &mut state);
         if mismatch {
             flags |= report_flags::KERNEL_MISMATCH;

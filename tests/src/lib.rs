@@ -137,6 +137,12 @@ pub fn assert_demo_report_is_consistent(v: &serde_json::Value, stderr: &str) {
         n("deadline_misses") <= n("tracker_samples") && n("stale_frames") <= frames,
         "{v}"
     );
+    // Frames drawn on a held patient pose are counted, stale ones among them.
+    assert!(
+        n("patient_pose_stale_frames") <= n("patient_pose_held_frames")
+            && n("patient_pose_held_frames") <= frames,
+        "{v}"
+    );
     let (lo, hi) = (n("volume_min_ml"), n("volume_max_ml"));
     assert!(
         lo.is_finite() && hi.is_finite() && 0.0 < lo && lo <= hi,

@@ -395,12 +395,13 @@ fn the_upright_scene_breathes_the_same_volume_with_gravity_from_head_to_feet() {
 fn scene_run_reports_the_tumour_centres_motion_and_writes_its_trajectory() {
     let out = tmp("tumour_run");
     let s = scene("tumour_right_lower.toml");
+    // An hour of simulated breathing: every frame and every tumour position finite.
     let (ok, stdout, err) = lungdyn(&[
         "scene",
         "run",
         s.to_str().unwrap(),
         "--seconds",
-        "12",
+        "3600",
         "--out",
         out.to_str().unwrap(),
         "--json",
@@ -410,6 +411,8 @@ fn scene_run_reports_the_tumour_centres_motion_and_writes_its_trajectory() {
     let d = &v["disease"];
     assert_eq!(d["kind"], "tumour");
     assert_eq!(d["tumour"]["non_finite_positions"], 0);
+    assert_eq!(v["non_finite_frames"], 0);
+    assert_eq!(v["ticks"], 216_000);
     assert!(
         d["tumour"]["vertices_affected"].as_u64().unwrap() > 0,
         "{d}"

@@ -57,6 +57,7 @@ fn fixed_state(scale: f32) -> DrawState {
             translation_mm: eye.to_array(),
             _pad: 0,
         },
+        pose_warning: Default::default(),
     }
 }
 

@@ -108,6 +108,7 @@ fn every_mode_on_the_gpu_matches_the_cpu_reference_at_extreme_orientations() {
                 coeffs: [[0.0; ipc_types::MAX_COEFFS]; 2],
                 patient: f.patient_pose,
                 hmd: f.patient_pose,
+                pose_warning: Default::default(),
             };
             for slot in 0..2 {
                 state.deform_scale[slot] = f.lungs[slot].deform_scale;

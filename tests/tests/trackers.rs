@@ -390,6 +390,55 @@ fn the_demo_runs_on_a_device_source() {
     std::fs::remove_file(&scene).ok();
 }
 
+/// A bridge that never receives a patient sample: the engine holds (no) pose and flags it stale,
+/// the renderer tints the view red and reports every such frame, and the demo says so.
+#[test]
+fn without_patient_samples_every_frame_says_the_pose_is_stale_on_screen_and_in_the_report() {
+    if renderer::gpu::Gpu::for_tests().is_none() {
+        return;
+    }
+    let dir = std::env::temp_dir().join(format!("lungdyn-trackers-stale-{}", std::process::id()));
+    let scene = dir.with_extension("toml");
+    std::fs::write(
+        &scene,
+        "[lungs]\nvertices = 1500\n[render]\nwidth = 160\nheight = 120\n",
+    )
+    .unwrap();
+    // An OpenIGTLink server nobody sends to.
+    let port = free_port();
+    let (ok, stdout, err) = lungdyn(&[
+        "demo",
+        "--seconds",
+        "2",
+        "--snapshots",
+        "1",
+        "--json",
+        "--out",
+        dir.to_str().unwrap(),
+        "--scene",
+        scene.to_str().unwrap(),
+        "--tracker",
+        &format!("igtl-server:127.0.0.1:{port}"),
+    ]);
+    assert!(ok, "{err}");
+    let v: serde_json::Value = serde_json::from_str(stdout.trim()).unwrap();
+    let frames = v["frames_rendered"].as_u64().unwrap();
+    assert!(frames > 0, "{v}");
+    assert_eq!(v["patient_pose_held_frames"].as_u64(), Some(frames), "{v}");
+    assert_eq!(v["patient_pose_stale_frames"].as_u64(), Some(frames), "{v}");
+    assert!(err.contains("PATIENT POSE HELD"), "{err}");
+    // On screen: the corner of the snapshot is the stale tint (sRGB of linear 0.22, 0.01, 0.01).
+    let png = v["pngs"][0].as_str().unwrap();
+    let img = image::open(png).unwrap().to_rgb8();
+    let c = img.get_pixel(0, 0);
+    assert!(
+        c[0] > 100 && c[1] < 40 && c[2] < 40,
+        "corner {c:?} of {png}"
+    );
+    std::fs::remove_dir_all(&dir).ok();
+    std::fs::remove_file(&scene).ok();
+}
+
 #[test]
 fn register_writes_a_calibration_with_fiducial_errors_and_warns_on_collinear_points() {
     let model = tmp("model.csv");
