@@ -582,3 +582,57 @@ fn the_windows_intervention_keys_reach_a_running_engine() {
         "the engine never acknowledged the key's action:\n{log}"
     );
 }
+
+/// Every shipped scene runs in a window too (Xvfb; `.ci/run` installs it), not only headless.
+#[test]
+fn every_shipped_scene_runs_in_a_window() {
+    if renderer::gpu::Gpu::for_tests().is_none() {
+        return;
+    }
+    if Command::new("xvfb-run").arg("--help").output().is_err() {
+        assert_ne!(
+            std::env::var("LUNGDYN_REQUIRE_GPU").as_deref(),
+            Ok("1"),
+            "the windowed test needs xvfb-run (apt-get install xvfb), which .ci/run installs"
+        );
+        eprintln!("SKIPPED: no xvfb-run");
+        return;
+    }
+    let exe = Path::new(env!("CARGO_MANIFEST_DIR")).join("../target/release/lungdyn");
+    // One folder: the scenes share their kernels where the bake settings agree.
+    let out = tmp("windowed");
+    for name in [
+        "default.toml",
+        "upright.toml",
+        "closed_pneumothorax.toml",
+        "bilateral_pneumothorax.toml",
+        "tension_pneumothorax.toml",
+        "tumour_right_lower.toml",
+        "error_budget.toml",
+    ] {
+        let o = Command::new("xvfb-run")
+            .args(["-a", "-s", "-screen 0 1024x768x24"])
+            .arg(&exe)
+            .args([
+                "demo",
+                "--window",
+                "--seconds",
+                "2",
+                "--snapshots",
+                "0",
+                "--json",
+            ])
+            .arg("--out")
+            .arg(&out)
+            .arg("--scene")
+            .arg(scene(name))
+            .output()
+            .unwrap();
+        let stdout = String::from_utf8_lossy(&o.stdout);
+        let stderr = String::from_utf8_lossy(&o.stderr);
+        assert!(o.status.success(), "{name}: {stderr}");
+        let v: serde_json::Value =
+            serde_json::from_str(stdout.trim()).unwrap_or_else(|e| panic!("{name}: {e}: {stdout}"));
+        lungdyn_tests::assert_demo_report_is_consistent(&v, &stderr);
+    }
+}
