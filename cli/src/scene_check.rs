@@ -131,7 +131,8 @@ fn tumour(
     let mesh = lung_mesh(scene, t.side)?;
     let centre = t.centre_mm(&mesh);
     let winding = tu::winding_number(&mesh, centre);
-    if !(winding > 0.5) {
+    // (A NaN winding number is outside too.)
+    if winding.is_nan() || winding <= 0.5 {
         return Err(lung_model::disease::DiseaseError::from(
             tu::TumourError::CentreOutside {
                 side: t.side.name(),
@@ -435,14 +436,18 @@ pub struct RunArgs {
     pub json: bool,
 }
 
+/// One tick of the tumour centre's track: tick, the lung's cycle, its volume (ml), the centre (mm)
+/// and the same centre in the lung without the tumour (mm).
+type TrackRow = (u64, u32, f64, [f64; 3], [f64; 3]);
+
 /// A tumour centre followed through the run (the radiotherapy planner's output).
 struct TumourFollow {
     slot: usize,
     meta: lung_model::disease::tumour::TumourMeta,
     mode: lung_model::deform::modes::DeformMode,
     /// `(tick, cycle, volume ml, position mm, tumour-free position mm)` of the breath in progress.
-    current: Vec<(u64, u32, f64, [f64; 3], [f64; 3])>,
-    last: Vec<(u64, u32, f64, [f64; 3], [f64; 3])>,
+    current: Vec<TrackRow>,
+    last: Vec<TrackRow>,
     cycle: u32,
     bad: u64,
 }
@@ -505,7 +510,7 @@ impl TumourFollow {
         } else {
             &self.last
         };
-        let range = |pick: &dyn Fn(&(u64, u32, f64, [f64; 3], [f64; 3])) -> [f64; 3]| {
+        let range = |pick: &dyn Fn(&TrackRow) -> [f64; 3]| {
             [0, 1, 2].map(|a| {
                 let (lo, hi) = rows
                     .iter()

@@ -34,7 +34,7 @@ pub struct Scene {
 }
 
 /// `[processes]` table: the cores of the three processes and each one's share of the 16.7 ms frame.
-#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize, Default)]
 #[serde(deny_unknown_fields, default)]
 pub struct ProcessesScene {
     /// Cores for tracker-bridge, engine and renderer, in that order (`lungdyn demo --cpus`
@@ -65,15 +65,6 @@ impl Default for ProcessBudgets {
             tracker_bridge: 1.0,
             engine: 2.0,
             renderer: 10.0,
-        }
-    }
-}
-
-impl Default for ProcessesScene {
-    fn default() -> Self {
-        Self {
-            cpus: Vec::new(),
-            budget_ms: ProcessBudgets::default(),
         }
     }
 }

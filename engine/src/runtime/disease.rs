@@ -88,7 +88,7 @@ pub enum DiseaseRun {
     /// Tension pneumothorax.
     Tension(TensionRun),
     /// Tumour-influenced lung: applied once when the engine is built.
-    Tumour(TumourRun),
+    Tumour(Box<TumourRun>),
 }
 
 /// A tumour-influenced lung (seed §8.2): its kernel change is in the kernel (baked with the tumour
@@ -244,12 +244,12 @@ impl DiseaseRun {
                         side: t.side.name(),
                         source,
                     })?;
-                Ok(DiseaseRun::Tumour(TumourRun {
+                Ok(DiseaseRun::Tumour(Box::new(TumourRun {
                     side: t.side,
                     breathing: Some(breathing),
                     constants: (i, e),
                     resistance,
-                }))
+                })))
             }
         }
     }
