@@ -214,6 +214,13 @@ pub struct Columns {
 }
 
 impl Columns {
+    /// Set subnormal values to zero (see `CpuLung::new`).
+    pub fn flush_subnormals(&mut self) {
+        for x in self.vals.iter_mut().filter(|x| x.is_subnormal()) {
+            *x = 0.0;
+        }
+    }
+
     /// Number of nodes.
     pub fn len(&self) -> usize {
         self.ptr.len().saturating_sub(1)
