@@ -155,13 +155,7 @@ fn the_demo_shows_frames_in_a_window_when_a_display_exists() {
     if renderer::gpu::Gpu::for_tests().is_none() {
         return;
     }
-    if Command::new("xvfb-run").arg("--help").output().is_err() {
-        assert_ne!(
-            std::env::var("LUNGDYN_REQUIRE_GPU").as_deref(),
-            Ok("1"),
-            "the windowed test needs xvfb-run (apt-get install xvfb), which .ci/run installs"
-        );
-        eprintln!("SKIPPED: no xvfb-run");
+    if !lungdyn_tests::xvfb_available() {
         return;
     }
     let dir = std::env::temp_dir().join(format!("lungdyn-cli-window-{}", std::process::id()));

@@ -344,18 +344,24 @@ fn the_bridge_process_publishes_what_an_openigtlink_sender_sends() {
     services.remove_leftovers();
 }
 
-#[test]
-fn the_demo_runs_on_a_device_source() {
-    if renderer::gpu::Gpu::for_tests().is_none() {
-        return;
-    }
-    let dir = std::env::temp_dir().join(format!("lungdyn-trackers-demo-{}", std::process::id()));
+/// A small, quick scene for demos driven by a device source, written next to `dir`.
+fn small_demo_scene(dir: &std::path::Path) -> std::path::PathBuf {
     let scene = dir.with_extension("toml");
     std::fs::write(
         &scene,
         "[lungs]\nvertices = 1500\n[render]\nwidth = 160\nheight = 120\n",
     )
     .unwrap();
+    scene
+}
+
+#[test]
+fn the_demo_runs_on_a_device_source() {
+    if renderer::gpu::Gpu::for_tests().is_none() {
+        return;
+    }
+    let dir = std::env::temp_dir().join(format!("lungdyn-trackers-demo-{}", std::process::id()));
+    let scene = small_demo_scene(&dir);
     let port = free_port();
     let send = sender(port, 60.0);
     let (ok, stdout, err) = lungdyn(&[
@@ -398,12 +404,7 @@ fn without_patient_samples_every_frame_says_the_pose_is_stale_on_screen_and_in_t
         return;
     }
     let dir = std::env::temp_dir().join(format!("lungdyn-trackers-stale-{}", std::process::id()));
-    let scene = dir.with_extension("toml");
-    std::fs::write(
-        &scene,
-        "[lungs]\nvertices = 1500\n[render]\nwidth = 160\nheight = 120\n",
-    )
-    .unwrap();
+    let scene = small_demo_scene(&dir);
     // An OpenIGTLink server nobody sends to.
     let port = free_port();
     let (ok, stdout, err) = lungdyn(&[
