@@ -123,26 +123,7 @@ fn every_shipped_scene_checks_and_a_pneumothorax_and_a_tumour_run() {
         check(&scene(name));
     }
     // The tumour through the three processes: it is drawn (PNG frames) and every frame is finite.
-    let out = tmp("tumour_demo");
-    let s = scene("tumour_right_lower.toml");
-    let (ok, stdout, err) = lungdyn(&[
-        "demo",
-        "--scene",
-        s.to_str().unwrap(),
-        "--seconds",
-        "3",
-        "--snapshots",
-        "2",
-        "--out",
-        out.to_str().unwrap(),
-        "--instance",
-        &format!("tumour-{}", std::process::id()),
-        "--json",
-    ]);
-    assert!(ok, "{err}");
-    let v: serde_json::Value = serde_json::from_str(&stdout).unwrap();
-    assert!(v["frames_rendered"].as_u64().unwrap() > 0, "{v}");
-    assert_eq!(v["pngs"].as_array().unwrap().len(), 2, "{v}");
+    let v = demo_with_two_snapshots("tumour_right_lower.toml", "tumour");
     // The tumour's colour (draw.wgsl: yellow-green, far from the lungs' pinks) is in the image.
     let png = v["pngs"][0].as_str().unwrap();
     let img = image::open(png).unwrap().to_rgb8();
@@ -168,8 +149,14 @@ fn every_shipped_scene_checks_and_a_pneumothorax_and_a_tumour_run() {
     }
     // The seed's closed pneumothorax through the three processes: the left lung is collapsed and
     // dropped in every frame, every frame finite.
-    let out = tmp("closed_demo");
-    let s = scene("closed_pneumothorax.toml");
+    demo_with_two_snapshots("closed_pneumothorax.toml", "closed");
+}
+
+/// `lungdyn demo --scene scenes/<name> --seconds 3 --snapshots 2 --json`: its report, after checking
+/// it drew frames and wrote both PNGs.
+fn demo_with_two_snapshots(name: &str, tag: &str) -> serde_json::Value {
+    let out = tmp(&format!("{tag}_demo"));
+    let s = scene(name);
     let (ok, stdout, err) = lungdyn(&[
         "demo",
         "--scene",
@@ -181,13 +168,14 @@ fn every_shipped_scene_checks_and_a_pneumothorax_and_a_tumour_run() {
         "--out",
         out.to_str().unwrap(),
         "--instance",
-        &format!("closed-{}", std::process::id()),
+        &format!("{tag}-{}", std::process::id()),
         "--json",
     ]);
-    assert!(ok, "{err}");
+    assert!(ok, "{name}: {err}");
     let v: serde_json::Value = serde_json::from_str(&stdout).unwrap();
     assert!(v["frames_rendered"].as_u64().unwrap() > 0, "{v}");
     assert_eq!(v["pngs"].as_array().unwrap().len(), 2, "{v}");
+    v
 }
 
 #[test]
