@@ -5,27 +5,12 @@
 //! Run: `cargo bench -p lungdyn-bench --bench modes_cpu` (`-- --vertices N` for another size).
 //! The same figures for baked lungs, with errors and the GPU, come from `lungdyn bench tradeoff`.
 
+use lungdyn_bench::median;
 use std::hint::black_box;
-use std::time::Instant;
 
 use lung_model::deform::modes::{CpuLung, ModeData};
 use lung_model::mesh::TriMesh;
 use rayon::prelude::*;
-
-fn median(runs: usize, mut f: impl FnMut()) -> f64 {
-    for _ in 0..3 {
-        f();
-    }
-    let mut t: Vec<f64> = (0..runs)
-        .map(|_| {
-            let s = Instant::now();
-            f();
-            s.elapsed().as_secs_f64()
-        })
-        .collect();
-    t.sort_by(f64::total_cmp);
-    t[runs / 2]
-}
 
 /// A deterministic pseudo-random sequence in [-1, 1) (xorshift), so runs compare.
 fn values(n: usize, seed: u64) -> Vec<f32> {

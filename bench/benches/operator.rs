@@ -8,6 +8,7 @@
 //! measured in the same run (36 bytes per vertex: read p and u, write out).
 //! Run: `cargo bench -p lungdyn-bench --bench operator` (about a minute on two cores).
 
+use lungdyn_bench::median;
 use std::hint::black_box;
 use std::time::Instant;
 
@@ -24,20 +25,6 @@ fn peak_rss_mib() -> f64 {
         })
         .map(|kb| kb / 1024.0)
         .unwrap_or(0.0)
-}
-
-/// Median seconds of `f` over `runs` runs (after one warm-up).
-fn median(runs: usize, mut f: impl FnMut()) -> f64 {
-    f();
-    let mut t: Vec<f64> = (0..runs)
-        .map(|_| {
-            let s = Instant::now();
-            f();
-            s.elapsed().as_secs_f64()
-        })
-        .collect();
-    t.sort_by(f64::total_cmp);
-    t[runs / 2]
 }
 
 fn main() {

@@ -127,21 +127,10 @@ fn tumour(
     normal: &NormalBreathing,
     lungs: &[LungBaseline],
 ) -> anyhow::Result<Value> {
-    use lung_model::disease::tumour as tu;
     let mesh = lung_mesh(scene, t.side)?;
+    // The bake's own check (parameters, lung, centre inside the surface), without the bake.
+    lung_bake::kernel::check_tumour(t, t.side, &mesh).context("[disease.tumour]")?;
     let centre = t.centre_mm(&mesh);
-    let winding = tu::winding_number(&mesh, centre);
-    // (A NaN winding number is outside too.)
-    if winding.is_nan() || winding <= 0.5 {
-        return Err(lung_model::disease::DiseaseError::from(
-            tu::TumourError::CentreOutside {
-                side: t.side.name(),
-                centre_mm: centre,
-                winding,
-            },
-        ))
-        .context("[disease.tumour] centre");
-    }
     let lung = lungs
         .iter()
         .find(|b| b.side == t.side)
@@ -388,16 +377,7 @@ pub fn text(v: &Value) -> String {
             },
             d["course"].as_array().map_or(0, |c| c.len())
         );
-        for e in d["events"].as_array().into_iter().flatten() {
-            s += &format!(
-                "  event at tick {} (cycle {}): {} {} — {}\n",
-                e["tick"],
-                e["cycle"],
-                e["kind"].as_str().unwrap_or(""),
-                e["side"].as_str().unwrap_or(""),
-                e["outcome"].as_str().unwrap_or("")
-            );
-        }
+        s += &event_lines(d);
         let f = &d["final"];
         s += &format!(
             "  last cycle {}: pleural air {} ml, dV {}, mediastinal shift {} mm, {} /min{}\n",
@@ -415,6 +395,22 @@ pub fn text(v: &Value) -> String {
     }
     if let Some(n) = d["note"].as_str() {
         s += &format!("  {n}\n");
+    }
+    s
+}
+
+/// One line per intervention in a report's `events` (tick, cycle, kind, side, outcome).
+fn event_lines(d: &Value) -> String {
+    let mut s = String::new();
+    for e in d["events"].as_array().into_iter().flatten() {
+        s += &format!(
+            "  event at tick {} (cycle {}): {} {} — {}\n",
+            e["tick"],
+            e["cycle"],
+            e["kind"].as_str().unwrap_or(""),
+            e["side"].as_str().unwrap_or(""),
+            e["outcome"].as_str().unwrap_or("")
+        );
     }
     s
 }
@@ -795,16 +791,7 @@ pub fn run_text(v: &Value) -> String {
                 d["tumour"]["trajectory_csv"].as_str().unwrap_or("")
             );
         }
-        for e in d["events"].as_array().into_iter().flatten() {
-            s += &format!(
-                "  event at tick {} (cycle {}): {} {} — {}\n",
-                e["tick"],
-                e["cycle"],
-                e["kind"].as_str().unwrap_or(""),
-                e["side"].as_str().unwrap_or(""),
-                e["outcome"].as_str().unwrap_or("")
-            );
-        }
+        s += &event_lines(d);
     }
     s += &format!("  stage counts: {}\n", v["stage_counts"]);
     s
