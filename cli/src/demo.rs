@@ -108,6 +108,15 @@ pub fn check_counts(args: &DemoArgs) -> anyhow::Result<()> {
             args.snapshots
         );
     }
+    if let Some(at) = args.snapshot_at_s {
+        if !(at.is_finite() && at >= 0.0 && at < args.seconds) {
+            bail!(
+                "--snapshot-at-s {}: must be a number of seconds from 0 to below --seconds {}",
+                lung_model::plausible::compact(at),
+                args.seconds
+            );
+        }
+    }
     check_cpus(&args.cpus, "--cpus")
 }
 
@@ -433,17 +442,10 @@ pub fn run(args: &DemoArgs) -> anyhow::Result<DemoReport> {
         lung_model::pv::Breathing::from_constants(&inhale, &exhale, boundary, &scene.timing())?;
     let tick_hz = scene.engine.tick_hz;
     let run_ticks = (args.seconds * tick_hz) as u64;
-    let warmup_ticks = match args.snapshot_at_s {
-        None => tick_hz as u64,
-        Some(at) if at.is_finite() && at >= 0.0 && at < args.seconds => {
-            ((at * tick_hz) as u64).max(tick_hz as u64)
-        }
-        Some(at) => anyhow::bail!(
-            "--snapshot-at-s {}: must be a number of seconds from 0 to below --seconds {}",
-            lung_model::plausible::compact(at),
-            args.seconds
-        ),
-    };
+    // (--snapshot-at-s was checked with the other counts, before anything was written.)
+    let warmup_ticks = args.snapshot_at_s.map_or(tick_hz as u64, |at| {
+        ((at * tick_hz) as u64).max(tick_hz as u64)
+    });
     let targets = snapshot_ticks(
         args.snapshots,
         breathing.cycle_ticks() as u64,
