@@ -103,6 +103,9 @@ pub struct BakeSummary {
     pub sh_rms_mm: Option<f64>,
     /// Largest displacement error of the SH mode against eq. 7.1, mm.
     pub sh_max_mm: Option<f64>,
+    /// Largest displacement change from holding the SH coefficients in 16 bits at run time, mm
+    /// (included in the errors above, which are of what is drawn).
+    pub sh_quantisation_max_mm: Option<f64>,
     /// The error budget, when one was given, and whether the stored bands meet it.
     pub sh_budget_mm: Option<f64>,
     /// Whether the budget was met (absent without one).
@@ -232,6 +235,7 @@ pub fn bake(args: &BakeArgs) -> anyhow::Result<BakeSummary> {
         sh_rms_percent: sh.map(|s| s.rms_percent),
         sh_rms_mm: sh.map(|s| s.rms_mm),
         sh_max_mm: sh.map(|s| s.max_mm),
+        sh_quantisation_max_mm: sh.map(|s| s.quantisation_max_mm),
         sh_budget_mm: sh.and_then(|s| s.budget_mm),
         sh_budget_met: sh.and_then(|s| s.budget_mm.map(|b| s.rms_mm <= b)),
         foldover_nodes: sh.map_or(0, |s| s.foldover_nodes),
@@ -274,8 +278,9 @@ pub fn bake_text(b: &BakeSummary) -> String {
         match (b.sh_bands, b.alpha, b.sh_rms_mm, b.sh_rms_percent, b.sh_max_mm) {
             (0, ..) => "  no spherical harmonics stored (--bands 0): the sh mode is unavailable\n".to_string(),
             (n, Some(alpha), Some(rms), Some(pct), Some(max)) => format!(
-                "  sh mode, {n} bands ({} coefficients): alpha {alpha:.4}, RMS {rms:.3} mm ({pct:.2} % of the largest displacement), max {max:.3} mm; {} fold-over nodes{}\n",
+                "  sh mode, {n} bands ({} coefficients): alpha {alpha:.4}, RMS {rms:.3} mm ({pct:.2} % of the largest displacement), max {max:.3} mm (16-bit storage's share at most {:.4} mm); {} fold-over nodes{}\n",
                 n * n,
+                b.sh_quantisation_max_mm.unwrap_or(0.0),
                 b.foldover_nodes,
                 match (b.sh_budget_mm, b.sh_budget_met) {
                     (Some(budget), Some(true)) => format!("; meets the {budget} mm budget"),

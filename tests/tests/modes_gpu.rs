@@ -193,3 +193,107 @@ fn every_mode_on_the_gpu_matches_the_cpu_reference_at_extreme_orientations() {
         }
     }
 }
+
+/// The SH mode's 16-bit coefficients on the GPU (`snorm16` pairs with a zero pad after an odd count)
+/// against the CPU's blocks of eight, for 1, 9 and 49 coefficients per vertex and the two lungs at
+/// different counts, with coefficients of both signs and a lung whose vertex count is not a
+/// multiple of eight.
+#[test]
+fn sh_coefficients_held_in_16_bits_agree_on_gpu_and_cpu_at_odd_counts() {
+    use lung_model::deform::modes::{ModeData, ShCoeffs};
+    use lung_model::mesh::{generate, Side};
+    let Some(gpu) = Gpu::for_tests() else { return };
+    let values = |n: usize, seed: u64| -> Vec<f32> {
+        let mut x = seed;
+        (0..n)
+            .map(|_| {
+                x ^= x << 13;
+                x ^= x >> 7;
+                x ^= x << 17;
+                (x >> 40) as f32 / (1u64 << 23) as f32 - 1.0
+            })
+            .collect()
+    };
+    let render = scene(DeformMode::Sh).render;
+    for (n_right, n_left) in [(1usize, 9usize), (9, 49), (49, 16)] {
+        let lungs: Vec<RenderLung> = [(Side::Right, n_right, 1203), (Side::Left, n_left, 1100)]
+            .into_iter()
+            .map(|(side, n, vertices)| {
+                let mesh = generate::lung(side, vertices).unwrap();
+                let v = mesh.positions.len();
+                let kd: Vec<[f32; 3]> = values(3 * v, 7 + n as u64)
+                    .chunks_exact(3)
+                    .map(|c| [c[0] * 0.01, c[1] * 0.01, c[2] * 0.01])
+                    .collect();
+                let t = values(n * v, 3 + n as u64);
+                RenderLung {
+                    side,
+                    kernel_id: 0,
+                    lung: CpuLung::new(
+                        mesh,
+                        kd,
+                        ModeData::Sh {
+                            t: ShCoeffs::quantise(n, &t).unwrap(),
+                        },
+                    ),
+                    tumour: None,
+                }
+            })
+            .collect();
+        assert!(
+            lungs.iter().any(|l| l.lung.len() % 8 != 0),
+            "a tail block is exercised"
+        );
+        let r = LungRenderer::new(&gpu, &render, &lungs).unwrap();
+        let mut state = DrawState {
+            deform_scale: [1.3, 0.7],
+            offset_mm: [[0.5, -1.0, 2.0], [0.0; 3]],
+            collapse: [0.0; 2],
+            hilum_mm: [[0.0; 3]; 2],
+            coeffs: [[0.0; ipc_types::MAX_COEFFS]; 2],
+            patient: Default::default(),
+            hmd: Default::default(),
+            pose_warning: Default::default(),
+        };
+        for l in &lungs {
+            let slot = l.side.index();
+            let n = l.lung.coeff_count();
+            state.coeffs[slot][..n].copy_from_slice(&values(n, 11 + slot as u64));
+        }
+        r.render(&gpu, &state, false);
+        let positions = r.read_deformed(&gpu).unwrap();
+        let mut at = 0;
+        for l in &lungs {
+            let slot = l.side.index();
+            let n = l.lung.coeff_count();
+            let mut cpu = l.lung.clone();
+            let mut out = vec![[0.0f32; 3]; cpu.len()];
+            cpu.deform_into(
+                state.deform_scale[slot],
+                &state.coeffs[slot][..n],
+                state.offset_mm[slot],
+                &mut out,
+            )
+            .unwrap();
+            let mut worst = 0.0f32;
+            let mut moved = 0.0f32;
+            for (i, o) in out.iter().enumerate() {
+                let g = positions[at + i];
+                for a in 0..3 {
+                    worst = worst.max((g[a] - o[a]).abs() / o[a].abs().max(1.0));
+                    moved = moved.max((o[a] - l.lung.positions[i][a]).abs());
+                }
+            }
+            assert!(
+                moved > 1e-3,
+                "{n} coefficients: the lung moved ({moved} mm)"
+            );
+            assert!(
+                worst <= 1e-5,
+                "{n} coefficients ({:?}): GPU and CPU differ by {worst:e} relative",
+                l.side
+            );
+            at += cpu.len();
+        }
+    }
+}

@@ -48,6 +48,10 @@ fn bake_reports_the_sh_and_basis_errors_and_honours_bands_and_budgets() {
     let rms = v["sh_rms_mm"].as_f64().unwrap();
     assert!(pct > 0.0 && pct < 20.0 && rms > 0.0, "{v}");
     assert!(v["foldover_nodes"].as_u64().is_some());
+    // The run time's 16-bit coefficients: measured, and far inside the truncation error.
+    let quant = v["sh_quantisation_max_mm"].as_f64().unwrap();
+    let max = v["sh_max_mm"].as_f64().unwrap();
+    assert!(quant > 0.0 && quant < 0.01 * max, "{v}");
     let basis = v["basis_max_error_mm"].as_f64().unwrap();
     assert!(
         basis < 1e-3,
@@ -186,5 +190,76 @@ fn every_mode_runs_in_the_demo_with_the_patient_turning() {
     }
     assert_clean_failure(&["demo", "--mode", "fast"], "unknown mode");
     assert_clean_failure(&["demo", "--roll-deg", "270"], "--roll-deg");
+    std::fs::remove_dir_all(&dir).ok();
+}
+
+/// `lungdyn bench tradeoff` end to end on a small lung: every mode in the table with its error and
+/// times, the 16-bit storage's share for each SH row, the interleaved speed-ups, the copy
+/// references, and stereo at both eye sizes (GPU: lavapipe in CI), written as md, csv and png.
+#[test]
+fn the_trade_study_writes_its_table_csv_and_plot() {
+    let dir = temp("tradeoff");
+    let out = dir.join("t");
+    let gpu = if std::env::var("LUNGDYN_REQUIRE_GPU").as_deref() == Ok("1") {
+        "require"
+    } else {
+        "auto"
+    };
+    let (ok, stdout, err) = lungdyn(&[
+        "bench",
+        "tradeoff",
+        "--sizes",
+        "2000",
+        "--max-bands",
+        "4",
+        "--runs",
+        "3",
+        "--gpu",
+        gpu,
+        "--json",
+        "--out",
+        out.to_str().unwrap(),
+    ]);
+    assert!(ok, "{err}");
+    let v: serde_json::Value = serde_json::from_str(stdout.trim()).unwrap();
+    let rows = v["rows"].as_array().unwrap();
+    for mode in ["precomputed", "basis", "sh"] {
+        assert!(rows.iter().any(|r| r["mode"] == mode), "{mode}: {v}");
+    }
+    let sh: Vec<_> = rows.iter().filter(|r| r["mode"] == "sh").collect();
+    assert_eq!(sh.len(), 4, "1 to 4 bands");
+    for r in &sh {
+        let q = r["quantisation_max_mm"].as_f64().unwrap();
+        let max = r["error"]["max_mm"].as_f64().unwrap();
+        assert!(q > 0.0 && q < 0.01 * max, "{r}");
+        assert!(r["cpu_speedup_vs_direct"].as_f64().unwrap() > 0.0, "{r}");
+    }
+    let copies = v["copy"].as_array().unwrap();
+    assert!(copies
+        .iter()
+        .any(|c| c["mode"] == "sh, 16 coefficients" && c["bytes_per_vertex"] == 68));
+    if gpu == "require" {
+        let stereo = v["stereo"].as_array().unwrap();
+        assert_eq!(stereo.len(), 2, "{v}");
+        for st in stereo {
+            let r = st["rate_ratio"].as_f64().unwrap();
+            assert!(r.is_finite() && r > 0.0, "{st}");
+        }
+    }
+    for ext in ["md", "csv", "png"] {
+        let p = out.with_extension(ext);
+        assert!(
+            std::fs::metadata(&p)
+                .map(|m| m.len() > 100)
+                .unwrap_or(false),
+            "{}",
+            p.display()
+        );
+    }
+    let md = std::fs::read_to_string(out.with_extension("md")).unwrap();
+    assert!(
+        md.contains("16-bit storage's share") && md.contains("## Stereo") == (gpu == "require"),
+        "{md}"
+    );
     std::fs::remove_dir_all(&dir).ok();
 }

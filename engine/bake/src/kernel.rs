@@ -179,6 +179,7 @@ pub fn bake(
                 rms_percent: chosen.error.rms_percent,
                 rms_mm: chosen.error.rms_mm,
                 max_mm: chosen.error.max_mm,
+                quantisation_max_mm: chosen.quantisation_max_mm,
                 foldover_nodes: projection.weights.foldover_vertices.len() as u64,
                 budget_mm: settings.max_error_mm,
             }),
@@ -635,8 +636,8 @@ mod tests {
             (
                 DeformMode::Sh,
                 ModeData::Sh {
-                    n_coeffs: 16,
-                    t: k.sh.clone().unwrap(),
+                    t: lung_model::deform::modes::ShCoeffs::quantise(16, k.sh.as_ref().unwrap())
+                        .unwrap(),
                 },
                 (0..16).map(|i| ((i * 7 % 5) as f32 - 2.0) * 0.3).collect(),
             ),

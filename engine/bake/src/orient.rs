@@ -19,7 +19,7 @@ use glam::DVec3;
 use rayon::prelude::*;
 use thiserror::Error;
 
-use lung_model::deform::modes::VolumeForms;
+use lung_model::deform::modes::{ShCoeffs, VolumeForms};
 use lung_model::deform::normalised_position;
 use lung_model::mesh::{Side, TriMesh};
 use lung_model::operator::{Columns, Transfer};
@@ -301,8 +301,11 @@ pub struct ShFit {
     pub h: Vec<[f64; 4]>,
     /// Volume forms of the SH mode.
     pub forms: VolumeForms,
-    /// Errors against eq. 7.1.
+    /// Errors against eq. 7.1, of the coefficients as drawn (quantised, [`ShProjection::quantised`]).
     pub error: ErrorStats,
+    /// Largest displacement difference between the drawn (quantised) coefficients and the f64
+    /// projection, same `α` and scale, over the orientations, mm: the quantisation's share.
+    pub quantisation_max_mm: f64,
 }
 
 impl ShProjection {
@@ -352,21 +355,39 @@ impl ShProjection {
         })
     }
 
-    /// `H_a(i) = Σ_{k<n²} P_ak·T^i_k` for `n ≤ n_max` bands (before `α`).
+    /// `H_a(i) = Σ_{k<n²} P_ak·T^i_k` for `n ≤ n_max` bands (before `α`), from the f64 projection.
     pub fn responses(&self, n: usize) -> Vec<[f64; 4]> {
         let nc_max = self.n_max * self.n_max;
-        let nc = n * n;
         self.t
             .par_chunks(nc_max)
-            .map(|row| {
-                let mut h = [0.0; 4];
-                for (a, ha) in h.iter_mut().enumerate() {
-                    let p = &self.projection[a * nc_max..a * nc_max + nc];
-                    *ha = row[..nc].iter().zip(p).map(|(t, p)| t * p).sum();
-                }
-                h
-            })
+            .map(|row| self.response_of(n, |k| row[k]))
             .collect()
+    }
+
+    /// [`Self::responses`] from the values the run time holds ([`Self::quantised`]): what is drawn.
+    pub fn drawn_responses(&self, n: usize) -> Vec<[f64; 4]> {
+        let q = self.quantised(n);
+        (0..q.vertices())
+            .into_par_iter()
+            .map(|i| self.response_of(n, |k| q.value(i, k)))
+            .collect()
+    }
+
+    fn response_of(&self, n: usize, t: impl Fn(usize) -> f64) -> [f64; 4] {
+        let nc_max = self.n_max * self.n_max;
+        std::array::from_fn(|a| {
+            let p = &self.projection[a * nc_max..a * nc_max + n * n];
+            p.iter().enumerate().map(|(k, p)| t(k) * p).sum()
+        })
+    }
+
+    /// The `n`-band coefficients as the run time holds them: the kernel's f32 values
+    /// ([`Self::stored`]) quantised to 16 bits per coefficient (EQUATIONS.md §3.2, run-time storage).
+    ///
+    /// # Panics
+    /// If `n` is 0 or more than 8 bands (a frame's 64 coefficients; the bake checks this first).
+    pub fn quantised(&self, n: usize) -> ShCoeffs {
+        ShCoeffs::quantise(n * n, &self.stored(n)).expect("1 to 8 bands of finite values")
     }
 
     /// The SH transfer coefficients truncated to `n` bands, f32 (what a kernel stores).
@@ -401,7 +422,9 @@ impl ShProjection {
         orientations: &[DVec3],
         delta_ml: f64,
     ) -> ShFit {
-        let raw = self.responses(n);
+        // α, the forms and the errors are those of what the run time draws: the quantised values.
+        let raw = self.drawn_responses(n);
+        let exact = self.responses(n);
         // α = Σ D_sh·D / Σ D_sh² over nodes and orientations.
         let (mut num, mut den) = (0.0, 0.0);
         for &g in orientations {
@@ -421,17 +444,19 @@ impl ShProjection {
         let h: Vec<[f64; 4]> = raw.iter().map(|h| h.map(|v| v * alpha)).collect();
         let forms = responses.forms_of(mesh, &h);
         let mut acc = ErrorAccumulator::default();
+        let mut quantisation = ErrorAccumulator::default();
         let delta_mm3 = delta_ml * 1000.0;
+        let dot =
+            |w: &ForceWeights, h: &[f64; 4]| w[0] * h[0] + w[1] * h[1] + w[2] * h[2] + w[3] * h[3];
         for &g in orientations {
             let w = responses.weights(g);
             let s_ref = exact_forms.cubic(&w).solve_delta(delta_mm3);
             let s_sh = forms.cubic(&w).solve_delta(delta_mm3);
             let d_ref = responses.force(&w);
-            let d_sh: Vec<f64> = h
-                .iter()
-                .map(|h| w[0] * h[0] + w[1] * h[1] + w[2] * h[2] + w[3] * h[3])
-                .collect();
+            let d_sh: Vec<f64> = h.iter().map(|h| dot(&w, h)).collect();
+            let d_exact: Vec<f64> = exact.iter().map(|h| alpha * dot(&w, h)).collect();
             acc.add(&responses.kd, s_ref, &d_ref, s_sh, &d_sh);
+            quantisation.add(&responses.kd, s_sh, &d_exact, s_sh, &d_sh);
         }
         ShFit {
             n,
@@ -439,6 +464,7 @@ impl ShProjection {
             h,
             forms,
             error: acc.stats(),
+            quantisation_max_mm: quantisation.stats().max_mm,
         }
     }
 }
@@ -604,5 +630,30 @@ mod tests {
         assert!(errs[3] < errs[0], "{errs:?}");
         let f4 = proj.fit(4, &k.mesh, &r, &forms, &o, 200.0);
         assert!((0.5..2.0).contains(&f4.alpha), "alpha {}", f4.alpha);
+        // The run time's 16-bit storage: a share of the error that exists (not 0: it is measured)
+        // and is far below the truncation's, at every band count, 1 and 8 included.
+        for n in [1, 4, 8] {
+            let f = proj.fit(n, &k.mesh, &r, &forms, &o, 200.0);
+            let max_disp = f.error.max_displacement_mm;
+            assert!(
+                f.quantisation_max_mm > 0.0 && f.quantisation_max_mm < 1e-3 * max_disp,
+                "{n} bands: quantisation {} mm of {max_disp} mm",
+                f.quantisation_max_mm
+            );
+            assert!(
+                f.quantisation_max_mm < 0.01 * f.error.max_mm,
+                "{n} bands: {f:?}"
+            );
+            // The fitted responses are those of the held values.
+            let q = proj.quantised(n);
+            let raw = proj.drawn_responses(n);
+            let i = k.mesh.positions.len() / 3;
+            for a in 0..4 {
+                let want: f64 = (0..n * n)
+                    .map(|kk| q.value(i, kk) * proj.projection(n)[a * n * n + kk])
+                    .sum();
+                assert!((raw[i][a] - want).abs() <= 1e-12 * want.abs().max(1e-9));
+            }
+        }
     }
 }

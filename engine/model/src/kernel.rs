@@ -188,6 +188,11 @@ pub struct ShMeta {
     pub rms_mm: f64,
     /// Largest displacement error against eq. 7.1, mm.
     pub max_mm: f64,
+    /// Largest displacement change the run time's 16-bit storage of the coefficients makes
+    /// (EQUATIONS.md §3.2), mm; included in the errors above, which are of what is drawn. Absent
+    /// (0) in kernels baked before the run time quantised them.
+    #[serde(default)]
+    pub quantisation_max_mm: f64,
     /// Vertices touching a triangle whose projection from the centre folds over (or contains it).
     pub foldover_nodes: u64,
     /// The error budget the bands were chosen for, if any.

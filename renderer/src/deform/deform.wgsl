@@ -5,7 +5,7 @@
 //   (each p below is (1 − c)·p for a lung collapsing towards its hilum, EQUATIONS §4.1)
 //   deform_precomputed  p + s·u + o                               (3 MACs)
 //   deform_basis        p + s·(w·G)·kd + o                         (EQUATIONS §3.3, 4 MACs)
-//   deform_sh           p + s·(Σ_k F_k·T_k)·kd + o                 (eq. 7.7, n² MACs)
+//   deform_sh           p + s·(Σ_k F_k·T_k)·kd + o                 (eq. 7.7, n² MACs on 16-bit T)
 //   direct_force        f_j = w·(1, x̂, ŷ, ẑ)_j                    (eq. 6.18 for this orientation)
 //   deform_direct       p + s·(Σ_j f_j·T(j, i))·kd + o             (eq. 7.1 over the stored rows)
 //   vertex_normals      n_i = normalize(Σ_t (b − a) × (c − a))     (area-weighted, smooth shading)
@@ -26,9 +26,10 @@ struct Params {
     _pad0: u32,
     _pad1: u32,
     _pad2: u32,
-    // Per slot: x = first vertex, y = SH coefficients per vertex, z = first SH coefficient.
+    // Per slot: x = first vertex, y = SH coefficients per vertex, z = first SH word.
     lung_info: array<vec4<u32>, 2>,
-    // SH force coefficients F_k per slot: slot s, k → sh_f[s·16 + k/4][k%4] (at most 64 each).
+    // SH force coefficients times their index's scale, F_k·scale_k, per slot: slot s, k →
+    // sh_f[s·16 + k/4][k%4] (at most 64 each; 0 past the lung's count).
     sh_f: array<vec4<f32>, 32>,
 };
 
@@ -43,8 +44,10 @@ struct Params {
 @group(0) @binding(4) var<storage, read> kd: array<vec4<f32>>;
 // Basis responses (G_0, G_x, G_y, G_z).
 @group(0) @binding(5) var<storage, read> basis: array<vec4<f32>>;
-// SH transfer coefficients T^i_k, lung_info.y per vertex.
-@group(0) @binding(6) var<storage, read> sh_t: array<f32>;
+// SH transfer coefficients T^i_k as 16-bit integers q, two per word (k even in the low half, a zero
+// pad after an odd count), ceil(lung_info.y / 2) words per vertex: T = q·scale_k/32767, with scale_k
+// folded into sh_f by the host (lung_model::deform::sh_coeffs).
+@group(0) @binding(6) var<storage, read> sh_t: array<u32>;
 // (1, x̂, ŷ, ẑ) per node (direct mode).
 @group(0) @binding(7) var<storage, read> nhat: array<vec4<f32>>;
 // Applied force per node for this frame (direct mode scratch).
@@ -105,10 +108,14 @@ fn deform_sh(@builtin(global_invocation_id) gid: vec3<u32>) {
     let slot = slot_of(b);
     let info = params.lung_info[slot];
     let n = info.y;
-    let first = info.z + (i - info.x) * n;
+    let first = info.z + (i - info.x) * ((n + 1u) / 2u);
     var d = 0.0;
-    for (var k = 0u; k < n; k = k + 1u) {
-        d = d + sh_t[first + k] * params.sh_f[slot * 16u + k / 4u][k % 4u];
+    for (var k = 0u; k < n; k = k + 2u) {
+        // unpack2x16snorm: max(q / 32767, −1) per half; the pad half and its sh_f entry are 0.
+        let t = unpack2x16snorm(sh_t[first + k / 2u]);
+        let f0 = params.sh_f[slot * 16u + k / 4u][k % 4u];
+        let f1 = params.sh_f[slot * 16u + (k + 1u) / 4u][(k + 1u) % 4u];
+        d = d + t.x * f0 + t.y * f1;
     }
     deformed[i] = vec4<f32>(keep_of(slot) * b.xyz + (scale_of(slot) * d) * kd[i].xyz + params.offset[slot].xyz, b.w);
 }

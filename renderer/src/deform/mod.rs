@@ -130,6 +130,9 @@ pub struct DeformPass {
     normals_pass: Option<Dispatch>,
     params: wgpu::Buffer,
     lung_info: [[u32; 4]; 2],
+    /// Per slot, the scale of each SH coefficient index (`T ≈ q·scale/32767`; 0 beyond the lung's
+    /// count and in other modes), folded into the frame's force coefficients.
+    sh_scale: [[f32; MAX_COEFFS]; 2],
     /// Deformed positions (xyz mm, w lung slot): the vertex buffer of the draw passes.
     pub deformed: wgpu::Buffer,
     /// Smooth vertex normals (xyz, w 0): the draw's second vertex buffer.
@@ -184,15 +187,19 @@ impl DeformPass {
         let mut base: Vec<[f32; 4]> = Vec::new();
         let mut lung_info = [[0u32; 4]; 2];
         let mut sh_first = 0u32;
+        let mut sh_scale = [[0.0f32; MAX_COEFFS]; 2];
         for l in lungs {
             let slot = l.side.index();
-            let n_coeffs = match &l.lung.data {
-                ModeData::Sh { n_coeffs, .. } => *n_coeffs as u32,
-                _ => 0,
+            let (n_coeffs, words) = match &l.lung.data {
+                ModeData::Sh { t } => {
+                    sh_scale[slot][..t.n_coeffs()].copy_from_slice(t.scale());
+                    (t.n_coeffs() as u32, t.gpu_words_per_vertex() as u32)
+                }
+                _ => (0, 0),
             };
             lung_info[slot] = [base.len() as u32, n_coeffs, sh_first, 0];
             sh_first = sh_first
-                .checked_add(n_coeffs.saturating_mul(l.lung.len() as u32))
+                .checked_add(words.saturating_mul(l.lung.len() as u32))
                 .ok_or(UploadError::Index("spherical-harmonic coefficients"))?;
             let w = slot as f32;
             base.extend(l.lung.positions.iter().map(|p| [p[0], p[1], p[2], w]));
@@ -310,10 +317,11 @@ impl DeformPass {
                 ));
             }
             DeformMode::Sh => {
-                let t: Vec<f32> = lungs
+                // 16-bit integers in pairs, as the CPU holds them (lung_model::deform::sh_coeffs).
+                let t: Vec<u32> = lungs
                     .iter()
                     .flat_map(|l| match &l.lung.data {
-                        ModeData::Sh { t, .. } => t.iter().copied(),
+                        ModeData::Sh { t } => t.gpu_words(),
                         _ => unreachable!("one mode"),
                     })
                     .collect();
@@ -474,6 +482,7 @@ impl DeformPass {
             normals_pass,
             params,
             lung_info,
+            sh_scale,
             deformed,
             normals: normals_buf,
             count,
@@ -525,8 +534,11 @@ impl DeformPass {
         for slot in 0..2 {
             let c = &inputs.coeffs[slot];
             p.weights[slot] = [c[0], c[1], c[2], c[3]];
+            // `F_k·scale_k`: the shader multiplies by `unpack2x16snorm(q) = q/32767` (0 past the
+            // lung's coefficient count, so a pad half never meets a stale coefficient).
             for k in 0..MAX_COEFFS {
-                p.sh_f[slot * 16 + k / 4][k % 4] = c[k];
+                let scale = self.sh_scale[slot][k];
+                p.sh_f[slot * 16 + k / 4][k % 4] = if scale == 0.0 { 0.0 } else { c[k] * scale };
             }
         }
         queue.write_buffer(&self.params, 0, bytemuck::bytes_of(&p));

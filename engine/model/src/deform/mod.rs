@@ -23,6 +23,7 @@
 
 pub mod field;
 pub mod modes;
+pub mod sh_coeffs;
 
 use glam::DVec3;
 use thiserror::Error;

@@ -28,6 +28,8 @@ use crate::deform::VolumeCubic;
 use crate::mesh::TriMesh;
 use crate::operator::Columns;
 
+pub use super::sh_coeffs::{ShCoeffs, ShCoeffsError};
+
 /// Vertices per parallel chunk of the CPU passes.
 const CHUNK: usize = 8192;
 
@@ -261,12 +263,11 @@ pub enum ModeData {
         /// Responses.
         g: Vec<[f32; 4]>,
     },
-    /// The SH transfer coefficients, `n²` per vertex.
+    /// The SH transfer coefficients, `n²` per vertex, as the run time holds them (16-bit, one scale
+    /// per coefficient index: [`ShCoeffs`]).
     Sh {
-        /// Coefficients per vertex.
-        n_coeffs: usize,
-        /// `T^i_k`, row-major.
-        t: Vec<f32>,
+        /// `T^i_k`, quantised.
+        t: ShCoeffs,
     },
     /// The transfer rows as columns (eq. 7.1 gathers) and each node's `(1, x̂, ŷ, ẑ)`.
     Direct {
@@ -327,6 +328,14 @@ pub enum ModeLoadError {
     /// A section could not be read or failed verification.
     #[error(transparent)]
     Kernel(#[from] crate::kernel::KernelError),
+    /// The kernel's SH coefficients cannot be held (too many per vertex for a frame).
+    #[error("{path}: {source}")]
+    Sh {
+        /// Kernel.
+        path: String,
+        /// Why.
+        source: ShCoeffsError,
+    },
     /// The kernel lacks the mode's data.
     #[error(
         "{path}: the kernel has no {what} for the {mode} mode (bake it again with this lungdyn)"
@@ -376,12 +385,16 @@ impl CpuLung {
                     .as_ref()
                     .ok_or_else(|| missing("spherical harmonics"))?
                     .bands as usize;
+                let t = kernel
+                    .sh_coefficients()?
+                    .ok_or_else(|| missing("spherical harmonics"))?;
                 ModeData::Sh {
-                    n_coeffs: bands * bands,
-                    t: kernel
-                        .sh_coefficients()?
-                        .ok_or_else(|| missing("spherical harmonics"))?
-                        .to_vec(),
+                    t: ShCoeffs::quantise(bands * bands, t).map_err(|source| {
+                        ModeLoadError::Sh {
+                            path: kernel.path().display().to_string(),
+                            source,
+                        }
+                    })?,
                 }
             }
             DeformMode::Direct => {
@@ -414,7 +427,8 @@ impl CpuLung {
         match &mut data {
             ModeData::Precomputed { unit } => flush(unit.as_flattened_mut()),
             ModeData::Basis { g } => flush(g.as_flattened_mut()),
-            ModeData::Sh { t, .. } => flush(t),
+            // Quantised at construction: 16-bit integers and normal (or zero) scales.
+            ModeData::Sh { .. } => {}
             ModeData::Direct { columns, nhat, .. } => {
                 columns.flush_subnormals();
                 flush(nhat.as_flattened_mut());
@@ -445,7 +459,7 @@ impl CpuLung {
         match &self.data {
             ModeData::Precomputed { .. } => 0,
             ModeData::Basis { .. } | ModeData::Direct { .. } => 4,
-            ModeData::Sh { n_coeffs, .. } => *n_coeffs,
+            ModeData::Sh { t } => t.n_coeffs(),
         }
     }
 
@@ -493,32 +507,7 @@ impl CpuLung {
                         }
                     });
             }
-            ModeData::Sh { n_coeffs, t } => {
-                let n = *n_coeffs;
-                match n {
-                    1 => sh_pass::<1>(p, kd, t, coeffs, s, &offset, out),
-                    4 => sh_pass::<4>(p, kd, t, coeffs, s, &offset, out),
-                    9 => sh_pass::<9>(p, kd, t, coeffs, s, &offset, out),
-                    16 => sh_pass::<16>(p, kd, t, coeffs, s, &offset, out),
-                    25 => sh_pass::<25>(p, kd, t, coeffs, s, &offset, out),
-                    36 => sh_pass::<36>(p, kd, t, coeffs, s, &offset, out),
-                    49 => sh_pass::<49>(p, kd, t, coeffs, s, &offset, out),
-                    64 => sh_pass::<64>(p, kd, t, coeffs, s, &offset, out),
-                    _ => out
-                        .par_chunks_mut(CHUNK)
-                        .zip(p.par_chunks(CHUNK))
-                        .zip(t.par_chunks(CHUNK * n))
-                        .zip(kd.par_chunks(CHUNK))
-                        .for_each(|(((out, p), t), kd)| {
-                            for (((o, p), row), kd) in
-                                out.iter_mut().zip(p).zip(t.chunks_exact(n)).zip(kd)
-                            {
-                                let d: f32 = row.iter().zip(coeffs).map(|(a, b)| a * b).sum();
-                                *o = moved(p, s * d, kd, &offset);
-                            }
-                        }),
-                }
-            }
+            ModeData::Sh { t } => t.deform_into(p, kd, s, coeffs, &offset, out),
             ModeData::Direct {
                 columns,
                 nhat,
@@ -563,35 +552,6 @@ fn moved(p: &[f32; 3], amount: f32, dir: &[f32; 3], offset: &[f32; 3]) -> [f32; 
         p[1] + amount * dir[1] + offset[1],
         p[2] + amount * dir[2] + offset[2],
     ]
-}
-
-/// Eq. 7.7 for `N` coefficients per vertex: a fixed-length dot product with four partial sums
-/// (so the compiler can keep them in vector registers), then the move.
-fn sh_pass<const N: usize>(
-    p: &[[f32; 3]],
-    kd: &[[f32; 3]],
-    t: &[f32],
-    coeffs: &[f32],
-    s: f32,
-    offset: &[f32; 3],
-    out: &mut [[f32; 3]],
-) {
-    let c: &[f32; N] = coeffs.try_into().expect("N coefficients");
-    out.par_chunks_mut(CHUNK)
-        .zip(p.par_chunks(CHUNK))
-        .zip(t.par_chunks(CHUNK * N))
-        .zip(kd.par_chunks(CHUNK))
-        .for_each(|(((out, p), t), kd)| {
-            for (((o, p), row), kd) in out.iter_mut().zip(p).zip(t.chunks_exact(N)).zip(kd) {
-                let row: &[f32; N] = row.try_into().expect("N per vertex");
-                let mut acc = [0.0f32; 4];
-                for k in 0..N {
-                    acc[k % 4] += row[k] * c[k];
-                }
-                let d = (acc[0] + acc[1]) + (acc[2] + acc[3]);
-                *o = moved(p, s * d, kd, offset);
-            }
-        });
 }
 
 /// `(1, x̂, ŷ, ẑ)` of every vertex (the box coordinates of eq. 6.14–6.18 in the mesh's own box).
