@@ -58,7 +58,8 @@ pub struct Row {
     pub mode: String,
     /// SH bands (sh mode).
     pub bands: Option<usize>,
-    /// Numbers per vertex the mode reads besides the position.
+    /// Numbers per vertex the mode reads besides the position, in f32 equivalents (a 16-bit SH
+    /// coefficient counts a half).
     pub floats_per_vertex: f64,
     /// Errors against eq. 7.1.
     pub error: ErrorStats,
@@ -533,8 +534,11 @@ pub fn run(args: &TradeoffArgs) -> anyhow::Result<Tradeoff> {
             );
             if bands == 4 {
                 // The seed's 16 coefficients against a copy of their bytes: p, 16-bit T and k·d
-                // read (56 B), the position written (12 B).
-                let bytes = 68usize;
+                // read (12 + 32 + 12 B), the position written (12 B).
+                let ModeData::Sh { t } = &lung.data else {
+                    unreachable!("an SH lung")
+                };
+                let bytes = 12 + t.bytes_per_vertex() + 12 + 12;
                 let half = v * bytes / 2;
                 let src = vec![1u8; half];
                 let mut dst = vec![0u8; half];

@@ -250,7 +250,8 @@ fn sh_coefficients_held_in_16_bits_agree_on_gpu_and_cpu_at_odd_counts() {
             offset_mm: [[0.5, -1.0, 2.0], [0.0; 3]],
             collapse: [0.0; 2],
             hilum_mm: [[0.0; 3]; 2],
-            coeffs: [[0.0; ipc_types::MAX_COEFFS]; 2],
+            // Past each lung's count: NaN, which the host must not pass on (it zeroes those).
+            coeffs: [[f32::NAN; ipc_types::MAX_COEFFS]; 2],
             patient: Default::default(),
             hmd: Default::default(),
             pose_warning: Default::default(),
@@ -275,6 +276,13 @@ fn sh_coefficients_held_in_16_bits_agree_on_gpu_and_cpu_at_odd_counts() {
                 &mut out,
             )
             .unwrap();
+            assert!(
+                positions[at..at + cpu.len()]
+                    .iter()
+                    .flatten()
+                    .all(|v| v.is_finite()),
+                "{n} coefficients: NaN on the GPU"
+            );
             let mut worst = 0.0f32;
             let mut moved = 0.0f32;
             for (i, o) in out.iter().enumerate() {

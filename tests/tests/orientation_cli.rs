@@ -200,10 +200,12 @@ fn every_mode_runs_in_the_demo_with_the_patient_turning() {
 fn the_trade_study_writes_its_table_csv_and_plot() {
     let dir = temp("tradeoff");
     let out = dir.join("t");
+    // Where CI requires a GPU (lavapipe), the stereo figures must be there; elsewhere the GPU is
+    // left out, so the table is the same with or without an adapter.
     let gpu = if std::env::var("LUNGDYN_REQUIRE_GPU").as_deref() == Ok("1") {
         "require"
     } else {
-        "auto"
+        "off"
     };
     let (ok, stdout, err) = lungdyn(&[
         "bench",
@@ -257,9 +259,7 @@ fn the_trade_study_writes_its_table_csv_and_plot() {
         );
     }
     let md = std::fs::read_to_string(out.with_extension("md")).unwrap();
-    assert!(
-        md.contains("16-bit storage's share") && md.contains("## Stereo") == (gpu == "require"),
-        "{md}"
-    );
+    assert!(md.contains("16-bit storage's share"), "{md}");
+    assert_eq!(md.contains("## Stereo"), gpu == "require", "{md}");
     std::fs::remove_dir_all(&dir).ok();
 }

@@ -323,7 +323,16 @@ fn tumour_meta(
     let b = tu::weighted_rows(&weights, &basis_flat, 4, &kd);
     let sh_mm = match sh {
         Some((coeffs, bands)) if bands > 0 => {
-            tu::weighted_rows(&weights, coeffs, bands * bands, &kd)
+            // The values the run time draws with (16-bit, EQUATIONS.md §3.2), so the centre
+            // follows the drawn surface.
+            let n = bands * bands;
+            let held = lung_model::deform::modes::ShCoeffs::quantise(n, coeffs)
+                .map_err(crate::orient::ShError::Held)?;
+            let rows: Vec<f32> = (0..held.vertices())
+                .flat_map(|i| (0..n).map(move |k| (i, k)))
+                .map(|(i, k)| held.value(i, k) as f32)
+                .collect();
+            tu::weighted_rows(&weights, &rows, n, &kd)
         }
         _ => Vec::new(),
     };

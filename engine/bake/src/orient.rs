@@ -19,7 +19,7 @@ use glam::DVec3;
 use rayon::prelude::*;
 use thiserror::Error;
 
-use lung_model::deform::modes::{ShCoeffs, VolumeForms};
+use lung_model::deform::modes::{ShCoeffs, ShCoeffsError, VolumeForms};
 use lung_model::deform::normalised_position;
 use lung_model::mesh::{Side, TriMesh};
 use lung_model::operator::{Columns, Transfer};
@@ -254,6 +254,9 @@ pub enum ShError {
     /// Band count out of range.
     #[error("{0} bands: 1 to {max} are supported", max = sh::MAX_BANDS)]
     Bands(usize),
+    /// The coefficients cannot be held as the run time holds them (not finite in f32).
+    #[error("the spherical-harmonic transfer coefficients cannot be stored: {0}")]
+    Held(#[from] ShCoeffsError),
 }
 
 /// Volume centroid of a closed mesh (tetrahedra from the origin), mm.
@@ -335,6 +338,18 @@ impl ShProjection {
                 basis.accumulate(j as usize, v as f64, row);
             }
         });
+        // What a kernel stores is f32: a coefficient beyond its range would be stored as infinite
+        // and could not be held at run time; refuse it here rather than panic later.
+        if let Some((index, &v)) = t
+            .iter()
+            .enumerate()
+            .find(|(_, v)| !(**v as f32).is_finite())
+        {
+            return Err(ShError::Held(ShCoeffsError::NotFinite {
+                index,
+                value: v as f32,
+            }));
+        }
         let mut projection = vec![0.0; 4 * nc];
         for a in 0..4 {
             let values: Vec<f64> = nhat.iter().map(|n| n[a]).collect();
@@ -385,7 +400,8 @@ impl ShProjection {
     /// ([`Self::stored`]) quantised to 16 bits per coefficient (EQUATIONS.md §3.2, run-time storage).
     ///
     /// # Panics
-    /// If `n` is 0 or more than 8 bands (a frame's 64 coefficients; the bake checks this first).
+    /// If `n` is 0 or more than 8 bands (a frame's 64 coefficients; the bake and the trade study
+    /// check this first). The values are finite in f32 ([`Self::compute`] refuses others).
     pub fn quantised(&self, n: usize) -> ShCoeffs {
         ShCoeffs::quantise(n * n, &self.stored(n)).expect("1 to 8 bands of finite values")
     }
@@ -644,16 +660,27 @@ mod tests {
                 f.quantisation_max_mm < 0.01 * f.error.max_mm,
                 "{n} bands: {f:?}"
             );
-            // The fitted responses are those of the held values.
+            // The fit's responses are those of the held values (not of the f64 projection).
             let q = proj.quantised(n);
-            let raw = proj.drawn_responses(n);
+            let exact = proj.responses(n);
             let i = k.mesh.positions.len() / 3;
+            let mut differs = false;
             for a in 0..4 {
                 let want: f64 = (0..n * n)
                     .map(|kk| q.value(i, kk) * proj.projection(n)[a * n * n + kk])
-                    .sum();
-                assert!((raw[i][a] - want).abs() <= 1e-12 * want.abs().max(1e-9));
+                    .sum::<f64>()
+                    * f.alpha;
+                assert!(
+                    (f.h[i][a] - want).abs() <= 1e-12 * want.abs().max(1e-9),
+                    "{n} bands, weight {a}: {} vs {want}",
+                    f.h[i][a]
+                );
+                differs |= f.h[i][a] != exact[i][a] * f.alpha;
             }
+            assert!(
+                differs,
+                "{n} bands: the held values differ from the f64 ones somewhere"
+            );
         }
     }
 }

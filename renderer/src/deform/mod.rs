@@ -74,9 +74,11 @@ pub struct DeformParams {
     pub count: u32,
     /// Padding to 16 bytes.
     pub _pad: [u32; 3],
-    /// Per slot: first vertex, SH coefficients per vertex, first SH coefficient, unused.
+    /// Per slot: first vertex, SH coefficients per vertex, first SH word (two 16-bit coefficients
+    /// each), unused.
     pub lung_info: [[u32; 4]; 2],
-    /// SH force coefficients, 64 per slot.
+    /// SH force coefficients times their index's scale, `F_k·scale_k`, 64 per slot (0 past the
+    /// lung's count).
     pub sh_f: [[f32; 4]; 32],
 }
 

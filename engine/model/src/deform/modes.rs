@@ -413,6 +413,10 @@ impl CpuLung {
 
     /// A lung from its FRC mesh, `k·d_i` and the mode's data.
     ///
+    /// # Panics
+    /// If SH data holds another number of vertices than the mesh (a kernel's sections are checked
+    /// against each other when it is opened).
+    ///
     /// Subnormal per-vertex values are flushed to zero here, once: they displace a vertex by less
     /// than 1e-38 mm, and on x86 every arithmetic operation on one costs about a hundred cycles
     /// (measured: a basis pass with half its responses subnormal went from 0.75 to 17.5 ms at 400k
@@ -433,6 +437,15 @@ impl CpuLung {
                 columns.flush_subnormals();
                 flush(nhat.as_flattened_mut());
             }
+        }
+        if let ModeData::Sh { t } = &data {
+            assert_eq!(
+                t.vertices(),
+                mesh.positions.len(),
+                "spherical-harmonic coefficients for {} vertices, the mesh has {}",
+                t.vertices(),
+                mesh.positions.len()
+            );
         }
         let incidence = VertexTriangles::of(&mesh.triangles, mesh.positions.len());
         Self {

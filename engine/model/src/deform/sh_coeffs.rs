@@ -12,8 +12,11 @@
 //! so each coefficient is within `scale_k / 65534` of the kernel's (≈ 1.5e-5 of its largest value;
 //! the truncation to `n` bands leaves errors of percent). The scales fold into the frame's force
 //! coefficients, `c'_k = s·F_k·scale_k / 32767`, so a vertex still costs `n²` multiply-adds, now on
-//! 2 bytes each. The GPU reads the same integers as `snorm16` pairs (`unpack2x16snorm` is exactly
-//! `q / 32767`) and folds the same scales, so CPU and GPU draw the same numbers.
+//! 2 bytes each. The GPU reads the same integers as `snorm16` pairs (`unpack2x16snorm` gives
+//! `q / 32767`) and folds the same scales, so CPU and GPU draw the same numbers to rounding
+//! (measured 1.2e-7 relative on lavapipe, tested to 1e-5: `tests/tests/modes_gpu.rs`). The bytes
+//! above are the CPU's traffic (68 instead of 100 per vertex at 16 coefficients); the GPU reads
+//! positions and directions as vec4s, 80 instead of 112.
 //!
 //! On the CPU the integers are laid out in blocks of [`SH_BLOCK`] vertices, coefficient-major inside
 //! a block (`q[(b·n + k)·8 + j]` for vertex `8b + j`), so the dot products run across eight vertices
@@ -361,7 +364,7 @@ mod tests {
     #[test]
     fn the_pass_is_eq_7_7_on_the_held_values_for_every_band_count_and_a_tail() {
         for n in [1usize, 4, 9, 16, 25, 36, 49, 64, 10] {
-            for v in [1usize, 8, 13, 8200] {
+            for v in [1usize, 8, 13, 8200, 8203, 16393] {
                 let t = values(v * n, 11 + n as u64);
                 let sh = ShCoeffs::quantise(n, &t).unwrap();
                 let p: Vec<[f32; 3]> = values(3 * v, 5)
@@ -406,12 +409,8 @@ mod tests {
                         word >> 16
                     } as u16 as i16;
                     assert_eq!(half, sh.quantised(i, k));
-                    // `unpack2x16snorm`: max(q / 32767, −1).
-                    assert!(
-                        ((half as f32 / SH_Q_MAX).max(-1.0) - sh.quantised(i, k) as f32 / SH_Q_MAX)
-                            .abs()
-                            == 0.0
-                    );
+                    // Never −32768, where `unpack2x16snorm` clamps: the value is q/32767.
+                    assert!(half >= -32767);
                 }
                 if n % 2 == 1 {
                     assert_eq!(

@@ -764,7 +764,8 @@ pub fn tumour_lung(
 /// linear form with the per-vertex data replaced by their mean-value sums:
 /// precomputed `s·Σ_i λ_i u_i`; basis (and direct, eq. 7.1, which the basis reproduces to
 /// round-off) `s·Σ_a w_a·Σ_i λ_i G_{i,a} k d_i`; SH (eq. 7.7) `s·Σ_k F_k·Σ_i λ_i T_{i,k} k d_i`.
-/// The sums are taken at bake time from the stored f32 data the run time deforms with.
+/// The sums are taken at bake time from the data the run time deforms with: the stored f32 data,
+/// and for SH the 16-bit values it holds them as ([`crate::deform::sh_coeffs`]).
 #[derive(Debug, Clone, PartialEq, serde::Serialize, serde::Deserialize)]
 #[serde(deny_unknown_fields)]
 pub struct TumourMeta {
