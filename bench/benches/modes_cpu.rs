@@ -12,17 +12,11 @@ use lung_model::deform::modes::{CpuLung, ModeData, ShCoeffs};
 use lung_model::mesh::TriMesh;
 use rayon::prelude::*;
 
-/// A deterministic pseudo-random sequence in [-1, 1) (xorshift), so runs compare.
+/// A deterministic pseudo-random sequence in [-1, 1) (seeded xorshift), so runs compare.
 fn values(n: usize, seed: u64) -> Vec<f32> {
-    let mut x = seed.max(1);
-    (0..n)
-        .map(|_| {
-            x ^= x << 13;
-            x ^= x >> 7;
-            x ^= x << 17;
-            (x >> 40) as f32 / (1u64 << 23) as f32 - 1.0
-        })
-        .collect()
+    use rand::{RngExt, SeedableRng};
+    let mut r = rand_xorshift::XorShiftRng::seed_from_u64(seed);
+    (0..n).map(|_| r.random_range(-1.0f32..1.0)).collect()
 }
 
 fn triples(n: usize, seed: u64) -> Vec<[f32; 3]> {

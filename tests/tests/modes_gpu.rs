@@ -204,15 +204,9 @@ fn sh_coefficients_held_in_16_bits_agree_on_gpu_and_cpu_at_odd_counts() {
     use lung_model::mesh::{generate, Side};
     let Some(gpu) = Gpu::for_tests() else { return };
     let values = |n: usize, seed: u64| -> Vec<f32> {
-        let mut x = seed;
-        (0..n)
-            .map(|_| {
-                x ^= x << 13;
-                x ^= x >> 7;
-                x ^= x << 17;
-                (x >> 40) as f32 / (1u64 << 23) as f32 - 1.0
-            })
-            .collect()
+        use rand::{RngExt, SeedableRng};
+        let mut r = rand_xorshift::XorShiftRng::seed_from_u64(seed);
+        (0..n).map(|_| r.random_range(-1.0f32..1.0)).collect()
     };
     let render = scene(DeformMode::Sh).render;
     for (n_right, n_left) in [(1usize, 9usize), (9, 49), (49, 16)] {

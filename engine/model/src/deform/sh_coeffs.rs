@@ -304,17 +304,13 @@ fn blocks(
 mod tests {
     use super::*;
     use proptest::prelude::*;
+    use rand::{RngExt, SeedableRng};
+    use rand_xorshift::XorShiftRng;
 
+    /// `n` seeded values in [−1, 1).
     fn values(n: usize, seed: u64) -> Vec<f32> {
-        let mut x = seed.max(1);
-        (0..n)
-            .map(|_| {
-                x ^= x << 13;
-                x ^= x >> 7;
-                x ^= x << 17;
-                (x >> 40) as f32 / (1u64 << 23) as f32 - 1.0
-            })
-            .collect()
+        let mut r = XorShiftRng::seed_from_u64(seed);
+        (0..n).map(|_| r.random_range(-1.0f32..1.0)).collect()
     }
 
     /// Eq. 7.7 in f64 from the values the run time holds.
