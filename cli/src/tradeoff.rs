@@ -190,6 +190,43 @@ fn median_pair(runs: usize, mut a: impl FnMut(), mut b: impl FnMut()) -> (f64, f
     )
 }
 
+/// `lung`'s CPU pass against a one-thread copy of the bytes it moves (`bytes` per vertex), timed
+/// alternately ([`median_pair`]).
+fn copy_figure(
+    mode: &str,
+    bytes: usize,
+    runs: usize,
+    lung: &mut CpuLung,
+    scale: f32,
+    coeffs: &[f32],
+    outputs: &mut [[f32; 3]],
+) -> CopyFigure {
+    let vertices = lung.len();
+    let half = vertices * bytes / 2;
+    let src = vec![1u8; half];
+    let mut dst = vec![0u8; half];
+    let (ms, copy_ms, copy_over_mode) = median_pair(
+        runs,
+        || {
+            lung.deform_into(scale, coeffs, [0.0; 3], outputs)
+                .expect("coefficient count");
+            std::hint::black_box(&*outputs);
+        },
+        || {
+            dst.copy_from_slice(std::hint::black_box(&src));
+            std::hint::black_box(&dst);
+        },
+    );
+    CopyFigure {
+        vertices,
+        mode: mode.into(),
+        bytes_per_vertex: bytes,
+        mode_ms: ms * 1e3,
+        copy_ms: copy_ms * 1e3,
+        fraction_of_copy: copy_over_mode,
+    }
+}
+
 fn median_of(mut v: Vec<f64>) -> Option<f64> {
     if v.is_empty() {
         return None;
@@ -434,35 +471,20 @@ pub fn run(args: &TradeoffArgs) -> anyhow::Result<Tradeoff> {
         // Memory-copy references of the same traffic, same run, timed alternately with the mode
         // (a slow phase of a shared machine falls on both).
         for (mode, bytes) in [("precomputed", 36usize), ("basis", 52)] {
-            let half = v * bytes / 2;
-            let src = vec![1u8; half];
-            let mut dst = vec![0u8; half];
             let (lung, coeffs): (&mut CpuLung, &[f32]) = if mode == "basis" {
                 (&mut basis_lung, &w32)
             } else {
                 (&mut pre, &[])
             };
-            let (ms, copy_ms, copy_over_mode) = median_pair(
+            copies.push(copy_figure(
+                mode,
+                bytes,
                 args.runs,
-                || {
-                    lung.deform_into(s_supine, coeffs, [0.0; 3], &mut outputs)
-                        .expect("coefficient count");
-                    std::hint::black_box(&outputs);
-                },
-                || {
-                    dst.copy_from_slice(std::hint::black_box(&src));
-                    std::hint::black_box(&dst);
-                },
-            );
-            let (ms, copy_ms) = (ms * 1e3, copy_ms * 1e3);
-            copies.push(CopyFigure {
-                vertices: v,
-                mode: mode.into(),
-                bytes_per_vertex: bytes,
-                mode_ms: ms,
-                copy_ms,
-                fraction_of_copy: copy_over_mode,
-            });
+                lung,
+                s_supine,
+                coeffs,
+                &mut outputs,
+            ));
         }
         // Eq. 7.1 itself: the reference (its error is the f32 evaluation's round-off).
         let columns = k.transfer.transposed();
@@ -539,29 +561,15 @@ pub fn run(args: &TradeoffArgs) -> anyhow::Result<Tradeoff> {
                     unreachable!("an SH lung")
                 };
                 let bytes = 12 + t.bytes_per_vertex() + 12 + 12;
-                let half = v * bytes / 2;
-                let src = vec![1u8; half];
-                let mut dst = vec![0u8; half];
-                let (ms, copy_ms, copy_over_mode) = median_pair(
+                copies.push(copy_figure(
+                    "sh, 16 coefficients",
+                    bytes,
                     args.runs,
-                    || {
-                        lung.deform_into(s_supine, &coeffs, [0.0; 3], &mut outputs)
-                            .expect("coefficient count");
-                        std::hint::black_box(&outputs);
-                    },
-                    || {
-                        dst.copy_from_slice(std::hint::black_box(&src));
-                        std::hint::black_box(&dst);
-                    },
-                );
-                copies.push(CopyFigure {
-                    vertices: v,
-                    mode: "sh, 16 coefficients".into(),
-                    bytes_per_vertex: bytes,
-                    mode_ms: ms * 1e3,
-                    copy_ms: copy_ms * 1e3,
-                    fraction_of_copy: copy_over_mode,
-                });
+                    &mut lung,
+                    s_supine,
+                    &coeffs,
+                    &mut outputs,
+                ));
             }
             let gpu_ms = time_gpu(&lung, &coeffs)?;
             rows.push(Row {
