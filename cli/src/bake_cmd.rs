@@ -110,6 +110,8 @@ pub struct BakeSummary {
     pub sh_budget_mm: Option<f64>,
     /// Whether the budget was met (absent without one).
     pub sh_budget_met: Option<bool>,
+    /// Which bands were kept for the budget and why (absent without one).
+    pub sh_budget_reason: Option<String>,
     /// Vertices touching a triangle whose projection from the centroid folds over.
     pub foldover_nodes: u64,
     /// Largest displacement difference of the basis mode against eq. 7.1 (round-off), mm.
@@ -238,6 +240,7 @@ pub fn bake(args: &BakeArgs) -> anyhow::Result<BakeSummary> {
         sh_quantisation_max_mm: sh.map(|s| s.quantisation_max_mm),
         sh_budget_mm: sh.and_then(|s| s.budget_mm),
         sh_budget_met: sh.and_then(|s| s.budget_mm.map(|b| s.rms_mm <= b)),
+        sh_budget_reason: sh.and_then(|s| s.budget_reason()),
         foldover_nodes: sh.map_or(0, |s| s.foldover_nodes),
         basis_max_error_mm: orientation.map_or(0.0, |o| o.basis_max_error_mm),
         reference_delta_ml: orientation.map_or(0.0, |o| o.reference_delta_ml),
@@ -282,13 +285,10 @@ pub fn bake_text(b: &BakeSummary) -> String {
                 n * n,
                 b.sh_quantisation_max_mm.unwrap_or(0.0),
                 b.foldover_nodes,
-                match (b.sh_budget_mm, b.sh_budget_met) {
-                    (Some(budget), Some(true)) => format!("; meets the {budget} mm budget"),
-                    (Some(budget), _) => format!(
-                        "; does NOT meet the {budget} mm budget with up to 8 bands: use the basis mode (exact for this force)"
-                    ),
-                    _ => String::new(),
-                }
+                b.sh_budget_reason
+                    .as_ref()
+                    .map(|r| format!("\n  error budget: {r}"))
+                    .unwrap_or_default()
             ),
             _ => String::new(),
         }

@@ -32,6 +32,8 @@ pub struct KernelUse {
     pub sh_rms_mm: Option<f64>,
     /// Largest displacement error of the basis mode against eq. 7.1, mm (round-off).
     pub basis_max_error_mm: Option<f64>,
+    /// With an error budget: the bands kept and why (`ShMeta::budget_reason`).
+    pub sh_budget_reason: Option<String>,
 }
 
 impl KernelUse {
@@ -44,6 +46,7 @@ impl KernelUse {
             sh_bands: meta.sh.as_ref().map_or(0, |s| s.bands),
             sh_rms_mm: meta.sh.as_ref().map(|s| s.rms_mm),
             basis_max_error_mm: meta.orientation.as_ref().map(|o| o.basis_max_error_mm),
+            sh_budget_reason: meta.sh.as_ref().and_then(|s| s.budget_reason()),
         }
     }
 }
@@ -89,12 +92,9 @@ pub fn ensure_kernels(
         let mut settings = scene.bake_settings(side)?;
         // Model only what the scene requires: spherical harmonics only for the sh mode (with a
         // budget, up to 8 bands and the fewest that meet it).
-        settings.sh_bands = match (scene.lungs.mode, scene.lungs.max_error_mm) {
-            (DeformMode::Sh, Some(_)) => lung_model::kernel::MAX_RUNTIME_BANDS,
-            (DeformMode::Sh, None) => scene.lungs.bands,
-            _ => 0,
-        };
+        // (`bake_settings` holds the error-budget rule shared with `lungdyn bake`.)
         if scene.lungs.mode != DeformMode::Sh {
+            settings.sh_bands = 0;
             settings.max_error_mm = None;
         }
         let key = xxhash_rust::xxh3::xxh3_64(
@@ -195,6 +195,13 @@ pub struct Prepared {
 
 /// Bake what `scene` lacks into `dir` and write `dir/scene.resolved.toml` atomically.
 pub fn prepare(mut scene: Scene, dir: &Path) -> anyhow::Result<Prepared> {
+    // Say where, before writing: the default folder is ./out, which a person may not expect.
+    eprintln!(
+        "lungdyn: kernels and the resolved scene go to {} (--out to choose)",
+        std::path::absolute(dir)
+            .unwrap_or_else(|_| dir.to_path_buf())
+            .display()
+    );
     let kernels = ensure_kernels(&mut scene, dir)?;
     std::fs::create_dir_all(dir).with_context(|| format!("cannot create {}", dir.display()))?;
     let path = std::path::absolute(dir.join("scene.resolved.toml"))
@@ -232,6 +239,9 @@ pub struct PrepareReport {
     pub scene: String,
     /// The kernels it uses.
     pub kernels: Vec<KernelUse>,
+    /// The deformation mode the processes will run (the scene's, or "basis" where an error budget
+    /// could not be met with spherical harmonics).
+    pub mode: String,
 }
 
 /// `lungdyn scene prepare`.
@@ -242,5 +252,6 @@ pub fn run(args: &PrepareArgs) -> anyhow::Result<PrepareReport> {
     Ok(PrepareReport {
         scene: p.path.display().to_string(),
         kernels: p.kernels,
+        mode: p.scene.lungs.mode.to_string(),
     })
 }

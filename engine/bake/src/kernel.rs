@@ -162,12 +162,22 @@ pub fn bake(
                 delta_ml,
             )
         };
+        // The one error-budget rule (`bake --max-error-mm`, `bake --scene`, `scene prepare`): the
+        // fewest bands from 1 up to `sh_bands` whose RMS error meets the budget, else `sh_bands`.
+        let mut trials = Vec::new();
         let chosen = match settings.max_error_mm {
             None => fit(n_max),
-            Some(budget) => (1..=n_max)
-                .map(fit)
-                .find(|f| f.error.rms_mm <= budget)
-                .unwrap_or_else(|| fit(n_max)),
+            Some(budget) => {
+                let mut n = 1;
+                loop {
+                    let f = fit(n);
+                    trials.push(f.error.rms_mm);
+                    if f.error.rms_mm <= budget || n >= n_max {
+                        break f;
+                    }
+                    n += 1;
+                }
+            }
         };
         (
             Some(ShMeta {
@@ -182,6 +192,7 @@ pub fn bake(
                 quantisation_max_mm: chosen.quantisation_max_mm,
                 foldover_nodes: projection.weights.foldover_vertices.len() as u64,
                 budget_mm: settings.max_error_mm,
+                budget_trials_rms_mm: trials,
             }),
             Some(projection.stored(chosen.n)),
         )

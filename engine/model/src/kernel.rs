@@ -198,6 +198,45 @@ pub struct ShMeta {
     /// The error budget the bands were chosen for, if any.
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub budget_mm: Option<f64>,
+    /// With a budget: the RMS error (mm) of each band count tried, from 1 band up to the one kept
+    /// (the fewest that meets the budget) or to the most allowed when none does — why the bands
+    /// are what they are. Empty without a budget.
+    #[serde(default, skip_serializing_if = "Vec::is_empty")]
+    pub budget_trials_rms_mm: Vec<f64>,
+}
+
+impl ShMeta {
+    /// Why the kernel has the bands it has, when they were chosen for an error budget: one line a
+    /// person can check ("5 bands: the fewest of 1..8 whose RMS error meets the 1 mm budget (4 bands
+    /// 1.210 mm, 5 bands 0.930 mm)"), or that none meets it. `None` without a budget.
+    pub fn budget_reason(&self) -> Option<String> {
+        let budget = self.budget_mm?;
+        let tried = |from: usize| {
+            self.budget_trials_rms_mm
+                .iter()
+                .enumerate()
+                .skip(from)
+                .map(|(i, e)| format!("{} bands {e:.3} mm", i + 1))
+                .collect::<Vec<_>>()
+                .join(", ")
+        };
+        let last_two = self.budget_trials_rms_mm.len().saturating_sub(2);
+        Some(if self.rms_mm <= budget {
+            format!(
+                "{} bands: the fewest whose RMS error against eq. 7.1 meets the {budget} mm budget ({})",
+                self.bands,
+                tried(last_two)
+            )
+        } else {
+            format!(
+                "{} bands: NO band count up to {} meets the {budget} mm budget ({}); the exact basis \
+                 mode does (the launcher runs it instead)",
+                self.bands,
+                self.bands,
+                tried(last_two)
+            )
+        })
+    }
 }
 
 /// Metadata section.

@@ -857,7 +857,14 @@ impl Scene {
             direction_field,
             elasticity: self.lungs.elasticity,
             tolerance: self.lungs.transfer_tolerance,
-            sh_bands: self.lungs.bands,
+            // The one error-budget rule: with a budget the bake keeps the fewest bands, from 1 up to
+            // the run time's most, that meet it (lung_bake::kernel::bake); without one, the scene's
+            // band count. `scene prepare`, `bake --scene` and `bake --max-error-mm` all start here.
+            sh_bands: if self.lungs.max_error_mm.is_some() {
+                crate::kernel::MAX_RUNTIME_BANDS
+            } else {
+                self.lungs.bands
+            },
             max_error_mm: self.lungs.max_error_mm,
             tumour: self.tumour().filter(|t| t.side == side),
         })
