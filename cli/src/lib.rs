@@ -8,6 +8,7 @@
 pub mod bake_cmd;
 pub mod demo;
 pub mod input_args;
+pub mod instances;
 pub mod kernel_plot;
 pub mod mesh_cmd;
 pub mod motion_cmd;

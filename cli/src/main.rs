@@ -51,6 +51,8 @@ enum Command {
     /// Measurements: the deformation modes' speed/accuracy trade.
     #[command(subcommand)]
     Bench(BenchCommand),
+    /// List the running instances (what `scene event` needs): name, processes, scene, age.
+    Instances(lungdyn::instances::InstancesArgs),
     /// Run only the tracker-bridge process (what `demo` starts).
     TrackerBridge(tracker_bridge::BridgeArgs),
     /// Run only the engine process (what `demo` starts).
@@ -84,8 +86,9 @@ enum SceneCommand {
     /// `lungdyn demo --scene FILE` runs the same scene in the three processes with pictures.
     Run(lungdyn::scene_check::RunArgs),
     /// Send a trainee's intervention to a running scene (tension pneumothorax): e.g.
-    /// `lungdyn scene event default needle-decompression --side left`. The engine applies it at its
-    /// next disease cycle and prints the tick.
+    /// `lungdyn scene event demo-12345 needle-decompression --side left`, with the instance name
+    /// the demo printed (`demo-<its pid>`, or its --instance) — `lungdyn instances` lists them. The
+    /// engine applies it at its next disease cycle and prints the tick.
     Event(lungdyn::scene_event::EventArgs),
 }
 
@@ -216,6 +219,17 @@ fn main() -> std::process::ExitCode {
             }
             Ok(())
         }),
+        Command::Instances(args) => {
+            let list = lungdyn::instances::list();
+            if args.json {
+                serde_json::to_string(&list)
+                    .map(|j| println!("{j}"))
+                    .map_err(anyhow::Error::from)
+            } else {
+                print!("{}", lungdyn::instances::text(&list));
+                Ok(())
+            }
+        }
         Command::Scene(SceneCommand::Event(args)) => lungdyn::scene_event::run(&args),
         Command::Scene(SceneCommand::Run(args)) => lungdyn::scene_check::run_scene(&args).and_then(|v| {
             if args.json {
@@ -244,7 +258,13 @@ fn main() -> std::process::ExitCode {
                         k.path,
                         if k.baked_now { format!(" (baked now, {:.1} s)", k.bake_seconds) } else { String::new() }
                     );
+                    match (&k.sh_budget_reason, k.sh_bands) {
+                        (Some(r), _) => println!("  sh mode, {r}"),
+                        (None, 0) => {}
+                        (None, n) => println!("  sh mode, {n} bands (the scene's), RMS error {:.3} mm", k.sh_rms_mm.unwrap_or(f64::NAN)),
+                    }
                 }
+                println!("mode: {}", p.mode);
                 println!("wrote {}: start the engine and the renderer with --scene {}", p.scene, p.scene);
             }
             Ok(())

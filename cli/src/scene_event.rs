@@ -12,7 +12,8 @@ use transport::{iox, Instance, Publish};
 /// Options of `lungdyn scene event`.
 #[derive(Debug, Clone, clap::Args)]
 pub struct EventArgs {
-    /// The running instance (the `--instance` of `lungdyn demo`/`engine`; "default" when omitted there).
+    /// The running instance: the name `lungdyn demo` printed when it started (`demo-<its pid>`, or
+    /// its `--instance NAME`); `lungdyn instances` lists the running ones.
     pub instance: String,
     /// The intervention: needle-decompression, occlusive-dressing or chest-tube.
     #[arg(value_parser = parse_kind)]
@@ -56,9 +57,19 @@ pub fn run(args: &EventArgs) -> anyhow::Result<()> {
     // The engine holds its role's lock while it runs (read, never taken here: taking it even for
     // an instant could refuse an engine that is starting).
     if instance.holder("engine").is_none() {
+        let running: Vec<String> = Instance::running()
+            .into_iter()
+            .filter(|r| r.process("engine").is_some())
+            .map(|r| r.name)
+            .collect();
+        let known = if running.is_empty() {
+            "none is running".to_string()
+        } else {
+            format!("running: {}", running.join(", "))
+        };
         bail!(
-            "no engine is running in instance {:?}: start the scene first (`lungdyn demo --scene FILE \
-             --instance {}`)",
+            "no engine is running in instance {:?} ({known}; `lungdyn instances` lists them): start \
+             the scene first (`lungdyn demo --scene FILE --instance {}`)",
             args.instance,
             args.instance
         );

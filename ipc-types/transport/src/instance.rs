@@ -211,6 +211,108 @@ impl Instance {
     }
 }
 
+/// One process of a running instance, as its lock file says.
+#[derive(Debug, Clone, PartialEq, Eq)]
+pub struct RunningProcess {
+    /// Its role ("launcher", "engine", "renderer", "tracker-bridge").
+    pub role: String,
+    /// Its pid.
+    pub pid: u32,
+    /// Its command line as it recorded it.
+    pub cmdline: String,
+    /// When it took the lock (seconds since the Unix epoch).
+    pub since_unix_s: u64,
+}
+
+/// A running instance: its name and the processes that hold its locks.
+#[derive(Debug, Clone, PartialEq, Eq)]
+pub struct RunningInstance {
+    /// The instance name (`--instance`, or `demo-<pid>` for a demo without one).
+    pub name: String,
+    /// Its live processes, launcher first.
+    pub processes: Vec<RunningProcess>,
+}
+
+impl RunningInstance {
+    /// The process of `role`, if it runs.
+    pub fn process(&self, role: &str) -> Option<&RunningProcess> {
+        self.processes.iter().find(|p| p.role == role)
+    }
+}
+
+/// The roles whose locks name an instance's processes.
+pub const ROLES: [&str; 4] = ["launcher", "engine", "renderer", "tracker-bridge"];
+
+impl Instance {
+    /// Every instance with at least one live process, sorted by name. A lock file counts only while
+    /// its pid is alive *and* runs the command line it recorded (so a recycled pid is not taken for
+    /// the process that left the file).
+    pub fn running() -> Vec<RunningInstance> {
+        let mut found: std::collections::BTreeMap<String, Vec<RunningProcess>> = Default::default();
+        let Ok(dir) = std::fs::read_dir(Self::lock_dir()) else {
+            return Vec::new();
+        };
+        for entry in dir.flatten() {
+            let file = entry.file_name();
+            let Some(stem) = file.to_str().and_then(|f| f.strip_suffix(".lock")) else {
+                continue;
+            };
+            let Some((name, role)) = ROLES
+                .iter()
+                .find_map(|r| stem.strip_suffix(&format!(".{r}")).map(|n| (n, *r)))
+            else {
+                continue;
+            };
+            let Ok(text) = std::fs::read_to_string(entry.path()) else {
+                continue;
+            };
+            let Some((pid, cmdline)) = text
+                .strip_prefix("process ")
+                .and_then(|t| t.split_once(' '))
+                .and_then(|(pid, rest)| {
+                    let cmd = rest.strip_prefix('(')?.strip_suffix(')')?;
+                    Some((pid.parse::<u32>().ok()?, cmd.to_string()))
+                })
+            else {
+                continue;
+            };
+            let live = std::fs::read(format!("/proc/{pid}/cmdline")).is_ok_and(|raw| {
+                let raw = raw.strip_suffix(&[0]).unwrap_or(&raw);
+                let args: Vec<String> = raw
+                    .split(|&b| b == 0)
+                    .map(|a| String::from_utf8_lossy(a).into_owned())
+                    .collect();
+                args.join(" ") == cmdline
+            });
+            if !live {
+                continue;
+            }
+            let since_unix_s = entry
+                .metadata()
+                .ok()
+                .and_then(|m| m.modified().ok())
+                .and_then(|t| t.duration_since(std::time::UNIX_EPOCH).ok())
+                .map_or(0, |d| d.as_secs());
+            found
+                .entry(name.to_string())
+                .or_default()
+                .push(RunningProcess {
+                    role: role.to_string(),
+                    pid,
+                    cmdline,
+                    since_unix_s,
+                });
+        }
+        found
+            .into_iter()
+            .map(|(name, mut processes)| {
+                processes.sort_by_key(|p| ROLES.iter().position(|r| *r == p.role));
+                RunningInstance { name, processes }
+            })
+            .collect()
+    }
+}
+
 /// What [`Instance::remove_leftovers`] removed.
 #[derive(Debug, Clone, Default, PartialEq, Eq)]
 pub struct Cleanup {
@@ -258,6 +360,30 @@ mod tests {
         drop(held);
         let again = i.lock("engine").unwrap();
         assert!(again.path().exists());
+    }
+
+    #[test]
+    fn running_lists_live_holders_and_not_dead_ones() {
+        let name = format!("running-test-{}", std::process::id());
+        let i = Instance::new(&name).unwrap();
+        let held = i.lock("engine").unwrap();
+        let running = Instance::running();
+        let me = running.iter().find(|r| r.name == name).expect("listed");
+        let engine = me.process("engine").expect("engine role");
+        assert_eq!(engine.pid, std::process::id());
+        assert!(me.process("launcher").is_none());
+        // A lock file left by a process that is gone (or a recycled pid running something else).
+        let stale = Instance::lock_dir().join(format!("{name}-gone.engine.lock"));
+        std::fs::write(
+            &stale,
+            format!("process {} (not this command)", std::process::id()),
+        )
+        .unwrap();
+        assert!(!Instance::running()
+            .iter()
+            .any(|r| r.name == format!("{name}-gone")));
+        std::fs::remove_file(&stale).unwrap();
+        drop(held);
     }
 
     #[test]

@@ -25,6 +25,6 @@ pub mod port;
 pub mod process;
 
 pub use clock::{now_ns, Clock, FakeClock, Monotonic};
-pub use instance::{Cleanup, Instance};
+pub use instance::{Cleanup, Instance, RunningInstance, RunningProcess};
 pub use pacer::{Pacer, PacerConfig, Tick, Wake};
 pub use port::{PortError, Publish, Receive};
