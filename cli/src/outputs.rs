@@ -176,3 +176,49 @@ mod tests {
         std::fs::remove_dir_all(&dir).ok();
     }
 }
+
+/// A new, empty folder `parent/stem-N` (the first N from 1 that does not exist yet), created now: where
+/// a command writes when the person did not say where, so one run never overwrites another's output
+/// (or a committed file).
+pub fn new_folder(parent: &Path, stem: &str) -> anyhow::Result<PathBuf> {
+    std::fs::create_dir_all(parent)
+        .map_err(|e| anyhow::anyhow!("cannot create the folder {}: {e}", parent.display()))?;
+    for n in 1..=100_000u32 {
+        let dir = parent.join(format!("{stem}-{n}"));
+        match std::fs::create_dir(&dir) {
+            Ok(()) => return Ok(dir),
+            Err(e) if e.kind() == std::io::ErrorKind::AlreadyExists => continue,
+            Err(e) => bail!("cannot create the folder {}: {e}", dir.display()),
+        }
+    }
+    bail!(
+        "{} already holds 100000 {stem}-N folders: give --out",
+        parent.display()
+    )
+}
+
+#[cfg(test)]
+mod new_folder_tests {
+    use super::new_folder;
+
+    #[test]
+    fn each_call_makes_a_new_empty_folder_and_never_reuses_one() {
+        let parent = std::env::temp_dir().join(format!("lungdyn-newfolder-{}", std::process::id()));
+        let _ = std::fs::remove_dir_all(&parent);
+        let a = new_folder(&parent, "tradeoff").unwrap();
+        std::fs::write(a.join("x"), b"1").unwrap();
+        let b = new_folder(&parent, "tradeoff").unwrap();
+        assert_ne!(a, b);
+        assert!(
+            a.ends_with("tradeoff-1") && b.ends_with("tradeoff-2"),
+            "{a:?} {b:?}"
+        );
+        assert_eq!(std::fs::read_dir(&b).unwrap().count(), 0);
+        // A file where the parent should be: a clear error, not a panic.
+        let blocked = parent.join("file");
+        std::fs::write(&blocked, b"").unwrap();
+        let e = new_folder(&blocked, "t").unwrap_err().to_string();
+        assert!(e.contains("cannot create"), "{e}");
+        std::fs::remove_dir_all(&parent).unwrap();
+    }
+}

@@ -29,9 +29,11 @@ use lung_model::orientation::{ForceWeights, SeedBlend, SUPINE_GRAVITY};
 /// Options of `lungdyn bench tradeoff`.
 #[derive(Debug, Clone, clap::Args)]
 pub struct TradeoffArgs {
-    /// Output path without extension: writes OUT.md, OUT.csv, OUT.png and OUT.svg.
-    #[arg(long, default_value = "docs/tradeoff")]
-    pub out: PathBuf,
+    /// Output folder: writes tradeoff.md, tradeoff.csv, tradeoff.png and tradeoff.svg there.
+    /// Default: a new folder out/tradeoff-N (never the committed docs; `--out docs` regenerates
+    /// docs/tradeoff.*, see the README).
+    #[arg(long, value_name = "DIR")]
+    pub out: Option<PathBuf>,
     /// Lung sizes (vertices of the generated left lung), comma-separated.
     #[arg(long, value_delimiter = ',', default_value = "10000,100000,400000")]
     pub sizes: Vec<usize>,
@@ -276,12 +278,15 @@ pub fn run(args: &TradeoffArgs) -> anyhow::Result<Tradeoff> {
     if !(1..=1001).contains(&args.runs) {
         bail!("--runs {} must be within 1..1001", args.runs);
     }
-    let out_dir = args
-        .out
-        .parent()
-        .filter(|p| !p.as_os_str().is_empty())
-        .unwrap_or(Path::new("."));
-    crate::demo::check_writable(out_dir)?;
+    let out_dir = match &args.out {
+        Some(d) => d.clone(),
+        None => crate::outputs::new_folder(Path::new("out"), "tradeoff")?,
+    };
+    crate::demo::check_writable(&out_dir)?;
+    eprintln!(
+        "lungdyn bench tradeoff: writing {}",
+        out_dir.join("tradeoff.{md,csv,png,svg}").display()
+    );
     let gpu = match args.gpu.as_str() {
         "off" => None,
         want => match renderer::gpu::Gpu::new() {
@@ -628,7 +633,7 @@ pub fn run(args: &TradeoffArgs) -> anyhow::Result<Tradeoff> {
         copy: copies,
         files: Vec::new(),
     };
-    result.files = write_outputs(&args.out, &result)?;
+    result.files = write_outputs(&out_dir.join("tradeoff"), &result)?;
     Ok(result)
 }
 
