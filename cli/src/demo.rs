@@ -38,7 +38,9 @@ pub struct DemoArgs {
     /// Scene file (TOML); the built-in default scene when omitted.
     #[arg(long)]
     pub scene: Option<PathBuf>,
-    /// Instance name (service and shared-memory names derive from it); unique per run by default.
+    /// Instance name (service and shared-memory names derive from it); `demo-<pid>` by default. The
+    /// demo prints it at start; `lungdyn instances` lists running ones, `lungdyn scene event NAME …`
+    /// acts on one.
     #[arg(long)]
     pub instance: Option<String>,
     /// Print one JSON object with the results on stdout (the table goes to stderr).
@@ -333,6 +335,29 @@ pub fn snapshot_ticks(count: u32, cycle_ticks: u64, run_ticks: u64, warmup_ticks
         .collect()
 }
 
+/// Mesa's window-system probe prints "XDG_RUNTIME_DIR is invalid or not set" from every process when
+/// the variable is missing (a root shell, a service): give the launcher and its children a private
+/// one (mode 0700, per user) instead of that noise.
+fn ensure_runtime_dir() {
+    let valid = std::env::var_os("XDG_RUNTIME_DIR").is_some_and(|d| Path::new(&d).is_dir());
+    if valid {
+        return;
+    }
+    use std::os::unix::fs::DirBuilderExt;
+    // SAFETY: getuid cannot fail and has no preconditions.
+    let uid = unsafe { libc::getuid() };
+    let dir = std::env::temp_dir().join(format!("lungdyn-runtime-{uid}"));
+    let made = std::fs::DirBuilder::new().mode(0o700).create(&dir);
+    let ours = std::fs::symlink_metadata(&dir).is_ok_and(|m| {
+        use std::os::unix::fs::MetadataExt;
+        m.is_dir() && m.uid() == uid && m.mode() & 0o077 == 0
+    });
+    if (made.is_ok() || dir.is_dir()) && ours {
+        // Set before any thread or child exists (the launcher is single-threaded here).
+        std::env::set_var("XDG_RUNTIME_DIR", &dir);
+    }
+}
+
 /// Run the demo; returns the report (the caller prints it).
 pub fn run(args: &DemoArgs) -> anyhow::Result<DemoReport> {
     let s = args.seconds;
@@ -386,6 +411,12 @@ pub fn run(args: &DemoArgs) -> anyhow::Result<DemoReport> {
             args.sweep_period_s
         );
     }
+    // The renderer needs a GPU adapter: find out now, in the first second, rather than after
+    // baking the lungs (a fresh machine without a Vulkan driver is the common case). The error names
+    // the package and `./run demo`, which installs it.
+    ensure_runtime_dir();
+    let adapter = renderer::gpu::probe_adapter()?;
+    eprintln!("lungdyn: GPU adapter {adapter}");
     // Every argument is checked before anything is written (kernels are baked below).
     let mut loaded = lung_model::scene::Scene::load_or_default(args.scene.as_deref())?;
     if let Some(mode) = args.mode {
@@ -431,6 +462,10 @@ pub fn run(args: &DemoArgs) -> anyhow::Result<DemoReport> {
     // One launcher per instance: a second run with this name is refused here, before it writes or
     // removes anything (its cleanup would otherwise delete the first run's shared memory).
     let _lock = services.lock("launcher")?;
+    eprintln!(
+        "lungdyn: instance {instance} (`lungdyn instances` lists running ones; `lungdyn scene event \
+         {instance} …` acts on this one)"
+    );
     check_writable(&args.out)?;
     // Every lung runs from a kernel file: the scene's own, or the generated default baked once into
     // <out>/kernels (reused while the scene's mesh and bake settings are unchanged); all three

@@ -3,9 +3,6 @@
 
 use thiserror::Error;
 
-/// Environment variable that turns a missing adapter in tests into a failure (CI sets it).
-pub const REQUIRE_GPU_ENV: &str = "LUNGDYN_REQUIRE_GPU";
-
 /// An open GPU.
 pub struct Gpu {
     /// The wgpu instance (kept for creating window surfaces).
@@ -27,8 +24,9 @@ pub struct Gpu {
 pub enum GpuError {
     /// No Vulkan adapter.
     #[error(
-        "no GPU adapter found ({detail}); on a machine without a GPU install Mesa's lavapipe \
-         (apt-get install mesa-vulkan-drivers libvulkan1) and set WGPU_BACKEND=vulkan"
+        "no GPU adapter found ({detail}); on a machine without a GPU install Mesa's lavapipe, a \
+         software Vulkan driver: `sudo apt-get install mesa-vulkan-drivers libvulkan1` (`./run demo` \
+         and `./run test` install it)"
     )]
     NoAdapter {
         /// wgpu's reason.
@@ -42,6 +40,30 @@ pub enum GpuError {
         /// wgpu's reason.
         detail: String,
     },
+}
+
+/// Find the adapter the renderer would open, without opening a device: its one-line description,
+/// or the error naming what to install. A launcher calls it before any long work.
+pub fn probe_adapter() -> Result<String, GpuError> {
+    let instance =
+        wgpu::Instance::new(wgpu::InstanceDescriptor::new_without_display_handle_from_env());
+    let adapter = pollster::block_on(instance.request_adapter(&wgpu::RequestAdapterOptions {
+        power_preference: wgpu::PowerPreference::HighPerformance,
+        ..Default::default()
+    }))
+    .map_err(|e| GpuError::NoAdapter {
+        detail: e.to_string(),
+    })?;
+    let info = adapter.get_info();
+    let software = if info.device_type == wgpu::DeviceType::Cpu {
+        ", a software rasteriser"
+    } else {
+        ""
+    };
+    Ok(format!(
+        "{} ({:?}, {} {}{software})",
+        info.name, info.backend, info.driver, info.driver_info
+    ))
 }
 
 impl Gpu {
@@ -114,18 +136,10 @@ impl Gpu {
         )
     }
 
-    /// For tests: the GPU, or `None` (with a note on stderr) when there is none — unless
-    /// `LUNGDYN_REQUIRE_GPU=1`, where a missing adapter is a test failure, never a silent skip.
+    /// For tests: the GPU — or, when there is none, a test failure naming the package to install,
+    /// unless the person running the tests opted out (`LUNGDYN_SKIP_GPU=1`): then `None`, and the skip
+    /// is said on the terminal and counted in the skip log (`lungdyn_needs`).
     pub fn for_tests() -> Option<Self> {
-        match Self::new() {
-            Ok(gpu) => Some(gpu),
-            Err(e) => {
-                if std::env::var(REQUIRE_GPU_ENV).as_deref() == Ok("1") {
-                    panic!("{REQUIRE_GPU_ENV}=1 but {e}");
-                }
-                eprintln!("SKIPPED (no GPU and {REQUIRE_GPU_ENV} is not 1): {e}");
-                None
-            }
-        }
+        lungdyn_needs::require(lungdyn_needs::Need::Gpu, Self::new())
     }
 }

@@ -195,3 +195,57 @@ fn the_gpu_deformation_matches_the_cpu_reference() {
         );
     }
 }
+
+/// No silent skips: run one of this binary's GPU tests again in a child with the Vulkan loader
+/// pointed at no driver (`VK_ICD_FILENAMES`, what a machine without lavapipe looks like). Without
+/// an opt-out it must fail naming the package; with `LUNGDYN_SKIP_GPU=1` it passes, says SKIPPED past
+/// the harness's capture and logs one line in the skip log that `./run test` counts.
+#[test]
+fn without_a_vulkan_driver_a_gpu_test_fails_naming_the_package_unless_skipped_aloud() {
+    let exe = std::env::current_exe().unwrap();
+    let log = std::env::temp_dir().join(format!("lungdyn-skiplog-{}.log", std::process::id()));
+    let _ = std::fs::remove_file(&log);
+    let run = |skip: bool| {
+        let mut c = std::process::Command::new(&exe);
+        c.args([
+            "--exact",
+            "a_fixed_state_renders_like_the_reference_image",
+            "--test-threads",
+            "1",
+        ])
+        .env("VK_ICD_FILENAMES", "/nonexistent/lungdyn-no-driver.json")
+        .env("VK_DRIVER_FILES", "/nonexistent/lungdyn-no-driver.json")
+        .env("LUNGDYN_SKIP_LOG", &log)
+        .env_remove("LUNGDYN_REQUIRE_GPU")
+        .env_remove("LUNGDYN_SKIP_ALL");
+        if skip {
+            c.env("LUNGDYN_SKIP_GPU", "1");
+        } else {
+            c.env_remove("LUNGDYN_SKIP_GPU");
+        }
+        let out = c.output().unwrap();
+        let text = format!(
+            "{}{}",
+            String::from_utf8_lossy(&out.stdout),
+            String::from_utf8_lossy(&out.stderr)
+        );
+        (out.status.success(), text)
+    };
+    let (ok, text) = run(false);
+    assert!(!ok, "a GPU test without a driver must fail: {text}");
+    assert!(
+        text.contains("mesa-vulkan-drivers") && text.contains("LUNGDYN_SKIP_GPU=1"),
+        "{text}"
+    );
+    assert!(!log.exists(), "a failure is not a skip");
+    let (ok, text) = run(true);
+    assert!(ok, "opted out: {text}");
+    assert!(text.contains("SKIPPED"), "said aloud: {text}");
+    let logged = std::fs::read_to_string(&log).unwrap();
+    assert_eq!(logged.lines().count(), 1, "{logged}");
+    assert!(
+        logged.contains("a_fixed_state_renders_like_the_reference_image"),
+        "{logged}"
+    );
+    std::fs::remove_file(&log).ok();
+}

@@ -3,8 +3,8 @@
 //! reads a pyigtl server; every message arrives in order with exactly the values sent. A message
 //! with a bad CRC is rejected and counted, and the stream goes on after it.
 //!
-//! Skipped when python3 or pyigtl is missing, unless `LUNGDYN_REQUIRE_PYIGTL=1` (CI sets it), which
-//! makes that a failure.
+//! A missing python3 with pyigtl fails the test naming the fix (`./run test` installs it into
+//! `target/pyenv`), unless `LUNGDYN_SKIP_PYIGTL=1` opts out: then it is skipped, said aloud and counted.
 
 use std::io::{BufRead, BufReader};
 use std::path::PathBuf;
@@ -84,24 +84,14 @@ print("done", flush=True)
 
 const N: usize = 60;
 
-/// python3 with pyigtl, or `None` (skip) — a failure when `LUNGDYN_REQUIRE_PYIGTL=1`.
-fn python() -> Option<PathBuf> {
-    let ok = Command::new("python3")
-        .args(["-c", "import pyigtl, numpy"])
-        .stdout(Stdio::null())
-        .stderr(Stdio::null())
-        .status()
-        .is_ok_and(|s| s.success());
-    if ok {
-        let path = std::env::temp_dir().join(format!("lungdyn-pyigtl-{}.py", std::process::id()));
-        std::fs::write(&path, SCRIPT).unwrap();
-        return Some(path);
-    }
-    if std::env::var("LUNGDYN_REQUIRE_PYIGTL").as_deref() == Ok("1") {
-        panic!("LUNGDYN_REQUIRE_PYIGTL=1 but python3 with pyigtl and numpy is not available: pip install pyigtl");
-    }
-    eprintln!("skipped: python3 with pyigtl is not available (pip install pyigtl; LUNGDYN_REQUIRE_PYIGTL=1 makes this a failure)");
-    None
+/// The python with pyigtl and the peer script written for it, or `None` on an explicit opt-out
+/// (`lungdyn_needs`: a missing peer is otherwise a failure naming the fix).
+fn python() -> Option<(PathBuf, PathBuf)> {
+    let root = std::path::Path::new(env!("CARGO_MANIFEST_DIR")).join("..");
+    let py = lungdyn_needs::pyigtl_python(&root)?;
+    let path = std::env::temp_dir().join(format!("lungdyn-pyigtl-{}.py", std::process::id()));
+    std::fs::write(&path, SCRIPT).unwrap();
+    Some((py, path))
 }
 
 #[derive(Debug)]
@@ -222,10 +212,10 @@ fn check_exact(sent: &[Sent], got: &[Sample]) {
 
 #[test]
 fn a_pyigtl_sender_streams_to_the_bridge_server_exactly_and_a_bad_crc_is_counted() {
-    let Some(script) = python() else { return };
+    let Some((py, script)) = python() else { return };
     let mut server = IgtlServer::bind("127.0.0.1", 0, &SourceOptions::default()).unwrap();
     let port = server.local_addr().port();
-    let child = Command::new("python3")
+    let child = Command::new(&py)
         .arg(&script)
         .args(["sender", &port.to_string(), &N.to_string()])
         .stdout(Stdio::piped())
@@ -258,13 +248,13 @@ fn a_pyigtl_sender_streams_to_the_bridge_server_exactly_and_a_bad_crc_is_counted
 
 #[test]
 fn the_bridge_as_client_of_a_pyigtl_server_receives_every_message_exactly() {
-    let Some(script) = python() else { return };
+    let Some((py, script)) = python() else { return };
     let port = std::net::TcpListener::bind("127.0.0.1:0")
         .unwrap()
         .local_addr()
         .unwrap()
         .port();
-    let child = Command::new("python3")
+    let child = Command::new(&py)
         .arg(&script)
         .args(["server", &port.to_string(), &N.to_string()])
         .stdout(Stdio::piped())

@@ -1,0 +1,255 @@
+//! What a test needs from the machine, and one policy for when it is not there.
+//!
+//! A test that needs a GPU adapter, a display or a peer program and cannot get one **fails**, naming
+//! the package that provides it and the command that installs it — a green run that tested none of
+//! the renderer is worse than a red one. The person running the tests may opt out explicitly, per
+//! need (`LUNGDYN_SKIP_GPU=1`, `LUNGDYN_SKIP_DISPLAY=1`, `LUNGDYN_SKIP_PYIGTL=1`, or
+//! `LUNGDYN_SKIP_ALL=1`); then the test returns early and the skip is said aloud twice:
+//!
+//! - at once, on the terminal's stderr, past the test harness's output capture (so a passing test's
+//!   skip is not swallowed), and
+//! - as one line appended to the skip log (`LUNGDYN_SKIP_LOG`, default
+//!   `$TMPDIR/lungdyn-skipped-tests.log`), which `./run test` empties before the run and counts after
+//!   it ("3 tests skipped: …").
+//!
+//! `LUNGDYN_REQUIRE_GPU=1` / `LUNGDYN_REQUIRE_PYIGTL=1` (what CI sets) forbid the opt-out: with them a
+//! missing need fails even where a skip variable is set.
+
+use std::io::Write;
+use std::path::PathBuf;
+
+/// Something a test needs from the machine.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub enum Need {
+    /// A Vulkan adapter for wgpu (a real GPU, or Mesa's lavapipe on a machine without one).
+    Gpu,
+    /// An X display for windowed tests (Xvfb's `xvfb-run` on a headless machine).
+    Display,
+    /// Python 3 with pyigtl and numpy: a real OpenIGTLink peer for the interop tests.
+    Pyigtl,
+}
+
+impl Need {
+    /// Every need, for listings.
+    pub const ALL: [Need; 3] = [Need::Gpu, Need::Display, Need::Pyigtl];
+
+    /// The opt-out variable for this need.
+    pub fn skip_var(self) -> &'static str {
+        match self {
+            Need::Gpu => "LUNGDYN_SKIP_GPU",
+            Need::Display => "LUNGDYN_SKIP_DISPLAY",
+            Need::Pyigtl => "LUNGDYN_SKIP_PYIGTL",
+        }
+    }
+
+    /// The variable that forbids the opt-out (CI sets it).
+    pub fn require_var(self) -> &'static str {
+        match self {
+            Need::Gpu | Need::Display => "LUNGDYN_REQUIRE_GPU",
+            Need::Pyigtl => "LUNGDYN_REQUIRE_PYIGTL",
+        }
+    }
+
+    /// What provides it, and the command that installs it.
+    pub fn fix(self) -> &'static str {
+        match self {
+            Need::Gpu => {
+                "install a Vulkan driver — on a machine without a GPU, Mesa's lavapipe: \
+                 `sudo apt-get install mesa-vulkan-drivers libvulkan1` (or run the tests with `./run test`, \
+                 which installs it)"
+            }
+            Need::Display => {
+                "install Xvfb for a virtual display: `sudo apt-get install xvfb xauth` (or run the tests \
+                 with `./run test`, which installs it)"
+            }
+            Need::Pyigtl => {
+                "install the pyigtl Python package (a real OpenIGTLink peer): `./run test` makes a \
+                 virtual environment with it under target/pyenv; or `python3 -m pip install pyigtl` and \
+                 point LUNGDYN_PYTHON at that python"
+            }
+        }
+    }
+
+    fn name(self) -> &'static str {
+        match self {
+            Need::Gpu => "GPU adapter",
+            Need::Display => "display",
+            Need::Pyigtl => "pyigtl",
+        }
+    }
+}
+
+fn var_is_1(name: &str) -> bool {
+    std::env::var(name).as_deref() == Ok("1")
+}
+
+/// Whether the person running the tests opted out of `need` (and nothing forbids it).
+pub fn opted_out(need: Need) -> bool {
+    !var_is_1(need.require_var()) && (var_is_1(need.skip_var()) || var_is_1("LUNGDYN_SKIP_ALL"))
+}
+
+/// Where skips are logged: `LUNGDYN_SKIP_LOG`, or a file in the temporary folder.
+pub fn skip_log() -> PathBuf {
+    std::env::var_os("LUNGDYN_SKIP_LOG")
+        .map(PathBuf::from)
+        .unwrap_or_else(|| std::env::temp_dir().join("lungdyn-skipped-tests.log"))
+}
+
+/// The test's name as libtest gives it to its thread ("module::test_name"), or "a test".
+fn test_name() -> String {
+    std::thread::current()
+        .name()
+        .filter(|n| *n != "main")
+        .unwrap_or("a test")
+        .to_string()
+}
+
+/// `need` is missing (`detail` says how it was found missing): panic naming the fix, or — when the
+/// person opted out — say the skip aloud, log it, and return so the test can return early.
+///
+/// # Panics
+/// Unless opted out: that is the point (a missing need is a failing test).
+pub fn missing(need: Need, detail: &str) {
+    let test = test_name();
+    if !opted_out(need) {
+        panic!(
+            "{test} needs a {}, and there is none ({detail}).\nFix: {}.\nTo skip such tests \
+             deliberately, set {}=1 (the run then counts them as skipped).",
+            need.name(),
+            need.fix(),
+            need.skip_var()
+        );
+    }
+    let line = format!(
+        "SKIPPED {test}: no {} ({detail}); {}=1 is set",
+        need.name(),
+        need.skip_var()
+    );
+    // Past the harness's capture: libtest captures `eprintln!`, not writes to the stream itself.
+    let _ = writeln!(std::io::stderr(), "lungdyn: {line}");
+    if let Ok(mut f) = std::fs::OpenOptions::new()
+        .create(true)
+        .append(true)
+        .open(skip_log())
+    {
+        // One `write` of one line: appends from parallel tests do not interleave.
+        let _ = f.write_all(format!("{line}\n").as_bytes());
+    }
+}
+
+/// `Some(value)` when `probe` finds the need, else [`missing`] (panic, or `None` on an opt-out).
+pub fn require<T, E: std::fmt::Display>(need: Need, probe: Result<T, E>) -> Option<T> {
+    match probe {
+        Ok(v) => Some(v),
+        Err(e) => {
+            missing(need, &e.to_string());
+            None
+        }
+    }
+}
+
+/// Whether a display can be had for a windowed test: `xvfb-run` on PATH ([`missing`] otherwise).
+pub fn display() -> bool {
+    let found = std::process::Command::new("xvfb-run")
+        .arg("--help")
+        .stdout(std::process::Stdio::null())
+        .stderr(std::process::Stdio::null())
+        .status()
+        .is_ok();
+    if !found {
+        missing(Need::Display, "xvfb-run is not on PATH");
+    }
+    found
+}
+
+/// The Python that has pyigtl: `LUNGDYN_PYTHON`, else `target/pyenv/bin/python3` under the workspace
+/// (made by `./run test`), else `python3` on PATH — the first that imports pyigtl and numpy, or
+/// [`missing`].
+pub fn pyigtl_python(workspace_root: &std::path::Path) -> Option<PathBuf> {
+    let mut tried = Vec::new();
+    let candidates = std::env::var_os("LUNGDYN_PYTHON")
+        .map(PathBuf::from)
+        .into_iter()
+        .chain([
+            workspace_root.join("target/pyenv/bin/python3"),
+            PathBuf::from("python3"),
+        ]);
+    for py in candidates {
+        let ok = std::process::Command::new(&py)
+            .args(["-c", "import pyigtl, numpy"])
+            .stdout(std::process::Stdio::null())
+            .stderr(std::process::Stdio::null())
+            .status()
+            .is_ok_and(|s| s.success());
+        if ok {
+            return Some(py);
+        }
+        tried.push(py.display().to_string());
+    }
+    missing(
+        Need::Pyigtl,
+        &format!("none of {} imports pyigtl and numpy", tried.join(", ")),
+    );
+    None
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn every_need_names_a_fix_and_its_variables() {
+        for n in Need::ALL {
+            assert!(n.fix().contains("install"), "{n:?}");
+            assert!(n.skip_var().starts_with("LUNGDYN_SKIP_"));
+            assert!(n.require_var().starts_with("LUNGDYN_REQUIRE_"));
+        }
+    }
+
+    #[test]
+    fn a_missing_need_fails_unless_opted_out() {
+        // The process environment is shared by the tests of this binary: only this test touches it.
+        // SAFETY (edition 2021: set_var is safe to call): no other thread of this binary reads these.
+        std::env::remove_var("LUNGDYN_SKIP_GPU");
+        std::env::remove_var("LUNGDYN_SKIP_ALL");
+        std::env::remove_var("LUNGDYN_REQUIRE_GPU");
+        let log = std::env::temp_dir().join(format!("lungdyn-needs-{}.log", std::process::id()));
+        std::env::set_var("LUNGDYN_SKIP_LOG", &log);
+        let _ = std::fs::remove_file(&log);
+        let failed = std::panic::catch_unwind(|| missing(Need::Gpu, "probe said no"));
+        let msg = failed
+            .expect_err("no opt-out: a failure")
+            .downcast::<String>()
+            .map(|s| *s)
+            .unwrap_or_default();
+        assert!(
+            msg.contains("mesa-vulkan-drivers") && msg.contains("LUNGDYN_SKIP_GPU=1"),
+            "{msg}"
+        );
+        assert!(!log.exists(), "a failure is not a skip");
+
+        std::env::set_var("LUNGDYN_SKIP_GPU", "1");
+        assert!(opted_out(Need::Gpu));
+        assert!(!opted_out(Need::Pyigtl), "an opt-out is per need");
+        missing(Need::Gpu, "probe said no");
+        let logged = std::fs::read_to_string(&log).unwrap();
+        assert_eq!(logged.lines().count(), 1, "{logged}");
+        assert!(
+            logged.contains("SKIPPED") && logged.contains("probe said no"),
+            "{logged}"
+        );
+
+        // What CI sets forbids the opt-out.
+        std::env::set_var("LUNGDYN_REQUIRE_GPU", "1");
+        assert!(!opted_out(Need::Gpu));
+        assert!(std::panic::catch_unwind(|| missing(Need::Gpu, "x")).is_err());
+        for v in [
+            "LUNGDYN_SKIP_GPU",
+            "LUNGDYN_REQUIRE_GPU",
+            "LUNGDYN_SKIP_LOG",
+        ] {
+            std::env::remove_var(v);
+        }
+        let _ = std::fs::remove_file(&log);
+    }
+}
