@@ -216,7 +216,9 @@ mod tests {
         let log = std::env::temp_dir().join(format!("lungdyn-needs-{}.log", std::process::id()));
         std::env::set_var("LUNGDYN_SKIP_LOG", &log);
         let _ = std::fs::remove_file(&log);
-        let failed = std::panic::catch_unwind(|| missing(Need::Gpu, "probe said no"));
+        let failed = std::panic::catch_unwind(|| {
+            missing(Need::Gpu, "the skip path's own unit test, not a real skip")
+        });
         let msg = failed
             .expect_err("no opt-out: a failure")
             .downcast::<String>()
@@ -231,11 +233,11 @@ mod tests {
         std::env::set_var("LUNGDYN_SKIP_GPU", "1");
         assert!(opted_out(Need::Gpu));
         assert!(!opted_out(Need::Pyigtl), "an opt-out is per need");
-        missing(Need::Gpu, "probe said no");
+        missing(Need::Gpu, "the skip path's own unit test, not a real skip");
         let logged = std::fs::read_to_string(&log).unwrap();
         assert_eq!(logged.lines().count(), 1, "{logged}");
         assert!(
-            logged.contains("SKIPPED") && logged.contains("probe said no"),
+            logged.contains("SKIPPED") && logged.contains("not a real skip"),
             "{logged}"
         );
 
