@@ -365,6 +365,20 @@ impl Drop for Children {
     }
 }
 
+/// The synthetic source's posture for a scene's (the bridge does not depend on the lung model, so
+/// each crate has its enum; this match is where they meet, checked by the compiler).
+pub fn bridge_posture(p: lung_model::scene::Posture) -> tracker_bridge::synthetic::Posture {
+    use lung_model::scene::Posture as S;
+    use tracker_bridge::synthetic::Posture as B;
+    match p {
+        S::Supine => B::Supine,
+        S::Sitting => B::Sitting,
+        S::Prone => B::Prone,
+        S::LeftLateral => B::LeftLateral,
+        S::RightLateral => B::RightLateral,
+    }
+}
+
 /// Check `dir` can take our PNGs: create it, write and remove a probe file.
 pub fn check_writable(dir: &Path) -> anyhow::Result<()> {
     std::fs::create_dir_all(dir)
@@ -476,7 +490,11 @@ pub fn run(args: &DemoArgs) -> anyhow::Result<DemoReport> {
         .clone()
         .unwrap_or_else(|| loaded.tracker.source.clone());
     tracker_bridge::source::SourceSpec::parse(&tracker_source)?;
-    let posture = loaded.tracker.posture.name();
+    let posture = bridge_posture(loaded.tracker.posture);
+    let posture = clap::ValueEnum::to_possible_value(&posture)
+        .expect("every posture has a name")
+        .get_name()
+        .to_string();
     if (args.roll_deg > 0.0 || args.pitch_deg > 0.0) && !loaded.lungs.mode.follows_orientation() {
         eprintln!(
             "lungdyn: note: the {} mode keeps the supine breath whatever the patient's orientation; \
@@ -893,6 +911,22 @@ mod tests {
         match e {
             Ended::Status(s) => s.signal(),
             Ended::Unknown(_) => None,
+        }
+    }
+
+    #[test]
+    fn a_scenes_posture_is_the_bridges_posture_of_the_same_name() {
+        use clap::ValueEnum;
+        use lung_model::scene::Posture as S;
+        for p in [
+            S::Supine,
+            S::Sitting,
+            S::Prone,
+            S::LeftLateral,
+            S::RightLateral,
+        ] {
+            let b = bridge_posture(p);
+            assert_eq!(b.to_possible_value().unwrap().get_name(), p.name());
         }
     }
 

@@ -16,17 +16,9 @@ pub struct EventArgs {
     pub instance: String,
     /// The intervention: needle-decompression, occlusive-dressing or chest-tube.
     pub kind: Intervention,
-    /// The side it is done on.
-    #[arg(long, value_parser = parse_side)]
+    /// The side it is done on: left or right.
+    #[arg(long)]
     pub side: Side,
-}
-
-fn parse_side(s: &str) -> Result<Side, String> {
-    match s {
-        "left" => Ok(Side::Left),
-        "right" => Ok(Side::Right),
-        _ => Err(format!("{s:?} is not a lung: left or right")),
-    }
 }
 
 /// Send the intervention; refuses when no engine runs in the instance.
