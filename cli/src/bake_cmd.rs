@@ -121,7 +121,7 @@ pub struct BakeSummary {
     /// The tumour baked in (`--scene` with a `[disease] kind = "tumour"` on this lung): what the
     /// kernel change did and the centre's motion per unit scale.
     #[serde(skip_serializing_if = "Option::is_none")]
-    pub tumour: Option<lung_model::disease::tumour::TumourMeta>,
+    pub tumour: Option<lung_model::kernel::TumourMeta>,
 }
 
 /// Peak resident set size of this process in MiB (Linux), 0 elsewhere.

@@ -709,7 +709,7 @@ type TrackRow = (u64, u32, f64, [f64; 3], [f64; 3]);
 /// A tumour centre followed through the run (the radiotherapy planner's output).
 struct TumourFollow {
     slot: usize,
-    meta: lung_model::disease::tumour::TumourMeta,
+    meta: lung_model::kernel::TumourMeta,
     mode: lung_model::deform::modes::DeformMode,
     /// `(tick, cycle, volume ml, position mm, tumour-free position mm)` of the breath in progress.
     current: Vec<TrackRow>,
