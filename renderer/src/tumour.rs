@@ -8,7 +8,7 @@
 //! Per frame: one small vertex write from a stack array (no allocation).
 
 use lung_model::deform::modes::DeformMode;
-use lung_model::disease::tumour::TumourMeta;
+use lung_model::kernel::TumourMeta;
 use wgpu::util::DeviceExt;
 
 /// Rings between the poles of the ellipsoid mesh.

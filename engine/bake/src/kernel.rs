@@ -19,8 +19,9 @@ use lung_model::mesh::{Side, TriMesh};
 
 use crate::operator::{compute_transfer, NodeGraph, OperatorError, Schedule, Transfer};
 use crate::orient::{basis_error, orientation_set, reference_delta_ml, Responses, ShProjection};
-use lung_model::disease::tumour::{RowChange, Tumour, TumourMeta};
-use lung_model::kernel::{OrientationMeta, ShMeta};
+use crate::tumour::RowChange;
+use lung_model::disease::tumour::Tumour;
+use lung_model::kernel::{OrientationMeta, ShMeta, TumourMeta};
 
 /// A baked lung, in memory.
 #[derive(Debug, Clone)]
@@ -283,7 +284,7 @@ fn apply_tumour(
     mesh: &TriMesh,
     transfer: &mut Transfer,
 ) -> Result<(RowChange, Transfer), BakeError> {
-    use lung_model::disease::tumour as tu;
+    use crate::tumour as tu;
     let a = t.expandability_of(mesh);
     let phi = tu::phi_values(mesh, t.side, t.phi);
     let reach = tu::kernel_reach_mm(&mesh.positions, &transfer.row_ptr, &transfer.cols)
@@ -331,7 +332,7 @@ fn tumour_meta(
         .map_err(tumour_err)?
         .unit_displacement_mm;
     let basis_flat: Vec<f32> = basis.iter().flatten().copied().collect();
-    let b = tu::weighted_rows(&weights, &basis_flat, 4, &kd);
+    let b = crate::tumour::weighted_rows(&weights, &basis_flat, 4, &kd);
     let sh_mm = match sh {
         Some((coeffs, bands)) if bands > 0 => {
             // The values the run time draws with (16-bit, EQUATIONS.md §3.2), so the centre
@@ -343,7 +344,7 @@ fn tumour_meta(
                 .flat_map(|i| (0..n).map(move |k| (i, k)))
                 .map(|(i, k)| held.value(i, k) as f32)
                 .collect();
-            tu::weighted_rows(&weights, &rows, n, &kd)
+            crate::tumour::weighted_rows(&weights, &rows, n, &kd)
         }
         _ => Vec::new(),
     };
@@ -700,6 +701,108 @@ mod tests {
             m.position_mm(d, 0.0, 1.0, [5.0, 6.0, 7.0], [0.0; 3]),
             [5.0, 6.0, 7.0]
         );
+    }
+
+    /// On the baked lung (the production path): the tumour region moves less relative to the rest
+    /// than in the healthy lung, more so with a larger coupling `B`, while the lung still breathes
+    /// its unit volume; a lower-lobe tumour's centre moves more along Z than an upper-lobe one's.
+    #[test]
+    fn a_tumour_stiffens_its_region_and_the_lower_lobe_moves_most() {
+        let side = Side::Right;
+        let mesh = generate::lung(side, 1500).unwrap();
+        // A lateral tumour near the base touching the costal surface, 25 mm radius.
+        let tumour = Tumour::new(side, [0.75, 0.5, 0.75], [25.0; 3]);
+        let a = tumour.expandability_of(&mesh);
+        let baked = |t: Option<Tumour>| {
+            bake(side, mesh.clone(), &tumour_settings(side, t), &|_| {}).unwrap()
+        };
+        let mag = |u: &[f32; 3]| (u[0] as f64).hypot(u[1] as f64).hypot(u[2] as f64);
+        let ratio = |k: &Kernel| {
+            let mean = |inside: bool| {
+                let v: Vec<f64> = k
+                    .unit_displacement
+                    .iter()
+                    .zip(&a)
+                    .filter(|(_, &a)| (a < 0.2) == inside)
+                    .map(|(u, _)| mag(u))
+                    .collect();
+                assert!(!v.is_empty(), "inside {inside}: no vertex");
+                v.iter().sum::<f64>() / v.len() as f64
+            };
+            mean(true) / mean(false)
+        };
+        let mut ratios = vec![ratio(&baked(None))];
+        for coupling in [0.25, 0.5, 1.0, 2.0] {
+            let k = baked(Some(Tumour { coupling, ..tumour }));
+            let m = k.meta.tumour.as_ref().unwrap();
+            assert!(m.vertices_affected > 0 && m.entries_changed > 0, "{m:?}");
+            // The lung still breathes its unit volume (EQUATIONS §2.4).
+            assert_eq!(k.meta.unit_volume_ml, UNIT_VOLUME_ML);
+            ratios.push(ratio(&k));
+        }
+        eprintln!(
+            "tumour region / rest, mean unit displacement: normal, B = 0.25, 0.5, 1, 2: {ratios:.4?}"
+        );
+        assert!(ratios.windows(2).all(|w| w[1] < w[0]), "{ratios:?}");
+        // A lower-lobe tumour moves more along Z than an upper-lobe one (clinically: lower-lobe
+        // tumours move most), both finite.
+        let z_motion = |centre: [f64; 3]| {
+            let k = baked(Some(Tumour::new(side, centre, [15.0; 3])));
+            k.meta.tumour.as_ref().unwrap().precomputed_mm
+        };
+        let (upper, lower) = (z_motion([0.5, 0.5, 0.2]), z_motion([0.5, 0.5, 0.8]));
+        eprintln!("per unit scale: upper {upper:?} mm, lower {lower:?} mm");
+        assert!(lower[2].abs() > upper[2].abs());
+        assert!(upper.iter().chain(&lower).all(|v| v.is_finite()));
+    }
+
+    #[test]
+    fn every_bad_tumour_key_is_named_before_the_pass() {
+        let side = Side::Left;
+        let mesh = generate::lung(side, 600).unwrap();
+        let rows = std::sync::atomic::AtomicUsize::new(0);
+        let count = |n: usize| {
+            rows.fetch_add(n, std::sync::atomic::Ordering::Relaxed);
+        };
+        let base = Tumour::new(side, [0.5; 3], [5.0; 3]);
+        for (t, key) in [
+            (Tumour::new(side, [1.5, 0.5, 0.5], [5.0; 3]), "centre"),
+            (Tumour::new(side, [0.5; 3], [0.0; 3]), "radii_mm"),
+            (
+                Tumour {
+                    expandability: 0.0,
+                    ..base
+                },
+                "expandability",
+            ),
+            (
+                Tumour {
+                    falloff: -1.0,
+                    ..base
+                },
+                "falloff",
+            ),
+            (
+                Tumour {
+                    coupling: f64::NAN,
+                    ..base
+                },
+                "coupling",
+            ),
+            (
+                Tumour {
+                    resistance_phi: 2.0,
+                    ..base
+                },
+                "resistance_phi",
+            ),
+        ] {
+            let e = bake(side, mesh.clone(), &tumour_settings(side, Some(t)), &count)
+                .unwrap_err()
+                .to_string();
+            assert!(e.contains(key), "{key}: {e}");
+        }
+        assert_eq!(rows.into_inner(), 0, "no transfer row was computed");
     }
 
     #[test]

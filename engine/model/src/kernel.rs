@@ -150,6 +150,22 @@ impl BakeSettings {
     }
 }
 
+/// The enclosed volume of `p + s·u(w)` with `u(w) = Σ_a w_a·U_a` as forms in the weights:
+/// `V = v0 + s·Σ_a w_a·L_a + s²·Σ_ab w_a w_b·Q_ab + s³·Σ_abc w_a w_b w_c·C_abc` (mm³), exact for a
+/// closed mesh (divergence theorem, the same triple products as `VolumeCubic::of`).
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct VolumeForms {
+    /// Volume of the undeformed mesh, mm³.
+    pub v0: f64,
+    /// Linear form.
+    pub l: [f64; 4],
+    /// Quadratic form (not symmetrised).
+    pub q: [[f64; 4]; 4],
+    /// Cubic form (not symmetrised).
+    pub c: [[[f64; 4]; 4]; 4],
+}
+
 /// What the orientation-dependent modes (direct eq. 7.1 and the exact basis) need beyond the
 /// sections: the enclosed volume as forms in the force weights (EQUATIONS.md §3.3), and how well
 /// the stored basis reproduces eq. 7.1.
@@ -157,7 +173,7 @@ impl BakeSettings {
 #[serde(deny_unknown_fields)]
 pub struct OrientationMeta {
     /// Enclosed volume of `p + s·Σ_a w_a·k·G_a·d` as forms in `w = (w0, wx, wy, wz)`.
-    pub volume_forms: crate::deform::modes::VolumeForms,
+    pub volume_forms: VolumeForms,
     /// Largest displacement difference of the basis mode (stored f32 responses) against eq. 7.1
     /// evaluated in f64 from the transfer rows, at the reference volume over the orientation set, mm.
     pub basis_max_error_mm: f64,
@@ -181,7 +197,7 @@ pub struct ShMeta {
     /// so the force coefficients of weights `w` are `F_k = Σ_a w_a·projection[a·n² + k]`.
     pub projection: Vec<f64>,
     /// Enclosed volume of the SH mode's displacement as forms in the weights.
-    pub volume_forms: crate::deform::modes::VolumeForms,
+    pub volume_forms: VolumeForms,
     /// RMS displacement error against eq. 7.1 as % of the largest eq. 7.1 displacement.
     pub rms_percent: f64,
     /// RMS displacement error against eq. 7.1, mm.
@@ -277,7 +293,72 @@ pub struct KernelMeta {
     pub sh: Option<ShMeta>,
     /// The tumour the kernel was baked with, and how its centre moves (seed §8.2).
     #[serde(default, skip_serializing_if = "Option::is_none")]
-    pub tumour: Option<crate::disease::tumour::TumourMeta>,
+    pub tumour: Option<TumourMeta>,
+}
+
+/// What a kernel baked with a tumour records of it ([`KernelMeta::tumour`]): the region, what the
+/// kernel change did, and how the tumour centre moves in every deformation mode.
+///
+/// Every mode's displacement is linear in its per-vertex data, and the centre's displacement is the
+/// mean-value interpolation of the surface's (`crate::disease::tumour`, Decisions), so the centre moves by the same
+/// linear form with the per-vertex data replaced by their mean-value sums:
+/// precomputed `s·Σ_i λ_i u_i`; basis (and direct, eq. 7.1, which the basis reproduces to
+/// round-off) `s·Σ_a w_a·Σ_i λ_i G_{i,a} k d_i`; SH (eq. 7.7) `s·Σ_k F_k·Σ_i λ_i T_{i,k} k d_i`.
+/// The sums are taken at bake time from the data the run time deforms with: the stored f32 data,
+/// and for SH the 16-bit values it holds them as ([`crate::deform::sh_coeffs`]).
+#[derive(Debug, Clone, PartialEq, serde::Serialize, serde::Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct TumourMeta {
+    /// The tumour as baked.
+    pub tumour: crate::disease::tumour::Tumour,
+    /// Centre at rest (FRC), body frame, mm.
+    pub centre_mm: [f64; 3],
+    /// Volume of the ellipsoid, ml.
+    pub volume_ml: f64,
+    /// Vertices with expandability below 1.
+    pub vertices_affected: u64,
+    /// Kernel entries changed by eq. 8.14–8.20.
+    pub entries_changed: u64,
+    /// Entries whose `d'` was clamped to the acos domain.
+    pub entries_clamped: u64,
+    /// Of those, entries where `B·e` made `d' ≤ 0`.
+    pub entries_nonpositive: u64,
+    /// Kernel reach ℓ, mm.
+    pub reach_mm: f64,
+    /// Smallest and largest entry factor applied.
+    pub factor_range: [f64; 2],
+    /// How much the tumour changed the surface motion where it reaches (vertices with `a < 1`):
+    /// mean and largest `|u − u_normal| / |u_normal|` of the unit displacement, %.
+    pub affected_motion_change_percent: [f64; 2],
+    /// Centre displacement per unit deformation scale, precomputed mode, mm.
+    pub precomputed_mm: [f64; 3],
+    /// The same centre in the lung baked without the tumour, mm per unit scale (for comparison).
+    pub normal_precomputed_mm: [f64; 3],
+    /// Centre displacement per unit scale per force weight `(w0, wx, wy, wz)`: basis and direct modes.
+    pub basis_mm: [[f64; 3]; 4],
+    /// Centre displacement per unit scale per SH force coefficient (`bands²`; empty without SH).
+    #[serde(default)]
+    pub sh_mm: Vec<[f64; 3]>,
+}
+
+impl TumourMeta {
+    /// The centre's position, mm, for deformation scale `scale`, the lung's collapse `collapse`
+    /// towards `hilum_mm` and rigid offset (EQUATIONS §4.1: `h + (1 − c)(p − h) + s·u + o`).
+    pub fn position_mm(
+        &self,
+        displacement_mm: [f64; 3],
+        scale: f64,
+        collapse: f64,
+        hilum_mm: [f64; 3],
+        offset_mm: [f64; 3],
+    ) -> [f64; 3] {
+        [0, 1, 2].map(|a| {
+            hilum_mm[a]
+                + (1.0 - collapse) * (self.centre_mm[a] - hilum_mm[a])
+                + scale * displacement_mm[a]
+                + offset_mm[a]
+        })
+    }
 }
 
 /// Errors reading or writing a kernel file.

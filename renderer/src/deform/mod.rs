@@ -24,7 +24,7 @@ pub struct RenderLung {
     /// Mesh and mode data (the CPU reference uses the same).
     pub lung: CpuLung,
     /// The tumour the kernel was baked with, drawn in its own colour (seed §8.2).
-    pub tumour: Option<lung_model::disease::tumour::TumourMeta>,
+    pub tumour: Option<lung_model::kernel::TumourMeta>,
 }
 
 impl RenderLung {

@@ -25,6 +25,8 @@ use rayon::prelude::*;
 use serde::{Deserialize, Serialize};
 
 use crate::deform::VolumeCubic;
+use crate::kernel::TumourMeta;
+pub use crate::kernel::VolumeForms;
 use crate::mesh::TriMesh;
 use crate::operator::Columns;
 
@@ -97,22 +99,8 @@ impl std::str::FromStr for DeformMode {
     }
 }
 
-/// The enclosed volume of `p + s·u(w)` with `u(w) = Σ_a w_a·U_a` as forms in the weights:
-/// `V = v0 + s·Σ_a w_a·L_a + s²·Σ_ab w_a w_b·Q_ab + s³·Σ_abc w_a w_b w_c·C_abc` (mm³), exact for a
-/// closed mesh (divergence theorem, the same triple products as [`VolumeCubic::of`]).
-#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
-#[serde(deny_unknown_fields)]
-pub struct VolumeForms {
-    /// Volume of the undeformed mesh, mm³.
-    pub v0: f64,
-    /// Linear form.
-    pub l: [f64; 4],
-    /// Quadratic form (not symmetrised).
-    pub q: [[f64; 4]; 4],
-    /// Cubic form (not symmetrised).
-    pub c: [[[f64; 4]; 4]; 4],
-}
-
+/// Evaluation of the kernel's [`VolumeForms`] record (the record itself is file format,
+/// `crate::kernel`).
 impl VolumeForms {
     /// Forms for the four fields `fields[a][i]` (one displacement per vertex each).
     pub fn of(mesh: &TriMesh, fields: [&[DVec3]; 4]) -> Self {
@@ -320,6 +308,32 @@ pub struct CoeffError {
     pub expected: usize,
     /// Coefficients given.
     pub found: usize,
+}
+
+/// The tumour centre's response in each mode: evaluation of the kernel's [`TumourMeta`] record,
+/// kept here with the modes it evaluates (the record itself is file format, `crate::kernel`).
+impl TumourMeta {
+    /// The centre's displacement per unit deformation scale in `mode` with the frame's
+    /// coefficients (none for precomputed, 4 weights for basis/direct, `bands²` for SH); `None`
+    /// when the coefficients do not fit the mode.
+    pub fn displacement_mm(&self, mode: DeformMode, coeffs: &[f32]) -> Option<[f64; 3]> {
+        use DeformMode as M;
+        let rows: &[[f64; 3]] = match mode {
+            M::Precomputed => return Some(self.precomputed_mm),
+            M::Basis | M::Direct => &self.basis_mm,
+            M::Sh => &self.sh_mm,
+        };
+        if rows.is_empty() || coeffs.len() != rows.len() {
+            return None;
+        }
+        let mut d = [0.0; 3];
+        for (r, &c) in rows.iter().zip(coeffs) {
+            for a in 0..3 {
+                d[a] += c as f64 * r[a];
+            }
+        }
+        Some(d)
+    }
 }
 
 /// Why a kernel cannot be deformed in a mode.

@@ -104,8 +104,9 @@ pub enum DiseaseError {
     Tumour(#[from] tumour::TumourError),
 }
 
-/// `Ok(v)` if `v` is finite and within `[lo, hi]`, else [`DiseaseError::OutOfRange`].
-pub(crate) fn check_range(
+/// `Ok(v)` if `v` is finite and within `[lo, hi]`, else [`DiseaseError::OutOfRange`] (also the
+/// bake's check of its tumour constants).
+pub fn check_range(
     name: &'static str,
     v: f64,
     lo: f64,
