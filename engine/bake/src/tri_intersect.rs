@@ -199,9 +199,9 @@ pub fn pair_intersects(ti: &[u32; 3], p: &[P; 3], tj: &[u32; 3], q: &[P; 3]) -> 
     let mut shared = 0usize;
     let mut sp = [0usize; 3];
     let mut sq = [0usize; 3];
-    for a in 0..3 {
-        for b in 0..3 {
-            if ti[a] == tj[b] {
+    for (a, va) in ti.iter().enumerate() {
+        for (b, vb) in tj.iter().enumerate() {
+            if va == vb {
                 if shared < 3 {
                     sp[shared] = a;
                     sq[shared] = b;
