@@ -30,9 +30,15 @@ pub struct BakeArgs {
     /// Scene whose [lungs] elasticity, transfer_tolerance and motion are used (defaults otherwise).
     #[arg(long)]
     pub scene: Option<PathBuf>,
-    /// Motion constants from `lungdyn fit-motion` (overrides the scene's; Table 6.1 otherwise).
-    #[arg(long)]
+    /// Motion constants from `lungdyn fit-motion` (overrides the scene's; the `--directions` preset
+    /// otherwise).
+    #[arg(long, conflicts_with = "directions")]
     pub motion: Option<PathBuf>,
+    /// Constants without a motion file (overrides the scene's `[lungs] directions`): "population"
+    /// (diaphragm-driven, matched to DIR-Lab 4DCT; the default) or "seed" (Table 6.1, mostly
+    /// anterior). See EQUATIONS.md §2.4.
+    #[arg(long, value_parser = ["population", "seed"])]
+    pub directions: Option<String>,
     /// Pitcher tolerance for a unit force (overrides the scene's; default 1e-5). Smaller: more
     /// non-zeros per row, less truncated force, longer bake.
     #[arg(long)]
@@ -149,6 +155,11 @@ pub fn bake(args: &BakeArgs) -> anyhow::Result<BakeSummary> {
     }
     let scene = lung_model::scene::Scene::load_or_default(args.scene.as_deref())?;
     let mut settings = scene.bake_settings(side)?;
+    if let Some(d) = &args.directions {
+        let preset: lung_model::deform::DirectionPreset = d.parse().map_err(anyhow::Error::msg)?;
+        settings.motion = preset.constants(side);
+        settings.direction_field = None;
+    }
     if let Some(m) = &args.motion {
         let f = lung_model::deform::MotionFile::load(m)?;
         settings.motion = f.for_side(side);

@@ -417,6 +417,11 @@ fn scene_run_reports_the_tumour_centres_motion_and_writes_its_trajectory() {
         "{m}"
     );
     assert!(axes.iter().any(|&a| a > 0.5), "{m}");
+    // A lower-lobe tumour moves mostly superior-inferior, about a centimetre (Seppenwoolde et al.
+    // 2002: 12 ± 2 mm SI for free lower-lobe tumours); the default (population) directions give
+    // 11.3 mm SI, 1.3 AP, 1.2 LR (EQUATIONS.md §2.4). Table 6.1 gave 1.4 SI, 5.0 AP.
+    assert!(axes[2] > 4.0 * axes[0] && axes[2] > 4.0 * axes[1], "{m}");
+    assert!((7.0..17.0).contains(&axes[2]), "{m}");
     // The CSV holds one breath at the engine's tick rate (12 /min, 60 Hz: 300 ticks), and its
     // ranges are the amplitudes reported.
     let csv = std::fs::read_to_string(d["tumour"]["trajectory_csv"].as_str().unwrap()).unwrap();

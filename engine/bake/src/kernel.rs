@@ -846,3 +846,137 @@ mod tests {
         assert_eq!(rows.into_inner(), 0, "no transfer row was computed");
     }
 }
+
+/// How the default lungs breathe (EQUATIONS.md §2.4, "Breathing like a person").
+#[cfg(test)]
+mod breathing {
+    use super::*;
+    use glam::DVec3;
+    use lung_model::deform::{DirectionPreset, VolumeCubic};
+    use lung_model::mesh::generate;
+
+    /// Total tidal volume the DIR-Lab end-exhale → end-inhale scans are taken to be, ml.
+    const DIRLAB_TIDAL_ML: f64 = 500.0;
+
+    /// A default lung at 10k vertices baked with `preset` (no SH: the unit displacement does not
+    /// depend on it), and its share of a breath of both generated lungs (by FRC volume).
+    fn baked(side: Side, preset: DirectionPreset) -> (Kernel, f64) {
+        let mesh = generate::lung(side, 10_000).unwrap();
+        let both: f64 = [Side::Left, Side::Right]
+            .into_iter()
+            .map(|s| generate::lung(s, 2_000).unwrap().enclosed_volume_ml())
+            .sum();
+        let share = mesh.enclosed_volume_ml() / both;
+        let mut s = BakeSettings::default_for(side);
+        s.motion = preset.constants(side);
+        s.sh_bands = 0;
+        (bake(side, mesh, &s, &|_| {}).unwrap(), share)
+    }
+
+    /// The surface at `delta_ml` from FRC, as `lungdyn kernel export --delta-ml` draws it.
+    fn deformed(k: &Kernel, delta_ml: f64) -> TriMesh {
+        let u: Vec<DVec3> = k
+            .unit_displacement
+            .iter()
+            .map(|v| DVec3::new(v[0] as f64, v[1] as f64, v[2] as f64))
+            .collect();
+        let s = VolumeCubic::of(&k.mesh, &u).solve_delta(delta_ml * 1000.0) as f32;
+        let positions = k
+            .mesh
+            .positions
+            .iter()
+            .zip(&k.unit_displacement)
+            .map(|(p, u)| [0, 1, 2].map(|a| p[a] + s * u[a]))
+            .collect();
+        TriMesh {
+            positions,
+            triangles: k.mesh.triangles.clone(),
+        }
+    }
+
+    /// Mean |LR|, |AP|, |SI| displacement (mm) of the vertices in the lowest third of the height.
+    fn lower_third(k: &Kernel, delta_ml: f64) -> [f64; 3] {
+        let moved = deformed(k, delta_ml);
+        let bb = k.mesh.aabb();
+        let cut = bb.min[2] + (bb.max[2] - bb.min[2]) / 3.0;
+        let mut sum = [0.0f64; 3];
+        let mut n = 0.0;
+        for (p, q) in k.mesh.positions.iter().zip(&moved.positions) {
+            if p[2] < cut {
+                for a in 0..3 {
+                    sum[a] += (q[a] - p[a]).abs() as f64;
+                }
+                n += 1.0;
+            }
+        }
+        sum.map(|v| v / n)
+    }
+
+    /// DIR-Lab (10 cases × 300 landmarks, end-exhale → end-inhale), lower third: mean |SI| 13.1 mm,
+    /// |AP| 2.1, |LR| 1.2 (SI : AP = 6.2). The default lungs at their share of a 500 ml breath:
+    /// SI at least 4 × AP, SI within ±30 % of DIR-Lab's 13.1 mm. The seed's Table 6.1 (still
+    /// reachable as `directions = "seed"`) moves the lower third mostly anteriorly.
+    #[test]
+    fn the_default_lungs_breathe_mostly_superior_inferior() {
+        for side in [Side::Right, Side::Left] {
+            let (k, share) = baked(side, DirectionPreset::Population);
+            let [lr, ap, si] = lower_third(&k, share * DIRLAB_TIDAL_ML);
+            eprintln!("{side:?} population, {:.0} ml: lower third LR {lr:.2} AP {ap:.2} SI {si:.2} mm (SI/AP {:.1})", share * DIRLAB_TIDAL_ML, si / ap);
+            assert!(si >= 4.0 * ap, "{side:?}: SI {si} AP {ap}");
+            assert!(si >= 4.0 * lr, "{side:?}: SI {si} LR {lr}");
+            assert!((0.7 * 13.1..=1.3 * 13.1).contains(&si), "{side:?}: SI {si}");
+            let (k, share) = baked(side, DirectionPreset::Seed);
+            let [lr, ap, si] = lower_third(&k, share * DIRLAB_TIDAL_ML);
+            eprintln!(
+                "{side:?} seed, {:.0} ml: lower third LR {lr:.2} AP {ap:.2} SI {si:.2} mm",
+                share * DIRLAB_TIDAL_ML
+            );
+            assert!(ap > 2.0 * si, "{side:?} seed: SI {si} AP {ap}");
+        }
+    }
+
+    /// From FRC − 500 ml to FRC + 1500 ml of both lungs (each lung its share), in steps of 250 ml
+    /// of the whole, neither default lung folds: every deformed surface is a closed 2-manifold
+    /// without self-intersection (the exact test), with either preset.
+    ///
+    /// **Fails today (issue 19), hence ignored:** with the exact test, the population preset
+    /// stays free of crossings at ±250 ml of the whole (each lung's share) but not at ±500 ml, the
+    /// seed's not even at ±250 ml. The per-vertex elastostatic
+    /// force is rough at the mesh scale, so triangles invert where the base moves most (right lung,
+    /// +125 ml: 206 inverted triangles with the population preset, 26 with the seed's, all at the
+    /// base rim; first crossing pair at −271 ml at x̂ 0.13, ŷ 0.90, ẑ 0.88). Needs a spatially
+    /// smooth amplitude and/or a rounded costophrenic recess (EQUATIONS.md §2.4, "Still open").
+    #[test]
+    #[ignore = "fails: the deformed default lungs fold beyond ±250 ml (issue 19); run with --ignored"]
+    fn the_default_lungs_do_not_fold_over_the_whole_range() {
+        for side in [Side::Right, Side::Left] {
+            for preset in DirectionPreset::ALL {
+                let (k, share) = baked(side, preset);
+                for step in -2..=6 {
+                    let delta = share * 250.0 * step as f64;
+                    let m = deformed(&k, delta);
+                    lung_model::mesh::check(&m).unwrap();
+                    let si = crate::surface_checks::self_intersections(&m, 4);
+                    if let Some((a, b)) = si.first {
+                        let bb = k.mesh.aabb();
+                        let at = |t: u32| {
+                            k.mesh.triangles[t as usize].map(|v| {
+                                lung_model::deform::normalised_position(
+                                    k.mesh.positions[v as usize],
+                                    &bb,
+                                    side,
+                                )
+                            })
+                        };
+                        eprintln!(
+                            "{side:?} {preset:?} {delta:+.0}: {si:?} at {:?} {:?}",
+                            at(a),
+                            at(b)
+                        );
+                    }
+                    assert_eq!(si.count, 0, "{side:?} {preset:?} at {delta:+.0} ml: {si:?}");
+                }
+            }
+        }
+    }
+}

@@ -31,4 +31,5 @@ pub mod orient;
 pub mod pv;
 pub mod surface_checks;
 pub mod surface_fit;
+pub mod tri_intersect;
 pub mod tumour;

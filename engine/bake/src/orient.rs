@@ -563,7 +563,10 @@ mod tests {
             &k.transfer,
             &k.directions,
             k.meta.force_scale,
-            [0.01, 0.95, 0.07],
+            {
+                let c = &k.meta.settings.motion.c;
+                [c[6], c[7], c[8]]
+            },
         );
         let d = r.force(&r.weights(SUPINE_GRAVITY));
         for (a, b) in d.iter().zip(&k.elastostatic) {
@@ -630,7 +633,10 @@ mod tests {
             &k.transfer,
             &k.directions,
             k.meta.force_scale,
-            [0.01, 0.96, 0.05],
+            {
+                let c = &k.meta.settings.motion.c;
+                [c[6], c[7], c[8]]
+            },
         );
         let forms = r.forms_of(&k.mesh, &r.g);
         let mut r = r;

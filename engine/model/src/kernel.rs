@@ -97,7 +97,7 @@ pub mod section {
 /// What a bake needs besides the mesh.
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
 pub struct BakeSettings {
-    /// Direction and applied-force constants `c1..c9` (Table 6.1 by default).
+    /// Direction and applied-force constants `c1..c9` (the population preset by default).
     pub motion: MotionConstants,
     /// A displacement field fitted to the patient's landmarks (`lungdyn fit-motion`): when present,
     /// it gives each vertex's direction `d_i` instead of eq. 6.14–6.16 (the applied force and the
@@ -136,10 +136,11 @@ fn default_sh_bands() -> u32 {
 pub const DEFAULT_TOLERANCE: f64 = 1e-5;
 
 impl BakeSettings {
-    /// Table 6.1 constants, the default elasticity field and tolerance.
+    /// The default constants ([`MotionConstants::default_for`], the population preset), the default
+    /// elasticity field and tolerance.
     pub fn default_for(side: Side) -> Self {
         Self {
-            motion: MotionConstants::table_6_1(side),
+            motion: MotionConstants::default_for(side),
             direction_field: None,
             elasticity: Elasticity::default(),
             tolerance: DEFAULT_TOLERANCE,

@@ -168,10 +168,13 @@ pub struct LungsScene {
     pub elasticity: crate::operator::Elasticity,
     /// Pitcher tolerance of the transfer pass for a unit force.
     pub transfer_tolerance: f64,
-    /// Motion constants written by `lungdyn fit-motion` (relative to the scene file); Table 6.1
-    /// when absent.
+    /// Motion constants written by `lungdyn fit-motion` (relative to the scene file); the
+    /// `directions` preset when absent.
     #[serde(skip_serializing_if = "Option::is_none")]
     pub motion: Option<std::path::PathBuf>,
+    /// Constants without a motion file: "population" (diaphragm-driven, matched to 4DCT; the
+    /// default) or "seed" (Table 6.1). EQUATIONS.md §2.4.
+    pub directions: crate::deform::DirectionPreset,
     /// How the lungs deform (EQUATIONS.md §3): "precomputed" (one baked field, supine, 3 MACs per
     /// vertex), "basis" (exact for any orientation, 4 MACs), "sh" (eq. 7.7 with `bands` bands),
     /// "direct" (eq. 7.1 every frame, the accuracy reference). Only what the mode needs is loaded.
@@ -290,6 +293,7 @@ impl Default for LungsScene {
             elasticity: crate::operator::Elasticity::default(),
             transfer_tolerance: crate::kernel::DEFAULT_TOLERANCE,
             motion: None,
+            directions: crate::deform::DirectionPreset::Population,
             mode: crate::deform::modes::DeformMode::Basis,
             bands: crate::kernel::DEFAULT_SH_BANDS,
             max_error_mm: None,
@@ -840,7 +844,8 @@ impl Scene {
         }
     }
 
-    /// The bake settings of `side` in this scene (motion file or Table 6.1, elasticity, tolerance).
+    /// The bake settings of `side` in this scene (motion file or the `directions` preset,
+    /// elasticity, tolerance).
     pub fn bake_settings(
         &self,
         side: Side,
@@ -850,7 +855,7 @@ impl Scene {
                 let f = crate::deform::MotionFile::load(path)?;
                 (f.for_side(side), f.field_for_side(side).cloned())
             }
-            None => (crate::deform::MotionConstants::table_6_1(side), None),
+            None => (self.lungs.directions.constants(side), None),
         };
         Ok(crate::kernel::BakeSettings {
             motion,

@@ -52,6 +52,22 @@ fn exactly_nine<'de, D: serde::Deserializer<'de>>(d: D) -> Result<[f64; 9], D::E
 }
 
 impl MotionConstants {
+    /// The default constants of `side` (the population preset, [`DirectionPreset::Population`]).
+    pub fn default_for(side: Side) -> Self {
+        DirectionPreset::default().constants(side)
+    }
+
+    /// Population constants (lungdyn, EQUATIONS.md §2.4 "Breathing like a person"): a diaphragm
+    /// drive. The direction turns from anterior at the apex (`ŷ`, chest wall) to inferior at the
+    /// base (`ẑ²`, diaphragm); the applied force grows towards the base and anteriorly. Chosen so
+    /// that the generated lungs' lower third moves as the DIR-Lab 4DCT landmarks do (mean |SI|
+    /// 13.1 mm, |AP| 2.1, |LR| 1.2 at end-inhale, taken as a 500 ml breath); both sides alike.
+    pub fn population(_side: Side) -> Self {
+        Self {
+            c: [0.1, 1.0, 0.15, 1.0, 1.0, 2.0, 0.0, 0.6, 0.4],
+        }
+    }
+
     /// Table 6.1 for `side`.
     pub fn table_6_1(side: Side) -> Self {
         match side {
@@ -62,6 +78,51 @@ impl MotionConstants {
                 c: [0.09, 0.22, 0.39, 0.51, 0.11, 2.2, 0.01, 0.96, 0.05],
             },
         }
+    }
+}
+
+/// Which constants a bake uses without a motion file (scene `[lungs] directions`, `lungdyn bake
+/// --directions`).
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Default, serde::Serialize, serde::Deserialize)]
+#[serde(rename_all = "lowercase")]
+pub enum DirectionPreset {
+    /// [`MotionConstants::population`]: diaphragm-driven, matched to DIR-Lab 4DCT (the default).
+    #[default]
+    Population,
+    /// [`MotionConstants::table_6_1`]: the seed's Table 6.1 (gravity-driven, mostly anterior).
+    Seed,
+}
+
+impl DirectionPreset {
+    /// Every preset, in the order they are listed.
+    pub const ALL: [DirectionPreset; 2] = [DirectionPreset::Population, DirectionPreset::Seed];
+
+    /// The preset's constants for `side`.
+    pub fn constants(self, side: Side) -> MotionConstants {
+        match self {
+            DirectionPreset::Population => MotionConstants::population(side),
+            DirectionPreset::Seed => MotionConstants::table_6_1(side),
+        }
+    }
+
+    /// Its name in scenes and on the command line.
+    pub fn name(self) -> &'static str {
+        match self {
+            DirectionPreset::Population => "population",
+            DirectionPreset::Seed => "seed",
+        }
+    }
+}
+
+impl std::str::FromStr for DirectionPreset {
+    type Err = String;
+    fn from_str(s: &str) -> Result<Self, String> {
+        Self::ALL
+            .into_iter()
+            .find(|p| p.name() == s)
+            .ok_or_else(|| {
+                format!("directions \"{s}\": expected \"population\" (diaphragm-driven, the default) or \"seed\" (Table 6.1)")
+            })
     }
 }
 
