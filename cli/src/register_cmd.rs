@@ -164,7 +164,7 @@ pub fn run(args: &RegisterArgs) -> anyhow::Result<Value> {
     // Check what is written reads back before replacing anything.
     Calibration::from_toml(&text, "the new calibration")
         .context("the calibration does not read back")?;
-    lung_model::mesh::io::write_atomically(&args.out, |w| w.write_all(text.as_bytes()))?;
+    outfile::write_atomically(&args.out, |w| w.write_all(text.as_bytes()))?;
     let q = r.rotation.quaternion();
     let m = r.rotation.to_rotation_matrix();
     Ok(json!({

@@ -282,6 +282,13 @@ pub fn run(args: &TradeoffArgs) -> anyhow::Result<Tradeoff> {
         .filter(|p| !p.as_os_str().is_empty())
         .unwrap_or(Path::new("."));
     crate::demo::check_writable(out_dir)?;
+    // Every output refused now if it is a device, FIFO or folder, not after minutes of measuring
+    // with some of the four already written.
+    for ext in ["md", "csv", "png", "svg"] {
+        let mut name = args.out.file_name().unwrap_or_default().to_os_string();
+        name.push(format!(".{ext}"));
+        outfile::check(&args.out.with_file_name(name))?;
+    }
     let gpu = match args.gpu.as_str() {
         "off" => None,
         want => match renderer::gpu::Gpu::new() {
@@ -1083,7 +1090,7 @@ fn write_outputs(out: &Path, t: &Tradeoff) -> anyhow::Result<Vec<String>> {
     let md = out.with_file_name(format!("{stem}.md"));
     let csv_path = out.with_file_name(format!("{stem}.csv"));
     for (path, text) in [(&md, markdown(t, &stem)), (&csv_path, csv(t))] {
-        lung_model::mesh::io::write_atomically(path, |w| {
+        outfile::write_atomically(path, |w| {
             use std::io::Write;
             w.write_all(text.as_bytes())
         })?;

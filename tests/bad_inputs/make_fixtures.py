@@ -575,13 +575,11 @@ def make_render_files(tmp):
     (the binary writes none: this text), then one defect each, and scenes naming them."""
     rng = random.Random(20250612)  # its own stream: the fixtures above do not change with this section
     model = [(0, 0, 0), (100, 0, 0), (0, 120, 0), (0, 0, 90), (60, 40, 30)]
-    with open(os.path.join(tmp, "model_fiducials.txt"), "w") as f:
-        f.writelines("%g %g %g\n" % p for p in model)
-    with open(os.path.join(tmp, "tracker_fiducials.txt"), "w") as f:
-        f.writelines("%g %g %g\n" % (x, y - 80, z) for x, y, z in model)
-    subprocess.run([BIN, "register", "--model-points", "model_fiducials.txt", "--tracker-points",
-                    "tracker_fiducials.txt", "--out", os.path.join(HERE, "calib_good.toml")],
-                   cwd=tmp, check=True, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
+    out("fid_model.txt", "".join("%g %g %g\n" % p for p in model))
+    out("fid_tracker.txt", "".join("%g %g %g\n" % (x, y - 80, z) for x, y, z in model))
+    subprocess.run([BIN, "register", "--model-points", "fid_model.txt", "--tracker-points",
+                    "fid_tracker.txt", "--out", os.path.join(HERE, "calib_good.toml")],
+                   cwd=HERE, check=True, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
     out("calib_garbage.toml", bytes(rng.getrandbits(8) for _ in range(512)))
     out("hmd_good.toml", HMD_GOOD)
     out("hmd_ipd_500.toml", HMD_GOOD.replace("ipd_mm = 64.0", "ipd_mm = 500.0"))
