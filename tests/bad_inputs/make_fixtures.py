@@ -576,7 +576,19 @@ def make_render_files(tmp):
     rng = random.Random(20250612)  # its own stream: the fixtures above do not change with this section
     model = [(0, 0, 0), (100, 0, 0), (0, 120, 0), (0, 0, 90), (60, 40, 30)]
     out("fid_model.txt", "".join("%g %g %g\n" % p for p in model))
-    out("fid_tracker.txt", "".join("%g %g %g\n" % (x, y - 80, z) for x, y, z in model))
+    tracker = [(x, y - 80, z) for x, y, z in model]
+    out("fid_tracker.txt", "".join("%g %g %g\n" % p for p in tracker))
+    # One defect each (issue 18's probe): every one was once written with exit 0.
+    fid = lambda name, pts: out("fid_tracker_" + name + ".txt", "".join("%.6g %.6g %.6g\n" % tuple(p) for p in pts))
+    fid("identical", [(10, 20, 30)] * 5)
+    fid("cm", [[v / 10 for v in p] for p in tracker])
+    fid("m", [[v / 1000 for v in p] for p in tracker])
+    fid("collinear", [(0, 40 * i - 80, 7) for i in range(5)])
+    fid("mirrored", [(-x, y, z) for x, y, z in tracker])
+    fid("swapped", [tracker[2], tracker[1], tracker[0], tracker[3], tracker[4]])
+    fid("scaled_3pct", [[v * 1.03 for v in p] for p in tracker])
+    fid("two", tracker[:2])
+    fid("near_duplicate", tracker[:4] + [(tracker[0][0] + 0.4, tracker[0][1], tracker[0][2])])
     subprocess.run([BIN, "register", "--model-points", "fid_model.txt", "--tracker-points",
                     "fid_tracker.txt", "--out", os.path.join(HERE, "calib_good.toml")],
                    cwd=HERE, check=True, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
