@@ -601,6 +601,35 @@ def make_render_files(tmp):
     s("calibration_garbage", SCENE_BASE + '[render]\ncalibration = "calib_garbage.toml"\n')
     s("hmd_ipd_500", SCENE_BASE + '[render]\nhmd = "hmd_ipd_500.toml"\n')
     s("hmd_directory", SCENE_BASE + '[render]\nhmd = "."  # this folder\n')
+    # Issue 18's probe: each was accepted by `hmd check`, `demo` or the renderer.
+    for tag, old_text, new_text in (
+            ("near_1e-6", "horizontal_fov_deg = 70.0\n", "horizontal_fov_deg = 70.0\nnear_mm = 1e-6\n"),
+            ("near_5e-324", "horizontal_fov_deg = 70.0\n", "horizontal_fov_deg = 70.0\nnear_mm = 5e-324\n"),
+            ("far_over_near", "horizontal_fov_deg = 70.0\n", "horizontal_fov_deg = 70.0\nnear_mm = 1.0\nfar_mm = 100000.0\n"),
+            ("frustum_0.001deg", "frustum_deg = [36.0, 34.0, 27.0, 28.0]", "frustum_deg = [0.0005, 0.0005, 27.0, 28.0]"),
+            ("frustum_nan", "frustum_deg = [36.0, 34.0, 27.0, 28.0]", "frustum_deg = [36.0, nan, 27.0, 28.0]"),
+            ("width_16384", "width_px = 160", "width_px = 16384"),
+            ("width_8", "width_px = 160", "width_px = 8"),
+            ("offset_inf", "offset_mm = [-32.0, 0.0, 0.0]", "offset_mm = [-inf, 0.0, 0.0]")):
+        assert old_text in HMD_GOOD
+        out("hmd_%s.toml" % tag, HMD_GOOD.replace(old_text, new_text))
+    with open(os.path.join(HERE, "calib_good.toml")) as f:
+        calib = f.read()
+    for tag, old_text, new_text in (
+            ("matrix_nan", "rotation_matrix = [[1.0,", "rotation_matrix = [[nan,"),
+            ("matrix_reflection", "1.0]]", "-1.0]]"),
+            ("matrix_not_orthonormal", "rotation_matrix = [[1.0,", "rotation_matrix = [[1.01,"),
+            ("quaternion_nan", "rotation_xyzw = [", "rotation_xyzw = [nan, "),
+            ("translation_2500", "-79.99999999999999", "-2500.0"),
+            ("translation_inf", "-79.99999999999999", "-inf")):
+        assert old_text in calib
+        text = calib.replace(old_text, new_text, 1)
+        if tag == "quaternion_nan":  # keep four components: drop the first one written
+            head, rest = text.split("rotation_xyzw = [nan, ", 1)
+            text = head + "rotation_xyzw = [nan, " + rest.split(", ", 1)[1]
+        out("calib_%s.toml" % tag, text)
+    s("hmd_near_1e-6", SCENE_BASE + '[render]\nhmd = "hmd_near_1e-6.toml"\n')
+    s("calibration_matrix_nan", SCENE_BASE + '[render]\ncalibration = "calib_matrix_nan.toml"\n')
 
 
 def main():
