@@ -153,6 +153,8 @@ pub fn bake(args: &BakeArgs) -> anyhow::Result<BakeSummary> {
     if args.out.extension().and_then(|e| e.to_str()) != Some("kernel") {
         anyhow::bail!("{}: the output must end in .kernel", args.out.display());
     }
+    // A device, FIFO or folder is refused now, not after the bake.
+    outfile::check(&args.out)?;
     let scene = lung_model::scene::Scene::load_or_default(args.scene.as_deref())?;
     let mut settings = scene.bake_settings(side)?;
     if let Some(d) = &args.directions {
@@ -457,7 +459,7 @@ pub fn export(args: &ExportArgs) -> anyhow::Result<ExportSummary> {
             args.delta_ml
         );
     }
-    lung_model::mesh::io::MeshFormat::from_path(&args.out)?;
+    lung_model::mesh::io::check_out(&args.out)?;
     let f = KernelFile::open(&args.file)?;
     lung_model::plausible::LUNG_VOLUME_ML.check(
         f.meta().start_volume_ml,

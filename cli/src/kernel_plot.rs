@@ -14,19 +14,7 @@ use plotters::prelude::*;
 pub fn write(kernel: &KernelFile, png: &Path) -> anyhow::Result<()> {
     // A .png in a folder that takes a new file, or an error naming the path (not a drawing error).
     crate::plot::check_path(png)?;
-    let tmp = png.with_file_name(format!(
-        ".{}.tmp-{}.png",
-        png.file_name().unwrap_or_default().to_string_lossy(),
-        std::process::id()
-    ));
-    let result = draw(kernel, &tmp).and_then(|()| {
-        std::fs::rename(&tmp, png)
-            .map_err(|e| anyhow::anyhow!("cannot write {}: {e}", png.display()))
-    });
-    if result.is_err() {
-        let _ = std::fs::remove_file(&tmp);
-    }
-    result
+    crate::plot::draw_then_rename(png, |tmp| draw(kernel, tmp))
 }
 
 fn draw(kernel: &KernelFile, png: &Path) -> anyhow::Result<()> {

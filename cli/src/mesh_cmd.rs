@@ -42,7 +42,7 @@ pub struct MeshSummary {
 /// Generate, verify and write.
 pub fn run(args: &GenerateArgs) -> anyhow::Result<MeshSummary> {
     let side: Side = args.lung.parse().map_err(anyhow::Error::msg)?;
-    io::MeshFormat::from_path(&args.out)?;
+    io::check_out(&args.out)?;
     let mesh = generate::lung(side, args.vertices)?;
     check(&mesh)
         .map_err(|e| anyhow::anyhow!("internal error: the generated mesh is invalid: {e}"))?;
@@ -157,7 +157,7 @@ pub struct CheckSummary {
 /// Import, repair what is safe, verify, optionally export.
 pub fn check_mesh(args: &CheckArgs) -> anyhow::Result<CheckSummary> {
     if let Some(out) = &args.out {
-        io::MeshFormat::from_path(out)?;
+        io::check_out(out)?;
     }
     let lung = args
         .lung

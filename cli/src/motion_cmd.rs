@@ -717,7 +717,7 @@ fn write_motion(
         fit.mode,
         toml::to_string(&file)?
     );
-    lung_model::mesh::io::write_atomically(out, |w| {
+    outfile::write_atomically(out, |w| {
         use std::io::Write;
         w.write_all(text.as_bytes())
     })?;

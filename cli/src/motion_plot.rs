@@ -14,19 +14,7 @@ use crate::motion_cmd::PointsReport;
 pub fn write(png: &Path, start: &[DVec3], report: &PointsReport) -> anyhow::Result<()> {
     // A .png in a folder that takes a new file, or an error naming the path (not a drawing error).
     crate::plot::check_path(png)?;
-    let tmp = png.with_file_name(format!(
-        ".{}.tmp-{}.png",
-        png.file_name().unwrap_or_default().to_string_lossy(),
-        std::process::id()
-    ));
-    let result = draw(&tmp, start, report).and_then(|()| {
-        std::fs::rename(&tmp, png)
-            .map_err(|e| anyhow::anyhow!("cannot write {}: {e}", png.display()))
-    });
-    if result.is_err() {
-        let _ = std::fs::remove_file(&tmp);
-    }
-    result
+    crate::plot::draw_then_rename(png, |tmp| draw(tmp, start, report))
 }
 
 fn color(e: f64, max: f64) -> RGBColor {

@@ -1,7 +1,8 @@
 //! Output paths are checked before any work, so a bad one never costs a computation or leaves half
 //! of a command's outputs written: the name and its extension, the folder (it must exist and take a
-//! new file), an existing path that is not a regular file (a folder, a device), and two outputs of
-//! one command that are the same file.
+//! new file), an existing path that is not a regular file (a folder, a device, a FIFO, a socket, a
+//! link to one: [`outfile::check`], the check every writer makes again when it writes), and two
+//! outputs of one command that are the same file.
 
 use std::path::{Path, PathBuf};
 
@@ -21,22 +22,9 @@ pub struct Output<'a> {
 /// Check `out` can be written: see the module doc. Writes and removes a probe file in its folder.
 pub fn check(out: &Output) -> anyhow::Result<()> {
     let (flag, path) = (out.flag, out.path);
-    if let Ok(meta) = std::fs::metadata(path) {
-        if meta.is_dir() {
-            bail!(
-                "{flag} {}: {} (give a file name)",
-                path.display(),
-                std::io::Error::from_raw_os_error(libc::EISDIR)
-            );
-        }
-        if !meta.is_file() {
-            bail!(
-                "{flag} {}: exists and is not a regular file (a device or pipe): give the path of a \
-                 file to write",
-                path.display()
-            );
-        }
-    }
+    // A device, FIFO, socket, folder or a link to one: the same refusal every writer gives
+    // (outfile), said before any work rather than at the end.
+    outfile::check(path).map_err(|e| anyhow::anyhow!("{flag} {e}"))?;
     if !out.extensions.is_empty() {
         let ext = path
             .extension()
@@ -150,8 +138,8 @@ mod tests {
                 "cannot write in the folder /proc",
             ),
             (dir.join("no/dir/c.csv"), &[], "no/dir does not exist"),
-            (dir.clone(), &[], "Is a directory"),
-            (PathBuf::from("/dev/null"), &[], "not a regular file"),
+            (dir.clone(), &[], "is a directory, not a regular file"),
+            (PathBuf::from("/dev/null"), &[], "is a character device"),
         ];
         for (path, ext, words) in cases {
             let e = check(&out("--x", &path, ext)).unwrap_err().to_string();

@@ -147,34 +147,35 @@ where
 }
 
 /// Files drawn to temporary siblings and not yet in place: [`Staged::commit`] renames them over
-/// their targets; dropped uncommitted, the temporary files are removed and nothing is replaced.
+/// their targets (each checked again by [`outfile::Staged::commit`]); dropped uncommitted, the
+/// temporary files are removed and nothing is replaced.
 #[derive(Debug)]
 pub struct Staged {
-    files: Vec<(PathBuf, PathBuf)>,
+    files: Vec<outfile::Staged>,
 }
 
 impl Staged {
-    /// Put every file in place (renames within one folder); returns the final paths.
-    pub fn commit(mut self) -> anyhow::Result<Vec<PathBuf>> {
-        let files = std::mem::take(&mut self.files);
-        for (i, (tmp, path)) in files.iter().enumerate() {
-            if let Err(e) = std::fs::rename(tmp, path) {
-                for (t, _) in &files[i..] {
-                    let _ = std::fs::remove_file(t);
-                }
-                anyhow::bail!("cannot write {}: {e}", path.display());
-            }
+    /// Put every file in place (renames within one folder); returns the final paths. A file that
+    /// cannot be put in place stops the rest (their temporary files are removed).
+    pub fn commit(self) -> anyhow::Result<Vec<PathBuf>> {
+        let mut done = Vec::with_capacity(self.files.len());
+        for f in self.files {
+            done.push(f.commit()?);
         }
-        Ok(files.into_iter().map(|(_, p)| p).collect())
+        Ok(done)
     }
 }
 
-impl Drop for Staged {
-    fn drop(&mut self) {
-        for (tmp, _) in &self.files {
-            let _ = std::fs::remove_file(tmp);
-        }
-    }
+/// Draw into a temporary sibling of `path` with `draw`, then put it in place: a target that is not
+/// a regular file is refused before drawing, and a failed drawing replaces nothing.
+pub fn draw_then_rename(
+    path: &Path,
+    draw: impl FnOnce(&Path) -> anyhow::Result<()>,
+) -> anyhow::Result<()> {
+    let staged = outfile::Staged::new(path)?;
+    draw(staged.path())?;
+    staged.commit()?;
+    Ok(())
 }
 
 /// The SVG written beside a plot `png`.
@@ -198,26 +199,16 @@ pub fn render(png: &Path, panels: &[Panel]) -> anyhow::Result<Staged> {
     check_path(png)?;
     let svg = svg_of(png);
     let size = (560 * panels.len() as u32, 480);
-    let tmp = |p: &Path| {
-        p.with_file_name(format!(
-            ".{}.tmp-{}",
-            p.file_name().unwrap_or_default().to_string_lossy(),
-            std::process::id()
-        ))
-    };
     let staged = Staged {
-        files: vec![
-            (tmp(png).with_extension("png"), png.to_path_buf()),
-            (tmp(&svg).with_extension("svg"), svg.clone()),
-        ],
+        files: vec![outfile::Staged::new(png)?, outfile::Staged::new(&svg)?],
     };
     draw(
-        BitMapBackend::new(&staged.files[0].0, size).into_drawing_area(),
+        BitMapBackend::new(staged.files[0].path(), size).into_drawing_area(),
         panels,
     )
     .map_err(|e| anyhow::anyhow!("--plot {}: {e}", png.display()))?;
     draw(
-        SVGBackend::new(&staged.files[1].0, size).into_drawing_area(),
+        SVGBackend::new(staged.files[1].path(), size).into_drawing_area(),
         panels,
     )
     .map_err(|e| anyhow::anyhow!("--plot {}: {e}", svg.display()))?;

@@ -207,7 +207,7 @@ pub fn prepare(mut scene: Scene, dir: &Path) -> anyhow::Result<Prepared> {
     let path = std::path::absolute(dir.join("scene.resolved.toml"))
         .unwrap_or_else(|_| dir.join("scene.resolved.toml"));
     let text = toml::to_string(&scene).context("the resolved scene does not serialise")?;
-    lung_model::mesh::io::write_atomically(&path, |w| {
+    outfile::write_atomically(&path, |w| {
         use std::io::Write;
         w.write_all(b"# Written by lungdyn: every lung has a kernel; start the engine and the renderer with --scene <this file>\n")?;
         w.write_all(text.as_bytes())

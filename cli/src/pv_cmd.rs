@@ -332,7 +332,7 @@ fn simulate(a: &SimulateArgs) -> anyhow::Result<()> {
         ];
         staged = Some(plot::render(png, &panels)?);
     }
-    lung_model::mesh::io::write_atomically(&a.out, |w| {
+    outfile::write_atomically(&a.out, |w| {
         use std::io::Write;
         writeln!(w, "phase,t,pressure_cmh2o,volume_ml,damping")?;
         for (phase, t, p, v, d) in &rows {

@@ -16,7 +16,7 @@ use lung_model::input::{read_text_bounded, ReadLimits};
 use serde_json::{json, Value};
 use tracker_pose::calib::Calibration;
 use tracker_pose::optics::Optics;
-use tracker_pose::registration::{register, COLLINEAR_RATIO};
+use tracker_pose::registration::{register, COLLINEAR_RATIO, THIN_RATIO};
 
 use crate::input_args::InputArgs;
 
@@ -154,7 +154,13 @@ pub fn run(args: &RegisterArgs) -> anyhow::Result<Value> {
     let model = read(&args.model_points)?;
     let tracker = read(&args.tracker_points)?;
     let (a, b, labels) = pair(&model, &tracker)?;
-    let r = register(&a, &b)?;
+    // Refused (non-zero exit, nothing written) when no usable rigid fit exists: duplicates,
+    // collinear fiducials, a unit or scale mismatch, an FRE against the spread (see
+    // tracker_pose::registration).
+    let r = register(&a, &b).context("registration refused; nothing was written")?;
+    for w in &r.warnings {
+        eprintln!("lungdyn: warning: {w}");
+    }
     let calib = Calibration::from_registration(
         &r,
         &args.model_points.display().to_string(),
@@ -164,7 +170,7 @@ pub fn run(args: &RegisterArgs) -> anyhow::Result<Value> {
     // Check what is written reads back before replacing anything.
     Calibration::from_toml(&text, "the new calibration")
         .context("the calibration does not read back")?;
-    lung_model::mesh::io::write_atomically(&args.out, |w| w.write_all(text.as_bytes()))?;
+    outfile::write_atomically(&args.out, |w| w.write_all(text.as_bytes()))?;
     let q = r.rotation.quaternion();
     let m = r.rotation.to_rotation_matrix();
     Ok(json!({
@@ -178,6 +184,9 @@ pub fn run(args: &RegisterArgs) -> anyhow::Result<Value> {
         "fre_mm": labels.iter().zip(&r.fre_mm).map(|(l, e)| json!({"label": l, "fre_mm": e})).collect::<Vec<_>>(),
         "singular_values_mm": r.singular_values,
         "spread_ratio": r.spread_ratio(),
+        "tracker_spread_ratio": r.tracker_spread_ratio,
+        "spread_mm": r.spread_mm,
+        "scale": r.scale,
         "warnings": r.warnings,
     }))
 }
@@ -210,8 +219,12 @@ pub fn text(v: &Value) -> String {
         f("translation_mm").join(", ")
     );
     s += &format!(
-        "fiducial spread: sigma2/sigma1 = {:.3} (nearly collinear below {COLLINEAR_RATIO})\n",
-        v["spread_ratio"].as_f64().unwrap_or(0.0)
+        "fiducial spread: {:.1} mm RMS from the centroid; sigma2/sigma1 = {:.3} model, {:.3} tracker \
+         (refused below {COLLINEAR_RATIO}, warned below {THIN_RATIO}); size tracker/model {:.4}\n",
+        v["spread_mm"].as_f64().unwrap_or(0.0),
+        v["spread_ratio"].as_f64().unwrap_or(0.0),
+        v["tracker_spread_ratio"].as_f64().unwrap_or(0.0),
+        v["scale"].as_f64().unwrap_or(0.0)
     );
     for w in v["warnings"].as_array().into_iter().flatten() {
         s += &format!("warning: {}\n", w.as_str().unwrap_or(""));

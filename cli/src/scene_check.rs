@@ -800,7 +800,7 @@ impl TumourFollow {
         } else {
             &self.last
         };
-        lung_model::mesh::io::write_atomically(path, |w| {
+        outfile::write_atomically(path, |w| {
             use std::io::Write;
             writeln!(
                 w,

@@ -294,6 +294,11 @@ pub fn run(args: &TradeoffArgs) -> anyhow::Result<Tradeoff> {
         None => crate::outputs::new_folder(Path::new("out"), "tradeoff")?,
     };
     crate::demo::check_writable(&out_dir)?;
+    // Every output refused now if it is a device, FIFO or folder, not after minutes of measuring
+    // with some of the four already written.
+    for ext in ["md", "csv", "png", "svg"] {
+        outfile::check(&out_dir.join(format!("tradeoff.{ext}")))?;
+    }
     eprintln!(
         "lungdyn bench tradeoff: writing {}",
         out_dir.join("tradeoff.{md,csv,png,svg}").display()
@@ -1099,7 +1104,7 @@ fn write_outputs(out: &Path, t: &Tradeoff) -> anyhow::Result<Vec<String>> {
     let md = out.with_file_name(format!("{stem}.md"));
     let csv_path = out.with_file_name(format!("{stem}.csv"));
     for (path, text) in [(&md, markdown(t, &stem)), (&csv_path, csv(t))] {
-        lung_model::mesh::io::write_atomically(path, |w| {
+        outfile::write_atomically(path, |w| {
             use std::io::Write;
             w.write_all(text.as_bytes())
         })?;

@@ -80,10 +80,9 @@ pub fn eyes(
     Rig::default().eyes(hmd, patient, stereo, ipd_mm, fov_y_deg, aspect, splat_mm)
 }
 
-/// Smallest per-eye image side the renderer draws, pixels (as `[render] width/height`).
-pub const MIN_EYE_PX: u32 = 16;
-/// Largest per-eye image side the renderer draws, pixels (as `[render] width/height`).
-pub const MAX_EYE_PX: u32 = 8192;
+/// The per-eye image sides the renderer draws, pixels (as `[render] width/height`): the optics
+/// file's own limits, checked where every reader loads it (`tracker_pose::optics`).
+pub use tracker_pose::optics::{MAX_EYE_PX, MIN_EYE_PX};
 
 /// How the lungs and the eyes are placed: the defaults, or a calibration and HMD optics.
 #[derive(Debug, Clone, Copy, PartialEq, Default)]
@@ -261,21 +260,6 @@ pub enum RigError {
         /// The loader's error.
         source: FileError,
     },
-    /// The optics file's per-eye resolution is outside what the renderer draws.
-    #[error(
-        "{key}: {}: display {width}x{height} px per eye: the renderer draws {MIN_EYE_PX}..{MAX_EYE_PX} px per eye (as [render] width/height)",
-        path.display()
-    )]
-    EyeSize {
-        /// `[render] hmd` or `--hmd`.
-        key: &'static str,
-        /// The file.
-        path: PathBuf,
-        /// Pixels per eye, horizontally.
-        width: u32,
-        /// Pixels per eye, vertically.
-        height: u32,
-    },
 }
 
 /// The calibration and optics files a renderer uses, loaded and checked.
@@ -315,15 +299,6 @@ impl RigFiles {
         let optics = match pick(hmd_flag, &render.hmd, "--hmd", "[render] hmd") {
             Some((path, key)) => {
                 let o = Optics::load(&path).map_err(|source| RigError::File { key, source })?;
-                let px = MIN_EYE_PX..=MAX_EYE_PX;
-                if !(px.contains(&o.width_px) && px.contains(&o.height_px)) {
-                    return Err(RigError::EyeSize {
-                        key,
-                        path,
-                        width: o.width_px,
-                        height: o.height_px,
-                    });
-                }
                 Some((path, key, o))
             }
             None => None,
@@ -719,7 +694,9 @@ mod tests {
         );
         let e = err(None, Some(&tiny), &scene);
         assert!(
-            e.contains("8x600 px per eye") && e.contains("16..8192"),
+            e.contains("--hmd")
+                && e.contains("display.width_px")
+                && e.contains("8 px is outside 16..=8192"),
             "{e}"
         );
         std::fs::remove_dir_all(&dir).ok();

@@ -593,8 +593,8 @@ fn read_mapped<T>(gpu: &Gpu, buffer: &wgpu::Buffer, f: impl FnOnce(&[u8]) -> T) 
 pub fn write_png(
     img: &image::RgbaImage,
     path: &std::path::Path,
-) -> Result<(), lung_model::mesh::io::WriteError> {
-    lung_model::mesh::io::write_atomically(path, |w| {
+) -> Result<(), outfile::WriteError> {
+    outfile::write_atomically(path, |w| {
         img.write_to(w, image::ImageFormat::Png)
             .map_err(std::io::Error::other)
     })

@@ -21,8 +21,8 @@ use ipc_types::{
     report_flags, EngineFrame, FrameReport, Message, Pose, TrackerFrame, LAYOUT_VERSION, LUNG_LEFT,
     LUNG_RIGHT, NUM_LUNGS, TOOL_HMD,
 };
-use lung_model::mesh::io::WriteError;
 use lung_model::scene::{LungLoadError, Scene, SceneError};
+use outfile::WriteError;
 use thiserror::Error;
 use transport::clock::{Clock, Monotonic};
 use transport::iox::{self, IoxNode};

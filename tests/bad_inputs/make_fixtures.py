@@ -575,13 +575,23 @@ def make_render_files(tmp):
     (the binary writes none: this text), then one defect each, and scenes naming them."""
     rng = random.Random(20250612)  # its own stream: the fixtures above do not change with this section
     model = [(0, 0, 0), (100, 0, 0), (0, 120, 0), (0, 0, 90), (60, 40, 30)]
-    with open(os.path.join(tmp, "model_fiducials.txt"), "w") as f:
-        f.writelines("%g %g %g\n" % p for p in model)
-    with open(os.path.join(tmp, "tracker_fiducials.txt"), "w") as f:
-        f.writelines("%g %g %g\n" % (x, y - 80, z) for x, y, z in model)
-    subprocess.run([BIN, "register", "--model-points", "model_fiducials.txt", "--tracker-points",
-                    "tracker_fiducials.txt", "--out", os.path.join(HERE, "calib_good.toml")],
-                   cwd=tmp, check=True, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
+    out("fid_model.txt", "".join("%g %g %g\n" % p for p in model))
+    tracker = [(x, y - 80, z) for x, y, z in model]
+    out("fid_tracker.txt", "".join("%g %g %g\n" % p for p in tracker))
+    # One defect each (issue 18's probe): every one was once written with exit 0.
+    fid = lambda name, pts: out("fid_tracker_" + name + ".txt", "".join("%.6g %.6g %.6g\n" % tuple(p) for p in pts))
+    fid("identical", [(10, 20, 30)] * 5)
+    fid("cm", [[v / 10 for v in p] for p in tracker])
+    fid("m", [[v / 1000 for v in p] for p in tracker])
+    fid("collinear", [(0, 40 * i - 80, 7) for i in range(5)])
+    fid("mirrored", [(-x, y, z) for x, y, z in tracker])
+    fid("swapped", [tracker[2], tracker[1], tracker[0], tracker[3], tracker[4]])
+    fid("scaled_3pct", [[v * 1.03 for v in p] for p in tracker])
+    fid("two", tracker[:2])
+    fid("near_duplicate", tracker[:4] + [(tracker[0][0] + 0.4, tracker[0][1], tracker[0][2])])
+    subprocess.run([BIN, "register", "--model-points", "fid_model.txt", "--tracker-points",
+                    "fid_tracker.txt", "--out", os.path.join(HERE, "calib_good.toml")],
+                   cwd=HERE, check=True, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
     out("calib_garbage.toml", bytes(rng.getrandbits(8) for _ in range(512)))
     out("hmd_good.toml", HMD_GOOD)
     out("hmd_ipd_500.toml", HMD_GOOD.replace("ipd_mm = 64.0", "ipd_mm = 500.0"))
@@ -591,6 +601,35 @@ def make_render_files(tmp):
     s("calibration_garbage", SCENE_BASE + '[render]\ncalibration = "calib_garbage.toml"\n')
     s("hmd_ipd_500", SCENE_BASE + '[render]\nhmd = "hmd_ipd_500.toml"\n')
     s("hmd_directory", SCENE_BASE + '[render]\nhmd = "."  # this folder\n')
+    # Issue 18's probe: each was accepted by `hmd check`, `demo` or the renderer.
+    for tag, old_text, new_text in (
+            ("near_1e-6", "horizontal_fov_deg = 70.0\n", "horizontal_fov_deg = 70.0\nnear_mm = 1e-6\n"),
+            ("near_5e-324", "horizontal_fov_deg = 70.0\n", "horizontal_fov_deg = 70.0\nnear_mm = 5e-324\n"),
+            ("far_over_near", "horizontal_fov_deg = 70.0\n", "horizontal_fov_deg = 70.0\nnear_mm = 1.0\nfar_mm = 100000.0\n"),
+            ("frustum_0.001deg", "frustum_deg = [36.0, 34.0, 27.0, 28.0]", "frustum_deg = [0.0005, 0.0005, 27.0, 28.0]"),
+            ("frustum_nan", "frustum_deg = [36.0, 34.0, 27.0, 28.0]", "frustum_deg = [36.0, nan, 27.0, 28.0]"),
+            ("width_16384", "width_px = 160", "width_px = 16384"),
+            ("width_8", "width_px = 160", "width_px = 8"),
+            ("offset_inf", "offset_mm = [-32.0, 0.0, 0.0]", "offset_mm = [-inf, 0.0, 0.0]")):
+        assert old_text in HMD_GOOD
+        out("hmd_%s.toml" % tag, HMD_GOOD.replace(old_text, new_text))
+    with open(os.path.join(HERE, "calib_good.toml")) as f:
+        calib = f.read()
+    for tag, old_text, new_text in (
+            ("matrix_nan", "rotation_matrix = [[1.0,", "rotation_matrix = [[nan,"),
+            ("matrix_reflection", "1.0]]", "-1.0]]"),
+            ("matrix_not_orthonormal", "rotation_matrix = [[1.0,", "rotation_matrix = [[1.01,"),
+            ("quaternion_nan", "rotation_xyzw = [", "rotation_xyzw = [nan, "),
+            ("translation_2500", "-79.99999999999999", "-2500.0"),
+            ("translation_inf", "-79.99999999999999", "-inf")):
+        assert old_text in calib
+        text = calib.replace(old_text, new_text, 1)
+        if tag == "quaternion_nan":  # keep four components: drop the first one written
+            head, rest = text.split("rotation_xyzw = [nan, ", 1)
+            text = head + "rotation_xyzw = [nan, " + rest.split(", ", 1)[1]
+        out("calib_%s.toml" % tag, text)
+    s("hmd_near_1e-6", SCENE_BASE + '[render]\nhmd = "hmd_near_1e-6.toml"\n')
+    s("calibration_matrix_nan", SCENE_BASE + '[render]\ncalibration = "calib_matrix_nan.toml"\n')
 
 
 def main():

@@ -441,7 +441,7 @@ fn without_patient_samples_every_frame_says_the_pose_is_stale_on_screen_and_in_t
 }
 
 #[test]
-fn register_writes_a_calibration_with_fiducial_errors_and_warns_on_collinear_points() {
+fn register_writes_a_calibration_with_fiducial_errors_and_refuses_collinear_points() {
     let model = tmp("model.csv");
     let tracker = tmp("tracker.csv");
     let out = tmp("calib.toml");
@@ -507,12 +507,12 @@ fn register_writes_a_calibration_with_fiducial_errors_and_warns_on_collinear_poi
         (b[0] - 10.0).abs() < 0.2 && (b[1] - 40.0).abs() < 0.2 && (b[2] - 5.0).abs() < 0.2,
         "{b:?}"
     );
-    // Nearly collinear fiducials: written, with a warning.
+    // Nearly collinear fiducials (across the line 0.5 % of along it): refused, nothing written.
+    let before = std::fs::read(&out).unwrap();
     std::fs::write(&model, "0 0 0\n50 0.5 0\n100 0 0\n150 0.2 1\n").unwrap();
     std::fs::write(&tracker, "0 0 0\n50 0.5 0\n100 0 0\n150 0.2 1\n").unwrap();
-    let (ok, text, err) = lungdyn(&args);
-    assert!(ok, "{err}");
-    assert!(text.contains("nearly collinear"), "{text}");
+    assert_clean_failure(&args, "model fiducials are nearly collinear");
+    assert_eq!(std::fs::read(&out).unwrap(), before);
     // Refusals.
     std::fs::write(&tracker, "0 0 0\n1 1 1\n").unwrap();
     assert_clean_failure(&args, "4 model points but 2 tracker points");

@@ -325,20 +325,19 @@ pub enum BridgeError {
     /// The stream failed.
     #[error(transparent)]
     Port(#[from] PortError),
-    /// The statistics could not be written.
-    #[error("cannot write the statistics to {path}: {source}")]
-    Stats {
-        /// The file.
-        path: PathBuf,
-        /// The OS error.
-        source: std::io::Error,
-    },
+    /// The statistics could not be written (or `--stats-json` names a device, FIFO, folder, …).
+    #[error("--stats-json: {0}")]
+    Stats(outfile::WriteError),
 }
 
 /// Run the bridge until terminated (or `--seconds` elapse, or a replay ends).
 pub fn run(args: &BridgeArgs) -> Result<(), BridgeError> {
     let run_ns = run_ns(args.seconds)?;
     args.source.resolve()?;
+    if let Some(path) = &args.stats_json {
+        // Refused now, not after the run: the statistics are written at its end.
+        outfile::check(path).map_err(BridgeError::Stats)?;
+    }
     let instance = Instance::new(&args.instance)?;
     let _lock = instance.lock("tracker-bridge")?;
     pin_to_core(args.cpu, "tracker-bridge")?;
@@ -387,12 +386,10 @@ pub fn run(args: &BridgeArgs) -> Result<(), BridgeError> {
         eprintln!("{prefix}: recorded to {}", path.display());
     }
     if let Some(path) = &args.stats_json {
-        std::fs::write(path, format!("{}\n", stats.to_json())).map_err(|source| {
-            BridgeError::Stats {
-                path: path.clone(),
-                source,
-            }
-        })?;
+        outfile::write_atomically(path, |w| {
+            std::io::Write::write_all(w, format!("{}\n", stats.to_json()).as_bytes())
+        })
+        .map_err(BridgeError::Stats)?;
     }
     Ok(())
 }

@@ -120,6 +120,9 @@ pub enum RecordError {
         /// The OS error.
         source: std::io::Error,
     },
+    /// `--record` names something that is not a regular file.
+    #[error("--record {0}")]
+    Target(#[from] outfile::WriteError),
     /// `--record` names a file that exists.
     #[error("recording {path} exists: choose another name or remove it (a recording is never overwritten)")]
     Exists {
@@ -380,6 +383,8 @@ impl RecordWriter {
             path: path.to_path_buf(),
             source,
         };
+        // A device, FIFO, socket or folder is named as such (not "exists"); see outfile.
+        outfile::check(path)?;
         let file = match File::options().write(true).create_new(true).open(path) {
             Ok(f) => f,
             Err(e) if e.kind() == ErrorKind::AlreadyExists => {

@@ -373,6 +373,9 @@ pub enum KernelError {
         /// Cause.
         source: std::io::Error,
     },
+    /// Writing refused or failed (a target that is not a regular file, an OS error).
+    #[error(transparent)]
+    Write(#[from] outfile::WriteError),
     /// Not a regular file.
     #[error(transparent)]
     Input(crate::input::InputError),
@@ -598,7 +601,7 @@ pub fn write_file(
     header[32..40].copy_from_slice(&xxh3_64(&table).to_le_bytes());
     let head_sum = xxh3_64(&header[0..40]);
     header[40..48].copy_from_slice(&head_sum.to_le_bytes());
-    crate::mesh::io::write_atomically(path, |w| {
+    outfile::write_atomically(path, |w| {
         use std::io::Write;
         let mut at = 0u64;
         let pad_to = |w: &mut std::io::BufWriter<std::fs::File>, at: &mut u64, to: u64| {
@@ -621,13 +624,7 @@ pub fn write_file(
         }
         pad_to(w, &mut at, file_len)
     })
-    .map_err(|e| match e {
-        crate::mesh::io::WriteError::Io { path, source } => KernelError::Io { path, source },
-        other => KernelError::Io {
-            path: path.to_path_buf(),
-            source: std::io::Error::other(other.to_string()),
-        },
-    })?;
+    .map_err(KernelError::Write)?;
     Ok(file_len)
 }
 

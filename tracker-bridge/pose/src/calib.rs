@@ -21,10 +21,18 @@
 //! model_points = "model.csv"
 //! tracker_points = "tracker.csv"
 //! ```
-//! Loading checks: `format = 1`, the kind, a finite quaternion within 1e-3 of unit length
-//! (renormalised), a finite translation within 5 m, and, when the matrix is present, that it is the
-//! quaternion's rotation within 1e-4. Unknown keys are refused (a typo must not be silently
-//! ignored). Files above 1 MiB are refused before reading.
+//! Loading checks ([`Calibration::from_toml`], the one validation every reader uses: the renderer,
+//! `scene check`, `demo`, `register` reading back what it writes): `format = 1`, the kind; a finite
+//! quaternion within 1e-3 of unit length (renormalised); when the matrix is present, every entry
+//! finite, the matrix a rotation — orthonormal (`|MᵀM − I|` ≤ [`ROTATION_TOLERANCE`] per entry)
+//! with determinant +1 within [`ROTATION_TOLERANCE`] (a reflection, −1, is named) — and the
+//! quaternion's rotation within [`ROTATION_TOLERANCE`] (a NaN in the matrix was once accepted);
+//! the tolerance 1e-4 passes a matrix written to four decimals (rounding errors ≤ 5e-5) and is
+//! 0.006° of rotation, 0.02 mm at 200 mm. A finite translation within [`MAX_TRANSLATION_MM`] (the
+//! reference tool sits on the patient or the bed, about 2 m long; more is a unit slip or the
+//! camera's frame); the `[registration]` numbers, when present, finite and not negative. Unknown
+//! keys are refused (a typo must not be silently ignored). Files above 1 MiB are refused before
+//! reading.
 
 use std::path::Path;
 
@@ -33,6 +41,12 @@ use serde::{Deserialize, Serialize};
 use thiserror::Error;
 
 use crate::registration::Registration;
+
+/// Largest deviation per entry of a rotation matrix from orthonormal, from determinant +1 and
+/// from the quaternion's matrix (see the module doc).
+pub const ROTATION_TOLERANCE: f64 = 1e-4;
+/// Largest distance of the lungs' model origin from the reference tool, mm (see the module doc).
+pub const MAX_TRANSLATION_MM: f64 = 2000.0;
 
 /// Largest calibration or optics file read, bytes.
 pub const MAX_FILE: u64 = 1 << 20;
@@ -229,25 +243,28 @@ impl Calibration {
         }
         let rotation = UnitQuaternion::from_quaternion(q);
         let t = Vector3::from(f.transform.translation_mm);
-        if !(t.iter().all(|v| v.is_finite()) && t.norm() <= 5000.0) {
+        if !(t.iter().all(|v| v.is_finite()) && t.norm() <= MAX_TRANSLATION_MM) {
             return Err(invalid(
                 "transform.translation_mm",
                 format!(
-                    "{:?} is not a finite offset within 5 m (millimetres expected)",
+                    "{:?} is not a finite offset within {MAX_TRANSLATION_MM} mm of the reference \
+                     tool (millimetres expected; the tool is on the patient or the bed)",
                     f.transform.translation_mm
                 ),
             ));
         }
         if let Some(m) = f.transform.rotation_matrix {
-            let r = rotation.to_rotation_matrix();
-            let worst = (0..3)
-                .flat_map(|i| (0..3).map(move |j| (i, j)))
-                .map(|(i, j)| (m[i][j] - r.matrix()[(i, j)]).abs())
-                .fold(0.0, f64::max);
-            if !(worst <= 1e-4) {
+            check_rotation_matrix(&m, &rotation)
+                .map_err(|reason| invalid("transform.rotation_matrix", reason))?;
+        }
+        if let Some(r) = &f.registration {
+            let numbers = [r.fre_rms_mm, r.spread_ratio]
+                .into_iter()
+                .chain(r.fre_mm.iter().copied());
+            if let Some(bad) = numbers.into_iter().find(|v| !(v.is_finite() && *v >= 0.0)) {
                 return Err(invalid(
-                    "transform.rotation_matrix",
-                    format!("differs from rotation_xyzw by up to {worst:.2e}: the file was edited inconsistently"),
+                    "registration",
+                    format!("{bad} is not a finite, non-negative number (fre_rms_mm, fre_mm, spread_ratio)"),
                 ));
             }
         }
@@ -268,6 +285,42 @@ impl Calibration {
         let b = self.rotation * Vector3::from(p) + self.translation_mm;
         [b.x, b.y, b.z]
     }
+}
+
+/// `Err` with the reason unless `m` (row-major) is finite, a rotation within
+/// [`ROTATION_TOLERANCE`] and `q`'s rotation within it.
+fn check_rotation_matrix(m: &[[f64; 3]; 3], q: &UnitQuaternion<f64>) -> Result<(), String> {
+    if let Some(v) = m.iter().flatten().find(|v| !v.is_finite()) {
+        return Err(format!("{v} is not a finite number"));
+    }
+    let mm = nalgebra::Matrix3::from_fn(|i, j| m[i][j]);
+    let off = (mm.transpose() * mm - nalgebra::Matrix3::identity())
+        .abs()
+        .max();
+    if off > ROTATION_TOLERANCE {
+        return Err(format!(
+            "not orthonormal: MᵀM differs from the identity by up to {off:.2e} (at most \
+             {ROTATION_TOLERANCE:.0e})"
+        ));
+    }
+    let det = mm.determinant();
+    if (det - 1.0).abs() > ROTATION_TOLERANCE {
+        return Err(format!(
+            "determinant {det:.6}, not +1{}",
+            if det < 0.0 {
+                ": a reflection (a left-handed frame), not a rotation"
+            } else {
+                ""
+            }
+        ));
+    }
+    let worst = (mm - q.to_rotation_matrix().matrix()).abs().max();
+    if worst > ROTATION_TOLERANCE {
+        return Err(format!(
+            "differs from rotation_xyzw by up to {worst:.2e}: the file was edited inconsistently"
+        ));
+    }
+    Ok(())
 }
 
 #[cfg(test)]
@@ -321,6 +374,44 @@ mod tests {
                 "rotation_matrix",
             ),
             (format!("{good}\nextra = 1\n"), "unknown field"),
+            (
+                format!("{good}\n[registration]\nfiducials = 4\nfre_rms_mm = nan\nfre_mm = [0.1]\nspread_ratio = 0.5\nwarnings = []\n"),
+                "not a finite, non-negative number",
+            ),
+            // Issue 18's probe: a NaN in the matrix was accepted.
+            (
+                good.replace("[1.0, 0.0, 0.0]", "[nan, 0.0, 0.0]"),
+                "NaN is not a finite number",
+            ),
+            (
+                good.replace("[0.0, 0.0, 1.0]]", "[0.0, 0.0, -1.0]]"),
+                "a reflection",
+            ),
+            (
+                good.replace("[1.0, 0.0, 0.0]", "[1.01, 0.0, 0.0]"),
+                "not orthonormal",
+            ),
+            (
+                good.replace(
+                    "rotation_xyzw = [0.0, 0.0, 0.0, 1.0]",
+                    "rotation_xyzw = [nan, 0.0, 0.0, 1.0]",
+                ),
+                "rotation_xyzw",
+            ),
+            (
+                good.replace(
+                    "translation_mm = [0.0, 0.0, 0.0]",
+                    "translation_mm = [0.0, inf, 0.0]",
+                ),
+                "translation_mm",
+            ),
+            (
+                good.replace(
+                    "translation_mm = [0.0, 0.0, 0.0]",
+                    "translation_mm = [0.0, 2500.0, 0.0]",
+                ),
+                "within 2000 mm",
+            ),
             ("format = ".to_string(), "c.toml"),
         ];
         for (text, needle) in cases {

@@ -27,11 +27,25 @@
 //! Every key but `format` may be left out; the defaults are the seed's HMD: 800 × 600 per eye, 70°
 //! horizontal field of view, and a 64 mm IPD (the adult mean is 63–64 mm; Dodgson 2004).
 //!
-//! Loading checks: resolution 1..=16384 px, horizontal field of view 10..170°, frustum half-angles
-//! −80..80° with left + right and down + up positive, 0 < near < far ≤ 100 m, IPD 40..85 mm (adult
-//! IPDs lie within 50–77 mm), eye offsets finite and within 300 mm of the tool, rotations unit
-//! quaternions, and, when both eyes give their offsets, that their distance is the IPD within 1 mm
-//! (a file that says two things is refused). Unknown keys are refused.
+//! Loading checks ([`Optics::from_toml`], the one validation every reader uses: `lungdyn hmd check`,
+//! `scene check`, `demo`, the renderer); NaN or infinity in any number is refused:
+//! - resolution [`MIN_EYE_PX`]..=[`MAX_EYE_PX`] px per eye, what the renderer draws (as
+//!   `[render] width/height`);
+//! - horizontal field of view 10..170° (`display.horizontal_fov_deg`); every eye's frustum
+//!   (given or derived from the display's aspect ratio) [`MIN_FOV_DEG`]..=[`MAX_FOV_DEG`] wide and
+//!   high, half-angles −80..80°. The narrowest see-through HMDs show about 14° × 8°; a frustum of
+//!   a fraction of a degree (0.001° was once accepted) shows nothing of a 300 mm lung at 1 m (17°)
+//!   and draws an empty picture without a word; past 170° the projection's tangents blow up;
+//! - [`MIN_NEAR_MM`] ≤ near < far ≤ 100 m, and far/near ≤ [`MAX_FAR_OVER_NEAR`]. The renderer's
+//!   depth is a 32-bit float written as `d = f(z − n) / (z(f − n))`, so one depth step at distance
+//!   `z` is about `2⁻²⁴ · z² / n`: 0.06 mm at 1 m for near = 1 mm, but 60 m for near = 1e-6 mm
+//!   (accepted once: the depth test collapsed and back faces showed through). Nothing can be seen
+//!   closer than an HMD's eye relief (about 10 mm) anyway. At far/near = 1e4 the step at the far
+//!   plane is 0.06 % of its distance (6 mm at 10 m); the lungs are drawn within arm's reach, so a
+//!   1 mm near plane needs no far plane beyond 10 m, and a larger ratio only coarsens the depth;
+//! - IPD 40..85 mm (adult IPDs lie within 50–77 mm), eye offsets within 300 mm of the tool,
+//!   rotations unit quaternions, and, when both eyes give their offsets, that their distance is
+//!   the IPD within 1 mm (a file that says two things is refused). Unknown keys are refused.
 
 use std::path::Path;
 
@@ -39,6 +53,19 @@ use nalgebra::{Quaternion, UnitQuaternion, Vector3};
 use serde::Deserialize;
 
 use crate::calib::{read_small, FileError};
+
+/// Smallest per-eye image side, pixels (the renderer's smallest, as `[render] width/height`).
+pub const MIN_EYE_PX: u32 = 16;
+/// Largest per-eye image side, pixels (the renderer's largest, as `[render] width/height`).
+pub const MAX_EYE_PX: u32 = 8192;
+/// Nearest near plane, mm (see the module doc: depth precision).
+pub const MIN_NEAR_MM: f64 = 1.0;
+/// Largest far/near ratio (see the module doc: depth precision at the far plane).
+pub const MAX_FAR_OVER_NEAR: f64 = 1e4;
+/// Narrowest frustum, width or height, degrees.
+pub const MIN_FOV_DEG: f64 = 5.0;
+/// Widest frustum, width or height, degrees.
+pub const MAX_FOV_DEG: f64 = 170.0;
 
 /// One eye.
 #[derive(Debug, Clone, Copy, PartialEq)]
@@ -156,8 +183,14 @@ impl Optics {
             ("display.width_px", d.width_px),
             ("display.height_px", d.height_px),
         ] {
-            if !(1..=16384).contains(&v) {
-                return Err(invalid(field, format!("{v} px is outside 1..=16384")));
+            if !(i64::from(MIN_EYE_PX)..=i64::from(MAX_EYE_PX)).contains(&v) {
+                return Err(invalid(
+                    field,
+                    format!(
+                        "{v} px is outside {MIN_EYE_PX}..={MAX_EYE_PX}, the per-eye sizes the \
+                         renderer draws"
+                    ),
+                ));
             }
         }
         if !(d.horizontal_fov_deg.is_finite() && (10.0..=170.0).contains(&d.horizontal_fov_deg)) {
@@ -168,15 +201,30 @@ impl Optics {
         }
         if !(d.near_mm.is_finite()
             && d.far_mm.is_finite()
-            && d.near_mm > 0.0
+            && d.near_mm >= MIN_NEAR_MM
             && d.near_mm < d.far_mm
             && d.far_mm <= 100_000.0)
         {
             return Err(invalid(
                 "display.near_mm/far_mm",
                 format!(
-                    "need 0 < near < far <= 100000 mm, got {} and {}",
-                    d.near_mm, d.far_mm
+                    "need {MIN_NEAR_MM} <= near < far <= 100000 mm, got {:?} and {:?} (a near plane \
+                     under {MIN_NEAR_MM} mm collapses the depth test: one depth step at 1 m would \
+                     be {:.3e} mm)",
+                    d.near_mm,
+                    d.far_mm,
+                    depth_step_mm(d.near_mm, 1000.0)
+                ),
+            ));
+        }
+        if d.far_mm / d.near_mm > MAX_FAR_OVER_NEAR {
+            return Err(invalid(
+                "display.near_mm/far_mm",
+                format!(
+                    "far/near = {:.3e} is above {MAX_FAR_OVER_NEAR:.0e}: the depth steps at the far \
+                     plane would be {:.1} mm; raise near_mm or lower far_mm",
+                    d.far_mm / d.near_mm,
+                    depth_step_mm(d.near_mm, d.far_mm)
                 ),
             ));
         }
@@ -217,14 +265,36 @@ impl Optics {
                     if !a
                         .iter()
                         .all(|v| v.is_finite() && (-80.0..=80.0).contains(v))
-                        || a[0] + a[1] <= 0.0
-                        || a[2] + a[3] <= 0.0
                     {
-                        return Err(invalid(side_field(side, "frustum_deg"), format!("{a:?}: half-angles [left, right, down, up] within -80..80 with a positive width and height")));
+                        return Err(invalid(
+                            side_field(side, "frustum_deg"),
+                            format!("{a:?}: half-angles [left, right, down, up] must be within -80..80 degrees"),
+                        ));
                     }
                     a.map(|v| v.to_radians().tan())
                 }
             };
+            let [l, r, dn, up] = frustum_tan.map(f64::atan);
+            for (what, extent) in [
+                ("wide", (l + r).to_degrees()),
+                ("high", (dn + up).to_degrees()),
+            ] {
+                if !(MIN_FOV_DEG..=MAX_FOV_DEG).contains(&extent) {
+                    let key = if e.frustum_deg.is_some() {
+                        side_field(side, "frustum_deg")
+                    } else {
+                        "display (width_px, height_px, horizontal_fov_deg)"
+                    };
+                    return Err(invalid(
+                        key,
+                        format!(
+                            "the {side} eye's frustum is {extent:.4} degrees {what}, outside \
+                             {MIN_FOV_DEG}..{MAX_FOV_DEG}: a lung would not fit in it (or the \
+                             projection blows up)"
+                        ),
+                    ));
+                }
+            }
             Ok(Eye {
                 offset_mm: o,
                 rotation,
@@ -290,6 +360,12 @@ impl Optics {
     }
 }
 
+/// One step of the 32-bit float depth buffer at distance `z_mm`, mm, for a near plane `near_mm`
+/// (`2⁻²⁴ · z² / n`; see the module doc).
+fn depth_step_mm(near_mm: f64, z_mm: f64) -> f64 {
+    (-24f64).exp2() * z_mm * z_mm / near_mm
+}
+
 fn side_field(side: &str, key: &str) -> &'static str {
     match (side, key) {
         ("left", "offset_mm") => "eyes.left.offset_mm",
@@ -346,6 +422,23 @@ mod tests {
     }
 
     #[test]
+    fn the_limits_themselves_are_accepted() {
+        let text = format!(
+            "format = 1\n[display]\nwidth_px = {MIN_EYE_PX}\nheight_px = {MIN_EYE_PX}\n\
+             near_mm = {MIN_NEAR_MM}\nfar_mm = {}\n[eyes.left]\nfrustum_deg = [2.5, 2.5, 2.5, 2.5]\n\
+             [eyes.right]\nfrustum_deg = [80, 5, 80, -0.01]\n",
+            MIN_NEAR_MM * MAX_FAR_OVER_NEAR
+        );
+        let o = Optics::from_toml(&text, "hmd.toml").unwrap();
+        assert!((o.horizontal_fov_deg(0) - MIN_FOV_DEG).abs() < 1e-9);
+        let p = o.projection(1);
+        assert!(p.iter().flatten().all(|v| v.is_finite()));
+        let big =
+            format!("format = 1\n[display]\nwidth_px = {MAX_EYE_PX}\nheight_px = {MAX_EYE_PX}\n");
+        assert!(Optics::from_toml(&big, "hmd.toml").is_ok());
+    }
+
+    #[test]
     fn bad_files_are_refused_with_the_key_named() {
         let cases = [
             ("format = 2", "format"),
@@ -357,6 +450,24 @@ mod tests {
             ("format = 1\n[eyes.left]\nrotation_xyzw = [0, 0, 0, 3]", "rotation_xyzw"),
             ("format = 1\n[eyes.right]\nfrustum_deg = [-40, 30, 20, 20]", "frustum_deg"),
             ("format = 1\n[display]\nfov = 70", "unknown field"),
+            // Issue 18's probe: each was accepted, and the picture collapsed or came out empty.
+            ("format = 1\n[display]\nnear_mm = 1e-6", "collapses the depth test"),
+            ("format = 1\n[display]\nnear_mm = 5e-324", "near_mm"),
+            ("format = 1\n[display]\nnear_mm = 0.5", "near_mm"),
+            ("format = 1\n[display]\nnear_mm = nan", "near_mm"),
+            ("format = 1\n[display]\nnear_mm = 1\nfar_mm = 100000", "far/near"),
+            ("format = 1\n[eyes.left]\nfrustum_deg = [0.0005, 0.0005, 20, 20]", "0.0010 degrees wide"),
+            ("format = 1\n[eyes.right]\nfrustum_deg = [30, 30, 1, 1]", "degrees high"),
+            ("format = 1\n[eyes.right]\nfrustum_deg = [30, 30, nan, 20]", "frustum_deg"),
+            ("format = 1\n[eyes.left]\noffset_mm = [inf, 0, 0]", "offset_mm"),
+            ("format = 1\n[eyes.left]\nrotation_xyzw = [nan, 0, 0, 1]", "rotation_xyzw"),
+            ("format = 1\n[eyes]\nipd_mm = nan", "ipd_mm"),
+            ("format = 1\n[display]\nhorizontal_fov_deg = inf", "horizontal_fov_deg"),
+            ("format = 1\n[display]\nwidth_px = 15", "16..=8192"),
+            ("format = 1\n[display]\nheight_px = 8193", "16..=8192"),
+            ("format = 1\n[display]\nwidth_px = 16384", "16..=8192"),
+            // A 16 × 8192 display with symmetric frusta: 70° wide but over 170° high.
+            ("format = 1\n[display]\nwidth_px = 16\nheight_px = 8192", "degrees high"),
         ];
         for (text, needle) in cases {
             let e = Optics::from_toml(text, "hmd.toml").unwrap_err().to_string();

@@ -1,11 +1,11 @@
 //! Writing meshes: Wavefront OBJ (text) and PLY (binary little-endian), chosen by file extension.
 //!
-//! Files are written atomically: to a temporary file beside the target, flushed and synced, then
-//! renamed over it, so an interrupted run never leaves a half-written mesh where a good one was.
+//! Files are written through [`outfile::write_atomically`]: a target that is not a regular file is
+//! refused, and a temporary sibling is flushed, synced and renamed over the target, so an interrupted
+//! run never leaves a half-written mesh where a good one was.
 //! (Import, with tobj/ply-rs/stl_io, belongs to issue #4.)
 
-use std::fs::File;
-use std::io::{BufWriter, Write};
+use std::io::Write;
 use std::path::{Path, PathBuf};
 
 use super::TriMesh;
@@ -46,58 +46,27 @@ pub enum WriteError {
         /// The path given.
         path: PathBuf,
     },
-    /// The file could not be written.
-    #[error("cannot write {}: {source}", path.display())]
-    Io {
-        /// The path.
-        path: PathBuf,
-        /// The OS error.
-        source: std::io::Error,
-    },
+    /// The target is not a regular file, or the OS refused (see [`outfile`]).
+    #[error(transparent)]
+    File(#[from] outfile::WriteError),
+}
+
+/// Check an output path before any work: its extension names a mesh format and it is not an
+/// existing device, FIFO, socket or folder ([`outfile::check`]). Returns the format.
+pub fn check_out(path: &Path) -> Result<MeshFormat, WriteError> {
+    let format = MeshFormat::from_path(path)?;
+    outfile::check(path)?;
+    Ok(format)
 }
 
 /// Write `mesh` to `path` in the format its extension names, atomically.
 pub fn write_mesh(mesh: &TriMesh, path: &Path) -> Result<MeshFormat, WriteError> {
     let format = MeshFormat::from_path(path)?;
-    write_atomically(path, |w| match format {
+    outfile::write_atomically(path, |w| match format {
         MeshFormat::Obj => write_obj(mesh, w),
         MeshFormat::Ply => write_ply(mesh, w),
     })?;
     Ok(format)
-}
-
-/// Write through `body` into a temporary sibling of `path`, then rename it into place.
-pub fn write_atomically(
-    path: &Path,
-    body: impl FnOnce(&mut BufWriter<File>) -> std::io::Result<()>,
-) -> Result<(), WriteError> {
-    let io = |source| WriteError::Io {
-        path: path.to_path_buf(),
-        source,
-    };
-    let file_name = path.file_name().ok_or_else(|| {
-        io(std::io::Error::new(
-            std::io::ErrorKind::InvalidInput,
-            "the path names no file",
-        ))
-    })?;
-    let tmp = path.with_file_name(format!(
-        ".{}.tmp-{}",
-        file_name.to_string_lossy(),
-        std::process::id()
-    ));
-    let result = (|| {
-        let mut w = BufWriter::new(File::create(&tmp)?);
-        body(&mut w)?;
-        let file = w.into_inner().map_err(|e| e.into_error())?;
-        file.sync_all()?;
-        std::fs::rename(&tmp, path)
-    })();
-    if let Err(e) = result {
-        let _ = std::fs::remove_file(&tmp);
-        return Err(io(e));
-    }
-    Ok(())
 }
 
 fn write_obj(mesh: &TriMesh, w: &mut impl Write) -> std::io::Result<()> {

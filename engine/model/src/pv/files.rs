@@ -20,6 +20,9 @@ pub enum PvFileError {
         /// OS error.
         source: std::io::Error,
     },
+    /// Writing refused or failed (a target that is not a regular file, an OS error).
+    #[error(transparent)]
+    Write(#[from] outfile::WriteError),
     /// Not TOML of the constants format (the parser's message names line and column).
     #[error("{}: {message}", path.display())]
     Toml {
@@ -117,15 +120,12 @@ impl PvConstantsFile {
             path: path.to_path_buf(),
             message: e.to_string(),
         })?;
-        crate::mesh::io::write_atomically(path, |w| {
+        outfile::write_atomically(path, |w| {
             use std::io::Write;
             writeln!(w, "# lungdyn PV constants (EQUATIONS.md §1): use from a scene with [pv] constants = \"{}\"", path.file_name().map(|f| f.to_string_lossy()).unwrap_or_default())?;
             w.write_all(body.as_bytes())
         })
-        .map_err(|e| match e {
-            crate::mesh::io::WriteError::Io { path, source } => PvFileError::Io { path, source },
-            other => PvFileError::Toml { path: path.to_path_buf(), message: other.to_string() },
-        })
+        .map_err(PvFileError::Write)
     }
 }
 
