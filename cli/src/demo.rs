@@ -383,6 +383,27 @@ pub fn bridge_posture(p: lung_model::scene::Posture) -> tracker_bridge::syntheti
 
 /// Check `dir` can take our PNGs: create it, write and remove a probe file.
 pub fn check_writable(dir: &Path) -> anyhow::Result<()> {
+    if let Ok(meta) = std::fs::metadata(dir) {
+        if !meta.is_dir() {
+            use std::os::unix::fs::FileTypeExt;
+            let t = meta.file_type();
+            let what = if t.is_char_device() {
+                "a character device"
+            } else if t.is_block_device() {
+                "a block device"
+            } else if t.is_fifo() {
+                "a FIFO (named pipe)"
+            } else if t.is_socket() {
+                "a socket"
+            } else {
+                "a file"
+            };
+            bail!(
+                "--out {}: exists and is {what}, not a folder: give a folder to write into",
+                dir.display()
+            );
+        }
+    }
     std::fs::create_dir_all(dir)
         .with_context(|| format!("--out {}: cannot create the folder", dir.display()))?;
     let probe = dir.join(format!(".lungdyn-write-probe-{}", std::process::id()));
