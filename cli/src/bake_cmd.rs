@@ -15,9 +15,9 @@ pub struct BakeArgs {
     /// Lung surface: .obj, .ply or .stl (checked and repaired as by `lungdyn mesh check`).
     #[arg(long)]
     pub mesh: PathBuf,
-    /// Which lung the mesh is (sets the direction model's lateral axis).
-    #[arg(long, value_parser = ["left", "right"])]
-    pub lung: String,
+    /// Which lung the mesh is (sets the direction model's lateral axis): left or right.
+    #[arg(long)]
+    pub lung: Side,
     /// Unit of the mesh file's coordinates.
     #[arg(long, default_value = "mm", value_parser = ["mm", "cm", "m"])]
     pub units: String,
@@ -143,7 +143,7 @@ pub fn peak_rss_mib() -> f64 {
 /// Import, bake, write.
 pub fn bake(args: &BakeArgs) -> anyhow::Result<BakeSummary> {
     let start = Instant::now();
-    let side: Side = args.lung.parse().map_err(anyhow::Error::msg)?;
+    let side = args.lung;
     if args.out.extension().and_then(|e| e.to_str()) != Some("kernel") {
         anyhow::bail!("{}: the output must end in .kernel", args.out.display());
     }

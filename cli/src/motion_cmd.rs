@@ -41,11 +41,11 @@ pub struct FitMotionArgs {
     #[arg(long, value_delimiter = ',')]
     pub also: Vec<PathBuf>,
     /// Coordinate frame of the files: body, lps, ras or voxel.
-    #[arg(long, value_parser = ["body", "lps", "ras", "voxel"])]
-    pub frame: Option<String>,
+    #[arg(long, value_enum)]
+    pub frame: Option<FrameName>,
     /// File format preset: `dirlab` = voxel indices, 1-based, axes R>L,A>P,S>I (needs --spacing).
-    #[arg(long, value_parser = ["plain", "dirlab"], default_value = "plain")]
-    pub format: String,
+    #[arg(long, value_enum, default_value_t = PointFormat::Plain)]
+    pub format: PointFormat,
     /// Voxel size in mm along the file's three index axes (sx,sy,sz), each 0.1–20: with --frame voxel
     /// or --format dirlab (landmark files only; meshes are in mm).
     #[arg(long, value_delimiter = ',')]
@@ -57,13 +57,14 @@ pub struct FitMotionArgs {
     #[arg(long, value_parser = clap::value_parser!(u8).range(0..=1))]
     pub index_base: Option<u8>,
     /// The points (or meshes) are this one lung: never split at a gap; a warning when their motion
-    /// (points) or shape (meshes) says the other lung, a refusal when they clearly hold both lungs.
-    #[arg(long, value_parser = ["left", "right"])]
-    pub lung: Option<String>,
+    /// (points) or shape (meshes) says the other lung, a refusal when they clearly hold both lungs:
+    /// left or right.
+    #[arg(long)]
+    pub lung: Option<Side>,
     /// Landmark model: power (the seed's eq. 6.14-6.16), affine, poly, rbf (thin-plate spline), or
     /// auto (fit all, choose the lowest cross-validated error).
-    #[arg(long, value_parser = ["power", "affine", "poly", "rbf", "auto"], default_value = "auto")]
-    pub model: String,
+    #[arg(long, value_enum, default_value_t = ModelChoice::Auto)]
+    pub model: ModelChoice,
     /// Folds of the cross-validation (held-out errors), 2..=20.
     #[arg(long, default_value_t = 5, value_parser = clap::value_parser!(u64).range(2..=20))]
     pub folds: u64,
@@ -90,6 +91,59 @@ pub struct FitMotionArgs {
     /// Print one JSON object on stdout.
     #[arg(long)]
     pub json: bool,
+}
+
+/// `--frame`: the frame the files state (voxel details come from --spacing, --voxel-axes,
+/// --index-base or --format dirlab).
+#[derive(Debug, Clone, Copy, PartialEq, Eq, clap::ValueEnum)]
+pub enum FrameName {
+    /// lungdyn's body frame, mm.
+    Body,
+    /// DICOM/ITK, mm.
+    Lps,
+    /// 3D Slicer, mm.
+    Ras,
+    /// Voxel indices.
+    Voxel,
+}
+
+/// `--format`: how a landmark file is laid out.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, clap::ValueEnum)]
+pub enum PointFormat {
+    /// `x y z` per line in the stated frame.
+    Plain,
+    /// DIR-Lab: voxel indices, 1-based, axes R>L,A>P,S>I.
+    Dirlab,
+}
+
+/// `--model`: one landmark model (the seed's power law is always fitted beside it, as the
+/// baseline), or all of them with the lowest cross-validated error chosen.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, clap::ValueEnum)]
+pub enum ModelChoice {
+    /// The seed's power law (eq. 6.14–6.16).
+    Power,
+    /// An affine field.
+    Affine,
+    /// A polynomial (degree and ridge by inner CV).
+    Poly,
+    /// A thin-plate spline.
+    Rbf,
+    /// Every model; the lowest held-out error is chosen.
+    Auto,
+}
+
+impl ModelChoice {
+    /// The models fitted, in report order; the one asked for (not `auto`) is last.
+    pub fn kinds(self) -> Vec<ModelKind> {
+        let asked = match self {
+            ModelChoice::Auto => return ModelKind::ALL.to_vec(),
+            ModelChoice::Power => return vec![ModelKind::Power],
+            ModelChoice::Affine => ModelKind::Affine,
+            ModelChoice::Poly => ModelKind::Poly,
+            ModelChoice::Rbf => ModelKind::Tps,
+        };
+        vec![ModelKind::Power, asked]
+    }
 }
 
 /// Plausible CT voxel sizes, mm: clinical CT has 0.3–1 mm pixels and 0.5–5 mm slices (4DCT often
@@ -120,20 +174,32 @@ pub fn frame_of(args: &FitMotionArgs) -> anyhow::Result<Frame> {
         }
         _ => anyhow::bail!("--spacing needs three numbers sx,sy,sz"),
     };
-    let dirlab = args.format == "dirlab";
+    let dirlab = args.format == PointFormat::Dirlab;
     let frame = args
         .frame
-        .as_deref()
         .unwrap_or(if dirlab || args.voxel_axes.is_some() {
-            "voxel"
+            FrameName::Voxel
         } else {
-            "body"
+            FrameName::Body
         });
-    if dirlab && frame != "voxel" {
-        anyhow::bail!("--format dirlab files hold voxel indices: drop --frame {frame}");
+    if dirlab && frame != FrameName::Voxel {
+        let name = clap::ValueEnum::to_possible_value(&frame).expect("every frame has a name");
+        anyhow::bail!(
+            "--format dirlab files hold voxel indices: drop --frame {}",
+            name.get_name()
+        );
     }
+    let mm = |f: Frame| {
+        if spacing.is_some() || args.voxel_axes.is_some() || args.index_base.is_some() {
+            anyhow::bail!(
+                "--spacing, --voxel-axes and --index-base describe voxel indices: add --frame voxel \
+                 (or --format dirlab), or drop them for coordinates in mm"
+            );
+        }
+        Ok(f)
+    };
     match frame {
-        "voxel" => {
+        FrameName::Voxel => {
             let spacing = spacing.ok_or_else(|| {
                 anyhow::anyhow!(
                     "voxel indices need --spacing sx,sy,sz (mm per voxel along the file's three axes; \
@@ -161,19 +227,9 @@ pub fn frame_of(args: &FitMotionArgs) -> anyhow::Result<Frame> {
                 spacing,
             })
         }
-        other => {
-            if spacing.is_some() || args.voxel_axes.is_some() || args.index_base.is_some() {
-                anyhow::bail!(
-                    "--spacing, --voxel-axes and --index-base describe voxel indices: add --frame voxel \
-                     (or --format dirlab), or drop them for coordinates in mm"
-                );
-            }
-            Ok(match other {
-                "lps" => Frame::Lps,
-                "ras" => Frame::Ras,
-                _ => Frame::Body,
-            })
-        }
+        FrameName::Body => mm(Frame::Body),
+        FrameName::Lps => mm(Frame::Lps),
+        FrameName::Ras => mm(Frame::Ras),
     }
 }
 
@@ -744,11 +800,7 @@ pub fn run(args: &FitMotionArgs) -> anyhow::Result<Outcome> {
         );
     }
     let frame = frame_of(args)?;
-    let side: Option<Side> = args
-        .lung
-        .as_deref()
-        .map(|s| s.parse().map_err(anyhow::Error::msg))
-        .transpose()?;
+    let side: Option<Side> = args.lung;
     check_distinct_files(args)?;
     // Every output checked before any work.
     let mut outputs = Vec::new();
@@ -795,7 +847,7 @@ pub fn run(args: &FitMotionArgs) -> anyhow::Result<Outcome> {
     let a = read_points(&args.from, &frame, &args.input)?;
     let b = read_points(&args.to, &frame, &args.input)?;
     let stated = args.frame.is_some()
-        || args.format == "dirlab"
+        || args.format == PointFormat::Dirlab
         || args.voxel_axes.is_some()
         || args.index_base.is_some();
     if !stated {
@@ -837,18 +889,12 @@ pub fn run(args: &FitMotionArgs) -> anyhow::Result<Outcome> {
         eprintln!("lungdyn: WARNING: {w}");
     }
     let k = args.folds as usize;
-    let kinds: Vec<ModelKind> = match args.model.as_str() {
-        "auto" => ModelKind::ALL.to_vec(),
-        "power" => vec![ModelKind::Power],
-        "affine" => vec![ModelKind::Power, ModelKind::Affine],
-        "poly" => vec![ModelKind::Power, ModelKind::Poly],
-        _ => vec![ModelKind::Power, ModelKind::Tps],
-    };
+    let kinds = args.model.kinds();
     let models = kinds
         .iter()
         .map(|&kind| motion_models::evaluate(kind, &a, &delta, side, k, args.seed))
         .collect::<Result<Vec<_>, _>>()?;
-    let chosen = if args.model == "auto" {
+    let chosen = if args.model == ModelChoice::Auto {
         models
             .iter()
             .min_by(|x, y| x.cv.mean_mm.total_cmp(&y.cv.mean_mm))

@@ -16,7 +16,7 @@ use lung_model::disease::{LungBaseline, NormalBreathing};
 use lung_model::mesh::{Side, TriMesh};
 use lung_model::scene::Scene;
 use lung_model::scene_disease::DiseaseSpec;
-use serde_json::{json, Value};
+use serde::Serialize;
 
 /// Options of `lungdyn scene check`.
 #[derive(Debug, Clone, clap::Args)]
@@ -51,8 +51,261 @@ fn r3(v: f64) -> f64 {
     (v * 1000.0).round() / 1000.0
 }
 
+/// A value as JSON writes it (numbers, arrays, `null`, objects with sorted keys): the text shows
+/// the figures exactly as `--json` does.
+fn j<T: Serialize + ?Sized>(v: &T) -> String {
+    serde_json::to_value(v).map_or_else(|e| format!("<{e}>"), |v| v.to_string())
+}
+
+/// What `lungdyn scene check` reports (`--json` writes it; [`text`] prints it).
+#[derive(Debug, Clone, Serialize)]
+pub struct CheckReport {
+    /// The scene file.
+    pub scene: String,
+    /// Always true: an invalid scene is an error, not a report.
+    pub valid: bool,
+    /// The simulated lungs.
+    pub lungs: Vec<&'static str>,
+    /// Deformation mode.
+    pub mode: String,
+    /// SH bands.
+    pub bands: u32,
+    /// The PV model.
+    pub pv: PvReport,
+    /// The renderer's calibration and HMD optics.
+    pub render: RenderReport,
+    /// The disease state's report; `null` for normal breathing.
+    pub disease: Option<DiseaseReport>,
+}
+
+/// The scene's PV model.
+#[derive(Debug, Clone, Serialize)]
+pub struct PvReport {
+    /// Preset name (Table 5.1).
+    pub preset: String,
+    /// Constants file, if any.
+    pub constants: Option<String>,
+    /// Functional residual capacity, ml.
+    pub frc_ml: f64,
+    /// Tidal volume, ml.
+    pub tidal_volume_ml: f64,
+    /// Breathing rate.
+    pub breaths_per_min: f64,
+}
+
+/// The renderer's files as the renderer loads them.
+#[derive(Debug, Clone, Serialize)]
+pub struct RenderReport {
+    /// The calibration (`null`: the renderer's fixed offset).
+    pub calibration: Option<CalibrationSeen>,
+    /// The HMD optics (`null`: the scene's `[render]` values).
+    pub hmd: Option<OpticsSeen>,
+}
+
+/// A calibration file and what it holds; serialized as `lungdyn register` shows it.
+#[derive(Debug, Clone)]
+pub struct CalibrationSeen {
+    /// Where it was read from.
+    pub file: PathBuf,
+    /// Its transform.
+    pub calibration: tracker_pose::calib::Calibration,
+}
+
+impl Serialize for CalibrationSeen {
+    fn serialize<S: serde::Serializer>(&self, s: S) -> Result<S::Ok, S::Error> {
+        crate::register_cmd::calibration_json(&self.file, &self.calibration).serialize(s)
+    }
+}
+
+/// An HMD optics file and what it holds; serialized as `lungdyn hmd check` shows it.
+#[derive(Debug, Clone)]
+pub struct OpticsSeen {
+    /// Where it was read from.
+    pub file: PathBuf,
+    /// The optics.
+    pub optics: tracker_pose::optics::Optics,
+}
+
+impl Serialize for OpticsSeen {
+    fn serialize<S: serde::Serializer>(&self, s: S) -> Result<S::Ok, S::Error> {
+        crate::register_cmd::optics_json(Some(&self.file), &self.optics).serialize(s)
+    }
+}
+
+/// A disease state's report: its kind and the model's course.
+#[derive(Debug, Clone, Serialize)]
+pub struct DiseaseReport {
+    /// The `[disease] kind`.
+    pub kind: &'static str,
+    /// Whether `demo`/`engine` run it (every kind does).
+    pub engine_applies_it: bool,
+    /// The kind's own figures.
+    #[serde(flatten)]
+    pub detail: DiseaseDetail,
+}
+
+/// The figures of each kind of disease state.
+#[derive(Debug, Clone, Serialize)]
+#[serde(untagged)]
+pub enum DiseaseDetail {
+    /// A closed (or bilateral) pneumothorax's plan.
+    Closed(ClosedReport),
+    /// A tension pneumothorax's course.
+    Tension(TensionReport),
+    /// A tumour's parameters.
+    Tumour(TumourReport),
+}
+
+/// A closed pneumothorax's plan (eq. 8.1–8.9).
+#[derive(Debug, Clone, Serialize)]
+pub struct ClosedReport {
+    /// Breathing rate after the change.
+    pub breaths_per_min: f64,
+    /// Inhalation, s.
+    pub inhale_s: f64,
+    /// Exhalation, s.
+    pub exhale_s: f64,
+    /// Whether a phase was clamped.
+    pub phase_clamped: bool,
+    /// Each lung.
+    pub lungs: Vec<ClosedLung>,
+}
+
+/// One lung of a closed pneumothorax's plan.
+#[derive(Debug, Clone, Serialize)]
+pub struct ClosedLung {
+    /// Which lung.
+    pub side: &'static str,
+    /// Pneumothorax index I (`null`: unaffected).
+    pub pneumothorax_index: Option<f64>,
+    /// Volume fraction lost.
+    #[serde(rename = "dV")]
+    pub dv: f64,
+    /// Base drop, mm.
+    pub drop_mm: Option<f64>,
+    /// Whether the drop was clamped.
+    pub drop_clamped: Option<bool>,
+    /// Base volume, ml.
+    pub base_volume_ml: f64,
+    /// Tidal volume, ml.
+    pub tidal_volume_ml: f64,
+    /// Volume held (not breathing), ml.
+    pub held_ml: Option<f64>,
+    /// Rigid offset, mm.
+    pub offset_mm: [f64; 3],
+    /// Base lift, mm.
+    pub base_lift_mm: f64,
+}
+
+/// A tension pneumothorax's course (eq. 8.10–8.13).
+#[derive(Debug, Clone, Serialize)]
+pub struct TensionReport {
+    /// The affected side.
+    pub side: &'static str,
+    /// Onset, s.
+    pub onset_s: f64,
+    /// Normal breaths before the onset.
+    pub normal_cycles_before_onset: u64,
+    /// V1max, ml.
+    pub v1_max_ml: f64,
+    /// V2max, ml.
+    pub v2_max_ml: f64,
+    /// Mediastinal shift per ml of pleural air.
+    pub shift_mm_per_ml: f64,
+    /// First cycle in arrest, if any.
+    pub cycles_to_arrest: Option<u64>,
+    /// The timed interventions, as applied.
+    pub events: Vec<EventReport>,
+    /// The last cycle followed.
+    #[serde(rename = "final")]
+    pub last: Option<CycleReport>,
+    /// Every cycle followed.
+    pub course: Vec<CycleReport>,
+}
+
+/// One cycle of a tension pneumothorax's course.
+#[derive(Debug, Clone, Serialize)]
+pub struct CycleReport {
+    /// Cycle since the onset.
+    pub cycle: u64,
+    /// Its first tick.
+    pub start_tick: u64,
+    /// Pleural air, ml.
+    pub pleural_air_ml: f64,
+    /// Volume fraction lost.
+    #[serde(rename = "dV")]
+    pub dv: f64,
+    /// Base drop, mm.
+    pub drop_mm: f64,
+    /// Mediastinal shift, mm.
+    pub shift_mm: f64,
+    /// Breathing rate.
+    pub breaths_per_min: f64,
+    /// The affected lung's tidal volume, ml.
+    pub affected_tidal_ml: f64,
+    /// The other lung's tidal volume, ml.
+    pub other_tidal_ml: Option<f64>,
+    /// Whether the SVC is closed.
+    pub svc_closed: bool,
+    /// Whether the patient is in arrest.
+    pub arrest: bool,
+}
+
+/// One intervention: when it arrived, from which cycle it shows, what it did.
+#[derive(Debug, Clone, Serialize)]
+pub struct EventReport {
+    /// Engine tick it arrived at.
+    pub tick: u64,
+    /// First cycle whose state reflects it.
+    pub cycle: u64,
+    /// The intervention.
+    pub kind: ipc_types::Intervention,
+    /// The side.
+    pub side: &'static str,
+    /// What it did.
+    pub outcome: String,
+}
+
+/// A tumour's parameters and raised resistance, without baking.
+#[derive(Debug, Clone, Serialize)]
+pub struct TumourReport {
+    /// The lung.
+    pub side: &'static str,
+    /// Centre as the scene gives it (fractions of the lung's box).
+    pub centre: [f64; 3],
+    /// Centre, mm.
+    pub centre_mm: [f64; 3],
+    /// Semi-axes, mm.
+    pub radii_mm: [f64; 3],
+    /// Volume, ml.
+    pub volume_ml: f64,
+    /// Expandability inside.
+    pub expandability: f64,
+    /// Falloff.
+    pub falloff: f64,
+    /// Coupling.
+    pub coupling: f64,
+    /// Eq. 8.21 variant.
+    pub phi_variant: String,
+    /// Surface vertices with expandability below 1.
+    pub surface_vertices_affected: usize,
+    /// Raised resistance factors.
+    pub resistance_x: InhaleExhale,
+    /// What happens to the kernel.
+    pub note: &'static str,
+}
+
+/// A pair of inhalation and exhalation figures.
+#[derive(Debug, Clone, Copy, Serialize)]
+pub struct InhaleExhale {
+    /// Inhalation.
+    pub inhale: f64,
+    /// Exhalation.
+    pub exhale: f64,
+}
+
 /// Validate `args.file` and report.
-pub fn run(args: &CheckArgs) -> anyhow::Result<Value> {
+pub fn run(args: &CheckArgs) -> anyhow::Result<CheckReport> {
     if !(1..=MAX_CYCLES).contains(&args.cycles) {
         anyhow::bail!("--cycles {} must be within 1..{MAX_CYCLES}", args.cycles);
     }
@@ -64,28 +317,31 @@ pub fn run(args: &CheckArgs) -> anyhow::Result<Value> {
     // The renderer's calibration and HMD optics files, loaded as the renderer loads them.
     let rig = renderer::camera::RigFiles::load(&scene.render, None, None)
         .with_context(|| format!("scene {origin}"))?;
-    let render = json!({
-        "calibration": rig.calibration.as_ref().map(|(p, _, c)| crate::register_cmd::calibration_json(p, c)),
-        "hmd": rig.optics.as_ref().map(|(p, _, o)| crate::register_cmd::optics_json(Some(p), o)),
-    });
+    let render = RenderReport {
+        calibration: rig
+            .calibration
+            .map(|(file, _, calibration)| CalibrationSeen { file, calibration }),
+        hmd: rig
+            .optics
+            .map(|(file, _, optics)| OpticsSeen { file, optics }),
+    };
     let timing = scene.timing();
-    let sides: Vec<&str> = scene.lungs.sides.iter().map(|s| s.name()).collect();
-    let mut out = json!({
-        "scene": origin,
-        "valid": true,
-        "lungs": sides,
-        "mode": format!("{:?}", scene.lungs.mode).to_lowercase(),
-        "bands": scene.lungs.bands,
-        "pv": {
-            "preset": scene.pv.preset,
-            "constants": scene.pv.constants.as_ref().map(|p| p.display().to_string()),
-            "frc_ml": boundary.frc_ml,
-            "tidal_volume_ml": boundary.tv_ml,
-            "breaths_per_min": timing.breaths_per_min,
+    let mut out = CheckReport {
+        scene: origin,
+        valid: true,
+        lungs: scene.lungs.sides.iter().map(|s| s.name()).collect(),
+        mode: format!("{:?}", scene.lungs.mode).to_lowercase(),
+        bands: scene.lungs.bands,
+        pv: PvReport {
+            preset: scene.pv.preset.clone(),
+            constants: scene.pv.constants.as_ref().map(|p| p.display().to_string()),
+            frc_ml: boundary.frc_ml,
+            tidal_volume_ml: boundary.tv_ml,
+            breaths_per_min: timing.breaths_per_min,
         },
-        "render": render,
-        "disease": Value::Null,
-    });
+        render,
+        disease: None,
+    };
     let Some(d) = &scene.disease else {
         return Ok(out);
     };
@@ -105,17 +361,27 @@ pub fn run(args: &CheckArgs) -> anyhow::Result<Value> {
                 .with_context(|| format!("the {} lung's baseline", side.name()))?,
         );
     }
-    out["disease"] = match &spec {
-        DiseaseSpec::Closed(c) => closed(c, &normal, &baselines)?,
+    let detail = match &spec {
+        DiseaseSpec::Closed(c) => DiseaseDetail::Closed(closed(c, &normal, &baselines)?),
         DiseaseSpec::Tension {
             params,
             onset_s,
             events,
-        } => tension(*params, *onset_s, events, &normal, &baselines, args.cycles)?,
-        DiseaseSpec::Tumour(t) => tumour(t, &scene, &normal, &baselines)?,
+        } => DiseaseDetail::Tension(tension(
+            *params,
+            *onset_s,
+            events,
+            &normal,
+            &baselines,
+            args.cycles,
+        )?),
+        DiseaseSpec::Tumour(t) => DiseaseDetail::Tumour(tumour(t, &scene, &normal, &baselines)?),
     };
-    out["disease"]["kind"] = json!(d.kind.name());
-    out["disease"]["engine_applies_it"] = json!(true);
+    out.disease = Some(DiseaseReport {
+        kind: d.kind.name(),
+        engine_applies_it: true,
+        detail,
+    });
     Ok(out)
 }
 
@@ -126,7 +392,7 @@ fn tumour(
     scene: &Scene,
     normal: &NormalBreathing,
     lungs: &[LungBaseline],
-) -> anyhow::Result<Value> {
+) -> anyhow::Result<TumourReport> {
     let mesh = lung_mesh(scene, t.side)?;
     // The bake's own check (parameters, lung, centre inside the surface), without the bake.
     lung_bake::kernel::check_tumour(t, t.side, &mesh).context("[disease.tumour]")?;
@@ -141,59 +407,60 @@ fn tumour(
         .iter()
         .filter(|&&a| a < 1.0)
         .count();
-    Ok(json!({
-        "side": t.side.name(),
-        "centre": t.centre,
-        "centre_mm": centre.map(r3),
-        "radii_mm": t.radii_mm,
-        "volume_ml": r3(t.volume_ml()),
-        "expandability": t.expandability,
-        "falloff": t.falloff,
-        "coupling": t.coupling,
-        "phi_variant": format!("{:?}", t.phi).to_lowercase(),
-        "surface_vertices_affected": affected,
-        "resistance_x": { "inhale": ri.x, "exhale": re.x },
-        "note": if affected == 0 {
+    Ok(TumourReport {
+        side: t.side.name(),
+        centre: t.centre,
+        centre_mm: centre.map(r3),
+        radii_mm: t.radii_mm,
+        volume_ml: r3(t.volume_ml()),
+        expandability: t.expandability,
+        falloff: t.falloff,
+        coupling: t.coupling,
+        phi_variant: format!("{:?}", t.phi).to_lowercase(),
+        surface_vertices_affected: affected,
+        resistance_x: InhaleExhale {
+            inhale: ri.x,
+            exhale: re.x,
+        },
+        note: if affected == 0 {
             "no surface vertex lies within the tumour's reach (radius x (1 + falloff)): the kernel \
              and the motion are unchanged; only the PV resistance rises"
         } else {
             "the kernel change (eq. 8.14-8.20) is baked into the lung's kernel by `lungdyn scene \
              prepare`/`demo`/`scene run`; `scene run` reports the centre's motion"
         },
-    }))
+    })
 }
 
 fn closed(
     c: &lung_model::disease::closed::ClosedPneumothorax,
     normal: &NormalBreathing,
     lungs: &[LungBaseline],
-) -> anyhow::Result<Value> {
+) -> anyhow::Result<ClosedReport> {
     let plan = c.plan(normal, lungs)?;
-    let per_lung: Vec<Value> = plan
+    let lungs = plan
         .lungs
         .iter()
-        .map(|l| {
-            json!({
-                "side": l.side.name(),
-                "pneumothorax_index": l.index,
-                "dV": r3(l.dv),
-                "drop_mm": l.drop.map(|d| r3(d.drop_mm)),
-                "drop_clamped": l.drop.map(|d| d.clamped),
-                "base_volume_ml": r3(l.state.base_volume_ml),
-                "tidal_volume_ml": r3(l.state.tidal_ml),
-                "held_ml": l.state.held_ml.map(r3),
-                "offset_mm": l.state.offset_mm.map(r3),
-                "base_lift_mm": r3(l.base_lift_mm),
-            })
+        .map(|l| ClosedLung {
+            side: l.side.name(),
+            pneumothorax_index: l.index,
+            dv: r3(l.dv),
+            drop_mm: l.drop.map(|d| r3(d.drop_mm)),
+            drop_clamped: l.drop.map(|d| d.clamped),
+            base_volume_ml: r3(l.state.base_volume_ml),
+            tidal_volume_ml: r3(l.state.tidal_ml),
+            held_ml: l.state.held_ml.map(r3),
+            offset_mm: l.state.offset_mm.map(r3),
+            base_lift_mm: r3(l.base_lift_mm),
         })
         .collect();
-    Ok(json!({
-        "breaths_per_min": r3(plan.times.breaths_per_min()),
-        "inhale_s": r3(plan.times.new_inhale_s),
-        "exhale_s": r3(plan.times.new_exhale_s),
-        "phase_clamped": plan.times.inhale_clamped || plan.times.exhale_clamped,
-        "lungs": per_lung,
-    }))
+    Ok(ClosedReport {
+        breaths_per_min: r3(plan.times.breaths_per_min()),
+        inhale_s: r3(plan.times.new_inhale_s),
+        exhale_s: r3(plan.times.new_exhale_s),
+        phase_clamped: plan.times.inhale_clamped || plan.times.exhale_clamped,
+        lungs,
+    })
 }
 
 fn tension(
@@ -203,7 +470,7 @@ fn tension(
     normal: &NormalBreathing,
     lungs: &[LungBaseline],
     cycles: u32,
-) -> anyhow::Result<Value> {
+) -> anyhow::Result<TensionReport> {
     let affected = *lungs
         .iter()
         .find(|l| l.side == params.side)
@@ -240,35 +507,35 @@ fn tension(
                 break;
             }
             let r = t.intervene(e.kind, e.side, at);
-            records.push(json!({
-                "tick": r.tick,
-                "cycle": r.cycle,
-                "kind": r.kind.name(),
-                "side": r.side.name(),
-                "outcome": match r.outcome {
+            records.push(EventReport {
+                tick: r.tick,
+                cycle: r.cycle,
+                kind: r.kind,
+                side: r.side.name(),
+                outcome: match r.outcome {
                     Outcome::Applied => "applied".to_string(),
                     Outcome::WrongSide => "wrong side: no effect".to_string(),
                     Outcome::AlreadyApplied => "already applied".to_string(),
                     Outcome::NoEffect(why) => format!("no effect: {why}"),
                 },
-            }));
+            });
             pending.next();
         }
         let c = t.advance();
         let affected_state = c.affected;
-        course.push(json!({
-            "cycle": c.cycle,
-            "start_tick": tick,
-            "pleural_air_ml": r3(c.pleural_air_ml),
-            "dV": r3(c.dv),
-            "drop_mm": r3(c.drop.drop_mm),
-            "shift_mm": r3(c.shift_mm),
-            "breaths_per_min": r3(c.times.breaths_per_min()),
-            "affected_tidal_ml": r3(affected_state.tidal_ml),
-            "other_tidal_ml": c.unaffected.map(|u| r3(u.tidal_ml)),
-            "svc_closed": c.svc_closed,
-            "arrest": c.arrest,
-        }));
+        course.push(CycleReport {
+            cycle: c.cycle,
+            start_tick: tick,
+            pleural_air_ml: r3(c.pleural_air_ml),
+            dv: r3(c.dv),
+            drop_mm: r3(c.drop.drop_mm),
+            shift_mm: r3(c.shift_mm),
+            breaths_per_min: r3(c.times.breaths_per_min()),
+            affected_tidal_ml: r3(affected_state.tidal_ml),
+            other_tidal_ml: c.unaffected.map(|u| r3(u.tidal_ml)),
+            svc_closed: c.svc_closed,
+            arrest: c.arrest,
+        });
         prev_start = Some(tick);
         // A held lung (arrest) keeps the cycle length it had, as in the engine.
         if affected_state.held_ml.is_none() {
@@ -279,137 +546,140 @@ fn tension(
             break;
         }
     }
-    let last = course.last().cloned().unwrap_or(Value::Null);
-    Ok(json!({
-        "side": params.side.name(),
-        "onset_s": onset_s,
-        "normal_cycles_before_onset": normal_cycles,
-        "v1_max_ml": r3(t.v1_max_ml()),
-        "v2_max_ml": r3(t.v2_max_ml()),
-        "shift_mm_per_ml": t.shift_mm_per_ml(),
-        "cycles_to_arrest": t.first_arrest(),
-        "events": records,
-        "final": last,
-        "course": course,
-    }))
+    Ok(TensionReport {
+        side: params.side.name(),
+        onset_s,
+        normal_cycles_before_onset: normal_cycles,
+        v1_max_ml: r3(t.v1_max_ml()),
+        v2_max_ml: r3(t.v2_max_ml()),
+        shift_mm_per_ml: t.shift_mm_per_ml(),
+        cycles_to_arrest: t.first_arrest(),
+        events: records,
+        last: course.last().cloned(),
+        course,
+    })
 }
 
 /// The report as text.
-pub fn text(v: &Value) -> String {
+pub fn text(r: &CheckReport) -> String {
     let mut s = format!(
         "{}: valid — lungs {}, mode {}, PV {} (FRC {} ml, TV {} ml, {} breaths/min)\n",
-        v["scene"].as_str().unwrap_or(""),
-        v["lungs"],
-        v["mode"].as_str().unwrap_or(""),
-        v["pv"]["preset"].as_str().unwrap_or(""),
-        v["pv"]["frc_ml"],
-        v["pv"]["tidal_volume_ml"],
-        v["pv"]["breaths_per_min"]
+        r.scene,
+        j(&r.lungs),
+        r.mode,
+        r.pv.preset,
+        j(&r.pv.frc_ml),
+        j(&r.pv.tidal_volume_ml),
+        j(&r.pv.breaths_per_min)
     );
-    let c = &v["render"]["calibration"];
-    s += &match c["file"].as_str() {
-        Some(f) => format!(
-            "calibration: {f} (model -> patient reference: {:.2} deg, translation {} mm)\n",
-            c["rotation_deg"].as_f64().unwrap_or(0.0),
-            c["translation_mm"]
-        ),
+    s += &match &r.render.calibration {
+        Some(c) => {
+            let t = c.calibration.translation_mm;
+            format!(
+                "calibration: {} (model -> patient reference: {:.2} deg, translation {} mm)\n",
+                c.file.display(),
+                c.calibration.rotation.angle().to_degrees(),
+                j(&[t.x, t.y, t.z])
+            )
+        }
         None => "calibration: none (the lungs at the renderer's fixed offset from the patient reference)\n".into(),
     };
-    let h = &v["render"]["hmd"];
-    s += &match h["file"].as_str() {
-        Some(f) => format!(
-            "HMD optics: {f} ({} x {} px per eye, IPD {} mm, near {} mm, far {} mm)\n",
-            h["width_px"], h["height_px"], h["ipd_mm"], h["near_mm"], h["far_mm"]
-        ),
+    s += &match &r.render.hmd {
+        Some(h) => {
+            let o = &h.optics;
+            format!(
+                "HMD optics: {} ({} x {} px per eye, IPD {} mm, near {} mm, far {} mm)\n",
+                h.file.display(),
+                j(&o.width_px),
+                j(&o.height_px),
+                j(&o.ipd_mm),
+                j(&o.near_mm),
+                j(&o.far_mm)
+            )
+        }
         None => {
             "HMD optics: none (the scene's [render] ipd_mm, fov_y_deg, width and height)\n".into()
         }
     };
-    let d = &v["disease"];
-    if d.is_null() {
+    let Some(d) = &r.disease else {
         s += "no disease state: normal breathing\n";
         return s;
-    }
+    };
     s += &format!(
         "disease: {}{}\n",
-        d["kind"].as_str().unwrap_or(""),
-        if d["engine_applies_it"].as_bool() == Some(true) {
+        d.kind,
+        if d.engine_applies_it {
             " (run by `lungdyn demo --scene FILE`)"
         } else {
             " (not run by the engine yet: `demo`/`engine` refuse this scene)"
         }
     );
-    if let Some(lungs) = d["lungs"].as_array() {
-        s += &format!(
-            "  breathing {} /min (inhale {} s, exhale {} s)\n",
-            d["breaths_per_min"], d["inhale_s"], d["exhale_s"]
-        );
-        for l in lungs {
-            if l["pneumothorax_index"].is_null() {
-                s += &format!(
-                    "  {} lung: unaffected, tidal {} ml, base volume {} ml\n",
-                    l["side"].as_str().unwrap_or(""),
-                    l["tidal_volume_ml"],
-                    l["base_volume_ml"]
-                );
-                continue;
-            }
+    match &d.detail {
+        DiseaseDetail::Closed(c) => {
             s += &format!(
-                "  {} lung: I = {}, dV = {}, drop {} mm, tidal {} ml, base volume {} ml\n",
-                l["side"].as_str().unwrap_or(""),
-                l["pneumothorax_index"],
-                l["dV"],
-                l["drop_mm"],
-                l["tidal_volume_ml"],
-                l["base_volume_ml"]
+                "  breathing {} /min (inhale {} s, exhale {} s)\n",
+                j(&c.breaths_per_min),
+                j(&c.inhale_s),
+                j(&c.exhale_s)
             );
-        }
-    }
-    if d.get("course").is_some() {
-        s += &format!(
-            "  {} side: V1max {} ml, V2max {} ml; {}; {} cycles followed\n",
-            d["side"].as_str().unwrap_or(""),
-            d["v1_max_ml"],
-            d["v2_max_ml"],
-            match d["cycles_to_arrest"].as_u64() {
-                Some(c) => format!("arrest at cycle {c}"),
-                None => "no arrest".to_string(),
-            },
-            d["course"].as_array().map_or(0, |c| c.len())
-        );
-        s += &event_lines(d);
-        let f = &d["final"];
-        s += &format!(
-            "  last cycle {}: pleural air {} ml, dV {}, mediastinal shift {} mm, {} /min{}\n",
-            f["cycle"],
-            f["pleural_air_ml"],
-            f["dV"],
-            f["shift_mm"],
-            f["breaths_per_min"],
-            if f["arrest"].as_bool() == Some(true) {
-                ", ARREST"
-            } else {
-                ""
+            for l in &c.lungs {
+                let Some(index) = l.pneumothorax_index else {
+                    s += &format!(
+                        "  {} lung: unaffected, tidal {} ml, base volume {} ml\n",
+                        l.side,
+                        j(&l.tidal_volume_ml),
+                        j(&l.base_volume_ml)
+                    );
+                    continue;
+                };
+                s += &format!(
+                    "  {} lung: I = {}, dV = {}, drop {} mm, tidal {} ml, base volume {} ml\n",
+                    l.side,
+                    j(&index),
+                    j(&l.dv),
+                    j(&l.drop_mm),
+                    j(&l.tidal_volume_ml),
+                    j(&l.base_volume_ml)
+                );
             }
-        );
-    }
-    if let Some(n) = d["note"].as_str() {
-        s += &format!("  {n}\n");
+        }
+        DiseaseDetail::Tension(t) => {
+            s += &format!(
+                "  {} side: V1max {} ml, V2max {} ml; {}; {} cycles followed\n",
+                t.side,
+                j(&t.v1_max_ml),
+                j(&t.v2_max_ml),
+                match t.cycles_to_arrest {
+                    Some(c) => format!("arrest at cycle {c}"),
+                    None => "no arrest".to_string(),
+                },
+                t.course.len()
+            );
+            s += &event_lines(&t.events);
+            if let Some(f) = &t.last {
+                s += &format!(
+                    "  last cycle {}: pleural air {} ml, dV {}, mediastinal shift {} mm, {} /min{}\n",
+                    f.cycle,
+                    j(&f.pleural_air_ml),
+                    j(&f.dv),
+                    j(&f.shift_mm),
+                    j(&f.breaths_per_min),
+                    if f.arrest { ", ARREST" } else { "" }
+                );
+            }
+        }
+        DiseaseDetail::Tumour(t) => s += &format!("  {}\n", t.note),
     }
     s
 }
 
-/// One line per intervention in a report's `events` (tick, cycle, kind, side, outcome).
-fn event_lines(d: &Value) -> String {
+/// One line per intervention (tick, cycle, kind, side, outcome).
+fn event_lines(events: &[EventReport]) -> String {
     let mut s = String::new();
-    for e in d["events"].as_array().into_iter().flatten() {
+    for e in events {
         s += &format!(
             "  event at tick {} (cycle {}): {} {} — {}\n",
-            e["tick"],
-            e["cycle"],
-            e["kind"].as_str().unwrap_or(""),
-            e["side"].as_str().unwrap_or(""),
-            e["outcome"].as_str().unwrap_or("")
+            e.tick, e.cycle, e.kind, e.side, e.outcome
         );
     }
     s
@@ -556,7 +826,7 @@ impl TumourFollow {
 /// Run `args.file` through the engine's tick function for `--seconds` of simulated time (fixed
 /// supine patient, the scene's timed interventions) and report per lung what the renderer would
 /// draw, the disease state's course and how often each stage of the tick did work.
-pub fn run_scene(args: &RunArgs) -> anyhow::Result<Value> {
+pub fn run_scene(args: &RunArgs) -> anyhow::Result<RunReport> {
     let s = args.seconds;
     if !(s.is_finite() && s > 0.0 && s <= 24.0 * 3600.0) {
         anyhow::bail!(
@@ -582,8 +852,7 @@ pub fn run_scene(args: &RunArgs) -> anyhow::Result<Value> {
     let mut non_finite = 0u64;
     // A fixed patient in the scene's posture (the synthetic source without drift): the headless run
     // has no tracker, and a patient who does not move costs one orientation evaluation per lung.
-    let posture =
-        tracker_bridge::synthetic::Posture::parse(scene.tracker.posture.name()).unwrap_or_default();
+    let posture = crate::demo::bridge_posture(scene.tracker.posture);
     let patient = tracker_bridge::synthetic::Synthetic {
         rate_hz: scene.engine.tick_hz,
         drift_deg: 0.0,
@@ -629,53 +898,59 @@ pub fn run_scene(args: &RunArgs) -> anyhow::Result<Value> {
             Some((lo, hi, len)) if len > 0 => (hi - lo, 60.0 * hz / len as f64),
             _ => (vmax[k] - vmin[k], f64::NAN),
         };
-        lungs.push(json!({
-            "side": side.name(),
-            "volume_min_ml": r3(vmin[k]),
-            "volume_max_ml": r3(vmax[k]),
-            "tidal_volume_ml": r3(tidal),
-            "breaths_per_min": if bpm.is_finite() { json!(r3(bpm)) } else { Value::Null },
-            "offset_mm": l.offset_mm.map(|v| r3(v as f64)),
-            "collapse": r3(l.collapse as f64),
-            "held": l.flags & ipc_types::lung_flags::HELD != 0,
+        lungs.push(RunLung {
+            side: side.name(),
+            volume_min_ml: r3(vmin[k]),
+            volume_max_ml: r3(vmax[k]),
+            tidal_volume_ml: r3(tidal),
+            breaths_per_min: bpm.is_finite().then(|| r3(bpm)),
+            offset_mm: l.offset_mm.map(|v| r3(v as f64)),
+            collapse: r3(l.collapse as f64),
+            held: l.flags & ipc_types::lung_flags::HELD != 0,
             // The mode's coefficients at the end (force weights for basis/direct): how gravity in
             // this posture shapes the breath.
-            "coefficients": l.coeffs[..(l.coeff_count as usize).min(ipc_types::MAX_COEFFS)]
+            coefficients: l.coeffs[..(l.coeff_count as usize).min(ipc_types::MAX_COEFFS)]
                 .iter()
                 .map(|&c| r3(c as f64))
-                .collect::<Vec<_>>(),
-            "cycles": l.cycle,
-        }));
+                .collect(),
+            cycles: l.cycle,
+        });
     }
-    let mut out = json!({
-        "scene": origin,
-        "posture": scene.tracker.posture.name(),
-        "seconds": s,
-        "ticks": ticks,
-        "mode": format!("{:?}", scene.lungs.mode).to_lowercase(),
-        "lungs": lungs,
-        "non_finite_frames": non_finite,
-        "stage_counts": core.stage_counts(),
-        "kernels": prepared.kernels.iter().map(|k| k.path.clone()).collect::<Vec<_>>(),
-    });
+    let mut out = RunReport {
+        scene: origin,
+        posture: scene.tracker.posture.name(),
+        seconds: s,
+        ticks,
+        mode: format!("{:?}", scene.lungs.mode).to_lowercase(),
+        lungs,
+        non_finite_frames: non_finite,
+        stage_counts: core.stage_counts(),
+        kernels: prepared.kernels.iter().map(|k| k.path.clone()).collect(),
+        disease: None,
+    };
     if let Some(d) = &scene.disease {
-        let mut disease = json!({ "kind": d.kind.name() });
+        let mut disease = RunDisease {
+            kind: d.kind.name(),
+            tension: None,
+            tumour: None,
+            affected: None,
+        };
         if let Some(engine::runtime::disease::DiseaseRun::Tension(run)) = core.disease() {
-            disease["cycles_run"] = json!(run.cycles_run);
-            disease["first_arrest_cycle"] = json!(run.first_arrest);
-            disease["events"] = run
-                .events
-                .iter()
-                .map(|e| {
-                    json!({
-                        "tick": e.tick,
-                        "cycle": e.cycle,
-                        "kind": e.kind.name(),
-                        "side": e.side.name(),
-                        "outcome": format!("{:?}", e.outcome),
+            disease.tension = Some(RunTension {
+                cycles_run: run.cycles_run,
+                first_arrest_cycle: run.first_arrest,
+                events: run
+                    .events
+                    .iter()
+                    .map(|e| EventReport {
+                        tick: e.tick,
+                        cycle: e.cycle,
+                        kind: e.kind,
+                        side: e.side.name(),
+                        outcome: format!("{:?}", e.outcome),
                     })
-                })
-                .collect();
+                    .collect(),
+            });
         }
         if let (Some(engine::runtime::disease::DiseaseRun::Tumour(run)), Some(t)) =
             (core.disease(), &follow)
@@ -684,22 +959,38 @@ pub fn run_scene(args: &RunArgs) -> anyhow::Result<Value> {
             let csv = args.out.join("tumour_trajectory.csv");
             t.write_csv(&csv, hz)?;
             let m = &t.meta;
-            disease["tumour"] = json!({
-                "side": run.side.name(),
-                "centre_mm": m.centre_mm.map(r3),
-                "volume_ml": r3(m.volume_ml),
-                "vertices_affected": m.vertices_affected,
-                "kernel_entries_changed": m.entries_changed,
-                "kernel_entries_clamped": m.entries_clamped,
-                "affected_motion_change_percent": { "mean": r3(m.affected_motion_change_percent[0]), "max": r3(m.affected_motion_change_percent[1]) },
-                "resistance_x": { "inhale": run.resistance[0].x, "exhale": run.resistance[1].x },
-                "trajectory_csv": csv.display().to_string(),
-                "trajectory_ticks": if t.last.is_empty() { t.current.len() } else { t.last.len() },
-                "non_finite_positions": t.bad,
+            let xyz = |a: [f64; 3]| Xyz {
+                x: a[0],
+                y: a[1],
+                z: a[2],
+            };
+            disease.tumour = Some(RunTumour {
+                tumour: TumourRun {
+                    side: run.side.name(),
+                    centre_mm: m.centre_mm.map(r3),
+                    volume_ml: r3(m.volume_ml),
+                    vertices_affected: m.vertices_affected,
+                    kernel_entries_changed: m.entries_changed,
+                    kernel_entries_clamped: m.entries_clamped,
+                    affected_motion_change_percent: MeanMax {
+                        mean: r3(m.affected_motion_change_percent[0]),
+                        max: r3(m.affected_motion_change_percent[1]),
+                    },
+                    resistance_x: InhaleExhale {
+                        inhale: run.resistance[0].x,
+                        exhale: run.resistance[1].x,
+                    },
+                    trajectory_csv: csv.display().to_string(),
+                    trajectory_ticks: if t.last.is_empty() {
+                        t.current.len()
+                    } else {
+                        t.last.len()
+                    },
+                    non_finite_positions: t.bad,
+                },
+                tumour_motion_mm: xyz(amp),
+                tumour_motion_normal_mm: xyz(normal_amp),
             });
-            disease["tumour_motion_mm"] = json!({ "x": amp[0], "y": amp[1], "z": amp[2] });
-            disease["tumour_motion_normal_mm"] =
-                json!({ "x": normal_amp[0], "y": normal_amp[1], "z": normal_amp[2] });
         }
         if matches!(
             d.kind,
@@ -709,90 +1000,381 @@ pub fn run_scene(args: &RunArgs) -> anyhow::Result<Value> {
             let sides: Vec<Side> = scene.lungs.sides.clone();
             let spec = d.validate(&sides)?;
             if let DiseaseSpec::Closed(c) = spec {
-                let per: Vec<Value> = sides
+                let per = sides
                     .iter()
                     .filter_map(|&side| {
                         c.index_of(side).map(|i| {
                             let dv =
                                 lung_model::disease::volume_fraction_lost(i).unwrap_or(f64::NAN);
-                            json!({
-                                "side": side.name(),
-                                "pneumothorax_index": i,
-                                "dV": r3(dv),
-                                "drop_mm": r3(lung_model::disease::drop_for_index(i).drop_mm),
-                            })
+                            AffectedLung {
+                                side: side.name(),
+                                pneumothorax_index: i,
+                                dv: r3(dv),
+                                drop_mm: r3(lung_model::disease::drop_for_index(i).drop_mm),
+                            }
                         })
                     })
                     .collect();
-                disease["affected"] = json!(per);
+                disease.affected = Some(per);
             }
         }
-        out["disease"] = disease;
+        out.disease = Some(disease);
     }
     Ok(out)
 }
 
+/// What `lungdyn scene run` reports (`--json` writes it; [`run_text`] prints it).
+#[derive(Debug, Clone, Serialize)]
+pub struct RunReport {
+    /// The scene file.
+    pub scene: String,
+    /// The still patient's posture.
+    pub posture: &'static str,
+    /// Simulated seconds.
+    pub seconds: f64,
+    /// Ticks stepped.
+    pub ticks: u64,
+    /// Deformation mode.
+    pub mode: String,
+    /// Each simulated lung at the end.
+    pub lungs: Vec<RunLung>,
+    /// Ticks where a lung's volume or scale was not finite.
+    pub non_finite_frames: u64,
+    /// How often each stage of the tick did work.
+    pub stage_counts: engine::runtime::StageCounts,
+    /// The kernels used.
+    pub kernels: Vec<String>,
+    /// The disease state's figures (absent for normal breathing).
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub disease: Option<RunDisease>,
+}
+
+/// One lung of `scene run`.
+#[derive(Debug, Clone, Serialize)]
+pub struct RunLung {
+    /// Which lung.
+    pub side: &'static str,
+    /// Smallest volume, ml.
+    pub volume_min_ml: f64,
+    /// Largest volume, ml.
+    pub volume_max_ml: f64,
+    /// Tidal volume of the last complete breath, ml.
+    pub tidal_volume_ml: f64,
+    /// Rate of the last complete breath (`null`: no complete breath).
+    pub breaths_per_min: Option<f64>,
+    /// Rigid offset at the end, mm.
+    pub offset_mm: [f64; 3],
+    /// Collapse at the end.
+    pub collapse: f64,
+    /// Whether the lung is held (not breathing).
+    pub held: bool,
+    /// The mode's coefficients at the end.
+    pub coefficients: Vec<f64>,
+    /// Breathing cycles.
+    pub cycles: u32,
+}
+
+/// The disease state's figures of `scene run`.
+#[derive(Debug, Clone, Serialize)]
+pub struct RunDisease {
+    /// The `[disease] kind`.
+    pub kind: &'static str,
+    /// A tension pneumothorax's run.
+    #[serde(flatten)]
+    pub tension: Option<RunTension>,
+    /// A tumour's run.
+    #[serde(flatten)]
+    pub tumour: Option<RunTumour>,
+    /// A closed pneumothorax's affected lungs.
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub affected: Option<Vec<AffectedLung>>,
+}
+
+/// A tension pneumothorax as the engine ran it.
+#[derive(Debug, Clone, Serialize)]
+pub struct RunTension {
+    /// Cycles since the onset.
+    pub cycles_run: u64,
+    /// First cycle in arrest.
+    pub first_arrest_cycle: Option<u64>,
+    /// The interventions as applied.
+    pub events: Vec<EventReport>,
+}
+
+/// A tumour as the engine ran it.
+#[derive(Debug, Clone, Serialize)]
+pub struct RunTumour {
+    /// The baked tumour and its trajectory file.
+    pub tumour: TumourRun,
+    /// The centre's motion over the last breath, mm.
+    pub tumour_motion_mm: Xyz,
+    /// The same point's motion without the tumour, mm.
+    pub tumour_motion_normal_mm: Xyz,
+}
+
+/// The baked tumour of `scene run`.
+#[derive(Debug, Clone, Serialize)]
+pub struct TumourRun {
+    /// The lung.
+    pub side: &'static str,
+    /// Centre at rest, mm.
+    pub centre_mm: [f64; 3],
+    /// Volume, ml.
+    pub volume_ml: f64,
+    /// Vertices with expandability below 1.
+    pub vertices_affected: u64,
+    /// Kernel entries changed.
+    pub kernel_entries_changed: u64,
+    /// Kernel entries clamped.
+    pub kernel_entries_clamped: u64,
+    /// Change of the surface motion where the tumour reaches, %.
+    pub affected_motion_change_percent: MeanMax,
+    /// Raised resistance factors.
+    pub resistance_x: InhaleExhale,
+    /// The trajectory file.
+    pub trajectory_csv: String,
+    /// Ticks in it.
+    pub trajectory_ticks: usize,
+    /// Positions that were not finite.
+    pub non_finite_positions: u64,
+}
+
+/// A closed pneumothorax's affected lung in `scene run`.
+#[derive(Debug, Clone, Serialize)]
+pub struct AffectedLung {
+    /// Which lung.
+    pub side: &'static str,
+    /// Pneumothorax index I.
+    pub pneumothorax_index: f64,
+    /// Volume fraction lost.
+    #[serde(rename = "dV")]
+    pub dv: f64,
+    /// Base drop, mm.
+    pub drop_mm: f64,
+}
+
+/// Three components.
+#[derive(Debug, Clone, Copy, Serialize)]
+pub struct Xyz {
+    /// X.
+    pub x: f64,
+    /// Y.
+    pub y: f64,
+    /// Z.
+    pub z: f64,
+}
+
+/// A mean and a largest value.
+#[derive(Debug, Clone, Copy, Serialize)]
+pub struct MeanMax {
+    /// Mean.
+    pub mean: f64,
+    /// Largest.
+    pub max: f64,
+}
+
 /// The `scene run` report as text.
-pub fn run_text(v: &Value) -> String {
+pub fn run_text(r: &RunReport) -> String {
     let mut s = format!(
         "{}: {} s simulated ({} ticks, mode {}, patient {} and still){}\n",
-        v["scene"].as_str().unwrap_or(""),
-        v["seconds"],
-        v["ticks"],
-        v["mode"].as_str().unwrap_or(""),
-        v["posture"].as_str().unwrap_or(""),
-        if v["non_finite_frames"].as_u64() == Some(0) {
+        r.scene,
+        j(&r.seconds),
+        r.ticks,
+        r.mode,
+        r.posture,
+        if r.non_finite_frames == 0 {
             String::new()
         } else {
-            format!(", {} NON-FINITE frames", v["non_finite_frames"])
+            format!(", {} NON-FINITE frames", r.non_finite_frames)
         }
     );
-    for l in v["lungs"].as_array().into_iter().flatten() {
+    for l in &r.lungs {
         s += &format!(
             "  {} lung: {}–{} ml, last breath {} ml at {} /min, offset {} mm, collapse {}{}\n",
-            l["side"].as_str().unwrap_or(""),
-            l["volume_min_ml"],
-            l["volume_max_ml"],
-            l["tidal_volume_ml"],
-            l["breaths_per_min"],
-            l["offset_mm"],
-            l["collapse"],
-            if l["held"].as_bool() == Some(true) {
-                ", HELD (not breathing)"
-            } else {
-                ""
-            }
+            l.side,
+            j(&l.volume_min_ml),
+            j(&l.volume_max_ml),
+            j(&l.tidal_volume_ml),
+            j(&l.breaths_per_min),
+            j(&l.offset_mm),
+            j(&l.collapse),
+            if l.held { ", HELD (not breathing)" } else { "" }
         );
     }
-    if let Some(d) = v.get("disease") {
-        s += &format!("  disease {}", d["kind"].as_str().unwrap_or(""));
-        if let Some(c) = d.get("cycles_run") {
+    if let Some(d) = &r.disease {
+        s += &format!("  disease {}", d.kind);
+        if let Some(t) = &d.tension {
             s += &format!(
                 ": {} cycles, {}",
-                c,
-                match d["first_arrest_cycle"].as_u64() {
+                t.cycles_run,
+                match t.first_arrest_cycle {
                     Some(a) => format!("arrest at cycle {a}"),
                     None => "no arrest".to_string(),
                 }
             );
         }
         s += "\n";
-        if let Some(m) = d.get("tumour_motion_mm") {
+        if let Some(t) = &d.tumour {
+            let (m, n) = (&t.tumour_motion_mm, &t.tumour_motion_normal_mm);
             s += &format!(
                 "  tumour centre {} mm moves {} / {} / {} mm (x / y / z) over the last breath (without \
                  the tumour: {} / {} / {} mm); trajectory in {}\n",
-                d["tumour"]["centre_mm"],
-                m["x"],
-                m["y"],
-                m["z"],
-                d["tumour_motion_normal_mm"]["x"],
-                d["tumour_motion_normal_mm"]["y"],
-                d["tumour_motion_normal_mm"]["z"],
-                d["tumour"]["trajectory_csv"].as_str().unwrap_or("")
+                j(&t.tumour.centre_mm),
+                j(&m.x),
+                j(&m.y),
+                j(&m.z),
+                j(&n.x),
+                j(&n.y),
+                j(&n.z),
+                t.tumour.trajectory_csv
             );
         }
-        s += &event_lines(d);
+        if let Some(t) = &d.tension {
+            s += &event_lines(&t.events);
+        }
     }
-    s += &format!("  stage counts: {}\n", v["stage_counts"]);
+    s += &format!("  stage counts: {}\n", j(&r.stage_counts));
     s
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    fn keys(v: &serde_json::Value) -> Vec<&str> {
+        let mut k: Vec<&str> = v
+            .as_object()
+            .expect("an object")
+            .keys()
+            .map(String::as_str)
+            .collect();
+        k.sort_unstable();
+        k
+    }
+
+    /// The report's JSON keys are what scripts read (`scene check --json`); the text is built from
+    /// the same typed fields and shows the figures as the JSON writes them.
+    #[test]
+    fn the_check_report_keeps_its_json_keys_and_its_text_shows_the_same_figures() {
+        let scenes = std::path::Path::new(env!("CARGO_MANIFEST_DIR")).join("../scenes");
+        let check = |file: &str| {
+            run(&CheckArgs {
+                file: scenes.join(file),
+                cycles: 40,
+                json: true,
+            })
+            .unwrap()
+        };
+        let r = check("tension_pneumothorax.toml");
+        let v = serde_json::to_value(&r).unwrap();
+        assert_eq!(
+            keys(&v),
+            ["bands", "disease", "lungs", "mode", "pv", "render", "scene", "valid"]
+        );
+        assert_eq!(
+            keys(&v["pv"]),
+            [
+                "breaths_per_min",
+                "constants",
+                "frc_ml",
+                "preset",
+                "tidal_volume_ml"
+            ]
+        );
+        assert_eq!(keys(&v["render"]), ["calibration", "hmd"]);
+        let d = &v["disease"];
+        assert_eq!(
+            keys(d),
+            [
+                "course",
+                "cycles_to_arrest",
+                "engine_applies_it",
+                "events",
+                "final",
+                "kind",
+                "normal_cycles_before_onset",
+                "onset_s",
+                "shift_mm_per_ml",
+                "side",
+                "v1_max_ml",
+                "v2_max_ml"
+            ]
+        );
+        assert_eq!(d["kind"], "tension-pneumothorax");
+        assert_eq!(d["events"][0]["kind"], "needle-decompression");
+        assert_eq!(
+            keys(&d["final"]),
+            [
+                "affected_tidal_ml",
+                "arrest",
+                "breaths_per_min",
+                "cycle",
+                "dV",
+                "drop_mm",
+                "other_tidal_ml",
+                "pleural_air_ml",
+                "shift_mm",
+                "start_tick",
+                "svc_closed"
+            ]
+        );
+        let t = text(&r);
+        assert!(t.contains(&format!("FRC {} ml", v["pv"]["frc_ml"])), "{t}");
+        assert!(
+            t.contains(&format!(
+                "event at tick {} (cycle {}): needle-decompression left — applied",
+                d["events"][0]["tick"], d["events"][0]["cycle"]
+            )),
+            "{t}"
+        );
+        assert!(t.contains(&format!("V1max {} ml", d["v1_max_ml"])), "{t}");
+
+        let r = check("bilateral_pneumothorax.toml");
+        let v = serde_json::to_value(&r).unwrap();
+        let d = &v["disease"];
+        assert_eq!(
+            keys(d),
+            [
+                "breaths_per_min",
+                "engine_applies_it",
+                "exhale_s",
+                "inhale_s",
+                "kind",
+                "lungs",
+                "phase_clamped"
+            ]
+        );
+        assert_eq!(
+            keys(&d["lungs"][0]),
+            [
+                "base_lift_mm",
+                "base_volume_ml",
+                "dV",
+                "drop_clamped",
+                "drop_mm",
+                "held_ml",
+                "offset_mm",
+                "pneumothorax_index",
+                "side",
+                "tidal_volume_ml"
+            ]
+        );
+        let l = &d["lungs"][1];
+        assert!(
+            text(&r).contains(&format!(
+                "{} lung: I = {}, dV = {}, drop {} mm",
+                l["side"].as_str().unwrap(),
+                l["pneumothorax_index"],
+                l["dV"],
+                l["drop_mm"]
+            )),
+            "{}",
+            text(&r)
+        );
+
+        let r = check("default.toml");
+        let v = serde_json::to_value(&r).unwrap();
+        assert!(v["disease"].is_null() && v["render"]["calibration"].is_null());
+        assert!(text(&r).ends_with("no disease state: normal breathing\n"));
+    }
 }

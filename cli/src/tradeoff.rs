@@ -26,6 +26,17 @@ use lung_model::deform::modes::{box_coordinates, CpuLung, ModeData};
 use lung_model::mesh::{generate, Side};
 use lung_model::orientation::{ForceWeights, SeedBlend, SUPINE_GRAVITY};
 
+/// `--gpu`: whether the trade study times the GPU.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, clap::ValueEnum)]
+pub enum GpuUse {
+    /// Time the GPU when an adapter opens; CPU figures only otherwise (said).
+    Auto,
+    /// CPU figures only.
+    Off,
+    /// Fail without a GPU adapter.
+    Require,
+}
+
 /// Options of `lungdyn bench tradeoff`.
 #[derive(Debug, Clone, clap::Args)]
 pub struct TradeoffArgs {
@@ -40,9 +51,9 @@ pub struct TradeoffArgs {
     /// Most SH bands to measure (1..8).
     #[arg(long, default_value_t = 8)]
     pub max_bands: usize,
-    /// GPU timings: "auto" (when an adapter opens), "off", or "require" (fail without one).
-    #[arg(long, default_value = "auto", value_parser = ["auto", "off", "require"])]
-    pub gpu: String,
+    /// GPU timings: auto (when an adapter opens), off, or require (fail without one).
+    #[arg(long, value_enum, default_value_t = GpuUse::Auto)]
+    pub gpu: GpuUse,
     /// Timed repetitions per CPU/GPU figure (the median is reported).
     #[arg(long, default_value_t = 31)]
     pub runs: usize,
@@ -287,11 +298,11 @@ pub fn run(args: &TradeoffArgs) -> anyhow::Result<Tradeoff> {
         "lungdyn bench tradeoff: writing {}",
         out_dir.join("tradeoff.{md,csv,png,svg}").display()
     );
-    let gpu = match args.gpu.as_str() {
-        "off" => None,
+    let gpu = match args.gpu {
+        GpuUse::Off => None,
         want => match renderer::gpu::Gpu::new() {
             Ok(g) => Some(g),
-            Err(e) if want == "require" => return Err(e.into()),
+            Err(e) if want == GpuUse::Require => return Err(e.into()),
             Err(e) => {
                 eprintln!("lungdyn: no GPU ({e}); CPU figures only");
                 None

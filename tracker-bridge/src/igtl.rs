@@ -926,8 +926,8 @@ pub struct Position {
 }
 
 /// Quaternion component order of pyigtl `POSITION` items, which pyigtl packs exactly as the
-/// sender's script passed them.
-#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+/// sender's script passed them (`--pyigtl-quat-order xyzw|wxyz`).
+#[derive(Debug, Clone, Copy, PartialEq, Eq, clap::ValueEnum)]
 pub enum QuatOrder {
     /// (x, y, z, w): the OpenIGTLink order; the right default.
     Xyzw,

@@ -96,8 +96,8 @@ pub struct SourceArgs {
     pub sweep_period_s: f32,
     /// Synthetic source: the patient's posture — supine, sitting, prone, left-lateral or
     /// right-lateral (a fixed turn before the drift and the sweeps).
-    #[arg(long, default_value = "supine", value_parser = ["supine", "sitting", "prone", "left-lateral", "right-lateral"])]
-    pub posture: String,
+    #[arg(long, value_enum, default_value_t = synthetic::Posture::Supine)]
+    pub posture: synthetic::Posture,
     /// Record every received sample with its receive time to FILE (never overwritten).
     #[arg(long, value_name = "FILE")]
     pub record: Option<PathBuf>,
@@ -115,8 +115,8 @@ pub struct SourceArgs {
     #[arg(long, value_name = "HZ")]
     pub ndi_poll_hz: Option<f64>,
     /// pyigtl POSITION items: quaternion component order as the sender packed them.
-    #[arg(long, default_value = "xyzw", value_parser = ["xyzw", "wxyz"])]
-    pub pyigtl_quat_order: String,
+    #[arg(long, value_enum, default_value_t = igtl::QuatOrder::Xyzw)]
+    pub pyigtl_quat_order: igtl::QuatOrder,
 }
 
 impl Default for SourceArgs {
@@ -135,13 +135,13 @@ impl Default for SourceArgs {
             roll_deg: 0.0,
             pitch_deg: 0.0,
             sweep_period_s: 20.0,
-            posture: "supine".into(),
+            posture: synthetic::Posture::Supine,
             record: None,
             as_fast_as_possible: false,
             ndi_rom: Vec::new(),
             ndi_tx: false,
             ndi_poll_hz: None,
-            pyigtl_quat_order: "xyzw".into(),
+            pyigtl_quat_order: igtl::QuatOrder::Xyzw,
         }
     }
 }
@@ -211,11 +211,7 @@ impl SourceArgs {
         };
         config.check()?;
         let options = SourceOptions {
-            pyigtl_quat_order: if self.pyigtl_quat_order == "wxyz" {
-                igtl::QuatOrder::Wxyz
-            } else {
-                igtl::QuatOrder::Xyzw
-            },
+            pyigtl_quat_order: self.pyigtl_quat_order,
             ndi_roms: self.ndi_rom.clone(),
             ndi_tx: self.ndi_tx,
             ndi_poll_hz: self.ndi_poll_hz.unwrap_or(self.rate_hz),
@@ -226,7 +222,7 @@ impl SourceArgs {
                 roll_deg: self.roll_deg,
                 pitch_deg: self.pitch_deg,
                 sweep_period_s: self.sweep_period_s,
-                posture: synthetic::Posture::parse(&self.posture).unwrap_or_default(),
+                posture: self.posture,
                 ..Default::default()
             },
             ..SourceOptions::default()

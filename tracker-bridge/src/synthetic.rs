@@ -37,8 +37,9 @@ pub struct Synthetic {
     pub posture: Posture,
 }
 
-/// A patient's posture on the bed.
-#[derive(Debug, Clone, Copy, PartialEq, Eq, Default)]
+/// A patient's posture on the bed (`--posture`: supine, sitting, prone, left-lateral,
+/// right-lateral).
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Default, clap::ValueEnum)]
 pub enum Posture {
     /// On the back.
     #[default]
@@ -54,20 +55,6 @@ pub enum Posture {
 }
 
 impl Posture {
-    /// All postures with their names (`--posture`).
-    pub const ALL: [(&'static str, Posture); 5] = [
-        ("supine", Posture::Supine),
-        ("sitting", Posture::Sitting),
-        ("prone", Posture::Prone),
-        ("left-lateral", Posture::LeftLateral),
-        ("right-lateral", Posture::RightLateral),
-    ];
-
-    /// Parse a name of [`Self::ALL`].
-    pub fn parse(s: &str) -> Option<Posture> {
-        Self::ALL.iter().find(|(n, _)| *n == s).map(|&(_, p)| p)
-    }
-
     /// The room-frame turn from supine (head at +X, +Z up): sitting turns the head up about the
     /// bed's cross axis, prone rolls 180° about its long axis, the lateral postures roll 90°
     /// (left-lateral puts the patient's left side, room +Y when supine, down).
@@ -302,9 +289,24 @@ mod posture_tests {
             q(Posture::RightLateral) * Vec3::new(-1.0, 0.0, 0.0),
             down
         ));
-        for (name, p) in Posture::ALL {
-            assert_eq!(Posture::parse(name), Some(p));
+        use clap::ValueEnum;
+        let names: Vec<String> = Posture::value_variants()
+            .iter()
+            .map(|p| p.to_possible_value().unwrap().get_name().to_string())
+            .collect();
+        assert_eq!(
+            names,
+            [
+                "supine",
+                "sitting",
+                "prone",
+                "left-lateral",
+                "right-lateral"
+            ]
+        );
+        for (name, p) in names.iter().zip(Posture::value_variants()) {
+            assert_eq!(Posture::from_str(name, false), Ok(*p));
         }
-        assert_eq!(Posture::parse("standing"), None);
+        assert!(Posture::from_str("standing", false).is_err());
     }
 }
