@@ -419,12 +419,114 @@ pub struct ControlPacket {
     pub layout_version: u32,
     /// [`Intervention::code`].
     pub kind: u32,
-    /// Lung slot ([`LUNG_RIGHT`], [`LUNG_LEFT`]).
+    /// Lung slot ([`LUNG_RIGHT`], [`LUNG_LEFT`]), or [`LUNG_AFFECTED`]: the pneumothorax's side.
     pub lung: u32,
     /// Explicit padding.
     pub _pad: u32,
-    /// Sender's sequence number (a repeated number is one action, not two).
+    /// Sender's sequence number ([`control_sequence`]; a repeated number is one action, not two).
+    /// The engine's [`ControlReply`]s carry it back.
     pub sequence: u64,
+}
+
+/// [`ControlPacket::lung`] meaning "the side of the scene's pneumothorax": the engine resolves it and
+/// its [`ControlReply::lung`] names the side it acted on.
+pub const LUNG_AFFECTED: u32 = u32::MAX;
+
+/// A sequence number for a [`ControlPacket`] that no other sender of the host uses at the same
+/// time: the low 48 bits of the send time (ns; they repeat after 3.2 days) and the low 16 bits of
+/// the sender's process id. The engine replies with it, so each sender picks out its own answers.
+pub fn control_sequence(pid: u32, now_ns: u64) -> u64 {
+    (now_ns & 0x0000_ffff_ffff_ffff) | (u64::from(pid & 0xffff) << 48)
+}
+
+/// [`ControlReply::status`]: the engine took the action; it is applied when the next disease cycle
+/// is prepared (a second reply, [`REPLY_APPLIED`], follows).
+pub const REPLY_RECEIVED: u32 = 1;
+/// [`ControlReply::status`]: the action was applied to the disease state; [`ControlReply::outcome`]
+/// says what it did, from [`ControlReply::cycle`] on.
+pub const REPLY_APPLIED: u32 = 2;
+/// [`ControlReply::status`]: the engine cannot use the action (no tension pneumothorax in the scene,
+/// an unknown kind or lung); the text says why. Final.
+pub const REPLY_IGNORED: u32 = 3;
+/// [`ControlReply::status`]: the engine is over capacity (too many actions wait for the next
+/// breath); nothing was done, send it again later. Final.
+pub const REPLY_REFUSED: u32 = 4;
+
+/// [`ControlReply::outcome`]: it changed the course.
+pub const OUTCOME_APPLIED: u32 = 1;
+/// [`ControlReply::outcome`]: done on the unaffected side, no effect.
+pub const OUTCOME_WRONG_SIDE: u32 = 2;
+/// [`ControlReply::outcome`]: the same intervention is already in place.
+pub const OUTCOME_ALREADY_APPLIED: u32 = 3;
+/// [`ControlReply::outcome`]: it does not act on this pneumothorax (the text says why).
+pub const OUTCOME_NO_EFFECT: u32 = 4;
+
+/// Bytes of [`ControlReply::text`].
+pub const REPLY_TEXT_BYTES: usize = 128;
+
+/// The engine's answer to one [`ControlPacket`] (engine → every sender; each keeps those with its
+/// [`ControlPacket::sequence`]): first [`REPLY_RECEIVED`] (or a final [`REPLY_IGNORED`] /
+/// [`REPLY_REFUSED`]), then [`REPLY_APPLIED`] with the outcome and the cycle it shows from.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Pod, Zeroable)]
+#[repr(C)]
+pub struct ControlReply {
+    /// [`LAYOUT_VERSION`] of the engine.
+    pub layout_version: u32,
+    /// [`REPLY_RECEIVED`], [`REPLY_APPLIED`], [`REPLY_IGNORED`] or [`REPLY_REFUSED`].
+    pub status: u32,
+    /// The [`ControlPacket::sequence`] answered.
+    pub sequence: u64,
+    /// Engine tick the action arrived at.
+    pub tick: u64,
+    /// First disease cycle (since onset) whose state reflects it ([`REPLY_APPLIED`] only).
+    pub cycle: u64,
+    /// [`ControlPacket::kind`] as received.
+    pub kind: u32,
+    /// The lung acted on ([`LUNG_RIGHT`], [`LUNG_LEFT`]; the packet's lung when unusable).
+    pub lung: u32,
+    /// [`OUTCOME_APPLIED`], ... ([`REPLY_APPLIED`] only; 0 otherwise).
+    pub outcome: u32,
+    /// Bytes of [`Self::text`] used.
+    pub text_len: u32,
+    /// UTF-8 words: what the outcome does ("air venting") or why the action was ignored/refused.
+    pub text: [u8; REPLY_TEXT_BYTES],
+}
+
+impl Default for ControlReply {
+    fn default() -> Self {
+        Self {
+            layout_version: LAYOUT_VERSION,
+            ..Zeroable::zeroed()
+        }
+    }
+}
+
+impl ControlReply {
+    /// Set [`Self::text`] to the pieces joined, cut at a character boundary to fit (no allocation:
+    /// the engine calls this on its tick).
+    pub fn set_text(&mut self, pieces: &[&str]) {
+        let mut n = 0;
+        'pieces: for piece in pieces {
+            for c in piece.chars() {
+                let mut buf = [0u8; 4];
+                let b = c.encode_utf8(&mut buf).as_bytes();
+                if n + b.len() > REPLY_TEXT_BYTES {
+                    break 'pieces;
+                }
+                self.text[n..n + b.len()].copy_from_slice(b);
+                n += b.len();
+            }
+        }
+        self.text[n..].fill(0);
+        self.text_len = n as u32;
+    }
+
+    /// [`Self::text`] as a string (an invalid length or bytes from a faulty peer read as
+    /// replacement characters, never a panic).
+    pub fn text(&self) -> std::borrow::Cow<'_, str> {
+        let n = (self.text_len as usize).min(REPLY_TEXT_BYTES);
+        String::from_utf8_lossy(&self.text[..n])
+    }
 }
 
 /// A trainee's intervention on a tension pneumothorax (EQUATIONS.md §4.3), as named in scenes and
@@ -516,6 +618,14 @@ impl Message for ControlPacket {
     }
 }
 
+impl Message for ControlReply {
+    const NAME: &'static str = "ControlReply";
+    const TYPE_NAME: &'static str = "lungdyn.ControlReply.v3";
+    fn layout_version(&self) -> u32 {
+        self.layout_version
+    }
+}
+
 const VERSION_SUFFIX: &str = ".v3";
 const _: () = assert!(
     LAYOUT_VERSION == 3,
@@ -570,6 +680,17 @@ const _: () = {
     assert!(offset_of!(ControlPacket, kind) == 4);
     assert!(offset_of!(ControlPacket, lung) == 8);
     assert!(offset_of!(ControlPacket, sequence) == 16);
+    assert!(ends_with(ControlReply::TYPE_NAME, VERSION_SUFFIX));
+    assert!(size_of::<ControlReply>() == 48 + REPLY_TEXT_BYTES && align_of::<ControlReply>() == 8);
+    assert!(offset_of!(ControlReply, status) == 4);
+    assert!(offset_of!(ControlReply, sequence) == 8);
+    assert!(offset_of!(ControlReply, tick) == 16);
+    assert!(offset_of!(ControlReply, cycle) == 24);
+    assert!(offset_of!(ControlReply, kind) == 32);
+    assert!(offset_of!(ControlReply, lung) == 36);
+    assert!(offset_of!(ControlReply, outcome) == 40);
+    assert!(offset_of!(ControlReply, text_len) == 44);
+    assert!(offset_of!(ControlReply, text) == 48);
 
     assert!(size_of::<HopStamps>() == 48 && align_of::<HopStamps>() == 8);
     assert!(offset_of!(HopStamps, capture_ns) == 0);
@@ -693,6 +814,32 @@ mod tests {
         // The wire codes are the protocol: pinned.
         let codes: Vec<u32> = Intervention::ALL.iter().map(|k| k.code()).collect();
         assert_eq!(codes, [1, 2, 3]);
+    }
+
+    #[test]
+    fn reply_text_is_cut_at_a_character_boundary_and_read_back_safely() {
+        let mut r = ControlReply::default();
+        r.set_text(&["applied", " — ", "air venting"]);
+        assert_eq!(r.text(), "applied — air venting");
+        // 127 ASCII bytes then a 3-byte dash: the dash does not fit and is left out whole.
+        let long = "x".repeat(REPLY_TEXT_BYTES - 1);
+        r.set_text(&[&long, "—", "tail"]);
+        assert_eq!(r.text(), long);
+        assert!(r.text[REPLY_TEXT_BYTES - 1] == 0);
+        r.set_text(&[]);
+        assert_eq!(r.text(), "");
+        // A peer's nonsense length or bytes are read, not trusted.
+        r.text_len = u32::MAX;
+        r.text = [0xff; REPLY_TEXT_BYTES];
+        assert_eq!(r.text().chars().count(), REPLY_TEXT_BYTES);
+    }
+
+    #[test]
+    fn control_sequences_differ_by_sender_and_by_time() {
+        let a = control_sequence(1234, 5_000_000_000);
+        assert_ne!(a, control_sequence(1235, 5_000_000_000));
+        assert_ne!(a, control_sequence(1234, 5_000_000_001));
+        assert_eq!(a >> 48, 1234);
     }
 
     #[test]

@@ -384,7 +384,11 @@ impl Session {
             kind: kind.code(),
             lung: side.index() as u32,
             _pad: 0,
-            sequence: self.control_sequence,
+            // Unique among the engine's senders (it takes a repeated number as one action).
+            sequence: ipc_types::control_sequence(
+                std::process::id(),
+                self.clock.now_ns().wrapping_add(self.control_sequence),
+            ),
         };
         outlet.publish(&packet)?;
         Ok(Some(*side))

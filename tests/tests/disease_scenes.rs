@@ -230,7 +230,7 @@ fn a_trainee_decompresses_a_running_tension_pneumothorax() {
             "--scene",
             s.to_str().unwrap(),
             "--seconds",
-            "15",
+            "25",
             "--snapshots",
             "0",
             "--out",
@@ -247,7 +247,7 @@ fn a_trainee_decompresses_a_running_tension_pneumothorax() {
     let mut sent = false;
     // (A fresh checkout bakes both lungs before the processes start.)
     while start.elapsed() < std::time::Duration::from_secs(120) {
-        let (ok, _, err) = lungdyn(&[
+        let (ok, out, err) = lungdyn(&[
             "scene",
             "event",
             &instance,
@@ -256,6 +256,12 @@ fn a_trainee_decompresses_a_running_tension_pneumothorax() {
             "left",
         ]);
         if ok {
+            // The sender waits for the engine's outcome and says it in words.
+            assert!(
+                out.starts_with("needle decompression, left: applied at tick ")
+                    && out.contains("— air venting"),
+                "{out}"
+            );
             sent = true;
             break;
         }

@@ -117,7 +117,8 @@ pub struct TensionRun {
     onset_tick: u64,
     timed: Vec<TimedEvent>,
     next_timed: usize,
-    live: Vec<(u64, Intervention, Side)>,
+    /// Live actions waiting for the next preparation: arrival tick, kind, side, sender's tag.
+    live: Vec<(u64, Intervention, Side, u64)>,
     prepared: Option<CourseCycle>,
     spent: Option<CourseCycle>,
     started: bool,
@@ -129,15 +130,17 @@ pub struct TensionRun {
     requested: bool,
     /// The interventions as applied (arrival tick, cycle, outcome), in order.
     pub events: Vec<EventRecord>,
+    /// The sender's tag of each of [`Self::events`] (0: a timed event of the scene).
+    event_tags: Vec<u64>,
     /// Events reported by [`TensionRun::take_new_events`] so far.
     reported: usize,
     /// First course cycle in arrest, if any.
     pub first_arrest: Option<u64>,
 }
 
-/// Live actions queued between two preparations (more are refused, not queued: a trainee does not
-/// act 16 times in one breath).
-pub const MAX_QUEUED_ACTIONS: usize = 16;
+/// Live actions queued between two preparations (more are refused, not queued, and the sender is
+/// told): room for every one of the transport's senders at once, each with one action in flight.
+pub const MAX_QUEUED_ACTIONS: usize = 64;
 
 /// One lung's part of a [`Recipe`].
 #[derive(Debug, Clone)]
@@ -293,6 +296,7 @@ impl TensionRun {
             cycles_run: 0,
             requested: false,
             events: Vec::with_capacity(64),
+            event_tags: Vec::with_capacity(64),
             reported: 0,
             first_arrest: None,
         };
@@ -301,12 +305,13 @@ impl TensionRun {
     }
 
     /// Queue a trainee's action that arrived at `tick`; it is applied when the next cycle is
-    /// prepared. `false` when the queue is full (the action is dropped and the caller says so).
-    pub fn intervene_live(&mut self, tick: u64, kind: Intervention, side: Side) -> bool {
+    /// prepared, and [`Self::take_new_events`] reports it with `tag` (the sender's sequence
+    /// number). `false` when the queue is full (the action is dropped and the caller says so).
+    pub fn intervene_live(&mut self, tick: u64, kind: Intervention, side: Side, tag: u64) -> bool {
         if self.live.len() >= MAX_QUEUED_ACTIONS {
             return false;
         }
-        self.live.push((tick, kind, side));
+        self.live.push((tick, kind, side, tag));
         true
     }
 
@@ -327,11 +332,13 @@ impl TensionRun {
                 }
                 let r = self.tension.intervene(e.kind, e.side, e.tick(tick_hz));
                 self.events.push(r);
+                self.event_tags.push(0);
                 self.next_timed += 1;
             }
-            for (tick, kind, side) in self.live.drain(..) {
+            for (tick, kind, side, tag) in self.live.drain(..) {
                 let r = self.tension.intervene(kind, side, tick);
                 self.events.push(r);
+                self.event_tags.push(tag);
             }
         }
         let c = self.tension.advance();
@@ -404,11 +411,14 @@ impl TensionRun {
         tick == 0 || tick.saturating_sub(b.cycle_start) >= b.breathing.cycle_ticks() as u64
     }
 
-    /// Interventions applied since the last call (for the process's one line per action).
-    pub fn take_new_events(&mut self) -> &[EventRecord] {
-        let new = &self.events[self.reported..];
+    /// Interventions applied since the last call (for the process's one line and reply per
+    /// action), each with its sender's tag (0: a timed event of the scene).
+    pub fn take_new_events(&mut self) -> impl Iterator<Item = (&EventRecord, u64)> + '_ {
+        let from = self.reported;
         self.reported = self.events.len();
-        new
+        self.events[from..]
+            .iter()
+            .zip(self.event_tags[from..].iter().copied())
     }
 
     /// The affected lung.

@@ -479,15 +479,36 @@ impl EngineCore {
         kind: lung_model::disease::tension::Intervention,
         side: Side,
     ) -> LiveAction {
+        self.intervene_tagged(tick, kind, side, 0)
+    }
+
+    /// [`Self::intervene`] with the sender's `tag` (its sequence number), which comes back with
+    /// the applied event from [`disease::TensionRun::take_new_events`].
+    pub fn intervene_tagged(
+        &mut self,
+        tick: u64,
+        kind: lung_model::disease::tension::Intervention,
+        side: Side,
+        tag: u64,
+    ) -> LiveAction {
         match &mut self.disease {
             Some(disease::DiseaseRun::Tension(run)) => {
-                if run.intervene_live(tick, kind, side) {
+                if run.intervene_live(tick, kind, side, tag) {
                     LiveAction::Queued
                 } else {
                     LiveAction::QueueFull
                 }
             }
             _ => LiveAction::NoTension,
+        }
+    }
+
+    /// The side of the scene's tension pneumothorax (where a live action without a side goes);
+    /// `None` without one.
+    pub fn tension_side(&self) -> Option<Side> {
+        match &self.disease {
+            Some(disease::DiseaseRun::Tension(run)) => Some(run.affected()),
+            _ => None,
         }
     }
 

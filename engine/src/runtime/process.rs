@@ -7,13 +7,15 @@
 //! one zero-copy publish — no allocation, no lock, no logging beyond one line when the tracker
 //! connects. [`run`] wires the loop to iceoryx2 and the host's clock.
 
-use ipc_types::{ControlPacket, EngineFrame, Message, TrackerFrame, LUNG_LEFT};
+use ipc_types::{ControlPacket, ControlReply, EngineFrame, Message, TrackerFrame, LUNG_LEFT};
 use lung_model::scene::{Scene, SceneError};
 use thiserror::Error;
 use transport::clock::{now_ns, Clock, Monotonic};
 use transport::pacer::{PacerConfig, PacerStats, Wake};
 use transport::process::{pin_to_core, ArgError, PinError, ProcessArgs};
 use transport::{iox, Instance, Pacer, PortError, Publish, Receive};
+
+use lung_model::disease::tension::Outcome;
 
 use super::{CoreError, EngineCore};
 
@@ -50,6 +52,9 @@ pub enum EngineError {
 pub struct LoopStats {
     /// Ticks run (frames published).
     pub ticks: u64,
+    /// A trainee's actions: received (queued), ignored (unusable), refused (over capacity) and
+    /// repeated packets taken once.
+    pub actions: ActionCounts,
     /// The pacer's counters (sample vs deadline ticks, held, coalesced, skipped deadlines).
     pub pacer: PacerStats,
     /// Disease cycles prepared after a publish, and the longest preparation (ns): the work the
@@ -122,23 +127,71 @@ impl Worker {
     }
 }
 
+/// What became of the control packets of a run: each one is counted once, and its sender got a
+/// [`ControlReply`] saying so (never a silent drop).
+#[derive(Debug, Clone, Copy, Default, PartialEq, Eq)]
+pub struct ActionCounts {
+    /// Queued for the next disease cycle (a [`ipc_types::REPLY_RECEIVED`] reply).
+    pub received: u64,
+    /// Applied to the disease state (a [`ipc_types::REPLY_APPLIED`] reply with the outcome).
+    pub applied: u64,
+    /// Not usable: no tension pneumothorax, an unknown kind or lung, another layout.
+    pub ignored: u64,
+    /// Over capacity: too many actions waiting for the next cycle.
+    pub refused: u64,
+    /// The same sequence number again (one action, not two; no second reply).
+    pub repeated: u64,
+}
+
+/// The control ports of the loop: a trainee's actions in, the engine's answers out.
+pub struct Controls<'a> {
+    /// The control stream.
+    pub inlet: &'a mut dyn Receive<ControlPacket>,
+    /// The replies, one or two per action.
+    pub replies: &'a mut dyn Publish<ControlReply>,
+}
+
+/// Sequence numbers seen lately (a repeated packet is one action): a fixed ring, no allocation.
+struct Seen {
+    ring: [u64; 128],
+    next: usize,
+}
+
+impl Seen {
+    /// True the first time `sequence` is offered (within the last 128).
+    fn first(&mut self, sequence: u64) -> bool {
+        if self.ring.contains(&sequence) {
+            return false;
+        }
+        self.ring[self.next] = sequence;
+        self.next = (self.next + 1) % self.ring.len();
+        true
+    }
+}
+
 /// Run the engine loop until `stop()` says so: pace on `rx`, step `core`, publish on `tx`.
 /// `announce` names the instance in the one line printed when the first tracker frame arrives and
 /// in the one line per applied intervention (`None`: silent, for tests). After each publish (the
-/// tick's slack): a trainee's actions from `control`, then the disease state's next cycle.
+/// tick's slack): a trainee's actions from `control` (each answered on its reply port: received,
+/// ignored or refused now, applied with its outcome when the next cycle takes it), then the disease
+/// state's next cycle.
 #[allow(clippy::too_many_arguments)]
 pub fn run_loop(
     core: &mut EngineCore,
     rx: &mut dyn Receive<TrackerFrame>,
     tx: &mut dyn Publish<EngineFrame>,
-    control: Option<&mut dyn Receive<ControlPacket>>,
+    control: Option<Controls<'_>>,
     clock: &dyn Clock,
     pacer: PacerConfig,
     stop: &mut dyn FnMut() -> bool,
     announce: Option<&str>,
 ) -> Result<LoopStats, EngineError> {
     let mut control = control;
-    let mut last_sequence = None;
+    let mut seen = Seen {
+        ring: [0; 128],
+        next: 0,
+    };
+    let mut actions = ActionCounts::default();
     let (mut prepared_cycles, mut prepare_max_ns) = (0u64, 0u64);
     let mut late_preparations = 0u64;
     let mut worker: Option<Worker> = None;
@@ -181,21 +234,30 @@ pub fn run_loop(
         frame.stamps.engine_receive_ns = t.at_ns;
         frame.stamps.engine_publish_ns = clock.now_ns();
         tx.publish(&frame)?;
-        if let Some(c) = control.as_deref_mut() {
-            let mut actions = [None; 8];
-            let mut n = 0;
-            c.drain(&mut |p: &ControlPacket| {
-                if n < actions.len() {
-                    actions[n] = Some(*p);
-                    n += 1;
+        if let Some(c) = control.as_mut() {
+            // Every pending packet, in the order the stream gives them (none is left behind or
+            // dropped: the stream's buffer holds one from each sender even after a stall).
+            let mut failed = None;
+            c.inlet.drain(&mut |p: &ControlPacket| {
+                if failed.is_some() {
+                    return;
+                }
+                if !seen.first(p.sequence) {
+                    actions.repeated += 1;
+                    return;
+                }
+                let reply = live_action(core, tick, p, announce);
+                match reply.status {
+                    ipc_types::REPLY_RECEIVED => actions.received += 1,
+                    ipc_types::REPLY_REFUSED => actions.refused += 1,
+                    _ => actions.ignored += 1,
+                }
+                if let Err(e) = c.replies.publish(&reply) {
+                    failed = Some(e);
                 }
             })?;
-            for p in actions.iter().flatten() {
-                if last_sequence == Some(p.sequence) {
-                    continue;
-                }
-                last_sequence = Some(p.sequence);
-                live_action(core, tick, p, announce);
+            if let Some(e) = failed {
+                return Err(e.into());
             }
         }
         // The disease state's next cycle: its cheap step here, the PV tables on the worker.
@@ -210,26 +272,52 @@ pub fn run_loop(
                 prepare_max_ns = prepare_max_ns.max(took);
             }
         }
-        if let (Some(name), Some(super::disease::DiseaseRun::Tension(run))) =
-            (announce, core.disease_mut())
-        {
-            let side = run.affected();
-            for e in run.take_new_events() {
-                eprintln!(
-                    "engine[{name}]: {} on the {} lung (arrived at tick {}, shows from disease cycle \
-                     {}): {:?}{}",
-                    e.kind.name(),
-                    e.side.name(),
-                    e.tick,
-                    e.cycle,
-                    e.outcome,
-                    if e.side != side { " (the pneumothorax is on the other side)" } else { "" }
-                );
+        if let Some(super::disease::DiseaseRun::Tension(run)) = core.disease_mut() {
+            let affected = run.affected();
+            for (e, tag) in run.take_new_events() {
+                let (word, detail) = e.outcome.words(e.kind);
+                if let Some(name) = announce {
+                    eprintln!(
+                        "engine[{name}]: {} on the {} lung (arrived at tick {}, shows from disease \
+                         cycle {}): {word} — {detail}{}",
+                        e.kind.name(),
+                        e.side.name(),
+                        e.tick,
+                        e.cycle,
+                        if e.side != affected && e.outcome != Outcome::WrongSide {
+                            " (the pneumothorax is on the other side)"
+                        } else {
+                            ""
+                        }
+                    );
+                }
+                // A live action (tag = its sender's sequence) is answered; a timed one is not.
+                if let (Some(c), true) = (control.as_mut(), tag != 0) {
+                    let mut reply = ControlReply {
+                        status: ipc_types::REPLY_APPLIED,
+                        sequence: tag,
+                        tick: e.tick,
+                        cycle: e.cycle,
+                        kind: e.kind.code(),
+                        lung: e.side.index() as u32,
+                        outcome: match e.outcome {
+                            Outcome::Applied => ipc_types::OUTCOME_APPLIED,
+                            Outcome::WrongSide => ipc_types::OUTCOME_WRONG_SIDE,
+                            Outcome::AlreadyApplied => ipc_types::OUTCOME_ALREADY_APPLIED,
+                            Outcome::NoEffect(_) => ipc_types::OUTCOME_NO_EFFECT,
+                        },
+                        ..Default::default()
+                    };
+                    reply.set_text(&[detail]);
+                    c.replies.publish(&reply)?;
+                    actions.applied += 1;
+                }
             }
         }
         tick += 1;
     }
     Ok(LoopStats {
+        actions,
         late_preparations,
         prepared_cycles,
         prepare_max_ns,
@@ -238,38 +326,71 @@ pub fn run_loop(
     })
 }
 
-/// Hand one control packet to the engine core; a packet it cannot use is reported, never applied.
-fn live_action(core: &mut EngineCore, tick: u64, p: &ControlPacket, announce: Option<&str>) {
+/// Hand one control packet to the engine core and say what became of it (the reply to send): a
+/// packet it cannot use is reported, never applied. No allocation.
+fn live_action(
+    core: &mut EngineCore,
+    tick: u64,
+    p: &ControlPacket,
+    announce: Option<&str>,
+) -> ControlReply {
+    use lung_model::mesh::Side;
+    let mut reply = ControlReply {
+        status: ipc_types::REPLY_IGNORED,
+        sequence: p.sequence,
+        tick,
+        kind: p.kind,
+        lung: p.lung,
+        ..Default::default()
+    };
     let kind = ipc_types::Intervention::from_code(p.kind);
-    let side = match p.lung as usize {
-        ipc_types::LUNG_RIGHT => Some(lung_model::mesh::Side::Right),
-        LUNG_LEFT => Some(lung_model::mesh::Side::Left),
+    let side = match p.lung {
+        l if l == ipc_types::LUNG_RIGHT as u32 => Some(Side::Right),
+        l if l == LUNG_LEFT as u32 => Some(Side::Left),
+        ipc_types::LUNG_AFFECTED => core.tension_side(),
         _ => None,
     };
-    let said = match (kind, side, p.check_layout()) {
-        (Some(kind), Some(side), Ok(())) => match core.intervene(tick, kind, side) {
-            super::LiveAction::Queued => {
-                if let Some(name) = announce {
-                    transport::process::say(&format!(
-                        "engine[{name}]: {} on the {} lung received at tick {tick}; it shows from the \
-                         cycle after the next (within two breaths)",
-                        kind.name(),
-                        side.name()
-                    ));
+    let why: &str = match (kind, side, p.check_layout()) {
+        (_, _, Err(_)) => "ignored: the sender speaks another protocol layout (rebuild it)",
+        (None, ..) => "ignored: not an intervention this engine knows",
+        (_, _, _) if core.tension_side().is_none() => {
+            "ignored: the scene has no tension pneumothorax to act on"
+        }
+        (_, None, _) => "ignored: not a lung (left or right)",
+        (Some(kind), Some(side), Ok(())) => {
+            reply.lung = side.index() as u32;
+            match core.intervene_tagged(tick, kind, side, p.sequence) {
+                super::LiveAction::Queued => {
+                    reply.status = ipc_types::REPLY_RECEIVED;
+                    if let Some(name) = announce {
+                        transport::process::say(&format!(
+                            "engine[{name}]: {} on the {} lung received at tick {tick}; it shows \
+                             from the cycle after the next (within two breaths)",
+                            kind.name(),
+                            side.name()
+                        ));
+                    }
+                    reply.set_text(&["received: it shows from the cycle after the next"]);
+                    return reply;
                 }
-                None
+                super::LiveAction::QueueFull => {
+                    reply.status = ipc_types::REPLY_REFUSED;
+                    "refused: too many actions wait for the next breath; send it again after it"
+                }
+                super::LiveAction::NoTension => {
+                    "ignored: the scene has no tension pneumothorax to act on"
+                }
             }
-            super::LiveAction::QueueFull => Some("dropped: too many actions within one breath"),
-            super::LiveAction::NoTension => Some("ignored: the scene has no tension pneumothorax"),
-        },
-        _ => Some("ignored: not an intervention this engine knows"),
+        }
     };
-    if let (Some(why), Some(name)) = (said, announce) {
+    reply.set_text(&[why]);
+    if let Some(name) = announce {
         eprintln!(
             "engine[{name}]: control packet {} (kind {}, lung {}) {why}",
             p.sequence, p.kind, p.lung
         );
     }
+    reply
 }
 
 /// Run the engine process until terminated (or `--seconds` elapse).
@@ -285,6 +406,7 @@ pub fn run(args: &EngineArgs) -> Result<(), EngineError> {
     let mut tracker = instance.tracker_inlet(&node)?;
     let mut outlet = instance.engine_outlet(&node)?;
     let mut control = instance.control_inlet(&node)?;
+    let mut replies = instance.control_reply_outlet(&node)?;
     let period_ns = (1e9 / scene.engine.tick_hz).round() as u64;
     let stop_at = run_ns.map(|d| now_ns().saturating_add(d));
     eprintln!(
@@ -300,7 +422,10 @@ pub fn run(args: &EngineArgs) -> Result<(), EngineError> {
         &mut core,
         &mut tracker,
         &mut outlet,
-        Some(&mut control),
+        Some(Controls {
+            inlet: &mut control,
+            replies: &mut replies,
+        }),
         &Monotonic,
         PacerConfig::for_period(period_ns),
         &mut || iox::termination_requested(&node) || stop_at.is_some_and(|t| now_ns() >= t),
@@ -315,6 +440,19 @@ pub fn run(args: &EngineArgs) -> Result<(), EngineError> {
         stats.pacer.deadline_ticks,
         stats.pacer.skipped_deadlines
     ));
+    let a = stats.actions;
+    if a != ActionCounts::default() {
+        transport::process::say(&format!(
+            "engine[{}]: trainee actions: {} received, {} applied, {} ignored, {} refused (over \
+             capacity), {} repeated packets taken once",
+            instance.name(),
+            a.received,
+            a.applied,
+            a.ignored,
+            a.refused,
+            a.repeated
+        ));
+    }
     if stats.prepared_cycles > 0 {
         transport::process::say(&format!(
             "engine[{}]: {} disease cycles built on the worker thread, the longest in {:.2} ms; {} \

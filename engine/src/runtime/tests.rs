@@ -732,3 +732,145 @@ fn a_tumour_raises_the_affected_lungs_resistance_and_leaves_the_other_lung_alone
     let (b, ..) = run_disease(&mut disease_core(scene), 5_000, &[]);
     assert_eq!(a, b);
 }
+
+#[test]
+fn every_live_action_is_answered_once_received_then_applied_in_order_or_ignored_or_refused() {
+    use ipc_types::{
+        ControlPacket, ControlReply, Intervention, OUTCOME_APPLIED, OUTCOME_NO_EFFECT,
+        REPLY_APPLIED, REPLY_IGNORED, REPLY_RECEIVED, REPLY_REFUSED,
+    };
+    use process::{run_loop, ActionCounts, Controls};
+    use transport::memory::{Recorder, Scripted};
+    use transport::pacer::PacerConfig;
+    use transport::{Clock, FakeClock};
+    const P: u64 = 16_666_667;
+    let packet = |kind: u32, lung: u32, sequence: u64| ControlPacket {
+        layout_version: LAYOUT_VERSION,
+        kind,
+        lung,
+        _pad: 0,
+        sequence,
+    };
+    let needle = Intervention::NeedleDecompression.code();
+    let dressing = Intervention::OcclusiveDressing.code();
+    // All in one tick: a needle (and the same packet again), an unknown kind, then dressings on
+    // "the affected side" until the queue overflows by one.
+    let mut arrivals = vec![
+        (10 * P, packet(needle, LUNG_LEFT as u32, 1)),
+        (10 * P, packet(needle, LUNG_LEFT as u32, 1)),
+        (10 * P, packet(99, LUNG_LEFT as u32, 2)),
+    ];
+    for k in 0..disease::MAX_QUEUED_ACTIONS as u64 {
+        arrivals.push((10 * P, packet(dressing, ipc_types::LUNG_AFFECTED, 100 + k)));
+    }
+    let clock = FakeClock::at(0);
+    let mut inlet = Scripted::new(&clock, arrivals, 256);
+    let mut replies = Recorder::<ControlReply>::new(&clock);
+    let record = replies.clone();
+    let mut tracker = Scripted::<TrackerFrame>::new(&clock, vec![], 4);
+    let mut frames = Recorder::new(&clock);
+    let c = clock.clone();
+    let stats = run_loop(
+        &mut disease_core("kind = \"tension-pneumothorax\"\nside = \"left\"\n"),
+        &mut tracker,
+        &mut frames,
+        Some(Controls {
+            inlet: &mut inlet,
+            replies: &mut replies,
+        }),
+        &clock,
+        PacerConfig::for_period(P),
+        &mut || c.now_ns() >= 1200 * P,
+        None,
+    )
+    .unwrap();
+    let n = disease::MAX_QUEUED_ACTIONS as u64;
+    assert_eq!(
+        stats.actions,
+        ActionCounts {
+            received: n,
+            applied: n,
+            ignored: 1,
+            refused: 1,
+            repeated: 1,
+        }
+    );
+    let r = record.values();
+    let with =
+        |status: u32| -> Vec<&ControlReply> { r.iter().filter(|x| x.status == status).collect() };
+    let received: Vec<u64> = with(REPLY_RECEIVED).iter().map(|x| x.sequence).collect();
+    let applied: Vec<u64> = with(REPLY_APPLIED).iter().map(|x| x.sequence).collect();
+    // Each queued action answered twice, applied in the order it was received.
+    let expected: Vec<u64> = std::iter::once(1).chain(100..100 + n - 1).collect();
+    assert_eq!(received, expected);
+    assert_eq!(applied, expected);
+    let first = with(REPLY_APPLIED)[0];
+    assert_eq!(
+        (first.outcome, first.lung),
+        (OUTCOME_APPLIED, LUNG_LEFT as u32)
+    );
+    // The tick after the packets' arrival at 10 periods (the first deadline tick is at 1.25).
+    assert!((8..=10).contains(&first.tick), "{}", first.tick);
+    assert_eq!(first.text(), "air venting");
+    assert!(first.cycle >= 1);
+    // The dressing went to the affected (left) side and did nothing to a leak from the lung.
+    let d = with(REPLY_APPLIED)[1];
+    assert_eq!((d.outcome, d.lung), (OUTCOME_NO_EFFECT, LUNG_LEFT as u32));
+    assert!(d.text().contains("leaks from the lung"), "{}", d.text());
+    let ignored = with(REPLY_IGNORED);
+    assert_eq!(ignored.len(), 1);
+    assert_eq!(ignored[0].sequence, 2);
+    assert!(ignored[0]
+        .text()
+        .starts_with("ignored: not an intervention"));
+    let refused = with(REPLY_REFUSED);
+    assert_eq!(refused.len(), 1);
+    assert_eq!(refused[0].sequence, 100 + n - 1);
+    assert!(refused[0].text().starts_with("refused: "));
+    // Nothing else was said.
+    assert_eq!(r.len() as u64, 2 * n + 2);
+}
+
+#[test]
+fn a_live_action_without_a_tension_pneumothorax_is_answered_ignored() {
+    use ipc_types::{ControlPacket, ControlReply, Intervention, REPLY_IGNORED};
+    use process::{run_loop, Controls};
+    use transport::memory::{Recorder, Scripted};
+    use transport::pacer::PacerConfig;
+    use transport::{Clock, FakeClock};
+    const P: u64 = 16_666_667;
+    let clock = FakeClock::at(0);
+    let p = ControlPacket {
+        layout_version: LAYOUT_VERSION,
+        kind: Intervention::ChestTube.code(),
+        lung: ipc_types::LUNG_AFFECTED,
+        _pad: 0,
+        sequence: 7,
+    };
+    let mut inlet = Scripted::new(&clock, vec![(3 * P, p)], 8);
+    let mut replies = Recorder::<ControlReply>::new(&clock);
+    let record = replies.clone();
+    let mut tracker = Scripted::<TrackerFrame>::new(&clock, vec![], 4);
+    let mut frames = Recorder::new(&clock);
+    let c = clock.clone();
+    run_loop(
+        &mut core(),
+        &mut tracker,
+        &mut frames,
+        Some(Controls {
+            inlet: &mut inlet,
+            replies: &mut replies,
+        }),
+        &clock,
+        PacerConfig::for_period(P),
+        &mut || c.now_ns() >= 10 * P,
+        None,
+    )
+    .unwrap();
+    let r = record.values();
+    assert_eq!(r.len(), 1);
+    assert_eq!((r[0].status, r[0].sequence), (REPLY_IGNORED, 7));
+    assert!(r[0]
+        .text()
+        .starts_with("ignored: the scene has no tension pneumothorax"));
+}

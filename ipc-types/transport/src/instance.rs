@@ -69,6 +69,14 @@ impl Instance {
     pub fn control_event(&self) -> String {
         format!("lungdyn/{}/control-ready", self.name)
     }
+    /// Stream of [`ipc_types::ControlReply`]s (the engine's answers to the control packets).
+    pub fn control_reply(&self) -> String {
+        format!("lungdyn/{}/control-reply", self.name)
+    }
+    /// Event signalled after each control reply.
+    pub fn control_reply_event(&self) -> String {
+        format!("lungdyn/{}/control-reply-ready", self.name)
+    }
 
     /// The transport's file prefix for this instance: every shared-memory segment and file the
     /// instance creates starts with it.

@@ -13,7 +13,7 @@ use core::time::Duration;
 use std::path::PathBuf;
 
 use iceoryx2::prelude::*;
-use ipc_types::{ControlPacket, EngineFrame, FrameReport, Message, TrackerFrame};
+use ipc_types::{ControlPacket, ControlReply, EngineFrame, FrameReport, Message, TrackerFrame};
 
 use crate::clock::now_ns;
 use crate::instance::Instance;
@@ -33,10 +33,17 @@ unsafe impl<T: Message> ZeroCopySend for Wire<T> {
     }
 }
 
-/// Per-stream quality of service: how many samples each subscriber keeps.
+/// Per-stream quality of service: how many samples each subscriber keeps, and how many ports and
+/// processes may use the stream (and its wake-up event) at once.
 pub trait Topic: Message {
     /// Buffer depth per subscriber (the oldest sample is dropped when full).
     const BUFFER: usize;
+    /// Publishers (and notifiers of the wake-up event) at once.
+    const MAX_PUBLISHERS: usize = 4;
+    /// Subscribers (and listeners of the wake-up event) at once.
+    const MAX_SUBSCRIBERS: usize = 8;
+    /// Processes (iceoryx2 nodes) using the stream at once.
+    const MAX_NODES: usize = 16;
 }
 impl Topic for TrackerFrame {
     const BUFFER: usize = 4;
@@ -44,18 +51,28 @@ impl Topic for TrackerFrame {
 impl Topic for EngineFrame {
     const BUFFER: usize = 4;
 }
+/// Senders of a trainee's actions at once (`lungdyn scene event` processes, the renderer): each
+/// keeps its publisher until the engine answers, so every one needs its own port.
+pub const MAX_CONTROL_SENDERS: usize = 40;
 impl Topic for ControlPacket {
-    // Rare actions: a few queued between two ticks are all kept.
-    const BUFFER: usize = 8;
+    // Every sender has one action in flight (the renderer a few): the buffer holds one from each
+    // even while the engine is stalled, so none is overwritten before the engine takes it.
+    const BUFFER: usize = 2 * MAX_CONTROL_SENDERS;
+    const MAX_PUBLISHERS: usize = MAX_CONTROL_SENDERS;
+    const MAX_SUBSCRIBERS: usize = 2;
+    const MAX_NODES: usize = MAX_CONTROL_SENDERS + 8;
+}
+impl Topic for ControlReply {
+    // Each sender sees every reply (two per action) and keeps its own: room for two per sender.
+    const BUFFER: usize = 2 * MAX_CONTROL_SENDERS;
+    const MAX_PUBLISHERS: usize = 2;
+    const MAX_SUBSCRIBERS: usize = MAX_CONTROL_SENDERS;
+    const MAX_NODES: usize = MAX_CONTROL_SENDERS + 8;
 }
 impl Topic for FrameReport {
     // Drained in batches by the launcher: a deeper buffer keeps every frame.
     const BUFFER: usize = 512;
 }
-
-const MAX_SUBSCRIBERS: usize = 8;
-const MAX_PUBLISHERS: usize = 4;
-const MAX_NODES: usize = 16;
 
 /// An iceoryx2 node of this transport.
 pub type IoxNode = Node<ipc::Service>;
@@ -122,9 +139,9 @@ pub fn open_stream<T: Topic>(node: &IoxNode, name: &str) -> Result<Stream<T>, Po
         .history_size(1)
         .subscriber_max_buffer_size(T::BUFFER)
         .enable_safe_overflow(true)
-        .max_publishers(MAX_PUBLISHERS)
-        .max_subscribers(MAX_SUBSCRIBERS)
-        .max_nodes(MAX_NODES)
+        .max_publishers(T::MAX_PUBLISHERS)
+        .max_subscribers(T::MAX_SUBSCRIBERS)
+        .max_nodes(T::MAX_NODES)
         .open_or_create()
         .map_err(|e| match e {
             E::PublishSubscribeOpenError(O::IncompatibleTypes) => PortError::LayoutMismatch {
@@ -139,13 +156,14 @@ pub fn open_stream<T: Topic>(node: &IoxNode, name: &str) -> Result<Stream<T>, Po
         })
 }
 
-/// Open (or create) the wake-up event `name`.
-pub fn open_event(node: &IoxNode, name: &str) -> Result<Event, PortError> {
+/// Open (or create) the wake-up event `name` of a stream of `T` (as many notifiers and listeners as
+/// the stream has publishers and subscribers).
+pub fn open_event<T: Topic>(node: &IoxNode, name: &str) -> Result<Event, PortError> {
     node.service_builder(&service_name(name)?)
         .event()
-        .max_notifiers(MAX_PUBLISHERS)
-        .max_listeners(MAX_SUBSCRIBERS)
-        .max_nodes(MAX_NODES)
+        .max_notifiers(T::MAX_PUBLISHERS)
+        .max_listeners(T::MAX_SUBSCRIBERS)
+        .max_nodes(T::MAX_NODES)
         .open_or_create()
         .map_err(|source| PortError::OpenEvent {
             service: name.to_string(),
@@ -188,7 +206,7 @@ impl<T: Topic> Outlet<T> {
     /// Open the stream `data` and its wake-up event `event`.
     pub fn new(node: &IoxNode, data: &str, event: &str) -> Result<Self, PortError> {
         let data_service = open_stream::<T>(node, data)?;
-        let event_service = open_event(node, event)?;
+        let event_service = open_event::<T>(node, event)?;
         let publisher = data_service
             .publisher_builder()
             .create()
@@ -245,7 +263,7 @@ impl<T: Topic> Inlet<T> {
     /// Open the stream `data` and its wake-up event `event`.
     pub fn new(node: &IoxNode, data: &str, event: &str) -> Result<Self, PortError> {
         let data_service = open_stream::<T>(node, data)?;
-        let event_service = open_event(node, event)?;
+        let event_service = open_event::<T>(node, event)?;
         let subscriber = data_service
             .subscriber_builder()
             .create()
@@ -342,6 +360,14 @@ impl Instance {
     /// Inlet of the control stream.
     pub fn control_inlet(&self, node: &IoxNode) -> Result<Inlet<ControlPacket>, PortError> {
         Inlet::new(node, &self.control(), &self.control_event())
+    }
+    /// Outlet of the control replies (the engine's answers).
+    pub fn control_reply_outlet(&self, node: &IoxNode) -> Result<Outlet<ControlReply>, PortError> {
+        Outlet::new(node, &self.control_reply(), &self.control_reply_event())
+    }
+    /// Inlet of the control replies.
+    pub fn control_reply_inlet(&self, node: &IoxNode) -> Result<Inlet<ControlReply>, PortError> {
+        Inlet::new(node, &self.control_reply(), &self.control_reply_event())
     }
 }
 

@@ -121,6 +121,27 @@ pub enum Outcome {
     NoEffect(&'static str),
 }
 
+impl Outcome {
+    /// The outcome in words for a trainee: what happened ("applied", "no effect", "no change") and
+    /// what it does to the course (§4.3: a needle vents the pleural air, a chest tube drains it, a
+    /// dressing seals the wound's one-way valve).
+    pub fn words(&self, kind: Intervention) -> (&'static str, &'static str) {
+        match self {
+            Outcome::Applied => (
+                "applied",
+                match kind {
+                    Intervention::NeedleDecompression => "air venting",
+                    Intervention::ChestTube => "the pleural air drains",
+                    Intervention::OcclusiveDressing => "the wound is sealed: no more air enters",
+                },
+            ),
+            Outcome::WrongSide => ("no effect", "the pneumothorax is on the other side"),
+            Outcome::AlreadyApplied => ("no change", "it is already in place"),
+            Outcome::NoEffect(why) => ("no effect", why),
+        }
+    }
+}
+
 /// An intervention as recorded for the run's output.
 #[derive(Debug, Clone, Copy, PartialEq)]
 pub struct EventRecord {
