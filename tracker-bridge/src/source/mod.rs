@@ -11,8 +11,9 @@
 //! | `replay:FILE` | [`replay`] | a recording ([`crate::record`]), paced or as fast as possible |
 //!
 //! Network and serial sources run their link on a reader thread that decodes, reconnects with
-//! back-off and hands [`Input`]s over a bounded queue ([`Inbox`]); the publishing loop
-//! ([`crate::run`]) takes whatever arrived once per tick without blocking. Samples are fixed-size,
+//! back-off and hands [`Input`]s over a bounded queue ([`Inbox`]), each sample stamped with the
+//! time its bytes arrived; the publishing loop ([`crate::run`]) waits on the queue and takes
+//! whatever arrived as soon as it arrives. Samples are fixed-size,
 //! so the queue never allocates after start-up; when it is full the newest input is dropped and
 //! counted (`queue_full`).
 
@@ -55,6 +56,15 @@ pub trait Source {
     /// Hand every input received since the previous call to `sink`, oldest first, without
     /// blocking; then say what this tick is.
     fn poll(&mut self, now_ns: u64, sink: &mut dyn FnMut(&Input)) -> Result<Poll, SourceError>;
+
+    /// Wait until an input is waiting or `deadline_ns` (on `pace`'s clock) has passed; true when
+    /// an input is waiting — the loop then takes it and publishes on arrival. Sources whose
+    /// samples are made on the tick (synthetic, replay) sleep until the deadline and return false:
+    /// they keep the absolute-deadline schedule.
+    fn wait(&mut self, pace: &dyn crate::run::Pace, deadline_ns: u64) -> bool {
+        pace.sleep_until(deadline_ns);
+        false
+    }
 
     /// False when the loop should not wait for its schedule (a replay as fast as possible).
     fn paced(&self) -> bool {
@@ -327,6 +337,8 @@ impl Feed {
 #[derive(Debug)]
 pub struct Inbox {
     rx: Receiver<Input>,
+    /// The input [`Inbox::wait`] took off the queue, handed over first by the next drain.
+    held: Option<Input>,
     feed: Feed,
     threads: Vec<JoinHandle<()>>,
 }
@@ -337,6 +349,7 @@ impl Inbox {
         let (tx, rx) = sync_channel(QUEUE);
         Inbox {
             rx,
+            held: None,
             feed: Feed {
                 tx,
                 stop: Arc::new(AtomicBool::new(false)),
@@ -356,8 +369,27 @@ impl Inbox {
         self.threads.push(t);
     }
 
+    /// Block until an input is queued or the monotonic clock reaches `deadline_ns`; true when one
+    /// is (it stays queued for [`Inbox::drain`]).
+    pub fn wait(&mut self, deadline_ns: u64) -> bool {
+        if self.held.is_some() {
+            return true;
+        }
+        let left = deadline_ns.saturating_sub(transport::now_ns());
+        let got = if left == 0 {
+            self.rx.try_recv().ok()
+        } else {
+            self.rx.recv_timeout(Duration::from_nanos(left)).ok()
+        };
+        self.held = got;
+        self.held.is_some()
+    }
+
     /// Everything queued, oldest first (bounded: at most what was queued when it started).
     pub fn drain(&mut self, sink: &mut dyn FnMut(&Input)) {
+        if let Some(i) = self.held.take() {
+            sink(&i);
+        }
         for _ in 0..QUEUE {
             match self.rx.try_recv() {
                 Ok(i) => sink(&i),
