@@ -390,7 +390,7 @@ fn serve_misbehaving(
                 bx += 1;
                 match how {
                     Misbehave::Twice => out.extend_from_slice(&reply),
-                    Misbehave::LateOncePerSecond if bx % 60 == 0 => {
+                    Misbehave::LateOncePerSecond if bx.is_multiple_of(60) => {
                         std::thread::sleep(Duration::from_millis(300))
                     }
                     Misbehave::LateOncePerSecond => {}

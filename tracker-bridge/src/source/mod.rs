@@ -427,6 +427,8 @@ impl Drop for Inbox {
 pub struct SourceOptions {
     /// OpenIGTLink decoding limits.
     pub igtl_limits: crate::igtl::Limits,
+    /// An OpenIGTLink connection with no message for this long is dropped.
+    pub igtl_idle_timeout: Duration,
     /// Component order of pyigtl `POSITION` quaternions.
     pub pyigtl_quat_order: crate::igtl::QuatOrder,
     /// NDI passive tool definitions (ROM files) to load; the tool is named by the file stem.
@@ -445,6 +447,7 @@ impl Default for SourceOptions {
     fn default() -> Self {
         SourceOptions {
             igtl_limits: crate::igtl::Limits::default(),
+            igtl_idle_timeout: igtl_client::IDLE_TIMEOUT,
             pyigtl_quat_order: crate::igtl::QuatOrder::Xyzw,
             ndi_roms: Vec::new(),
             ndi_tx: false,
