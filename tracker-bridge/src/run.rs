@@ -19,7 +19,7 @@ use std::sync::atomic::{AtomicBool, Ordering};
 use ipc_types::TrackerFrame;
 use transport::{FakeClock, Publish};
 
-use crate::assemble::Assembler;
+use crate::assemble::{Assembler, Outcome};
 use crate::record::RecordWriter;
 use crate::sample::{Event, EventKind, Input};
 use crate::source::{Poll, Source};
@@ -195,8 +195,10 @@ pub fn run_loop(
                             record_error.get_or_insert(e);
                         }
                     }
-                    stats_sink.ingest(s);
-                    samples += 1;
+                    // A repeat of a device frame already seen changes no pose: no frame for it.
+                    if stats_sink.ingest(s) != Outcome::Repeat {
+                        samples += 1;
+                    }
                 }
                 Input::Event(e) => {
                     if let Some(r) = rec.as_mut() {
@@ -211,7 +213,7 @@ pub fn run_loop(
         };
         match poll {
             Poll::End => return Ok(Ended::SourceEnded),
-            // Only link events arrived (a connection, a rejected message): no new frame yet.
+            // Only link events or repeats arrived (a connection, a rejected message): no frame.
             Poll::Tick { .. } if arrived && samples == 0 => {}
             Poll::Tick { at_ns } => {
                 asm.frame(at_ns, &mut frame);
@@ -388,6 +390,33 @@ mod tests {
                 "capture -> publish is the work alone"
             );
         }
+    }
+
+    #[test]
+    fn a_repeated_device_frame_is_no_reason_to_publish() {
+        let with_frame = |(at, i): (u64, Input), n: u64| match i {
+            Input::Sample(s) => (
+                at,
+                Input::Sample(Sample {
+                    device_frame: Some(n),
+                    ..s
+                }),
+            ),
+            other => (at, other),
+        };
+        let frames = run(
+            vec![
+                with_frame(sample(10 * MS, 1.0), 7),
+                with_frame(sample(20 * MS, 1.0), 7),
+            ],
+            30 * MS,
+        );
+        let at: Vec<u64> = frames.iter().skip(1).take(2).map(|f| f.0).collect();
+        assert_eq!(
+            at,
+            [10 * MS, 10 * MS + P + P / 2],
+            "the repeat at 20 ms made none"
+        );
     }
 
     #[test]

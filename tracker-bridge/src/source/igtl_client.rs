@@ -261,6 +261,7 @@ pub fn pump(
             Err(e) => return (PumpEnd::Lost(format!("reading from {peer}: {e}")), got_any),
         };
         let receive_ns = now_ns();
+        let _batch = feed.batch();
         decoder.push(buf.get(..n).unwrap_or(&[]));
         for item in decoder.by_ref() {
             match item {

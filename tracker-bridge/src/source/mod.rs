@@ -24,7 +24,7 @@ pub mod replay;
 pub mod synthetic;
 
 use std::path::PathBuf;
-use std::sync::atomic::{AtomicBool, AtomicU64, Ordering};
+use std::sync::atomic::{AtomicBool, AtomicU32, AtomicU64, Ordering};
 use std::sync::mpsc::{sync_channel, Receiver, SyncSender, TrySendError};
 use std::sync::Arc;
 use std::thread::JoinHandle;
@@ -295,7 +295,23 @@ pub struct Feed {
     tx: SyncSender<Input>,
     stop: Arc<AtomicBool>,
     dropped: Arc<AtomicU64>,
+    /// Readers in the middle of handing over the inputs of one read ([`Feed::batch`]).
+    busy: Arc<AtomicU32>,
 }
+
+/// While it lives, the inputs being sent belong together (the messages of one read, the tools of
+/// one reply): the loop waits for the rest before it publishes, so they make one frame.
+#[derive(Debug)]
+pub struct Batch<'a>(&'a AtomicU32);
+
+impl Drop for Batch<'_> {
+    fn drop(&mut self) {
+        self.0.fetch_sub(1, Ordering::Release);
+    }
+}
+
+/// How long [`Inbox::drain`] waits at most for a reader to finish a batch.
+pub const BATCH_WAIT: Duration = Duration::from_micros(100);
 
 impl Feed {
     /// Hand one input to the loop; a full queue drops it (counted, reported as `queue_full`).
@@ -307,6 +323,12 @@ impl Feed {
             }
             Err(TrySendError::Disconnected(_)) => self.stop.store(true, Ordering::Relaxed),
         }
+    }
+
+    /// Mark the inputs sent until the guard drops as one batch.
+    pub fn batch(&self) -> Batch<'_> {
+        self.busy.fetch_add(1, Ordering::Acquire);
+        Batch(&self.busy)
     }
 
     /// An event.
@@ -354,6 +376,7 @@ impl Inbox {
                 tx,
                 stop: Arc::new(AtomicBool::new(false)),
                 dropped: Arc::new(AtomicU64::new(0)),
+                busy: Arc::new(AtomicU32::new(0)),
             },
             threads: Vec::new(),
         }
@@ -385,8 +408,15 @@ impl Inbox {
         self.held.is_some()
     }
 
-    /// Everything queued, oldest first (bounded: at most what was queued when it started).
+    /// Everything queued, oldest first (bounded: at most what was queued when it started). A
+    /// reader in the middle of a batch is given up to [`BATCH_WAIT`] to finish it first.
     pub fn drain(&mut self, sink: &mut dyn FnMut(&Input)) {
+        if self.feed.busy.load(Ordering::Acquire) > 0 {
+            let until = std::time::Instant::now() + BATCH_WAIT;
+            while self.feed.busy.load(Ordering::Acquire) > 0 && std::time::Instant::now() < until {
+                std::thread::yield_now();
+            }
+        }
         if let Some(i) = self.held.take() {
             sink(&i);
         }

@@ -211,24 +211,58 @@ impl Link for SerialLink {
     }
 }
 
-/// A TCP connection (Vega).
-pub struct TcpLink(TcpStream);
+/// A TCP connection (Vega). Reads wait with `ppoll` (a high-resolution timer) rather than
+/// `SO_RCVTIMEO`, which rounds up to the kernel's tick (up to 4 ms late): the session reads the
+/// link right up to its next poll slot.
+pub struct TcpLink {
+    stream: TcpStream,
+    timeout: Duration,
+}
 
 impl TcpLink {
     /// Connect to `host:port`.
     pub fn connect(host: &str, port: u16) -> std::io::Result<Self> {
-        let s = crate::source::igtl_client::connect(host, port, Duration::from_secs(2))?;
-        s.set_nodelay(true)?;
-        Ok(TcpLink(s))
+        let stream = crate::source::igtl_client::connect(host, port, Duration::from_secs(2))?;
+        stream.set_nodelay(true)?;
+        Ok(TcpLink {
+            stream,
+            timeout: Duration::from_millis(100),
+        })
+    }
+}
+
+/// Wait until `fd` is readable or `timeout` passes; false on timeout.
+fn readable(fd: libc::c_int, timeout: Duration) -> std::io::Result<bool> {
+    let mut pfd = libc::pollfd {
+        fd,
+        events: libc::POLLIN,
+        revents: 0,
+    };
+    let ts = libc::timespec {
+        tv_sec: timeout.as_secs().min(i32::MAX as u64) as libc::time_t,
+        tv_nsec: libc::c_long::from(timeout.subsec_nanos() as i32),
+    };
+    // SAFETY: one valid pollfd for an open socket; a valid timespec; no signal mask change.
+    match unsafe { libc::ppoll(&mut pfd, 1, &ts, std::ptr::null()) } {
+        0 => Ok(false),
+        n if n > 0 => Ok(true),
+        _ => Err(std::io::Error::last_os_error()),
     }
 }
 
 impl Link for TcpLink {
     fn send(&mut self, bytes: &[u8]) -> std::io::Result<()> {
-        self.0.write_all(bytes)
+        self.stream.write_all(bytes)
     }
     fn recv(&mut self, buf: &mut [u8]) -> std::io::Result<usize> {
-        match self.0.read(buf) {
+        use std::os::fd::AsRawFd;
+        if !readable(self.stream.as_raw_fd(), self.timeout)? {
+            return Err(std::io::Error::new(
+                ErrorKind::TimedOut,
+                "no bytes within the timeout",
+            ));
+        }
+        match self.stream.read(buf) {
             Ok(0) => Err(std::io::Error::new(
                 ErrorKind::UnexpectedEof,
                 "the tracker closed the connection",
@@ -237,7 +271,8 @@ impl Link for TcpLink {
         }
     }
     fn set_timeout(&mut self, d: Duration) -> std::io::Result<()> {
-        self.0.set_read_timeout(Some(d))
+        self.timeout = d;
+        Ok(())
     }
     fn is_serial(&self) -> bool {
         false
@@ -570,14 +605,16 @@ impl<'a> Session<'a> {
                 return Ok(());
             }
             // Until the next slot: take what arrives (nothing is owed, so only duplicates or
-            // replies to a poll that timed out can come).
-            while let Some(left) = next.checked_duration_since(Instant::now()) {
-                if left.is_zero() {
+            // replies to a poll that timed out can come); the last moment is slept precisely.
+            loop {
+                let left = next.saturating_duration_since(Instant::now());
+                if left < Duration::from_millis(2) {
+                    std::thread::sleep(left);
                     break;
                 }
-                match self.reply("", left) {
+                match self.reply("", left - Duration::from_millis(1)) {
                     Ok((r, at)) => self.handle(&r, at, &mut poll, roms)?,
-                    Err(SessionError::Timeout(_)) => break,
+                    Err(SessionError::Timeout(_)) => {}
                     Err(e) => return Err(e),
                 }
             }
@@ -689,8 +726,11 @@ impl<'a> Session<'a> {
         if verdict != Verdict::Use {
             return Ok(());
         }
-        for t in &r.tools {
-            self.feed.send(Input::Sample(self.sample(t, receive_ns)));
+        {
+            let _batch = self.feed.batch();
+            for t in &r.tools {
+                self.feed.send(Input::Sample(self.sample(t, receive_ns)));
+            }
         }
         let raw = r.system_status.raw;
         if self.last_system != Some(raw) && (raw != 0 || self.last_system.is_some()) {
