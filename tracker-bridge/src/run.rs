@@ -177,6 +177,9 @@ pub fn run_loop(
             pace.sleep_until(last_publish + MIN_ARRIVAL_SPACING_NS);
         }
         let now = pace.now_ns();
+        // The schedule's slot has come (also when inputs arrived: a flood of link events must not
+        // hold back the frames that say a silent tool is stale).
+        let due = paced && now >= next;
         if paced && !arrived {
             asm.stats
                 .jitter
@@ -214,7 +217,7 @@ pub fn run_loop(
         match poll {
             Poll::End => return Ok(Ended::SourceEnded),
             // Only link events or repeats arrived (a connection, a rejected message): no frame.
-            Poll::Tick { .. } if arrived && samples == 0 => {}
+            Poll::Tick { .. } if arrived && samples == 0 && !due => {}
             Poll::Tick { at_ns } => {
                 asm.frame(at_ns, &mut frame);
                 if let Some(r) = recorder.as_mut() {
@@ -249,11 +252,9 @@ pub fn run_loop(
                 now,
             );
         }
-        if arrived {
-            if samples > 0 {
-                next = pace.now_ns() + period + period / 2;
-            }
-        } else if paced {
+        if arrived && samples > 0 {
+            next = pace.now_ns() + period + period / 2;
+        } else if paced && (due || !arrived) {
             next += period;
             let now = pace.now_ns();
             if now > next + period {
@@ -277,6 +278,9 @@ mod tests {
     /// A device source on a fake clock: inputs arrive at scripted times.
     struct Scripted {
         arrivals: std::collections::VecDeque<(u64, Input)>,
+        /// Time each poll takes (on the loop's clock).
+        clock: FakeClock,
+        poll_cost_ns: u64,
     }
 
     impl Source for Scripted {
@@ -289,10 +293,13 @@ mod tests {
                     sink(&i);
                 }
             }
+            self.clock.advance(self.poll_cost_ns);
             Ok(Poll::Tick { at_ns: now_ns })
         }
         fn wait(&mut self, pace: &dyn Pace, deadline_ns: u64) -> bool {
             match self.arrivals.front() {
+                // Already queued: at once, whatever the deadline (as `Inbox::wait`).
+                Some(&(t, _)) if t <= pace.now_ns() => true,
                 Some(&(t, _)) if t < deadline_ns => {
                     pace.sleep_until(t);
                     true
@@ -323,9 +330,19 @@ mod tests {
 
     /// (publish time, capture stamp, patient x) of every frame until `until_ns`.
     fn run(arrivals: Vec<(u64, Input)>, until_ns: u64) -> Vec<(u64, u64, f32)> {
+        run_costing(arrivals, until_ns, 0)
+    }
+
+    fn run_costing(
+        arrivals: Vec<(u64, Input)>,
+        until_ns: u64,
+        poll_cost_ns: u64,
+    ) -> Vec<(u64, u64, f32)> {
         let clock = FakeClock::at(0);
         let mut source = Scripted {
             arrivals: arrivals.into(),
+            clock: clock.clone(),
+            poll_cost_ns,
         };
         let mut config = BridgeConfig::default();
         config.validation.volume = Volume::Unbounded;
@@ -388,6 +405,32 @@ mod tests {
                 (at, capture),
                 (arrival, arrival),
                 "capture -> publish is the work alone"
+            );
+        }
+    }
+
+    #[test]
+    fn a_flood_of_link_events_does_not_hold_back_the_schedule() {
+        let note = |at| {
+            (
+                at,
+                Input::Event(crate::sample::Event::new(EventKind::Note, 0, "garbage")),
+            )
+        };
+        // An event every 0.5 ms, each taking the loop 0.6 ms: one is always waiting.
+        let mut arrivals = vec![sample(MS, 1.0)];
+        arrivals.extend((1..200).map(|k| note(MS + k * MS / 2)));
+        let frames = run_costing(arrivals, 90 * MS, 600_000);
+        let at: Vec<u64> = frames.iter().skip(1).take(4).map(|f| f.0).collect();
+        assert_eq!(at.len(), 4, "frames: {frames:?}");
+        assert_eq!(at[0], MS + 600_000, "the sample, after its poll");
+        // Each slot's frame comes within one poll of its slot.
+        let first = at[0] + P + P / 2;
+        for (k, &t) in at[1..].iter().enumerate() {
+            let slot = first + k as u64 * P;
+            assert!(
+                (slot..slot + 2 * 600_000).contains(&t),
+                "frame {k} at {t}, slot {slot}"
             );
         }
     }
