@@ -2,7 +2,10 @@
 //! real time for a while per source and publishes on iceoryx2, while a peer feeds the source at its
 //! own 60 Hz (an OpenIGTLink sender or server thread, the simulated NDI tracker over TCP and on a
 //! pty, a recording). Reported per source: how late each tick woke after its schedule slot
-//! (p50/p99/max) and how far each publish-to-publish interval was from 16.667 ms (p99, max).
+//! (p50/p99/max) and how far each publish-to-publish interval was from 16.667 ms (p99, max); and
+//! for the device sources, capture -> bridge publish of every new sample (its receive time, taken
+//! by the reader thread as the bytes arrive, to the publish: the bridge's own work, p50/p99/max)
+//! and, for the OpenIGTLink senders, sender write -> bridge publish (loopback delivery included).
 //!
 //! Run: `cargo bench -p lungdyn-bench --bench tracker_jitter` (`TRACKER_JITTER_SECONDS`, default 10
 //! per source).
@@ -30,10 +33,17 @@ use transport::{iox, now_ns, Instance, PortError, Publish};
 
 const PERIOD: u64 = 16_666_667;
 
+/// When the OpenIGTLink sender wrote message `k` (ns), for sender write -> publish.
+type Written = Arc<Mutex<Vec<u64>>>;
+
 struct Timed<P> {
     inner: P,
     last: Option<u64>,
     interval_error: Histogram<u64>,
+    last_capture: u64,
+    capture_to_publish: Histogram<u64>,
+    written: Option<Written>,
+    write_to_publish: Histogram<u64>,
 }
 
 impl<P: Publish<TrackerFrame>> Publish<TrackerFrame> for Timed<P> {
@@ -44,6 +54,20 @@ impl<P: Publish<TrackerFrame>> Publish<TrackerFrame> for Timed<P> {
             let _ = self.interval_error.record((t - l).abs_diff(PERIOD).max(1));
         }
         self.last = Some(t);
+        // A new sample (not a frame repeating the last one while the device is silent).
+        if f.stamps.capture_ns != self.last_capture {
+            self.last_capture = f.stamps.capture_ns;
+            let _ = self
+                .capture_to_publish
+                .record(t.saturating_sub(f.stamps.capture_ns).max(1));
+            if let Some(w) = &self.written {
+                // The sender put k/100 in the patient's x.
+                let k = (f.tools[0].pose.translation_mm[0] * 100.0).round() as usize;
+                if let Some(&at) = w.lock().unwrap().get(k) {
+                    let _ = self.write_to_publish.record(t.saturating_sub(at).max(1));
+                }
+            }
+        }
         Ok(())
     }
 }
@@ -57,22 +81,30 @@ fn qtdata(k: u32) -> Vec<u8> {
     };
     Message::new(
         "Tracker",
-        Timestamp::from_parts(1_700_000_000, k),
+        // One device timestamp per message, a period apart (a repeated one is not a new sample).
+        Timestamp::from_unix_ns(1_700_000_000_000_000_000 + u64::from(k) * PERIOD),
         Body::QtData(vec![e("Patient", -1000.0), e("HMD", -900.0)]),
     )
     .encode()
     .unwrap()
 }
 
-/// Write a 60 Hz OpenIGTLink stream to `s` until `stop`.
-fn stream(mut s: TcpStream, stop: &AtomicBool) {
+/// Write a 60 Hz OpenIGTLink stream to `s` until `stop`, logging when each message was written.
+fn stream(mut s: TcpStream, stop: &AtomicBool, written: &Written) {
     let mut next = now_ns();
     let mut k = 0;
     while !stop.load(Ordering::Relaxed) {
         next += PERIOD;
         transport::clock::sleep_until_ns(next);
         k += 1;
-        if s.write_all(&qtdata(k)).is_err() {
+        let m = qtdata(k);
+        {
+            // Logged before the write: the bridge may publish before write_all returns.
+            let mut w = written.lock().unwrap();
+            w.resize(k as usize, 0);
+            w.push(now_ns());
+        }
+        if s.write_all(&m).is_err() {
             return;
         }
     }
@@ -115,12 +147,18 @@ fn measure(
     seconds: f64,
     instance: &Instance,
     node: &iox::IoxNode,
+    written: Option<Written>,
 ) {
     let outlet = instance.tracker_outlet(node).unwrap();
+    let histogram = || Histogram::new_with_bounds(1, 10_000_000_000, 3).unwrap();
     let mut timed = Timed {
         inner: outlet,
         last: None,
-        interval_error: Histogram::new_with_bounds(1, 10_000_000_000, 3).unwrap(),
+        interval_error: histogram(),
+        last_capture: 0,
+        capture_to_publish: histogram(),
+        written,
+        write_to_publish: histogram(),
     };
     let mut asm = Assembler::new(config);
     let stop_at = now_ns() + (seconds * 1e9) as u64;
@@ -148,6 +186,26 @@ fn measure(
         us(&timed.interval_error, 0.99),
         timed.interval_error.max() as f64 / 1000.0,
     );
+    let row = |what: &str, h: &Histogram<u64>| {
+        if !h.is_empty() {
+            println!(
+                "{:<24} {what}: {} samples, p50 {:>7.1} us p99 {:>7.1} us max {:>8.1} us",
+                "",
+                h.len(),
+                us(h, 0.5),
+                us(h, 0.99),
+                h.max() as f64 / 1000.0
+            );
+        }
+    };
+    if source_is_device(name) {
+        row("capture -> bridge publish", &timed.capture_to_publish);
+        row("sender write -> bridge publish", &timed.write_to_publish);
+    }
+}
+
+fn source_is_device(name: &str) -> bool {
+    name.starts_with("igtl") || name.starts_with("ndi")
 }
 
 fn main() {
@@ -175,14 +233,16 @@ fn main() {
         seconds,
         &instance,
         &node,
+        None,
     );
 
     let stop = Arc::new(AtomicBool::new(false));
     let mut server = IgtlServer::bind("127.0.0.1", 0, &SourceOptions::default()).unwrap();
     let addr = server.local_addr();
+    let written = Written::default();
     let sender = {
-        let stop = stop.clone();
-        std::thread::spawn(move || stream(TcpStream::connect(addr).unwrap(), &stop))
+        let (stop, written) = (stop.clone(), written.clone());
+        std::thread::spawn(move || stream(TcpStream::connect(addr).unwrap(), &stop, &written))
     };
     measure(
         "igtl-server (60 Hz)",
@@ -191,6 +251,7 @@ fn main() {
         seconds,
         &instance,
         &node,
+        Some(written),
     );
     stop.store(true, Ordering::Relaxed);
     sender.join().unwrap();
@@ -199,11 +260,12 @@ fn main() {
     let stop = Arc::new(AtomicBool::new(false));
     let l = TcpListener::bind("127.0.0.1:0").unwrap();
     let port = l.local_addr().unwrap().port();
+    let written = Written::default();
     let peer = {
-        let stop = stop.clone();
+        let (stop, written) = (stop.clone(), written.clone());
         std::thread::spawn(move || {
             let (s, _) = l.accept().unwrap();
-            stream(s, &stop)
+            stream(s, &stop, &written)
         })
     };
     let mut client = IgtlClient::start("127.0.0.1".into(), port, &SourceOptions::default());
@@ -214,6 +276,7 @@ fn main() {
         seconds,
         &instance,
         &node,
+        Some(written),
     );
     stop.store(true, Ordering::Relaxed);
     peer.join().unwrap();
@@ -234,6 +297,7 @@ fn main() {
         seconds,
         &instance,
         &node,
+        None,
     );
     drop(ndi);
     stop.store(true, Ordering::Relaxed);
@@ -251,7 +315,15 @@ fn main() {
     .unwrap();
     let mut replay = Replay::open(&path, true).unwrap();
     let rc = replay.recorded_config().cloned().unwrap();
-    measure("replay (paced)", &mut replay, rc, seconds, &instance, &node);
+    measure(
+        "replay (paced)",
+        &mut replay,
+        rc,
+        seconds,
+        &instance,
+        &node,
+        None,
+    );
     let _ = std::fs::remove_file(&path);
     drop(node);
     instance.remove_leftovers();

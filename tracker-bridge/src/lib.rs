@@ -11,7 +11,8 @@
 //! * [`assemble`] — samples mapped to tool slots by name, frame-number gaps and repeats, staleness,
 //!   one [`TrackerFrame`] per tick;
 //! * [`record`] — `--record FILE`: every sample with its receive time, replayable bit for bit;
-//! * [`run`] — the shared loop on an absolute-deadline schedule;
+//! * [`run`] — the shared loop: device samples published on arrival, an absolute-deadline schedule
+//!   for the synthetic source, replays and a silent device;
 //! * [`stats`] — counters printed at exit and written as JSON.
 //!
 //! Nothing downstream of the bridge ever sees a rejected sample's numbers: a tool is `VALID` with

@@ -2,6 +2,14 @@
 //! `next += period`, so the rate never drifts; overruns skip slots instead of bursting), take what
 //! the source received, validate and assemble it, record it, publish one frame.
 //!
+//! A device source (a reader thread behind an [`crate::source::Inbox`]) also ends the wait when a
+//! sample arrives: the loop takes everything queued and publishes at once, so a tracker's sample
+//! never waits for the bridge's own tick; the schedule then only keeps frames going (stale-flagged)
+//! when the device falls silent, its next slot 1.5 periods after the last arrival. Arrivals closer
+//! than [`MIN_ARRIVAL_SPACING_NS`] are gathered into one frame, which bounds the publish rate
+//! whatever a sender does. The synthetic source and replays make their samples on the tick and
+//! keep the absolute-deadline schedule.
+//!
 //! Written against [`Pace`] (time and sleeping), [`Source`] and [`Publish`], so tests drive it on a
 //! fake clock with in-memory ports. Per tick it does not allocate (the source's samples are
 //! fixed-size, the recorder writes into a buffer, the frame is reused).
@@ -11,12 +19,15 @@ use std::sync::atomic::{AtomicBool, Ordering};
 use ipc_types::TrackerFrame;
 use transport::{FakeClock, Publish};
 
-use crate::assemble::Assembler;
+use crate::assemble::{Assembler, Outcome};
 use crate::record::RecordWriter;
 use crate::sample::{Event, EventKind, Input};
 use crate::source::{Poll, Source};
 use crate::stats::fnv1a;
 use crate::BridgeError;
+
+/// Arrival-driven frames are at least this far apart (≤ 4 kHz, whatever the sender's rate), ns.
+pub const MIN_ARRIVAL_SPACING_NS: u64 = 250_000;
 
 /// Time and sleeping, for the loop.
 pub trait Pace {
@@ -155,19 +166,26 @@ pub fn run_loop(
     let paced = source.paced();
     let mut frame = TrackerFrame::default();
     let mut next = pace.now_ns();
+    let mut last_publish = 0u64;
     loop {
         if should_stop(pace.now_ns()) {
             return Ok(Ended::Stopped);
         }
-        if paced {
-            pace.sleep_until(next);
+        // A device's sample ends the wait (published on arrival); else the schedule's slot.
+        let arrived = paced && source.wait(pace, next);
+        if arrived && pace.now_ns() < last_publish + MIN_ARRIVAL_SPACING_NS {
+            pace.sleep_until(last_publish + MIN_ARRIVAL_SPACING_NS);
         }
         let now = pace.now_ns();
-        if paced {
+        // The schedule's slot has come (also when inputs arrived: a flood of link events must not
+        // hold back the frames that say a silent tool is stale).
+        let due = paced && now >= next;
+        if paced && !arrived {
             asm.stats
                 .jitter
                 .saturating_record(now.saturating_sub(next).max(1));
         }
+        let mut samples = 0u64;
         let mut record_error: Option<std::io::Error> = None;
         let poll = {
             let stats_sink = &mut *asm;
@@ -180,7 +198,10 @@ pub fn run_loop(
                             record_error.get_or_insert(e);
                         }
                     }
-                    stats_sink.ingest(s);
+                    // A repeat of a device frame already seen changes no pose: no frame for it.
+                    if stats_sink.ingest(s) != Outcome::Repeat {
+                        samples += 1;
+                    }
                 }
                 Input::Event(e) => {
                     if let Some(r) = rec.as_mut() {
@@ -195,6 +216,8 @@ pub fn run_loop(
         };
         match poll {
             Poll::End => return Ok(Ended::SourceEnded),
+            // Only link events or repeats arrived (a connection, a rejected message): no frame.
+            Poll::Tick { .. } if arrived && samples == 0 && !due => {}
             Poll::Tick { at_ns } => {
                 asm.frame(at_ns, &mut frame);
                 if let Some(r) = recorder.as_mut() {
@@ -211,6 +234,7 @@ pub fn run_loop(
                 frame.stamps.capture_ns = now.saturating_sub(at_ns.saturating_sub(capture)).max(1);
                 frame.stamps.bridge_publish_ns = pace.now_ns().max(frame.stamps.capture_ns);
                 outlet.publish(&frame)?;
+                last_publish = frame.stamps.bridge_publish_ns;
             }
         }
         if let Some(e) = record_error {
@@ -228,7 +252,9 @@ pub fn run_loop(
                 now,
             );
         }
-        if paced {
+        if arrived && samples > 0 {
+            next = pace.now_ns() + period + period / 2;
+        } else if paced && (due || !arrived) {
             next += period;
             let now = pace.now_ns();
             if now > next + period {
@@ -237,5 +263,222 @@ pub fn run_loop(
                 next += missed * period;
             }
         }
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::assemble::BridgeConfig;
+    use crate::sample::{Sample, ToolName};
+    use crate::source::SourceError;
+    use crate::validate::Volume;
+    use transport::memory::Recorder;
+
+    /// A device source on a fake clock: inputs arrive at scripted times.
+    struct Scripted {
+        arrivals: std::collections::VecDeque<(u64, Input)>,
+        /// Time each poll takes (on the loop's clock).
+        clock: FakeClock,
+        poll_cost_ns: u64,
+    }
+
+    impl Source for Scripted {
+        fn describe(&self) -> String {
+            "scripted".into()
+        }
+        fn poll(&mut self, now_ns: u64, sink: &mut dyn FnMut(&Input)) -> Result<Poll, SourceError> {
+            while self.arrivals.front().is_some_and(|(t, _)| *t <= now_ns) {
+                if let Some((_, i)) = self.arrivals.pop_front() {
+                    sink(&i);
+                }
+            }
+            self.clock.advance(self.poll_cost_ns);
+            Ok(Poll::Tick { at_ns: now_ns })
+        }
+        fn wait(&mut self, pace: &dyn Pace, deadline_ns: u64) -> bool {
+            match self.arrivals.front() {
+                // Already queued: at once, whatever the deadline (as `Inbox::wait`).
+                Some(&(t, _)) if t <= pace.now_ns() => true,
+                Some(&(t, _)) if t < deadline_ns => {
+                    pace.sleep_until(t);
+                    true
+                }
+                _ => {
+                    pace.sleep_until(deadline_ns);
+                    false
+                }
+            }
+        }
+    }
+
+    const MS: u64 = 1_000_000;
+    const P: u64 = 16_666_667;
+
+    fn sample(at: u64, x: f32) -> (u64, Input) {
+        let name = ToolName::new("Patient").unwrap();
+        (
+            at,
+            Input::Sample(Sample::quat(
+                at,
+                name,
+                [0.0, 0.0, 0.0, 1.0],
+                [x, 0.0, -1000.0],
+            )),
+        )
+    }
+
+    /// (publish time, capture stamp, patient x) of every frame until `until_ns`.
+    fn run(arrivals: Vec<(u64, Input)>, until_ns: u64) -> Vec<(u64, u64, f32)> {
+        run_costing(arrivals, until_ns, 0)
+    }
+
+    fn run_costing(
+        arrivals: Vec<(u64, Input)>,
+        until_ns: u64,
+        poll_cost_ns: u64,
+    ) -> Vec<(u64, u64, f32)> {
+        let clock = FakeClock::at(0);
+        let mut source = Scripted {
+            arrivals: arrivals.into(),
+            clock: clock.clone(),
+            poll_cost_ns,
+        };
+        let mut config = BridgeConfig::default();
+        config.validation.volume = Volume::Unbounded;
+        let mut asm = Assembler::new(config);
+        let mut out = Recorder::new(&clock);
+        run_loop(
+            &mut source,
+            &mut asm,
+            &mut out,
+            &mut None,
+            &clock,
+            &mut |now| now >= until_ns,
+            &mut |_, _| {},
+        )
+        .unwrap();
+        out.values()
+            .iter()
+            .map(|f: &TrackerFrame| {
+                (
+                    f.stamps.bridge_publish_ns,
+                    f.stamps.capture_ns,
+                    f.tools[0].pose.translation_mm[0],
+                )
+            })
+            .collect()
+    }
+
+    #[test]
+    fn a_device_sample_is_published_when_it_arrives_and_the_schedule_only_fills_silence() {
+        let t = [10 * MS, 10 * MS + P, 10 * MS + 2 * P];
+        let frames = run(
+            vec![
+                sample(t[0], 1.0),
+                (
+                    12 * MS,
+                    Input::Event(crate::sample::Event::new(EventKind::Note, 0, "a note")),
+                ),
+                sample(t[1], 2.0),
+                sample(t[2], 3.0),
+            ],
+            120 * MS,
+        );
+        let heartbeat = t[2] + P + P / 2;
+        let expected = [
+            (1, 0.0),
+            (t[0], 1.0),
+            (t[1], 2.0),
+            (t[2], 3.0),
+            (heartbeat, 3.0),
+            (heartbeat + P, 3.0),
+            (heartbeat + 2 * P, 3.0),
+        ];
+        let got: Vec<(u64, f32)> = frames.iter().take(7).map(|&(at, _, x)| (at, x)).collect();
+        assert_eq!(
+            got, expected,
+            "no frame for the note, none waiting for a tick"
+        );
+        for (&(at, capture, _), &arrival) in frames[1..4].iter().zip(&t) {
+            assert_eq!(
+                (at, capture),
+                (arrival, arrival),
+                "capture -> publish is the work alone"
+            );
+        }
+    }
+
+    #[test]
+    fn a_flood_of_link_events_does_not_hold_back_the_schedule() {
+        let note = |at| {
+            (
+                at,
+                Input::Event(crate::sample::Event::new(EventKind::Note, 0, "garbage")),
+            )
+        };
+        // An event every 0.5 ms, each taking the loop 0.6 ms: one is always waiting.
+        let mut arrivals = vec![sample(MS, 1.0)];
+        arrivals.extend((1..200).map(|k| note(MS + k * MS / 2)));
+        let frames = run_costing(arrivals, 90 * MS, 600_000);
+        let at: Vec<u64> = frames.iter().skip(1).take(4).map(|f| f.0).collect();
+        assert_eq!(at.len(), 4, "frames: {frames:?}");
+        assert_eq!(at[0], MS + 600_000, "the sample, after its poll");
+        // Each slot's frame comes within one poll of its slot.
+        let first = at[0] + P + P / 2;
+        for (k, &t) in at[1..].iter().enumerate() {
+            let slot = first + k as u64 * P;
+            assert!(
+                (slot..slot + 2 * 600_000).contains(&t),
+                "frame {k} at {t}, slot {slot}"
+            );
+        }
+    }
+
+    #[test]
+    fn a_repeated_device_frame_is_no_reason_to_publish() {
+        let with_frame = |(at, i): (u64, Input), n: u64| match i {
+            Input::Sample(s) => (
+                at,
+                Input::Sample(Sample {
+                    device_frame: Some(n),
+                    ..s
+                }),
+            ),
+            other => (at, other),
+        };
+        let frames = run(
+            vec![
+                with_frame(sample(10 * MS, 1.0), 7),
+                with_frame(sample(20 * MS, 1.0), 7),
+            ],
+            30 * MS,
+        );
+        let at: Vec<u64> = frames.iter().skip(1).take(2).map(|f| f.0).collect();
+        assert_eq!(
+            at,
+            [10 * MS, 10 * MS + P + P / 2],
+            "the repeat at 20 ms made none"
+        );
+    }
+
+    #[test]
+    fn arrivals_closer_than_the_minimum_spacing_make_one_frame() {
+        let frames = run(
+            vec![
+                sample(10 * MS, 1.0),
+                sample(10 * MS + 100_000, 2.0),
+                sample(10 * MS + 200_000, 3.0),
+            ],
+            20 * MS,
+        );
+        let got: Vec<(u64, u64, f32)> = frames.into_iter().skip(1).take(2).collect();
+        assert_eq!(
+            got,
+            [
+                (10 * MS, 10 * MS, 1.0),
+                (10 * MS + MIN_ARRIVAL_SPACING_NS, 10 * MS + 200_000, 3.0),
+            ]
+        );
     }
 }

@@ -194,11 +194,14 @@ pub enum Reject {
     HighRms = 13,
     /// The tracker reported a fault for the tool.
     DeviceFault = 14,
+    /// A tracker reply that answered an earlier poll (it came late) or no poll (the tracker
+    /// answered twice): dropped, so the bridge never falls behind the device.
+    StaleReply = 15,
 }
 
 impl Reject {
     /// Every reason, in order.
-    pub const ALL: [Reject; 15] = [
+    pub const ALL: [Reject; 16] = [
         Reject::Crc,
         Reject::Malformed,
         Reject::Oversized,
@@ -214,6 +217,7 @@ impl Reject {
         Reject::Missing,
         Reject::HighRms,
         Reject::DeviceFault,
+        Reject::StaleReply,
     ];
 
     /// The reason's key in statistics and JSON.
@@ -234,6 +238,7 @@ impl Reject {
             Reject::Missing => "missing",
             Reject::HighRms => "high_rms",
             Reject::DeviceFault => "device_fault",
+            Reject::StaleReply => "stale_reply",
         }
     }
 

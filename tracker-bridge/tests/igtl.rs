@@ -259,3 +259,100 @@ fn a_slow_sender_shows_as_stale_between_its_samples() {
     assert!(valid >= 8, "each sample is fresh for up to 50 ms: {valid}");
     assert_eq!(asm.stats.stale as usize, stale);
 }
+
+#[test]
+fn sixteen_idle_connections_do_not_lock_a_real_sender_out() {
+    use tracker_bridge::source::igtl_server::{EVICT_AFTER, MAX_SENDERS};
+    let mut server = IgtlServer::bind("127.0.0.1", 0, &SourceOptions::default()).unwrap();
+    let addr = server.local_addr();
+    let sender = std::thread::spawn(move || {
+        let idle: Vec<TcpStream> = (0..MAX_SENDERS)
+            .map(|_| TcpStream::connect(addr).unwrap())
+            .collect();
+        std::thread::sleep(EVICT_AFTER + Duration::from_millis(300));
+        let mut s = TcpStream::connect(addr).unwrap();
+        for k in 1..=30 {
+            s.write_all(&transform("Patient", k)).unwrap();
+            std::thread::sleep(Duration::from_millis(16));
+        }
+        // A seventeenth connection while the real sender is live: another idle one makes room,
+        // never the sender.
+        let late = TcpStream::connect(addr).unwrap();
+        for k in 31..=60 {
+            s.write_all(&transform("Patient", k)).unwrap();
+            std::thread::sleep(Duration::from_millis(16));
+        }
+        drop((idle, late));
+    });
+    let (frames, asm) = run(&mut server, Duration::from_secs(15), || {
+        sender.is_finished()
+    });
+    let s = &asm.stats;
+    eprintln!("{}", s.text());
+    let patient = s.tools.iter().find(|t| t.name.as_str() == "Patient");
+    assert_eq!(
+        patient.map(|p| (p.samples, p.accepted)),
+        Some((60, 60)),
+        "every sample of the real sender: {}",
+        s.text()
+    );
+    assert_eq!(s.connects as usize, MAX_SENDERS + 2);
+    let published: Vec<f32> = frames
+        .iter()
+        .filter(|f| f.tools[TOOL_PATIENT].is_valid())
+        .map(|f| f.tools[TOOL_PATIENT].pose.translation_mm[0])
+        .collect();
+    assert!(published.contains(&1.0) && published.contains(&60.0));
+}
+
+#[test]
+fn a_connection_that_sends_nothing_is_dropped_after_the_idle_timeout() {
+    let options = SourceOptions {
+        igtl_idle_timeout: Duration::from_millis(300),
+        ..SourceOptions::default()
+    };
+    let mut server = IgtlServer::bind("127.0.0.1", 0, &options).unwrap();
+    let addr = server.local_addr();
+    let peer = std::thread::spawn(move || {
+        let mut s = TcpStream::connect(addr).unwrap();
+        s.write_all(&transform("Patient", 1)).unwrap();
+        // Quiet from now on: the server closes the connection (read sees end of stream).
+        s.set_read_timeout(Some(Duration::from_secs(5))).unwrap();
+        let mut buf = [0u8; 1];
+        let start = Instant::now();
+        let n = std::io::Read::read(&mut s, &mut buf).unwrap_or(0);
+        (n, start.elapsed())
+    });
+    let (_, asm) = run(&mut server, Duration::from_secs(10), || peer.is_finished());
+    let (n, after) = peer.join().unwrap();
+    assert_eq!(n, 0, "closed by the server");
+    assert!(after < Duration::from_secs(5), "closed after {after:?}");
+    assert_eq!((asm.stats.connects, asm.stats.disconnects), (1, 1));
+}
+
+#[test]
+fn keepalive_is_set_on_a_connection() {
+    let l = TcpListener::bind("127.0.0.1:0").unwrap();
+    let s = TcpStream::connect(l.local_addr().unwrap()).unwrap();
+    tracker_bridge::source::igtl_client::keepalive(&s).unwrap();
+    let get = |level, name| {
+        let mut v: libc::c_int = 0;
+        let mut len = std::mem::size_of::<libc::c_int>() as libc::socklen_t;
+        // SAFETY: reading one c_int option of an open socket into our variable.
+        let rc = unsafe {
+            libc::getsockopt(
+                std::os::fd::AsRawFd::as_raw_fd(&s),
+                level,
+                name,
+                (&mut v as *mut libc::c_int).cast(),
+                &mut len,
+            )
+        };
+        assert_eq!(rc, 0);
+        v
+    };
+    assert_eq!(get(libc::SOL_SOCKET, libc::SO_KEEPALIVE), 1);
+    assert_eq!(get(libc::IPPROTO_TCP, libc::TCP_KEEPIDLE), 2);
+    assert_eq!(get(libc::IPPROTO_TCP, libc::TCP_KEEPINTVL), 1);
+    assert_eq!(get(libc::IPPROTO_TCP, libc::TCP_KEEPCNT), 3);
+}

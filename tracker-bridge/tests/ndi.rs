@@ -339,3 +339,158 @@ fn the_bx_test_vector_maps_to_samples_with_device_flags() {
     assert_eq!(v.check(&a).reason, None, "inside the seed's cone at 1.5 m");
     assert_eq!(v.check(&b).reason, Some(Reject::Missing));
 }
+
+/// How the fake Vega misbehaves with its tracking replies.
+#[derive(Clone, Copy, PartialEq)]
+enum Misbehave {
+    /// Every BX is answered twice.
+    Twice,
+    /// Once a second a BX reply is sent 300 ms late.
+    LateOncePerSecond,
+}
+
+/// A loopback Vega that answers in order (one command at a time, as a tracker does), with each
+/// tool's x coordinate = the frame number of the reply, so a published pose says how old it is.
+/// Logs (time written, frame) of every BX reply.
+fn serve_misbehaving(
+    listener: std::net::TcpListener,
+    dev: Arc<Mutex<SimDevice>>,
+    stop: Arc<AtomicBool>,
+    how: Misbehave,
+    sent: Arc<Mutex<Vec<(u64, u32)>>>,
+) {
+    listener.set_nonblocking(true).unwrap();
+    while !stop.load(Ordering::Relaxed) {
+        let Ok((mut s, _)) = listener.accept() else {
+            std::thread::sleep(Duration::from_millis(5));
+            continue;
+        };
+        s.set_nonblocking(false).unwrap();
+        s.set_nodelay(true).unwrap();
+        s.set_read_timeout(Some(Duration::from_millis(20))).unwrap();
+        let mut buf = [0u8; 4096];
+        let mut bx = 0u32;
+        while !stop.load(Ordering::Relaxed) {
+            let n = match s.read(&mut buf) {
+                Ok(0) => break,
+                Ok(n) => n,
+                Err(_) => continue,
+            };
+            let is_bx = buf[..n].starts_with(b"BX");
+            let (reply, frame) = {
+                let mut d = dev.lock().unwrap();
+                let next = d.frame.wrapping_add(1);
+                for t in &mut d.tools {
+                    t.translation_mm[0] = next as f32;
+                }
+                (d.receive(&buf[..n]), d.frame)
+            };
+            let mut out = reply.clone();
+            if is_bx {
+                bx += 1;
+                match how {
+                    Misbehave::Twice => out.extend_from_slice(&reply),
+                    Misbehave::LateOncePerSecond if bx.is_multiple_of(60) => {
+                        std::thread::sleep(Duration::from_millis(300))
+                    }
+                    Misbehave::LateOncePerSecond => {}
+                }
+            }
+            if s.write_all(&out).is_err() {
+                break;
+            }
+            if is_bx {
+                sent.lock().unwrap().push((transport::now_ns(), frame));
+            }
+        }
+    }
+}
+
+/// Records each publish: (time, the patient tool's x = the device frame it shows).
+struct Freshness(Vec<(u64, f32)>);
+
+impl transport::Publish<TrackerFrame> for Freshness {
+    fn publish(&mut self, f: &TrackerFrame) -> Result<(), transport::PortError> {
+        self.0.push((
+            f.stamps.bridge_publish_ns,
+            f.tools[TOOL_PATIENT].pose.translation_mm[0],
+        ));
+        Ok(())
+    }
+}
+
+/// Poll a misbehaving Vega for `polls` BX polls; every published pose must be at most one device
+/// sample older than the newest reply the tracker had sent 2 ms before the publish (loopback
+/// delivery).
+fn stays_fresh(how: Misbehave, polls: u32) -> tracker_bridge::stats::Stats {
+    let listener = std::net::TcpListener::bind("127.0.0.1:0").unwrap();
+    let port = listener.local_addr().unwrap().port();
+    let dev = device();
+    let stop = Arc::new(AtomicBool::new(false));
+    let sent = Arc::new(Mutex::new(Vec::new()));
+    let server = {
+        let (dev, stop, sent) = (dev.clone(), stop.clone(), sent.clone());
+        std::thread::spawn(move || serve_misbehaving(listener, dev, stop, how, sent))
+    };
+    let mut source = NdiSource::tcp("127.0.0.1", port, &SourceOptions::default()).unwrap();
+    let mut config = config();
+    config.validation.volume = Volume::Unbounded;
+    let mut asm = Assembler::new(config);
+    let mut out = Freshness(Vec::new());
+    let start = Instant::now();
+    run_loop(
+        &mut source,
+        &mut asm,
+        &mut out,
+        &mut None,
+        &RealTime,
+        &mut |_| {
+            assert!(start.elapsed() < Duration::from_secs(30), "too slow");
+            sent.lock().unwrap().len() as u32 >= polls
+        },
+        &mut |_, _| {},
+    )
+    .unwrap();
+    drop(source);
+    stop.store(true, Ordering::Relaxed);
+    server.join().unwrap();
+    let sent = sent.lock().unwrap();
+    let mut checked = 0;
+    for &(at, x) in out.0.iter().filter(|(_, x)| *x > 0.0) {
+        let newest = sent
+            .iter()
+            .take_while(|(t, _)| *t + 2_000_000 <= at)
+            .map(|&(_, f)| f)
+            .max();
+        if let Some(newest) = newest {
+            assert!(
+                x as u32 + 1 >= newest,
+                "published frame {x} at {at} ns while the tracker had sent frame {newest}"
+            );
+            checked += 1;
+        }
+    }
+    assert!(checked as u32 > polls / 2, "{checked} publishes checked");
+    asm.stats.clone()
+}
+
+#[test]
+fn a_tracker_that_answers_every_poll_twice_never_leaves_the_bridge_behind() {
+    let s = stays_fresh(Misbehave::Twice, 150);
+    // Every copy is dropped before the assembler (the last one may still be on its way).
+    assert!(s.rejected_for(Reject::StaleReply) >= 140, "{}", s.text());
+    assert_eq!(s.frame_repeats, 0, "{}", s.text());
+    assert_eq!(s.frame_gaps, 0, "{}", s.text());
+}
+
+#[test]
+fn a_reply_300_ms_late_once_a_second_is_dropped_and_the_bridge_catches_up() {
+    let s = stays_fresh(Misbehave::LateOncePerSecond, 200);
+    // Three late replies: each timed out, then dropped when the next poll's reply followed it.
+    assert_eq!(s.rejected_for(Reject::StaleReply), 3, "{}", s.text());
+    assert_eq!(s.rejected_for(Reject::Timeout), 3, "{}", s.text());
+    // The late frame never reaches a tool: one frame lost per stall, shown as a gap (each of the
+    // two tools).
+    assert_eq!((s.frame_gaps, s.frames_lost), (6, 6), "{}", s.text());
+    assert!(s.stale > 0, "the 300 ms stalls show as stale: {}", s.text());
+}

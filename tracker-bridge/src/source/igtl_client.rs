@@ -22,6 +22,8 @@
 
 use std::io::{ErrorKind, Read};
 use std::net::{TcpStream, ToSocketAddrs};
+use std::os::fd::AsRawFd;
+use std::sync::atomic::{AtomicU64, Ordering};
 use std::time::Duration;
 
 use transport::now_ns;
@@ -32,6 +34,49 @@ use crate::source::{Backoff, Feed, Inbox, Poll, Source, SourceError, SourceOptio
 
 /// How reads wait, so a stop request is seen within this time.
 pub const READ_TIMEOUT: Duration = Duration::from_millis(100);
+
+/// A connection that has delivered no message for this long is dropped (a sender that stopped
+/// sending without closing, or a connection that never sent anything) — the default of
+/// [`SourceOptions::igtl_idle_timeout`].
+pub const IDLE_TIMEOUT: Duration = Duration::from_secs(10);
+
+/// TCP keepalive on a connection: the first probe after `KEEPALIVE_IDLE_S` seconds without
+/// traffic, then every `KEEPALIVE_INTERVAL_S`, dropped after `KEEPALIVE_PROBES` unanswered — a
+/// peer gone without a FIN (cable pulled, Wi-Fi lost, the sender's machine off) is noticed in
+/// 5 s, and its slot freed.
+pub const KEEPALIVE_IDLE_S: i32 = 2;
+/// See [`KEEPALIVE_IDLE_S`].
+pub const KEEPALIVE_INTERVAL_S: i32 = 1;
+/// See [`KEEPALIVE_IDLE_S`].
+pub const KEEPALIVE_PROBES: i32 = 3;
+
+/// Turn TCP keepalive on for `stream` with the timing of [`KEEPALIVE_IDLE_S`] (Linux options;
+/// libc is already a dependency, so no socket crate for four `setsockopt` calls).
+pub fn keepalive(stream: &TcpStream) -> std::io::Result<()> {
+    let fd = stream.as_raw_fd();
+    let set = |level: libc::c_int, name: libc::c_int, value: libc::c_int| {
+        // SAFETY: `fd` is an open socket owned by `stream`; the option value is one c_int that
+        // outlives the call.
+        let rc = unsafe {
+            libc::setsockopt(
+                fd,
+                level,
+                name,
+                (&value as *const libc::c_int).cast(),
+                std::mem::size_of::<libc::c_int>() as libc::socklen_t,
+            )
+        };
+        if rc == 0 {
+            Ok(())
+        } else {
+            Err(std::io::Error::last_os_error())
+        }
+    };
+    set(libc::SOL_SOCKET, libc::SO_KEEPALIVE, 1)?;
+    set(libc::IPPROTO_TCP, libc::TCP_KEEPIDLE, KEEPALIVE_IDLE_S)?;
+    set(libc::IPPROTO_TCP, libc::TCP_KEEPINTVL, KEEPALIVE_INTERVAL_S)?;
+    set(libc::IPPROTO_TCP, libc::TCP_KEEPCNT, KEEPALIVE_PROBES)
+}
 
 /// The reason an OpenIGTLink decoding error is counted under.
 pub fn reject_of(e: &IgtlError) -> Reject {
@@ -144,15 +189,27 @@ pub enum PumpEnd {
     Lost(String),
 }
 
-/// Read one OpenIGTLink connection until it ends, handing every message's inputs to `feed`.
-/// Returns how it ended and whether any message arrived.
+/// Read one OpenIGTLink connection until it ends, handing every message's inputs to `feed`;
+/// `last_message_ns` gets the receive time of each message. A connection with no message for
+/// [`SourceOptions::igtl_idle_timeout`] is dropped; keepalive ([`keepalive`]) drops one whose peer
+/// is gone. Returns how it ended and whether any message arrived.
 pub fn pump(
     stream: &mut TcpStream,
     feed: &Feed,
     peer: &str,
     options: &SourceOptions,
+    last_message_ns: &AtomicU64,
 ) -> (PumpEnd, bool) {
     let _ = stream.set_nodelay(true);
+    if let Err(e) = keepalive(stream) {
+        feed.event(Event::new(
+            EventKind::Note,
+            0,
+            format!("{peer}: TCP keepalive not set ({e}); a peer that vanishes is noticed only by the idle timeout"),
+        ));
+    }
+    let idle_ns = u64::try_from(options.igtl_idle_timeout.as_nanos()).unwrap_or(u64::MAX);
+    let mut last = now_ns();
     if let Err(e) = stream.set_read_timeout(Some(READ_TIMEOUT)) {
         return (
             PumpEnd::Lost(format!("cannot set a read timeout: {e}")),
@@ -190,16 +247,28 @@ pub fn pump(
                     ErrorKind::WouldBlock | ErrorKind::TimedOut | ErrorKind::Interrupted
                 ) =>
             {
-                continue
+                if now_ns().saturating_sub(last) > idle_ns {
+                    return (
+                        PumpEnd::Lost(format!(
+                            "{peer} sent no message for {:.1} s; dropping the connection",
+                            options.igtl_idle_timeout.as_secs_f64()
+                        )),
+                        got_any,
+                    );
+                }
+                continue;
             }
             Err(e) => return (PumpEnd::Lost(format!("reading from {peer}: {e}")), got_any),
         };
         let receive_ns = now_ns();
+        let _batch = feed.batch();
         decoder.push(buf.get(..n).unwrap_or(&[]));
         for item in decoder.by_ref() {
             match item {
                 Ok(msg) => {
                     got_any = true;
+                    last = receive_ns;
+                    last_message_ns.store(receive_ns, Ordering::Relaxed);
                     message_inputs(&msg, receive_ns, options.pyigtl_quat_order, &mut |i| {
                         feed.send(i)
                     });
@@ -264,7 +333,7 @@ fn client_thread(host: &str, port: u16, peer: &str, feed: &Feed, options: &Sourc
                     0,
                     format!("connected to {peer}"),
                 ));
-                let (end, got_any) = pump(&mut stream, feed, peer, options);
+                let (end, got_any) = pump(&mut stream, feed, peer, options, &AtomicU64::new(0));
                 if got_any {
                     backoff.reset();
                 }
@@ -304,5 +373,10 @@ impl Source for IgtlClient {
     fn poll(&mut self, now_ns: u64, sink: &mut dyn FnMut(&Input)) -> Result<Poll, SourceError> {
         self.inbox.drain(sink);
         Ok(Poll::Tick { at_ns: now_ns })
+    }
+
+    fn wait(&mut self, _pace: &dyn crate::run::Pace, deadline_ns: u64) -> bool {
+        // A reader thread on the host's clock: publish on arrival.
+        self.inbox.wait(deadline_ns)
     }
 }

@@ -1,12 +1,21 @@
 //! OpenIGTLink server: senders (PLUS, Slicer, pyigtl, a navigation system) connect to it, several
 //! at once, each read on its own thread by [`super::igtl_client::pump`]; their messages meet in one
-//! queue. A sender that goes away is reported; the server keeps listening. At most
-//! [`MAX_SENDERS`] connections are served at once; further ones are closed and reported.
+//! queue. A sender that goes away is reported; the server keeps listening.
+//!
+//! Connections cannot lock a real sender out: each has TCP keepalive (a peer gone without closing
+//! is dropped within seconds) and an idle timeout ([`SourceOptions::igtl_idle_timeout`]); at most
+//! [`MAX_SENDERS`] are served at once, and when a new one arrives with every slot taken, the
+//! idlest connection — the one longest without a message, if that is at least [`EVICT_AFTER`] —
+//! is closed to make room (a live tracker sends every few milliseconds, so it is never the one).
+//! Only when every connection is live is the newcomer refused.
 
-use std::net::{SocketAddr, TcpListener};
-use std::sync::atomic::{AtomicUsize, Ordering};
+use std::net::{SocketAddr, TcpListener, TcpStream};
+use std::sync::atomic::{AtomicU64, Ordering};
 use std::sync::Arc;
+use std::thread::JoinHandle;
 use std::time::Duration;
+
+use transport::now_ns;
 
 use crate::sample::{Event, EventKind, Input};
 use crate::source::igtl_client::{pump, PumpEnd};
@@ -14,6 +23,9 @@ use crate::source::{Feed, Inbox, Poll, Source, SourceError, SourceOptions};
 
 /// Connections served at once.
 pub const MAX_SENDERS: usize = 16;
+
+/// A connection quiet this long may be closed to make room for a new one.
+pub const EVICT_AFTER: Duration = Duration::from_millis(500);
 
 /// The OpenIGTLink server source.
 #[derive(Debug)]
@@ -50,47 +62,76 @@ impl IgtlServer {
     }
 }
 
+/// One served connection, as the accept thread sees it.
+struct Sender {
+    thread: JoinHandle<()>,
+    /// A handle on the socket, to close it when evicted.
+    socket: TcpStream,
+    peer: SocketAddr,
+    /// When it connected and when its last message arrived (0: none yet), ns.
+    connected_ns: u64,
+    last_message_ns: Arc<AtomicU64>,
+}
+
+impl Sender {
+    /// How long it has been without a message (since it connected, when it never sent one).
+    fn quiet_ns(&self, now: u64) -> u64 {
+        let last = self.last_message_ns.load(Ordering::Relaxed);
+        now.saturating_sub(last.max(self.connected_ns))
+    }
+}
+
+/// The connection to close for a newcomer when every slot is taken: the one quiet longest, if
+/// at least [`EVICT_AFTER`].
+fn idlest(senders: &[Sender], now: u64) -> Option<usize> {
+    let min = u64::try_from(EVICT_AFTER.as_nanos()).unwrap_or(u64::MAX);
+    senders
+        .iter()
+        .enumerate()
+        .map(|(i, s)| (s.quiet_ns(now), i))
+        .filter(|&(q, _)| q >= min)
+        .max()
+        .map(|(_, i)| i)
+}
+
 fn accept_thread(listener: TcpListener, feed: &Feed, options: &SourceOptions) {
-    let active = Arc::new(AtomicUsize::new(0));
-    let mut threads = Vec::new();
+    let mut senders: Vec<Sender> = Vec::with_capacity(MAX_SENDERS);
     while !feed.stopping() {
         match listener.accept() {
-            Ok((mut stream, peer)) => {
-                threads.retain(|t: &std::thread::JoinHandle<()>| !t.is_finished());
-                if active.load(Ordering::Relaxed) >= MAX_SENDERS {
-                    feed.event(Event::new(
-                        EventKind::Note,
-                        0,
-                        format!("refused {peer}: already {MAX_SENDERS} senders connected"),
-                    ));
-                    drop(stream);
-                    continue;
-                }
-                if stream.set_nonblocking(false).is_err() {
-                    continue;
-                }
-                active.fetch_add(1, Ordering::Relaxed);
-                let (feed, options, active_here) = (feed.clone(), options.clone(), active.clone());
-                let spawned = std::thread::Builder::new()
-                    .name("igtl-sender".into())
-                    .spawn(move || {
-                        let name = peer.to_string();
-                        feed.event(Event::new(
-                            EventKind::Connected,
-                            0,
-                            format!("sender {name} connected"),
-                        ));
-                        let (end, _) = pump(&mut stream, &feed, &name, &options);
-                        if let PumpEnd::Lost(why) = end {
-                            feed.event(Event::new(EventKind::Disconnected, 0, why));
+            Ok((stream, peer)) => {
+                senders.retain(|s| !s.thread.is_finished());
+                if senders.len() >= MAX_SENDERS {
+                    let now = now_ns();
+                    match idlest(&senders, now) {
+                        Some(i) => {
+                            let s = &senders[i];
+                            feed.event(Event::new(
+                                EventKind::Note,
+                                0,
+                                format!(
+                                    "closing {} (no message for {:.1} s) to make room for {peer}",
+                                    s.peer,
+                                    s.quiet_ns(now) as f64 / 1e9
+                                ),
+                            ));
+                            let _ = s.socket.shutdown(std::net::Shutdown::Both);
+                            let s = senders.swap_remove(i);
+                            let _ = s.thread.join();
                         }
-                        active_here.fetch_sub(1, Ordering::Relaxed);
-                    });
-                match spawned {
-                    Ok(t) => threads.push(t),
-                    Err(_) => {
-                        active.fetch_sub(1, Ordering::Relaxed);
+                        None => {
+                            feed.event(Event::new(
+                                EventKind::Note,
+                                0,
+                                format!(
+                                    "refused {peer}: already {MAX_SENDERS} senders connected, all of them sending"
+                                ),
+                            ));
+                            continue;
+                        }
                     }
+                }
+                if let Some(s) = serve(stream, peer, feed, options) {
+                    senders.push(s);
                 }
             }
             Err(e) if e.kind() == std::io::ErrorKind::WouldBlock => {
@@ -106,9 +147,46 @@ fn accept_thread(listener: TcpListener, feed: &Feed, options: &SourceOptions) {
             }
         }
     }
-    for t in threads {
-        let _ = t.join();
+    for s in senders {
+        let _ = s.thread.join();
     }
+}
+
+/// Start reading one connection on its own thread.
+fn serve(
+    mut stream: TcpStream,
+    peer: SocketAddr,
+    feed: &Feed,
+    options: &SourceOptions,
+) -> Option<Sender> {
+    stream.set_nonblocking(false).ok()?;
+    let socket = stream.try_clone().ok()?;
+    let last_message_ns = Arc::new(AtomicU64::new(0));
+    let (feed, options, last) = (feed.clone(), options.clone(), last_message_ns.clone());
+    let thread = std::thread::Builder::new()
+        .name("igtl-sender".into())
+        .spawn(move || {
+            let name = peer.to_string();
+            feed.event(Event::new(
+                EventKind::Connected,
+                0,
+                format!("sender {name} connected"),
+            ));
+            let (end, _) = pump(&mut stream, &feed, &name, &options, &last);
+            // Close it now: the accept thread's handle (for eviction) would keep it open.
+            let _ = stream.shutdown(std::net::Shutdown::Both);
+            if let PumpEnd::Lost(why) = end {
+                feed.event(Event::new(EventKind::Disconnected, 0, why));
+            }
+        })
+        .ok()?;
+    Some(Sender {
+        thread,
+        socket,
+        peer,
+        connected_ns: now_ns(),
+        last_message_ns,
+    })
 }
 
 impl Source for IgtlServer {
@@ -119,5 +197,10 @@ impl Source for IgtlServer {
     fn poll(&mut self, now_ns: u64, sink: &mut dyn FnMut(&Input)) -> Result<Poll, SourceError> {
         self.inbox.drain(sink);
         Ok(Poll::Tick { at_ns: now_ns })
+    }
+
+    fn wait(&mut self, _pace: &dyn crate::run::Pace, deadline_ns: u64) -> bool {
+        // A reader thread on the host's clock: publish on arrival.
+        self.inbox.wait(deadline_ns)
     }
 }

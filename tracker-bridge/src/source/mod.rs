@@ -11,8 +11,9 @@
 //! | `replay:FILE` | [`replay`] | a recording ([`crate::record`]), paced or as fast as possible |
 //!
 //! Network and serial sources run their link on a reader thread that decodes, reconnects with
-//! back-off and hands [`Input`]s over a bounded queue ([`Inbox`]); the publishing loop
-//! ([`crate::run`]) takes whatever arrived once per tick without blocking. Samples are fixed-size,
+//! back-off and hands [`Input`]s over a bounded queue ([`Inbox`]), each sample stamped with the
+//! time its bytes arrived; the publishing loop ([`crate::run`]) waits on the queue and takes
+//! whatever arrived as soon as it arrives. Samples are fixed-size,
 //! so the queue never allocates after start-up; when it is full the newest input is dropped and
 //! counted (`queue_full`).
 
@@ -23,7 +24,7 @@ pub mod replay;
 pub mod synthetic;
 
 use std::path::PathBuf;
-use std::sync::atomic::{AtomicBool, AtomicU64, Ordering};
+use std::sync::atomic::{AtomicBool, AtomicU32, AtomicU64, Ordering};
 use std::sync::mpsc::{sync_channel, Receiver, SyncSender, TrySendError};
 use std::sync::Arc;
 use std::thread::JoinHandle;
@@ -55,6 +56,15 @@ pub trait Source {
     /// Hand every input received since the previous call to `sink`, oldest first, without
     /// blocking; then say what this tick is.
     fn poll(&mut self, now_ns: u64, sink: &mut dyn FnMut(&Input)) -> Result<Poll, SourceError>;
+
+    /// Wait until an input is waiting or `deadline_ns` (on `pace`'s clock) has passed; true when
+    /// an input is waiting — the loop then takes it and publishes on arrival. Sources whose
+    /// samples are made on the tick (synthetic, replay) sleep until the deadline and return false:
+    /// they keep the absolute-deadline schedule.
+    fn wait(&mut self, pace: &dyn crate::run::Pace, deadline_ns: u64) -> bool {
+        pace.sleep_until(deadline_ns);
+        false
+    }
 
     /// False when the loop should not wait for its schedule (a replay as fast as possible).
     fn paced(&self) -> bool {
@@ -285,7 +295,23 @@ pub struct Feed {
     tx: SyncSender<Input>,
     stop: Arc<AtomicBool>,
     dropped: Arc<AtomicU64>,
+    /// Readers in the middle of handing over the inputs of one read ([`Feed::batch`]).
+    busy: Arc<AtomicU32>,
 }
+
+/// While it lives, the inputs being sent belong together (the messages of one read, the tools of
+/// one reply): the loop waits for the rest before it publishes, so they make one frame.
+#[derive(Debug)]
+pub struct Batch<'a>(&'a AtomicU32);
+
+impl Drop for Batch<'_> {
+    fn drop(&mut self) {
+        self.0.fetch_sub(1, Ordering::Release);
+    }
+}
+
+/// How long [`Inbox::drain`] waits at most for a reader to finish a batch.
+pub const BATCH_WAIT: Duration = Duration::from_micros(100);
 
 impl Feed {
     /// Hand one input to the loop; a full queue drops it (counted, reported as `queue_full`).
@@ -297,6 +323,12 @@ impl Feed {
             }
             Err(TrySendError::Disconnected(_)) => self.stop.store(true, Ordering::Relaxed),
         }
+    }
+
+    /// Mark the inputs sent until the guard drops as one batch.
+    pub fn batch(&self) -> Batch<'_> {
+        self.busy.fetch_add(1, Ordering::Acquire);
+        Batch(&self.busy)
     }
 
     /// An event.
@@ -327,6 +359,8 @@ impl Feed {
 #[derive(Debug)]
 pub struct Inbox {
     rx: Receiver<Input>,
+    /// The input [`Inbox::wait`] took off the queue, handed over first by the next drain.
+    held: Option<Input>,
     feed: Feed,
     threads: Vec<JoinHandle<()>>,
 }
@@ -337,10 +371,12 @@ impl Inbox {
         let (tx, rx) = sync_channel(QUEUE);
         Inbox {
             rx,
+            held: None,
             feed: Feed {
                 tx,
                 stop: Arc::new(AtomicBool::new(false)),
                 dropped: Arc::new(AtomicU64::new(0)),
+                busy: Arc::new(AtomicU32::new(0)),
             },
             threads: Vec::new(),
         }
@@ -356,8 +392,34 @@ impl Inbox {
         self.threads.push(t);
     }
 
-    /// Everything queued, oldest first (bounded: at most what was queued when it started).
+    /// Block until an input is queued or the monotonic clock reaches `deadline_ns`; true when one
+    /// is (it stays queued for [`Inbox::drain`]).
+    pub fn wait(&mut self, deadline_ns: u64) -> bool {
+        if self.held.is_some() {
+            return true;
+        }
+        let left = deadline_ns.saturating_sub(transport::now_ns());
+        let got = if left == 0 {
+            self.rx.try_recv().ok()
+        } else {
+            self.rx.recv_timeout(Duration::from_nanos(left)).ok()
+        };
+        self.held = got;
+        self.held.is_some()
+    }
+
+    /// Everything queued, oldest first (bounded: at most what was queued when it started). A
+    /// reader in the middle of a batch is given up to [`BATCH_WAIT`] to finish it first.
     pub fn drain(&mut self, sink: &mut dyn FnMut(&Input)) {
+        if self.feed.busy.load(Ordering::Acquire) > 0 {
+            let until = std::time::Instant::now() + BATCH_WAIT;
+            while self.feed.busy.load(Ordering::Acquire) > 0 && std::time::Instant::now() < until {
+                std::thread::yield_now();
+            }
+        }
+        if let Some(i) = self.held.take() {
+            sink(&i);
+        }
         for _ in 0..QUEUE {
             match self.rx.try_recv() {
                 Ok(i) => sink(&i),
@@ -395,6 +457,8 @@ impl Drop for Inbox {
 pub struct SourceOptions {
     /// OpenIGTLink decoding limits.
     pub igtl_limits: crate::igtl::Limits,
+    /// An OpenIGTLink connection with no message for this long is dropped.
+    pub igtl_idle_timeout: Duration,
     /// Component order of pyigtl `POSITION` quaternions.
     pub pyigtl_quat_order: crate::igtl::QuatOrder,
     /// NDI passive tool definitions (ROM files) to load; the tool is named by the file stem.
@@ -413,6 +477,7 @@ impl Default for SourceOptions {
     fn default() -> Self {
         SourceOptions {
             igtl_limits: crate::igtl::Limits::default(),
+            igtl_idle_timeout: igtl_client::IDLE_TIMEOUT,
             pyigtl_quat_order: crate::igtl::QuatOrder::Xyzw,
             ndi_roms: Vec::new(),
             ndi_tx: false,

@@ -23,6 +23,15 @@
 //! frame (gaps and repeats). A change of the system status is reported; a newly occupied port
 //! (a wired tool plugged in) re-runs step 2 as PLUS does.
 //!
+//! ## Replies belong to polls
+//! A tracker answers its commands in order, one reply each. The session keeps at most one poll
+//! outstanding on its schedule and matches what comes back with a [`ReplyMatcher`]: a reply that
+//! arrives while a newer poll is still owed answers an older one (it came late) and is dropped; a
+//! reply that arrives when nothing is owed (a tracker that answers twice) is dropped unless its
+//! frame number is newer than the one in use. Dropped replies are counted as `stale_reply`, and
+//! the receive time of every sample is taken when its bytes arrive, not when the reply is used —
+//! so the bridge is never more than one device sample behind for longer than a poll.
+//!
 //! ## Faults
 //! A reply with a bad CRC or an unexpected layout is rejected and polling goes on; bytes between
 //! replies are skipped and counted (`garbage`); a poll without a reply in 250 ms is a `timeout`;
@@ -54,6 +63,87 @@ pub const POLL_OPTIONS: u16 =
 pub const POLL_TIMEOUT: Duration = Duration::from_millis(250);
 /// Timeouts in a row that drop the link.
 pub const MAX_TIMEOUTS: u32 = 5;
+
+/// What to do with one tracking reply ([`ReplyMatcher::reply`]).
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub enum Verdict {
+    /// It answers the newest poll, or carries a newer frame than the one in use: use it.
+    Use,
+    /// It answers an older poll than one still owed (it came late): drop and count it.
+    Late,
+    /// Nothing was owed and its frame is not newer (a tracker that answered twice): drop and count.
+    Unsolicited,
+}
+
+/// Matches tracking replies to polls for a device that answers in order, one reply per command
+/// (see the module docs). Pure bookkeeping: the session tells it what it sent and what came back.
+#[derive(Debug, Clone, Copy, Default, PartialEq, Eq)]
+pub struct ReplyMatcher {
+    owed: u32,
+    last_frame: Option<u32>,
+    /// The reply used last repeated the frame in use (a duplicate taken as an answer, or a tracker
+    /// polled faster than its camera): counted as stale if a newer unsolicited reply follows.
+    suspect: bool,
+    timeouts_in_row: u32,
+}
+
+impl ReplyMatcher {
+    /// A poll was sent.
+    pub fn sent(&mut self) {
+        self.owed = (self.owed + 1).min(MAX_TIMEOUTS + 1);
+    }
+
+    /// Polls sent and not answered yet.
+    pub fn owed(&self) -> u32 {
+        self.owed
+    }
+
+    /// The newest poll got no reply by its deadline. Its reply may still come (late, then dropped
+    /// as [`Verdict::Late`] when the next poll's reply follows it); after a second timeout in a
+    /// row the polls are taken as lost, so a reply that never comes cannot shift every later
+    /// reply onto the wrong poll.
+    pub fn timed_out(&mut self) {
+        self.timeouts_in_row += 1;
+        if self.timeouts_in_row >= 2 {
+            self.owed = 0;
+        }
+    }
+
+    /// A reply came back with the device frame `frame` (the newest of its tools; `None` when it
+    /// carries none: an error reply, a bad CRC). Returns what to do with it and how many replies
+    /// to count as stale (0 or 1) besides a dropped one.
+    pub fn reply(&mut self, frame: Option<u32>) -> (Verdict, u64) {
+        let answers = self.owed > 0;
+        self.owed = self.owed.saturating_sub(1);
+        let newer = match (frame, self.last_frame) {
+            (Some(f), Some(l)) => (f.wrapping_sub(l) as i32) > 0,
+            (Some(_), None) => true,
+            (None, _) => false,
+        };
+        if self.owed > 0 {
+            return (Verdict::Late, 0);
+        }
+        if !answers && !newer {
+            return (Verdict::Unsolicited, 0);
+        }
+        // A newer frame arriving unasked shows that the previous answer was a duplicate.
+        let stale = u64::from(!answers && self.suspect);
+        self.timeouts_in_row = 0;
+        self.suspect = answers && frame.is_some() && !newer && self.last_frame.is_some();
+        if newer {
+            self.last_frame = frame;
+        }
+        (Verdict::Use, stale)
+    }
+
+    /// Start over (the tracker was set up again; nothing is owed).
+    pub fn reset(&mut self) {
+        *self = ReplyMatcher {
+            last_frame: self.last_frame,
+            ..Default::default()
+        };
+    }
+}
 
 /// A byte link to an NDI tracker.
 pub trait Link: Send {
@@ -121,24 +211,58 @@ impl Link for SerialLink {
     }
 }
 
-/// A TCP connection (Vega).
-pub struct TcpLink(TcpStream);
+/// A TCP connection (Vega). Reads wait with `ppoll` (a high-resolution timer) rather than
+/// `SO_RCVTIMEO`, which rounds up to the kernel's tick (up to 4 ms late): the session reads the
+/// link right up to its next poll slot.
+pub struct TcpLink {
+    stream: TcpStream,
+    timeout: Duration,
+}
 
 impl TcpLink {
     /// Connect to `host:port`.
     pub fn connect(host: &str, port: u16) -> std::io::Result<Self> {
-        let s = crate::source::igtl_client::connect(host, port, Duration::from_secs(2))?;
-        s.set_nodelay(true)?;
-        Ok(TcpLink(s))
+        let stream = crate::source::igtl_client::connect(host, port, Duration::from_secs(2))?;
+        stream.set_nodelay(true)?;
+        Ok(TcpLink {
+            stream,
+            timeout: Duration::from_millis(100),
+        })
+    }
+}
+
+/// Wait until `fd` is readable or `timeout` passes; false on timeout.
+fn readable(fd: libc::c_int, timeout: Duration) -> std::io::Result<bool> {
+    let mut pfd = libc::pollfd {
+        fd,
+        events: libc::POLLIN,
+        revents: 0,
+    };
+    let ts = libc::timespec {
+        tv_sec: timeout.as_secs().min(i32::MAX as u64) as libc::time_t,
+        tv_nsec: libc::c_long::from(timeout.subsec_nanos() as i32),
+    };
+    // SAFETY: one valid pollfd for an open socket; a valid timespec; no signal mask change.
+    match unsafe { libc::ppoll(&mut pfd, 1, &ts, std::ptr::null()) } {
+        0 => Ok(false),
+        n if n > 0 => Ok(true),
+        _ => Err(std::io::Error::last_os_error()),
     }
 }
 
 impl Link for TcpLink {
     fn send(&mut self, bytes: &[u8]) -> std::io::Result<()> {
-        self.0.write_all(bytes)
+        self.stream.write_all(bytes)
     }
     fn recv(&mut self, buf: &mut [u8]) -> std::io::Result<usize> {
-        match self.0.read(buf) {
+        use std::os::fd::AsRawFd;
+        if !readable(self.stream.as_raw_fd(), self.timeout)? {
+            return Err(std::io::Error::new(
+                ErrorKind::TimedOut,
+                "no bytes within the timeout",
+            ));
+        }
+        match self.stream.read(buf) {
             Ok(0) => Err(std::io::Error::new(
                 ErrorKind::UnexpectedEof,
                 "the tracker closed the connection",
@@ -147,7 +271,8 @@ impl Link for TcpLink {
         }
     }
     fn set_timeout(&mut self, d: Duration) -> std::io::Result<()> {
-        self.0.set_read_timeout(Some(d))
+        self.timeout = d;
+        Ok(())
     }
     fn is_serial(&self) -> bool {
         false
@@ -212,10 +337,17 @@ pub fn load_rom(path: &Path) -> Result<Rom, SourceError> {
     Ok(Rom { name, bytes })
 }
 
+/// The polling state of [`Session::track`].
+struct Polling {
+    use_tx: bool,
+    matcher: ReplyMatcher,
+}
+
 struct Session<'a> {
     link: &'a mut dyn Link,
     reader: ReplyReader,
-    ready: std::collections::VecDeque<RawReply>,
+    /// Replies framed but not taken yet, each with the time its last bytes arrived.
+    ready: std::collections::VecDeque<(RawReply, u64)>,
     feed: &'a Feed,
     skipped_reported: u64,
     names: Box<[Option<ToolName>; 256]>,
@@ -248,8 +380,9 @@ impl<'a> Session<'a> {
         }
     }
 
-    /// The next reply, waiting at most `timeout`.
-    fn reply(&mut self, what: &str, timeout: Duration) -> Result<RawReply, SessionError> {
+    /// The next reply and when its bytes arrived (CLOCK_MONOTONIC ns, taken as the read returns),
+    /// waiting at most `timeout`.
+    fn reply(&mut self, what: &str, timeout: Duration) -> Result<(RawReply, u64), SessionError> {
         let until = Instant::now() + timeout;
         let mut buf = [0u8; 4096];
         loop {
@@ -272,8 +405,10 @@ impl<'a> Session<'a> {
                 .map_err(SessionError::Io)?;
             match self.link.recv(&mut buf) {
                 Ok(n) => {
+                    let receive_ns = now_ns();
                     let replies = self.reader.push(buf.get(..n).unwrap_or(&[]));
-                    self.ready.extend(replies);
+                    self.ready
+                        .extend(replies.into_iter().map(|r| (r, receive_ns)));
                     self.report_garbage();
                 }
                 Err(e)
@@ -299,7 +434,7 @@ impl<'a> Session<'a> {
         self.ready.clear();
         self.link.discard_input();
         let name = self.send(cmd)?;
-        let r = self.reply(&name, timeout)?;
+        let (r, _) = self.reply(&name, timeout)?;
         ndi::parse_ascii_reply(r.bytes()).map_err(|e| SessionError::Ndi(name, e))
     }
 
@@ -321,7 +456,7 @@ impl<'a> Session<'a> {
         self.ready.clear();
         self.link.discard_input();
         let name = self.send(&Command::Phsr(filter))?;
-        let r = self.reply(&name, Duration::from_secs(1))?;
+        let (r, _) = self.reply(&name, Duration::from_secs(1))?;
         ndi::parse_phsr_reply(r.bytes()).map_err(|e| SessionError::Ndi(name, e))
     }
 
@@ -345,7 +480,7 @@ impl<'a> Session<'a> {
                 let until = Instant::now() + Duration::from_secs(5);
                 loop {
                     let left = until.saturating_duration_since(Instant::now());
-                    let r = self.reply("a serial break (RESET)", left)?;
+                    let (r, _) = self.reply("a serial break (RESET)", left)?;
                     if matches!(ndi::parse_ascii_reply(r.bytes()), Ok(AsciiReply::Reset)) {
                         break;
                     }
@@ -453,104 +588,171 @@ impl<'a> Session<'a> {
     }
 
     /// Poll until stopped or the link is lost; `Ok` means asked to stop.
-    fn track(&mut self, roms: &[Rom], mut use_tx: bool, poll_hz: f64) -> Result<(), SessionError> {
+    ///
+    /// One poll is sent per slot of the schedule and waited for until its reply or
+    /// [`POLL_TIMEOUT`]; between polls the link is still read, so a duplicate or late reply is
+    /// matched (and dropped) when it arrives instead of being taken as the next poll's answer.
+    fn track(&mut self, roms: &[Rom], use_tx: bool, poll_hz: f64) -> Result<(), SessionError> {
         let period = Duration::from_secs_f64(1.0 / poll_hz);
         let mut next = Instant::now();
         let mut timeouts = 0u32;
+        let mut poll = Polling {
+            use_tx,
+            matcher: ReplyMatcher::default(),
+        };
         loop {
             if self.feed.stopping() {
                 return Ok(());
             }
-            let now = Instant::now();
-            if next > now {
-                std::thread::sleep(next - now);
+            // Until the next slot: take what arrives (nothing is owed, so only duplicates or
+            // replies to a poll that timed out can come); the last moment is slept precisely.
+            loop {
+                let left = next.saturating_duration_since(Instant::now());
+                if left < Duration::from_millis(2) {
+                    std::thread::sleep(left);
+                    break;
+                }
+                match self.reply("", left - Duration::from_millis(1)) {
+                    Ok((r, at)) => self.handle(&r, at, &mut poll, roms)?,
+                    Err(SessionError::Timeout(_)) => {}
+                    Err(e) => return Err(e),
+                }
             }
             next += period;
             if next + period < Instant::now() {
                 next = Instant::now() + period;
             }
-            let cmd = if use_tx {
+            let cmd = if poll.use_tx {
                 Command::Tx(POLL_OPTIONS)
             } else {
                 Command::Bx(POLL_OPTIONS)
             };
             let name = self.send(&cmd)?;
-            let reply = match self.reply(&name, POLL_TIMEOUT) {
-                Ok(r) => r,
-                Err(SessionError::Timeout(_)) => {
-                    timeouts += 1;
-                    self.feed.event(Event::rejected(
-                        Reject::Timeout,
-                        1,
-                        format!("no reply to {name} within {} ms", POLL_TIMEOUT.as_millis()),
-                    ));
-                    if timeouts >= MAX_TIMEOUTS {
-                        return Err(SessionError::Timeout(format!(
-                            "{MAX_TIMEOUTS} polls in a row"
-                        )));
+            poll.matcher.sent();
+            let deadline = Instant::now() + POLL_TIMEOUT;
+            loop {
+                let left = deadline.saturating_duration_since(Instant::now());
+                match self.reply(&name, left) {
+                    Ok((r, at)) => {
+                        self.handle(&r, at, &mut poll, roms)?;
+                        if poll.matcher.owed() == 0 {
+                            timeouts = 0;
+                            break;
+                        }
                     }
-                    continue;
-                }
-                Err(e) => return Err(e),
-            };
-            timeouts = 0;
-            let receive_ns = now_ns();
-            let parsed = match &reply {
-                RawReply::Binary(b) => ndi::parse_bx_reply(b, POLL_OPTIONS),
-                RawReply::Ascii(b) if use_tx => ndi::parse_tx_reply(b, POLL_OPTIONS),
-                RawReply::Ascii(b) => match ndi::parse_ascii_reply(b) {
-                    Err(NdiError::Device { code: 0x01, .. }) => {
-                        use_tx = true;
-                        self.feed.event(Event::new(
-                            EventKind::Note,
-                            0,
-                            "the tracker does not know BX: polling with TX from now on",
+                    Err(SessionError::Timeout(_)) => {
+                        timeouts += 1;
+                        poll.matcher.timed_out();
+                        self.feed.event(Event::rejected(
+                            Reject::Timeout,
+                            1,
+                            format!("no reply to {name} within {} ms", POLL_TIMEOUT.as_millis()),
                         ));
-                        continue;
+                        if timeouts >= MAX_TIMEOUTS {
+                            return Err(SessionError::Timeout(format!(
+                                "{MAX_TIMEOUTS} polls in a row"
+                            )));
+                        }
+                        break;
                     }
-                    Err(e) => Err(e),
-                    Ok(other) => Err(NdiError::UnexpectedReply {
-                        expected: "tracking data",
-                        got: format!("{other:?}"),
-                    }),
-                },
-            };
-            match parsed {
-                Ok(r) => {
-                    for t in &r.tools {
-                        self.feed.send(Input::Sample(self.sample(t, receive_ns)));
-                    }
-                    let raw = r.system_status.raw;
-                    if self.last_system != Some(raw) && (raw != 0 || self.last_system.is_some()) {
-                        self.feed.event(Event::new(
-                            EventKind::DeviceStatus,
-                            u32::from(raw),
-                            format!("NDI system status {raw:04X}"),
-                        ));
-                    }
-                    self.last_system = Some(raw);
-                    if r.system_status.port_occupied {
-                        self.feed.event(Event::new(
-                            EventKind::Note,
-                            0,
-                            "a tool was plugged in: setting up the tools again",
-                        ));
-                        self.expect_ok(&Command::Tstop, Duration::from_secs(1))?;
-                        self.tools(roms)?;
-                        self.expect_ok(&Command::Tstart, Duration::from_secs(2))?;
-                    }
-                }
-                Err(e) => {
-                    let reason = match e {
-                        NdiError::Crc { .. } => Reject::Crc,
-                        NdiError::Device { .. } => Reject::DeviceError,
-                        _ => Reject::Malformed,
-                    };
-                    self.feed
-                        .event(Event::rejected(reason, 1, format!("{name} reply: {e}")));
+                    Err(e) => return Err(e),
                 }
             }
         }
+    }
+
+    /// One reply to a poll, received at `receive_ns`: parsed, matched to its poll, and its samples
+    /// handed over (or it is dropped and counted).
+    fn handle(
+        &mut self,
+        reply: &RawReply,
+        receive_ns: u64,
+        poll: &mut Polling,
+        roms: &[Rom],
+    ) -> Result<(), SessionError> {
+        let name = if poll.use_tx { "TX" } else { "BX" };
+        let parsed = match reply {
+            RawReply::Binary(b) => ndi::parse_bx_reply(b, POLL_OPTIONS),
+            RawReply::Ascii(b) if poll.use_tx => ndi::parse_tx_reply(b, POLL_OPTIONS),
+            RawReply::Ascii(b) => match ndi::parse_ascii_reply(b) {
+                Err(NdiError::Device { code: 0x01, .. }) => {
+                    poll.matcher.reply(None);
+                    poll.use_tx = true;
+                    self.feed.event(Event::new(
+                        EventKind::Note,
+                        0,
+                        "the tracker does not know BX: polling with TX from now on",
+                    ));
+                    return Ok(());
+                }
+                Err(e) => Err(e),
+                Ok(other) => Err(NdiError::UnexpectedReply {
+                    expected: "tracking data",
+                    got: format!("{other:?}"),
+                }),
+            },
+        };
+        let r = match parsed {
+            Ok(r) => r,
+            Err(e) => {
+                poll.matcher.reply(None);
+                let reason = match e {
+                    NdiError::Crc { .. } => Reject::Crc,
+                    NdiError::Device { .. } => Reject::DeviceError,
+                    _ => Reject::Malformed,
+                };
+                self.feed
+                    .event(Event::rejected(reason, 1, format!("{name} reply: {e}")));
+                return Ok(());
+            }
+        };
+        let frame = r.tools.iter().map(|t| t.frame).max();
+        let (verdict, stale) = poll.matcher.reply(frame);
+        let dropped = stale + u64::from(verdict != Verdict::Use);
+        if dropped > 0 {
+            self.feed.event(Event::rejected(
+                Reject::StaleReply,
+                dropped as u32,
+                match verdict {
+                    Verdict::Late => format!(
+                        "a {name} reply that answered an earlier poll (it came late) was dropped"
+                    ),
+                    _ => format!(
+                        "a {name} reply nobody asked for (the tracker answered twice) was dropped"
+                    ),
+                },
+            ));
+        }
+        if verdict != Verdict::Use {
+            return Ok(());
+        }
+        {
+            let _batch = self.feed.batch();
+            for t in &r.tools {
+                self.feed.send(Input::Sample(self.sample(t, receive_ns)));
+            }
+        }
+        let raw = r.system_status.raw;
+        if self.last_system != Some(raw) && (raw != 0 || self.last_system.is_some()) {
+            self.feed.event(Event::new(
+                EventKind::DeviceStatus,
+                u32::from(raw),
+                format!("NDI system status {raw:04X}"),
+            ));
+        }
+        self.last_system = Some(raw);
+        if r.system_status.port_occupied {
+            self.feed.event(Event::new(
+                EventKind::Note,
+                0,
+                "a tool was plugged in: setting up the tools again",
+            ));
+            self.expect_ok(&Command::Tstop, Duration::from_secs(1))?;
+            self.tools(roms)?;
+            self.expect_ok(&Command::Tstart, Duration::from_secs(2))?;
+            poll.matcher.reset();
+        }
+        Ok(())
     }
 
     fn shutdown(&mut self) {
@@ -743,5 +945,91 @@ impl Source for NdiSource {
     fn poll(&mut self, now_ns: u64, sink: &mut dyn FnMut(&Input)) -> Result<Poll, SourceError> {
         self.inbox.drain(sink);
         Ok(Poll::Tick { at_ns: now_ns })
+    }
+
+    fn wait(&mut self, _pace: &dyn crate::run::Pace, deadline_ns: u64) -> bool {
+        // A reader thread on the host's clock: publish on arrival.
+        self.inbox.wait(deadline_ns)
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    use Verdict::{Late, Unsolicited, Use};
+
+    #[test]
+    fn a_tracker_that_answers_twice_has_every_second_reply_dropped() {
+        let mut m = ReplyMatcher::default();
+        for f in 1..=50u32 {
+            m.sent();
+            assert_eq!(m.reply(Some(f)), (Use, 0));
+            assert_eq!(m.owed(), 0);
+            assert_eq!(m.reply(Some(f)), (Unsolicited, 0), "the copy of frame {f}");
+        }
+    }
+
+    #[test]
+    fn a_copy_taken_for_the_next_answer_is_counted_when_the_real_answer_follows() {
+        let mut m = ReplyMatcher::default();
+        m.sent();
+        assert_eq!(m.reply(Some(1)), (Use, 0));
+        m.sent();
+        // The copy of frame 1 arrives after the next poll went out: it looks like the answer
+        // (the same pose again; the assembler flags it a repeat) ...
+        assert_eq!(m.reply(Some(1)), (Use, 0));
+        // ... and the real answer, newer, is used too, the copy counted as stale.
+        assert_eq!(m.reply(Some(2)), (Use, 1));
+        m.sent();
+        assert_eq!(m.reply(Some(3)), (Use, 0));
+    }
+
+    #[test]
+    fn a_late_reply_is_dropped_when_the_next_polls_reply_follows_it() {
+        let mut m = ReplyMatcher::default();
+        m.sent();
+        assert_eq!(m.reply(Some(10)), (Use, 0));
+        m.sent();
+        m.timed_out(); // frame 11 is 300 ms late
+        m.sent();
+        assert_eq!(m.reply(Some(11)), (Late, 0));
+        assert_eq!(m.reply(Some(12)), (Use, 0));
+        assert_eq!(m.owed(), 0);
+        m.sent();
+        assert_eq!(m.reply(Some(13)), (Use, 0), "back in step");
+    }
+
+    #[test]
+    fn a_lost_reply_does_not_shift_every_later_reply() {
+        let mut m = ReplyMatcher::default();
+        m.sent();
+        m.timed_out(); // never answered
+        m.sent();
+        assert_eq!(m.reply(Some(5)), (Late, 0), "taken for the lost poll's");
+        m.timed_out(); // a second timeout in a row: the polls are taken as lost
+        m.sent();
+        assert_eq!(m.reply(Some(6)), (Use, 0));
+        m.sent();
+        assert_eq!(m.reply(Some(7)), (Use, 0));
+    }
+
+    #[test]
+    fn a_tracker_polled_faster_than_its_camera_repeats_frames_and_is_not_dropped() {
+        let mut m = ReplyMatcher::default();
+        for f in [1u32, 1, 2, 2, 3] {
+            m.sent();
+            assert_eq!(m.reply(Some(f)).0, Use);
+        }
+        // Error replies and bad CRCs answer their poll without a frame.
+        m.sent();
+        assert_eq!(m.reply(None), (Use, 0));
+        assert_eq!(m.owed(), 0);
+        // A frame counter that wraps is still newer.
+        let mut w = ReplyMatcher::default();
+        w.sent();
+        w.reply(Some(u32::MAX));
+        assert_eq!(w.reply(Some(0)), (Use, 0), "unasked but newer");
+        assert_eq!(w.reply(Some(u32::MAX)), (Unsolicited, 0));
     }
 }
