@@ -39,6 +39,11 @@ pub struct BakeArgs {
     /// anterior). See EQUATIONS.md §2.4.
     #[arg(long, value_parser = ["population", "seed"])]
     pub directions: Option<String>,
+    /// Length in mm over which the elastostatic amplitude is made smooth on the surface so the
+    /// deformed lung does not fold (overrides the scene's [lungs] amplitude_smoothing_mm; default
+    /// 10; 0 = the seed's unsmoothed reading). See EQUATIONS.md §2.4.
+    #[arg(long, value_name = "MM")]
+    pub smoothing_mm: Option<f64>,
     /// Pitcher tolerance for a unit force (overrides the scene's; default 1e-5). Smaller: more
     /// non-zeros per row, less truncated force, longer bake.
     #[arg(long)]
@@ -166,6 +171,16 @@ pub fn bake(args: &BakeArgs) -> anyhow::Result<BakeSummary> {
         let f = lung_model::deform::MotionFile::load(m)?;
         settings.motion = f.for_side(side);
         settings.direction_field = f.field_for_side(side).cloned();
+    }
+    if let Some(l) = args.smoothing_mm {
+        if !lung_model::kernel::amplitude_smoothing_ok(l) {
+            anyhow::bail!(
+                "--smoothing-mm {l} must be 0 (the seed's unsmoothed reading) or a length within 0..{} mm ({} is the default)",
+                lung_model::kernel::MAX_AMPLITUDE_SMOOTHING_MM,
+                lung_model::kernel::DEFAULT_AMPLITUDE_SMOOTHING_MM
+            );
+        }
+        settings.amplitude_smoothing_mm = l;
     }
     if let Some(t) = args.tolerance {
         if !(t.is_finite() && (1e-9..=0.5).contains(&t)) {

@@ -75,7 +75,8 @@ pub struct FitMotionArgs {
     /// counts differ): the model is fitted so the moved reference lies on the target surface.
     #[arg(long)]
     pub surface: bool,
-    /// Scene whose [lungs] elasticity and transfer_tolerance the force fit uses (mesh input).
+    /// Scene whose [lungs] elasticity, transfer_tolerance and amplitude_smoothing_mm the force fit uses
+    /// (mesh input).
     #[arg(long)]
     pub scene: Option<PathBuf>,
     /// Write the constants and the chosen field (TOML, for `lungdyn bake --motion` or a scene's
@@ -634,6 +635,7 @@ fn run_surface(
                 &goals,
                 &scene.lungs.elasticity,
                 scene.lungs.transfer_tolerance,
+                scene.lungs.amplitude_smoothing_mm,
             )?
         } else {
             let tb = Target::new(&mb, &args.to.display().to_string())?;
@@ -650,6 +652,7 @@ fn run_surface(
                 &goals,
                 &scene.lungs.elasticity,
                 scene.lungs.transfer_tolerance,
+                scene.lungs.amplitude_smoothing_mm,
             )?
         };
         lungs.push(motion_fit::LungFit {

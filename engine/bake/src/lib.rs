@@ -29,6 +29,7 @@ pub mod motion_models;
 pub mod operator;
 pub mod orient;
 pub mod pv;
+pub mod smooth;
 pub mod surface_checks;
 pub mod surface_fit;
 pub mod tri_intersect;

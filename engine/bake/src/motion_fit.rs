@@ -555,7 +555,8 @@ impl MotionFit {
 
 /// Responses of the operator to the three coordinate fields: `G_a = Tᵀ x̂_a` (a = x̂, ŷ, ẑ), so the
 /// elastostatic force of `f = c7·x̂ + c8·ŷ + c9·ẑ` is `c7·G_x + c8·G_y + c9·G_z` (eq. 6.1 is linear).
-/// Also returns the normalised positions and the mean non-zeros per transfer row.
+/// Also returns the normalised positions and the mean non-zeros per transfer row. The transfer is
+/// the bake's: its amplitude smoothed over `smoothing_mm` (EQUATIONS.md §2.4).
 pub(crate) type Responses = (Vec<DVec3>, Vec<Vec<f64>>, f64);
 
 pub(crate) fn operator_responses(
@@ -563,6 +564,7 @@ pub(crate) fn operator_responses(
     mesh: &lung_model::mesh::TriMesh,
     elasticity: &lung_model::operator::Elasticity,
     tolerance: f64,
+    smoothing_mm: f64,
 ) -> Result<Responses, crate::kernel::BakeError> {
     use crate::operator::{compute_transfer, NodeGraph, Schedule};
     use lung_model::deform::normalised_position;
@@ -574,7 +576,8 @@ pub(crate) fn operator_responses(
         .map(|&p| normalised_position(p, &bb, side))
         .collect();
     let graph = NodeGraph::from_mesh(mesh, elasticity, |p| normalised_position(p, &bb, side))?;
-    let t = compute_transfer(&graph, tolerance, Schedule::SpringsForward, &|_| {})?;
+    let mut t = compute_transfer(&graph, tolerance, Schedule::SpringsForward, &|_| {})?;
+    crate::smooth::smooth_amplitude(&mut t, mesh, smoothing_mm)?;
     let g: Vec<Vec<f64>> = (0..3)
         .map(|a| t.elastostatic(&norm.iter().map(|n| n[a]).collect::<Vec<_>>()))
         .collect();

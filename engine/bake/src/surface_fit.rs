@@ -238,8 +238,9 @@ pub fn fit_surface(
     also: &[Goal],
     elasticity: &Elasticity,
     tolerance: f64,
+    smoothing_mm: f64,
 ) -> Result<SurfaceFit, SurfaceFitError> {
-    let (norm, g, mean_row_nnz) = operator_responses(side, a, elasticity, tolerance)?;
+    let (norm, g, mean_row_nnz) = operator_responses(side, a, elasticity, tolerance, smoothing_mm)?;
     let pts: Vec<DVec3> = a
         .positions
         .iter()
@@ -395,6 +396,7 @@ mod tests {
             &[Goal::Surface(&c)],
             &settings.elasticity,
             settings.tolerance,
+            settings.amplitude_smoothing_mm,
         )
         .unwrap();
         assert!(f.residuals.baseline_mean_mm > 5.0);
@@ -437,6 +439,7 @@ mod tests {
             &[],
             &settings.elasticity,
             settings.tolerance,
+            settings.amplitude_smoothing_mm,
         )
         .unwrap();
         for (k, want) in settings.motion.c.iter().enumerate() {

@@ -121,6 +121,21 @@ pub struct BakeSettings {
     /// tumour it carries and a cached bake is reused only for the same tumour.
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub tumour: Option<crate::disease::tumour::Tumour>,
+    /// Length (mm) over which the elastostatic amplitude is made smooth on the surface
+    /// (EQUATIONS.md §2.4, "the deformed surface must not fold"); 0 is the seed's unsmoothed
+    /// reading. A kernel written before this key existed was baked unsmoothed, hence 0 when absent.
+    #[serde(default)]
+    pub amplitude_smoothing_mm: f64,
+}
+
+/// Default smoothing length of the elastostatic amplitude, mm (EQUATIONS.md §2.4).
+pub const DEFAULT_AMPLITUDE_SMOOTHING_MM: f64 = 10.0;
+/// Largest smoothing length accepted, mm (a lung is ≈ 100–250 mm across).
+pub const MAX_AMPLITUDE_SMOOTHING_MM: f64 = 100.0;
+
+/// A smoothing length is 0 (none) or finite in (0, [`MAX_AMPLITUDE_SMOOTHING_MM`]].
+pub fn amplitude_smoothing_ok(length_mm: f64) -> bool {
+    length_mm == 0.0 || (length_mm > 0.0 && length_mm <= MAX_AMPLITUDE_SMOOTHING_MM)
 }
 
 /// Bands baked by default (the seed's 16 coefficients).
@@ -147,6 +162,7 @@ impl BakeSettings {
             sh_bands: DEFAULT_SH_BANDS,
             max_error_mm: None,
             tumour: None,
+            amplitude_smoothing_mm: DEFAULT_AMPLITUDE_SMOOTHING_MM,
         }
     }
 }

@@ -175,6 +175,9 @@ pub struct LungsScene {
     /// Constants without a motion file: "population" (diaphragm-driven, matched to 4DCT; the
     /// default) or "seed" (Table 6.1). EQUATIONS.md §2.4.
     pub directions: crate::deform::DirectionPreset,
+    /// Length (mm) over which the bake makes the elastostatic amplitude smooth on the surface, so the
+    /// deformed lungs do not fold (EQUATIONS.md §2.4); 0 is the seed's unsmoothed reading.
+    pub amplitude_smoothing_mm: f64,
     /// How the lungs deform (EQUATIONS.md §3): "precomputed" (one baked field, supine, 3 MACs per
     /// vertex), "basis" (exact for any orientation, 4 MACs), "sh" (eq. 7.7 with `bands` bands),
     /// "direct" (eq. 7.1 every frame, the accuracy reference). Only what the mode needs is loaded.
@@ -294,6 +297,7 @@ impl Default for LungsScene {
             transfer_tolerance: crate::kernel::DEFAULT_TOLERANCE,
             motion: None,
             directions: crate::deform::DirectionPreset::Population,
+            amplitude_smoothing_mm: crate::kernel::DEFAULT_AMPLITUDE_SMOOTHING_MM,
             mode: crate::deform::modes::DeformMode::Basis,
             bands: crate::kernel::DEFAULT_SH_BANDS,
             max_error_mm: None,
@@ -377,6 +381,9 @@ pub enum SceneValueError {
     /// The transfer tolerance is out of range.
     #[error("[lungs] transfer_tolerance = {0} must be within 1e-9..0.5; 1e-5 is the default")]
     Tolerance(f64),
+    /// The amplitude smoothing length is out of range.
+    #[error("[lungs] amplitude_smoothing_mm = {0} must be 0 (the seed's unsmoothed reading) or within 0..{max} mm; {def} is the default", max = crate::kernel::MAX_AMPLITUDE_SMOOTHING_MM, def = crate::kernel::DEFAULT_AMPLITUDE_SMOOTHING_MM)]
+    AmplitudeSmoothing(f64),
     /// Gravity is not a unit vector.
     #[error("[engine] gravity_room = {0:?} must be a finite unit vector (the room's \"down\"; [0, 0, -1] when the tracker's +Z is up)")]
     Gravity([f64; 3]),
@@ -761,6 +768,9 @@ impl Scene {
         if !(t.is_finite() && (1e-9..=0.5).contains(&t)) {
             return Err(E::Tolerance(t));
         }
+        if !crate::kernel::amplitude_smoothing_ok(self.lungs.amplitude_smoothing_mm) {
+            return Err(E::AmplitudeSmoothing(self.lungs.amplitude_smoothing_mm));
+        }
         let g = self.engine.gravity_room;
         let len = (g[0] * g[0] + g[1] * g[1] + g[2] * g[2]).sqrt();
         if !(g.iter().all(|v| v.is_finite()) && (len - 1.0).abs() <= 1e-3) {
@@ -872,6 +882,7 @@ impl Scene {
             },
             max_error_mm: self.lungs.max_error_mm,
             tumour: self.tumour().filter(|t| t.side == side),
+            amplitude_smoothing_mm: self.lungs.amplitude_smoothing_mm,
         })
     }
 
@@ -1053,6 +1064,15 @@ mod tests {
             .unwrap_err()
             .to_string();
         assert!(e.contains("transfer_tolerance"), "{e}");
+        for bad in ["-1", "nan", "inf", "1e3"] {
+            let e = Scene::parse(
+                &format!("[lungs]\namplitude_smoothing_mm = {bad}\n"),
+                "s.toml",
+            )
+            .unwrap_err()
+            .to_string();
+            assert!(e.contains("amplitude_smoothing_mm"), "{bad}: {e}");
+        }
         let e = Scene::parse("[lungs.kernels]\nmiddle = \"m.kernel\"\n", "s.toml")
             .unwrap_err()
             .to_string();
