@@ -7,6 +7,7 @@
 
 pub mod bake_cmd;
 pub mod demo;
+pub mod doctor;
 pub mod input_args;
 pub mod instances;
 pub mod kernel_plot;
