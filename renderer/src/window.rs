@@ -188,6 +188,7 @@ pub fn run(args: &RendererArgs) -> Result<(), RendererError> {
     event_loop
         .run_app(&mut app)
         .map_err(|source| RendererError::EventLoop { source })?;
+    transport::notify::stopping();
     if let Some(state) = &app.state {
         state.session.finish();
     }
