@@ -55,6 +55,11 @@ enum Command {
     /// cores, CPU governor, tracker serial ports, the OpenIGTLink port, shared-memory folders,
     /// systemd — each ok / warning / missing with what fixes it. Exits 2 when something is missing.
     Doctor(lungdyn::doctor::DoctorArgs),
+    /// Install the workstation service under --prefix: the binary, the scene prepared with its
+    /// kernels, one systemd unit per process (Type=notify, watchdog, restart limits, real-time
+    /// limits, the scene's cores) and lungdyn.target, and a udev rule naming the tracker's serial
+    /// adapter; says what it wrote and what to run next (docs/DEPLOY.md).
+    Install(lungdyn::install::InstallArgs),
     /// List the running instances (what `scene event` needs): name, processes, scene, age.
     Instances(lungdyn::instances::InstancesArgs),
     /// Run only the tracker-bridge process (what `demo` starts).
@@ -234,6 +239,14 @@ fn main() -> std::process::ExitCode {
                     "wrote {}: {:+.1} ml -> {:.1} ml (start {:.1} ml), scale {:.3}, largest displacement {:.2} mm",
                     e.path, e.delta_ml, e.volume_ml, e.start_volume_ml, e.scale, e.max_displacement_mm
                 );
+            }
+            Ok(())
+        }),
+        Command::Install(args) => lungdyn::install::run(&args).and_then(|r| {
+            if args.json {
+                println!("{}", serde_json::to_string(&r)?);
+            } else {
+                print!("{}", lungdyn::install::text(&r));
             }
             Ok(())
         }),

@@ -4,6 +4,7 @@
 //! A fake `NOTIFY_SOCKET` (a unix datagram socket this test binds) stands in for systemd.
 
 use std::os::unix::net::UnixDatagram;
+use std::process::Command;
 use std::time::{Duration, Instant};
 
 use lungdyn_tests::{bin, prepared_scene, unique_instance};
@@ -54,7 +55,7 @@ fn the_engine_notifies_ready_pings_the_watchdog_from_its_loop_and_stops_pinging_
     let sock = UnixDatagram::bind(&path).unwrap();
     let instance = unique_instance("notify");
     // WATCHDOG_USEC 200 ms: a ping every 100 ms.
-    let mut child = std::process::Command::new(bin("lungdyn"))
+    let child = std::process::Command::new(bin("lungdyn"))
         .args([
             "engine",
             "--instance",
@@ -121,7 +122,7 @@ fn the_engine_notifies_ready_pings_the_watchdog_from_its_loop_and_stops_pinging_
 #[test]
 fn without_notify_socket_the_engine_runs_as_before() {
     let instance = unique_instance("nonotify");
-    let out = std::process::Command::new(bin("lungdyn"))
+    let out = Command::new(bin("lungdyn"))
         .args([
             "engine",
             "--instance",
@@ -138,4 +139,91 @@ fn without_notify_socket_the_engine_runs_as_before() {
     let stderr = String::from_utf8_lossy(&out.stderr);
     assert!(out.status.success(), "{stderr}");
     assert!(!stderr.contains("systemd"), "{stderr}");
+}
+
+/// `lungdyn install` writes only under its prefix (system and user layouts), the binary executable,
+/// and units that `systemd-analyze verify` accepts without a warning.
+#[test]
+fn install_writes_under_its_prefix_and_the_units_verify() {
+    let root = std::env::temp_dir().join(unique_instance("install"));
+    let scene = root.join("scene.toml");
+    std::fs::create_dir_all(&root).unwrap();
+    std::fs::write(
+        &scene,
+        "[lungs]\nvertices = 600\n[processes]\ncpus = [0, 1, 1]\n",
+    )
+    .unwrap();
+    for user in [false, true] {
+        let prefix = root.join(if user { "user" } else { "system" });
+        let p = prefix.to_str().unwrap();
+        let mut args = vec![
+            "install",
+            "--prefix",
+            p,
+            "--scene",
+            scene.to_str().unwrap(),
+            "--json",
+        ];
+        if user {
+            args.push("--user");
+        }
+        let (ok, out, err) = lungdyn_tests::lungdyn(&args);
+        assert!(ok, "{err}");
+        let r: serde_json::Value = serde_json::from_str(out.trim()).unwrap();
+        let written: Vec<&str> = r["written"]
+            .as_array()
+            .unwrap()
+            .iter()
+            .map(|w| w["path"].as_str().unwrap())
+            .collect();
+        assert_eq!(written.len(), 9, "{written:?}");
+        for w in &written {
+            assert!(w.starts_with(p), "{w} outside {p}");
+            assert!(std::path::Path::new(w).is_file(), "{w}");
+        }
+        use std::os::unix::fs::PermissionsExt;
+        let bin = prefix.join("bin/lungdyn");
+        assert_eq!(
+            std::fs::metadata(&bin).unwrap().permissions().mode() & 0o777,
+            0o755
+        );
+        let unit_dir = prefix.join(if user {
+            "share/systemd/user"
+        } else {
+            "lib/systemd/system"
+        });
+        let engine = std::fs::read_to_string(unit_dir.join("lungdyn-engine.service")).unwrap();
+        assert!(engine.contains("CPUAffinity=1\n"), "{engine}");
+        assert!(engine.contains(&format!("ExecStart={} engine", bin.display())));
+        let units: Vec<String> = [
+            "lungdyn-tracker-bridge.service",
+            "lungdyn-engine.service",
+            "lungdyn-renderer.service",
+            "lungdyn.target",
+        ]
+        .iter()
+        .map(|u| unit_dir.join(u).to_string_lossy().into_owned())
+        .collect();
+        let mut verify = Command::new("systemd-analyze");
+        if user {
+            // The user manager needs a runtime folder even to verify.
+            let rt = root.join("runtime");
+            std::fs::create_dir_all(&rt).unwrap();
+            std::fs::set_permissions(&rt, std::fs::Permissions::from_mode(0o700)).unwrap();
+            verify.arg("--user").env("XDG_RUNTIME_DIR", &rt);
+        }
+        let Some(v) = lungdyn_needs::require(
+            lungdyn_needs::Need::Systemd,
+            verify.arg("verify").args(&units).output(),
+        ) else {
+            return;
+        };
+        let verr = String::from_utf8_lossy(&v.stderr);
+        assert!(
+            v.status.success() && verr.trim().is_empty(),
+            "systemd-analyze verify{}: {verr}",
+            if user { " --user" } else { "" }
+        );
+    }
+    let _ = std::fs::remove_dir_all(&root);
 }
