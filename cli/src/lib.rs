@@ -7,7 +7,9 @@
 
 pub mod bake_cmd;
 pub mod demo;
+pub mod doctor;
 pub mod input_args;
+pub mod install;
 pub mod instances;
 pub mod kernel_plot;
 pub mod mesh_cmd;

@@ -51,6 +51,15 @@ enum Command {
     /// Measurements: the deformation modes' speed/accuracy trade.
     #[command(subcommand)]
     Bench(BenchCommand),
+    /// Check this machine for the HMD workstation: GPU, displays, X11, real-time limits, isolated
+    /// cores, CPU governor, tracker serial ports, the OpenIGTLink port, shared-memory folders,
+    /// systemd — each ok / warning / missing with what fixes it. Exits 2 when something is missing.
+    Doctor(lungdyn::doctor::DoctorArgs),
+    /// Install the workstation service under --prefix: the binary, the scene prepared with its
+    /// kernels, one systemd unit per process (Type=notify, watchdog, restart limits, real-time
+    /// limits, the scene's cores) and lungdyn.target, and a udev rule naming the tracker's serial
+    /// adapter; says what it wrote and what to run next (docs/DEPLOY.md).
+    Install(lungdyn::install::InstallArgs),
     /// List the running instances (what `scene event` needs): name, processes, scene, age.
     Instances(lungdyn::instances::InstancesArgs),
     /// Run only the tracker-bridge process (what `demo` starts).
@@ -128,6 +137,20 @@ enum KernelCommand {
 fn main() -> std::process::ExitCode {
     let cli = Cli::parse();
     let result = match cli.command {
+        Command::Doctor(args) => {
+            return match lungdyn::doctor::run(&args).and_then(|r| {
+                if args.json {
+                    println!("{}", serde_json::to_string(&r)?);
+                } else {
+                    print!("{}", lungdyn::doctor::text(&r));
+                }
+                Ok(r.worst())
+            }) {
+                Ok(lungdyn::doctor::Status::Missing) => std::process::ExitCode::from(2),
+                Ok(_) => std::process::ExitCode::SUCCESS,
+                Err(e) => fail(e),
+            };
+        }
         Command::Demo(args) => lungdyn::demo::run(&args).and_then(|report| {
             let table = lungdyn::demo::table(&report);
             if args.json {
@@ -216,6 +239,14 @@ fn main() -> std::process::ExitCode {
                     "wrote {}: {:+.1} ml -> {:.1} ml (start {:.1} ml), scale {:.3}, largest displacement {:.2} mm",
                     e.path, e.delta_ml, e.volume_ml, e.start_volume_ml, e.scale, e.max_displacement_mm
                 );
+            }
+            Ok(())
+        }),
+        Command::Install(args) => lungdyn::install::run(&args).and_then(|r| {
+            if args.json {
+                println!("{}", serde_json::to_string(&r)?);
+            } else {
+                print!("{}", lungdyn::install::text(&r));
             }
             Ok(())
         }),
@@ -317,12 +348,15 @@ fn main() -> std::process::ExitCode {
     };
     match result {
         Ok(()) => std::process::ExitCode::SUCCESS,
-        Err(e) => {
-            eprintln!(
-                "lungdyn: error: {}",
-                transport::process::describe_error(e.as_ref())
-            );
-            std::process::ExitCode::FAILURE
-        }
+        Err(e) => fail(e),
     }
+}
+
+/// Say why a command failed; exit 1.
+fn fail(e: anyhow::Error) -> std::process::ExitCode {
+    eprintln!(
+        "lungdyn: error: {}",
+        transport::process::describe_error(e.as_ref())
+    );
+    std::process::ExitCode::FAILURE
 }

@@ -232,6 +232,8 @@ pub struct Session {
         lung_model::mesh::Side,
     )>,
     control_sequence: u64,
+    /// systemd's watchdog, pinged from [`Session::step`] (disabled outside a unit).
+    watchdog: transport::notify::Watchdog,
 }
 
 /// Keep Mesa quiet on headless machines: without XDG_RUNTIME_DIR its window-system probing prints an
@@ -301,6 +303,8 @@ impl Session {
         }
         session.node = Some(node);
         session.lock = Some(lock);
+        session.watchdog = transport::notify::Watchdog::from_env();
+        transport::notify::ready(&format!("renderer[{}]: drawing", instance.name()));
         let (w, h) = session.renderer.image_size();
         eprintln!(
             "renderer[{}]: {} vertices in the {} mode ({:.1} MiB on the GPU), {}x{} {:?}{} on {}{}; waiting for engine frames on {:?}",
@@ -366,6 +370,7 @@ impl Session {
             snapshot_view: None,
             control: None,
             control_sequence: 0,
+            watchdog: transport::notify::Watchdog::every(None),
         }
     }
 
@@ -468,6 +473,8 @@ impl Session {
         &mut self,
         extra: impl FnOnce(&mut wgpu::CommandEncoder),
     ) -> Result<bool, RendererError> {
+        // Every pass of the frame loop: a hung draw or present stops the pings.
+        self.watchdog.ping(self.clock.now_ns());
         let Some(tick) = self
             .pacer
             .poll(self.clock.as_ref(), self.ports.engine.as_mut())?
@@ -625,6 +632,7 @@ pub fn run(args: &RendererArgs) -> Result<(), RendererError> {
     while !session.should_stop() {
         session.step(|_| {})?;
     }
+    transport::notify::stopping();
     session.finish();
     Ok(())
 }

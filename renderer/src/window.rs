@@ -188,6 +188,7 @@ pub fn run(args: &RendererArgs) -> Result<(), RendererError> {
     event_loop
         .run_app(&mut app)
         .map_err(|source| RendererError::EventLoop { source })?;
+    transport::notify::stopping();
     if let Some(state) = &app.state {
         state.session.finish();
     }
@@ -195,4 +196,63 @@ pub fn run(args: &RendererArgs) -> Result<(), RendererError> {
         Some(e) => Err(e),
         None => Ok(()),
     }
+}
+
+/// One display as winit sees it (what `lungdyn doctor` lists and `--display` picks from).
+#[derive(Debug, Clone, PartialEq, Eq)]
+pub struct MonitorInfo {
+    /// The output's name (X11: RandR output, e.g. `DP-1`); empty when the server gives none.
+    pub name: String,
+    /// Current size, pixels.
+    pub width: u32,
+    /// Current size, pixels.
+    pub height: u32,
+    /// Current refresh rate, mHz, when known.
+    pub refresh_mhz: Option<u32>,
+    /// Video modes it offers (for exclusive fullscreen).
+    pub modes: usize,
+    /// Whether it is the primary output.
+    pub primary: bool,
+}
+
+impl MonitorInfo {
+    fn of(
+        m: &winit::monitor::MonitorHandle,
+        primary: Option<&winit::monitor::MonitorHandle>,
+    ) -> Self {
+        let size = m.size();
+        Self {
+            name: m.name().unwrap_or_default(),
+            width: size.width,
+            height: size.height,
+            refresh_mhz: m.refresh_rate_millihertz(),
+            modes: m.video_modes().count(),
+            primary: primary == Some(m),
+        }
+    }
+}
+
+struct ListMonitors(Option<Vec<MonitorInfo>>);
+
+impl ApplicationHandler for ListMonitors {
+    fn resumed(&mut self, event_loop: &ActiveEventLoop) {
+        let primary = event_loop.primary_monitor();
+        self.0 = Some(
+            event_loop
+                .available_monitors()
+                .map(|m| MonitorInfo::of(&m, primary.as_ref()))
+                .collect(),
+        );
+        event_loop.exit();
+    }
+
+    fn window_event(&mut self, _: &ActiveEventLoop, _: WindowId, _: WindowEvent) {}
+}
+
+/// The displays of the session (X11), in winit's order — the order `--display INDEX` counts in.
+/// Opens and closes an event loop, so call it once per process and never beside [`run`].
+pub fn monitors() -> Result<Vec<MonitorInfo>, winit::error::EventLoopError> {
+    let mut list = ListMonitors(None);
+    EventLoop::new()?.run_app(&mut list)?;
+    Ok(list.0.unwrap_or_default())
 }

@@ -268,3 +268,37 @@ fn mesh_check_imports_repairs_and_refuses_with_one_clear_message() {
     );
     std::fs::remove_dir_all(dir).ok();
 }
+
+/// `lungdyn doctor --json` on this machine: every check, each with a status, what it saw and a fix;
+/// exit 2 exactly when one is missing (a script can gate the service on it).
+#[test]
+fn doctor_json_lists_every_check_with_a_status_and_a_fix() {
+    let out = Command::new(bin("lungdyn"))
+        .args(["doctor", "--json"])
+        .output()
+        .expect("run lungdyn doctor");
+    let stderr = String::from_utf8_lossy(&out.stderr);
+    assert!(!stderr.contains("panicked"), "{stderr}");
+    let v: serde_json::Value = serde_json::from_slice(&out.stdout)
+        .unwrap_or_else(|e| panic!("doctor --json is not JSON ({e}): {stderr}"));
+    let checks = v["checks"].as_array().expect("a checks list");
+    let names: Vec<&str> = checks.iter().map(|c| c["name"].as_str().unwrap()).collect();
+    assert_eq!(names, lungdyn::doctor::CHECKS);
+    let mut missing = false;
+    for c in checks {
+        let status = c["status"].as_str().unwrap();
+        assert!(["ok", "warning", "missing"].contains(&status), "{c}");
+        missing |= status == "missing";
+        for key in ["detail", "fix"] {
+            assert!(
+                c[key].as_str().is_some_and(|s| !s.trim().is_empty()),
+                "{key} of {c}"
+            );
+        }
+    }
+    assert_eq!(
+        out.status.code(),
+        Some(if missing { 2 } else { 0 }),
+        "{stderr}"
+    );
+}

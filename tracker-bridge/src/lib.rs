@@ -363,15 +363,22 @@ pub fn run(args: &BridgeArgs) -> Result<(), BridgeError> {
     let start = transport::now_ns();
     let stop_at = run_ns.map(|d| start.saturating_add(d));
     let mut reporter = Reporter::new(prefix.clone(), false);
+    let mut watchdog = transport::notify::Watchdog::from_env();
+    transport::notify::ready(&format!("{prefix}: publishing"));
     let ended = run_loop(
         source.as_mut(),
         &mut assembler,
         &mut outlet as &mut dyn transport::Publish<TrackerFrame>,
         &mut recorder,
         &RealTime,
-        &mut |now| iox::termination_requested(&node) || stop_at.is_some_and(|t| now >= t),
+        &mut |now| {
+            // Checked every pass of the loop: a hung source read stops the watchdog's pings.
+            watchdog.ping(now);
+            iox::termination_requested(&node) || stop_at.is_some_and(|t| now >= t)
+        },
         &mut |e, now| reporter.event(e, now),
     )?;
+    transport::notify::stopping();
     drop(source);
     let stats = &assembler.stats;
     if ended == Ended::SourceEnded {

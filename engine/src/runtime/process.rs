@@ -409,6 +409,8 @@ pub fn run(args: &EngineArgs) -> Result<(), EngineError> {
     let mut replies = instance.control_reply_outlet(&node)?;
     let period_ns = (1e9 / scene.engine.tick_hz).round() as u64;
     let stop_at = run_ns.map(|d| now_ns().saturating_add(d));
+    let mut watchdog = transport::notify::Watchdog::from_env();
+    transport::notify::ready(&format!("engine[{}]: ticking", instance.name()));
     eprintln!(
         "engine[{}]: {} lung(s), {} ticks/breath at {} Hz; waiting for tracker frames on {:?} \
          (ticking on the deadline meanwhile)",
@@ -428,9 +430,16 @@ pub fn run(args: &EngineArgs) -> Result<(), EngineError> {
         }),
         &Monotonic,
         PacerConfig::for_period(period_ns),
-        &mut || iox::termination_requested(&node) || stop_at.is_some_and(|t| now_ns() >= t),
+        &mut || {
+            // The stop check runs every pass of the loop: the watchdog's ping lives here, so a hung
+            // tick stops it (at most one datagram per WatchdogSec/2).
+            let now = now_ns();
+            watchdog.ping(now);
+            iox::termination_requested(&node) || stop_at.is_some_and(|t| now >= t)
+        },
         Some(instance.name()),
     )?;
+    transport::notify::stopping();
     transport::process::say(&format!(
         "engine[{}]: stopped after {} ticks ({} on a tracker sample, {} on the deadline, {} deadlines \
          skipped)",

@@ -20,6 +20,7 @@ pub mod clock;
 pub mod instance;
 pub mod iox;
 pub mod memory;
+pub mod notify;
 pub mod pacer;
 pub mod port;
 pub mod process;

@@ -27,11 +27,13 @@ pub enum Need {
     Display,
     /// Python 3 with pyigtl and numpy: a real OpenIGTLink peer for the interop tests.
     Pyigtl,
+    /// systemd's `systemd-analyze` (package systemd), to verify the service units.
+    Systemd,
 }
 
 impl Need {
     /// Every need, for listings.
-    pub const ALL: [Need; 3] = [Need::Gpu, Need::Display, Need::Pyigtl];
+    pub const ALL: [Need; 4] = [Need::Gpu, Need::Display, Need::Pyigtl, Need::Systemd];
 
     /// The opt-out variable for this need.
     pub fn skip_var(self) -> &'static str {
@@ -39,6 +41,7 @@ impl Need {
             Need::Gpu => "LUNGDYN_SKIP_GPU",
             Need::Display => "LUNGDYN_SKIP_DISPLAY",
             Need::Pyigtl => "LUNGDYN_SKIP_PYIGTL",
+            Need::Systemd => "LUNGDYN_SKIP_SYSTEMD",
         }
     }
 
@@ -47,6 +50,7 @@ impl Need {
         match self {
             Need::Gpu | Need::Display => "LUNGDYN_REQUIRE_GPU",
             Need::Pyigtl => "LUNGDYN_REQUIRE_PYIGTL",
+            Need::Systemd => "LUNGDYN_REQUIRE_SYSTEMD",
         }
     }
 
@@ -67,6 +71,10 @@ impl Need {
                  virtual environment with it under target/pyenv; or `python3 -m pip install pyigtl` and \
                  point LUNGDYN_PYTHON at that python"
             }
+            Need::Systemd => {
+                "install systemd's tools for `systemd-analyze verify`: `sudo apt-get install systemd` \
+                 (it needs no running systemd)"
+            }
         }
     }
 
@@ -75,6 +83,7 @@ impl Need {
             Need::Gpu => "GPU adapter",
             Need::Display => "display",
             Need::Pyigtl => "pyigtl",
+            Need::Systemd => "systemd-analyze",
         }
     }
 }
