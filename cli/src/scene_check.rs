@@ -68,7 +68,18 @@ pub fn run(args: &CheckArgs) -> anyhow::Result<Value> {
         "calibration": rig.calibration.as_ref().map(|(p, _, c)| crate::register_cmd::calibration_json(p, c)),
         "hmd": rig.optics.as_ref().map(|(p, _, o)| crate::register_cmd::optics_json(Some(p), o)),
     });
-    let timing = scene.timing();
+    let mut timing = scene.timing();
+    // A waveform scene breathes at its recording's rate and tidal volume (no PV model).
+    let waveform = scene
+        .pv_waveform()
+        .with_context(|| format!("scene {origin}"))?;
+    let (frc_ml, tv_ml) = match &waveform {
+        Some(w) => {
+            timing.breaths_per_min = w.rate_per_min;
+            (boundary.frc_ml, w.tidal_volume_ml)
+        }
+        None => (boundary.frc_ml, boundary.tv_ml),
+    };
     let sides: Vec<&str> = scene.lungs.sides.iter().map(|s| s.name()).collect();
     let mut out = json!({
         "scene": origin,
@@ -79,8 +90,10 @@ pub fn run(args: &CheckArgs) -> anyhow::Result<Value> {
         "pv": {
             "preset": scene.pv.preset,
             "constants": scene.pv.constants.as_ref().map(|p| p.display().to_string()),
-            "frc_ml": boundary.frc_ml,
-            "tidal_volume_ml": boundary.tv_ml,
+            "waveform": scene.pv.waveform.as_ref().map(|p| p.display().to_string()),
+            "waveform_breaths_used": waveform.as_ref().map(|w| w.breaths_used),
+            "frc_ml": frc_ml,
+            "tidal_volume_ml": r3(tv_ml),
             "breaths_per_min": timing.breaths_per_min,
         },
         "render": render,

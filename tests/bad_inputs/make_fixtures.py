@@ -688,6 +688,15 @@ def make_recordings():
     rel = lambda header: header + "\n" + "".join("%s,%s,%r\n" % (r[0], r[2], float(r[3]) - 2397.75) for r in rows)
     out("pv_relative_2ml.csv", rel("phase,pressure_cmH2O,volume_ml"))
     out("pv_relative_header.csv", rel("phase,pressure_cmH2O,volume_above_frc_ml"))
+    # Scenes that breathe from a recording ([pv] waveform).
+    w = lambda name, text: out("scene_waveform_" + name + ".toml", text)
+    w("good", '[pv]\nwaveform = "rec_pb840_vc.csv"\n')
+    w("missing", '[pv]\nwaveform = "no_such_recording.csv"\n')
+    w("not_a_recording", '[pv]\nwaveform = "rec_flow_no_unit.csv"\n')
+    w("only_artefacts", '[pv]\nwaveform = "rec_leak.csv"\n')
+    w("with_constants", '[pv]\nwaveform = "rec_pb840_vc.csv"\nconstants = "constants_good.toml"\n')
+    w("with_disease", '[pv]\nwaveform = "rec_pb840_vc.csv"\n\n[disease]\nkind = "closed-pneumothorax"\n'
+      'side = "left"\nindex = 0.1\nalpha_ml = 100.0\nphi = 0.1\n')
 
 
 def main():
