@@ -593,7 +593,7 @@ pub fn segment(rec: &Recording, opts: &SegmentOptions) -> Vec<BreathSpan> {
     let mut i = 0;
     while i < n {
         if !inspiring {
-            let rested = last_exp.map_or(true, |e| i >= e + w_ex);
+            let rested = last_exp.is_none_or(|e| i >= e + w_ex);
             if rested && sustained(flow, i, w_in, 1.0, thr) {
                 let floor = last_exp.unwrap_or(0);
                 onsets.push((back_to_crossing(flow, i, floor, 1.0, thr), None));
@@ -627,7 +627,7 @@ pub fn segment(rec: &Recording, opts: &SegmentOptions) -> Vec<BreathSpan> {
             // The recording starts inside an inspiration when its first flow is already a good part
             // of the breath's peak, unless the ventilator marked a breath start there (PB-840 BS).
             starts_cut: start == 0
-                && !rec.vent_breaths.first().is_some_and(|b| b.0 == 0)
+                && rec.vent_breaths.first().is_none_or(|b| b.0 != 0)
                 && flow[0] > thr
                 && flow[0]
                     > 0.25

@@ -201,21 +201,12 @@ impl BreathReport {
 }
 
 /// Options of [`analyse`].
-#[derive(Debug, Clone, PartialEq)]
+#[derive(Debug, Clone, PartialEq, Default)]
 pub struct AnalyseOptions {
     /// Segmentation.
     pub segment: SegmentOptions,
     /// The PV fit of passive volume-controlled breaths.
     pub fit: FitOptions,
-}
-
-impl Default for AnalyseOptions {
-    fn default() -> Self {
-        Self {
-            segment: SegmentOptions::default(),
-            fit: FitOptions::default(),
-        }
-    }
 }
 
 /// Segment a recording and characterise every breath (PV fits in parallel).
