@@ -572,9 +572,13 @@ pub fn run(args: &DemoArgs) -> anyhow::Result<DemoReport> {
     // processes read the same resolved scene.
     let prepared = crate::prepare::prepare(loaded, &args.out.join("kernels"))?;
     let (scene, kernels, resolved_scene) = (prepared.scene, prepared.kernels, prepared.path);
-    let (inhale, exhale, boundary) = scene.pv_model()?;
-    let breathing =
-        lung_model::pv::Breathing::from_constants(&inhale, &exhale, boundary, &scene.timing())?;
+    let breathing = match scene.waveform_breathing()? {
+        Some(b) => b,
+        None => {
+            let (inhale, exhale, boundary) = scene.pv_model()?;
+            lung_model::pv::Breathing::from_constants(&inhale, &exhale, boundary, &scene.timing())?
+        }
+    };
     let tick_hz = scene.engine.tick_hz;
     let run_ticks = (args.seconds * tick_hz) as u64;
     // (--snapshot-at-s was checked with the other counts, before anything was written.)

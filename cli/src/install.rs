@@ -320,7 +320,7 @@ fn write_file(path: &Path, bytes: &[u8], mode: u32) -> anyhow::Result<()> {
         std::fs::create_dir_all(dir)
             .map_err(|e| anyhow::anyhow!("cannot create {}: {e}", dir.display()))?;
     }
-    lung_model::mesh::io::write_atomically(path, |w| {
+    outfile::write_atomically(path, |w| {
         use std::io::Write;
         w.get_ref()
             .set_permissions(std::fs::Permissions::from_mode(mode))?;

@@ -75,6 +75,11 @@ pub struct FitArgs {
     /// The volume column holds changes above FRC: add this FRC (ml) to every volume.
     #[arg(long, value_name = "ML")]
     pub frc: Option<f64>,
+    /// The volume column holds changes above FRC (as ventilators and compliance curves give them;
+    /// also read so when its header says `delta` or `above_frc`): FRC is --frc, else Table 5.2's
+    /// 2400 ml (said so).
+    #[arg(long)]
+    pub relative: bool,
     /// Input size limit and special files.
     #[command(flatten)]
     pub input_args: crate::input_args::InputArgs,
@@ -107,6 +112,9 @@ pub enum PvCommand {
     Simulate(SimulateArgs),
     /// Fit a measured PV loop: constants per phase, RMS error, condition number, boundary values.
     Fit(FitArgs),
+    /// A ventilator recording cut into breaths: per breath tidal volume, rate, I:E, PIP, PEEP,
+    /// compliance and resistance (equation of motion), a class with its reason, the PV fit.
+    Recording(crate::pv_recording::RecordingArgs),
 }
 
 /// Run a `lungdyn pv` subcommand.
@@ -115,6 +123,7 @@ pub fn run(cmd: &PvCommand) -> anyhow::Result<()> {
         PvCommand::Presets => presets(),
         PvCommand::Simulate(a) => simulate(a),
         PvCommand::Fit(a) => fit(a),
+        PvCommand::Recording(a) => crate::pv_recording::run(a),
     }
 }
 
@@ -428,6 +437,7 @@ fn fit(a: &FitArgs) -> anyhow::Result<()> {
         &lung_bake::pv::curve::CurveOptions {
             volume_unit: unit,
             frc_ml: a.frc,
+            relative: a.relative,
             limits: a.input_args.limits(lung_model::input::ReadLimits::TABLE),
         },
     )?;
@@ -453,7 +463,18 @@ fn fit(a: &FitArgs) -> anyhow::Result<()> {
             }
         }
         if let Some(frc) = curve.frc_added_ml {
-            eprintln!("lungdyn: volumes are changes above FRC: {frc} ml added to each");
+            let why = match curve.relative {
+                Some(("header", _)) => format!(" (the header {:?} says so)", curve.volume_column),
+                Some(("--relative", _)) => " (--relative)".to_string(),
+                _ => String::new(),
+            };
+            eprintln!("lungdyn: volumes are changes above FRC{why}: {frc} ml added to each");
+            if curve.relative.is_some_and(|r| r.1) {
+                eprintln!(
+                    "lungdyn: FRC not given: Table 5.2's {frc} ml assumed (pass --frc ML for this \
+                     patient's FRC; the fitted shape does not depend on it, the boundary values do)"
+                );
+            }
         }
     }
     let opts = FitOptions {

@@ -85,6 +85,10 @@ pub struct PvReport {
     pub preset: String,
     /// Constants file, if any.
     pub constants: Option<String>,
+    /// The recording a `[pv] waveform` scene plays, if any (no PV model is built then).
+    pub waveform: Option<String>,
+    /// Clean breaths of the recording averaged into the played breath.
+    pub waveform_breaths_used: Option<usize>,
     /// Functional residual capacity, ml.
     pub frc_ml: f64,
     /// Tidal volume, ml.
@@ -325,7 +329,18 @@ pub fn run(args: &CheckArgs) -> anyhow::Result<CheckReport> {
             .optics
             .map(|(file, _, optics)| OpticsSeen { file, optics }),
     };
-    let timing = scene.timing();
+    let mut timing = scene.timing();
+    // A waveform scene breathes at its recording's rate and tidal volume (no PV model).
+    let waveform = scene
+        .pv_waveform()
+        .with_context(|| format!("scene {origin}"))?;
+    let (frc_ml, tv_ml) = match &waveform {
+        Some(w) => {
+            timing.breaths_per_min = w.rate_per_min;
+            (boundary.frc_ml, w.tidal_volume_ml)
+        }
+        None => (boundary.frc_ml, boundary.tv_ml),
+    };
     let mut out = CheckReport {
         scene: origin,
         valid: true,
@@ -335,8 +350,10 @@ pub fn run(args: &CheckArgs) -> anyhow::Result<CheckReport> {
         pv: PvReport {
             preset: scene.pv.preset.clone(),
             constants: scene.pv.constants.as_ref().map(|p| p.display().to_string()),
-            frc_ml: boundary.frc_ml,
-            tidal_volume_ml: boundary.tv_ml,
+            waveform: scene.pv.waveform.as_ref().map(|p| p.display().to_string()),
+            waveform_breaths_used: waveform.as_ref().map(|w| w.breaths_used),
+            frc_ml,
+            tidal_volume_ml: (tv_ml * 1000.0).round() / 1000.0,
             breaths_per_min: timing.breaths_per_min,
         },
         render,

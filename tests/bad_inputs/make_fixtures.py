@@ -3,7 +3,8 @@
 
     python3 tests/bad_inputs/make_fixtures.py [path/to/lungdyn]     (default: target/release/lungdyn)
 
-Needs only the binary and the Python standard library. The good base files come from the binary
+Needs only the binary and the Python standard library. `LUNGDYN_FIXTURES_ONLY=recordings` remakes
+only the ventilator recordings (rec_*.csv, made here without the binary) and removes nothing. The good base files come from the binary
 (`mesh generate`, `bake`, `kernel export`, `pv simulate`, `pv fit`, `fit-motion`); every bad file is
 derived from them here, one defect each, so a refusal can only be for that defect. Large inputs
 (3 GiB sparse files, /dev/zero, /dev/urandom, a FIFO) are not files here: the harness makes them from
@@ -632,14 +633,123 @@ def make_render_files(tmp):
     s("calibration_matrix_nan", SCENE_BASE + '[render]\ncalibration = "calib_matrix_nan.toml"\n')
 
 
+# ---------------------------------------------------------------- ventilator recordings
+def passive_breaths(mode="vc", c=50.0, r=10.0, r_valve=5.0, peep=5.0, rate=15.0, ti=1.0, breaths=3,
+                    dt=0.02, flow_lps=0.5, above_peep=15.0):
+    """A passive lung on a ventilator (as lung_model::recording::Synthetic): Paw = V/C + R*flow + PEEP,
+    expiration through the exhalation valve. Returns [(t_s, flow_lps, paw_cmh2o, breath_no_or_None)]:
+    the first sample is at rest, each breath start carries its number. The real PB-840 recordings are
+    GPL-3.0 and stay outside the repository; these stand in for them."""
+    per = int(round(60.0 / rate / dt))
+    tau_in, tau_ex = r * c / 1000.0, (r + r_valve) * c / 1000.0
+    rows = [(0.0, 0.0, peep, None)]
+    for i in range(1, per * breaths + 2):
+        j = i - 1
+        k = min(j // per, breaths - 1)
+        tb = (j - k * per) * dt
+        if mode == "vc":
+            v_end = flow_lps * ti * 1000.0
+        else:
+            v_end = c * above_peep * (1 - math.exp(-ti / tau_in))
+        if tb < ti:
+            if mode == "vc":
+                v, q = flow_lps * tb * 1000.0, flow_lps
+            else:
+                vmax = c * above_peep
+                v = vmax * (1 - math.exp(-tb / tau_in))
+                q = (vmax - v) / 1000.0 / tau_in
+        else:
+            v = v_end * math.exp(-(tb - ti) / tau_ex)
+            q = -v / 1000.0 / tau_ex
+        start = k + 1 if j % per == 0 and j // per < breaths else None
+        rows.append((i * dt, q, peep + v / c + r * q, start))
+    return rows
+
+
+def pb840(rows, stamp="2016-05-05-13-25-36.944930"):
+    """PB-840 raw export text: BS, S:<n>, / flow (L/min), pressure (cmH2O) / BE."""
+    lines, open_ = [stamp], False
+    first = next(i for i, row in enumerate(rows) if row[3] is not None)
+    for t, q, p, start in rows[first:]:
+        if start is not None:
+            if open_:
+                lines.append("BE")
+            lines.append("BS, S:%d," % (400 + start))
+            open_ = True
+        lines.append("%.2f, %.2f" % (q * 60.0, p))
+    lines.append("BE")
+    return "\n".join(lines) + "\n"
+
+
+def generic(rows, header="time_s,flow_L/min,paw_cmH2O", f=lambda t, q, p: "%.3f,%.3f,%.3f" % (t, q * 60, p)):
+    return header + "\n" + "".join(f(t, q, p) + "\n" for t, q, p, _ in rows)
+
+
+def make_recordings():
+    vc, pc = passive_breaths("vc"), passive_breaths("pc", c=30.0, r=8.0, peep=10.0, rate=20.0)
+    out("rec_pb840_vc.csv", pb840(vc))
+    out("rec_pc.csv", generic(pc))
+    out("rec_kpa_ls_ms.csv", generic(vc, "time (ms),Flow [L/s],Paw (kPa)",
+                                     lambda t, q, p: "%.0f,%.5f,%.5f" % (t * 1000, q, p * 0.0980665)))
+    out("rec_with_volume_pes.csv", generic(vc, "time_s,flow_L/s,paw_cmH2O,volume_ml,pes_cmH2O",
+                                           lambda t, q, p: "%.3f,%.5f,%.3f,0,%.3f" % (t, q, p, 2 + 0.1 * p)))
+    out("rec_flow_no_unit.csv", generic(vc, "time_s,flow,paw_cmH2O"))
+    out("rec_pressure_unknown_unit.csv", generic(vc, "time_s,flow_L/min,paw_furlongs"))
+    out("rec_time_no_unit.csv", generic(vc, "time,flow_L/min,paw_cmH2O"))
+    out("rec_no_flow.csv", "time_s,paw_cmH2O\n" + "".join("%.3f,%.3f\n" % (t, p) for t, q, p, _ in vc))
+    out("rec_two_flows.csv", generic(vc, "time_s,flow_L/min,paw_cmH2O,flow_L/s",
+                                     lambda t, q, p: "%.3f,%.3f,%.3f,%.5f" % (t, q * 60, p, q)))
+    # Flow in ml/s written under an L/s header: 500 L/s, beyond any airflow.
+    out("rec_ml_as_litres.csv", generic(vc, "time_s,flow_L/s,paw_cmH2O", lambda t, q, p: "%.3f,%.1f,%.3f" % (t, q * 1000, p)))
+    # Time in ms under an s header: a gap of 20 s between samples.
+    out("rec_ms_as_seconds.csv", generic(vc, "time_s,flow_L/min,paw_cmH2O",
+                                         lambda t, q, p: "%.0f,%.3f,%.3f" % (t * 1000, q * 60, p)))
+    back = generic(vc).split("\n")
+    back[40], back[41] = back[41], back[40]
+    out("rec_time_backwards.csv", "\n".join(back))
+    nan = generic(vc).split("\n")
+    nan[30] = nan[30].rsplit(",", 1)[0] + ",NaN"
+    out("rec_pressure_nan.csv", "\n".join(nan))
+    out("rec_flat_flow.csv", generic([(t, 0.0, 5.0, None) for t, _, _, _ in vc]))
+    text = pb840(vc)
+    out("rec_pb840_bs_without_be.csv", text.replace("BE\nBS, S:402,", "BS, S:402,", 1))
+    out("rec_pb840_three_fields.csv", text.replace("\n", "\n1.0, 5.0, 7.0\n", 3).split("\n", 1)[0] + "\n"
+        + "BS, S:401,\n1.00, 5.00, 7.00\n" + text.split("BS, S:401,\n", 1)[1])
+    out("rec_pb840_sample_outside.csv", text.replace("BE\nBS, S:402,", "BE\n1.00, 5.00\nBS, S:402,", 1))
+    out("rec_pb840_bad_number.csv", text.replace("BS, S:402,", "BS, S:4x2,", 1))
+    out("rec_semicolons.csv", "time_s;flow_L/min;paw_cmH2O\n0;1,5;5\n")
+    out("rec_short.csv", generic(vc[:5]))
+    # A leak: expiratory flow halved (every breath is an artefact, said so; accepted).
+    out("rec_leak.csv", generic([(t, q * (0.5 if q < 0 else 1), p, s) for t, q, p, s in vc]))
+    # PV loops given as volume above FRC (as ventilators and Guyton's curve give them): the simulated
+    # loop less 2397.75 ml, so it starts at 2.25 ml.
+    rows = [l.split(",") for l in open(os.path.join(HERE, "pv_good.csv")).read().split("\n")[1:] if l]
+    rel = lambda header: header + "\n" + "".join("%s,%s,%r\n" % (r[0], r[2], float(r[3]) - 2397.75) for r in rows)
+    out("pv_relative_2ml.csv", rel("phase,pressure_cmH2O,volume_ml"))
+    out("pv_relative_header.csv", rel("phase,pressure_cmH2O,volume_above_frc_ml"))
+    # Scenes that breathe from a recording ([pv] waveform).
+    w = lambda name, text: out("scene_waveform_" + name + ".toml", text)
+    w("good", '[pv]\nwaveform = "rec_pb840_vc.csv"\n')
+    w("missing", '[pv]\nwaveform = "no_such_recording.csv"\n')
+    w("not_a_recording", '[pv]\nwaveform = "rec_flow_no_unit.csv"\n')
+    w("only_artefacts", '[pv]\nwaveform = "rec_leak.csv"\n')
+    w("with_constants", '[pv]\nwaveform = "rec_pb840_vc.csv"\nconstants = "constants_good.toml"\n')
+    w("with_disease", '[pv]\nwaveform = "rec_pb840_vc.csv"\n\n[disease]\nkind = "closed-pneumothorax"\n'
+      'side = "left"\nindex = 0.1\nalpha_ml = 100.0\nphi = 0.1\n')
+
+
 def main():
     if not os.path.exists(BIN):
         sys.exit("lungdyn binary not found: %s (pass its path)" % BIN)
     keep = {"cases.toml", "README.md", "make_fixtures.py", "xxh3.py"}
-    for n in os.listdir(HERE):
+    for n in [] if os.environ.get("LUNGDYN_FIXTURES_ONLY") else os.listdir(HERE):
         if n not in keep and os.path.isfile(os.path.join(HERE, n)):
             os.remove(os.path.join(HERE, n))
+    if os.environ.get("LUNGDYN_FIXTURES_ONLY") == "recordings":
+        make_recordings()
+        return
     with tempfile.TemporaryDirectory() as tmp:
+        make_recordings()
         make_meshes(tmp)
         c = make_pv(tmp); make_constants(tmp, c)
         make_kernels(tmp); make_points(tmp); make_motion(tmp); make_scenes(tmp)

@@ -32,6 +32,8 @@ pub mod operator;
 pub mod orientation;
 pub mod plausible;
 pub mod pv;
+pub mod recording;
 pub mod scene;
 pub mod scene_disease;
 pub mod sh;
+pub mod units;

@@ -129,6 +129,14 @@ pub const LANDMARK_MOTION_MM: Limit = Limit {
     unit: "mm",
     source: "diaphragm excursion ≤ 100 mm at vital capacity breathing [Gray-2016]",
 };
+/// Airflow at the airway opening (a ventilator's flow sensor), + inspiration.
+pub const FLOW_LPS: Limit = Limit {
+    what: "airflow",
+    lo: -15.0,
+    hi: 15.0,
+    unit: "L/s",
+    source: "adult peak expiratory flow ≤ ≈ 12 L/s [Quanjer-1993]; ventilator peak flows ≤ ≈ 3 L/s",
+};
 /// Breathing rate.
 pub const BREATHS_PER_MIN: Limit = Limit {
     what: "breathing rate",

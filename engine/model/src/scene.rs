@@ -138,6 +138,12 @@ pub struct PvScene {
     /// preset's constants and boundary values when given.
     #[serde(skip_serializing_if = "Option::is_none")]
     pub constants: Option<std::path::PathBuf>,
+    /// A ventilator recording (relative to the scene file; any file `lungdyn pv recording` reads):
+    /// the lungs play its measured volume–time curve — its whole, clean breaths averaged into one,
+    /// resampled to the tick and looped — above the preset's FRC, at the recording's own rate and
+    /// I:E (`breaths_per_min`, `ie_ratio` and the PV constants are not used; no PV model is built).
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub waveform: Option<std::path::PathBuf>,
 }
 
 /// `[engine]` table.
@@ -273,6 +279,7 @@ impl Default for PvScene {
             breaths_per_min: 12.0,
             ie_ratio: [1.0, 1.0],
             constants: None,
+            waveform: None,
         }
     }
 }
@@ -425,6 +432,9 @@ pub enum SceneValueError {
     /// The PV constants file named by `[pv] constants` is unusable.
     #[error("[pv] constants: {0}")]
     Constants(#[source] crate::pv::files::PvFileError),
+    /// The recording named by `[pv] waveform` is unusable, or combined with what it replaces.
+    #[error("[pv] waveform: {0}")]
+    Waveform(String),
     /// The motion constants file named by `[lungs] motion` is unusable.
     #[error("[lungs] motion: {0}")]
     Motion(#[source] crate::deform::MotionFileError),
@@ -655,6 +665,11 @@ impl Scene {
                 .map_err(|e| invalid(SceneValueError::Constants(e)))?;
             scene.pv.constants = Some(resolved);
         }
+        if let Some(w) = &scene.pv.waveform {
+            let resolved = base.join(w);
+            scene.pv.waveform = Some(resolved);
+            scene.pv_waveform().map_err(invalid)?;
+        }
         if let Some(m) = &scene.lungs.motion {
             let resolved = base.join(m);
             crate::deform::MotionFile::load(&resolved)
@@ -852,6 +867,51 @@ impl Scene {
                 Ok((p.inhale, p.exhale, p.boundary))
             }
         }
+    }
+
+    /// The breathing of a `[pv] waveform` scene, read from its recording (`None` without one).
+    /// Reads the file (bounded): call at load time.
+    pub fn pv_waveform(&self) -> Result<Option<crate::recording::Waveform>, SceneValueError> {
+        let Some(path) = &self.pv.waveform else {
+            return Ok(None);
+        };
+        if self.pv.constants.is_some() {
+            return Err(SceneValueError::Waveform(
+                "a scene plays a recording or a PV model, not both: drop [pv] constants".into(),
+            ));
+        }
+        if self.disease.is_some() {
+            return Err(SceneValueError::Waveform(
+                "a [disease] course is built on the PV model's constants (EQUATIONS §4); a \
+                 waveform scene cannot carry one yet: drop [disease] or [pv] waveform"
+                    .into(),
+            ));
+        }
+        let rec = crate::recording::read_recording(path, crate::input::ReadLimits::TABLE)
+            .map_err(|e| SceneValueError::Waveform(e.to_string()))?;
+        crate::recording::average_breath(
+            &rec,
+            &crate::recording::SegmentOptions::default(),
+            self.engine.tick_hz,
+        )
+        .map(Some)
+        .map_err(|e| SceneValueError::Waveform(format!("{}: {e}", path.display())))
+    }
+
+    /// The breathing cycle of a `[pv] waveform` scene: its averaged breath above the preset's FRC
+    /// (`None` without a waveform: the PV model gives the cycle). Reads the recording: call at load
+    /// time.
+    pub fn waveform_breathing(&self) -> Result<Option<crate::pv::Breathing>, SceneValueError> {
+        let Some(w) = self.pv_waveform()? else {
+            return Ok(None);
+        };
+        let frc = crate::pv::preset(&self.pv.preset)
+            .map_err(SceneValueError::Preset)?
+            .boundary
+            .frc_ml;
+        crate::pv::Breathing::from_volume_table(&w.volume_ml, w.inhale_ticks, frc)
+            .map(Some)
+            .map_err(|e| SceneValueError::Waveform(e.to_string()))
     }
 
     /// The bake settings of `side` in this scene (motion file or the `directions` preset,

@@ -318,6 +318,8 @@ pub struct StageCounts {
     pub sh_projections: u64,
     /// Disease cycles moved into the lungs.
     pub disease_cycles: u64,
+    /// PV models evaluated (eq. 5.11 tables built from constants); 0 for a `[pv] waveform` scene.
+    pub pv_models_built: u64,
 }
 
 /// What became of a live intervention.
@@ -515,9 +517,17 @@ impl EngineCore {
     /// Build from a scene and lung geometries already loaded (tests, benchmarks, tools that hold
     /// the lung models): today's behaviour, both lungs on the scene's PV cycle split by FRC volume.
     pub fn with_geometry(scene: &Scene, lungs: Vec<LungGeometry>) -> Result<Self, CoreError> {
-        let (inhale, exhale, boundary) = scene.pv_model().map_err(CoreError::Pv)?;
-        let breathing = Breathing::from_constants(&inhale, &exhale, boundary, &scene.timing())
-            .map_err(CoreError::Breathing)?;
+        let mut counts = StageCounts::default();
+        // A waveform scene plays the recording above the preset's FRC; no PV model is built.
+        let breathing = match scene.waveform_breathing().map_err(CoreError::Pv)? {
+            Some(b) => b,
+            None => {
+                let (inhale, exhale, boundary) = scene.pv_model().map_err(CoreError::Pv)?;
+                counts.pv_models_built += 1;
+                Breathing::from_constants(&inhale, &exhale, boundary, &scene.timing())
+                    .map_err(CoreError::Breathing)?
+            }
+        };
         let frc = breathing.boundary().frc_ml;
         let lungs = lungs
             .into_iter()
@@ -537,7 +547,7 @@ impl EngineCore {
             last_tracker_tick: None,
             last_tracker_frame: 0,
             disease: None,
-            counts: StageCounts::default(),
+            counts,
         })
     }
 

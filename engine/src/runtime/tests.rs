@@ -874,3 +874,76 @@ fn a_live_action_without_a_tension_pneumothorax_is_answered_ignored() {
         .text()
         .starts_with("ignored: the scene has no tension pneumothorax"));
 }
+
+/// The shipped waveform scene (a synthetic PB-840 recording: 500 ml at 15 breaths/min).
+fn waveform_scene() -> Scene {
+    let path = std::path::Path::new(env!("CARGO_MANIFEST_DIR"))
+        .join("../scenes/ventilated_recording.toml");
+    Scene::load(&path).unwrap()
+}
+
+#[test]
+fn a_waveform_scene_breathes_the_recording_without_a_pv_model() {
+    let scene = waveform_scene();
+    let w = scene.pv_waveform().unwrap().expect("a waveform scene");
+    let mut core = EngineCore::with_geometry(&scene, baked_geometry()).unwrap();
+    assert_eq!(core.stage_counts().pv_models_built, 0, "no PV model built");
+    assert_eq!(
+        EngineCore::with_geometry(&Scene::default(), baked_geometry())
+            .unwrap()
+            .stage_counts()
+            .pv_models_built,
+        1
+    );
+    // Both lungs' volumes over four cycles: the summed swing is the recorded tidal volume and the
+    // period the recorded rate, each within 2 %.
+    let hz = scene.engine.tick_hz;
+    let mut total = Vec::new();
+    for tick in 0..(4.0 * hz * 60.0 / 15.0) as u64 {
+        let mut f = EngineFrame::default();
+        core.step(tick, Some(&frame(tick, true)), &mut f);
+        total.push(f.lungs.iter().map(|l| l.volume_ml as f64).sum::<f64>());
+        assert!(f.lungs.iter().all(|l| l.volume_ml.is_finite()));
+    }
+    let (lo, hi) = total
+        .iter()
+        .fold((f64::MAX, f64::MIN), |(l, h), &v| (l.min(v), h.max(v)));
+    assert!(
+        ((hi - lo) / 500.0 - 1.0).abs() < 0.02,
+        "tidal volume {} ml against the recorded 500 ml (waveform mean {} ml)",
+        hi - lo,
+        w.tidal_volume_ml
+    );
+    // Period: ticks between successive starts of inspiration (the minima).
+    let starts: Vec<usize> = (1..total.len() - 1)
+        .filter(|&i| total[i] <= total[i - 1] && total[i] < total[i + 1] && total[i] < lo + 1.0)
+        .collect();
+    assert!(starts.len() >= 3, "{starts:?}");
+    let period = (starts[starts.len() - 1] - starts[0]) as f64 / (starts.len() - 1) as f64;
+    let rate = 60.0 * hz / period;
+    assert!((rate / 15.0 - 1.0).abs() < 0.02, "rate {rate}/min");
+    // Seamless: the step across the loop point is no larger than the largest step within a cycle.
+    let steps: Vec<f64> = total.windows(2).map(|p| (p[1] - p[0]).abs()).collect();
+    let cycle = (hz * 60.0 / w.rate_per_min).round() as usize;
+    let within = steps[1..cycle - 1].iter().copied().fold(0.0, f64::max);
+    assert!(
+        steps[cycle - 1] <= within,
+        "{} > {within}",
+        steps[cycle - 1]
+    );
+}
+
+#[test]
+fn a_waveform_scene_replays_bitwise_identically() {
+    let scene = waveform_scene();
+    let a = replay(&mut EngineCore::with_geometry(&scene, baked_geometry()).unwrap());
+    let b = replay(&mut EngineCore::with_geometry(&scene, baked_geometry()).unwrap());
+    for (x, y) in a.iter().zip(&b) {
+        assert_eq!(
+            bytemuck::bytes_of(x),
+            bytemuck::bytes_of(y),
+            "tick {}",
+            x.tick
+        );
+    }
+}

@@ -5,9 +5,10 @@
 
 use std::path::{Path, PathBuf};
 
-use lung_model::pv::Phase;
+use lung_model::pv::{Boundary, Phase};
 
 use super::fit::PvSample;
+use lung_model::units::{header_unit, PRESSURE_UNITS, VOLUME_UNITS};
 
 /// Errors reading a curve file.
 #[derive(Debug, thiserror::Error)]
@@ -72,6 +73,9 @@ pub struct CurveFile {
     pub volume_unit: ColumnUnit,
     /// FRC added to every volume (`--frc`: the column held changes above FRC).
     pub frc_added_ml: Option<f64>,
+    /// Why the volumes were read as changes above FRC ("--frc", "--relative", "header"), and
+    /// whether the FRC was assumed (Table 5.2) rather than given.
+    pub relative: Option<(&'static str, bool)>,
 }
 
 /// A unit of a column and its factor to lungdyn's unit (cmH2O or ml).
@@ -85,50 +89,6 @@ pub struct ColumnUnit {
     pub from: &'static str,
 }
 
-/// Pressure units recognised in a column header (token of the header, case-insensitive).
-const PRESSURE_UNITS: &[(&str, &str, f64)] = &[
-    ("cmh2o", "cmH2O", 1.0),
-    ("cmh20", "cmH2O", 1.0),
-    ("kpa", "kPa", 10.197_162),
-    ("hpa", "hPa", 1.019_716_2),
-    ("mbar", "mbar", 1.019_716_2),
-    ("pa", "Pa", 0.010_197_162),
-    ("mmhg", "mmHg", 1.359_51),
-    ("torr", "Torr", 1.359_51),
-    ("inh2o", "inH2O", 2.54),
-    ("psi", "psi", 70.306_958),
-];
-
-/// Volume units recognised in a column header.
-const VOLUME_UNITS: &[(&str, &str, f64)] = &[
-    ("ml", "ml", 1.0),
-    ("cc", "ml", 1.0),
-    ("cm3", "ml", 1.0),
-    ("l", "L", 1000.0),
-    ("litre", "L", 1000.0),
-    ("liter", "L", 1000.0),
-    ("litres", "L", 1000.0),
-    ("liters", "L", 1000.0),
-    ("dl", "dL", 100.0),
-];
-
-fn tokens(header: &str) -> impl Iterator<Item = String> + '_ {
-    header
-        .split(|c: char| !c.is_ascii_alphanumeric())
-        .filter(|t| !t.is_empty())
-        .map(|t| t.to_ascii_lowercase())
-}
-
-/// The unit a header names, from `table`.
-fn header_unit(header: &str, table: &[(&str, &'static str, f64)]) -> Option<(&'static str, f64)> {
-    tokens(header).find_map(|t| {
-        table
-            .iter()
-            .find(|(k, _, _)| *k == t)
-            .map(|(_, name, f)| (*name, *f))
-    })
-}
-
 /// Options of [`read_curve`].
 #[derive(Debug, Clone, Copy, PartialEq)]
 pub struct CurveOptions {
@@ -136,6 +96,9 @@ pub struct CurveOptions {
     pub volume_unit: Option<VolumeUnit>,
     /// Volumes are changes above this FRC (ml): absolute volume = FRC + value (`--frc`).
     pub frc_ml: Option<f64>,
+    /// Volumes are changes above FRC (`--relative`; also when the volume header says `delta` or
+    /// `above_frc`): FRC is `frc_ml`, else Table 5.2's 2400 ml, said so.
+    pub relative: bool,
     /// Size and line limits of the file.
     pub limits: lung_model::input::ReadLimits,
 }
@@ -145,6 +108,7 @@ impl Default for CurveOptions {
         Self {
             volume_unit: None,
             frc_ml: None,
+            relative: false,
             limits: lung_model::input::ReadLimits::TABLE,
         }
     }
@@ -271,6 +235,23 @@ pub fn parse_curve(bytes: &[u8], opts: &CurveOptions) -> Result<CurveFile, (u64,
         },
     };
     let header_volume = header_unit(&v_header, VOLUME_UNITS);
+    // Changes above FRC: declared by a flag, or by the header (`delta_volume_ml`, `volume above
+    // FRC (L)`, `dV_ml` is not enough: it must say delta or above FRC).
+    let header_relative = {
+        let t: Vec<String> = lung_model::units::tokens(&v_header).collect();
+        t.iter().any(|w| w == "delta" || w == "abovefrc")
+            || t.windows(2).any(|w| w[0] == "above" && w[1] == "frc")
+    };
+    let relative: Option<(&'static str, bool)> = if opts.frc_ml.is_some() {
+        Some(("--frc", false))
+    } else if opts.relative {
+        Some(("--relative", true))
+    } else if header_relative {
+        Some(("header", true))
+    } else {
+        None
+    };
+    let frc_add = opts.frc_ml.or(relative.map(|_| Boundary::HUMAN.frc_ml));
     let volume_unit = match (header_volume, opts.volume_unit) {
         (Some((name, _)), Some(flag)) if (flag == VolumeUnit::Litre) != (name == "L") => {
             return Err((
@@ -335,7 +316,7 @@ pub fn parse_curve(bytes: &[u8], opts: &CurveOptions) -> Result<CurveFile, (u64,
             raw_ml.0.min(raw_volume * volume_unit.factor),
             raw_ml.1.max(raw_volume * volume_unit.factor),
         );
-        let volume = raw_volume * volume_unit.factor + opts.frc_ml.unwrap_or(0.0);
+        let volume = raw_volume * volume_unit.factor + frc_add.unwrap_or(0.0);
         if !PRESSURE_CMH2O.contains(pressure) {
             // Swapped columns: the "pressure" looks like lung volumes and the "volume" like pressures.
             let swapped = LUNGS_VOLUME_ML.contains(pressure)
@@ -362,12 +343,11 @@ pub fn parse_curve(bytes: &[u8], opts: &CurveOptions) -> Result<CurveFile, (u64,
             ));
         }
         if !LUNGS_VOLUME_ML.contains(volume) {
-            let hint = if opts.frc_ml.is_none() && raw_volume <= 0.0 {
-                Some(format!(
-                    "a lung volume is absolute and above 0 ml; if column {v_header:?} holds changes \
-                     above FRC, pass --frc ML"
-                ))
-            } else if volume_unit.from != "header" {
+            // Below the smallest lung (a neonate's FRC) the column cannot hold absolute volumes:
+            // it looks like changes above FRC, as ventilators and compliance curves give them.
+            // A wrong unit, or (below the smallest lung, a neonate's FRC) changes above FRC as
+            // ventilators and compliance curves give them: both said when both fit.
+            let unit = if volume_unit.from != "header" {
                 volume_unit_hint(
                     volume,
                     if volume_unit.factor == 1000.0 {
@@ -378,6 +358,21 @@ pub fn parse_curve(bytes: &[u8], opts: &CurveOptions) -> Result<CurveFile, (u64,
                 )
             } else {
                 None
+            };
+            let relative = (frc_add.is_none()
+                && raw_volume * volume_unit.factor < LUNGS_VOLUME_ML.lo)
+                .then(|| {
+                    format!(
+                        "a lung volume is absolute and at least {} ml; column {v_header:?} looks like \
+                         changes above FRC: pass --relative (with --frc ML, else Table 5.2's {} ml is \
+                         assumed) or name the column volume_above_frc_ml",
+                        LUNGS_VOLUME_ML.lo,
+                        Boundary::HUMAN.frc_ml
+                    )
+                });
+            let hint = match (unit, relative) {
+                (Some(u), Some(r)) => Some(format!("{r}; or, {u}")),
+                (u, r) => u.or(r),
             };
             return Err((
                 *line,
@@ -390,8 +385,8 @@ pub fn parse_curve(bytes: &[u8], opts: &CurveOptions) -> Result<CurveFile, (u64,
             phase,
         });
     }
-    if let Some(frc) = opts.frc_ml {
-        check_relative(raw_ml, frc, &v_header)?;
+    if let (Some(frc), Some((why, _))) = (frc_add, relative) {
+        check_relative(raw_ml, frc, &v_header, why)?;
     }
     let span = |f: fn(&PvSample) -> f64| {
         samples
@@ -432,7 +427,8 @@ pub fn parse_curve(bytes: &[u8], opts: &CurveOptions) -> Result<CurveFile, (u64,
         has_phase: phase_col.is_some(),
         pressure_unit,
         volume_unit,
-        frc_added_ml: opts.frc_ml,
+        frc_added_ml: frc_add,
+        relative,
     })
 }
 
@@ -529,19 +525,31 @@ fn check_separators(bytes: &[u8]) -> Result<(), (u64, String)> {
     ))
 }
 
-/// `--frc` declares the volume column as changes above FRC: a column whose lowest value is itself a
-/// plausible FRC and larger than the loop's whole swing holds absolute volumes already, and adding
-/// FRC would double it.
-fn check_relative(raw_ml: (f64, f64), frc: f64, header: &str) -> Result<(), (u64, String)> {
+/// `why` (`--frc`, `--relative` or the header) declares the volume column as changes above FRC: a
+/// column whose lowest value is itself a plausible FRC and larger than the loop's whole swing holds
+/// absolute volumes already, and adding FRC would double it.
+fn check_relative(
+    raw_ml: (f64, f64),
+    frc: f64,
+    header: &str,
+    why: &str,
+) -> Result<(), (u64, String)> {
     use lung_model::plausible::{compact, FRC_ML};
     let (lo, hi) = raw_ml;
     if FRC_ML.contains(lo) && lo >= hi - lo {
+        let (declares, drop) = match why {
+            "header" => (
+                format!("the header {header:?}"),
+                "rename the column".to_string(),
+            ),
+            flag => (flag.to_string(), format!("drop {flag}")),
+        };
         return Err((
             0,
             format!(
-                "--frc {} ml declares the volumes as changes above FRC, but column {header:?} already \
-                 looks absolute: its lowest value is {} ml (a plausible FRC) and the loop spans only {} ml; \
-                 with --frc the FRC would be {} ml. Drop --frc for absolute volumes",
+                "{declares} declares the volumes as changes above FRC ({} ml), but column {header:?} \
+                 already looks absolute: its lowest value is {} ml (a plausible FRC) and the loop spans \
+                 only {} ml; with --frc the FRC would be {} ml. For absolute volumes, {drop}",
                 compact(frc),
                 compact(lo),
                 compact(hi - lo),
@@ -700,6 +708,15 @@ mod tests {
             m.contains("--frc") && m.contains("already") && m.contains("4800"),
             "{m}"
         );
+        // --relative, or a header that says so, on absolute volumes: the same refusal.
+        let rel = CurveOptions {
+            relative: true,
+            ..Default::default()
+        };
+        let (_, m) = err(b"pressure,volume\n0,2400\n5,2650\n10,2900\n", &rel);
+        assert!(m.contains("drop --relative"), "{m}");
+        let (_, m) = err(b"pressure,delta_volume_ml\n0,2400\n10,2900\n", &o);
+        assert!(m.contains("rename the column"), "{m}");
         // Changes above FRC, starting at 0 or a little off it, are what --frc is for.
         for csv in [
             &b"pressure,volume\n0,0\n10,500\n"[..],
@@ -707,6 +724,58 @@ mod tests {
         ] {
             assert!(parse_curve(csv, &frc).is_ok());
         }
+    }
+
+    #[test]
+    fn relative_volumes_are_accepted_when_declared_and_hinted_when_they_look_relative() {
+        let o = with(None);
+        // Volume above FRC from a ventilator or Guyton's curve: 2.25 ml, 17 ml, 0 ml first.
+        for first in ["2.25", "17", "0"] {
+            let csv = format!("pressure_cmH2O,volume_ml\n0,{first}\n5,250\n10,500\n");
+            let (line, m) = err(csv.as_bytes(), &o);
+            assert_eq!(line, 2);
+            assert!(m.contains("--relative") && m.contains("--frc"), "{m}");
+            // Declared by the flag: FRC is Table 5.2's, said so.
+            let c = parse_curve(
+                csv.as_bytes(),
+                &CurveOptions {
+                    relative: true,
+                    ..Default::default()
+                },
+            )
+            .unwrap();
+            assert_eq!(c.relative, Some(("--relative", true)));
+            assert_eq!(c.frc_added_ml, Some(2400.0));
+            assert_eq!(c.samples[2].volume, 2900.0);
+        }
+        // Declared by the header; --frc gives the FRC.
+        for header in [
+            "delta_volume_ml",
+            "volume above FRC (ml)",
+            "Volume_above_FRC_L",
+        ] {
+            let scale = if header.ends_with('L') { 0.001 } else { 1.0 };
+            let csv = format!(
+                "pressure_cmH2O,{header}\n0,{}\n10,{}\n",
+                2.25 * scale,
+                500.0 * scale
+            );
+            let c = parse_curve(csv.as_bytes(), &o).unwrap();
+            assert_eq!(c.relative, Some(("header", true)), "{header}");
+            let c = parse_curve(
+                csv.as_bytes(),
+                &CurveOptions {
+                    frc_ml: Some(3000.0),
+                    ..Default::default()
+                },
+            )
+            .unwrap();
+            assert_eq!(c.relative, Some(("--frc", false)));
+            assert!((c.samples[1].volume - 3500.0).abs() < 1e-9, "{header}");
+        }
+        // Absolute volumes are not relative: no hint needed, none given.
+        let c = parse_curve(b"pressure_cmH2O,volume_ml\n0,2400\n10,2900\n", &o).unwrap();
+        assert_eq!(c.relative, None);
     }
 
     #[test]

@@ -643,6 +643,44 @@ impl Breathing {
         })
     }
 
+    /// A cycle given tick by tick (a measured waveform, [`crate::recording::Waveform`]): `above_frc_ml`
+    /// is the volume above FRC at every tick of one cycle, the first `inhale_ticks` the inhalation.
+    /// No PV model is evaluated. The boundary's TV is the cycle's largest volume above FRC.
+    pub fn from_volume_table(
+        above_frc_ml: &[f64],
+        inhale_ticks: u32,
+        frc_ml: f64,
+    ) -> Result<Self, PvError> {
+        let cycle = above_frc_ml.len();
+        let tv = above_frc_ml
+            .iter()
+            .copied()
+            .fold(f64::NEG_INFINITY, f64::max);
+        if !(frc_ml.is_finite() && frc_ml > 0.0 && tv.is_finite() && tv > 0.0)
+            || above_frc_ml
+                .iter()
+                .any(|v| !v.is_finite() || frc_ml + v <= 0.0)
+        {
+            return Err(PvError::BadBoundary { frc_ml, tv_ml: tv });
+        }
+        if cycle < 2 || cycle > u32::MAX as usize || !(1..cycle as u32).contains(&inhale_ticks) {
+            return Err(PvError::BadTiming {
+                name: "ticks per breath of the waveform",
+                value: cycle as f64,
+            });
+        }
+        Ok(Self {
+            inhale_ticks,
+            cycle_ticks: cycle as u32,
+            volume_ml: above_frc_ml.iter().map(|v| frc_ml + v).collect(),
+            boundary: Boundary {
+                frc_ml,
+                tv_ml: tv,
+                ..Boundary::HUMAN
+            },
+        })
+    }
+
     /// Ticks per breathing cycle.
     pub fn cycle_ticks(&self) -> u32 {
         self.cycle_ticks
