@@ -4,7 +4,7 @@
 //! prints one line with the tick it arrived at and what it did.
 
 use anyhow::{bail, Context};
-use ipc_types::{control_kind, ControlPacket, LAYOUT_VERSION, LUNG_LEFT, LUNG_RIGHT};
+use ipc_types::{ControlPacket, LAYOUT_VERSION, LUNG_LEFT, LUNG_RIGHT};
 use lung_model::disease::tension::Intervention;
 use lung_model::mesh::Side;
 use transport::{iox, Instance, Publish};
@@ -16,22 +16,10 @@ pub struct EventArgs {
     /// its `--instance NAME`); `lungdyn instances` lists the running ones.
     pub instance: String,
     /// The intervention: needle-decompression, occlusive-dressing or chest-tube.
-    #[arg(value_parser = parse_kind)]
     pub kind: Intervention,
     /// The side it is done on.
     #[arg(long, value_parser = parse_side)]
     pub side: Side,
-}
-
-fn parse_kind(s: &str) -> Result<Intervention, String> {
-    match s {
-        "needle-decompression" => Ok(Intervention::NeedleDecompression),
-        "occlusive-dressing" => Ok(Intervention::OcclusiveDressing),
-        "chest-tube" => Ok(Intervention::ChestTube),
-        _ => Err(format!(
-            "{s:?} is not an intervention: needle-decompression, occlusive-dressing or chest-tube"
-        )),
-    }
 }
 
 fn parse_side(s: &str) -> Result<Side, String> {
@@ -39,15 +27,6 @@ fn parse_side(s: &str) -> Result<Side, String> {
         "left" => Ok(Side::Left),
         "right" => Ok(Side::Right),
         _ => Err(format!("{s:?} is not a lung: left or right")),
-    }
-}
-
-/// The wire code of `kind`.
-pub fn kind_code(kind: Intervention) -> u32 {
-    match kind {
-        Intervention::NeedleDecompression => control_kind::NEEDLE_DECOMPRESSION,
-        Intervention::OcclusiveDressing => control_kind::OCCLUSIVE_DRESSING,
-        Intervention::ChestTube => control_kind::CHEST_TUBE,
     }
 }
 
@@ -91,7 +70,7 @@ pub fn run(args: &EventArgs) -> anyhow::Result<()> {
     }
     let packet = ControlPacket {
         layout_version: LAYOUT_VERSION,
-        kind: kind_code(args.kind),
+        kind: args.kind.code(),
         lung: match args.side {
             Side::Right => LUNG_RIGHT,
             Side::Left => LUNG_LEFT,

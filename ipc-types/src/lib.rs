@@ -9,7 +9,7 @@
 //!
 //! This crate is only the protocol. How a payload travels (iceoryx2 shared memory, an in-process
 //! queue in tests, a recorded file) is the `transport` crate's business; this crate depends on
-//! nothing but `bytemuck`.
+//! nothing but `bytemuck` (and `serde`, for the names of [`Intervention`] in scene files).
 //!
 //! Every payload carries [`HopStamps`]: the monotonic time (CLOCK_MONOTONIC, ns, shared by all
 //! processes on the host) at which it passed each hop, so the latency harness can attribute every
@@ -417,7 +417,7 @@ pub struct FrameReport {
 pub struct ControlPacket {
     /// [`LAYOUT_VERSION`] of the publisher.
     pub layout_version: u32,
-    /// [`control_kind`] code.
+    /// [`Intervention::code`].
     pub kind: u32,
     /// Lung slot ([`LUNG_RIGHT`], [`LUNG_LEFT`]).
     pub lung: u32,
@@ -427,14 +427,85 @@ pub struct ControlPacket {
     pub sequence: u64,
 }
 
-/// Codes of [`ControlPacket::kind`].
-pub mod control_kind {
-    /// Needle decompression (tension pneumothorax).
-    pub const NEEDLE_DECOMPRESSION: u32 = 1;
-    /// Occlusive dressing of an open wound.
-    pub const OCCLUSIVE_DRESSING: u32 = 2;
-    /// Chest tube.
-    pub const CHEST_TUBE: u32 = 3;
+/// A trainee's intervention on a tension pneumothorax (EQUATIONS.md §4.3), as named in scenes and
+/// on the command line (`needle-decompression`, ...) and as coded in [`ControlPacket::kind`]. This
+/// enum is the only place either mapping is written.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Hash, serde::Serialize, serde::Deserialize)]
+#[serde(rename_all = "kebab-case")]
+#[repr(u32)]
+pub enum Intervention {
+    /// Needle decompression of the affected side.
+    NeedleDecompression = 1,
+    /// Occlusive dressing of an open chest wound.
+    OcclusiveDressing = 2,
+    /// Chest tube (tube thoracostomy).
+    ChestTube = 3,
+}
+
+impl Intervention {
+    /// Every intervention, in code order.
+    pub const ALL: [Intervention; 3] = [
+        Intervention::NeedleDecompression,
+        Intervention::OcclusiveDressing,
+        Intervention::ChestTube,
+    ];
+
+    /// The code carried in [`ControlPacket::kind`].
+    pub const fn code(self) -> u32 {
+        self as u32
+    }
+
+    /// The intervention of a [`ControlPacket::kind`] code; `None` for a code this layout does not
+    /// define (such a packet is reported and ignored, never applied).
+    pub fn from_code(code: u32) -> Option<Intervention> {
+        Intervention::ALL.into_iter().find(|k| k.code() == code)
+    }
+
+    /// Name as in scenes and on the command line (the serde name too).
+    pub const fn name(self) -> &'static str {
+        match self {
+            Intervention::NeedleDecompression => "needle-decompression",
+            Intervention::OcclusiveDressing => "occlusive-dressing",
+            Intervention::ChestTube => "chest-tube",
+        }
+    }
+}
+
+impl core::fmt::Display for Intervention {
+    fn fmt(&self, f: &mut core::fmt::Formatter<'_>) -> core::fmt::Result {
+        f.write_str(self.name())
+    }
+}
+
+/// A name that is not an [`Intervention`].
+#[derive(Debug, Clone, PartialEq, Eq)]
+pub struct UnknownIntervention(pub String);
+
+impl core::fmt::Display for UnknownIntervention {
+    fn fmt(&self, f: &mut core::fmt::Formatter<'_>) -> core::fmt::Result {
+        write!(f, "{:?} is not an intervention: ", self.0)?;
+        for (i, k) in Intervention::ALL.iter().enumerate() {
+            let sep = match i {
+                0 => "",
+                i if i + 1 == Intervention::ALL.len() => " or ",
+                _ => ", ",
+            };
+            write!(f, "{sep}{k}")?;
+        }
+        Ok(())
+    }
+}
+
+impl std::error::Error for UnknownIntervention {}
+
+impl core::str::FromStr for Intervention {
+    type Err = UnknownIntervention;
+    fn from_str(s: &str) -> Result<Self, Self::Err> {
+        Intervention::ALL
+            .into_iter()
+            .find(|k| k.name() == s)
+            .ok_or_else(|| UnknownIntervention(s.to_string()))
+    }
 }
 
 impl Message for ControlPacket {
@@ -604,6 +675,42 @@ pub fn check_layout(payload: &'static str, theirs: u32) -> Result<(), LayoutErro
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    #[test]
+    fn every_intervention_round_trips_through_its_code_and_name() {
+        // Exhaustive: a new variant fails to compile here until it is placed in ALL.
+        let index = |k: Intervention| match k {
+            Intervention::NeedleDecompression => 0,
+            Intervention::OcclusiveDressing => 1,
+            Intervention::ChestTube => 2,
+        };
+        for (i, k) in Intervention::ALL.into_iter().enumerate() {
+            assert_eq!(index(k), i);
+            assert_eq!(Intervention::from_code(k.code()), Some(k));
+            assert_eq!(k.name().parse::<Intervention>(), Ok(k));
+            assert_eq!(k.to_string(), k.name());
+        }
+        // The wire codes are the protocol: pinned.
+        let codes: Vec<u32> = Intervention::ALL.iter().map(|k| k.code()).collect();
+        assert_eq!(codes, [1, 2, 3]);
+    }
+
+    #[test]
+    fn unknown_intervention_codes_and_names_are_refused() {
+        for code in [0, 4, 5, 0x100, u32::MAX] {
+            assert_eq!(Intervention::from_code(code), None, "{code}");
+        }
+        for name in ["", "chest tube", "Chest-Tube", "needle", "chest-tube "] {
+            let e = name.parse::<Intervention>().unwrap_err();
+            assert_eq!(
+                e.to_string(),
+                format!(
+                    "{name:?} is not an intervention: needle-decompression, occlusive-dressing \
+                     or chest-tube"
+                )
+            );
+        }
+    }
 
     #[test]
     fn stamps_order_check_rejects_gaps_and_reversals() {

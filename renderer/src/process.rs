@@ -369,11 +369,11 @@ impl Session {
         }
     }
 
-    /// Send a trainee's intervention ([`ipc_types::control_kind`]) on the tension pneumothorax's
-    /// side to the engine; `None` when the scene has none, else the lung it was sent for.
+    /// Send a trainee's intervention on the tension pneumothorax's side to the engine; `None` when
+    /// the scene has none, else the lung it was sent for.
     pub fn send_action(
         &mut self,
-        kind: u32,
+        kind: ipc_types::Intervention,
     ) -> Result<Option<lung_model::mesh::Side>, RendererError> {
         let Some((outlet, side)) = self.control.as_mut() else {
             return Ok(None);
@@ -381,7 +381,7 @@ impl Session {
         self.control_sequence += 1;
         let packet = ipc_types::ControlPacket {
             layout_version: LAYOUT_VERSION,
-            kind,
+            kind: kind.code(),
             lung: side.index() as u32,
             _pad: 0,
             sequence: self.control_sequence,

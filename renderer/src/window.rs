@@ -6,6 +6,8 @@
 
 use std::sync::Arc;
 
+use ipc_types::Intervention;
+
 use winit::application::ApplicationHandler;
 use winit::dpi::PhysicalSize;
 use winit::event::WindowEvent;
@@ -103,13 +105,13 @@ impl ApplicationHandler for App {
                 if event.state == winit::event::ElementState::Pressed && !event.repeat =>
             {
                 let action = event.logical_key.to_text().and_then(key_action);
-                if let Some((kind, name)) = action {
+                if let Some(kind) = action {
                     match w.session.send_action(kind) {
                         Ok(Some(side)) => {
-                            eprintln!("renderer: key: {name} on the {} lung sent", side.name())
+                            eprintln!("renderer: key: {kind} on the {} lung sent", side.name())
                         }
                         Ok(None) => eprintln!(
-                            "renderer: key: {name} needs a tension pneumothorax scene; ignored"
+                            "renderer: key: {kind} needs a tension pneumothorax scene; ignored"
                         ),
                         Err(e) => {
                             self.fail(event_loop, e);
@@ -163,14 +165,12 @@ impl ApplicationHandler for App {
 }
 
 /// What a key sends to the engine: N a needle decompression, C a chest tube, O an occlusive
-/// dressing, for the scene's tension pneumothorax ([`ipc_types::control_kind`] and a name for the
-/// log); `None` for any other key.
-pub fn key_action(text: &str) -> Option<(u32, &'static str)> {
-    use ipc_types::control_kind as k;
+/// dressing, for the scene's tension pneumothorax; `None` for any other key.
+pub fn key_action(text: &str) -> Option<Intervention> {
     match text {
-        "n" | "N" => Some((k::NEEDLE_DECOMPRESSION, "needle decompression")),
-        "c" | "C" => Some((k::CHEST_TUBE, "chest tube")),
-        "o" | "O" => Some((k::OCCLUSIVE_DRESSING, "occlusive dressing")),
+        "n" | "N" => Some(Intervention::NeedleDecompression),
+        "c" | "C" => Some(Intervention::ChestTube),
+        "o" | "O" => Some(Intervention::OcclusiveDressing),
         _ => None,
     }
 }

@@ -485,7 +485,7 @@ fn scene_run_reports_the_tumour_centres_motion_and_writes_its_trajectory() {
 #[test]
 fn the_windows_intervention_keys_reach_a_running_engine() {
     use clap::Parser;
-    use ipc_types::control_kind as k;
+    use ipc_types::Intervention as k;
     use renderer::window::key_action;
     use std::io::BufRead;
     #[derive(Parser)]
@@ -493,10 +493,10 @@ fn the_windows_intervention_keys_reach_a_running_engine() {
         #[command(flatten)]
         args: renderer::process::RendererArgs,
     }
-    assert_eq!(key_action("n").map(|a| a.0), Some(k::NEEDLE_DECOMPRESSION));
-    assert_eq!(key_action("N").map(|a| a.0), Some(k::NEEDLE_DECOMPRESSION));
-    assert_eq!(key_action("c").map(|a| a.0), Some(k::CHEST_TUBE));
-    assert_eq!(key_action("O").map(|a| a.0), Some(k::OCCLUSIVE_DRESSING));
+    assert_eq!(key_action("n"), Some(k::NeedleDecompression));
+    assert_eq!(key_action("N"), Some(k::NeedleDecompression));
+    assert_eq!(key_action("c"), Some(k::ChestTube));
+    assert_eq!(key_action("O"), Some(k::OcclusiveDressing));
     assert!(key_action("x").is_none() && key_action("").is_none());
     let Some(gpu) = renderer::gpu::Gpu::for_tests() else {
         return;
@@ -549,7 +549,7 @@ fn the_windows_intervention_keys_reach_a_running_engine() {
         "60",
     ]);
     let mut session = renderer::process::Session::new(&cli.args, gpu).unwrap();
-    let (kind, _) = key_action("n").unwrap();
+    let kind = key_action("n").unwrap();
     let (mut log, mut received) = (String::new(), false);
     let start = std::time::Instant::now();
     // Until the engine subscribes to the control stream a packet has no reader: press again.

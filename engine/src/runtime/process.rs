@@ -7,7 +7,7 @@
 //! one zero-copy publish — no allocation, no lock, no logging beyond one line when the tracker
 //! connects. [`run`] wires the loop to iceoryx2 and the host's clock.
 
-use ipc_types::{control_kind, ControlPacket, EngineFrame, Message, TrackerFrame, LUNG_LEFT};
+use ipc_types::{ControlPacket, EngineFrame, Message, TrackerFrame, LUNG_LEFT};
 use lung_model::scene::{Scene, SceneError};
 use thiserror::Error;
 use transport::clock::{now_ns, Clock, Monotonic};
@@ -240,13 +240,7 @@ pub fn run_loop(
 
 /// Hand one control packet to the engine core; a packet it cannot use is reported, never applied.
 fn live_action(core: &mut EngineCore, tick: u64, p: &ControlPacket, announce: Option<&str>) {
-    use lung_model::disease::tension::Intervention;
-    let kind = match p.kind {
-        control_kind::NEEDLE_DECOMPRESSION => Some(Intervention::NeedleDecompression),
-        control_kind::OCCLUSIVE_DRESSING => Some(Intervention::OcclusiveDressing),
-        control_kind::CHEST_TUBE => Some(Intervention::ChestTube),
-        _ => None,
-    };
+    let kind = ipc_types::Intervention::from_code(p.kind);
     let side = match p.lung as usize {
         ipc_types::LUNG_RIGHT => Some(lung_model::mesh::Side::Right),
         LUNG_LEFT => Some(lung_model::mesh::Side::Left),

@@ -105,28 +105,8 @@ pub enum LeakSource {
     Wound,
 }
 
-/// A trainee's intervention.
-#[derive(Debug, Clone, Copy, PartialEq, Eq, serde::Serialize, serde::Deserialize)]
-#[serde(rename_all = "kebab-case")]
-pub enum Intervention {
-    /// Needle decompression of the affected side.
-    NeedleDecompression,
-    /// Occlusive dressing of an open chest wound.
-    OcclusiveDressing,
-    /// Chest tube (tube thoracostomy).
-    ChestTube,
-}
-
-impl Intervention {
-    /// Name as in scenes and on the command line.
-    pub fn name(self) -> &'static str {
-        match self {
-            Intervention::NeedleDecompression => "needle-decompression",
-            Intervention::OcclusiveDressing => "occlusive-dressing",
-            Intervention::ChestTube => "chest-tube",
-        }
-    }
-}
+/// A trainee's intervention: the protocol's enum, which also holds its scene names and wire codes.
+pub use ipc_types::Intervention;
 
 /// What an intervention did.
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]
