@@ -7,7 +7,6 @@
 //! a grace period; dead-node resources are cleaned and the instance's files are checked to be gone.
 
 use std::path::{Path, PathBuf};
-use std::process::{Child, Command, Stdio};
 use std::time::Duration;
 
 use anyhow::{bail, Context};
@@ -15,6 +14,7 @@ use ipc_types::FrameReport;
 use transport::{iox, now_ns, Instance, Receive};
 
 use crate::prepare::KernelUse;
+use crate::supervise::Children;
 use serde::Serialize;
 
 use crate::stats::{HopRow, LatencyStats, DEADLINE_NS};
@@ -230,141 +230,6 @@ pub struct DemoReport {
     pub calibration: Option<String>,
     /// The HMD optics file the renderer drew the eyes from (none: the scene's IPD and field of view).
     pub hmd: Option<String>,
-}
-
-/// How a child ended: its status, or why it could not be collected (then it counts as gone too).
-#[derive(Debug, Clone)]
-enum Ended {
-    Status(std::process::ExitStatus),
-    Unknown(String),
-}
-
-impl std::fmt::Display for Ended {
-    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
-        match self {
-            Ended::Status(s) => write!(f, "{s}"),
-            Ended::Unknown(e) => write!(f, "status unknown: {e}"),
-        }
-    }
-}
-
-/// One child process of the demo, signalled only through its handle.
-///
-/// A pid may be signalled only while the child is known not to be reaped: once `try_wait`/`wait`
-/// has collected its status the kernel may hand the pid to an unrelated process. Only this handle
-/// reaps the child (nobody else waits on it and SIGCHLD keeps its default), so a `try_wait` that
-/// finds it still running guarantees the pid is ours until the next wait — a child that dies in
-/// between stays a zombie holding the pid. Once it has ended, the child is never signalled again.
-struct Proc {
-    role: &'static str,
-    child: Child,
-    ended: Option<Ended>,
-}
-
-impl Proc {
-    fn new(role: &'static str, child: Child) -> Self {
-        Proc {
-            role,
-            child,
-            ended: None,
-        }
-    }
-
-    /// How the child ended, collecting its status (and so reaping it) if it has exited.
-    fn poll(&mut self) -> Option<&Ended> {
-        if self.ended.is_none() {
-            self.ended = match self.child.try_wait() {
-                Ok(s) => s.map(Ended::Status),
-                // ECHILD: something else reaped it, so the pid is not ours any more either.
-                Err(e) => Some(Ended::Unknown(e.to_string())),
-            };
-        }
-        self.ended.as_ref()
-    }
-
-    /// Send `sig` if the child is still un-reaped; false (and nothing sent) once it has ended.
-    fn signal(&mut self, sig: libc::c_int) -> bool {
-        if self.poll().is_some() {
-            return false;
-        }
-        // SAFETY: `poll` just found the child un-reaped, and only this handle reaps it, so the pid
-        // still names our child (at worst a zombie); kill(2) has no memory-safety preconditions.
-        unsafe { libc::kill(self.child.id() as libc::pid_t, sig) == 0 }
-    }
-
-    /// SIGKILL (through the handle, which refuses a reaped child) and reap.
-    fn kill_and_reap(&mut self) {
-        if self.poll().is_none() {
-            let _ = self.child.kill();
-            self.ended = Some(match self.child.wait() {
-                Ok(s) => Ended::Status(s),
-                Err(e) => Ended::Unknown(e.to_string()),
-            });
-        }
-    }
-}
-
-struct Children {
-    procs: Vec<Proc>,
-}
-
-impl Children {
-    fn spawn(exe: &Path, role: &'static str, args: &[String]) -> anyhow::Result<Proc> {
-        let mut cmd = Command::new(exe);
-        cmd.arg(role)
-            .args(args)
-            .stdin(Stdio::null())
-            .stdout(Stdio::null())
-            .stderr(Stdio::inherit());
-        // SAFETY: prctl is async-signal-safe; it only arms a signal for when the parent dies.
-        unsafe {
-            use std::os::unix::process::CommandExt;
-            cmd.pre_exec(|| {
-                libc::prctl(libc::PR_SET_PDEATHSIG, libc::SIGTERM);
-                Ok(())
-            });
-        }
-        let child = cmd
-            .spawn()
-            .with_context(|| format!("cannot start the {role} process ({})", exe.display()))?;
-        Ok(Proc::new(role, child))
-    }
-
-    /// The first child that exited, with its status.
-    fn exited(&mut self) -> Option<(&'static str, Ended)> {
-        self.procs
-            .iter_mut()
-            .find_map(|p| p.poll().cloned().map(|e| (p.role, e)))
-    }
-
-    /// SIGINT everyone still running, wait up to `grace`, SIGKILL stragglers. Returns roles that
-    /// had to be killed.
-    fn stop(&mut self, grace: Duration) -> Vec<&'static str> {
-        for p in &mut self.procs {
-            p.signal(libc::SIGINT);
-        }
-        let until = now_ns() + grace.as_nanos() as u64;
-        let mut killed = Vec::new();
-        for p in &mut self.procs {
-            while p.poll().is_none() {
-                if now_ns() >= until {
-                    p.kill_and_reap();
-                    killed.push(p.role);
-                    break;
-                }
-                std::thread::sleep(Duration::from_millis(10));
-            }
-        }
-        killed
-    }
-}
-
-impl Drop for Children {
-    fn drop(&mut self) {
-        for p in &mut self.procs {
-            p.kill_and_reap();
-        }
-    }
 }
 
 /// Check `dir` can take our PNGs: create it, write and remove a probe file.
@@ -892,86 +757,6 @@ pub fn table(r: &DemoReport) -> String {
 #[cfg(test)]
 mod tests {
     use super::*;
-
-    /// `sh -c script` with SIGINT at its default (whatever the test runner inherited), stdout
-    /// piped; returns once the script has printed its first line (so its traps are in place).
-    fn sh(role: &'static str, script: &str) -> Proc {
-        use std::io::BufRead;
-        use std::os::unix::process::CommandExt;
-        let mut cmd = Command::new("sh");
-        cmd.args(["-c", script]).stdout(Stdio::piped());
-        // SAFETY: signal(2) is async-signal-safe.
-        unsafe {
-            cmd.pre_exec(|| {
-                libc::signal(libc::SIGINT, libc::SIG_DFL);
-                Ok(())
-            });
-        }
-        let mut child = cmd.spawn().unwrap();
-        let mut line = String::new();
-        std::io::BufReader::new(child.stdout.take().unwrap())
-            .read_line(&mut line)
-            .unwrap();
-        assert_eq!(line.trim(), "ready", "{role}");
-        Proc::new(role, child)
-    }
-
-    fn code(e: &Ended) -> Option<i32> {
-        match e {
-            Ended::Status(s) => s.code(),
-            Ended::Unknown(_) => None,
-        }
-    }
-
-    fn signal_of(e: &Ended) -> Option<i32> {
-        use std::os::unix::process::ExitStatusExt;
-        match e {
-            Ended::Status(s) => s.signal(),
-            Ended::Unknown(_) => None,
-        }
-    }
-
-    #[test]
-    fn a_reaped_child_is_never_signalled_again() {
-        let mut children = Children {
-            procs: vec![sh("quits", "echo ready; exit 3")],
-        };
-        let (role, ended) = loop {
-            if let Some(e) = children.exited() {
-                break e;
-            }
-            std::thread::sleep(Duration::from_millis(5));
-        };
-        assert_eq!((role, code(&ended)), ("quits", Some(3)));
-        // Reaped: its pid may belong to someone else now, so nothing is sent to it.
-        assert!(!children.procs[0].signal(libc::SIGINT));
-        assert!(children.stop(Duration::from_millis(50)).is_empty());
-        assert_eq!(code(children.procs[0].poll().unwrap()), Some(3));
-    }
-
-    #[test]
-    fn stop_interrupts_then_kills_only_stragglers() {
-        let mut children = Children {
-            procs: vec![
-                sh("polite", "echo ready; exec sleep 30"),
-                sh("stubborn", "trap '' INT; echo ready; exec sleep 30"),
-            ],
-        };
-        assert!(children.exited().is_none());
-        let killed = children.stop(Duration::from_millis(300));
-        assert_eq!(killed, vec!["stubborn"]);
-        assert_eq!(
-            signal_of(children.procs[0].poll().unwrap()),
-            Some(libc::SIGINT)
-        );
-        assert_eq!(
-            signal_of(children.procs[1].poll().unwrap()),
-            Some(libc::SIGKILL)
-        );
-        // Both reaped: a second stop sends nothing and kills nothing.
-        assert!(!children.procs[0].signal(libc::SIGTERM));
-        assert!(children.stop(Duration::from_millis(10)).is_empty());
-    }
 
     #[test]
     fn counts_and_cores_are_checked_before_any_work() {
