@@ -92,6 +92,14 @@ pub struct DemoArgs {
     /// the scene's `[render] hmd` and its ipd_mm, fov_y_deg, width and height.
     #[arg(long, value_name = "FILE")]
     pub hmd: Option<PathBuf>,
+    /// A process that dies is restarted (a restarted engine resumes at the tick the stream
+    /// expects), at most this many restarts within --restart-window-s; one more ends the run with
+    /// an error (0: any death ends the run).
+    #[arg(long, value_name = "N", default_value_t = 5)]
+    pub max_restarts: u32,
+    /// The window of --max-restarts, seconds.
+    #[arg(long, value_name = "S", default_value_t = 60.0)]
+    pub restart_window_s: f64,
 }
 
 /// Most `--snapshots`: one per 60 Hz display frame of a 4-second breath (15 breaths/min). More are
@@ -230,6 +238,19 @@ pub struct DemoReport {
     pub calibration: Option<String>,
     /// The HMD optics file the renderer drew the eyes from (none: the scene's IPD and field of view).
     pub hmd: Option<String>,
+    /// Processes restarted after they died.
+    pub restarts: usize,
+    /// Each restart: the process, how it ended, when, what was cleaned, the time to a fresh frame.
+    pub restart_log: Vec<crate::supervise::Restart>,
+    /// Restarted engines whose first frame did not show the breath an uninterrupted run shows at
+    /// that tick (must be 0).
+    pub phase_errors: u64,
+    /// Why the run ended: "completed", "interrupted", or the failure.
+    pub ended: String,
+    /// Set when the run failed (the launcher exits non-zero after printing this report).
+    pub failure: Option<String>,
+    /// Files of dead earlier instances (a killed launcher's) removed at start.
+    pub swept_files: usize,
 }
 
 /// Check `dir` can take our PNGs: create it, write and remove a probe file.
@@ -388,6 +409,11 @@ pub fn run(args: &DemoArgs) -> anyhow::Result<DemoReport> {
     // One launcher per instance: a second run with this name is refused here, before it writes or
     // removes anything (its cleanup would otherwise delete the first run's shared memory).
     let _lock = services.lock("launcher")?;
+    // What a killed launcher (or process) of an earlier run left behind goes first.
+    let swept = Instance::sweep_dead().len();
+    if swept > 0 {
+        eprintln!("lungdyn: removed {swept} files of earlier runs that are no longer running");
+    }
     eprintln!(
         "lungdyn: instance {instance} (`lungdyn instances` lists running ones; `lungdyn scene event \
          {instance} …` acts on this one)"
@@ -438,18 +464,6 @@ pub fn run(args: &DemoArgs) -> anyhow::Result<DemoReport> {
     let mut renderer_args = with_scene([common.clone(), cpu(2)].concat());
     renderer_args.push("--predict-ms".into());
     renderer_args.push(args.predict_ms.to_string());
-    if !targets.is_empty() {
-        renderer_args.push("--snapshot-ticks".into());
-        renderer_args.push(
-            targets
-                .iter()
-                .map(|t| t.to_string())
-                .collect::<Vec<_>>()
-                .join(","),
-        );
-        renderer_args.extend(["--snapshot-dir".to_string(), args.out.display().to_string()]);
-        renderer_args.push("--snapshot-fixed-view".into());
-    }
     if args.window {
         renderer_args.push("--window".into());
         if args.vsync {
@@ -457,15 +471,47 @@ pub fn run(args: &DemoArgs) -> anyhow::Result<DemoReport> {
         }
     }
     let existing: std::collections::HashSet<PathBuf> = list_pngs(&args.out).into_iter().collect();
-    let mut children = Children { procs: Vec::new() };
-    children
-        .procs
-        .push(Children::spawn(&exe, "renderer", &renderer_args)?);
-    children.procs.push(Children::spawn(
-        &exe,
+    // The engine tick last published (the launcher subscribes to the engine stream too): a
+    // restarted engine resumes at the next one, a restarted renderer takes only the snapshots still
+    // ahead.
+    let mut engine_frames = services.engine_inlet(&node)?;
+    let last_tick: std::cell::Cell<Option<u64>> = std::cell::Cell::new(None);
+    let intensity = crate::supervise::Intensity::checked(args.max_restarts, args.restart_window_s)?;
+    let mut supervisor = crate::supervise::Supervisor::new(
+        intensity,
+        Box::new(|| transport::iox::remove_dead_nodes(&services).map_err(anyhow::Error::from)),
+    );
+    let (exe, targets) = (&exe, &targets);
+    let out_dir = args.out.display().to_string();
+    let last_seen = &last_tick;
+    supervisor.start(
+        "renderer",
+        Box::new(move || {
+            let mut a = renderer_args.clone();
+            let ahead: Vec<String> = targets
+                .iter()
+                .filter(|&&t| last_seen.get().is_none_or(|l| t > l))
+                .map(|t| t.to_string())
+                .collect();
+            if !ahead.is_empty() {
+                a.extend(["--snapshot-ticks".to_string(), ahead.join(",")]);
+                a.extend(["--snapshot-dir".to_string(), out_dir.clone()]);
+                a.push("--snapshot-fixed-view".into());
+            }
+            Children::spawn(exe, "renderer", &a)
+        }),
+    )?;
+    let engine_args = with_scene([common.clone(), cpu(1)].concat());
+    supervisor.start(
         "engine",
-        &with_scene([common.clone(), cpu(1)].concat()),
-    )?);
+        Box::new(move || {
+            let mut a = engine_args.clone();
+            if let Some(t) = last_seen.get() {
+                a.extend(["--start-tick".to_string(), (t + 1).to_string()]);
+            }
+            Children::spawn(exe, "engine", &a)
+        }),
+    )?;
     let sweep = vec![
         "--roll-deg".to_string(),
         args.roll_deg.to_string(),
@@ -474,22 +520,22 @@ pub fn run(args: &DemoArgs) -> anyhow::Result<DemoReport> {
         "--sweep-period-s".to_string(),
         args.sweep_period_s.to_string(),
     ];
-    children.procs.push(Children::spawn(
-        &exe,
+    let bridge_args = [
+        common.clone(),
+        cpu(0),
+        sweep,
+        vec![
+            "--source".to_string(),
+            tracker_source.clone(),
+            "--posture".to_string(),
+            posture.to_string(),
+        ],
+    ]
+    .concat();
+    supervisor.start(
         "tracker-bridge",
-        &[
-            common.clone(),
-            cpu(0),
-            sweep,
-            vec![
-                "--source".to_string(),
-                tracker_source.clone(),
-                "--posture".to_string(),
-                posture.to_string(),
-            ],
-        ]
-        .concat(),
-    )?);
+        Box::new(move || Children::spawn(exe, "tracker-bridge", &bridge_args)),
+    )?;
 
     let mut stats = LatencyStats::new();
     let started = now_ns();
@@ -498,24 +544,67 @@ pub fn run(args: &DemoArgs) -> anyhow::Result<DemoReport> {
     let mut failure: Option<String> = None;
     let mut last_progress = 0u64;
     let show_progress = !args.json && std::io::IsTerminal::is_terminal(&std::io::stderr());
+    // A restarted engine's first tick, checked against the deterministic expectation.
+    let mut resumed_at: Option<u64> = None;
+    // The sample shown when the tracker-bridge died, and the one shown last.
+    let (mut bridge_died_at, mut last_sample): (Option<u64>, u64) = (None, 0);
+    let mut phase = crate::supervise::PhaseCheck::new(&scene);
     loop {
         if !iox::idle(&node, Duration::from_millis(5)) {
             interrupted = true;
             eprintln!("lungdyn: interrupted, stopping the processes");
             break;
         }
+        // Recovered: a frame from a live engine, showing a sample of the live bridge.
+        let mut fresh = false;
         reports.drain(&mut |r: &FrameReport| {
             if first_frame_ns.is_none() {
                 first_frame_ns = Some(now_ns());
             }
+            let new_sample = bridge_died_at.is_none_or(|f| r.tracker_frame != f);
+            if r.flags & ipc_types::report_flags::STALE_ENGINE == 0 && new_sample {
+                fresh = true;
+                bridge_died_at = None;
+            }
+            last_sample = r.tracker_frame;
             stats.record(r);
         })?;
         let now = now_ns();
-        if let Some((role, status)) = children.exited() {
-            failure = Some(format!(
-                "the {role} process exited early ({status}); see its message above"
-            ));
-            break;
+        engine_frames.drain(&mut |f: &ipc_types::EngineFrame| {
+            if resumed_at == Some(f.tick) {
+                resumed_at = None;
+                phase.check(f);
+            }
+            last_tick.set(Some(f.tick));
+        })?;
+        if fresh && supervisor.recovering() {
+            supervisor.recovered(now);
+        }
+        match supervisor.check() {
+            Err(e) => {
+                failure = Some(format!("{e:#}"));
+                break;
+            }
+            Ok(restarted) => {
+                for role in restarted {
+                    let r = supervisor.restarts.last().expect("just restarted");
+                    match role {
+                        "engine" => {
+                            resumed_at = last_tick.get().map(|t| t + 1);
+                            eprintln!(
+                                "lungdyn: the engine process died ({}); restarted, resuming at tick {}",
+                                r.ended,
+                                resumed_at.unwrap_or(0)
+                            );
+                        }
+                        _ => eprintln!("lungdyn: the {role} process died ({}); restarted", r.ended),
+                    }
+                    if role == "tracker-bridge" {
+                        bridge_died_at = Some(last_sample);
+                    }
+                    stats.restarted(role);
+                }
+            }
         }
         match first_frame_ns {
             None if now - started > (args.startup_timeout * 1e9) as u64 => {
@@ -539,12 +628,18 @@ pub fn run(args: &DemoArgs) -> anyhow::Result<DemoReport> {
     if show_progress && last_progress > 0 {
         eprintln!();
     }
+    let end_ns = now_ns();
     let measured_s = first_frame_ns
-        .map(|t0| (now_ns() - t0) as f64 / 1e9)
+        .map(|t0| (end_ns - t0) as f64 / 1e9)
         .unwrap_or(0.0);
-    let killed = children.stop(Duration::from_secs(5));
+    let killed = supervisor.children.stop(Duration::from_secs(5));
     let _ = reports.drain(&mut |r: &FrameReport| stats.record(r));
+    // Whatever never reached a frame by the end (a renderer stopped for good) is missed.
+    stats.finish(end_ns);
+    let restart_log = supervisor.restarts.clone();
+    drop(supervisor);
     drop(reports);
+    drop(engine_frames);
     node.try_cleanup_dead_nodes();
     drop(node);
     // Every process of the instance has exited and the prefix is the instance's own: remove its
@@ -565,8 +660,13 @@ pub fn run(args: &DemoArgs) -> anyhow::Result<DemoReport> {
     if !killed.is_empty() {
         eprintln!("lungdyn: warning: had to kill {killed:?} after SIGINT");
     }
-    if let Some(f) = failure {
-        bail!(f);
+    if interrupted && stats.frames == 0 && failure.is_none() {
+        failure = Some("interrupted before any frame was drawn".to_string());
+    }
+    if let Some(t) = resumed_at {
+        failure.get_or_insert(format!(
+            "the restarted engine never published its resume tick {t}"
+        ));
     }
     let mut pngs: Vec<String> = list_pngs(&args.out)
         .into_iter()
@@ -575,11 +675,13 @@ pub fn run(args: &DemoArgs) -> anyhow::Result<DemoReport> {
         .collect();
     pngs.sort();
     let frames: Vec<PathBuf> = pngs.iter().map(PathBuf::from).collect();
-    let strip = crate::strip::breath_strip(&frames, &args.out.join("breath_strip.png"))?
-        .map(|p| p.display().to_string());
-    if interrupted && stats.frames == 0 {
-        bail!("interrupted before any frame was drawn");
-    }
+    let strip = match crate::strip::breath_strip(&frames, &args.out.join("breath_strip.png")) {
+        Ok(s) => s.map(|p| p.display().to_string()),
+        Err(e) => {
+            failure.get_or_insert(format!("{e:#}"));
+            None
+        }
+    };
     let e2e = stats.end_to_end();
     let sched = stats.sample_latency();
     Ok(DemoReport {
@@ -639,6 +741,16 @@ pub fn run(args: &DemoArgs) -> anyhow::Result<DemoReport> {
             .as_ref()
             .map(|p| p.display().to_string()),
         hmd: scene.render.hmd.as_ref().map(|p| p.display().to_string()),
+        restarts: restart_log.len(),
+        restart_log,
+        phase_errors: phase.errors,
+        ended: match (&failure, interrupted) {
+            (Some(f), _) => f.clone(),
+            (None, true) => "interrupted".to_string(),
+            (None, false) => "completed".to_string(),
+        },
+        failure,
+        swept_files: swept,
     })
 }
 
@@ -740,6 +852,29 @@ pub fn table(r: &DemoReport) -> String {
         "stale frames {}, engine ticks not drawn {}, reports lost {}, shm files left by iceoryx2 {} (remaining {})",
         r.stale_frames, r.skipped_ticks, r.lost_reports, r.leftover_files, r.remaining_files
     );
+    if r.restarts > 0 {
+        let _ = writeln!(
+            s,
+            "RESTARTS {}: {}; breathing-phase errors after engine restarts: {}",
+            r.restarts,
+            r.restart_log
+                .iter()
+                .map(|x| format!(
+                    "{} at {:.1} s ({}), {}",
+                    x.role,
+                    x.at_s,
+                    x.ended,
+                    x.recover_ms
+                        .map_or("never recovered".to_string(), |m| format!(
+                            "fresh frames again after {m:.0} ms"
+                        ))
+                ))
+                .collect::<Vec<_>>()
+                .join("; "),
+            r.phase_errors
+        );
+    }
+    let _ = writeln!(s, "run ended: {}", r.ended);
     if r.pngs.is_empty() {
         let _ = writeln!(s, "PNG frames: none");
     } else {

@@ -102,7 +102,7 @@ pub struct Children {
 impl Children {
     /// Start `exe role args…` with stdin and stdout closed, stderr shared, and SIGTERM when the
     /// launcher dies (`PR_SET_PDEATHSIG`).
-    pub fn spawn(exe: &Path, role: &'static str, args: &[String]) -> anyhow::Result<Proc> {
+    pub fn spawn(exe: &Path, role: &'static str, args: &[String]) -> anyhow::Result<Child> {
         let mut cmd = Command::new(exe);
         cmd.arg(role)
             .args(args)
@@ -120,7 +120,7 @@ impl Children {
         let child = cmd
             .spawn()
             .with_context(|| format!("cannot start the {role} process ({})", exe.display()))?;
-        Ok(Proc::new(role, child))
+        Ok(child)
     }
 
     /// The first child that exited, with its status.
@@ -310,6 +310,71 @@ impl<'a> Supervisor<'a> {
     /// Restarts waiting for a fresh frame.
     pub fn recovering(&self) -> bool {
         self.restarts.last().is_some_and(|r| r.recover_ms.is_none())
+    }
+}
+
+/// The deterministic expectation of a restarted engine: its first frame (at the resume tick) must
+/// show the breath an uninterrupted engine of the same scene shows at that tick — each lung's
+/// phase, cycle and volume, bit for bit (an [`engine::runtime::EngineCore`] resumed there, stepped
+/// without tracker input: the breath does not depend on the pose).
+pub struct PhaseCheck {
+    scene: lung_model::scene::Scene,
+    /// Resumed frames checked.
+    pub checked: u64,
+    /// Resumed frames that differed from the expectation.
+    pub errors: u64,
+}
+
+impl PhaseCheck {
+    /// A check against `scene` (its kernels are loaded at the first check).
+    pub fn new(scene: &lung_model::scene::Scene) -> Self {
+        Self {
+            scene: scene.clone(),
+            checked: 0,
+            errors: 0,
+        }
+    }
+
+    /// Check the first frame `got` of a resumed engine; false (counted, and said) when it differs.
+    pub fn check(&mut self, got: &ipc_types::EngineFrame) -> bool {
+        self.checked += 1;
+        let expected = engine::runtime::EngineCore::new(&self.scene).and_then(|mut core| {
+            core.resume_at(got.tick)?;
+            let mut f = ipc_types::EngineFrame::default();
+            core.step(got.tick, None, &mut f);
+            Ok(f)
+        });
+        let why = match expected {
+            Err(e) => Some(format!("no expectation: {e}")),
+            Ok(want) => want
+                .lungs
+                .iter()
+                .zip(&got.lungs)
+                .enumerate()
+                .find(|(_, (w, g))| {
+                    w.phase.to_bits() != g.phase.to_bits()
+                        || w.cycle != g.cycle
+                        || w.volume_ml.to_bits() != g.volume_ml.to_bits()
+                })
+                .map(|(k, (w, g))| {
+                    format!(
+                        "lung slot {k}: phase {} cycle {} volume {} ml, expected phase {} cycle {} \
+                         volume {} ml",
+                        g.phase, g.cycle, g.volume_ml, w.phase, w.cycle, w.volume_ml
+                    )
+                }),
+        };
+        match why {
+            None => true,
+            Some(why) => {
+                self.errors += 1;
+                eprintln!(
+                    "lungdyn: BREATHING PHASE ERROR after the engine restart at tick {}: {why}",
+                    got.tick
+                );
+                false
+            }
+        }
     }
 }
 

@@ -130,9 +130,11 @@ pub fn termination_requested(node: &IoxNode) -> bool {
     node.wait(Duration::ZERO).is_err()
 }
 
-/// Sleep up to `period` on the node; false when a termination was requested.
+/// Sleep up to `period` on the node; false when a termination was requested. Another signal that
+/// cuts the sleep short (SIGCONT after Ctrl-Z and `fg`, SIGCHLD) is not a termination request:
+/// iceoryx2 reports any interrupted sleep as an error, so the request itself is asked for again.
 pub fn idle(node: &IoxNode, period: Duration) -> bool {
-    node.wait(period).is_ok()
+    node.wait(period).is_ok() || !termination_requested(node)
 }
 
 /// The port factory of a stream of `T`.
