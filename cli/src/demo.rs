@@ -546,6 +546,7 @@ pub fn run(args: &DemoArgs) -> anyhow::Result<DemoReport> {
     let show_progress = !args.json && std::io::IsTerminal::is_terminal(&std::io::stderr());
     // A restarted engine's first tick, checked against the deterministic expectation.
     let mut resumed_at: Option<u64> = None;
+    let mut finished: Option<&'static str> = None;
     // The sample shown when the tracker-bridge died, and the one shown last.
     let (mut bridge_died_at, mut last_sample): (Option<u64>, u64) = (None, 0);
     let mut phase = crate::supervise::PhaseCheck::new(&scene);
@@ -579,6 +580,13 @@ pub fn run(args: &DemoArgs) -> anyhow::Result<DemoReport> {
         })?;
         if fresh && supervisor.recovering() {
             supervisor.recovered(now);
+        }
+        if let Some(role) = supervisor.finished() {
+            // A replay shorter than --seconds ends the run cleanly (it is not looped: the
+            // recording's samples would jump back in time); the report covers what was played.
+            eprintln!("lungdyn: the {role} finished (its source ended); stopping the run");
+            finished = Some(role);
+            break;
         }
         match supervisor.check() {
             Err(e) => {
@@ -747,6 +755,10 @@ pub fn run(args: &DemoArgs) -> anyhow::Result<DemoReport> {
         ended: match (&failure, interrupted) {
             (Some(f), _) => f.clone(),
             (None, true) => "interrupted".to_string(),
+            (None, false) if finished.is_some() => format!(
+                "the {} finished before --seconds (its source ended: the end of the replay)",
+                finished.unwrap_or_default()
+            ),
             (None, false) => "completed".to_string(),
         },
         failure,

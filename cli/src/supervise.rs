@@ -27,6 +27,13 @@ pub enum Ended {
     Unknown(String),
 }
 
+impl Ended {
+    /// Exited with status 0.
+    pub fn success(&self) -> bool {
+        matches!(self, Ended::Status(s) if s.success())
+    }
+}
+
 impl std::fmt::Display for Ended {
     fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
         match self {
@@ -134,7 +141,10 @@ impl Children {
     /// had to be killed.
     pub fn stop(&mut self, grace: Duration) -> Vec<&'static str> {
         for p in &mut self.procs {
-            p.signal(libc::SIGINT);
+            // A stopped child (SIGSTOP, Ctrl-Z) cannot act on SIGINT until it continues.
+            if p.signal(libc::SIGINT) {
+                p.signal(libc::SIGCONT);
+            }
         }
         let until = now_ns() + grace.as_nanos() as u64;
         let mut killed = Vec::new();
@@ -258,6 +268,10 @@ impl<'a> Supervisor<'a> {
             let Some(ended) = p.poll().cloned() else {
                 continue;
             };
+            if ended.success() {
+                // Finished its work (a replay reached its end): not a fault, see `finished`.
+                continue;
+            }
             let role = p.role;
             let now = now_ns();
             let window = (self.intensity.within_s * 1e9) as u64;
@@ -295,6 +309,16 @@ impl<'a> Supervisor<'a> {
             restarted.push(role);
         }
         Ok(restarted)
+    }
+
+    /// The first process that exited successfully (transient, as in OTP: a process that finished
+    /// its work — the tracker-bridge at the end of a replay — is not restarted; the caller decides
+    /// whether the run ends).
+    pub fn finished(&mut self) -> Option<&'static str> {
+        self.children
+            .procs
+            .iter_mut()
+            .find_map(|p| p.poll().is_some_and(Ended::success).then_some(p.role))
     }
 
     /// The pipeline showed a fresh frame at `now_ns`: every restart not yet recovered is, now.
@@ -539,6 +563,16 @@ mod tests {
         assert!(msg.contains("exit status: 7"), "{msg}");
         assert_eq!(starts.get(), 3, "the first start and two restarts");
         assert_eq!(s.restarts.len(), 2);
+    }
+
+    #[test]
+    fn a_process_that_finished_its_work_is_not_restarted() {
+        let starts = std::cell::Cell::new(0);
+        let mut s = Supervisor::new(Intensity::checked(3, 60.0).unwrap(), no_cleaning());
+        s.start("replay", shell("exit 0", &starts)).unwrap();
+        assert_eq!(until(|| s.finished()), "replay");
+        assert!(s.check().unwrap().is_empty());
+        assert_eq!((starts.get(), s.restarts.len()), (1, 0));
     }
 
     #[test]
