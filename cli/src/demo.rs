@@ -326,6 +326,7 @@ pub fn run(args: &DemoArgs) -> anyhow::Result<DemoReport> {
         );
     }
     check_counts(args)?;
+    crate::supervise::Intensity::checked(args.max_restarts, args.restart_window_s)?;
     if !(args.predict_ms.is_finite() && (0.0..=100.0).contains(&args.predict_ms)) {
         bail!(
             "--predict-ms {} must be within 0..100 ms (0 draws the newest HMD sample)",
