@@ -362,14 +362,15 @@ impl PhaseCheck {
     /// Check the first frame `got` of a resumed engine; false (counted, and said) when it differs.
     pub fn check(&mut self, got: &ipc_types::EngineFrame) -> bool {
         self.checked += 1;
-        let expected = engine::runtime::EngineCore::new(&self.scene).and_then(|mut core| {
+        let expected = (|| -> anyhow::Result<ipc_types::EngineFrame> {
+            let mut core = engine::runtime::EngineCore::new(&self.scene)?;
             core.resume_at(got.tick)?;
             let mut f = ipc_types::EngineFrame::default();
             core.step(got.tick, None, &mut f);
             Ok(f)
-        });
+        })();
         let why = match expected {
-            Err(e) => Some(format!("no expectation: {e}")),
+            Err(e) => Some(format!("no expectation: {e:#}")),
             Ok(want) => want
                 .lungs
                 .iter()

@@ -147,7 +147,7 @@ fn a_restart_storm_past_the_limit_ends_the_run_with_the_report_printed() {
     for k in 0..3 {
         demo.signal("tracker-bridge", libc::SIGKILL);
         if k < 2 {
-            demo.wait_for(&"process died".repeat(1));
+            demo.wait_for("process died");
             std::thread::sleep(Duration::from_millis(700));
         }
     }
