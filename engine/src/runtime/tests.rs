@@ -45,6 +45,8 @@ fn baked_geometry() -> Vec<LungGeometry> {
             // the same way keeps them comparable across that change.
             let mut settings = lung_bake::kernel::BakeSettings::default_for(side);
             settings.motion = lung_model::deform::MotionConstants::table_6_1(side);
+            // ... and the seed's unsmoothed catch factors (amplitude_smoothing_mm = 0).
+            settings.amplitude_smoothing_mm = 0.0;
             let k = lung_bake::kernel::bake(
                 side,
                 generate::lung(side, 1000).unwrap(),
