@@ -1295,7 +1295,9 @@ mod tests {
                 "constants",
                 "frc_ml",
                 "preset",
-                "tidal_volume_ml"
+                "tidal_volume_ml",
+                "waveform",
+                "waveform_breaths_used"
             ]
         );
         assert_eq!(keys(&v["render"]), ["calibration", "hmd"]);
