@@ -25,5 +25,6 @@ pub mod scene_check;
 pub mod scene_event;
 pub mod stats;
 pub mod strip;
+pub mod supervise;
 pub mod tracker_cmd;
 pub mod tradeoff;

@@ -152,6 +152,7 @@ fn main() -> std::process::ExitCode {
             };
         }
         Command::Demo(args) => lungdyn::demo::run(&args).and_then(|report| {
+            // The report so far is printed whatever ended the run; a failure then exits non-zero.
             let table = lungdyn::demo::table(&report);
             if args.json {
                 eprint!("{table}");
@@ -159,7 +160,10 @@ fn main() -> std::process::ExitCode {
             } else {
                 print!("{table}");
             }
-            Ok(())
+            match &report.failure {
+                Some(f) => Err(anyhow::anyhow!("{f}")),
+                None => Ok(()),
+            }
         }),
         Command::Mesh(MeshCommand::Generate(args)) => lungdyn::mesh_cmd::run(&args).and_then(|m| {
             if args.json {
