@@ -66,6 +66,11 @@ impl Proc {
         }
     }
 
+    /// The role it runs.
+    pub fn role(&self) -> &'static str {
+        self.role
+    }
+
     /// How the child ended, collecting its status (and so reaping it) if it has exited.
     pub fn poll(&mut self) -> Option<&Ended> {
         if self.ended.is_none() {
@@ -86,6 +91,57 @@ impl Proc {
         // SAFETY: `poll` just found the child un-reaped, and only this handle reaps it, so the pid
         // still names our child (at worst a zombie); kill(2) has no memory-safety preconditions.
         unsafe { libc::kill(self.child.id() as libc::pid_t, sig) == 0 }
+    }
+
+    /// Whether the child is stopped (SIGSTOP, Ctrl-Z: state `T` in `/proc/PID/stat`); false once it
+    /// has ended or when the state cannot be read.
+    pub fn stopped(&mut self) -> bool {
+        if self.poll().is_some() {
+            return false;
+        }
+        std::fs::read_to_string(format!("/proc/{}/stat", self.child.id())).is_ok_and(|s| {
+            // "pid (comm) S ...": the state follows the last ')' (comm may hold one).
+            s.rsplit_once(')')
+                .is_some_and(|(_, rest)| rest.trim_start().starts_with(['T', 't']))
+        })
+    }
+
+    /// Ask the child to stop (SIGINT), first continuing it if it is stopped.
+    ///
+    /// iceoryx2 records only the *last* signal a process caught, SIGCONT included: a SIGCONT
+    /// caught after the SIGINT (sent after it, to a child busy drawing a frame) replaced the
+    /// request, and the child ran on until SIGKILL (a windowed renderer presented on for the whole
+    /// grace period, a tracker-bridge never printed its counts). So a stopped child is continued
+    /// first and interrupted only once it runs and its SIGCONT has been taken, and a running child
+    /// gets no SIGCONT at all. Returns whether the SIGINT was sent.
+    pub fn interrupt(&mut self) -> bool {
+        if self.stopped() {
+            self.signal(libc::SIGCONT);
+            let until = now_ns() + 500_000_000;
+            while (self.stopped() || self.cont_pending()) && now_ns() < until {
+                std::thread::sleep(Duration::from_millis(2));
+            }
+            // Let its handler for SIGCONT return before the SIGINT can be caught.
+            std::thread::sleep(Duration::from_millis(10));
+        }
+        self.signal(libc::SIGINT)
+    }
+
+    /// Whether a SIGCONT is still pending for the child (`/proc/PID/status`, SigPnd or ShdPnd).
+    fn cont_pending(&mut self) -> bool {
+        if self.poll().is_some() {
+            return false;
+        }
+        let bit = 1u64 << (libc::SIGCONT - 1);
+        std::fs::read_to_string(format!("/proc/{}/status", self.child.id())).is_ok_and(|s| {
+            s.lines().any(|l| {
+                (l.starts_with("SigPnd:") || l.starts_with("ShdPnd:"))
+                    && l.split_whitespace()
+                        .nth(1)
+                        .and_then(|h| u64::from_str_radix(h, 16).ok())
+                        .is_some_and(|m| m & bit != 0)
+            })
+        })
     }
 
     /// SIGKILL (through the handle, which refuses a reaped child) and reap.
@@ -130,6 +186,14 @@ impl Children {
         Ok(child)
     }
 
+    /// Send `sig` to the running process of `role`; false when there is none (or it has ended).
+    pub fn signal_role(&mut self, role: &str, sig: libc::c_int) -> bool {
+        self.procs
+            .iter_mut()
+            .find(|p| p.role == role)
+            .is_some_and(|p| p.signal(sig))
+    }
+
     /// The first child that exited, with its status.
     pub fn exited(&mut self) -> Option<(&'static str, Ended)> {
         self.procs
@@ -142,9 +206,7 @@ impl Children {
     pub fn stop(&mut self, grace: Duration) -> Vec<&'static str> {
         for p in &mut self.procs {
             // A stopped child (SIGSTOP, Ctrl-Z) cannot act on SIGINT until it continues.
-            if p.signal(libc::SIGINT) {
-                p.signal(libc::SIGCONT);
-            }
+            p.interrupt();
         }
         let until = now_ns() + grace.as_nanos() as u64;
         let mut killed = Vec::new();
@@ -485,6 +547,37 @@ mod tests {
         // Both reaped: a second stop sends nothing and kills nothing.
         assert!(!children.procs[0].signal(libc::SIGTERM));
         assert!(children.stop(Duration::from_millis(10)).is_empty());
+    }
+
+    #[test]
+    fn a_stopped_child_is_continued_before_it_is_interrupted_and_a_running_one_is_not() {
+        let mut children = Children {
+            procs: vec![
+                sh("stopped", "echo ready; exec sleep 30"),
+                // Counts the SIGCONTs it catches: a running child must get none.
+                sh(
+                    "running",
+                    "n=0; trap 'n=$((n+1))' CONT; trap 'exit $((40+n))' INT; echo ready; \
+                     while :; do sleep 0.01; done",
+                ),
+            ],
+        };
+        assert!(children.procs[0].signal(libc::SIGSTOP));
+        until(|| children.procs[0].stopped().then_some(()));
+        assert!(!children.procs[1].stopped());
+        assert!(
+            children.stop(Duration::from_secs(5)).is_empty(),
+            "none killed"
+        );
+        assert_eq!(
+            signal_of(children.procs[0].poll().unwrap()),
+            Some(libc::SIGINT)
+        );
+        assert_eq!(code(children.procs[1].poll().unwrap()), Some(40));
+        assert!(
+            !children.procs[0].stopped(),
+            "an ended child is not stopped"
+        );
     }
 
     fn no_cleaning<'a>() -> Cleaner<'a> {

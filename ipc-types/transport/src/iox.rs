@@ -12,7 +12,7 @@
 use core::time::Duration;
 use std::path::PathBuf;
 
-use iceoryx2::node::NodeView;
+use iceoryx2::node::{NodeView, NodeWaitFailure};
 use iceoryx2::prelude::*;
 use ipc_types::{ControlPacket, ControlReply, EngineFrame, FrameReport, Message, TrackerFrame};
 
@@ -142,16 +142,38 @@ pub fn remove_dead_nodes(instance: &Instance) -> Result<Vec<String>, PortError> 
     }
 }
 
-/// True when the process was asked to terminate (SIGINT/SIGTERM), as seen by iceoryx2's handler.
-pub fn termination_requested(node: &IoxNode) -> bool {
-    node.wait(Duration::ZERO).is_err()
+/// A termination request once seen: iceoryx2 keeps only the last signal and forgets it when asked,
+/// so a second look (or a later SIGCONT) would otherwise lose the request.
+static TERMINATING: std::sync::atomic::AtomicBool = std::sync::atomic::AtomicBool::new(false);
+
+fn latch(requested: bool) -> bool {
+    use std::sync::atomic::Ordering;
+    if requested {
+        TERMINATING.store(true, Ordering::Relaxed);
+    }
+    TERMINATING.load(Ordering::Relaxed)
 }
 
-/// Sleep up to `period` on the node; false when a termination was requested. Another signal that
-/// cuts the sleep short (SIGCONT after Ctrl-Z and `fg`, SIGCHLD) is not a termination request:
-/// iceoryx2 reports any interrupted sleep as an error, so the request itself is asked for again.
+/// True when the process was asked to terminate (SIGINT/SIGTERM), as seen by iceoryx2's handler;
+/// once true, true for the rest of the process (the request is latched).
+pub fn termination_requested(node: &IoxNode) -> bool {
+    latch(false) || latch(node.wait(Duration::ZERO).is_err())
+}
+
+/// Sleep up to `period` on the node; false when a termination was requested (now or before).
+/// Another signal that cuts the sleep short (SIGCONT after Ctrl-Z and `fg`, SIGCHLD) is not a
+/// termination request: iceoryx2 reports any interrupted sleep as an error, so the request itself
+/// is asked for again. A request that `wait` itself reported is latched first: asking again would
+/// find it consumed and read as "go on" (a Ctrl-C between two sleeps was lost that way).
 pub fn idle(node: &IoxNode, period: Duration) -> bool {
-    node.wait(period).is_ok() || !termination_requested(node)
+    if latch(false) {
+        return false;
+    }
+    match node.wait(period) {
+        Ok(()) => true,
+        Err(NodeWaitFailure::TerminationRequest) => !latch(true),
+        Err(_) => !termination_requested(node),
+    }
 }
 
 /// The port factory of a stream of `T`.
