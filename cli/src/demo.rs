@@ -220,6 +220,9 @@ pub struct DemoReport {
     pub bad_stamps: u64,
     /// Frames drawn before the first tracker sample reached the engine (no latency to measure).
     pub untracked_frames: u64,
+    /// Frames whose tracker sample number jumped further ahead than the clock allows (a corrupted
+    /// or foreign tracker frame), left out of the schedule.
+    pub implausible_samples: u64,
     /// Summed lung volume range drawn, ml.
     pub volume_min_ml: f32,
     /// Summed lung volume range drawn, ml.
@@ -772,6 +775,7 @@ pub fn run(args: &DemoArgs) -> anyhow::Result<DemoReport> {
         lost_reports: stats.lost_reports,
         bad_stamps: stats.bad_stamps,
         untracked_frames: stats.untracked_frames,
+        implausible_samples: stats.implausible_samples,
         volume_min_ml: if stats.frames > 0 {
             stats.volume_range.0
         } else {
@@ -908,6 +912,14 @@ pub fn table(r: &DemoReport) -> String {
         "stale frames {}, engine ticks not drawn {}, reports lost {}, shm files left by iceoryx2 {} (remaining {})",
         r.stale_frames, r.skipped_ticks, r.lost_reports, r.leftover_files, r.remaining_files
     );
+    if r.implausible_samples > 0 {
+        let _ = writeln!(
+            s,
+            "IMPLAUSIBLE TRACKER SAMPLE NUMBERS in {} frames (further ahead than the clock allows: \
+             a corrupted or foreign tracker frame), left out of the schedule",
+            r.implausible_samples
+        );
+    }
     if r.restarts > 0 {
         let _ = writeln!(
             s,

@@ -61,6 +61,10 @@ pub struct LatencyStats {
     pub untracked_frames: u64,
     /// Frames that were out of order against the previous one.
     pub out_of_order: u64,
+    /// Frames whose tracker sample number jumped further ahead than the clock allows (a corrupted
+    /// or foreign tracker frame): not settled on the schedule, which they would stretch to
+    /// billions of samples.
+    pub implausible_samples: u64,
     last_frame: Option<u64>,
     last_tick: Option<u64>,
     bridge_restarted: bool,
@@ -76,6 +80,8 @@ impl Default for LatencyStats {
 
 /// The tracker's sample period the schedule assumes (60 Hz).
 pub const SCHEDULE_PERIOD_NS: u64 = DEADLINE_NS;
+
+const NS_PER_S: u64 = 1_000_000_000;
 
 fn histogram() -> Histogram<u64> {
     // 1 ns .. 60 s at 3 significant digits.
@@ -110,6 +116,7 @@ impl LatencyStats {
             bad_stamps: 0,
             untracked_frames: 0,
             out_of_order: 0,
+            implausible_samples: 0,
             last_frame: None,
             last_tick: None,
             bridge_restarted: false,
@@ -231,7 +238,16 @@ impl LatencyStats {
         }
         let first_new = match self.last_tracker {
             Some((last, _)) if frame <= last => return,
-            Some((last, _)) => last + 1,
+            Some((last, last_capture)) => {
+                // At most one sample per period since the last one, and a second's slack.
+                let possible = capture_ns.saturating_sub(last_capture) / self.period_ns
+                    + NS_PER_S / self.period_ns;
+                if frame - last > possible {
+                    self.implausible_samples += 1;
+                    return;
+                }
+                last + 1
+            }
             None => frame,
         };
         for n in first_new..=frame {
@@ -490,6 +506,26 @@ mod tests {
 
     /// Restarted processes number from the start again: no report reads as out of order and the
     /// new bridge's samples are settled, not ignored as already shown.
+    #[test]
+    fn a_sample_number_beyond_the_clock_is_set_aside_not_settled() {
+        let mut s = LatencyStats::new();
+        for n in 1..=30 {
+            s.record(&on_schedule(n, n, 1_000_000));
+        }
+        // A corrupted tracker frame's number: settling up to it looped for hours.
+        let mut garbage = on_schedule(31, 31, 1_000_000);
+        garbage.tracker_frame = u64::MAX - 3;
+        s.record(&garbage);
+        assert_eq!(s.implausible_samples, 1);
+        assert_eq!(s.tracker_samples, 30);
+        // The real sequence goes on being settled.
+        for n in 32..=40 {
+            s.record(&on_schedule(n, n, 1_000_000));
+        }
+        assert_eq!(s.tracker_samples, 40, "31 settled with 32");
+        assert_eq!(s.implausible_samples, 1);
+    }
+
     #[test]
     fn a_restarted_renderer_or_bridge_is_counted_from_its_new_numbers() {
         let mut s = LatencyStats::new();
