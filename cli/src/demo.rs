@@ -343,8 +343,46 @@ fn ensure_runtime_dir() {
     }
 }
 
+/// What a [`Watch`] sees of a running demo on each pass of the launcher's loop.
+pub struct Run<'r, 'a> {
+    /// The run's processes and their restarts (signal one through `supervisor.children`).
+    pub supervisor: &'r mut crate::supervise::Supervisor<'a>,
+    /// The run's instance.
+    pub services: &'r Instance,
+    /// The resolved scene the processes run.
+    pub scene: &'r lung_model::scene::Scene,
+    /// The engine tick last published.
+    pub last_tick: Option<u64>,
+    /// When the first frame reached the launcher.
+    pub first_frame_ns: Option<u64>,
+    /// Now (the pass's time).
+    pub now_ns: u64,
+}
+
+/// Something that watches (and may act on) a running demo from inside the launcher's loop — the
+/// fault injector of `lungdyn faults`. Every method has a do-nothing default.
+pub trait Watch {
+    /// A frame report from the renderer, as it reaches the launcher.
+    fn report(&mut self, _r: &FrameReport) {}
+    /// An engine frame, as it reaches the launcher.
+    fn engine_frame(&mut self, _f: &ipc_types::EngineFrame) {}
+    /// Once per pass, after dead processes were restarted. `Ok(false)` ends the run now (as
+    /// completed); an error ends it as a failure.
+    fn pass(&mut self, _run: &mut Run<'_, '_>) -> anyhow::Result<bool> {
+        Ok(true)
+    }
+}
+
+/// The plain demo watches nothing.
+impl Watch for () {}
+
 /// Run the demo; returns the report (the caller prints it).
 pub fn run(args: &DemoArgs) -> anyhow::Result<DemoReport> {
+    run_watched(args, &mut ())
+}
+
+/// Run the demo with `watch` looking on (see [`Watch`]); returns the report.
+pub fn run_watched(args: &DemoArgs, watch: &mut dyn Watch) -> anyhow::Result<DemoReport> {
     let s = args.seconds;
     if !(s.is_finite() && s > 0.0 && s <= transport::process::MAX_SECONDS) {
         bail!(
@@ -616,6 +654,7 @@ pub fn run(args: &DemoArgs) -> anyhow::Result<DemoReport> {
             }
             last_sample = r.tracker_frame;
             stats.record(r);
+            watch.report(r);
         })?;
         let now = now_ns();
         engine_frames.drain(&mut |f: &ipc_types::EngineFrame| {
@@ -624,6 +663,7 @@ pub fn run(args: &DemoArgs) -> anyhow::Result<DemoReport> {
                 phase.check(f);
             }
             last_tick.set(Some(f.tick));
+            watch.engine_frame(f);
         })?;
         if fresh && supervisor.recovering() {
             supervisor.recovered(now);
@@ -659,6 +699,22 @@ pub fn run(args: &DemoArgs) -> anyhow::Result<DemoReport> {
                     }
                     stats.restarted(role);
                 }
+            }
+        }
+        let mut view = Run {
+            supervisor: &mut supervisor,
+            services: &services,
+            scene: &scene,
+            last_tick: last_tick.get(),
+            first_frame_ns,
+            now_ns: now,
+        };
+        match watch.pass(&mut view) {
+            Ok(true) => {}
+            Ok(false) => break,
+            Err(e) => {
+                failure = Some(format!("{e:#}"));
+                break;
             }
         }
         match first_frame_ns {

@@ -8,6 +8,7 @@
 pub mod bake_cmd;
 pub mod demo;
 pub mod doctor;
+pub mod faults;
 pub mod input_args;
 pub mod install;
 pub mod instances;
