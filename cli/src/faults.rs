@@ -32,8 +32,9 @@ use crate::demo::{Run, Watch};
 /// Options of `lungdyn faults`.
 #[derive(Debug, Clone, clap::Args)]
 pub struct FaultsArgs {
-    /// Seed of the fault plan: the same seed gives the same faults, in the same order, at the same
-    /// engine ticks, with the same pauses and the same corrupted frames.
+    /// Seed of the fault plan: the same seed gives the same faults, in the same order, the same
+    /// number of engine ticks after the pipeline is ready, with the same pauses and the same
+    /// corrupted frames.
     #[arg(long, default_value_t = 1)]
     pub seed: u64,
     /// Rounds to run (1 to 10000): each a fresh pipeline with two faults; every tenth round a

@@ -24,8 +24,9 @@ enum Command {
     /// pipeline with two faults at engine ticks drawn from the seed (SIGKILL and SIGSTOP/SIGCONT of
     /// each process, an engine stall past its budget, corrupted and NaN tracker frames, a dead
     /// process's shared memory; every tenth round a restart storm past the intensity limit).
-    /// Checks per round that the renderer never stops presenting for more than 2 frame periods (a
-    /// killed or stopped renderer excepted: its time to the first frame after it is reported),
+    /// Checks per round that the renderer never stops presenting for more than 2 frame periods
+    /// while a fault is under way (a killed or stopped renderer excepted: its time to the first
+    /// frame after it is reported; gaps with no fault under way are the machine's, counted apart),
     /// that a restarted engine resumes with the breath an uninterrupted run shows, that no frame
     /// carries a NaN and no file is left in /dev/shm or iceoryx2's folder; times every fault's
     /// recovery. Exits 1 when a round failed an assertion.
