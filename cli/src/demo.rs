@@ -7,7 +7,6 @@
 //! a grace period; dead-node resources are cleaned and the instance's files are checked to be gone.
 
 use std::path::{Path, PathBuf};
-use std::process::{Child, Command, Stdio};
 use std::time::Duration;
 
 use anyhow::{bail, Context};
@@ -15,6 +14,7 @@ use ipc_types::FrameReport;
 use transport::{iox, now_ns, Instance, Receive};
 
 use crate::prepare::KernelUse;
+use crate::supervise::Children;
 use serde::Serialize;
 
 use crate::stats::{HopRow, LatencyStats, DEADLINE_NS};
@@ -92,6 +92,14 @@ pub struct DemoArgs {
     /// the scene's `[render] hmd` and its ipd_mm, fov_y_deg, width and height.
     #[arg(long, value_name = "FILE")]
     pub hmd: Option<PathBuf>,
+    /// A process that dies is restarted (a restarted engine resumes at the tick the stream
+    /// expects), at most this many restarts within --restart-window-s; one more ends the run with
+    /// an error (0: any death ends the run).
+    #[arg(long, value_name = "N", default_value_t = 5)]
+    pub max_restarts: u32,
+    /// The window of --max-restarts, seconds.
+    #[arg(long, value_name = "S", default_value_t = 60.0)]
+    pub restart_window_s: f64,
 }
 
 /// Most `--snapshots`: one per 60 Hz display frame of a 4-second breath (15 breaths/min). More are
@@ -212,6 +220,9 @@ pub struct DemoReport {
     pub bad_stamps: u64,
     /// Frames drawn before the first tracker sample reached the engine (no latency to measure).
     pub untracked_frames: u64,
+    /// Frames whose tracker sample number jumped further ahead than the clock allows (a corrupted
+    /// or foreign tracker frame), left out of the schedule.
+    pub implausible_samples: u64,
     /// Summed lung volume range drawn, ml.
     pub volume_min_ml: f32,
     /// Summed lung volume range drawn, ml.
@@ -230,141 +241,19 @@ pub struct DemoReport {
     pub calibration: Option<String>,
     /// The HMD optics file the renderer drew the eyes from (none: the scene's IPD and field of view).
     pub hmd: Option<String>,
-}
-
-/// How a child ended: its status, or why it could not be collected (then it counts as gone too).
-#[derive(Debug, Clone)]
-enum Ended {
-    Status(std::process::ExitStatus),
-    Unknown(String),
-}
-
-impl std::fmt::Display for Ended {
-    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
-        match self {
-            Ended::Status(s) => write!(f, "{s}"),
-            Ended::Unknown(e) => write!(f, "status unknown: {e}"),
-        }
-    }
-}
-
-/// One child process of the demo, signalled only through its handle.
-///
-/// A pid may be signalled only while the child is known not to be reaped: once `try_wait`/`wait`
-/// has collected its status the kernel may hand the pid to an unrelated process. Only this handle
-/// reaps the child (nobody else waits on it and SIGCHLD keeps its default), so a `try_wait` that
-/// finds it still running guarantees the pid is ours until the next wait — a child that dies in
-/// between stays a zombie holding the pid. Once it has ended, the child is never signalled again.
-struct Proc {
-    role: &'static str,
-    child: Child,
-    ended: Option<Ended>,
-}
-
-impl Proc {
-    fn new(role: &'static str, child: Child) -> Self {
-        Proc {
-            role,
-            child,
-            ended: None,
-        }
-    }
-
-    /// How the child ended, collecting its status (and so reaping it) if it has exited.
-    fn poll(&mut self) -> Option<&Ended> {
-        if self.ended.is_none() {
-            self.ended = match self.child.try_wait() {
-                Ok(s) => s.map(Ended::Status),
-                // ECHILD: something else reaped it, so the pid is not ours any more either.
-                Err(e) => Some(Ended::Unknown(e.to_string())),
-            };
-        }
-        self.ended.as_ref()
-    }
-
-    /// Send `sig` if the child is still un-reaped; false (and nothing sent) once it has ended.
-    fn signal(&mut self, sig: libc::c_int) -> bool {
-        if self.poll().is_some() {
-            return false;
-        }
-        // SAFETY: `poll` just found the child un-reaped, and only this handle reaps it, so the pid
-        // still names our child (at worst a zombie); kill(2) has no memory-safety preconditions.
-        unsafe { libc::kill(self.child.id() as libc::pid_t, sig) == 0 }
-    }
-
-    /// SIGKILL (through the handle, which refuses a reaped child) and reap.
-    fn kill_and_reap(&mut self) {
-        if self.poll().is_none() {
-            let _ = self.child.kill();
-            self.ended = Some(match self.child.wait() {
-                Ok(s) => Ended::Status(s),
-                Err(e) => Ended::Unknown(e.to_string()),
-            });
-        }
-    }
-}
-
-struct Children {
-    procs: Vec<Proc>,
-}
-
-impl Children {
-    fn spawn(exe: &Path, role: &'static str, args: &[String]) -> anyhow::Result<Proc> {
-        let mut cmd = Command::new(exe);
-        cmd.arg(role)
-            .args(args)
-            .stdin(Stdio::null())
-            .stdout(Stdio::null())
-            .stderr(Stdio::inherit());
-        // SAFETY: prctl is async-signal-safe; it only arms a signal for when the parent dies.
-        unsafe {
-            use std::os::unix::process::CommandExt;
-            cmd.pre_exec(|| {
-                libc::prctl(libc::PR_SET_PDEATHSIG, libc::SIGTERM);
-                Ok(())
-            });
-        }
-        let child = cmd
-            .spawn()
-            .with_context(|| format!("cannot start the {role} process ({})", exe.display()))?;
-        Ok(Proc::new(role, child))
-    }
-
-    /// The first child that exited, with its status.
-    fn exited(&mut self) -> Option<(&'static str, Ended)> {
-        self.procs
-            .iter_mut()
-            .find_map(|p| p.poll().cloned().map(|e| (p.role, e)))
-    }
-
-    /// SIGINT everyone still running, wait up to `grace`, SIGKILL stragglers. Returns roles that
-    /// had to be killed.
-    fn stop(&mut self, grace: Duration) -> Vec<&'static str> {
-        for p in &mut self.procs {
-            p.signal(libc::SIGINT);
-        }
-        let until = now_ns() + grace.as_nanos() as u64;
-        let mut killed = Vec::new();
-        for p in &mut self.procs {
-            while p.poll().is_none() {
-                if now_ns() >= until {
-                    p.kill_and_reap();
-                    killed.push(p.role);
-                    break;
-                }
-                std::thread::sleep(Duration::from_millis(10));
-            }
-        }
-        killed
-    }
-}
-
-impl Drop for Children {
-    fn drop(&mut self) {
-        for p in &mut self.procs {
-            p.kill_and_reap();
-        }
-    }
+    /// Processes restarted after they died.
+    pub restarts: usize,
+    /// Each restart: the process, how it ended, when, what was cleaned, the time to a fresh frame.
+    pub restart_log: Vec<crate::supervise::Restart>,
+    /// Restarted engines whose first frame did not show the breath an uninterrupted run shows at
+    /// that tick (must be 0).
+    pub phase_errors: u64,
+    /// Why the run ended: "completed", "interrupted", or the failure.
+    pub ended: String,
+    /// Set when the run failed (the launcher exits non-zero after printing this report).
+    pub failure: Option<String>,
+    /// Files of dead earlier instances (a killed launcher's) removed at start.
+    pub swept_files: usize,
 }
 
 /// The synthetic source's posture for a scene's (the bridge does not depend on the lung model, so
@@ -454,8 +343,46 @@ fn ensure_runtime_dir() {
     }
 }
 
+/// What a [`Watch`] sees of a running demo on each pass of the launcher's loop.
+pub struct Run<'r, 'a> {
+    /// The run's processes and their restarts (signal one through `supervisor.children`).
+    pub supervisor: &'r mut crate::supervise::Supervisor<'a>,
+    /// The run's instance.
+    pub services: &'r Instance,
+    /// The resolved scene the processes run.
+    pub scene: &'r lung_model::scene::Scene,
+    /// The engine tick last published.
+    pub last_tick: Option<u64>,
+    /// When the first frame reached the launcher.
+    pub first_frame_ns: Option<u64>,
+    /// Now (the pass's time).
+    pub now_ns: u64,
+}
+
+/// Something that watches (and may act on) a running demo from inside the launcher's loop — the
+/// fault injector of `lungdyn faults`. Every method has a do-nothing default.
+pub trait Watch {
+    /// A frame report from the renderer, as it reaches the launcher.
+    fn report(&mut self, _r: &FrameReport) {}
+    /// An engine frame, as it reaches the launcher.
+    fn engine_frame(&mut self, _f: &ipc_types::EngineFrame) {}
+    /// Once per pass, after dead processes were restarted. `Ok(false)` ends the run now (as
+    /// completed); an error ends it as a failure.
+    fn pass(&mut self, _run: &mut Run<'_, '_>) -> anyhow::Result<bool> {
+        Ok(true)
+    }
+}
+
+/// The plain demo watches nothing.
+impl Watch for () {}
+
 /// Run the demo; returns the report (the caller prints it).
 pub fn run(args: &DemoArgs) -> anyhow::Result<DemoReport> {
+    run_watched(args, &mut ())
+}
+
+/// Run the demo with `watch` looking on (see [`Watch`]); returns the report.
+pub fn run_watched(args: &DemoArgs, watch: &mut dyn Watch) -> anyhow::Result<DemoReport> {
     let s = args.seconds;
     if !(s.is_finite() && s > 0.0 && s <= transport::process::MAX_SECONDS) {
         bail!(
@@ -475,6 +402,7 @@ pub fn run(args: &DemoArgs) -> anyhow::Result<DemoReport> {
         );
     }
     check_counts(args)?;
+    crate::supervise::Intensity::checked(args.max_restarts, args.restart_window_s)?;
     if !(args.predict_ms.is_finite() && (0.0..=100.0).contains(&args.predict_ms)) {
         bail!(
             "--predict-ms {} must be within 0..100 ms (0 draws the newest HMD sample)",
@@ -562,6 +490,11 @@ pub fn run(args: &DemoArgs) -> anyhow::Result<DemoReport> {
     // One launcher per instance: a second run with this name is refused here, before it writes or
     // removes anything (its cleanup would otherwise delete the first run's shared memory).
     let _lock = services.lock("launcher")?;
+    // What a killed launcher (or process) of an earlier run left behind goes first.
+    let swept = Instance::sweep_dead().len();
+    if swept > 0 {
+        eprintln!("lungdyn: removed {swept} files of earlier runs that are no longer running");
+    }
     eprintln!(
         "lungdyn: instance {instance} (`lungdyn instances` lists running ones; `lungdyn scene event \
          {instance} …` acts on this one)"
@@ -616,18 +549,6 @@ pub fn run(args: &DemoArgs) -> anyhow::Result<DemoReport> {
     let mut renderer_args = with_scene([common.clone(), cpu(2)].concat());
     renderer_args.push("--predict-ms".into());
     renderer_args.push(args.predict_ms.to_string());
-    if !targets.is_empty() {
-        renderer_args.push("--snapshot-ticks".into());
-        renderer_args.push(
-            targets
-                .iter()
-                .map(|t| t.to_string())
-                .collect::<Vec<_>>()
-                .join(","),
-        );
-        renderer_args.extend(["--snapshot-dir".to_string(), args.out.display().to_string()]);
-        renderer_args.push("--snapshot-fixed-view".into());
-    }
     if args.window {
         renderer_args.push("--window".into());
         if args.vsync {
@@ -635,15 +556,47 @@ pub fn run(args: &DemoArgs) -> anyhow::Result<DemoReport> {
         }
     }
     let existing: std::collections::HashSet<PathBuf> = list_pngs(&args.out).into_iter().collect();
-    let mut children = Children { procs: Vec::new() };
-    children
-        .procs
-        .push(Children::spawn(&exe, "renderer", &renderer_args)?);
-    children.procs.push(Children::spawn(
-        &exe,
+    // The engine tick last published (the launcher subscribes to the engine stream too): a
+    // restarted engine resumes at the next one, a restarted renderer takes only the snapshots still
+    // ahead.
+    let mut engine_frames = services.engine_inlet(&node)?;
+    let last_tick: std::cell::Cell<Option<u64>> = std::cell::Cell::new(None);
+    let intensity = crate::supervise::Intensity::checked(args.max_restarts, args.restart_window_s)?;
+    let mut supervisor = crate::supervise::Supervisor::new(
+        intensity,
+        Box::new(|| transport::iox::remove_dead_nodes(&services).map_err(anyhow::Error::from)),
+    );
+    let (exe, targets) = (&exe, &targets);
+    let out_dir = args.out.display().to_string();
+    let last_seen = &last_tick;
+    supervisor.start(
+        "renderer",
+        Box::new(move || {
+            let mut a = renderer_args.clone();
+            let ahead: Vec<String> = targets
+                .iter()
+                .filter(|&&t| last_seen.get().is_none_or(|l| t > l))
+                .map(|t| t.to_string())
+                .collect();
+            if !ahead.is_empty() {
+                a.extend(["--snapshot-ticks".to_string(), ahead.join(",")]);
+                a.extend(["--snapshot-dir".to_string(), out_dir.clone()]);
+                a.push("--snapshot-fixed-view".into());
+            }
+            Children::spawn(exe, "renderer", &a)
+        }),
+    )?;
+    let engine_args = with_scene([common.clone(), cpu(1)].concat());
+    supervisor.start(
         "engine",
-        &with_scene([common.clone(), cpu(1)].concat()),
-    )?);
+        Box::new(move || {
+            let mut a = engine_args.clone();
+            if let Some(t) = last_seen.get() {
+                a.extend(["--start-tick".to_string(), (t + 1).to_string()]);
+            }
+            Children::spawn(exe, "engine", &a)
+        }),
+    )?;
     let sweep = vec![
         "--roll-deg".to_string(),
         args.roll_deg.to_string(),
@@ -652,22 +605,22 @@ pub fn run(args: &DemoArgs) -> anyhow::Result<DemoReport> {
         "--sweep-period-s".to_string(),
         args.sweep_period_s.to_string(),
     ];
-    children.procs.push(Children::spawn(
-        &exe,
+    let bridge_args = [
+        common.clone(),
+        cpu(0),
+        sweep,
+        vec![
+            "--source".to_string(),
+            tracker_source.clone(),
+            "--posture".to_string(),
+            posture.to_string(),
+        ],
+    ]
+    .concat();
+    supervisor.start(
         "tracker-bridge",
-        &[
-            common.clone(),
-            cpu(0),
-            sweep,
-            vec![
-                "--source".to_string(),
-                tracker_source.clone(),
-                "--posture".to_string(),
-                posture.to_string(),
-            ],
-        ]
-        .concat(),
-    )?);
+        Box::new(move || Children::spawn(exe, "tracker-bridge", &bridge_args)),
+    )?;
 
     let mut stats = LatencyStats::new();
     let started = now_ns();
@@ -676,24 +629,93 @@ pub fn run(args: &DemoArgs) -> anyhow::Result<DemoReport> {
     let mut failure: Option<String> = None;
     let mut last_progress = 0u64;
     let show_progress = !args.json && std::io::IsTerminal::is_terminal(&std::io::stderr());
+    // A restarted engine's first tick, checked against the deterministic expectation.
+    let mut resumed_at: Option<u64> = None;
+    let mut finished: Option<&'static str> = None;
+    // The sample shown when the tracker-bridge died, and the one shown last.
+    let (mut bridge_died_at, mut last_sample): (Option<u64>, u64) = (None, 0);
+    let mut phase = crate::supervise::PhaseCheck::new(&scene);
     loop {
         if !iox::idle(&node, Duration::from_millis(5)) {
             interrupted = true;
             eprintln!("lungdyn: interrupted, stopping the processes");
             break;
         }
+        // Recovered: a frame from a live engine, showing a sample of the live bridge.
+        let mut fresh = false;
         reports.drain(&mut |r: &FrameReport| {
             if first_frame_ns.is_none() {
                 first_frame_ns = Some(now_ns());
             }
+            let new_sample = bridge_died_at.is_none_or(|f| r.tracker_frame != f);
+            if r.flags & ipc_types::report_flags::STALE_ENGINE == 0 && new_sample {
+                fresh = true;
+                bridge_died_at = None;
+            }
+            last_sample = r.tracker_frame;
             stats.record(r);
+            watch.report(r);
         })?;
         let now = now_ns();
-        if let Some((role, status)) = children.exited() {
-            failure = Some(format!(
-                "the {role} process exited early ({status}); see its message above"
-            ));
+        engine_frames.drain(&mut |f: &ipc_types::EngineFrame| {
+            if resumed_at == Some(f.tick) {
+                resumed_at = None;
+                phase.check(f);
+            }
+            last_tick.set(Some(f.tick));
+            watch.engine_frame(f);
+        })?;
+        if fresh && supervisor.recovering() {
+            supervisor.recovered(now);
+        }
+        if let Some(role) = supervisor.finished() {
+            // A replay shorter than --seconds ends the run cleanly (it is not looped: the
+            // recording's samples would jump back in time); the report covers what was played.
+            eprintln!("lungdyn: the {role} finished (its source ended); stopping the run");
+            finished = Some(role);
             break;
+        }
+        match supervisor.check() {
+            Err(e) => {
+                failure = Some(format!("{e:#}"));
+                break;
+            }
+            Ok(restarted) => {
+                for role in restarted {
+                    let r = supervisor.restarts.last().expect("just restarted");
+                    match role {
+                        "engine" => {
+                            resumed_at = last_tick.get().map(|t| t + 1);
+                            eprintln!(
+                                "lungdyn: the engine process died ({}); restarted, resuming at tick {}",
+                                r.ended,
+                                resumed_at.unwrap_or(0)
+                            );
+                        }
+                        _ => eprintln!("lungdyn: the {role} process died ({}); restarted", r.ended),
+                    }
+                    if role == "tracker-bridge" {
+                        bridge_died_at = Some(last_sample);
+                    }
+                    stats.restarted(role);
+                }
+            }
+        }
+        let mut view = Run {
+            supervisor: &mut supervisor,
+            services: &services,
+            scene: &scene,
+            last_tick: last_tick.get(),
+            first_frame_ns,
+            now_ns: now,
+        };
+        match watch.pass(&mut view) {
+            Ok(true) => {}
+            Ok(false) => break,
+            Err(e) => {
+                failure = Some(format!("{e:#}"));
+                break;
+            }
         }
         match first_frame_ns {
             None if now - started > (args.startup_timeout * 1e9) as u64 => {
@@ -717,12 +739,18 @@ pub fn run(args: &DemoArgs) -> anyhow::Result<DemoReport> {
     if show_progress && last_progress > 0 {
         eprintln!();
     }
+    let end_ns = now_ns();
     let measured_s = first_frame_ns
-        .map(|t0| (now_ns() - t0) as f64 / 1e9)
+        .map(|t0| (end_ns - t0) as f64 / 1e9)
         .unwrap_or(0.0);
-    let killed = children.stop(Duration::from_secs(5));
+    let killed = supervisor.children.stop(Duration::from_secs(5));
     let _ = reports.drain(&mut |r: &FrameReport| stats.record(r));
+    // Whatever never reached a frame by the end (a renderer stopped for good) is missed.
+    stats.finish(end_ns);
+    let restart_log = supervisor.restarts.clone();
+    drop(supervisor);
     drop(reports);
+    drop(engine_frames);
     node.try_cleanup_dead_nodes();
     drop(node);
     // Every process of the instance has exited and the prefix is the instance's own: remove its
@@ -743,8 +771,13 @@ pub fn run(args: &DemoArgs) -> anyhow::Result<DemoReport> {
     if !killed.is_empty() {
         eprintln!("lungdyn: warning: had to kill {killed:?} after SIGINT");
     }
-    if let Some(f) = failure {
-        bail!(f);
+    if interrupted && stats.frames == 0 && failure.is_none() {
+        failure = Some("interrupted before any frame was drawn".to_string());
+    }
+    if let Some(t) = resumed_at {
+        failure.get_or_insert(format!(
+            "the restarted engine never published its resume tick {t}"
+        ));
     }
     let mut pngs: Vec<String> = list_pngs(&args.out)
         .into_iter()
@@ -753,11 +786,13 @@ pub fn run(args: &DemoArgs) -> anyhow::Result<DemoReport> {
         .collect();
     pngs.sort();
     let frames: Vec<PathBuf> = pngs.iter().map(PathBuf::from).collect();
-    let strip = crate::strip::breath_strip(&frames, &args.out.join("breath_strip.png"))?
-        .map(|p| p.display().to_string());
-    if interrupted && stats.frames == 0 {
-        bail!("interrupted before any frame was drawn");
-    }
+    let strip = match crate::strip::breath_strip(&frames, &args.out.join("breath_strip.png")) {
+        Ok(s) => s.map(|p| p.display().to_string()),
+        Err(e) => {
+            failure.get_or_insert(format!("{e:#}"));
+            None
+        }
+    };
     let e2e = stats.end_to_end();
     let sched = stats.sample_latency();
     Ok(DemoReport {
@@ -796,6 +831,7 @@ pub fn run(args: &DemoArgs) -> anyhow::Result<DemoReport> {
         lost_reports: stats.lost_reports,
         bad_stamps: stats.bad_stamps,
         untracked_frames: stats.untracked_frames,
+        implausible_samples: stats.implausible_samples,
         volume_min_ml: if stats.frames > 0 {
             stats.volume_range.0
         } else {
@@ -817,6 +853,20 @@ pub fn run(args: &DemoArgs) -> anyhow::Result<DemoReport> {
             .as_ref()
             .map(|p| p.display().to_string()),
         hmd: scene.render.hmd.as_ref().map(|p| p.display().to_string()),
+        restarts: restart_log.len(),
+        restart_log,
+        phase_errors: phase.errors,
+        ended: match (&failure, interrupted) {
+            (Some(f), _) => f.clone(),
+            (None, true) => "interrupted".to_string(),
+            (None, false) if finished.is_some() => format!(
+                "the {} finished before --seconds (its source ended: the end of the replay)",
+                finished.unwrap_or_default()
+            ),
+            (None, false) => "completed".to_string(),
+        },
+        failure,
+        swept_files: swept,
     })
 }
 
@@ -918,6 +968,37 @@ pub fn table(r: &DemoReport) -> String {
         "stale frames {}, engine ticks not drawn {}, reports lost {}, shm files left by iceoryx2 {} (remaining {})",
         r.stale_frames, r.skipped_ticks, r.lost_reports, r.leftover_files, r.remaining_files
     );
+    if r.implausible_samples > 0 {
+        let _ = writeln!(
+            s,
+            "IMPLAUSIBLE TRACKER SAMPLE NUMBERS in {} frames (further ahead than the clock allows: \
+             a corrupted or foreign tracker frame), left out of the schedule",
+            r.implausible_samples
+        );
+    }
+    if r.restarts > 0 {
+        let _ = writeln!(
+            s,
+            "RESTARTS {}: {}; breathing-phase errors after engine restarts: {}",
+            r.restarts,
+            r.restart_log
+                .iter()
+                .map(|x| format!(
+                    "{} at {:.1} s ({}), {}",
+                    x.role,
+                    x.at_s,
+                    x.ended,
+                    x.recover_ms
+                        .map_or("never recovered".to_string(), |m| format!(
+                            "fresh frames again after {m:.0} ms"
+                        ))
+                ))
+                .collect::<Vec<_>>()
+                .join("; "),
+            r.phase_errors
+        );
+    }
+    let _ = writeln!(s, "run ended: {}", r.ended);
     if r.pngs.is_empty() {
         let _ = writeln!(s, "PNG frames: none");
     } else {
@@ -935,102 +1016,6 @@ pub fn table(r: &DemoReport) -> String {
 #[cfg(test)]
 mod tests {
     use super::*;
-
-    /// `sh -c script` with SIGINT at its default (whatever the test runner inherited), stdout
-    /// piped; returns once the script has printed its first line (so its traps are in place).
-    fn sh(role: &'static str, script: &str) -> Proc {
-        use std::io::BufRead;
-        use std::os::unix::process::CommandExt;
-        let mut cmd = Command::new("sh");
-        cmd.args(["-c", script]).stdout(Stdio::piped());
-        // SAFETY: signal(2) is async-signal-safe.
-        unsafe {
-            cmd.pre_exec(|| {
-                libc::signal(libc::SIGINT, libc::SIG_DFL);
-                Ok(())
-            });
-        }
-        let mut child = cmd.spawn().unwrap();
-        let mut line = String::new();
-        std::io::BufReader::new(child.stdout.take().unwrap())
-            .read_line(&mut line)
-            .unwrap();
-        assert_eq!(line.trim(), "ready", "{role}");
-        Proc::new(role, child)
-    }
-
-    fn code(e: &Ended) -> Option<i32> {
-        match e {
-            Ended::Status(s) => s.code(),
-            Ended::Unknown(_) => None,
-        }
-    }
-
-    fn signal_of(e: &Ended) -> Option<i32> {
-        use std::os::unix::process::ExitStatusExt;
-        match e {
-            Ended::Status(s) => s.signal(),
-            Ended::Unknown(_) => None,
-        }
-    }
-
-    #[test]
-    fn a_scenes_posture_is_the_bridges_posture_of_the_same_name() {
-        use clap::ValueEnum;
-        use lung_model::scene::Posture as S;
-        for p in [
-            S::Supine,
-            S::Sitting,
-            S::Prone,
-            S::LeftLateral,
-            S::RightLateral,
-        ] {
-            let b = bridge_posture(p);
-            assert_eq!(b.to_possible_value().unwrap().get_name(), p.name());
-        }
-    }
-
-    #[test]
-    fn a_reaped_child_is_never_signalled_again() {
-        let mut children = Children {
-            procs: vec![sh("quits", "echo ready; exit 3")],
-        };
-        let (role, ended) = loop {
-            if let Some(e) = children.exited() {
-                break e;
-            }
-            std::thread::sleep(Duration::from_millis(5));
-        };
-        assert_eq!((role, code(&ended)), ("quits", Some(3)));
-        // Reaped: its pid may belong to someone else now, so nothing is sent to it.
-        assert!(!children.procs[0].signal(libc::SIGINT));
-        assert!(children.stop(Duration::from_millis(50)).is_empty());
-        assert_eq!(code(children.procs[0].poll().unwrap()), Some(3));
-    }
-
-    #[test]
-    fn stop_interrupts_then_kills_only_stragglers() {
-        let mut children = Children {
-            procs: vec![
-                sh("polite", "echo ready; exec sleep 30"),
-                sh("stubborn", "trap '' INT; echo ready; exec sleep 30"),
-            ],
-        };
-        assert!(children.exited().is_none());
-        let killed = children.stop(Duration::from_millis(300));
-        assert_eq!(killed, vec!["stubborn"]);
-        assert_eq!(
-            signal_of(children.procs[0].poll().unwrap()),
-            Some(libc::SIGINT)
-        );
-        assert_eq!(
-            signal_of(children.procs[1].poll().unwrap()),
-            Some(libc::SIGKILL)
-        );
-        // Both reaped: a second stop sends nothing and kills nothing.
-        assert!(!children.procs[0].signal(libc::SIGTERM));
-        assert!(children.stop(Duration::from_millis(10)).is_empty());
-    }
 
     #[test]
     fn counts_and_cores_are_checked_before_any_work() {

@@ -8,6 +8,7 @@
 pub mod bake_cmd;
 pub mod demo;
 pub mod doctor;
+pub mod faults;
 pub mod input_args;
 pub mod install;
 pub mod instances;
@@ -25,5 +26,6 @@ pub mod scene_check;
 pub mod scene_event;
 pub mod stats;
 pub mod strip;
+pub mod supervise;
 pub mod tracker_cmd;
 pub mod tradeoff;

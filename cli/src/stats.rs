@@ -61,8 +61,13 @@ pub struct LatencyStats {
     pub untracked_frames: u64,
     /// Frames that were out of order against the previous one.
     pub out_of_order: u64,
+    /// Frames whose tracker sample number jumped further ahead than the clock allows (a corrupted
+    /// or foreign tracker frame): not settled on the schedule, which they would stretch to
+    /// billions of samples.
+    pub implausible_samples: u64,
     last_frame: Option<u64>,
     last_tick: Option<u64>,
+    bridge_restarted: bool,
     /// Volume range seen (min, max) of the summed lungs, ml.
     pub volume_range: (f32, f32),
 }
@@ -75,6 +80,8 @@ impl Default for LatencyStats {
 
 /// The tracker's sample period the schedule assumes (60 Hz).
 pub const SCHEDULE_PERIOD_NS: u64 = DEADLINE_NS;
+
+const NS_PER_S: u64 = 1_000_000_000;
 
 fn histogram() -> Histogram<u64> {
     // 1 ns .. 60 s at 3 significant digits.
@@ -109,8 +116,10 @@ impl LatencyStats {
             bad_stamps: 0,
             untracked_frames: 0,
             out_of_order: 0,
+            implausible_samples: 0,
             last_frame: None,
             last_tick: None,
+            bridge_restarted: false,
             volume_range: (f32::INFINITY, f32::NEG_INFINITY),
         }
     }
@@ -167,6 +176,52 @@ impl LatencyStats {
         }
     }
 
+    /// A process of the run was restarted: its counters start again, which must not read as
+    /// reports out of order (a new renderer numbers its frames from 1) or as samples already
+    /// settled (a new tracker-bridge numbers its samples from the start). The outage itself shows
+    /// on the schedule: the display slots without a frame, the samples shown late.
+    pub fn restarted(&mut self, role: &str) {
+        match role {
+            "renderer" => self.last_frame = None,
+            // Reports of the old bridge's samples may still arrive (the engine holds its last
+            // one): the numbering restarts at the first report whose sample number goes back.
+            "tracker-bridge" => self.bridge_restarted = true,
+            _ => {}
+        }
+    }
+
+    /// The run ended at `end_ns`: tracker samples on the schedule after the last one shown were
+    /// never shown — each is settled as missed, as are the display slots since the last frame (a
+    /// renderer stopped for good reports nothing, and would otherwise look punctual).
+    pub fn finish(&mut self, end_ns: u64) {
+        let Some(submit) = self.last_submit else {
+            return;
+        };
+        let gap = end_ns.saturating_sub(submit);
+        if gap > self.period_ns + self.period_ns / 2 {
+            self.missed_frame_slots += (gap - self.period_ns / 2) / self.period_ns;
+        }
+        self.last_submit = Some(end_ns);
+        if let Some((frame, capture)) = self.last_tracker {
+            // Samples captured after the last one shown and more than a deadline before the end.
+            let mut n = frame + 1;
+            loop {
+                let captured = capture.saturating_add((n - frame).saturating_mul(self.period_ns));
+                if captured.saturating_add(DEADLINE_NS) >= end_ns {
+                    break;
+                }
+                let _ = self.samples.record(end_ns - captured);
+                self.tracker_samples += 1;
+                self.sample_deadline_misses += 1;
+                n += 1;
+            }
+            self.last_tracker = Some((
+                n - 1,
+                capture.saturating_add((n - 1 - frame) * self.period_ns),
+            ));
+        }
+    }
+
     /// The schedule view: tracker samples `last+1 ..= frame` are first shown by this submit.
     fn settle_samples(&mut self, frame: u64, capture_ns: u64, submit_ns: u64) {
         if let Some(prev) = self.last_submit {
@@ -177,9 +232,22 @@ impl LatencyStats {
             }
         }
         self.last_submit = Some(self.last_submit.map_or(submit_ns, |p| p.max(submit_ns)));
+        if self.bridge_restarted && self.last_tracker.is_some_and(|(last, _)| frame < last) {
+            self.bridge_restarted = false;
+            self.last_tracker = None;
+        }
         let first_new = match self.last_tracker {
             Some((last, _)) if frame <= last => return,
-            Some((last, _)) => last + 1,
+            Some((last, last_capture)) => {
+                // At most one sample per period since the last one, and a second's slack.
+                let possible = capture_ns.saturating_sub(last_capture) / self.period_ns
+                    + NS_PER_S / self.period_ns;
+                if frame - last > possible {
+                    self.implausible_samples += 1;
+                    return;
+                }
+                last + 1
+            }
             None => frame,
         };
         for n in first_new..=frame {
@@ -401,5 +469,81 @@ mod tests {
         assert_eq!((s.sample_deadline_misses, s.missed_frame_slots), (0, 0));
         assert_eq!(s.tracker_samples, 600);
         assert!((s.sample_latency().max_ms - 3.0).abs() < 0.01);
+    }
+
+    /// A renderer stopped for good reports nothing more: without `finish` the run looks punctual;
+    /// with it every sample and display slot since its last frame is missed.
+    #[test]
+    fn a_renderer_that_never_comes_back_shows_as_missed_deadlines_to_the_end() {
+        let p = SCHEDULE_PERIOD_NS;
+        let mut s = LatencyStats::new();
+        for n in 1..=60 {
+            s.record(&on_schedule(n, n, 1_000_000));
+        }
+        assert_eq!(s.sample_deadline_misses, 0);
+        // Stopped after sample 60; the run ends 3 s later.
+        let last_capture = 1_000_000_000 + 60 * p;
+        s.finish(last_capture + 3_000_000_000);
+        assert!(
+            (178..=180).contains(&s.sample_deadline_misses),
+            "{}",
+            s.sample_deadline_misses
+        );
+        assert!(
+            (178..=180).contains(&s.missed_frame_slots),
+            "{}",
+            s.missed_frame_slots
+        );
+        assert!(s.sample_latency().max_ms > 2_900.0);
+        // A run that ended on time adds nothing.
+        let mut t = LatencyStats::new();
+        for n in 1..=60 {
+            t.record(&on_schedule(n, n, 1_000_000));
+        }
+        t.finish(last_capture + 5_000_000);
+        assert_eq!((t.sample_deadline_misses, t.missed_frame_slots), (0, 0));
+    }
+
+    /// Restarted processes number from the start again: no report reads as out of order and the
+    /// new bridge's samples are settled, not ignored as already shown.
+    #[test]
+    fn a_sample_number_beyond_the_clock_is_set_aside_not_settled() {
+        let mut s = LatencyStats::new();
+        for n in 1..=30 {
+            s.record(&on_schedule(n, n, 1_000_000));
+        }
+        // A corrupted tracker frame's number: settling up to it looped for hours.
+        let mut garbage = on_schedule(31, 31, 1_000_000);
+        garbage.tracker_frame = u64::MAX - 3;
+        s.record(&garbage);
+        assert_eq!(s.implausible_samples, 1);
+        assert_eq!(s.tracker_samples, 30);
+        // The real sequence goes on being settled.
+        for n in 32..=40 {
+            s.record(&on_schedule(n, n, 1_000_000));
+        }
+        assert_eq!(s.tracker_samples, 40, "31 settled with 32");
+        assert_eq!(s.implausible_samples, 1);
+    }
+
+    #[test]
+    fn a_restarted_renderer_or_bridge_is_counted_from_its_new_numbers() {
+        let mut s = LatencyStats::new();
+        for n in 1..=60 {
+            s.record(&on_schedule(n, n, 1_000_000));
+        }
+        s.restarted("renderer");
+        s.restarted("tracker-bridge");
+        // The engine still shows the old bridge's last sample for a while.
+        s.record(&on_schedule(1, 60, 1_000_000));
+        let before = s.tracker_samples;
+        for n in 1..=10 {
+            let mut r = on_schedule(n + 1, 60 + n, 1_000_000);
+            r.tracker_frame = n;
+            s.record(&r);
+        }
+        assert_eq!(s.out_of_order, 0);
+        assert_eq!(s.lost_reports, 0);
+        assert_eq!(s.tracker_samples, before + 10);
     }
 }

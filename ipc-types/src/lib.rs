@@ -383,6 +383,12 @@ pub mod report_flags {
     /// The held pose is older than the scene's `pose_staleness_ticks`, or no patient sample ever
     /// arrived: the overlay's placement is not to be trusted (red-tinted background).
     pub const PATIENT_POSE_STALE: u32 = 1 << 5;
+    /// No engine frame for [`ENGINE_DOWN_FRAMES`] frame periods or more: the engine is restarting
+    /// (or stopped); the last frame is presented, stale, under a violet veil that says so.
+    pub const ENGINE_DOWN: u32 = 1 << 6;
+    /// Stale frames in a row after which the renderer says the engine is down (100 ms at 60 Hz:
+    /// longer than any jitter of a running engine, short next to a restart).
+    pub const ENGINE_DOWN_FRAMES: u64 = 6;
 }
 
 /// The renderer's per-frame report, consumed by the launcher's latency harness and by tests.

@@ -66,6 +66,9 @@ pub enum PoseWarning {
     Held,
     /// Held past the limit, or none ever arrived.
     Stale,
+    /// No engine frame for a while ([`ipc_types::report_flags::ENGINE_DOWN`]): the engine is
+    /// restarting; lungs and pose are the last frame's (violet veil, and the window title says so).
+    EngineDown,
 }
 
 impl PoseWarning {
@@ -94,6 +97,12 @@ impl PoseWarning {
                 r: 0.22,
                 g: 0.01,
                 b: 0.01,
+                a: 1.0,
+            },
+            PoseWarning::EngineDown => wgpu::Color {
+                r: 0.14,
+                g: 0.03,
+                b: 0.22,
                 a: 1.0,
             },
         }

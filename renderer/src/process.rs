@@ -234,6 +234,9 @@ pub struct Session {
     control_sequence: u64,
     /// systemd's watchdog, pinged from [`Session::step`] (disabled outside a unit).
     watchdog: transport::notify::Watchdog,
+    /// Stale frames in a row, and the time of the last fresh engine frame (the engine-down notice).
+    stale_run: u64,
+    last_fresh_ns: u64,
 }
 
 /// Keep Mesa quiet on headless machines: without XDG_RUNTIME_DIR its window-system probing prints an
@@ -371,6 +374,8 @@ impl Session {
             control: None,
             control_sequence: 0,
             watchdog: transport::notify::Watchdog::every(None),
+            stale_run: 0,
+            last_fresh_ns: 0,
         }
     }
 
@@ -403,6 +408,12 @@ impl Session {
     pub fn should_stop(&self) -> bool {
         self.node.as_ref().is_some_and(iox::termination_requested)
             || self.stop_at.is_some_and(|t| self.clock.now_ns() >= t)
+    }
+
+    /// Whether the engine is down: no engine frame for
+    /// [`ipc_types::report_flags::ENGINE_DOWN_FRAMES`] frames (the window title says so).
+    pub fn engine_down(&self) -> bool {
+        self.stale_run >= report_flags::ENGINE_DOWN_FRAMES
     }
 
     /// What the session has drawn so far.
@@ -490,12 +501,29 @@ impl Session {
                         "renderer[{}]: engine connected (tick {})",
                         self.instance, f.tick
                     );
+                } else if self.engine_down() {
+                    eprintln!(
+                        "renderer[{}]: engine back after {:.0} ms without frames (tick {})",
+                        self.instance,
+                        tick.at_ns.saturating_sub(self.last_fresh_ns) as f64 / 1e6,
+                        f.tick
+                    );
                 }
+                self.stale_run = 0;
+                self.last_fresh_ns = tick.at_ns;
                 f
             }
             (Wake::Deadline, Some(f)) => {
                 flags |= report_flags::STALE_ENGINE;
                 self.stats.stale_frames += 1;
+                self.stale_run += 1;
+                if self.stale_run == report_flags::ENGINE_DOWN_FRAMES {
+                    eprintln!(
+                        "renderer[{}]: no engine frame since tick {}: the engine is restarting or \
+                         stopped; presenting its last frame, flagged stale",
+                        self.instance, f.tick
+                    );
+                }
                 f
             }
             (Wake::Deadline, None) => return Ok(false),
@@ -520,8 +548,12 @@ impl Session {
             hmd: self.hmd,
             pose_warning: crate::PoseWarning::of_engine_state(frame.state),
         };
+        if self.engine_down() {
+            flags |= report_flags::ENGINE_DOWN;
+            state.pose_warning = crate::PoseWarning::EngineDown;
+        }
         match state.pose_warning {
-            crate::PoseWarning::None => {}
+            crate::PoseWarning::None | crate::PoseWarning::EngineDown => {}
             crate::PoseWarning::Held => flags |= report_flags::PATIENT_POSE_HELD,
             crate::PoseWarning::Stale => {
                 flags |= report_flags::PATIENT_POSE_HELD | report_flags::PATIENT_POSE_STALE

@@ -24,6 +24,8 @@ struct Windowed {
     surface: wgpu::Surface<'static>,
     config: wgpu::SurfaceConfiguration,
     present: PresentPass,
+    /// Whether the title says the engine is restarting.
+    engine_down_shown: bool,
 }
 
 struct App {
@@ -71,6 +73,7 @@ impl App {
             surface,
             config,
             present,
+            engine_down_shown: false,
         });
         Ok(())
     }
@@ -135,6 +138,7 @@ impl ApplicationHandler for App {
             present,
             config,
             window,
+            engine_down_shown,
         } = w;
         let mut acquired = None;
         let mut reconfigure = false;
@@ -151,6 +155,15 @@ impl ApplicationHandler for App {
             // Timeout, occluded or validation: skip presenting this frame; the next one tries again.
             _ => {}
         });
+        let down = session.engine_down();
+        if down != *engine_down_shown {
+            *engine_down_shown = down;
+            window.set_title(if down {
+                "lungdyn — ENGINE RESTARTING: last frame shown, stale"
+            } else {
+                "lungdyn"
+            });
+        }
         if let Some(t) = acquired {
             window.pre_present_notify();
             session.gpu.queue.present(t);

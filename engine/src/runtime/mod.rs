@@ -473,6 +473,27 @@ impl EngineCore {
             .is_some_and(|d| d.due_undelivered(tick, &self.lungs))
     }
 
+    /// Bring a fresh core to where an uninterrupted run stands just before `tick`, so that
+    /// `step(tick, ..)` and every later step show the breath an uninterrupted run shows there: the
+    /// resume of a restarted engine (`engine --start-tick`). A healthy core needs nothing: its
+    /// breath is a function of the tick alone ([`LungBreath::local_tick`] skips whole cycles
+    /// arithmetically). A disease state evolves cycle by cycle, so its ticks `0..tick` are replayed
+    /// without tracker input, each cycle built in place as [`Self::prepare_ahead`] does (≈ 40 ms a
+    /// breath). What the replay cannot know: a trainee's live interventions sent to the engine that
+    /// died (scene-timed events replay). Tracker-derived state (pose, staleness) starts afresh and
+    /// is flagged as such until the first sample arrives, one tick later.
+    pub fn resume_at(&mut self, tick: u64) -> Result<(), CoreError> {
+        if self.disease.is_none() {
+            return Ok(());
+        }
+        let mut scratch = EngineFrame::default();
+        for t in 0..tick {
+            self.step(t, None, &mut scratch);
+            self.prepare_ahead()?;
+        }
+        Ok(())
+    }
+
     /// A trainee's action arriving at `tick` (a live intervention). What became of it:
     /// [`LiveAction`].
     pub fn intervene(

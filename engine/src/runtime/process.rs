@@ -25,6 +25,12 @@ pub struct EngineArgs {
     /// Instance, scene, pinning and run time.
     #[command(flatten)]
     pub process: ProcessArgs,
+    /// Resume at this tick instead of 0: a restarted engine continues the stream where it broke off
+    /// (its first frame is the tick after the last one published), showing the breath an
+    /// uninterrupted run shows at that tick ([`EngineCore::resume_at`]). The launcher's supervisor
+    /// sets it; at most a week of ticks.
+    #[arg(long, value_name = "TICK", default_value_t = 0)]
+    pub start_tick: u64,
 }
 
 /// Why the engine process stopped with an error.
@@ -45,6 +51,14 @@ pub enum EngineError {
     /// A stream failed.
     #[error(transparent)]
     Port(#[from] PortError),
+    /// `--start-tick` beyond a week of ticks.
+    #[error("--start-tick {tick}: at most {max} (one week of ticks at the scene's rate)")]
+    StartTick {
+        /// As given.
+        tick: u64,
+        /// The limit.
+        max: u64,
+    },
 }
 
 /// What a run of the loop did.
@@ -185,6 +199,7 @@ pub fn run_loop(
     pacer: PacerConfig,
     stop: &mut dyn FnMut() -> bool,
     announce: Option<&str>,
+    first_tick: u64,
 ) -> Result<LoopStats, EngineError> {
     let mut control = control;
     let mut seen = Seen {
@@ -197,7 +212,7 @@ pub fn run_loop(
     let mut worker: Option<Worker> = None;
     let mut pacer = Pacer::new(pacer, clock.now_ns());
     let mut frame = EngineFrame::default();
-    let mut tick: u64 = 0;
+    let mut tick: u64 = first_tick;
     let mut announced = false;
     while !stop() {
         let Some(t) = pacer.poll(clock, rx)? else {
@@ -321,7 +336,7 @@ pub fn run_loop(
         late_preparations,
         prepared_cycles,
         prepare_max_ns,
-        ticks: tick,
+        ticks: tick - first_tick,
         pacer: pacer.stats(),
     })
 }
@@ -395,13 +410,22 @@ fn live_action(
 
 /// Run the engine process until terminated (or `--seconds` elapse).
 pub fn run(args: &EngineArgs) -> Result<(), EngineError> {
+    let start_tick = args.start_tick;
     let args = &args.process;
     let run_ns = args.run_ns()?;
     let instance = Instance::new(&args.instance)?;
     let _lock = instance.lock("engine")?;
     pin_to_core(args.cpu, "engine")?;
     let scene = Scene::load_or_default(args.scene.as_deref())?;
+    let max = (transport::process::MAX_SECONDS * scene.engine.tick_hz) as u64;
+    if start_tick > max {
+        return Err(EngineError::StartTick {
+            tick: start_tick,
+            max,
+        });
+    }
     let mut core = EngineCore::new(&scene)?;
+    core.resume_at(start_tick)?;
     let node = iox::node(&instance, "engine")?;
     let mut tracker = instance.tracker_inlet(&node)?;
     let mut outlet = instance.engine_outlet(&node)?;
@@ -411,6 +435,15 @@ pub fn run(args: &EngineArgs) -> Result<(), EngineError> {
     let stop_at = run_ns.map(|d| now_ns().saturating_add(d));
     let mut watchdog = transport::notify::Watchdog::from_env();
     transport::notify::ready(&format!("engine[{}]: ticking", instance.name()));
+    if start_tick > 0 {
+        eprintln!(
+            "engine[{}]: resuming at tick {start_tick} (breath cycle {}, phase {:.3})",
+            instance.name(),
+            start_tick / core.cycle_ticks().max(1) as u64,
+            (start_tick % core.cycle_ticks().max(1) as u64) as f64
+                / core.cycle_ticks().max(1) as f64
+        );
+    }
     eprintln!(
         "engine[{}]: {} lung(s), {} ticks/breath at {} Hz; waiting for tracker frames on {:?} \
          (ticking on the deadline meanwhile)",
@@ -438,6 +471,7 @@ pub fn run(args: &EngineArgs) -> Result<(), EngineError> {
             iox::termination_requested(&node) || stop_at.is_some_and(|t| now >= t)
         },
         Some(instance.name()),
+        start_tick,
     )?;
     transport::notify::stopping();
     transport::process::say(&format!(
@@ -527,6 +561,7 @@ mod tests {
             PacerConfig::for_period(P),
             &mut || c.now_ns() >= until,
             None,
+            0,
         )
         .unwrap();
         (out.records(), stats)
@@ -596,8 +631,42 @@ mod tests {
             PacerConfig::for_period(P),
             &mut || false,
             None,
+            0,
         )
         .unwrap_err();
         assert!(e.to_string().contains("TrackerFrame with layout v1"), "{e}");
+    }
+
+    /// The loop of a restarted engine numbers its frames from the start tick on, with the breath
+    /// an uninterrupted core shows at those ticks.
+    #[test]
+    fn a_loop_started_at_a_tick_publishes_from_that_tick() {
+        let clock = FakeClock::at(0);
+        let mut rx = Scripted::new(&clock, vec![], 4);
+        let mut tx = Recorder::new(&clock);
+        let out = tx.clone();
+        let c = clock.clone();
+        let mut resumed = core();
+        resumed.resume_at(500).unwrap();
+        let stats = run_loop(
+            &mut resumed,
+            &mut rx,
+            &mut tx,
+            None,
+            &clock,
+            PacerConfig::for_period(P),
+            &mut || c.now_ns() >= P + P / 4 + 9 * P,
+            None,
+            500,
+        )
+        .unwrap();
+        assert_eq!(stats.ticks, 10);
+        let mut reference = core();
+        let mut f = EngineFrame::default();
+        for (k, (_, got)) in out.records().iter().enumerate() {
+            reference.step(500 + k as u64, None, &mut f);
+            assert_eq!(got.tick, 500 + k as u64);
+            assert_eq!(got.lungs, f.lungs, "tick {}", got.tick);
+        }
     }
 }

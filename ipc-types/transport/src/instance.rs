@@ -88,27 +88,52 @@ impl Instance {
     /// folder. Empty after a clean shutdown (but for iceoryx2's per-prefix node counter, which
     /// outlives the nodes by design until [`Self::remove_leftovers`]).
     pub fn leftovers(&self) -> Vec<PathBuf> {
-        let prefix = self.file_prefix();
-        let mut found = Vec::new();
-        let mut stack = vec![PathBuf::from("/dev/shm"), crate::iox::root_path()];
-        while let Some(dir) = stack.pop() {
-            let Ok(entries) = std::fs::read_dir(&dir) else {
+        files_named(&self.file_prefix())
+    }
+
+    /// Remove the files of instances whose processes have all gone (a launcher killed with SIGKILL
+    /// leaves iceoryx2's node counter, a process killed before its cleanup its segments — files
+    /// every user may read and write, and which a later run of the same name would trip on). An
+    /// instance counts as dead when it has lock files (every lungdyn process takes one before it
+    /// creates any file) and none is held by a live process; a file that a running instance's prefix
+    /// also claims (`a_b` running beside a dead `a`) is kept. Transport files of a prefix that never
+    /// took a lock (a test's private node) are not touched. Returns the files removed.
+    pub fn sweep_dead() -> Vec<PathBuf> {
+        let live: Vec<String> = Self::running()
+            .iter()
+            .filter_map(|r| Instance::new(&r.name).ok().map(|i| i.file_prefix()))
+            .collect();
+        let mut dead: Vec<String> = std::fs::read_dir(Self::lock_dir())
+            .map(|d| {
+                d.flatten()
+                    .filter_map(|e| {
+                        lock_name_role(&e.file_name().to_string_lossy()).map(|(n, _)| n.to_string())
+                    })
+                    .collect()
+            })
+            .unwrap_or_default();
+        dead.sort();
+        dead.dedup();
+        let mut removed = Vec::new();
+        for name in dead {
+            let Ok(instance) = Instance::new(&name) else {
                 continue;
             };
-            for entry in entries.flatten() {
-                let path = entry.path();
-                if entry.file_type().map(|t| t.is_dir()).unwrap_or(false)
-                    && !dir.starts_with("/dev/shm")
-                {
-                    stack.push(path.clone());
-                }
-                if entry.file_name().to_string_lossy().starts_with(&prefix) {
-                    found.push(path);
+            if live.contains(&instance.file_prefix()) {
+                continue;
+            }
+            for path in instance.leftovers() {
+                let file = path.file_name().map(|n| n.to_string_lossy().into_owned());
+                let claimed = file.is_some_and(|f| live.iter().any(|p| f.starts_with(p.as_str())));
+                if !claimed && std::fs::remove_file(&path).is_ok() {
+                    if let Some(dir) = path.parent() {
+                        let _ = std::fs::remove_dir(dir);
+                    }
+                    removed.push(path);
                 }
             }
         }
-        found.sort();
-        found
+        removed
     }
 
     /// Delete the files [`Self::leftovers`] finds, and folders left empty by that. Only for after
@@ -136,6 +161,31 @@ impl Instance {
         }
         cleanup
     }
+}
+
+/// Files whose name starts with `prefix` in shared memory (`/dev/shm`) or anywhere under
+/// iceoryx2's root folder, sorted.
+fn files_named(prefix: &str) -> Vec<PathBuf> {
+    let mut found = Vec::new();
+    let mut stack = vec![PathBuf::from("/dev/shm"), crate::iox::root_path()];
+    while let Some(dir) = stack.pop() {
+        let Ok(entries) = std::fs::read_dir(&dir) else {
+            continue;
+        };
+        for entry in entries.flatten() {
+            let path = entry.path();
+            if entry.file_type().map(|t| t.is_dir()).unwrap_or(false)
+                && !dir.starts_with("/dev/shm")
+            {
+                stack.push(path.clone());
+            }
+            if entry.file_name().to_string_lossy().starts_with(prefix) {
+                found.push(path);
+            }
+        }
+    }
+    found.sort();
+    found
 }
 
 /// Proof that this process is the only one of its role in its instance (an exclusive `flock` on a
@@ -262,13 +312,7 @@ impl Instance {
         };
         for entry in dir.flatten() {
             let file = entry.file_name();
-            let Some(stem) = file.to_str().and_then(|f| f.strip_suffix(".lock")) else {
-                continue;
-            };
-            let Some((name, role)) = ROLES
-                .iter()
-                .find_map(|r| stem.strip_suffix(&format!(".{r}")).map(|n| (n, *r)))
-            else {
+            let Some((name, role)) = file.to_str().and_then(lock_name_role) else {
                 continue;
             };
             let Ok(text) = std::fs::read_to_string(entry.path()) else {
@@ -319,6 +363,14 @@ impl Instance {
             })
             .collect()
     }
+}
+
+/// The instance name and role of a lock file's name (`<name>.<role>.lock`).
+fn lock_name_role(file: &str) -> Option<(&str, &'static str)> {
+    let stem = file.strip_suffix(".lock")?;
+    ROLES
+        .iter()
+        .find_map(|r| stem.strip_suffix(&format!(".{r}")).map(|n| (n, *r)))
 }
 
 /// What [`Instance::remove_leftovers`] removed.

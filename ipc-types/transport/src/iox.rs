@@ -12,6 +12,7 @@
 use core::time::Duration;
 use std::path::PathBuf;
 
+use iceoryx2::node::{NodeView, NodeWaitFailure};
 use iceoryx2::prelude::*;
 use ipc_types::{ControlPacket, ControlReply, EngineFrame, FrameReport, Message, TrackerFrame};
 
@@ -106,14 +107,73 @@ pub fn node(instance: &Instance, role: &str) -> Result<IoxNode, PortError> {
         .map_err(|source| PortError::Node { node: name, source })
 }
 
-/// True when the process was asked to terminate (SIGINT/SIGTERM), as seen by iceoryx2's handler.
-pub fn termination_requested(node: &IoxNode) -> bool {
-    node.wait(Duration::ZERO).is_err()
+/// Remove the iceoryx2 resources of this instance's dead nodes (a process killed before it could
+/// clean up: its node, ports and the segments only it held), as iceoryx2 prescribes: `Node::list`,
+/// then `try_remove_stale_resources` on each node in [`NodeState::Dead`]. Returns the names of the
+/// nodes cleaned. Run before restarting a process, so the new one does not meet its predecessor's
+/// ports (a stream's publisher or subscriber count would otherwise include the dead one).
+pub fn remove_dead_nodes(instance: &Instance) -> Result<Vec<String>, PortError> {
+    let config = config(instance)?;
+    let mut cleaned = Vec::new();
+    let mut failure = None;
+    Node::<ipc::Service>::list(&config, |state| {
+        if let NodeState::Dead(view) = state {
+            let name = view
+                .details()
+                .as_ref()
+                .map_or_else(|| "(unnamed)".to_string(), |d| d.name().to_string());
+            match view.try_remove_stale_resources() {
+                Ok(()) => cleaned.push(name),
+                Err(e) => failure = Some(format!("node {name}: {e:?}")),
+            }
+        }
+        CallbackProgression::Continue
+    })
+    .map_err(|e| PortError::DeadNodes {
+        instance: instance.name().to_string(),
+        reason: format!("cannot list the nodes: {e}"),
+    })?;
+    match failure {
+        Some(reason) => Err(PortError::DeadNodes {
+            instance: instance.name().to_string(),
+            reason,
+        }),
+        None => Ok(cleaned),
+    }
 }
 
-/// Sleep up to `period` on the node; false when a termination was requested.
+/// A termination request once seen: iceoryx2 keeps only the last signal and forgets it when asked,
+/// so a second look (or a later SIGCONT) would otherwise lose the request.
+static TERMINATING: std::sync::atomic::AtomicBool = std::sync::atomic::AtomicBool::new(false);
+
+fn latch(requested: bool) -> bool {
+    use std::sync::atomic::Ordering;
+    if requested {
+        TERMINATING.store(true, Ordering::Relaxed);
+    }
+    TERMINATING.load(Ordering::Relaxed)
+}
+
+/// True when the process was asked to terminate (SIGINT/SIGTERM), as seen by iceoryx2's handler;
+/// once true, true for the rest of the process (the request is latched).
+pub fn termination_requested(node: &IoxNode) -> bool {
+    latch(false) || latch(node.wait(Duration::ZERO).is_err())
+}
+
+/// Sleep up to `period` on the node; false when a termination was requested (now or before).
+/// Another signal that cuts the sleep short (SIGCONT after Ctrl-Z and `fg`, SIGCHLD) is not a
+/// termination request: iceoryx2 reports any interrupted sleep as an error, so the request itself
+/// is asked for again. A request that `wait` itself reported is latched first: asking again would
+/// find it consumed and read as "go on" (a Ctrl-C between two sleeps was lost that way).
 pub fn idle(node: &IoxNode, period: Duration) -> bool {
-    node.wait(period).is_ok()
+    if latch(false) {
+        return false;
+    }
+    match node.wait(period) {
+        Ok(()) => true,
+        Err(NodeWaitFailure::TerminationRequest) => !latch(true),
+        Err(_) => !termination_requested(node),
+    }
 }
 
 /// The port factory of a stream of `T`.
@@ -449,5 +509,96 @@ mod tests {
             "{cleanup:?}"
         );
         assert!(instance.leftovers().is_empty());
+    }
+
+    /// What a SIGKILLed launcher leaves (iceoryx2's node counter, world-writable) is removed by the
+    /// next start's sweep; a running instance's files and a lock-less test prefix are kept.
+    #[test]
+    fn the_sweep_removes_a_dead_instances_files_only() {
+        let pid = std::process::id();
+        let dead = Instance::new(&format!("sweep-dead-{pid}")).unwrap();
+        let live = Instance::new(&format!("sweep-live-{pid}")).unwrap();
+        let lockless = Instance::new(&format!("sweep-none-{pid}")).unwrap();
+        // The dead instance's lock file names a process that is gone.
+        let stale = Instance::lock_dir().join(format!("{}.launcher.lock", dead.name()));
+        std::fs::create_dir_all(Instance::lock_dir()).unwrap();
+        std::fs::write(
+            &stale,
+            format!("process {pid} (a launcher killed long ago)"),
+        )
+        .unwrap();
+        drop(node(&dead, "launcher").unwrap());
+        drop(node(&lockless, "test").unwrap());
+        let _held = live.lock("launcher").unwrap();
+        let live_node = node(&live, "launcher").unwrap();
+        let left = dead.leftovers();
+        assert!(!left.is_empty(), "a dropped node leaves its counter");
+        let removed = Instance::sweep_dead();
+        for f in &left {
+            assert!(removed.contains(f), "{f:?} not in {removed:?}");
+        }
+        assert!(dead.leftovers().is_empty());
+        assert!(!live.leftovers().is_empty(), "a running instance is kept");
+        assert!(
+            !lockless.leftovers().is_empty(),
+            "no lock: not ours to judge"
+        );
+        std::fs::remove_file(&stale).unwrap();
+        drop(live_node);
+        live.remove_leftovers();
+        lockless.remove_leftovers();
+    }
+
+    /// A node whose process died is found dead and its resources removed; a live one is kept.
+    #[test]
+    fn a_dead_processs_node_is_cleaned_before_a_restart() {
+        let instance = Instance::new(&format!("dead-node-{}", std::process::id())).unwrap();
+        let ours = node(&instance, "launcher").unwrap();
+        // A child that creates a node and is killed before it can clean up.
+        let exe = std::env::current_exe().unwrap();
+        let mut child = std::process::Command::new(exe)
+            .args([
+                "--exact",
+                "iox::tests::child_node_then_hang",
+                "--ignored",
+                "--nocapture",
+            ])
+            .env("LUNGDYN_DEAD_NODE_INSTANCE", instance.name())
+            .stdout(std::process::Stdio::piped())
+            .spawn()
+            .unwrap();
+        let mut line = String::new();
+        use std::io::BufRead;
+        let mut out = std::io::BufReader::new(child.stdout.take().unwrap());
+        while !line.contains("node ready") {
+            line.clear();
+            assert!(out.read_line(&mut line).unwrap() > 0, "child ended early");
+        }
+        child.kill().unwrap();
+        child.wait().unwrap();
+        let cleaned = remove_dead_nodes(&instance).unwrap();
+        assert_eq!(
+            cleaned,
+            vec![format!("lungdyn-{}-engine", instance.name())],
+            "only the dead node"
+        );
+        assert!(remove_dead_nodes(&instance).unwrap().is_empty(), "once");
+        drop(ours);
+        let cleanup = instance.remove_leftovers();
+        assert!(cleanup.unexpected.is_empty(), "{cleanup:?}");
+    }
+
+    /// The child half of the test above (run only by it).
+    #[test]
+    #[ignore = "started by a_dead_processs_node_is_cleaned_before_a_restart"]
+    fn child_node_then_hang() {
+        let Ok(name) = std::env::var("LUNGDYN_DEAD_NODE_INSTANCE") else {
+            return;
+        };
+        let instance = Instance::new(&name).unwrap();
+        let n = node(&instance, "engine").unwrap();
+        let _stream = instance.engine_outlet(&n).unwrap();
+        println!("node ready");
+        std::thread::sleep(Duration::from_secs(60));
     }
 }

@@ -116,6 +116,14 @@ pub enum PortError {
         #[source]
         source: Box<dyn std::error::Error + Send + Sync>,
     },
+    /// The resources of a dead process's iceoryx2 node could not be removed.
+    #[error("instance {instance:?}: cannot remove a dead process's iceoryx2 resources: {reason}")]
+    DeadNodes {
+        /// Instance name.
+        instance: String,
+        /// What failed.
+        reason: String,
+    },
     /// Sending, receiving or waiting failed on an open port.
     #[error("{operation} on {service:?} failed")]
     Io {

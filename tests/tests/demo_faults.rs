@@ -1,0 +1,197 @@
+//! The demo under faults: it survives SIGKILL of its engine and of its tracker-bridge (each
+//! restarted, the engine resuming with the breath an uninterrupted run shows), reports the restarts
+//! and leaves nothing behind; a renderer stopped for good shows as missed deadlines; a restart storm
+//! past the limit ends the run with a clear error — and the report so far still printed.
+
+use std::process::{Child, Command, Stdio};
+use std::time::Duration;
+
+use lungdyn_tests::bin;
+
+const SCENE: &str = "[lungs]\nvertices = 1500\n[render]\nwidth = 160\nheight = 120\nstereo = false\nmode = \"points\"\n";
+
+struct Demo {
+    child: Child,
+    err: std::path::PathBuf,
+    dir: std::path::PathBuf,
+}
+
+impl Demo {
+    fn start(tag: &str, seconds: &str, extra: &[&str]) -> Demo {
+        let dir = std::env::temp_dir().join(format!("lungdyn-faults-{tag}-{}", std::process::id()));
+        std::fs::create_dir_all(&dir).unwrap();
+        let scene = dir.join("scene.toml");
+        std::fs::write(&scene, SCENE).unwrap();
+        let err = dir.join("stderr.txt");
+        let child = Command::new(bin("lungdyn"))
+            .args([
+                "demo",
+                "--seconds",
+                seconds,
+                "--snapshots",
+                "0",
+                "--json",
+                "--out",
+            ])
+            .arg(&dir)
+            .arg("--scene")
+            .arg(&scene)
+            .args(extra)
+            .stdin(Stdio::null())
+            .stdout(Stdio::piped())
+            .stderr(std::fs::File::create(&err).unwrap())
+            .spawn()
+            .unwrap();
+        Demo { child, err, dir }
+    }
+
+    fn stderr(&self) -> String {
+        std::fs::read_to_string(&self.err).unwrap_or_default()
+    }
+
+    /// Wait until stderr contains `needle` (60 s at most).
+    fn wait_for(&self, needle: &str) {
+        for _ in 0..1200 {
+            if self.stderr().contains(needle) {
+                return;
+            }
+            std::thread::sleep(Duration::from_millis(50));
+        }
+        panic!("no {needle:?} on the demo's stderr: {}", self.stderr());
+    }
+
+    /// Send `sig` to the demo's child of `role`.
+    fn signal(&self, role: &str, sig: libc::c_int) {
+        let children = std::fs::read_to_string(format!(
+            "/proc/{}/task/{}/children",
+            self.child.id(),
+            self.child.id()
+        ))
+        .unwrap();
+        let pid = children
+            .split_whitespace()
+            .find(|p| {
+                std::fs::read(format!("/proc/{p}/cmdline"))
+                    .is_ok_and(|c| c.split(|&b| b == 0).nth(1) == Some(role.as_bytes()))
+            })
+            .unwrap_or_else(|| panic!("no {role} child"));
+        // SAFETY: a child of our child, found alive just now.
+        assert_eq!(unsafe { libc::kill(pid.parse().unwrap(), sig) }, 0);
+    }
+
+    fn finish(self) -> (bool, serde_json::Value, String) {
+        let out = self.child.wait_with_output().unwrap();
+        let err = std::fs::read_to_string(&self.err).unwrap_or_default();
+        let v = serde_json::from_slice(&out.stdout)
+            .unwrap_or_else(|e| panic!("{e}: {}\n{err}", String::from_utf8_lossy(&out.stdout)));
+        std::fs::remove_dir_all(&self.dir).ok();
+        (out.status.success(), v, err)
+    }
+}
+
+#[test]
+fn the_demo_survives_sigkill_of_its_engine_and_tracker_bridge() {
+    if renderer::gpu::Gpu::for_tests().is_none() {
+        return;
+    }
+    let demo = Demo::start("kill", "7", &[]);
+    demo.wait_for("tracker connected");
+    std::thread::sleep(Duration::from_millis(1500));
+    demo.signal("engine", libc::SIGKILL);
+    demo.wait_for("resuming at tick");
+    std::thread::sleep(Duration::from_millis(1500));
+    demo.signal("tracker-bridge", libc::SIGKILL);
+    let (ok, v, err) = demo.finish();
+    assert!(ok, "{err}");
+    assert_eq!(v["restarts"], 2, "{v}");
+    let log = v["restart_log"].as_array().unwrap();
+    assert_eq!(log[0]["role"], "engine");
+    assert_eq!(log[1]["role"], "tracker-bridge");
+    for r in log {
+        assert!(r["ended"].as_str().unwrap().contains("SIGKILL"), "{r}");
+        assert!(r["recover_ms"].as_f64().is_some(), "recovered: {r}");
+        assert!(!r["cleaned_nodes"].as_array().unwrap().is_empty(), "{r}");
+    }
+    assert_eq!(v["phase_errors"], 0, "{err}");
+    assert_eq!(v["ended"], "completed");
+    assert_eq!(v["remaining_files"], 0);
+    assert!(err.contains("RESTARTS 2"), "{err}");
+    // The resumed engine continued the tick sequence: hardly any tick went undrawn.
+    assert!(v["skipped_ticks"].as_u64().unwrap() < 30, "{v}");
+}
+
+#[test]
+fn a_renderer_stopped_for_good_shows_as_missed_deadlines() {
+    if renderer::gpu::Gpu::for_tests().is_none() {
+        return;
+    }
+    let demo = Demo::start("stop", "5", &[]);
+    demo.wait_for("tracker connected");
+    std::thread::sleep(Duration::from_millis(1000));
+    demo.signal("renderer", libc::SIGSTOP);
+    let (ok, v, err) = demo.finish();
+    assert!(ok, "{err}");
+    assert!(v["deadline_misses"].as_u64().unwrap() > 60, "{v}");
+    assert!(v["missed_frame_slots"].as_u64().unwrap() > 60, "{v}");
+    assert!(v["worst_case_ms"].as_f64().unwrap() > 1000.0, "{v}");
+    assert_eq!(v["remaining_files"], 0);
+}
+
+#[test]
+fn a_restart_storm_past_the_limit_ends_the_run_with_the_report_printed() {
+    if renderer::gpu::Gpu::for_tests().is_none() {
+        return;
+    }
+    let demo = Demo::start("storm", "20", &["--max-restarts", "2"]);
+    demo.wait_for("tracker connected");
+    for k in 0..3 {
+        demo.signal("tracker-bridge", libc::SIGKILL);
+        if k < 2 {
+            demo.wait_for("process died");
+            std::thread::sleep(Duration::from_millis(700));
+        }
+    }
+    let (ok, v, err) = demo.finish();
+    assert!(!ok, "a storm past the limit fails");
+    assert_eq!(v["restarts"], 2, "{v}");
+    let failure = v["failure"].as_str().unwrap();
+    assert!(
+        failure.contains("tracker-bridge") && failure.contains("--max-restarts 2"),
+        "{failure}"
+    );
+    assert_eq!(v["ended"], failure);
+    assert!(v["frames_rendered"].as_u64().unwrap() > 0);
+    assert_eq!(v["remaining_files"], 0);
+    assert!(err.contains("giving up"), "{err}");
+}
+
+/// A replay shorter than --seconds ends the run cleanly (not looped, not a fault): exit 0, the
+/// report says why it ended, nothing is restarted.
+#[test]
+fn a_replay_shorter_than_the_run_ends_it_cleanly() {
+    if renderer::gpu::Gpu::for_tests().is_none() {
+        return;
+    }
+    let rec = std::env::temp_dir().join(format!("lungdyn-faults-2s-{}.rec", std::process::id()));
+    std::fs::remove_file(&rec).ok();
+    let (ok, _, err) = lungdyn_tests::lungdyn(&[
+        "tracker",
+        "simulate",
+        "--out",
+        rec.to_str().unwrap(),
+        "--seconds",
+        "2",
+    ]);
+    assert!(ok, "{err}");
+    let source = format!("replay:{}", rec.display());
+    let demo = Demo::start("replay", "8", &["--tracker", &source]);
+    let (ok, v, err) = demo.finish();
+    std::fs::remove_file(&rec).ok();
+    assert!(ok, "{err}");
+    assert_eq!(v["restarts"], 0, "{v}");
+    let ended = v["ended"].as_str().unwrap();
+    assert!(ended.contains("tracker-bridge finished"), "{ended}");
+    assert!(v["seconds"].as_f64().unwrap() < 6.0, "{v}");
+    assert!(v["frames_rendered"].as_u64().unwrap() > 0);
+    assert_eq!(v["remaining_files"], 0);
+}
