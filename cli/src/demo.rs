@@ -92,6 +92,22 @@ pub struct DemoArgs {
     /// the scene's `[render] hmd` and its ipd_mm, fov_y_deg, width and height.
     #[arg(long, value_name = "FILE")]
     pub hmd: Option<PathBuf>,
+    /// How the lungs are drawn over the patient (overrides the scene's `[render] look`): "opaque"
+    /// (lit tissue; hides what is behind it, a tumour drawn through it), "translucent" (lit tissue
+    /// with a fresnel rim, both lungs blended order-independently: the far wall, the other lung and
+    /// a tumour show through), "see-through" (for an optical see-through HMD, an additive display
+    /// where black is transparent: the lungs emit light, mostly at their outlines, on black).
+    #[arg(long, value_name = "LOOK")]
+    pub look: Option<lung_model::scene::Look>,
+    /// What the lungs' colour shows (overrides the scene's `[render] color`): "tissue" (pink, the
+    /// right lung warmer), "displacement" (distance from the rest position: blue 0 → yellow 20 mm),
+    /// "ventilation" (local expansion relative to FRC: blue −10 %, white 0, red +30 %).
+    #[arg(long, value_name = "COLOR")]
+    pub color: Option<lung_model::scene::ColorMode>,
+    /// Turn multisample anti-aliasing off (4 samples per pixel otherwise; the scene's `[render]
+    /// msaa = 1` does the same).
+    #[arg(long)]
+    pub no_msaa: bool,
 }
 
 /// Most `--snapshots`: one per 60 Hz display frame of a 4-second breath (15 breaths/min). More are
@@ -226,6 +242,12 @@ pub struct DemoReport {
     pub instance: String,
     /// Deformation mode the lungs ran in.
     pub mode: String,
+    /// The look drawn (`[render] look`).
+    pub look: String,
+    /// The colour mode drawn (`[render] color`).
+    pub color: String,
+    /// Samples per pixel (`[render] msaa`).
+    pub msaa: u32,
     /// The calibration file the renderer placed the lungs by (none: the fixed offset).
     pub calibration: Option<String>,
     /// The HMD optics file the renderer drew the eyes from (none: the scene's IPD and field of view).
@@ -517,6 +539,15 @@ pub fn run(args: &DemoArgs) -> anyhow::Result<DemoReport> {
     let mut loaded = lung_model::scene::Scene::load_or_default(args.scene.as_deref())?;
     if let Some(mode) = args.mode {
         loaded.lungs.mode = mode;
+    }
+    if let Some(look) = args.look {
+        loaded.render.look = look;
+    }
+    if let Some(color) = args.color {
+        loaded.render.color = color;
+    }
+    if args.no_msaa {
+        loaded.render.msaa = 1;
     }
     let cpus = if args.cpus.is_empty() {
         check_cpus(&loaded.processes.cpus, "[processes] cpus")?;
@@ -811,6 +842,9 @@ pub fn run(args: &DemoArgs) -> anyhow::Result<DemoReport> {
         kernels,
         instance,
         mode: scene.lungs.mode.name().to_string(),
+        look: scene.render.look.name().to_string(),
+        color: scene.render.color.name().to_string(),
+        msaa: scene.render.msaa,
         calibration: scene
             .render
             .calibration
