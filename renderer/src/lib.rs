@@ -144,6 +144,7 @@ pub struct LungRenderer {
     msaa_view: Option<wgpu::TextureView>,
     depth_view: wgpu::TextureView,
     oit: Option<OitTargets>,
+    samples: u32,
     readback: wgpu::Buffer,
     padded_row: u32,
     eye_width: u32,
@@ -195,7 +196,7 @@ impl LungRenderer {
             settings.mode == DrawMode::Triangles,
             field,
         )?;
-        let samples = settings.msaa.max(1);
+        let samples = msaa_samples(settings, gpu);
         let draw = draw::DrawPipelines::new(
             device,
             settings.mode,
@@ -367,6 +368,7 @@ impl LungRenderer {
             msaa_view,
             depth_view: depth.create_view(&Default::default()),
             oit,
+            samples,
             readback,
             padded_row,
             eye_width,
@@ -397,6 +399,11 @@ impl LungRenderer {
     /// Vertices drawn per frame (both lungs).
     pub fn vertex_count(&self) -> u32 {
         self.deform.count
+    }
+
+    /// Samples per pixel drawn (`[render] msaa`, or its default for this adapter).
+    pub fn samples(&self) -> u32 {
+        self.samples
     }
 
     /// The offscreen colour target (what the present pass samples).
@@ -767,6 +774,19 @@ impl LungRenderer {
             bytemuck::cast_slice::<u8, [f32; 4]>(bytes).to_vec()
         })
     }
+}
+
+/// Samples per pixel for `settings` on `gpu`: the scene's `msaa`, else 4 on a GPU and 1 on a
+/// software rasterizer (lavapipe shades every sample on the CPU: 4× costs it 3.4× the frame,
+/// `cargo bench -p lungdyn-bench --bench render_looks`).
+pub fn msaa_samples(settings: &RenderScene, gpu: &Gpu) -> u32 {
+    settings
+        .msaa
+        .unwrap_or(if gpu.info.device_type == wgpu::DeviceType::Cpu {
+            1
+        } else {
+            4
+        })
 }
 
 /// A cleared OIT target: the multisampled view resolved into `single`, or `single` itself.
