@@ -100,6 +100,23 @@ pub struct DemoArgs {
     /// The window of --max-restarts, seconds.
     #[arg(long, value_name = "S", default_value_t = 60.0)]
     pub restart_window_s: f64,
+    /// How the lungs are drawn over the patient (overrides the scene's `[render] look`): "opaque"
+    /// (lit tissue; hides what is behind it, a tumour drawn through it), "translucent" (lit tissue
+    /// with a fresnel rim, both lungs blended order-independently: the far wall, the other lung and
+    /// a tumour show through), "see-through" (for an optical see-through HMD, an additive display
+    /// where black is transparent: the lungs emit light, mostly at their outlines, on black).
+    #[arg(long, value_name = "LOOK")]
+    pub look: Option<lung_model::scene::Look>,
+    /// What the lungs' colour shows (overrides the scene's `[render] color`): "tissue" (pink, the
+    /// right lung warmer), "displacement" (distance from the rest position: blue 0 → yellow 20 mm),
+    /// "ventilation" (local expansion relative to FRC: blue −10 %, white 0, red +30 %).
+    #[arg(long, value_name = "COLOR")]
+    pub color: Option<lung_model::scene::ColorMode>,
+    /// Samples per pixel, 4 (multisample anti-aliasing) or 1 (off); overrides the scene's
+    /// `[render] msaa`. Default: 4 on a GPU, 1 on a software rasterizer (lavapipe, where 4× costs
+    /// 3.4× the frame).
+    #[arg(long, value_name = "N")]
+    pub msaa: Option<u32>,
 }
 
 /// Most `--snapshots`: one per 60 Hz display frame of a 4-second breath (15 breaths/min). More are
@@ -237,6 +254,13 @@ pub struct DemoReport {
     pub instance: String,
     /// Deformation mode the lungs ran in.
     pub mode: String,
+    /// The look drawn (`[render] look`).
+    pub look: String,
+    /// The colour mode drawn (`[render] color`).
+    pub color: String,
+    /// Samples per pixel the scene asks for (`[render] msaa`; null: the adapter's default, which
+    /// the renderer's start line names).
+    pub msaa: Option<u32>,
     /// The calibration file the renderer placed the lungs by (none: the fixed offset).
     pub calibration: Option<String>,
     /// The HMD optics file the renderer drew the eyes from (none: the scene's IPD and field of view).
@@ -445,6 +469,18 @@ pub fn run_watched(args: &DemoArgs, watch: &mut dyn Watch) -> anyhow::Result<Dem
     let mut loaded = lung_model::scene::Scene::load_or_default(args.scene.as_deref())?;
     if let Some(mode) = args.mode {
         loaded.lungs.mode = mode;
+    }
+    if let Some(look) = args.look {
+        loaded.render.look = look;
+    }
+    if let Some(color) = args.color {
+        loaded.render.color = color;
+    }
+    if let Some(n) = args.msaa {
+        if !lung_model::scene::MSAA_SAMPLES.contains(&n) {
+            anyhow::bail!("--msaa {n}: give 4 (anti-aliased) or 1 (off)");
+        }
+        loaded.render.msaa = Some(n);
     }
     let cpus = if args.cpus.is_empty() {
         check_cpus(&loaded.processes.cpus, "[processes] cpus")?;
@@ -847,6 +883,9 @@ pub fn run_watched(args: &DemoArgs, watch: &mut dyn Watch) -> anyhow::Result<Dem
         kernels,
         instance,
         mode: scene.lungs.mode.name().to_string(),
+        look: scene.render.look.name().to_string(),
+        color: scene.render.color.name().to_string(),
+        msaa: scene.render.msaa,
         calibration: scene
             .render
             .calibration

@@ -3,9 +3,11 @@
 //! Each frame: one compute pass deforms every vertex of both lungs in the scene's mode (EQUATIONS.md
 //! §2.4 and §3: precomputed `p + s·u`, the exact basis, spherical harmonics eq. 7.7 or eq. 7.1 over
 //! the stored rows, plus each lung's rigid offset) and computes smooth vertex normals from the moved
-//! surface; then one render pass draws those buffers once per eye (mono, or side-by-side stereo from
-//! the HMD pose with a per-eye IPD offset, or each eye of an HMD optics file), registered to the
-//! tracked patient pose (by a fixed offset, or the patient's calibration file: [`camera::Rig`]).
+//! surface; then the draw phases (opaque, translucent, overlay: [`draw`]) draw those buffers once
+//! per eye (mono, or side-by-side stereo from the HMD pose with a per-eye IPD offset, or each eye of
+//! an HMD optics file), registered to the tracked patient pose (by a fixed offset, or the patient's
+//! calibration file: [`camera::Rig`]), in the scene's look and colour mode, multisampled (4×,
+//! resolved into the single-sample image) unless `[render] msaa = 1`.
 //! Headless: an offscreen texture, read back to PNG on request. GPU time comes from timestamp
 //! queries where the adapter has them.
 //!
@@ -27,7 +29,7 @@ pub mod window;
 
 pub use deform::{LungInputs, RenderLung, UploadError};
 use ipc_types::{Pose, MAX_COEFFS};
-use lung_model::scene::{DrawMode, RenderScene};
+use lung_model::scene::{ColorMode, DrawMode, Look, RenderScene};
 use wgpu::util::DeviceExt;
 
 use crate::gpu::Gpu;
@@ -84,8 +86,10 @@ impl PoseWarning {
         }
     }
 
-    fn background(self) -> wgpu::Color {
+    fn background(self, look: Look) -> wgpu::Color {
         match self {
+            // An additive display shows black as the world behind it.
+            PoseWarning::None if look == Look::SeeThrough => wgpu::Color::BLACK,
             PoseWarning::None => BACKGROUND,
             PoseWarning::Held => wgpu::Color {
                 r: 0.16,
@@ -125,15 +129,31 @@ struct Timestamps {
     period_ns: f32,
 }
 
+/// The translucent look's weighted blended OIT targets.
+struct OitTargets {
+    /// Multisampled accumulation and revealage (MSAA on), resolved into the two below.
+    multisampled: Option<(wgpu::TextureView, wgpu::TextureView)>,
+    accum: wgpu::TextureView,
+    reveal: wgpu::TextureView,
+    /// The composite's binding of `accum` and `reveal`.
+    group: wgpu::BindGroup,
+}
+
 /// The renderer's GPU state for a fixed set of lungs and a fixed output size.
 pub struct LungRenderer {
     deform: deform::DeformPass,
     draw: draw::DrawPipelines,
     index: wgpu::Buffer,
     index_count: u32,
+    /// Per vertex of both lungs: material and lobe code ([`draw::SurfaceAttr`]).
+    surface: wgpu::Buffer,
     color: wgpu::Texture,
     color_view: wgpu::TextureView,
+    /// The multisampled colour target (MSAA on), resolved into `color` by the frame's last pass.
+    msaa_view: Option<wgpu::TextureView>,
     depth_view: wgpu::TextureView,
+    oit: Option<OitTargets>,
+    samples: u32,
     readback: wgpu::Buffer,
     padded_row: u32,
     eye_width: u32,
@@ -173,13 +193,41 @@ impl LungRenderer {
     ) -> Result<Self, UploadError> {
         let device = &gpu.device;
         let (eye_width, eye_height) = rig.eye_size(settings);
+        let field = match settings.color {
+            ColorMode::Tissue => deform::Field::None,
+            ColorMode::Displacement => deform::Field::Displacement,
+            ColorMode::Ventilation => deform::Field::Expansion,
+        };
         let deform = deform::DeformPass::new(
             device,
             &gpu.info.name,
             lungs,
             settings.mode == DrawMode::Triangles,
+            field,
         )?;
-        let draw = draw::DrawPipelines::new(device);
+        let samples = msaa_samples(settings, gpu);
+        let draw = draw::DrawPipelines::new(
+            device,
+            settings.mode,
+            settings.look,
+            settings.color,
+            samples,
+        );
+        // Lobe codes are 0 (unknown) until the meshes carry them.
+        let surface: Vec<draw::SurfaceAttr> = lungs
+            .iter()
+            .flat_map(|l| {
+                std::iter::repeat_n(
+                    draw::surface(draw::Material::lung(l.side.index()), 0),
+                    l.lung.len(),
+                )
+            })
+            .collect();
+        let surface = device.create_buffer_init(&wgpu::util::BufferInitDescriptor {
+            label: Some("lungdyn surface attributes"),
+            contents: bytemuck::cast_slice(&surface),
+            usage: wgpu::BufferUsages::VERTEX,
+        });
         let tumours = lungs
             .iter()
             .filter_map(|l| {
@@ -215,27 +263,80 @@ impl LungRenderer {
             height: eye_height,
             depth_or_array_layers: 1,
         };
-        let color = device.create_texture(&wgpu::TextureDescriptor {
-            label: Some("lungdyn colour"),
-            size,
-            mip_level_count: 1,
-            sample_count: 1,
-            dimension: wgpu::TextureDimension::D2,
-            format: draw::COLOR_FORMAT,
-            usage: wgpu::TextureUsages::RENDER_ATTACHMENT
-                | wgpu::TextureUsages::COPY_SRC
-                | wgpu::TextureUsages::TEXTURE_BINDING,
-            view_formats: &[],
+        let texture = |label, format, sample_count, usage| {
+            device.create_texture(&wgpu::TextureDescriptor {
+                label: Some(label),
+                size,
+                mip_level_count: 1,
+                sample_count,
+                dimension: wgpu::TextureDimension::D2,
+                format,
+                usage,
+                view_formats: &[],
+            })
+        };
+        let attachment = wgpu::TextureUsages::RENDER_ATTACHMENT;
+        let color = texture(
+            "lungdyn colour",
+            draw::COLOR_FORMAT,
+            1,
+            attachment | wgpu::TextureUsages::COPY_SRC | wgpu::TextureUsages::TEXTURE_BINDING,
+        );
+        let view = |t: wgpu::Texture| t.create_view(&Default::default());
+        let msaa_view = (samples > 1).then(|| {
+            view(texture(
+                "lungdyn colour (multisampled)",
+                draw::COLOR_FORMAT,
+                samples,
+                attachment,
+            ))
         });
-        let depth = device.create_texture(&wgpu::TextureDescriptor {
-            label: Some("lungdyn depth"),
-            size,
-            mip_level_count: 1,
-            sample_count: 1,
-            dimension: wgpu::TextureDimension::D2,
-            format: draw::DEPTH_FORMAT,
-            usage: wgpu::TextureUsages::RENDER_ATTACHMENT,
-            view_formats: &[],
+        let depth = texture("lungdyn depth", draw::DEPTH_FORMAT, samples, attachment);
+        let oit = draw.composite.as_ref().map(|(_, layout)| {
+            let sampled = attachment | wgpu::TextureUsages::TEXTURE_BINDING;
+            let accum = view(texture("lungdyn oit accum", draw::ACCUM_FORMAT, 1, sampled));
+            let reveal = view(texture(
+                "lungdyn oit reveal",
+                draw::REVEAL_FORMAT,
+                1,
+                sampled,
+            ));
+            let multisampled = (samples > 1).then(|| {
+                (
+                    view(texture(
+                        "lungdyn oit accum (multisampled)",
+                        draw::ACCUM_FORMAT,
+                        samples,
+                        attachment,
+                    )),
+                    view(texture(
+                        "lungdyn oit reveal (multisampled)",
+                        draw::REVEAL_FORMAT,
+                        samples,
+                        attachment,
+                    )),
+                )
+            });
+            let group = device.create_bind_group(&wgpu::BindGroupDescriptor {
+                label: Some("lungdyn composite"),
+                layout,
+                entries: &[
+                    wgpu::BindGroupEntry {
+                        binding: 0,
+                        resource: wgpu::BindingResource::TextureView(&accum),
+                    },
+                    wgpu::BindGroupEntry {
+                        binding: 1,
+                        resource: wgpu::BindingResource::TextureView(&reveal),
+                    },
+                ],
+            });
+            OitTargets {
+                multisampled,
+                accum,
+                reveal,
+                group,
+            }
         });
         let padded_row = (width * 4).div_ceil(wgpu::COPY_BYTES_PER_ROW_ALIGNMENT)
             * wgpu::COPY_BYTES_PER_ROW_ALIGNMENT;
@@ -270,9 +371,13 @@ impl LungRenderer {
             draw,
             index,
             index_count: indices.len() as u32,
+            surface,
             color_view: color.create_view(&Default::default()),
             color,
+            msaa_view,
             depth_view: depth.create_view(&Default::default()),
+            oit,
+            samples,
             readback,
             padded_row,
             eye_width,
@@ -303,6 +408,11 @@ impl LungRenderer {
     /// Vertices drawn per frame (both lungs).
     pub fn vertex_count(&self) -> u32 {
         self.deform.count
+    }
+
+    /// Samples per pixel drawn (`[render] msaa`, or its default for this adapter).
+    pub fn samples(&self) -> u32 {
+        self.samples
     }
 
     /// The offscreen colour target (what the present pass samples).
@@ -421,69 +531,7 @@ impl LungRenderer {
                     end_of_pass_write_index: None,
                 }),
         );
-        {
-            let mut pass = encoder.begin_render_pass(&wgpu::RenderPassDescriptor {
-                label: Some("lungdyn draw"),
-                color_attachments: &[Some(wgpu::RenderPassColorAttachment {
-                    view: &self.color_view,
-                    depth_slice: None,
-                    resolve_target: None,
-                    ops: wgpu::Operations {
-                        load: wgpu::LoadOp::Clear(state.pose_warning.background()),
-                        store: wgpu::StoreOp::Store,
-                    },
-                })],
-                depth_stencil_attachment: Some(wgpu::RenderPassDepthStencilAttachment {
-                    view: &self.depth_view,
-                    depth_ops: Some(wgpu::Operations {
-                        load: wgpu::LoadOp::Clear(1.0),
-                        store: wgpu::StoreOp::Discard,
-                    }),
-                    stencil_ops: None,
-                }),
-                timestamp_writes: self.timestamps.as_ref().map(|t| {
-                    wgpu::RenderPassTimestampWrites {
-                        query_set: &t.set,
-                        beginning_of_pass_write_index: None,
-                        end_of_pass_write_index: Some(1),
-                    }
-                }),
-                occlusion_query_set: None,
-                multiview_mask: None,
-            });
-            for (i, group) in self.draw.eye_groups.iter().take(n).enumerate() {
-                pass.set_vertex_buffer(0, self.deform.deformed.slice(..));
-                match s.mode {
-                    DrawMode::Triangles => {
-                        pass.set_vertex_buffer(1, self.deform.normals.slice(..));
-                        pass.set_pipeline(&self.draw.triangles);
-                        pass.set_index_buffer(self.index.slice(..), wgpu::IndexFormat::Uint32);
-                    }
-                    DrawMode::Points => pass.set_pipeline(&self.draw.splats),
-                }
-                pass.set_viewport(
-                    (i as u32 * self.eye_width) as f32,
-                    0.0,
-                    self.eye_width as f32,
-                    self.height as f32,
-                    0.0,
-                    1.0,
-                );
-                pass.set_bind_group(0, group, &[]);
-                match s.mode {
-                    DrawMode::Triangles => pass.draw_indexed(0..self.index_count, 0, 0..1),
-                    DrawMode::Points => pass.draw(0..6, 0..self.deform.count),
-                }
-                // The tumour over the lungs it lies inside (no depth test): the planner's target.
-                for t in &self.tumours {
-                    pass.set_pipeline(&self.draw.tumour);
-                    pass.set_vertex_buffer(0, t.positions.slice(..));
-                    pass.set_vertex_buffer(1, t.normals.slice(..));
-                    pass.set_index_buffer(t.index.slice(..), wgpu::IndexFormat::Uint32);
-                    pass.draw_indexed(0..t.index_count, 0, 0..1);
-                }
-            }
-        }
+        self.encode_phases(&mut encoder, state.pose_warning, n);
         extra(&mut encoder);
         if let Some(t) = &self.timestamps {
             encoder.resolve_query_set(&t.set, 0..2, &t.resolve, 0);
@@ -529,6 +577,163 @@ impl LungRenderer {
             Some((ticks as f64 * t.period_ns as f64) as u64)
         });
         FrameTiming { submit_ns, gpu_ns }
+    }
+
+    /// Record the draw phases ([`draw`]) for `eyes` eyes: opaque, translucent, overlay. The opaque
+    /// and see-through looks take one render pass; the translucent look three (the opaque phase,
+    /// the OIT targets, their composite). The last pass resolves the multisampled image and writes
+    /// the end timestamp.
+    fn encode_phases(&self, encoder: &mut wgpu::CommandEncoder, warning: PoseWarning, eyes: usize) {
+        let look = self.settings.look;
+        let translucent = self.oit.as_ref().zip(self.draw.composite.as_ref());
+        let (target, resolve) = match &self.msaa_view {
+            Some(ms) => (ms, Some(&self.color_view)),
+            None => (&self.color_view, None),
+        };
+        let end_timestamp = || {
+            self.timestamps
+                .as_ref()
+                .map(|t| wgpu::RenderPassTimestampWrites {
+                    query_set: &t.set,
+                    beginning_of_pass_write_index: None,
+                    end_of_pass_write_index: Some(1),
+                })
+        };
+        let colour = |load, last: bool| {
+            Some(wgpu::RenderPassColorAttachment {
+                view: target,
+                depth_slice: None,
+                resolve_target: if last { resolve } else { None },
+                ops: wgpu::Operations {
+                    load,
+                    store: if last && resolve.is_some() {
+                        wgpu::StoreOp::Discard
+                    } else {
+                        wgpu::StoreOp::Store
+                    },
+                },
+            })
+        };
+        let last = translucent.is_none();
+        {
+            let mut pass = encoder.begin_render_pass(&wgpu::RenderPassDescriptor {
+                label: Some("lungdyn opaque"),
+                color_attachments: &[colour(wgpu::LoadOp::Clear(warning.background(look)), last)],
+                depth_stencil_attachment: Some(wgpu::RenderPassDepthStencilAttachment {
+                    view: &self.depth_view,
+                    depth_ops: Some(wgpu::Operations {
+                        load: wgpu::LoadOp::Clear(1.0),
+                        store: if last {
+                            wgpu::StoreOp::Discard
+                        } else {
+                            wgpu::StoreOp::Store
+                        },
+                    }),
+                    stencil_ops: None,
+                }),
+                timestamp_writes: if last { end_timestamp() } else { None },
+                occlusion_query_set: None,
+                multiview_mask: None,
+            });
+            match look {
+                Look::Opaque => {
+                    self.draw_lungs(&mut pass, eyes);
+                    // Overlay: the tumour through the lungs it lies inside.
+                    self.draw_tumours(&mut pass, eyes);
+                }
+                // Opaque: the tumour; translucent: the lungs' light, added.
+                Look::SeeThrough => {
+                    self.draw_tumours(&mut pass, eyes);
+                    self.draw_lungs(&mut pass, eyes);
+                }
+                Look::Translucent => self.draw_tumours(&mut pass, eyes),
+            }
+        }
+        let Some((oit, (composite, _))) = translucent else {
+            return;
+        };
+        {
+            let ms = oit.multisampled.as_ref();
+            let mut pass = encoder.begin_render_pass(&wgpu::RenderPassDescriptor {
+                label: Some("lungdyn translucent"),
+                color_attachments: &[
+                    oit_target(&oit.accum, ms.map(|m| &m.0), wgpu::Color::TRANSPARENT),
+                    oit_target(&oit.reveal, ms.map(|m| &m.1), wgpu::Color::WHITE),
+                ],
+                depth_stencil_attachment: Some(wgpu::RenderPassDepthStencilAttachment {
+                    view: &self.depth_view,
+                    depth_ops: Some(wgpu::Operations {
+                        load: wgpu::LoadOp::Load,
+                        store: wgpu::StoreOp::Discard,
+                    }),
+                    stencil_ops: None,
+                }),
+                timestamp_writes: None,
+                occlusion_query_set: None,
+                multiview_mask: None,
+            });
+            self.draw_lungs(&mut pass, eyes);
+        }
+        let mut pass = encoder.begin_render_pass(&wgpu::RenderPassDescriptor {
+            label: Some("lungdyn composite"),
+            color_attachments: &[colour(wgpu::LoadOp::Load, true)],
+            depth_stencil_attachment: None,
+            timestamp_writes: end_timestamp(),
+            occlusion_query_set: None,
+            multiview_mask: None,
+        });
+        pass.set_pipeline(composite);
+        pass.set_bind_group(0, &oit.group, &[]);
+        pass.draw(0..3, 0..1);
+    }
+
+    /// Point `pass` at eye `i`: its viewport and uniforms.
+    fn set_eye(&self, pass: &mut wgpu::RenderPass<'_>, i: usize) {
+        pass.set_viewport(
+            (i as u32 * self.eye_width) as f32,
+            0.0,
+            self.eye_width as f32,
+            self.height as f32,
+            0.0,
+            1.0,
+        );
+        pass.set_bind_group(0, &self.draw.eye_groups[i], &[]);
+    }
+
+    /// Both lungs, in the look's pipeline, for each eye.
+    fn draw_lungs(&self, pass: &mut wgpu::RenderPass<'_>, eyes: usize) {
+        pass.set_pipeline(&self.draw.lungs);
+        pass.set_vertex_buffer(0, self.deform.deformed.slice(..));
+        pass.set_vertex_buffer(1, self.deform.normals.slice(..));
+        pass.set_vertex_buffer(2, self.surface.slice(..));
+        if self.settings.mode == DrawMode::Triangles {
+            pass.set_index_buffer(self.index.slice(..), wgpu::IndexFormat::Uint32);
+        }
+        for i in 0..eyes {
+            self.set_eye(pass, i);
+            match self.settings.mode {
+                DrawMode::Triangles => pass.draw_indexed(0..self.index_count, 0, 0..1),
+                DrawMode::Points => pass.draw(0..6, 0..self.deform.count),
+            }
+        }
+    }
+
+    /// Every tumour, in the phase the look puts them in ([`draw`]), for each eye.
+    fn draw_tumours(&self, pass: &mut wgpu::RenderPass<'_>, eyes: usize) {
+        if self.tumours.is_empty() {
+            return;
+        }
+        pass.set_pipeline(&self.draw.tumour);
+        for i in 0..eyes {
+            self.set_eye(pass, i);
+            for t in &self.tumours {
+                pass.set_vertex_buffer(0, t.positions.slice(..));
+                pass.set_vertex_buffer(1, t.normals.slice(..));
+                pass.set_vertex_buffer(2, t.surface.slice(..));
+                pass.set_index_buffer(t.index.slice(..), wgpu::IndexFormat::Uint32);
+                pass.draw_indexed(0..t.index_count, 0, 0..1);
+            }
+        }
     }
 
     /// The image of the last [`Self::render`] called with `capture = true`, as tightly packed
@@ -578,6 +783,44 @@ impl LungRenderer {
             bytemuck::cast_slice::<u8, [f32; 4]>(bytes).to_vec()
         })
     }
+}
+
+/// Samples per pixel for `settings` on `gpu`: the scene's `msaa`, else 4 on a GPU and 1 on a
+/// software rasterizer (lavapipe shades every sample on the CPU: 4× costs it 3.4× the frame,
+/// `cargo bench -p lungdyn-bench --bench render_looks`).
+pub fn msaa_samples(settings: &RenderScene, gpu: &Gpu) -> u32 {
+    settings
+        .msaa
+        .unwrap_or(if gpu.info.device_type == wgpu::DeviceType::Cpu {
+            1
+        } else {
+            4
+        })
+}
+
+/// A cleared OIT target: the multisampled view resolved into `single`, or `single` itself.
+fn oit_target<'a>(
+    single: &'a wgpu::TextureView,
+    multisampled: Option<&'a wgpu::TextureView>,
+    clear: wgpu::Color,
+) -> Option<wgpu::RenderPassColorAttachment<'a>> {
+    let (view, resolve_target) = match multisampled {
+        Some(ms) => (ms, Some(single)),
+        None => (single, None),
+    };
+    Some(wgpu::RenderPassColorAttachment {
+        view,
+        depth_slice: None,
+        resolve_target,
+        ops: wgpu::Operations {
+            load: wgpu::LoadOp::Clear(clear),
+            store: if resolve_target.is_some() {
+                wgpu::StoreOp::Discard
+            } else {
+                wgpu::StoreOp::Store
+            },
+        },
+    })
 }
 
 /// Map `buffer` for reading (after the GPU work that wrote it completed), run `f` on its bytes,

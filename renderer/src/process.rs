@@ -310,7 +310,7 @@ impl Session {
         transport::notify::ready(&format!("renderer[{}]: drawing", instance.name()));
         let (w, h) = session.renderer.image_size();
         eprintln!(
-            "renderer[{}]: {} vertices in the {} mode ({:.1} MiB on the GPU), {}x{} {:?}{} on {}{}; waiting for engine frames on {:?}",
+            "renderer[{}]: {} vertices in the {} mode ({:.1} MiB on the GPU), {}x{} {:?}{}, {} look, {} colour, {}x MSAA on {}{}; waiting for engine frames on {:?}",
             instance.name(),
             session.renderer.vertex_count(),
             session.renderer.mode(),
@@ -319,6 +319,9 @@ impl Session {
             h,
             scene.render.mode,
             if scene.render.stereo { " stereo" } else { "" },
+            scene.render.look,
+            scene.render.color,
+            session.renderer.samples(),
             session.gpu.describe(),
             rig_files.describe(),
             instance.engine()

@@ -1,6 +1,7 @@
 //! The tumour drawn where the radiotherapy planner needs to see it: an ellipsoid of the tumour's
 //! radii at its centre's position this frame, in a colour that contrasts with the lungs, drawn
-//! through the lung surface (depth test off: the tumour lies inside the lung).
+//! through the opaque lung surface (the overlay phase: the tumour lies inside the lung), or as a
+//! solid body inside the translucent and see-through looks' lungs.
 //!
 //! The centre moves as the kernel's [`TumourMeta`] says for the lung's mode and the frame's
 //! coefficients (the mean-value interpolation of the surface's displacement, seed §8.2 and
@@ -17,8 +18,6 @@ const RINGS: usize = 12;
 const SEGMENTS: usize = 24;
 /// Vertices of the ellipsoid mesh.
 pub const VERTICES: usize = (RINGS - 1) * SEGMENTS + 2;
-/// The `w` a tumour vertex carries: `draw.wgsl` colours `w > 1.5` as tumour.
-pub const TUMOUR_W: f32 = 2.0;
 
 /// A unit sphere as (positions, triangles), outward wound (counter-clockwise seen from outside).
 fn sphere() -> (Vec<[f32; 3]>, Vec<[u32; 3]>) {
@@ -64,10 +63,12 @@ pub struct TumourDraw {
     mode: DeformMode,
     /// Ellipsoid vertices relative to the centre, mm.
     local: Vec<[f32; 3]>,
-    /// Deformed positions (xyz mm, w = [`TUMOUR_W`]).
+    /// Deformed positions (xyz mm, w 1).
     pub positions: wgpu::Buffer,
-    /// Normals.
+    /// Normals (w 0: no colour field).
     pub normals: wgpu::Buffer,
+    /// Surface attributes: every vertex [`crate::draw::Material::Tumour`].
+    pub surface: wgpu::Buffer,
     /// Triangles.
     pub index: wgpu::Buffer,
     /// Index count.
@@ -104,6 +105,13 @@ impl TumourDraw {
             contents: bytemuck::cast_slice(&normals),
             usage: wgpu::BufferUsages::VERTEX,
         });
+        let surface = device.create_buffer_init(&wgpu::util::BufferInitDescriptor {
+            label: Some("lungdyn tumour surface"),
+            contents: bytemuck::cast_slice(
+                &[crate::draw::surface(crate::draw::Material::Tumour, 0); VERTICES],
+            ),
+            usage: wgpu::BufferUsages::VERTEX,
+        });
         let index = device.create_buffer_init(&wgpu::util::BufferInitDescriptor {
             label: Some("lungdyn tumour indices"),
             contents: bytemuck::cast_slice(&triangles),
@@ -116,6 +124,7 @@ impl TumourDraw {
             local,
             positions,
             normals,
+            surface,
             index,
             index_count: triangles.len() as u32 * 3,
         }
@@ -128,7 +137,7 @@ impl TumourDraw {
                 (centre[0] + l[0] as f64) as f32,
                 (centre[1] + l[1] as f64) as f32,
                 (centre[2] + l[2] as f64) as f32,
-                TUMOUR_W,
+                1.0,
             ];
         }
         out

@@ -545,7 +545,9 @@ def make_scenes(tmp):
     for tag, body in (("width_0", "width = 0"), ("width_100000", "width = 100000"), ("height_negative", "height = -600"),
                       ("fov_0", "fov_y_deg = 0.0"), ("fov_180", "fov_y_deg = 180.0"), ("fov_nan", "fov_y_deg = nan"),
                       ("ipd_nan", "ipd_mm = nan"), ("ipd_negative", "ipd_mm = -63.0"), ("splat_negative", "splat_mm = -1.0"),
-                      ("mode_wireframe", "mode = \"wireframe\""), ("stereo_string", "stereo = \"yes\"")):
+                      ("mode_wireframe", "mode = \"wireframe\""), ("stereo_string", "stereo = \"yes\""),
+                      ("look_glass", "look = \"glass\""), ("color_lobes", "color = \"lobes\""),
+                      ("msaa_8", "msaa = 8"), ("msaa_negative", "msaa = -4")):
         s("render_" + tag, SCENE_BASE + "[render]\n%s\n" % body)
     s("syntax_error", SCENE_BASE + "[render\nwidth = 800\n")
     s("duplicate_key", "[lungs]\nvertices = 100\nvertices = 200\n")

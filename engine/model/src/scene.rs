@@ -242,12 +242,112 @@ pub enum DrawMode {
     Points,
 }
 
+/// How the lungs' surface is shown over the patient (`[render] look`, `lungdyn demo --look`).
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize, Default)]
+#[serde(rename_all = "kebab-case")]
+pub enum Look {
+    /// Lit tissue, opaque: the lungs hide what is behind them; a tumour is drawn through them.
+    #[default]
+    Opaque,
+    /// Lit tissue, translucent with a fresnel rim (both lungs blended order-independently, weighted
+    /// blended OIT): the far wall, the other lung and an opaque tumour show through.
+    Translucent,
+    /// For an optical see-through (additive) display, where black is transparent: the lungs emit
+    /// light, mostly at their silhouettes, and add to the view of the patient instead of covering it.
+    SeeThrough,
+}
+
+impl Look {
+    /// Every look, in the order `--help` lists them.
+    pub const ALL: [Look; 3] = [Look::Opaque, Look::Translucent, Look::SeeThrough];
+
+    /// The name in scene files and on the command line.
+    pub fn name(self) -> &'static str {
+        match self {
+            Look::Opaque => "opaque",
+            Look::Translucent => "translucent",
+            Look::SeeThrough => "see-through",
+        }
+    }
+}
+
+/// What the lungs' colour shows (`[render] color`, `lungdyn demo --color`). A further variant
+/// (e.g. lobes, from per-vertex lobe codes) needs one more per-vertex byte, which the renderer's
+/// per-vertex surface attribute already carries (`renderer::draw::SurfaceAttr`).
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize, Default)]
+#[serde(rename_all = "kebab-case")]
+pub enum ColorMode {
+    /// The tissue's own colour (pink, the right lung a little warmer than the left).
+    #[default]
+    Tissue,
+    /// Displacement from the rest (FRC) position, mm: dark blue 0 → yellow 20 mm and over.
+    Displacement,
+    /// Local expansion relative to FRC, a proxy of regional ventilation (the surface's areal strain
+    /// around each vertex, `(A/A₀)^(3/2) − 1`): blue −10 % (collapsing), white 0, red +30 %.
+    Ventilation,
+}
+
+impl ColorMode {
+    /// Every colour mode, in the order `--help` lists them.
+    pub const ALL: [ColorMode; 3] = [
+        ColorMode::Tissue,
+        ColorMode::Displacement,
+        ColorMode::Ventilation,
+    ];
+
+    /// The name in scene files and on the command line.
+    pub fn name(self) -> &'static str {
+        match self {
+            ColorMode::Tissue => "tissue",
+            ColorMode::Displacement => "displacement",
+            ColorMode::Ventilation => "ventilation",
+        }
+    }
+}
+
+macro_rules! named_enum_text {
+    ($t:ty, $what:literal) => {
+        impl std::fmt::Display for $t {
+            fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+                f.write_str(self.name())
+            }
+        }
+
+        impl std::str::FromStr for $t {
+            type Err = String;
+            fn from_str(s: &str) -> Result<Self, String> {
+                <$t>::ALL
+                    .into_iter()
+                    .find(|v| v.name() == s)
+                    .ok_or_else(|| {
+                        let names: Vec<&str> = <$t>::ALL.iter().map(|v| v.name()).collect();
+                        format!("unknown {} {s:?} ({})", $what, names.join(", "))
+                    })
+            }
+        }
+    };
+}
+named_enum_text!(Look, "look");
+named_enum_text!(ColorMode, "colour mode");
+
+/// Multisample anti-aliasing sample counts the renderer accepts (`[render] msaa`).
+pub const MSAA_SAMPLES: [u32; 2] = [1, 4];
+
 /// `[render]` table.
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
 #[serde(deny_unknown_fields, default)]
 pub struct RenderScene {
     /// Triangles or point splats.
     pub mode: DrawMode,
+    /// Opaque, translucent or see-through.
+    pub look: Look,
+    /// What the colour shows.
+    pub color: ColorMode,
+    /// Samples per pixel: 4 (multisampled, resolved before read-back) or 1 (off). Unset: 4 on a
+    /// GPU, 1 on a software rasterizer (lavapipe shades every sample on the CPU: 4× costs it 3.4×
+    /// the frame); the renderer's start line says which it drew with.
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub msaa: Option<u32>,
     /// Side-by-side stereo from the HMD pose.
     pub stereo: bool,
     /// Inter-pupillary distance, mm.
@@ -317,6 +417,9 @@ impl Default for RenderScene {
     fn default() -> Self {
         Self {
             mode: DrawMode::Triangles,
+            look: Look::Opaque,
+            color: ColorMode::Tissue,
+            msaa: None,
             stereo: false,
             ipd_mm: 63.0,
             width: 800,
@@ -411,6 +514,9 @@ pub enum SceneValueError {
     /// Field of view out of range.
     #[error("[render] fov_y_deg = {0} must be within 1..170")]
     FieldOfView(f32),
+    /// An MSAA sample count the renderer does not offer.
+    #[error("[render] msaa = {0}: give 4 (anti-aliased) or 1 (off)")]
+    Msaa(u32),
     /// IPD or splat size out of range.
     #[error(
         "[render] ipd_mm = {ipd_mm} must be within 0..200 and splat_mm = {splat_mm} within 0..100"
@@ -842,6 +948,9 @@ impl Scene {
                 splat_mm: r.splat_mm,
             });
         }
+        if let Some(n) = r.msaa.filter(|n| !MSAA_SAMPLES.contains(n)) {
+            return Err(E::Msaa(n));
+        }
         Ok(())
     }
 
@@ -1141,5 +1250,48 @@ mod tests {
             .unwrap_err()
             .to_string();
         assert!(e.contains("voxels"), "{e}");
+    }
+
+    #[test]
+    fn render_look_colour_and_msaa_parse_by_name_and_refuse_others() {
+        let s = Scene::parse(
+            "[render]\nlook = \"see-through\"\ncolor = \"ventilation\"\nmsaa = 1\n",
+            "s.toml",
+        )
+        .unwrap();
+        assert_eq!(
+            (s.render.look, s.render.color, s.render.msaa),
+            (Look::SeeThrough, ColorMode::Ventilation, Some(1))
+        );
+        let d = Scene::default().render;
+        assert_eq!(
+            (d.look, d.color, d.msaa),
+            (Look::Opaque, ColorMode::Tissue, None)
+        );
+        for look in Look::ALL {
+            assert_eq!(look.name().parse::<Look>().unwrap(), look);
+        }
+        for c in ColorMode::ALL {
+            assert_eq!(c.name().parse::<ColorMode>().unwrap(), c);
+        }
+        let e = "glass".parse::<Look>().unwrap_err();
+        assert!(e.contains("glass") && e.contains("see-through"), "{e}");
+        let e = "lobes".parse::<ColorMode>().unwrap_err();
+        assert!(e.contains("lobes") && e.contains("ventilation"), "{e}");
+        for bad in ["look = \"glass\"", "color = \"lobes\"", "look = 1"] {
+            let e = Scene::parse(&format!("[render]\n{bad}\n"), "s.toml")
+                .unwrap_err()
+                .to_string();
+            assert!(
+                e.contains("look") || e.contains("color") || e.contains("glass"),
+                "{bad}: {e}"
+            );
+        }
+        for n in [0u32, 2, 3, 8, 16] {
+            let mut s = Scene::default();
+            s.render.msaa = Some(n);
+            let e = s.validate().unwrap_err().to_string();
+            assert!(e.contains("msaa") && e.contains(&n.to_string()), "{e}");
+        }
     }
 }

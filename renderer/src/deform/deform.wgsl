@@ -9,6 +9,9 @@
 //   direct_force        f_j = w·(1, x̂, ŷ, ẑ)_j                    (eq. 6.18 for this orientation)
 //   deform_direct       p + s·(Σ_j f_j·T(j, i))·kd + o             (eq. 7.1 over the stored rows)
 //   vertex_normals      n_i = normalize(Σ_t (b − a) × (c − a))     (area-weighted, smooth shading)
+//                       and in w the colour mode's field: |p_i − p_i⁰| (displacement, mm) or
+//                       (A_i/A_i⁰)^(3/2) − 1 (expansion relative to FRC, A_i the area of the
+//                       vertex's incident triangles, A_i⁰ its value at rest), else 0
 //
 // The CPU reference of every entry point is lung_model::deform::modes::CpuLung; the two agree to
 // 1e-4 relative (tests/tests/modes_gpu.rs).
@@ -23,7 +26,8 @@ struct Params {
     // Force weights (w0, wx, wy, wz) per slot: basis and direct modes.
     weights: array<vec4<f32>, 2>,
     count: u32,
-    _pad0: u32,
+    // The field vertex_normals writes into normals.w: 0 none, 1 displacement, 2 expansion.
+    field: u32,
     _pad1: u32,
     _pad2: u32,
     // Per slot: x = first vertex, y = SH coefficients per vertex, z = first SH word.
@@ -62,6 +66,8 @@ struct Params {
 @group(0) @binding(13) var<storage, read> inc_ptr: array<u32>;
 @group(0) @binding(14) var<storage, read> inc_tris: array<u32>;
 @group(0) @binding(15) var<storage, read> indices: array<u32>;
+// Σ of the incident triangles' areas at rest (FRC), mm², per vertex (the expansion field).
+@group(0) @binding(16) var<storage, read> rest_area: array<f32>;
 
 fn slot_of(b: vec4<f32>) -> u32 {
     return select(0u, 1u, b.w > 0.5);
@@ -151,17 +157,31 @@ fn vertex_normals(@builtin(global_invocation_id) gid: vec3<u32>) {
         return;
     }
     var n = vec3<f32>(0.0, 0.0, 0.0);
+    // Twice the incident area.
+    var area2 = 0.0;
     for (var k = inc_ptr[i]; k < inc_ptr[i + 1u]; k = k + 1u) {
         let t = inc_tris[k] * 3u;
         let a = deformed[indices[t]].xyz;
         let b = deformed[indices[t + 1u]].xyz;
         let c = deformed[indices[t + 2u]].xyz;
-        n = n + cross(b - a, c - a);
+        let x = cross(b - a, c - a);
+        n = n + x;
+        area2 = area2 + length(x);
     }
     let len = length(n);
     var unit = vec3<f32>(0.0, 0.0, 0.0);
     if (len > 1e-30) {
         unit = n / len;
     }
-    normals[i] = vec4<f32>(unit, 0.0);
+    var field = 0.0;
+    if (params.field == 1u) {
+        let p = deformed[i].xyz - base[i].xyz;
+        field = length(p);
+    } else if (params.field == 2u) {
+        let a0 = rest_area[i];
+        if (a0 > 0.0) {
+            field = pow(0.5 * area2 / a0, 1.5) - 1.0;
+        }
+    }
+    normals[i] = vec4<f32>(unit, field);
 }

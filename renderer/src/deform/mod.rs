@@ -60,6 +60,20 @@ impl RenderLung {
     }
 }
 
+/// Per vertex, the summed area of its incident triangles, mm² (the expansion field's rest value;
+/// `deform.wgsl`'s `vertex_normals` sums the same triangles after deformation).
+pub fn incident_areas(positions: &[[f32; 3]], triangles: &[[u32; 3]]) -> Vec<f32> {
+    let mut area = vec![0.0f32; positions.len()];
+    for t in triangles {
+        let [a, b, c] = t.map(|i| glam::Vec3::from(positions[i as usize]));
+        let twice = (b - a).cross(c - a).length();
+        for &i in t {
+            area[i as usize] += 0.5 * twice;
+        }
+    }
+    area
+}
+
 /// Uniform block of `deform.wgsl`.
 #[repr(C)]
 #[derive(Debug, Clone, Copy, bytemuck::Pod, bytemuck::Zeroable)]
@@ -72,8 +86,10 @@ pub struct DeformParams {
     pub weights: [[f32; 4]; 2],
     /// Vertex count.
     pub count: u32,
+    /// The field the normals pass writes into each normal's w ([`Field`] as u32).
+    pub field: u32,
     /// Padding to 16 bytes.
-    pub _pad: [u32; 3],
+    pub _pad: [u32; 2],
     /// Per slot: first vertex, SH coefficients per vertex, first SH word (two 16-bit coefficients
     /// each), unused.
     pub lung_info: [[u32; 4]; 2],
@@ -120,6 +136,20 @@ pub struct LungInputs {
     pub coeffs: [[f32; MAX_COEFFS]; 2],
 }
 
+/// The per-vertex scalar the normals pass writes into each normal's `w`, for the colour modes
+/// (`lung_model::scene::ColorMode`); `draw.wgsl` maps it to a colour.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Default)]
+#[repr(u32)]
+pub enum Field {
+    /// Nothing (0): the tissue colour needs no field.
+    #[default]
+    None = 0,
+    /// Distance from the rest (FRC) position, mm.
+    Displacement = 1,
+    /// Local expansion relative to FRC, `(A/A₀)^(3/2) − 1` of the vertex's incident area.
+    Expansion = 2,
+}
+
 struct Dispatch {
     pipeline: wgpu::ComputePipeline,
     group: wgpu::BindGroup,
@@ -128,6 +158,7 @@ struct Dispatch {
 /// GPU buffers and pipelines of the deformation pass.
 pub struct DeformPass {
     mode: DeformMode,
+    field: Field,
     dispatches: Vec<Dispatch>,
     normals_pass: Option<Dispatch>,
     params: wgpu::Buffer,
@@ -147,13 +178,16 @@ pub struct DeformPass {
 
 impl DeformPass {
     /// Upload `lungs` (all in one mode) and build the pass; `normals`: also compute vertex normals
-    /// each frame (triangle drawing).
+    /// each frame (triangle drawing); `field`: the scalar each normal's w carries (a field other
+    /// than [`Field::None`] runs the normals pass whatever `normals` says).
     pub fn new(
         device: &wgpu::Device,
         adapter: &str,
         lungs: &[RenderLung],
         normals: bool,
+        field: Field,
     ) -> Result<Self, UploadError> {
+        let normals = normals || field != Field::None;
         let mode = lungs
             .first()
             .map(RenderLung::mode)
@@ -436,6 +470,7 @@ impl DeformPass {
             let mut inc_ptr: Vec<u32> = vec![0];
             let mut inc_tris: Vec<u32> = Vec::new();
             let mut indices: Vec<u32> = Vec::new();
+            let mut rest_area: Vec<f32> = Vec::new();
             let (mut vfirst, mut tfirst) = (0u32, 0u32);
             for l in lungs {
                 let inc = &l.lung.incidence;
@@ -443,6 +478,7 @@ impl DeformPass {
                 inc_ptr.extend(inc.ptr[1..].iter().map(|&p| p + at));
                 inc_tris.extend(inc.tris.iter().map(|&t| t + tfirst));
                 indices.extend(l.lung.triangles.iter().flat_map(|t| t.map(|v| v + vfirst)));
+                rest_area.extend(incident_areas(&l.lung.positions, &l.lung.triangles));
                 vfirst += l.lung.len() as u32;
                 tfirst += l.lung.triangles.len() as u32;
             }
@@ -464,10 +500,18 @@ impl DeformPass {
                 bytemuck::cast_slice(&indices),
                 none,
             )?;
+            let rest_area = storage(
+                "normal data",
+                "lungdyn rest areas",
+                bytemuck::cast_slice(&rest_area),
+                none,
+            )?;
             Some(make(
                 "vertex_normals",
                 &[
                     (0, &params),
+                    (1, &base_buf),
+                    (16, &rest_area),
                     (3, &deformed),
                     (12, &normals_buf),
                     (13, &inc_ptr),
@@ -480,6 +524,7 @@ impl DeformPass {
         };
         Ok(Self {
             mode,
+            field,
             dispatches,
             normals_pass,
             params,
@@ -529,7 +574,8 @@ impl DeformPass {
             offset: [o(0), o(1)],
             weights: [[0.0; 4]; 2],
             count: self.count,
-            _pad: [0; 3],
+            field: self.field as u32,
+            _pad: [0; 2],
             lung_info: self.lung_info,
             sh_f: [[0.0; 4]; 32],
         };

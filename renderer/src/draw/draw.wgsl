@@ -1,4 +1,14 @@
-// Drawing the deformed lungs: shaded triangles or camera-facing point splats, one eye per draw.
+// Drawing the deformed lungs: shaded triangles or camera-facing point splats, one eye per draw, in
+// one of three looks (renderer/src/draw/mod.rs):
+//
+//   opaque       fs_opaque_*   lit tissue, depth-tested and written
+//   translucent  fs_oit_*      lit tissue with a fresnel rim into weighted blended OIT targets
+//                              (McGuire & Bavoil 2013), then composite.wgsl over the opaque image
+//   see-through  fs_glow_*     emitted light for an additive display (black is transparent)
+//
+// Per vertex: the deformed position (xyz; w belongs to the compute pass), the normal with the
+// colour mode's scalar field in w (deform.wgsl, vertex_normals), and the surface attribute
+// (material id; the second byte is reserved for a lobe code, 0 = unknown).
 
 struct Eye {
     view_proj: mat4x4<f32>,
@@ -11,61 +21,126 @@ struct Eye {
     cam_up: vec4<f32>,
 };
 
+struct Style {
+    // What colour shows: 0 tissue, 1 displacement, 2 ventilation (lung_model::scene::ColorMode).
+    color_mode: u32,
+    _pad0: u32,
+    _pad1: u32,
+    _pad2: u32,
+};
+
 @group(0) @binding(0) var<uniform> eye: Eye;
+@group(0) @binding(1) var<uniform> style: Style;
+
+// Material ids (draw/mod.rs, Material).
+const RIGHT_LUNG: u32 = 0u;
+const LEFT_LUNG: u32 = 1u;
+const TUMOUR: u32 = 2u;
 
 struct VsOut {
     @builtin(position) clip: vec4<f32>,
     @location(0) world: vec3<f32>,
-    @location(1) lung: f32,
+    @location(1) @interpolate(flat) material: u32,
     @location(2) corner: vec2<f32>,
     // Smooth normal in the room frame (triangles; zero where the compute pass had no area).
     @location(3) normal: vec3<f32>,
+    // The colour mode's field at the vertex (displacement mm, or expansion relative to FRC).
+    @location(4) field: f32,
 };
 
-fn lung_colour(lung: f32) -> vec3<f32> {
-    // A tumour (w = 2, renderer/src/tumour.rs): yellow-green, far from the lungs' hues.
-    if (lung > 1.5) {
-        return vec3<f32>(0.62, 0.95, 0.22);
+// A ramp through four colours, t in [0, 1].
+fn ramp4(t: f32, a: vec3<f32>, b: vec3<f32>, c: vec3<f32>, d: vec3<f32>) -> vec3<f32> {
+    let s = clamp(t, 0.0, 1.0) * 3.0;
+    if (s < 1.0) {
+        return mix(a, b, s);
     }
-    // Right lung slightly warmer than the left, so the two read apart in an overlay.
-    return select(vec3<f32>(0.93, 0.52, 0.50), vec3<f32>(0.88, 0.50, 0.62), lung > 0.5);
+    if (s < 2.0) {
+        return mix(b, c, s - 1.0);
+    }
+    return mix(c, d, s - 2.0);
 }
 
-fn shade(n_in: vec3<f32>, world: vec3<f32>, lung: f32) -> vec4<f32> {
-    let to_eye = normalize(eye.eye_pos.xyz - world);
-    // Face the viewer (a silhouette vertex's interpolated normal may point slightly away).
-    let n = select(-n_in, n_in, dot(n_in, to_eye) >= 0.0);
-    let light = normalize(to_eye + vec3<f32>(0.0, 0.0, 0.6));
-    let diffuse = max(dot(n, light), 0.0);
-    let h = normalize(light + to_eye);
-    let spec = pow(max(dot(n, h), 0.0), 40.0) * 0.25;
-    let rim = pow(1.0 - max(dot(n, to_eye), 0.0), 3.0) * 0.25;
-    let c = lung_colour(lung) * (0.22 + 0.78 * diffuse) + vec3<f32>(spec + rim);
-    return vec4<f32>(c, 1.0);
+// Linear-light albedo of a fragment.
+fn albedo(material: u32, field: f32) -> vec3<f32> {
+    if (material == TUMOUR) {
+        // Yellow-green, far from every lung colour of every mode.
+        return vec3<f32>(0.55, 0.92, 0.12);
+    }
+    if (style.color_mode == 1u) {
+        // Displacement from rest: 0 → 20 mm, dark blue → teal → green → yellow.
+        return ramp4(field / 20.0, vec3<f32>(0.05, 0.04, 0.30), vec3<f32>(0.02, 0.32, 0.45),
+                     vec3<f32>(0.18, 0.62, 0.20), vec3<f32>(0.95, 0.85, 0.10));
+    }
+    if (style.color_mode == 2u) {
+        // Expansion: collapsing (−10 %) blue, none white, +30 % red.
+        let white = vec3<f32>(0.80, 0.80, 0.80);
+        if (field < 0.0) {
+            return mix(white, vec3<f32>(0.05, 0.20, 0.85), clamp(-field / 0.10, 0.0, 1.0));
+        }
+        return mix(white, vec3<f32>(0.85, 0.06, 0.04), clamp(field / 0.30, 0.0, 1.0));
+    }
+    // Tissue: the salmon pink of an aerated lung's pleura (linear light); the right lung a little
+    // warmer than the left so the two read apart where they meet in a view.
+    return select(vec3<f32>(0.74, 0.33, 0.30), vec3<f32>(0.68, 0.30, 0.36), material == LEFT_LUNG);
 }
 
-@vertex
-fn vs_triangles(@location(0) p: vec4<f32>, @location(1) n: vec4<f32>) -> VsOut {
-    var out: VsOut;
-    let world = eye.model * vec4<f32>(p.xyz, 1.0);
-    out.clip = eye.view_proj * world;
-    out.world = world.xyz;
-    out.lung = p.w;
-    out.corner = vec2<f32>(0.0, 0.0);
-    // The registration is a rigid transform: its upper 3×3 rotates normals.
-    out.normal = (eye.model * vec4<f32>(n.xyz, 0.0)).xyz;
+// Surface terms seen from the eye: n faces the viewer.
+struct Lit {
+    colour: vec3<f32>,
+    // 1 − |n·v|: 0 facing the eye, 1 at the silhouette.
+    edge: f32,
+};
+
+// Lung tissue under a lamp at the viewer's upper left (a head- or theatre light): wrapped diffuse
+// (light bleeds past the terminator as in a scattering medium), a soft specular of the wet pleura,
+// and a red subsurface tint where the direct light fades, in place of a hard black shadow.
+fn tissue(n_in: vec3<f32>, world: vec3<f32>, base: vec3<f32>) -> Lit {
+    let v = normalize(eye.eye_pos.xyz - world);
+    // Face the viewer (a back face in the translucent looks, or a silhouette vertex's normal).
+    let n = select(-n_in, n_in, dot(n_in, v) >= 0.0);
+    let l = normalize(v + 0.45 * eye.cam_up.xyz - 0.30 * eye.cam_right.xyz);
+    let wrap = 0.45;
+    let ndl = dot(n, l);
+    let diffuse = max((ndl + wrap) / (1.0 + wrap), 0.0);
+    let h = normalize(l + v);
+    let ndv = max(dot(n, v), 0.0);
+    // Schlick's fresnel (F0 = 0.03, water) on a broad lobe plus a narrower sheen.
+    let fresnel = 0.03 + 0.97 * pow(1.0 - max(dot(h, v), 0.0), 5.0);
+    let spec = (0.10 * pow(max(dot(n, h), 0.0), 24.0) + 0.22 * pow(max(dot(n, h), 0.0), 180.0))
+        * (0.4 + 3.0 * fresnel);
+    let scatter = vec3<f32>(0.55, 0.10, 0.08) * (1.0 - smoothstep(0.0, 0.6, ndl + wrap)) * 0.35;
+    let ambient = 0.16;
+    var out: Lit;
+    out.colour = base * (ambient + 0.84 * diffuse) + scatter * base.r + vec3<f32>(spec);
+    out.edge = 1.0 - ndv;
     return out;
 }
 
-@fragment
-fn fs_triangles(in: VsOut) -> @location(0) vec4<f32> {
+fn vs_common(p: vec3<f32>, normal: vec4<f32>, surface: vec4<u32>) -> VsOut {
+    var out: VsOut;
+    let world = eye.model * vec4<f32>(p, 1.0);
+    out.clip = eye.view_proj * world;
+    out.world = world.xyz;
+    out.material = surface.x;
+    out.corner = vec2<f32>(0.0, 0.0);
+    // The registration is a rigid transform: its upper 3×3 rotates normals.
+    out.normal = (eye.model * vec4<f32>(normal.xyz, 0.0)).xyz;
+    out.field = normal.w;
+    return out;
+}
+
+@vertex
+fn vs_triangles(@location(0) p: vec4<f32>, @location(1) n: vec4<f32>, @location(2) surface: vec4<u32>) -> VsOut {
+    return vs_common(p.xyz, n, surface);
+}
+
+fn triangle_normal(in: VsOut) -> vec3<f32> {
     let len = length(in.normal);
-    var n = in.normal / max(len, 1e-20);
     if (len < 0.5) {
         // A vertex with no area around it (degenerate neighbourhood): the face's own normal.
-        n = normalize(cross(dpdx(in.world), dpdy(in.world)));
+        return normalize(cross(dpdx(in.world), dpdy(in.world)));
     }
-    return shade(n, in.world, in.lung);
+    return in.normal / len;
 }
 
 // Two triangles per splat, expanded from the instance's deformed position.
@@ -75,28 +150,103 @@ const CORNERS = array<vec2<f32>, 6>(
 );
 
 @vertex
-fn vs_splats(@builtin(vertex_index) vi: u32, @location(0) p: vec4<f32>) -> VsOut {
-    var out: VsOut;
+fn vs_splats(@builtin(vertex_index) vi: u32, @location(0) p: vec4<f32>, @location(1) n: vec4<f32>, @location(2) surface: vec4<u32>) -> VsOut {
     let corner = CORNERS[vi];
     let radius = eye.cam_right.w;
-    let centre = eye.model * vec4<f32>(p.xyz, 1.0);
-    let world = centre.xyz + (eye.cam_right.xyz * corner.x + eye.cam_up.xyz * corner.y) * radius;
+    let centre = (eye.model * vec4<f32>(p.xyz, 1.0)).xyz;
+    let world = centre + (eye.cam_right.xyz * corner.x + eye.cam_up.xyz * corner.y) * radius;
+    var out = vs_common(p.xyz, n, surface);
     out.clip = eye.view_proj * vec4<f32>(world, 1.0);
     out.world = world;
-    out.lung = p.w;
     out.corner = corner;
     out.normal = vec3<f32>(0.0, 0.0, 0.0);
     return out;
 }
 
-@fragment
-fn fs_splats(in: VsOut) -> @location(0) vec4<f32> {
+// The sphere impostor's normal at a splat fragment (inside the disc: see outside_splat).
+fn splat_normal(in: VsOut) -> vec3<f32> {
     let r2 = dot(in.corner, in.corner);
-    if (r2 > 1.0) {
+    let to_eye = normalize(eye.eye_pos.xyz - in.world);
+    return normalize(eye.cam_right.xyz * in.corner.x + eye.cam_up.xyz * in.corner.y + to_eye * sqrt(max(1.0 - r2, 0.0)));
+}
+
+fn outside_splat(in: VsOut) -> bool {
+    return dot(in.corner, in.corner) > 1.0;
+}
+
+// ---- opaque ----
+
+@fragment
+fn fs_opaque_triangles(in: VsOut) -> @location(0) vec4<f32> {
+    return vec4<f32>(tissue(triangle_normal(in), in.world, albedo(in.material, in.field)).colour, 1.0);
+}
+
+@fragment
+fn fs_opaque_splats(in: VsOut) -> @location(0) vec4<f32> {
+    if (outside_splat(in)) {
         discard;
     }
-    // Sphere impostor normal in the camera's frame.
-    let to_eye = normalize(eye.eye_pos.xyz - in.world);
-    let n = normalize(eye.cam_right.xyz * in.corner.x + eye.cam_up.xyz * in.corner.y + to_eye * sqrt(1.0 - r2));
-    return shade(n, in.world, in.lung);
+    return vec4<f32>(tissue(splat_normal(in), in.world, albedo(in.material, in.field)).colour, 1.0);
+}
+
+// ---- translucent: weighted blended order-independent transparency ----
+
+struct Oit {
+    // Σ w·α·c (rgb) and Σ w·α (a): blended One, One.
+    @location(0) accum: vec4<f32>,
+    // Π (1 − α): blended Zero, OneMinusSrc.
+    @location(1) reveal: f32,
+};
+
+fn oit(lit: Lit, world: vec3<f32>) -> Oit {
+    // Facing the eye the tissue is a veil (α 0.28); at the silhouette, where the eye looks through
+    // more of it, nearly opaque and brighter: the fresnel rim that shows the lungs' outline.
+    let rim = pow(lit.edge, 3.0);
+    let alpha = mix(0.28, 0.92, rim);
+    let c = lit.colour + vec3<f32>(0.95, 0.70, 0.65) * 0.35 * rim;
+    // McGuire & Bavoil's depth weight (their eq. 9, in the eye's distance): nearer surfaces weigh
+    // more, so the near wall of a lung wins over its far wall and over the other lung behind it.
+    // Scaled for views about a metre away; clamped to stay within half-float range.
+    let d = length(eye.eye_pos.xyz - world) / 1000.0;
+    let w = alpha * clamp(1.0 / (1e-5 + pow(d, 8.0)), 1e-2, 3e3);
+    var out: Oit;
+    out.accum = vec4<f32>(c * alpha * w, alpha * w);
+    out.reveal = alpha;
+    return out;
+}
+
+@fragment
+fn fs_oit_triangles(in: VsOut) -> Oit {
+    return oit(tissue(triangle_normal(in), in.world, albedo(in.material, in.field)), in.world);
+}
+
+@fragment
+fn fs_oit_splats(in: VsOut) -> Oit {
+    if (outside_splat(in)) {
+        discard;
+    }
+    return oit(tissue(splat_normal(in), in.world, albedo(in.material, in.field)), in.world);
+}
+
+// ---- see-through: an additive display adds light; black shows the patient unchanged ----
+
+fn glow(lit: Lit) -> vec4<f32> {
+    // Little light where the surface faces the eye (the patient stays visible through it), most at
+    // the silhouette: the lungs read as lit outlines with a faint fill.
+    let rim = pow(lit.edge, 2.5);
+    let strength = 0.10 + 0.85 * rim;
+    return vec4<f32>(lit.colour * strength + vec3<f32>(0.25, 0.18, 0.16) * rim, 1.0);
+}
+
+@fragment
+fn fs_glow_triangles(in: VsOut) -> @location(0) vec4<f32> {
+    return glow(tissue(triangle_normal(in), in.world, albedo(in.material, in.field)));
+}
+
+@fragment
+fn fs_glow_splats(in: VsOut) -> @location(0) vec4<f32> {
+    if (outside_splat(in)) {
+        discard;
+    }
+    return glow(tissue(splat_normal(in), in.world, albedo(in.material, in.field)));
 }

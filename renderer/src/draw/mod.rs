@@ -1,5 +1,23 @@
-//! Draw pipelines (`draw.wgsl`): smooth-shaded triangles from the deformed vertex and normal buffers
-//! with the lungs' index buffer, or one camera-facing splat per vertex (instanced quads).
+//! Draw pipelines (`draw.wgsl`, `composite.wgsl`): smooth-shaded triangles from the deformed vertex
+//! and normal buffers with the lungs' index buffer, or one camera-facing splat per vertex
+//! (instanced quads), in the scene's look, at the scene's MSAA sample count.
+//!
+//! A frame draws in phases (`LungRenderer::render_with`): **opaque** (depth written), then
+//! **translucent** (depth tested, not written: weighted blended OIT targets and their composite, or
+//! additive light), then **overlay** (no depth test: what must show whatever is in front of it).
+//! What falls in which phase depends on the look:
+//!
+//! | look        | opaque        | translucent                    | overlay |
+//! |-------------|---------------|--------------------------------|---------|
+//! | opaque      | lungs         | —                              | tumour  |
+//! | translucent | tumour        | lungs (OIT, fresnel rim)       | —       |
+//! | see-through | tumour        | lungs (additive light)         | —       |
+//!
+//! Every vertex carries a [`SurfaceAttr`]: its [`Material`] (what it is) instead of a code hidden
+//! in the position's `w`, and a reserved byte for a lobe code (0 unknown, 1 RUL, 2 RML, 3 RLL,
+//! 4 LUL, 5 LLL) that a lobes colour mode would read.
+
+use lung_model::scene::{ColorMode, DrawMode, Look};
 
 use crate::camera::EyeUniform;
 
@@ -7,76 +25,171 @@ use crate::camera::EyeUniform;
 pub const COLOR_FORMAT: wgpu::TextureFormat = wgpu::TextureFormat::Rgba8UnormSrgb;
 /// Depth format.
 pub const DEPTH_FORMAT: wgpu::TextureFormat = wgpu::TextureFormat::Depth32Float;
+/// Weighted blended OIT: Σ w·α·c and Σ w·α (half floats: the weights reach 3·10³).
+pub const ACCUM_FORMAT: wgpu::TextureFormat = wgpu::TextureFormat::Rgba16Float;
+/// Weighted blended OIT: Π (1 − α).
+pub const REVEAL_FORMAT: wgpu::TextureFormat = wgpu::TextureFormat::R8Unorm;
 
-/// The two pipelines and the per-eye uniform bindings.
+/// What a vertex is: `draw.wgsl` picks its colour by this (the first byte of [`SurfaceAttr`]).
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+#[repr(u8)]
+pub enum Material {
+    /// The right lung (slot 0).
+    RightLung = 0,
+    /// The left lung (slot 1).
+    LeftLung = 1,
+    /// A tumour.
+    Tumour = 2,
+}
+
+impl Material {
+    /// The lung of slot `slot` (0 right, 1 left).
+    pub fn lung(slot: usize) -> Self {
+        if slot == 1 {
+            Material::LeftLung
+        } else {
+            Material::RightLung
+        }
+    }
+}
+
+/// Per-vertex surface attribute (`Uint8x4`, location 2): material, lobe code (0 = unknown; no
+/// colour mode reads it yet), two reserved bytes.
+pub type SurfaceAttr = [u8; 4];
+
+/// The attribute of a vertex of `material` with lobe code `lobe`.
+pub fn surface(material: Material, lobe: u8) -> SurfaceAttr {
+    [material as u8, lobe, 0, 0]
+}
+
+/// Uniform block `Style` of `draw.wgsl`.
+#[repr(C)]
+#[derive(Debug, Clone, Copy, bytemuck::Pod, bytemuck::Zeroable)]
+pub struct StyleUniform {
+    /// 0 tissue, 1 displacement, 2 ventilation.
+    pub color_mode: u32,
+    /// Padding to 16 bytes.
+    pub _pad: [u32; 3],
+}
+
+impl StyleUniform {
+    /// The style of `color`.
+    pub fn new(color: ColorMode) -> Self {
+        Self {
+            color_mode: match color {
+                ColorMode::Tissue => 0,
+                ColorMode::Displacement => 1,
+                ColorMode::Ventilation => 2,
+            },
+            _pad: [0; 3],
+        }
+    }
+}
+
+/// How a pipeline uses depth.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+enum Depth {
+    /// Test and write (opaque phase).
+    Write,
+    /// Test, do not write (translucent phase).
+    Test,
+    /// Neither (overlay phase).
+    Ignore,
+}
+
+/// The pipelines of one (draw mode, look, sample count) and the per-eye uniform bindings.
 pub struct DrawPipelines {
-    /// Shaded triangles.
-    pub triangles: wgpu::RenderPipeline,
-    /// Point splats.
-    pub splats: wgpu::RenderPipeline,
-    /// The tumour: shaded triangles drawn through the lung surface (no depth test or write).
+    /// The lungs in the look's pipeline (opaque, OIT or additive; triangles or splats).
+    pub lungs: wgpu::RenderPipeline,
+    /// The tumour, in the phase the look puts it in.
     pub tumour: wgpu::RenderPipeline,
+    /// Translucent look: the composite of the OIT targets (its bind group layout).
+    pub composite: Option<(wgpu::RenderPipeline, wgpu::BindGroupLayout)>,
     /// Uniform buffer per eye (left/mono, right).
     pub eye_buffers: [wgpu::Buffer; 2],
+    /// The colour mode's uniform (shared by both eyes).
+    pub style: wgpu::Buffer,
     /// Bind group per eye.
     pub eye_groups: [wgpu::BindGroup; 2],
 }
 
 impl DrawPipelines {
-    /// Build both pipelines.
-    pub fn new(device: &wgpu::Device) -> Self {
+    /// Build the pipelines for `mode` in `look` with `samples` per pixel, colouring by `color`.
+    pub fn new(
+        device: &wgpu::Device,
+        mode: DrawMode,
+        look: Look,
+        color: ColorMode,
+        samples: u32,
+    ) -> Self {
         let module = device.create_shader_module(wgpu::include_wgsl!("draw.wgsl"));
+        let uniform = |binding| wgpu::BindGroupLayoutEntry {
+            binding,
+            visibility: wgpu::ShaderStages::VERTEX_FRAGMENT,
+            ty: wgpu::BindingType::Buffer {
+                ty: wgpu::BufferBindingType::Uniform,
+                has_dynamic_offset: false,
+                min_binding_size: None,
+            },
+            count: None,
+        };
         let layout_bg = device.create_bind_group_layout(&wgpu::BindGroupLayoutDescriptor {
             label: Some("lungdyn eye"),
-            entries: &[wgpu::BindGroupLayoutEntry {
-                binding: 0,
-                visibility: wgpu::ShaderStages::VERTEX_FRAGMENT,
-                ty: wgpu::BindingType::Buffer {
-                    ty: wgpu::BufferBindingType::Uniform,
-                    has_dynamic_offset: false,
-                    min_binding_size: None,
-                },
-                count: None,
-            }],
+            entries: &[uniform(0), uniform(1)],
         });
         let layout = device.create_pipeline_layout(&wgpu::PipelineLayoutDescriptor {
             label: Some("lungdyn draw"),
             bind_group_layouts: &[Some(&layout_bg)],
             immediate_size: 0,
         });
-        let position = [wgpu::VertexAttribute {
-            format: wgpu::VertexFormat::Float32x4,
-            offset: 0,
-            shader_location: 0,
-        }];
-        let normal = [wgpu::VertexAttribute {
-            format: wgpu::VertexFormat::Float32x4,
-            offset: 0,
-            shader_location: 1,
-        }];
-        let with_normals = [
-            Some(wgpu::VertexBufferLayout {
-                array_stride: 16,
-                step_mode: wgpu::VertexStepMode::Vertex,
-                attributes: &position,
-            }),
-            Some(wgpu::VertexBufferLayout {
-                array_stride: 16,
-                step_mode: wgpu::VertexStepMode::Vertex,
-                attributes: &normal,
-            }),
+        let multisample = wgpu::MultisampleState {
+            count: samples,
+            ..Default::default()
+        };
+        let attrs = [
+            [wgpu::VertexAttribute {
+                format: wgpu::VertexFormat::Float32x4,
+                offset: 0,
+                shader_location: 0,
+            }],
+            [wgpu::VertexAttribute {
+                format: wgpu::VertexFormat::Float32x4,
+                offset: 0,
+                shader_location: 1,
+            }],
+            [wgpu::VertexAttribute {
+                format: wgpu::VertexFormat::Uint8x4,
+                offset: 0,
+                shader_location: 2,
+            }],
         ];
-        let instanced = [Some(wgpu::VertexBufferLayout {
-            array_stride: 16,
-            step_mode: wgpu::VertexStepMode::Instance,
-            attributes: &position,
-        })];
+        // Position, normal (w: the colour field), surface attribute: per vertex for triangles,
+        // per instance for splats.
+        let buffers = |step_mode| {
+            [16u64, 16, 4].iter().zip(&attrs).map(move |(&stride, a)| {
+                Some(wgpu::VertexBufferLayout {
+                    array_stride: stride,
+                    step_mode,
+                    attributes: a,
+                })
+            })
+        };
+        let per_vertex: Vec<_> = buffers(wgpu::VertexStepMode::Vertex).collect();
+        let per_instance: Vec<_> = buffers(wgpu::VertexStepMode::Instance).collect();
+        let colour = |blend| {
+            Some(wgpu::ColorTargetState {
+                format: COLOR_FORMAT,
+                blend,
+                write_mask: wgpu::ColorWrites::ALL,
+            })
+        };
         let pipeline = |label,
                         vs,
                         fs,
                         buffers: &[Option<wgpu::VertexBufferLayout<'_>>],
                         cull_mode,
-                        through: bool| {
+                        depth: Depth,
+                        targets: &[Option<wgpu::ColorTargetState>]| {
             device.create_render_pipeline(&wgpu::RenderPipelineDescriptor {
                 label: Some(label),
                 layout: Some(&layout),
@@ -94,8 +207,8 @@ impl DrawPipelines {
                 },
                 depth_stencil: Some(wgpu::DepthStencilState {
                     format: DEPTH_FORMAT,
-                    depth_write_enabled: Some(!through),
-                    depth_compare: Some(if through {
+                    depth_write_enabled: Some(depth == Depth::Write),
+                    depth_compare: Some(if depth == Depth::Ignore {
                         wgpu::CompareFunction::Always
                     } else {
                         wgpu::CompareFunction::Less
@@ -103,46 +216,104 @@ impl DrawPipelines {
                     stencil: Default::default(),
                     bias: Default::default(),
                 }),
-                multisample: Default::default(),
+                multisample,
                 fragment: Some(wgpu::FragmentState {
                     module: &module,
                     entry_point: Some(fs),
                     compilation_options: Default::default(),
-                    targets: &[Some(wgpu::ColorTargetState {
-                        format: COLOR_FORMAT,
-                        blend: None,
-                        write_mask: wgpu::ColorWrites::ALL,
-                    })],
+                    targets,
                 }),
                 multiview_mask: None,
                 cache: None,
             })
         };
-        // Closed, outward-wound surfaces: back faces are never visible, cull them.
-        let triangles = pipeline(
-            "lungdyn triangles",
-            "vs_triangles",
-            "fs_triangles",
-            &with_normals,
-            Some(wgpu::Face::Back),
-            false,
-        );
-        let splats = pipeline(
-            "lungdyn splats",
-            "vs_splats",
-            "fs_splats",
-            &instanced,
-            None,
-            false,
-        );
+        let (vs, lung_buffers) = match mode {
+            DrawMode::Triangles => ("vs_triangles", &per_vertex),
+            DrawMode::Points => ("vs_splats", &per_instance),
+        };
+        let fs = |triangles, splats| match mode {
+            DrawMode::Triangles => triangles,
+            DrawMode::Points => splats,
+        };
+        // Closed, outward-wound surfaces: an opaque one's back faces are never visible. The
+        // translucent look shows them (the far wall through the near one); splats have no faces.
+        let cull = |back: bool| (back && mode == DrawMode::Triangles).then_some(wgpu::Face::Back);
+        let additive = wgpu::BlendComponent {
+            src_factor: wgpu::BlendFactor::One,
+            dst_factor: wgpu::BlendFactor::One,
+            operation: wgpu::BlendOperation::Add,
+        };
+        let lungs = match look {
+            Look::Opaque => pipeline(
+                "lungdyn lungs opaque",
+                vs,
+                fs("fs_opaque_triangles", "fs_opaque_splats"),
+                lung_buffers,
+                cull(true),
+                Depth::Write,
+                &[colour(None)],
+            ),
+            Look::Translucent => pipeline(
+                "lungdyn lungs translucent",
+                vs,
+                fs("fs_oit_triangles", "fs_oit_splats"),
+                lung_buffers,
+                cull(false),
+                Depth::Test,
+                &[
+                    Some(wgpu::ColorTargetState {
+                        format: ACCUM_FORMAT,
+                        blend: Some(wgpu::BlendState {
+                            color: additive,
+                            alpha: additive,
+                        }),
+                        write_mask: wgpu::ColorWrites::ALL,
+                    }),
+                    Some(wgpu::ColorTargetState {
+                        format: REVEAL_FORMAT,
+                        blend: Some(wgpu::BlendState {
+                            color: wgpu::BlendComponent {
+                                src_factor: wgpu::BlendFactor::Zero,
+                                dst_factor: wgpu::BlendFactor::OneMinusSrc,
+                                operation: wgpu::BlendOperation::Add,
+                            },
+                            alpha: wgpu::BlendComponent::REPLACE,
+                        }),
+                        write_mask: wgpu::ColorWrites::ALL,
+                    }),
+                ],
+            ),
+            // Light adds: the order of the surfaces does not matter, the near wall alone shows
+            // the outline (back faces culled).
+            Look::SeeThrough => pipeline(
+                "lungdyn lungs see-through",
+                vs,
+                fs("fs_glow_triangles", "fs_glow_splats"),
+                lung_buffers,
+                cull(true),
+                Depth::Test,
+                &[colour(Some(wgpu::BlendState {
+                    color: additive,
+                    alpha: additive,
+                }))],
+            ),
+        };
+        // The tumour: drawn through the opaque lungs it lies inside (the planner's target), a
+        // solid body inside the translucent or glowing ones.
         let tumour = pipeline(
             "lungdyn tumour",
             "vs_triangles",
-            "fs_triangles",
-            &with_normals,
+            "fs_opaque_triangles",
+            &per_vertex,
             Some(wgpu::Face::Back),
-            true,
+            if look == Look::Opaque {
+                Depth::Ignore
+            } else {
+                Depth::Write
+            },
+            &[colour(None)],
         );
+        let composite = (look == Look::Translucent).then(|| composite(device, samples));
         let eye_buffer = |label| {
             device.create_buffer(&wgpu::BufferDescriptor {
                 label: Some(label),
@@ -152,23 +323,92 @@ impl DrawPipelines {
             })
         };
         let eye_buffers = [eye_buffer("lungdyn eye 0"), eye_buffer("lungdyn eye 1")];
+        let style = wgpu::util::DeviceExt::create_buffer_init(
+            device,
+            &wgpu::util::BufferInitDescriptor {
+                label: Some("lungdyn style"),
+                contents: bytemuck::bytes_of(&StyleUniform::new(color)),
+                usage: wgpu::BufferUsages::UNIFORM,
+            },
+        );
         let group = |b: &wgpu::Buffer| {
             device.create_bind_group(&wgpu::BindGroupDescriptor {
                 label: Some("lungdyn eye"),
                 layout: &layout_bg,
-                entries: &[wgpu::BindGroupEntry {
-                    binding: 0,
-                    resource: b.as_entire_binding(),
-                }],
+                entries: &[
+                    wgpu::BindGroupEntry {
+                        binding: 0,
+                        resource: b.as_entire_binding(),
+                    },
+                    wgpu::BindGroupEntry {
+                        binding: 1,
+                        resource: style.as_entire_binding(),
+                    },
+                ],
             })
         };
         let eye_groups = [group(&eye_buffers[0]), group(&eye_buffers[1])];
         Self {
-            triangles,
-            splats,
+            lungs,
             tumour,
+            composite,
             eye_buffers,
+            style,
             eye_groups,
         }
     }
+}
+
+/// The OIT composite: a fullscreen triangle reading the (resolved) accumulation and revealage
+/// textures, blended over the colour target by the layers' coverage.
+fn composite(device: &wgpu::Device, samples: u32) -> (wgpu::RenderPipeline, wgpu::BindGroupLayout) {
+    let module = device.create_shader_module(wgpu::include_wgsl!("composite.wgsl"));
+    let texture = |binding| wgpu::BindGroupLayoutEntry {
+        binding,
+        visibility: wgpu::ShaderStages::FRAGMENT,
+        ty: wgpu::BindingType::Texture {
+            sample_type: wgpu::TextureSampleType::Float { filterable: false },
+            view_dimension: wgpu::TextureViewDimension::D2,
+            multisampled: false,
+        },
+        count: None,
+    };
+    let bgl = device.create_bind_group_layout(&wgpu::BindGroupLayoutDescriptor {
+        label: Some("lungdyn composite"),
+        entries: &[texture(0), texture(1)],
+    });
+    let layout = device.create_pipeline_layout(&wgpu::PipelineLayoutDescriptor {
+        label: Some("lungdyn composite"),
+        bind_group_layouts: &[Some(&bgl)],
+        immediate_size: 0,
+    });
+    let pipeline = device.create_render_pipeline(&wgpu::RenderPipelineDescriptor {
+        label: Some("lungdyn composite"),
+        layout: Some(&layout),
+        vertex: wgpu::VertexState {
+            module: &module,
+            entry_point: Some("vs_fullscreen"),
+            compilation_options: Default::default(),
+            buffers: &[],
+        },
+        primitive: Default::default(),
+        depth_stencil: None,
+        multisample: wgpu::MultisampleState {
+            count: samples,
+            ..Default::default()
+        },
+        fragment: Some(wgpu::FragmentState {
+            module: &module,
+            entry_point: Some("fs_composite"),
+            compilation_options: Default::default(),
+            targets: &[Some(wgpu::ColorTargetState {
+                format: COLOR_FORMAT,
+                blend: Some(wgpu::BlendState::ALPHA_BLENDING),
+                write_mask: wgpu::ColorWrites::ALL,
+            })],
+        }),
+        multiview_mask: None,
+        cache: None,
+    });
+    (pipeline, bgl)
 }

@@ -1,0 +1,217 @@
+//! What each part of the AR picture costs per frame: the default scene's lungs (2 × 10k vertices,
+//! baked here as the launcher bakes them) drawn at 800 × 600 mono from a fixed view in every look,
+//! with MSAA 4× and off, as triangles and point splats, in each colour mode. Each configuration
+//! draws the same frames in interleaved rounds (so a machine shared with other work slows all of
+//! them alike); the table gives the median wall time of a frame (deform + draw + wait for the GPU,
+//! what the renderer spends) and the median GPU time from timestamp queries where the adapter has
+//! them (lavapipe does).
+//!
+//! Run: `cargo bench -p lungdyn-bench --bench render_looks` (`-- --frames N`, `-- --stereo`).
+
+use glam::{Mat3, Quat, Vec3};
+use ipc_types::Pose;
+use lung_model::deform::LungModel;
+use lung_model::scene::{ColorMode, DrawMode, Look, RenderScene, Scene};
+use renderer::gpu::Gpu;
+use renderer::{DrawState, LungRenderer, RenderLung};
+
+fn baked(scene: &Scene) -> Vec<LungModel> {
+    scene
+        .lungs
+        .sides
+        .iter()
+        .map(|&side| {
+            let k = lung_bake::kernel::bake(
+                side,
+                lung_model::mesh::generate::lung(side, scene.lungs.vertices)
+                    .expect("built-in lung"),
+                &scene.bake_settings(side).expect("bake settings"),
+                &|_| {},
+            )
+            .expect("bake");
+            LungModel::from_unit_displacement(side, k.mesh, k.unit_displacement)
+        })
+        .collect()
+}
+
+/// Patient supine at bed height, the HMD a metre away above the chest (as the image tests).
+fn state(scale: f32) -> DrawState {
+    let supine = Quat::from_mat3(&Mat3::from_cols(Vec3::Y, Vec3::Z, Vec3::X));
+    let eye = Vec3::new(-250.0, -750.0, 1600.0);
+    let forward = (Vec3::new(-30.0, 0.0, 1020.0) - eye).normalize();
+    let right = forward.cross(Vec3::Z).normalize();
+    let up = right.cross(forward);
+    DrawState {
+        deform_scale: [scale, scale],
+        offset_mm: [[0.0; 3]; 2],
+        collapse: [0.0; 2],
+        hilum_mm: [[0.0; 3]; 2],
+        coeffs: [[0.0; ipc_types::MAX_COEFFS]; 2],
+        patient: Pose {
+            quat: supine.to_array(),
+            translation_mm: [0.0, 0.0, 1120.0],
+            _pad: 0,
+        },
+        hmd: Pose {
+            quat: Quat::from_mat3(&Mat3::from_cols(right, up, -forward)).to_array(),
+            translation_mm: eye.to_array(),
+            _pad: 0,
+        },
+        pose_warning: Default::default(),
+    }
+}
+
+fn median(mut v: Vec<f64>) -> f64 {
+    v.sort_by(|a, b| a.total_cmp(b));
+    v.get(v.len() / 2).copied().unwrap_or(f64::NAN)
+}
+
+fn main() {
+    let args: Vec<String> = std::env::args().collect();
+    if args.iter().any(|a| a == "--list") {
+        return;
+    }
+    let frames = args
+        .iter()
+        .position(|a| a == "--frames")
+        .and_then(|i| args.get(i + 1))
+        .and_then(|s| s.parse().ok())
+        .unwrap_or(60usize);
+    let stereo = args.iter().any(|a| a == "--stereo");
+    let Some(gpu) = Gpu::for_tests() else { return };
+    let scene = Scene::default();
+    eprintln!(
+        "baking the default lungs ({} vertices each)…",
+        scene.lungs.vertices
+    );
+    let lungs: Vec<RenderLung> = baked(&scene).iter().map(RenderLung::from_model).collect();
+    let configs: Vec<(&str, RenderScene)> = [
+        (
+            "opaque, MSAA off",
+            DrawMode::Triangles,
+            Look::Opaque,
+            ColorMode::Tissue,
+            1,
+        ),
+        (
+            "opaque, MSAA 4x",
+            DrawMode::Triangles,
+            Look::Opaque,
+            ColorMode::Tissue,
+            4,
+        ),
+        (
+            "translucent, MSAA off",
+            DrawMode::Triangles,
+            Look::Translucent,
+            ColorMode::Tissue,
+            1,
+        ),
+        (
+            "translucent, MSAA 4x",
+            DrawMode::Triangles,
+            Look::Translucent,
+            ColorMode::Tissue,
+            4,
+        ),
+        (
+            "see-through, MSAA off",
+            DrawMode::Triangles,
+            Look::SeeThrough,
+            ColorMode::Tissue,
+            1,
+        ),
+        (
+            "see-through, MSAA 4x",
+            DrawMode::Triangles,
+            Look::SeeThrough,
+            ColorMode::Tissue,
+            4,
+        ),
+        (
+            "points, MSAA off",
+            DrawMode::Points,
+            Look::Opaque,
+            ColorMode::Tissue,
+            1,
+        ),
+        (
+            "points, MSAA 4x",
+            DrawMode::Points,
+            Look::Opaque,
+            ColorMode::Tissue,
+            4,
+        ),
+        (
+            "displacement colour, MSAA off",
+            DrawMode::Triangles,
+            Look::Opaque,
+            ColorMode::Displacement,
+            1,
+        ),
+        (
+            "ventilation colour, MSAA off",
+            DrawMode::Triangles,
+            Look::Opaque,
+            ColorMode::Ventilation,
+            1,
+        ),
+    ]
+    .into_iter()
+    .map(|(name, mode, look, color, msaa)| {
+        (
+            name,
+            RenderScene {
+                mode,
+                look,
+                color,
+                msaa: Some(msaa),
+                stereo,
+                ..scene.render.clone()
+            },
+        )
+    })
+    .collect();
+    let renderers: Vec<LungRenderer> = configs
+        .iter()
+        .map(|(_, r)| LungRenderer::new(&gpu, r, &lungs).expect("upload"))
+        .collect();
+    let mut wall = vec![Vec::with_capacity(frames); configs.len()];
+    let mut gpu_ms = vec![Vec::with_capacity(frames); configs.len()];
+    // Warm up every pipeline, then interleave: frame k of every configuration, then frame k + 1.
+    for r in &renderers {
+        r.render(&gpu, &state(0.0), false);
+    }
+    for k in 0..frames {
+        let s = state(40.0 * (k as f32 / frames as f32));
+        for (i, r) in renderers.iter().enumerate() {
+            let t = std::time::Instant::now();
+            let timing = r.render(&gpu, &s, false);
+            wall[i].push(t.elapsed().as_secs_f64() * 1e3);
+            if let Some(ns) = timing.gpu_ns {
+                gpu_ms[i].push(ns as f64 / 1e6);
+            }
+        }
+    }
+    let (w, h) = renderers[0].image_size();
+    println!(
+        "{} x {} ({}), {} frames each on {}",
+        w,
+        h,
+        if stereo { "stereo" } else { "mono" },
+        frames,
+        gpu.info.name
+    );
+    println!(
+        "{:<32} {:>14} {:>14}",
+        "configuration", "frame p50 ms", "GPU p50 ms"
+    );
+    for (i, (name, _)) in configs.iter().enumerate() {
+        println!(
+            "{:<32} {:>14.2} {:>14.2}",
+            name,
+            median(wall[i].clone()),
+            median(gpu_ms[i].clone())
+        );
+    }
+}
