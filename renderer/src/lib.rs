@@ -24,6 +24,9 @@ pub mod present;
 pub mod process;
 pub mod tumour;
 pub mod window;
+pub mod xr;
+#[cfg(feature = "openxr")]
+pub mod xr_runtime;
 
 pub use deform::{LungInputs, RenderLung, UploadError};
 use ipc_types::{Pose, MAX_COEFFS};
@@ -294,6 +297,17 @@ impl LungRenderer {
     /// Vertices drawn per frame (both lungs).
     pub fn vertex_count(&self) -> u32 {
         self.deform.count
+    }
+
+    /// Draw the eyes of `eyes` from the next frame on (an OpenXR runtime's views, located per
+    /// frame); the image keeps its size.
+    pub fn set_eyes(&mut self, eyes: camera::HmdEyes) {
+        self.rig.optics = Some(eyes);
+    }
+
+    /// The offscreen colour texture (what an OpenXR swapchain image is copied from).
+    pub fn color_texture(&self) -> &wgpu::Texture {
+        &self.color
     }
 
     /// The offscreen colour target (what the present pass samples).
