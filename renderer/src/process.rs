@@ -777,7 +777,9 @@ fn run_xr(args: &RendererArgs) -> Result<(), RendererError> {
 #[allow(clippy::result_large_err)] // RendererError is large everywhere (see scene_and_rig)
 fn run_xr(_: &RendererArgs) -> Result<(), RendererError> {
     Err(RendererError::Xr(
-        "this build has no OpenXR support: build it with `cargo build --release --features openxr`          (the OpenXR loader is opened at run time, so building needs no system library), then install          an OpenXR runtime (Monado) or set XR_RUNTIME_JSON"
+        "this build has no OpenXR support: build it with `cargo build --release --features openxr` \
+         (the OpenXR loader is opened at run time, so building needs no system library), then install \
+         an OpenXR runtime (Monado) or set XR_RUNTIME_JSON"
             .into(),
     ))
 }
