@@ -50,12 +50,10 @@ pub struct DemoArgs {
     /// the scene's `[processes] cpus`).
     #[arg(long, value_delimiter = ',', num_args = 3)]
     pub cpus: Vec<usize>,
-    /// Show the frames in a window (needs a display); closing it ends the demo. Headless otherwise.
-    #[arg(long)]
-    pub window: bool,
-    /// With --window: present on the display's vertical blank.
-    #[arg(long, requires = "window")]
-    pub vsync: bool,
+    /// Window, fullscreen display and present options (passed to the renderer); closing the window
+    /// ends the demo. Headless otherwise.
+    #[command(flatten)]
+    pub output: renderer::window::DisplayArgs,
     /// Seconds to wait for the first frame before giving up.
     #[arg(long, default_value_t = 60.0)]
     pub startup_timeout: f64,
@@ -223,6 +221,20 @@ pub struct DemoReport {
     pub seconds: f64,
     /// Frames per second drawn.
     pub fps: f64,
+    /// How frames reached the display: `mailbox`, `immediate`, `fifo`, `fifo-relaxed`, `openxr`;
+    /// `none` headless.
+    pub present_mode: String,
+    /// The surface's `desired_maximum_frame_latency` (0 headless).
+    pub frame_latency: u32,
+    /// Frames that reached the display (`present` returned).
+    pub presented_frames: u64,
+    /// Per presented frame, renderer submit → `present` returned (CLOCK_MONOTONIC): median, 99th
+    /// percentile and maximum, ms (0 headless).
+    pub submit_to_present_p50_ms: f64,
+    /// See `submit_to_present_p50_ms`.
+    pub submit_to_present_p99_ms: f64,
+    /// See `submit_to_present_p50_ms`.
+    pub submit_to_present_max_ms: f64,
     /// Frames drawn without a fresh engine frame.
     pub stale_frames: u64,
     /// Frames drawn with the patient pose held by the engine (tinted amber on screen).
@@ -433,7 +445,7 @@ pub fn run_watched(args: &DemoArgs, watch: &mut dyn Watch) -> anyhow::Result<Dem
             args.predict_ms
         );
     }
-    if args.window
+    if args.output.shown()
         && std::env::var_os("DISPLAY").is_none()
         && std::env::var_os("WAYLAND_DISPLAY").is_none()
     {
@@ -585,12 +597,7 @@ pub fn run_watched(args: &DemoArgs, watch: &mut dyn Watch) -> anyhow::Result<Dem
     let mut renderer_args = with_scene([common.clone(), cpu(2)].concat());
     renderer_args.push("--predict-ms".into());
     renderer_args.push(args.predict_ms.to_string());
-    if args.window {
-        renderer_args.push("--window".into());
-        if args.vsync {
-            renderer_args.push("--vsync".into());
-        }
-    }
+    renderer_args.extend(args.output.to_args());
     let existing: std::collections::HashSet<PathBuf> = list_pngs(&args.out).into_iter().collect();
     // The engine tick last published (the launcher subscribes to the engine stream too): a
     // restarted engine resumes at the next one, a restarted renderer takes only the snapshots still
@@ -831,6 +838,10 @@ pub fn run_watched(args: &DemoArgs, watch: &mut dyn Watch) -> anyhow::Result<Dem
     };
     let e2e = stats.end_to_end();
     let sched = stats.sample_latency();
+    let to_present = stats.submit_to_present();
+    let (present_code, frame_latency) = stats
+        .present_mode
+        .unwrap_or((ipc_types::present_mode::NONE, 0));
     Ok(DemoReport {
         frames_rendered: stats.frames,
         deadline_misses: stats.sample_deadline_misses,
@@ -860,6 +871,12 @@ pub fn run_watched(args: &DemoArgs, watch: &mut dyn Watch) -> anyhow::Result<Dem
         } else {
             0.0
         },
+        present_mode: ipc_types::present_mode::name(present_code).to_string(),
+        frame_latency,
+        presented_frames: stats.presented_frames,
+        submit_to_present_p50_ms: to_present.p50_ms,
+        submit_to_present_p99_ms: to_present.p99_ms,
+        submit_to_present_max_ms: to_present.max_ms,
         stale_frames: stats.stale_frames,
         patient_pose_held_frames: stats.pose_held_frames,
         patient_pose_stale_frames: stats.pose_stale_frames,
@@ -938,6 +955,17 @@ pub fn table(r: &DemoReport) -> String {
     }
     if let Some(h) = &r.hmd {
         let _ = writeln!(s, "eyes drawn from the HMD optics {h}");
+    }
+    if r.presented_frames > 0 {
+        let _ = writeln!(
+            s,
+            "presented {} frames ({} mode, frame latency {}); submit to present p50 {:.3} ms, p99 {:.3} ms",
+            r.presented_frames,
+            r.present_mode,
+            r.frame_latency,
+            r.submit_to_present_p50_ms,
+            r.submit_to_present_p99_ms
+        );
     }
     let _ = writeln!(
         s,

@@ -469,23 +469,7 @@ pub fn displays_check(monitors: Result<&[renderer::window::MonitorInfo], String>
             let each: Vec<String> = list
                 .iter()
                 .enumerate()
-                .map(|(i, m)| {
-                    format!(
-                        "{i}: {} {}x{}{}{}, {} modes",
-                        if m.name.is_empty() {
-                            "(unnamed)"
-                        } else {
-                            &m.name
-                        },
-                        m.width,
-                        m.height,
-                        m.refresh_mhz
-                            .map(|r| format!(" @ {:.2} Hz", r as f64 / 1000.0))
-                            .unwrap_or_default(),
-                        if m.primary { " (primary)" } else { "" },
-                        m.modes
-                    )
-                })
+                .map(|(i, m)| format!("{i}: {m}"))
                 .collect();
             check(
                 "displays",

@@ -41,6 +41,10 @@ pub struct InstallArgs {
     /// Group (and, for system units, user) of the service; the udev rule gives it the tracker port.
     #[arg(long, default_value = "lungdyn", value_parser = parse_name)]
     pub group: String,
+    /// The headset's display the renderer fills (borderless fullscreen, stereo side by side), by
+    /// name (e.g. DP-1) or index as `lungdyn doctor` lists them; the primary display by default.
+    #[arg(long, value_name = "NAME|INDEX")]
+    pub display: Option<renderer::window::DisplaySel>,
     /// Watchdog timeout, seconds: a process that stops pinging this long is restarted.
     #[arg(long, value_name = "S", default_value_t = 2,
           value_parser = clap::value_parser!(u32).range(1..=600))]
@@ -147,6 +151,8 @@ pub struct UnitSettings {
     pub user: bool,
     /// Service group.
     pub group: String,
+    /// The display the renderer fills (`None`: the primary).
+    pub display: Option<renderer::window::DisplaySel>,
     /// Watchdog timeout, s.
     pub watchdog_sec: u32,
 }
@@ -200,7 +206,13 @@ pub fn unit(role: Role, s: &UnitSettings) -> Result<String, String> {
         }
     }
     if role == Role::Renderer {
-        exec.push_str(" --window");
+        exec.push_str(" --fullscreen");
+        if let Some(d) = &s.display {
+            exec.push_str(&format!(
+                " --display {}",
+                systemd_word(Path::new(&d.to_string()))?
+            ));
+        }
     }
     if let Some(c) = cpu {
         exec.push_str(&format!(" --cpu {c}"));
@@ -385,6 +397,7 @@ pub fn run(args: &InstallArgs) -> anyhow::Result<InstallReport> {
         cpus: scene.processes.cpus.clone(),
         user: args.user,
         group: args.group.clone(),
+        display: args.display.clone(),
         watchdog_sec: args.watchdog_sec,
     };
     let unit_dir = if args.user {
@@ -500,6 +513,7 @@ mod tests {
             cpus,
             user,
             group: "lungdyn".into(),
+            display: None,
             watchdog_sec: 2,
         }
     }
@@ -533,9 +547,16 @@ mod tests {
         assert!(b.contains("CPUAffinity=1\n"));
         let r = unit(Role::Renderer, &s).unwrap();
         assert!(
-            r.contains("--window --cpu 3\n") && r.contains("Environment=DISPLAY=:0"),
+            r.contains("--fullscreen --cpu 3\n") && r.contains("Environment=DISPLAY=:0"),
             "{r}"
         );
+        // The headset's display by name; a name systemd would split is refused.
+        let mut named = settings(false, vec![1, 2, 3]);
+        named.display = Some("DP-1".parse().unwrap());
+        let r = unit(Role::Renderer, &named).unwrap();
+        assert!(r.contains("--fullscreen --display DP-1 --cpu 3\n"), "{r}");
+        named.display = Some("HDMI 1".parse().unwrap());
+        assert!(unit(Role::Renderer, &named).is_err());
         // User units: no User=, no CPUAffinity without cores, the renderer after the session.
         let u = unit(Role::Renderer, &settings(true, vec![])).unwrap();
         assert!(

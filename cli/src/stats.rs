@@ -30,6 +30,12 @@ pub const HOPS: [(&str, usize, usize); 6] = [
 pub struct LatencyStats {
     hops: Vec<Histogram<u64>>,
     gpu: Histogram<u64>,
+    present: Histogram<u64>,
+    /// How the last presented frame was presented ([`ipc_types::present_mode`] code, and the
+    /// surface's frame latency); `None` when no frame was presented (headless).
+    pub present_mode: Option<(u32, u32)>,
+    /// Frames that reached a display (`present` returned).
+    pub presented_frames: u64,
     samples: Histogram<u64>,
     period_ns: u64,
     last_tracker: Option<(u64, u64)>,
@@ -99,6 +105,9 @@ impl LatencyStats {
         Self {
             hops: HOPS.iter().map(|_| histogram()).collect(),
             gpu: histogram(),
+            present: histogram(),
+            present_mode: None,
+            presented_frames: 0,
             samples: histogram(),
             period_ns: period_ns.max(1),
             last_tracker: None,
@@ -149,6 +158,15 @@ impl LatencyStats {
             }
         }
         self.last_tick = Some(r.engine_tick);
+        if r.present_ns != 0 {
+            self.presented_frames += 1;
+            self.present_mode = Some((r.present_mode, r.frame_latency));
+            if r.stamps.renderer_submit_ns != 0 && r.present_ns >= r.stamps.renderer_submit_ns {
+                let _ = self
+                    .present
+                    .record((r.present_ns - r.stamps.renderer_submit_ns).max(1));
+            }
+        }
         let v = r.volume_ml[0] + r.volume_ml[1];
         self.volume_range = (self.volume_range.0.min(v), self.volume_range.1.max(v));
         if r.stamps.capture_ns == 0 && r.stamps.bridge_publish_ns == 0 && r.tracker_frame == 0 {
@@ -283,10 +301,18 @@ impl LatencyStats {
                 &self.gpu,
             ));
         }
+        if !self.present.is_empty() {
+            rows.push(self.submit_to_present());
+        }
         if !self.samples.is_empty() {
             rows.push(self.sample_latency());
         }
         rows
+    }
+
+    /// Per presented frame: renderer submit → `present` returned (CLOCK_MONOTONIC).
+    pub fn submit_to_present(&self) -> HopRow {
+        HopRow::from_histogram("renderer submit -> present returned", &self.present)
     }
 
     /// The end-to-end row.
@@ -410,6 +436,36 @@ mod tests {
         bad.stamps.engine_receive_ns = 0;
         s.record(&bad);
         assert_eq!(s.bad_stamps, 1);
+    }
+
+    #[test]
+    fn submit_to_present_is_measured_on_presented_frames_only() {
+        let mut s = LatencyStats::new();
+        // Headless frames: nothing presented, no row, no mode.
+        s.record(&report(1, 1, 5_000_000));
+        assert_eq!(s.presented_frames, 0);
+        assert_eq!(s.present_mode, None);
+        assert!(!s.rows().iter().any(|r| r.hop.contains("present")));
+        for i in 2..=11 {
+            let mut r = report(i, i, 5_000_000);
+            r.present_ns = r.stamps.renderer_submit_ns + i * 100_000;
+            r.present_mode = ipc_types::present_mode::MAILBOX;
+            r.frame_latency = 1;
+            s.record(&r);
+        }
+        // A present stamp before the submit is a broken clock: counted presented, not timed.
+        let mut r = report(12, 12, 5_000_000);
+        r.present_ns = r.stamps.renderer_submit_ns - 1;
+        r.present_mode = ipc_types::present_mode::MAILBOX;
+        r.frame_latency = 1;
+        s.record(&r);
+        assert_eq!(s.presented_frames, 11);
+        assert_eq!(s.present_mode, Some((ipc_types::present_mode::MAILBOX, 1)));
+        let p = s.submit_to_present();
+        assert_eq!(p.count, 10);
+        assert!((p.max_ms - 1.1).abs() < 0.01, "{p:?}");
+        assert!((p.p50_ms - 0.6).abs() < 0.01, "{p:?}");
+        assert!(s.rows().iter().any(|r| r.hop == p.hop));
     }
 
     /// A report of tracker sample `n` captured at `n·P`, drawn `e2e` later.

@@ -17,7 +17,7 @@
 //!
 //! ## Layout versioning
 //! [`LAYOUT_VERSION`] is written into every payload ([`Message::layout_version`]) and into every
-//! payload's type name ([`Message::TYPE_NAME`], `"lungdyn.EngineFrame.v3"`), which the transport
+//! payload's type name ([`Message::TYPE_NAME`], `"lungdyn.EngineFrame.v4"`), which the transport
 //! hands to iceoryx2: iceoryx2 refuses to open a service whose payload type name, size or alignment
 //! differ from the creator's, so a process built from another layout fails at start-up instead of
 //! reading garbage; the field in the payload is a second check for peers that bypass the type name.
@@ -27,14 +27,16 @@
 //! Version history: v1 had one breathing state for both lungs; v2 gives each lung its own volume,
 //! phase, cycle, rigid offset, deformation coefficients and the identity of the kernel it was
 //! computed for ([`LungFrame`]); v3 adds each lung's collapse towards its hilum (a pneumothorax,
-//! EQUATIONS.md §4: drawn at `h + (1 − c)(p − h) + s·u + offset`), zero for a healthy lung.
+//! EQUATIONS.md §4: drawn at `h + (1 − c)(p − h) + s·u + offset`), zero for a healthy lung; v4 adds
+//! to each [`FrameReport`] when `present` returned, the present mode and the frame latency (the
+//! latency harness's submit-to-present).
 
 use core::mem::{align_of, offset_of, size_of};
 
 use bytemuck::{Pod, Zeroable};
 
 /// Version of every payload layout in this crate. Part of each payload's type name.
-pub const LAYOUT_VERSION: u32 = 3;
+pub const LAYOUT_VERSION: u32 = 4;
 
 /// Maximum number of tracked tools in one [`TrackerFrame`].
 pub const MAX_TOOLS: usize = 4;
@@ -413,6 +415,44 @@ pub struct FrameReport {
     pub gpu_frame_ns: u64,
     /// Lung volumes drawn, ml (right, left).
     pub volume_ml: [f32; NUM_LUNGS],
+    /// When `present` returned for this frame (CLOCK_MONOTONIC, ns); 0 when nothing was presented
+    /// (headless, or the surface gave no image this frame). `present_ns - stamps.renderer_submit_ns`
+    /// is the frame's submit-to-present time.
+    pub present_ns: u64,
+    /// How the frame was presented: a [`present_mode`] code.
+    pub present_mode: u32,
+    /// The surface's `desired_maximum_frame_latency` (frames queued ahead); 0 when not presented
+    /// to a surface.
+    pub frame_latency: u32,
+}
+
+/// [`FrameReport::present_mode`]: how a frame reached the display.
+pub mod present_mode {
+    /// Not presented (headless: the frame stays offscreen).
+    pub const NONE: u32 = 0;
+    /// FIFO: waits for vertical blank, never tears (up to a refresh of latency).
+    pub const FIFO: u32 = 1;
+    /// Mailbox: the newest frame replaces a queued one at vertical blank, no tearing.
+    pub const MAILBOX: u32 = 2;
+    /// Immediate: shown at once, may tear.
+    pub const IMMEDIATE: u32 = 3;
+    /// FIFO relaxed: FIFO, but a late frame is shown at once (may tear).
+    pub const FIFO_RELAXED: u32 = 4;
+    /// An OpenXR swapchain (the runtime's compositor paces it).
+    pub const OPENXR: u32 = 5;
+
+    /// The code's name, as the demo report writes it.
+    pub fn name(code: u32) -> &'static str {
+        match code {
+            NONE => "none",
+            FIFO => "fifo",
+            MAILBOX => "mailbox",
+            IMMEDIATE => "immediate",
+            FIFO_RELAXED => "fifo-relaxed",
+            OPENXR => "openxr",
+            _ => "unknown",
+        }
+    }
 }
 
 /// A trainee's action sent to a running engine (`lungdyn scene event`, a key in the window): an
@@ -618,7 +658,7 @@ impl core::str::FromStr for Intervention {
 
 impl Message for ControlPacket {
     const NAME: &'static str = "ControlPacket";
-    const TYPE_NAME: &'static str = "lungdyn.ControlPacket.v3";
+    const TYPE_NAME: &'static str = "lungdyn.ControlPacket.v4";
     fn layout_version(&self) -> u32 {
         self.layout_version
     }
@@ -626,35 +666,35 @@ impl Message for ControlPacket {
 
 impl Message for ControlReply {
     const NAME: &'static str = "ControlReply";
-    const TYPE_NAME: &'static str = "lungdyn.ControlReply.v3";
+    const TYPE_NAME: &'static str = "lungdyn.ControlReply.v4";
     fn layout_version(&self) -> u32 {
         self.layout_version
     }
 }
 
-const VERSION_SUFFIX: &str = ".v3";
+const VERSION_SUFFIX: &str = ".v4";
 const _: () = assert!(
-    LAYOUT_VERSION == 3,
+    LAYOUT_VERSION == 4,
     "bump VERSION_SUFFIX with LAYOUT_VERSION"
 );
 
 impl Message for TrackerFrame {
     const NAME: &'static str = "TrackerFrame";
-    const TYPE_NAME: &'static str = "lungdyn.TrackerFrame.v3";
+    const TYPE_NAME: &'static str = "lungdyn.TrackerFrame.v4";
     fn layout_version(&self) -> u32 {
         self.layout_version
     }
 }
 impl Message for EngineFrame {
     const NAME: &'static str = "EngineFrame";
-    const TYPE_NAME: &'static str = "lungdyn.EngineFrame.v3";
+    const TYPE_NAME: &'static str = "lungdyn.EngineFrame.v4";
     fn layout_version(&self) -> u32 {
         self.layout_version
     }
 }
 impl Message for FrameReport {
     const NAME: &'static str = "FrameReport";
-    const TYPE_NAME: &'static str = "lungdyn.FrameReport.v3";
+    const TYPE_NAME: &'static str = "lungdyn.FrameReport.v4";
     fn layout_version(&self) -> u32 {
         self.layout_version
     }
@@ -750,7 +790,7 @@ const _: () = {
     assert!(offset_of!(EngineFrame, patient_pose) == 80);
     assert!(offset_of!(EngineFrame, lungs) == 112);
 
-    assert!(size_of::<FrameReport>() == 104 && align_of::<FrameReport>() == 8);
+    assert!(size_of::<FrameReport>() == 120 && align_of::<FrameReport>() == 8);
     assert!(offset_of!(FrameReport, layout_version) == 0);
     assert!(offset_of!(FrameReport, flags) == 4);
     assert!(offset_of!(FrameReport, frame) == 8);
@@ -760,6 +800,9 @@ const _: () = {
     assert!(offset_of!(FrameReport, cpu_frame_ns) == 80);
     assert!(offset_of!(FrameReport, gpu_frame_ns) == 88);
     assert!(offset_of!(FrameReport, volume_ml) == 96);
+    assert!(offset_of!(FrameReport, present_ns) == 104);
+    assert!(offset_of!(FrameReport, present_mode) == 112);
+    assert!(offset_of!(FrameReport, frame_latency) == 116);
 };
 
 /// A received payload claims another layout version than this build speaks.

@@ -141,8 +141,31 @@ impl HmdEyes {
     /// The matrices of a loaded (checked) optics file.
     pub fn from_optics(o: &Optics) -> Self {
         let [l, r] = &o.eyes;
-        let (ql, pl) = rigid!(l.rotation, l.offset_mm);
-        let (mut qr, pr) = rigid!(r.rotation, r.offset_mm);
+        Self::from_eyes(
+            [
+                rigid!(l.rotation, l.offset_mm),
+                rigid!(r.rotation, r.offset_mm),
+            ],
+            [l.frustum_tan, r.frustum_tan],
+            o.near_mm,
+            o.far_mm,
+            o.width_px,
+            o.height_px,
+        )
+    }
+
+    /// From each eye's rotation and position in the HMD tool frame (mm) and frustum tangents
+    /// `[left, right, down, up]` (an optics file's, or an OpenXR runtime's views), the mono eye
+    /// derived as above.
+    pub fn from_eyes(
+        eyes: [(Quat, Vec3); 2],
+        frustum_tan: [[f64; 4]; 2],
+        near_mm: f64,
+        far_mm: f64,
+        width: u32,
+        height: u32,
+    ) -> Self {
+        let [(ql, pl), (mut qr, pr)] = eyes;
         let eye_to_hmd = [
             Mat4::from_rotation_translation(ql, pl),
             Mat4::from_rotation_translation(qr, pr),
@@ -152,16 +175,20 @@ impl HmdEyes {
             qr = -qr;
         }
         let mono_rotation = ql.slerp(qr, 0.5).normalize();
-        let mut mono = o.clone();
-        mono.eyes[0].frustum_tan =
-            std::array::from_fn(|k| 0.5 * (l.frustum_tan[k] + r.frustum_tan[k]));
+        let [l, r] = frustum_tan;
+        let mono_tan = std::array::from_fn(|k| 0.5 * (l[k] + r[k]));
+        let projection = |t| {
+            Mat4::from_cols_array_2d(&tracker_pose::optics::frustum_projection(
+                t, near_mm, far_mm,
+            ))
+        };
         HmdEyes {
             eye_to_hmd,
-            projection: [0, 1].map(|i| Mat4::from_cols_array_2d(&o.projection(i))),
+            projection: [projection(l), projection(r)],
             mono_to_hmd: Mat4::from_rotation_translation(mono_rotation, mid),
-            mono_projection: Mat4::from_cols_array_2d(&mono.projection(0)),
-            width: o.width_px,
-            height: o.height_px,
+            mono_projection: projection(mono_tan),
+            width,
+            height,
         }
     }
 }

@@ -26,6 +26,9 @@ pub mod present;
 pub mod process;
 pub mod tumour;
 pub mod window;
+pub mod xr;
+#[cfg(feature = "openxr")]
+pub mod xr_runtime;
 
 pub use deform::{LungInputs, RenderLung, UploadError};
 use ipc_types::{Pose, MAX_COEFFS};
@@ -413,6 +416,17 @@ impl LungRenderer {
     /// Samples per pixel drawn (`[render] msaa`, or its default for this adapter).
     pub fn samples(&self) -> u32 {
         self.samples
+    }
+
+    /// Draw the eyes of `eyes` from the next frame on (an OpenXR runtime's views, located per
+    /// frame); the image keeps its size.
+    pub fn set_eyes(&mut self, eyes: camera::HmdEyes) {
+        self.rig.optics = Some(eyes);
+    }
+
+    /// The offscreen colour texture (what an OpenXR swapchain image is copied from).
+    pub fn color_texture(&self) -> &wgpu::Texture {
+        &self.color
     }
 
     /// The offscreen colour target (what the present pass samples).

@@ -75,10 +75,27 @@ impl HmdPredictor {
         {
             return newest;
         }
-        let Some(p) = self
-            .predictor
-            .predict(now_ns.max(self.last_capture_ns) + self.lookahead_ns)
-        else {
+        self.predicted(now_ns.max(self.last_capture_ns) + self.lookahead_ns, newest)
+    }
+
+    /// The pose to draw for a frame shown at `display_ns` (OpenXR's predicted display time, on the
+    /// same clock as the samples): extrapolated to that instant rather than `--predict-ms` past the
+    /// draw. The same guards as [`Self::pose_at`]: the newest sample when it is older than
+    /// [`MAX_SAMPLE_AGE_NS`] at display time or the look-ahead would exceed [`MAX_LOOKAHEAD_MS`]
+    /// (a display time far off is a runtime's mistake, not a reason to fling the view).
+    pub fn pose_at_display(&mut self, display_ns: u64, fallback: Pose) -> Pose {
+        let Some(newest) = self.newest else {
+            return fallback;
+        };
+        let ahead = display_ns.saturating_sub(self.last_capture_ns);
+        if ahead > MAX_SAMPLE_AGE_NS + (MAX_LOOKAHEAD_MS * 1e6) as u64 {
+            return newest;
+        }
+        self.predicted(display_ns.max(self.last_capture_ns), newest)
+    }
+
+    fn predicted(&mut self, at_ns: u64, newest: Pose) -> Pose {
+        let Some(p) = self.predictor.predict(at_ns) else {
             return newest;
         };
         let q = p.rotation.quaternion();
@@ -141,6 +158,36 @@ mod tests {
             );
         }
         assert_eq!(p.predicted_frames, 1);
+    }
+
+    #[test]
+    fn a_runtimes_display_time_is_the_instant_predicted_to() {
+        let dt = 16_666_667u64;
+        let sample = |k: u64| {
+            let s = (1_000_000_000 + k * dt) as f32 * 1e-9 - 1.0;
+            pose(100.0 * s, 0.5 * s)
+        };
+        let feed = |p: &mut HmdPredictor| {
+            for k in 0..10u64 {
+                p.update(k + 1, 1_000_000_000 + k * dt, sample(k));
+            }
+        };
+        let last = 1_000_000_000 + 9 * dt;
+        let (mut a, mut b) = (HmdPredictor::new(16.0), HmdPredictor::new(16.0));
+        feed(&mut a);
+        feed(&mut b);
+        // Shown 18 ms after the last sample: the same pose as drawing 2 ms after it with 16 ms ahead.
+        let at_display = a.pose_at_display(last + 18_000_000, pose(0.0, 0.0));
+        assert_eq!(at_display, b.pose_at(last + 2_000_000, pose(0.0, 0.0)));
+        assert_ne!(at_display, sample(9));
+        // A display time seconds away (a runtime's bad clock) draws the newest sample.
+        assert_eq!(
+            a.pose_at_display(last + 5_000_000_000, pose(0.0, 0.0)),
+            sample(9)
+        );
+        // Before any sample: the fallback.
+        let mut none = HmdPredictor::new(16.0);
+        assert_eq!(none.pose_at_display(last, pose(1.0, 0.0)), pose(1.0, 0.0));
     }
 
     #[test]

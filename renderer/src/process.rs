@@ -49,13 +49,17 @@ pub struct RendererArgs {
     /// comparable (the walking HMD would otherwise change the view more than the breath does).
     #[arg(long)]
     pub snapshot_fixed_view: bool,
-    /// Show the frames in a window (needs a display, e.g. DISPLAY on X11); headless otherwise.
-    #[arg(long)]
-    pub window: bool,
-    /// With --window: wait for the display's vertical blank when presenting (adds up to a refresh
-    /// period of latency; off by default, frames are paced by the engine).
-    #[arg(long, requires = "window")]
-    pub vsync: bool,
+    /// Window, fullscreen display and present options.
+    #[command(flatten)]
+    pub output: crate::window::DisplayArgs,
+    /// Each eye's size when drawing for an OpenXR runtime (its recommended image size): the scene
+    /// is drawn in stereo at this size per eye.
+    #[arg(skip)]
+    pub xr_eye_size: Option<(u32, u32)>,
+    /// The display's size when fullscreen (set by the window once it knows the display): the
+    /// offscreen image is made this size, each eye half its width in stereo.
+    #[arg(skip)]
+    pub screen_size: Option<(u32, u32)>,
     /// Draw the HMD pose predicted this many ms past the draw time (constant linear and angular
     /// velocity from the last two samples; ~ one display frame of scan-out): 0 draws the newest
     /// sample. At most 100.
@@ -80,7 +84,17 @@ impl RendererArgs {
     // their paths); boxing it here alone would not change that.
     #[allow(clippy::result_large_err)]
     pub fn scene_and_rig(&self) -> Result<(Scene, crate::camera::RigFiles), RendererError> {
-        let scene = Scene::load_or_default(self.process.scene.as_deref())?;
+        let mut scene = Scene::load_or_default(self.process.scene.as_deref())?;
+        if let Some((w, h)) = self.xr_eye_size {
+            scene.render.stereo = true;
+            scene.render.width = w.max(1);
+            scene.render.height = h.max(1);
+        }
+        if let Some((w, h)) = self.screen_size {
+            let eyes = if scene.render.stereo { 2 } else { 1 };
+            scene.render.width = (w / eyes).max(1);
+            scene.render.height = h.max(1);
+        }
         let files = crate::camera::RigFiles::load(
             &scene.render,
             self.calibration.as_deref(),
@@ -158,6 +172,38 @@ pub enum RendererError {
         /// Adapter name.
         adapter: String,
     },
+    /// `--fullscreen` on a display server that lists no monitors.
+    #[error("--fullscreen: the display server lists no monitors (check `xrandr --query`)")]
+    NoMonitors,
+    /// `--display NAME` names no monitor.
+    #[error("--display {name}: no display of that name; the displays are: {monitors}")]
+    UnknownDisplay {
+        /// The name asked for.
+        name: String,
+        /// The monitors there are, one `INDEX: NAME WxH` each.
+        monitors: String,
+    },
+    /// `--display INDEX` is past the list.
+    #[error("--display {index}: there are only {count} display(s), 0 to {}: {monitors}", count - 1)]
+    DisplayIndex {
+        /// The index asked for.
+        index: usize,
+        /// How many monitors there are (at least one).
+        count: usize,
+        /// The monitors there are.
+        monitors: String,
+    },
+    /// `--present-mode` names a mode the surface does not offer.
+    #[error("--present-mode {wanted}: this surface offers only {supported} (`latency` picks the best of them)")]
+    PresentMode {
+        /// The mode asked for.
+        wanted: String,
+        /// The modes the surface offers.
+        supported: String,
+    },
+    /// `--xr` could not start or the runtime stopped it.
+    #[error("--xr: {0}")]
+    Xr(String),
     /// The window's event loop failed.
     #[error("the window's event loop failed: {source}")]
     EventLoop {
@@ -237,6 +283,46 @@ pub struct Session {
     /// Stale frames in a row, and the time of the last fresh engine frame (the engine-down notice).
     stale_run: u64,
     last_fresh_ns: u64,
+}
+
+/// Where a drawn frame goes after the offscreen draw: a window surface, an OpenXR swapchain, or
+/// nowhere (headless). A closure `FnMut(&mut CommandEncoder)` is an output that records extra work
+/// into the frame and presents nothing.
+pub trait FrameOutput {
+    /// When the frame will be shown (CLOCK_MONOTONIC, ns), if the output knows (OpenXR's predicted
+    /// display time): the HMD pose is predicted to it instead of `--predict-ms` past the draw.
+    fn display_time_ns(&mut self) -> Option<u64> {
+        None
+    }
+    /// Record this output's pass into the frame's command buffer (after the draw, same submit).
+    fn encode(&mut self, encoder: &mut wgpu::CommandEncoder);
+    /// After the submit: present, and return when `present` returned (CLOCK_MONOTONIC, ns);
+    /// `None` when nothing was presented this frame.
+    fn present(&mut self) -> Option<u64> {
+        None
+    }
+    /// The eyes to draw this frame with, when the output knows them (an OpenXR runtime's views
+    /// located for the display time); asked after [`Self::display_time_ns`].
+    fn eyes(&mut self) -> Option<crate::camera::HmdEyes> {
+        None
+    }
+    /// The [`ipc_types::present_mode`] code and the frame latency, for the report.
+    fn mode(&self) -> (u32, u32) {
+        (ipc_types::present_mode::NONE, 0)
+    }
+}
+
+/// Headless: the frame stays offscreen (snapshots read it back), nothing is presented.
+pub struct Headless;
+
+impl FrameOutput for Headless {
+    fn encode(&mut self, _: &mut wgpu::CommandEncoder) {}
+}
+
+impl<F: FnMut(&mut wgpu::CommandEncoder)> FrameOutput for F {
+    fn encode(&mut self, encoder: &mut wgpu::CommandEncoder) {
+        self(encoder)
+    }
 }
 
 /// Keep Mesa quiet on headless machines: without XDG_RUNTIME_DIR its window-system probing prints an
@@ -481,12 +567,10 @@ impl Session {
         mismatch
     }
 
-    /// Wait for the next engine frame (or the deadline) and draw it, recording `extra` (the
-    /// window's present pass) into the frame. Returns whether a frame was drawn.
-    pub fn step(
-        &mut self,
-        extra: impl FnOnce(&mut wgpu::CommandEncoder),
-    ) -> Result<bool, RendererError> {
+    /// Wait for the next engine frame (or the deadline) and draw it, recording `output`'s pass (the
+    /// window's present pass) into the frame and presenting it after the submit; the frame's report
+    /// goes out after the present, with the time it returned. Returns whether a frame was drawn.
+    pub fn step(&mut self, output: &mut impl FrameOutput) -> Result<bool, RendererError> {
         // Every pass of the frame loop: a hung draw or present stops the pings.
         self.watchdog.ping(self.clock.now_ns());
         let Some(tick) = self
@@ -574,13 +658,23 @@ impl Session {
         }
         // Drawn where the head will be when the frame is shown (predict.rs); the snapshots of a
         // breath keep the first frame's view.
-        let mut view = self.predictor.pose_at(now, self.hmd);
+        let mut view = match output.display_time_ns() {
+            Some(t) => self.predictor.pose_at_display(t, self.hmd),
+            None => self.predictor.pose_at(now, self.hmd),
+        };
+        if let Some(eyes) = output.eyes() {
+            self.renderer.set_eyes(eyes);
+        }
         if capture && self.snapshots.fixed_view {
             view = *self.snapshot_view.get_or_insert(self.hmd);
         }
         state.hmd = view;
-        let timing = self.renderer.render_with(&self.gpu, &state, capture, extra);
+        let timing = self
+            .renderer
+            .render_with(&self.gpu, &state, capture, |e| output.encode(e));
         frame.stamps.renderer_submit_ns = timing.submit_ns;
+        let present_ns = output.present().unwrap_or(0);
+        let (present_mode, frame_latency) = output.mode();
         if timing.gpu_ns.is_some() {
             flags |= report_flags::GPU_TIMED;
         }
@@ -598,6 +692,9 @@ impl Session {
                 frame.lungs[LUNG_RIGHT].volume_ml,
                 frame.lungs[LUNG_LEFT].volume_ml,
             ],
+            present_ns,
+            present_mode,
+            frame_latency,
         })?;
         if capture {
             while self.next_target < self.snapshots.ticks.len()
@@ -658,18 +755,68 @@ pub fn run(args: &RendererArgs) -> Result<(), RendererError> {
     check_predict_ms(args.predict_ms)?;
     // The scene and its calibration and optics files are checked before a window or the GPU opens.
     args.scene_and_rig()?;
-    if args.window {
+    if args.output.shown() {
         return crate::window::run(args);
+    }
+    if args.output.xr {
+        return run_xr(args);
     }
     // Validate the options before opening the GPU (slow on software adapters).
     args.process.run_ns()?;
     let mut session = Session::new(args, Gpu::new()?)?;
     while !session.should_stop() {
-        session.step(|_| {})?;
+        session.step(&mut Headless)?;
     }
     transport::notify::stopping();
     session.finish();
     Ok(())
+}
+
+/// Run the renderer into an OpenXR runtime until terminated, `--seconds` end or the runtime ends
+/// the session.
+#[cfg(feature = "openxr")]
+#[allow(clippy::result_large_err)] // RendererError is large everywhere (see scene_and_rig)
+fn run_xr(args: &RendererArgs) -> Result<(), RendererError> {
+    use crate::xr_runtime::{XrOutput, XrSystem};
+    let xr = |e: crate::xr_runtime::XrError| RendererError::Xr(e.to_string());
+    args.process.run_ns()?;
+    let system = XrSystem::open().map_err(xr)?;
+    let mut args = args.clone();
+    args.xr_eye_size = Some(system.eye_size);
+    let (gpu, binding) = system.gpu().map_err(xr)?;
+    let mut output = XrOutput::new(system, &gpu, &binding).map_err(xr)?;
+    let mut session = Session::new(&args, gpu)?;
+    output.attach(
+        &session.gpu.device,
+        session.renderer.color_view(),
+        session.renderer.image_size(),
+    );
+    let mut result = Ok(());
+    while !session.should_stop() && !output.exiting {
+        if let Err(e) = session.step(&mut output) {
+            result = Err(e);
+            break;
+        }
+    }
+    let failed = output.error.take();
+    // The session and its swapchain go before the device they were made on.
+    drop(output);
+    transport::notify::stopping();
+    session.finish();
+    result?;
+    failed.map_or(Ok(()), |e| Err(xr(e)))
+}
+
+/// Without the `openxr` feature `--xr` says how to get it.
+#[cfg(not(feature = "openxr"))]
+#[allow(clippy::result_large_err)] // RendererError is large everywhere (see scene_and_rig)
+fn run_xr(_: &RendererArgs) -> Result<(), RendererError> {
+    Err(RendererError::Xr(
+        "this build has no OpenXR support: build it with `cargo build --release --features openxr` \
+         (the OpenXR loader is opened at run time, so building needs no system library), then install \
+         an OpenXR runtime (Monado) or set XR_RUNTIME_JSON"
+            .into(),
+    ))
 }
 
 /// The HMD pose used until the tracker reports one: standing at the patient's right side.

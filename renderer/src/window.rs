@@ -3,6 +3,20 @@
 //! Between window events the loop runs one session step (wait for the engine's frame or the deadline,
 //! draw offscreen) and records the present pass into the same command buffer, so a frame reaches the
 //! window in the same submit it is drawn in. Closing the window stops the renderer normally.
+//!
+//! `--fullscreen` fills one display (`--display NAME|INDEX`, the primary by default) with a borderless
+//! fullscreen window, and sizes the offscreen image to it: in stereo each eye is half the display's
+//! width and its full height, so each eye's aspect is its own half's. (With an HMD optics file the
+//! eyes keep the optics' resolution and the present pass letterboxes them, never stretching.)
+//! Displays are winit's monitors: X11 RandR outputs here (winit is built with its `x11` feature
+//! only). Wayland would need winit's `wayland` feature (and libwayland-client at run time); on
+//! Wayland a client cannot place itself, so borderless fullscreen on a named output is a request the
+//! compositor may honour or not, and an output's name is the compositor's (e.g. `DP-1` on wlroots).
+//!
+//! The surface is configured for latency: mailbox where it is offered, else immediate, else FIFO
+//! (`--present-mode` picks one; `--vsync` is FIFO), with `desired_maximum_frame_latency` 1
+//! (`--frame-latency`). When `present` returns, the time goes into the frame's report
+//! (`present_ns`, the latency harness's submit-to-present).
 
 use std::sync::Arc;
 
@@ -12,11 +26,11 @@ use winit::application::ApplicationHandler;
 use winit::dpi::PhysicalSize;
 use winit::event::WindowEvent;
 use winit::event_loop::{ActiveEventLoop, ControlFlow, EventLoop};
-use winit::window::{Window, WindowId};
+use winit::window::{Fullscreen, Window, WindowId};
 
 use crate::gpu::Gpu;
 use crate::present::PresentPass;
-use crate::process::{RendererArgs, RendererError, Session};
+use crate::process::{FrameOutput, RendererArgs, RendererError, Session};
 
 struct Windowed {
     session: Session,
@@ -26,6 +40,266 @@ struct Windowed {
     present: PresentPass,
     /// Whether the title says the engine is restarting.
     engine_down_shown: bool,
+    queue: wgpu::Queue,
+}
+
+/// The window's surface as a [`FrameOutput`]: acquire an image and record the present pass into
+/// the frame, present it after the submit.
+struct SurfaceOutput<'a> {
+    surface: &'a wgpu::Surface<'static>,
+    config: &'a wgpu::SurfaceConfiguration,
+    present: &'a PresentPass,
+    window: &'a Window,
+    queue: &'a wgpu::Queue,
+    acquired: Option<wgpu::SurfaceTexture>,
+    reconfigure: bool,
+}
+
+impl FrameOutput for SurfaceOutput<'_> {
+    fn encode(&mut self, encoder: &mut wgpu::CommandEncoder) {
+        match self.surface.get_current_texture() {
+            wgpu::CurrentSurfaceTexture::Success(t)
+            | wgpu::CurrentSurfaceTexture::Suboptimal(t) => {
+                let view = t.texture.create_view(&Default::default());
+                self.present
+                    .encode(encoder, &view, (self.config.width, self.config.height));
+                self.acquired = Some(t);
+            }
+            wgpu::CurrentSurfaceTexture::Outdated | wgpu::CurrentSurfaceTexture::Lost => {
+                self.reconfigure = true
+            }
+            // Timeout, occluded or validation: skip presenting this frame; the next one tries again.
+            _ => {}
+        }
+    }
+
+    fn present(&mut self) -> Option<u64> {
+        let t = self.acquired.take()?;
+        self.window.pre_present_notify();
+        self.queue.present(t);
+        Some(transport::now_ns())
+    }
+
+    fn mode(&self) -> (u32, u32) {
+        (
+            present_code(self.config.present_mode),
+            self.config.desired_maximum_frame_latency,
+        )
+    }
+}
+
+/// How the frames are shown: the renderer's window options, also the demo's (which passes them on).
+#[derive(Debug, Clone, clap::Args)]
+#[command(group(clap::ArgGroup::new("shown").args(["window", "fullscreen"]).multiple(true)))]
+pub struct DisplayArgs {
+    /// Show the frames in a window (needs a display, e.g. DISPLAY on X11); headless otherwise.
+    #[arg(long)]
+    pub window: bool,
+    /// Draw both eyes into an OpenXR runtime's swapchain (a build with the `openxr` feature; the
+    /// runtime paces the frames and predicts the display time). Fails naming what to install when
+    /// there is no OpenXR loader or runtime.
+    #[arg(long, conflicts_with_all = ["window", "fullscreen"])]
+    pub xr: bool,
+    /// Fill a whole display with the frames (a borderless fullscreen window; implies --window): in
+    /// stereo each eye is drawn at half the display's width and its full height.
+    #[arg(long)]
+    pub fullscreen: bool,
+    /// With --fullscreen: the display to fill, by its name (e.g. DP-1, as `xrandr` and `lungdyn
+    /// doctor` show it) or its index in `lungdyn doctor`'s list; the primary display by default.
+    #[arg(long, value_name = "NAME|INDEX", requires = "fullscreen")]
+    pub display: Option<DisplaySel>,
+    /// With a window: wait for the display's vertical blank when presenting (FIFO: adds up to a
+    /// refresh period of latency; off by default, frames are paced by the engine). Same as
+    /// `--present-mode fifo`.
+    #[arg(long, requires = "shown", conflicts_with = "present_mode")]
+    pub vsync: bool,
+    /// With a window: how frames reach the display. `latency` (default) takes mailbox where the
+    /// surface offers it, else immediate, else FIFO; a named mode the surface lacks is refused.
+    #[arg(
+        long,
+        value_enum,
+        default_value_t,
+        requires = "shown",
+        value_name = "MODE"
+    )]
+    pub present_mode: PresentChoice,
+    /// With a window: frames the surface may queue ahead of the display
+    /// (`desired_maximum_frame_latency`, 1 to 3): 1 for the least latency.
+    #[arg(long, default_value_t = 1, requires = "shown", value_name = "N",
+          value_parser = clap::value_parser!(u32).range(1..=3))]
+    pub frame_latency: u32,
+}
+
+impl DisplayArgs {
+    /// Whether frames go to a window (`--window` or `--fullscreen`).
+    pub fn shown(&self) -> bool {
+        self.window || self.fullscreen
+    }
+
+    /// The same options as command-line arguments (what the demo passes to the renderer).
+    pub fn to_args(&self) -> Vec<String> {
+        let mut out = Vec::new();
+        if self.window {
+            out.push("--window".to_string());
+        }
+        if self.fullscreen {
+            out.push("--fullscreen".to_string());
+        }
+        if self.xr {
+            out.push("--xr".to_string());
+        }
+        if let Some(d) = &self.display {
+            out.push(format!("--display={d}"));
+        }
+        if self.shown() {
+            if self.vsync {
+                out.push("--vsync".to_string());
+            } else {
+                let mode = clap::ValueEnum::to_possible_value(&self.present_mode)
+                    .map(|v| v.get_name().to_string())
+                    .unwrap_or_default();
+                out.push(format!("--present-mode={mode}"));
+            }
+            out.push(format!("--frame-latency={}", self.frame_latency));
+        }
+        out
+    }
+}
+
+/// Which display `--display` names: its index in winit's list (`lungdyn doctor`'s order) or its
+/// name (X11: the RandR output, e.g. `DP-1`).
+#[derive(Debug, Clone, PartialEq, Eq)]
+pub enum DisplaySel {
+    /// Position in the list, from 0.
+    Index(usize),
+    /// Output name, matched exactly.
+    Name(String),
+}
+
+impl std::str::FromStr for DisplaySel {
+    type Err = String;
+    fn from_str(s: &str) -> Result<Self, Self::Err> {
+        let s = s.trim();
+        if s.is_empty() {
+            return Err(
+                "empty: name a display (e.g. DP-1) or give its index (`lungdyn doctor` lists them)"
+                    .into(),
+            );
+        }
+        if s.bytes().all(|b| b.is_ascii_digit()) {
+            return s
+                .parse()
+                .map(DisplaySel::Index)
+                .map_err(|e| format!("{s}: {e}"));
+        }
+        Ok(DisplaySel::Name(s.to_string()))
+    }
+}
+
+impl std::fmt::Display for DisplaySel {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        match self {
+            DisplaySel::Index(i) => write!(f, "{i}"),
+            DisplaySel::Name(n) => f.write_str(n),
+        }
+    }
+}
+
+/// The monitors as one line each, `INDEX: NAME WxH ...`, for errors and `lungdyn doctor`.
+pub fn list_monitors(monitors: &[MonitorInfo]) -> String {
+    monitors
+        .iter()
+        .enumerate()
+        .map(|(i, m)| format!("{i}: {m}"))
+        .collect::<Vec<_>>()
+        .join("; ")
+}
+
+/// The index of the monitor `sel` names in `monitors`; without `sel`, the primary one (else the
+/// first). Errors name what was asked and list the monitors there are.
+#[allow(clippy::result_large_err)]
+pub fn choose_monitor(
+    monitors: &[MonitorInfo],
+    sel: Option<&DisplaySel>,
+) -> Result<usize, RendererError> {
+    if monitors.is_empty() {
+        return Err(RendererError::NoMonitors);
+    }
+    let listed = || list_monitors(monitors);
+    match sel {
+        None => Ok(monitors.iter().position(|m| m.primary).unwrap_or(0)),
+        Some(DisplaySel::Index(i)) if *i < monitors.len() => Ok(*i),
+        Some(DisplaySel::Index(i)) => Err(RendererError::DisplayIndex {
+            index: *i,
+            count: monitors.len(),
+            monitors: listed(),
+        }),
+        Some(DisplaySel::Name(n)) => monitors.iter().position(|m| &m.name == n).ok_or_else(|| {
+            RendererError::UnknownDisplay {
+                name: n.clone(),
+                monitors: listed(),
+            }
+        }),
+    }
+}
+
+/// How to present, asked on the command line.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Default, clap::ValueEnum)]
+pub enum PresentChoice {
+    /// The least latency the surface offers: mailbox, else immediate, else FIFO.
+    #[default]
+    Latency,
+    /// Mailbox (newest frame at vertical blank, no tearing).
+    Mailbox,
+    /// Immediate (at once, may tear).
+    Immediate,
+    /// FIFO (vertical blank, a queue: up to a refresh of latency per queued frame).
+    Fifo,
+}
+
+/// The present mode for `choice` among the surface's `supported` modes; `--vsync` is FIFO (every
+/// surface has it). A named mode the surface lacks is refused, listing what it has.
+#[allow(clippy::result_large_err)]
+pub fn choose_present_mode(
+    choice: PresentChoice,
+    vsync: bool,
+    supported: &[wgpu::PresentMode],
+) -> Result<wgpu::PresentMode, RendererError> {
+    use wgpu::PresentMode as M;
+    let want = match (vsync, choice) {
+        (true, _) | (false, PresentChoice::Fifo) => M::Fifo,
+        (false, PresentChoice::Latency) => {
+            return Ok([M::Mailbox, M::Immediate]
+                .into_iter()
+                .find(|m| supported.contains(m))
+                .unwrap_or(M::Fifo))
+        }
+        (false, PresentChoice::Mailbox) => M::Mailbox,
+        (false, PresentChoice::Immediate) => M::Immediate,
+    };
+    if supported.contains(&want) || want == M::Fifo {
+        Ok(want)
+    } else {
+        Err(RendererError::PresentMode {
+            wanted: format!("{want:?}").to_lowercase(),
+            supported: supported
+                .iter()
+                .map(|m| format!("{m:?}").to_lowercase())
+                .collect::<Vec<_>>()
+                .join(", "),
+        })
+    }
+}
+
+/// The report's [`ipc_types::present_mode`] code of a wgpu present mode.
+pub fn present_code(mode: wgpu::PresentMode) -> u32 {
+    use ipc_types::present_mode as p;
+    match mode {
+        wgpu::PresentMode::Fifo | wgpu::PresentMode::AutoVsync => p::FIFO,
+        wgpu::PresentMode::FifoRelaxed => p::FIFO_RELAXED,
+        wgpu::PresentMode::Mailbox => p::MAILBOX,
+        wgpu::PresentMode::Immediate | wgpu::PresentMode::AutoNoVsync => p::IMMEDIATE,
+    }
 }
 
 struct App {
@@ -36,37 +310,64 @@ struct App {
 
 impl App {
     fn open(&mut self, event_loop: &ActiveEventLoop) -> Result<(), RendererError> {
-        let (scene, rig) = self.args.scene_and_rig()?;
-        let eyes = if scene.render.stereo { 2 } else { 1 };
-        let (eye_width, eye_height) = rig.rig().eye_size(&scene.render);
-        let size = PhysicalSize::new(eye_width * eyes, eye_height);
+        let mut attributes = Window::default_attributes().with_title("lungdyn");
+        if self.args.output.fullscreen {
+            let handles: Vec<_> = event_loop.available_monitors().collect();
+            let primary = event_loop.primary_monitor();
+            let infos: Vec<MonitorInfo> = handles
+                .iter()
+                .map(|m| MonitorInfo::of(m, primary.as_ref()))
+                .collect();
+            let chosen = choose_monitor(&infos, self.args.output.display.as_ref())?;
+            let m = &infos[chosen];
+            // The offscreen image is the display's size: each eye half of it in stereo.
+            self.args.screen_size = Some((m.width, m.height));
+            eprintln!(
+                "renderer: fullscreen on display {chosen}: {m} (of {})",
+                infos.len()
+            );
+            attributes = attributes
+                .with_fullscreen(Some(Fullscreen::Borderless(Some(handles[chosen].clone()))))
+                .with_inner_size(PhysicalSize::new(m.width, m.height));
+        } else {
+            let (scene, rig) = self.args.scene_and_rig()?;
+            let eyes = if scene.render.stereo { 2 } else { 1 };
+            let (eye_width, eye_height) = rig.rig().eye_size(&scene.render);
+            attributes =
+                attributes.with_inner_size(PhysicalSize::new(eye_width * eyes, eye_height));
+        }
         let window = Arc::new(
             event_loop
-                .create_window(
-                    Window::default_attributes()
-                        .with_title("lungdyn")
-                        .with_inner_size(size),
-                )
+                .create_window(attributes)
                 .map_err(|source| RendererError::Window { source })?,
         );
+        let size = window.inner_size();
         let (gpu, surface) = Gpu::with_window(window.clone())?;
         let mut config = surface
-            .get_default_config(&gpu.adapter, size.width, size.height)
+            .get_default_config(&gpu.adapter, size.width.max(1), size.height.max(1))
             .ok_or_else(|| RendererError::CannotPresent {
                 adapter: gpu.info.name.clone(),
             })?;
-        config.present_mode = if self.args.vsync {
-            wgpu::PresentMode::AutoVsync
-        } else {
-            wgpu::PresentMode::AutoNoVsync
-        };
+        let caps = surface.get_capabilities(&gpu.adapter);
+        config.present_mode = choose_present_mode(
+            self.args.output.present_mode,
+            self.args.output.vsync,
+            &caps.present_modes,
+        )?;
+        config.desired_maximum_frame_latency = self.args.output.frame_latency;
         surface.configure(&gpu.device, &config);
+        eprintln!(
+            "renderer: presenting {:?} with frame latency {} (the surface offers {:?})",
+            config.present_mode, config.desired_maximum_frame_latency, caps.present_modes
+        );
         let session = Session::new(&self.args, gpu)?;
         let present = PresentPass::new(
             &session.gpu.device,
             session.renderer.color_view(),
+            session.renderer.image_size(),
             config.format,
         );
+        let queue = session.gpu.queue.clone();
         self.state = Some(Windowed {
             session,
             window,
@@ -74,6 +375,7 @@ impl App {
             config,
             present,
             engine_down_shown: false,
+            queue,
         });
         Ok(())
     }
@@ -139,22 +441,18 @@ impl ApplicationHandler for App {
             config,
             window,
             engine_down_shown,
+            queue,
         } = w;
-        let mut acquired = None;
-        let mut reconfigure = false;
-        let result = session.step(|encoder| match surface.get_current_texture() {
-            wgpu::CurrentSurfaceTexture::Success(t)
-            | wgpu::CurrentSurfaceTexture::Suboptimal(t) => {
-                let view = t.texture.create_view(&Default::default());
-                present.encode(encoder, &view);
-                acquired = Some(t);
-            }
-            wgpu::CurrentSurfaceTexture::Outdated | wgpu::CurrentSurfaceTexture::Lost => {
-                reconfigure = true
-            }
-            // Timeout, occluded or validation: skip presenting this frame; the next one tries again.
-            _ => {}
-        });
+        let mut output = SurfaceOutput {
+            surface,
+            config,
+            present,
+            window,
+            queue,
+            acquired: None,
+            reconfigure: false,
+        };
+        let result = session.step(&mut output);
         let down = session.engine_down();
         if down != *engine_down_shown {
             *engine_down_shown = down;
@@ -164,11 +462,7 @@ impl ApplicationHandler for App {
                 "lungdyn"
             });
         }
-        if let Some(t) = acquired {
-            window.pre_present_notify();
-            session.gpu.queue.present(t);
-        }
-        if reconfigure {
+        if output.reconfigure {
             surface.configure(&session.gpu.device, config);
         }
         if let Err(e) = result {
@@ -245,6 +539,24 @@ impl MonitorInfo {
     }
 }
 
+impl std::fmt::Display for MonitorInfo {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        let name = if self.name.is_empty() {
+            "(unnamed)"
+        } else {
+            &self.name
+        };
+        write!(f, "{name} {}x{}", self.width, self.height)?;
+        if let Some(r) = self.refresh_mhz {
+            write!(f, " @ {:.2} Hz", r as f64 / 1000.0)?;
+        }
+        if self.primary {
+            f.write_str(" (primary)")?;
+        }
+        write!(f, ", {} modes", self.modes)
+    }
+}
+
 struct ListMonitors(Option<Vec<MonitorInfo>>);
 
 impl ApplicationHandler for ListMonitors {
@@ -268,4 +580,123 @@ pub fn monitors() -> Result<Vec<MonitorInfo>, winit::error::EventLoopError> {
     let mut list = ListMonitors(None);
     EventLoop::new()?.run_app(&mut list)?;
     Ok(list.0.unwrap_or_default())
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use clap::Parser;
+
+    fn monitor(name: &str, width: u32, primary: bool) -> MonitorInfo {
+        MonitorInfo {
+            name: name.into(),
+            width,
+            height: 1080,
+            refresh_mhz: Some(90_000),
+            modes: 3,
+            primary,
+        }
+    }
+
+    #[test]
+    fn a_display_is_chosen_by_name_or_index_and_the_primary_by_default() {
+        let list = [monitor("DP-1", 1920, false), monitor("HDMI-1", 2880, true)];
+        assert_eq!(choose_monitor(&list, None).unwrap(), 1);
+        assert_eq!(choose_monitor(&[monitor("a", 1, false)], None).unwrap(), 0);
+        let by = |s: &str| choose_monitor(&list, Some(&s.parse().unwrap())).ok();
+        assert_eq!(by("0"), Some(0));
+        assert_eq!(by("HDMI-1"), Some(1));
+        assert_eq!(by(" DP-1 "), Some(0));
+    }
+
+    #[test]
+    fn an_unknown_or_out_of_range_display_is_refused_listing_the_displays() {
+        let list = [monitor("DP-1", 1920, false), monitor("HDMI-1", 2880, true)];
+        let e = choose_monitor(&list, Some(&"dp-1".parse().unwrap()))
+            .unwrap_err()
+            .to_string();
+        assert!(e.contains("--display dp-1: no display of that name"), "{e}");
+        assert!(
+            e.contains(
+                "0: DP-1 1920x1080 @ 90.00 Hz, 3 modes; 1: HDMI-1 2880x1080 @ 90.00 Hz (primary)"
+            ),
+            "{e}"
+        );
+        let e = choose_monitor(&list, Some(&DisplaySel::Index(2)))
+            .unwrap_err()
+            .to_string();
+        assert!(
+            e.contains("--display 2: there are only 2 display(s), 0 to 1"),
+            "{e}"
+        );
+        assert!(e.contains("HDMI-1"), "{e}");
+        let e = choose_monitor(&[], None).unwrap_err().to_string();
+        assert!(e.contains("no monitors"), "{e}");
+        assert!("".parse::<DisplaySel>().unwrap_err().contains("empty"));
+        assert!("99999999999999999999999".parse::<DisplaySel>().is_err());
+    }
+
+    #[test]
+    fn the_present_mode_is_the_least_latency_offered_unless_one_is_named() {
+        use wgpu::PresentMode as M;
+        let all = [M::Fifo, M::FifoRelaxed, M::Immediate, M::Mailbox];
+        let l = PresentChoice::Latency;
+        assert_eq!(choose_present_mode(l, false, &all).unwrap(), M::Mailbox);
+        assert_eq!(
+            choose_present_mode(l, false, &[M::Fifo, M::Immediate]).unwrap(),
+            M::Immediate
+        );
+        assert_eq!(choose_present_mode(l, false, &[M::Fifo]).unwrap(), M::Fifo);
+        assert_eq!(choose_present_mode(l, false, &[]).unwrap(), M::Fifo);
+        assert_eq!(choose_present_mode(l, true, &all).unwrap(), M::Fifo);
+        let mb = PresentChoice::Mailbox;
+        assert_eq!(choose_present_mode(mb, false, &all).unwrap(), M::Mailbox);
+        let e = choose_present_mode(mb, false, &[M::Fifo, M::Immediate])
+            .unwrap_err()
+            .to_string();
+        assert!(
+            e.contains("--present-mode mailbox: this surface offers only fifo, immediate"),
+            "{e}"
+        );
+        assert_eq!(present_code(M::Mailbox), ipc_types::present_mode::MAILBOX);
+        assert_eq!(present_code(M::Fifo), ipc_types::present_mode::FIFO);
+        assert_eq!(
+            present_code(M::Immediate),
+            ipc_types::present_mode::IMMEDIATE
+        );
+    }
+
+    #[derive(Parser)]
+    struct Cli {
+        #[command(flatten)]
+        d: DisplayArgs,
+    }
+
+    #[test]
+    fn display_options_pass_through_to_the_renderer_unchanged() {
+        for args in [
+            vec![
+                "--fullscreen",
+                "--display=HDMI-1",
+                "--present-mode=immediate",
+                "--frame-latency=2",
+            ],
+            vec!["--window", "--vsync", "--frame-latency=1"],
+            vec!["--xr"],
+            vec![],
+        ] {
+            let d = Cli::try_parse_from(std::iter::once("x").chain(args.iter().copied()))
+                .unwrap()
+                .d;
+            let again = Cli::try_parse_from(std::iter::once("x".to_string()).chain(d.to_args()))
+                .unwrap()
+                .d;
+            assert_eq!(format!("{d:?}"), format!("{again:?}"), "{args:?}");
+        }
+        assert!(Cli::try_parse_from(["x", "--display", "0"]).is_err());
+        assert!(Cli::try_parse_from(["x", "--vsync"]).is_err());
+        assert!(Cli::try_parse_from(["x", "--xr", "--fullscreen"]).is_err());
+        assert!(Cli::try_parse_from(["x", "--xr", "--present-mode", "fifo"]).is_err());
+        assert!(Cli::try_parse_from(["x", "--window", "--frame-latency", "4"]).is_err());
+    }
 }

@@ -154,6 +154,17 @@ pub fn assert_demo_report_is_consistent(v: &serde_json::Value, stderr: &str) {
         n("end_to_end_max_ms"),
     );
     assert!(0.0 < p50 && p50 <= p99 && p99 <= max, "{v}");
+    // Frames presented to a display are drawn frames, timed submit → present in order.
+    assert!(n("presented_frames") <= frames, "{v}");
+    let (s50, s99, smax) = (
+        n("submit_to_present_p50_ms"),
+        n("submit_to_present_p99_ms"),
+        n("submit_to_present_max_ms"),
+    );
+    assert!(0.0 <= s50 && s50 <= s99 && s99 <= smax, "{v}");
+    if n("presented_frames") == 0.0 {
+        assert_eq!(v["present_mode"], "none", "{v}");
+    }
     if !stderr.is_empty() {
         let drawn = renderer_frames(stderr)
             .unwrap_or_else(|| panic!("the renderer did not report its frames: {stderr}"));

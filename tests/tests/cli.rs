@@ -191,6 +191,14 @@ fn the_demo_shows_frames_in_a_window_when_a_display_exists() {
     lungdyn_tests::assert_demo_report_is_consistent(&v, &stderr);
     assert_eq!(v["pngs"].as_array().unwrap().len(), 2);
     assert_eq!(v["remaining_files"].as_u64(), Some(0));
+    // Presented, in the mode chosen for latency (Xvfb offers no mailbox; lavapipe's X11 surface
+    // presents immediately), with one frame queued at most.
+    assert!(v["presented_frames"].as_u64().unwrap() >= 1, "{v}");
+    assert!(
+        ["mailbox", "immediate"].contains(&v["present_mode"].as_str().unwrap()),
+        "{v}"
+    );
+    assert_eq!(v["frame_latency"], 1, "{v}");
     std::fs::remove_dir_all(&dir).ok();
     std::fs::remove_file(&scene).ok();
 }

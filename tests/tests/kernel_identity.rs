@@ -77,7 +77,7 @@ fn a_lung_of_another_kernel_is_drawn_at_rest_and_flagged() {
     let right_len = lungs_b[0].mesh.positions.len();
     let mut drawn = Vec::new();
     while drawn.len() < 3 {
-        if session.step(|_| {}).unwrap() {
+        if session.step(&mut renderer::process::Headless).unwrap() {
             let v = session.renderer.read_deformed(&session.gpu).unwrap();
             drawn.push(v);
         }
@@ -137,6 +137,6 @@ fn a_lung_the_engine_does_not_simulate_is_not_drawn_with_stale_state() {
         Snapshots::default(),
         "kernel-identity-2",
     );
-    while !session.step(|_| {}).unwrap() {}
+    while !session.step(&mut renderer::process::Headless).unwrap() {}
     assert_ne!(reports.values()[0].flags & report_flags::KERNEL_MISMATCH, 0);
 }

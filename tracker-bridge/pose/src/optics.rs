@@ -342,22 +342,30 @@ impl Optics {
     /// The projection of an eye, column-major 4×4 (`m[col][row]`), right-handed view space looking
     /// along −Z, clip depth 0 (near) .. 1 (far) as wgpu and Vulkan use it.
     pub fn projection(&self, eye: usize) -> [[f32; 4]; 4] {
-        let [l, r, d, u] = self.eyes[eye].frustum_tan;
-        let (n, f) = (self.near_mm, self.far_mm);
-        // x_ndc = (2 x / (-z) - (r - l)) / (r + l) with tangents l, r measured outwards.
-        let sx = 2.0 / (l + r);
-        let sy = 2.0 / (d + u);
-        let ox = (r - l) / (l + r);
-        let oy = (u - d) / (d + u);
-        let a = f / (n - f);
-        let b = n * f / (n - f);
-        [
-            [sx as f32, 0.0, 0.0, 0.0],
-            [0.0, sy as f32, 0.0, 0.0],
-            [ox as f32, oy as f32, a as f32, -1.0],
-            [0.0, 0.0, b as f32, 0.0],
-        ]
+        frustum_projection(self.eyes[eye].frustum_tan, self.near_mm, self.far_mm)
     }
+}
+
+/// The projection of an asymmetric frustum with tangents `[left, right, down, up]` measured
+/// outwards from the view direction, column-major 4×4 (`m[col][row]`), right-handed view space
+/// looking along −Z, clip depth 0 (`near_mm`) .. 1 (`far_mm`) as wgpu and Vulkan use it (an optics
+/// file's eye, or an OpenXR runtime's `XrFovf`).
+pub fn frustum_projection(tan: [f64; 4], near_mm: f64, far_mm: f64) -> [[f32; 4]; 4] {
+    let [l, r, d, u] = tan;
+    let (n, f) = (near_mm, far_mm);
+    // x_ndc = (2 x / (-z) - (r - l)) / (r + l) with tangents l, r measured outwards.
+    let sx = 2.0 / (l + r);
+    let sy = 2.0 / (d + u);
+    let ox = (r - l) / (l + r);
+    let oy = (u - d) / (d + u);
+    let a = f / (n - f);
+    let b = n * f / (n - f);
+    [
+        [sx as f32, 0.0, 0.0, 0.0],
+        [0.0, sy as f32, 0.0, 0.0],
+        [ox as f32, oy as f32, a as f32, -1.0],
+        [0.0, 0.0, b as f32, 0.0],
+    ]
 }
 
 /// One step of the 32-bit float depth buffer at distance `z_mm`, mm, for a near plane `near_mm`
