@@ -41,6 +41,7 @@ use thiserror::Error;
 
 pub mod disease;
 pub mod process;
+pub mod remote;
 pub use process::run;
 
 /// What the engine needs of one lung's geometry: its kernel's identity, volume cubic, and for the
@@ -554,6 +555,11 @@ impl EngineCore {
     /// The active lungs' geometry.
     pub fn geometry(&self) -> impl Iterator<Item = &LungGeometry> {
         self.lungs.iter().map(|(g, _)| g)
+    }
+
+    /// Each lung's current cycle start tick, in the scene's lung order.
+    pub fn cycle_starts(&self) -> impl Iterator<Item = u64> + '_ {
+        self.lungs.iter().map(|(_, b)| b.cycle_start)
     }
 
     /// Number of active lungs.

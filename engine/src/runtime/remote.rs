@@ -1,0 +1,319 @@
+//! The engine's control state for remote sites (seed §8.3; `control-state` crate).
+//!
+//! A source engine describes its breath with [`EngineCore::control_state`] once per breathing
+//! cycle (every change this engine makes takes effect at a lung's cycle start: a disease cycle, an
+//! intervention, a rate change). A site's engine is built from its own copy of the scene and
+//! driven by those packets: [`Prepared::of`] builds the PV tables a packet names (off the tick:
+//! ≈ 20 ms per distinct cycle, cached while the constants stay the same) and
+//! [`EngineCore::apply_prepared`] puts them and every lung's state in place (no allocation beyond
+//! moving the prepared tables in). Both engines run the same code on the same constants, so the
+//! same packets give the same breath, bit for bit, at the same source tick.
+
+use control_state::{
+    Bounded, ControlState, Disease, LungState, PhaseState, PvState, RemoteEvent, MAX_EVENTS,
+};
+use lung_model::mesh::Side;
+use lung_model::pv::{Boundary, Breathing, PhaseConstants, PvError, Timing};
+use thiserror::Error;
+
+use super::{disease::DiseaseRun, EngineCore, LungBreath};
+
+/// Why a control state cannot be made or used.
+#[derive(Debug, Error)]
+pub enum RemoteStateError {
+    /// A measured waveform has no constants a site could rebuild it from.
+    #[error(
+        "the {side} lung breathes a measured waveform ([pv] waveform): remote sites need PV \
+         constants; use a preset or fitted constants for a shared session"
+    )]
+    Waveform {
+        /// Which lung.
+        side: &'static str,
+    },
+    /// The packet names a lung this site's scene does not simulate.
+    #[error(
+        "the source simulates the {side} lung but this site's scene does not: start every site \
+         on the source's scene"
+    )]
+    MissingLung {
+        /// Which lung.
+        side: &'static str,
+    },
+    /// The packet's constants cannot produce a breath.
+    #[error("the source's {side} lung: {source}")]
+    Pv {
+        /// Which lung.
+        side: &'static str,
+        /// Why.
+        #[source]
+        source: PvError,
+    },
+    /// The boundary values are outside human ranges (a silent wrong answer otherwise).
+    #[error("the source's {side} lung: {reason}")]
+    Implausible {
+        /// Which lung.
+        side: &'static str,
+        /// Why.
+        reason: String,
+    },
+    /// The site ticks at another rate than the source.
+    #[error(
+        "the source ticks at {source_hz} Hz, this site at {site_hz} Hz: start the site on the \
+         source's scene"
+    )]
+    TickRate {
+        /// Source.
+        source_hz: f64,
+        /// Site.
+        site_hz: f64,
+    },
+}
+
+fn side_of(code: u8) -> Side {
+    if code as usize == ipc_types::LUNG_LEFT {
+        Side::Left
+    } else {
+        Side::Right
+    }
+}
+
+fn phase_state(p: &PhaseConstants) -> PhaseState {
+    PhaseState {
+        // lung-model refuses more than MAX_CONTROL_CONSTANTS (15 = control_state::MAX_CHI).
+        chi: Bounded::new(p.chi.iter().copied().take(control_state::MAX_CHI).collect())
+            .unwrap_or_default(),
+        q: p.q,
+        c: p.c,
+        t_ext: p.t_ext,
+        t_steps: p.t_steps,
+        beta0: p.beta0,
+        beta1: p.beta1,
+    }
+}
+
+fn phase_constants(p: &PhaseState) -> PhaseConstants {
+    PhaseConstants {
+        chi: p.chi.to_vec(),
+        q: p.q,
+        c: p.c,
+        t_ext: p.t_ext,
+        t_steps: p.t_steps,
+        beta0: p.beta0,
+        beta1: p.beta1,
+    }
+}
+
+fn pv_state(b: &Breathing, side: Side) -> Result<PvState, RemoteStateError> {
+    let s = b
+        .source()
+        .ok_or(RemoteStateError::Waveform { side: side.name() })?;
+    let bd = b.boundary();
+    Ok(PvState {
+        inhale: phase_state(&s.inhale),
+        exhale: phase_state(&s.exhale),
+        frc_ml: bd.frc_ml,
+        tv_ml: bd.tv_ml,
+        rp_cmh2o: bd.rp_cmh2o,
+        tp_cmh2o: bd.tp_cmh2o,
+        breaths_per_min: s.timing.breaths_per_min,
+        ie_inhale: s.timing.ie_inhale,
+        ie_exhale: s.timing.ie_exhale,
+    })
+}
+
+/// Build the breath a [`PvState`] names at `tick_hz` (eq. 5.11 tables; allocates, ≈ 20 ms).
+pub fn breathing_of(pv: &PvState, tick_hz: f64, side: Side) -> Result<Breathing, RemoteStateError> {
+    let boundary = Boundary {
+        frc_ml: pv.frc_ml,
+        tv_ml: pv.tv_ml,
+        rp_cmh2o: pv.rp_cmh2o,
+        tp_cmh2o: pv.tp_cmh2o,
+    };
+    boundary
+        .check_plausible()
+        .map_err(|e| RemoteStateError::Implausible {
+            side: side.name(),
+            reason: e.to_string(),
+        })?;
+    let timing = Timing {
+        tick_hz,
+        breaths_per_min: pv.breaths_per_min,
+        ie_inhale: pv.ie_inhale,
+        ie_exhale: pv.ie_exhale,
+    };
+    let (i, e) = (phase_constants(&pv.inhale), phase_constants(&pv.exhale));
+    for p in [&i, &e] {
+        p.validate().map_err(|source| RemoteStateError::Pv {
+            side: side.name(),
+            source,
+        })?;
+    }
+    Breathing::from_constants(&i, &e, boundary, &timing).map_err(|source| RemoteStateError::Pv {
+        side: side.name(),
+        source,
+    })
+}
+
+impl LungBreath {
+    fn state(&self, side: Side) -> Result<LungState, RemoteStateError> {
+        Ok(LungState {
+            side: side.index() as u8,
+            pv: pv_state(&self.breathing, side)?,
+            next: self
+                .next
+                .as_ref()
+                .map(|n| pv_state(n, side))
+                .transpose()?,
+            share: self.share,
+            held_ml: self.held_ml,
+            base_ml: self.base_ml,
+            collapse: self.collapse,
+            offset_mm: self.offset_mm,
+            cycle: self.cycle,
+            cycle_start_tick: self.cycle_start,
+        })
+    }
+}
+
+/// Identity of the sender and timing of one state.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct StateStamp {
+    /// Source site id.
+    pub source: u64,
+    /// Source session.
+    pub epoch: u64,
+    /// Packet sequence.
+    pub sequence: u64,
+    /// Ticks per second.
+    pub tick_hz: f64,
+    /// Source clock at the tick, ns.
+    pub source_time_ns: u64,
+}
+
+/// A control state with the breaths it names already built (off the tick).
+#[derive(Debug, Clone)]
+pub struct Prepared {
+    /// The packet.
+    pub state: ControlState,
+    /// Per lung of the packet: the cycle in force and the pending one.
+    breaths: Vec<(Breathing, Option<Breathing>)>,
+}
+
+/// Tables built lately, reused while a packet's constants stay the same (every healthy cycle).
+#[derive(Debug, Default)]
+pub struct BreathCache {
+    built: Vec<(PvState, Breathing)>,
+}
+
+impl BreathCache {
+    fn get(&mut self, pv: &PvState, hz: f64, side: Side) -> Result<Breathing, RemoteStateError> {
+        if let Some((_, b)) = self.built.iter().find(|(p, _)| p == pv) {
+            return Ok(b.clone());
+        }
+        let b = breathing_of(pv, hz, side)?;
+        if self.built.len() >= 4 {
+            self.built.remove(0);
+        }
+        self.built.push((pv.clone(), b.clone()));
+        Ok(b)
+    }
+}
+
+impl Prepared {
+    /// Build what `state` needs (allocates; call off the tick).
+    pub fn of(state: ControlState, cache: &mut BreathCache) -> Result<Self, RemoteStateError> {
+        let mut breaths = Vec::with_capacity(state.lungs.len());
+        for l in state.lungs.iter() {
+            let side = side_of(l.side);
+            let now = cache.get(&l.pv, state.tick_hz, side)?;
+            let next = match &l.next {
+                Some(n) => Some(cache.get(n, state.tick_hz, side)?),
+                None => None,
+            };
+            breaths.push((now, next));
+        }
+        Ok(Self { state, breaths })
+    }
+}
+
+impl EngineCore {
+    /// The control state at `tick` (call at a cycle start or after a change; allocates the
+    /// constants' vectors, so after the tick's publish). `events` are the latest interventions.
+    pub fn control_state(
+        &self,
+        tick: u64,
+        stamp: StateStamp,
+        events: &[RemoteEvent],
+    ) -> Result<ControlState, RemoteStateError> {
+        let mut lungs = Bounded::default();
+        for (g, b) in &self.lungs {
+            lungs.push(b.state(g.side)?);
+        }
+        let disease = match &self.disease {
+            None => Disease::None,
+            Some(DiseaseRun::Closed(setups)) => Disease::ClosedPneumothorax {
+                side: setups.first().map_or(0, |s| s.side.index() as u8),
+            },
+            Some(DiseaseRun::Tension(run)) => Disease::TensionPneumothorax {
+                side: run.affected().index() as u8,
+                cycles_run: run.cycles_run,
+            },
+            Some(DiseaseRun::Tumour(t)) => Disease::Tumour {
+                side: t.side.index() as u8,
+            },
+        };
+        let first = events.len().saturating_sub(MAX_EVENTS);
+        Ok(ControlState {
+            source: stamp.source,
+            epoch: stamp.epoch,
+            sequence: stamp.sequence,
+            tick,
+            tick_hz: stamp.tick_hz,
+            source_time_ns: stamp.source_time_ns,
+            cycle: self.lungs.first().map_or(0, |(_, b)| b.cycle as u64),
+            gravity_body: self.gravity_body.to_array(),
+            disease,
+            lungs,
+            events: Bounded::new(events[first..].to_vec()).unwrap_or_default(),
+        })
+    }
+
+    /// Drive this (site) engine from a source's state: each lung breathes the source's cycle,
+    /// share, held/base volume, collapse and offset, its cycle aligned to the source's tick
+    /// numbers; gravity is the source's. `site_hz` is this site's tick rate. No allocation (the
+    /// prepared tables are moved in).
+    pub fn apply_prepared(&mut self, p: Prepared, site_hz: f64) -> Result<(), RemoteStateError> {
+        let hz = p.state.tick_hz;
+        if hz != site_hz {
+            return Err(RemoteStateError::TickRate {
+                source_hz: hz,
+                site_hz,
+            });
+        }
+        for l in p.state.lungs.iter() {
+            let side = side_of(l.side);
+            if self.lung(side).is_none() {
+                return Err(RemoteStateError::MissingLung { side: side.name() });
+            }
+        }
+        for (l, (now, next)) in p.state.lungs.iter().zip(p.breaths) {
+            let Some(b) = self.lung_mut(side_of(l.side)) else {
+                continue;
+            };
+            b.breathing = now;
+            b.next = next;
+            b.share = l.share;
+            b.held_ml = l.held_ml;
+            b.base_ml = l.base_ml;
+            b.collapse = l.collapse.clamp(0.0, 1.0);
+            b.offset_mm = l.offset_mm;
+            b.cycle = l.cycle;
+            b.cycle_start = l.cycle_start_tick;
+        }
+        let g = glam::DVec3::from(p.state.gravity_body);
+        if g.is_finite() && g.length() > 0.0 {
+            self.gravity_body = g.normalize();
+        }
+        Ok(())
+    }
+}
