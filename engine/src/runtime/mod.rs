@@ -431,6 +431,12 @@ impl EngineCore {
         Ok(())
     }
 
+    /// Drive this engine from a remote source's control states only: drop its own disease course
+    /// (the states carry the source's; the hilum found for it stays for a collapsing lung).
+    pub fn follow_remote(&mut self) {
+        self.disease = None;
+    }
+
     /// The disease state being run, if any.
     pub fn disease(&self) -> Option<&disease::DiseaseRun> {
         self.disease.as_ref()

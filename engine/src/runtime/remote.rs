@@ -159,11 +159,7 @@ impl LungBreath {
         Ok(LungState {
             side: side.index() as u8,
             pv: pv_state(&self.breathing, side)?,
-            next: self
-                .next
-                .as_ref()
-                .map(|n| pv_state(n, side))
-                .transpose()?,
+            next: self.next.as_ref().map(|n| pv_state(n, side)).transpose()?,
             share: self.share,
             held_ml: self.held_ml,
             base_ml: self.base_ml,
@@ -315,5 +311,134 @@ impl EngineCore {
             self.gravity_body = g.normalize();
         }
         Ok(())
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::runtime::LungGeometry;
+    use control_state::{decode, encode_to_vec, Packet};
+    use ipc_types::EngineFrame;
+    use lung_model::deform::{LungModel, MotionConstants};
+    use lung_model::mesh::generate;
+    use lung_model::scene::Scene;
+
+    fn core(scene: &Scene) -> EngineCore {
+        let lungs = [Side::Right, Side::Left]
+            .into_iter()
+            .map(|side| {
+                let m = LungModel::build(
+                    side,
+                    generate::lung(side, 500).unwrap(),
+                    &MotionConstants::table_6_1(side),
+                )
+                .unwrap();
+                LungGeometry::of(&m)
+            })
+            .collect();
+        EngineCore::with_geometry(scene, lungs).unwrap()
+    }
+
+    fn stamp(tick: u64) -> StateStamp {
+        StateStamp {
+            source: 7,
+            epoch: 1,
+            sequence: tick,
+            tick_hz: 60.0,
+            source_time_ns: tick * 16_666_667,
+        }
+    }
+
+    /// Through the wire: encode, decode, prepare.
+    fn over_the_wire(s: ControlState, cache: &mut BreathCache) -> Prepared {
+        let Packet::State(s) = decode(&encode_to_vec(&Packet::State(s)).unwrap()).unwrap() else {
+            panic!("not a state")
+        };
+        Prepared::of(s, cache).unwrap()
+    }
+
+    /// A site whose own scene breathes differently (20 breaths/min, another TV), joining late at
+    /// tick 400 with the source's last packet, then fed each cycle's packet, shows the source's
+    /// breath bit for bit at every tick (the same packets give the same breath).
+    #[test]
+    fn a_late_site_driven_by_packets_breathes_the_sources_breath_bit_for_bit() {
+        let mut source_scene = Scene::default();
+        source_scene.pv.breaths_per_min = 14.0;
+        let mut source = core(&source_scene);
+        let mut site_scene = Scene::default();
+        site_scene.pv.breaths_per_min = 20.0;
+        let mut site = core(&site_scene);
+        let (mut a, mut b) = (EngineFrame::default(), EngineFrame::default());
+        let mut cache = BreathCache::default();
+        let mut last = None;
+        let mut starts = [u64::MAX; 2];
+        let mut compared = 0;
+        for tick in 0..1200u64 {
+            source.step(tick, None, &mut a);
+            let now: Vec<u64> = source.cycle_starts().collect();
+            if now[..] != starts[..] {
+                starts.copy_from_slice(&now);
+                last = Some(source.control_state(tick, stamp(tick), &[]).unwrap());
+                if tick >= 400 {
+                    let p = over_the_wire(last.clone().unwrap(), &mut cache);
+                    site.apply_prepared(p, 60.0).unwrap();
+                }
+            }
+            if tick == 400 {
+                // Late join: the latest state the source published (a cycle start before 400).
+                let p = over_the_wire(last.clone().unwrap(), &mut cache);
+                site.apply_prepared(p, 60.0).unwrap();
+            }
+            if tick >= 400 {
+                site.step(tick, None, &mut b);
+                for k in 0..2 {
+                    assert_eq!(
+                        a.lungs[k].volume_ml.to_bits(),
+                        b.lungs[k].volume_ml.to_bits(),
+                        "tick {tick} lung {k}"
+                    );
+                    assert_eq!(
+                        a.lungs[k].deform_scale.to_bits(),
+                        b.lungs[k].deform_scale.to_bits()
+                    );
+                    assert_eq!(a.lungs[k].phase.to_bits(), b.lungs[k].phase.to_bits());
+                    assert_eq!(a.lungs[k].cycle, b.lungs[k].cycle);
+                }
+                compared += 1;
+            }
+        }
+        assert_eq!(compared, 800);
+        // 14 breaths/min at 60 Hz: a packet every 257 ticks.
+        assert_eq!(source.cycle_ticks(), 257);
+    }
+
+    #[test]
+    fn a_packet_the_site_cannot_use_is_refused_with_the_reason() {
+        let scene = Scene::default();
+        let source = core(&scene);
+        let mut cache = BreathCache::default();
+        let s = source.control_state(0, stamp(0), &[]).unwrap();
+        let mut site = core(&scene);
+        let e = site
+            .apply_prepared(Prepared::of(s.clone(), &mut cache).unwrap(), 90.0)
+            .unwrap_err();
+        assert!(e.to_string().contains("60 Hz, this site at 90 Hz"), "{e}");
+        // An implausible tidal volume (finite, so the codec passes it) is the engine's to refuse.
+        let mut bad = s.clone();
+        for l in [0, 1] {
+            let mut lungs = bad.lungs.to_vec();
+            lungs[l].pv.tv_ml = 1e6;
+            bad.lungs = Bounded::new(lungs).unwrap();
+        }
+        let e = Prepared::of(bad, &mut cache).unwrap_err();
+        assert!(e.to_string().contains("right lung"), "{e}");
+        // A site simulating one lung refuses a packet naming the other.
+        let mut one = core(&scene);
+        one.lungs.truncate(1);
+        let e = one
+            .apply_prepared(Prepared::of(s, &mut cache).unwrap(), 60.0)
+            .unwrap_err();
+        assert!(e.to_string().contains("left lung"), "{e}");
     }
 }

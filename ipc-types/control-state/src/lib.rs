@@ -105,7 +105,10 @@ impl<'de, T: Deserialize<'de>, const N: usize> Deserialize<'de> for Bounded<T, N
             fn expecting(&self, f: &mut core::fmt::Formatter) -> core::fmt::Result {
                 write!(f, "a sequence of at most {N} elements")
             }
-            fn visit_seq<A: serde::de::SeqAccess<'de>>(self, mut a: A) -> Result<Self::Value, A::Error> {
+            fn visit_seq<A: serde::de::SeqAccess<'de>>(
+                self,
+                mut a: A,
+            ) -> Result<Self::Value, A::Error> {
                 let claimed = a.size_hint().unwrap_or(0);
                 if claimed > N {
                     return Err(serde::de::Error::invalid_length(claimed, &self));
@@ -430,7 +433,10 @@ impl Packet {
             if let Some(n) = &l.next {
                 n.check()?;
             }
-            finite(&[l.share, l.collapse], "a lung's share or collapse is not finite")?;
+            finite(
+                &[l.share, l.collapse],
+                "a lung's share or collapse is not finite",
+            )?;
             finite(&l.offset_mm, "a lung's offset is not finite")?;
             finite(
                 &[l.held_ml.unwrap_or(0.0), l.base_ml.unwrap_or(0.0)],

@@ -132,7 +132,10 @@ fn bad_magic_lengths_and_trailing_bytes_are_refused() {
     // A valid header over a payload with a byte after the packet.
     let mut t = b[HEADER_BYTES..].to_vec();
     t.push(0);
-    assert!(matches!(decode(&framed(&t)), Err(DecodeError::Malformed(_))));
+    assert!(matches!(
+        decode(&framed(&t)),
+        Err(DecodeError::Malformed(_))
+    ));
 }
 
 /// Bytes with a correct header (length and checksum) around `payload`.
@@ -172,7 +175,10 @@ fn a_sequence_longer_than_its_bound_is_refused_before_it_is_allocated() {
     let mut three = state();
     three.lungs.0.push(lung(0));
     let b = postcard::to_allocvec(&Packet::State(three)).unwrap();
-    assert!(matches!(decode(&framed(&b)), Err(DecodeError::Malformed(_))));
+    assert!(matches!(
+        decode(&framed(&b)),
+        Err(DecodeError::Malformed(_))
+    ));
 }
 
 #[test]
@@ -187,10 +193,7 @@ fn values_out_of_their_domain_are_refused_both_ways() {
         (|s| s.lungs.0[0].collapse = 1.5, "collapse"),
         (|s| s.lungs.0[0].held_ml = Some(f64::NAN), "held"),
         (|s| s.gravity_body[2] = f64::NAN, "gravity"),
-        (
-            |s| s.disease = Disease::Tumour { side: 9 },
-            "side",
-        ),
+        (|s| s.disease = Disease::Tumour { side: 9 }, "side"),
     ];
     for (spoil, word) in cases {
         let mut s = state();
@@ -200,7 +203,10 @@ fn values_out_of_their_domain_are_refused_both_ways() {
         assert!(e.to_string().contains(word), "{e}");
         let b = postcard::to_allocvec(&p).unwrap();
         let d = decode(&framed(&b)).unwrap_err();
-        assert!(matches!(d, DecodeError::Invalid(w) if w.contains(word)), "{d:?}");
+        assert!(
+            matches!(d, DecodeError::Invalid(w) if w.contains(word)),
+            "{d:?}"
+        );
     }
 }
 
@@ -249,7 +255,15 @@ fn arb_pv() -> impl Strategy<Value = PvState> {
 fn arb_state() -> impl Strategy<Value = ControlState> {
     (
         any::<[u64; 4]>(),
-        prop::collection::vec((arb_pv(), prop::option::of(arb_pv()), 0f64..1.0, any::<u32>()), 0..=2),
+        prop::collection::vec(
+            (
+                arb_pv(),
+                prop::option::of(arb_pv()),
+                0f64..1.0,
+                any::<u32>(),
+            ),
+            0..=2,
+        ),
         prop::collection::vec(any::<(u64, u64, u32, u32, u64)>(), 0..=MAX_EVENTS),
         1f64..1000.0,
         prop::option::of(-1e4f64..1e4),
