@@ -43,9 +43,9 @@ pub enum RemoteError {
     /// A bad option.
     #[error("{0}")]
     Usage(String),
-    /// The engine could not be built or driven.
+    /// The engine could not be built or driven (boxed: the engine's error is large).
     #[error(transparent)]
-    Core(#[from] engine::runtime::CoreError),
+    Core(Box<engine::runtime::CoreError>),
     /// A control state could not be made or used.
     #[error(transparent)]
     State(#[from] engine::runtime::remote::RemoteStateError),
@@ -54,7 +54,19 @@ pub enum RemoteError {
     Port(#[from] transport::PortError),
     /// The scene could not be loaded.
     #[error(transparent)]
-    Scene(#[from] lung_model::scene::SceneError),
+    Scene(Box<lung_model::scene::SceneError>),
+}
+
+impl From<engine::runtime::CoreError> for RemoteError {
+    fn from(e: engine::runtime::CoreError) -> Self {
+        Self::Core(Box::new(e))
+    }
+}
+
+impl From<lung_model::scene::SceneError> for RemoteError {
+    fn from(e: lung_model::scene::SceneError) -> Self {
+        Self::Scene(Box::new(e))
+    }
 }
 
 /// Wrap a Zenoh error with what was being done.
