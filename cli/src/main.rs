@@ -76,6 +76,10 @@ enum Command {
     Install(lungdyn::install::InstallArgs),
     /// List the running instances (what `scene event` needs): name, processes, scene, age.
     Instances(lungdyn::instances::InstancesArgs),
+    /// Remote sites breathing in step over Zenoh (seed §8.3): serve a source engine's control
+    /// state, join as a site, or measure drift with a loopback harness.
+    #[command(subcommand)]
+    Remote(RemoteCommand),
     /// Run only the tracker-bridge process (what `demo` starts).
     TrackerBridge(tracker_bridge::BridgeArgs),
     /// Run only the engine process (what `demo` starts).
@@ -138,6 +142,17 @@ enum BenchCommand {
     /// SH for 1..8 bands, the orientation methods, stereo vs mono: writes OUT.md, OUT.csv, OUT.png
     /// (several minutes at the default sizes; --sizes 10000 for a quick look).
     Tradeoff(lungdyn::tradeoff::TradeoffArgs),
+}
+
+#[derive(Subcommand)]
+enum RemoteCommand {
+    /// Relay a running engine's control state (`--instance`) to Zenoh and take the sites' events.
+    Serve(lungdyn_remote::roles::ServeArgs),
+    /// Run this site's engine in step with a remote source (`--connect tcp/HOST:7447`); a renderer
+    /// on `--instance` draws it.
+    Join(lungdyn_remote::roles::JoinArgs),
+    /// A source and N sites on loopback: drift per cycle, phase error, packets per minute.
+    Harness(lungdyn_remote::harness::HarnessArgs),
 }
 
 #[derive(Subcommand)]
@@ -366,6 +381,25 @@ fn main() -> std::process::ExitCode {
             }
             Ok(())
         }),
+        Command::Remote(RemoteCommand::Serve(args)) => {
+            lungdyn_remote::roles::serve(&args).map_err(Into::into)
+        }
+        Command::Remote(RemoteCommand::Join(args)) => {
+            lungdyn_remote::roles::join(&args).map_err(Into::into)
+        }
+        Command::Remote(RemoteCommand::Harness(args)) => {
+            lungdyn_remote::harness::run(&args).and_then(|r| {
+                if args.json {
+                    serde_json::to_string_pretty(&r)
+                        .map(|j| println!("{j}"))
+                        .map_err(|e| lungdyn_remote::RemoteError::Usage(e.to_string()))
+                } else {
+                    lungdyn_remote::harness::print(&r);
+                    Ok(())
+                }
+            })
+            .map_err(Into::into)
+        }
         Command::TrackerBridge(args) => tracker_bridge::run(&args).map_err(Into::into),
         Command::Engine(args) => engine::runtime::run(&args).map_err(Into::into),
         Command::Renderer(args) => renderer::process::run(&args).map_err(Into::into),

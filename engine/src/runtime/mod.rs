@@ -41,6 +41,7 @@ use thiserror::Error;
 
 pub mod disease;
 pub mod process;
+pub mod remote;
 pub use process::run;
 
 /// What the engine needs of one lung's geometry: its kernel's identity, volume cubic, and for the
@@ -430,6 +431,12 @@ impl EngineCore {
         Ok(())
     }
 
+    /// Drive this engine from a remote source's control states only: drop its own disease course
+    /// (the states carry the source's; the hilum found for it stays for a collapsing lung).
+    pub fn follow_remote(&mut self) {
+        self.disease = None;
+    }
+
     /// The disease state being run, if any.
     pub fn disease(&self) -> Option<&disease::DiseaseRun> {
         self.disease.as_ref()
@@ -575,6 +582,11 @@ impl EngineCore {
     /// The active lungs' geometry.
     pub fn geometry(&self) -> impl Iterator<Item = &LungGeometry> {
         self.lungs.iter().map(|(g, _)| g)
+    }
+
+    /// Each lung's current cycle start tick, in the scene's lung order.
+    pub fn cycle_starts(&self) -> impl Iterator<Item = u64> + '_ {
+        self.lungs.iter().map(|(_, b)| b.cycle_start)
     }
 
     /// Number of active lungs.

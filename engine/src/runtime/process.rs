@@ -7,6 +7,7 @@
 //! one zero-copy publish — no allocation, no lock, no logging beyond one line when the tracker
 //! connects. [`run`] wires the loop to iceoryx2 and the host's clock.
 
+use control_state::ControlStateFrame;
 use ipc_types::{ControlPacket, ControlReply, EngineFrame, Message, TrackerFrame, LUNG_LEFT};
 use lung_model::scene::{Scene, SceneError};
 use thiserror::Error;
@@ -59,6 +60,12 @@ pub enum EngineError {
         /// The limit.
         max: u64,
     },
+    /// The control state cannot be described for remote sites.
+    #[error("remote control state: {0}")]
+    State(#[from] super::remote::RemoteStateError),
+    /// The control state does not encode (a bug: the state's bounds fit its frame).
+    #[error("remote control state: {0}")]
+    StateEncode(control_state::EncodeError),
 }
 
 /// What a run of the loop did.
@@ -78,6 +85,8 @@ pub struct LoopStats {
     pub prepare_max_ns: u64,
     /// Ticks that had to wait for a disease cycle still being built.
     pub late_preparations: u64,
+    /// Control-state packets published for remote sites.
+    pub states_published: u64,
 }
 
 /// The thread that builds disease cycles ([`super::disease::Recipe::build`], ≈ 40 ms for two lungs on
@@ -163,6 +172,84 @@ pub struct Controls<'a> {
     pub inlet: &'a mut dyn Receive<ControlPacket>,
     /// The replies, one or two per action.
     pub replies: &'a mut dyn Publish<ControlReply>,
+    /// Where the engine's control state goes (remote sites, seed §8.3); `None`: not published.
+    pub state: Option<StateOut<'a>>,
+}
+
+/// The control-state stream of a source engine: one packet at tick 0 and at every lung's cycle
+/// start (every change this engine makes takes effect there).
+pub struct StateOut<'a> {
+    /// The stream.
+    pub outlet: &'a mut dyn Publish<ControlStateFrame>,
+    /// This site's id.
+    pub source: u64,
+    /// This run's session (its start time, ns): a restarted source has another.
+    pub epoch: u64,
+    /// Ticks per second (the scene's).
+    pub tick_hz: f64,
+}
+
+/// The state publisher's bookkeeping: the last cycle starts published, the frame (4 KB, once).
+struct StatePublisher {
+    starts: [u64; ipc_types::NUM_LUNGS],
+    sequence: u64,
+    frame: Box<ControlStateFrame>,
+    events: Vec<control_state::RemoteEvent>,
+    published: u64,
+}
+
+impl StatePublisher {
+    fn new() -> Self {
+        Self {
+            starts: [u64::MAX; ipc_types::NUM_LUNGS],
+            sequence: 0,
+            frame: Box::default(),
+            events: Vec::with_capacity(control_state::MAX_EVENTS),
+            published: 0,
+        }
+    }
+
+    /// Publish when a lung started a cycle since the last packet (a compare per lung otherwise).
+    fn after_tick(
+        &mut self,
+        core: &EngineCore,
+        tick: u64,
+        at_ns: u64,
+        out: &mut StateOut<'_>,
+    ) -> Result<(), EngineError> {
+        let mut changed = false;
+        for (k, start) in core.cycle_starts().enumerate().take(self.starts.len()) {
+            if self.starts[k] != start {
+                self.starts[k] = start;
+                changed = true;
+            }
+        }
+        if !changed {
+            return Ok(());
+        }
+        let stamp = super::remote::StateStamp {
+            source: out.source,
+            epoch: out.epoch,
+            sequence: self.sequence,
+            tick_hz: out.tick_hz,
+            source_time_ns: at_ns,
+        };
+        let state = core.control_state(tick, stamp, &self.events)?;
+        self.frame
+            .set(&control_state::Packet::State(state))
+            .map_err(EngineError::StateEncode)?;
+        out.outlet.publish(&self.frame)?;
+        self.sequence += 1;
+        self.published += 1;
+        Ok(())
+    }
+
+    fn event(&mut self, e: control_state::RemoteEvent) {
+        if self.events.len() == control_state::MAX_EVENTS {
+            self.events.remove(0);
+        }
+        self.events.push(e);
+    }
 }
 
 /// Sequence numbers seen lately (a repeated packet is one action): a fixed ring, no allocation.
@@ -214,6 +301,7 @@ pub fn run_loop(
     let mut frame = EngineFrame::default();
     let mut tick: u64 = first_tick;
     let mut announced = false;
+    let mut states = StatePublisher::new();
     while !stop() {
         let Some(t) = pacer.poll(clock, rx)? else {
             continue;
@@ -249,6 +337,9 @@ pub fn run_loop(
         frame.stamps.engine_receive_ns = t.at_ns;
         frame.stamps.engine_publish_ns = clock.now_ns();
         tx.publish(&frame)?;
+        if let Some(out) = control.as_mut().and_then(|c| c.state.as_mut()) {
+            states.after_tick(core, tick, t.at_ns, out)?;
+        }
         if let Some(c) = control.as_mut() {
             // Every pending packet, in the order the stream gives them (none is left behind or
             // dropped: the stream's buffer holds one from each sender even after a stall).
@@ -326,6 +417,15 @@ pub fn run_loop(
                     reply.set_text(&[detail]);
                     c.replies.publish(&reply)?;
                     actions.applied += 1;
+                    if let Some(out) = c.state.as_ref() {
+                        states.event(control_state::RemoteEvent {
+                            origin: out.source,
+                            sequence: tag,
+                            kind: e.kind.code(),
+                            lung: e.side.index() as u32,
+                            apply_cycle: e.cycle,
+                        });
+                    }
                 }
             }
         }
@@ -338,6 +438,7 @@ pub fn run_loop(
         prepare_max_ns,
         ticks: tick - first_tick,
         pacer: pacer.stats(),
+        states_published: states.published,
     })
 }
 
@@ -431,6 +532,8 @@ pub fn run(args: &EngineArgs) -> Result<(), EngineError> {
     let mut outlet = instance.engine_outlet(&node)?;
     let mut control = instance.control_inlet(&node)?;
     let mut replies = instance.control_reply_outlet(&node)?;
+    let mut state_outlet = instance.control_state_outlet(&node)?;
+    let epoch = now_ns();
     let period_ns = (1e9 / scene.engine.tick_hz).round() as u64;
     let stop_at = run_ns.map(|d| now_ns().saturating_add(d));
     let mut watchdog = transport::notify::Watchdog::from_env();
@@ -460,6 +563,12 @@ pub fn run(args: &EngineArgs) -> Result<(), EngineError> {
         Some(Controls {
             inlet: &mut control,
             replies: &mut replies,
+            state: Some(StateOut {
+                outlet: &mut state_outlet,
+                source: ipc_types::control_sequence(std::process::id(), epoch),
+                epoch,
+                tick_hz: scene.engine.tick_hz,
+            }),
         }),
         &Monotonic,
         PacerConfig::for_period(period_ns),

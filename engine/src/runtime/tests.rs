@@ -779,6 +779,7 @@ fn every_live_action_is_answered_once_received_then_applied_in_order_or_ignored_
         Some(Controls {
             inlet: &mut inlet,
             replies: &mut replies,
+            state: None,
         }),
         &clock,
         PacerConfig::for_period(P),
@@ -863,6 +864,7 @@ fn a_live_action_without_a_tension_pneumothorax_is_answered_ignored() {
         Some(Controls {
             inlet: &mut inlet,
             replies: &mut replies,
+            state: None,
         }),
         &clock,
         PacerConfig::for_period(P),

@@ -77,6 +77,14 @@ impl Instance {
     pub fn control_reply_event(&self) -> String {
         format!("lungdyn/{}/control-reply-ready", self.name)
     }
+    /// Stream of the engine's control state (`control_state::ControlStateFrame`, remote sites).
+    pub fn control_state(&self) -> String {
+        format!("lungdyn/{}/control-state", self.name)
+    }
+    /// Event signalled after each control state.
+    pub fn control_state_event(&self) -> String {
+        format!("lungdyn/{}/control-state-ready", self.name)
+    }
 
     /// The transport's file prefix for this instance: every shared-memory segment and file the
     /// instance creates starts with it.

@@ -70,6 +70,11 @@ impl Topic for ControlReply {
     const MAX_SUBSCRIBERS: usize = MAX_CONTROL_SENDERS;
     const MAX_NODES: usize = MAX_CONTROL_SENDERS + 8;
 }
+impl Topic for control_state::ControlStateFrame {
+    // One per breathing cycle; the remote bridge drains them every few ms. History 1 gives a
+    // bridge started late the current state at once.
+    const BUFFER: usize = 8;
+}
 impl Topic for FrameReport {
     // Drained in batches by the launcher: a deeper buffer keeps every frame.
     const BUFFER: usize = 512;
@@ -424,6 +429,20 @@ impl Instance {
     /// Outlet of the control replies (the engine's answers).
     pub fn control_reply_outlet(&self, node: &IoxNode) -> Result<Outlet<ControlReply>, PortError> {
         Outlet::new(node, &self.control_reply(), &self.control_reply_event())
+    }
+    /// Outlet of the engine's control state (remote sites).
+    pub fn control_state_outlet(
+        &self,
+        node: &IoxNode,
+    ) -> Result<Outlet<control_state::ControlStateFrame>, PortError> {
+        Outlet::new(node, &self.control_state(), &self.control_state_event())
+    }
+    /// Inlet of the engine's control state.
+    pub fn control_state_inlet(
+        &self,
+        node: &IoxNode,
+    ) -> Result<Inlet<control_state::ControlStateFrame>, PortError> {
+        Inlet::new(node, &self.control_state(), &self.control_state_event())
     }
     /// Inlet of the control replies.
     pub fn control_reply_inlet(&self, node: &IoxNode) -> Result<Inlet<ControlReply>, PortError> {

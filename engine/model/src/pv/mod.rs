@@ -600,6 +600,20 @@ pub struct Breathing {
     /// Volume (ml) at tick `k` of the cycle, `k ∈ 0..cycle_ticks`.
     volume_ml: Vec<f64>,
     boundary: Boundary,
+    /// The constants and timing the table was built from (`None` for a measured waveform): what a
+    /// remote site needs to build the same table (seed §8.3's control packet).
+    source: Option<std::sync::Arc<BreathingSource>>,
+}
+
+/// What a [`Breathing`] built by [`Breathing::from_constants`] was built from.
+#[derive(Debug, Clone, PartialEq)]
+pub struct BreathingSource {
+    /// Inhalation constants.
+    pub inhale: PhaseConstants,
+    /// Exhalation constants.
+    pub exhale: PhaseConstants,
+    /// Timing.
+    pub timing: Timing,
 }
 
 impl Breathing {
@@ -640,6 +654,11 @@ impl Breathing {
             cycle_ticks: ti + te,
             volume_ml,
             boundary,
+            source: Some(std::sync::Arc::new(BreathingSource {
+                inhale: inhale.clone(),
+                exhale: exhale.clone(),
+                timing: *timing,
+            })),
         })
     }
 
@@ -678,7 +697,13 @@ impl Breathing {
                 tv_ml: tv,
                 ..Boundary::HUMAN
             },
+            source: None,
         })
+    }
+
+    /// The constants and timing this cycle was built from; `None` for a measured waveform.
+    pub fn source(&self) -> Option<&BreathingSource> {
+        self.source.as_deref()
     }
 
     /// Ticks per breathing cycle.

@@ -1,0 +1,444 @@
+//! The engine's control state for remote sites (seed §8.3; `control-state` crate).
+//!
+//! A source engine describes its breath with [`EngineCore::control_state`] once per breathing
+//! cycle (every change this engine makes takes effect at a lung's cycle start: a disease cycle, an
+//! intervention, a rate change). A site's engine is built from its own copy of the scene and
+//! driven by those packets: [`Prepared::of`] builds the PV tables a packet names (off the tick:
+//! ≈ 20 ms per distinct cycle, cached while the constants stay the same) and
+//! [`EngineCore::apply_prepared`] puts them and every lung's state in place (no allocation beyond
+//! moving the prepared tables in). Both engines run the same code on the same constants, so the
+//! same packets give the same breath, bit for bit, at the same source tick.
+
+use control_state::{
+    Bounded, ControlState, Disease, LungState, PhaseState, PvState, RemoteEvent, MAX_EVENTS,
+};
+use lung_model::mesh::Side;
+use lung_model::pv::{Boundary, Breathing, PhaseConstants, PvError, Timing};
+use thiserror::Error;
+
+use super::{disease::DiseaseRun, EngineCore, LungBreath};
+
+/// Why a control state cannot be made or used.
+#[derive(Debug, Error)]
+pub enum RemoteStateError {
+    /// A measured waveform has no constants a site could rebuild it from.
+    #[error(
+        "the {side} lung breathes a measured waveform ([pv] waveform): remote sites need PV \
+         constants; use a preset or fitted constants for a shared session"
+    )]
+    Waveform {
+        /// Which lung.
+        side: &'static str,
+    },
+    /// The packet names a lung this site's scene does not simulate.
+    #[error(
+        "the source simulates the {side} lung but this site's scene does not: start every site \
+         on the source's scene"
+    )]
+    MissingLung {
+        /// Which lung.
+        side: &'static str,
+    },
+    /// The packet's constants cannot produce a breath.
+    #[error("the source's {side} lung: {source}")]
+    Pv {
+        /// Which lung.
+        side: &'static str,
+        /// Why.
+        #[source]
+        source: PvError,
+    },
+    /// The boundary values are outside human ranges (a silent wrong answer otherwise).
+    #[error("the source's {side} lung: {reason}")]
+    Implausible {
+        /// Which lung.
+        side: &'static str,
+        /// Why.
+        reason: String,
+    },
+    /// The site ticks at another rate than the source.
+    #[error(
+        "the source ticks at {source_hz} Hz, this site at {site_hz} Hz: start the site on the \
+         source's scene"
+    )]
+    TickRate {
+        /// Source.
+        source_hz: f64,
+        /// Site.
+        site_hz: f64,
+    },
+}
+
+fn side_of(code: u8) -> Side {
+    if code as usize == ipc_types::LUNG_LEFT {
+        Side::Left
+    } else {
+        Side::Right
+    }
+}
+
+fn phase_state(p: &PhaseConstants) -> PhaseState {
+    PhaseState {
+        // lung-model refuses more than MAX_CONTROL_CONSTANTS (15 = control_state::MAX_CHI).
+        chi: Bounded::new(p.chi.iter().copied().take(control_state::MAX_CHI).collect())
+            .unwrap_or_default(),
+        q: p.q,
+        c: p.c,
+        t_ext: p.t_ext,
+        t_steps: p.t_steps,
+        beta0: p.beta0,
+        beta1: p.beta1,
+    }
+}
+
+fn phase_constants(p: &PhaseState) -> PhaseConstants {
+    PhaseConstants {
+        chi: p.chi.to_vec(),
+        q: p.q,
+        c: p.c,
+        t_ext: p.t_ext,
+        t_steps: p.t_steps,
+        beta0: p.beta0,
+        beta1: p.beta1,
+    }
+}
+
+fn pv_state(b: &Breathing, side: Side) -> Result<PvState, RemoteStateError> {
+    let s = b
+        .source()
+        .ok_or(RemoteStateError::Waveform { side: side.name() })?;
+    let bd = b.boundary();
+    Ok(PvState {
+        inhale: phase_state(&s.inhale),
+        exhale: phase_state(&s.exhale),
+        frc_ml: bd.frc_ml,
+        tv_ml: bd.tv_ml,
+        rp_cmh2o: bd.rp_cmh2o,
+        tp_cmh2o: bd.tp_cmh2o,
+        breaths_per_min: s.timing.breaths_per_min,
+        ie_inhale: s.timing.ie_inhale,
+        ie_exhale: s.timing.ie_exhale,
+    })
+}
+
+/// Build the breath a [`PvState`] names at `tick_hz` (eq. 5.11 tables; allocates, ≈ 20 ms).
+pub fn breathing_of(pv: &PvState, tick_hz: f64, side: Side) -> Result<Breathing, RemoteStateError> {
+    let boundary = Boundary {
+        frc_ml: pv.frc_ml,
+        tv_ml: pv.tv_ml,
+        rp_cmh2o: pv.rp_cmh2o,
+        tp_cmh2o: pv.tp_cmh2o,
+    };
+    boundary
+        .check_plausible()
+        .map_err(|e| RemoteStateError::Implausible {
+            side: side.name(),
+            reason: e.to_string(),
+        })?;
+    let timing = Timing {
+        tick_hz,
+        breaths_per_min: pv.breaths_per_min,
+        ie_inhale: pv.ie_inhale,
+        ie_exhale: pv.ie_exhale,
+    };
+    let (i, e) = (phase_constants(&pv.inhale), phase_constants(&pv.exhale));
+    for p in [&i, &e] {
+        p.validate().map_err(|source| RemoteStateError::Pv {
+            side: side.name(),
+            source,
+        })?;
+    }
+    Breathing::from_constants(&i, &e, boundary, &timing).map_err(|source| RemoteStateError::Pv {
+        side: side.name(),
+        source,
+    })
+}
+
+impl LungBreath {
+    fn state(&self, side: Side) -> Result<LungState, RemoteStateError> {
+        Ok(LungState {
+            side: side.index() as u8,
+            pv: pv_state(&self.breathing, side)?,
+            next: self.next.as_ref().map(|n| pv_state(n, side)).transpose()?,
+            share: self.share,
+            held_ml: self.held_ml,
+            base_ml: self.base_ml,
+            collapse: self.collapse,
+            offset_mm: self.offset_mm,
+            cycle: self.cycle,
+            cycle_start_tick: self.cycle_start,
+        })
+    }
+}
+
+/// Identity of the sender and timing of one state.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct StateStamp {
+    /// Source site id.
+    pub source: u64,
+    /// Source session.
+    pub epoch: u64,
+    /// Packet sequence.
+    pub sequence: u64,
+    /// Ticks per second.
+    pub tick_hz: f64,
+    /// Source clock at the tick, ns.
+    pub source_time_ns: u64,
+}
+
+/// A control state with the breaths it names already built (off the tick).
+#[derive(Debug, Clone)]
+pub struct Prepared {
+    /// The packet.
+    pub state: ControlState,
+    /// Per lung of the packet: the cycle in force and the pending one.
+    breaths: Vec<(Breathing, Option<Breathing>)>,
+}
+
+/// Tables built lately, reused while a packet's constants stay the same (every healthy cycle).
+#[derive(Debug, Default)]
+pub struct BreathCache {
+    built: Vec<(PvState, Breathing)>,
+}
+
+impl BreathCache {
+    fn get(&mut self, pv: &PvState, hz: f64, side: Side) -> Result<Breathing, RemoteStateError> {
+        if let Some((_, b)) = self.built.iter().find(|(p, _)| p == pv) {
+            return Ok(b.clone());
+        }
+        let b = breathing_of(pv, hz, side)?;
+        if self.built.len() >= 4 {
+            self.built.remove(0);
+        }
+        self.built.push((pv.clone(), b.clone()));
+        Ok(b)
+    }
+}
+
+impl Prepared {
+    /// Build what `state` needs (allocates; call off the tick).
+    pub fn of(state: ControlState, cache: &mut BreathCache) -> Result<Self, RemoteStateError> {
+        let mut breaths = Vec::with_capacity(state.lungs.len());
+        for l in state.lungs.iter() {
+            let side = side_of(l.side);
+            let now = cache.get(&l.pv, state.tick_hz, side)?;
+            let next = match &l.next {
+                Some(n) => Some(cache.get(n, state.tick_hz, side)?),
+                None => None,
+            };
+            breaths.push((now, next));
+        }
+        Ok(Self { state, breaths })
+    }
+}
+
+impl EngineCore {
+    /// The control state at `tick` (call at a cycle start or after a change; allocates the
+    /// constants' vectors, so after the tick's publish). `events` are the latest interventions.
+    pub fn control_state(
+        &self,
+        tick: u64,
+        stamp: StateStamp,
+        events: &[RemoteEvent],
+    ) -> Result<ControlState, RemoteStateError> {
+        let mut lungs = Bounded::default();
+        for (g, b) in &self.lungs {
+            lungs.push(b.state(g.side)?);
+        }
+        let disease = match &self.disease {
+            None => Disease::None,
+            Some(DiseaseRun::Closed(setups)) => Disease::ClosedPneumothorax {
+                side: setups.first().map_or(0, |s| s.side.index() as u8),
+            },
+            Some(DiseaseRun::Tension(run)) => Disease::TensionPneumothorax {
+                side: run.affected().index() as u8,
+                cycles_run: run.cycles_run,
+            },
+            Some(DiseaseRun::Tumour(t)) => Disease::Tumour {
+                side: t.side.index() as u8,
+            },
+        };
+        let first = events.len().saturating_sub(MAX_EVENTS);
+        Ok(ControlState {
+            source: stamp.source,
+            epoch: stamp.epoch,
+            sequence: stamp.sequence,
+            tick,
+            tick_hz: stamp.tick_hz,
+            source_time_ns: stamp.source_time_ns,
+            cycle: self.lungs.first().map_or(0, |(_, b)| b.cycle as u64),
+            gravity_body: self.gravity_body.to_array(),
+            disease,
+            lungs,
+            events: Bounded::new(events[first..].to_vec()).unwrap_or_default(),
+        })
+    }
+
+    /// Drive this (site) engine from a source's state: each lung breathes the source's cycle,
+    /// share, held/base volume, collapse and offset, its cycle aligned to the source's tick
+    /// numbers; gravity is the source's. `site_hz` is this site's tick rate. No allocation (the
+    /// prepared tables are moved in).
+    pub fn apply_prepared(&mut self, p: Prepared, site_hz: f64) -> Result<(), RemoteStateError> {
+        let hz = p.state.tick_hz;
+        if hz != site_hz {
+            return Err(RemoteStateError::TickRate {
+                source_hz: hz,
+                site_hz,
+            });
+        }
+        for l in p.state.lungs.iter() {
+            let side = side_of(l.side);
+            if self.lung(side).is_none() {
+                return Err(RemoteStateError::MissingLung { side: side.name() });
+            }
+        }
+        for (l, (now, next)) in p.state.lungs.iter().zip(p.breaths) {
+            let Some(b) = self.lung_mut(side_of(l.side)) else {
+                continue;
+            };
+            b.breathing = now;
+            b.next = next;
+            b.share = l.share;
+            b.held_ml = l.held_ml;
+            b.base_ml = l.base_ml;
+            b.collapse = l.collapse.clamp(0.0, 1.0);
+            b.offset_mm = l.offset_mm;
+            b.cycle = l.cycle;
+            b.cycle_start = l.cycle_start_tick;
+        }
+        let g = glam::DVec3::from(p.state.gravity_body);
+        if g.is_finite() && g.length() > 0.0 {
+            self.gravity_body = g.normalize();
+        }
+        Ok(())
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::runtime::LungGeometry;
+    use control_state::{decode, encode_to_vec, Packet};
+    use ipc_types::EngineFrame;
+    use lung_model::deform::{LungModel, MotionConstants};
+    use lung_model::mesh::generate;
+    use lung_model::scene::Scene;
+
+    fn core(scene: &Scene) -> EngineCore {
+        let lungs = [Side::Right, Side::Left]
+            .into_iter()
+            .map(|side| {
+                let m = LungModel::build(
+                    side,
+                    generate::lung(side, 500).unwrap(),
+                    &MotionConstants::table_6_1(side),
+                )
+                .unwrap();
+                LungGeometry::of(&m)
+            })
+            .collect();
+        EngineCore::with_geometry(scene, lungs).unwrap()
+    }
+
+    fn stamp(tick: u64) -> StateStamp {
+        StateStamp {
+            source: 7,
+            epoch: 1,
+            sequence: tick,
+            tick_hz: 60.0,
+            source_time_ns: tick * 16_666_667,
+        }
+    }
+
+    /// Through the wire: encode, decode, prepare.
+    fn over_the_wire(s: ControlState, cache: &mut BreathCache) -> Prepared {
+        let Packet::State(s) = decode(&encode_to_vec(&Packet::State(s)).unwrap()).unwrap() else {
+            panic!("not a state")
+        };
+        Prepared::of(s, cache).unwrap()
+    }
+
+    /// A site whose own scene breathes differently (20 breaths/min, another TV), joining late at
+    /// tick 400 with the source's last packet, then fed each cycle's packet, shows the source's
+    /// breath bit for bit at every tick (the same packets give the same breath).
+    #[test]
+    fn a_late_site_driven_by_packets_breathes_the_sources_breath_bit_for_bit() {
+        let mut source_scene = Scene::default();
+        source_scene.pv.breaths_per_min = 14.0;
+        let mut source = core(&source_scene);
+        let mut site_scene = Scene::default();
+        site_scene.pv.breaths_per_min = 20.0;
+        let mut site = core(&site_scene);
+        let (mut a, mut b) = (EngineFrame::default(), EngineFrame::default());
+        let mut cache = BreathCache::default();
+        let mut last = None;
+        let mut starts = [u64::MAX; 2];
+        let mut compared = 0;
+        for tick in 0..1200u64 {
+            source.step(tick, None, &mut a);
+            let now: Vec<u64> = source.cycle_starts().collect();
+            if now[..] != starts[..] {
+                starts.copy_from_slice(&now);
+                last = Some(source.control_state(tick, stamp(tick), &[]).unwrap());
+                if tick >= 400 {
+                    let p = over_the_wire(last.clone().unwrap(), &mut cache);
+                    site.apply_prepared(p, 60.0).unwrap();
+                }
+            }
+            if tick == 400 {
+                // Late join: the latest state the source published (a cycle start before 400).
+                let p = over_the_wire(last.clone().unwrap(), &mut cache);
+                site.apply_prepared(p, 60.0).unwrap();
+            }
+            if tick >= 400 {
+                site.step(tick, None, &mut b);
+                for k in 0..2 {
+                    assert_eq!(
+                        a.lungs[k].volume_ml.to_bits(),
+                        b.lungs[k].volume_ml.to_bits(),
+                        "tick {tick} lung {k}"
+                    );
+                    assert_eq!(
+                        a.lungs[k].deform_scale.to_bits(),
+                        b.lungs[k].deform_scale.to_bits()
+                    );
+                    assert_eq!(a.lungs[k].phase.to_bits(), b.lungs[k].phase.to_bits());
+                    assert_eq!(a.lungs[k].cycle, b.lungs[k].cycle);
+                }
+                compared += 1;
+            }
+        }
+        assert_eq!(compared, 800);
+        // 14 breaths/min at 60 Hz: a packet every 257 ticks.
+        assert_eq!(source.cycle_ticks(), 257);
+    }
+
+    #[test]
+    fn a_packet_the_site_cannot_use_is_refused_with_the_reason() {
+        let scene = Scene::default();
+        let source = core(&scene);
+        let mut cache = BreathCache::default();
+        let s = source.control_state(0, stamp(0), &[]).unwrap();
+        let mut site = core(&scene);
+        let e = site
+            .apply_prepared(Prepared::of(s.clone(), &mut cache).unwrap(), 90.0)
+            .unwrap_err();
+        assert!(e.to_string().contains("60 Hz, this site at 90 Hz"), "{e}");
+        // An implausible tidal volume (finite, so the codec passes it) is the engine's to refuse.
+        let mut bad = s.clone();
+        for l in [0, 1] {
+            let mut lungs = bad.lungs.to_vec();
+            lungs[l].pv.tv_ml = 1e6;
+            bad.lungs = Bounded::new(lungs).unwrap();
+        }
+        let e = Prepared::of(bad, &mut cache).unwrap_err();
+        assert!(e.to_string().contains("right lung"), "{e}");
+        // A site simulating one lung refuses a packet naming the other.
+        let mut one = core(&scene);
+        one.lungs.truncate(1);
+        let e = one
+            .apply_prepared(Prepared::of(s, &mut cache).unwrap(), 60.0)
+            .unwrap_err();
+        assert!(e.to_string().contains("left lung"), "{e}");
+    }
+}

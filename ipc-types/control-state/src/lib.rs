@@ -1,0 +1,577 @@
+//! # control-state: the engine's control state as a stream (seed §8.3)
+//!
+//! The seed distributes a lung simulation by sending, once per breathing cycle or parameter
+//! change, a *control packet object*: the PV boundary values (FRC, TV, pressures), the breathing
+//! rate, the PV control constants and what the deformation needs; every site then drives its own
+//! lung from it. [`ControlState`] is that packet for this engine: per lung its PV constants per
+//! phase (eq. 5.11, EQUATIONS §1), boundary values and timing, the change pending from its next
+//! cycle, its share of the volume change, held/base volume, collapse (§4.1) and rigid offset, and
+//! its cycle bookkeeping; the source's cycle number and the source clock at the cycle's first
+//! tick; the patient's gravity in the body frame (orientation); the disease state; and the events
+//! (a trainee's interventions) with their origin site and sequence.
+//!
+//! ## Encoding
+//! [`encode`] writes `magic "LDCS" | version u16 | flags u16 | length u32 | xxh3-64 of the payload |
+//! payload` (little-endian), the payload being [`Packet`] in postcard (serde). [`decode`] refuses,
+//! each with its own [`DecodeError`]: short input, another magic, an unknown version (named with
+//! ours), a length that is not the input's, a payload over [`MAX_PAYLOAD`], a checksum mismatch,
+//! bytes postcard cannot read, trailing bytes, and values out of their domain
+//! ([`Packet::check`]: non-finite numbers, unknown sides, ...). Nothing is allocated from a length
+//! read off the wire beyond a fixed bound: sequences are [`Bounded`] (refused past their capacity,
+//! preallocated at most to it) and the payload is at most [`MAX_PAYLOAD`] bytes. Decoding never
+//! panics (proptest over random and truncated input).
+//!
+//! ## On iceoryx2
+//! [`ControlStateFrame`] is the fixed-size `Pod` payload the engine publishes the encoded bytes in,
+//! so the remote bridge forwards them unchanged (both ends check the checksum).
+
+use bytemuck::{Pod, Zeroable};
+use serde::{Deserialize, Serialize};
+use thiserror::Error;
+
+/// Magic bytes at the start of every encoded packet.
+pub const MAGIC: [u8; 4] = *b"LDCS";
+/// Version of the encoding (header and payload); a packet of another version is refused.
+pub const FORMAT_VERSION: u16 = 1;
+/// Header bytes: magic, version, flags, payload length, checksum.
+pub const HEADER_BYTES: usize = 4 + 2 + 2 + 4 + 8;
+/// Bytes a [`ControlStateFrame`] carries (the largest encoded packet).
+pub const FRAME_BYTES: usize = 4096;
+/// Largest payload accepted.
+pub const MAX_PAYLOAD: usize = FRAME_BYTES - HEADER_BYTES;
+/// Control constants per phase at most (lung-model's `MAX_CONTROL_CONSTANTS`).
+pub const MAX_CHI: usize = 15;
+/// Lungs per state.
+pub const MAX_LUNGS: usize = 2;
+/// Events carried in one state (the latest ones; each also travels on its own).
+pub const MAX_EVENTS: usize = 8;
+
+/// A `Vec` of at most `N` elements: decoding refuses a longer sequence and never preallocates more
+/// than `N` whatever length the input claims.
+#[derive(Debug, Clone, PartialEq)]
+pub struct Bounded<T, const N: usize>(Vec<T>);
+
+impl<T, const N: usize> Default for Bounded<T, N> {
+    fn default() -> Self {
+        Self(Vec::new())
+    }
+}
+
+impl<T, const N: usize> Bounded<T, N> {
+    /// The elements, or `None` when there are more than `N`.
+    pub fn new(items: Vec<T>) -> Option<Self> {
+        (items.len() <= N).then_some(Self(items))
+    }
+    /// The elements.
+    pub fn as_slice(&self) -> &[T] {
+        &self.0
+    }
+    /// Add one; false (nothing added) when full.
+    pub fn push(&mut self, item: T) -> bool {
+        if self.0.len() >= N {
+            return false;
+        }
+        self.0.push(item);
+        true
+    }
+    /// Number of elements.
+    pub fn len(&self) -> usize {
+        self.0.len()
+    }
+    /// True when empty.
+    pub fn is_empty(&self) -> bool {
+        self.0.is_empty()
+    }
+}
+
+impl<T, const N: usize> core::ops::Deref for Bounded<T, N> {
+    type Target = [T];
+    fn deref(&self) -> &[T] {
+        &self.0
+    }
+}
+
+impl<T: Serialize, const N: usize> Serialize for Bounded<T, N> {
+    fn serialize<S: serde::Serializer>(&self, s: S) -> Result<S::Ok, S::Error> {
+        self.0.serialize(s)
+    }
+}
+
+impl<'de, T: Deserialize<'de>, const N: usize> Deserialize<'de> for Bounded<T, N> {
+    fn deserialize<D: serde::Deserializer<'de>>(d: D) -> Result<Self, D::Error> {
+        struct V<T, const N: usize>(core::marker::PhantomData<T>);
+        impl<'de, T: Deserialize<'de>, const N: usize> serde::de::Visitor<'de> for V<T, N> {
+            type Value = Bounded<T, N>;
+            fn expecting(&self, f: &mut core::fmt::Formatter) -> core::fmt::Result {
+                write!(f, "a sequence of at most {N} elements")
+            }
+            fn visit_seq<A: serde::de::SeqAccess<'de>>(
+                self,
+                mut a: A,
+            ) -> Result<Self::Value, A::Error> {
+                let claimed = a.size_hint().unwrap_or(0);
+                if claimed > N {
+                    return Err(serde::de::Error::invalid_length(claimed, &self));
+                }
+                let mut v = Vec::with_capacity(claimed);
+                while let Some(x) = a.next_element()? {
+                    if v.len() == N {
+                        return Err(serde::de::Error::invalid_length(N + 1, &self));
+                    }
+                    v.push(x);
+                }
+                Ok(Bounded(v))
+            }
+        }
+        d.deserialize_seq(V::<T, N>(core::marker::PhantomData))
+    }
+}
+
+/// One breathing phase's constants (eq. 5.11 and EQUATIONS §1.1), as lung-model's `PhaseConstants`.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+pub struct PhaseState {
+    /// Control constants `χ_1..χ_N`.
+    pub chi: Bounded<f64, MAX_CHI>,
+    /// Motor-drive exponent `q`.
+    pub q: f64,
+    /// Growth constant `c`.
+    pub c: f64,
+    /// Hysteresis constant `T_ext` (control steps).
+    pub t_ext: f64,
+    /// Control steps per phase `T`.
+    pub t_steps: f64,
+    /// Resistance offset `β0`.
+    pub beta0: f64,
+    /// Resistance slope `β1`.
+    pub beta1: f64,
+}
+
+/// A lung's PV cycle: both phases, the boundary values (Table 5.2) and the timing.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+pub struct PvState {
+    /// Inhalation constants.
+    pub inhale: PhaseState,
+    /// Exhalation constants.
+    pub exhale: PhaseState,
+    /// Functional residual capacity, ml.
+    pub frc_ml: f64,
+    /// Tidal volume, ml.
+    pub tv_ml: f64,
+    /// Resting pressure, cmH2O.
+    pub rp_cmh2o: f64,
+    /// Top pressure ("PR" of the seed's packet), cmH2O.
+    pub tp_cmh2o: f64,
+    /// Breathing rate ("V" of the seed's packet), breaths per minute.
+    pub breaths_per_min: f64,
+    /// I of I:E.
+    pub ie_inhale: f64,
+    /// E of I:E.
+    pub ie_exhale: f64,
+}
+
+/// The disease state the source runs (what a site shows in words; the lungs' states carry its
+/// effect on the breath).
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize)]
+pub enum Disease {
+    /// Healthy lungs.
+    None,
+    /// A closed pneumothorax (eq. 8.1–8.9) on `side`.
+    ClosedPneumothorax {
+        /// 0 right, 1 left.
+        side: u8,
+    },
+    /// A tension pneumothorax's course (eq. 8.10–8.13) on `side`, after `cycles_run` cycles.
+    TensionPneumothorax {
+        /// 0 right, 1 left.
+        side: u8,
+        /// Disease cycles run since onset.
+        cycles_run: u64,
+    },
+    /// A tumour (eq. 8.14–8.22) in `side`.
+    Tumour {
+        /// 0 right, 1 left.
+        side: u8,
+    },
+}
+
+/// One lung's breathing state.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+pub struct LungState {
+    /// 0 right, 1 left.
+    pub side: u8,
+    /// The PV cycle in force.
+    pub pv: PvState,
+    /// The PV cycle from this lung's next cycle start, if a change is pending.
+    pub next: Option<PvState>,
+    /// Share of the volume change above FRC this lung takes.
+    pub share: f64,
+    /// Held volume (ml) when the lung does not breathe.
+    pub held_ml: Option<f64>,
+    /// Volume at the start of an inhalation (ml) when not the lung's own FRC volume.
+    pub base_ml: Option<f64>,
+    /// Collapse towards the hilum, 0..1 (EQUATIONS §4.1).
+    pub collapse: f64,
+    /// Rigid offset, body frame, mm.
+    pub offset_mm: [f64; 3],
+    /// Cycles this lung completed.
+    pub cycle: u32,
+    /// Source tick its current cycle started at.
+    pub cycle_start_tick: u64,
+}
+
+/// A trainee's or instructor's intervention, with where it came from.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize)]
+pub struct RemoteEvent {
+    /// Site id of the sender.
+    pub origin: u64,
+    /// The sender's sequence number (a repeated one is one event).
+    pub sequence: u64,
+    /// `ipc_types::Intervention` code.
+    pub kind: u32,
+    /// Lung slot, or `ipc_types::LUNG_AFFECTED`.
+    pub lung: u32,
+    /// Source cycle it is applied at (0: not yet scheduled; the source schedules it).
+    pub apply_cycle: u64,
+}
+
+/// The source engine's control state at the start of a breathing cycle (or a change).
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+pub struct ControlState {
+    /// Site id of the source.
+    pub source: u64,
+    /// The source's session (its start time, ns): a restarted source has another.
+    pub epoch: u64,
+    /// Packet sequence within the session.
+    pub sequence: u64,
+    /// Source tick the state holds at (the first lung's cycle start, or the change).
+    pub tick: u64,
+    /// Engine ticks per second.
+    pub tick_hz: f64,
+    /// Source clock (ns) at `tick`.
+    pub source_time_ns: u64,
+    /// Cycles the first lung completed.
+    pub cycle: u64,
+    /// Gravity in the body frame (the patient's orientation).
+    pub gravity_body: [f64; 3],
+    /// The disease state.
+    pub disease: Disease,
+    /// Each simulated lung.
+    pub lungs: Bounded<LungState, MAX_LUNGS>,
+    /// The latest events (each also sent on its own).
+    pub events: Bounded<RemoteEvent, MAX_EVENTS>,
+}
+
+/// Everything that travels between sites.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+pub enum Packet {
+    /// The source's state.
+    State(ControlState),
+    /// An intervention sent by a site to the source.
+    Event(RemoteEvent),
+    /// A delay probe from `from` to `to`, sent at `t0_ns` (sender's clock).
+    Probe {
+        /// Sender.
+        from: u64,
+        /// Addressee.
+        to: u64,
+        /// Probe number.
+        id: u64,
+        /// Sender's clock at send.
+        t0_ns: u64,
+    },
+    /// The answer: the probe's fields plus the answerer's clock at receive (`t1`) and send (`t2`).
+    ProbeReply {
+        /// Answerer.
+        from: u64,
+        /// The probe's sender.
+        to: u64,
+        /// Probe number.
+        id: u64,
+        /// The probe's `t0_ns`.
+        t0_ns: u64,
+        /// Answerer's clock at receive.
+        t1_ns: u64,
+        /// Answerer's clock at send.
+        t2_ns: u64,
+    },
+}
+
+/// Why bytes are not a packet.
+#[derive(Debug, Clone, PartialEq, Eq, Error)]
+pub enum DecodeError {
+    /// Fewer bytes than a header.
+    #[error("a control packet needs at least {HEADER_BYTES} bytes, got {got}")]
+    TooShort {
+        /// Bytes received.
+        got: usize,
+    },
+    /// Not a control packet.
+    #[error("not a lungdyn control packet (magic {found:02x?}, expected \"LDCS\")")]
+    BadMagic {
+        /// The first four bytes.
+        found: [u8; 4],
+    },
+    /// Another encoding version.
+    #[error("control packet format v{theirs} is not understood by this build (v{ours}): run the same lungdyn release at every site")]
+    UnknownVersion {
+        /// The packet's version.
+        theirs: u16,
+        /// Ours.
+        ours: u16,
+    },
+    /// The header's length is not what arrived.
+    #[error("control packet says {claimed} payload bytes, {actual} arrived")]
+    LengthMismatch {
+        /// Header's length.
+        claimed: usize,
+        /// Bytes after the header.
+        actual: usize,
+    },
+    /// Over the bound.
+    #[error("control packet payload of {len} bytes exceeds the {MAX_PAYLOAD}-byte limit")]
+    TooLong {
+        /// Payload bytes.
+        len: usize,
+    },
+    /// Corrupted on the way.
+    #[error("control packet checksum mismatch (header {expected:016x}, payload {actual:016x}): corrupted")]
+    Checksum {
+        /// Header's checksum.
+        expected: u64,
+        /// The payload's.
+        actual: u64,
+    },
+    /// The payload is not a packet.
+    #[error("control packet payload is malformed: {0}")]
+    Malformed(String),
+    /// A value out of its domain.
+    #[error("control packet value out of range: {0}")]
+    Invalid(&'static str),
+}
+
+/// Why a packet could not be encoded.
+#[derive(Debug, Clone, PartialEq, Eq, Error)]
+pub enum EncodeError {
+    /// The packet does not fit the buffer (or [`MAX_PAYLOAD`]).
+    #[error("the control packet does not fit {capacity} bytes")]
+    TooLarge {
+        /// Buffer bytes.
+        capacity: usize,
+    },
+    /// A value out of its domain (the same checks as decoding).
+    #[error("refusing to send a control packet with a value out of range: {0}")]
+    Invalid(&'static str),
+}
+
+fn finite(v: &[f64], what: &'static str) -> Result<(), &'static str> {
+    if v.iter().all(|x| x.is_finite()) {
+        Ok(())
+    } else {
+        Err(what)
+    }
+}
+
+impl PvState {
+    fn check(&self) -> Result<(), &'static str> {
+        for p in [&self.inhale, &self.exhale] {
+            finite(&p.chi, "a control constant chi is not finite")?;
+            finite(
+                &[p.q, p.c, p.t_ext, p.t_steps, p.beta0, p.beta1],
+                "a phase constant (q, c, T_ext, T, beta) is not finite",
+            )?;
+        }
+        finite(
+            &[
+                self.frc_ml,
+                self.tv_ml,
+                self.rp_cmh2o,
+                self.tp_cmh2o,
+                self.breaths_per_min,
+                self.ie_inhale,
+                self.ie_exhale,
+            ],
+            "a boundary value or the timing is not finite",
+        )?;
+        if !(self.frc_ml > 0.0 && self.tv_ml > 0.0 && self.breaths_per_min > 0.0) {
+            return Err("FRC, tidal volume and breathing rate must be positive");
+        }
+        Ok(())
+    }
+}
+
+fn side(s: u8) -> Result<(), &'static str> {
+    if (s as usize) < MAX_LUNGS {
+        Ok(())
+    } else {
+        Err("a lung side is neither right (0) nor left (1)")
+    }
+}
+
+impl Packet {
+    /// Check every value's domain (finite numbers, known sides, distinct lungs, a positive tick
+    /// rate). Physical plausibility is the engine's to judge when it builds the breath.
+    pub fn check(&self) -> Result<(), &'static str> {
+        let Packet::State(s) = self else {
+            return Ok(());
+        };
+        if !(s.tick_hz.is_finite() && s.tick_hz > 0.0 && s.tick_hz <= 100_000.0) {
+            return Err("the tick rate is not within 0–100 kHz");
+        }
+        finite(&s.gravity_body, "gravity is not finite")?;
+        match s.disease {
+            Disease::None => {}
+            Disease::ClosedPneumothorax { side: d }
+            | Disease::TensionPneumothorax { side: d, .. }
+            | Disease::Tumour { side: d } => side(d)?,
+        }
+        for (k, l) in s.lungs.iter().enumerate() {
+            side(l.side)?;
+            if s.lungs[..k].iter().any(|o| o.side == l.side) {
+                return Err("the same lung twice");
+            }
+            l.pv.check()?;
+            if let Some(n) = &l.next {
+                n.check()?;
+            }
+            finite(
+                &[l.share, l.collapse],
+                "a lung's share or collapse is not finite",
+            )?;
+            finite(&l.offset_mm, "a lung's offset is not finite")?;
+            finite(
+                &[l.held_ml.unwrap_or(0.0), l.base_ml.unwrap_or(0.0)],
+                "a lung's held or base volume is not finite",
+            )?;
+            if !(0.0..=1.0).contains(&l.collapse) {
+                return Err("a lung's collapse is outside 0..1");
+            }
+        }
+        Ok(())
+    }
+}
+
+/// Encode `packet` into `out`; the number of bytes written. No allocation.
+pub fn encode(packet: &Packet, out: &mut [u8]) -> Result<usize, EncodeError> {
+    packet.check().map_err(EncodeError::Invalid)?;
+    let capacity = out.len();
+    if capacity < HEADER_BYTES {
+        return Err(EncodeError::TooLarge { capacity });
+    }
+    let (head, body) = out.split_at_mut(HEADER_BYTES);
+    let room = body.len().min(MAX_PAYLOAD);
+    let n = postcard::to_slice(packet, &mut body[..room])
+        .map_err(|_| EncodeError::TooLarge { capacity })?
+        .len();
+    let sum = xxhash_rust::xxh3::xxh3_64(&body[..n]);
+    head[0..4].copy_from_slice(&MAGIC);
+    head[4..6].copy_from_slice(&FORMAT_VERSION.to_le_bytes());
+    head[6..8].copy_from_slice(&0u16.to_le_bytes());
+    head[8..12].copy_from_slice(&(n as u32).to_le_bytes());
+    head[12..20].copy_from_slice(&sum.to_le_bytes());
+    Ok(HEADER_BYTES + n)
+}
+
+/// Encode into a new buffer (off the tick: allocates).
+pub fn encode_to_vec(packet: &Packet) -> Result<Vec<u8>, EncodeError> {
+    let mut buf = vec![0u8; FRAME_BYTES];
+    let n = encode(packet, &mut buf)?;
+    buf.truncate(n);
+    Ok(buf)
+}
+
+/// Decode one packet from exactly `bytes`. Never panics; allocates at most what the bounded
+/// fields of a [`MAX_PAYLOAD`]-byte payload hold.
+pub fn decode(bytes: &[u8]) -> Result<Packet, DecodeError> {
+    if bytes.len() < HEADER_BYTES {
+        return Err(DecodeError::TooShort { got: bytes.len() });
+    }
+    let (head, body) = bytes.split_at(HEADER_BYTES);
+    let found: [u8; 4] = head[0..4].try_into().unwrap_or_default();
+    if found != MAGIC {
+        return Err(DecodeError::BadMagic { found });
+    }
+    let version = u16::from_le_bytes([head[4], head[5]]);
+    if version != FORMAT_VERSION {
+        return Err(DecodeError::UnknownVersion {
+            theirs: version,
+            ours: FORMAT_VERSION,
+        });
+    }
+    let claimed = u32::from_le_bytes([head[8], head[9], head[10], head[11]]) as usize;
+    if claimed > MAX_PAYLOAD {
+        return Err(DecodeError::TooLong { len: claimed });
+    }
+    if claimed != body.len() {
+        return Err(DecodeError::LengthMismatch {
+            claimed,
+            actual: body.len(),
+        });
+    }
+    let mut sum = [0u8; 8];
+    sum.copy_from_slice(&head[12..20]);
+    let expected = u64::from_le_bytes(sum);
+    let actual = xxhash_rust::xxh3::xxh3_64(body);
+    if expected != actual {
+        return Err(DecodeError::Checksum { expected, actual });
+    }
+    let (packet, rest): (Packet, &[u8]) =
+        postcard::take_from_bytes(body).map_err(|e| DecodeError::Malformed(e.to_string()))?;
+    if !rest.is_empty() {
+        return Err(DecodeError::Malformed(format!(
+            "{} bytes after the packet",
+            rest.len()
+        )));
+    }
+    packet.check().map_err(DecodeError::Invalid)?;
+    Ok(packet)
+}
+
+/// The encoded control state as the engine publishes it on iceoryx2 (fixed size, `Pod`).
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Pod, Zeroable)]
+#[repr(C)]
+pub struct ControlStateFrame {
+    /// `ipc_types::LAYOUT_VERSION` of the publisher.
+    pub layout_version: u32,
+    /// Bytes of [`Self::bytes`] used.
+    pub len: u32,
+    /// One encoded [`Packet`] ([`encode`]).
+    pub bytes: [u8; FRAME_BYTES],
+}
+
+const _: () = assert!(core::mem::size_of::<ControlStateFrame>() == 8 + FRAME_BYTES);
+
+impl Default for ControlStateFrame {
+    fn default() -> Self {
+        Self {
+            layout_version: ipc_types::LAYOUT_VERSION,
+            ..Zeroable::zeroed()
+        }
+    }
+}
+
+impl ControlStateFrame {
+    /// Encode `packet` into this frame. No allocation.
+    pub fn set(&mut self, packet: &Packet) -> Result<(), EncodeError> {
+        let n = encode(packet, &mut self.bytes)?;
+        self.layout_version = ipc_types::LAYOUT_VERSION;
+        self.len = n as u32;
+        Ok(())
+    }
+
+    /// The encoded bytes (an impossible length from a faulty peer reads as the whole buffer, which
+    /// [`decode`] then refuses).
+    pub fn encoded(&self) -> &[u8] {
+        &self.bytes[..(self.len as usize).min(FRAME_BYTES)]
+    }
+}
+
+impl ipc_types::Message for ControlStateFrame {
+    const NAME: &'static str = "ControlStateFrame";
+    const TYPE_NAME: &'static str = "lungdyn.ControlStateFrame.v3";
+    fn layout_version(&self) -> u32 {
+        self.layout_version
+    }
+}
+
+#[cfg(test)]
+mod tests;

@@ -1,0 +1,203 @@
+//! Delay, jitter and clock offset from timestamped probes (seed §8.3's "adaptive delay
+//! measurement").
+//!
+//! A site sends a probe at `t0` (its clock); the source stamps its receive `t1` and reply `t2`
+//! (its clock); the reply arrives at `t3` (site clock). Then the round trip without the source's
+//! hold is `rtt = (t3 − t0) − (t2 − t1)` and, for a symmetric path, the source clock minus the
+//! site's is `θ = ((t1 − t0) + (t2 − t3)) / 2` (NTP's on-wire estimate). The smoothed round trip
+//! and its variation follow RFC 6298 (gains 1/8 and 1/4). The offset is taken from the probe with
+//! the smallest round trip among the last [`WINDOW`]: its error is at most half that probe's
+//! queueing asymmetry, so jitter does not move the schedule.
+
+/// Probes kept for the offset estimate.
+pub const WINDOW: usize = 64;
+
+/// One probe's four stamps (ns).
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub struct ProbeStamps {
+    /// Site send (site clock).
+    pub t0: u64,
+    /// Source receive (source clock).
+    pub t1: u64,
+    /// Source send (source clock).
+    pub t2: u64,
+    /// Site receive (site clock).
+    pub t3: u64,
+}
+
+impl ProbeStamps {
+    /// Round trip without the source's hold, ns (`None` when the stamps are inconsistent).
+    pub fn rtt_ns(&self) -> Option<i64> {
+        let total = self.t3 as i128 - self.t0 as i128;
+        let hold = self.t2 as i128 - self.t1 as i128;
+        let rtt = total - hold;
+        (total >= 0 && hold >= 0 && rtt >= 0 && rtt < i64::MAX as i128).then_some(rtt as i64)
+    }
+
+    /// Source clock minus site clock, ns.
+    pub fn offset_ns(&self) -> i64 {
+        let a = self.t1 as i128 - self.t0 as i128;
+        let b = self.t2 as i128 - self.t3 as i128;
+        ((a + b) / 2).clamp(i64::MIN as i128, i64::MAX as i128) as i64
+    }
+}
+
+/// The estimator.
+#[derive(Debug, Clone)]
+pub struct DelayEstimator {
+    srtt: f64,
+    rttvar: f64,
+    window: [(i64, i64); WINDOW],
+    len: usize,
+    next: usize,
+    samples: u64,
+    refused: u64,
+}
+
+impl Default for DelayEstimator {
+    fn default() -> Self {
+        Self {
+            srtt: 0.0,
+            rttvar: 0.0,
+            window: [(0, 0); WINDOW],
+            len: 0,
+            next: 0,
+            samples: 0,
+            refused: 0,
+        }
+    }
+}
+
+impl DelayEstimator {
+    /// Take one probe; false (counted) when its stamps are inconsistent.
+    pub fn add(&mut self, p: ProbeStamps) -> bool {
+        let Some(rtt) = p.rtt_ns() else {
+            self.refused += 1;
+            return false;
+        };
+        let r = rtt as f64;
+        if self.samples == 0 {
+            self.srtt = r;
+            self.rttvar = r / 2.0;
+        } else {
+            self.rttvar += ((self.srtt - r).abs() - self.rttvar) / 4.0;
+            self.srtt += (r - self.srtt) / 8.0;
+        }
+        self.window[self.next] = (rtt, p.offset_ns());
+        self.next = (self.next + 1) % WINDOW;
+        self.len = (self.len + 1).min(WINDOW);
+        self.samples += 1;
+        true
+    }
+
+    /// Probes taken.
+    pub fn samples(&self) -> u64 {
+        self.samples
+    }
+
+    /// Probes refused (inconsistent stamps).
+    pub fn refused(&self) -> u64 {
+        self.refused
+    }
+
+    /// Smoothed one-way delay (half the round trip), ns.
+    pub fn delay_ns(&self) -> f64 {
+        self.srtt / 2.0
+    }
+
+    /// Round-trip variation (jitter), ns.
+    pub fn jitter_ns(&self) -> f64 {
+        self.rttvar
+    }
+
+    /// Source clock minus this site's, ns: the offset of the quickest recent probe (`None` before
+    /// the first).
+    pub fn offset_ns(&self) -> Option<i64> {
+        self.window[..self.len]
+            .iter()
+            .min_by_key(|(rtt, _)| *rtt)
+            .map(|(_, o)| *o)
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    fn probe(t0: u64, up: u64, hold: u64, down: u64, theta: i64) -> ProbeStamps {
+        let t1 = (t0 + up) as i64 + theta;
+        ProbeStamps {
+            t0,
+            t1: t1 as u64,
+            t2: (t1 as u64) + hold,
+            t3: t0 + up + hold + down,
+        }
+    }
+
+    #[test]
+    fn a_symmetric_path_gives_the_offset_and_delay_exactly() {
+        let mut e = DelayEstimator::default();
+        for k in 0..20 {
+            assert!(e.add(probe(
+                1_000_000 * k,
+                20_000_000,
+                50_000,
+                20_000_000,
+                3_000_000_000
+            )));
+        }
+        assert_eq!(e.offset_ns(), Some(3_000_000_000));
+        assert_eq!(e.delay_ns(), 20_000_000.0);
+        assert!(e.jitter_ns() < 1.0e6, "{}", e.jitter_ns());
+    }
+
+    #[test]
+    fn jitter_is_measured_and_the_quickest_probe_sets_the_offset() {
+        let mut e = DelayEstimator::default();
+        // 20 ± 5 ms each way, the quickest probe symmetric.
+        let ups = [25, 15, 22, 18, 24, 16, 20, 21, 19, 23];
+        let downs = [18, 27, 25, 24, 17, 25, 20, 22, 23, 25];
+        for (k, (u, d)) in ups.iter().zip(downs).enumerate() {
+            e.add(probe(
+                k as u64 * 100_000_000,
+                u * 1_000_000,
+                0,
+                d * 1_000_000,
+                -7,
+            ));
+        }
+        // Quickest: 20 + 20 = 40 ms round trip, symmetric: the exact offset.
+        assert_eq!(e.offset_ns(), Some(-7));
+        assert!((e.delay_ns() - 20.5e6).abs() < 3e6, "{}", e.delay_ns());
+        assert!(e.jitter_ns() > 1e6, "{}", e.jitter_ns());
+    }
+
+    #[test]
+    fn inconsistent_stamps_are_refused_and_counted() {
+        let mut e = DelayEstimator::default();
+        // Reply received before the probe was sent.
+        assert!(!e.add(ProbeStamps {
+            t0: 10,
+            t1: 5,
+            t2: 6,
+            t3: 9
+        }));
+        // The source held it longer than the whole round trip.
+        assert!(!e.add(ProbeStamps {
+            t0: 0,
+            t1: 0,
+            t2: 100,
+            t3: 50
+        }));
+        assert_eq!(e.refused(), 2);
+        assert_eq!(e.offset_ns(), None);
+        // Extremes do not overflow.
+        assert!(e.add(ProbeStamps {
+            t0: 0,
+            t1: u64::MAX,
+            t2: u64::MAX,
+            t3: 0
+        }));
+        assert_eq!(e.offset_ns(), Some(i64::MAX));
+    }
+}

@@ -1,0 +1,204 @@
+//! # lungdyn-remote: sites breathing in step over Zenoh (seed §8.3)
+//!
+//! The seed's distributed simulation sends one control packet per breathing cycle (or change) and
+//! lets every site drive its own lung from it, with the network delay measured and compensated.
+//! Here the packet is the engine's [`control_state::ControlState`]; it travels on
+//! [Zenoh](https://zenoh.io) (peer to peer or through a router), in the shape of iceoryx2's
+//! Zenoh tunnel: one relay per service, discovery by Zenoh, this crate as the backend.
+//!
+//! * [`source`]: the source side — publishes each state on an `AdvancedPublisher` with a cache
+//!   (a late joiner's `AdvancedSubscriber` gets the current state at once through its history),
+//!   answers delay probes, takes sites' events, declares a liveliness token and counts the sites'.
+//! * [`site`]: a site — receives states (history + recovery), estimates delay, jitter and clock
+//!   offset from probes ([`clock`]), builds the breath a state names off the tick thread and runs
+//!   its own [`engine::runtime::EngineCore`] on the source's tick numbers, scheduled so its ticks
+//!   fall at the source's times.
+//! * [`harness`]: a source and N sites on loopback with drift, phase error and packet figures.
+//! * [`roles`]: `lungdyn remote serve` / `join` over a running engine's iceoryx2 streams.
+//!
+//! Zenoh's own runtime threads are not the tick thread: every Zenoh callback only decodes (or
+//! copies) and hands over through a bounded channel; building PV tables happens on a worker; the
+//! tick loop takes what is ready with `try_recv`.
+
+pub mod clock;
+pub mod harness;
+pub mod link;
+pub mod roles;
+pub mod site;
+pub mod source;
+
+use thiserror::Error;
+
+/// Why a remote session failed.
+#[derive(Debug, Error)]
+pub enum RemoteError {
+    /// Zenoh refused a configuration or an operation.
+    #[error("zenoh: {what}: {message}")]
+    Zenoh {
+        /// What was being done.
+        what: String,
+        /// Zenoh's error.
+        message: String,
+    },
+    /// A bad option.
+    #[error("{0}")]
+    Usage(String),
+    /// The engine could not be built or driven (boxed: the engine's error is large).
+    #[error(transparent)]
+    Core(Box<engine::runtime::CoreError>),
+    /// A control state could not be made or used.
+    #[error(transparent)]
+    State(#[from] engine::runtime::remote::RemoteStateError),
+    /// A local stream failed.
+    #[error(transparent)]
+    Port(#[from] transport::PortError),
+    /// The scene could not be loaded.
+    #[error(transparent)]
+    Scene(Box<lung_model::scene::SceneError>),
+}
+
+impl From<engine::runtime::CoreError> for RemoteError {
+    fn from(e: engine::runtime::CoreError) -> Self {
+        Self::Core(Box::new(e))
+    }
+}
+
+impl From<lung_model::scene::SceneError> for RemoteError {
+    fn from(e: lung_model::scene::SceneError) -> Self {
+        Self::Scene(Box::new(e))
+    }
+}
+
+/// Wrap a Zenoh error with what was being done.
+pub(crate) fn zerr<E: std::fmt::Display>(what: impl Into<String>) -> impl FnOnce(E) -> RemoteError {
+    let what = what.into();
+    move |e| RemoteError::Zenoh {
+        what,
+        message: e.to_string(),
+    }
+}
+
+/// Key expressions of one shared session (`room`).
+#[derive(Debug, Clone)]
+pub struct Keys {
+    room: String,
+}
+
+impl Keys {
+    /// The keys of `room` (letters, digits, `-`, `_` only: Zenoh's wildcards and separators are
+    /// refused).
+    pub fn new(room: &str) -> Result<Self, RemoteError> {
+        if room.is_empty()
+            || room.len() > 64
+            || !room
+                .chars()
+                .all(|c| c.is_ascii_alphanumeric() || c == '-' || c == '_')
+        {
+            return Err(RemoteError::Usage(format!(
+                "room {room:?}: use 1–64 letters, digits, '-' or '_'"
+            )));
+        }
+        Ok(Self {
+            room: room.to_string(),
+        })
+    }
+    /// The source's control states.
+    pub fn state(&self) -> String {
+        format!("lungdyn/{}/state", self.room)
+    }
+    /// Events sent by sites to the source.
+    pub fn event(&self) -> String {
+        format!("lungdyn/{}/event", self.room)
+    }
+    /// Delay probes to the source.
+    pub fn probe(&self) -> String {
+        format!("lungdyn/{}/probe", self.room)
+    }
+    /// Probe replies to `site`.
+    pub fn reply(&self, site: u64) -> String {
+        format!("lungdyn/{}/reply/{site:016x}", self.room)
+    }
+    /// A site's liveliness token.
+    pub fn presence(&self, site: u64) -> String {
+        format!("lungdyn/{}/site/{site:016x}", self.room)
+    }
+    /// Every site's presence.
+    pub fn presence_all(&self) -> String {
+        format!("lungdyn/{}/site/*", self.room)
+    }
+    /// The source's presence.
+    pub fn source_presence(&self) -> String {
+        format!("lungdyn/{}/source", self.room)
+    }
+}
+
+/// How a Zenoh session is reached.
+#[derive(Debug, Clone)]
+pub struct Net {
+    /// Endpoints to listen on (`tcp/0.0.0.0:7447`).
+    pub listen: Vec<String>,
+    /// Endpoints to connect to (`tcp/HOST:7447`).
+    pub connect: Vec<String>,
+    /// Link lease, ms (a lost peer is seen within it).
+    pub lease_ms: u64,
+    /// `peer` or `client` (through a router).
+    pub mode: &'static str,
+}
+
+impl Net {
+    /// A peer listening on `listen` and connecting to `connect`, multicast scouting off.
+    pub fn peer(listen: &[String], connect: &[String]) -> Self {
+        Self {
+            listen: listen.to_vec(),
+            connect: connect.to_vec(),
+            lease_ms: 10_000,
+            mode: "peer",
+        }
+    }
+
+    /// The Zenoh configuration: explicit endpoints, no multicast scouting, the lease.
+    pub fn config(&self) -> Result<zenoh::Config, RemoteError> {
+        for e in self.listen.iter().chain(&self.connect) {
+            if !e.starts_with("tcp/") {
+                return Err(RemoteError::Usage(format!(
+                    "endpoint {e:?}: only tcp/HOST:PORT is built in (e.g. tcp/192.168.1.10:7447)"
+                )));
+            }
+        }
+        let mut c = zenoh::Config::default();
+        let json = |v: &[String]| {
+            let quoted: Vec<String> = v.iter().map(|e| format!("{e:?}")).collect();
+            format!("[{}]", quoted.join(","))
+        };
+        let set = |c: &mut zenoh::Config, k: &str, v: &str| {
+            c.insert_json5(k, v)
+                .map_err(zerr(format!("config {k} = {v}")))
+        };
+        set(&mut c, "mode", &format!("{:?}", self.mode))?;
+        set(&mut c, "scouting/multicast/enabled", "false")?;
+        set(&mut c, "listen/endpoints", &json(&self.listen))?;
+        set(&mut c, "connect/endpoints", &json(&self.connect))?;
+        set(
+            &mut c,
+            "transport/link/tx/lease",
+            &self.lease_ms.to_string(),
+        )?;
+        set(&mut c, "transport/link/tx/keep_alive", "4")?;
+        Ok(c)
+    }
+
+    /// Open a session.
+    pub fn open(&self) -> Result<zenoh::Session, RemoteError> {
+        use zenoh::Wait;
+        zenoh::open(self.config()?)
+            .wait()
+            .map_err(zerr("open a session"))
+    }
+}
+
+/// A site id: the low 48 bits of `now_ns` and 16 bits of the process id (as
+/// [`ipc_types::control_sequence`]), plus `k` for several sites in one process.
+pub fn site_id(k: u64) -> u64 {
+    ipc_types::control_sequence(std::process::id(), transport::clock::now_ns())
+        .wrapping_add(k.wrapping_mul(0x9e37_79b9_7f4a_7c15))
+}

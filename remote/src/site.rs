@@ -1,0 +1,335 @@
+//! A site: receive the source's control states, measure the path, run its own engine in step.
+
+use std::sync::atomic::{AtomicBool, AtomicI64, AtomicU64, Ordering};
+use std::sync::mpsc::{sync_channel, Receiver};
+use std::sync::{Arc, Mutex};
+use std::time::Duration;
+
+use control_state::{decode, encode_to_vec, Packet, RemoteEvent};
+use engine::runtime::remote::{BreathCache, Prepared};
+use engine::runtime::EngineCore;
+use ipc_types::EngineFrame;
+use transport::clock::now_ns;
+use zenoh::Wait;
+use zenoh_ext::{AdvancedSubscriberBuilderExt, HistoryConfig, RecoveryConfig};
+
+use crate::clock::{DelayEstimator, ProbeStamps};
+use crate::link::{self, Impairment, LinkIn};
+use crate::{zerr, Keys, Net, RemoteError};
+
+/// What a site received and did.
+#[derive(Debug, Default)]
+pub struct SiteCounts {
+    /// States taken (decoded, new, usable).
+    pub states: AtomicU64,
+    /// Packets refused: bytes that are not a packet (checksum, version, ...), or a state the
+    /// engine cannot use (the reason is kept in [`Site::last_refusal`]).
+    pub refused: AtomicU64,
+    /// States already seen (history and live delivery of the same state, a retransmission).
+    pub repeated: AtomicU64,
+    /// Probe replies taken.
+    pub probes: AtomicU64,
+    /// States the tick loop applied.
+    pub applied: AtomicU64,
+    /// Breathing cycles the site started without the source's state for them (predicted: the
+    /// engine breathes on with the last state's cycle until a newer one arrives).
+    pub predicted_cycles: AtomicU64,
+}
+
+/// The path's figures, kept by the link worker, read by the tick loop (atomics: no lock).
+#[derive(Debug, Default)]
+pub struct PathFigures {
+    /// Source clock minus site clock, ns.
+    pub offset_ns: AtomicI64,
+    /// True once a probe came back.
+    pub have_offset: AtomicBool,
+    /// Smoothed one-way delay, ns.
+    pub delay_ns: AtomicU64,
+    /// Round-trip variation, ns.
+    pub jitter_ns: AtomicU64,
+}
+
+/// A site's Zenoh side.
+pub struct Site {
+    /// This site's id.
+    pub id: u64,
+    /// An observer never sends events.
+    pub observer: bool,
+    session: zenoh::Session,
+    keys: Keys,
+    _states: zenoh_ext::AdvancedSubscriber<()>,
+    _replies: zenoh::pubsub::Subscriber<()>,
+    _token: zenoh::liveliness::LivelinessToken,
+    link: LinkIn,
+    prepared: Mutex<Option<Receiver<Prepared>>>,
+    stop: Arc<AtomicBool>,
+    /// Counters.
+    pub counts: Arc<SiteCounts>,
+    /// Delay, jitter, offset.
+    pub path: Arc<PathFigures>,
+    /// Why the last refused packet was refused.
+    pub last_refusal: Arc<Mutex<Option<String>>>,
+    event_sequence: AtomicU64,
+}
+
+impl Drop for Site {
+    fn drop(&mut self) {
+        self.stop.store(true, Ordering::Relaxed);
+    }
+}
+
+impl Site {
+    /// Join `keys`' room on `net` as site `id`; incoming packets pass `imp`; a probe every
+    /// `probe_ms`.
+    pub fn open(
+        net: &Net,
+        keys: &Keys,
+        id: u64,
+        observer: bool,
+        imp: Impairment,
+        probe_ms: u64,
+    ) -> Result<Self, RemoteError> {
+        let session = net.open()?;
+        let counts = Arc::new(SiteCounts::default());
+        let path = Arc::new(PathFigures::default());
+        let last_refusal = Arc::new(Mutex::new(None));
+        let (ptx, prepared) = sync_channel::<Prepared>(8);
+        let (c, p, r) = (counts.clone(), path.clone(), last_refusal.clone());
+        let mut cache = BreathCache::default();
+        let mut estimator = DelayEstimator::default();
+        let mut newest: Option<(u64, u64)> = None;
+        let refuse = move |r: &Mutex<Option<String>>, c: &SiteCounts, why: String| {
+            c.refused.fetch_add(1, Ordering::Relaxed);
+            if let Ok(mut g) = r.lock() {
+                *g = Some(why);
+            }
+        };
+        let link = link::start(&format!("remote-site-{id:x}"), imp, move |bytes, at| {
+            match decode(&bytes) {
+                Ok(Packet::State(s)) => {
+                    // A restarted source has a new epoch: its states are taken from then on.
+                    let key = (s.epoch, s.sequence);
+                    if newest.is_some_and(|(e, q)| e == key.0 && q >= key.1) {
+                        c.repeated.fetch_add(1, Ordering::Relaxed);
+                        return;
+                    }
+                    match Prepared::of(s, &mut cache) {
+                        Ok(prep) => {
+                            newest = Some(key);
+                            c.states.fetch_add(1, Ordering::Relaxed);
+                            let _ = ptx.try_send(prep);
+                        }
+                        Err(e) => refuse(&r, &c, e.to_string()),
+                    }
+                }
+                Ok(Packet::ProbeReply {
+                    to,
+                    t0_ns,
+                    t1_ns,
+                    t2_ns,
+                    ..
+                }) if to == id => {
+                    if estimator.add(ProbeStamps {
+                        t0: t0_ns,
+                        t1: t1_ns,
+                        t2: t2_ns,
+                        t3: at,
+                    }) {
+                        c.probes.fetch_add(1, Ordering::Relaxed);
+                        if let Some(o) = estimator.offset_ns() {
+                            p.offset_ns.store(o, Ordering::Relaxed);
+                            p.have_offset.store(true, Ordering::Relaxed);
+                        }
+                        p.delay_ns
+                            .store(estimator.delay_ns() as u64, Ordering::Relaxed);
+                        p.jitter_ns
+                            .store(estimator.jitter_ns() as u64, Ordering::Relaxed);
+                    }
+                }
+                Ok(_) => {}
+                Err(e) => refuse(&r, &c, e.to_string()),
+            }
+        });
+        let l1 = link.clone();
+        let states = session
+            .declare_subscriber(keys.state())
+            // The publisher's cache answers at once: a late joiner has the current state.
+            .history(HistoryConfig::default().detect_late_publishers())
+            // A missed state (sequence gap, heartbeat) is asked for again.
+            .recovery(RecoveryConfig::default().heartbeat())
+            .subscriber_detection()
+            .callback(move |s| l1.push(s.payload().to_bytes().into_owned()))
+            .wait()
+            .map_err(zerr("declare the state subscriber"))?;
+        let l2 = link.clone();
+        let replies = session
+            .declare_subscriber(keys.reply(id))
+            .callback(move |s| l2.push(s.payload().to_bytes().into_owned()))
+            .wait()
+            .map_err(zerr("declare the probe-reply subscriber"))?;
+        let token = session
+            .liveliness()
+            .declare_token(keys.presence(id))
+            .wait()
+            .map_err(zerr("declare the site's liveliness token"))?;
+        let stop = Arc::new(AtomicBool::new(false));
+        let (s2, k2, st) = (session.clone(), keys.clone(), stop.clone());
+        std::thread::Builder::new()
+            .name(format!("remote-probe-{id:x}"))
+            .spawn(move || {
+                let mut n = 0u64;
+                while !st.load(Ordering::Relaxed) {
+                    let probe = Packet::Probe {
+                        from: id,
+                        to: 0,
+                        id: n,
+                        t0_ns: now_ns(),
+                    };
+                    if let Ok(b) = encode_to_vec(&probe) {
+                        let _ = s2.put(k2.probe(), b).wait();
+                    }
+                    n += 1;
+                    std::thread::sleep(Duration::from_millis(probe_ms.max(1)));
+                }
+            })
+            .expect("spawn the prober");
+        Ok(Self {
+            id,
+            observer,
+            session,
+            keys: keys.clone(),
+            _states: states,
+            _replies: replies,
+            _token: token,
+            link,
+            prepared: Mutex::new(Some(prepared)),
+            stop,
+            counts,
+            path,
+            last_refusal,
+            event_sequence: AtomicU64::new(1),
+        })
+    }
+
+    /// Send an intervention to the source (refused for an observer).
+    pub fn send_event(&self, kind: u32, lung: u32) -> Result<u64, RemoteError> {
+        if self.observer {
+            return Err(RemoteError::Usage(
+                "an observer site does not send events (join without --observer)".into(),
+            ));
+        }
+        let sequence = self.event_sequence.fetch_add(1, Ordering::Relaxed);
+        let b = encode_to_vec(&Packet::Event(RemoteEvent {
+            origin: self.id,
+            sequence,
+            kind,
+            lung,
+            apply_cycle: 0,
+        }))
+        .map_err(|e| RemoteError::Usage(e.to_string()))?;
+        self.session
+            .put(self.keys.event(), b)
+            .wait()
+            .map_err(zerr("send an event"))?;
+        Ok(sequence)
+    }
+
+    /// The engine runner fed by this site's states (once: `None` after the first call).
+    pub fn runner(&self, core: EngineCore, hz: f64) -> Option<Runner> {
+        let rx = self.prepared.lock().ok()?.take()?;
+        Some(Runner {
+            core,
+            hz,
+            period_ns: 1e9 / hz,
+            rx,
+            path: self.path.clone(),
+            counts: self.counts.clone(),
+            anchor: None,
+            last_tick: None,
+            state_cycle: 0,
+            predicted_upto: 0,
+            frame: EngineFrame::default(),
+        })
+    }
+
+    /// Packets the link handed to the worker, lost to emulation, and overflowed.
+    pub fn link_counts(&self) -> &Arc<link::LinkCounts> {
+        self.link.counts()
+    }
+}
+
+/// A site's engine in step with the source: ticks numbered as the source's, each at the local
+/// time the source's schedule (moved by the clock offset) gives it.
+pub struct Runner {
+    core: EngineCore,
+    hz: f64,
+    period_ns: f64,
+    rx: Receiver<Prepared>,
+    path: Arc<PathFigures>,
+    counts: Arc<SiteCounts>,
+    /// (source tick, local time of that tick, ns).
+    anchor: Option<(u64, i128)>,
+    last_tick: Option<u64>,
+    state_cycle: u64,
+    predicted_upto: u64,
+    /// The latest frame.
+    pub frame: EngineFrame,
+}
+
+impl Runner {
+    /// Apply every state ready (no blocking; the tables were built on the link worker).
+    fn take(&mut self) -> Result<(), RemoteError> {
+        while let Ok(p) = self.rx.try_recv() {
+            let offset = if self.path.have_offset.load(Ordering::Relaxed) {
+                self.path.offset_ns.load(Ordering::Relaxed) as i128
+            } else {
+                0
+            };
+            self.anchor = Some((p.state.tick, p.state.source_time_ns as i128 - offset));
+            self.state_cycle = p.state.cycle;
+            self.core.apply_prepared(p, self.hz)?;
+            self.counts.applied.fetch_add(1, Ordering::Relaxed);
+        }
+        Ok(())
+    }
+
+    /// Local time (ns) source tick `k` is scheduled at; `None` before the first state.
+    pub fn time_of(&self, k: u64) -> Option<i128> {
+        self.anchor
+            .map(|(a, t)| t + ((k as f64 - a as f64) * self.period_ns).round() as i128)
+    }
+
+    /// The next tick's local time (to sleep until), `None` before the first state.
+    pub fn next_wake(&self) -> Option<i128> {
+        let k = self.last_tick.map_or(self.anchor?.0, |t| t + 1);
+        self.time_of(k)
+    }
+
+    /// Take ready states and, when a tick is due at `now`, step the newest due tick; returns it.
+    pub fn poll(&mut self, now: u64) -> Result<Option<u64>, RemoteError> {
+        self.take()?;
+        let Some((a, t)) = self.anchor else {
+            return Ok(None);
+        };
+        let since = now as i128 - t;
+        let steps = (since as f64 / self.period_ns).floor() as i128;
+        let k = a as i128 + steps;
+        if k < 0 || self.last_tick.is_some_and(|l| k as u64 <= l) {
+            return Ok(None);
+        }
+        let k = k as u64;
+        self.core.step(k, None, &mut self.frame);
+        self.last_tick = Some(k);
+        let cycle = self.frame.lungs.iter().map(|l| l.cycle).max().unwrap_or(0) as u64;
+        if cycle > self.state_cycle && cycle > self.predicted_upto {
+            self.predicted_upto = cycle;
+            self.counts.predicted_cycles.fetch_add(1, Ordering::Relaxed);
+        }
+        Ok(Some(k))
+    }
+
+    /// The engine.
+    pub fn core(&self) -> &EngineCore {
+        &self.core
+    }
+}

@@ -1,0 +1,175 @@
+//! The source side of a shared session: publish control states, answer probes, take events.
+
+use std::sync::atomic::{AtomicU64, AtomicUsize, Ordering};
+use std::sync::mpsc::{sync_channel, Receiver};
+use std::sync::Arc;
+
+use control_state::{decode, encode_to_vec, Packet, RemoteEvent};
+use transport::clock::now_ns;
+use zenoh::Wait;
+use zenoh_ext::{AdvancedPublisherBuilderExt, CacheConfig, MissDetectionConfig};
+
+use crate::link::{self, Impairment, LinkIn};
+use crate::{zerr, Keys, Net, RemoteError};
+
+/// What the source did.
+#[derive(Debug, Default)]
+pub struct SourceCounts {
+    /// Control states published.
+    pub states: AtomicU64,
+    /// Bytes of control states published (payload, once per publish).
+    pub state_bytes: AtomicU64,
+    /// Probes answered.
+    pub probes: AtomicU64,
+    /// Events taken from sites.
+    pub events: AtomicU64,
+    /// Packets refused (bad bytes, a state from another source).
+    pub refused: AtomicU64,
+}
+
+/// A source's Zenoh side.
+pub struct Source {
+    session: zenoh::Session,
+    publisher: zenoh_ext::AdvancedPublisher<'static>,
+    _probes: zenoh::pubsub::Subscriber<()>,
+    _events: zenoh::pubsub::Subscriber<()>,
+    _presence: zenoh::pubsub::Subscriber<()>,
+    _token: zenoh::liveliness::LivelinessToken,
+    _link: LinkIn,
+    events: std::sync::Mutex<Receiver<RemoteEvent>>,
+    sites: Arc<AtomicUsize>,
+    /// Counters.
+    pub counts: Arc<SourceCounts>,
+}
+
+impl Source {
+    /// Open the source `id` of `keys`' room on `net`; incoming probes and events pass `imp`.
+    pub fn open(net: &Net, keys: &Keys, id: u64, imp: Impairment) -> Result<Self, RemoteError> {
+        let session = net.open()?;
+        let publisher = session
+            .declare_publisher(keys.state())
+            // A late joiner's history query gets the latest state at once.
+            .cache(CacheConfig::default().max_samples(1))
+            // Sites detect a missed state and ask the cache for it.
+            .sample_miss_detection(
+                MissDetectionConfig::default().heartbeat(std::time::Duration::from_millis(500)),
+            )
+            .publisher_detection()
+            .wait()
+            .map_err(zerr("declare the state publisher"))?;
+        let counts = Arc::new(SourceCounts::default());
+        let (etx, events) = sync_channel(256);
+        let (c, s2, k2) = (counts.clone(), session.clone(), keys.clone());
+        // Probes and events: decoded on the link worker, never on Zenoh's threads.
+        let link = link::start("remote-source-in", imp, move |bytes, at| {
+            match decode(&bytes) {
+                Ok(Packet::Probe {
+                    from,
+                    to,
+                    id: pid,
+                    t0_ns,
+                }) if to == id || to == 0 => {
+                    let reply = Packet::ProbeReply {
+                        from: id,
+                        to: from,
+                        id: pid,
+                        t0_ns,
+                        t1_ns: at,
+                        t2_ns: now_ns(),
+                    };
+                    if let Ok(b) = encode_to_vec(&reply) {
+                        if s2.put(k2.reply(from), b).wait().is_ok() {
+                            c.probes.fetch_add(1, Ordering::Relaxed);
+                        }
+                    }
+                }
+                Ok(Packet::Event(e)) => {
+                    c.events.fetch_add(1, Ordering::Relaxed);
+                    let _ = etx.try_send(e);
+                }
+                Ok(Packet::Probe { .. }) => {}
+                Ok(_) | Err(_) => {
+                    c.refused.fetch_add(1, Ordering::Relaxed);
+                }
+            }
+        });
+        let l1 = link.clone();
+        let probes = session
+            .declare_subscriber(keys.probe())
+            .callback(move |s| l1.push(s.payload().to_bytes().into_owned()))
+            .wait()
+            .map_err(zerr("declare the probe subscriber"))?;
+        let l2 = link.clone();
+        let ev = session
+            .declare_subscriber(keys.event())
+            .callback(move |s| l2.push(s.payload().to_bytes().into_owned()))
+            .wait()
+            .map_err(zerr("declare the event subscriber"))?;
+        let sites = Arc::new(AtomicUsize::new(0));
+        let s3 = sites.clone();
+        let presence = session
+            .liveliness()
+            .declare_subscriber(keys.presence_all())
+            .history(true)
+            .callback(move |s| match s.kind() {
+                zenoh::sample::SampleKind::Put => {
+                    s3.fetch_add(1, Ordering::Relaxed);
+                }
+                zenoh::sample::SampleKind::Delete => {
+                    let _ = s3.fetch_update(Ordering::Relaxed, Ordering::Relaxed, |n| {
+                        Some(n.saturating_sub(1))
+                    });
+                }
+            })
+            .wait()
+            .map_err(zerr("declare the presence subscriber"))?;
+        let token = session
+            .liveliness()
+            .declare_token(keys.source_presence())
+            .wait()
+            .map_err(zerr("declare the source's liveliness token"))?;
+        Ok(Self {
+            session,
+            publisher,
+            _probes: probes,
+            _events: ev,
+            _presence: presence,
+            _token: token,
+            _link: link,
+            events: std::sync::Mutex::new(events),
+            sites,
+            counts,
+        })
+    }
+
+    /// Publish one encoded state (bytes as [`control_state::encode`] wrote them).
+    pub fn publish(&self, bytes: &[u8]) -> Result<(), RemoteError> {
+        self.publisher
+            .put(bytes.to_vec())
+            .wait()
+            .map_err(zerr("publish a control state"))?;
+        self.counts.states.fetch_add(1, Ordering::Relaxed);
+        self.counts
+            .state_bytes
+            .fetch_add(bytes.len() as u64, Ordering::Relaxed);
+        Ok(())
+    }
+
+    /// Events sent by sites since the last call.
+    pub fn take_events(&self) -> Vec<RemoteEvent> {
+        self.events
+            .lock()
+            .map(|rx| rx.try_iter().collect())
+            .unwrap_or_default()
+    }
+
+    /// Sites present now (their liveliness tokens).
+    pub fn sites(&self) -> usize {
+        self.sites.load(Ordering::Relaxed)
+    }
+
+    /// The Zenoh session (to close it).
+    pub fn session(&self) -> &zenoh::Session {
+        &self.session
+    }
+}

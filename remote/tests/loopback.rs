@@ -1,0 +1,156 @@
+//! Source and sites as separate Zenoh sessions over TCP on 127.0.0.1 (multicast scouting off,
+//! explicit endpoints, 2 s lease): join, late join, loss, a bad packet.
+
+use std::sync::atomic::{AtomicBool, Ordering};
+use std::sync::Arc;
+use std::time::{Duration, Instant};
+
+use lungdyn_remote::harness::{self, harness_core, locator, run_source, HarnessArgs};
+use lungdyn_remote::link::Impairment;
+use lungdyn_remote::site::Site;
+use lungdyn_remote::source::Source;
+use lungdyn_remote::{site_id, Keys, Net};
+use zenoh::Wait;
+
+fn args(sites: usize, seconds: f64, loss: f64) -> HarnessArgs {
+    HarnessArgs {
+        sites,
+        seconds,
+        delay_ms: 0.0,
+        jitter_ms: 0.0,
+        loss,
+        breaths_per_min: Some(30.0),
+        observer: true,
+        json: false,
+        seed: 3,
+    }
+}
+
+fn nets() -> Net {
+    let mut n = Net::peer(&["tcp/127.0.0.1:0".to_string()], &[]);
+    n.lease_ms = 2000;
+    n
+}
+
+fn site_net(source: &Source) -> Net {
+    let mut n = Net::peer(&[], &[locator(source.session()).unwrap()]);
+    n.lease_ms = 2000;
+    n
+}
+
+#[test]
+fn a_site_joins_and_breathes_the_sources_ticks_bit_for_bit() {
+    let r = harness::run(&args(2, 3.0, 0.0)).unwrap();
+    for s in &r.per_site {
+        assert!(s.ticks > 120, "{s:?}");
+        assert_eq!(s.ticks_differing, 0, "{s:?}");
+        assert!(s.states_applied >= 1 && s.refused == 0, "{s:?}");
+        // One machine, one clock: the offset estimate is within a millisecond of 0.
+        assert!(s.offset_ms.abs() < 1.0, "{s:?}");
+        assert!(s.phase_error_ms_worst < 1.0, "{s:?}");
+    }
+    // One state per 2 s cycle against 60 frames a second.
+    assert!(r.reduction > 100.0, "{r:?}");
+}
+
+#[test]
+fn a_late_joiner_gets_the_current_state_at_once_from_the_cache() {
+    // 12 breaths/min: the next state is 5 s away when the site joins at 1 s.
+    let (scene, core) = harness_core(None).unwrap();
+    let hz = scene.engine.tick_hz;
+    let keys = Keys::new("late").unwrap();
+    let id = site_id(0);
+    let source = Source::open(&nets(), &keys, id, Impairment::default()).unwrap();
+    let stop = Arc::new(AtomicBool::new(false));
+    std::thread::scope(|s| {
+        let (src, st, c) = (&source, stop.clone(), core.clone());
+        let h = s.spawn(move || run_source(c, hz, src, id, transport::clock::now_ns(), &st));
+        std::thread::sleep(Duration::from_millis(1000));
+        assert_eq!(source.counts.states.load(Ordering::Relaxed), 1);
+        let joined = Instant::now();
+        let site = Site::open(
+            &site_net(&source),
+            &keys,
+            site_id(1),
+            true,
+            Impairment::default(),
+            100,
+        )
+        .unwrap();
+        let mut runner = site.runner(core.clone(), hz).unwrap();
+        let mut first = None;
+        while joined.elapsed() < Duration::from_secs(3) && first.is_none() {
+            first = runner.poll(transport::clock::now_ns()).unwrap();
+            std::thread::sleep(Duration::from_millis(1));
+        }
+        let waited = joined.elapsed();
+        stop.store(true, Ordering::Relaxed);
+        h.join().unwrap().unwrap();
+        let k = first.expect("the late joiner stepped a tick");
+        assert!(waited < Duration::from_millis(2500), "{waited:?}");
+        // Still the first cycle's state: it came from the publisher's cache.
+        assert_eq!(source.counts.states.load(Ordering::Relaxed), 1);
+        assert!(
+            k >= 60,
+            "joined at tick {k}, about a second after the source started"
+        );
+        assert_eq!(site.counts.applied.load(Ordering::Relaxed), 1);
+    });
+}
+
+#[test]
+fn lost_states_are_counted_and_the_sites_stay_in_step() {
+    let r = harness::run(&args(2, 6.0, 0.3)).unwrap();
+    let lost: u64 = r.per_site.iter().map(|s| s.lost).sum();
+    assert!(lost > 0, "{r:?}");
+    for s in &r.per_site {
+        // Deterministic engines: a lost state of an unchanged breath costs nothing.
+        assert_eq!(s.ticks_differing, 0, "{s:?}");
+        assert!(s.ticks > 250, "{s:?}");
+    }
+}
+
+#[test]
+fn a_bad_packet_is_refused_counted_and_the_site_breathes_on() {
+    let (scene, core) = harness_core(Some(30.0)).unwrap();
+    let hz = scene.engine.tick_hz;
+    let keys = Keys::new("bad").unwrap();
+    let id = site_id(0);
+    let source = Source::open(&nets(), &keys, id, Impairment::default()).unwrap();
+    let site = Site::open(
+        &site_net(&source),
+        &keys,
+        site_id(1),
+        true,
+        Impairment::default(),
+        100,
+    )
+    .unwrap();
+    // Sites connect to the source only: the bad bytes come through the source's session.
+    let rogue = source.session().clone();
+    let stop = Arc::new(AtomicBool::new(false));
+    std::thread::scope(|s| {
+        let (src, st, c) = (&source, stop.clone(), core.clone());
+        let h = s.spawn(move || run_source(c, hz, src, id, transport::clock::now_ns(), &st));
+        std::thread::sleep(Duration::from_millis(700));
+        // Garbage, then a real state of another format version.
+        rogue.put(keys.state(), vec![0u8, 1, 2, 3]).wait().unwrap();
+        let mut b = control_state::encode_to_vec(&control_state::Packet::Probe {
+            from: 1,
+            to: 2,
+            id: 3,
+            t0_ns: 4,
+        })
+        .unwrap();
+        b[4] = 9;
+        rogue.put(keys.state(), b).wait().unwrap();
+        std::thread::sleep(Duration::from_millis(2600));
+        stop.store(true, Ordering::Relaxed);
+        h.join().unwrap().unwrap();
+    });
+    assert_eq!(site.counts.refused.load(Ordering::Relaxed), 2);
+    let why = site.last_refusal.lock().unwrap().clone().unwrap();
+    assert!(why.contains("format v9"), "{why}");
+    // The real states kept coming: 2 s cycles over 3.3 s.
+    assert!(site.counts.states.load(Ordering::Relaxed) >= 2);
+}
