@@ -92,6 +92,10 @@ pub struct DemoArgs {
     /// the scene's `[render] hmd` and its ipd_mm, fov_y_deg, width and height.
     #[arg(long, value_name = "FILE")]
     pub hmd: Option<PathBuf>,
+    /// Vertices per generated default lung (overrides the scene's `[lungs] vertices`; baked once
+    /// into <out>/kernels and reused).
+    #[arg(long, value_name = "N")]
+    pub vertices: Option<usize>,
 }
 
 /// Most `--snapshots`: one per 60 Hz display frame of a 4-second breath (15 breaths/min). More are
@@ -118,6 +122,9 @@ pub fn check_counts(args: &DemoArgs) -> anyhow::Result<()> {
                 args.seconds
             );
         }
+    }
+    if let Some(v) = args.vertices {
+        crate::launch::check_vertices(v).context("--vertices")?;
     }
     check_cpus(&args.cpus, "--cpus")
 }
@@ -456,6 +463,15 @@ fn ensure_runtime_dir() {
 
 /// Run the demo; returns the report (the caller prints it).
 pub fn run(args: &DemoArgs) -> anyhow::Result<DemoReport> {
+    run_observed(args, &mut crate::launch::NoObserver)
+}
+
+/// [`run`], showing `observer` every frame report and the children before they are stopped (the
+/// latency harness, `crate::latency`).
+pub fn run_observed(
+    args: &DemoArgs,
+    observer: &mut dyn crate::launch::Observer,
+) -> anyhow::Result<DemoReport> {
     let s = args.seconds;
     if !(s.is_finite() && s > 0.0 && s <= transport::process::MAX_SECONDS) {
         bail!(
@@ -517,6 +533,9 @@ pub fn run(args: &DemoArgs) -> anyhow::Result<DemoReport> {
     let mut loaded = lung_model::scene::Scene::load_or_default(args.scene.as_deref())?;
     if let Some(mode) = args.mode {
         loaded.lungs.mode = mode;
+    }
+    if let Some(v) = args.vertices {
+        loaded.lungs.vertices = v;
     }
     let cpus = if args.cpus.is_empty() {
         check_cpus(&loaded.processes.cpus, "[processes] cpus")?;
@@ -687,6 +706,7 @@ pub fn run(args: &DemoArgs) -> anyhow::Result<DemoReport> {
                 first_frame_ns = Some(now_ns());
             }
             stats.record(r);
+            observer.report(r);
         })?;
         let now = now_ns();
         if let Some((role, status)) = children.exited() {
@@ -720,8 +740,17 @@ pub fn run(args: &DemoArgs) -> anyhow::Result<DemoReport> {
     let measured_s = first_frame_ns
         .map(|t0| (now_ns() - t0) as f64 / 1e9)
         .unwrap_or(0.0);
+    let pids: Vec<(&'static str, u32)> = children
+        .procs
+        .iter()
+        .map(|p| (p.role, p.child.id()))
+        .collect();
+    observer.before_stop(&pids);
     let killed = children.stop(Duration::from_secs(5));
-    let _ = reports.drain(&mut |r: &FrameReport| stats.record(r));
+    let _ = reports.drain(&mut |r: &FrameReport| {
+        stats.record(r);
+        observer.report(r);
+    });
     drop(reports);
     node.try_cleanup_dead_nodes();
     drop(node);

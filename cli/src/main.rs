@@ -20,6 +20,11 @@ struct Cli {
 enum Command {
     /// Run the three processes on the built-in scene, write PNGs across a breath, print latency.
     Demo(lungdyn::demo::DemoArgs),
+    /// The latency harness: run the pipeline and measure every frame from tracker capture to
+    /// submit, GPU done and (in a window) present — per hop p50/p99/p99.9/max, deadline misses with
+    /// the stage that overran, each process's period jitter and CPU time; --sweep finds the largest
+    /// mesh that holds 60 Hz. Writes latency.json, latency.md and latency.png into --out.
+    Latency(lungdyn::latency::LatencyArgs),
     /// Lung surface meshes.
     #[command(subcommand)]
     Mesh(MeshCommand),
@@ -158,6 +163,16 @@ fn main() -> std::process::ExitCode {
                 println!("{}", serde_json::to_string(&report)?);
             } else {
                 print!("{table}");
+            }
+            Ok(())
+        }),
+        Command::Latency(args) => lungdyn::latency::run(&args).and_then(|out| {
+            let summary = lungdyn::latency::summary(&out);
+            if args.json {
+                eprint!("{summary}");
+                println!("{}", serde_json::to_string(&out)?);
+            } else {
+                print!("{summary}");
             }
             Ok(())
         }),

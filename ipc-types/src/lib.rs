@@ -17,7 +17,7 @@
 //!
 //! ## Layout versioning
 //! [`LAYOUT_VERSION`] is written into every payload ([`Message::layout_version`]) and into every
-//! payload's type name ([`Message::TYPE_NAME`], `"lungdyn.EngineFrame.v3"`), which the transport
+//! payload's type name ([`Message::TYPE_NAME`], `"lungdyn.EngineFrame.v4"`), which the transport
 //! hands to iceoryx2: iceoryx2 refuses to open a service whose payload type name, size or alignment
 //! differ from the creator's, so a process built from another layout fails at start-up instead of
 //! reading garbage; the field in the payload is a second check for peers that bypass the type name.
@@ -27,14 +27,16 @@
 //! Version history: v1 had one breathing state for both lungs; v2 gives each lung its own volume,
 //! phase, cycle, rigid offset, deformation coefficients and the identity of the kernel it was
 //! computed for ([`LungFrame`]); v3 adds each lung's collapse towards its hilum (a pneumothorax,
-//! EQUATIONS.md §4: drawn at `h + (1 − c)(p − h) + s·u + offset`), zero for a healthy lung.
+//! EQUATIONS.md §4: drawn at `h + (1 − c)(p − h) + s·u + offset`), zero for a healthy lung; v4 adds the
+//! renderer's GPU-done and present times to [`FrameReport`] (the latency harness's capture → GPU done
+//! and capture → present).
 
 use core::mem::{align_of, offset_of, size_of};
 
 use bytemuck::{Pod, Zeroable};
 
 /// Version of every payload layout in this crate. Part of each payload's type name.
-pub const LAYOUT_VERSION: u32 = 3;
+pub const LAYOUT_VERSION: u32 = 4;
 
 /// Maximum number of tracked tools in one [`TrackerFrame`].
 pub const MAX_TOOLS: usize = 4;
@@ -405,6 +407,12 @@ pub struct FrameReport {
     pub cpu_frame_ns: u64,
     /// GPU time of the frame's passes from timestamp queries, ns (0 when unsupported).
     pub gpu_frame_ns: u64,
+    /// When the renderer saw the frame's GPU work complete (CLOCK_MONOTONIC, ns): the wait on the
+    /// submission's fence returned (`Device::poll` with the submission index). 0: not observed.
+    pub gpu_done_ns: u64,
+    /// When the frame was handed to the window's presentation engine (`Queue::present` returned,
+    /// CLOCK_MONOTONIC, ns). 0: headless, or the frame was not presented.
+    pub present_ns: u64,
     /// Lung volumes drawn, ml (right, left).
     pub volume_ml: [f32; NUM_LUNGS],
 }
@@ -612,7 +620,7 @@ impl core::str::FromStr for Intervention {
 
 impl Message for ControlPacket {
     const NAME: &'static str = "ControlPacket";
-    const TYPE_NAME: &'static str = "lungdyn.ControlPacket.v3";
+    const TYPE_NAME: &'static str = "lungdyn.ControlPacket.v4";
     fn layout_version(&self) -> u32 {
         self.layout_version
     }
@@ -620,35 +628,35 @@ impl Message for ControlPacket {
 
 impl Message for ControlReply {
     const NAME: &'static str = "ControlReply";
-    const TYPE_NAME: &'static str = "lungdyn.ControlReply.v3";
+    const TYPE_NAME: &'static str = "lungdyn.ControlReply.v4";
     fn layout_version(&self) -> u32 {
         self.layout_version
     }
 }
 
-const VERSION_SUFFIX: &str = ".v3";
+const VERSION_SUFFIX: &str = ".v4";
 const _: () = assert!(
-    LAYOUT_VERSION == 3,
+    LAYOUT_VERSION == 4,
     "bump VERSION_SUFFIX with LAYOUT_VERSION"
 );
 
 impl Message for TrackerFrame {
     const NAME: &'static str = "TrackerFrame";
-    const TYPE_NAME: &'static str = "lungdyn.TrackerFrame.v3";
+    const TYPE_NAME: &'static str = "lungdyn.TrackerFrame.v4";
     fn layout_version(&self) -> u32 {
         self.layout_version
     }
 }
 impl Message for EngineFrame {
     const NAME: &'static str = "EngineFrame";
-    const TYPE_NAME: &'static str = "lungdyn.EngineFrame.v3";
+    const TYPE_NAME: &'static str = "lungdyn.EngineFrame.v4";
     fn layout_version(&self) -> u32 {
         self.layout_version
     }
 }
 impl Message for FrameReport {
     const NAME: &'static str = "FrameReport";
-    const TYPE_NAME: &'static str = "lungdyn.FrameReport.v3";
+    const TYPE_NAME: &'static str = "lungdyn.FrameReport.v4";
     fn layout_version(&self) -> u32 {
         self.layout_version
     }
@@ -744,7 +752,7 @@ const _: () = {
     assert!(offset_of!(EngineFrame, patient_pose) == 80);
     assert!(offset_of!(EngineFrame, lungs) == 112);
 
-    assert!(size_of::<FrameReport>() == 104 && align_of::<FrameReport>() == 8);
+    assert!(size_of::<FrameReport>() == 120 && align_of::<FrameReport>() == 8);
     assert!(offset_of!(FrameReport, layout_version) == 0);
     assert!(offset_of!(FrameReport, flags) == 4);
     assert!(offset_of!(FrameReport, frame) == 8);
@@ -753,7 +761,9 @@ const _: () = {
     assert!(offset_of!(FrameReport, stamps) == 32);
     assert!(offset_of!(FrameReport, cpu_frame_ns) == 80);
     assert!(offset_of!(FrameReport, gpu_frame_ns) == 88);
-    assert!(offset_of!(FrameReport, volume_ml) == 96);
+    assert!(offset_of!(FrameReport, gpu_done_ns) == 96);
+    assert!(offset_of!(FrameReport, present_ns) == 104);
+    assert!(offset_of!(FrameReport, volume_ml) == 112);
 };
 
 /// A received payload claims another layout version than this build speaks.

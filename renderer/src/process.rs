@@ -234,6 +234,9 @@ pub struct Session {
     control_sequence: u64,
     /// systemd's watchdog, pinged from [`Session::step`] (disabled outside a unit).
     watchdog: transport::notify::Watchdog,
+    /// Windowed: the drawn frame's report waits here for [`Session::presented`] (its present time).
+    pending_report: Option<FrameReport>,
+    defer_reports: bool,
 }
 
 /// Keep Mesa quiet on headless machines: without XDG_RUNTIME_DIR its window-system probing prints an
@@ -371,6 +374,8 @@ impl Session {
             control: None,
             control_sequence: 0,
             watchdog: transport::notify::Watchdog::every(None),
+            pending_report: None,
+            defer_reports: false,
         }
     }
 
@@ -550,7 +555,7 @@ impl Session {
             flags |= report_flags::GPU_TIMED;
         }
         self.stats.frames += 1;
-        self.ports.report.publish(&FrameReport {
+        let report = FrameReport {
             layout_version: LAYOUT_VERSION,
             flags,
             frame: self.stats.frames,
@@ -559,11 +564,18 @@ impl Session {
             stamps: frame.stamps,
             cpu_frame_ns: timing.submit_ns.saturating_sub(now),
             gpu_frame_ns: timing.gpu_ns.unwrap_or(0),
+            gpu_done_ns: timing.gpu_done_ns,
+            present_ns: 0,
             volume_ml: [
                 frame.lungs[LUNG_RIGHT].volume_ml,
                 frame.lungs[LUNG_LEFT].volume_ml,
             ],
-        })?;
+        };
+        if self.defer_reports {
+            self.pending_report = Some(report);
+        } else {
+            self.ports.report.publish(&report)?;
+        }
         if capture {
             while self.next_target < self.snapshots.ticks.len()
                 && frame.tick >= self.snapshots.ticks[self.next_target]
@@ -574,6 +586,21 @@ impl Session {
         }
         self.last = Some(frame);
         Ok(true)
+    }
+
+    /// Windowed: hold each frame's report until [`Session::presented`] gives its present time.
+    pub fn defer_reports_to_present(&mut self) {
+        self.defer_reports = true;
+    }
+
+    /// The last drawn frame was handed to the presentation engine at `present_ns` (`None`: not
+    /// presented); publishes its report.
+    pub fn presented(&mut self, present_ns: Option<u64>) -> Result<(), RendererError> {
+        if let Some(mut r) = self.pending_report.take() {
+            r.present_ns = present_ns.unwrap_or(0);
+            self.ports.report.publish(&r)?;
+        }
+        Ok(())
     }
 
     fn write_snapshot(&mut self, frame: &EngineFrame) -> Result<(), RendererError> {

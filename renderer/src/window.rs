@@ -59,7 +59,8 @@ impl App {
             wgpu::PresentMode::AutoNoVsync
         };
         surface.configure(&gpu.device, &config);
-        let session = Session::new(&self.args, gpu)?;
+        let mut session = Session::new(&self.args, gpu)?;
+        session.defer_reports_to_present();
         let present = PresentPass::new(
             &session.gpu.device,
             session.renderer.color_view(),
@@ -151,10 +152,12 @@ impl ApplicationHandler for App {
             // Timeout, occluded or validation: skip presenting this frame; the next one tries again.
             _ => {}
         });
-        if let Some(t) = acquired {
+        let present_ns = acquired.map(|t| {
             window.pre_present_notify();
             session.gpu.queue.present(t);
-        }
+            transport::now_ns()
+        });
+        let result = result.and_then(|_| session.presented(present_ns));
         if reconfigure {
             surface.configure(&session.gpu.device, config);
         }
