@@ -96,6 +96,14 @@ pub struct DemoArgs {
     /// into <out>/kernels and reused).
     #[arg(long, value_name = "N")]
     pub vertices: Option<usize>,
+    /// Run the three processes SCHED_FIFO with locked memory where permitted (also the scene's
+    /// `[processes] realtime`); each says once which capability or limit is missing where not.
+    #[arg(long)]
+    pub realtime: bool,
+    /// Write one Chrome/Perfetto trace (JSON) of every process's stage spans on CLOCK_MONOTONIC to
+    /// FILE (open it in ui.perfetto.dev). Off by default.
+    #[arg(long, value_name = "FILE")]
+    pub trace: Option<PathBuf>,
 }
 
 /// Most `--snapshots`: one per 60 Hz display frame of a 4-second breath (15 breaths/min). More are
@@ -126,6 +134,7 @@ pub fn check_counts(args: &DemoArgs) -> anyhow::Result<()> {
     if let Some(v) = args.vertices {
         crate::launch::check_vertices(v).context("--vertices")?;
     }
+    crate::launch::check_trace(args.trace.as_deref())?;
     check_cpus(&args.cpus, "--cpus")
 }
 
@@ -537,6 +546,7 @@ pub fn run_observed(
     if let Some(v) = args.vertices {
         loaded.lungs.vertices = v;
     }
+    loaded.processes.realtime |= args.realtime;
     let cpus = if args.cpus.is_empty() {
         check_cpus(&loaded.processes.cpus, "[processes] cpus")?;
         loaded.processes.cpus.clone()
@@ -623,6 +633,9 @@ pub fn run_observed(
         .min(transport::process::MAX_SECONDS)
         .to_string();
     common.extend(["--seconds".to_string(), child_seconds]);
+    if scene.processes.realtime {
+        common.push("--realtime".to_string());
+    }
     let with_scene = |mut v: Vec<String>| {
         v.extend(["--scene".to_string(), resolved_scene.display().to_string()]);
         v
@@ -654,6 +667,10 @@ pub fn run_observed(
         }
     }
     let existing: std::collections::HashSet<PathBuf> = list_pngs(&args.out).into_iter().collect();
+    let trace_dir = match &args.trace {
+        Some(_) => Some(crate::launch::start_trace(&args.out, &instance)?),
+        None => None,
+    };
     let mut children = Children { procs: Vec::new() };
     children
         .procs
@@ -771,6 +788,10 @@ pub fn run_observed(
     let remaining = services.leftovers().len();
     if !killed.is_empty() {
         eprintln!("lungdyn: warning: had to kill {killed:?} after SIGINT");
+    }
+    if let (Some(dir), Some(file)) = (&trace_dir, &args.trace) {
+        let stages = crate::launch::finish_trace(dir, file)?;
+        observer.stages(&stages);
     }
     if let Some(f) = failure {
         bail!(f);

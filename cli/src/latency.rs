@@ -76,6 +76,14 @@ pub struct LatencyArgs {
     /// Print the JSON result on stdout (the summary goes to stderr).
     #[arg(long)]
     pub json: bool,
+    /// Run the three processes SCHED_FIFO with locked memory where permitted (the demo's
+    /// --realtime).
+    #[arg(long)]
+    pub realtime: bool,
+    /// Write one Chrome/Perfetto trace (JSON) of every process's stage spans to FILE (with --sweep:
+    /// of the final run). Off by default.
+    #[arg(long, value_name = "FILE")]
+    pub trace: Option<PathBuf>,
 }
 
 /// `--load`: background work while measuring.
@@ -331,6 +339,27 @@ pub struct Recorder {
     frames: u64,
     launcher_cpu_start_s: f64,
     cpu: Vec<ProcessCpu>,
+    stages: Vec<StageRow>,
+}
+
+/// One stage's timer in one process over the whole run (its `tracing` span; see
+/// `transport::trace`).
+#[derive(Debug, Clone, Serialize)]
+pub struct StageRow {
+    /// Process.
+    pub process: String,
+    /// Stage (span name).
+    pub stage: String,
+    /// Times it ran (warm-up included).
+    pub count: u64,
+    /// Total time, ms.
+    pub total_ms: f64,
+    /// Median, ms (log-linear buckets: at most 12.5 % over).
+    pub p50_ms: f64,
+    /// 99th percentile, ms (same).
+    pub p99_ms: f64,
+    /// Maximum, ms.
+    pub max_ms: f64,
 }
 
 /// One child's CPU use over the run.
@@ -380,6 +409,7 @@ impl Recorder {
             frames: 0,
             launcher_cpu_start_s: 0.0,
             cpu: Vec::new(),
+            stages: Vec::new(),
         }
     }
 }
@@ -477,6 +507,21 @@ impl Observer for Recorder {
         } else {
             self.series_dropped += 1;
         }
+    }
+
+    fn stages(&mut self, stages: &[transport::trace::StageSummary]) {
+        self.stages = stages
+            .iter()
+            .map(|s| StageRow {
+                process: s.process.clone(),
+                stage: s.stage.clone(),
+                count: s.count,
+                total_ms: s.total_ms,
+                p50_ms: s.p50_ms,
+                p99_ms: s.p99_ms,
+                max_ms: s.max_ms,
+            })
+            .collect();
     }
 
     fn before_stop(&mut self, children: &[(&'static str, u32)]) {
@@ -606,6 +651,8 @@ pub struct LatencyReport {
     pub rows: Vec<Row>,
     /// Per process: period jitter and CPU time.
     pub processes: Vec<ProcessRow>,
+    /// Per process and stage: the stage timers (the processes' spans).
+    pub stages: Vec<StageRow>,
     /// The launcher's measuring thread's CPU time, s.
     pub launcher_cpu_s: f64,
     /// Vertices per generated lung.
@@ -616,6 +663,9 @@ pub struct LatencyReport {
     pub load: Load,
     /// Measured in a window (capture → present).
     pub window: bool,
+    /// The processes were asked to run SCHED_FIFO with locked memory (`--realtime` or the scene);
+    /// their stderr says whether they could.
+    pub realtime: bool,
     /// Frames beyond the preallocated time series (not plotted; still in the histograms).
     pub series_dropped: u64,
 }
@@ -694,6 +744,7 @@ fn check_args(args: &LatencyArgs) -> anyhow::Result<Load> {
             bail!("--mesh and --sweep: the sweep chooses the mesh; give one or the other");
         }
     }
+    crate::launch::check_trace(args.trace.as_deref())?;
     args.load
         .as_deref()
         .map_or(Ok(Load::default()), Load::parse)
@@ -705,6 +756,7 @@ fn measure(
     vertices: Option<usize>,
     seconds: f64,
     load: Load,
+    trace: Option<&Path>,
 ) -> anyhow::Result<(LatencyReport, Vec<SeriesPoint>)> {
     use clap::Parser;
     #[derive(Parser)]
@@ -724,6 +776,9 @@ fn measure(
     demo.window = args.window;
     demo.vertices = vertices;
     demo.json = true;
+    demo.realtime = args.realtime;
+    // The stage timers come with the spans: always on here, into --out unless --trace names a file.
+    demo.trace = Some(trace.map_or_else(|| args.out.join("latency.trace.json"), Path::to_path_buf));
     let mut scene = lung_model::scene::Scene::load_or_default(args.scene.as_deref())?;
     if let Some(m) = args.mode {
         scene.lungs.mode = m;
@@ -745,6 +800,7 @@ fn measure(
         &demo_report,
         mesh_vertices,
         scene.lungs.mode.name(),
+        args.realtime || scene.processes.realtime,
         bridge_hz,
         scene.engine.tick_hz,
     ))
@@ -756,6 +812,7 @@ impl Recorder {
         demo: &crate::demo::DemoReport,
         mesh_vertices: usize,
         mode: &str,
+        realtime: bool,
         bridge_hz: f64,
         tick_hz: f64,
     ) -> (LatencyReport, Vec<SeriesPoint>) {
@@ -833,6 +890,7 @@ impl Recorder {
             bad_stamps: self.schedule.bad_stamps,
             rows,
             processes,
+            stages: self.stages,
             launcher_cpu_s: self
                 .cpu
                 .iter()
@@ -842,6 +900,7 @@ impl Recorder {
             mode: mode.to_string(),
             load: self.load,
             window: self.window,
+            realtime,
             series_dropped: self.series_dropped,
         };
         (report, self.series)
@@ -867,7 +926,7 @@ pub fn run(args: &LatencyArgs) -> anyhow::Result<LatencyOutput> {
                 "lungdyn latency: sweep: {v} vertices per lung, {} s",
                 args.sweep_seconds
             );
-            let (r, _) = measure(args, Some(v), args.sweep_seconds, load)?;
+            let (r, _) = measure(args, Some(v), args.sweep_seconds, load, None)?;
             let holds = r.frames > 0 && r.deadline_misses == 0;
             eprintln!(
                 "lungdyn latency: sweep: {v} vertices: {} frames, {} misses, capture -> GPU done p99 {:.2} ms: {}",
@@ -911,9 +970,10 @@ pub fn run(args: &LatencyArgs) -> anyhow::Result<LatencyOutput> {
             Some(found.unwrap_or(args.sweep_min)),
             args.seconds,
             load,
+            args.trace.as_deref(),
         )?
     } else {
-        measure(args, args.mesh, args.seconds, load)?
+        measure(args, args.mesh, args.seconds, load, args.trace.as_deref())?
     };
     let out = LatencyOutput {
         run,
@@ -1057,10 +1117,11 @@ pub fn markdown(o: &LatencyOutput) -> String {
         o.adapter,
         r.mesh_vertices,
         r.mode,
-        if r.window {
-            ", in a window"
-        } else {
-            ", headless"
+        match (r.window, r.realtime) {
+            (true, true) => ", in a window, real-time settings asked for",
+            (true, false) => ", in a window",
+            (false, true) => ", headless, real-time settings asked for",
+            (false, false) => ", headless",
         },
         if r.load.cpu_threads > 0 || r.load.mem_mib > 0 {
             format!(
@@ -1133,6 +1194,19 @@ pub fn markdown(o: &LatencyOutput) -> String {
             p.cpu_s.map_or("-".to_string(), |c| format!("{c:.2}")),
             p.measured_on
         );
+    }
+    if !r.stages.is_empty() {
+        let _ = writeln!(
+            s,
+            "\n| process | stage (span) | count | total ms | p50 ms | p99 ms | max ms |\n|---|---|---:|---:|---:|---:|---:|"
+        );
+        for t in &r.stages {
+            let _ = writeln!(
+                s,
+                "| {} | {} | {} | {:.1} | {:.3} | {:.3} | {:.3} |",
+                t.process, t.stage, t.count, t.total_ms, t.p50_ms, t.p99_ms, t.max_ms
+            );
+        }
     }
     let _ = writeln!(
         s,

@@ -2,6 +2,9 @@
 //! a command watches a demo run ([`Observer`], used by `lungdyn latency`), and what the launcher can
 //! read about its children (CPU time from `/proc`).
 
+use std::path::{Path, PathBuf};
+
+use anyhow::Context;
 use ipc_types::FrameReport;
 
 /// Watches a run of [`crate::demo::run_observed`].
@@ -11,12 +14,72 @@ pub trait Observer {
     fn report(&mut self, _r: &FrameReport) {}
     /// The children (role, pid), still running, just before they are asked to stop.
     fn before_stop(&mut self, _children: &[(&'static str, u32)]) {}
+    /// With `--trace`: every process's stage timers over the whole run, once they have stopped.
+    fn stages(&mut self, _stages: &[transport::trace::StageSummary]) {}
 }
 
 /// Watches nothing (`lungdyn demo`).
 pub struct NoObserver;
 
 impl Observer for NoObserver {}
+
+/// `--trace FILE`: check the file can be written, before any work.
+pub fn check_trace(file: Option<&Path>) -> anyhow::Result<()> {
+    if let Some(f) = file {
+        crate::outputs::check(&crate::outputs::Output {
+            flag: "--trace",
+            path: f,
+            extensions: &["json"],
+        })?;
+    }
+    Ok(())
+}
+
+/// Ask the children for their spans: a fresh folder `trace-<instance>` under `out`, named to them in
+/// [`transport::trace::ENV_DIR`] (set before they are started; the launcher is single-threaded
+/// then). Returns the folder.
+pub fn start_trace(out: &Path, instance: &str) -> anyhow::Result<PathBuf> {
+    let dir = out.join(format!("trace-{instance}"));
+    if dir.exists() {
+        std::fs::remove_dir_all(&dir)
+            .with_context(|| format!("--trace: cannot clear {}", dir.display()))?;
+    }
+    std::fs::create_dir_all(&dir)
+        .with_context(|| format!("--trace: cannot create {}", dir.display()))?;
+    std::env::set_var(transport::trace::ENV_DIR, &dir);
+    Ok(dir)
+}
+
+/// After the children have stopped: merge their span files from `dir` into `file` (one
+/// Chrome/Perfetto trace on CLOCK_MONOTONIC), read their stage timers, remove `dir`, stop asking
+/// later children for spans. Returns the stage timers.
+pub fn finish_trace(
+    dir: &Path,
+    file: &Path,
+) -> anyhow::Result<Vec<transport::trace::StageSummary>> {
+    std::env::remove_var(transport::trace::ENV_DIR);
+    let merged = transport::trace::merge(dir, file)?;
+    let mut stages = Vec::new();
+    for entry in std::fs::read_dir(dir).into_iter().flatten().flatten() {
+        let p = entry.path();
+        if p.to_string_lossy().ends_with(".stages.tsv") {
+            match transport::trace::read_stages(&p) {
+                Ok(s) => stages.extend(s),
+                Err(e) => eprintln!("lungdyn: warning: --trace: {}: {e}", p.display()),
+            }
+        }
+    }
+    stages.sort_by(|a, b| (&a.process, &a.stage).cmp(&(&b.process, &b.stage)));
+    let _ = std::fs::remove_dir_all(dir);
+    eprintln!(
+        "lungdyn: trace of {merged} processes written to {} (open it in ui.perfetto.dev)",
+        file.display()
+    );
+    if merged < 3 {
+        eprintln!("lungdyn: warning: --trace: only {merged} of the 3 processes wrote their spans");
+    }
+    Ok(stages)
+}
 
 /// Check a `--vertices`/`--mesh` count against what the mesh generator accepts.
 pub fn check_vertices(v: usize) -> anyhow::Result<()> {

@@ -512,10 +512,13 @@ impl LungRenderer {
         // Headless: wait for this frame, so the next one never queues behind it (one frame in flight).
         // The wait returns when the submission's fence signals: that instant on CLOCK_MONOTONIC is
         // the frame's "GPU done" (the latency harness's capture → GPU done).
-        let waited = gpu.device.poll(wgpu::PollType::Wait {
-            submission_index: Some(index),
-            timeout: None,
-        });
+        let waited = {
+            let _wait = tracing::info_span!(target: transport::trace::TARGET, "GPU wait").entered();
+            gpu.device.poll(wgpu::PollType::Wait {
+                submission_index: Some(index),
+                timeout: None,
+            })
+        };
         let gpu_done_ns = if waited.is_ok() {
             transport::now_ns()
         } else {

@@ -258,7 +258,11 @@ impl Session {
         let instance = Instance::new(&args.process.instance)?;
         let lock = instance.lock("renderer")?;
         pin_to_core(args.process.cpu, "renderer")?;
+        transport::trace::init("renderer");
         let (scene, rig_files) = args.scene_and_rig()?;
+        if args.process.realtime || scene.processes.realtime {
+            transport::realtime::apply("renderer");
+        }
         let mut snapshots = Snapshots {
             ticks: args.snapshot_ticks.clone(),
             dir: args.snapshot_dir.clone(),
@@ -549,7 +553,10 @@ impl Session {
             view = *self.snapshot_view.get_or_insert(self.hmd);
         }
         state.hmd = view;
-        let timing = self.renderer.render_with(&self.gpu, &state, capture, extra);
+        let timing = {
+            let _draw = tracing::info_span!(target: transport::trace::TARGET, "draw").entered();
+            self.renderer.render_with(&self.gpu, &state, capture, extra)
+        };
         frame.stamps.renderer_submit_ns = timing.submit_ns;
         if timing.gpu_ns.is_some() {
             flags |= report_flags::GPU_TIMED;
@@ -622,6 +629,7 @@ impl Session {
 
     /// Say goodbye on stderr.
     pub fn finish(&self) {
+        transport::trace::flush();
         let s = &self.stats;
         transport::process::say(&format!(
             "renderer[{}]: stopped after {} frames ({} stale, {} with a kernel mismatch), {} snapshots, \

@@ -6,6 +6,7 @@ use lungdyn_tests::{assert_clean_failure, bin};
 #[test]
 fn a_short_latency_run_reports_capture_to_gpu_done_and_writes_its_report() {
     let out = std::env::temp_dir().join(format!("lungdyn-latency-{}", std::process::id()));
+    std::fs::create_dir_all(&out).expect("the output folder");
     let output = std::process::Command::new(bin("lungdyn"))
         .args([
             "latency",
@@ -18,8 +19,10 @@ fn a_short_latency_run_reports_capture_to_gpu_done_and_writes_its_report() {
             "--load",
             "cpu:1,mem:8",
             "--json",
-            "--out",
+            "--trace",
         ])
+        .arg(out.join("run.trace.json"))
+        .arg("--out")
         .arg(&out)
         .env(
             "WGPU_BACKEND",
@@ -91,7 +94,54 @@ fn a_short_latency_run_reports_capture_to_gpu_done_and_writes_its_report() {
     let written: serde_json::Value =
         serde_json::from_str(&std::fs::read_to_string(out.join("latency.json")).unwrap()).unwrap();
     assert_eq!(written["frames"], v["frames"]);
+    assert_merged_trace(&out.join("run.trace.json"));
     let _ = std::fs::remove_dir_all(&out);
+}
+
+/// The merged trace is one Chrome trace: every process named, complete ("X") spans from all three
+/// processes with their pid and tid, on one clock (CLOCK_MONOTONIC microseconds).
+fn assert_merged_trace(path: &std::path::Path) {
+    let text = std::fs::read_to_string(path).expect("the merged trace");
+    let v: serde_json::Value = serde_json::from_str(&text).expect("the trace is JSON");
+    let events = v["traceEvents"].as_array().expect("traceEvents");
+    let mut names = std::collections::HashMap::new();
+    for e in events.iter().filter(|e| e["ph"] == "M") {
+        names.insert(
+            e["pid"].as_u64().unwrap(),
+            e["args"]["name"].as_str().unwrap().to_string(),
+        );
+    }
+    let mut roles: Vec<&str> = names.values().map(String::as_str).collect();
+    roles.sort_unstable();
+    assert_eq!(roles, ["engine", "renderer", "tracker-bridge"], "{names:?}");
+    let mut spans_of = std::collections::HashMap::<&str, Vec<&str>>::new();
+    for e in events.iter().filter(|e| e["ph"] == "X") {
+        let pid = e["pid"].as_u64().expect("pid");
+        assert!(e["tid"].as_u64().is_some_and(|t| t > 0), "{e}");
+        let ts = e["ts"].as_f64().expect("ts");
+        let dur = e["dur"].as_f64().expect("dur");
+        assert!(ts > 0.0 && dur >= 0.0, "{e}");
+        let role = names
+            .get(&pid)
+            .unwrap_or_else(|| panic!("span of an unnamed pid: {e}"));
+        spans_of
+            .entry(role.as_str())
+            .or_default()
+            .push(e["name"].as_str().unwrap());
+    }
+    for (role, span) in [
+        ("tracker-bridge", "poll source"),
+        ("engine", "tick"),
+        ("renderer", "GPU wait"),
+    ] {
+        let spans = spans_of
+            .get(role)
+            .unwrap_or_else(|| panic!("no spans of the {role}"));
+        assert!(
+            spans.contains(&span),
+            "{role}: no {span:?} span in {spans:?}"
+        );
+    }
 }
 
 #[test]

@@ -230,10 +230,17 @@ pub fn run_loop(
                 late_preparations += 1;
             }
         }
-        core.step(tick, input.as_ref(), &mut frame);
+        {
+            let _tick = tracing::info_span!(target: transport::trace::TARGET, "tick").entered();
+            core.step(tick, input.as_ref(), &mut frame);
+        }
         frame.stamps.engine_receive_ns = t.at_ns;
         frame.stamps.engine_publish_ns = clock.now_ns();
-        tx.publish(&frame)?;
+        {
+            let _publish =
+                tracing::info_span!(target: transport::trace::TARGET, "publish").entered();
+            tx.publish(&frame)?;
+        }
         if let Some(c) = control.as_mut() {
             // Every pending packet, in the order the stream gives them (none is left behind or
             // dropped: the stream's buffer holds one from each sender even after a stall).
@@ -400,7 +407,11 @@ pub fn run(args: &EngineArgs) -> Result<(), EngineError> {
     let instance = Instance::new(&args.instance)?;
     let _lock = instance.lock("engine")?;
     pin_to_core(args.cpu, "engine")?;
+    transport::trace::init("engine");
     let scene = Scene::load_or_default(args.scene.as_deref())?;
+    if args.realtime || scene.processes.realtime {
+        transport::realtime::apply("engine");
+    }
     let mut core = EngineCore::new(&scene)?;
     let node = iox::node(&instance, "engine")?;
     let mut tracker = instance.tracker_inlet(&node)?;
@@ -440,6 +451,7 @@ pub fn run(args: &EngineArgs) -> Result<(), EngineError> {
         Some(instance.name()),
     )?;
     transport::notify::stopping();
+    transport::trace::flush();
     transport::process::say(&format!(
         "engine[{}]: stopped after {} ticks ({} on a tracker sample, {} on the deadline, {} deadlines \
          skipped)",
