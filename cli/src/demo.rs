@@ -115,6 +115,18 @@ pub struct DemoArgs {
     /// 3.4× the frame).
     #[arg(long, value_name = "N")]
     pub msaa: Option<u32>,
+    /// Vertices per generated default lung (overrides the scene's `[lungs] vertices`; baked once
+    /// into <out>/kernels and reused).
+    #[arg(long, value_name = "N")]
+    pub vertices: Option<usize>,
+    /// Run the three processes SCHED_FIFO with locked memory where permitted (also the scene's
+    /// `[processes] realtime`); each says once which capability or limit is missing where not.
+    #[arg(long)]
+    pub realtime: bool,
+    /// Write one Chrome/Perfetto trace (JSON) of every process's stage spans on CLOCK_MONOTONIC to
+    /// FILE (open it in ui.perfetto.dev). Off by default.
+    #[arg(long, value_name = "FILE")]
+    pub trace: Option<PathBuf>,
 }
 
 /// Most `--snapshots`: one per 60 Hz display frame of a 4-second breath (15 breaths/min). More are
@@ -142,6 +154,10 @@ pub fn check_counts(args: &DemoArgs) -> anyhow::Result<()> {
             );
         }
     }
+    if let Some(v) = args.vertices {
+        crate::launch::check_vertices(v).context("--vertices")?;
+    }
+    crate::launch::check_trace(args.trace.as_deref())?;
     check_cpus(&args.cpus, "--cpus")
 }
 
@@ -407,6 +423,10 @@ pub trait Watch {
     fn pass(&mut self, _run: &mut Run<'_, '_>) -> anyhow::Result<bool> {
         Ok(true)
     }
+    /// The children (role, pid), still running, just before they are asked to stop.
+    fn before_stop(&mut self, _children: &[(&'static str, u32)]) {}
+    /// With `--trace`: every process's stage timers over the whole run, once they have stopped.
+    fn stages(&mut self, _stages: &[transport::trace::StageSummary]) {}
 }
 
 /// The plain demo watches nothing.
@@ -494,6 +514,10 @@ pub fn run_watched(args: &DemoArgs, watch: &mut dyn Watch) -> anyhow::Result<Dem
         }
         loaded.render.msaa = Some(n);
     }
+    if let Some(v) = args.vertices {
+        loaded.lungs.vertices = v;
+    }
+    loaded.processes.realtime |= args.realtime;
     let cpus = if args.cpus.is_empty() {
         check_cpus(&loaded.processes.cpus, "[processes] cpus")?;
         loaded.processes.cpus.clone()
@@ -585,6 +609,9 @@ pub fn run_watched(args: &DemoArgs, watch: &mut dyn Watch) -> anyhow::Result<Dem
         .min(transport::process::MAX_SECONDS)
         .to_string();
     common.extend(["--seconds".to_string(), child_seconds]);
+    if scene.processes.realtime {
+        common.push("--realtime".to_string());
+    }
     let with_scene = |mut v: Vec<String>| {
         v.extend(["--scene".to_string(), resolved_scene.display().to_string()]);
         v
@@ -599,6 +626,10 @@ pub fn run_watched(args: &DemoArgs, watch: &mut dyn Watch) -> anyhow::Result<Dem
     renderer_args.push(args.predict_ms.to_string());
     renderer_args.extend(args.output.to_args());
     let existing: std::collections::HashSet<PathBuf> = list_pngs(&args.out).into_iter().collect();
+    let trace_dir = match &args.trace {
+        Some(_) => Some(crate::launch::start_trace(&args.out, &instance)?),
+        None => None,
+    };
     // The engine tick last published (the launcher subscribes to the engine stream too): a
     // restarted engine resumes at the next one, a restarted renderer takes only the snapshots still
     // ahead.
@@ -786,8 +817,12 @@ pub fn run_watched(args: &DemoArgs, watch: &mut dyn Watch) -> anyhow::Result<Dem
     let measured_s = first_frame_ns
         .map(|t0| (end_ns - t0) as f64 / 1e9)
         .unwrap_or(0.0);
+    watch.before_stop(&supervisor.children.pids());
     let killed = supervisor.children.stop(Duration::from_secs(5));
-    let _ = reports.drain(&mut |r: &FrameReport| stats.record(r));
+    let _ = reports.drain(&mut |r: &FrameReport| {
+        stats.record(r);
+        watch.report(r);
+    });
     // Whatever never reached a frame by the end (a renderer stopped for good) is missed.
     stats.finish(end_ns);
     let restart_log = supervisor.restarts.clone();
@@ -813,6 +848,10 @@ pub fn run_watched(args: &DemoArgs, watch: &mut dyn Watch) -> anyhow::Result<Dem
     let remaining = services.leftovers().len();
     if !killed.is_empty() {
         eprintln!("lungdyn: warning: had to kill {killed:?} after SIGINT");
+    }
+    if let (Some(dir), Some(file)) = (&trace_dir, &args.trace) {
+        let stages = crate::launch::finish_trace(dir, file)?;
+        watch.stages(&stages);
     }
     if interrupted && stats.frames == 0 && failure.is_none() {
         failure = Some("interrupted before any frame was drawn".to_string());

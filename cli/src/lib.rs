@@ -13,6 +13,8 @@ pub mod input_args;
 pub mod install;
 pub mod instances;
 pub mod kernel_plot;
+pub mod latency;
+pub mod launch;
 pub mod mesh_cmd;
 pub mod motion_cmd;
 pub mod motion_plot;

@@ -34,6 +34,11 @@ enum Command {
     /// The stray process of `lungdyn faults` (garbage tracker frames, a node to be killed).
     #[command(hide = true)]
     FaultsStray(lungdyn::faults::StrayArgs),
+    /// The latency harness: run the pipeline and measure every frame from tracker capture to
+    /// submit, GPU done and (in a window) present — per hop p50/p99/p99.9/max, deadline misses with
+    /// the stage that overran, each process's period jitter and CPU time; --sweep finds the largest
+    /// mesh that holds 60 Hz. Writes latency.json, latency.md and latency.png into --out.
+    Latency(lungdyn::latency::LatencyArgs),
     /// Lung surface meshes.
     #[command(subcommand)]
     Mesh(MeshCommand),
@@ -200,6 +205,9 @@ fn main() -> std::process::ExitCode {
             }
         }),
         Command::FaultsStray(args) => lungdyn::faults::stray(&args),
+        Command::Latency(args) => lungdyn::latency::run(&args).and_then(|out| {
+            print_report(args.json, &lungdyn::latency::summary(&out), &out)
+        }),
         Command::Mesh(MeshCommand::Generate(args)) => lungdyn::mesh_cmd::run(&args).and_then(|m| {
             if args.json {
                 println!("{}", serde_json::to_string(&m)?);

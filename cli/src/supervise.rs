@@ -163,6 +163,11 @@ pub struct Children {
 }
 
 impl Children {
+    /// The processes still held, (role, pid), in start order.
+    pub fn pids(&self) -> Vec<(&'static str, u32)> {
+        self.procs.iter().map(|p| (p.role, p.child.id())).collect()
+    }
+
     /// Start `exe role args…` with stdin and stdout closed, stderr shared, and SIGTERM when the
     /// launcher dies (`PR_SET_PDEATHSIG`).
     pub fn spawn(exe: &Path, role: &'static str, args: &[String]) -> anyhow::Result<Child> {

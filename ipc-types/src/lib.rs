@@ -29,7 +29,7 @@
 //! computed for ([`LungFrame`]); v3 adds each lung's collapse towards its hilum (a pneumothorax,
 //! EQUATIONS.md §4: drawn at `h + (1 − c)(p − h) + s·u + offset`), zero for a healthy lung; v4 adds
 //! to each [`FrameReport`] when `present` returned, the present mode and the frame latency (the
-//! latency harness's submit-to-present).
+//! latency harness's submit-to-present), and the renderer's GPU-done time (capture → GPU done).
 
 use core::mem::{align_of, offset_of, size_of};
 
@@ -424,6 +424,9 @@ pub struct FrameReport {
     /// The surface's `desired_maximum_frame_latency` (frames queued ahead); 0 when not presented
     /// to a surface.
     pub frame_latency: u32,
+    /// When the renderer saw the frame's GPU work complete (CLOCK_MONOTONIC, ns): the wait on the
+    /// submission's fence returned (`Device::poll` with the submission index). 0: not observed.
+    pub gpu_done_ns: u64,
 }
 
 /// [`FrameReport::present_mode`]: how a frame reached the display.
@@ -790,7 +793,7 @@ const _: () = {
     assert!(offset_of!(EngineFrame, patient_pose) == 80);
     assert!(offset_of!(EngineFrame, lungs) == 112);
 
-    assert!(size_of::<FrameReport>() == 120 && align_of::<FrameReport>() == 8);
+    assert!(size_of::<FrameReport>() == 128 && align_of::<FrameReport>() == 8);
     assert!(offset_of!(FrameReport, layout_version) == 0);
     assert!(offset_of!(FrameReport, flags) == 4);
     assert!(offset_of!(FrameReport, frame) == 8);
@@ -803,6 +806,7 @@ const _: () = {
     assert!(offset_of!(FrameReport, present_ns) == 104);
     assert!(offset_of!(FrameReport, present_mode) == 112);
     assert!(offset_of!(FrameReport, frame_latency) == 116);
+    assert!(offset_of!(FrameReport, gpu_done_ns) == 120);
 };
 
 /// A received payload claims another layout version than this build speaks.

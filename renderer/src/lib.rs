@@ -123,6 +123,9 @@ pub struct FrameTiming {
     pub submit_ns: u64,
     /// GPU time from the first timestamp (compute begin) to the last (render end), if measured.
     pub gpu_ns: Option<u64>,
+    /// Monotonic time at which the wait on this submission's fence returned: the frame's GPU work
+    /// is done (0 if the wait failed).
+    pub gpu_done_ns: u64,
 }
 
 struct Timestamps {
@@ -578,10 +581,20 @@ impl LungRenderer {
         let index = queue.submit(Some(encoder.finish()));
         let submit_ns = transport::now_ns();
         // Headless: wait for this frame, so the next one never queues behind it (one frame in flight).
-        let _ = gpu.device.poll(wgpu::PollType::Wait {
-            submission_index: Some(index),
-            timeout: None,
-        });
+        // The wait returns when the submission's fence signals: that instant on CLOCK_MONOTONIC is
+        // the frame's "GPU done" (the latency harness's capture → GPU done).
+        let waited = {
+            let _wait = tracing::info_span!(target: transport::trace::TARGET, "GPU wait").entered();
+            gpu.device.poll(wgpu::PollType::Wait {
+                submission_index: Some(index),
+                timeout: None,
+            })
+        };
+        let gpu_done_ns = if waited.is_ok() {
+            transport::now_ns()
+        } else {
+            0
+        };
         let gpu_ns = self.timestamps.as_ref().and_then(|t| {
             let ticks = read_mapped(gpu, &t.read, |bytes| {
                 let a = u64::from_le_bytes(bytes[0..8].try_into().unwrap());
@@ -590,7 +603,11 @@ impl LungRenderer {
             })?;
             Some((ticks as f64 * t.period_ns as f64) as u64)
         });
-        FrameTiming { submit_ns, gpu_ns }
+        FrameTiming {
+            submit_ns,
+            gpu_ns,
+            gpu_done_ns,
+        }
     }
 
     /// Record the draw phases ([`draw`]) for `eyes` eyes: opaque, translucent, overlay. The opaque

@@ -344,7 +344,11 @@ impl Session {
         let instance = Instance::new(&args.process.instance)?;
         let lock = instance.lock("renderer")?;
         pin_to_core(args.process.cpu, "renderer")?;
+        transport::trace::init("renderer");
         let (scene, rig_files) = args.scene_and_rig()?;
+        if args.process.realtime || scene.processes.realtime {
+            transport::realtime::apply("renderer");
+        }
         let mut snapshots = Snapshots {
             ticks: args.snapshot_ticks.clone(),
             dir: args.snapshot_dir.clone(),
@@ -669,9 +673,11 @@ impl Session {
             view = *self.snapshot_view.get_or_insert(self.hmd);
         }
         state.hmd = view;
-        let timing = self
-            .renderer
-            .render_with(&self.gpu, &state, capture, |e| output.encode(e));
+        let timing = {
+            let _draw = tracing::info_span!(target: transport::trace::TARGET, "draw").entered();
+            self.renderer
+                .render_with(&self.gpu, &state, capture, |e| output.encode(e))
+        };
         frame.stamps.renderer_submit_ns = timing.submit_ns;
         let present_ns = output.present().unwrap_or(0);
         let (present_mode, frame_latency) = output.mode();
@@ -679,7 +685,7 @@ impl Session {
             flags |= report_flags::GPU_TIMED;
         }
         self.stats.frames += 1;
-        self.ports.report.publish(&FrameReport {
+        let report = FrameReport {
             layout_version: LAYOUT_VERSION,
             flags,
             frame: self.stats.frames,
@@ -688,6 +694,7 @@ impl Session {
             stamps: frame.stamps,
             cpu_frame_ns: timing.submit_ns.saturating_sub(now),
             gpu_frame_ns: timing.gpu_ns.unwrap_or(0),
+            gpu_done_ns: timing.gpu_done_ns,
             volume_ml: [
                 frame.lungs[LUNG_RIGHT].volume_ml,
                 frame.lungs[LUNG_LEFT].volume_ml,
@@ -695,7 +702,8 @@ impl Session {
             present_ns,
             present_mode,
             frame_latency,
-        })?;
+        };
+        self.ports.report.publish(&report)?;
         if capture {
             while self.next_target < self.snapshots.ticks.len()
                 && frame.tick >= self.snapshots.ticks[self.next_target]
@@ -727,6 +735,7 @@ impl Session {
 
     /// Say goodbye on stderr.
     pub fn finish(&self) {
+        transport::trace::flush();
         let s = &self.stats;
         transport::process::say(&format!(
             "renderer[{}]: stopped after {} frames ({} stale, {} with a kernel mismatch), {} snapshots, \

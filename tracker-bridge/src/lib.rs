@@ -272,6 +272,10 @@ pub struct BridgeArgs {
     /// Pin this process to CPU core N.
     #[arg(long, value_name = "N")]
     pub cpu: Option<usize>,
+    /// Run SCHED_FIFO with locked memory where permitted (a warning names the missing capability or
+    /// limit where not).
+    #[arg(long)]
+    pub realtime: bool,
     /// Stop after this many seconds (runs until SIGINT/SIGTERM when omitted); at most one week.
     #[arg(long, value_name = "S")]
     pub seconds: Option<f64>,
@@ -342,6 +346,10 @@ pub fn run(args: &BridgeArgs) -> Result<(), BridgeError> {
     let instance = Instance::new(&args.instance)?;
     let _lock = instance.lock("tracker-bridge")?;
     pin_to_core(args.cpu, "tracker-bridge")?;
+    transport::trace::init("tracker-bridge");
+    if args.realtime {
+        transport::realtime::apply("tracker-bridge");
+    }
     let Opened {
         mut source,
         mut assembler,
@@ -379,6 +387,7 @@ pub fn run(args: &BridgeArgs) -> Result<(), BridgeError> {
         &mut |e, now| reporter.event(e, now),
     )?;
     transport::notify::stopping();
+    transport::trace::flush();
     drop(source);
     let stats = &assembler.stats;
     if ended == Ended::SourceEnded {

@@ -172,7 +172,10 @@ pub fn run_loop(
             return Ok(Ended::Stopped);
         }
         // A device's sample ends the wait (published on arrival); else the schedule's slot.
-        let arrived = paced && source.wait(pace, next);
+        let arrived = {
+            let _wait = tracing::info_span!(target: transport::trace::TARGET, "wait").entered();
+            paced && source.wait(pace, next)
+        };
         if arrived && pace.now_ns() < last_publish + MIN_ARRIVAL_SPACING_NS {
             pace.sleep_until(last_publish + MIN_ARRIVAL_SPACING_NS);
         }
@@ -188,6 +191,8 @@ pub fn run_loop(
         let mut samples = 0u64;
         let mut record_error: Option<std::io::Error> = None;
         let poll = {
+            let _poll =
+                tracing::info_span!(target: transport::trace::TARGET, "poll source").entered();
             let stats_sink = &mut *asm;
             let rec = &mut *recorder;
             let report = &mut *report;
@@ -219,6 +224,9 @@ pub fn run_loop(
             // Only link events or repeats arrived (a connection, a rejected message): no frame.
             Poll::Tick { .. } if arrived && samples == 0 && !due => {}
             Poll::Tick { at_ns } => {
+                let _publish =
+                    tracing::info_span!(target: transport::trace::TARGET, "assemble + publish")
+                        .entered();
                 asm.frame(at_ns, &mut frame);
                 if let Some(r) = recorder.as_mut() {
                     if let Err(e) = r.tick(at_ns, frame.frame_number) {

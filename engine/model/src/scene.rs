@@ -42,6 +42,9 @@ pub struct ProcessesScene {
     pub cpus: Vec<usize>,
     /// Per-sample time budgets, ms.
     pub budget_ms: ProcessBudgets,
+    /// Run the three processes SCHED_FIFO with locked memory where permitted (`--realtime`); each
+    /// says once which capability or limit is missing where not.
+    pub realtime: bool,
 }
 
 /// Per-sample time each process may spend, ms: the bridge from a sample's capture to its publish,

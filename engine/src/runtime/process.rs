@@ -333,10 +333,17 @@ pub fn run_loop(
                 late_preparations += 1;
             }
         }
-        core.step(tick, input.as_ref(), &mut frame);
+        {
+            let _tick = tracing::info_span!(target: transport::trace::TARGET, "tick").entered();
+            core.step(tick, input.as_ref(), &mut frame);
+        }
         frame.stamps.engine_receive_ns = t.at_ns;
         frame.stamps.engine_publish_ns = clock.now_ns();
-        tx.publish(&frame)?;
+        {
+            let _publish =
+                tracing::info_span!(target: transport::trace::TARGET, "publish").entered();
+            tx.publish(&frame)?;
+        }
         if let Some(out) = control.as_mut().and_then(|c| c.state.as_mut()) {
             states.after_tick(core, tick, t.at_ns, out)?;
         }
@@ -517,6 +524,7 @@ pub fn run(args: &EngineArgs) -> Result<(), EngineError> {
     let instance = Instance::new(&args.instance)?;
     let _lock = instance.lock("engine")?;
     pin_to_core(args.cpu, "engine")?;
+    transport::trace::init("engine");
     let scene = Scene::load_or_default(args.scene.as_deref())?;
     let max = (transport::process::MAX_SECONDS * scene.engine.tick_hz) as u64;
     if start_tick > max {
@@ -524,6 +532,9 @@ pub fn run(args: &EngineArgs) -> Result<(), EngineError> {
             tick: start_tick,
             max,
         });
+    }
+    if args.realtime || scene.processes.realtime {
+        transport::realtime::apply("engine");
     }
     let mut core = EngineCore::new(&scene)?;
     core.resume_at(start_tick)?;
@@ -583,6 +594,7 @@ pub fn run(args: &EngineArgs) -> Result<(), EngineError> {
         start_tick,
     )?;
     transport::notify::stopping();
+    transport::trace::flush();
     transport::process::say(&format!(
         "engine[{}]: stopped after {} ticks ({} on a tracker sample, {} on the deadline, {} deadlines \
          skipped)",

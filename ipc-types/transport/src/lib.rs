@@ -12,7 +12,9 @@
 //! * [`pacer`] — wake on a sample, fall back to an absolute deadline: the one timing rule of the
 //!   engine and renderer loops;
 //! * [`instance`] — one run's stream names and the files it leaves behind;
-//! * [`process`] — common process options (validated `--seconds`), pinning, error printing.
+//! * [`process`] — common process options (validated `--seconds`), pinning, error printing;
+//! * [`realtime`] — SCHED_FIFO and locked memory where permitted, a warning naming the limit where not;
+//! * [`trace`] — stage spans in a bounded ring per process, merged into one Chrome/Perfetto trace.
 //!
 //! Nothing here calls iceoryx2's `testing` module.
 
@@ -24,6 +26,8 @@ pub mod notify;
 pub mod pacer;
 pub mod port;
 pub mod process;
+pub mod realtime;
+pub mod trace;
 
 pub use clock::{now_ns, Clock, FakeClock, Monotonic};
 pub use instance::{Cleanup, Instance, RunningInstance, RunningProcess};

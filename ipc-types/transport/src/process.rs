@@ -25,6 +25,10 @@ pub struct ProcessArgs {
     /// Stop after this many seconds (runs until SIGINT/SIGTERM when omitted); at most one week.
     #[arg(long, value_name = "S")]
     pub seconds: Option<f64>,
+    /// Run SCHED_FIFO with locked memory where permitted (a warning names the missing capability or
+    /// limit where not); also the scene's `[processes] realtime`.
+    #[arg(long)]
+    pub realtime: bool,
 }
 
 /// A bad option common to all processes.
