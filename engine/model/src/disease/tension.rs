@@ -717,11 +717,10 @@ impl Tension {
                     Some(Vent::Linear {
                         per_cycle_ml,
                         floor_ml,
-                    }) => {
-                        if self.pleural_ml > floor_ml {
-                            self.pleural_ml = (self.pleural_ml - per_cycle_ml).max(floor_ml);
-                        }
+                    }) if self.pleural_ml > floor_ml => {
+                        self.pleural_ml = (self.pleural_ml - per_cycle_ml).max(floor_ml);
                     }
+                    Some(Vent::Linear { .. }) => {}
                     // The needle opens the pleural space to the atmosphere: the air goes to its
                     // volume at atmospheric pressure, out under tension, in below it (Pulse's
                     // PleuralToEnvironment path is a resistor: flow either way).
