@@ -163,8 +163,12 @@ pub enum DiseaseDetail {
 /// A closed pneumothorax's plan (eq. 8.1–8.9).
 #[derive(Debug, Clone, Serialize)]
 pub struct ClosedReport {
+    /// The reading: "clinical" (EQUATIONS §4.6) or "seed".
+    pub model: &'static str,
     /// Breathing rate after the change.
     pub breaths_per_min: f64,
+    /// Both lungs' tidal volumes times the rate, l/min.
+    pub minute_ventilation_l_per_min: f64,
     /// Inhalation, s.
     pub inhale_s: f64,
     /// Exhalation, s.
@@ -204,6 +208,8 @@ pub struct ClosedLung {
 /// A tension pneumothorax's course (eq. 8.10–8.13).
 #[derive(Debug, Clone, Serialize)]
 pub struct TensionReport {
+    /// The reading: "clinical" (EQUATIONS §4.6) or "seed".
+    pub model: &'static str,
     /// The affected side.
     pub side: &'static str,
     /// Onset, s.
@@ -214,8 +220,13 @@ pub struct TensionReport {
     pub v1_max_ml: f64,
     /// V2max, ml.
     pub v2_max_ml: f64,
-    /// Mediastinal shift per ml of pleural air.
+    /// Mediastinal shift per ml of pleural air beyond V1max (the seed reading's eq. 8.13 on the
+    /// collapsed box).
     pub shift_mm_per_ml: f64,
+    /// Pleural air at which the shift reaches β and the SVC closes, ml.
+    pub svc_closing_air_ml: f64,
+    /// Clinical: pleural air at atmospheric pressure (what a needle leaves), ml.
+    pub atmospheric_air_ml: Option<f64>,
     /// First cycle in arrest, if any.
     pub cycles_to_arrest: Option<u64>,
     /// The timed interventions, as applied.
@@ -249,6 +260,8 @@ pub struct CycleReport {
     pub affected_tidal_ml: f64,
     /// The other lung's tidal volume, ml.
     pub other_tidal_ml: Option<f64>,
+    /// Both lungs' tidal volumes times the rate, l/min.
+    pub minute_ventilation_l_per_min: f64,
     /// Whether the SVC is closed.
     pub svc_closed: bool,
     /// Whether the patient is in arrest.
@@ -455,6 +468,7 @@ fn closed(
     lungs: &[LungBaseline],
 ) -> anyhow::Result<ClosedReport> {
     let plan = c.plan(normal, lungs)?;
+    let tidal: f64 = plan.lungs.iter().map(|l| l.state.tidal_ml).sum();
     let lungs = plan
         .lungs
         .iter()
@@ -472,7 +486,9 @@ fn closed(
         })
         .collect();
     Ok(ClosedReport {
+        model: c.model.name(),
         breaths_per_min: r3(plan.times.breaths_per_min()),
+        minute_ventilation_l_per_min: r3(plan.times.breaths_per_min() * tidal / 1000.0),
         inhale_s: r3(plan.times.new_inhale_s),
         exhale_s: r3(plan.times.new_exhale_s),
         phase_clamped: plan.times.inhale_clamped || plan.times.exhale_clamped,
@@ -540,6 +556,7 @@ fn tension(
         }
         let c = t.advance();
         let affected_state = c.affected;
+        let tidal = affected_state.tidal_ml + c.unaffected.map_or(0.0, |u| u.tidal_ml);
         course.push(CycleReport {
             cycle: c.cycle,
             start_tick: tick,
@@ -550,6 +567,7 @@ fn tension(
             breaths_per_min: r3(c.times.breaths_per_min()),
             affected_tidal_ml: r3(affected_state.tidal_ml),
             other_tidal_ml: c.unaffected.map(|u| r3(u.tidal_ml)),
+            minute_ventilation_l_per_min: r3(c.times.breaths_per_min() * tidal / 1000.0),
             svc_closed: c.svc_closed,
             arrest: c.arrest,
         });
@@ -564,12 +582,16 @@ fn tension(
         }
     }
     Ok(TensionReport {
+        model: params.model.name(),
         side: params.side.name(),
         onset_s,
         normal_cycles_before_onset: normal_cycles,
         v1_max_ml: r3(t.v1_max_ml()),
         v2_max_ml: r3(t.v2_max_ml()),
         shift_mm_per_ml: t.shift_mm_per_ml(),
+        svc_closing_air_ml: r3(t.svc_closing_air_ml()),
+        atmospheric_air_ml: (params.model == lung_model::disease::CourseModel::Clinical)
+            .then(|| r3(t.atmospheric_air_ml())),
         cycles_to_arrest: t.first_arrest(),
         events: records,
         last: course.last().cloned(),
@@ -634,10 +656,13 @@ pub fn text(r: &CheckReport) -> String {
     match &d.detail {
         DiseaseDetail::Closed(c) => {
             s += &format!(
-                "  breathing {} /min (inhale {} s, exhale {} s)\n",
+                "  model {}: breathing {} /min (inhale {} s, exhale {} s{}), minute ventilation {} l/min\n",
+                c.model,
                 j(&c.breaths_per_min),
                 j(&c.inhale_s),
-                j(&c.exhale_s)
+                j(&c.exhale_s),
+                if c.phase_clamped { ", rate capped" } else { "" },
+                j(&c.minute_ventilation_l_per_min)
             );
             for l in &c.lungs {
                 let Some(index) = l.pneumothorax_index else {
@@ -662,17 +687,23 @@ pub fn text(r: &CheckReport) -> String {
         }
         DiseaseDetail::Tension(t) => {
             s += &format!(
-                "  {} side: V1max {} ml, V2max {} ml; {}; {} cycles followed\n",
+                "  {} side, model {}: V1max {} ml, V2max {} ml, SVC closes at {} ml of pleural air{}; {}; {} cycles followed\n",
                 t.side,
+                t.model,
                 j(&t.v1_max_ml),
                 j(&t.v2_max_ml),
+                j(&t.svc_closing_air_ml),
+                match t.atmospheric_air_ml {
+                    Some(a) => format!(", a needle leaves {} ml", j(&a)),
+                    None => String::new(),
+                },
                 match t.cycles_to_arrest {
                     Some(c) => format!("arrest at cycle {c}"),
                     None => "no arrest".to_string(),
                 },
                 t.course.len()
             );
-            s += &event_lines(&t.events);
+            s += &course_lines(t);
             if let Some(f) = &t.last {
                 s += &format!(
                     "  last cycle {}: pleural air {} ml, dV {}, mediastinal shift {} mm, {} /min{}\n",
@@ -686,6 +717,55 @@ pub fn text(r: &CheckReport) -> String {
             }
         }
         DiseaseDetail::Tumour(t) => s += &format!("  {}\n", t.note),
+    }
+    s
+}
+
+/// A tension pneumothorax's course in a few lines: the first cycle with air, the first with a
+/// mediastinal shift, the SVC's closure, and each intervention with the course one and three cycles
+/// after it shows (the relief a trainee should see).
+fn course_lines(t: &TensionReport) -> String {
+    let line = |what: &str, c: &CycleReport| {
+        format!(
+            "  {what} cycle {}: pleural air {} ml, dV {}, shift {} mm, tidal {} + {} ml at {} /min ({} l/min){}\n",
+            c.cycle,
+            j(&c.pleural_air_ml),
+            j(&c.dv),
+            j(&c.shift_mm),
+            j(&c.affected_tidal_ml),
+            j(&c.other_tidal_ml.unwrap_or(0.0)),
+            j(&c.breaths_per_min),
+            j(&c.minute_ventilation_l_per_min),
+            if c.arrest {
+                ", ARREST"
+            } else if c.svc_closed {
+                ", SVC closed"
+            } else {
+                ""
+            }
+        )
+    };
+    let mut s = String::new();
+    let first = |f: &dyn Fn(&CycleReport) -> bool| t.course.iter().find(|c| f(c));
+    if let Some(c) = t.course.first() {
+        s += &line("onset", c);
+    }
+    if let Some(c) = first(&|c| c.pleural_air_ml > 0.0) {
+        s += &line("first air", c);
+    }
+    if let Some(c) = first(&|c| c.shift_mm > 0.0) {
+        s += &line("first shift", c);
+    }
+    if let Some(c) = first(&|c| c.svc_closed) {
+        s += &line("SVC closes", c);
+    }
+    for e in &t.events {
+        s += &event_lines(std::slice::from_ref(e));
+        for k in [0, 2] {
+            if let Some(c) = t.course.iter().find(|c| c.cycle == e.cycle + k) {
+                s += &line(&format!("  {} cycle(s) on:", k + 1), c);
+            }
+        }
     }
     s
 }
@@ -1305,16 +1385,19 @@ mod tests {
         assert_eq!(
             keys(d),
             [
+                "atmospheric_air_ml",
                 "course",
                 "cycles_to_arrest",
                 "engine_applies_it",
                 "events",
                 "final",
                 "kind",
+                "model",
                 "normal_cycles_before_onset",
                 "onset_s",
                 "shift_mm_per_ml",
                 "side",
+                "svc_closing_air_ml",
                 "v1_max_ml",
                 "v2_max_ml"
             ]
@@ -1330,6 +1413,7 @@ mod tests {
                 "cycle",
                 "dV",
                 "drop_mm",
+                "minute_ventilation_l_per_min",
                 "other_tidal_ml",
                 "pleural_air_ml",
                 "shift_mm",
@@ -1360,6 +1444,8 @@ mod tests {
                 "inhale_s",
                 "kind",
                 "lungs",
+                "minute_ventilation_l_per_min",
+                "model",
                 "phase_clamped"
             ]
         );

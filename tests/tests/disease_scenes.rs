@@ -81,8 +81,23 @@ fn a_tension_pneumothorax_arrests_without_help_and_not_after_a_needle() {
     let events = d["events"].as_array().unwrap();
     assert_eq!(events.len(), 2);
     assert_eq!(events[0]["kind"], "needle-decompression");
-    assert_eq!(events[0]["tick"], 3600); // 60 s at 60 Hz
+    assert_eq!(events[0]["tick"], 5400); // 90 s at 60 Hz
     assert_eq!(events[0]["outcome"], "applied");
+    // The clinical model (EQUATIONS §4.6): the needle meets a closed SVC and relieves it in the
+    // first cycle it shows in; three cycles on, the shift is under half of β = 18 mm.
+    let course = d["course"].as_array().unwrap();
+    let at = |k: u64| course.iter().find(|c| c["cycle"] == k).unwrap();
+    let first = events[0]["cycle"].as_u64().unwrap();
+    assert_eq!(at(first - 1)["svc_closed"], true, "{}", at(first - 1));
+    assert_eq!(at(first)["svc_closed"], false, "{}", at(first));
+    assert!(
+        at(first + 2)["shift_mm"].as_f64().unwrap() < 9.0,
+        "{}",
+        at(first + 2)
+    );
+    // The mediastinum moves from the first air, before the lung has collapsed.
+    assert!(at(1)["shift_mm"].as_f64().unwrap() > 0.0);
+    assert!(at(first - 1)["dV"].as_f64().unwrap() < 0.9);
     // The same course without the interventions runs into arrest.
     let no_help = tmp("tension_no_help.toml");
     std::fs::write(
@@ -115,6 +130,7 @@ fn every_shipped_scene_checks_and_a_pneumothorax_and_a_tumour_run() {
         "default.toml",
         "error_budget.toml",
         "closed_pneumothorax.toml",
+        "closed_pneumothorax_seed.toml",
         "bilateral_pneumothorax.toml",
         "tension_pneumothorax.toml",
         "tumour_right_lower.toml",
@@ -309,7 +325,7 @@ fn scene_run_reports_each_lung_and_computes_only_what_the_scene_needs() {
     let left = lungs.iter().find(|l| l["side"] == "left").unwrap();
     let right = lungs.iter().find(|l| l["side"] == "right").unwrap();
     // eq. 8.2's drop, the collapse of eq. 8.1's loss (c = 1 - (1 - 0.1^0.33)^(1/3) = 0.190), and the
-    // faster breathing of eq. 8.3-8.5 (clamped phases of 0.75 s: 40/min) in both lungs.
+    // clinical model's rate (EQUATIONS §4.6: the alveolar ventilation kept, 14.504/min) in both lungs.
     assert!(
         (left["offset_mm"][2].as_f64().unwrap() + 6.17).abs() < 0.01,
         "{left}"
@@ -319,7 +335,16 @@ fn scene_run_reports_each_lung_and_computes_only_what_the_scene_needs() {
         "{left}"
     );
     assert_eq!(right["collapse"], 0.0);
+    // (The engine plays whole ticks: 2.068 s phases are 124 ticks each at 60 Hz, 14.516/min.)
     for l in lungs {
+        assert!(
+            (l["breaths_per_min"].as_f64().unwrap() - 14.516).abs() < 0.001,
+            "{l}"
+        );
+    }
+    // The seed's literal reading (model = "seed"): eq. 8.3-8.5 clamped at 0.75 s phases, 40/min.
+    let seed = scene_run("closed_pneumothorax_seed.toml", "20");
+    for l in seed["lungs"].as_array().unwrap() {
         assert!(
             (l["breaths_per_min"].as_f64().unwrap() - 40.0).abs() < 0.01,
             "{l}"
@@ -342,11 +367,11 @@ fn scene_run_reports_each_lung_and_computes_only_what_the_scene_needs() {
     assert!((total - 500.0).abs() < 0.5, "{a}");
     let b = scene_run("default.toml", "30");
     assert_eq!(a["lungs"], b["lungs"]);
-    // The tension scene: cycles are run and the needle at 60 s is reported with its tick.
-    let t = scene_run("tension_pneumothorax.toml", "90");
+    // The tension scene: cycles are run and the needle at 90 s is reported with its tick.
+    let t = scene_run("tension_pneumothorax.toml", "100");
     let d = &t["disease"];
     assert!(d["cycles_run"].as_u64().unwrap() > 10, "{d}");
-    assert_eq!(d["events"][0]["tick"], 3600, "{d}");
+    assert_eq!(d["events"][0]["tick"], 5400, "{d}");
     assert_eq!(d["events"][0]["outcome"], "Applied", "{d}");
     assert!(t["stage_counts"]["disease_cycles"].as_u64().unwrap() > 10);
 }

@@ -6,6 +6,7 @@
 //! ```toml
 //! [disease]
 //! kind = "tension-pneumothorax"   # "closed-pneumothorax" | "bilateral-pneumothorax" | "tumour"
+//! model = "clinical"              # (default) | "seed": the seed's literal reading (EQUATIONS §4.6)
 //! side = "left"
 //! v_p_ml = 5.0                    # eq. 8.10 V_p, ml in the first cycle
 //! tau = 0.001                     # eq. 8.10 τ, per cycle
@@ -31,7 +32,7 @@ use thiserror::Error;
 use crate::disease::closed::ClosedPneumothorax;
 use crate::disease::tension::{Intervention, LeakSource, TensionParams};
 use crate::disease::tumour::{PhiVariant, Tumour};
-use crate::disease::{resistance::PHI_SEED, DiseaseError, ALPHA_SEED_ML};
+use crate::disease::{resistance::PHI_SEED, CourseModel, DiseaseError, ALPHA_SEED_ML};
 use crate::mesh::Side;
 
 /// Most events a scene may list (fixed capacity).
@@ -123,6 +124,16 @@ pub struct DiseaseScene {
     /// Cycles from the SVC's closure to arrest (tension).
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub hyperexpansion_cycles: Option<u32>,
+    /// Which reading of chapter 8: "clinical" (default, EQUATIONS §4.6) or "seed" (the seed's
+    /// literal reading, §4.1–4.3) (closed, bilateral, tension).
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub model: Option<CourseModel>,
+    /// Compliance of the mediastinum, ml/cmH₂O (tension, clinical model).
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub mediastinal_compliance_ml_per_cmh2o: Option<f64>,
+    /// Time constant of a needle's venting, cycles (tension, clinical model).
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub needle_tau_cycles: Option<f64>,
     /// `[disease.tumour]` (tumour).
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub tumour: Option<TumourScene>,
@@ -275,7 +286,7 @@ impl From<DiseaseError> for DiseaseSceneError {
 
 impl DiseaseScene {
     /// The keys present, by name (for the applicability check).
-    fn present(&self) -> [(&'static str, bool); 19] {
+    fn present(&self) -> [(&'static str, bool); 22] {
         [
             ("side", self.side.is_some()),
             ("index", self.index.is_some()),
@@ -302,6 +313,12 @@ impl DiseaseScene {
             ),
             ("tumour", self.tumour.is_some()),
             ("events", !self.events.is_empty()),
+            ("model", self.model.is_some()),
+            (
+                "mediastinal_compliance_ml_per_cmh2o",
+                self.mediastinal_compliance_ml_per_cmh2o.is_some(),
+            ),
+            ("needle_tau_cycles", self.needle_tau_cycles.is_some()),
         ]
     }
 
@@ -309,14 +326,48 @@ impl DiseaseScene {
     pub fn resolve(&self) -> Result<DiseaseSpec, DiseaseSceneError> {
         let kind = self.kind.name();
         let uses: &'static str = match self.kind {
-            DiseaseKind::ClosedPneumothorax => "side, index, alpha_ml, phi",
-            DiseaseKind::BilateralPneumothorax => "index_left, index_right, phi",
-            DiseaseKind::TensionPneumothorax => {
-                "side, alpha_ml, phi, onset_s, source, v_p_ml, tau, v1_max_ml, v2_max_ml, beta_mm, \
-                 needle_vent_cycles, needle_residual, chest_tube_ml_per_cycle, hyperexpansion_cycles, events"
-            }
+            DiseaseKind::ClosedPneumothorax => "model, side, index, alpha_ml, phi",
+            DiseaseKind::BilateralPneumothorax => "model, index_left, index_right, phi",
+            DiseaseKind::TensionPneumothorax => match self.model.unwrap_or_default() {
+                CourseModel::Seed => {
+                    "model, side, alpha_ml, phi, onset_s, source, v_p_ml, tau, v1_max_ml, v2_max_ml, \
+                     beta_mm, needle_vent_cycles, needle_residual, chest_tube_ml_per_cycle, \
+                     hyperexpansion_cycles, events"
+                }
+                CourseModel::Clinical => {
+                    "model, side, alpha_ml, phi, onset_s, source, v_p_ml, tau, v1_max_ml, v2_max_ml, \
+                     beta_mm, mediastinal_compliance_ml_per_cmh2o, needle_tau_cycles, \
+                     chest_tube_ml_per_cycle, hyperexpansion_cycles, events"
+                }
+            },
             DiseaseKind::Tumour => "side, tumour",
         };
+        if self.kind == DiseaseKind::TensionPneumothorax {
+            let model = self.model.unwrap_or_default();
+            let (keys, reason): (&[(&'static str, bool)], &'static str) = match model {
+                CourseModel::Clinical => (
+                    &[
+                        ("needle_vent_cycles", self.needle_vent_cycles.is_some()),
+                        ("needle_residual", self.needle_residual.is_some()),
+                    ],
+                    "applies to model = \"seed\" only (the clinical needle vents to atmospheric \
+                     pleural pressure with time constant needle_tau_cycles; EQUATIONS §4.6)",
+                ),
+                CourseModel::Seed => (
+                    &[
+                        (
+                            "mediastinal_compliance_ml_per_cmh2o",
+                            self.mediastinal_compliance_ml_per_cmh2o.is_some(),
+                        ),
+                        ("needle_tau_cycles", self.needle_tau_cycles.is_some()),
+                    ],
+                    "applies to model = \"clinical\" only (EQUATIONS §4.6)",
+                ),
+            };
+            if let Some(&(name, _)) = keys.iter().find(|k| k.1) {
+                return Err(DiseaseError::NotApplicable { name, reason }.into());
+            }
+        }
         for (key, present) in self.present() {
             if present && !uses.split(", ").any(|k| k == key) {
                 return Err(DiseaseSceneError::NotApplicable { key, kind, uses });
@@ -335,7 +386,8 @@ impl DiseaseScene {
                     .ok_or(DiseaseSceneError::Missing { key: "index", kind })?;
                 // Validate under the scene's key name `index`.
                 crate::disease::volume_fraction_lost(index)?;
-                let c = ClosedPneumothorax::unilateral(side()?, index, alpha, phi);
+                let c = ClosedPneumothorax::unilateral(side()?, index, alpha, phi)
+                    .with_model(self.model.unwrap_or_default());
                 c.validate()?;
                 Ok(DiseaseSpec::Closed(c))
             }
@@ -348,7 +400,8 @@ impl DiseaseScene {
                     key: "index_right",
                     kind,
                 })?;
-                let c = ClosedPneumothorax::bilateral(l, r, phi);
+                let c = ClosedPneumothorax::bilateral(l, r, phi)
+                    .with_model(self.model.unwrap_or_default());
                 c.validate()?;
                 Ok(DiseaseSpec::Closed(c))
             }
@@ -371,6 +424,11 @@ impl DiseaseScene {
                     hyperexpansion_cycles: self
                         .hyperexpansion_cycles
                         .unwrap_or(d.hyperexpansion_cycles),
+                    model: self.model.unwrap_or_default(),
+                    mediastinal_compliance_ml_per_cmh2o: self
+                        .mediastinal_compliance_ml_per_cmh2o
+                        .unwrap_or(d.mediastinal_compliance_ml_per_cmh2o),
+                    needle_tau_cycles: self.needle_tau_cycles.unwrap_or(d.needle_tau_cycles),
                     ..d
                 };
                 params.validate()?;
@@ -479,6 +537,10 @@ mod tests {
             spec,
             DiseaseSpec::Closed(ClosedPneumothorax::unilateral(Side::Left, 0.1, 100.0, 0.1))
         );
+        assert_eq!(
+            ClosedPneumothorax::unilateral(Side::Left, 0.1, 100.0, 0.1).model,
+            CourseModel::Clinical
+        );
         assert!(matches!(
             d.validate(&[Side::Right]),
             Err(DiseaseSceneError::LungNotSimulated { side: "left" })
@@ -576,6 +638,18 @@ mod tests {
             ("[disease]\nkind = \"tumour\"\nside = \"left\"\n[disease.tumour]\ncentre = [0.5, 0.5, 0.5]\nradii_mm = [10, 0, 10]\n", "radii_mm"),
             ("[disease]\nkind = \"tumour\"\nside = \"left\"\n[disease.tumour]\ncentre = [0.5, 0.5, 0.5]\nradii_mm = [10, 10, 10]\nexpandability = 0\n", "expandability"),
             ("[disease]\nkind = \"tumour\"\nside = \"left\"\n[disease.tumour]\ncentre = [0.5, 0.5, 0.5]\nradii_mm = [10, 10, 10]\nradius = 3\n", "radius"),
+            // The model key (issue 25).
+            ("[disease]\nkind = \"closed-pneumothorax\"\nside = \"left\"\nindex = 0.1\nmodel = \"textbook\"\n", "textbook"),
+            ("[disease]\nkind = \"closed-pneumothorax\"\nside = \"left\"\nindex = 0.1\nmodel = 1\n", "model"),
+            ("[disease]\nkind = \"tumour\"\nside = \"left\"\nmodel = \"seed\"\n[disease.tumour]\ncentre = [0.5, 0.5, 0.5]\nradii_mm = [10, 10, 10]\n", "model"),
+            ("[disease]\nkind = \"closed-pneumothorax\"\nside = \"left\"\nindex = 0.1\nneedle_tau_cycles = 1\n", "needle_tau_cycles"),
+            ("[disease]\nkind = \"tension-pneumothorax\"\nside = \"left\"\nneedle_residual = 0.5\n", "model = \"seed\" only"),
+            ("[disease]\nkind = \"tension-pneumothorax\"\nside = \"left\"\nmodel = \"clinical\"\nneedle_vent_cycles = 5\n", "needle_vent_cycles"),
+            ("[disease]\nkind = \"tension-pneumothorax\"\nside = \"left\"\nmodel = \"seed\"\nneedle_tau_cycles = 2\n", "model = \"clinical\" only"),
+            ("[disease]\nkind = \"tension-pneumothorax\"\nside = \"left\"\nmodel = \"seed\"\nmediastinal_compliance_ml_per_cmh2o = 5\n", "mediastinal_compliance_ml_per_cmh2o"),
+            ("[disease]\nkind = \"tension-pneumothorax\"\nside = \"left\"\nmediastinal_compliance_ml_per_cmh2o = 0\n", "mediastinal_compliance_ml_per_cmh2o"),
+            ("[disease]\nkind = \"tension-pneumothorax\"\nside = \"left\"\nneedle_tau_cycles = -1\n", "needle_tau_cycles"),
+            ("[disease]\nkind = \"tension-pneumothorax\"\nside = \"left\"\nneedle_tau_cycles = nan\n", "needle_tau_cycles"),
         ];
         for (text, key) in cases {
             let e = err(text);
@@ -584,6 +658,49 @@ mod tests {
         // The parser's errors carry the line.
         let e = err("[disease]\nkind = \"tumour\"\nsidee = \"left\"\n");
         assert!(e.contains("line 3"), "{e}");
+    }
+
+    #[test]
+    fn the_model_key_defaults_to_clinical_and_reaches_the_seed_reading() {
+        let closed = |extra: &str| {
+            disease(&format!(
+                "[disease]\nkind = \"closed-pneumothorax\"\nside = \"left\"\nindex = 0.1\n{extra}"
+            ))
+            .resolve()
+            .unwrap()
+        };
+        let DiseaseSpec::Closed(c) = closed("") else {
+            panic!("closed")
+        };
+        assert_eq!(c.model, CourseModel::Clinical);
+        let DiseaseSpec::Closed(c) = closed("model = \"seed\"\n") else {
+            panic!("closed")
+        };
+        assert_eq!(c.model, CourseModel::Seed);
+        let tension = |extra: &str| {
+            let d = disease(&format!(
+                "[disease]\nkind = \"tension-pneumothorax\"\nside = \"left\"\n{extra}"
+            ));
+            match d.resolve().unwrap() {
+                DiseaseSpec::Tension { params, .. } => params,
+                _ => panic!("tension"),
+            }
+        };
+        let p = tension("mediastinal_compliance_ml_per_cmh2o = 20\nneedle_tau_cycles = 0.5\n");
+        assert_eq!(p.model, CourseModel::Clinical);
+        assert_eq!(
+            (p.mediastinal_compliance_ml_per_cmh2o, p.needle_tau_cycles),
+            (20.0, 0.5)
+        );
+        let p = tension("model = \"seed\"\nneedle_vent_cycles = 4\nneedle_residual = 0.5\n");
+        assert_eq!(
+            (p.model, p.needle_vent_cycles, p.needle_residual),
+            (CourseModel::Seed, 4, 0.5)
+        );
+        let d = disease("[disease]\nkind = \"bilateral-pneumothorax\"\nindex_left = 0.1\nindex_right = 0.2\nmodel = \"seed\"\n");
+        assert!(
+            matches!(d.resolve().unwrap(), DiseaseSpec::Closed(c) if c.model == CourseModel::Seed)
+        );
     }
 
     #[test]

@@ -623,31 +623,32 @@ fn a_tension_pneumothorax_runs_to_arrest_and_a_needle_stops_it() {
         panic!("tension")
     };
     assert!(run.first_arrest.is_some());
-    // A timed needle decompression at 30 s: no arrest, and the left lung re-expands.
-    let mut c = disease_core(&format!(
-        "{untreated}[[disease.events]]\nat_s = 30.0\nkind = \"needle-decompression\"\nside = \"left\"\n"
-    ));
-    let (_, held, max_c, last_c) = run_disease(&mut c, 60_000, &[]);
+    // A timed needle decompression under tension (a faster leak, 40 ml a cycle: the shift is near
+    // β at 80 s; EQUATIONS §4.6): no arrest, and the left lung re-expands as the tension vents.
+    let fast = "kind = \"tension-pneumothorax\"\nside = \"left\"\nv_p_ml = 40.0\n";
+    let needle =
+        "[[disease.events]]\nat_s = 80.0\nkind = \"needle-decompression\"\nside = \"left\"\n";
+    let mut c = disease_core(&format!("{fast}{needle}"));
+    let (b, held, max_c, last_c) = run_disease(&mut c, 12_000, &[]);
     assert!(!held);
-    assert!(max_c > 0.0 && last_c < max_c, "{max_c} {last_c}");
+    assert!(max_c > 0.0 && last_c < 0.9 * max_c, "{max_c} {last_c}");
     let Some(disease::DiseaseRun::Tension(run)) = c.disease() else {
         panic!("tension")
     };
     assert_eq!(run.events.len(), 1);
-    assert_eq!(run.events[0].tick, 1800);
+    assert_eq!(run.events[0].tick, 4800);
     assert!(run.first_arrest.is_none());
-    // The same needle as a trainee's live action at tick 1800: the same frames bit for bit (both
+    // Without the needle the same course arrests within the run.
+    let (_, held, _, _) = run_disease(&mut disease_core(fast), 12_000, &[]);
+    assert!(held);
+    // The same needle as a trainee's live action at tick 4800: the same frames bit for bit (both
     // are applied when the cycle after their arrival is prepared).
-    let mut live = disease_core(untreated);
+    let mut live = disease_core(fast);
     let (a, ..) = run_disease(
         &mut live,
-        60_000,
-        &[(1800, Intervention::NeedleDecompression)],
+        12_000,
+        &[(4800, Intervention::NeedleDecompression)],
     );
-    let mut timed = disease_core(&format!(
-        "{untreated}[[disease.events]]\nat_s = 30.0\nkind = \"needle-decompression\"\nside = \"left\"\n"
-    ));
-    let (b, ..) = run_disease(&mut timed, 60_000, &[]);
     assert_eq!(a, b);
 }
 

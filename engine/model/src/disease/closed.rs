@@ -24,14 +24,21 @@
 //! **Decision (lungdyn), bilateral:** both lungs may be affected, each with its own `I`; there is then
 //! no unaffected lung to take α, and an `α ≠ 0` is refused.
 //!
+//! **Changed (lungdyn, issue 25), `model`:** the above is the seed's reading ([`CourseModel::Seed`]).
+//! The default [`CourseModel::Clinical`] (EQUATIONS §4.6) replaces eq. 8.3–8.5 by a rate that keeps
+//! the alveolar ventilation with the scene's I:E ([`super::clinical_phase_times`]; West ch. 2; BTS
+//! pleural disease guideline 2023) and gives the unaffected lung `α·dV` instead of α: the seed's demo
+//! breathes 14.5/min at 6.4 l/min instead of 40/min at 19.7 l/min.
+//!
 //! Assumptions: the seed's upright patient (the drop is along the body's −Z); the plan is computed
 //! once per scene (it allocates its constants), not per tick.
 
 use super::collapse::collapse_for_loss;
 use super::resistance::{self, ResistanceReport};
 use super::{
-    check_range, drop_for_index, phase_times, volume_fraction_lost, DiseaseError, LungBaseline,
-    LungState, NormalBreathing, PhaseTimes, VerticalDrop, ALPHA_MAX_ML,
+    check_range, clinical_phase_times, drop_for_index, phase_times, volume_fraction_lost,
+    CourseModel, DiseaseError, LungBaseline, LungState, NormalBreathing, PhaseTimes, VerticalDrop,
+    ALPHA_MAX_ML,
 };
 use crate::mesh::Side;
 use crate::pv::{Boundary, Breathing, PhaseConstants, PvError, Timing};
@@ -45,6 +52,8 @@ pub struct ClosedPneumothorax {
     pub alpha_ml: f64,
     /// Proportionality constant φ of eq. 8.8–8.9 (seed: 0.1).
     pub phi: f64,
+    /// Which reading (scene key `model`; default [`CourseModel::Clinical`]).
+    pub model: CourseModel,
 }
 
 impl ClosedPneumothorax {
@@ -56,6 +65,7 @@ impl ClosedPneumothorax {
             index: i,
             alpha_ml,
             phi,
+            model: CourseModel::default(),
         }
     }
 
@@ -68,7 +78,13 @@ impl ClosedPneumothorax {
             index: i,
             alpha_ml: 0.0,
             phi,
+            model: CourseModel::default(),
         }
+    }
+
+    /// The same pneumothorax under `model`.
+    pub fn with_model(self, model: CourseModel) -> Self {
+        Self { model, ..self }
     }
 
     /// The index of `side`, if affected.
@@ -139,9 +155,14 @@ impl ClosedPneumothorax {
                 any_pneumothorax |= i > 0.0;
             }
         }
-        let times = phase_times(&normal.timing, dv_max)?;
-        let timing = times.timing(&normal.timing);
+        let seed_times = phase_times(&normal.timing, dv_max)?;
         let tv = normal.boundary.tv_ml;
+        // α of eq. 8.7: the seed adds it in full for any I > 0; the clinical model in proportion to
+        // the volume lost (EQUATIONS §4.6 (c)).
+        let alpha = match self.model {
+            CourseModel::Seed => self.alpha_ml,
+            CourseModel::Clinical => self.alpha_ml * dv_max,
+        };
         let mut out = Vec::with_capacity(lungs.len());
         for lung in lungs {
             lung.validate()?;
@@ -210,7 +231,7 @@ impl ClosedPneumothorax {
                     }
                 }
                 None => {
-                    let alpha = if any_pneumothorax { self.alpha_ml } else { 0.0 };
+                    let alpha = if any_pneumothorax { alpha } else { 0.0 };
                     let tv_new = if alpha == 0.0 {
                         tv
                     } else {
@@ -247,6 +268,19 @@ impl ClosedPneumothorax {
             };
             out.push(plan);
         }
+        let times = match self.model {
+            CourseModel::Seed => seed_times,
+            CourseModel::Clinical => {
+                let total: f64 = out.iter().map(|l| l.state.tidal_ml).sum();
+                let normal_total: f64 = lungs.iter().map(|l| l.share * tv).sum();
+                if any_pneumothorax {
+                    clinical_phase_times(&normal.timing, normal_total, total)?
+                } else {
+                    seed_times
+                }
+            }
+        };
+        let timing = times.timing(&normal.timing);
         Ok(ClosedPlan {
             times,
             timing,
@@ -415,6 +449,7 @@ mod tests {
         let n = normal();
         for (i, dv, drop, tidal, base, c, ti) in rows {
             let plan = ClosedPneumothorax::unilateral(Side::Left, i, 100.0, 0.1)
+                .with_model(CourseModel::Seed)
                 .plan(&n, &lungs())
                 .unwrap();
             let l = plan.lung(Side::Left).unwrap();
@@ -535,6 +570,7 @@ mod tests {
     fn bilateral_pneumothorax_changes_both_lungs_and_times_by_the_larger_dv() {
         let n = normal();
         let plan = ClosedPneumothorax::bilateral(0.01, 0.001, 0.1)
+            .with_model(CourseModel::Seed)
             .plan(&n, &lungs())
             .unwrap();
         let (l, r) = (
@@ -545,6 +581,65 @@ mod tests {
         assert!((l.dv - 0.218_776).abs() < 1e-6 && (r.dv - 0.102_329).abs() < 1e-6);
         assert!((plan.times.new_inhale_s - (2.5 - 1.093_881)).abs() < 1e-6);
         assert!(l.state.collapse > r.state.collapse && r.state.collapse > 0.0);
+    }
+
+    #[test]
+    fn the_clinical_course_keeps_the_alveolar_ventilation_by_hand() {
+        // I = 0.1: dV = 0.467735; left tidal 250·0.532265 = 133.066209; right 250 + α·dV =
+        // 250 + 46.773514 = 296.773514; total 429.839723 ml. V_D = 0.3·500 = 150 ml:
+        // f' = 12·350/279.839723 = 15.008591 /min; minute ventilation 6.45130 l/min (seed: 40/min,
+        // 483.066 ml, 19.32 l/min).
+        let n = normal();
+        let plan = ClosedPneumothorax::unilateral(Side::Left, 0.1, 100.0, 0.1)
+            .plan(&n, &lungs())
+            .unwrap();
+        let (l, r) = (
+            plan.lung(Side::Left).unwrap(),
+            plan.lung(Side::Right).unwrap(),
+        );
+        assert!((l.state.tidal_ml - 133.066_209).abs() < 1e-5);
+        assert!(
+            (r.state.tidal_ml - 296.773_514).abs() < 1e-5,
+            "{}",
+            r.state.tidal_ml
+        );
+        let f = plan.timing.breaths_per_min;
+        assert!((f - 15.008_591).abs() < 1e-5, "{f}");
+        let minute = f * (l.state.tidal_ml + r.state.tidal_ml) / 1000.0;
+        assert!((minute - 6.451_30).abs() < 1e-4, "{minute}");
+        assert!(!plan.times.inhale_clamped);
+        // The scene's I:E is kept: 1:1 here, 1:2 with a 1:2 scene.
+        assert_eq!(plan.timing.ie_inhale, plan.timing.ie_exhale);
+        let one_two = NormalBreathing {
+            timing: Timing {
+                ie_inhale: 1.0,
+                ie_exhale: 2.0,
+                ..Timing::default()
+            },
+            ..n.clone()
+        };
+        let p2 = ClosedPneumothorax::unilateral(Side::Left, 0.1, 100.0, 0.1)
+            .plan(&one_two, &lungs())
+            .unwrap();
+        assert!((p2.timing.ie_exhale / p2.timing.ie_inhale - 2.0).abs() < 1e-12);
+        assert!((p2.timing.breaths_per_min - 15.008_591).abs() < 1e-5);
+        // I = 1: the left lung is held; right 350 ml; f' = 12·350/200 = 21 /min.
+        let p1 = ClosedPneumothorax::unilateral(Side::Left, 1.0, 100.0, 0.1)
+            .plan(&n, &lungs())
+            .unwrap();
+        assert!((p1.timing.breaths_per_min - 21.0).abs() < 1e-9);
+        // Bilateral I = 1 on both: no tidal volume left, the rate is capped at 40/min (reported).
+        let both = ClosedPneumothorax::bilateral(1.0, 1.0, 0.1)
+            .plan(&n, &lungs())
+            .unwrap();
+        assert!(both.times.inhale_clamped && both.timing.breaths_per_min == 40.0);
+        // The seed reading of the same demo, for the record: 40/min, I:E 1:1.
+        let seed = ClosedPneumothorax::unilateral(Side::Left, 0.1, 100.0, 0.1)
+            .with_model(CourseModel::Seed)
+            .plan(&n, &lungs())
+            .unwrap();
+        assert_eq!(seed.timing.breaths_per_min, 40.0);
+        assert_eq!(seed.lung(Side::Right).unwrap().state.tidal_ml, 350.0);
     }
 
     proptest! {

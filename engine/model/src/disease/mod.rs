@@ -51,6 +51,111 @@ pub const ALPHA_MAX_ML: f64 = 2500.0;
 /// Seed demo value of α, ml (L3619–3620).
 pub const ALPHA_SEED_ML: f64 = 100.0;
 
+/// Which reading of chapter 8 a disease course follows (scene key `model`).
+///
+/// * [`CourseModel::Seed`] — the seed's literal reading of eq. 8.1–8.13 with lungdyn's decisions of
+///   EQUATIONS §4.1–4.3 (the clamp of eq. 8.3–8.5 at 40 breaths/min, I:E 1:1 there; α added in full for
+///   any pneumothorax; the mediastinum moves only after complete collapse; a needle vents linearly).
+/// * [`CourseModel::Clinical`] (default) — the changes of EQUATIONS §4.6 (issue 25), each with its
+///   source: the rate keeps the alveolar ventilation ([`clinical_phase_times`]), α grows with the
+///   collapse, the pleural air is shared between the lung and the mediastinum by compliance from the
+///   onset, and a needle vents the tension within a few breaths ([`tension`]).
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Default, serde::Serialize, serde::Deserialize)]
+#[serde(rename_all = "kebab-case")]
+pub enum CourseModel {
+    /// The seed's literal reading (the figures of EQUATIONS §4.1–4.3).
+    Seed,
+    /// The clinical course of EQUATIONS §4.6.
+    #[default]
+    Clinical,
+}
+
+impl CourseModel {
+    /// Name as in scenes.
+    pub fn name(self) -> &'static str {
+        match self {
+            CourseModel::Seed => "seed",
+            CourseModel::Clinical => "clinical",
+        }
+    }
+}
+
+/// Dead space as a fraction of the normal tidal volume (clinical model): the anatomic dead space is
+/// about 150 ml of a 500 ml breath, `V_D/V_T ≈ 0.3` (West, *Respiratory Physiology: The Essentials*,
+/// ch. 2). A fraction rather than 150 ml so that scenes with small tidal volumes stay defined.
+pub const DEAD_SPACE_FRACTION: f64 = 0.3;
+
+/// Fastest rate the clinical model's respiratory centre reaches, breaths/min: the upper end of the
+/// rates of adult respiratory distress (30–40/min), as the seed reading's clamp ([`MIN_PHASE_S`]).
+pub const CLINICAL_MAX_RATE_PER_MIN: f64 = 40.0;
+
+/// Clinical model, the rate for a new total tidal volume (both lungs) in place of eq. 8.3–8.5.
+///
+/// **Changed (lungdyn, issue 25):** eq. 8.3–8.5 shorten both phases by `T·dV` and, clamped, make every
+/// pneumothorax of the seed's range breathe at 40/min with I:E 1:1 (≈ 20 l/min at the seed's demo).
+/// The respiratory centre holds the arterial CO₂, i.e. the alveolar ventilation
+/// `V̇_A = f·(V_T − V_D)` (the alveolar ventilation equation; West ch. 2): the new rate is
+/// `f' = f·(V_T − V_D)/(V_T' − V_D)` with `V_D = 0.3·V_T` ([`DEAD_SPACE_FRACTION`]), never slower than
+/// normal and at most [`CLINICAL_MAX_RATE_PER_MIN`] (capped, reported as a clamp). The scene's I:E is
+/// kept (normal spontaneous breathing is about 1:2; a scene sets it with `[pv] ie_ratio`). A
+/// pneumothorax patient is tachypnoeic with a near-normal minute ventilation (BTS pleural disease
+/// guideline 2023; Leigh-Smith & Harris, Emerg Med J 2005;22:8–16), not at 20 l/min.
+/// `tidal_new_ml == tidal_normal_ml` returns the normal phases exactly (`dt_s = 0`).
+pub fn clinical_phase_times(
+    normal: &Timing,
+    tidal_normal_ml: f64,
+    tidal_new_ml: f64,
+) -> Result<PhaseTimes, DiseaseError> {
+    normal.phase_ticks()?;
+    let tv = check_range(
+        "tidal volume",
+        tidal_normal_ml,
+        f64::MIN_POSITIVE,
+        crate::plausible::LUNG_VOLUME_ML.hi,
+        "within (0, 6000] ml",
+    )?;
+    let tv_new = check_range(
+        "tidal volume",
+        tidal_new_ml,
+        0.0,
+        2.0 * crate::plausible::LUNG_VOLUME_ML.hi,
+        "within 0..=12000 ml",
+    )?;
+    let cycle_s = 60.0 / normal.breaths_per_min;
+    let share = normal.ie_inhale / (normal.ie_inhale + normal.ie_exhale);
+    let inhale_s = cycle_s * share;
+    let exhale_s = cycle_s - inhale_s;
+    let dead = DEAD_SPACE_FRACTION * tv;
+    let max_rate = CLINICAL_MAX_RATE_PER_MIN.max(normal.breaths_per_min);
+    let (rate, capped) = if tv_new >= tv {
+        (normal.breaths_per_min, false)
+    } else {
+        let alveolar_new = tv_new - dead;
+        let wanted = normal.breaths_per_min * (tv - dead) / alveolar_new;
+        if alveolar_new > 0.0 && wanted <= max_rate {
+            (wanted, false)
+        } else {
+            (max_rate, true)
+        }
+    };
+    let new_cycle = 60.0 / rate;
+    let (new_inhale_s, new_exhale_s) = (new_cycle * share, new_cycle - new_cycle * share);
+    let dt_s = cycle_s - new_cycle;
+    Ok(PhaseTimes {
+        cycle_s,
+        inhale_s,
+        exhale_s,
+        dt_s,
+        new_inhale_s,
+        new_exhale_s,
+        raw_inhale_s: new_inhale_s,
+        raw_exhale_s: new_exhale_s,
+        inhale_clamped: capped,
+        exhale_clamped: capped,
+        min_phase_s: (60.0 / max_rate) * share.min(1.0 - share),
+    })
+}
+
 /// Why a disease state cannot be computed; each names the parameter at fault by its scene key.
 #[derive(Debug, Clone, PartialEq, Error)]
 pub enum DiseaseError {

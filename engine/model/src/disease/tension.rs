@@ -46,12 +46,22 @@
 //!   zero; an *occlusive dressing* stops the inflow of an open (sucking) chest-wall wound
 //!   ([`LeakSource::Wound`]) and does nothing for a leak from the lung itself. An intervention on the
 //!   other side has no effect ([`Outcome::WrongSide`]).
+//!
+//! ## The clinical model (default; EQUATIONS §4.6, issue 25)
+//! [`TensionParams::model`] = [`CourseModel::Seed`] is everything above. [`CourseModel::Clinical`]
+//! changes, each with its source: the pleural air is shared from the onset between the lung and the
+//! mediastinum by compliance (a tension pneumothorax is a positive pleural pressure, not a completely
+//! collapsed lung: Leigh-Smith & Harris, Emerg Med J 2005;22:8–16; Pulse's compliant pleural
+//! cavity), so the shift starts with the first air and the SVC closes while the lung still
+//! breathes; a needle opens the pleural space to the air and the tension vents with a one-cycle time
+//! constant (Pulse's needle: a low resistance to the environment; ATLS); the unaffected lung takes
+//! `α·dV_t`, not α, and the rate keeps the alveolar ventilation ([`super::clinical_phase_times`]).
 
 use super::collapse::collapse_for_loss;
 use super::resistance;
 use super::{
-    check_range, drop_for_index, equivalent_index, phase_times, DiseaseError, LungBaseline,
-    LungState, PhaseTimes, VerticalDrop, ALPHA_MAX_ML, ALPHA_SEED_ML,
+    check_range, clinical_phase_times, drop_for_index, equivalent_index, phase_times, CourseModel,
+    DiseaseError, LungBaseline, LungState, PhaseTimes, VerticalDrop, ALPHA_MAX_ML, ALPHA_SEED_ML,
 };
 use crate::mesh::Side;
 use crate::pv::{Boundary, PhaseConstants, Timing};
@@ -91,6 +101,31 @@ pub const CHEST_TUBE_ML_PER_CYCLE: f64 = 50.0;
 
 /// Default cycles from the SVC's closure to `V2max` and arrest (Decision: a few breaths).
 pub const HYPEREXPANSION_CYCLES: u32 = 5;
+
+/// Clinical model: compliance of both lungs together, ml/cmH₂O (about 0.2 l/cmH₂O; West,
+/// *Respiratory Physiology: The Essentials*, ch. 7). The affected lung's is its share of it.
+pub const LUNG_COMPLIANCE_ML_PER_CMH2O: f64 = 200.0;
+
+/// Clinical model: default compliance of the mediastinum (with the hemidiaphragm) against the
+/// pleural air, ml/cmH₂O (`mediastinal_compliance_ml_per_cmh2o`). **Decision (lungdyn), training
+/// calibration:** with it the default left lung's SVC closes (β = 18 mm) at a pleural pressure of
+/// about +5 cmH₂O with the lung about two thirds of the way to `V1max` — a tension pneumothorax is a
+/// positive pleural pressure, not a completely collapsed lung (Leigh-Smith & Harris 2005); no
+/// measured value exists.
+pub const MEDIASTINAL_COMPLIANCE_ML_PER_CMH2O: f64 = 10.0;
+
+/// Pleural pressure at FRC below atmospheric, cmH₂O (−3 to −5 cmH₂O; Levitzky, *Pulmonary
+/// Physiology*, as quoted by the Pulse Respiratory Methodology): the clinical model's pleural air at
+/// atmospheric pressure — what a needle leaves — is the air at this rise.
+pub const PLEURAL_RECOIL_CMH2O: f64 = 5.0;
+
+/// Clinical model: default time constant of a needle's venting, cycles (`needle_tau_cycles`).
+/// **Changed (lungdyn, issue 25):** Pulse (Kitware; `Respiratory.cpp`, the `PleuralToEnvironment`
+/// path) models the needle as a flow resistance of half the airway's from the pleural space to the
+/// environment, i.e. a time constant `R·C` of a fraction of a second; clinically "a rush of air" and
+/// improvement within a minute (ATLS). One cycle (63 % of the tension gone after the first breath,
+/// 95 % after three) is the conservative reading.
+pub const NEEDLE_TAU_CYCLES: f64 = 1.0;
 
 /// Longest course [`Tension::cycles_to_arrest`] looks at, cycles.
 pub const ARREST_SEARCH_CYCLES: u64 = 10_000_000;
@@ -188,6 +223,12 @@ pub struct TensionParams {
     pub chest_tube_ml_per_cycle: f64,
     /// Cycles from the SVC's closure to arrest (`hyperexpansion_cycles`).
     pub hyperexpansion_cycles: u32,
+    /// Which reading (`model`; default [`CourseModel::Clinical`]).
+    pub model: CourseModel,
+    /// Clinical: the mediastinum's compliance, ml/cmH₂O (`mediastinal_compliance_ml_per_cmh2o`).
+    pub mediastinal_compliance_ml_per_cmh2o: f64,
+    /// Clinical: the needle's venting time constant, cycles (`needle_tau_cycles`).
+    pub needle_tau_cycles: f64,
 }
 
 impl TensionParams {
@@ -207,7 +248,15 @@ impl TensionParams {
             needle_residual: NEEDLE_RESIDUAL,
             chest_tube_ml_per_cycle: CHEST_TUBE_ML_PER_CYCLE,
             hyperexpansion_cycles: HYPEREXPANSION_CYCLES,
+            model: CourseModel::default(),
+            mediastinal_compliance_ml_per_cmh2o: MEDIASTINAL_COMPLIANCE_ML_PER_CMH2O,
+            needle_tau_cycles: NEEDLE_TAU_CYCLES,
         }
+    }
+
+    /// The same parameters under `model`.
+    pub fn with_model(self, model: CourseModel) -> Self {
+        Self { model, ..self }
     }
 
     /// Check the parameters that do not depend on the lungs; errors name the scene key.
@@ -269,15 +318,32 @@ impl TensionParams {
             10_000.0,
             "within 0..=10000",
         )?;
+        check_range(
+            "mediastinal_compliance_ml_per_cmh2o",
+            self.mediastinal_compliance_ml_per_cmh2o,
+            0.1,
+            1000.0,
+            "within [0.1, 1000] ml/cmH2O",
+        )?;
+        check_range(
+            "needle_tau_cycles",
+            self.needle_tau_cycles,
+            0.01,
+            1000.0,
+            "within [0.01, 1000] cycles",
+        )?;
         Ok(())
     }
 }
 
 /// Needle venting in progress.
 #[derive(Debug, Clone, Copy, PartialEq)]
-struct Vent {
-    per_cycle_ml: f64,
-    floor_ml: f64,
+enum Vent {
+    /// Seed reading: linear, down to a share of what the needle found.
+    Linear { per_cycle_ml: f64, floor_ml: f64 },
+    /// Clinical: towards the air at atmospheric pleural pressure, keeping `keep` of the difference
+    /// per cycle (`e^{−1/τ}`).
+    Exponential { keep: f64, floor_ml: f64 },
 }
 
 /// One cycle of the course: what the engine applies to both lungs and reports.
@@ -333,6 +399,13 @@ pub struct Tension {
     v1_max_ml: f64,
     v2_max_ml: f64,
     shift_mm_per_ml: f64,
+    /// Clinical: the affected lung's compliance, ml/cmH₂O (its share of
+    /// [`LUNG_COMPLIANCE_ML_PER_CMH2O`]).
+    lung_compliance: f64,
+    /// Clinical: pleural air at atmospheric pressure, ml (what a needle leaves).
+    atmospheric_air_ml: f64,
+    /// Clinical: pleural air at which the SVC closes, ml.
+    clinical_svc_air_ml: f64,
     // State.
     next_cycle: u64,
     pleural_ml: f64,
@@ -417,7 +490,7 @@ impl Tension {
                 value: shift_mm_per_ml,
             });
         }
-        Ok(Self {
+        let mut m = Self {
             params,
             normal_timing,
             normal_boundary,
@@ -426,6 +499,9 @@ impl Tension {
             v1_max_ml,
             v2_max_ml,
             shift_mm_per_ml,
+            lung_compliance: affected.share.min(1.0) * LUNG_COMPLIANCE_ML_PER_CMH2O,
+            atmospheric_air_ml: 0.0,
+            clinical_svc_air_ml: 0.0,
             next_cycle: 0,
             pleural_ml: 0.0,
             inflow_open: true,
@@ -435,7 +511,91 @@ impl Tension {
             hyper: 0,
             arrested: false,
             first_arrest: None,
-        })
+        };
+        let recoil = PLEURAL_RECOIL_CMH2O;
+        m.atmospheric_air_ml = m.lung_displaced_ml(recoil) + m.mediastinal_ml(recoil);
+        m.clinical_svc_air_ml = m.clinical_svc_air();
+        Ok(m)
+    }
+
+    /// Clinical: the volume the affected lung has given up at a pleural pressure `rise` cmH₂O above
+    /// its FRC value, `D = V1max·(1 − e^{−C_L·rise/V1max})`: compliance `C_L` at first, stiffening
+    /// as it empties towards `V1max` (an emptied lung's compliance falls: West ch. 7).
+    fn lung_displaced_ml(&self, rise: f64) -> f64 {
+        let v1 = self.v1_max_ml;
+        v1 * -(-self.lung_compliance * rise / v1).exp_m1()
+    }
+
+    /// Clinical: the volume the mediastinum (with the hemidiaphragm) has moved at `rise`, `C_m·rise`.
+    fn mediastinal_ml(&self, rise: f64) -> f64 {
+        self.params.mediastinal_compliance_ml_per_cmh2o * rise
+    }
+
+    /// Clinical: the pleural pressure rise (cmH₂O) that holds `air` ml, solving
+    /// `air = D(rise) + C_m·rise` (strictly increasing) by bisection: 80 halvings of
+    /// `[0, air/C_m]`, a fixed count, so the result is a pure function of `air`.
+    fn clinical_rise(&self, air: f64) -> f64 {
+        if !(air > 0.0) {
+            return 0.0;
+        }
+        let (mut lo, mut hi) = (
+            0.0f64,
+            air / self.params.mediastinal_compliance_ml_per_cmh2o,
+        );
+        for _ in 0..80 {
+            let mid = 0.5 * (lo + hi);
+            if self.lung_displaced_ml(mid) + self.mediastinal_ml(mid) < air {
+                lo = mid;
+            } else {
+                hi = mid;
+            }
+        }
+        0.5 * (lo + hi)
+    }
+
+    /// Clinical: (lung displaced ml, mediastinal ml, shift mm, rise cmH₂O) for `air` ml of pleural
+    /// air. The shift is eq. 8.12–8.13 on the mediastinal volume with the box of the lung as it is
+    /// now: `X = M·1000/(q·k²·bY·bZ)`, `k = (1 − D/V)^{1/3}`.
+    fn clinical_partition(&self, air: f64) -> (f64, f64, f64, f64) {
+        let rise = self.clinical_rise(air);
+        let displaced = self.lung_displaced_ml(rise).min(air).max(0.0);
+        let mediastinal = (air - displaced).max(0.0);
+        let v = self.affected.start_volume_ml;
+        let k = (1.0 - displaced / v).max(0.0).cbrt();
+        let face = self.affected.fill_fraction()
+            * k
+            * k
+            * self.affected.box_mm[1]
+            * self.affected.box_mm[2];
+        (displaced, mediastinal, mediastinal * 1000.0 / face, rise)
+    }
+
+    /// Clinical: the air at which the shift reaches β (the shift grows with the air), by bisection.
+    fn clinical_svc_air(&self) -> f64 {
+        let beta = self.params.beta_mm;
+        let mut hi = self.v1_max_ml.max(1.0);
+        while self.clinical_partition(hi).2 < beta && hi < 1.0e9 {
+            hi *= 2.0;
+        }
+        let mut lo = 0.0;
+        for _ in 0..80 {
+            let mid = 0.5 * (lo + hi);
+            if self.clinical_partition(mid).2 < beta {
+                lo = mid;
+            } else {
+                hi = mid;
+            }
+        }
+        hi
+    }
+
+    /// Clinical: pleural air at atmospheric pressure, ml (what a needle leaves; 0 in the seed
+    /// reading, whose needle leaves [`TensionParams::needle_residual`] of what it found).
+    pub fn atmospheric_air_ml(&self) -> f64 {
+        match self.params.model {
+            CourseModel::Seed => 0.0,
+            CourseModel::Clinical => self.atmospheric_air_ml,
+        }
     }
 
     /// The parameters.
@@ -458,9 +618,13 @@ impl Tension {
         self.shift_mm_per_ml
     }
 
-    /// Pleural air at which the SVC closes, ml: `V1max + β/shift_mm_per_ml`.
+    /// Pleural air at which the SVC closes, ml: seed `V1max + β/shift_mm_per_ml`; clinical the air
+    /// whose mediastinal share shifts by β.
     pub fn svc_closing_air_ml(&self) -> f64 {
-        self.v1_max_ml + self.params.beta_mm / self.shift_mm_per_ml
+        match self.params.model {
+            CourseModel::Seed => self.v1_max_ml + self.params.beta_mm / self.shift_mm_per_ml,
+            CourseModel::Clinical => self.clinical_svc_air_ml,
+        }
     }
 
     /// The cycle the next [`Self::advance`] computes.
@@ -486,11 +650,19 @@ impl Tension {
                         Outcome::AlreadyApplied
                     } else {
                         self.inflow_open = false;
-                        let floor_ml = self.params.needle_residual * self.pleural_ml;
-                        self.vent = Some(Vent {
-                            per_cycle_ml: (self.pleural_ml - floor_ml)
-                                / self.params.needle_vent_cycles as f64,
-                            floor_ml,
+                        self.vent = Some(match self.params.model {
+                            CourseModel::Seed => {
+                                let floor_ml = self.params.needle_residual * self.pleural_ml;
+                                Vent::Linear {
+                                    per_cycle_ml: (self.pleural_ml - floor_ml)
+                                        / self.params.needle_vent_cycles as f64,
+                                    floor_ml,
+                                }
+                            }
+                            CourseModel::Clinical => Vent::Exponential {
+                                keep: (-1.0 / self.params.needle_tau_cycles).exp(),
+                                floor_ml: self.atmospheric_air_ml,
+                            },
                         });
                         Outcome::Applied
                     }
@@ -540,18 +712,44 @@ impl Tension {
             }
             if self.draining {
                 self.pleural_ml = (self.pleural_ml - p.chest_tube_ml_per_cycle).max(0.0);
-            } else if let Some(v) = self.vent {
-                if self.pleural_ml > v.floor_ml {
-                    self.pleural_ml = (self.pleural_ml - v.per_cycle_ml).max(v.floor_ml);
+            } else {
+                match self.vent {
+                    Some(Vent::Linear {
+                        per_cycle_ml,
+                        floor_ml,
+                    }) if self.pleural_ml > floor_ml => {
+                        self.pleural_ml = (self.pleural_ml - per_cycle_ml).max(floor_ml);
+                    }
+                    Some(Vent::Linear { .. }) => {}
+                    // The needle opens the pleural space to the atmosphere: the air goes to its
+                    // volume at atmospheric pressure, out under tension, in below it (Pulse's
+                    // PleuralToEnvironment path is a resistor: flow either way).
+                    Some(Vent::Exponential { keep, floor_ml }) => {
+                        self.pleural_ml = floor_ml + (self.pleural_ml - floor_ml) * keep;
+                    }
+                    None => {}
                 }
             }
         }
         let air = self.pleural_ml;
         let v_aff = self.affected.start_volume_ml;
-        let displaced = air.min(self.v1_max_ml);
+        let (displaced, shift_mm) = match p.model {
+            // Air takes the lung's place 1:1 up to V1max; only air beyond it moves the mediastinum.
+            CourseModel::Seed => (
+                air.min(self.v1_max_ml),
+                (air - self.v1_max_ml).max(0.0) * self.shift_mm_per_ml,
+            ),
+            // Shared by compliance from the onset (EQUATIONS §4.6 (a)).
+            CourseModel::Clinical => {
+                let (d, _, x, _) = self.clinical_partition(air);
+                (d, x)
+            }
+        };
         let loss_fraction = (displaced / v_aff).clamp(0.0, 1.0);
-        let dv = (air / self.v1_max_ml).clamp(0.0, 1.0);
-        let shift_mm = (air - self.v1_max_ml).max(0.0) * self.shift_mm_per_ml;
+        let dv = match p.model {
+            CourseModel::Seed => (air / self.v1_max_ml).clamp(0.0, 1.0),
+            CourseModel::Clinical => (displaced / self.v1_max_ml).clamp(0.0, 1.0),
+        };
         let svc_closed = shift_mm >= p.beta_mm;
         let n_h = p.hyperexpansion_cycles;
         self.hyper = if svc_closed {
@@ -565,8 +763,51 @@ impl Tension {
             self.first_arrest = Some(t);
         }
 
-        // phase_times cannot fail here: the normal timing was checked in new(), dv ∈ [0, 1].
-        let times = phase_times(&self.normal_timing, dv).unwrap_or(PhaseTimes {
+        let tv = self.normal_boundary.tv_ml;
+        let stopped = dv >= 1.0 || arrest;
+        // α of eq. 8.7: the seed adds it in full as soon as there is air; the clinical model in
+        // proportion to the way to V1max (EQUATIONS §4.6 (c)).
+        let alpha = match p.model {
+            CourseModel::Seed if air > 0.0 => p.alpha_ml,
+            CourseModel::Seed => 0.0,
+            CourseModel::Clinical => p.alpha_ml * dv,
+        };
+        let affected_tidal = if stopped {
+            0.0
+        } else {
+            self.affected.share * tv * (1.0 - dv)
+        };
+        let unaffected_tidal = self.unaffected.map(|u| u.share * tv + alpha);
+        let unaffected_held = self.unaffected.and(if n_h == 0 {
+            svc_closed.then_some(self.v2_max_ml)
+        } else if self.hyper > 0 {
+            let top = self.unaffected.map_or(0.0, |u| u.start_volume_ml)
+                + unaffected_tidal.unwrap_or(0.0);
+            Some(top + (self.v2_max_ml - top) * self.hyper as f64 / n_h as f64)
+        } else {
+            None
+        });
+        // Both computations cannot fail here: the normal timing was checked in new(), dv ∈ [0, 1],
+        // the tidal volumes are finite and ≥ 0.
+        let times = match p.model {
+            CourseModel::Seed => phase_times(&self.normal_timing, dv),
+            CourseModel::Clinical => {
+                let normal_total =
+                    self.affected.share * tv + self.unaffected.map_or(0.0, |u| u.share * tv);
+                let total = affected_tidal
+                    + if unaffected_held.is_some() {
+                        0.0
+                    } else {
+                        unaffected_tidal.unwrap_or(0.0)
+                    };
+                if air > 0.0 {
+                    clinical_phase_times(&self.normal_timing, normal_total, total)
+                } else {
+                    phase_times(&self.normal_timing, 0.0)
+                }
+            }
+        }
+        .unwrap_or(PhaseTimes {
             cycle_s: 0.0,
             inhale_s: 0.0,
             exhale_s: 0.0,
@@ -582,19 +823,13 @@ impl Tension {
         let timing = times.timing(&self.normal_timing);
         let drop = drop_for_index(equivalent_index(loss_fraction));
         let collapse = collapse_for_loss(loss_fraction).unwrap_or(0.0);
-        let tv = self.normal_boundary.tv_ml;
         let base = v_aff - displaced;
-        let stopped = dv >= 1.0 || arrest;
         let lateral = self.affected.side.lateral_sign() as f64;
         let affected = LungState {
             side: self.affected.side,
             collapse,
             base_volume_ml: base,
-            tidal_ml: if stopped {
-                0.0
-            } else {
-                self.affected.share * tv * (1.0 - dv)
-            },
+            tidal_ml: affected_tidal,
             held_ml: stopped.then_some(base),
             offset_mm: [
                 if shift_mm > 0.0 {
@@ -612,16 +847,8 @@ impl Tension {
             resistance_dv: dv,
         };
         let unaffected = self.unaffected.map(|u| {
-            let alpha = if air > 0.0 { p.alpha_ml } else { 0.0 };
             let tidal = u.share * tv + alpha;
-            let top = u.start_volume_ml + tidal;
-            let held = if n_h == 0 {
-                svc_closed.then_some(self.v2_max_ml)
-            } else if self.hyper > 0 {
-                Some(top + (self.v2_max_ml - top) * self.hyper as f64 / n_h as f64)
-            } else {
-                None
-            };
+            let held = unaffected_held;
             LungState {
                 side: u.side,
                 collapse: 0.0,
@@ -768,6 +995,7 @@ mod tests {
             inflow_ml,
             tau,
             v1_max_ml: Some(875.0),
+            model: CourseModel::Seed,
             ..TensionParams::new(Side::Left)
         }
     }
@@ -1153,36 +1381,264 @@ mod tests {
         assert!(v.iter().all(|x| x.is_finite()), "{c:?}");
     }
 
-    #[test]
-    fn default_course_reaches_arrest_in_minutes() {
-        //! Pins the defaults' time scale (EQUATIONS §4.3): the generated default left lung.
-        let side = Side::Left;
-        let mesh = crate::mesh::generate::lung(side, 4000).unwrap();
-        let l = LungBaseline::of(&mesh, side, 1100.0 / 2400.0).unwrap();
-        let rmesh = crate::mesh::generate::lung(Side::Right, 4000).unwrap();
-        let r = LungBaseline::of(&rmesh, Side::Right, 1300.0 / 2400.0).unwrap();
-        let m = Tension::new(
-            TensionParams::new(side),
+    /// The generated default lungs (left 1100/2400 of the PV change, right 1300/2400) and a course
+    /// of `params` on them.
+    fn default_course(params: TensionParams) -> Tension {
+        let base = |side, share| {
+            let mesh = crate::mesh::generate::lung(side, 4000).unwrap();
+            LungBaseline::of(&mesh, side, share).unwrap()
+        };
+        Tension::new(
+            params,
             Timing::default(),
             preset(DEFAULT_PRESET).unwrap().boundary,
-            l,
-            Some(r),
+            base(Side::Left, 1100.0 / 2400.0),
+            Some(base(Side::Right, 1300.0 / 2400.0)),
         )
-        .unwrap();
+        .unwrap()
+    }
+
+    /// (cycles to arrest, minutes to arrest, the first cycle with the SVC closed and its state).
+    fn untreated_figures(m: &Tension) -> (u64, f64, TensionCycle) {
         let cycles = m.cycles_to_arrest().unwrap();
         let mut run = m.untreated();
-        let seconds: f64 = (0..=cycles)
-            .map(|_| 60.0 / run.advance().timing.breaths_per_min)
-            .sum();
-        eprintln!(
-            "default left course: V1max {:.0} ml, SVC at {:.0} ml ({:.4} mm/ml), arrest in cycle {cycles}, {:.1} min",
-            m.v1_max_ml(),
-            m.svc_closing_air_ml(),
-            m.shift_mm_per_ml(),
-            seconds / 60.0
-        );
-        assert!((100..2000).contains(&cycles));
-        assert!(seconds > 120.0 && seconds < 30.0 * 60.0);
+        let mut seconds = 0.0;
+        let mut first_svc = None;
+        for _ in 0..=cycles {
+            let c = run.advance();
+            seconds += 60.0 / c.timing.breaths_per_min;
+            if c.svc_closed && first_svc.is_none() {
+                first_svc = Some(c);
+            }
+        }
+        (cycles, seconds / 60.0, first_svc.unwrap())
+    }
+
+    #[test]
+    fn default_course_reaches_arrest_in_minutes() {
+        //! Pins the defaults' time scale (EQUATIONS §4.3, §4.6) on the generated default left lung,
+        //! for both readings; the seed's figure is the one documented before issue 25.
+        for model in [CourseModel::Seed, CourseModel::Clinical] {
+            let m = default_course(TensionParams::new(Side::Left).with_model(model));
+            let (cycles, minutes, svc) = untreated_figures(&m);
+            eprintln!(
+                "default left course ({}): V1max {:.0} ml, SVC closes in cycle {} at {:.1} ml \
+                 (lung {:.1} % of the way to V1max), arrest in cycle {cycles}, {minutes:.2} min",
+                model.name(),
+                m.v1_max_ml(),
+                svc.cycle,
+                svc.pleural_air_ml,
+                100.0 * svc.dv,
+            );
+            assert!((100..2000).contains(&cycles));
+            assert!(minutes > 2.0 && minutes < 30.0);
+            if model == CourseModel::Seed {
+                assert_eq!(cycles, 217);
+                assert_eq!(svc.dv, 1.0);
+            }
+        }
+    }
+
+    #[test]
+    fn the_clinical_mediastinum_moves_before_the_lung_has_collapsed() {
+        //! Issue 25 (a): the shift grows from the first air (shared by compliance) and the SVC
+        //! closes while the lung still breathes (Leigh-Smith & Harris 2005: tension is a positive
+        //! pleural pressure, not a completely collapsed lung).
+        let m = default_course(TensionParams::new(Side::Left));
+        let (_, _, svc) = untreated_figures(&m);
+        assert!(svc.dv < 0.9 && svc.affected.tidal_ml > 0.0, "{svc:?}");
+        let mut run = m.untreated();
+        let (mut last_x, mut last_c, mut last_p) = (-1.0, -1.0, -1.0);
+        for t in 0..400 {
+            let c = run.advance();
+            finite(&c);
+            if t >= 1 {
+                assert!(
+                    c.shift_mm > 0.0,
+                    "cycle {t}: no shift with {} ml",
+                    c.pleural_air_ml
+                );
+            }
+            assert!(c.shift_mm >= last_x && c.affected.collapse >= last_c);
+            assert!(c.pleural_air_ml >= last_p && c.dv <= 1.0);
+            // The air is exactly the lung's loss plus the mediastinum's share.
+            let displaced = c.loss_fraction * m.affected.start_volume_ml;
+            assert!(displaced <= c.pleural_air_ml + 1e-9);
+            (last_x, last_c, last_p) = (c.shift_mm, c.affected.collapse, c.pleural_air_ml);
+        }
+    }
+
+    #[test]
+    fn a_clinical_needle_relieves_the_tension_within_three_breaths() {
+        //! Issue 25 (b): Pulse's needle is a low-resistance path from the pleural space to the
+        //! environment; here it vents with a one-cycle time constant to the air at atmospheric
+        //! pressure. The seed reading vents 10 % of the way per cycle.
+        for model in [CourseModel::Clinical, CourseModel::Seed] {
+            let mut m = default_course(TensionParams::new(Side::Left).with_model(model));
+            let mut c = m.advance();
+            while !c.arrest {
+                c = m.advance();
+            }
+            let rec = m.intervene(Intervention::NeedleDecompression, Side::Left, 0);
+            assert_eq!(rec.outcome, Outcome::Applied);
+            let after: Vec<TensionCycle> = (0..12).map(|_| m.advance()).collect();
+            let relieved = after.iter().position(|c| !c.svc_closed).unwrap();
+            let breathing = after
+                .iter()
+                .position(|c| c.unaffected.unwrap().held_ml.is_none())
+                .unwrap();
+            eprintln!(
+                "{}: needle at {:.1} ml, {:.1} mm: SVC open after {} cycles, both lungs breathe \
+                 after {} cycles; 3 cycles on: {:.1} ml, {:.2} mm",
+                model.name(),
+                c.pleural_air_ml,
+                c.shift_mm,
+                relieved + 1,
+                breathing + 1,
+                after[2].pleural_air_ml,
+                after[2].shift_mm
+            );
+            match model {
+                CourseModel::Clinical => {
+                    assert_eq!(relieved, 0, "the first cycle after the needle");
+                    // 95 % of the way to the atmospheric air in three cycles (e^{−3} = 0.0498).
+                    let floor = m.atmospheric_air_ml();
+                    let excess0 = c.pleural_air_ml - floor;
+                    assert!(after[2].pleural_air_ml - floor <= 0.05 * excess0);
+                    assert!(after[2].shift_mm < 0.5 * m.params().beta_mm);
+                    assert!(after
+                        .windows(2)
+                        .all(|w| w[1].pleural_air_ml <= w[0].pleural_air_ml));
+                    assert!(after[11].affected.tidal_ml > 0.0);
+                }
+                // 7.5 % of what it found per cycle: 77.5 % is still there three cycles on.
+                CourseModel::Seed => {
+                    assert!((after[2].pleural_air_ml - 0.775 * c.pleural_air_ml).abs() < 1e-9)
+                }
+            }
+        }
+        // A needle into a pneumothorax below atmospheric pressure lets air in up to it (the path
+        // is open both ways), and no further.
+        let mut m = default_course(TensionParams::new(Side::Left));
+        for _ in 0..5 {
+            m.advance();
+        }
+        m.intervene(Intervention::NeedleDecompression, Side::Left, 0);
+        let floor = m.atmospheric_air_ml();
+        let mut last = 0.0;
+        for _ in 0..40 {
+            let c = m.advance();
+            assert!(c.pleural_air_ml >= last && c.pleural_air_ml <= floor + 1e-9);
+            last = c.pleural_air_ml;
+        }
+        assert!(floor - last < 1e-6 * floor);
+    }
+
+    #[test]
+    fn the_clinical_onset_adds_no_more_tidal_volume_than_its_air_explains() {
+        //! Issue 25 (c): α grows with the way to V1max, so 5 ml of air at onset changes the
+        //! unaffected lung's tidal volume by α·dV (≪ 5 ml), not by α = 100 ml.
+        for model in [CourseModel::Clinical, CourseModel::Seed] {
+            let mut m = default_course(TensionParams::new(Side::Left).with_model(model));
+            let c0 = m.advance();
+            let c1 = m.advance();
+            let jump = c1.unaffected.unwrap().tidal_ml - c0.unaffected.unwrap().tidal_ml;
+            let lost = c0.affected.tidal_ml - c1.affected.tidal_ml;
+            eprintln!(
+                "{}: onset {:.1} ml of air: unaffected tidal {:.3} -> {:.3} ml (+{jump:.3}), \
+                 affected {:.3} -> {:.3} ml",
+                model.name(),
+                c1.pleural_air_ml,
+                c0.unaffected.unwrap().tidal_ml,
+                c1.unaffected.unwrap().tidal_ml,
+                c0.affected.tidal_ml,
+                c1.affected.tidal_ml
+            );
+            match model {
+                CourseModel::Clinical => {
+                    assert!(jump >= 0.0 && jump <= c1.pleural_air_ml, "{jump}");
+                    assert!(lost >= 0.0 && lost <= c1.pleural_air_ml);
+                    // Both lungs together breathe no more than before.
+                    let total =
+                        |c: &TensionCycle| c.affected.tidal_ml + c.unaffected.unwrap().tidal_ml;
+                    assert!(total(&c1) <= total(&c0));
+                }
+                CourseModel::Seed => assert_eq!(jump, 100.0),
+            }
+        }
+    }
+
+    #[test]
+    fn clinical_parameter_edges_are_named_errors_and_extremes_stay_finite() {
+        let (l, r) = lungs();
+        let b = preset(DEFAULT_PRESET).unwrap().boundary;
+        let base = TensionParams::new(Side::Left);
+        for (p, key) in [
+            (
+                TensionParams {
+                    mediastinal_compliance_ml_per_cmh2o: 0.0,
+                    ..base
+                },
+                "mediastinal_compliance_ml_per_cmh2o",
+            ),
+            (
+                TensionParams {
+                    mediastinal_compliance_ml_per_cmh2o: f64::NAN,
+                    ..base
+                },
+                "mediastinal_compliance_ml_per_cmh2o",
+            ),
+            (
+                TensionParams {
+                    needle_tau_cycles: 0.0,
+                    ..base
+                },
+                "needle_tau_cycles",
+            ),
+            (
+                TensionParams {
+                    needle_tau_cycles: f64::INFINITY,
+                    ..base
+                },
+                "needle_tau_cycles",
+            ),
+        ] {
+            let e = Tension::new(p, Timing::default(), b, l, Some(r))
+                .unwrap_err()
+                .to_string();
+            assert!(e.contains(key), "{key}: {e}");
+        }
+        for p in [
+            TensionParams {
+                mediastinal_compliance_ml_per_cmh2o: 0.1,
+                inflow_ml: 1000.0,
+                tau: 0.0,
+                ..base
+            },
+            TensionParams {
+                mediastinal_compliance_ml_per_cmh2o: 1000.0,
+                needle_tau_cycles: 0.01,
+                inflow_ml: 1e-300,
+                ..base
+            },
+            TensionParams {
+                needle_tau_cycles: 1000.0,
+                v1_max_ml: Some(950.0),
+                beta_mm: 100.0,
+                ..base
+            },
+        ] {
+            let mut m = Tension::new(p, Timing::default(), b, l, Some(r)).unwrap();
+            assert!(m.svc_closing_air_ml().is_finite() && m.atmospheric_air_ml().is_finite());
+            for t in 0..3000 {
+                if t == 1500 {
+                    m.intervene(Intervention::NeedleDecompression, Side::Left, t);
+                }
+                let c = m.advance();
+                finite(&c);
+                assert!(c.affected.collapse <= 1.0 && c.dv <= 1.0);
+            }
+        }
     }
 
     proptest! {
@@ -1191,10 +1647,12 @@ mod tests {
             inflow in 0.1f64..200.0,
             tau in 0.0f64..0.05,
             n_h in 0u32..20,
+            seed_model in proptest::bool::ANY,
             events in proptest::collection::vec((0u64..36_000, 0usize..3, proptest::bool::ANY), 0..6),
         ) {
             // 10 hours at 60 breaths/min, random interventions on either side.
-            let mut m = course(TensionParams { inflow_ml: inflow, tau, hyperexpansion_cycles: n_h, ..TensionParams::new(Side::Left) });
+            let model = if seed_model { CourseModel::Seed } else { CourseModel::Clinical };
+            let mut m = course(TensionParams { inflow_ml: inflow, tau, hyperexpansion_cycles: n_h, model, ..TensionParams::new(Side::Left) });
             let bound = m.svc_closing_air_ml() + (n_h as f64 + 2.0) * inflow;
             let kinds = [Intervention::NeedleDecompression, Intervention::OcclusiveDressing, Intervention::ChestTube];
             for t in 0..36_000u64 {
