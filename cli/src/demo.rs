@@ -28,9 +28,20 @@ pub struct DemoArgs {
     /// Folder for the PNG frames (created if missing).
     #[arg(long, default_value = "out")]
     pub out: PathBuf,
-    /// PNG frames to write, spread over one breathing cycle (0 for none; at most 240).
+    /// PNG frames to write, spread over one whole breath at the breath's own rate, from the front
+    /// of the patient with the HUD (0 for none; at most 240); they make the breath strip.
     #[arg(long, default_value_t = 6)]
     pub snapshots: u32,
+    /// Record one whole breath (the same frames as the strip, more of them) as an animation: a
+    /// `.gif`, or an `.mp4` when ffmpeg is on PATH. The strip then uses --snapshots of its frames.
+    #[arg(long, value_name = "FILE")]
+    pub record: Option<PathBuf>,
+    /// Frames of the --record animation over the breath (2 to 240).
+    #[arg(long, value_name = "N", default_value_t = 36)]
+    pub record_frames: u32,
+    /// The heads-up display in the window and the PNGs: on or off (the window's H key toggles it).
+    #[arg(long, value_name = "ON|OFF", default_value = "on")]
+    pub hud: renderer::process::HudSwitch,
     /// Take the snapshots over the breath that starts after this many seconds (default: after the
     /// first second), e.g. to see a tension pneumothorax well into its course.
     #[arg(long, value_name = "S")]
@@ -227,6 +238,8 @@ pub struct DemoReport {
     pub pngs: Vec<String>,
     /// The breath's frames side by side plus a motion panel (absent with fewer than two PNGs).
     pub strip: Option<String>,
+    /// The `--record` animation of one breath.
+    pub recording: Option<String>,
     /// Per-hop rows.
     pub hops: Vec<HopRow>,
     /// Each process's per-sample time against the scene's `[processes] budget_ms`.
@@ -354,24 +367,6 @@ pub fn check_writable(dir: &Path) -> anyhow::Result<()> {
     Ok(())
 }
 
-/// Engine ticks at which to take `count` snapshots across one breathing cycle within `run_ticks`.
-pub fn snapshot_ticks(count: u32, cycle_ticks: u64, run_ticks: u64, warmup_ticks: u64) -> Vec<u64> {
-    if count == 0 || run_ticks <= warmup_ticks {
-        return Vec::new();
-    }
-    // Start at the first cycle boundary after the warm-up if a whole cycle fits; otherwise spread
-    // over what the run has.
-    let first_cycle = warmup_ticks.div_ceil(cycle_ticks) * cycle_ticks;
-    let (start, span) = if first_cycle + cycle_ticks <= run_ticks {
-        (first_cycle, cycle_ticks)
-    } else {
-        (warmup_ticks, run_ticks - warmup_ticks)
-    };
-    (0..count as u64)
-        .map(|k| start + k * span / count as u64)
-        .collect()
-}
-
 /// Mesa's window-system probe prints "XDG_RUNTIME_DIR is invalid or not set" from every process when
 /// the variable is missing (a root shell, a service): give the launcher and its children a private
 /// one (mode 0700, per user) instead of that noise.
@@ -459,6 +454,11 @@ pub fn run_watched(args: &DemoArgs, watch: &mut dyn Watch) -> anyhow::Result<Dem
     }
     check_counts(args)?;
     crate::supervise::Intensity::checked(args.max_restarts, args.restart_window_s)?;
+    let record = args
+        .record
+        .as_deref()
+        .map(|p| crate::record::check(p, args.record_frames))
+        .transpose()?;
     if !(args.predict_ms.is_finite() && (0.0..=100.0).contains(&args.predict_ms)) {
         bail!(
             "--predict-ms {} must be within 0..100 ms (0 draws the newest HMD sample)",
@@ -577,25 +577,17 @@ pub fn run_watched(args: &DemoArgs, watch: &mut dyn Watch) -> anyhow::Result<Dem
     // processes read the same resolved scene.
     let prepared = crate::prepare::prepare(loaded, &args.out.join("kernels"))?;
     let (scene, kernels, resolved_scene) = (prepared.scene, prepared.kernels, prepared.path);
-    let breathing = match scene.waveform_breathing()? {
-        Some(b) => b,
-        None => {
-            let (inhale, exhale, boundary) = scene.pv_model()?;
-            lung_model::pv::Breathing::from_constants(&inhale, &exhale, boundary, &scene.timing())?
-        }
-    };
     let tick_hz = scene.engine.tick_hz;
-    let run_ticks = (args.seconds * tick_hz) as u64;
     // (--snapshot-at-s was checked with the other counts, before anything was written.)
     let warmup_ticks = args.snapshot_at_s.map_or(tick_hz as u64, |at| {
         ((at * tick_hz) as u64).max(tick_hz as u64)
     });
-    let targets = snapshot_ticks(
-        args.snapshots,
-        breathing.cycle_ticks() as u64,
-        run_ticks,
-        warmup_ticks,
-    );
+    // The renderer plans the frames when the breath starts, at that breath's own rate (a disease
+    // may breathe faster than the scene's [pv] rate), from the front of the patient.
+    let breath_frames = match record {
+        Some(_) => args.record_frames.max(args.snapshots),
+        None => args.snapshots,
+    };
 
     // Subscribe to the reports before anything can publish them.
     let node = iox::node(&services, "launcher")?;
@@ -624,6 +616,14 @@ pub fn run_watched(args: &DemoArgs, watch: &mut dyn Watch) -> anyhow::Result<Dem
     let mut renderer_args = with_scene([common.clone(), cpu(2)].concat());
     renderer_args.push("--predict-ms".into());
     renderer_args.push(args.predict_ms.to_string());
+    renderer_args.push("--hud".into());
+    renderer_args.push(
+        match args.hud {
+            renderer::process::HudSwitch::On => "on",
+            renderer::process::HudSwitch::Off => "off",
+        }
+        .into(),
+    );
     renderer_args.extend(args.output.to_args());
     let existing: std::collections::HashSet<PathBuf> = list_pngs(&args.out).into_iter().collect();
     let trace_dir = match &args.trace {
@@ -640,22 +640,29 @@ pub fn run_watched(args: &DemoArgs, watch: &mut dyn Watch) -> anyhow::Result<Dem
         intensity,
         Box::new(|| transport::iox::remove_dead_nodes(&services).map_err(anyhow::Error::from)),
     );
-    let (exe, targets) = (&exe, &targets);
+    let exe = &exe;
     let out_dir = args.out.display().to_string();
     let last_seen = &last_tick;
     supervisor.start(
         "renderer",
         Box::new(move || {
             let mut a = renderer_args.clone();
-            let ahead: Vec<String> = targets
-                .iter()
-                .filter(|&&t| last_seen.get().is_none_or(|l| t > l))
-                .map(|t| t.to_string())
-                .collect();
-            if !ahead.is_empty() {
-                a.extend(["--snapshot-ticks".to_string(), ahead.join(",")]);
-                a.extend(["--snapshot-dir".to_string(), out_dir.clone()]);
-                a.push("--snapshot-fixed-view".into());
+            if breath_frames > 0 {
+                // A restarted renderer plans its breath after the last tick shown (a strip across
+                // a restart can hold frames of two breaths).
+                let after = last_seen
+                    .get()
+                    .map_or(warmup_ticks, |l| warmup_ticks.max(l + 1));
+                a.extend([
+                    "--snapshot-breath".to_string(),
+                    breath_frames.to_string(),
+                    "--snapshot-after-tick".to_string(),
+                    after.to_string(),
+                    "--snapshot-view".to_string(),
+                    "front".to_string(),
+                    "--snapshot-dir".to_string(),
+                    out_dir.clone(),
+                ]);
             }
             Children::spawn(exe, "renderer", &a)
         }),
@@ -861,14 +868,49 @@ pub fn run_watched(args: &DemoArgs, watch: &mut dyn Watch) -> anyhow::Result<Dem
             "the restarted engine never published its resume tick {t}"
         ));
     }
-    let mut pngs: Vec<String> = list_pngs(&args.out)
+    let mut frames: Vec<PathBuf> = list_pngs(&args.out)
         .into_iter()
         .filter(|p| !existing.contains(p))
-        .map(|p| p.display().to_string())
         .collect();
-    pngs.sort();
-    let frames: Vec<PathBuf> = pngs.iter().map(PathBuf::from).collect();
-    let strip = match crate::strip::breath_strip(&frames, &args.out.join("breath_strip.png")) {
+    // In breath order (the engine tick in each name; the index alone sorts 100 before 11).
+    frames.sort_by_key(|p| (crate::record::tick_of(p), p.clone()));
+    let pngs: Vec<String> = frames.iter().map(|p| p.display().to_string()).collect();
+    let recording = match (record, &args.record) {
+        (Some(format), Some(path)) => {
+            if frames.len() < breath_frames as usize {
+                failure.get_or_insert(format!(
+                    "--record {}: the run ended after {} of the breath's {breath_frames} frames; \
+                     run longer (--seconds) so a whole breath fits after the first second",
+                    path.display(),
+                    frames.len()
+                ));
+                None
+            } else {
+                let ticks: Vec<u64> = frames
+                    .iter()
+                    .map(|p| crate::record::tick_of(p).unwrap_or(0))
+                    .collect();
+                let delays = crate::record::frame_delays_ms(&ticks, tick_hz);
+                match crate::record::write(format, &frames, &delays, path) {
+                    Ok(()) => Some(path.display().to_string()),
+                    Err(e) => {
+                        failure.get_or_insert(format!("{e:#}"));
+                        None
+                    }
+                }
+            }
+        }
+        _ => None,
+    };
+    let strip_frames: Vec<PathBuf> = match record {
+        Some(_) => crate::record::spread(frames.len(), args.snapshots as usize)
+            .into_iter()
+            .map(|k| frames[k].clone())
+            .collect(),
+        None => frames,
+    };
+    let strip = match crate::strip::breath_strip(&strip_frames, &args.out.join("breath_strip.png"))
+    {
         Ok(s) => s.map(|p| p.display().to_string()),
         Err(e) => {
             failure.get_or_insert(format!("{e:#}"));
@@ -894,6 +936,7 @@ pub fn run_watched(args: &DemoArgs, watch: &mut dyn Watch) -> anyhow::Result<Dem
         end_to_end_max_ms: e2e.max_ms,
         pngs,
         strip,
+        recording,
         hops: stats.rows(),
         budgets: {
             let b = scene.processes.budget_ms;
@@ -1113,6 +1156,9 @@ pub fn table(r: &DemoReport) -> String {
             let _ = writeln!(s, "  {p}");
         }
     }
+    if let Some(rec) = &r.recording {
+        let _ = writeln!(s, "recording of one breath (front view, HUD): {rec}");
+    }
     if let Some(strip) = &r.strip {
         let _ = writeln!(s, "breath strip (frames + motion panel: green = newly covered at end-inspiration, red = vacated): {strip}");
     }
@@ -1141,18 +1187,6 @@ mod tests {
         assert!(e.to_string().contains("core 4096"), "{e}");
         let first = allowed_cpus().unwrap()[0].to_string();
         assert!(check_counts(&args(&["--cpus", &first, &first, &first])).is_ok());
-    }
-
-    #[test]
-    fn snapshots_span_one_cycle_after_warm_up() {
-        assert_eq!(
-            snapshot_ticks(6, 300, 600, 60),
-            vec![300, 350, 400, 450, 500, 550]
-        );
-        // A short run spreads the snapshots over what it has.
-        assert_eq!(snapshot_ticks(3, 300, 180, 60), vec![60, 100, 140]);
-        assert!(snapshot_ticks(0, 300, 600, 60).is_empty());
-        assert!(snapshot_ticks(4, 300, 30, 60).is_empty());
     }
 
     #[test]

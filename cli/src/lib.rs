@@ -23,6 +23,7 @@ pub mod plot;
 pub mod prepare;
 pub mod pv_cmd;
 pub mod pv_recording;
+pub mod record;
 pub mod register_cmd;
 pub mod scene_check;
 pub mod scene_event;

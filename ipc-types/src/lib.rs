@@ -29,7 +29,9 @@
 //! computed for ([`LungFrame`]); v3 adds each lung's collapse towards its hilum (a pneumothorax,
 //! EQUATIONS.md §4: drawn at `h + (1 − c)(p − h) + s·u + offset`), zero for a healthy lung; v4 adds
 //! to each [`FrameReport`] when `present` returned, the present mode and the frame latency (the
-//! latency harness's submit-to-present), and the renderer's GPU-done time (capture → GPU done).
+//! latency harness's submit-to-present), and the renderer's GPU-done time (capture → GPU done), and
+//! what a heads-up display shows of each lung's breath: its PV-model pressure, tidal volume and the
+//! ticks of its current cycle and inhalation (so a disease's own rate is shown, not the scene's).
 
 use core::mem::{align_of, offset_of, size_of};
 
@@ -313,6 +315,18 @@ pub struct LungFrame {
     pub collapse: f32,
     /// The hilum `h` the lung collapses towards, body frame, mm (0 when `collapse` is 0).
     pub hilum_mm: [f32; 3],
+    /// The PV model's driving pressure at this tick, cmH2O (EQUATIONS.md §1.1: RP → TP linearly in
+    /// the inhalation's phase time, back to RP in the exhalation's; RP while the lung is held). With
+    /// `volume_ml` it is the point on the lung's PV loop.
+    pub pressure_cmh2o: f32,
+    /// This lung's tidal volume in its current cycle, ml (its share of the cycle's TV; 0 while the
+    /// lung is held).
+    pub tidal_ml: f32,
+    /// Ticks of this lung's current breathing cycle (its rate is `60 · tick_hz / cycle_ticks`
+    /// breaths/min; 0 for an empty slot).
+    pub cycle_ticks: u32,
+    /// Ticks of the current cycle's inhalation (`phase < inhale_ticks / cycle_ticks`: inhaling).
+    pub inhale_ticks: u32,
 }
 
 impl Default for LungFrame {
@@ -768,7 +782,7 @@ const _: () = {
     assert!(offset_of!(TrackerFrame, stamps) == 16);
     assert!(offset_of!(TrackerFrame, tools) == 64);
 
-    assert!(size_of::<LungFrame>() == 64 + 4 * MAX_COEFFS && align_of::<LungFrame>() == 8);
+    assert!(size_of::<LungFrame>() == 80 + 4 * MAX_COEFFS && align_of::<LungFrame>() == 8);
     assert!(offset_of!(LungFrame, kernel_id) == 0);
     assert!(offset_of!(LungFrame, volume_ml) == 8);
     assert!(offset_of!(LungFrame, deform_scale) == 12);
@@ -781,8 +795,12 @@ const _: () = {
     assert!(offset_of!(LungFrame, coeffs) == 48);
     assert!(offset_of!(LungFrame, collapse) == 48 + 4 * MAX_COEFFS);
     assert!(offset_of!(LungFrame, hilum_mm) == 52 + 4 * MAX_COEFFS);
+    assert!(offset_of!(LungFrame, pressure_cmh2o) == 64 + 4 * MAX_COEFFS);
+    assert!(offset_of!(LungFrame, tidal_ml) == 68 + 4 * MAX_COEFFS);
+    assert!(offset_of!(LungFrame, cycle_ticks) == 72 + 4 * MAX_COEFFS);
+    assert!(offset_of!(LungFrame, inhale_ticks) == 76 + 4 * MAX_COEFFS);
 
-    assert!(size_of::<EngineFrame>() == 752 && align_of::<EngineFrame>() == 8);
+    assert!(size_of::<EngineFrame>() == 784 && align_of::<EngineFrame>() == 8);
     assert!(offset_of!(EngineFrame, layout_version) == 0);
     assert!(offset_of!(EngineFrame, state) == 4);
     assert!(offset_of!(EngineFrame, fault) == 8);
@@ -940,12 +958,12 @@ mod tests {
         f.lungs[LUNG_LEFT].kernel_id = 0xdead_beef_0123_4567;
         f.lungs[LUNG_RIGHT].offset_mm = [1.0, -2.0, 3.5];
         let bytes = bytemuck::bytes_of(&f).to_vec();
-        assert_eq!(bytes.len(), 752);
+        assert_eq!(bytes.len(), 784);
         let back: EngineFrame = bytemuck::pod_read_unaligned(&bytes);
         assert_eq!(back, f);
-        // Little-endian on every supported host: the kernel id sits at byte 112 + 320 (left lung).
+        // Little-endian on every supported host: the kernel id sits at byte 112 + 336 (left lung).
         assert_eq!(
-            u64::from_le_bytes(bytes[432..440].try_into().unwrap()),
+            u64::from_le_bytes(bytes[448..456].try_into().unwrap()),
             0xdead_beef_0123_4567
         );
     }

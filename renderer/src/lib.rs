@@ -21,9 +21,11 @@ pub mod camera;
 pub mod deform;
 pub mod draw;
 pub mod gpu;
+pub mod hud;
 pub mod predict;
 pub mod present;
 pub mod process;
+pub mod record;
 pub mod tumour;
 pub mod window;
 pub mod xr;
@@ -169,6 +171,8 @@ pub struct LungRenderer {
     rig: camera::Rig,
     timestamps: Option<Timestamps>,
     tumours: Vec<tumour::TumourDraw>,
+    /// Both lungs' rest box in the body frame (the front view's framing).
+    lung_box: Option<(glam::Vec3, glam::Vec3)>,
 }
 
 const BACKGROUND: wgpu::Color = wgpu::Color {
@@ -372,7 +376,16 @@ impl LungRenderer {
             }),
             period_ns: gpu.queue.get_timestamp_period(),
         });
+        let lung_box = lungs
+            .iter()
+            .flat_map(|l| l.lung.positions.iter())
+            .map(|&p| glam::Vec3::from(p))
+            .filter(|p| p.is_finite())
+            .fold(None, |b: Option<(glam::Vec3, glam::Vec3)>, p| {
+                Some(b.map_or((p, p), |(lo, hi)| (lo.min(p), hi.max(p))))
+            });
         Ok(Self {
+            lung_box,
             deform,
             draw,
             index,
@@ -409,6 +422,24 @@ impl LungRenderer {
     /// Image size (both eyes side by side in stereo).
     pub fn image_size(&self) -> (u32, u32) {
         (self.eye_width * self.eyes as u32, self.height)
+    }
+
+    /// The HMD pose that shows the lungs from the front of the patient registered at `patient`
+    /// ([`record::front_view`]); `None` without lungs.
+    pub fn front_view(&self, patient: &Pose) -> Option<Pose> {
+        let b = self.lung_box?;
+        let aspect = self.eye_width as f32 / self.height as f32;
+        Some(record::front_view(
+            self.rig.model(patient),
+            b,
+            self.settings.fov_y_deg,
+            aspect,
+        ))
+    }
+
+    /// Whether both eyes are drawn side by side.
+    pub fn is_stereo(&self) -> bool {
+        self.eyes == 2
     }
 
     /// Vertices drawn per frame (both lungs).
@@ -495,6 +526,20 @@ impl LungRenderer {
         capture: bool,
         extra: impl FnOnce(&mut wgpu::CommandEncoder),
     ) -> FrameTiming {
+        self.render_with_overlay(gpu, state, capture, |_, _, _| {}, extra)
+    }
+
+    /// As [`Self::render_with`], with `overlay` recorded right after the scene is drawn, given the
+    /// final colour target and the eyes' cameras (the heads-up display, [`hud::Hud::encode`]):
+    /// it is in the captured PNG and in what the window presents.
+    pub fn render_with_overlay(
+        &self,
+        gpu: &Gpu,
+        state: &DrawState,
+        capture: bool,
+        overlay: impl FnOnce(&mut wgpu::CommandEncoder, &wgpu::TextureView, &[camera::EyeUniform]),
+        extra: impl FnOnce(&mut wgpu::CommandEncoder),
+    ) -> FrameTiming {
         let queue = &gpu.queue;
         self.deform.set_lungs(
             queue,
@@ -549,6 +594,7 @@ impl LungRenderer {
                 }),
         );
         self.encode_phases(&mut encoder, state.pose_warning, n);
+        overlay(&mut encoder, &self.color_view, &eyes[..n]);
         extra(&mut encoder);
         if let Some(t) = &self.timestamps {
             encoder.resolve_query_set(&t.set, 0..2, &t.resolve, 0);

@@ -47,7 +47,8 @@ pub struct RendererArgs {
     pub snapshot_dir: PathBuf,
     /// Draw every snapshot frame from the HMD pose of the first one, so the frames of a breath are
     /// comparable (the walking HMD would otherwise change the view more than the breath does).
-    #[arg(long)]
+    /// Same as `--snapshot-view first`.
+    #[arg(long, conflicts_with = "snapshot_view")]
     pub snapshot_fixed_view: bool,
     /// Window, fullscreen display and present options.
     #[command(flatten)]
@@ -60,6 +61,25 @@ pub struct RendererArgs {
     /// offscreen image is made this size, each eye half its width in stereo.
     #[arg(skip)]
     pub screen_size: Option<(u32, u32)>,
+    /// The viewpoint of the snapshots: `hmd` (where the HMD is at each), `first` (the first
+    /// snapshot's HMD pose for all), `front` (the front of the patient, head up, the lungs filling
+    /// about half the image: one fixed viewpoint for strips and recordings).
+    #[arg(long, value_name = "VIEW", value_enum)]
+    pub snapshot_view: Option<SnapshotView>,
+    /// Write a PNG at N frames over one whole breath: the first breath of the followed lung (the
+    /// first that breathes) starting at or after `--snapshot-after-tick`, at that breath's own rate
+    /// as the engine runs it (a disease's faster breathing gives one breath, not part of several).
+    /// 1 to 240.
+    #[arg(long, value_name = "N", value_parser = clap::value_parser!(u32).range(1..=240))]
+    pub snapshot_breath: Option<u32>,
+    /// With --snapshot-breath: the engine tick from which to wait for a breath's start.
+    #[arg(
+        long,
+        value_name = "TICK",
+        default_value_t = 0,
+        requires = "snapshot_breath"
+    )]
+    pub snapshot_after_tick: u64,
     /// Draw the HMD pose predicted this many ms past the draw time (constant linear and angular
     /// velocity from the last two samples; ~ one display frame of scan-out): 0 draws the newest
     /// sample. At most 100.
@@ -75,6 +95,32 @@ pub struct RendererArgs {
     /// and height).
     #[arg(long, value_name = "FILE")]
     pub hmd: Option<PathBuf>,
+    /// The heads-up display (volumes, rate, breath phase, PV loop, disease, outcomes, tracker
+    /// health, timing; R/L and head/feet labels) in every eye and in the PNGs: on or off. The
+    /// window's H key toggles it.
+    #[arg(long, value_name = "ON|OFF", default_value = "on")]
+    pub hud: HudSwitch,
+}
+
+/// `--snapshot-view`.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Default, clap::ValueEnum)]
+pub enum SnapshotView {
+    /// The HMD pose of each frame.
+    #[default]
+    Hmd,
+    /// The first snapshot's HMD pose, for all.
+    First,
+    /// The front of the patient.
+    Front,
+}
+
+/// `--hud on|off`.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, clap::ValueEnum)]
+pub enum HudSwitch {
+    /// Draw the heads-up display.
+    On,
+    /// Draw the lungs alone.
+    Off,
 }
 
 impl RendererArgs {
@@ -229,8 +275,10 @@ pub struct Snapshots {
     pub ticks: Vec<u64>,
     /// Folder for the PNGs.
     pub dir: PathBuf,
-    /// Draw every snapshot from the first snapshot's HMD pose.
-    pub fixed_view: bool,
+    /// Where the snapshots are drawn from.
+    pub view: SnapshotView,
+    /// Snapshots over one breath, planned when it starts ([`crate::record::BreathPlan`]).
+    pub breath: Option<crate::record::BreathPlan>,
 }
 
 /// What the session has drawn so far.
@@ -278,6 +326,17 @@ pub struct Session {
         lung_model::mesh::Side,
     )>,
     control_sequence: u64,
+    /// The engine's answers to interventions (this window's keys and `lungdyn scene event`).
+    replies: Option<Box<dyn Receive<ipc_types::ControlReply>>>,
+    /// The heads-up display and whether it is drawn (`--hud`, the H key).
+    hud: Option<crate::hud::Hud>,
+    hud_on: bool,
+    /// What the HUD shows beside the engine frame: the newest tracker frame, the previous frame's
+    /// times, the latest intervention's line.
+    last_tracker: Option<TrackerFrame>,
+    last_timing: (u64, Option<u64>, Option<u64>),
+    outcome: String,
+    outcome_standing: Option<crate::hud::text::Standing>,
     /// systemd's watchdog, pinged from [`Session::step`] (disabled outside a unit).
     watchdog: transport::notify::Watchdog,
     /// Stale frames in a row, and the time of the last fresh engine frame (the engine-down notice).
@@ -352,10 +411,16 @@ impl Session {
         let mut snapshots = Snapshots {
             ticks: args.snapshot_ticks.clone(),
             dir: args.snapshot_dir.clone(),
-            fixed_view: args.snapshot_fixed_view,
+            view: match (args.snapshot_fixed_view, args.snapshot_view) {
+                (true, _) => SnapshotView::First,
+                (false, v) => v.unwrap_or_default(),
+            },
+            breath: args
+                .snapshot_breath
+                .map(|n| crate::record::BreathPlan::new(n, args.snapshot_after_tick)),
         };
         snapshots.ticks.sort_unstable();
-        if !snapshots.ticks.is_empty() {
+        if !snapshots.ticks.is_empty() || snapshots.breath.is_some() {
             std::fs::create_dir_all(&snapshots.dir).map_err(|source| {
                 RendererError::SnapshotDir {
                     path: snapshots.dir.clone(),
@@ -369,6 +434,7 @@ impl Session {
             lungs.push(crate::RenderLung::from_kernel(&kernel, scene.lungs.mode)?);
         }
         let renderer = LungRenderer::with_rig(&gpu, &scene.render, &rig_files.rig(), &lungs)?;
+        let hud_config = crate::hud::HudConfig::of(&scene, &lungs);
         let node = iox::node(&instance, "renderer")?;
         let ports = Ports {
             engine: Box::new(instance.engine_inlet(&node)?),
@@ -386,6 +452,7 @@ impl Session {
             instance.name(),
         );
         session.stop_at = run_ns.map(|d| session.clock.now_ns().saturating_add(d));
+        session.set_hud(hud_config, args.hud == HudSwitch::On);
         session.predictor = crate::predict::HmdPredictor::new(args.predict_ms);
         if let Some(d) = &scene.disease {
             if d.kind == lung_model::scene_disease::DiseaseKind::TensionPneumothorax {
@@ -393,6 +460,8 @@ impl Session {
                     session.control = Some((Box::new(instance.control_outlet(&node)?), side));
                 }
             }
+            // Any disease scene: the outcome of an action sent from anywhere is shown.
+            session.replies = Some(Box::new(instance.control_reply_inlet(&node)?));
         }
         session.node = Some(node);
         session.lock = Some(lock);
@@ -466,6 +535,13 @@ impl Session {
             snapshot_view: None,
             control: None,
             control_sequence: 0,
+            replies: None,
+            hud: None,
+            hud_on: false,
+            last_tracker: None,
+            last_timing: (0, None, None),
+            outcome: String::new(),
+            outcome_standing: None,
             watchdog: transport::notify::Watchdog::every(None),
             stale_run: 0,
             last_fresh_ns: 0,
@@ -494,7 +570,63 @@ impl Session {
             ),
         };
         outlet.publish(&packet)?;
+        crate::hud::text::sent_line(&mut self.outcome, kind, side.index() as u32);
+        self.outcome_standing = Some(crate::hud::text::Standing::Pending);
         Ok(Some(*side))
+    }
+
+    /// Give the session a heads-up display for `config` (drawn when `on`).
+    pub fn set_hud(&mut self, config: crate::hud::HudConfig, on: bool) {
+        let (w, h) = self.renderer.image_size();
+        let eyes = if self.renderer.is_stereo() { 2 } else { 1 };
+        self.hud = Some(crate::hud::Hud::new(
+            &self.gpu.device,
+            &self.gpu.queue,
+            config,
+            w / eyes,
+            h,
+            eyes,
+        ));
+        self.hud_on = on;
+    }
+
+    /// Turn the heads-up display on or off (the window's H key); returns whether it is now on.
+    pub fn toggle_hud(&mut self) -> bool {
+        self.hud_on = !self.hud_on && self.hud.is_some();
+        self.hud_on
+    }
+
+    /// The engine's answers that arrived: the latest becomes the HUD's outcome line (and is said
+    /// on stderr once, in words).
+    fn read_replies(&mut self) -> Result<(), RendererError> {
+        let Some(replies) = self.replies.as_mut() else {
+            return Ok(());
+        };
+        let mut latest: Option<ipc_types::ControlReply> = None;
+        replies.drain(&mut |r: &ipc_types::ControlReply| {
+            if r.check_layout().is_ok() {
+                latest = Some(*r);
+            }
+        })?;
+        if let Some(r) = latest {
+            let tick_hz = self.hud.as_ref().map_or(60.0, |h| h.config().tick_hz);
+            match ipc_types::Intervention::from_code(r.kind) {
+                Some(kind) => {
+                    let standing =
+                        crate::hud::text::outcome_line(&mut self.outcome, kind, &r, tick_hz);
+                    self.outcome_standing = Some(standing);
+                }
+                None => {
+                    self.outcome.clear();
+                    self.outcome
+                        .push_str("an intervention this build does not know: ");
+                    self.outcome.push_str(&r.text());
+                    self.outcome_standing = Some(crate::hud::text::Standing::Failed);
+                }
+            }
+            eprintln!("renderer[{}]: {}", self.instance, self.outcome);
+        }
+        Ok(())
     }
 
     /// True when the process was asked to stop or its time is up.
@@ -623,6 +755,7 @@ impl Session {
         frame.stamps.renderer_receive_ns = now;
         // Late latch: the freshest HMD pose at draw time.
         if let Some(t) = self.ports.tracker.take_latest()? {
+            self.last_tracker = Some(t);
             if let Some(pose) = t.valid_tool(TOOL_HMD) {
                 self.hmd = pose;
                 self.predictor
@@ -655,6 +788,14 @@ impl Session {
             flags |= report_flags::KERNEL_MISMATCH;
             self.stats.kernel_mismatch_frames += 1;
         }
+        if let Some(plan) = self.snapshots.breath.as_mut() {
+            if let Some(ticks) = plan.observe(&frame) {
+                // Planned once per run (the only allocation of the plan).
+                self.snapshots.ticks.extend(ticks);
+                self.snapshots.ticks.sort_unstable();
+                self.snapshots.breath = None;
+            }
+        }
         let targets = &self.snapshots.ticks;
         let capture = self.next_target < targets.len() && frame.tick >= targets[self.next_target];
         if capture {
@@ -669,18 +810,59 @@ impl Session {
         if let Some(eyes) = output.eyes() {
             self.renderer.set_eyes(eyes);
         }
-        if capture && self.snapshots.fixed_view {
-            view = *self.snapshot_view.get_or_insert(self.hmd);
+        if capture {
+            match self.snapshots.view {
+                SnapshotView::Hmd => {}
+                SnapshotView::First => view = *self.snapshot_view.get_or_insert(self.hmd),
+                SnapshotView::Front => {
+                    if let Some(pose) = self.renderer.front_view(&state.patient) {
+                        view = pose;
+                    }
+                }
+            }
         }
         state.hmd = view;
+        self.read_replies()?;
+        let hud_on = self.hud_on;
         let timing = {
             let _draw = tracing::info_span!(target: transport::trace::TARGET, "draw").entered();
-            self.renderer
-                .render_with(&self.gpu, &state, capture, |e| output.encode(e))
+            match self.hud.as_mut().filter(|_| hud_on) {
+                Some(hud) => {
+                    let (cpu_ns, gpu_ns, latency_ns) = self.last_timing;
+                    let shown = crate::hud::HudFrame {
+                        frame: &frame,
+                        tracker: self.last_tracker.as_ref(),
+                        warning: state.pose_warning,
+                        cpu_ns,
+                        gpu_ns,
+                        latency_ns,
+                        outcome: self.outcome_standing.map(|s| (self.outcome.as_str(), s)),
+                    };
+                    let gpu = &self.gpu;
+                    self.renderer.render_with_overlay(
+                        gpu,
+                        &state,
+                        capture,
+                        |encoder, target, eyes| {
+                            hud.encode(&gpu.device, &gpu.queue, encoder, target, eyes, &shown)
+                        },
+                        |e| output.encode(e),
+                    )
+                }
+                None => self
+                    .renderer
+                    .render_with(&self.gpu, &state, capture, |e| output.encode(e)),
+            }
         };
         frame.stamps.renderer_submit_ns = timing.submit_ns;
         let present_ns = output.present().unwrap_or(0);
         let (present_mode, frame_latency) = output.mode();
+        self.last_timing = (
+            timing.submit_ns.saturating_sub(now),
+            timing.gpu_ns,
+            (frame.stamps.capture_ns != 0)
+                .then(|| timing.submit_ns.saturating_sub(frame.stamps.capture_ns)),
+        );
         if timing.gpu_ns.is_some() {
             flags |= report_flags::GPU_TIMED;
         }

@@ -405,11 +405,18 @@ impl ApplicationHandler for App {
                 w.surface.configure(&w.session.gpu.device, &w.config);
             }
             // A trainee's interventions on a tension pneumothorax: N needle decompression, C chest
-            // tube, O occlusive dressing (sent to the engine, which reports the tick it applied).
+            // tube, O occlusive dressing (sent to the engine, whose answer, read from the
+            // control-reply stream, shows on the HUD in words with its time); H the HUD.
             WindowEvent::KeyboardInput { event, .. }
                 if event.state == winit::event::ElementState::Pressed && !event.repeat =>
             {
-                let action = event.logical_key.to_text().and_then(key_action);
+                let text = event.logical_key.to_text();
+                if matches!(text, Some("h" | "H")) {
+                    let on = w.session.toggle_hud();
+                    eprintln!("renderer: key: HUD {}", if on { "on" } else { "off" });
+                    return;
+                }
+                let action = text.and_then(key_action);
                 if let Some(kind) = action {
                     match w.session.send_action(kind) {
                         Ok(Some(side)) => {

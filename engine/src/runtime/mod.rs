@@ -768,6 +768,18 @@ impl EngineCore {
                 slot.collapse = collapse as f32;
                 slot.hilum_mm = geometry.hilum_mm.unwrap_or_default().map(|v| v as f32);
             }
+            // What a heads-up display shows of this lung's breath (no effect on the motion).
+            let b = &breath.breathing;
+            slot.cycle_ticks = ct;
+            slot.inhale_ticks = b.inhale_ticks();
+            slot.pressure_cmh2o = match breath.held_ml {
+                Some(_) => b.boundary().rp_cmh2o as f32,
+                None => b.pressure_at(local) as f32,
+            };
+            slot.tidal_ml = match breath.held_ml {
+                Some(_) => 0.0,
+                None => (b.boundary().tv_ml * breath.share) as f32,
+            };
             slot.flags = flags;
         }
         out.layout_version = LAYOUT_VERSION;

@@ -727,6 +727,26 @@ impl Breathing {
         self.volume_ml[(tick % self.cycle_ticks as u64) as usize]
     }
 
+    /// The driving pressure (cmH2O) at integer tick `tick` since the start of an inhalation:
+    /// EQUATIONS.md §1.1, RP → TP linearly in the inhalation's phase time `t = k/T_i`, then
+    /// `1 − s` of the swing in the exhalation's (`s = k/T_e`), on the same ticks as
+    /// [`Self::volume_at`] (together: the point on the PV loop). O(1), no allocation.
+    #[inline]
+    pub fn pressure_at(&self, tick: u64) -> f64 {
+        let b = &self.boundary;
+        let local = tick % self.cycle_ticks as u64;
+        let (ti, te) = (
+            self.inhale_ticks as u64,
+            (self.cycle_ticks - self.inhale_ticks) as u64,
+        );
+        let x = if local < ti {
+            local as f64 / ti as f64
+        } else {
+            1.0 - (local - ti) as f64 / te as f64
+        };
+        b.rp_cmh2o + (b.tp_cmh2o - b.rp_cmh2o) * x
+    }
+
     /// Phase at integer tick `tick`.
     #[inline]
     pub fn phase_at(&self, tick: u64) -> Phase {
@@ -830,6 +850,35 @@ mod tests {
         let b = default_breathing();
         assert_eq!(b.cycle_ticks(), 300);
         assert_eq!(b.inhale_ticks(), 150);
+    }
+
+    #[test]
+    fn pressure_rises_rp_to_tp_in_inhalation_and_falls_back_in_exhalation() {
+        for name in PRESET_NAMES {
+            let p = preset(name).unwrap();
+            let b = Breathing::new(&p, &Timing::default()).unwrap();
+            let (rp, tp) = (p.boundary.rp_cmh2o, p.boundary.tp_cmh2o);
+            let (ti, ct) = (b.inhale_ticks() as u64, b.cycle_ticks() as u64);
+            // The loop's corners: RP at the start of inhalation, TP at its end, RP again one
+            // cycle later.
+            assert_eq!(b.pressure_at(0), rp, "{name}");
+            assert_eq!(b.pressure_at(ti), tp, "{name}");
+            assert_eq!(b.pressure_at(ct), rp, "{name}");
+            let mut last = rp;
+            for tick in 1..ct {
+                let x = b.pressure_at(tick);
+                assert!(
+                    x.is_finite() && (rp..=tp).contains(&x),
+                    "{name} {tick}: {x}"
+                );
+                if tick <= ti {
+                    assert!(x > last, "{name} {tick}: pressure must rise while inhaling");
+                } else {
+                    assert!(x < last, "{name} {tick}: pressure must fall while exhaling");
+                }
+                last = x;
+            }
+        }
     }
 
     #[test]

@@ -1,0 +1,713 @@
+//! # hud: the heads-up display over the drawn lungs
+//!
+//! Drawn in its own render pass after the scene, onto the final colour target (what the window
+//! presents and the PNGs store), in every eye: text with glyphon (the bundled DejaVu Sans Mono, no
+//! system fonts) and flat shapes (panels, the breath-phase bar, the PV loop) from a small pipeline.
+//!
+//! * **Panel** (top left): volume, tidal volume and rate; the breath-phase bar; the disease state;
+//!   the latest intervention's outcome with its time; tracker health per tool; frame time and
+//!   end-to-end latency; key help.
+//! * **PV loop** (top right): pressure against volume over the followed lung's current breathing,
+//!   the current point moving on it.
+//! * **Anchored labels**: R and L beside each lung and a head/feet cue, projected from the body
+//!   frame through each eye's camera, so they sit on the lungs.
+//! * **Veil text**: on the held/stale pose veil, what it means.
+//!
+//! In stereo, the panel and PV loop are shifted by a half disparity per eye
+//! ([`text::half_disparity_px`]) so they float at [`HUD_DEPTH_MM`], a comfortable reading depth,
+//! rather than at infinity.
+//!
+//! Per frame: the lines are formatted into kept `String`s ([`text`]) and reshaped only when they
+//! changed; the shapes go into a kept vertex list and one `write_buffer`. glyphon and wgpu manage
+//! their own staging memory.
+
+pub mod text;
+
+use glam::{Mat4, Vec3, Vec4};
+use glyphon::{
+    fontdb, Attrs, Buffer, Cache, Color, Family, FontSystem, Metrics, Resolution, Shaping,
+    SwashCache, TextArea, TextAtlas, TextBounds, TextRenderer, Viewport,
+};
+use ipc_types::{EngineFrame, TrackerFrame, NUM_LUNGS};
+
+use crate::camera::EyeUniform;
+use crate::PoseWarning;
+use text::Standing;
+
+/// The bundled font (DejaVu Sans Mono, Bitstream Vera licence: renderer/assets/).
+static FONT: &[u8] = include_bytes!("../../assets/DejaVuSansMono.ttf");
+const FAMILY: &str = "DejaVu Sans Mono";
+
+/// Where the HUD panel floats in stereo, mm from the eyes (1.5–2 m: comfortable to read, in front
+/// of a patient at arm's length... behind the lungs only for a viewer further than this).
+pub const HUD_DEPTH_MM: f32 = 1750.0;
+
+/// Most shape vertices per frame (two eyes of panels, bar and a loop of [`text::PV_BINS`] segments).
+const MAX_SHAPE_VERTICES: usize = 6 * 512;
+
+/// What the HUD is told once: the scene's facts.
+#[derive(Debug, Clone)]
+pub struct HudConfig {
+    /// Engine ticks per second (the clock of outcomes, the rate).
+    pub tick_hz: f64,
+    /// The scene's disease, in words, and its side (a lung slot), if any.
+    pub disease: Option<(String, Option<usize>)>,
+    /// The window's N/C/O keys act (a tension pneumothorax).
+    pub interventions: bool,
+    /// The scene's IPD, mm (stereo disparity).
+    pub ipd_mm: f32,
+    /// The scene's vertical field of view, degrees.
+    pub fov_y_deg: f32,
+    /// Per lung slot: the rest mesh's bounding box in the body frame (min, max), mm.
+    pub lung_boxes: [Option<([f32; 3], [f32; 3])>; NUM_LUNGS],
+}
+
+impl HudConfig {
+    /// The facts of `scene` with its lungs.
+    pub fn of(scene: &lung_model::scene::Scene, lungs: &[crate::RenderLung]) -> Self {
+        use lung_model::scene_disease::DiseaseKind;
+        let disease = scene.disease.as_ref().map(|d| {
+            (
+                d.kind.name().replace('-', " "),
+                d.side
+                    .map(|s| s.index())
+                    .filter(|_| d.kind != DiseaseKind::BilateralPneumothorax),
+            )
+        });
+        let mut lung_boxes = [None; NUM_LUNGS];
+        for l in lungs {
+            let (lo, hi) = l
+                .lung
+                .positions
+                .iter()
+                .map(|&p| Vec3::from(p))
+                .fold((Vec3::INFINITY, Vec3::NEG_INFINITY), |(lo, hi), p| {
+                    (lo.min(p), hi.max(p))
+                });
+            if lo.is_finite() && hi.is_finite() {
+                lung_boxes[l.side.index()] = Some((lo.to_array(), hi.to_array()));
+            }
+        }
+        Self {
+            tick_hz: scene.engine.tick_hz,
+            interventions: scene
+                .disease
+                .as_ref()
+                .is_some_and(|d| d.kind == DiseaseKind::TensionPneumothorax && d.side.is_some()),
+            disease,
+            ipd_mm: scene.render.ipd_mm,
+            fov_y_deg: scene.render.fov_y_deg,
+            lung_boxes,
+        }
+    }
+}
+
+/// What one frame's HUD shows, beside the engine frame (the session keeps these).
+#[derive(Debug, Clone, Copy)]
+pub struct HudFrame<'a> {
+    /// The engine frame drawn.
+    pub frame: &'a EngineFrame,
+    /// The newest tracker frame, if any arrived.
+    pub tracker: Option<&'a TrackerFrame>,
+    /// The patient pose's state (the veil).
+    pub warning: PoseWarning,
+    /// CPU time of the previous frame, ns.
+    pub cpu_ns: u64,
+    /// GPU time of the previous frame, ns.
+    pub gpu_ns: Option<u64>,
+    /// End-to-end latency of the previous frame (tracker capture → submit), ns.
+    pub latency_ns: Option<u64>,
+    /// The latest intervention's line and how it stands.
+    pub outcome: Option<(&'a str, Standing)>,
+}
+
+#[repr(C)]
+#[derive(Debug, Clone, Copy, bytemuck::Pod, bytemuck::Zeroable)]
+struct ShapeVertex {
+    pos: [f32; 2],
+    color: [f32; 4],
+}
+
+/// Panel lines, in order.
+const VOLUME: usize = 0;
+const PHASE: usize = 1;
+const DISEASE: usize = 2;
+const OUTCOME: usize = 3;
+const TRACKER: usize = 4;
+const TIMING: usize = 5;
+const KEYS: usize = 6;
+const PANEL_LINES: usize = 7;
+/// Other text blocks.
+const LABEL_R: usize = 7;
+const LABEL_L: usize = 8;
+const HEAD: usize = 9;
+const FEET: usize = 10;
+const VEIL: usize = 11;
+const PV_TITLE: usize = 12;
+const BLOCKS: usize = 13;
+
+/// The HUD's GPU state: glyphon's atlas and renderer, the text blocks, the shapes pipeline.
+pub struct Hud {
+    config: HudConfig,
+    font_system: FontSystem,
+    swash: SwashCache,
+    viewport: Viewport,
+    atlas: TextAtlas,
+    text: TextRenderer,
+    buffers: Vec<Buffer>,
+    /// What each block should say this frame, and what its buffer was last shaped with.
+    lines: [String; BLOCKS],
+    shaped: [String; BLOCKS],
+    colors: [Color; BLOCKS],
+    pipeline: wgpu::RenderPipeline,
+    vertex_buffer: wgpu::Buffer,
+    vertices: Vec<ShapeVertex>,
+    pv: text::PvTrace,
+    eye_width: u32,
+    height: u32,
+    eyes: u32,
+    font_px: f32,
+}
+
+const WHITE: Color = Color::rgb(235, 238, 242);
+const GREY: Color = Color::rgb(165, 172, 182);
+const AMBER: Color = Color::rgb(255, 196, 64);
+const GREEN: Color = Color::rgb(110, 230, 140);
+const RED: Color = Color::rgb(255, 96, 86);
+const CYAN: Color = Color::rgb(120, 210, 255);
+
+/// An sRGB colour with alpha as the linear values the shapes pipeline writes.
+fn linear(r: u8, g: u8, b: u8, a: f32) -> [f32; 4] {
+    let l = |c: u8| {
+        let c = c as f32 / 255.0;
+        if c <= 0.04045 {
+            c / 12.92
+        } else {
+            ((c + 0.055) / 1.055).powf(2.4)
+        }
+    };
+    [l(r), l(g), l(b), a]
+}
+
+impl Hud {
+    /// Set up the HUD for a target of `eyes` images of `eye_width × height` side by side.
+    pub fn new(
+        device: &wgpu::Device,
+        queue: &wgpu::Queue,
+        config: HudConfig,
+        eye_width: u32,
+        height: u32,
+        eyes: u32,
+    ) -> Self {
+        let mut db = fontdb::Database::new();
+        db.load_font_data(FONT.to_vec());
+        let mut font_system = FontSystem::new_with_locale_and_db("en-US".into(), db);
+        let cache = Cache::new(device);
+        let viewport = Viewport::new(device, &cache);
+        let mut atlas = TextAtlas::new(device, queue, &cache, crate::draw::COLOR_FORMAT);
+        let text = TextRenderer::new(&mut atlas, device, wgpu::MultisampleState::default(), None);
+        // Readable at the HMD's resolution: a 40th of the eye's height (18 px at 720).
+        let font_px = (height as f32 / 40.0).clamp(11.0, 40.0);
+        let buffers = (0..BLOCKS)
+            .map(|k| {
+                let size = match k {
+                    LABEL_R | LABEL_L => font_px * 1.6,
+                    VEIL => font_px * 1.3,
+                    PV_TITLE => font_px * 0.8,
+                    _ => font_px,
+                };
+                let mut b = Buffer::new(&mut font_system, Metrics::new(size, size * 1.25));
+                // One line each, never wrapped: what does not fit is clipped at its bounds.
+                b.set_size(None, Some(size * 1.6));
+                b
+            })
+            .collect();
+        let module = device.create_shader_module(wgpu::ShaderModuleDescriptor {
+            label: Some("lungdyn hud shapes"),
+            source: wgpu::ShaderSource::Wgsl(include_str!("shapes.wgsl").into()),
+        });
+        let layout = device.create_pipeline_layout(&wgpu::PipelineLayoutDescriptor {
+            label: Some("lungdyn hud shapes"),
+            bind_group_layouts: &[],
+            immediate_size: 0,
+        });
+        let attributes = wgpu::vertex_attr_array![0 => Float32x2, 1 => Float32x4];
+        let pipeline = device.create_render_pipeline(&wgpu::RenderPipelineDescriptor {
+            label: Some("lungdyn hud shapes"),
+            layout: Some(&layout),
+            vertex: wgpu::VertexState {
+                module: &module,
+                entry_point: Some("vs_main"),
+                compilation_options: Default::default(),
+                buffers: &[Some(wgpu::VertexBufferLayout {
+                    array_stride: std::mem::size_of::<ShapeVertex>() as u64,
+                    step_mode: wgpu::VertexStepMode::Vertex,
+                    attributes: &attributes,
+                })],
+            },
+            primitive: wgpu::PrimitiveState::default(),
+            depth_stencil: None,
+            multisample: Default::default(),
+            fragment: Some(wgpu::FragmentState {
+                module: &module,
+                entry_point: Some("fs_main"),
+                compilation_options: Default::default(),
+                targets: &[Some(wgpu::ColorTargetState {
+                    format: crate::draw::COLOR_FORMAT,
+                    blend: Some(wgpu::BlendState::ALPHA_BLENDING),
+                    write_mask: wgpu::ColorWrites::ALL,
+                })],
+            }),
+            multiview_mask: None,
+            cache: None,
+        });
+        let vertex_buffer = device.create_buffer(&wgpu::BufferDescriptor {
+            label: Some("lungdyn hud shapes"),
+            size: (MAX_SHAPE_VERTICES * std::mem::size_of::<ShapeVertex>()) as u64,
+            usage: wgpu::BufferUsages::VERTEX | wgpu::BufferUsages::COPY_DST,
+            mapped_at_creation: false,
+        });
+        let mut hud = Self {
+            config,
+            font_system,
+            swash: SwashCache::new(),
+            viewport,
+            atlas,
+            text,
+            buffers,
+            lines: Default::default(),
+            shaped: Default::default(),
+            colors: [WHITE; BLOCKS],
+            pipeline,
+            vertex_buffer,
+            vertices: Vec::with_capacity(MAX_SHAPE_VERTICES),
+            pv: text::PvTrace::default(),
+            eye_width,
+            height,
+            eyes,
+            font_px,
+        };
+        hud.lines[LABEL_R].push('R');
+        hud.lines[LABEL_L].push('L');
+        hud.lines[HEAD].push_str("▲ head");
+        hud.lines[FEET].push_str("▼ feet");
+        hud.lines[PV_TITLE].push_str("PV loop  P → cmH2O, V ↑ ml");
+        hud.lines[KEYS].push_str(text::key_help(hud.config.interventions));
+        hud.colors[LABEL_R] = CYAN;
+        hud.colors[LABEL_L] = CYAN;
+        hud.colors[HEAD] = CYAN;
+        hud.colors[FEET] = CYAN;
+        hud.colors[KEYS] = GREY;
+        hud.colors[TIMING] = GREY;
+        hud.colors[PV_TITLE] = GREY;
+        hud
+    }
+
+    /// The scene's facts the HUD was made with.
+    pub fn config(&self) -> &HudConfig {
+        &self.config
+    }
+
+    /// Format this frame's lines and colours (pure text, [`text`]).
+    fn update_lines(&mut self, f: &HudFrame) {
+        let tick_hz = self.config.tick_hz;
+        let l = &mut self.lines;
+        text::volume_line(&mut l[VOLUME], f.frame, tick_hz);
+        l[PHASE].clear();
+        match text::breath_phase(f.frame) {
+            Some((_, true, _)) => l[PHASE].push_str("inspiration"),
+            Some((_, false, _)) => l[PHASE].push_str("expiration"),
+            None => l[PHASE].push_str("not breathing"),
+        }
+        let disease = self.config.disease.as_ref().map(|(k, s)| (k.as_str(), *s));
+        text::disease_line(&mut l[DISEASE], disease, f.frame);
+        self.colors[DISEASE] = if disease.is_some() { AMBER } else { GREEN };
+        l[OUTCOME].clear();
+        if let Some((line, standing)) = f.outcome {
+            l[OUTCOME].push_str(line);
+            self.colors[OUTCOME] = match standing {
+                Standing::Pending => AMBER,
+                Standing::Done => GREEN,
+                Standing::Failed => RED,
+            };
+        }
+        let ok = text::tracker_line(&mut l[TRACKER], f.tracker);
+        self.colors[TRACKER] = if ok { WHITE } else { AMBER };
+        text::timing_line(&mut l[TIMING], f.cpu_ns, f.gpu_ns, f.latency_ns);
+        l[VEIL].clear();
+        if let Some(w) = text::veil_words(f.warning) {
+            l[VEIL].push_str(w);
+            self.colors[VEIL] = if f.warning == PoseWarning::Stale {
+                RED
+            } else {
+                AMBER
+            };
+        }
+        // Reshape only what changed.
+        for k in 0..BLOCKS {
+            if self.lines[k] != self.shaped[k] {
+                let b = &mut self.buffers[k];
+                if k == VEIL {
+                    // The veil's words fit the eye's width (monospace: 0.6 em per character).
+                    let chars = self.lines[k].chars().count().max(1) as f32;
+                    let size = (self.font_px * 1.3)
+                        .min(0.95 * self.eye_width as f32 / (chars * 0.6))
+                        .max(6.0);
+                    b.set_metrics(Metrics::new(size, size * 1.25));
+                }
+                b.set_text(
+                    &self.lines[k],
+                    &Attrs::new().family(Family::Name(FAMILY)),
+                    Shaping::Basic,
+                    None,
+                );
+                b.shape_until_scroll(&mut self.font_system, false);
+                self.shaped[k].clone_from(&self.lines[k]);
+            }
+        }
+    }
+
+    fn push_rect(&mut self, (x, y, w, h): (f32, f32, f32, f32), color: [f32; 4]) {
+        if self.vertices.len() + 6 > MAX_SHAPE_VERTICES {
+            return;
+        }
+        let (tw, th) = ((self.eye_width * self.eyes) as f32, self.height as f32);
+        let ndc = |px: f32, py: f32| [px / tw * 2.0 - 1.0, 1.0 - py / th * 2.0];
+        let (a, b, c, d) = (ndc(x, y), ndc(x + w, y), ndc(x + w, y + h), ndc(x, y + h));
+        for pos in [a, b, c, a, c, d] {
+            self.vertices.push(ShapeVertex { pos, color });
+        }
+    }
+
+    fn push_line(&mut self, a: (f32, f32), b: (f32, f32), width: f32, color: [f32; 4]) {
+        if self.vertices.len() + 6 > MAX_SHAPE_VERTICES {
+            return;
+        }
+        let (dx, dy) = (b.0 - a.0, b.1 - a.1);
+        let len = (dx * dx + dy * dy).sqrt();
+        if !(len.is_finite() && len > 0.0) {
+            return;
+        }
+        let (nx, ny) = (-dy / len * width * 0.5, dx / len * width * 0.5);
+        let (tw, th) = ((self.eye_width * self.eyes) as f32, self.height as f32);
+        let ndc = |px: f32, py: f32| [px / tw * 2.0 - 1.0, 1.0 - py / th * 2.0];
+        let p = [
+            ndc(a.0 + nx, a.1 + ny),
+            ndc(b.0 + nx, b.1 + ny),
+            ndc(b.0 - nx, b.1 - ny),
+            ndc(a.0 - nx, a.1 - ny),
+        ];
+        for pos in [p[0], p[1], p[2], p[0], p[2], p[3]] {
+            self.vertices.push(ShapeVertex { pos, color });
+        }
+    }
+
+    /// Panel origin and sizes of eye `i` (with its stereo shift).
+    fn eye_origin(&self, i: u32) -> f32 {
+        let shift = if self.eyes == 2 {
+            let d = text::half_disparity_px(
+                self.height,
+                self.config.fov_y_deg,
+                self.config.ipd_mm,
+                HUD_DEPTH_MM,
+            );
+            if i == 0 {
+                d
+            } else {
+                -d
+            }
+        } else {
+            0.0
+        };
+        (i * self.eye_width) as f32 + shift
+    }
+
+    fn line_height(&self) -> f32 {
+        self.font_px * 1.3
+    }
+
+    fn margin(&self) -> f32 {
+        (self.font_px * 0.9).round()
+    }
+
+    /// The PV box of an eye at `ox`: (x, y, w, h).
+    fn pv_box(&self, ox: f32) -> (f32, f32, f32, f32) {
+        let w = (self.eye_width as f32 * 0.22).clamp(80.0, 320.0);
+        let h = w * 0.7;
+        let m = self.margin();
+        (
+            ox + self.eye_width as f32 - m - w,
+            m + self.line_height(),
+            w,
+            h,
+        )
+    }
+
+    /// Where a body-frame point lands in eye `i` (pixels in the whole target), if in front of it.
+    fn project(&self, eye: &EyeUniform, i: u32, p: Vec3) -> Option<(f32, f32)> {
+        let m = Mat4::from_cols_array_2d(&eye.view_proj) * Mat4::from_cols_array_2d(&eye.model);
+        let c = m * Vec4::new(p.x, p.y, p.z, 1.0);
+        if !(c.w > 1e-3 && c.is_finite()) {
+            return None;
+        }
+        let (x, y) = (c.x / c.w, c.y / c.w);
+        if !(-1.2..=1.2).contains(&x) || !(-1.2..=1.2).contains(&y) {
+            return None;
+        }
+        Some((
+            (i * self.eye_width) as f32 + (x * 0.5 + 0.5) * self.eye_width as f32,
+            (0.5 - y * 0.5) * self.height as f32,
+        ))
+    }
+
+    /// The body-frame points of the anchored labels: R, L beside each lung's outer side, the head
+    /// cue above the apices, the feet cue below the bases (each lung's rigid offset applied).
+    fn anchors(&self, frame: &EngineFrame) -> [Option<Vec3>; 4] {
+        let mut out = [None; 4];
+        let (mut top, mut bottom, mut mid) = (f32::NEG_INFINITY, f32::INFINITY, Vec3::ZERO);
+        let mut n = 0.0;
+        for (k, b) in self.config.lung_boxes.iter().enumerate() {
+            let Some((lo, hi)) = *b else {
+                continue;
+            };
+            let off = Vec3::from(frame.lungs[k].offset_mm);
+            let off = if off.is_finite() { off } else { Vec3::ZERO };
+            let (lo, hi) = (Vec3::from(lo) + off, Vec3::from(hi) + off);
+            let c = (lo + hi) * 0.5;
+            // +X is the patient's left: the right lung's outer side is its smallest x.
+            let outer = if k == ipc_types::LUNG_RIGHT {
+                lo.x - 30.0
+            } else {
+                hi.x + 30.0
+            };
+            out[k] = Some(Vec3::new(outer, c.y, c.z));
+            top = top.max(hi.z);
+            bottom = bottom.min(lo.z);
+            mid += c;
+            n += 1.0;
+        }
+        if n > 0.0 {
+            let mid = mid / n;
+            out[2] = Some(Vec3::new(mid.x, mid.y, top + 35.0));
+            out[3] = Some(Vec3::new(mid.x, mid.y, bottom - 35.0));
+        }
+        out
+    }
+
+    /// Record the HUD pass for this frame over `target` (the resolved colour target, its eyes side
+    /// by side), drawn through `eyes`' cameras.
+    pub fn encode(
+        &mut self,
+        device: &wgpu::Device,
+        queue: &wgpu::Queue,
+        encoder: &mut wgpu::CommandEncoder,
+        target: &wgpu::TextureView,
+        eyes: &[EyeUniform],
+        f: &HudFrame,
+    ) {
+        self.pv.record(f.frame);
+        self.update_lines(f);
+        self.vertices.clear();
+        let lh = self.line_height();
+        let m = self.margin();
+        // The panel reaches to the PV loop's box (its longest line, an outcome, is clipped there).
+        let panel_w = (self.pv_box(0.0).0 - m * 1.5).min(self.font_px * 48.0);
+        let bar_w = panel_w * 0.45;
+        let n_eyes = self.eyes.min(eyes.len() as u32);
+        let anchors = self.anchors(f.frame);
+        for i in 0..n_eyes {
+            let ox = self.eye_origin(i);
+            // Veil text box across the middle.
+            if !self.lines[VEIL].is_empty() {
+                let y = self.height as f32 * 0.5 - lh;
+                self.push_rect(
+                    (
+                        (i * self.eye_width) as f32,
+                        y,
+                        self.eye_width as f32,
+                        lh * 2.0,
+                    ),
+                    linear(0, 0, 0, 0.55),
+                );
+            }
+            self.push_rect(
+                (ox + m * 0.5, m * 0.5, panel_w, lh * PANEL_LINES as f32 + m),
+                linear(0, 0, 0, 0.45),
+            );
+            // The breath-phase bar: inspiration part, expiration part, the current phase.
+            let (bx, by, bh) = (ox + m, m + lh * PHASE as f32 + lh * 0.2, lh * 0.6);
+            match text::breath_phase(f.frame) {
+                Some((phase, _, split)) => {
+                    self.push_rect((bx, by, bar_w * split, bh), linear(40, 90, 120, 0.9));
+                    self.push_rect(
+                        (bx + bar_w * split, by, bar_w * (1.0 - split), bh),
+                        linear(40, 60, 70, 0.9),
+                    );
+                    self.push_rect((bx, by, bar_w * phase, bh), linear(120, 210, 255, 0.95));
+                    self.push_rect(
+                        (bx + bar_w * phase - 1.5, by - 2.0, 3.0, bh + 4.0),
+                        linear(255, 255, 255, 1.0),
+                    );
+                }
+                None => self.push_rect((bx, by, bar_w, bh), linear(60, 60, 60, 0.9)),
+            }
+            // The PV loop.
+            let (px, py, pw, ph) = self.pv_box(ox);
+            self.push_rect((px, py - lh, pw, ph + lh), linear(0, 0, 0, 0.45));
+            let frame_color = linear(120, 130, 140, 0.9);
+            let corners = [(px, py), (px + pw, py), (px + pw, py + ph), (px, py + ph)];
+            for k in 0..4 {
+                self.push_line(corners[k], corners[(k + 1) % 4], 1.0, frame_color);
+            }
+            if let Some(scale) = text::PvScale::fit(self.pv.points()) {
+                let inner = (px + 4.0, py + 4.0, pw - 8.0, ph - 8.0);
+                let mut prev: Option<(f32, f32)> = None;
+                for k in 0..text::PV_BINS {
+                    let Some(pt) = self.pv.point(k) else { continue };
+                    let q = scale.to_px(pt, inner);
+                    if let Some(p) = prev {
+                        self.push_line(p, q, 2.0, linear(230, 230, 235, 0.9));
+                    }
+                    prev = Some(q);
+                }
+                if let Some(c) = self.pv.current {
+                    let (cx, cy) = scale.to_px(c, inner);
+                    self.push_rect((cx - 4.5, cy - 4.5, 9.0, 9.0), linear(255, 196, 64, 1.0));
+                }
+            }
+            // Ticks under the anchored labels so they read over bright tissue.
+            for (k, a) in anchors.iter().enumerate() {
+                let Some(p) = a.and_then(|a| self.project(&eyes[i as usize], i, a)) else {
+                    continue;
+                };
+                let s = if k < 2 {
+                    self.font_px * 1.0
+                } else {
+                    self.font_px * 0.7
+                };
+                let w = if k < 2 { s * 1.6 } else { s * 8.0 };
+                self.push_rect((p.0 - w * 0.5, p.1 - s, w, s * 2.0), linear(0, 0, 0, 0.5));
+            }
+        }
+        queue.write_buffer(&self.vertex_buffer, 0, bytemuck::cast_slice(&self.vertices));
+        let (w, h) = (self.eye_width * self.eyes, self.height);
+        self.viewport.update(
+            queue,
+            Resolution {
+                width: w,
+                height: h,
+            },
+        );
+        let layout = self.text_layout(eyes, &anchors, n_eyes, panel_w, bar_w);
+        let buffers = &self.buffers;
+        let colors = self.colors;
+        let areas =
+            layout
+                .iter()
+                .flat_map(|row| row.iter().flatten())
+                .map(|&(k, left, top, bounds)| TextArea {
+                    buffer: &buffers[k],
+                    left,
+                    top,
+                    scale: 1.0,
+                    bounds,
+                    default_color: colors[k],
+                    custom_glyphs: &[],
+                });
+        // A glyph that does not fit the atlas is left out of this frame, never a failure.
+        let _ = self.text.prepare(
+            device,
+            queue,
+            &mut self.font_system,
+            &mut self.atlas,
+            &self.viewport,
+            areas,
+            &mut self.swash,
+        );
+        {
+            let mut pass = encoder.begin_render_pass(&wgpu::RenderPassDescriptor {
+                label: Some("lungdyn hud"),
+                color_attachments: &[Some(wgpu::RenderPassColorAttachment {
+                    view: target,
+                    depth_slice: None,
+                    resolve_target: None,
+                    ops: wgpu::Operations {
+                        load: wgpu::LoadOp::Load,
+                        store: wgpu::StoreOp::Store,
+                    },
+                })],
+                depth_stencil_attachment: None,
+                timestamp_writes: None,
+                occlusion_query_set: None,
+                multiview_mask: None,
+            });
+            if !self.vertices.is_empty() {
+                pass.set_pipeline(&self.pipeline);
+                pass.set_vertex_buffer(0, self.vertex_buffer.slice(..));
+                pass.draw(0..self.vertices.len() as u32, 0..1);
+            }
+            let _ = self.text.render(&self.atlas, &self.viewport, &mut pass);
+        }
+        self.atlas.trim();
+    }
+
+    /// Where each text block goes in each eye: (block, left, top, clip bounds), at most
+    /// [`BLOCKS`] per eye (fixed array: no allocation).
+    #[allow(clippy::type_complexity)]
+    fn text_layout(
+        &self,
+        eyes: &[EyeUniform],
+        anchors: &[Option<Vec3>; 4],
+        n_eyes: u32,
+        panel_w: f32,
+        bar_w: f32,
+    ) -> [[Option<(usize, f32, f32, TextBounds)>; BLOCKS]; 2] {
+        let mut out = [[None; BLOCKS]; 2];
+        let lh = self.line_height();
+        let m = self.margin();
+        for i in 0..n_eyes {
+            let bounds = TextBounds {
+                left: (i * self.eye_width) as i32,
+                top: 0,
+                right: ((i + 1) * self.eye_width) as i32,
+                bottom: self.height as i32,
+            };
+            let ox = self.eye_origin(i);
+            let row = &mut out[i as usize];
+            for (k, slot) in row.iter_mut().enumerate().take(PANEL_LINES) {
+                let left = if k == PHASE {
+                    ox + m + bar_w + m
+                } else {
+                    ox + m
+                };
+                let panel_bounds = TextBounds {
+                    right: bounds.right.min((ox + m * 0.5 + panel_w) as i32),
+                    ..bounds
+                };
+                *slot = Some((k, left, m + lh * k as f32, panel_bounds));
+            }
+            let (px, py, _, _) = self.pv_box(ox);
+            row[PV_TITLE] = Some((PV_TITLE, px + 4.0, py - lh * 0.9, bounds));
+            if !self.lines[VEIL].is_empty() {
+                let w = self.lines[VEIL].chars().count() as f32
+                    * self.buffers[VEIL].metrics().font_size
+                    * 0.6;
+                let left = (i * self.eye_width) as f32 + (self.eye_width as f32 - w).max(0.0) * 0.5;
+                row[VEIL] = Some((VEIL, left, self.height as f32 * 0.5 - lh * 0.8, bounds));
+            }
+            for (k, block) in [LABEL_R, LABEL_L, HEAD, FEET].into_iter().enumerate() {
+                let Some(p) = anchors[k].and_then(|a| self.project(&eyes[i as usize], i, a)) else {
+                    continue;
+                };
+                let size = if k < 2 {
+                    self.font_px * 1.6
+                } else {
+                    self.font_px
+                };
+                let w = self.lines[block].chars().count() as f32 * size * 0.6;
+                row[block] = Some((block, p.0 - w * 0.5, p.1 - size * 0.62, bounds));
+            }
+        }
+        out
+    }
+}

@@ -1,0 +1,734 @@
+//! The heads-up display's words and numbers, apart from any GPU: what each line says, the PV loop
+//! it traces and how that loop is scaled into its box. Everything here is a pure function of the
+//! frames the renderer already receives (engine frames, tracker frames, the engine's control
+//! replies) and is unit-tested; [`super::Hud`] only draws it.
+//!
+//! Formatting writes into `String`s the HUD keeps from frame to frame (`clear` then `write!`), so a
+//! frame allocates nothing once the lines have reached their longest.
+
+use std::fmt::Write;
+
+use ipc_types::{
+    tool_status, ControlReply, EngineFrame, Intervention, TrackerFrame, LUNG_LEFT, LUNG_RIGHT,
+    NUM_LUNGS,
+};
+
+/// `mm:ss` of an engine tick (the time since the engine started, as the trainee's clock):
+/// "01:02". Hours roll into the minutes ("75:00"); a non-positive or non-finite rate gives "--:--".
+pub struct Clock {
+    /// Engine tick.
+    pub tick: u64,
+    /// Engine ticks per second.
+    pub tick_hz: f64,
+}
+
+impl core::fmt::Display for Clock {
+    fn fmt(&self, f: &mut core::fmt::Formatter<'_>) -> core::fmt::Result {
+        if !(self.tick_hz.is_finite() && self.tick_hz > 0.0) {
+            return f.write_str("--:--");
+        }
+        let s = (self.tick as f64 / self.tick_hz).floor() as u64;
+        write!(f, "{:02}:{:02}", s / 60, s % 60)
+    }
+}
+
+/// An intervention's name in words ("needle decompression").
+pub fn kind_words(kind: Intervention) -> &'static str {
+    match kind {
+        Intervention::NeedleDecompression => "needle decompression",
+        Intervention::OcclusiveDressing => "occlusive dressing",
+        Intervention::ChestTube => "chest tube",
+    }
+}
+
+/// A lung slot in words.
+pub fn lung_words(lung: u32) -> &'static str {
+    match lung as usize {
+        LUNG_RIGHT => "right",
+        LUNG_LEFT => "left",
+        _ => "affected side",
+    }
+}
+
+/// How an intervention stands, for colouring its line.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub enum Standing {
+    /// Sent, no answer yet (or received, waiting for the breath that applies it).
+    Pending,
+    /// Applied and it changed the course.
+    Done,
+    /// Applied without effect, ignored or refused.
+    Failed,
+}
+
+/// One line for the engine's latest answer to an intervention, with the engine time it refers to:
+/// "needle decompression, left, applied 01:02 — air venting"; "chest tube, right, wrong side
+/// 01:05 — the pneumothorax is on the other side"; "chest tube, left, received 00:40 — applied
+/// with the next breath". Returns how it stands.
+pub fn outcome_line(
+    out: &mut String,
+    kind: Intervention,
+    r: &ControlReply,
+    tick_hz: f64,
+) -> Standing {
+    out.clear();
+    let at = Clock {
+        tick: r.tick,
+        tick_hz,
+    };
+    let (word, standing) = match r.status {
+        ipc_types::REPLY_RECEIVED => ("received", Standing::Pending),
+        ipc_types::REPLY_APPLIED => match r.outcome {
+            ipc_types::OUTCOME_APPLIED => ("applied", Standing::Done),
+            ipc_types::OUTCOME_WRONG_SIDE => ("wrong side", Standing::Failed),
+            ipc_types::OUTCOME_ALREADY_APPLIED => ("already in place", Standing::Failed),
+            ipc_types::OUTCOME_NO_EFFECT => ("no effect", Standing::Failed),
+            _ => ("unknown outcome", Standing::Failed),
+        },
+        ipc_types::REPLY_IGNORED => ("ignored", Standing::Failed),
+        ipc_types::REPLY_REFUSED => ("refused", Standing::Failed),
+        _ => ("unknown answer", Standing::Failed),
+    };
+    let _ = write!(
+        out,
+        "{}, {}, {word} {at}",
+        kind_words(kind),
+        lung_words(r.lung)
+    );
+    let text = r.text();
+    if r.status == ipc_types::REPLY_RECEIVED && text.is_empty() {
+        out.push_str(" — applied with the next breath");
+    } else if !text.is_empty() {
+        let _ = write!(out, " — {text}");
+    }
+    standing
+}
+
+/// The line for an intervention sent from the window that the engine has not answered yet.
+pub fn sent_line(out: &mut String, kind: Intervention, lung: u32) {
+    out.clear();
+    let _ = write!(
+        out,
+        "{}, {}, sent — waiting for the engine",
+        kind_words(kind),
+        lung_words(lung)
+    );
+}
+
+/// Breaths per minute of a cycle of `cycle_ticks` engine ticks; `None` for an empty slot or a bad
+/// rate.
+pub fn rate_per_min(cycle_ticks: u32, tick_hz: f64) -> Option<f64> {
+    (cycle_ticks > 0 && tick_hz.is_finite() && tick_hz > 0.0)
+        .then(|| 60.0 * tick_hz / cycle_ticks as f64)
+}
+
+/// The lung whose breath the HUD follows (the phase bar, the rate, the PV loop): the first active
+/// lung that breathes, else the first active one.
+pub fn breathing_lung(frame: &EngineFrame) -> Option<usize> {
+    let active = |k: usize| frame.lungs[k].is_active();
+    let breathes = |k: usize| active(k) && frame.lungs[k].flags & ipc_types::lung_flags::HELD == 0;
+    (0..NUM_LUNGS)
+        .find(|&k| breathes(k))
+        .or_else(|| (0..NUM_LUNGS).find(|&k| active(k)))
+}
+
+/// Total volume, total tidal volume (ml) and the followed lung's rate: "V 2650 ml  TV 500 ml
+/// 12 /min".
+pub fn volume_line(out: &mut String, frame: &EngineFrame, tick_hz: f64) {
+    out.clear();
+    let (mut v, mut tv) = (0.0f64, 0.0f64);
+    for l in frame.lungs.iter().filter(|l| l.is_active()) {
+        v += l.volume_ml as f64;
+        tv += l.tidal_ml as f64;
+    }
+    let _ = write!(out, "V {v:4.0} ml   TV {tv:3.0} ml");
+    match breathing_lung(frame).and_then(|k| rate_per_min(frame.lungs[k].cycle_ticks, tick_hz)) {
+        Some(r) => {
+            let _ = write!(out, "   {r:2.0} /min");
+        }
+        None => out.push_str("   -- /min"),
+    }
+}
+
+/// Where the followed lung is in its breath: the fraction of the cycle done, `[0, 1)`, whether it
+/// inhales, and the fraction of the cycle that is inhalation; `None` when no lung breathes.
+pub fn breath_phase(frame: &EngineFrame) -> Option<(f32, bool, f32)> {
+    let k = breathing_lung(frame)?;
+    let l = &frame.lungs[k];
+    if l.flags & ipc_types::lung_flags::HELD != 0 || l.cycle_ticks == 0 || !l.phase.is_finite() {
+        return None;
+    }
+    let split = (l.inhale_ticks as f32 / l.cycle_ticks as f32).clamp(0.0, 1.0);
+    Some((
+        l.phase.clamp(0.0, 1.0),
+        l.flags & ipc_types::lung_flags::INHALING != 0,
+        split,
+    ))
+}
+
+/// The disease state in words, from the scene's `[disease]` (its kind and side) and what the
+/// frame shows of each lung: "tension pneumothorax, left: lung 62 % collapsed, not breathing".
+/// Without a disease: "healthy lungs".
+pub fn disease_line(out: &mut String, disease: Option<(&str, Option<usize>)>, frame: &EngineFrame) {
+    out.clear();
+    let Some((kind, side)) = disease else {
+        out.push_str("healthy lungs");
+        return;
+    };
+    out.push_str(kind);
+    let mut sep = match side {
+        Some(k) => {
+            let _ = write!(out, ", {}", lung_words(k as u32));
+            ": "
+        }
+        None => ": ",
+    };
+    for (k, l) in frame.lungs.iter().enumerate() {
+        if !l.is_active() || side.is_some_and(|s| s != k) {
+            continue;
+        }
+        let held = l.flags & ipc_types::lung_flags::HELD != 0;
+        if l.collapse <= 0.0 && !held {
+            continue;
+        }
+        out.push_str(sep);
+        sep = "; ";
+        if side.is_none() {
+            let _ = write!(out, "{} ", lung_words(k as u32));
+        }
+        if l.collapse > 0.0 && l.collapse.is_finite() {
+            let _ = write!(out, "lung {:.0} % collapsed", l.collapse * 100.0);
+            if held {
+                out.push_str(", ");
+            }
+        }
+        if held {
+            out.push_str("not breathing");
+        }
+    }
+}
+
+/// One tool's tracker status in a word.
+pub fn tool_words(status: u32) -> &'static str {
+    use tool_status as t;
+    // The reason the bridge gives, most serious first; VALID only when nothing else is set.
+    for (bit, word) in [
+        (t::DEVICE_FAULT, "fault"),
+        (t::NON_FINITE, "bad pose"),
+        (t::NOT_ROTATION, "bad pose"),
+        (t::STALE, "stale"),
+        (t::MISSING, "not seen"),
+        (t::OUT_OF_VOLUME, "out of volume"),
+        (t::HIGH_RMS, "high error"),
+    ] {
+        if status & bit != 0 {
+            return word;
+        }
+    }
+    if status & t::VALID == 0 {
+        "invalid"
+    } else if status & t::PARTIALLY_VISIBLE != 0 {
+        "partly seen"
+    } else {
+        "ok"
+    }
+}
+
+/// The name of a tool slot.
+pub fn tool_name(slot: usize) -> &'static str {
+    match slot {
+        ipc_types::TOOL_PATIENT => "patient",
+        ipc_types::TOOL_HMD => "HMD",
+        2 => "tool 3",
+        _ => "tool 4",
+    }
+}
+
+/// Tracker health per tool: "tracker: patient ok · HMD not seen"; "tracker: no samples" before any.
+/// Returns whether every tool is ok.
+pub fn tracker_line(out: &mut String, tracker: Option<&TrackerFrame>) -> bool {
+    out.clear();
+    out.push_str("tracker:");
+    let Some(t) = tracker else {
+        out.push_str(" no samples");
+        return false;
+    };
+    let n = (t.tool_count as usize).min(ipc_types::MAX_TOOLS);
+    if n == 0 {
+        out.push_str(" no tools");
+        return false;
+    }
+    let mut all_ok = true;
+    for (slot, tool) in t.tools[..n].iter().enumerate() {
+        let w = tool_words(tool.status);
+        all_ok &= w == "ok";
+        let _ = write!(
+            out,
+            "{}{} {w}",
+            if slot == 0 { " " } else { " · " },
+            tool_name(slot)
+        );
+    }
+    all_ok
+}
+
+/// Frame time and end-to-end latency (tracker capture → frame submitted) of the last frame:
+/// "frame 3.1 ms (GPU 1.2 ms) · latency 11.8 ms".
+pub fn timing_line(out: &mut String, cpu_ns: u64, gpu_ns: Option<u64>, latency_ns: Option<u64>) {
+    out.clear();
+    let _ = write!(out, "frame {:.1} ms", cpu_ns as f64 / 1e6);
+    if let Some(g) = gpu_ns {
+        let _ = write!(out, " (GPU {:.1} ms)", g as f64 / 1e6);
+    }
+    match latency_ns {
+        Some(l) => {
+            let _ = write!(out, " · latency {:.1} ms", l as f64 / 1e6);
+        }
+        None => out.push_str(" · latency --"),
+    }
+}
+
+/// The key help line (the window's keys; `interventions`: the scene has a tension pneumothorax).
+pub fn key_help(interventions: bool) -> &'static str {
+    if interventions {
+        "keys: H hud · N needle decompression · C chest tube · O occlusive dressing"
+    } else {
+        "keys: H hud"
+    }
+}
+
+/// The words on the held/stale veil.
+pub fn veil_words(warning: crate::PoseWarning) -> Option<&'static str> {
+    match warning {
+        crate::PoseWarning::None => None,
+        crate::PoseWarning::Held => Some("PATIENT POSE HELD — placement may lag the patient"),
+        crate::PoseWarning::Stale => {
+            Some("PATIENT POSE STALE — do not trust where the lungs are drawn")
+        }
+        crate::PoseWarning::EngineDown => {
+            Some("ENGINE RESTARTING — last frame shown, the breath is frozen")
+        }
+    }
+}
+
+/// Phase bins of the traced PV loop: one point per bin of the followed lung's cycle.
+pub const PV_BINS: usize = 96;
+
+/// The PV loop of the followed lung's current breathing (pressure, total volume), one point per
+/// phase bin, filled as frames arrive; it starts again when the cycle's length changes (a new
+/// rate from a disease or an intervention).
+#[derive(Debug, Clone)]
+pub struct PvTrace {
+    points: [(f32, f32); PV_BINS],
+    filled: [bool; PV_BINS],
+    cycle_ticks: u32,
+    /// The newest point.
+    pub current: Option<(f32, f32)>,
+}
+
+impl Default for PvTrace {
+    fn default() -> Self {
+        Self {
+            points: [(0.0, 0.0); PV_BINS],
+            filled: [false; PV_BINS],
+            cycle_ticks: 0,
+            current: None,
+        }
+    }
+}
+
+impl PvTrace {
+    /// Record the frame's point (pressure of the followed lung, volume of both); a non-finite one
+    /// is left out.
+    pub fn record(&mut self, frame: &EngineFrame) {
+        let Some(k) = breathing_lung(frame) else {
+            self.current = None;
+            return;
+        };
+        let l = &frame.lungs[k];
+        let v: f32 = frame
+            .lungs
+            .iter()
+            .filter(|l| l.is_active())
+            .map(|l| l.volume_ml)
+            .sum();
+        let p = l.pressure_cmh2o;
+        if !(p.is_finite() && v.is_finite() && l.phase.is_finite()) {
+            return;
+        }
+        if l.cycle_ticks != self.cycle_ticks {
+            *self = Self {
+                cycle_ticks: l.cycle_ticks,
+                ..Self::default()
+            };
+        }
+        let bin = ((l.phase.clamp(0.0, 1.0) * PV_BINS as f32) as usize).min(PV_BINS - 1);
+        self.points[bin] = (p, v);
+        self.filled[bin] = true;
+        self.current = Some((p, v));
+    }
+
+    /// The point of phase bin `k`, if one was recorded.
+    pub fn point(&self, k: usize) -> Option<(f32, f32)> {
+        (*self.filled.get(k)?).then(|| self.points[k])
+    }
+
+    /// The recorded points in phase order.
+    pub fn points(&self) -> impl Iterator<Item = (f32, f32)> + '_ {
+        self.points
+            .iter()
+            .zip(&self.filled)
+            .filter(|(_, f)| **f)
+            .map(|(p, _)| *p)
+    }
+}
+
+/// How a PV loop maps into its box: pressure on x, volume on y (up), each axis over the loop's
+/// range with a margin; an axis whose range is empty (a held lung) is centred.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct PvScale {
+    /// Pressure range shown, cmH2O.
+    pub p: (f32, f32),
+    /// Volume range shown, ml.
+    pub v: (f32, f32),
+}
+
+impl PvScale {
+    /// The scale that shows every point (non-finite ones are ignored); `None` without points.
+    pub fn fit(points: impl Iterator<Item = (f32, f32)>) -> Option<Self> {
+        let mut r: Option<((f32, f32), (f32, f32))> = None;
+        for (p, v) in points.filter(|(p, v)| p.is_finite() && v.is_finite()) {
+            let ((p0, p1), (v0, v1)) = r.unwrap_or(((p, p), (v, v)));
+            r = Some(((p0.min(p), p1.max(p)), (v0.min(v), v1.max(v))));
+        }
+        let (p, v) = r?;
+        let pad = |(a, b): (f32, f32), least: f32| {
+            let m = ((b - a) * 0.08).max(least);
+            (a - m, b + m)
+        };
+        // At least ±0.5 cmH2O and ±10 ml: a held lung's single point sits in the middle.
+        Some(Self {
+            p: pad(p, 0.5),
+            v: pad(v, 10.0),
+        })
+    }
+
+    /// Where `(p, v)` lies in a box at `(x, y)` of size `(w, h)` pixels (y down), clamped into it.
+    pub fn to_px(&self, (p, v): (f32, f32), (x, y, w, h): (f32, f32, f32, f32)) -> (f32, f32) {
+        let u = ((p - self.p.0) / (self.p.1 - self.p.0)).clamp(0.0, 1.0);
+        let t = ((v - self.v.0) / (self.v.1 - self.v.0)).clamp(0.0, 1.0);
+        let (u, t) = (
+            if u.is_finite() { u } else { 0.5 },
+            if t.is_finite() { t } else { 0.5 },
+        );
+        (x + u * w, y + (1.0 - t) * h)
+    }
+}
+
+/// Horizontal disparity (pixels, one eye's shift) that puts a screen-space HUD at `depth_mm` in a
+/// parallel stereo pair: half of `f·IPD/depth` with the focal length in pixels from the vertical
+/// field of view. The left eye's HUD moves right by it, the right eye's left.
+pub fn half_disparity_px(eye_height_px: u32, fov_y_deg: f32, ipd_mm: f32, depth_mm: f32) -> f32 {
+    let f = eye_height_px as f32 * 0.5 / (fov_y_deg.to_radians() * 0.5).tan();
+    let d = 0.5 * f * ipd_mm / depth_mm;
+    if d.is_finite() {
+        d
+    } else {
+        0.0
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use ipc_types::{lung_flags, LungFrame, ToolPose};
+
+    fn reply(status: u32, outcome: u32, tick: u64, lung: u32, text: &str) -> ControlReply {
+        let mut r = ControlReply {
+            status,
+            outcome,
+            tick,
+            lung,
+            ..Default::default()
+        };
+        r.set_text(&[text]);
+        r
+    }
+
+    #[test]
+    fn clock_is_minutes_and_seconds_of_engine_time() {
+        let c = |tick, tick_hz| Clock { tick, tick_hz }.to_string();
+        assert_eq!(c(0, 60.0), "00:00");
+        assert_eq!(c(3720, 60.0), "01:02");
+        assert_eq!(c(3779, 60.0), "01:02", "seconds are floored, not rounded");
+        assert_eq!(c(60 * 60 * 75, 60.0), "75:00");
+        assert_eq!(c(100, 0.0), "--:--");
+        assert_eq!(c(100, f64::NAN), "--:--");
+        // The largest tick does not overflow: 2^64 / 60 s.
+        assert_eq!(c(u64::MAX, 60.0), "5124095576030430:56");
+    }
+
+    #[test]
+    fn outcomes_read_as_words_with_their_time() {
+        let mut s = String::new();
+        let k = Intervention::NeedleDecompression;
+        let r = reply(
+            ipc_types::REPLY_APPLIED,
+            ipc_types::OUTCOME_APPLIED,
+            3720,
+            LUNG_LEFT as u32,
+            "air venting",
+        );
+        assert_eq!(outcome_line(&mut s, k, &r, 60.0), Standing::Done);
+        assert_eq!(s, "needle decompression, left, applied 01:02 — air venting");
+        let r = reply(
+            ipc_types::REPLY_APPLIED,
+            ipc_types::OUTCOME_WRONG_SIDE,
+            3900,
+            LUNG_RIGHT as u32,
+            "the pneumothorax is on the other side",
+        );
+        assert_eq!(
+            outcome_line(&mut s, Intervention::ChestTube, &r, 60.0),
+            Standing::Failed
+        );
+        assert_eq!(
+            s,
+            "chest tube, right, wrong side 01:05 — the pneumothorax is on the other side"
+        );
+        let r = reply(ipc_types::REPLY_RECEIVED, 0, 2400, LUNG_LEFT as u32, "");
+        assert_eq!(
+            outcome_line(&mut s, Intervention::OcclusiveDressing, &r, 60.0),
+            Standing::Pending
+        );
+        assert_eq!(
+            s,
+            "occlusive dressing, left, received 00:40 — applied with the next breath"
+        );
+        let r = reply(
+            ipc_types::REPLY_IGNORED,
+            0,
+            60,
+            u32::MAX,
+            "no tension pneumothorax",
+        );
+        assert_eq!(outcome_line(&mut s, k, &r, 60.0), Standing::Failed);
+        assert_eq!(
+            s,
+            "needle decompression, affected side, ignored 00:01 — no tension pneumothorax"
+        );
+        // A status or outcome from a newer build is said, not mistaken for success.
+        let r = reply(99, 0, 0, 0, "");
+        assert_eq!(outcome_line(&mut s, k, &r, 60.0), Standing::Failed);
+        assert!(s.contains("unknown answer"), "{s}");
+        let r = reply(ipc_types::REPLY_APPLIED, 77, 0, 0, "");
+        assert_eq!(outcome_line(&mut s, k, &r, 60.0), Standing::Failed);
+        assert!(s.contains("unknown outcome"), "{s}");
+        sent_line(&mut s, k, LUNG_LEFT as u32);
+        assert_eq!(
+            s,
+            "needle decompression, left, sent — waiting for the engine"
+        );
+    }
+
+    fn lung(volume: f32, tidal: f32, ct: u32, ti: u32, phase: f32, flags: u32) -> LungFrame {
+        LungFrame {
+            volume_ml: volume,
+            tidal_ml: tidal,
+            cycle_ticks: ct,
+            inhale_ticks: ti,
+            phase,
+            flags: lung_flags::ACTIVE | flags,
+            pressure_cmh2o: 5.0,
+            ..Default::default()
+        }
+    }
+
+    #[test]
+    fn volume_rate_and_phase_follow_the_breathing_lung() {
+        let mut f = EngineFrame::default();
+        f.lungs[LUNG_RIGHT] = lung(1400.0, 270.0, 300, 150, 0.25, lung_flags::INHALING);
+        f.lungs[LUNG_LEFT] = lung(1250.0, 230.0, 300, 150, 0.25, lung_flags::INHALING);
+        let mut s = String::new();
+        volume_line(&mut s, &f, 60.0);
+        assert_eq!(s, "V 2650 ml   TV 500 ml   12 /min");
+        assert_eq!(breath_phase(&f), Some((0.25, true, 0.5)));
+        // A held right lung (tension): the left one's 40 /min is the rate shown.
+        f.lungs[LUNG_RIGHT] = lung(900.0, 0.0, 300, 150, 0.0, lung_flags::HELD);
+        f.lungs[LUNG_LEFT] = lung(1300.0, 420.0, 90, 30, 0.6, 0);
+        assert_eq!(breathing_lung(&f), Some(LUNG_LEFT));
+        volume_line(&mut s, &f, 60.0);
+        assert_eq!(s, "V 2200 ml   TV 420 ml   40 /min");
+        assert_eq!(breath_phase(&f), Some((0.6, false, 1.0 / 3.0)));
+        // Both held: no phase, the rate of the first.
+        f.lungs[LUNG_LEFT].flags |= lung_flags::HELD;
+        assert_eq!(breath_phase(&f), None);
+        // No lung at all.
+        let empty = EngineFrame::default();
+        volume_line(&mut s, &empty, 60.0);
+        assert_eq!(s, "V    0 ml   TV   0 ml   -- /min");
+        assert_eq!(breath_phase(&empty), None);
+        assert_eq!(rate_per_min(0, 60.0), None);
+        assert_eq!(rate_per_min(300, 0.0), None);
+    }
+
+    #[test]
+    fn disease_state_in_words() {
+        let mut f = EngineFrame::default();
+        f.lungs[LUNG_RIGHT] = lung(1400.0, 270.0, 300, 150, 0.0, 0);
+        f.lungs[LUNG_LEFT] = lung(600.0, 0.0, 300, 150, 0.0, lung_flags::HELD);
+        f.lungs[LUNG_LEFT].collapse = 0.62;
+        let mut s = String::new();
+        disease_line(&mut s, None, &f);
+        assert_eq!(s, "healthy lungs");
+        disease_line(&mut s, Some(("tension pneumothorax", Some(LUNG_LEFT))), &f);
+        assert_eq!(
+            s,
+            "tension pneumothorax, left: lung 62 % collapsed, not breathing"
+        );
+        f.lungs[LUNG_RIGHT].collapse = 0.1;
+        disease_line(&mut s, Some(("bilateral pneumothorax", None)), &f);
+        assert_eq!(
+            s,
+            "bilateral pneumothorax: right lung 10 % collapsed; left lung 62 % collapsed, not breathing"
+        );
+        // Before onset nothing is collapsed: the kind alone.
+        let healthy = {
+            let mut g = f;
+            g.lungs[LUNG_LEFT] = lung(1250.0, 230.0, 300, 150, 0.0, 0);
+            g.lungs[LUNG_RIGHT].collapse = 0.0;
+            g
+        };
+        disease_line(
+            &mut s,
+            Some(("tension pneumothorax", Some(LUNG_LEFT))),
+            &healthy,
+        );
+        assert_eq!(s, "tension pneumothorax, left");
+    }
+
+    #[test]
+    fn tracker_health_names_each_tool() {
+        let mut s = String::new();
+        assert!(!tracker_line(&mut s, None));
+        assert_eq!(s, "tracker: no samples");
+        let mut t = TrackerFrame {
+            tool_count: 2,
+            ..Default::default()
+        };
+        t.tools[0] = ToolPose {
+            status: tool_status::VALID,
+            ..Default::default()
+        };
+        t.tools[1] = ToolPose {
+            status: tool_status::MISSING,
+            ..Default::default()
+        };
+        assert!(!tracker_line(&mut s, Some(&t)));
+        assert_eq!(s, "tracker: patient ok · HMD not seen");
+        t.tools[1].status = tool_status::VALID | tool_status::PARTIALLY_VISIBLE;
+        assert!(!tracker_line(&mut s, Some(&t)));
+        assert_eq!(s, "tracker: patient ok · HMD partly seen");
+        t.tools[1].status = tool_status::VALID | tool_status::FRAME_GAP;
+        assert!(tracker_line(&mut s, Some(&t)));
+        // A count beyond the array is read as the array.
+        t.tool_count = 99;
+        tracker_line(&mut s, Some(&t));
+        assert_eq!(s.matches(" · ").count(), ipc_types::MAX_TOOLS - 1, "{s}");
+        assert_eq!(tool_words(tool_status::STALE), "stale");
+        assert_eq!(tool_words(0), "invalid");
+        assert_eq!(
+            tool_words(tool_status::VALID | tool_status::DEVICE_FAULT),
+            "fault"
+        );
+    }
+
+    #[test]
+    fn timing_line_says_frame_time_and_latency() {
+        let mut s = String::new();
+        timing_line(&mut s, 3_140_000, Some(1_200_000), Some(11_850_000));
+        assert_eq!(s, "frame 3.1 ms (GPU 1.2 ms) · latency 11.8 ms");
+        timing_line(&mut s, 0, None, None);
+        assert_eq!(s, "frame 0.0 ms · latency --");
+    }
+
+    #[test]
+    fn pv_scale_fits_the_loop_and_centres_a_single_point() {
+        let loop_pts = [(0.0, 2400.0), (10.0, 2900.0), (5.0, 2700.0)];
+        let s = PvScale::fit(loop_pts.into_iter()).unwrap();
+        let r = (100.0, 50.0, 200.0, 100.0);
+        // The corners of the loop lie inside the box, the margin on every side.
+        let (x0, y0) = s.to_px((0.0, 2400.0), r);
+        let (x1, y1) = s.to_px((10.0, 2900.0), r);
+        assert!(
+            x0 > 100.0 && x0 < 120.0 && y0 < 150.0 && y0 > 140.0,
+            "{x0} {y0}"
+        );
+        assert!(
+            x1 < 300.0 && x1 > 280.0 && y1 > 50.0 && y1 < 60.0,
+            "{x1} {y1}"
+        );
+        // Volume goes up the screen, pressure to the right.
+        assert!(y1 < y0 && x1 > x0);
+        // Out-of-range points are clamped to the box.
+        assert_eq!(s.to_px((-1e9, 1e9), r), (100.0, 50.0));
+        // A held lung: one point, in the middle.
+        let one = PvScale::fit([(3.0, 2000.0)].into_iter()).unwrap();
+        assert_eq!(one.to_px((3.0, 2000.0), r), (200.0, 100.0));
+        // Nothing (or nothing finite) to fit.
+        assert!(PvScale::fit(std::iter::empty()).is_none());
+        assert!(PvScale::fit([(f32::NAN, 1.0), (1.0, f32::INFINITY)].into_iter()).is_none());
+        // A NaN point never leaves the box.
+        let (x, y) = s.to_px((f32::NAN, f32::NAN), r);
+        assert!((100.0..=300.0).contains(&x) && (50.0..=150.0).contains(&y));
+    }
+
+    #[test]
+    fn pv_trace_follows_phase_and_restarts_on_a_new_rate() {
+        let mut t = PvTrace::default();
+        let mut f = EngineFrame::default();
+        f.lungs[LUNG_RIGHT] = lung(1400.0, 270.0, 300, 150, 0.0, lung_flags::INHALING);
+        for k in 0..300 {
+            f.lungs[LUNG_RIGHT].phase = k as f32 / 300.0;
+            f.lungs[LUNG_RIGHT].pressure_cmh2o = k as f32 / 30.0;
+            t.record(&f);
+        }
+        assert_eq!(t.points().count(), PV_BINS);
+        assert_eq!(t.current, Some((299.0 / 30.0, 1400.0)));
+        // The points come in phase order: pressure rising here.
+        let p: Vec<f32> = t.points().map(|p| p.0).collect();
+        assert!(p.windows(2).all(|w| w[0] < w[1]));
+        // A non-finite pressure is left out.
+        f.lungs[LUNG_RIGHT].pressure_cmh2o = f32::NAN;
+        t.record(&f);
+        assert_eq!(t.current, Some((299.0 / 30.0, 1400.0)));
+        // A new cycle length starts a new loop.
+        f.lungs[LUNG_RIGHT].cycle_ticks = 90;
+        f.lungs[LUNG_RIGHT].pressure_cmh2o = 1.0;
+        f.lungs[LUNG_RIGHT].phase = 0.5;
+        t.record(&f);
+        assert_eq!(t.points().count(), 1);
+    }
+
+    #[test]
+    fn hud_disparity_puts_it_at_a_comfortable_depth() {
+        // 720 px high, 60° field, 64 mm IPD, 1.75 m: f = 623.5 px, f·IPD/Z = 22.8 px in all.
+        let d = half_disparity_px(720, 60.0, 64.0, 1750.0);
+        assert!((d - 11.40).abs() < 0.01, "{d}");
+        assert_eq!(half_disparity_px(720, 60.0, 64.0, 0.0), 0.0);
+        assert_eq!(half_disparity_px(720, 60.0, 0.0, 1750.0), 0.0);
+    }
+
+    #[test]
+    fn veil_words_name_the_pose_state() {
+        assert_eq!(veil_words(crate::PoseWarning::None), None);
+        assert!(veil_words(crate::PoseWarning::Held)
+            .unwrap()
+            .contains("HELD"));
+        assert!(veil_words(crate::PoseWarning::Stale)
+            .unwrap()
+            .contains("STALE"));
+        assert!(key_help(true).contains("N needle"));
+        assert!(!key_help(false).contains("N needle"));
+    }
+}

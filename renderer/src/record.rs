@@ -1,0 +1,173 @@
+//! Snapshots of one whole breath, from one fixed viewpoint: what the demo's strip and its
+//! `--record` animation are made of.
+//!
+//! A breath is the followed lung's own cycle as the engine runs it ([`BreathPlan`]): the frames are
+//! planned when that lung starts a new cycle, spread over the cycle's length as the engine frame
+//! states it (`cycle_ticks`), so a tension pneumothorax breathing at 40/min gives one breath, not
+//! frames spaced for the scene's 12/min. The viewpoint is the front of the patient
+//! ([`front_view`]): the same for every frame, whatever the walking HMD does.
+
+use glam::{Mat3, Mat4, Vec3};
+use ipc_types::{EngineFrame, Pose};
+
+/// Plans `count` snapshots over the first whole breath that starts at or after a tick.
+#[derive(Debug, Clone)]
+pub struct BreathPlan {
+    count: u32,
+    after_tick: u64,
+    seen_cycle: Option<u32>,
+}
+
+impl BreathPlan {
+    /// `count` frames over the first breath starting at or after `after_tick`.
+    pub fn new(count: u32, after_tick: u64) -> Self {
+        Self {
+            count,
+            after_tick,
+            seen_cycle: None,
+        }
+    }
+
+    /// Watch `frame`; once the followed lung starts a new cycle at or after the start tick, the
+    /// engine ticks to snapshot (the cycle's start, then evenly over its `cycle_ticks`).
+    pub fn observe(&mut self, frame: &EngineFrame) -> Option<Vec<u64>> {
+        let k = crate::hud::text::breathing_lung(frame)?;
+        let l = &frame.lungs[k];
+        let seen = self.seen_cycle.replace(l.cycle);
+        if self.count == 0 || l.cycle_ticks == 0 || !l.phase.is_finite() {
+            return None;
+        }
+        let ct = l.cycle_ticks as u64;
+        let local = ((l.phase.clamp(0.0, 1.0) as f64 * ct as f64).round() as u64).min(ct - 1);
+        let start = frame.tick.saturating_sub(local);
+        // A cycle that began at or after the start tick, seen begin (a new cycle number), or the
+        // very first frame when it is a cycle's first tick.
+        let new_cycle = match seen {
+            Some(c) => c != l.cycle,
+            None => local == 0,
+        };
+        if !(new_cycle && start >= self.after_tick) {
+            return None;
+        }
+        let n = self.count as u64;
+        Some((0..n).map(|j| start + j * ct / n).collect())
+    }
+}
+
+/// The HMD pose that looks at the lungs from the front of the patient (from anterior, head up in
+/// the image), far enough that the lungs fill about half the image's height: `model` is the body →
+/// room matrix, `(lo, hi)` the lungs' box in the body frame (+Y anterior, +Z superior).
+pub fn front_view(model: Mat4, (lo, hi): (Vec3, Vec3), fov_y_deg: f32, aspect: f32) -> Pose {
+    let centre = (lo + hi) * 0.5;
+    let size = hi - lo;
+    let t = (fov_y_deg.to_radians() * 0.5).tan().max(1e-3);
+    // Half the image height for the lungs' height (or width, by the aspect): the panel and the
+    // PV loop sit above them.
+    let distance = (size.z / t).max(size.x / (t * aspect.max(1e-3))) + size.y * 0.5;
+    let distance = if distance.is_finite() && distance > 0.0 {
+        distance
+    } else {
+        1000.0
+    };
+    // Aim a little above the lungs' centre, so they sit below the HUD.
+    let target = model.transform_point3(centre + Vec3::Z * size.z * 0.18);
+    let eye = model.transform_point3(centre + Vec3::Y * distance);
+    let up_room = model.transform_vector3(Vec3::Z).normalize_or(Vec3::Z);
+    let forward = (target - eye).normalize_or(Vec3::NEG_Y);
+    let right = forward.cross(up_room).normalize_or(Vec3::X);
+    let up = right.cross(forward);
+    let q = glam::Quat::from_mat3(&Mat3::from_cols(right, up, -forward)).normalize();
+    Pose {
+        quat: q.to_array(),
+        translation_mm: eye.to_array(),
+        _pad: 0,
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use ipc_types::{lung_flags, LUNG_LEFT, LUNG_RIGHT};
+
+    fn frame(tick: u64, cycle: u32, ct: u32, first_tick_of_cycle: u64) -> EngineFrame {
+        let mut f = EngineFrame {
+            tick,
+            ..Default::default()
+        };
+        let l = &mut f.lungs[LUNG_LEFT];
+        l.flags = lung_flags::ACTIVE;
+        l.cycle = cycle;
+        l.cycle_ticks = ct;
+        l.phase = (tick - first_tick_of_cycle) as f32 / ct as f32;
+        f
+    }
+
+    #[test]
+    fn a_breath_is_planned_at_the_lungs_own_rate() {
+        // A lung breathing at 40/min (90 ticks at 60 Hz) while the scene says 12/min (300).
+        let mut p = BreathPlan::new(6, 100);
+        for tick in 0..400u64 {
+            let f = frame(tick, (tick / 90) as u32, 90, tick / 90 * 90);
+            if let Some(ticks) = p.observe(&f) {
+                assert_eq!(tick, 180, "the first cycle starting at or after tick 100");
+                assert_eq!(ticks, vec![180, 195, 210, 225, 240, 255]);
+                return;
+            }
+        }
+        panic!("never planned");
+    }
+
+    #[test]
+    fn a_skipped_start_tick_still_plans_from_the_cycles_start() {
+        // The renderer saw tick 185 first in the new cycle (frames dropped): the breath still
+        // starts at 180, and the past ticks are taken at once by the snapshot loop.
+        let mut p = BreathPlan::new(3, 0);
+        assert!(p.observe(&frame(170, 1, 90, 90)).is_none());
+        assert_eq!(
+            p.observe(&frame(185, 2, 90, 180)),
+            Some(vec![180, 210, 240])
+        );
+    }
+
+    #[test]
+    fn a_rate_change_is_followed_and_a_held_lung_is_not_the_one_followed() {
+        let mut p = BreathPlan::new(2, 0);
+        let mut f = frame(299, 0, 300, 0);
+        f.lungs[LUNG_RIGHT] = f.lungs[LUNG_LEFT];
+        f.lungs[LUNG_RIGHT].flags |= lung_flags::HELD;
+        f.lungs[LUNG_RIGHT].cycle_ticks = 1000;
+        assert!(p.observe(&f).is_none());
+        let mut g = frame(300, 1, 120, 300);
+        g.lungs[LUNG_RIGHT] = f.lungs[LUNG_RIGHT];
+        assert_eq!(p.observe(&g), Some(vec![300, 360]));
+        // Nothing to plan: no count, or no lung.
+        assert!(BreathPlan::new(0, 0).observe(&frame(0, 0, 90, 0)).is_none());
+        assert!(BreathPlan::new(3, 0)
+            .observe(&EngineFrame::default())
+            .is_none());
+    }
+
+    #[test]
+    fn the_front_view_looks_at_the_lungs_from_anterior_with_the_head_up() {
+        // Patient supine: body +Y (anterior) is room +Z (up), body +Z (superior) room +X.
+        let supine = glam::Quat::from_mat3(&Mat3::from_cols(Vec3::Y, Vec3::Z, Vec3::X));
+        let model = Mat4::from_rotation_translation(supine, Vec3::new(0.0, 0.0, 1000.0));
+        let boxed = (
+            Vec3::new(-150.0, -100.0, -120.0),
+            Vec3::new(150.0, 100.0, 130.0),
+        );
+        let pose = front_view(model, boxed, 60.0, 16.0 / 9.0);
+        let eye = Vec3::from(pose.translation_mm);
+        // Above the patient (room up), looking down at the chest, the head at the image's top.
+        assert!(eye.z > 1300.0, "{eye}");
+        let q = glam::Quat::from_array(pose.quat);
+        let forward = q * Vec3::NEG_Z;
+        let up = q * Vec3::Y;
+        assert!(forward.z < -0.95, "{forward}");
+        assert!(up.x > 0.95, "head (room +X) is up: {up}");
+        assert!((q.length() - 1.0).abs() < 1e-5);
+        // A degenerate box still gives a finite pose.
+        let p = front_view(model, (Vec3::ZERO, Vec3::ZERO), 60.0, 1.0);
+        assert!(p.is_finite());
+    }
+}

@@ -1,0 +1,220 @@
+//! The heads-up display on the real wgpu path (lavapipe in CI): the same frame rendered with and
+//! without the HUD differs where the HUD's text and shapes are, in every eye, and nowhere the HUD
+//! does not draw; the front view used by strips and recordings shows the lungs.
+
+use glam::{Mat3, Quat, Vec3};
+use ipc_types::{lung_flags, EngineFrame, Pose, LUNG_LEFT, LUNG_RIGHT};
+use lung_model::scene::Scene;
+use renderer::gpu::Gpu;
+use renderer::hud::{Hud, HudConfig, HudFrame};
+use renderer::{DrawState, LungRenderer, PoseWarning, RenderLung};
+
+fn supine() -> Pose {
+    Pose {
+        quat: Quat::from_mat3(&Mat3::from_cols(Vec3::Y, Vec3::Z, Vec3::X)).to_array(),
+        translation_mm: [0.0, 0.0, 1120.0],
+        _pad: 0,
+    }
+}
+
+/// A mid-inspiration engine frame of both lungs (what the HUD reads).
+fn engine_frame() -> EngineFrame {
+    let mut f = EngineFrame {
+        tick: 3720,
+        ..Default::default()
+    };
+    for (k, v) in [(LUNG_RIGHT, 1400.0), (LUNG_LEFT, 1250.0)] {
+        let l = &mut f.lungs[k];
+        l.flags = lung_flags::ACTIVE | lung_flags::INHALING;
+        l.volume_ml = v;
+        l.tidal_ml = 250.0;
+        l.cycle_ticks = 300;
+        l.inhale_ticks = 150;
+        l.phase = 0.3;
+        l.pressure_cmh2o = 6.0;
+    }
+    f
+}
+
+/// Render `scene`'s lungs from the front, without and with the HUD; returns both images.
+fn render_pair(
+    scene: &Scene,
+    warning: PoseWarning,
+) -> Option<(image::RgbaImage, image::RgbaImage)> {
+    let gpu = Gpu::for_tests()?;
+    let models = lungdyn_tests::baked_models(scene);
+    let lungs: Vec<RenderLung> = models.iter().map(RenderLung::from_model).collect();
+    let r = LungRenderer::new(&gpu, &scene.render, &lungs).unwrap();
+    let patient = supine();
+    let state = DrawState {
+        deform_scale: [0.0; 2],
+        offset_mm: [[0.0; 3]; 2],
+        collapse: [0.0; 2],
+        hilum_mm: [[0.0; 3]; 2],
+        coeffs: [[0.0; ipc_types::MAX_COEFFS]; 2],
+        patient,
+        hmd: r.front_view(&patient).unwrap(),
+        pose_warning: warning,
+    };
+    r.render(&gpu, &state, true);
+    let plain = r.read_image(&gpu).unwrap();
+    let (w, h) = r.image_size();
+    let eyes = if scene.render.stereo { 2 } else { 1 };
+    let mut hud = Hud::new(
+        &gpu.device,
+        &gpu.queue,
+        HudConfig::of(scene, &lungs),
+        w / eyes,
+        h,
+        eyes,
+    );
+    let frame = engine_frame();
+    let shown = HudFrame {
+        frame: &frame,
+        tracker: None,
+        warning,
+        cpu_ns: 2_500_000,
+        gpu_ns: None,
+        latency_ns: Some(9_000_000),
+        outcome: Some((
+            "needle decompression, left, applied 01:02 — air venting",
+            renderer::hud::text::Standing::Done,
+        )),
+    };
+    if let Ok(dir) = std::env::var("LUNGDYN_HUD_TEST_PNG") {
+        // For a look at what the test saw.
+        let _ = std::fs::create_dir_all(&dir);
+        let _ = plain.save(format!("{dir}/plain_{}.png", scene.render.stereo));
+    }
+    r.render_with_overlay(
+        &gpu,
+        &state,
+        true,
+        |encoder, target, eye_cams| {
+            hud.encode(&gpu.device, &gpu.queue, encoder, target, eye_cams, &shown)
+        },
+        |_| {},
+    );
+    let with_hud = r.read_image(&gpu).unwrap();
+    if let Ok(dir) = std::env::var("LUNGDYN_HUD_TEST_PNG") {
+        let _ = with_hud.save(format!("{dir}/hud_{}_{warning:?}.png", scene.render.stereo));
+    }
+    Some((plain, with_hud))
+}
+
+/// Pixels of the box `(x0, y0, w, h)` that differ by more than 24/255 in some channel.
+fn differing(
+    a: &image::RgbaImage,
+    b: &image::RgbaImage,
+    (x0, y0, w, h): (u32, u32, u32, u32),
+) -> usize {
+    (x0..x0 + w)
+        .flat_map(|x| (y0..y0 + h).map(move |y| (x, y)))
+        .filter(|&(x, y)| {
+            let (p, q) = (a.get_pixel(x, y), b.get_pixel(x, y));
+            (0..3).any(|c| p[c].abs_diff(q[c]) > 24)
+        })
+        .count()
+}
+
+#[test]
+fn the_hud_draws_its_panel_and_pv_loop_in_every_eye() {
+    for stereo in [false, true] {
+        let mut scene = Scene::default();
+        scene.lungs.vertices = 2000;
+        scene.render.width = 480;
+        scene.render.height = 320;
+        scene.render.stereo = stereo;
+        let Some((plain, hud)) = render_pair(&scene, PoseWarning::None) else {
+            return;
+        };
+        let eyes = if stereo { 2 } else { 1 };
+        assert_eq!(plain.dimensions(), (480 * eyes, 320));
+        for eye in 0..eyes {
+            let ox = eye * 480;
+            // The panel: the top-left third of the eye, its text and the phase bar.
+            let panel = differing(&plain, &hud, (ox, 0, 160, 100));
+            assert!(
+                panel > 160 * 100 / 10,
+                "stereo {stereo}, eye {eye}: only {panel} panel pixels changed"
+            );
+            // The PV loop's box at the top right: its frame, its title, and the current point
+            // (amber; the frame drawn holds one point of the loop).
+            let pv_box = (ox + 480 - 125, 0, 125, 100);
+            let pv = differing(&plain, &hud, pv_box);
+            assert!(pv > 300, "stereo {stereo}, eye {eye}: PV box {pv} pixels");
+            let amber = (pv_box.0..pv_box.0 + pv_box.2)
+                .flat_map(|x| (0..pv_box.3).map(move |y| (x, y)))
+                .filter(|&(x, y)| {
+                    let p = hud.get_pixel(x, y);
+                    p[0] > 230 && (150..230).contains(&p[1]) && p[2] < 110
+                })
+                .count();
+            assert!(
+                amber >= 40,
+                "stereo {stereo}, eye {eye}: current PV point {amber} px"
+            );
+            // The bottom corners hold neither the panel, the loop nor a label: untouched.
+            let corner = differing(&plain, &hud, (ox, 320 - 30, 40, 30))
+                + differing(&plain, &hud, (ox + 480 - 40, 320 - 30, 40, 30));
+            assert_eq!(
+                corner, 0,
+                "stereo {stereo}, eye {eye}: the HUD drew outside its places"
+            );
+        }
+        if stereo {
+            // The panel floats at a reading depth: the eyes' panels are shifted against each other.
+            let row = |x0: u32| {
+                (0..200)
+                    .map(|x| hud.get_pixel(x0 + x, 20).0)
+                    .collect::<Vec<_>>()
+            };
+            assert_ne!(row(0), row(480), "a stereo HUD needs a disparity");
+        }
+    }
+}
+
+#[test]
+fn a_stale_pose_veil_carries_its_words() {
+    let mut scene = Scene::default();
+    scene.lungs.vertices = 2000;
+    scene.render.width = 480;
+    scene.render.height = 320;
+    let Some((plain, hud)) = render_pair(&scene, PoseWarning::Stale) else {
+        return;
+    };
+    // The middle band across the eye, where the veil text is.
+    let band = differing(&plain, &hud, (0, 150, 480, 20));
+    assert!(band > 480 * 20 / 5, "veil text band: {band} pixels changed");
+}
+
+#[test]
+fn the_front_view_shows_both_lungs_below_the_hud() {
+    let mut scene = Scene::default();
+    scene.lungs.vertices = 2000;
+    scene.render.width = 320;
+    scene.render.height = 240;
+    let Some((plain, _)) = render_pair(&scene, PoseWarning::None) else {
+        return;
+    };
+    let background = *plain.get_pixel(0, 0);
+    let lit: Vec<(u32, u32)> = plain
+        .enumerate_pixels()
+        .filter(|(_, _, p)| **p != background)
+        .map(|(x, y, _)| (x, y))
+        .collect();
+    assert!(
+        lit.len() > 320 * 240 / 10,
+        "the lungs fill part of the image: {}",
+        lit.len()
+    );
+    let (x0, x1) = (
+        lit.iter().map(|p| p.0).min().unwrap(),
+        lit.iter().map(|p| p.0).max().unwrap(),
+    );
+    let cy = lit.iter().map(|p| p.1 as f64).sum::<f64>() / lit.len() as f64;
+    // Centred left-right, in the lower part of the image, not cut off at the sides.
+    assert!(x0 > 5 && x1 < 315, "lungs span {x0}..{x1}");
+    assert!((x0 + x1) / 2 > 120 && (x0 + x1) / 2 < 200, "{x0}..{x1}");
+    assert!(cy > 120.0, "the lungs sit below the middle: {cy}");
+}
