@@ -236,6 +236,14 @@ fn main() -> std::process::ExitCode {
                     r.unused_vertices,
                     if r.flipped_inside_out { ", winding flipped (was inside out)" } else { "" }
                 );
+                if !c.lobes.is_empty() {
+                    let parts: Vec<String> = c
+                        .lobes
+                        .iter()
+                        .map(|l| format!("{} {} vertices {:.0} mm²", l.name, l.vertices, l.area_mm2))
+                        .collect();
+                    println!("lobes (fissure planes): {}", parts.join(", "));
+                }
             }
             Ok(())
         }),

@@ -2,7 +2,7 @@
 
 use std::path::PathBuf;
 
-use lung_model::mesh::{check, generate, io, Side};
+use lung_model::mesh::{check, generate, io, lobes, Side};
 use serde::Serialize;
 
 /// Options of `lungdyn mesh generate`.
@@ -20,6 +20,14 @@ pub struct GenerateArgs {
     /// Print one JSON object describing the mesh on stdout.
     #[arg(long)]
     pub json: bool,
+    /// Shape: "teardrop" (the default built-in lungs the engine uses) or "anatomical" (hilum,
+    /// cardiac notch and lingula, domed base, costophrenic recesses: `lung_model::mesh::anatomy`).
+    #[arg(long, default_value = "teardrop", value_parser = ["teardrop", "anatomical"])]
+    pub shape: String,
+    /// Write each vertex's lobe colour (OBJ `v x y z r g b`; PLY `red green blue` and a `lobe`
+    /// code property) to see the lobes in MeshLab or Blender.
+    #[arg(long)]
+    pub lobe_colours: bool,
 }
 
 /// What was written.
@@ -37,16 +45,26 @@ pub struct MeshSummary {
     pub volume_ml: f64,
     /// Bounding box size (x, y, z), mm.
     pub size_mm: [f32; 3],
+    /// Vertices and surface area per lobe (`lung_model::mesh::lobes`).
+    pub lobes: Vec<lobes::LobeSummary>,
 }
 
 /// Generate, verify and write.
 pub fn run(args: &GenerateArgs) -> anyhow::Result<MeshSummary> {
     let side: Side = args.lung.parse().map_err(anyhow::Error::msg)?;
     io::check_out(&args.out)?;
-    let mesh = generate::lung(side, args.vertices)?;
+    let mesh = match args.shape.as_str() {
+        "anatomical" => lung_model::mesh::anatomy::lung(side, args.vertices)?,
+        _ => generate::lung(side, args.vertices)?,
+    };
     check(&mesh)
         .map_err(|e| anyhow::anyhow!("internal error: the generated mesh is invalid: {e}"))?;
-    io::write_mesh(&mesh, &args.out)?;
+    let codes = lobes::classify(side, &mesh);
+    if args.lobe_colours {
+        io::write_mesh_with_lobes(&mesh, &codes, &args.out)?;
+    } else {
+        io::write_mesh(&mesh, &args.out)?;
+    }
     Ok(MeshSummary {
         path: args.out.display().to_string(),
         lung: side.name().to_string(),
@@ -54,6 +72,7 @@ pub fn run(args: &GenerateArgs) -> anyhow::Result<MeshSummary> {
         triangles: mesh.triangles.len(),
         volume_ml: mesh.enclosed_volume_ml(),
         size_mm: mesh.aabb().size(),
+        lobes: lobes::summarise(&mesh, &codes),
     })
 }
 
@@ -152,6 +171,10 @@ pub struct CheckSummary {
     pub geometry_side_reason: String,
     /// The warning when `--lung` disagrees with the geometry.
     pub side_warning: Option<String>,
+    /// Vertices and surface area per lobe, from the fissure planes in normalised lung coordinates
+    /// (`lung_model::mesh::lobes`) for `--lung`, else the side the geometry shows; empty when
+    /// neither is known.
+    pub lobes: Vec<lobes::LobeSummary>,
 }
 
 /// Import, repair what is safe, verify, optionally export.
@@ -170,6 +193,10 @@ pub fn check_mesh(args: &CheckArgs) -> anyhow::Result<CheckSummary> {
     if let Some(out) = &args.out {
         io::write_mesh(&imported.mesh, out)?;
     }
+    let lobe_side = lung.or(imported.side.as_ref().and_then(|e| e.side));
+    let lobes = lobe_side.map_or_else(Vec::new, |side| {
+        lobes::summarise(&imported.mesh, &lobes::classify(side, &imported.mesh))
+    });
     Ok(CheckSummary {
         path: args.mesh.display().to_string(),
         vertices: imported.topology.vertices,
@@ -190,5 +217,6 @@ pub fn check_mesh(args: &CheckArgs) -> anyhow::Result<CheckSummary> {
             .map(|e| e.reason.clone())
             .unwrap_or_default(),
         side_warning,
+        lobes,
     })
 }

@@ -559,6 +559,8 @@ def make_scenes(tmp):
     s("tracker_source_bogus", SCENE_BASE + "[tracker]\nsource = \"bogus:1\"\n")
     s("disease_index_1_5", "[disease]\nkind = \"closed-pneumothorax\"\nside = \"left\"\nindex = 1.5\n")
     s("disease_tumour_outside", "[disease]\nkind = \"tumour\"\nside = \"right\"\n[disease.tumour]\ncentre = [0.0, 0.0, 0.0]\nradii_mm = [15.0, 15.0, 15.0]\n")
+    s("disease_tumour_unknown_lobe", "[disease]\nkind = \"tumour\"\nside = \"right\"\n[disease.tumour]\nlobe = \"right lingula\"\nradii_mm = [15.0, 15.0, 15.0]\n")
+    s("disease_tumour_wrong_lobe", "[disease]\nkind = \"tumour\"\nside = \"right\"\n[disease.tumour]\nlobe = \"right upper\"\ncentre = [0.6, 0.3, 0.8]\nradii_mm = [15.0, 15.0, 15.0]\n")
     s("processes_cpus_4096", SCENE_BASE + "[processes]\ncpus = [4096, 0, 0]\n")
     s("processes_cpus_two", SCENE_BASE + "[processes]\ncpus = [0, 1]\n")
     s("processes_budget_over", SCENE_BASE + "[processes.budget_ms]\nrenderer = 16.0\n")

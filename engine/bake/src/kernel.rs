@@ -413,6 +413,7 @@ fn tumour_meta(
 impl Kernel {
     /// Write the kernel to `path` atomically (temporary sibling, then rename); returns its length.
     pub fn write(&self, path: &Path) -> Result<u64, KernelError> {
+        let lobes = lung_model::mesh::lobes::classify(self.meta.side, &self.mesh);
         write_file(
             path,
             &self.meta,
@@ -455,6 +456,7 @@ impl Kernel {
                 (section::COLS, 4, bytemuck::cast_slice(&self.transfer.cols)),
                 (section::VALS, 4, bytemuck::cast_slice(&self.transfer.vals)),
                 (section::BASIS, 16, bytemuck::cast_slice(&self.basis)),
+                (section::LOBES, 1, &lobes),
                 (
                     section::SH,
                     4,
@@ -584,6 +586,39 @@ mod tests {
         small(Side::Right).write(&a).unwrap();
         small(Side::Right).write(&b).unwrap();
         assert_eq!(std::fs::read(a).unwrap(), std::fs::read(b).unwrap());
+    }
+
+    #[test]
+    fn kernels_carry_lobes_and_kernels_without_them_still_load() {
+        let k = small(Side::Right);
+        let path = tmp("lobes.kernel");
+        k.write(&path).unwrap();
+        let file = KernelFile::open(&path).unwrap();
+        let codes = lung_model::mesh::lobes::classify(Side::Right, &k.mesh);
+        assert_eq!(file.lobes().unwrap(), Some(&codes[..]));
+        assert!(codes.iter().all(|&c| (1..=3).contains(&c)));
+        // A kernel written before the section existed: the same sections less the lobes.
+        let old = tmp("no-lobes.kernel");
+        let bytes = std::fs::read(&path).unwrap();
+        let (_, sections) = lung_model::kernel::verify_bytes(&bytes).unwrap();
+        let kept: Vec<(u32, u32, &[u8])> = sections
+            .iter()
+            .filter(|s| s.kind != section::META && s.kind != section::LOBES)
+            .map(|s| (s.kind, s.elem, &bytes[s.offset..s.offset + s.len]))
+            .collect();
+        write_file(&old, &k.meta, &kept).unwrap();
+        let file = KernelFile::open(&old).unwrap();
+        assert_eq!(file.lobes().unwrap(), None);
+        assert_eq!(file.positions(), &k.mesh.positions[..]);
+        // A code outside 0..=5 is refused by name.
+        let mut bad = codes.clone();
+        bad[3] = 9;
+        let mut with_bad = kept.clone();
+        with_bad.push((section::LOBES, 1, &bad));
+        let broken = tmp("bad-lobes.kernel");
+        write_file(&broken, &k.meta, &with_bad).unwrap();
+        let e = KernelFile::open(&broken).unwrap_err().to_string();
+        assert!(e.contains("lobe code 9"), "{e}");
     }
 
     fn tumour_settings(side: Side, t: Option<Tumour>) -> BakeSettings {

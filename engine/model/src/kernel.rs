@@ -29,7 +29,9 @@
 //! vertices + 1); 9 columns (u32 per non-zero); 10 values (f32 per non-zero, `T[j→i]`);
 //! 11 spherical-harmonic transfer coefficients (f32 × bands² per vertex, `T^I_lm` of seed eq. 7.4,
 //! present when [`KernelMeta::sh`] is); 12 basis responses (f32 × 4 per vertex, `G_0, G_x, G_y, G_z`
-//! of EQUATIONS.md §3.3, present when [`KernelMeta::orientation`] is). A reader ignores kinds it does
+//! of EQUATIONS.md §3.3, present when [`KernelMeta::orientation`] is); 13 lobes (u8 per vertex, the
+//! codes of [`crate::mesh::lobes::Lobe`], 0..=5; optional: kernels baked before it existed have none
+//! and still load, [`KernelFile::lobes`] then answers `None`). A reader ignores kinds it does
 //! not know, so sections can be added without a new version; a change to any existing section's
 //! meaning bumps the version.
 //!
@@ -92,6 +94,8 @@ pub mod section {
     pub const SH: u32 = 11;
     /// Basis responses `(G_0, G_x, G_y, G_z)`, f32 × 4 per vertex (EQUATIONS.md §3.3).
     pub const BASIS: u32 = 12;
+    /// Lobe code per vertex, u8 ([`crate::mesh::lobes::Lobe`]); optional.
+    pub const LOBES: u32 = 13;
 }
 
 /// What a bake needs besides the mesh.
@@ -552,6 +556,14 @@ pub enum FormatError {
         /// Triangle index.
         triangle: usize,
     },
+    /// A lobe code is not one of 0..=5.
+    #[error("vertex {vertex} has lobe code {code}; codes are 0 (unknown) to 5 (left lower)")]
+    LobeCode {
+        /// Vertex index.
+        vertex: usize,
+        /// The code found.
+        code: u8,
+    },
     /// A transfer column references a vertex that does not exist.
     #[error("a transfer column references a vertex out of range")]
     ColumnIndex,
@@ -731,6 +743,7 @@ fn expected_shape(kind: u32, meta: &KernelMeta) -> Option<(u32, u64)> {
             (4, v.saturating_mul(n * n))
         }
         section::BASIS => (16, v),
+        section::LOBES => (1, v),
         _ => return None,
     })
 }
@@ -984,6 +997,13 @@ pub fn verify_section(
                 Ok(())
             }
         }
+        section::LOBES => match bytes.iter().position(|&c| c > 5) {
+            Some(vertex) => Err(FormatError::LobeCode {
+                vertex,
+                code: bytes[vertex],
+            }),
+            None => Ok(()),
+        },
         section::ROW_PTR => {
             let mut last = 0u64;
             for (i, c) in bytes.chunks_exact(8).enumerate() {
@@ -1209,6 +1229,15 @@ impl KernelFile {
             return Ok(None);
         }
         self.slice(section::BASIS).map(Some)
+    }
+
+    /// Lobe code per vertex ([`crate::mesh::lobes::Lobe`]), if the kernel has the section (kernels
+    /// baked before it existed do not); verified on first use.
+    pub fn lobes(&self) -> Result<Option<&[u8]>, KernelError> {
+        if !self.sections.iter().any(|s| s.kind == section::LOBES) {
+            return Ok(None);
+        }
+        self.slice(section::LOBES).map(Some)
     }
 
     /// The mesh (copied out of the mapping).

@@ -147,8 +147,13 @@ pub struct DiseaseScene {
 #[serde(deny_unknown_fields)]
 pub struct TumourScene {
     /// Centre in normalised lung coordinates `[x̂, ŷ, ẑ]` (mediastinum → lateral, posterior →
-    /// anterior, apex → base), each in [0, 1].
-    pub centre: [f64; 3],
+    /// anterior, apex → base), each in [0, 1]. Optional when `lobe` is given.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub centre: Option<[f64; 3]>,
+    /// The lobe the tumour is in ("right lower", "left upper", or "RLL"...; `mesh::lobes`): without
+    /// `centre`, the centre is a point well inside that lobe; with it, the centre must lie in it.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub lobe: Option<String>,
     /// Radii along the body X, Y, Z axes, mm.
     pub radii_mm: [f64; 3],
     /// Expandability inside the tumour, (0, 1] (default 0.1).
@@ -166,6 +171,42 @@ pub struct TumourScene {
     /// φ of eq. 8.9 for the raised resistance (default 0.1).
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub resistance_phi: Option<f64>,
+}
+
+/// The tumour's centre in normalised lung coordinates from `centre` and/or `lobe` (see
+/// [`TumourScene::lobe`]).
+fn tumour_centre(side: Side, t: &TumourScene) -> Result<[f64; 3], DiseaseSceneError> {
+    use crate::mesh::lobes::{interior_point, Fissures, Lobe};
+    let Some(name) = &t.lobe else {
+        return t.centre.ok_or(DiseaseSceneError::Missing {
+            key: "tumour.centre (or tumour.lobe)",
+            kind: "tumour",
+        });
+    };
+    let lobe: Lobe = name.parse().map_err(DiseaseSceneError::Lobe)?;
+    if lobe.side() != Some(side) {
+        return Err(DiseaseSceneError::Lobe(format!(
+            "the {lobe} lobe is not in the {} lung (side = \"{}\")",
+            side.name(),
+            side.name()
+        )));
+    }
+    match t.centre {
+        Some(c) => {
+            let found = Fissures::adult(side).lobe_at(side, c);
+            if found != lobe {
+                return Err(DiseaseSceneError::Lobe(format!(
+                    "centre {c:?} lies in the {found} lobe, not the {lobe} lobe (fissure planes in \
+                     normalised coordinates: mesh::lobes); move centre or drop it to use the lobe's \
+                     interior point"
+                )));
+            }
+            Ok(c)
+        }
+        None => interior_point(lobe).ok_or_else(|| {
+            DiseaseSceneError::Lobe(format!("no interior point found for the {lobe} lobe"))
+        }),
+    }
 }
 
 /// `[[disease.events]]`: an intervention at a time.
@@ -254,6 +295,9 @@ pub enum DiseaseSceneError {
     /// A value is out of range or inconsistent (the inner error names the key).
     #[error("[disease] {0}")]
     Value(#[source] DiseaseError),
+    /// `[disease.tumour]` lobe is unusable: unknown, in the other lung, or not where the centre is.
+    #[error("[disease.tumour] lobe: {0}")]
+    Lobe(String),
     /// An event is unusable.
     #[error("[[disease.events]] number {number} (at_s = {at_s}): {reason}")]
     Event {
@@ -492,7 +536,9 @@ impl DiseaseScene {
                     key: "tumour",
                     kind,
                 })?;
-                let d = Tumour::new(side()?, t.centre, t.radii_mm);
+                let side = side()?;
+                let centre = tumour_centre(side, t)?;
+                let d = Tumour::new(side, centre, t.radii_mm);
                 let tumour = Tumour {
                     expandability: t.expandability.unwrap_or(d.expandability),
                     falloff: t.falloff.unwrap_or(d.falloff),
@@ -595,6 +641,51 @@ mod tests {
             panic!("not a tumour");
         };
         assert_eq!((t.phi, t.expandability), (PhiVariant::DistanceSquared, 0.1));
+    }
+
+    #[test]
+    fn a_tumour_can_be_placed_by_lobe() {
+        use crate::mesh::lobes::{Fissures, Lobe};
+        let scene = |side: &str, extra: &str| {
+            disease(&format!(
+                "[disease]\nkind = \"tumour\"\nside = \"{side}\"\n[disease.tumour]\n\
+                 radii_mm = [10, 10, 10]\n{extra}"
+            ))
+            .resolve()
+        };
+        // The lobe alone: a centre inside that lobe.
+        for (side, name, lobe) in [
+            ("right", "right lower", Lobe::RightLower),
+            ("right", "RML", Lobe::RightMiddle),
+            ("left", "left-upper", Lobe::LeftUpper),
+        ] {
+            let Ok(DiseaseSpec::Tumour(t)) = scene(side, &format!("lobe = \"{name}\"\n")) else {
+                panic!("{name}");
+            };
+            assert_eq!(Fissures::adult(t.side).lobe_at(t.side, t.centre), lobe);
+        }
+        // A centre and its lobe agree: kept as given.
+        let Ok(DiseaseSpec::Tumour(t)) = scene(
+            "right",
+            "lobe = \"right lower\"\ncentre = [0.6, 0.3, 0.8]\n",
+        ) else {
+            panic!("agreeing centre refused");
+        };
+        assert_eq!(t.centre, [0.6, 0.3, 0.8]);
+        // Disagreements and mistakes are named.
+        for (side, extra, needle) in [
+            (
+                "right",
+                "lobe = \"right upper\"\ncentre = [0.6, 0.3, 0.8]\n",
+                "lies in the right lower lobe, not the right upper",
+            ),
+            ("right", "lobe = \"left lower\"\n", "not in the right lung"),
+            ("left", "lobe = \"left middle\"\n", "unknown lobe"),
+            ("left", "", "tumour.centre (or tumour.lobe)"),
+        ] {
+            let e = scene(side, extra).unwrap_err().to_string();
+            assert!(e.contains(needle), "{e}");
+        }
     }
 
     #[test]

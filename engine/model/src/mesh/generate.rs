@@ -160,7 +160,7 @@ pub fn lung_with(side: Side, vertices: usize, shape: &LungShape) -> Result<TriMe
 }
 
 /// Unit-sphere vertices and outward-wound triangles of a cube subdivided `n` times per edge.
-fn spherified_cube(n: usize) -> (Vec<DVec3>, Vec<[u32; 3]>) {
+pub(super) fn spherified_cube(n: usize) -> (Vec<DVec3>, Vec<[u32; 3]>) {
     let mut index: HashMap<[u32; 3], u32> = HashMap::with_capacity(6 * n * n + 2);
     let mut points: Vec<DVec3> = Vec::with_capacity(6 * n * n + 2);
     let mut triangles: Vec<[u32; 3]> = Vec::with_capacity(12 * n * n);

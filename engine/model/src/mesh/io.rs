@@ -61,21 +61,56 @@ pub fn check_out(path: &Path) -> Result<MeshFormat, WriteError> {
 
 /// Write `mesh` to `path` in the format its extension names, atomically.
 pub fn write_mesh(mesh: &TriMesh, path: &Path) -> Result<MeshFormat, WriteError> {
+    write(mesh, None, path)
+}
+
+/// Write `mesh` with its per-vertex lobe codes ([`super::lobes`]), atomically: an OBJ gets each
+/// lobe's colour after the vertex (`v x y z r g b`, 0..1, as MeshLab and Blender read it), a PLY
+/// `red green blue` and a `lobe` (uchar code) vertex property.
+///
+/// # Panics
+/// If `lobes` does not hold one code per vertex (a caller's bug).
+pub fn write_mesh_with_lobes(
+    mesh: &TriMesh,
+    lobes: &[u8],
+    path: &Path,
+) -> Result<MeshFormat, WriteError> {
+    assert_eq!(
+        lobes.len(),
+        mesh.positions.len(),
+        "one lobe code per vertex"
+    );
+    write(mesh, Some(lobes), path)
+}
+
+fn write(mesh: &TriMesh, lobes: Option<&[u8]>, path: &Path) -> Result<MeshFormat, WriteError> {
     let format = MeshFormat::from_path(path)?;
     outfile::write_atomically(path, |w| match format {
-        MeshFormat::Obj => write_obj(mesh, w),
-        MeshFormat::Ply => write_ply(mesh, w),
+        MeshFormat::Obj => write_obj(mesh, lobes, w),
+        MeshFormat::Ply => write_ply(mesh, lobes, w),
     })?;
     Ok(format)
 }
 
-fn write_obj(mesh: &TriMesh, w: &mut impl Write) -> std::io::Result<()> {
+fn lobe_colour(code: u8) -> [u8; 3] {
+    super::lobes::Lobe::from_code(code)
+        .unwrap_or(super::lobes::Lobe::Unknown)
+        .colour()
+}
+
+fn write_obj(mesh: &TriMesh, lobes: Option<&[u8]>, w: &mut impl Write) -> std::io::Result<()> {
     writeln!(
         w,
         "# lungdyn mesh, millimetres, body frame (+X left, +Y anterior, +Z superior)"
     )?;
-    for p in &mesh.positions {
-        writeln!(w, "v {} {} {}", p[0], p[1], p[2])?;
+    for (i, p) in mesh.positions.iter().enumerate() {
+        match lobes {
+            None => writeln!(w, "v {} {} {}", p[0], p[1], p[2])?,
+            Some(l) => {
+                let [r, g, b] = lobe_colour(l[i]).map(|c| c as f32 / 255.0);
+                writeln!(w, "v {} {} {} {r:.4} {g:.4} {b:.4}", p[0], p[1], p[2])?
+            }
+        }
     }
     for t in &mesh.triangles {
         writeln!(w, "f {} {} {}", t[0] + 1, t[1] + 1, t[2] + 1)?;
@@ -83,18 +118,27 @@ fn write_obj(mesh: &TriMesh, w: &mut impl Write) -> std::io::Result<()> {
     Ok(())
 }
 
-fn write_ply(mesh: &TriMesh, w: &mut impl Write) -> std::io::Result<()> {
+fn write_ply(mesh: &TriMesh, lobes: Option<&[u8]>, w: &mut impl Write) -> std::io::Result<()> {
+    let extra = if lobes.is_some() {
+        "property uchar red\nproperty uchar green\nproperty uchar blue\nproperty uchar lobe\n"
+    } else {
+        ""
+    };
     write!(
         w,
         "ply\nformat binary_little_endian 1.0\ncomment lungdyn mesh, millimetres, body frame\n\
-         element vertex {}\nproperty float x\nproperty float y\nproperty float z\n\
+         element vertex {}\nproperty float x\nproperty float y\nproperty float z\n{extra}\
          element face {}\nproperty list uchar uint vertex_indices\nend_header\n",
         mesh.positions.len(),
         mesh.triangles.len()
     )?;
-    for p in &mesh.positions {
+    for (i, p) in mesh.positions.iter().enumerate() {
         for v in p {
             w.write_all(&v.to_le_bytes())?;
+        }
+        if let Some(l) = lobes {
+            w.write_all(&lobe_colour(l[i]))?;
+            w.write_all(&[l[i]])?;
         }
     }
     for t in &mesh.triangles {
@@ -143,6 +187,28 @@ mod tests {
             write_mesh(&mesh, &dir.join("l.stl")),
             Err(WriteError::UnknownFormat { .. })
         ));
+        // With lobes: colours on every OBJ vertex, four more bytes per PLY vertex.
+        let lobes = crate::mesh::lobes::classify(Side::Left, &mesh);
+        write_mesh_with_lobes(&mesh, &lobes, &obj).unwrap();
+        let text = std::fs::read_to_string(&obj).unwrap();
+        assert!(text
+            .lines()
+            .filter(|l| l.starts_with("v "))
+            .all(|l| l.split(' ').count() == 7));
+        write_mesh_with_lobes(&mesh, &lobes, &ply).unwrap();
+        let bytes = std::fs::read(&ply).unwrap();
+        let header_end = bytes
+            .windows(11)
+            .position(|w| w == b"end_header\n")
+            .unwrap()
+            + 11;
+        assert!(std::str::from_utf8(&bytes[..header_end])
+            .unwrap()
+            .contains("property uchar lobe"));
+        assert_eq!(
+            bytes.len() - header_end,
+            mesh.positions.len() * 16 + mesh.triangles.len() * 13
+        );
         // An unwritable target fails cleanly and leaves no temporary behind.
         let err = write_mesh(&mesh, &dir.join("missing-dir").join("x.obj")).unwrap_err();
         assert!(err.to_string().contains("missing-dir"));

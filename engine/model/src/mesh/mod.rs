@@ -10,8 +10,10 @@
 //! OBJ/PLY atomically. Importing patient meshes (OBJ/PLY/STL, welding, repairs) is bake-time work:
 //! `lung_bake::import`.
 
+pub mod anatomy;
 pub mod generate;
 pub mod io;
+pub mod lobes;
 
 use std::collections::HashMap;
 
