@@ -367,6 +367,25 @@ pub fn check_writable(dir: &Path) -> anyhow::Result<()> {
     Ok(())
 }
 
+/// The snapshot ticks of a run too short for one whole breath: `count` spread evenly from the
+/// warm-up (at most a third of the run) to the run's end; empty when a whole breath fits after the
+/// warm-up even if its start is a cycle away (then the renderer plans one breath), or `count` is 0.
+pub fn partial_breath_ticks(
+    count: u32,
+    run_ticks: u64,
+    warmup_ticks: u64,
+    cycle_ticks: u64,
+) -> Vec<u64> {
+    if count == 0 || warmup_ticks + 2 * cycle_ticks <= run_ticks {
+        return Vec::new();
+    }
+    let start = warmup_ticks.min(run_ticks / 3);
+    let span = run_ticks.saturating_sub(start).max(1);
+    (0..count as u64)
+        .map(|k| start + k * span / count as u64)
+        .collect()
+}
+
 /// Mesa's window-system probe prints "XDG_RUNTIME_DIR is invalid or not set" from every process when
 /// the variable is missing (a root shell, a service): give the launcher and its children a private
 /// one (mode 0700, per user) instead of that noise.
@@ -588,6 +607,25 @@ pub fn run_watched(args: &DemoArgs, watch: &mut dyn Watch) -> anyhow::Result<Dem
         Some(_) => args.record_frames.max(args.snapshots),
         None => args.snapshots,
     };
+    // A run too short to hold a whole breath after the warm-up (waiting for the next cycle start
+    // can take a cycle) still gets its snapshots: spread over what the run has, from the same front
+    // view, and it says so (a strip of part of a breath). A recording always wants a whole breath.
+    let spread_ticks = partial_breath_ticks(
+        if record.is_some() { 0 } else { breath_frames },
+        (args.seconds * tick_hz) as u64,
+        warmup_ticks,
+        (60.0 / scene.pv.breaths_per_min * tick_hz).round().max(1.0) as u64,
+    );
+    if !spread_ticks.is_empty() {
+        eprintln!(
+            "demo: {} s is too short for one whole breath after the first second (a cycle is {:.1} s); \
+             the {breath_frames} snapshots are spread over the run, part of a breath — run \
+             --seconds {:.0} or more for a strip of one whole breath",
+            args.seconds,
+            60.0 / scene.pv.breaths_per_min,
+            (warmup_ticks as f64 / tick_hz + 2.0 * 60.0 / scene.pv.breaths_per_min).ceil()
+        );
+    }
 
     // Subscribe to the reports before anything can publish them.
     let node = iox::node(&services, "launcher")?;
@@ -640,14 +678,30 @@ pub fn run_watched(args: &DemoArgs, watch: &mut dyn Watch) -> anyhow::Result<Dem
         intensity,
         Box::new(|| transport::iox::remove_dead_nodes(&services).map_err(anyhow::Error::from)),
     );
-    let exe = &exe;
+    let (exe, spread_ticks) = (&exe, &spread_ticks);
     let out_dir = args.out.display().to_string();
     let last_seen = &last_tick;
     supervisor.start(
         "renderer",
         Box::new(move || {
             let mut a = renderer_args.clone();
-            if breath_frames > 0 {
+            if !spread_ticks.is_empty() {
+                let ahead: Vec<String> = spread_ticks
+                    .iter()
+                    .filter(|&&t| last_seen.get().is_none_or(|l| t > l))
+                    .map(|t| t.to_string())
+                    .collect();
+                if !ahead.is_empty() {
+                    a.extend([
+                        "--snapshot-ticks".to_string(),
+                        ahead.join(","),
+                        "--snapshot-view".to_string(),
+                        "front".to_string(),
+                        "--snapshot-dir".to_string(),
+                        out_dir.clone(),
+                    ]);
+                }
+            } else if breath_frames > 0 {
                 // A restarted renderer plans its breath after the last tick shown (a strip across
                 // a restart can hold frames of two breaths).
                 let after = last_seen
@@ -1180,6 +1234,13 @@ mod tests {
         let args =
             |a: &[&str]| Cli::parse_from(std::iter::once("demo").chain(a.iter().copied())).demo;
         assert!(check_counts(&args(&[])).is_ok());
+        // 3 s at 60 Hz, 12/min (300-tick cycles): spread from the first second, increasing.
+        assert_eq!(partial_breath_ticks(3, 180, 60, 300), vec![60, 100, 140]);
+        // 11 s holds the wait for a cycle start and a whole breath: the renderer plans it.
+        assert!(partial_breath_ticks(3, 660, 60, 300).is_empty());
+        assert!(partial_breath_ticks(0, 180, 60, 300).is_empty());
+        // Shorter than the warm-up: still inside the run.
+        assert!(partial_breath_ticks(4, 30, 60, 300).iter().all(|&t| t < 30));
         assert!(check_counts(&args(&["--snapshots", "240"])).is_ok());
         let e = check_counts(&args(&["--snapshots", "1000000000"])).unwrap_err();
         assert!(e.to_string().contains("--snapshots 1000000000"), "{e}");

@@ -60,7 +60,7 @@ fn a_dead_engine_shows_as_its_last_frame_flagged_down_until_it_is_back() {
     );
     let mut down_seen = Vec::new();
     while session.stats().frames < 40 {
-        if session.step(|_| {}).unwrap() {
+        if session.step(&mut renderer::process::Headless).unwrap() {
             down_seen.push(session.engine_down());
         }
     }

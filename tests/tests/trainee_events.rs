@@ -112,7 +112,10 @@ impl Engine {
 
     /// Stop the engine (SIGTERM: it says its counters) and return its log.
     fn stop(mut self) -> String {
+        // iceoryx2 keeps only the last signal caught, and SIGCONT (18) pending with SIGTERM (15) is
+        // delivered after it and would replace the stop request: continue first, then stop.
         self.signal(libc::SIGCONT);
+        std::thread::sleep(std::time::Duration::from_millis(100));
         self.signal(libc::SIGTERM);
         let status = self.child.take().unwrap().wait().unwrap();
         let log = self.log();
