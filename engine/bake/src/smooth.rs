@@ -66,7 +66,13 @@ pub fn surface_mean(mesh: &TriMesh, values: &[f64], length_mm: f64) -> Vec<f64> 
     }
     let area = vertex_areas(mesh);
     let bb = mesh.aabb();
-    let cell = length_mm;
+    // Cells at least `length_mm` wide (the ±1-cell search then covers the reach) and at most 128
+    // per axis: a reach far below the lung's size (0.1 mm on a 250 mm lung) would otherwise ask
+    // for 2500³ cells (a proptest case once took 24 GB and the OOM killer).
+    let extent = (0..3)
+        .map(|a| (bb.max[a] - bb.min[a]) as f64)
+        .fold(0.0f64, f64::max);
+    let cell = length_mm.max(extent / 128.0);
     let dims: [usize; 3] =
         [0, 1, 2].map(|a| (((bb.max[a] - bb.min[a]) as f64 / cell).floor() as usize + 1).max(1));
     let cell_of = |p: [f32; 3]| -> [usize; 3] {
@@ -168,6 +174,17 @@ mod tests {
         })
         .unwrap();
         compute_transfer(&g, 1e-5, Schedule::SpringsForward, &|_| {}).unwrap()
+    }
+
+    /// A reach far below the lung's size keeps the search grid bounded (once 2500³ cells): the
+    /// mean is then each vertex's own value where no neighbour is that close.
+    #[test]
+    fn a_tiny_reach_stays_bounded_and_is_a_mean() {
+        let mesh = generate::lung(Side::Right, 2000).unwrap();
+        let v: Vec<f64> = (0..mesh.positions.len()).map(|i| (i % 7) as f64).collect();
+        let m = surface_mean(&mesh, &v, 1e-3);
+        assert_eq!(m.len(), v.len());
+        assert!(m.iter().zip(&v).all(|(a, b)| (a - b).abs() < 1e-12));
     }
 
     #[test]
