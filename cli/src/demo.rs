@@ -22,8 +22,9 @@ use crate::stats::{HopRow, LatencyStats, DEADLINE_NS};
 /// Options of `lungdyn demo`.
 #[derive(Debug, Clone, clap::Args)]
 pub struct DemoArgs {
-    /// Seconds to run once frames flow.
-    #[arg(long, default_value_t = 10.0)]
+    /// Seconds to run once frames flow (the default holds the first second's warm-up, the wait for
+    /// the next breath to start and one whole breath at 12/min, so the PNGs are one breath).
+    #[arg(long, default_value_t = 12.0)]
     pub seconds: f64,
     /// Folder for the PNG frames (created if missing).
     #[arg(long, default_value = "out")]
