@@ -792,5 +792,24 @@ impl EngineCore {
     }
 }
 
+/// A core over the generated default lungs at 500 vertices with Table 6.1's motion (no bake): the
+/// unit tests' engine where the kernel's exact data does not matter.
+#[cfg(test)]
+pub(crate) fn generated_core(scene: &Scene) -> EngineCore {
+    let lungs = [Side::Right, Side::Left]
+        .into_iter()
+        .map(|side| {
+            let m = LungModel::build(
+                side,
+                lung_model::mesh::generate::lung(side, 500).unwrap(),
+                &lung_model::deform::MotionConstants::table_6_1(side),
+            )
+            .unwrap();
+            LungGeometry::of(&m)
+        })
+        .collect();
+    EngineCore::with_geometry(scene, lungs).unwrap()
+}
+
 #[cfg(test)]
 mod tests;

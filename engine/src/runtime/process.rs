@@ -633,29 +633,14 @@ pub fn run(args: &EngineArgs) -> Result<(), EngineError> {
 #[cfg(test)]
 mod tests {
     use super::*;
-    use crate::runtime::LungGeometry;
     use ipc_types::{engine_state, LAYOUT_VERSION};
-    use lung_model::deform::{LungModel, MotionConstants};
-    use lung_model::mesh::{generate, Side};
     use transport::memory::{Recorder, Scripted};
     use transport::FakeClock;
 
     const P: u64 = 16_666_667;
 
     fn core() -> EngineCore {
-        let lungs = [Side::Right, Side::Left]
-            .into_iter()
-            .map(|side| {
-                let m = LungModel::build(
-                    side,
-                    generate::lung(side, 500).unwrap(),
-                    &MotionConstants::table_6_1(side),
-                )
-                .unwrap();
-                LungGeometry::of(&m)
-            })
-            .collect();
-        EngineCore::with_geometry(&Scene::default(), lungs).unwrap()
+        crate::runtime::generated_core(&Scene::default())
     }
 
     fn tracker(n: u64) -> TrackerFrame {

@@ -317,27 +317,12 @@ impl EngineCore {
 #[cfg(test)]
 mod tests {
     use super::*;
-    use crate::runtime::LungGeometry;
     use control_state::{decode, encode_to_vec, Packet};
     use ipc_types::EngineFrame;
-    use lung_model::deform::{LungModel, MotionConstants};
-    use lung_model::mesh::generate;
     use lung_model::scene::Scene;
 
     fn core(scene: &Scene) -> EngineCore {
-        let lungs = [Side::Right, Side::Left]
-            .into_iter()
-            .map(|side| {
-                let m = LungModel::build(
-                    side,
-                    generate::lung(side, 500).unwrap(),
-                    &MotionConstants::table_6_1(side),
-                )
-                .unwrap();
-                LungGeometry::of(&m)
-            })
-            .collect();
-        EngineCore::with_geometry(scene, lungs).unwrap()
+        crate::runtime::generated_core(scene)
     }
 
     fn stamp(tick: u64) -> StateStamp {
