@@ -98,13 +98,14 @@ impl Report {
 }
 
 /// The names of the checks [`run`] makes, in order (the CLI test holds the JSON to this list).
-pub const CHECKS: [&str; 12] = [
+pub const CHECKS: [&str; 13] = [
     "gpu",
     "displays",
     "session",
     "rtprio",
     "memlock",
     "cap_sys_nice",
+    "sched_fifo",
     "isolated_cores",
     "cpu_governor",
     "serial_ports",
@@ -409,6 +410,30 @@ pub fn cap_sys_nice_check(cap_eff: Option<u64>, rtprio_ok: bool) -> Check {
             ),
             "raise RLIMIT_RTPRIO (the units' LimitRTPRIO=90), or \
              `sudo setcap cap_sys_nice+ep $(command -v lungdyn)`",
+        ),
+    }
+}
+
+/// Whether SCHED_FIFO is granted, by trying it (transport::realtime::probe_fifo): the limit and the
+/// capability checks above can both look fine where a cgroup or a VM still refuses.
+pub fn sched_fifo_check(probe: Result<(), String>) -> Check {
+    match probe {
+        Ok(()) => check(
+            "sched_fifo",
+            Status::Ok,
+            format!(
+                "SCHED_FIFO at priority {} granted (tried on a thread)",
+                transport::realtime::FIFO_PRIORITY
+            ),
+            "keep it",
+        ),
+        Err(why) => check(
+            "sched_fifo",
+            Status::Warning,
+            why,
+            "the processes run without real-time priority (a warning says so at start); see the \
+             rtprio and cap_sys_nice checks, and where both are fine, the cgroup's or VM's real-time \
+             policy named here",
         ),
     }
 }
@@ -745,6 +770,7 @@ pub fn run(args: &DoctorArgs) -> anyhow::Result<Report> {
             read("/proc/self/status").as_deref().and_then(parse_cap_eff),
             rtprio_ok,
         ),
+        sched_fifo_check(transport::realtime::probe_fifo()),
         isolated_cores_check(&read("/proc/cmdline").unwrap_or_default(), &scene_cpus),
         governor_check(&governors()),
         serial_check(&serial_ports()),
