@@ -547,9 +547,9 @@ pub enum SceneValueError {
     /// The motion constants file named by `[lungs] motion` is unusable.
     #[error("[lungs] motion: {0}")]
     Motion(#[source] crate::deform::MotionFileError),
-    /// The `[disease]` table is unusable (the message names the key).
-    #[error("[disease]: {0}")]
-    Disease(#[source] crate::scene_disease::DiseaseSceneError),
+    /// The `[disease]` table is unusable (the message names its table and key: no prefix here).
+    #[error(transparent)]
+    Disease(crate::scene_disease::DiseaseSceneError),
     /// A file named by `[render] calibration` or `[render] hmd` does not exist or is not a regular
     /// file (its content is checked by the renderer's loader, `renderer::camera::RigFiles`).
     #[error("[render] {key}: {} {problem} ({hint})", path.display())]

@@ -570,6 +570,18 @@ mod tests {
     use super::*;
     use crate::scene::Scene;
 
+    /// A scene's error names `[disease]` once (it read "[disease]: [disease] index = 2 …").
+    #[test]
+    fn a_bad_value_names_its_table_once() {
+        let scene: crate::scene::Scene = toml::from_str(
+            "[disease]\nkind = \"closed-pneumothorax\"\nside = \"left\"\nindex = 2.0\n",
+        )
+        .unwrap();
+        let e = scene.validate().unwrap_err().to_string();
+        assert_eq!(e.matches("[disease]").count(), 1, "{e}");
+        assert!(e.contains("index = 2"), "{e}");
+    }
+
     fn disease(toml_text: &str) -> DiseaseScene {
         let scene: Scene = toml::from_str(toml_text).unwrap();
         scene.disease.unwrap()
