@@ -355,9 +355,15 @@ impl<T: Topic> Inlet<T> {
         })
     }
 
-    /// Wait by `wake` from now on (the process chose it with [`crate::wake::choose`]).
+    /// Wait by `wake` from now on (the process chose it with [`crate::wake::choose`]). Call it from
+    /// the thread that waits: spin-then-park sets that thread's timer slack to 1 µs (the kernel's
+    /// default 50 µs would start the spin window late; real-time threads have none anyway).
     pub fn set_wake(&mut self, wake: Wake) {
         self.wake = wake;
+        if let Wake::SpinThenPark { .. } = wake {
+            // SAFETY: PR_SET_TIMERSLACK takes one integer and changes only the calling thread.
+            unsafe { libc::prctl(libc::PR_SET_TIMERSLACK, 1_000 as libc::c_ulong) };
+        }
     }
 
     /// The strategy in force.
@@ -381,6 +387,41 @@ impl<T: Topic> Inlet<T> {
             Ok(n) => Ok(n > 0),
             Err(ListenerWaitError::InterruptSignal) => Ok(true),
             Err(e) => Err(io("wait", &self.name)(e)),
+        }
+    }
+
+    /// [`Self::park`] with the clock's precision: `ppoll` on the listener's descriptor (an hrtimer)
+    /// instead of iceoryx2's timed wait, whose socket timeout (`SO_RCVTIMEO`) counts whole
+    /// scheduler ticks (1-4 ms) and would sleep through a spin window a fraction of a period away.
+    /// Wake-ups signalled before must be consumed first ([`Self::clear_wakeups`]): iceoryx2 sends
+    /// no datagram while one is pending.
+    fn park_precisely(&mut self, until_ns: u64) -> Result<bool, PortError> {
+        let now = now_ns();
+        if until_ns <= now {
+            return self.park(0);
+        }
+        let left = until_ns - now;
+        // SAFETY: the descriptor is the listener's, open for as long as `self` lives.
+        let fd = unsafe { self.listener.file_descriptor().native_handle() };
+        let mut poll = libc::pollfd {
+            fd,
+            events: libc::POLLIN,
+            revents: 0,
+        };
+        let timeout = libc::timespec {
+            tv_sec: (left / 1_000_000_000) as libc::time_t,
+            tv_nsec: (left % 1_000_000_000) as libc::c_long,
+        };
+        // SAFETY: one pollfd we own, a valid timespec, no signal mask.
+        let ready = unsafe { libc::ppoll(&mut poll, 1, &timeout, core::ptr::null()) };
+        match ready {
+            0 => Ok(false),
+            // A signal (ready < 0, EINTR): woken early on purpose, as in `park`.
+            r if r < 0 => Ok(true),
+            _ => {
+                self.park(0)?;
+                Ok(true)
+            }
         }
     }
 
@@ -442,7 +483,7 @@ impl<T: Topic> Receive<T> for Inlet<T> {
                     if w.until_ns > now && w.from_ns < deadline_ns {
                         // Woken before the window: an early sample (or a signal); the caller
                         // looks and waits again.
-                        if w.from_ns > now && self.park(w.from_ns)? {
+                        if w.from_ns > now && self.park_precisely(w.from_ns)? {
                             return Ok(());
                         }
                         self.arrivals.spun(w.due_ns);

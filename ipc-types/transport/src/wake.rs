@@ -8,8 +8,9 @@
 //!   isolated from other tasks, `isolcpus`, since the scheduler otherwise time-slices the spinning
 //!   thread with them and the hop waits out their slices: milliseconds).
 //! * [`Wake::SpinThenPark`] learns when samples arrive (the last arrival plus the stream's measured
-//!   period, [`Arrivals`]) and parks on the event until `spin/2` before the next one is due, spins
-//!   at most `spin` around it, then parks on the event until the deadline. A periodic stream's sample
+//!   period, [`Arrivals`]) and parks on the event (precisely: `ppoll`, timer slack 1 µs) until
+//!   `3/4 spin` before the next one is due, spins at most `spin` around it, then parks on the event
+//!   until the deadline. A periodic stream's sample
 //!   lands in the window and is taken at busy-poll latency for `spin / period` of a core (1.2 % at
 //!   60 Hz and 200 µs); a sample outside it wakes the park as the event strategy would. The spin is
 //!   bounded: one window per due sample, however often the caller waits.
@@ -270,8 +271,10 @@ impl Arrivals {
         self.period_ns
     }
 
-    /// The window of `spin_ns` centred on the next due sample; `None` until the period is known,
-    /// and once that sample's window was spun ([`Self::spun`]).
+    /// The window of `spin_ns` around the next due sample, three quarters of it before: an arrival
+    /// taken from a park is noted a wake-up late, so the due time leans late, and the park that
+    /// starts the window may itself wake late by the timer's slack. `None` until the period is
+    /// known, and once that sample's window was spun ([`Self::spun`]).
     pub fn window(&self, spin_ns: u64) -> Option<Window> {
         if self.period_ns == 0 {
             return None;
@@ -279,8 +282,8 @@ impl Arrivals {
         let due_ns = self.last_ns + self.period_ns;
         (due_ns != self.spun_due_ns).then(|| Window {
             due_ns,
-            from_ns: due_ns.saturating_sub(spin_ns / 2),
-            until_ns: due_ns + spin_ns - spin_ns / 2,
+            from_ns: due_ns.saturating_sub(spin_ns - spin_ns / 4),
+            until_ns: due_ns + spin_ns / 4,
         })
     }
 
