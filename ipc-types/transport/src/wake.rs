@@ -409,12 +409,12 @@ mod tests {
         a.observe(last + 2 * P);
         a.observe(last + 2 * P + 1_000);
         assert_eq!(a.period_ns(), p);
-        // The window is centred on the next due sample, bounded by the spin.
+        // The window is on the next due sample, three quarters before it, bounded by the spin.
         let w = a.window(200_000).unwrap();
         assert_eq!(w.due_ns, last + 2 * P + 1_000 + p);
         assert_eq!(
             (w.from_ns, w.until_ns),
-            (w.due_ns - 100_000, w.due_ns + 100_000)
+            (w.due_ns - 150_000, w.due_ns + 50_000)
         );
         // Spun once: no second window for the same sample.
         a.spun(w.due_ns);
