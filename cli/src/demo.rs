@@ -542,6 +542,12 @@ pub fn run_watched(args: &DemoArgs, watch: &mut dyn Watch) -> anyhow::Result<Dem
         check_cpus(&loaded.processes.cpus, "[processes] cpus")?;
         loaded.processes.cpus.clone()
     } else {
+        // The resolved scene carries the cores the processes run on: a process reads from it which
+        // core is its own (busy-poll needs one; `auto` busy-polls on it).
+        loaded.processes.cpus = args.cpus.clone();
+        loaded
+            .validate()
+            .map_err(|e| anyhow::anyhow!("the scene with --cpus {:?}: {e}", args.cpus))?;
         args.cpus.clone()
     };
     // The renderer's calibration and optics files (a flag replaces the scene's): checked now, and

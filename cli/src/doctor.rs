@@ -174,25 +174,7 @@ pub fn parse_cap_eff(status: &str) -> Option<u64> {
 /// CAP_SYS_NICE's bit (linux/capability.h).
 pub const CAP_SYS_NICE: u32 = 23;
 
-/// A kernel CPU list (`2-3,5`) as sorted cores; `None` if any part is not one.
-pub fn parse_cpu_list(list: &str) -> Option<Vec<usize>> {
-    let mut cpus = Vec::new();
-    for part in list.trim().split(',').filter(|p| !p.is_empty()) {
-        match part.split_once('-') {
-            Some((a, b)) => {
-                let (a, b): (usize, usize) = (a.parse().ok()?, b.parse().ok()?);
-                if b < a || b - a > 4096 {
-                    return None;
-                }
-                cpus.extend(a..=b);
-            }
-            None => cpus.push(part.parse().ok()?),
-        }
-    }
-    cpus.sort_unstable();
-    cpus.dedup();
-    Some(cpus)
-}
+pub use transport::process::parse_cpu_list;
 
 /// The cores a kernel command line (`/proc/cmdline`) isolates with `key` (`isolcpus` or
 /// `nohz_full`): `None` when the key is absent, `Some(Err(value))` when its value is not a CPU list.

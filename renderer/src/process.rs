@@ -183,6 +183,9 @@ pub enum RendererError {
     /// A stream failed.
     #[error(transparent)]
     Port(#[from] PortError),
+    /// The scene's wake strategy cannot run where the renderer runs.
+    #[error(transparent)]
+    Wake(#[from] transport::wake::WakeError),
     /// The snapshot folder could not be created.
     #[error("cannot create the snapshot folder {}: {source}", path.display())]
     SnapshotDir {
@@ -436,8 +439,18 @@ impl Session {
         let renderer = LungRenderer::with_rig(&gpu, &scene.render, &rig_files.rig(), &lungs)?;
         let hud_config = crate::hud::HudConfig::of(&scene, &lungs);
         let node = iox::node(&instance, "renderer")?;
+        let mut engine = instance.engine_inlet(&node)?;
+        engine.set_wake(transport::wake::announce(
+            "renderer",
+            instance.name(),
+            "engine frames",
+            scene.processes.wake.renderer,
+            scene.processes.spin_us,
+            args.process.cpu,
+            scene.processes.reserved_core(lung_model::scene::RENDERER),
+        )?);
         let ports = Ports {
-            engine: Box::new(instance.engine_inlet(&node)?),
+            engine: Box::new(engine),
             tracker: Box::new(instance.tracker_inlet(&node)?),
             report: Box::new(instance.report_outlet(&node)?),
         };

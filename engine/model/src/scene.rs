@@ -10,6 +10,7 @@ use std::path::Path;
 use serde::{Deserialize, Serialize};
 
 use crate::mesh::Side;
+pub use ipc_types::wake::WakeMode;
 
 /// A complete scene.
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
@@ -34,7 +35,7 @@ pub struct Scene {
 }
 
 /// `[processes]` table: the cores of the three processes and each one's share of the 16.7 ms frame.
-#[derive(Debug, Clone, PartialEq, Serialize, Deserialize, Default)]
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
 #[serde(deny_unknown_fields, default)]
 pub struct ProcessesScene {
     /// Cores for tracker-bridge, engine and renderer, in that order (`lungdyn demo --cpus`
@@ -45,6 +46,142 @@ pub struct ProcessesScene {
     /// Run the three processes SCHED_FIFO with locked memory where permitted (`--realtime`); each
     /// says once which capability or limit is missing where not.
     pub realtime: bool,
+    /// How the engine waits for tracker frames and the renderer for engine frames: one strategy for
+    /// both (`wake = "event"`) or each its own (`wake = { engine = "busy-poll", renderer = "event" }`).
+    pub wake: ProcessWake,
+    /// The spin window of `spin-then-park` around the moment the next sample is due, µs.
+    pub spin_us: u32,
+}
+
+impl Default for ProcessesScene {
+    fn default() -> Self {
+        Self {
+            cpus: Vec::new(),
+            budget_ms: ProcessBudgets::default(),
+            realtime: false,
+            wake: ProcessWake::default(),
+            spin_us: DEFAULT_SPIN_US,
+        }
+    }
+}
+
+/// The default `[processes] spin_us`: 200 µs around the due time covers a 60 Hz tracker's usual
+/// jitter and the timer's slack at 1.2 % of a core.
+pub const DEFAULT_SPIN_US: u32 = 200;
+/// The largest `[processes] spin_us`: 2 ms, an eighth of the 60 Hz period (a longer spin is
+/// busy-polling by another name).
+pub const MAX_SPIN_US: u32 = 2_000;
+
+/// The processes in `[processes] cpus` order.
+pub const PROCESS_ORDER: [&str; 3] = ["tracker-bridge", "engine", "renderer"];
+/// The engine's index in [`PROCESS_ORDER`].
+pub const ENGINE: usize = 1;
+/// The renderer's index in [`PROCESS_ORDER`].
+pub const RENDERER: usize = 2;
+
+impl ProcessesScene {
+    /// The core `[processes] cpus` gives process `index` (see [`PROCESS_ORDER`]) for itself alone:
+    /// `None` when no cores are given or another of the three shares it.
+    pub fn reserved_core(&self, index: usize) -> Option<usize> {
+        let core = *self.cpus.get(index)?;
+        let shared = self
+            .cpus
+            .iter()
+            .enumerate()
+            .any(|(i, &c)| i != index && c == core);
+        (!shared).then_some(core)
+    }
+
+    /// Why `busy-poll` cannot run for process `index` under these cpus, if it cannot.
+    fn busy_poll_refusal(&self, index: usize) -> Option<String> {
+        let name = PROCESS_ORDER[index];
+        if self.cpus.is_empty() {
+            return Some(format!(
+                "wake: {name} = \"busy-poll\" spins a whole core: it needs a core of its own, and \
+                 [processes] cpus gives none; reserve one (e.g. cpus = [0, 1, 2]) or use \
+                 \"spin-then-park\""
+            ));
+        }
+        if self.reserved_core(index).is_none() {
+            let core = self.cpus[index];
+            let others: Vec<&str> = (0..3)
+                .filter(|&i| i != index && self.cpus.get(i) == Some(&core))
+                .map(|i| PROCESS_ORDER[i])
+                .collect();
+            return Some(format!(
+                "wake: {name} = \"busy-poll\" spins a whole core, but [processes] cpus = {:?} gives the \
+                 {name} core {core}, shared with the {}; give it a core no other lungdyn process \
+                 uses, or use \"spin-then-park\"",
+                self.cpus,
+                others.join(" and ")
+            ));
+        }
+        None
+    }
+}
+
+/// `[processes] wake`: the engine's and the renderer's wake strategies (the tracker-bridge waits on
+/// its source and its own clock, not on a stream). A string sets both; a table sets each.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Default, Serialize)]
+pub struct ProcessWake {
+    /// How the engine waits for tracker frames.
+    pub engine: WakeMode,
+    /// How the renderer waits for engine frames.
+    pub renderer: WakeMode,
+}
+
+impl ProcessWake {
+    /// The same strategy for both receivers.
+    pub fn both(mode: WakeMode) -> Self {
+        Self {
+            engine: mode,
+            renderer: mode,
+        }
+    }
+}
+
+impl<'de> Deserialize<'de> for ProcessWake {
+    fn deserialize<D: serde::Deserializer<'de>>(d: D) -> Result<Self, D::Error> {
+        #[derive(Deserialize)]
+        #[serde(deny_unknown_fields, default)]
+        struct Each {
+            engine: WakeMode,
+            renderer: WakeMode,
+        }
+        impl Default for Each {
+            fn default() -> Self {
+                let w = ProcessWake::default();
+                Self {
+                    engine: w.engine,
+                    renderer: w.renderer,
+                }
+            }
+        }
+        struct V;
+        impl<'de> serde::de::Visitor<'de> for V {
+            type Value = ProcessWake;
+            fn expecting(&self, f: &mut std::fmt::Formatter) -> std::fmt::Result {
+                f.write_str(
+                    "a wake strategy (\"auto\", \"event\", \"spin-then-park\", \"busy-poll\") or a \
+                     table { engine = ..., renderer = ... }",
+                )
+            }
+            fn visit_str<E: serde::de::Error>(self, v: &str) -> Result<ProcessWake, E> {
+                WakeMode::parse(v).map(ProcessWake::both).map_err(E::custom)
+            }
+            fn visit_map<A: serde::de::MapAccess<'de>>(
+                self,
+                map: A,
+            ) -> Result<ProcessWake, A::Error> {
+                let e = Each::deserialize(serde::de::value::MapAccessDeserializer::new(map))?;
+                Ok(ProcessWake {
+                    engine: e.engine,
+                    renderer: e.renderer,
+                })
+            }
+        }
+        d.deserialize_any(V)
+    }
 }
 
 /// Per-sample time each process may spend, ms: the bridge from a sample's capture to its publish,
@@ -538,6 +675,9 @@ pub enum SceneValueError {
     /// A budget is out of range, or together they exceed the frame deadline.
     #[error("[processes] budget_ms: {0}")]
     ProcessBudget(String),
+    /// A wake strategy the cores cannot hold, or a spin window out of range.
+    #[error("[processes] {0}")]
+    ProcessWake(String),
     /// The PV constants file named by `[pv] constants` is unusable.
     #[error("[pv] constants: {0}")]
     Constants(#[source] crate::pv::files::PvFileError),
@@ -915,6 +1055,20 @@ impl Scene {
         if !(p.cpus.is_empty() || p.cpus.len() == 3) {
             return Err(E::ProcessCpus(p.cpus.clone()));
         }
+        if !(1..=MAX_SPIN_US).contains(&p.spin_us) {
+            return Err(E::ProcessWake(format!(
+                "spin_us = {} must be within 1..{MAX_SPIN_US} µs (a spin-then-park's window around \
+                 the due sample; use \"event\" for none, \"busy-poll\" for a whole core)",
+                p.spin_us
+            )));
+        }
+        for (index, mode) in [(ENGINE, p.wake.engine), (RENDERER, p.wake.renderer)] {
+            if mode == WakeMode::BusyPoll {
+                if let Some(why) = p.busy_poll_refusal(index) {
+                    return Err(E::ProcessWake(why));
+                }
+            }
+        }
         let b = p.budget_ms;
         for (name, v) in [
             ("tracker_bridge", b.tracker_bridge),
@@ -1107,6 +1261,61 @@ mod tests {
             ("[processes.budget_ms]\nengine = nan\n", "engine = NaN"),
             ("[processes]\ncpu = [0, 1, 1]\n", "cpu"),
             ("[processes.budget_ms]\ngpu = 1.0\n", "gpu"),
+        ] {
+            let e = Scene::parse(text, "s.toml").unwrap_err().to_string();
+            assert!(e.contains(needle), "{text}: {e}");
+        }
+    }
+
+    #[test]
+    fn wake_takes_one_strategy_for_both_or_a_table_and_busy_poll_needs_a_core_of_its_own() {
+        let one = Scene::parse("[processes]\nwake = \"event\"\n", "s.toml").unwrap();
+        assert_eq!(one.processes.wake, ProcessWake::both(WakeMode::Event));
+        let each = Scene::parse(
+            "[processes]\ncpus = [0, 1, 2]\nspin_us = 50\nwake = { engine = \"busy-poll\", renderer = \"spin-then-park\" }\n",
+            "s.toml",
+        )
+        .unwrap();
+        assert_eq!(each.processes.wake.engine, WakeMode::BusyPoll);
+        assert_eq!(each.processes.wake.renderer, WakeMode::SpinThenPark);
+        assert_eq!(each.processes.spin_us, 50);
+        let half = Scene::parse("[processes.wake]\nrenderer = \"event\"\n", "s.toml").unwrap();
+        assert_eq!(half.processes.wake.engine, WakeMode::Auto);
+        assert_eq!(half.processes.wake.renderer, WakeMode::Event);
+        assert_eq!(
+            Scene::default().processes.wake,
+            ProcessWake::both(WakeMode::Auto)
+        );
+        // The resolved scene the launcher writes reads back the same.
+        let text = toml::to_string(&each).unwrap();
+        assert_eq!(Scene::parse(&text, "resolved.toml").unwrap(), each);
+        assert_eq!(each.processes.reserved_core(1), Some(1));
+        let shared = Scene::parse("[processes]\ncpus = [0, 1, 1]\n", "s.toml").unwrap();
+        assert_eq!(shared.processes.reserved_core(0), Some(0));
+        assert_eq!(shared.processes.reserved_core(1), None);
+        assert_eq!(Scene::default().processes.reserved_core(1), None);
+        for (text, needle) in [
+            ("[processes]\nwake = \"busy_poll\"\n", "\"busy_poll\" is not a wake strategy"),
+            ("[processes]\nwake = \"\"\n", "is not a wake strategy"),
+            ("[processes]\nwake = 3\n", "a wake strategy"),
+            ("[processes]\nwake = [\"event\"]\n", "a wake strategy"),
+            ("[processes.wake]\ntracker-bridge = \"event\"\n", "tracker-bridge"),
+            ("[processes.wake]\nengine = \"fast\"\n", "fast"),
+            (
+                "[processes]\nwake = \"busy-poll\"\n",
+                "wake: engine = \"busy-poll\" spins a whole core: it needs a core of its own, and [processes] cpus gives none",
+            ),
+            (
+                "[processes]\ncpus = [0, 1, 1]\nwake = { renderer = \"busy-poll\" }\n",
+                "gives the renderer core 1, shared with the engine",
+            ),
+            (
+                "[processes]\ncpus = [1, 1, 1]\nwake = { engine = \"busy-poll\" }\n",
+                "shared with the tracker-bridge and renderer",
+            ),
+            ("[processes]\nspin_us = 0\n", "spin_us = 0 must be within 1..2000"),
+            ("[processes]\nspin_us = 2001\n", "spin_us = 2001"),
+            ("[processes]\nspin_us = -5\n", "spin_us"),
         ] {
             let e = Scene::parse(text, "s.toml").unwrap_err().to_string();
             assert!(e.contains(needle), "{text}: {e}");

@@ -52,6 +52,9 @@ pub enum EngineError {
     /// A stream failed.
     #[error(transparent)]
     Port(#[from] PortError),
+    /// The scene's wake strategy cannot run where the engine runs.
+    #[error(transparent)]
+    Wake(#[from] transport::wake::WakeError),
     /// `--start-tick` beyond a week of ticks.
     #[error("--start-tick {tick}: at most {max} (one week of ticks at the scene's rate)")]
     StartTick {
@@ -540,6 +543,15 @@ pub fn run(args: &EngineArgs) -> Result<(), EngineError> {
     core.resume_at(start_tick)?;
     let node = iox::node(&instance, "engine")?;
     let mut tracker = instance.tracker_inlet(&node)?;
+    tracker.set_wake(transport::wake::announce(
+        "engine",
+        instance.name(),
+        "tracker frames",
+        scene.processes.wake.engine,
+        scene.processes.spin_us,
+        args.cpu,
+        scene.processes.reserved_core(lung_model::scene::ENGINE),
+    )?);
     let mut outlet = instance.engine_outlet(&node)?;
     let mut control = instance.control_inlet(&node)?;
     let mut replies = instance.control_reply_outlet(&node)?;

@@ -19,6 +19,7 @@ use ipc_types::{ControlPacket, ControlReply, EngineFrame, FrameReport, Message, 
 use crate::clock::now_ns;
 use crate::instance::Instance;
 use crate::port::{PortError, Publish, Receive};
+use crate::wake::{Arrivals, Wake};
 
 /// A protocol payload as iceoryx2 carries it: the same bytes, with the payload's versioned type name.
 #[repr(transparent)]
@@ -315,11 +316,16 @@ impl<T: Topic> Publish<T> for Outlet<T> {
     }
 }
 
-/// The receiving end of a stream: a subscriber plus the event listener that wakes us.
+/// The receiving end of a stream: a subscriber plus the event listener that wakes us, waiting by
+/// its [`Wake`] strategy ([`Wake::Event`] unless [`Inlet::set_wake`] says otherwise).
 pub struct Inlet<T: Topic> {
     subscriber: iceoryx2::port::subscriber::Subscriber<ipc::Service, Wire<T>, ()>,
     listener: iceoryx2::port::listener::Listener<ipc::Service>,
     name: String,
+    wake: Wake,
+    arrivals: Arrivals,
+    /// When a wait saw the sample now pending (0: none seen), for [`Arrivals`].
+    seen_ns: u64,
     _data: Stream<T>,
     _event: Event,
 }
@@ -341,29 +347,155 @@ impl<T: Topic> Inlet<T> {
             subscriber,
             listener,
             name: data.to_string(),
+            wake: Wake::Event,
+            arrivals: Arrivals::default(),
+            seen_ns: 0,
             _data: data_service,
             _event: event_service,
         })
+    }
+
+    /// Wait by `wake` from now on (the process chose it with [`crate::wake::choose`]). Call it from
+    /// the thread that waits: spin-then-park sets that thread's timer slack to 1 µs (the kernel's
+    /// default 50 µs would start the spin window late; real-time threads have none anyway).
+    pub fn set_wake(&mut self, wake: Wake) {
+        self.wake = wake;
+        if let Wake::SpinThenPark { .. } = wake {
+            // SAFETY: PR_SET_TIMERSLACK takes one integer and changes only the calling thread.
+            unsafe { libc::prctl(libc::PR_SET_TIMERSLACK, 1_000 as libc::c_ulong) };
+        }
+    }
+
+    /// The strategy in force.
+    pub fn wake(&self) -> Wake {
+        self.wake
+    }
+
+    /// Sleep on the event until `until_ns` (absolute; at once when past, still consuming pending
+    /// wake-ups). True when woken before it: a notification or a signal (SIGINT/SIGTERM end the
+    /// wait early on purpose: the loop checks for a termination request next).
+    fn park(&mut self, until_ns: u64) -> Result<bool, PortError> {
+        use iceoryx2::port::listener::ListenerWaitError;
+        let now = now_ns();
+        let waited = if until_ns <= now {
+            self.listener.try_wait(|_| {})
+        } else {
+            self.listener
+                .timed_wait(|_| {}, Duration::from_nanos(until_ns - now))
+        };
+        match waited {
+            Ok(n) => Ok(n > 0),
+            Err(ListenerWaitError::InterruptSignal) => Ok(true),
+            Err(e) => Err(io("wait", &self.name)(e)),
+        }
+    }
+
+    /// [`Self::park`] with the clock's precision: `ppoll` on the listener's descriptor (an hrtimer)
+    /// instead of iceoryx2's timed wait, whose socket timeout (`SO_RCVTIMEO`) counts whole
+    /// scheduler ticks (1-4 ms) and would sleep through a spin window a fraction of a period away.
+    /// Wake-ups signalled before must be consumed first ([`Self::clear_wakeups`]): iceoryx2 sends
+    /// no datagram while one is pending.
+    fn park_precisely(&mut self, until_ns: u64) -> Result<bool, PortError> {
+        let now = now_ns();
+        if until_ns <= now {
+            return self.park(0);
+        }
+        let left = until_ns - now;
+        // SAFETY: the descriptor is the listener's, open for as long as `self` lives.
+        let fd = unsafe { self.listener.file_descriptor().native_handle() };
+        let mut poll = libc::pollfd {
+            fd,
+            events: libc::POLLIN,
+            revents: 0,
+        };
+        let timeout = libc::timespec {
+            tv_sec: (left / 1_000_000_000) as libc::time_t,
+            tv_nsec: (left % 1_000_000_000) as libc::c_long,
+        };
+        // SAFETY: one pollfd we own, a valid timespec, no signal mask.
+        let ready = unsafe { libc::ppoll(&mut poll, 1, &timeout, core::ptr::null()) };
+        match ready {
+            0 => Ok(false),
+            // A signal (ready < 0, EINTR): woken early on purpose, as in `park`.
+            r if r < 0 => Ok(true),
+            _ => {
+                self.park(0)?;
+                Ok(true)
+            }
+        }
+    }
+
+    /// Consume the wake-ups already signalled (a spin about to start makes them unnecessary; left
+    /// alone they would pile up in the listener and cut the next park short).
+    fn clear_wakeups(&mut self) -> Result<(), PortError> {
+        self.park(0).map(|_| ())
+    }
+
+    /// Spin on the subscriber until a sample is pending (true, its time noted) or `until_ns`
+    /// passes (false); looks at least once.
+    fn spin(&mut self, until_ns: u64) -> Result<bool, PortError> {
+        loop {
+            if self
+                .subscriber
+                .has_samples()
+                .map_err(io("receive", &self.name))?
+            {
+                self.seen_ns = now_ns();
+                return Ok(true);
+            }
+            if now_ns() >= until_ns {
+                return Ok(false);
+            }
+            core::hint::spin_loop();
+        }
+    }
+
+    /// Samples were taken: note when they arrived (spin-then-park learns the stream's rhythm).
+    fn arrived(&mut self) {
+        if matches!(self.wake, Wake::SpinThenPark { .. }) {
+            let at = match self.seen_ns {
+                0 => now_ns(),
+                t => t,
+            };
+            self.arrivals.observe(at);
+        }
+        self.seen_ns = 0;
     }
 }
 
 impl<T: Topic> Receive<T> for Inlet<T> {
     fn wait_until(&mut self, deadline_ns: u64) -> Result<(), PortError> {
-        use iceoryx2::port::listener::ListenerWaitError;
-        let now = now_ns();
-        let waited = if deadline_ns <= now {
-            // Still consume pending wake-ups so they do not pile up.
-            self.listener.try_wait(|_| {})
-        } else {
-            self.listener
-                .timed_wait(|_| {}, Duration::from_nanos(deadline_ns - now))
-        };
-        match waited {
-            // A signal (SIGINT/SIGTERM) ends the wait early on purpose: the loop checks for a
-            // termination request next.
-            Ok(_) | Err(ListenerWaitError::InterruptSignal) => Ok(()),
-            Err(e) => Err(io("wait", &self.name)(e)),
+        match self.wake {
+            Wake::Event => {
+                self.park(deadline_ns)?;
+            }
+            Wake::BusyPoll => {
+                self.clear_wakeups()?;
+                self.spin(deadline_ns)?;
+            }
+            Wake::SpinThenPark { spin_ns } => {
+                self.clear_wakeups()?;
+                if self.spin(0)? {
+                    return Ok(());
+                }
+                if let Some(w) = self.arrivals.window(spin_ns) {
+                    let now = now_ns();
+                    if w.until_ns > now && w.from_ns < deadline_ns {
+                        // Woken before the window: an early sample (or a signal); the caller
+                        // looks and waits again.
+                        if w.from_ns > now && self.park_precisely(w.from_ns)? {
+                            return Ok(());
+                        }
+                        self.arrivals.spun(w.due_ns);
+                        if self.spin(w.until_ns.min(deadline_ns))? {
+                            return Ok(());
+                        }
+                    }
+                }
+                self.park(deadline_ns)?;
+            }
         }
+        Ok(())
     }
 
     fn take_latest(&mut self) -> Result<Option<T>, PortError> {
@@ -374,6 +506,9 @@ impl<T: Topic> Receive<T> for Inlet<T> {
             .map_err(io("receive", &self.name))?
         {
             latest = Some(sample.payload().0);
+        }
+        if latest.is_some() {
+            self.arrived();
         }
         Ok(latest)
     }
@@ -387,6 +522,9 @@ impl<T: Topic> Receive<T> for Inlet<T> {
         {
             f(&sample.payload().0);
             n += 1;
+        }
+        if n > 0 {
+            self.arrived();
         }
         Ok(n)
     }
@@ -528,6 +666,72 @@ mod tests {
             "{cleanup:?}"
         );
         assert!(instance.leftovers().is_empty());
+    }
+
+    /// Each wake strategy takes every sample of a periodic stream in order, learns its period
+    /// (spin-then-park), and with nothing published waits until the deadline (a spurious early
+    /// return is allowed by [`Receive::wait_until`], a handful of them is not).
+    #[test]
+    fn every_wake_strategy_takes_each_sample_and_waits_out_the_deadline() {
+        const N: u64 = 30;
+        const PERIOD: u64 = 4_000_000;
+        for (k, wake) in [
+            Wake::Event,
+            Wake::SpinThenPark { spin_ns: 300_000 },
+            Wake::BusyPoll,
+        ]
+        .into_iter()
+        .enumerate()
+        {
+            let name = format!("wake-test-{}-{k}", std::process::id());
+            let instance = Instance::new(&name).unwrap();
+            let node = node(&instance, "test").unwrap();
+            let mut rx = instance.engine_inlet(&node).unwrap();
+            rx.set_wake(wake);
+            assert_eq!(rx.wake(), wake);
+            let sender = std::thread::spawn(move || {
+                let instance = Instance::new(&name).unwrap();
+                let node = super::node(&instance, "sender").unwrap();
+                let mut tx = instance.engine_outlet(&node).unwrap();
+                let mut next = now_ns() + 50_000_000;
+                for tick in 1..=N {
+                    crate::clock::sleep_until_ns(next);
+                    next += PERIOD;
+                    tx.publish(&EngineFrame {
+                        layout_version: ipc_types::LAYOUT_VERSION,
+                        tick,
+                        ..Default::default()
+                    })
+                    .unwrap();
+                }
+            });
+            let mut got = Vec::new();
+            let give_up = now_ns() + 10_000_000_000;
+            while got.last() != Some(&N) && now_ns() < give_up {
+                rx.wait_until(now_ns() + 20_000_000).unwrap();
+                rx.drain(&mut |f: &EngineFrame| got.push(f.tick)).unwrap();
+            }
+            sender.join().unwrap();
+            assert_eq!(got.last(), Some(&N), "{wake}: {got:?}");
+            // A wait that missed its sample (a spin that never looks) returns only at its 20 ms
+            // timeout: five samples arrive meanwhile into a buffer of four, one per wait is lost.
+            assert!(got.len() as u64 >= N - 3, "{wake}: {got:?}");
+            assert!(got.windows(2).all(|w| w[0] < w[1]), "{wake}: {got:?}");
+            if let Wake::SpinThenPark { .. } = wake {
+                let p = rx.arrivals.period_ns();
+                assert!(p > PERIOD / 2 && p < 2 * PERIOD, "learnt period {p}");
+            }
+            let deadline = now_ns() + 30_000_000;
+            let mut waits = 0;
+            while now_ns() < deadline {
+                rx.wait_until(deadline).unwrap();
+                waits += 1;
+            }
+            assert!(waits <= 3, "{wake}: {waits} waits for one deadline");
+            assert_eq!(rx.take_latest().unwrap(), None);
+            drop((rx, node));
+            instance.remove_leftovers();
+        }
     }
 
     /// What a SIGKILLed launcher leaves (iceoryx2's node counter, world-writable) is removed by the

@@ -14,7 +14,8 @@
 //! * [`instance`] — one run's stream names and the files it leaves behind;
 //! * [`process`] — common process options (validated `--seconds`), pinning, error printing;
 //! * [`realtime`] — SCHED_FIFO and locked memory where permitted, a warning naming the limit where not;
-//! * [`trace`] — stage spans in a bounded ring per process, merged into one Chrome/Perfetto trace.
+//! * [`trace`] — stage spans in a bounded ring per process, merged into one Chrome/Perfetto trace;
+//! * [`wake`] — how a receiver waits: the event, spin-then-park or busy-poll, chosen from the cores.
 //!
 //! Nothing here calls iceoryx2's `testing` module.
 
@@ -28,6 +29,7 @@ pub mod port;
 pub mod process;
 pub mod realtime;
 pub mod trace;
+pub mod wake;
 
 pub use clock::{now_ns, Clock, FakeClock, Monotonic};
 pub use instance::{Cleanup, Instance, RunningInstance, RunningProcess};

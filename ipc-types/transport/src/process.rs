@@ -75,6 +75,36 @@ pub fn pin_to_core(core: Option<usize>, role: &str) -> Result<(), PinError> {
     }
 }
 
+/// A kernel CPU list (`2-3,5`, as in `isolcpus=` and /sys/devices/system/cpu/isolated) as sorted
+/// cores; `None` if any part is not one.
+pub fn parse_cpu_list(list: &str) -> Option<Vec<usize>> {
+    let mut cpus = Vec::new();
+    for part in list.trim().split(',').filter(|p| !p.is_empty()) {
+        match part.split_once('-') {
+            Some((a, b)) => {
+                let (a, b): (usize, usize) = (a.parse().ok()?, b.parse().ok()?);
+                if b < a || b - a > 4096 {
+                    return None;
+                }
+                cpus.extend(a..=b);
+            }
+            None => cpus.push(part.parse().ok()?),
+        }
+    }
+    cpus.sort_unstable();
+    cpus.dedup();
+    Some(cpus)
+}
+
+/// The cores the kernel keeps other tasks off (`isolcpus`, read from
+/// /sys/devices/system/cpu/isolated); empty when none or unreadable.
+pub fn isolated_cores() -> Vec<usize> {
+    std::fs::read_to_string("/sys/devices/system/cpu/isolated")
+        .ok()
+        .and_then(|s| parse_cpu_list(&s))
+        .unwrap_or_default()
+}
+
 /// A process could not be pinned to the core it was given.
 #[derive(Debug, Clone, PartialEq, Eq, Error)]
 #[error("{role}: cannot pin to CPU core {core} ({available} cores available to this process)")]
