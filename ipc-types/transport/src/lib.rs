@@ -27,6 +27,7 @@ pub mod pacer;
 pub mod port;
 pub mod process;
 pub mod realtime;
+pub mod stop;
 pub mod trace;
 
 pub use clock::{now_ns, Clock, FakeClock, Monotonic};
