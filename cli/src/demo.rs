@@ -454,6 +454,8 @@ pub fn run(args: &DemoArgs) -> anyhow::Result<DemoReport> {
 
 /// Run the demo with `watch` looking on (see [`Watch`]); returns the report.
 pub fn run_watched(args: &DemoArgs, watch: &mut dyn Watch) -> anyhow::Result<DemoReport> {
+    // SIGTERM, SIGINT and SIGHUP stop the run (latched: a SIGCONT after them changes nothing).
+    transport::stop::install()?;
     let s = args.seconds;
     if !(s.is_finite() && s > 0.0 && s <= transport::process::MAX_SECONDS) {
         bail!(
@@ -778,9 +780,12 @@ pub fn run_watched(args: &DemoArgs, watch: &mut dyn Watch) -> anyhow::Result<Dem
     let (mut bridge_died_at, mut last_sample): (Option<u64>, u64) = (None, 0);
     let mut phase = crate::supervise::PhaseCheck::new(&scene);
     loop {
-        if !iox::idle(&node, Duration::from_millis(5)) {
+        if !transport::stop::idle(Duration::from_millis(5)) {
             interrupted = true;
-            eprintln!("lungdyn: interrupted, stopping the processes");
+            eprintln!(
+                "lungdyn: interrupted ({}), stopping the processes",
+                transport::stop::signal().map_or("a stop signal", transport::stop::name)
+            );
             break;
         }
         // Recovered: a frame from a live engine, showing a sample of the live bridge.

@@ -1056,6 +1056,8 @@ pub fn stray(args: &StrayArgs) -> anyhow::Result<()> {
         "hold" => false,
         m => bail!("--mode {m:?}: one of corrupt, nan, hold"),
     };
+    // A stop signal ends a held node cleanly (its files removed).
+    transport::stop::install()?;
     let instance = Instance::new(&args.instance)?;
     let node = iox::node(&instance, "stray")?;
     let mut outlet = instance.tracker_outlet(&node)?;
@@ -1065,7 +1067,7 @@ pub fn stray(args: &StrayArgs) -> anyhow::Result<()> {
         std::io::stdout().flush()?;
         // Killed by `lungdyn faults`; ends by itself after a minute should that never come.
         let until = now_ns() + 60_000_000_000;
-        while now_ns() < until && iox::idle(&node, Duration::from_millis(50)) {}
+        while now_ns() < until && transport::stop::idle(Duration::from_millis(50)) {}
         return Ok(());
     }
     let mut rng = XorShiftRng::seed_from_u64(args.seed);

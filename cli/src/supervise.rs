@@ -106,42 +106,17 @@ impl Proc {
         })
     }
 
-    /// Ask the child to stop (SIGINT), first continuing it if it is stopped.
-    ///
-    /// iceoryx2 records only the *last* signal a process caught, SIGCONT included: a SIGCONT
-    /// caught after the SIGINT (sent after it, to a child busy drawing a frame) replaced the
-    /// request, and the child ran on until SIGKILL (a windowed renderer presented on for the whole
-    /// grace period, a tracker-bridge never printed its counts). So a stopped child is continued
-    /// first and interrupted only once it runs and its SIGCONT has been taken, and a running child
-    /// gets no SIGCONT at all. Returns whether the SIGINT was sent.
+    /// Ask the child to stop: SIGINT, then SIGCONT if it is stopped (SIGSTOP, Ctrl-Z), which it
+    /// needs to act on the SIGINT — systemd's order. The processes latch a stop request
+    /// (`transport::stop`), so the SIGCONT after it cannot take it back; a running child gets no
+    /// SIGCONT. Returns whether the SIGINT was sent.
     pub fn interrupt(&mut self) -> bool {
-        if self.stopped() {
+        let stopped = self.stopped();
+        let sent = self.signal(libc::SIGINT);
+        if stopped {
             self.signal(libc::SIGCONT);
-            let until = now_ns() + 500_000_000;
-            while (self.stopped() || self.cont_pending()) && now_ns() < until {
-                std::thread::sleep(Duration::from_millis(2));
-            }
-            // Let its handler for SIGCONT return before the SIGINT can be caught.
-            std::thread::sleep(Duration::from_millis(10));
         }
-        self.signal(libc::SIGINT)
-    }
-
-    /// Whether a SIGCONT is still pending for the child (`/proc/PID/status`, SigPnd or ShdPnd).
-    fn cont_pending(&mut self) -> bool {
-        if self.poll().is_some() {
-            return false;
-        }
-        let bit = 1u64 << (libc::SIGCONT - 1);
-        std::fs::read_to_string(format!("/proc/{}/status", self.child.id())).is_ok_and(|s| {
-            s.lines().any(|l| {
-                (l.starts_with("SigPnd:") || l.starts_with("ShdPnd:"))
-                    && l.split_whitespace()
-                        .nth(1)
-                        .and_then(|h| u64::from_str_radix(h, 16).ok())
-                        .is_some_and(|m| m & bit != 0)
-            })
-        })
+        sent
     }
 
     /// SIGKILL (through the handle, which refuses a reaped child) and reap.
@@ -555,7 +530,7 @@ mod tests {
     }
 
     #[test]
-    fn a_stopped_child_is_continued_before_it_is_interrupted_and_a_running_one_is_not() {
+    fn a_stopped_child_is_interrupted_and_continued_and_a_running_one_is_not_continued() {
         let mut children = Children {
             procs: vec![
                 sh("stopped", "echo ready; exec sleep 30"),

@@ -11,7 +11,7 @@ use anyhow::{bail, Context};
 use ipc_types::{TrackerFrame, TOOL_HMD, TOOL_PATIENT};
 use serde_json::{json, Value};
 use tracker_bridge::record::{Record, RecordReader};
-use tracker_bridge::run::{run_loop, stop_on_signals, RealTime, Reporter};
+use tracker_bridge::run::{run_loop, RealTime, Reporter};
 use tracker_bridge::sample::ToolName;
 use tracker_bridge::stats::status_names;
 use tracker_pose::predict::{
@@ -80,7 +80,7 @@ pub fn listen(args: &ListenArgs) -> anyhow::Result<Value> {
     } = opened;
     let description = source.describe();
     eprintln!("lungdyn tracker listen: {description}; Ctrl-C to stop");
-    let stop = stop_on_signals();
+    transport::stop::install()?;
     let start = transport::now_ns();
     let stop_at = run_ns.map(|d| start.saturating_add(d));
     let mut watch = Watch {
@@ -95,9 +95,7 @@ pub fn listen(args: &ListenArgs) -> anyhow::Result<Value> {
         &mut watch,
         &mut recorder,
         &RealTime,
-        &mut |now| {
-            stop.load(std::sync::atomic::Ordering::Relaxed) || stop_at.is_some_and(|t| now >= t)
-        },
+        &mut |now| transport::stop::requested() || stop_at.is_some_and(|t| now >= t),
         &mut |e, now| reporter.event(e, now),
     )?;
     drop(source);

@@ -83,6 +83,7 @@ fn deadline(seconds: Option<f64>) -> Result<Option<u64>, RemoteError> {
 
 /// Run `lungdyn remote serve`.
 pub fn serve(args: &ServeArgs) -> Result<(), RemoteError> {
+    transport::stop::install()?;
     let until = deadline(args.seconds)?;
     let keys = Keys::new(&args.room)?;
     let net = Net::peer(&args.listen, &args.connect);
@@ -103,7 +104,7 @@ pub fn serve(args: &ServeArgs) -> Result<(), RemoteError> {
         args.room
     );
     let (mut refused, mut sites) = (0u64, 0usize);
-    while iox::idle(&node, Duration::from_millis(5)) && until.is_none_or(|t| now_ns() < t) {
+    while transport::stop::idle(Duration::from_millis(5)) && until.is_none_or(|t| now_ns() < t) {
         let mut failed = None;
         states.drain(&mut |f| {
             if f.check_layout().is_err() {
@@ -164,6 +165,7 @@ pub fn serve(args: &ServeArgs) -> Result<(), RemoteError> {
 
 /// Run `lungdyn remote join`.
 pub fn join(args: &JoinArgs) -> Result<(), RemoteError> {
+    transport::stop::install()?;
     let until = deadline(args.seconds)?;
     let keys = Keys::new(&args.room)?;
     // Endpoints are checked before anything is loaded or opened.
@@ -197,7 +199,7 @@ pub fn join(args: &JoinArgs) -> Result<(), RemoteError> {
         .runner(core, hz)
         .ok_or_else(|| RemoteError::Usage("the site's runner was taken".into()))?;
     let mut first = true;
-    while !iox::termination_requested(&node) && until.is_none_or(|t| now_ns() < t) {
+    while !transport::stop::requested() && until.is_none_or(|t| now_ns() < t) {
         let now = now_ns();
         if runner.poll(now)?.is_some() {
             if first {

@@ -644,8 +644,7 @@ impl Session {
 
     /// True when the process was asked to stop or its time is up.
     pub fn should_stop(&self) -> bool {
-        self.node.as_ref().is_some_and(iox::termination_requested)
-            || self.stop_at.is_some_and(|t| self.clock.now_ns() >= t)
+        transport::stop::requested() || self.stop_at.is_some_and(|t| self.clock.now_ns() >= t)
     }
 
     /// Whether the engine is down: no engine frame for
@@ -955,6 +954,7 @@ fn check_predict_ms(ms: f64) -> Result<(), RendererError> {
 
 /// Run the renderer until terminated (or `--seconds` elapse): headless, or in a window.
 pub fn run(args: &RendererArgs) -> Result<(), RendererError> {
+    transport::stop::install()?;
     quiet_mesa();
     check_predict_ms(args.predict_ms)?;
     // The scene and its calibration and optics files are checked before a window or the GPU opens.

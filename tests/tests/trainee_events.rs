@@ -110,14 +110,15 @@ impl Engine {
             .unwrap()
     }
 
-    /// Stop the engine (SIGTERM: it says its counters) and return its log.
+    /// Stop the engine the way systemd does — SIGTERM, then SIGCONT (it may still be stopped) — and
+    /// return its log (it says its counters). The stop request is latched, so the SIGCONT after it
+    /// cannot take it back.
     fn stop(mut self) -> String {
-        // iceoryx2 keeps only the last signal caught, and SIGCONT (18) pending with SIGTERM (15) is
-        // delivered after it and would replace the stop request: continue first, then stop.
-        self.signal(libc::SIGCONT);
-        std::thread::sleep(std::time::Duration::from_millis(100));
         self.signal(libc::SIGTERM);
+        self.signal(libc::SIGCONT);
+        let asked = Instant::now();
         let status = self.child.take().unwrap().wait().unwrap();
+        eprintln!("engine exited {:?} after SIGTERM+SIGCONT", asked.elapsed());
         let log = self.log();
         assert!(status.success(), "{log}");
         log
@@ -284,7 +285,6 @@ fn an_engine_that_never_answers_is_a_clear_error_after_the_timeout() {
         .wait_with_output()
         .unwrap();
     let took = t0.elapsed();
-    e.signal(libc::SIGCONT);
     let err = text(&o.stderr);
     assert!(!o.status.success(), "{err}");
     assert!(
@@ -293,5 +293,6 @@ fn an_engine_that_never_answers_is_a_clear_error_after_the_timeout() {
     );
     assert!(took >= Duration::from_secs(1), "{took:?}");
     assert!(took < Duration::from_secs(20), "{took:?}");
-    drop(e);
+    // Still stopped: systemd's SIGTERM then SIGCONT ends it cleanly.
+    e.stop();
 }

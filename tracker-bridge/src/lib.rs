@@ -337,6 +337,7 @@ pub enum BridgeError {
 
 /// Run the bridge until terminated (or `--seconds` elapse, or a replay ends).
 pub fn run(args: &BridgeArgs) -> Result<(), BridgeError> {
+    transport::stop::install()?;
     let run_ns = run_ns(args.seconds)?;
     args.source.resolve()?;
     if let Some(path) = &args.stats_json {
@@ -382,7 +383,7 @@ pub fn run(args: &BridgeArgs) -> Result<(), BridgeError> {
         &mut |now| {
             // Checked every pass of the loop: a hung source read stops the watchdog's pings.
             watchdog.ping(now);
-            iox::termination_requested(&node) || stop_at.is_some_and(|t| now >= t)
+            transport::stop::requested() || stop_at.is_some_and(|t| now >= t)
         },
         &mut |e, now| reporter.event(e, now),
     )?;

@@ -14,8 +14,6 @@
 //! fake clock with in-memory ports. Per tick it does not allocate (the source's samples are
 //! fixed-size, the recorder writes into a buffer, the frame is reused).
 
-use std::sync::atomic::{AtomicBool, Ordering};
-
 use ipc_types::TrackerFrame;
 use transport::{FakeClock, Publish};
 
@@ -124,21 +122,6 @@ impl Reporter {
             }
         }
     }
-}
-
-/// Ask the loop to stop on SIGINT/SIGTERM without iceoryx2 (the listening command): returns the
-/// flag the signal handler sets.
-pub fn stop_on_signals() -> &'static AtomicBool {
-    static STOP: AtomicBool = AtomicBool::new(false);
-    extern "C" fn on_signal(_: libc::c_int) {
-        STOP.store(true, Ordering::Relaxed);
-    }
-    // SAFETY: installs an async-signal-safe handler (one atomic store) for two signals.
-    unsafe {
-        libc::signal(libc::SIGINT, on_signal as *const () as libc::sighandler_t);
-        libc::signal(libc::SIGTERM, on_signal as *const () as libc::sighandler_t);
-    }
-    &STOP
 }
 
 /// What the loop did.

@@ -521,6 +521,7 @@ fn live_action(
 
 /// Run the engine process until terminated (or `--seconds` elapse).
 pub fn run(args: &EngineArgs) -> Result<(), EngineError> {
+    transport::stop::install()?;
     let start_tick = args.start_tick;
     let args = &args.process;
     let run_ns = args.run_ns()?;
@@ -600,7 +601,7 @@ pub fn run(args: &EngineArgs) -> Result<(), EngineError> {
             // tick stops it (at most one datagram per WatchdogSec/2).
             let now = now_ns();
             watchdog.ping(now);
-            iox::termination_requested(&node) || stop_at.is_some_and(|t| now >= t)
+            transport::stop::requested() || stop_at.is_some_and(|t| now >= t)
         },
         Some(instance.name()),
         start_tick,

@@ -103,24 +103,38 @@ impl Instance {
     /// leaves iceoryx2's node counter, a process killed before its cleanup its segments — files
     /// every user may read and write, and which a later run of the same name would trip on). An
     /// instance counts as dead when it has lock files (every lungdyn process takes one before it
-    /// creates any file) and none is held by a live process; a file that a running instance's prefix
-    /// also claims (`a_b` running beside a dead `a`) is kept. Transport files of a prefix that never
-    /// took a lock (a test's private node) are not touched. Returns the files removed.
+    /// creates any file) and none of them is locked: the lock itself is asked about
+    /// ([`HeldLocks`], from the kernel's `/proc/locks`), not the pid written in it, which may be
+    /// gone or recycled by an unrelated process (even one with the same command line). Where the
+    /// kernel's list cannot be read, the pids and command lines of the lock files decide
+    /// ([`Self::running`]). A file that a running instance's prefix also claims (`a_b` running
+    /// beside a dead `a`) is kept. Transport files of a prefix that never took a lock (a test's
+    /// private node) are not touched. Returns the files removed.
     pub fn sweep_dead() -> Vec<PathBuf> {
-        let live: Vec<String> = Self::running()
-            .iter()
-            .filter_map(|r| Instance::new(&r.name).ok().map(|i| i.file_prefix()))
-            .collect();
-        let mut dead: Vec<String> = std::fs::read_dir(Self::lock_dir())
+        let mut locks: Vec<(String, PathBuf)> = std::fs::read_dir(Self::lock_dir())
             .map(|d| {
                 d.flatten()
                     .filter_map(|e| {
-                        lock_name_role(&e.file_name().to_string_lossy()).map(|(n, _)| n.to_string())
+                        lock_name_role(&e.file_name().to_string_lossy())
+                            .map(|(n, _)| (n.to_string(), e.path()))
                     })
                     .collect()
             })
             .unwrap_or_default();
-        dead.sort();
+        locks.sort();
+        let live_names: Vec<String> = match HeldLocks::read() {
+            Some(held) => locks
+                .iter()
+                .filter(|(_, path)| held.holds(path) != Some(false))
+                .map(|(name, _)| name.clone())
+                .collect(),
+            None => Self::running().into_iter().map(|r| r.name).collect(),
+        };
+        let live: Vec<String> = live_names
+            .iter()
+            .filter_map(|n| Instance::new(n).ok().map(|i| i.file_prefix()))
+            .collect();
+        let mut dead: Vec<String> = locks.into_iter().map(|(name, _)| name).collect();
         dead.dedup();
         let mut removed = Vec::new();
         for name in dead {
@@ -311,6 +325,7 @@ pub const ROLES: [&str; 4] = ["launcher", "engine", "renderer", "tracker-bridge"
 
 impl Instance {
     /// Every instance with at least one live process, sorted by name. A lock file counts only while
+    /// it is locked ([`HeldLocks`]; where the kernel's list cannot be read, this is not asked) and
     /// its pid is alive *and* runs the command line it recorded (so a recycled pid is not taken for
     /// the process that left the file).
     pub fn running() -> Vec<RunningInstance> {
@@ -318,11 +333,15 @@ impl Instance {
         let Ok(dir) = std::fs::read_dir(Self::lock_dir()) else {
             return Vec::new();
         };
+        let held = HeldLocks::read();
         for entry in dir.flatten() {
             let file = entry.file_name();
             let Some((name, role)) = file.to_str().and_then(lock_name_role) else {
                 continue;
             };
+            if held.as_ref().and_then(|h| h.holds(&entry.path())) == Some(false) {
+                continue;
+            }
             let Ok(text) = std::fs::read_to_string(entry.path()) else {
                 continue;
             };
@@ -379,6 +398,55 @@ fn lock_name_role(file: &str) -> Option<(&str, &'static str)> {
     ROLES
         .iter()
         .find_map(|r| stem.strip_suffix(&format!(".{r}")).map(|n| (n, *r)))
+}
+
+/// The files locked with `flock` now, as the kernel lists them in `/proc/locks` (by device and
+/// inode): whether a lock file is held, asked without touching the lock (taking it to test, even
+/// for an instant, could refuse its real owner as it starts). A held lock is proof of a live owner
+/// that a pid written in the file is not: the kernel drops the lock when its holder exits, however
+/// it exits. (The kernel lists the locks of processes in the reader's pid namespace.)
+#[derive(Debug, Clone, Default)]
+pub struct HeldLocks {
+    /// "MAJOR:MINOR:INODE" (major and minor in hex, as `/proc/locks` writes them) of each file
+    /// some process holds a `flock` on.
+    files: std::collections::HashSet<String>,
+}
+
+impl HeldLocks {
+    /// Read `/proc/locks`; `None` when it cannot be read.
+    pub fn read() -> Option<Self> {
+        std::fs::read_to_string("/proc/locks")
+            .ok()
+            .map(|t| Self::parse(&t))
+    }
+
+    /// The held `flock`s of a `/proc/locks` text: lines "N: FLOCK ADVISORY WRITE PID MM:mm:INODE
+    /// START END"; a waiter's line ("N: -> FLOCK …") holds nothing, and POSIX (`fcntl`) locks are
+    /// not ours.
+    pub fn parse(text: &str) -> Self {
+        let files = text
+            .lines()
+            .filter_map(|l| {
+                let mut f = l.split_whitespace().skip(1);
+                // FLOCK, ADVISORY, READ/WRITE, pid, then the file.
+                (f.next()? == "FLOCK").then(|| f.nth(3).map(str::to_string))?
+            })
+            .collect();
+        Self { files }
+    }
+
+    /// Whether the file at `path` is held; `None` when it cannot be looked up (gone, unreadable).
+    pub fn holds(&self, path: &std::path::Path) -> Option<bool> {
+        use std::os::unix::fs::MetadataExt;
+        let m = std::fs::metadata(path).ok()?;
+        let key = format!(
+            "{:02x}:{:02x}:{}",
+            libc::major(m.dev()),
+            libc::minor(m.dev()),
+            m.ino()
+        );
+        Some(self.files.contains(&key))
+    }
 }
 
 /// What [`Instance::remove_leftovers`] removed.
@@ -451,6 +519,74 @@ mod tests {
             .iter()
             .any(|r| r.name == format!("{name}-gone")));
         std::fs::remove_file(&stale).unwrap();
+        drop(held);
+    }
+
+    #[test]
+    fn held_locks_are_the_flock_lines_of_proc_locks_not_waiters_or_posix_locks() {
+        let h = HeldLocks::parse(
+            "1: FLOCK  ADVISORY  WRITE 3064 fe:00:5309073 0 EOF\n\
+             2: POSIX  ADVISORY  WRITE 99 fe:00:77 0 EOF\n\
+             3: FLOCK  ADVISORY  WRITE 30747 00:2a:10010657 0 EOF\n\
+             3: -> FLOCK  ADVISORY  WRITE 31456 00:2a:555 0 EOF\n\
+             garbage\n",
+        );
+        let mut files: Vec<&str> = h.files.iter().map(String::as_str).collect();
+        files.sort();
+        assert_eq!(files, ["00:2a:10010657", "fe:00:5309073"]);
+    }
+
+    /// The lock, not the pid written in it, says whether an instance's owner lives: a held lock
+    /// (even one whose text is not written yet) keeps the instance's files; a lock file whose pid
+    /// is gone, or whose pid now runs an unrelated process — here this very test, with the very
+    /// command line the file records, which the text alone takes for the owner — is swept.
+    #[test]
+    fn sweep_keeps_a_held_lock_and_sweeps_an_owner_gone_or_its_pid_recycled() {
+        let pid = std::process::id();
+        let live = Instance::new(&format!("sweep-live-{pid}")).unwrap();
+        let gone = Instance::new(&format!("sweep-gone-{pid}")).unwrap();
+        let recycled = Instance::new(&format!("sweep-recycled-{pid}")).unwrap();
+        let held = live.lock("engine").unwrap();
+        // Just taken: no pid written yet.
+        std::fs::write(held.path(), "").unwrap();
+        let mut child = std::process::Command::new("true").spawn().unwrap();
+        let gone_pid = child.id();
+        child.wait().unwrap();
+        let cmdline = std::env::args().collect::<Vec<_>>().join(" ");
+        for (i, text) in [
+            (&gone, format!("process {gone_pid} (true)")),
+            (&recycled, format!("process {pid} ({cmdline})")),
+        ] {
+            std::fs::write(
+                Instance::lock_dir().join(format!("{}.launcher.lock", i.name())),
+                text,
+            )
+            .unwrap();
+        }
+        let file = |i: &Instance| PathBuf::from(format!("/dev/shm/{}sweep-test", i.file_prefix()));
+        for i in [&live, &gone, &recycled] {
+            std::fs::write(file(i), b"x").unwrap();
+        }
+        assert!(
+            Instance::running()
+                .iter()
+                .all(|r| r.name != recycled.name() && r.name != gone.name()),
+            "unlocked: not running"
+        );
+        let removed = Instance::sweep_dead();
+        assert!(
+            file(&live).exists(),
+            "a held lock keeps its instance's files"
+        );
+        for i in [&gone, &recycled] {
+            assert!(!file(i).exists(), "{} swept", i.name());
+            assert!(removed.contains(&file(i)), "{removed:?}");
+        }
+        std::fs::remove_file(file(&live)).unwrap();
+        for i in [&gone, &recycled] {
+            std::fs::remove_file(Instance::lock_dir().join(format!("{}.launcher.lock", i.name())))
+                .unwrap();
+        }
         drop(held);
     }
 

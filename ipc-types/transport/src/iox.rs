@@ -12,7 +12,7 @@
 use core::time::Duration;
 use std::path::PathBuf;
 
-use iceoryx2::node::{NodeView, NodeWaitFailure};
+use iceoryx2::node::NodeView;
 use iceoryx2::prelude::*;
 use ipc_types::{ControlPacket, ControlReply, EngineFrame, FrameReport, Message, TrackerFrame};
 
@@ -100,7 +100,9 @@ pub fn config(instance: &Instance) -> Result<Config, PortError> {
     Ok(config)
 }
 
-/// Create the iceoryx2 node of process `role` (e.g. "engine") in `instance`.
+/// Create the iceoryx2 node of process `role` (e.g. "engine") in `instance`. iceoryx2's signal
+/// handling is disabled (it would install handlers that keep only the last signal caught, so a
+/// SIGCONT after a SIGTERM lost the stop): stop requests are [`crate::stop`]'s.
 pub fn node(instance: &Instance, role: &str) -> Result<IoxNode, PortError> {
     let name = format!("lungdyn-{}-{}", instance.name(), role);
     let node_name = NodeName::new(&name).map_err(|_| PortError::BadInstanceName {
@@ -109,6 +111,7 @@ pub fn node(instance: &Instance, role: &str) -> Result<IoxNode, PortError> {
     NodeBuilder::new()
         .name(&node_name)
         .config(&config(instance)?)
+        .signal_handling_mode(SignalHandlingMode::Disabled)
         .create::<ipc::Service>()
         .map_err(|source| PortError::Node { node: name, source })
 }
@@ -145,40 +148,6 @@ pub fn remove_dead_nodes(instance: &Instance) -> Result<Vec<String>, PortError> 
             reason,
         }),
         None => Ok(cleaned),
-    }
-}
-
-/// A termination request once seen: iceoryx2 keeps only the last signal and forgets it when asked,
-/// so a second look (or a later SIGCONT) would otherwise lose the request.
-static TERMINATING: std::sync::atomic::AtomicBool = std::sync::atomic::AtomicBool::new(false);
-
-fn latch(requested: bool) -> bool {
-    use std::sync::atomic::Ordering;
-    if requested {
-        TERMINATING.store(true, Ordering::Relaxed);
-    }
-    TERMINATING.load(Ordering::Relaxed)
-}
-
-/// True when the process was asked to terminate (SIGINT/SIGTERM), as seen by iceoryx2's handler;
-/// once true, true for the rest of the process (the request is latched).
-pub fn termination_requested(node: &IoxNode) -> bool {
-    latch(false) || latch(node.wait(Duration::ZERO).is_err())
-}
-
-/// Sleep up to `period` on the node; false when a termination was requested (now or before).
-/// Another signal that cuts the sleep short (SIGCONT after Ctrl-Z and `fg`, SIGCHLD) is not a
-/// termination request: iceoryx2 reports any interrupted sleep as an error, so the request itself
-/// is asked for again. A request that `wait` itself reported is latched first: asking again would
-/// find it consumed and read as "go on" (a Ctrl-C between two sleeps was lost that way).
-pub fn idle(node: &IoxNode, period: Duration) -> bool {
-    if latch(false) {
-        return false;
-    }
-    match node.wait(period) {
-        Ok(()) => true,
-        Err(NodeWaitFailure::TerminationRequest) => !latch(true),
-        Err(_) => !termination_requested(node),
     }
 }
 
@@ -373,7 +342,7 @@ impl<T: Topic> Inlet<T> {
 
     /// Sleep on the event until `until_ns` (absolute; at once when past, still consuming pending
     /// wake-ups). True when woken before it: a notification or a signal (SIGINT/SIGTERM end the
-    /// wait early on purpose: the loop checks for a termination request next).
+    /// wait early on purpose: the loop checks for a stop request next, see `crate::stop`).
     fn park(&mut self, until_ns: u64) -> Result<bool, PortError> {
         use iceoryx2::port::listener::ListenerWaitError;
         let now = now_ns();

@@ -28,6 +28,7 @@ pub mod pacer;
 pub mod port;
 pub mod process;
 pub mod realtime;
+pub mod stop;
 pub mod trace;
 pub mod wake;
 

@@ -116,6 +116,14 @@ pub enum PortError {
         #[source]
         source: Box<dyn std::error::Error + Send + Sync>,
     },
+    /// The handler of a stop signal could not be installed.
+    #[error("cannot install the handler of signal {signal} (stop requests): {source}")]
+    Signals {
+        /// The signal's number.
+        signal: i32,
+        /// Why.
+        source: std::io::Error,
+    },
     /// The resources of a dead process's iceoryx2 node could not be removed.
     #[error("instance {instance:?}: cannot remove a dead process's iceoryx2 resources: {reason}")]
     DeadNodes {
