@@ -713,7 +713,30 @@ fn run_round<'x>(
     }
     let demo = <DemoCli as clap::Parser>::try_parse_from(&demo_args)?.demo;
     let mut inj = Injector::new(round, plan, exe, period_ns);
-    let report = crate::demo::run_watched(&demo, &mut inj)?;
+    let report = match crate::demo::run_watched(&demo, &mut inj) {
+        Ok(report) => report,
+        // A round whose pipeline cannot start (seen on an NVIDIA H200: no adapter for a moment
+        // after a storm of killed renderers) fails that round; the rounds after it still run and
+        // the report is still written.
+        Err(e) => {
+            return Ok((
+                RoundReport {
+                    round,
+                    instance,
+                    ended: "did not start".into(),
+                    frames: 0,
+                    restarts: 0,
+                    phase_errors: 0,
+                    leaked_files: 0,
+                    removed_by_launcher: 0,
+                    frozen_during_faults: 0,
+                    ok: false,
+                    problems: vec![format!("the pipeline could not start: {e:#}")],
+                },
+                inj,
+            ));
+        }
+    };
     let mut problems = Vec::new();
     if storm {
         let stopped = report

@@ -24,9 +24,11 @@ pub struct Gpu {
 pub enum GpuError {
     /// No Vulkan adapter.
     #[error(
-        "no GPU adapter found ({detail}); on a machine without a GPU install Mesa's lavapipe, a \
-         software Vulkan driver: `sudo apt-get install mesa-vulkan-drivers libvulkan1` (`./run demo` \
-         and `./run test` install it)"
+        "no GPU adapter found ({detail}; asked {ADAPTER_TRIES} times over {:.1} s); on a machine \
+         without a GPU install Mesa's lavapipe, a software Vulkan driver: `sudo apt-get install \
+         mesa-vulkan-drivers libvulkan1` (`./run demo` and `./run test` install it); where the \
+         machine has a GPU, its driver did not offer it (`lungdyn doctor` checks)",
+        ADAPTER_PAUSES_MS.iter().sum::<u64>() as f64 / 1000.0
     )]
     NoAdapter {
         /// wgpu's reason.
@@ -42,18 +44,53 @@ pub enum GpuError {
     },
 }
 
+/// Pauses between the tries for an adapter. A GPU can be briefly unavailable: on an NVIDIA H200
+/// the next process found no adapter right after a storm of SIGKILLed renderers (`lungdyn faults`,
+/// docs/gpu), while the driver was still tearing their contexts down; a few tries over 1.5 s ride
+/// that out, and a machine with no GPU at all waits no longer than that for its error.
+const ADAPTER_PAUSES_MS: [u64; 4] = [100, 200, 400, 800];
+/// Tries for an adapter: the first and one after each pause.
+const ADAPTER_TRIES: usize = ADAPTER_PAUSES_MS.len() + 1;
+
+/// The best adapter (`WGPU_BACKEND`, `WGPU_ADAPTER_NAME` honoured), asked [`ADAPTER_TRIES`] times
+/// before giving up; a line on stderr says when the first try found none.
+fn request_adapter(
+    instance: &wgpu::Instance,
+    surface: Option<&wgpu::Surface<'_>>,
+) -> Result<wgpu::Adapter, GpuError> {
+    let ask = || {
+        pollster::block_on(instance.request_adapter(&wgpu::RequestAdapterOptions {
+            power_preference: wgpu::PowerPreference::HighPerformance,
+            compatible_surface: surface,
+            ..Default::default()
+        }))
+    };
+    let mut last = match ask() {
+        Ok(a) => return Ok(a),
+        Err(e) => e,
+    };
+    eprintln!(
+        "lungdyn: no GPU adapter yet ({last}); asking again for up to {:.1} s",
+        ADAPTER_PAUSES_MS.iter().sum::<u64>() as f64 / 1000.0
+    );
+    for pause in ADAPTER_PAUSES_MS {
+        std::thread::sleep(std::time::Duration::from_millis(pause));
+        match ask() {
+            Ok(a) => return Ok(a),
+            Err(e) => last = e,
+        }
+    }
+    Err(GpuError::NoAdapter {
+        detail: last.to_string(),
+    })
+}
+
 /// Find the adapter the renderer would open, without opening a device: its one-line description,
 /// or the error naming what to install. A launcher calls it before any long work.
 pub fn probe_adapter() -> Result<String, GpuError> {
     let instance =
         wgpu::Instance::new(wgpu::InstanceDescriptor::new_without_display_handle_from_env());
-    let adapter = pollster::block_on(instance.request_adapter(&wgpu::RequestAdapterOptions {
-        power_preference: wgpu::PowerPreference::HighPerformance,
-        ..Default::default()
-    }))
-    .map_err(|e| GpuError::NoAdapter {
-        detail: e.to_string(),
-    })?;
+    let adapter = request_adapter(&instance, None)?;
     let info = adapter.get_info();
     let software = if info.device_type == wgpu::DeviceType::Cpu {
         ", a software rasteriser"
@@ -93,14 +130,7 @@ impl Gpu {
         instance: wgpu::Instance,
         surface: Option<&wgpu::Surface<'_>>,
     ) -> Result<Self, GpuError> {
-        let adapter = pollster::block_on(instance.request_adapter(&wgpu::RequestAdapterOptions {
-            power_preference: wgpu::PowerPreference::HighPerformance,
-            compatible_surface: surface,
-            ..Default::default()
-        }))
-        .map_err(|e| GpuError::NoAdapter {
-            detail: e.to_string(),
-        })?;
+        let adapter = request_adapter(&instance, surface)?;
         let info = adapter.get_info();
         let timestamps = adapter.features().contains(wgpu::Features::TIMESTAMP_QUERY);
         let required_features = if timestamps {

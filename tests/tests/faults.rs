@@ -103,3 +103,36 @@ fn ten_seeded_fault_rounds_recover_without_leaks_or_phase_errors() {
     );
     std::fs::remove_dir_all(&out).ok();
 }
+
+/// A round whose pipeline cannot start (no GPU adapter: a backend this build does not have) fails
+/// that round with the reason, the next round still runs, and the JSON report is still written
+/// (on an H200 one adapter refusal after a renderer storm ended the whole run with no report).
+#[test]
+fn a_round_that_cannot_start_fails_alone_and_the_report_is_written() {
+    let out = std::env::temp_dir().join(format!("lungdyn-faults-nostart-{}", std::process::id()));
+    let run = std::process::Command::new(lungdyn_tests::bin("lungdyn"))
+        .args(["faults", "--rounds", "2", "--json", "--out"])
+        .arg(&out)
+        .env("WGPU_BACKEND", "dx12")
+        .output()
+        .expect("run lungdyn");
+    let (stdout, err) = (
+        String::from_utf8_lossy(&run.stdout),
+        String::from_utf8_lossy(&run.stderr),
+    );
+    assert_eq!(run.status.code(), Some(1), "{err}");
+    let v: serde_json::Value =
+        serde_json::from_str(stdout.trim()).unwrap_or_else(|e| panic!("{e}: {stdout}\n{err}"));
+    assert_eq!(v["rounds"].as_u64(), Some(2), "{v}");
+    assert_eq!(v["rounds_ok"].as_u64(), Some(0), "{v}");
+    let log = v["round_log"].as_array().unwrap();
+    assert_eq!(log.len(), 2, "{v}");
+    for r in log {
+        let problems = r["problems"].to_string();
+        assert!(
+            problems.contains("could not start") && problems.contains("no GPU adapter"),
+            "{r}"
+        );
+    }
+    let _ = std::fs::remove_dir_all(&out);
+}
