@@ -243,6 +243,8 @@ pub fn unit(role: Role, s: &UnitSettings) -> Result<String, String> {
          # A hung loop stops pinging: systemd aborts it after WatchdogSec and restarts it.\n\
          WatchdogSec={}\n\
          TimeoutStartSec=120\n\
+         # Stop: SIGTERM then SIGCONT, latched by the process (a later SIGCONT cannot cancel it);\n\
+         # SIGKILL after TimeoutStopSec.\n\
          TimeoutStopSec=5\n\
          LimitRTPRIO=90\n\
          LimitMEMLOCK=infinity\n",

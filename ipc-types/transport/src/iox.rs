@@ -707,6 +707,9 @@ mod tests {
     /// next start's sweep; a running instance's files and a lock-less test prefix are kept.
     #[test]
     fn the_sweep_removes_a_dead_instances_files_only() {
+        let _one_sweep_test_at_a_time = crate::instance::tests::SWEEP_TEST
+            .lock()
+            .unwrap_or_else(|e| e.into_inner());
         let pid = std::process::id();
         let dead = Instance::new(&format!("sweep-dead-{pid}")).unwrap();
         let live = Instance::new(&format!("sweep-live-{pid}")).unwrap();
