@@ -119,7 +119,9 @@ pub struct DemoArgs {
     pub look: Option<lung_model::scene::Look>,
     /// What the lungs' colour shows (overrides the scene's `[render] color`): "tissue" (pink, the
     /// right lung warmer), "displacement" (distance from the rest position: blue 0 → yellow 20 mm),
-    /// "ventilation" (local expansion relative to FRC: blue −10 %, white 0, red +30 %).
+    /// "ventilation" (local expansion relative to FRC: blue −10 %, white 0, red +30 %), "lobes"
+    /// (each lobe its own colour, fissures as dark lines, a legend in the HUD; a lung whose kernel
+    /// has no lobe section is drawn grey, and the renderer and HUD say so).
     #[arg(long, value_name = "COLOR")]
     pub color: Option<lung_model::scene::ColorMode>,
     /// Samples per pixel, 4 (multisample anti-aliasing) or 1 (off); overrides the scene's

@@ -435,6 +435,17 @@ impl Session {
         }
         let renderer = LungRenderer::with_rig(&gpu, &scene.render, &rig_files.rig(), &lungs)?;
         let hud_config = crate::hud::HudConfig::of(&scene, &lungs);
+        if let Some(which) = hud_config
+            .lobes
+            .and_then(crate::hud::text::lungs_without_lobes)
+        {
+            eprintln!(
+                "renderer[{}]: warning: colour \"lobes\": no lobe data for the {which} (a kernel \
+                 baked before the lobe section existed): drawn grey, as the HUD legend says; bake \
+                 the kernel again to see its lobes",
+                instance.name()
+            );
+        }
         let node = iox::node(&instance, "renderer")?;
         let ports = Ports {
             engine: Box::new(instance.engine_inlet(&node)?),
