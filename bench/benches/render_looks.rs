@@ -1,6 +1,8 @@
 //! What each part of the AR picture costs per frame: the default scene's lungs (2 × 10k vertices,
 //! baked here as the launcher bakes them) drawn at 800 × 600 mono from a fixed view in every look,
-//! with MSAA 4× and off, as triangles and point splats, in each colour mode. Each configuration
+//! with MSAA 4× and off, as triangles and point splats, in each colour mode, and with the
+//! heads-up display (its text reshaped every frame, as the volume line changes; the PV loop and
+//! the lobes legend drawn) against the same frame without it. Each configuration
 //! draws the same frames in interleaved rounds (so a machine shared with other work slows all of
 //! them alike); the table gives the median wall time of a frame (deform + draw + wait for the GPU,
 //! what the renderer spends) and the median GPU time from timestamp queries where the adapter has
@@ -13,7 +15,30 @@ use ipc_types::Pose;
 use lung_model::deform::LungModel;
 use lung_model::scene::{ColorMode, DrawMode, Look, RenderScene, Scene};
 use renderer::gpu::Gpu;
+use renderer::hud::{Hud, HudConfig, HudFrame};
 use renderer::{DrawState, LungRenderer, RenderLung};
+
+/// A breathing engine frame at step `k` of `n` (what the HUD reads): volume, phase and pressure
+/// move every frame, so the HUD reshapes its volume line and moves the PV point as when running.
+fn engine_frame(k: usize, n: usize) -> ipc_types::EngineFrame {
+    use ipc_types::{lung_flags, LUNG_LEFT, LUNG_RIGHT};
+    let phase = k as f32 / n.max(1) as f32;
+    let mut f = ipc_types::EngineFrame {
+        tick: 3600 + k as u64,
+        ..Default::default()
+    };
+    for (slot, v) in [(LUNG_RIGHT, 1300.0), (LUNG_LEFT, 1100.0)] {
+        let l = &mut f.lungs[slot];
+        l.flags = lung_flags::ACTIVE | lung_flags::INHALING;
+        l.volume_ml = v + 250.0 * phase;
+        l.tidal_ml = 250.0;
+        l.cycle_ticks = 300;
+        l.inhale_ticks = 150;
+        l.phase = phase;
+        l.pressure_cmh2o = 2.0 + 6.0 * phase;
+    }
+    f
+}
 
 fn baked(scene: &Scene) -> Vec<LungModel> {
     scene
@@ -85,7 +110,7 @@ fn main() {
         scene.lungs.vertices
     );
     let lungs: Vec<RenderLung> = baked(&scene).iter().map(RenderLung::from_model).collect();
-    let configs: Vec<(&str, RenderScene)> = [
+    let configs: Vec<(&str, RenderScene, bool)> = [
         (
             "opaque, MSAA off",
             DrawMode::Triangles,
@@ -169,24 +194,87 @@ fn main() {
                 stereo,
                 ..scene.render.clone()
             },
+            false,
         )
     })
     .collect();
+    // The HUD's cost: the lavapipe default (opaque, MSAA off) and the lobes colour mode, each
+    // with and without it.
+    let mut configs = configs;
+    let opaque_off = configs[0].1.clone();
+    let lobes = RenderScene {
+        color: ColorMode::Lobes,
+        ..opaque_off.clone()
+    };
+    configs.extend([
+        ("opaque + HUD, MSAA off", opaque_off, true),
+        ("lobes colour, MSAA off", lobes.clone(), false),
+        ("lobes colour + HUD, MSAA off", lobes, true),
+    ]);
     let renderers: Vec<LungRenderer> = configs
         .iter()
-        .map(|(_, r)| LungRenderer::new(&gpu, r, &lungs).expect("upload"))
+        .map(|(_, r, _)| LungRenderer::new(&gpu, r, &lungs).expect("upload"))
         .collect();
+    let mut huds: Vec<Option<Hud>> = configs
+        .iter()
+        .zip(&renderers)
+        .map(|((_, r, hud), lr)| {
+            hud.then(|| {
+                let eyes = if r.stereo { 2 } else { 1 };
+                let (w, h) = lr.image_size();
+                let scene = Scene {
+                    render: r.clone(),
+                    ..scene.clone()
+                };
+                Hud::new(
+                    &gpu.device,
+                    &gpu.queue,
+                    HudConfig::of(&scene, &lungs),
+                    w / eyes,
+                    h,
+                    eyes,
+                )
+            })
+        })
+        .collect();
+    let draw = |r: &LungRenderer, hud: &mut Option<Hud>, s: &DrawState, k: usize| {
+        let Some(hud) = hud.as_mut() else {
+            return r.render(&gpu, s, false);
+        };
+        let frame = engine_frame(k, frames);
+        let shown = HudFrame {
+            frame: &frame,
+            tracker: None,
+            warning: Default::default(),
+            cpu_ns: 2_500_000,
+            gpu_ns: Some(11_000_000),
+            latency_ns: Some(9_000_000),
+            outcome: Some((
+                "needle decompression, left, applied 01:02 — air venting",
+                renderer::hud::text::Standing::Done,
+            )),
+        };
+        r.render_with_overlay(
+            &gpu,
+            s,
+            false,
+            |encoder, target, eyes| {
+                hud.encode(&gpu.device, &gpu.queue, encoder, target, eyes, &shown)
+            },
+            |_| {},
+        )
+    };
     let mut wall = vec![Vec::with_capacity(frames); configs.len()];
     let mut gpu_ms = vec![Vec::with_capacity(frames); configs.len()];
     // Warm up every pipeline, then interleave: frame k of every configuration, then frame k + 1.
-    for r in &renderers {
-        r.render(&gpu, &state(0.0), false);
+    for (r, hud) in renderers.iter().zip(huds.iter_mut()) {
+        draw(r, hud, &state(0.0), 0);
     }
     for k in 0..frames {
         let s = state(40.0 * (k as f32 / frames as f32));
-        for (i, r) in renderers.iter().enumerate() {
+        for (i, (r, hud)) in renderers.iter().zip(huds.iter_mut()).enumerate() {
             let t = std::time::Instant::now();
-            let timing = r.render(&gpu, &s, false);
+            let timing = draw(r, hud, &s, k);
             wall[i].push(t.elapsed().as_secs_f64() * 1e3);
             if let Some(ns) = timing.gpu_ns {
                 gpu_ms[i].push(ns as f64 / 1e6);
@@ -206,7 +294,7 @@ fn main() {
         "{:<32} {:>14} {:>14}",
         "configuration", "frame p50 ms", "GPU p50 ms"
     );
-    for (i, (name, _)) in configs.iter().enumerate() {
+    for (i, (name, _, _)) in configs.iter().enumerate() {
         println!(
             "{:<32} {:>14.2} {:>14.2}",
             name,

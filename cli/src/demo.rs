@@ -119,7 +119,9 @@ pub struct DemoArgs {
     pub look: Option<lung_model::scene::Look>,
     /// What the lungs' colour shows (overrides the scene's `[render] color`): "tissue" (pink, the
     /// right lung warmer), "displacement" (distance from the rest position: blue 0 → yellow 20 mm),
-    /// "ventilation" (local expansion relative to FRC: blue −10 %, white 0, red +30 %).
+    /// "ventilation" (local expansion relative to FRC: blue −10 %, white 0, red +30 %), "lobes"
+    /// (each lobe its own colour, fissures as dark lines, a legend in the HUD; a lung whose kernel
+    /// has no lobe section is drawn grey, and the renderer and HUD say so).
     #[arg(long, value_name = "COLOR")]
     pub color: Option<lung_model::scene::ColorMode>,
     /// Samples per pixel, 4 (multisample anti-aliasing) or 1 (off); overrides the scene's
@@ -241,6 +243,9 @@ pub struct DemoReport {
     pub strip: Option<String>,
     /// The `--record` animation of one breath.
     pub recording: Option<String>,
+    /// Frames of the breath (recording and strip) whose planned tick was not drawn (the renderer
+    /// skipped it under load) and that show the next drawn frame instead.
+    pub substituted_frames: usize,
     /// Per-hop rows.
     pub hops: Vec<HopRow>,
     /// Each process's per-sample time against the scene's `[processes] budget_ms`.
@@ -941,6 +946,14 @@ pub fn run_watched(args: &DemoArgs, watch: &mut dyn Watch) -> anyhow::Result<Dem
     // In breath order (the engine tick in each name; the index alone sorts 100 before 11).
     frames.sort_by_key(|p| (crate::record::tick_of(p), p.clone()));
     let pngs: Vec<String> = frames.iter().map(|p| p.display().to_string()).collect();
+    let substituted_frames = crate::record::substituted(&frames);
+    if substituted_frames > 0 {
+        eprintln!(
+            "lungdyn: {substituted_frames} of the breath's {} frames were not drawn at their planned \
+             tick (the renderer skipped it under load) and show the next drawn frame instead",
+            frames.len()
+        );
+    }
     let recording = match (record, &args.record) {
         (Some(format), Some(path)) => {
             if frames.len() < breath_frames as usize {
@@ -1003,6 +1016,7 @@ pub fn run_watched(args: &DemoArgs, watch: &mut dyn Watch) -> anyhow::Result<Dem
         pngs,
         strip,
         recording,
+        substituted_frames,
         hops: stats.rows(),
         budgets: {
             let b = scene.processes.budget_ms;
@@ -1224,6 +1238,14 @@ pub fn table(r: &DemoReport) -> String {
     }
     if let Some(rec) = &r.recording {
         let _ = writeln!(s, "recording of one breath (front view, HUD): {rec}");
+    }
+    if r.substituted_frames > 0 {
+        let _ = writeln!(
+            s,
+            "{} frames of the breath show the next drawn frame (their planned tick was skipped \
+             under load)",
+            r.substituted_frames
+        );
     }
     if let Some(strip) = &r.strip {
         let _ = writeln!(s, "breath strip (frames + motion panel: green = newly covered at end-inspiration, red = vacated): {strip}");

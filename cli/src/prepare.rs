@@ -81,7 +81,18 @@ pub fn ensure_kernels(
             scene.lungs.kernels.set(side, k.clone());
             // The scene's own kernel: verified now (every section), the right lung, and what the
             // mode needs — so a bad kernel is refused here, not by the engine after the launch.
-            lung_model::kernel::KernelFile::open(&k)?;
+            let opened = lung_model::kernel::KernelFile::open(&k)?;
+            if scene.render.color == lung_model::scene::ColorMode::Lobes
+                && opened.lobes()?.is_none()
+            {
+                eprintln!(
+                    "lungdyn: warning: [render] color = \"lobes\", but {} (the {} lung) has no \
+                     lobe section (baked before lobes existed): that lung is drawn grey, as the \
+                     HUD legend says; bake it again to see its lobes",
+                    k.display(),
+                    side.name()
+                );
+            }
             // (The error budget is settled below, for every lung at once.)
             let mut unbudgeted = scene.clone();
             unbudgeted.lungs.max_error_mm = None;

@@ -86,6 +86,19 @@ pub fn tick_of(path: &Path) -> Option<u64> {
         .ok()
 }
 
+/// The snapshots among `frames` that show a later frame than their planned tick (the renderer
+/// skipped that tick under load: `…_tick00480_2650ml_drawn00495.png`).
+pub fn substituted(frames: &[PathBuf]) -> usize {
+    frames
+        .iter()
+        .filter(|p| {
+            p.file_stem()
+                .and_then(|s| s.to_str())
+                .is_some_and(|s| s.split('_').any(|w| w.starts_with("drawn")))
+        })
+        .count()
+}
+
 /// How long each frame shows, ms: until the next frame's tick; the last as long as the one before
 /// (at least 10 ms each: GIF delays are in hundredths of a second).
 pub fn frame_delays_ms(ticks: &[u64], tick_hz: f64) -> Vec<u32> {
@@ -253,6 +266,18 @@ mod tests {
             Some(480)
         );
         assert_eq!(tick_of(Path::new("out/lungs_03.png")), None);
+        // A planned tick skipped under load: named by its planned tick (the animation keeps the
+        // breath's pace), the frame drawn instead after it, and counted as substituted.
+        let sub = PathBuf::from("out/lungs_04_tick00495_2660ml_drawn00498.png");
+        assert_eq!(tick_of(&sub), Some(495));
+        let frames = [
+            PathBuf::from("out/lungs_03_tick00480_2650ml.png"),
+            sub,
+            PathBuf::from("out/lungs_05_tick00510_2670ml_drawn00512.png"),
+            PathBuf::from("out/drawn/lungs_06_tick00525_2680ml.png"),
+        ];
+        assert_eq!(substituted(&frames), 2);
+        assert_eq!(substituted(&[]), 0);
         // 40/min at 60 Hz: 90 ticks, 6 frames 15 ticks apart, 250 ms each.
         let ticks: Vec<u64> = (0..6).map(|k| 180 + 15 * k).collect();
         assert_eq!(frame_delays_ms(&ticks, 60.0), vec![250; 6]);

@@ -379,6 +379,7 @@ pub fn run(args: &TradeoffArgs) -> anyhow::Result<Tradeoff> {
             kernel_id: 0,
             lung: lung.clone(),
             tumour: None,
+            lobes: None,
         };
         let time_gpu = |lung: &CpuLung, coeffs: &[f32]| -> anyhow::Result<Option<f64>> {
             let Some(gpu) = &gpu else { return Ok(None) };
@@ -736,6 +737,7 @@ fn stereo_figure(
                 kernel_id: 0,
                 lung: lung.clone(),
                 tumour: None,
+                lobes: None,
             }],
         )?)
     };

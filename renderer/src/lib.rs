@@ -204,7 +204,7 @@ impl LungRenderer {
         let device = &gpu.device;
         let (eye_width, eye_height) = rig.eye_size(settings);
         let field = match settings.color {
-            ColorMode::Tissue => deform::Field::None,
+            ColorMode::Tissue | ColorMode::Lobes => deform::Field::None,
             ColorMode::Displacement => deform::Field::Displacement,
             ColorMode::Ventilation => deform::Field::Expansion,
         };
@@ -223,13 +223,14 @@ impl LungRenderer {
             settings.color,
             samples,
         );
-        // Lobe codes are 0 (unknown) until the meshes carry them.
         let surface: Vec<draw::SurfaceAttr> = lungs
             .iter()
             .flat_map(|l| {
-                std::iter::repeat_n(
-                    draw::surface(draw::Material::lung(l.side.index()), 0),
+                draw::lung_surface(
+                    l.side.index(),
                     l.lung.len(),
+                    &l.lung.triangles,
+                    l.lobe_codes(),
                 )
             })
             .collect();

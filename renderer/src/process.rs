@@ -295,6 +295,9 @@ pub struct SessionStats {
     pub kernel_mismatch_frames: u64,
     /// PNG snapshots written.
     pub snapshots: u32,
+    /// Of those, planned ticks whose own frame was not drawn (the renderer skipped it under load):
+    /// each took the next drawn frame ([`Session::step`]).
+    pub snapshots_substituted: u32,
 }
 
 /// One renderer session: its GPU state, its ports and its frame loop state.
@@ -438,6 +441,17 @@ impl Session {
         }
         let renderer = LungRenderer::with_rig(&gpu, &scene.render, &rig_files.rig(), &lungs)?;
         let hud_config = crate::hud::HudConfig::of(&scene, &lungs);
+        if let Some(which) = hud_config
+            .lobes
+            .and_then(crate::hud::text::lungs_without_lobes)
+        {
+            eprintln!(
+                "renderer[{}]: warning: colour \"lobes\": no lobe data for the {which} (a kernel \
+                 baked before the lobe section existed): drawn grey, as the HUD legend says; bake \
+                 the kernel again to see its lobes",
+                instance.name()
+            );
+        }
         let node = iox::node(&instance, "renderer")?;
         let mut engine = instance.engine_inlet(&node)?;
         engine.set_wake(transport::wake::announce(
@@ -899,30 +913,53 @@ impl Session {
         };
         self.ports.report.publish(&report)?;
         if capture {
+            // Every planned tick this frame reaches gets a snapshot: a tick whose own frame was
+            // skipped (the renderer under load took a newer engine frame) takes this, the next
+            // drawn frame, so a breath's recording keeps all its planned frames.
+            let img = self
+                .renderer
+                .read_image(&self.gpu)
+                .ok_or(RendererError::Readback {
+                    frame: self.stats.frames,
+                })?;
             while self.next_target < self.snapshots.ticks.len()
                 && frame.tick >= self.snapshots.ticks[self.next_target]
             {
+                let planned = self.snapshots.ticks[self.next_target];
                 self.next_target += 1;
+                // The same tick planned twice (a short breath over many frames) is one frame.
+                if self.next_target < self.snapshots.ticks.len()
+                    && self.snapshots.ticks[self.next_target] == planned
+                {
+                    continue;
+                }
+                self.write_snapshot(&frame, planned, &img)?;
             }
-            self.write_snapshot(&frame)?;
         }
         self.last = Some(frame);
         Ok(true)
     }
 
-    fn write_snapshot(&mut self, frame: &EngineFrame) -> Result<(), RendererError> {
-        let img = self
-            .renderer
-            .read_image(&self.gpu)
-            .ok_or(RendererError::Readback {
-                frame: self.stats.frames,
-            })?;
+    /// Write `img`, the drawn `frame`, as the snapshot planned for engine tick `planned`:
+    /// `lungs_NN_tickPLANNED_VOLml.png`, or, when the frame drawn is a later one (the planned
+    /// tick's own was skipped), `lungs_NN_tickPLANNED_VOLml_drawnTICK.png`.
+    fn write_snapshot(
+        &mut self,
+        frame: &EngineFrame,
+        planned: u64,
+        img: &image::RgbaImage,
+    ) -> Result<(), RendererError> {
         let total = frame.lungs[LUNG_RIGHT].volume_ml + frame.lungs[LUNG_LEFT].volume_ml;
-        let path = self.snapshots.dir.join(format!(
-            "lungs_{:02}_tick{:05}_{:04.0}ml.png",
-            self.stats.snapshots, frame.tick, total
-        ));
-        crate::write_png(&img, &path)?;
+        let mut name = format!(
+            "lungs_{:02}_tick{:05}_{:04.0}ml",
+            self.stats.snapshots, planned, total
+        );
+        if frame.tick != planned {
+            name.push_str(&format!("_drawn{:05}", frame.tick));
+            self.stats.snapshots_substituted += 1;
+        }
+        let path = self.snapshots.dir.join(name + ".png");
+        crate::write_png(img, &path)?;
         self.stats.snapshots += 1;
         Ok(())
     }
@@ -932,13 +969,15 @@ impl Session {
         transport::trace::flush();
         let s = &self.stats;
         transport::process::say(&format!(
-            "renderer[{}]: stopped after {} frames ({} stale, {} with a kernel mismatch), {} snapshots, \
-             {} drawn with the HMD pose predicted to display time",
+            "renderer[{}]: stopped after {} frames ({} stale, {} with a kernel mismatch), {} snapshots \
+             ({} of them the next drawn frame for a planned tick skipped under load), {} drawn \
+             with the HMD pose predicted to display time",
             self.instance,
             s.frames,
             s.stale_frames,
             s.kernel_mismatch_frames,
             s.snapshots,
+            s.snapshots_substituted,
             self.predictor.predicted_frames
         ));
     }

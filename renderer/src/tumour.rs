@@ -108,7 +108,7 @@ impl TumourDraw {
         let surface = device.create_buffer_init(&wgpu::util::BufferInitDescriptor {
             label: Some("lungdyn tumour surface"),
             contents: bytemuck::cast_slice(
-                &[crate::draw::surface(crate::draw::Material::Tumour, 0); VERTICES],
+                &[crate::draw::surface(crate::draw::Material::Tumour, 0, false); VERTICES],
             ),
             usage: wgpu::BufferUsages::VERTEX,
         });

@@ -18,6 +18,19 @@ BIN = sys.argv[1] if len(sys.argv) > 1 else os.path.join(ROOT, "target", "releas
 RNG = random.Random(20240611)
 
 
+def without_section(kernel, kind, reseal):
+    """`kernel` with section `kind` left out of its table (its bytes stay, unreferenced): a kernel
+    written before that optional section existed (unchanged if it has none)."""
+    b = bytearray(kernel)
+    count = struct.unpack_from("<I", b, 16)[0]
+    entries = [bytes(b[64 + 32 * j:96 + 32 * j]) for j in range(count)]
+    kept = [e for e in entries if struct.unpack_from("<I", e, 0)[0] != kind]
+    assert len(kept) >= count - 1, "at most one section of that kind"
+    b[64:64 + 32 * count] = b"".join(kept) + bytes(32 * (count - len(kept)))
+    struct.pack_into("<I", b, 16, len(kept))
+    return reseal(b)
+
+
 def run(*args):
     subprocess.run([BIN, *args], check=True, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
 
@@ -378,6 +391,7 @@ def make_kernels(tmp):
     out("kernel_nan_position.kernel", reseal(b))
     off, ln = sec(2); b = bytearray(good); struct.pack_into("<f", b, off + 12 * 5 + 4, 3e38)
     out("kernel_3e38_position.kernel", reseal(b))
+    out("kernel_left_no_lobes.kernel", without_section(good, 13, reseal))
     off, ln = sec(7); b = bytearray(good); struct.pack_into("<f", b, off + 12 * 9, float("inf"))
     out("kernel_inf_unit_displacement.kernel", reseal(b))
     off, ln = sec(10); b = bytearray(good); struct.pack_into("<f", b, off + 4 * 17, float("nan"))
@@ -497,6 +511,8 @@ def make_scenes(tmp):
     s("kernel_other_side", '[lungs.kernels]\nleft = "kernel_right.kernel"\nright = "kernel_right.kernel"\n')
     s("kernel_other_side_only", SCENE_BASE + '\n[lungs.kernels]\nleft = "kernel_right.kernel"\n')
     s("kernels_swapped", '[lungs.kernels]\nleft = "kernel_right.kernel"\nright = "kernel_left.kernel"\n')
+    s("render_color_lobes_no_lobe_section", '[lungs.kernels]\nleft = "kernel_left_no_lobes.kernel"\n'
+      'right = "kernel_right.kernel"\n[render]\ncolor = "lobes"\n')
     s("kernel_missing", '[lungs.kernels]\nleft = "no_such.kernel"\nright = "kernel_right.kernel"\n')
     s("kernel_truncated", '[lungs.kernels]\nleft = "kernel_truncated_half.kernel"\nright = "kernel_right.kernel"\n')
     s("kernel_bitflip", '[lungs.kernels]\nleft = "kernel_bitflip_positions.kernel"\nright = "kernel_right.kernel"\n')
@@ -546,7 +562,8 @@ def make_scenes(tmp):
                       ("fov_0", "fov_y_deg = 0.0"), ("fov_180", "fov_y_deg = 180.0"), ("fov_nan", "fov_y_deg = nan"),
                       ("ipd_nan", "ipd_mm = nan"), ("ipd_negative", "ipd_mm = -63.0"), ("splat_negative", "splat_mm = -1.0"),
                       ("mode_wireframe", "mode = \"wireframe\""), ("stereo_string", "stereo = \"yes\""),
-                      ("look_glass", "look = \"glass\""), ("color_lobes", "color = \"lobes\""),
+                      ("look_glass", "look = \"glass\""), ("color_lobe", "color = \"lobe\""),
+                      ("color_lobes", "color = \"lobes\""),
                       ("msaa_8", "msaa = 8"), ("msaa_negative", "msaa = -4")):
         s("render_" + tag, SCENE_BASE + "[render]\n%s\n" % body)
     s("syntax_error", SCENE_BASE + "[render\nwidth = 800\n")

@@ -36,14 +36,29 @@ fn engine_frame() -> EngineFrame {
     f
 }
 
+/// The outcome line the HUD shows in these tests (the issue's example, the longest kind).
+const OUTCOME: &str = "needle decompression, left, applied 01:02 — air venting";
+
 /// Render `scene`'s lungs from the front, without and with the HUD; returns both images.
 fn render_pair(
     scene: &Scene,
     warning: PoseWarning,
 ) -> Option<(image::RgbaImage, image::RgbaImage)> {
+    render_pair_with(scene, warning, OUTCOME, |_| {})
+}
+
+/// As [`render_pair`], showing `outcome` as the intervention's line, with `edit` applied to the
+/// lungs before they are uploaded (e.g. a lung without lobe codes).
+fn render_pair_with(
+    scene: &Scene,
+    warning: PoseWarning,
+    outcome: &str,
+    edit: impl FnOnce(&mut Vec<RenderLung>),
+) -> Option<(image::RgbaImage, image::RgbaImage)> {
     let gpu = Gpu::for_tests()?;
     let models = lungdyn_tests::baked_models(scene);
-    let lungs: Vec<RenderLung> = models.iter().map(RenderLung::from_model).collect();
+    let mut lungs: Vec<RenderLung> = models.iter().map(RenderLung::from_model).collect();
+    edit(&mut lungs);
     let r = LungRenderer::new(&gpu, &scene.render, &lungs).unwrap();
     let patient = supine();
     let state = DrawState {
@@ -76,10 +91,7 @@ fn render_pair(
         cpu_ns: 2_500_000,
         gpu_ns: None,
         latency_ns: Some(9_000_000),
-        outcome: Some((
-            "needle decompression, left, applied 01:02 — air venting",
-            renderer::hud::text::Standing::Done,
-        )),
+        outcome: Some((outcome, renderer::hud::text::Standing::Done)),
     };
     if let Ok(dir) = std::env::var("LUNGDYN_HUD_TEST_PNG") {
         // For a look at what the test saw.
@@ -217,4 +229,134 @@ fn the_front_view_shows_both_lungs_below_the_hud() {
     assert!(x0 > 5 && x1 < 315, "lungs span {x0}..{x1}");
     assert!((x0 + x1) / 2 > 120 && (x0 + x1) / 2 < 200, "{x0}..{x1}");
     assert!(cy > 120.0, "the lungs sit below the middle: {cy}");
+}
+
+/// Pixels of the box `(x0, y0, w, h)` of `hud` within 6/255 of the sRGB colour `c` that are not
+/// so in `plain` (what the HUD drew in that colour).
+fn drawn_in(
+    plain: &image::RgbaImage,
+    hud: &image::RgbaImage,
+    c: [u8; 3],
+    (x0, y0, w, h): (u32, u32, u32, u32),
+) -> usize {
+    let near = |p: &image::Rgba<u8>| (0..3).all(|k| p[k].abs_diff(c[k]) <= 6);
+    (x0..x0 + w)
+        .flat_map(|x| (y0..y0 + h).map(move |y| (x, y)))
+        .filter(|&(x, y)| near(hud.get_pixel(x, y)) && !near(plain.get_pixel(x, y)))
+        .count()
+}
+
+#[test]
+fn the_lobes_colour_mode_has_a_legend_that_names_a_lung_without_lobe_data() {
+    use lung_model::mesh::lobes::{Lobe, ALL};
+    let mut scene = Scene::default();
+    scene.lungs.vertices = 2000;
+    scene.render.width = 480;
+    scene.render.height = 360;
+    scene.render.color = lung_model::scene::ColorMode::Lobes;
+    let legend_box = (0, 360 - 70, 300, 70);
+    let Some((plain, hud)) = render_pair(&scene, PoseWarning::None) else {
+        return;
+    };
+    // Every lobe's square in its colour, bottom left; no grey square, no warning.
+    for lobe in ALL {
+        let n = drawn_in(&plain, &hud, lobe.colour(), legend_box);
+        assert!(n >= 12, "{lobe}: {n} legend pixels");
+    }
+    // (White text's antialiased edges pass through grey: counted to compare with below.)
+    let grey_text = drawn_in(&plain, &hud, Lobe::Unknown.colour(), legend_box);
+    let amber = [255, 196, 64];
+    assert_eq!(drawn_in(&plain, &hud, amber, legend_box), 0);
+    // The left lung's kernel without lobes: its lobes leave the legend, a grey square and an
+    // amber warning say so.
+    let Some((plain, hud)) = render_pair_with(&scene, PoseWarning::None, OUTCOME, |lungs| {
+        for l in lungs.iter_mut() {
+            if l.side == lung_model::mesh::Side::Left {
+                l.lobes = None;
+            }
+        }
+    }) else {
+        return;
+    };
+    for lobe in ALL {
+        let n = drawn_in(&plain, &hud, lobe.colour(), legend_box);
+        if lobe.side() == Some(lung_model::mesh::Side::Left) {
+            assert_eq!(n, 0, "{lobe} is not in the legend");
+        } else {
+            assert!(n >= 12, "{lobe}: {n} legend pixels");
+        }
+    }
+    let grey = drawn_in(&plain, &hud, Lobe::Unknown.colour(), legend_box);
+    assert!(
+        grey >= grey_text + 20,
+        "grey square: {grey} pixels ({grey_text} without)"
+    );
+    let warning = drawn_in(&plain, &hud, amber, legend_box);
+    assert!(warning >= 40, "amber warning: {warning} pixels");
+    // The tissue colour mode has no legend: its bottom left stays as drawn.
+    scene.render.color = lung_model::scene::ColorMode::Tissue;
+    let Some((plain, hud)) = render_pair(&scene, PoseWarning::None) else {
+        return;
+    };
+    assert_eq!(differing(&plain, &hud, (0, 360 - 40, 60, 40)), 0);
+}
+
+/// A long intervention outcome is wrapped inside the panel at 480 px wide and below, never
+/// clipped at the panel's edge: its green text (a "done" outcome) stays left of the panel's right
+/// edge and spans more than one row.
+#[test]
+fn a_long_outcome_line_wraps_inside_the_panel_at_480_px_and_below() {
+    let long = "chest tube, right, already in place 01:05 — the pneumothorax is on the other side";
+    for (w, h, outcome) in [
+        (480u32, 360u32, OUTCOME),
+        (480, 360, long),
+        (320, 240, long),
+    ] {
+        let mut scene = Scene::default();
+        scene.lungs.vertices = 2000;
+        scene.render.width = w;
+        scene.render.height = h;
+        let Some((plain, hud)) = render_pair_with(&scene, PoseWarning::None, outcome, |_| {})
+        else {
+            return;
+        };
+        // The panel's geometry (renderer/src/hud): font h/40 px (at least 11), margin 0.9 font,
+        // the PV box 22 % of the width (at least 80 px) at the right; the panel from half a
+        // margin to 1.5 margins before the PV box.
+        let font = (h as f32 / 40.0).clamp(11.0, 40.0);
+        let m = (font * 0.9).round();
+        let pv_x = w as f32 - m - (w as f32 * 0.22).clamp(80.0, 320.0);
+        let panel_right = m * 0.5 + (pv_x - m * 1.5).min(font * 48.0);
+        // The outcome is the panel's fourth row (below the disease line, green too when none).
+        let outcome_top = m + font * 1.3 * 3.0 - 1.0;
+        let green: Vec<(u32, u32)> = hud
+            .enumerate_pixels()
+            .filter(|&(x, y, p)| {
+                (x as f32) < pv_x
+                    && y as f32 >= outcome_top
+                    && p[1] > 150
+                    && p[1] as i32 > p[0] as i32 + 60
+                    && p[1] as i32 > p[2] as i32 + 40
+                    && plain.get_pixel(x, y) != p
+            })
+            .map(|(x, y, _)| (x, y))
+            .collect();
+        assert!(green.len() > 100, "{w}x{h}: {} outcome pixels", green.len());
+        let &(rx, ry) = green.iter().max_by_key(|p| p.0).unwrap();
+        let right = rx as f32;
+        assert!(
+            right < panel_right - 3.0,
+            "{w}x{h} {outcome:?}: text reaches x = {right} (y {ry}, {:?}), the panel ends at \
+             {panel_right}",
+            hud.get_pixel(rx, ry)
+        );
+        let (top, bottom) = (
+            green.iter().map(|p| p.1).min().unwrap(),
+            green.iter().map(|p| p.1).max().unwrap(),
+        );
+        assert!(
+            (bottom - top) as f32 > 1.5 * font * 1.3,
+            "{w}x{h} {outcome:?}: one row ({top}..{bottom}), not wrapped"
+        );
+    }
 }

@@ -1,6 +1,6 @@
 //! Offscreen rendering on the real wgpu path (lavapipe in CI): fixed states are rendered in every
-//! look (opaque tissue, translucent, see-through), as point splats and in the colour modes, mono
-//! and stereo, read back and compared with committed reference images (`tests/reference/*.png`,
+//! look (opaque tissue, translucent, see-through), as point splats and in the colour modes (the
+//! lobes mode in every look), mono and stereo, read back and compared with committed reference images (`tests/reference/*.png`,
 //! rendered by lavapipe, 256×192 per eye mono, 192×144 per eye stereo) under each case's stated
 //! tolerance. On failure the actual and difference images are written under
 //! `target/image-diffs/` (`NAME.actual.png`, `NAME.diff.png`: the per-pixel largest channel
@@ -437,4 +437,101 @@ fn without_a_vulkan_driver_a_gpu_test_fails_naming_the_package_unless_skipped_al
         "{logged}"
     );
     std::fs::remove_file(&log).ok();
+}
+
+/// The lobes colour mode in every look: each lobe its own colour from the lobe codes a bake
+/// writes, fissures as lines where lobes meet (dark on tissue, light on the see-through look).
+#[test]
+fn the_lobes_colour_mode_renders_like_its_reference_images_in_every_look() {
+    let Some(gpu) = Gpu::for_tests() else { return };
+    use {ColorMode as C, DrawMode as D, Look as L};
+    look_case(&gpu, "lobes", D::Triangles, L::Opaque, C::Lobes, STRICT);
+    for (name, mode, look, t) in [
+        ("lobes_translucent", D::Triangles, L::Translucent, BLENDED),
+        ("lobes_see_through", D::Triangles, L::SeeThrough, STRICT),
+        ("lobes_points", D::Points, L::Opaque, STRICT),
+    ] {
+        let img = draw(
+            &gpu,
+            &settings(mode, look, C::Lobes, false),
+            mid_inspiration(),
+        );
+        compare(&format!("{name}_mono.png"), &img, t);
+    }
+}
+
+/// The lobe whose colour (`Lobe::colour`, as drawn: chromaticity, whatever the shading) is nearest
+/// a lung pixel's, if one is near (within 0.06 in r/(r+g+b), g/(r+g+b)).
+fn nearest_lobe(p: [u8; 4]) -> Option<lung_model::mesh::lobes::Lobe> {
+    let chroma = |c: [f32; 3]| {
+        let s = c[0] + c[1] + c[2];
+        (s > 0.0).then(|| [c[0] / s, c[1] / s])
+    };
+    let lin = |c: u8| renderer::draw::srgb_to_linear(c);
+    let q = chroma([lin(p[0]), lin(p[1]), lin(p[2])])?;
+    lung_model::mesh::lobes::ALL
+        .into_iter()
+        .map(|l| {
+            let c = chroma(l.colour().map(lin)).unwrap();
+            (l, (c[0] - q[0]).hypot(c[1] - q[1]))
+        })
+        .filter(|&(_, d)| d < 0.06)
+        .min_by(|a, b| a.1.total_cmp(&b.1))
+        .map(|(l, _)| l)
+}
+
+#[test]
+fn lobes_show_in_their_colours_with_fissures_and_a_lung_without_lobe_data_shows_grey() {
+    let Some(gpu) = Gpu::for_tests() else { return };
+    use {ColorMode as C, DrawMode as D, Look as L};
+    let scene = settings(D::Triangles, L::Opaque, C::Lobes, false);
+    let supine = fixed_state(0.0).patient;
+    let draw_front = |lungs: &[RenderLung]| {
+        let r = LungRenderer::new(&gpu, &scene, lungs).unwrap();
+        let mut state = fixed_state(mid_inspiration());
+        state.hmd = r.front_view(&supine).unwrap();
+        r.render(&gpu, &state, true);
+        r.read_image(&gpu).unwrap()
+    };
+    // From the front, every lobe shows in its own colour, and fissures are drawn as dark lines.
+    let img = draw_front(&render(models()));
+    let lung = lung_pixels(&img);
+    assert!(lung.len() > 4000, "{} lung pixels", lung.len());
+    let mut counts = std::collections::HashMap::new();
+    for p in &lung {
+        if let Some(l) = nearest_lobe(*p) {
+            *counts.entry(l).or_insert(0usize) += 1;
+        }
+    }
+    for lobe in lung_model::mesh::lobes::ALL {
+        let n = counts.get(&lobe).copied().unwrap_or(0);
+        assert!(n * 200 > lung.len(), "{lobe}: {n} of {} pixels", lung.len());
+    }
+    let dark = |p: &&[u8; 4]| p[..3].iter().all(|&c| c < 40);
+    let fissure = lung.iter().filter(dark).count();
+    assert!(fissure > 40, "{fissure} fissure pixels");
+    // The left lung without lobe codes (a kernel baked before the lobe section): grey, no
+    // fissure, never a lobe's colour; the right lung keeps its lobes.
+    let mut lungs = render(models());
+    let left = lungs
+        .iter_mut()
+        .find(|l| l.side == lung_model::mesh::Side::Left)
+        .unwrap();
+    left.lobes = None;
+    let img = draw_front(&lungs);
+    let lung = lung_pixels(&img);
+    let grey = |p: &&[u8; 4]| p[0].abs_diff(p[2]) < 40 && p[0].abs_diff(p[1]) < 40 && p[0] > 40;
+    let greys = lung.iter().filter(grey).count();
+    assert!(greys > 1000, "{greys} grey pixels of {}", lung.len());
+    let lobes: Vec<_> = lung.iter().filter_map(|p| nearest_lobe(*p)).collect();
+    let left_lobes = lobes
+        .iter()
+        .filter(|l| l.side() == Some(lung_model::mesh::Side::Left))
+        .count();
+    assert!(
+        left_lobes * 200 < lung.len(),
+        "{left_lobes} left-lobe pixels"
+    );
+    let right_lobes = lobes.len() - left_lobes;
+    assert!(right_lobes > 1000, "{right_lobes} right-lobe pixels");
 }

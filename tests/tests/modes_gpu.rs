@@ -231,6 +231,7 @@ fn sh_coefficients_held_in_16_bits_agree_on_gpu_and_cpu_at_odd_counts() {
                         },
                     ),
                     tumour: None,
+                    lobes: None,
                 }
             })
             .collect();

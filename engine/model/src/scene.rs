@@ -411,9 +411,7 @@ impl Look {
     }
 }
 
-/// What the lungs' colour shows (`[render] color`, `lungdyn demo --color`). A further variant
-/// (e.g. lobes, from per-vertex lobe codes) needs one more per-vertex byte, which the renderer's
-/// per-vertex surface attribute already carries (`renderer::draw::SurfaceAttr`).
+/// What the lungs' colour shows (`[render] color`, `lungdyn demo --color`).
 #[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize, Default)]
 #[serde(rename_all = "kebab-case")]
 pub enum ColorMode {
@@ -425,14 +423,19 @@ pub enum ColorMode {
     /// Local expansion relative to FRC, a proxy of regional ventilation (the surface's areal strain
     /// around each vertex, `(A/A₀)^(3/2) − 1`): blue −10 % (collapsing), white 0, red +30 %.
     Ventilation,
+    /// Each lobe its own colour ([`crate::mesh::lobes::Lobe::colour`]) from the kernel's per-vertex
+    /// lobe codes, with the fissures drawn as dark lines where lobes meet; a lung whose kernel has
+    /// no lobe section is drawn grey and the renderer says so (start line and HUD legend).
+    Lobes,
 }
 
 impl ColorMode {
     /// Every colour mode, in the order `--help` lists them.
-    pub const ALL: [ColorMode; 3] = [
+    pub const ALL: [ColorMode; 4] = [
         ColorMode::Tissue,
         ColorMode::Displacement,
         ColorMode::Ventilation,
+        ColorMode::Lobes,
     ];
 
     /// The name in scene files and on the command line.
@@ -441,6 +444,7 @@ impl ColorMode {
             ColorMode::Tissue => "tissue",
             ColorMode::Displacement => "displacement",
             ColorMode::Ventilation => "ventilation",
+            ColorMode::Lobes => "lobes",
         }
     }
 }
@@ -1488,9 +1492,20 @@ mod tests {
         }
         let e = "glass".parse::<Look>().unwrap_err();
         assert!(e.contains("glass") && e.contains("see-through"), "{e}");
-        let e = "lobes".parse::<ColorMode>().unwrap_err();
-        assert!(e.contains("lobes") && e.contains("ventilation"), "{e}");
-        for bad in ["look = \"glass\"", "color = \"lobes\"", "look = 1"] {
+        assert_eq!("lobes".parse::<ColorMode>(), Ok(ColorMode::Lobes));
+        for bad in ["lobe", "Lobes", " lobes", ""] {
+            let e = bad.parse::<ColorMode>().unwrap_err();
+            assert!(
+                e.contains("lobes") && e.contains("ventilation"),
+                "{bad:?}: {e}"
+            );
+        }
+        for bad in [
+            "look = \"glass\"",
+            "color = \"lobe\"",
+            "color = \"LOBES\"",
+            "look = 1",
+        ] {
             let e = Scene::parse(&format!("[render]\n{bad}\n"), "s.toml")
                 .unwrap_err()
                 .to_string();

@@ -25,6 +25,10 @@ pub struct RenderLung {
     pub lung: CpuLung,
     /// The tumour the kernel was baked with, drawn in its own colour (seed §8.2).
     pub tumour: Option<lung_model::kernel::TumourMeta>,
+    /// Lobe code per vertex ([`lung_model::mesh::lobes::Lobe`]), from the kernel's lobe section;
+    /// `None` for a kernel baked before lobes existed (the lobes colour mode then draws the lung
+    /// grey and says so).
+    pub lobes: Option<Vec<u8>>,
 }
 
 impl RenderLung {
@@ -35,10 +39,12 @@ impl RenderLung {
             kernel_id: kernel.id(),
             lung: CpuLung::from_kernel(kernel, mode)?,
             tumour: kernel.meta().tumour.clone(),
+            lobes: kernel.lobes()?.map(<[u8]>::to_vec),
         })
     }
 
-    /// A precomputed-mode lung from a model built in memory (tests).
+    /// A precomputed-mode lung from a model built in memory (tests), with the lobe codes a bake
+    /// writes for its mesh (`lung_model::mesh::lobes::classify`).
     pub fn from_model(model: &LungModel) -> Self {
         Self {
             side: model.side,
@@ -51,7 +57,14 @@ impl RenderLung {
                 },
             ),
             tumour: None,
+            lobes: Some(lung_model::mesh::lobes::classify(model.side, &model.mesh)),
         }
+    }
+
+    /// The lobe code of every vertex, if the kernel had them (one per vertex; anything else is
+    /// treated as none).
+    pub fn lobe_codes(&self) -> Option<&[u8]> {
+        self.lobes.as_deref().filter(|c| c.len() == self.lung.len())
     }
 
     /// The deformation mode.

@@ -8,7 +8,7 @@
 //
 // Per vertex: the deformed position (xyz; w belongs to the compute pass), the normal with the
 // colour mode's scalar field in w (deform.wgsl, vertex_normals), and the surface attribute
-// (material id; the second byte is reserved for a lobe code, 0 = unknown).
+// (material id, lobe code 0..5 (0 unknown), fissure flag: draw/mod.rs, SurfaceAttr).
 
 struct Eye {
     view_proj: mat4x4<f32>,
@@ -22,12 +22,17 @@ struct Eye {
 };
 
 struct Style {
-    // What colour shows: 0 tissue, 1 displacement, 2 ventilation (lung_model::scene::ColorMode).
+    // What colour shows: 0 tissue, 1 displacement, 2 ventilation, 3 lobes
+    // (lung_model::scene::ColorMode).
     color_mode: u32,
     _pad0: u32,
     _pad1: u32,
     _pad2: u32,
+    // Linear albedo per lobe code (0 unknown, 1 RUL, 2 RML, 3 RLL, 4 LUL, 5 LLL).
+    lobes: array<vec4<f32>, 6>,
 };
+
+const LOBES_MODE: u32 = 3u;
 
 @group(0) @binding(0) var<uniform> eye: Eye;
 @group(0) @binding(1) var<uniform> style: Style;
@@ -46,6 +51,11 @@ struct VsOut {
     @location(3) normal: vec3<f32>,
     // The colour mode's field at the vertex (displacement mm, or expansion relative to FRC).
     @location(4) field: f32,
+    // Lobes mode: one-hot weight of the vertex's lobe among its lung's (upper, middle, lower),
+    // interpolated across the triangle; all zero for an unknown lobe.
+    @location(5) lobe_w: vec3<f32>,
+    // The splat's vertex lies on a fissure (1) or not (0).
+    @location(6) @interpolate(flat) fissure: u32,
 };
 
 // A ramp through four colours, t in [0, 1].
@@ -60,11 +70,82 @@ fn ramp4(t: f32, a: vec3<f32>, b: vec3<f32>, c: vec3<f32>, d: vec3<f32>) -> vec3
     return mix(c, d, s - 2.0);
 }
 
+// The lobe weights of a vertex with lobe `code` (its rank in its lung: upper, middle, lower).
+fn lobe_weights(code: u32) -> vec3<f32> {
+    if (code >= 1u && code <= 3u) {
+        return vec3<f32>(f32(code == 1u), f32(code == 2u), f32(code == 3u));
+    }
+    if (code == 4u) {
+        return vec3<f32>(1.0, 0.0, 0.0);
+    }
+    if (code == 5u) {
+        return vec3<f32>(0.0, 0.0, 1.0);
+    }
+    return vec3<f32>(0.0, 0.0, 0.0);
+}
+
+// The lobe code of a fragment from its interpolated weights (the largest), 0 if none.
+fn lobe_code(material: u32, w: vec3<f32>) -> u32 {
+    if (max(w.x, max(w.y, w.z)) < 0.01) {
+        return 0u;
+    }
+    var rank = 0u;
+    if (w.y > w.x && w.y >= w.z) {
+        rank = 1u;
+    } else if (w.z > w.x && w.z > w.y) {
+        rank = 2u;
+    }
+    if (material == LEFT_LUNG) {
+        return select(4u, 5u, rank == 2u);
+    }
+    return 1u + rank;
+}
+
+// Coverage (0..1) of the fissure line between two lobes whose weights differ by `e` (0 on the
+// fissure), `fw` its screen-space change per pixel: 1 within a pixel of it, fading out by 2.
+fn fissure_edge(e: f32, fw: f32) -> f32 {
+    return 1.0 - smoothstep(1.0, 2.0, abs(e) / max(fw, 1e-6));
+}
+
+// How much of the fissure line covers a fragment. The derivatives are taken first, in uniform
+// control flow.
+fn fissure(in: VsOut, splat: bool) -> f32 {
+    let w = in.lobe_w;
+    let e = vec3<f32>(w.x - w.y, w.x - w.z, w.y - w.z);
+    let fw = fwidth(e);
+    // No line on tumours, outside the lobes mode, or on a lung without lobe codes.
+    if (style.color_mode != LOBES_MODE || in.material == TUMOUR || max(w.x, max(w.y, w.z)) < 0.01) {
+        return 0.0;
+    }
+    if (splat) {
+        return f32(in.fissure);
+    }
+    // A pair's fissure shows where those two are the largest weights (the third no larger).
+    var c = 0.0;
+    if (w.z <= min(w.x, w.y)) {
+        c = max(c, fissure_edge(e.x, fw.x));
+    }
+    if (w.y <= min(w.x, w.z)) {
+        c = max(c, fissure_edge(e.y, fw.y));
+    }
+    if (w.x <= min(w.y, w.z)) {
+        c = max(c, fissure_edge(e.z, fw.z));
+    }
+    return c;
+}
+
+// The fissure line's colour: dark on tissue, light on an additive display.
+const FISSURE_DARK = vec3<f32>(0.004, 0.004, 0.008);
+const FISSURE_LIGHT = vec3<f32>(0.95, 0.95, 0.90);
+
 // Linear-light albedo of a fragment.
-fn albedo(material: u32, field: f32) -> vec3<f32> {
+fn albedo(material: u32, field: f32, lobe_w: vec3<f32>) -> vec3<f32> {
     if (material == TUMOUR) {
         // Yellow-green, far from every lung colour of every mode.
         return vec3<f32>(0.55, 0.92, 0.12);
+    }
+    if (style.color_mode == LOBES_MODE) {
+        return style.lobes[lobe_code(material, lobe_w)].rgb;
     }
     if (style.color_mode == 1u) {
         // Displacement from rest: 0 → 20 mm, dark blue → teal → green → yellow.
@@ -126,6 +207,8 @@ fn vs_common(p: vec3<f32>, normal: vec4<f32>, surface: vec4<u32>) -> VsOut {
     // The registration is a rigid transform: its upper 3×3 rotates normals.
     out.normal = (eye.model * vec4<f32>(normal.xyz, 0.0)).xyz;
     out.field = normal.w;
+    out.lobe_w = lobe_weights(surface.y);
+    out.fissure = surface.z;
     return out;
 }
 
@@ -176,9 +259,24 @@ fn outside_splat(in: VsOut) -> bool {
 
 // ---- opaque ----
 
+fn lit(in: VsOut, splat: bool) -> Lit {
+    var n: vec3<f32>;
+    if (splat) {
+        n = splat_normal(in);
+    } else {
+        n = triangle_normal(in);
+    }
+    return tissue(n, in.world, albedo(in.material, in.field, in.lobe_w));
+}
+
+fn opaque(in: VsOut, splat: bool) -> vec4<f32> {
+    let line = fissure(in, splat);
+    return vec4<f32>(mix(lit(in, splat).colour, FISSURE_DARK, line), 1.0);
+}
+
 @fragment
 fn fs_opaque_triangles(in: VsOut) -> @location(0) vec4<f32> {
-    return vec4<f32>(tissue(triangle_normal(in), in.world, albedo(in.material, in.field)).colour, 1.0);
+    return opaque(in, false);
 }
 
 @fragment
@@ -186,7 +284,7 @@ fn fs_opaque_splats(in: VsOut) -> @location(0) vec4<f32> {
     if (outside_splat(in)) {
         discard;
     }
-    return vec4<f32>(tissue(splat_normal(in), in.world, albedo(in.material, in.field)).colour, 1.0);
+    return opaque(in, true);
 }
 
 // ---- translucent: weighted blended order-independent transparency ----
@@ -198,12 +296,13 @@ struct Oit {
     @location(1) reveal: f32,
 };
 
-fn oit(lit: Lit, world: vec3<f32>) -> Oit {
+fn oit(lit: Lit, world: vec3<f32>, line: f32) -> Oit {
     // Facing the eye the tissue is a veil (α 0.28); at the silhouette, where the eye looks through
-    // more of it, nearly opaque and brighter: the fresnel rim that shows the lungs' outline.
+    // more of it, nearly opaque and brighter: the fresnel rim that shows the lungs' outline. A
+    // fissure line is nearly opaque, so it reads through the veil.
     let rim = pow(lit.edge, 3.0);
-    let alpha = mix(0.28, 0.92, rim);
-    let c = lit.colour + vec3<f32>(0.95, 0.70, 0.65) * 0.35 * rim;
+    let alpha = max(mix(0.28, 0.92, rim), 0.85 * line);
+    let c = mix(lit.colour + vec3<f32>(0.95, 0.70, 0.65) * 0.35 * rim, FISSURE_DARK, line);
     // McGuire & Bavoil's depth weight (their eq. 9, in the eye's distance): nearer surfaces weigh
     // more, so the near wall of a lung wins over its far wall and over the other lung behind it.
     // Scaled for views about a metre away; clamped to stay within half-float range.
@@ -217,7 +316,8 @@ fn oit(lit: Lit, world: vec3<f32>) -> Oit {
 
 @fragment
 fn fs_oit_triangles(in: VsOut) -> Oit {
-    return oit(tissue(triangle_normal(in), in.world, albedo(in.material, in.field)), in.world);
+    let line = fissure(in, false);
+    return oit(lit(in, false), in.world, line);
 }
 
 @fragment
@@ -225,22 +325,24 @@ fn fs_oit_splats(in: VsOut) -> Oit {
     if (outside_splat(in)) {
         discard;
     }
-    return oit(tissue(splat_normal(in), in.world, albedo(in.material, in.field)), in.world);
+    return oit(lit(in, true), in.world, fissure(in, true));
 }
 
 // ---- see-through: an additive display adds light; black shows the patient unchanged ----
 
-fn glow(lit: Lit) -> vec4<f32> {
+fn glow(lit: Lit, line: f32) -> vec4<f32> {
     // Little light where the surface faces the eye (the patient stays visible through it), most at
-    // the silhouette: the lungs read as lit outlines with a faint fill.
+    // the silhouette: the lungs read as lit outlines with a faint fill. A fissure is a lit line.
     let rim = pow(lit.edge, 2.5);
     let strength = 0.10 + 0.85 * rim;
-    return vec4<f32>(lit.colour * strength + vec3<f32>(0.25, 0.18, 0.16) * rim, 1.0);
+    let c = lit.colour * strength + vec3<f32>(0.25, 0.18, 0.16) * rim;
+    return vec4<f32>(mix(c, FISSURE_LIGHT, line), 1.0);
 }
 
 @fragment
 fn fs_glow_triangles(in: VsOut) -> @location(0) vec4<f32> {
-    return glow(tissue(triangle_normal(in), in.world, albedo(in.material, in.field)));
+    let line = fissure(in, false);
+    return glow(lit(in, false), line);
 }
 
 @fragment
@@ -248,5 +350,5 @@ fn fs_glow_splats(in: VsOut) -> @location(0) vec4<f32> {
     if (outside_splat(in)) {
         discard;
     }
-    return glow(tissue(splat_normal(in), in.world, albedo(in.material, in.field)));
+    return glow(lit(in, true), fissure(in, true));
 }

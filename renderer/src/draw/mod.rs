@@ -14,8 +14,19 @@
 //! | see-through | tumour        | lungs (additive light)         | —       |
 //!
 //! Every vertex carries a [`SurfaceAttr`]: its [`Material`] (what it is) instead of a code hidden
-//! in the position's `w`, and a reserved byte for a lobe code (0 unknown, 1 RUL, 2 RML, 3 RLL,
-//! 4 LUL, 5 LLL) that a lobes colour mode would read.
+//! in the position's `w`, its lobe code (0 unknown, 1 RUL, 2 RML, 3 RLL, 4 LUL, 5 LLL) and whether
+//! it lies on a fissure (a triangle of it spans two lobes).
+//!
+//! **Lobes colour mode**: the vertex shader turns the lobe code into a one-hot weight per lobe of
+//! its lung (upper, middle, lower), interpolated across each triangle; the fragment shader colours
+//! by the largest weight and draws the fissure where the two largest are equal, about 2 px wide
+//! whatever the distance (`fwidth` of their difference: screen-space derivatives, which lavapipe
+//! and every GPU have). A triangle whose corners lie in two lobes carries the boundary through its
+//! middle, continuous with its neighbours', so the fissures are closed lines on the surface, drawn
+//! in every look and eye with no extra pass or geometry. Splats have no triangle to interpolate
+//! over: a splat on a fissure vertex is drawn in the line colour. Dark lines on the opaque and
+//! translucent looks; light lines on the see-through look (an additive display shows dark as
+//! nothing).
 
 use lung_model::scene::{ColorMode, DrawMode, Look};
 
@@ -53,35 +64,81 @@ impl Material {
     }
 }
 
-/// Per-vertex surface attribute (`Uint8x4`, location 2): material, lobe code (0 = unknown; no
-/// colour mode reads it yet), two reserved bytes.
+/// Per-vertex surface attribute (`Uint8x4`, location 2): material, lobe code (0 = unknown),
+/// fissure flag (1: a triangle of this vertex spans two lobes), one reserved byte.
 pub type SurfaceAttr = [u8; 4];
 
-/// The attribute of a vertex of `material` with lobe code `lobe`.
-pub fn surface(material: Material, lobe: u8) -> SurfaceAttr {
-    [material as u8, lobe, 0, 0]
+/// The attribute of a vertex of `material` with lobe code `lobe`, on a fissure or not.
+pub fn surface(material: Material, lobe: u8, fissure: bool) -> SurfaceAttr {
+    [material as u8, lobe, fissure as u8, 0]
+}
+
+/// The surface attributes of one lung of `len` vertices in slot `slot`: with `lobes` (one code
+/// per vertex: [`crate::RenderLung::lobe_codes`]), each vertex's code and whether a triangle of it
+/// spans two lobes; without, code 0.
+pub fn lung_surface(
+    slot: usize,
+    len: usize,
+    triangles: &[[u32; 3]],
+    lobes: Option<&[u8]>,
+) -> Vec<SurfaceAttr> {
+    let material = Material::lung(slot);
+    let Some(codes) = lobes else {
+        return vec![surface(material, 0, false); len];
+    };
+    let mut out: Vec<SurfaceAttr> = codes.iter().map(|&c| surface(material, c, false)).collect();
+    for t in triangles {
+        let [a, b, c] = t.map(|i| i as usize);
+        if codes[a] != codes[b] || codes[b] != codes[c] {
+            for i in [a, b, c] {
+                out[i][2] = 1;
+            }
+        }
+    }
+    out
 }
 
 /// Uniform block `Style` of `draw.wgsl`.
 #[repr(C)]
 #[derive(Debug, Clone, Copy, bytemuck::Pod, bytemuck::Zeroable)]
 pub struct StyleUniform {
-    /// 0 tissue, 1 displacement, 2 ventilation.
+    /// 0 tissue, 1 displacement, 2 ventilation, 3 lobes.
     pub color_mode: u32,
     /// Padding to 16 bytes.
     pub _pad: [u32; 3],
+    /// Linear-light albedo per lobe code (0 unknown .. 5 left lower): `Lobe::colour`.
+    pub lobes: [[f32; 4]; 6],
+}
+
+/// An sRGB byte as linear light.
+pub fn srgb_to_linear(c: u8) -> f32 {
+    let c = c as f32 / 255.0;
+    if c <= 0.04045 {
+        c / 12.92
+    } else {
+        ((c + 0.055) / 1.055).powf(2.4)
+    }
 }
 
 impl StyleUniform {
     /// The style of `color`.
     pub fn new(color: ColorMode) -> Self {
+        use lung_model::mesh::lobes::Lobe;
+        let mut lobes = [[0.0; 4]; 6];
+        for (code, slot) in lobes.iter_mut().enumerate() {
+            let lobe = Lobe::from_code(code as u8).unwrap_or(Lobe::Unknown);
+            let [r, g, b] = lobe.colour().map(srgb_to_linear);
+            *slot = [r, g, b, 1.0];
+        }
         Self {
             color_mode: match color {
                 ColorMode::Tissue => 0,
                 ColorMode::Displacement => 1,
                 ColorMode::Ventilation => 2,
+                ColorMode::Lobes => 3,
             },
             _pad: [0; 3],
+            lobes,
         }
     }
 }

@@ -12,6 +12,8 @@
 //! * **Anchored labels**: R and L beside each lung and a head/feet cue, projected from the body
 //!   frame through each eye's camera, so they sit on the lungs.
 //! * **Veil text**: on the held/stale pose veil, what it means.
+//! * **Lobe legend** (bottom left, lobes colour mode): each lobe's abbreviation after a square of
+//!   its colour; above it, in amber, which lung has no lobe data and is drawn grey.
 //!
 //! In stereo, the panel and PV loop are shifted by a half disparity per eye
 //! ([`text::half_disparity_px`]) so they float at [`HUD_DEPTH_MM`], a comfortable reading depth,
@@ -60,6 +62,9 @@ pub struct HudConfig {
     pub fov_y_deg: f32,
     /// Per lung slot: the rest mesh's bounding box in the body frame (min, max), mm.
     pub lung_boxes: [Option<([f32; 3], [f32; 3])>; NUM_LUNGS],
+    /// The lobes colour mode's legend (`None` in the other modes): per lung slot, `None` where no
+    /// lung is loaded, else whether it has lobe codes.
+    pub lobes: Option<[Option<bool>; NUM_LUNGS]>,
 }
 
 impl HudConfig {
@@ -75,7 +80,9 @@ impl HudConfig {
             )
         });
         let mut lung_boxes = [None; NUM_LUNGS];
+        let mut lobes = [None; NUM_LUNGS];
         for l in lungs {
+            lobes[l.side.index()] = Some(l.lobe_codes().is_some());
             let (lo, hi) = l
                 .lung
                 .positions
@@ -98,6 +105,7 @@ impl HudConfig {
             ipd_mm: scene.render.ipd_mm,
             fov_y_deg: scene.render.fov_y_deg,
             lung_boxes,
+            lobes: (scene.render.color == lung_model::scene::ColorMode::Lobes).then_some(lobes),
         }
     }
 }
@@ -137,6 +145,8 @@ const TRACKER: usize = 4;
 const TIMING: usize = 5;
 const KEYS: usize = 6;
 const PANEL_LINES: usize = 7;
+/// Most rows the outcome line wraps onto (the panel grows by the rows past the first).
+const OUTCOME_ROWS: usize = 4;
 /// Other text blocks.
 const LABEL_R: usize = 7;
 const LABEL_L: usize = 8;
@@ -144,7 +154,9 @@ const HEAD: usize = 9;
 const FEET: usize = 10;
 const VEIL: usize = 11;
 const PV_TITLE: usize = 12;
-const BLOCKS: usize = 13;
+const LEGEND: usize = 13;
+const LOBE_WARNING: usize = 14;
+const BLOCKS: usize = 15;
 
 /// The HUD's GPU state: glyphon's atlas and renderer, the text blocks, the shapes pipeline.
 pub struct Hud {
@@ -167,6 +179,8 @@ pub struct Hud {
     height: u32,
     eyes: u32,
     font_px: f32,
+    /// Rows the outcome line took when last shaped (it wraps at the panel's width).
+    outcome_rows: usize,
 }
 
 const WHITE: Color = Color::rgb(235, 238, 242);
@@ -178,14 +192,7 @@ const CYAN: Color = Color::rgb(120, 210, 255);
 
 /// An sRGB colour with alpha as the linear values the shapes pipeline writes.
 fn linear(r: u8, g: u8, b: u8, a: f32) -> [f32; 4] {
-    let l = |c: u8| {
-        let c = c as f32 / 255.0;
-        if c <= 0.04045 {
-            c / 12.92
-        } else {
-            ((c + 0.055) / 1.055).powf(2.4)
-        }
-    };
+    let l = crate::draw::srgb_to_linear;
     [l(r), l(g), l(b), a]
 }
 
@@ -286,7 +293,12 @@ impl Hud {
             height,
             eyes,
             font_px,
+            outcome_rows: 1,
         };
+        // The outcome line wraps at the panel's width rather than being clipped (a long reply on
+        // a 480 px eye).
+        let wrap_w = hud.panel_w() - hud.margin() * 1.5;
+        hud.buffers[OUTCOME].set_size(Some(wrap_w.max(1.0)), None);
         hud.lines[LABEL_R].push('R');
         hud.lines[LABEL_L].push('L');
         hud.lines[HEAD].push_str("▲ head");
@@ -300,7 +312,42 @@ impl Hud {
         hud.colors[KEYS] = GREY;
         hud.colors[TIMING] = GREY;
         hud.colors[PV_TITLE] = GREY;
+        hud.colors[LOBE_WARNING] = AMBER;
+        hud.set_lobe_legend();
         hud
+    }
+
+    /// The lobes colour mode's legend, shaped once: a square in each lobe's colour before its
+    /// abbreviation, a grey square for a lung without lobe codes; and the warning line for those.
+    fn set_lobe_legend(&mut self) {
+        let Some(lungs) = self.config.lobes else {
+            return;
+        };
+        let attrs = Attrs::new().family(Family::Name(FAMILY));
+        let swatch = |c: [u8; 3]| attrs.clone().color(Color::rgb(c[0], c[1], c[2]));
+        let mut spans: Vec<(String, Attrs)> = Vec::new();
+        for (lobe, abbreviation) in text::lobe_legend(lungs) {
+            spans.push(("■".into(), swatch(lobe.colour())));
+            spans.push((format!(" {abbreviation}  "), attrs.clone()));
+        }
+        if let Some(which) = text::lungs_without_lobes(lungs) {
+            let grey = lung_model::mesh::lobes::Lobe::Unknown.colour();
+            spans.push(("■".into(), swatch(grey)));
+            spans.push((format!(" {which}: no lobe data"), attrs.clone()));
+            self.lines[LOBE_WARNING] = text::lobe_warning(lungs).unwrap_or_default();
+        }
+        let legend: String = spans.iter().map(|(t, _)| t.as_str()).collect();
+        let b = &mut self.buffers[LEGEND];
+        b.set_rich_text(
+            spans.iter().map(|(t, a)| (t.as_str(), a.clone())),
+            &attrs,
+            Shaping::Basic,
+            None,
+        );
+        b.shape_until_scroll(&mut self.font_system, false);
+        // Shaped once: the per-frame reshaping sees no change.
+        self.lines[LEGEND].clone_from(&legend);
+        self.shaped[LEGEND] = legend;
     }
 
     /// The scene's facts the HUD was made with.
@@ -362,6 +409,9 @@ impl Hud {
                     None,
                 );
                 b.shape_until_scroll(&mut self.font_system, false);
+                if k == OUTCOME {
+                    self.outcome_rows = b.layout_runs().count().clamp(1, OUTCOME_ROWS);
+                }
                 self.shaped[k].clone_from(&self.lines[k]);
             }
         }
@@ -428,6 +478,26 @@ impl Hud {
 
     fn margin(&self) -> f32 {
         (self.font_px * 0.9).round()
+    }
+
+    /// The panel's width: to the PV loop's box, at most 48 characters.
+    fn panel_w(&self) -> f32 {
+        (self.pv_box(0.0).0 - self.margin() * 1.5).min(self.font_px * 48.0)
+    }
+
+    /// Panel rows: one per line, the outcome's wrapped rows counted.
+    fn panel_rows(&self) -> usize {
+        PANEL_LINES + self.outcome_rows - 1
+    }
+
+    /// Top of panel line `k` (the lines after the outcome moved down by its extra rows).
+    fn row_top(&self, k: usize) -> f32 {
+        let row = if k > OUTCOME {
+            k + self.outcome_rows - 1
+        } else {
+            k
+        };
+        self.margin() + self.line_height() * row as f32
     }
 
     /// The PV box of an eye at `ox`: (x, y, w, h).
@@ -511,7 +581,7 @@ impl Hud {
         let lh = self.line_height();
         let m = self.margin();
         // The panel reaches to the PV loop's box (its longest line, an outcome, is clipped there).
-        let panel_w = (self.pv_box(0.0).0 - m * 1.5).min(self.font_px * 48.0);
+        let panel_w = self.panel_w();
         let bar_w = panel_w * 0.45;
         let n_eyes = self.eyes.min(eyes.len() as u32);
         let anchors = self.anchors(f.frame);
@@ -531,7 +601,12 @@ impl Hud {
                 );
             }
             self.push_rect(
-                (ox + m * 0.5, m * 0.5, panel_w, lh * PANEL_LINES as f32 + m),
+                (
+                    ox + m * 0.5,
+                    m * 0.5,
+                    panel_w,
+                    lh * self.panel_rows() as f32 + m,
+                ),
                 linear(0, 0, 0, 0.45),
             );
             // The breath-phase bar: inspiration part, expiration part, the current phase.
@@ -574,6 +649,20 @@ impl Hud {
                     let (cx, cy) = scale.to_px(c, inner);
                     self.push_rect((cx - 4.5, cy - 4.5, 9.0, 9.0), linear(255, 196, 64, 1.0));
                 }
+            }
+            // The lobe legend's panel (bottom left).
+            let legend_rows = self.legend_rows();
+            if legend_rows > 0 {
+                let chars = self.lines[LEGEND]
+                    .chars()
+                    .count()
+                    .max(self.lines[LOBE_WARNING].chars().count());
+                let w = (chars as f32 * self.font_px * 0.6 + m).min(self.eye_width as f32 - m);
+                let top = self.height as f32 - m * 1.5 - lh * legend_rows as f32;
+                self.push_rect(
+                    (ox + m * 0.5, top, w, lh * legend_rows as f32 + m),
+                    linear(0, 0, 0, 0.55),
+                );
             }
             // Ticks under the anchored labels so they read over bright tissue.
             for (k, a) in anchors.iter().enumerate() {
@@ -651,6 +740,14 @@ impl Hud {
         self.atlas.trim();
     }
 
+    /// Rows of the lobe legend: 0 (not the lobes mode), 1 (the legend) or 2 (and its warning).
+    fn legend_rows(&self) -> usize {
+        [LEGEND, LOBE_WARNING]
+            .iter()
+            .filter(|&&k| !self.lines[k].is_empty())
+            .count()
+    }
+
     /// Where each text block goes in each eye: (block, left, top, clip bounds), at most
     /// [`BLOCKS`] per eye (fixed array: no allocation).
     #[allow(clippy::type_complexity)]
@@ -680,14 +777,24 @@ impl Hud {
                 } else {
                     ox + m
                 };
+                let top = self.row_top(k);
+                let rows = if k == OUTCOME { self.outcome_rows } else { 1 };
                 let panel_bounds = TextBounds {
                     right: bounds.right.min((ox + m * 0.5 + panel_w) as i32),
+                    bottom: (top + lh * rows as f32 + m * 0.5) as i32,
                     ..bounds
                 };
-                *slot = Some((k, left, m + lh * k as f32, panel_bounds));
+                *slot = Some((k, left, top, panel_bounds));
             }
             let (px, py, _, _) = self.pv_box(ox);
             row[PV_TITLE] = Some((PV_TITLE, px + 4.0, py - lh * 0.9, bounds));
+            let mut bottom = self.height as f32 - m;
+            for k in [LEGEND, LOBE_WARNING] {
+                if !self.lines[k].is_empty() {
+                    bottom -= lh;
+                    row[k] = Some((k, ox + m, bottom, bounds));
+                }
+            }
             if !self.lines[VEIL].is_empty() {
                 let w = self.lines[VEIL].chars().count() as f32
                     * self.buffers[VEIL].metrics().font_size

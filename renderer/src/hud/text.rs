@@ -8,6 +8,8 @@
 
 use std::fmt::Write;
 
+use lung_model::mesh::lobes::Lobe;
+
 use ipc_types::{
     tool_status, ControlReply, EngineFrame, Intervention, TrackerFrame, LUNG_LEFT, LUNG_RIGHT,
     NUM_LUNGS,
@@ -297,6 +299,42 @@ pub fn key_help(interventions: bool) -> &'static str {
     }
 }
 
+/// The lobes colour mode's legend entries: (lobe, abbreviation) of each lung shown with its lobe
+/// codes (`lungs`, per slot: `None` not loaded, `Some(has_lobe_codes)`), right lung first.
+pub fn lobe_legend(lungs: [Option<bool>; ipc_types::NUM_LUNGS]) -> Vec<(Lobe, &'static str)> {
+    let mut out = Vec::new();
+    if lungs[ipc_types::LUNG_RIGHT] == Some(true) {
+        out.extend([
+            (Lobe::RightUpper, "RUL"),
+            (Lobe::RightMiddle, "RML"),
+            (Lobe::RightLower, "RLL"),
+        ]);
+    }
+    if lungs[ipc_types::LUNG_LEFT] == Some(true) {
+        out.extend([(Lobe::LeftUpper, "LUL"), (Lobe::LeftLower, "LLL")]);
+    }
+    out
+}
+
+/// The lungs loaded without lobe codes, in words ("right lung", "both lungs"), if any.
+pub fn lungs_without_lobes(lungs: [Option<bool>; ipc_types::NUM_LUNGS]) -> Option<&'static str> {
+    match (
+        lungs[ipc_types::LUNG_RIGHT] == Some(false),
+        lungs[ipc_types::LUNG_LEFT] == Some(false),
+    ) {
+        (true, true) => Some("both lungs"),
+        (true, false) => Some("right lung"),
+        (false, true) => Some("left lung"),
+        (false, false) => None,
+    }
+}
+
+/// The HUD's warning for lungs without lobe codes in the lobes colour mode (short enough for a
+/// 480 px eye), if any.
+pub fn lobe_warning(lungs: [Option<bool>; ipc_types::NUM_LUNGS]) -> Option<String> {
+    lungs_without_lobes(lungs).map(|which| format!("NO LOBE DATA: {which} grey (old kernel)"))
+}
+
 /// The words on the held/stale veil.
 pub fn veil_words(warning: crate::PoseWarning) -> Option<&'static str> {
     match warning {
@@ -453,6 +491,39 @@ mod tests {
         };
         r.set_text(&[text]);
         r
+    }
+
+    #[test]
+    fn the_lobe_legend_names_the_lobes_of_lungs_with_codes_and_warns_of_the_others() {
+        let both = [Some(true), Some(true)];
+        let names: Vec<&str> = lobe_legend(both).iter().map(|e| e.1).collect();
+        assert_eq!(names, ["RUL", "RML", "RLL", "LUL", "LLL"]);
+        for (lobe, abbreviation) in lobe_legend(both) {
+            let parsed: Lobe = abbreviation.parse().unwrap();
+            assert_eq!(parsed, lobe);
+        }
+        assert_eq!(lungs_without_lobes(both), None);
+        assert_eq!(lobe_warning(both), None);
+        // Only the right lung loaded, with codes.
+        assert_eq!(lobe_legend([Some(true), None]).len(), 3);
+        assert_eq!(lobe_warning([Some(true), None]), None);
+        // The left lung's kernel has none.
+        let left_old = [Some(true), Some(false)];
+        assert_eq!(lobe_legend(left_old).len(), 3);
+        assert_eq!(lungs_without_lobes(left_old), Some("left lung"));
+        let w = lobe_warning(left_old).unwrap();
+        assert!(w.contains("left lung") && w.contains("grey"), "{w}");
+        assert_eq!(
+            lungs_without_lobes([Some(false), Some(false)]),
+            Some("both lungs")
+        );
+        assert!(lobe_legend([Some(false), Some(false)]).is_empty());
+        assert_eq!(lungs_without_lobes([Some(false), None]), Some("right lung"));
+        // Short enough for a 480 px eye at the HUD's smallest font (11 px, 0.6 em a character).
+        for lungs in [[Some(false), Some(false)], [Some(false), Some(true)]] {
+            let w = lobe_warning(lungs).unwrap();
+            assert!(w.chars().count() as f32 * 11.0 * 0.6 < 440.0, "{w}");
+        }
     }
 
     #[test]
