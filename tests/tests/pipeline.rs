@@ -206,6 +206,49 @@ fn frames_flow_end_to_end_complete_valid_and_accounted_for() {
     );
 }
 
+/// The scene's wake strategies reach the processes: each says the one it runs in its start-up
+/// line, and frames flow with every hop stamped (busy-poll needs a reserved core: the transport's
+/// own test covers it, and the bad-input cases its refusals).
+#[test]
+fn the_scenes_wake_strategies_run_and_are_said_at_start_up() {
+    let scene = prepared_scene(
+        "pipeline-wake",
+        "[lungs]\nvertices = 1500\n[processes]\nspin_us = 150\nwake = { engine = \"spin-then-park\", renderer = \"event\" }\n",
+    );
+    let scene = scene.to_str().unwrap();
+    let Some(r) = run("pipeline-wake", scene, scene, 2) else {
+        return;
+    };
+    let ctx = format!("{}\n{}\n{}", r.bridge_err, r.engine_err, r.renderer_err);
+    assert!(
+        r.engine_err.contains(
+            "waits for tracker frames by spin-then-park (150 µs window) (the scene's [processes] wake)"
+        ),
+        "{ctx}"
+    );
+    assert!(
+        r.renderer_err
+            .contains("waits for engine frames by event (the scene's [processes] wake)"),
+        "{ctx}"
+    );
+    let fresh = r
+        .reports
+        .iter()
+        .filter(|x| x.flags & report_flags::STALE_ENGINE == 0)
+        .inspect(|rep| assert!(rep.stamps.is_complete_and_ordered(), "{:?}", rep.stamps))
+        .count();
+    assert!(fresh > 0, "{ctx}");
+    // The engine ticked on tracker samples, not only on its deadline fallback.
+    let on_samples: u64 = r
+        .engine_err
+        .split(" on a tracker sample")
+        .next()
+        .and_then(|head| head.rsplit('(').next())
+        .and_then(|n| n.trim().parse().ok())
+        .unwrap_or_else(|| panic!("the engine did not count its sample ticks: {ctx}"));
+    assert!(on_samples > 0, "{ctx}");
+}
+
 /// Two different kernels: the engine computes the lungs of one bake, the renderer loaded another.
 /// Every frame is flagged, the renderer says so once and counts it, and no displacement of one
 /// kernel is drawn on the other's vertices (the in-process test in `kernel_identity.rs` reads the

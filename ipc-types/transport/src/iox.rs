@@ -330,8 +330,9 @@ impl<T: Topic> Inlet<T> {
     pub fn set_wake(&mut self, wake: Wake) {
         self.wake = wake;
         if let Wake::SpinThenPark { .. } = wake {
+            let slack_ns: libc::c_ulong = 1_000;
             // SAFETY: PR_SET_TIMERSLACK takes one integer and changes only the calling thread.
-            unsafe { libc::prctl(libc::PR_SET_TIMERSLACK, 1_000 as libc::c_ulong) };
+            unsafe { libc::prctl(libc::PR_SET_TIMERSLACK, slack_ns) };
         }
     }
 
