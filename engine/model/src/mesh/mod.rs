@@ -5,7 +5,8 @@
 //! wind counter-clockwise seen from outside, so the enclosed volume (divergence theorem,
 //! [`TriMesh::enclosed_volume_mm3`]) is positive.
 //!
-//! [`generate`] builds the built-in default lungs procedurally at any resolution; [`check`] verifies
+//! [`generate`] builds the built-in default lungs procedurally at any resolution ([`anatomy`], the
+//! default, or the earlier [`teardrop`]); [`check`] verifies
 //! the topology every later stage (deformation operator, kernel baking) relies on; [`io`] writes
 //! OBJ/PLY atomically. Importing patient meshes (OBJ/PLY/STL, welding, repairs) is bake-time work:
 //! `lung_bake::import`.
@@ -14,6 +15,7 @@ pub mod anatomy;
 pub mod generate;
 pub mod io;
 pub mod lobes;
+pub mod teardrop;
 
 use std::collections::HashMap;
 
