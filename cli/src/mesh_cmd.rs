@@ -20,9 +20,10 @@ pub struct GenerateArgs {
     /// Print one JSON object describing the mesh on stdout.
     #[arg(long)]
     pub json: bool,
-    /// Shape: "teardrop" (the default built-in lungs the engine uses) or "anatomical" (hilum,
-    /// cardiac notch and lingula, domed base, costophrenic recesses: `lung_model::mesh::anatomy`).
-    #[arg(long, default_value = "teardrop", value_parser = ["teardrop", "anatomical"])]
+    /// Shape: "anatomical" (the built-in lungs the engine uses by default: hilum, cardiac notch and
+    /// lingula, domed base, costophrenic recesses: `lung_model::mesh::anatomy`) or "teardrop" (the
+    /// earlier smooth shape: `lung_model::mesh::teardrop`).
+    #[arg(long, default_value = "anatomical", value_parser = ["anatomical", "teardrop"])]
     pub shape: String,
     /// Write each vertex's lobe colour (OBJ `v x y z r g b`; PLY `red green blue` and a `lobe`
     /// code property) to see the lobes in MeshLab or Blender.
@@ -53,10 +54,8 @@ pub struct MeshSummary {
 pub fn run(args: &GenerateArgs) -> anyhow::Result<MeshSummary> {
     let side: Side = args.lung.parse().map_err(anyhow::Error::msg)?;
     io::check_out(&args.out)?;
-    let mesh = match args.shape.as_str() {
-        "anatomical" => lung_model::mesh::anatomy::lung(side, args.vertices)?,
-        _ => generate::lung(side, args.vertices)?,
-    };
+    let shape: generate::Shape = args.shape.parse().map_err(anyhow::Error::msg)?;
+    let mesh = generate::lung_of(shape, side, args.vertices)?;
     check(&mesh)
         .map_err(|e| anyhow::anyhow!("internal error: the generated mesh is invalid: {e}"))?;
     let codes = lobes::classify(side, &mesh);

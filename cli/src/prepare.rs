@@ -110,7 +110,8 @@ pub fn ensure_kernels(
         }
         let key = xxhash_rust::xxh3::xxh3_64(
             format!(
-                "{}:{}:{}",
+                "{}:{}:{}:{}",
+                scene.lungs.shape,
                 scene.lungs.vertices,
                 serde_json::to_string(&settings)?,
                 lung_model::kernel::FORMAT_VERSION
@@ -119,8 +120,9 @@ pub fn ensure_kernels(
         );
         std::fs::create_dir_all(dir).with_context(|| format!("cannot create {}", dir.display()))?;
         let path = absolute(&dir.join(format!(
-            "default_{}_{}_{key:016x}.kernel",
+            "default_{}_{}_{}_{key:016x}.kernel",
             side.name(),
+            scene.lungs.shape,
             scene.lungs.vertices
         )));
         let reusable = lung_model::kernel::KernelFile::open(&path)
@@ -131,12 +133,14 @@ pub fn ensure_kernels(
         if !reusable {
             let t = std::time::Instant::now();
             eprintln!(
-                "lungdyn: baking the default {} lung ({} vertices) into {}",
+                "lungdyn: baking the default {} lung ({}, {} vertices) into {}",
                 side.name(),
+                scene.lungs.shape,
                 scene.lungs.vertices,
                 path.display()
             );
-            let mesh = lung_model::mesh::generate::lung(side, scene.lungs.vertices)?;
+            let mesh =
+                lung_model::mesh::generate::lung_of(scene.lungs.shape, side, scene.lungs.vertices)?;
             let bar = indicatif::ProgressBar::new(mesh.positions.len() as u64);
             bar.set_style(
                 indicatif::ProgressStyle::with_template("  [{bar:40}] {pos}/{len} rows, eta {eta}")

@@ -42,7 +42,7 @@ fn lung_mesh(scene: &Scene, side: Side) -> anyhow::Result<TriMesh> {
         Some(k) => Ok(lung_model::kernel::KernelFile::open(k)
             .with_context(|| format!("{} lung kernel", side.name()))?
             .mesh()),
-        None => lung_model::mesh::generate::lung(side, scene.lungs.vertices)
+        None => lung_model::mesh::generate::lung_of(scene.lungs.shape, side, scene.lungs.vertices)
             .with_context(|| format!("the built-in {} lung", side.name())),
     }
 }

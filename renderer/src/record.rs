@@ -147,6 +147,48 @@ mod tests {
             .is_none());
     }
 
+    /// Image-plane horizontal coordinate (mm, + to the viewer's right) of the generated `side`
+    /// lung's centroid, seen from the front view of a supine patient.
+    fn seen_from_the_front(side: lung_model::mesh::Side) -> f32 {
+        use lung_model::mesh::{generate, Side};
+        let lungs = [Side::Right, Side::Left].map(|s| generate::lung(s, 2_000).unwrap());
+        let (mut lo, mut hi) = (Vec3::splat(f32::INFINITY), Vec3::splat(f32::NEG_INFINITY));
+        for p in lungs.iter().flat_map(|m| &m.positions) {
+            lo = lo.min(Vec3::from(*p));
+            hi = hi.max(Vec3::from(*p));
+        }
+        let supine = glam::Quat::from_mat3(&Mat3::from_cols(Vec3::Y, Vec3::Z, Vec3::X));
+        let model = Mat4::from_rotation_translation(supine, Vec3::new(0.0, 0.0, 1000.0));
+        let pose = front_view(model, (lo, hi), 60.0, 4.0 / 3.0);
+        let mesh = &lungs[if side == Side::Right { 0 } else { 1 }];
+        let centroid = mesh.positions.iter().map(|p| Vec3::from(*p)).sum::<Vec3>()
+            / mesh.positions.len() as f32;
+        let q = glam::Quat::from_array(pose.quat);
+        (q * Vec3::X).dot(model.transform_point3(centroid) - Vec3::from(pose.translation_mm))
+    }
+
+    /// Handedness (issue 19): seen from the front (anterior, head up) — as a clinician facing the
+    /// patient sees them, and as radiology shows an anterior view — the patient's right lung is on
+    /// the viewer's left. The body frame (+X patient left, +Y anterior, +Z superior) is physically
+    /// left-handed (patient-left × anterior = inferior), while the renderer and the room are
+    /// right-handed, so today the front view shows a mirror-image patient: the right lung on the
+    /// viewer's right, the cardiac notch on the viewer's left (`lungdyn demo` strip, lavapipe).
+    /// The fix crosses the engine, renderer, tracker and registration (see the issue 19 report);
+    /// this test is the specification it must meet.
+    #[test]
+    #[ignore = "known: the body frame is left-handed and the front view is mirrored (issue 19)"]
+    fn the_patients_right_lung_is_on_the_viewers_left_from_the_front() {
+        use lung_model::mesh::Side;
+        let (right, left) = (
+            seen_from_the_front(Side::Right),
+            seen_from_the_front(Side::Left),
+        );
+        assert!(
+            right < -20.0 && left > 20.0,
+            "right lung at {right} mm, left at {left} mm"
+        );
+    }
+
     #[test]
     fn the_front_view_looks_at_the_lungs_from_anterior_with_the_head_up() {
         // Patient supine: body +Y (anterior) is room +Z (up), body +Z (superior) room +X.

@@ -554,6 +554,8 @@ def make_scenes(tmp):
                       ("dependent_1.5", "dependent = 1.5"), ("dependent_negative", "dependent = -0.1"),
                       ("apex_1e308", "apex = 1e308")):
         s("elasticity_" + tag, SCENE_BASE + "[lungs.elasticity]\n%s\n" % body)
+    s("lungs_shape_pear", SCENE_BASE + "shape = \"pear\"\n")
+    s("lungs_shape_number", SCENE_BASE + "shape = 3\n")
     s("motion_missing", SCENE_BASE + "motion = \"no_such_motion.toml\"\n")
     s("motion_nan", SCENE_BASE + "motion = \"motion_c_nan.toml\"\n")
     s("motion_five_values", SCENE_BASE + "motion = \"motion_c_five_values.toml\"\n")

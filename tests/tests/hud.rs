@@ -215,8 +215,12 @@ fn the_front_view_shows_both_lungs_below_the_hud() {
         .filter(|(_, _, p)| **p != background)
         .map(|(x, y, _)| (x, y))
         .collect();
+    // The front view frames the lungs' box at about half the image height; the anatomical lungs'
+    // silhouette (tapered apices, the mediastinal gap, the left cardiac notch) covers 9.8 % of the
+    // image there (the wider teardrop covered over 10 %); the lungs must be framed, not specks:
+    // drawn too small (under a twelfth fails).
     assert!(
-        lit.len() > 320 * 240 / 10,
+        lit.len() > 320 * 240 / 12,
         "the lungs fill part of the image: {}",
         lit.len()
     );

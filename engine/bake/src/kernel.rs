@@ -792,7 +792,11 @@ mod tests {
             let k = baked(Some(Tumour::new(side, centre, [15.0; 3])));
             k.meta.tumour.as_ref().unwrap().precomputed_mm
         };
-        let (upper, lower) = (z_motion([0.5, 0.5, 0.2]), z_motion([0.5, 0.5, 0.8]));
+        // Each centre well inside its lobe (`lobes::interior_point`): below the middle of the
+        // anatomical lung's box lies the domed diaphragm, outside the lung.
+        let inside = |lobe| lung_model::mesh::lobes::interior_point(lobe).unwrap();
+        let upper = z_motion(inside(lung_model::mesh::lobes::Lobe::RightUpper));
+        let lower = z_motion(inside(lung_model::mesh::lobes::Lobe::RightLower));
         eprintln!("per unit scale: upper {upper:?} mm, lower {lower:?} mm");
         assert!(lower[2].abs() > upper[2].abs());
         assert!(upper.iter().chain(&lower).all(|v| v.is_finite()));

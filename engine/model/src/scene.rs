@@ -310,6 +310,10 @@ pub struct LungsScene {
     pub sides: Vec<Side>,
     /// Vertices per generated default lung (what the launcher bakes for a lung without a kernel).
     pub vertices: usize,
+    /// Shape of the generated lungs (a lung with a kernel ignores it): "anatomical" (the default:
+    /// lobes, hilum, cardiac notch, domed base; `mesh::anatomy`) or "teardrop" (the earlier smooth
+    /// shape; `mesh::teardrop`).
+    pub shape: crate::mesh::generate::Shape,
     /// Regional elasticity of the operator (`[lungs.elasticity]`: apex, base, dependent).
     pub elasticity: crate::operator::Elasticity,
     /// Pitcher tolerance of the transfer pass for a unit force.
@@ -544,6 +548,7 @@ impl Default for LungsScene {
         Self {
             sides: vec![Side::Right, Side::Left],
             vertices: 10_000,
+            shape: crate::mesh::generate::Shape::Anatomical,
             elasticity: crate::operator::Elasticity::default(),
             transfer_tolerance: crate::kernel::DEFAULT_TOLERANCE,
             motion: None,

@@ -282,8 +282,22 @@ mod tests {
             for dv in [0.0, 1e-9, 0.001, 0.1, 0.2, 0.467_735, 0.5, 0.8, 0.95, 1.0] {
                 let c = shape.collapse_for_loss(dv).unwrap();
                 let closed = collapse_for_loss(dv).unwrap();
-                // The f32 field's cubic and the exact similarity agree closely…
-                assert!((c - closed).abs() < 1e-6, "dV {dv}: {c} vs {closed}");
+                // The f32 field's cubic and the exact similarity agree closely… as closely as the
+                // root's conditioning allows. The cubic is `V0·k³` (`k = 1 − c`) plus a residue
+                // `η·V0` from rounding its f64 coefficients (each a sum over every triangle, so
+                // `|η| ≤ triangles·ε64`; measured 4e-15 on the anatomical right lung at 3k
+                // vertices). At a loss `dV` the root `k³ = 1 − dV` moves by at most
+                // `∛(1 − dV + |η|) − ∛(1 − dV)`: nothing for a simple root, but at `dV = 1` the root
+                // is triple and moves by `∛|η|` (1.6e-5 for that lung; the residue's sign decides
+                // whether the bisection reaches `c = 1` exactly). The volume removed stays exact
+                // (the check below).
+                let eta = mesh.triangles.len() as f64 * f64::EPSILON;
+                let k3 = 1.0 - dv;
+                let conditioning = (k3 + eta).cbrt() - k3.cbrt();
+                assert!(
+                    (c - closed).abs() < 1e-6 + conditioning,
+                    "dV {dv}: {c} vs {closed}"
+                );
                 // …and the solved c removes exactly dV·V0 (f64 evaluation of the f32 field).
                 let v = volume_at(&mesh, &shape.field, c);
                 assert!(

@@ -1,8 +1,9 @@
 //! Anatomical adult lungs, procedural at any resolution (`lungdyn mesh generate --shape anatomical`).
 //!
-//! A subdivided cube is projected onto the sphere (the "spherified cube": near-uniform vertices at
-//! any resolution, no pole singularities) and each sphere direction is mapped to the lung by a
-//! smooth function of its azimuth φ about a vertical axis and its polar angle (`shape_point`):
+//! The built-in default lungs ([`super::generate::Shape::Anatomical`]). The generator's shared
+//! builder (`generate::build`: a spherified cube scaled to the volume and placed) maps each sphere
+//! direction to the lung by a smooth function of its azimuth φ about a vertical axis and its polar
+//! angle (`shape_point`):
 //! the apex and walls take the upper [`WALL_SHARE`] of the polar angle, the diaphragmatic surface
 //! the rest. Each meridian stays in its own half-plane and is a simple curve there, so the surface
 //! is an embedded sphere at every resolution — closed, 2-manifold, not self-intersecting
@@ -42,9 +43,7 @@
 
 use glam::DVec3;
 
-use super::generate::{
-    spherified_cube, subdivision_for, GenerateError, MAX_VERTICES, MIN_VERTICES,
-};
+use super::generate::{build, smoothstep, GenerateError, Placement};
 use super::{Side, TriMesh};
 
 /// Height of both apices in the body frame, mm: the lungs hang from a common apex level (the
@@ -146,64 +145,15 @@ pub fn lung(side: Side, vertices: usize) -> Result<TriMesh, GenerateError> {
     lung_with(side, vertices, &LungShape::adult(side))
 }
 
-/// Generate a lung of `side` and explicit `shape`.
+/// Generate a lung of `side` and explicit `shape`, its apex at [`APEX_Z_MM`].
 pub fn lung_with(side: Side, vertices: usize, shape: &LungShape) -> Result<TriMesh, GenerateError> {
-    if !(MIN_VERTICES..=MAX_VERTICES).contains(&vertices) {
-        return Err(GenerateError::VertexCount {
-            requested: vertices,
-        });
-    }
-    let (sphere, mut triangles) = spherified_cube(subdivision_for(vertices));
-    // Shape with unit horizontal scale, then scale horizontally to the target volume.
-    let mut local: Vec<DVec3> = sphere.iter().map(|&s| shape_point(s, shape)).collect();
-    // Rescale vertically to the exact height (a rounding guard: the shape's range is already the
-    // height), the apex at [`APEX_Z_MM`] for both lungs so the right base sits higher.
-    let (z_lo, z_hi) = local
-        .iter()
-        .fold((f64::INFINITY, f64::NEG_INFINITY), |(lo, hi), p| {
-            (lo.min(p.z), hi.max(p.z))
-        });
-    let z_scale = shape.height_mm / (z_hi - z_lo);
-    for p in &mut local {
-        p.z = APEX_Z_MM - (z_hi - p.z) * z_scale;
-    }
-    let volume_of = |scale: f64| {
-        super::enclosed_volume_with(&triangles, |i| {
-            let p = local[i as usize];
-            [p.x * scale, p.y * scale, p.z]
-        })
+    let placement = Placement {
+        height_mm: shape.height_mm,
+        volume_ml: shape.volume_ml,
+        mediastinum_half_mm: shape.mediastinum_half_mm,
+        apex_z_mm: APEX_Z_MM,
     };
-    // The local frame (lateral, anterior, superior) is right-handed; the volume is positive.
-    let v1 = volume_of(1.0) / 1000.0;
-    let scale = (shape.volume_ml / v1).sqrt();
-    let medial_extent = local
-        .iter()
-        .map(|p| p.x * scale)
-        .fold(f64::INFINITY, f64::min);
-    let sign = side.lateral_sign() as f64;
-    let positions: Vec<[f32; 3]> = local
-        .iter()
-        .map(|p| {
-            // Lateral coordinate: the medial-most point sits `mediastinum_half_mm` from the midline.
-            let lateral = p.x * scale - medial_extent + shape.mediastinum_half_mm;
-            [(sign * lateral) as f32, (p.y * scale) as f32, p.z as f32]
-        })
-        .collect();
-    if sign < 0.0 {
-        // Mirroring X for the right lung flips the winding; flip it back so triangles face outward.
-        for t in &mut triangles {
-            t.swap(1, 2);
-        }
-    }
-    Ok(TriMesh {
-        positions,
-        triangles,
-    })
-}
-
-fn smoothstep(e0: f64, e1: f64, x: f64) -> f64 {
-    let t = ((x - e0) / (e1 - e0)).clamp(0.0, 1.0);
-    t * t * (3.0 - 2.0 * t)
+    build(side, vertices, placement, |s| shape_point(s, shape))
 }
 
 /// A smooth periodic bump in the azimuth: 1 at `phi0`, `≈ exp(−Δφ²/2w²)` near it (von Mises).
@@ -319,6 +269,7 @@ fn shape_point(s: DVec3, shape: &LungShape) -> DVec3 {
 mod tests {
     use super::*;
     use crate::mesh::check;
+    use crate::mesh::generate::subdivision_for;
 
     #[test]
     fn generated_lungs_are_closed_manifold_and_outward_at_many_resolutions() {
@@ -465,14 +416,5 @@ mod tests {
         let mesh = lung(Side::Right, 400_000).unwrap();
         assert!(mesh.positions.len() >= 400_000);
         check(&mesh).unwrap();
-    }
-
-    #[test]
-    fn out_of_range_requests_are_refused() {
-        assert_eq!(
-            lung(Side::Left, 10),
-            Err(GenerateError::VertexCount { requested: 10 })
-        );
-        assert!(lung(Side::Left, MAX_VERTICES + 1).is_err());
     }
 }

@@ -1,21 +1,18 @@
-//! Procedural adult lungs: the built-in default geometry.
+//! Procedural adult lungs: the built-in default geometry, at any resolution.
 //!
-//! A subdivided cube is projected onto the sphere (the "spherified cube": near-uniform vertices at
-//! any resolution, no pole singularities) and the sphere is then shaped into a lung:
+//! Two shapes share one builder ([`build`]): a subdivided cube is projected onto the sphere (the
+//! "spherified cube": near-uniform vertices at any resolution, no pole singularities), each sphere
+//! direction is mapped to a lung-local point by the shape's function, and the result is scaled
+//! horizontally to the target volume, placed vertically and mirrored to its side:
 //!
-//! * **apex** — a narrowed round dome at the top;
-//! * **costal surface** — the convex lateral wall, deeper posteriorly than anteriorly;
-//! * **medial surface** — flatter than the costal one, with a concave impression for the heart that
-//!   is deep on the left lung (cardiac impression) and shallow on the right;
-//! * **diaphragmatic base** — a flat rim with a concave dome pushed up in the middle.
+//! * [`Shape::Anatomical`] (the default: [`super::anatomy`]) — hilum, cardiac impression, notch and
+//!   lingula, a domed diaphragmatic base with posterior costophrenic recesses, sharp anterior and
+//!   inferior borders; both apices at one level, the right lung shorter and wider;
+//! * [`Shape::Teardrop`] ([`super::teardrop`]) — the earlier smooth teardrop, kept for comparison
+//!   (`lungdyn mesh generate --shape teardrop`, `[lungs] shape = "teardrop"`).
 //!
-//! The horizontal extent is finally scaled so the enclosed volume is exactly the target (FRC share
-//! of each lung: right 1300 ml + left 1100 ml = 2400 ml, Table 5.2's FRC), height kept (right
-//! 230 mm, left 240 mm: the liver lifts the right dome). The surface is closed, 2-manifold and wound
-//! outward by construction; [`super::check`] verifies it in tests at every resolution.
-//!
-//! Every step is deterministic: the same `(side, vertices)` always gives bit-identical meshes, which
-//! is what lets the engine and the renderer build the same lung independently.
+//! Every step is deterministic: the same `(shape, side, vertices)` always gives bit-identical
+//! meshes, which is what lets the engine and the renderer build the same lung independently.
 
 use std::collections::HashMap;
 
@@ -28,56 +25,45 @@ pub const MIN_VERTICES: usize = 100;
 /// Largest accepted vertex request (≈ 4 M: a 400k lung ×10).
 pub const MAX_VERTICES: usize = 4_000_000;
 
-/// Shape parameters of one generated lung.
-#[derive(Debug, Clone, Copy, PartialEq)]
-pub struct LungShape {
-    /// Apex-to-base height, mm.
-    pub height_mm: f64,
-    /// Target enclosed volume, ml.
-    pub volume_ml: f64,
-    /// Lateral (costal) half-width before volume scaling, mm.
-    pub lateral_mm: f64,
-    /// Medial half-width before volume scaling, mm.
-    pub medial_mm: f64,
-    /// Anterior half-depth before volume scaling, mm.
-    pub anterior_mm: f64,
-    /// Posterior half-depth before volume scaling, mm.
-    pub posterior_mm: f64,
-    /// Depth of the medial (cardiac) impression as a fraction of the medial half-width.
-    pub cardiac_impression: f64,
-    /// Height of the diaphragmatic dome as a fraction of the lung height.
-    pub diaphragm_dome: f64,
-    /// Half-width of the mediastinum: distance from the mid-sagittal plane to the medial surface, mm.
-    pub mediastinum_half_mm: f64,
+/// Which built-in lung shape.
+#[derive(
+    Debug, Clone, Copy, PartialEq, Eq, Hash, Default, serde::Serialize, serde::Deserialize,
+)]
+#[serde(rename_all = "lowercase")]
+pub enum Shape {
+    /// Anatomical lungs ([`super::anatomy`]): the default.
+    #[default]
+    Anatomical,
+    /// The smooth teardrop ([`super::teardrop`]).
+    Teardrop,
 }
 
-impl LungShape {
-    /// Default adult lung at FRC.
-    pub fn adult(side: Side) -> Self {
-        match side {
-            Side::Right => LungShape {
-                height_mm: 230.0,
-                volume_ml: 1300.0,
-                lateral_mm: 72.0,
-                medial_mm: 50.0,
-                anterior_mm: 62.0,
-                posterior_mm: 88.0,
-                cardiac_impression: 0.22,
-                diaphragm_dome: 0.30,
-                mediastinum_half_mm: 22.0,
-            },
-            Side::Left => LungShape {
-                height_mm: 240.0,
-                volume_ml: 1100.0,
-                lateral_mm: 68.0,
-                medial_mm: 46.0,
-                anterior_mm: 58.0,
-                posterior_mm: 86.0,
-                cardiac_impression: 0.55,
-                diaphragm_dome: 0.28,
-                mediastinum_half_mm: 30.0,
-            },
+impl Shape {
+    /// Every shape, the default first.
+    pub const ALL: [Shape; 2] = [Shape::Anatomical, Shape::Teardrop];
+
+    /// Name as used on the command line and in scenes.
+    pub fn name(self) -> &'static str {
+        match self {
+            Shape::Anatomical => "anatomical",
+            Shape::Teardrop => "teardrop",
         }
+    }
+}
+
+impl std::fmt::Display for Shape {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        f.write_str(self.name())
+    }
+}
+
+impl std::str::FromStr for Shape {
+    type Err = String;
+    fn from_str(s: &str) -> Result<Self, String> {
+        Shape::ALL
+            .into_iter()
+            .find(|shape| shape.name() == s)
+            .ok_or_else(|| format!("unknown lung shape {s:?}: use anatomical or teardrop"))
     }
 }
 
@@ -98,14 +84,45 @@ pub fn subdivision_for(vertices: usize) -> usize {
     n.max(2)
 }
 
-/// Generate the default adult lung of `side` with at least `vertices` vertices (exactly
-/// `6·n² + 2` for the smallest such `n`).
+/// Generate the default adult lung ([`Shape::default`], anatomical) of `side` with at least
+/// `vertices` vertices (exactly `6·n² + 2` for the smallest such `n`).
 pub fn lung(side: Side, vertices: usize) -> Result<TriMesh, GenerateError> {
-    lung_with(side, vertices, &LungShape::adult(side))
+    lung_of(Shape::default(), side, vertices)
 }
 
-/// Generate a lung of `side` and explicit `shape`.
-pub fn lung_with(side: Side, vertices: usize, shape: &LungShape) -> Result<TriMesh, GenerateError> {
+/// Generate the adult lung of `shape` and `side` with at least `vertices` vertices.
+pub fn lung_of(shape: Shape, side: Side, vertices: usize) -> Result<TriMesh, GenerateError> {
+    match shape {
+        Shape::Anatomical => super::anatomy::lung(side, vertices),
+        Shape::Teardrop => super::teardrop::lung(side, vertices),
+    }
+}
+
+/// Where a shaped lung goes: its size and its place in the body frame.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub(super) struct Placement {
+    /// Apex-to-lowest-point height, mm.
+    pub height_mm: f64,
+    /// Enclosed volume, ml: the horizontal extent is scaled to it.
+    pub volume_ml: f64,
+    /// Distance from the mid-sagittal plane to the lung's most medial point, mm.
+    pub mediastinum_half_mm: f64,
+    /// Height of the apex in the body frame, mm.
+    pub apex_z_mm: f64,
+}
+
+/// The shared builder: the spherified cube at the resolution for `vertices`, each unit-sphere
+/// direction (x lateral, y anterior, z superior) mapped by `shape_point` to a lung-local point in
+/// mm (lateral, anterior, superior; horizontal scale 1), then the height rescaled exactly with the
+/// apex at `placement.apex_z_mm`, the horizontal extent scaled so the enclosed volume is
+/// `placement.volume_ml`, the medial-most point put `mediastinum_half_mm` from the midline and the
+/// lung mirrored to `side` (winding kept outward).
+pub(super) fn build(
+    side: Side,
+    vertices: usize,
+    placement: Placement,
+    shape_point: impl Fn(DVec3) -> DVec3,
+) -> Result<TriMesh, GenerateError> {
     if !(MIN_VERTICES..=MAX_VERTICES).contains(&vertices) {
         return Err(GenerateError::VertexCount {
             requested: vertices,
@@ -113,17 +130,17 @@ pub fn lung_with(side: Side, vertices: usize, shape: &LungShape) -> Result<TriMe
     }
     let (sphere, mut triangles) = spherified_cube(subdivision_for(vertices));
     // Shape with unit horizontal scale, then scale horizontally to the target volume.
-    let mut local: Vec<DVec3> = sphere.iter().map(|&s| shape_point(s, shape)).collect();
-    // The dome lifts the base's lowest points a little: rescale vertically to the exact height,
-    // centred on z = 0.
+    let mut local: Vec<DVec3> = sphere.iter().map(|&s| shape_point(s)).collect();
+    // Rescale vertically to the exact height (the shape's range may differ a little from it: a
+    // dome lifting the lowest points), the apex at its level.
     let (z_lo, z_hi) = local
         .iter()
         .fold((f64::INFINITY, f64::NEG_INFINITY), |(lo, hi), p| {
             (lo.min(p.z), hi.max(p.z))
         });
-    let z_scale = shape.height_mm / (z_hi - z_lo);
+    let z_scale = placement.height_mm / (z_hi - z_lo);
     for p in &mut local {
-        p.z = (p.z - 0.5 * (z_lo + z_hi)) * z_scale;
+        p.z = placement.apex_z_mm - (z_hi - p.z) * z_scale;
     }
     let volume_of = |scale: f64| {
         super::enclosed_volume_with(&triangles, |i| {
@@ -133,7 +150,7 @@ pub fn lung_with(side: Side, vertices: usize, shape: &LungShape) -> Result<TriMe
     };
     // The local frame (lateral, anterior, superior) is right-handed; the volume is positive.
     let v1 = volume_of(1.0) / 1000.0;
-    let scale = (shape.volume_ml / v1).sqrt();
+    let scale = (placement.volume_ml / v1).sqrt();
     let medial_extent = local
         .iter()
         .map(|p| p.x * scale)
@@ -143,7 +160,7 @@ pub fn lung_with(side: Side, vertices: usize, shape: &LungShape) -> Result<TriMe
         .iter()
         .map(|p| {
             // Lateral coordinate: the medial-most point sits `mediastinum_half_mm` from the midline.
-            let lateral = p.x * scale - medial_extent + shape.mediastinum_half_mm;
+            let lateral = p.x * scale - medial_extent + placement.mediastinum_half_mm;
             [(sign * lateral) as f32, (p.y * scale) as f32, p.z as f32]
         })
         .collect();
@@ -160,7 +177,7 @@ pub fn lung_with(side: Side, vertices: usize, shape: &LungShape) -> Result<TriMe
 }
 
 /// Unit-sphere vertices and outward-wound triangles of a cube subdivided `n` times per edge.
-pub(super) fn spherified_cube(n: usize) -> (Vec<DVec3>, Vec<[u32; 3]>) {
+fn spherified_cube(n: usize) -> (Vec<DVec3>, Vec<[u32; 3]>) {
     let mut index: HashMap<[u32; 3], u32> = HashMap::with_capacity(6 * n * n + 2);
     let mut points: Vec<DVec3> = Vec::with_capacity(6 * n * n + 2);
     let mut triangles: Vec<[u32; 3]> = Vec::with_capacity(12 * n * n);
@@ -217,145 +234,66 @@ fn spherify(c: DVec3) -> DVec3 {
     .normalize()
 }
 
-fn smoothstep(e0: f64, e1: f64, x: f64) -> f64 {
+/// Hermite step from 0 at `e0` to 1 at `e1`.
+pub(super) fn smoothstep(e0: f64, e1: f64, x: f64) -> f64 {
     let t = ((x - e0) / (e1 - e0)).clamp(0.0, 1.0);
     t * t * (3.0 - 2.0 * t)
-}
-
-/// Unit sphere direction (x lateral, y anterior, z superior) → lung-local point in mm
-/// (lateral, anterior, superior), horizontal scale 1.
-fn shape_point(s: DVec3, shape: &LungShape) -> DVec3 {
-    // h: 0 at the apex, 1 at the bottom pole of the base.
-    let h = ((1.0 - s.z) / 2.0).clamp(0.0, 1.0);
-    let phi = s.y.atan2(s.x);
-    let (sin_phi, cos_phi) = phi.sin_cos();
-    // Horizontal profile: a narrowed round dome above, a flat-rimmed superellipse below.
-    // The taper spans both halves so the profile is continuous at h = 0.5 (no ridge).
-    let taper = 0.62 + 0.38 * smoothstep(0.0, 0.75, h);
-    let profile = taper
-        * if h < 0.5 {
-            (1.0 - (1.0 - 2.0 * h).powi(2)).max(0.0).powf(0.4)
-        } else {
-            (1.0 - (2.0 * h - 1.0).powi(5)).max(0.0).powf(0.2)
-        };
-    // Costal side wider than medial; posterior deeper than anterior (both smooth in φ).
-    let half_width = 0.5 * (shape.lateral_mm + shape.medial_mm)
-        + 0.5 * (shape.lateral_mm - shape.medial_mm) * cos_phi;
-    let half_depth = 0.5 * (shape.anterior_mm + shape.posterior_mm)
-        + 0.5 * (shape.anterior_mm - shape.posterior_mm) * sin_phi;
-    let mut lateral = profile * half_width * cos_phi;
-    let anterior = profile * half_depth * sin_phi;
-    // Medial impression: scale the medial coordinate towards the centre around the heart's position
-    // (anteromedial, lower middle). Scaling one coordinate of a star-shaped section cannot fold it.
-    if cos_phi < 0.0 {
-        let around_heart = (phi - 0.75 * std::f64::consts::PI).cos().max(0.0).powi(2);
-        let at_heart_level = (-((h - 0.62) / 0.2).powi(2)).exp();
-        lateral *= 1.0 - shape.cardiac_impression * around_heart * at_heart_level;
-    }
-    // Vertical: linear in h, the base centre lifted by the diaphragmatic dome.
-    let dome = shape.diaphragm_dome
-        * shape.height_mm
-        * smoothstep(0.5, 1.0, h)
-        * (1.0 - profile * profile);
-    let superior = shape.height_mm * (0.5 - h) + dome;
-    DVec3::new(lateral, anterior, superior)
 }
 
 #[cfg(test)]
 mod tests {
     use super::*;
-    use crate::mesh::check;
 
     #[test]
-    fn generated_lungs_are_closed_manifold_and_outward_at_many_resolutions() {
-        for side in [Side::Left, Side::Right] {
-            for n in [100, 1000, 5000, 20_000] {
-                let mesh = lung(side, n).unwrap();
-                let topo = check(&mesh).unwrap_or_else(|e| panic!("{side:?} {n}: {e}"));
-                assert_eq!(topo.euler, 2, "sphere-like surface");
-                assert!(mesh.positions.len() >= n);
-                assert_eq!(mesh.positions.len(), 6 * subdivision_for(n).pow(2) + 2);
-            }
+    fn the_default_shape_is_anatomical_and_names_round_trip() {
+        assert_eq!(Shape::default(), Shape::Anatomical);
+        for shape in Shape::ALL {
+            assert_eq!(shape.name().parse::<Shape>(), Ok(shape));
+        }
+        assert!("pear"
+            .parse::<Shape>()
+            .unwrap_err()
+            .contains("anatomical or teardrop"));
+        assert_eq!(
+            lung(Side::Right, 1000).unwrap(),
+            super::super::anatomy::lung(Side::Right, 1000).unwrap()
+        );
+        assert_eq!(
+            lung_of(Shape::Teardrop, Side::Left, 1000).unwrap(),
+            super::super::teardrop::lung(Side::Left, 1000).unwrap()
+        );
+    }
+
+    #[test]
+    fn the_subdivision_meets_the_request() {
+        for n in [MIN_VERTICES, 101, 1000, 10_000, 400_000] {
+            let s = subdivision_for(n);
+            assert!(
+                6 * s * s + 2 >= n && 6 * (s - 1) * (s - 1) + 2 < n.max(27),
+                "{n}: {s}"
+            );
         }
     }
 
     #[test]
-    fn adult_dimensions_match_the_targets() {
-        let right = lung(Side::Right, 20_000).unwrap();
-        let left = lung(Side::Left, 20_000).unwrap();
-        assert!((right.enclosed_volume_ml() - 1300.0).abs() < 1e-6 * 1300.0);
-        assert!((left.enclosed_volume_ml() - 1100.0).abs() < 1e-6 * 1100.0);
-        let total = right.enclosed_volume_ml() + left.enclosed_volume_ml();
-        assert!((total - 2400.0).abs() < 0.01);
-        // About 24 cm tall at FRC (the dome lowers the measured height of neither: apex and rim).
-        for (m, h) in [(&left, 240.0), (&right, 230.0)] {
-            let size = m.aabb().size();
-            assert!((size[2] - h).abs() < 1.0, "height {}", size[2]);
-            assert!(size[0] > 80.0 && size[0] < 160.0, "width {}", size[0]);
-            assert!(size[1] > 100.0 && size[1] < 220.0, "depth {}", size[1]);
+    fn the_spherified_cube_is_a_closed_outward_unit_sphere() {
+        let (points, triangles) = spherified_cube(7);
+        assert_eq!(points.len(), 6 * 49 + 2);
+        assert_eq!(triangles.len(), 12 * 49);
+        assert!(points.iter().all(|p| (p.length() - 1.0).abs() < 1e-12));
+        let v = super::super::enclosed_volume_with(&triangles, |i| points[i as usize].into());
+        // Inscribed polyhedron of the unit ball: positive, a little under 4π/3.
+        assert!(v > 0.9 * 4.0 / 3.0 * std::f64::consts::PI && v < 4.0 / 3.0 * std::f64::consts::PI);
+    }
+
+    #[test]
+    fn out_of_range_requests_are_refused_for_every_shape() {
+        for shape in Shape::ALL {
+            assert_eq!(
+                lung_of(shape, Side::Left, 10),
+                Err(GenerateError::VertexCount { requested: 10 })
+            );
+            assert!(lung_of(shape, Side::Right, MAX_VERTICES + 1).is_err());
         }
-        // The mid-sagittal gap separates the lungs.
-        assert!(right.aabb().max[0] < -10.0 && left.aabb().min[0] > 10.0);
-    }
-
-    #[test]
-    fn the_base_is_concave_and_the_left_lung_has_a_cardiac_impression() {
-        let left = lung(Side::Left, 20_000).unwrap();
-        let bb = left.aabb();
-        // Concave base: the lowest point under the lung's centre is well above the lowest rim point.
-        let centre = [0.5 * (bb.min[0] + bb.max[0]), 0.5 * (bb.min[1] + bb.max[1])];
-        let near_axis_min_z = left
-            .positions
-            .iter()
-            .filter(|p| {
-                (p[0] - centre[0]).abs() < 8.0 && (p[1] - centre[1]).abs() < 8.0 && p[2] < 0.0
-            })
-            .map(|p| p[2])
-            .fold(f32::INFINITY, f32::min);
-        assert!(
-            near_axis_min_z > bb.min[2] + 25.0,
-            "{near_axis_min_z} vs {}",
-            bb.min[2]
-        );
-        // Cardiac impression: at heart level, the anteromedial surface lies further from the midline
-        // than the posteromedial one.
-        let z_heart = bb.max[2] - 0.62 * (bb.max[2] - bb.min[2]);
-        let medial_x = |anterior: bool| {
-            left.positions
-                .iter()
-                .filter(|p| (p[2] - z_heart).abs() < 6.0 && ((p[1] > centre[1] + 20.0) == anterior))
-                .map(|p| p[0])
-                .fold(f32::INFINITY, f32::min)
-        };
-        assert!(
-            medial_x(true) > medial_x(false) + 5.0,
-            "{} vs {}",
-            medial_x(true),
-            medial_x(false)
-        );
-    }
-
-    #[test]
-    fn generation_is_deterministic() {
-        assert_eq!(
-            lung(Side::Left, 3000).unwrap(),
-            lung(Side::Left, 3000).unwrap()
-        );
-    }
-
-    #[test]
-    fn four_hundred_thousand_vertices_are_supported() {
-        let mesh = lung(Side::Right, 400_000).unwrap();
-        assert!(mesh.positions.len() >= 400_000);
-        check(&mesh).unwrap();
-    }
-
-    #[test]
-    fn out_of_range_requests_are_refused() {
-        assert_eq!(
-            lung(Side::Left, 10),
-            Err(GenerateError::VertexCount { requested: 10 })
-        );
-        assert!(lung(Side::Left, MAX_VERTICES + 1).is_err());
     }
 }

@@ -5,7 +5,16 @@
 //! wind counter-clockwise seen from outside, so the enclosed volume (divergence theorem,
 //! [`TriMesh::enclosed_volume_mm3`]) is positive.
 //!
-//! [`generate`] builds the built-in default lungs procedurally at any resolution; [`check`] verifies
+//! **Handedness (issue 19, found, not yet fixed).** Physically this frame is *left-handed*: patient-left
+//! × anterior points inferior, not superior (in RAS terms it is diag(−1, 1, 1), determinant −1). The
+//! numbers are consistent with each other (imported LPS/RAS data are converted axis by axis), but the
+//! renderer and the tracker's room are right-handed and take the body → room pose as a rotation, so
+//! they show a mirror-image patient: from the front the right lung appears on the viewer's right
+//! (`renderer::record` test `the_patients_right_lung_is_on_the_viewers_left_from_the_front`, ignored
+//! until fixed), and fiducials registered from this frame to a real patient fit best as a reflection.
+//!
+//! [`generate`] builds the built-in default lungs procedurally at any resolution ([`anatomy`], the
+//! default, or the earlier [`teardrop`]); [`check`] verifies
 //! the topology every later stage (deformation operator, kernel baking) relies on; [`io`] writes
 //! OBJ/PLY atomically. Importing patient meshes (OBJ/PLY/STL, welding, repairs) is bake-time work:
 //! `lung_bake::import`.
@@ -14,6 +23,7 @@ pub mod anatomy;
 pub mod generate;
 pub mod io;
 pub mod lobes;
+pub mod teardrop;
 
 use std::collections::HashMap;
 
