@@ -800,7 +800,7 @@ fn markdown(t: &Tradeoff, stem: &str) -> String {
     let _ = writeln!(
         s,
         "Written by `lungdyn bench tradeoff` (see `cli/src/tradeoff.rs`); regenerate with \
-         `cargo run --release --bin lungdyn -- bench tradeoff --out docs/tradeoff`. Generated left \
+         `cargo run --release --bin lungdyn -- bench tradeoff --out docs`. Generated left \
          lung, Table 6.1 constants, default elasticity and tolerance. Errors are displacements \
          against eq. 7.1 evaluated in f64, at the reference volume (+250 ml, a tidal breath's share \
          of one lung) over 26 orientations (supine, prone, both lateral decubitus postures, upright, \
