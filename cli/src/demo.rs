@@ -677,7 +677,17 @@ pub fn run_watched(args: &DemoArgs, watch: &mut dyn Watch) -> anyhow::Result<Dem
         .into(),
     );
     renderer_args.extend(args.output.to_args());
-    let existing: std::collections::HashSet<PathBuf> = list_pngs(&args.out).into_iter().collect();
+    // Snapshots already in --out, with their modification times: a file this run writes again (the
+    // same command run twice into one folder names the same ticks) counts as this run's.
+    let modified = |p: &Path| std::fs::metadata(p).and_then(|m| m.modified()).ok();
+    let existing: std::collections::HashMap<PathBuf, Option<std::time::SystemTime>> =
+        list_pngs(&args.out)
+            .into_iter()
+            .map(|p| {
+                let t = modified(&p);
+                (p, t)
+            })
+            .collect();
     let trace_dir = match &args.trace {
         Some(_) => Some(crate::launch::start_trace(&args.out, &instance)?),
         None => None,
@@ -941,7 +951,11 @@ pub fn run_watched(args: &DemoArgs, watch: &mut dyn Watch) -> anyhow::Result<Dem
     }
     let mut frames: Vec<PathBuf> = list_pngs(&args.out)
         .into_iter()
-        .filter(|p| !existing.contains(p))
+        .filter(|p| {
+            existing
+                .get(p)
+                .is_none_or(|&t| t.is_none() || modified(p) != t)
+        })
         .collect();
     // In breath order (the engine tick in each name; the index alone sorts 100 before 11).
     frames.sort_by_key(|p| (crate::record::tick_of(p), p.clone()));

@@ -97,3 +97,45 @@ fn a_planned_tick_the_renderer_skipped_takes_the_next_drawn_frame() {
     );
     std::fs::remove_dir_all(&dir).ok();
 }
+
+/// The same `demo --record` twice into one `--out`: the second run writes the same snapshot names
+/// again and must count them as its own (it reported "0 of the breath's frames" and failed, because
+/// the names were already there before it started).
+#[test]
+fn recording_twice_into_one_folder_records_both_times() {
+    if Gpu::for_tests().is_none() {
+        return;
+    }
+    let dir = std::env::temp_dir().join(format!("lungdyn-record-twice-{}", std::process::id()));
+    let _ = std::fs::remove_dir_all(&dir);
+    std::fs::create_dir_all(&dir).unwrap();
+    // One breath a second, so a 3 s run holds the first second and a whole breath.
+    let scene = dir.join("fast.toml");
+    std::fs::write(
+        &scene,
+        "[pv]\nbreaths_per_min = 60.0\n[lungs]\nvertices = 1200\n[render]\nwidth = 160\nheight = 120\n",
+    )
+    .unwrap();
+    let gif = dir.join("breath.gif");
+    for run in 1..=2 {
+        let (ok, out, err) = lungdyn_tests::lungdyn(&[
+            "demo",
+            "--scene",
+            scene.to_str().unwrap(),
+            "--seconds",
+            "3",
+            "--record",
+            gif.to_str().unwrap(),
+            "--record-frames",
+            "4",
+            "--out",
+            dir.to_str().unwrap(),
+        ]);
+        assert!(ok, "run {run}: {out}\n{err}");
+        assert!(
+            out.contains("recording of one breath"),
+            "run {run}: {out}\n{err}"
+        );
+    }
+    let _ = std::fs::remove_dir_all(&dir);
+}
