@@ -244,6 +244,23 @@ pub(super) fn smoothstep(e0: f64, e1: f64, x: f64) -> f64 {
 mod tests {
     use super::*;
 
+    /// Every shape, both sides, many resolutions: closed, 2-manifold, outward, 6n² + 2 vertices.
+    #[test]
+    fn generated_lungs_are_closed_manifold_and_outward_at_many_resolutions() {
+        for shape in Shape::ALL {
+            for side in [Side::Left, Side::Right] {
+                for n in [100, 1000, 5000, 20_000] {
+                    let mesh = lung_of(shape, side, n).unwrap();
+                    let topo = crate::mesh::check(&mesh)
+                        .unwrap_or_else(|e| panic!("{shape:?} {side:?} {n}: {e}"));
+                    assert_eq!(topo.euler, 2, "sphere-like surface");
+                    assert!(mesh.positions.len() >= n);
+                    assert_eq!(mesh.positions.len(), 6 * subdivision_for(n).pow(2) + 2);
+                }
+            }
+        }
+    }
+
     #[test]
     fn the_default_shape_is_anatomical_and_names_round_trip() {
         assert_eq!(Shape::default(), Shape::Anatomical);
