@@ -152,11 +152,16 @@ impl Children {
             .stdin(Stdio::null())
             .stdout(Stdio::null())
             .stderr(Stdio::inherit());
-        // SAFETY: prctl is async-signal-safe; it only arms a signal for when the parent dies.
+        // SAFETY: prctl and signal are async-signal-safe; prctl only arms a signal for when the
+        // parent dies. SIGINT and SIGTERM go back to their default actions: a launcher started in
+        // the background by a non-interactive shell inherits SIGINT ignored, and a child that kept
+        // ignoring it could not be stopped but by SIGKILL.
         unsafe {
             use std::os::unix::process::CommandExt;
             cmd.pre_exec(|| {
                 libc::prctl(libc::PR_SET_PDEATHSIG, libc::SIGTERM);
+                libc::signal(libc::SIGINT, libc::SIG_DFL);
+                libc::signal(libc::SIGTERM, libc::SIG_DFL);
                 Ok(())
             });
         }
@@ -564,14 +569,25 @@ mod tests {
         Box::new(|| Ok(Vec::new()))
     }
 
+    /// `sh -c script` as a supervised child, SIGINT at its default (a test runner started in the
+    /// background by a non-interactive shell passes SIGINT on ignored, and `stop` would then have
+    /// to kill).
     fn shell<'a>(script: &'static str, starts: &'a std::cell::Cell<u32>) -> Spawn<'a> {
         Box::new(move || {
+            use std::os::unix::process::CommandExt;
             starts.set(starts.get() + 1);
-            Ok(Command::new("sh")
-                .args(["-c", script])
+            let mut cmd = Command::new("sh");
+            cmd.args(["-c", script])
                 .stdin(Stdio::null())
-                .stdout(Stdio::null())
-                .spawn()?)
+                .stdout(Stdio::null());
+            // SAFETY: signal(2) is async-signal-safe.
+            unsafe {
+                cmd.pre_exec(|| {
+                    libc::signal(libc::SIGINT, libc::SIG_DFL);
+                    Ok(())
+                });
+            }
+            Ok(cmd.spawn()?)
         })
     }
 
