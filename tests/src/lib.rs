@@ -204,3 +204,24 @@ pub fn scene_with_kernels(
 pub fn xvfb_available() -> bool {
     lungdyn_needs::display()
 }
+
+/// An engine frame at `tick` for `lungs` (a scene's lung models, in slot order): each lung active
+/// with its kernel id and `volume_ml`, as the engine publishes it — for driving a renderer session
+/// on in-memory ports.
+pub fn engine_frame(
+    lungs: &[lung_model::deform::LungModel],
+    tick: u64,
+    volume_ml: f32,
+) -> ipc_types::EngineFrame {
+    let mut f = ipc_types::EngineFrame {
+        layout_version: ipc_types::LAYOUT_VERSION,
+        tick,
+        ..Default::default()
+    };
+    for (slot, l) in lungs.iter().enumerate() {
+        f.lungs[l.side.index()].kernel_id = l.kernel_id;
+        f.lungs[slot].flags = ipc_types::lung_flags::ACTIVE;
+        f.lungs[slot].volume_ml = volume_ml;
+    }
+    f
+}

@@ -3,7 +3,7 @@
 //! down (report flag, violet veil, window title); the first fresh frame clears it. Driven in process
 //! through the renderer's session on in-memory ports and a fake clock.
 
-use ipc_types::{lung_flags, report_flags, EngineFrame, FrameReport, LAYOUT_VERSION};
+use ipc_types::{report_flags, FrameReport};
 use lung_model::scene::Scene;
 use lungdyn_tests::prepared_scene;
 use renderer::gpu::Gpu;
@@ -19,19 +19,7 @@ fn a_dead_engine_shows_as_its_last_frame_flagged_down_until_it_is_back() {
     let Some(gpu) = Gpu::for_tests() else { return };
     let scene = Scene::load(&prepared_scene("engine-down", "[lungs]\nvertices = 1200\n")).unwrap();
     let lungs = scene.lung_models().unwrap();
-    let frame = |tick: u64| {
-        let mut f = EngineFrame {
-            layout_version: LAYOUT_VERSION,
-            tick,
-            ..Default::default()
-        };
-        for (slot, l) in lungs.iter().enumerate() {
-            f.lungs[l.side.index()].kernel_id = l.kernel_id;
-            f.lungs[slot].flags = lung_flags::ACTIVE;
-            f.lungs[slot].volume_ml = 1200.0;
-        }
-        f
-    };
+    let frame = |tick: u64| lungdyn_tests::engine_frame(&lungs, tick, 1200.0);
     // Two frames, a 20-period outage (the engine restarting), then the resumed stream.
     let clock = FakeClock::at(0);
     let frames = vec![

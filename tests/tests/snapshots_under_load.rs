@@ -4,7 +4,7 @@
 //! breath's pace) with the tick drawn, and counted. Driven in process through the renderer's
 //! session on in-memory ports and a fake clock.
 
-use ipc_types::{lung_flags, EngineFrame, FrameReport, LAYOUT_VERSION};
+use ipc_types::FrameReport;
 use lung_model::scene::Scene;
 use lungdyn_tests::prepared_scene;
 use renderer::gpu::Gpu;
@@ -20,19 +20,7 @@ fn a_planned_tick_the_renderer_skipped_takes_the_next_drawn_frame() {
     let Some(gpu) = Gpu::for_tests() else { return };
     let scene = Scene::load(&prepared_scene("under-load", "[lungs]\nvertices = 1200\n")).unwrap();
     let lungs = scene.lung_models().unwrap();
-    let frame = |tick: u64| {
-        let mut f = EngineFrame {
-            layout_version: LAYOUT_VERSION,
-            tick,
-            ..Default::default()
-        };
-        for (slot, l) in lungs.iter().enumerate() {
-            f.lungs[l.side.index()].kernel_id = l.kernel_id;
-            f.lungs[slot].flags = lung_flags::ACTIVE;
-            f.lungs[slot].volume_ml = 1200.0 + tick as f32;
-        }
-        f
-    };
+    let frame = |tick: u64| lungdyn_tests::engine_frame(&lungs, tick, 1200.0 + tick as f32);
     // The engine's ticks as the loaded renderer drew them: 4, 5, 8 and 9 never drawn (a newer
     // frame had replaced them when the renderer came round).
     let drawn = [1u64, 2, 3, 6, 7, 10, 11];
