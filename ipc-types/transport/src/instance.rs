@@ -104,7 +104,7 @@ impl Instance {
     /// every user may read and write, and which a later run of the same name would trip on). An
     /// instance counts as dead when it has lock files (every lungdyn process takes one before it
     /// creates any file) and none of them is locked: the lock itself is asked about
-    /// ([`HeldLocks`], from the kernel's `/proc/locks`), not the pid written in it, which may be
+    /// ([`lock_held`]: the open-file-description lock, then the kernel's `/proc/locks`), not the pid written in it, which may be
     /// gone or recycled by an unrelated process (even one with the same command line). Where the
     /// kernel's list cannot be read, the pids and command lines of the lock files decide
     /// ([`Self::running`]). A file that a running instance's prefix also claims (`a_b` running
@@ -122,14 +122,17 @@ impl Instance {
             })
             .unwrap_or_default();
         locks.sort();
-        let live_names: Vec<String> = match HeldLocks::read() {
-            Some(held) => locks
-                .iter()
-                .filter(|(_, path)| held.holds(path) != Some(false))
-                .map(|(name, _)| name.clone())
-                .collect(),
-            None => Self::running().into_iter().map(|r| r.name).collect(),
-        };
+        let held = HeldLocks::read();
+        let running = Self::running();
+        let live_names: Vec<String> = locks
+            .iter()
+            .filter(|(name, path)| match lock_held(path, held.as_ref()) {
+                Some(held) => held,
+                // Neither lock table answers: the pids and command lines decide.
+                None => running.iter().any(|r| &r.name == name),
+            })
+            .map(|(name, _)| name.clone())
+            .collect();
         let live: Vec<String> = live_names
             .iter()
             .filter_map(|n| Instance::new(n).ok().map(|i| i.file_prefix()))
@@ -233,18 +236,24 @@ impl Instance {
 
     /// The process that holds `role`'s lock in this instance, if one is running — read without
     /// touching the lock (taking it to test, even for an instant, could refuse the real owner as it
-    /// starts). From the pid the holder wrote into its lock file, checked alive in `/proc`.
+    /// starts). The lock itself decides ([`lock_held`]): a pid written in a lock file nobody holds
+    /// may have been recycled by an unrelated process, and a holder in another pid namespace is
+    /// not in this one's `/proc`. Only where the lock cannot be asked does the pid decide, checked
+    /// alive in `/proc`. Returns the pid the holder wrote.
     pub fn holder(&self, role: &str) -> Option<u32> {
         let path = Self::lock_dir().join(format!("{}.{role}.lock", self.name));
-        let text = std::fs::read_to_string(path).ok()?;
+        let held = lock_held(&path, None);
+        if held == Some(false) {
+            return None;
+        }
+        let text = std::fs::read_to_string(&path).ok()?;
         let pid: u32 = text
             .strip_prefix("process ")?
             .split_whitespace()
             .next()?
             .parse()
             .ok()?;
-        std::path::Path::new(&format!("/proc/{pid}"))
-            .exists()
+        (held == Some(true) || std::path::Path::new(&format!("/proc/{pid}")).exists())
             .then_some(pid)
     }
 
@@ -283,12 +292,53 @@ impl Instance {
             }
             return Err(io(err));
         }
+        // Also an open-file-description lock on the same file (independent of the flock on
+        // Linux): unlike a flock, it can be asked about without taking it, from any pid namespace
+        // (`F_OFD_GETLK`, [`lock_held`]). It cannot conflict: only the flock's holder gets here.
+        let mut whole = ofd_whole_file(libc::F_WRLCK);
+        // SAFETY: fcntl on a file descriptor we own with a valid `struct flock`; non-blocking.
+        if unsafe { libc::fcntl(file.as_raw_fd(), libc::F_OFD_SETLK, &mut whole) } != 0 {
+            return Err(io(std::io::Error::last_os_error()));
+        }
         let cmdline = std::env::args().collect::<Vec<_>>().join(" ");
         file.set_len(0).map_err(io)?;
         file.rewind().map_err(io)?;
         write!(file, "process {} ({cmdline})", std::process::id()).map_err(io)?;
         Ok(InstanceLock { _file: file, path })
     }
+}
+
+/// A `struct flock` covering the whole file.
+fn ofd_whole_file(kind: libc::c_int) -> libc::flock {
+    // SAFETY: `flock` is plain old data; all zeros is a valid value (l_start 0, l_len 0 = to the end).
+    let mut fl: libc::flock = unsafe { std::mem::zeroed() };
+    fl.l_type = kind as libc::c_short;
+    fl.l_whence = libc::SEEK_SET as libc::c_short;
+    fl
+}
+
+/// Whether some process holds the lock file at `path` ([`Instance::lock`]), asked without taking
+/// it: first the open-file-description lock every lungdyn process takes beside its flock
+/// (`F_OFD_GETLK`, which sees holders in every pid namespace), then — for a lock file whose
+/// holder predates that — the kernel's flock table (`held`, or `/proc/locks` read now, which
+/// lists the reader's pid namespace only). `None` when neither can answer (file gone, unreadable).
+pub fn lock_held(path: &std::path::Path, held: Option<&HeldLocks>) -> Option<bool> {
+    use std::os::fd::AsRawFd;
+    let ofd = std::fs::File::open(path).ok().and_then(|file| {
+        let mut probe = ofd_whole_file(libc::F_WRLCK);
+        // SAFETY: fcntl on a file descriptor we own with a valid `struct flock`; F_OFD_GETLK only
+        // reports, it takes nothing.
+        let r = unsafe { libc::fcntl(file.as_raw_fd(), libc::F_OFD_GETLK, &mut probe) };
+        (r == 0).then_some(probe.l_type != libc::F_UNLCK as libc::c_short)
+    });
+    if ofd == Some(true) {
+        return Some(true);
+    }
+    let flock = match held {
+        Some(h) => h.holds(path),
+        None => HeldLocks::read().and_then(|h| h.holds(path)),
+    };
+    flock.or(ofd)
 }
 
 /// One process of a running instance, as its lock file says.
@@ -339,7 +389,7 @@ impl Instance {
             let Some((name, role)) = file.to_str().and_then(lock_name_role) else {
                 continue;
             };
-            if held.as_ref().and_then(|h| h.holds(&entry.path())) == Some(false) {
+            if lock_held(&entry.path(), held.as_ref()) == Some(false) {
                 continue;
             }
             let Ok(text) = std::fs::read_to_string(entry.path()) else {
@@ -593,6 +643,33 @@ pub(crate) mod tests {
                 .unwrap();
         }
         drop(held);
+    }
+
+    /// `holder` (what `lungdyn scene event` asks before sending) goes by the lock, not by the pid
+    /// written in it: a lock file nobody holds, whose pid is alive (here this very test — a pid
+    /// recycled by an unrelated process looks the same), has no holder; a held one names the pid
+    /// even where the kernel's flock table cannot see it (another pid namespace: an empty table
+    /// here), because the open-file-description lock answers from anywhere.
+    #[test]
+    fn the_holder_is_who_holds_the_lock_not_a_live_pid_in_a_stale_file() {
+        let pid = std::process::id();
+        let i = Instance::new(&format!("holder-test-{pid}")).unwrap();
+        let path = Instance::lock_dir().join(format!("{}.engine.lock", i.name()));
+        std::fs::create_dir_all(Instance::lock_dir()).unwrap();
+        std::fs::write(&path, format!("process {pid} (a stale file)")).unwrap();
+        assert_eq!(i.holder("engine"), None, "nobody holds it");
+        assert_eq!(lock_held(&path, Some(&HeldLocks::default())), Some(false));
+        let held = i.lock("engine").unwrap();
+        assert_eq!(i.holder("engine"), Some(pid));
+        assert_eq!(
+            lock_held(held.path(), Some(&HeldLocks::default())),
+            Some(true),
+            "the OFD lock answers without the flock table"
+        );
+        drop(held);
+        assert_eq!(i.holder("engine"), None, "released when dropped");
+        assert_eq!(lock_held(&path.with_extension("gone"), None), None);
+        std::fs::remove_file(&path).unwrap();
     }
 
     #[test]
