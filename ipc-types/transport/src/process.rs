@@ -133,6 +133,18 @@ pub fn describe_error(e: &(dyn std::error::Error + 'static)) -> String {
     text
 }
 
+/// Write `line` and a newline to stderr in one `write(2)`: the three processes share the launcher's
+/// stderr, and `eprintln!` may split a line into several writes that another process's line can
+/// land between (a pipe keeps one write of up to 4 KiB whole). Errors are ignored, as `eprintln!`
+/// would panic on them at exit.
+pub fn say(line: &str) {
+    use std::io::Write;
+    let mut buf = String::with_capacity(line.len() + 1);
+    buf.push_str(line);
+    buf.push('\n');
+    let _ = std::io::stderr().lock().write_all(buf.as_bytes());
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;
@@ -170,16 +182,4 @@ mod tests {
         let e = Outer(std::io::Error::other("inner"));
         assert_eq!(describe_error(&e), "outer: inner");
     }
-}
-
-/// Write `line` and a newline to stderr in one `write(2)`: the three processes share the launcher's
-/// stderr, and `eprintln!` may split a line into several writes that another process's line can
-/// land between (a pipe keeps one write of up to 4 KiB whole). Errors are ignored, as `eprintln!`
-/// would panic on them at exit.
-pub fn say(line: &str) {
-    use std::io::Write;
-    let mut buf = String::with_capacity(line.len() + 1);
-    buf.push_str(line);
-    buf.push('\n');
-    let _ = std::io::stderr().lock().write_all(buf.as_bytes());
 }
