@@ -145,6 +145,27 @@ fn receiver(instance: &str, wake: Wake, pinned: bool) -> Row {
     }
 }
 
+/// How late `wait_until` returns when nothing arrives (the engine's deadline tick while the
+/// tracker is silent): `DEADLINE_WAITS` waits for a deadline `DEADLINE_US` away, each overshoot
+/// (return time − deadline, ns; 1 when on time or early) recorded.
+fn overshoot(instance: &str, wake: Wake) -> Histogram<u64> {
+    let services = Instance::new(instance).unwrap();
+    let node = iox::node(&services, "hop-idle").unwrap();
+    let mut inlet = services.tracker_inlet(&node).unwrap();
+    inlet.set_wake(wake);
+    let mut h = Histogram::<u64>::new_with_bounds(1, 10_000_000_000, 3).unwrap();
+    let away = env("HOP_DEADLINE_US", 2_000u64) * 1_000;
+    for _ in 0..env("HOP_DEADLINE_WAITS", 300u64) {
+        let deadline = now_ns() + away;
+        inlet.wait_until(deadline).unwrap();
+        let _ = h.record(now_ns().saturating_sub(deadline).max(1));
+    }
+    drop(inlet);
+    drop(node);
+    services.remove_leftovers();
+    h
+}
+
 /// The calling thread's allowed cores, to give back after a pinned row (the next row's publisher
 /// inherits them, and an unpinned row must not stay on core 1).
 fn affinity() -> libc::cpu_set_t {
@@ -288,6 +309,35 @@ fn main() {
                 r.lost
             );
         }
+    }
+    // Deadlines with nothing arriving: how late each strategy wakes (unpinned).
+    set_affinity(&free);
+    let away_us: u64 = env("HOP_DEADLINE_US", 2_000);
+    let _ = writeln!(
+        md,
+        "\nA deadline {away_us} µs away with nothing arriving (the engine's deadline tick while the \
+         tracker is silent), unpinned: how late `wait_until` returns.\n\n\
+         | strategy | p50 µs late | p99 µs late | max µs late |\n|---|---:|---:|---:|"
+    );
+    println!("deadline {away_us} us away, nothing arriving: how late wait_until returns");
+    for &wake in &modes {
+        let instance = format!("hop-idle-{}-{}", wake.mode().name(), std::process::id());
+        let h = overshoot(&instance, wake);
+        let us = |q: f64| h.value_at_quantile(q) as f64 / 1e3;
+        println!(
+            "{:<30} late p50 {:>9.1} us  p99 {:>9.1} us  max {:>9.1} us",
+            wake.to_string(),
+            us(0.5),
+            us(0.99),
+            h.max() as f64 / 1e3
+        );
+        let _ = writeln!(
+            md,
+            "| {wake} | {:.1} | {:.1} | {:.1} |",
+            us(0.5),
+            us(0.99),
+            h.max() as f64 / 1e3
+        );
     }
     let load_after = loadavg();
     println!("load average after: {load_after}");
