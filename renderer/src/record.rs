@@ -158,7 +158,12 @@ mod tests {
             hi = hi.max(Vec3::from(*p));
         }
         let supine = glam::Quat::from_mat3(&Mat3::from_cols(Vec3::Y, Vec3::Z, Vec3::X));
-        let model = Mat4::from_rotation_translation(supine, Vec3::new(0.0, 0.0, 1000.0));
+        let patient = Pose {
+            quat: supine.to_array(),
+            translation_mm: [0.0, 0.0, 1000.0],
+            _pad: 0,
+        };
+        let model = crate::camera::Rig::default().model(&patient);
         let pose = front_view(model, (lo, hi), 60.0, 4.0 / 3.0);
         let mesh = &lungs[if side == Side::Right { 0 } else { 1 }];
         let centroid = mesh.positions.iter().map(|p| Vec3::from(*p)).sum::<Vec3>()
@@ -171,12 +176,10 @@ mod tests {
     /// patient sees them, and as radiology shows an anterior view — the patient's right lung is on
     /// the viewer's left. The body frame (+X patient left, +Y anterior, +Z superior) is physically
     /// left-handed (patient-left × anterior = inferior), while the renderer and the room are
-    /// right-handed, so today the front view shows a mirror-image patient: the right lung on the
-    /// viewer's right, the cardiac notch on the viewer's left (`lungdyn demo` strip, lavapipe).
-    /// The fix crosses the engine, renderer, tracker and registration (see the issue 19 report);
-    /// this test is the specification it must meet.
+    /// right-handed: with body → room taken as a rotation the front view showed a mirror-image
+    /// patient (the right lung on the viewer's right, the cardiac notch on the viewer's left).
+    /// The model matrix now reflects through `lung_model::frame::body_to_room`.
     #[test]
-    #[ignore = "known: the body frame is left-handed and the front view is mirrored (issue 19)"]
     fn the_patients_right_lung_is_on_the_viewers_left_from_the_front() {
         use lung_model::mesh::Side;
         let (right, left) = (
@@ -193,7 +196,10 @@ mod tests {
     fn the_front_view_looks_at_the_lungs_from_anterior_with_the_head_up() {
         // Patient supine: body +Y (anterior) is room +Z (up), body +Z (superior) room +X.
         let supine = glam::Quat::from_mat3(&Mat3::from_cols(Vec3::Y, Vec3::Z, Vec3::X));
-        let model = Mat4::from_rotation_translation(supine, Vec3::new(0.0, 0.0, 1000.0));
+        let model = lung_model::frame::body_to_room(Mat4::from_rotation_translation(
+            supine,
+            Vec3::new(0.0, 0.0, 1000.0),
+        ));
         let boxed = (
             Vec3::new(-150.0, -100.0, -120.0),
             Vec3::new(150.0, 100.0, 130.0),
