@@ -632,7 +632,7 @@ fn calibration_and_hmd(dir: &std::path::Path) -> (std::path::PathBuf, std::path:
     let calib = dir.join("calib.toml");
     std::fs::write(
         &calib,
-        "format = 1\nkind = \"model-to-reference\"\n[transform]\n\
+        "format = 2\nkind = \"model-to-reference\"\n[transform]\n\
          rotation_xyzw = [0.0, 0.0, 0.0871557, 0.9961947]\ntranslation_mm = [0.0, -80.0, -20.0]\n",
     )
     .unwrap();
