@@ -54,23 +54,35 @@ impl BreathPlan {
     }
 }
 
+/// Fraction of the image's height (or width, whichever binds) the lungs' box fills in the
+/// [`front_view`], at its anterior face.
+pub const FRONT_VIEW_FILL: f32 = 0.55;
+/// Where the top of the lungs' box sits in the [`front_view`], as a fraction of the image's height
+/// from its top: just below the HUD's panel and PV loop (which end about a third of the way down).
+pub const FRONT_VIEW_TOP: f32 = 0.34;
+
 /// The HMD pose that looks at the lungs from the front of the patient (from anterior, head up in
-/// the image), far enough that the lungs fill about half the image's height: `model` is the body →
-/// room matrix, `(lo, hi)` the lungs' box in the body frame (+Y anterior, +Z superior).
+/// the image), far enough that the lungs' box fills [`FRONT_VIEW_FILL`] of the image's height (or
+/// width), its top [`FRONT_VIEW_TOP`] of the way down: `model` is the body → room matrix, `(lo, hi)`
+/// the lungs' box in the body frame (+Y anterior, +Z superior).
 pub fn front_view(model: Mat4, (lo, hi): (Vec3, Vec3), fov_y_deg: f32, aspect: f32) -> Pose {
     let centre = (lo + hi) * 0.5;
     let size = hi - lo;
     let t = (fov_y_deg.to_radians() * 0.5).tan().max(1e-3);
-    // Half the image height for the lungs' height (or width, by the aspect): the panel and the
-    // PV loop sit above them.
-    let distance = (size.z / t).max(size.x / (t * aspect.max(1e-3))) + size.y * 0.5;
-    let distance = if distance.is_finite() && distance > 0.0 {
-        distance
+    // Half the visible height at the box's anterior face, for the box's height (or width, by the
+    // aspect) to fill FRONT_VIEW_FILL of the image: the panel and the PV loop sit above them.
+    let half_height =
+        (size.z / (2.0 * FRONT_VIEW_FILL)).max(size.x / (2.0 * FRONT_VIEW_FILL * aspect.max(1e-3)));
+    let distance = half_height / t + size.y * 0.5;
+    let (distance, half_height) = if distance.is_finite() && distance > 0.0 {
+        (distance, half_height)
     } else {
-        1000.0
+        (1000.0, 0.0)
     };
-    // Aim a little above the lungs' centre, so they sit below the HUD.
-    let target = model.transform_point3(centre + Vec3::Z * size.z * 0.18);
+    // Aim above the lungs' centre so that the box's top lands FRONT_VIEW_TOP of the way down,
+    // below the HUD: the image centre is `size.z / 2 − (1 − 2·top)·half_height` above the centre.
+    let above = size.z * 0.5 - (1.0 - 2.0 * FRONT_VIEW_TOP) * half_height;
+    let target = model.transform_point3(centre + Vec3::Z * above);
     let eye = model.transform_point3(centre + Vec3::Y * distance);
     let up_room = model.transform_vector3(Vec3::Z).normalize_or(Vec3::Z);
     let forward = (target - eye).normalize_or(Vec3::NEG_Y);
