@@ -59,10 +59,11 @@ fn baked(scene: &Scene) -> Vec<LungModel> {
         .collect()
 }
 
-/// Patient supine at bed height, the HMD a metre away above the chest (as the image tests).
+/// Patient supine at bed height, the HMD a metre away above the chest at the patient's right
+/// (room +Y, as the image tests).
 fn state(scale: f32) -> DrawState {
     let supine = Quat::from_mat3(&Mat3::from_cols(Vec3::Y, Vec3::Z, Vec3::X));
-    let eye = Vec3::new(-250.0, -750.0, 1600.0);
+    let eye = Vec3::new(-250.0, 750.0, 1600.0);
     let forward = (Vec3::new(-30.0, 0.0, 1020.0) - eye).normalize();
     let right = forward.cross(Vec3::Z).normalize();
     let up = right.cross(forward);

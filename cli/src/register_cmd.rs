@@ -7,6 +7,14 @@
 //! model points are in the lung meshes' body frame, the tracker points in the patient reference
 //! tool's frame (a tracked pointer's tip relative to the reference, as PLUS and 3D Slicer give it).
 //! When both files label every point, fiducials are paired by label, else by order.
+//!
+//! The body frame (+X patient left, +Y anterior, +Z superior) is left-handed and the tool's frame is
+//! not: no rotation moves a real patient's body-frame fiducials onto their tracked positions, only
+//! a reflection does. The model points are therefore taken to RAS first
+//! (`lung_model::frame::body_to_ras`, X negated, issue 19) and the rigid fit is RAS → reference;
+//! the calibration (format 2) says so, and the renderer reflects the body frame back at the same
+//! boundary. A tracker list that is the mirror image of the model's still fits best as a
+//! reflection and is refused.
 
 use std::io::Write;
 use std::path::{Path, PathBuf};
@@ -20,13 +28,17 @@ use tracker_pose::registration::{register, COLLINEAR_RATIO, THIN_RATIO};
 
 use crate::input_args::InputArgs;
 
+/// What a calibration's model points are (JSON `model_frame`, see the module doc).
+pub const MODEL_FRAME: &str =
+    "ras: the body-frame points with X negated (lung_model::frame::body_to_ras)";
+
 /// Most fiducials read from one file.
 pub const MAX_POINTS: usize = 10_000;
 
 /// Options of `lungdyn register`.
 #[derive(Debug, Clone, clap::Args)]
 pub struct RegisterArgs {
-    /// Fiducials in the model (body) frame, mm.
+    /// Fiducials in the model (body) frame, mm (+X patient left, +Y anterior, +Z superior).
     #[arg(long, value_name = "FILE")]
     pub model_points: PathBuf,
     /// The same fiducials measured in the patient reference tool's frame, mm.
@@ -154,6 +166,11 @@ pub fn run(args: &RegisterArgs) -> anyhow::Result<Value> {
     let model = read(&args.model_points)?;
     let tracker = read(&args.tracker_points)?;
     let (a, b, labels) = pair(&model, &tracker)?;
+    // Body frame → RAS: the only frame a rotation can move onto the tool's (see the module doc).
+    let a: Vec<[f64; 3]> = a
+        .iter()
+        .map(|p| lung_model::frame::body_to_ras(glam::DVec3::from(*p)).to_array())
+        .collect();
     // Refused (non-zero exit, nothing written) when no usable rigid fit exists: duplicates,
     // collinear fiducials, a unit or scale mismatch, an FRE against the spread (see
     // tracker_pose::registration).
@@ -177,6 +194,7 @@ pub fn run(args: &RegisterArgs) -> anyhow::Result<Value> {
         "out": args.out.display().to_string(),
         "fiducials": a.len(),
         "paired_by": if model.labels.is_some() && tracker.labels.is_some() { "label" } else { "order" },
+        "model_frame": MODEL_FRAME,
         "rotation_xyzw": [q.i, q.j, q.k, q.w],
         "rotation_matrix": (0..3).map(|i| (0..3).map(|j| m.matrix()[(i, j)]).collect::<Vec<_>>()).collect::<Vec<_>>(),
         "translation_mm": [r.translation_mm.x, r.translation_mm.y, r.translation_mm.z],
@@ -214,7 +232,7 @@ pub fn text(v: &Value) -> String {
             .collect()
     };
     s += &format!(
-        "model -> reference: rotation (x y z w) [{}], translation [{}] mm\n",
+        "model (RAS: body X negated) -> reference: rotation (x y z w) [{}], translation [{}] mm\n",
         f("rotation_xyzw").join(", "),
         f("translation_mm").join(", ")
     );
@@ -287,6 +305,7 @@ pub fn calibration_json(file: &Path, c: &Calibration) -> Value {
         "file": file.display().to_string(),
         "rotation_xyzw": [q.i, q.j, q.k, q.w],
         "rotation_deg": c.rotation.angle().to_degrees(),
+        "model_frame": MODEL_FRAME,
         "translation_mm": [t.x, t.y, t.z],
         "fre_rms_mm": c.registration.as_ref().map(|r| r.fre_rms_mm),
         "fiducials": c.registration.as_ref().map(|r| r.fiducials),

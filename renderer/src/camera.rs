@@ -1,13 +1,18 @@
 //! Registration and cameras: patient pose → model matrix, HMD pose → one or two eye views.
 //!
-//! Frames: the lung meshes are in the body frame (mm, +X left, +Y anterior, +Z superior); the
-//! patient reference (on the sternum) is tracked in the room frame. The HMD pose is a camera
-//! looking along its local −Z with +Y up.
+//! Frames: the lung meshes are in the body frame (mm, +X left, +Y anterior, +Z superior), which is
+//! left-handed; the patient reference (on the sternum) is tracked in the room frame, and its pose
+//! (like a calibration) is a rigid transform of the patient's right-handed RAS frame. The model
+//! matrix crosses from one to the other through `lung_model::frame::body_to_room` (the reflection
+//! `BODY_TO_RAS = diag(−1, 1, 1)`, issue 19): its determinant is −1, so the draw pipelines take
+//! clockwise as the front face ([`crate::draw::front_face`]). The HMD pose is a camera looking
+//! along its local −Z with +Y up.
 //!
 //! A [`Rig`] says how the lungs and the eyes are placed:
 //! * without a calibration, [`LUNGS_IN_REFERENCE_MM`] places the body-frame origin (the lungs'
-//!   centre) relative to the reference; with the calibration `lungdyn register` writes (model →
-//!   patient reference, `tracker_pose::calib`), the model matrix is `patient_pose · calibration`;
+//!   centre) relative to the reference, whose axes are taken as the patient's RAS axes; with the
+//!   calibration `lungdyn register` writes (the model's RAS frame → patient reference,
+//!   `tracker_pose::calib`), the model matrix is `patient_pose · calibration · BODY_TO_RAS`;
 //! * without HMD optics, each eye sits ±IPD/2 along the HMD's +X with the scene's symmetric vertical
 //!   field of view; with an optics file (`tracker_pose::optics`), each eye's view is
 //!   `inverse(hmd_pose · eye_to_hmd)` (the file's offset and rotation) and its projection the
@@ -19,12 +24,14 @@ use std::path::{Path, PathBuf};
 
 use glam::{Mat4, Quat, Vec3, Vec4};
 use ipc_types::Pose;
+use lung_model::frame::body_to_room;
 use lung_model::scene::RenderScene;
 use tracker_pose::calib::{Calibration, FileError};
 use tracker_pose::optics::Optics;
 
-/// Where the lungs' body-frame origin lies relative to the sternal reference, in the body frame:
-/// 100 mm posterior and 30 mm inferior to the marker.
+/// Where the lungs' body-frame origin lies relative to the sternal reference, in the reference's
+/// (RAS-aligned) frame: 100 mm posterior and 30 mm inferior to the marker (no lateral offset, so the
+/// same numbers in the body frame).
 pub const LUNGS_IN_REFERENCE_MM: Vec3 = Vec3::new(0.0, -100.0, -30.0);
 /// Near and far clip planes, mm.
 pub const NEAR_MM: f32 = 50.0;
@@ -37,7 +44,7 @@ pub const FAR_MM: f32 = 20_000.0;
 pub struct EyeUniform {
     /// Projection × view.
     pub view_proj: [[f32; 4]; 4],
-    /// Body → room (patient registration).
+    /// Body → room (patient registration; determinant −1, see the module doc).
     pub model: [[f32; 4]; 4],
     /// Eye position in the room frame.
     pub eye_pos: [f32; 4],
@@ -61,9 +68,10 @@ pub fn pose_matrix(p: &Pose) -> Mat4 {
     Mat4::from_rotation_translation(q, t)
 }
 
-/// The body → room model matrix for a patient reference pose, without a calibration.
+/// The body → room model matrix for a patient reference pose, without a calibration: the pose and
+/// the fixed offset place the patient's RAS frame, [`body_to_room`] reflects the body frame into it.
 pub fn model_matrix(patient: &Pose) -> Mat4 {
-    pose_matrix(patient) * Mat4::from_translation(LUNGS_IN_REFERENCE_MM)
+    body_to_room(pose_matrix(patient) * Mat4::from_translation(LUNGS_IN_REFERENCE_MM))
 }
 
 /// Eye uniforms for `hmd` (mono: one eye at the HMD; stereo: left then right eye) with the fixed
@@ -87,8 +95,8 @@ pub use tracker_pose::optics::{MAX_EYE_PX, MIN_EYE_PX};
 /// How the lungs and the eyes are placed: the defaults, or a calibration and HMD optics.
 #[derive(Debug, Clone, Copy, PartialEq, Default)]
 pub struct Rig {
-    /// Model (the meshes' body frame, mm) → patient reference tool; `None`: the fixed
-    /// [`LUNGS_IN_REFERENCE_MM`].
+    /// The model's RAS frame (the meshes' body frame reflected, mm) → patient reference tool;
+    /// `None`: the fixed [`LUNGS_IN_REFERENCE_MM`].
     pub calibration: Option<Mat4>,
     /// The HMD's eyes; `None`: the scene's IPD and vertical field of view.
     pub optics: Option<HmdEyes>,
@@ -193,17 +201,17 @@ impl HmdEyes {
     }
 }
 
-/// The model → reference matrix of a loaded (checked) calibration.
+/// The model-RAS → reference matrix of a loaded (checked) calibration.
 pub fn calibration_matrix(c: &Calibration) -> Mat4 {
     let (q, t) = rigid!(c.rotation, c.translation_mm);
     Mat4::from_rotation_translation(q, t)
 }
 
 impl Rig {
-    /// The body → room model matrix for a patient reference pose.
+    /// The body → room model matrix for a patient reference pose (determinant −1).
     pub fn model(&self, patient: &Pose) -> Mat4 {
         match &self.calibration {
-            Some(c) => pose_matrix(patient) * *c,
+            Some(c) => body_to_room(pose_matrix(patient) * *c),
             None => model_matrix(patient),
         }
     }
@@ -448,6 +456,38 @@ mod tests {
         }
     }
 
+    /// Issue 19: the body frame is left-handed, so body → room is a reflection (determinant −1)
+    /// for every pose, with or without a calibration; a rotation (+1, the old model matrix) showed
+    /// a mirror-image patient. The patient's left (body +X) of the synthetic supine patient (head
+    /// at room +X, face up) is room −Y.
+    #[test]
+    fn body_to_room_reflects_the_left_handed_body_frame() {
+        let supine = Quat::from_mat3(&glam::Mat3::from_cols(Vec3::Y, Vec3::Z, Vec3::X));
+        let patient = Pose {
+            quat: supine.to_array(),
+            translation_mm: [0.0, 0.0, 1120.0],
+            _pad: 0,
+        };
+        let calibrated = Rig {
+            calibration: Some(calibration_matrix(&calibration(
+                [0.0, 0.0, 0.3826834, 0.9238795],
+                [10.0, -80.0, 5.0],
+            ))),
+            optics: None,
+        };
+        for rig in [Rig::default(), calibrated] {
+            let m = rig.model(&patient);
+            assert!((m.determinant() + 1.0).abs() < 1e-4, "{}", m.determinant());
+            assert_eq!(
+                crate::draw::front_face(m.determinant() as f64),
+                wgpu::FrontFace::Cw
+            );
+        }
+        let left = model_matrix(&patient).transform_vector3(Vec3::X);
+        assert!((left - Vec3::NEG_Y).length() < 1e-6, "{left}");
+        assert_eq!(crate::draw::front_face(1.0), wgpu::FrontFace::Ccw);
+    }
+
     /// A pose of a camera at `eye` looking at `target` with +Z up.
     fn look_at(eye: Vec3, target: Vec3) -> Pose {
         let forward = (target - eye).normalize();
@@ -464,7 +504,7 @@ mod tests {
     fn calibration(xyzw: [f64; 4], t: [f64; 3]) -> Calibration {
         Calibration::from_toml(
             &format!(
-                "format = 1\nkind = \"model-to-reference\"\n[transform]\nrotation_xyzw = {xyzw:?}\ntranslation_mm = {t:?}\n"
+                "format = 2\nkind = \"model-to-reference\"\n[transform]\nrotation_xyzw = {xyzw:?}\ntranslation_mm = {t:?}\n"
             ),
             "c.toml",
         )
@@ -528,15 +568,17 @@ mod tests {
             Vec3::new(400.0, 80.0, 700.0),
         );
         let p_model = [30.0, 40.0, -20.0];
-        let in_reference = Vec3::from(c.apply(p_model).map(|v| v as f32));
+        // The calibration moves the model's RAS point: the body point with X negated.
+        let p_ras = lung_model::frame::body_to_ras(glam::DVec3::from(p_model)).to_array();
+        let in_reference = Vec3::from(c.apply(p_ras).map(|v| v as f32));
         let expected = pose_matrix(&patient).transform_point3(in_reference);
         let got = rig
             .model(&patient)
             .transform_point3(Vec3::from(p_model.map(|v| v as f32)));
         assert!((got - expected).length() < 1e-3, "{got} vs {expected}");
-        // p_reference = R p + t by hand: R rotates (30, 40) by 45°.
+        // p_reference = R p_ras + t by hand: R rotates (−30, 40) by 45°.
         let s = std::f32::consts::FRAC_1_SQRT_2;
-        let by_hand = Vec3::new(s * (30.0 - 40.0) + 10.0, s * (30.0 + 40.0) - 80.0, -15.0);
+        let by_hand = Vec3::new(s * (-30.0 - 40.0) + 10.0, s * (-30.0 + 40.0) - 80.0, -15.0);
         assert!((in_reference - by_hand).length() < 1e-3, "{in_reference}");
         // An HMD looking at it sees it at the image centre.
         let hmd = look_at(expected + Vec3::new(300.0, -1200.0, 600.0), expected);
@@ -653,7 +695,7 @@ mod tests {
         let good_c = dir.join("calib.toml");
         std::fs::write(
             &good_c,
-            "format = 1\nkind = \"model-to-reference\"\n[transform]\nrotation_xyzw = [0, 0, 0, 1]\ntranslation_mm = [0, -80, 0]\n",
+            "format = 2\nkind = \"model-to-reference\"\n[transform]\nrotation_xyzw = [0, 0, 0, 1]\ntranslation_mm = [0, -80, 0]\n",
         )
         .unwrap();
         let good_h = dir.join("hmd.toml");

@@ -54,23 +54,35 @@ impl BreathPlan {
     }
 }
 
+/// Fraction of the image's height (or width, whichever binds) the lungs' box fills in the
+/// [`front_view`], at its anterior face.
+pub const FRONT_VIEW_FILL: f32 = 0.55;
+/// Where the top of the lungs' box sits in the [`front_view`], as a fraction of the image's height
+/// from its top: just below the HUD's panel and PV loop (which end about a third of the way down).
+pub const FRONT_VIEW_TOP: f32 = 0.34;
+
 /// The HMD pose that looks at the lungs from the front of the patient (from anterior, head up in
-/// the image), far enough that the lungs fill about half the image's height: `model` is the body →
-/// room matrix, `(lo, hi)` the lungs' box in the body frame (+Y anterior, +Z superior).
+/// the image), far enough that the lungs' box fills [`FRONT_VIEW_FILL`] of the image's height (or
+/// width), its top [`FRONT_VIEW_TOP`] of the way down: `model` is the body → room matrix, `(lo, hi)`
+/// the lungs' box in the body frame (+Y anterior, +Z superior).
 pub fn front_view(model: Mat4, (lo, hi): (Vec3, Vec3), fov_y_deg: f32, aspect: f32) -> Pose {
     let centre = (lo + hi) * 0.5;
     let size = hi - lo;
     let t = (fov_y_deg.to_radians() * 0.5).tan().max(1e-3);
-    // Half the image height for the lungs' height (or width, by the aspect): the panel and the
-    // PV loop sit above them.
-    let distance = (size.z / t).max(size.x / (t * aspect.max(1e-3))) + size.y * 0.5;
-    let distance = if distance.is_finite() && distance > 0.0 {
-        distance
+    // Half the visible height at the box's anterior face, for the box's height (or width, by the
+    // aspect) to fill FRONT_VIEW_FILL of the image: the panel and the PV loop sit above them.
+    let half_height =
+        (size.z / (2.0 * FRONT_VIEW_FILL)).max(size.x / (2.0 * FRONT_VIEW_FILL * aspect.max(1e-3)));
+    let distance = half_height / t + size.y * 0.5;
+    let (distance, half_height) = if distance.is_finite() && distance > 0.0 {
+        (distance, half_height)
     } else {
-        1000.0
+        (1000.0, 0.0)
     };
-    // Aim a little above the lungs' centre, so they sit below the HUD.
-    let target = model.transform_point3(centre + Vec3::Z * size.z * 0.18);
+    // Aim above the lungs' centre so that the box's top lands FRONT_VIEW_TOP of the way down,
+    // below the HUD: the image centre is `size.z / 2 − (1 − 2·top)·half_height` above the centre.
+    let above = size.z * 0.5 - (1.0 - 2.0 * FRONT_VIEW_TOP) * half_height;
+    let target = model.transform_point3(centre + Vec3::Z * above);
     let eye = model.transform_point3(centre + Vec3::Y * distance);
     let up_room = model.transform_vector3(Vec3::Z).normalize_or(Vec3::Z);
     let forward = (target - eye).normalize_or(Vec3::NEG_Y);
@@ -158,7 +170,12 @@ mod tests {
             hi = hi.max(Vec3::from(*p));
         }
         let supine = glam::Quat::from_mat3(&Mat3::from_cols(Vec3::Y, Vec3::Z, Vec3::X));
-        let model = Mat4::from_rotation_translation(supine, Vec3::new(0.0, 0.0, 1000.0));
+        let patient = Pose {
+            quat: supine.to_array(),
+            translation_mm: [0.0, 0.0, 1000.0],
+            _pad: 0,
+        };
+        let model = crate::camera::Rig::default().model(&patient);
         let pose = front_view(model, (lo, hi), 60.0, 4.0 / 3.0);
         let mesh = &lungs[if side == Side::Right { 0 } else { 1 }];
         let centroid = mesh.positions.iter().map(|p| Vec3::from(*p)).sum::<Vec3>()
@@ -171,12 +188,10 @@ mod tests {
     /// patient sees them, and as radiology shows an anterior view — the patient's right lung is on
     /// the viewer's left. The body frame (+X patient left, +Y anterior, +Z superior) is physically
     /// left-handed (patient-left × anterior = inferior), while the renderer and the room are
-    /// right-handed, so today the front view shows a mirror-image patient: the right lung on the
-    /// viewer's right, the cardiac notch on the viewer's left (`lungdyn demo` strip, lavapipe).
-    /// The fix crosses the engine, renderer, tracker and registration (see the issue 19 report);
-    /// this test is the specification it must meet.
+    /// right-handed: with body → room taken as a rotation the front view showed a mirror-image
+    /// patient (the right lung on the viewer's right, the cardiac notch on the viewer's left).
+    /// The model matrix now reflects through `lung_model::frame::body_to_room`.
     #[test]
-    #[ignore = "known: the body frame is left-handed and the front view is mirrored (issue 19)"]
     fn the_patients_right_lung_is_on_the_viewers_left_from_the_front() {
         use lung_model::mesh::Side;
         let (right, left) = (
@@ -193,7 +208,10 @@ mod tests {
     fn the_front_view_looks_at_the_lungs_from_anterior_with_the_head_up() {
         // Patient supine: body +Y (anterior) is room +Z (up), body +Z (superior) room +X.
         let supine = glam::Quat::from_mat3(&Mat3::from_cols(Vec3::Y, Vec3::Z, Vec3::X));
-        let model = Mat4::from_rotation_translation(supine, Vec3::new(0.0, 0.0, 1000.0));
+        let model = lung_model::frame::body_to_room(Mat4::from_rotation_translation(
+            supine,
+            Vec3::new(0.0, 0.0, 1000.0),
+        ));
         let boxed = (
             Vec3::new(-150.0, -100.0, -120.0),
             Vec3::new(150.0, 100.0, 130.0),

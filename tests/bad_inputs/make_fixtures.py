@@ -8,7 +8,8 @@ only the ventilator recordings (rec_*.csv, made here without the binary) and rem
 (`mesh generate`, `bake`, `kernel export`, `pv simulate`, `pv fit`, `fit-motion`); every bad file is
 derived from them here, one defect each, so a refusal can only be for that defect. Large inputs
 (3 GiB sparse files, /dev/zero, /dev/urandom, a FIFO) are not files here: the harness makes them from
-the placeholders of cases.toml.
+the placeholders of cases.toml. `LUNGDYN_FIXTURES_ONLY=render-files` remakes only the calibration,
+fiducial and HMD optics files (and the scenes naming them) and removes nothing.
 """
 import math, os, random, shutil, struct, subprocess, sys, tempfile
 
@@ -600,7 +601,11 @@ def make_render_files(tmp):
     rng = random.Random(20250612)  # its own stream: the fixtures above do not change with this section
     model = [(0, 0, 0), (100, 0, 0), (0, 120, 0), (0, 0, 90), (60, 40, 30)]
     out("fid_model.txt", "".join("%g %g %g\n" % p for p in model))
-    tracker = [(x, y - 80, z) for x, y, z in model]
+    # The model points are in the body frame (+X patient left), the tool's frame is right-handed
+    # (RAS-aligned here): a real patient's tracked fiducials are the body points with X negated
+    # (lung_model::frame::body_to_ras), then moved. Issue 19: before, the body points themselves were
+    # taken for tracked ones, a mirror-image patient; that list is now fid_tracker_mirrored.txt.
+    tracker = [(-x + 0.0, y - 80, z) for x, y, z in model]
     out("fid_tracker.txt", "".join("%g %g %g\n" % p for p in tracker))
     # One defect each (issue 18's probe): every one was once written with exit 0.
     fid = lambda name, pts: out("fid_tracker_" + name + ".txt", "".join("%.6g %.6g %.6g\n" % tuple(p) for p in pts))
@@ -645,7 +650,9 @@ def make_render_files(tmp):
             ("matrix_not_orthonormal", "rotation_matrix = [[1.0,", "rotation_matrix = [[1.01,"),
             ("quaternion_nan", "rotation_xyzw = [", "rotation_xyzw = [nan, "),
             ("translation_2500", "-79.99999999999999", "-2500.0"),
-            ("translation_inf", "-79.99999999999999", "-inf")):
+            ("translation_inf", "-79.99999999999999", "-inf"),
+            # Issue 19: a calibration written before the body frame's reflection was named.
+            ("format_1", "format = 2", "format = 1")):
         assert old_text in calib
         text = calib.replace(old_text, new_text, 1)
         if tag == "quaternion_nan":  # keep four components: drop the first one written
@@ -770,6 +777,10 @@ def main():
             os.remove(os.path.join(HERE, n))
     if os.environ.get("LUNGDYN_FIXTURES_ONLY") == "recordings":
         make_recordings()
+        return
+    if os.environ.get("LUNGDYN_FIXTURES_ONLY") == "render-files":
+        with tempfile.TemporaryDirectory() as tmp:
+            make_render_files(tmp)
         return
     with tempfile.TemporaryDirectory() as tmp:
         make_recordings()

@@ -215,12 +215,13 @@ fn the_front_view_shows_both_lungs_below_the_hud() {
         .filter(|(_, _, p)| **p != background)
         .map(|(x, y, _)| (x, y))
         .collect();
-    // The front view frames the lungs' box at about half the image height; the anatomical lungs'
-    // silhouette (tapered apices, the mediastinal gap, the left cardiac notch) covers 9.8 % of the
-    // image there (the wider teardrop covered over 10 %); the lungs must be framed, not specks:
-    // drawn too small (under a twelfth fails).
+    // The front view frames the lungs' box at 55 % of the image height (renderer::record::
+    // FRONT_VIEW_FILL); the anatomical lungs' silhouette (tapered apices, the mediastinal gap, the
+    // left cardiac notch) covered 9.8 % of the image at the earlier 50 %, so the box was framed
+    // larger rather than this check lowered: the lungs must be framed, not specks (under a tenth
+    // fails).
     assert!(
-        lit.len() > 320 * 240 / 12,
+        lit.len() > 320 * 240 / 10,
         "the lungs fill part of the image: {}",
         lit.len()
     );

@@ -74,7 +74,10 @@ fn mid_inspiration() -> f32 {
     lungs[0].scale_for_delta(250.0 * lungs[0].start_volume_ml / 2400.0) as f32
 }
 
-/// Patient supine at bed height, HMD at the patient's right, above the chest.
+/// Patient supine at bed height, HMD at the patient's right, above the chest. The supine pose is
+/// RAS → room (head at room +X, face up), so the patient's right is room +Y (issue 19: before the
+/// body frame's reflection was applied the eye sat at −Y, which drew the mirror image of this view
+/// from the patient's then apparent right).
 fn fixed_state(scale: f32) -> DrawState {
     let supine = Quat::from_mat3(&Mat3::from_cols(Vec3::Y, Vec3::Z, Vec3::X));
     let patient = Pose {
@@ -82,7 +85,7 @@ fn fixed_state(scale: f32) -> DrawState {
         translation_mm: [0.0, 0.0, 1120.0],
         _pad: 0,
     };
-    let eye = Vec3::new(-250.0, -750.0, 1600.0);
+    let eye = Vec3::new(-250.0, 750.0, 1600.0);
     let target = Vec3::new(-30.0, 0.0, 1020.0);
     let forward = (target - eye).normalize();
     let right = forward.cross(Vec3::Z).normalize();
@@ -458,6 +461,39 @@ fn the_lobes_colour_mode_renders_like_its_reference_images_in_every_look() {
         );
         compare(&format!("{name}_mono.png"), &img, t);
     }
+}
+
+/// Handedness (issue 19), from the pixels: in an anterior snapshot (the front view strips and
+/// recordings use, of a supine patient, head up) the patient's right lung — its three lobes'
+/// colours — is on the viewer's left, the left lung on the viewer's right, as a clinician facing
+/// the patient and an anterior radiograph show them. With body → room taken as a rotation (before
+/// the fix) the two were swapped: a mirror-image patient.
+#[test]
+fn the_patients_right_lung_is_on_the_viewers_left_in_an_anterior_snapshot() {
+    let Some(gpu) = Gpu::for_tests() else { return };
+    let scene = settings(DrawMode::Triangles, Look::Opaque, ColorMode::Lobes, false);
+    let r = LungRenderer::new(&gpu, &scene, &render(models())).unwrap();
+    let mut state = fixed_state(mid_inspiration());
+    state.hmd = r.front_view(&state.patient).unwrap();
+    r.render(&gpu, &state, true);
+    let img = r.read_image(&gpu).unwrap();
+    let (mut sum, mut n) = ([0.0f64; 2], [0usize; 2]);
+    for (x, _, p) in img.enumerate_pixels() {
+        if let Some(side) = nearest_lobe(p.0).and_then(|l| l.side()) {
+            sum[side.index()] += x as f64;
+            n[side.index()] += 1;
+        }
+    }
+    let (right, left) = (ipc_types::LUNG_RIGHT, ipc_types::LUNG_LEFT);
+    assert!(n[right] > 1000 && n[left] > 1000, "lobe pixels {n:?}");
+    let mean = |k: usize| sum[k] / n[k] as f64;
+    let w = img.width() as f64;
+    assert!(
+        mean(right) < 0.45 * w && mean(left) > 0.55 * w,
+        "right-lung pixels centred at x = {:.0}, left at {:.0} of {w}",
+        mean(right),
+        mean(left)
+    );
 }
 
 /// The lobe whose colour (`Lobe::colour`, as drawn: chromaticity, whatever the shading) is nearest

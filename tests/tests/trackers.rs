@@ -445,7 +445,9 @@ fn register_writes_a_calibration_with_fiducial_errors_and_refuses_collinear_poin
     let model = tmp("model.csv");
     let tracker = tmp("tracker.csv");
     let out = tmp("calib.toml");
-    // A known motion: 90° about Z, then (10, -80, 5) mm; 0.3 mm of error on one tracker point.
+    // A known motion of the patient's RAS frame (the body-frame points with X negated: issue 19,
+    // lung_model::frame): 90° about Z, then (10, -80, 5) mm; 0.3 mm of error on one tracker point.
+    // RAS (−x, y, z) turned 90° about Z is (−y, −x, z).
     let pts = [
         ("A", [0.0, 0.0, 0.0]),
         ("B", [120.0, 0.0, 0.0]),
@@ -459,7 +461,7 @@ fn register_writes_a_calibration_with_fiducial_errors_and_refuses_collinear_poin
         m += &format!("{l},{},{},{}\n", p[0], p[1], p[2]);
         let q = [
             -p[1] + 10.0 + if i == 3 { 0.3 } else { 0.0 },
-            p[0] - 80.0,
+            -p[0] - 80.0,
             p[2] + 5.0,
         ];
         // Tracker list in another order: paired by label.
@@ -501,12 +503,25 @@ fn register_writes_a_calibration_with_fiducial_errors_and_refuses_collinear_poin
         })
         .unwrap();
     assert_eq!(worst["label"], "D");
+    assert!(v["model_frame"].as_str().unwrap().starts_with("ras"), "{v}");
     let c = tracker_pose::calib::Calibration::load(&out).unwrap();
-    let b = c.apply([120.0, 0.0, 0.0]);
+    // Model point B (120 mm to the patient's left) is RAS (−120, 0, 0): turned, (0, −120, 0).
+    let b = c.apply(lung_model::frame::body_to_ras(glam::DVec3::new(120.0, 0.0, 0.0)).to_array());
     assert!(
-        (b[0] - 10.0).abs() < 0.2 && (b[1] - 40.0).abs() < 0.2 && (b[2] - 5.0).abs() < 0.2,
+        (b[0] - 10.0).abs() < 0.2 && (b[1] + 200.0).abs() < 0.2 && (b[2] - 5.0).abs() < 0.2,
         "{b:?}"
     );
+    // The same fiducials as the body frame's numbers turned as if the frame were right-handed
+    // (how the tracker points were made before issue 19's fix): a mirror image of a real patient,
+    // whose best fit is a reflection, refused; nothing written.
+    let before = std::fs::read(&out).unwrap();
+    let mirrored: String = pts
+        .iter()
+        .map(|(l, p)| format!("{l} {} {} {}\n", -p[1] + 10.0, p[0] - 80.0, p[2] + 5.0))
+        .collect();
+    std::fs::write(&tracker, mirrored).unwrap();
+    assert_clean_failure(&args, "reflection");
+    assert_eq!(std::fs::read(&out).unwrap(), before);
     // Nearly collinear fiducials (across the line 0.5 % of along it): refused, nothing written.
     let before = std::fs::read(&out).unwrap();
     std::fs::write(&model, "0 0 0\n50 0.5 0\n100 0 0\n150 0.2 1\n").unwrap();
@@ -617,7 +632,7 @@ fn calibration_and_hmd(dir: &std::path::Path) -> (std::path::PathBuf, std::path:
     let calib = dir.join("calib.toml");
     std::fs::write(
         &calib,
-        "format = 1\nkind = \"model-to-reference\"\n[transform]\n\
+        "format = 2\nkind = \"model-to-reference\"\n[transform]\n\
          rotation_xyzw = [0.0, 0.0, 0.0871557, 0.9961947]\ntranslation_mm = [0.0, -80.0, -20.0]\n",
     )
     .unwrap();

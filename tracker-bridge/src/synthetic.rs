@@ -2,8 +2,11 @@
 //! worn by someone walking around the bed at head height, looking at the patient's chest.
 //!
 //! Tracker (room) frame, millimetres: +Z up, the bed's long axis along +X (the patient's head at
-//! +X), bed surface at z = 900 mm. The patient reference sits on the sternum. Body frame (the lung
-//! meshes' frame): +X patient left, +Y anterior, +Z superior; supine, that is room +Y, +Z, +X.
+//! +X), bed surface at z = 900 mm. The patient reference sits on the sternum; its pose is a rotation
+//! of the patient's right-handed anatomical frame RAS (+X patient right, +Y anterior, +Z superior)
+//! into the room: supine, RAS +X, +Y, +Z are room +Y, +Z, +X — the patient's right at room +Y,
+//! their left at room −Y. The lung meshes' body frame (+X patient left) is the mirror of RAS in X
+//! (`lung_model::frame::BODY_TO_RAS`): body +X is room −Y when supine.
 //! Camera convention of the HMD pose: looks along its local −Z with +Y up (right-handed).
 //!
 //! A sample is a pure function of its frame number, so a synthetic session is exactly repeatable.
@@ -57,15 +60,15 @@ pub enum Posture {
 impl Posture {
     /// The room-frame turn from supine (head at +X, +Z up): sitting turns the head up about the
     /// bed's cross axis, prone rolls 180° about its long axis, the lateral postures roll 90°
-    /// (left-lateral puts the patient's left side, room +Y when supine, down).
+    /// (left-lateral puts the patient's left side, room −Y when supine, down: +90° about room X).
     pub fn turn(self) -> Quat {
         use std::f32::consts::{FRAC_PI_2, PI};
         match self {
             Posture::Supine => Quat::IDENTITY,
             Posture::Sitting => Quat::from_rotation_y(-FRAC_PI_2),
             Posture::Prone => Quat::from_rotation_x(PI),
-            Posture::LeftLateral => Quat::from_rotation_x(-FRAC_PI_2),
-            Posture::RightLateral => Quat::from_rotation_x(FRAC_PI_2),
+            Posture::LeftLateral => Quat::from_rotation_x(FRAC_PI_2),
+            Posture::RightLateral => Quat::from_rotation_x(-FRAC_PI_2),
         }
     }
 }
@@ -84,7 +87,8 @@ impl Default for Synthetic {
     }
 }
 
-/// Supine orientation: body → room rotation (body X→room Y, body Y→room Z, body Z→room X).
+/// Supine orientation: the RAS → room rotation (patient right → room Y, anterior → room Z (up),
+/// superior → room X). Not the body frame's: body → room is this times `BODY_TO_RAS`.
 pub fn supine() -> Quat {
     Quat::from_mat3(&Mat3::from_cols(Vec3::Y, Vec3::Z, Vec3::X))
 }
@@ -171,6 +175,13 @@ impl Synthetic {
     }
 }
 
+/// Gravity in the body frame for the synthetic patient at `t`, as the engine computes it.
+#[cfg(test)]
+fn gravity_in_body_of(s: &Synthetic, t: f32) -> glam::DVec3 {
+    let down = glam::DVec3::new(0.0, 0.0, -1.0);
+    lung_model::orientation::gravity_in_body(s.patient_pose(t).quat, down).unwrap()
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;
@@ -204,8 +215,7 @@ mod tests {
             sweep_period_s: 20.0,
             ..Default::default()
         };
-        let down = Vec3::new(0.0, 0.0, -1.0);
-        let gravity_in_body = |t: f32| Quat::from_array(s.patient_pose(t).quat).inverse() * down;
+        let gravity_in_body = |t: f32| gravity_in_body_of(&s, t);
         // t = 0: pitch 90° (roll 0): gravity along the body's long axis (sitting up / head down).
         assert!(
             gravity_in_body(0.0).z.abs() > 0.999,
@@ -225,8 +235,8 @@ mod tests {
             drift_deg: 0.0,
             ..Default::default()
         };
-        let g = Quat::from_array(still.patient_pose(7.0).quat).inverse() * down;
-        assert!((g - Vec3::new(0.0, -1.0, 0.0)).length() < 1e-6);
+        let g = gravity_in_body_of(&still, 7.0);
+        assert!((g - glam::DVec3::new(0.0, -1.0, 0.0)).length() < 1e-6);
     }
 
     #[test]
@@ -266,8 +276,11 @@ mod tests {
 mod posture_tests {
     use super::*;
 
-    /// Body axes in the room for each posture: sitting puts the head (body +Z) up, prone the front
-    /// (body +Y) down, left-lateral the patient's left (body +X) down.
+    /// Body axes in the room for each posture (body → room through the boundary reflection,
+    /// `lung_model::frame`): sitting puts the feet (body −Z) down, prone the front (body +Y) down,
+    /// left-lateral the patient's left (body +X) down, so the engine's gravity makes the left lung
+    /// dependent. Before issue 19's fix left-lateral turned room +Y down, which is the patient's
+    /// right side of a supine patient with the head at +X and the face up.
     #[test]
     fn each_posture_turns_the_body_as_named() {
         let still = |posture| Synthetic {
@@ -275,20 +288,20 @@ mod posture_tests {
             posture,
             ..Default::default()
         };
-        let q = |p: Posture| Quat::from_array(still(p).patient_pose(0.0).quat);
-        let down = Vec3::new(0.0, 0.0, -1.0);
-        let close = |a: Vec3, b: Vec3| (a - b).length() < 1e-5;
-        assert!(close(q(Posture::Supine) * Vec3::new(0.0, -1.0, 0.0), down));
-        assert!(close(q(Posture::Sitting) * Vec3::new(0.0, 0.0, -1.0), down));
-        assert!(close(q(Posture::Prone) * Vec3::new(0.0, 1.0, 0.0), down));
-        assert!(close(
-            q(Posture::LeftLateral) * Vec3::new(1.0, 0.0, 0.0),
-            down
-        ));
-        assert!(close(
-            q(Posture::RightLateral) * Vec3::new(-1.0, 0.0, 0.0),
-            down
-        ));
+        let body_down = |p: Posture, v: Vec3| {
+            let q = Quat::from_array(still(p).patient_pose(0.0).quat);
+            (lung_model::frame::body_dir_to_room(q, v) - Vec3::new(0.0, 0.0, -1.0)).length() < 1e-5
+        };
+        assert!(body_down(Posture::Supine, Vec3::new(0.0, -1.0, 0.0)));
+        assert!(body_down(Posture::Sitting, Vec3::new(0.0, 0.0, -1.0)));
+        assert!(body_down(Posture::Prone, Vec3::new(0.0, 1.0, 0.0)));
+        assert!(body_down(Posture::LeftLateral, Vec3::new(1.0, 0.0, 0.0)));
+        assert!(body_down(Posture::RightLateral, Vec3::new(-1.0, 0.0, 0.0)));
+        // The engine's gravity, from the published pose: the dependent side is the one named.
+        let g = |p: Posture| gravity_in_body_of(&still(p), 0.0);
+        assert!((g(Posture::LeftLateral) - glam::DVec3::X).length() < 1e-6);
+        assert!((g(Posture::RightLateral) + glam::DVec3::X).length() < 1e-6);
+        assert!((g(Posture::Prone) - glam::DVec3::Y).length() < 1e-6);
         use clap::ValueEnum;
         let names: Vec<String> = Posture::value_variants()
             .iter()

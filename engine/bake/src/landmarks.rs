@@ -8,7 +8,8 @@
 //! of the chest). Read in the wrong frame a fit still "works" and is silently worse (≈ 1.4× for the
 //! seed's power law on DIR-Lab, with its Z exponent collapsing to 0), so every reader states its
 //! frame, converts explicitly, and the fit checks the result against what breathing does
-//! (`motion_models::check_frame`).
+//! (`motion_models::check_frame`). The body frame is the mirror image of RAS in X (left-handed,
+//! `lung_model::frame`): LPS and RAS conversions go through that module's one definition.
 
 use std::path::{Path, PathBuf};
 
@@ -122,8 +123,10 @@ impl Frame {
     pub fn to_body(&self, c: [f64; 3]) -> DVec3 {
         match self {
             Frame::Body => DVec3::from(c),
-            Frame::Lps => DVec3::new(c[0], -c[1], c[2]),
-            Frame::Ras => DVec3::new(-c[0], c[1], c[2]),
+            // The one conversion of each (lung_model::frame): the same body point as before the
+            // body ↔ room reflection was named (issue 19).
+            Frame::Lps => lung_model::frame::lps_to_body(DVec3::from(c)),
+            Frame::Ras => lung_model::frame::ras_to_body(DVec3::from(c)),
             Frame::Voxel {
                 axes,
                 base,

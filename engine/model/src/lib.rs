@@ -9,6 +9,7 @@
 //!   elasticity field that shaped it;
 //! * [`deform`] — per-vertex displacement (eq. 6.14–6.18), the volume cubic, [`deform::LungModel`],
 //!   and the four deformation modes on the CPU with their volume forms ([`deform::modes`]);
+//! * [`frame`] — the body frame's handedness and the one reflection between it and the room (RAS);
 //! * [`orientation`] — the patient's pose → gravity in the body frame → the applied force's weights
 //!   (exact, and the seed's eq. 7.8–7.9 blend); [`sh`] — real spherical harmonics and projection
 //!   (seed ch. 7);
@@ -25,6 +26,7 @@
 
 pub mod deform;
 pub mod disease;
+pub mod frame;
 pub mod input;
 pub mod kernel;
 pub mod mesh;

@@ -5,10 +5,13 @@
 //! and blends precomputed orientations (eq. 7.8–7.9). EQUATIONS.md §3.3 implements that blend as
 //! the seed's baseline ([`SeedBlend`]) and an exact method beside it ([`exact_weights`]):
 //!
-//! * **Gravity in the body frame.** The tracker reports the patient reference's pose, body → room
-//!   (the same transform the renderer registers the lungs with). With the room's gravity `g_room`
-//!   (scene `[engine] gravity_room`, the tracker's "down"), `g_body = Rᵀ·g_room` ([`gravity_in_body`]).
-//!   Supine, `g_body = (0, −1, 0)`: posterior ([`SUPINE_GRAVITY`]).
+//! * **Gravity in the body frame.** The tracker reports the patient reference's pose `R`, a
+//!   rotation of the patient's right-handed RAS frame into the room (the renderer registers the
+//!   lungs with the same pose); body → room is `R·BODY_TO_RAS` ([`crate::frame`]: the body frame
+//!   is left-handed). With the room's gravity `g_room` (scene `[engine] gravity_room`, the
+//!   tracker's "down"), `g_body = BODY_TO_RAS·Rᵀ·g_room` ([`gravity_in_body`]). Supine,
+//!   `g_body = (0, −1, 0)`: posterior ([`SUPINE_GRAVITY`]); lying on the left side, `+X`: the left
+//!   lung is the dependent one.
 //! * **Exact weights.** `w(g)` is the Table 6.1 vector `(c7, c8, c9)` rotated by the rotation `M`
 //!   that takes supine gravity to `g` (the shortest arc; upside down, where every axis ⊥ gravity is
 //!   shortest, a half turn about the body's cranio-caudal axis — the patient rolled prone). The
@@ -70,8 +73,9 @@ pub enum PoseError {
     },
 }
 
-/// Gravity in the body frame for a patient pose `quat` (body → room, `[x, y, z, w]` as
-/// `ipc_types::Pose`) and the room's unit gravity direction.
+/// Gravity in the body frame for a patient pose `quat` (RAS → room, `[x, y, z, w]` as
+/// `ipc_types::Pose`) and the room's unit gravity direction: the pose's inverse, then the
+/// boundary reflection [`crate::frame::ras_to_body`].
 pub fn gravity_in_body(quat: [f32; 4], gravity_room: DVec3) -> Result<DVec3, PoseError> {
     let q = DQuat::from_xyzw(
         quat[0] as f64,
@@ -87,7 +91,7 @@ pub fn gravity_in_body(quat: [f32; 4], gravity_room: DVec3) -> Result<DVec3, Pos
         return Err(PoseError::NotARotation { norm });
     }
     let q = q / norm;
-    Ok((q.inverse() * gravity_room).normalize())
+    Ok(crate::frame::room_dir_to_body(q, gravity_room).normalize())
 }
 
 /// The rotation `M` (body frame) with `M·SUPINE_GRAVITY = g`: the shortest arc; at `g = −SUPINE_GRAVITY`
@@ -285,7 +289,7 @@ impl Orientation {
     }
 }
 
-/// Rotation matrix of a pose quaternion (for tests and tools).
+/// Rotation matrix of a pose quaternion (RAS → room; for tests and tools).
 pub fn pose_matrix(quat: [f32; 4]) -> DMat3 {
     DMat3::from_quat(
         DQuat::from_xyzw(
@@ -306,8 +310,38 @@ mod tests {
     const LEFT: [f64; 3] = [0.01, 0.95, 0.07];
 
     fn supine_room() -> DQuat {
-        // Body X → room Y, body Y → room Z (up), body Z → room X: the synthetic tracker's supine.
+        // RAS X (patient right) → room Y, anterior → room Z (up), superior → room X (the head):
+        // the synthetic tracker's supine.
         DQuat::from_mat3(&DMat3::from_cols(DVec3::Y, DVec3::Z, DVec3::X))
+    }
+
+    /// The patient rolled a quarter turn about the bed's long axis (room X) from supine.
+    fn rolled(angle: f64) -> [f32; 4] {
+        as_pose(DQuat::from_rotation_x(angle) * supine_room())
+    }
+
+    /// Lying on the LEFT side (left lateral decubitus), gravity points to the patient's left: the
+    /// left lung (body +X) is dependent, in the gravity the engine computes and in the force
+    /// weights it gives. Supine, the patient's left is room −Y (head at +X, face up); the roll
+    /// that puts it down is +90° about room X. Before the boundary reflection (issue 19) this
+    /// pose gave gravity towards body −X: the right lung dependent.
+    #[test]
+    fn lying_on_the_left_side_makes_the_left_lung_dependent() {
+        let down = DVec3::new(0.0, 0.0, -1.0);
+        let left_down = gravity_in_body(rolled(FRAC_PI_2), down).unwrap();
+        assert!((left_down - DVec3::X).length() < 1e-6, "{left_down}");
+        let right_down = gravity_in_body(rolled(-FRAC_PI_2), down).unwrap();
+        assert!((right_down + DVec3::X).length() < 1e-6, "{right_down}");
+        // The physical check, without the body frame's conventions: the patient's left side,
+        // taken to the room through the same boundary, points down.
+        let q = DQuat::from_rotation_x(FRAC_PI_2) * supine_room();
+        let left_in_room = q * crate::frame::body_to_ras(DVec3::X);
+        assert!((left_in_room - down).length() < 1e-12, "{left_in_room}");
+        // The force is largest on the upper (here right, medial for the left lung) side: for the
+        // left lung, x̂ runs lateral (+X, down), so the weight on x̂ is negative.
+        let w = exact_weights(LEFT, Side::Left, left_down);
+        assert!(w[1] < -0.9, "{w:?}");
+        assert!(force(w, DVec3::new(0.0, 0.5, 0.5)) > force(w, DVec3::new(1.0, 0.5, 0.5)));
     }
 
     fn as_pose(q: DQuat) -> [f32; 4] {

@@ -41,6 +41,24 @@ pub const ACCUM_FORMAT: wgpu::TextureFormat = wgpu::TextureFormat::Rgba16Float;
 /// Weighted blended OIT: Π (1 − α).
 pub const REVEAL_FORMAT: wgpu::TextureFormat = wgpu::TextureFormat::R8Unorm;
 
+/// The winding of a mesh triangle seen from outside, in clip space, under a model matrix of
+/// determinant `model_determinant`: the meshes wind counter-clockwise seen from outside in the
+/// body frame ([`lung_model::mesh::TriMesh`]); a reflection (negative determinant) reverses that.
+pub const fn front_face(model_determinant: f64) -> wgpu::FrontFace {
+    if model_determinant < 0.0 {
+        wgpu::FrontFace::Cw
+    } else {
+        wgpu::FrontFace::Ccw
+    }
+}
+
+/// The front face of every pipeline here: the lungs and the tumour are drawn through the body →
+/// room model matrix (`camera::Rig::model`), whose determinant is always
+/// [`lung_model::frame::BODY_TO_RAS_DETERMINANT`] (−1: the body frame is left-handed, issue 19).
+/// Splats are built in the room from the camera's axes and are never culled, so their winding does
+/// not matter.
+pub const MESH_FRONT_FACE: wgpu::FrontFace = front_face(lung_model::frame::BODY_TO_RAS_DETERMINANT);
+
 /// What a vertex is: `draw.wgsl` picks its colour by this (the first byte of [`SurfaceAttr`]).
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]
 #[repr(u8)]
@@ -258,7 +276,7 @@ impl DrawPipelines {
                 },
                 primitive: wgpu::PrimitiveState {
                     topology: wgpu::PrimitiveTopology::TriangleList,
-                    front_face: wgpu::FrontFace::Ccw,
+                    front_face: MESH_FRONT_FACE,
                     cull_mode,
                     ..Default::default()
                 },

@@ -1,13 +1,15 @@
 //! The calibration file `lungdyn register` writes: where the lungs' model frame is relative to the
 //! patient reference tool.
 //!
-//! # Format (TOML, version 1)
+//! # Format (TOML, version 2)
 //! ```toml
-//! format = 1
+//! format = 2
 //! kind = "model-to-reference"
-//! # p_reference = R · p_model + t, millimetres. Model frame: the lung meshes' body frame (+X patient
-//! # left, +Y anterior, +Z superior). Reference frame: the patient reference tool's own frame, as
-//! # the tracker reports the fiducials relative to it.
+//! # p_reference = R · p_model_ras + t, millimetres. Model frame: the lung meshes' body frame (+X
+//! # patient left, +Y anterior, +Z superior) in RAS, i.e. with X negated (p_model_ras = (−x, y, z),
+//! # lung_model::frame::body_to_ras): the body frame is left-handed, the reference tool's is not, so
+//! # only the RAS points can be moved onto it by a rotation. Reference frame: the patient reference
+//! # tool's own frame, as the tracker reports the fiducials relative to it.
 //! [transform]
 //! rotation_xyzw = [0.0, 0.0, 0.0, 1.0]       # unit quaternion (x, y, z, w)
 //! translation_mm = [0.0, -80.0, 0.0]
@@ -21,8 +23,13 @@
 //! model_points = "model.csv"
 //! tracker_points = "tracker.csv"
 //! ```
+//! **Format 1** (before issue 19) was fitted to the body-frame points as they were, as if that frame
+//! were right-handed: for a real patient's fiducials its best rigid fit is a reflection, and the
+//! lungs it placed were a mirror image. It is refused with the fix: run `lungdyn register` again
+//! with the same point files (the file's `[registration]` names them).
+//!
 //! Loading checks ([`Calibration::from_toml`], the one validation every reader uses: the renderer,
-//! `scene check`, `demo`, `register` reading back what it writes): `format = 1`, the kind; a finite
+//! `scene check`, `demo`, `register` reading back what it writes): `format = 2`, the kind; a finite
 //! quaternion within 1e-3 of unit length (renormalised); when the matrix is present, every entry
 //! finite, the matrix a rotation — orthonormal (`|MᵀM − I|` ≤ [`ROTATION_TOLERANCE`] per entry)
 //! with determinant +1 within [`ROTATION_TOLERANCE`] (a reflection, −1, is named) — and the
@@ -167,6 +174,9 @@ pub struct Calibration {
 /// The kind written and accepted.
 pub const KIND: &str = "model-to-reference";
 
+/// The format written and accepted (2: the model's points in RAS; see the module doc)."
+pub const FORMAT: u32 = 2;
+
 impl Calibration {
     /// From a registration of model fiducials onto fiducials measured in the reference's frame.
     pub fn from_registration(r: &Registration, model_points: &str, tracker_points: &str) -> Self {
@@ -191,7 +201,7 @@ impl Calibration {
         let m = self.rotation.to_rotation_matrix();
         let m = m.matrix();
         let file = CalibFile {
-            format: 1,
+            format: FORMAT,
             kind: KIND.into(),
             transform: TransformText {
                 rotation_xyzw: [q.i, q.j, q.k, q.w],
@@ -205,9 +215,10 @@ impl Calibration {
             registration: self.registration.clone(),
         };
         format!(
-            "# lungdyn calibration (format 1): the lungs' model frame in the patient reference tool's frame.\n\
-             # p_reference = R * p_model + t, millimetres; model frame = the meshes' body frame (+X left,\n\
-             # +Y anterior, +Z superior). Written by `lungdyn register`; see tracker-bridge/pose/src/calib.rs.\n{}",
+            "# lungdyn calibration (format 2): the lungs' model frame in the patient reference tool's frame.\n\
+             # p_reference = R * p_model_ras + t, millimetres; p_model_ras = the meshes' body-frame point (+X\n\
+             # left, +Y anterior, +Z superior) with X negated (RAS). Written by `lungdyn register`; see\n\
+             # tracker-bridge/pose/src/calib.rs.\n{}",
             toml::to_string(&file).unwrap_or_default()
         )
     }
@@ -223,10 +234,22 @@ impl Calibration {
             field,
             reason,
         };
-        if f.format != 1 {
+        if f.format == 1 {
             return Err(invalid(
                 "format",
-                format!("{} is not 1, the only version this build reads", f.format),
+                "1 is the format fitted to the mirrored body frame before issue 19's fix (its lungs \
+                 were drawn as a mirror image of the patient): run `lungdyn register` again with the \
+                 same point files to write format 2"
+                    .into(),
+            ));
+        }
+        if f.format != FORMAT {
+            return Err(invalid(
+                "format",
+                format!(
+                    "{} is not {FORMAT}, the only version this build reads",
+                    f.format
+                ),
             ));
         }
         if f.kind != KIND {
@@ -280,7 +303,7 @@ impl Calibration {
         Self::from_toml(&read_small(path)?, &path.display().to_string())
     }
 
-    /// Apply to a model point, mm.
+    /// Apply to a model point in RAS (the body-frame point with X negated), mm.
     pub fn apply(&self, p: [f64; 3]) -> [f64; 3] {
         let b = self.rotation * Vector3::from(p) + self.translation_mm;
         [b.x, b.y, b.z]
@@ -350,7 +373,8 @@ mod tests {
         }
         .to_toml();
         let cases = [
-            (good.replace("format = 1", "format = 2"), "format"),
+            (good.replace("format = 2", "format = 3"), "format"),
+            (good.replace("format = 2", "format = 1"), "run `lungdyn register` again"),
             (
                 good.replace("model-to-reference", "reference-to-model"),
                 "kind",

@@ -5,13 +5,16 @@
 //! wind counter-clockwise seen from outside, so the enclosed volume (divergence theorem,
 //! [`TriMesh::enclosed_volume_mm3`]) is positive.
 //!
-//! **Handedness (issue 19, found, not yet fixed).** Physically this frame is *left-handed*: patient-left
-//! × anterior points inferior, not superior (in RAS terms it is diag(−1, 1, 1), determinant −1). The
-//! numbers are consistent with each other (imported LPS/RAS data are converted axis by axis), but the
-//! renderer and the tracker's room are right-handed and take the body → room pose as a rotation, so
-//! they show a mirror-image patient: from the front the right lung appears on the viewer's right
-//! (`renderer::record` test `the_patients_right_lung_is_on_the_viewers_left_from_the_front`, ignored
-//! until fixed), and fiducials registered from this frame to a real patient fit best as a reflection.
+//! **Handedness (issue 19).** Physically this frame is *left-handed*: patient-left × anterior points
+//! inferior, not superior (in RAS terms it is diag(−1, 1, 1), determinant −1). The numbers are
+//! consistent with each other (imported LPS/RAS data are converted axis by axis, by
+//! [`crate::frame`]); the room, the tracker and the renderer are right-handed, so every crossing from
+//! this frame to theirs goes through the one reflection [`crate::frame::BODY_TO_RAS`]
+//! ([`crate::frame::body_to_room`], [`crate::orientation::gravity_in_body`], `lungdyn register`):
+//! from the front the right lung is on the viewer's left (`renderer::record` test
+//! `the_patients_right_lung_is_on_the_viewers_left_from_the_front`, and the image test reading the
+//! lobe colours' sides). The triangles' winding is counter-clockwise from outside *in this frame's
+//! coordinates*; in the room it is clockwise (the renderer's front face follows the determinant).
 //!
 //! [`generate`] builds the built-in default lungs procedurally at any resolution ([`anatomy`], the
 //! default, or the earlier [`teardrop`]); [`check`] verifies
