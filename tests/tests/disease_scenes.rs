@@ -410,6 +410,64 @@ fn the_upright_scene_breathes_the_same_volume_with_gravity_from_head_to_feet() {
     assert_eq!(up["stage_counts"]["orientation_evaluations"], 2);
 }
 
+/// Issue 19, end to end (scene → synthetic posture → engine gravity → force weights): lying on
+/// the LEFT side the left lung is the dependent one. Table 6.1's force is 0 at the dependent edge
+/// and largest on the upper side, so the left lung's weight on x̂ (lateral, towards the patient's
+/// left: down) is negative and the right lung's (lateral towards the right: up) positive; on the
+/// right side the signs swap. Before the body frame's reflection was applied at the boundary
+/// these came out the other way round (the right lung dependent when lying on the left).
+#[test]
+fn lying_on_the_left_side_makes_the_left_lung_dependent_in_the_engine() {
+    let dir = tmp("decubitus");
+    std::fs::create_dir_all(&dir).unwrap();
+    let weights = |posture: &str| {
+        let s = dir.join(format!("{posture}.toml"));
+        std::fs::write(
+            &s,
+            format!(
+                "[lungs]\nsides = [\"right\", \"left\"]\nmode = \"basis\"\nvertices = 2000\n\
+                 [tracker]\nsource = \"synthetic\"\nposture = \"{posture}\"\n"
+            ),
+        )
+        .unwrap();
+        let out = dir.join(format!("{posture}_out"));
+        let (ok, stdout, err) = lungdyn(&[
+            "scene",
+            "run",
+            s.to_str().unwrap(),
+            "--seconds",
+            "2",
+            "--out",
+            out.to_str().unwrap(),
+            "--json",
+        ]);
+        assert!(ok, "{posture}: {err}");
+        let v: serde_json::Value = serde_json::from_str(&stdout).unwrap();
+        assert_eq!(v["posture"], posture);
+        let x_weight = |side: &str| {
+            let l = v["lungs"]
+                .as_array()
+                .unwrap()
+                .iter()
+                .find(|l| l["side"] == side)
+                .unwrap();
+            l["coefficients"][1].as_f64().unwrap()
+        };
+        (x_weight("left"), x_weight("right"))
+    };
+    let (left, right) = weights("left-lateral");
+    assert!(
+        left < -0.1 && right > 0.1,
+        "left-lateral: x̂ weights left {left}, right {right}"
+    );
+    let (left, right) = weights("right-lateral");
+    assert!(
+        left > 0.1 && right < -0.1,
+        "right-lateral: x̂ weights left {left}, right {right}"
+    );
+    std::fs::remove_dir_all(&dir).ok();
+}
+
 #[test]
 fn scene_run_reports_the_tumour_centres_motion_and_writes_its_trajectory() {
     let out = tmp("tumour_run");

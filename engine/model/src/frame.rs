@@ -49,14 +49,15 @@ pub const BODY_TO_RAS_F32: Mat3 = Mat3::from_cols(
     Vec3::new(0.0, 0.0, 1.0),
 );
 
-/// A body-frame point or direction in RAS.
+/// A body-frame point or direction in RAS: [`BODY_TO_RAS`] applied as the sign change it is (no
+/// multiply-adds: exactly `−x`, and an infinite Y or Z cannot turn X into NaN).
 pub fn body_to_ras(p: DVec3) -> DVec3 {
-    BODY_TO_RAS * p
+    DVec3::new(-p.x, p.y, p.z)
 }
 
-/// A RAS point or direction in the body frame.
+/// A RAS point or direction in the body frame (the same sign change).
 pub fn ras_to_body(p: DVec3) -> DVec3 {
-    BODY_TO_RAS * p
+    body_to_ras(p)
 }
 
 /// An LPS (DICOM/ITK) point or direction in the body frame: LPS → RAS negates X and Y, then
@@ -73,7 +74,7 @@ pub fn body_to_lps(p: DVec3) -> DVec3 {
 
 /// `[f32; 3]` form of [`ras_to_body`] (mesh vertices).
 pub fn ras_to_body_f32(p: [f32; 3]) -> [f32; 3] {
-    (BODY_TO_RAS_F32 * Vec3::from(p)).to_array()
+    [-p[0], p[1], p[2]]
 }
 
 /// `[f32; 3]` form of [`lps_to_body`] (mesh vertices).
@@ -90,7 +91,7 @@ pub fn body_to_room(ras_to_room: Mat4) -> Mat4 {
 
 /// A body-frame direction in the room for a patient pose (RAS → room rotation).
 pub fn body_dir_to_room(pose: Quat, v: Vec3) -> Vec3 {
-    pose * (BODY_TO_RAS_F32 * v)
+    pose * Vec3::from(ras_to_body_f32(v.to_array()))
 }
 
 /// A room direction in the body frame for a patient pose (RAS → room rotation, unit): the
@@ -144,5 +145,16 @@ mod tests {
         assert_eq!(body_to_ras(ras_to_body(body)), body);
         assert_eq!(ras_to_body_f32([-80.0, 20.0, 150.0]), [80.0, 20.0, 150.0]);
         assert_eq!(lps_to_body_f32([80.0, -20.0, 150.0]), [80.0, 20.0, 150.0]);
+        // The functions are the matrix, exactly.
+        for p in [body, DVec3::new(-0.5, 1e30, -3.0), DVec3::ZERO] {
+            assert_eq!(body_to_ras(p), BODY_TO_RAS * p);
+            assert_eq!(
+                Vec3::from(ras_to_body_f32(p.as_vec3().to_array())),
+                BODY_TO_RAS_F32 * p.as_vec3()
+            );
+        }
+        // A sign change: an infinite coordinate stays in its own axis.
+        let far = body_to_ras(DVec3::new(1.0, f64::INFINITY, 0.0));
+        assert_eq!(far.x, -1.0);
     }
 }
