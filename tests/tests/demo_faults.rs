@@ -3,6 +3,7 @@
 //! and leaves nothing behind; a renderer stopped for good shows as missed deadlines; a restart storm
 //! past the limit ends the run with a clear error — and the report so far still printed.
 
+use std::os::unix::process::CommandExt;
 use std::process::{Child, Command, Stdio};
 use std::time::Duration;
 
@@ -40,9 +41,30 @@ impl Demo {
             .stdin(Stdio::null())
             .stdout(Stdio::piped())
             .stderr(std::fs::File::create(&err).unwrap())
+            // Its own process group, as a shell starts a job: a terminal's Ctrl-Z and `fg` signal
+            // the whole group (launcher and children), which `Demo::signal_job` does.
+            .process_group(0)
             .spawn()
             .unwrap();
         Demo { child, err, dir }
+    }
+
+    /// Send `sig` to the demo's whole process group, as the terminal does for the foreground job
+    /// (Ctrl-Z: SIGTSTP) and the shell's `fg` does (SIGCONT).
+    fn signal_job(&self, sig: libc::c_int) {
+        // SAFETY: the group our child leads (process_group(0) at spawn).
+        assert_eq!(
+            unsafe { libc::killpg(self.child.id() as libc::pid_t, sig) },
+            0
+        );
+    }
+
+    /// Whether the launcher is stopped (state T in /proc).
+    fn launcher_stopped(&self) -> bool {
+        std::fs::read_to_string(format!("/proc/{}/stat", self.child.id())).is_ok_and(|s| {
+            s.rsplit_once(") ")
+                .is_some_and(|(_, rest)| rest.starts_with('T'))
+        })
     }
 
     fn stderr(&self) -> String {
@@ -134,6 +156,40 @@ fn a_renderer_stopped_for_good_shows_as_missed_deadlines() {
     assert!(v["deadline_misses"].as_u64().unwrap() > 60, "{v}");
     assert!(v["missed_frame_slots"].as_u64().unwrap() > 60, "{v}");
     assert!(v["worst_case_ms"].as_f64().unwrap() > 1000.0, "{v}");
+    assert_eq!(v["remaining_files"], 0);
+}
+
+/// Ctrl-Z then `fg` at a terminal: the whole job is stopped (SIGTSTP to its process group) and
+/// continued (SIGCONT to the group). The run goes on to its end and exits 0 with its report, the
+/// stopped time counted as missed frame slots against the schedule, nothing restarted. (Checked by
+/// hand too, in a pty with an interactive bash's job control: 4 of 4 runs completed.)
+#[test]
+fn ctrl_z_then_fg_pauses_the_whole_run_and_it_completes() {
+    if renderer::gpu::Gpu::for_tests().is_none() {
+        return;
+    }
+    let demo = Demo::start("ctrlz", "6", &[]);
+    demo.wait_for("tracker connected");
+    std::thread::sleep(Duration::from_millis(1000));
+    demo.signal_job(libc::SIGTSTP);
+    let mut stopped = false;
+    for _ in 0..100 {
+        if demo.launcher_stopped() {
+            stopped = true;
+            break;
+        }
+        std::thread::sleep(Duration::from_millis(20));
+    }
+    assert!(stopped, "SIGTSTP stops the launcher: {}", demo.stderr());
+    std::thread::sleep(Duration::from_millis(2000));
+    demo.signal_job(libc::SIGCONT);
+    let (ok, v, err) = demo.finish();
+    assert!(ok, "{err}");
+    assert_eq!(v["ended"], "completed", "{v}");
+    assert_eq!(v["restarts"], 0, "{v}");
+    // Two seconds stopped are 120 slots of the 60 Hz schedule: they show as missed.
+    assert!(v["missed_frame_slots"].as_u64().unwrap() >= 100, "{v}");
+    assert!(v["frames_rendered"].as_u64().unwrap() > 0, "{v}");
     assert_eq!(v["remaining_files"], 0);
 }
 
