@@ -249,11 +249,25 @@ impl transport::Publish<ipc_types::ControlReply> for NoReplies {
 /// sites' events coming in and its control states going out over `src` — until `stop`; every
 /// tick recorded. `id` is the source's site id, `epoch` its session.
 pub fn run_source(
+    core: EngineCore,
+    hz: f64,
+    src: &Source,
+    id: u64,
+    epoch: u64,
+    stop: &AtomicBool,
+) -> Result<(Vec<Rec>, LoopStats), RemoteError> {
+    run_source_at(core, hz, src, id, epoch, 0, stop)
+}
+
+/// [`run_source`] from tick `first` (a restarted source: `core` resumed there with
+/// [`EngineCore::resume_at`]).
+pub fn run_source_at(
     mut core: EngineCore,
     hz: f64,
     src: &Source,
     id: u64,
     epoch: u64,
+    first: u64,
     stop: &AtomicBool,
 ) -> Result<(Vec<Rec>, LoopStats), RemoteError> {
     let due = Rc::new(Cell::new(0));
@@ -277,7 +291,7 @@ pub fn run_source(
         PacerConfig::for_period((1e9 / hz).round() as u64),
         &mut || stop.load(Ordering::Relaxed),
         None,
-        0,
+        first,
     )?;
     Ok((frames.0, stats))
 }

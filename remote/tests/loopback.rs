@@ -1,6 +1,7 @@
 //! Source and sites as separate Zenoh sessions over TCP on 127.0.0.1 (multicast scouting off,
-//! explicit endpoints, 2 s lease): join, late join, loss, a bad packet, a site's event applied at
-//! the same cycle everywhere.
+//! explicit endpoints, 2 s lease): join, late join, loss, a bad packet at a site and at the
+//! source, a site's event applied at the same cycle everywhere, a source restart, a site dropping
+//! out and rejoining.
 
 use std::sync::atomic::{AtomicBool, Ordering};
 use std::sync::Arc;
@@ -146,11 +147,15 @@ fn a_bad_packet_is_refused_counted_and_the_site_breathes_on() {
         .unwrap();
         b[4] = 9;
         rogue.put(keys.state(), b).wait().unwrap();
+        // And at the source: garbage where sites' events arrive.
+        rogue.put(keys.event(), vec![7u8; 40]).wait().unwrap();
         std::thread::sleep(Duration::from_millis(2600));
         stop.store(true, Ordering::Relaxed);
         h.join().unwrap().unwrap();
     });
     assert_eq!(site.counts.refused.load(Ordering::Relaxed), 2);
+    assert_eq!(source.counts.refused.load(Ordering::Relaxed), 1);
+    assert_eq!(source.counts.events.load(Ordering::Relaxed), 0);
     let why = site.last_refusal.lock().unwrap().clone().unwrap();
     assert!(why.contains("format v9"), "{why}");
     // The real states kept coming: 2 s cycles over 3.3 s.
@@ -275,4 +280,200 @@ fn a_sites_event_is_applied_at_the_same_cycle_by_the_source_and_every_site() {
             assert_eq!(src.3.to_bits(), r.3.to_bits(), "tick {}", r.2);
         }
     }
+}
+
+/// A free TCP port on 127.0.0.1 (the listener is closed again; the source takes it at once).
+fn free_port() -> u16 {
+    std::net::TcpListener::bind("127.0.0.1:0")
+        .unwrap()
+        .local_addr()
+        .unwrap()
+        .port()
+}
+
+fn source_net(port: u16) -> Net {
+    let mut n = Net::peer(&[format!("tcp/127.0.0.1:{port}")], &[]);
+    n.lease_ms = 2000;
+    n
+}
+
+/// Compare a site's ticks with the source runs that stepped the same tick numbers: the volume
+/// bit for bit. Returns how many ticks were compared.
+fn same_ticks(site: &[harness::Rec], sources: &[&[harness::Rec]]) -> usize {
+    let mut n = 0;
+    for r in site {
+        let src = sources
+            .iter()
+            .find_map(|s| s.iter().find(|x| x.2 == r.2))
+            .unwrap_or_else(|| panic!("no source stepped tick {}", r.2));
+        assert_eq!(src.3.to_bits(), r.3.to_bits(), "tick {}", r.2);
+        n += 1;
+    }
+    n
+}
+
+/// The source restarts (its engine stops, a new one resumes at the tick after the last it
+/// published, as the launcher's supervisor restarts it, with a new Zenoh session and epoch on the
+/// same endpoint): the site breathes on through the gap, takes the new source's states from its
+/// publisher's cache and is in step with it again — every tick it stepped is the tick the sources
+/// stepped, bit for bit, through a tension pneumothorax's course.
+#[test]
+fn a_source_restart_does_not_make_the_site_diverge() {
+    use lungdyn_remote::harness::{run_site, scene_core};
+    let scene = tension_scene();
+    let scene = &scene;
+    let hz = scene.engine.tick_hz;
+    let keys = Keys::new("restart").unwrap();
+    let port = free_port();
+    let first = Arc::new(
+        Source::open(&source_net(port), &keys, site_id(0), Impairment::default()).unwrap(),
+    );
+    let site = Site::open(
+        &site_net(&first),
+        &keys,
+        site_id(1),
+        true,
+        Impairment::default(),
+        100,
+    )
+    .unwrap();
+    let mut c = scene_core(scene).unwrap();
+    c.follow_remote();
+    let runner = site.runner(c, hz).unwrap();
+    let site_stop = Arc::new(AtomicBool::new(false));
+    let (a, b, site_recs, applied_before) = std::thread::scope(|s| {
+        let st = site_stop.clone();
+        let h_site = s.spawn(move || run_site(runner, &st));
+        // The first source: 3 s.
+        let stop = Arc::new(AtomicBool::new(false));
+        let a = {
+            let (src, st) = (first.clone(), stop.clone());
+            let h = s.spawn(move || {
+                run_source(scene_core(scene).unwrap(), hz, &src, site_id(0), 1, &st)
+            });
+            std::thread::sleep(Duration::from_millis(3000));
+            stop.store(true, Ordering::Relaxed);
+            h.join().unwrap().unwrap().0
+        };
+        drop(first);
+        let applied_before = site.counts.applied.load(Ordering::Relaxed);
+        std::thread::sleep(Duration::from_millis(500));
+        // The restarted source resumes at the tick after the last one published.
+        let resume = a.last().unwrap().2 + 1;
+        let second = Arc::new(
+            Source::open(&source_net(port), &keys, site_id(2), Impairment::default()).unwrap(),
+        );
+        let stop = Arc::new(AtomicBool::new(false));
+        let b = {
+            let (src, st) = (second.clone(), stop.clone());
+            let h = s.spawn(move || {
+                let mut core = scene_core(scene).unwrap();
+                core.resume_at(resume).unwrap();
+                harness::run_source_at(core, hz, &src, site_id(2), 2, resume, &st)
+            });
+            std::thread::sleep(Duration::from_millis(4500));
+            site_stop.store(true, Ordering::Relaxed);
+            stop.store(true, Ordering::Relaxed);
+            h.join().unwrap().unwrap().0
+        };
+        let site_recs = h_site.join().unwrap().unwrap();
+        (a, b, site_recs, applied_before)
+    });
+    // The site took the second source's states (a new epoch) and stepped its ticks.
+    assert!(site.counts.applied.load(Ordering::Relaxed) > applied_before + 1);
+    let b_first = b.first().unwrap().2;
+    let after: Vec<_> = site_recs.iter().filter(|r| r.2 >= b_first + 120).collect();
+    assert!(
+        after.len() > 60,
+        "the site stepped {} ticks a cycle after the restart",
+        after.len()
+    );
+    assert!(same_ticks(&site_recs, &[&b, &a]) > 300);
+    // In step with the second source: each tick scheduled within a tick of when it ran there.
+    for r in after {
+        let src = b.iter().find(|x| x.2 == r.2).unwrap();
+        let off_ms = (r.0 - src.0).abs() as f64 / 1e6;
+        assert!(off_ms < 16.7, "tick {} scheduled {off_ms} ms off", r.2);
+    }
+}
+
+/// A site drops out (its session closes: the source sees it leave) and rejoins with a fresh engine:
+/// the current state comes from the publisher's cache and the site is in step — the source's
+/// ticks, bit for bit, through a tension pneumothorax's course — within one breathing cycle.
+#[test]
+fn a_site_that_drops_out_and_rejoins_is_in_step_within_one_cycle() {
+    use lungdyn_remote::harness::{run_site, scene_core};
+    let scene = tension_scene();
+    let scene = &scene;
+    let hz = scene.engine.tick_hz;
+    let keys = Keys::new("rejoin").unwrap();
+    let id = site_id(0);
+    let source = Source::open(&nets(), &keys, id, Impairment::default()).unwrap();
+    let open_site = || {
+        Site::open(
+            &site_net(&source),
+            &keys,
+            site_id(1),
+            true,
+            Impairment::default(),
+            100,
+        )
+        .unwrap()
+    };
+    let site_core = || {
+        let mut c = scene_core(scene).unwrap();
+        c.follow_remote();
+        c
+    };
+    let stop = Arc::new(AtomicBool::new(false));
+    std::thread::scope(|s| {
+        let (src, st) = (&source, stop.clone());
+        let h = s.spawn(move || run_source(scene_core(scene).unwrap(), hz, src, id, 1, &st));
+        // Joined for 2.5 s, then gone.
+        let first = open_site();
+        let st = Arc::new(AtomicBool::new(false));
+        let r = first.runner(site_core(), hz).unwrap();
+        let h1 = {
+            let st = st.clone();
+            s.spawn(move || run_site(r, &st))
+        };
+        std::thread::sleep(Duration::from_millis(2500));
+        assert_eq!(source.sites(), 1);
+        st.store(true, Ordering::Relaxed);
+        let before = h1.join().unwrap().unwrap();
+        drop(first);
+        let left = Instant::now();
+        while source.sites() != 0 && left.elapsed() < Duration::from_secs(3) {
+            std::thread::sleep(Duration::from_millis(10));
+        }
+        assert_eq!(source.sites(), 0, "the source saw the site leave");
+        std::thread::sleep(Duration::from_millis(1500));
+        // Back, with a fresh engine.
+        let joined = transport::clock::now_ns();
+        let again = open_site();
+        let st = Arc::new(AtomicBool::new(false));
+        let r = again.runner(site_core(), hz).unwrap();
+        let h2 = {
+            let st = st.clone();
+            s.spawn(move || run_site(r, &st))
+        };
+        std::thread::sleep(Duration::from_millis(4000));
+        st.store(true, Ordering::Relaxed);
+        let after = h2.join().unwrap().unwrap();
+        stop.store(true, Ordering::Relaxed);
+        let (recs, _) = h.join().unwrap().unwrap();
+        assert_eq!(same_ticks(&before, &[&recs]), before.len());
+        assert_eq!(same_ticks(&after, &[&recs]), after.len());
+        // In step within a cycle (2 s) of rejoining: from its first tick on, every tick it steps
+        // is the source's, scheduled within a tick of the source's.
+        let first_tick = after.first().expect("the rejoined site stepped");
+        let waited_ms = (first_tick.1 - joined) as f64 / 1e6;
+        assert!(waited_ms < 2000.0, "in step {waited_ms} ms after rejoining");
+        for r in &after {
+            let src = &recs[r.2 as usize];
+            let off_ms = (r.0 - src.0).abs() as f64 / 1e6;
+            assert!(off_ms < 16.7, "tick {} scheduled {off_ms} ms off", r.2);
+        }
+        assert!(after.len() > 120, "{} ticks after rejoining", after.len());
+    });
 }
