@@ -60,6 +60,8 @@ fn lung_words(lung: u32) -> &'static str {
     match lung as usize {
         ipc_types::LUNG_RIGHT => "right",
         ipc_types::LUNG_LEFT => "left",
+        // A joined remote site forwards the action before the source resolves the side.
+        _ if lung == LUNG_AFFECTED => "affected",
         _ => "an unknown side",
     }
 }
@@ -139,6 +141,7 @@ pub fn run(args: &EventArgs) -> anyhow::Result<()> {
         },
         _pad: 0,
         sequence,
+        origin: ipc_types::ORIGIN_LOCAL,
     };
     outlet.publish(&packet)?;
     let side = args.side.map_or("the affected", |s| s.name());

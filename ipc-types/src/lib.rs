@@ -18,7 +18,7 @@
 //!
 //! ## Layout versioning
 //! [`LAYOUT_VERSION`] is written into every payload ([`Message::layout_version`]) and into every
-//! payload's type name ([`Message::TYPE_NAME`], `"lungdyn.EngineFrame.v4"`), which the transport
+//! payload's type name ([`Message::TYPE_NAME`], `"lungdyn.EngineFrame.v5"`), which the transport
 //! hands to iceoryx2: iceoryx2 refuses to open a service whose payload type name, size or alignment
 //! differ from the creator's, so a process built from another layout fails at start-up instead of
 //! reading garbage; the field in the payload is a second check for peers that bypass the type name.
@@ -32,7 +32,8 @@
 //! to each [`FrameReport`] when `present` returned, the present mode and the frame latency (the
 //! latency harness's submit-to-present), and the renderer's GPU-done time (capture → GPU done), and
 //! what a heads-up display shows of each lung's breath: its PV-model pressure, tidal volume and the
-//! ticks of its current cycle and inhalation (so a disease's own rate is shown, not the scene's).
+//! ticks of its current cycle and inhalation (so a disease's own rate is shown, not the scene's); v5
+//! gives each [`ControlPacket`] its origin (the remote site that raised it, or [`ORIGIN_LOCAL`]).
 
 use core::mem::{align_of, offset_of, size_of};
 
@@ -41,7 +42,7 @@ use bytemuck::{Pod, Zeroable};
 pub mod wake;
 
 /// Version of every payload layout in this crate. Part of each payload's type name.
-pub const LAYOUT_VERSION: u32 = 4;
+pub const LAYOUT_VERSION: u32 = 5;
 
 /// Maximum number of tracked tools in one [`TrackerFrame`].
 pub const MAX_TOOLS: usize = 4;
@@ -489,10 +490,18 @@ pub struct ControlPacket {
     pub lung: u32,
     /// Explicit padding.
     pub _pad: u32,
-    /// Sender's sequence number ([`control_sequence`]; a repeated number is one action, not two).
-    /// The engine's [`ControlReply`]s carry it back.
+    /// Sender's sequence number ([`control_sequence`]; a repeated number from the same origin is
+    /// one action, not two). The engine's [`ControlReply`]s carry it back.
     pub sequence: u64,
+    /// Where the action was raised: [`ORIGIN_LOCAL`] for a sender on this host (`lungdyn scene
+    /// event`, the window's keys), otherwise the remote site's id (`lungdyn remote serve` hands a
+    /// site's event to the source engine with it). The engine announces each action to every site
+    /// with its origin and sequence and the cycle it applies at.
+    pub origin: u64,
 }
+
+/// [`ControlPacket::origin`] of an action raised on the engine's own host.
+pub const ORIGIN_LOCAL: u64 = 0;
 
 /// [`ControlPacket::lung`] meaning "the side of the scene's pneumothorax": the engine resolves it and
 /// its [`ControlReply::lung`] names the side it acted on.
@@ -678,7 +687,7 @@ impl core::str::FromStr for Intervention {
 
 impl Message for ControlPacket {
     const NAME: &'static str = "ControlPacket";
-    const TYPE_NAME: &'static str = "lungdyn.ControlPacket.v4";
+    const TYPE_NAME: &'static str = "lungdyn.ControlPacket.v5";
     fn layout_version(&self) -> u32 {
         self.layout_version
     }
@@ -686,35 +695,35 @@ impl Message for ControlPacket {
 
 impl Message for ControlReply {
     const NAME: &'static str = "ControlReply";
-    const TYPE_NAME: &'static str = "lungdyn.ControlReply.v4";
+    const TYPE_NAME: &'static str = "lungdyn.ControlReply.v5";
     fn layout_version(&self) -> u32 {
         self.layout_version
     }
 }
 
-const VERSION_SUFFIX: &str = ".v4";
+const VERSION_SUFFIX: &str = ".v5";
 const _: () = assert!(
-    LAYOUT_VERSION == 4,
+    LAYOUT_VERSION == 5,
     "bump VERSION_SUFFIX with LAYOUT_VERSION"
 );
 
 impl Message for TrackerFrame {
     const NAME: &'static str = "TrackerFrame";
-    const TYPE_NAME: &'static str = "lungdyn.TrackerFrame.v4";
+    const TYPE_NAME: &'static str = "lungdyn.TrackerFrame.v5";
     fn layout_version(&self) -> u32 {
         self.layout_version
     }
 }
 impl Message for EngineFrame {
     const NAME: &'static str = "EngineFrame";
-    const TYPE_NAME: &'static str = "lungdyn.EngineFrame.v4";
+    const TYPE_NAME: &'static str = "lungdyn.EngineFrame.v5";
     fn layout_version(&self) -> u32 {
         self.layout_version
     }
 }
 impl Message for FrameReport {
     const NAME: &'static str = "FrameReport";
-    const TYPE_NAME: &'static str = "lungdyn.FrameReport.v4";
+    const TYPE_NAME: &'static str = "lungdyn.FrameReport.v5";
     fn layout_version(&self) -> u32 {
         self.layout_version
     }
@@ -742,10 +751,11 @@ const _: () = {
     assert!(ends_with(EngineFrame::TYPE_NAME, VERSION_SUFFIX));
     assert!(ends_with(FrameReport::TYPE_NAME, VERSION_SUFFIX));
     assert!(ends_with(ControlPacket::TYPE_NAME, VERSION_SUFFIX));
-    assert!(size_of::<ControlPacket>() == 24 && align_of::<ControlPacket>() == 8);
+    assert!(size_of::<ControlPacket>() == 32 && align_of::<ControlPacket>() == 8);
     assert!(offset_of!(ControlPacket, kind) == 4);
     assert!(offset_of!(ControlPacket, lung) == 8);
     assert!(offset_of!(ControlPacket, sequence) == 16);
+    assert!(offset_of!(ControlPacket, origin) == 24);
     assert!(ends_with(ControlReply::TYPE_NAME, VERSION_SUFFIX));
     assert!(size_of::<ControlReply>() == 48 + REPLY_TEXT_BYTES && align_of::<ControlReply>() == 8);
     assert!(offset_of!(ControlReply, status) == 4);

@@ -14,23 +14,25 @@
 //! thread, not only the protocol. `drift_percent_mean_scheduled` evaluates the same at each
 //! engine's scheduled tick times (the protocol's own error: offset estimate and state timing).
 
+use std::cell::Cell;
+use std::rc::Rc;
 use std::sync::atomic::{AtomicBool, Ordering};
 use std::sync::{Arc, Mutex};
 use std::time::Duration;
 
-use control_state::{encode, Packet, FRAME_BYTES};
-use engine::runtime::remote::StateStamp;
+use engine::runtime::process::{run_loop, Controls, LoopStats, StateOut};
 use engine::runtime::{EngineCore, LungGeometry};
 use lung_model::deform::{LungModel, MotionConstants};
 use lung_model::mesh::{generate, Side};
 use lung_model::scene::Scene;
 use serde::Serialize;
 use transport::clock::now_ns;
+use transport::pacer::PacerConfig;
 
 use crate::link::Impairment;
 use crate::site::{Runner, Site};
 
-use crate::source::Source;
+use crate::source::{EnginePorts, Source};
 use crate::{site_id, Keys, Net, RemoteError};
 
 /// Options of `lungdyn remote harness`.
@@ -140,25 +142,31 @@ pub struct HarnessReport {
 }
 
 /// A record of one stepped tick: (scheduled ns, actual ns, tick, total volume, cycle).
-type Rec = (i128, u64, u64, f32, u32);
+pub type Rec = (i128, u64, u64, f32, u32);
 
-fn lungs() -> Vec<LungGeometry> {
+/// The generated lungs every harness session runs (no kernels needed: the figures are volumes).
+fn lungs() -> (Vec<LungGeometry>, Vec<lung_model::mesh::TriMesh>) {
     [Side::Right, Side::Left]
         .into_iter()
         .map(|side| {
-            let m = LungModel::build(
-                side,
-                generate::lung(side, 500).expect("the generated lung"),
-                &MotionConstants::table_6_1(side),
-            )
-            .expect("the generated lung's model");
-            LungGeometry::of(&m)
+            let mesh = generate::lung(side, 500).expect("the generated lung");
+            let m = LungModel::build(side, mesh.clone(), &MotionConstants::table_6_1(side))
+                .expect("the generated lung's model");
+            (LungGeometry::of(&m), mesh)
         })
-        .collect()
+        .unzip()
 }
 
-/// The engine every harness session runs (the default scene on generated lungs, kernels not
-/// needed: the figures are volumes).
+/// An engine for `scene` on the generated lungs, its disease state started (the source's: a site
+/// calls [`EngineCore::follow_remote`] on its own).
+pub fn scene_core(scene: &Scene) -> Result<EngineCore, RemoteError> {
+    let (geometry, meshes) = lungs();
+    let mut core = EngineCore::with_geometry(scene, geometry)?;
+    core.start_disease(scene, &meshes)?;
+    Ok(core)
+}
+
+/// The engine every harness session runs: the default scene (at `breaths_per_min` if given).
 pub fn harness_core(breaths_per_min: Option<f64>) -> Result<(Scene, EngineCore), RemoteError> {
     let mut scene = Scene::default();
     if let Some(b) = breaths_per_min {
@@ -169,7 +177,7 @@ pub fn harness_core(breaths_per_min: Option<f64>) -> Result<(Scene, EngineCore),
         }
         scene.pv.breaths_per_min = b;
     }
-    let core = EngineCore::with_geometry(&scene, lungs())?;
+    let core = scene_core(&scene)?;
     Ok((scene, core))
 }
 
@@ -186,53 +194,106 @@ pub fn locator(session: &zenoh::Session) -> Result<String, RemoteError> {
         .ok_or_else(|| RemoteError::Usage("the source listens on no tcp locator".into()))
 }
 
-/// Run the source's engine on an absolute schedule from `t0`, publishing a state at every cycle
-/// start, until `stop`; every tick recorded.
+/// A tracker that never sends: the source engine ticks on its deadlines (sleeping until each,
+/// and keeping the last for the tick's record).
+struct NoTracker(Rc<Cell<u64>>);
+
+impl transport::Receive<ipc_types::TrackerFrame> for NoTracker {
+    fn wait_until(&mut self, deadline_ns: u64) -> Result<(), transport::PortError> {
+        self.0.set(deadline_ns);
+        let now = now_ns();
+        if deadline_ns > now {
+            std::thread::sleep(Duration::from_nanos(deadline_ns - now));
+        }
+        Ok(())
+    }
+    fn take_latest(&mut self) -> Result<Option<ipc_types::TrackerFrame>, transport::PortError> {
+        Ok(None)
+    }
+    fn drain(
+        &mut self,
+        _f: &mut dyn FnMut(&ipc_types::TrackerFrame),
+    ) -> Result<usize, transport::PortError> {
+        Ok(0)
+    }
+}
+
+/// Every frame the source engine publishes, as a record; scheduled at the deadline its tick ran
+/// for.
+struct Records(Vec<Rec>, Rc<Cell<u64>>);
+
+impl transport::Publish<ipc_types::EngineFrame> for Records {
+    fn publish(&mut self, f: &ipc_types::EngineFrame) -> Result<(), transport::PortError> {
+        let v = f.lungs.iter().map(|l| l.volume_ml).sum::<f32>();
+        self.0.push((
+            self.1.get() as i128,
+            f.stamps.engine_publish_ns,
+            f.tick,
+            v,
+            f.lungs[0].cycle,
+        ));
+        Ok(())
+    }
+}
+
+/// Replies to a trainee's actions: nobody in the harness reads them.
+struct NoReplies;
+
+impl transport::Publish<ipc_types::ControlReply> for NoReplies {
+    fn publish(&mut self, _r: &ipc_types::ControlReply) -> Result<(), transport::PortError> {
+        Ok(())
+    }
+}
+
+/// Run the source engine — the engine process's own loop ([`run_loop`]), on its deadlines, the
+/// sites' events coming in and its control states going out over `src` — until `stop`; every
+/// tick recorded. `id` is the source's site id, `epoch` its session.
 pub fn run_source(
+    core: EngineCore,
+    hz: f64,
+    src: &Source,
+    id: u64,
+    epoch: u64,
+    stop: &AtomicBool,
+) -> Result<(Vec<Rec>, LoopStats), RemoteError> {
+    run_source_at(core, hz, src, id, epoch, 0, stop)
+}
+
+/// [`run_source`] from tick `first` (a restarted source: `core` resumed there with
+/// [`EngineCore::resume_at`]).
+pub fn run_source_at(
     mut core: EngineCore,
     hz: f64,
     src: &Source,
     id: u64,
-    t0: u64,
+    epoch: u64,
+    first: u64,
     stop: &AtomicBool,
-) -> Result<Vec<Rec>, RemoteError> {
-    let period = 1e9 / hz;
-    let mut frame = ipc_types::EngineFrame::default();
-    let mut starts = [u64::MAX; 2];
-    let mut buf = vec![0u8; FRAME_BYTES];
-    let mut recs = Vec::new();
-    let mut k = 0u64;
-    while !stop.load(Ordering::Relaxed) {
-        let at = t0 + (k as f64 * period).round() as u64;
-        let now = now_ns();
-        if now < at {
-            std::thread::sleep(Duration::from_nanos(at - now));
-        }
-        core.step(k, None, &mut frame);
-        let shown = now_ns();
-        let mut changed = false;
-        for (s, n) in starts.iter_mut().zip(core.cycle_starts()) {
-            changed |= *s != n;
-            *s = n;
-        }
-        if changed {
-            let stamp = StateStamp {
+) -> Result<(Vec<Rec>, LoopStats), RemoteError> {
+    let due = Rc::new(Cell::new(0));
+    let mut frames = Records(Vec::with_capacity(64 * 1024), due.clone());
+    let (mut events, mut states) = (EnginePorts(src), EnginePorts(src));
+    let stats = run_loop(
+        &mut core,
+        &mut NoTracker(due),
+        &mut frames,
+        Some(Controls {
+            inlet: &mut events,
+            replies: &mut NoReplies,
+            state: Some(StateOut {
+                outlet: &mut states,
                 source: id,
-                epoch: t0,
-                sequence: k,
+                epoch,
                 tick_hz: hz,
-                source_time_ns: at,
-            };
-            let state = core.control_state(k, stamp, &[])?;
-            let n = encode(&Packet::State(state), &mut buf)
-                .map_err(|e| RemoteError::Usage(e.to_string()))?;
-            src.publish(&buf[..n])?;
-        }
-        let v = frame.lungs.iter().map(|l| l.volume_ml).sum::<f32>();
-        recs.push((at as i128, shown, k, v, frame.lungs[0].cycle));
-        k += 1;
-    }
-    Ok(recs)
+            }),
+        }),
+        &transport::clock::Monotonic,
+        PacerConfig::for_period((1e9 / hz).round() as u64),
+        &mut || stop.load(Ordering::Relaxed),
+        None,
+        first,
+    )?;
+    Ok((frames.0, stats))
 }
 
 /// Run a site until `stop`; every stepped tick recorded.
@@ -340,7 +401,7 @@ pub fn run(args: &HarnessArgs) -> Result<HarnessReport, RemoteError> {
     // Let the probes measure the path before the first state.
     std::thread::sleep(Duration::from_millis(1000));
     let stop = Arc::new(AtomicBool::new(false));
-    let t0 = now_ns() + 50_000_000;
+    let epoch = now_ns();
     let recs: Mutex<Vec<(usize, Vec<Rec>)>> = Mutex::new(Vec::new());
     let result: Mutex<Option<RemoteError>> = Mutex::new(None);
     let source_recs = std::thread::scope(|s| {
@@ -364,10 +425,10 @@ pub fn run(args: &HarnessArgs) -> Result<HarnessReport, RemoteError> {
                 stop.store(true, Ordering::Relaxed);
             })
         };
-        let r = run_source(core.clone(), hz, &source, source_id, t0, &stop);
+        let r = run_source(core.clone(), hz, &source, source_id, epoch, &stop);
         stop.store(true, Ordering::Relaxed);
         let _ = stopper.join();
-        r
+        r.map(|(recs, _)| recs)
     })?;
     if let Some(e) = result.lock().expect("result").take() {
         return Err(e);

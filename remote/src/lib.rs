@@ -55,6 +55,15 @@ pub enum RemoteError {
     /// The scene could not be loaded.
     #[error(transparent)]
     Scene(Box<lung_model::scene::SceneError>),
+    /// The source engine's loop stopped with an error.
+    #[error(transparent)]
+    Engine(Box<engine::runtime::process::EngineError>),
+}
+
+impl From<engine::runtime::process::EngineError> for RemoteError {
+    fn from(e: engine::runtime::process::EngineError) -> Self {
+        Self::Engine(Box::new(e))
+    }
 }
 
 impl From<engine::runtime::CoreError> for RemoteError {

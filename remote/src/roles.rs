@@ -18,7 +18,7 @@ use std::time::Duration;
 
 use control_state::{decode, Packet};
 use engine::runtime::EngineCore;
-use ipc_types::{ControlPacket, Message, LAYOUT_VERSION};
+use ipc_types::{ControlPacket, ControlReply, Message};
 use lung_model::scene::Scene;
 use transport::clock::now_ns;
 use transport::{iox, Instance, Publish, Receive};
@@ -124,15 +124,8 @@ pub fn serve(args: &ServeArgs) -> Result<(), RemoteError> {
             return Err(e);
         }
         for e in source.take_events() {
-            // The engine's sequence numbers are per sender: the site's id and its own sequence.
-            let p = ControlPacket {
-                layout_version: LAYOUT_VERSION,
-                kind: e.kind,
-                lung: e.lung,
-                _pad: 0,
-                sequence: e.origin.rotate_left(17) ^ e.sequence,
-            };
-            control.publish(&p)?;
+            // The engine takes (origin, sequence) once and announces the event with both.
+            control.publish(&crate::source::control_packet(&e))?;
             eprintln!(
                 "remote serve[{}]: event kind {} on lung {} from site {:016x} (its #{}) handed \
                  to the engine",
@@ -180,6 +173,10 @@ pub fn join(args: &JoinArgs) -> Result<(), RemoteError> {
     let node = iox::node(&instance, "engine")?;
     let mut outlet = instance.engine_outlet(&node)?;
     let mut control = instance.control_inlet(&node)?;
+    // A sender on the site (`lungdyn scene event`) is answered as by an engine: received when sent
+    // to the source, applied when the source announces it (with its tick, cycle and outcome).
+    let mut replies = instance.control_reply_outlet(&node)?;
+    let mut sent: Vec<(u64, ControlPacket)> = Vec::new();
     let site = Site::open(
         &net,
         &keys,
@@ -199,6 +196,7 @@ pub fn join(args: &JoinArgs) -> Result<(), RemoteError> {
         .runner(core, hz)
         .ok_or_else(|| RemoteError::Usage("the site's runner was taken".into()))?;
     let mut first = true;
+    let mut told = 0usize;
     while !transport::stop::requested() && until.is_none_or(|t| now_ns() < t) {
         let now = now_ns();
         if runner.poll(now)?.is_some() {
@@ -215,17 +213,81 @@ pub fn join(args: &JoinArgs) -> Result<(), RemoteError> {
             runner.frame.stamps.engine_publish_ns = now_ns();
             outlet.publish(&runner.frame)?;
         }
+        // Each event the source announced, once: who raised it and the cycle every site applies it.
+        let mut announced = Vec::new();
+        if let Ok(seen) = site.events.lock() {
+            announced.extend(seen.iter().skip(told).copied());
+            told = seen.len();
+        }
+        {
+            for e in &announced {
+                eprintln!(
+                    "remote join[{}]: event kind {} on lung {} from {} (its #{}) applies at the \
+                     source's cycle {} (tick {})",
+                    instance.name(),
+                    e.kind,
+                    e.lung,
+                    if e.origin == site.id {
+                        "this site".to_string()
+                    } else {
+                        format!("site {:016x}", e.origin)
+                    },
+                    e.sequence,
+                    e.apply_cycle,
+                    e.apply_tick
+                );
+                let Some(k) = sent
+                    .iter()
+                    .position(|(n, _)| e.origin == site.id && *n == e.sequence)
+                else {
+                    continue;
+                };
+                let (_, p) = sent.remove(k);
+                let mut r = ControlReply {
+                    status: ipc_types::REPLY_APPLIED,
+                    sequence: p.sequence,
+                    tick: e.apply_tick,
+                    cycle: e.apply_cycle,
+                    kind: e.kind,
+                    lung: e.lung,
+                    outcome: e.outcome,
+                    ..Default::default()
+                };
+                r.set_text(&["applied by the source; every site switches at that tick"]);
+                replies.publish(&r)?;
+            }
+        }
         let mut events = Vec::new();
         control.drain(&mut |p: &ControlPacket| events.push(*p))?;
         for p in events {
+            let mut r = ControlReply {
+                sequence: p.sequence,
+                tick: runner.last_tick().unwrap_or(0),
+                kind: p.kind,
+                lung: p.lung,
+                ..Default::default()
+            };
             match site.send_event(p.kind, p.lung) {
-                Ok(n) => eprintln!(
-                    "remote join[{}]: event kind {} sent to the source (#{n})",
-                    instance.name(),
-                    p.kind
-                ),
-                Err(e) => eprintln!("remote join[{}]: {e}", instance.name()),
+                Ok(n) => {
+                    eprintln!(
+                        "remote join[{}]: event kind {} sent to the source (#{n})",
+                        instance.name(),
+                        p.kind
+                    );
+                    r.status = ipc_types::REPLY_RECEIVED;
+                    r.set_text(&["sent to the source; it applies it at a cycle it announces"]);
+                    if sent.len() == 64 {
+                        sent.remove(0);
+                    }
+                    sent.push((n, p));
+                }
+                Err(e) => {
+                    eprintln!("remote join[{}]: {e}", instance.name());
+                    r.status = ipc_types::REPLY_IGNORED;
+                    r.set_text(&["ignored: ", &e.to_string()]);
+                }
             }
+            replies.publish(&r)?;
         }
         let wake = runner
             .next_wake()
@@ -235,6 +297,12 @@ pub fn join(args: &JoinArgs) -> Result<(), RemoteError> {
         std::thread::sleep(Duration::from_nanos(wake as u64));
     }
     let c = &site.counts;
+    eprintln!(
+        "remote join[{}]: {} disease cycle(s) announced in time, {} late",
+        instance.name(),
+        c.announced_in_time.load(Ordering::Relaxed),
+        c.announced_late.load(Ordering::Relaxed)
+    );
     eprintln!(
         "remote join[{}]: {} states applied, {} repeated, {} refused{}, {} cycles started before \
          their state",

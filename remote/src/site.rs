@@ -34,7 +34,16 @@ pub struct SiteCounts {
     /// Breathing cycles the site started without the source's state for them (predicted: the
     /// engine breathes on with the last state's cycle until a newer one arrives).
     pub predicted_cycles: AtomicU64,
+    /// Disease cycles announced ahead that reached the engine before their start tick (put in at
+    /// that tick, as the source does).
+    pub announced_in_time: AtomicU64,
+    /// Disease cycles whose announcement reached the engine after their start tick (put in at
+    /// once; the ticks between showed the previous cycle's breath).
+    pub announced_late: AtomicU64,
 }
+
+/// Events kept per site (the latest; older ones are dropped from this record only).
+pub const EVENTS_KEPT: usize = 256;
 
 /// The path's figures, kept by the link worker, read by the tick loop (atomics: no lock).
 #[derive(Debug, Default)]
@@ -69,6 +78,9 @@ pub struct Site {
     pub path: Arc<PathFigures>,
     /// Why the last refused packet was refused.
     pub last_refusal: Arc<Mutex<Option<String>>>,
+    /// Events the source announced (any site's, this one's included), each once, with the tick
+    /// and cycle it applies at.
+    pub events: Arc<Mutex<Vec<RemoteEvent>>>,
     event_sequence: AtomicU64,
 }
 
@@ -95,6 +107,8 @@ impl Site {
         let last_refusal = Arc::new(Mutex::new(None));
         let (ptx, prepared) = sync_channel::<Prepared>(8);
         let (c, p, r) = (counts.clone(), path.clone(), last_refusal.clone());
+        let events = Arc::new(Mutex::new(Vec::new()));
+        let ev = events.clone();
         let mut cache = BreathCache::default();
         let mut estimator = DelayEstimator::default();
         let mut newest: Option<(u64, u64)> = None;
@@ -112,6 +126,20 @@ impl Site {
                     if newest.is_some_and(|(e, q)| e == key.0 && q >= key.1) {
                         c.repeated.fetch_add(1, Ordering::Relaxed);
                         return;
+                    }
+                    if !s.events.is_empty() {
+                        if let Ok(mut seen) = ev.lock() {
+                            for e in s.events.iter() {
+                                if !seen.iter().any(|o: &RemoteEvent| {
+                                    (o.origin, o.sequence) == (e.origin, e.sequence)
+                                }) {
+                                    if seen.len() == EVENTS_KEPT {
+                                        seen.remove(0);
+                                    }
+                                    seen.push(*e);
+                                }
+                            }
+                        }
                     }
                     match Prepared::of(s, &mut cache) {
                         Ok(prep) => {
@@ -207,6 +235,7 @@ impl Site {
             counts,
             path,
             last_refusal,
+            events,
             event_sequence: AtomicU64::new(1),
         })
     }
@@ -225,6 +254,8 @@ impl Site {
             kind,
             lung,
             apply_cycle: 0,
+            apply_tick: 0,
+            outcome: 0,
         }))
         .map_err(|e| RemoteError::Usage(e.to_string()))?;
         self.session
@@ -248,6 +279,7 @@ impl Site {
             last_tick: None,
             state_cycle: 0,
             predicted_upto: 0,
+            announced: None,
             frame: EngineFrame::default(),
         })
     }
@@ -272,6 +304,8 @@ pub struct Runner {
     last_tick: Option<u64>,
     state_cycle: u64,
     predicted_upto: u64,
+    /// Start tick of the last announced cycle counted.
+    announced: Option<u64>,
     /// The latest frame.
     pub frame: EngineFrame,
 }
@@ -285,6 +319,21 @@ impl Runner {
             } else {
                 0
             };
+            if let Some(pending) = p
+                .state
+                .pending
+                .as_ref()
+                .filter(|c| self.announced != Some(c.apply_tick))
+            {
+                self.announced = Some(pending.apply_tick);
+                let late = self.last_tick.is_some_and(|l| l >= pending.apply_tick);
+                let n = if late {
+                    &self.counts.announced_late
+                } else {
+                    &self.counts.announced_in_time
+                };
+                n.fetch_add(1, Ordering::Relaxed);
+            }
             self.anchor = Some((p.state.tick, p.state.source_time_ns as i128 - offset));
             self.state_cycle = p.state.cycle;
             self.core.apply_prepared(p, self.hz)?;
@@ -326,6 +375,11 @@ impl Runner {
             self.counts.predicted_cycles.fetch_add(1, Ordering::Relaxed);
         }
         Ok(Some(k))
+    }
+
+    /// The last source tick stepped.
+    pub fn last_tick(&self) -> Option<u64> {
+        self.last_tick
     }
 
     /// The engine.

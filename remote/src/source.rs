@@ -25,6 +25,8 @@ pub struct SourceCounts {
     pub events: AtomicU64,
     /// Packets refused (bad bytes, a state from another source).
     pub refused: AtomicU64,
+    /// States the engine handed over that Zenoh would not put (the session closing).
+    pub put_failures: AtomicU64,
 }
 
 /// A source's Zenoh side.
@@ -157,10 +159,22 @@ impl Source {
 
     /// Events sent by sites since the last call.
     pub fn take_events(&self) -> Vec<RemoteEvent> {
-        self.events
-            .lock()
-            .map(|rx| rx.try_iter().collect())
-            .unwrap_or_default()
+        let mut v = Vec::new();
+        self.drain_events(&mut |e| v.push(*e));
+        v
+    }
+
+    /// Hand each event sent by sites since the last call to `f` (no allocation); how many.
+    pub fn drain_events(&self, f: &mut dyn FnMut(&RemoteEvent)) -> usize {
+        let Ok(rx) = self.events.lock() else {
+            return 0;
+        };
+        let mut n = 0;
+        for e in rx.try_iter() {
+            f(&e);
+            n += 1;
+        }
+        n
     }
 
     /// Sites present now (their liveliness tokens).
@@ -171,5 +185,53 @@ impl Source {
     /// The Zenoh session (to close it).
     pub fn session(&self) -> &zenoh::Session {
         &self.session
+    }
+}
+
+/// A site's event as the engine's control packet: its origin (the site) and the site's own
+/// sequence, so the engine takes a repeat once and announces it with both.
+pub fn control_packet(e: &RemoteEvent) -> ipc_types::ControlPacket {
+    ipc_types::ControlPacket {
+        layout_version: ipc_types::LAYOUT_VERSION,
+        kind: e.kind,
+        lung: e.lung,
+        _pad: 0,
+        sequence: e.sequence,
+        origin: e.origin,
+    }
+}
+
+/// The source engine's ports on Zenoh, for [`engine::runtime::process::run_loop`] run in the
+/// same process as the Zenoh session (the harness, the tests): the sites' events come in as
+/// control packets, the engine's states go out on the publisher.
+pub struct EnginePorts<'a>(pub &'a Source);
+
+impl transport::Receive<ipc_types::ControlPacket> for EnginePorts<'_> {
+    fn wait_until(&mut self, _deadline_ns: u64) -> Result<(), transport::PortError> {
+        Ok(())
+    }
+    fn take_latest(&mut self) -> Result<Option<ipc_types::ControlPacket>, transport::PortError> {
+        let mut last = None;
+        self.0.drain_events(&mut |e| last = Some(control_packet(e)));
+        Ok(last)
+    }
+    fn drain(
+        &mut self,
+        f: &mut dyn FnMut(&ipc_types::ControlPacket),
+    ) -> Result<usize, transport::PortError> {
+        Ok(self.0.drain_events(&mut |e| f(&control_packet(e))))
+    }
+}
+
+impl transport::Publish<control_state::ControlStateFrame> for EnginePorts<'_> {
+    fn publish(
+        &mut self,
+        frame: &control_state::ControlStateFrame,
+    ) -> Result<(), transport::PortError> {
+        // A failed put is counted (the session is closing); the engine keeps ticking.
+        if self.0.publish(frame.encoded()).is_err() {
+            self.0.counts.put_failures.fetch_add(1, Ordering::Relaxed);
+        }
+        Ok(())
     }
 }

@@ -590,6 +590,7 @@ impl Session {
             kind: kind.code(),
             lung: side.index() as u32,
             _pad: 0,
+            origin: ipc_types::ORIGIN_LOCAL,
             // Unique among the engine's senders (it takes a repeated number as one action).
             sequence: ipc_types::control_sequence(
                 std::process::id(),

@@ -123,6 +123,8 @@ pub struct TensionRun {
     spent: Option<CourseCycle>,
     started: bool,
     last_start: u64,
+    /// The last course cycle moved into the lungs and the tick it started at.
+    last_course: Option<(u64, u64)>,
     inhale: PhaseConstants,
     exhale: PhaseConstants,
     /// Cycles moved into the lungs so far.
@@ -291,6 +293,7 @@ impl TensionRun {
             spent: None,
             started: false,
             last_start: 0,
+            last_course: None,
             inhale: normal.inhale.clone(),
             exhale: normal.exhale.clone(),
             cycles_run: 0,
@@ -425,23 +428,84 @@ impl TensionRun {
     pub fn affected(&self) -> Side {
         self.affected
     }
+
+    /// The cycle prepared and not yet moved into the lungs, and the tick it will be moved in at:
+    /// the affected lung's next cycle start at or after the onset (what [`Self::cycle_starts`]
+    /// answers true for, given the lungs as stepped so far). What a source announces to its sites
+    /// ahead of that tick.
+    pub fn pending(
+        &self,
+        lungs: &[(super::LungGeometry, LungBreath)],
+    ) -> Option<(&CourseCycle, u64)> {
+        let c = self.prepared.as_ref()?;
+        if !self.started && self.onset_tick == 0 {
+            return Some((c, 0));
+        }
+        let (_, b) = lungs.iter().find(|(g, _)| g.side == self.affected)?;
+        let ct = (b.breathing.cycle_ticks() as u64).max(1);
+        let mut at = b.cycle_start + ct;
+        if at < self.onset_tick {
+            at += (self.onset_tick - at).div_ceil(ct) * ct;
+        }
+        Some((c, at))
+    }
+
+    /// The last course cycle moved into the lungs and the tick it started at.
+    pub fn last_course(&self) -> Option<(u64, u64)> {
+        self.last_course
+    }
 }
 
-/// Put `setup` into `breath`: from now (`now = true`, at build time) or from the lung's cycle that
-/// starts this tick.
-pub fn apply(setup: &mut LungSetup, breath: &mut LungBreath, now: bool) {
-    let s = &setup.state;
+/// One lung's cycle-start change without its PV cycle: what [`put`] sets at once.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct LungChange {
+    /// Collapse towards the hilum.
+    pub collapse: f64,
+    /// Rigid offset, body frame, mm.
+    pub offset_mm: [f64; 3],
+    /// Volume at the start of an inhalation, ml.
+    pub base_ml: f64,
+    /// Held volume, ml, when the lung stops breathing.
+    pub held_ml: Option<f64>,
+}
+
+impl From<&LungState> for LungChange {
+    fn from(s: &LungState) -> Self {
+        Self {
+            collapse: s.collapse,
+            offset_mm: s.offset_mm,
+            base_ml: s.base_volume_ml,
+            held_ml: s.held_ml,
+        }
+    }
+}
+
+/// Put one lung's cycle-start change into `breath` (the disease course's, or a remote source's
+/// announcement of it): collapse, offset, base volume and hold at once, the PV cycle `breathing`
+/// from now (`now = true`) or from the lung's cycle that starts this tick.
+pub fn put(breath: &mut LungBreath, s: LungChange, breathing: Option<Breathing>, now: bool) {
     breath.set_collapse(s.collapse);
     breath.set_offset_mm(s.offset_mm);
-    breath.set_base_volume_ml(Some(s.base_volume_ml));
+    breath.set_base_volume_ml(Some(s.base_ml));
     breath.hold(s.held_ml);
-    if let Some(b) = setup.breathing.take() {
+    if let Some(b) = breathing {
         if now {
             breath.breathing = b;
         } else {
             breath.set_breathing_from_next_cycle(b);
         }
     }
+}
+
+/// Put `setup` into `breath`: from now (`now = true`, at build time) or from the lung's cycle that
+/// starts this tick.
+pub fn apply(setup: &mut LungSetup, breath: &mut LungBreath, now: bool) {
+    put(
+        breath,
+        LungChange::from(&setup.state),
+        setup.breathing.take(),
+        now,
+    );
 }
 
 impl DiseaseRun {
@@ -464,6 +528,7 @@ impl DiseaseRun {
             }
         }
         // Freed by the next preparation, not in the tick.
+        run.last_course = Some((cycle.cycle, tick));
         run.spent = Some(cycle);
         run.started = true;
         run.last_start = tick;

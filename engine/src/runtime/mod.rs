@@ -347,6 +347,10 @@ pub struct EngineCore {
     last_tracker_tick: Option<u64>,
     last_tracker_frame: u64,
     disease: Option<disease::DiseaseRun>,
+    /// A remote source's announced disease cycle (a site's engine): put into the lungs at its tick.
+    remote_pending: Option<remote::RemotePending>,
+    /// The last one put in, freed off the tick (by the next state applied).
+    remote_spent: Option<remote::RemotePending>,
     counts: StageCounts,
 }
 
@@ -575,6 +579,8 @@ impl EngineCore {
             last_tracker_tick: None,
             last_tracker_frame: 0,
             disease: None,
+            remote_pending: None,
+            remote_spent: None,
             counts,
         })
     }
@@ -669,6 +675,12 @@ impl EngineCore {
         self.counts.volume_solves += self.lungs.len() as u64;
         if let Some(d) = &mut self.disease {
             d.before_tick(tick, &mut self.lungs);
+        }
+        if self.remote_pending.as_ref().is_some_and(|p| tick >= p.tick) {
+            if let Some(mut p) = self.remote_pending.take() {
+                p.put_into(&mut self.lungs);
+                self.remote_spent = Some(p);
+            }
         }
         out.lungs = [LungFrame::default(); NUM_LUNGS];
         for (k, (geometry, breath)) in self.lungs.iter_mut().enumerate() {

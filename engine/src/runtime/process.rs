@@ -90,6 +90,11 @@ pub struct LoopStats {
     pub late_preparations: u64,
     /// Control-state packets published for remote sites.
     pub states_published: u64,
+    /// Applied live actions announced to remote sites (with the tick they show from).
+    pub events_announced: u64,
+    /// Applied live actions that could not be announced (more waited than two breaths of
+    /// queued actions): counted and reported, never dropped silently.
+    pub events_unannounced: u64,
 }
 
 /// The thread that builds disease cycles ([`super::disease::Recipe::build`], ≈ 40 ms for two lungs on
@@ -192,27 +197,45 @@ pub struct StateOut<'a> {
     pub tick_hz: f64,
 }
 
-/// The state publisher's bookkeeping: the last cycle starts published, the frame (4 KB, once).
+/// Events waiting to be announced at most (more are counted as unannounced and reported): two
+/// breaths' worth of queued actions.
+const WAITING_EVENTS: usize = 2 * super::disease::MAX_QUEUED_ACTIONS;
+
+/// The state publisher's bookkeeping: the last cycle starts and pending cycle published, the
+/// events not yet announced, the frame (4 KB, once).
 struct StatePublisher {
     starts: [u64; ipc_types::NUM_LUNGS],
+    pending: Option<u64>,
     sequence: u64,
     frame: Box<ControlStateFrame>,
-    events: Vec<control_state::RemoteEvent>,
+    /// Applied actions not yet announced, with the course cycle they show from.
+    waiting: Vec<(control_state::RemoteEvent, u64)>,
+    /// The events of the state being published (at most `MAX_EVENTS`).
+    announce: Vec<control_state::RemoteEvent>,
     published: u64,
+    announced: u64,
+    unannounced: u64,
 }
 
 impl StatePublisher {
     fn new() -> Self {
         Self {
             starts: [u64::MAX; ipc_types::NUM_LUNGS],
+            pending: None,
             sequence: 0,
             frame: Box::default(),
-            events: Vec::with_capacity(control_state::MAX_EVENTS),
+            waiting: Vec::with_capacity(WAITING_EVENTS),
+            announce: Vec::with_capacity(control_state::MAX_EVENTS),
             published: 0,
+            announced: 0,
+            unannounced: 0,
         }
     }
 
-    /// Publish when a lung started a cycle since the last packet (a compare per lung otherwise).
+    /// Publish when a lung started a cycle, a disease cycle was prepared (announced before it
+    /// starts, so every site puts it in at the same tick) or applied actions wait to be announced
+    /// with the tick they show from (at most `MAX_EVENTS` a state: the rest go with the next
+    /// tick's). A few compares otherwise.
     fn after_tick(
         &mut self,
         core: &EngineCore,
@@ -227,8 +250,28 @@ impl StatePublisher {
                 changed = true;
             }
         }
-        if !changed {
+        let pending = core.pending_course();
+        if pending != self.pending {
+            self.pending = pending;
+            changed |= pending.is_some();
+        }
+        let ready = |(_, course): &(control_state::RemoteEvent, u64)| {
+            core.course_cycle_start(*course).is_some()
+        };
+        if !changed && !self.waiting.iter().any(ready) {
             return Ok(());
+        }
+        let mut k = 0;
+        while k < self.waiting.len() && self.announce.len() < control_state::MAX_EVENTS {
+            match core.course_cycle_start(self.waiting[k].1) {
+                Some((apply_tick, apply_cycle)) => {
+                    let (mut e, _) = self.waiting.remove(k);
+                    e.apply_tick = apply_tick;
+                    e.apply_cycle = apply_cycle;
+                    self.announce.push(e);
+                }
+                None => k += 1,
+            }
         }
         let stamp = super::remote::StateStamp {
             source: out.source,
@@ -237,39 +280,74 @@ impl StatePublisher {
             tick_hz: out.tick_hz,
             source_time_ns: at_ns,
         };
-        let state = core.control_state(tick, stamp, &self.events)?;
+        let state = core.control_state(tick, stamp, &self.announce)?;
         self.frame
             .set(&control_state::Packet::State(state))
             .map_err(EngineError::StateEncode)?;
         out.outlet.publish(&self.frame)?;
         self.sequence += 1;
         self.published += 1;
+        self.announced += self.announce.len() as u64;
+        self.announce.clear();
         Ok(())
     }
 
-    fn event(&mut self, e: control_state::RemoteEvent) {
-        if self.events.len() == control_state::MAX_EVENTS {
-            self.events.remove(0);
+    /// An applied action to announce, showing from disease course cycle `course`.
+    fn event(&mut self, e: control_state::RemoteEvent, course: u64) {
+        if self.waiting.len() == WAITING_EVENTS {
+            self.unannounced += 1;
+            return;
         }
-        self.events.push(e);
+        self.waiting.push((e, course));
     }
 }
 
-/// Sequence numbers seen lately (a repeated packet is one action): a fixed ring, no allocation.
+/// Sequence numbers seen lately, per origin (a repeated packet is one action): a fixed ring, no
+/// allocation.
 struct Seen {
-    ring: [u64; 128],
+    ring: [(u64, u64); 128],
     next: usize,
 }
 
 impl Seen {
-    /// True the first time `sequence` is offered (within the last 128).
-    fn first(&mut self, sequence: u64) -> bool {
-        if self.ring.contains(&sequence) {
+    /// True the first time `(origin, sequence)` is offered (within the last 128).
+    fn first(&mut self, origin: u64, sequence: u64) -> bool {
+        if self.ring.contains(&(origin, sequence)) {
             return false;
         }
-        self.ring[self.next] = sequence;
+        self.ring[self.next] = (origin, sequence);
         self.next = (self.next + 1) % self.ring.len();
         true
+    }
+}
+
+/// The engine's own tag for each live action taken (the disease course hands it back with the
+/// applied event), mapped to the sender's origin and sequence: a fixed ring, no allocation. Two
+/// breaths of queued actions fit, so a tag is still there when its action is applied.
+struct Tags {
+    ring: [(u64, u64, u64); WAITING_EVENTS],
+    last: u64,
+}
+
+impl Tags {
+    fn new() -> Self {
+        Self {
+            ring: [(0, 0, 0); WAITING_EVENTS],
+            last: 0,
+        }
+    }
+
+    /// A new tag (never 0: 0 marks the scene's timed events) for `(origin, sequence)`.
+    fn issue(&mut self, origin: u64, sequence: u64) -> u64 {
+        self.last += 1;
+        self.ring[self.last as usize % WAITING_EVENTS] = (self.last, origin, sequence);
+        self.last
+    }
+
+    /// The origin and sequence of `tag`.
+    fn get(&self, tag: u64) -> Option<(u64, u64)> {
+        let (t, origin, sequence) = self.ring[tag as usize % WAITING_EVENTS];
+        (t == tag && tag != 0).then_some((origin, sequence))
     }
 }
 
@@ -293,9 +371,10 @@ pub fn run_loop(
 ) -> Result<LoopStats, EngineError> {
     let mut control = control;
     let mut seen = Seen {
-        ring: [0; 128],
+        ring: [(0, 0); 128],
         next: 0,
     };
+    let mut tags = Tags::new();
     let mut actions = ActionCounts::default();
     let (mut prepared_cycles, mut prepare_max_ns) = (0u64, 0u64);
     let mut late_preparations = 0u64;
@@ -348,7 +427,8 @@ pub fn run_loop(
             tx.publish(&frame)?;
         }
         if let Some(out) = control.as_mut().and_then(|c| c.state.as_mut()) {
-            states.after_tick(core, tick, t.at_ns, out)?;
+            // A site schedules by the tick's due time, not when this host happened to wake.
+            states.after_tick(core, tick, t.due_ns, out)?;
         }
         if let Some(c) = control.as_mut() {
             // Every pending packet, in the order the stream gives them (none is left behind or
@@ -358,11 +438,12 @@ pub fn run_loop(
                 if failed.is_some() {
                     return;
                 }
-                if !seen.first(p.sequence) {
+                if !seen.first(p.origin, p.sequence) {
                     actions.repeated += 1;
                     return;
                 }
-                let reply = live_action(core, tick, p, announce);
+                let tag = tags.issue(p.origin, p.sequence);
+                let reply = live_action(core, tick, p, tag, announce);
                 match reply.status {
                     ipc_types::REPLY_RECEIVED => actions.received += 1,
                     ipc_types::REPLY_REFUSED => actions.refused += 1,
@@ -407,11 +488,13 @@ pub fn run_loop(
                         }
                     );
                 }
-                // A live action (tag = its sender's sequence) is answered; a timed one is not.
-                if let (Some(c), true) = (control.as_mut(), tag != 0) {
+                // A live action (tag: the engine's, for its sender's origin and sequence) is
+                // answered and announced to remote sites; a timed one is not.
+                let sender = tags.get(tag);
+                if let (Some(c), Some((origin, sequence))) = (control.as_mut(), sender) {
                     let mut reply = ControlReply {
                         status: ipc_types::REPLY_APPLIED,
-                        sequence: tag,
+                        sequence,
                         tick: e.tick,
                         cycle: e.cycle,
                         kind: e.kind.code(),
@@ -428,13 +511,21 @@ pub fn run_loop(
                     c.replies.publish(&reply)?;
                     actions.applied += 1;
                     if let Some(out) = c.state.as_ref() {
-                        states.event(control_state::RemoteEvent {
-                            origin: out.source,
-                            sequence: tag,
+                        let event = control_state::RemoteEvent {
+                            origin: if origin == ipc_types::ORIGIN_LOCAL {
+                                out.source
+                            } else {
+                                origin
+                            },
+                            sequence,
                             kind: e.kind.code(),
                             lung: e.side.index() as u32,
-                            apply_cycle: e.cycle,
-                        });
+                            // Stamped when announced: the tick and cycle its course cycle starts.
+                            apply_cycle: 0,
+                            apply_tick: 0,
+                            outcome: reply.outcome,
+                        };
+                        states.event(event, e.cycle);
                     }
                 }
             }
@@ -449,6 +540,8 @@ pub fn run_loop(
         ticks: tick - first_tick,
         pacer: pacer.stats(),
         states_published: states.published,
+        events_announced: states.announced,
+        events_unannounced: states.unannounced + states.waiting.len() as u64,
     })
 }
 
@@ -458,6 +551,7 @@ fn live_action(
     core: &mut EngineCore,
     tick: u64,
     p: &ControlPacket,
+    tag: u64,
     announce: Option<&str>,
 ) -> ControlReply {
     use lung_model::mesh::Side;
@@ -485,7 +579,7 @@ fn live_action(
         (_, None, _) => "ignored: not a lung (left or right)",
         (Some(kind), Some(side), Ok(())) => {
             reply.lung = side.index() as u32;
-            match core.intervene_tagged(tick, kind, side, p.sequence) {
+            match core.intervene_tagged(tick, kind, side, tag) {
                 super::LiveAction::Queued => {
                     reply.status = ipc_types::REPLY_RECEIVED;
                     if let Some(name) = announce {
@@ -628,6 +722,22 @@ pub fn run(args: &EngineArgs) -> Result<(), EngineError> {
             a.ignored,
             a.refused,
             a.repeated
+        ));
+    }
+    if stats.events_announced > 0 || stats.events_unannounced > 0 {
+        transport::process::say(&format!(
+            "engine[{}]: {} applied action(s) announced to remote sites with the tick they show \
+             from{}",
+            instance.name(),
+            stats.events_announced,
+            if stats.events_unannounced > 0 {
+                format!(
+                    "; {} could not be announced (more than {WAITING_EVENTS} waited at once)",
+                    stats.events_unannounced
+                )
+            } else {
+                String::new()
+            }
         ));
     }
     if stats.prepared_cycles > 0 {

@@ -8,9 +8,16 @@
 //! [`EngineCore::apply_prepared`] puts them and every lung's state in place (no allocation beyond
 //! moving the prepared tables in). Both engines run the same code on the same constants, so the
 //! same packets give the same breath, bit for bit, at the same source tick.
+//!
+//! A disease course changes the breath at a cycle start, from a cycle the source prepares a breath
+//! ahead (a trainee's intervention is taken into it). The source announces that prepared cycle in
+//! the state it publishes as soon as the cycle is built ([`PendingCycle`], with the tick it starts
+//! at), so a site puts it into its lungs at that very tick ([`RemotePending`]) instead of learning
+//! of it one network delay after the source's cycle start.
 
 use control_state::{
-    Bounded, ControlState, Disease, LungState, PhaseState, PvState, RemoteEvent, MAX_EVENTS,
+    Bounded, ControlState, Disease, LungState, PendingCycle, PendingLung, PhaseState, PvState,
+    RemoteEvent, MAX_EVENTS,
 };
 use lung_model::mesh::Side;
 use lung_model::pv::{Boundary, Breathing, PhaseConstants, PvError, Timing};
@@ -193,6 +200,29 @@ pub struct Prepared {
     pub state: ControlState,
     /// Per lung of the packet: the cycle in force and the pending one.
     breaths: Vec<(Breathing, Option<Breathing>)>,
+    /// The announced disease cycle, built.
+    pending: Option<RemotePending>,
+}
+
+/// A source's announced disease cycle on a site's engine: put into the lungs at the first tick
+/// stepped at or after `tick` (as the source's disease course does at its cycle start).
+#[derive(Debug, Clone)]
+pub struct RemotePending {
+    /// Source tick it starts at.
+    pub tick: u64,
+    lungs: Vec<(Side, super::disease::LungChange, Option<Breathing>)>,
+}
+
+impl RemotePending {
+    /// Put it into `lungs` (no allocation: the PV cycles are moved in).
+    pub(crate) fn put_into(&mut self, lungs: &mut [(super::LungGeometry, LungBreath)]) {
+        let now = self.tick == 0;
+        for (side, change, breathing) in self.lungs.iter_mut() {
+            if let Some((_, b)) = lungs.iter_mut().find(|(g, _)| g.side == *side) {
+                super::disease::put(b, *change, breathing.take(), now);
+            }
+        }
+    }
 }
 
 /// Tables built lately, reused while a packet's constants stay the same (every healthy cycle).
@@ -228,7 +258,35 @@ impl Prepared {
             };
             breaths.push((now, next));
         }
-        Ok(Self { state, breaths })
+        let pending = match &state.pending {
+            None => None,
+            Some(p) => {
+                let mut lungs = Vec::with_capacity(p.lungs.len());
+                for l in p.lungs.iter() {
+                    let side = side_of(l.side);
+                    let breathing = match &l.pv {
+                        Some(pv) => Some(cache.get(pv, state.tick_hz, side)?),
+                        None => None,
+                    };
+                    let change = super::disease::LungChange {
+                        collapse: l.collapse,
+                        offset_mm: l.offset_mm,
+                        base_ml: l.base_ml,
+                        held_ml: l.held_ml,
+                    };
+                    lungs.push((side, change, breathing));
+                }
+                Some(RemotePending {
+                    tick: p.apply_tick,
+                    lungs,
+                })
+            }
+        };
+        Ok(Self {
+            state,
+            breaths,
+            pending,
+        })
     }
 }
 
@@ -259,6 +317,7 @@ impl EngineCore {
             },
         };
         let first = events.len().saturating_sub(MAX_EVENTS);
+        let pending = self.pending_cycle()?;
         Ok(ControlState {
             source: stamp.source,
             epoch: stamp.epoch,
@@ -271,6 +330,82 @@ impl EngineCore {
             disease,
             lungs,
             events: Bounded::new(events[first..].to_vec()).unwrap_or_default(),
+            pending,
+        })
+    }
+
+    /// The disease cycle prepared and not yet started, with the tick and breathing cycle it starts
+    /// at (`None` without one: healthy lungs, a closed pneumothorax, a cycle still being built).
+    pub fn pending_cycle(&self) -> Result<Option<PendingCycle>, RemoteStateError> {
+        let Some(super::disease::DiseaseRun::Tension(run)) = &self.disease else {
+            return Ok(None);
+        };
+        let Some((c, apply_tick)) = run.pending(&self.lungs) else {
+            return Ok(None);
+        };
+        let mut lungs = Bounded::default();
+        for l in &c.lungs {
+            lungs.push(PendingLung {
+                side: l.side.index() as u8,
+                pv: l
+                    .breathing
+                    .as_ref()
+                    .map(|b| pv_state(b, l.side))
+                    .transpose()?,
+                collapse: l.state.collapse,
+                offset_mm: l.state.offset_mm,
+                base_ml: l.state.base_volume_ml,
+                held_ml: l.state.held_ml,
+            });
+        }
+        Ok(Some(PendingCycle {
+            apply_tick,
+            apply_cycle: self.cycle_at(apply_tick),
+            course_cycle: c.cycle,
+            lungs,
+        }))
+    }
+
+    /// The disease course's cycle prepared and not yet started (cheap: no allocation).
+    pub fn pending_course(&self) -> Option<u64> {
+        match &self.disease {
+            Some(super::disease::DiseaseRun::Tension(run)) => {
+                run.pending(&self.lungs).map(|(c, _)| c.cycle)
+            }
+            _ => None,
+        }
+    }
+
+    /// The breathing cycle (as [`ControlState::cycle`] counts: the first lung's) that a cycle start
+    /// at `tick` begins, from the lungs as stepped so far.
+    pub fn cycle_at(&self, tick: u64) -> u64 {
+        self.lungs.first().map_or(0, |(_, b)| {
+            let ct = (b.breathing.cycle_ticks() as u64).max(1);
+            b.cycle as u64 + tick.saturating_sub(b.cycle_start) / ct
+        })
+    }
+
+    /// The source tick and breathing cycle from which the disease course's cycle `course` shows:
+    /// the prepared one's, or, once it is in the lungs, the tick it started at (`None` for a cycle
+    /// neither prepared nor started yet, or without a tension pneumothorax).
+    pub fn course_cycle_start(&self, course: u64) -> Option<(u64, u64)> {
+        let Some(super::disease::DiseaseRun::Tension(run)) = &self.disease else {
+            return None;
+        };
+        if let Some((c, at)) = run.pending(&self.lungs) {
+            if c.cycle == course {
+                return Some((at, self.cycle_at(at)));
+            }
+        }
+        let (last, at) = run.last_course()?;
+        (course <= last).then(|| {
+            // Started already (a cycle waited for at its start tick): counted back from the first
+            // lung's current cycle.
+            let cycle = self.lungs.first().map_or(0, |(_, b)| {
+                let ct = (b.breathing.cycle_ticks() as u64).max(1);
+                (b.cycle as u64).saturating_sub(b.cycle_start.saturating_sub(at).div_ceil(ct))
+            });
+            (at, cycle)
         })
     }
 
@@ -279,6 +414,8 @@ impl EngineCore {
     /// numbers; gravity is the source's. `site_hz` is this site's tick rate. No allocation (the
     /// prepared tables are moved in).
     pub fn apply_prepared(&mut self, p: Prepared, site_hz: f64) -> Result<(), RemoteStateError> {
+        // The cycle put in last is freed here, off the tick it was put in at.
+        self.remote_spent = None;
         let hz = p.state.tick_hz;
         if hz != site_hz {
             return Err(RemoteStateError::TickRate {
@@ -310,6 +447,8 @@ impl EngineCore {
         if g.is_finite() && g.length() > 0.0 {
             self.gravity_body = g.normalize();
         }
+        // The state is the source's whole word: a cycle it no longer announces is not pending.
+        self.remote_pending = p.pending;
         Ok(())
     }
 }

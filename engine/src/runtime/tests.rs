@@ -756,6 +756,7 @@ fn every_live_action_is_answered_once_received_then_applied_in_order_or_ignored_
         lung,
         _pad: 0,
         sequence,
+        origin: ipc_types::ORIGIN_LOCAL,
     };
     let needle = Intervention::NeedleDecompression.code();
     let dressing = Intervention::OcclusiveDressing.code();
@@ -854,6 +855,7 @@ fn a_live_action_without_a_tension_pneumothorax_is_answered_ignored() {
         lung: ipc_types::LUNG_AFFECTED,
         _pad: 0,
         sequence: 7,
+        origin: ipc_types::ORIGIN_LOCAL,
     };
     let mut inlet = Scripted::new(&clock, vec![(3 * P, p)], 8);
     let mut replies = Recorder::<ControlReply>::new(&clock);
@@ -1001,4 +1003,152 @@ fn an_engine_resumed_at_a_tick_equals_an_uninterrupted_run_from_there() {
     let mut f = EngineFrame::default();
     fresh.step(1999, None, &mut f);
     assert_ne!(a[0], bytemuck::bytes_of(&f).to_vec(), "the replay matters");
+}
+
+/// A frame outlet that takes a millisecond of real time per tick, so the disease worker builds
+/// each cycle well inside a breath of the fake clock (as it does at the engine's real rate).
+struct Paced(Vec<EngineFrame>);
+
+impl transport::Publish<EngineFrame> for Paced {
+    fn publish(&mut self, f: &EngineFrame) -> Result<(), transport::PortError> {
+        self.0.push(*f);
+        std::thread::sleep(std::time::Duration::from_millis(1));
+        Ok(())
+    }
+}
+
+/// Remote sites (seed §8.3): twelve actions from twelve origins in one tick (plus a repeat) are
+/// each announced once — eight in one state, the rest in the next, none dropped — with the tick
+/// they show from, ahead of it; a site that gets every state half a second late and puts the
+/// announced cycles in at their ticks breathes the source's breath bit for bit, and the same site
+/// fed states without the announcement does not.
+#[test]
+fn actions_are_announced_with_their_tick_ahead_and_a_late_site_applies_them_at_that_tick() {
+    use control_state::{decode, ControlStateFrame, Packet};
+    use ipc_types::{ControlPacket, ControlReply, Intervention};
+    use process::{run_loop, Controls, StateOut};
+    use transport::memory::{Recorder, Scripted};
+    use transport::pacer::PacerConfig;
+    use transport::{Clock, FakeClock};
+    const P: u64 = 16_666_667;
+    const DELAY: u64 = 30;
+    let tension = "kind = \"tension-pneumothorax\"\nside = \"left\"\n";
+    let packet = |origin: u64| ControlPacket {
+        layout_version: LAYOUT_VERSION,
+        kind: Intervention::NeedleDecompression.code(),
+        lung: ipc_types::LUNG_AFFECTED,
+        _pad: 0,
+        sequence: 1,
+        origin,
+    };
+    let mut arrivals: Vec<_> = (1..=12u64).map(|o| (400 * P, packet(o))).collect();
+    arrivals.push((400 * P, packet(3)));
+    let clock = FakeClock::at(0);
+    let mut inlet = Scripted::new(&clock, arrivals, 256);
+    let mut replies = Recorder::<ControlReply>::new(&clock);
+    let mut tracker = Scripted::<TrackerFrame>::new(&clock, vec![], 4);
+    let mut frames = Paced(Vec::new());
+    let mut outlet = Recorder::<ControlStateFrame>::new(&clock);
+    let published = outlet.clone();
+    let c = clock.clone();
+    let stats = run_loop(
+        &mut disease_core(tension),
+        &mut tracker,
+        &mut frames,
+        Some(Controls {
+            inlet: &mut inlet,
+            replies: &mut replies,
+            state: Some(StateOut {
+                outlet: &mut outlet,
+                source: 77,
+                epoch: 1,
+                tick_hz: 60.0,
+            }),
+        }),
+        &clock,
+        PacerConfig::for_period(P),
+        &mut || c.now_ns() >= 1500 * P,
+        None,
+        0,
+    )
+    .unwrap();
+    assert_eq!(stats.actions.repeated, 1);
+    assert_eq!(stats.actions.applied, 12);
+    assert_eq!((stats.events_announced, stats.events_unannounced), (12, 0));
+    let states: Vec<_> = published
+        .values()
+        .iter()
+        .map(|f| match decode(f.encoded()).unwrap() {
+            Packet::State(s) => s,
+            p => panic!("{p:?}"),
+        })
+        .collect();
+    // Every action once, with its origin, all showing from one cycle start after their arrival,
+    // announced before it.
+    let mut events = Vec::new();
+    for s in &states {
+        for e in s.events.iter() {
+            assert!(
+                e.apply_tick > s.tick + DELAY,
+                "{e:?} announced at {}",
+                s.tick
+            );
+            events.push(*e);
+        }
+    }
+    let mut origins: Vec<u64> = events.iter().map(|e| e.origin).collect();
+    origins.sort();
+    assert_eq!(origins, (1..=12).collect::<Vec<_>>());
+    assert!(events.iter().all(|e| e.apply_tick == events[0].apply_tick
+        && e.apply_cycle == events[0].apply_cycle
+        && e.sequence == 1));
+    let counts: Vec<usize> = states
+        .iter()
+        .map(|s| s.events.len())
+        .filter(|&n| n > 0)
+        .collect();
+    assert_eq!(counts, vec![8, 4]);
+    let start = states
+        .iter()
+        .find(|s| s.tick == events[0].apply_tick)
+        .expect("a state at the cycle start the actions show from");
+    assert_eq!(start.cycle, events[0].apply_cycle);
+    let ahead = states
+        .iter()
+        .filter(|s| {
+            s.pending
+                .as_ref()
+                .is_some_and(|p| p.apply_tick > s.tick + DELAY)
+        })
+        .count();
+    assert!(ahead >= 3, "{ahead} cycles announced ahead");
+    // A site getting every state DELAY ticks late.
+    let site = |announce: bool| -> usize {
+        let mut site = disease_core(tension);
+        site.follow_remote();
+        let mut cache = remote::BreathCache::default();
+        let mut f = EngineFrame::default();
+        let mut next = 0;
+        let mut differing = 0;
+        for (tick, source) in frames.0.iter().enumerate().skip(DELAY as usize) {
+            let tick = tick as u64;
+            while next < states.len() && states[next].tick + DELAY <= tick {
+                let mut s = states[next].clone();
+                if !announce {
+                    s.pending = None;
+                }
+                site.apply_prepared(remote::Prepared::of(s, &mut cache).unwrap(), 60.0)
+                    .unwrap();
+                next += 1;
+            }
+            site.step(tick, None, &mut f);
+            if (0..2).any(|k| f.lungs[k].volume_ml.to_bits() != source.lungs[k].volume_ml.to_bits())
+            {
+                differing += 1;
+            }
+        }
+        differing
+    };
+    assert_eq!(site(true), 0);
+    assert!(site(false) >= 2 * DELAY as usize, "{}", site(false));
 }

@@ -8,7 +8,13 @@
 //! cycle, its share of the volume change, held/base volume, collapse (§4.1) and rigid offset, and
 //! its cycle bookkeeping; the source's cycle number and the source clock at the cycle's first
 //! tick; the patient's gravity in the body frame (orientation); the disease state; and the events
-//! (a trainee's interventions) with their origin site and sequence.
+//! (a trainee's interventions) with their origin site and sequence, each stamped with the cycle and
+//! tick at which every site applies it; and the disease cycle the source has prepared and not yet
+//! started ([`PendingCycle`]), announced before it starts so every site switches to it at the same
+//! source tick as the source, however late the packet that announced it travelled.
+//!
+//! Version history: v1 had no pending cycle and events without their apply tick and outcome; v2
+//! adds them.
 //!
 //! ## Encoding
 //! [`encode`] writes `magic "LDCS" | version u16 | flags u16 | length u32 | xxh3-64 of the payload |
@@ -32,7 +38,7 @@ use thiserror::Error;
 /// Magic bytes at the start of every encoded packet.
 pub const MAGIC: [u8; 4] = *b"LDCS";
 /// Version of the encoding (header and payload); a packet of another version is refused.
-pub const FORMAT_VERSION: u16 = 1;
+pub const FORMAT_VERSION: u16 = 2;
 /// Header bytes: magic, version, flags, payload length, checksum.
 pub const HEADER_BYTES: usize = 4 + 2 + 2 + 4 + 8;
 /// Bytes a [`ControlStateFrame`] carries (the largest encoded packet).
@@ -230,8 +236,46 @@ pub struct RemoteEvent {
     pub kind: u32,
     /// Lung slot, or `ipc_types::LUNG_AFFECTED`.
     pub lung: u32,
-    /// Source cycle it is applied at (0: not yet scheduled; the source schedules it).
+    /// The source's breathing cycle (as [`ControlState::cycle`] counts) from which its effect
+    /// shows at every site (0 in a site's request: the source schedules it).
     pub apply_cycle: u64,
+    /// The source tick that cycle starts at: every site and the source switch there.
+    pub apply_tick: u64,
+    /// What it did, as the source's engine judged it (`ipc_types::OUTCOME_*`; 0 in a site's
+    /// request).
+    pub outcome: u32,
+}
+
+/// One lung's part of a [`PendingCycle`]: what the disease course puts into it at the cycle start
+/// (EQUATIONS §4).
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+pub struct PendingLung {
+    /// 0 right, 1 left.
+    pub side: u8,
+    /// The PV cycle it breathes from then (`None`: it keeps its breath, e.g. while held).
+    pub pv: Option<PvState>,
+    /// Collapse towards the hilum, 0..1.
+    pub collapse: f64,
+    /// Rigid offset, body frame, mm.
+    pub offset_mm: [f64; 3],
+    /// Volume at the start of an inhalation, ml.
+    pub base_ml: f64,
+    /// Held volume (ml) when the lung stops breathing.
+    pub held_ml: Option<f64>,
+}
+
+/// A disease cycle the source has prepared (the interventions it takes already applied) and that
+/// starts at `apply_tick`: sent ahead so every site switches at that tick, as the source does.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+pub struct PendingCycle {
+    /// The source tick it starts at.
+    pub apply_tick: u64,
+    /// The source's breathing cycle (as [`ControlState::cycle`]) it starts.
+    pub apply_cycle: u64,
+    /// The disease course's own cycle number.
+    pub course_cycle: u64,
+    /// Each lung it changes.
+    pub lungs: Bounded<PendingLung, MAX_LUNGS>,
 }
 
 /// The source engine's control state at the start of a breathing cycle (or a change).
@@ -257,8 +301,11 @@ pub struct ControlState {
     pub disease: Disease,
     /// Each simulated lung.
     pub lungs: Bounded<LungState, MAX_LUNGS>,
-    /// The latest events (each also sent on its own).
+    /// Events announced with this state (at most [`MAX_EVENTS`]; more wait for the next state,
+    /// which the source sends at once).
     pub events: Bounded<RemoteEvent, MAX_EVENTS>,
+    /// The disease cycle prepared and not yet started, if any.
+    pub pending: Option<PendingCycle>,
 }
 
 /// Everything that travels between sites.
@@ -444,6 +491,28 @@ impl Packet {
             )?;
             if !(0.0..=1.0).contains(&l.collapse) {
                 return Err("a lung's collapse is outside 0..1");
+            }
+        }
+        if let Some(p) = &s.pending {
+            if p.apply_tick < s.tick {
+                return Err("the pending cycle starts before the state's tick");
+            }
+            for (k, l) in p.lungs.iter().enumerate() {
+                side(l.side)?;
+                if p.lungs[..k].iter().any(|o| o.side == l.side) {
+                    return Err("the same lung twice in the pending cycle");
+                }
+                if let Some(pv) = &l.pv {
+                    pv.check()?;
+                }
+                finite(
+                    &[l.collapse, l.base_ml, l.held_ml.unwrap_or(0.0)],
+                    "a pending lung's collapse, base or held volume is not finite",
+                )?;
+                finite(&l.offset_mm, "a pending lung's offset is not finite")?;
+                if !(0.0..=1.0).contains(&l.collapse) {
+                    return Err("a pending lung's collapse is outside 0..1");
+                }
             }
         }
         Ok(())

@@ -55,6 +55,27 @@ fn state() -> ControlState {
         disease: Disease::None,
         lungs: Bounded::new(vec![lung(0), lung(1)]).unwrap(),
         events: Bounded::default(),
+        pending: None,
+    }
+}
+
+fn pending(apply_tick: u64, lungs: Vec<PendingLung>) -> PendingCycle {
+    PendingCycle {
+        apply_tick,
+        apply_cycle: 8,
+        course_cycle: 2,
+        lungs: Bounded::new(lungs).unwrap(),
+    }
+}
+
+fn pending_lung(side: u8, pv: Option<PvState>) -> PendingLung {
+    PendingLung {
+        side,
+        pv,
+        collapse: 0.25,
+        offset_mm: [1.0, -2.0, 3.0],
+        base_ml: 1100.0,
+        held_ml: None,
     }
 }
 
@@ -82,9 +103,22 @@ fn a_full_state_fits_a_frame_and_reads_back_equal() {
             kind: 1,
             lung: u32::MAX,
             apply_cycle: u64::MAX,
+            apply_tick: u64::MAX,
+            outcome: u32::MAX,
         }));
     }
     assert!(!s.events.push(s.events[0]), "full");
+    // And a pending disease cycle changing both lungs.
+    s.pending = Some(PendingCycle {
+        apply_tick: u64::MAX,
+        apply_cycle: u64::MAX,
+        course_cycle: u64::MAX,
+        lungs: Bounded::new(vec![
+            pending_lung(0, Some(s.lungs[0].pv.clone())),
+            pending_lung(1, Some(s.lungs[1].pv.clone())),
+        ])
+        .unwrap(),
+    });
     let p = Packet::State(s);
     let mut frame = ControlStateFrame::default();
     frame.set(&p).unwrap();
@@ -101,10 +135,10 @@ fn a_healthy_state_is_small() {
 #[test]
 fn an_unknown_version_is_refused_by_name() {
     let mut b = encode_to_vec(&Packet::State(state())).unwrap();
-    b[4] = 2;
+    b[4] = 1;
     let e = decode(&b).unwrap_err();
-    assert_eq!(e, DecodeError::UnknownVersion { theirs: 2, ours: 1 });
-    assert!(e.to_string().contains("v2 is not understood"), "{e}");
+    assert_eq!(e, DecodeError::UnknownVersion { theirs: 1, ours: 2 });
+    assert!(e.to_string().contains("v1 is not understood"), "{e}");
 }
 
 #[test]
@@ -160,8 +194,8 @@ fn a_sequence_longer_than_its_bound_is_refused_before_it_is_allocated() {
     empty.lungs = Bounded::default();
     empty.events = Bounded::default();
     let e = postcard::to_allocvec(&Packet::State(empty)).unwrap();
-    // The encodings agree up to the lungs' count byte.
-    let at = e.len() - 2;
+    // The encodings agree up to the lungs' count byte (then the events' count and no pending cycle).
+    let at = e.len() - 3;
     assert_eq!(full[..at], e[..at]);
     assert_eq!(full[at], 2);
     let mut evil = e[..at].to_vec();
@@ -194,6 +228,38 @@ fn values_out_of_their_domain_are_refused_both_ways() {
         (|s| s.lungs.0[0].held_ml = Some(f64::NAN), "held"),
         (|s| s.gravity_body[2] = f64::NAN, "gravity"),
         (|s| s.disease = Disease::Tumour { side: 9 }, "side"),
+        (
+            |s| s.pending = Some(pending(s.tick - 1, vec![])),
+            "before the state's tick",
+        ),
+        (
+            |s| s.pending = Some(pending(s.tick, vec![pending_lung(0, None); 2])),
+            "same lung twice in the pending",
+        ),
+        (
+            |s| {
+                let mut l = pending_lung(1, None);
+                l.held_ml = Some(f64::INFINITY);
+                s.pending = Some(pending(s.tick, vec![l]));
+            },
+            "pending lung's collapse, base or held",
+        ),
+        (
+            |s| {
+                let mut l = pending_lung(1, None);
+                l.collapse = -0.1;
+                s.pending = Some(pending(s.tick, vec![l]));
+            },
+            "pending lung's collapse is outside",
+        ),
+        (
+            |s| {
+                let mut pv = pv();
+                pv.tv_ml = -1.0;
+                s.pending = Some(pending(s.tick, vec![pending_lung(0, Some(pv))]));
+            },
+            "positive",
+        ),
     ];
     for (spoil, word) in cases {
         let mut s = state();
@@ -264,11 +330,15 @@ fn arb_state() -> impl Strategy<Value = ControlState> {
             ),
             0..=2,
         ),
-        prop::collection::vec(any::<(u64, u64, u32, u32, u64)>(), 0..=MAX_EVENTS),
+        prop::collection::vec(any::<(u64, u64, u32, u32, u64, u64)>(), 0..=MAX_EVENTS),
         1f64..1000.0,
         prop::option::of(-1e4f64..1e4),
+        prop::option::of((
+            any::<[u64; 3]>(),
+            prop::collection::vec((prop::option::of(arb_pv()), 0f64..=1.0), 0..=2),
+        )),
     )
-        .prop_map(|(ids, lungs, events, hz, held)| ControlState {
+        .prop_map(|(ids, lungs, events, hz, held, pending)| ControlState {
             source: ids[0],
             epoch: ids[1],
             sequence: ids[2],
@@ -303,16 +373,40 @@ fn arb_state() -> impl Strategy<Value = ControlState> {
             events: Bounded::new(
                 events
                     .into_iter()
-                    .map(|(origin, sequence, kind, lung, apply_cycle)| RemoteEvent {
-                        origin,
-                        sequence,
-                        kind,
-                        lung,
-                        apply_cycle,
-                    })
+                    .map(
+                        |(origin, sequence, kind, lung, apply_cycle, apply_tick)| RemoteEvent {
+                            origin,
+                            sequence,
+                            kind,
+                            lung,
+                            apply_cycle,
+                            apply_tick,
+                            outcome: kind ^ lung,
+                        },
+                    )
                     .collect(),
             )
             .unwrap(),
+            pending: pending.map(|(n, lungs)| PendingCycle {
+                apply_tick: ids[3].saturating_add(n[0] >> 1),
+                apply_cycle: n[1],
+                course_cycle: n[2],
+                lungs: Bounded::new(
+                    lungs
+                        .into_iter()
+                        .enumerate()
+                        .map(|(k, (pv, c))| PendingLung {
+                            side: k as u8,
+                            pv,
+                            collapse: c,
+                            offset_mm: [c, 2.0 * c, -c],
+                            base_ml: 1000.0 * c,
+                            held_ml: held,
+                        })
+                        .collect(),
+                )
+                .unwrap(),
+            }),
         })
 }
 
@@ -328,7 +422,7 @@ proptest! {
         for p in [
             Packet::Probe { from: a[0], to: a[1], id: a[2], t0_ns: a[3] },
             Packet::ProbeReply { from: a[0], to: a[1], id: a[2], t0_ns: a[3], t1_ns: a[4], t2_ns: a[5] },
-            Packet::Event(RemoteEvent { origin: a[0], sequence: a[1], kind: k, lung: k ^ 1, apply_cycle: a[5] }),
+            Packet::Event(RemoteEvent { origin: a[0], sequence: a[1], kind: k, lung: k ^ 1, apply_cycle: a[5], apply_tick: a[4], outcome: k }),
         ] {
             prop_assert_eq!(roundtrip(&p), p);
         }

@@ -65,6 +65,9 @@ pub struct Tick<T> {
     pub wake: Wake<T>,
     /// Clock time at which the tick was decided, ns.
     pub at_ns: u64,
+    /// The time the tick was due: the deadline it ran for (the schedule, without the OS's lateness
+    /// in waking the loop), or `at_ns` for a sample's tick (the sample is the schedule).
+    pub due_ns: u64,
     /// Deadlines skipped right before this tick (the loop was stalled or the clock jumped).
     pub skipped: u64,
 }
@@ -159,6 +162,7 @@ impl<T: Copy> Pacer<T> {
             return Ok(Some(Tick {
                 wake: Wake::Sample(sample),
                 at_ns: now,
+                due_ns: now,
                 skipped: 0,
             }));
         }
@@ -173,12 +177,14 @@ impl<T: Copy> Pacer<T> {
         } else {
             0
         };
+        let due_ns = self.deadline;
         self.deadline += self.cfg.period_ns;
         self.earliest = now + self.cfg.min_spacing_ns;
         self.stats.deadline_ticks += 1;
         Ok(Some(Tick {
             wake: Wake::Deadline,
             at_ns: now,
+            due_ns,
             skipped,
         }))
     }
@@ -233,6 +239,22 @@ mod tests {
             assert_eq!(t.at_ns, *at, "driven by the sample, not a timer");
         }
         assert_eq!(pacer.stats().deadline_ticks, 0);
+    }
+
+    /// A deadline tick decided late (the loop woke late) is still due at its deadline: what a
+    /// remote site schedules by, free of this host's wake-up lateness.
+    #[test]
+    fn a_late_deadline_tick_is_due_at_its_deadline() {
+        let clock = FakeClock::at(0);
+        let mut src = Scripted::<u32>::new(&clock, vec![], 4);
+        let mut pacer = Pacer::new(PacerConfig::for_period(P), 0);
+        let first = P + P / 4;
+        clock.set(first + 300_000);
+        let t = pacer.poll(&clock, &mut src).unwrap().unwrap();
+        assert_eq!((t.at_ns, t.due_ns), (first + 300_000, first));
+        clock.set(first + P + 50_000);
+        let t = pacer.poll(&clock, &mut src).unwrap().unwrap();
+        assert_eq!((t.at_ns, t.due_ns), (first + P + 50_000, first + P));
     }
 
     /// Regression: the engine loop used to take an early tracker sample out of its subscriber and
