@@ -553,6 +553,57 @@ impl DiseaseScene {
         }
     }
 
+    /// [`Self::validate`] for a scene whose breath is a ventilator recording (`[pv] waveform`;
+    /// EQUATIONS §4.7): the ventilator delivers the recorded volume and the lungs share it, so what
+    /// shapes a spontaneous breath does not apply and is refused when given — `alpha_ml` (eq. 8.7's
+    /// extra effort: a passive patient makes none), `phi` and `tumour.resistance_phi` (eq. 8.8–8.9
+    /// reshape the PV model's curve; under volume control the resistance changes the airway pressure,
+    /// not the delivered volume) — and so is a closed pneumothorax that collapses every simulated
+    /// lung completely (no lung is left to take the recorded volume). α is 0 in the spec returned.
+    pub fn validate_ventilated(&self, sides: &[Side]) -> Result<DiseaseSpec, DiseaseSceneError> {
+        const EFFORT: &str =
+            "a ventilated patient's breath is the recording's ([pv] waveform): the \
+             ventilator delivers it, a passive patient adds no extra effort (eq. 8.7; EQUATIONS \
+             §4.7); drop the key";
+        const RESISTANCE: &str =
+            "eq. 8.8-8.9 reshape the PV model's breath; a ventilator delivers \
+             the recorded volume whatever the resistance (volume control: resistance raises the \
+             airway pressure, P = V/C + R·flow + P0, not the volume; EQUATIONS §4.7); drop the key";
+        for (name, present, reason) in [
+            ("alpha_ml", self.alpha_ml.is_some(), EFFORT),
+            ("phi", self.phi.is_some(), RESISTANCE),
+            (
+                "tumour.resistance_phi",
+                self.tumour
+                    .as_ref()
+                    .is_some_and(|t| t.resistance_phi.is_some()),
+                RESISTANCE,
+            ),
+        ] {
+            if present {
+                return Err(DiseaseError::NotApplicable { name, reason }.into());
+            }
+        }
+        let mut spec = self.validate(sides)?;
+        match &mut spec {
+            DiseaseSpec::Closed(c) => {
+                if sides.iter().all(|&s| c.index_of(s) == Some(1.0)) {
+                    return Err(DiseaseError::NotApplicable {
+                        name: "index",
+                        reason: "every simulated lung collapses completely (index 1): no lung is \
+                                 left to take the ventilator's recorded volume ([pv] waveform; \
+                                 EQUATIONS §4.7)",
+                    }
+                    .into());
+                }
+                c.alpha_ml = 0.0;
+            }
+            DiseaseSpec::Tension { params, .. } => params.alpha_ml = 0.0,
+            DiseaseSpec::Tumour(_) => {}
+        }
+        Ok(spec)
+    }
+
     /// [`Self::resolve`] and check the affected lungs are among the scene's `sides`.
     pub fn validate(&self, sides: &[Side]) -> Result<DiseaseSpec, DiseaseSceneError> {
         let spec = self.resolve()?;
@@ -817,5 +868,75 @@ mod tests {
         })
         .unwrap();
         assert_eq!(toml::from_str::<Scene>(&text).unwrap().disease, Some(d));
+    }
+
+    /// EQUATIONS §4.7: on a recorded breath α is 0 and the keys that shape a spontaneous breath are
+    /// refused by name, as is a closed pneumothorax with no lung left to ventilate.
+    #[test]
+    fn a_ventilated_course_drops_alpha_and_refuses_what_shapes_a_spontaneous_breath() {
+        let both = [Side::Right, Side::Left];
+        let d = disease("[disease]\nkind = \"tension-pneumothorax\"\nside = \"left\"\n");
+        let DiseaseSpec::Tension { params, .. } = d.validate_ventilated(&both).unwrap() else {
+            panic!("tension")
+        };
+        assert_eq!(params.alpha_ml, 0.0);
+        let d = disease("[disease]\nkind = \"closed-pneumothorax\"\nside = \"left\"\nindex = 1\n");
+        assert!(
+            matches!(d.validate_ventilated(&both).unwrap(), DiseaseSpec::Closed(c) if c.alpha_ml == 0.0)
+        );
+        // The same lung alone: nothing is left to take the recorded volume.
+        let e = d
+            .validate_ventilated(&[Side::Left])
+            .unwrap_err()
+            .to_string();
+        assert!(e.contains("index") && e.contains("no lung is left"), "{e}");
+        let e = disease(
+            "[disease]\nkind = \"bilateral-pneumothorax\"\nindex_left = 1\nindex_right = 1\n",
+        )
+        .validate_ventilated(&both)
+        .unwrap_err()
+        .to_string();
+        assert!(e.contains("no lung is left"), "{e}");
+        // One lung of two at index 1 is a ventilated lung's ordinary complete collapse.
+        disease(
+            "[disease]\nkind = \"bilateral-pneumothorax\"\nindex_left = 1\nindex_right = 0.5\n",
+        )
+        .validate_ventilated(&both)
+        .unwrap();
+        for (text, key) in [
+            (
+                "kind = \"closed-pneumothorax\"\nside = \"left\"\nindex = 0.1\nalpha_ml = 100\n",
+                "alpha_ml",
+            ),
+            (
+                "kind = \"tension-pneumothorax\"\nside = \"left\"\nalpha_ml = 0\n",
+                "alpha_ml",
+            ),
+            (
+                "kind = \"tension-pneumothorax\"\nside = \"left\"\nphi = 0.1\n",
+                "phi",
+            ),
+            (
+                "kind = \"tumour\"\nside = \"right\"\n[disease.tumour]\ncentre = [0.6, 0.3, 0.8]\n\
+                 radii_mm = [15, 15, 15]\nresistance_phi = 0.1\n",
+                "tumour.resistance_phi",
+            ),
+        ] {
+            let d = disease(&format!("[disease]\n{text}"));
+            d.validate(&both).unwrap();
+            let e = d.validate_ventilated(&both).unwrap_err().to_string();
+            assert!(e.starts_with(&format!("[disease] {key}:")), "{e}");
+        }
+        // The scene refuses them when loaded with a waveform, and takes the rest.
+        let scene = |disease: &str| {
+            toml::from_str::<Scene>(&format!("[pv]\nwaveform = \"r.csv\"\n[disease]\n{disease}"))
+                .unwrap()
+        };
+        let s = scene("kind = \"tension-pneumothorax\"\nside = \"left\"\nphi = 0.1\n");
+        assert!(s.validate().unwrap_err().to_string().contains("phi"));
+        let s = scene("kind = \"tension-pneumothorax\"\nside = \"left\"\n");
+        assert!(
+            matches!(s.disease_spec(), Ok(Some(DiseaseSpec::Tension { params, .. })) if params.alpha_ml == 0.0)
+        );
     }
 }
