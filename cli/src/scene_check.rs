@@ -264,6 +264,9 @@ pub struct CycleReport {
     pub affected_tidal_ml: f64,
     /// The other lung's tidal volume, ml.
     pub other_tidal_ml: Option<f64>,
+    /// The other lung's volume at the start of its breath, ml (its FRC volume less what the shifted
+    /// mediastinum compresses; EQUATIONS §4.6 (f)).
+    pub other_base_volume_ml: Option<f64>,
     /// Both lungs' tidal volumes times the rate, l/min.
     pub minute_ventilation_l_per_min: f64,
     /// Whether the SVC is closed.
@@ -611,6 +614,7 @@ fn tension(
             breaths_per_min: r3(c.times.breaths_per_min()),
             affected_tidal_ml: r3(affected_state.tidal_ml),
             other_tidal_ml: c.unaffected.map(|u| r3(u.tidal_ml)),
+            other_base_volume_ml: c.unaffected.map(|u| r3(u.base_volume_ml)),
             minute_ventilation_l_per_min: r3(c.times.breaths_per_min() * tidal / 1000.0),
             svc_closed: c.svc_closed,
             arrest: c.arrest,
@@ -1462,6 +1466,7 @@ mod tests {
                 "dV",
                 "drop_mm",
                 "minute_ventilation_l_per_min",
+                "other_base_volume_ml",
                 "other_tidal_ml",
                 "pleural_air_ml",
                 "shift_mm",

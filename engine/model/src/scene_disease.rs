@@ -134,6 +134,10 @@ pub struct DiseaseScene {
     /// Time constant of a needle's venting, cycles (tension, clinical model).
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub needle_tau_cycles: Option<f64>,
+    /// Share of the mediastinal displacement taken from the other lung, 0..=1 (tension, clinical
+    /// model; default 0.5; 0: the other lung is not compressed).
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub contralateral_compression: Option<f64>,
     /// `[disease.tumour]` (tumour).
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub tumour: Option<TumourScene>,
@@ -330,7 +334,7 @@ impl From<DiseaseError> for DiseaseSceneError {
 
 impl DiseaseScene {
     /// The keys present, by name (for the applicability check).
-    fn present(&self) -> [(&'static str, bool); 22] {
+    fn present(&self) -> [(&'static str, bool); 23] {
         [
             ("side", self.side.is_some()),
             ("index", self.index.is_some()),
@@ -363,6 +367,10 @@ impl DiseaseScene {
                 self.mediastinal_compliance_ml_per_cmh2o.is_some(),
             ),
             ("needle_tau_cycles", self.needle_tau_cycles.is_some()),
+            (
+                "contralateral_compression",
+                self.contralateral_compression.is_some(),
+            ),
         ]
     }
 
@@ -381,7 +389,8 @@ impl DiseaseScene {
                 CourseModel::Clinical => {
                     "model, side, alpha_ml, phi, onset_s, source, v_p_ml, tau, v1_max_ml, v2_max_ml, \
                      beta_mm, mediastinal_compliance_ml_per_cmh2o, needle_tau_cycles, \
-                     chest_tube_ml_per_cycle, hyperexpansion_cycles, events"
+                     contralateral_compression, chest_tube_ml_per_cycle, hyperexpansion_cycles, \
+                     events"
                 }
             },
             DiseaseKind::Tumour => "side, tumour",
@@ -404,6 +413,10 @@ impl DiseaseScene {
                             self.mediastinal_compliance_ml_per_cmh2o.is_some(),
                         ),
                         ("needle_tau_cycles", self.needle_tau_cycles.is_some()),
+                        (
+                            "contralateral_compression",
+                            self.contralateral_compression.is_some(),
+                        ),
                     ],
                     "applies to model = \"clinical\" only (EQUATIONS §4.6)",
                 ),
@@ -473,6 +486,12 @@ impl DiseaseScene {
                         .mediastinal_compliance_ml_per_cmh2o
                         .unwrap_or(d.mediastinal_compliance_ml_per_cmh2o),
                     needle_tau_cycles: self.needle_tau_cycles.unwrap_or(d.needle_tau_cycles),
+                    contralateral_compression: match self.model.unwrap_or_default() {
+                        CourseModel::Seed => 0.0,
+                        CourseModel::Clinical => self
+                            .contralateral_compression
+                            .unwrap_or(d.contralateral_compression),
+                    },
                     ..d
                 };
                 params.validate()?;
