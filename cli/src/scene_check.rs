@@ -12,7 +12,7 @@ use std::path::PathBuf;
 
 use anyhow::Context;
 use lung_model::disease::tension::{Outcome, Tension};
-use lung_model::disease::{LungBaseline, NormalBreathing};
+use lung_model::disease::{LungBaseline, LungState, NormalBreathing};
 use lung_model::mesh::{Side, TriMesh};
 use lung_model::scene::Scene;
 use lung_model::scene_disease::DiseaseSpec;
@@ -143,6 +143,10 @@ pub struct DiseaseReport {
     pub kind: &'static str,
     /// Whether `demo`/`engine` run it (every kind does).
     pub engine_applies_it: bool,
+    /// The course runs on a ventilator's recorded breath (`[pv] waveform`): the lungs share the
+    /// delivered volume at the recording's rate (EQUATIONS §4.7). Absent otherwise.
+    #[serde(skip_serializing_if = "std::ops::Not::not")]
+    pub ventilated: bool,
     /// The kind's own figures.
     #[serde(flatten)]
     pub detail: DiseaseDetail,
@@ -260,6 +264,9 @@ pub struct CycleReport {
     pub affected_tidal_ml: f64,
     /// The other lung's tidal volume, ml.
     pub other_tidal_ml: Option<f64>,
+    /// The other lung's volume at the start of its breath, ml (its FRC volume less what the shifted
+    /// mediastinum compresses; EQUATIONS §4.6 (f)).
+    pub other_base_volume_ml: Option<f64>,
     /// Both lungs' tidal volumes times the rate, l/min.
     pub minute_ventilation_l_per_min: f64,
     /// Whether the SVC is closed.
@@ -375,13 +382,20 @@ pub fn run(args: &CheckArgs) -> anyhow::Result<CheckReport> {
     let Some(d) = &scene.disease else {
         return Ok(out);
     };
-    let spec = d.validate(&scene.lungs.sides)?;
-    let normal = NormalBreathing {
+    let spec = scene
+        .disease_spec()?
+        .context("a [disease] table without a disease state")?;
+    // On a waveform scene the course runs on the recorded breath (EQUATIONS §4.7).
+    let recorded = scene
+        .waveform_breathing()
+        .with_context(|| format!("scene {}", out.scene))?;
+    let normal = lung_model::disease::ventilated::normal_breathing(
+        recorded.as_ref(),
+        scene.timing(),
         inhale,
         exhale,
         boundary,
-        timing,
-    };
+    );
     let mut baselines = Vec::new();
     for &side in &scene.lungs.sides {
         let mesh = lung_mesh(&scene, side)?;
@@ -391,8 +405,11 @@ pub fn run(args: &CheckArgs) -> anyhow::Result<CheckReport> {
                 .with_context(|| format!("the {} lung's baseline", side.name()))?,
         );
     }
+    let ventilated = recorded.is_some();
     let detail = match &spec {
-        DiseaseSpec::Closed(c) => DiseaseDetail::Closed(closed(c, &normal, &baselines)?),
+        DiseaseSpec::Closed(c) => {
+            DiseaseDetail::Closed(closed(c, &normal, &baselines, ventilated)?)
+        }
         DiseaseSpec::Tension {
             params,
             onset_s,
@@ -404,12 +421,14 @@ pub fn run(args: &CheckArgs) -> anyhow::Result<CheckReport> {
             &normal,
             &baselines,
             args.cycles,
+            ventilated,
         )?),
         DiseaseSpec::Tumour(t) => DiseaseDetail::Tumour(tumour(t, &scene, &normal, &baselines)?),
     };
     out.disease = Some(DiseaseReport {
         kind: d.kind.name(),
         engine_applies_it: true,
+        ventilated,
         detail,
     });
     Ok(out)
@@ -462,12 +481,30 @@ fn tumour(
     })
 }
 
+/// A ventilated course's states: the delivered volume shared by the lungs that breathe (EQUATIONS
+/// §4.7), as the engine shares it.
+fn deliver(states: &mut [&mut LungState], lungs: &[LungBaseline], tv_ml: f64) {
+    use lung_model::disease::ventilated;
+    let mut copy: Vec<LungState> = states.iter().map(|s| **s).collect();
+    ventilated::deliver(&mut copy, ventilated::delivered_ml(lungs, tv_ml));
+    for (s, d) in states.iter_mut().zip(copy) {
+        **s = d;
+    }
+}
+
 fn closed(
     c: &lung_model::disease::closed::ClosedPneumothorax,
     normal: &NormalBreathing,
     lungs: &[LungBaseline],
+    ventilated: bool,
 ) -> anyhow::Result<ClosedReport> {
-    let plan = c.plan(normal, lungs)?;
+    let mut plan = c.plan(normal, lungs)?;
+    if ventilated {
+        // The ventilator's rate and I:E (the recording's), its volume shared by the lungs.
+        let mut states: Vec<&mut LungState> = plan.lungs.iter_mut().map(|l| &mut l.state).collect();
+        deliver(&mut states, lungs, normal.boundary.tv_ml);
+        plan.times = lung_model::disease::phase_times(&normal.timing, 0.0)?;
+    }
     let tidal: f64 = plan.lungs.iter().map(|l| l.state.tidal_ml).sum();
     let lungs = plan
         .lungs
@@ -503,6 +540,7 @@ fn tension(
     normal: &NormalBreathing,
     lungs: &[LungBaseline],
     cycles: u32,
+    ventilated: bool,
 ) -> anyhow::Result<TensionReport> {
     let affected = *lungs
         .iter()
@@ -554,7 +592,16 @@ fn tension(
             });
             pending.next();
         }
-        let c = t.advance();
+        let mut c = t.advance();
+        if ventilated {
+            // The ventilator's rate (the recording's), its volume shared by the lungs that breathe.
+            let mut states: Vec<&mut LungState> = std::iter::once(&mut c.affected)
+                .chain(c.unaffected.as_mut())
+                .collect();
+            deliver(&mut states, lungs, normal.boundary.tv_ml);
+            c.times = lung_model::disease::phase_times(&normal.timing, 0.0)?;
+            c.timing = normal.timing;
+        }
         let affected_state = c.affected;
         let tidal = affected_state.tidal_ml + c.unaffected.map_or(0.0, |u| u.tidal_ml);
         course.push(CycleReport {
@@ -567,6 +614,7 @@ fn tension(
             breaths_per_min: r3(c.times.breaths_per_min()),
             affected_tidal_ml: r3(affected_state.tidal_ml),
             other_tidal_ml: c.unaffected.map(|u| r3(u.tidal_ml)),
+            other_base_volume_ml: c.unaffected.map(|u| r3(u.base_volume_ml)),
             minute_ventilation_l_per_min: r3(c.times.breaths_per_min() * tidal / 1000.0),
             svc_closed: c.svc_closed,
             arrest: c.arrest,
@@ -653,6 +701,10 @@ pub fn text(r: &CheckReport) -> String {
             " (not run by the engine yet: `demo`/`engine` refuse this scene)"
         }
     );
+    if d.ventilated {
+        s += "  ventilated: the ventilator delivers the recorded breath at its rate; the lungs \
+              that breathe share it by compliance (EQUATIONS §4.7)\n";
+    }
     match &d.detail {
         DiseaseDetail::Closed(c) => {
             s += &format!(
@@ -1414,6 +1466,7 @@ mod tests {
                 "dV",
                 "drop_mm",
                 "minute_ventilation_l_per_min",
+                "other_base_volume_ml",
                 "other_tidal_ml",
                 "pleural_air_ml",
                 "shift_mm",

@@ -766,6 +766,16 @@ def make_recordings():
     w("with_constants", '[pv]\nwaveform = "rec_pb840_vc.csv"\nconstants = "constants_good.toml"\n')
     w("with_disease", '[pv]\nwaveform = "rec_pb840_vc.csv"\n\n[disease]\nkind = "closed-pneumothorax"\n'
       'side = "left"\nindex = 0.1\nalpha_ml = 100.0\nphi = 0.1\n')
+    # A disease on a recorded breath (EQUATIONS §4.7): accepted; what shapes a spontaneous breath
+    # (phi) and a collapse of every lung are refused.
+    w("closed_pneumothorax", '[pv]\nwaveform = "rec_pb840_vc.csv"\n\n[disease]\nkind = "closed-pneumothorax"\n'
+      'side = "left"\nindex = 0.3\n')
+    w("tension", '[pv]\nwaveform = "rec_pb840_vc.csv"\n\n[disease]\nkind = "tension-pneumothorax"\n'
+      'side = "left"\nv_p_ml = 40.0\n')
+    w("with_phi", '[pv]\nwaveform = "rec_pb840_vc.csv"\n\n[disease]\nkind = "tension-pneumothorax"\n'
+      'side = "left"\nphi = 0.1\n')
+    w("every_lung_collapsed", '[pv]\nwaveform = "rec_pb840_vc.csv"\n\n[disease]\n'
+      'kind = "bilateral-pneumothorax"\nindex_left = 1.0\nindex_right = 1.0\n')
 
 
 def main():

@@ -135,6 +135,8 @@ fn every_shipped_scene_checks_and_a_pneumothorax_and_a_tumour_run() {
         "tension_pneumothorax.toml",
         "tumour_right_lower.toml",
         "upright.toml",
+        "ventilated_recording.toml",
+        "ventilated_tension_pneumothorax.toml",
     ] {
         check(&scene(name));
     }
@@ -711,4 +713,53 @@ fn every_shipped_scene_runs_in_a_window() {
             serde_json::from_str(stdout.trim()).unwrap_or_else(|e| panic!("{name}: {e}: {stdout}"));
         lungdyn_tests::assert_demo_report_is_consistent(&v, &stderr);
     }
+}
+
+/// EQUATIONS §4.7: the shipped ventilated tension pneumothorax (a recorded breath with the course on
+/// top). `scene check`: the course at the recording's rate, the two lungs' tidal volumes adding up to
+/// the recorded one while both breathe, the affected lung's share falling as it collapses; `scene
+/// run`: the engine plays it without a PV model, the needle applied, no arrest, every frame finite.
+#[test]
+fn a_ventilated_tension_pneumothorax_keeps_the_delivered_volume() {
+    let v = check(&scene("ventilated_tension_pneumothorax.toml"));
+    let tv = v["pv"]["tidal_volume_ml"].as_f64().unwrap();
+    let rate = v["pv"]["breaths_per_min"].as_f64().unwrap();
+    assert!(
+        (tv - 500.0).abs() < 5.0 && (rate - 15.0).abs() < 0.01,
+        "{}",
+        v["pv"]
+    );
+    let d = &v["disease"];
+    assert_eq!(d["ventilated"], true, "{d}");
+    let mut both = 0;
+    let mut last_affected = f64::MAX;
+    for c in d["course"].as_array().unwrap() {
+        assert_eq!(c["breaths_per_min"].as_f64().unwrap(), rate, "{c}");
+        let a = c["affected_tidal_ml"].as_f64().unwrap();
+        let o = c["other_tidal_ml"].as_f64().unwrap();
+        assert!(
+            a.is_finite() && o.is_finite() && a >= 0.0 && o >= 0.0,
+            "{c}"
+        );
+        if a > 0.0 && o > 0.0 {
+            // Both breathe: the recorded volume is delivered (rounded to 1e-3 ml each).
+            assert!((a + o - tv).abs() < 0.01, "{c}");
+            both += 1;
+            if c["cycle"].as_u64().unwrap() < 19 {
+                assert!(a <= last_affected + 1e-9, "{c}");
+                last_affected = a;
+            }
+        }
+    }
+    assert!(both > 100, "{both} cycles with both lungs breathing");
+    assert_eq!(d["events"][0]["kind"], "needle-decompression", "{d}");
+    let r = scene_run("ventilated_tension_pneumothorax.toml", "200");
+    assert_eq!(r["non_finite_frames"], 0);
+    assert_eq!(r["stage_counts"]["pv_models_built"], 0, "{r}");
+    assert_eq!(r["disease"]["events"][0]["outcome"], "Applied", "{r}");
+    assert!(
+        r["disease"]["first_arrest_cycle"].is_null(),
+        "{}",
+        r["disease"]
+    );
 }

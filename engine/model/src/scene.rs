@@ -1057,9 +1057,7 @@ impl Scene {
                 return Err(E::ErrorBudget(e));
             }
         }
-        if let Some(d) = &self.disease {
-            d.validate(&self.lungs.sides).map_err(E::Disease)?;
-        }
+        self.disease_spec().map_err(E::Disease)?;
         let p = &self.processes;
         if !(p.cpus.is_empty() || p.cpus.len() == 3) {
             return Err(E::ProcessCpus(p.cpus.clone()));
@@ -1155,13 +1153,6 @@ impl Scene {
                 "a scene plays a recording or a PV model, not both: drop [pv] constants".into(),
             ));
         }
-        if self.disease.is_some() {
-            return Err(SceneValueError::Waveform(
-                "a [disease] course is built on the PV model's constants (EQUATIONS §4); a \
-                 waveform scene cannot carry one yet: drop [disease] or [pv] waveform"
-                    .into(),
-            ));
-        }
         let rec = crate::recording::read_recording(path, crate::input::ReadLimits::TABLE)
             .map_err(|e| SceneValueError::Waveform(e.to_string()))?;
         crate::recording::average_breath(
@@ -1171,6 +1162,24 @@ impl Scene {
         )
         .map(Some)
         .map_err(|e| SceneValueError::Waveform(format!("{}: {e}", path.display())))
+    }
+
+    /// The scene's disease state, validated against its lungs (`None` without `[disease]`). On a
+    /// `[pv] waveform` scene the course runs on the ventilator's recorded breath
+    /// ([`crate::scene_disease::DiseaseScene::validate_ventilated`], EQUATIONS §4.7).
+    pub fn disease_spec(
+        &self,
+    ) -> Result<Option<crate::scene_disease::DiseaseSpec>, crate::scene_disease::DiseaseSceneError>
+    {
+        let Some(d) = &self.disease else {
+            return Ok(None);
+        };
+        let sides = &self.lungs.sides;
+        match self.pv.waveform {
+            Some(_) => d.validate_ventilated(sides),
+            None => d.validate(sides),
+        }
+        .map(Some)
     }
 
     /// The breathing cycle of a `[pv] waveform` scene: its averaged breath above the preset's FRC

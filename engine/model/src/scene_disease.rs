@@ -134,6 +134,10 @@ pub struct DiseaseScene {
     /// Time constant of a needle's venting, cycles (tension, clinical model).
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub needle_tau_cycles: Option<f64>,
+    /// Share of the mediastinal displacement taken from the other lung, 0..=1 (tension, clinical
+    /// model; default 0.5; 0: the other lung is not compressed).
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub contralateral_compression: Option<f64>,
     /// `[disease.tumour]` (tumour).
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub tumour: Option<TumourScene>,
@@ -330,7 +334,7 @@ impl From<DiseaseError> for DiseaseSceneError {
 
 impl DiseaseScene {
     /// The keys present, by name (for the applicability check).
-    fn present(&self) -> [(&'static str, bool); 22] {
+    fn present(&self) -> [(&'static str, bool); 23] {
         [
             ("side", self.side.is_some()),
             ("index", self.index.is_some()),
@@ -363,6 +367,10 @@ impl DiseaseScene {
                 self.mediastinal_compliance_ml_per_cmh2o.is_some(),
             ),
             ("needle_tau_cycles", self.needle_tau_cycles.is_some()),
+            (
+                "contralateral_compression",
+                self.contralateral_compression.is_some(),
+            ),
         ]
     }
 
@@ -381,7 +389,8 @@ impl DiseaseScene {
                 CourseModel::Clinical => {
                     "model, side, alpha_ml, phi, onset_s, source, v_p_ml, tau, v1_max_ml, v2_max_ml, \
                      beta_mm, mediastinal_compliance_ml_per_cmh2o, needle_tau_cycles, \
-                     chest_tube_ml_per_cycle, hyperexpansion_cycles, events"
+                     contralateral_compression, chest_tube_ml_per_cycle, hyperexpansion_cycles, \
+                     events"
                 }
             },
             DiseaseKind::Tumour => "side, tumour",
@@ -404,6 +413,10 @@ impl DiseaseScene {
                             self.mediastinal_compliance_ml_per_cmh2o.is_some(),
                         ),
                         ("needle_tau_cycles", self.needle_tau_cycles.is_some()),
+                        (
+                            "contralateral_compression",
+                            self.contralateral_compression.is_some(),
+                        ),
                     ],
                     "applies to model = \"clinical\" only (EQUATIONS §4.6)",
                 ),
@@ -473,6 +486,12 @@ impl DiseaseScene {
                         .mediastinal_compliance_ml_per_cmh2o
                         .unwrap_or(d.mediastinal_compliance_ml_per_cmh2o),
                     needle_tau_cycles: self.needle_tau_cycles.unwrap_or(d.needle_tau_cycles),
+                    contralateral_compression: match self.model.unwrap_or_default() {
+                        CourseModel::Seed => 0.0,
+                        CourseModel::Clinical => self
+                            .contralateral_compression
+                            .unwrap_or(d.contralateral_compression),
+                    },
                     ..d
                 };
                 params.validate()?;
@@ -551,6 +570,57 @@ impl DiseaseScene {
                 Ok(DiseaseSpec::Tumour(tumour))
             }
         }
+    }
+
+    /// [`Self::validate`] for a scene whose breath is a ventilator recording (`[pv] waveform`;
+    /// EQUATIONS §4.7): the ventilator delivers the recorded volume and the lungs share it, so what
+    /// shapes a spontaneous breath does not apply and is refused when given — `alpha_ml` (eq. 8.7's
+    /// extra effort: a passive patient makes none), `phi` and `tumour.resistance_phi` (eq. 8.8–8.9
+    /// reshape the PV model's curve; under volume control the resistance changes the airway pressure,
+    /// not the delivered volume) — and so is a closed pneumothorax that collapses every simulated
+    /// lung completely (no lung is left to take the recorded volume). α is 0 in the spec returned.
+    pub fn validate_ventilated(&self, sides: &[Side]) -> Result<DiseaseSpec, DiseaseSceneError> {
+        const EFFORT: &str =
+            "a ventilated patient's breath is the recording's ([pv] waveform): the \
+             ventilator delivers it, a passive patient adds no extra effort (eq. 8.7; EQUATIONS \
+             §4.7); drop the key";
+        const RESISTANCE: &str =
+            "eq. 8.8-8.9 reshape the PV model's breath; a ventilator delivers \
+             the recorded volume whatever the resistance (volume control: resistance raises the \
+             airway pressure, P = V/C + R·flow + P0, not the volume; EQUATIONS §4.7); drop the key";
+        for (name, present, reason) in [
+            ("alpha_ml", self.alpha_ml.is_some(), EFFORT),
+            ("phi", self.phi.is_some(), RESISTANCE),
+            (
+                "tumour.resistance_phi",
+                self.tumour
+                    .as_ref()
+                    .is_some_and(|t| t.resistance_phi.is_some()),
+                RESISTANCE,
+            ),
+        ] {
+            if present {
+                return Err(DiseaseError::NotApplicable { name, reason }.into());
+            }
+        }
+        let mut spec = self.validate(sides)?;
+        match &mut spec {
+            DiseaseSpec::Closed(c) => {
+                if sides.iter().all(|&s| c.index_of(s) == Some(1.0)) {
+                    return Err(DiseaseError::NotApplicable {
+                        name: "index",
+                        reason: "every simulated lung collapses completely (index 1): no lung is \
+                                 left to take the ventilator's recorded volume ([pv] waveform; \
+                                 EQUATIONS §4.7)",
+                    }
+                    .into());
+                }
+                c.alpha_ml = 0.0;
+            }
+            DiseaseSpec::Tension { params, .. } => params.alpha_ml = 0.0,
+            DiseaseSpec::Tumour(_) => {}
+        }
+        Ok(spec)
     }
 
     /// [`Self::resolve`] and check the affected lungs are among the scene's `sides`.
@@ -817,5 +887,75 @@ mod tests {
         })
         .unwrap();
         assert_eq!(toml::from_str::<Scene>(&text).unwrap().disease, Some(d));
+    }
+
+    /// EQUATIONS §4.7: on a recorded breath α is 0 and the keys that shape a spontaneous breath are
+    /// refused by name, as is a closed pneumothorax with no lung left to ventilate.
+    #[test]
+    fn a_ventilated_course_drops_alpha_and_refuses_what_shapes_a_spontaneous_breath() {
+        let both = [Side::Right, Side::Left];
+        let d = disease("[disease]\nkind = \"tension-pneumothorax\"\nside = \"left\"\n");
+        let DiseaseSpec::Tension { params, .. } = d.validate_ventilated(&both).unwrap() else {
+            panic!("tension")
+        };
+        assert_eq!(params.alpha_ml, 0.0);
+        let d = disease("[disease]\nkind = \"closed-pneumothorax\"\nside = \"left\"\nindex = 1\n");
+        assert!(
+            matches!(d.validate_ventilated(&both).unwrap(), DiseaseSpec::Closed(c) if c.alpha_ml == 0.0)
+        );
+        // The same lung alone: nothing is left to take the recorded volume.
+        let e = d
+            .validate_ventilated(&[Side::Left])
+            .unwrap_err()
+            .to_string();
+        assert!(e.contains("index") && e.contains("no lung is left"), "{e}");
+        let e = disease(
+            "[disease]\nkind = \"bilateral-pneumothorax\"\nindex_left = 1\nindex_right = 1\n",
+        )
+        .validate_ventilated(&both)
+        .unwrap_err()
+        .to_string();
+        assert!(e.contains("no lung is left"), "{e}");
+        // One lung of two at index 1 is a ventilated lung's ordinary complete collapse.
+        disease(
+            "[disease]\nkind = \"bilateral-pneumothorax\"\nindex_left = 1\nindex_right = 0.5\n",
+        )
+        .validate_ventilated(&both)
+        .unwrap();
+        for (text, key) in [
+            (
+                "kind = \"closed-pneumothorax\"\nside = \"left\"\nindex = 0.1\nalpha_ml = 100\n",
+                "alpha_ml",
+            ),
+            (
+                "kind = \"tension-pneumothorax\"\nside = \"left\"\nalpha_ml = 0\n",
+                "alpha_ml",
+            ),
+            (
+                "kind = \"tension-pneumothorax\"\nside = \"left\"\nphi = 0.1\n",
+                "phi",
+            ),
+            (
+                "kind = \"tumour\"\nside = \"right\"\n[disease.tumour]\ncentre = [0.6, 0.3, 0.8]\n\
+                 radii_mm = [15, 15, 15]\nresistance_phi = 0.1\n",
+                "tumour.resistance_phi",
+            ),
+        ] {
+            let d = disease(&format!("[disease]\n{text}"));
+            d.validate(&both).unwrap();
+            let e = d.validate_ventilated(&both).unwrap_err().to_string();
+            assert!(e.starts_with(&format!("[disease] {key}:")), "{e}");
+        }
+        // The scene refuses them when loaded with a waveform, and takes the rest.
+        let scene = |disease: &str| {
+            toml::from_str::<Scene>(&format!("[pv]\nwaveform = \"r.csv\"\n[disease]\n{disease}"))
+                .unwrap()
+        };
+        let s = scene("kind = \"tension-pneumothorax\"\nside = \"left\"\nphi = 0.1\n");
+        assert!(s.validate().unwrap_err().to_string().contains("phi"));
+        let s = scene("kind = \"tension-pneumothorax\"\nside = \"left\"\n");
+        assert!(
+            matches!(s.disease_spec(), Ok(Some(DiseaseSpec::Tension { params, .. })) if params.alpha_ml == 0.0)
+        );
     }
 }

@@ -26,7 +26,7 @@
 
 use lung_model::disease::closed::ClosedPlan;
 use lung_model::disease::tension::{EventRecord, Intervention, Tension};
-use lung_model::disease::{DiseaseError, LungBaseline, LungState, NormalBreathing};
+use lung_model::disease::{ventilated, DiseaseError, LungBaseline, LungState, NormalBreathing};
 use lung_model::mesh::Side;
 use lung_model::pv::{Breathing, PhaseConstants, PvError};
 use lung_model::scene_disease::{DiseaseSpec, TimedEvent};
@@ -99,7 +99,8 @@ pub enum DiseaseRun {
 pub struct TumourRun {
     /// The affected lung.
     pub side: Side,
-    /// Its PV cycle with the raised resistance (moved into the lung when the engine is built).
+    /// Its PV cycle with the raised resistance (moved into the lung when the engine is built);
+    /// `None` on a ventilated scene (the lung plays the recorded breath).
     pub breathing: Option<Breathing>,
     /// The changed constants, inhale and exhale.
     pub constants: (PhaseConstants, PhaseConstants),
@@ -127,6 +128,9 @@ pub struct TensionRun {
     last_course: Option<(u64, u64)>,
     inhale: PhaseConstants,
     exhale: PhaseConstants,
+    /// The ventilator's recorded breath and the volume it delivers (`[pv] waveform`; EQUATIONS
+    /// §4.7), instead of PV cycles.
+    recorded: Option<(Breathing, f64)>,
     /// Cycles moved into the lungs so far.
     pub cycles_run: u64,
     requested: bool,
@@ -144,18 +148,27 @@ pub struct TensionRun {
 /// told): room for every one of the transport's senders at once, each with one action in flight.
 pub const MAX_QUEUED_ACTIONS: usize = 64;
 
+/// What a lung's cycle is built from.
+#[derive(Debug, Clone)]
+pub enum LungTable {
+    /// A PV cycle (eq. 5.11) from these constants, boundary values and timing.
+    Pv(
+        PhaseConstants,
+        PhaseConstants,
+        lung_model::pv::Boundary,
+        lung_model::pv::Timing,
+    ),
+    /// The ventilator's recorded breath scaled to this tidal volume (TV, ml; EQUATIONS §4.7).
+    Recorded(Breathing, f64),
+}
+
 /// One lung's part of a [`Recipe`].
 #[derive(Debug, Clone)]
 pub struct LungRecipe {
     /// The lung's state.
     pub state: LungState,
-    /// Its PV cycle's inputs (`None` when held).
-    pub pv: Option<(
-        PhaseConstants,
-        PhaseConstants,
-        lung_model::pv::Boundary,
-        lung_model::pv::Timing,
-    )>,
+    /// Its cycle's inputs (`None` when held).
+    pub pv: Option<LungTable>,
 }
 
 /// Everything needed to build one prepared cycle (the expensive part: the PV cycles).
@@ -177,16 +190,15 @@ impl Recipe {
         let mut lungs = Vec::with_capacity(self.lungs.len());
         for l in self.lungs {
             let breathing = match l.pv {
-                Some((i, e, b, t)) => {
-                    Some(Breathing::from_constants(&i, &e, b, &t).map_err(|source| {
-                        DiseaseRunError::Breathing {
-                            side: l.state.side.name(),
-                            source,
-                        }
-                    })?)
-                }
+                Some(LungTable::Pv(i, e, b, t)) => Some(Breathing::from_constants(&i, &e, b, &t)),
+                Some(LungTable::Recorded(r, tv)) => Some(r.rescaled(tv)),
                 None => None,
-            };
+            }
+            .transpose()
+            .map_err(|source| DiseaseRunError::Breathing {
+                side: l.state.side.name(),
+                source,
+            })?;
             lungs.push(LungSetup {
                 side: l.state.side,
                 state: l.state,
@@ -204,22 +216,40 @@ impl Recipe {
 
 impl DiseaseRun {
     /// Prepare `spec` for lungs with `baselines` (the scene's order) breathing `normal`, with the
-    /// engine's tick rate.
+    /// engine's tick rate. `recorded`: the ventilator's breath of a `[pv] waveform` scene, which the
+    /// lungs share instead of PV cycles (`normal` from [`ventilated::normal_breathing`];
+    /// EQUATIONS §4.7).
     pub fn prepare(
         spec: &DiseaseSpec,
         normal: &NormalBreathing,
         baselines: &[LungBaseline],
+        recorded: Option<&Breathing>,
     ) -> Result<Self, DiseaseRunError> {
         match spec {
             DiseaseSpec::Closed(c) => {
-                let plan: ClosedPlan = c.plan(normal, baselines)?;
+                let mut plan: ClosedPlan = c.plan(normal, baselines)?;
+                if recorded.is_some() {
+                    let mut states: Vec<LungState> = plan.lungs.iter().map(|l| l.state).collect();
+                    let delivered = ventilated::delivered_ml(baselines, normal.boundary.tv_ml);
+                    ventilated::deliver(&mut states, delivered);
+                    for (l, s) in plan.lungs.iter_mut().zip(states) {
+                        l.state = s;
+                    }
+                }
                 let mut lungs = Vec::new();
                 for l in &plan.lungs {
-                    let breathing = l.breathing(&plan.timing).transpose().map_err(|source| {
-                        DiseaseRunError::Breathing {
-                            side: l.side.name(),
-                            source,
-                        }
+                    let share = baselines
+                        .iter()
+                        .find(|b| b.side == l.side)
+                        .map_or(1.0, |b| b.share);
+                    let breathing = match recorded {
+                        Some(r) => ventilated::lung_breathing(&l.state, r, share),
+                        None => l.breathing(&plan.timing),
+                    }
+                    .transpose()
+                    .map_err(|source| DiseaseRunError::Breathing {
+                        side: l.side.name(),
+                        source,
                     })?;
                     lungs.push(LungSetup {
                         side: l.side,
@@ -234,7 +264,7 @@ impl DiseaseRun {
                 onset_s,
                 events,
             } => Ok(DiseaseRun::Tension(TensionRun::prepare(
-                *params, *onset_s, events, normal, baselines,
+                *params, *onset_s, events, normal, baselines, recorded,
             )?)),
             DiseaseSpec::Tumour(t) => {
                 let lung = baselines.iter().find(|b| b.side == t.side).ok_or(
@@ -244,14 +274,21 @@ impl DiseaseRun {
                 )?;
                 let (i, e, resistance) =
                     t.resistance(&normal.inhale, &normal.exhale, lung.start_volume_ml)?;
-                let breathing = Breathing::from_constants(&i, &e, normal.boundary, &normal.timing)
-                    .map_err(|source| DiseaseRunError::Breathing {
-                        side: t.side.name(),
-                        source,
-                    })?;
+                // A ventilated lung plays the recorded breath: the resistance raises the airway
+                // pressure, not the delivered volume (EQUATIONS §4.7); the kernel carries the tumour.
+                let breathing = match recorded {
+                    Some(_) => None,
+                    None => Some(
+                        Breathing::from_constants(&i, &e, normal.boundary, &normal.timing)
+                            .map_err(|source| DiseaseRunError::Breathing {
+                                side: t.side.name(),
+                                source,
+                            })?,
+                    ),
+                };
                 Ok(DiseaseRun::Tumour(Box::new(TumourRun {
                     side: t.side,
-                    breathing: Some(breathing),
+                    breathing,
                     constants: (i, e),
                     resistance,
                 })))
@@ -267,6 +304,7 @@ impl TensionRun {
         events: &[TimedEvent],
         normal: &NormalBreathing,
         baselines: &[LungBaseline],
+        recorded: Option<&Breathing>,
     ) -> Result<Self, DiseaseRunError> {
         let affected =
             *baselines
@@ -296,6 +334,12 @@ impl TensionRun {
             last_course: None,
             inhale: normal.inhale.clone(),
             exhale: normal.exhale.clone(),
+            recorded: recorded.map(|r| {
+                (
+                    r.clone(),
+                    ventilated::delivered_ml(baselines, normal.boundary.tv_ml),
+                )
+            }),
             cycles_run: 0,
             requested: false,
             events: Vec::with_capacity(64),
@@ -345,8 +389,16 @@ impl TensionRun {
             }
         }
         let c = self.tension.advance();
+        let mut states = [Some(c.affected), c.unaffected];
+        if let Some((_, delivered)) = &self.recorded {
+            let mut breathing: Vec<LungState> = states.iter().flatten().copied().collect();
+            ventilated::deliver(&mut breathing, *delivered);
+            for (s, d) in states.iter_mut().flatten().zip(breathing) {
+                *s = d;
+            }
+        }
         let mut lungs = Vec::with_capacity(2);
-        for state in std::iter::once(c.affected).chain(c.unaffected) {
+        for state in states.into_iter().flatten() {
             let share = self
                 .shares
                 .iter()
@@ -354,6 +406,15 @@ impl TensionRun {
                 .map(|&(_, s)| s)
                 .expect("the course's lungs are the scene's");
             let normal = &self.normal;
+            if let Some((r, _)) = &self.recorded {
+                lungs.push(LungRecipe {
+                    state,
+                    pv: state
+                        .boundary(&r.boundary(), share)
+                        .map(|b| LungTable::Recorded(r.clone(), b.tv_ml)),
+                });
+                continue;
+            }
             let (inhale, exhale) = if state.side == self.affected {
                 self.tension.constants_into(
                     state.resistance_dv,
@@ -368,7 +429,7 @@ impl TensionRun {
                 state,
                 pv: state
                     .boundary(&normal.boundary, share)
-                    .map(|b| (inhale, exhale, b, c.timing)),
+                    .map(|b| LungTable::Pv(inhale, exhale, b, c.timing)),
             });
         }
         self.first_arrest = self.tension.first_arrest();

@@ -396,17 +396,23 @@ impl EngineCore {
         scene: &Scene,
         meshes: &[lung_model::mesh::TriMesh],
     ) -> Result<(), CoreError> {
-        let Some(d) = &scene.disease else {
+        let Some(spec) = scene.disease_spec()? else {
             return Ok(());
         };
-        let spec = d.validate(&scene.lungs.sides)?;
         let (inhale, exhale, boundary) = scene.pv_model().map_err(CoreError::Pv)?;
-        let normal = lung_model::disease::NormalBreathing {
+        // A waveform scene's course runs on the ventilator's recorded breath, which every lung
+        // plays before the disease (EQUATIONS §4.7).
+        let recorded = match (&scene.pv.waveform, self.lungs.first()) {
+            (Some(_), Some((_, breath))) => Some(breath.breathing.clone()),
+            _ => None,
+        };
+        let normal = lung_model::disease::ventilated::normal_breathing(
+            recorded.as_ref(),
+            scene.timing(),
             inhale,
             exhale,
             boundary,
-            timing: scene.timing(),
-        };
+        );
         let mut baselines = Vec::new();
         for ((geometry, breath), mesh) in self.lungs.iter_mut().zip(meshes) {
             let b = lung_model::disease::LungBaseline::of(mesh, geometry.side, breath.share)
@@ -414,7 +420,7 @@ impl EngineCore {
             geometry.hilum_mm = Some(b.hilum_mm);
             baselines.push(b);
         }
-        let mut run = disease::DiseaseRun::prepare(&spec, &normal, &baselines)?;
+        let mut run = disease::DiseaseRun::prepare(&spec, &normal, &baselines, recorded.as_ref())?;
         if let disease::DiseaseRun::Closed(setups) = &mut run {
             for setup in setups.iter_mut() {
                 if let Some((_, breath)) = self.lungs.iter_mut().find(|(g, _)| g.side == setup.side)

@@ -528,11 +528,14 @@ fn every_orientation_method_stays_finite_at_the_extremes_and_replays_bitwise() {
 
 /// A scene with a `[disease]` table over the two baked test lungs (their meshes for the hilum).
 fn disease_core(disease: &str) -> EngineCore {
-    let scene = Scene::parse(
-        &format!("[lungs]\nsides = [\"right\", \"left\"]\n[disease]\n{disease}"),
-        "test",
-    )
-    .unwrap();
+    diseased_core(&format!(
+        "[lungs]\nsides = [\"right\", \"left\"]\n[disease]\n{disease}"
+    ))
+}
+
+/// The scene `text` over the two baked test lungs with its disease state started.
+fn diseased_core(text: &str) -> EngineCore {
+    let scene = Scene::parse(text, "test").unwrap();
     let meshes: Vec<_> = [Side::Right, Side::Left]
         .into_iter()
         .map(|side| generate::lung(side, 1000).unwrap())
@@ -1151,4 +1154,162 @@ fn actions_are_announced_with_their_tick_ahead_and_a_late_site_applies_them_at_t
     };
     assert_eq!(site(true), 0);
     assert!(site(false) >= 2 * DELAY as usize, "{}", site(false));
+}
+
+/// A waveform scene (the shipped synthetic recording) with `disease` over the two baked test lungs.
+fn ventilated_core(disease: &str) -> EngineCore {
+    let recording = std::path::Path::new(env!("CARGO_MANIFEST_DIR"))
+        .join("../scenes/recordings/ventilated_vc_synthetic.csv");
+    diseased_core(&format!(
+        "[pv]\npreset = \"venegas-human\"\nwaveform = {:?}\n[lungs]\nsides = [\"right\", \"left\"]\n\
+         {disease}",
+        recording.display().to_string()
+    ))
+}
+
+/// Every frame of `ticks` ticks of `core` (stepped and prepared as the process loop does).
+fn ventilated_frames(core: &mut EngineCore, ticks: u64) -> Vec<EngineFrame> {
+    let mut out = Vec::new();
+    for tick in 0..ticks {
+        let mut f = EngineFrame::default();
+        core.step(tick, None, &mut f);
+        core.prepare_ahead().unwrap();
+        for l in &f.lungs {
+            assert!(
+                l.volume_ml.is_finite() && l.deform_scale.is_finite(),
+                "tick {tick}: {l:?}"
+            );
+        }
+        out.push(f);
+    }
+    out
+}
+
+/// Two runs' frames are the same, byte for byte.
+fn assert_same_frames(a: &[EngineFrame], b: &[EngineFrame]) {
+    assert_eq!(a.len(), b.len());
+    for (x, y) in a.iter().zip(b) {
+        assert_eq!(
+            bytemuck::bytes_of(x),
+            bytemuck::bytes_of(y),
+            "tick {}",
+            x.tick
+        );
+    }
+}
+
+/// Each lung's swing (max − min volume) over `frames`, and the swing of the two together.
+fn swings(frames: &[EngineFrame]) -> ([f64; 2], f64) {
+    let mut lo = [f64::MAX; 3];
+    let mut hi = [f64::MIN; 3];
+    for f in frames {
+        let v = [
+            f.lungs[0].volume_ml as f64,
+            f.lungs[1].volume_ml as f64,
+            f.lungs[0].volume_ml as f64 + f.lungs[1].volume_ml as f64,
+        ];
+        for k in 0..3 {
+            lo[k] = lo[k].min(v[k]);
+            hi[k] = hi[k].max(v[k]);
+        }
+    }
+    ([hi[0] - lo[0], hi[1] - lo[1]], hi[2] - lo[2])
+}
+
+/// EQUATIONS §4.7: on a ventilator's recorded breath a closed pneumothorax moves the collapsing
+/// lung's share to the other lung and the two together still take the recorded volume; index 0 is
+/// the healthy waveform scene bit for bit; complete collapse holds the lung and the other takes it
+/// all; no PV model is built.
+#[test]
+fn a_pneumothorax_on_a_recorded_breath_conserves_the_delivered_volume() {
+    let scene = waveform_scene();
+    let cycle = (scene.engine.tick_hz * 4.0) as u64; // 15 breaths/min
+    let healthy = ventilated_frames(
+        &mut EngineCore::with_geometry(&scene, baked_geometry()).unwrap(),
+        3 * cycle,
+    );
+    let (healthy_each, healthy_total) = swings(&healthy);
+    let closed = |index: f64| {
+        format!("[disease]\nkind = \"closed-pneumothorax\"\nside = \"left\"\nindex = {index}\n")
+    };
+    let zero = ventilated_frames(&mut ventilated_core(&closed(0.0)), 3 * cycle);
+    assert_same_frames(&healthy, &zero);
+    let mut last_right = healthy_each[LUNG_RIGHT];
+    for index in [1e-9, 0.1, 0.5, 1.0] {
+        let mut core = ventilated_core(&closed(index));
+        assert_eq!(core.stage_counts().pv_models_built, 0);
+        let frames = ventilated_frames(&mut core, 3 * cycle);
+        let (each, total) = swings(&frames);
+        // The delivered volume is conserved (f32 frames: within 0.1 ml).
+        assert!(
+            (total - healthy_total).abs() < 0.1,
+            "I = {index}: {total} ml against {healthy_total} ml"
+        );
+        // The left lung takes (1 − dV) of its weight, the right lung the rest.
+        let dv = index.powf(0.33);
+        assert!(each[LUNG_RIGHT] >= last_right - 1e-3, "I = {index}");
+        last_right = each[LUNG_RIGHT];
+        let (sl, sr) = (healthy_each[LUNG_LEFT], healthy_each[LUNG_RIGHT]);
+        let want_left = healthy_total * sl * (1.0 - dv) / (sl * (1.0 - dv) + sr);
+        assert!(
+            (each[LUNG_LEFT] - want_left).abs() < 0.1,
+            "I = {index}: left {} ml, expected {want_left} ml",
+            each[LUNG_LEFT]
+        );
+        // The recorded rate: the period is the recording's.
+        assert_eq!(core.cycle_ticks() as u64, cycle);
+        if index == 1.0 {
+            assert!(frames
+                .iter()
+                .all(|f| f.lungs[LUNG_LEFT].flags & lung_flags::HELD != 0));
+        }
+    }
+}
+
+/// A tension pneumothorax on a recorded breath runs its course at the ventilator's rate: the two
+/// lungs share the delivered volume until the SVC closes, nothing is NaN through arrest and a
+/// needle, and the run replays bit for bit.
+#[test]
+fn a_tension_pneumothorax_on_a_recorded_breath_replays_bitwise() {
+    let tension = "[disease]\nkind = \"tension-pneumothorax\"\nside = \"left\"\nv_p_ml = 40.0\n\
+                   [[disease.events]]\nat_s = 80.0\nkind = \"needle-decompression\"\nside = \"left\"\n";
+    let mut core = ventilated_core(tension);
+    let a = ventilated_frames(&mut core, 9000);
+    assert_eq!(core.stage_counts().pv_models_built, 0);
+    let b = ventilated_frames(&mut ventilated_core(tension), 9000);
+    assert_same_frames(&a, &b);
+    // Cycle by cycle (240 ticks at 15/min), while neither lung is held, the two lungs' swing is
+    // the recorded one.
+    let healthy_total = swings(&ventilated_frames(
+        &mut EngineCore::with_geometry(&waveform_scene(), baked_geometry()).unwrap(),
+        240,
+    ))
+    .1;
+    let mut checked = 0;
+    for c in a.chunks(240) {
+        let held = c
+            .iter()
+            .any(|f| f.lungs.iter().any(|l| l.flags & lung_flags::HELD != 0));
+        let changed = c[1..].iter().any(|f| {
+            f.lungs
+                .iter()
+                .any(|l| l.flags & lung_flags::CYCLE_CHANGED != 0)
+        });
+        if !held && !changed && c.len() == 240 {
+            let total = swings(c).1;
+            // Pleural air changes the affected lung's base between cycles; within one cycle the
+            // two lungs together take the recorded volume.
+            assert!(
+                (total - healthy_total).abs() < 0.5,
+                "{total} ml against {healthy_total} ml at tick {}",
+                c[0].tick
+            );
+            checked += 1;
+        }
+    }
+    assert!(checked >= 10, "{checked} cycles checked");
+    let Some(disease::DiseaseRun::Tension(run)) = core.disease() else {
+        panic!("tension")
+    };
+    assert_eq!(run.events.len(), 1);
 }

@@ -13,6 +13,8 @@
 //!   chest tube) as a state machine advanced once per cycle.
 //! * [`tumour`] — tumour-influenced lung, **eq. 8.14–8.22**: regional expandability, the kernel-row
 //!   change with the φ variants, raised resistance, and the tumour centroid's trajectory.
+//! * [`ventilated`] — any of these on a ventilator's recorded breath (`[pv] waveform`): the
+//!   ventilator delivers the recorded volume and the lungs share it by compliance (EQUATIONS §4.7).
 //!
 //! Shared here: the seed's closed-pneumothorax relations used by both pneumothorax states
 //! ([`volume_fraction_lost`] eq. 8.1, [`drop_for_index`] eq. 8.2, [`phase_times`] eq. 8.3–8.5), the
@@ -27,6 +29,7 @@ pub mod collapse;
 pub mod resistance;
 pub mod tension;
 pub mod tumour;
+pub mod ventilated;
 
 use thiserror::Error;
 

@@ -127,6 +127,20 @@ pub const PLEURAL_RECOIL_CMH2O: f64 = 5.0;
 /// 95 % after three) is the conservative reading.
 pub const NEEDLE_TAU_CYCLES: f64 = 1.0;
 
+/// Clinical model: default share of the mediastinal displacement that comes out of the other lung
+/// (`contralateral_compression`). **Changed (lungdyn, issue 25):** the shifted mediastinum
+/// compresses the contralateral lung (Leigh-Smith & Harris, Emerg Med J 2005;22:8–16; Jain et al.,
+/// "Understanding and managing tension pneumothorax", JIACM 2008;9:42–50, which Pulse's Respiratory
+/// Methodology cites for the shift). The mediastinal volume `M = C_m·p` is the mediastinum's and
+/// the affected hemidiaphragm's displacement together; how it splits between the two is not
+/// measured: half (a training calibration). 0 is the earlier reading (the other lung keeps its
+/// volume until the SVC closes).
+pub const CONTRALATERAL_COMPRESSION: f64 = 0.5;
+
+/// Largest fraction of the other lung's volume the compression may take (as [`V1MAX_FRACTION`] for
+/// the affected lung: a compressed lung keeps 20 % and its box stays finite).
+pub const CONTRALATERAL_MAX_LOSS: f64 = V1MAX_FRACTION;
+
 /// Longest course [`Tension::cycles_to_arrest`] looks at, cycles.
 pub const ARREST_SEARCH_CYCLES: u64 = 10_000_000;
 
@@ -229,6 +243,9 @@ pub struct TensionParams {
     pub mediastinal_compliance_ml_per_cmh2o: f64,
     /// Clinical: the needle's venting time constant, cycles (`needle_tau_cycles`).
     pub needle_tau_cycles: f64,
+    /// Clinical: the share of the mediastinal displacement taken from the other lung, 0..=1
+    /// (`contralateral_compression`; 0: the other lung is not compressed).
+    pub contralateral_compression: f64,
 }
 
 impl TensionParams {
@@ -251,6 +268,7 @@ impl TensionParams {
             model: CourseModel::default(),
             mediastinal_compliance_ml_per_cmh2o: MEDIASTINAL_COMPLIANCE_ML_PER_CMH2O,
             needle_tau_cycles: NEEDLE_TAU_CYCLES,
+            contralateral_compression: CONTRALATERAL_COMPRESSION,
         }
     }
 
@@ -331,6 +349,13 @@ impl TensionParams {
             0.01,
             1000.0,
             "within [0.01, 1000] cycles",
+        )?;
+        check_range(
+            "contralateral_compression",
+            self.contralateral_compression,
+            0.0,
+            1.0,
+            "within 0..=1 (the share of the mediastinal displacement taken from the other lung)",
         )?;
         Ok(())
     }
@@ -570,6 +595,17 @@ impl Tension {
         (displaced, mediastinal, mediastinal * 1000.0 / face, rise)
     }
 
+    /// Clinical: the volume the other lung loses to the shifted mediastinum, ml:
+    /// `contralateral_compression·M`, at most [`CONTRALATERAL_MAX_LOSS`] of its volume (0 without
+    /// the other lung).
+    fn compressed_ml(&self, mediastinal: f64) -> f64 {
+        let Some(u) = &self.unaffected else {
+            return 0.0;
+        };
+        (self.params.contralateral_compression * mediastinal)
+            .clamp(0.0, CONTRALATERAL_MAX_LOSS * u.start_volume_ml)
+    }
+
     /// Clinical: the air at which the shift reaches β (the shift grows with the air), by bisection.
     fn clinical_svc_air(&self) -> f64 {
         let beta = self.params.beta_mm;
@@ -733,16 +769,19 @@ impl Tension {
         }
         let air = self.pleural_ml;
         let v_aff = self.affected.start_volume_ml;
-        let (displaced, shift_mm) = match p.model {
-            // Air takes the lung's place 1:1 up to V1max; only air beyond it moves the mediastinum.
+        let (displaced, shift_mm, compressed) = match p.model {
+            // Air takes the lung's place 1:1 up to V1max; only air beyond it moves the mediastinum;
+            // the other lung is not compressed (the seed moves only the affected box).
             CourseModel::Seed => (
                 air.min(self.v1_max_ml),
                 (air - self.v1_max_ml).max(0.0) * self.shift_mm_per_ml,
+                0.0,
             ),
-            // Shared by compliance from the onset (EQUATIONS §4.6 (a)).
+            // Shared by compliance from the onset (EQUATIONS §4.6 (a)); a share of the mediastinal
+            // displacement comes out of the other lung (§4.6 (f)).
             CourseModel::Clinical => {
-                let (d, _, x, _) = self.clinical_partition(air);
-                (d, x)
+                let (d, m, x, _) = self.clinical_partition(air);
+                (d, x, self.compressed_ml(m))
             }
         };
         let loss_fraction = (displaced / v_aff).clamp(0.0, 1.0);
@@ -777,12 +816,24 @@ impl Tension {
         } else {
             self.affected.share * tv * (1.0 - dv)
         };
-        let unaffected_tidal = self.unaffected.map(|u| u.share * tv + alpha);
+        // The compressed other lung: its aerated volume, and with it its compliance (specific
+        // compliance; West ch. 7) and tidal volume, fall in proportion.
+        let aerated = self
+            .unaffected
+            .map_or(1.0, |u| 1.0 - compressed / u.start_volume_ml);
+        let unaffected_tidal = self.unaffected.map(|u| {
+            let t = u.share * tv + alpha;
+            if compressed > 0.0 {
+                t * aerated
+            } else {
+                t
+            }
+        });
+        let unaffected_base = self.unaffected.map_or(0.0, |u| u.start_volume_ml) - compressed;
         let unaffected_held = self.unaffected.and(if n_h == 0 {
             svc_closed.then_some(self.v2_max_ml)
         } else if self.hyper > 0 {
-            let top = self.unaffected.map_or(0.0, |u| u.start_volume_ml)
-                + unaffected_tidal.unwrap_or(0.0);
+            let top = unaffected_base + unaffected_tidal.unwrap_or(0.0);
             Some(top + (self.v2_max_ml - top) * self.hyper as f64 / n_h as f64)
         } else {
             None
@@ -847,15 +898,27 @@ impl Tension {
             resistance_dv: dv,
         };
         let unaffected = self.unaffected.map(|u| {
-            let tidal = u.share * tv + alpha;
             let held = unaffected_held;
+            // Compressed by the mediastinum: shrunk towards its hilum by the volume lost and moved
+            // with the shift (in the affected lung's direction) so that its lateral wall stays near
+            // the chest wall (the similarity moves it by (1 − k) of the box's width).
+            let (collapse, offset_x) = if compressed > 0.0 {
+                let c = collapse_for_loss(1.0 - aerated).unwrap_or(0.0);
+                (c, -lateral * c * u.box_mm[0])
+            } else {
+                (0.0, 0.0)
+            };
             LungState {
                 side: u.side,
-                collapse: 0.0,
-                base_volume_ml: u.start_volume_ml,
-                tidal_ml: if held.is_some() { 0.0 } else { tidal },
+                collapse,
+                base_volume_ml: unaffected_base,
+                tidal_ml: if held.is_some() {
+                    0.0
+                } else {
+                    unaffected_tidal.unwrap_or(0.0)
+                },
                 held_ml: held,
-                offset_mm: [0.0; 3],
+                offset_mm: [offset_x, 0.0, 0.0],
                 resistance_dv: 0.0,
             }
         });
@@ -985,6 +1048,92 @@ mod tests {
             Some(r),
         )
         .unwrap()
+    }
+
+    /// EQUATIONS §4.6 (f): the other lung loses `contralateral_compression` of the mediastinal
+    /// volume `M = C_m·p` (its base volume, its collapse towards its hilum, its tidal volume in
+    /// proportion to what stays aerated) and moves with the shift; 0 is the earlier course bit for
+    /// bit; the seed reading never compresses; bounded and finite at any air.
+    #[test]
+    fn the_shifted_mediastinum_compresses_the_other_lung() {
+        let clinical = |c: f64, inflow: f64| {
+            course(TensionParams {
+                inflow_ml: inflow,
+                tau: 0.0,
+                contralateral_compression: c,
+                ..TensionParams::new(Side::Left)
+            })
+        };
+        let (mut none, mut half, mut all) = (
+            clinical(0.0, 20.0),
+            clinical(0.5, 20.0),
+            clinical(1.0, 20.0),
+        );
+        let right_v = lungs().1.start_volume_ml;
+        for _ in 0..60 {
+            let (a, b, c) = (none.advance(), half.advance(), all.advance());
+            // The affected lung and the shift do not depend on the compression.
+            assert_eq!(a.affected, b.affected);
+            assert_eq!((a.shift_mm, a.dv), (c.shift_mm, c.dv));
+            let (ua, ub, uc) = (
+                a.unaffected.unwrap(),
+                b.unaffected.unwrap(),
+                c.unaffected.unwrap(),
+            );
+            assert_eq!(
+                (ua.base_volume_ml, ua.collapse, ua.offset_mm),
+                (right_v, 0.0, [0.0; 3])
+            );
+            // By hand: M = air − D(p) (the partition), the right lung loses c·M.
+            let (_, m, _, _) = half.clinical_partition(b.pleural_air_ml);
+            assert!(
+                (right_v - ub.base_volume_ml - 0.5 * m).abs() < 1e-9,
+                "{ub:?}"
+            );
+            assert!((right_v - uc.base_volume_ml - m).abs() < 1e-9, "{uc:?}");
+            if m > 0.0 && ua.held_ml.is_none() {
+                assert!(uc.base_volume_ml < ub.base_volume_ml);
+                assert!(uc.tidal_ml < ub.tidal_ml && ub.tidal_ml < ua.tidal_ml);
+                let aerated = ub.base_volume_ml / right_v;
+                assert!((ub.tidal_ml - ua.tidal_ml * aerated).abs() < 1e-9);
+                // The collapse takes exactly the volume lost: k³ = aerated.
+                let k = 1.0 - ub.collapse;
+                assert!((k * k * k - aerated).abs() < 1e-9);
+                // Moved with the shift: the affected (left) lung moves towards −X, so does it.
+                assert!(ub.offset_mm[0] < 0.0 && b.affected.offset_mm[0] < 0.0);
+            }
+        }
+        // The seed reading never compresses the other lung, whatever the key says.
+        let mut seed = course(TensionParams {
+            contralateral_compression: 1.0,
+            ..hand(100.0, 0.0)
+        });
+        for _ in 0..30 {
+            let u = seed.advance().unaffected.unwrap();
+            assert_eq!((u.base_volume_ml, u.collapse), (right_v, 0.0));
+        }
+        // A litre a cycle for an hour of cycles: bounded by CONTRALATERAL_MAX_LOSS, finite.
+        let mut huge = clinical(1.0, 1000.0);
+        for _ in 0..2000 {
+            let u = huge.advance().unaffected.unwrap();
+            assert!(u.base_volume_ml >= (1.0 - CONTRALATERAL_MAX_LOSS) * right_v - 1e-9);
+            assert!((0.0..=1.0).contains(&u.collapse) && u.offset_mm[0].is_finite());
+            assert!(u.tidal_ml.is_finite() && u.tidal_ml >= 0.0);
+            assert!(u.held_ml.is_none_or(|h| h.is_finite()));
+        }
+        for bad in [-0.1, 1.5, f64::NAN] {
+            let p = TensionParams {
+                contralateral_compression: bad,
+                ..TensionParams::new(Side::Left)
+            };
+            assert!(matches!(
+                p.validate(),
+                Err(DiseaseError::OutOfRange {
+                    name: "contralateral_compression",
+                    ..
+                })
+            ));
+        }
     }
 
     /// V1max = 875 ml: the collapsed lung keeps 125 ml = 1/8, so k1 = 1/2 and the collapsed box's

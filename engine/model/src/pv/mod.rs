@@ -701,6 +701,47 @@ impl Breathing {
         })
     }
 
+    /// The same cycle (timing, shape) with its volume above FRC scaled to a tidal volume of `tv_ml`
+    /// (`volume = FRC + (v − FRC)·tv_ml/TV`): a ventilated lung's share of a recorded breath
+    /// (EQUATIONS §4.7). `tv_ml` equal to this cycle's TV returns it unchanged, bit for bit.
+    /// Allocates: call when a cycle is prepared, never per tick.
+    pub fn rescaled(&self, tv_ml: f64) -> Result<Self, PvError> {
+        let b = self.boundary;
+        if tv_ml == b.tv_ml {
+            return Ok(self.clone());
+        }
+        if !(tv_ml.is_finite() && tv_ml > 0.0) {
+            return Err(PvError::BadBoundary {
+                frc_ml: b.frc_ml,
+                tv_ml,
+            });
+        }
+        let k = tv_ml / b.tv_ml;
+        Ok(Self {
+            volume_ml: self
+                .volume_ml
+                .iter()
+                .map(|v| b.frc_ml + (v - b.frc_ml) * k)
+                .collect(),
+            boundary: Boundary { tv_ml, ..b },
+            ..self.clone()
+        })
+    }
+
+    /// The timing of this cycle at `tick_hz` (a recorded breath's rate and I:E, for the disease
+    /// courses): [`Timing::phase_ticks`] gives back [`Self::cycle_ticks`] and, where the I:E lies in
+    /// [`IE_RATIO_RANGE`], [`Self::inhale_ticks`] exactly; outside it the nearest ratio allowed (the
+    /// cycle itself still plays its own ticks).
+    pub fn timing_at(&self, tick_hz: f64) -> Timing {
+        let (ti, ct) = (self.inhale_ticks as f64, self.cycle_ticks as f64);
+        Timing {
+            tick_hz,
+            breaths_per_min: tick_hz * 60.0 / ct,
+            ie_inhale: (ti / (ct - ti)).clamp(IE_RATIO_RANGE.0, IE_RATIO_RANGE.1),
+            ie_exhale: 1.0,
+        }
+    }
+
     /// The constants and timing this cycle was built from; `None` for a measured waveform.
     pub fn source(&self) -> Option<&BreathingSource> {
         self.source.as_deref()
