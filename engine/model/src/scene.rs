@@ -1058,7 +1058,8 @@ impl Scene {
             }
         }
         if let Some(d) = &self.disease {
-            d.validate(&self.lungs.sides).map_err(E::Disease)?;
+            d.validate(&self.lungs.sides, self.lungs.shape)
+                .map_err(E::Disease)?;
         }
         let p = &self.processes;
         if !(p.cpus.is_empty() || p.cpus.len() == 3) {
@@ -1223,7 +1224,7 @@ impl Scene {
 
     /// The scene's tumour, if its `[disease]` is one (validated when the scene was loaded).
     pub fn tumour(&self) -> Option<crate::disease::tumour::Tumour> {
-        match self.disease.as_ref()?.resolve().ok()? {
+        match self.disease.as_ref()?.resolve(self.lungs.shape).ok()? {
             crate::scene_disease::DiseaseSpec::Tumour(t) => Some(t),
             _ => None,
         }
