@@ -375,7 +375,7 @@ pub fn run(args: &CheckArgs) -> anyhow::Result<CheckReport> {
     let Some(d) = &scene.disease else {
         return Ok(out);
     };
-    let spec = d.validate(&scene.lungs.sides)?;
+    let spec = d.validate(&scene.lungs.sides, scene.lungs.shape)?;
     let normal = NormalBreathing {
         inhale,
         exhale,
@@ -1095,7 +1095,7 @@ pub fn run_scene(args: &RunArgs) -> anyhow::Result<RunReport> {
                 | lung_model::scene_disease::DiseaseKind::BilateralPneumothorax
         ) {
             let sides: Vec<Side> = scene.lungs.sides.clone();
-            let spec = d.validate(&sides)?;
+            let spec = d.validate(&sides, scene.lungs.shape)?;
             if let DiseaseSpec::Closed(c) = spec {
                 let per = sides
                     .iter()

@@ -395,7 +395,7 @@ impl EngineCore {
         let Some(d) = &scene.disease else {
             return Ok(());
         };
-        let spec = d.validate(&scene.lungs.sides)?;
+        let spec = d.validate(&scene.lungs.sides, scene.lungs.shape)?;
         let (inhale, exhale, boundary) = scene.pv_model().map_err(CoreError::Pv)?;
         let normal = lung_model::disease::NormalBreathing {
             inhale,
