@@ -101,7 +101,7 @@ pub fn baked_models(scene: &lung_model::scene::Scene) -> Vec<lung_model::deform:
         .map(|&side| {
             let k = lung_bake::kernel::bake(
                 side,
-                lung_model::mesh::generate::lung(side, scene.lungs.vertices)
+                lung_model::mesh::generate::lung_of(scene.lungs.shape, side, scene.lungs.vertices)
                     .expect("generated lung"),
                 &scene.bake_settings(side).expect("bake settings"),
                 &|_| {},
