@@ -58,9 +58,11 @@ pub struct DemoArgs {
     /// Print one JSON object with the results on stdout (the table goes to stderr).
     #[arg(long)]
     pub json: bool,
-    /// Pin tracker-bridge, engine and renderer to these three cores, e.g. `--cpus 0,1,1` (overrides
-    /// the scene's `[processes] cpus`).
-    #[arg(long, value_delimiter = ',', num_args = 3)]
+    /// Pin tracker-bridge, engine and renderer to these three cores, e.g. `--cpus 0,1,1` or
+    /// `--cpus 0 1 1` (overrides the scene's `[processes] cpus`).
+    // 1..=3 words: clap counts `num_args` before splitting at the commas, so `num_args = 3` refused
+    // the comma form; [`check_counts`] asks for exactly three cores after the split.
+    #[arg(long, value_delimiter = ',', num_args = 1..=3, value_name = "CORE")]
     pub cpus: Vec<usize>,
     /// Window, fullscreen display and present options (passed to the renderer); closing the window
     /// ends the demo. Headless otherwise.
@@ -172,6 +174,18 @@ pub fn check_counts(args: &DemoArgs) -> anyhow::Result<()> {
         crate::launch::check_vertices(v).context("--vertices")?;
     }
     crate::launch::check_trace(args.trace.as_deref())?;
+    if !args.cpus.is_empty() && args.cpus.len() != 3 {
+        bail!(
+            "--cpus {}: needs three cores, one each for tracker-bridge, engine and renderer \
+             (e.g. --cpus 0,1,1 or --cpus 0 1 1); got {}",
+            args.cpus
+                .iter()
+                .map(|c| c.to_string())
+                .collect::<Vec<_>>()
+                .join(","),
+            args.cpus.len()
+        );
+    }
     check_cpus(&args.cpus, "--cpus")
 }
 
@@ -1296,6 +1310,18 @@ mod tests {
         assert!(e.to_string().contains("core 4096"), "{e}");
         let first = allowed_cpus().unwrap()[0].to_string();
         assert!(check_counts(&args(&["--cpus", &first, &first, &first])).is_ok());
+        // The comma form its --help shows gives the same three cores as the spaced one.
+        let comma = args(&["--cpus", &format!("{first},{first},{first}")]);
+        assert_eq!(comma.cpus, args(&["--cpus", &first, &first, &first]).cpus);
+        assert!(check_counts(&comma).is_ok());
+        let e = check_counts(&args(&["--cpus", "4096,0,0"])).unwrap_err();
+        assert!(e.to_string().contains("core 4096"), "{e}");
+        for short_or_long in [&["0,1"][..], &["0,1,1,1"], &["0", "1,1,1"], &["0"]] {
+            let mut a = vec!["--cpus"];
+            a.extend_from_slice(short_or_long);
+            let e = check_counts(&args(&a)).unwrap_err();
+            assert!(e.to_string().contains("needs three cores"), "{a:?}: {e}");
+        }
     }
 
     #[test]

@@ -1147,7 +1147,7 @@ pub fn run_scene(args: &RunArgs) -> anyhow::Result<RunReport> {
                 | lung_model::scene_disease::DiseaseKind::BilateralPneumothorax
         ) {
             let sides: Vec<Side> = scene.lungs.sides.clone();
-            let spec = d.validate(&sides)?;
+            let spec = d.validate(&sides, scene.lungs.shape)?;
             if let DiseaseSpec::Closed(c) = spec {
                 let per = sides
                     .iter()

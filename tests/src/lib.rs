@@ -101,7 +101,7 @@ pub fn baked_models(scene: &lung_model::scene::Scene) -> Vec<lung_model::deform:
         .map(|&side| {
             let k = lung_bake::kernel::bake(
                 side,
-                lung_model::mesh::generate::lung(side, scene.lungs.vertices)
+                lung_model::mesh::generate::lung_of(scene.lungs.shape, side, scene.lungs.vertices)
                     .expect("generated lung"),
                 &scene.bake_settings(side).expect("bake settings"),
                 &|_| {},
@@ -205,9 +205,10 @@ pub fn xvfb_available() -> bool {
     lungdyn_needs::display()
 }
 
-/// An engine frame at `tick` for `lungs` (a scene's lung models, in slot order): each lung active
-/// with its kernel id and `volume_ml`, as the engine publishes it — for driving a renderer session
-/// on in-memory ports.
+/// An engine frame at `tick` for `lungs` (a scene's lung models, in `[lungs] sides` order): each
+/// lung active with its kernel id and `volume_ml` in its side's entry ([`ipc_types::LUNG_RIGHT`],
+/// [`ipc_types::LUNG_LEFT`]) whatever the order, as the engine publishes it — for driving a
+/// renderer session on in-memory ports.
 pub fn engine_frame(
     lungs: &[lung_model::deform::LungModel],
     tick: u64,
@@ -218,10 +219,60 @@ pub fn engine_frame(
         tick,
         ..Default::default()
     };
-    for (slot, l) in lungs.iter().enumerate() {
-        f.lungs[l.side.index()].kernel_id = l.kernel_id;
-        f.lungs[slot].flags = ipc_types::lung_flags::ACTIVE;
-        f.lungs[slot].volume_ml = volume_ml;
+    for l in lungs {
+        let entry = &mut f.lungs[l.side.index()];
+        entry.kernel_id = l.kernel_id;
+        entry.flags = ipc_types::lung_flags::ACTIVE;
+        entry.volume_ml = volume_ml;
     }
     f
+}
+
+#[cfg(test)]
+mod tests {
+    use ipc_types::{lung_flags, LUNG_LEFT, LUNG_RIGHT};
+
+    /// Each lung's kernel id, flags and volume land in its side's entry for either `[lungs] sides`
+    /// order, and a lung the scene leaves out stays inactive (slot order once put the flags of a
+    /// left-only scene on the right lung's entry).
+    #[test]
+    fn engine_frame_fills_each_lungs_own_side_in_either_order() {
+        for sides in [
+            "[\"left\", \"right\"]",
+            "[\"right\", \"left\"]",
+            "[\"left\"]",
+            "[\"right\"]",
+        ] {
+            let scene = lung_model::scene::Scene::parse(
+                &format!("[lungs]\nsides = {sides}\nvertices = 100\n"),
+                "test",
+            )
+            .unwrap();
+            let mut lungs = crate::baked_models(&scene);
+            for l in &mut lungs {
+                l.kernel_id = 100 + l.side.index() as u64;
+            }
+            let f = crate::engine_frame(&lungs, 7, 1234.0);
+            assert_eq!(f.tick, 7);
+            for (index, side) in [
+                (LUNG_RIGHT, lung_model::mesh::Side::Right),
+                (LUNG_LEFT, lung_model::mesh::Side::Left),
+            ] {
+                let e = &f.lungs[index];
+                if scene.lungs.sides.contains(&side) {
+                    assert_eq!(
+                        (e.kernel_id, e.flags, e.volume_ml),
+                        (100 + index as u64, lung_flags::ACTIVE, 1234.0),
+                        "sides = {sides}: {side:?}"
+                    );
+                } else {
+                    assert_eq!(
+                        (e.kernel_id, e.flags, e.volume_ml),
+                        (0, 0, 0.0),
+                        "sides = {sides}: {side:?} is not simulated"
+                    );
+                }
+            }
+        }
+    }
 }

@@ -19,6 +19,13 @@ fn bad_arguments_give_one_clear_message_and_a_non_zero_exit() {
         "cannot read scene",
     );
     assert_clean_failure(&["demo", "--instance", "bad/name"], "instance name");
+    // `--cpus` takes the comma form its --help shows as well as three words: both reach the core
+    // check (clap once refused the comma form with "3 values required").
+    assert_clean_failure(&["demo", "--cpus", "4096,0,0"], "core 4096");
+    assert_clean_failure(&["demo", "--cpus", "0", "4096", "0"], "core 4096");
+    assert_clean_failure(&["demo", "--cpus", "0,1"], "needs three cores");
+    assert_clean_failure(&["demo", "--cpus", "0,1,1,1"], "needs three cores");
+    assert_clean_failure(&["demo", "--cpus", "0,,1"], "--cpus");
     assert_clean_failure(
         &["mesh", "generate", "--lung", "middle", "--out", "x.obj"],
         "middle",
@@ -90,6 +97,21 @@ fn mesh_generate_writes_a_closed_lung_of_the_requested_size() {
     std::fs::remove_dir_all(dir).ok();
 }
 
+/// The lowest-numbered core this process may run on.
+fn first_allowed_core() -> usize {
+    // SAFETY: sched_getaffinity fills a zeroed cpu_set_t of the size passed; CPU_ISSET only reads it.
+    unsafe {
+        let mut set: libc::cpu_set_t = std::mem::zeroed();
+        assert_eq!(
+            libc::sched_getaffinity(0, std::mem::size_of::<libc::cpu_set_t>(), &mut set),
+            0
+        );
+        (0..libc::CPU_SETSIZE as usize)
+            .find(|&c| libc::CPU_ISSET(c, &set))
+            .expect("some core")
+    }
+}
+
 #[test]
 fn the_demo_prints_json_with_frames_latency_and_pngs() {
     if renderer::gpu::Gpu::for_tests().is_none() {
@@ -99,6 +121,9 @@ fn the_demo_prints_json_with_frames_latency_and_pngs() {
     let scene = dir.with_extension("toml");
     std::fs::write(&scene, "[lungs]\nvertices = 2000\n[render]\nwidth = 320\nheight = 240\nstereo = true\nmode = \"points\"\n")
         .unwrap();
+    // Pinned with the comma form of --cpus (the first core this test may run on, for all three).
+    let core = first_allowed_core();
+    let cpus = format!("{core},{core},{core}");
     let (ok, stdout, err) = lungdyn(&[
         "demo",
         "--seconds",
@@ -106,6 +131,8 @@ fn the_demo_prints_json_with_frames_latency_and_pngs() {
         "--snapshots",
         "3",
         "--json",
+        "--cpus",
+        &cpus,
         "--out",
         dir.to_str().unwrap(),
         "--scene",
@@ -115,6 +142,7 @@ fn the_demo_prints_json_with_frames_latency_and_pngs() {
     let v: serde_json::Value =
         serde_json::from_str(stdout.trim()).unwrap_or_else(|e| panic!("{e}: {stdout}"));
     lungdyn_tests::assert_demo_report_is_consistent(&v, &err);
+    assert_eq!(v["cpus"], serde_json::json!([core, core, core]), "{v}");
     for key in [
         "deadline_misses",
         "end_to_end_p50_ms",

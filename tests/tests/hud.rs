@@ -6,7 +6,7 @@ use glam::{Mat3, Quat, Vec3};
 use ipc_types::{lung_flags, EngineFrame, Pose, LUNG_LEFT, LUNG_RIGHT};
 use lung_model::scene::Scene;
 use renderer::gpu::Gpu;
-use renderer::hud::{Hud, HudConfig, HudFrame};
+use renderer::hud::{EyeLayout, Hud, HudConfig, HudFrame};
 use renderer::{DrawState, LungRenderer, PoseWarning, RenderLung};
 
 fn supine() -> Pose {
@@ -55,6 +55,16 @@ fn render_pair_with(
     outcome: &str,
     edit: impl FnOnce(&mut Vec<RenderLung>),
 ) -> Option<(image::RgbaImage, image::RgbaImage)> {
+    render_hud(scene, warning, outcome, edit).map(|(plain, hud, _)| (plain, hud))
+}
+
+/// As [`render_pair_with`], with where the HUD put its parts in each eye.
+fn render_hud(
+    scene: &Scene,
+    warning: PoseWarning,
+    outcome: &str,
+    edit: impl FnOnce(&mut Vec<RenderLung>),
+) -> Option<(image::RgbaImage, image::RgbaImage, [Option<EyeLayout>; 2])> {
     let gpu = Gpu::for_tests()?;
     let models = lungdyn_tests::baked_models(scene);
     let mut lungs: Vec<RenderLung> = models.iter().map(RenderLung::from_model).collect();
@@ -98,20 +108,25 @@ fn render_pair_with(
         let _ = std::fs::create_dir_all(&dir);
         let _ = plain.save(format!("{dir}/plain_{}.png", scene.render.stereo));
     }
+    let mut layout = [None; 2];
     r.render_with_overlay(
         &gpu,
         &state,
         true,
         |encoder, target, eye_cams| {
-            hud.encode(&gpu.device, &gpu.queue, encoder, target, eye_cams, &shown)
+            hud.encode(&gpu.device, &gpu.queue, encoder, target, eye_cams, &shown);
+            layout = hud.layout(eye_cams, &frame);
         },
         |_| {},
     );
     let with_hud = r.read_image(&gpu).unwrap();
     if let Ok(dir) = std::env::var("LUNGDYN_HUD_TEST_PNG") {
-        let _ = with_hud.save(format!("{dir}/hud_{}_{warning:?}.png", scene.render.stereo));
+        let _ = with_hud.save(format!(
+            "{dir}/hud_{}x{}_{}_{warning:?}.png",
+            w, h, scene.render.stereo
+        ));
     }
-    Some((plain, with_hud))
+    Some((plain, with_hud, layout))
 }
 
 /// Pixels of the box `(x0, y0, w, h)` that differ by more than 24/255 in some channel.
@@ -363,5 +378,61 @@ fn a_long_outcome_line_wraps_inside_the_panel_at_480_px_and_below() {
             (bottom - top) as f32 > 1.5 * font * 1.3,
             "{w}x{h} {outcome:?}: one row ({top}..{bottom}), not wrapped"
         );
+    }
+}
+
+/// The anchored labels (R, L, the head and feet cues) never cover the panel, the PV loop or the
+/// lobe legend, and stay inside their eye, mono and stereo, from 320 × 240 up: at 480 × 360 the
+/// head cue's anchor above the apices projects onto the panel, so it is moved beside or below it.
+/// Every label whose anchor is on screen is still shown (there is room for each at these sizes).
+#[test]
+fn anchored_labels_never_overlap_the_panels() {
+    for (w, h) in [(320u32, 240u32), (480, 360), (640, 480), (1280, 720)] {
+        for stereo in [false, true] {
+            for color in [
+                lung_model::scene::ColorMode::Tissue,
+                lung_model::scene::ColorMode::Lobes,
+            ] {
+                let mut scene = Scene::default();
+                scene.lungs.vertices = 2000;
+                scene.render.width = w;
+                scene.render.height = h;
+                scene.render.stereo = stereo;
+                scene.render.color = color;
+                let Some((_, _, layout)) = render_hud(&scene, PoseWarning::None, OUTCOME, |_| {})
+                else {
+                    return;
+                };
+                let eyes = if stereo { 2 } else { 1 };
+                assert_eq!(layout.iter().flatten().count(), eyes);
+                for (i, e) in layout.iter().flatten().enumerate() {
+                    let at = format!("{w}x{h} {color:?} stereo {stereo} eye {i}");
+                    assert_eq!(
+                        e.legend.is_some(),
+                        color == lung_model::scene::ColorMode::Lobes
+                    );
+                    // The front view shows both lungs: all four labels have room.
+                    for (k, name) in ["R", "L", "head", "feet"].iter().enumerate() {
+                        let label = e.labels[k].unwrap_or_else(|| panic!("{at}: no {name}"));
+                        assert!(
+                            e.eye.contains(&label),
+                            "{at}: {name} {label:?} leaves the eye"
+                        );
+                        for (part, r) in [
+                            ("panel", Some(e.panel)),
+                            ("PV loop", Some(e.pv)),
+                            ("legend", e.legend),
+                        ] {
+                            if let Some(r) = r {
+                                assert!(
+                                    !label.overlaps(&r),
+                                    "{at}: {name} {label:?} overlaps the {part} {r:?}"
+                                );
+                            }
+                        }
+                    }
+                }
+            }
+        }
     }
 }

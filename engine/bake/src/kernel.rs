@@ -794,7 +794,9 @@ mod tests {
         };
         // Each centre well inside its lobe (`lobes::interior_point`): below the middle of the
         // anatomical lung's box lies the domed diaphragm, outside the lung.
-        let inside = |lobe| lung_model::mesh::lobes::interior_point(lobe).unwrap();
+        let inside = |lobe| {
+            lung_model::mesh::lobes::interior_point(generate::Shape::Anatomical, lobe).unwrap()
+        };
         let upper = z_motion(inside(lung_model::mesh::lobes::Lobe::RightUpper));
         let lower = z_motion(inside(lung_model::mesh::lobes::Lobe::RightLower));
         eprintln!("per unit scale: upper {upper:?} mm, lower {lower:?} mm");

@@ -1176,8 +1176,8 @@ impl Scene {
         };
         let sides = &self.lungs.sides;
         match self.pv.waveform {
-            Some(_) => d.validate_ventilated(sides),
-            None => d.validate(sides),
+            Some(_) => d.validate_ventilated(sides, self.lungs.shape),
+            None => d.validate(sides, self.lungs.shape),
         }
         .map(Some)
     }
@@ -1232,7 +1232,7 @@ impl Scene {
 
     /// The scene's tumour, if its `[disease]` is one (validated when the scene was loaded).
     pub fn tumour(&self) -> Option<crate::disease::tumour::Tumour> {
-        match self.disease.as_ref()?.resolve().ok()? {
+        match self.disease.as_ref()?.resolve(self.lungs.shape).ok()? {
             crate::scene_disease::DiseaseSpec::Tumour(t) => Some(t),
             _ => None,
         }

@@ -33,6 +33,7 @@ use crate::disease::closed::ClosedPneumothorax;
 use crate::disease::tension::{Intervention, LeakSource, TensionParams};
 use crate::disease::tumour::{PhiVariant, Tumour};
 use crate::disease::{resistance::PHI_SEED, CourseModel, DiseaseError, ALPHA_SEED_ML};
+use crate::mesh::generate::Shape;
 use crate::mesh::Side;
 
 /// Most events a scene may list (fixed capacity).
@@ -155,7 +156,9 @@ pub struct TumourScene {
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub centre: Option<[f64; 3]>,
     /// The lobe the tumour is in ("right lower", "left upper", or "RLL"...; `mesh::lobes`): without
-    /// `centre`, the centre is a point well inside that lobe; with it, the centre must lie in it.
+    /// `centre`, the centre is a point well inside that lobe of the scene's `[lungs] shape` (a lung
+    /// with its own kernel gets that shape's point, in its own bounding box); with it, the centre
+    /// must lie in it.
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub lobe: Option<String>,
     /// Radii along the body X, Y, Z axes, mm.
@@ -178,8 +181,9 @@ pub struct TumourScene {
 }
 
 /// The tumour's centre in normalised lung coordinates from `centre` and/or `lobe` (see
-/// [`TumourScene::lobe`]).
-fn tumour_centre(side: Side, t: &TumourScene) -> Result<[f64; 3], DiseaseSceneError> {
+/// [`TumourScene::lobe`]); a lobe alone gives its interior point in the lung of `shape` (the scene's
+/// `[lungs] shape`).
+fn tumour_centre(side: Side, shape: Shape, t: &TumourScene) -> Result<[f64; 3], DiseaseSceneError> {
     use crate::mesh::lobes::{interior_point, Fissures, Lobe};
     let Some(name) = &t.lobe else {
         return t.centre.ok_or(DiseaseSceneError::Missing {
@@ -207,8 +211,10 @@ fn tumour_centre(side: Side, t: &TumourScene) -> Result<[f64; 3], DiseaseSceneEr
             }
             Ok(c)
         }
-        None => interior_point(lobe).ok_or_else(|| {
-            DiseaseSceneError::Lobe(format!("no interior point found for the {lobe} lobe"))
+        None => interior_point(shape, lobe).ok_or_else(|| {
+            DiseaseSceneError::Lobe(format!(
+                "no interior point found for the {lobe} lobe of the {shape} lung"
+            ))
         }),
     }
 }
@@ -374,8 +380,9 @@ impl DiseaseScene {
         ]
     }
 
-    /// Validate and convert into a [`DiseaseSpec`] (everything that does not need the lungs).
-    pub fn resolve(&self) -> Result<DiseaseSpec, DiseaseSceneError> {
+    /// Validate and convert into a [`DiseaseSpec`] (everything that does not need the lungs but
+    /// their `shape`, `[lungs] shape`: a tumour placed by lobe alone sits inside that shape's lobe).
+    pub fn resolve(&self, shape: Shape) -> Result<DiseaseSpec, DiseaseSceneError> {
         let kind = self.kind.name();
         let uses: &'static str = match self.kind {
             DiseaseKind::ClosedPneumothorax => "model, side, index, alpha_ml, phi",
@@ -556,7 +563,7 @@ impl DiseaseScene {
                     kind,
                 })?;
                 let side = side()?;
-                let centre = tumour_centre(side, t)?;
+                let centre = tumour_centre(side, shape, t)?;
                 let d = Tumour::new(side, centre, t.radii_mm);
                 let tumour = Tumour {
                     expandability: t.expandability.unwrap_or(d.expandability),
@@ -579,7 +586,11 @@ impl DiseaseScene {
     /// reshape the PV model's curve; under volume control the resistance changes the airway pressure,
     /// not the delivered volume) — and so is a closed pneumothorax that collapses every simulated
     /// lung completely (no lung is left to take the recorded volume). α is 0 in the spec returned.
-    pub fn validate_ventilated(&self, sides: &[Side]) -> Result<DiseaseSpec, DiseaseSceneError> {
+    pub fn validate_ventilated(
+        &self,
+        sides: &[Side],
+        shape: Shape,
+    ) -> Result<DiseaseSpec, DiseaseSceneError> {
         const EFFORT: &str =
             "a ventilated patient's breath is the recording's ([pv] waveform): the \
              ventilator delivers it, a passive patient adds no extra effort (eq. 8.7; EQUATIONS \
@@ -603,7 +614,7 @@ impl DiseaseScene {
                 return Err(DiseaseError::NotApplicable { name, reason }.into());
             }
         }
-        let mut spec = self.validate(sides)?;
+        let mut spec = self.validate(sides, shape)?;
         match &mut spec {
             DiseaseSpec::Closed(c) => {
                 if sides.iter().all(|&s| c.index_of(s) == Some(1.0)) {
@@ -624,8 +635,8 @@ impl DiseaseScene {
     }
 
     /// [`Self::resolve`] and check the affected lungs are among the scene's `sides`.
-    pub fn validate(&self, sides: &[Side]) -> Result<DiseaseSpec, DiseaseSceneError> {
-        let spec = self.resolve()?;
+    pub fn validate(&self, sides: &[Side], shape: Shape) -> Result<DiseaseSpec, DiseaseSceneError> {
+        let spec = self.resolve(shape)?;
         for s in spec.affected() {
             if !sides.contains(&s) {
                 return Err(DiseaseSceneError::LungNotSimulated { side: s.name() });
@@ -660,7 +671,9 @@ mod tests {
     #[test]
     fn the_seeds_closed_pneumothorax_scene() {
         let d = disease("[disease]\nkind = \"closed-pneumothorax\"\nside = \"left\"\nindex = 0.1\nalpha_ml = 100\n");
-        let spec = d.validate(&[Side::Right, Side::Left]).unwrap();
+        let spec = d
+            .validate(&[Side::Right, Side::Left], Shape::Anatomical)
+            .unwrap();
         assert_eq!(
             spec,
             DiseaseSpec::Closed(ClosedPneumothorax::unilateral(Side::Left, 0.1, 100.0, 0.1))
@@ -670,7 +683,7 @@ mod tests {
             CourseModel::Clinical
         );
         assert!(matches!(
-            d.validate(&[Side::Right]),
+            d.validate(&[Side::Right], Shape::Anatomical),
             Err(DiseaseSceneError::LungNotSimulated { side: "left" })
         ));
     }
@@ -687,7 +700,7 @@ mod tests {
             params,
             onset_s,
             events,
-        } = d.resolve().unwrap()
+        } = d.resolve(Shape::Anatomical).unwrap()
         else {
             panic!("not a tension spec");
         };
@@ -714,12 +727,14 @@ mod tests {
         let d = disease(
             "[disease]\nkind = \"bilateral-pneumothorax\"\nindex_left = 0.1\nindex_right = 0.05\n",
         );
-        assert!(matches!(d.resolve().unwrap(), DiseaseSpec::Closed(c) if c.alpha_ml == 0.0));
+        assert!(
+            matches!(d.resolve(Shape::Anatomical).unwrap(), DiseaseSpec::Closed(c) if c.alpha_ml == 0.0)
+        );
         let d = disease(
             "[disease]\nkind = \"tumour\"\nside = \"right\"\n[disease.tumour]\ncentre = [0.5, 0.4, 0.8]\n\
              radii_mm = [15, 15, 20]\nphi_variant = \"distance-squared\"\n",
         );
-        let DiseaseSpec::Tumour(t) = d.resolve().unwrap() else {
+        let DiseaseSpec::Tumour(t) = d.resolve(Shape::Anatomical).unwrap() else {
             panic!("not a tumour");
         };
         assert_eq!((t.phi, t.expandability), (PhiVariant::DistanceSquared, 0.1));
@@ -733,7 +748,7 @@ mod tests {
                 "[disease]\nkind = \"tumour\"\nside = \"{side}\"\n[disease.tumour]\n\
                  radii_mm = [10, 10, 10]\n{extra}"
             ))
-            .resolve()
+            .resolve(Shape::Anatomical)
         };
         // The lobe alone: a centre inside that lobe.
         for (side, name, lobe) in [
@@ -770,12 +785,66 @@ mod tests {
         }
     }
 
+    /// A tumour placed by lobe alone sits in the middle of that lobe of the scene's own lung shape:
+    /// its centre is within 10 mm of the centroid of the lobe's interior, estimated here on a finer
+    /// grid than `interior_point` uses (28³ cells against 24³). (Before the shape was passed, a teardrop scene got
+    /// the anatomical lung's point, 25 mm from the teardrop's lower-lobe centroid.)
+    #[test]
+    fn a_lobe_places_the_tumour_in_the_scenes_own_lung_shape() {
+        use crate::disease::tumour::winding_number;
+        use crate::mesh::lobes::{normalise, Fissures, Lobe};
+        use rayon::prelude::*;
+        for shape in Shape::ALL {
+            for (side, lobe) in [("right", Lobe::RightLower), ("left", Lobe::LeftLower)] {
+                let scene = Scene::parse(
+                    &format!(
+                        "[lungs]\nshape = \"{shape}\"\n[disease]\nkind = \"tumour\"\nside = \"{side}\"\n\
+                         [disease.tumour]\nlobe = \"{}\"\nradii_mm = [10, 10, 10]\n",
+                        lobe.name()
+                    ),
+                    "test",
+                )
+                .unwrap();
+                let t = scene.tumour().unwrap();
+                let mesh = crate::mesh::generate::lung_of(shape, t.side, 2_000).unwrap();
+                let bb = mesh.aabb();
+                let (lo, hi) = (bb.min.map(|v| v as f64), bb.max.map(|v| v as f64));
+                const N: usize = 28;
+                let (sum, count) = (0..N * N * N)
+                    .into_par_iter()
+                    .filter_map(|g| {
+                        let f =
+                            [g / (N * N), g / N % N, g % N].map(|g| (g as f64 + 0.5) / N as f64);
+                        let p = [0, 1, 2].map(|a| lo[a] + f[a] * (hi[a] - lo[a]));
+                        let n = normalise(t.side, &bb, p);
+                        (Fissures::adult(t.side).lobe_at(t.side, n) == lobe
+                            && winding_number(&mesh, p) > 0.5)
+                            .then(|| (glam::DVec3::from(p), 1.0))
+                    })
+                    .reduce(|| (glam::DVec3::ZERO, 0.0), |a, b| (a.0 + b.0, a.1 + b.1));
+                let centroid = sum / count;
+                let centre = glam::DVec3::from(t.centre_mm(&mesh));
+                let d = centre.distance(centroid);
+                assert!(
+                    d < 10.0,
+                    "{shape} {lobe}: centre {centre:.1} is {d:.1} mm from the lobe's centroid \
+                     {centroid:.1}"
+                );
+            }
+        }
+    }
+
     #[test]
     fn every_mistake_names_its_key() {
         let err = |text: &str| -> String {
             match toml::from_str::<Scene>(text) {
                 Err(e) => e.to_string(),
-                Ok(s) => s.disease.unwrap().resolve().unwrap_err().to_string(),
+                Ok(s) => s
+                    .disease
+                    .unwrap()
+                    .resolve(Shape::Anatomical)
+                    .unwrap_err()
+                    .to_string(),
             }
         };
         let cases = [
@@ -839,7 +908,7 @@ mod tests {
             disease(&format!(
                 "[disease]\nkind = \"closed-pneumothorax\"\nside = \"left\"\nindex = 0.1\n{extra}"
             ))
-            .resolve()
+            .resolve(Shape::Anatomical)
             .unwrap()
         };
         let DiseaseSpec::Closed(c) = closed("") else {
@@ -854,7 +923,7 @@ mod tests {
             let d = disease(&format!(
                 "[disease]\nkind = \"tension-pneumothorax\"\nside = \"left\"\n{extra}"
             ));
-            match d.resolve().unwrap() {
+            match d.resolve(Shape::Anatomical).unwrap() {
                 DiseaseSpec::Tension { params, .. } => params,
                 _ => panic!("tension"),
             }
@@ -872,7 +941,7 @@ mod tests {
         );
         let d = disease("[disease]\nkind = \"bilateral-pneumothorax\"\nindex_left = 0.1\nindex_right = 0.2\nmodel = \"seed\"\n");
         assert!(
-            matches!(d.resolve().unwrap(), DiseaseSpec::Closed(c) if c.model == CourseModel::Seed)
+            matches!(d.resolve(Shape::Anatomical).unwrap(), DiseaseSpec::Closed(c) if c.model == CourseModel::Seed)
         );
     }
 
@@ -895,24 +964,26 @@ mod tests {
     fn a_ventilated_course_drops_alpha_and_refuses_what_shapes_a_spontaneous_breath() {
         let both = [Side::Right, Side::Left];
         let d = disease("[disease]\nkind = \"tension-pneumothorax\"\nside = \"left\"\n");
-        let DiseaseSpec::Tension { params, .. } = d.validate_ventilated(&both).unwrap() else {
+        let DiseaseSpec::Tension { params, .. } =
+            d.validate_ventilated(&both, Shape::Anatomical).unwrap()
+        else {
             panic!("tension")
         };
         assert_eq!(params.alpha_ml, 0.0);
         let d = disease("[disease]\nkind = \"closed-pneumothorax\"\nside = \"left\"\nindex = 1\n");
         assert!(
-            matches!(d.validate_ventilated(&both).unwrap(), DiseaseSpec::Closed(c) if c.alpha_ml == 0.0)
+            matches!(d.validate_ventilated(&both, Shape::Anatomical).unwrap(), DiseaseSpec::Closed(c) if c.alpha_ml == 0.0)
         );
         // The same lung alone: nothing is left to take the recorded volume.
         let e = d
-            .validate_ventilated(&[Side::Left])
+            .validate_ventilated(&[Side::Left], Shape::Anatomical)
             .unwrap_err()
             .to_string();
         assert!(e.contains("index") && e.contains("no lung is left"), "{e}");
         let e = disease(
             "[disease]\nkind = \"bilateral-pneumothorax\"\nindex_left = 1\nindex_right = 1\n",
         )
-        .validate_ventilated(&both)
+        .validate_ventilated(&both, Shape::Anatomical)
         .unwrap_err()
         .to_string();
         assert!(e.contains("no lung is left"), "{e}");
@@ -920,7 +991,7 @@ mod tests {
         disease(
             "[disease]\nkind = \"bilateral-pneumothorax\"\nindex_left = 1\nindex_right = 0.5\n",
         )
-        .validate_ventilated(&both)
+        .validate_ventilated(&both, Shape::Anatomical)
         .unwrap();
         for (text, key) in [
             (
@@ -942,8 +1013,11 @@ mod tests {
             ),
         ] {
             let d = disease(&format!("[disease]\n{text}"));
-            d.validate(&both).unwrap();
-            let e = d.validate_ventilated(&both).unwrap_err().to_string();
+            d.validate(&both, Shape::Anatomical).unwrap();
+            let e = d
+                .validate_ventilated(&both, Shape::Anatomical)
+                .unwrap_err()
+                .to_string();
             assert!(e.starts_with(&format!("[disease] {key}:")), "{e}");
         }
         // The scene refuses them when loaded with a waveform, and takes the rest.

@@ -196,6 +196,100 @@ fn linear(r: u8, g: u8, b: u8, a: f32) -> [f32; 4] {
     [l(r), l(g), l(b), a]
 }
 
+/// A rectangle on the target, pixels of the whole (side-by-side) image: top left `x, y`, size
+/// `w × h`.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct Rect {
+    /// Left edge.
+    pub x: f32,
+    /// Top edge.
+    pub y: f32,
+    /// Width.
+    pub w: f32,
+    /// Height.
+    pub h: f32,
+}
+
+impl Rect {
+    /// Whether the two share any area (touching edges do not).
+    pub fn overlaps(&self, o: &Rect) -> bool {
+        self.x < o.x + o.w && o.x < self.x + self.w && self.y < o.y + o.h && o.y < self.y + self.h
+    }
+
+    /// Whether `inner` lies wholly inside this one.
+    pub fn contains(&self, inner: &Rect) -> bool {
+        inner.x >= self.x
+            && inner.y >= self.y
+            && inner.x + inner.w <= self.x + self.w
+            && inner.y + inner.h <= self.y + self.h
+    }
+
+    fn centre(&self) -> (f32, f32) {
+        (self.x + self.w * 0.5, self.y + self.h * 0.5)
+    }
+
+    fn tuple(&self) -> (f32, f32, f32, f32) {
+        (self.x, self.y, self.w, self.h)
+    }
+}
+
+/// Where the HUD puts its parts in one eye this frame.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct EyeLayout {
+    /// The eye's part of the target.
+    pub eye: Rect,
+    /// The panel's backdrop (top left).
+    pub panel: Rect,
+    /// The PV loop's backdrop with its title row (top right).
+    pub pv: Rect,
+    /// The lobe legend's backdrop (bottom left, lobes colour mode).
+    pub legend: Option<Rect>,
+    /// The backdrops of the anchored labels R, L, head and feet as shown: `None` for one whose
+    /// anchor is off-screen or that finds no room clear of the panels.
+    pub labels: [Option<Rect>; 4],
+}
+
+/// Where an anchored label whose backdrop would be `want` goes: there if it lies in `area` and
+/// clear of every obstacle, else the nearest place that does, moved against an obstacle's edge
+/// (`gap` pixels off it) or the area's; `None` where there is no such place. Tries every
+/// combination of those edges (at most 7 × 7 for three obstacles), no allocation.
+pub fn place_label(
+    want: Rect,
+    obstacles: &[Option<Rect>; 3],
+    area: Rect,
+    gap: f32,
+) -> Option<Rect> {
+    if want.w > area.w || want.h > area.h || !(want.x.is_finite() && want.y.is_finite()) {
+        return None;
+    }
+    let clamp_x = |x: f32| x.clamp(area.x, area.x + area.w - want.w);
+    let clamp_y = |y: f32| y.clamp(area.y, area.y + area.h - want.h);
+    let mut xs = [clamp_x(want.x); 7];
+    let mut ys = [clamp_y(want.y); 7];
+    for (k, o) in obstacles.iter().enumerate() {
+        if let Some(o) = o {
+            xs[1 + 2 * k] = clamp_x(o.x - gap - want.w);
+            xs[2 + 2 * k] = clamp_x(o.x + o.w + gap);
+            ys[1 + 2 * k] = clamp_y(o.y - gap - want.h);
+            ys[2 + 2 * k] = clamp_y(o.y + o.h + gap);
+        }
+    }
+    let mut best: Option<(f32, Rect)> = None;
+    for &x in &xs {
+        for &y in &ys {
+            let r = Rect { x, y, ..want };
+            if !area.contains(&r) || obstacles.iter().flatten().any(|o| r.overlaps(o)) {
+                continue;
+            }
+            let d = (x - want.x).powi(2) + (y - want.y).powi(2);
+            if best.is_none_or(|(b, _)| d < b) {
+                best = Some((d, r));
+            }
+        }
+    }
+    best.map(|(_, r)| r)
+}
+
 impl Hud {
     /// Set up the HUD for a target of `eyes` images of `eye_width × height` side by side.
     pub fn new(
@@ -564,6 +658,92 @@ impl Hud {
         out
     }
 
+    /// The backdrop of anchored label `k` (R, L, head, feet) centred on `p`: its text is centred
+    /// in it.
+    fn label_box(&self, k: usize, p: (f32, f32)) -> Rect {
+        let s = if k < 2 {
+            self.font_px
+        } else {
+            self.font_px * 0.7
+        };
+        let w = if k < 2 { s * 1.6 } else { s * 8.0 };
+        Rect {
+            x: p.0 - w * 0.5,
+            y: p.1 - s,
+            w,
+            h: s * 2.0,
+        }
+    }
+
+    /// Where this frame's HUD parts go in each eye drawn through `eyes`' cameras (`None` past the
+    /// HUD's eyes): the panels, and the anchored labels moved off them — a label projected onto
+    /// the panel (the head cue at 480 × 360) goes to the nearest clear place.
+    pub fn layout(&self, eyes: &[EyeUniform], frame: &EngineFrame) -> [Option<EyeLayout>; 2] {
+        let anchors = self.anchors(frame);
+        let mut out = [None; 2];
+        for (i, slot) in out
+            .iter_mut()
+            .enumerate()
+            .take(self.eyes.min(eyes.len() as u32) as usize)
+        {
+            *slot = Some(self.eye_layout(&eyes[i], i as u32, &anchors));
+        }
+        out
+    }
+
+    fn eye_layout(&self, eye: &EyeUniform, i: u32, anchors: &[Option<Vec3>; 4]) -> EyeLayout {
+        let (lh, m) = (self.line_height(), self.margin());
+        let ox = self.eye_origin(i);
+        let area = Rect {
+            x: (i * self.eye_width) as f32,
+            y: 0.0,
+            w: self.eye_width as f32,
+            h: self.height as f32,
+        };
+        let panel = Rect {
+            x: ox + m * 0.5,
+            y: m * 0.5,
+            w: self.panel_w(),
+            h: lh * self.panel_rows() as f32 + m,
+        };
+        let (px, py, pw, ph) = self.pv_box(ox);
+        let pv = Rect {
+            x: px,
+            y: py - lh,
+            w: pw,
+            h: ph + lh,
+        };
+        let legend_rows = self.legend_rows();
+        let legend = (legend_rows > 0).then(|| {
+            let chars = self.lines[LEGEND]
+                .chars()
+                .count()
+                .max(self.lines[LOBE_WARNING].chars().count());
+            let w = (chars as f32 * self.font_px * 0.6 + m).min(self.eye_width as f32 - m);
+            let top = self.height as f32 - m * 1.5 - lh * legend_rows as f32;
+            Rect {
+                x: ox + m * 0.5,
+                y: top,
+                w,
+                h: lh * legend_rows as f32 + m,
+            }
+        });
+        let obstacles = [Some(panel), Some(pv), legend];
+        let mut labels = [None; 4];
+        for (k, label) in labels.iter_mut().enumerate() {
+            *label = anchors[k]
+                .and_then(|a| self.project(eye, i, a))
+                .and_then(|p| place_label(self.label_box(k, p), &obstacles, area, m * 0.25));
+        }
+        EyeLayout {
+            eye: area,
+            panel,
+            pv,
+            legend,
+            labels,
+        }
+    }
+
     /// Record the HUD pass for this frame over `target` (the resolved colour target, its eyes side
     /// by side), drawn through `eyes`' cameras.
     pub fn encode(
@@ -583,9 +763,12 @@ impl Hud {
         // The panel reaches to the PV loop's box (its longest line, an outcome, is clipped there).
         let panel_w = self.panel_w();
         let bar_w = panel_w * 0.45;
-        let n_eyes = self.eyes.min(eyes.len() as u32);
-        let anchors = self.anchors(f.frame);
-        for i in 0..n_eyes {
+        let layouts = self.layout(eyes, f.frame);
+        for (i, layout) in layouts.iter().enumerate() {
+            let Some(layout) = layout else {
+                continue;
+            };
+            let i = i as u32;
             let ox = self.eye_origin(i);
             // Veil text box across the middle.
             if !self.lines[VEIL].is_empty() {
@@ -600,15 +783,7 @@ impl Hud {
                     linear(0, 0, 0, 0.55),
                 );
             }
-            self.push_rect(
-                (
-                    ox + m * 0.5,
-                    m * 0.5,
-                    panel_w,
-                    lh * self.panel_rows() as f32 + m,
-                ),
-                linear(0, 0, 0, 0.45),
-            );
+            self.push_rect(layout.panel.tuple(), linear(0, 0, 0, 0.45));
             // The breath-phase bar: inspiration part, expiration part, the current phase.
             let (bx, by, bh) = (ox + m, m + lh * PHASE as f32 + lh * 0.2, lh * 0.6);
             match text::breath_phase(f.frame) {
@@ -628,7 +803,7 @@ impl Hud {
             }
             // The PV loop.
             let (px, py, pw, ph) = self.pv_box(ox);
-            self.push_rect((px, py - lh, pw, ph + lh), linear(0, 0, 0, 0.45));
+            self.push_rect(layout.pv.tuple(), linear(0, 0, 0, 0.45));
             let frame_color = linear(120, 130, 140, 0.9);
             let corners = [(px, py), (px + pw, py), (px + pw, py + ph), (px, py + ph)];
             for k in 0..4 {
@@ -651,31 +826,12 @@ impl Hud {
                 }
             }
             // The lobe legend's panel (bottom left).
-            let legend_rows = self.legend_rows();
-            if legend_rows > 0 {
-                let chars = self.lines[LEGEND]
-                    .chars()
-                    .count()
-                    .max(self.lines[LOBE_WARNING].chars().count());
-                let w = (chars as f32 * self.font_px * 0.6 + m).min(self.eye_width as f32 - m);
-                let top = self.height as f32 - m * 1.5 - lh * legend_rows as f32;
-                self.push_rect(
-                    (ox + m * 0.5, top, w, lh * legend_rows as f32 + m),
-                    linear(0, 0, 0, 0.55),
-                );
+            if let Some(legend) = layout.legend {
+                self.push_rect(legend.tuple(), linear(0, 0, 0, 0.55));
             }
-            // Ticks under the anchored labels so they read over bright tissue.
-            for (k, a) in anchors.iter().enumerate() {
-                let Some(p) = a.and_then(|a| self.project(&eyes[i as usize], i, a)) else {
-                    continue;
-                };
-                let s = if k < 2 {
-                    self.font_px * 1.0
-                } else {
-                    self.font_px * 0.7
-                };
-                let w = if k < 2 { s * 1.6 } else { s * 8.0 };
-                self.push_rect((p.0 - w * 0.5, p.1 - s, w, s * 2.0), linear(0, 0, 0, 0.5));
+            // Backdrops under the anchored labels so they read over bright tissue.
+            for label in layout.labels.iter().flatten() {
+                self.push_rect(label.tuple(), linear(0, 0, 0, 0.5));
             }
         }
         queue.write_buffer(&self.vertex_buffer, 0, bytemuck::cast_slice(&self.vertices));
@@ -687,7 +843,7 @@ impl Hud {
                 height: h,
             },
         );
-        let layout = self.text_layout(eyes, &anchors, n_eyes, panel_w, bar_w);
+        let layout = self.text_layout(&layouts, panel_w, bar_w);
         let buffers = &self.buffers;
         let colors = self.colors;
         let areas =
@@ -753,16 +909,18 @@ impl Hud {
     #[allow(clippy::type_complexity)]
     fn text_layout(
         &self,
-        eyes: &[EyeUniform],
-        anchors: &[Option<Vec3>; 4],
-        n_eyes: u32,
+        layouts: &[Option<EyeLayout>; 2],
         panel_w: f32,
         bar_w: f32,
     ) -> [[Option<(usize, f32, f32, TextBounds)>; BLOCKS]; 2] {
         let mut out = [[None; BLOCKS]; 2];
         let lh = self.line_height();
         let m = self.margin();
-        for i in 0..n_eyes {
+        for (i, layout) in layouts.iter().enumerate() {
+            let Some(layout) = layout else {
+                continue;
+            };
+            let i = i as u32;
             let bounds = TextBounds {
                 left: (i * self.eye_width) as i32,
                 top: 0,
@@ -803,7 +961,7 @@ impl Hud {
                 row[VEIL] = Some((VEIL, left, self.height as f32 * 0.5 - lh * 0.8, bounds));
             }
             for (k, block) in [LABEL_R, LABEL_L, HEAD, FEET].into_iter().enumerate() {
-                let Some(p) = anchors[k].and_then(|a| self.project(&eyes[i as usize], i, a)) else {
+                let Some(p) = layout.labels[k].map(|r| r.centre()) else {
                     continue;
                 };
                 let size = if k < 2 {
@@ -816,5 +974,64 @@ impl Hud {
             }
         }
         out
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::{place_label, Rect};
+
+    fn r(x: f32, y: f32, w: f32, h: f32) -> Rect {
+        Rect { x, y, w, h }
+    }
+
+    #[test]
+    fn a_label_clear_of_the_panels_stays_where_it_is() {
+        let eye = r(0.0, 0.0, 480.0, 360.0);
+        let want = r(200.0, 200.0, 60.0, 16.0);
+        let panel = Some(r(5.0, 5.0, 350.0, 110.0));
+        assert_eq!(
+            place_label(want, &[panel, None, None], eye, 2.0),
+            Some(want)
+        );
+    }
+
+    #[test]
+    fn a_label_on_a_panel_moves_to_the_nearest_clear_place() {
+        let eye = r(0.0, 0.0, 480.0, 360.0);
+        let panel = r(5.0, 5.0, 350.0, 110.0);
+        let pv = r(364.0, 14.0, 106.0, 88.0);
+        // The head cue projected onto the panel's lower edge: moved just below it, not sideways.
+        let want = r(210.0, 100.0, 60.0, 16.0);
+        let got = place_label(want, &[Some(panel), Some(pv), None], eye, 2.0).unwrap();
+        assert_eq!((got.x, got.y), (210.0, 117.0));
+        assert!(!got.overlaps(&panel) && !got.overlaps(&pv) && eye.contains(&got));
+        // Off the eye's right edge and on the PV box: inside the eye, below the PV box.
+        let want = r(450.0, 50.0, 60.0, 16.0);
+        let got = place_label(want, &[Some(panel), Some(pv), None], eye, 2.0).unwrap();
+        assert_eq!((got.x, got.y), (420.0, 104.0));
+        // In the second eye of a stereo pair, the area is that eye's.
+        let eye2 = r(480.0, 0.0, 480.0, 360.0);
+        let want = r(470.0, 300.0, 60.0, 16.0);
+        let got = place_label(want, &[None, None, None], eye2, 2.0).unwrap();
+        assert_eq!((got.x, got.y), (480.0, 300.0));
+    }
+
+    #[test]
+    fn a_label_with_no_room_is_left_out() {
+        let eye = r(0.0, 0.0, 100.0, 40.0);
+        let want = r(20.0, 10.0, 60.0, 16.0);
+        // The panel covers the whole eye.
+        let panel = Some(r(0.0, 0.0, 100.0, 40.0));
+        assert_eq!(place_label(want, &[panel, None, None], eye, 2.0), None);
+        // Wider than the eye, or a non-finite projection.
+        assert_eq!(
+            place_label(r(0.0, 0.0, 120.0, 16.0), &[None; 3], eye, 2.0),
+            None
+        );
+        assert_eq!(
+            place_label(r(f32::NAN, 0.0, 10.0, 16.0), &[None; 3], eye, 2.0),
+            None
+        );
     }
 }

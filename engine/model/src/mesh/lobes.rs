@@ -248,13 +248,15 @@ pub fn summarise(mesh: &TriMesh, lobes: &[u8]) -> Vec<LobeSummary> {
         .collect()
 }
 
-/// A point well inside `lobe` of the default generated lung, in normalised coordinates: the
+/// A point well inside `lobe` of the built-in lung of `shape`, in normalised coordinates: the
 /// interior grid point of that lobe nearest its interior centroid, so a scene can place a tumour
-/// "in the right lower lobe". Deterministic (the default generator's 2k-vertex lung and a fixed
-/// grid).
-pub fn interior_point(lobe: Lobe) -> Option<[f64; 3]> {
+/// "in the right lower lobe" of the lungs it generates (`[lungs] shape`). The lobes of every shape
+/// are the same fissure planes ([`Fissures`]) over its bounding box, but the shapes fill that box
+/// differently (the anatomical base is a dome, the teardrop's a blunt flat end), so the point is
+/// the shape's own. Deterministic (that shape's 2k-vertex lung and a fixed grid).
+pub fn interior_point(shape: super::generate::Shape, lobe: Lobe) -> Option<[f64; 3]> {
     let side = lobe.side()?;
-    let mesh = super::generate::lung(side, 2_000).ok()?;
+    let mesh = super::generate::lung_of(shape, side, 2_000).ok()?;
     let bb = mesh.aabb();
     let fissures = Fissures::adult(side);
     let (lo, hi) = (bb.min.map(|v| v as f64), bb.max.map(|v| v as f64));
@@ -342,20 +344,22 @@ mod tests {
     }
 
     #[test]
-    fn interior_points_lie_inside_their_lobe() {
-        for lobe in ALL {
-            let side = lobe.side().unwrap();
-            let n = interior_point(lobe).unwrap();
-            assert_eq!(Fissures::adult(side).lobe_at(side, n), lobe);
-            let mesh = generate::lung(side, 5_000).unwrap();
-            let t = crate::disease::tumour::Tumour::new(side, n, [5.0; 3]);
-            let c = t.centre_mm(&mesh);
-            assert!(
-                crate::disease::tumour::winding_number(&mesh, c) > 0.5,
-                "{lobe}"
-            );
+    fn interior_points_lie_inside_their_lobe_of_each_shape() {
+        for shape in generate::Shape::ALL {
+            for lobe in ALL {
+                let side = lobe.side().unwrap();
+                let n = interior_point(shape, lobe).unwrap();
+                assert_eq!(Fissures::adult(side).lobe_at(side, n), lobe);
+                let mesh = generate::lung_of(shape, side, 5_000).unwrap();
+                let t = crate::disease::tumour::Tumour::new(side, n, [5.0; 3]);
+                let c = t.centre_mm(&mesh);
+                assert!(
+                    crate::disease::tumour::winding_number(&mesh, c) > 0.5,
+                    "{shape:?} {lobe}"
+                );
+            }
+            assert_eq!(interior_point(shape, Lobe::Unknown), None);
         }
-        assert_eq!(interior_point(Lobe::Unknown), None);
     }
 
     #[test]
