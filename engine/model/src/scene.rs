@@ -272,7 +272,8 @@ pub struct PvScene {
     pub preset: String,
     /// Breaths per minute.
     pub breaths_per_min: f64,
-    /// I:E ratio as `[I, E]`.
+    /// I:E ratio as `[I, E]` (default [`crate::pv::DEFAULT_IE_RATIO`], 1:2, quiet breathing;
+    /// `[1, 1]` is the seed's, [`crate::pv::SEED_IE_RATIO`]; EQUATIONS §1.1).
     pub ie_ratio: [f64; 2],
     /// A constants file written by `lungdyn pv fit` (relative to the scene file); replaces the
     /// preset's constants and boundary values when given.
@@ -525,7 +526,7 @@ impl Default for PvScene {
         Self {
             preset: crate::pv::DEFAULT_PRESET.to_string(),
             breaths_per_min: 12.0,
-            ie_ratio: [1.0, 1.0],
+            ie_ratio: crate::pv::DEFAULT_IE_RATIO,
             constants: None,
             waveform: None,
         }

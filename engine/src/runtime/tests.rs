@@ -177,10 +177,14 @@ fn per_lung_state_reproduces_the_shared_cycle_exactly() {
 /// unchanged by it. Issue 19 made the anatomical lungs the generated default: the replay's lungs
 /// changed shape (each lung's volume cubic, hence `deform_scale`, and every displacement), so both
 /// digests were re-pinned (teardrop: 0x79219bf4fc346d87 and 0xf5880a7e074aa73e) after two runs of
-/// the replay — one and several test threads — gave the same new digests.
-const REFERENCE_DIGEST_V1: u64 = 0xbda578dfd1470065;
+/// the replay — one and several test threads — gave the same new digests. Issue 25 made the
+/// scene's default I:E 1:2 (quiet breathing; EQUATIONS §1.1) instead of the seed's 1:1: the replay's
+/// breath changed shape in time (a 100-tick inhalation and 200-tick exhalation instead of 150 + 150),
+/// so both digests were re-pinned (1:1: 0xbda578dfd1470065 and 0x064f9f6ef8aa5d4f) after the replay
+/// gave equal frames twice in one run and the same digests with one and with four test threads.
+const REFERENCE_DIGEST_V1: u64 = 0xbfd9db59148f44f9;
 /// FNV-1a over every byte of every v2 frame of the same replay (precomputed mode).
-const REFERENCE_DIGEST_V2: u64 = 0x064f9f6ef8aa5d4f;
+const REFERENCE_DIGEST_V2: u64 = 0x1a1bb03e53268759;
 
 #[test]
 fn missing_samples_hold_the_pose_and_flag_it() {
@@ -1312,4 +1316,37 @@ fn a_tension_pneumothorax_on_a_recorded_breath_replays_bitwise() {
         panic!("tension")
     };
     assert_eq!(run.events.len(), 1);
+}
+
+/// EQUATIONS §1.1 "I:E": a scene breathes 1:2 by default (quiet breathing), `[pv] ie_ratio = [1, 1]`
+/// gives the seed's 2.5 s + 2.5 s, and a disease course keeps the scene's I:E (the clinical model).
+#[test]
+fn the_default_breath_is_one_to_two_and_the_seeds_one_to_one_stays_reachable() {
+    let inhaling = |core: &mut EngineCore, side: usize| {
+        let mut f = EngineFrame::default();
+        let mut n = 0;
+        let mut ticks = (0, 0);
+        for tick in 0..300 {
+            core.step(tick, None, &mut f);
+            n += (f.lungs[side].flags & lung_flags::INHALING != 0) as u32;
+            ticks = (f.lungs[side].inhale_ticks, f.lungs[side].cycle_ticks);
+        }
+        (n, ticks)
+    };
+    assert_eq!(
+        Scene::default().pv.ie_ratio,
+        lung_model::pv::DEFAULT_IE_RATIO
+    );
+    assert_eq!(inhaling(&mut core(), LUNG_LEFT), (100, (100, 300)));
+    let mut seed = Scene::default();
+    seed.pv.ie_ratio = lung_model::pv::SEED_IE_RATIO;
+    let mut c = EngineCore::with_geometry(&seed, baked_geometry()).unwrap();
+    assert_eq!(inhaling(&mut c, LUNG_LEFT), (150, (150, 300)));
+    // A closed pneumothorax quickens the breath and keeps 1:2 (to the tick).
+    let mut c = disease_core("kind = \"closed-pneumothorax\"\nside = \"left\"\nindex = 0.1\n");
+    let (_, (ti, ct)) = inhaling(&mut c, LUNG_RIGHT);
+    assert!(
+        ct < 300 && (3 * ti as i64 - ct as i64).abs() <= 2,
+        "{ti} of {ct}"
+    );
 }

@@ -522,6 +522,19 @@ pub const IE_PART_RANGE: (f64, f64) = (0.1, 10.0);
 /// Practice of Mechanical Ventilation, 3rd ed., 2013: I:E settings 1:1 to 1:4, inverse ratio to 4:1).
 pub const IE_RATIO_RANGE: (f64, f64) = (0.2, 4.0);
 
+/// The seed's I:E, 1:1: its normal breathing is a 2.5 s inhalation and a 2.5 s exhalation at 12
+/// breaths/min (§5.3, Table 5.2). [`Timing::default`] keeps it (the figures checked by hand against
+/// the seed); a scene reaches it with `[pv] ie_ratio = [1, 1]`.
+pub const SEED_IE_RATIO: [f64; 2] = [1.0, 1.0];
+
+/// The project's default I:E for a scene's `[pv] ie_ratio`, 1:2 (EQUATIONS §1.1, "I:E"): quiet
+/// spontaneous breathing spends about a third of the cycle in inspiration (West, *Respiratory
+/// Physiology: The Essentials*, 10th ed., 2016, ch. 1: "inspiration ... about one third of the
+/// respiratory cycle"; Tobin et al., Chest 1983;84:202–205, normal subjects at rest: `Ti/Ttot` ≈ 0.42,
+/// i.e. 1:1.4); a ventilator's default setting is 1:2 (Tobin, *Principles and Practice of Mechanical
+/// Ventilation*, 3rd ed., 2013). At 12 breaths/min: 1.67 s in, 3.33 s out.
+pub const DEFAULT_IE_RATIO: [f64; 2] = [1.0, 2.0];
+
 /// Timing of the breathing cycle.
 #[derive(Debug, Clone, Copy, PartialEq, serde::Serialize, serde::Deserialize)]
 pub struct Timing {
@@ -536,7 +549,9 @@ pub struct Timing {
 }
 
 impl Default for Timing {
-    /// 60 Hz, 12 breaths/min, I:E = 1:1 (the seed's 2.5 s phases).
+    /// 60 Hz, 12 breaths/min, I:E = 1:1 ([`SEED_IE_RATIO`], the seed's 2.5 s phases): the seed's
+    /// timing, which the by-hand checks of chapter 8 use. A scene's default I:E is
+    /// [`DEFAULT_IE_RATIO`] (1:2).
     fn default() -> Self {
         Self {
             tick_hz: 60.0,
