@@ -770,6 +770,34 @@ pub fn run_watched(args: &DemoArgs, watch: &mut dyn Watch) -> anyhow::Result<Dem
             Children::spawn(exe, "engine", &a)
         }),
     )?;
+    // A scene whose [remote] role is "source" shares this engine with remote sites: `remote serve`
+    // runs beside it, supervised like the other processes (restarted if it dies; a restarted one
+    // takes the engine's current state from its stream's history).
+    if scene
+        .remote
+        .as_ref()
+        .is_some_and(|r| r.role == lung_model::scene_remote::RemoteRole::Source)
+    {
+        let serve_args = with_scene(
+            [
+                vec!["serve".to_string()],
+                common
+                    .iter()
+                    .filter(|a| *a != "--realtime")
+                    .cloned()
+                    .collect(),
+            ]
+            .concat(),
+        );
+        eprintln!(
+            "lungdyn: the scene's [remote] role is source: starting `lungdyn remote serve` (sites \
+             join with `lungdyn remote join --scene SITE_SCENE`)"
+        );
+        supervisor.start(
+            "remote",
+            Box::new(move || Children::spawn(exe, "remote", &serve_args)),
+        )?;
+    }
     let sweep = vec![
         "--roll-deg".to_string(),
         args.roll_deg.to_string(),

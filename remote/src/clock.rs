@@ -5,9 +5,9 @@
 //! (its clock); the reply arrives at `t3` (site clock). Then the round trip without the source's
 //! hold is `rtt = (t3 − t0) − (t2 − t1)` and, for a symmetric path, the source clock minus the
 //! site's is `θ = ((t1 − t0) + (t2 − t3)) / 2` (NTP's on-wire estimate). The smoothed round trip
-//! and its variation follow RFC 6298 (gains 1/8 and 1/4). The offset is taken from the probe with
-//! the smallest round trip among the last [`WINDOW`]: its error is at most half that probe's
-//! queueing asymmetry, so jitter does not move the schedule.
+//! and its variation follow RFC 6298 (gains 1/8 and 1/4). The offset is the mean over the quickest
+//! half of the last [`WINDOW`] probes: each errs by at most half its queueing asymmetry, and
+//! the errors of several cancel (the quickest probe alone kept its whole error).
 
 /// Probes kept for the offset estimate.
 pub const WINDOW: usize = 64;
@@ -110,13 +110,21 @@ impl DelayEstimator {
         self.rttvar
     }
 
-    /// Source clock minus this site's, ns: the offset of the quickest recent probe (`None` before
-    /// the first).
+    /// Source clock minus this site's, ns (`None` before the first probe): the mean offset of the
+    /// quickest half of the recent probes (at least one). The quickest probes carry the least
+    /// queueing; each still errs by half its path's asymmetry, which is as often one way as the
+    /// other under jitter, so averaging several cancels most of it where one probe alone (the
+    /// quickest) kept its whole error — 0.65 ms of phase under 20 ± 5 ms each way (the harness, before).
     pub fn offset_ns(&self) -> Option<i64> {
-        self.window[..self.len]
-            .iter()
-            .min_by_key(|(rtt, _)| *rtt)
-            .map(|(_, o)| *o)
+        if self.len == 0 {
+            return None;
+        }
+        let mut w = self.window;
+        let recent = &mut w[..self.len];
+        recent.sort_unstable_by_key(|(rtt, _)| *rtt);
+        let k = (self.len / 2).max(1);
+        let sum: i128 = recent[..k].iter().map(|(_, o)| *o as i128).sum();
+        Some((sum / k as i128) as i64)
     }
 }
 
@@ -151,25 +159,42 @@ mod tests {
         assert!(e.jitter_ns() < 1.0e6, "{}", e.jitter_ns());
     }
 
+    /// 20 ± 5 ms each way (uniform, independent): delay and jitter are measured, and the offset
+    /// of the quickest half errs less than the quickest probe's alone (what this estimator
+    /// used to take), over many windows.
     #[test]
-    fn jitter_is_measured_and_the_quickest_probe_sets_the_offset() {
-        let mut e = DelayEstimator::default();
-        // 20 ± 5 ms each way, the quickest probe symmetric.
-        let ups = [25, 15, 22, 18, 24, 16, 20, 21, 19, 23];
-        let downs = [18, 27, 25, 24, 17, 25, 20, 22, 23, 25];
-        for (k, (u, d)) in ups.iter().zip(downs).enumerate() {
-            e.add(probe(
-                k as u64 * 100_000_000,
-                u * 1_000_000,
-                0,
-                d * 1_000_000,
-                -7,
-            ));
+    fn jitter_is_measured_and_the_quickest_half_sets_the_offset() {
+        use rand::{RngExt, SeedableRng};
+        let mut rng = rand_xorshift::XorShiftRng::seed_from_u64(7);
+        let theta = -7_000i64;
+        let (mut err_half, mut err_quickest) = (0.0, 0.0);
+        let windows = 200;
+        for w in 0..windows {
+            let mut e = DelayEstimator::default();
+            let mut quickest = (i64::MAX, 0i64);
+            for k in 0..WINDOW as u64 {
+                let up = (rng.random_range(15.0..25.0) * 1e6) as u64;
+                let down = (rng.random_range(15.0..25.0) * 1e6) as u64;
+                let p = probe(w * 10_000_000_000 + k * 50_000_000, up, 30_000, down, theta);
+                assert!(e.add(p));
+                if p.rtt_ns().unwrap() < quickest.0 {
+                    quickest = (p.rtt_ns().unwrap(), p.offset_ns());
+                }
+            }
+            err_half += (e.offset_ns().unwrap() - theta).abs() as f64 / 1e6;
+            err_quickest += (quickest.1 - theta).abs() as f64 / 1e6;
+            if w == 0 {
+                assert!((e.delay_ns() - 20e6).abs() < 2e6, "{}", e.delay_ns());
+                assert!(e.jitter_ns() > 1e6, "{}", e.jitter_ns());
+            }
         }
-        // Quickest: 20 + 20 = 40 ms round trip, symmetric: the exact offset.
-        assert_eq!(e.offset_ns(), Some(-7));
-        assert!((e.delay_ns() - 20.5e6).abs() < 3e6, "{}", e.delay_ns());
-        assert!(e.jitter_ns() > 1e6, "{}", e.jitter_ns());
+        let (q, one) = (err_half / windows as f64, err_quickest / windows as f64);
+        eprintln!("offset error: quickest half {q:.3} ms, quickest probe {one:.3} ms");
+        assert!(
+            q < 0.8 * one,
+            "mean error {q} ms against the quickest probe's {one} ms"
+        );
+        assert!(q < 0.5, "mean error {q} ms");
     }
 
     #[test]

@@ -27,6 +27,7 @@ use crate::link::Impairment;
 use crate::site::Site;
 use crate::source::Source;
 use crate::{site_id, Keys, Net, RemoteError};
+use lung_model::scene_remote::{RemoteRole, RemoteScene};
 
 /// Options of `lungdyn remote serve`.
 #[derive(Debug, Clone, clap::Args)]
@@ -34,25 +35,116 @@ pub struct ServeArgs {
     /// The source engine's instance.
     #[arg(long, default_value = "default")]
     pub instance: String,
-    /// Zenoh endpoint to listen on.
-    #[arg(long, default_value = "tcp/0.0.0.0:7447")]
+    /// The scene whose `[remote]` table gives the settings below (the flags win).
+    #[arg(long)]
+    pub scene: Option<std::path::PathBuf>,
+    /// Zenoh endpoint to listen on (default: the scene's, else tcp/0.0.0.0:7447).
+    #[arg(long)]
     pub listen: Vec<String>,
     /// Zenoh endpoints to connect to (a router, other peers).
     #[arg(long)]
     pub connect: Vec<String>,
-    /// The shared session's name (every site uses the same).
-    #[arg(long, default_value = "lungdyn")]
-    pub room: String,
+    /// The shared session's name, every site the same (default: the scene's, else "lungdyn").
+    #[arg(long)]
+    pub room: Option<String>,
+    /// peer, router or client (default: the scene's, else peer).
+    #[arg(long)]
+    pub mode: Option<ZenohMode>,
+    /// Link lease, ms (default: the scene's, else 10000).
+    #[arg(long)]
+    pub lease_ms: Option<u64>,
     /// Stop after this many seconds.
     #[arg(long)]
     pub seconds: Option<f64>,
 }
 
+/// The `--mode` values.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, clap::ValueEnum)]
+pub enum ZenohMode {
+    /// Peer to peer.
+    Peer,
+    /// A router others connect to.
+    Router,
+    /// A client of a router.
+    Client,
+}
+
+impl From<ZenohMode> for lung_model::scene_remote::ZenohMode {
+    fn from(m: ZenohMode) -> Self {
+        match m {
+            ZenohMode::Peer => Self::Peer,
+            ZenohMode::Router => Self::Router,
+            ZenohMode::Client => Self::Client,
+        }
+    }
+}
+
+/// The `[remote]` table of `scene` (none without a scene or table).
+fn remote_table(scene: Option<&std::path::Path>) -> Result<Option<RemoteScene>, RemoteError> {
+    match scene {
+        None => Ok(None),
+        Some(p) => Ok(Scene::load(p)?.remote),
+    }
+}
+
+/// A session's settings: the flags, else the scene's `[remote]` table, else the defaults; checked
+/// as the table is.
+#[allow(clippy::too_many_arguments)]
+fn settings(
+    table: Option<RemoteScene>,
+    role: RemoteRole,
+    listen: &[String],
+    connect: &[String],
+    room: Option<&str>,
+    mode: Option<ZenohMode>,
+    lease_ms: Option<u64>,
+) -> Result<(RemoteScene, Net, Keys), RemoteError> {
+    let mut r = table.unwrap_or(RemoteScene {
+        role,
+        room: "lungdyn".into(),
+        listen: None,
+        connect: Vec::new(),
+        mode: lung_model::scene_remote::ZenohMode::Peer,
+        lease_ms: lung_model::scene_remote::DEFAULT_LEASE_MS,
+        site_id: None,
+    });
+    if !listen.is_empty() {
+        r.listen = Some(listen.to_vec());
+    }
+    if !connect.is_empty() {
+        r.connect = connect.to_vec();
+    }
+    if let Some(room) = room {
+        r.room = room.to_string();
+    }
+    if let Some(m) = mode {
+        r.mode = m.into();
+    }
+    if let Some(l) = lease_ms {
+        r.lease_ms = l;
+    }
+    r.validate().map_err(|e| {
+        RemoteError::Usage(format!(
+            "remote settings: {e} (on the command line: --listen, --connect, --room, --mode, \
+             --lease-ms)"
+        ))
+    })?;
+    let net = Net {
+        listen: r.listen(),
+        connect: r.connect.clone(),
+        lease_ms: r.lease_ms,
+        mode: r.mode.name(),
+    };
+    let keys = Keys::new(&r.room)?;
+    Ok((r, net, keys))
+}
+
 /// Options of `lungdyn remote join`.
 #[derive(Debug, Clone, clap::Args)]
 pub struct JoinArgs {
-    /// The source's Zenoh endpoint (tcp/HOST:7447).
-    #[arg(long, required = true)]
+    /// The source's (or a router's) Zenoh endpoint, tcp/HOST:7447 (default: the scene's `[remote]
+    /// connect`).
+    #[arg(long)]
     pub connect: Vec<String>,
     /// This site's instance (its renderer attaches to it).
     #[arg(long, default_value = "site")]
@@ -60,12 +152,18 @@ pub struct JoinArgs {
     /// The scene (the source's, with its kernels: `lungdyn scene prepare`).
     #[arg(long)]
     pub scene: Option<std::path::PathBuf>,
-    /// Watch only: send no events.
+    /// Watch only: send no events (also the scene's `[remote] role = "observer"`).
     #[arg(long)]
     pub observer: bool,
-    /// The shared session's name.
-    #[arg(long, default_value = "lungdyn")]
-    pub room: String,
+    /// The shared session's name (default: the scene's, else "lungdyn").
+    #[arg(long)]
+    pub room: Option<String>,
+    /// peer or client (through a router) (default: the scene's, else peer).
+    #[arg(long)]
+    pub mode: Option<ZenohMode>,
+    /// Link lease, ms (default: the scene's, else 10000).
+    #[arg(long)]
+    pub lease_ms: Option<u64>,
     /// Stop after this many seconds.
     #[arg(long)]
     pub seconds: Option<f64>,
@@ -85,23 +183,39 @@ fn deadline(seconds: Option<f64>) -> Result<Option<u64>, RemoteError> {
 pub fn serve(args: &ServeArgs) -> Result<(), RemoteError> {
     transport::stop::install()?;
     let until = deadline(args.seconds)?;
-    let keys = Keys::new(&args.room)?;
-    let net = Net::peer(&args.listen, &args.connect);
+    let table = remote_table(args.scene.as_deref())?;
+    if let Some(t) = table.as_ref().filter(|t| t.role != RemoteRole::Source) {
+        return Err(RemoteError::Usage(format!(
+            "the scene's [remote] role is {:?}, not \"source\": a site runs `lungdyn remote join \
+             --scene …`",
+            t.role
+        )));
+    }
+    let (remote, net, keys) = settings(
+        table,
+        RemoteRole::Source,
+        &args.listen,
+        &args.connect,
+        args.room.as_deref(),
+        args.mode,
+        args.lease_ms,
+    )?;
     net.config()?;
     let instance = Instance::new(&args.instance)?;
     let node = iox::node(&instance, "remote-serve")?;
     let mut states = instance.control_state_inlet(&node)?;
     let mut control = instance.control_outlet(&node)?;
-    let id = site_id(0);
+    let id = remote.site_id().unwrap_or_else(|| site_id(0));
     let source = Source::open(&net, &keys, id, Impairment::default())?;
     eprintln!(
-        "remote serve[{}]: relaying {} to zenoh key {} on {:?} (sites join with lungdyn remote \
-         join --connect tcp/THIS_HOST:PORT --room {})",
+        "remote serve[{}]: relaying {} to zenoh key {} as a {} on {:?} (sites join with lungdyn \
+         remote join --connect tcp/THIS_HOST:PORT --room {})",
         instance.name(),
         instance.control_state(),
         keys.state(),
-        args.listen,
-        args.room
+        net.mode,
+        net.listen,
+        remote.room
     );
     let (mut refused, mut sites) = (0u64, 0usize);
     while transport::stop::idle(Duration::from_millis(5)) && until.is_none_or(|t| now_ns() < t) {
@@ -160,9 +274,33 @@ pub fn serve(args: &ServeArgs) -> Result<(), RemoteError> {
 pub fn join(args: &JoinArgs) -> Result<(), RemoteError> {
     transport::stop::install()?;
     let until = deadline(args.seconds)?;
-    let keys = Keys::new(&args.room)?;
+    let table = remote_table(args.scene.as_deref())?;
+    if let Some(t) = table.as_ref().filter(|t| t.role == RemoteRole::Source) {
+        return Err(RemoteError::Usage(format!(
+            "the scene's [remote] role is {:?}: the source runs `lungdyn remote serve` (or `lungdyn \
+             demo`); a site's scene says role = \"site\" or \"observer\"",
+            t.role
+        )));
+    }
+    let observer = args.observer
+        || table
+            .as_ref()
+            .is_some_and(|t| t.role == RemoteRole::Observer);
+    let role = if observer {
+        RemoteRole::Observer
+    } else {
+        RemoteRole::Site
+    };
     // Endpoints are checked before anything is loaded or opened.
-    let net = Net::peer(&[], &args.connect);
+    let (remote, net, keys) = settings(
+        table,
+        role,
+        &[],
+        &args.connect,
+        args.room.as_deref(),
+        args.mode,
+        args.lease_ms,
+    )?;
     net.config()?;
     let instance = Instance::new(&args.instance)?;
     let _lock = instance.lock("engine")?;
@@ -180,8 +318,8 @@ pub fn join(args: &JoinArgs) -> Result<(), RemoteError> {
     let site = Site::open(
         &net,
         &keys,
-        site_id(0),
-        args.observer,
+        remote.site_id().unwrap_or_else(|| site_id(0)),
+        observer,
         Impairment::default(),
         500,
     )?;
@@ -189,8 +327,8 @@ pub fn join(args: &JoinArgs) -> Result<(), RemoteError> {
         "remote join[{}]: site {:016x}{} waiting for the source's state on {:?}",
         instance.name(),
         site.id,
-        if args.observer { " (observer)" } else { "" },
-        args.connect
+        if observer { " (observer)" } else { "" },
+        net.connect
     );
     let mut runner = site
         .runner(core, hz)

@@ -584,6 +584,18 @@ def make_scenes(tmp):
     s("processes_cpus_4096", SCENE_BASE + "[processes]\ncpus = [4096, 0, 0]\n")
     s("processes_cpus_two", SCENE_BASE + "[processes]\ncpus = [0, 1]\n")
     s("processes_budget_over", SCENE_BASE + "[processes.budget_ms]\nrenderer = 16.0\n")
+    s("remote_role_teacher", SCENE_BASE + "[remote]\nrole = \"teacher\"\n")
+    s("remote_site_no_connect", SCENE_BASE + "[remote]\nrole = \"site\"\n")
+    s("remote_udp_endpoint", SCENE_BASE + "[remote]\nrole = \"source\"\nlisten = [\"udp/0.0.0.0:7447\"]\n")
+    s("remote_no_port", SCENE_BASE + "[remote]\nrole = \"site\"\nconnect = [\"tcp/10.0.0.2\"]\n")
+    s("remote_mode_mesh", SCENE_BASE + "[remote]\nrole = \"source\"\nmode = \"mesh\"\n")
+    s("remote_client_no_connect", SCENE_BASE + "[remote]\nrole = \"source\"\nmode = \"client\"\n")
+    s("remote_router_no_listen", SCENE_BASE + "[remote]\nrole = \"source\"\nmode = \"router\"\nlisten = []\n")
+    s("remote_lease_5", SCENE_BASE + "[remote]\nrole = \"source\"\nlease_ms = 5\n")
+    s("remote_room_slash", SCENE_BASE + "[remote]\nrole = \"source\"\nroom = \"ward/3\"\n")
+    s("remote_site_id_bad", SCENE_BASE + "[remote]\nrole = \"source\"\nsite_id = \"xyz\"\n")
+    s("remote_unknown_key", SCENE_BASE + "[remote]\nrole = \"source\"\nport = 7447\n")
+    s("remote_site", SCENE_BASE + "[remote]\nrole = \"site\"\nconnect = [\"tcp/127.0.0.1:7447\"]\n")
     out("scene_not_toml.json", '{"lungs": {"vertices": 100}}\n')
 
 

@@ -37,5 +37,6 @@ pub mod pv;
 pub mod recording;
 pub mod scene;
 pub mod scene_disease;
+pub mod scene_remote;
 pub mod sh;
 pub mod units;

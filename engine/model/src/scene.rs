@@ -32,6 +32,9 @@ pub struct Scene {
     pub tracker: TrackerScene,
     /// Where each process runs and what it may spend per tracker sample.
     pub processes: ProcessesScene,
+    /// This machine's part in a shared session (`[remote]`, [`crate::scene_remote`]); none alone.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub remote: Option<crate::scene_remote::RemoteScene>,
 }
 
 /// `[processes]` table: the cores of the three processes and each one's share of the 16.7 ms frame.
@@ -688,6 +691,9 @@ pub enum SceneValueError {
     /// A wake strategy the cores cannot hold, or a spin window out of range.
     #[error("[processes] {0}")]
     ProcessWake(String),
+    /// The `[remote]` table cannot be used.
+    #[error("[remote] {0}")]
+    Remote(String),
     /// The PV constants file named by `[pv] constants` is unusable.
     #[error("[pv] constants: {0}")]
     Constants(#[source] crate::pv::files::PvFileError),
@@ -1059,6 +1065,9 @@ impl Scene {
             }
         }
         self.disease_spec().map_err(E::Disease)?;
+        if let Some(r) = &self.remote {
+            r.validate().map_err(E::Remote)?;
+        }
         let p = &self.processes;
         if !(p.cpus.is_empty() || p.cpus.len() == 3) {
             return Err(E::ProcessCpus(p.cpus.clone()));
