@@ -1018,7 +1018,8 @@ fn write_plot(png: &Path, r: &LatencyReport, series: &[SeriesPoint]) -> anyhow::
         markers: false,
     };
     // The measured time points, each with its label and colour: the same in both panels.
-    let mut measured: Vec<(&str, fn(&SeriesPoint) -> f32, RGBColor)> = vec![
+    type Measured = (&'static str, fn(&SeriesPoint) -> f32, RGBColor);
+    let mut measured: Vec<Measured> = vec![
         ("capture -> submit", |p| p.submit_ms, crate::plot::INHALE),
         (
             "capture -> GPU done",
