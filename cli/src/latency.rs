@@ -1017,21 +1017,24 @@ fn write_plot(png: &Path, r: &LatencyReport, series: &[SeriesPoint]) -> anyhow::
         color: RGBColor(200, 30, 30),
         markers: false,
     };
-    let mut over_time = vec![
-        line("capture -> submit", |p| p.submit_ms, crate::plot::INHALE),
-        line(
+    // The measured time points, each with its label and colour: the same in both panels.
+    type Measured = (&'static str, fn(&SeriesPoint) -> f32, RGBColor);
+    let mut measured: Vec<Measured> = vec![
+        ("capture -> submit", |p| p.submit_ms, crate::plot::INHALE),
+        (
             "capture -> GPU done",
             |p| p.gpu_done_ms,
             crate::plot::EXHALE,
         ),
     ];
     if r.window {
-        over_time.push(line(
+        measured.push((
             "capture -> present",
             |p| p.present_ms,
             RGBColor(40, 160, 60),
         ));
     }
+    let mut over_time: Vec<Series> = measured.iter().map(|&(l, f, c)| line(l, f, c)).collect();
     over_time.push(deadline_line(t_end));
     // Percentile distribution: latency against "nines" (-log10(1 - q)), as HdrHistogram plots it.
     let quantiles: Vec<f64> = (0..=40)
@@ -1062,21 +1065,7 @@ fn write_plot(png: &Path, r: &LatencyReport, series: &[SeriesPoint]) -> anyhow::
             markers: false,
         }
     };
-    let mut percentiles = vec![
-        dist("capture -> submit", |p| p.submit_ms, crate::plot::INHALE),
-        dist(
-            "capture -> GPU done",
-            |p| p.gpu_done_ms,
-            crate::plot::EXHALE,
-        ),
-    ];
-    if r.window {
-        percentiles.push(dist(
-            "capture -> present",
-            |p| p.present_ms,
-            RGBColor(40, 160, 60),
-        ));
-    }
+    let mut percentiles: Vec<Series> = measured.iter().map(|&(l, f, c)| dist(l, f, c)).collect();
     let x_max = percentiles
         .iter()
         .flat_map(|s| s.points.last().map(|p| p.0))

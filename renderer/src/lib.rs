@@ -228,7 +228,7 @@ impl LungRenderer {
             .flat_map(|l| {
                 draw::lung_surface(
                     l.side.index(),
-                    l.lung.len(),
+                    &l.lung.positions,
                     &l.lung.triangles,
                     l.lobe_codes(),
                 )

@@ -8,7 +8,8 @@
 //
 // Per vertex: the deformed position (xyz; w belongs to the compute pass), the normal with the
 // colour mode's scalar field in w (deform.wgsl, vertex_normals), and the surface attribute
-// (material id, lobe code 0..5 (0 unknown), fissure flag: draw/mod.rs, SurfaceAttr).
+// (material id, lobe code 0..5 (0 unknown), fissure flag; the signed distances from the oblique and
+// horizontal fissure planes: draw/mod.rs, SurfaceAttr).
 
 struct Eye {
     view_proj: mat4x4<f32>,
@@ -51,11 +52,14 @@ struct VsOut {
     @location(3) normal: vec3<f32>,
     // The colour mode's field at the vertex (displacement mm, or expansion relative to FRC).
     @location(4) field: f32,
-    // Lobes mode: one-hot weight of the vertex's lobe among its lung's (upper, middle, lower),
-    // interpolated across the triangle; all zero for an unknown lobe.
-    @location(5) lobe_w: vec3<f32>,
+    // The lung has lobe codes (1) or not (0: drawn grey, no fissures).
+    @location(5) @interpolate(flat) lobed: u32,
     // The splat's vertex lies on a fissure (1) or not (0).
     @location(6) @interpolate(flat) fissure: u32,
+    // Signed distances from the oblique fissure (> 0: lower lobe) and the horizontal one (> 0:
+    // below it), affine in the rest position, so interpolated exactly: their zeros are the
+    // fissures, straight across each triangle and continuous across its edges.
+    @location(7) fissure_d: vec2<f32>,
 };
 
 // A ramp through four colours, t in [0, 1].
@@ -70,66 +74,41 @@ fn ramp4(t: f32, a: vec3<f32>, b: vec3<f32>, c: vec3<f32>, d: vec3<f32>) -> vec3
     return mix(c, d, s - 2.0);
 }
 
-// The lobe weights of a vertex with lobe `code` (its rank in its lung: upper, middle, lower).
-fn lobe_weights(code: u32) -> vec3<f32> {
-    if (code >= 1u && code <= 3u) {
-        return vec3<f32>(f32(code == 1u), f32(code == 2u), f32(code == 3u));
-    }
-    if (code == 4u) {
-        return vec3<f32>(1.0, 0.0, 0.0);
-    }
-    if (code == 5u) {
-        return vec3<f32>(0.0, 0.0, 1.0);
-    }
-    return vec3<f32>(0.0, 0.0, 0.0);
-}
-
-// The lobe code of a fragment from its interpolated weights (the largest), 0 if none.
-fn lobe_code(material: u32, w: vec3<f32>) -> u32 {
-    if (max(w.x, max(w.y, w.z)) < 0.01) {
+// The lobe code of a fragment from its fissure distances, 0 on a lung without lobe codes.
+fn lobe_code(material: u32, lobed: u32, d: vec2<f32>) -> u32 {
+    if (lobed == 0u) {
         return 0u;
     }
-    var rank = 0u;
-    if (w.y > w.x && w.y >= w.z) {
-        rank = 1u;
-    } else if (w.z > w.x && w.z > w.y) {
-        rank = 2u;
-    }
     if (material == LEFT_LUNG) {
-        return select(4u, 5u, rank == 2u);
+        return select(4u, 5u, d.x > 0.0);
     }
-    return 1u + rank;
+    if (d.x > 0.0) {
+        return 3u;
+    }
+    return select(1u, 2u, d.y > 0.0);
 }
 
-// Coverage (0..1) of the fissure line between two lobes whose weights differ by `e` (0 on the
-// fissure), `fw` its screen-space change per pixel: 1 within a pixel of it, fading out by 2.
-fn fissure_edge(e: f32, fw: f32) -> f32 {
-    return 1.0 - smoothstep(1.0, 2.0, abs(e) / max(fw, 1e-6));
+// Coverage (0..1) of the fissure line at signed distance `d` from it, `fw` its screen-space change
+// per pixel: 1 within a pixel of it, fading out by 2 (about 2 px wide whatever the distance).
+fn fissure_edge(d: f32, fw: f32) -> f32 {
+    return 1.0 - smoothstep(1.0, 2.0, abs(d) / max(fw, 1e-9));
 }
 
-// How much of the fissure line covers a fragment. The derivatives are taken first, in uniform
-// control flow.
+// How much of the fissure line covers a fragment: the oblique fissure, and on the right lung the
+// horizontal one above it. The derivatives are taken first, in uniform control flow.
 fn fissure(in: VsOut, splat: bool) -> f32 {
-    let w = in.lobe_w;
-    let e = vec3<f32>(w.x - w.y, w.x - w.z, w.y - w.z);
-    let fw = fwidth(e);
+    let d = in.fissure_d;
+    let fw = fwidth(d);
     // No line on tumours, outside the lobes mode, or on a lung without lobe codes.
-    if (style.color_mode != LOBES_MODE || in.material == TUMOUR || max(w.x, max(w.y, w.z)) < 0.01) {
+    if (style.color_mode != LOBES_MODE || in.material == TUMOUR || in.lobed == 0u) {
         return 0.0;
     }
     if (splat) {
         return f32(in.fissure);
     }
-    // A pair's fissure shows where those two are the largest weights (the third no larger).
-    var c = 0.0;
-    if (w.z <= min(w.x, w.y)) {
-        c = max(c, fissure_edge(e.x, fw.x));
-    }
-    if (w.y <= min(w.x, w.z)) {
-        c = max(c, fissure_edge(e.y, fw.y));
-    }
-    if (w.x <= min(w.y, w.z)) {
-        c = max(c, fissure_edge(e.z, fw.z));
+    var c = fissure_edge(d.x, fw.x);
+    if (in.material == RIGHT_LUNG && d.x <= 0.0) {
+        c = max(c, fissure_edge(d.y, fw.y));
     }
     return c;
 }
@@ -139,13 +118,13 @@ const FISSURE_DARK = vec3<f32>(0.004, 0.004, 0.008);
 const FISSURE_LIGHT = vec3<f32>(0.95, 0.95, 0.90);
 
 // Linear-light albedo of a fragment.
-fn albedo(material: u32, field: f32, lobe_w: vec3<f32>) -> vec3<f32> {
+fn albedo(material: u32, field: f32, lobed: u32, d: vec2<f32>) -> vec3<f32> {
     if (material == TUMOUR) {
         // Yellow-green, far from every lung colour of every mode.
         return vec3<f32>(0.55, 0.92, 0.12);
     }
     if (style.color_mode == LOBES_MODE) {
-        return style.lobes[lobe_code(material, lobe_w)].rgb;
+        return style.lobes[lobe_code(material, lobed, d)].rgb;
     }
     if (style.color_mode == 1u) {
         // Displacement from rest: 0 → 20 mm, dark blue → teal → green → yellow.
@@ -197,7 +176,7 @@ fn tissue(n_in: vec3<f32>, world: vec3<f32>, base: vec3<f32>) -> Lit {
     return out;
 }
 
-fn vs_common(p: vec3<f32>, normal: vec4<f32>, surface: vec4<u32>) -> VsOut {
+fn vs_common(p: vec3<f32>, normal: vec4<f32>, surface: vec4<u32>, fissure_d: vec2<f32>) -> VsOut {
     var out: VsOut;
     let world = eye.model * vec4<f32>(p, 1.0);
     out.clip = eye.view_proj * world;
@@ -207,14 +186,15 @@ fn vs_common(p: vec3<f32>, normal: vec4<f32>, surface: vec4<u32>) -> VsOut {
     // The registration is a rigid transform: its upper 3×3 rotates normals.
     out.normal = (eye.model * vec4<f32>(normal.xyz, 0.0)).xyz;
     out.field = normal.w;
-    out.lobe_w = lobe_weights(surface.y);
+    out.lobed = u32(surface.y != 0u);
     out.fissure = surface.z;
+    out.fissure_d = fissure_d;
     return out;
 }
 
 @vertex
-fn vs_triangles(@location(0) p: vec4<f32>, @location(1) n: vec4<f32>, @location(2) surface: vec4<u32>) -> VsOut {
-    return vs_common(p.xyz, n, surface);
+fn vs_triangles(@location(0) p: vec4<f32>, @location(1) n: vec4<f32>, @location(2) surface: vec4<u32>, @location(7) fissure_d: vec2<f32>) -> VsOut {
+    return vs_common(p.xyz, n, surface, fissure_d);
 }
 
 fn triangle_normal(in: VsOut) -> vec3<f32> {
@@ -233,12 +213,12 @@ const CORNERS = array<vec2<f32>, 6>(
 );
 
 @vertex
-fn vs_splats(@builtin(vertex_index) vi: u32, @location(0) p: vec4<f32>, @location(1) n: vec4<f32>, @location(2) surface: vec4<u32>) -> VsOut {
+fn vs_splats(@builtin(vertex_index) vi: u32, @location(0) p: vec4<f32>, @location(1) n: vec4<f32>, @location(2) surface: vec4<u32>, @location(7) fissure_d: vec2<f32>) -> VsOut {
     let corner = CORNERS[vi];
     let radius = eye.cam_right.w;
     let centre = (eye.model * vec4<f32>(p.xyz, 1.0)).xyz;
     let world = centre + (eye.cam_right.xyz * corner.x + eye.cam_up.xyz * corner.y) * radius;
-    var out = vs_common(p.xyz, n, surface);
+    var out = vs_common(p.xyz, n, surface, fissure_d);
     out.clip = eye.view_proj * vec4<f32>(world, 1.0);
     out.world = world;
     out.corner = corner;
@@ -266,7 +246,7 @@ fn lit(in: VsOut, splat: bool) -> Lit {
     } else {
         n = triangle_normal(in);
     }
-    return tissue(n, in.world, albedo(in.material, in.field, in.lobe_w));
+    return tissue(n, in.world, albedo(in.material, in.field, in.lobed, in.fissure_d));
 }
 
 fn opaque(in: VsOut, splat: bool) -> vec4<f32> {

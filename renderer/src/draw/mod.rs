@@ -17,16 +17,18 @@
 //! in the position's `w`, its lobe code (0 unknown, 1 RUL, 2 RML, 3 RLL, 4 LUL, 5 LLL) and whether
 //! it lies on a fissure (a triangle of it spans two lobes).
 //!
-//! **Lobes colour mode**: the vertex shader turns the lobe code into a one-hot weight per lobe of
-//! its lung (upper, middle, lower), interpolated across each triangle; the fragment shader colours
-//! by the largest weight and draws the fissure where the two largest are equal, about 2 px wide
-//! whatever the distance (`fwidth` of their difference: screen-space derivatives, which lavapipe
-//! and every GPU have). A triangle whose corners lie in two lobes carries the boundary through its
-//! middle, continuous with its neighbours', so the fissures are closed lines on the surface, drawn
-//! in every look and eye with no extra pass or geometry. Splats have no triangle to interpolate
-//! over: a splat on a fissure vertex is drawn in the line colour. Dark lines on the opaque and
-//! translucent looks; light lines on the see-through look (an additive display shows dark as
-//! nothing).
+//! **Lobes colour mode**: every lung vertex also carries its signed distances from the oblique and
+//! horizontal fissure planes (normalised lung coordinates over the rest mesh's bounding box, the
+//! planes its lobe codes were classified by: `lung_model::mesh::lobes`). They are affine in the
+//! rest position, so interpolated across a triangle they are exact: the fragment shader colours by
+//! their signs and draws each fissure where its distance crosses zero, about 2 px wide whatever
+//! the distance (`fwidth`: screen-space derivatives, which lavapipe and every GPU have). The line is
+//! straight across each triangle and continuous across its edges — a smooth curve on the surface,
+//! not the zig-zag along triangle edges that interpolated per-vertex lobe codes gave — drawn in
+//! every look and eye with no extra pass or geometry. Splats have no triangle to interpolate over:
+//! a splat on a fissure vertex (a triangle of it spans two lobes) is drawn in the line colour.
+//! Dark lines on the opaque and translucent looks; light lines on the see-through look (an
+//! additive display shows dark as nothing).
 
 use lung_model::scene::{ColorMode, DrawMode, Look};
 
@@ -82,34 +84,74 @@ impl Material {
     }
 }
 
-/// Per-vertex surface attribute (`Uint8x4`, location 2): material, lobe code (0 = unknown),
-/// fissure flag (1: a triangle of this vertex spans two lobes), one reserved byte.
-pub type SurfaceAttr = [u8; 4];
-
-/// The attribute of a vertex of `material` with lobe code `lobe`, on a fissure or not.
-pub fn surface(material: Material, lobe: u8, fissure: bool) -> SurfaceAttr {
-    [material as u8, lobe, fissure as u8, 0]
+/// Per-vertex surface attribute: `attr` (`Uint8x4`, location 2) is the material, lobe code (0 =
+/// unknown), fissure flag (1: a triangle of this vertex spans two lobes) and one reserved byte;
+/// `fissure_d` (`Snorm16x2`, location 7) the vertex's signed distances from the oblique and
+/// horizontal fissure planes in normalised lung coordinates
+/// (`lung_model::mesh::lobes::Fissures::signed`, each within ±1), 0 without lobes.
+#[repr(C)]
+#[derive(Debug, Clone, Copy, PartialEq, Eq, bytemuck::Pod, bytemuck::Zeroable)]
+pub struct SurfaceAttr {
+    /// Material, lobe code, fissure flag, reserved.
+    pub attr: [u8; 4],
+    /// Signed fissure distances as snorm16.
+    pub fissure_d: [i16; 2],
 }
 
-/// The surface attributes of one lung of `len` vertices in slot `slot`: with `lobes` (one code
-/// per vertex: [`crate::RenderLung::lobe_codes`]), each vertex's code and whether a triangle of it
-/// spans two lobes; without, code 0.
+/// The attribute of a vertex of `material` with lobe code `lobe`, on a fissure or not (no fissure
+/// distances).
+pub fn surface(material: Material, lobe: u8, fissure: bool) -> SurfaceAttr {
+    SurfaceAttr {
+        attr: [material as u8, lobe, fissure as u8, 0],
+        fissure_d: [0; 2],
+    }
+}
+
+/// The surface attributes of one lung of rest `positions` in slot `slot`: with `lobes` (one code
+/// per vertex: [`crate::RenderLung::lobe_codes`]), each vertex's code, whether a triangle of it
+/// spans two lobes, and its signed distances from the fissure planes over the rest mesh's bounding
+/// box (the planes the codes were classified by: `lung_model::mesh::lobes::classify`); without,
+/// code 0.
 pub fn lung_surface(
     slot: usize,
-    len: usize,
+    positions: &[[f32; 3]],
     triangles: &[[u32; 3]],
     lobes: Option<&[u8]>,
 ) -> Vec<SurfaceAttr> {
+    use lung_model::mesh::{lobes as lb, Aabb, Side};
     let material = Material::lung(slot);
     let Some(codes) = lobes else {
-        return vec![surface(material, 0, false); len];
+        return vec![surface(material, 0, false); positions.len()];
     };
-    let mut out: Vec<SurfaceAttr> = codes.iter().map(|&c| surface(material, c, false)).collect();
+    let side = if slot == 1 { Side::Left } else { Side::Right };
+    let fissures = lb::Fissures::adult(side);
+    let bb = positions.iter().fold(
+        Aabb {
+            min: [f32::INFINITY; 3],
+            max: [f32::NEG_INFINITY; 3],
+        },
+        |b, p| Aabb {
+            min: [0, 1, 2].map(|a| b.min[a].min(p[a])),
+            max: [0, 1, 2].map(|a| b.max[a].max(p[a])),
+        },
+    );
+    let snorm = |d: f64| (d.clamp(-1.0, 1.0) * 32767.0).round() as i16;
+    let mut out: Vec<SurfaceAttr> = codes
+        .iter()
+        .zip(positions)
+        .map(|(&c, p)| {
+            let d = fissures.signed(lb::normalise(side, &bb, p.map(|v| v as f64)));
+            SurfaceAttr {
+                fissure_d: d.map(snorm),
+                ..surface(material, c, false)
+            }
+        })
+        .collect();
     for t in triangles {
         let [a, b, c] = t.map(|i| i as usize);
         if codes[a] != codes[b] || codes[b] != codes[c] {
             for i in [a, b, c] {
-                out[i][2] = 1;
+                out[i].attr[2] = 1;
             }
         }
     }
@@ -221,33 +263,43 @@ impl DrawPipelines {
             count: samples,
             ..Default::default()
         };
-        let attrs = [
-            [wgpu::VertexAttribute {
+        let attrs: [&[wgpu::VertexAttribute]; 3] = [
+            &[wgpu::VertexAttribute {
                 format: wgpu::VertexFormat::Float32x4,
                 offset: 0,
                 shader_location: 0,
             }],
-            [wgpu::VertexAttribute {
+            &[wgpu::VertexAttribute {
                 format: wgpu::VertexFormat::Float32x4,
                 offset: 0,
                 shader_location: 1,
             }],
-            [wgpu::VertexAttribute {
-                format: wgpu::VertexFormat::Uint8x4,
-                offset: 0,
-                shader_location: 2,
-            }],
+            &[
+                wgpu::VertexAttribute {
+                    format: wgpu::VertexFormat::Uint8x4,
+                    offset: 0,
+                    shader_location: 2,
+                },
+                wgpu::VertexAttribute {
+                    format: wgpu::VertexFormat::Snorm16x2,
+                    offset: 4,
+                    shader_location: 7,
+                },
+            ],
         ];
         // Position, normal (w: the colour field), surface attribute: per vertex for triangles,
         // per instance for splats.
         let buffers = |step_mode| {
-            [16u64, 16, 4].iter().zip(&attrs).map(move |(&stride, a)| {
-                Some(wgpu::VertexBufferLayout {
-                    array_stride: stride,
-                    step_mode,
-                    attributes: a,
+            [16u64, 16, std::mem::size_of::<SurfaceAttr>() as u64]
+                .iter()
+                .zip(&attrs)
+                .map(move |(&stride, a)| {
+                    Some(wgpu::VertexBufferLayout {
+                        array_stride: stride,
+                        step_mode,
+                        attributes: a,
+                    })
                 })
-            })
         };
         let per_vertex: Vec<_> = buffers(wgpu::VertexStepMode::Vertex).collect();
         let per_instance: Vec<_> = buffers(wgpu::VertexStepMode::Instance).collect();
@@ -486,4 +538,45 @@ fn composite(device: &wgpu::Device, samples: u32) -> (wgpu::RenderPipeline, wgpu
         cache: None,
     });
     (pipeline, bgl)
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use lung_model::mesh::{generate, lobes, Side};
+
+    /// The fissure distances' signs give every vertex the lobe its code says (so the shader's
+    /// colour by sign is the lobe data's), and they are exact snorm16 values of the planes.
+    #[test]
+    fn fissure_distances_agree_with_the_lobe_codes() {
+        for (slot, side) in [(0, Side::Right), (1, Side::Left)] {
+            let mesh = generate::lung(side, 2_000).unwrap();
+            let codes = lobes::classify(side, &mesh);
+            let attrs = lung_surface(slot, &mesh.positions, &mesh.triangles, Some(&codes));
+            let mut crossing = 0;
+            for (a, &code) in attrs.iter().zip(&codes) {
+                assert_eq!(a.attr[1], code);
+                let [o, h] = a.fissure_d;
+                let lobe = match (side, o > 0) {
+                    (Side::Left, true) => lobes::Lobe::LeftLower,
+                    (Side::Left, false) => lobes::Lobe::LeftUpper,
+                    (Side::Right, true) => lobes::Lobe::RightLower,
+                    (Side::Right, false) if h > 0 => lobes::Lobe::RightMiddle,
+                    (Side::Right, false) => lobes::Lobe::RightUpper,
+                };
+                assert_eq!(lobe.code(), code, "{side:?} {:?}", a.fissure_d);
+                if side == Side::Left {
+                    assert_eq!(h, 0, "no horizontal fissure on the left");
+                }
+                crossing += usize::from(a.attr[2] == 1);
+            }
+            assert!(crossing > 0, "{side:?}: some triangles span two lobes");
+        }
+        // Without lobe codes: code 0, no distances.
+        let mesh = generate::lung(Side::Left, 200).unwrap();
+        let attrs = lung_surface(1, &mesh.positions, &mesh.triangles, None);
+        assert!(attrs
+            .iter()
+            .all(|a| *a == surface(Material::LeftLung, 0, false)));
+    }
 }

@@ -154,16 +154,25 @@ impl Fissures {
         }
     }
 
-    /// The lobe of a point at normalised coordinates `n = [x̂, ŷ, ẑ]`.
-    pub fn lobe_at(&self, side: Side, n: [f64; 3]) -> Lobe {
+    /// Signed distances in `ẑ` of normalised point `n = [x̂, ŷ, ẑ]` from the oblique fissure
+    /// (positive: in the lower lobe) and the horizontal one (positive: below it; 0 without one).
+    /// Each is affine in the point, so interpolated linearly across a triangle it is exact: its zero
+    /// is where the plane cuts the triangle (the renderer draws fissures there).
+    pub fn signed(&self, n: [f64; 3]) -> [f64; 2] {
         let [_, y, z] = n;
         let oblique = self.oblique_posterior + (self.oblique_anterior - self.oblique_posterior) * y;
-        match (side, z > oblique) {
+        [z - oblique, self.horizontal.map_or(0.0, |h| z - h)]
+    }
+
+    /// The lobe of a point at normalised coordinates `n = [x̂, ŷ, ẑ]`.
+    pub fn lobe_at(&self, side: Side, n: [f64; 3]) -> Lobe {
+        let [oblique, horizontal] = self.signed(n);
+        match (side, oblique > 0.0) {
             (Side::Right, true) => Lobe::RightLower,
             (Side::Left, true) => Lobe::LeftLower,
             (Side::Left, false) => Lobe::LeftUpper,
             (Side::Right, false) => match self.horizontal {
-                Some(h) if z > h => Lobe::RightMiddle,
+                Some(_) if horizontal > 0.0 => Lobe::RightMiddle,
                 _ => Lobe::RightUpper,
             },
         }
