@@ -1542,7 +1542,7 @@ mod tests {
                     }
                     assert_eq!(e.base_offset, -body.base_offset, "{what}: exact mirror");
 
-                    let ras = reflected(&lung, |p| lung_model::frame::ras_to_body_f32(p));
+                    let ras = reflected(&lung, lung_model::frame::ras_to_body_f32);
                     let e = infer_orientation(&ras);
                     assert!(
                         !e.anterior_posterior_swapped && !e.upside_down,
