@@ -24,6 +24,9 @@ pub struct BakeArgs {
     /// Keep connected shell N (1 = the largest) of a file holding several.
     #[arg(long, value_name = "N")]
     pub component: Option<usize>,
+    /// Frame of the mesh file's coordinates.
+    #[command(flatten)]
+    pub frame: crate::mesh_cmd::FrameArgs,
     /// Input size limit and special files.
     #[command(flatten)]
     pub input: crate::input_args::InputArgs,
@@ -104,6 +107,8 @@ pub struct BakeSummary {
     pub peak_rss_mib: f64,
     /// The warning when `--lung` disagrees with the geometry.
     pub side_warning: Option<String>,
+    /// The warning when the mesh's anterior/posterior or superior/inferior look flipped.
+    pub frame_warning: Option<String>,
     /// Spherical-harmonic bands stored (0: none).
     pub sh_bands: u32,
     /// Least-squares scale of eq. 7.7 against eq. 7.1.
@@ -212,10 +217,11 @@ pub fn bake(args: &BakeArgs) -> anyhow::Result<BakeSummary> {
         }
         settings.sh_bands = b;
     }
-    let (imported, side_warning) = crate::mesh_cmd::import_lung(
+    let (imported, side_warning, frame_warning) = crate::mesh_cmd::import_lung(
         &args.mesh,
         &args.units,
         args.component,
+        &args.frame,
         &args.input,
         Some(side),
     )?;
@@ -260,6 +266,7 @@ pub fn bake(args: &BakeArgs) -> anyhow::Result<BakeSummary> {
         seconds: start.elapsed().as_secs_f64(),
         peak_rss_mib: peak_rss_mib(),
         side_warning,
+        frame_warning,
         sh_bands: sh.map_or(0, |s| s.bands),
         alpha: sh.map(|s| s.alpha),
         sh_rms_percent: sh.map(|s| s.rms_percent),

@@ -75,6 +75,22 @@ pub fn run(args: &GenerateArgs) -> anyhow::Result<MeshSummary> {
     })
 }
 
+/// `--frame` of a patient mesh file.
+#[derive(Debug, Clone, clap::Args)]
+pub struct FrameArgs {
+    /// Coordinate frame of the mesh file (all in --units). "body" (the default when not given):
+    /// lungdyn's own, +X patient left, +Y anterior, +Z superior — what `lungdyn mesh generate` and
+    /// `mesh check --out` write. "lps": DICOM/ITK patient coordinates, +X left, +Y POSTERIOR, +Z
+    /// superior — what ITK-SNAP, most DICOM segmentation/RT-structure converters and 3D Slicer's
+    /// model export (default since Slicer 4.11) write. "ras": +X RIGHT, +Y anterior, +Z superior —
+    /// 3D Slicer's internal frame, NIfTI world coordinates, FreeSurfer. An LPS mesh read as body has
+    /// anterior and posterior swapped; the geometry is checked for that (the base's lowest point is
+    /// posterior on a real lung; the apex is superior) and, when the frame was not given and the
+    /// evidence is strong, the mesh is refused with the fix; with --frame given it is a warning.
+    #[arg(long, value_parser = ["body", "lps", "ras"])]
+    pub frame: Option<String>,
+}
+
 /// Options of `lungdyn mesh check`.
 #[derive(Debug, Clone, clap::Args)]
 pub struct CheckArgs {
@@ -92,7 +108,10 @@ pub struct CheckArgs {
     /// file of more than one shell is refused.
     #[arg(long, value_name = "N")]
     pub component: Option<usize>,
-    /// Write the welded, repaired mesh (in mm) as .obj or .ply.
+    /// Frame of the file's coordinates.
+    #[command(flatten)]
+    pub frame: FrameArgs,
+    /// Write the welded, repaired mesh (in mm, body frame) as .obj or .ply.
     #[arg(long)]
     pub out: Option<PathBuf>,
     /// Input size limit and special files.
@@ -103,18 +122,27 @@ pub struct CheckArgs {
     pub json: bool,
 }
 
-/// Import a single-lung surface with the common options (`--units`, `--component`, input limits),
-/// and compare the geometry's side with `lung` when given: returns the import and a warning when
-/// they disagree (also printed on stderr).
+/// Import a single-lung surface with the common options (`--units`, `--component`, `--frame`,
+/// input limits), and compare the geometry's side with `lung` when given: returns the import, a
+/// warning when they disagree, and a warning when anterior/posterior or superior/inferior look
+/// flipped (both also printed on stderr). Refuses a mesh whose frame was not stated and whose
+/// geometry strongly says it is flipped (`lung_bake::surface_checks` module doc, *Frame*).
 pub fn import_lung(
     mesh: &std::path::Path,
     units: &str,
     component: Option<usize>,
+    frame: &FrameArgs,
     input: &crate::input_args::InputArgs,
     lung: Option<Side>,
-) -> anyhow::Result<(lung_bake::import::Imported, Option<String>)> {
-    use lung_bake::import::{ImportOptions, Shells};
+) -> anyhow::Result<(lung_bake::import::Imported, Option<String>, Option<String>)> {
+    use lung_bake::import::{ImportOptions, MeshFrame, Shells};
     let units: lung_bake::import::Units = units.parse().map_err(anyhow::Error::msg)?;
+    let stated: Option<MeshFrame> = frame
+        .frame
+        .as_deref()
+        .map(str::parse)
+        .transpose()
+        .map_err(anyhow::Error::msg)?;
     let imported = lung_bake::import::import_with(
         mesh,
         &ImportOptions {
@@ -122,8 +150,27 @@ pub fn import_lung(
             limits: input.limits(lung_model::input::ReadLimits::MESH),
             shells: component.map_or(Shells::One, Shells::Pick),
             one_lung: true,
+            frame: stated.unwrap_or_default(),
         },
     )?;
+    let frame_warning = match &imported.orientation {
+        Some(o) if o.anterior_posterior_swapped || o.upside_down => {
+            let name = stated.unwrap_or_default().name();
+            if stated.is_none() && o.strong {
+                anyhow::bail!(
+                    "{}: read in the body frame (no --frame given), {}. State the file's frame: \
+                     --frame lps for a DICOM/ITK export, --frame ras for 3D Slicer/NIfTI \
+                     coordinates, or --frame body to keep it as it is (then this is only a warning)",
+                    mesh.display(),
+                    o.reason
+                );
+            }
+            let w = format!("{}: read with --frame {name}, {}", mesh.display(), o.reason);
+            eprintln!("lungdyn: warning: {w}");
+            Some(w)
+        }
+        _ => None,
+    };
     let evidence = imported.side.as_ref();
     let warning = match (lung, evidence.and_then(|e| e.side)) {
         (Some(given), Some(seen)) if given != seen => {
@@ -142,7 +189,7 @@ pub fn import_lung(
         }
         _ => None,
     };
-    Ok((imported, warning))
+    Ok((imported, warning, frame_warning))
 }
 
 /// What `mesh check` found.
@@ -170,6 +217,12 @@ pub struct CheckSummary {
     pub geometry_side_reason: String,
     /// The warning when `--lung` disagrees with the geometry.
     pub side_warning: Option<String>,
+    /// The frame the coordinates were read in ("body", "lps", "ras"; the mesh is reported in body).
+    pub frame: String,
+    /// What the geometry says about anterior/posterior and superior/inferior.
+    pub orientation_reason: String,
+    /// The warning when anterior/posterior or superior/inferior look flipped.
+    pub frame_warning: Option<String>,
     /// Vertices and surface area per lobe, from the fissure planes in normalised lung coordinates
     /// (`lung_model::mesh::lobes`) for `--lung`, else the side the geometry shows; empty when
     /// neither is known.
@@ -187,8 +240,14 @@ pub fn check_mesh(args: &CheckArgs) -> anyhow::Result<CheckSummary> {
         .map(str::parse::<Side>)
         .transpose()
         .map_err(anyhow::Error::msg)?;
-    let (imported, side_warning) =
-        import_lung(&args.mesh, &args.units, args.component, &args.input, lung)?;
+    let (imported, side_warning, frame_warning) = import_lung(
+        &args.mesh,
+        &args.units,
+        args.component,
+        &args.frame,
+        &args.input,
+        lung,
+    )?;
     if let Some(out) = &args.out {
         io::write_mesh(&imported.mesh, out)?;
     }
@@ -216,6 +275,13 @@ pub fn check_mesh(args: &CheckArgs) -> anyhow::Result<CheckSummary> {
             .map(|e| e.reason.clone())
             .unwrap_or_default(),
         side_warning,
+        frame: args.frame.frame.clone().unwrap_or_else(|| "body".into()),
+        orientation_reason: imported
+            .orientation
+            .as_ref()
+            .map(|o| o.reason.clone())
+            .unwrap_or_default(),
+        frame_warning,
         lobes,
     })
 }

@@ -255,6 +255,7 @@ pub fn read_points(
                 limits: input.limits(lung_model::input::ReadLimits::MESH),
                 shells: lung_bake::import::Shells::All,
                 one_lung: false,
+                frame: lung_bake::import::MeshFrame::Body,
             },
         )?;
         if m.repairs.welded_vertices > 0 || m.repairs.unused_vertices > 0 {
@@ -497,6 +498,7 @@ fn import_scaled(
             limits: input.limits(lung_model::input::ReadLimits::MESH),
             shells: lung_bake::import::Shells::All,
             one_lung: false,
+            frame: lung_bake::import::MeshFrame::Body,
         },
     )?
     .mesh;

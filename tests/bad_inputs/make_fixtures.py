@@ -222,6 +222,11 @@ def make_meshes(tmp):
     # the other lung: the generated right lung, and the left mirrored (x -> -x, winding flipped)
     out("lung_right_as_left.obj", obj(rv, rf))
     out("lung_left_mirrored.obj", obj([(-p[0], p[1], p[2]) for p in v], [(t[0], t[2], t[1]) for t in f]))
+    # the anatomical left lung (its base is lowest posteriorly) written in DICOM LPS (y -> -y,
+    # winding flipped): read as the body frame, anterior and posterior are swapped
+    run("mesh", "generate", "--lung", "left", "--vertices", "2000", "--out", os.path.join(tmp, "a.obj"))
+    av, af = read_obj(os.path.join(tmp, "a.obj"))
+    out("lung_left_lps.obj", obj([(p[0], -p[1], p[2]) for p in av], [(t[0], t[2], t[1]) for t in af]))
     return v, f, rv, rf
 
 

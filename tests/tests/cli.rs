@@ -338,3 +338,94 @@ fn doctor_json_lists_every_check_with_a_status_and_a_fix() {
         "{stderr}"
     );
 }
+
+/// A copy of an OBJ lung with every vertex mapped by `f` (a reflection) and the winding flipped
+/// so it stays outward: what a tool writing that frame would have written.
+fn reflected_obj(text: &str, f: impl Fn(f64, f64, f64) -> (f64, f64, f64)) -> String {
+    let mut out = String::new();
+    for line in text.lines() {
+        let w: Vec<&str> = line.split_whitespace().collect();
+        match w.first() {
+            Some(&"v") => {
+                let c: Vec<f64> = w[1..4].iter().map(|x| x.parse().unwrap()).collect();
+                let (x, y, z) = f(c[0], c[1], c[2]);
+                out += &format!("v {x} {y} {z}\n");
+            }
+            Some(&"f") => out += &format!("f {} {} {}\n", w[1], w[3], w[2]),
+            _ => {}
+        }
+    }
+    out
+}
+
+/// `mesh check --frame lps|ras` on an LPS (Y negated) or RAS (X negated) copy of a generated lung
+/// gives the body-frame original's volume, size and side, without a frame warning; the LPS copy
+/// read without `--frame` is refused naming `--frame lps` (anterior and posterior would swap), the
+/// RAS copy read as body is seen as the other lung.
+#[test]
+fn mesh_check_frame_lps_and_ras_give_the_body_frame_lung() {
+    let dir = std::env::temp_dir().join(format!("lungdyn-cli-frame-{}", std::process::id()));
+    std::fs::create_dir_all(&dir).unwrap();
+    for (side, other) in [("left", "right"), ("right", "left")] {
+        let body = dir.join(format!("{side}.obj"));
+        let (ok, _, err) = lungdyn(&[
+            "mesh",
+            "generate",
+            "--lung",
+            side,
+            "--vertices",
+            "2000",
+            "--out",
+            body.to_str().unwrap(),
+        ]);
+        assert!(ok, "{err}");
+        let check = |path: &std::path::Path, extra: &[&str]| {
+            let mut args = vec!["mesh", "check", "--mesh", path.to_str().unwrap(), "--json"];
+            args.extend_from_slice(extra);
+            let (ok, stdout, err) = lungdyn(&args);
+            (ok, stdout, err)
+        };
+        let (ok, stdout, err) = check(&body, &[]);
+        assert!(ok && !err.contains("warning"), "{side} body: {err}");
+        let original: serde_json::Value = serde_json::from_str(stdout.trim()).unwrap();
+        assert_eq!(original["geometry_side"], side, "{side}");
+        assert!(original["frame_warning"].is_null(), "{side}: {original}");
+        assert_eq!(original["frame"], "body");
+
+        let text = std::fs::read_to_string(&body).unwrap();
+        let lps = dir.join(format!("{side}_lps.obj"));
+        std::fs::write(&lps, reflected_obj(&text, |x, y, z| (x, -y, z))).unwrap();
+        let ras = dir.join(format!("{side}_ras.obj"));
+        std::fs::write(&ras, reflected_obj(&text, |x, y, z| (-x, y, z))).unwrap();
+        for (copy, frame) in [(&lps, "lps"), (&ras, "ras")] {
+            let (ok, stdout, err) = check(copy, &["--frame", frame, "--lung", side]);
+            assert!(ok && !err.contains("warning"), "{side} {frame}: {err}");
+            let v: serde_json::Value = serde_json::from_str(stdout.trim()).unwrap();
+            let what = format!("{side} --frame {frame}");
+            let vol = v["volume_ml"].as_f64().unwrap();
+            let vol0 = original["volume_ml"].as_f64().unwrap();
+            assert!((vol - vol0).abs() < 1e-6 * vol0, "{what}: {vol} vs {vol0}");
+            assert_eq!(v["size_mm"], original["size_mm"], "{what}");
+            assert_eq!(v["geometry_side"], side, "{what}");
+            assert_eq!(
+                v["repairs"], original["repairs"],
+                "{what}: not flipped inside out"
+            );
+            assert!(v["frame_warning"].is_null(), "{what}: {v}");
+            assert_eq!(v["frame"], frame);
+        }
+        // Without --frame: the LPS copy is refused with the fix ...
+        let (ok, _, err) = check(&lps, &[]);
+        assert!(!ok, "{side}: an LPS copy read as body must be refused");
+        assert!(
+            err.contains("--frame lps") && err.contains("POSTERIOR"),
+            "{side}: {err}"
+        );
+        // ... and the RAS copy looks like the other lung.
+        let (ok, stdout, _) = check(&ras, &[]);
+        assert!(ok);
+        let v: serde_json::Value = serde_json::from_str(stdout.trim()).unwrap();
+        assert_eq!(v["geometry_side"], other, "{side} RAS read as body");
+    }
+    std::fs::remove_dir_all(dir).ok();
+}

@@ -47,6 +47,51 @@ impl std::str::FromStr for Units {
     }
 }
 
+/// The coordinate frame of a mesh file's coordinates (all in the file's length unit).
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Default)]
+pub enum MeshFrame {
+    /// lungdyn's body frame: +X patient left, +Y anterior, +Z superior.
+    #[default]
+    Body,
+    /// DICOM/ITK patient coordinates: +X left, +Y **posterior**, +Z superior (ITK-SNAP, most
+    /// DICOM-RT / segmentation exports, 3D Slicer's default model export since 4.11).
+    Lps,
+    /// 3D Slicer's internal frame, NIfTI: +X **right**, +Y anterior, +Z superior.
+    Ras,
+}
+
+impl MeshFrame {
+    /// The body-frame position of a vertex given in this frame (`lung_model::frame`).
+    pub fn to_body(self, p: [f32; 3]) -> [f32; 3] {
+        match self {
+            MeshFrame::Body => p,
+            MeshFrame::Lps => lung_model::frame::lps_to_body_f32(p),
+            MeshFrame::Ras => lung_model::frame::ras_to_body_f32(p),
+        }
+    }
+
+    /// The name on the command line.
+    pub fn name(self) -> &'static str {
+        match self {
+            MeshFrame::Body => "body",
+            MeshFrame::Lps => "lps",
+            MeshFrame::Ras => "ras",
+        }
+    }
+}
+
+impl std::str::FromStr for MeshFrame {
+    type Err = String;
+    fn from_str(s: &str) -> Result<Self, String> {
+        match s {
+            "body" => Ok(MeshFrame::Body),
+            "lps" => Ok(MeshFrame::Lps),
+            "ras" => Ok(MeshFrame::Ras),
+            other => Err(format!("unknown frame {other:?}: use body, lps or ras")),
+        }
+    }
+}
+
 /// What was repaired while importing.
 #[derive(Debug, Clone, Default, PartialEq, Eq, serde::Serialize)]
 pub struct Repairs {
@@ -78,6 +123,9 @@ pub struct Imported {
     pub self_intersections: usize,
     /// Which lung the geometry looks like (the medial surface is concave); set by [`import_with`].
     pub side: Option<crate::surface_checks::SideEvidence>,
+    /// Whether anterior/posterior or superior/inferior look flipped (in the body frame, after the
+    /// stated frame's conversion); set by [`import_with`].
+    pub orientation: Option<crate::surface_checks::OrientationEvidence>,
 }
 
 /// Which connected shells of a file to keep.
@@ -104,6 +152,8 @@ pub struct ImportOptions {
     /// Check the result is the size of one lung (a single-lung surface: mesh check, bake); else only
     /// that its size is that of lungs at all (point sets of both lungs).
     pub one_lung: bool,
+    /// Frame of the file's coordinates, converted to the body frame on reading.
+    pub frame: MeshFrame,
 }
 
 impl ImportOptions {
@@ -114,6 +164,7 @@ impl ImportOptions {
             limits: lung_model::input::ReadLimits::MESH,
             shells: Shells::One,
             one_lung: true,
+            frame: MeshFrame::Body,
         }
     }
 }
@@ -225,11 +276,21 @@ pub fn import_with(path: &Path, opts: &ImportOptions) -> Result<Imported, Import
         format,
         message,
     };
-    let (positions, triangles, unused_in_file) = match format {
+    let (mut positions, mut triangles, unused_in_file) = match format {
         "OBJ" => read_obj(&bytes).map_err(parse)?,
         "PLY" => read_ply(&bytes).map(|(p, t)| (p, t, 0)).map_err(parse)?,
         _ => read_stl(&bytes).map(|(p, t)| (p, t, 0)).map_err(parse)?,
     };
+    if opts.frame != MeshFrame::Body {
+        for p in &mut positions {
+            *p = opts.frame.to_body(*p);
+        }
+        // LPS and RAS each mirror one axis of the body frame: keep the winding outward (so an
+        // outward file is not reported as repaired inside out).
+        for t in &mut triangles {
+            t.swap(1, 2);
+        }
+    }
     let mut imported = repair(positions, triangles, units).map_err(|source| ImportError::Mesh {
         path: path.to_path_buf(),
         source,
@@ -290,6 +351,7 @@ pub fn import_with(path: &Path, opts: &ImportOptions) -> Result<Imported, Import
         }
     })?;
     imported.side = Some(crate::surface_checks::infer_side(&imported.mesh));
+    imported.orientation = Some(crate::surface_checks::infer_orientation(&imported.mesh));
     Ok(imported)
 }
 
@@ -680,6 +742,7 @@ pub fn repair(
         shells: 1,
         self_intersections: 0,
         side: None,
+        orientation: None,
     })
 }
 

@@ -23,17 +23,23 @@
 //!   direction is mirrored) without any error. The side is read off the anatomy: see *Lung side* below.
 //!   Its answer is evidence with a confidence, never a hard fact.
 //!
+//! * **[`infer_orientation`]** — an LPS mesh read as the body frame has anterior and posterior
+//!   swapped; a mesh with Z flipped is upside down. Both pass every other check. See *Frame* below.
+//!
 //! [`SurfaceProblem`] holds the refusals the importer raises from a [`SurfaceReport`]
 //! ([`SurfaceReport::problems`]).
 //!
 //! ## Assumptions
 //!
-//! * Coordinates are in millimetres in the **body frame**: +X patient left, +Y anterior, +Z superior
-//!   (DICOM LPS has +X towards the patient's left too, so LPS-derived meshes qualify; RAS has +X
-//!   towards the patient's *right*). A mirrored frame (RAS, or any single flipped axis that includes
-//!   X) mirrors the answer of [`infer_side`]: a left lung in RAS is reported as a right lung. That is
-//!   the right refusal anyway — the kernel would be baked in the wrong frame — and
-//!   [`SurfaceProblem::SideMismatch`] says so.
+//! * Coordinates are in millimetres in the **body frame**: +X patient left, +Y anterior, +Z superior.
+//!   DICOM/ITK **LPS** is *not* the body frame: its +X is the patient's left too, but its +Y is
+//!   **posterior**, so an LPS mesh read as body has anterior and posterior swapped (the direction
+//!   model would drive the back of the lung forward); **RAS** (3D Slicer) has +X towards the
+//!   patient's *right*. The importer converts a stated frame (`--frame lps|ras`,
+//!   [`crate::import::MeshFrame`]) with `lung_model::frame`; these checks then see the body frame. A
+//!   mirrored X (RAS read as body) mirrors the answer of [`infer_side`]: a left lung in RAS is
+//!   reported as a right lung, and [`SurfaceProblem::SideMismatch`] says so; a mirrored Y (LPS read
+//!   as body) or Z is what [`infer_orientation`] looks for (see *Frame* below).
 //! * Triangles are wound counter-clockwise seen from outside (what [`crate::import`] guarantees after
 //!   its repairs); [`infer_side`] re-orients by the sign of the enclosed volume if they are not.
 //! * All tolerances (degenerate triangles; the intersection test has none) are **relative to the
@@ -56,6 +62,34 @@
 //! the generator's 300k/400k-vertex lungs (see that module's doc). Triangles whose corners are
 //! exactly collinear have no plane and are skipped here; [`degenerate_triangles`] refuses them
 //! (and near-collinear ones) on their own.
+//!
+//! ## Frame
+//!
+//! Two facts of every real lung, read in the body frame, say whether Y and Z point as stated:
+//!
+//! * **Anterior/posterior.** The lowest part of the base is the *posterior* costophrenic recess
+//!   (the diaphragm's dome slopes down to the back), so the base's lowest slab
+//!   ([`ORIENTATION_BASE_SLAB_REL`] of the height) lies posterior of the volume centroid:
+//!   `base_offset = (ȳ_slab − ȳ_centroid) / Y extent < 0`. The generated anatomical lungs give
+//!   −0.38 to −0.45 (both sides, 2k–100k vertices); their LPS copies exactly the opposite. Above
+//!   [`AP_SWAP_WARN`] (+0.10) the mesh is reported as anterior/posterior swapped; above
+//!   [`AP_SWAP_REFUSE`] (+0.20) the finding is strong. A shape without a posterior recess (the
+//!   smooth teardrop: ±0.002) gives no evidence, and the report says so instead of passing it as
+//!   confirmed.
+//! * **Superior/inferior.** A lung narrows towards the apex: the X·Y spread of the top
+//!   [`ORIENTATION_TAPER_SLAB_REL`] slab is much smaller than the bottom one's,
+//!   `taper = (top − bottom)/(top + bottom)`: −0.43 to −0.46 (anatomical), −0.65 (teardrop). Above
+//!   [`UPSIDE_DOWN_WARN`] the mesh is reported upside down, above [`UPSIDE_DOWN_REFUSE`] strongly.
+//!   When it looks upside down, the base slab for the AP test is taken at the top (the findings
+//!   stand independently).
+//!
+//! **Warn or refuse.** The thresholds sit at a quarter to a half of the healthy lungs' values, but
+//! a real segmentation can defeat either statistic: a base cropped by the scan's field of view, a
+//! large effusion or an elevated hemidiaphragm, a collapsed lobe. So the import never refuses on
+//! this evidence alone when the user **stated** the frame (`--frame body` given explicitly): it
+//! warns. When the frame was *not* stated (the default, body, assumed) and a finding is strong, the
+//! importer refuses and names the fix (`--frame lps`, or `--frame body` to keep the mesh as it is):
+//! the common case is an LPS export read silently as body, and stating the frame costs one flag.
 //!
 //! ## Lung side
 //!
@@ -747,6 +781,185 @@ pub fn infer_side(mesh: &TriMesh) -> SideEvidence {
 }
 
 // ---------------------------------------------------------------------------------------------------
+// Frame (anterior/posterior, superior/inferior)
+// ---------------------------------------------------------------------------------------------------
+
+/// Height of the lowest slab of the surface used by [`infer_orientation`], as a fraction of the
+/// Z extent.
+pub const ORIENTATION_BASE_SLAB_REL: f64 = 0.05;
+
+/// [`OrientationEvidence::base_offset`] above which the base looks anterior (the mesh looks
+/// anterior/posterior swapped): a warning.
+pub const AP_SWAP_WARN: f64 = 0.10;
+
+/// [`OrientationEvidence::base_offset`] above which the swap is taken as certain enough to refuse
+/// a mesh whose frame was not stated.
+pub const AP_SWAP_REFUSE: f64 = 0.20;
+
+/// Height of the end slabs compared by [`OrientationEvidence::taper`], as a fraction of the Z extent.
+pub const ORIENTATION_TAPER_SLAB_REL: f64 = 0.15;
+
+/// [`OrientationEvidence::taper`] above which the mesh looks upside down: a warning.
+pub const UPSIDE_DOWN_WARN: f64 = 0.10;
+
+/// [`OrientationEvidence::taper`] above which upside down is certain enough to refuse a mesh
+/// whose frame was not stated.
+pub const UPSIDE_DOWN_REFUSE: f64 = 0.25;
+
+/// What the geometry says about a mesh's anterior–posterior and superior–inferior axes (see the
+/// module doc's *Frame*).
+#[derive(Debug, Clone, PartialEq)]
+pub struct OrientationEvidence {
+    /// (mean Y of the base's end slab − Y of the volume centroid) / Y extent: negative on a lung in
+    /// the body frame (the lowest point is the posterior costophrenic recess).
+    pub base_offset: f64,
+    /// (spread of the top slab − spread of the bottom slab) / their sum, the spread being the X·Y
+    /// bounding-box area of the vertices in the slab: negative on a lung in the body frame (it
+    /// narrows towards the apex).
+    pub taper: f64,
+    /// The base looks anterior: +Y is probably posterior (an LPS mesh read as body).
+    pub anterior_posterior_swapped: bool,
+    /// The volume sits high: +Z is probably inferior.
+    pub upside_down: bool,
+    /// A finding is beyond its refusal threshold.
+    pub strong: bool,
+    /// One line for the user: the findings, the numbers and what to do.
+    pub reason: String,
+}
+
+/// Whether `mesh` (one closed lung surface, mm) looks anterior/posterior swapped or upside down in
+/// the body frame (+Y anterior, +Z superior). Cannot see a lateral (X) mirror: that is
+/// [`infer_side`]'s job. O(triangles).
+pub fn infer_orientation(mesh: &TriMesh) -> OrientationEvidence {
+    let g = Geometry::new(mesh);
+    let mut lo = DVec3::splat(f64::INFINITY);
+    let mut hi = DVec3::splat(f64::NEG_INFINITY);
+    let mut six_v = 0.0;
+    let mut moment = DVec3::ZERO;
+    for t in &mesh.triangles {
+        let Some(c) = g.corners(t) else { continue };
+        for p in c {
+            lo = lo.min(p);
+            hi = hi.max(p);
+        }
+        // Signed tetrahedron (origin, a, b, c): volume ×6 and its centroid ×4.
+        let v6 = c[0].dot(c[1].cross(c[2]));
+        six_v += v6;
+        moment += v6 * (c[0] + c[1] + c[2]);
+    }
+    let extent = hi - lo;
+    let none = |reason: String| OrientationEvidence {
+        base_offset: 0.0,
+        taper: 0.0,
+        anterior_posterior_swapped: false,
+        upside_down: false,
+        strong: false,
+        reason,
+    };
+    if !(six_v.abs() > 0.0) || !six_v.is_finite() || !(extent.y > 0.0) || !(extent.z > 0.0) {
+        return none("the surface encloses no volume: no orientation evidence".into());
+    }
+    let centroid = moment / (4.0 * six_v);
+    // Horizontal spread (bounding-box area in X·Y) of the vertices in the lowest and the highest
+    // slab: the base is the wide end, the apex the narrow one.
+    let spread = |in_slab: &dyn Fn(f64) -> bool| {
+        let (mut l, mut h) = (DVec3::splat(f64::INFINITY), DVec3::splat(f64::NEG_INFINITY));
+        for p in g.p.iter().filter(|p| p.is_finite() && in_slab(p.z)) {
+            l = l.min(*p);
+            h = h.max(*p);
+        }
+        if l.x <= h.x {
+            (h.x - l.x) * (h.y - l.y)
+        } else {
+            0.0
+        }
+    };
+    let taper_slab = ORIENTATION_TAPER_SLAB_REL * extent.z;
+    let bottom = spread(&|z| z <= lo.z + taper_slab);
+    let top = spread(&|z| z >= hi.z - taper_slab);
+    let taper = if top + bottom > 0.0 {
+        (top - bottom) / (top + bottom)
+    } else {
+        0.0
+    };
+    let upside_down = taper > UPSIDE_DOWN_WARN;
+    // Area-weighted mean Y of the triangles wholly in the base's end slab (the lowest one, or the
+    // highest when the mesh looks upside down: the AP finding stands on its own).
+    let base_slab = ORIENTATION_BASE_SLAB_REL * extent.z;
+    let in_base = |z: f64| {
+        if upside_down {
+            z >= hi.z - base_slab
+        } else {
+            z <= lo.z + base_slab
+        }
+    };
+    let (mut area, mut y_area) = (0.0, 0.0);
+    for t in &mesh.triangles {
+        let Some(c) = g.corners(t) else { continue };
+        if c.iter().all(|p| in_base(p.z)) {
+            let a = 0.5 * twice_area_vector(&c).length();
+            area += a;
+            y_area += a * (c[0].y + c[1].y + c[2].y) / 3.0;
+        }
+    }
+    // Coarse meshes without a triangle in the slab: the base's end vertex.
+    let base_y = if area > 0.0 {
+        y_area / area
+    } else {
+        let key = |p: &DVec3| if upside_down { -p.z } else { p.z };
+        g.p.iter()
+            .filter(|p| p.is_finite())
+            .min_by(|a, b| key(a).total_cmp(&key(b)))
+            .map_or(centroid.y, |p| p.y)
+    };
+    let base_offset = (base_y - centroid.y) / extent.y;
+    let anterior_posterior_swapped = base_offset > AP_SWAP_WARN;
+    let strong = (anterior_posterior_swapped && base_offset > AP_SWAP_REFUSE)
+        || (upside_down && taper > UPSIDE_DOWN_REFUSE);
+    let numbers = format!(
+        "base ({:.0} % end slab) {:+.2} of the lung's depth from its centroid along +Y, taper \
+         {:+.2} (top vs bottom {:.0} % slab width; negative = narrower at +Z)",
+        100.0 * ORIENTATION_BASE_SLAB_REL,
+        base_offset,
+        taper,
+        100.0 * ORIENTATION_TAPER_SLAB_REL,
+    );
+    let mut findings = Vec::new();
+    if anterior_posterior_swapped {
+        findings.push(
+            "its lowest part lies towards +Y, but a lung's lowest point is the POSTERIOR \
+             costophrenic recess: +Y looks posterior, not anterior (an LPS mesh, as DICOM \
+             segmentation tools write, read as the body frame? use --frame lps)",
+        );
+    }
+    if upside_down {
+        findings.push(
+            "it is wider at +Z than at −Z, but a lung narrows towards the apex: +Z looks \
+             inferior, not superior (the mesh looks upside down; no --frame turns it: re-export it \
+             in LPS, RAS or the body frame)",
+        );
+    }
+    let reason = if findings.is_empty() && base_offset > -AP_SWAP_WARN {
+        format!(
+            "superior and inferior look as the frame states; no evidence either way on anterior \
+             and posterior (the base is not lowest posteriorly): {numbers}"
+        )
+    } else if findings.is_empty() {
+        format!("anterior, posterior, superior and inferior look as the frame states: {numbers}")
+    } else {
+        format!("{}: {numbers}", findings.join("; and "))
+    };
+    OrientationEvidence {
+        base_offset,
+        taper,
+        anterior_posterior_swapped,
+        upside_down,
+        strong,
+        reason,
+    }
+}
+
+// ---------------------------------------------------------------------------------------------------
 // All of it
 // ---------------------------------------------------------------------------------------------------
 
@@ -1272,6 +1485,89 @@ mod tests {
         // The left lung's deep cardiac impression is the stronger evidence.
         let left = infer_side(&generate::lung(Side::Left, 2000).expect("left"));
         assert!(left.confidence > 0.9, "{left:?}");
+    }
+
+    /// A copy with every vertex mapped by `f` (a reflection), wound outward again.
+    fn reflected(m: &TriMesh, f: impl Fn([f32; 3]) -> [f32; 3]) -> TriMesh {
+        TriMesh {
+            positions: m.positions.iter().map(|&p| f(p)).collect(),
+            triangles: m.triangles.iter().map(|t| [t[0], t[2], t[1]]).collect(),
+        }
+    }
+
+    /// The generated lungs (both shapes, both sides, several sizes) pass without a finding; their
+    /// LPS copies (what a DICOM tool writes; Y negated) are flagged anterior/posterior swapped,
+    /// strongly; upside-down copies are flagged upside down, strongly; their RAS copies (X
+    /// negated) keep AP and SI (the side check sees those: `the_generated_lungs_are_recognised`).
+    #[test]
+    fn the_generated_lungs_orientation_is_recognised_and_lps_copies_are_flagged() {
+        for shape in generate::Shape::ALL {
+            for n in [2_000, 20_000, 100_000] {
+                for side in [Side::Left, Side::Right] {
+                    let what = format!("{shape:?} {side:?} {n}");
+                    let lung = generate::lung_of(shape, side, n).expect("lung");
+                    let body = infer_orientation(&lung);
+                    eprintln!("{what}: body {:+.3} {:+.3}", body.base_offset, body.taper);
+                    assert!(
+                        !body.anterior_posterior_swapped && !body.upside_down,
+                        "{what}: {body:?}"
+                    );
+                    assert!(!body.strong, "{what}");
+                    assert!(body.reason.contains("look as the frame states"), "{what}");
+                    if shape == generate::Shape::Teardrop {
+                        // No posterior costophrenic recess: no AP evidence, and none claimed.
+                        assert!(body.reason.contains("no evidence either way"), "{what}");
+                        assert!(body.base_offset.abs() < AP_SWAP_WARN / 2.0, "{what}");
+                    } else {
+                        assert!(body.base_offset < -1.5 * AP_SWAP_REFUSE, "{what}: {body:?}");
+                    }
+
+                    let lps = reflected(&lung, |p| {
+                        lung_model::frame::body_to_lps(glam::DVec3::new(
+                            p[0] as f64,
+                            p[1] as f64,
+                            p[2] as f64,
+                        ))
+                        .as_vec3()
+                        .to_array()
+                    });
+                    let e = infer_orientation(&lps);
+                    assert!(!e.upside_down, "{what} LPS: {e:?}");
+                    if shape != generate::Shape::Teardrop {
+                        assert!(
+                            e.anterior_posterior_swapped && e.strong,
+                            "{what} LPS: {e:?}"
+                        );
+                        assert!(e.reason.contains("--frame lps"), "{what}: {}", e.reason);
+                    }
+                    assert_eq!(e.base_offset, -body.base_offset, "{what}: exact mirror");
+
+                    let ras = reflected(&lung, lung_model::frame::ras_to_body_f32);
+                    let e = infer_orientation(&ras);
+                    assert!(
+                        !e.anterior_posterior_swapped && !e.upside_down,
+                        "{what} RAS: {e:?}"
+                    );
+
+                    let flipped = reflected(&lung, |p| [p[0], p[1], -p[2]]);
+                    let e = infer_orientation(&flipped);
+                    eprintln!("{what}: upside down {:+.3} {:+.3}", e.base_offset, e.taper);
+                    assert!(e.upside_down && e.strong, "{what} upside down: {e:?}");
+                    assert!(e.reason.contains("upside down"), "{what}");
+                }
+            }
+        }
+        // Nothing to judge: no panic, no finding.
+        let empty = infer_orientation(&TriMesh {
+            positions: vec![],
+            triangles: vec![],
+        });
+        assert!(!empty.anterior_posterior_swapped && !empty.upside_down && !empty.strong);
+        let nan = infer_orientation(&TriMesh {
+            positions: vec![[f32::NAN; 3]; 3],
+            triangles: vec![[0, 1, 2]],
+        });
+        assert!(!nan.strong, "{nan:?}");
     }
 
     /// Vertices and triangles of a small OBJ fixture (`v x y z` and `f i j k` lines only).
