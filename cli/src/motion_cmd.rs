@@ -242,22 +242,7 @@ pub fn read_points(
     input: &crate::input_args::InputArgs,
 ) -> anyhow::Result<Vec<DVec3>> {
     let pts: Vec<DVec3> = if is_mesh(path) {
-        if matches!(frame, Frame::Voxel { .. }) {
-            anyhow::bail!(
-                "{}: a mesh holds coordinates in mm, not voxel indices: use --frame body, lps or ras",
-                path.display()
-            );
-        }
-        let m = lung_bake::import::import_with(
-            path,
-            &lung_bake::import::ImportOptions {
-                units: lung_bake::import::Units::Mm,
-                limits: input.limits(lung_model::input::ReadLimits::MESH),
-                shells: lung_bake::import::Shells::All,
-                one_lung: false,
-                frame: lung_bake::import::MeshFrame::Body,
-            },
-        )?;
+        let m = import_mesh_in(path, frame, input)?;
         if m.repairs.welded_vertices > 0 || m.repairs.unused_vertices > 0 {
             anyhow::bail!(
                 "{}: the mesh needed vertex repairs (welded {}, unused {}), so its vertex order no longer \
@@ -270,7 +255,7 @@ pub fn read_points(
         m.mesh
             .positions
             .iter()
-            .map(|p| frame.to_body(p.map(|v| v as f64)))
+            .map(|p| DVec3::from(p.map(|v| v as f64)))
             .collect()
     } else {
         lung_bake::landmarks::read(
@@ -485,33 +470,37 @@ fn import_scaled(
     frame: &Frame,
     input: &crate::input_args::InputArgs,
 ) -> anyhow::Result<lung_model::mesh::TriMesh> {
-    if matches!(frame, Frame::Voxel { .. }) {
-        anyhow::bail!(
+    Ok(import_mesh_in(path, frame, input)?.mesh)
+}
+
+/// Import a mesh of one or both lungs given in `frame` (mm), converted to the body frame by the
+/// importer (lung_model::frame) before its repairs and checks, wound outwards, as `mesh check
+/// --frame` and `bake --frame` do. Voxel indices are refused: a mesh holds millimetres.
+fn import_mesh_in(
+    path: &Path,
+    frame: &Frame,
+    input: &crate::input_args::InputArgs,
+) -> anyhow::Result<lung_bake::import::Imported> {
+    use lung_bake::import::MeshFrame;
+    let frame = match frame {
+        Frame::Body => MeshFrame::Body,
+        Frame::Lps => MeshFrame::Lps,
+        Frame::Ras => MeshFrame::Ras,
+        Frame::Voxel { .. } => anyhow::bail!(
             "{}: a mesh holds coordinates in mm, not voxel indices: use --frame body, lps or ras",
             path.display()
-        );
-    }
-    let mut m = lung_bake::import::import_with(
+        ),
+    };
+    Ok(lung_bake::import::import_with(
         path,
         &lung_bake::import::ImportOptions {
             units: lung_bake::import::Units::Mm,
             limits: input.limits(lung_model::input::ReadLimits::MESH),
             shells: lung_bake::import::Shells::All,
             one_lung: false,
-            frame: lung_bake::import::MeshFrame::Body,
+            frame,
         },
-    )?
-    .mesh;
-    if *frame != Frame::Body {
-        for p in &mut m.positions {
-            *p = frame.to_body(p.map(|v| v as f64)).as_vec3().to_array();
-        }
-        // LPS and RAS each mirror one axis: keep the surface wound outwards.
-        for t in &mut m.triangles {
-            t.swap(1, 2);
-        }
-    }
-    Ok(m)
+    )?)
 }
 
 fn lung_parts(
