@@ -408,6 +408,8 @@ impl Session {
         check_predict_ms(args.predict_ms)?;
         let instance = Instance::new(&args.process.instance)?;
         let lock = instance.lock("renderer")?;
+        // `run` pinned the whole process already; a caller that opens a session itself (tests) is
+        // pinned here, its main thread only.
         pin_to_core(args.process.cpu, "renderer")?;
         transport::trace::init("renderer");
         let (scene, rig_files) = args.scene_and_rig()?;
@@ -994,6 +996,11 @@ fn check_predict_ms(ms: f64) -> Result<(), RendererError> {
 
 /// Run the renderer until terminated (or `--seconds` elapse): headless, or in a window.
 pub fn run(args: &RendererArgs) -> Result<(), RendererError> {
+    // Pinned before any other thread exists: a thread inherits its creator's affinity, so the stop
+    // handler, the window system's threads and the driver's (lavapipe's rasterisers, a GPU driver's
+    // submission threads) all stay on the renderer's core, off the engine's. Pinned later (as before),
+    // only the main thread was: lavapipe's `llvmpipe-N` threads ran on every core.
+    pin_to_core(args.process.cpu, "renderer")?;
     transport::stop::install()?;
     quiet_mesa();
     check_predict_ms(args.predict_ms)?;

@@ -112,6 +112,130 @@ fn first_allowed_core() -> usize {
     }
 }
 
+/// The cores this process may run on.
+fn allowed_cores() -> Vec<usize> {
+    // SAFETY: as in `first_allowed_core`.
+    unsafe {
+        let mut set: libc::cpu_set_t = std::mem::zeroed();
+        assert_eq!(
+            libc::sched_getaffinity(0, std::mem::size_of::<libc::cpu_set_t>(), &mut set),
+            0
+        );
+        (0..libc::CPU_SETSIZE as usize)
+            .filter(|&c| libc::CPU_ISSET(c, &set))
+            .collect()
+    }
+}
+
+/// Every thread of process `pid`: (name, the kernel's `Cpus_allowed_list`).
+fn thread_affinities(pid: u32) -> Vec<(String, String)> {
+    let Ok(tasks) = std::fs::read_dir(format!("/proc/{pid}/task")) else {
+        return Vec::new();
+    };
+    tasks
+        .flatten()
+        .filter_map(|t| {
+            let name = std::fs::read_to_string(t.path().join("comm")).ok()?;
+            let status = std::fs::read_to_string(t.path().join("status")).ok()?;
+            let list = status
+                .lines()
+                .find_map(|l| l.strip_prefix("Cpus_allowed_list:"))?;
+            Some((name.trim().to_string(), list.trim().to_string()))
+        })
+        .collect()
+}
+
+/// A pinned renderer keeps every one of its threads on its core — the driver's too (lavapipe's
+/// `llvmpipe-N` rasterisers, wgpu's and the window system's): the renderer pins itself before the
+/// GPU opens, and threads inherit their creator's affinity. (Pinned after the GPU opened, only its
+/// main thread was on the core and lavapipe's threads ran on every core, the engine's included.)
+#[test]
+fn a_pinned_renderer_keeps_its_drivers_threads_on_its_core() {
+    if renderer::gpu::Gpu::for_tests().is_none() {
+        return;
+    }
+    let cores = allowed_cores();
+    assert!(
+        cores.len() >= 2,
+        "this test needs two cores to tell a pinned thread from an unpinned one; it may run on {cores:?}"
+    );
+    let (other, mine) = (cores[0], cores[1]);
+    let dir = std::env::temp_dir().join(format!("lungdyn-cli-pin-{}", std::process::id()));
+    let scene = dir.with_extension("toml");
+    std::fs::write(
+        &scene,
+        "[lungs]\nvertices = 2000\n[render]\nwidth = 320\nheight = 240\n",
+    )
+    .unwrap();
+    let instance = format!("pin{}", std::process::id());
+    let mut demo = Command::new(bin("lungdyn"))
+        .args([
+            "demo",
+            "--seconds",
+            "8",
+            "--snapshots",
+            "1",
+            "--instance",
+            &instance,
+        ])
+        .args(["--cpus", &format!("{other},{other},{mine}")])
+        .arg("--out")
+        .arg(&dir)
+        .arg("--scene")
+        .arg(&scene)
+        .stdout(std::process::Stdio::null())
+        .stderr(std::process::Stdio::piped())
+        .spawn()
+        .unwrap();
+    // The renderer is the demo's child whose command line names the `renderer` role.
+    let renderer = |demo: u32| -> Option<u32> {
+        let children =
+            std::fs::read_to_string(format!("/proc/{demo}/task/{demo}/children")).ok()?;
+        children
+            .split_whitespace()
+            .filter_map(|c| c.parse().ok())
+            .find(|c: &u32| {
+                std::fs::read(format!("/proc/{c}/cmdline"))
+                    .map(|l| l.split(|b| *b == 0).any(|a| a == b"renderer"))
+                    .unwrap_or(false)
+            })
+    };
+    // Sample the renderer's threads while it runs; the sample with the most threads is kept (the
+    // GPU's threads exist once its first frames are drawn).
+    let mut widest: Vec<(String, String)> = Vec::new();
+    let start = std::time::Instant::now();
+    while demo.try_wait().unwrap().is_none() && start.elapsed().as_secs() < 120 {
+        if let Some(pid) = renderer(demo.id()) {
+            let threads = thread_affinities(pid);
+            if threads.len() > widest.len() {
+                widest = threads;
+            }
+        }
+        std::thread::sleep(std::time::Duration::from_millis(100));
+    }
+    let out = demo.wait_with_output().unwrap();
+    let err = String::from_utf8_lossy(&out.stderr);
+    assert!(out.status.success(), "{err}");
+    assert!(
+        widest.len() >= 2,
+        "the renderer was seen with only {} threads: {widest:?}",
+        widest.len()
+    );
+    // Mesa's shader disk-cache writer (`disk$N`) is the one thread that widens its own affinity on
+    // purpose: Mesa starts it with UTIL_QUEUE_INIT_SET_FULL_THREAD_AFFINITY at its lowest priority
+    // (src/util/disk_cache_os.c), so it neither inherits nor competes with a pinned core's work.
+    let wrong: Vec<_> = widest
+        .iter()
+        .filter(|(name, list)| *list != mine.to_string() && !name.contains(":disk$"))
+        .collect();
+    assert!(
+        wrong.is_empty(),
+        "renderer pinned to core {mine}: threads allowed elsewhere {wrong:?} (all: {widest:?})"
+    );
+    std::fs::remove_dir_all(&dir).ok();
+    std::fs::remove_file(&scene).ok();
+}
+
 #[test]
 fn the_demo_prints_json_with_frames_latency_and_pngs() {
     if renderer::gpu::Gpu::for_tests().is_none() {
