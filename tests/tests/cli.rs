@@ -145,12 +145,12 @@ fn thread_affinities(pid: u32) -> Vec<(String, String)> {
         .collect()
 }
 
-/// A pinned renderer keeps every one of its threads on its core — the driver's too (lavapipe's
+/// Each pinned process keeps every one of its threads on its core — the renderer's driver's too (lavapipe's
 /// `llvmpipe-N` rasterisers, wgpu's and the window system's): the renderer pins itself before the
 /// GPU opens, and threads inherit their creator's affinity. (Pinned after the GPU opened, only its
 /// main thread was on the core and lavapipe's threads ran on every core, the engine's included.)
 #[test]
-fn a_pinned_renderer_keeps_its_drivers_threads_on_its_core() {
+fn every_pinned_process_keeps_all_its_threads_on_its_core_the_renderers_driver_too() {
     if renderer::gpu::Gpu::for_tests().is_none() {
         return;
     }
@@ -187,8 +187,8 @@ fn a_pinned_renderer_keeps_its_drivers_threads_on_its_core() {
         .stderr(std::process::Stdio::piped())
         .spawn()
         .unwrap();
-    // The renderer is the demo's child whose command line names the `renderer` role.
-    let renderer = |demo: u32| -> Option<u32> {
+    // Each role is the demo's child whose command line names it.
+    let child = |demo: u32, role: &[u8]| -> Option<u32> {
         let children =
             std::fs::read_to_string(format!("/proc/{demo}/task/{demo}/children")).ok()?;
         children
@@ -196,19 +196,26 @@ fn a_pinned_renderer_keeps_its_drivers_threads_on_its_core() {
             .filter_map(|c| c.parse().ok())
             .find(|c: &u32| {
                 std::fs::read(format!("/proc/{c}/cmdline"))
-                    .map(|l| l.split(|b| *b == 0).any(|a| a == b"renderer"))
+                    .map(|l| l.split(|b| *b == 0).any(|a| a == role))
                     .unwrap_or(false)
             })
     };
-    // Sample the renderer's threads while it runs; the sample with the most threads is kept (the
-    // GPU's threads exist once its first frames are drawn).
-    let mut widest: Vec<(String, String)> = Vec::new();
+    let roles: [(&[u8], usize); 3] = [
+        (b"tracker-bridge", other),
+        (b"engine", other),
+        (b"renderer", mine),
+    ];
+    // Sample each role's threads while it runs; the sample with the most threads is kept (the
+    // GPU's threads exist once the renderer's first frames are drawn).
+    let mut widest: [Vec<(String, String)>; 3] = Default::default();
     let start = std::time::Instant::now();
     while demo.try_wait().unwrap().is_none() && start.elapsed().as_secs() < 120 {
-        if let Some(pid) = renderer(demo.id()) {
-            let threads = thread_affinities(pid);
-            if threads.len() > widest.len() {
-                widest = threads;
+        for ((role, _), seen) in roles.iter().zip(&mut widest) {
+            if let Some(pid) = child(demo.id(), role) {
+                let threads = thread_affinities(pid);
+                if threads.len() > seen.len() {
+                    *seen = threads;
+                }
             }
         }
         std::thread::sleep(std::time::Duration::from_millis(100));
@@ -216,21 +223,27 @@ fn a_pinned_renderer_keeps_its_drivers_threads_on_its_core() {
     let out = demo.wait_with_output().unwrap();
     let err = String::from_utf8_lossy(&out.stderr);
     assert!(out.status.success(), "{err}");
+    for ((role, core), seen) in roles.iter().zip(&widest) {
+        let role = String::from_utf8_lossy(role);
+        assert!(!seen.is_empty(), "the {role} process was never seen");
+        // Mesa's shader disk-cache writer (`disk$N`) is the one thread that widens its own affinity
+        // on purpose: Mesa starts it with UTIL_QUEUE_INIT_SET_FULL_THREAD_AFFINITY at its lowest
+        // priority (src/util/disk_cache_os.c), so it neither inherits nor competes with a pinned
+        // core's work.
+        let wrong: Vec<_> = seen
+            .iter()
+            .filter(|(name, list)| *list != core.to_string() && !name.contains(":disk$"))
+            .collect();
+        assert!(
+            wrong.is_empty(),
+            "{role} pinned to core {core}: threads allowed elsewhere {wrong:?} (all: {seen:?})"
+        );
+    }
     assert!(
-        widest.len() >= 2,
-        "the renderer was seen with only {} threads: {widest:?}",
-        widest.len()
-    );
-    // Mesa's shader disk-cache writer (`disk$N`) is the one thread that widens its own affinity on
-    // purpose: Mesa starts it with UTIL_QUEUE_INIT_SET_FULL_THREAD_AFFINITY at its lowest priority
-    // (src/util/disk_cache_os.c), so it neither inherits nor competes with a pinned core's work.
-    let wrong: Vec<_> = widest
-        .iter()
-        .filter(|(name, list)| *list != mine.to_string() && !name.contains(":disk$"))
-        .collect();
-    assert!(
-        wrong.is_empty(),
-        "renderer pinned to core {mine}: threads allowed elsewhere {wrong:?} (all: {widest:?})"
+        widest[2].len() >= 2,
+        "the renderer was seen with only {} threads (before its GPU opened?): {:?}",
+        widest[2].len(),
+        widest[2]
     );
     std::fs::remove_dir_all(&dir).ok();
     std::fs::remove_file(&scene).ok();
