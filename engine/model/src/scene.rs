@@ -1362,6 +1362,25 @@ mod tests {
         }
     }
 
+    /// `[engine] min_slope_ratio` (EQUATIONS.md §3.3): 0 (no limit, the seed's reading) to 1;
+    /// anything else is refused by name with the range.
+    #[test]
+    fn the_orientation_limit_ratio_is_checked() {
+        for ok in ["0", "0.5", "0.8", "1"] {
+            let s = Scene::parse(&format!("[engine]\nmin_slope_ratio = {ok}\n"), "s.toml").unwrap();
+            assert_eq!(s.engine.min_slope_ratio, ok.parse::<f64>().unwrap());
+        }
+        for bad in ["1.5", "-0.1", "nan", "inf"] {
+            let e = Scene::parse(&format!("[engine]\nmin_slope_ratio = {bad}\n"), "s.toml")
+                .unwrap_err()
+                .to_string();
+            assert!(
+                e.contains("min_slope_ratio") && e.contains("0..1"),
+                "{bad}: {e}"
+            );
+        }
+    }
+
     #[test]
     fn the_committed_default_scene_is_the_built_in_default() {
         let path = Path::new(env!("CARGO_MANIFEST_DIR")).join("../../scenes/default.toml");
