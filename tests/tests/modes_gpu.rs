@@ -86,7 +86,15 @@ fn every_mode_on_the_gpu_matches_the_cpu_reference_at_extreme_orientations() {
         let r = LungRenderer::new(&gpu, &scene.render, &lungs).unwrap();
         let geometry = kernels
             .iter()
-            .map(|k| LungGeometry::from_kernel(k, mode, scene.engine.orientation).unwrap())
+            .map(|k| {
+                LungGeometry::from_kernel(
+                    k,
+                    mode,
+                    scene.engine.orientation,
+                    scene.engine.min_slope_ratio,
+                )
+                .unwrap()
+            })
             .collect();
         let mut core = EngineCore::with_geometry(&scene, geometry).unwrap();
         let mut cpus: Vec<CpuLung> = lungs.iter().map(|l| l.lung.clone()).collect();

@@ -1032,6 +1032,81 @@ mod breathing {
         }
     }
 
+    /// The orientation-following field (basis mode, which eq. 7.1's direct mode equals; EQUATIONS.md
+    /// §3.3) of both default lungs at 10k vertices, at the force weights the run time gives for every
+    /// gravity of the bake's orientation set (supine, prone, both lateral decubitus postures,
+    /// upright, head-down and 20 random ones) with the default orientation limit, from FRC − 500 to
+    /// FRC + 1500 ml of both lungs in steps of 250 ml: no surface intersects itself. With the limit
+    /// at lungdyn's earlier ratio 0.5 this failed: of the surfaces at −500, +500, +1000 and +1500 ml,
+    /// 22 of 208 folded (prone-like postures already at FRC − 500 ml), and the largest vertex move
+    /// at +1500 ml reached 3.2× the supine one (1.7× at the default 0.8).
+    #[test]
+    fn the_default_lungs_do_not_fold_in_any_posture() {
+        let mut folds = Vec::new();
+        let mut worst = 0.0f64;
+        for side in [Side::Right, Side::Left] {
+            let (k, share) = baked(side, DirectionPreset::Population);
+            let c = &k.meta.settings.motion.c;
+            let mut r = crate::orient::Responses::compute(
+                &k.mesh,
+                side,
+                &k.transfer,
+                &k.directions,
+                k.meta.force_scale,
+                [c[6], c[7], c[8]],
+            );
+            let forms = r.forms_of(&k.mesh, &r.g);
+            r.set_limit(&forms);
+            let field = |g: DVec3| -> Vec<DVec3> {
+                let d = r.force(&r.weights(g));
+                d.iter().zip(&r.kd).map(|(d, kd)| *kd * *d).collect()
+            };
+            let largest =
+                |u: &[DVec3], s: f64| u.iter().map(|u| u.length() * s).fold(0.0, f64::max);
+            let supine = field(lung_model::orientation::SUPINE_GRAVITY);
+            let top = share * 1500.0 * 1000.0;
+            let supine_max = largest(&supine, VolumeCubic::of(&k.mesh, &supine).solve_delta(top));
+            for (n, g) in crate::orient::orientation_set().into_iter().enumerate() {
+                let u = field(g);
+                let cubic = VolumeCubic::of(&k.mesh, &u);
+                for step in (-2..=6).filter(|&s| s != 0) {
+                    let delta = share * 250.0 * step as f64;
+                    let s = cubic.solve_delta(delta * 1000.0);
+                    assert!(s.is_finite(), "{side:?} g {g:?} {delta:+.0} ml");
+                    let m = TriMesh {
+                        positions: k
+                            .mesh
+                            .positions
+                            .iter()
+                            .zip(&u)
+                            .map(|(p, u)| [0, 1, 2].map(|a| p[a] + (s * u[a]) as f32))
+                            .collect(),
+                        triangles: k.mesh.triangles.clone(),
+                    };
+                    // The volume the run time solves for is the one drawn.
+                    let v = m.enclosed_volume_ml() - k.mesh.enclosed_volume_ml();
+                    assert!((v - delta).abs() < 0.05, "{side:?} g {g:?}: {v} vs {delta}");
+                    let count = crate::surface_checks::self_intersections(&m, 4).count;
+                    if count > 0 {
+                        folds.push(format!(
+                            "{side:?} posture {n} (g {g:.2}) at {delta:+.0} ml: {count}"
+                        ));
+                    }
+                    if step == 6 {
+                        worst = worst.max(largest(&u, s) / supine_max);
+                    }
+                }
+            }
+        }
+        eprintln!("largest vertex move at +1500 ml over the postures: {worst:.2}× the supine one");
+        assert!(
+            folds.is_empty(),
+            "{} folded:\n{}",
+            folds.len(),
+            folds.join("\n")
+        );
+    }
+
     /// The seed's unsmoothed reading (`amplitude_smoothing_mm = 0`) is still reachable and still
     /// folds where issue 19 found it (right lung, population preset, its share of +500 ml of the
     /// whole); smoothing over 6 mm already removes it, and barely changes the lower third's motion.

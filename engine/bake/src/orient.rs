@@ -23,7 +23,9 @@ use lung_model::deform::modes::{ShCoeffs, ShCoeffsError, VolumeForms};
 use lung_model::deform::normalised_position;
 use lung_model::mesh::{Side, TriMesh};
 use lung_model::operator::{Columns, Transfer};
-use lung_model::orientation::{exact_weights, ForceWeights, VolumeLimit, SUPINE_GRAVITY};
+use lung_model::orientation::{
+    exact_weights, ForceWeights, VolumeLimit, DEFAULT_MIN_SLOPE_RATIO, SUPINE_GRAVITY,
+};
 use lung_model::sh;
 
 /// Volume change above FRC at which errors are reported: a tidal breath's share of one lung
@@ -135,9 +137,15 @@ impl Responses {
         }
     }
 
-    /// Limit the weights as the run time does, from the exact fields' volume forms.
+    /// Limit the weights as the run time does by default ([`DEFAULT_MIN_SLOPE_RATIO`]), from the
+    /// exact fields' volume forms.
     pub fn set_limit(&mut self, exact_forms: &VolumeForms) {
-        self.limit = Some(VolumeLimit::new(exact_forms.l, self.c789, self.side));
+        self.limit = Some(VolumeLimit::new(
+            exact_forms.l,
+            self.c789,
+            self.side,
+            DEFAULT_MIN_SLOPE_RATIO,
+        ));
     }
 
     /// Force weights of gravity `g` (exact, EQUATIONS.md §3.3), limited as the run time limits them.

@@ -31,16 +31,19 @@
 //! * **Where the supine model ends** ([`VolumeLimit`]). The directions of eq. 6.14–6.16 are fitted to a
 //!   supine breath and point anterior everywhere (`c3·ŷ^c4 ≥ 0`); a force concentrated on the
 //!   posterior side (prone) or along one flank (lateral decubitus) therefore moves much of the surface
-//!   *inwards*, and the field barely changes — or even shrinks — the enclosed volume: measured on the
-//!   generated 10k left lung at 250 ml, the volume slope is 1,500 mm³ per unit supine, 113 lying on
+//!   *inwards* or along itself, and the field barely changes — or even shrinks — the enclosed volume:
+//!   measured on the generated 10k left lung at 250 ml, the volume slope is 1,500 mm³ per unit supine, 113 lying on
 //!   the left side, −616 prone, so the scale that gives the breath's volume runs to 2,000 or flips
 //!   sign, and the surface moves by metres. **Decision (lungdyn):** the weights are limited so the
-//!   volume slope stays at least [`MIN_SLOPE_RATIO`] of the supine one, by moving them along the
+//!   volume slope stays at least a ratio `ρ` of the supine one, by moving them along the
 //!   straight line towards the supine weights (the slope is linear in the weights, so the limit is
 //!   one division; continuous in the pose, no state). A limited tick is flagged
-//!   (`ipc_types::engine_state::ORIENTATION_LIMITED`); the displacement stays within about
-//!   `1 / MIN_SLOPE_RATIO` of the supine one. Rotating the directions with gravity would lift the
-//!   limit but is not linear in the weights (no basis, no SH); it is left open (EQUATIONS.md §3.3).
+//!   (`ipc_types::engine_state::ORIENTATION_LIMITED`). `ρ` is the scene's `[engine] min_slope_ratio`,
+//!   default [`DEFAULT_MIN_SLOPE_RATIO`] (0.8; issue 19: at the earlier 0.5 a turned breath moved the
+//!   surface up to 3× as far as the supine one at FRC + 1500 ml and folded it, EQUATIONS.md §3.3);
+//!   0 turns the limit off (the seed's eq. 7.8–7.9 limit nothing). Rotating the directions with
+//!   gravity would lift the limit but is not linear in the weights (no basis, no SH); it is left
+//!   open (EQUATIONS.md §3.3).
 //!
 //! Everything is f64 and allocation-free: the engine calls [`Orientation::weights`] every tick.
 
@@ -194,27 +197,43 @@ pub enum OrientationMethod {
     Seed,
 }
 
-/// Smallest volume slope, as a fraction of the supine one, the weights may give
-/// ([`VolumeLimit`]).
-pub const MIN_SLOPE_RATIO: f64 = 0.5;
+/// Smallest volume slope, as a fraction of the supine one, the weights may give by default
+/// ([`VolumeLimit`], scene `[engine] min_slope_ratio`). EQUATIONS.md §3.3: at 0.8 no posture of the
+/// bake's orientation set folds either default lung from FRC − 500 to FRC + 1500 ml (1000 and 10k
+/// vertices) and the largest vertex move stays within 1.7× the supine one; at the earlier 0.5 the
+/// turned breath moved up to 3.2× as far and folded the surface beyond FRC + 500 ml.
+pub const DEFAULT_MIN_SLOPE_RATIO: f64 = 0.8;
 
-/// The limit on the weights that keeps the field expanding the lung (see the module doc): the
-/// volume slope `v1(w) = Σ_a w_a·L_a` (the linear volume form of the exact basis fields) must stay
-/// at least [`MIN_SLOPE_RATIO`]·`v1(w_supine)`.
+/// Whether `ratio` is a usable [`VolumeLimit`] ratio: finite, in `[0, 1]` (0: no limit).
+pub fn min_slope_ratio_ok(ratio: f64) -> bool {
+    ratio.is_finite() && (0.0..=1.0).contains(&ratio)
+}
+
+/// The limit on the weights that keeps the field expanding the lung like the supine breath (see the
+/// module doc): the volume slope `v1(w) = Σ_a w_a·L_a` (the linear volume form of the exact basis
+/// fields) must stay at least `ratio`·`v1(w_supine)`.
 #[derive(Debug, Clone, Copy, PartialEq)]
 pub struct VolumeLimit {
     /// Linear volume form `L_a`.
     pub linear: [f64; 4],
     /// Supine weights.
     pub supine: ForceWeights,
+    /// Smallest slope as a fraction of the supine one (0: no limit).
+    pub ratio: f64,
 }
 
 impl VolumeLimit {
-    /// The limit for a lung whose exact fields have linear volume form `linear`.
-    pub fn new(linear: [f64; 4], c789: [f64; 3], side: Side) -> Self {
+    /// The limit for a lung whose exact fields have linear volume form `linear`; `ratio` as
+    /// [`min_slope_ratio_ok`] (a value outside `[0, 1]` or NaN is taken as 0: no limit).
+    pub fn new(linear: [f64; 4], c789: [f64; 3], side: Side, ratio: f64) -> Self {
         Self {
             linear,
             supine: exact_weights(c789, side, SUPINE_GRAVITY),
+            ratio: if min_slope_ratio_ok(ratio) {
+                ratio
+            } else {
+                0.0
+            },
         }
     }
 
@@ -222,13 +241,14 @@ impl VolumeLimit {
         (0..4).map(|a| w[a] * self.linear[a]).sum()
     }
 
-    /// `w` itself when it expands enough, else the point on the segment from the supine weights to
-    /// `w` where the slope is [`MIN_SLOPE_RATIO`] of the supine one; and whether it was limited.
+    /// `w` itself when it expands enough (or the ratio is 0), else the point on the segment from
+    /// the supine weights to `w` where the slope is `ratio` of the supine one; and whether it was
+    /// limited.
     pub fn apply(&self, w: ForceWeights) -> (ForceWeights, bool) {
         let v_s = self.slope(&self.supine);
         let v = self.slope(&w);
-        let floor = MIN_SLOPE_RATIO * v_s;
-        if !(v_s > 0.0) || v >= floor {
+        let floor = self.ratio * v_s;
+        if self.ratio == 0.0 || !(v_s > 0.0) || v >= floor {
             return (w, false);
         }
         // v1 is linear along the segment: t·v + (1 − t)·v_s = floor.
@@ -253,19 +273,21 @@ pub struct Orientation {
 
 impl Orientation {
     /// The model of `side` with Table 6.1-style constants `c789`; `linear` is the exact fields'
-    /// linear volume form (the kernel's `orientation.volume_forms.l`), `None` for no limit.
+    /// linear volume form (the kernel's `orientation.volume_forms.l`), `None` for no limit, and
+    /// `min_slope_ratio` the limit's ratio ([`VolumeLimit`]; 0: no limit).
     pub fn new(
         method: OrientationMethod,
         c789: [f64; 3],
         side: Side,
         linear: Option<[f64; 4]>,
+        min_slope_ratio: f64,
     ) -> Self {
         Self {
             method,
             c789,
             side,
             seed: SeedBlend::new(c789, side),
-            limit: linear.map(|l| VolumeLimit::new(l, c789, side)),
+            limit: linear.map(|l| VolumeLimit::new(l, c789, side, min_slope_ratio)),
         }
     }
 
@@ -479,7 +501,12 @@ mod tests {
     #[test]
     fn the_volume_limit_keeps_the_slope_and_moves_towards_supine() {
         // A lung whose posterior-weighted force shrinks it: L_y large, L_0 smaller.
-        let l = VolumeLimit::new([877.0, 50.0, 1550.0, 200.0], LEFT, Side::Left);
+        let l = VolumeLimit::new(
+            [877.0, 50.0, 1550.0, 200.0],
+            LEFT,
+            Side::Left,
+            DEFAULT_MIN_SLOPE_RATIO,
+        );
         let supine = exact_weights(LEFT, Side::Left, SUPINE_GRAVITY);
         let (w, limited) = l.apply(supine);
         assert!(!limited && w == supine);
@@ -489,16 +516,57 @@ mod tests {
         let v_s: f64 = (0..4).map(|a| supine[a] * l.linear[a]).sum();
         let v: f64 = (0..4).map(|a| w[a] * l.linear[a]).sum();
         assert!(
-            (v - MIN_SLOPE_RATIO * v_s).abs() < 1e-9 * v_s,
+            (v - DEFAULT_MIN_SLOPE_RATIO * v_s).abs() < 1e-9 * v_s,
             "{v} vs {v_s}"
         );
         // Continuous: a hair on either side of the limit gives nearly the same weights.
-        let o = Orientation::new(OrientationMethod::Exact, LEFT, Side::Left, Some(l.linear));
-        for g in [DVec3::X, -DVec3::Z, DVec3::new(0.3, 0.9, 0.1).normalize()] {
-            let (w, _) = o.weights(g);
-            assert!(w.iter().all(|v| v.is_finite()));
-            let v: f64 = (0..4).map(|a| w[a] * l.linear[a]).sum();
-            assert!(v >= MIN_SLOPE_RATIO * v_s * (1.0 - 1e-12));
+        for ratio in [0.5, DEFAULT_MIN_SLOPE_RATIO, 1.0] {
+            let o = Orientation::new(
+                OrientationMethod::Exact,
+                LEFT,
+                Side::Left,
+                Some(l.linear),
+                ratio,
+            );
+            for g in [DVec3::X, -DVec3::Z, DVec3::new(0.3, 0.9, 0.1).normalize()] {
+                let (w, _) = o.weights(g);
+                assert!(w.iter().all(|v| v.is_finite()));
+                let v: f64 = (0..4).map(|a| w[a] * l.linear[a]).sum();
+                assert!(
+                    v >= ratio * v_s * (1.0 - 1e-12),
+                    "ratio {ratio}: {v} vs {v_s}"
+                );
+            }
+        }
+        // A larger ratio keeps the prone weights nearer supine; 1 gives supine's slope exactly.
+        let near = |ratio| {
+            let (w, _) = VolumeLimit::new(l.linear, LEFT, Side::Left, ratio).apply(prone);
+            (0..4).map(|a| (w[a] - supine[a]).abs()).sum::<f64>()
+        };
+        assert!(near(0.8) < near(0.5) && near(1.0) < near(0.8));
+    }
+
+    /// Ratio 0 is no limit (the seed's eq. 7.8–7.9 limit nothing): every posture's exact weights
+    /// come through unchanged, even one whose field shrinks the lung; a ratio that is not in
+    /// `[0, 1]` is refused by [`min_slope_ratio_ok`] and taken as 0 by the limit.
+    #[test]
+    fn ratio_zero_is_the_unlimited_reading_and_bad_ratios_are_refused() {
+        let linear = [877.0, 50.0, 1550.0, 200.0];
+        let prone = exact_weights(LEFT, Side::Left, -SUPINE_GRAVITY);
+        let o = Orientation::new(
+            OrientationMethod::Exact,
+            LEFT,
+            Side::Left,
+            Some(linear),
+            0.0,
+        );
+        assert_eq!(o.weights(-SUPINE_GRAVITY), (prone, false));
+        for bad in [f64::NAN, -0.1, 1.5, f64::INFINITY] {
+            assert!(!min_slope_ratio_ok(bad), "{bad}");
+            assert_eq!(VolumeLimit::new(linear, LEFT, Side::Left, bad).ratio, 0.0);
+        }
+        for good in [0.0, 0.5, DEFAULT_MIN_SLOPE_RATIO, 1.0] {
+            assert!(min_slope_ratio_ok(good), "{good}");
         }
     }
 

@@ -304,6 +304,11 @@ pub struct EngineScene {
     /// How the patient's pose becomes the applied force (EQUATIONS.md §3.3): "exact" (the rotated
     /// weights), "seed" (eq. 7.8–7.9's blend, for comparison), or "fixed" (always supine).
     pub orientation: crate::orientation::OrientationMethod,
+    /// Where the supine model ends (EQUATIONS.md §3.3): a turned patient's force weights are moved
+    /// towards supine until the field's volume slope is at least this fraction of the supine one.
+    /// Default 0.8 (no posture folds the default lungs to FRC + 1500 ml); 0.5 was lungdyn's earlier
+    /// value; 0 is no limit (the seed's eq. 7.8–7.9 limit nothing).
+    pub min_slope_ratio: f64,
 }
 
 /// `[lungs]` table.
@@ -543,6 +548,7 @@ impl Default for EngineScene {
             pose_staleness_ticks: 30,
             gravity_room: [0.0, 0.0, -1.0],
             orientation: crate::orientation::OrientationMethod::Exact,
+            min_slope_ratio: crate::orientation::DEFAULT_MIN_SLOPE_RATIO,
         }
     }
 }
@@ -650,6 +656,9 @@ pub enum SceneValueError {
     /// Gravity is not a unit vector.
     #[error("[engine] gravity_room = {0:?} must be a finite unit vector (the room's \"down\"; [0, 0, -1] when the tracker's +Z is up)")]
     Gravity([f64; 3]),
+    /// The orientation limit's ratio is out of range.
+    #[error("[engine] min_slope_ratio = {0} must be within 0..1 (0: no limit, the seed's reading; {def} is the default)", def = crate::orientation::DEFAULT_MIN_SLOPE_RATIO)]
+    MinSlopeRatio(f64),
     /// Band count out of range.
     #[error("[lungs] bands = {0} must be within 1..{max} (n² ≤ 64 coefficients travel per lung per frame)", max = crate::kernel::MAX_RUNTIME_BANDS)]
     Bands(u32),
@@ -1056,6 +1065,9 @@ impl Scene {
         if !(g.iter().all(|v| v.is_finite()) && (len - 1.0).abs() <= 1e-3) {
             return Err(E::Gravity(g));
         }
+        if !crate::orientation::min_slope_ratio_ok(self.engine.min_slope_ratio) {
+            return Err(E::MinSlopeRatio(self.engine.min_slope_ratio));
+        }
         if !(1..=crate::kernel::MAX_RUNTIME_BANDS).contains(&self.lungs.bands) {
             return Err(E::Bands(self.lungs.bands));
         }
@@ -1347,6 +1359,25 @@ mod tests {
         ] {
             let e = Scene::parse(text, "s.toml").unwrap_err().to_string();
             assert!(e.contains(needle), "{text}: {e}");
+        }
+    }
+
+    /// `[engine] min_slope_ratio` (EQUATIONS.md §3.3): 0 (no limit, the seed's reading) to 1;
+    /// anything else is refused by name with the range.
+    #[test]
+    fn the_orientation_limit_ratio_is_checked() {
+        for ok in ["0", "0.5", "0.8", "1"] {
+            let s = Scene::parse(&format!("[engine]\nmin_slope_ratio = {ok}\n"), "s.toml").unwrap();
+            assert_eq!(s.engine.min_slope_ratio, ok.parse::<f64>().unwrap());
+        }
+        for bad in ["1.5", "-0.1", "nan", "inf"] {
+            let e = Scene::parse(&format!("[engine]\nmin_slope_ratio = {bad}\n"), "s.toml")
+                .unwrap_err()
+                .to_string();
+            assert!(
+                e.contains("min_slope_ratio") && e.contains("0..1"),
+                "{bad}: {e}"
+            );
         }
     }
 

@@ -105,10 +105,13 @@ impl LungGeometry {
     }
 
     /// The geometry of `kernel` for `mode`: only the metadata and the core sections are read.
+    /// `method` and `min_slope_ratio` are the scene's orientation model (`[engine] orientation`,
+    /// `min_slope_ratio`; EQUATIONS.md §3.3).
     pub fn from_kernel(
         kernel: &KernelFile,
         mode: DeformMode,
         method: OrientationMethod,
+        min_slope_ratio: f64,
     ) -> Result<Self, GeometryError> {
         let meta = kernel.meta();
         let u64s: Vec<DVec3> = kernel
@@ -131,6 +134,7 @@ impl LungGeometry {
                     [c[6], c[7], c[8]],
                     meta.side,
                     Some(o.volume_forms.l),
+                    min_slope_ratio,
                 );
                 let (forms, sh) = if mode == DeformMode::Sh {
                     let sh = meta.sh.as_ref().ok_or_else(missing)?;
@@ -375,6 +379,7 @@ impl EngineCore {
                 &kernel,
                 scene.lungs.mode,
                 scene.engine.orientation,
+                scene.engine.min_slope_ratio,
             )?);
             // Only a disease scene needs the surfaces (the hilum, the box): model only what the
             // scene requires.
