@@ -426,8 +426,14 @@ impl LungRenderer {
     }
 
     /// The HMD pose that shows the lungs from the front of the patient registered at `patient`
-    /// ([`record::front_view`]); `None` without lungs.
+    /// ([`record::front_view`]) in [`record::FRONT_VIEW_BAND`]; `None` without lungs.
     pub fn front_view(&self, patient: &Pose) -> Option<Pose> {
+        self.front_view_in(patient, record::FRONT_VIEW_BAND)
+    }
+
+    /// As [`Self::front_view`], the lungs' box in `band` of the image's height (fractions from
+    /// its top: what the heads-up display leaves clear, [`hud::Hud::lungs_band`]).
+    pub fn front_view_in(&self, patient: &Pose, band: (f32, f32)) -> Option<Pose> {
         let b = self.lung_box?;
         let aspect = self.eye_width as f32 / self.height as f32;
         Some(record::front_view(
@@ -435,6 +441,7 @@ impl LungRenderer {
             b,
             self.settings.fov_y_deg,
             aspect,
+            band,
         ))
     }
 
