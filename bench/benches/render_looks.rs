@@ -8,7 +8,8 @@
 //! what the renderer spends) and the median GPU time from timestamp queries where the adapter has
 //! them (lavapipe does).
 //!
-//! Run: `cargo bench -p lungdyn-bench --bench render_looks` (`-- --frames N`, `-- --stereo`).
+//! Run: `cargo bench -p lungdyn-bench --bench render_looks` (`-- --frames N`, `-- --stereo`,
+//! `-- --only WORDS`: the configurations whose name contains WORDS).
 
 use glam::{Mat3, Quat, Vec3};
 use ipc_types::Pose;
@@ -104,6 +105,11 @@ fn main() {
         .and_then(|s| s.parse().ok())
         .unwrap_or(60usize);
     let stereo = args.iter().any(|a| a == "--stereo");
+    let only = args
+        .iter()
+        .position(|a| a == "--only")
+        .and_then(|i| args.get(i + 1))
+        .cloned();
     let Some(gpu) = Gpu::for_tests() else { return };
     let scene = Scene::default();
     eprintln!(
@@ -199,10 +205,11 @@ fn main() {
         )
     })
     .collect();
-    // The HUD's cost: the lavapipe default (opaque, MSAA off) and the lobes colour mode, each
-    // with and without it.
+    // The HUD's cost: the lavapipe default (opaque, MSAA off), the lobes colour mode and
+    // everything on (translucent, MSAA 4×: the 60 fps goal), each with and without it.
     let mut configs = configs;
     let opaque_off = configs[0].1.clone();
+    let everything = configs[3].1.clone();
     let lobes = RenderScene {
         color: ColorMode::Lobes,
         ..opaque_off.clone()
@@ -211,7 +218,11 @@ fn main() {
         ("opaque + HUD, MSAA off", opaque_off, true),
         ("lobes colour, MSAA off", lobes.clone(), false),
         ("lobes colour + HUD, MSAA off", lobes, true),
+        ("translucent + HUD, MSAA 4x", everything, true),
     ]);
+    if let Some(only) = &only {
+        configs.retain(|(name, _, _)| name.contains(only.as_str()));
+    }
     let renderers: Vec<LungRenderer> = configs
         .iter()
         .map(|(_, r, _)| LungRenderer::new(&gpu, r, &lungs).expect("upload"))
@@ -282,6 +293,12 @@ fn main() {
             }
         }
     }
+    // The deformation alone (its compute pass, from timestamps): the part of every row above
+    // that is not drawing.
+    let deform_ms: Vec<f64> = (0..frames)
+        .filter_map(|k| renderers[0].time_deform(&gpu, &state(40.0 * (k as f32 / frames as f32))))
+        .map(|ns| ns as f64 / 1e6)
+        .collect();
     let (w, h) = renderers[0].image_size();
     println!(
         "{} x {} ({}), {} frames each on {}",
@@ -295,6 +312,14 @@ fn main() {
         "{:<32} {:>14} {:>14}",
         "configuration", "frame p50 ms", "GPU p50 ms"
     );
+    if !deform_ms.is_empty() {
+        println!(
+            "{:<32} {:>14} {:>14.2}",
+            "deformation only (compute)",
+            "",
+            median(deform_ms)
+        );
+    }
     for (i, (name, _, _)) in configs.iter().enumerate() {
         println!(
             "{:<32} {:>14.2} {:>14.2}",
