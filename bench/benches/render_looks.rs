@@ -249,44 +249,50 @@ fn main() {
             })
         })
         .collect();
-    let draw = |r: &LungRenderer, hud: &mut Option<Hud>, s: &DrawState, k: usize| {
-        let Some(hud) = hud.as_mut() else {
-            return r.render(&gpu, s, false);
+    // CPU time of the HUD's encode (formatting, shaping, glyphon's prepare, its pass recorded),
+    // per configuration with a HUD.
+    let mut hud_cpu = vec![Vec::with_capacity(frames); configs.len()];
+    let draw =
+        |r: &LungRenderer, hud: &mut Option<Hud>, s: &DrawState, k: usize, cpu: &mut Vec<f64>| {
+            let Some(hud) = hud.as_mut() else {
+                return r.render(&gpu, s, false);
+            };
+            let frame = engine_frame(k, frames);
+            let shown = HudFrame {
+                frame: &frame,
+                tracker: None,
+                warning: Default::default(),
+                cpu_ns: 2_500_000,
+                gpu_ns: Some(11_000_000),
+                latency_ns: Some(9_000_000),
+                outcome: Some((
+                    "needle decompression, left, applied 01:02 — air venting",
+                    renderer::hud::text::Standing::Done,
+                )),
+            };
+            r.render_with_overlay(
+                &gpu,
+                s,
+                false,
+                |encoder, target, eyes| {
+                    let t = std::time::Instant::now();
+                    hud.encode(&gpu.device, &gpu.queue, encoder, target, eyes, &shown);
+                    cpu.push(t.elapsed().as_secs_f64() * 1e3);
+                },
+                |_| {},
+            )
         };
-        let frame = engine_frame(k, frames);
-        let shown = HudFrame {
-            frame: &frame,
-            tracker: None,
-            warning: Default::default(),
-            cpu_ns: 2_500_000,
-            gpu_ns: Some(11_000_000),
-            latency_ns: Some(9_000_000),
-            outcome: Some((
-                "needle decompression, left, applied 01:02 — air venting",
-                renderer::hud::text::Standing::Done,
-            )),
-        };
-        r.render_with_overlay(
-            &gpu,
-            s,
-            false,
-            |encoder, target, eyes| {
-                hud.encode(&gpu.device, &gpu.queue, encoder, target, eyes, &shown)
-            },
-            |_| {},
-        )
-    };
     let mut wall = vec![Vec::with_capacity(frames); configs.len()];
     let mut gpu_ms = vec![Vec::with_capacity(frames); configs.len()];
     // Warm up every pipeline, then interleave: frame k of every configuration, then frame k + 1.
     for (r, hud) in renderers.iter().zip(huds.iter_mut()) {
-        draw(r, hud, &state(0.0), 0);
+        draw(r, hud, &state(0.0), 0, &mut Vec::new());
     }
     for k in 0..frames {
         let s = state(40.0 * (k as f32 / frames as f32));
         for (i, (r, hud)) in renderers.iter().zip(huds.iter_mut()).enumerate() {
             let t = std::time::Instant::now();
-            let timing = draw(r, hud, &s, k);
+            let timing = draw(r, hud, &s, k, &mut hud_cpu[i]);
             wall[i].push(t.elapsed().as_secs_f64() * 1e3);
             if let Some(ns) = timing.gpu_ns {
                 gpu_ms[i].push(ns as f64 / 1e6);
@@ -309,8 +315,8 @@ fn main() {
         gpu.info.name
     );
     println!(
-        "{:<32} {:>14} {:>14}",
-        "configuration", "frame p50 ms", "GPU p50 ms"
+        "{:<32} {:>14} {:>14} {:>14}",
+        "configuration", "frame p50 ms", "GPU p50 ms", "HUD CPU p50 ms"
     );
     if !deform_ms.is_empty() {
         println!(
@@ -321,11 +327,17 @@ fn main() {
         );
     }
     for (i, (name, _, _)) in configs.iter().enumerate() {
+        let cpu = if hud_cpu[i].is_empty() {
+            String::new()
+        } else {
+            format!("{:.2}", median(hud_cpu[i].clone()))
+        };
         println!(
-            "{:<32} {:>14.2} {:>14.2}",
+            "{:<32} {:>14.2} {:>14.2} {:>14}",
             name,
             median(wall[i].clone()),
-            median(gpu_ms[i].clone())
+            median(gpu_ms[i].clone()),
+            cpu
         );
     }
 }
