@@ -8,7 +8,8 @@
 //! what the renderer spends) and the median GPU time from timestamp queries where the adapter has
 //! them (lavapipe does).
 //!
-//! Run: `cargo bench -p lungdyn-bench --bench render_looks` (`-- --frames N`, `-- --stereo`).
+//! Run: `cargo bench -p lungdyn-bench --bench render_looks` (`-- --frames N`, `-- --stereo`,
+//! `-- --only WORDS`: the configurations whose name contains WORDS).
 
 use glam::{Mat3, Quat, Vec3};
 use ipc_types::Pose;
@@ -104,6 +105,11 @@ fn main() {
         .and_then(|s| s.parse().ok())
         .unwrap_or(60usize);
     let stereo = args.iter().any(|a| a == "--stereo");
+    let only = args
+        .iter()
+        .position(|a| a == "--only")
+        .and_then(|i| args.get(i + 1))
+        .cloned();
     let Some(gpu) = Gpu::for_tests() else { return };
     let scene = Scene::default();
     eprintln!(
@@ -199,10 +205,11 @@ fn main() {
         )
     })
     .collect();
-    // The HUD's cost: the lavapipe default (opaque, MSAA off) and the lobes colour mode, each
-    // with and without it.
+    // The HUD's cost: the lavapipe default (opaque, MSAA off), the lobes colour mode and
+    // everything on (translucent, MSAA 4×: the 60 fps goal), each with and without it.
     let mut configs = configs;
     let opaque_off = configs[0].1.clone();
+    let everything = configs[3].1.clone();
     let lobes = RenderScene {
         color: ColorMode::Lobes,
         ..opaque_off.clone()
@@ -211,7 +218,11 @@ fn main() {
         ("opaque + HUD, MSAA off", opaque_off, true),
         ("lobes colour, MSAA off", lobes.clone(), false),
         ("lobes colour + HUD, MSAA off", lobes, true),
+        ("translucent + HUD, MSAA 4x", everything, true),
     ]);
+    if let Some(only) = &only {
+        configs.retain(|(name, _, _)| name.contains(only.as_str()));
+    }
     let renderers: Vec<LungRenderer> = configs
         .iter()
         .map(|(_, r, _)| LungRenderer::new(&gpu, r, &lungs).expect("upload"))
@@ -238,50 +249,62 @@ fn main() {
             })
         })
         .collect();
-    let draw = |r: &LungRenderer, hud: &mut Option<Hud>, s: &DrawState, k: usize| {
-        let Some(hud) = hud.as_mut() else {
-            return r.render(&gpu, s, false);
+    // CPU time of the HUD's encode (formatting, shaping, glyphon's prepare, its pass recorded),
+    // per configuration with a HUD.
+    let mut hud_cpu = vec![Vec::with_capacity(frames); configs.len()];
+    let draw =
+        |r: &LungRenderer, hud: &mut Option<Hud>, s: &DrawState, k: usize, cpu: &mut Vec<f64>| {
+            let Some(hud) = hud.as_mut() else {
+                return r.render(&gpu, s, false);
+            };
+            let frame = engine_frame(k, frames);
+            let shown = HudFrame {
+                frame: &frame,
+                tracker: None,
+                warning: Default::default(),
+                cpu_ns: 2_500_000,
+                gpu_ns: Some(11_000_000),
+                latency_ns: Some(9_000_000),
+                outcome: Some((
+                    "needle decompression, left, applied 01:02 — air venting",
+                    renderer::hud::text::Standing::Done,
+                )),
+            };
+            r.render_with_overlay(
+                &gpu,
+                s,
+                false,
+                |encoder, target, eyes| {
+                    let t = std::time::Instant::now();
+                    hud.encode(&gpu.device, &gpu.queue, encoder, target, eyes, &shown);
+                    cpu.push(t.elapsed().as_secs_f64() * 1e3);
+                },
+                |_| {},
+            )
         };
-        let frame = engine_frame(k, frames);
-        let shown = HudFrame {
-            frame: &frame,
-            tracker: None,
-            warning: Default::default(),
-            cpu_ns: 2_500_000,
-            gpu_ns: Some(11_000_000),
-            latency_ns: Some(9_000_000),
-            outcome: Some((
-                "needle decompression, left, applied 01:02 — air venting",
-                renderer::hud::text::Standing::Done,
-            )),
-        };
-        r.render_with_overlay(
-            &gpu,
-            s,
-            false,
-            |encoder, target, eyes| {
-                hud.encode(&gpu.device, &gpu.queue, encoder, target, eyes, &shown)
-            },
-            |_| {},
-        )
-    };
     let mut wall = vec![Vec::with_capacity(frames); configs.len()];
     let mut gpu_ms = vec![Vec::with_capacity(frames); configs.len()];
     // Warm up every pipeline, then interleave: frame k of every configuration, then frame k + 1.
     for (r, hud) in renderers.iter().zip(huds.iter_mut()) {
-        draw(r, hud, &state(0.0), 0);
+        draw(r, hud, &state(0.0), 0, &mut Vec::new());
     }
     for k in 0..frames {
         let s = state(40.0 * (k as f32 / frames as f32));
         for (i, (r, hud)) in renderers.iter().zip(huds.iter_mut()).enumerate() {
             let t = std::time::Instant::now();
-            let timing = draw(r, hud, &s, k);
+            let timing = draw(r, hud, &s, k, &mut hud_cpu[i]);
             wall[i].push(t.elapsed().as_secs_f64() * 1e3);
             if let Some(ns) = timing.gpu_ns {
                 gpu_ms[i].push(ns as f64 / 1e6);
             }
         }
     }
+    // The deformation alone (its compute pass, from timestamps): the part of every row above
+    // that is not drawing.
+    let deform_ms: Vec<f64> = (0..frames)
+        .filter_map(|k| renderers[0].time_deform(&gpu, &state(40.0 * (k as f32 / frames as f32))))
+        .map(|ns| ns as f64 / 1e6)
+        .collect();
     let (w, h) = renderers[0].image_size();
     println!(
         "{} x {} ({}), {} frames each on {}",
@@ -292,15 +315,29 @@ fn main() {
         gpu.info.name
     );
     println!(
-        "{:<32} {:>14} {:>14}",
-        "configuration", "frame p50 ms", "GPU p50 ms"
+        "{:<32} {:>14} {:>14} {:>14}",
+        "configuration", "frame p50 ms", "GPU p50 ms", "HUD CPU p50 ms"
     );
-    for (i, (name, _, _)) in configs.iter().enumerate() {
+    if !deform_ms.is_empty() {
         println!(
-            "{:<32} {:>14.2} {:>14.2}",
+            "{:<32} {:>14} {:>14.2}",
+            "deformation only (compute)",
+            "",
+            median(deform_ms)
+        );
+    }
+    for (i, (name, _, _)) in configs.iter().enumerate() {
+        let cpu = if hud_cpu[i].is_empty() {
+            String::new()
+        } else {
+            format!("{:.2}", median(hud_cpu[i].clone()))
+        };
+        println!(
+            "{:<32} {:>14.2} {:>14.2} {:>14}",
             name,
             median(wall[i].clone()),
-            median(gpu_ms[i].clone())
+            median(gpu_ms[i].clone()),
+            cpu
         );
     }
 }

@@ -426,8 +426,14 @@ impl LungRenderer {
     }
 
     /// The HMD pose that shows the lungs from the front of the patient registered at `patient`
-    /// ([`record::front_view`]); `None` without lungs.
+    /// ([`record::front_view`]) in [`record::FRONT_VIEW_BAND`]; `None` without lungs.
     pub fn front_view(&self, patient: &Pose) -> Option<Pose> {
+        self.front_view_in(patient, record::FRONT_VIEW_BAND)
+    }
+
+    /// As [`Self::front_view`], the lungs' box in `band` of the image's height (fractions from
+    /// its top: what the heads-up display leaves clear, [`hud::Hud::lungs_band`]).
+    pub fn front_view_in(&self, patient: &Pose, band: (f32, f32)) -> Option<Pose> {
         let b = self.lung_box?;
         let aspect = self.eye_width as f32 / self.height as f32;
         Some(record::front_view(
@@ -435,6 +441,7 @@ impl LungRenderer {
             b,
             self.settings.fov_y_deg,
             aspect,
+            band,
         ))
     }
 
@@ -659,8 +666,9 @@ impl LungRenderer {
 
     /// Record the draw phases ([`draw`]) for `eyes` eyes: opaque, translucent, overlay. The opaque
     /// and see-through looks take one render pass; the translucent look three (the opaque phase,
-    /// the OIT targets, their composite). The last pass resolves the multisampled image and writes
-    /// the end timestamp.
+    /// the OIT targets, their composite). The opaque phase's pass resolves the multisampled image
+    /// (the translucent look's composite blends over the resolved image: see `draw::composite`);
+    /// the last pass writes the end timestamp.
     fn encode_phases(&self, encoder: &mut wgpu::CommandEncoder, warning: PoseWarning, eyes: usize) {
         let look = self.settings.look;
         let translucent = self.oit.as_ref().zip(self.draw.composite.as_ref());
@@ -677,14 +685,14 @@ impl LungRenderer {
                     end_of_pass_write_index: Some(1),
                 })
         };
-        let colour = |load, last: bool| {
+        let colour = |load| {
             Some(wgpu::RenderPassColorAttachment {
                 view: target,
                 depth_slice: None,
-                resolve_target: if last { resolve } else { None },
+                resolve_target: resolve,
                 ops: wgpu::Operations {
                     load,
-                    store: if last && resolve.is_some() {
+                    store: if resolve.is_some() {
                         wgpu::StoreOp::Discard
                     } else {
                         wgpu::StoreOp::Store
@@ -696,7 +704,7 @@ impl LungRenderer {
         {
             let mut pass = encoder.begin_render_pass(&wgpu::RenderPassDescriptor {
                 label: Some("lungdyn opaque"),
-                color_attachments: &[colour(wgpu::LoadOp::Clear(warning.background(look)), last)],
+                color_attachments: &[colour(wgpu::LoadOp::Clear(warning.background(look)))],
                 depth_stencil_attachment: Some(wgpu::RenderPassDepthStencilAttachment {
                     view: &self.depth_view,
                     depth_ops: Some(wgpu::Operations {
@@ -754,7 +762,15 @@ impl LungRenderer {
         }
         let mut pass = encoder.begin_render_pass(&wgpu::RenderPassDescriptor {
             label: Some("lungdyn composite"),
-            color_attachments: &[colour(wgpu::LoadOp::Load, true)],
+            color_attachments: &[Some(wgpu::RenderPassColorAttachment {
+                view: &self.color_view,
+                depth_slice: None,
+                resolve_target: None,
+                ops: wgpu::Operations {
+                    load: wgpu::LoadOp::Load,
+                    store: wgpu::StoreOp::Store,
+                },
+            })],
             depth_stencil_attachment: None,
             timestamp_writes: end_timestamp(),
             occlusion_query_set: None,

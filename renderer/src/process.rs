@@ -844,7 +844,13 @@ impl Session {
                 SnapshotView::Hmd => {}
                 SnapshotView::First => view = *self.snapshot_view.get_or_insert(self.hmd),
                 SnapshotView::Front => {
-                    if let Some(pose) = self.renderer.front_view(&state.patient) {
+                    // The lungs framed clear of the HUD, whether or not it is shown now (the H
+                    // key does not move the strip's viewpoint).
+                    let band = self
+                        .hud
+                        .as_ref()
+                        .map_or(crate::record::FRONT_VIEW_BAND, |h| h.lungs_band());
+                    if let Some(pose) = self.renderer.front_view_in(&state.patient, band) {
                         view = pose;
                     }
                 }

@@ -54,34 +54,58 @@ impl BreathPlan {
     }
 }
 
-/// Fraction of the image's height (or width, whichever binds) the lungs' box fills in the
+/// Most of the image's height (or width, whichever binds) the lungs' box fills in the
 /// [`front_view`], at its anterior face.
 pub const FRONT_VIEW_FILL: f32 = 0.55;
-/// Where the top of the lungs' box sits in the [`front_view`], as a fraction of the image's height
-/// from its top: just below the HUD's panel and PV loop (which end about a third of the way down).
-pub const FRONT_VIEW_TOP: f32 = 0.34;
+/// The band of the image (fractions of its height from the top) the [`front_view`] puts the lungs'
+/// box in without a heads-up display to leave room for: below where a panel and PV loop end at
+/// mid sizes (about a third of the way down). With a HUD, its own band is used
+/// ([`crate::hud::Hud::lungs_band`]), which grows the top at small sizes.
+pub const FRONT_VIEW_BAND: (f32, f32) = (0.34, 0.89);
 
 /// The HMD pose that looks at the lungs from the front of the patient (from anterior, head up in
 /// the image), far enough that the lungs' box fills [`FRONT_VIEW_FILL`] of the image's height (or
-/// width), its top [`FRONT_VIEW_TOP`] of the way down: `model` is the body → room matrix, `(lo, hi)`
-/// the lungs' box in the body frame (+Y anterior, +Z superior).
-pub fn front_view(model: Mat4, (lo, hi): (Vec3, Vec3), fov_y_deg: f32, aspect: f32) -> Pose {
+/// width), or less where `band` is narrower, centred in `band` (fractions of the image's height
+/// from its top, e.g. [`FRONT_VIEW_BAND`]: what a HUD leaves clear): `model` is the body → room
+/// matrix, `(lo, hi)` the lungs' box in the body frame (+Y anterior, +Z superior).
+pub fn front_view(
+    model: Mat4,
+    (lo, hi): (Vec3, Vec3),
+    fov_y_deg: f32,
+    aspect: f32,
+    band: (f32, f32),
+) -> Pose {
     let centre = (lo + hi) * 0.5;
     let size = hi - lo;
     let t = (fov_y_deg.to_radians() * 0.5).tan().max(1e-3);
+    let (top, bottom) = if band.0.is_finite() && band.1.is_finite() && band.1 > band.0 {
+        (band.0.clamp(0.0, 1.0), band.1.clamp(0.0, 1.0))
+    } else {
+        FRONT_VIEW_BAND
+    };
+    // 6 % of the band spare: the box's corners behind its anterior face, seen from an eye aimed
+    // above the centre, reach a little past the face's outline.
+    let fill = FRONT_VIEW_FILL.min(0.94 * (bottom - top)).max(0.05);
     // Half the visible height at the box's anterior face, for the box's height (or width, by the
-    // aspect) to fill FRONT_VIEW_FILL of the image: the panel and the PV loop sit above them.
-    let half_height =
-        (size.z / (2.0 * FRONT_VIEW_FILL)).max(size.x / (2.0 * FRONT_VIEW_FILL * aspect.max(1e-3)));
+    // aspect) to fill `fill` of the image.
+    let half_height = (size.z / (2.0 * fill)).max(size.x / (2.0 * fill * aspect.max(1e-3)));
     let distance = half_height / t + size.y * 0.5;
     let (distance, half_height) = if distance.is_finite() && distance > 0.0 {
         (distance, half_height)
     } else {
         (1000.0, 0.0)
     };
-    // Aim above the lungs' centre so that the box's top lands FRONT_VIEW_TOP of the way down,
-    // below the HUD: the image centre is `size.z / 2 − (1 − 2·top)·half_height` above the centre.
-    let above = size.z * 0.5 - (1.0 - 2.0 * FRONT_VIEW_TOP) * half_height;
+    // The box's top, as a fraction of the image's height from its top: the box centred in the
+    // band (a box bound by its width is shorter than `fill`).
+    let box_h = if half_height > 0.0 {
+        size.z / (2.0 * half_height)
+    } else {
+        0.0
+    };
+    let box_top = top + (bottom - top - box_h).max(0.0) * 0.5;
+    // Aim above the lungs' centre so that the box's top lands `box_top` of the way down: the
+    // image centre is `size.z / 2 − (1 − 2·box_top)·half_height` above the centre.
+    let above = size.z * 0.5 - (1.0 - 2.0 * box_top) * half_height;
     let target = model.transform_point3(centre + Vec3::Z * above);
     let eye = model.transform_point3(centre + Vec3::Y * distance);
     let up_room = model.transform_vector3(Vec3::Z).normalize_or(Vec3::Z);
@@ -176,7 +200,7 @@ mod tests {
             _pad: 0,
         };
         let model = crate::camera::Rig::default().model(&patient);
-        let pose = front_view(model, (lo, hi), 60.0, 4.0 / 3.0);
+        let pose = front_view(model, (lo, hi), 60.0, 4.0 / 3.0, FRONT_VIEW_BAND);
         let mesh = &lungs[if side == Side::Right { 0 } else { 1 }];
         let centroid = mesh.positions.iter().map(|p| Vec3::from(*p)).sum::<Vec3>()
             / mesh.positions.len() as f32;
@@ -216,7 +240,7 @@ mod tests {
             Vec3::new(-150.0, -100.0, -120.0),
             Vec3::new(150.0, 100.0, 130.0),
         );
-        let pose = front_view(model, boxed, 60.0, 16.0 / 9.0);
+        let pose = front_view(model, boxed, 60.0, 16.0 / 9.0, FRONT_VIEW_BAND);
         let eye = Vec3::from(pose.translation_mm);
         // Above the patient (room up), looking down at the chest, the head at the image's top.
         assert!(eye.z > 1300.0, "{eye}");
@@ -227,7 +251,7 @@ mod tests {
         assert!(up.x > 0.95, "head (room +X) is up: {up}");
         assert!((q.length() - 1.0).abs() < 1e-5);
         // A degenerate box still gives a finite pose.
-        let p = front_view(model, (Vec3::ZERO, Vec3::ZERO), 60.0, 1.0);
+        let p = front_view(model, (Vec3::ZERO, Vec3::ZERO), 60.0, 1.0, (f32::NAN, 0.5));
         assert!(p.is_finite());
     }
 }

@@ -71,18 +71,6 @@ fn render_hud(
     edit(&mut lungs);
     let r = LungRenderer::new(&gpu, &scene.render, &lungs).unwrap();
     let patient = supine();
-    let state = DrawState {
-        deform_scale: [0.0; 2],
-        offset_mm: [[0.0; 3]; 2],
-        collapse: [0.0; 2],
-        hilum_mm: [[0.0; 3]; 2],
-        coeffs: [[0.0; ipc_types::MAX_COEFFS]; 2],
-        patient,
-        hmd: r.front_view(&patient).unwrap(),
-        pose_warning: warning,
-    };
-    r.render(&gpu, &state, true);
-    let plain = r.read_image(&gpu).unwrap();
     let (w, h) = r.image_size();
     let eyes = if scene.render.stereo { 2 } else { 1 };
     let mut hud = Hud::new(
@@ -93,6 +81,19 @@ fn render_hud(
         h,
         eyes,
     );
+    let state = DrawState {
+        deform_scale: [0.0; 2],
+        offset_mm: [[0.0; 3]; 2],
+        collapse: [0.0; 2],
+        hilum_mm: [[0.0; 3]; 2],
+        coeffs: [[0.0; ipc_types::MAX_COEFFS]; 2],
+        patient,
+        // Framed as strips and recordings are: clear of the HUD.
+        hmd: r.front_view_in(&patient, hud.lungs_band()).unwrap(),
+        pose_warning: warning,
+    };
+    r.render(&gpu, &state, true);
+    let plain = r.read_image(&gpu).unwrap();
     let frame = engine_frame();
     let shown = HudFrame {
         frame: &frame,
@@ -106,7 +107,7 @@ fn render_hud(
     if let Ok(dir) = std::env::var("LUNGDYN_HUD_TEST_PNG") {
         // For a look at what the test saw.
         let _ = std::fs::create_dir_all(&dir);
-        let _ = plain.save(format!("{dir}/plain_{}.png", scene.render.stereo));
+        let _ = plain.save(format!("{dir}/plain_{w}x{h}_{}.png", scene.render.stereo));
     }
     let mut layout = [None; 2];
     r.render_with_overlay(
@@ -336,17 +337,17 @@ fn a_long_outcome_line_wraps_inside_the_panel_at_480_px_and_below() {
         scene.lungs.vertices = 2000;
         scene.render.width = w;
         scene.render.height = h;
-        let Some((plain, hud)) = render_pair_with(&scene, PoseWarning::None, outcome, |_| {})
+        let Some((plain, hud, layout)) = render_hud(&scene, PoseWarning::None, outcome, |_| {})
         else {
             return;
         };
-        // The panel's geometry (renderer/src/hud): font h/40 px (at least 11), margin 0.9 font,
-        // the PV box 22 % of the width (at least 80 px) at the right; the panel from half a
-        // margin to 1.5 margins before the PV box.
-        let font = (h as f32 / 40.0).clamp(11.0, 40.0);
+        // The panel's geometry as the HUD laid it out (renderer/src/hud): the panel and the PV
+        // box, font h/40 px (at least 11, 10 in the compact HUD below 400 × 300).
+        let e = layout[0].unwrap();
+        let font = (h as f32 / 40.0).clamp(if h < 300 { 10.0 } else { 11.0 }, 40.0);
         let m = (font * 0.9).round();
-        let pv_x = w as f32 - m - (w as f32 * 0.22).clamp(80.0, 320.0);
-        let panel_right = m * 0.5 + (pv_x - m * 1.5).min(font * 48.0);
+        let pv_x = e.pv.x;
+        let panel_right = e.panel.x + e.panel.w;
         // The outcome is the panel's fourth row (below the disease line, green too when none).
         let outcome_top = m + font * 1.3 * 3.0 - 1.0;
         let green: Vec<(u32, u32)> = hud
@@ -381,13 +382,14 @@ fn a_long_outcome_line_wraps_inside_the_panel_at_480_px_and_below() {
     }
 }
 
-/// The anchored labels (R, L, the head and feet cues) never cover the panel, the PV loop or the
-/// lobe legend, and stay inside their eye, mono and stereo, from 320 × 240 up: at 480 × 360 the
-/// head cue's anchor above the apices projects onto the panel, so it is moved beside or below it.
-/// Every label whose anchor is on screen is still shown (there is room for each at these sizes).
-#[test]
-fn anchored_labels_never_overlap_the_panels() {
-    for (w, h) in [(320u32, 240u32), (480, 360), (640, 480), (1280, 720)] {
+/// Render the front view with the HUD at each of `sizes`, mono and stereo, in tissue and lobes
+/// colour, and call `check` with where it was (for messages), the image without the HUD, each
+/// eye's layout and the colour mode; `false` when there is no GPU (nothing checked).
+fn at_every_size(
+    sizes: &[(u32, u32)],
+    mut check: impl FnMut(&str, &image::RgbaImage, &EyeLayout, lung_model::scene::ColorMode),
+) -> bool {
+    for &(w, h) in sizes {
         for stereo in [false, true] {
             for color in [
                 lung_model::scene::ColorMode::Tissue,
@@ -399,40 +401,132 @@ fn anchored_labels_never_overlap_the_panels() {
                 scene.render.height = h;
                 scene.render.stereo = stereo;
                 scene.render.color = color;
-                let Some((_, _, layout)) = render_hud(&scene, PoseWarning::None, OUTCOME, |_| {})
+                let Some((plain, _, layout)) =
+                    render_hud(&scene, PoseWarning::None, OUTCOME, |_| {})
                 else {
-                    return;
+                    return false;
                 };
                 let eyes = if stereo { 2 } else { 1 };
                 assert_eq!(layout.iter().flatten().count(), eyes);
                 for (i, e) in layout.iter().flatten().enumerate() {
                     let at = format!("{w}x{h} {color:?} stereo {stereo} eye {i}");
-                    assert_eq!(
-                        e.legend.is_some(),
-                        color == lung_model::scene::ColorMode::Lobes
-                    );
-                    // The front view shows both lungs: all four labels have room.
-                    for (k, name) in ["R", "L", "head", "feet"].iter().enumerate() {
-                        let label = e.labels[k].unwrap_or_else(|| panic!("{at}: no {name}"));
-                        assert!(
-                            e.eye.contains(&label),
-                            "{at}: {name} {label:?} leaves the eye"
-                        );
-                        for (part, r) in [
-                            ("panel", Some(e.panel)),
-                            ("PV loop", Some(e.pv)),
-                            ("legend", e.legend),
-                        ] {
-                            if let Some(r) = r {
-                                assert!(
-                                    !label.overlaps(&r),
-                                    "{at}: {name} {label:?} overlaps the {part} {r:?}"
-                                );
-                            }
-                        }
-                    }
+                    check(&at, &plain, e, color);
                 }
             }
         }
     }
+    true
+}
+
+/// The anchored labels (R, L, the head and feet cues) never cover the panel, the PV loop or the
+/// lobe legend, and stay inside their eye, mono and stereo, from 320 × 240 up: at 480 × 360 the
+/// head cue's anchor above the apices projects onto the panel, so it is moved beside or below it.
+/// Every label whose anchor is on screen is still shown (there is room for each at these sizes).
+#[test]
+fn anchored_labels_never_overlap_the_panels() {
+    let sizes = [(320u32, 240u32), (480, 360), (640, 480), (1280, 720)];
+    at_every_size(&sizes, |at, _, e, color| {
+        assert_eq!(
+            e.legend.is_some(),
+            color == lung_model::scene::ColorMode::Lobes
+        );
+        // The front view shows both lungs: all four labels have room.
+        for (k, name) in ["R", "L", "head", "feet"].iter().enumerate() {
+            let label = e.labels[k].unwrap_or_else(|| panic!("{at}: no {name}"));
+            assert!(
+                e.eye.contains(&label),
+                "{at}: {name} {label:?} leaves the eye"
+            );
+            for (part, r) in [
+                ("panel", Some(e.panel)),
+                ("PV loop", Some(e.pv)),
+                ("legend", e.legend),
+            ] {
+                if let Some(r) = r {
+                    assert!(
+                        !label.overlaps(&r),
+                        "{at}: {name} {label:?} overlaps the {part} {r:?}"
+                    );
+                }
+            }
+        }
+    });
+}
+
+/// At every size from 320 × 240 to 1920 × 1080, mono and stereo, in tissue and lobes colour (with
+/// the legend): every text block the HUD draws lies wholly inside what it is clipped to, so no
+/// text is cut off (the PV loop's title ran past its box and the eye's edge at 480 px and 1920 px
+/// wide, the right eye's panel past the eye's left edge in stereo); every part lies inside its
+/// eye; and the lungs, framed as strips and recordings frame them, are clear of the panel, the PV
+/// loop and the legend — neither their projected box nor any lung pixel lies under them (at
+/// 320 × 240 the panel covered the apices).
+#[test]
+fn the_hud_fits_every_size_without_clipped_text_or_covering_the_lungs() {
+    let sizes = [
+        (320u32, 240u32),
+        (480, 360),
+        (640, 480),
+        (960, 540),
+        (1280, 720),
+        (1920, 1080),
+    ];
+    at_every_size(&sizes, |at, plain, e, _| {
+        let background = *plain.get_pixel(0, 0);
+        let parts = [
+            ("panel", Some(e.panel)),
+            ("PV loop", Some(e.pv)),
+            ("legend", e.legend),
+        ];
+        for (part, r) in parts {
+            if let Some(r) = r {
+                assert!(e.eye.contains(&r), "{at}: the {part} {r:?} leaves the eye");
+            }
+        }
+        let mut drawn = 0;
+        for (k, t) in e.texts.iter().enumerate() {
+            let Some(t) = t else { continue };
+            drawn += 1;
+            // Half a pixel for the rounding of glyph positions.
+            let text = renderer::hud::Rect {
+                x: t.text.x + 0.5,
+                y: t.text.y + 0.5,
+                w: (t.text.w - 1.0).max(0.0),
+                h: (t.text.h - 1.0).max(0.0),
+            };
+            assert!(
+                t.text.w > 0.0 && t.clip.contains(&text),
+                "{at}: text block {k} {:?} is clipped by {:?}",
+                t.text,
+                t.clip
+            );
+            assert!(
+                e.eye.contains(&t.clip),
+                "{at}: block {k} {:?} leaves the eye",
+                t.clip
+            );
+        }
+        // The panel's lines (four in the compact HUD at 320 × 240), the PV title, the
+        // labels, and the legend in the lobes mode.
+        assert!(drawn >= 9, "{at}: {drawn} text blocks");
+        let lungs = e
+            .lungs
+            .unwrap_or_else(|| panic!("{at}: the lungs are off screen"));
+        assert!(
+            e.eye.contains(&lungs),
+            "{at}: lungs {lungs:?} leave the eye"
+        );
+        for (part, r) in parts {
+            let Some(r) = r else { continue };
+            assert!(
+                !lungs.overlaps(&r),
+                "{at}: lungs {lungs:?} under the {part} {r:?}"
+            );
+            let under = (r.x.floor() as u32..(r.x + r.w).ceil() as u32)
+                .flat_map(|x| (r.y.floor() as u32..(r.y + r.h).ceil() as u32).map(move |y| (x, y)))
+                .filter(|&(x, y)| x < plain.width() && y < plain.height())
+                .filter(|&(x, y)| *plain.get_pixel(x, y) != background)
+                .count();
+            assert_eq!(under, 0, "{at}: {under} lung pixels under the {part} {r:?}");
+        }
+    });
 }

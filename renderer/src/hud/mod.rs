@@ -145,8 +145,9 @@ const TRACKER: usize = 4;
 const TIMING: usize = 5;
 const KEYS: usize = 6;
 const PANEL_LINES: usize = 7;
-/// Most rows the outcome line wraps onto (the panel grows by the rows past the first).
-const OUTCOME_ROWS: usize = 4;
+/// Rows the lungs' framing leaves for the outcome line ([`Hud::lungs_band`]); a longer outcome
+/// wraps onto more and the panel grows.
+const OUTCOME_RESERVED_ROWS: usize = 2;
 /// Other text blocks.
 const LABEL_R: usize = 7;
 const LABEL_L: usize = 8;
@@ -156,7 +157,12 @@ const VEIL: usize = 11;
 const PV_TITLE: usize = 12;
 const LEGEND: usize = 13;
 const LOBE_WARNING: usize = 14;
-const BLOCKS: usize = 15;
+/// Text blocks the HUD draws (the panel's lines, then the others).
+pub const BLOCKS: usize = 15;
+/// Eyes smaller than this (width, or height) get the compact HUD: the panel keeps the volume, the
+/// breath phase, the disease and the outcome, and drops the tracker, frame-time and key-help lines
+/// so that the lungs keep half the picture (a stale or held pose still shows its veil).
+const COMPACT_BELOW: (u32, u32) = (400, 300);
 
 /// The HUD's GPU state: glyphon's atlas and renderer, the text blocks, the shapes pipeline.
 pub struct Hud {
@@ -179,8 +185,17 @@ pub struct Hud {
     height: u32,
     eyes: u32,
     font_px: f32,
-    /// Rows the outcome line took when last shaped (it wraps at the panel's width).
-    outcome_rows: usize,
+    /// In stereo, the half disparity that floats the HUD at [`HUD_DEPTH_MM`]: each eye's parts
+    /// are laid out this far inside both of its edges, then shifted by it.
+    inset: f32,
+    /// The compact HUD ([`COMPACT_BELOW`]).
+    compact: bool,
+    /// Per block, the rows and the widest row of its text when last shaped (every panel line and
+    /// the legend wrap at their box's width).
+    rows: [usize; BLOCKS],
+    widths: [f32; BLOCKS],
+    /// Panel rows the lungs' framing leaves room for.
+    reserved_rows: usize,
 }
 
 const WHITE: Color = Color::rgb(235, 238, 242);
@@ -247,6 +262,22 @@ pub struct EyeLayout {
     /// The backdrops of the anchored labels R, L, head and feet as shown: `None` for one whose
     /// anchor is off-screen or that finds no room clear of the panels.
     pub labels: [Option<Rect>; 4],
+    /// Each text block drawn in this eye ([`BLOCKS`], the panel's lines first): where its shaped
+    /// text lies and what it is clipped to; `None` for one not drawn.
+    pub texts: [Option<TextBox>; BLOCKS],
+    /// The lungs' boxes (each lung's rest box moved by its offset) projected into this eye: the
+    /// bounding rectangle of their corners, `None` when a corner is behind the eye or far off
+    /// screen.
+    pub lungs: Option<Rect>,
+}
+
+/// A text block as laid out in one eye.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct TextBox {
+    /// Where its shaped text lies: left, top, the widest row's width and its rows' height.
+    pub text: Rect,
+    /// What it is clipped to when drawn (its panel, box or backdrop).
+    pub clip: Rect,
 }
 
 /// Where an anchored label whose backdrop would be `want` goes: there if it lies in `area` and
@@ -307,8 +338,12 @@ impl Hud {
         let viewport = Viewport::new(device, &cache);
         let mut atlas = TextAtlas::new(device, queue, &cache, crate::draw::COLOR_FORMAT);
         let text = TextRenderer::new(&mut atlas, device, wgpu::MultisampleState::default(), None);
-        // Readable at the HMD's resolution: a 40th of the eye's height (18 px at 720).
-        let font_px = (height as f32 / 40.0).clamp(11.0, 40.0);
+        // Readable at the HMD's resolution: a 40th of the eye's height (18 px at 720), at least
+        // 11 px, 10 px in the compact HUD (its volume line then fits one row of a 320 px stereo
+        // eye's panel).
+        let compact = eye_width < COMPACT_BELOW.0 || height < COMPACT_BELOW.1;
+        let least = if compact { 10.0 } else { 11.0 };
+        let font_px = (height as f32 / 40.0).clamp(least, 40.0);
         let buffers = (0..BLOCKS)
             .map(|k| {
                 let size = match k {
@@ -317,10 +352,8 @@ impl Hud {
                     PV_TITLE => font_px * 0.8,
                     _ => font_px,
                 };
-                let mut b = Buffer::new(&mut font_system, Metrics::new(size, size * 1.25));
-                // One line each, never wrapped: what does not fit is clipped at its bounds.
-                b.set_size(None, Some(size * 1.6));
-                b
+                // Unbounded: the panel's lines and the legend are given their wrap width below.
+                Buffer::new(&mut font_system, Metrics::new(size, size * 1.25))
             })
             .collect();
         let module = device.create_shader_module(wgpu::ShaderModuleDescriptor {
@@ -387,18 +420,41 @@ impl Hud {
             height,
             eyes,
             font_px,
-            outcome_rows: 1,
+            inset: 0.0,
+            compact,
+            rows: [1; BLOCKS],
+            widths: [0.0; BLOCKS],
+            reserved_rows: 0,
         };
-        // The outcome line wraps at the panel's width rather than being clipped (a long reply on
-        // a 480 px eye).
-        let wrap_w = hud.panel_w() - hud.margin() * 1.5;
-        hud.buffers[OUTCOME].set_size(Some(wrap_w.max(1.0)), None);
+        if eyes == 2 {
+            hud.inset = text::half_disparity_px(
+                height,
+                hud.config.fov_y_deg,
+                hud.config.ipd_mm,
+                HUD_DEPTH_MM,
+            )
+            .clamp(0.0, eye_width as f32 * 0.1);
+        }
+        // Every panel line wraps at the panel's width rather than being clipped (a long reply or
+        // disease line on a 480 px eye); the phase word beside the bar.
+        let (panel_w, m) = (hud.panel_w(), hud.margin());
+        for k in 0..PANEL_LINES {
+            let w = if k == PHASE {
+                panel_w - 2.0 * m - hud.bar_w()
+            } else {
+                panel_w - m
+            };
+            hud.buffers[k].set_size(Some(w.max(1.0)), None);
+        }
+        let legend_w = (hud.content_w() - 2.0 * m).max(1.0);
+        for k in [LEGEND, LOBE_WARNING] {
+            hud.buffers[k].set_size(Some(legend_w), None);
+        }
         hud.lines[LABEL_R].push('R');
         hud.lines[LABEL_L].push('L');
         hud.lines[HEAD].push_str("▲ head");
         hud.lines[FEET].push_str("▼ feet");
-        hud.lines[PV_TITLE].push_str("PV loop  P → cmH2O, V ↑ ml");
-        hud.lines[KEYS].push_str(text::key_help(hud.config.interventions));
+        hud.choose_pv_title();
         hud.colors[LABEL_R] = CYAN;
         hud.colors[LABEL_L] = CYAN;
         hud.colors[HEAD] = CYAN;
@@ -408,7 +464,111 @@ impl Hud {
         hud.colors[PV_TITLE] = GREY;
         hud.colors[LOBE_WARNING] = AMBER;
         hud.set_lobe_legend();
+        hud.reserve_rows();
         hud
+    }
+
+    /// The PV loop's title: the longest of its wordings that fits the box at this size (the axes
+    /// named in full from about 1500 px wide, shorter below, "PV" alone at the smallest).
+    fn choose_pv_title(&mut self) {
+        let room = self.pv_box(0.0).2 - 8.0;
+        for title in [
+            "PV loop  P → cmH2O, V ↑ ml",
+            "PV  P → cmH2O, V ↑ ml",
+            "PV  P→cmH2O V↑ml",
+            "PV  P→ V↑",
+            "PV",
+        ] {
+            self.shape(PV_TITLE, title);
+            if self.widths[PV_TITLE] <= room {
+                break;
+            }
+        }
+    }
+
+    /// Shape block `k` with `text` (one set of attributes), recording its rows and width.
+    fn shape(&mut self, k: usize, text: &str) {
+        let b = &mut self.buffers[k];
+        b.set_text(
+            text,
+            &Attrs::new().family(Family::Name(FAMILY)),
+            Shaping::Basic,
+            None,
+        );
+        b.shape_until_scroll(&mut self.font_system, false);
+        self.measure(k);
+        self.lines[k].clear();
+        self.lines[k].push_str(text);
+        self.shaped[k].clear();
+        self.shaped[k].push_str(text);
+    }
+
+    /// Record block `k`'s rows and widest row from its shaped buffer.
+    fn measure(&mut self, k: usize) {
+        let (mut rows, mut w) = (0usize, 0.0f32);
+        for run in self.buffers[k].layout_runs() {
+            rows += 1;
+            w = w.max(run.line_w);
+        }
+        self.rows[k] = rows.max(1);
+        self.widths[k] = w;
+    }
+
+    /// The panel rows the lungs' framing leaves room for ([`Self::lungs_band`]): one per line
+    /// shown, the key help's and the disease line's longest wording (its kind and side, every lung
+    /// collapsed and held) as wrapped at this size, and [`OUTCOME_RESERVED_ROWS`] for an outcome.
+    fn reserve_rows(&mut self) {
+        let mut worst = EngineFrame::default();
+        for l in worst.lungs.iter_mut() {
+            l.flags = ipc_types::lung_flags::ACTIVE | ipc_types::lung_flags::HELD;
+            l.collapse = 1.0;
+        }
+        let disease = self.config.disease.clone();
+        let mut line = String::new();
+        text::disease_line(
+            &mut line,
+            disease.as_ref().map(|(k, s)| (k.as_str(), *s)),
+            &worst,
+        );
+        self.shape(DISEASE, &line);
+        let disease_rows = self.rows[DISEASE];
+        let keys = text::key_help(self.config.interventions);
+        self.shape(KEYS, keys);
+        self.reserved_rows = (0..PANEL_LINES)
+            .filter(|&k| self.shown(k))
+            .map(|k| match k {
+                DISEASE => disease_rows,
+                KEYS => self.rows[KEYS],
+                OUTCOME => OUTCOME_RESERVED_ROWS,
+                _ => 1,
+            })
+            .sum();
+    }
+
+    /// Whether panel line `k` is shown at this size (the compact HUD drops the tracker, the frame
+    /// time and the key help).
+    fn shown(&self, k: usize) -> bool {
+        !(self.compact && matches!(k, TRACKER | TIMING | KEYS))
+    }
+
+    /// The band of each eye's height (fractions from its top) clear of the HUD's panel, PV loop
+    /// and lobe legend, with a row below for the feet cue: where [`crate::LungRenderer::
+    /// front_view_in`] frames the lungs for strips and recordings. The panel counts its
+    /// reserved rows (one per line shown, two for an outcome), so the band is the same in every
+    /// frame.
+    pub fn lungs_band(&self) -> (f32, f32) {
+        let (lh, m, h) = (self.line_height(), self.margin(), self.height as f32);
+        let panel_bottom = m * 1.5 + lh * self.reserved_rows as f32;
+        let (_, py, _, ph) = self.pv_box(0.0);
+        let top = panel_bottom.max(py + ph) + m * 0.5;
+        let legend = self.legend_rows();
+        let bottom = if legend > 0 {
+            self.legend_top(legend)
+        } else {
+            h
+        } - m * 0.5
+            - lh;
+        (top / h, bottom / h)
     }
 
     /// The lobes colour mode's legend, shaped once: a square in each lobe's colour before its
@@ -428,7 +588,8 @@ impl Hud {
             let grey = lung_model::mesh::lobes::Lobe::Unknown.colour();
             spans.push(("■".into(), swatch(grey)));
             spans.push((format!(" {which}: no lobe data"), attrs.clone()));
-            self.lines[LOBE_WARNING] = text::lobe_warning(lungs).unwrap_or_default();
+            let warning = text::lobe_warning(lungs).unwrap_or_default();
+            self.shape(LOBE_WARNING, &warning);
         }
         let legend: String = spans.iter().map(|(t, _)| t.as_str()).collect();
         let b = &mut self.buffers[LEGEND];
@@ -439,6 +600,7 @@ impl Hud {
             None,
         );
         b.shape_until_scroll(&mut self.font_system, false);
+        self.measure(LEGEND);
         // Shaped once: the per-frame reshaping sees no change.
         self.lines[LEGEND].clone_from(&legend);
         self.shaped[LEGEND] = legend;
@@ -486,7 +648,7 @@ impl Hud {
         }
         // Reshape only what changed.
         for k in 0..BLOCKS {
-            if self.lines[k] != self.shaped[k] {
+            if self.shown(k) && self.lines[k] != self.shaped[k] {
                 let b = &mut self.buffers[k];
                 if k == VEIL {
                     // The veil's words fit the eye's width (monospace: 0.6 em per character).
@@ -503,9 +665,7 @@ impl Hud {
                     None,
                 );
                 b.shape_until_scroll(&mut self.font_system, false);
-                if k == OUTCOME {
-                    self.outcome_rows = b.layout_runs().count().clamp(1, OUTCOME_ROWS);
-                }
+                self.measure(k);
                 self.shaped[k].clone_from(&self.lines[k]);
             }
         }
@@ -546,24 +706,21 @@ impl Hud {
         }
     }
 
-    /// Panel origin and sizes of eye `i` (with its stereo shift).
+    /// Left edge of eye `i`'s HUD parts: [`Self::inset`] inside the eye, shifted by it in stereo
+    /// (the left eye's parts right, the right eye's left) so that both eyes' parts stay inside
+    /// their eye.
     fn eye_origin(&self, i: u32) -> f32 {
-        let shift = if self.eyes == 2 {
-            let d = text::half_disparity_px(
-                self.height,
-                self.config.fov_y_deg,
-                self.config.ipd_mm,
-                HUD_DEPTH_MM,
-            );
-            if i == 0 {
-                d
-            } else {
-                -d
-            }
-        } else {
-            0.0
+        let shift = match (self.eyes, i) {
+            (2, 0) => self.inset,
+            (2, _) => -self.inset,
+            _ => 0.0,
         };
-        (i * self.eye_width) as f32 + shift
+        (i * self.eye_width) as f32 + self.inset + shift
+    }
+
+    /// Width of each eye's HUD area (the eye less the stereo inset on both sides).
+    fn content_w(&self) -> f32 {
+        self.eye_width as f32 - 2.0 * self.inset
     }
 
     fn line_height(&self) -> f32 {
@@ -579,32 +736,49 @@ impl Hud {
         (self.pv_box(0.0).0 - self.margin() * 1.5).min(self.font_px * 48.0)
     }
 
-    /// Panel rows: one per line, the outcome's wrapped rows counted.
+    /// The breath-phase bar's width.
+    fn bar_w(&self) -> f32 {
+        self.panel_w() * 0.45
+    }
+
+    /// Panel rows: each line shown, as wrapped.
     fn panel_rows(&self) -> usize {
-        PANEL_LINES + self.outcome_rows - 1
+        (0..PANEL_LINES)
+            .filter(|&k| self.shown(k))
+            .map(|k| self.rows[k])
+            .sum()
     }
 
-    /// Top of panel line `k` (the lines after the outcome moved down by its extra rows).
+    /// Top of panel line `k` (below the rows of the lines shown before it).
     fn row_top(&self, k: usize) -> f32 {
-        let row = if k > OUTCOME {
-            k + self.outcome_rows - 1
-        } else {
-            k
-        };
-        self.margin() + self.line_height() * row as f32
+        let rows: usize = (0..k)
+            .filter(|&j| self.shown(j))
+            .map(|j| self.rows[j])
+            .sum();
+        self.margin() + self.line_height() * rows as f32
     }
 
-    /// The PV box of an eye at `ox`: (x, y, w, h).
+    /// Rows of the lobe legend: 0 (not the lobes mode), else its rows and its warning's, as
+    /// wrapped.
+    fn legend_rows(&self) -> usize {
+        [LEGEND, LOBE_WARNING]
+            .iter()
+            .filter(|&&k| !self.lines[k].is_empty())
+            .map(|&k| self.rows[k])
+            .sum()
+    }
+
+    /// Top of the lobe legend's backdrop of `rows` rows.
+    fn legend_top(&self, rows: usize) -> f32 {
+        self.height as f32 - self.margin() * 1.5 - self.line_height() * rows as f32
+    }
+
+    /// The PV box of an eye whose HUD area starts at `ox`: (x, y, w, h).
     fn pv_box(&self, ox: f32) -> (f32, f32, f32, f32) {
-        let w = (self.eye_width as f32 * 0.22).clamp(80.0, 320.0);
+        let w = (self.content_w() * 0.22).clamp(80.0, 320.0);
         let h = w * 0.7;
         let m = self.margin();
-        (
-            ox + self.eye_width as f32 - m - w,
-            m + self.line_height(),
-            w,
-            h,
-        )
+        (ox + self.content_w() - m - w, m + self.line_height(), w, h)
     }
 
     /// Where a body-frame point lands in eye `i` (pixels in the whole target), if in front of it.
@@ -658,26 +832,23 @@ impl Hud {
         out
     }
 
-    /// The backdrop of anchored label `k` (R, L, head, feet) centred on `p`: its text is centred
-    /// in it.
+    /// The backdrop of anchored label `k` (R, L, head, feet) centred on `p`: its shaped text with
+    /// a little room on each side, one row high.
     fn label_box(&self, k: usize, p: (f32, f32)) -> Rect {
-        let s = if k < 2 {
-            self.font_px
-        } else {
-            self.font_px * 0.7
-        };
-        let w = if k < 2 { s * 1.6 } else { s * 8.0 };
+        let block = LABEL_R + k;
+        let h = self.buffers[block].metrics().line_height;
+        let w = self.widths[block] + self.font_px * 0.6;
         Rect {
             x: p.0 - w * 0.5,
-            y: p.1 - s,
+            y: p.1 - h * 0.5,
             w,
-            h: s * 2.0,
+            h,
         }
     }
 
     /// Where this frame's HUD parts go in each eye drawn through `eyes`' cameras (`None` past the
-    /// HUD's eyes): the panels, and the anchored labels moved off them — a label projected onto
-    /// the panel (the head cue at 480 × 360) goes to the nearest clear place.
+    /// HUD's eyes): the panels, the text blocks, and the anchored labels moved off the panels — a
+    /// label projected onto the panel (the head cue at 480 × 360) goes to the nearest clear place.
     pub fn layout(&self, eyes: &[EyeUniform], frame: &EngineFrame) -> [Option<EyeLayout>; 2] {
         let anchors = self.anchors(frame);
         let mut out = [None; 2];
@@ -686,12 +857,64 @@ impl Hud {
             .enumerate()
             .take(self.eyes.min(eyes.len() as u32) as usize)
         {
-            *slot = Some(self.eye_layout(&eyes[i], i as u32, &anchors));
+            *slot = Some(self.eye_layout(&eyes[i], i as u32, &anchors, frame));
         }
         out
     }
 
-    fn eye_layout(&self, eye: &EyeUniform, i: u32, anchors: &[Option<Vec3>; 4]) -> EyeLayout {
+    /// The lungs' boxes (moved by their offsets) projected into eye `i`: the bounding rectangle
+    /// of their corners; `None` without lungs or when a corner does not project.
+    fn lungs_on_screen(&self, eye: &EyeUniform, i: u32, frame: &EngineFrame) -> Option<Rect> {
+        let (mut lo, mut hi) = (
+            (f32::INFINITY, f32::INFINITY),
+            (f32::NEG_INFINITY, f32::NEG_INFINITY),
+        );
+        let mut any = false;
+        for (k, b) in self.config.lung_boxes.iter().enumerate() {
+            let Some((a, c)) = *b else { continue };
+            let off = Vec3::from(frame.lungs[k].offset_mm);
+            let off = if off.is_finite() { off } else { Vec3::ZERO };
+            for corner in 0..8 {
+                let p = Vec3::new(
+                    if corner & 1 == 0 { a[0] } else { c[0] },
+                    if corner & 2 == 0 { a[1] } else { c[1] },
+                    if corner & 4 == 0 { a[2] } else { c[2] },
+                ) + off;
+                let (x, y) = self.project(eye, i, p)?;
+                lo = (lo.0.min(x), lo.1.min(y));
+                hi = (hi.0.max(x), hi.1.max(y));
+                any = true;
+            }
+        }
+        any.then_some(Rect {
+            x: lo.0,
+            y: lo.1,
+            w: hi.0 - lo.0,
+            h: hi.1 - lo.1,
+        })
+    }
+
+    /// Text block `k` at `(left, top)` clipped to `clip`: its shaped extent.
+    fn text_box(&self, k: usize, left: f32, top: f32, clip: Rect) -> TextBox {
+        let lh = self.buffers[k].metrics().line_height;
+        TextBox {
+            text: Rect {
+                x: left,
+                y: top,
+                w: self.widths[k],
+                h: lh * self.rows[k] as f32,
+            },
+            clip,
+        }
+    }
+
+    fn eye_layout(
+        &self,
+        eye: &EyeUniform,
+        i: u32,
+        anchors: &[Option<Vec3>; 4],
+        frame: &EngineFrame,
+    ) -> EyeLayout {
         let (lh, m) = (self.line_height(), self.margin());
         let ox = self.eye_origin(i);
         let area = Rect {
@@ -715,16 +938,11 @@ impl Hud {
         };
         let legend_rows = self.legend_rows();
         let legend = (legend_rows > 0).then(|| {
-            let chars = self.lines[LEGEND]
-                .chars()
-                .count()
-                .max(self.lines[LOBE_WARNING].chars().count());
-            let w = (chars as f32 * self.font_px * 0.6 + m).min(self.eye_width as f32 - m);
-            let top = self.height as f32 - m * 1.5 - lh * legend_rows as f32;
+            let w = self.widths[LEGEND].max(self.widths[LOBE_WARNING]) + m;
             Rect {
                 x: ox + m * 0.5,
-                y: top,
-                w,
+                y: self.legend_top(legend_rows),
+                w: w.min(self.content_w() - m),
                 h: lh * legend_rows as f32 + m,
             }
         });
@@ -735,12 +953,58 @@ impl Hud {
                 .and_then(|a| self.project(eye, i, a))
                 .and_then(|p| place_label(self.label_box(k, p), &obstacles, area, m * 0.25));
         }
+        let mut texts = [None; BLOCKS];
+        let bar_w = self.bar_w();
+        for (k, slot) in texts.iter_mut().enumerate().take(PANEL_LINES) {
+            if self.shown(k) {
+                let left = if k == PHASE {
+                    ox + m + bar_w + m
+                } else {
+                    ox + m
+                };
+                *slot = Some(self.text_box(k, left, self.row_top(k), panel));
+            }
+        }
+        texts[PV_TITLE] = Some(self.text_box(PV_TITLE, px + 4.0, py - lh * 0.9, pv));
+        if let Some(legend) = legend {
+            // The warning above the legend's row(s), both inside its backdrop.
+            let mut top = legend.y + m * 0.5;
+            for k in [LOBE_WARNING, LEGEND] {
+                if !self.lines[k].is_empty() {
+                    texts[k] = Some(self.text_box(k, ox + m, top, legend));
+                    top += lh * self.rows[k] as f32;
+                }
+            }
+        }
+        if !self.lines[VEIL].is_empty() {
+            let band = Rect {
+                x: area.x,
+                y: self.height as f32 * 0.5 - lh,
+                w: area.w,
+                h: lh * 2.0,
+            };
+            let w = self.widths[VEIL];
+            let left = area.x + (area.w - w).max(0.0) * 0.5;
+            let top = band.y + (band.h - self.buffers[VEIL].metrics().line_height) * 0.5;
+            texts[VEIL] = Some(self.text_box(VEIL, left, top, band));
+        }
+        for (k, label) in labels.iter().enumerate() {
+            if let Some(r) = label {
+                let block = LABEL_R + k;
+                let (cx, cy) = r.centre();
+                let lh = self.buffers[block].metrics().line_height;
+                let left = cx - self.widths[block] * 0.5;
+                texts[block] = Some(self.text_box(block, left, cy - lh * 0.5, *r));
+            }
+        }
         EyeLayout {
             eye: area,
             panel,
             pv,
             legend,
             labels,
+            texts,
+            lungs: self.lungs_on_screen(eye, i, frame),
         }
     }
 
@@ -760,9 +1024,7 @@ impl Hud {
         self.vertices.clear();
         let lh = self.line_height();
         let m = self.margin();
-        // The panel reaches to the PV loop's box (its longest line, an outcome, is clipped there).
-        let panel_w = self.panel_w();
-        let bar_w = panel_w * 0.45;
+        let bar_w = self.bar_w();
         let layouts = self.layout(eyes, f.frame);
         for (i, layout) in layouts.iter().enumerate() {
             let Some(layout) = layout else {
@@ -771,21 +1033,12 @@ impl Hud {
             let i = i as u32;
             let ox = self.eye_origin(i);
             // Veil text box across the middle.
-            if !self.lines[VEIL].is_empty() {
-                let y = self.height as f32 * 0.5 - lh;
-                self.push_rect(
-                    (
-                        (i * self.eye_width) as f32,
-                        y,
-                        self.eye_width as f32,
-                        lh * 2.0,
-                    ),
-                    linear(0, 0, 0, 0.55),
-                );
+            if let Some(veil) = layout.texts[VEIL] {
+                self.push_rect(veil.clip.tuple(), linear(0, 0, 0, 0.55));
             }
             self.push_rect(layout.panel.tuple(), linear(0, 0, 0, 0.45));
             // The breath-phase bar: inspiration part, expiration part, the current phase.
-            let (bx, by, bh) = (ox + m, m + lh * PHASE as f32 + lh * 0.2, lh * 0.6);
+            let (bx, by, bh) = (ox + m, self.row_top(PHASE) + lh * 0.2, lh * 0.6);
             match text::breath_phase(f.frame) {
                 Some((phase, _, split)) => {
                     self.push_rect((bx, by, bar_w * split, bh), linear(40, 90, 120, 0.9));
@@ -843,22 +1096,27 @@ impl Hud {
                 height: h,
             },
         );
-        let layout = self.text_layout(&layouts, panel_w, bar_w);
         let buffers = &self.buffers;
         let colors = self.colors;
-        let areas =
-            layout
-                .iter()
-                .flat_map(|row| row.iter().flatten())
-                .map(|&(k, left, top, bounds)| TextArea {
-                    buffer: &buffers[k],
-                    left,
-                    top,
-                    scale: 1.0,
-                    bounds,
-                    default_color: colors[k],
-                    custom_glyphs: &[],
-                });
+        let areas = layouts
+            .iter()
+            .flatten()
+            .flat_map(|l| l.texts.iter().enumerate())
+            .filter_map(|(k, t)| t.map(|t| (k, t)))
+            .map(|(k, t)| TextArea {
+                buffer: &buffers[k],
+                left: t.text.x,
+                top: t.text.y,
+                scale: 1.0,
+                bounds: TextBounds {
+                    left: t.clip.x.floor() as i32,
+                    top: t.clip.y.floor() as i32,
+                    right: (t.clip.x + t.clip.w).ceil() as i32,
+                    bottom: (t.clip.y + t.clip.h).ceil() as i32,
+                },
+                default_color: colors[k],
+                custom_glyphs: &[],
+            });
         // A glyph that does not fit the atlas is left out of this frame, never a failure.
         let _ = self.text.prepare(
             device,
@@ -894,86 +1152,6 @@ impl Hud {
             let _ = self.text.render(&self.atlas, &self.viewport, &mut pass);
         }
         self.atlas.trim();
-    }
-
-    /// Rows of the lobe legend: 0 (not the lobes mode), 1 (the legend) or 2 (and its warning).
-    fn legend_rows(&self) -> usize {
-        [LEGEND, LOBE_WARNING]
-            .iter()
-            .filter(|&&k| !self.lines[k].is_empty())
-            .count()
-    }
-
-    /// Where each text block goes in each eye: (block, left, top, clip bounds), at most
-    /// [`BLOCKS`] per eye (fixed array: no allocation).
-    #[allow(clippy::type_complexity)]
-    fn text_layout(
-        &self,
-        layouts: &[Option<EyeLayout>; 2],
-        panel_w: f32,
-        bar_w: f32,
-    ) -> [[Option<(usize, f32, f32, TextBounds)>; BLOCKS]; 2] {
-        let mut out = [[None; BLOCKS]; 2];
-        let lh = self.line_height();
-        let m = self.margin();
-        for (i, layout) in layouts.iter().enumerate() {
-            let Some(layout) = layout else {
-                continue;
-            };
-            let i = i as u32;
-            let bounds = TextBounds {
-                left: (i * self.eye_width) as i32,
-                top: 0,
-                right: ((i + 1) * self.eye_width) as i32,
-                bottom: self.height as i32,
-            };
-            let ox = self.eye_origin(i);
-            let row = &mut out[i as usize];
-            for (k, slot) in row.iter_mut().enumerate().take(PANEL_LINES) {
-                let left = if k == PHASE {
-                    ox + m + bar_w + m
-                } else {
-                    ox + m
-                };
-                let top = self.row_top(k);
-                let rows = if k == OUTCOME { self.outcome_rows } else { 1 };
-                let panel_bounds = TextBounds {
-                    right: bounds.right.min((ox + m * 0.5 + panel_w) as i32),
-                    bottom: (top + lh * rows as f32 + m * 0.5) as i32,
-                    ..bounds
-                };
-                *slot = Some((k, left, top, panel_bounds));
-            }
-            let (px, py, _, _) = self.pv_box(ox);
-            row[PV_TITLE] = Some((PV_TITLE, px + 4.0, py - lh * 0.9, bounds));
-            let mut bottom = self.height as f32 - m;
-            for k in [LEGEND, LOBE_WARNING] {
-                if !self.lines[k].is_empty() {
-                    bottom -= lh;
-                    row[k] = Some((k, ox + m, bottom, bounds));
-                }
-            }
-            if !self.lines[VEIL].is_empty() {
-                let w = self.lines[VEIL].chars().count() as f32
-                    * self.buffers[VEIL].metrics().font_size
-                    * 0.6;
-                let left = (i * self.eye_width) as f32 + (self.eye_width as f32 - w).max(0.0) * 0.5;
-                row[VEIL] = Some((VEIL, left, self.height as f32 * 0.5 - lh * 0.8, bounds));
-            }
-            for (k, block) in [LABEL_R, LABEL_L, HEAD, FEET].into_iter().enumerate() {
-                let Some(p) = layout.labels[k].map(|r| r.centre()) else {
-                    continue;
-                };
-                let size = if k < 2 {
-                    self.font_px * 1.6
-                } else {
-                    self.font_px
-                };
-                let w = self.lines[block].chars().count() as f32 * size * 0.6;
-                row[block] = Some((block, p.0 - w * 0.5, p.1 - size * 0.62, bounds));
-            }
-        }
-        out
     }
 }
 

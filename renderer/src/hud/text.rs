@@ -135,7 +135,7 @@ pub fn breathing_lung(frame: &EngineFrame) -> Option<usize> {
 }
 
 /// Total volume, total tidal volume (ml) and the followed lung's rate: "V 2650 ml  TV 500 ml
-/// 12 /min".
+/// 12 /min" (29 characters: one row of the compact HUD's panel at 320 px).
 pub fn volume_line(out: &mut String, frame: &EngineFrame, tick_hz: f64) {
     out.clear();
     let (mut v, mut tv) = (0.0f64, 0.0f64);
@@ -143,12 +143,12 @@ pub fn volume_line(out: &mut String, frame: &EngineFrame, tick_hz: f64) {
         v += l.volume_ml as f64;
         tv += l.tidal_ml as f64;
     }
-    let _ = write!(out, "V {v:4.0} ml   TV {tv:3.0} ml");
+    let _ = write!(out, "V {v:4.0} ml  TV {tv:3.0} ml");
     match breathing_lung(frame).and_then(|k| rate_per_min(frame.lungs[k].cycle_ticks, tick_hz)) {
         Some(r) => {
-            let _ = write!(out, "   {r:2.0} /min");
+            let _ = write!(out, "  {r:2.0} /min");
         }
-        None => out.push_str("   -- /min"),
+        None => out.push_str("  -- /min"),
     }
 }
 
@@ -622,14 +622,14 @@ mod tests {
         f.lungs[LUNG_LEFT] = lung(1250.0, 230.0, 300, 150, 0.25, lung_flags::INHALING);
         let mut s = String::new();
         volume_line(&mut s, &f, 60.0);
-        assert_eq!(s, "V 2650 ml   TV 500 ml   12 /min");
+        assert_eq!(s, "V 2650 ml  TV 500 ml  12 /min");
         assert_eq!(breath_phase(&f), Some((0.25, true, 0.5)));
         // A held right lung (tension): the left one's 40 /min is the rate shown.
         f.lungs[LUNG_RIGHT] = lung(900.0, 0.0, 300, 150, 0.0, lung_flags::HELD);
         f.lungs[LUNG_LEFT] = lung(1300.0, 420.0, 90, 30, 0.6, 0);
         assert_eq!(breathing_lung(&f), Some(LUNG_LEFT));
         volume_line(&mut s, &f, 60.0);
-        assert_eq!(s, "V 2200 ml   TV 420 ml   40 /min");
+        assert_eq!(s, "V 2200 ml  TV 420 ml  40 /min");
         assert_eq!(breath_phase(&f), Some((0.6, false, 1.0 / 3.0)));
         // Both held: no phase, the rate of the first.
         f.lungs[LUNG_LEFT].flags |= lung_flags::HELD;
@@ -637,7 +637,7 @@ mod tests {
         // No lung at all.
         let empty = EngineFrame::default();
         volume_line(&mut s, &empty, 60.0);
-        assert_eq!(s, "V    0 ml   TV   0 ml   -- /min");
+        assert_eq!(s, "V    0 ml  TV   0 ml  -- /min");
         assert_eq!(breath_phase(&empty), None);
         assert_eq!(rate_per_min(0, 60.0), None);
         assert_eq!(rate_per_min(300, 0.0), None);
