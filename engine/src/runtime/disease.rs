@@ -87,8 +87,9 @@ pub enum DiseaseRun {
     /// Applied once when the engine is built; on a ventilated scene with what the ventilator
     /// delivers (EQUATIONS §4.7).
     Closed(Vec<LungSetup>, Option<DeliveryLog>),
-    /// Tension pneumothorax.
-    Tension(TensionRun),
+    /// Tension pneumothorax (boxed: its run is by far the largest variant; the box is allocated
+    /// once, when the scene is built, and the tick only reads through it).
+    Tension(Box<TensionRun>),
     /// Tumour-influenced lung: applied once when the engine is built.
     Tumour(Box<TumourRun>),
 }
@@ -279,9 +280,9 @@ impl DiseaseRun {
                 params,
                 onset_s,
                 events,
-            } => Ok(DiseaseRun::Tension(TensionRun::prepare(
+            } => Ok(DiseaseRun::Tension(Box::new(TensionRun::prepare(
                 *params, *onset_s, events, normal, baselines, ventilator,
-            )?)),
+            )?))),
             DiseaseSpec::Tumour(t) => {
                 let lung = baselines.iter().find(|b| b.side == t.side).ok_or(
                     DiseaseError::MissingLung {
