@@ -12,6 +12,7 @@ use std::path::PathBuf;
 
 use anyhow::Context;
 use lung_model::disease::tension::{Outcome, Tension};
+use lung_model::disease::ventilated::Ventilator;
 use lung_model::disease::{LungBaseline, LungState, NormalBreathing};
 use lung_model::mesh::{Side, TriMesh};
 use lung_model::scene::Scene;
@@ -89,6 +90,9 @@ pub struct PvReport {
     pub waveform: Option<String>,
     /// Clean breaths of the recording averaged into the played breath.
     pub waveform_breaths_used: Option<usize>,
+    /// What the ventilator of a waveform scene holds fixed, and why (EQUATIONS §4.7).
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub waveform_control: Option<lung_model::scene::ControlChoice>,
     /// Functional residual capacity, ml.
     pub frc_ml: f64,
     /// Tidal volume, ml.
@@ -181,6 +185,9 @@ pub struct ClosedReport {
     pub phase_clamped: bool,
     /// Each lung.
     pub lungs: Vec<ClosedLung>,
+    /// On a ventilated scene: what the ventilator delivers.
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub delivery: Option<DeliveryReport>,
 }
 
 /// One lung of a closed pneumothorax's plan.
@@ -273,6 +280,24 @@ pub struct CycleReport {
     pub svc_closed: bool,
     /// Whether the patient is in arrest.
     pub arrest: bool,
+    /// On a ventilated scene: what the ventilator delivered this cycle.
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub delivery: Option<DeliveryReport>,
+}
+
+/// What a ventilator delivered in one cycle of a course on a recorded breath (EQUATIONS §4.7).
+#[derive(Debug, Clone, Copy, Serialize)]
+pub struct DeliveryReport {
+    /// `"volume"` or `"pressure"`: what the ventilator holds fixed.
+    pub control: &'static str,
+    /// Volume delivered to the simulated lungs per breath, ml.
+    pub delivered_ml: f64,
+    /// Against the recorded volume (1: all of it).
+    pub delivered_fraction: f64,
+    /// The breathing lungs' compliance against the recording's.
+    pub compliance_ratio: f64,
+    /// Volume control: the pressure limit ended the inspiration before the volume was delivered.
+    pub pressure_capped: bool,
 }
 
 /// One intervention: when it arrived, from which cycle it shows, what it did.
@@ -372,6 +397,7 @@ pub fn run(args: &CheckArgs) -> anyhow::Result<CheckReport> {
             constants: scene.pv.constants.as_ref().map(|p| p.display().to_string()),
             waveform: scene.pv.waveform.as_ref().map(|p| p.display().to_string()),
             waveform_breaths_used: waveform.as_ref().map(|w| w.breaths_used),
+            waveform_control: waveform.as_ref().map(|w| control_choice(w, &scene)),
             frc_ml,
             tidal_volume_ml: (tv_ml * 1000.0).round() / 1000.0,
             breaths_per_min: timing.breaths_per_min,
@@ -385,17 +411,6 @@ pub fn run(args: &CheckArgs) -> anyhow::Result<CheckReport> {
     let spec = scene
         .disease_spec()?
         .context("a [disease] table without a disease state")?;
-    // On a waveform scene the course runs on the recorded breath (EQUATIONS §4.7).
-    let recorded = scene
-        .waveform_breathing()
-        .with_context(|| format!("scene {}", out.scene))?;
-    let normal = lung_model::disease::ventilated::normal_breathing(
-        recorded.as_ref(),
-        scene.timing(),
-        inhale,
-        exhale,
-        boundary,
-    );
     let mut baselines = Vec::new();
     for &side in &scene.lungs.sides {
         let mesh = lung_mesh(&scene, side)?;
@@ -405,10 +420,22 @@ pub fn run(args: &CheckArgs) -> anyhow::Result<CheckReport> {
                 .with_context(|| format!("the {} lung's baseline", side.name()))?,
         );
     }
-    let ventilated = recorded.is_some();
+    // On a waveform scene the course runs on the recorded breath (EQUATIONS §4.7).
+    let ventilator = scene
+        .ventilator(&baselines)
+        .with_context(|| format!("scene {}", out.scene))?
+        .map(|(v, _)| v);
+    let normal = lung_model::disease::ventilated::normal_breathing(
+        ventilator.as_ref().map(|v| &v.recorded),
+        scene.timing(),
+        inhale,
+        exhale,
+        boundary,
+    );
+    let ventilated = ventilator.is_some();
     let detail = match &spec {
         DiseaseSpec::Closed(c) => {
-            DiseaseDetail::Closed(closed(c, &normal, &baselines, ventilated)?)
+            DiseaseDetail::Closed(closed(c, &normal, &baselines, ventilator.as_ref())?)
         }
         DiseaseSpec::Tension {
             params,
@@ -421,7 +448,7 @@ pub fn run(args: &CheckArgs) -> anyhow::Result<CheckReport> {
             &normal,
             &baselines,
             args.cycles,
-            ventilated,
+            ventilator.as_ref(),
         )?),
         DiseaseSpec::Tumour(t) => DiseaseDetail::Tumour(tumour(t, &scene, &normal, &baselines)?),
     };
@@ -432,6 +459,19 @@ pub fn run(args: &CheckArgs) -> anyhow::Result<CheckReport> {
         detail,
     });
     Ok(out)
+}
+
+/// The control mode of a waveform scene's ventilator; a contradiction of the recording is warned
+/// about on stderr (the report carries it too).
+fn control_choice(
+    w: &lung_model::recording::Waveform,
+    scene: &Scene,
+) -> lung_model::scene::ControlChoice {
+    let c = Scene::waveform_control(w, scene.pv.waveform_control);
+    if let Some(warning) = &c.warning {
+        eprintln!("warning: {warning}");
+    }
+    c
 }
 
 /// A tumour's report without baking: where its centre is, that it lies inside the lung, how many
@@ -481,14 +521,30 @@ fn tumour(
     })
 }
 
-/// A ventilated course's states: the delivered volume shared by the lungs that breathe (EQUATIONS
-/// §4.7), as the engine shares it.
-fn deliver(states: &mut [&mut LungState], lungs: &[LungBaseline], tv_ml: f64) {
-    use lung_model::disease::ventilated;
+/// A ventilated course's states: the ventilator's breath shared by the lungs that breathe (EQUATIONS
+/// §4.7), as the engine shares it; what was delivered.
+fn deliver(
+    states: &mut [&mut LungState],
+    ventilator: &Ventilator,
+) -> anyhow::Result<lung_model::disease::ventilated::Delivery> {
     let mut copy: Vec<LungState> = states.iter().map(|s| **s).collect();
-    ventilated::deliver(&mut copy, ventilated::delivered_ml(lungs, tv_ml));
-    for (s, d) in states.iter_mut().zip(copy) {
-        **s = d;
+    let (d, _) = ventilator
+        .deliver(&mut copy)
+        .context("the ventilated breath")?;
+    for (s, c) in states.iter_mut().zip(copy) {
+        **s = c;
+    }
+    Ok(d)
+}
+
+/// A delivery as the report shows it (figures to 0.001).
+fn delivery_report(d: lung_model::disease::ventilated::Delivery) -> DeliveryReport {
+    DeliveryReport {
+        control: d.control.name(),
+        delivered_ml: r3(d.delivered_ml),
+        delivered_fraction: r3(d.fraction),
+        compliance_ratio: r3(d.compliance_ratio),
+        pressure_capped: d.pressure_capped,
     }
 }
 
@@ -496,13 +552,14 @@ fn closed(
     c: &lung_model::disease::closed::ClosedPneumothorax,
     normal: &NormalBreathing,
     lungs: &[LungBaseline],
-    ventilated: bool,
+    ventilator: Option<&Ventilator>,
 ) -> anyhow::Result<ClosedReport> {
     let mut plan = c.plan(normal, lungs)?;
-    if ventilated {
-        // The ventilator's rate and I:E (the recording's), its volume shared by the lungs.
+    let mut delivery = None;
+    if let Some(v) = ventilator {
+        // The ventilator's rate and I:E (the recording's), its breath shared by the lungs.
         let mut states: Vec<&mut LungState> = plan.lungs.iter_mut().map(|l| &mut l.state).collect();
-        deliver(&mut states, lungs, normal.boundary.tv_ml);
+        delivery = Some(delivery_report(deliver(&mut states, v)?));
         plan.times = lung_model::disease::phase_times(&normal.timing, 0.0)?;
     }
     let tidal: f64 = plan.lungs.iter().map(|l| l.state.tidal_ml).sum();
@@ -530,6 +587,7 @@ fn closed(
         exhale_s: r3(plan.times.new_exhale_s),
         phase_clamped: plan.times.inhale_clamped || plan.times.exhale_clamped,
         lungs,
+        delivery,
     })
 }
 
@@ -540,7 +598,7 @@ fn tension(
     normal: &NormalBreathing,
     lungs: &[LungBaseline],
     cycles: u32,
-    ventilated: bool,
+    ventilator: Option<&Ventilator>,
 ) -> anyhow::Result<TensionReport> {
     let affected = *lungs
         .iter()
@@ -593,12 +651,13 @@ fn tension(
             pending.next();
         }
         let mut c = t.advance();
-        if ventilated {
-            // The ventilator's rate (the recording's), its volume shared by the lungs that breathe.
+        let mut delivery = None;
+        if let Some(v) = ventilator {
+            // The ventilator's rate (the recording's), its breath shared by the lungs that breathe.
             let mut states: Vec<&mut LungState> = std::iter::once(&mut c.affected)
                 .chain(c.unaffected.as_mut())
                 .collect();
-            deliver(&mut states, lungs, normal.boundary.tv_ml);
+            delivery = Some(delivery_report(deliver(&mut states, v)?));
             c.times = lung_model::disease::phase_times(&normal.timing, 0.0)?;
             c.timing = normal.timing;
         }
@@ -618,6 +677,7 @@ fn tension(
             minute_ventilation_l_per_min: r3(c.times.breaths_per_min() * tidal / 1000.0),
             svc_closed: c.svc_closed,
             arrest: c.arrest,
+            delivery,
         });
         prev_start = Some(tick);
         // A held lung (arrest) keeps the cycle length it had, as in the engine.
@@ -688,6 +748,14 @@ pub fn text(r: &CheckReport) -> String {
             "HMD optics: none (the scene's [render] ipd_mm, fov_y_deg, width and height)\n".into()
         }
     };
+    if let Some(c) = &r.pv.waveform_control {
+        s += &format!(
+            "ventilator: {} control (set by the {}; the recording: {})\n",
+            c.mode.name(),
+            c.set_by,
+            c.recording
+        );
+    }
     let Some(d) = &r.disease else {
         s += "no disease state: normal breathing\n";
         return s;
@@ -702,8 +770,10 @@ pub fn text(r: &CheckReport) -> String {
         }
     );
     if d.ventilated {
-        s += "  ventilated: the ventilator delivers the recorded breath at its rate; the lungs \
-              that breathe share it by compliance (EQUATIONS §4.7)\n";
+        s += "  ventilated: the ventilator gives the recorded breath at its rate (volume control: \
+              its volume, up to the pressure limit; pressure control: its pressure, the volume \
+              following the compliance); the lungs that breathe share it by compliance \
+              (EQUATIONS §4.7)\n";
     }
     match &d.detail {
         DiseaseDetail::Closed(c) => {
@@ -716,6 +786,9 @@ pub fn text(r: &CheckReport) -> String {
                 if c.phase_clamped { ", rate capped" } else { "" },
                 j(&c.minute_ventilation_l_per_min)
             );
+            if let Some(d) = &c.delivery {
+                s += &delivery_line(d);
+            }
             for l in &c.lungs {
                 let Some(index) = l.pneumothorax_index else {
                     s += &format!(
@@ -795,7 +868,7 @@ fn course_lines(t: &TensionReport) -> String {
             } else {
                 ""
             }
-        )
+        ) + &c.delivery.as_ref().map_or_else(String::new, |d| format!("  {}", delivery_line(d)))
     };
     let mut s = String::new();
     let first = |f: &dyn Fn(&CycleReport) -> bool| t.course.iter().find(|c| f(c));
@@ -820,6 +893,22 @@ fn course_lines(t: &TensionReport) -> String {
         }
     }
     s
+}
+
+/// What a ventilator delivered, in a line.
+fn delivery_line(d: &DeliveryReport) -> String {
+    format!(
+        "  {} control: {} ml delivered ({} of the recorded volume; compliance {} of the recording's){}\n",
+        d.control,
+        j(&d.delivered_ml),
+        j(&d.delivered_fraction),
+        j(&d.compliance_ratio),
+        if d.pressure_capped {
+            ", the pressure limit ends the inspiration"
+        } else {
+            ""
+        }
+    )
 }
 
 /// One line per intervention (tick, cycle, kind, side, outcome).
@@ -1076,6 +1165,10 @@ pub fn run_scene(args: &RunArgs) -> anyhow::Result<RunReport> {
         stage_counts: core.stage_counts(),
         kernels: prepared.kernels.iter().map(|k| k.path.clone()).collect(),
         disease: None,
+        ventilator: scene.pv_waveform()?.map(|w| RunVentilator {
+            control: control_choice(&w, &scene),
+            delivery: core.disease().and_then(|d| d.delivery()),
+        }),
     };
     if let Some(d) = &scene.disease {
         let mut disease = RunDisease {
@@ -1196,6 +1289,21 @@ pub struct RunReport {
     /// The disease state's figures (absent for normal breathing).
     #[serde(skip_serializing_if = "Option::is_none")]
     pub disease: Option<RunDisease>,
+    /// A `[pv] waveform` scene's ventilator: its control mode, why, and (with a disease) what it
+    /// delivered over the run (EQUATIONS §4.7). Absent without a waveform.
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub ventilator: Option<RunVentilator>,
+}
+
+/// A waveform scene's ventilator as the engine ran it.
+#[derive(Debug, Clone, Serialize)]
+pub struct RunVentilator {
+    /// The control mode and why.
+    #[serde(flatten)]
+    pub control: lung_model::scene::ControlChoice,
+    /// The disease course's deliveries (absent without a disease).
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub delivery: Option<lung_model::disease::ventilated::DeliveryLog>,
 }
 
 /// One lung of `scene run`.
@@ -1380,6 +1488,30 @@ pub fn run_text(r: &RunReport) -> String {
         }
         if let Some(t) = &d.tension {
             s += &event_lines(&t.events);
+        }
+    }
+    if let Some(v) = &r.ventilator {
+        s += &format!(
+            "  ventilator: {} control (set by the {}; the recording: {})\n",
+            v.control.mode.name(),
+            v.control.set_by,
+            v.control.recording
+        );
+        if let Some(d) = &v.delivery {
+            s += &format!(
+                "  delivered over {} cycles: at least {} of the recorded volume{}\n",
+                d.cycles,
+                d.lowest_fraction
+                    .map_or_else(|| "none".to_string(), |f| j(&r3(f))),
+                if d.pressure_capped_cycles > 0 {
+                    format!(
+                        "; the pressure limit capped {} cycles",
+                        d.pressure_capped_cycles
+                    )
+                } else {
+                    String::new()
+                }
+            );
         }
     }
     s += &format!("  stage counts: {}\n", j(&r.stage_counts));

@@ -793,6 +793,15 @@ def make_recordings():
       'side = "left"\nphi = 0.1\n')
     w("every_lung_collapsed", '[pv]\nwaveform = "rec_pb840_vc.csv"\n\n[disease]\n'
       'kind = "bilateral-pneumothorax"\nindex_left = 1.0\nindex_right = 1.0\n')
+    # What the ventilator holds fixed (EQUATIONS §4.7): the recording's classes decide, or
+    # [pv] waveform_control overrides them (warned about when it contradicts them).
+    w("pc_closed_pneumothorax", '[pv]\nwaveform = "rec_pc.csv"\n\n[disease]\nkind = "closed-pneumothorax"\n'
+      'side = "left"\nindex = 0.3\n')
+    w("control_contradicts", '[pv]\nwaveform = "rec_pb840_vc.csv"\nwaveform_control = "pressure"\n\n'
+      '[disease]\nkind = "closed-pneumothorax"\nside = "left"\nindex = 0.3\n')
+    w("control_unknown", '[pv]\nwaveform = "rec_pc.csv"\nwaveform_control = "sideways"\n')
+    w("control_not_a_string", '[pv]\nwaveform = "rec_pc.csv"\nwaveform_control = 1\n')
+    out("scene_waveform_control_without_waveform.toml", '[pv]\nwaveform_control = "pressure"\n')
 
 
 def main():

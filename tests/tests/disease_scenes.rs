@@ -137,6 +137,7 @@ fn every_shipped_scene_checks_and_a_pneumothorax_and_a_tumour_run() {
         "upright.toml",
         "ventilated_recording.toml",
         "ventilated_tension_pneumothorax.toml",
+        "ventilated_pc_pneumothorax.toml",
     ] {
         check(&scene(name));
     }
@@ -753,7 +754,38 @@ fn a_ventilated_tension_pneumothorax_keeps_the_delivered_volume() {
     }
     assert!(both > 100, "{both} cycles with both lungs breathing");
     assert_eq!(d["events"][0]["kind"], "needle-decompression", "{d}");
+    // The recording's breaths are volume-controlled, and the report says so; while the SVC is closed
+    // the pressure limit caps what is delivered, with the fraction stated.
+    let control = &v["pv"]["waveform_control"];
+    assert_eq!(control["mode"], "volume", "{control}");
+    assert_eq!(control["set_by"], "recording", "{control}");
+    assert!(control["warning"].is_null(), "{control}");
+    let capped: Vec<&serde_json::Value> = d["course"]
+        .as_array()
+        .unwrap()
+        .iter()
+        .filter(|c| c["delivery"]["pressure_capped"] == true)
+        .collect();
+    assert!(!capped.is_empty(), "no cycle capped by the pressure limit");
+    for c in &capped {
+        let f = c["delivery"]["delivered_fraction"].as_f64().unwrap();
+        let total =
+            c["affected_tidal_ml"].as_f64().unwrap() + c["other_tidal_ml"].as_f64().unwrap();
+        assert!(
+            f > 0.0 && f < 1.0 && (f * tv - total).abs() < 0.01 * tv,
+            "{c}"
+        );
+    }
     let r = scene_run("ventilated_tension_pneumothorax.toml", "200");
+    assert_eq!(r["ventilator"]["mode"], "volume", "{r}");
+    assert!(
+        r["ventilator"]["delivery"]["pressure_capped_cycles"]
+            .as_u64()
+            .unwrap()
+            > 0,
+        "{}",
+        r["ventilator"]
+    );
     assert_eq!(r["non_finite_frames"], 0);
     assert_eq!(r["stage_counts"]["pv_models_built"], 0, "{r}");
     assert_eq!(r["disease"]["events"][0]["outcome"], "Applied", "{r}");
@@ -761,5 +793,63 @@ fn a_ventilated_tension_pneumothorax_keeps_the_delivered_volume() {
         r["disease"]["first_arrest_cycle"].is_null(),
         "{}",
         r["disease"]
+    );
+}
+
+/// EQUATIONS §4.7, pressure control: the shipped pressure-controlled recording with a closed
+/// pneumothorax. `scene check` states the mode (from the recording's classes) and a delivered
+/// fraction below 1 and at least the compliance's; `scene run` plays a smaller breath than the
+/// recording and reports the same mode and fraction.
+#[test]
+fn a_pressure_controlled_recording_delivers_less_with_a_pneumothorax() {
+    let v = check(&scene("ventilated_pc_pneumothorax.toml"));
+    let control = &v["pv"]["waveform_control"];
+    assert_eq!(control["mode"], "pressure", "{control}");
+    assert_eq!(control["set_by"], "recording", "{control}");
+    assert!(
+        control["recording"]
+            .as_str()
+            .unwrap()
+            .contains("3 passive PC"),
+        "{control}"
+    );
+    let tv = v["pv"]["tidal_volume_ml"].as_f64().unwrap();
+    let d = &v["disease"]["delivery"];
+    let f = d["delivered_fraction"].as_f64().unwrap();
+    let ratio = d["compliance_ratio"].as_f64().unwrap();
+    assert_eq!(d["control"], "pressure", "{d}");
+    assert!(f < 0.95 && f >= ratio - 0.002, "{d}");
+    let lungs = v["disease"]["lungs"].as_array().unwrap();
+    let total: f64 = lungs
+        .iter()
+        .map(|l| l["tidal_volume_ml"].as_f64().unwrap())
+        .sum();
+    let delivered = d["delivered_ml"].as_f64().unwrap();
+    assert!(
+        (total - delivered).abs() < 0.01,
+        "{total} ml against {delivered} ml"
+    );
+    assert!(
+        (delivered / tv - f).abs() < 0.001,
+        "{delivered} ml against {f} of {tv} ml"
+    );
+    let r = scene_run("ventilated_pc_pneumothorax.toml", "30");
+    assert_eq!(r["non_finite_frames"], 0);
+    assert_eq!(r["stage_counts"]["pv_models_built"], 0, "{r}");
+    assert_eq!(r["ventilator"]["mode"], "pressure", "{r}");
+    let lowest = r["ventilator"]["delivery"]["lowest_fraction"]
+        .as_f64()
+        .unwrap();
+    assert!((lowest - f).abs() < 0.001, "{lowest} against {f}");
+    let played: f64 = r["lungs"]
+        .as_array()
+        .unwrap()
+        .iter()
+        .map(|l| l["tidal_volume_ml"].as_f64().unwrap())
+        .sum();
+    assert!(
+        (played - f * tv).abs() < 1.0,
+        "played {played} ml against {} ml",
+        f * tv
     );
 }

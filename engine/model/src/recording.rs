@@ -20,6 +20,8 @@
 
 use std::path::{Path, PathBuf};
 
+pub mod classify;
+
 use crate::input::{read_bounded, InputError, ReadLimits};
 use crate::plausible::{FLOW_LPS, PRESSURE_CMH2O};
 use crate::units::{flow_unit, header_unit, time_unit, PRESSURE_UNITS, VOLUME_UNITS};
@@ -763,12 +765,17 @@ pub fn whole_breath(span: &BreathSpan, tm: &BreathTiming) -> Result<(), String> 
 }
 
 /// A recording's breathing resampled to the engine's tick: one averaged breath (what a
-/// `[pv] waveform` scene plays, looped).
+/// `[pv] waveform` scene plays, looped), with the airway pressure and flow averaged the same way,
+/// the equation of motion fitted to them and the ventilator's control mode the breaths show.
 #[derive(Debug, Clone, PartialEq)]
 pub struct Waveform {
     /// Volume above the breath's start, ml, at every tick of one cycle (starts at 0; the cycle's
     /// end meets its start, so the loop is seamless).
     pub volume_ml: Vec<f64>,
+    /// Airway pressure, cmH2O, at the same ticks (the sample in force at each tick, averaged).
+    pub paw_cmh2o: Vec<f64>,
+    /// Flow, L/s, at the same ticks (likewise).
+    pub flow_lps: Vec<f64>,
     /// Ticks of the inspiration.
     pub inhale_ticks: u32,
     /// Breaths averaged.
@@ -779,6 +786,11 @@ pub struct Waveform {
     pub tidal_volume_ml: f64,
     /// Mean rate of the breaths used (60 / mean duration), breaths/min.
     pub rate_per_min: f64,
+    /// The classes of the recording's breaths and the control mode their majority shows.
+    pub control: classify::ControlSummary,
+    /// The equation of motion fitted to the averaged breath (volume, flow, pressure per tick);
+    /// `None` when it cannot be determined.
+    pub eom: Option<classify::EquationOfMotion>,
 }
 
 /// Linear interpolation of `v` (samples at `t`, increasing) at time `x`, clamped to the ends.
@@ -795,39 +807,66 @@ fn interpolate(t: &[f64], v: &[f64], x: f64) -> f64 {
     v[k - 1] + w * (v[k] - v[k - 1])
 }
 
+/// The sample of `v` (samples at `t`, increasing) in force at time `x`: the last at or before it
+/// (each sample holds over its interval, as the recording's volume integrates it, [`step_ml`]), so
+/// a ventilator's step at the next breath's first sample does not leak into the end of this one.
+fn held(t: &[f64], v: &[f64], x: f64) -> f64 {
+    v[t.partition_point(|&ti| ti <= x).saturating_sub(1)]
+}
+
+/// The whole, clean breaths of `rec` ([`whole_breath`], with an inspiration), characterised, and
+/// the breaths left out with the reason; with every breath's class summarised.
+fn usable_breaths(
+    rec: &Recording,
+    opts: &SegmentOptions,
+) -> (
+    Vec<classify::BreathCharacter>,
+    Vec<(usize, String)>,
+    classify::ControlSummary,
+) {
+    let all = classify::characterise_all(rec, opts);
+    let summary = classify::ControlSummary::of(&all);
+    let mut used = Vec::new();
+    let mut skipped = Vec::new();
+    for c in all {
+        match whole_breath(&c.span, &c.timing) {
+            Ok(()) if c.span.expiration > c.span.start => used.push(c),
+            Ok(()) => skipped.push((c.index, "no inspiration".to_string())),
+            Err(why) => skipped.push((c.index, why)),
+        }
+    }
+    (used, skipped, summary)
+}
+
+/// The refusal when no breath of a recording can be played.
+fn none_usable(skipped: &[(usize, String)]) -> String {
+    format!(
+        "no whole, clean breath to play ({} found, all left out{})",
+        skipped.len(),
+        skipped
+            .first()
+            .map(|(k, why)| format!("; breath {k}: {why}"))
+            .unwrap_or_default()
+    )
+}
+
 /// Average the whole, clean breaths of `rec` ([`whole_breath`]) into one breath at `tick_hz`:
 /// inspiration and expiration are each stretched to the mean inspiration and expiration time
 /// (so every breath's end-inspiration lines up and the tidal volume is not smeared), the
-/// drift-corrected volumes averaged at each tick. Allocates: call at load time, never per tick.
+/// drift-corrected volumes (and the airway pressure and flow) averaged at each tick. Allocates:
+/// call at load time, never per tick.
 pub fn average_breath(
     rec: &Recording,
     opts: &SegmentOptions,
     tick_hz: f64,
 ) -> Result<Waveform, String> {
-    let mut used = Vec::new();
-    let mut skipped = Vec::new();
-    for (k, span) in segment(rec, opts).iter().enumerate() {
-        let (v, net) = breath_volume(rec, span);
-        let tm = timing(rec, span, &v, net);
-        match whole_breath(span, &tm) {
-            Ok(()) if span.expiration > span.start => used.push((*span, tm, v)),
-            Ok(()) => skipped.push((k + 1, "no inspiration".to_string())),
-            Err(why) => skipped.push((k + 1, why)),
-        }
-    }
+    let (used, skipped, control) = usable_breaths(rec, opts);
     if used.is_empty() {
-        return Err(format!(
-            "no whole, clean breath to play ({} found, all left out{})",
-            skipped.len(),
-            skipped
-                .first()
-                .map(|(k, why)| format!("; breath {k}: {why}"))
-                .unwrap_or_default()
-        ));
+        return Err(none_usable(&skipped));
     }
     let n = used.len() as f64;
-    let ti = used.iter().map(|u| u.1.inspiration_s).sum::<f64>() / n;
-    let te = used.iter().map(|u| u.1.expiration_s).sum::<f64>() / n;
+    let ti = used.iter().map(|u| u.timing.inspiration_s).sum::<f64>() / n;
+    let te = used.iter().map(|u| u.timing.expiration_s).sum::<f64>() / n;
     let cycle = (tick_hz * (ti + te)).round();
     if !(2.0..=1.0e7).contains(&cycle) {
         return Err(format!(
@@ -838,26 +877,38 @@ pub fn average_breath(
     let cycle = cycle as u32;
     let inhale = ((tick_hz * ti).round() as u32).clamp(1, cycle - 1);
     let mut volume = vec![0.0; cycle as usize];
-    for (span, tm, v) in &used {
+    let mut paw = vec![0.0; cycle as usize];
+    let mut flow = vec![0.0; cycle as usize];
+    for u in &used {
+        let (span, tm) = (&u.span, &u.timing);
         let t = &rec.t_s[span.start..=span.end];
-        for (k, out) in volume.iter_mut().enumerate() {
-            let k = k as u32;
-            let x = if k < inhale {
+        let p = &rec.paw_cmh2o[span.start..=span.end];
+        let q = &rec.flow_lps[span.start..=span.end];
+        for k in 0..cycle as usize {
+            let k32 = k as u32;
+            let x = if k32 < inhale {
                 tm.start_s + tm.inspiration_s * k as f64 / inhale as f64
             } else {
                 rec.t_s[span.expiration]
-                    + tm.expiration_s * (k - inhale) as f64 / (cycle - inhale) as f64
+                    + tm.expiration_s * (k32 - inhale) as f64 / (cycle - inhale) as f64
             };
-            *out += interpolate(t, v, x) / n;
+            volume[k] += interpolate(t, &u.volume_ml, x) / n;
+            paw[k] += held(t, p, x) / n;
+            flow[k] += held(t, q, x) / n;
         }
     }
+    let eom = classify::fit_equation_of_motion(&volume, &flow, &paw);
     Ok(Waveform {
         volume_ml: volume,
+        paw_cmh2o: paw,
+        flow_lps: flow,
         inhale_ticks: inhale,
         breaths_used: used.len(),
         breaths_skipped: skipped,
-        tidal_volume_ml: used.iter().map(|u| u.1.tidal_volume_ml).sum::<f64>() / n,
+        tidal_volume_ml: used.iter().map(|u| u.timing.tidal_volume_ml).sum::<f64>() / n,
         rate_per_min: 60.0 / (ti + te),
+        control,
+        eom,
     })
 }
 

@@ -288,6 +288,38 @@ pub struct PvScene {
     /// I:E (`breaths_per_min`, `ie_ratio` and the PV constants are not used; no PV model is built).
     #[serde(skip_serializing_if = "Option::is_none")]
     pub waveform: Option<std::path::PathBuf>,
+    /// What the ventilator of a `[pv] waveform` scene holds fixed when a disease changes the lungs
+    /// (EQUATIONS §4.7): `"auto"` (default) the recording's own classification (the majority of its
+    /// whole breaths), `"volume"` or `"pressure"` to override it (`scene check` warns when that
+    /// contradicts the recording).
+    pub waveform_control: WaveformControl,
+}
+
+/// `[pv] waveform_control`.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Default, Serialize, Deserialize)]
+#[serde(rename_all = "snake_case")]
+pub enum WaveformControl {
+    /// The recording's classification decides.
+    #[default]
+    Auto,
+    /// Volume control: the recorded volume is delivered (up to the pressure limit).
+    Volume,
+    /// Pressure control: the recorded pressure is held; the volume follows the compliance.
+    Pressure,
+}
+
+/// The control mode a `[pv] waveform` scene's ventilator runs in, and why.
+#[derive(Debug, Clone, PartialEq, Serialize)]
+pub struct ControlChoice {
+    /// The mode.
+    pub mode: crate::recording::classify::ControlMode,
+    /// `"recording"` (the majority of its breaths) or `"scene"` (`[pv] waveform_control`).
+    pub set_by: &'static str,
+    /// What the recording's breaths show.
+    pub recording: String,
+    /// The scene's choice contradicts the recording's classification.
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub warning: Option<String>,
 }
 
 /// `[engine]` table.
@@ -537,6 +569,7 @@ impl Default for PvScene {
             ie_ratio: crate::pv::DEFAULT_IE_RATIO,
             constants: None,
             waveform: None,
+            waveform_control: WaveformControl::Auto,
         }
     }
 }
@@ -709,6 +742,9 @@ pub enum SceneValueError {
     /// The recording named by `[pv] waveform` is unusable, or combined with what it replaces.
     #[error("[pv] waveform: {0}")]
     Waveform(String),
+    /// A key that applies only to a `[pv] waveform` scene, without one.
+    #[error("[pv] {0} is set but [pv] waveform is not: it applies only to a scene that plays a recording")]
+    WithoutWaveform(&'static str),
     /// The motion constants file named by `[lungs] motion` is unusable.
     #[error("[lungs] motion: {0}")]
     Motion(#[source] crate::deform::MotionFileError),
@@ -1038,6 +1074,9 @@ impl Scene {
         if !(1.0..=1000.0).contains(&self.engine.tick_hz) {
             return Err(E::TickRate(self.engine.tick_hz));
         }
+        if self.pv.waveform.is_none() && self.pv.waveform_control != WaveformControl::Auto {
+            return Err(E::WithoutWaveform("waveform_control"));
+        }
         if self.lungs.sides.is_empty() {
             return Err(E::NoLungs);
         }
@@ -1211,13 +1250,93 @@ impl Scene {
         let Some(w) = self.pv_waveform()? else {
             return Ok(None);
         };
+        self.breathing_of(&w).map(Some)
+    }
+
+    /// The breathing cycle that plays `w` above the preset's FRC.
+    fn breathing_of(
+        &self,
+        w: &crate::recording::Waveform,
+    ) -> Result<crate::pv::Breathing, SceneValueError> {
         let frc = crate::pv::preset(&self.pv.preset)
             .map_err(SceneValueError::Preset)?
             .boundary
             .frc_ml;
         crate::pv::Breathing::from_volume_table(&w.volume_ml, w.inhale_ticks, frc)
-            .map(Some)
             .map_err(|e| SceneValueError::Waveform(e.to_string()))
+    }
+
+    /// The control mode of a `[pv] waveform` scene's ventilator (`None` without a waveform): the
+    /// recording's majority class unless `[pv] waveform_control` overrides it, with a warning when the
+    /// override contradicts the recording (EQUATIONS §4.7).
+    pub fn waveform_control(w: &crate::recording::Waveform, set: WaveformControl) -> ControlChoice {
+        use crate::recording::classify::ControlMode;
+        let found = w.control.mode();
+        let recording = w.control.describe();
+        let (mode, set_by) = match set {
+            WaveformControl::Auto => (found, "recording"),
+            WaveformControl::Volume => (ControlMode::Volume, "scene"),
+            WaveformControl::Pressure => (ControlMode::Pressure, "scene"),
+        };
+        let warning = (mode != found).then(|| {
+            format!(
+                "[pv] waveform_control = \"{}\" contradicts the recording's classification ({recording}): \
+                 a disease is played as if the ventilator held the {}",
+                mode.name(),
+                match mode {
+                    ControlMode::Volume => "volume",
+                    ControlMode::Pressure => "pressure",
+                }
+            )
+        });
+        ControlChoice {
+            mode,
+            set_by,
+            recording,
+            warning,
+        }
+    }
+
+    /// The ventilator of a `[pv] waveform` scene whose simulated lungs are `baselines` (`None`
+    /// without a waveform): the recorded breath, the volume it delivers to them and its control
+    /// ([`Self::waveform_control`]; pressure control needs a passive equation of motion of the
+    /// averaged breath). Reads the recording: call at load time.
+    pub fn ventilator(
+        &self,
+        baselines: &[crate::disease::LungBaseline],
+    ) -> Result<Option<(crate::disease::ventilated::Ventilator, ControlChoice)>, SceneValueError>
+    {
+        use crate::disease::ventilated::{delivered_ml, Control, PressureDrive, Ventilator};
+        let Some(w) = self.pv_waveform()? else {
+            return Ok(None);
+        };
+        let recorded = self.breathing_of(&w)?;
+        let choice = Self::waveform_control(&w, self.pv.waveform_control);
+        let control = match choice.mode {
+            crate::recording::classify::ControlMode::Volume => Control::Volume,
+            crate::recording::classify::ControlMode::Pressure => {
+                let eom = w.eom.as_ref().ok_or_else(|| {
+                    SceneValueError::Waveform(
+                        "pressure control needs the equation of motion of the recording's averaged \
+                         breath, which cannot be fitted (no volume or flow change)"
+                            .into(),
+                    )
+                })?;
+                Control::Pressure(Box::new(
+                    PressureDrive::new(&w.paw_cmh2o, eom, self.engine.tick_hz)
+                        .map_err(SceneValueError::Waveform)?,
+                ))
+            }
+        };
+        let delivered = delivered_ml(baselines, recorded.boundary().tv_ml);
+        Ok(Some((
+            Ventilator {
+                recorded,
+                delivered_ml: delivered,
+                control,
+            },
+            choice,
+        )))
     }
 
     /// The bake settings of `side` in this scene (motion file or the `directions` preset,

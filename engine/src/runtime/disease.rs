@@ -26,7 +26,8 @@
 
 use lung_model::disease::closed::ClosedPlan;
 use lung_model::disease::tension::{EventRecord, Intervention, Tension};
-use lung_model::disease::{ventilated, DiseaseError, LungBaseline, LungState, NormalBreathing};
+use lung_model::disease::ventilated::{DeliveryLog, Ventilator};
+use lung_model::disease::{DiseaseError, LungBaseline, LungState, NormalBreathing};
 use lung_model::mesh::Side;
 use lung_model::pv::{Breathing, PhaseConstants, PvError};
 use lung_model::scene_disease::{DiseaseSpec, TimedEvent};
@@ -83,10 +84,12 @@ pub struct CourseCycle {
 /// A disease state being run.
 #[derive(Debug, Clone)]
 pub enum DiseaseRun {
-    /// Applied once when the engine is built.
-    Closed(Vec<LungSetup>),
-    /// Tension pneumothorax.
-    Tension(TensionRun),
+    /// Applied once when the engine is built; on a ventilated scene with what the ventilator
+    /// delivers (EQUATIONS §4.7).
+    Closed(Vec<LungSetup>, Option<DeliveryLog>),
+    /// Tension pneumothorax (boxed: its run is by far the largest variant; the box is allocated
+    /// once, when the scene is built, and the tick only reads through it).
+    Tension(Box<TensionRun>),
     /// Tumour-influenced lung: applied once when the engine is built.
     Tumour(Box<TumourRun>),
 }
@@ -128,9 +131,11 @@ pub struct TensionRun {
     last_course: Option<(u64, u64)>,
     inhale: PhaseConstants,
     exhale: PhaseConstants,
-    /// The ventilator's recorded breath and the volume it delivers (`[pv] waveform`; EQUATIONS
-    /// §4.7), instead of PV cycles.
-    recorded: Option<(Breathing, f64)>,
+    /// The ventilator of a `[pv] waveform` scene (its recorded breath, the volume it delivers, its
+    /// control mode; EQUATIONS §4.7), instead of PV cycles.
+    ventilator: Option<Ventilator>,
+    /// What the ventilator delivered, cycle by cycle (`None` without one).
+    pub delivery: Option<DeliveryLog>,
     /// Cycles moved into the lungs so far.
     pub cycles_run: u64,
     requested: bool,
@@ -216,22 +221,32 @@ impl Recipe {
 
 impl DiseaseRun {
     /// Prepare `spec` for lungs with `baselines` (the scene's order) breathing `normal`, with the
-    /// engine's tick rate. `recorded`: the ventilator's breath of a `[pv] waveform` scene, which the
-    /// lungs share instead of PV cycles (`normal` from [`ventilated::normal_breathing`];
-    /// EQUATIONS §4.7).
+    /// engine's tick rate. `ventilator`: that of a `[pv] waveform` scene, whose breath the lungs
+    /// share instead of PV cycles (`normal` from
+    /// [`lung_model::disease::ventilated::normal_breathing`]; EQUATIONS §4.7).
     pub fn prepare(
         spec: &DiseaseSpec,
         normal: &NormalBreathing,
         baselines: &[LungBaseline],
-        recorded: Option<&Breathing>,
+        ventilator: Option<&Ventilator>,
     ) -> Result<Self, DiseaseRunError> {
         match spec {
             DiseaseSpec::Closed(c) => {
                 let mut plan: ClosedPlan = c.plan(normal, baselines)?;
-                if recorded.is_some() {
+                let mut log = None;
+                let mut breath = None;
+                if let Some(v) = ventilator {
                     let mut states: Vec<LungState> = plan.lungs.iter().map(|l| l.state).collect();
-                    let delivered = ventilated::delivered_ml(baselines, normal.boundary.tv_ml);
-                    ventilated::deliver(&mut states, delivered);
+                    let (d, b) =
+                        v.deliver(&mut states)
+                            .map_err(|source| DiseaseRunError::Breathing {
+                                side: "ventilated",
+                                source,
+                            })?;
+                    let mut l = DeliveryLog::new(d.control);
+                    l.record(&d);
+                    log = Some(l);
+                    breath = b;
                     for (l, s) in plan.lungs.iter_mut().zip(states) {
                         l.state = s;
                     }
@@ -242,8 +257,10 @@ impl DiseaseRun {
                         .iter()
                         .find(|b| b.side == l.side)
                         .map_or(1.0, |b| b.share);
-                    let breathing = match recorded {
-                        Some(r) => ventilated::lung_breathing(&l.state, r, share),
+                    let breathing = match ventilator {
+                        Some(v) => v
+                            .lung_table(breath.as_ref(), &l.state, share)
+                            .map(|(r, tv)| r.rescaled(tv)),
                         None => l.breathing(&plan.timing),
                     }
                     .transpose()
@@ -257,15 +274,15 @@ impl DiseaseRun {
                         breathing,
                     });
                 }
-                Ok(DiseaseRun::Closed(lungs))
+                Ok(DiseaseRun::Closed(lungs, log))
             }
             DiseaseSpec::Tension {
                 params,
                 onset_s,
                 events,
-            } => Ok(DiseaseRun::Tension(TensionRun::prepare(
-                *params, *onset_s, events, normal, baselines, recorded,
-            )?)),
+            } => Ok(DiseaseRun::Tension(Box::new(TensionRun::prepare(
+                *params, *onset_s, events, normal, baselines, ventilator,
+            )?))),
             DiseaseSpec::Tumour(t) => {
                 let lung = baselines.iter().find(|b| b.side == t.side).ok_or(
                     DiseaseError::MissingLung {
@@ -276,7 +293,7 @@ impl DiseaseRun {
                     t.resistance(&normal.inhale, &normal.exhale, lung.start_volume_ml)?;
                 // A ventilated lung plays the recorded breath: the resistance raises the airway
                 // pressure, not the delivered volume (EQUATIONS §4.7); the kernel carries the tumour.
-                let breathing = match recorded {
+                let breathing = match ventilator {
                     Some(_) => None,
                     None => Some(
                         Breathing::from_constants(&i, &e, normal.boundary, &normal.timing)
@@ -304,7 +321,7 @@ impl TensionRun {
         events: &[TimedEvent],
         normal: &NormalBreathing,
         baselines: &[LungBaseline],
-        recorded: Option<&Breathing>,
+        ventilator: Option<&Ventilator>,
     ) -> Result<Self, DiseaseRunError> {
         let affected =
             *baselines
@@ -334,12 +351,8 @@ impl TensionRun {
             last_course: None,
             inhale: normal.inhale.clone(),
             exhale: normal.exhale.clone(),
-            recorded: recorded.map(|r| {
-                (
-                    r.clone(),
-                    ventilated::delivered_ml(baselines, normal.boundary.tv_ml),
-                )
-            }),
+            ventilator: ventilator.cloned(),
+            delivery: ventilator.map(|v| DeliveryLog::new(v.control.mode())),
             cycles_run: 0,
             requested: false,
             events: Vec::with_capacity(64),
@@ -390,9 +403,19 @@ impl TensionRun {
         }
         let c = self.tension.advance();
         let mut states = [Some(c.affected), c.unaffected];
-        if let Some((_, delivered)) = &self.recorded {
+        let mut breath = None;
+        if let Some(v) = &self.ventilator {
             let mut breathing: Vec<LungState> = states.iter().flatten().copied().collect();
-            ventilated::deliver(&mut breathing, *delivered);
+            let (d, b) =
+                v.deliver(&mut breathing)
+                    .map_err(|source| DiseaseRunError::Breathing {
+                        side: "ventilated",
+                        source,
+                    })?;
+            if let Some(log) = &mut self.delivery {
+                log.record(&d);
+            }
+            breath = b;
             for (s, d) in states.iter_mut().flatten().zip(breathing) {
                 *s = d;
             }
@@ -406,12 +429,12 @@ impl TensionRun {
                 .map(|&(_, s)| s)
                 .expect("the course's lungs are the scene's");
             let normal = &self.normal;
-            if let Some((r, _)) = &self.recorded {
+            if let Some(v) = &self.ventilator {
                 lungs.push(LungRecipe {
                     state,
-                    pv: state
-                        .boundary(&r.boundary(), share)
-                        .map(|b| LungTable::Recorded(r.clone(), b.tv_ml)),
+                    pv: v
+                        .lung_table(breath.as_ref(), &state, share)
+                        .map(|(r, tv)| LungTable::Recorded(r, tv)),
                 });
                 continue;
             }
@@ -600,7 +623,17 @@ impl DiseaseRun {
     pub fn next_recipe(&mut self) -> Result<Option<Recipe>, DiseaseRunError> {
         match self {
             DiseaseRun::Tension(run) => run.next_recipe(),
-            DiseaseRun::Closed(_) | DiseaseRun::Tumour(_) => Ok(None),
+            DiseaseRun::Closed(..) | DiseaseRun::Tumour(_) => Ok(None),
+        }
+    }
+
+    /// What the ventilator of a `[pv] waveform` scene delivered (`None` without one; EQUATIONS
+    /// §4.7).
+    pub fn delivery(&self) -> Option<DeliveryLog> {
+        match self {
+            DiseaseRun::Closed(_, log) => *log,
+            DiseaseRun::Tension(run) => run.delivery,
+            DiseaseRun::Tumour(_) => None,
         }
     }
 
@@ -615,7 +648,7 @@ impl DiseaseRun {
     pub fn due_undelivered(&self, tick: u64, lungs: &[(super::LungGeometry, LungBreath)]) -> bool {
         match self {
             DiseaseRun::Tension(run) => run.due_undelivered(tick, lungs),
-            DiseaseRun::Closed(_) | DiseaseRun::Tumour(_) => false,
+            DiseaseRun::Closed(..) | DiseaseRun::Tumour(_) => false,
         }
     }
 
@@ -624,7 +657,7 @@ impl DiseaseRun {
     pub fn prepare_ahead(&mut self) -> Result<(), DiseaseRunError> {
         match self {
             DiseaseRun::Tension(run) => run.prepare_ahead(),
-            DiseaseRun::Closed(_) | DiseaseRun::Tumour(_) => Ok(()),
+            DiseaseRun::Closed(..) | DiseaseRun::Tumour(_) => Ok(()),
         }
     }
 }

@@ -425,8 +425,13 @@ impl EngineCore {
             geometry.hilum_mm = Some(b.hilum_mm);
             baselines.push(b);
         }
-        let mut run = disease::DiseaseRun::prepare(&spec, &normal, &baselines, recorded.as_ref())?;
-        if let disease::DiseaseRun::Closed(setups) = &mut run {
+        let ventilator = scene
+            .ventilator(&baselines)
+            .map_err(CoreError::Pv)?
+            .map(|(v, _)| v);
+        let mut run =
+            disease::DiseaseRun::prepare(&spec, &normal, &baselines, ventilator.as_ref())?;
+        if let disease::DiseaseRun::Closed(setups, _) = &mut run {
             for setup in setups.iter_mut() {
                 if let Some((_, breath)) = self.lungs.iter_mut().find(|(g, _)| g.side == setup.side)
                 {

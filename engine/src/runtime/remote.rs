@@ -305,7 +305,7 @@ impl EngineCore {
         }
         let disease = match &self.disease {
             None => Disease::None,
-            Some(DiseaseRun::Closed(setups)) => Disease::ClosedPneumothorax {
+            Some(DiseaseRun::Closed(setups, _)) => Disease::ClosedPneumothorax {
                 side: setups.first().map_or(0, |s| s.side.index() as u8),
             },
             Some(DiseaseRun::Tension(run)) => Disease::TensionPneumothorax {

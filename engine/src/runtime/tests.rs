@@ -1290,13 +1290,85 @@ fn actions_are_announced_with_their_tick_ahead_and_a_late_site_applies_them_at_t
 
 /// A waveform scene (the shipped synthetic recording) with `disease` over the two baked test lungs.
 fn ventilated_core(disease: &str) -> EngineCore {
+    recording_core("ventilated_vc_synthetic.csv", "", disease)
+}
+
+/// A waveform scene playing `scenes/recordings/<file>` (with more `[pv]` keys `pv`) and `disease`
+/// over the two baked test lungs.
+fn recording_core(file: &str, pv: &str, disease: &str) -> EngineCore {
     let recording = std::path::Path::new(env!("CARGO_MANIFEST_DIR"))
-        .join("../scenes/recordings/ventilated_vc_synthetic.csv");
+        .join("../scenes/recordings")
+        .join(file);
     diseased_core(&format!(
-        "[pv]\npreset = \"venegas-human\"\nwaveform = {:?}\n[lungs]\nsides = [\"right\", \"left\"]\n\
+        "[pv]\npreset = \"venegas-human\"\nwaveform = {:?}\n{pv}[lungs]\nsides = [\"right\", \"left\"]\n\
          {disease}",
         recording.display().to_string()
     ))
+}
+
+/// EQUATIONS §4.7, pressure control: on the shipped pressure-controlled recording (a passive lung,
+/// C = 30 ml/cmH2O, R = 8 cmH2O·s/L, 15 cmH2O above PEEP for 1 s at 20 /min) a pneumothorax lowers
+/// the delivered volume with the compliance, where volume control (`waveform_control = "volume"`)
+/// delivers the recorded volume; index 0 is the recording bit for bit in both modes.
+#[test]
+fn a_pressure_controlled_recording_delivers_less_under_a_pneumothorax() {
+    const PC: &str = "ventilated_pc_synthetic.csv";
+    let cycle = 180; // 20 breaths/min at 60 Hz
+    let healthy = ventilated_frames(&mut recording_core(PC, "", ""), 3 * cycle);
+    let (healthy_each, healthy_total) = swings(&healthy);
+    let closed = |index: f64| {
+        format!("[disease]\nkind = \"closed-pneumothorax\"\nside = \"left\"\nindex = {index}\n")
+    };
+    let volume = "waveform_control = \"volume\"\n";
+    for pv in ["", volume] {
+        let mut core = recording_core(PC, pv, &closed(0.0));
+        assert_same_frames(&healthy, &ventilated_frames(&mut core, 3 * cycle));
+        let d = core
+            .disease()
+            .unwrap()
+            .delivery()
+            .expect("a ventilated course");
+        assert_eq!(d.last.unwrap().fraction, 1.0);
+    }
+    let mut last = healthy_total;
+    for index in [0.1, 0.3, 1.0] {
+        let mut pc = recording_core(PC, "", &closed(index));
+        let (each, total) = swings(&ventilated_frames(&mut pc, 3 * cycle));
+        let d = pc.disease().unwrap().delivery().unwrap().last.unwrap();
+        assert_eq!(
+            d.control,
+            lung_model::recording::classify::ControlMode::Pressure
+        );
+        // Less than the recording, as much as the engine says it delivered, and less with more
+        // collapse; at least the compliance's share (the stiffer lungs fill faster).
+        assert!(
+            total < healthy_total - 1.0 && total < last,
+            "I = {index}: {total} ml"
+        );
+        assert!(
+            (total - d.fraction * healthy_total).abs() < 0.5,
+            "I = {index}: {total} ml against {} of {healthy_total} ml",
+            d.fraction
+        );
+        assert!(
+            d.fraction >= d.compliance_ratio * 0.99 && !d.pressure_capped,
+            "{d:?}"
+        );
+        last = total;
+        // The other lung takes no more than its own compliance allows (its τ is the system's).
+        assert!(
+            each[LUNG_RIGHT] < healthy_each[LUNG_RIGHT] * 1.05,
+            "I = {index}: {each:?}"
+        );
+        // Volume control on the same recording: the recorded volume, the collapsing lung's share
+        // moved to the other lung.
+        let mut vc = recording_core(PC, volume, &closed(index));
+        let (_, vc_total) = swings(&ventilated_frames(&mut vc, 3 * cycle));
+        assert!(
+            (vc_total - healthy_total).abs() < 0.1,
+            "I = {index}: {vc_total} ml against {healthy_total} ml"
+        );
+    }
 }
 
 /// Every frame of `ticks` ticks of `core` (stepped and prepared as the process loop does).
