@@ -129,12 +129,7 @@ fn settings(
              --lease-ms)"
         ))
     })?;
-    let net = Net {
-        listen: r.listen(),
-        connect: r.connect.clone(),
-        lease_ms: r.lease_ms,
-        mode: r.mode.name(),
-    };
+    let net = Net::of(&r);
     let keys = Keys::new(&r.room)?;
     Ok((r, net, keys))
 }
