@@ -156,7 +156,8 @@ pub struct SiteReport {
     pub refused: u64,
     /// Packets dropped by the emulated loss.
     pub lost: u64,
-    /// Cycles started before their state arrived.
+    /// Cycles breathed on the site's own prediction because their state was late (not there one
+    /// path delay + 4 jitters + 2 ticks after the cycle's start) or lost.
     pub predicted_cycles: u64,
     /// Smoothed one-way delay, ms.
     pub delay_ms: f64,

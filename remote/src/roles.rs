@@ -356,7 +356,7 @@ pub fn join(args: &JoinArgs) -> Result<(), RemoteError> {
             for e in &announced {
                 eprintln!(
                     "remote join[{}]: event kind {} on lung {} from {} (its #{}) applies at the \
-                     source's cycle {} (tick {})",
+                     source's breathing cycle {} (tick {}), the disease course's cycle {}",
                     instance.name(),
                     e.kind,
                     e.lung,
@@ -367,7 +367,8 @@ pub fn join(args: &JoinArgs) -> Result<(), RemoteError> {
                     },
                     e.sequence,
                     e.apply_cycle,
-                    e.apply_tick
+                    e.apply_tick,
+                    e.course_cycle
                 );
                 let Some(k) = sent
                     .iter()
@@ -380,7 +381,9 @@ pub fn join(args: &JoinArgs) -> Result<(), RemoteError> {
                     status: ipc_types::REPLY_APPLIED,
                     sequence: p.sequence,
                     tick: e.apply_tick,
-                    cycle: e.apply_cycle,
+                    // The disease course's cycle, as the source's engine answers (not the
+                    // breathing cycle `apply_cycle`).
+                    cycle: e.course_cycle,
                     kind: e.kind,
                     lung: e.lung,
                     outcome: e.outcome,
@@ -437,8 +440,8 @@ pub fn join(args: &JoinArgs) -> Result<(), RemoteError> {
         c.announced_late.load(Ordering::Relaxed)
     );
     eprintln!(
-        "remote join[{}]: {} states applied, {} repeated, {} refused{}, {} cycles started before \
-         their state",
+        "remote join[{}]: {} states applied, {} repeated, {} refused{}, {} cycle(s) breathed on \
+         prediction (their state late or lost)",
         instance.name(),
         c.applied.load(Ordering::Relaxed),
         c.repeated.load(Ordering::Relaxed),

@@ -524,9 +524,11 @@ pub fn run_loop(
                             sequence,
                             kind: e.kind.code(),
                             lung: e.side.index() as u32,
-                            // Stamped when announced: the tick and cycle its course cycle starts.
+                            // Stamped when announced: the tick and breathing cycle its course
+                            // cycle starts.
                             apply_cycle: 0,
                             apply_tick: 0,
+                            course_cycle: e.cycle,
                             outcome: reply.outcome,
                         };
                         states.event(event, e.cycle);

@@ -1239,6 +1239,38 @@ fn actions_are_announced_with_their_tick_ahead_and_a_late_site_applies_them_at_t
         .find(|s| s.tick == events[0].apply_tick)
         .expect("a state at the cycle start the actions show from");
     assert_eq!(start.cycle, events[0].apply_cycle);
+    // Two counts, both named: the engine's applied replies give the disease course's cycle, each
+    // announced event carries that same course cycle beside the breathing cycle, and the state
+    // that announced the cycle maps the one to the other.
+    let applied: Vec<u64> = replies
+        .values()
+        .iter()
+        .filter(|r| r.status == ipc_types::REPLY_APPLIED)
+        .map(|r| r.cycle)
+        .collect();
+    assert_eq!(applied.len(), 12);
+    let course = events[0].course_cycle;
+    assert!(
+        applied.iter().all(|&c| c == course),
+        "{applied:?} vs {course}"
+    );
+    assert!(events.iter().all(|e| e.course_cycle == course));
+    let announced = states
+        .iter()
+        .find_map(|s| {
+            s.pending
+                .as_ref()
+                .filter(|p| p.apply_tick == events[0].apply_tick)
+        })
+        .expect("the cycle the actions show from was announced");
+    assert_eq!(
+        (announced.course_cycle, announced.apply_cycle),
+        (course, events[0].apply_cycle)
+    );
+    eprintln!(
+        "actions show from disease cycle {course}, breathing cycle {}",
+        events[0].apply_cycle
+    );
     let ahead = states
         .iter()
         .filter(|s| {
