@@ -672,7 +672,7 @@ impl ChildSource {
 
 /// The source: in the harness's process or its own.
 enum SourceSide {
-    Here(Source),
+    Here(Box<Source>),
     Own(ChildSource),
 }
 
@@ -717,12 +717,12 @@ pub fn run(args: &HarnessArgs) -> Result<HarnessReport, RemoteError> {
     let via = router.as_ref().map(locator).transpose()?;
     let source_id = site_id(0);
     let side = match &args.source_exe {
-        None => SourceSide::Here(Source::open(
+        None => SourceSide::Here(Box::new(Source::open(
             &source_net(via.as_deref()),
             &keys,
             source_id,
             imp,
-        )?),
+        )?)),
         Some(exe) => SourceSide::Own(ChildSource::spawn(exe, args, via.as_deref())?),
     };
     let endpoint = match (&via, &side) {
