@@ -158,6 +158,9 @@ enum RemoteCommand {
     Join(lungdyn_remote::roles::JoinArgs),
     /// A source and N sites on loopback: drift per cycle, phase error, packets per minute.
     Harness(lungdyn_remote::harness::HarnessArgs),
+    /// The harness's source in its own process (started by `remote harness`).
+    #[command(hide = true)]
+    HarnessSource(lungdyn_remote::harness::SourceChildArgs),
 }
 
 #[derive(Subcommand)]
@@ -403,7 +406,12 @@ fn main() -> std::process::ExitCode {
         Command::Remote(RemoteCommand::Join(args)) => {
             lungdyn_remote::roles::join(&args).map_err(Into::into)
         }
-        Command::Remote(RemoteCommand::Harness(args)) => {
+        Command::Remote(RemoteCommand::HarnessSource(args)) => {
+            lungdyn_remote::harness::source_child(&args).map_err(Into::into)
+        }
+        Command::Remote(RemoteCommand::Harness(mut args)) => {
+            // The source in its own process (this executable), so its CPU and bytes are its own.
+            args.source_exe = std::env::current_exe().ok();
             lungdyn_remote::harness::run(&args).and_then(|r| {
                 if args.json {
                     serde_json::to_string_pretty(&r)

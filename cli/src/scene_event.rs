@@ -66,15 +66,17 @@ fn lung_words(lung: u32) -> &'static str {
     }
 }
 
-/// The outcome as one line: "needle decompression, left: applied at tick 3612, shows from cycle 19
-/// (in ≤ 2 breaths) — air venting", or for an action that changed nothing "chest tube, right: no
-/// effect (arrived at tick 3612, cycle 19) — the pneumothorax is on the other side".
+/// The outcome as one line: "needle decompression, left: applied at tick 3612, shows from disease
+/// cycle 19 (in ≤ 2 breaths) — air venting", or for an action that changed nothing "chest tube,
+/// right: no effect (arrived at tick 3612, disease cycle 19) — the pneumothorax is on the other
+/// side". The cycle is the disease course's (from the onset), not the breath count.
 pub fn outcome_line(kind: Intervention, r: &ControlReply) -> String {
     let head = format!("{}, {}", kind_words(kind), lung_words(r.lung));
     let (tick, cycle, text) = (r.tick, r.cycle, r.text());
     match r.outcome {
         ipc_types::OUTCOME_APPLIED => format!(
-            "{head}: applied at tick {tick}, shows from cycle {cycle} (in ≤ 2 breaths) — {text}"
+            "{head}: applied at tick {tick}, shows from disease cycle {cycle} (in ≤ 2 breaths) \
+             — {text}"
         ),
         o => {
             let word = match o {
@@ -82,7 +84,7 @@ pub fn outcome_line(kind: Intervention, r: &ControlReply) -> String {
                 ipc_types::OUTCOME_WRONG_SIDE | ipc_types::OUTCOME_NO_EFFECT => "no effect",
                 _ => "an outcome this build does not know",
             };
-            format!("{head}: {word} (arrived at tick {tick}, cycle {cycle}) — {text}")
+            format!("{head}: {word} (arrived at tick {tick}, disease cycle {cycle}) — {text}")
         }
     }
 }

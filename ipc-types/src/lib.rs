@@ -553,7 +553,10 @@ pub struct ControlReply {
     pub sequence: u64,
     /// Engine tick the action arrived at.
     pub tick: u64,
-    /// First disease cycle (since onset) whose state reflects it ([`REPLY_APPLIED`] only).
+    /// First disease-course cycle (counted from the onset: what `lungdyn scene event` and the
+    /// engine call the "disease cycle") whose state reflects it ([`REPLY_APPLIED`] only). Not a
+    /// breathing cycle ([`LungFrame::cycle`] counts those; a remote event's `apply_cycle` too): a
+    /// joined site's reply carries the source's course cycle, as the source's engine would.
     pub cycle: u64,
     /// [`ControlPacket::kind`] as received.
     pub kind: u32,

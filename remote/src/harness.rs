@@ -17,7 +17,7 @@
 use std::cell::Cell;
 use std::rc::Rc;
 use std::sync::atomic::{AtomicBool, Ordering};
-use std::sync::{Arc, Mutex};
+use std::sync::Mutex;
 use std::time::Duration;
 
 use engine::runtime::process::{run_loop, Controls, LoopStats, StateOut};
@@ -65,6 +65,72 @@ pub struct HarnessArgs {
     /// Seed of the emulated impairment.
     #[arg(long, default_value_t = 1)]
     pub seed: u64,
+    /// Through a Zenoh router the harness opens in its own process (on 127.0.0.1): the source and
+    /// every site are its clients. Without it the sites connect to the source, peer to peer.
+    #[arg(long)]
+    pub router: bool,
+    /// Each site's probe interval, ms (its delay and clock-offset estimate; `remote join` probes
+    /// every 500 ms).
+    #[arg(long, default_value_t = 50)]
+    pub probe_ms: u64,
+    /// Run the source in its own process (this executable's hidden `remote harness-source`), so
+    /// its CPU time and TCP bytes are its own: the launcher sets it; without it (the library's
+    /// tests) the source shares the harness's process and its cost is not reported.
+    #[arg(skip)]
+    pub source_exe: Option<std::path::PathBuf>,
+}
+
+/// Options of the hidden `lungdyn remote harness-source`: the harness's source in its own process.
+/// It prints the endpoint sites connect to, waits for `go` on its standard input, runs for
+/// `--seconds` (+ 0.5) and prints a [`ChildReport`] as one line of JSON.
+#[derive(Debug, Clone, clap::Args)]
+pub struct SourceChildArgs {
+    /// The harness's options (seconds, breaths, impairment, seed).
+    #[command(flatten)]
+    pub harness: HarnessArgs,
+    /// The router to connect to as a client (none: listen on 127.0.0.1, peer to peer).
+    #[arg(long)]
+    pub via: Option<String>,
+}
+
+/// What a source costs over the measured window.
+#[derive(Debug, Clone, Copy, Serialize, serde::Deserialize)]
+pub struct SourceCost {
+    /// Wall seconds of the window (from `go` to the engine's stop).
+    pub wall_s: f64,
+    /// CPU seconds (user + system) of the source's process: `getrusage(RUSAGE_SELF)` — its tick
+    /// thread, link worker and every Zenoh runtime thread (the process holds only the source).
+    pub cpu_s: f64,
+    /// CPU seconds of the engine's tick thread alone (`getrusage(RUSAGE_THREAD)`; it also puts
+    /// each state to Zenoh, which routes it to each link's queue on this thread).
+    pub tick_thread_cpu_s: f64,
+    /// Bytes sent over the process's TCP sockets (`TCP_INFO` bytes acknowledged; see
+    /// [`crate::measure::tcp_bytes`]): states, probe replies, Zenoh's keep-alives and
+    /// declarations.
+    pub tcp_bytes_sent: u64,
+    /// Bytes received (probes, events, Zenoh's own traffic).
+    pub tcp_bytes_received: u64,
+    /// Deadlines the source engine's pacer skipped (its tick thread woke more than the catch-up
+    /// allowance late): each moves the source's later ticks a period off the schedule a state
+    /// carries, for every site, until the next state.
+    pub deadlines_skipped: u64,
+    /// Probes answered within the window.
+    pub probes: u64,
+}
+
+/// The source process's result: its stepped ticks (volume as f32 bits), counters and cost.
+#[derive(Debug, Clone, Serialize, serde::Deserialize)]
+pub struct ChildReport {
+    /// (scheduled ns, actual ns, tick, total volume f32 bits, cycle).
+    pub recs: Vec<(i128, u64, u64, u32, u32)>,
+    /// States published.
+    pub states: u64,
+    /// State bytes published (once per publish).
+    pub state_bytes: u64,
+    /// Sites present at the end (liveliness tokens seen).
+    pub sites_seen: usize,
+    /// The cost.
+    pub cost: SourceCost,
 }
 
 /// One site's figures.
@@ -90,7 +156,8 @@ pub struct SiteReport {
     pub refused: u64,
     /// Packets dropped by the emulated loss.
     pub lost: u64,
-    /// Cycles started before their state arrived.
+    /// Cycles breathed on the site's own prediction because their state was late (not there one
+    /// path delay + 4 jitters + 2 ticks after the cycle's start) or lost.
     pub predicted_cycles: u64,
     /// Smoothed one-way delay, ms.
     pub delay_ms: f64,
@@ -137,6 +204,34 @@ pub struct HarnessReport {
     pub state_bytes_per_minute: f64,
     /// Tidal volume the drift is normalised by, ml.
     pub tidal_volume_ml: f64,
+    /// How the sites reach the source.
+    pub topology: &'static str,
+    /// Probe interval of each site, ms.
+    pub probe_ms: u64,
+    /// Probes the source answered per minute of the window (one reply to each site's each
+    /// probe).
+    pub probes_per_minute: f64,
+    /// Sites the source saw present at the end (their liveliness tokens).
+    pub sites_seen_by_source: usize,
+    /// Deadlines the source engine skipped (woken too late to catch up): each shifts its later
+    /// ticks a period from the schedule every site follows, until the next state.
+    pub source_deadlines_skipped: u64,
+    /// The source's own process: CPU seconds over the window (`getrusage(RUSAGE_SELF)`, every
+    /// thread of it); `null` when the source shared the harness's process.
+    pub source_cpu_s: Option<f64>,
+    /// The same per wall second, % of one core.
+    pub source_cpu_percent: Option<f64>,
+    /// The source's tick thread alone (`getrusage(RUSAGE_THREAD)`), % of one core.
+    pub source_tick_thread_cpu_percent: Option<f64>,
+    /// Bytes the source's process sent over TCP per minute (every socket; `TCP_INFO`).
+    pub source_tcp_bytes_sent_per_minute: Option<f64>,
+    /// Bytes it received over TCP per minute.
+    pub source_tcp_bytes_received_per_minute: Option<f64>,
+    /// CPU seconds of the harness's process over the same window (the sites, the router and,
+    /// when not in its own process, the source), for the machine's load.
+    pub harness_cpu_s: f64,
+    /// The machine's 1-minute load average at the end (`/proc/loadavg`).
+    pub load_average_1min: Option<f64>,
     /// Each site.
     pub per_site: Vec<SiteReport>,
 }
@@ -346,8 +441,29 @@ fn drift(source: &[Rec], site: &[Rec], from: i128, to: i128, tv: f64, sched: boo
     (mean, per.iter().copied().fold(0.0, f64::max))
 }
 
-/// Run the harness.
-pub fn run(args: &HarnessArgs) -> Result<HarnessReport, RemoteError> {
+/// The harness's link lease, ms (a lost peer is seen fast).
+const LEASE_MS: u64 = 2000;
+
+/// A session on 127.0.0.1: `mode` listening on a free port (`via` none) or connecting to `via`.
+fn local_net(mode: &'static str, via: Option<&str>) -> Net {
+    Net {
+        listen: match via {
+            None => vec!["tcp/127.0.0.1:0".to_string()],
+            Some(_) => Vec::new(),
+        },
+        connect: via.map(|v| vec![v.to_string()]).unwrap_or_default(),
+        lease_ms: LEASE_MS,
+        mode,
+    }
+}
+
+/// The source's session: a peer listening on 127.0.0.1, or a client of the router `via`.
+fn source_net(via: Option<&str>) -> Net {
+    local_net(if via.is_some() { "client" } else { "peer" }, via)
+}
+
+/// Check the harness's options; the emulated impairment.
+fn check(args: &HarnessArgs) -> Result<Impairment, RemoteError> {
     if args.sites == 0 || args.sites > 64 {
         return Err(RemoteError::Usage(format!(
             "--sites {}: use 1–64",
@@ -360,6 +476,12 @@ pub fn run(args: &HarnessArgs) -> Result<HarnessReport, RemoteError> {
             args.seconds
         )));
     }
+    if !(1..=10_000).contains(&args.probe_ms) {
+        return Err(RemoteError::Usage(format!(
+            "--probe-ms {}: use 1–10000",
+            args.probe_ms
+        )));
+    }
     let imp = Impairment {
         delay_ms: args.delay_ms,
         jitter_ms: args.jitter_ms,
@@ -367,6 +489,217 @@ pub fn run(args: &HarnessArgs) -> Result<HarnessReport, RemoteError> {
         seed: args.seed,
     };
     imp.check().map_err(RemoteError::Usage)?;
+    Ok(imp)
+}
+
+/// Run the source engine for `seconds` (+ 0.5) from now and measure what its process and tick
+/// thread spent and its sockets carried meanwhile.
+fn timed_source(
+    core: EngineCore,
+    hz: f64,
+    src: &Source,
+    id: u64,
+    seconds: f64,
+    stop: &AtomicBool,
+) -> Result<(Vec<Rec>, SourceCost), RemoteError> {
+    use crate::measure::{cpu_s, tcp_bytes, Who};
+    let probes0 = src.counts.probes.load(Ordering::Relaxed);
+    let (t0, p0, th0, b0) = (
+        now_ns(),
+        cpu_s(Who::Process),
+        cpu_s(Who::Thread),
+        tcp_bytes(),
+    );
+    let recs = std::thread::scope(|s| {
+        let stopper = s.spawn(move || {
+            let end = now_ns() + ((seconds + 0.5) * 1e9) as u64;
+            while !stop.load(Ordering::Relaxed) && now_ns() < end {
+                std::thread::sleep(Duration::from_millis(20));
+            }
+            stop.store(true, Ordering::Relaxed);
+        });
+        let r = run_source(core, hz, src, id, now_ns(), stop);
+        stop.store(true, Ordering::Relaxed);
+        let _ = stopper.join();
+        r
+    })?;
+    let (recs, stats) = recs;
+    let (sent, received) = match (b0, tcp_bytes()) {
+        (Some(a), Some(b)) => (b.0.saturating_sub(a.0), b.1.saturating_sub(a.1)),
+        _ => (0, 0),
+    };
+    let cost = SourceCost {
+        wall_s: (now_ns() - t0) as f64 / 1e9,
+        cpu_s: cpu_s(Who::Process) - p0,
+        tick_thread_cpu_s: cpu_s(Who::Thread) - th0,
+        tcp_bytes_sent: sent,
+        tcp_bytes_received: received,
+        deadlines_skipped: stats.pacer.skipped_deadlines,
+        probes: src.counts.probes.load(Ordering::Relaxed) - probes0,
+    };
+    Ok((recs, cost))
+}
+
+/// `lungdyn remote harness-source`: the harness's source in this process (see
+/// [`SourceChildArgs`]).
+pub fn source_child(args: &SourceChildArgs) -> Result<(), RemoteError> {
+    use std::io::{BufRead, Write};
+    let h = &args.harness;
+    let imp = check(h)?;
+    let (scene, core) = harness_core(h.breaths_per_min)?;
+    let keys = Keys::new("harness")?;
+    let id = site_id(0);
+    let source = Source::open(&source_net(args.via.as_deref()), &keys, id, imp)?;
+    let endpoint = match &args.via {
+        Some(v) => v.clone(),
+        None => locator(source.session())?,
+    };
+    let io = |e: std::io::Error| RemoteError::Usage(format!("harness source: {e}"));
+    let mut out = std::io::stdout().lock();
+    writeln!(out, "{endpoint}").map_err(io)?;
+    out.flush().map_err(io)?;
+    let mut line = String::new();
+    std::io::stdin().lock().read_line(&mut line).map_err(io)?;
+    if line.trim() != "go" {
+        return Err(RemoteError::Usage(format!(
+            "harness source: expected \"go\" on standard input, got {line:?}"
+        )));
+    }
+    let stop = AtomicBool::new(false);
+    let (recs, cost) = timed_source(core, scene.engine.tick_hz, &source, id, h.seconds, &stop)?;
+    let c = &source.counts;
+    let report = ChildReport {
+        recs: recs
+            .iter()
+            .map(|r| (r.0, r.1, r.2, r.3.to_bits(), r.4))
+            .collect(),
+        states: c.states.load(Ordering::Relaxed),
+        state_bytes: c.state_bytes.load(Ordering::Relaxed),
+        sites_seen: source.sites(),
+        cost,
+    };
+    let json = serde_json::to_string(&report).map_err(|e| RemoteError::Usage(e.to_string()))?;
+    writeln!(out, "{json}").map_err(io)?;
+    out.flush().map_err(io)
+}
+
+/// The source in its own process; killed if the harness fails before it ends.
+struct ChildSource {
+    child: std::process::Child,
+    stdout: std::io::BufReader<std::process::ChildStdout>,
+    endpoint: String,
+}
+
+impl Drop for ChildSource {
+    fn drop(&mut self) {
+        if matches!(self.child.try_wait(), Ok(None)) {
+            let _ = self.child.kill();
+        }
+        let _ = self.child.wait();
+    }
+}
+
+impl ChildSource {
+    fn spawn(
+        exe: &std::path::Path,
+        args: &HarnessArgs,
+        via: Option<&str>,
+    ) -> Result<Self, RemoteError> {
+        use std::io::BufRead;
+        let mut cmd = std::process::Command::new(exe);
+        cmd.args(["remote", "harness-source", "--sites"])
+            .arg(args.sites.to_string())
+            .arg("--seconds")
+            .arg(args.seconds.to_string())
+            .arg("--delay-ms")
+            .arg(args.delay_ms.to_string())
+            .arg("--jitter-ms")
+            .arg(args.jitter_ms.to_string())
+            .arg("--loss")
+            .arg(args.loss.to_string())
+            .arg("--seed")
+            .arg(args.seed.to_string())
+            .arg("--probe-ms")
+            .arg(args.probe_ms.to_string());
+        if let Some(b) = args.breaths_per_min {
+            cmd.arg("--breaths-per-min").arg(b.to_string());
+        }
+        if let Some(v) = via {
+            cmd.arg("--via").arg(v);
+        }
+        let io = |e: std::io::Error| {
+            RemoteError::Usage(format!("the source process ({}): {e}", exe.display()))
+        };
+        let mut child = cmd
+            .stdin(std::process::Stdio::piped())
+            .stdout(std::process::Stdio::piped())
+            .spawn()
+            .map_err(io)?;
+        let stdout = child.stdout.take().expect("piped stdout");
+        let mut me = Self {
+            child,
+            stdout: std::io::BufReader::new(stdout),
+            endpoint: String::new(),
+        };
+        let mut line = String::new();
+        me.stdout.read_line(&mut line).map_err(io)?;
+        if !line.trim().starts_with("tcp/") {
+            return Err(RemoteError::Usage(format!(
+                "the source process did not start (it printed {line:?}; its error is above)"
+            )));
+        }
+        me.endpoint = line.trim().to_string();
+        Ok(me)
+    }
+
+    /// Start its engine and wait for its report.
+    fn run(&mut self) -> Result<ChildReport, RemoteError> {
+        use std::io::{BufRead, Write};
+        let io = |e: std::io::Error| RemoteError::Usage(format!("the source process: {e}"));
+        let stdin = self.child.stdin.as_mut().expect("piped stdin");
+        stdin.write_all(b"go\n").map_err(io)?;
+        stdin.flush().map_err(io)?;
+        let mut line = String::new();
+        self.stdout.read_line(&mut line).map_err(io)?;
+        serde_json::from_str(&line).map_err(|e| {
+            RemoteError::Usage(format!(
+                "the source process's report ({e}): {:?}",
+                line.chars().take(200).collect::<String>()
+            ))
+        })
+    }
+}
+
+/// The source: in the harness's process or its own.
+enum SourceSide {
+    Here(Box<Source>),
+    Own(ChildSource),
+}
+
+/// What the source did, wherever it ran.
+struct SourceOutcome {
+    recs: Vec<Rec>,
+    states: u64,
+    state_bytes: u64,
+    probes: u64,
+    sites_seen: usize,
+    deadlines_skipped: u64,
+    cost: Option<SourceCost>,
+}
+
+/// The machine's 1-minute load average.
+fn load_average() -> Option<f64> {
+    std::fs::read_to_string("/proc/loadavg")
+        .ok()?
+        .split_whitespace()
+        .next()?
+        .parse()
+        .ok()
+}
+
+/// Run the harness.
+pub fn run(args: &HarnessArgs) -> Result<HarnessReport, RemoteError> {
+    let imp = check(args)?;
     let (scene, core) = harness_core(args.breaths_per_min)?;
     let hz = scene.engine.tick_hz;
     let (_, site_core) = harness_core(None)?;
@@ -375,16 +708,32 @@ pub fn run(args: &HarnessArgs) -> Result<HarnessReport, RemoteError> {
         .map(|l| l.breathing().boundary().tv_ml)
         .unwrap_or(500.0);
     let keys = Keys::new("harness")?;
-    let mut net = Net::peer(&["tcp/127.0.0.1:0".to_string()], &[]);
-    net.lease_ms = 2000;
-    let source_id = site_id(0);
-    let source = Source::open(&net, &keys, source_id, imp)?;
-    let endpoint = locator(source.session())?;
-    let site_net = {
-        let mut n = Net::peer(&[], &[endpoint]);
-        n.lease_ms = 2000;
-        n
+    // A router in this process: everyone else is its client.
+    let router = if args.router {
+        Some(local_net("router", None).open()?)
+    } else {
+        None
     };
+    let via = router.as_ref().map(locator).transpose()?;
+    let source_id = site_id(0);
+    let side = match &args.source_exe {
+        None => SourceSide::Here(Box::new(Source::open(
+            &source_net(via.as_deref()),
+            &keys,
+            source_id,
+            imp,
+        )?)),
+        Some(exe) => SourceSide::Own(ChildSource::spawn(exe, args, via.as_deref())?),
+    };
+    let endpoint = match (&via, &side) {
+        (Some(v), _) => v.clone(),
+        (None, SourceSide::Here(s)) => locator(s.session())?,
+        (None, SourceSide::Own(c)) => c.endpoint.clone(),
+    };
+    let site_net = local_net(
+        if via.is_some() { "client" } else { "peer" },
+        Some(&endpoint),
+    );
     let mut sites = Vec::new();
     for k in 0..args.sites {
         let mut i = imp;
@@ -395,16 +744,17 @@ pub fn run(args: &HarnessArgs) -> Result<HarnessReport, RemoteError> {
             site_id(k as u64 + 1),
             args.observer,
             i,
-            50,
+            args.probe_ms,
         )?);
     }
     // Let the probes measure the path before the first state.
     std::thread::sleep(Duration::from_millis(1000));
-    let stop = Arc::new(AtomicBool::new(false));
-    let epoch = now_ns();
+    let stop = AtomicBool::new(false);
     let recs: Mutex<Vec<(usize, Vec<Rec>)>> = Mutex::new(Vec::new());
     let result: Mutex<Option<RemoteError>> = Mutex::new(None);
-    let source_recs = std::thread::scope(|s| {
+    let harness_cpu0 = crate::measure::cpu_s(crate::measure::Who::Process);
+    let mut side = side;
+    let outcome = std::thread::scope(|s| {
         for (k, site) in sites.iter().enumerate() {
             let (stop, recs, result) = (&stop, &recs, &result);
             // The site's own engine, from the default scene: the packets make it breathe the
@@ -417,22 +767,47 @@ pub fn run(args: &HarnessArgs) -> Result<HarnessReport, RemoteError> {
                 Err(e) => *result.lock().expect("result") = Some(e),
             });
         }
-        let stopper = {
-            let stop = stop.clone();
-            let secs = args.seconds;
-            s.spawn(move || {
-                std::thread::sleep(Duration::from_secs_f64(secs + 0.5));
-                stop.store(true, Ordering::Relaxed);
-            })
+        let r = match &mut side {
+            SourceSide::Here(src) => {
+                timed_source(core.clone(), hz, src, source_id, args.seconds, &stop).map(
+                    |(recs, cost)| {
+                        let c = &src.counts;
+                        SourceOutcome {
+                            recs,
+                            states: c.states.load(Ordering::Relaxed),
+                            state_bytes: c.state_bytes.load(Ordering::Relaxed),
+                            probes: cost.probes,
+                            sites_seen: src.sites(),
+                            deadlines_skipped: cost.deadlines_skipped,
+                            // Its process is the sites' too: not the source's own cost.
+                            cost: None,
+                        }
+                    },
+                )
+            }
+            SourceSide::Own(child) => child.run().map(|c| SourceOutcome {
+                recs: c
+                    .recs
+                    .iter()
+                    .map(|r| (r.0, r.1, r.2, f32::from_bits(r.3), r.4))
+                    .collect(),
+                states: c.states,
+                state_bytes: c.state_bytes,
+                probes: c.cost.probes,
+                sites_seen: c.sites_seen,
+                deadlines_skipped: c.cost.deadlines_skipped,
+                cost: Some(c.cost),
+            }),
         };
-        let r = run_source(core.clone(), hz, &source, source_id, epoch, &stop);
         stop.store(true, Ordering::Relaxed);
-        let _ = stopper.join();
-        r.map(|(recs, _)| recs)
+        r
     })?;
+    let harness_cpu_s = crate::measure::cpu_s(crate::measure::Who::Process) - harness_cpu0;
+    drop(side);
     if let Some(e) = result.lock().expect("result").take() {
         return Err(e);
     }
+    let source_recs = outcome.recs;
     let mut per_site = Vec::new();
     let mut recs = recs.into_inner().expect("records");
     recs.sort_by_key(|(k, _)| *k);
@@ -474,7 +849,7 @@ pub fn run(args: &HarnessArgs) -> Result<HarnessReport, RemoteError> {
         });
     }
     let minutes = source_recs.len() as f64 / hz / 60.0;
-    let states = source.counts.states.load(Ordering::Relaxed) as f64;
+    let states = outcome.states as f64;
     let n = args.sites as f64;
     let mean = |f: fn(&SiteReport) -> f64| {
         per_site.iter().map(f).sum::<f64>() / per_site.len().max(1) as f64
@@ -482,6 +857,8 @@ pub fn run(args: &HarnessArgs) -> Result<HarnessReport, RemoteError> {
     let max = |f: fn(&SiteReport) -> f64| per_site.iter().map(f).fold(0.0, f64::max);
     let packets = states * n / minutes;
     let per_frame = source_recs.len() as f64 * n / minutes;
+    let cost = outcome.cost;
+    let per_minute = |f: fn(&SourceCost) -> f64| cost.map(|c| f(&c) / c.wall_s * 60.0);
     Ok(HarnessReport {
         sites: args.sites,
         seconds: minutes * 60.0,
@@ -502,8 +879,26 @@ pub fn run(args: &HarnessArgs) -> Result<HarnessReport, RemoteError> {
         per_frame_packets_per_minute: per_frame,
         reduction: per_frame / packets.max(f64::MIN_POSITIVE),
         states_per_minute: states / minutes,
-        state_bytes_per_minute: source.counts.state_bytes.load(Ordering::Relaxed) as f64 / minutes,
+        state_bytes_per_minute: outcome.state_bytes as f64 / minutes,
         tidal_volume_ml: tv,
+        topology: if args.router {
+            "router: the source and every site are clients of a Zenoh router in the harness's \
+             process"
+        } else {
+            "peer to peer: every site connects to the source"
+        },
+        probe_ms: args.probe_ms,
+        probes_per_minute: outcome.probes as f64 / minutes,
+        sites_seen_by_source: outcome.sites_seen,
+        source_deadlines_skipped: outcome.deadlines_skipped,
+        source_cpu_s: cost.map(|c| c.cpu_s),
+        source_cpu_percent: per_minute(|c| c.cpu_s).map(|v| v / 60.0 * 100.0),
+        source_tick_thread_cpu_percent: per_minute(|c| c.tick_thread_cpu_s)
+            .map(|v| v / 60.0 * 100.0),
+        source_tcp_bytes_sent_per_minute: per_minute(|c| c.tcp_bytes_sent as f64),
+        source_tcp_bytes_received_per_minute: per_minute(|c| c.tcp_bytes_received as f64),
+        harness_cpu_s,
+        load_average_1min: load_average(),
         per_site,
     })
 }
@@ -530,6 +925,35 @@ pub fn print(r: &HarnessReport) {
         "packets: {:.1}/min per-cycle control states vs {:.0}/min per-frame updates ({:.0}× fewer); \
          {:.0} state bytes/min from the source",
         r.packets_per_minute, r.per_frame_packets_per_minute, r.reduction, r.state_bytes_per_minute
+    );
+    println!(
+        "topology: {}; the source saw {} site(s); {:.0} probes/min answered (every {} ms per \
+         site); {} deadline(s) skipped by the source engine",
+        r.topology,
+        r.sites_seen_by_source,
+        r.probes_per_minute,
+        r.probe_ms,
+        r.source_deadlines_skipped
+    );
+    match (r.source_cpu_percent, r.source_tcp_bytes_sent_per_minute) {
+        (Some(cpu), Some(sent)) => println!(
+            "source process: CPU {cpu:.2} % of a core (tick thread {:.2} %), TCP {sent:.0} bytes/min \
+             sent, {:.0} received",
+            r.source_tick_thread_cpu_percent.unwrap_or(0.0),
+            r.source_tcp_bytes_received_per_minute.unwrap_or(0.0)
+        ),
+        _ => println!("source cost: not measured (the source shared the harness's process)"),
+    }
+    println!(
+        "harness process (sites{}): {:.2} CPU s; load average {}",
+        if r.topology.starts_with("router") {
+            ", router"
+        } else {
+            ""
+        },
+        r.harness_cpu_s,
+        r.load_average_1min
+            .map_or("unknown".to_string(), |l| format!("{l:.2}"))
     );
     for (k, s) in r.per_site.iter().enumerate() {
         println!(

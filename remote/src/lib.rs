@@ -23,6 +23,7 @@
 pub mod clock;
 pub mod harness;
 pub mod link;
+pub mod measure;
 pub mod roles;
 pub mod site;
 pub mod source;
@@ -150,7 +151,7 @@ pub struct Net {
     pub connect: Vec<String>,
     /// Link lease, ms (a lost peer is seen within it).
     pub lease_ms: u64,
-    /// `peer` or `client` (through a router).
+    /// `peer`, `router` (the others connect to this session) or `client` (through a router).
     pub mode: &'static str,
 }
 
@@ -162,6 +163,17 @@ impl Net {
             connect: connect.to_vec(),
             lease_ms: 10_000,
             mode: "peer",
+        }
+    }
+
+    /// The session a scene's `[remote]` table (already validated) describes: its endpoints, lease
+    /// and mode (`router`: this machine is the router the others connect to).
+    pub fn of(r: &lung_model::scene_remote::RemoteScene) -> Self {
+        Self {
+            listen: r.listen(),
+            connect: r.connect.clone(),
+            lease_ms: r.lease_ms,
+            mode: r.mode.name(),
         }
     }
 

@@ -44,18 +44,27 @@ pub struct ServeArgs {
     /// Zenoh endpoints to connect to (a router, other peers).
     #[arg(long)]
     pub connect: Vec<String>,
+    /// The session's room, mode and lease.
+    #[command(flatten)]
+    pub session: SessionArgs,
+    /// Stop after this many seconds.
+    #[arg(long)]
+    pub seconds: Option<f64>,
+}
+
+/// The shared session's settings both roles take (each defaults to the scene's `[remote]` table).
+#[derive(Debug, Clone, Default, clap::Args)]
+pub struct SessionArgs {
     /// The shared session's name, every site the same (default: the scene's, else "lungdyn").
     #[arg(long)]
     pub room: Option<String>,
-    /// peer, router or client (default: the scene's, else peer).
+    /// peer, client (through a router) or — `remote serve` only — router (the sites connect to
+    /// this machine) (default: the scene's, else peer).
     #[arg(long)]
     pub mode: Option<ZenohMode>,
     /// Link lease, ms (default: the scene's, else 10000).
     #[arg(long)]
     pub lease_ms: Option<u64>,
-    /// Stop after this many seconds.
-    #[arg(long)]
-    pub seconds: Option<f64>,
 }
 
 /// The `--mode` values.
@@ -63,7 +72,7 @@ pub struct ServeArgs {
 pub enum ZenohMode {
     /// Peer to peer.
     Peer,
-    /// A router others connect to.
+    /// A router the sites connect to (`remote serve` only).
     Router,
     /// A client of a router.
     Client,
@@ -88,16 +97,13 @@ fn remote_table(scene: Option<&std::path::Path>) -> Result<Option<RemoteScene>, 
 }
 
 /// A session's settings: the flags, else the scene's `[remote]` table, else the defaults; checked
-/// as the table is.
-#[allow(clippy::too_many_arguments)]
+/// as the table is (a site's router mode is refused there).
 fn settings(
     table: Option<RemoteScene>,
     role: RemoteRole,
     listen: &[String],
     connect: &[String],
-    room: Option<&str>,
-    mode: Option<ZenohMode>,
-    lease_ms: Option<u64>,
+    session: &SessionArgs,
 ) -> Result<(RemoteScene, Net, Keys), RemoteError> {
     let mut r = table.unwrap_or(RemoteScene {
         role,
@@ -114,13 +120,13 @@ fn settings(
     if !connect.is_empty() {
         r.connect = connect.to_vec();
     }
-    if let Some(room) = room {
-        r.room = room.to_string();
+    if let Some(room) = &session.room {
+        r.room = room.clone();
     }
-    if let Some(m) = mode {
+    if let Some(m) = session.mode {
         r.mode = m.into();
     }
-    if let Some(l) = lease_ms {
+    if let Some(l) = session.lease_ms {
         r.lease_ms = l;
     }
     r.validate().map_err(|e| {
@@ -129,12 +135,7 @@ fn settings(
              --lease-ms)"
         ))
     })?;
-    let net = Net {
-        listen: r.listen(),
-        connect: r.connect.clone(),
-        lease_ms: r.lease_ms,
-        mode: r.mode.name(),
-    };
+    let net = Net::of(&r);
     let keys = Keys::new(&r.room)?;
     Ok((r, net, keys))
 }
@@ -155,15 +156,9 @@ pub struct JoinArgs {
     /// Watch only: send no events (also the scene's `[remote] role = "observer"`).
     #[arg(long)]
     pub observer: bool,
-    /// The shared session's name (default: the scene's, else "lungdyn").
-    #[arg(long)]
-    pub room: Option<String>,
-    /// peer or client (through a router) (default: the scene's, else peer).
-    #[arg(long)]
-    pub mode: Option<ZenohMode>,
-    /// Link lease, ms (default: the scene's, else 10000).
-    #[arg(long)]
-    pub lease_ms: Option<u64>,
+    /// The session's room, mode (not router: a site joins one) and lease.
+    #[command(flatten)]
+    pub session: SessionArgs,
     /// Stop after this many seconds.
     #[arg(long)]
     pub seconds: Option<f64>,
@@ -196,9 +191,7 @@ pub fn serve(args: &ServeArgs) -> Result<(), RemoteError> {
         RemoteRole::Source,
         &args.listen,
         &args.connect,
-        args.room.as_deref(),
-        args.mode,
-        args.lease_ms,
+        &args.session,
     )?;
     net.config()?;
     let instance = Instance::new(&args.instance)?;
@@ -292,15 +285,7 @@ pub fn join(args: &JoinArgs) -> Result<(), RemoteError> {
         RemoteRole::Site
     };
     // Endpoints are checked before anything is loaded or opened.
-    let (remote, net, keys) = settings(
-        table,
-        role,
-        &[],
-        &args.connect,
-        args.room.as_deref(),
-        args.mode,
-        args.lease_ms,
-    )?;
+    let (remote, net, keys) = settings(table, role, &[], &args.connect, &args.session)?;
     net.config()?;
     let instance = Instance::new(&args.instance)?;
     let _lock = instance.lock("engine")?;
@@ -361,7 +346,7 @@ pub fn join(args: &JoinArgs) -> Result<(), RemoteError> {
             for e in &announced {
                 eprintln!(
                     "remote join[{}]: event kind {} on lung {} from {} (its #{}) applies at the \
-                     source's cycle {} (tick {})",
+                     source's breathing cycle {} (tick {}), the disease course's cycle {}",
                     instance.name(),
                     e.kind,
                     e.lung,
@@ -372,7 +357,8 @@ pub fn join(args: &JoinArgs) -> Result<(), RemoteError> {
                     },
                     e.sequence,
                     e.apply_cycle,
-                    e.apply_tick
+                    e.apply_tick,
+                    e.course_cycle
                 );
                 let Some(k) = sent
                     .iter()
@@ -385,7 +371,9 @@ pub fn join(args: &JoinArgs) -> Result<(), RemoteError> {
                     status: ipc_types::REPLY_APPLIED,
                     sequence: p.sequence,
                     tick: e.apply_tick,
-                    cycle: e.apply_cycle,
+                    // The disease course's cycle, as the source's engine answers (not the
+                    // breathing cycle `apply_cycle`).
+                    cycle: e.course_cycle,
                     kind: e.kind,
                     lung: e.lung,
                     outcome: e.outcome,
@@ -442,8 +430,8 @@ pub fn join(args: &JoinArgs) -> Result<(), RemoteError> {
         c.announced_late.load(Ordering::Relaxed)
     );
     eprintln!(
-        "remote join[{}]: {} states applied, {} repeated, {} refused{}, {} cycles started before \
-         their state",
+        "remote join[{}]: {} states applied, {} repeated, {} refused{}, {} cycle(s) breathed on \
+         prediction (their state late or lost)",
         instance.name(),
         c.applied.load(Ordering::Relaxed),
         c.repeated.load(Ordering::Relaxed),
@@ -457,4 +445,50 @@ pub fn join(args: &JoinArgs) -> Result<(), RemoteError> {
         c.predicted_cycles.load(Ordering::Relaxed)
     );
     Ok(())
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    fn session(mode: ZenohMode) -> SessionArgs {
+        SessionArgs {
+            mode: Some(mode),
+            lease_ms: Some(2000),
+            ..Default::default()
+        }
+    }
+
+    /// One set of session flags for both roles: the source may be the router, a site may not
+    /// (a clear error naming what to do instead); a site joins a router as a client.
+    #[test]
+    fn router_mode_is_the_sources_and_a_site_is_told_to_join_as_a_client() {
+        let listen = ["tcp/127.0.0.1:7447".to_string()];
+        let (r, net, _) = settings(
+            None,
+            RemoteRole::Source,
+            &listen,
+            &[],
+            &session(ZenohMode::Router),
+        )
+        .unwrap();
+        assert_eq!(
+            (r.mode.name(), net.mode, net.lease_ms),
+            ("router", "router", 2000)
+        );
+        for role in [RemoteRole::Site, RemoteRole::Observer] {
+            let e = settings(None, role, &[], &listen, &session(ZenohMode::Router))
+                .unwrap_err()
+                .to_string();
+            assert!(
+                e.contains("remote serve --mode router")
+                    && e.contains("client")
+                    && e.contains("--mode"),
+                "{e}"
+            );
+            let (_, net, _) =
+                settings(None, role, &[], &listen, &session(ZenohMode::Client)).unwrap();
+            assert_eq!(net.mode, "client");
+        }
+    }
 }

@@ -31,8 +31,11 @@ pub struct SiteCounts {
     pub probes: AtomicU64,
     /// States the tick loop applied.
     pub applied: AtomicU64,
-    /// Breathing cycles the site started without the source's state for them (predicted: the
-    /// engine breathes on with the last state's cycle until a newer one arrives).
+    /// Breathing cycles the site breathed on its own prediction because the source's state for
+    /// them was late or lost: not there [`late_after_ns`] after the cycle started (the engine
+    /// breathes on with the last state's breath until a newer one arrives). A state that comes
+    /// within the path's delay, as every state does (it is sent at the cycle start the site
+    /// reaches at the same moment), is not counted.
     pub predicted_cycles: AtomicU64,
     /// Disease cycles announced ahead that reached the engine before their start tick (put in at
     /// that tick, as the source does).
@@ -255,6 +258,7 @@ impl Site {
             lung,
             apply_cycle: 0,
             apply_tick: 0,
+            course_cycle: 0,
             outcome: 0,
         }))
         .map_err(|e| RemoteError::Usage(e.to_string()))?;
@@ -279,6 +283,7 @@ impl Site {
             last_tick: None,
             state_cycle: 0,
             predicted_upto: 0,
+            ahead: None,
             announced: None,
             frame: EngineFrame::default(),
         })
@@ -288,6 +293,13 @@ impl Site {
     pub fn link_counts(&self) -> &Arc<link::LinkCounts> {
         self.link.counts()
     }
+}
+
+/// How long after a cycle's start its state counts as late, ns: the smoothed one-way delay, four
+/// times the round-trip variation (RFC 6298's margin) and two ticks (the source publishes after
+/// stepping the cycle's first tick; the site's link worker builds the state's breath).
+pub fn late_after_ns(delay_ns: u64, jitter_ns: u64, period_ns: f64) -> i128 {
+    delay_ns as i128 + 4 * jitter_ns as i128 + (2.0 * period_ns).round() as i128
 }
 
 /// A site's engine in step with the source: ticks numbered as the source's, each at the local
@@ -304,6 +316,8 @@ pub struct Runner {
     last_tick: Option<u64>,
     state_cycle: u64,
     predicted_upto: u64,
+    /// The cycle the site is in ahead of the newest state, and the local time it began.
+    ahead: Option<(u64, i128)>,
     /// Start tick of the last announced cycle counted.
     announced: Option<u64>,
     /// The latest frame.
@@ -369,12 +383,36 @@ impl Runner {
         let k = k as u64;
         self.core.step(k, None, &mut self.frame);
         self.last_tick = Some(k);
+        self.count_prediction(k);
+        Ok(Some(k))
+    }
+
+    /// After stepping tick `k`: count the cycle the site is in once its state is late (the site
+    /// started it at the source's cycle start; the state leaves the source then and should be
+    /// here one path delay later, give or take the jitter).
+    fn count_prediction(&mut self, k: u64) {
         let cycle = self.frame.lungs.iter().map(|l| l.cycle).max().unwrap_or(0) as u64;
-        if cycle > self.state_cycle && cycle > self.predicted_upto {
+        if cycle <= self.state_cycle {
+            self.ahead = None;
+            return;
+        }
+        let at = self.time_of(k).unwrap_or(0);
+        let began = match self.ahead {
+            Some((c, t)) if c == cycle => t,
+            _ => {
+                self.ahead = Some((cycle, at));
+                at
+            }
+        };
+        let late = late_after_ns(
+            self.path.delay_ns.load(Ordering::Relaxed),
+            self.path.jitter_ns.load(Ordering::Relaxed),
+            self.period_ns,
+        );
+        if cycle > self.predicted_upto && at - began >= late {
             self.predicted_upto = cycle;
             self.counts.predicted_cycles.fetch_add(1, Ordering::Relaxed);
         }
-        Ok(Some(k))
     }
 
     /// The last source tick stepped.
@@ -385,5 +423,92 @@ impl Runner {
     /// The engine.
     pub fn core(&self) -> &EngineCore {
         &self.core
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use engine::runtime::remote::StateStamp;
+
+    /// A site fed a 30 breaths/min source's states (one at each 2 s cycle start) on a simulated
+    /// clock: cycle 1's state arrives 1 ms after its start (on time), cycle 2's ten ticks late,
+    /// cycle 3's never (lost). Only the late and the lost cycles count as predicted, once each.
+    #[test]
+    fn only_cycles_whose_state_is_late_or_lost_count_as_predicted() {
+        let (scene, mut source) = crate::harness::harness_core(Some(30.0)).unwrap();
+        let hz = scene.engine.tick_hz;
+        let period = 1e9 / hz;
+        let mut site_core = source.clone();
+        site_core.follow_remote();
+        let (tx, rx) = sync_channel::<Prepared>(8);
+        let counts = Arc::new(SiteCounts::default());
+        let mut runner = Runner {
+            core: site_core,
+            hz,
+            period_ns: period,
+            rx,
+            path: Arc::new(PathFigures::default()),
+            counts: counts.clone(),
+            anchor: None,
+            last_tick: None,
+            state_cycle: 0,
+            predicted_upto: 0,
+            ahead: None,
+            announced: None,
+            frame: EngineFrame::default(),
+        };
+        let t0 = 1_000_000_000u64;
+        let time = |k: u64| t0 + (k as f64 * period).round() as u64;
+        let mut cache = BreathCache::default();
+        let mut frame = EngineFrame::default();
+        let mut starts: Vec<u64> = Vec::new();
+        // (delivery time, state) for each cycle start.
+        let mut queue: Vec<(u64, Prepared)> = Vec::new();
+        let ticks = 4 * 120;
+        for k in 0..ticks {
+            source.step(k, None, &mut frame);
+            let now: Vec<u64> = source.cycle_starts().collect();
+            if now == starts {
+                continue;
+            }
+            starts = now;
+            let stamp = StateStamp {
+                source: 1,
+                epoch: 1,
+                sequence: queue.len() as u64,
+                tick_hz: hz,
+                source_time_ns: time(k),
+            };
+            let state = source.control_state(k, stamp, &[]).unwrap();
+            let cycle = state.cycle;
+            let deliver = match cycle {
+                0 | 1 => time(k) + 1_000_000,
+                2 => time(k + 10),
+                _ => continue,
+            };
+            queue.push((deliver, Prepared::of(state, &mut cache).unwrap()));
+        }
+        assert_eq!(queue.len(), 3, "states of cycles 0, 1 and 2 (3 is lost)");
+        let mut now = t0;
+        while now < time(ticks) {
+            while queue.first().is_some_and(|(at, _)| *at <= now) {
+                tx.send(queue.remove(0).1).unwrap();
+            }
+            runner.poll(now).unwrap();
+            now += 1_000_000;
+        }
+        assert_eq!(runner.last_tick(), Some(ticks - 1));
+        assert_eq!(counts.applied.load(Ordering::Relaxed), 3);
+        assert_eq!(counts.predicted_cycles.load(Ordering::Relaxed), 2);
+    }
+
+    #[test]
+    fn the_lateness_allowance_is_delay_four_jitters_and_two_ticks() {
+        assert_eq!(late_after_ns(0, 0, 16_666_666.7), 33_333_333);
+        assert_eq!(
+            late_after_ns(20_000_000, 5_000_000, 16_666_666.7),
+            20_000_000 + 20_000_000 + 33_333_333
+        );
     }
 }

@@ -25,6 +25,9 @@ fn args(sites: usize, seconds: f64, loss: f64) -> HarnessArgs {
         observer: true,
         json: false,
         seed: 3,
+        router: false,
+        probe_ms: 50,
+        source_exe: None,
     }
 }
 
@@ -481,4 +484,82 @@ fn a_site_that_drops_out_and_rejoins_is_in_step_within_one_cycle() {
         }
         assert!(after.len() > 120, "{} ticks after rejoining", after.len());
     });
+}
+
+/// `mode = "router"` in a scene's `[remote]` table: the source's own session is the router
+/// (`lungdyn remote serve --scene` with it); a site in client mode reaches it and breathes the
+/// source's ticks bit for bit, and the source sees the site's presence through it.
+#[test]
+fn a_scenes_router_mode_source_serves_a_client_site() {
+    use lungdyn_remote::harness::run_site;
+    let port = free_port();
+    let scene = lung_model::scene::Scene::parse(
+        &format!(
+            "[pv]\nbreaths_per_min = 30.0\n[remote]\nrole = \"source\"\nroom = \"routed\"\n\
+             mode = \"router\"\nlisten = [\"tcp/127.0.0.1:{port}\"]\nlease_ms = 2000\n"
+        ),
+        "test",
+    )
+    .unwrap();
+    let table = scene.remote.clone().unwrap();
+    let net = Net::of(&table);
+    assert_eq!((net.mode, net.lease_ms), ("router", 2000));
+    let keys = Keys::new(&table.room).unwrap();
+    let id = site_id(0);
+    let source = Source::open(&net, &keys, id, Impairment::default()).unwrap();
+    let site_table = lung_model::scene::Scene::parse(
+        &format!(
+            "[remote]\nrole = \"observer\"\nroom = \"routed\"\nmode = \"client\"\n\
+             connect = [\"tcp/127.0.0.1:{port}\"]\nlease_ms = 2000\n"
+        ),
+        "test",
+    )
+    .unwrap()
+    .remote
+    .unwrap();
+    let site_net = Net::of(&site_table);
+    assert_eq!(site_net.mode, "client");
+    let site = Site::open(
+        &site_net,
+        &keys,
+        site_id(1),
+        true,
+        Impairment::default(),
+        100,
+    )
+    .unwrap();
+    let core = harness::scene_core(&scene).unwrap();
+    let hz = scene.engine.tick_hz;
+    let mut site_core = core.clone();
+    site_core.follow_remote();
+    let runner = site.runner(site_core, hz).unwrap();
+    let stop = Arc::new(AtomicBool::new(false));
+    let (source_recs, site_recs) = std::thread::scope(|s| {
+        let st = stop.clone();
+        let h_site = s.spawn(move || run_site(runner, &st));
+        let (src, st) = (&source, stop.clone());
+        let h = s.spawn(move || run_source(core, hz, src, id, transport::clock::now_ns(), &st));
+        // Slow starts on a loaded machine: wait (up to 20 s) for the site to step a whole 2 s
+        // cycle, not a fixed time.
+        let began = Instant::now();
+        while began.elapsed() < Duration::from_secs(20)
+            && site.counts.applied.load(Ordering::Relaxed) < 3
+        {
+            std::thread::sleep(Duration::from_millis(50));
+        }
+        stop.store(true, Ordering::Relaxed);
+        (
+            h.join().unwrap().unwrap().0,
+            h_site.join().unwrap().unwrap(),
+        )
+    });
+    assert!(
+        site.counts.applied.load(Ordering::Relaxed) >= 3,
+        "{:?}",
+        site.counts
+    );
+    assert_eq!(site.counts.refused.load(Ordering::Relaxed), 0);
+    assert!(site_recs.len() >= 120, "{} ticks", site_recs.len());
+    assert_eq!(same_ticks(&site_recs, &[&source_recs]), site_recs.len());
+    assert!(source.counts.probes.load(Ordering::Relaxed) > 0);
 }

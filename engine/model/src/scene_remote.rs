@@ -164,6 +164,14 @@ impl RemoteScene {
                     }
                 ));
             }
+            (RemoteRole::Site | RemoteRole::Observer, ZenohMode::Router) => {
+                return Err(
+                    "mode = \"router\" is the source's (`lungdyn remote serve --mode router`: the \
+                     sites connect to it) or a Zenoh router's; a site joins one with mode = \
+                     \"client\" (or \"peer\") and connect = [\"tcp/ROUTER:7447\"]"
+                        .into(),
+                );
+            }
             (_, ZenohMode::Client) if self.connect.is_empty() => {
                 return Err(
                     "mode = \"client\" needs connect = [\"tcp/ROUTER:7447\"]: a client reaches \
@@ -255,6 +263,11 @@ mod tests {
             ("role = \"source\"\nsite_id = \"xyz\"\n", "site_id"),
             ("role = \"source\"\nsite_id = \"0\"\n", "site_id"),
             ("role = \"source\"\nport = 7447\n", "port"),
+            (
+                "role = \"observer\"\nmode = \"router\"\nconnect = [\"tcp/10.0.0.2:7447\"]\n\
+                 listen = [\"tcp/0.0.0.0:7447\"]\n",
+                "remote serve --mode router",
+            ),
         ] {
             let e = parse(text).unwrap_err();
             assert!(e.contains(word), "{text}: {e}");

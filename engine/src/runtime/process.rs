@@ -233,17 +233,21 @@ impl StatePublisher {
     }
 
     /// Publish when a lung started a cycle, a disease cycle was prepared (announced before it
-    /// starts, so every site puts it in at the same tick) or applied actions wait to be announced
+    /// starts, so every site puts it in at the same tick), applied actions wait to be announced
     /// with the tick they show from (at most `MAX_EVENTS` a state: the rest go with the next
-    /// tick's). A few compares otherwise.
+    /// tick's) or the pacer skipped deadlines before this tick (`resync`: the ticks from here on
+    /// fall a whole number of periods later than the last state's schedule, which the sites
+    /// follow, so they take the new one at once rather than a cycle later). A few compares
+    /// otherwise.
     fn after_tick(
         &mut self,
         core: &EngineCore,
         tick: u64,
         at_ns: u64,
+        resync: bool,
         out: &mut StateOut<'_>,
     ) -> Result<(), EngineError> {
-        let mut changed = false;
+        let mut changed = resync;
         for (k, start) in core.cycle_starts().enumerate().take(self.starts.len()) {
             if self.starts[k] != start {
                 self.starts[k] = start;
@@ -428,7 +432,7 @@ pub fn run_loop(
         }
         if let Some(out) = control.as_mut().and_then(|c| c.state.as_mut()) {
             // A site schedules by the tick's due time, not when this host happened to wake.
-            states.after_tick(core, tick, t.due_ns, out)?;
+            states.after_tick(core, tick, t.due_ns, t.skipped > 0, out)?;
         }
         if let Some(c) = control.as_mut() {
             // Every pending packet, in the order the stream gives them (none is left behind or
@@ -520,9 +524,11 @@ pub fn run_loop(
                             sequence,
                             kind: e.kind.code(),
                             lung: e.side.index() as u32,
-                            // Stamped when announced: the tick and cycle its course cycle starts.
+                            // Stamped when announced: the tick and breathing cycle its course
+                            // cycle starts.
                             apply_cycle: 0,
                             apply_tick: 0,
+                            course_cycle: e.cycle,
                             outcome: reply.outcome,
                         };
                         states.event(event, e.cycle);

@@ -1248,6 +1248,38 @@ fn actions_are_announced_with_their_tick_ahead_and_a_late_site_applies_them_at_t
         .find(|s| s.tick == events[0].apply_tick)
         .expect("a state at the cycle start the actions show from");
     assert_eq!(start.cycle, events[0].apply_cycle);
+    // Two counts, both named: the engine's applied replies give the disease course's cycle, each
+    // announced event carries that same course cycle beside the breathing cycle, and the state
+    // that announced the cycle maps the one to the other.
+    let applied: Vec<u64> = replies
+        .values()
+        .iter()
+        .filter(|r| r.status == ipc_types::REPLY_APPLIED)
+        .map(|r| r.cycle)
+        .collect();
+    assert_eq!(applied.len(), 12);
+    let course = events[0].course_cycle;
+    assert!(
+        applied.iter().all(|&c| c == course),
+        "{applied:?} vs {course}"
+    );
+    assert!(events.iter().all(|e| e.course_cycle == course));
+    let announced = states
+        .iter()
+        .find_map(|s| {
+            s.pending
+                .as_ref()
+                .filter(|p| p.apply_tick == events[0].apply_tick)
+        })
+        .expect("the cycle the actions show from was announced");
+    assert_eq!(
+        (announced.course_cycle, announced.apply_cycle),
+        (course, events[0].apply_cycle)
+    );
+    eprintln!(
+        "actions show from disease cycle {course}, breathing cycle {}",
+        events[0].apply_cycle
+    );
     let ahead = states
         .iter()
         .filter(|s| {
@@ -1549,4 +1581,89 @@ fn the_default_breath_is_one_to_two_and_the_seeds_one_to_one_stays_reachable() {
         ct < 300 && (3 * ti as i64 - ct as i64).abs() <= 2,
         "{ti} of {ct}"
     );
+}
+
+/// Frames recorded; at tick 30 the loop stalls for ten periods (the clock jumps), past the
+/// pacer's catch-up allowance.
+struct Stalls(Vec<EngineFrame>, transport::FakeClock, u64);
+
+impl transport::Publish<EngineFrame> for Stalls {
+    fn publish(&mut self, f: &EngineFrame) -> Result<(), transport::PortError> {
+        self.0.push(*f);
+        if f.tick == 30 {
+            self.1.advance(10 * self.2);
+        }
+        Ok(())
+    }
+}
+
+/// Remote sites schedule the source's tick k at the last state's time plus (k − its tick)
+/// periods. When the source's pacer skips deadlines, its ticks from then on fall whole periods
+/// later than that: it publishes a state at the first tick after the skip, with that tick's due
+/// time, so the sites re-anchor one path delay later instead of a breathing cycle later (the
+/// classroom harness's 33 ms phase errors on a loaded machine).
+#[test]
+fn a_skipped_deadline_publishes_a_state_with_the_new_schedule() {
+    use control_state::{decode, ControlStateFrame, Packet};
+    use ipc_types::{ControlPacket, ControlReply};
+    use process::{run_loop, Controls, StateOut};
+    use transport::memory::{Recorder, Scripted};
+    use transport::pacer::PacerConfig;
+    use transport::{Clock, FakeClock};
+    const P: u64 = 16_666_667;
+    let clock = FakeClock::at(0);
+    let mut inlet = Scripted::<ControlPacket>::new(&clock, vec![], 4);
+    let mut replies = Recorder::<ControlReply>::new(&clock);
+    let mut tracker = Scripted::<TrackerFrame>::new(&clock, vec![], 4);
+    let mut frames = Stalls(Vec::new(), clock.clone(), P);
+    let mut outlet = Recorder::<ControlStateFrame>::new(&clock);
+    let published = outlet.clone();
+    let c = clock.clone();
+    let stats = run_loop(
+        &mut core(),
+        &mut tracker,
+        &mut frames,
+        Some(Controls {
+            inlet: &mut inlet,
+            replies: &mut replies,
+            state: Some(StateOut {
+                outlet: &mut outlet,
+                source: 7,
+                epoch: 1,
+                tick_hz: 60.0,
+            }),
+        }),
+        &clock,
+        PacerConfig::for_period(P),
+        &mut || c.now_ns() >= 120 * P,
+        None,
+        0,
+    )
+    .unwrap();
+    assert!(stats.pacer.skipped_deadlines > 0, "{:?}", stats.pacer);
+    let states: Vec<_> = published
+        .values()
+        .iter()
+        .map(|f| match decode(f.encoded()).unwrap() {
+            Packet::State(s) => (s.tick, s.source_time_ns),
+            p => panic!("{p:?}"),
+        })
+        .collect();
+    // The first state (tick 0) and one at tick 31, the first after the stall; no cycle starts
+    // between (the default scene breathes 12 a minute: 300 ticks a cycle).
+    assert_eq!(states.len(), 2, "{states:?}");
+    assert_eq!(states[1].0, 31);
+    // Its time is the schedule the ticks now follow: tick 32 ran one period after it.
+    let due_31 = states[1].1;
+    assert!(due_31 > states[0].1 + 31 * P, "{states:?}");
+    let t = |k: u64| {
+        frames
+            .0
+            .iter()
+            .find(|f| f.tick == k)
+            .unwrap()
+            .stamps
+            .engine_receive_ns
+    };
+    assert!(t(32) >= due_31 + P && t(32) < due_31 + 2 * P, "{states:?}");
 }

@@ -14,7 +14,9 @@
 //! source tick as the source, however late the packet that announced it travelled.
 //!
 //! Version history: v1 had no pending cycle and events without their apply tick and outcome; v2
-//! adds them.
+//! adds them; v3 gives each event the disease course's cycle it shows from as well as the
+//! breathing cycle (the two counts a user sees: `lungdyn scene event` and the engine say the
+//! course's, frames and states count breaths).
 //!
 //! ## Encoding
 //! [`encode`] writes `magic "LDCS" | version u16 | flags u16 | length u32 | xxh3-64 of the payload |
@@ -38,7 +40,7 @@ use thiserror::Error;
 /// Magic bytes at the start of every encoded packet.
 pub const MAGIC: [u8; 4] = *b"LDCS";
 /// Version of the encoding (header and payload); a packet of another version is refused.
-pub const FORMAT_VERSION: u16 = 2;
+pub const FORMAT_VERSION: u16 = 3;
 /// Header bytes: magic, version, flags, payload length, checksum.
 pub const HEADER_BYTES: usize = 4 + 2 + 2 + 4 + 8;
 /// Bytes a [`ControlStateFrame`] carries (the largest encoded packet).
@@ -241,6 +243,10 @@ pub struct RemoteEvent {
     pub apply_cycle: u64,
     /// The source tick that cycle starts at: every site and the source switch there.
     pub apply_tick: u64,
+    /// The same cycle as the disease course counts it (from the onset; what the engine's reply
+    /// [`ipc_types::ControlReply::cycle`] and `lungdyn scene event` call the "disease cycle"),
+    /// stamped by the source's engine (0 in a site's request).
+    pub course_cycle: u64,
     /// What it did, as the source's engine judged it (`ipc_types::OUTCOME_*`; 0 in a site's
     /// request).
     pub outcome: u32,

@@ -104,6 +104,7 @@ fn a_full_state_fits_a_frame_and_reads_back_equal() {
             lung: u32::MAX,
             apply_cycle: u64::MAX,
             apply_tick: u64::MAX,
+            course_cycle: u64::MAX,
             outcome: u32::MAX,
         }));
     }
@@ -137,7 +138,7 @@ fn an_unknown_version_is_refused_by_name() {
     let mut b = encode_to_vec(&Packet::State(state())).unwrap();
     b[4] = 1;
     let e = decode(&b).unwrap_err();
-    assert_eq!(e, DecodeError::UnknownVersion { theirs: 1, ours: 2 });
+    assert_eq!(e, DecodeError::UnknownVersion { theirs: 1, ours: 3 });
     assert!(e.to_string().contains("v1 is not understood"), "{e}");
 }
 
@@ -381,6 +382,7 @@ fn arb_state() -> impl Strategy<Value = ControlState> {
                             lung,
                             apply_cycle,
                             apply_tick,
+                            course_cycle: apply_cycle / 3,
                             outcome: kind ^ lung,
                         },
                     )
@@ -422,7 +424,7 @@ proptest! {
         for p in [
             Packet::Probe { from: a[0], to: a[1], id: a[2], t0_ns: a[3] },
             Packet::ProbeReply { from: a[0], to: a[1], id: a[2], t0_ns: a[3], t1_ns: a[4], t2_ns: a[5] },
-            Packet::Event(RemoteEvent { origin: a[0], sequence: a[1], kind: k, lung: k ^ 1, apply_cycle: a[5], apply_tick: a[4], outcome: k }),
+            Packet::Event(RemoteEvent { origin: a[0], sequence: a[1], kind: k, lung: k ^ 1, apply_cycle: a[5], apply_tick: a[4], course_cycle: a[3], outcome: k }),
         ] {
             prop_assert_eq!(roundtrip(&p), p);
         }

@@ -1,0 +1,129 @@
+//! What a process costs: its CPU time (`getrusage`) and the bytes its TCP sockets carried
+//! (`TCP_INFO` on each of its own sockets) — the harness's source runs in its own process so that
+//! both are the source's alone (Zenoh's runtime threads are shared by every session of a process).
+
+/// CPU time (user + system), seconds, of the whole process (`RUSAGE_SELF`: every thread, Zenoh's
+/// included) or of the calling thread (`RUSAGE_THREAD`).
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub enum Who {
+    /// Every thread of this process.
+    Process,
+    /// The calling thread.
+    Thread,
+}
+
+/// CPU time of `who`, seconds (0 when the call fails, which it does not on Linux).
+pub fn cpu_s(who: Who) -> f64 {
+    let w = match who {
+        Who::Process => libc::RUSAGE_SELF,
+        Who::Thread => libc::RUSAGE_THREAD,
+    };
+    // SAFETY: getrusage fills the zeroed struct we pass; it has no other preconditions.
+    unsafe {
+        let mut u: libc::rusage = std::mem::zeroed();
+        if libc::getrusage(w, &mut u) != 0 {
+            return 0.0;
+        }
+        let tv = |t: libc::timeval| t.tv_sec as f64 + t.tv_usec as f64 / 1e6;
+        tv(u.ru_utime) + tv(u.ru_stime)
+    }
+}
+
+/// Bytes over this process's TCP sockets now: (sent and acknowledged, received), summed over
+/// every open TCP socket (`tcpi_bytes_acked` and `tcpi_bytes_received` of Linux's `tcp_info`,
+/// kernel 4.1 on; a socket closed earlier no longer counts). On loopback every byte sent is
+/// acknowledged within microseconds, so the first is the bytes sent. `None` where `/proc/self/fd`
+/// cannot be read or the kernel's `tcp_info` is too short.
+pub fn tcp_bytes() -> Option<(u64, u64)> {
+    // struct tcp_info: 8 one-byte fields, 24 u32 (to tcpi_total_retrans), then u64 pacing_rate,
+    // max_pacing_rate, bytes_acked (offset 120), bytes_received (offset 128).
+    const ACKED: usize = 120;
+    const RECEIVED: usize = 128;
+    let mut sent = 0u64;
+    let mut received = 0u64;
+    let mut any_short = false;
+    for entry in std::fs::read_dir("/proc/self/fd").ok()?.flatten() {
+        let Ok(target) = std::fs::read_link(entry.path()) else {
+            continue;
+        };
+        if !target.to_string_lossy().starts_with("socket:") {
+            continue;
+        }
+        let Some(fd) = entry
+            .file_name()
+            .to_str()
+            .and_then(|s| s.parse::<i32>().ok())
+        else {
+            continue;
+        };
+        let mut buf = [0u8; 256];
+        let mut len = buf.len() as libc::socklen_t;
+        // SAFETY: `buf` is writable for `len` bytes; getsockopt writes at most `len` and sets
+        // `len` to what it wrote. A descriptor closed meanwhile or not a TCP socket fails cleanly.
+        let rc = unsafe {
+            libc::getsockopt(
+                fd,
+                libc::IPPROTO_TCP,
+                libc::TCP_INFO,
+                buf.as_mut_ptr().cast(),
+                &mut len,
+            )
+        };
+        if rc != 0 {
+            continue;
+        }
+        if (len as usize) < RECEIVED + 8 {
+            any_short = true;
+            continue;
+        }
+        let at = |o: usize| u64::from_ne_bytes(buf[o..o + 8].try_into().expect("8 bytes"));
+        sent += at(ACKED);
+        received += at(RECEIVED);
+    }
+    (!any_short).then_some((sent, received))
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use std::io::{Read, Write};
+
+    #[test]
+    fn bytes_written_to_a_loopback_socket_are_counted_both_ways() {
+        let l = std::net::TcpListener::bind("127.0.0.1:0").unwrap();
+        let mut a = std::net::TcpStream::connect(l.local_addr().unwrap()).unwrap();
+        let (mut b, _) = l.accept().unwrap();
+        let (s0, r0) = tcp_bytes().unwrap();
+        a.write_all(&[7u8; 10_000]).unwrap();
+        let mut got = vec![0u8; 10_000];
+        b.read_exact(&mut got).unwrap();
+        // Both ends are this process's: 10 000 bytes sent (and acknowledged) and received, plus
+        // whatever other tests' sockets carried meanwhile.
+        let mut ok = false;
+        for _ in 0..100 {
+            let (s1, r1) = tcp_bytes().unwrap();
+            if s1 - s0 >= 10_000 && r1 - r0 >= 10_000 {
+                ok = true;
+                break;
+            }
+            std::thread::sleep(std::time::Duration::from_millis(10));
+        }
+        assert!(ok);
+    }
+
+    #[test]
+    fn cpu_time_grows_with_work() {
+        let (p0, t0) = (cpu_s(Who::Process), cpu_s(Who::Thread));
+        let mut x = 0u64;
+        let start = std::time::Instant::now();
+        while start.elapsed() < std::time::Duration::from_millis(50) {
+            x = x.wrapping_mul(6364136223846793005).wrapping_add(1);
+        }
+        std::hint::black_box(x);
+        let thread = cpu_s(Who::Thread) - t0;
+        let process = cpu_s(Who::Process) - p0;
+        assert!(thread > 0.0, "{thread}");
+        // The process's time includes this thread's (read after it; 1 ms for the clock's grain).
+        assert!(process >= thread - 1e-3, "{process} < {thread}");
+    }
+}

@@ -1,0 +1,302 @@
+//! A shared session end to end (issue 24, seed §8.3): `lungdyn demo` on a source scene (its
+//! `[remote]` table starts `lungdyn remote serve` beside the engine) and one site joined with
+//! `lungdyn remote join --observer` as its own process, on loopback (an explicit tcp/127.0.0.1 port,
+//! multicast scouting off, a 2 s lease). The test reads both instances' engine streams and checks
+//! the site stepped the source's ticks with the source's volumes, bit for bit, over whole cycles of
+//! a tension pneumothorax's course; and both tools' own words (states published, applied, refused,
+//! sites present). Counted in cycles, not milliseconds: slow starts on a loaded machine only wait.
+//! Also: `remote serve` and `remote join` take the same session flags, and `remote harness --router`
+//! reports the source's own cost.
+
+use std::collections::BTreeMap;
+use std::path::PathBuf;
+use std::process::{Child, Command, Stdio};
+use std::time::{Duration, Instant};
+
+use lungdyn_tests::{bin, lungdyn, unique_instance};
+use transport::{iox, Instance, Receive};
+
+fn free_port() -> u16 {
+    std::net::TcpListener::bind("127.0.0.1:0")
+        .unwrap()
+        .local_addr()
+        .unwrap()
+        .port()
+}
+
+fn tmp(name: &str) -> PathBuf {
+    let d = std::env::temp_dir().join(format!("lungdyn-remote-{}", std::process::id()));
+    std::fs::create_dir_all(&d).unwrap();
+    d.join(name)
+}
+
+/// Killed (SIGINT, then SIGKILL) if still running when dropped.
+struct Proc(Child, &'static str);
+
+impl Proc {
+    fn interrupt_and_wait(&mut self) -> std::process::ExitStatus {
+        // SAFETY: a signal to our own child, not reaped yet (we hold it).
+        unsafe {
+            libc::kill(self.0.id() as libc::pid_t, libc::SIGINT);
+        }
+        let asked = Instant::now();
+        loop {
+            if let Some(s) = self.0.try_wait().unwrap() {
+                return s;
+            }
+            if asked.elapsed() > Duration::from_secs(20) {
+                let _ = self.0.kill();
+                panic!("{} did not stop within 20 s of SIGINT", self.1);
+            }
+            std::thread::sleep(Duration::from_millis(20));
+        }
+    }
+}
+
+impl Drop for Proc {
+    fn drop(&mut self) {
+        if matches!(self.0.try_wait(), Ok(None)) {
+            let _ = self.0.kill();
+            let _ = self.0.wait();
+        }
+    }
+}
+
+fn read(p: &PathBuf) -> String {
+    std::fs::read_to_string(p).unwrap_or_default()
+}
+
+/// Wait (up to `limit`) until `log` contains `needle`; the log's text.
+fn wait_for(log: &PathBuf, needle: &str, limit: Duration, what: &str) -> String {
+    let start = Instant::now();
+    loop {
+        let t = read(log);
+        if t.contains(needle) {
+            return t;
+        }
+        assert!(
+            start.elapsed() < limit,
+            "{what}: no {needle:?} within {limit:?}:\n{t}"
+        );
+        std::thread::sleep(Duration::from_millis(50));
+    }
+}
+
+/// The number in `text` right before `tail` on the last line holding it ("12 states applied").
+fn count_before(text: &str, tail: &str) -> Option<u64> {
+    let line = text.lines().rev().find(|l| l.contains(tail))?;
+    let head = &line[..line.find(tail)?];
+    head.split_whitespace().last()?.parse().ok()
+}
+
+#[test]
+fn a_joined_site_breathes_the_demos_ticks_bit_for_bit() {
+    let port = free_port();
+    let room = format!("t{}", std::process::id());
+    // The shipped source scene's course (a tension pneumothorax, onset at 2 s here) at 30 breaths
+    // a minute (2 s cycles), on a loopback port of its own.
+    let scene = tmp("source.toml");
+    std::fs::write(
+        &scene,
+        format!(
+            "[pv]\nbreaths_per_min = 30.0\n[lungs]\nsides = [\"right\", \"left\"]\n\
+             [disease]\nkind = \"tension-pneumothorax\"\nside = \"left\"\nonset_s = 2.0\n\
+             v_p_ml = 40.0\n[remote]\nrole = \"source\"\nroom = \"{room}\"\n\
+             listen = [\"tcp/127.0.0.1:{port}\"]\nmode = \"peer\"\nlease_ms = 2000\n"
+        ),
+    )
+    .unwrap();
+    // The site's: the same course, as an observer of that room, prepared (its kernels baked) as
+    // a site's engine needs.
+    let text = std::fs::read_to_string(&scene).unwrap();
+    let site_scene = lungdyn_tests::prepared_scene(
+        "remote-site",
+        &text
+            .replace("role = \"source\"", "role = \"observer\"")
+            .replace(
+                &format!("listen = [\"tcp/127.0.0.1:{port}\"]"),
+                &format!("connect = [\"tcp/127.0.0.1:{port}\"]"),
+            ),
+    );
+    let source_instance = unique_instance("rsrc");
+    let site_instance = unique_instance("rsite");
+    let demo_log = tmp("demo.log");
+    let mut demo = Proc(
+        Command::new(bin("lungdyn"))
+            .args(["demo", "--seconds", "40", "--snapshots", "0", "--instance"])
+            .arg(&source_instance)
+            .arg("--scene")
+            .arg(&scene)
+            .arg("--out")
+            .arg(tmp("demo-out"))
+            .stdout(Stdio::null())
+            .stderr(std::fs::File::create(&demo_log).unwrap())
+            .spawn()
+            .unwrap(),
+        "lungdyn demo",
+    );
+    wait_for(
+        &demo_log,
+        "relaying",
+        Duration::from_secs(120),
+        "the demo's remote serve",
+    );
+    let services = Instance::new(&source_instance).unwrap();
+    let node = iox::node(&services, "test").unwrap();
+    let mut source_frames = services.engine_inlet(&node).unwrap();
+    let site_log = tmp("join.log");
+    let endpoint = format!("tcp/127.0.0.1:{port}");
+    let mut join = Proc(
+        Command::new(bin("lungdyn"))
+            .args(["remote", "join", "--observer", "--connect", &endpoint])
+            .args(["--room", &room, "--lease-ms", "2000", "--instance"])
+            .arg(&site_instance)
+            .arg("--scene")
+            .arg(&site_scene)
+            .stdout(Stdio::null())
+            .stderr(std::fs::File::create(&site_log).unwrap())
+            .spawn()
+            .unwrap(),
+        "lungdyn remote join",
+    );
+    // The site's engine stream exists once join has opened its instance.
+    let site_services = Instance::new(&site_instance).unwrap();
+    let site_node = iox::node(&site_services, "test").unwrap();
+    let mut site_frames = None;
+    let (mut source, mut site) = (BTreeMap::new(), BTreeMap::new());
+    let started = Instant::now();
+    // Until the site has stepped three whole cycles of the source's (or 90 s on a loaded machine).
+    let cycles = |m: &BTreeMap<u64, (u32, u32)>| {
+        let mut c: Vec<u32> = m.values().map(|v| v.1).collect();
+        c.dedup();
+        c.len()
+    };
+    while started.elapsed() < Duration::from_secs(90) && cycles(&site) < 5 {
+        if let Some(s) = join.0.try_wait().unwrap() {
+            panic!("remote join ended ({s}):\n{}", read(&site_log));
+        }
+        source_frames
+            .drain(&mut |f: &ipc_types::EngineFrame| {
+                let v: f32 = f.lungs.iter().map(|l| l.volume_ml).sum();
+                source.insert(f.tick, (v.to_bits(), f.lungs[0].cycle));
+            })
+            .unwrap();
+        if site_frames.is_none() && read(&site_log).contains("waiting for the source") {
+            site_frames = Some(site_services.engine_inlet(&site_node).unwrap());
+        }
+        if let Some(s) = site_frames.as_mut() {
+            s.drain(&mut |f: &ipc_types::EngineFrame| {
+                let v: f32 = f.lungs.iter().map(|l| l.volume_ml).sum();
+                site.insert(f.tick, (v.to_bits(), f.lungs[0].cycle));
+            })
+            .unwrap();
+        }
+        std::thread::sleep(Duration::from_millis(3));
+    }
+    let join_status = join.interrupt_and_wait();
+    let site_text = read(&site_log);
+    assert!(join_status.success(), "remote join failed:\n{site_text}");
+    let demo_status = demo.interrupt_and_wait();
+    let demo_text = read(&demo_log);
+    assert!(
+        !demo_text.contains("panicked") && !site_text.contains("panicked"),
+        "{demo_text}\n{site_text}"
+    );
+    let _ = demo_status;
+    // The site stepped the source's ticks: every tick both streams showed has the same volume and
+    // cycle, over at least two whole cycles (the first, partial one aside) of the course.
+    let common: Vec<u64> = site
+        .keys()
+        .filter(|k| source.contains_key(k))
+        .copied()
+        .collect();
+    let mut differ = Vec::new();
+    for k in &common {
+        if site[k] != source[k] {
+            differ.push((*k, site[k], source[k]));
+        }
+    }
+    assert!(
+        differ.is_empty(),
+        "{} of {} ticks differ, first {:?}\n{site_text}",
+        differ.len(),
+        common.len(),
+        &differ[..differ.len().min(5)]
+    );
+    let mut seen: Vec<u32> = common.iter().map(|k| site[k].1).collect();
+    seen.dedup();
+    assert!(
+        seen.len() >= 3 && common.len() >= 240,
+        "compared {} ticks over cycles {seen:?}:\n{site_text}\n{demo_text}",
+        common.len()
+    );
+    // The tools' own words: the site took the states, refused none, was in step; the source's
+    // serve saw the site and published the states.
+    assert!(site_text.contains("in step with the source"), "{site_text}");
+    let applied = count_before(&site_text, "states applied").expect("join's counters");
+    let refused = count_before(&site_text, "refused").unwrap_or(u64::MAX);
+    assert!(applied >= 3 && refused == 0, "{site_text}");
+    assert!(demo_text.contains("1 site(s) present"), "{demo_text}");
+}
+
+/// `remote serve` and `remote join` take one set of session flags (--room, --mode, --lease-ms);
+/// serve's help offers router mode, join's refuses it with what to do instead.
+#[test]
+fn serve_and_join_share_the_session_flags_and_only_serve_routes() {
+    for role in ["serve", "join"] {
+        let (ok, out, _) = lungdyn(&["remote", role, "--help"]);
+        assert!(ok);
+        for flag in ["--room", "--mode", "--lease-ms", "--seconds"] {
+            assert!(out.contains(flag), "remote {role} --help: {out}");
+        }
+        assert!(out.contains("`remote serve` only"), "{out}");
+    }
+    let (ok, _, err) = lungdyn(&[
+        "remote",
+        "join",
+        "--connect",
+        "tcp/127.0.0.1:7447",
+        "--mode",
+        "router",
+        "--seconds",
+        "1",
+    ]);
+    assert!(!ok && err.contains("remote serve --mode router"), "{err}");
+}
+
+/// `remote harness --router` (a router in the harness's process, the source in its own): the
+/// source's own CPU and TCP bytes are reported, it sees both sites through the router, and both
+/// step the source's volumes bit for bit.
+#[test]
+fn the_harness_through_a_router_reports_the_sources_own_cost() {
+    let (ok, out, err) = lungdyn(&[
+        "remote",
+        "harness",
+        "--sites",
+        "2",
+        "--seconds",
+        "4",
+        "--breaths-per-min",
+        "30",
+        "--observer",
+        "--router",
+        "--probe-ms",
+        "100",
+        "--json",
+    ]);
+    assert!(ok, "{err}");
+    let v: serde_json::Value = serde_json::from_str(&out).unwrap();
+    assert!(v["topology"].as_str().unwrap().starts_with("router"), "{v}");
+    assert_eq!(v["sites_seen_by_source"], 2, "{v}");
+    assert!(v["source_cpu_s"].as_f64().unwrap() > 0.0, "{v}");
+    assert!(
+        v["source_tcp_bytes_sent_per_minute"].as_f64().unwrap()
+            > v["state_bytes_per_minute"].as_f64().unwrap(),
+        "{v}"
+    );
+    assert!(v["probes_per_minute"].as_f64().unwrap() > 0.0, "{v}");
+    for s in v["per_site"].as_array().unwrap() {
+        assert_eq!(s["ticks_differing"], 0, "{s}");
+        assert!(s["ticks"].as_u64().unwrap() > 120, "{s}");
+    }
+}
