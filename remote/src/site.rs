@@ -272,21 +272,13 @@ impl Site {
     /// The engine runner fed by this site's states (once: `None` after the first call).
     pub fn runner(&self, core: EngineCore, hz: f64) -> Option<Runner> {
         let rx = self.prepared.lock().ok()?.take()?;
-        Some(Runner {
+        Some(Runner::new(
             core,
             hz,
-            period_ns: 1e9 / hz,
             rx,
-            path: self.path.clone(),
-            counts: self.counts.clone(),
-            anchor: None,
-            last_tick: None,
-            state_cycle: 0,
-            predicted_upto: 0,
-            ahead: None,
-            announced: None,
-            frame: EngineFrame::default(),
-        })
+            self.path.clone(),
+            self.counts.clone(),
+        ))
     }
 
     /// Packets the link handed to the worker, lost to emulation, and overflowed.
@@ -325,6 +317,31 @@ pub struct Runner {
 }
 
 impl Runner {
+    /// A runner at `hz` that has seen no state yet, fed by `rx`.
+    fn new(
+        core: EngineCore,
+        hz: f64,
+        rx: Receiver<Prepared>,
+        path: Arc<PathFigures>,
+        counts: Arc<SiteCounts>,
+    ) -> Self {
+        Runner {
+            core,
+            hz,
+            period_ns: 1e9 / hz,
+            rx,
+            path,
+            counts,
+            anchor: None,
+            last_tick: None,
+            state_cycle: 0,
+            predicted_upto: 0,
+            ahead: None,
+            announced: None,
+            frame: EngineFrame::default(),
+        }
+    }
+
     /// Apply every state ready (no blocking; the tables were built on the link worker).
     fn take(&mut self) -> Result<(), RemoteError> {
         while let Ok(p) = self.rx.try_recv() {
@@ -443,21 +460,13 @@ mod tests {
         site_core.follow_remote();
         let (tx, rx) = sync_channel::<Prepared>(8);
         let counts = Arc::new(SiteCounts::default());
-        let mut runner = Runner {
-            core: site_core,
+        let mut runner = Runner::new(
+            site_core,
             hz,
-            period_ns: period,
             rx,
-            path: Arc::new(PathFigures::default()),
-            counts: counts.clone(),
-            anchor: None,
-            last_tick: None,
-            state_cycle: 0,
-            predicted_upto: 0,
-            ahead: None,
-            announced: None,
-            frame: EngineFrame::default(),
-        };
+            Arc::new(PathFigures::default()),
+            counts.clone(),
+        );
         let t0 = 1_000_000_000u64;
         let time = |k: u64| t0 + (k as f64 * period).round() as u64;
         let mut cache = BreathCache::default();

@@ -437,14 +437,19 @@ fn a_site_that_drops_out_and_rejoins_is_in_step_within_one_cycle() {
     std::thread::scope(|s| {
         let (src, st) = (&source, stop.clone());
         let h = s.spawn(move || run_source(scene_core(scene).unwrap(), hz, src, id, 1, &st));
-        // Joined for 2.5 s, then gone.
-        let first = open_site();
-        let st = Arc::new(AtomicBool::new(false));
-        let r = first.runner(site_core(), hz).unwrap();
-        let h1 = {
-            let st = st.clone();
-            s.spawn(move || run_site(r, &st))
+        // A site joined with a fresh engine, running until its stop flag is set.
+        let join = || {
+            let site = open_site();
+            let st = Arc::new(AtomicBool::new(false));
+            let r = site.runner(site_core(), hz).unwrap();
+            let h = {
+                let st = st.clone();
+                s.spawn(move || run_site(r, &st))
+            };
+            (site, st, h)
         };
+        // Joined for 2.5 s, then gone.
+        let (first, st, h1) = join();
         std::thread::sleep(Duration::from_millis(2500));
         assert_eq!(source.sites(), 1);
         st.store(true, Ordering::Relaxed);
@@ -458,13 +463,7 @@ fn a_site_that_drops_out_and_rejoins_is_in_step_within_one_cycle() {
         std::thread::sleep(Duration::from_millis(1500));
         // Back, with a fresh engine.
         let joined = transport::clock::now_ns();
-        let again = open_site();
-        let st = Arc::new(AtomicBool::new(false));
-        let r = again.runner(site_core(), hz).unwrap();
-        let h2 = {
-            let st = st.clone();
-            s.spawn(move || run_site(r, &st))
-        };
+        let (_again, st, h2) = join();
         std::thread::sleep(Duration::from_millis(4000));
         st.store(true, Ordering::Relaxed);
         let after = h2.join().unwrap().unwrap();
