@@ -239,8 +239,10 @@ pub fn unit(role: Role, s: &UnitSettings) -> Result<String, String> {
          NotifyAccess=main\n\
          ExecStart={exec}\n\
          Restart=on-failure\n\
-         RestartSec=1\n\
-         # A hung loop stops pinging: systemd aborts it after WatchdogSec and restarts it.\n\
+         # A hung loop stops pinging: systemd aborts it at most WatchdogSec after the hang and starts\n\
+         # it again RestartSec later, so it is back within WatchdogSec + 1 s (start to READY took\n\
+         # 0.05-0.2 s: deploy/watchdog_check.sh). StartLimitBurst keeps a crash loop from spinning.\n\
+         RestartSec=300ms\n\
          WatchdogSec={}\n\
          TimeoutStartSec=120\n\
          # Stop: SIGTERM then SIGCONT, latched by the process (a later SIGCONT cannot cancel it);\n\
