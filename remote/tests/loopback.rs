@@ -290,15 +290,6 @@ fn a_sites_event_is_applied_at_the_same_cycle_by_the_source_and_every_site() {
     }
 }
 
-/// A free TCP port on 127.0.0.1 (the listener is closed again; the source takes it at once).
-fn free_port() -> u16 {
-    std::net::TcpListener::bind("127.0.0.1:0")
-        .unwrap()
-        .local_addr()
-        .unwrap()
-        .port()
-}
-
 fn source_net(port: u16) -> Net {
     let mut n = Net::peer(&[format!("tcp/127.0.0.1:{port}")], &[]);
     n.lease_ms = 2000;
@@ -332,7 +323,7 @@ fn a_source_restart_does_not_make_the_site_diverge() {
     let scene = &scene;
     let hz = scene.engine.tick_hz;
     let keys = Keys::new("restart").unwrap();
-    let port = free_port();
+    let port = lungdyn_needs::free_local_port();
     let first = Arc::new(
         Source::open(&source_net(port), &keys, site_id(0), Impairment::default()).unwrap(),
     );
@@ -491,7 +482,7 @@ fn a_site_that_drops_out_and_rejoins_is_in_step_within_one_cycle() {
 #[test]
 fn a_scenes_router_mode_source_serves_a_client_site() {
     use lungdyn_remote::harness::run_site;
-    let port = free_port();
+    let port = lungdyn_needs::free_local_port();
     let scene = lung_model::scene::Scene::parse(
         &format!(
             "[pv]\nbreaths_per_min = 30.0\n[remote]\nrole = \"source\"\nroom = \"routed\"\n\

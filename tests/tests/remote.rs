@@ -16,14 +16,6 @@ use std::time::{Duration, Instant};
 use lungdyn_tests::{bin, lungdyn, unique_instance};
 use transport::{iox, Instance, Receive};
 
-fn free_port() -> u16 {
-    std::net::TcpListener::bind("127.0.0.1:0")
-        .unwrap()
-        .local_addr()
-        .unwrap()
-        .port()
-}
-
 fn tmp(name: &str) -> PathBuf {
     let d = std::env::temp_dir().join(format!("lungdyn-remote-{}", std::process::id()));
     std::fs::create_dir_all(&d).unwrap();
@@ -91,7 +83,7 @@ fn count_before(text: &str, tail: &str) -> Option<u64> {
 
 #[test]
 fn a_joined_site_breathes_the_demos_ticks_bit_for_bit() {
-    let port = free_port();
+    let port = lungdyn_needs::free_local_port();
     let room = format!("t{}", std::process::id());
     // The shipped source scene's course (a tension pneumothorax, onset at 2 s here) at 30 breaths
     // a minute (2 s cycles), on a loopback port of its own.

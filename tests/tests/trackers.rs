@@ -248,14 +248,6 @@ fn qtdata(k: u32) -> Vec<u8> {
     .unwrap()
 }
 
-fn free_port() -> u16 {
-    std::net::TcpListener::bind("127.0.0.1:0")
-        .unwrap()
-        .local_addr()
-        .unwrap()
-        .port()
-}
-
 /// Stream QTDATA to `port` at 60 Hz for `seconds` (connecting as soon as the server listens).
 fn sender(port: u16, seconds: f64) -> std::thread::JoinHandle<u32> {
     std::thread::spawn(move || {
@@ -284,7 +276,7 @@ fn sender(port: u16, seconds: f64) -> std::thread::JoinHandle<u32> {
 #[test]
 fn the_bridge_process_publishes_what_an_openigtlink_sender_sends() {
     let instance = unique_instance("igtl");
-    let port = free_port();
+    let port = lungdyn_needs::free_local_port();
     let bridge = std::process::Command::new(bin("tracker-bridge"))
         .args([
             "--instance",
@@ -362,7 +354,7 @@ fn the_demo_runs_on_a_device_source() {
     }
     let dir = std::env::temp_dir().join(format!("lungdyn-trackers-demo-{}", std::process::id()));
     let scene = small_demo_scene(&dir);
-    let port = free_port();
+    let port = lungdyn_needs::free_local_port();
     let send = sender(port, 60.0);
     let (ok, stdout, err) = lungdyn(&[
         "demo",
@@ -406,7 +398,7 @@ fn without_patient_samples_every_frame_says_the_pose_is_stale_on_screen_and_in_t
     let dir = std::env::temp_dir().join(format!("lungdyn-trackers-stale-{}", std::process::id()));
     let scene = small_demo_scene(&dir);
     // An OpenIGTLink server nobody sends to.
-    let port = free_port();
+    let port = lungdyn_needs::free_local_port();
     let (ok, stdout, err) = lungdyn(&[
         "demo",
         "--seconds",

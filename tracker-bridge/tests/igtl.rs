@@ -183,14 +183,9 @@ fn a_server_takes_several_senders_and_survives_every_kind_of_bad_input() {
 
 #[test]
 fn a_client_reconnects_with_backoff_when_its_server_goes_and_comes_back() {
-    // Find a free port, then let the client try it before anything listens. Below the kernel's
-    // ephemeral range (32768–60999 by default): a port taken from bind(0) and released could be
-    // handed to another test's bind(0) meanwhile (this client then reached that test's server and
-    // this server's bind failed with AddrInUse), and the client's own source port could equal it.
-    let base = 20_000 + (std::process::id() % 5_000) as u16;
-    let port = (base..base + 5_000)
-        .find(|p| TcpListener::bind(("127.0.0.1", *p)).is_ok())
-        .expect("a free port below the ephemeral range");
+    // Find a free port, then let the client try it before anything listens (below the ephemeral
+    // range: a port from bind(0) once reached another test's server here).
+    let port = lungdyn_needs::free_local_port();
     let mut client = IgtlClient::start("127.0.0.1".into(), port, &SourceOptions::default());
     let server = std::thread::spawn(move || {
         std::thread::sleep(Duration::from_millis(500));

@@ -249,11 +249,7 @@ fn a_pyigtl_sender_streams_to_the_bridge_server_exactly_and_a_bad_crc_is_counted
 #[test]
 fn the_bridge_as_client_of_a_pyigtl_server_receives_every_message_exactly() {
     let Some((py, script)) = python() else { return };
-    let port = std::net::TcpListener::bind("127.0.0.1:0")
-        .unwrap()
-        .local_addr()
-        .unwrap()
-        .port();
+    let port = lungdyn_needs::free_local_port();
     let child = Command::new(&py)
         .arg(&script)
         .args(["server", &port.to_string(), &N.to_string()])

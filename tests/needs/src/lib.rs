@@ -264,3 +264,30 @@ mod tests {
         let _ = std::fs::remove_file(&log);
     }
 }
+
+/// A TCP port on 127.0.0.1 that is free now, for a server a test starts a moment later (often in a
+/// child process). Taken below the kernel's ephemeral range (32768–60999 by default), where neither
+/// `bind(0)` nor a client's source port is ever picked, and never the same one twice in a process:
+/// a port found with `bind(0)` and released can be handed to another test's `bind(0)` or to a
+/// connection's source port before the server takes it, which made tests running side by side fail
+/// (the server's bind refused, or a client reaching the other test's server).
+pub fn free_local_port() -> u16 {
+    use std::sync::atomic::{AtomicU32, Ordering};
+    const LOW: u32 = 20_000;
+    const SPAN: u32 = 10_000;
+    static NEXT: AtomicU32 = AtomicU32::new(0);
+    // Where this process starts in the span: runs one after another do not reuse the same ports.
+    let start = (std::process::id() % 100) * (SPAN / 100);
+    loop {
+        let n = NEXT.fetch_add(1, Ordering::Relaxed);
+        assert!(
+            n < SPAN,
+            "no free TCP port in {LOW}..{} on 127.0.0.1",
+            LOW + SPAN
+        );
+        let port = (LOW + (start + n) % SPAN) as u16;
+        if std::net::TcpListener::bind(("127.0.0.1", port)).is_ok() {
+            return port;
+        }
+    }
+}
