@@ -129,6 +129,12 @@ pub struct Tradeoff {
     /// Copy bandwidth reference at the largest size: (bytes per vertex, ms, GB/s) for the basis
     /// mode's traffic.
     pub copy: Vec<CopyFigure>,
+    /// The machine's 1-minute load average when the run started and when it ended
+    /// (`/proc/loadavg`): timings from a busy machine are slower and noisier (errors are not).
+    pub load_average: [Option<f64>; 2],
+    /// The orientation limit's ratio the errors were measured at (scene `[engine]
+    /// min_slope_ratio`'s default, EQUATIONS.md §3.3).
+    pub min_slope_ratio: f64,
     /// Files written.
     pub files: Vec<String>,
 }
@@ -270,6 +276,7 @@ fn sh_coeffs(alpha: f64, projection: &[f64], w: &ForceWeights) -> Vec<f32> {
 
 /// Run the trade study.
 pub fn run(args: &TradeoffArgs) -> anyhow::Result<Tradeoff> {
+    let load_at_start = load_average();
     if args.sizes.is_empty()
         || args
             .sizes
@@ -648,6 +655,8 @@ pub fn run(args: &TradeoffArgs) -> anyhow::Result<Tradeoff> {
         gpu: gpu_name,
         stereo,
         copy: copies,
+        load_average: [load_at_start, load_average()],
+        min_slope_ratio: lung_model::orientation::DEFAULT_MIN_SLOPE_RATIO,
         files: Vec::new(),
     };
     result.files = write_outputs(&out_dir.join("tradeoff"), &result)?;
@@ -787,6 +796,16 @@ fn stereo_figure(
     })
 }
 
+/// The 1-minute load average (`/proc/loadavg`), where the system has one.
+fn load_average() -> Option<f64> {
+    std::fs::read_to_string("/proc/loadavg")
+        .ok()?
+        .split_whitespace()
+        .next()?
+        .parse()
+        .ok()
+}
+
 fn fmt_opt(v: Option<f64>, digits: usize) -> String {
     v.filter(|x| x.is_finite())
         .map(|x| format!("{x:.digits$}"))
@@ -806,10 +825,16 @@ fn markdown(t: &Tradeoff, stem: &str) -> String {
          of one lung) over 26 orientations (supine, prone, both lateral decubitus postures, upright, \
          head-down and 20 seeded random ones), each mode's scale solved from its own volume forms \
          (what is drawn). CPU: {} with a rayon pool of {} threads; GPU: {} (the deformation pass \
-         with the normals, by timestamp queries). Medians of repeated runs.\n",
+         with the normals, by timestamp queries). Medians of repeated runs; the machine's \
+         1-minute load average was {} at the start and {} at the end (a busy machine's timings are \
+         slower and noisier; the errors do not depend on it). Turned postures' forces are limited \
+         at a volume slope of {} of supine's (`[engine] min_slope_ratio`, EQUATIONS.md §3.3).\n",
         t.cpu,
         t.cpu_threads,
-        t.gpu.as_deref().unwrap_or("none on this machine")
+        t.gpu.as_deref().unwrap_or("none on this machine"),
+        fmt_opt(t.load_average[0], 2),
+        fmt_opt(t.load_average[1], 2),
+        t.min_slope_ratio
     );
     let _ = writeln!(s, "![trade-off plot]({stem}.png)\n");
     let _ = writeln!(
