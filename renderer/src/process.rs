@@ -1055,6 +1055,15 @@ fn run_xr(args: &RendererArgs) -> Result<(), RendererError> {
             break;
         }
     }
+    // Ended as OpenXR asks when the renderer stops (signal, --seconds); a runtime that ended it
+    // itself needs nothing more.
+    if let Err(e) = output.shutdown() {
+        output.error.get_or_insert(e);
+    }
+    transport::process::say(&format!(
+        "renderer[{}]: openxr: {}",
+        args.process.instance, output.stats
+    ));
     let failed = output.error.take();
     // The session and its swapchain go before the device they were made on.
     drop(output);

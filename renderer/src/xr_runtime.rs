@@ -27,11 +27,9 @@ use wgpu::hal;
 use crate::camera::{FAR_MM, NEAR_MM};
 use crate::gpu::Gpu;
 use crate::present::PresentPass;
-use crate::xr::{BlendMode, Fov, XrClock, XrEye};
+use crate::xr::{BlendMode, Fov, XrClock, XrEye, XrStats};
 
 const VIEW_TYPE: xr::ViewConfigurationType = xr::ViewConfigurationType::PRIMARY_STEREO;
-/// The Vulkan version asked of the runtime: 1.1 (wgpu's minimum with its extensions).
-const VK_VERSION: u32 = vk::API_VERSION_1_1;
 
 /// Why the OpenXR output could not start or stopped.
 #[derive(Debug, thiserror::Error)]
@@ -62,7 +60,7 @@ pub enum XrError {
     )]
     NoHeadset(String),
     /// The runtime needs another Vulkan version.
-    #[error("the OpenXR runtime needs Vulkan {min} to {max}.x; the renderer asks for 1.1")]
+    #[error("the OpenXR runtime needs Vulkan {min} to {max}.x; the renderer needs 1.1 (and uses up to 1.3)")]
     VulkanVersion {
         /// Lowest supported.
         min: String,
@@ -223,15 +221,32 @@ impl XrSystem {
         // it was created with, as `from_raw` / `device_from_raw` require.
         unsafe {
             let vk_entry = ash::Entry::load().map_err(|e| vulkan("loading libvulkan", e))?;
+            // The version wgpu itself would ask for: it takes the device's own version as the
+            // version in use (a 1.2 entry point is called through the core table when the GPU is
+            // 1.2 or newer), so an instance made for less than that would hand it null pointers.
+            let loader = vk_entry
+                .try_enumerate_instance_version()
+                .map_err(|e| vulkan("vkEnumerateInstanceVersion", e))?
+                .unwrap_or(vk::API_VERSION_1_0);
+            let version = crate::xr::vulkan_instance_version(loader).ok_or_else(|| {
+                vulkan(
+                    "choosing the Vulkan version",
+                    format!(
+                        "the Vulkan loader offers only {}.{}; the renderer needs 1.1 or newer \
+                         (update libvulkan1)",
+                        vk::api_version_major(loader),
+                        vk::api_version_minor(loader)
+                    ),
+                )
+            })?;
             let flags = wgpu::InstanceFlags::empty();
-            let extensions =
-                hal::vulkan::Instance::desired_extensions(&vk_entry, VK_VERSION, flags)
-                    .map_err(|e| vulkan("listing instance extensions", e))?;
+            let extensions = hal::vulkan::Instance::desired_extensions(&vk_entry, version, flags)
+                .map_err(|e| vulkan("listing instance extensions", e))?;
             let names: Vec<*const std::ffi::c_char> =
                 extensions.iter().map(|e| e.as_ptr()).collect();
             let app = vk::ApplicationInfo::default()
                 .application_name(c"lungdyn")
-                .api_version(VK_VERSION);
+                .api_version(version);
             let info = vk::InstanceCreateInfo::default()
                 .application_info(&app)
                 .enabled_extension_names(&names);
@@ -253,7 +268,7 @@ impl XrSystem {
             let hal_instance = hal::vulkan::Instance::from_raw(
                 vk_entry.clone(),
                 ash_instance.clone(),
-                VK_VERSION,
+                version,
                 0,
                 None,
                 extensions,
@@ -377,6 +392,8 @@ pub struct XrOutput {
     format: wgpu::TextureFormat,
     eye_size: (u32, u32),
     frame: Option<xr::FrameState>,
+    /// The frame's predicted display time on CLOCK_MONOTONIC.
+    display_ns: Option<u64>,
     views: Option<[xr::View; 2]>,
     acquired: Option<u32>,
     running: bool,
@@ -386,6 +403,8 @@ pub struct XrOutput {
     pub error: Option<XrError>,
     events: xr::EventDataBuffer,
     blit: Option<PresentPass>,
+    /// What the runtime was given, said when the renderer stops.
+    pub stats: XrStats,
 }
 
 impl XrOutput {
@@ -500,6 +519,7 @@ impl XrOutput {
             format,
             eye_size,
             frame: None,
+            display_ns: None,
             views: None,
             acquired: None,
             running: false,
@@ -507,6 +527,7 @@ impl XrOutput {
             error: None,
             events: xr::EventDataBuffer::new(),
             blit: None,
+            stats: XrStats::default(),
         })
     }
 
@@ -554,8 +575,8 @@ impl XrOutput {
         Ok(())
     }
 
-    /// CLOCK_MONOTONIC now, as the runtime's XrTime.
-    fn clock(&self) -> Result<XrClock, XrError> {
+    /// CLOCK_MONOTONIC now, as the runtime's XrTime (and the monotonic reading).
+    fn clock(&self) -> Result<(XrClock, u64), XrError> {
         let now = transport::now_ns();
         let (tv_sec, tv_nsec) = crate::xr::ns_timespec(now);
         let ts = libc::timespec { tv_sec, tv_nsec };
@@ -575,20 +596,25 @@ impl XrOutput {
                 result: r,
             });
         }
-        Ok(XrClock::from_pair(t.as_nanos(), now))
+        Ok((XrClock::from_pair(t.as_nanos(), now), now))
     }
 
     fn wait_frame(&mut self) -> Result<Option<u64>, XrError> {
         self.poll_events()?;
         self.frame = None;
+        self.display_ns = None;
         if !self.running {
             return Ok(None);
         }
         let state = call("xrWaitFrame", self.waiter.wait())?;
         call("xrBeginFrame", self.stream.begin())?;
         self.frame = Some(state);
-        let clock = self.clock()?;
-        Ok(clock.to_monotonic(state.predicted_display_time.as_nanos()))
+        let (clock, now) = self.clock()?;
+        self.display_ns = clock.to_monotonic(state.predicted_display_time.as_nanos());
+        if let Some(t) = self.display_ns {
+            self.stats.waited(t, now);
+        }
+        Ok(self.display_ns)
     }
 
     fn locate(&mut self) -> Result<Option<crate::camera::HmdEyes>, XrError> {
@@ -662,6 +688,8 @@ impl XrOutput {
         let t = state.predicted_display_time;
         let (Some(_), Some(views)) = (self.acquired.take(), self.views) else {
             call("xrEndFrame", self.stream.end(t, self.blend, &[]))?;
+            self.stats
+                .ended(self.display_ns, transport::now_ns(), false);
             return Ok(None);
         };
         call("xrReleaseSwapchainImage", self.swapchain.release_image())?;
@@ -689,7 +717,53 @@ impl XrOutput {
             .space(&self.local_space)
             .views(&projection_views);
         call("xrEndFrame", self.stream.end(t, self.blend, &[&layer]))?;
-        Ok(Some(transport::now_ns()))
+        let now = transport::now_ns();
+        self.stats.ended(self.display_ns, now, true);
+        Ok(Some(now))
+    }
+
+    /// End the session the way OpenXR asks (`xrRequestExitSession`, then `xrEndSession` when it
+    /// reaches STOPPING, then EXITING), ending empty frames meanwhile; bounded, so a runtime that
+    /// never gets there cannot hold the renderer's exit. A session that never ran, or that the
+    /// runtime already ended, needs none of it.
+    pub fn shutdown(&mut self) -> Result<(), XrError> {
+        if !self.running || self.exiting {
+            return Ok(());
+        }
+        // A frame begun but not ended (the loop stopped between wait and present) is ended first.
+        if let Some(state) = self.frame.take() {
+            if self.acquired.take().is_some() {
+                call("xrReleaseSwapchainImage", self.swapchain.release_image())?;
+            }
+            call(
+                "xrEndFrame",
+                self.stream
+                    .end(state.predicted_display_time, self.blend, &[]),
+            )?;
+        }
+        call("xrRequestExitSession", self.session.request_exit())?;
+        // Each pass ends one frame at most (the runtime's frame period), so this is about a second.
+        for _ in 0..60 {
+            self.poll_events()?;
+            if self.exiting {
+                return Ok(());
+            }
+            if self.running {
+                let state = call("xrWaitFrame", self.waiter.wait())?;
+                call("xrBeginFrame", self.stream.begin())?;
+                call(
+                    "xrEndFrame",
+                    self.stream
+                        .end(state.predicted_display_time, self.blend, &[]),
+                )?;
+            } else {
+                std::thread::sleep(std::time::Duration::from_millis(10));
+            }
+        }
+        Err(XrError::Call {
+            what: "xrRequestExitSession (the runtime never reached EXITING)",
+            result: xr::sys::Result::ERROR_RUNTIME_FAILURE,
+        })
     }
 }
 
