@@ -1,7 +1,8 @@
 //! OpenXR output, the runtime-facing part (cargo feature `openxr`; `--xr`). Kept thin: every
-//! decision it takes is in [`crate::xr`] and tested there. No OpenXR runtime runs on the build
-//! machines, so everything past loading the loader is unverified against a real runtime (see
-//! docs/DEPLOY.md, "OpenXR").
+//! decision it takes is in [`crate::xr`] and tested there. Run against Monado (null compositor,
+//! simulated headset, lavapipe) by deploy/xr_check.sh and tests/tests/openxr.rs; what that does
+//! not verify (a real headset, additive blend on optical see-through hardware, timing on a real
+//! display) is listed in docs/DEPLOY.md, "OpenXR".
 //!
 //! * The loader is opened at run time (`openxr`'s `loaded` feature: `libopenxr_loader.so.1`), so
 //!   building needs no system library; without it, or without a runtime, `--xr` fails naming
@@ -37,15 +38,18 @@ pub enum XrError {
     /// No OpenXR loader library.
     #[error(
         "no OpenXR loader ({0}): install the OpenXR loader (Debian/Ubuntu: `apt-get install \
-         libopenxr-loader1`) and a runtime for the headset (Monado: `apt-get install monado-service`), \
-         or run without --xr"
+         libopenxr-loader1`) and a runtime for the headset (Monado: its packages per \
+         distribution are in docs/DEPLOY.md, \"OpenXR\"), or run without --xr"
     )]
     NoLoader(String),
     /// The loader found no active runtime.
     #[error(
-        "no OpenXR runtime ({0}): install Monado (`apt-get install monado-service`) and start it, or \
-         set XR_RUNTIME_JSON to the headset runtime's manifest (e.g. \
-         /usr/share/openxr/1/openxr_monado.json)"
+        "no OpenXR runtime ({0}): install the headset's runtime and make it the active one, or set \
+         XR_RUNTIME_JSON to its manifest. Monado: on Ubuntu 22.04 or newer and Debian 13 (trixie) or \
+         newer, `apt-get install libopenxr1-monado` (manifest /usr/share/openxr/1/openxr_monado.json); \
+         Debian 12 (bookworm) has no Monado package — build it from source \
+         (https://monado.freedesktop.org; deploy/xr_check.sh builds a pinned, headless one) and set \
+         XR_RUNTIME_JSON to its build/openxr_monado-dev.json"
     )]
     NoRuntime(String),
     /// The runtime lacks an extension the renderer needs.
@@ -825,6 +829,13 @@ mod tests {
             Err(e @ XrError::NoRuntime(_)) => {
                 let m = e.to_string();
                 assert!(m.contains("Monado") && m.contains("XR_RUNTIME_JSON"), "{m}");
+                // Debian 12 has no Monado package: the message must not send its users to one.
+                assert!(
+                    m.contains("bookworm")
+                        && m.contains("from source")
+                        && m.contains("xr_check.sh"),
+                    "{m}"
+                );
             }
             Err(e) => panic!("expected no loader or no runtime, got: {e}"),
         }
