@@ -83,7 +83,7 @@ export XDG_RUNTIME_DIR=${XDG_RUNTIME_DIR:-$(mktemp -d)}
 say "lungdyn demo --xr --seconds $XR_SECONDS through $MANIFEST (null compositor, simulated HMD)"
 target/release/lungdyn demo --xr --seconds "$XR_SECONDS" --json --out "$OUT" >"$OUT/report.json" 2>"$OUT/stderr.txt" ||
   { tail -40 "$OUT/stderr.txt" >&2; die "the demo through OpenXR failed (all of its stderr: $OUT/stderr.txt)"; }
-xr_line=$(grep ']: openxr: ' "$OUT/stderr.txt") || die "the renderer did not say what it gave the runtime"
+xr_line=$(grep "frames waited for" "$OUT/stderr.txt") || die "the renderer did not say what it gave the runtime"
 python3 - "$OUT/report.json" <<'PY'
 import json, sys
 r = json.load(open(sys.argv[1]))

@@ -18,6 +18,8 @@
 
 use glam::{Mat4, Quat, Vec3};
 
+use lung_model::scene::Look;
+
 use crate::camera::HmdEyes;
 
 /// An eye's field of view as OpenXR gives it (`XrFovf`): angles from the view direction, radians;
@@ -306,6 +308,17 @@ pub fn choose_blend_mode(offered: &[BlendMode]) -> Option<BlendMode> {
     .find(|m| offered.contains(m))
 }
 
+/// The look to draw with on a display of blend mode `blend`, the scene's being `look`: on an
+/// additive (optical see-through) display whatever is not black adds light over the patient — the
+/// opaque and translucent looks' grey background would veil the whole view — so there the look is
+/// see-through (black background, lungs that emit light); elsewhere the scene's.
+pub fn look_for_blend(blend: BlendMode, look: Look) -> Look {
+    match blend {
+        BlendMode::Additive => Look::SeeThrough,
+        BlendMode::Opaque | BlendMode::AlphaBlend => look,
+    }
+}
+
 /// Vulkan format codes (`VkFormat`) of the swapchain formats the renderer can fill.
 pub mod vk_format {
     /// `VK_FORMAT_R8G8B8A8_UNORM`.
@@ -520,6 +533,15 @@ mod tests {
         e.add(signed_diff(u64::MAX, 0));
         e.add(signed_diff(0, u64::MAX));
         assert_eq!((e.min, e.max), (i64::MIN, i64::MAX));
+    }
+
+    #[test]
+    fn an_additive_display_gets_the_see_through_look_others_the_scenes() {
+        for look in Look::ALL {
+            assert_eq!(look_for_blend(BlendMode::Additive, look), Look::SeeThrough);
+            assert_eq!(look_for_blend(BlendMode::Opaque, look), look);
+            assert_eq!(look_for_blend(BlendMode::AlphaBlend, look), look);
+        }
     }
 
     #[test]

@@ -217,6 +217,11 @@ impl XrSystem {
         })
     }
 
+    /// The environment blend mode the frames are submitted with.
+    pub fn blend(&self) -> BlendMode {
+        self.blend
+    }
+
     /// The GPU, created by the runtime (`XR_KHR_vulkan_enable2`) and wrapped into wgpu, and the
     /// Vulkan handles the session is bound to.
     pub fn gpu(&self) -> Result<(Gpu, xr::vulkan::SessionCreateInfo), XrError> {
@@ -384,7 +389,8 @@ impl XrSystem {
 /// The OpenXR session as the renderer's [`crate::process::FrameOutput`].
 pub struct XrOutput {
     // Dropped in this order: the swapchain and session before the instance.
-    images: Vec<wgpu::Texture>,
+    /// Each swapchain image wrapped into wgpu, with its view (made once: none per frame).
+    images: Vec<(wgpu::Texture, wgpu::TextureView)>,
     swapchain: xr::Swapchain<xr::Vulkan>,
     stream: xr::FrameStream<xr::Vulkan>,
     waiter: xr::FrameWaiter,
@@ -507,6 +513,10 @@ impl XrOutput {
                         },
                         wgpu::TextureUses::UNINITIALIZED,
                     ))
+                    .map(|t| {
+                        let view = t.create_view(&Default::default());
+                        (t, view)
+                    })
                 }
             })
             .collect::<Result<Vec<_>, XrError>>()?;
@@ -676,12 +686,8 @@ impl XrOutput {
             self.swapchain.wait_image(xr::Duration::INFINITE),
         )?;
         self.acquired = Some(index);
-        let target = &self.images[index as usize];
-        blit.encode(
-            encoder,
-            &target.create_view(&Default::default()),
-            (target.width(), target.height()),
-        );
+        let (image, view) = &self.images[index as usize];
+        blit.encode(encoder, view, (image.width(), image.height()));
         Ok(())
     }
 
@@ -724,6 +730,18 @@ impl XrOutput {
         let now = transport::now_ns();
         self.stats.ended(self.display_ns, now, true);
         Ok(Some(now))
+    }
+
+    /// Let go of the wgpu wrappers of the swapchain images and wait until wgpu has destroyed them
+    /// (it does so lazily, once the GPU is done with them), so that no image view outlives the
+    /// image the runtime destroys with the swapchain.
+    pub fn release_images(&mut self, device: &wgpu::Device) {
+        self.images.clear();
+        self.blit = None;
+        let _ = device.poll(wgpu::PollType::Wait {
+            submission_index: None,
+            timeout: None,
+        });
     }
 
     /// End the session the way OpenXR asks (`xrRequestExitSession`, then `xrEndSession` when it

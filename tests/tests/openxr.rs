@@ -29,7 +29,9 @@ fn runtime_manifest() -> Option<PathBuf> {
 /// From the renderer's goodbye line `renderer[..]: openxr: W frames waited for, L ended with both
 /// eyes' projection layer, E ended empty; ...`: (W, L, E).
 fn xr_counts(stderr: &str) -> Option<(u64, u64, u64)> {
-    let line = stderr.lines().find(|l| l.contains("]: openxr: "))?;
+    let line = stderr
+        .lines()
+        .find(|l| l.contains("]: openxr: ") && l.contains(" frames waited for"))?;
     let rest = line.split("]: openxr: ").nth(1)?;
     let num = |after: &str, key: &str| -> Option<u64> {
         let (head, _) = after.split_once(key)?;
@@ -101,7 +103,8 @@ fn the_demo_runs_through_an_openxr_runtime_both_eyes_every_frame() {
 
 #[test]
 fn the_renderers_openxr_line_is_read_back() {
-    let line = "x\nrenderer[demo-1]: openxr: 122 frames waited for, 121 ended with both eyes' \
+    let line = "x\nrenderer[demo-1]: openxr: Opaque environment blend, 128x128 per eye, opaque \
+                look\nrenderer[demo-1]: openxr: 122 frames waited for, 121 ended with both eyes' \
                 projection layer, 1 ended empty; display time ahead …\n";
     assert_eq!(xr_counts(line), Some((122, 121, 1)));
     assert_eq!(xr_counts("renderer[demo-1]: stopped after 3 frames"), None);
