@@ -636,19 +636,14 @@ impl XrOutput {
             return Ok(None);
         };
         let t = state.predicted_display_time;
-        let (_, in_head) = call(
-            "xrLocateViews(VIEW)",
-            self.session.locate_views(VIEW_TYPE, t, &self.view_space),
-        )?;
-        let (_, in_local) = call(
-            "xrLocateViews(LOCAL)",
-            self.session.locate_views(VIEW_TYPE, t, &self.local_space),
-        )?;
-        let (Some(&[l, r]), Some(&[ll, lr])) = (in_head.first_chunk(), in_local.first_chunk())
-        else {
+        self.views = None;
+        let (Some([l, r]), Some(in_local)) = (
+            self.locate_views(t, &self.view_space, "xrLocateViews(VIEW)")?,
+            self.locate_views(t, &self.local_space, "xrLocateViews(LOCAL)")?,
+        ) else {
             return Ok(None);
         };
-        self.views = Some([ll, lr]);
+        self.views = Some(in_local);
         let eye = |v: xr::View| XrEye {
             position_m: [v.pose.position.x, v.pose.position.y, v.pose.position.z],
             orientation: [
@@ -671,6 +666,60 @@ impl XrOutput {
             NEAR_MM as f64,
             FAR_MM as f64,
         ))
+    }
+
+    /// Both eyes' views at `t` in `space`, `None` unless the runtime says both the orientation and
+    /// the position are valid (lost tracking: the frame is ended without a layer, the eyes kept).
+    /// Into an array on the stack: `Session::locate_views` allocates two vectors a call.
+    fn locate_views(
+        &self,
+        t: xr::Time,
+        space: &xr::Space,
+        what: &'static str,
+    ) -> Result<Option<[xr::View; 2]>, XrError> {
+        let info = xr::sys::ViewLocateInfo {
+            ty: xr::sys::ViewLocateInfo::TYPE,
+            next: std::ptr::null(),
+            view_configuration_type: VIEW_TYPE,
+            display_time: t,
+            space: space.as_raw(),
+        };
+        let mut state = xr::sys::ViewState {
+            ty: xr::sys::ViewState::TYPE,
+            next: std::ptr::null_mut(),
+            view_state_flags: xr::ViewStateFlags::EMPTY,
+        };
+        let blank = xr::sys::View {
+            ty: xr::sys::View::TYPE,
+            next: std::ptr::null_mut(),
+            pose: xr::Posef::IDENTITY,
+            fov: xr::Fovf::default(),
+        };
+        let mut views = [blank; 2];
+        let mut count = 0u32;
+        // SAFETY: the session and space are alive; `info`, `state`, `count` and `views` (capacity
+        // 2, the stereo configuration's count) outlive the call.
+        let r = unsafe {
+            (self.instance.fp().locate_views)(
+                self.session.as_raw(),
+                &info,
+                &mut state,
+                views.len() as u32,
+                &mut count,
+                views.as_mut_ptr(),
+            )
+        };
+        if r.into_raw() < 0 {
+            return Err(XrError::Call { what, result: r });
+        }
+        let valid = xr::ViewStateFlags::ORIENTATION_VALID | xr::ViewStateFlags::POSITION_VALID;
+        if count != 2 || !state.view_state_flags.contains(valid) {
+            return Ok(None);
+        }
+        Ok(Some(views.map(|v| xr::View {
+            pose: v.pose,
+            fov: v.fov,
+        })))
     }
 
     fn acquire_and_copy(&mut self, encoder: &mut wgpu::CommandEncoder) -> Result<(), XrError> {
