@@ -9,7 +9,7 @@
 # Needs (Debian 12 / Ubuntu): cmake ninja-build g++ pkg-config git libeigen3-dev glslang-tools
 # libvulkan-dev libx11-xcb-dev libxcb-randr0-dev libudev-dev libopenxr-loader1, and a Vulkan driver
 # (mesa-vulkan-drivers: lavapipe on a machine without a GPU). The script says which are missing and
-# installs nothing. CI does not run it (building Monado takes minutes); docs/DEPLOY.md "OpenXR" says
+# installs nothing. CI does not run it (more packages and a C/C++ build); docs/DEPLOY.md "OpenXR" says
 # what it verified and what it cannot.
 #
 # Variables: MONADO_DIR (checkout and build, outside the repository), MONADO_GIT (where to clone
