@@ -57,6 +57,10 @@ pub struct RendererArgs {
     /// is drawn in stereo at this size per eye.
     #[arg(skip)]
     pub xr_eye_size: Option<(u32, u32)>,
+    /// The OpenXR runtime's environment blend mode: on an additive display the look is made
+    /// see-through (black background; see [`crate::xr::look_for_blend`]).
+    #[arg(skip)]
+    pub xr_blend: Option<crate::xr::BlendMode>,
     /// The display's size when fullscreen (set by the window once it knows the display): the
     /// offscreen image is made this size, each eye half its width in stereo.
     #[arg(skip)]
@@ -135,6 +139,9 @@ impl RendererArgs {
             scene.render.stereo = true;
             scene.render.width = w.max(1);
             scene.render.height = h.max(1);
+        }
+        if let Some(blend) = self.xr_blend {
+            scene.render.look = crate::xr::look_for_blend(blend, scene.render.look);
         }
         if let Some((w, h)) = self.screen_size {
             let eyes = if scene.render.stereo { 2 } else { 1 };
@@ -1040,6 +1047,16 @@ fn run_xr(args: &RendererArgs) -> Result<(), RendererError> {
     let system = XrSystem::open().map_err(xr)?;
     let mut args = args.clone();
     args.xr_eye_size = Some(system.eye_size);
+    args.xr_blend = Some(system.blend());
+    let look = args.scene_and_rig()?.0.render.look;
+    transport::process::say(&format!(
+        "renderer[{}]: openxr: {:?} environment blend, {}x{} per eye, {} look",
+        args.process.instance,
+        system.blend(),
+        system.eye_size.0,
+        system.eye_size.1,
+        look.name()
+    ));
     let (gpu, binding) = system.gpu().map_err(xr)?;
     let mut output = XrOutput::new(system, &gpu, &binding).map_err(xr)?;
     let mut session = Session::new(&args, gpu)?;
@@ -1055,8 +1072,19 @@ fn run_xr(args: &RendererArgs) -> Result<(), RendererError> {
             break;
         }
     }
+    // Ended as OpenXR asks when the renderer stops (signal, --seconds); a runtime that ended it
+    // itself needs nothing more.
+    if let Err(e) = output.shutdown() {
+        output.error.get_or_insert(e);
+    }
+    transport::process::say(&format!(
+        "renderer[{}]: openxr: {}",
+        args.process.instance, output.stats
+    ));
     let failed = output.error.take();
-    // The session and its swapchain go before the device they were made on.
+    // The session and its swapchain go before the device they were made on, and wgpu's views of
+    // the swapchain's images before the swapchain.
+    output.release_images(&session.gpu.device);
     drop(output);
     transport::notify::stopping();
     session.finish();

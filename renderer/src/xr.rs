@@ -18,6 +18,8 @@
 
 use glam::{Mat4, Quat, Vec3};
 
+use lung_model::scene::Look;
+
 use crate::camera::HmdEyes;
 
 /// An eye's field of view as OpenXR gives it (`XrFovf`): angles from the view direction, radians;
@@ -148,6 +150,139 @@ pub fn ns_timespec(ns: u64) -> (i64, i64) {
     ((ns / 1_000_000_000) as i64, (ns % 1_000_000_000) as i64)
 }
 
+/// A Vulkan API version as `VK_MAKE_API_VERSION(0, major, minor, 0)` encodes it.
+pub const fn vk_api_version(major: u32, minor: u32) -> u32 {
+    (major << 22) | (minor << 12)
+}
+
+/// The Vulkan API version to create the instance with (through the runtime) from the loader's
+/// (`vkEnumerateInstanceVersion`): the loader's own, capped at 1.3, as wgpu asks when it makes its
+/// instance itself. wgpu takes the GPU's own version as the one in use — it calls a promoted entry
+/// point through the core table when the GPU is new enough — so an instance made for an older
+/// version than that hands it null entry points (a 1.1 instance on lavapipe's 1.3 aborted in
+/// `vkGetSemaphoreCounterValue`). `None` below 1.1, wgpu's minimum.
+pub fn vulkan_instance_version(loader: u32) -> Option<u32> {
+    let without_variant = loader & 0x1FFF_FFFF;
+    (without_variant >= vk_api_version(1, 1)).then(|| without_variant.min(vk_api_version(1, 3)))
+}
+
+/// A running minimum, mean and maximum of signed nanosecond intervals (no allocation: kept per
+/// frame).
+#[derive(Debug, Clone, Copy, Default, PartialEq, Eq)]
+pub struct Spread {
+    n: u64,
+    sum: i128,
+    min: i64,
+    max: i64,
+}
+
+impl Spread {
+    /// Add one interval.
+    pub fn add(&mut self, ns: i64) {
+        if self.n == 0 {
+            (self.min, self.max) = (ns, ns);
+        }
+        self.n += 1;
+        self.sum += ns as i128;
+        self.min = self.min.min(ns);
+        self.max = self.max.max(ns);
+    }
+
+    /// How many were added.
+    pub fn count(&self) -> u64 {
+        self.n
+    }
+
+    /// (min, mean, max) in milliseconds; `None` before the first.
+    pub fn ms(&self) -> Option<(f64, f64, f64)> {
+        (self.n > 0).then(|| {
+            (
+                self.min as f64 / 1e6,
+                self.sum as f64 / self.n as f64 / 1e6,
+                self.max as f64 / 1e6,
+            )
+        })
+    }
+}
+
+impl std::fmt::Display for Spread {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        match self.ms() {
+            Some((lo, mean, hi)) => write!(f, "{mean:.2} ms (min {lo:.2}, max {hi:.2})"),
+            None => write!(f, "none"),
+        }
+    }
+}
+
+/// What the renderer gave the runtime over a run (its goodbye line): how many frames it waited
+/// for, how many it ended with the projection layer of both eyes or empty, and the intervals the
+/// display-time prediction spans.
+#[derive(Debug, Clone, Copy, Default, PartialEq, Eq)]
+pub struct XrStats {
+    /// `xrWaitFrame` calls that returned a frame.
+    pub waited: u64,
+    /// Frames ended with the projection layer (both eyes' views).
+    pub layers: u64,
+    /// Frames ended without a layer (the runtime said not to render, or no views were located).
+    pub empty: u64,
+    /// Predicted display time minus CLOCK_MONOTONIC when `xrWaitFrame` returned: how far ahead
+    /// the HMD pose is predicted for the frame about to be drawn.
+    pub lead_at_wait: Spread,
+    /// Predicted display time minus CLOCK_MONOTONIC at `xrEndFrame`: negative is a frame submitted
+    /// after the instant it was meant to be shown.
+    pub lead_at_submit: Spread,
+    /// Between successive predicted display times: the runtime's frame period.
+    pub period: Spread,
+    last_display_ns: Option<u64>,
+}
+
+impl XrStats {
+    /// A frame waited for, to be shown at `display_ns`, the wait returning at `now_ns` (both
+    /// CLOCK_MONOTONIC).
+    pub fn waited(&mut self, display_ns: u64, now_ns: u64) {
+        self.waited += 1;
+        self.lead_at_wait.add(signed_diff(display_ns, now_ns));
+        if let Some(last) = self.last_display_ns.replace(display_ns) {
+            self.period.add(signed_diff(display_ns, last));
+        }
+    }
+
+    /// A frame ended at `now_ns`, to be shown at `display_ns`, with the projection layer or not.
+    pub fn ended(&mut self, display_ns: Option<u64>, now_ns: u64, with_layer: bool) {
+        if with_layer {
+            self.layers += 1;
+        } else {
+            self.empty += 1;
+        }
+        if let Some(d) = display_ns {
+            self.lead_at_submit.add(signed_diff(d, now_ns));
+        }
+    }
+}
+
+impl std::fmt::Display for XrStats {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        write!(
+            f,
+            "{} frames waited for, {} ended with both eyes' projection layer, {} ended empty; \
+             display time ahead of CLOCK_MONOTONIC at xrWaitFrame {}, at xrEndFrame {}; \
+             runtime frame period {}",
+            self.waited,
+            self.layers,
+            self.empty,
+            self.lead_at_wait,
+            self.lead_at_submit,
+            self.period
+        )
+    }
+}
+
+/// `a - b` in signed nanoseconds, saturating.
+fn signed_diff(a: u64, b: u64) -> i64 {
+    let d = a as i128 - b as i128;
+    d.clamp(i64::MIN as i128, i64::MAX as i128) as i64
+}
+
 /// How the frame composes with the world (`XrEnvironmentBlendMode`).
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]
 pub enum BlendMode {
@@ -171,6 +306,17 @@ pub fn choose_blend_mode(offered: &[BlendMode]) -> Option<BlendMode> {
     ]
     .into_iter()
     .find(|m| offered.contains(m))
+}
+
+/// The look to draw with on a display of blend mode `blend`, the scene's being `look`: on an
+/// additive (optical see-through) display whatever is not black adds light over the patient — the
+/// opaque and translucent looks' grey background would veil the whole view — so there the look is
+/// see-through (black background, lungs that emit light); elsewhere the scene's.
+pub fn look_for_blend(blend: BlendMode, look: Look) -> Look {
+    match blend {
+        BlendMode::Additive => Look::SeeThrough,
+        BlendMode::Opaque | BlendMode::AlphaBlend => look,
+    }
 }
 
 /// Vulkan format codes (`VkFormat`) of the swapchain formats the renderer can fill.
@@ -342,6 +488,60 @@ mod tests {
         assert_eq!(timespec_ns(0, 1_000_000_000), None);
         assert_eq!(timespec_ns(0, -1), None);
         assert_eq!(timespec_ns(i64::MAX, 0), None);
+    }
+
+    #[test]
+    fn the_vulkan_version_is_the_loaders_capped_at_1_3_and_at_least_1_1() {
+        let v = |major, minor, patch| vk_api_version(major, minor) | patch;
+        assert_eq!(vulkan_instance_version(v(1, 3, 239)), Some(v(1, 3, 0)));
+        assert_eq!(vulkan_instance_version(v(1, 4, 0)), Some(v(1, 3, 0)));
+        assert_eq!(vulkan_instance_version(v(1, 2, 131)), Some(v(1, 2, 131)));
+        assert_eq!(vulkan_instance_version(v(1, 1, 0)), Some(v(1, 1, 0)));
+        assert_eq!(vulkan_instance_version(v(1, 0, 65)), None);
+        assert_eq!(vulkan_instance_version(0), None);
+        // The variant bits (29..31) are not part of the version.
+        assert_eq!(
+            vulkan_instance_version((7 << 29) | v(1, 2, 0)),
+            Some(v(1, 2, 0))
+        );
+    }
+
+    #[test]
+    fn the_runs_xr_figures_count_frames_and_spread_the_intervals() {
+        let mut s = XrStats::default();
+        assert_eq!(s.lead_at_wait.ms(), None);
+        assert!(s.to_string().contains("at xrWaitFrame none"), "{s}");
+        // Display times 50 ms apart; waits return 60 ms before; one submit comes 5 ms late.
+        s.waited(1_060_000_000, 1_000_000_000);
+        s.ended(Some(1_060_000_000), 1_030_000_000, true);
+        s.waited(1_110_000_000, 1_050_000_000);
+        s.ended(Some(1_110_000_000), 1_115_000_000, true);
+        s.waited(1_160_000_000, 1_100_000_000);
+        s.ended(None, 1_120_000_000, false);
+        assert_eq!((s.waited, s.layers, s.empty), (3, 2, 1));
+        assert_eq!(s.lead_at_wait.ms(), Some((60.0, 60.0, 60.0)));
+        assert_eq!(s.lead_at_submit.ms(), Some((-5.0, 12.5, 30.0)));
+        assert_eq!(s.period.count(), 2);
+        assert_eq!(s.period.ms(), Some((50.0, 50.0, 50.0)));
+        let line = s.to_string();
+        assert!(
+            line.contains("2 ended with both eyes' projection layer"),
+            "{line}"
+        );
+        // Extremes saturate, never wrap.
+        let mut e = Spread::default();
+        e.add(signed_diff(u64::MAX, 0));
+        e.add(signed_diff(0, u64::MAX));
+        assert_eq!((e.min, e.max), (i64::MIN, i64::MAX));
+    }
+
+    #[test]
+    fn an_additive_display_gets_the_see_through_look_others_the_scenes() {
+        for look in Look::ALL {
+            assert_eq!(look_for_blend(BlendMode::Additive, look), Look::SeeThrough);
+            assert_eq!(look_for_blend(BlendMode::Opaque, look), look);
+            assert_eq!(look_for_blend(BlendMode::AlphaBlend, look), look);
+        }
     }
 
     #[test]

@@ -1,7 +1,8 @@
 //! OpenXR output, the runtime-facing part (cargo feature `openxr`; `--xr`). Kept thin: every
-//! decision it takes is in [`crate::xr`] and tested there. No OpenXR runtime runs on the build
-//! machines, so everything past loading the loader is unverified against a real runtime (see
-//! docs/DEPLOY.md, "OpenXR").
+//! decision it takes is in [`crate::xr`] and tested there. Run against Monado (null compositor,
+//! simulated headset, lavapipe) by deploy/xr_check.sh and tests/tests/openxr.rs; what that does
+//! not verify (a real headset, additive blend on optical see-through hardware, timing on a real
+//! display) is listed in docs/DEPLOY.md, "OpenXR".
 //!
 //! * The loader is opened at run time (`openxr`'s `loaded` feature: `libopenxr_loader.so.1`), so
 //!   building needs no system library; without it, or without a runtime, `--xr` fails naming
@@ -27,11 +28,9 @@ use wgpu::hal;
 use crate::camera::{FAR_MM, NEAR_MM};
 use crate::gpu::Gpu;
 use crate::present::PresentPass;
-use crate::xr::{BlendMode, Fov, XrClock, XrEye};
+use crate::xr::{BlendMode, Fov, XrClock, XrEye, XrStats};
 
 const VIEW_TYPE: xr::ViewConfigurationType = xr::ViewConfigurationType::PRIMARY_STEREO;
-/// The Vulkan version asked of the runtime: 1.1 (wgpu's minimum with its extensions).
-const VK_VERSION: u32 = vk::API_VERSION_1_1;
 
 /// Why the OpenXR output could not start or stopped.
 #[derive(Debug, thiserror::Error)]
@@ -39,15 +38,18 @@ pub enum XrError {
     /// No OpenXR loader library.
     #[error(
         "no OpenXR loader ({0}): install the OpenXR loader (Debian/Ubuntu: `apt-get install \
-         libopenxr-loader1`) and a runtime for the headset (Monado: `apt-get install monado-service`), \
-         or run without --xr"
+         libopenxr-loader1`) and a runtime for the headset (Monado: its packages per \
+         distribution are in docs/DEPLOY.md, \"OpenXR\"), or run without --xr"
     )]
     NoLoader(String),
     /// The loader found no active runtime.
     #[error(
-        "no OpenXR runtime ({0}): install Monado (`apt-get install monado-service`) and start it, or \
-         set XR_RUNTIME_JSON to the headset runtime's manifest (e.g. \
-         /usr/share/openxr/1/openxr_monado.json)"
+        "no OpenXR runtime ({0}): install the headset's runtime and make it the active one, or set \
+         XR_RUNTIME_JSON to its manifest. Monado: on Ubuntu 22.04 or newer and Debian 13 (trixie) or \
+         newer, `apt-get install libopenxr1-monado` (manifest /usr/share/openxr/1/openxr_monado.json); \
+         Debian 12 (bookworm) has no Monado package — build it from source \
+         (https://monado.freedesktop.org; deploy/xr_check.sh builds a pinned, headless one) and set \
+         XR_RUNTIME_JSON to its build/openxr_monado-dev.json"
     )]
     NoRuntime(String),
     /// The runtime lacks an extension the renderer needs.
@@ -62,7 +64,7 @@ pub enum XrError {
     )]
     NoHeadset(String),
     /// The runtime needs another Vulkan version.
-    #[error("the OpenXR runtime needs Vulkan {min} to {max}.x; the renderer asks for 1.1")]
+    #[error("the OpenXR runtime needs Vulkan {min} to {max}.x; the renderer needs 1.1 (and uses up to 1.3)")]
     VulkanVersion {
         /// Lowest supported.
         min: String,
@@ -215,6 +217,11 @@ impl XrSystem {
         })
     }
 
+    /// The environment blend mode the frames are submitted with.
+    pub fn blend(&self) -> BlendMode {
+        self.blend
+    }
+
     /// The GPU, created by the runtime (`XR_KHR_vulkan_enable2`) and wrapped into wgpu, and the
     /// Vulkan handles the session is bound to.
     pub fn gpu(&self) -> Result<(Gpu, xr::vulkan::SessionCreateInfo), XrError> {
@@ -223,15 +230,32 @@ impl XrSystem {
         // it was created with, as `from_raw` / `device_from_raw` require.
         unsafe {
             let vk_entry = ash::Entry::load().map_err(|e| vulkan("loading libvulkan", e))?;
+            // The version wgpu itself would ask for: it takes the device's own version as the
+            // version in use (a 1.2 entry point is called through the core table when the GPU is
+            // 1.2 or newer), so an instance made for less than that would hand it null pointers.
+            let loader = vk_entry
+                .try_enumerate_instance_version()
+                .map_err(|e| vulkan("vkEnumerateInstanceVersion", e))?
+                .unwrap_or(vk::API_VERSION_1_0);
+            let version = crate::xr::vulkan_instance_version(loader).ok_or_else(|| {
+                vulkan(
+                    "choosing the Vulkan version",
+                    format!(
+                        "the Vulkan loader offers only {}.{}; the renderer needs 1.1 or newer \
+                         (update libvulkan1)",
+                        vk::api_version_major(loader),
+                        vk::api_version_minor(loader)
+                    ),
+                )
+            })?;
             let flags = wgpu::InstanceFlags::empty();
-            let extensions =
-                hal::vulkan::Instance::desired_extensions(&vk_entry, VK_VERSION, flags)
-                    .map_err(|e| vulkan("listing instance extensions", e))?;
+            let extensions = hal::vulkan::Instance::desired_extensions(&vk_entry, version, flags)
+                .map_err(|e| vulkan("listing instance extensions", e))?;
             let names: Vec<*const std::ffi::c_char> =
                 extensions.iter().map(|e| e.as_ptr()).collect();
             let app = vk::ApplicationInfo::default()
                 .application_name(c"lungdyn")
-                .api_version(VK_VERSION);
+                .api_version(version);
             let info = vk::InstanceCreateInfo::default()
                 .application_info(&app)
                 .enabled_extension_names(&names);
@@ -253,7 +277,7 @@ impl XrSystem {
             let hal_instance = hal::vulkan::Instance::from_raw(
                 vk_entry.clone(),
                 ash_instance.clone(),
-                VK_VERSION,
+                version,
                 0,
                 None,
                 extensions,
@@ -365,7 +389,8 @@ impl XrSystem {
 /// The OpenXR session as the renderer's [`crate::process::FrameOutput`].
 pub struct XrOutput {
     // Dropped in this order: the swapchain and session before the instance.
-    images: Vec<wgpu::Texture>,
+    /// Each swapchain image wrapped into wgpu, with its view (made once: none per frame).
+    images: Vec<(wgpu::Texture, wgpu::TextureView)>,
     swapchain: xr::Swapchain<xr::Vulkan>,
     stream: xr::FrameStream<xr::Vulkan>,
     waiter: xr::FrameWaiter,
@@ -377,6 +402,8 @@ pub struct XrOutput {
     format: wgpu::TextureFormat,
     eye_size: (u32, u32),
     frame: Option<xr::FrameState>,
+    /// The frame's predicted display time on CLOCK_MONOTONIC.
+    display_ns: Option<u64>,
     views: Option<[xr::View; 2]>,
     acquired: Option<u32>,
     running: bool,
@@ -386,6 +413,8 @@ pub struct XrOutput {
     pub error: Option<XrError>,
     events: xr::EventDataBuffer,
     blit: Option<PresentPass>,
+    /// What the runtime was given, said when the renderer stops.
+    pub stats: XrStats,
 }
 
 impl XrOutput {
@@ -484,6 +513,10 @@ impl XrOutput {
                         },
                         wgpu::TextureUses::UNINITIALIZED,
                     ))
+                    .map(|t| {
+                        let view = t.create_view(&Default::default());
+                        (t, view)
+                    })
                 }
             })
             .collect::<Result<Vec<_>, XrError>>()?;
@@ -500,6 +533,7 @@ impl XrOutput {
             format,
             eye_size,
             frame: None,
+            display_ns: None,
             views: None,
             acquired: None,
             running: false,
@@ -507,6 +541,7 @@ impl XrOutput {
             error: None,
             events: xr::EventDataBuffer::new(),
             blit: None,
+            stats: XrStats::default(),
         })
     }
 
@@ -554,8 +589,8 @@ impl XrOutput {
         Ok(())
     }
 
-    /// CLOCK_MONOTONIC now, as the runtime's XrTime.
-    fn clock(&self) -> Result<XrClock, XrError> {
+    /// CLOCK_MONOTONIC now, as the runtime's XrTime (and the monotonic reading).
+    fn clock(&self) -> Result<(XrClock, u64), XrError> {
         let now = transport::now_ns();
         let (tv_sec, tv_nsec) = crate::xr::ns_timespec(now);
         let ts = libc::timespec { tv_sec, tv_nsec };
@@ -575,20 +610,25 @@ impl XrOutput {
                 result: r,
             });
         }
-        Ok(XrClock::from_pair(t.as_nanos(), now))
+        Ok((XrClock::from_pair(t.as_nanos(), now), now))
     }
 
     fn wait_frame(&mut self) -> Result<Option<u64>, XrError> {
         self.poll_events()?;
         self.frame = None;
+        self.display_ns = None;
         if !self.running {
             return Ok(None);
         }
         let state = call("xrWaitFrame", self.waiter.wait())?;
         call("xrBeginFrame", self.stream.begin())?;
         self.frame = Some(state);
-        let clock = self.clock()?;
-        Ok(clock.to_monotonic(state.predicted_display_time.as_nanos()))
+        let (clock, now) = self.clock()?;
+        self.display_ns = clock.to_monotonic(state.predicted_display_time.as_nanos());
+        if let Some(t) = self.display_ns {
+            self.stats.waited(t, now);
+        }
+        Ok(self.display_ns)
     }
 
     fn locate(&mut self) -> Result<Option<crate::camera::HmdEyes>, XrError> {
@@ -596,19 +636,14 @@ impl XrOutput {
             return Ok(None);
         };
         let t = state.predicted_display_time;
-        let (_, in_head) = call(
-            "xrLocateViews(VIEW)",
-            self.session.locate_views(VIEW_TYPE, t, &self.view_space),
-        )?;
-        let (_, in_local) = call(
-            "xrLocateViews(LOCAL)",
-            self.session.locate_views(VIEW_TYPE, t, &self.local_space),
-        )?;
-        let (Some(&[l, r]), Some(&[ll, lr])) = (in_head.first_chunk(), in_local.first_chunk())
-        else {
+        self.views = None;
+        let (Some([l, r]), Some(in_local)) = (
+            self.locate_views(t, &self.view_space, "xrLocateViews(VIEW)")?,
+            self.locate_views(t, &self.local_space, "xrLocateViews(LOCAL)")?,
+        ) else {
             return Ok(None);
         };
-        self.views = Some([ll, lr]);
+        self.views = Some(in_local);
         let eye = |v: xr::View| XrEye {
             position_m: [v.pose.position.x, v.pose.position.y, v.pose.position.z],
             orientation: [
@@ -633,6 +668,60 @@ impl XrOutput {
         ))
     }
 
+    /// Both eyes' views at `t` in `space`, `None` unless the runtime says both the orientation and
+    /// the position are valid (lost tracking: the frame is ended without a layer, the eyes kept).
+    /// Into an array on the stack: `Session::locate_views` allocates two vectors a call.
+    fn locate_views(
+        &self,
+        t: xr::Time,
+        space: &xr::Space,
+        what: &'static str,
+    ) -> Result<Option<[xr::View; 2]>, XrError> {
+        let info = xr::sys::ViewLocateInfo {
+            ty: xr::sys::ViewLocateInfo::TYPE,
+            next: std::ptr::null(),
+            view_configuration_type: VIEW_TYPE,
+            display_time: t,
+            space: space.as_raw(),
+        };
+        let mut state = xr::sys::ViewState {
+            ty: xr::sys::ViewState::TYPE,
+            next: std::ptr::null_mut(),
+            view_state_flags: xr::ViewStateFlags::EMPTY,
+        };
+        let blank = xr::sys::View {
+            ty: xr::sys::View::TYPE,
+            next: std::ptr::null_mut(),
+            pose: xr::Posef::IDENTITY,
+            fov: xr::Fovf::default(),
+        };
+        let mut views = [blank; 2];
+        let mut count = 0u32;
+        // SAFETY: the session and space are alive; `info`, `state`, `count` and `views` (capacity
+        // 2, the stereo configuration's count) outlive the call.
+        let r = unsafe {
+            (self.instance.fp().locate_views)(
+                self.session.as_raw(),
+                &info,
+                &mut state,
+                views.len() as u32,
+                &mut count,
+                views.as_mut_ptr(),
+            )
+        };
+        if r.into_raw() < 0 {
+            return Err(XrError::Call { what, result: r });
+        }
+        let valid = xr::ViewStateFlags::ORIENTATION_VALID | xr::ViewStateFlags::POSITION_VALID;
+        if count != 2 || !state.view_state_flags.contains(valid) {
+            return Ok(None);
+        }
+        Ok(Some(views.map(|v| xr::View {
+            pose: v.pose,
+            fov: v.fov,
+        })))
+    }
+
     fn acquire_and_copy(&mut self, encoder: &mut wgpu::CommandEncoder) -> Result<(), XrError> {
         if !self.frame.is_some_and(|s| s.should_render) || self.views.is_none() {
             return Ok(());
@@ -646,12 +735,8 @@ impl XrOutput {
             self.swapchain.wait_image(xr::Duration::INFINITE),
         )?;
         self.acquired = Some(index);
-        let target = &self.images[index as usize];
-        blit.encode(
-            encoder,
-            &target.create_view(&Default::default()),
-            (target.width(), target.height()),
-        );
+        let (image, view) = &self.images[index as usize];
+        blit.encode(encoder, view, (image.width(), image.height()));
         Ok(())
     }
 
@@ -662,6 +747,8 @@ impl XrOutput {
         let t = state.predicted_display_time;
         let (Some(_), Some(views)) = (self.acquired.take(), self.views) else {
             call("xrEndFrame", self.stream.end(t, self.blend, &[]))?;
+            self.stats
+                .ended(self.display_ns, transport::now_ns(), false);
             return Ok(None);
         };
         call("xrReleaseSwapchainImage", self.swapchain.release_image())?;
@@ -689,7 +776,65 @@ impl XrOutput {
             .space(&self.local_space)
             .views(&projection_views);
         call("xrEndFrame", self.stream.end(t, self.blend, &[&layer]))?;
-        Ok(Some(transport::now_ns()))
+        let now = transport::now_ns();
+        self.stats.ended(self.display_ns, now, true);
+        Ok(Some(now))
+    }
+
+    /// Let go of the wgpu wrappers of the swapchain images and wait until wgpu has destroyed them
+    /// (it does so lazily, once the GPU is done with them), so that no image view outlives the
+    /// image the runtime destroys with the swapchain.
+    pub fn release_images(&mut self, device: &wgpu::Device) {
+        self.images.clear();
+        self.blit = None;
+        let _ = device.poll(wgpu::PollType::Wait {
+            submission_index: None,
+            timeout: None,
+        });
+    }
+
+    /// End the session the way OpenXR asks (`xrRequestExitSession`, then `xrEndSession` when it
+    /// reaches STOPPING, then EXITING), ending empty frames meanwhile; bounded, so a runtime that
+    /// never gets there cannot hold the renderer's exit. A session that never ran, or that the
+    /// runtime already ended, needs none of it.
+    pub fn shutdown(&mut self) -> Result<(), XrError> {
+        if !self.running || self.exiting {
+            return Ok(());
+        }
+        // A frame begun but not ended (the loop stopped between wait and present) is ended first.
+        if let Some(state) = self.frame.take() {
+            if self.acquired.take().is_some() {
+                call("xrReleaseSwapchainImage", self.swapchain.release_image())?;
+            }
+            call(
+                "xrEndFrame",
+                self.stream
+                    .end(state.predicted_display_time, self.blend, &[]),
+            )?;
+        }
+        call("xrRequestExitSession", self.session.request_exit())?;
+        // Each pass ends one frame at most (the runtime's frame period), so this is about a second.
+        for _ in 0..60 {
+            self.poll_events()?;
+            if self.exiting {
+                return Ok(());
+            }
+            if self.running {
+                let state = call("xrWaitFrame", self.waiter.wait())?;
+                call("xrBeginFrame", self.stream.begin())?;
+                call(
+                    "xrEndFrame",
+                    self.stream
+                        .end(state.predicted_display_time, self.blend, &[]),
+                )?;
+            } else {
+                std::thread::sleep(std::time::Duration::from_millis(10));
+            }
+        }
+        Err(XrError::Call {
+            what: "xrRequestExitSession (the runtime never reached EXITING)",
+            result: xr::sys::Result::ERROR_RUNTIME_FAILURE,
+        })
     }
 }
 
@@ -751,6 +896,13 @@ mod tests {
             Err(e @ XrError::NoRuntime(_)) => {
                 let m = e.to_string();
                 assert!(m.contains("Monado") && m.contains("XR_RUNTIME_JSON"), "{m}");
+                // Debian 12 has no Monado package: the message must not send its users to one.
+                assert!(
+                    m.contains("bookworm")
+                        && m.contains("from source")
+                        && m.contains("xr_check.sh"),
+                    "{m}"
+                );
             }
             Err(e) => panic!("expected no loader or no runtime, got: {e}"),
         }

@@ -14,6 +14,11 @@
 //!
 //! `LUNGDYN_REQUIRE_GPU=1` / `LUNGDYN_REQUIRE_PYIGTL=1` (what CI sets) forbid the opt-out: with them a
 //! missing need fails even where a skip variable is set.
+//!
+//! One need is the other way round: an OpenXR runtime ([`Need::OpenXr`]) is built from source (no
+//! Debian 12 package; CI does not build it), so its tests run where one is named
+//! (`LUNGDYN_XR_RUNTIME` or `XR_RUNTIME_JSON`) and are otherwise skipped — aloud and logged, as an
+//! opt-out is — unless `LUNGDYN_REQUIRE_XR=1`, which makes a missing runtime a failure naming the fix.
 
 use std::io::Write;
 use std::path::PathBuf;
@@ -29,11 +34,20 @@ pub enum Need {
     Pyigtl,
     /// systemd's `systemd-analyze` (package systemd), to verify the service units.
     Systemd,
+    /// An OpenXR runtime's manifest (`LUNGDYN_XR_RUNTIME` or `XR_RUNTIME_JSON`) and a launcher
+    /// built with the `openxr` feature. Opt-in: skipped unless named or required.
+    OpenXr,
 }
 
 impl Need {
     /// Every need, for listings.
-    pub const ALL: [Need; 4] = [Need::Gpu, Need::Display, Need::Pyigtl, Need::Systemd];
+    pub const ALL: [Need; 5] = [
+        Need::Gpu,
+        Need::Display,
+        Need::Pyigtl,
+        Need::Systemd,
+        Need::OpenXr,
+    ];
 
     /// The opt-out variable for this need.
     pub fn skip_var(self) -> &'static str {
@@ -42,6 +56,7 @@ impl Need {
             Need::Display => "LUNGDYN_SKIP_DISPLAY",
             Need::Pyigtl => "LUNGDYN_SKIP_PYIGTL",
             Need::Systemd => "LUNGDYN_SKIP_SYSTEMD",
+            Need::OpenXr => "LUNGDYN_SKIP_XR",
         }
     }
 
@@ -51,6 +66,7 @@ impl Need {
             Need::Gpu | Need::Display => "LUNGDYN_REQUIRE_GPU",
             Need::Pyigtl => "LUNGDYN_REQUIRE_PYIGTL",
             Need::Systemd => "LUNGDYN_REQUIRE_SYSTEMD",
+            Need::OpenXr => "LUNGDYN_REQUIRE_XR",
         }
     }
 
@@ -75,6 +91,13 @@ impl Need {
                 "install systemd's tools for `systemd-analyze verify`: `sudo apt-get install systemd` \
                  (it needs no running systemd)"
             }
+            Need::OpenXr => {
+                "install an OpenXR runtime and name its manifest: `deploy/xr_check.sh` builds Monado \
+                 (pinned commit, null compositor, simulated headset) and runs this check against it; \
+                 by hand, set LUNGDYN_XR_RUNTIME (or XR_RUNTIME_JSON) to the runtime's JSON manifest \
+                 (XRT_COMPOSITOR_NULL=1 for Monado without a display) and build the launcher with \
+                 `cargo build --release -p lungdyn --features openxr`"
+            }
         }
     }
 
@@ -84,6 +107,7 @@ impl Need {
             Need::Display => "display",
             Need::Pyigtl => "pyigtl",
             Need::Systemd => "systemd-analyze",
+            Need::OpenXr => "OpenXR runtime",
         }
     }
 }
@@ -92,9 +116,16 @@ fn var_is_1(name: &str) -> bool {
     std::env::var(name).as_deref() == Ok("1")
 }
 
-/// Whether the person running the tests opted out of `need` (and nothing forbids it).
+/// Whether `need` is one whose tests run only where it is named or required ([`Need::OpenXr`]).
+pub fn opt_in(need: Need) -> bool {
+    need == Need::OpenXr
+}
+
+/// Whether the person running the tests opted out of `need` (and nothing forbids it); an opt-in
+/// need is out unless required.
 pub fn opted_out(need: Need) -> bool {
-    !var_is_1(need.require_var()) && (var_is_1(need.skip_var()) || var_is_1("LUNGDYN_SKIP_ALL"))
+    !var_is_1(need.require_var())
+        && (opt_in(need) || var_is_1(need.skip_var()) || var_is_1("LUNGDYN_SKIP_ALL"))
 }
 
 /// Where skips are logged: `LUNGDYN_SKIP_LOG`, or a file in the temporary folder.
@@ -129,11 +160,15 @@ pub fn missing(need: Need, detail: &str) {
             need.skip_var()
         );
     }
-    let line = format!(
-        "SKIPPED {test}: no {} ({detail}); {}=1 is set",
-        need.name(),
-        need.skip_var()
-    );
+    let why = if opt_in(need) && !var_is_1(need.skip_var()) {
+        format!(
+            "it runs only where one is named; {}=1 makes this a failure",
+            need.require_var()
+        )
+    } else {
+        format!("{}=1 is set", need.skip_var())
+    };
+    let line = format!("SKIPPED {test}: no {} ({detail}); {why}", need.name());
     // Past the harness's capture: libtest captures `eprintln!`, not writes to the stream itself.
     let _ = writeln!(std::io::stderr(), "lungdyn: {line}");
     if let Ok(mut f) = std::fs::OpenOptions::new()
@@ -254,9 +289,36 @@ mod tests {
         std::env::set_var("LUNGDYN_REQUIRE_GPU", "1");
         assert!(!opted_out(Need::Gpu));
         assert!(std::panic::catch_unwind(|| missing(Need::Gpu, "x")).is_err());
+
+        // The OpenXR runtime is opt-in: skipped aloud and logged unless required, then a failure
+        // naming the fix.
+        std::env::remove_var("LUNGDYN_REQUIRE_XR");
+        assert!(opted_out(Need::OpenXr));
+        missing(
+            Need::OpenXr,
+            "the opt-in path's own unit test, not a real skip",
+        );
+        let logged = std::fs::read_to_string(&log).unwrap();
+        assert_eq!(logged.lines().count(), 2, "{logged}");
+        assert!(
+            logged.contains("no OpenXR runtime") && logged.contains("LUNGDYN_REQUIRE_XR=1 makes"),
+            "{logged}"
+        );
+        std::env::set_var("LUNGDYN_REQUIRE_XR", "1");
+        assert!(!opted_out(Need::OpenXr));
+        let msg = std::panic::catch_unwind(|| missing(Need::OpenXr, "x"))
+            .expect_err("required: a failure")
+            .downcast::<String>()
+            .map(|s| *s)
+            .unwrap_or_default();
+        assert!(
+            msg.contains("deploy/xr_check.sh") && msg.contains("--features openxr"),
+            "{msg}"
+        );
         for v in [
             "LUNGDYN_SKIP_GPU",
             "LUNGDYN_REQUIRE_GPU",
+            "LUNGDYN_REQUIRE_XR",
             "LUNGDYN_SKIP_LOG",
         ] {
             std::env::remove_var(v);
