@@ -101,6 +101,13 @@ impl Need {
         }
     }
 
+    fn article(self) -> &'static str {
+        match self {
+            Need::OpenXr => "an",
+            _ => "a",
+        }
+    }
+
     fn name(self) -> &'static str {
         match self {
             Need::Gpu => "GPU adapter",
@@ -153,8 +160,9 @@ pub fn missing(need: Need, detail: &str) {
     let test = test_name();
     if !opted_out(need) {
         panic!(
-            "{test} needs a {}, and there is none ({detail}).\nFix: {}.\nTo skip such tests \
+            "{test} needs {} {}, and there is none ({detail}).\nFix: {}.\nTo skip such tests \
              deliberately, set {}=1 (the run then counts them as skipped).",
+            need.article(),
             need.name(),
             need.fix(),
             need.skip_var()
