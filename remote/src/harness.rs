@@ -6,7 +6,9 @@
 //! Delay, jitter and loss are emulated inside the process, on every packet a session receives
 //! (states and probe replies at the sites, probes at the source: both directions), by
 //! [`crate::link`]: netem in network namespaces needs `CAP_NET_ADMIN` and veth plumbing per site,
-//! which this harness does not do. Zenoh itself runs over real TCP on 127.0.0.1 with multicast
+//! which this harness does not do; with an impairment it probes netem once ([`netem_probe`], in a
+//! private network namespace) and says in `emulation` precisely why netem is not used (here: the
+//! kernel has no `sch_netem`). Zenoh itself runs over real TCP on 127.0.0.1 with multicast
 //! scouting off.
 //!
 //! V(t) is what each engine shows at wall time t: the volume of the last tick it stepped by then
@@ -204,8 +206,8 @@ pub struct HarnessReport {
     pub jitter_ms: f64,
     /// Emulated loss.
     pub loss: f64,
-    /// How the network was emulated.
-    pub emulation: &'static str,
+    /// How the network was emulated and, with an impairment, why not with netem (probed once).
+    pub emulation: String,
     /// Mean over sites of each site's mean drift, %.
     pub drift_percent_mean: f64,
     /// Worst cycle of any site, %.
@@ -753,6 +755,56 @@ impl Snapshot {
     }
 }
 
+/// Why the harness does not use netem here: `tc qdisc add dev lo root netem delay 1ms` run once
+/// in a private network namespace (`unshare --net`: nothing on this machine changes, the namespace
+/// ends with the command), its outcome in words.
+pub fn netem_probe() -> String {
+    let out = std::process::Command::new("unshare")
+        .args([
+            "--net", "tc", "qdisc", "add", "dev", "lo", "root", "netem", "delay", "1ms",
+        ])
+        .stdin(std::process::Stdio::null())
+        .output();
+    netem_reason(out.map(|o| {
+        (
+            o.status.success(),
+            String::from_utf8_lossy(&o.stderr).into(),
+        )
+    }))
+}
+
+/// [`netem_probe`]'s words for the probe's outcome: (succeeded, its standard error), or why it
+/// could not run.
+pub fn netem_reason(out: std::io::Result<(bool, String)>) -> String {
+    let probe = "probed with `unshare --net tc qdisc add dev lo root netem delay 1ms`";
+    match out {
+        Err(e) if e.kind() == std::io::ErrorKind::NotFound => {
+            format!("`unshare` (util-linux) is not installed, so netem could not be probed ({e})")
+        }
+        Err(e) => format!("the netem probe could not run ({probe}): {e}"),
+        Ok((true, _)) => format!(
+            "netem works on this machine ({probe}), but the harness has no per-site network \
+             namespace and veth path: emulated in-process instead"
+        ),
+        Ok((false, err)) => {
+            let first = err.lines().next().unwrap_or("").trim().to_string();
+            if err.contains("qdisc kind is unknown") {
+                format!("this kernel has no sch_netem qdisc ({probe}: \"{first}\")")
+            } else if err.contains("Operation not permitted") || err.contains("EPERM") {
+                format!(
+                    "not permitted to make a network namespace or add a qdisc (needs \
+                     CAP_SYS_ADMIN and CAP_NET_ADMIN; {probe}: \"{first}\")"
+                )
+            } else if err.contains("No such file or directory") || err.contains("failed to execute")
+            {
+                format!("`tc` (iproute2) is not installed ({probe}: \"{first}\")")
+            } else {
+                format!("the netem probe failed ({probe}: \"{first}\")")
+            }
+        }
+    }
+}
+
 /// The machine's 1-minute load average.
 fn load_average() -> Option<f64> {
     std::fs::read_to_string("/proc/loadavg")
@@ -952,9 +1004,12 @@ pub fn run(args: &HarnessArgs) -> Result<HarnessReport, RemoteError> {
         jitter_ms: args.jitter_ms,
         loss: args.loss,
         emulation: if imp == Impairment::default() || (imp.delay_ms == 0.0 && imp.loss == 0.0) {
-            "none: real TCP on 127.0.0.1"
+            "none: real TCP on 127.0.0.1".to_string()
         } else {
-            "in-process on every received packet (both directions); netem not used"
+            format!(
+                "in-process on every received packet (both directions); netem not used: {}",
+                netem_probe()
+            )
         },
         drift_percent_mean: mean(|s| s.drift_percent_mean),
         drift_percent_worst: max(|s| s.drift_percent_worst),
@@ -1083,5 +1138,40 @@ pub fn print(r: &HarnessReport) {
             s.jitter_ms,
             s.offset_ms
         );
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    /// Each outcome of the netem probe is named precisely (the words `tc` and `unshare` print).
+    #[test]
+    fn the_netem_probe_says_why_netem_is_not_used() {
+        let said = |ok: bool, err: &str| netem_reason(Ok((ok, err.to_string())));
+        let e = said(false, "Error: Specified qdisc kind is unknown.\n");
+        assert!(
+            e.contains("no sch_netem") && e.contains("Specified qdisc kind is unknown"),
+            "{e}"
+        );
+        let e = said(false, "unshare: unshare failed: Operation not permitted\n");
+        assert!(
+            e.contains("not permitted") && e.contains("CAP_NET_ADMIN"),
+            "{e}"
+        );
+        let e = said(
+            false,
+            "unshare: failed to execute tc: No such file or directory\n",
+        );
+        assert!(e.contains("`tc` (iproute2) is not installed"), "{e}");
+        let e = said(true, "");
+        assert!(e.contains("netem works") && e.contains("in-process"), "{e}");
+        let e = said(false, "RTNETLINK answers: Invalid argument\n");
+        assert!(
+            e.contains("failed") && e.contains("Invalid argument"),
+            "{e}"
+        );
+        let e = netem_reason(Err(std::io::Error::from(std::io::ErrorKind::NotFound)));
+        assert!(e.contains("`unshare` (util-linux) is not installed"), "{e}");
     }
 }

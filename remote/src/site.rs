@@ -88,14 +88,14 @@ impl PathFigures {
     }
 }
 
-/// Start a thread `name` that puts a probe from `id` on `key` every `probe_ms` until `stop`;
-/// `after(sent)` runs on it after each.
+/// Start a thread `name` that puts a probe from `id` on `key` until `stop`, probe `n` followed by
+/// a pause of `interval_ms(n)`; `after(sent)` runs on it after each.
 pub(crate) fn start_prober(
     name: String,
     session: zenoh::Session,
     key: String,
     id: u64,
-    probe_ms: u64,
+    interval_ms: impl Fn(u64) -> u64 + Send + 'static,
     stop: Arc<AtomicBool>,
     mut after: impl FnMut(bool) + Send + 'static,
 ) -> std::io::Result<()> {
@@ -109,9 +109,9 @@ pub(crate) fn start_prober(
                 t0_ns: now_ns(),
             };
             let sent = encode_to_vec(&probe).is_ok_and(|b| session.put(&key, b).wait().is_ok());
-            n += 1;
             after(sent);
-            std::thread::sleep(Duration::from_millis(probe_ms.max(1)));
+            std::thread::sleep(Duration::from_millis(interval_ms(n).max(1)));
+            n += 1;
         }
     })?;
     Ok(())
@@ -308,7 +308,7 @@ impl Site {
             session.clone(),
             probe_key,
             id,
-            probe_ms,
+            move |_| probe_ms,
             stop.clone(),
             |_| {},
         )
