@@ -259,15 +259,24 @@ pub fn serve(args: &ServeArgs) -> Result<(), RemoteError> {
     let mut control = instance.control_outlet(&node)?;
     let id = remote.site_id().unwrap_or_else(|| site_id(0));
     let source = Source::open(&net, &keys, id, Impairment::default())?;
+    let how = if net.mode == "client" {
+        format!(
+            "through the router {:?}: sites join with lungdyn remote join --mode client --connect \
+             ROUTER --room {}",
+            net.connect, remote.room
+        )
+    } else {
+        format!(
+            "on {:?}: sites join with lungdyn remote join --connect tcp/THIS_HOST:PORT --room {}",
+            net.listen, remote.room
+        )
+    };
     eprintln!(
-        "remote serve[{}]: relaying {} to zenoh key {} as a {} on {:?} (sites join with lungdyn \
-         remote join --connect tcp/THIS_HOST:PORT --room {})",
+        "remote serve[{}]: relaying {} to zenoh key {} as a {} {how}",
         instance.name(),
         instance.control_state(),
         keys.state(),
         net.mode,
-        net.listen,
-        remote.room
     );
     let (mut refused, mut sites) = (0u64, 0usize);
     while transport::stop::idle(Duration::from_millis(5)) && until.is_none_or(|t| now_ns() < t) {
