@@ -156,6 +156,9 @@ enum RemoteCommand {
     /// Run this site's engine in step with a remote source (`--connect tcp/HOST:7447`); a renderer
     /// on `--instance` draws it.
     Join(lungdyn_remote::roles::JoinArgs),
+    /// A classroom's Zenoh router with the time relay beside it: the source and the sites connect
+    /// as clients; the sites sync their clocks with the relay, which alone probes the source.
+    Router(lungdyn_remote::roles::RouterArgs),
     /// A source and N sites on loopback: drift per cycle, phase error, packets per minute.
     Harness(lungdyn_remote::harness::HarnessArgs),
     /// The harness's source in its own process (started by `remote harness`).
@@ -405,6 +408,9 @@ fn main() -> std::process::ExitCode {
         }
         Command::Remote(RemoteCommand::Join(args)) => {
             lungdyn_remote::roles::join(&args).map_err(Into::into)
+        }
+        Command::Remote(RemoteCommand::Router(args)) => {
+            lungdyn_remote::roles::router(&args).map_err(Into::into)
         }
         Command::Remote(RemoteCommand::HarnessSource(args)) => {
             lungdyn_remote::harness::source_child(&args).map_err(Into::into)

@@ -6,7 +6,9 @@
 //! Delay, jitter and loss are emulated inside the process, on every packet a session receives
 //! (states and probe replies at the sites, probes at the source: both directions), by
 //! [`crate::link`]: netem in network namespaces needs `CAP_NET_ADMIN` and veth plumbing per site,
-//! which this harness does not do. Zenoh itself runs over real TCP on 127.0.0.1 with multicast
+//! which this harness does not do; with an impairment it probes netem once ([`netem_probe`], in a
+//! private network namespace) and says in `emulation` precisely why netem is not used (here: the
+//! kernel has no `sch_netem`). Zenoh itself runs over real TCP on 127.0.0.1 with multicast
 //! scouting off.
 //!
 //! V(t) is what each engine shows at wall time t: the volume of the last tick it stepped by then
@@ -30,7 +32,8 @@ use transport::clock::now_ns;
 use transport::pacer::PacerConfig;
 
 use crate::link::Impairment;
-use crate::site::{Runner, Site};
+use crate::relay::{Relay, RelayCounts};
+use crate::site::{ClockSync, Runner, Site};
 
 use crate::source::{EnginePorts, Source};
 use crate::{site_id, Keys, Net, RemoteError};
@@ -65,8 +68,10 @@ pub struct HarnessArgs {
     /// Seed of the emulated impairment.
     #[arg(long, default_value_t = 1)]
     pub seed: u64,
-    /// Through a Zenoh router the harness opens in its own process (on 127.0.0.1): the source and
-    /// every site are its clients. Without it the sites connect to the source, peer to peer.
+    /// Through a Zenoh router the harness opens in its own process (on 127.0.0.1) with the time
+    /// relay beside it: the source and every site are its clients and the sites sync their clocks
+    /// with the relay (only the relay probes the source). Without it the sites connect to the
+    /// source, peer to peer, and probe it.
     #[arg(long)]
     pub router: bool,
     /// Each site's probe interval, ms (its delay and clock-offset estimate; `remote join` probes
@@ -167,6 +172,27 @@ pub struct SiteReport {
     pub offset_ms: f64,
 }
 
+/// The time relay's figures over the measured window (through a router).
+#[derive(Debug, Clone, Serialize)]
+pub struct RelayReport {
+    /// Sites' probes the relay answered per minute (what the source answered peer to peer).
+    pub probes_answered_per_minute: f64,
+    /// Probes the relay sent to the source per minute (all the source answers: one "site").
+    pub probes_to_source_per_minute: f64,
+    /// Payload bytes of its replies to the sites per minute (Zenoh's framing not included).
+    pub reply_bytes_per_minute: f64,
+    /// CPU of the relay's own two threads (link worker, prober; `RUSAGE_THREAD`), % of a core;
+    /// Zenoh's threads that route its packets belong to the router's process and are in
+    /// `harness_cpu_s`.
+    pub threads_cpu_percent: f64,
+    /// Sites' probes that came before the relay had an offset (left unanswered), whole run.
+    pub unanswered: u64,
+    /// The relay's offset estimate to the source at the end, ms (the true one is 0).
+    pub offset_ms: Option<f64>,
+    /// The relay's smoothed one-way delay to the source, ms.
+    pub delay_ms: f64,
+}
+
 /// The harness's figures.
 #[derive(Debug, Clone, Serialize)]
 pub struct HarnessReport {
@@ -180,8 +206,8 @@ pub struct HarnessReport {
     pub jitter_ms: f64,
     /// Emulated loss.
     pub loss: f64,
-    /// How the network was emulated.
-    pub emulation: &'static str,
+    /// How the network was emulated and, with an impairment, why not with netem (probed once).
+    pub emulation: String,
     /// Mean over sites of each site's mean drift, %.
     pub drift_percent_mean: f64,
     /// Worst cycle of any site, %.
@@ -206,8 +232,12 @@ pub struct HarnessReport {
     pub tidal_volume_ml: f64,
     /// How the sites reach the source.
     pub topology: &'static str,
-    /// Probe interval of each site, ms.
+    /// Probe interval of each site (and of the relay), ms.
     pub probe_ms: u64,
+    /// Whom the sites probe for the source's clock.
+    pub clock_sync: &'static str,
+    /// The time relay (through a router; `null` peer to peer).
+    pub relay: Option<RelayReport>,
     /// Probes the source answered per minute of the window (one reply to each site's each
     /// probe).
     pub probes_per_minute: f64,
@@ -687,6 +717,94 @@ struct SourceOutcome {
     cost: Option<SourceCost>,
 }
 
+/// The relay's counters at the start of the measured window.
+#[derive(Debug, Clone, Copy)]
+struct Snapshot {
+    at: u64,
+    answered: u64,
+    to_source: u64,
+    bytes: u64,
+    cpu_s: f64,
+}
+
+impl Snapshot {
+    fn of(c: &RelayCounts, at: u64) -> Self {
+        Self {
+            at,
+            answered: c.answered.load(Ordering::Relaxed),
+            to_source: c.probes_to_source.load(Ordering::Relaxed),
+            bytes: c.reply_bytes.load(Ordering::Relaxed),
+            cpu_s: c.threads_cpu_s(),
+        }
+    }
+
+    /// The relay's figures from this snapshot to `end`.
+    fn report(self, r: &Relay, end: u64) -> RelayReport {
+        let b = Snapshot::of(&r.counts, end);
+        let wall_s = (end.saturating_sub(self.at) as f64 / 1e9).max(1e-9);
+        let per_minute = |a: u64, b: u64| b.saturating_sub(a) as f64 / wall_s * 60.0;
+        RelayReport {
+            probes_answered_per_minute: per_minute(self.answered, b.answered),
+            probes_to_source_per_minute: per_minute(self.to_source, b.to_source),
+            reply_bytes_per_minute: per_minute(self.bytes, b.bytes),
+            threads_cpu_percent: (b.cpu_s - self.cpu_s).max(0.0) / wall_s * 100.0,
+            unanswered: r.counts.unanswered.load(Ordering::Relaxed),
+            offset_ms: r.offset_ns().map(|o| o as f64 / 1e6),
+            delay_ms: r.path.delay_ns.load(Ordering::Relaxed) as f64 / 1e6,
+        }
+    }
+}
+
+/// Why the harness does not use netem here: `tc qdisc add dev lo root netem delay 1ms` run once
+/// in a private network namespace (`unshare --net`: nothing on this machine changes, the namespace
+/// ends with the command), its outcome in words.
+pub fn netem_probe() -> String {
+    let out = std::process::Command::new("unshare")
+        .args([
+            "--net", "tc", "qdisc", "add", "dev", "lo", "root", "netem", "delay", "1ms",
+        ])
+        .stdin(std::process::Stdio::null())
+        .output();
+    netem_reason(out.map(|o| {
+        (
+            o.status.success(),
+            String::from_utf8_lossy(&o.stderr).into(),
+        )
+    }))
+}
+
+/// [`netem_probe`]'s words for the probe's outcome: (succeeded, its standard error), or why it
+/// could not run.
+pub fn netem_reason(out: std::io::Result<(bool, String)>) -> String {
+    let probe = "probed with `unshare --net tc qdisc add dev lo root netem delay 1ms`";
+    match out {
+        Err(e) if e.kind() == std::io::ErrorKind::NotFound => {
+            format!("`unshare` (util-linux) is not installed, so netem could not be probed ({e})")
+        }
+        Err(e) => format!("the netem probe could not run ({probe}): {e}"),
+        Ok((true, _)) => format!(
+            "netem works on this machine ({probe}), but the harness has no per-site network \
+             namespace and veth path: emulated in-process instead"
+        ),
+        Ok((false, err)) => {
+            let first = err.lines().next().unwrap_or("").trim().to_string();
+            if err.contains("qdisc kind is unknown") {
+                format!("this kernel has no sch_netem qdisc ({probe}: \"{first}\")")
+            } else if err.contains("Operation not permitted") || err.contains("EPERM") {
+                format!(
+                    "not permitted to make a network namespace or add a qdisc (needs \
+                     CAP_SYS_ADMIN and CAP_NET_ADMIN; {probe}: \"{first}\")"
+                )
+            } else if err.contains("No such file or directory") || err.contains("failed to execute")
+            {
+                format!("`tc` (iproute2) is not installed ({probe}: \"{first}\")")
+            } else {
+                format!("the netem probe failed ({probe}: \"{first}\")")
+            }
+        }
+    }
+}
+
 /// The machine's 1-minute load average.
 fn load_average() -> Option<f64> {
     std::fs::read_to_string("/proc/loadavg")
@@ -715,6 +833,20 @@ pub fn run(args: &HarnessArgs) -> Result<HarnessReport, RemoteError> {
         None
     };
     let via = router.as_ref().map(locator).transpose()?;
+    // The time relay beside the router, in its process: it probes the source as a site would.
+    let relay = match &router {
+        Some(r) => {
+            let mut i = imp;
+            i.seed = args.seed.wrapping_add(0x7e1a);
+            Some(Relay::open(r, &keys, site_id(1000), i, args.probe_ms)?)
+        }
+        None => None,
+    };
+    let clock = if relay.is_some() {
+        ClockSync::Relay
+    } else {
+        ClockSync::Source
+    };
     let source_id = site_id(0);
     let side = match &args.source_exe {
         None => SourceSide::Here(Box::new(Source::open(
@@ -738,13 +870,14 @@ pub fn run(args: &HarnessArgs) -> Result<HarnessReport, RemoteError> {
     for k in 0..args.sites {
         let mut i = imp;
         i.seed = args.seed.wrapping_add(k as u64 + 1);
-        sites.push(Site::open(
+        sites.push(Site::open_via(
             &site_net,
             &keys,
             site_id(k as u64 + 1),
             args.observer,
             i,
             args.probe_ms,
+            clock,
         )?);
     }
     // Let the probes measure the path before the first state.
@@ -753,6 +886,7 @@ pub fn run(args: &HarnessArgs) -> Result<HarnessReport, RemoteError> {
     let recs: Mutex<Vec<(usize, Vec<Rec>)>> = Mutex::new(Vec::new());
     let result: Mutex<Option<RemoteError>> = Mutex::new(None);
     let harness_cpu0 = crate::measure::cpu_s(crate::measure::Who::Process);
+    let relay0 = relay.as_ref().map(|r| Snapshot::of(&r.counts, now_ns()));
     let mut side = side;
     let outcome = std::thread::scope(|s| {
         for (k, site) in sites.iter().enumerate() {
@@ -803,6 +937,10 @@ pub fn run(args: &HarnessArgs) -> Result<HarnessReport, RemoteError> {
         r
     })?;
     let harness_cpu_s = crate::measure::cpu_s(crate::measure::Who::Process) - harness_cpu0;
+    let relay_report = match (&relay, relay0) {
+        (Some(r), Some(a)) => Some(a.report(r, now_ns())),
+        _ => None,
+    };
     drop(side);
     if let Some(e) = result.lock().expect("result").take() {
         return Err(e);
@@ -866,9 +1004,12 @@ pub fn run(args: &HarnessArgs) -> Result<HarnessReport, RemoteError> {
         jitter_ms: args.jitter_ms,
         loss: args.loss,
         emulation: if imp == Impairment::default() || (imp.delay_ms == 0.0 && imp.loss == 0.0) {
-            "none: real TCP on 127.0.0.1"
+            "none: real TCP on 127.0.0.1".to_string()
         } else {
-            "in-process on every received packet (both directions); netem not used"
+            format!(
+                "in-process on every received packet (both directions); netem not used: {}",
+                netem_probe()
+            )
         },
         drift_percent_mean: mean(|s| s.drift_percent_mean),
         drift_percent_worst: max(|s| s.drift_percent_worst),
@@ -888,6 +1029,14 @@ pub fn run(args: &HarnessArgs) -> Result<HarnessReport, RemoteError> {
             "peer to peer: every site connects to the source"
         },
         probe_ms: args.probe_ms,
+        clock_sync: match clock {
+            ClockSync::Relay => {
+                "relay: each site probes the time relay beside the router; only the relay probes \
+                 the source"
+            }
+            ClockSync::Source => "source: each site probes the source",
+        },
+        relay: relay_report,
         probes_per_minute: outcome.probes as f64 / minutes,
         sites_seen_by_source: outcome.sites_seen,
         source_deadlines_skipped: outcome.deadlines_skipped,
@@ -935,6 +1084,22 @@ pub fn print(r: &HarnessReport) {
         r.probe_ms,
         r.source_deadlines_skipped
     );
+    println!("clock sync: {}", r.clock_sync);
+    if let Some(x) = &r.relay {
+        println!(
+            "time relay: answered {:.0} site probes/min ({:.0} reply bytes/min), sent {:.0} \
+             probes/min to the source, its threads {:.3} % of a core, {} probe(s) before it had \
+             an offset; its offset to the source {}, delay {:.2} ms",
+            x.probes_answered_per_minute,
+            x.reply_bytes_per_minute,
+            x.probes_to_source_per_minute,
+            x.threads_cpu_percent,
+            x.unanswered,
+            x.offset_ms
+                .map_or("none".to_string(), |o| format!("{o:.3} ms")),
+            x.delay_ms
+        );
+    }
     match (r.source_cpu_percent, r.source_tcp_bytes_sent_per_minute) {
         (Some(cpu), Some(sent)) => println!(
             "source process: CPU {cpu:.2} % of a core (tick thread {:.2} %), TCP {sent:.0} bytes/min \
@@ -973,5 +1138,40 @@ pub fn print(r: &HarnessReport) {
             s.jitter_ms,
             s.offset_ms
         );
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    /// Each outcome of the netem probe is named precisely (the words `tc` and `unshare` print).
+    #[test]
+    fn the_netem_probe_says_why_netem_is_not_used() {
+        let said = |ok: bool, err: &str| netem_reason(Ok((ok, err.to_string())));
+        let e = said(false, "Error: Specified qdisc kind is unknown.\n");
+        assert!(
+            e.contains("no sch_netem") && e.contains("Specified qdisc kind is unknown"),
+            "{e}"
+        );
+        let e = said(false, "unshare: unshare failed: Operation not permitted\n");
+        assert!(
+            e.contains("not permitted") && e.contains("CAP_NET_ADMIN"),
+            "{e}"
+        );
+        let e = said(
+            false,
+            "unshare: failed to execute tc: No such file or directory\n",
+        );
+        assert!(e.contains("`tc` (iproute2) is not installed"), "{e}");
+        let e = said(true, "");
+        assert!(e.contains("netem works") && e.contains("in-process"), "{e}");
+        let e = said(false, "RTNETLINK answers: Invalid argument\n");
+        assert!(
+            e.contains("failed") && e.contains("Invalid argument"),
+            "{e}"
+        );
+        let e = netem_reason(Err(std::io::Error::from(std::io::ErrorKind::NotFound)));
+        assert!(e.contains("`unshare` (util-linux) is not installed"), "{e}");
     }
 }

@@ -13,6 +13,9 @@
 //!   offset from probes ([`clock`]), builds the breath a state names off the tick thread and runs
 //!   its own [`engine::runtime::EngineCore`] on the source's tick numbers, scheduled so its ticks
 //!   fall at the source's times.
+//! * [`relay`]: the time relay beside a router: it alone probes the source and answers the
+//!   sites' probes in the source's time, so through a router the source's cost does not grow with
+//!   the sites.
 //! * [`harness`]: a source and N sites on loopback with drift, phase error and packet figures.
 //! * [`roles`]: `lungdyn remote serve` / `join` over a running engine's iceoryx2 streams.
 //!
@@ -24,6 +27,7 @@ pub mod clock;
 pub mod harness;
 pub mod link;
 pub mod measure;
+pub mod relay;
 pub mod roles;
 pub mod site;
 pub mod source;
@@ -123,6 +127,14 @@ impl Keys {
     /// Delay probes to the source.
     pub fn probe(&self) -> String {
         format!("lungdyn/{}/probe", self.room)
+    }
+    /// Delay probes to the time relay beside the router ([`relay`]).
+    pub fn relay_probe(&self) -> String {
+        format!("lungdyn/{}/relay/probe", self.room)
+    }
+    /// The time relay's presence.
+    pub fn relay_presence(&self) -> String {
+        format!("lungdyn/{}/relay/alive", self.room)
     }
     /// Probe replies to `site`.
     pub fn reply(&self, site: u64) -> String {

@@ -88,6 +88,24 @@ impl From<ZenohMode> for lung_model::scene_remote::ZenohMode {
     }
 }
 
+/// The `--clock` values.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, clap::ValueEnum)]
+pub enum ClockSync {
+    /// Probe the source (peer to peer; its cost grows with the sites).
+    Source,
+    /// Probe the time relay beside the router (`lungdyn remote router`).
+    Relay,
+}
+
+impl From<ClockSync> for lung_model::scene_remote::ClockSync {
+    fn from(c: ClockSync) -> Self {
+        match c {
+            ClockSync::Source => Self::Source,
+            ClockSync::Relay => Self::Relay,
+        }
+    }
+}
+
 /// The `[remote]` table of `scene` (none without a scene or table).
 fn remote_table(scene: Option<&std::path::Path>) -> Result<Option<RemoteScene>, RemoteError> {
     match scene {
@@ -104,6 +122,7 @@ fn settings(
     listen: &[String],
     connect: &[String],
     session: &SessionArgs,
+    clock: Option<ClockSync>,
 ) -> Result<(RemoteScene, Net, Keys), RemoteError> {
     let mut r = table.unwrap_or(RemoteScene {
         role,
@@ -113,6 +132,7 @@ fn settings(
         mode: lung_model::scene_remote::ZenohMode::Peer,
         lease_ms: lung_model::scene_remote::DEFAULT_LEASE_MS,
         site_id: None,
+        clock: None,
     });
     if !listen.is_empty() {
         r.listen = Some(listen.to_vec());
@@ -129,10 +149,13 @@ fn settings(
     if let Some(l) = session.lease_ms {
         r.lease_ms = l;
     }
+    if let Some(c) = clock {
+        r.clock = Some(c.into());
+    }
     r.validate().map_err(|e| {
         RemoteError::Usage(format!(
             "remote settings: {e} (on the command line: --listen, --connect, --room, --mode, \
-             --lease-ms)"
+             --lease-ms, --clock)"
         ))
     })?;
     let net = Net::of(&r);
@@ -159,9 +182,44 @@ pub struct JoinArgs {
     /// The session's room, mode (not router: a site joins one) and lease.
     #[command(flatten)]
     pub session: SessionArgs,
+    /// Whom the site probes for the source's clock: relay (the time relay `lungdyn remote router`
+    /// runs beside the router; needs --mode client) or source (default: the scene's `[remote]
+    /// clock`, else relay in client mode and source peer to peer).
+    #[arg(long)]
+    pub clock: Option<ClockSync>,
     /// Stop after this many seconds.
     #[arg(long)]
     pub seconds: Option<f64>,
+}
+
+/// Options of `lungdyn remote router`: a Zenoh router for a classroom and the time relay beside
+/// it (the source and the sites connect to it as clients).
+#[derive(Debug, Clone, clap::Args)]
+pub struct RouterArgs {
+    /// Zenoh endpoint to listen on.
+    #[arg(long, default_value = lung_model::scene_remote::DEFAULT_LISTEN)]
+    pub listen: Vec<String>,
+    /// The shared session's name (the source's and the sites' `--room`).
+    #[arg(long, default_value = "lungdyn")]
+    pub room: String,
+    /// Link lease, ms.
+    #[arg(long, default_value_t = lung_model::scene_remote::DEFAULT_LEASE_MS)]
+    pub lease_ms: u64,
+    /// How often the relay probes the source, ms (the source answers only these).
+    #[arg(long, default_value_t = 100)]
+    pub probe_ms: u64,
+    /// Stop after this many seconds.
+    #[arg(long)]
+    pub seconds: Option<f64>,
+}
+
+/// How often `remote join` probes: the relay every 100 ms (the probes do not reach the source),
+/// the source every 500 ms (each site's probes are the source's cost).
+fn join_probe_ms(clock: lung_model::scene_remote::ClockSync) -> u64 {
+    match clock {
+        lung_model::scene_remote::ClockSync::Relay => 100,
+        lung_model::scene_remote::ClockSync::Source => 500,
+    }
 }
 
 fn deadline(seconds: Option<f64>) -> Result<Option<u64>, RemoteError> {
@@ -192,6 +250,7 @@ pub fn serve(args: &ServeArgs) -> Result<(), RemoteError> {
         &args.listen,
         &args.connect,
         &args.session,
+        None,
     )?;
     net.config()?;
     let instance = Instance::new(&args.instance)?;
@@ -200,15 +259,24 @@ pub fn serve(args: &ServeArgs) -> Result<(), RemoteError> {
     let mut control = instance.control_outlet(&node)?;
     let id = remote.site_id().unwrap_or_else(|| site_id(0));
     let source = Source::open(&net, &keys, id, Impairment::default())?;
+    let how = if net.mode == "client" {
+        format!(
+            "through the router {:?}: sites join with lungdyn remote join --mode client --connect \
+             ROUTER --room {}",
+            net.connect, remote.room
+        )
+    } else {
+        format!(
+            "on {:?}: sites join with lungdyn remote join --connect tcp/THIS_HOST:PORT --room {}",
+            net.listen, remote.room
+        )
+    };
     eprintln!(
-        "remote serve[{}]: relaying {} to zenoh key {} as a {} on {:?} (sites join with lungdyn \
-         remote join --connect tcp/THIS_HOST:PORT --room {})",
+        "remote serve[{}]: relaying {} to zenoh key {} as a {} {how}",
         instance.name(),
         instance.control_state(),
         keys.state(),
         net.mode,
-        net.listen,
-        remote.room
     );
     let (mut refused, mut sites) = (0u64, 0usize);
     while transport::stop::idle(Duration::from_millis(5)) && until.is_none_or(|t| now_ns() < t) {
@@ -263,6 +331,159 @@ pub fn serve(args: &ServeArgs) -> Result<(), RemoteError> {
     Ok(())
 }
 
+/// What `remote join` says about the time relay (a site syncing with it only).
+struct RelayWatch {
+    started: u64,
+    present: bool,
+    lost: u64,
+    warned: bool,
+}
+
+/// How long a site waits for the relay's first answer before it says none came, ns.
+const RELAY_WAIT_NS: u64 = 5_000_000_000;
+
+impl RelayWatch {
+    fn new(now: u64) -> Self {
+        Self {
+            started: now,
+            present: false,
+            lost: 0,
+            warned: false,
+        }
+    }
+
+    /// Say when the relay comes, goes, or has not answered [`RELAY_WAIT_NS`] after the start.
+    fn say(&mut self, instance: &Instance, site: &Site, now: u64) {
+        if site.clock != lung_model::scene_remote::ClockSync::Relay {
+            return;
+        }
+        let p = &site.path;
+        let (present, lost) = (
+            p.relay_present.load(Ordering::Relaxed),
+            p.relay_lost.load(Ordering::Relaxed),
+        );
+        let offset_ms = p.offset_ns.load(Ordering::Relaxed) as f64 / 1e6;
+        if lost > self.lost {
+            eprintln!(
+                "remote join[{}]: the time relay is gone: keeping the last clock offset ({offset_ms:.3} \
+                 ms; it ages at the two clocks' rate difference) until it is back",
+                instance.name()
+            );
+        }
+        if present && !self.present {
+            eprintln!(
+                "remote join[{}]: time relay present: clock sync through it (the source answers \
+                 only the relay)",
+                instance.name()
+            );
+        }
+        (self.present, self.lost) = (present, lost);
+        if !self.warned
+            && !p.have_offset.load(Ordering::Relaxed)
+            && now.saturating_sub(self.started) > RELAY_WAIT_NS
+        {
+            self.warned = true;
+            eprintln!(
+                "remote join[{}]: no clock answer {} s after joining: {}. Through a router the \
+                 sites sync with the time relay `lungdyn remote router` runs on the router's host \
+                 (a stock zenohd cannot answer); behind a stock router join with --clock source",
+                instance.name(),
+                RELAY_WAIT_NS / 1_000_000_000,
+                if present {
+                    "the relay is present but has no offset to the source yet (is the source \
+                     connected to the router?)"
+                } else {
+                    "no time relay is present"
+                }
+            );
+        }
+    }
+}
+
+/// Run `lungdyn remote router`: a Zenoh router and the time relay in this process.
+pub fn router(args: &RouterArgs) -> Result<(), RemoteError> {
+    transport::stop::install()?;
+    let until = deadline(args.seconds)?;
+    if !(1..=10_000).contains(&args.probe_ms) {
+        return Err(RemoteError::Usage(format!(
+            "--probe-ms {}: use 1–10000",
+            args.probe_ms
+        )));
+    }
+    // The router's settings are checked as a router source's `[remote]` table.
+    let (_, net, keys) = settings(
+        None,
+        RemoteRole::Source,
+        &args.listen,
+        &[],
+        &SessionArgs {
+            room: Some(args.room.clone()),
+            mode: Some(ZenohMode::Router),
+            lease_ms: Some(args.lease_ms),
+        },
+        None,
+    )?;
+    let session = net.open()?;
+    let relay = crate::relay::Relay::open(
+        &session,
+        &keys,
+        site_id(0),
+        Impairment::default(),
+        args.probe_ms,
+    )?;
+    eprintln!(
+        "remote router: a Zenoh router on {:?} with the time relay for room {} (the source runs \
+         `lungdyn remote serve --mode client --connect tcp/THIS_HOST:PORT --room {}`, each site \
+         `lungdyn remote join --mode client --connect tcp/THIS_HOST:PORT --room {}`)",
+        net.listen, args.room, args.room, args.room
+    );
+    let mut synced = false;
+    let mut last_reply = (0u64, now_ns());
+    let mut silent = false;
+    while transport::stop::idle(Duration::from_millis(100)) && until.is_none_or(|t| now_ns() < t) {
+        let c = &relay.counts;
+        if let (Some(o), false) = (relay.offset_ns(), synced) {
+            synced = true;
+            eprintln!(
+                "remote router: clock relay in step with the source (offset {:.3} ms, delay {:.2} \
+                 ms): answering the sites' probes",
+                o as f64 / 1e6,
+                relay.path.delay_ns.load(Ordering::Relaxed) as f64 / 1e6
+            );
+        }
+        let replies = c.source_replies.load(Ordering::Relaxed);
+        let now = now_ns();
+        if replies != last_reply.0 {
+            if silent {
+                eprintln!("remote router: the source answers the relay again");
+            }
+            (last_reply, silent) = ((replies, now), false);
+        } else if !silent && now - last_reply.1 > 5_000_000_000 {
+            silent = true;
+            eprintln!(
+                "remote router: no answer from the source for 5 s{}",
+                if synced {
+                    ": the relay answers the sites with its last offset to it"
+                } else {
+                    ": the sites' probes wait (start `lungdyn remote serve --mode client \
+                     --connect` to this router)"
+                }
+            );
+        }
+    }
+    let c = &relay.counts;
+    eprintln!(
+        "remote router: relay sent {} probes to the source ({} answered); answered {} site \
+         probes, {} before it had an offset, {} refused",
+        c.probes_to_source.load(Ordering::Relaxed),
+        c.source_replies.load(Ordering::Relaxed),
+        c.answered.load(Ordering::Relaxed),
+        c.unanswered.load(Ordering::Relaxed),
+        c.refused.load(Ordering::Relaxed)
+    );
+    Ok(())
+}
+
 /// Run `lungdyn remote join`.
 pub fn join(args: &JoinArgs) -> Result<(), RemoteError> {
     transport::stop::install()?;
@@ -285,7 +506,8 @@ pub fn join(args: &JoinArgs) -> Result<(), RemoteError> {
         RemoteRole::Site
     };
     // Endpoints are checked before anything is loaded or opened.
-    let (remote, net, keys) = settings(table, role, &[], &args.connect, &args.session)?;
+    let (remote, net, keys) = settings(table, role, &[], &args.connect, &args.session, args.clock)?;
+    let clock = remote.clock();
     net.config()?;
     let instance = Instance::new(&args.instance)?;
     let _lock = instance.lock("engine")?;
@@ -300,21 +522,28 @@ pub fn join(args: &JoinArgs) -> Result<(), RemoteError> {
     // to the source, applied when the source announces it (with its tick, cycle and outcome).
     let mut replies = instance.control_reply_outlet(&node)?;
     let mut sent: Vec<(u64, ControlPacket)> = Vec::new();
-    let site = Site::open(
+    let site = Site::open_via(
         &net,
         &keys,
         remote.site_id().unwrap_or_else(|| site_id(0)),
         observer,
         Impairment::default(),
-        500,
+        join_probe_ms(clock),
+        clock,
     )?;
     eprintln!(
-        "remote join[{}]: site {:016x}{} waiting for the source's state on {:?}",
+        "remote join[{}]: site {:016x}{} waiting for the source's state on {:?}; clock sync with \
+         the {}",
         instance.name(),
         site.id,
         if observer { " (observer)" } else { "" },
-        net.connect
+        net.connect,
+        match clock {
+            lung_model::scene_remote::ClockSync::Relay => "time relay beside the router",
+            lung_model::scene_remote::ClockSync::Source => "source",
+        }
     );
+    let mut relay_watch = RelayWatch::new(now_ns());
     let mut runner = site
         .runner(core, hz)
         .ok_or_else(|| RemoteError::Usage("the site's runner was taken".into()))?;
@@ -336,6 +565,7 @@ pub fn join(args: &JoinArgs) -> Result<(), RemoteError> {
             runner.frame.stamps.engine_publish_ns = now_ns();
             outlet.publish(&runner.frame)?;
         }
+        relay_watch.say(&instance, &site, now);
         // Each event the source announced, once: who raised it and the cycle every site applies it.
         let mut announced = Vec::new();
         if let Ok(seen) = site.events.lock() {
@@ -470,6 +700,7 @@ mod tests {
             &listen,
             &[],
             &session(ZenohMode::Router),
+            None,
         )
         .unwrap();
         assert_eq!(
@@ -477,7 +708,7 @@ mod tests {
             ("router", "router", 2000)
         );
         for role in [RemoteRole::Site, RemoteRole::Observer] {
-            let e = settings(None, role, &[], &listen, &session(ZenohMode::Router))
+            let e = settings(None, role, &[], &listen, &session(ZenohMode::Router), None)
                 .unwrap_err()
                 .to_string();
             assert!(
@@ -486,9 +717,35 @@ mod tests {
                     && e.contains("--mode"),
                 "{e}"
             );
-            let (_, net, _) =
-                settings(None, role, &[], &listen, &session(ZenohMode::Client)).unwrap();
+            let (r, net, _) =
+                settings(None, role, &[], &listen, &session(ZenohMode::Client), None).unwrap();
             assert_eq!(net.mode, "client");
+            // Through a router a site syncs with the relay unless told otherwise.
+            assert_eq!(r.clock(), lung_model::scene_remote::ClockSync::Relay);
+            let (r, _, _) = settings(
+                None,
+                role,
+                &[],
+                &listen,
+                &session(ZenohMode::Client),
+                Some(ClockSync::Source),
+            )
+            .unwrap();
+            assert_eq!(r.clock(), lung_model::scene_remote::ClockSync::Source);
+            let e = settings(
+                None,
+                role,
+                &[],
+                &listen,
+                &session(ZenohMode::Peer),
+                Some(ClockSync::Relay),
+            )
+            .unwrap_err()
+            .to_string();
+            assert!(
+                e.contains("needs mode = \"client\"") && e.contains("--clock"),
+                "{e}"
+            );
         }
     }
 }

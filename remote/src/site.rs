@@ -16,6 +16,7 @@ use zenoh_ext::{AdvancedSubscriberBuilderExt, HistoryConfig, RecoveryConfig};
 use crate::clock::{DelayEstimator, ProbeStamps};
 use crate::link::{self, Impairment, LinkIn};
 use crate::{zerr, Keys, Net, RemoteError};
+pub use lung_model::scene_remote::ClockSync;
 
 /// What a site received and did.
 #[derive(Debug, Default)]
@@ -59,6 +60,61 @@ pub struct PathFigures {
     pub delay_ns: AtomicU64,
     /// Round-trip variation, ns.
     pub jitter_ns: AtomicU64,
+    /// Who answered the last probe (the source's or the relay's id).
+    pub answered_by: AtomicU64,
+    /// A time relay is present (its liveliness token; a site syncing with the relay only).
+    pub relay_present: AtomicBool,
+    /// Times the relay went away (the site keeps its last offset meanwhile).
+    pub relay_lost: AtomicU64,
+}
+
+impl PathFigures {
+    /// Add a reply's stamps (answered by `from`) to `estimator` and publish its figures; false
+    /// when the stamps are inconsistent (refused by the estimator).
+    pub fn take(&self, estimator: &mut DelayEstimator, stamps: ProbeStamps, from: u64) -> bool {
+        if !estimator.add(stamps) {
+            return false;
+        }
+        self.answered_by.store(from, Ordering::Relaxed);
+        if let Some(o) = estimator.offset_ns() {
+            self.offset_ns.store(o, Ordering::Relaxed);
+            self.have_offset.store(true, Ordering::Relaxed);
+        }
+        self.delay_ns
+            .store(estimator.delay_ns() as u64, Ordering::Relaxed);
+        self.jitter_ns
+            .store(estimator.jitter_ns() as u64, Ordering::Relaxed);
+        true
+    }
+}
+
+/// Start a thread `name` that puts a probe from `id` on `key` until `stop`, probe `n` followed by
+/// a pause of `interval_ms(n)`; `after(sent)` runs on it after each.
+pub(crate) fn start_prober(
+    name: String,
+    session: zenoh::Session,
+    key: String,
+    id: u64,
+    interval_ms: impl Fn(u64) -> u64 + Send + 'static,
+    stop: Arc<AtomicBool>,
+    mut after: impl FnMut(bool) + Send + 'static,
+) -> std::io::Result<()> {
+    std::thread::Builder::new().name(name).spawn(move || {
+        let mut n = 0u64;
+        while !stop.load(Ordering::Relaxed) {
+            let probe = Packet::Probe {
+                from: id,
+                to: 0,
+                id: n,
+                t0_ns: now_ns(),
+            };
+            let sent = encode_to_vec(&probe).is_ok_and(|b| session.put(&key, b).wait().is_ok());
+            after(sent);
+            std::thread::sleep(Duration::from_millis(interval_ms(n).max(1)));
+            n += 1;
+        }
+    })?;
+    Ok(())
 }
 
 /// A site's Zenoh side.
@@ -72,6 +128,9 @@ pub struct Site {
     _states: zenoh_ext::AdvancedSubscriber<()>,
     _replies: zenoh::pubsub::Subscriber<()>,
     _token: zenoh::liveliness::LivelinessToken,
+    _relay: Option<zenoh::pubsub::Subscriber<()>>,
+    /// Whom this site probes for the source's clock.
+    pub clock: ClockSync,
     link: LinkIn,
     prepared: Mutex<Option<Receiver<Prepared>>>,
     stop: Arc<AtomicBool>,
@@ -94,8 +153,8 @@ impl Drop for Site {
 }
 
 impl Site {
-    /// Join `keys`' room on `net` as site `id`; incoming packets pass `imp`; a probe every
-    /// `probe_ms`.
+    /// Join `keys`' room on `net` as site `id`; incoming packets pass `imp`; a probe to the
+    /// source every `probe_ms`.
     pub fn open(
         net: &Net,
         keys: &Keys,
@@ -103,6 +162,25 @@ impl Site {
         observer: bool,
         imp: Impairment,
         probe_ms: u64,
+    ) -> Result<Self, RemoteError> {
+        Self::open_via(net, keys, id, observer, imp, probe_ms, ClockSync::Source)
+    }
+
+    /// [`Self::open`], probing `clock`: the source, or the time relay beside the router
+    /// ([`crate::relay`]: the replies are in the source's time, the estimator is the same). When
+    /// the relay goes away the site keeps its last offset (it stops changing; two machines'
+    /// clocks part at their rate difference, tens of µs a second), says so in
+    /// [`PathFigures::relay_present`] and [`PathFigures::relay_lost`], and takes the relay's
+    /// answers again when it is back; it does not fall back to probing the source, which would
+    /// put the per-site cost back on the source when the classroom's router host is in trouble.
+    pub fn open_via(
+        net: &Net,
+        keys: &Keys,
+        id: u64,
+        observer: bool,
+        imp: Impairment,
+        probe_ms: u64,
+        clock: ClockSync,
     ) -> Result<Self, RemoteError> {
         let session = net.open()?;
         let counts = Arc::new(SiteCounts::default());
@@ -154,27 +232,21 @@ impl Site {
                     }
                 }
                 Ok(Packet::ProbeReply {
+                    from,
                     to,
                     t0_ns,
                     t1_ns,
                     t2_ns,
                     ..
                 }) if to == id => {
-                    if estimator.add(ProbeStamps {
+                    let stamps = ProbeStamps {
                         t0: t0_ns,
                         t1: t1_ns,
                         t2: t2_ns,
                         t3: at,
-                    }) {
+                    };
+                    if p.take(&mut estimator, stamps, from) {
                         c.probes.fetch_add(1, Ordering::Relaxed);
-                        if let Some(o) = estimator.offset_ns() {
-                            p.offset_ns.store(o, Ordering::Relaxed);
-                            p.have_offset.store(true, Ordering::Relaxed);
-                        }
-                        p.delay_ns
-                            .store(estimator.delay_ns() as u64, Ordering::Relaxed);
-                        p.jitter_ns
-                            .store(estimator.jitter_ns() as u64, Ordering::Relaxed);
                     }
                 }
                 Ok(_) => {}
@@ -203,27 +275,44 @@ impl Site {
             .declare_token(keys.presence(id))
             .wait()
             .map_err(zerr("declare the site's liveliness token"))?;
+        let relay = match clock {
+            ClockSync::Source => None,
+            ClockSync::Relay => {
+                let p = path.clone();
+                Some(
+                    session
+                        .liveliness()
+                        .declare_subscriber(keys.relay_presence())
+                        .history(true)
+                        .callback(move |s| match s.kind() {
+                            zenoh::sample::SampleKind::Put => {
+                                p.relay_present.store(true, Ordering::Relaxed);
+                            }
+                            zenoh::sample::SampleKind::Delete => {
+                                p.relay_present.store(false, Ordering::Relaxed);
+                                p.relay_lost.fetch_add(1, Ordering::Relaxed);
+                            }
+                        })
+                        .wait()
+                        .map_err(zerr("declare the relay presence subscriber"))?,
+                )
+            }
+        };
+        let probe_key = match clock {
+            ClockSync::Source => keys.probe(),
+            ClockSync::Relay => keys.relay_probe(),
+        };
         let stop = Arc::new(AtomicBool::new(false));
-        let (s2, k2, st) = (session.clone(), keys.clone(), stop.clone());
-        std::thread::Builder::new()
-            .name(format!("remote-probe-{id:x}"))
-            .spawn(move || {
-                let mut n = 0u64;
-                while !st.load(Ordering::Relaxed) {
-                    let probe = Packet::Probe {
-                        from: id,
-                        to: 0,
-                        id: n,
-                        t0_ns: now_ns(),
-                    };
-                    if let Ok(b) = encode_to_vec(&probe) {
-                        let _ = s2.put(k2.probe(), b).wait();
-                    }
-                    n += 1;
-                    std::thread::sleep(Duration::from_millis(probe_ms.max(1)));
-                }
-            })
-            .expect("spawn the prober");
+        start_prober(
+            format!("remote-probe-{id:x}"),
+            session.clone(),
+            probe_key,
+            id,
+            move |_| probe_ms,
+            stop.clone(),
+            |_| {},
+        )
+        .map_err(|e| RemoteError::Usage(format!("start the site's prober: {e}")))?;
         Ok(Self {
             id,
             observer,
@@ -232,6 +321,8 @@ impl Site {
             _states: states,
             _replies: replies,
             _token: token,
+            _relay: relay,
+            clock,
             link,
             prepared: Mutex::new(Some(prepared)),
             stop,

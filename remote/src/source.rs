@@ -1,4 +1,9 @@
 //! The source side of a shared session: publish control states, answer probes, take events.
+//!
+//! Peer to peer the source answers every site's probes; through a router the sites probe the
+//! time relay beside it ([`crate::relay`]) and only the relay probes the source. A source that is
+//! itself the router (`--mode router`) also answers on the relay's key (it is where the router
+//! runs).
 
 use std::sync::atomic::{AtomicU64, AtomicUsize, Ordering};
 use std::sync::mpsc::{sync_channel, Receiver};
@@ -34,6 +39,11 @@ pub struct Source {
     session: zenoh::Session,
     publisher: zenoh_ext::AdvancedPublisher<'static>,
     _probes: zenoh::pubsub::Subscriber<()>,
+    /// In router mode the source is also the time relay (its own clock, offset 0).
+    _relay: Option<(
+        zenoh::pubsub::Subscriber<()>,
+        zenoh::liveliness::LivelinessToken,
+    )>,
     _events: zenoh::pubsub::Subscriber<()>,
     _presence: zenoh::pubsub::Subscriber<()>,
     _token: zenoh::liveliness::LivelinessToken,
@@ -101,6 +111,24 @@ impl Source {
             .callback(move |s| l1.push(s.payload().to_bytes().into_owned()))
             .wait()
             .map_err(zerr("declare the probe subscriber"))?;
+        // A source that is the router is also the sites' time relay: the relay's answer in the
+        // source's time is its own answer.
+        let relay = if net.mode == "router" {
+            let l = link.clone();
+            let sub = session
+                .declare_subscriber(keys.relay_probe())
+                .callback(move |s| l.push(s.payload().to_bytes().into_owned()))
+                .wait()
+                .map_err(zerr("declare the relay probe subscriber"))?;
+            let token = session
+                .liveliness()
+                .declare_token(keys.relay_presence())
+                .wait()
+                .map_err(zerr("declare the relay's liveliness token"))?;
+            Some((sub, token))
+        } else {
+            None
+        };
         let l2 = link.clone();
         let ev = session
             .declare_subscriber(keys.event())
@@ -134,6 +162,7 @@ impl Source {
             session,
             publisher,
             _probes: probes,
+            _relay: relay,
             _events: ev,
             _presence: presence,
             _token: token,

@@ -9,7 +9,8 @@ use std::time::{Duration, Instant};
 
 use lungdyn_remote::harness::{self, harness_core, locator, run_source, HarnessArgs};
 use lungdyn_remote::link::Impairment;
-use lungdyn_remote::site::Site;
+use lungdyn_remote::relay::Relay;
+use lungdyn_remote::site::{ClockSync, Site};
 use lungdyn_remote::source::Source;
 use lungdyn_remote::{site_id, Keys, Net};
 use zenoh::Wait;
@@ -509,13 +510,16 @@ fn a_scenes_router_mode_source_serves_a_client_site() {
     .unwrap();
     let site_net = Net::of(&site_table);
     assert_eq!(site_net.mode, "client");
-    let site = Site::open(
+    // A client site syncs with the relay; the source that is the router is that relay.
+    assert_eq!(site_table.clock(), ClockSync::Relay);
+    let site = Site::open_via(
         &site_net,
         &keys,
         site_id(1),
         true,
         Impairment::default(),
         100,
+        site_table.clock(),
     )
     .unwrap();
     let core = harness::scene_core(&scene).unwrap();
@@ -552,4 +556,189 @@ fn a_scenes_router_mode_source_serves_a_client_site() {
     assert!(site_recs.len() >= 120, "{} ticks", site_recs.len());
     assert_eq!(same_ticks(&site_recs, &[&source_recs]), site_recs.len());
     assert!(source.counts.probes.load(Ordering::Relaxed) > 0);
+    assert_eq!(site.path.answered_by.load(Ordering::Relaxed), id);
+    assert!(site.path.relay_present.load(Ordering::Relaxed));
+}
+
+/// A router session (as `lungdyn remote router` opens) on 127.0.0.1 and the time relay on it.
+fn router_with_relay(keys: &Keys, probe_ms: u64) -> (zenoh::Session, Relay, String) {
+    let port = lungdyn_needs::free_local_port();
+    let mut net = Net::peer(&[format!("tcp/127.0.0.1:{port}")], &[]);
+    net.mode = "router";
+    net.lease_ms = 2000;
+    let router = net.open().unwrap();
+    let relay = Relay::open(&router, keys, site_id(900), Impairment::default(), probe_ms).unwrap();
+    (router, relay, format!("tcp/127.0.0.1:{port}"))
+}
+
+fn client(via: &str) -> Net {
+    let mut n = Net::peer(&[], &[via.to_string()]);
+    n.mode = "client";
+    n.lease_ms = 2000;
+    n
+}
+
+/// Wait (up to 30 s: slow starts on a loaded machine) until `ok`.
+fn wait_for(what: &str, ok: impl Fn() -> bool) {
+    let began = Instant::now();
+    while !ok() {
+        assert!(
+            began.elapsed() < Duration::from_secs(30),
+            "timed out waiting for {what}"
+        );
+        std::thread::sleep(Duration::from_millis(20));
+    }
+}
+
+/// Through a router, 3 sites probing every 20 ms sync their clocks with the relay beside it
+/// (every reply theirs comes from the relay, offset within 1 ms of the one clock's 0), and every
+/// probe that reaches the source's key is the relay's (probing every 100 ms): counted by a spy on
+/// the router and by the source's own answered count.
+#[test]
+fn through_a_router_the_sites_sync_with_the_relay_and_the_source_answers_only_it() {
+    let keys = Keys::new("relayed").unwrap();
+    let (router, relay, via) = router_with_relay(&keys, 100);
+    let seen = Arc::new(std::sync::Mutex::new(Vec::<u64>::new()));
+    let sn = seen.clone();
+    let _spy = router
+        .declare_subscriber(keys.probe())
+        .callback(move |s| {
+            if let Ok(control_state::Packet::Probe { from, .. }) =
+                control_state::decode(&s.payload().to_bytes())
+            {
+                sn.lock().unwrap().push(from);
+            }
+        })
+        .wait()
+        .unwrap();
+    let id = site_id(0);
+    let source = Source::open(&client(&via), &keys, id, Impairment::default()).unwrap();
+    let sites: Vec<Site> = (0..3)
+        .map(|k| {
+            Site::open_via(
+                &client(&via),
+                &keys,
+                site_id(k + 1),
+                true,
+                Impairment::default(),
+                20,
+                ClockSync::Relay,
+            )
+            .unwrap()
+        })
+        .collect();
+    wait_for("every site's 25 relay answers", || {
+        sites
+            .iter()
+            .all(|s| s.counts.probes.load(Ordering::Relaxed) >= 25)
+    });
+    for s in &sites {
+        let p = &s.path;
+        assert_eq!(p.answered_by.load(Ordering::Relaxed), relay.id);
+        assert!(p.relay_present.load(Ordering::Relaxed));
+        assert!(p.have_offset.load(Ordering::Relaxed));
+        let o = p.offset_ns.load(Ordering::Relaxed);
+        assert!(o.abs() < 1_000_000, "site offset {o} ns on one clock");
+    }
+    let o = relay.offset_ns().expect("the relay's offset to the source");
+    assert!(o.abs() < 1_000_000, "relay offset {o} ns on one clock");
+    let site_probes: u64 = sites
+        .iter()
+        .map(|s| s.counts.probes.load(Ordering::Relaxed))
+        .sum();
+    let c = &relay.counts;
+    assert!(c.answered.load(Ordering::Relaxed) >= site_probes);
+    let seen = seen.lock().unwrap().clone();
+    assert!(!seen.is_empty());
+    assert!(
+        seen.iter().all(|f| *f == relay.id),
+        "probes on the source's key from {:x?} (relay {:x})",
+        seen.iter()
+            .filter(|f| **f != relay.id)
+            .collect::<std::collections::BTreeSet<_>>(),
+        relay.id
+    );
+    // The source answered the relay's probes alone: no more than the relay sent (one may be in
+    // flight), far fewer than the sites' 75+.
+    let answered = source.counts.probes.load(Ordering::Relaxed);
+    let sent = c.probes_to_source.load(Ordering::Relaxed);
+    assert!(
+        answered >= 1 && answered <= sent + 1,
+        "{answered} of {sent}"
+    );
+    assert!(answered < site_probes, "{answered} vs {site_probes}");
+}
+
+/// The relay goes away (its session's token and subscribers undeclared; the router stays): the
+/// site says so (`relay_present` false, `relay_lost` 1), keeps its last offset and gets no
+/// answers; a new relay on the router is taken at once and answers again.
+#[test]
+fn when_the_relay_goes_the_site_says_so_keeps_its_offset_and_takes_a_new_one() {
+    let keys = Keys::new("relay-gone").unwrap();
+    let (router, relay, via) = router_with_relay(&keys, 50);
+    let _source = Source::open(&client(&via), &keys, site_id(0), Impairment::default()).unwrap();
+    let site = Site::open_via(
+        &client(&via),
+        &keys,
+        site_id(1),
+        true,
+        Impairment::default(),
+        20,
+        ClockSync::Relay,
+    )
+    .unwrap();
+    let p = site.path.clone();
+    wait_for("10 relay answers", || {
+        site.counts.probes.load(Ordering::Relaxed) >= 10
+    });
+    assert!(p.relay_present.load(Ordering::Relaxed));
+    drop(relay);
+    wait_for("the site to see the relay gone", || {
+        !p.relay_present.load(Ordering::Relaxed)
+    });
+    assert_eq!(p.relay_lost.load(Ordering::Relaxed), 1);
+    // In-flight replies settle; then nothing more comes and the offset stays.
+    std::thread::sleep(Duration::from_millis(300));
+    let (n, o) = (
+        site.counts.probes.load(Ordering::Relaxed),
+        p.offset_ns.load(Ordering::Relaxed),
+    );
+    std::thread::sleep(Duration::from_millis(500));
+    assert_eq!(site.counts.probes.load(Ordering::Relaxed), n);
+    assert_eq!(p.offset_ns.load(Ordering::Relaxed), o);
+    assert!(p.have_offset.load(Ordering::Relaxed));
+    let again = Relay::open(&router, &keys, site_id(901), Impairment::default(), 50).unwrap();
+    wait_for("the new relay's answers", || {
+        site.counts.probes.load(Ordering::Relaxed) >= n + 5
+    });
+    assert!(p.relay_present.load(Ordering::Relaxed));
+    assert_eq!(p.answered_by.load(Ordering::Relaxed), again.id);
+    assert_eq!(p.relay_lost.load(Ordering::Relaxed), 1);
+}
+
+/// The harness through its router: the sites sync with the relay (its figures reported), the
+/// source answers only the relay's probes, and every site breathes the source's ticks bit for bit.
+#[test]
+fn the_harness_through_a_router_syncs_the_sites_with_the_relay() {
+    let mut a = args(2, 3.0, 0.0);
+    a.router = true;
+    let r = harness::run(&a).unwrap();
+    let relay = r.relay.as_ref().expect("the relay's figures");
+    assert!(r.clock_sync.starts_with("relay"), "{}", r.clock_sync);
+    for s in &r.per_site {
+        assert!(s.ticks > 120, "{s:?}");
+        assert_eq!(s.ticks_differing, 0, "{s:?}");
+        assert!(s.offset_ms.abs() < 1.0, "{s:?}");
+    }
+    assert!(relay.offset_ms.is_some_and(|o| o.abs() < 1.0), "{relay:?}");
+    // Two sites at 50 ms (2400/min) against the relay's one probe stream (1200/min) to the
+    // source; the source's answers are the relay's, not the sites'.
+    assert!(
+        relay.probes_answered_per_minute > 1.5 * r.probes_per_minute,
+        "{r:?}"
+    );
+    assert!(
+        r.probes_per_minute <= 1.2 * relay.probes_to_source_per_minute + 60.0,
+        "{r:?}"
+    );
 }

@@ -601,6 +601,9 @@ def make_scenes(tmp):
     s("remote_site_id_bad", SCENE_BASE + "[remote]\nrole = \"source\"\nsite_id = \"xyz\"\n")
     s("remote_unknown_key", SCENE_BASE + "[remote]\nrole = \"source\"\nport = 7447\n")
     s("remote_site", SCENE_BASE + "[remote]\nrole = \"site\"\nconnect = [\"tcp/127.0.0.1:7447\"]\n")
+    s("remote_clock_ntp", SCENE_BASE + "[remote]\nrole = \"site\"\nmode = \"client\"\nconnect = [\"tcp/127.0.0.1:7447\"]\nclock = \"ntp\"\n")
+    s("remote_clock_relay_peer", SCENE_BASE + "[remote]\nrole = \"observer\"\nconnect = [\"tcp/127.0.0.1:7447\"]\nclock = \"relay\"\n")
+    s("remote_clock_on_source", SCENE_BASE + "[remote]\nrole = \"source\"\nclock = \"source\"\n")
     out("scene_not_toml.json", '{"lungs": {"vertices": 100}}\n')
 
 

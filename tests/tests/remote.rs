@@ -5,8 +5,9 @@
 //! the site stepped the source's ticks with the source's volumes, bit for bit, over whole cycles of
 //! a tension pneumothorax's course; and both tools' own words (states published, applied, refused,
 //! sites present). Counted in cycles, not milliseconds: slow starts on a loaded machine only wait.
+//! The same through `lungdyn remote router` (the site syncs its clock with the router's time relay).
 //! Also: `remote serve` and `remote join` take the same session flags, and `remote harness --router`
-//! reports the source's own cost.
+//! reports the source's own cost and the relay's.
 
 use std::collections::BTreeMap;
 use std::path::PathBuf;
@@ -83,36 +84,89 @@ fn count_before(text: &str, tail: &str) -> Option<u64> {
 
 #[test]
 fn a_joined_site_breathes_the_demos_ticks_bit_for_bit() {
+    demo_and_joined_site(false);
+}
+
+/// The same through `lungdyn remote router` (a Zenoh router and the time relay): the source and
+/// the site are its clients, the site syncs its clock with the relay (it says so) and the relay
+/// alone probes the source (the router's own count at its end).
+#[test]
+fn through_lungdyn_remote_router_the_site_syncs_with_its_relay() {
+    demo_and_joined_site(true);
+}
+
+fn demo_and_joined_site(via_router: bool) {
     let port = lungdyn_needs::free_local_port();
-    let room = format!("t{}", std::process::id());
+    let room = format!(
+        "t{}{}",
+        std::process::id(),
+        if via_router { "r" } else { "" }
+    );
+    let endpoint = format!("tcp/127.0.0.1:{port}");
+    let router_log = tmp(&format!("router-{via_router}.log"));
+    let mut router = via_router.then(|| {
+        Proc(
+            Command::new(bin("lungdyn"))
+                .args(["remote", "router", "--listen", &endpoint, "--room", &room])
+                .args(["--lease-ms", "2000", "--probe-ms", "100"])
+                .stdout(Stdio::null())
+                .stderr(std::fs::File::create(&router_log).unwrap())
+                .spawn()
+                .unwrap(),
+            "lungdyn remote router",
+        )
+    });
+    if via_router {
+        wait_for(
+            &router_log,
+            "time relay for room",
+            Duration::from_secs(60),
+            "remote router",
+        );
+    }
+    // The source's and the site's endpoints: the source listens (peer to peer) or both connect to
+    // the router as clients.
+    let (source_net, site_net) = if via_router {
+        (
+            format!("listen = []\nconnect = [\"{endpoint}\"]\nmode = \"client\""),
+            format!("connect = [\"{endpoint}\"]\nmode = \"client\""),
+        )
+    } else {
+        (
+            format!("listen = [\"{endpoint}\"]\nmode = \"peer\""),
+            format!("connect = [\"{endpoint}\"]\nmode = \"peer\""),
+        )
+    };
     // The shipped source scene's course (a tension pneumothorax, onset at 2 s here) at 30 breaths
     // a minute (2 s cycles), on a loopback port of its own.
-    let scene = tmp("source.toml");
+    let scene = tmp(&format!("source-{via_router}.toml"));
+    let course = "[pv]\nbreaths_per_min = 30.0\n[lungs]\nsides = [\"right\", \"left\"]\n\
+                  [disease]\nkind = \"tension-pneumothorax\"\nside = \"left\"\nonset_s = 2.0\n\
+                  v_p_ml = 40.0\n";
     std::fs::write(
         &scene,
         format!(
-            "[pv]\nbreaths_per_min = 30.0\n[lungs]\nsides = [\"right\", \"left\"]\n\
-             [disease]\nkind = \"tension-pneumothorax\"\nside = \"left\"\nonset_s = 2.0\n\
-             v_p_ml = 40.0\n[remote]\nrole = \"source\"\nroom = \"{room}\"\n\
-             listen = [\"tcp/127.0.0.1:{port}\"]\nmode = \"peer\"\nlease_ms = 2000\n"
+            "{course}[remote]\nrole = \"source\"\nroom = \"{room}\"\n{source_net}\n\
+             lease_ms = 2000\n"
         ),
     )
     .unwrap();
     // The site's: the same course, as an observer of that room, prepared (its kernels baked) as
     // a site's engine needs.
-    let text = std::fs::read_to_string(&scene).unwrap();
     let site_scene = lungdyn_tests::prepared_scene(
-        "remote-site",
-        &text
-            .replace("role = \"source\"", "role = \"observer\"")
-            .replace(
-                &format!("listen = [\"tcp/127.0.0.1:{port}\"]"),
-                &format!("connect = [\"tcp/127.0.0.1:{port}\"]"),
-            ),
+        if via_router {
+            "remote-site-routed"
+        } else {
+            "remote-site"
+        },
+        &format!(
+            "{course}[remote]\nrole = \"observer\"\nroom = \"{room}\"\n{site_net}\n\
+             lease_ms = 2000\n"
+        ),
     );
     let source_instance = unique_instance("rsrc");
     let site_instance = unique_instance("rsite");
-    let demo_log = tmp("demo.log");
+    let demo_log = tmp(&format!("demo-{via_router}.log"));
     let mut demo = Proc(
         Command::new(bin("lungdyn"))
             .args(["demo", "--seconds", "40", "--snapshots", "0", "--instance"])
@@ -120,7 +174,7 @@ fn a_joined_site_breathes_the_demos_ticks_bit_for_bit() {
             .arg("--scene")
             .arg(&scene)
             .arg("--out")
-            .arg(tmp("demo-out"))
+            .arg(tmp(&format!("demo-out-{via_router}")))
             .stdout(Stdio::null())
             .stderr(std::fs::File::create(&demo_log).unwrap())
             .spawn()
@@ -136,13 +190,13 @@ fn a_joined_site_breathes_the_demos_ticks_bit_for_bit() {
     let services = Instance::new(&source_instance).unwrap();
     let node = iox::node(&services, "test").unwrap();
     let mut source_frames = services.engine_inlet(&node).unwrap();
-    let site_log = tmp("join.log");
-    let endpoint = format!("tcp/127.0.0.1:{port}");
+    let site_log = tmp(&format!("join-{via_router}.log"));
     let mut join = Proc(
         Command::new(bin("lungdyn"))
             .args(["remote", "join", "--observer", "--connect", &endpoint])
             .args(["--room", &room, "--lease-ms", "2000", "--instance"])
             .arg(&site_instance)
+            .args(["--mode", if via_router { "client" } else { "peer" }])
             .arg("--scene")
             .arg(&site_scene)
             .stdout(Stdio::null())
@@ -229,6 +283,31 @@ fn a_joined_site_breathes_the_demos_ticks_bit_for_bit() {
     let refused = count_before(&site_text, "refused").unwrap_or(u64::MAX);
     assert!(applied >= 3 && refused == 0, "{site_text}");
     assert!(demo_text.contains("1 site(s) present"), "{demo_text}");
+    if let Some(r) = router.as_mut() {
+        assert!(
+            site_text.contains("clock sync with the time relay")
+                && site_text.contains("time relay present"),
+            "{site_text}"
+        );
+        assert!(r.interrupt_and_wait().success());
+        let text = read(&router_log);
+        assert!(
+            text.contains("clock relay in step with the source"),
+            "{text}"
+        );
+        // "relay sent N probes to the source (M answered); answered K site probes, ..."
+        let answered = count_before(&text, "site probes").expect("the router's counters");
+        assert!(answered >= 10, "{text}");
+        // The source's serve answered the relay's probes, no more than the relay sent.
+        let sent = count_before(&text, "probes to the source").expect("the relay's probes");
+        let source = count_before(&demo_text, "probes answered").expect("serve's counters");
+        assert!(source <= sent, "{demo_text}\n{text}");
+    } else {
+        assert!(
+            site_text.contains("clock sync with the source"),
+            "{site_text}"
+        );
+    }
 }
 
 /// `remote serve` and `remote join` take one set of session flags (--room, --mode, --lease-ms);
@@ -256,9 +335,9 @@ fn serve_and_join_share_the_session_flags_and_only_serve_routes() {
     assert!(!ok && err.contains("remote serve --mode router"), "{err}");
 }
 
-/// `remote harness --router` (a router in the harness's process, the source in its own): the
-/// source's own CPU and TCP bytes are reported, it sees both sites through the router, and both
-/// step the source's volumes bit for bit.
+/// `remote harness --router` (a router and the time relay in the harness's process, the source in
+/// its own): the source's own CPU and TCP bytes are reported, it sees both sites through the
+/// router, the relay answers the sites' probes, and both step the source's volumes bit for bit.
 #[test]
 fn the_harness_through_a_router_reports_the_sources_own_cost() {
     let (ok, out, err) = lungdyn(&[
@@ -287,6 +366,20 @@ fn the_harness_through_a_router_reports_the_sources_own_cost() {
         "{v}"
     );
     assert!(v["probes_per_minute"].as_f64().unwrap() > 0.0, "{v}");
+    // The sites sync with the relay beside the router: it answers both sites' probes, the source
+    // only the relay's (each probing every 100 ms).
+    assert!(
+        v["clock_sync"].as_str().unwrap().starts_with("relay"),
+        "{v}"
+    );
+    let relay = &v["relay"];
+    assert!(
+        relay["probes_answered_per_minute"].as_f64().unwrap()
+            > 1.5 * v["probes_per_minute"].as_f64().unwrap(),
+        "{v}"
+    );
+    assert!(relay["threads_cpu_percent"].as_f64().unwrap() >= 0.0, "{v}");
+    assert!(relay["offset_ms"].as_f64().unwrap().abs() < 1.0, "{v}");
     for s in v["per_site"].as_array().unwrap() {
         assert_eq!(s["ticks_differing"], 0, "{s}");
         assert!(s["ticks"].as_u64().unwrap() > 120, "{s}");

@@ -10,7 +10,14 @@
 //! mode = "peer"                         # "peer", "router" or "client" (through a router)
 //! lease_ms = 10000                      # a lost peer is seen within it
 //! site_id = "00000000000000a1"          # optional: a fixed id (hex) instead of a fresh one
+//! clock = "relay"                       # a site's clock sync: "relay" (beside the router; the
+//!                                       # default in client mode) or "source" (peer's default)
 //! ```
+//!
+//! Through a router a site syncs its clock with the time relay `lungdyn remote router` runs beside
+//! the router (it alone probes the source), so the source's cost does not grow with the sites;
+//! peer to peer, or with `clock = "source"` behind a stock Zenoh router, each site probes the
+//! source.
 //!
 //! `lungdyn demo` on a scene whose role is `source` starts `lungdyn remote serve` beside its
 //! engine (supervised like the other processes); `lungdyn remote serve|join --scene S` take their
@@ -53,6 +60,26 @@ impl ZenohMode {
     }
 }
 
+/// Whom a site probes to learn the source's clock.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize)]
+#[serde(rename_all = "kebab-case")]
+pub enum ClockSync {
+    /// The source itself (peer to peer; its cost grows with every site).
+    Source,
+    /// The time relay beside the router (`lungdyn remote router`): it answers in the source's time.
+    Relay,
+}
+
+impl ClockSync {
+    /// The key's value.
+    pub fn name(self) -> &'static str {
+        match self {
+            ClockSync::Source => "source",
+            ClockSync::Relay => "relay",
+        }
+    }
+}
+
 /// The default listen endpoint of a source.
 pub const DEFAULT_LISTEN: &str = "tcp/0.0.0.0:7447";
 /// The default link lease, ms.
@@ -86,6 +113,10 @@ pub struct RemoteScene {
     /// A fixed site id (1–16 hex digits); absent: a fresh one per run.
     #[serde(default)]
     pub site_id: Option<String>,
+    /// A site's clock sync (absent: [`ClockSync::Relay`] in client mode, else
+    /// [`ClockSync::Source`]); see [`Self::clock`].
+    #[serde(default)]
+    pub clock: Option<ClockSync>,
 }
 
 fn default_room() -> String {
@@ -124,6 +155,15 @@ impl RemoteScene {
         self.site_id
             .as_deref()
             .and_then(|s| u64::from_str_radix(s, 16).ok())
+    }
+
+    /// Whom a site probes: the `clock` key, else the relay through a router (client mode), else
+    /// the source.
+    pub fn clock(&self) -> ClockSync {
+        self.clock.unwrap_or(match self.mode {
+            ZenohMode::Client => ClockSync::Relay,
+            ZenohMode::Peer | ZenohMode::Router => ClockSync::Source,
+        })
     }
 
     /// Check every value; the message names the key and what to write instead.
@@ -188,6 +228,24 @@ impl RemoteScene {
             }
             _ => {}
         }
+        match (self.role, self.clock, self.mode) {
+            (RemoteRole::Source, Some(c), _) => {
+                return Err(format!(
+                    "clock = \"{}\" is a site's key: the source's clock is the one every site \
+                     follows (leave it out of the source's scene)",
+                    c.name()
+                ));
+            }
+            (_, Some(ClockSync::Relay), ZenohMode::Peer) => {
+                return Err(
+                    "clock = \"relay\" needs mode = \"client\": the time relay runs beside a \
+                     Zenoh router (`lungdyn remote router`); peer to peer a site syncs with the \
+                     source (clock = \"source\")"
+                        .into(),
+                );
+            }
+            _ => {}
+        }
         if !(MIN_LEASE_MS..=MAX_LEASE_MS).contains(&self.lease_ms) {
             return Err(format!(
                 "lease_ms = {} must be within {MIN_LEASE_MS}..{MAX_LEASE_MS} (a lost peer is seen \
@@ -236,6 +294,16 @@ mod tests {
     }
 
     #[test]
+    fn a_client_site_syncs_with_the_relay_unless_told_otherwise() {
+        let client = "role = \"observer\"\nmode = \"client\"\nconnect = [\"tcp/10.0.0.2:7447\"]\n";
+        assert_eq!(parse(client).unwrap().clock(), ClockSync::Relay);
+        let r = parse(&format!("{client}clock = \"source\"\n")).unwrap();
+        assert_eq!(r.clock(), ClockSync::Source);
+        let peer = "role = \"site\"\nconnect = [\"tcp/10.0.0.2:7447\"]\n";
+        assert_eq!(parse(peer).unwrap().clock(), ClockSync::Source);
+    }
+
+    #[test]
     fn bad_values_are_refused_naming_the_key() {
         for (text, word) in [
             ("role = \"teacher\"\n", "teacher"),
@@ -263,6 +331,15 @@ mod tests {
             ("role = \"source\"\nsite_id = \"xyz\"\n", "site_id"),
             ("role = \"source\"\nsite_id = \"0\"\n", "site_id"),
             ("role = \"source\"\nport = 7447\n", "port"),
+            ("role = \"source\"\nclock = \"relay\"\n", "site's key"),
+            (
+                "role = \"site\"\nconnect = [\"tcp/10.0.0.2:7447\"]\nclock = \"relay\"\n",
+                "needs mode = \"client\"",
+            ),
+            (
+                "role = \"site\"\nconnect = [\"tcp/10.0.0.2:7447\"]\nclock = \"ntp\"\n",
+                "ntp",
+            ),
             (
                 "role = \"observer\"\nmode = \"router\"\nconnect = [\"tcp/10.0.0.2:7447\"]\n\
                  listen = [\"tcp/0.0.0.0:7447\"]\n",
