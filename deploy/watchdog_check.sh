@@ -25,12 +25,17 @@ NAME=lungdyn-wd-$$
 die() { echo "watchdog_check: $*" >&2; exit 1; }
 [ "$(id -u)" = 0 ] || die "needs root (systemd-nspawn): sudo $0 $*"
 command -v systemd-nspawn >/dev/null || die "no systemd-nspawn: apt-get install systemd-container"
+command -v nsenter >/dev/null || die "no nsenter: apt-get install util-linux"
+command -v pgrep >/dev/null || die "no pgrep: apt-get install procps"
 [ -x "$ROOTFS/lib/systemd/systemd" ] || [ -x "$ROOTFS/usr/lib/systemd/systemd" ] ||
   die "$ROOTFS has no systemd (install systemd systemd-sysv in it; see the header of this script)"
 [ -x "$ROOTFS/usr/bin/Xvfb" ] || die "$ROOTFS has no Xvfb (the renderer unit draws on DISPLAY=:0): install xvfb in it"
 [ -x "$BIN" ] || die "no lungdyn binary at $BIN: cargo build --release --bin lungdyn, or name it"
 mkdir -p "$OUT" "$ROOTFS/opt/lungdyn-check"
 cp "$BIN" "$ROOTFS/opt/lungdyn-check/lungdyn"
+# A binary built against a newer C library than ROOTFS's would only fail inside the container.
+chroot "$ROOTFS" /opt/lungdyn-check/lungdyn --version >/dev/null 2>"$OUT/version.err" ||
+  die "$BIN does not run in $ROOTFS: $(head -3 "$OUT/version.err") (build it on a system no newer than ROOTFS)"
 
 systemd-nspawn -D "$ROOTFS" --boot --register=no --keep-unit -M "$NAME" --console=passive \
   >"$OUT/nspawn.log" 2>&1 &
@@ -70,7 +75,8 @@ inside "set -e
   systemd-run --quiet --unit=lungdyn-check-xvfb /usr/bin/Xvfb :0 -screen 0 1280x720x24 -ac -nolisten tcp
   for _ in \$(seq 100); do [ -S /tmp/.X11-unix/X0 ] && break; sleep 0.1; done
   systemctl daemon-reload
-  systemctl start lungdyn.target"
+  systemctl start lungdyn.target" ||
+  die "setting up the service in the container failed: $(tail -5 "$ROOTFS/root/install.log" 2>/dev/null)"
 
 now() { date +%s.%N; }
 report="$OUT/watchdog.md"

@@ -78,7 +78,7 @@ MANIFEST=$MONADO_DIR/build/openxr_monado-dev.json
 # --- the launcher with OpenXR, run through the runtime ----------------------------------------------
 say "building lungdyn with --features openxr"
 cargo build --release -p lungdyn --features openxr
-export XR_RUNTIME_JSON=$MANIFEST XRT_COMPOSITOR_NULL=1 WGPU_BACKEND=${WGPU_BACKEND:-vulkan}
+export XR_RUNTIME_JSON=$MANIFEST LUNGDYN_XR_RUNTIME=$MANIFEST XRT_COMPOSITOR_NULL=1 WGPU_BACKEND=${WGPU_BACKEND:-vulkan}
 export XDG_RUNTIME_DIR=${XDG_RUNTIME_DIR:-$(mktemp -d)}
 say "lungdyn demo --xr --seconds $XR_SECONDS through $MANIFEST (null compositor, simulated HMD)"
 target/release/lungdyn demo --xr --seconds "$XR_SECONDS" --json --out "$OUT" >"$OUT/report.json" 2>"$OUT/stderr.txt" ||

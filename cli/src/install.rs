@@ -222,10 +222,11 @@ pub fn unit(role: Role, s: &UnitSettings) -> Result<String, String> {
          [Unit]\n\
          Description=lungdyn {name}: {}\n\
          PartOf=lungdyn.target\n\
-         # At most 5 starts a minute: a process that keeps failing stays down and says why \
-         (`journalctl -u {}`).\n\
+         # At most 20 starts a minute: a process that keeps failing stays down and says why \
+         (`journalctl -u {}`); with RestartSec=300ms that is 6 s or more of retries, room for X or \
+         the tracker's device to come up at boot.\n\
          StartLimitIntervalSec=60\n\
-         StartLimitBurst=5\n",
+         StartLimitBurst=20\n",
         role.what(),
         role.unit_name()
     );
@@ -530,8 +531,9 @@ mod tests {
             "Type=notify",
             "WatchdogSec=2",
             "Restart=on-failure",
+            "RestartSec=300ms",
             "StartLimitIntervalSec=60",
-            "StartLimitBurst=5",
+            "StartLimitBurst=20",
             "LimitRTPRIO=90",
             "LimitMEMLOCK=infinity",
             "CPUAffinity=2",

@@ -64,12 +64,17 @@ pub enum XrError {
     )]
     NoHeadset(String),
     /// The runtime needs another Vulkan version.
-    #[error("the OpenXR runtime needs Vulkan {min} to {max}.x; the renderer needs 1.1 (and uses up to 1.3)")]
+    #[error(
+        "the OpenXR runtime needs Vulkan {min} to {max}.x; the renderer would make its instance \
+         for {used} (the Vulkan loader's version, at most 1.3)"
+    )]
     VulkanVersion {
         /// Lowest supported.
         min: String,
         /// Highest supported major version.
         max: u16,
+        /// The version the instance would be made for.
+        used: String,
     },
     /// No usable environment blend mode.
     #[error(
@@ -108,6 +113,35 @@ fn vulkan(what: &'static str, detail: impl std::fmt::Display) -> XrError {
         what,
         detail: detail.to_string(),
     }
+}
+
+/// The Vulkan version the instance is made for: the one wgpu itself would ask for. wgpu takes the
+/// device's own version as the version in use (a 1.2 entry point is called through the core table
+/// when the GPU is 1.2 or newer), so an instance made for less would hand it null pointers; hence
+/// the loader's version, capped at 1.3 ([`crate::xr::vulkan_instance_version`]).
+fn instance_version_of(vk_entry: &ash::Entry) -> Result<u32, XrError> {
+    // SAFETY: a query of the loader's version through an entry that was loaded successfully.
+    let loader = unsafe { vk_entry.try_enumerate_instance_version() }
+        .map_err(|e| vulkan("vkEnumerateInstanceVersion", e))?
+        .unwrap_or(vk::API_VERSION_1_0);
+    crate::xr::vulkan_instance_version(loader).ok_or_else(|| {
+        vulkan(
+            "choosing the Vulkan version",
+            format!(
+                "the Vulkan loader offers only {}.{}; the renderer needs 1.1 or newer (update \
+                 libvulkan1)",
+                vk::api_version_major(loader),
+                vk::api_version_minor(loader)
+            ),
+        )
+    })
+}
+
+/// [`instance_version_of`] with libvulkan loaded for the question.
+fn instance_version() -> Result<u32, XrError> {
+    // SAFETY: loading libvulkan runs its initialisers, as any Vulkan application does.
+    let vk_entry = unsafe { ash::Entry::load() }.map_err(|e| vulkan("loading libvulkan", e))?;
+    instance_version_of(&vk_entry)
 }
 
 /// The runtime's environment blend mode as [`BlendMode`] (others are ignored).
@@ -197,13 +231,20 @@ impl XrSystem {
             "xrGetVulkanGraphicsRequirements2KHR",
             instance.graphics_requirements::<xr::Vulkan>(system),
         )?;
-        let want = xr::Version::new(1, 1, 0);
+        // The version `gpu` will make the instance for, checked against the runtime's range.
+        let used = instance_version()?;
+        let want = xr::Version::new(
+            vk::api_version_major(used) as u16,
+            vk::api_version_minor(used) as u16,
+            0,
+        );
         if want < reqs.min_api_version_supported
             || want.major() > reqs.max_api_version_supported.major()
         {
             return Err(XrError::VulkanVersion {
                 min: reqs.min_api_version_supported.to_string(),
                 max: reqs.max_api_version_supported.major(),
+                used: want.to_string(),
             });
         }
         Ok(Self {
@@ -230,24 +271,7 @@ impl XrSystem {
         // it was created with, as `from_raw` / `device_from_raw` require.
         unsafe {
             let vk_entry = ash::Entry::load().map_err(|e| vulkan("loading libvulkan", e))?;
-            // The version wgpu itself would ask for: it takes the device's own version as the
-            // version in use (a 1.2 entry point is called through the core table when the GPU is
-            // 1.2 or newer), so an instance made for less than that would hand it null pointers.
-            let loader = vk_entry
-                .try_enumerate_instance_version()
-                .map_err(|e| vulkan("vkEnumerateInstanceVersion", e))?
-                .unwrap_or(vk::API_VERSION_1_0);
-            let version = crate::xr::vulkan_instance_version(loader).ok_or_else(|| {
-                vulkan(
-                    "choosing the Vulkan version",
-                    format!(
-                        "the Vulkan loader offers only {}.{}; the renderer needs 1.1 or newer \
-                         (update libvulkan1)",
-                        vk::api_version_major(loader),
-                        vk::api_version_minor(loader)
-                    ),
-                )
-            })?;
+            let version = instance_version_of(&vk_entry)?;
             let flags = wgpu::InstanceFlags::empty();
             let extensions = hal::vulkan::Instance::desired_extensions(&vk_entry, version, flags)
                 .map_err(|e| vulkan("listing instance extensions", e))?;

@@ -1,6 +1,8 @@
-//! `lungdyn demo --xr` against a real OpenXR runtime, where one is named: `LUNGDYN_XR_RUNTIME` or
-//! `XR_RUNTIME_JSON` (the runtime's JSON manifest; `deploy/xr_check.sh` builds Monado and runs this
-//! test against its null compositor and simulated headset). The demo must run its seconds through
+//! `lungdyn demo --xr` against a real OpenXR runtime, where one is named: `LUNGDYN_XR_RUNTIME` (the
+//! runtime's JSON manifest, handed to the demo as `XR_RUNTIME_JSON`; `deploy/xr_check.sh` builds
+//! Monado and runs this test against its null compositor and simulated headset). The loader's own
+//! `XR_RUNTIME_JSON` does not start it: a VR developer may have it set for everyday work, pointing at
+//! a real headset's runtime the test should not drive. The demo must run its seconds through
 //! the runtime, end every frame but the first few with the projection layer of both eyes, present
 //! through OpenXR, end the session cleanly and exit 0.
 //!
@@ -15,13 +17,10 @@ use lungdyn_tests::bin;
 
 /// The runtime's manifest, if one is named and exists ([`lungdyn_needs::missing`] otherwise).
 fn runtime_manifest() -> Option<PathBuf> {
-    let named = ["LUNGDYN_XR_RUNTIME", "XR_RUNTIME_JSON"]
-        .into_iter()
-        .find_map(|v| std::env::var_os(v).map(|p| (v, PathBuf::from(p))));
-    let probe = match named {
-        None => Err("neither LUNGDYN_XR_RUNTIME nor XR_RUNTIME_JSON names a manifest".to_string()),
-        Some((v, p)) if !p.is_file() => Err(format!("{v}={} is not a file", p.display())),
-        Some((_, p)) => Ok(p),
+    let probe = match std::env::var_os("LUNGDYN_XR_RUNTIME").map(PathBuf::from) {
+        None => Err("LUNGDYN_XR_RUNTIME names no runtime manifest".to_string()),
+        Some(p) if !p.is_file() => Err(format!("LUNGDYN_XR_RUNTIME={} is not a file", p.display())),
+        Some(p) => Ok(p),
     };
     lungdyn_needs::require(Need::OpenXr, probe)
 }
@@ -70,11 +69,16 @@ fn the_demo_runs_through_an_openxr_runtime_both_eyes_every_frame() {
         .expect("run lungdyn demo --xr");
     let stdout = String::from_utf8_lossy(&run.stdout);
     let stderr = String::from_utf8_lossy(&run.stderr);
-    assert!(
-        !stderr.contains("this build has no OpenXR support"),
-        "the launcher was built without OpenXR: build it with `cargo build --release -p lungdyn \
-         --features openxr` before running this test\n{stderr}"
-    );
+    if stderr.contains("this build has no OpenXR support") {
+        // A need not met like a missing runtime: skipped aloud, or a failure naming the fix under
+        // LUNGDYN_REQUIRE_XR=1.
+        lungdyn_needs::missing(
+            Need::OpenXr,
+            "the launcher was built without its `openxr` feature (`cargo build --release -p lungdyn \
+             --features openxr`)",
+        );
+        return;
+    }
     assert!(
         run.status.success(),
         "lungdyn demo --xr against {} failed ({}):\n{stderr}",

@@ -17,7 +17,7 @@
 //!
 //! One need is the other way round: an OpenXR runtime ([`Need::OpenXr`]) is built from source (no
 //! Debian 12 package; CI does not build it), so its tests run where one is named
-//! (`LUNGDYN_XR_RUNTIME` or `XR_RUNTIME_JSON`) and are otherwise skipped — aloud and logged, as an
+//! (`LUNGDYN_XR_RUNTIME`) and are otherwise skipped — aloud and logged, as an
 //! opt-out is — unless `LUNGDYN_REQUIRE_XR=1`, which makes a missing runtime a failure naming the fix.
 
 use std::io::Write;
@@ -34,7 +34,7 @@ pub enum Need {
     Pyigtl,
     /// systemd's `systemd-analyze` (package systemd), to verify the service units.
     Systemd,
-    /// An OpenXR runtime's manifest (`LUNGDYN_XR_RUNTIME` or `XR_RUNTIME_JSON`) and a launcher
+    /// An OpenXR runtime's manifest (`LUNGDYN_XR_RUNTIME`) and a launcher
     /// built with the `openxr` feature. Opt-in: skipped unless named or required.
     OpenXr,
 }
@@ -94,7 +94,7 @@ impl Need {
             Need::OpenXr => {
                 "install an OpenXR runtime and name its manifest: `deploy/xr_check.sh` builds Monado \
                  (pinned commit, null compositor, simulated headset) and runs this check against it; \
-                 by hand, set LUNGDYN_XR_RUNTIME (or XR_RUNTIME_JSON) to the runtime's JSON manifest \
+                 by hand, set LUNGDYN_XR_RUNTIME to the runtime's JSON manifest \
                  (XRT_COMPOSITOR_NULL=1 for Monado without a display) and build the launcher with \
                  `cargo build --release -p lungdyn --features openxr`"
             }
@@ -159,13 +159,23 @@ fn test_name() -> String {
 pub fn missing(need: Need, detail: &str) {
     let test = test_name();
     if !opted_out(need) {
+        // Under the require variable no skip is possible, so the advice is to unset it.
+        let skip = if var_is_1(need.require_var()) {
+            format!(
+                "{}=1 is set, which forbids skipping it; unset it to let such tests be skipped",
+                need.require_var()
+            )
+        } else {
+            format!(
+                "To skip such tests deliberately, set {}=1 (the run then counts them as skipped).",
+                need.skip_var()
+            )
+        };
         panic!(
-            "{test} needs {} {}, and there is none ({detail}).\nFix: {}.\nTo skip such tests \
-             deliberately, set {}=1 (the run then counts them as skipped).",
+            "{test} needs {} {}, and there is none ({detail}).\nFix: {}.\n{skip}",
             need.article(),
             need.name(),
             need.fix(),
-            need.skip_var()
         );
     }
     let why = if opt_in(need) && !var_is_1(need.skip_var()) {
