@@ -102,6 +102,7 @@ fn render_hud(
         cpu_ns: 2_500_000,
         gpu_ns: None,
         latency_ns: Some(9_000_000),
+        lod: r.lod_shown(),
         outcome: Some((outcome, renderer::hud::text::Standing::Done)),
     };
     if let Ok(dir) = std::env::var("LUNGDYN_HUD_TEST_PNG") {

@@ -125,6 +125,8 @@ pub struct HudFrame<'a> {
     pub gpu_ns: Option<u64>,
     /// End-to-end latency of the previous frame (tracker capture → submit), ns.
     pub latency_ns: Option<u64>,
+    /// The draw level of detail of the previous frame ([`crate::LungRenderer::lod_shown`]).
+    pub lod: crate::lod::Shown,
     /// The latest intervention's line and how it stands.
     pub outcome: Option<(&'a str, Standing)>,
 }
@@ -636,7 +638,7 @@ impl Hud {
         }
         let ok = text::tracker_line(&mut l[TRACKER], f.tracker);
         self.colors[TRACKER] = if ok { WHITE } else { AMBER };
-        text::timing_line(&mut l[TIMING], f.cpu_ns, f.gpu_ns, f.latency_ns);
+        text::timing_line(&mut l[TIMING], f.cpu_ns, f.gpu_ns, &f.lod, f.latency_ns);
         l[VEIL].clear();
         if let Some(w) = text::veil_words(f.warning) {
             l[VEIL].push_str(w);
