@@ -15,7 +15,8 @@
 //! (default 100k; built-in meshes with a radial stand-in for the baked motion, so no bake is
 //! needed: the draw's cost does not depend on the field) drawn small on screen (default 160×120
 //! per eye, the view of the image tests from 2.5× as far), at every level fixed, then `lod = "off"`
-//! against `"auto"` in mono and stereo: frame time per level and the stereo/mono frame-rate ratio.
+//! against `"auto"` in mono and stereo: frame time per level, the deformation pass alone and the
+//! stereo/mono frame-rate ratio.
 
 use glam::{Mat3, Quat, Vec3};
 use ipc_types::Pose;
@@ -203,6 +204,20 @@ fn lod_study(gpu: &Gpu, args: &[String], frames: usize) {
             renderers[i].lod_shown().triangles,
             f,
             g
+        );
+    }
+    // The deformation alone (its compute pass, by timestamps): the floor no level goes under.
+    let deform_ms: Vec<f64> = (0..frames)
+        .filter_map(|k| renderers[0].time_deform(gpu, &far(k)))
+        .map(|ns| ns as f64 / 1e6)
+        .collect();
+    if !deform_ms.is_empty() {
+        println!(
+            "{:<24} {:>10} {:>14} {:>12.2}",
+            "deformation only",
+            "",
+            "",
+            median(deform_ms)
         );
     }
     let n = levels.len();
