@@ -39,4 +39,7 @@ step $T_DEMO $L demo --out $W/demo
 mkdir -p $W/res/demo; cp $W/demo/*.png $W/res/demo/ 2>/dev/null; pack
 step $T_SW $L latency --scene $SCENE --sweep --sweep-min $SMIN --sweep-max $SMAX --sweep-seconds 3 --realtime --out $W/sweep
 mkdir -p $W/res/sweep; cp $W/sweep/latency.* $W/res/sweep/ 2>/dev/null; pack
+# Draw levels of detail (docs/lod.md): frame time per level and stereo/mono with LOD off and auto, 2 x 400k
+# drawn small; a cargo bench, so only where cargo is on PATH.
+if command -v cargo >/dev/null; then step ${T_LOD:-240} sh -c "cargo bench -p lungdyn-bench --bench render_looks -- --lod --vertices $MESH --size 320x240 --frames 30 > $W/res/lod.txt"; fi
 ls -la $W/res $W/res/*; echo ALL DONE

@@ -10,11 +10,18 @@
 //!
 //! Run: `cargo bench -p lungdyn-bench --bench render_looks` (`-- --frames N`, `-- --stereo`,
 //! `-- --only WORDS`: the configurations whose name contains WORDS).
+//!
+//! **Draw levels of detail** (`-- --lod [--vertices N] [--size WxH]`): lungs of N vertices each
+//! (default 100k; built-in meshes with a radial stand-in for the baked motion, so no bake is
+//! needed: the draw's cost does not depend on the field) drawn small on screen (default 160×120
+//! per eye, the view of the image tests from 2.5× as far), at every level fixed, then `lod = "off"`
+//! against `"auto"` in mono and stereo: frame time per level, the deformation pass alone and the
+//! stereo/mono frame-rate ratio.
 
 use glam::{Mat3, Quat, Vec3};
 use ipc_types::Pose;
 use lung_model::deform::LungModel;
-use lung_model::scene::{ColorMode, DrawMode, Look, RenderScene, Scene};
+use lung_model::scene::{ColorMode, DrawMode, Lod, Look, RenderScene, Scene};
 use renderer::gpu::Gpu;
 use renderer::hud::{Hud, HudConfig, HudFrame};
 use renderer::{DrawState, LungRenderer, RenderLung};
@@ -88,6 +95,141 @@ fn state(scale: f32) -> DrawState {
     }
 }
 
+/// Lungs of `vertices` each, the built-in meshes with a radial stand-in field (1 mm per 100 mm
+/// from the centroid per unit scale).
+fn stand_in(vertices: usize) -> Vec<RenderLung> {
+    [lung_model::mesh::Side::Right, lung_model::mesh::Side::Left]
+        .into_iter()
+        .map(|side| {
+            let mesh = lung_model::mesh::generate::lung(side, vertices).expect("built-in lung");
+            let n = mesh.positions.len() as f32;
+            let c = mesh
+                .positions
+                .iter()
+                .fold(Vec3::ZERO, |a, p| a + Vec3::from(*p) / n);
+            let u = mesh
+                .positions
+                .iter()
+                .map(|p| ((Vec3::from(*p) - c) * 0.01).to_array())
+                .collect();
+            RenderLung::from_model(&LungModel::from_unit_displacement(side, mesh, u))
+        })
+        .collect()
+}
+
+/// The draw level study (`--lod`): frame time per level at a small size, and stereo/mono with
+/// LOD off and auto.
+fn lod_study(gpu: &Gpu, args: &[String], frames: usize) {
+    let value = |flag: &str| {
+        args.iter()
+            .position(|a| a == flag)
+            .and_then(|i| args.get(i + 1))
+            .cloned()
+    };
+    let vertices: usize = value("--vertices")
+        .and_then(|s| s.parse().ok())
+        .unwrap_or(100_000);
+    let (width, height) = value("--size")
+        .and_then(|s| {
+            let (w, h) = s.split_once('x')?;
+            Some((w.parse().ok()?, h.parse().ok()?))
+        })
+        .unwrap_or((160u32, 120u32));
+    eprintln!("building 2 × {vertices} vertex lungs and their draw levels…");
+    let lungs = stand_in(vertices);
+    let at = |lod, stereo| RenderScene {
+        lod,
+        stereo,
+        width,
+        height,
+        msaa: Some(1),
+        ..RenderScene::default()
+    };
+    let t = std::time::Instant::now();
+    let probe = LungRenderer::new(gpu, &at(Lod::Auto, false), &lungs).expect("upload");
+    let load_s = t.elapsed().as_secs_f64();
+    let levels = probe.lod_triangles().to_vec();
+    drop(probe);
+    let mut configs: Vec<(String, RenderScene)> = (0..levels.len())
+        .map(|k| (format!("level {k}, mono"), at(Lod::Level(k as u8), false)))
+        .collect();
+    for stereo in [false, true] {
+        for lod in [Lod::Off, Lod::Auto] {
+            let eyes = if stereo { "stereo" } else { "mono" };
+            configs.push((format!("lod {lod}, {eyes}"), at(lod, stereo)));
+        }
+    }
+    let renderers: Vec<LungRenderer> = configs
+        .iter()
+        .map(|(_, r)| LungRenderer::new(gpu, r, &lungs).expect("upload"))
+        .collect();
+    let far = |k: usize| {
+        let mut s = state(40.0 * (k as f32 / frames as f32));
+        let target = Vec3::new(-30.0, 0.0, 1020.0);
+        let eye = Vec3::from(s.hmd.translation_mm);
+        s.hmd.translation_mm = (target + (eye - target) * 2.5).to_array();
+        s
+    };
+    let mut wall = vec![Vec::with_capacity(frames); configs.len()];
+    let mut gpu_ms = vec![Vec::with_capacity(frames); configs.len()];
+    for r in &renderers {
+        r.render(gpu, &far(0), false);
+    }
+    for k in 0..frames {
+        for (i, r) in renderers.iter().enumerate() {
+            let t = std::time::Instant::now();
+            let timing = r.render(gpu, &far(k), false);
+            wall[i].push(t.elapsed().as_secs_f64() * 1e3);
+            if let Some(ns) = timing.gpu_ns {
+                gpu_ms[i].push(ns as f64 / 1e6);
+            }
+        }
+    }
+    println!(
+        "2 x {vertices} vertices, {width} x {height} per eye, MSAA off, {frames} frames each on {}; \
+         levels built at load in {load_s:.2} s; triangles per level (both lungs): {levels:?}",
+        gpu.info.name
+    );
+    println!(
+        "{:<24} {:>10} {:>14} {:>12}",
+        "configuration", "triangles", "frame p50 ms", "GPU p50 ms"
+    );
+    let mut p50 = Vec::new();
+    for (i, (name, _)) in configs.iter().enumerate() {
+        let (f, g) = (median(wall[i].clone()), median(gpu_ms[i].clone()));
+        p50.push(f);
+        println!(
+            "{:<24} {:>10} {:>14.2} {:>12.2}",
+            name,
+            renderers[i].lod_shown().triangles,
+            f,
+            g
+        );
+    }
+    // The deformation alone (its compute pass, by timestamps): the floor no level goes under.
+    let deform_ms: Vec<f64> = (0..frames)
+        .filter_map(|k| renderers[0].time_deform(gpu, &far(k)))
+        .map(|ns| ns as f64 / 1e6)
+        .collect();
+    if !deform_ms.is_empty() {
+        println!(
+            "{:<24} {:>10} {:>14} {:>12.2}",
+            "deformation only",
+            "",
+            "",
+            median(deform_ms)
+        );
+    }
+    let n = levels.len();
+    for (k, lod) in ["off", "auto"].iter().enumerate() {
+        let (mono, stereo) = (p50[n + k], p50[n + 2 + k]);
+        println!(
+            "stereo/mono frame rate, lod {lod}: {:.2} (mono {mono:.2} ms, stereo {stereo:.2} ms)",
+            mono / stereo
+        );
+    }
+}
+
 fn median(mut v: Vec<f64>) -> f64 {
     v.sort_by(|a, b| a.total_cmp(b));
     v.get(v.len() / 2).copied().unwrap_or(f64::NAN)
@@ -111,6 +253,10 @@ fn main() {
         .and_then(|i| args.get(i + 1))
         .cloned();
     let Some(gpu) = Gpu::for_tests() else { return };
+    if args.iter().any(|a| a == "--lod") {
+        lod_study(&gpu, &args, frames);
+        return;
+    }
     let scene = Scene::default();
     eprintln!(
         "baking the default lungs ({} vertices each)…",
@@ -265,6 +411,7 @@ fn main() {
                 cpu_ns: 2_500_000,
                 gpu_ns: Some(11_000_000),
                 latency_ns: Some(9_000_000),
+                lod: r.lod_shown(),
                 outcome: Some((
                     "needle decompression, left, applied 01:02 — air venting",
                     renderer::hud::text::Standing::Done,

@@ -131,6 +131,12 @@ pub struct DemoArgs {
     /// 3.4× the frame).
     #[arg(long, value_name = "N")]
     pub msaa: Option<u32>,
+    /// Draw level of detail (overrides the scene's `[render] lod`): "auto" (fewer triangles over
+    /// the same deformed vertices when the lungs cover few pixels, chosen per frame), "off" (every
+    /// triangle) or a fixed level 0..5 (level k: about 4^-k of the triangles). The HUD's
+    /// frame-time line shows the level drawn.
+    #[arg(long, value_name = "LOD")]
+    pub lod: Option<lung_model::scene::Lod>,
     /// Vertices per generated default lung (overrides the scene's `[lungs] vertices`; baked once
     /// into <out>/kernels and reused).
     #[arg(long, value_name = "N")]
@@ -322,6 +328,8 @@ pub struct DemoReport {
     /// Samples per pixel the scene asks for (`[render] msaa`; null: the adapter's default, which
     /// the renderer's start line names).
     pub msaa: Option<u32>,
+    /// The draw level of detail the scene asks for (`[render] lod`: auto, off or a level).
+    pub lod: String,
     /// The calibration file the renderer placed the lungs by (none: the fixed offset).
     pub calibration: Option<String>,
     /// The HMD optics file the renderer drew the eyes from (none: the scene's IPD and field of view).
@@ -554,6 +562,9 @@ pub fn run_watched(args: &DemoArgs, watch: &mut dyn Watch) -> anyhow::Result<Dem
             anyhow::bail!("--msaa {n}: give 4 (anti-aliased) or 1 (off)");
         }
         loaded.render.msaa = Some(n);
+    }
+    if let Some(lod) = args.lod {
+        loaded.render.lod = lod;
     }
     if let Some(v) = args.vertices {
         loaded.lungs.vertices = v;
@@ -1121,6 +1132,7 @@ pub fn run_watched(args: &DemoArgs, watch: &mut dyn Watch) -> anyhow::Result<Dem
         look: scene.render.look.name().to_string(),
         color: scene.render.color.name().to_string(),
         msaa: scene.render.msaa,
+        lod: scene.render.lod.to_string(),
         calibration: scene
             .render
             .calibration

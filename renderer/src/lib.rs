@@ -22,6 +22,7 @@ pub mod deform;
 pub mod draw;
 pub mod gpu;
 pub mod hud;
+pub mod lod;
 pub mod predict;
 pub mod present;
 pub mod process;
@@ -34,7 +35,7 @@ pub mod xr_runtime;
 
 pub use deform::{LungInputs, RenderLung, UploadError};
 use ipc_types::{Pose, MAX_COEFFS};
-use lung_model::scene::{ColorMode, DrawMode, Look, RenderScene};
+use lung_model::scene::{ColorMode, DrawMode, Lod, Look, RenderScene};
 use wgpu::util::DeviceExt;
 
 use crate::gpu::Gpu;
@@ -151,8 +152,14 @@ struct OitTargets {
 pub struct LungRenderer {
     deform: deform::DeformPass,
     draw: draw::DrawPipelines,
+    /// Every draw level's triangles over the one vertex buffer ([`lod`]), level 0 first.
     index: wgpu::Buffer,
-    index_count: u32,
+    /// Per level, its range in `index`.
+    lod_ranges: Vec<std::ops::Range<u32>>,
+    /// Per level, its triangles (both lungs).
+    lod_triangles: Vec<u32>,
+    /// The level drawn last frame (`[render] lod = "auto"`: chosen per frame, [`lod::Chooser`]).
+    lod_level: std::sync::atomic::AtomicUsize,
     /// Per vertex of both lungs: material and lobe code ([`draw::SurfaceAttr`]).
     surface: wgpu::Buffer,
     color: wgpu::Texture,
@@ -251,22 +258,32 @@ impl LungRenderer {
                 ))
             })
             .collect();
-        let mut indices: Vec<u32> = Vec::new();
-        let mut offset = 0u32;
-        for lung in lungs {
-            indices.extend(
-                lung.lung
-                    .triangles
-                    .iter()
-                    .flat_map(|t| t.map(|i| i + offset)),
-            );
-            offset += lung.lung.len() as u32;
-        }
+        // Draw levels of detail, simplified here at load: none with `lod = "off"` or splats
+        // (one splat per vertex: nothing to simplify).
+        let coarsest = match (settings.mode, settings.lod) {
+            (DrawMode::Points, _) | (_, Lod::Off) => 0,
+            (_, Lod::Auto) => lung_model::scene::MAX_LOD_LEVEL,
+            (_, Lod::Level(n)) => n,
+        };
+        let per_lung: Vec<_> = lungs
+            .iter()
+            .map(|l| lod::lung_levels(&l.lung.positions, &l.lung.triangles, coarsest))
+            .collect();
+        let counts: Vec<u32> = lungs.iter().map(|l| l.lung.len() as u32).collect();
+        let levels = lod::Levels::join(&per_lung, &counts);
+        let lod_triangles: Vec<u32> = (0..levels.ranges.len())
+            .map(|k| levels.triangles(k))
+            .collect();
         let index = device.create_buffer_init(&wgpu::util::BufferInitDescriptor {
             label: Some("lungdyn indices"),
-            contents: bytemuck::cast_slice(&indices),
+            contents: bytemuck::cast_slice(&levels.indices),
             usage: wgpu::BufferUsages::INDEX,
         });
+        // A fixed level the meshes are too small for: their coarsest.
+        let fixed = match settings.lod {
+            Lod::Level(n) => (n as usize).min(levels.ranges.len().saturating_sub(1)),
+            _ => 0,
+        };
         let eyes = if settings.stereo { 2 } else { 1 };
         let width = eye_width * eyes as u32;
         let size = wgpu::Extent3d {
@@ -390,7 +407,9 @@ impl LungRenderer {
             deform,
             draw,
             index,
-            index_count: indices.len() as u32,
+            lod_ranges: levels.ranges,
+            lod_triangles,
+            lod_level: fixed.into(),
             surface,
             color_view: color.create_view(&Default::default()),
             color,
@@ -453,6 +472,62 @@ impl LungRenderer {
     /// Vertices drawn per frame (both lungs).
     pub fn vertex_count(&self) -> u32 {
         self.deform.count
+    }
+
+    /// The draw level of detail of the last frame ([`lod`]).
+    pub fn lod_shown(&self) -> lod::Shown {
+        let level = self.lod_level.load(std::sync::atomic::Ordering::Relaxed);
+        lod::Shown {
+            level: level as u8,
+            coarsest: self.lod_triangles.len().saturating_sub(1) as u8,
+            triangles: self.lod_triangles.get(level).copied().unwrap_or(0),
+            auto: self.settings.lod == Lod::Auto,
+        }
+    }
+
+    /// The draw levels in words, for the start line: "LOD auto, triangles 40344 / 10084 / 2520",
+    /// "LOD 1 fixed, ...", "LOD off".
+    pub fn describe_lod(&self) -> String {
+        let counts: Vec<String> = self.lod_triangles.iter().map(u32::to_string).collect();
+        match self.settings.lod {
+            _ if self.settings.mode == DrawMode::Points => "LOD off (splats)".to_string(),
+            Lod::Off => "LOD off".to_string(),
+            Lod::Auto => format!("LOD auto, triangles {}", counts.join(" / ")),
+            Lod::Level(n) => format!(
+                "LOD {n} fixed ({} triangles; levels {})",
+                self.lod_shown().triangles,
+                counts.join(" / ")
+            ),
+        }
+    }
+
+    /// Triangles of each draw level built (both lungs; level 0: every triangle).
+    pub fn lod_triangles(&self) -> &[u32] {
+        &self.lod_triangles
+    }
+
+    /// Choose this frame's draw level from the lungs' size on screen through `eyes` (both eyes
+    /// the same: the larger area's), with `offset_mm` moving each lung's rest box.
+    fn choose_lod(&self, eyes: &[camera::EyeUniform], offset_mm: &[[f32; 3]; 2]) {
+        if self.settings.lod != Lod::Auto || self.lod_triangles.len() < 2 {
+            return;
+        }
+        use std::sync::atomic::Ordering::Relaxed;
+        let budget = self.lung_box.and_then(|(lo, hi)| {
+            let offsets = offset_mm.map(glam::Vec3::from);
+            let (dlo, dhi) = if offsets.iter().all(|o| o.is_finite()) {
+                (offsets[0].min(offsets[1]), offsets[0].max(offsets[1]))
+            } else {
+                (glam::Vec3::ZERO, glam::Vec3::ZERO)
+            };
+            eyes.iter()
+                .map(|e| lod::covered_pixels(e, (lo + dlo, hi + dhi), self.eye_width, self.height))
+                .try_fold(0.0f32, |m, px| px.map(|p| m.max(p)))
+                .map(|px| px * lod::TRIANGLES_PER_PIXEL)
+        });
+        let mut chooser = lod::Chooser::at(self.lod_level.load(Relaxed));
+        let level = chooser.choose(&self.lod_triangles, budget);
+        self.lod_level.store(level, Relaxed);
     }
 
     /// Samples per pixel drawn (`[render] msaa`, or its default for this adapter).
@@ -573,6 +648,7 @@ impl LungRenderer {
         for (buffer, eye) in self.draw.eye_buffers.iter().zip(&eyes[..n]) {
             queue.write_buffer(buffer, 0, bytemuck::bytes_of(eye));
         }
+        self.choose_lod(&eyes[..n], &state.offset_mm);
         for t in &self.tumours {
             let k = t.slot;
             t.update(
@@ -803,10 +879,12 @@ impl LungRenderer {
         if self.settings.mode == DrawMode::Triangles {
             pass.set_index_buffer(self.index.slice(..), wgpu::IndexFormat::Uint32);
         }
+        let level = self.lod_level.load(std::sync::atomic::Ordering::Relaxed);
+        let triangles = self.lod_ranges.get(level).cloned().unwrap_or(0..0);
         for i in 0..eyes {
             self.set_eye(pass, i);
             match self.settings.mode {
-                DrawMode::Triangles => pass.draw_indexed(0..self.index_count, 0, 0..1),
+                DrawMode::Triangles => pass.draw_indexed(triangles.clone(), 0, 0..1),
                 DrawMode::Points => pass.draw(0..6, 0..self.deform.count),
             }
         }

@@ -505,7 +505,7 @@ impl Session {
         transport::notify::ready(&format!("renderer[{}]: drawing", instance.name()));
         let (w, h) = session.renderer.image_size();
         eprintln!(
-            "renderer[{}]: {} vertices in the {} mode ({:.1} MiB on the GPU), {}x{} {:?}{}, {} look, {} colour, {}x MSAA on {}{}; waiting for engine frames on {:?}",
+            "renderer[{}]: {} vertices in the {} mode ({:.1} MiB on the GPU), {}x{} {:?}{}, {} look, {} colour, {}x MSAA, {} on {}{}; waiting for engine frames on {:?}",
             instance.name(),
             session.renderer.vertex_count(),
             session.renderer.mode(),
@@ -517,6 +517,7 @@ impl Session {
             scene.render.look,
             scene.render.color,
             session.renderer.samples(),
+            session.renderer.describe_lod(),
             session.gpu.describe(),
             rig_files.describe(),
             instance.engine()
@@ -878,6 +879,7 @@ impl Session {
                         cpu_ns,
                         gpu_ns,
                         latency_ns,
+                        lod: self.renderer.lod_shown(),
                         outcome: self.outcome_standing.map(|s| (self.outcome.as_str(), s)),
                     };
                     let gpu = &self.gpu;

@@ -572,7 +572,9 @@ def make_scenes(tmp):
                       ("mode_wireframe", "mode = \"wireframe\""), ("stereo_string", "stereo = \"yes\""),
                       ("look_glass", "look = \"glass\""), ("color_lobe", "color = \"lobe\""),
                       ("color_lobes", "color = \"lobes\""),
-                      ("msaa_8", "msaa = 8"), ("msaa_negative", "msaa = -4")):
+                      ("msaa_8", "msaa = 8"), ("msaa_negative", "msaa = -4"),
+                      ("lod_fast", "lod = \"fast\""), ("lod_9", "lod = 9"), ("lod_negative", "lod = -1"),
+                      ("lod_fraction", "lod = 1.5")):
         s("render_" + tag, SCENE_BASE + "[render]\n%s\n" % body)
     s("syntax_error", SCENE_BASE + "[render\nwidth = 800\n")
     s("duplicate_key", "[lungs]\nvertices = 100\nvertices = 200\n")

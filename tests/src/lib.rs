@@ -112,6 +112,41 @@ pub fn baked_models(scene: &lung_model::scene::Scene) -> Vec<lung_model::deform:
         .collect()
 }
 
+/// The image tests' fixed view at deformation scale `scale`: patient supine at bed height, the HMD
+/// at the patient's right, above the chest, `distance` times its usual distance from the point it
+/// looks at (1: the image tests' framing). The supine pose is RAS → room (head at room +X, face up),
+/// so the patient's right is room +Y (issue 19: before the body frame's reflection was applied the
+/// eye sat at −Y, which drew the mirror image of this view from the patient's then apparent right).
+pub fn fixed_state(scale: f32, distance: f32) -> renderer::DrawState {
+    use glam::{Mat3, Quat, Vec3};
+    let supine = Quat::from_mat3(&Mat3::from_cols(Vec3::Y, Vec3::Z, Vec3::X));
+    let patient = ipc_types::Pose {
+        quat: supine.to_array(),
+        translation_mm: [0.0, 0.0, 1120.0],
+        _pad: 0,
+    };
+    let target = Vec3::new(-30.0, 0.0, 1020.0);
+    let eye = target + (Vec3::new(-250.0, 750.0, 1600.0) - target) * distance;
+    let forward = (target - eye).normalize();
+    let right = forward.cross(Vec3::Z).normalize();
+    let up = right.cross(forward);
+    let q = Quat::from_mat3(&Mat3::from_cols(right, up, -forward));
+    renderer::DrawState {
+        deform_scale: [scale, scale],
+        offset_mm: [[0.0; 3]; 2],
+        collapse: [0.0; 2],
+        hilum_mm: [[0.0; 3]; 2],
+        coeffs: [[0.0; ipc_types::MAX_COEFFS]; 2],
+        patient,
+        hmd: ipc_types::Pose {
+            quat: q.to_array(),
+            translation_mm: eye.to_array(),
+            _pad: 0,
+        },
+        pose_warning: Default::default(),
+    }
+}
+
 /// What a `lungdyn demo --json` report must say of any run, fast or slow: frames were drawn, none
 /// were lost or had broken hop stamps, the rates and ranges agree with the counts, nothing of the
 /// instance is left in shared memory, and — given the launcher's stderr — the renderer's own count

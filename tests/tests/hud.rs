@@ -102,7 +102,9 @@ fn render_hud(
         cpu_ns: 2_500_000,
         gpu_ns: None,
         latency_ns: Some(9_000_000),
-        outcome: Some((outcome, renderer::hud::text::Standing::Done)),
+        lod: r.lod_shown(),
+        // "": no intervention sent yet.
+        outcome: (!outcome.is_empty()).then_some((outcome, renderer::hud::text::Standing::Done)),
     };
     if let Ok(dir) = std::env::var("LUNGDYN_HUD_TEST_PNG") {
         // For a look at what the test saw.
@@ -387,6 +389,15 @@ fn a_long_outcome_line_wraps_inside_the_panel_at_480_px_and_below() {
 /// eye's layout and the colour mode; `false` when there is no GPU (nothing checked).
 fn at_every_size(
     sizes: &[(u32, u32)],
+    check: impl FnMut(&str, &image::RgbaImage, &EyeLayout, lung_model::scene::ColorMode),
+) -> bool {
+    at_every_size_showing(sizes, OUTCOME, check)
+}
+
+/// As [`at_every_size`], with `outcome` as the intervention's line ("": none sent).
+fn at_every_size_showing(
+    sizes: &[(u32, u32)],
+    outcome: &str,
     mut check: impl FnMut(&str, &image::RgbaImage, &EyeLayout, lung_model::scene::ColorMode),
 ) -> bool {
     for &(w, h) in sizes {
@@ -402,7 +413,7 @@ fn at_every_size(
                 scene.render.stereo = stereo;
                 scene.render.color = color;
                 let Some((plain, _, layout)) =
-                    render_hud(&scene, PoseWarning::None, OUTCOME, |_| {})
+                    render_hud(&scene, PoseWarning::None, outcome, |_| {})
                 else {
                     return false;
                 };
@@ -459,7 +470,8 @@ fn anchored_labels_never_overlap_the_panels() {
 /// wide, the right eye's panel past the eye's left edge in stereo); every part lies inside its
 /// eye; and the lungs, framed as strips and recordings frame them, are clear of the panel, the PV
 /// loop and the legend — neither their projected box nor any lung pixel lies under them (at
-/// 320 × 240 the panel covered the apices).
+/// 320 × 240 the panel covered the apices). The same with an unusually long outcome (many wrapped
+/// rows at every size: it once grew the panel over the apices), which is cut to its reserved rows.
 #[test]
 fn the_hud_fits_every_size_without_clipped_text_or_covering_the_lungs() {
     let sizes = [
@@ -470,7 +482,28 @@ fn the_hud_fits_every_size_without_clipped_text_or_covering_the_lungs() {
         (1280, 720),
         (1920, 1080),
     ];
-    at_every_size(&sizes, |at, plain, e, _| {
+    for outcome in [OUTCOME, LONG_OUTCOME] {
+        hud_fits(&sizes, outcome);
+    }
+}
+
+/// An outcome of many rows wherever it wraps (the reply of a tension scene's chest tube with its
+/// reasons, said in full).
+const LONG_OUTCOME: &str = "chest tube, left, applied 01:02 — air and blood draining, the lung \
+    re-expanding over the next breaths; the tension is relieved, mediastinal shift resolving, \
+    venous return recovering; keep the drain below the chest and watch for a persistent air leak";
+
+/// The parts of the HUD inside their eyes, no text clipped and the lungs clear, at `sizes` with
+/// `outcome` shown; the outcome takes at most its reserved rows.
+fn hud_fits(sizes: &[(u32, u32)], outcome: &str) {
+    at_every_size_showing(sizes, outcome, |at, plain, e, _| {
+        let row = e.texts[0].expect("the volume line").text.h;
+        let outcome_box = e.texts[renderer::hud::OUTCOME_BLOCK].expect("the outcome line");
+        assert!(
+            outcome_box.text.h <= row * renderer::hud::OUTCOME_RESERVED_ROWS as f32 + 0.5,
+            "{at}: the outcome takes {} px, rows of {row} px",
+            outcome_box.text.h
+        );
         let background = *plain.get_pixel(0, 0);
         let parts = [
             ("panel", Some(e.panel)),
@@ -529,4 +562,37 @@ fn the_hud_fits_every_size_without_clipped_text_or_covering_the_lungs() {
             assert_eq!(under, 0, "{at}: {under} lung pixels under the {part} {r:?}");
         }
     });
+}
+
+/// Before any intervention is sent the panel has no outcome row (it showed an empty one between
+/// the disease and the tracker lines); the lungs' framing stays where it is when one arrives (the
+/// band keeps the outcome's reserved rows), so the picture does not jump.
+#[test]
+fn no_outcome_row_before_an_intervention_is_sent() {
+    let mut scene = Scene::default();
+    scene.lungs.vertices = 2000;
+    scene.render.width = 640;
+    scene.render.height = 480;
+    let eye = |outcome| {
+        render_hud(&scene, PoseWarning::None, outcome, |_| {}).map(|(_, _, l)| l[0].unwrap())
+    };
+    let (Some(none), Some(sent)) = (eye(""), eye(OUTCOME)) else {
+        return;
+    };
+    let k = renderer::hud::OUTCOME_BLOCK;
+    assert!(none.texts[k].is_none(), "{:?}", none.texts[k]);
+    let outcome = sent.texts[k].expect("the outcome line once sent");
+    // The lines after the outcome move up into its place, and the panel shrinks by as much: the
+    // outcome's rows (its text's height, to the glyphs' rounding).
+    let (a, b) = (none.texts[k + 1].unwrap(), sent.texts[k + 1].unwrap());
+    let shift = b.text.y - a.text.y;
+    assert!(
+        (sent.panel.h - none.panel.h - shift).abs() < 0.5 && shift >= outcome.text.h - 0.5,
+        "the panel without the outcome {:?}, with {:?}; the next line moved {shift} px for {} px \
+         of outcome",
+        none.panel,
+        sent.panel,
+        outcome.text.h
+    );
+    assert_eq!(none.lungs, sent.lungs, "the lungs' framing");
 }

@@ -12,8 +12,6 @@
 use std::path::PathBuf;
 use std::sync::OnceLock;
 
-use glam::{Mat3, Quat, Vec3};
-use ipc_types::Pose;
 use lung_model::deform::LungModel;
 use lung_model::scene::{ColorMode, DrawMode, Look, RenderScene, Scene};
 use renderer::gpu::Gpu;
@@ -74,37 +72,10 @@ fn mid_inspiration() -> f32 {
     lungs[0].scale_for_delta(250.0 * lungs[0].start_volume_ml / 2400.0) as f32
 }
 
-/// Patient supine at bed height, HMD at the patient's right, above the chest. The supine pose is
-/// RAS → room (head at room +X, face up), so the patient's right is room +Y (issue 19: before the
-/// body frame's reflection was applied the eye sat at −Y, which drew the mirror image of this view
-/// from the patient's then apparent right).
+/// The image tests' view ([`lungdyn_tests::fixed_state`]): the HMD at the patient's right, above
+/// the chest.
 fn fixed_state(scale: f32) -> DrawState {
-    let supine = Quat::from_mat3(&Mat3::from_cols(Vec3::Y, Vec3::Z, Vec3::X));
-    let patient = Pose {
-        quat: supine.to_array(),
-        translation_mm: [0.0, 0.0, 1120.0],
-        _pad: 0,
-    };
-    let eye = Vec3::new(-250.0, 750.0, 1600.0);
-    let target = Vec3::new(-30.0, 0.0, 1020.0);
-    let forward = (target - eye).normalize();
-    let right = forward.cross(Vec3::Z).normalize();
-    let up = right.cross(forward);
-    let q = Quat::from_mat3(&Mat3::from_cols(right, up, -forward));
-    DrawState {
-        deform_scale: [scale, scale],
-        offset_mm: [[0.0; 3]; 2],
-        collapse: [0.0; 2],
-        hilum_mm: [[0.0; 3]; 2],
-        coeffs: [[0.0; ipc_types::MAX_COEFFS]; 2],
-        patient,
-        hmd: Pose {
-            quat: q.to_array(),
-            translation_mm: eye.to_array(),
-            _pad: 0,
-        },
-        pose_warning: Default::default(),
-    }
+    lungdyn_tests::fixed_state(scale, 1.0)
 }
 
 /// The render table of a case: mono 256×192, or stereo 2 × 192×144.

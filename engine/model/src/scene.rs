@@ -519,6 +519,87 @@ macro_rules! named_enum_text {
 named_enum_text!(Look, "look");
 named_enum_text!(ColorMode, "colour mode");
 
+/// The coarsest draw level of detail a scene may force (`[render] lod = N`): level k draws about
+/// 4⁻ᵏ of the lungs' triangles; a lung whose mesh is too small for level N draws its coarsest.
+pub const MAX_LOD_LEVEL: u8 = 5;
+
+/// Which triangles the lungs are drawn with (`[render] lod`, `lungdyn demo --lod`): every physics
+/// vertex is deformed either way; a coarser level draws fewer triangles over the same vertices.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Default)]
+pub enum Lod {
+    /// Per frame from the lungs' size on screen (fewer triangles when they cover few pixels).
+    #[default]
+    Auto,
+    /// Always every triangle (no levels are built).
+    Off,
+    /// Always this level (0: every triangle; up to [`MAX_LOD_LEVEL`]).
+    Level(u8),
+}
+
+impl Lod {
+    /// What a bad value should have been (the scene's and the command line's error).
+    pub const EXPECTED: &'static str = "give \"auto\", \"off\" or a level 0..5 (0: every triangle)";
+}
+
+impl std::fmt::Display for Lod {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        match self {
+            Lod::Auto => f.write_str("auto"),
+            Lod::Off => f.write_str("off"),
+            Lod::Level(n) => write!(f, "{n}"),
+        }
+    }
+}
+
+impl std::str::FromStr for Lod {
+    type Err = String;
+    fn from_str(s: &str) -> Result<Self, String> {
+        match s {
+            "auto" => Ok(Lod::Auto),
+            "off" => Ok(Lod::Off),
+            _ => s
+                .parse::<u8>()
+                .ok()
+                .filter(|n| *n <= MAX_LOD_LEVEL && !s.starts_with('+'))
+                .map(Lod::Level)
+                .ok_or_else(|| format!("lod {s:?}: {}", Lod::EXPECTED)),
+        }
+    }
+}
+
+impl Serialize for Lod {
+    fn serialize<S: serde::Serializer>(&self, s: S) -> Result<S::Ok, S::Error> {
+        match self {
+            Lod::Level(n) => s.serialize_u8(*n),
+            other => s.serialize_str(&other.to_string()),
+        }
+    }
+}
+
+impl<'de> Deserialize<'de> for Lod {
+    fn deserialize<D: serde::Deserializer<'de>>(d: D) -> Result<Self, D::Error> {
+        #[derive(Deserialize)]
+        #[serde(untagged)]
+        enum Raw {
+            Name(String),
+            Level(i64),
+            Other(toml::Value),
+        }
+        let bad =
+            |what: String| D::Error::custom(format!("[render] lod = {what}: {}", Lod::EXPECTED));
+        use serde::de::Error as _;
+        match Raw::deserialize(d)? {
+            Raw::Name(s) => s.parse().map_err(|_| bad(format!("{s:?}"))),
+            Raw::Level(n) => u8::try_from(n)
+                .ok()
+                .filter(|n| *n <= MAX_LOD_LEVEL)
+                .map(Lod::Level)
+                .ok_or_else(|| bad(n.to_string())),
+            Raw::Other(v) => Err(bad(v.to_string())),
+        }
+    }
+}
+
 /// Multisample anti-aliasing sample counts the renderer accepts (`[render] msaa`).
 pub const MSAA_SAMPLES: [u32; 2] = [1, 4];
 
@@ -537,6 +618,9 @@ pub struct RenderScene {
     /// the frame); the renderer's start line says which it drew with.
     #[serde(skip_serializing_if = "Option::is_none")]
     pub msaa: Option<u32>,
+    /// Draw level of detail: "auto" (fewer triangles when the lungs cover few pixels), "off" or a
+    /// fixed level ([`Lod`]).
+    pub lod: Lod,
     /// Side-by-side stereo from the HMD pose.
     pub stereo: bool,
     /// Inter-pupillary distance, mm.
@@ -612,6 +696,7 @@ impl Default for RenderScene {
             look: Look::Opaque,
             color: ColorMode::Tissue,
             msaa: None,
+            lod: Lod::Auto,
             stereo: false,
             ipd_mm: 63.0,
             width: 800,
@@ -1693,6 +1778,38 @@ mod tests {
             s.render.msaa = Some(n);
             let e = s.validate().unwrap_err().to_string();
             assert!(e.contains("msaa") && e.contains(&n.to_string()), "{e}");
+        }
+    }
+
+    #[test]
+    fn render_lod_parses_auto_off_and_levels_and_refuses_others() {
+        assert_eq!(Scene::default().render.lod, Lod::Auto);
+        for (text, lod) in [
+            ("\"auto\"", Lod::Auto),
+            ("\"off\"", Lod::Off),
+            ("0", Lod::Level(0)),
+            ("3", Lod::Level(3)),
+            ("5", Lod::Level(5)),
+            ("\"2\"", Lod::Level(2)),
+        ] {
+            let s = Scene::parse(&format!("[render]\nlod = {text}\n"), "s.toml").unwrap();
+            assert_eq!(s.render.lod, lod, "{text}");
+            // The resolved scene the launcher hands the renderer reads back the same.
+            let back = Scene::parse(&toml::to_string(&s).unwrap(), "s.toml").unwrap();
+            assert_eq!(back.render.lod, lod, "{text}");
+            assert_eq!(lod.to_string().parse::<Lod>(), Ok(lod));
+        }
+        for bad in [
+            "\"fast\"", "\"Auto\"", "\"\"", "6", "-1", "300", "1.5", "true", "[1]",
+        ] {
+            let e = Scene::parse(&format!("[render]\nlod = {bad}\n"), "s.toml")
+                .unwrap_err()
+                .to_string();
+            assert!(e.contains("lod") && e.contains("auto"), "{bad}: {e}");
+        }
+        for bad in ["fast", "6", "-1", "+1", "", " 1"] {
+            let e = bad.parse::<Lod>().unwrap_err();
+            assert!(e.contains("auto") && e.contains("off"), "{bad:?}: {e}");
         }
     }
 }

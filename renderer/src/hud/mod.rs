@@ -125,6 +125,8 @@ pub struct HudFrame<'a> {
     pub gpu_ns: Option<u64>,
     /// End-to-end latency of the previous frame (tracker capture → submit), ns.
     pub latency_ns: Option<u64>,
+    /// The draw level of detail of the previous frame ([`crate::LungRenderer::lod_shown`]).
+    pub lod: crate::lod::Shown,
     /// The latest intervention's line and how it stands.
     pub outcome: Option<(&'a str, Standing)>,
 }
@@ -141,13 +143,16 @@ const VOLUME: usize = 0;
 const PHASE: usize = 1;
 const DISEASE: usize = 2;
 const OUTCOME: usize = 3;
+/// The outcome line's text block (in [`EyeLayout::texts`]).
+pub const OUTCOME_BLOCK: usize = OUTCOME;
 const TRACKER: usize = 4;
 const TIMING: usize = 5;
 const KEYS: usize = 6;
 const PANEL_LINES: usize = 7;
-/// Rows the lungs' framing leaves for the outcome line ([`Hud::lungs_band`]); a longer outcome
-/// wraps onto more and the panel grows.
-const OUTCOME_RESERVED_ROWS: usize = 2;
+/// Rows the lungs' framing leaves for the outcome line ([`Hud::lungs_band`]), and the most it
+/// takes: a longer outcome is cut to these rows and ends in "…" (the full words are what
+/// `lungdyn scene event` prints and the demo's log says), so the panel never grows over the lungs.
+pub const OUTCOME_RESERVED_ROWS: usize = 2;
 /// Other text blocks.
 const LABEL_R: usize = 7;
 const LABEL_L: usize = 8;
@@ -535,7 +540,7 @@ impl Hud {
         let keys = text::key_help(self.config.interventions);
         self.shape(KEYS, keys);
         self.reserved_rows = (0..PANEL_LINES)
-            .filter(|&k| self.shown(k))
+            .filter(|&k| self.shown_at_size(k))
             .map(|k| match k {
                 DISEASE => disease_rows,
                 KEYS => self.rows[KEYS],
@@ -547,8 +552,53 @@ impl Hud {
 
     /// Whether panel line `k` is shown at this size (the compact HUD drops the tracker, the frame
     /// time and the key help).
-    fn shown(&self, k: usize) -> bool {
+    fn shown_at_size(&self, k: usize) -> bool {
         !(self.compact && matches!(k, TRACKER | TIMING | KEYS))
+    }
+
+    /// Whether panel line `k` is shown this frame: at this size, and the outcome only once an
+    /// intervention was sent (no empty row before it).
+    fn shown(&self, k: usize) -> bool {
+        self.shown_at_size(k) && !(k == OUTCOME && self.lines[OUTCOME].is_empty())
+    }
+
+    /// Cut the outcome's shaped text to [`OUTCOME_RESERVED_ROWS`] rows, ending in "…": the longest
+    /// prefix (whole characters, trailing spaces dropped) that fits. Runs only when the outcome
+    /// changed (a handful of reshapes of one short line).
+    fn fit_outcome(&mut self) {
+        if self.rows[OUTCOME] <= OUTCOME_RESERVED_ROWS {
+            return;
+        }
+        let full = std::mem::take(&mut self.lines[OUTCOME]);
+        let ends: Vec<usize> = full.char_indices().map(|(i, _)| i).skip(1).collect();
+        let mut cut = String::with_capacity(full.len() + 3);
+        let mut fits = |hud: &mut Self, end: usize| {
+            cut.clear();
+            cut.push_str(full[..end].trim_end());
+            cut.push('…');
+            let b = &mut hud.buffers[OUTCOME];
+            b.set_text(
+                &cut,
+                &Attrs::new().family(Family::Name(FAMILY)),
+                Shaping::Basic,
+                None,
+            );
+            b.shape_until_scroll(&mut hud.font_system, false);
+            hud.measure(OUTCOME);
+            hud.rows[OUTCOME] <= OUTCOME_RESERVED_ROWS
+        };
+        // Binary search for the longest prefix that fits (fitting is monotone in the length).
+        let (mut lo, mut hi) = (0usize, ends.len());
+        while lo < hi {
+            let mid = (lo + hi).div_ceil(2);
+            if fits(self, ends[mid - 1]) {
+                lo = mid;
+            } else {
+                hi = mid - 1;
+            }
+        }
+        fits(self, ends.get(lo.max(1) - 1).copied().unwrap_or(0));
+        self.lines[OUTCOME] = full;
     }
 
     /// The band of each eye's height (fractions from its top) clear of the HUD's panel, PV loop
@@ -636,7 +686,7 @@ impl Hud {
         }
         let ok = text::tracker_line(&mut l[TRACKER], f.tracker);
         self.colors[TRACKER] = if ok { WHITE } else { AMBER };
-        text::timing_line(&mut l[TIMING], f.cpu_ns, f.gpu_ns, f.latency_ns);
+        text::timing_line(&mut l[TIMING], f.cpu_ns, f.gpu_ns, &f.lod, f.latency_ns);
         l[VEIL].clear();
         if let Some(w) = text::veil_words(f.warning) {
             l[VEIL].push_str(w);
@@ -666,6 +716,9 @@ impl Hud {
                 );
                 b.shape_until_scroll(&mut self.font_system, false);
                 self.measure(k);
+                if k == OUTCOME {
+                    self.fit_outcome();
+                }
                 self.shaped[k].clone_from(&self.lines[k]);
             }
         }

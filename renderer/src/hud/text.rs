@@ -276,12 +276,25 @@ pub fn tracker_line(out: &mut String, tracker: Option<&TrackerFrame>) -> bool {
 
 /// Frame time and end-to-end latency (tracker capture → frame submitted) of the last frame:
 /// "frame 3.1 ms (GPU 1.2 ms) · latency 11.8 ms".
-pub fn timing_line(out: &mut String, cpu_ns: u64, gpu_ns: Option<u64>, latency_ns: Option<u64>) {
+pub fn timing_line(
+    out: &mut String,
+    cpu_ns: u64,
+    gpu_ns: Option<u64>,
+    lod: &crate::lod::Shown,
+    latency_ns: Option<u64>,
+) {
     out.clear();
     let _ = write!(out, "frame {:.1} ms", cpu_ns as f64 / 1e6);
     if let Some(g) = gpu_ns {
         let _ = write!(out, " (GPU {:.1} ms)", g as f64 / 1e6);
     }
+    // The draw level: "LOD 1/3" (auto: level 1 of 0..3), "LOD 2 fixed", "LOD off" (every
+    // triangle, no levels built).
+    let _ = match (lod.auto, lod.coarsest) {
+        (true, c) if c > 0 => write!(out, " · LOD {}/{c}", lod.level),
+        (false, c) if c > 0 || lod.level > 0 => write!(out, " · LOD {} fixed", lod.level),
+        _ => write!(out, " · LOD off"),
+    };
     match latency_ns {
         Some(l) => {
             let _ = write!(out, " · latency {:.1} ms", l as f64 / 1e6);
@@ -717,10 +730,33 @@ mod tests {
     #[test]
     fn timing_line_says_frame_time_and_latency() {
         let mut s = String::new();
-        timing_line(&mut s, 3_140_000, Some(1_200_000), Some(11_850_000));
-        assert_eq!(s, "frame 3.1 ms (GPU 1.2 ms) · latency 11.8 ms");
-        timing_line(&mut s, 0, None, None);
-        assert_eq!(s, "frame 0.0 ms · latency --");
+        use crate::lod::Shown;
+        let auto = Shown {
+            level: 1,
+            coarsest: 3,
+            triangles: 10_000,
+            auto: true,
+        };
+        timing_line(&mut s, 3_140_000, Some(1_200_000), &auto, Some(11_850_000));
+        assert_eq!(s, "frame 3.1 ms (GPU 1.2 ms) · LOD 1/3 · latency 11.8 ms");
+        timing_line(&mut s, 0, None, &Shown::default(), None);
+        assert_eq!(s, "frame 0.0 ms · LOD off · latency --");
+        let fixed = Shown {
+            level: 2,
+            coarsest: 2,
+            auto: false,
+            ..auto
+        };
+        timing_line(&mut s, 0, None, &fixed, None);
+        assert_eq!(s, "frame 0.0 ms · LOD 2 fixed · latency --");
+        // Auto on a mesh too small for levels: every triangle.
+        let small = Shown {
+            level: 0,
+            coarsest: 0,
+            ..auto
+        };
+        timing_line(&mut s, 0, None, &small, None);
+        assert_eq!(s, "frame 0.0 ms · LOD off · latency --");
     }
 
     #[test]
