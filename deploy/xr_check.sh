@@ -32,13 +32,16 @@ mkdir -p "$OUT"
 
 # --- what the build needs -------------------------------------------------------------------------
 missing=()
-for tool in cmake ninja c++ pkg-config git glslangValidator; do
+for tool in cmake ninja c++ pkg-config git glslangValidator python3 cargo; do
   command -v "$tool" >/dev/null || missing+=("$tool")
 done
 for pc in eigen3 vulkan x11-xcb xcb-randr libudev; do
   pkg-config --exists "$pc" 2>/dev/null || missing+=("$pc (pkg-config)")
 done
-ldconfig -p | grep -q 'libopenxr_loader.so.1' || missing+=("libopenxr_loader.so.1")
+# ldconfig lives in /sbin (not on a Debian user's PATH); read its list whole (grep -q stopping early
+# would SIGPIPE ldconfig and, under pipefail, read as "missing").
+libs=$(PATH=$PATH:/sbin:/usr/sbin ldconfig -p 2>/dev/null || true)
+grep -q 'libopenxr_loader.so.1' <<<"$libs" || missing+=("libopenxr_loader.so.1")
 if [ ${#missing[@]} -gt 0 ]; then
   die "missing: ${missing[*]}. Install (Debian/Ubuntu, as root): apt-get install cmake ninja-build g++ \
 pkg-config git libeigen3-dev glslang-tools libvulkan-dev libx11-xcb-dev libxcb-randr0-dev libudev-dev \
@@ -50,6 +53,9 @@ if [ ! -d "$MONADO_DIR/.git" ]; then
   say "cloning Monado from $MONADO_GIT into $MONADO_DIR"
   mkdir -p "$(dirname "$MONADO_DIR")"
   git clone --quiet "$MONADO_GIT" "$MONADO_DIR"
+elif ! git -C "$MONADO_DIR" cat-file -e "$MONADO_COMMIT^{commit}" 2>/dev/null; then
+  say "fetching $MONADO_COMMIT from $MONADO_GIT into $MONADO_DIR"
+  git -C "$MONADO_DIR" fetch --quiet "$MONADO_GIT" || true
 fi
 git -C "$MONADO_DIR" checkout --quiet "$MONADO_COMMIT" ||
   die "commit $MONADO_COMMIT is not in $MONADO_DIR (clone of $MONADO_GIT): set MONADO_GIT to a clone that has it"
