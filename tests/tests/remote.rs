@@ -301,7 +301,7 @@ fn demo_and_joined_site(via_router: bool) {
         // The source's serve answered the relay's probes, no more than the relay sent.
         let sent = count_before(&text, "probes to the source").expect("the relay's probes");
         let source = count_before(&demo_text, "probes answered").expect("serve's counters");
-        assert!(source <= sent, "{demo_text}\n{text}");
+        assert!(source >= 1 && source <= sent, "{demo_text}\n{text}");
     } else {
         assert!(
             site_text.contains("clock sync with the source"),
@@ -378,7 +378,9 @@ fn the_harness_through_a_router_reports_the_sources_own_cost() {
             > 1.5 * v["probes_per_minute"].as_f64().unwrap(),
         "{v}"
     );
-    assert!(relay["threads_cpu_percent"].as_f64().unwrap() >= 0.0, "{v}");
+    // Its own threads did the answering (a figure, not a budget: > 0 and below a whole core's half).
+    let cpu = relay["threads_cpu_percent"].as_f64().unwrap();
+    assert!(cpu > 0.0 && cpu < 50.0, "{v}");
     assert!(relay["offset_ms"].as_f64().unwrap().abs() < 1.0, "{v}");
     for s in v["per_site"].as_array().unwrap() {
         assert_eq!(s["ticks_differing"], 0, "{s}");

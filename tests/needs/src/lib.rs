@@ -356,8 +356,20 @@ pub fn free_local_port() -> u16 {
     const LOW: u32 = 20_000;
     const SPAN: u32 = 10_000;
     static NEXT: AtomicU32 = AtomicU32::new(0);
-    // Where this process starts in the span: runs one after another do not reuse the same ports.
-    let start = (std::process::id() % 100) * (SPAN / 100);
+    // Where this process starts in the span, from its pid and the time, spread over the whole
+    // span: two test binaries running at once (parallel cargo runs on one machine) start far apart.
+    static START: std::sync::OnceLock<u32> = std::sync::OnceLock::new();
+    let start = *START.get_or_init(|| {
+        use std::hash::{BuildHasher, Hasher};
+        let mut h = std::collections::hash_map::RandomState::new().build_hasher();
+        h.write_u32(std::process::id());
+        h.write_u128(
+            std::time::SystemTime::now()
+                .duration_since(std::time::UNIX_EPOCH)
+                .map_or(0, |d| d.as_nanos()),
+        );
+        (h.finish() % u64::from(SPAN)) as u32
+    });
     loop {
         let n = NEXT.fetch_add(1, Ordering::Relaxed);
         assert!(
