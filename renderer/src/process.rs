@@ -1068,7 +1068,7 @@ fn run_xr(args: &RendererArgs) -> Result<(), RendererError> {
         session.renderer.image_size(),
     );
     let mut result = Ok(());
-    while !session.should_stop() && !output.exiting {
+    while !session.should_stop() && !output.should_stop() {
         if let Err(e) = session.step(&mut output) {
             result = Err(e);
             break;

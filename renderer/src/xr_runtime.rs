@@ -431,8 +431,11 @@ pub struct XrOutput {
     views: Option<[xr::View; 2]>,
     acquired: Option<u32>,
     running: bool,
-    /// The runtime ended the session (or lost it): the renderer stops.
-    pub exiting: bool,
+    /// The runtime ended the session (or lost it): the renderer stops, and needs not end it.
+    exiting: bool,
+    /// The renderer met an error of its own mid-run ([`Self::error`]): it stops, and still ends
+    /// the session as OpenXR asks (the runtime did not).
+    failed: bool,
     /// The first error the runtime reported mid-run; the renderer stops with it.
     pub error: Option<XrError>,
     events: xr::EventDataBuffer,
@@ -562,6 +565,7 @@ impl XrOutput {
             acquired: None,
             running: false,
             exiting: false,
+            failed: false,
             error: None,
             events: xr::EventDataBuffer::new(),
             blit: None,
@@ -584,7 +588,12 @@ impl XrOutput {
         if self.error.is_none() {
             self.error = Some(e);
         }
-        self.exiting = true;
+        self.failed = true;
+    }
+
+    /// Whether the frame loop stops: the runtime ended the session, or the renderer failed.
+    pub fn should_stop(&self) -> bool {
+        self.exiting || self.failed
     }
 
     /// Follow the session's state: begin when ready, end when stopping, stop when exiting.
@@ -837,8 +846,9 @@ impl XrOutput {
             )?;
         }
         call("xrRequestExitSession", self.session.request_exit())?;
-        // Each pass ends one frame at most (the runtime's frame period), so this is about a second.
-        for _ in 0..60 {
+        // Each pass ends one frame at most (one runtime frame period); bounded by time, not passes.
+        let give_up = std::time::Instant::now() + std::time::Duration::from_secs(2);
+        while std::time::Instant::now() < give_up {
             self.poll_events()?;
             if self.exiting {
                 return Ok(());
