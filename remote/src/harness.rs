@@ -12,7 +12,7 @@
 //! scouting off.
 //!
 //! V(t) is what each engine shows at wall time t: the volume of the last tick it stepped by then
-//! (both lungs), sampled every millisecond; so the drift includes the OS's lateness in waking each
+//! (both lungs), integrated exactly between the two engines' step times; so the drift includes the OS's lateness in waking each
 //! thread, not only the protocol. `drift_percent_mean_scheduled` evaluates the same at each
 //! engine's scheduled tick times (the protocol's own error: offset estimate and state timing).
 
@@ -32,6 +32,7 @@ use transport::clock::now_ns;
 use transport::pacer::PacerConfig;
 
 use crate::link::Impairment;
+use crate::measure::Lateness;
 use crate::relay::{Relay, RelayCounts};
 use crate::site::{ClockSync, Runner, Site};
 
@@ -170,6 +171,8 @@ pub struct SiteReport {
     pub jitter_ms: f64,
     /// Estimated clock offset, ms (the true one is 0: one machine, one clock).
     pub offset_ms: f64,
+    /// How late the site's tick thread stepped each tick after its scheduled time.
+    pub lateness: Lateness,
 }
 
 /// The time relay's figures over the measured window (through a router).
@@ -243,6 +246,9 @@ pub struct HarnessReport {
     pub probes_per_minute: f64,
     /// Sites the source saw present at the end (their liveliness tokens).
     pub sites_seen_by_source: usize,
+    /// How late the source's tick thread stepped each tick after its deadline (a site's drift at
+    /// actual step times follows the difference of its lateness and this).
+    pub source_lateness: Lateness,
     /// Deadlines the source engine skipped (woken too late to catch up): each shifts its later
     /// ticks a period from the schedule every site follows, until the next state.
     pub source_deadlines_skipped: u64,
@@ -441,32 +447,60 @@ pub fn run_site(mut runner: Runner, stop: &AtomicBool) -> Result<Vec<Rec>, Remot
     Ok(recs)
 }
 
-/// Volume shown at `t` by a record list sorted by the chosen time: the last record at or before.
-fn shown_at(recs: &[Rec], t: i128, sched: bool) -> Option<&Rec> {
-    let time = |r: &Rec| if sched { r.0 } else { r.1 as i128 };
-    let i = recs.partition_point(|r| time(r) <= t);
-    (i > 0).then(|| &recs[i - 1])
+/// How late the records' ticks were stepped after their scheduled times.
+fn lateness(recs: &[Rec]) -> Lateness {
+    Lateness::of(recs.iter().map(|r| (r.0, r.1 as i128)))
 }
 
-/// Per-cycle drift of `site` against `source` over `[from, to)` sampled every ms: (mean over
-/// cycles, worst cycle), %.
+/// Per-cycle drift of `site` against `source` over `[from, to)`: (mean over cycles, worst cycle),
+/// %. Each engine shows the volume of the last tick it stepped (at its actual or, with `sched`,
+/// its scheduled time) until its next, so |V_site(t) − V_source(t)| is piecewise constant and
+/// its mean over each of the source's cycles is integrated exactly, segment by segment between
+/// the two lists' step times. (Sampling it on a 1 ms grid, as the harness did before, aliases: the
+/// 60 Hz period is 50/3 ms, so the grid meets the ticks at only three phases, and two engines a
+/// fraction of a millisecond apart measured either 0 or ≈ 0.016 % depending on whether a phase fell
+/// between their step times.)
 fn drift(source: &[Rec], site: &[Rec], from: i128, to: i128, tv: f64, sched: bool) -> (f64, f64) {
-    let mut cycles: Vec<(u32, f64, u64)> = Vec::new();
+    let time = |r: &Rec| if sched { r.0 } else { r.1 as i128 };
+    // The records shown at `t`: the last at or before it in each list (both sorted by `time`).
+    let (mut i, mut j) = (
+        source.partition_point(|r| time(r) <= from),
+        site.partition_point(|r| time(r) <= from),
+    );
+    // (source's cycle, ∫|ΔV|/TV dt in %·ns, ns with both shown).
+    let mut cycles: Vec<(u32, f64, f64)> = Vec::new();
     let mut t = from;
     while t < to {
-        if let (Some(a), Some(b)) = (shown_at(source, t, sched), shown_at(site, t, sched)) {
+        let next = [source.get(i), site.get(j)]
+            .into_iter()
+            .flatten()
+            .map(time)
+            .fold(to, i128::min);
+        if let (Some(a), Some(b)) = (i.checked_sub(1), j.checked_sub(1)) {
+            let (a, b) = (&source[a], &site[b]);
+            let dt = (next - t) as f64;
             let d = (a.3 as f64 - b.3 as f64).abs() / tv * 100.0;
             match cycles.last_mut() {
                 Some(c) if c.0 == a.4 => {
-                    c.1 += d;
-                    c.2 += 1;
+                    c.1 += d * dt;
+                    c.2 += dt;
                 }
-                _ => cycles.push((a.4, d, 1)),
+                _ => cycles.push((a.4, d * dt, dt)),
             }
         }
-        t += 1_000_000;
+        t = next;
+        while source.get(i).is_some_and(|r| time(r) <= t) {
+            i += 1;
+        }
+        while site.get(j).is_some_and(|r| time(r) <= t) {
+            j += 1;
+        }
     }
-    let per: Vec<f64> = cycles.iter().map(|c| c.1 / c.2 as f64).collect();
+    let per: Vec<f64> = cycles
+        .iter()
+        .filter(|c| c.2 > 0.0)
+        .map(|c| c.1 / c.2)
+        .collect();
     let mean = per.iter().sum::<f64>() / per.len().max(1) as f64;
     (mean, per.iter().copied().fold(0.0, f64::max))
 }
@@ -984,6 +1018,7 @@ pub fn run(args: &HarnessArgs) -> Result<HarnessReport, RemoteError> {
             delay_ms: site.path.delay_ns.load(Ordering::Relaxed) as f64 / 1e6,
             jitter_ms: site.path.jitter_ns.load(Ordering::Relaxed) as f64 / 1e6,
             offset_ms: site.path.offset_ns.load(Ordering::Relaxed) as f64 / 1e6,
+            lateness: lateness(r),
         });
     }
     let minutes = source_recs.len() as f64 / hz / 60.0;
@@ -1039,6 +1074,7 @@ pub fn run(args: &HarnessArgs) -> Result<HarnessReport, RemoteError> {
         relay: relay_report,
         probes_per_minute: outcome.probes as f64 / minutes,
         sites_seen_by_source: outcome.sites_seen,
+        source_lateness: lateness(&source_recs),
         source_deadlines_skipped: outcome.deadlines_skipped,
         source_cpu_s: cost.map(|c| c.cpu_s),
         source_cpu_percent: per_minute(|c| c.cpu_s).map(|v| v / 60.0 * 100.0),
@@ -1050,6 +1086,14 @@ pub fn run(args: &HarnessArgs) -> Result<HarnessReport, RemoteError> {
         load_average_1min: load_average(),
         per_site,
     })
+}
+
+/// A lateness summary in words.
+fn lateness_words(l: &Lateness) -> String {
+    format!(
+        "mean {:.3} ms, p50 {:.3}, p90 {:.3}, p99 {:.3}, max {:.3} ms",
+        l.mean_ms, l.p50_ms, l.p90_ms, l.p99_ms, l.max_ms
+    )
 }
 
 /// The report in words.
@@ -1085,6 +1129,10 @@ pub fn print(r: &HarnessReport) {
         r.source_deadlines_skipped
     );
     println!("clock sync: {}", r.clock_sync);
+    println!(
+        "step lateness (actual − scheduled): source {}",
+        lateness_words(&r.source_lateness)
+    );
     if let Some(x) = &r.relay {
         println!(
             "time relay: answered {:.0} site probes/min ({:.0} reply bytes/min), sent {:.0} \
@@ -1124,7 +1172,7 @@ pub fn print(r: &HarnessReport) {
         println!(
             "  site {k}: drift {:.5} % (worst {:.5} %), phase {:.3} ms, {} ticks ({} differ from \
              the source's), {} states, {} lost, {} refused, {} predicted cycles, delay {:.2} ms, \
-             jitter {:.2} ms, offset {:.3} ms",
+             jitter {:.2} ms, offset {:.3} ms; step lateness {}",
             s.drift_percent_mean,
             s.drift_percent_worst,
             s.phase_error_ms_mean,
@@ -1136,7 +1184,8 @@ pub fn print(r: &HarnessReport) {
             s.predicted_cycles,
             s.delay_ms,
             s.jitter_ms,
-            s.offset_ms
+            s.offset_ms,
+            lateness_words(&s.lateness)
         );
     }
 }
@@ -1144,6 +1193,50 @@ pub fn print(r: &HarnessReport) {
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    /// Ticks at 60 Hz from 1 s on breathing a triangle wave of 0 → 500 ml → 0 over `n` ticks
+    /// (cycle k / n), each stepped `late` ns after its scheduled time.
+    fn triangle(n: u64, cycles: u64, late: i128) -> Vec<Rec> {
+        (0..n * cycles)
+            .map(|k| {
+                let sched = 1_000_000_000 + (k as f64 * 1e9 / 60.0).round() as i128;
+                let p = k % n;
+                let v = 500.0 * (p.min(n - p) as f32) / (n / 2) as f32;
+                (sched, (sched + late) as u64, k, v, (k / n) as u32)
+            })
+            .collect()
+    }
+
+    /// A site stepping the source's volumes δ later shows the previous tick's for δ of each tick:
+    /// over a cycle Σ|ΔV| = 2 TV, so the drift is 2 δ / cycle length, at every δ. The 1 ms grid
+    /// the harness sampled before met the 50/3 ms ticks at three phases only: started at the
+    /// source's step time, as here, it measured 0.0133 % for δ = 10 µs (the true 0.0004 %), and
+    /// started just after the site's step it measured 0 — the same two engines, 0 or ≈ 0.013 %.
+    #[test]
+    fn drift_is_the_exact_mean_of_the_volume_difference_whatever_the_ticks_phase() {
+        let (n, cycles) = (300u64, 4u64);
+        let cycle_ns = n as f64 * 1e9 / 60.0;
+        let source = triangle(n, cycles, 100_000);
+        let from = source[0].1 as i128;
+        let to = source.last().unwrap().1 as i128;
+        for delta_us in [10i128, 50, 85, 150, 400] {
+            let site = triangle(n, cycles, 100_000 + delta_us * 1000);
+            let (mean, worst) = drift(&source, &site, from, to, 500.0, false);
+            let want = 2.0 * (delta_us * 1000) as f64 / cycle_ns * 100.0;
+            assert!(
+                (mean - want).abs() < 1e-3 * want && (worst - want).abs() < 1e-3 * want,
+                "δ = {delta_us} µs: drift {mean} % (worst {worst} %), want {want} %"
+            );
+            // A site as much early drifts as much; at the scheduled times (both on time) none.
+            let early = triangle(n, cycles, 100_000 - delta_us * 1000);
+            let (m, _) = drift(&source, &early, from, to, 500.0, false);
+            assert!(
+                (m - want).abs() < 1e-3 * want,
+                "early by {delta_us} µs: {m} %"
+            );
+            assert_eq!(drift(&source, &site, from, to, 500.0, true), (0.0, 0.0));
+        }
+    }
 
     /// Each outcome of the netem probe is named precisely (the words `tc` and `unshare` print).
     #[test]

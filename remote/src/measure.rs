@@ -83,6 +83,48 @@ pub fn tcp_bytes() -> Option<(u64, u64)> {
     (!any_short).then_some((sent, received))
 }
 
+/// How late a thread stepped its ticks: each tick's actual step time (taken after the step) minus
+/// the time it was scheduled for, ms. The harness reports it for the source and for each site: the
+/// drift at actual step times is, to first order, the *difference* of two engines' lateness times
+/// the breath's volume rate, so a constant per-step lateness at one side is a constant drift.
+#[derive(Debug, Clone, Copy, Default, PartialEq, serde::Serialize, serde::Deserialize)]
+pub struct Lateness {
+    /// Ticks counted.
+    pub ticks: usize,
+    /// Mean, ms.
+    pub mean_ms: f64,
+    /// Median, ms.
+    pub p50_ms: f64,
+    /// 90th percentile, ms.
+    pub p90_ms: f64,
+    /// 99th percentile, ms.
+    pub p99_ms: f64,
+    /// Largest, ms.
+    pub max_ms: f64,
+}
+
+impl Lateness {
+    /// The figures of `(scheduled ns, actual ns)` pairs (a tick stepped early counts negative);
+    /// all zero for none.
+    pub fn of(ticks: impl Iterator<Item = (i128, i128)>) -> Self {
+        let mut ms: Vec<f64> = ticks.map(|(s, a)| (a - s) as f64 / 1e6).collect();
+        if ms.is_empty() {
+            return Self::default();
+        }
+        ms.sort_by(f64::total_cmp);
+        // Nearest rank: the smallest value with at least q of them at or below it.
+        let q = |q: f64| ms[((q * ms.len() as f64).ceil() as usize).clamp(1, ms.len()) - 1];
+        Self {
+            ticks: ms.len(),
+            mean_ms: ms.iter().sum::<f64>() / ms.len() as f64,
+            p50_ms: q(0.5),
+            p90_ms: q(0.9),
+            p99_ms: q(0.99),
+            max_ms: ms[ms.len() - 1],
+        }
+    }
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;
@@ -125,5 +167,25 @@ mod tests {
         assert!(thread > 0.0, "{thread}");
         // The process's time includes this thread's (read after it; 1 ms for the clock's grain).
         assert!(process >= thread - 1e-3, "{process} < {thread}");
+    }
+
+    #[test]
+    fn lateness_is_actual_minus_scheduled_with_nearest_rank_percentiles() {
+        assert_eq!(Lateness::of(std::iter::empty()), Lateness::default());
+        // 100 ticks late by 0.01, 0.02, ..., 1.00 ms (in reverse order), scheduled anywhere.
+        let l = Lateness::of(
+            (1..=100)
+                .rev()
+                .map(|k| (k * 7_000_000, k * 7_000_000 + k * 10_000)),
+        );
+        assert_eq!(l.ticks, 100);
+        assert!((l.mean_ms - 0.505).abs() < 1e-12, "{l:?}");
+        assert_eq!(
+            (l.p50_ms, l.p90_ms, l.p99_ms, l.max_ms),
+            (0.5, 0.9, 0.99, 1.0)
+        );
+        // A tick stepped before its time counts negative.
+        let early = Lateness::of([(2_000_000, 1_500_000)].into_iter());
+        assert_eq!((early.mean_ms, early.max_ms), (-0.5, -0.5));
     }
 }

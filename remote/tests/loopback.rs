@@ -54,7 +54,15 @@ fn a_site_joins_and_breathes_the_sources_ticks_bit_for_bit() {
         // One machine, one clock: the offset estimate is within a millisecond of 0.
         assert!(s.offset_ms.abs() < 1.0, "{s:?}");
         assert!(s.phase_error_ms_worst < 1.0, "{s:?}");
+        // Every stepped tick's lateness is counted, its percentiles in order.
+        let l = &s.lateness;
+        assert_eq!(l.ticks, s.ticks, "{s:?}");
+        assert!(
+            l.p50_ms <= l.p90_ms && l.p90_ms <= l.p99_ms && l.p99_ms <= l.max_ms,
+            "{l:?}"
+        );
     }
+    assert!(r.source_lateness.ticks > 120, "{:?}", r.source_lateness);
     // One state per 2 s cycle against 60 frames a second.
     assert!(r.reduction > 100.0, "{r:?}");
 }
