@@ -276,7 +276,7 @@ fn sh_coeffs(alpha: f64, projection: &[f64], w: &ForceWeights) -> Vec<f32> {
 
 /// Run the trade study.
 pub fn run(args: &TradeoffArgs) -> anyhow::Result<Tradeoff> {
-    let load_at_start = load_average();
+    let load_at_start = lungdyn_remote::measure::load_average();
     if args.sizes.is_empty()
         || args
             .sizes
@@ -655,7 +655,7 @@ pub fn run(args: &TradeoffArgs) -> anyhow::Result<Tradeoff> {
         gpu: gpu_name,
         stereo,
         copy: copies,
-        load_average: [load_at_start, load_average()],
+        load_average: [load_at_start, lungdyn_remote::measure::load_average()],
         min_slope_ratio: lung_model::orientation::DEFAULT_MIN_SLOPE_RATIO,
         files: Vec::new(),
     };
@@ -794,16 +794,6 @@ fn stereo_figure(
         deform_ms: median_of(deform).unwrap_or(f64::NAN),
         rate_ratio: median_of(ratio).unwrap_or(f64::NAN),
     })
-}
-
-/// The 1-minute load average (`/proc/loadavg`), where the system has one.
-fn load_average() -> Option<f64> {
-    std::fs::read_to_string("/proc/loadavg")
-        .ok()?
-        .split_whitespace()
-        .next()?
-        .parse()
-        .ok()
 }
 
 fn fmt_opt(v: Option<f64>, digits: usize) -> String {

@@ -7,8 +7,7 @@
 //! (states and probe replies at the sites, probes at the source: both directions), by
 //! [`crate::link`]: netem in network namespaces needs `CAP_NET_ADMIN` and veth plumbing per site,
 //! which this harness does not do; with an impairment it probes netem once ([`netem_probe`], in a
-//! private network namespace) and says in `emulation` precisely why netem is not used (here: the
-//! kernel has no `sch_netem`). Zenoh itself runs over real TCP on 127.0.0.1 with multicast
+//! private network namespace) and says in `emulation` precisely why netem is not used. Zenoh itself runs over real TCP on 127.0.0.1 with multicast
 //! scouting off.
 //!
 //! V(t) is what each engine shows at wall time t: the volume of the last tick it stepped by then
@@ -839,16 +838,6 @@ pub fn netem_reason(out: std::io::Result<(bool, String)>) -> String {
     }
 }
 
-/// The machine's 1-minute load average.
-fn load_average() -> Option<f64> {
-    std::fs::read_to_string("/proc/loadavg")
-        .ok()?
-        .split_whitespace()
-        .next()?
-        .parse()
-        .ok()
-}
-
 /// Run the harness.
 pub fn run(args: &HarnessArgs) -> Result<HarnessReport, RemoteError> {
     let imp = check(args)?;
@@ -1083,7 +1072,7 @@ pub fn run(args: &HarnessArgs) -> Result<HarnessReport, RemoteError> {
         source_tcp_bytes_sent_per_minute: per_minute(|c| c.tcp_bytes_sent as f64),
         source_tcp_bytes_received_per_minute: per_minute(|c| c.tcp_bytes_received as f64),
         harness_cpu_s,
-        load_average_1min: load_average(),
+        load_average_1min: crate::measure::load_average(),
         per_site,
     })
 }
@@ -1136,8 +1125,8 @@ pub fn print(r: &HarnessReport) {
     if let Some(x) = &r.relay {
         println!(
             "time relay: answered {:.0} site probes/min ({:.0} reply bytes/min), sent {:.0} \
-             probes/min to the source, its threads {:.3} % of a core, {} probe(s) before it had \
-             an offset; its offset to the source {}, delay {:.2} ms",
+             probes/min to the source, its threads {:.3} % of a core, {} probe(s) before it \
+             answered (8 source replies); its offset to the source {}, delay {:.2} ms",
             x.probes_answered_per_minute,
             x.reply_bytes_per_minute,
             x.probes_to_source_per_minute,

@@ -125,6 +125,17 @@ impl Lateness {
     }
 }
 
+/// The machine's 1-minute load average (`/proc/loadavg`), where the system has one: reports say
+/// how busy the machine was while they measured.
+pub fn load_average() -> Option<f64> {
+    std::fs::read_to_string("/proc/loadavg")
+        .ok()?
+        .split_whitespace()
+        .next()?
+        .parse()
+        .ok()
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;

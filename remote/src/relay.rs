@@ -12,8 +12,11 @@
 //! **Error budget**: the two estimates' errors add. Each is the mean over the quickest half of the
 //! last 10 s of probes of half the path's asymmetry ([`crate::clock`]); under 20 ± 5 ms each way
 //! on both legs the harness measured 0.16 ms on one leg; independent errors add as √2 of one leg
-//! in the mean, at worst twice. The relay's clock-rate difference to the source between its own
-//! probes adds ≤ rate × probe interval (50 ppm × 100 ms = 5 µs).
+//! in the mean, at worst twice. The clocks' rate difference adds a lag: the relay's offset is a
+//! mean over its last 10 s of probes, so it trails the true offset by about rate × 5 s (50 ppm: 0.25
+//! ms, as peer to peer, [`crate::clock`]), and a site's mean over 10 s of the relay's replies
+//! trails that again — up to ≈ 0.5 ms at 50 ppm between machines (0 on one machine, so the loopback
+//! harness cannot show it).
 //!
 //! Why not Zenoh's timestamps: a router stamps a sample with its hybrid logical clock on the way
 //! through, which gives every site the same *order*, but a single stamp of a one-way trip is
@@ -231,7 +234,13 @@ impl Relay {
         })
     }
 
-    /// The relay's offset to the source (source − relay), ns, once it has one.
+    /// Whether the relay answers the sites' probes: it has [`MIN_REPLIES`] replies from the source.
+    pub fn answering(&self) -> bool {
+        self.counts.source_replies.load(Ordering::Relaxed) >= MIN_REPLIES
+    }
+
+    /// The relay's offset to the source (source − relay), ns, once it has one (from the first
+    /// reply on; the sites are answered only once it is [`Self::answering`]).
     pub fn offset_ns(&self) -> Option<i64> {
         self.path
             .have_offset

@@ -442,7 +442,7 @@ pub fn router(args: &RouterArgs) -> Result<(), RemoteError> {
     let mut silent = false;
     while transport::stop::idle(Duration::from_millis(100)) && until.is_none_or(|t| now_ns() < t) {
         let c = &relay.counts;
-        if let (Some(o), false) = (relay.offset_ns(), synced) {
+        if let (Some(o), true, false) = (relay.offset_ns(), relay.answering(), synced) {
             synced = true;
             eprintln!(
                 "remote router: clock relay in step with the source (offset {:.3} ms, delay {:.2} \
@@ -474,11 +474,12 @@ pub fn router(args: &RouterArgs) -> Result<(), RemoteError> {
     let c = &relay.counts;
     eprintln!(
         "remote router: relay sent {} probes to the source ({} answered); answered {} site \
-         probes, {} before it had an offset, {} refused",
+         probes, {} before it had {} source replies, {} refused",
         c.probes_to_source.load(Ordering::Relaxed),
         c.source_replies.load(Ordering::Relaxed),
         c.answered.load(Ordering::Relaxed),
         c.unanswered.load(Ordering::Relaxed),
+        crate::relay::MIN_REPLIES,
         c.refused.load(Ordering::Relaxed)
     );
     Ok(())
