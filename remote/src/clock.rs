@@ -32,6 +32,30 @@ pub struct ProbeStamps {
 }
 
 impl ProbeStamps {
+    /// The stamps of a probe reply addressed to `me` and received at `t3` (our clock), with the
+    /// answerer's id; `None` for any other packet.
+    pub fn of_reply(packet: &control_state::Packet, me: u64, t3: u64) -> Option<(u64, Self)> {
+        match *packet {
+            control_state::Packet::ProbeReply {
+                from,
+                to,
+                t0_ns,
+                t1_ns,
+                t2_ns,
+                ..
+            } if to == me => Some((
+                from,
+                Self {
+                    t0: t0_ns,
+                    t1: t1_ns,
+                    t2: t2_ns,
+                    t3,
+                },
+            )),
+            _ => None,
+        }
+    }
+
     /// Round trip without the source's hold, ns (`None` when the stamps are inconsistent).
     pub fn rtt_ns(&self) -> Option<i64> {
         let total = self.t3 as i128 - self.t0 as i128;

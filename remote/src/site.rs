@@ -231,19 +231,9 @@ impl Site {
                         Err(e) => refuse(&r, &c, e.to_string()),
                     }
                 }
-                Ok(Packet::ProbeReply {
-                    from,
-                    to,
-                    t0_ns,
-                    t1_ns,
-                    t2_ns,
-                    ..
-                }) if to == id => {
-                    let stamps = ProbeStamps {
-                        t0: t0_ns,
-                        t1: t1_ns,
-                        t2: t2_ns,
-                        t3: at,
+                Ok(ref packet @ Packet::ProbeReply { to, .. }) if to == id => {
+                    let Some((from, stamps)) = ProbeStamps::of_reply(packet, id, at) else {
+                        return;
                     };
                     if p.take(&mut estimator, stamps, from) {
                         c.probes.fetch_add(1, Ordering::Relaxed);
