@@ -129,5 +129,39 @@ done
   inside "journalctl -b --no-pager -o short-precise -u 'lungdyn-*' | grep -E 'Watchdog timeout|Killing process|Scheduled restart|Started lungdyn'"
   echo '```'
 } >>"$report"
+# A process that fails at every start (a drop-in makes the engine's ExecStart /bin/false): systemd
+# restarts it RestartSec apart until StartLimitBurst starts within StartLimitIntervalSec, then leaves
+# it failed ("Start request repeated too quickly"; systemd 252 keeps Result=exit-code, newer ones say
+# start-limit-hit) — it must not spin for ever, nor give up at once.
+burst=$(inside "systemctl show -p StartLimitBurst --value lungdyn-engine")
+t0=$(now)
+inside "mkdir -p /run/systemd/system/lungdyn-engine.service.d &&
+  printf '[Service]\nExecStart=\nExecStart=/bin/false\n' >/run/systemd/system/lungdyn-engine.service.d/crash.conf &&
+  systemctl daemon-reload && systemctl reset-failed lungdyn-engine; systemctl restart lungdyn-engine" || true
+limit=""
+for _ in $(seq 900); do  # up to 90 s
+  j=$(inside "journalctl -b -u lungdyn-engine.service --no-pager -q -o short-unix --since=@${t0%.*}")
+  limit=$(echo "$j" | awk -v t="$t0" '/Start request repeated too quickly/ && $1 >= t {print $1; exit}')
+  [ -n "$limit" ] && [ "$(inside "systemctl show -p ActiveState --value lungdyn-engine")" = failed ] && break
+  sleep 0.1
+done
+result=$(inside "systemctl show -p Result --value lungdyn-engine")
+starts=$(echo "$j" | awk -v t="$t0" '/Starting lungdyn-engine/ && $1 >= t' | wc -l)
+gave_up=$(awk -v a="$t0" -v b="${limit:-$t0}" 'BEGIN{printf "%.1f", b-a}')
+inside "rm -rf /run/systemd/system/lungdyn-engine.service.d && systemctl daemon-reload &&
+  systemctl reset-failed lungdyn-engine && systemctl start lungdyn-engine" || true
+{
+  echo
+  echo "A crash loop (the engine's ExecStart replaced by /bin/false in a drop-in): systemd started it"
+  if [ -n "$limit" ]; then
+    echo "$starts times and gave up after $gave_up s (\"Start request repeated too quickly\", Result=$result;"
+  else
+    echo "$starts times and had **not** given up after 90 s (Result=$result;"
+  fi
+  echo "StartLimitBurst=$burst in StartLimitIntervalSec=60, RestartSec=$restart)."
+} >>"$report"
+if [ -z "$limit" ]; then
+  echo "the crash loop was not stopped by the start limit" >&2; fail=1
+fi
 cat "$report"
-[ "$fail" = 0 ] || die "a unit was not restarted within WatchdogSec + 1 s (see $report)"
+[ "$fail" = 0 ] || die "a unit was not restarted within WatchdogSec + 1 s, or a crash loop was not stopped (see $report)"
