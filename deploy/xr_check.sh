@@ -35,6 +35,8 @@ missing=()
 for tool in cmake ninja c++ pkg-config git glslangValidator python3 cargo; do
   command -v "$tool" >/dev/null || missing+=("$tool")
 done
+# libudev although Monado is configured with XRT_HAVE_LIBUDEV=OFF below: its CMakeLists asks
+# `find_package(udev REQUIRED)` on Linux whatever the option says.
 for pc in eigen3 vulkan x11-xcb xcb-randr libudev; do
   pkg-config --exists "$pc" 2>/dev/null || missing+=("$pc (pkg-config)")
 done
