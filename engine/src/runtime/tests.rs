@@ -1159,12 +1159,10 @@ impl transport::Publish<EngineFrame> for Paced {
 /// fed states without the announcement does not.
 #[test]
 fn actions_are_announced_with_their_tick_ahead_and_a_late_site_applies_them_at_that_tick() {
-    use control_state::{decode, ControlStateFrame, Packet};
+    use control_state::{decode, Packet};
     use ipc_types::{ControlPacket, ControlReply, Intervention};
-    use process::{run_loop, Controls, StateOut};
     use transport::memory::{Recorder, Scripted};
-    use transport::pacer::PacerConfig;
-    use transport::{Clock, FakeClock};
+    use transport::FakeClock;
     const P: u64 = 16_666_667;
     const DELAY: u64 = 30;
     let tension = "kind = \"tension-pneumothorax\"\nside = \"left\"\n";
@@ -1181,32 +1179,17 @@ fn actions_are_announced_with_their_tick_ahead_and_a_late_site_applies_them_at_t
     let clock = FakeClock::at(0);
     let mut inlet = Scripted::new(&clock, arrivals, 256);
     let mut replies = Recorder::<ControlReply>::new(&clock);
-    let mut tracker = Scripted::<TrackerFrame>::new(&clock, vec![], 4);
     let mut frames = Paced(Vec::new());
-    let mut outlet = Recorder::<ControlStateFrame>::new(&clock);
-    let published = outlet.clone();
-    let c = clock.clone();
-    let stats = run_loop(
+    let (stats, published) = run_publishing_state(
         &mut disease_core(tension),
-        &mut tracker,
+        &mut inlet,
+        &mut replies,
         &mut frames,
-        Some(Controls {
-            inlet: &mut inlet,
-            replies: &mut replies,
-            state: Some(StateOut {
-                outlet: &mut outlet,
-                source: 77,
-                epoch: 1,
-                tick_hz: 60.0,
-            }),
-        }),
         &clock,
-        PacerConfig::for_period(P),
-        &mut || c.now_ns() >= 1500 * P,
-        None,
-        0,
-    )
-    .unwrap();
+        P,
+        77,
+        1500 * P,
+    );
     assert_eq!(stats.actions.repeated, 1);
     assert_eq!(stats.actions.applied, 12);
     assert_eq!((stats.events_announced, stats.events_unannounced), (12, 0));
@@ -1604,42 +1587,25 @@ impl transport::Publish<EngineFrame> for Stalls {
 /// classroom harness's 33 ms phase errors on a loaded machine).
 #[test]
 fn a_skipped_deadline_publishes_a_state_with_the_new_schedule() {
-    use control_state::{decode, ControlStateFrame, Packet};
+    use control_state::{decode, Packet};
     use ipc_types::{ControlPacket, ControlReply};
-    use process::{run_loop, Controls, StateOut};
     use transport::memory::{Recorder, Scripted};
-    use transport::pacer::PacerConfig;
-    use transport::{Clock, FakeClock};
+    use transport::FakeClock;
     const P: u64 = 16_666_667;
     let clock = FakeClock::at(0);
     let mut inlet = Scripted::<ControlPacket>::new(&clock, vec![], 4);
     let mut replies = Recorder::<ControlReply>::new(&clock);
-    let mut tracker = Scripted::<TrackerFrame>::new(&clock, vec![], 4);
     let mut frames = Stalls(Vec::new(), clock.clone(), P);
-    let mut outlet = Recorder::<ControlStateFrame>::new(&clock);
-    let published = outlet.clone();
-    let c = clock.clone();
-    let stats = run_loop(
+    let (stats, published) = run_publishing_state(
         &mut core(),
-        &mut tracker,
+        &mut inlet,
+        &mut replies,
         &mut frames,
-        Some(Controls {
-            inlet: &mut inlet,
-            replies: &mut replies,
-            state: Some(StateOut {
-                outlet: &mut outlet,
-                source: 7,
-                epoch: 1,
-                tick_hz: 60.0,
-            }),
-        }),
         &clock,
-        PacerConfig::for_period(P),
-        &mut || c.now_ns() >= 120 * P,
-        None,
-        0,
-    )
-    .unwrap();
+        P,
+        7,
+        120 * P,
+    );
     assert!(stats.pacer.skipped_deadlines > 0, "{:?}", stats.pacer);
     let states: Vec<_> = published
         .values()
@@ -1666,4 +1632,52 @@ fn a_skipped_deadline_publishes_a_state_with_the_new_schedule() {
             .engine_receive_ns
     };
     assert!(t(32) >= due_31 + P && t(32) < due_31 + 2 * P, "{states:?}");
+}
+
+/// [`process::run_loop`] without tracker frames, taking actions from `inlet` (replies to `replies`,
+/// engine frames to `frames`) and publishing its
+/// control state as source `source` (epoch 1, 60 Hz), paced at `period` ns on the fake `clock`
+/// until it reads `until_ns`: the loop's stats and what it published (the two remote-state tests'
+/// common set-up).
+fn run_publishing_state(
+    core: &mut EngineCore,
+    inlet: &mut dyn transport::Receive<ipc_types::ControlPacket>,
+    replies: &mut dyn transport::Publish<ipc_types::ControlReply>,
+    frames: &mut dyn transport::Publish<EngineFrame>,
+    clock: &transport::FakeClock,
+    period: u64,
+    source: u64,
+    until_ns: u64,
+) -> (
+    process::LoopStats,
+    transport::memory::Recorder<control_state::ControlStateFrame>,
+) {
+    use transport::memory::{Recorder, Scripted};
+    use transport::Clock;
+    let mut tracker = Scripted::<TrackerFrame>::new(clock, vec![], 4);
+    let mut outlet = Recorder::<control_state::ControlStateFrame>::new(clock);
+    let published = outlet.clone();
+    let c = clock.clone();
+    let stats = process::run_loop(
+        core,
+        &mut tracker,
+        frames,
+        Some(process::Controls {
+            inlet,
+            replies,
+            state: Some(process::StateOut {
+                outlet: &mut outlet,
+                source,
+                epoch: 1,
+                tick_hz: 60.0,
+            }),
+        }),
+        clock,
+        transport::pacer::PacerConfig::for_period(period),
+        &mut || c.now_ns() >= until_ns,
+        None,
+        0,
+    )
+    .unwrap();
+    (stats, published)
 }
