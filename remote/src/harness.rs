@@ -893,7 +893,7 @@ pub fn run(args: &HarnessArgs) -> Result<HarnessReport, RemoteError> {
     for k in 0..args.sites {
         let mut i = imp;
         i.seed = args.seed.wrapping_add(k as u64 + 1);
-        sites.push(Site::open_via(
+        sites.push(Site::open(
             &site_net,
             &keys,
             site_id(k as u64 + 1),

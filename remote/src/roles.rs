@@ -523,7 +523,7 @@ pub fn join(args: &JoinArgs) -> Result<(), RemoteError> {
     // to the source, applied when the source announces it (with its tick, cycle and outcome).
     let mut replies = instance.control_reply_outlet(&node)?;
     let mut sent: Vec<(u64, ControlPacket)> = Vec::new();
-    let site = Site::open_via(
+    let site = Site::open(
         &net,
         &keys,
         remote.site_id().unwrap_or_else(|| site_id(0)),

@@ -153,27 +153,15 @@ impl Drop for Site {
 }
 
 impl Site {
-    /// Join `keys`' room on `net` as site `id`; incoming packets pass `imp`; a probe to the
-    /// source every `probe_ms`.
-    pub fn open(
-        net: &Net,
-        keys: &Keys,
-        id: u64,
-        observer: bool,
-        imp: Impairment,
-        probe_ms: u64,
-    ) -> Result<Self, RemoteError> {
-        Self::open_via(net, keys, id, observer, imp, probe_ms, ClockSync::Source)
-    }
-
-    /// [`Self::open`], probing `clock`: the source, or the time relay beside the router
+    /// Join `keys`' room on `net` as site `id`; incoming packets pass `imp`; a probe every
+    /// `probe_ms` to `clock`: the source, or the time relay beside the router
     /// ([`crate::relay`]: the replies are in the source's time, the estimator is the same). When
     /// the relay goes away the site keeps its last offset (it stops changing; two machines'
     /// clocks part at their rate difference, tens of µs a second), says so in
     /// [`PathFigures::relay_present`] and [`PathFigures::relay_lost`], and takes the relay's
     /// answers again when it is back; it does not fall back to probing the source, which would
     /// put the per-site cost back on the source when the classroom's router host is in trouble.
-    pub fn open_via(
+    pub fn open(
         net: &Net,
         keys: &Keys,
         id: u64,

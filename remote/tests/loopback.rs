@@ -89,6 +89,7 @@ fn a_late_joiner_gets_the_current_state_at_once_from_the_cache() {
             true,
             Impairment::default(),
             100,
+            ClockSync::Source,
         )
         .unwrap();
         let mut runner = site.runner(core.clone(), hz).unwrap();
@@ -144,6 +145,7 @@ fn a_bad_packet_is_refused_counted_and_the_site_breathes_on() {
         true,
         Impairment::default(),
         100,
+        ClockSync::Source,
     )
     .unwrap();
     // Sites connect to the source only: the bad bytes come through the source's session.
@@ -210,6 +212,7 @@ fn a_sites_event_is_applied_at_the_same_cycle_by_the_source_and_every_site() {
                 k == 2,
                 Impairment::default(),
                 100,
+                ClockSync::Source,
             )
             .unwrap()
         })
@@ -343,6 +346,7 @@ fn a_source_restart_does_not_make_the_site_diverge() {
         true,
         Impairment::default(),
         100,
+        ClockSync::Source,
     )
     .unwrap();
     let mut c = scene_core(scene).unwrap();
@@ -425,6 +429,7 @@ fn a_site_that_drops_out_and_rejoins_is_in_step_within_one_cycle() {
             true,
             Impairment::default(),
             100,
+            ClockSync::Source,
         )
         .unwrap()
     };
@@ -520,7 +525,7 @@ fn a_scenes_router_mode_source_serves_a_client_site() {
     assert_eq!(site_net.mode, "client");
     // A client site syncs with the relay; the source that is the router is that relay.
     assert_eq!(site_table.clock(), ClockSync::Relay);
-    let site = Site::open_via(
+    let site = Site::open(
         &site_net,
         &keys,
         site_id(1),
@@ -623,7 +628,7 @@ fn through_a_router_the_sites_sync_with_the_relay_and_the_source_answers_only_it
     let source = Source::open(&client(&via), &keys, id, Impairment::default()).unwrap();
     let sites: Vec<Site> = (0..3)
         .map(|k| {
-            Site::open_via(
+            Site::open(
                 &client(&via),
                 &keys,
                 site_id(k + 1),
@@ -685,7 +690,7 @@ fn when_the_relay_goes_the_site_says_so_keeps_its_offset_and_takes_a_new_one() {
     let keys = Keys::new("relay-gone").unwrap();
     let (router, relay, via) = router_with_relay(&keys, 50);
     let _source = Source::open(&client(&via), &keys, site_id(0), Impairment::default()).unwrap();
-    let site = Site::open_via(
+    let site = Site::open(
         &client(&via),
         &keys,
         site_id(1),
