@@ -227,7 +227,8 @@ fn deadline(seconds: Option<f64>) -> Result<Option<u64>, RemoteError> {
         None => Ok(None),
         Some(s) if s.is_finite() && s > 0.0 && s < 1e7 => Ok(Some(now_ns() + (s * 1e9) as u64)),
         Some(s) => Err(RemoteError::Usage(format!(
-            "--seconds {s}: use a positive number of seconds"
+            "--seconds {s}: use a positive number of seconds below 10000000 (about 116 days; leave \
+             it out to run until stopped)"
         ))),
     }
 }
