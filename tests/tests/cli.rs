@@ -205,15 +205,18 @@ fn every_pinned_process_keeps_all_its_threads_on_its_core_the_renderers_driver_t
         (b"engine", other),
         (b"renderer", mine),
     ];
-    // Sample each role's threads while it runs; the sample with the most threads is kept (the
-    // GPU's threads exist once the renderer's first frames are drawn).
+    // Sample each role's threads while it runs; the latest sample with the most threads is kept (the
+    // GPU's threads exist once the renderer's first frames are drawn). The latest, not the first: a
+    // process sampled between its exec and its own pin_to_core still has the launcher's affinity
+    // (CI caught the engine so, its one thread on 0-1), and a later sample of as many threads
+    // shows it after pinning.
     let mut widest: [Vec<(String, String)>; 3] = Default::default();
     let start = std::time::Instant::now();
     while demo.try_wait().unwrap().is_none() && start.elapsed().as_secs() < 120 {
         for ((role, _), seen) in roles.iter().zip(&mut widest) {
             if let Some(pid) = child(demo.id(), role) {
                 let threads = thread_affinities(pid);
-                if threads.len() > seen.len() {
+                if threads.len() >= seen.len() {
                     *seen = threads;
                 }
             }
