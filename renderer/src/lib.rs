@@ -158,6 +158,8 @@ pub struct LungRenderer {
     lod_ranges: Vec<std::ops::Range<u32>>,
     /// Per level, its triangles (both lungs).
     lod_triangles: Vec<u32>,
+    /// Levels the topology check refused, in words for the start line (empty: none).
+    lod_refused: Vec<String>,
     /// The level drawn last frame (`[render] lod = "auto"`: chosen per frame, [`lod::Chooser`]).
     lod_level: std::sync::atomic::AtomicUsize,
     /// Per vertex of both lungs: material and lobe code ([`draw::SurfaceAttr`]).
@@ -269,6 +271,17 @@ impl LungRenderer {
             .iter()
             .map(|l| lod::lung_levels(&l.lung.positions, &l.lung.triangles, coarsest))
             .collect();
+        // A level the topology check refused ends that lung's levels; the start line says so.
+        let lod_refused: Vec<String> = lungs
+            .iter()
+            .zip(&per_lung)
+            .filter_map(|(l, b)| {
+                let (k, why) = b.refused.as_ref()?;
+                let side = format!("{:?}", l.side).to_lowercase();
+                Some(format!("the {side} lung's level {k} not drawn: {why}"))
+            })
+            .collect();
+        let per_lung: Vec<_> = per_lung.into_iter().map(|b| b.levels).collect();
         let counts: Vec<u32> = lungs.iter().map(|l| l.lung.len() as u32).collect();
         let levels = lod::Levels::join(&per_lung, &counts);
         let lod_triangles: Vec<u32> = (0..levels.ranges.len())
@@ -409,6 +422,7 @@ impl LungRenderer {
             index,
             lod_ranges: levels.ranges,
             lod_triangles,
+            lod_refused,
             lod_level: fixed.into(),
             surface,
             color_view: color.create_view(&Default::default()),
@@ -489,7 +503,8 @@ impl LungRenderer {
     /// "LOD 1 fixed, ...", "LOD off".
     pub fn describe_lod(&self) -> String {
         let counts: Vec<String> = self.lod_triangles.iter().map(u32::to_string).collect();
-        match self.settings.lod {
+        let refused: String = self.lod_refused.iter().map(|r| format!("; {r}")).collect();
+        let text = match self.settings.lod {
             _ if self.settings.mode == DrawMode::Points => "LOD off (splats)".to_string(),
             Lod::Off => "LOD off".to_string(),
             Lod::Auto => format!("LOD auto, triangles {}", counts.join(" / ")),
@@ -498,7 +513,8 @@ impl LungRenderer {
                 self.lod_shown().triangles,
                 counts.join(" / ")
             ),
-        }
+        };
+        text + &refused
     }
 
     /// Triangles of each draw level built (both lungs; level 0: every triangle).

@@ -42,13 +42,23 @@ pub const ERROR_RELATIVE: f32 = 0.004;
 /// How much more error each coarser level may have than the one before.
 pub const ERROR_GROWTH: f32 = 2.5;
 
+/// Every draw level of one lung ([`lung_levels`]), and why there are no coarser ones when the
+/// simplifier's next level was refused.
+#[derive(Debug, Clone, PartialEq)]
+pub struct LungLevels {
+    /// Level 0 the lung's own triangles, then coarser lists over the same vertices.
+    pub levels: Vec<Vec<[u32; 3]>>,
+    /// The first level built and refused, with the topology check's words: that level and every
+    /// coarser one are not drawn (the coarsest kept is drawn in their place).
+    pub refused: Option<(usize, String)>,
+}
+
 /// Every draw level of one lung: level 0 its own triangles, then coarser lists over the same
-/// vertices.
-pub fn lung_levels(
-    positions: &[[f32; 3]],
-    triangles: &[[u32; 3]],
-    coarsest: u8,
-) -> Vec<Vec<[u32; 3]>> {
+/// vertices. Each coarser level is checked as the bake checks a lung (`lung_model::mesh::check`:
+/// closed, 2-manifold, consistently wound, no degenerate triangle, positive volume) after its
+/// zero-volume fins are dropped ([`drop_fins`]); a level that still fails is not drawn, nor is any
+/// coarser one — a hole or a fold in the drawn surface is worse than drawing more triangles.
+pub fn lung_levels(positions: &[[f32; 3]], triangles: &[[u32; 3]], coarsest: u8) -> LungLevels {
     let mut levels = vec![triangles.to_vec()];
     let adapter = meshopt::VertexDataAdapter::new(
         bytemuck::cast_slice(positions),
@@ -56,7 +66,10 @@ pub fn lung_levels(
         0,
     );
     let Ok(adapter) = adapter else {
-        return levels;
+        return LungLevels {
+            levels,
+            refused: None,
+        };
     };
     let mut error = ERROR_RELATIVE;
     for _ in 0..coarsest {
@@ -78,10 +91,76 @@ pub fn lung_levels(
         if out.len() / 3 < MIN_TRIANGLES || out.len() as f32 > indices.len() as f32 * 0.6 {
             break;
         }
-        levels.push(bytemuck::cast_slice(&out).to_vec());
+        let mut level: Vec<[u32; 3]> = bytemuck::cast_slice(&out).to_vec();
+        drop_fins(&mut level);
+        if let Err(e) = lung_model::mesh::check(&compact(positions, &level)) {
+            return LungLevels {
+                refused: Some((levels.len(), e.to_string())),
+                levels,
+            };
+        }
+        levels.push(level);
         error *= ERROR_GROWTH;
     }
-    levels
+    LungLevels {
+        levels,
+        refused: None,
+    }
+}
+
+/// Drop every pair of triangles over the same three vertices wound opposite ways: a zero-volume
+/// fin, two faces back to back, that meshoptimizer's edge collapses leave where a thin strip folds
+/// onto itself (at 2 × 400k, level 4 of the right lung had 9 such pairs, each making its three
+/// edges shared by four triangles). The surface around a fin is closed without it.
+pub fn drop_fins(tris: &mut Vec<[u32; 3]>) {
+    use std::collections::HashMap;
+    // Each triangle rotated to start at its smallest index keeps its winding: [m, a, b] and
+    // [m, b, a] are the two windings of one vertex set.
+    let rotated = |t: &[u32; 3]| {
+        let k = (0..3).min_by_key(|&k| t[k]).unwrap_or(0);
+        [t[k], t[(k + 1) % 3], t[(k + 2) % 3]]
+    };
+    let mut seen: HashMap<[u32; 3], usize> = HashMap::with_capacity(tris.len());
+    let mut fin = vec![false; tris.len()];
+    for (n, t) in tris.iter().enumerate() {
+        let r = rotated(t);
+        if let Some(&m) = seen.get(&[r[0], r[2], r[1]]) {
+            if !fin[m] {
+                fin[m] = true;
+                fin[n] = true;
+                continue;
+            }
+        }
+        seen.insert(r, n);
+    }
+    let mut n = 0;
+    tris.retain(|_| {
+        n += 1;
+        !fin[n - 1]
+    });
+}
+
+/// Triangles `tris` over `positions` as a mesh of their own (the vertices they use, renumbered),
+/// for `lung_model::mesh::check`, which refuses unused vertices.
+pub(crate) fn compact(positions: &[[f32; 3]], tris: &[[u32; 3]]) -> lung_model::mesh::TriMesh {
+    let mut map = vec![u32::MAX; positions.len()];
+    let mut used = Vec::new();
+    let triangles = tris
+        .iter()
+        .map(|t| {
+            t.map(|i| {
+                if map[i as usize] == u32::MAX {
+                    map[i as usize] = used.len() as u32;
+                    used.push(positions[i as usize]);
+                }
+                map[i as usize]
+            })
+        })
+        .collect();
+    lung_model::mesh::TriMesh {
+        positions: used,
+        triangles,
+    }
 }
 
 /// The levels of every lung in one index buffer: per level, each lung's triangles offset to its
@@ -207,29 +286,6 @@ mod tests {
     use super::*;
     use lung_model::mesh::{check, generate, Side, TriMesh};
 
-    /// Level `tris` of `mesh` as a mesh of its own (the vertices it uses, renumbered), for
-    /// [`check`].
-    fn compact(mesh: &TriMesh, tris: &[[u32; 3]]) -> TriMesh {
-        let mut map = vec![u32::MAX; mesh.positions.len()];
-        let mut positions = Vec::new();
-        let triangles = tris
-            .iter()
-            .map(|t| {
-                t.map(|i| {
-                    if map[i as usize] == u32::MAX {
-                        map[i as usize] = positions.len() as u32;
-                        positions.push(mesh.positions[i as usize]);
-                    }
-                    map[i as usize]
-                })
-            })
-            .collect();
-        TriMesh {
-            positions,
-            triangles,
-        }
-    }
-
     /// A surface for distances (parry3d's BVH over its triangles).
     fn surface(positions: &[[f32; 3]], tris: &[[u32; 3]]) -> parry3d::shape::TriMesh {
         let v = positions
@@ -271,19 +327,37 @@ mod tests {
     /// the level ratio, within a few mm of the full mesh (growing with the level).
     #[test]
     fn every_level_is_closed_manifold_and_close_to_the_full_mesh() {
-        for (side, vertices, want) in [
+        every_level_closed_manifold_and_close(&[
             (Side::Right, 10_000, 3),
             (Side::Left, 10_000, 3),
             (Side::Right, 100_000, 5),
             (Side::Left, 100_000, 5),
-        ] {
+        ]);
+    }
+
+    /// The same at 2 × 400k, the GPU target's size (`bench/gpu_check.sh`'s LOD study), where the
+    /// levels are drawn most: a separate test so it runs beside the smaller ones.
+    #[test]
+    fn every_level_at_400k_is_closed_manifold_and_close_to_the_full_mesh() {
+        every_level_closed_manifold_and_close(&[
+            (Side::Right, 400_000, 6),
+            (Side::Left, 400_000, 6),
+        ]);
+    }
+
+    fn every_level_closed_manifold_and_close(cases: &[(Side, usize, usize)]) {
+        for &(side, vertices, want) in cases {
             let mesh = generate::lung(side, vertices).unwrap();
-            let levels = lung_levels(&mesh.positions, &mesh.triangles, 5);
+            let t0 = std::time::Instant::now();
+            let built = lung_levels(&mesh.positions, &mesh.triangles, 5);
+            let took = t0.elapsed();
+            assert_eq!(built.refused, None, "{side:?} {vertices}");
+            let levels = built.levels;
             assert!(levels.len() >= want, "{side:?}: {} levels", levels.len());
             assert_eq!(levels[0], mesh.triangles);
             let mut errors = Vec::new();
             for (k, tris) in levels.iter().enumerate() {
-                let topo = check(&compact(&mesh, tris))
+                let topo = check(&compact(&mesh.positions, tris))
                     .unwrap_or_else(|e| panic!("{side:?} level {k}: {e}"));
                 assert_eq!(topo.euler, 2, "{side:?} level {k}: sphere-like");
                 assert!(tris.len() >= MIN_TRIANGLES, "{side:?} level {k}");
@@ -297,7 +371,7 @@ mod tests {
                 errors.push(level_error_mm(&mesh, tris));
             }
             eprintln!(
-                "{side:?} {vertices}: triangles {:?}, error mm {errors:?}",
+                "{side:?} {vertices}: built in {took:.2?}, triangles {:?}, error mm {errors:?}",
                 { levels.iter().map(Vec::len).collect::<Vec<_>>() }
             );
             assert!(errors[0] < 1e-3, "level 0 is the mesh itself: {errors:?}");
@@ -305,6 +379,38 @@ mod tests {
             assert!(errors[1] < 2.0, "{side:?}: {errors:?}");
             assert!(errors.iter().all(|&e| e < 15.0), "{side:?}: {errors:?}");
         }
+    }
+
+    /// A fin — a triangle and its reverse over the same vertices — is dropped, both faces; the
+    /// closed surface around it and a triangle repeated with the same winding are kept.
+    #[test]
+    fn fins_are_dropped_and_nothing_else() {
+        // A tetrahedron: closed, outward wound.
+        let tet = vec![[0, 2, 1], [0, 1, 3], [1, 2, 3], [0, 3, 2]];
+        let positions = [
+            [0.0, 0.0, 0.0],
+            [1.0, 0.0, 0.0],
+            [0.0, 1.0, 0.0],
+            [0.0, 0.0, 1.0],
+        ];
+        let mut same = tet.clone();
+        drop_fins(&mut same);
+        assert_eq!(same, tet);
+        // A fin lying on the face (1, 2, 3), its two faces given in other rotations: the face's
+        // edges are then shared by four triangles. Whichever same-wound copy goes, the same
+        // closed tetrahedron is left.
+        let mut finned = tet.clone();
+        finned.insert(1, [3, 1, 2]);
+        finned.push([2, 1, 3]);
+        assert!(check(&compact(&positions, &finned)).is_err());
+        drop_fins(&mut finned);
+        assert_eq!(finned.len(), 4, "{finned:?}");
+        assert!(check(&compact(&positions, &finned)).is_ok(), "{finned:?}");
+        // A repeat with the same winding is no fin: left for the check to refuse.
+        let mut twice = tet.clone();
+        twice.push([2, 3, 1]);
+        drop_fins(&mut twice);
+        assert_eq!(twice.len(), 5);
     }
 
     /// Levels of two lungs join into one buffer, each lung's indices offset to its vertices; a
