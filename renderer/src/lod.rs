@@ -110,8 +110,10 @@ pub fn lung_levels(positions: &[[f32; 3]], triangles: &[[u32; 3]], coarsest: u8)
 
 /// Drop every pair of triangles over the same three vertices wound opposite ways: a zero-volume
 /// fin, two faces back to back, that meshoptimizer's edge collapses leave where a thin strip folds
-/// onto itself (at 2 × 400k, level 4 of the right lung had 9 such pairs, each making its three
-/// edges shared by four triangles). The surface around a fin is closed without it.
+/// onto itself (at 2 × 400k, level 4 of the right lung had 9 such pairs, each a flap on one
+/// surface edge, shared then by four triangles, its third vertex used by nothing else; MeshLab
+/// counted the same 9 non-manifold edges, docs/lod.md). The surface around a fin is closed
+/// without it.
 pub fn drop_fins(tris: &mut Vec<[u32; 3]>) {
     use std::collections::HashMap;
     // Each triangle rotated to start at its smallest index keeps its winding: [m, a, b] and
