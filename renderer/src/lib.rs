@@ -166,6 +166,8 @@ pub struct LungRenderer {
     surface: wgpu::Buffer,
     color: wgpu::Texture,
     color_view: wgpu::TextureView,
+    /// The same target viewed as plain bytes (`Rgba8Unorm`), for the present pass's exact copy.
+    color_bytes_view: wgpu::TextureView,
     /// The multisampled colour target (MSAA on), resolved into `color` by the frame's last pass.
     msaa_view: Option<wgpu::TextureView>,
     depth_view: wgpu::TextureView,
@@ -317,12 +319,20 @@ impl LungRenderer {
             })
         };
         let attachment = wgpu::TextureUsages::RENDER_ATTACHMENT;
-        let color = texture(
-            "lungdyn colour",
-            draw::COLOR_FORMAT,
-            1,
-            attachment | wgpu::TextureUsages::COPY_SRC | wgpu::TextureUsages::TEXTURE_BINDING,
-        );
+        // The colour target may also be viewed as plain bytes (no sRGB decode): the window's
+        // present pass copies it texel for texel that way when the window is the frame's size.
+        let color = device.create_texture(&wgpu::TextureDescriptor {
+            label: Some("lungdyn colour"),
+            size,
+            mip_level_count: 1,
+            sample_count: 1,
+            dimension: wgpu::TextureDimension::D2,
+            format: draw::COLOR_FORMAT,
+            usage: attachment
+                | wgpu::TextureUsages::COPY_SRC
+                | wgpu::TextureUsages::TEXTURE_BINDING,
+            view_formats: &[draw::COLOR_FORMAT.remove_srgb_suffix()],
+        });
         let view = |t: wgpu::Texture| t.create_view(&Default::default());
         let msaa_view = (samples > 1).then(|| {
             view(texture(
@@ -426,6 +436,10 @@ impl LungRenderer {
             lod_level: fixed.into(),
             surface,
             color_view: color.create_view(&Default::default()),
+            color_bytes_view: color.create_view(&wgpu::TextureViewDescriptor {
+                format: Some(draw::COLOR_FORMAT.remove_srgb_suffix()),
+                ..Default::default()
+            }),
             color,
             msaa_view,
             depth_view: depth.create_view(&Default::default()),
@@ -565,6 +579,12 @@ impl LungRenderer {
     /// The offscreen colour target (what the present pass samples).
     pub fn color_view(&self) -> &wgpu::TextureView {
         &self.color_view
+    }
+
+    /// The offscreen colour target viewed as plain bytes (`Rgba8Unorm`: no sRGB decode), for a
+    /// present pass's texel-for-texel copy ([`present::PresentPass::new`]).
+    pub fn color_bytes_view(&self) -> &wgpu::TextureView {
+        &self.color_bytes_view
     }
 
     /// Deform, draw every eye, submit, and wait for the GPU. With `capture`, the image is also
@@ -1013,7 +1033,11 @@ fn oit_target<'a>(
 
 /// Map `buffer` for reading (after the GPU work that wrote it completed), run `f` on its bytes,
 /// unmap. `None` if mapping failed.
-fn read_mapped<T>(gpu: &Gpu, buffer: &wgpu::Buffer, f: impl FnOnce(&[u8]) -> T) -> Option<T> {
+pub(crate) fn read_mapped<T>(
+    gpu: &Gpu,
+    buffer: &wgpu::Buffer,
+    f: impl FnOnce(&[u8]) -> T,
+) -> Option<T> {
     buffer.map_async(wgpu::MapMode::Read, .., |_| {});
     gpu.device
         .poll(wgpu::PollType::Wait {

@@ -60,9 +60,12 @@ impl FrameOutput for SurfaceOutput<'_> {
         match self.surface.get_current_texture() {
             wgpu::CurrentSurfaceTexture::Success(t)
             | wgpu::CurrentSurfaceTexture::Suboptimal(t) => {
-                let view = t.texture.create_view(&Default::default());
-                self.present
-                    .encode(encoder, &view, (self.config.width, self.config.height));
+                let size = (self.config.width, self.config.height);
+                let view = t.texture.create_view(&wgpu::TextureViewDescriptor {
+                    format: Some(self.present.view_format(size)),
+                    ..Default::default()
+                });
+                self.present.encode(encoder, &view, size);
                 self.acquired = Some(t);
             }
             wgpu::CurrentSurfaceTexture::Outdated | wgpu::CurrentSurfaceTexture::Lost => {
@@ -355,17 +358,31 @@ impl App {
             &caps.present_modes,
         )?;
         config.desired_maximum_frame_latency = self.args.output.frame_latency;
-        surface.configure(&gpu.device, &config);
-        eprintln!(
-            "renderer: presenting {:?} with frame latency {} (the surface offers {:?})",
-            config.present_mode, config.desired_maximum_frame_latency, caps.present_modes
-        );
         let session = Session::new(&self.args, gpu)?;
         let present = PresentPass::new(
             &session.gpu.device,
             session.renderer.color_view(),
+            Some(session.renderer.color_bytes_view()),
             session.renderer.image_size(),
             config.format,
+        );
+        // The surface is viewed as plain bytes for the exact copy (a window of the frame's size).
+        config.view_formats = present.surface_view_formats();
+        surface.configure(&session.gpu.device, &config);
+        eprintln!(
+            "renderer: presenting {:?} with frame latency {} (the surface offers {:?}); the frame \
+             {:?} is copied {} into the window's {}x{}",
+            config.present_mode,
+            config.desired_maximum_frame_latency,
+            caps.present_modes,
+            session.renderer.image_size(),
+            if present.is_exact((config.width, config.height)) {
+                "texel for texel"
+            } else {
+                "scaled"
+            },
+            config.width,
+            config.height,
         );
         let queue = session.gpu.queue.clone();
         self.state = Some(Windowed {

@@ -581,7 +581,14 @@ impl XrOutput {
         frame: &wgpu::TextureView,
         frame_size: (u32, u32),
     ) {
-        self.blit = Some(PresentPass::new(device, frame, frame_size, self.format));
+        // An OpenXR swapchain offers no plain-bytes view: the exact copy reads and writes sRGB.
+        self.blit = Some(PresentPass::new(
+            device,
+            frame,
+            None,
+            frame_size,
+            self.format,
+        ));
     }
 
     fn fail(&mut self, e: XrError) {

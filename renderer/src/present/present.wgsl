@@ -1,5 +1,6 @@
 // Present pass: one fullscreen triangle copies the offscreen frame into the window's surface,
-// whatever the surface's format and size (the image is scaled to the window).
+// whatever the surface's format and size (the image is scaled to the window; `fs_load` when the
+// frame is exactly the window's size).
 
 @group(0) @binding(0) var frame: texture_2d<f32>;
 @group(0) @binding(1) var frame_sampler: sampler;
@@ -22,4 +23,12 @@ fn vs_main(@builtin(vertex_index) vi: u32) -> VsOut {
 @fragment
 fn fs_main(in: VsOut) -> @location(0) vec4<f32> {
     return textureSample(frame, frame_sampler, in.uv);
+}
+
+// The frame exactly the surface's size (a fullscreen frame made at the display's size): each pixel
+// is its texel, loaded without the filtering sampler, which is most of this pass's cost on a CPU
+// rasterizer (lavapipe at 1920x1080: docs/DEPLOY.md).
+@fragment
+fn fs_load(in: VsOut) -> @location(0) vec4<f32> {
+    return textureLoad(frame, vec2<i32>(floor(in.clip.xy)), 0);
 }
