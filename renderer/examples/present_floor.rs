@@ -27,6 +27,16 @@ use winit::event_loop::{ActiveEventLoop, ControlFlow, EventLoop};
 use winit::window::{Fullscreen, Window, WindowId};
 
 #[derive(Debug, Clone, Copy, PartialEq, Eq, ValueEnum)]
+enum CopyPath {
+    /// Texel for texel through plain-bytes views of the frame and the surface (the window's path).
+    Bytes,
+    /// Texel for texel through sRGB views (an OpenXR swapchain's path).
+    Srgb,
+    /// A filtered sample per pixel (the pass before the exact copy; a scaled window's path).
+    Filtered,
+}
+
+#[derive(Debug, Clone, Copy, PartialEq, Eq, ValueEnum)]
 enum Mode {
     /// Clear the surface image and present it.
     Clear,
@@ -43,10 +53,9 @@ struct Args {
     /// How long to run, seconds (the first second is not counted: start-up).
     #[arg(long, default_value_t = 10.0)]
     seconds: f64,
-    /// With `--mode present`: copy through sRGB views (the pass's path for OpenXR swapchains)
-    /// instead of plain-bytes views of the frame and the surface (the window's).
-    #[arg(long)]
-    srgb: bool,
+    /// With `--mode present`, how the frame is copied into the surface.
+    #[arg(long, value_enum, default_value = "bytes")]
+    copy: CopyPath,
     /// How to present (as `lungdyn demo --present-mode`).
     #[arg(long, value_enum, default_value = "latency")]
     present_mode: PresentChoice,
@@ -124,7 +133,7 @@ impl App {
             let pass = PresentPass::new(
                 &gpu.device,
                 &view,
-                (!self.args.srgb).then_some(&bytes),
+                (self.args.copy == CopyPath::Bytes).then_some(&bytes),
                 (config.width, config.height),
                 config.format,
             );
@@ -135,13 +144,14 @@ impl App {
         }
         surface.configure(&gpu.device, &config);
         eprintln!(
-            "present_floor: {}x{} on {} ({:?}), {:?}, mode {:?}, view formats {:?}",
+            "present_floor: {}x{} on {} ({:?}), {:?}, mode {:?}, copy {:?}, view formats {:?}",
             config.width,
             config.height,
             gpu.info.name,
             gpu.info.device_type,
             config.present_mode,
             self.args.mode,
+            self.args.copy,
             config.view_formats
         );
         self.open = Some(Open {
@@ -166,9 +176,10 @@ impl App {
             _ => return,
         };
         let size = (o.config.width, o.config.height);
+        let filtered = self.args.copy == CopyPath::Filtered;
         let format = match &o.offscreen {
-            Some((_, pass)) => pass.view_format(size),
-            None => o.config.format,
+            Some((_, pass)) if !filtered => pass.view_format(size),
+            _ => o.config.format,
         };
         let view = image.texture.create_view(&wgpu::TextureViewDescriptor {
             format: Some(format),
@@ -202,7 +213,11 @@ impl App {
             None => clear(&mut encoder, &view),
             Some((offscreen, pass)) => {
                 clear(&mut encoder, offscreen);
-                pass.encode(&mut encoder, &view, size);
+                if filtered {
+                    pass.encode_filtered(&mut encoder, &view, size);
+                } else {
+                    pass.encode(&mut encoder, &view, size);
+                }
             }
         }
         o.gpu.queue.submit([encoder.finish()]);

@@ -139,6 +139,28 @@ impl PresentPass {
         target: &wgpu::TextureView,
         target_size: (u32, u32),
     ) {
+        let exact = self.is_exact(target_size);
+        self.encode_with(encoder, target, target_size, exact);
+    }
+
+    /// The filtered copy whatever the size (the target viewed in the surface's own format): what
+    /// a frame of the window's size cost before the exact copy, for `examples/present_floor.rs`.
+    pub fn encode_filtered(
+        &self,
+        encoder: &mut wgpu::CommandEncoder,
+        target: &wgpu::TextureView,
+        target_size: (u32, u32),
+    ) {
+        self.encode_with(encoder, target, target_size, false);
+    }
+
+    fn encode_with(
+        &self,
+        encoder: &mut wgpu::CommandEncoder,
+        target: &wgpu::TextureView,
+        target_size: (u32, u32),
+        exact: bool,
+    ) {
         let mut pass = encoder.begin_render_pass(&wgpu::RenderPassDescriptor {
             label: Some("lungdyn present"),
             color_attachments: &[Some(wgpu::RenderPassColorAttachment {
@@ -157,11 +179,7 @@ impl PresentPass {
         });
         let (x, y, w, h) = fit_viewport(self.frame_size, target_size);
         pass.set_viewport(x, y, w, h, 0.0, 1.0);
-        let (pipeline, bind_group) = if self.is_exact(target_size) {
-            &self.exact
-        } else {
-            &self.scaled
-        };
+        let (pipeline, bind_group) = if exact { &self.exact } else { &self.scaled };
         pass.set_pipeline(pipeline);
         pass.set_bind_group(0, bind_group, &[]);
         pass.draw(0..3, 0..1);
