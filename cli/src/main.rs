@@ -37,7 +37,8 @@ enum Command {
     /// The latency harness: run the pipeline and measure every frame from tracker capture to
     /// submit, GPU done and (in a window) present — per hop p50/p99/p99.9/max, deadline misses with
     /// the stage that overran, each process's period jitter and CPU time; --sweep finds the largest
-    /// mesh that holds 60 Hz. Writes latency.json, latency.md and latency.png into --out.
+    /// mesh that holds 60 Hz. Writes latency.json, latency.md, latency.png/.svg and the trace
+    /// latency.trace.json (unless --trace names another file) into --out.
     Latency(lungdyn::latency::LatencyArgs),
     /// Lung surface meshes.
     #[command(subcommand)]
@@ -144,8 +145,8 @@ enum HmdCommand {
 #[derive(Subcommand)]
 enum BenchCommand {
     /// Every deformation mode's error against eq. 7.1 and its per-frame time on the CPU and GPU,
-    /// SH for 1..8 bands, the orientation methods, stereo vs mono: writes OUT.md, OUT.csv, OUT.png
-    /// (several minutes at the default sizes; --sizes 10000 for a quick look).
+    /// SH for 1..8 bands, the orientation methods, stereo vs mono: writes tradeoff.md, .csv, .png and .svg
+    /// into --out, a new folder out/tradeoff-N by default (several minutes at the default sizes; --sizes 10000 for a quick look).
     Tradeoff(lungdyn::tradeoff::TradeoffArgs),
 }
 
