@@ -566,6 +566,18 @@ fn mesh_check_frame_lps_and_ras_give_the_body_frame_lung() {
         assert!(ok);
         let v: serde_json::Value = serde_json::from_str(stdout.trim()).unwrap();
         assert_eq!(v["geometry_side"], other, "{side} RAS read as body");
+        // The body-frame original read with --frame lps: warned about, with --frame body as the
+        // fix (not the --frame lps it was read with).
+        let (ok, stdout, err) = check(&body, &["--frame", "lps"]);
+        assert!(ok, "{side}: {err}");
+        let v: serde_json::Value = serde_json::from_str(stdout.trim()).unwrap();
+        let w = v["frame_warning"]
+            .as_str()
+            .unwrap_or_else(|| panic!("{side}: a body lung read as LPS must be warned about: {v}"));
+        assert!(
+            w.contains("--frame body") && !w.contains("read it with --frame lps"),
+            "{side}: {w}"
+        );
     }
     std::fs::remove_dir_all(dir).ok();
 }
