@@ -251,6 +251,9 @@ fn main() -> std::process::ExitCode {
                         .collect();
                     println!("lobes (fissure planes): {}", parts.join(", "));
                 }
+                if let Some(out) = &c.out {
+                    println!("wrote {out} (mm, body frame)");
+                }
             }
             Ok(())
         }),
@@ -282,6 +285,9 @@ fn main() -> std::process::ExitCode {
                 println!("{}", serde_json::to_string(&i)?);
             } else {
                 print!("{}", lungdyn::bake_cmd::inspect_text(&i));
+                if let Some(png) = &args.plot {
+                    println!("wrote {}", png.display());
+                }
             }
             Ok(())
         }),

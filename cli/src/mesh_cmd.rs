@@ -248,6 +248,8 @@ pub struct CheckSummary {
     pub orientation_reason: String,
     /// The warning when anterior/posterior or superior/inferior look flipped.
     pub frame_warning: Option<String>,
+    /// Where `--out` wrote the repaired mesh (mm, body frame); `null` without `--out`.
+    pub out: Option<String>,
     /// Vertices and surface area per lobe, from the fissure planes in normalised lung coordinates
     /// (`lung_model::mesh::lobes`) for `--lung`, else the side the geometry shows; empty when
     /// neither is known.
@@ -307,6 +309,7 @@ pub fn check_mesh(args: &CheckArgs) -> anyhow::Result<CheckSummary> {
             .map(|o| o.reason.clone())
             .unwrap_or_default(),
         frame_warning,
+        out: args.out.as_ref().map(|p| p.display().to_string()),
         lobes,
     })
 }
