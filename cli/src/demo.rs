@@ -880,6 +880,9 @@ pub fn run_watched(args: &DemoArgs, watch: &mut dyn Watch) -> anyhow::Result<Dem
             last_tick.set(Some(f.tick));
             watch.engine_frame(f);
         })?;
+        if first_frame_ns.is_some() {
+            supervisor.pipeline_running();
+        }
         if fresh && supervisor.recovering() {
             supervisor.recovered(now);
         }
