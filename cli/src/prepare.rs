@@ -94,7 +94,7 @@ pub fn ensure_kernels(
                 );
             }
             // (The error budget is settled below, for every lung at once.)
-            let file = check_named_kernel(&scene, side)?;
+            let file = check_named_kernel(scene, side)?;
             used.push(KernelUse::of(side, &k, false, 0.0, file.meta()));
             continue;
         }
