@@ -175,8 +175,42 @@ enum KernelCommand {
     Export(lungdyn::bake_cmd::ExportArgs),
 }
 
+impl Command {
+    /// A command that reads files, computes and prints, with no socket and no child process: its
+    /// output may go to a pipe that is closed early (`lungdyn scene check FILE | head`).
+    fn prints_only(&self) -> bool {
+        matches!(
+            self,
+            Command::Mesh(_)
+                | Command::Pv(_)
+                | Command::Bake(_)
+                | Command::FitMotion(_)
+                | Command::Kernel(_)
+                | Command::Register(_)
+                | Command::Hmd(_)
+                | Command::Doctor(_)
+                | Command::Instances(_)
+                | Command::Install(_)
+                | Command::Scene(
+                    SceneCommand::Check(_) | SceneCommand::Run(_) | SceneCommand::Prepare(_)
+                )
+                | Command::Tracker(TrackerCommand::Simulate(_) | TrackerCommand::Predict(_))
+        )
+    }
+}
+
 fn main() -> std::process::ExitCode {
     let cli = Cli::parse();
+    if cli.command.prints_only() {
+        // A reader that stops early (`| head`) ends such a command quietly, as it does any Unix
+        // filter, instead of `println!` panicking on EPIPE. Not for the processes, the launcher or
+        // the network commands: there SIGPIPE stays ignored and a write to a closed socket is an
+        // error they handle.
+        // SAFETY: signal(2) with SIG_DFL, before any thread is started.
+        unsafe {
+            libc::signal(libc::SIGPIPE, libc::SIG_DFL);
+        }
+    }
     let result = match cli.command {
         Command::Doctor(args) => {
             return match lungdyn::doctor::run(&args).and_then(|r| {
