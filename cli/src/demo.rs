@@ -128,7 +128,7 @@ pub struct DemoArgs {
     pub color: Option<lung_model::scene::ColorMode>,
     /// Samples per pixel, 4 (multisample anti-aliasing) or 1 (off); overrides the scene's
     /// `[render] msaa`. Default: 4 on a GPU, 1 on a software rasterizer (lavapipe, where 4× costs
-    /// 3.4× the frame).
+    /// 2.3–2.6× the frame: the README's render_looks figures).
     #[arg(long, value_name = "N")]
     pub msaa: Option<u32>,
     /// Draw level of detail (overrides the scene's `[render] lod`): "auto" (fewer triangles over
@@ -880,6 +880,9 @@ pub fn run_watched(args: &DemoArgs, watch: &mut dyn Watch) -> anyhow::Result<Dem
             last_tick.set(Some(f.tick));
             watch.engine_frame(f);
         })?;
+        if first_frame_ns.is_some() {
+            supervisor.pipeline_running();
+        }
         if fresh && supervisor.recovering() {
             supervisor.recovered(now);
         }

@@ -80,8 +80,9 @@ pub struct LatencyArgs {
     /// --realtime).
     #[arg(long)]
     pub realtime: bool,
-    /// Write one Chrome/Perfetto trace (JSON) of every process's stage spans to FILE (with --sweep:
-    /// of the final run). Off by default.
+    /// Write the Chrome/Perfetto trace (JSON) of every process's stage spans to FILE instead of
+    /// <out>/latency.trace.json, where it goes by default (with --sweep: of the final run; open it
+    /// in ui.perfetto.dev).
     #[arg(long, value_name = "FILE")]
     pub trace: Option<PathBuf>,
 }

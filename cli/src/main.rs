@@ -37,7 +37,8 @@ enum Command {
     /// The latency harness: run the pipeline and measure every frame from tracker capture to
     /// submit, GPU done and (in a window) present — per hop p50/p99/p99.9/max, deadline misses with
     /// the stage that overran, each process's period jitter and CPU time; --sweep finds the largest
-    /// mesh that holds 60 Hz. Writes latency.json, latency.md and latency.png into --out.
+    /// mesh that holds 60 Hz. Writes latency.json, latency.md, latency.png/.svg and the trace
+    /// latency.trace.json (unless --trace names another file) into --out.
     Latency(lungdyn::latency::LatencyArgs),
     /// Lung surface meshes.
     #[command(subcommand)]
@@ -144,8 +145,8 @@ enum HmdCommand {
 #[derive(Subcommand)]
 enum BenchCommand {
     /// Every deformation mode's error against eq. 7.1 and its per-frame time on the CPU and GPU,
-    /// SH for 1..8 bands, the orientation methods, stereo vs mono: writes OUT.md, OUT.csv, OUT.png
-    /// (several minutes at the default sizes; --sizes 10000 for a quick look).
+    /// SH for 1..8 bands, the orientation methods, stereo vs mono: writes tradeoff.md, .csv, .png and .svg
+    /// into --out, a new folder out/tradeoff-N by default (several minutes at the default sizes; --sizes 10000 for a quick look).
     Tradeoff(lungdyn::tradeoff::TradeoffArgs),
 }
 
@@ -174,8 +175,42 @@ enum KernelCommand {
     Export(lungdyn::bake_cmd::ExportArgs),
 }
 
+impl Command {
+    /// A command that reads files, computes and prints, with no socket and no child process: its
+    /// output may go to a pipe that is closed early (`lungdyn scene check FILE | head`).
+    fn prints_only(&self) -> bool {
+        matches!(
+            self,
+            Command::Mesh(_)
+                | Command::Pv(_)
+                | Command::Bake(_)
+                | Command::FitMotion(_)
+                | Command::Kernel(_)
+                | Command::Register(_)
+                | Command::Hmd(_)
+                | Command::Doctor(_)
+                | Command::Instances(_)
+                | Command::Install(_)
+                | Command::Scene(
+                    SceneCommand::Check(_) | SceneCommand::Run(_) | SceneCommand::Prepare(_)
+                )
+                | Command::Tracker(TrackerCommand::Simulate(_) | TrackerCommand::Predict(_))
+        )
+    }
+}
+
 fn main() -> std::process::ExitCode {
     let cli = Cli::parse();
+    if cli.command.prints_only() {
+        // A reader that stops early (`| head`) ends such a command quietly, as it does any Unix
+        // filter, instead of `println!` panicking on EPIPE. Not for the processes, the launcher or
+        // the network commands: there SIGPIPE stays ignored and a write to a closed socket is an
+        // error they handle.
+        // SAFETY: signal(2) with SIG_DFL, before any thread is started.
+        unsafe {
+            libc::signal(libc::SIGPIPE, libc::SIG_DFL);
+        }
+    }
     let result = match cli.command {
         Command::Doctor(args) => {
             return match lungdyn::doctor::run(&args).and_then(|r| {
@@ -250,6 +285,9 @@ fn main() -> std::process::ExitCode {
                         .collect();
                     println!("lobes (fissure planes): {}", parts.join(", "));
                 }
+                if let Some(out) = &c.out {
+                    println!("wrote {out} (mm, body frame)");
+                }
             }
             Ok(())
         }),
@@ -281,6 +319,9 @@ fn main() -> std::process::ExitCode {
                 println!("{}", serde_json::to_string(&i)?);
             } else {
                 print!("{}", lungdyn::bake_cmd::inspect_text(&i));
+                if let Some(png) = &args.plot {
+                    println!("wrote {}", png.display());
+                }
             }
             Ok(())
         }),

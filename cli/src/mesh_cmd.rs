@@ -165,7 +165,16 @@ pub fn import_lung(
                     o.reason
                 );
             }
-            let w = format!("{}: read with --frame {name}, {}", mesh.display(), o.reason);
+            let fix = if o.anterior_posterior_swapped {
+                ap_swap_fix(stated.unwrap_or_default())
+            } else {
+                ""
+            };
+            let w = format!(
+                "{}: read with --frame {name}, {}{fix}",
+                mesh.display(),
+                o.reason
+            );
             eprintln!("lungdyn: warning: {w}");
             Some(w)
         }
@@ -190,6 +199,22 @@ pub fn import_lung(
         _ => None,
     };
     Ok((imported, warning, frame_warning))
+}
+
+/// The fix for a mesh whose anterior and posterior look swapped after reading it in `frame`: the
+/// frame whose +Y is the other way round (an LPS file read as body or RAS, or a body/RAS file read
+/// as LPS).
+fn ap_swap_fix(frame: lung_bake::import::MeshFrame) -> &'static str {
+    use lung_bake::import::MeshFrame;
+    match frame {
+        MeshFrame::Body | MeshFrame::Ras => {
+            ". If it is a DICOM/ITK export (+Y posterior), read it with --frame lps"
+        }
+        MeshFrame::Lps => {
+            ". If its +Y is anterior, read it with --frame body (or --frame ras when its +X is the \
+             patient's right)"
+        }
+    }
 }
 
 /// What `mesh check` found.
@@ -223,6 +248,8 @@ pub struct CheckSummary {
     pub orientation_reason: String,
     /// The warning when anterior/posterior or superior/inferior look flipped.
     pub frame_warning: Option<String>,
+    /// Where `--out` wrote the repaired mesh (mm, body frame); `null` without `--out`.
+    pub out: Option<String>,
     /// Vertices and surface area per lobe, from the fissure planes in normalised lung coordinates
     /// (`lung_model::mesh::lobes`) for `--lung`, else the side the geometry shows; empty when
     /// neither is known.
@@ -282,6 +309,7 @@ pub fn check_mesh(args: &CheckArgs) -> anyhow::Result<CheckSummary> {
             .map(|o| o.reason.clone())
             .unwrap_or_default(),
         frame_warning,
+        out: args.out.as_ref().map(|p| p.display().to_string()),
         lobes,
     })
 }

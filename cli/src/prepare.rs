@@ -94,9 +94,7 @@ pub fn ensure_kernels(
                 );
             }
             // (The error budget is settled below, for every lung at once.)
-            let mut unbudgeted = scene.clone();
-            unbudgeted.lungs.max_error_mm = None;
-            let file = unbudgeted.lung_kernel(side)?;
+            let file = check_named_kernel(scene, side)?;
             used.push(KernelUse::of(side, &k, false, 0.0, file.meta()));
             continue;
         }
@@ -195,6 +193,18 @@ pub fn ensure_kernels(
         scene.lung_kernel(side)?;
     }
     Ok(used)
+}
+
+/// The kernel `scene` names for `side`, opened and checked as the processes check it (the right
+/// lung, the scene's tumour, what the scene's mode needs), leaving out the error budget: against a
+/// budget the harmonics miss, [`prepare`] runs the exact basis mode instead of refusing.
+pub fn check_named_kernel(
+    scene: &Scene,
+    side: Side,
+) -> anyhow::Result<lung_model::kernel::KernelFile> {
+    let mut unbudgeted = scene.clone();
+    unbudgeted.lungs.max_error_mm = None;
+    Ok(unbudgeted.lung_kernel(side)?)
 }
 
 /// A scene whose every lung has a kernel, written where the processes can read it.

@@ -360,6 +360,14 @@ pub fn run(args: &CheckArgs) -> anyhow::Result<CheckReport> {
     }
     let scene = Scene::load(&args.file)?;
     let origin = args.file.display().to_string();
+    // The kernels it names, checked as `scene prepare` and the processes check them: a scene this
+    // calls valid must not be refused at the launch.
+    for &side in &scene.lungs.sides {
+        if scene.lungs.kernels.get(side).is_some() {
+            crate::prepare::check_named_kernel(&scene, side)
+                .with_context(|| format!("scene {origin}"))?;
+        }
+    }
     let (inhale, exhale, boundary) = scene
         .pv_model()
         .with_context(|| format!("scene {origin}"))?;

@@ -13,7 +13,7 @@ use std::time::{Duration, Instant};
 
 use anyhow::{bail, Context};
 use ipc_types::{
-    ControlPacket, ControlReply, Intervention, Message, LAYOUT_VERSION, LUNG_AFFECTED,
+    lung_words, ControlPacket, ControlReply, Intervention, Message, LAYOUT_VERSION, LUNG_AFFECTED,
 };
 use lung_model::mesh::Side;
 use transport::{iox, Instance, Publish, Receive};
@@ -53,17 +53,6 @@ fn running_engines() -> String {
 /// The intervention's name in words ("needle decompression").
 fn kind_words(kind: Intervention) -> String {
     kind.name().replace('-', " ")
-}
-
-/// The side a reply names, in words.
-fn lung_words(lung: u32) -> &'static str {
-    match lung as usize {
-        ipc_types::LUNG_RIGHT => "right",
-        ipc_types::LUNG_LEFT => "left",
-        // A joined remote site forwards the action before the source resolves the side.
-        _ if lung == LUNG_AFFECTED => "affected",
-        _ => "an unknown side",
-    }
 }
 
 /// The outcome as one line: "needle decompression, left: applied at tick 3612, shows from disease

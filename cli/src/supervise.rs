@@ -32,6 +32,11 @@ impl Ended {
     pub fn success(&self) -> bool {
         matches!(self, Ended::Status(s) if s.success())
     }
+
+    /// Exited by itself with a failure status (an error it reported), not killed by a signal.
+    pub fn failed_by_itself(&self) -> bool {
+        matches!(self, Ended::Status(s) if s.code().is_some_and(|c| c != 0))
+    }
 }
 
 impl std::fmt::Display for Ended {
@@ -279,6 +284,8 @@ pub struct Supervisor<'a> {
     recent: VecDeque<u64>,
     clean: Cleaner<'a>,
     started_ns: u64,
+    /// The pipeline has shown a frame ([`Supervisor::pipeline_running`]).
+    running: bool,
     /// Every restart so far, in order.
     pub restarts: Vec<Restart>,
 }
@@ -293,8 +300,18 @@ impl<'a> Supervisor<'a> {
             recent: VecDeque::new(),
             clean,
             started_ns: now_ns(),
+            running: false,
             restarts: Vec::new(),
         }
+    }
+
+    /// The pipeline has shown its first frame: from now on a process that exits with an error is
+    /// restarted. Before it, such an exit is a start-up error (a display that is not there, `--xr`
+    /// without a runtime, a scene a process refuses) that a restart would only repeat, so
+    /// [`Supervisor::check`] ends the run with it at once. A process killed by a signal is
+    /// restarted either way.
+    pub fn pipeline_running(&mut self) {
+        self.running = true;
     }
 
     /// Start `role` with `spawn`, which is also how it is restarted.
@@ -320,6 +337,12 @@ impl<'a> Supervisor<'a> {
                 continue;
             }
             let role = p.role;
+            if !self.running && ended.failed_by_itself() {
+                anyhow::bail!(
+                    "the {role} process exited ({ended}) before the pipeline's first frame: not \
+                     restarted, as a start-up error would only repeat — see its message above"
+                );
+            }
             let now = now_ns();
             let window = (self.intensity.within_s * 1e9) as u64;
             while self
@@ -643,6 +666,7 @@ mod tests {
     fn a_restart_storm_past_the_limit_stops_with_a_clear_error() {
         let starts = std::cell::Cell::new(0);
         let mut s = Supervisor::new(Intensity::checked(2, 60.0).unwrap(), no_cleaning());
+        s.pipeline_running();
         s.start("crasher", shell("exit 7", &starts)).unwrap();
         let e = until(|| s.check().err());
         let msg = format!("{e:#}");
@@ -653,6 +677,27 @@ mod tests {
         assert!(msg.contains("exit status: 7"), "{msg}");
         assert_eq!(starts.get(), 3, "the first start and two restarts");
         assert_eq!(s.restarts.len(), 2);
+    }
+
+    #[test]
+    fn a_start_up_error_ends_the_run_at_once_but_a_kill_before_the_first_frame_is_restarted() {
+        let (a, b) = (std::cell::Cell::new(0), std::cell::Cell::new(0));
+        let mut s = Supervisor::new(Intensity::checked(5, 60.0).unwrap(), no_cleaning());
+        s.start("renderer", shell("exit 1", &a)).unwrap();
+        let e = until(|| s.check().err());
+        let msg = format!("{e:#}");
+        assert!(
+            msg.contains("renderer") && msg.contains("before the pipeline's first frame"),
+            "{msg}"
+        );
+        assert_eq!((a.get(), s.restarts.len()), (1, 0), "not restarted");
+        // Killed by a signal before the first frame: not an error it reported, restarted.
+        let mut s = Supervisor::new(Intensity::checked(5, 60.0).unwrap(), no_cleaning());
+        s.start("engine", shell("exec sleep 30", &b)).unwrap();
+        assert!(s.children.procs[0].signal(libc::SIGKILL));
+        until(|| (!s.check().unwrap().is_empty()).then_some(()));
+        assert_eq!((b.get(), s.restarts.len()), (2, 1));
+        assert!(s.children.stop(Duration::from_millis(500)).is_empty());
     }
 
     #[test]
@@ -669,6 +714,7 @@ mod tests {
     fn restarts_older_than_the_window_do_not_count() {
         let starts = std::cell::Cell::new(0);
         let mut s = Supervisor::new(Intensity::checked(1, 0.1).unwrap(), no_cleaning());
+        s.pipeline_running();
         s.start("slow-crasher", shell("sleep 0.3; exit 1", &starts))
             .unwrap();
         // Each death comes more than 0.1 s after the previous restart: always within the limit.

@@ -507,6 +507,23 @@ pub const ORIGIN_LOCAL: u64 = 0;
 /// its [`ControlReply::lung`] names the side it acted on.
 pub const LUNG_AFFECTED: u32 = u32::MAX;
 
+/// A [`ControlPacket::lung`] (or [`ControlReply::lung`]) in words: "right", "left", "affected"
+/// ([`LUNG_AFFECTED`], before the engine resolves it) or "an unknown side".
+pub fn lung_words(lung: u32) -> &'static str {
+    match lung as usize {
+        LUNG_RIGHT => "right",
+        LUNG_LEFT => "left",
+        _ if lung == LUNG_AFFECTED => "affected",
+        _ => "an unknown side",
+    }
+}
+
+/// A [`ControlPacket::kind`] code in words: the intervention's name (`needle-decompression`, ...),
+/// or "an unknown action" for a code this layout does not define.
+pub fn kind_words(code: u32) -> &'static str {
+    Intervention::from_code(code).map_or("an unknown action", Intervention::name)
+}
+
 /// A sequence number for a [`ControlPacket`] that no other sender of the host uses at the same
 /// time: the low 48 bits of the send time (ns; they repeat after 3.2 days) and the low 16 bits of
 /// the sender's process id. The engine replies with it, so each sender picks out its own answers.

@@ -303,11 +303,11 @@ pub fn serve(args: &ServeArgs) -> Result<(), RemoteError> {
             // The engine takes (origin, sequence) once and announces the event with both.
             control.publish(&crate::source::control_packet(&e))?;
             eprintln!(
-                "remote serve[{}]: event kind {} on lung {} from site {:016x} (its #{}) handed \
-                 to the engine",
+                "remote serve[{}]: {} on the {} lung from site {:016x} (its #{}) handed to the \
+                 engine",
                 instance.name(),
-                e.kind,
-                e.lung,
+                ipc_types::kind_words(e.kind),
+                ipc_types::lung_words(e.lung),
                 e.origin,
                 e.sequence
             );
@@ -577,11 +577,11 @@ pub fn join(args: &JoinArgs) -> Result<(), RemoteError> {
         {
             for e in &announced {
                 eprintln!(
-                    "remote join[{}]: event kind {} on lung {} from {} (its #{}) applies at the \
+                    "remote join[{}]: {} on the {} lung from {} (its #{}) applies at the \
                      source's breathing cycle {} (tick {}), the disease course's cycle {}",
                     instance.name(),
-                    e.kind,
-                    e.lung,
+                    ipc_types::kind_words(e.kind),
+                    ipc_types::lung_words(e.lung),
                     if e.origin == site.id {
                         "this site".to_string()
                     } else {
@@ -628,9 +628,10 @@ pub fn join(args: &JoinArgs) -> Result<(), RemoteError> {
             match site.send_event(p.kind, p.lung) {
                 Ok(n) => {
                     eprintln!(
-                        "remote join[{}]: event kind {} sent to the source (#{n})",
+                        "remote join[{}]: {} on the {} lung sent to the source (#{n})",
                         instance.name(),
-                        p.kind
+                        ipc_types::kind_words(p.kind),
+                        ipc_types::lung_words(p.lung)
                     );
                     r.status = ipc_types::REPLY_RECEIVED;
                     r.set_text(&["sent to the source; it applies it at a cycle it announces"]);

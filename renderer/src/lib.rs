@@ -994,7 +994,7 @@ impl LungRenderer {
 }
 
 /// Samples per pixel for `settings` on `gpu`: the scene's `msaa`, else 4 on a GPU and 1 on a
-/// software rasterizer (lavapipe shades every sample on the CPU: 4× costs it 3.4× the frame,
+/// software rasterizer (lavapipe shades every sample on the CPU: 4× costs it 2.3–2.6× the frame,
 /// `cargo bench -p lungdyn-bench --bench render_looks`).
 pub fn msaa_samples(settings: &RenderScene, gpu: &Gpu) -> u32 {
     settings

@@ -498,6 +498,28 @@ fn reflected_obj(text: &str, f: impl Fn(f64, f64, f64) -> (f64, f64, f64)) -> St
     out
 }
 
+/// A reader that closes the pipe before a printing command writes (`lungdyn pv presets | head`, the
+/// reader already gone) ends it quietly, without `println!`'s EPIPE panic and its backtrace.
+#[test]
+fn a_printing_command_whose_reader_is_gone_ends_without_a_panic() {
+    let scene = concat!(
+        env!("CARGO_MANIFEST_DIR"),
+        "/../scenes/tension_pneumothorax.toml"
+    );
+    for args in [&["pv", "presets"][..], &["scene", "check", scene][..]] {
+        let mut child = Command::new(bin("lungdyn"))
+            .args(args)
+            .stdout(std::process::Stdio::piped())
+            .stderr(std::process::Stdio::piped())
+            .spawn()
+            .unwrap();
+        drop(child.stdout.take());
+        let out = child.wait_with_output().unwrap();
+        let err = String::from_utf8_lossy(&out.stderr);
+        assert!(!err.contains("panicked"), "{args:?}: {err}");
+    }
+}
+
 /// `mesh check --frame lps|ras` on an LPS (Y negated) or RAS (X negated) copy of a generated lung
 /// gives the body-frame original's volume, size and side, without a frame warning; the LPS copy
 /// read without `--frame` is refused naming `--frame lps` (anterior and posterior would swap), the
@@ -566,6 +588,18 @@ fn mesh_check_frame_lps_and_ras_give_the_body_frame_lung() {
         assert!(ok);
         let v: serde_json::Value = serde_json::from_str(stdout.trim()).unwrap();
         assert_eq!(v["geometry_side"], other, "{side} RAS read as body");
+        // The body-frame original read with --frame lps: warned about, with --frame body as the
+        // fix (not the --frame lps it was read with).
+        let (ok, stdout, err) = check(&body, &["--frame", "lps"]);
+        assert!(ok, "{side}: {err}");
+        let v: serde_json::Value = serde_json::from_str(stdout.trim()).unwrap();
+        let w = v["frame_warning"]
+            .as_str()
+            .unwrap_or_else(|| panic!("{side}: a body lung read as LPS must be warned about: {v}"));
+        assert!(
+            w.contains("--frame body") && !w.contains("read it with --frame lps"),
+            "{side}: {w}"
+        );
     }
     std::fs::remove_dir_all(dir).ok();
 }

@@ -220,6 +220,12 @@ fn xr_without_a_runtime_is_a_clear_error_naming_the_loader_or_runtime() {
             && err.contains("Monado")
             && err.contains("XR_RUNTIME_JSON");
         assert!(no_feature || no_loader || no_runtime, "{args:?}: {err}");
+        // Said once: a start-up error is not restarted into a storm of the same message.
+        assert_eq!(
+            err.matches("lungdyn: error: --xr").count(),
+            1,
+            "{args:?}: {err}"
+        );
     };
     check(&["renderer", "--xr", "--seconds", "1"]);
     let out = dir.join("out");

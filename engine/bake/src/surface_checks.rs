@@ -928,8 +928,8 @@ pub fn infer_orientation(mesh: &TriMesh) -> OrientationEvidence {
     if anterior_posterior_swapped {
         findings.push(
             "its lowest part lies towards +Y, but a lung's lowest point is the POSTERIOR \
-             costophrenic recess: +Y looks posterior, not anterior (an LPS mesh, as DICOM \
-             segmentation tools write, read as the body frame? use --frame lps)",
+             costophrenic recess: +Y looks posterior, not anterior (the file's anterior and \
+             posterior are the other way round from the frame it was read in)",
         );
     }
     if upside_down {
@@ -1538,7 +1538,13 @@ mod tests {
                             e.anterior_posterior_swapped && e.strong,
                             "{what} LPS: {e:?}"
                         );
-                        assert!(e.reason.contains("--frame lps"), "{what}: {}", e.reason);
+                        // The flag that fixes it depends on the frame the file was read in: the
+                        // caller names it (`lungdyn mesh check`, tests/cli.rs).
+                        assert!(
+                            e.reason.contains("POSTERIOR") && e.reason.contains("other way round"),
+                            "{what}: {}",
+                            e.reason
+                        );
                     }
                     assert_eq!(e.base_offset, -body.base_offset, "{what}: exact mirror");
 

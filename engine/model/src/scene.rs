@@ -614,8 +614,8 @@ pub struct RenderScene {
     /// What the colour shows.
     pub color: ColorMode,
     /// Samples per pixel: 4 (multisampled, resolved before read-back) or 1 (off). Unset: 4 on a
-    /// GPU, 1 on a software rasterizer (lavapipe shades every sample on the CPU: 4× costs it 3.4×
-    /// the frame); the renderer's start line says which it drew with.
+    /// GPU, 1 on a software rasterizer (lavapipe shades every sample on the CPU: 4× costs it
+    /// 2.3–2.6× the frame, README); the renderer's start line says which it drew with.
     #[serde(skip_serializing_if = "Option::is_none")]
     pub msaa: Option<u32>,
     /// Draw level of detail: "auto" (fewer triangles when the lungs cover few pixels), "off" or a
@@ -709,16 +709,72 @@ impl Default for RenderScene {
     }
 }
 
+/// Why a scene file could not be read, without repeating its path (the message names it once).
+fn read_reason(e: &crate::input::InputError) -> String {
+    match e {
+        crate::input::InputError::Open { source, .. } => source.to_string(),
+        other => other.to_string(),
+    }
+}
+
+/// Most scene files [`missing_scene_hint`] lists.
+const HINT_SCENES: usize = 8;
+
+/// For a scene path that does not exist, what a typo's fix needs: the `.toml` files in the folder
+/// it points into, closest to the name given first (edit distance; `scenes/` holds the shipped
+/// scenes), or that the folder does not exist either. Empty for any other read error.
+fn missing_scene_hint(path: &Path, e: &crate::input::InputError) -> String {
+    let crate::input::InputError::Open { source, .. } = e else {
+        return String::new();
+    };
+    if source.kind() != std::io::ErrorKind::NotFound {
+        return String::new();
+    }
+    let dir = match path.parent() {
+        Some(d) if !d.as_os_str().is_empty() => d,
+        _ => Path::new("."),
+    };
+    let Ok(entries) = std::fs::read_dir(dir) else {
+        return format!(" (the folder {} does not exist either)", dir.display());
+    };
+    let mut names: Vec<String> = entries
+        .filter_map(Result::ok)
+        .map(|e| e.file_name().to_string_lossy().into_owned())
+        .filter(|n| n.ends_with(".toml"))
+        .collect();
+    if names.is_empty() {
+        return format!(" (no .toml file in {})", dir.display());
+    }
+    let wanted = path
+        .file_name()
+        .map_or_else(String::new, |n| n.to_string_lossy().into_owned());
+    names.sort_by_cached_key(|n| (strsim::levenshtein(&wanted, n), n.clone()));
+    let more = names.len().saturating_sub(HINT_SCENES);
+    names.truncate(HINT_SCENES);
+    let more = if more > 0 {
+        format!(" and {more} more")
+    } else {
+        String::new()
+    };
+    format!(
+        "; the scenes in {}, closest first: {}{more}",
+        dir.display(),
+        names.join(", ")
+    )
+}
+
 /// Errors loading a scene.
 #[derive(Debug, thiserror::Error)]
 pub enum SceneError {
     /// The file could not be read within the limits.
-    #[error("cannot read scene {path}: {source}")]
+    #[error("cannot read scene {path}: {}{hint}", read_reason(.why))]
     Read {
         /// Path.
         path: String,
-        /// Why.
-        source: crate::input::InputError,
+        /// Why (not an error `source`: the message already says it without repeating the path).
+        why: crate::input::InputError,
+        /// For a path that does not exist: the scenes beside it ([`missing_scene_hint`]).
+        hint: String,
     },
     /// The TOML is malformed or has unknown keys.
     #[error("scene {path} is invalid: {message}")]
@@ -1046,9 +1102,10 @@ impl Scene {
             source,
         };
         let text = crate::input::read_text_bounded(path, crate::input::ReadLimits::CONFIG)
-            .map_err(|source| SceneError::Read {
+            .map_err(|why| SceneError::Read {
                 path: p.clone(),
-                source,
+                hint: missing_scene_hint(path, &why),
+                why,
             })?;
         let mut scene = Self::parse(&text, &p)?;
         // Files a scene names are relative to the scene file, so a scene and its patient files
@@ -1590,6 +1647,39 @@ mod tests {
         let path = Path::new(env!("CARGO_MANIFEST_DIR")).join("../../scenes/default.toml");
         assert_eq!(Scene::load(&path).unwrap(), Scene::default());
         assert_eq!(Scene::parse("", "empty").unwrap(), Scene::default());
+    }
+
+    #[test]
+    fn a_scene_path_that_does_not_exist_lists_the_scenes_beside_it() {
+        let dir = std::env::temp_dir().join(format!("lungdyn-scene-typo-{}", std::process::id()));
+        std::fs::create_dir_all(&dir).unwrap();
+        for name in ["tension_pneumothorax.toml", "default.toml", "notes.txt"] {
+            std::fs::write(dir.join(name), "").unwrap();
+        }
+        let typo = dir.join("tension_pneumothrax.toml");
+        let e = Scene::load(&typo).unwrap_err().to_string();
+        assert!(e.starts_with("cannot read scene"), "{e}");
+        assert!(
+            e.contains("the scenes in") && e.contains("tension_pneumothorax.toml, default.toml"),
+            "{e}"
+        );
+        assert!(!e.contains("notes.txt"), "{e}");
+        assert_eq!(
+            e.matches("tension_pneumothrax").count(),
+            1,
+            "the path once: {e}"
+        );
+        let e = Scene::load(&dir.join("no-such-folder/s.toml"))
+            .unwrap_err()
+            .to_string();
+        assert!(e.contains("does not exist either"), "{e}");
+        // A file that exists but cannot be read as a scene gets no list.
+        std::fs::create_dir_all(dir.join("folder.toml")).unwrap();
+        let e = Scene::load(&dir.join("folder.toml"))
+            .unwrap_err()
+            .to_string();
+        assert!(!e.contains("the scenes in"), "{e}");
+        std::fs::remove_dir_all(dir).ok();
     }
 
     #[test]
