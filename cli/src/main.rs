@@ -407,7 +407,7 @@ fn main() -> std::process::ExitCode {
             if args.json {
                 println!("{}", serde_json::to_string(&v)?);
             }
-            Ok(())
+            lungdyn::tracker_cmd::heard_something(&v)
         }),
         Command::Tracker(TrackerCommand::Simulate(args)) => lungdyn::tracker_cmd::simulate(&args).and_then(|v| {
             if args.json {

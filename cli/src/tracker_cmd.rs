@@ -113,6 +113,26 @@ pub fn listen(args: &ListenArgs) -> anyhow::Result<Value> {
     Ok(v)
 }
 
+/// After `tracker listen`'s statistics are out: an error when not one sample arrived, naming what
+/// to check — a wiring check that heard nothing has failed, whatever it printed.
+pub fn heard_something(v: &Value) -> anyhow::Result<()> {
+    if v["samples"].as_u64().unwrap_or(0) > 0 {
+        return Ok(());
+    }
+    let link = &v["link"];
+    let (connects, retries) = (
+        link["connects"].as_u64().unwrap_or(0),
+        link["retries"].as_u64().unwrap_or(0),
+    );
+    bail!(
+        "no sample arrived from {} in {:.1} s ({connects} connects, {retries} retries): check that \
+         the tracker is plugged in and on, its port or address, and that this user may open it \
+         (`lungdyn doctor` lists the serial ports and their access)",
+        v["source"].as_str().unwrap_or("the source"),
+        v["seconds"].as_f64().unwrap_or(0.0)
+    )
+}
+
 /// Options of `lungdyn tracker simulate`.
 #[derive(Debug, Clone, clap::Args)]
 pub struct SimulateArgs {
