@@ -323,8 +323,13 @@ fn the_demo_launcher_honours_sigterm_followed_by_sigcont() {
             Proc::spawn("lungdyn demo", &mut cmd, out.join("stderr.txt"), None)
         })
         .collect();
+    // Every run draws: its engine has tracker samples and its renderer engine frames (it draws the
+    // first at once). "tracker connected" alone can come while a renderer still opens its GPU (four
+    // at once on lavapipe, on a loaded machine), and a run stopped before its first frame fails as
+    // "interrupted before any frame was drawn" — not what this test is about.
     for p in &mut procs {
         p.wait_for("tracker connected");
+        p.wait_for("engine connected");
     }
     // Frames drawn in every run.
     std::thread::sleep(Duration::from_secs(2));
