@@ -250,8 +250,14 @@ fn stop_round(role: &str, trials: &[When], scene: Option<&Path>, ready: &str) {
     }
 }
 
+/// The engine's and the renderer's scene, prepared once for the tests running in parallel: each
+/// preparing its own in the one folder `prepared_scene("stop")` names rewrote `scene.toml` (a
+/// truncate, then a write) while the other's `scene prepare` might be reading it.
 fn scene() -> PathBuf {
-    prepared_scene("stop", "[lungs]\nvertices = 600\n")
+    static SCENE: std::sync::OnceLock<PathBuf> = std::sync::OnceLock::new();
+    SCENE
+        .get_or_init(|| prepared_scene("stop", "[lungs]\nvertices = 600\n"))
+        .clone()
 }
 
 #[test]
