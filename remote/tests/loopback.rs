@@ -53,7 +53,15 @@ fn a_site_joins_and_breathes_the_sources_ticks_bit_for_bit() {
         assert!(s.states_applied >= 1 && s.refused == 0, "{s:?}");
         // One machine, one clock: the offset estimate is within a millisecond of 0.
         assert!(s.offset_ms.abs() < 1.0, "{s:?}");
-        assert!(s.phase_error_ms_worst < 1.0, "{s:?}");
+        // (Failed once in 3 runs under two busy loops, worst 33.36 ms — two periods — with a mean
+        // of 0.18 ms; the source's skipped deadlines, re-anchoring its schedule, are the suspect,
+        // so they are said.)
+        assert!(
+            s.phase_error_ms_worst < 1.0,
+            "{s:?}; the source skipped {} deadlines, its lateness {:?}",
+            r.source_deadlines_skipped,
+            r.source_lateness
+        );
         // Every stepped tick's lateness is counted, its percentiles in order.
         let l = &s.lateness;
         assert_eq!(l.ticks, s.ticks, "{s:?}");

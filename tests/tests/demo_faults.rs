@@ -73,13 +73,31 @@ impl Demo {
 
     /// Wait until stderr contains `needle` (60 s at most).
     fn wait_for(&self, needle: &str) {
+        self.wait_for_count(needle, 1);
+    }
+
+    /// Wait until stderr contains `needle` `n` times (60 s at most): the `n`th event of a kind, not
+    /// the first one again.
+    fn wait_for_count(&self, needle: &str, n: usize) {
         for _ in 0..1200 {
-            if self.stderr().contains(needle) {
+            if self.stderr().matches(needle).count() >= n {
                 return;
             }
             std::thread::sleep(Duration::from_millis(50));
         }
-        panic!("no {needle:?} on the demo's stderr: {}", self.stderr());
+        panic!(
+            "fewer than {n} {needle:?} on the demo's stderr: {}",
+            self.stderr()
+        );
+    }
+
+    /// Wait until the whole pipeline runs: the engine has tracker samples and the renderer engine
+    /// frames, which it draws at once. ("tracker connected" alone comes from the engine, possibly
+    /// while the renderer still opens its GPU: on a cold, loaded machine lavapipe takes seconds,
+    /// and a fault injected then hits a run that has not drawn a frame.)
+    fn wait_until_drawing(&self) {
+        self.wait_for("tracker connected");
+        self.wait_for("engine connected");
     }
 
     /// Send `sig` to the demo's child of `role`.
@@ -117,7 +135,7 @@ fn the_demo_survives_sigkill_of_its_engine_and_tracker_bridge() {
         return;
     }
     let demo = Demo::start("kill", "7", &[]);
-    demo.wait_for("tracker connected");
+    demo.wait_until_drawing();
     std::thread::sleep(Duration::from_millis(1500));
     demo.signal("engine", libc::SIGKILL);
     demo.wait_for("resuming at tick");
@@ -148,7 +166,7 @@ fn a_renderer_stopped_for_good_shows_as_missed_deadlines() {
         return;
     }
     let demo = Demo::start("stop", "5", &[]);
-    demo.wait_for("tracker connected");
+    demo.wait_until_drawing();
     std::thread::sleep(Duration::from_millis(1000));
     demo.signal("renderer", libc::SIGSTOP);
     let (ok, v, err) = demo.finish();
@@ -169,7 +187,7 @@ fn ctrl_z_then_fg_pauses_the_whole_run_and_it_completes() {
         return;
     }
     let demo = Demo::start("ctrlz", "6", &[]);
-    demo.wait_for("tracker connected");
+    demo.wait_until_drawing();
     std::thread::sleep(Duration::from_millis(1000));
     demo.signal_job(libc::SIGTSTP);
     let mut stopped = false;
@@ -199,11 +217,13 @@ fn a_restart_storm_past_the_limit_ends_the_run_with_the_report_printed() {
         return;
     }
     let demo = Demo::start("storm", "20", &["--max-restarts", "2"]);
-    demo.wait_for("tracker connected");
+    demo.wait_until_drawing();
     for k in 0..3 {
         demo.signal("tracker-bridge", libc::SIGKILL);
         if k < 2 {
-            demo.wait_for("process died");
+            // This kill's restart, not the first one's line again (the launcher restarts at once:
+            // the new bridge is its child when the line is printed).
+            demo.wait_for_count("process died", k + 1);
             std::thread::sleep(Duration::from_millis(700));
         }
     }

@@ -21,20 +21,21 @@ fn spawn(name: &str, instance: &str, extra: &[&str]) -> Child {
         .unwrap_or_else(|e| panic!("cannot start {name}: {e}"))
 }
 
-fn interrupt_and_wait(name: &str, child: &mut Child) -> String {
+/// SIGINT to `child`, then wait for its clean exit, calling `meanwhile` as it is awaited (a
+/// reader of the reports keeps draining them: the renderer goes on drawing while the others stop);
+/// its stderr (empty where the caller reads it itself).
+fn interrupt_and_wait(name: &str, child: &mut Child, meanwhile: &mut dyn FnMut()) -> String {
     // SAFETY: signalling our own child.
     unsafe { libc::kill(child.id() as libc::pid_t, libc::SIGINT) };
     let until = now_ns() + 10_000_000_000;
     loop {
+        meanwhile();
         if let Some(status) = child.try_wait().unwrap() {
             let mut err = String::new();
             use std::io::Read;
-            child
-                .stderr
-                .take()
-                .unwrap()
-                .read_to_string(&mut err)
-                .unwrap();
+            if let Some(mut e) = child.stderr.take() {
+                e.read_to_string(&mut err).unwrap();
+            }
             assert!(
                 status.success(),
                 "{name} exited with {status} after SIGINT: {err}"
@@ -77,7 +78,8 @@ fn run(tag: &str, engine_scene: &str, renderer_scene: &str, seconds: u64) -> Opt
     run_with(tag, engine_scene, renderer_scene, seconds, |_| {})
 }
 
-/// [`run`], calling `during(renderer_pid)` once the first frame has arrived.
+/// [`run`], calling `during(renderer_pid)` once the first frame has arrived; the `seconds` of
+/// frames are counted from its return (frames drawn after it are what it is checked by).
 fn run_with(
     tag: &str,
     engine_scene: &str,
@@ -108,6 +110,7 @@ fn run_with(
                 inlet
                     .drain(&mut |r: &FrameReport| reports.push(*r))
                     .unwrap();
+                first = Some(now_ns());
             }
         }
         if first.is_some_and(|t| now_ns() - t > seconds * 1_000_000_000) {
@@ -115,9 +118,16 @@ fn run_with(
         }
         std::thread::sleep(Duration::from_millis(5));
     }
-    let bridge_err = interrupt_and_wait("tracker-bridge", &mut bridge);
-    let engine_err = interrupt_and_wait("engine", &mut engine);
-    let renderer_err = interrupt_and_wait("renderer", &mut renderer);
+    // The renderer draws on (stale frames) while the bridge and the engine stop: its reports are
+    // drained meanwhile, so none overflows the stream's buffer however long the stops take.
+    let mut drain = || {
+        inlet
+            .drain(&mut |r: &FrameReport| reports.push(*r))
+            .unwrap();
+    };
+    let bridge_err = interrupt_and_wait("tracker-bridge", &mut bridge, &mut drain);
+    let engine_err = interrupt_and_wait("engine", &mut engine, &mut drain);
+    let renderer_err = interrupt_and_wait("renderer", &mut renderer, &mut drain);
     inlet
         .drain(&mut |r: &FrameReport| reports.push(*r))
         .unwrap();
@@ -347,8 +357,32 @@ fn a_second_run_with_the_same_instance_is_refused_and_touches_nothing() {
         .stderr(Stdio::piped())
         .spawn()
         .unwrap();
-    // Wait until the first one is up (it prints its waiting line).
-    std::thread::sleep(Duration::from_millis(1500));
+    // Wait until the first one is up (it prints its waiting line, its ports open), however long a
+    // cold, loaded machine takes: a fixed pause let the second start before the first held the
+    // instance. Its stderr is read on a thread meanwhile, and to its end after it stops.
+    let (lines, up) = std::sync::mpsc::channel();
+    let stderr = first.stderr.take().unwrap();
+    let reader = std::thread::spawn(move || {
+        use std::io::BufRead;
+        let mut all = String::new();
+        for line in std::io::BufReader::new(stderr)
+            .lines()
+            .map_while(Result::ok)
+        {
+            let _ = lines.send(line.contains("waiting for tracker frames"));
+            all += &line;
+            all.push('\n');
+        }
+        all
+    });
+    let waiting = std::time::Instant::now();
+    loop {
+        match up.recv_timeout(Duration::from_secs(120).saturating_sub(waiting.elapsed())) {
+            Ok(true) => break,
+            Ok(false) => {}
+            Err(e) => panic!("the first engine never said it waits for tracker frames: {e}"),
+        }
+    }
     let out = Command::new(bin("engine"))
         .args(["--instance", &instance, "--seconds", "1", "--scene"])
         .arg(&scene)
@@ -366,7 +400,8 @@ fn a_second_run_with_the_same_instance_is_refused_and_touches_nothing() {
         !services.leftovers().is_empty(),
         "the first run's shared memory is still there"
     );
-    let first_err = interrupt_and_wait("engine", &mut first);
+    interrupt_and_wait("engine", &mut first, &mut || {});
+    let first_err = reader.join().unwrap();
     assert!(first_err.contains("stopped after"), "{first_err}");
     assert!(services.remove_leftovers().unexpected.is_empty());
     // Two launchers: while one holds the instance (here: this test), a demo with the same name is

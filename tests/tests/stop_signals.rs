@@ -250,8 +250,14 @@ fn stop_round(role: &str, trials: &[When], scene: Option<&Path>, ready: &str) {
     }
 }
 
+/// The engine's and the renderer's scene, prepared once for the tests running in parallel: each
+/// preparing its own in the one folder `prepared_scene("stop")` names rewrote `scene.toml` (a
+/// truncate, then a write) while the other's `scene prepare` might be reading it.
 fn scene() -> PathBuf {
-    prepared_scene("stop", "[lungs]\nvertices = 600\n")
+    static SCENE: std::sync::OnceLock<PathBuf> = std::sync::OnceLock::new();
+    SCENE
+        .get_or_init(|| prepared_scene("stop", "[lungs]\nvertices = 600\n"))
+        .clone()
 }
 
 #[test]
@@ -323,8 +329,13 @@ fn the_demo_launcher_honours_sigterm_followed_by_sigcont() {
             Proc::spawn("lungdyn demo", &mut cmd, out.join("stderr.txt"), None)
         })
         .collect();
+    // Every run draws: its engine has tracker samples and its renderer engine frames (it draws the
+    // first at once). "tracker connected" alone can come while a renderer still opens its GPU (four
+    // at once on lavapipe, on a loaded machine), and a run stopped before its first frame fails as
+    // "interrupted before any frame was drawn" — not what this test is about.
     for p in &mut procs {
         p.wait_for("tracker connected");
+        p.wait_for("engine connected");
     }
     // Frames drawn in every run.
     std::thread::sleep(Duration::from_secs(2));

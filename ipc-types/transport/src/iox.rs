@@ -116,11 +116,19 @@ pub fn node(instance: &Instance, role: &str) -> Result<IoxNode, PortError> {
         .map_err(|source| PortError::Node { node: name, source })
 }
 
+/// How long [`remove_dead_nodes`] waits for another process already removing a dead node.
+const DEAD_NODE_CLEANUP_WAIT: std::time::Duration = std::time::Duration::from_secs(10);
+
 /// Remove the iceoryx2 resources of this instance's dead nodes (a process killed before it could
 /// clean up: its node, ports and the segments only it held), as iceoryx2 prescribes: `Node::list`,
-/// then `try_remove_stale_resources` on each node in [`NodeState::Dead`]. Returns the names of the
-/// nodes cleaned. Run before restarting a process, so the new one does not meet its predecessor's
-/// ports (a stream's publisher or subscriber count would otherwise include the dead one).
+/// then `blocking_remove_stale_resources` on each node in [`NodeState::Dead`]. Returns the names of
+/// the nodes cleaned. Run before restarting a process, so the new one does not meet its
+/// predecessor's ports (a stream's publisher or subscriber count would otherwise include the dead
+/// one). Another process of the instance may be removing the same node at that moment: that is
+/// waited for ([`DEAD_NODE_CLEANUP_WAIT`] at most; iceoryx2 takes the cleanup over should that
+/// process die meanwhile), and a node it has finished counts as cleaned. (With
+/// `try_remove_stale_resources` that was `AnotherInstanceIsCleaningUpTheNode`, an error that failed
+/// the restart and the run: seen under load in `demo_faults`' restart storm.)
 pub fn remove_dead_nodes(instance: &Instance) -> Result<Vec<String>, PortError> {
     let config = config(instance)?;
     let mut cleaned = Vec::new();
@@ -131,7 +139,7 @@ pub fn remove_dead_nodes(instance: &Instance) -> Result<Vec<String>, PortError> 
                 .details()
                 .as_ref()
                 .map_or_else(|| "(unnamed)".to_string(), |d| d.name().to_string());
-            match view.try_remove_stale_resources() {
+            match view.blocking_remove_stale_resources(DEAD_NODE_CLEANUP_WAIT) {
                 Ok(()) => cleaned.push(name),
                 Err(e) => failure = Some(format!("node {name}: {e:?}")),
             }

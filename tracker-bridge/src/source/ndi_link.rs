@@ -590,8 +590,9 @@ impl<'a> Session<'a> {
     /// Poll until stopped or the link is lost; `Ok` means asked to stop.
     ///
     /// One poll is sent per slot of the schedule and waited for until its reply or
-    /// [`POLL_TIMEOUT`]; between polls the link is still read, so a duplicate or late reply is
-    /// matched (and dropped) when it arrives instead of being taken as the next poll's answer.
+    /// [`POLL_TIMEOUT`]; between polls the link is still read, and every reply received is matched
+    /// before the next poll is sent, so a duplicate or late reply is matched (and dropped) when it
+    /// arrives instead of being taken as the next poll's answer.
     fn track(&mut self, roms: &[Rom], use_tx: bool, poll_hz: f64) -> Result<(), SessionError> {
         let period = Duration::from_secs_f64(1.0 / poll_hz);
         let mut next = Instant::now();
@@ -621,6 +622,13 @@ impl<'a> Session<'a> {
             next += period;
             if next + period < Instant::now() {
                 next = Instant::now() + period;
+            }
+            // Replies already received cannot answer the poll about to be sent: match them now. A
+            // duplicate read together with its first copy stays queued, and when the slot was
+            // already due (a bridge behind its schedule on a loaded machine, or polling faster than
+            // the wait above can read) it was taken as the next poll's answer, a repeated frame.
+            while let Some((r, at)) = self.ready.pop_front() {
+                self.handle(&r, at, &mut poll, roms)?;
             }
             let cmd = if poll.use_tx {
                 Command::Tx(POLL_OPTIONS)
