@@ -46,6 +46,7 @@ fn site_net(source: &Source) -> Net {
 
 #[test]
 fn a_site_joins_and_breathes_the_sources_ticks_bit_for_bit() {
+    let hz = harness_core(None).unwrap().0.engine.tick_hz;
     let r = harness::run(&args(2, 3.0, 0.0)).unwrap();
     for s in &r.per_site {
         assert!(s.ticks > 120, "{s:?}");
@@ -53,15 +54,20 @@ fn a_site_joins_and_breathes_the_sources_ticks_bit_for_bit() {
         assert!(s.states_applied >= 1 && s.refused == 0, "{s:?}");
         // One machine, one clock: the offset estimate is within a millisecond of 0.
         assert!(s.offset_ms.abs() < 1.0, "{s:?}");
-        // (Failed once in 3 runs under two busy loops, worst 33.36 ms — two periods — with a mean
-        // of 0.18 ms; the source's skipped deadlines, re-anchoring its schedule, are the suspect,
-        // so they are said.)
+        // Every tick on the source's schedule within a millisecond — less each period the source
+        // skipped: a source woken too late to catch up skips a deadline, which moves its later
+        // ticks a period off the schedule the sites follow until the next state (by design,
+        // `HarnessReport::source_deadlines_skipped`). Under two busy loops the worst was once 33.36
+        // ms, two periods, with a mean of 0.18 ms. The mean has no such allowance.
+        let period_ms = 1e3 / hz;
+        let allowed = 1.0 + r.source_deadlines_skipped as f64 * period_ms;
         assert!(
-            s.phase_error_ms_worst < 1.0,
+            s.phase_error_ms_worst < allowed,
             "{s:?}; the source skipped {} deadlines, its lateness {:?}",
             r.source_deadlines_skipped,
             r.source_lateness
         );
+        assert!(s.phase_error_ms_mean < 1.0, "{s:?}");
         // Every stepped tick's lateness is counted, its percentiles in order.
         let l = &s.lateness;
         assert_eq!(l.ticks, s.ticks, "{s:?}");
