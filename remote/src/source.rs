@@ -10,7 +10,6 @@ use std::sync::mpsc::{sync_channel, Receiver};
 use std::sync::Arc;
 
 use control_state::{decode, encode_to_vec, Packet, RemoteEvent};
-use transport::clock::now_ns;
 use zenoh::Wait;
 use zenoh_ext::{AdvancedPublisherBuilderExt, CacheConfig, MissDetectionConfig};
 
@@ -87,7 +86,7 @@ impl Source {
                         id: pid,
                         t0_ns,
                         t1_ns: at,
-                        t2_ns: now_ns(),
+                        t2_ns: imp.clock.now(),
                     };
                     if let Ok(b) = encode_to_vec(&reply) {
                         if s2.put(k2.reply(from), b).wait().is_ok() {
