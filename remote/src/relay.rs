@@ -96,6 +96,7 @@ pub struct Relay {
     pub id: u64,
     _probes: zenoh::pubsub::Subscriber<()>,
     _replies: zenoh::pubsub::Subscriber<()>,
+    _warm: zenoh::pubsub::Subscriber<()>,
     _token: zenoh::liveliness::LivelinessToken,
     _link: LinkIn,
     stop: Arc<AtomicBool>,
@@ -192,6 +193,12 @@ impl Relay {
             .callback(move |s| l2.push(s.payload().to_bytes().into_owned()))
             .wait()
             .map_err(zerr("declare the relay's reply subscriber"))?;
+        // The sites' warm-up packets: taken and dropped on Zenoh's thread (they only wake it).
+        let warm = session
+            .declare_subscriber(keys.relay_warm())
+            .callback(|_| {})
+            .wait()
+            .map_err(zerr("declare the relay's warm-up subscriber"))?;
         let token = session
             .liveliness()
             .declare_token(keys.relay_presence())
@@ -203,6 +210,7 @@ impl Relay {
             name: format!("remote-relay-probe-{id:x}"),
             session: session.clone(),
             key: keys.probe(),
+            warm: keys.warm(),
             id,
             clock: imp.clock,
         }
@@ -228,6 +236,7 @@ impl Relay {
             id,
             _probes: probes,
             _replies: replies,
+            _warm: warm,
             _token: token,
             _link: link,
             stop,

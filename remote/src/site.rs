@@ -167,11 +167,20 @@ impl PathFigures {
     }
 }
 
-/// A prober: a thread `name` putting probes from `id` on `key` of `session`, stamped on `clock`.
+/// How long before each probe its prober puts a warm-up packet, ms. A probe sent on a path idle
+/// since the last one (50–500 ms) found the sender's Zenoh TX thread and the receiver's RX thread
+/// asleep, while the reply left on the answerer's just-woken threads: on this VM the way up took
+/// 190 µs against 80 µs down, an offset error of +56 µs (+63 µs every 200 ms, +5 µs every 1 ms;
+/// `remote/examples/probe_legs.rs`). A 1-byte packet 1 ms ahead wakes both ends: +2.6 µs.
+pub const WARM_UP_MS: u64 = 1;
+
+/// A prober: a thread `name` putting probes from `id` on `key` of `session`, stamped on `clock`,
+/// each [`WARM_UP_MS`] after a 1-byte packet on `warm`.
 pub(crate) struct Prober {
     pub name: String,
     pub session: zenoh::Session,
     pub key: String,
+    pub warm: String,
     pub id: u64,
     pub clock: LocalClock,
 }
@@ -189,12 +198,15 @@ impl Prober {
             name,
             session,
             key,
+            warm,
             id,
             clock,
         } = self;
         std::thread::Builder::new().name(name).spawn(move || {
             let mut n = 0u64;
             while !stop.load(Ordering::Relaxed) {
+                let _ = session.put(&warm, vec![0u8]).wait();
+                std::thread::sleep(Duration::from_millis(WARM_UP_MS));
                 let probe = Packet::Probe {
                     from: id,
                     to: 0,
@@ -203,7 +215,9 @@ impl Prober {
                 };
                 let sent = encode_to_vec(&probe).is_ok_and(|b| session.put(&key, b).wait().is_ok());
                 after(sent);
-                std::thread::sleep(Duration::from_millis(interval_ms(n).max(1)));
+                std::thread::sleep(Duration::from_millis(
+                    interval_ms(n).saturating_sub(WARM_UP_MS).max(1),
+                ));
                 n += 1;
             }
         })?;
@@ -376,15 +390,16 @@ impl Site {
                 )
             }
         };
-        let probe_key = match clock {
-            ClockSync::Source => keys.probe(),
-            ClockSync::Relay => keys.relay_probe(),
+        let (probe_key, warm) = match clock {
+            ClockSync::Source => (keys.probe(), keys.warm()),
+            ClockSync::Relay => (keys.relay_probe(), keys.relay_warm()),
         };
         let stop = Arc::new(AtomicBool::new(false));
         Prober {
             name: format!("remote-probe-{id:x}"),
             session: session.clone(),
             key: probe_key,
+            warm,
             id,
             clock: imp.clock,
         }
