@@ -78,6 +78,20 @@ pub struct HarnessArgs {
     /// every 500 ms).
     #[arg(long, default_value_t = 50)]
     pub probe_ms: u64,
+    /// Test seam, off by default: every site's clock runs at 1 + SKEW_PPM × 10⁻⁶ of the source's,
+    /// as a second machine's would (here all share CLOCK_MONOTONIC); the sites fit the rate
+    /// (|rate| > 500 ppm is reported, not applied). Each site's offset error and fitted rate are
+    /// reported.
+    #[arg(long, default_value_t = 0.0, allow_negative_numbers = true)]
+    pub skew_ppm: f64,
+    /// Test seam, off by default, with --router: the time relay's clock runs at 1 + PPM × 10⁻⁶
+    /// of the source's.
+    #[arg(long, default_value_t = 0.0, allow_negative_numbers = true)]
+    pub relay_skew_ppm: f64,
+    /// For comparisons: the sites and the relay fit their clock rate but do not apply it (the
+    /// offset is the 10 s mean alone, as before the rate fit).
+    #[arg(long)]
+    pub no_clock_rate: bool,
     /// Run the source in its own process (this executable's hidden `remote harness-source`), so
     /// its CPU time and TCP bytes are its own: the launcher sets it; without it (the library's
     /// tests) the source shares the harness's process and its cost is not reported.
@@ -151,6 +165,8 @@ pub struct SiteReport {
     pub phase_error_ms_mean: f64,
     /// Largest, ms.
     pub phase_error_ms_worst: f64,
+    /// Largest over the run's last 5 s, ms (a clock estimate that settled: the fitted rate).
+    pub phase_error_ms_worst_last_5_s: f64,
     /// Ticks stepped.
     pub ticks: usize,
     /// Ticks whose volume differs from the source's at the same tick number (determinism).
@@ -168,10 +184,63 @@ pub struct SiteReport {
     pub delay_ms: f64,
     /// Round-trip variation, ms.
     pub jitter_ms: f64,
-    /// Estimated clock offset, ms (the true one is 0: one machine, one clock).
+    /// Estimated clock offset (source − site) at the end, ms (the true one is 0 on one machine
+    /// unless the site's clock is skewed: then `clock.offset_error_ms` is the error).
     pub offset_ms: f64,
+    /// The clock estimate's error and rate.
+    #[serde(flatten)]
+    pub clock: ClockFigures,
     /// How late the site's tick thread stepped each tick after its scheduled time.
     pub lateness: Lateness,
+}
+
+/// A clock estimate's error and rate at the end of a run.
+#[derive(Debug, Clone, Serialize)]
+pub struct ClockFigures {
+    /// The estimated offset minus the true one (the emulated skew's; 0 unskewed) now, ms;
+    /// `null` before an offset.
+    pub offset_error_ms: Option<f64>,
+    /// The fitted clock rate (dθ/dt: the source's clock faster than this one's by it), ppm;
+    /// `null` before a fit.
+    pub rate_ppm: Option<f64>,
+    /// `applied`, `uncertain` (fitted, standard error over 5 ppm: not applied yet),
+    /// `implausible` (beyond ±500 ppm: not applied) or `unknown` (too few probes).
+    pub rate: &'static str,
+    /// Rate fits refused as implausible.
+    pub rates_refused: u64,
+}
+
+impl ClockFigures {
+    /// `path`'s figures now, for a participant on `clock` (the source on the host's).
+    pub fn of(path: &crate::site::PathFigures, clock: crate::clock::LocalClock) -> Self {
+        let host = now_ns();
+        let local = clock.of(host);
+        let truth = host as i128 - local as i128;
+        Self {
+            offset_error_ms: path
+                .offset_at(local)
+                .map(|o| (o as i128 - truth) as f64 / 1e6),
+            rate_ppm: path.fitted_rate().map(|r| r * 1e6),
+            rate: path.rate_word(),
+            rates_refused: path.rates_refused.load(Ordering::Relaxed),
+        }
+    }
+
+    /// In words.
+    fn words(&self) -> String {
+        format!(
+            "offset error {}, rate {} ({})",
+            self.offset_error_ms
+                .map_or("none".to_string(), |e| format!("{e:.3} ms")),
+            self.rate_ppm
+                .map_or("none".to_string(), |r| format!("{r:.1} ppm")),
+            if self.rates_refused > 0 {
+                format!("{}, {} fits refused", self.rate, self.rates_refused)
+            } else {
+                self.rate.to_string()
+            }
+        )
+    }
 }
 
 /// The time relay's figures over the measured window (through a router).
@@ -193,6 +262,9 @@ pub struct RelayReport {
     pub offset_ms: Option<f64>,
     /// The relay's smoothed one-way delay to the source, ms.
     pub delay_ms: f64,
+    /// Its clock estimate's error and rate.
+    #[serde(flatten)]
+    pub clock: ClockFigures,
 }
 
 /// The harness's figures.
@@ -220,6 +292,8 @@ pub struct HarnessReport {
     pub phase_error_ms_mean: f64,
     /// Worst phase error, ms.
     pub phase_error_ms_worst: f64,
+    /// Worst phase error over the last 5 s, ms.
+    pub phase_error_ms_worst_last_5_s: f64,
     /// Control packets delivered per minute (states published × sites).
     pub packets_per_minute: f64,
     /// What per-frame updates would deliver (engine frames × sites).
@@ -238,6 +312,12 @@ pub struct HarnessReport {
     pub probe_ms: u64,
     /// Whom the sites probe for the source's clock.
     pub clock_sync: &'static str,
+    /// Emulated rate of each site's clock against the source's, ppm (`--skew-ppm`; 0: none).
+    pub skew_ppm: f64,
+    /// Emulated rate of the relay's clock against the source's, ppm (`--relay-skew-ppm`).
+    pub relay_skew_ppm: f64,
+    /// The clock rate was fitted but not applied (`--no-clock-rate`).
+    pub no_clock_rate: bool,
     /// The time relay (through a router; `null` peer to peer).
     pub relay: Option<RelayReport>,
     /// Probes the source answered per minute of the window (one reply to each site's each
@@ -426,19 +506,21 @@ pub fn run_source_at(
     Ok((frames.0, stats))
 }
 
-/// Run a site until `stop`; every stepped tick recorded.
+/// Run a site until `stop`; every stepped tick recorded (on the host's clock: a site's emulated
+/// skewed clock, [`Runner::clock`], is moved back, so the records compare with the source's).
 pub fn run_site(mut runner: Runner, stop: &AtomicBool) -> Result<Vec<Rec>, RemoteError> {
     let mut recs = Vec::new();
+    let clock = runner.clock();
     while !stop.load(Ordering::Relaxed) {
-        let now = now_ns();
+        let now = clock.now();
         if let Some(k) = runner.poll(now)? {
             let v = runner.frame.lungs.iter().map(|l| l.volume_ml).sum::<f32>();
-            let sched = runner.time_of(k).unwrap_or(now as i128);
+            let sched = clock.host(runner.time_of(k).unwrap_or(now as i128));
             recs.push((sched, now_ns(), k, v, runner.frame.lungs[0].cycle));
         }
         let wake = runner
             .next_wake()
-            .map(|t| t - now_ns() as i128)
+            .map(|t| clock.host_span(t - clock.now() as i128))
             .unwrap_or(1_000_000)
             .clamp(0, 2_000_000);
         std::thread::sleep(Duration::from_nanos(wake as u64));
@@ -545,11 +627,22 @@ fn check(args: &HarnessArgs) -> Result<Impairment, RemoteError> {
             args.probe_ms
         )));
     }
+    crate::clock::LocalClock::skewed(args.skew_ppm, 0)
+        .map_err(|e| RemoteError::Usage(format!("--skew-ppm {e}")))?;
+    crate::clock::LocalClock::skewed(args.relay_skew_ppm, 0)
+        .map_err(|e| RemoteError::Usage(format!("--relay-skew-ppm {e}")))?;
+    if args.relay_skew_ppm != 0.0 && !args.router {
+        return Err(RemoteError::Usage(
+            "--relay-skew-ppm needs --router (the time relay runs beside the router)".into(),
+        ));
+    }
     let imp = Impairment {
         delay_ms: args.delay_ms,
         jitter_ms: args.jitter_ms,
         loss: args.loss,
         seed: args.seed,
+        clock: crate::clock::LocalClock::default(),
+        no_rate: args.no_clock_rate,
     };
     imp.check().map_err(RemoteError::Usage)?;
     Ok(imp)
@@ -784,6 +877,7 @@ impl Snapshot {
             unanswered: r.counts.unanswered.load(Ordering::Relaxed),
             offset_ms: r.offset_ns().map(|o| o as f64 / 1e6),
             delay_ms: r.path.delay_ns.load(Ordering::Relaxed) as f64 / 1e6,
+            clock: ClockFigures::of(&r.path, r.clock),
         }
     }
 }
@@ -849,6 +943,12 @@ pub fn run(args: &HarnessArgs) -> Result<HarnessReport, RemoteError> {
         .map(|l| l.breathing().boundary().tv_ml)
         .unwrap_or(500.0);
     let keys = Keys::new("harness")?;
+    // The emulated clocks (equal to the host's now, then running at their rates).
+    let epoch = now_ns();
+    let skewed = |ppm: f64| {
+        crate::clock::LocalClock::skewed(ppm, epoch).map_err(|e| RemoteError::Usage(e.to_string()))
+    };
+    let (site_clock, relay_clock) = (skewed(args.skew_ppm)?, skewed(args.relay_skew_ppm)?);
     // A router in this process: everyone else is its client.
     let router = if args.router {
         Some(local_net("router", None).open()?)
@@ -861,6 +961,7 @@ pub fn run(args: &HarnessArgs) -> Result<HarnessReport, RemoteError> {
         Some(r) => {
             let mut i = imp;
             i.seed = args.seed.wrapping_add(0x7e1a);
+            i.clock = relay_clock;
             Some(Relay::open(r, &keys, site_id(1000), i, args.probe_ms)?)
         }
         None => None,
@@ -893,6 +994,7 @@ pub fn run(args: &HarnessArgs) -> Result<HarnessReport, RemoteError> {
     for k in 0..args.sites {
         let mut i = imp;
         i.seed = args.seed.wrapping_add(k as u64 + 1);
+        i.clock = site_clock;
         sites.push(Site::open(
             &site_net,
             &keys,
@@ -979,10 +1081,16 @@ pub fn run(args: &HarnessArgs) -> Result<HarnessReport, RemoteError> {
         let from = r.first().map_or(end, |x| x.1 as i128);
         let (mean, worst) = drift(&source_recs, r, from, end, tv, false);
         let (mean_s, _) = drift(&source_recs, r, from, end, tv, true);
-        let phase: Vec<f64> = r
+        let phase: Vec<(i128, f64)> = r
             .iter()
-            .filter_map(|x| sched_of(x.2).map(|s| (x.0 - s).abs() as f64 / 1e6))
+            .filter_map(|x| sched_of(x.2).map(|s| (s, (x.0 - s).abs() as f64 / 1e6)))
             .collect();
+        let last_5_s = phase
+            .iter()
+            .filter(|p| p.0 >= end - 5_000_000_000)
+            .map(|p| p.1)
+            .fold(0.0, f64::max);
+        let phase: Vec<f64> = phase.into_iter().map(|p| p.1).collect();
         let differing = r
             .iter()
             .filter(|x| {
@@ -998,6 +1106,7 @@ pub fn run(args: &HarnessArgs) -> Result<HarnessReport, RemoteError> {
             drift_percent_mean_scheduled: mean_s,
             phase_error_ms_mean: phase.iter().sum::<f64>() / phase.len().max(1) as f64,
             phase_error_ms_worst: phase.iter().copied().fold(0.0, f64::max),
+            phase_error_ms_worst_last_5_s: last_5_s,
             ticks: r.len(),
             ticks_differing: differing,
             states_applied: c.applied.load(Ordering::Relaxed),
@@ -1006,7 +1115,8 @@ pub fn run(args: &HarnessArgs) -> Result<HarnessReport, RemoteError> {
             predicted_cycles: c.predicted_cycles.load(Ordering::Relaxed),
             delay_ms: site.path.delay_ns.load(Ordering::Relaxed) as f64 / 1e6,
             jitter_ms: site.path.jitter_ns.load(Ordering::Relaxed) as f64 / 1e6,
-            offset_ms: site.path.offset_ns.load(Ordering::Relaxed) as f64 / 1e6,
+            offset_ms: site.path.offset_at(site.own_clock.now()).unwrap_or(0) as f64 / 1e6,
+            clock: ClockFigures::of(&site.path, site.own_clock),
             lateness: lateness(r),
         });
     }
@@ -1027,7 +1137,7 @@ pub fn run(args: &HarnessArgs) -> Result<HarnessReport, RemoteError> {
         delay_ms: args.delay_ms,
         jitter_ms: args.jitter_ms,
         loss: args.loss,
-        emulation: if imp == Impairment::default() || (imp.delay_ms == 0.0 && imp.loss == 0.0) {
+        emulation: if imp.delay_ms == 0.0 && imp.loss == 0.0 {
             "none: real TCP on 127.0.0.1".to_string()
         } else {
             format!(
@@ -1040,6 +1150,7 @@ pub fn run(args: &HarnessArgs) -> Result<HarnessReport, RemoteError> {
         drift_percent_mean_scheduled: mean(|s| s.drift_percent_mean_scheduled),
         phase_error_ms_mean: mean(|s| s.phase_error_ms_mean),
         phase_error_ms_worst: max(|s| s.phase_error_ms_worst),
+        phase_error_ms_worst_last_5_s: max(|s| s.phase_error_ms_worst_last_5_s),
         packets_per_minute: packets,
         per_frame_packets_per_minute: per_frame,
         reduction: per_frame / packets.max(f64::MIN_POSITIVE),
@@ -1053,6 +1164,9 @@ pub fn run(args: &HarnessArgs) -> Result<HarnessReport, RemoteError> {
             "peer to peer: every site connects to the source"
         },
         probe_ms: args.probe_ms,
+        skew_ppm: args.skew_ppm,
+        relay_skew_ppm: args.relay_skew_ppm,
+        no_clock_rate: args.no_clock_rate,
         clock_sync: match clock {
             ClockSync::Relay => {
                 "relay: each site probes the time relay beside the router; only the relay probes \
@@ -1100,8 +1214,8 @@ pub fn print(r: &HarnessReport) {
         r.drift_percent_mean_scheduled
     );
     println!(
-        "phase error: mean {:.3} ms, worst {:.3} ms",
-        r.phase_error_ms_mean, r.phase_error_ms_worst
+        "phase error: mean {:.3} ms, worst {:.3} ms (over the last 5 s {:.3} ms)",
+        r.phase_error_ms_mean, r.phase_error_ms_worst, r.phase_error_ms_worst_last_5_s
     );
     println!(
         "packets: {:.1}/min per-cycle control states vs {:.0}/min per-frame updates ({:.0}× fewer); \
@@ -1117,7 +1231,21 @@ pub fn print(r: &HarnessReport) {
         r.probe_ms,
         r.source_deadlines_skipped
     );
-    println!("clock sync: {}", r.clock_sync);
+    println!(
+        "clock sync: {}{}",
+        r.clock_sync,
+        if r.no_clock_rate {
+            " (--no-clock-rate: the rate is fitted, not applied)"
+        } else {
+            ""
+        }
+    );
+    if r.skew_ppm != 0.0 || r.relay_skew_ppm != 0.0 {
+        println!(
+            "emulated clock skew against the source: sites {} ppm, relay {} ppm",
+            r.skew_ppm, r.relay_skew_ppm
+        );
+    }
     println!(
         "step lateness (actual − scheduled): source {}",
         lateness_words(&r.source_lateness)
@@ -1126,7 +1254,7 @@ pub fn print(r: &HarnessReport) {
         println!(
             "time relay: answered {:.0} site probes/min ({:.0} reply bytes/min), sent {:.0} \
              probes/min to the source, its threads {:.3} % of a core, {} probe(s) before it \
-             answered (8 source replies); its offset to the source {}, delay {:.2} ms",
+             answered (8 source replies); its offset to the source {}, delay {:.2} ms; {}",
             x.probes_answered_per_minute,
             x.reply_bytes_per_minute,
             x.probes_to_source_per_minute,
@@ -1134,7 +1262,8 @@ pub fn print(r: &HarnessReport) {
             x.unanswered,
             x.offset_ms
                 .map_or("none".to_string(), |o| format!("{o:.3} ms")),
-            x.delay_ms
+            x.delay_ms,
+            x.clock.words()
         );
     }
     match (r.source_cpu_percent, r.source_tcp_bytes_sent_per_minute) {
@@ -1161,7 +1290,7 @@ pub fn print(r: &HarnessReport) {
         println!(
             "  site {k}: drift {:.5} % (worst {:.5} %), phase {:.3} ms, {} ticks ({} differ from \
              the source's), {} states, {} lost, {} refused, {} predicted cycles, delay {:.2} ms, \
-             jitter {:.2} ms, offset {:.3} ms; step lateness {}",
+             jitter {:.2} ms, offset {:.3} ms ({}); step lateness {}",
             s.drift_percent_mean,
             s.drift_percent_worst,
             s.phase_error_ms_mean,
@@ -1174,6 +1303,7 @@ pub fn print(r: &HarnessReport) {
             s.delay_ms,
             s.jitter_ms,
             s.offset_ms,
+            s.clock.words(),
             lateness_words(&s.lateness)
         );
     }

@@ -128,6 +128,15 @@ impl Keys {
     pub fn probe(&self) -> String {
         format!("lungdyn/{}/probe", self.room)
     }
+    /// A warm-up packet a prober puts [`site::WARM_UP_MS`] before each probe to the source (the
+    /// source takes it with an empty callback): the probe then finds both ends' threads awake.
+    pub fn warm(&self) -> String {
+        format!("lungdyn/{}/warm", self.room)
+    }
+    /// The same before each probe to the time relay.
+    pub fn relay_warm(&self) -> String {
+        format!("lungdyn/{}/relay/warm", self.room)
+    }
     /// Delay probes to the time relay beside the router ([`relay`]).
     pub fn relay_probe(&self) -> String {
         format!("lungdyn/{}/relay/probe", self.room)

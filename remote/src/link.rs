@@ -15,6 +15,8 @@ use rand::{RngExt, SeedableRng};
 use rand_xorshift::XorShiftRng;
 use transport::clock::now_ns;
 
+use crate::clock::LocalClock;
+
 /// An emulated path: one-way delay, uniform jitter, loss probability.
 #[derive(Debug, Clone, Copy, Default, PartialEq)]
 pub struct Impairment {
@@ -26,6 +28,12 @@ pub struct Impairment {
     pub loss: f64,
     /// Seed of the emulation's random numbers.
     pub seed: u64,
+    /// The receiving participant's clock: the host's, or (the harness's `--skew-ppm`, tests) one
+    /// running at 1 + r. The handler's arrival stamps are on it; the participant stamps with it.
+    pub clock: LocalClock,
+    /// Compare with the estimator before: fit the clock rate but never apply it (the harness's
+    /// `--no-clock-rate`).
+    pub no_rate: bool,
 }
 
 impl Impairment {
@@ -53,6 +61,7 @@ impl Impairment {
         Ok(())
     }
 
+    /// No delay, jitter or loss (the clock aside).
     fn none(&self) -> bool {
         self.delay_ms == 0.0 && self.jitter_ms == 0.0 && self.loss == 0.0
     }
@@ -97,7 +106,7 @@ impl LinkIn {
 }
 
 /// Start a link's worker thread `name`: `handler(bytes, delivered_at_ns)` runs on it for every
-/// packet, after the impairment. The worker ends when every [`LinkIn`] is dropped.
+/// packet, after the impairment (the time on `imp.clock`). The worker ends when every [`LinkIn`] is dropped.
 pub fn start<F>(name: &str, imp: Impairment, mut handler: F) -> LinkIn
 where
     F: FnMut(Vec<u8>, u64) + Send + 'static,
@@ -127,7 +136,7 @@ fn run<F: FnMut(Vec<u8>, u64)>(
         while held.peek().is_some_and(|r| r.0 .0 <= now) {
             if let Some(core::cmp::Reverse((at, _, bytes))) = held.pop() {
                 counts.delivered.fetch_add(1, Ordering::Relaxed);
-                handler(bytes, at.max(now));
+                handler(bytes, imp.clock.of(at.max(now)));
             }
         }
         let wait = held
@@ -138,7 +147,7 @@ fn run<F: FnMut(Vec<u8>, u64)>(
             Ok((at, bytes)) => {
                 if imp.none() {
                     counts.delivered.fetch_add(1, Ordering::Relaxed);
-                    handler(bytes, at);
+                    handler(bytes, imp.clock.of(at));
                     continue;
                 }
                 if imp.loss > 0.0 && rng.random::<f64>() < imp.loss {
@@ -179,6 +188,7 @@ mod tests {
             jitter_ms: 5.0,
             loss: 0.1,
             seed: 1,
+            ..Default::default()
         };
         imp.check().unwrap();
         let link = start("test-link", imp, move |b, at| {

@@ -12,11 +12,13 @@
 //! **Error budget**: the two estimates' errors add. Each is the mean over the quickest half of the
 //! last 10 s of probes of half the path's asymmetry ([`crate::clock`]); under 20 ± 5 ms each way
 //! on both legs the harness measured 0.16 ms on one leg; independent errors add as √2 of one leg
-//! in the mean, at worst twice. The clocks' rate difference adds a lag: the relay's offset is a
-//! mean over its last 10 s of probes, so it trails the true offset by about rate × 5 s (50 ppm: 0.25
-//! ms, as peer to peer, [`crate::clock`]), and a site's mean over 10 s of the relay's replies
-//! trails that again — up to ≈ 0.5 ms at 50 ppm between machines (0 on one machine, so the loopback
-//! harness cannot show it).
+//! in the mean, at worst twice. The clocks' rate difference: a mean over the last 10 s of probes
+//! trails a drifting offset by rate × ≈ 5 s (50 ppm: 0.25 ms), the relay's and then the site's
+//! mean over the relay's replies — ≈ 0.5 ms at 50 ppm between machines without a rate estimate.
+//! Both estimators fit the rate ([`crate::clock`]) and extrapolate their offsets to the moment
+//! they are used, the relay's answers carrying its offset of that moment; what is left is the
+//! fitted rate's error × ≈ 5 s per leg (its standard error is at most 5 ppm when applied: ≤ 25
+//! µs a leg; measured with an emulated skew, `lungdyn remote harness --skew-ppm`, README).
 //!
 //! Why not Zenoh's timestamps: a router stamps a sample with its hybrid logical clock on the way
 //! through, which gives every site the same *order*, but a single stamp of a one-way trip is
@@ -31,13 +33,12 @@ use std::sync::atomic::{AtomicBool, AtomicU64, Ordering};
 use std::sync::Arc;
 
 use control_state::{decode, encode_to_vec, Packet};
-use transport::clock::now_ns;
 use zenoh::Wait;
 
-use crate::clock::{DelayEstimator, ProbeStamps};
+use crate::clock::{DelayEstimator, LocalClock, ProbeStamps};
 use crate::link::{self, Impairment, LinkIn};
 use crate::measure::{cpu_s, Who};
-use crate::site::{start_prober, PathFigures};
+use crate::site::{PathFigures, Prober};
 use crate::{zerr, Keys, RemoteError};
 
 /// The relay's first probes to the source go this often (ms, or its interval if shorter) ...
@@ -95,13 +96,16 @@ pub struct Relay {
     pub id: u64,
     _probes: zenoh::pubsub::Subscriber<()>,
     _replies: zenoh::pubsub::Subscriber<()>,
+    _warm: zenoh::pubsub::Subscriber<()>,
     _token: zenoh::liveliness::LivelinessToken,
     _link: LinkIn,
     stop: Arc<AtomicBool>,
     /// Counters.
     pub counts: Arc<RelayCounts>,
-    /// The relay's path to the source: delay, jitter, offset (source − relay).
+    /// The relay's path to the source: delay, jitter, offset (source − relay), rate.
     pub path: Arc<PathFigures>,
+    /// The relay's clock (the host's unless emulated skewed).
+    pub clock: LocalClock,
 }
 
 impl Drop for Relay {
@@ -123,7 +127,11 @@ impl Relay {
         let counts = Arc::new(RelayCounts::default());
         let path = Arc::new(PathFigures::default());
         let (c, p, s2, k2) = (counts.clone(), path.clone(), session.clone(), keys.clone());
-        let mut estimator = DelayEstimator::default();
+        let mut estimator = if imp.no_rate {
+            DelayEstimator::without_rate()
+        } else {
+            DelayEstimator::default()
+        };
         let link = link::start(&format!("remote-relay-{id:x}"), imp, move |bytes, at| {
             match decode(&bytes) {
                 Ok(ref packet @ Packet::ProbeReply { to, .. }) if to == id => {
@@ -145,8 +153,10 @@ impl Relay {
                     if c.source_replies.load(Ordering::Relaxed) < MIN_REPLIES {
                         c.unanswered.fetch_add(1, Ordering::Relaxed);
                     } else {
+                        // The offset moved to this moment with the fitted rate: a site's
+                        // estimate on the reply is then as current as the relay's.
                         let (t1_ns, t2_ns) =
-                            in_source_time(at, now_ns(), p.offset_ns.load(Ordering::Relaxed));
+                            in_source_time(at, imp.clock.now(), p.offset_at(at).unwrap_or(0));
                         let reply = Packet::ProbeReply {
                             from: id,
                             to: from,
@@ -183,6 +193,12 @@ impl Relay {
             .callback(move |s| l2.push(s.payload().to_bytes().into_owned()))
             .wait()
             .map_err(zerr("declare the relay's reply subscriber"))?;
+        // The sites' warm-up packets: taken and dropped on Zenoh's thread (they only wake it).
+        let warm = session
+            .declare_subscriber(keys.relay_warm())
+            .callback(|_| {})
+            .wait()
+            .map_err(zerr("declare the relay's warm-up subscriber"))?;
         let token = session
             .liveliness()
             .declare_token(keys.relay_presence())
@@ -190,11 +206,15 @@ impl Relay {
             .map_err(zerr("declare the relay's liveliness token"))?;
         let stop = Arc::new(AtomicBool::new(false));
         let c3 = counts.clone();
-        start_prober(
-            format!("remote-relay-probe-{id:x}"),
-            session.clone(),
-            keys.probe(),
+        Prober {
+            name: format!("remote-relay-probe-{id:x}"),
+            session: session.clone(),
+            key: keys.probe(),
+            warm: keys.warm(),
             id,
+            clock: imp.clock,
+        }
+        .start(
             move |n| {
                 if n < BURST {
                     probe_ms.min(BURST_MS)
@@ -216,11 +236,13 @@ impl Relay {
             id,
             _probes: probes,
             _replies: replies,
+            _warm: warm,
             _token: token,
             _link: link,
             stop,
             counts,
             path,
+            clock: imp.clock,
         })
     }
 
@@ -229,13 +251,10 @@ impl Relay {
         self.counts.source_replies.load(Ordering::Relaxed) >= MIN_REPLIES
     }
 
-    /// The relay's offset to the source (source − relay), ns, once it has one (from the first
-    /// reply on; the sites are answered only once it is [`Self::answering`]).
+    /// The relay's offset to the source (source − relay) now, ns, once it has one (from the
+    /// first reply on; the sites are answered only once it is [`Self::answering`]).
     pub fn offset_ns(&self) -> Option<i64> {
-        self.path
-            .have_offset
-            .load(Ordering::Relaxed)
-            .then(|| self.path.offset_ns.load(Ordering::Relaxed))
+        self.path.offset_at(self.clock.now())
     }
 }
 

@@ -439,6 +439,7 @@ pub fn router(args: &RouterArgs) -> Result<(), RemoteError> {
         net.listen, args.room, args.room, args.room
     );
     let mut synced = false;
+    let mut rate_word = "unknown";
     let mut last_reply = (0u64, now_ns());
     let mut silent = false;
     while transport::stop::idle(Duration::from_millis(100)) && until.is_none_or(|t| now_ns() < t) {
@@ -451,6 +452,9 @@ pub fn router(args: &RouterArgs) -> Result<(), RemoteError> {
                 o as f64 / 1e6,
                 relay.path.delay_ns.load(Ordering::Relaxed) as f64 / 1e6
             );
+        }
+        if let Some(news) = relay.path.rate_news(&mut rate_word) {
+            eprintln!("remote router: {news}");
         }
         let replies = c.source_replies.load(Ordering::Relaxed);
         let now = now_ns();
@@ -550,6 +554,7 @@ pub fn join(args: &JoinArgs) -> Result<(), RemoteError> {
         .runner(core, hz)
         .ok_or_else(|| RemoteError::Usage("the site's runner was taken".into()))?;
     let mut first = true;
+    let mut rate_word = "unknown";
     let mut told = 0usize;
     while !transport::stop::requested() && until.is_none_or(|t| now_ns() < t) {
         let now = now_ns();
@@ -560,7 +565,7 @@ pub fn join(args: &JoinArgs) -> Result<(), RemoteError> {
                     "remote join[{}]: in step with the source (delay {:.2} ms, offset {:.3} ms)",
                     instance.name(),
                     site.path.delay_ns.load(Ordering::Relaxed) as f64 / 1e6,
-                    site.path.offset_ns.load(Ordering::Relaxed) as f64 / 1e6
+                    site.path.offset_at(now).unwrap_or(0) as f64 / 1e6
                 );
             }
             runner.frame.stamps.engine_receive_ns = now;
@@ -568,6 +573,9 @@ pub fn join(args: &JoinArgs) -> Result<(), RemoteError> {
             outlet.publish(&runner.frame)?;
         }
         relay_watch.say(&instance, &site, now);
+        if let Some(news) = site.path.rate_news(&mut rate_word) {
+            eprintln!("remote join[{}]: {news}", instance.name());
+        }
         // Each event the source announced, once: who raised it and the cycle every site applies it.
         let mut announced = Vec::new();
         if let Ok(seen) = site.events.lock() {

@@ -9,11 +9,10 @@ use control_state::{decode, encode_to_vec, Packet, RemoteEvent};
 use engine::runtime::remote::{BreathCache, Prepared};
 use engine::runtime::EngineCore;
 use ipc_types::EngineFrame;
-use transport::clock::now_ns;
 use zenoh::Wait;
 use zenoh_ext::{AdvancedSubscriberBuilderExt, HistoryConfig, RecoveryConfig};
 
-use crate::clock::{DelayEstimator, ProbeStamps};
+use crate::clock::{DelayEstimator, LocalClock, ProbeStamps, RATE_MAX};
 use crate::link::{self, Impairment, LinkIn};
 use crate::{zerr, Keys, Net, RemoteError};
 pub use lung_model::scene_remote::ClockSync;
@@ -49,11 +48,24 @@ pub struct SiteCounts {
 /// Events kept per site (the latest; older ones are dropped from this record only).
 pub const EVENTS_KEPT: usize = 256;
 
-/// The path's figures, kept by the link worker, read by the tick loop (atomics: no lock).
+/// The path's figures, kept by the link worker, read by the tick loop (atomics: no lock; the
+/// offset, its time and its rate are stored one after the other, so a reader may take a new
+/// offset with the previous rate: ≤ rate × one probe interval, 2.5 ns at 50 ppm and 50 ms).
 #[derive(Debug, Default)]
 pub struct PathFigures {
-    /// Source clock minus site clock, ns.
+    /// Source clock minus site clock, ns, at [`Self::offset_at_ns`] ([`Self::offset_at`] moves
+    /// it to another time with the rate).
     pub offset_ns: AtomicI64,
+    /// Where [`Self::offset_ns`] holds (the site's clock), ns.
+    pub offset_at_ns: AtomicU64,
+    /// The clock rate applied (dθ/dt, f64 bits; 0 until a fit is trusted, [`crate::clock`]).
+    pub rate_bits: AtomicU64,
+    /// The fitted rate, applied or not (f64 bits), once [`Self::rate_fitted`].
+    pub fitted_rate_bits: AtomicU64,
+    /// A rate has been fitted.
+    pub rate_fitted: AtomicBool,
+    /// Rate fits refused as beyond ±[`RATE_MAX`] (not applied).
+    pub rates_refused: AtomicU64,
     /// True once a probe came back.
     pub have_offset: AtomicBool,
     /// Smoothed one-way delay, ns.
@@ -76,45 +88,141 @@ impl PathFigures {
             return false;
         }
         self.answered_by.store(from, Ordering::Relaxed);
-        if let Some(o) = estimator.offset_ns() {
-            self.offset_ns.store(o, Ordering::Relaxed);
+        if let Some(o) = estimator.offset() {
+            self.offset_ns.store(o.offset_ns, Ordering::Relaxed);
+            self.offset_at_ns.store(o.at, Ordering::Relaxed);
+            self.rate_bits.store(o.rate.to_bits(), Ordering::Relaxed);
             self.have_offset.store(true, Ordering::Relaxed);
         }
+        let rate = estimator.rate();
+        if let Some(r) = rate.fitted() {
+            self.fitted_rate_bits.store(r.to_bits(), Ordering::Relaxed);
+            self.rate_fitted.store(true, Ordering::Relaxed);
+        }
+        self.rates_refused
+            .store(estimator.rates_refused(), Ordering::Relaxed);
         self.delay_ns
             .store(estimator.delay_ns() as u64, Ordering::Relaxed);
         self.jitter_ns
             .store(estimator.jitter_ns() as u64, Ordering::Relaxed);
         true
     }
+
+    /// Source clock minus site clock at `t` (the site's clock), ns: the estimate moved there
+    /// with the applied rate; `None` before the first probe came back.
+    pub fn offset_at(&self, t: u64) -> Option<i64> {
+        self.have_offset.load(Ordering::Relaxed).then(|| {
+            crate::clock::Offset {
+                at: self.offset_at_ns.load(Ordering::Relaxed),
+                offset_ns: self.offset_ns.load(Ordering::Relaxed),
+                rate: self.rate(),
+            }
+            .at(t)
+        })
+    }
+
+    /// The clock rate applied (dθ/dt; 0 until a fit is trusted).
+    pub fn rate(&self) -> f64 {
+        f64::from_bits(self.rate_bits.load(Ordering::Relaxed))
+    }
+
+    /// The fitted rate, applied or not (`None` before a fit).
+    pub fn fitted_rate(&self) -> Option<f64> {
+        self.rate_fitted
+            .load(Ordering::Relaxed)
+            .then(|| f64::from_bits(self.fitted_rate_bits.load(Ordering::Relaxed)))
+    }
+
+    /// What to say when the rate's state changed since `last` (updated): applied, or refused as
+    /// implausible (`None` otherwise, and for `uncertain`/`unknown`: nothing to act on).
+    pub fn rate_news(&self, last: &mut &'static str) -> Option<String> {
+        let word = self.rate_word();
+        if word == *last {
+            return None;
+        }
+        *last = word;
+        let ppm = self.fitted_rate().unwrap_or(0.0) * 1e6;
+        match word {
+            "applied" => Some(format!(
+                "clock rate against the source {ppm:+.1} ppm: the offset is extrapolated with it"
+            )),
+            "implausible" => Some(format!(
+                "clock rate against the source fitted at {ppm:+.1} ppm, beyond ±{:.0} ppm (no \
+                 two quartz clocks differ so much: a stepped clock or a bad peer?): not applied",
+                RATE_MAX * 1e6
+            )),
+            _ => None,
+        }
+    }
+
+    /// The rate in words, for reports: `applied`, `implausible` (beyond ±500 ppm: not applied),
+    /// `uncertain` (fitted, not trusted yet) or `unknown` (too few probes yet).
+    pub fn rate_word(&self) -> &'static str {
+        match self.fitted_rate() {
+            None => "unknown",
+            Some(_) if self.rate() != 0.0 => "applied",
+            Some(r) if r.abs() > RATE_MAX => "implausible",
+            Some(_) => "uncertain",
+        }
+    }
 }
 
-/// Start a thread `name` that puts a probe from `id` on `key` until `stop`, probe `n` followed by
-/// a pause of `interval_ms(n)`; `after(sent)` runs on it after each.
-pub(crate) fn start_prober(
-    name: String,
-    session: zenoh::Session,
-    key: String,
-    id: u64,
-    interval_ms: impl Fn(u64) -> u64 + Send + 'static,
-    stop: Arc<AtomicBool>,
-    mut after: impl FnMut(bool) + Send + 'static,
-) -> std::io::Result<()> {
-    std::thread::Builder::new().name(name).spawn(move || {
-        let mut n = 0u64;
-        while !stop.load(Ordering::Relaxed) {
-            let probe = Packet::Probe {
-                from: id,
-                to: 0,
-                id: n,
-                t0_ns: now_ns(),
-            };
-            let sent = encode_to_vec(&probe).is_ok_and(|b| session.put(&key, b).wait().is_ok());
-            after(sent);
-            std::thread::sleep(Duration::from_millis(interval_ms(n).max(1)));
-            n += 1;
-        }
-    })?;
-    Ok(())
+/// How long before each probe its prober puts a warm-up packet, ms. A probe sent on a path idle
+/// since the last one (50–500 ms) found the sender's Zenoh TX thread and the receiver's RX thread
+/// asleep, while the reply left on the answerer's just-woken threads: on this VM the way up took
+/// 190 µs against 80 µs down, an offset error of +56 µs (+63 µs every 200 ms, +5 µs every 1 ms;
+/// `remote/examples/probe_legs.rs`). A 1-byte packet 1 ms ahead wakes both ends: +2.6 µs.
+pub const WARM_UP_MS: u64 = 1;
+
+/// A prober: a thread `name` putting probes from `id` on `key` of `session`, stamped on `clock`,
+/// each [`WARM_UP_MS`] after a 1-byte packet on `warm`.
+pub(crate) struct Prober {
+    pub name: String,
+    pub session: zenoh::Session,
+    pub key: String,
+    pub warm: String,
+    pub id: u64,
+    pub clock: LocalClock,
+}
+
+impl Prober {
+    /// Start it: probe `n` followed by a pause of `interval_ms(n)`, until `stop`; `after(sent)`
+    /// runs on it after each.
+    pub fn start(
+        self,
+        interval_ms: impl Fn(u64) -> u64 + Send + 'static,
+        stop: Arc<AtomicBool>,
+        mut after: impl FnMut(bool) + Send + 'static,
+    ) -> std::io::Result<()> {
+        let Prober {
+            name,
+            session,
+            key,
+            warm,
+            id,
+            clock,
+        } = self;
+        std::thread::Builder::new().name(name).spawn(move || {
+            let mut n = 0u64;
+            while !stop.load(Ordering::Relaxed) {
+                let _ = session.put(&warm, vec![0u8]).wait();
+                std::thread::sleep(Duration::from_millis(WARM_UP_MS));
+                let probe = Packet::Probe {
+                    from: id,
+                    to: 0,
+                    id: n,
+                    t0_ns: clock.now(),
+                };
+                let sent = encode_to_vec(&probe).is_ok_and(|b| session.put(&key, b).wait().is_ok());
+                after(sent);
+                std::thread::sleep(Duration::from_millis(
+                    interval_ms(n).saturating_sub(WARM_UP_MS).max(1),
+                ));
+                n += 1;
+            }
+        })?;
+        Ok(())
+    }
 }
 
 /// A site's Zenoh side.
@@ -131,6 +239,8 @@ pub struct Site {
     _relay: Option<zenoh::pubsub::Subscriber<()>>,
     /// Whom this site probes for the source's clock.
     pub clock: ClockSync,
+    /// This site's own clock (the host's unless emulated skewed).
+    pub own_clock: LocalClock,
     link: LinkIn,
     prepared: Mutex<Option<Receiver<Prepared>>>,
     stop: Arc<AtomicBool>,
@@ -179,7 +289,11 @@ impl Site {
         let events = Arc::new(Mutex::new(Vec::new()));
         let ev = events.clone();
         let mut cache = BreathCache::default();
-        let mut estimator = DelayEstimator::default();
+        let mut estimator = if imp.no_rate {
+            DelayEstimator::without_rate()
+        } else {
+            DelayEstimator::default()
+        };
         let mut newest: Option<(u64, u64)> = None;
         let refuse = move |r: &Mutex<Option<String>>, c: &SiteCounts, why: String| {
             c.refused.fetch_add(1, Ordering::Relaxed);
@@ -276,20 +390,20 @@ impl Site {
                 )
             }
         };
-        let probe_key = match clock {
-            ClockSync::Source => keys.probe(),
-            ClockSync::Relay => keys.relay_probe(),
+        let (probe_key, warm) = match clock {
+            ClockSync::Source => (keys.probe(), keys.warm()),
+            ClockSync::Relay => (keys.relay_probe(), keys.relay_warm()),
         };
         let stop = Arc::new(AtomicBool::new(false));
-        start_prober(
-            format!("remote-probe-{id:x}"),
-            session.clone(),
-            probe_key,
+        Prober {
+            name: format!("remote-probe-{id:x}"),
+            session: session.clone(),
+            key: probe_key,
+            warm,
             id,
-            move |_| probe_ms,
-            stop.clone(),
-            |_| {},
-        )
+            clock: imp.clock,
+        }
+        .start(move |_| probe_ms, stop.clone(), |_| {})
         .map_err(|e| RemoteError::Usage(format!("start the site's prober: {e}")))?;
         Ok(Self {
             id,
@@ -301,6 +415,7 @@ impl Site {
             _token: token,
             _relay: relay,
             clock,
+            own_clock: imp.clock,
             link,
             prepared: Mutex::new(Some(prepared)),
             stop,
@@ -347,6 +462,7 @@ impl Site {
             rx,
             self.path.clone(),
             self.counts.clone(),
+            self.own_clock,
         ))
     }
 
@@ -372,8 +488,10 @@ pub struct Runner {
     rx: Receiver<Prepared>,
     path: Arc<PathFigures>,
     counts: Arc<SiteCounts>,
-    /// (source tick, local time of that tick, ns).
-    anchor: Option<(u64, i128)>,
+    clock: LocalClock,
+    /// (source tick, local time of that tick, ns, the source's tick period on the local clock:
+    /// `period / (1 + rate)`, the source's clock running `rate` faster than ours).
+    anchor: Option<(u64, i128, f64)>,
     last_tick: Option<u64>,
     state_cycle: u64,
     predicted_upto: u64,
@@ -393,6 +511,7 @@ impl Runner {
         rx: Receiver<Prepared>,
         path: Arc<PathFigures>,
         counts: Arc<SiteCounts>,
+        clock: LocalClock,
     ) -> Self {
         Runner {
             core,
@@ -401,6 +520,7 @@ impl Runner {
             rx,
             path,
             counts,
+            clock,
             anchor: None,
             last_tick: None,
             state_cycle: 0,
@@ -411,14 +531,14 @@ impl Runner {
         }
     }
 
-    /// Apply every state ready (no blocking; the tables were built on the link worker).
-    fn take(&mut self) -> Result<(), RemoteError> {
+    /// Apply every state ready at `now` (the site's clock; no blocking: the tables were built on
+    /// the link worker). The state's source time is moved onto the site's clock with the offset
+    /// of now (a state is a path delay old: the offset moves by rate × delay meanwhile, 1 ns at
+    /// 50 ppm and 20 ms).
+    fn take(&mut self, now: u64) -> Result<(), RemoteError> {
         while let Ok(p) = self.rx.try_recv() {
-            let offset = if self.path.have_offset.load(Ordering::Relaxed) {
-                self.path.offset_ns.load(Ordering::Relaxed) as i128
-            } else {
-                0
-            };
+            let offset = self.path.offset_at(now).unwrap_or(0) as i128;
+            let rate = self.path.rate();
             if let Some(pending) = p
                 .state
                 .pending
@@ -434,7 +554,11 @@ impl Runner {
                 };
                 n.fetch_add(1, Ordering::Relaxed);
             }
-            self.anchor = Some((p.state.tick, p.state.source_time_ns as i128 - offset));
+            self.anchor = Some((
+                p.state.tick,
+                p.state.source_time_ns as i128 - offset,
+                self.period_ns / (1.0 + rate),
+            ));
             self.state_cycle = p.state.cycle;
             self.core.apply_prepared(p, self.hz)?;
             self.counts.applied.fetch_add(1, Ordering::Relaxed);
@@ -442,10 +566,17 @@ impl Runner {
         Ok(())
     }
 
-    /// Local time (ns) source tick `k` is scheduled at; `None` before the first state.
+    /// Local time (ns, the site's clock) source tick `k` is scheduled at; `None` before the first
+    /// state.
     pub fn time_of(&self, k: u64) -> Option<i128> {
         self.anchor
-            .map(|(a, t)| t + ((k as f64 - a as f64) * self.period_ns).round() as i128)
+            .map(|(a, t, period)| t + ((k as f64 - a as f64) * period).round() as i128)
+    }
+
+    /// The site's clock (the host's unless emulated skewed): [`Self::poll`]'s `now` and
+    /// [`Self::time_of`] are on it.
+    pub fn clock(&self) -> LocalClock {
+        self.clock
     }
 
     /// The next tick's local time (to sleep until), `None` before the first state.
@@ -454,14 +585,15 @@ impl Runner {
         self.time_of(k)
     }
 
-    /// Take ready states and, when a tick is due at `now`, step the newest due tick; returns it.
+    /// Take ready states and, when a tick is due at `now` (the site's clock, [`Self::clock`]),
+    /// step the newest due tick; returns it.
     pub fn poll(&mut self, now: u64) -> Result<Option<u64>, RemoteError> {
-        self.take()?;
-        let Some((a, t)) = self.anchor else {
+        self.take(now)?;
+        let Some((a, t, period)) = self.anchor else {
             return Ok(None);
         };
         let since = now as i128 - t;
-        let steps = (since as f64 / self.period_ns).floor() as i128;
+        let steps = (since as f64 / period).floor() as i128;
         let k = a as i128 + steps;
         if k < 0 || self.last_tick.is_some_and(|l| k as u64 <= l) {
             return Ok(None);
@@ -535,6 +667,7 @@ mod tests {
             rx,
             Arc::new(PathFigures::default()),
             counts.clone(),
+            LocalClock::default(),
         );
         let t0 = 1_000_000_000u64;
         let time = |k: u64| t0 + (k as f64 * period).round() as u64;
@@ -588,5 +721,61 @@ mod tests {
             late_after_ns(20_000_000, 5_000_000, 16_666_666.7),
             20_000_000 + 20_000_000 + 33_333_333
         );
+    }
+
+    /// A site whose clock runs 200 ppm fast (its offset to the source falls at dθ/dt =
+    /// −r / (1 + r)): a state anchors the source's tick at its source time minus the offset of
+    /// that moment, and the source's later ticks come a period / (1 + rate) apart on the site's
+    /// clock — 10 s of ticks 2 ms longer than on the source's, not the 60 Hz period itself.
+    #[test]
+    fn with_a_fitted_rate_the_sources_ticks_are_spaced_on_the_sites_clock() {
+        let (scene, mut source) = crate::harness::harness_core(Some(12.0)).unwrap();
+        let hz = scene.engine.tick_hz;
+        let mut site_core = source.clone();
+        site_core.follow_remote();
+        let (tx, rx) = sync_channel::<Prepared>(8);
+        let path = Arc::new(PathFigures::default());
+        let rate: f64 = -200e-6 / (1.0 + 200e-6);
+        let (t0, theta) = (5_000_000_000u64, -3_000_000i64);
+        path.offset_ns.store(theta, Ordering::Relaxed);
+        path.offset_at_ns.store(t0, Ordering::Relaxed);
+        path.rate_bits.store(rate.to_bits(), Ordering::Relaxed);
+        path.have_offset.store(true, Ordering::Relaxed);
+        let mut runner = Runner::new(
+            site_core,
+            hz,
+            rx,
+            path.clone(),
+            Arc::new(SiteCounts::default()),
+            LocalClock::default(),
+        );
+        let mut frame = EngineFrame::default();
+        source.step(0, None, &mut frame);
+        let stamp = StateStamp {
+            source: 1,
+            epoch: 1,
+            sequence: 0,
+            tick_hz: hz,
+            source_time_ns: 20_000_000_000,
+        };
+        let state = source.control_state(0, stamp, &[]).unwrap();
+        tx.send(Prepared::of(state, &mut BreathCache::default()).unwrap())
+            .unwrap();
+        // Taken 10 s after the offset's time: the offset moved by rate × 10 s = −2 ms.
+        let now = t0 + 10_000_000_000;
+        assert_eq!(path.offset_at(now), Some(theta - 2_000_000 + 400));
+        runner.poll(now).unwrap();
+        let anchor = 20_000_000_000i128 - path.offset_at(now).unwrap() as i128;
+        assert_eq!(runner.time_of(0), Some(anchor));
+        let ticks = (10.0 * hz) as u64;
+        let spaced = runner.time_of(ticks).unwrap() - anchor;
+        let want = 10e9 * (1.0 + 200e-6);
+        assert!(
+            (spaced as f64 - want).abs() < 2.0,
+            "{spaced} against {want}"
+        );
+        // No rate: the source's period itself.
+        path.rate_bits.store(0f64.to_bits(), Ordering::Relaxed);
+        assert_eq!(path.offset_at(now), Some(theta));
     }
 }

@@ -10,7 +10,6 @@ use std::sync::mpsc::{sync_channel, Receiver};
 use std::sync::Arc;
 
 use control_state::{decode, encode_to_vec, Packet, RemoteEvent};
-use transport::clock::now_ns;
 use zenoh::Wait;
 use zenoh_ext::{AdvancedPublisherBuilderExt, CacheConfig, MissDetectionConfig};
 
@@ -39,6 +38,8 @@ pub struct Source {
     session: zenoh::Session,
     publisher: zenoh_ext::AdvancedPublisher<'static>,
     _probes: zenoh::pubsub::Subscriber<()>,
+    /// The probers' warm-up packets (and the relay's key's, as its own relay in router mode).
+    _warm: Vec<zenoh::pubsub::Subscriber<()>>,
     /// In router mode the source is also the time relay (its own clock, offset 0).
     _relay: Option<(
         zenoh::pubsub::Subscriber<()>,
@@ -87,7 +88,7 @@ impl Source {
                         id: pid,
                         t0_ns,
                         t1_ns: at,
-                        t2_ns: now_ns(),
+                        t2_ns: imp.clock.now(),
                     };
                     if let Ok(b) = encode_to_vec(&reply) {
                         if s2.put(k2.reply(from), b).wait().is_ok() {
@@ -111,6 +112,21 @@ impl Source {
             .callback(move |s| l1.push(s.payload().to_bytes().into_owned()))
             .wait()
             .map_err(zerr("declare the probe subscriber"))?;
+        // Warm-up packets only wake Zenoh's threads: taken and dropped there.
+        let mut warm = vec![session
+            .declare_subscriber(keys.warm())
+            .callback(|_| {})
+            .wait()
+            .map_err(zerr("declare the warm-up subscriber"))?];
+        if net.mode == "router" {
+            warm.push(
+                session
+                    .declare_subscriber(keys.relay_warm())
+                    .callback(|_| {})
+                    .wait()
+                    .map_err(zerr("declare the relay's warm-up subscriber"))?,
+            );
+        }
         // A source that is the router is also the sites' time relay: the relay's answer in the
         // source's time is its own answer.
         let relay = if net.mode == "router" {
@@ -162,6 +178,7 @@ impl Source {
             session,
             publisher,
             _probes: probes,
+            _warm: warm,
             _relay: relay,
             _events: ev,
             _presence: presence,

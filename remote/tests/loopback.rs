@@ -28,6 +28,9 @@ fn args(sites: usize, seconds: f64, loss: f64) -> HarnessArgs {
         seed: 3,
         router: false,
         probe_ms: 50,
+        skew_ppm: 0.0,
+        relay_skew_ppm: 0.0,
+        no_clock_rate: false,
         source_exe: None,
     }
 }
@@ -768,4 +771,52 @@ fn the_harness_through_a_router_syncs_the_sites_with_the_relay() {
         r.probes_per_minute <= 1.2 * relay.probes_to_source_per_minute + 60.0,
         "{r:?}"
     );
+}
+
+/// A clock `skew_ppm` fast against the source's was followed: its fitted rate applied and within
+/// 20 ppm of the truth, dθ/dt = −r / (1 + r) (the source's clock falls behind it), and its offset
+/// at the end within 0.1 ms of the true one.
+fn assert_followed(what: &str, c: &harness::ClockFigures, skew_ppm: f64) {
+    assert_eq!(c.rate, "applied", "{what}: {c:?}");
+    let r = skew_ppm * 1e-6;
+    let rate = c.rate_ppm.expect("a fitted rate");
+    assert!((rate + r / (1.0 + r) * 1e6).abs() < 20.0, "{what}: {c:?}");
+    let e = c.offset_error_ms.expect("an offset");
+    assert!(e.abs() < 0.1, "{what}: offset error {e} ms: {c:?}");
+}
+
+/// Each site's clock runs 200 ppm fast against the source's (the harness's `--skew-ppm` seam:
+/// here every session shares CLOCK_MONOTONIC). A 10 s mean offset would trail the true one by
+/// ≈ 1 ms (200 ppm × 5 s); the sites fit the rate within seconds on loopback and their offset
+/// at the end errs by under 0.1 ms, and so does their tick schedule (phase error, the last 5 s).
+#[test]
+fn sites_whose_clocks_run_200_ppm_fast_fit_the_rate_and_keep_the_offset() {
+    let mut a = args(2, 20.0, 0.0);
+    a.skew_ppm = 200.0;
+    let r = harness::run(&a).unwrap();
+    for s in &r.per_site {
+        assert_followed("site", &s.clock, 200.0);
+        assert_eq!(s.ticks_differing, 0, "{s:?}");
+    }
+    assert!(r.phase_error_ms_worst_last_5_s < 0.2, "{r:?}");
+}
+
+/// Through the router, the relay 100 ppm and the sites 200 ppm fast against the source: the
+/// relay fits its rate to the source (−100 ppm) and answers with its offset of the moment; each
+/// site fits its rate to the relay's answers (−200 ppm, its rate to the source: the runs test drops
+/// the answers from before the relay's rate was applied) and keeps its offset within 0.1 ms where
+/// two 10 s means would trail by ≈ 1.5 ms (0.5 ms on the relay's leg, 1 ms on the site's).
+#[test]
+fn through_the_relay_both_legs_rates_are_fitted() {
+    let mut a = args(2, 30.0, 0.0);
+    a.router = true;
+    a.skew_ppm = 200.0;
+    a.relay_skew_ppm = 100.0;
+    let r = harness::run(&a).unwrap();
+    let relay = r.relay.as_ref().expect("the relay's figures");
+    assert_followed("relay", &relay.clock, 100.0);
+    for s in &r.per_site {
+        assert_followed("site", &s.clock, 200.0);
+    }
+    assert!(r.phase_error_ms_worst_last_5_s < 0.2, "{r:?}");
 }
