@@ -1075,7 +1075,16 @@ pub fn run(args: &HarnessArgs) -> Result<HarnessReport, RemoteError> {
     let mut recs = recs.into_inner().expect("records");
     recs.sort_by_key(|(k, _)| *k);
     let end = source_recs.last().map_or(0, |r| r.1 as i128);
-    let sched_of = |k: u64| source_recs.get(k as usize).map(|r| r.0);
+    // The source's record of tick `k`, found by its tick number rather than assumed at place `k`
+    // (the same today: the source records every tick from 0, a skipped deadline shifting when a
+    // tick runs, not its number; found so whatever tick a source starts from).
+    let source_tick = |k: u64| {
+        source_recs
+            .binary_search_by_key(&k, |r| r.2)
+            .ok()
+            .map(|i| &source_recs[i])
+    };
+    let sched_of = |k: u64| source_tick(k).map(|r| r.0);
     for (k, r) in &recs {
         let site = &sites[*k];
         let from = r.first().map_or(end, |x| x.1 as i128);
@@ -1093,11 +1102,7 @@ pub fn run(args: &HarnessArgs) -> Result<HarnessReport, RemoteError> {
         let phase: Vec<f64> = phase.into_iter().map(|p| p.1).collect();
         let differing = r
             .iter()
-            .filter(|x| {
-                source_recs
-                    .get(x.2 as usize)
-                    .is_some_and(|s| s.3.to_bits() != x.3.to_bits())
-            })
+            .filter(|x| source_tick(x.2).is_some_and(|s| s.3.to_bits() != x.3.to_bits()))
             .count();
         let c = &site.counts;
         per_site.push(SiteReport {
