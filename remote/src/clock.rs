@@ -466,7 +466,9 @@ impl DelayEstimator {
         }
         self.rate = match Self::robust_line(&mut x[..n], &mut y[..n]) {
             None => Rate::Unknown,
-            Some((rate, se)) if rate.abs() > RATE_MAX => {
+            // Implausible only when even its uncertainty cannot bring it within range: an early
+            // fit on a jittery path may be wild without meaning a stepped clock.
+            Some((rate, se)) if rate.abs() - 3.0 * se > RATE_MAX => {
                 self.rates_refused += 1;
                 Rate::Implausible { rate, se }
             }

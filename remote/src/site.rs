@@ -140,12 +140,20 @@ impl PathFigures {
         if word == *last {
             return None;
         }
-        *last = word;
+        let was = std::mem::replace(last, word);
         let ppm = self.fitted_rate().unwrap_or(0.0) * 1e6;
         match word {
             "applied" => Some(format!(
                 "clock rate against the source {ppm:+.1} ppm: the offset is extrapolated with it"
             )),
+            // Said when a rate that was applied is withdrawn, so the log never shows "applied"
+            // twice without why.
+            "uncertain" | "unknown" => Some(
+                "clock rate against the source no longer trusted (too few probes, or its fit's \
+                 standard error over 5 ppm): the offset is not extrapolated until it is again"
+                    .to_string(),
+            )
+            .filter(|_| was == "applied"),
             "implausible" => Some(format!(
                 "clock rate against the source fitted at {ppm:+.1} ppm, beyond ±{:.0} ppm (no \
                  two quartz clocks differ so much: a stepped clock or a bad peer?): not applied",

@@ -166,8 +166,9 @@ pub struct LungRenderer {
     surface: wgpu::Buffer,
     color: wgpu::Texture,
     color_view: wgpu::TextureView,
-    /// The same target viewed as plain bytes (`Rgba8Unorm`), for the present pass's exact copy.
-    color_bytes_view: wgpu::TextureView,
+    /// The same target viewed as plain bytes (`Rgba8Unorm`), for the present pass's exact copy;
+    /// `None` where the adapter allows no other view format.
+    color_bytes_view: Option<wgpu::TextureView>,
     /// The multisampled colour target (MSAA on), resolved into `color` by the frame's last pass.
     msaa_view: Option<wgpu::TextureView>,
     depth_view: wgpu::TextureView,
@@ -321,6 +322,13 @@ impl LungRenderer {
         let attachment = wgpu::TextureUsages::RENDER_ATTACHMENT;
         // The colour target may also be viewed as plain bytes (no sRGB decode): the window's
         // present pass copies it texel for texel that way when the window is the frame's size.
+        // Only where the adapter allows a texture other view formats (not wgpu's GL backend).
+        let bytes_views = gpu
+            .adapter
+            .get_downlevel_capabilities()
+            .flags
+            .contains(wgpu::DownlevelFlags::VIEW_FORMATS);
+        let bytes_format = [draw::COLOR_FORMAT.remove_srgb_suffix()];
         let color = device.create_texture(&wgpu::TextureDescriptor {
             label: Some("lungdyn colour"),
             size,
@@ -331,7 +339,7 @@ impl LungRenderer {
             usage: attachment
                 | wgpu::TextureUsages::COPY_SRC
                 | wgpu::TextureUsages::TEXTURE_BINDING,
-            view_formats: &[draw::COLOR_FORMAT.remove_srgb_suffix()],
+            view_formats: if bytes_views { &bytes_format } else { &[] },
         });
         let view = |t: wgpu::Texture| t.create_view(&Default::default());
         let msaa_view = (samples > 1).then(|| {
@@ -436,9 +444,11 @@ impl LungRenderer {
             lod_level: fixed.into(),
             surface,
             color_view: color.create_view(&Default::default()),
-            color_bytes_view: color.create_view(&wgpu::TextureViewDescriptor {
-                format: Some(draw::COLOR_FORMAT.remove_srgb_suffix()),
-                ..Default::default()
+            color_bytes_view: bytes_views.then(|| {
+                color.create_view(&wgpu::TextureViewDescriptor {
+                    format: Some(draw::COLOR_FORMAT.remove_srgb_suffix()),
+                    ..Default::default()
+                })
             }),
             color,
             msaa_view,
@@ -582,9 +592,10 @@ impl LungRenderer {
     }
 
     /// The offscreen colour target viewed as plain bytes (`Rgba8Unorm`: no sRGB decode), for a
-    /// present pass's texel-for-texel copy ([`present::PresentPass::new`]).
-    pub fn color_bytes_view(&self) -> &wgpu::TextureView {
-        &self.color_bytes_view
+    /// present pass's texel-for-texel copy ([`present::PresentPass::new`]); `None` where the
+    /// adapter allows no other view format (wgpu's GL backend).
+    pub fn color_bytes_view(&self) -> Option<&wgpu::TextureView> {
+        self.color_bytes_view.as_ref()
     }
 
     /// Deform, draw every eye, submit, and wait for the GPU. With `capture`, the image is also

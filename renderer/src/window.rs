@@ -29,7 +29,7 @@ use winit::event_loop::{ActiveEventLoop, ControlFlow, EventLoop};
 use winit::window::{Fullscreen, Window, WindowId};
 
 use crate::gpu::Gpu;
-use crate::present::PresentPass;
+use crate::present::{self, PresentPass};
 use crate::process::{FrameOutput, RendererArgs, RendererError, Session};
 
 struct Windowed {
@@ -352,6 +352,15 @@ impl App {
                 adapter: gpu.info.name.clone(),
             })?;
         let caps = surface.get_capabilities(&gpu.adapter);
+        // An sRGB surface where there is one (the default is the surface's first format, which
+        // some drivers list as UNORM): the frame is sRGB, and so is the filtered (scaled) copy.
+        config.format = present::surface_format(&caps.formats, config.format);
+        // The plain-bytes view of the surface for the exact copy, where the adapter allows it.
+        let surface_views = gpu
+            .adapter
+            .get_downlevel_capabilities()
+            .flags
+            .contains(wgpu::DownlevelFlags::SURFACE_VIEW_FORMATS);
         config.present_mode = choose_present_mode(
             self.args.output.present_mode,
             self.args.output.vsync,
@@ -362,7 +371,10 @@ impl App {
         let present = PresentPass::new(
             &session.gpu.device,
             session.renderer.color_view(),
-            Some(session.renderer.color_bytes_view()),
+            session
+                .renderer
+                .color_bytes_view()
+                .filter(|_| surface_views),
             session.renderer.image_size(),
             config.format,
         );

@@ -28,6 +28,27 @@ pub fn fit_viewport(frame: (u32, u32), target: (u32, u32)) -> (f32, f32, f32, f3
     )
 }
 
+/// The surface format to present in: `default` (wgpu's choice, the surface's first) if it is sRGB,
+/// else its sRGB twin or any sRGB format the surface offers, else `default` — the frame is sRGB, and
+/// a filtered copy into a UNORM surface would write linear light and show it too dark.
+pub fn surface_format(
+    offered: &[wgpu::TextureFormat],
+    default: wgpu::TextureFormat,
+) -> wgpu::TextureFormat {
+    if default.is_srgb() {
+        return default;
+    }
+    let twin = default.add_srgb_suffix();
+    if offered.contains(&twin) {
+        return twin;
+    }
+    offered
+        .iter()
+        .copied()
+        .find(|f| f.is_srgb())
+        .unwrap_or(default)
+}
+
 impl PresentPass {
     /// Build for sampling `frame` (of `frame_size` pixels) into targets of `surface_format`.
     /// With `frame_bytes` (the same frame viewed without sRGB, [`crate::Renderer::color_bytes_view`])
@@ -99,8 +120,14 @@ impl PresentPass {
             Some(bytes) => (bytes, surface_format.remove_srgb_suffix()),
             None => (frame, surface_format),
         };
+        // Into a surface with no sRGB format, the filtered copy samples the frame's bytes too
+        // (filtered in sRGB rather than linear light, but as bright as the frame).
+        let scaled_frame = match frame_bytes {
+            Some(bytes) if !surface_format.is_srgb() => bytes,
+            _ => frame,
+        };
         Self {
-            scaled: build("fs_main", frame, surface_format, true),
+            scaled: build("fs_main", scaled_frame, surface_format, true),
             exact: build("fs_load", exact_frame, exact_format, false),
             exact_format,
             surface_format,
@@ -331,6 +358,25 @@ mod tests {
         assert!(
             (m - s).abs() < 0.02 * m,
             "scaled linear mean {s} against the frame's {m}"
+        );
+    }
+
+    /// An sRGB surface format is taken where the surface offers one, whatever it lists first.
+    #[test]
+    fn the_surface_is_presented_in_srgb_where_it_offers_it() {
+        use super::surface_format;
+        use wgpu::TextureFormat as F;
+        let offered = [F::Bgra8Unorm, F::Bgra8UnormSrgb];
+        assert_eq!(surface_format(&offered, F::Bgra8Unorm), F::Bgra8UnormSrgb);
+        assert_eq!(
+            surface_format(&offered, F::Bgra8UnormSrgb),
+            F::Bgra8UnormSrgb
+        );
+        let other = [F::Bgra8Unorm, F::Rgba8UnormSrgb];
+        assert_eq!(surface_format(&other, F::Bgra8Unorm), F::Rgba8UnormSrgb);
+        assert_eq!(
+            surface_format(&[F::Bgra8Unorm], F::Bgra8Unorm),
+            F::Bgra8Unorm
         );
     }
 
