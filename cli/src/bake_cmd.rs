@@ -109,6 +109,9 @@ pub struct BakeSummary {
     pub side_warning: Option<String>,
     /// The warning when the mesh's anterior/posterior or superior/inferior look flipped.
     pub frame_warning: Option<String>,
+    /// Where the kernel's lobe codes came from: "mesh" (the file's own `lobe` property, e.g. from
+    /// the patient's lobe labels by `mesh from-mask`) or "planes" (the fissure planes).
+    pub lobes_from: &'static str,
     /// Spherical-harmonic bands stored (0: none).
     pub sh_bands: u32,
     /// Least-squares scale of eq. 7.7 against eq. 7.1.
@@ -225,6 +228,23 @@ pub fn bake(args: &BakeArgs) -> anyhow::Result<BakeSummary> {
         &args.input,
         Some(side),
     )?;
+    // The mesh's own lobes (a PLY's `lobe` property) are kept, when they are all this lung's.
+    let own_lobes = imported.lobes.clone();
+    if let Some(codes) = &own_lobes {
+        use lung_model::mesh::lobes::Lobe;
+        if let Some((i, &c)) = codes
+            .iter()
+            .enumerate()
+            .find(|&(_, &c)| c != 0 && Lobe::from_code(c).and_then(|l| l.side()) != Some(side))
+        {
+            anyhow::bail!(
+                "{}: vertex {i} carries lobe code {c} ({}), not a lobe of the {} lung: is --lung right?",
+                args.mesh.display(),
+                Lobe::from_code(c).map_or("unknown", |l| l.name()),
+                side.name()
+            );
+        }
+    }
     let n = imported.mesh.positions.len() as u64;
     let bar = indicatif::ProgressBar::new(n);
     bar.set_style(
@@ -235,8 +255,14 @@ pub fn bake(args: &BakeArgs) -> anyhow::Result<BakeSummary> {
         .progress_chars("=> "),
     );
     bar.set_message(format!("{} lung", side.name()));
-    let k = kernel::bake(side, imported.mesh, &settings, &|rows| bar.inc(rows as u64))
+    let mut k = kernel::bake(side, imported.mesh, &settings, &|rows| bar.inc(rows as u64))
         .with_context(|| format!("baking {}", args.mesh.display()))?;
+    let lobes_from = if own_lobes.is_some() {
+        "mesh"
+    } else {
+        "planes"
+    };
+    k.lobes = own_lobes;
     bar.finish_and_clear();
     let file_bytes = k.write(&args.out)?;
     let max_u = k
@@ -267,6 +293,7 @@ pub fn bake(args: &BakeArgs) -> anyhow::Result<BakeSummary> {
         peak_rss_mib: peak_rss_mib(),
         side_warning,
         frame_warning,
+        lobes_from,
         sh_bands: sh.map_or(0, |s| s.bands),
         alpha: sh.map(|s| s.alpha),
         sh_rms_percent: sh.map(|s| s.rms_percent),

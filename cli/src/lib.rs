@@ -15,6 +15,7 @@ pub mod instances;
 pub mod kernel_plot;
 pub mod latency;
 pub mod launch;
+pub mod mask_cmd;
 pub mod mesh_cmd;
 pub mod motion_cmd;
 pub mod motion_plot;

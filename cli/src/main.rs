@@ -101,6 +101,11 @@ enum MeshCommand {
     /// Import a patient lung surface (OBJ, PLY, STL), weld and repair what is safe, verify it is
     /// closed, 2-manifold and consistently wound; optionally write the repaired mesh.
     Check(lungdyn::mesh_cmd::CheckArgs),
+    /// Make a patient's lung surface from a CT lung segmentation (NIfTI, NRRD, MetaImage): this
+    /// lung's labels (lungmask, TotalSegmentator, Chest Imaging Platform, 3D Slicer segment names,
+    /// or one label for both lungs, separated where they touch), tunnels closed, smoothed keeping
+    /// the volume, the vertex count asked, the checks `mesh check` runs, lobes from lobe labels.
+    FromMask(lungdyn::mask_cmd::FromMaskArgs),
 }
 
 #[derive(Subcommand)]
@@ -257,6 +262,14 @@ fn main() -> std::process::ExitCode {
                     "wrote {}: {} lung, {} vertices, {} triangles, {:.1} ml, {:.0} x {:.0} x {:.0} mm (closed 2-manifold)",
                     m.path, m.lung, m.vertices, m.triangles, m.volume_ml, m.size_mm[0], m.size_mm[1], m.size_mm[2]
                 );
+            }
+            Ok(())
+        }),
+        Command::Mesh(MeshCommand::FromMask(args)) => lungdyn::mask_cmd::run(&args).and_then(|s| {
+            if args.json {
+                println!("{}", serde_json::to_string(&s)?);
+            } else {
+                print!("{}", lungdyn::mask_cmd::text(&s));
             }
             Ok(())
         }),

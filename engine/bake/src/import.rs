@@ -126,6 +126,10 @@ pub struct Imported {
     /// Whether anterior/posterior or superior/inferior look flipped (in the body frame, after the
     /// stated frame's conversion); set by [`import_with`].
     pub orientation: Option<crate::surface_checks::OrientationEvidence>,
+    /// Each vertex's lobe code ([`lung_model::mesh::lobes`]), where the file carries them (a PLY
+    /// `lobe` vertex property, as `mesh from-mask` and `mesh generate --lobe-colours` write it);
+    /// `bake` keeps them instead of the fissure planes'.
+    pub lobes: Option<Vec<u8>>,
 }
 
 /// Which connected shells of a file to keep.
@@ -276,9 +280,14 @@ pub fn import_with(path: &Path, opts: &ImportOptions) -> Result<Imported, Import
         format,
         message,
     };
+    let mut file_lobes = None;
     let (mut positions, mut triangles, unused_in_file) = match format {
         "OBJ" => read_obj(&bytes).map_err(parse)?,
-        "PLY" => read_ply(&bytes).map(|(p, t)| (p, t, 0)).map_err(parse)?,
+        "PLY" => {
+            let ((p, t), lobes) = read_ply(&bytes).map_err(parse)?;
+            file_lobes = lobes;
+            (p, t, 0)
+        }
         _ => read_stl(&bytes).map(|(p, t)| (p, t, 0)).map_err(parse)?,
     };
     if opts.frame != MeshFrame::Body {
@@ -291,10 +300,13 @@ pub fn import_with(path: &Path, opts: &ImportOptions) -> Result<Imported, Import
             t.swap(1, 2);
         }
     }
-    let mut imported = repair(positions, triangles, units).map_err(|source| ImportError::Mesh {
-        path: path.to_path_buf(),
-        source,
-    })?;
+    let mut imported =
+        repair_with_lobes(positions, triangles, file_lobes, units).map_err(|source| {
+            ImportError::Mesh {
+                path: path.to_path_buf(),
+                source,
+            }
+        })?;
     // The OBJ reader already left out vertices no face uses: count them as removed too.
     imported.repairs.unused_vertices += unused_in_file;
     let surface = |source| ImportError::Surface {
@@ -327,6 +339,8 @@ pub fn import_with(path: &Path, opts: &ImportOptions) -> Result<Imported, Import
             })?;
             imported.mesh = mesh;
             imported.topology = topology;
+            // The picked shell's vertices are renumbered: its lobes are the fissure planes' again.
+            imported.lobes = None;
         }
         _ => {}
     }
@@ -544,7 +558,8 @@ fn ply_claims(bytes: &[u8], size: u64) -> Result<(), String> {
     Err("no end_header line".into())
 }
 
-fn read_ply(bytes: &[u8]) -> Result<Raw, String> {
+/// A PLY's positions and triangles, and its vertices' `lobe` codes when it has that property.
+fn read_ply(bytes: &[u8]) -> Result<(Raw, Option<Vec<u8>>), String> {
     use ply_rs_bw::ply::{DefaultElement, Property};
     ply_claims(bytes, bytes.len() as u64)?;
     let parser = ply_rs_bw::parser::Parser::<DefaultElement>::new();
@@ -574,6 +589,22 @@ fn read_ply(bytes: &[u8]) -> Result<Raw, String> {
         };
         positions.push([get("x")?, get("y")?, get("z")?]);
     }
+    let lobes = if vertices.first().is_some_and(|v| v.contains_key("lobe")) {
+        let mut codes = Vec::with_capacity(vertices.len());
+        for (i, v) in vertices.iter().enumerate() {
+            let code = v
+                .get("lobe")
+                .and_then(scalar)
+                .filter(|&c| c.fract() == 0.0 && (0.0..=5.0).contains(&c))
+                .ok_or(format!(
+                    "vertex {i}'s lobe is not a lobe code 0..5 (0 unknown, 1–3 right upper/middle/lower, 4–5 left upper/lower)"
+                ))?;
+            codes.push(code as u8);
+        }
+        Some(codes)
+    } else {
+        None
+    };
     let faces = ply.payload.get("face").ok_or("no face element")?;
     let mut triangles = Vec::with_capacity(faces.len());
     for (i, f) in faces.iter().enumerate() {
@@ -601,7 +632,7 @@ fn read_ply(bytes: &[u8]) -> Result<Raw, String> {
             triangles.push([idx[0] as u32, idx[k] as u32, idx[k + 1] as u32]);
         }
     }
-    Ok((positions, triangles))
+    Ok(((positions, triangles), lobes))
 }
 
 /// A binary STL's header claim (80-byte header, u32 count, 50 bytes per triangle) against the file's
@@ -655,6 +686,17 @@ pub fn repair(
     triangles: Vec<[u32; 3]>,
     units: Units,
 ) -> Result<Imported, MeshError> {
+    repair_with_lobes(positions, triangles, None, units)
+}
+
+/// [`repair`], carrying a lobe code per vertex through the welding and compaction (a welded
+/// vertex keeps the first one's code).
+pub fn repair_with_lobes(
+    positions: Vec<[f32; 3]>,
+    triangles: Vec<[u32; 3]>,
+    lobes: Option<Vec<u8>>,
+    units: Units,
+) -> Result<Imported, MeshError> {
     let mut repairs = Repairs::default();
     if let Some(i) = positions
         .iter()
@@ -705,11 +747,15 @@ pub fn repair(
     }
     let mut new_index = vec![u32::MAX; positions.len()];
     let mut out_positions = Vec::new();
+    let mut out_lobes = lobes.as_ref().map(|_| Vec::new());
     let s = units.to_mm();
     for (i, p) in positions.iter().enumerate() {
         if used[i] {
             new_index[i] = out_positions.len() as u32;
             out_positions.push([p[0] * s, p[1] * s, p[2] * s]);
+            if let (Some(out), Some(l)) = (out_lobes.as_mut(), lobes.as_ref()) {
+                out.push(l[i]);
+            }
         }
     }
     for t in &mut kept {
@@ -743,6 +789,7 @@ pub fn repair(
         self_intersections: 0,
         side: None,
         orientation: None,
+        lobes: out_lobes,
     })
 }
 

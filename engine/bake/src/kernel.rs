@@ -44,6 +44,10 @@ pub struct Kernel {
     pub basis: Vec<[f32; 4]>,
     /// SH transfer coefficients `T^I_lm`, `bands²` per vertex (when baked with bands).
     pub sh: Option<Vec<f32>>,
+    /// The mesh's own lobe code per vertex (from the patient's lobe labels: `mesh from-mask`),
+    /// written instead of the fissure planes' ([`Kernel::write`]); `None` after [`bake`] until the
+    /// caller sets it.
+    pub lobes: Option<Vec<u8>>,
 }
 
 /// Errors baking.
@@ -256,6 +260,7 @@ pub fn bake(
         transfer,
         basis,
         sh,
+        lobes: None,
     })
 }
 
@@ -413,7 +418,10 @@ fn tumour_meta(
 impl Kernel {
     /// Write the kernel to `path` atomically (temporary sibling, then rename); returns its length.
     pub fn write(&self, path: &Path) -> Result<u64, KernelError> {
-        let lobes = lung_model::mesh::lobes::classify(self.meta.side, &self.mesh);
+        let lobes = match &self.lobes {
+            Some(own) if own.len() == self.mesh.positions.len() => own.clone(),
+            _ => lung_model::mesh::lobes::classify(self.meta.side, &self.mesh),
+        };
         write_file(
             path,
             &self.meta,

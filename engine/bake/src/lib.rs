@@ -15,7 +15,9 @@
 //!   landmarks, with the complexity chosen by inner cross-validation; [`landmarks`] — reading points
 //!   in a stated coordinate frame (body, LPS, RAS, voxel indices, DIR-Lab files);
 //! * [`pv`] — reading measured PV curves and fitting eq. 5.11 to them (§5.3.5);
-//! * [`lsq`] — the least-squares wrapper both fits use.
+//! * [`lsq`] — the least-squares wrapper both fits use;
+//! * [`mask`] — a patient's lung surface (and lobes) from a CT lung segmentation (NIfTI, NRRD,
+//!   MetaImage).
 
 // `!(x > 0.0)` is how this crate refuses NaN together with out-of-range values; keep it.
 #![allow(clippy::neg_cmp_op_on_partial_ord)]
@@ -24,6 +26,7 @@ pub mod import;
 pub mod kernel;
 pub mod landmarks;
 pub mod lsq;
+pub mod mask;
 pub mod motion_fit;
 pub mod motion_models;
 pub mod operator;

@@ -1,0 +1,1067 @@
+//! # mask: a patient's lung surface from a CT lung segmentation
+//!
+//! `label image (NIfTI / NRRD / MetaImage) → this lung's voxels (by the segmenter's label
+//! convention, or separated geometrically where one label holds both lungs) → tunnels closed,
+//! cavities filled → smooth field → marching tetrahedra → short edges collapsed → relaxed onto the
+//! field → volume matched to the mask → the checks every imported lung gets → lobe ids from the
+//! lobe labels (or the fissure planes)`, all in lungdyn's body frame (mm, +X left, +Y anterior,
+//! +Z superior) through the image's own voxel-to-world transform ([`read`]).
+//!
+//! **Nothing about the frame is guessed.** A header without an anatomical frame is refused unless
+//! `--axes` states the voxel axes; a header that contradicts the anatomy (the base's lowest point
+//! anterior, the apex at the bottom, a lung labelled left shaped like a right one, a "right" lung
+//! smaller than the left with a lower base) is said, and where the evidence is strong, refused
+//! with the `--axes` that would fix it.
+
+pub mod labels;
+pub mod morph;
+pub mod read;
+pub mod surface;
+pub mod volume;
+
+use std::path::{Path, PathBuf};
+use std::time::Instant;
+
+use glam::DVec3;
+use lung_model::mesh::lobes::{self, Lobe};
+use lung_model::mesh::{check, Side, TriMesh};
+use serde::Serialize;
+
+use labels::{Convention, Meaning};
+use morph::Grid;
+use volume::{Axes, FrameSource, LabelVolume, VoxelToBody};
+
+/// Why a mask could not become a lung surface.
+#[derive(Debug, thiserror::Error)]
+pub enum MaskError {
+    /// Unreadable file, or not within the input limits.
+    #[error(transparent)]
+    Input(#[from] lung_model::input::InputError),
+    /// Not a label image lungdyn reads, or a header it will not trust.
+    #[error("{}: {message}", path.display())]
+    Format {
+        /// Path.
+        path: PathBuf,
+        /// What is wrong.
+        message: String,
+    },
+    /// The labels do not give this lung.
+    #[error("{}: {message}", path.display())]
+    Labels {
+        /// Path.
+        path: PathBuf,
+        /// What is wrong and what to pass.
+        message: String,
+    },
+    /// The surface could not be made or is not a lung's.
+    #[error("{}: {message}", path.display())]
+    Surface {
+        /// Path.
+        path: PathBuf,
+        /// What is wrong.
+        message: String,
+    },
+}
+
+/// How to make the surface.
+#[derive(Debug, Clone)]
+pub struct MaskOptions {
+    /// Which lung.
+    pub side: Side,
+    /// The label values that are this lung or its lobes (`--label`); found from the convention
+    /// when `None`.
+    pub labels: Option<Vec<u16>>,
+    /// The label convention (`--convention`); detected when `None`.
+    pub convention: Option<Convention>,
+    /// Vertices wanted (about: the surface's spacing is chosen for it).
+    pub vertices: usize,
+    /// The voxel axes' directions, replacing the header's (`--axes`).
+    pub axes: Option<Axes>,
+    /// Keep tunnels (vessels, airways through the mask) instead of closing them.
+    pub keep_tunnels: bool,
+    /// Gaussian σ of the smoothing, mm (`None`: 0.75 × the largest voxel spacing, at least 0.6).
+    pub smoothing_mm: Option<f64>,
+    /// Input limits.
+    pub limits: lung_model::input::ReadLimits,
+}
+
+impl MaskOptions {
+    /// Defaults for `side`: conventions detected, 20k vertices, tunnels closed.
+    pub fn new(side: Side) -> Self {
+        Self {
+            side,
+            labels: None,
+            convention: None,
+            vertices: 20_000,
+            axes: None,
+            keep_tunnels: false,
+            smoothing_mm: None,
+            limits: read::MASK_LIMITS,
+        }
+    }
+}
+
+/// Distances from the surface's vertices to the mask's staircase boundary, mm.
+#[derive(Debug, Clone, Copy, PartialEq, Serialize)]
+pub struct Distances {
+    /// Mean, mm.
+    pub mean_mm: f64,
+    /// 95th percentile, mm.
+    pub p95_mm: f64,
+    /// Largest, mm.
+    pub max_mm: f64,
+    /// Mean over the geometric mean voxel spacing.
+    pub mean_voxels: f64,
+}
+
+/// What [`mesh_from_mask`] made and how.
+#[derive(Debug, Clone)]
+pub struct FromMask {
+    /// The surface, mm, body frame.
+    pub mesh: TriMesh,
+    /// A lobe code per vertex ([`lung_model::mesh::lobes`]).
+    pub lobes: Vec<u8>,
+    /// Where the lobe codes came from: "labels" (the image's lobe labels) or "planes" (the fissure
+    /// planes over the bounding box).
+    pub lobes_from: &'static str,
+    /// The image's frame.
+    pub frame: FrameSource,
+    /// The label convention used.
+    pub convention: Convention,
+    /// Why (detected from what, or given).
+    pub convention_reason: String,
+    /// The label values taken as this lung.
+    pub labels_used: Vec<u16>,
+    /// How this lung was told from the other: "labels", "components" (two separate bodies),
+    /// "split at contact" (one body eroded apart and grown back) or "one lung in the image".
+    pub sides_from: &'static str,
+    /// Voxel volume of this lung's mask as labelled (after separating sides), ml.
+    pub mask_volume_ml: f64,
+    /// Voxel volume after closing tunnels and filling cavities (the surface's target), ml.
+    pub closed_volume_ml: f64,
+    /// Genus of the mask's boundary as it came (tunnels through it: vessels, airways).
+    pub genus_before: i64,
+    /// Genus of the surface made.
+    pub genus_after: i64,
+    /// Radius of the closing that closed the tunnels, mm (0: none needed or asked).
+    pub closing_mm: f64,
+    /// Cavities (enclosed holes) filled.
+    pub cavities_filled: usize,
+    /// Voxels in pieces apart from the lung's main body, dropped.
+    pub voxels_dropped: usize,
+    /// Gaussian σ of the smoothing, mm.
+    pub smoothing_mm: f64,
+    /// Grid step of the isosurface, mm.
+    pub grid_step_mm: f64,
+    /// Distances from the vertices to the mask's boundary.
+    pub distance_to_mask: Distances,
+    /// Geometry's side and orientation findings, one line each.
+    pub side_reason: String,
+    /// What the geometry says about anterior/posterior and superior/inferior.
+    pub orientation_reason: String,
+    /// Things to look at (a header that looks mirrored, notes of the reader).
+    pub warnings: Vec<String>,
+    /// Seconds spent per stage.
+    pub seconds: Vec<(&'static str, f64)>,
+}
+
+/// Read one label image, or several binary ones (one structure per file, as TotalSegmentator
+/// writes them) combined into one: file `n` becomes label `n` (1-based), named by its file name.
+pub fn read_masks(paths: &[PathBuf], opts: &MaskOptions) -> Result<LabelVolume, MaskError> {
+    let first = paths.first().ok_or_else(|| MaskError::Labels {
+        path: PathBuf::new(),
+        message: "no mask file given".into(),
+    })?;
+    let mut volume = read::read_labels(first, opts.limits, opts.axes)?;
+    if paths.len() == 1 {
+        return Ok(volume);
+    }
+    let name_of = |p: &Path| {
+        p.file_name()
+            .map(|n| n.to_string_lossy().to_string())
+            .unwrap_or_default()
+    };
+    let binary = |v: &LabelVolume, p: &Path| -> Result<(), MaskError> {
+        let h = v.histogram();
+        if h.len() > 1 {
+            return Err(MaskError::Labels {
+                path: p.to_path_buf(),
+                message: format!(
+                    "given with other files, each file must hold one structure (values 0 and one \
+                     other), but it holds {} values",
+                    h.len()
+                ),
+            });
+        }
+        Ok(())
+    };
+    binary(&volume, first)?;
+    for l in &mut volume.labels {
+        if *l != 0 {
+            *l = 1;
+        }
+    }
+    volume.names = vec![(1, name_of(first))];
+    for (n, path) in paths.iter().enumerate().skip(1) {
+        let other = read::read_labels(path, opts.limits, opts.axes)?;
+        binary(&other, path)?;
+        let same_grid = other.dims == volume.dims
+            && (other.to_body.linear - volume.to_body.linear)
+                .to_cols_array()
+                .iter()
+                .all(|d| d.abs() < 1e-3)
+            && (other.to_body.origin - volume.to_body.origin)
+                .abs()
+                .max_element()
+                < 1e-2;
+        if !same_grid {
+            return Err(MaskError::Labels {
+                path: path.clone(),
+                message: format!(
+                    "its grid ({:?} voxels, origin {:.2?} mm) is not {}'s ({:?}, {:.2?}): masks given \
+                     together must come from one image",
+                    other.dims,
+                    other.to_body.origin.to_array(),
+                    first.display(),
+                    volume.dims,
+                    volume.to_body.origin.to_array()
+                ),
+            });
+        }
+        let value = (n + 1) as u16;
+        for (dst, &src) in volume.labels.iter_mut().zip(&other.labels) {
+            if src != 0 {
+                *dst = value;
+            }
+        }
+        volume.names.push((value, name_of(path)));
+    }
+    Ok(volume)
+}
+
+/// Make `opts.side`'s lung surface from the label image(s) at `paths`.
+pub fn mesh_from_mask(paths: &[PathBuf], opts: &MaskOptions) -> Result<FromMask, MaskError> {
+    let path = paths.first().cloned().unwrap_or_default();
+    let labels_err = |message: String| MaskError::Labels {
+        path: path.clone(),
+        message,
+    };
+    let surface_err = |message: String| MaskError::Surface {
+        path: path.clone(),
+        message,
+    };
+    let mut seconds = Vec::new();
+    let mut clock = Instant::now();
+    let mut lap = |name: &'static str, seconds: &mut Vec<(&'static str, f64)>| {
+        seconds.push((name, clock.elapsed().as_secs_f64()));
+        clock = Instant::now();
+    };
+    if !(100..=4_000_000).contains(&opts.vertices) {
+        return Err(labels_err(format!(
+            "--vertices {}: give 100 to 4,000,000",
+            opts.vertices
+        )));
+    }
+    let volume = read_masks(paths, opts)?;
+    lap("read", &mut seconds);
+    let mut warnings = volume.notes.clone();
+    let histogram = volume.histogram();
+
+    // Which values, and what they mean.
+    let (convention, convention_reason) = match (opts.convention, &opts.labels) {
+        (Some(c), _) => (c, "given (--convention)".to_string()),
+        (None, Some(_)) => match labels::detect(&histogram, &volume.names) {
+            Ok(found) => found,
+            Err(_) => (
+                Convention::Single,
+                "--label given; no convention matched".into(),
+            ),
+        },
+        (None, None) => labels::detect(&histogram, &volume.names).map_err(labels_err)?,
+    };
+    let present: Vec<u16> = histogram.iter().map(|&(v, _)| v).collect();
+    let meaning = |v: u16| {
+        if opts.labels.is_some() && convention == Convention::Single {
+            Meaning::Both
+        } else {
+            labels::meaning(convention, v, &volume.names)
+        }
+    };
+    let side = opts.side;
+    let mine = |m: Meaning| match m {
+        Meaning::Lobe(l) => l.side() == Some(side),
+        Meaning::Lung(s) => s == side,
+        _ => false,
+    };
+    let selected: Vec<u16> = match &opts.labels {
+        Some(given) => {
+            for &v in given {
+                if !present.contains(&v) {
+                    return Err(labels_err(format!(
+                        "--label {v}: no voxel holds {v}; the values present are {}",
+                        present
+                            .iter()
+                            .map(|v| v.to_string())
+                            .collect::<Vec<_>>()
+                            .join(", ")
+                    )));
+                }
+                match meaning(v) {
+                    Meaning::Lobe(l) if l.side() != Some(side) => {
+                        return Err(labels_err(format!(
+                            "--label {v} is the {} lobe under the {} convention, not a lobe of the \
+                             {} lung",
+                            l.name(),
+                            convention.name(),
+                            side.name()
+                        )))
+                    }
+                    Meaning::Lung(s) if s != side => {
+                        return Err(labels_err(format!(
+                            "--label {v} is the {} lung under the {} convention, not the {}",
+                            s.name(),
+                            convention.name(),
+                            side.name()
+                        )))
+                    }
+                    _ => {}
+                }
+            }
+            given.clone()
+        }
+        None => {
+            let own: Vec<u16> = present
+                .iter()
+                .copied()
+                .filter(|&v| mine(meaning(v)))
+                .collect();
+            if own.is_empty() {
+                present
+                    .iter()
+                    .copied()
+                    .filter(|&v| meaning(v) == Meaning::Both)
+                    .collect()
+            } else {
+                own
+            }
+        }
+    };
+    if selected.is_empty() {
+        return Err(labels_err(format!(
+            "no label is the {} lung under the {} convention ({convention_reason}); values present: {}. \
+             Name its values with --label",
+            side.name(),
+            convention.name(),
+            present.iter().map(|v| v.to_string()).collect::<Vec<_>>().join(", ")
+        )));
+    }
+    let by_label = selected.iter().all(|&v| mine(meaning(v)));
+
+    // Both lungs, where the image has both: their sizes and bases (a mirrored or turned
+    // left-right axis shows there).
+    let mut both_lungs: Option<(LungStats, LungStats)> = None;
+    if by_label {
+        let other: Vec<u16> = present
+            .iter()
+            .copied()
+            .filter(|&v| {
+                matches!(meaning(v), Meaning::Lobe(l) if l.side().is_some_and(|s| s != side))
+                    || matches!(meaning(v), Meaning::Lung(s) if s != side)
+            })
+            .collect();
+        if !other.is_empty() {
+            let ours = lung_stats(&volume, |l| selected.contains(&l));
+            let theirs = lung_stats(&volume, |l| other.contains(&l));
+            let (right, left) = if side == Side::Right {
+                (ours, theirs)
+            } else {
+                (theirs, ours)
+            };
+            both_lungs = Some((right, left));
+        }
+    }
+
+    // This lung's voxels on a padded crop.
+    let spacing = volume.to_body.spacing();
+    let sigma = opts
+        .smoothing_mm
+        .unwrap_or((0.75 * spacing.iter().cloned().fold(0.0, f64::max)).max(0.6));
+    if !(0.0..=10.0).contains(&sigma) {
+        return Err(labels_err(format!("--smooth {sigma} mm: give 0 to 10 mm")));
+    }
+    let margin_mm = 14.0 + 3.0 * sigma;
+    let (mut grid, crop_to_body) = crop(&volume, |l| selected.contains(&l), margin_mm)
+        .ok_or_else(|| labels_err("the selected labels hold no voxel".into()))?;
+    let mut sides_from = if by_label {
+        "labels"
+    } else {
+        "one lung in the image"
+    };
+    // Voxels in pieces apart from both lungs (counted with the ones dropped below).
+    let mut stray = 0usize;
+    if !by_label {
+        let lateral = |idx: usize| {
+            let [nx, ny, _] = grid.dims;
+            crop_to_body
+                .apply(DVec3::new(
+                    (idx % nx) as f64,
+                    ((idx / nx) % ny) as f64,
+                    (idx / (nx * ny)) as f64,
+                ))
+                .x
+        };
+        let (id, sizes) = morph::components(&grid, true);
+        let mut order: Vec<usize> = (0..sizes.len()).collect();
+        order.sort_by_key(|&c| std::cmp::Reverse(sizes[c]));
+        let total: usize = sizes.iter().sum();
+        let parts: Option<[Grid; 2]> = if order.len() >= 2 && sizes[order[1]] * 100 >= total * 15 {
+            sides_from = "components";
+            stray = total - sizes[order[0]] - sizes[order[1]];
+            let part = |c: usize| Grid {
+                on: id.iter().map(|&x| x == c as u32 + 1).collect(),
+                ..grid.clone()
+            };
+            Some([part(order[0]), part(order[1])])
+        } else {
+            let split = morph::split_two(&grid, lateral, 60.0);
+            if split.is_some() {
+                sides_from = "split at contact";
+            }
+            split
+        };
+        if let Some([a, b]) = parts {
+            let centre = |g: &Grid| {
+                let (mut s, mut n) = (0.0, 0usize);
+                for (idx, &on) in g.on.iter().enumerate() {
+                    if on {
+                        s += lateral(idx);
+                        n += 1;
+                    }
+                }
+                s / n.max(1) as f64
+            };
+            // +X is the patient's left.
+            let (left, right) = if centre(&a) > centre(&b) {
+                (a, b)
+            } else {
+                (b, a)
+            };
+            let stats = |g: &Grid| part_stats(g, &crop_to_body, volume.voxel_ml());
+            both_lungs = Some((stats(&right), stats(&left)));
+            grid = if side == Side::Left { left } else { right };
+        }
+    }
+    lap("select", &mut seconds);
+    let voxels_dropped = morph::keep_largest(&mut grid) + stray;
+    let mask_volume_ml = grid.count() as f64 * volume.voxel_ml();
+    let (mut cavities_filled, _) = morph::fill_cavities(&mut grid);
+    let genus_before = morph::genus(&grid);
+    // Tunnels closed by the smallest closing that leaves the *surface* (not only the voxels) of
+    // genus 0: the smoothing can also bridge a narrow groove into a new handle, which a closing of
+    // the groove prevents.
+    let min_spacing = spacing.iter().cloned().fold(f64::INFINITY, f64::min);
+    let radii: Vec<f64> = [0.0, 1.5, 2.0, 3.0, 4.0, 5.0, 6.0, 8.0, 10.0, 12.0]
+        .into_iter()
+        .filter(|&r| r == 0.0 || r >= min_spacing)
+        .collect();
+    let as_labelled = grid.clone();
+    let mut outcome = None;
+    for (attempt, &r) in radii.iter().enumerate() {
+        let mut g = as_labelled.clone();
+        let mut filled = 0;
+        if r > 0.0 {
+            g = morph::close(&as_labelled, r);
+            filled = morph::fill_cavities(&mut g).0;
+            morph::keep_largest(&mut g);
+        }
+        if !opts.keep_tunnels && r < *radii.last().unwrap_or(&0.0) && morph::genus(&g) != 0 {
+            continue;
+        }
+        let volume_ml = g.count() as f64 * volume.voxel_ml();
+        let last = attempt + 1 == radii.len();
+        let need_genus_0 = !opts.keep_tunnels && !last;
+        if let Some(made) = extract(
+            &g,
+            crop_to_body,
+            sigma,
+            opts.vertices,
+            volume_ml,
+            need_genus_0,
+        )? {
+            let genus = (2 - made.euler) / 2;
+            outcome = Some((made, g, r, filled, volume_ml, genus));
+            break;
+        }
+    }
+    let Some((made, closed_grid, closing_mm, filled, closed_volume_ml, genus_after)) = outcome
+    else {
+        return Err(surface_err("internal error: no surface was made".into()));
+    };
+    grid = closed_grid;
+    cavities_filled += filled;
+    let Extracted {
+        mesh, h, crossing, ..
+    } = made;
+    lap("surface", &mut seconds);
+    if genus_after != 0 && !opts.keep_tunnels {
+        return Err(surface_err(format!(
+            "the {} lung's surface keeps {genus_after} tunnel(s) after a closing of {closing_mm} mm: \
+             look at the mask (a lung fused with the airways or the other lung?), or pass \
+             --keep-tunnels",
+            side.name()
+        )));
+    }
+    if crossing > 0 {
+        return Err(surface_err(format!(
+            "the surface made from the mask intersects itself ({crossing} crossing pairs left after \
+             untangling): the mask has parts thinner than the smoothing; try a smaller --smooth or \
+             more --vertices"
+        )));
+    }
+    crate::import::check_size(&mesh, crate::import::Units::Mm, true)
+        .map_err(|e| surface_err(format!("{e}")))?;
+
+    // What the geometry says of the frame.
+    let orientation = crate::surface_checks::infer_orientation(&mesh);
+    let side_evidence = crate::surface_checks::infer_side(&mesh);
+    let header_axes = Axes(volume.to_body.voxel_axes().0);
+    // Everything the anatomy says against the frame, and the one --axes that answers all of it.
+    let mut findings = Vec::new();
+    let mut strong = false;
+    let (mut flip_lr, mut flip_ap, mut flip_si) = (false, false, false);
+    if orientation.anterior_posterior_swapped || orientation.upside_down {
+        flip_ap = orientation.anterior_posterior_swapped;
+        flip_si = orientation.upside_down;
+        strong |= orientation.strong;
+        findings.push(format!(
+            "lies {} ({})",
+            if flip_ap {
+                "with anterior and posterior swapped"
+            } else {
+                "upside down"
+            },
+            orientation.reason
+        ));
+    }
+    if let Some(seen) = side_evidence.side {
+        if by_label
+            && seen != side
+            && side_evidence.confidence >= crate::surface_checks::SIDE_MISMATCH_CONFIDENCE
+        {
+            flip_lr = true;
+            strong = true;
+            findings.push(format!(
+                "the labels say {} lung but its shape is a {} lung's ({}): the left-right axis looks \
+                 mirrored",
+                side.name(),
+                seen.name(),
+                side_evidence.reason
+            ));
+        }
+    }
+    if let Some((right, left)) = both_lungs {
+        let share = right.volume_ml / (right.volume_ml + left.volume_ml);
+        let lower_by = left.lowest_mm - right.lowest_mm;
+        if !flip_lr && flip_ap && share < 0.5 {
+            // Anterior and posterior swapped and the "right" lung the smaller: the header most
+            // likely turned the patient half round (an LPS image stored under an RAS header, or
+            // the reverse), which swaps left and right too, and no lung's shape shows that.
+            flip_lr = true;
+            findings.push(format!(
+                "the lung the frame calls right is the smaller ({:.0} % of both, {:.0} against \
+                 {:.0} ml; a right lung is usually 53–56 %): with anterior and posterior swapped \
+                 this is a half turn about the long axis, which swaps left and right too",
+                100.0 * share,
+                right.volume_ml,
+                left.volume_ml
+            ));
+        } else if !flip_lr && share < 0.47 && lower_by > 5.0 {
+            warnings.push(format!(
+                "in the image's frame the right lung is the smaller ({:.0} % of both lungs, {:.0} ml \
+                 against {:.0} ml) and its base {:.0} mm lower than the left's; a right lung is \
+                 usually the larger (53–56 %) with the higher base. If the image's left-right axis \
+                 is mirrored (a header written with the wrong directions), pass --axes {}",
+                100.0 * share,
+                right.volume_ml,
+                left.volume_ml,
+                lower_by,
+                fixed_axes(header_axes, true, false, false).code()
+            ));
+        }
+    }
+    if !findings.is_empty() {
+        let fix = fixed_axes(header_axes, flip_lr, flip_ap, flip_si);
+        let w = format!(
+            "in the image's frame ({}, voxel axes {}) the {} lung {}. If the header is wrong, pass \
+             --axes {} (the voxel axes as they really are)",
+            volume.frame.from,
+            header_axes.code(),
+            side.name(),
+            findings.join("; and "),
+            fix.code()
+        );
+        if strong && opts.axes.is_none() {
+            return Err(surface_err(w));
+        }
+        warnings.push(w);
+    }
+    lap("check", &mut seconds);
+
+    // Lobes.
+    let lobe_codes: Vec<(u16, u8)> = selected
+        .iter()
+        .filter_map(|&v| match meaning(v) {
+            Meaning::Lobe(l) => Some((v, l.code())),
+            _ => None,
+        })
+        .collect();
+    let (lobes, lobes_from) = if lobe_codes.len() >= 2 {
+        (
+            lobes_from_labels(&mesh, &volume, &lobe_codes, side),
+            "labels",
+        )
+    } else {
+        (lobes::classify(side, &mesh), "planes")
+    };
+    let distance_to_mask = distances(&mesh, &grid, &crop_to_body);
+    lap("lobes and distances", &mut seconds);
+    Ok(FromMask {
+        mesh,
+        lobes,
+        lobes_from,
+        frame: volume.frame.clone(),
+        convention,
+        convention_reason,
+        labels_used: selected,
+        sides_from,
+        mask_volume_ml,
+        closed_volume_ml,
+        genus_before,
+        genus_after,
+        closing_mm,
+        cavities_filled,
+        voxels_dropped,
+        smoothing_mm: sigma,
+        grid_step_mm: h,
+        distance_to_mask,
+        side_reason: side_evidence.reason,
+        orientation_reason: orientation.reason,
+        warnings,
+        seconds,
+    })
+}
+
+/// A surface made from one voxel set.
+struct Extracted {
+    mesh: TriMesh,
+    /// Grid step, mm.
+    h: f64,
+    /// Euler characteristic.
+    euler: i64,
+    /// Crossing triangle pairs left.
+    crossing: usize,
+}
+
+/// The surface of `g` (a crop with voxel → body `to_body`): smoothed field, marching tetrahedra at
+/// the step that gives about `vertices`, short edges collapsed, relaxed onto the field, untangled,
+/// volume matched to `volume_ml`.
+fn extract(
+    g: &Grid,
+    to_body: VoxelToBody,
+    sigma: f64,
+    vertices: usize,
+    volume_ml: f64,
+    need_genus_0: bool,
+) -> Result<Option<Extracted>, MaskError> {
+    let field = surface::Field::blurred(g.dims, &g.on, to_body, sigma);
+    let spacing = to_body.spacing();
+    let area_estimate = staircase_area(g) / 1.5;
+    let mut h = (4.0 * area_estimate / vertices as f64)
+        .sqrt()
+        .clamp(0.15, 12.0);
+    // The level whose surface encloses the mask's volume (the blur moves the 0.5 level inwards
+    // where the surface is convex): a secant search on marching tetrahedra's own volume. Taking
+    // the volume by the level keeps the surface a level set, which never crosses itself; an
+    // offset along the normals afterwards can, where the lung is thin.
+    let target_mm3 = volume_ml * 1000.0;
+    let volume_at = |iso: f64, h: f64| {
+        surface::marching_tetrahedra(&field, iso, spacing.map(|s| h / s)).enclosed_volume_mm3()
+    };
+    let mut iso = 0.5;
+    let mut v0 = volume_at(iso, h);
+    let mut iso_prev = if v0 < target_mm3 { 0.45 } else { 0.55 };
+    let mut v_prev = volume_at(iso_prev, h);
+    for _ in 0..4 {
+        if (v0 / target_mm3 - 1.0).abs() < 2e-4 || v0 == v_prev {
+            break;
+        }
+        let next = (iso + (target_mm3 - v0) * (iso - iso_prev) / (v0 - v_prev)).clamp(0.2, 0.8);
+        iso_prev = iso;
+        v_prev = v0;
+        iso = next;
+        v0 = volume_at(iso, h);
+    }
+    // The grid is never coarser than twice the smoothing: a sheet of lung thinner than the grid
+    // step (an anterior border, a costophrenic recess) would be punctured by the piecewise-linear
+    // level set, and each puncture is a false tunnel. Fewer vertices than that grid gives are had
+    // by collapsing short edges (a decimation) instead of by a coarser grid.
+    let h_grid_max = (2.0 * sigma).max(spacing.iter().cloned().fold(0.0, f64::max));
+    let mut mesh = TriMesh {
+        positions: Vec::new(),
+        triangles: Vec::new(),
+    };
+    if h <= h_grid_max {
+        for _round in 0..4 {
+            let step = spacing.map(|s| h / s);
+            mesh = surface::marching_tetrahedra(&field, iso, step);
+            surface::collapse_short_edges(&mut mesh, 0.35 * h);
+            let n = mesh.positions.len();
+            let ratio = n as f64 / vertices as f64;
+            if (0.93..=1.07).contains(&ratio) || n == 0 || h * ratio.sqrt() > h_grid_max {
+                break;
+            }
+            h *= ratio.sqrt();
+        }
+    }
+    if h > h_grid_max || mesh.positions.len() as f64 > 1.07 * vertices as f64 {
+        let fine = surface::marching_tetrahedra(&field, iso, spacing.map(|s| h_grid_max / s));
+        let mut length = 0.6 * h;
+        for _round in 0..5 {
+            mesh = fine.clone();
+            surface::collapse_short_edges(&mut mesh, length.max(0.35 * h_grid_max));
+            let ratio = mesh.positions.len() as f64 / vertices as f64;
+            if (0.93..=1.07).contains(&ratio) {
+                break;
+            }
+            length *= ratio.sqrt();
+        }
+        h = length;
+    }
+    let internal = |e: String| MaskError::Surface {
+        path: PathBuf::new(),
+        message: format!(
+            "internal error: the surface made from the mask is not a closed manifold ({e}); please \
+             report it with the mask"
+        ),
+    };
+    let euler = check(&mesh).map_err(|e| internal(e.to_string()))?.euler;
+    if need_genus_0 && euler != 2 {
+        return Ok(None);
+    }
+    // Relaxed as far as the surface stays free of crossings; where untangling cannot undo what
+    // the relaxation did, a gentler relaxation (down to none: marching tetrahedra's own surface
+    // never crosses itself, and the collapses are checked) is taken instead.
+    let extracted = mesh.clone();
+    let mut crossing = usize::MAX;
+    for iterations in [8, 3, 0] {
+        mesh = extracted.clone();
+        surface::relax_onto(&mut mesh, &field, iso, iterations);
+        crossing = surface::untangle(&mut mesh, &field, iso, 4);
+        if crossing == 0 {
+            break;
+        }
+    }
+    let topology = check(&mesh).map_err(|e| internal(e.to_string()))?;
+    Ok(Some(Extracted {
+        mesh,
+        h,
+        euler: topology.euler,
+        crossing,
+    }))
+}
+
+/// `axes` with its L/R, A/P and S/I letters reversed as asked.
+fn fixed_axes(axes: Axes, lr: bool, ap: bool, si: bool) -> Axes {
+    use volume::Dir::*;
+    let mut out = axes;
+    for d in &mut out.0 {
+        *d = match *d {
+            L if lr => R,
+            R if lr => L,
+            A if ap => P,
+            P if ap => A,
+            S if si => I,
+            I if si => S,
+            x => x,
+        };
+    }
+    out
+}
+
+/// Volume (ml) and lowest body-frame Z (mm) of one lung.
+#[derive(Debug, Clone, Copy)]
+struct LungStats {
+    volume_ml: f64,
+    lowest_mm: f64,
+}
+
+fn lung_stats(volume: &LabelVolume, pick: impl Fn(u16) -> bool) -> LungStats {
+    let [nx, ny, _] = volume.dims;
+    let mut count = 0usize;
+    let mut lowest = f64::INFINITY;
+    for (idx, &l) in volume.labels.iter().enumerate() {
+        if l != 0 && pick(l) {
+            count += 1;
+            let ijk = DVec3::new(
+                (idx % nx) as f64,
+                ((idx / nx) % ny) as f64,
+                (idx / (nx * ny)) as f64,
+            );
+            lowest = lowest.min(volume.to_body.apply(ijk).z);
+        }
+    }
+    LungStats {
+        volume_ml: count as f64 * volume.voxel_ml(),
+        lowest_mm: lowest,
+    }
+}
+
+fn part_stats(g: &Grid, to_body: &VoxelToBody, voxel_ml: f64) -> LungStats {
+    let [nx, ny, _] = g.dims;
+    let mut count = 0usize;
+    let mut lowest = f64::INFINITY;
+    for (idx, &on) in g.on.iter().enumerate() {
+        if on {
+            count += 1;
+            let ijk = DVec3::new(
+                (idx % nx) as f64,
+                ((idx / nx) % ny) as f64,
+                (idx / (nx * ny)) as f64,
+            );
+            lowest = lowest.min(to_body.apply(ijk).z);
+        }
+    }
+    LungStats {
+        volume_ml: count as f64 * voxel_ml,
+        lowest_mm: lowest,
+    }
+}
+
+/// The selected voxels on a crop padded by `margin_mm` (which may reach outside the image: outside
+/// is background), and the crop's voxel → body transform.
+fn crop(
+    volume: &LabelVolume,
+    pick: impl Fn(u16) -> bool,
+    margin_mm: f64,
+) -> Option<(Grid, VoxelToBody)> {
+    let [nx, ny, nz] = volume.dims;
+    let mut lo = [usize::MAX; 3];
+    let mut hi = [0usize; 3];
+    let mut any = false;
+    for k in 0..nz {
+        for j in 0..ny {
+            for i in 0..nx {
+                let l = volume.labels[volume.index(i, j, k)];
+                if l != 0 && pick(l) {
+                    any = true;
+                    for (a, v) in [i, j, k].into_iter().enumerate() {
+                        lo[a] = lo[a].min(v);
+                        hi[a] = hi[a].max(v);
+                    }
+                }
+            }
+        }
+    }
+    if !any {
+        return None;
+    }
+    let spacing = volume.to_body.spacing();
+    let pad: [isize; 3] = [0, 1, 2].map(|a| (margin_mm / spacing[a]).ceil() as isize + 2);
+    let start: [isize; 3] = [0, 1, 2].map(|a| lo[a] as isize - pad[a]);
+    let dims: [usize; 3] = [0, 1, 2].map(|a| hi[a] - lo[a] + 1 + 2 * pad[a] as usize);
+    let mut grid = Grid::new(dims, spacing);
+    for k in lo[2]..=hi[2] {
+        for j in lo[1]..=hi[1] {
+            for i in lo[0]..=hi[0] {
+                let l = volume.labels[volume.index(i, j, k)];
+                if l != 0 && pick(l) {
+                    let g = grid.at(
+                        (i as isize - start[0]) as usize,
+                        (j as isize - start[1]) as usize,
+                        (k as isize - start[2]) as usize,
+                    );
+                    grid.on[g] = true;
+                }
+            }
+        }
+    }
+    let to_body = VoxelToBody {
+        linear: volume.to_body.linear,
+        origin: volume.to_body.apply(DVec3::new(
+            start[0] as f64,
+            start[1] as f64,
+            start[2] as f64,
+        )),
+    };
+    Some((grid, to_body))
+}
+
+/// Area of the voxel faces between inside and outside, mm².
+fn staircase_area(g: &Grid) -> f64 {
+    let [nx, ny, nz] = g.dims;
+    let s = g.spacing;
+    let face = [s[1] * s[2], s[0] * s[2], s[0] * s[1]];
+    let mut area = 0.0;
+    for k in 0..nz {
+        for j in 0..ny {
+            for i in 0..nx {
+                let on = g.on[g.at(i, j, k)];
+                if i + 1 < nx && on != g.on[g.at(i + 1, j, k)] {
+                    area += face[0];
+                }
+                if j + 1 < ny && on != g.on[g.at(i, j + 1, k)] {
+                    area += face[1];
+                }
+                if k + 1 < nz && on != g.on[g.at(i, j, k + 1)] {
+                    area += face[2];
+                }
+            }
+        }
+    }
+    area
+}
+
+/// Distance from each vertex to the nearest voxel face between inside and outside of `g` (the
+/// staircase boundary), searched within 4 voxels, in mm (voxel axes taken as orthogonal).
+fn distances(mesh: &TriMesh, g: &Grid, to_body: &VoxelToBody) -> Distances {
+    let inverse = to_body.linear.inverse();
+    let s = g.spacing;
+    let [nx, ny, nz] = g.dims;
+    let on = |i: isize, j: isize, k: isize| {
+        i >= 0
+            && j >= 0
+            && k >= 0
+            && (i as usize) < nx
+            && (j as usize) < ny
+            && (k as usize) < nz
+            && g.on[g.at(i as usize, j as usize, k as usize)]
+    };
+    let mut d: Vec<f64> = mesh
+        .positions
+        .iter()
+        .map(|q| {
+            let u = inverse * (DVec3::from(q.map(|v| v as f64)) - to_body.origin);
+            let c = u.round();
+            let (ci, cj, ck) = (c.x as isize, c.y as isize, c.z as isize);
+            let mut best = f64::INFINITY;
+            for r in [2isize, 4] {
+                for k in ck - r..=ck + r {
+                    for j in cj - r..=cj + r {
+                        for i in ci - r..=ci + r {
+                            let here = on(i, j, k);
+                            // Faces towards +x, +y, +z of voxel (i, j, k).
+                            for axis in 0..3 {
+                                let (a, b, c2) = match axis {
+                                    0 => (i + 1, j, k),
+                                    1 => (i, j + 1, k),
+                                    _ => (i, j, k + 1),
+                                };
+                                if here == on(a, b, c2) {
+                                    continue;
+                                }
+                                // The face: centre at the voxel's centre + half a step along axis.
+                                let mut centre = DVec3::new(i as f64, j as f64, k as f64);
+                                centre[axis] += 0.5;
+                                let delta = u - centre;
+                                let mut dist2 = 0.0;
+                                for e in 0..3 {
+                                    let along = if e == axis {
+                                        delta[e].abs()
+                                    } else {
+                                        (delta[e].abs() - 0.5).max(0.0)
+                                    };
+                                    dist2 += (along * s[e]).powi(2);
+                                }
+                                best = best.min(dist2);
+                            }
+                        }
+                    }
+                }
+                if best.is_finite() {
+                    break;
+                }
+            }
+            best.sqrt()
+        })
+        .collect();
+    let n = d.len().max(1) as f64;
+    let mean = d.iter().filter(|v| v.is_finite()).sum::<f64>() / n;
+    d.sort_by(|a, b| a.total_cmp(b));
+    let p95 = d
+        .get(((d.len() as f64 * 0.95) as usize).min(d.len().saturating_sub(1)))
+        .copied()
+        .unwrap_or(0.0);
+    let max = d.last().copied().unwrap_or(0.0);
+    let voxel = (s[0] * s[1] * s[2]).cbrt();
+    Distances {
+        mean_mm: mean,
+        p95_mm: p95,
+        max_mm: max,
+        mean_voxels: mean / voxel,
+    }
+}
+
+/// Each vertex's lobe: the lobe label of the nearest voxel holding one of `codes` (value, lobe
+/// code), searched within 6 voxels; a vertex with none that near takes the fissure planes' lobe.
+fn lobes_from_labels(
+    mesh: &TriMesh,
+    volume: &LabelVolume,
+    codes: &[(u16, u8)],
+    side: Side,
+) -> Vec<u8> {
+    let planes = lobes::classify(side, mesh);
+    let inverse = volume.to_body.linear.inverse();
+    let s = volume.to_body.spacing();
+    let [nx, ny, nz] = volume.dims;
+    let code_of = |l: u16| codes.iter().find(|&&(v, _)| v == l).map(|&(_, c)| c);
+    mesh.positions
+        .iter()
+        .enumerate()
+        .map(|(vi, q)| {
+            let u = inverse * (DVec3::from(q.map(|v| v as f64)) - volume.to_body.origin);
+            let c = u.round();
+            let mut best = (f64::INFINITY, 0u8);
+            for r in [2isize, 4, 6] {
+                for k in c.z as isize - r..=c.z as isize + r {
+                    for j in c.y as isize - r..=c.y as isize + r {
+                        for i in c.x as isize - r..=c.x as isize + r {
+                            if i < 0
+                                || j < 0
+                                || k < 0
+                                || i as usize >= nx
+                                || j as usize >= ny
+                                || k as usize >= nz
+                            {
+                                continue;
+                            }
+                            let Some(code) = code_of(
+                                volume.labels[volume.index(i as usize, j as usize, k as usize)],
+                            ) else {
+                                continue;
+                            };
+                            let d2 = ((i as f64 - u.x) * s[0]).powi(2)
+                                + ((j as f64 - u.y) * s[1]).powi(2)
+                                + ((k as f64 - u.z) * s[2]).powi(2);
+                            if d2 < best.0 {
+                                best = (d2, code);
+                            }
+                        }
+                    }
+                }
+                if best.0.is_finite() {
+                    break;
+                }
+            }
+            if best.1 == 0 {
+                planes[vi]
+            } else {
+                best.1
+            }
+        })
+        .collect()
+}
+
+/// The lobes a code list holds, for the report.
+pub fn lobe_name(code: u8) -> &'static str {
+    Lobe::from_code(code).unwrap_or(Lobe::Unknown).name()
+}
