@@ -65,7 +65,10 @@ fn block_lines(text: &str) -> Vec<String> {
 /// As `block_lines`, with `code spans` emptied too, so a `[--flag](…)`-looking command is not a
 /// link.
 fn prose_lines(text: &str) -> Vec<String> {
-    block_lines(text).iter().map(|l| strip_code_spans(l)).collect()
+    block_lines(text)
+        .iter()
+        .map(|l| strip_code_spans(l))
+        .collect()
 }
 
 fn strip_code_spans(line: &str) -> String {
@@ -169,7 +172,11 @@ fn normalize(path: &Path) -> PathBuf {
 /// Every broken link in `file`, each naming the file, line and target.
 fn problems(root: &Path, file: &Path) -> Vec<String> {
     let text = std::fs::read_to_string(file).unwrap_or_else(|e| panic!("{}: {e}", file.display()));
-    let shown = file.strip_prefix(root).unwrap_or(file).display().to_string();
+    let shown = file
+        .strip_prefix(root)
+        .unwrap_or(file)
+        .display()
+        .to_string();
     let mut out = Vec::new();
     for (line, target) in links(&text) {
         let external = ["http://", "https://", "mailto:", "ftp://"]
@@ -185,7 +192,9 @@ fn problems(root: &Path, file: &Path) -> Vec<String> {
         let resolved = if path_part.is_empty() {
             file.to_path_buf()
         } else if path_part.starts_with('/') {
-            out.push(format!("{shown}:{line}: `{target}` is absolute; use a relative path"));
+            out.push(format!(
+                "{shown}:{line}: `{target}` is absolute; use a relative path"
+            ));
             continue;
         } else {
             normalize(&file.parent().expect("a file's folder").join(path_part))
@@ -224,7 +233,12 @@ fn every_relative_link_in_the_readme_changelog_and_docs_resolves() {
         all.extend(problems(&root, file));
     }
     assert!(checked > 0, "no links found: the parser is broken");
-    assert!(all.is_empty(), "{} broken link(s):\n{}", all.len(), all.join("\n"));
+    assert!(
+        all.is_empty(),
+        "{} broken link(s):\n{}",
+        all.len(),
+        all.join("\n")
+    );
 }
 
 #[test]
@@ -237,5 +251,8 @@ fn the_checker_sees_links_anchors_and_code() {
     let s = slugs(text);
     assert!(s.contains("a-title-code-seed-83"), "{s:?}");
     assert!(s.contains("a-title-code-seed-83-1"), "{s:?}");
-    assert_eq!(normalize(Path::new("docs/../README.md")), PathBuf::from("README.md"));
+    assert_eq!(
+        normalize(Path::new("docs/../README.md")),
+        PathBuf::from("README.md")
+    );
 }
