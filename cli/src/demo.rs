@@ -128,7 +128,7 @@ pub struct DemoArgs {
     pub color: Option<lung_model::scene::ColorMode>,
     /// Samples per pixel, 4 (multisample anti-aliasing) or 1 (off); overrides the scene's
     /// `[render] msaa`. Default: 4 on a GPU, 1 on a software rasterizer (lavapipe, where 4× costs
-    /// 2.3–2.6× the frame: the README's render_looks figures).
+    /// 2.3–2.6× the frame: docs/LOOKS.md's render_looks figures).
     #[arg(long, value_name = "N")]
     pub msaa: Option<u32>,
     /// Draw level of detail (overrides the scene's `[render] lod`): "auto" (fewer triangles over

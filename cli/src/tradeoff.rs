@@ -42,7 +42,7 @@ pub enum GpuUse {
 pub struct TradeoffArgs {
     /// Output folder: writes tradeoff.md, tradeoff.csv, tradeoff.png and tradeoff.svg there.
     /// Default: a new folder out/tradeoff-N (never the committed docs; `--out docs` regenerates
-    /// docs/tradeoff.*, see the README).
+    /// docs/tradeoff.*, see docs/PHYSICS.md).
     #[arg(long, value_name = "DIR")]
     pub out: Option<PathBuf>,
     /// Lung sizes (vertices of the generated left lung), comma-separated.

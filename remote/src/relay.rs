@@ -18,7 +18,7 @@
 //! Both estimators fit the rate ([`crate::clock`]) and extrapolate their offsets to the moment
 //! they are used, the relay's answers carrying its offset of that moment; what is left is the
 //! fitted rate's error × ≈ 5 s per leg (its standard error is at most 5 ppm when applied: ≤ 25
-//! µs a leg; measured with an emulated skew, `lungdyn remote harness --skew-ppm`, README).
+//! µs a leg; measured with an emulated skew, `lungdyn remote harness --skew-ppm`, docs/REMOTE.md).
 //!
 //! Why not Zenoh's timestamps: a router stamps a sample with its hybrid logical clock on the way
 //! through, which gives every site the same *order*, but a single stamp of a one-way trip is

@@ -4,7 +4,7 @@
 //! [`HmdPredictor`] feeds each new HMD sample (with its capture time) to a constant-velocity
 //! predictor (`tracker_pose::predict::ConstantVelocity`: linear and angular velocity from the last two
 //! samples) and gives the pose at `draw time + look-ahead`. Measured on simulated bedside head motion
-//! (`lungdyn tracker predict`, README): at 16 ms the mean error falls from 2.25 mm / 0.37° (newest
+//! (`lungdyn tracker predict`, docs/TRACKERS.md): at 16 ms the mean error falls from 2.25 mm / 0.37° (newest
 //! sample) to 0.29 mm / 0.09°, at 33 ms from 4.59 mm / 0.75° to 0.65 mm / 0.20°; the α-β filters
 //! measured worse on that motion. Guards: no extrapolation from a sample older than
 //! [`MAX_SAMPLE_AGE_NS`] or across a tracking gap (the newest pose is drawn instead), and a

@@ -2,7 +2,7 @@
 //! engine frames bit for bit (in process, and through `lungdyn tracker listen` as processes); the
 //! bridge process publishes what an OpenIGTLink sender sends; `lungdyn demo --tracker` drives the
 //! engine and renderer from a device source; `lungdyn register`, `tracker simulate`, `tracker
-//! predict` and `hmd check` do what the README says, and refuse bad input with one clear message.
+//! predict` and `hmd check` do what docs/TRACKERS.md says, and refuse bad input with one clear message.
 
 use std::io::Write;
 use std::net::TcpStream;

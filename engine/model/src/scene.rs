@@ -615,7 +615,7 @@ pub struct RenderScene {
     pub color: ColorMode,
     /// Samples per pixel: 4 (multisampled, resolved before read-back) or 1 (off). Unset: 4 on a
     /// GPU, 1 on a software rasterizer (lavapipe shades every sample on the CPU: 4× costs it
-    /// 2.3–2.6× the frame, README); the renderer's start line says which it drew with.
+    /// 2.3–2.6× the frame, docs/LOOKS.md); the renderer's start line says which it drew with.
     #[serde(skip_serializing_if = "Option::is_none")]
     pub msaa: Option<u32>,
     /// Draw level of detail: "auto" (fewer triangles when the lungs cover few pixels), "off" or a

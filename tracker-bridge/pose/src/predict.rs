@@ -13,7 +13,7 @@
 //! [`evaluate`] replays a recorded sequence: after each sample, predict the pose `lookahead` later
 //! and compare with the recorded pose at that time (interpolated between the two samples around
 //! it: linear in position, slerp in rotation), giving translation (mm) and rotation (degrees) errors.
-//! Which predictor to keep is decided by that measurement (see the README's figures).
+//! Which predictor to keep is decided by that measurement (see docs/TRACKERS.md's figures).
 
 use nalgebra::{Quaternion, UnitQuaternion, Vector3};
 
