@@ -40,6 +40,10 @@ enum Command {
     /// mesh that holds 60 Hz. Writes latency.json, latency.md, latency.png/.svg and the trace
     /// latency.trace.json (unless --trace names another file) into --out.
     Latency(lungdyn::latency::LatencyArgs),
+    /// A patient's lungs from CT lung masks in one command: both surfaces, both kernels (keeping
+    /// the masks' lobes), PV constants with FRC from the exhale masks and a scene to run with
+    /// `lungdyn demo --scene OUT/scene.toml`.
+    Patient(lungdyn::patient_cmd::PatientArgs),
     /// Lung surface meshes.
     #[command(subcommand)]
     Mesh(MeshCommand),
@@ -187,6 +191,7 @@ impl Command {
         matches!(
             self,
             Command::Mesh(_)
+                | Command::Patient(_)
                 | Command::Pv(_)
                 | Command::Bake(_)
                 | Command::FitMotion(_)
@@ -262,6 +267,14 @@ fn main() -> std::process::ExitCode {
                     "wrote {}: {} lung, {} vertices, {} triangles, {:.1} ml, {:.0} x {:.0} x {:.0} mm (closed 2-manifold)",
                     m.path, m.lung, m.vertices, m.triangles, m.volume_ml, m.size_mm[0], m.size_mm[1], m.size_mm[2]
                 );
+            }
+            Ok(())
+        }),
+        Command::Patient(args) => lungdyn::patient_cmd::run(&args).and_then(|s| {
+            if args.json {
+                println!("{}", serde_json::to_string(&s)?);
+            } else {
+                print!("{}", lungdyn::patient_cmd::text(&s));
             }
             Ok(())
         }),

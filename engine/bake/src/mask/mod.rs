@@ -706,37 +706,56 @@ fn extract(
     // level set, and each puncture is a false tunnel. Fewer vertices than that grid gives are had
     // by collapsing short edges (a decimation) instead of by a coarser grid.
     let h_grid_max = (2.0 * sigma).max(spacing.iter().cloned().fold(0.0, f64::max));
-    let mut mesh = TriMesh {
-        positions: Vec::new(),
-        triangles: Vec::new(),
+    // The spacing `h` is searched for the vertex count asked: the count falls as h grows (about
+    // as 1/h² on the grid, faster in the decimation, whose collapse length joins the grid's at
+    // h_grid_max), so a few steps by √ratio, then halving the bracket in log h; the closest is kept.
+    let mut fine: Option<TriMesh> = None;
+    let mut best: Option<(f64, TriMesh, f64)> = None;
+    let (mut below, mut above): (Option<f64>, Option<f64>) = (None, None); // h with too many / too few
+    for _round in 0..8 {
+        let mut candidate = if h <= h_grid_max {
+            surface::marching_tetrahedra(&field, iso, spacing.map(|s| h / s))
+        } else {
+            fine.get_or_insert_with(|| {
+                surface::marching_tetrahedra(&field, iso, spacing.map(|s| h_grid_max / s))
+            })
+            .clone()
+        };
+        let length = if h <= h_grid_max {
+            0.35 * h
+        } else {
+            0.35 * h * (h / h_grid_max).sqrt()
+        };
+        surface::collapse_short_edges(&mut candidate, length);
+        let n = candidate.positions.len();
+        if n == 0 {
+            break;
+        }
+        let ratio = n as f64 / vertices as f64;
+        let miss = ratio.ln().abs();
+        if best.as_ref().is_none_or(|(m, _, _)| miss < *m) {
+            best = Some((miss, candidate, h));
+        }
+        if (0.95..=1.05).contains(&ratio) {
+            break;
+        }
+        if ratio > 1.0 {
+            below = Some(below.map_or(h, |b: f64| b.max(h)));
+        } else {
+            above = Some(above.map_or(h, |a: f64| a.min(h)));
+        }
+        h = match (below, above) {
+            (Some(lo), Some(hi)) => (lo * hi).sqrt(),
+            _ => h * ratio.sqrt().clamp(0.5, 2.0),
+        };
+    }
+    let Some((_, mut mesh, h_used)) = best else {
+        return Err(MaskError::Surface {
+            path: PathBuf::new(),
+            message: "the mask gives no surface at the level of its volume".into(),
+        });
     };
-    if h <= h_grid_max {
-        for _round in 0..4 {
-            let step = spacing.map(|s| h / s);
-            mesh = surface::marching_tetrahedra(&field, iso, step);
-            surface::collapse_short_edges(&mut mesh, 0.35 * h);
-            let n = mesh.positions.len();
-            let ratio = n as f64 / vertices as f64;
-            if (0.93..=1.07).contains(&ratio) || n == 0 || h * ratio.sqrt() > h_grid_max {
-                break;
-            }
-            h *= ratio.sqrt();
-        }
-    }
-    if h > h_grid_max || mesh.positions.len() as f64 > 1.07 * vertices as f64 {
-        let fine = surface::marching_tetrahedra(&field, iso, spacing.map(|s| h_grid_max / s));
-        let mut length = 0.6 * h;
-        for _round in 0..5 {
-            mesh = fine.clone();
-            surface::collapse_short_edges(&mut mesh, length.max(0.35 * h_grid_max));
-            let ratio = mesh.positions.len() as f64 / vertices as f64;
-            if (0.93..=1.07).contains(&ratio) {
-                break;
-            }
-            length *= ratio.sqrt();
-        }
-        h = length;
-    }
+    let h = h_used;
     let internal = |e: String| MaskError::Surface {
         path: PathBuf::new(),
         message: format!(

@@ -1,0 +1,430 @@
+//! `lungdyn patient`: from a patient's CT lung masks to a scene that breathes with this patient's
+//! lungs — both surfaces (`mesh from-mask`), both kernels (`bake`, keeping the lobes of the masks),
+//! PV constants whose FRC is the exhale masks' lung volume, and a scene naming them, in one folder.
+
+use std::path::{Path, PathBuf};
+
+use anyhow::Context;
+use glam::DVec3;
+use lung_bake::mask::{self, labels::Convention, volume::Axes, MaskOptions};
+use lung_model::mesh::{io, Side, TriMesh};
+use serde::Serialize;
+
+/// Options of `lungdyn patient`.
+#[derive(Debug, Clone, clap::Args)]
+#[command(
+    after_help = "Example (a COPDgene breath-hold pair; its headers need --axes LPS, which the
+error says when it is left out):
+  lungdyn patient --exhale case_05_exp_mask.nii.gz --inhale case_05_insp_mask.nii.gz \\
+      --axes LPS --out patient05
+  lungdyn demo --scene patient05/scene.toml
+
+OUT receives right.ply, left.ply (the surfaces, with their lobes), right.kernel, left.kernel,
+pv.toml (the PV constants with FRC = the exhale lungs' volume), scene.toml and patient.json (what
+was made and measured); with --inhale also right_inhale.ply and left_inhale.ply. The lungs are
+moved by one translation, the same for both and said in scene.toml, so they sit where the
+renderer draws the built-in lungs; their shape, size and relative placement are the patient's."
+)]
+pub struct PatientArgs {
+    /// The exhale (or only) lung label image(s): NIfTI, NRRD or MetaImage, as `mesh from-mask`
+    /// reads them (several files: one structure each, on one grid).
+    #[arg(long, required = true, num_args = 1.., value_name = "MASK")]
+    pub exhale: Vec<PathBuf>,
+    /// The inhale label image(s) of the same patient (a breath-hold pair): meshed too, and their
+    /// volumes reported beside the exhale ones.
+    #[arg(long, num_args = 1.., value_name = "MASK")]
+    pub inhale: Vec<PathBuf>,
+    /// Output folder (created; an existing scene.toml there is kept unless --force).
+    #[arg(long)]
+    pub out: PathBuf,
+    /// The voxel axes' directions of the exhale image(s), replacing the header's (see `mesh
+    /// from-mask --help`); also used for --inhale unless --inhale-axes is given.
+    #[arg(long, value_name = "XYZ")]
+    pub axes: Option<String>,
+    /// The voxel axes of the inhale image(s).
+    #[arg(long, value_name = "XYZ")]
+    pub inhale_axes: Option<String>,
+    /// The label convention (detected when omitted).
+    #[arg(long, value_parser = Convention::ALL.map(|c| c.name()))]
+    pub convention: Option<String>,
+    /// The right lung's label value(s), when the convention does not say.
+    #[arg(long, value_delimiter = ',', value_name = "N[,N...]")]
+    pub right_label: Option<Vec<u16>>,
+    /// The left lung's label value(s), when the convention does not say.
+    #[arg(long, value_delimiter = ',', value_name = "N[,N...]")]
+    pub left_label: Option<Vec<u16>>,
+    /// Vertices per lung, about.
+    #[arg(long, default_value_t = 20_000)]
+    pub vertices: usize,
+    /// Keep the image's own coordinates instead of moving the lungs to where the built-in ones
+    /// are drawn (for a workstation registered to the CT's frame).
+    #[arg(long)]
+    pub keep_origin: bool,
+    /// Replace an existing scene in OUT.
+    #[arg(long)]
+    pub force: bool,
+    /// Input size limit and special files.
+    #[command(flatten)]
+    pub input: crate::input_args::InputArgs,
+    /// Print one JSON object on stdout (also written to OUT/patient.json).
+    #[arg(long)]
+    pub json: bool,
+}
+
+/// One lung of the patient.
+#[derive(Debug, Serialize)]
+pub struct PatientLung {
+    /// Side.
+    pub lung: &'static str,
+    /// Surface file.
+    pub mesh: String,
+    /// Kernel file.
+    pub kernel: String,
+    /// Vertices.
+    pub vertices: usize,
+    /// The surface's volume, ml.
+    pub volume_ml: f64,
+    /// The mask's voxel volume as labelled, ml.
+    pub mask_volume_ml: f64,
+    /// Tunnels in the mask, and the closing that closed them, mm.
+    pub genus_before: i64,
+    /// Closing radius, mm.
+    pub closing_mm: f64,
+    /// Mean distance from the surface's vertices to the mask's boundary, mm.
+    pub distance_to_mask_mm: f64,
+    /// "labels" or "planes".
+    pub lobes_from: &'static str,
+    /// How this side was told from the other.
+    pub sides_from: &'static str,
+    /// Seconds to make the surface and to bake it.
+    pub seconds: [f64; 2],
+    /// The inhale mask's lung volume, ml (with --inhale).
+    pub inhale_volume_ml: Option<f64>,
+}
+
+/// What `lungdyn patient` made.
+#[derive(Debug, Serialize)]
+pub struct PatientSummary {
+    /// The scene to run.
+    pub scene: String,
+    /// The exhale masks.
+    pub exhale: Vec<String>,
+    /// The inhale masks.
+    pub inhale: Vec<String>,
+    /// Right, then left.
+    pub lungs: Vec<PatientLung>,
+    /// FRC written to pv.toml: the exhale lungs' volume, ml.
+    pub frc_ml: f64,
+    /// The inhale lungs' volume, ml (with --inhale).
+    pub inhale_ml: Option<f64>,
+    /// The translation applied to both lungs (image frame → drawn position), mm.
+    pub translation_mm: [f64; 3],
+    /// Warnings from reading the masks.
+    pub warnings: Vec<String>,
+    /// The command that runs it.
+    pub run: String,
+}
+
+fn axes(s: &Option<String>) -> anyhow::Result<Option<Axes>> {
+    s.as_deref()
+        .map(str::parse::<Axes>)
+        .transpose()
+        .map_err(|e| anyhow::anyhow!("--axes: {e}"))
+}
+
+fn mask_options(args: &PatientArgs, side: Side, axes: Option<Axes>) -> anyhow::Result<MaskOptions> {
+    let mut o = MaskOptions::new(side);
+    o.vertices = args.vertices;
+    o.axes = axes;
+    o.limits = args.input.limits(mask::read::MASK_LIMITS);
+    o.convention = args
+        .convention
+        .as_deref()
+        .map(str::parse)
+        .transpose()
+        .map_err(anyhow::Error::msg)?;
+    o.labels = match side {
+        Side::Right => args.right_label.clone(),
+        Side::Left => args.left_label.clone(),
+    };
+    Ok(o)
+}
+
+fn translate(mesh: &mut TriMesh, t: DVec3) {
+    for p in &mut mesh.positions {
+        *p = [
+            (p[0] as f64 + t.x) as f32,
+            (p[1] as f64 + t.y) as f32,
+            (p[2] as f64 + t.z) as f32,
+        ];
+    }
+}
+
+/// The centre of the joint bounding box of `meshes`.
+fn joint_centre<'a>(meshes: impl IntoIterator<Item = &'a TriMesh>) -> DVec3 {
+    let (mut lo, mut hi) = (DVec3::splat(f64::INFINITY), DVec3::splat(f64::NEG_INFINITY));
+    for m in meshes {
+        let b = m.aabb();
+        lo = lo.min(DVec3::from(b.min.map(|v| v as f64)));
+        hi = hi.max(DVec3::from(b.max.map(|v| v as f64)));
+    }
+    (lo + hi) * 0.5
+}
+
+/// Make the surfaces, kernels, PV constants and scene.
+pub fn run(args: &PatientArgs) -> anyhow::Result<PatientSummary> {
+    let scene_path = args.out.join("scene.toml");
+    if scene_path.exists() && !args.force {
+        anyhow::bail!(
+            "{} exists: choose another --out, or pass --force to replace it",
+            scene_path.display()
+        );
+    }
+    if !(1_000..=400_000).contains(&args.vertices) {
+        anyhow::bail!(
+            "--vertices {}: give 1,000 to 400,000 per lung",
+            args.vertices
+        );
+    }
+    std::fs::create_dir_all(&args.out)
+        .with_context(|| format!("cannot create {}", args.out.display()))?;
+    let exhale_axes = axes(&args.axes)?;
+    let inhale_axes = axes(&args.inhale_axes)?.or(exhale_axes);
+    let mut warnings = Vec::new();
+    let mut made = Vec::new();
+    for side in [Side::Right, Side::Left] {
+        eprintln!(
+            "lungdyn: the {} lung's surface from {} …",
+            side.name(),
+            args.exhale[0].display()
+        );
+        let t = std::time::Instant::now();
+        let m = mask::mesh_from_mask(&args.exhale, &mask_options(args, side, exhale_axes)?)?;
+        warnings.extend(
+            m.warnings
+                .iter()
+                .map(|w| format!("exhale {}: {w}", side.name())),
+        );
+        made.push((side, m, t.elapsed().as_secs_f64()));
+    }
+    let mut inhale_volumes = Vec::new();
+    let mut inhale_meshes = Vec::new();
+    if !args.inhale.is_empty() {
+        for side in [Side::Right, Side::Left] {
+            eprintln!(
+                "lungdyn: the {} lung's inhale surface from {} …",
+                side.name(),
+                args.inhale[0].display()
+            );
+            let m = mask::mesh_from_mask(&args.inhale, &mask_options(args, side, inhale_axes)?)?;
+            warnings.extend(
+                m.warnings
+                    .iter()
+                    .map(|w| format!("inhale {}: {w}", side.name())),
+            );
+            inhale_volumes.push(m.mesh.enclosed_volume_ml());
+            inhale_meshes.push((side, m.mesh, m.lobes));
+        }
+    }
+    // One translation for both lungs (and the inhale ones, each pair about its own centre: the
+    // two scans are not registered to each other).
+    let translation = if args.keep_origin {
+        DVec3::ZERO
+    } else {
+        let builtin = [
+            lung_model::mesh::anatomy::lung(Side::Right, 2_000)?,
+            lung_model::mesh::anatomy::lung(Side::Left, 2_000)?,
+        ];
+        joint_centre(&builtin) - joint_centre(made.iter().map(|(_, m, _)| &m.mesh))
+    };
+    for (_, m, _) in &mut made {
+        translate(&mut m.mesh, translation);
+    }
+    if !inhale_meshes.is_empty() && !args.keep_origin {
+        let builtin_centre = joint_centre(&[
+            lung_model::mesh::anatomy::lung(Side::Right, 2_000)?,
+            lung_model::mesh::anatomy::lung(Side::Left, 2_000)?,
+        ]);
+        let t = builtin_centre - joint_centre(inhale_meshes.iter().map(|(_, m, _)| m));
+        for (_, m, _) in &mut inhale_meshes {
+            translate(m, t);
+        }
+    }
+    for (side, mesh, lobes) in &inhale_meshes {
+        io::write_mesh_with_lobes(
+            mesh,
+            lobes,
+            &args.out.join(format!("{}_inhale.ply", side.name())),
+        )?;
+    }
+    let mut lungs = Vec::new();
+    for (k, (side, m, mesh_seconds)) in made.iter().enumerate() {
+        let mesh_path = args.out.join(format!("{}.ply", side.name()));
+        io::write_mesh_with_lobes(&m.mesh, &m.lobes, &mesh_path)?;
+        let kernel_path = args.out.join(format!("{}.kernel", side.name()));
+        eprintln!(
+            "lungdyn: baking the {} lung ({} vertices) into {}",
+            side.name(),
+            m.mesh.positions.len(),
+            kernel_path.display()
+        );
+        let t = std::time::Instant::now();
+        let bar = indicatif::ProgressBar::new(m.mesh.positions.len() as u64);
+        bar.set_style(
+            indicatif::ProgressStyle::with_template("  [{bar:40}] {pos}/{len} rows, eta {eta}")
+                .expect("valid template")
+                .progress_chars("=> "),
+        );
+        let settings = lung_model::kernel::BakeSettings::default_for(*side);
+        let mut kernel = lung_bake::kernel::bake(*side, m.mesh.clone(), &settings, &|rows| {
+            bar.inc(rows as u64)
+        })
+        .with_context(|| format!("baking the {} lung", side.name()))?;
+        bar.finish_and_clear();
+        kernel.lobes = Some(m.lobes.clone());
+        kernel.write(&kernel_path)?;
+        lungs.push(PatientLung {
+            lung: side.name(),
+            mesh: mesh_path.display().to_string(),
+            kernel: kernel_path.display().to_string(),
+            vertices: m.mesh.positions.len(),
+            volume_ml: m.mesh.enclosed_volume_ml(),
+            mask_volume_ml: m.mask_volume_ml,
+            genus_before: m.genus_before,
+            closing_mm: m.closing_mm,
+            distance_to_mask_mm: m.distance_to_mask.mean_mm,
+            lobes_from: m.lobes_from,
+            sides_from: m.sides_from,
+            seconds: [*mesh_seconds, t.elapsed().as_secs_f64()],
+            inhale_volume_ml: inhale_volumes.get(k).copied(),
+        });
+    }
+    // PV constants: the default preset's curve with this patient's FRC.
+    let frc_ml: f64 = lungs.iter().map(|l| l.volume_ml).sum();
+    let preset = lung_model::pv::preset(lung_model::pv::DEFAULT_PRESET)?;
+    let mut boundary = preset.boundary;
+    boundary.frc_ml = frc_ml;
+    boundary.check_plausible().map_err(|e| {
+        anyhow::anyhow!("the exhale lungs' volume ({frc_ml:.0} ml) is not a plausible FRC: {e}")
+    })?;
+    let pv = lung_model::pv::files::PvConstantsFile {
+        format: lung_model::pv::files::CONSTANTS_FORMAT,
+        source: format!(
+            "lungdyn patient: the {} preset's curves, FRC = the exhale masks' lung volume ({})",
+            preset.name,
+            args.exhale
+                .iter()
+                .map(|p| p.display().to_string())
+                .collect::<Vec<_>>()
+                .join(" ")
+        ),
+        boundary,
+        inhale: preset.inhale,
+        exhale: preset.exhale,
+    };
+    pv.save(&args.out.join("pv.toml"))?;
+    let scene_text = format!(
+        "# A patient's lungs, made by `lungdyn patient` from {exhale}{inhale}.\n\
+         # FRC {frc_ml:.0} ml = the exhale lungs' volume (right {r:.0} ml, left {l:.0} ml); the\n\
+         # breath is the {preset} preset's curve with that FRC (pv.toml). Both lungs were moved by\n\
+         # ({tx:.1}, {ty:.1}, {tz:.1}) mm from the image's frame (body frame: +X left, +Y anterior,\n\
+         # +Z superior) so they sit where the built-in lungs are drawn.\n\
+         # Run: lungdyn demo --scene {scene}\n\
+         [pv]\n\
+         constants = \"pv.toml\"\n\n\
+         [lungs.kernels]\n\
+         right = \"right.kernel\"\n\
+         left = \"left.kernel\"\n",
+        exhale = args.exhale.iter().map(|p| p.display().to_string()).collect::<Vec<_>>().join(" "),
+        inhale = if args.inhale.is_empty() {
+            String::new()
+        } else {
+            format!(" (inhale: {})", args.inhale.iter().map(|p| p.display().to_string()).collect::<Vec<_>>().join(" "))
+        },
+        r = lungs[0].volume_ml,
+        l = lungs[1].volume_ml,
+        preset = preset.name,
+        tx = translation.x,
+        ty = translation.y,
+        tz = translation.z,
+        scene = scene_path.display(),
+    );
+    outfile::write_atomically(&scene_path, |w| {
+        use std::io::Write;
+        w.write_all(scene_text.as_bytes())
+    })?;
+    // What the engine and renderer will check at start: the scene and both kernels.
+    let scene = lung_model::scene::Scene::load(&scene_path)?;
+    for side in [Side::Right, Side::Left] {
+        crate::prepare::check_named_kernel(&scene, side).with_context(|| {
+            format!(
+                "the {} lung's kernel in {}",
+                side.name(),
+                scene_path.display()
+            )
+        })?;
+    }
+    let summary = PatientSummary {
+        scene: scene_path.display().to_string(),
+        exhale: args
+            .exhale
+            .iter()
+            .map(|p| p.display().to_string())
+            .collect(),
+        inhale: args
+            .inhale
+            .iter()
+            .map(|p| p.display().to_string())
+            .collect(),
+        lungs,
+        frc_ml,
+        inhale_ml: (!inhale_volumes.is_empty()).then(|| inhale_volumes.iter().sum()),
+        translation_mm: translation.to_array(),
+        warnings,
+        run: format!("lungdyn demo --scene {}", scene_path.display()),
+    };
+    let json = serde_json::to_string_pretty(&summary)?;
+    outfile::write_atomically(&args.out.join("patient.json"), |w| {
+        use std::io::Write;
+        w.write_all(json.as_bytes())
+    })?;
+    Ok(summary)
+}
+
+/// The summary for a person.
+pub fn text(s: &PatientSummary) -> String {
+    let mut out = String::new();
+    for l in &s.lungs {
+        out.push_str(&format!(
+            "{} lung: {} vertices, {:.0} ml (mask {:.0} ml){}, {} tunnel(s) closed at {} mm, {:.2} mm from the mask's boundary, lobes from {}, sides from {}; surface {:.1} s, bake {:.1} s\n",
+            l.lung,
+            l.vertices,
+            l.volume_ml,
+            l.mask_volume_ml,
+            l.inhale_volume_ml.map_or(String::new(), |v| format!(", inhale {v:.0} ml")),
+            l.genus_before,
+            l.closing_mm,
+            l.distance_to_mask_mm,
+            l.lobes_from,
+            l.sides_from,
+            l.seconds[0],
+            l.seconds[1],
+        ));
+    }
+    out.push_str(&format!(
+        "FRC {:.0} ml (the exhale lungs){}; lungs moved by ({:.1}, {:.1}, {:.1}) mm\nwrote {}\nrun it: {}\n",
+        s.frc_ml,
+        s.inhale_ml.map_or(String::new(), |v| format!(", inhale {v:.0} ml (a breath-hold pair: {:.0} ml apart)", v - s.frc_ml)),
+        s.translation_mm[0],
+        s.translation_mm[1],
+        s.translation_mm[2],
+        s.scene,
+        s.run
+    ));
+    out
+}
+
+/// Whether `path` looks like a label image `lungdyn patient` reads.
+pub fn is_mask(path: &Path) -> bool {
+    mask::read::Format::of(path).is_some()
+}

@@ -1,0 +1,698 @@
+//! `lungdyn mesh from-mask` through the real binary: a two-lung label image made here (the built-in
+//! lungs voxelised and written as NIfTI-1 by hand, as `engine/bake/tests/mask.rs` does) becomes a
+//! right lung that `mesh check` accepts and `bake` bakes with the mesh's own lobes; bad inputs are
+//! refused with a non-zero exit, no panic, a message naming the problem and no output written (an
+//! existing file at `--out` left as it was); `--help` names the formats, `--axes` and the body
+//! frame.
+
+use std::path::{Path, PathBuf};
+use std::process::Command;
+use std::sync::OnceLock;
+
+use glam::DVec3;
+use lung_bake::mask::volume::Axes;
+use lung_model::mesh::{anatomy, lobes, Side, TriMesh};
+use lungdyn_tests::bin;
+
+/// The keys `--json` must print.
+const KEYS: [&str; 12] = [
+    "vertices",
+    "volume_ml",
+    "mask_volume_ml",
+    "genus_before",
+    "genus_after",
+    "lobes_from",
+    "distance_to_mask",
+    "frame",
+    "labels_used",
+    "convention",
+    "sides_from",
+    "warnings",
+];
+
+/// Vertices asked of from-mask (small, so bake is quick).
+const VERTICES: &str = "2000";
+
+/// A fresh folder for one test, removed by `Tmp::drop` when the test passed.
+struct Tmp(PathBuf);
+
+impl Tmp {
+    fn new(tag: &str) -> Self {
+        let d =
+            std::env::temp_dir().join(format!("lungdyn-from-mask-{tag}-{}", std::process::id()));
+        std::fs::create_dir_all(&d).unwrap();
+        Tmp(d)
+    }
+    fn path(&self, name: &str) -> PathBuf {
+        self.0.join(name)
+    }
+    fn write(&self, name: &str, bytes: &[u8]) -> PathBuf {
+        let p = self.path(name);
+        std::fs::write(&p, bytes).unwrap();
+        p
+    }
+}
+
+impl Drop for Tmp {
+    fn drop(&mut self) {
+        if !std::thread::panicking() {
+            std::fs::remove_dir_all(&self.0).ok();
+        }
+    }
+}
+
+fn s(p: &Path) -> &str {
+    p.to_str().expect("utf-8 path")
+}
+
+/// One run of the binary.
+struct Run {
+    code: Option<i32>,
+    stdout: String,
+    stderr: String,
+}
+
+fn lungdyn(args: &[&str]) -> Run {
+    let out = Command::new(bin("lungdyn"))
+        .args(args)
+        .output()
+        .expect("run lungdyn");
+    Run {
+        code: out.status.code(),
+        stdout: String::from_utf8_lossy(&out.stdout).into_owned(),
+        stderr: String::from_utf8_lossy(&out.stderr).into_owned(),
+    }
+}
+
+/// `lungdyn mesh from-mask` with `args`, expected to fail: a non-zero exit that is not a panic
+/// (101) nor a signal, no "panicked" on stderr, every one of `words` in stderr, and nothing at
+/// `out` afterwards.
+fn refused(case: &str, args: &[&str], out: &Path, words: &[&str]) -> String {
+    let mut full = vec!["mesh", "from-mask"];
+    full.extend_from_slice(args);
+    let r = lungdyn(&full);
+    assert!(
+        matches!(r.code, Some(c) if c != 0 && c != 101),
+        "{case}: exit {:?} (want non-zero, not 101, not a signal)\nargs {full:?}\nstdout: {}\nstderr: {}",
+        r.code,
+        r.stdout,
+        r.stderr
+    );
+    assert!(
+        !r.stderr.contains("panicked"),
+        "{case}: panicked: {}",
+        r.stderr
+    );
+    for w in words {
+        assert!(
+            r.stderr.contains(w),
+            "{case}: stderr lacks {w:?}:\n{}",
+            r.stderr
+        );
+    }
+    eprintln!("{case}: {}", r.stderr.trim());
+    assert!(
+        !out.exists(),
+        "{case}: {} was written by a failed run",
+        out.display()
+    );
+    r.stderr
+}
+
+// ---- A label volume in the body frame, voxelised from the built-in lungs (copied from
+// ---- engine/bake/tests/mask.rs, trimmed).
+
+#[derive(Clone)]
+struct Body {
+    dims: [usize; 3],
+    spacing: [f64; 3],
+    origin: DVec3,
+    labels: Vec<u16>,
+}
+
+/// Inside test by ray parity along +X for every voxel row.
+fn voxelise(mesh: &TriMesh, body: &mut Body, value: impl Fn(DVec3) -> u16) {
+    let [nx, ny, nz] = body.dims;
+    let p = |i: u32| DVec3::from(mesh.positions[i as usize].map(|v| v as f64));
+    for k in 0..nz {
+        let z = body.origin.z + k as f64 * body.spacing[2];
+        let tris: Vec<[DVec3; 3]> = mesh
+            .triangles
+            .iter()
+            .map(|t| t.map(p))
+            .filter(|c| {
+                let lo = c.iter().map(|v| v.z).fold(f64::INFINITY, f64::min);
+                let hi = c.iter().map(|v| v.z).fold(f64::NEG_INFINITY, f64::max);
+                lo <= z && z < hi
+            })
+            .collect();
+        for j in 0..ny {
+            let y = body.origin.y + j as f64 * body.spacing[1] + 1e-7;
+            let mut xs: Vec<f64> = Vec::new();
+            for c in &tris {
+                let e1 = c[1] - c[0];
+                let e2 = c[2] - c[0];
+                let n = e1.cross(e2);
+                if n.x.abs() < 1e-12 {
+                    continue;
+                }
+                let x = c[0].x - (n.y * (y - c[0].y) + n.z * (z - c[0].z)) / n.x;
+                let q = DVec3::new(x, y, z);
+                let w0 = (c[1] - c[0]).cross(q - c[0]).dot(n);
+                let w1 = (c[2] - c[1]).cross(q - c[1]).dot(n);
+                let w2 = (c[0] - c[2]).cross(q - c[2]).dot(n);
+                if (w0 >= 0.0 && w1 >= 0.0 && w2 >= 0.0) || (w0 <= 0.0 && w1 <= 0.0 && w2 <= 0.0) {
+                    xs.push(x);
+                }
+            }
+            xs.sort_by(|a, b| a.total_cmp(b));
+            for pair in xs.chunks_exact(2) {
+                for i in 0..nx {
+                    let x = body.origin.x + i as f64 * body.spacing[0];
+                    if x >= pair[0] && x < pair[1] {
+                        body.labels[i + nx * (j + ny * k)] = value(DVec3::new(x, y, z));
+                    }
+                }
+            }
+        }
+    }
+}
+
+/// Both built-in lungs at `spacing` on a grid that holds both with a margin.
+fn both_lungs(
+    spacing: [f64; 3],
+    right: impl Fn(DVec3) -> u16,
+    left: impl Fn(DVec3) -> u16,
+) -> Body {
+    let r = anatomy::lung(Side::Right, 4000).unwrap();
+    let l = anatomy::lung(Side::Left, 4000).unwrap();
+    let (mut lo, mut hi) = (DVec3::splat(f64::INFINITY), DVec3::splat(f64::NEG_INFINITY));
+    for m in [&r, &l] {
+        for q in &m.positions {
+            let v = DVec3::from(q.map(|v| v as f64));
+            lo = lo.min(v);
+            hi = hi.max(v);
+        }
+    }
+    let origin = lo - DVec3::splat(10.0);
+    let dims = [0, 1, 2].map(|a| ((hi[a] - lo[a] + 20.0) / spacing[a]).ceil() as usize + 1);
+    let mut body = Body {
+        dims,
+        spacing,
+        origin,
+        labels: vec![0; dims[0] * dims[1] * dims[2]],
+    };
+    voxelise(&r, &mut body, &right);
+    voxelise(&l, &mut body, &left);
+    body
+}
+
+/// The voxel data in file order for voxel axes `axes` (sign changes of L, A, S only), and the
+/// voxel → `world` (RAS or LPS) matrix rows.
+fn in_file_order(body: &Body, axes: Axes, world: Axes) -> (Vec<u16>, [[f64; 4]; 3]) {
+    let [nx, ny, nz] = body.dims;
+    let sign: [f64; 3] = [0, 1, 2].map(|a| if axes.0[a].body()[a] > 0.0 { 1.0 } else { -1.0 });
+    let mut data = vec![0u16; body.labels.len()];
+    for k in 0..nz {
+        for j in 0..ny {
+            for i in 0..nx {
+                let src = [i, j, k];
+                let dst: [usize; 3] = [0, 1, 2].map(|a| {
+                    if sign[a] > 0.0 {
+                        src[a]
+                    } else {
+                        body.dims[a] - 1 - src[a]
+                    }
+                });
+                data[dst[0] + nx * (dst[1] + ny * dst[2])] = body.labels[i + nx * (j + ny * k)];
+            }
+        }
+    }
+    let first = body.origin
+        + DVec3::from([0, 1, 2].map(|a| {
+            if sign[a] > 0.0 {
+                0.0
+            } else {
+                (body.dims[a] - 1) as f64 * body.spacing[a]
+            }
+        }));
+    let to_world = world.to_body().transpose();
+    let mut rows = [[0.0; 4]; 3];
+    for a in 0..3 {
+        let w = to_world * (axes.0[a].body() * body.spacing[a]);
+        for r in 0..3 {
+            rows[r][a] = w[r];
+        }
+    }
+    let o = to_world * first;
+    for r in 0..3 {
+        rows[r][3] = o[r];
+    }
+    (data, rows)
+}
+
+fn put_f32(b: &mut [u8], at: usize, v: f32) {
+    b[at..at + 4].copy_from_slice(&v.to_le_bytes());
+}
+fn put_i16(b: &mut [u8], at: usize, v: i16) {
+    b[at..at + 2].copy_from_slice(&v.to_le_bytes());
+}
+
+/// A NIfTI-1 file (int16 data) with the given sform rows (RAS), or no sform/qform when `None`.
+fn nifti(body: &Body, rows: Option<[[f64; 4]; 3]>, data: &[u16]) -> Vec<u8> {
+    let mut h = vec![0u8; 352];
+    h[0..4].copy_from_slice(&348i32.to_le_bytes());
+    put_i16(&mut h, 40, 3);
+    for a in 0..3 {
+        put_i16(&mut h, 42 + 2 * a, body.dims[a] as i16);
+    }
+    for a in 3..8 {
+        put_i16(&mut h, 42 + 2 * a, 1);
+    }
+    put_i16(&mut h, 70, 4); // int16
+    put_i16(&mut h, 72, 16);
+    put_f32(&mut h, 76, 1.0);
+    for a in 0..3 {
+        put_f32(&mut h, 80 + 4 * a, body.spacing[a] as f32);
+    }
+    put_f32(&mut h, 108, 352.0);
+    put_f32(&mut h, 112, 1.0);
+    h[123] = 2; // mm
+    if let Some(rows) = rows {
+        put_i16(&mut h, 254, 2);
+        for (r, row) in rows.iter().enumerate() {
+            for c in 0..4 {
+                put_f32(&mut h, 280 + 16 * r + 4 * c, row[c] as f32);
+            }
+        }
+    }
+    h[344..348].copy_from_slice(b"n+1\0");
+    for &v in data {
+        h.extend_from_slice(&(v as i16).to_le_bytes());
+    }
+    h
+}
+
+const SPACING: [f64; 3] = [2.5, 2.5, 2.5];
+
+/// Both lungs as one label (1), RAS voxel axes under an RAS sform: the bytes of a good .nii.
+fn single_label_nii() -> &'static [u8] {
+    static BYTES: OnceLock<Vec<u8>> = OnceLock::new();
+    BYTES.get_or_init(|| {
+        let body = both_lungs(SPACING, |_| 1, |_| 1);
+        let (d, rows) = in_file_order(&body, Axes::RAS, Axes::RAS);
+        nifti(&body, Some(rows), &d)
+    })
+}
+
+/// Both lungs with lungmask LTRCLobes labels (1 LUL, 2 LLL, 3 RUL, 4 RML, 5 RLL).
+fn lobes_body() -> &'static Body {
+    static BODY: OnceLock<Body> = OnceLock::new();
+    BODY.get_or_init(|| {
+        let r = anatomy::lung(Side::Right, 4000).unwrap();
+        let l = anatomy::lung(Side::Left, 4000).unwrap();
+        let fr = lobes::Fissures::adult(Side::Right);
+        let fl = lobes::Fissures::adult(Side::Left);
+        let (rb, lb) = (r.aabb(), l.aabb());
+        let code = |side: Side, bb: &lung_model::mesh::Aabb, f: &lobes::Fissures, p: DVec3| match f
+            .lobe_at(side, lobes::normalise(side, bb, p.to_array()))
+        {
+            lobes::Lobe::LeftUpper => 1u16,
+            lobes::Lobe::LeftLower => 2,
+            lobes::Lobe::RightUpper => 3,
+            lobes::Lobe::RightMiddle => 4,
+            _ => 5,
+        };
+        both_lungs(
+            SPACING,
+            |p| code(Side::Right, &rb, &fr, p),
+            |p| code(Side::Left, &lb, &fl, p),
+        )
+    })
+}
+
+// ---- The tests.
+
+#[test]
+fn from_mask_makes_a_right_lung_that_mesh_check_accepts_and_bake_bakes_with_its_lobes() {
+    let tmp = Tmp::new("ok");
+    let nii = tmp.write("lungs.nii", single_label_nii());
+    let ply = tmp.path("right.ply");
+    let r = lungdyn(&[
+        "mesh",
+        "from-mask",
+        s(&nii),
+        "--lung",
+        "right",
+        "--vertices",
+        VERTICES,
+        "--out",
+        s(&ply),
+        "--json",
+    ]);
+    assert_eq!(r.code, Some(0), "from-mask failed: {}", r.stderr);
+    assert!(!r.stderr.contains("panicked"), "{}", r.stderr);
+    // One JSON object on stdout.
+    let v: serde_json::Value = serde_json::from_str(r.stdout.trim())
+        .unwrap_or_else(|e| panic!("stdout is not one JSON object ({e}): {:?}", r.stdout));
+    let obj = v.as_object().expect("a JSON object");
+    for key in KEYS {
+        assert!(obj.contains_key(key), "--json lacks {key:?}: {v}");
+    }
+    let n = v["vertices"].as_u64().unwrap();
+    assert!(
+        (1000..=3000).contains(&n),
+        "{n} vertices for {VERTICES} asked"
+    );
+    assert_eq!(v["genus_after"].as_i64(), Some(0), "{v}");
+    assert_eq!(v["convention"].as_str(), Some("single"), "{v}");
+    assert_eq!(v["sides_from"].as_str(), Some("components"), "{v}");
+    assert_eq!(v["labels_used"], serde_json::json!([1]), "{v}");
+    assert!(v["warnings"].is_array(), "{v}");
+    let vol = v["volume_ml"].as_f64().unwrap();
+    let mask_vol = v["mask_volume_ml"].as_f64().unwrap();
+    assert!(
+        vol > 500.0 && (vol / mask_vol - 1.0).abs() < 0.1,
+        "surface {vol} ml vs mask {mask_vol} ml"
+    );
+    assert!(ply.is_file(), "{} not written", ply.display());
+
+    // mesh check accepts it as a right lung.
+    let c = lungdyn(&[
+        "mesh",
+        "check",
+        "--mesh",
+        s(&ply),
+        "--lung",
+        "right",
+        "--json",
+    ]);
+    assert_eq!(c.code, Some(0), "mesh check refused it: {}", c.stderr);
+    let cv: serde_json::Value = serde_json::from_str(c.stdout.trim())
+        .unwrap_or_else(|e| panic!("mesh check --json ({e}): {:?}", c.stdout));
+    assert_eq!(cv["euler"].as_i64(), Some(2), "{cv}");
+
+    // bake takes the lobes from the PLY.
+    let kernel = tmp.path("right.kernel");
+    let b = lungdyn(&[
+        "bake",
+        "--mesh",
+        s(&ply),
+        "--lung",
+        "right",
+        "--out",
+        s(&kernel),
+        "--json",
+    ]);
+    assert_eq!(b.code, Some(0), "bake failed: {}", b.stderr);
+    let bv: serde_json::Value = serde_json::from_str(b.stdout.trim())
+        .unwrap_or_else(|e| panic!("bake --json ({e}): {:?}", b.stdout));
+    assert_eq!(bv["lobes_from"].as_str(), Some("mesh"), "{bv}");
+    assert!(kernel.is_file());
+}
+
+#[test]
+fn unreadable_or_unknown_files_are_refused_without_output() {
+    let tmp = Tmp::new("files");
+    let good = single_label_nii();
+    let out = tmp.path("unreadable.ply");
+    let run = |case: &str, mask: &Path, words: &[&str]| {
+        refused(
+            case,
+            &[
+                s(mask),
+                "--lung",
+                "right",
+                "--vertices",
+                VERTICES,
+                "--out",
+                s(&out),
+            ],
+            &out,
+            words,
+        );
+    };
+    let missing = tmp.path("no-such-mask.nii");
+    run(
+        "missing file",
+        &missing,
+        &["no-such-mask.nii", "No such file"],
+    );
+    let folder = tmp.path("a-folder.nii");
+    std::fs::create_dir_all(&folder).unwrap();
+    run("a folder", &folder, &["a-folder.nii", "folder"]);
+    let txt = tmp.write("lungs.txt", good);
+    run(
+        "unknown extension",
+        &txt,
+        &["lungs.txt", "unknown label image format"],
+    );
+    let cut = tmp.write("cut.nii", &good[..good.len() / 2]);
+    run("truncated .nii", &cut, &["cut.nii", "cut short"]);
+    // Header alone, cut inside it.
+    let short = tmp.write("short.nii", &good[..200]);
+    run("header cut short", &short, &["short.nii", "NIfTI"]);
+}
+
+#[test]
+fn a_nifti_without_sform_or_qform_is_refused_naming_axes() {
+    let tmp = Tmp::new("plain");
+    let body = both_lungs(SPACING, |_| 1, |_| 1);
+    let (d, _) = in_file_order(&body, Axes::RAS, Axes::RAS);
+    let plain = tmp.write("plain.nii", &nifti(&body, None, &d));
+    let out = tmp.path("plain.ply");
+    refused(
+        "no sform/qform",
+        &[
+            s(&plain),
+            "--lung",
+            "right",
+            "--vertices",
+            VERTICES,
+            "--out",
+            s(&out),
+        ],
+        &out,
+        &["plain.nii", "neither an sform nor a qform", "--axes"],
+    );
+}
+
+#[test]
+fn bad_options_are_refused_naming_the_option() {
+    let tmp = Tmp::new("opts");
+    let nii = tmp.write("opts.nii", single_label_nii());
+    let out = tmp.path("opts.ply");
+    let base = |extra: &[&'static str]| -> Vec<String> {
+        let mut a: Vec<String> = vec![s(&nii).into(), "--lung".into(), "right".into()];
+        a.extend(extra.iter().map(|x| x.to_string()));
+        a
+    };
+    let go = |case: &str, args: Vec<String>, out: &Path, words: &[&str]| {
+        let a: Vec<&str> = args.iter().map(String::as_str).collect();
+        refused(case, &a, out, words);
+    };
+    let with_out = |mut a: Vec<String>, o: &Path| {
+        a.push("--out".into());
+        a.push(s(o).into());
+        a
+    };
+    go(
+        "--axes XYZ",
+        with_out(base(&["--axes", "XYZ", "--vertices", VERTICES]), &out),
+        &out,
+        &["--axes", "XYZ"],
+    );
+    go(
+        "--label absent",
+        with_out(base(&["--label", "7", "--vertices", VERTICES]), &out),
+        &out,
+        &["--label 7", "no voxel holds 7"],
+    );
+    go(
+        "--vertices 5",
+        with_out(base(&["--vertices", "5"]), &out),
+        &out,
+        &["--vertices 5", "100 to 4,000,000"],
+    );
+    let stl = tmp.path("opts.stl");
+    go(
+        "--out .stl",
+        with_out(base(&["--vertices", VERTICES]), &stl),
+        &stl,
+        &["opts.stl", "unknown mesh format"],
+    );
+}
+
+#[test]
+fn a_label_of_the_other_lungs_lobe_is_refused() {
+    let tmp = Tmp::new("lobes");
+    let body = lobes_body();
+    let (d, rows) = in_file_order(body, Axes::RAS, Axes::RAS);
+    let nii = tmp.write("lobes.nii", &nifti(body, Some(rows), &d));
+    let out = tmp.path("lobes-wrong.ply");
+    refused(
+        "--label 1 for the right lung (lungmask-lobes)",
+        &[
+            s(&nii),
+            "--lung",
+            "right",
+            "--label",
+            "1",
+            "--vertices",
+            VERTICES,
+            "--out",
+            s(&out),
+        ],
+        &out,
+        &["--label 1", "left upper", "not a lobe of the right lung"],
+    );
+    // The same with the convention named.
+    refused(
+        "--label 1 --convention lungmask-lobes",
+        &[
+            s(&nii),
+            "--lung",
+            "right",
+            "--convention",
+            "lungmask-lobes",
+            "--label",
+            "1",
+            "--vertices",
+            VERTICES,
+            "--out",
+            s(&out),
+        ],
+        &out,
+        &["--label 1", "left upper", "not a lobe of the right lung"],
+    );
+}
+
+/// LPS-ordered voxels under an identity (RAS) sform: both lungs, lobe labels. Refused with
+/// `--axes LPS`; with `--axes LPS` it is made. An existing file at `--out` survives the refusal.
+#[test]
+fn a_lying_header_is_refused_with_the_axes_that_fix_it_and_does_not_clobber_out() {
+    let tmp = Tmp::new("lying");
+    let body = lobes_body();
+    let (d_lps, _) = in_file_order(body, Axes::LPS, Axes::LPS);
+    let mut lying = [[0.0; 4]; 3];
+    for a in 0..3 {
+        lying[a][a] = SPACING[a];
+    }
+    let nii = tmp.write("lying.nii", &nifti(body, Some(lying), &d_lps));
+    let out = tmp.path("lying.ply");
+    refused(
+        "lying header",
+        &[
+            s(&nii),
+            "--lung",
+            "left",
+            "--vertices",
+            VERTICES,
+            "--out",
+            s(&out),
+        ],
+        &out,
+        &["lying.nii", "--axes LPS"],
+    );
+
+    // A sentinel at --out is left as it was by the same refusal.
+    const SENTINEL: &[u8] = b"lungdyn from-mask test: this file must not change\n";
+    let sentinel = tmp.path("sentinel.ply");
+    std::fs::write(&sentinel, SENTINEL).unwrap();
+    let r = lungdyn(&[
+        "mesh",
+        "from-mask",
+        s(&nii),
+        "--lung",
+        "left",
+        "--vertices",
+        VERTICES,
+        "--out",
+        s(&sentinel),
+    ]);
+    assert!(
+        matches!(r.code, Some(c) if c != 0 && c != 101) && !r.stderr.contains("panicked"),
+        "exit {:?}: {}",
+        r.code,
+        r.stderr
+    );
+    assert_eq!(
+        std::fs::read(&sentinel).unwrap(),
+        SENTINEL,
+        "a failed from-mask changed the file at --out"
+    );
+    // And by an early refusal (a label absent).
+    let r = lungdyn(&[
+        "mesh",
+        "from-mask",
+        s(&nii),
+        "--lung",
+        "left",
+        "--label",
+        "9",
+        "--vertices",
+        VERTICES,
+        "--out",
+        s(&sentinel),
+    ]);
+    assert!(
+        matches!(r.code, Some(c) if c != 0 && c != 101) && r.stderr.contains("--label 9"),
+        "exit {:?}: {}",
+        r.code,
+        r.stderr
+    );
+    assert_eq!(std::fs::read(&sentinel).unwrap(), SENTINEL);
+
+    // One label for both lungs under the same lying header, the right lung asked: refused too,
+    // naming the same axes (the sides told apart by geometry, the half turn seen from the sizes).
+    let single = both_lungs(SPACING, |_| 1, |_| 1);
+    let (d_single, _) = in_file_order(&single, Axes::LPS, Axes::LPS);
+    let nii_single = tmp.write("lying-single.nii", &nifti(&single, Some(lying), &d_single));
+    let out_single = tmp.path("lying-single.ply");
+    refused(
+        "lying header, one label",
+        &[
+            s(&nii_single),
+            "--lung",
+            "right",
+            "--vertices",
+            VERTICES,
+            "--out",
+            s(&out_single),
+        ],
+        &out_single,
+        &["lying-single.nii", "--axes LPS"],
+    );
+
+    // With the axes stated it is made, the override reported.
+    let fixed = tmp.path("lying-fixed.ply");
+    let r = lungdyn(&[
+        "mesh",
+        "from-mask",
+        s(&nii),
+        "--lung",
+        "left",
+        "--axes",
+        "LPS",
+        "--vertices",
+        VERTICES,
+        "--out",
+        s(&fixed),
+        "--json",
+    ]);
+    assert_eq!(r.code, Some(0), "--axes LPS: {}", r.stderr);
+    let v: serde_json::Value = serde_json::from_str(r.stdout.trim()).unwrap();
+    assert_eq!(v["frame"]["axes_override"].as_str(), Some("LPS"), "{v}");
+    assert_eq!(v["lobes_from"].as_str(), Some("labels"), "{v}");
+    assert_eq!(v["labels_used"], serde_json::json!([1, 2]), "{v}");
+    assert!(fixed.is_file());
+}
+
+#[test]
+fn help_names_the_formats_axes_and_the_body_frame() {
+    let r = lungdyn(&["mesh", "from-mask", "--help"]);
+    assert_eq!(r.code, Some(0), "{}", r.stderr);
+    for w in ["NIfTI", "NRRD", "--axes", "body frame"] {
+        assert!(r.stdout.contains(w), "--help lacks {w:?}:\n{}", r.stdout);
+    }
+}
