@@ -187,19 +187,10 @@ pub fn unit(role: Role, s: &UnitSettings) -> Result<String, String> {
     let mut exec = format!("{} {name} --instance {}", systemd_word(&s.bin)?, s.instance);
     match role {
         Role::TrackerBridge => {
-            if s.source
-                .chars()
-                .any(|c| c.is_whitespace() || c.is_control())
-            {
-                return Err(format!(
-                    "the tracker source {:?} holds whitespace",
-                    s.source
-                ));
-            }
-            exec.push_str(&format!(
-                " --source {}",
-                s.source.replace('%', "%%").replace('$', "$$")
-            ));
+            // `--source=VALUE`, one word: a value beginning with '-' stays the source's value.
+            let source = systemd_word(Path::new(&s.source))
+                .map_err(|e| format!("the tracker source: {e}"))?;
+            exec.push_str(&format!(" --source={source}"));
         }
         Role::Engine | Role::Renderer => {
             exec.push_str(&format!(" --scene {}", systemd_word(&s.scene)?));
@@ -208,8 +199,9 @@ pub fn unit(role: Role, s: &UnitSettings) -> Result<String, String> {
     if role == Role::Renderer {
         exec.push_str(" --fullscreen");
         if let Some(d) = &s.display {
+            // `--display=VALUE`: a display named "--help" stays a display name, not an option.
             exec.push_str(&format!(
-                " --display {}",
+                " --display={}",
                 systemd_word(Path::new(&d.to_string()))?
             ));
         }
@@ -547,7 +539,7 @@ mod tests {
         }
         let b = unit(Role::TrackerBridge, &s).unwrap();
         assert!(
-            b.contains("tracker-bridge --instance workstation --source igtl-server --cpu 1\n"),
+            b.contains("tracker-bridge --instance workstation --source=igtl-server --cpu 1\n"),
             "{b}"
         );
         assert!(b.contains("CPUAffinity=1\n"));
@@ -560,7 +552,7 @@ mod tests {
         let mut named = settings(false, vec![1, 2, 3]);
         named.display = Some("DP-1".parse().unwrap());
         let r = unit(Role::Renderer, &named).unwrap();
-        assert!(r.contains("--fullscreen --display DP-1 --cpu 3\n"), "{r}");
+        assert!(r.contains("--fullscreen --display=DP-1 --cpu 3\n"), "{r}");
         named.display = Some("HDMI 1".parse().unwrap());
         assert!(unit(Role::Renderer, &named).is_err());
         // User units: no User=, no CPUAffinity without cores, the renderer after the session.
@@ -594,6 +586,17 @@ mod tests {
         let mut s = settings(true, vec![]);
         s.source = "replay:/a b".into();
         assert!(unit(Role::TrackerBridge, &s).is_err());
+        // A quote or a backslash in the source (systemd-analyze: "unbalanced quoting") is refused
+        // with the reason, not written raw.
+        for bad in ["replay:/a\"b", "replay:/a\\b", "igtl-client:h;rm"] {
+            s.source = bad.into();
+            let e = unit(Role::TrackerBridge, &s).unwrap_err();
+            assert!(e.contains("tracker source"), "{bad:?}: {e}");
+        }
+        // A value that looks like an option stays one word with its option.
+        s.source = "--help".into();
+        let u = unit(Role::TrackerBridge, &s).unwrap();
+        assert!(u.lines().any(|l| l.ends_with(" --source=--help")), "{u}");
         s.scene = "/x y/scene.toml".into();
         assert!(unit(Role::Engine, &s).is_err());
     }

@@ -696,3 +696,82 @@ fn help_names_the_formats_axes_and_the_body_frame() {
         assert!(r.stdout.contains(w), "--help lacks {w:?}:\n{}", r.stdout);
     }
 }
+
+/// `lungdyn patient`: a lobe-labelled two-lung mask becomes a folder whose scene `scene check`
+/// accepts, whose kernels carry the masks' lobes, whose PV constants' FRC is the two surfaces'
+/// volume, and which is not overwritten by a second run without --force.
+#[test]
+fn patient_makes_a_scene_that_scene_check_accepts_with_frc_from_the_masks() {
+    let tmp = Tmp::new("patient");
+    let body = lobes_body();
+    let (d, rows) = in_file_order(body, Axes::RAS, Axes::RAS);
+    let nii = tmp.write("lobes.nii", &nifti(body, Some(rows), &d));
+    let out = tmp.path("patient");
+    let r = lungdyn(&[
+        "patient",
+        "--exhale",
+        s(&nii),
+        "--vertices",
+        "2000",
+        "--out",
+        s(&out),
+        "--json",
+    ]);
+    assert_eq!(r.code, Some(0), "stderr: {}", r.stderr);
+    let j: serde_json::Value = serde_json::from_str(r.stdout.trim()).expect("one JSON object");
+    let lungs = j["lungs"].as_array().expect("lungs");
+    assert_eq!(lungs.len(), 2);
+    let mut total = 0.0;
+    for (l, name) in lungs.iter().zip(["right", "left"]) {
+        assert_eq!(l["lung"], name);
+        assert_eq!(l["lobes_from"], "labels", "{l}");
+        total += l["volume_ml"].as_f64().unwrap();
+    }
+    let frc = j["frc_ml"].as_f64().unwrap();
+    assert!(
+        (frc - total).abs() < 1e-6,
+        "FRC {frc} vs the lungs' {total}"
+    );
+    // The PV constants file says the same FRC.
+    let pv = std::fs::read_to_string(out.join("pv.toml")).unwrap();
+    let written: toml::Value = toml::from_str(&pv).unwrap();
+    let frc_file = written["boundary"]["frc_ml"].as_float().unwrap();
+    assert!(
+        (frc_file - frc).abs() < 1e-6,
+        "pv.toml FRC {frc_file} vs {frc}"
+    );
+    // scene check accepts the scene as written (the kernels are opened and checked there).
+    let scene = out.join("scene.toml");
+    let c = lungdyn(&["scene", "check", s(&scene)]);
+    assert_eq!(c.code, Some(0), "scene check: {}\n{}", c.stdout, c.stderr);
+    // The kernels keep the masks' lobes: the right one holds right lobes only, all three.
+    let kernel = lung_model::kernel::KernelFile::open(&out.join("right.kernel")).unwrap();
+    let codes = kernel
+        .lobes()
+        .unwrap()
+        .expect("the kernel has lobes")
+        .to_vec();
+    for code in [1u8, 2, 3] {
+        assert!(codes.contains(&code), "right lobe {code} missing");
+    }
+    assert!(
+        codes.iter().all(|c| (1..=3).contains(c)),
+        "a right kernel with another lobe"
+    );
+    // A second run does not overwrite it.
+    let again = lungdyn(&[
+        "patient",
+        "--exhale",
+        s(&nii),
+        "--vertices",
+        "2000",
+        "--out",
+        s(&out),
+    ]);
+    assert!(
+        matches!(again.code, Some(c) if c != 0 && c != 101),
+        "{:?}",
+        again.code
+    );
+    assert!(again.stderr.contains("--force"), "{}", again.stderr);
+}
