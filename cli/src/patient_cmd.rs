@@ -171,6 +171,108 @@ fn joint_centre<'a>(meshes: impl IntoIterator<Item = &'a TriMesh>) -> DVec3 {
     (lo + hi) * 0.5
 }
 
+/// Bake one lung (the population motion, the default settings) keeping its lobes; seconds taken.
+fn bake_lung(side: Side, m: &mask::FromMask, kernel_path: &Path) -> anyhow::Result<f64> {
+    eprintln!(
+        "lungdyn: baking the {} lung ({} vertices) into {}",
+        side.name(),
+        m.mesh.positions.len(),
+        kernel_path.display()
+    );
+    let t = std::time::Instant::now();
+    let bar = indicatif::ProgressBar::new(m.mesh.positions.len() as u64);
+    bar.set_style(
+        indicatif::ProgressStyle::with_template("  [{bar:40}] {pos}/{len} rows, eta {eta}")
+            .expect("valid template")
+            .progress_chars("=> "),
+    );
+    let settings = lung_model::kernel::BakeSettings::default_for(side);
+    let mut kernel = lung_bake::kernel::bake(side, m.mesh.clone(), &settings, &|rows| {
+        bar.inc(rows as u64)
+    })
+    .with_context(|| format!("baking the {} lung", side.name()))?;
+    bar.finish_and_clear();
+    kernel.lobes = Some(m.lobes.clone());
+    kernel.write(kernel_path)?;
+    Ok(t.elapsed().as_secs_f64())
+}
+
+/// Write pv.toml (the default preset's curves with this patient's FRC) and the scene naming it
+/// and the kernels; then load the scene and check both kernels as the processes will.
+fn write_scene(
+    args: &PatientArgs,
+    scene_path: &Path,
+    frc_ml: f64,
+    volumes: [f64; 2],
+    translation: DVec3,
+) -> anyhow::Result<()> {
+    // PV constants: the default preset's curve with this patient's FRC.
+    let preset = lung_model::pv::preset(lung_model::pv::DEFAULT_PRESET)?;
+    let mut boundary = preset.boundary;
+    boundary.frc_ml = frc_ml;
+    boundary.check_plausible().map_err(|e| {
+        anyhow::anyhow!("the exhale lungs' volume ({frc_ml:.0} ml) is not a plausible FRC: {e}")
+    })?;
+    let pv = lung_model::pv::files::PvConstantsFile {
+        format: lung_model::pv::files::CONSTANTS_FORMAT,
+        source: format!(
+            "lungdyn patient: the {} preset's curves, FRC = the exhale masks' lung volume ({})",
+            preset.name,
+            args.exhale
+                .iter()
+                .map(|p| p.display().to_string())
+                .collect::<Vec<_>>()
+                .join(" ")
+        ),
+        boundary,
+        inhale: preset.inhale,
+        exhale: preset.exhale,
+    };
+    pv.save(&args.out.join("pv.toml"))?;
+    let scene_text = format!(
+        "# A patient's lungs, made by `lungdyn patient` from {exhale}{inhale}.\n\
+         # FRC {frc_ml:.0} ml = the exhale lungs' volume (right {r:.0} ml, left {l:.0} ml); the\n\
+         # breath is the {preset} preset's curve with that FRC (pv.toml). Both lungs were moved by\n\
+         # ({tx:.1}, {ty:.1}, {tz:.1}) mm from the image's frame (body frame: +X left, +Y anterior,\n\
+         # +Z superior) so they sit where the built-in lungs are drawn.\n\
+         # Run: lungdyn demo --scene {scene}\n\
+         [pv]\n\
+         constants = \"pv.toml\"\n\n\
+         [lungs.kernels]\n\
+         right = \"right.kernel\"\n\
+         left = \"left.kernel\"\n",
+        exhale = args.exhale.iter().map(|p| p.display().to_string()).collect::<Vec<_>>().join(" "),
+        inhale = if args.inhale.is_empty() {
+            String::new()
+        } else {
+            format!(" (inhale: {})", args.inhale.iter().map(|p| p.display().to_string()).collect::<Vec<_>>().join(" "))
+        },
+        r = volumes[0],
+        l = volumes[1],
+        preset = preset.name,
+        tx = translation.x,
+        ty = translation.y,
+        tz = translation.z,
+        scene = scene_path.display(),
+    );
+    outfile::write_atomically(&scene_path, |w| {
+        use std::io::Write;
+        w.write_all(scene_text.as_bytes())
+    })?;
+    // What the engine and renderer will check at start: the scene and both kernels.
+    let scene = lung_model::scene::Scene::load(&scene_path)?;
+    for side in [Side::Right, Side::Left] {
+        crate::prepare::check_named_kernel(&scene, side).with_context(|| {
+            format!(
+                "the {} lung's kernel in {}",
+                side.name(),
+                scene_path.display()
+            )
+        })?;
+    }
+    Ok(())
+}
+
 /// Make the surfaces, kernels, PV constants and scene.
 pub fn run(args: &PatientArgs) -> anyhow::Result<PatientSummary> {
     let scene_path = args.out.join("scene.toml");
@@ -262,27 +364,7 @@ pub fn run(args: &PatientArgs) -> anyhow::Result<PatientSummary> {
         let mesh_path = args.out.join(format!("{}.ply", side.name()));
         io::write_mesh_with_lobes(&m.mesh, &m.lobes, &mesh_path)?;
         let kernel_path = args.out.join(format!("{}.kernel", side.name()));
-        eprintln!(
-            "lungdyn: baking the {} lung ({} vertices) into {}",
-            side.name(),
-            m.mesh.positions.len(),
-            kernel_path.display()
-        );
-        let t = std::time::Instant::now();
-        let bar = indicatif::ProgressBar::new(m.mesh.positions.len() as u64);
-        bar.set_style(
-            indicatif::ProgressStyle::with_template("  [{bar:40}] {pos}/{len} rows, eta {eta}")
-                .expect("valid template")
-                .progress_chars("=> "),
-        );
-        let settings = lung_model::kernel::BakeSettings::default_for(*side);
-        let mut kernel = lung_bake::kernel::bake(*side, m.mesh.clone(), &settings, &|rows| {
-            bar.inc(rows as u64)
-        })
-        .with_context(|| format!("baking the {} lung", side.name()))?;
-        bar.finish_and_clear();
-        kernel.lobes = Some(m.lobes.clone());
-        kernel.write(&kernel_path)?;
+        let bake_seconds = bake_lung(*side, m, &kernel_path)?;
         lungs.push(PatientLung {
             lung: side.name(),
             mesh: mesh_path.display().to_string(),
@@ -295,75 +377,18 @@ pub fn run(args: &PatientArgs) -> anyhow::Result<PatientSummary> {
             distance_to_mask_mm: m.distance_to_mask.mean_mm,
             lobes_from: m.lobes_from,
             sides_from: m.sides_from,
-            seconds: [*mesh_seconds, t.elapsed().as_secs_f64()],
+            seconds: [*mesh_seconds, bake_seconds],
             inhale_volume_ml: inhale_volumes.get(k).copied(),
         });
     }
-    // PV constants: the default preset's curve with this patient's FRC.
     let frc_ml: f64 = lungs.iter().map(|l| l.volume_ml).sum();
-    let preset = lung_model::pv::preset(lung_model::pv::DEFAULT_PRESET)?;
-    let mut boundary = preset.boundary;
-    boundary.frc_ml = frc_ml;
-    boundary.check_plausible().map_err(|e| {
-        anyhow::anyhow!("the exhale lungs' volume ({frc_ml:.0} ml) is not a plausible FRC: {e}")
-    })?;
-    let pv = lung_model::pv::files::PvConstantsFile {
-        format: lung_model::pv::files::CONSTANTS_FORMAT,
-        source: format!(
-            "lungdyn patient: the {} preset's curves, FRC = the exhale masks' lung volume ({})",
-            preset.name,
-            args.exhale
-                .iter()
-                .map(|p| p.display().to_string())
-                .collect::<Vec<_>>()
-                .join(" ")
-        ),
-        boundary,
-        inhale: preset.inhale,
-        exhale: preset.exhale,
-    };
-    pv.save(&args.out.join("pv.toml"))?;
-    let scene_text = format!(
-        "# A patient's lungs, made by `lungdyn patient` from {exhale}{inhale}.\n\
-         # FRC {frc_ml:.0} ml = the exhale lungs' volume (right {r:.0} ml, left {l:.0} ml); the\n\
-         # breath is the {preset} preset's curve with that FRC (pv.toml). Both lungs were moved by\n\
-         # ({tx:.1}, {ty:.1}, {tz:.1}) mm from the image's frame (body frame: +X left, +Y anterior,\n\
-         # +Z superior) so they sit where the built-in lungs are drawn.\n\
-         # Run: lungdyn demo --scene {scene}\n\
-         [pv]\n\
-         constants = \"pv.toml\"\n\n\
-         [lungs.kernels]\n\
-         right = \"right.kernel\"\n\
-         left = \"left.kernel\"\n",
-        exhale = args.exhale.iter().map(|p| p.display().to_string()).collect::<Vec<_>>().join(" "),
-        inhale = if args.inhale.is_empty() {
-            String::new()
-        } else {
-            format!(" (inhale: {})", args.inhale.iter().map(|p| p.display().to_string()).collect::<Vec<_>>().join(" "))
-        },
-        r = lungs[0].volume_ml,
-        l = lungs[1].volume_ml,
-        preset = preset.name,
-        tx = translation.x,
-        ty = translation.y,
-        tz = translation.z,
-        scene = scene_path.display(),
-    );
-    outfile::write_atomically(&scene_path, |w| {
-        use std::io::Write;
-        w.write_all(scene_text.as_bytes())
-    })?;
-    // What the engine and renderer will check at start: the scene and both kernels.
-    let scene = lung_model::scene::Scene::load(&scene_path)?;
-    for side in [Side::Right, Side::Left] {
-        crate::prepare::check_named_kernel(&scene, side).with_context(|| {
-            format!(
-                "the {} lung's kernel in {}",
-                side.name(),
-                scene_path.display()
-            )
-        })?;
-    }
+    write_scene(
+        args,
+        &scene_path,
+        frc_ml,
+        [lungs[0].volume_ml, lungs[1].volume_ml],
+        translation,
+    )?;
     let summary = PatientSummary {
         scene: scene_path.display().to_string(),
         exhale: args

@@ -63,6 +63,9 @@ pub enum MaskError {
     },
 }
 
+/// Largest padded box of one lung, voxels (≈ 5 GiB of work arrays at the most).
+pub const MAX_CROP_VOXELS: usize = 200_000_000;
+
 /// How to make the surface.
 #[derive(Debug, Clone)]
 pub struct MaskOptions {
@@ -239,90 +242,100 @@ pub fn read_masks(paths: &[PathBuf], opts: &MaskOptions) -> Result<LabelVolume, 
     Ok(volume)
 }
 
-/// Make `opts.side`'s lung surface from the label image(s) at `paths`.
-pub fn mesh_from_mask(paths: &[PathBuf], opts: &MaskOptions) -> Result<FromMask, MaskError> {
-    let path = paths.first().cloned().unwrap_or_default();
-    let labels_err = |message: String| MaskError::Labels {
-        path: path.clone(),
-        message,
-    };
-    let surface_err = |message: String| MaskError::Surface {
-        path: path.clone(),
-        message,
-    };
-    let mut seconds = Vec::new();
-    let mut clock = Instant::now();
-    let mut lap = |name: &'static str, seconds: &mut Vec<(&'static str, f64)>| {
-        seconds.push((name, clock.elapsed().as_secs_f64()));
-        clock = Instant::now();
-    };
-    if !(100..=4_000_000).contains(&opts.vertices) {
-        return Err(labels_err(format!(
-            "--vertices {}: give 100 to 4,000,000",
-            opts.vertices
-        )));
-    }
-    let volume = read_masks(paths, opts)?;
-    lap("read", &mut seconds);
-    let mut warnings = volume.notes.clone();
-    let histogram = volume.histogram();
+/// The label values chosen for one lung and what each value means.
+struct Chosen {
+    convention: Convention,
+    reason: String,
+    /// The values taken as this lung.
+    selected: Vec<u16>,
+    /// Every value present and its meaning.
+    meanings: Vec<(u16, Meaning)>,
+    /// Every selected value is this lung's by its label (else the side is told geometrically).
+    by_label: bool,
+}
 
-    // Which values, and what they mean.
-    let (convention, convention_reason) = match (opts.convention, &opts.labels) {
-        (Some(c), _) => (c, "given (--convention)".to_string()),
-        (None, Some(_)) => match labels::detect(&histogram, &volume.names) {
-            Ok(found) => found,
-            Err(_) => (
-                Convention::Single,
-                "--label given; no convention matched".into(),
-            ),
-        },
-        (None, None) => labels::detect(&histogram, &volume.names).map_err(labels_err)?,
-    };
-    let present: Vec<u16> = histogram.iter().map(|&(v, _)| v).collect();
-    let meaning = |v: u16| {
-        if opts.labels.is_some() && convention == Convention::Single {
-            Meaning::Both
-        } else {
-            labels::meaning(convention, v, &volume.names)
-        }
-    };
-    let side = opts.side;
-    let mine = |m: Meaning| match m {
+impl Chosen {
+    fn meaning(&self, v: u16) -> Meaning {
+        self.meanings
+            .iter()
+            .find(|&&(x, _)| x == v)
+            .map_or(Meaning::Other, |&(_, m)| m)
+    }
+}
+
+fn is_side(m: Meaning, side: Side) -> bool {
+    match m {
         Meaning::Lobe(l) => l.side() == Some(side),
         Meaning::Lung(s) => s == side,
         _ => false,
+    }
+}
+
+fn list(values: &[u16]) -> String {
+    values
+        .iter()
+        .map(|v| v.to_string())
+        .collect::<Vec<_>>()
+        .join(", ")
+}
+
+/// Which values are `opts.side`'s lung: the convention given or detected, `--label` checked
+/// against it.
+fn choose_labels(volume: &LabelVolume, opts: &MaskOptions) -> Result<Chosen, String> {
+    let histogram = volume.histogram();
+    let (convention, reason) = match (opts.convention, &opts.labels) {
+        (Some(c), _) => (c, "given (--convention)".to_string()),
+        (None, Some(_)) => labels::detect(&histogram, &volume.names).unwrap_or((
+            Convention::Single,
+            "--label given; no convention matched".into(),
+        )),
+        (None, None) => labels::detect(&histogram, &volume.names)?,
     };
+    let present: Vec<u16> = histogram.iter().map(|&(v, _)| v).collect();
+    let meanings: Vec<(u16, Meaning)> = present
+        .iter()
+        .map(|&v| {
+            let m = if opts.labels.is_some() && convention == Convention::Single {
+                Meaning::Both
+            } else {
+                labels::meaning(convention, v, &volume.names)
+            };
+            (v, m)
+        })
+        .collect();
+    let meaning = |v: u16| {
+        meanings
+            .iter()
+            .find(|&&(x, _)| x == v)
+            .map_or(Meaning::Other, |&(_, m)| m)
+    };
+    let side = opts.side;
     let selected: Vec<u16> = match &opts.labels {
         Some(given) => {
             for &v in given {
                 if !present.contains(&v) {
-                    return Err(labels_err(format!(
+                    return Err(format!(
                         "--label {v}: no voxel holds {v}; the values present are {}",
-                        present
-                            .iter()
-                            .map(|v| v.to_string())
-                            .collect::<Vec<_>>()
-                            .join(", ")
-                    )));
+                        list(&present)
+                    ));
                 }
                 match meaning(v) {
                     Meaning::Lobe(l) if l.side() != Some(side) => {
-                        return Err(labels_err(format!(
+                        return Err(format!(
                             "--label {v} is the {} lobe under the {} convention, not a lobe of the \
                              {} lung",
                             l.name(),
                             convention.name(),
                             side.name()
-                        )))
+                        ))
                     }
                     Meaning::Lung(s) if s != side => {
-                        return Err(labels_err(format!(
+                        return Err(format!(
                             "--label {v} is the {} lung under the {} convention, not the {}",
                             s.name(),
                             convention.name(),
                             side.name()
-                        )))
+                        ))
                     }
                     _ => {}
                 }
@@ -333,7 +346,7 @@ pub fn mesh_from_mask(paths: &[PathBuf], opts: &MaskOptions) -> Result<FromMask,
             let own: Vec<u16> = present
                 .iter()
                 .copied()
-                .filter(|&v| mine(meaning(v)))
+                .filter(|&v| is_side(meaning(v), side))
                 .collect();
             if own.is_empty() {
                 present
@@ -347,185 +360,175 @@ pub fn mesh_from_mask(paths: &[PathBuf], opts: &MaskOptions) -> Result<FromMask,
         }
     };
     if selected.is_empty() {
-        return Err(labels_err(format!(
-            "no label is the {} lung under the {} convention ({convention_reason}); values present: {}. \
-             Name its values with --label",
+        return Err(format!(
+            "no label is the {} lung under the {} convention ({reason}); values present: {}. Name \
+             its values with --label",
             side.name(),
             convention.name(),
-            present.iter().map(|v| v.to_string()).collect::<Vec<_>>().join(", ")
-        )));
+            list(&present)
+        ));
     }
-    let by_label = selected.iter().all(|&v| mine(meaning(v)));
+    let by_label = selected.iter().all(|&v| is_side(meaning(v), side));
+    Ok(Chosen {
+        convention,
+        reason,
+        selected,
+        meanings,
+        by_label,
+    })
+}
 
-    // Both lungs, where the image has both: their sizes and bases (a mirrored or turned
-    // left-right axis shows there).
-    let mut both_lungs: Option<(LungStats, LungStats)> = None;
-    if by_label {
-        let other: Vec<u16> = present
-            .iter()
-            .copied()
-            .filter(|&v| {
-                matches!(meaning(v), Meaning::Lobe(l) if l.side().is_some_and(|s| s != side))
-                    || matches!(meaning(v), Meaning::Lung(s) if s != side)
-            })
-            .collect();
-        if !other.is_empty() {
-            let ours = lung_stats(&volume, |l| selected.contains(&l));
-            let theirs = lung_stats(&volume, |l| other.contains(&l));
-            let (right, left) = if side == Side::Right {
-                (ours, theirs)
-            } else {
-                (theirs, ours)
-            };
-            both_lungs = Some((right, left));
-        }
-    }
+/// One lung's voxels, told from the other's.
+struct Separated {
+    grid: Grid,
+    sides_from: &'static str,
+    /// Voxels in pieces apart from both lungs.
+    stray: usize,
+    /// (right, left) where both lungs were seen.
+    both: Option<(LungStats, LungStats)>,
+}
 
-    // This lung's voxels on a padded crop.
-    let spacing = volume.to_body.spacing();
-    let sigma = opts
-        .smoothing_mm
-        .unwrap_or((0.75 * spacing.iter().cloned().fold(0.0, f64::max)).max(0.6));
-    if !(0.0..=10.0).contains(&sigma) {
-        return Err(labels_err(format!("--smooth {sigma} mm: give 0 to 10 mm")));
-    }
-    let margin_mm = 14.0 + 3.0 * sigma;
-    let (mut grid, crop_to_body) = crop(&volume, |l| selected.contains(&l), margin_mm)
-        .ok_or_else(|| labels_err("the selected labels hold no voxel".into()))?;
-    let mut sides_from = if by_label {
-        "labels"
-    } else {
-        "one lung in the image"
+/// `grid` holds lung tissue of either side (one label for both): the two lungs by their
+/// components, or split where they touch; the one on `side` (+X is the patient's left).
+fn separate_sides(grid: Grid, to_body: &VoxelToBody, voxel_ml: f64, side: Side) -> Separated {
+    let lateral = |idx: usize| {
+        let [nx, ny, _] = grid.dims;
+        to_body
+            .apply(DVec3::new(
+                (idx % nx) as f64,
+                ((idx / nx) % ny) as f64,
+                (idx / (nx * ny)) as f64,
+            ))
+            .x
     };
-    // Voxels in pieces apart from both lungs (counted with the ones dropped below).
-    let mut stray = 0usize;
-    if !by_label {
-        let lateral = |idx: usize| {
-            let [nx, ny, _] = grid.dims;
-            crop_to_body
-                .apply(DVec3::new(
-                    (idx % nx) as f64,
-                    ((idx / nx) % ny) as f64,
-                    (idx / (nx * ny)) as f64,
-                ))
-                .x
+    let (id, sizes) = morph::components(&grid, true);
+    let mut order: Vec<usize> = (0..sizes.len()).collect();
+    order.sort_by_key(|&c| std::cmp::Reverse(sizes[c]));
+    let total: usize = sizes.iter().sum();
+    let mut sides_from = "one lung in the image";
+    let mut stray = 0;
+    let parts: Option<[Grid; 2]> = if order.len() >= 2 && sizes[order[1]] * 100 >= total * 15 {
+        sides_from = "components";
+        stray = total - sizes[order[0]] - sizes[order[1]];
+        let part = |c: usize| Grid {
+            on: id.iter().map(|&x| x == c as u32 + 1).collect(),
+            ..grid.clone()
         };
-        let (id, sizes) = morph::components(&grid, true);
-        let mut order: Vec<usize> = (0..sizes.len()).collect();
-        order.sort_by_key(|&c| std::cmp::Reverse(sizes[c]));
-        let total: usize = sizes.iter().sum();
-        let parts: Option<[Grid; 2]> = if order.len() >= 2 && sizes[order[1]] * 100 >= total * 15 {
-            sides_from = "components";
-            stray = total - sizes[order[0]] - sizes[order[1]];
-            let part = |c: usize| Grid {
-                on: id.iter().map(|&x| x == c as u32 + 1).collect(),
-                ..grid.clone()
-            };
-            Some([part(order[0]), part(order[1])])
-        } else {
-            let split = morph::split_two(&grid, lateral, 60.0);
-            if split.is_some() {
-                sides_from = "split at contact";
-            }
-            split
-        };
-        if let Some([a, b]) = parts {
-            let centre = |g: &Grid| {
-                let (mut s, mut n) = (0.0, 0usize);
-                for (idx, &on) in g.on.iter().enumerate() {
-                    if on {
-                        s += lateral(idx);
-                        n += 1;
-                    }
-                }
-                s / n.max(1) as f64
-            };
-            // +X is the patient's left.
-            let (left, right) = if centre(&a) > centre(&b) {
-                (a, b)
-            } else {
-                (b, a)
-            };
-            let stats = |g: &Grid| part_stats(g, &crop_to_body, volume.voxel_ml());
-            both_lungs = Some((stats(&right), stats(&left)));
-            grid = if side == Side::Left { left } else { right };
+        Some([part(order[0]), part(order[1])])
+    } else {
+        let split = morph::split_two(&grid, lateral, 60.0);
+        if split.is_some() {
+            sides_from = "split at contact";
         }
+        split
+    };
+    let Some([a, b]) = parts else {
+        return Separated {
+            grid,
+            sides_from,
+            stray,
+            both: None,
+        };
+    };
+    let centre = |g: &Grid| {
+        let (mut s, mut n) = (0.0, 0usize);
+        for (idx, &on) in g.on.iter().enumerate() {
+            if on {
+                s += lateral(idx);
+                n += 1;
+            }
+        }
+        s / n.max(1) as f64
+    };
+    let (left, right) = if centre(&a) > centre(&b) {
+        (a, b)
+    } else {
+        (b, a)
+    };
+    let both = Some((
+        part_stats(&right, to_body, voxel_ml),
+        part_stats(&left, to_body, voxel_ml),
+    ));
+    Separated {
+        grid: if side == Side::Left { left } else { right },
+        sides_from,
+        stray,
+        both,
     }
-    lap("select", &mut seconds);
-    let voxels_dropped = morph::keep_largest(&mut grid) + stray;
-    let mask_volume_ml = grid.count() as f64 * volume.voxel_ml();
-    let (mut cavities_filled, _) = morph::fill_cavities(&mut grid);
-    let genus_before = morph::genus(&grid);
-    // Tunnels closed by the smallest closing that leaves the *surface* (not only the voxels) of
-    // genus 0: the smoothing can also bridge a narrow groove into a new handle, which a closing of
-    // the groove prevents.
-    let min_spacing = spacing.iter().cloned().fold(f64::INFINITY, f64::min);
+}
+
+/// The surface of one lung's voxels, its tunnels closed.
+struct Closed {
+    made: Extracted,
+    grid: Grid,
+    closing_mm: f64,
+    filled: usize,
+    volume_ml: f64,
+    genus: i64,
+}
+
+/// Tunnels closed by the smallest closing that leaves the *surface* (not only the voxels) of
+/// genus 0 — the smoothing can also bridge a narrow groove into a new handle, which a closing of
+/// the groove prevents — and the surface made.
+fn close_and_extract(
+    as_labelled: &Grid,
+    to_body: VoxelToBody,
+    voxel_ml: f64,
+    sigma: f64,
+    opts: &MaskOptions,
+) -> Result<Option<Closed>, MaskError> {
+    let min_spacing = as_labelled
+        .spacing
+        .iter()
+        .cloned()
+        .fold(f64::INFINITY, f64::min);
     let radii: Vec<f64> = [0.0, 1.5, 2.0, 3.0, 4.0, 5.0, 6.0, 8.0, 10.0, 12.0]
         .into_iter()
         .filter(|&r| r == 0.0 || r >= min_spacing)
         .collect();
-    let as_labelled = grid.clone();
-    let mut outcome = None;
     for (attempt, &r) in radii.iter().enumerate() {
         let mut g = as_labelled.clone();
         let mut filled = 0;
         if r > 0.0 {
-            g = morph::close(&as_labelled, r);
+            g = morph::close(as_labelled, r);
             filled = morph::fill_cavities(&mut g).0;
             morph::keep_largest(&mut g);
         }
         if !opts.keep_tunnels && r < *radii.last().unwrap_or(&0.0) && morph::genus(&g) != 0 {
             continue;
         }
-        let volume_ml = g.count() as f64 * volume.voxel_ml();
+        let volume_ml = g.count() as f64 * voxel_ml;
         let last = attempt + 1 == radii.len();
         let need_genus_0 = !opts.keep_tunnels && !last;
-        if let Some(made) = extract(
-            &g,
-            crop_to_body,
-            sigma,
-            opts.vertices,
-            volume_ml,
-            need_genus_0,
-        )? {
+        if let Some(made) = extract(&g, to_body, sigma, opts.vertices, volume_ml, need_genus_0)? {
             let genus = (2 - made.euler) / 2;
-            outcome = Some((made, g, r, filled, volume_ml, genus));
-            break;
+            return Ok(Some(Closed {
+                made,
+                grid: g,
+                closing_mm: r,
+                filled,
+                volume_ml,
+                genus,
+            }));
         }
     }
-    let Some((made, closed_grid, closing_mm, filled, closed_volume_ml, genus_after)) = outcome
-    else {
-        return Err(surface_err("internal error: no surface was made".into()));
-    };
-    grid = closed_grid;
-    cavities_filled += filled;
-    let Extracted {
-        mesh, h, crossing, ..
-    } = made;
-    lap("surface", &mut seconds);
-    if genus_after != 0 && !opts.keep_tunnels {
-        return Err(surface_err(format!(
-            "the {} lung's surface keeps {genus_after} tunnel(s) after a closing of {closing_mm} mm: \
-             look at the mask (a lung fused with the airways or the other lung?), or pass \
-             --keep-tunnels",
-            side.name()
-        )));
-    }
-    if crossing > 0 {
-        return Err(surface_err(format!(
-            "the surface made from the mask intersects itself ({crossing} crossing pairs left after \
-             untangling): the mask has parts thinner than the smoothing; try a smaller --smooth or \
-             more --vertices"
-        )));
-    }
-    crate::import::check_size(&mesh, crate::import::Units::Mm, true)
-        .map_err(|e| surface_err(format!("{e}")))?;
+    Ok(None)
+}
 
-    // What the geometry says of the frame.
-    let orientation = crate::surface_checks::infer_orientation(&mesh);
-    let side_evidence = crate::surface_checks::infer_side(&mesh);
+/// What the anatomy says against the image's frame: `Err` with the `--axes` that answers all of
+/// it where the evidence is strong and no `--axes` was given, else the warnings to report.
+fn frame_findings(
+    mesh: &TriMesh,
+    volume: &LabelVolume,
+    side: Side,
+    by_label: bool,
+    both: Option<(LungStats, LungStats)>,
+    axes_given: bool,
+) -> Result<(Vec<String>, String, String), String> {
+    let orientation = crate::surface_checks::infer_orientation(mesh);
+    let side_evidence = crate::surface_checks::infer_side(mesh);
     let header_axes = Axes(volume.to_body.voxel_axes().0);
-    // Everything the anatomy says against the frame, and the one --axes that answers all of it.
+    let mut warnings = Vec::new();
     let mut findings = Vec::new();
     let mut strong = false;
     let (mut flip_lr, mut flip_ap, mut flip_si) = (false, false, false);
@@ -559,7 +562,7 @@ pub fn mesh_from_mask(paths: &[PathBuf], opts: &MaskOptions) -> Result<FromMask,
             ));
         }
     }
-    if let Some((right, left)) = both_lungs {
+    if let Some((right, left)) = both {
         let share = right.volume_ml / (right.volume_ml + left.volume_ml);
         let lower_by = left.lowest_mm - right.lowest_mm;
         if !flip_lr && flip_ap && share < 0.5 {
@@ -600,17 +603,172 @@ pub fn mesh_from_mask(paths: &[PathBuf], opts: &MaskOptions) -> Result<FromMask,
             findings.join("; and "),
             fix.code()
         );
-        if strong && opts.axes.is_none() {
-            return Err(surface_err(w));
+        if strong && !axes_given {
+            return Err(w);
         }
         warnings.push(w);
     }
+    Ok((warnings, side_evidence.reason, orientation.reason))
+}
+
+/// Both lungs by label, where the image has both (right, left): their sizes and bases, where a
+/// mirrored or turned left-right axis shows.
+fn labelled_pair(
+    volume: &LabelVolume,
+    chosen: &Chosen,
+    side: Side,
+) -> Option<(LungStats, LungStats)> {
+    if !chosen.by_label {
+        return None;
+    }
+    let other_side = if side == Side::Left {
+        Side::Right
+    } else {
+        Side::Left
+    };
+    let other: Vec<u16> = chosen
+        .meanings
+        .iter()
+        .filter(|&&(_, m)| is_side(m, other_side))
+        .map(|&(v, _)| v)
+        .collect();
+    if other.is_empty() {
+        return None;
+    }
+    let ours = lung_stats(volume, |l| chosen.selected.contains(&l));
+    let theirs = lung_stats(volume, |l| other.contains(&l));
+    Some(if side == Side::Right {
+        (ours, theirs)
+    } else {
+        (theirs, ours)
+    })
+}
+
+/// [`crop`] of the `selected` values, refused when the box is larger than lungdyn meshes (the
+/// work arrays cost up to ~25 bytes a voxel: distance transforms in f64).
+fn crop_checked(
+    volume: &LabelVolume,
+    selected: &[u16],
+    margin_mm: f64,
+) -> Result<(Grid, VoxelToBody), String> {
+    let (grid, to_body) = crop(volume, |l| selected.contains(&l), margin_mm)
+        .ok_or_else(|| "the selected labels hold no voxel".to_string())?;
+    if grid.on.len() > MAX_CROP_VOXELS {
+        let spacing = volume.to_body.spacing();
+        return Err(format!(
+            "this lung's box is {}×{}×{} voxels at {:.3} × {:.3} × {:.3} mm, more than lungdyn \
+             meshes ({} million): resample the mask to a coarser grid (0.5–2 mm is plenty for a \
+             lung surface) and try again",
+            grid.dims[0],
+            grid.dims[1],
+            grid.dims[2],
+            spacing[0],
+            spacing[1],
+            spacing[2],
+            MAX_CROP_VOXELS / 1_000_000
+        ));
+    }
+    Ok((grid, to_body))
+}
+
+/// Make `opts.side`'s lung surface from the label image(s) at `paths`.
+pub fn mesh_from_mask(paths: &[PathBuf], opts: &MaskOptions) -> Result<FromMask, MaskError> {
+    let path = paths.first().cloned().unwrap_or_default();
+    let labels_err = |message: String| MaskError::Labels {
+        path: path.clone(),
+        message,
+    };
+    let surface_err = |message: String| MaskError::Surface {
+        path: path.clone(),
+        message,
+    };
+    let mut seconds = Vec::new();
+    let mut clock = Instant::now();
+    let mut lap = |name: &'static str, seconds: &mut Vec<(&'static str, f64)>| {
+        seconds.push((name, clock.elapsed().as_secs_f64()));
+        clock = Instant::now();
+    };
+    if !(100..=4_000_000).contains(&opts.vertices) {
+        return Err(labels_err(format!(
+            "--vertices {}: give 100 to 4,000,000",
+            opts.vertices
+        )));
+    }
+    let volume = read_masks(paths, opts)?;
+    lap("read", &mut seconds);
+    let mut warnings = volume.notes.clone();
+    let side = opts.side;
+    let chosen = choose_labels(&volume, opts).map_err(labels_err)?;
+    let both_lungs = labelled_pair(&volume, &chosen, side);
+
+    // This lung's voxels on a padded crop.
+    let spacing = volume.to_body.spacing();
+    let sigma = opts
+        .smoothing_mm
+        .unwrap_or((0.75 * spacing.iter().cloned().fold(0.0, f64::max)).max(0.6));
+    if !(0.0..=10.0).contains(&sigma) {
+        return Err(labels_err(format!("--smooth {sigma} mm: give 0 to 10 mm")));
+    }
+    let (grid, crop_to_body) =
+        crop_checked(&volume, &chosen.selected, 14.0 + 3.0 * sigma).map_err(labels_err)?;
+    let separated = if chosen.by_label {
+        Separated {
+            grid,
+            sides_from: "labels",
+            stray: 0,
+            both: None,
+        }
+    } else {
+        separate_sides(grid, &crop_to_body, volume.voxel_ml(), side)
+    };
+    let both_lungs = both_lungs.or(separated.both);
+    let mut grid = separated.grid;
+    lap("select", &mut seconds);
+    let voxels_dropped = morph::keep_largest(&mut grid) + separated.stray;
+    let mask_volume_ml = grid.count() as f64 * volume.voxel_ml();
+    let (cavities_filled, _) = morph::fill_cavities(&mut grid);
+    let genus_before = morph::genus(&grid);
+    let closed = close_and_extract(&grid, crop_to_body, volume.voxel_ml(), sigma, opts)?
+        .ok_or_else(|| surface_err("internal error: no surface was made".into()))?;
+    let Extracted {
+        mesh, h, crossing, ..
+    } = closed.made;
+    lap("surface", &mut seconds);
+    if closed.genus != 0 && !opts.keep_tunnels {
+        return Err(surface_err(format!(
+            "the {} lung's surface keeps {} tunnel(s) after a closing of {} mm: look at the mask (a \
+             lung fused with the airways or the other lung?), or pass --keep-tunnels",
+            side.name(),
+            closed.genus,
+            closed.closing_mm
+        )));
+    }
+    if crossing > 0 {
+        return Err(surface_err(format!(
+            "the surface made from the mask intersects itself ({crossing} crossing pairs left after \
+             untangling): the mask has parts thinner than the smoothing; try a smaller --smooth or \
+             more --vertices"
+        )));
+    }
+    crate::import::check_size(&mesh, crate::import::Units::Mm, true)
+        .map_err(|e| surface_err(format!("{e}")))?;
+    let (frame_warnings, side_reason, orientation_reason) = frame_findings(
+        &mesh,
+        &volume,
+        side,
+        chosen.by_label,
+        both_lungs,
+        opts.axes.is_some(),
+    )
+    .map_err(surface_err)?;
+    warnings.extend(frame_warnings);
     lap("check", &mut seconds);
 
     // Lobes.
-    let lobe_codes: Vec<(u16, u8)> = selected
+    let lobe_codes: Vec<(u16, u8)> = chosen
+        .selected
         .iter()
-        .filter_map(|&v| match meaning(v) {
+        .filter_map(|&v| match chosen.meaning(v) {
             Meaning::Lobe(l) => Some((v, l.code())),
             _ => None,
         })
@@ -623,29 +781,29 @@ pub fn mesh_from_mask(paths: &[PathBuf], opts: &MaskOptions) -> Result<FromMask,
     } else {
         (lobes::classify(side, &mesh), "planes")
     };
-    let distance_to_mask = distances(&mesh, &grid, &crop_to_body);
+    let distance_to_mask = distances(&mesh, &closed.grid, &crop_to_body);
     lap("lobes and distances", &mut seconds);
     Ok(FromMask {
         mesh,
         lobes,
         lobes_from,
         frame: volume.frame.clone(),
-        convention,
-        convention_reason,
-        labels_used: selected,
-        sides_from,
+        convention: chosen.convention,
+        convention_reason: chosen.reason,
+        labels_used: chosen.selected,
+        sides_from: separated.sides_from,
         mask_volume_ml,
-        closed_volume_ml,
+        closed_volume_ml: closed.volume_ml,
         genus_before,
-        genus_after,
-        closing_mm,
-        cavities_filled,
+        genus_after: closed.genus,
+        closing_mm: closed.closing_mm,
+        cavities_filled: cavities_filled + closed.filled,
         voxels_dropped,
         smoothing_mm: sigma,
         grid_step_mm: h,
         distance_to_mask,
-        side_reason: side_evidence.reason,
-        orientation_reason: orientation.reason,
+        side_reason,
+        orientation_reason,
         warnings,
         seconds,
     })

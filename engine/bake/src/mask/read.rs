@@ -260,6 +260,37 @@ fn read_nifti(bytes: &[u8], axes_given: bool) -> Result<LabelVolume, String> {
     let labels = to_labels(raw, scalar, big, count, slope, inter)?;
 
     let mut notes = Vec::new();
+    let (to_body, from) = nifti_frame(&header, axes_given, &mut notes)?;
+    if header.intent_code != 0 && header.intent_code != 1002 {
+        notes.push(format!(
+            "the NIfTI intent code is {} (a label image has 0 or 1002, NIFTI_INTENT_LABEL)",
+            header.intent_code
+        ));
+    }
+    Ok(LabelVolume {
+        dims,
+        labels,
+        frame: FrameSource {
+            format: "NIfTI-1",
+            from,
+            world: "RAS".into(),
+            spacing_mm: to_body.spacing(),
+            voxel_axes: to_body.voxel_axes().code(),
+            axes_override: None,
+        },
+        to_body,
+        names: Vec::new(),
+        notes,
+    })
+}
+
+/// The voxel → body transform a NIfTI-1 header states (sform, else qform, else — with `--axes` —
+/// pixdim alone), and which fields gave it.
+fn nifti_frame(
+    header: &nifti::NiftiHeader,
+    axes_given: bool,
+    notes: &mut Vec<String>,
+) -> Result<(VoxelToBody, String), String> {
     let unit = match header.xyzt_units & 0o7 {
         1 => 1000.0,
         2 => 1.0,
@@ -335,27 +366,7 @@ fn read_nifti(bytes: &[u8], axes_given: bool) -> Result<LabelVolume, String> {
         linear: Axes::RAS.to_body() * ras.0 * unit,
         origin: Axes::RAS.to_body() * ras.1 * unit,
     };
-    if header.intent_code != 0 && header.intent_code != 1002 {
-        notes.push(format!(
-            "the NIfTI intent code is {} (a label image has 0 or 1002, NIFTI_INTENT_LABEL)",
-            header.intent_code
-        ));
-    }
-    Ok(LabelVolume {
-        dims,
-        labels,
-        frame: FrameSource {
-            format: "NIfTI-1",
-            from,
-            world: "RAS".into(),
-            spacing_mm: to_body.spacing(),
-            voxel_axes: to_body.voxel_axes().code(),
-            axes_override: None,
-        },
-        to_body,
-        names: Vec::new(),
-        notes,
-    })
+    Ok((to_body, from))
 }
 
 // ----------------------------------------------------------------------------------------------
@@ -549,9 +560,52 @@ fn read_nrrd(bytes: &[u8], axes_given: bool) -> Result<LabelVolume, String> {
         }
     };
     let labels = to_labels(&raw, scalar, big, count, 1.0, 0.0)?;
+    let mut notes = Vec::new();
+    let (to_body, from, world_name) =
+        nrrd_frame(&fields, dir_field.as_deref(), axes_given, &mut notes)?;
+    // 3D Slicer segment names: SegmentN_Name and SegmentN_LabelValue.
+    let mut names = Vec::new();
+    for (k, v) in &fields {
+        if let Some(n) = k
+            .strip_prefix("kv:Segment")
+            .and_then(|r| r.strip_suffix("_Name"))
+        {
+            let value = field(&fields, &format!("kv:Segment{n}_LabelValue"))
+                .and_then(|s| s.parse::<u16>().ok());
+            if let Some(value) = value {
+                names.push((value, v.clone()));
+            }
+        }
+    }
+    Ok(LabelVolume {
+        dims,
+        labels,
+        frame: FrameSource {
+            format: "NRRD",
+            from,
+            world: world_name,
+            spacing_mm: to_body.spacing(),
+            voxel_axes: to_body.voxel_axes().code(),
+            axes_override: None,
+        },
+        to_body,
+        names,
+        notes,
+    })
+}
+
+/// The voxel → body transform an NRRD header states (`space directions` and `space origin` in
+/// its `space`; with `--axes`, the spacing alone), which fields gave it, and its world's name.
+fn nrrd_frame(
+    fields: &[(String, String)],
+    dir_field: Option<&str>,
+    axes_given: bool,
+    notes: &mut Vec<String>,
+) -> Result<(VoxelToBody, String, String), String> {
+    let get = |k: &str| field(fields, k);
     let space = get("space");
     let world = space.and_then(nrrd_space);
-    let directions = match &dir_field {
+    let directions = match dir_field {
         Some(d) => {
             let v = numbers(d, "space directions")?;
             if v.len() != 9 {
@@ -577,7 +631,6 @@ fn read_nrrd(bytes: &[u8], axes_given: bool) -> Result<LabelVolume, String> {
         }
         None => DVec3::ZERO,
     };
-    let mut notes = Vec::new();
     if get("space units").is_some_and(|u| !u.contains("mm")) {
         return Err(format!(
             "space units {}: lungdyn reads NRRD in mm",
@@ -634,35 +687,7 @@ fn read_nrrd(bytes: &[u8], axes_given: bool) -> Result<LabelVolume, String> {
         ))
         }
     };
-    // 3D Slicer segment names: SegmentN_Name and SegmentN_LabelValue.
-    let mut names = Vec::new();
-    for (k, v) in &fields {
-        if let Some(n) = k
-            .strip_prefix("kv:Segment")
-            .and_then(|r| r.strip_suffix("_Name"))
-        {
-            let value = field(&fields, &format!("kv:Segment{n}_LabelValue"))
-                .and_then(|s| s.parse::<u16>().ok());
-            if let Some(value) = value {
-                names.push((value, v.clone()));
-            }
-        }
-    }
-    Ok(LabelVolume {
-        dims,
-        labels,
-        frame: FrameSource {
-            format: "NRRD",
-            from,
-            world: world_name,
-            spacing_mm: to_body.spacing(),
-            voxel_axes: to_body.voxel_axes().code(),
-            axes_override: None,
-        },
-        to_body,
-        names,
-        notes,
-    })
+    Ok((to_body, from, world_name))
 }
 
 // ----------------------------------------------------------------------------------------------

@@ -275,168 +275,203 @@ pub fn marching_tetrahedra(field: &Field, iso: f64, step: [f64; 3]) -> TriMesh {
     }
 }
 
-/// Collapse edges shorter than `min_len_mm` to their midpoints where the link condition holds
-/// (the two ends share exactly the two opposite vertices, each of which keeps ≥ 3 neighbours) and
-/// no triangle around them turns over. Keeps the surface a closed 2-manifold of the same genus.
-pub fn collapse_short_edges(mesh: &mut TriMesh, min_len_mm: f64) -> usize {
-    let mut p: Vec<DVec3> = mesh
-        .positions
-        .iter()
-        .map(|q| DVec3::from(q.map(|v| v as f64)))
-        .collect();
-    let mut tris = mesh.triangles.clone();
-    let mut alive_t = vec![true; tris.len()];
-    let mut alive_v = vec![true; p.len()];
-    let mut vt: Vec<Vec<u32>> = vec![Vec::new(); p.len()];
-    for (t, tri) in tris.iter().enumerate() {
-        for &v in tri {
-            vt[v as usize].push(t as u32);
+/// A mesh being decimated: positions, triangles and which are still alive, and each vertex's
+/// triangles.
+struct Collapsing {
+    p: Vec<DVec3>,
+    tris: Vec<[u32; 3]>,
+    alive_t: Vec<bool>,
+    alive_v: Vec<bool>,
+    vt: Vec<Vec<u32>>,
+}
+
+impl Collapsing {
+    fn new(mesh: &TriMesh) -> Self {
+        let p: Vec<DVec3> = mesh
+            .positions
+            .iter()
+            .map(|q| DVec3::from(q.map(|v| v as f64)))
+            .collect();
+        let mut vt: Vec<Vec<u32>> = vec![Vec::new(); p.len()];
+        for (t, tri) in mesh.triangles.iter().enumerate() {
+            for &v in tri {
+                vt[v as usize].push(t as u32);
+            }
+        }
+        Self {
+            alive_t: vec![true; mesh.triangles.len()],
+            alive_v: vec![true; p.len()],
+            tris: mesh.triangles.clone(),
+            p,
+            vt,
         }
     }
-    let neighbours = |v: u32, vt: &Vec<Vec<u32>>, tris: &Vec<[u32; 3]>, alive_t: &Vec<bool>| {
-        let mut out: Vec<u32> = vt[v as usize]
+
+    /// The live neighbours of `v`, sorted.
+    fn neighbours(&self, v: u32) -> Vec<u32> {
+        let mut out: Vec<u32> = self.vt[v as usize]
             .iter()
-            .filter(|&&t| alive_t[t as usize])
-            .flat_map(|&t| tris[t as usize])
+            .filter(|&&t| self.alive_t[t as usize])
+            .flat_map(|&t| self.tris[t as usize])
             .filter(|&w| w != v)
             .collect();
         out.sort_unstable();
         out.dedup();
         out
-    };
+    }
+
+    /// Whether edge (a, b) may collapse to its midpoint: the two triangles it bounds, and the two
+    /// opposite vertices, when the link condition holds, both opposite vertices keep ≥ 3
+    /// neighbours, and no triangle around it turns over or leaves its star's hemisphere.
+    fn collapsible(&self, a: u32, b: u32) -> Option<(Vec<u32>, [u32; 2], DVec3)> {
+        let (p, tris, alive_t, vt) = (&self.p, &self.tris, &self.alive_t, &self.vt);
+        let shared: Vec<u32> = vt[a as usize]
+            .iter()
+            .copied()
+            .filter(|&s| alive_t[s as usize] && tris[s as usize].contains(&b))
+            .collect();
+        if shared.len() != 2 {
+            return None;
+        }
+        let mut opp: Vec<u32> = shared
+            .iter()
+            .map(|&s| {
+                tris[s as usize]
+                    .into_iter()
+                    .find(|&w| w != a && w != b)
+                    .unwrap_or(a)
+            })
+            .collect();
+        opp.sort_unstable();
+        let nb = self.neighbours(b);
+        let common: Vec<u32> = self
+            .neighbours(a)
+            .into_iter()
+            .filter(|w| nb.binary_search(w).is_ok())
+            .collect();
+        if common != opp || opp[0] == opp[1] || opp.iter().any(|&c| self.neighbours(c).len() <= 3) {
+            return None;
+        }
+        let m = (p[a as usize] + p[b as usize]) * 0.5;
+        // The star's mean normal: every triangle around the new vertex must still face its
+        // hemisphere (a star whose triangles each turn a little can still fold over).
+        let around = || {
+            vt[a as usize]
+                .iter()
+                .chain(&vt[b as usize])
+                .filter(|&&s| alive_t[s as usize])
+        };
+        let star: DVec3 = around()
+            .map(|&s| {
+                let c = tris[s as usize].map(|w| p[w as usize]);
+                (c[1] - c[0]).cross(c[2] - c[0])
+            })
+            .sum::<DVec3>()
+            .normalize_or_zero();
+        let folds = around().any(|&s| {
+            if shared.contains(&s) {
+                return false;
+            }
+            let tri = tris[s as usize];
+            let before = tri.map(|w| p[w as usize]);
+            let after = tri.map(|w| if w == a || w == b { m } else { p[w as usize] });
+            let n0 = (before[1] - before[0]).cross(before[2] - before[0]);
+            let n1 = (after[1] - after[0]).cross(after[2] - after[0]);
+            let scale = (before[1] - before[0])
+                .length_squared()
+                .max((before[2] - before[0]).length_squared());
+            // A sliver before (no direction to keep) may go anywhere but to nothing.
+            if n0.length() <= 1e-9 * scale {
+                return n1.length() <= 1e-12 * scale;
+            }
+            n1.dot(n0) <= 0.2 * n0.length() * n1.length()
+                || n1.length_squared() == 0.0
+                || n1.normalize_or_zero().dot(star) < 0.3
+        });
+        (!folds).then_some((shared, [opp[0], opp[1]], m))
+    }
+
+    /// Collapse b into a at `m`, dropping the two `shared` triangles.
+    fn collapse(&mut self, a: u32, b: u32, shared: &[u32], opp: [u32; 2], m: DVec3) {
+        self.p[a as usize] = m;
+        for s in std::mem::take(&mut self.vt[b as usize]) {
+            if !self.alive_t[s as usize] {
+                continue;
+            }
+            if shared.contains(&s) {
+                self.alive_t[s as usize] = false;
+                continue;
+            }
+            for w in self.tris[s as usize].iter_mut() {
+                if *w == b {
+                    *w = a;
+                }
+            }
+            self.vt[a as usize].push(s);
+        }
+        self.alive_v[b as usize] = false;
+        for v in [a, opp[0], opp[1]] {
+            let alive = &self.alive_t;
+            self.vt[v as usize].retain(|&s| alive[s as usize]);
+        }
+    }
+
+    /// The live mesh, renumbered.
+    fn into_mesh(self) -> TriMesh {
+        let mut new_index = vec![u32::MAX; self.p.len()];
+        let mut positions = Vec::new();
+        for (v, q) in self.p.iter().enumerate() {
+            if self.alive_v[v] && !self.vt[v].is_empty() {
+                new_index[v] = positions.len() as u32;
+                positions.push([q.x as f32, q.y as f32, q.z as f32]);
+            }
+        }
+        let triangles = self
+            .tris
+            .iter()
+            .zip(&self.alive_t)
+            .filter(|(_, &a)| a)
+            .map(|(t, _)| t.map(|v| new_index[v as usize]))
+            .collect();
+        TriMesh {
+            positions,
+            triangles,
+        }
+    }
+}
+
+/// Collapse edges shorter than `min_len_mm` to their midpoints where the link condition holds
+/// (the two ends share exactly the two opposite vertices, each of which keeps ≥ 3 neighbours) and
+/// no triangle around them turns over. Keeps the surface a closed 2-manifold of the same genus.
+pub fn collapse_short_edges(mesh: &mut TriMesh, min_len_mm: f64) -> usize {
+    let mut c = Collapsing::new(mesh);
     let mut collapsed = 0;
     for _pass in 0..40 {
         let mut any = false;
-        for t in 0..tris.len() {
-            if !alive_t[t] {
-                continue;
-            }
+        for t in 0..c.tris.len() {
             for e in 0..3 {
-                if !alive_t[t] {
+                if !c.alive_t[t] {
                     break;
                 }
-                let (a, b) = (tris[t][e], tris[t][(e + 1) % 3]);
-                if !(alive_v[a as usize] && alive_v[b as usize]) {
+                let (a, b) = (c.tris[t][e], c.tris[t][(e + 1) % 3]);
+                let short = c.alive_v[a as usize]
+                    && c.alive_v[b as usize]
+                    && c.p[a as usize].distance(c.p[b as usize]) < min_len_mm;
+                if !short {
                     continue;
                 }
-                if p[a as usize].distance(p[b as usize]) >= min_len_mm {
-                    continue;
+                if let Some((shared, opp, m)) = c.collapsible(a, b) {
+                    c.collapse(a, b, &shared, opp, m);
+                    collapsed += 1;
+                    any = true;
                 }
-                let shared: Vec<u32> = vt[a as usize]
-                    .iter()
-                    .copied()
-                    .filter(|&s| alive_t[s as usize] && tris[s as usize].contains(&b))
-                    .collect();
-                if shared.len() != 2 {
-                    continue;
-                }
-                let opposite: Vec<u32> = shared
-                    .iter()
-                    .map(|&s| {
-                        tris[s as usize]
-                            .into_iter()
-                            .find(|&w| w != a && w != b)
-                            .unwrap_or(a)
-                    })
-                    .collect();
-                let na = neighbours(a, &vt, &tris, &alive_t);
-                let nb = neighbours(b, &vt, &tris, &alive_t);
-                let common: Vec<u32> = na
-                    .iter()
-                    .copied()
-                    .filter(|w| nb.binary_search(w).is_ok())
-                    .collect();
-                let mut opp = opposite.clone();
-                opp.sort_unstable();
-                if common != opp || opp[0] == opp[1] {
-                    continue;
-                }
-                if opp
-                    .iter()
-                    .any(|&c| neighbours(c, &vt, &tris, &alive_t).len() <= 3)
-                {
-                    continue;
-                }
-                let m = (p[a as usize] + p[b as usize]) * 0.5;
-                // The star's mean normal: every triangle around the new vertex must still face
-                // its hemisphere (a star whose triangles each turn a little can still fold over).
-                let star: DVec3 = vt[a as usize]
-                    .iter()
-                    .chain(&vt[b as usize])
-                    .filter(|&&s| alive_t[s as usize])
-                    .map(|&s| {
-                        let c = tris[s as usize].map(|w| p[w as usize]);
-                        (c[1] - c[0]).cross(c[2] - c[0])
-                    })
-                    .sum::<DVec3>()
-                    .normalize_or_zero();
-                let folds = vt[a as usize].iter().chain(&vt[b as usize]).any(|&s| {
-                    if !alive_t[s as usize] || shared.contains(&s) {
-                        return false;
-                    }
-                    let tri = tris[s as usize];
-                    let before = tri.map(|w| p[w as usize]);
-                    let after = tri.map(|w| if w == a || w == b { m } else { p[w as usize] });
-                    let n0 = (before[1] - before[0]).cross(before[2] - before[0]);
-                    let n1 = (after[1] - after[0]).cross(after[2] - after[0]);
-                    let scale = (before[1] - before[0])
-                        .length_squared()
-                        .max((before[2] - before[0]).length_squared());
-                    // A sliver before (no direction to keep) may go anywhere but to nothing.
-                    if n0.length() <= 1e-9 * scale {
-                        return n1.length() <= 1e-12 * scale;
-                    }
-                    n1.dot(n0) <= 0.2 * n0.length() * n1.length()
-                        || n1.length_squared() == 0.0
-                        || n1.normalize_or_zero().dot(star) < 0.3
-                });
-                if folds {
-                    continue;
-                }
-                p[a as usize] = m;
-                for s in std::mem::take(&mut vt[b as usize]) {
-                    if !alive_t[s as usize] {
-                        continue;
-                    }
-                    if shared.contains(&s) {
-                        alive_t[s as usize] = false;
-                        continue;
-                    }
-                    for w in tris[s as usize].iter_mut() {
-                        if *w == b {
-                            *w = a;
-                        }
-                    }
-                    vt[a as usize].push(s);
-                }
-                alive_v[b as usize] = false;
-                for &v in &[a, opp[0], opp[1]] {
-                    vt[v as usize].retain(|&s| alive_t[s as usize]);
-                }
-                collapsed += 1;
-                any = true;
             }
         }
         if !any {
             break;
         }
     }
-    // Compact.
-    let mut new_index = vec![u32::MAX; p.len()];
-    let mut positions = Vec::new();
-    for (v, q) in p.iter().enumerate() {
-        if alive_v[v] && !vt[v].is_empty() {
-            new_index[v] = positions.len() as u32;
-            positions.push([q.x as f32, q.y as f32, q.z as f32]);
-        }
-    }
-    mesh.triangles = tris
-        .iter()
-        .zip(&alive_t)
-        .filter(|(_, &a)| a)
-        .map(|(t, _)| t.map(|v| new_index[v as usize]))
-        .collect();
-    mesh.positions = positions;
+    *mesh = c.into_mesh();
     collapsed
 }
 
