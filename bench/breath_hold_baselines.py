@@ -47,6 +47,7 @@ import datetime
 import json
 import os
 import platform
+import re
 import shlex
 import subprocess
 import sys
@@ -707,58 +708,8 @@ def write_md(path, out, a):
         fh.write("\n".join(L))
 
 
-# ----------------------------------------------------------------------------- main
-def main():
-    ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
-    ap.add_argument("--data", default=DEFAULT_DATA)
-    ap.add_argument("--lungdyn", default=os.path.join(ROOT, "target", "release", "lungdyn"))
-    ap.add_argument("--cases", default="05,06,07,08,09,10")
-    ap.add_argument("--vertices", type=int, default=20000)
-    ap.add_argument("--samples", type=int, default=100_000)
-    ap.add_argument("--no-fit", action="store_true", help="skip (d), the fit-motion kernel")
-    ap.add_argument("--work", default=None, help="keep meshes and kernels here (else a temp dir)")
-    ap.add_argument("--md", default=os.path.join(ROOT, "docs", "masks", "breath_hold_baselines.md"))
-    ap.add_argument("--render", metavar="JSON", help="only write the markdown from this script's "
-                    "saved JSON output (no measurement)")
-    a = ap.parse_args()
-    if a.render:
-        out = json.load(open(a.render))
-        a.samples, a.vertices = out["samples_per_surface"], out["vertices_asked"]
-        a.no_fit = not any("fit_motion" in x for c in out["cases"] for x in c["lungs"].values())
-        write_md(a.md, out, a)
-        return
-    if not os.path.isdir(a.data):
-        sys.exit(f"breath_hold_baselines: the data folder {a.data} is absent (it is read in place, "
-                 "never copied into the repository)")
-    tmp = None
-    if a.work is None:
-        tmp = tempfile.TemporaryDirectory(prefix="breath_hold_")
-        a.work = tmp.name
-    t0 = time.time()
-    cases = [c.strip().zfill(2) for c in a.cases.split(",")]
-
-    def sh(cmd):
-        try:
-            return subprocess.run(cmd, capture_output=True, text=True, cwd=ROOT).stdout.strip()
-        except OSError:
-            return ""
-    cpu = ""
-    try:
-        cpu = next(l.split(":", 1)[1].strip() for l in open("/proc/cpuinfo") if l.startswith("model name"))
-    except (OSError, StopIteration):
-        pass
-    out = {"date_utc": sh(["date", "-u"]),
-           "machine": f"{platform.system()} {platform.release()} {platform.machine()}, {cpu}, "
-                      f"{os.cpu_count()} CPUs",
-           "lungdyn_version": sh([a.lungdyn, "--version"]),
-           "git_head": sh(["git", "rev-parse", "--short", "HEAD"]),
-           "git_dirty": bool(sh(["git", "status", "--porcelain"])),
-           "samples_per_surface": a.samples, "vertices_asked": a.vertices,
-           "spacing_check": spacing_check(a.data, cases), "cases": []}
-    for c in cases:
-        out["cases"].append(run_case(c, a))
-
-    # summary
+def summarise(out, a):
+    """Counts, statements and oddities from the per-lung results (also for --render)."""
     lungs = [c["lungs"][l] for c in out["cases"] for l in LUNGS]
     names = ["a_no_motion", "b_uniform_scaling", "c_population"] + (
         [] if a.no_fit else ["d_fit_in_sample"])
@@ -816,44 +767,121 @@ def main():
     for aname in [n for n in ALIGN_NAMES if n != PRIMARY]:
         sens[aname] = {k: sum(x["sensitivity"][aname]["winner_abc"] == k for x in lungs) for k in abc}
     odd = []
+    si_c, si_d, touch, frame_w = [], [], [], []
     for c in out["cases"]:
         for l in LUNGS:
             x = c["lungs"][l]
+            tag = f"{c['case']} {l}"
             ec = x["export_c"]
             if abs(ec["volume_ml"] - x["inhale_ml"]) > 0.01 * x["inhale_ml"]:
-                odd.append(f"case {c['case']} {l}: (c) exported {ec['volume_ml']:.0f} ml, inhale {x['inhale_ml']:.0f} ml")
-            if x["bake_c"].get("frame_warning"):
-                odd.append(f"case {c['case']} {l}: `bake --frame body` warns: {x['bake_c']['frame_warning']}")
-            if ec.get("self_intersections"):
-                odd.append(f"case {c['case']} {l}: (c) export reports {ec['self_intersections']} self-intersections")
+                odd.append(f"case {tag}: (c) exported {ec['volume_ml']:.0f} ml, inhale {x['inhale_ml']:.0f} ml")
             if not ec["watertight"]:
-                odd.append(f"case {c['case']} {l}: (c) export not watertight")
+                odd.append(f"case {tag}: (c) export not watertight")
+            if ec.get("self_intersections"):
+                si_c.append(f"{tag} ({ec['self_intersections']})")
+            if x["bake_c"].get("frame_warning") and not any(
+                    "anterior and posterior swapped" in w_ for w_ in x["exhale_mesh"].get("warnings") or []):
+                odd.append(f"case {tag}: `bake --frame body` warns: {x['bake_c']['frame_warning']}")
             if "fit_motion" in x and "failure" in x["fit_motion"]:
-                odd.append(f"case {c['case']} {l}: (d) failed: {x['fit_motion']['failure']}")
+                why = re.sub(r"/\S*/(case_\d\d/)", r"\1", x["fit_motion"]["failure"])
+                odd.append(f"case {tag}: (d) failed: {why}")
             if "fit_motion" in x and "export" in x["fit_motion"]:
                 de = x["fit_motion"]["export"]
                 if abs(de["volume_ml"] - x["inhale_ml"]) > 0.01 * x["inhale_ml"]:
-                    odd.append(f"case {c['case']} {l}: (d) exported {de['volume_ml']:.0f} ml, inhale {x['inhale_ml']:.0f} ml")
+                    odd.append(f"case {tag}: (d) exported {de['volume_ml']:.0f} ml, inhale {x['inhale_ml']:.0f} ml")
                 if de.get("self_intersections"):
-                    odd.append(f"case {c['case']} {l}: (d) export reports {de['self_intersections']} self-intersections")
+                    si_d.append(f"{tag} ({de['self_intersections']})")
             for side in ("exhale_mesh", "inhale_mesh"):
+                scan = side.split("_")[0]
                 for wmsg in x[side].get("warnings") or []:
-                    if "length unit" not in wmsg:
-                        odd.append(f"case {c['case']} {l}: {side.split('_')[0]} `mesh from-mask` warns: {wmsg}")
+                    if "anterior and posterior swapped" in wmsg:
+                        frame_w.append(f"{tag} {scan}")
+                    elif "length unit" not in wmsg:
+                        odd.append(f"case {tag}: {scan} `mesh from-mask` warns: {wmsg}")
                 fb = x[side].get("fallback")
                 if fb:
-                    rej = "; ".join(f"--smooth {r['smooth_mm']}: {r['error']}" for r in fb["rejected"])
-                    odd.append(f"case {c['case']} {l}: {side.split('_')[0]} surface: `mesh from-mask` "
-                               f"failed with the default smoothing ({fb['error']}); used `--smooth "
-                               f"{fb['used_smooth_mm']}`" + (f" (rejected {rej})" if rej else ""))
+                    rej = "; ".join(f"`--smooth {r['smooth_mm']}`: {r['error']}" for r in fb["rejected"])
+                    err = re.sub(r"/\S*/(case_\d\d_)", r"\1", fb["error"])
+                    odd.append(f"case {tag} {scan} surface: `mesh from-mask` failed with the default "
+                               f"smoothing ({err}); used `--smooth {fb['used_smooth_mm']}`"
+                               + (f" (rejected {rej})" if rej else ""))
                 if x[side].get("sides_from") not in (None, "components"):
-                    odd.append(f"case {c['case']} {l}: {side.split('_')[0]} lungs touch; sides "
-                               f"separated by `{x[side]['sides_from']}`")
-    out["summary"] = {"wins_abc": wins_abc, "wins_all": wins_all, "mean_mssd_mm": mean,
-                      "c_beats_no_motion": c_beats_a, "c_beats_scaling": c_beats_b,
-                      "c_beats_both": c_beats_both, "statement": statement,
-                      "fit_statement": fit_statement, "alignment_statement": align_statement,
-                      "sensitivity_wins_abc": sens, "oddities": odd}
+                    touch.append(f"{tag} {scan}")
+    if frame_w:
+        odd.append("`mesh from-mask` warns that the lung lies with anterior and posterior swapped "
+                   "(its lowest point anterior) on: " + ", ".join(frame_w) + ". The other lungs of "
+                   "the same images pass the same check and the frame is the one every other lung "
+                   "needs, so this is read as the lung's shape (a base lowest in front), not a "
+                   "frame error; the surfaces are kept, and bake is given `--frame body` (what "
+                   "from-mask writes) so that its same guess (it refused the exhale surface without it) is a "
+                   "warning, not a refusal.")
+    if si_c or si_d:
+        odd.append("`kernel export` reports self-intersections (it counts at most 16) on (c): "
+                   + (", ".join(si_c) or "none") + "; on (d): " + (", ".join(si_d) or "none")
+                   + ". The exported surfaces are scored as they are.")
+    if touch:
+        odd.append("Lungs touching in the mask, sides separated by `mesh from-mask`'s split at the "
+                   "contact: " + ", ".join(touch) + ".")
+    return {"wins_abc": wins_abc, "wins_all": wins_all, "mean_mssd_mm": mean,
+            "c_beats_no_motion": c_beats_a, "c_beats_scaling": c_beats_b,
+            "c_beats_both": c_beats_both, "statement": statement,
+            "fit_statement": fit_statement, "alignment_statement": align_statement,
+            "sensitivity_wins_abc": sens, "oddities": odd}
+
+
+# ----------------------------------------------------------------------------- main
+def main():
+    ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    ap.add_argument("--data", default=DEFAULT_DATA)
+    ap.add_argument("--lungdyn", default=os.path.join(ROOT, "target", "release", "lungdyn"))
+    ap.add_argument("--cases", default="05,06,07,08,09,10")
+    ap.add_argument("--vertices", type=int, default=20000)
+    ap.add_argument("--samples", type=int, default=100_000)
+    ap.add_argument("--no-fit", action="store_true", help="skip (d), the fit-motion kernel")
+    ap.add_argument("--work", default=None, help="keep meshes and kernels here (else a temp dir)")
+    ap.add_argument("--md", default=os.path.join(ROOT, "docs", "masks", "breath_hold_baselines.md"))
+    ap.add_argument("--render", metavar="JSON", help="only write the markdown from this script's "
+                    "saved JSON output (no measurement)")
+    a = ap.parse_args()
+    if a.render:
+        out = json.load(open(a.render))
+        a.samples, a.vertices = out["samples_per_surface"], out["vertices_asked"]
+        a.no_fit = not any("fit_motion" in x for c in out["cases"] for x in c["lungs"].values())
+        out["summary"] = summarise(out, a)
+        write_md(a.md, out, a)
+        return
+    if not os.path.isdir(a.data):
+        sys.exit(f"breath_hold_baselines: the data folder {a.data} is absent (it is read in place, "
+                 "never copied into the repository)")
+    tmp = None
+    if a.work is None:
+        tmp = tempfile.TemporaryDirectory(prefix="breath_hold_")
+        a.work = tmp.name
+    t0 = time.time()
+    cases = [c.strip().zfill(2) for c in a.cases.split(",")]
+
+    def sh(cmd):
+        try:
+            return subprocess.run(cmd, capture_output=True, text=True, cwd=ROOT).stdout.strip()
+        except OSError:
+            return ""
+    cpu = ""
+    try:
+        cpu = next(l.split(":", 1)[1].strip() for l in open("/proc/cpuinfo") if l.startswith("model name"))
+    except (OSError, StopIteration):
+        pass
+    out = {"date_utc": sh(["date", "-u"]),
+           "machine": f"{platform.system()} {platform.release()} {platform.machine()}, {cpu}, "
+                      f"{os.cpu_count()} CPUs",
+           "lungdyn_version": sh([a.lungdyn, "--version"]),
+           "git_head": sh(["git", "rev-parse", "--short", "HEAD"]),
+           "git_dirty": bool(sh(["git", "status", "--porcelain"])),
+           "samples_per_surface": a.samples, "vertices_asked": a.vertices,
+           "spacing_check": spacing_check(a.data, cases), "cases": []}
+    for c in cases:
+        out["cases"].append(run_case(c, a))
+
+    out["summary"] = summarise(out, a)
     out["seconds"] = time.time() - t0
     out["commands_example"] = COMMANDS[:12]
     out["markdown"] = os.path.relpath(a.md, ROOT)
