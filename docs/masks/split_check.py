@@ -5,8 +5,11 @@ component, where --keep-component left|right silently keeps both lungs).
 The sides are separated here, independently of lungdyn: the mask is eroded (6-connectivity) until its
 two largest components each hold >= 10 % of the larger, and these two cores are grown back over the
 mask by a watershed on the negated distance transform (mm), so the cut falls on the narrowest neck.
-The core with the larger body X is the patient's LEFT lung (body frame: +X patient left, as the
-checker's own load_mask gives it).  Nothing is written but the checker's JSON on stdout.
+--side left|right means what the checker's --keep-component left|right means: the part with the
+larger|smaller body X in the frame the checker reads from the HEADER (body: +X patient left).  For the
+COPDgene masks, whose headers turn the patient half a turn about the long axis, the anatomical right
+lung is --side left (and the mesh must be turned back into the header's frame first).
+Nothing is written but the checker's JSON on stdout.
 
   python3 docs/masks/split_check.py --side left|right --mask M --mesh MESH   (run from the repo root)
 """
@@ -36,11 +39,11 @@ def load(path):
     big = np.argsort(sizes)[::-1][:2] + 1
     x = [(np.argwhere(lab == c).mean(0) @ aff[:3, :3].T)[0] for c in big]
     markers = np.zeros(m.shape, np.int32)
-    markers[lab == big[int(np.argmin(x))]] = 1   # right: smaller body X
-    markers[lab == big[int(np.argmax(x))]] = 2   # left: larger body X
+    markers[lab == big[int(np.argmin(x))]] = 1   # --side right: smaller body X
+    markers[lab == big[int(np.argmax(x))]] = 2   # --side left: larger body X
     sp = np.linalg.norm(aff[:3, :3], axis=0)
     ws = watershed(-ndimage.distance_transform_edt(m, sampling=sp), markers, mask=m)
-    info["split"] = {"erosions": it, "right_voxels": int((ws == 1).sum()), "left_voxels": int((ws == 2).sum()),
+    info["split"] = {"side": side, "erosions": it, "smaller_x_voxels": int((ws == 1).sum()), "larger_x_voxels": int((ws == 2).sum()),
                      "unreached_voxels": int((m & (ws == 0)).sum()),
                      "method": "erode (6-conn) to two cores >= 10 %, watershed on -EDT(mm) within the mask"}
     return ws.astype(np.int16), aff, info
