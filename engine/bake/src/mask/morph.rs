@@ -154,11 +154,6 @@ pub fn distance_sq(g: &Grid, target: bool) -> Vec<f64> {
             .map(|&b| if b == target { 0.0 } else { f64::INFINITY })
             .collect();
     let [nx, ny, nz] = g.dims;
-    let n_max = nx.max(ny).max(nz);
-    let mut f = vec![0.0; n_max];
-    let mut out = vec![0.0; n_max];
-    let mut v = vec![0usize; n_max];
-    let mut z = vec![0.0; n_max + 1];
     for axis in 0..3 {
         let (len, stride) = match axis {
             0 => (nx, 1),
@@ -166,20 +161,53 @@ pub fn distance_sq(g: &Grid, target: bool) -> Vec<f64> {
             _ => (nz, nx * ny),
         };
         let s2 = g.spacing[axis] * g.spacing[axis];
-        let lines: Vec<usize> = (0..g.on.len())
-            .filter(|&idx| (idx / stride) % len == 0)
-            .collect();
-        for start in lines {
-            for q in 0..len {
-                f[q] = d[start + q * stride];
-            }
-            edt_1d(&f[..len], s2, &mut out[..len], &mut v, &mut z);
-            for q in 0..len {
-                d[start + q * stride] = out[q];
-            }
-        }
+        along_lines(&mut d, len, stride, |line, out, v, z| {
+            edt_1d(line, s2, out, v, z);
+        });
     }
     d
+}
+
+/// Apply `f(line, out, v, z)` to every line of `d` along the axis of (`len`, `stride`), in
+/// parallel: the lines are gathered into a contiguous buffer, transformed (each with its own
+/// scratch), and scattered back — each line's result is the same as one line at a time.
+fn along_lines(
+    d: &mut [f64],
+    len: usize,
+    stride: usize,
+    f: impl Fn(&[f64], &mut [f64], &mut [usize], &mut [f64]) + Sync,
+) {
+    use rayon::prelude::*;
+    if len == 0 || d.is_empty() {
+        return;
+    }
+    let lines = d.len() / len;
+    // Line `l` starts at `start(l)`: lines run over the block's rows first, then the blocks.
+    let start = |l: usize| (l / stride) * len * stride + l % stride;
+    let mut gathered = vec![0.0f64; d.len()];
+    {
+        let d = &*d;
+        gathered
+            .par_chunks_mut(len)
+            .enumerate()
+            .for_each_init(
+                || (vec![0.0f64; len], vec![0usize; len], vec![0.0f64; len + 1]),
+                |(out, v, z), (l, line)| {
+                    let s = start(l);
+                    for (q, x) in line.iter_mut().enumerate() {
+                        *x = d[s + q * stride];
+                    }
+                    f(line, out, v, z);
+                    line.copy_from_slice(out);
+                },
+            );
+    }
+    for l in 0..lines {
+        let s = start(l);
+        for (q, &x) in gathered[l * len..(l + 1) * len].iter().enumerate() {
+            d[s + q * stride] = x;
+        }
+    }
 }
 
 /// One line of the transform: `out[q] = min_p f[p] + s2·(q − p)²`.
@@ -265,8 +293,10 @@ pub fn genus(g: &Grid) -> i64 {
             && (k as usize) < nz
             && g.on[g.at(i as usize, j as usize, k as usize)]
     };
-    let (mut v, mut e, mut f, mut c) = (0i64, 0i64, 0i64, 0i64);
-    for k in 0..=nz as isize {
+    use rayon::prelude::*;
+    // Each lattice plane counted in parallel; integer sums, so the order does not matter.
+    let plane = |k: isize| -> [i64; 4] {
+        let (mut v, mut e, mut f, mut c) = (0i64, 0i64, 0i64, 0i64);
         for j in 0..=ny as isize {
             for i in 0..=nx as isize {
                 // The lattice point (i, j, k) is the corner shared by voxels (i−1..i, j−1..j, k−1..k).
@@ -299,7 +329,12 @@ pub fn genus(g: &Grid) -> i64 {
                 }
             }
         }
-    }
+        [v, e, f, c]
+    };
+    let [v, e, f, c] = (0..=nz as isize)
+        .into_par_iter()
+        .map(plane)
+        .reduce(|| [0; 4], |a, b| [a[0] + b[0], a[1] + b[1], a[2] + b[2], a[3] + b[3]]);
     1 - (v - e + f - c)
 }
 

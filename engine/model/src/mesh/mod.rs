@@ -28,8 +28,6 @@ pub mod io;
 pub mod lobes;
 pub mod teardrop;
 
-use std::collections::HashMap;
-
 use thiserror::Error;
 
 /// Which lung.
@@ -192,9 +190,11 @@ pub fn check(mesh: &TriMesh) -> Result<Topology, MeshError> {
     }
     let n = mesh.positions.len() as u32;
     let mut used = vec![false; mesh.positions.len()];
-    // Directed edge (a, b) → count. A closed, consistently wound 2-manifold has every directed edge
-    // exactly once and its reverse exactly once.
-    let mut directed: HashMap<(u32, u32), u32> = HashMap::with_capacity(mesh.triangles.len() * 3);
+    // Directed edges (a, b) packed as `a << 32 | b`, sorted: a closed, consistently wound
+    // 2-manifold has every directed edge exactly once and its reverse exactly once. A sorted list
+    // rather than a hash map: the check runs on every mesh made from a mask (several per lung at
+    // 100k vertices), where hashing cost more than the rest of the check.
+    let mut directed: Vec<u64> = Vec::with_capacity(mesh.triangles.len() * 3);
     for (ti, t) in mesh.triangles.iter().enumerate() {
         if t.iter().any(|&i| i >= n) {
             return Err(MeshError::IndexOutOfRange { triangle: ti });
@@ -204,19 +204,34 @@ pub fn check(mesh: &TriMesh) -> Result<Topology, MeshError> {
         }
         for k in 0..3 {
             used[t[k] as usize] = true;
-            *directed.entry((t[k], t[(k + 1) % 3])).or_insert(0) += 1;
+            directed.push((t[k] as u64) << 32 | t[(k + 1) % 3] as u64);
         }
     }
+    directed.sort_unstable();
+    // (edge, count) runs.
+    let mut runs: Vec<(u64, u32)> = Vec::with_capacity(directed.len());
+    for &e in &directed {
+        match runs.last_mut() {
+            Some((last, c)) if *last == e => *c += 1,
+            _ => runs.push((e, 1)),
+        }
+    }
+    let count_of = |e: u64| {
+        runs.binary_search_by_key(&e, |&(k, _)| k)
+            .ok()
+            .map(|i| runs[i].1)
+    };
     let mut open = 0u64;
     let mut inconsistent = 0u64;
     let mut non_manifold = 0u64;
-    for (&(a, b), &count) in &directed {
+    for &(e, count) in &runs {
         if count > 1 {
             non_manifold += 1;
         }
-        match directed.get(&(b, a)) {
+        let reverse = (e & 0xFFFF_FFFF) << 32 | e >> 32;
+        match count_of(reverse) {
             None => open += 1,
-            Some(&back) if back != count => inconsistent += 1,
+            Some(back) if back != count => inconsistent += 1,
             _ => {}
         }
     }
@@ -246,7 +261,7 @@ pub fn check(mesh: &TriMesh) -> Result<Topology, MeshError> {
     if volume <= 0.0 {
         return Err(MeshError::InsideOut { volume_mm3: volume });
     }
-    let edges = directed.len() / 2;
+    let edges = runs.len() / 2;
     Ok(Topology {
         vertices: mesh.positions.len(),
         edges,
