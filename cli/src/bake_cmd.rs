@@ -174,11 +174,13 @@ pub fn bake(args: &BakeArgs) -> anyhow::Result<BakeSummary> {
         let preset: lung_model::deform::DirectionPreset = d.parse().map_err(anyhow::Error::msg)?;
         settings.motion = preset.constants(side);
         settings.direction_field = None;
+        settings.force_field = None;
     }
     if let Some(m) = &args.motion {
         let f = lung_model::deform::MotionFile::load(m)?;
         settings.motion = f.for_side(side);
         settings.direction_field = f.field_for_side(side).cloned();
+        settings.force_field = f.force_for_side(side).cloned();
     }
     if let Some(l) = args.smoothing_mm {
         if !lung_model::kernel::amplitude_smoothing_ok(l) {

@@ -20,6 +20,7 @@ pub mod mesh_cmd;
 pub mod motion_cmd;
 pub mod motion_plot;
 pub mod outputs;
+pub mod pair_cmd;
 pub mod patient_cmd;
 pub mod plot;
 pub mod prepare;

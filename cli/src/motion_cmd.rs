@@ -28,15 +28,60 @@ Landmarks: every model (the seed's power law, an affine field, a polynomial, a t
 no-motion baseline and the best by held-out error is chosen (--model picks one). The frame is checked \
 against what breathing does (the base moves most, downwards on inspiration) and a disagreement is \
 said loudly.\n\nExample (DIR-Lab case 1): lungdyn fit-motion --format dirlab --spacing 0.97,0.97,2.5 \
---from Case1_300_T50_xyz.txt --to Case1_300_T00_xyz.txt --out motion.toml --plot fit.png"
+--from Case1_300_T50_xyz.txt --to Case1_300_T00_xyz.txt --out motion.toml --plot fit.png\n\n\
+A breath-hold pair (--exhale, --inhale: one patient's exhale and inhale lung masks or surfaces, not \
+registered): each lung's inhale surface is aligned by one translation (apex on apex, then the apical \
+cap, the top quarter, onto the exhale surface: the apex moves least in breathing), then the applied \
+force (a polynomial, --force-degree; the seed's is degree 1) and the directions (a polynomial field, \
+--field-degree) are fitted through the bake's own operator so the exhale lung driven to the inhale \
+volume lands on the inhale surface. The error printed is that of the kernel `bake --motion` makes \
+from the written file, driven to the inhale volume, beside no motion, uniform scaling and a \
+cross-validated figure (each part of the surface fitted without itself).\n\n\
+Example: lungdyn fit-motion --exhale case_05_exp_mask.nii.gz --inhale case_05_insp_mask.nii.gz \
+--axes LPS --lung right --out motion.toml --surfaces-out fit/  then  lungdyn bake --mesh fit/right_exhale.ply \
+--lung right --motion motion.toml --out right.kernel"
 )]
 pub struct FitMotionArgs {
     /// Points (or mesh) at the reference phase: end-exhalation (FRC).
-    #[arg(long)]
-    pub from: PathBuf,
+    #[arg(long, required_unless_present = "exhale", conflicts_with_all = ["exhale", "inhale"])]
+    pub from: Option<PathBuf>,
     /// The same points at the phase to fit (e.g. end-inhalation).
-    #[arg(long)]
-    pub to: PathBuf,
+    #[arg(long, required_unless_present = "inhale")]
+    pub to: Option<PathBuf>,
+    /// A breath-hold pair's exhale lung: a lung mask (NIfTI, NRRD, MetaImage, read as `mesh
+    /// from-mask` reads it) or a closed surface (.ply, .obj, .stl). With --inhale: the patient's own
+    /// motion on the operator (force and direction fields), see below.
+    #[arg(long, requires = "inhale", value_name = "MASK|SURFACE")]
+    pub exhale: Option<PathBuf>,
+    /// The same patient's inhale lung (mask or surface; not registered to the exhale one).
+    #[arg(long, requires = "exhale", value_name = "MASK|SURFACE")]
+    pub inhale: Option<PathBuf>,
+    /// With --exhale/--inhale masks: the voxel axes of the exhale image, replacing its header's (see
+    /// `mesh from-mask --help`); also the inhale image's unless --inhale-axes is given.
+    #[arg(long, value_name = "XYZ")]
+    pub axes: Option<String>,
+    /// With --inhale a mask: its voxel axes.
+    #[arg(long, value_name = "XYZ")]
+    pub inhale_axes: Option<String>,
+    /// With --exhale a mask: vertices of the exhale surface the motion is fitted on (bake that
+    /// surface: `--surfaces-out` writes it), about.
+    #[arg(long, default_value_t = 20_000)]
+    pub vertices: usize,
+    /// With --exhale/--inhale: total degree of the applied force polynomial (1 is the seed's
+    /// linear force), 1-5.
+    #[arg(long, default_value_t = 3)]
+    pub force_degree: u8,
+    /// With --exhale/--inhale: total degree of the direction field polynomial, 1-5.
+    #[arg(long, default_value_t = 4)]
+    pub field_degree: u8,
+    /// With --exhale/--inhale: rounds of the symmetric ICP.
+    #[arg(long, default_value_t = 50)]
+    pub iterations: usize,
+    /// With --exhale/--inhale: write FOLDER/LUNG_exhale.ply (the surface fitted on, to bake),
+    /// LUNG_moved.ply (it driven to the inhale volume by the fitted kernel) and
+    /// LUNG_inhale_aligned.ply (the target): for an independent check.
+    #[arg(long, value_name = "FOLDER")]
+    pub surfaces_out: Option<PathBuf>,
     /// Further phases predicted from the fitted field with one scale each (comma-separated files).
     #[arg(long, value_delimiter = ',')]
     pub also: Vec<PathBuf>,
@@ -65,7 +110,7 @@ pub struct FitMotionArgs {
     /// auto (fit all, choose the lowest cross-validated error).
     #[arg(long, value_enum, default_value_t = ModelChoice::Auto)]
     pub model: ModelChoice,
-    /// Folds of the cross-validation (held-out errors), 2..=20.
+    /// Folds of the cross-validation (held-out errors), 2..=20 (with --exhale/--inhale 2..=10).
     #[arg(long, default_value_t = 5, value_parser = clap::value_parser!(u64).range(2..=20))]
     pub folds: u64,
     /// Seed of the fold assignment (the same seed gives the same folds and numbers).
@@ -92,6 +137,18 @@ pub struct FitMotionArgs {
     /// Print one JSON object on stdout.
     #[arg(long)]
     pub json: bool,
+}
+
+impl FitMotionArgs {
+    /// `--from` (required unless --exhale, which takes another path through `run`).
+    pub fn from_path(&self) -> &Path {
+        self.from.as_deref().unwrap_or(Path::new(""))
+    }
+
+    /// `--to`.
+    pub fn to_path(&self) -> &Path {
+        self.to.as_deref().unwrap_or(Path::new(""))
+    }
 }
 
 /// `--frame`: the frame the files state (voxel details come from --spacing, --voxel-axes,
@@ -350,7 +407,7 @@ fn check_some_motion(
              mm): is it the same phase twice? Give the end-exhale points as --from and the end-inhale \
              points as --to",
             path.display(),
-            args.from.display(),
+            args.from_path().display(),
             lung_model::plausible::compact(largest)
         );
     }
@@ -360,8 +417,8 @@ fn check_some_motion(
 /// Refuse `--from` and `--to` naming one file (nothing to fit), before reading either.
 fn check_distinct_files(args: &FitMotionArgs) -> anyhow::Result<()> {
     let same = match (
-        std::fs::canonicalize(&args.from),
-        std::fs::canonicalize(&args.to),
+        std::fs::canonicalize(args.from_path()),
+        std::fs::canonicalize(args.to_path()),
     ) {
         (Ok(a), Ok(b)) => a == b,
         _ => args.from == args.to,
@@ -370,7 +427,7 @@ fn check_distinct_files(args: &FitMotionArgs) -> anyhow::Result<()> {
         anyhow::bail!(
             "--from and --to are the same file ({}): no motion between the phases can be fitted from one \
              phase; give the end-inhale file as --to",
-            args.to.display()
+            args.to_path().display()
         );
     }
     Ok(())
@@ -465,7 +522,7 @@ fn sub_mesh(
     Ok(sub)
 }
 
-fn import_scaled(
+pub(crate) fn import_scaled(
     path: &Path,
     frame: &Frame,
     input: &crate::input_args::InputArgs,
@@ -540,21 +597,21 @@ fn run_surface(
 ) -> anyhow::Result<MotionFit> {
     use lung_bake::surface_fit::{fit_surface, Goal, Target};
     let scene = lung_model::scene::Scene::load_or_default(args.scene.as_deref())?;
-    let parts_a = lung_parts(a, side, &args.from)?;
+    let parts_a = lung_parts(a, side, args.from_path())?;
     if side.is_some() {
         // --lung: the mesh is that lung; say so when its geometry says otherwise (as bake and mesh
         // check do).
         for (_, _, m) in &parts_a {
             let e = lung_bake::surface_checks::infer_side(m);
             side_warning(
-                &args.from,
+                args.from_path(),
                 side,
                 e.side
                     .map(|s| (s, format!("{}; confidence {:.2}", e.reason, e.confidence))),
             );
         }
     }
-    let parts_b = lung_parts(b, side, &args.to)?;
+    let parts_b = lung_parts(b, side, args.to_path())?;
     let also = args
         .also
         .iter()
@@ -570,7 +627,7 @@ fn run_surface(
                 anyhow::bail!(
                     "{}: its vertices do not match {} (pass --surface to fit all phases as surfaces)",
                     p.display(),
-                    args.from.display()
+                    args.from_path().display()
                 );
             }
             let parts = lung_parts(&m, side, p)?;
@@ -587,7 +644,7 @@ fn run_surface(
                     "{}: has no {} lung, but {} has one",
                     what.display(),
                     s.name(),
-                    args.from.display()
+                    args.from_path().display()
                 )
             })
     };
@@ -603,7 +660,7 @@ fn run_surface(
             )
         } else {
             (
-                find(&parts_b, *s, &args.to)?,
+                find(&parts_b, *s, args.to_path())?,
                 also.iter()
                     .map(|(p, _, parts)| find(parts, *s, p))
                     .collect::<anyhow::Result<Vec<_>>>()?,
@@ -629,7 +686,7 @@ fn run_surface(
                 scene.lungs.amplitude_smoothing_mm,
             )?
         } else {
-            let tb = Target::new(&mb, &args.to.display().to_string())?;
+            let tb = Target::new(&mb, &args.to_path().display().to_string())?;
             let tc = also
                 .iter()
                 .zip(&mc)
@@ -685,6 +742,8 @@ fn write_motion(
         cv_mean_error_mm: None,
         left_field: None,
         right_field: None,
+        left_force: None,
+        right_force: None,
     };
     for l in &fit.lungs {
         match l.lung {
@@ -706,8 +765,8 @@ fn write_motion(
     let text = format!(
         "# lungdyn motion constants (fit-motion from {} to {}, {} mode); {how}.\n\
          # Use: lungdyn bake --motion this.toml\n{}",
-        args.from.display(),
-        args.to.display(),
+        args.from_path().display(),
+        args.to_path().display(),
         fit.mode,
         toml::to_string(&file)?
     );
@@ -779,14 +838,19 @@ pub enum Outcome {
     Points(Box<PointsReport>),
     /// Meshes or surfaces: the kernel's own model through the operator.
     Kernel(MotionFit),
+    /// A breath-hold pair: the patient's force and direction fields.
+    Pair(Box<crate::pair_cmd::PairReport>),
 }
 
 /// Read, fit, optionally write.
 pub fn run(args: &FitMotionArgs) -> anyhow::Result<Outcome> {
-    let meshes = std::iter::once(&args.from)
-        .chain(std::iter::once(&args.to))
-        .chain(&args.also)
-        .any(|p| is_mesh(p));
+    if args.exhale.is_some() {
+        return Ok(Outcome::Pair(Box::new(crate::pair_cmd::run(args)?)));
+    }
+    let meshes = std::iter::once(args.from_path())
+        .chain(std::iter::once(args.to_path()))
+        .chain(args.also.iter().map(|p| p.as_path()))
+        .any(is_mesh);
     if meshes && !args.spacing.is_empty() {
         anyhow::bail!(
             "--spacing applies to voxel landmark files only; a mesh (.obj, .ply, .stl) holds coordinates \
@@ -813,9 +877,9 @@ pub fn run(args: &FitMotionArgs) -> anyhow::Result<Outcome> {
         });
     }
     crate::outputs::check_all(&outputs, &[])?;
-    if is_mesh(&args.from) && is_mesh(&args.to) {
-        let ma = import_scaled(&args.from, &frame, &args.input)?;
-        let mb = import_scaled(&args.to, &frame, &args.input)?;
+    if is_mesh(args.from_path()) && is_mesh(args.to_path()) {
+        let ma = import_scaled(args.from_path(), &frame, &args.input)?;
+        let mb = import_scaled(args.to_path(), &frame, &args.input)?;
         let same_vertices =
             ma.positions.len() == mb.positions.len() && ma.triangles == mb.triangles;
         if same_vertices {
@@ -825,7 +889,7 @@ pub fn run(args: &FitMotionArgs) -> anyhow::Result<Outcome> {
                     .map(|p| DVec3::from(p.map(|v| v as f64)))
                     .collect()
             };
-            check_some_motion(&pts(&ma), &pts(&mb), &args.to, args)?;
+            check_some_motion(&pts(&ma), &pts(&mb), args.to_path(), args)?;
         }
         return Ok(Outcome::Kernel(run_surface(
             args,
@@ -838,22 +902,22 @@ pub fn run(args: &FitMotionArgs) -> anyhow::Result<Outcome> {
     } else if args.surface {
         anyhow::bail!("--surface needs two meshes (.obj, .ply, .stl) for --from and --to");
     }
-    let a = read_points(&args.from, &frame, &args.input)?;
-    let b = read_points(&args.to, &frame, &args.input)?;
+    let a = read_points(args.from_path(), &frame, &args.input)?;
+    let b = read_points(args.to_path(), &frame, &args.input)?;
     let stated = args.frame.is_some()
         || args.format == PointFormat::Dirlab
         || args.voxel_axes.is_some()
         || args.index_base.is_some();
     if !stated {
-        for (path, pts) in [(&args.from, &a), (&args.to, &b)] {
+        for (path, pts) in [(args.from_path(), &a), (args.to_path(), &b)] {
             if !is_mesh(path) {
                 check_not_voxel_indices(path, pts)?;
             }
         }
     }
     if a.len() == b.len() {
-        check_motion(&a, &b, &args.to)?;
-        check_some_motion(&a, &b, &args.to, args)?;
+        check_motion(&a, &b, args.to_path())?;
+        check_some_motion(&a, &b, args.to_path(), args)?;
     }
     let also = args
         .also
@@ -869,7 +933,7 @@ pub fn run(args: &FitMotionArgs) -> anyhow::Result<Outcome> {
     // --lung: the set is that one lung (refused, naming the file, when it clearly holds both).
     if side.is_some() {
         motion_fit::split_lungs(&a, side)
-            .map_err(|e| anyhow::anyhow!("{}: {e}", args.from.display()))?;
+            .map_err(|e| anyhow::anyhow!("{}: {e}", args.from_path().display()))?;
     }
     // The seed's power law with its per-lung constants (what a kernel's c1..c9 are)...
     let power = motion_fit::fit(&a, &b, &also, side)?;
@@ -877,7 +941,7 @@ pub fn run(args: &FitMotionArgs) -> anyhow::Result<Outcome> {
     let delta: Vec<DVec3> = a.iter().zip(&b).map(|(p, q)| *q - *p).collect();
     let (_, lungs, _) = motion_models::split(&a, &delta, side)?;
     // --lung: the set is that lung; say so when its motion says otherwise.
-    let side_warning = side_warning(&args.from, side, motion_fit::side_from_motion(&a, &delta));
+    let side_warning = side_warning(args.from_path(), side, motion_fit::side_from_motion(&a, &delta));
     let frame_check = motion_models::check_frame(&lungs);
     if let Some(w) = &frame_check.warning {
         eprintln!("lungdyn: WARNING: {w}");
@@ -963,6 +1027,7 @@ pub fn text(outcome: &Outcome, args: &FitMotionArgs) -> String {
     match outcome {
         Outcome::Kernel(f) => kernel_text(f, args),
         Outcome::Points(r) => points_text(r, args),
+        Outcome::Pair(r) => crate::pair_cmd::text(r),
     }
 }
 

@@ -775,3 +775,90 @@ fn patient_makes_a_scene_that_scene_check_accepts_with_frc_from_the_masks() {
     );
     assert!(again.stderr.contains("--force"), "{}", again.stderr);
 }
+
+/// `fit-motion --exhale/--inhale` on a known breath (surfaces): the error it reports is the error of
+/// the kernel `bake --motion` makes from the file it wrote, driven (`kernel export`) to the inhale
+/// volume — measured here again from those files; bad pairs are refused without output.
+#[test]
+fn fit_motion_on_a_pair_reports_what_the_bake_of_its_file_draws() {
+    let tmp = Tmp::new("pair");
+    let exhale = anatomy::lung(Side::Right, 2500).unwrap();
+    let top = exhale.positions.iter().map(|p| p[2]).fold(f32::MIN, f32::max) as f64;
+    let bottom = exhale.positions.iter().map(|p| p[2]).fold(f32::MAX, f32::min) as f64;
+    let inhale = TriMesh {
+        positions: exhale
+            .positions
+            .iter()
+            .map(|p| {
+                let x = DVec3::from(p.map(|v| v as f64));
+                let t = (top - x.z) / (top - bottom);
+                (x + t * t * DVec3::new(-3.0, 5.0, -20.0) + DVec3::new(2.0, 1.0, 30.0))
+                    .as_vec3()
+                    .to_array()
+            })
+            .collect(),
+        triangles: exhale.triangles.clone(),
+    };
+    let (e, i) = (tmp.path("exhale.ply"), tmp.path("inhale.ply"));
+    lung_model::mesh::io::write_mesh(&exhale, &e).unwrap();
+    lung_model::mesh::io::write_mesh(&inhale, &i).unwrap();
+    let (motion, dir) = (tmp.path("motion.toml"), tmp.path("fit"));
+    let r = lungdyn(&[
+        "fit-motion", "--exhale", s(&e), "--inhale", s(&i), "--lung", "right", "--iterations", "20",
+        "--folds", "3", "--out", s(&motion), "--surfaces-out", s(&dir), "--json",
+    ]);
+    assert_eq!(r.code, Some(0), "{}", r.stderr);
+    let j: serde_json::Value = serde_json::from_str(&r.stdout).unwrap();
+    let lung = &j["lungs"][0];
+    let reported = lung["in_sample"]["mssd_mm"].as_f64().unwrap();
+    let (none, held) = (
+        lung["no_motion"]["mssd_mm"].as_f64().unwrap(),
+        lung["cross_validated"]["mssd_mm"].as_f64().unwrap(),
+    );
+    assert!(reported < 0.5 * none && held.is_finite(), "{lung}");
+    // What a user does with the file: bake the surface the fit used, drive it to the inhale volume.
+    let kernel = tmp.path("right.kernel");
+    let b = lungdyn(&[
+        "bake", "--mesh", s(&dir.join("right_exhale.ply")), "--lung", "right", "--motion", s(&motion),
+        "--out", s(&kernel),
+    ]);
+    assert_eq!(b.code, Some(0), "{}", b.stderr);
+    let dv = lung["inhale_ml"].as_f64().unwrap() - lung["exhale_ml"].as_f64().unwrap();
+    let drawn = tmp.path("drawn.ply");
+    let x = lungdyn(&[
+        "kernel", "export", s(&kernel), "--delta-ml", &format!("{dv}"), "--out", s(&drawn),
+    ]);
+    assert_eq!(x.code, Some(0), "{}", x.stderr);
+    let read = |p: &Path| {
+        lung_bake::import::import(p, lung_bake::import::Units::Mm)
+            .unwrap()
+            .mesh
+    };
+    let again = lung_bake::patient_motion::surface_distance(
+        &read(&drawn),
+        &read(&dir.join("right_inhale_aligned.ply")),
+    )
+    .unwrap();
+    assert!(
+        (again.mssd_mm - reported).abs() < 0.01,
+        "fit-motion reported {reported} mm; its bake, exported at +{dv:.1} ml, lies {} mm",
+        again.mssd_mm
+    );
+    // Refused, nothing written: the pair the wrong way round; one file twice; a landmark option.
+    for (case, args, words) in [
+        ("reversed", vec!["--exhale", s(&i), "--inhale", s(&e)], vec!["not larger"]),
+        ("same file", vec!["--exhale", s(&e), "--inhale", s(&e)], vec!["same file"]),
+        ("plot", vec!["--exhale", s(&e), "--inhale", s(&i), "--plot", "x.png"], vec!["--plot"]),
+        ("degree", vec!["--exhale", s(&e), "--inhale", s(&i), "--force-degree", "9"], vec!["--force-degree"]),
+    ] {
+        let out = tmp.path(&format!("{}.toml", case.replace(' ', "_")));
+        let mut full = vec!["fit-motion", "--lung", "right", "--out", s(&out)];
+        full.extend(args);
+        let r = lungdyn(&full);
+        assert!(matches!(r.code, Some(c) if c != 0 && c != 101), "{case}: {:?} {}", r.code, r.stderr);
+        for w in words {
+            assert!(r.stderr.contains(w), "{case}: {}", r.stderr);
+        }
+        assert!(!out.exists(), "{case}: wrote {}", out.display());
+    }
+}

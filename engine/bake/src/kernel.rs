@@ -84,6 +84,29 @@ pub enum BakeError {
     Bands(u32),
 }
 
+/// The applied force on each vertex of `mesh`: the fitted force field where the settings carry one
+/// (a breath-hold pair's fit), else eq. 6.17's `c7·x̂ + c8·ŷ + c9·ẑ` (EQUATIONS §2.4).
+pub fn applied_forces(mesh: &TriMesh, side: Side, settings: &BakeSettings) -> Vec<f64> {
+    let bb = mesh.aabb();
+    match &settings.force_field {
+        Some(f) => {
+            let (lo, hi) = (
+                glam::DVec3::from(bb.min.map(|v| v as f64)),
+                glam::DVec3::from(bb.max.map(|v| v as f64)),
+            );
+            mesh.positions
+                .iter()
+                .map(|p| f.value_in_box(glam::DVec3::from(p.map(|v| v as f64)), lo, hi))
+                .collect()
+        }
+        None => mesh
+            .positions
+            .iter()
+            .map(|&p| applied_force(normalised_position(p, &bb, side), &settings.motion))
+            .collect(),
+    }
+}
+
 /// Bake `mesh` (a closed lung surface in mm; checked again here). `progress(rows)` is called as transfer rows
 /// finish (from worker threads).
 pub fn bake(
@@ -120,11 +143,7 @@ pub fn bake(
         None => None,
         Some(t) => Some(apply_tumour(t, &mesh, &mut transfer)?),
     };
-    let force: Vec<f64> = mesh
-        .positions
-        .iter()
-        .map(|&p| applied_force(norm(p), &settings.motion))
-        .collect();
+    let force = applied_forces(&mesh, side, settings);
     let elastostatic = transfer.elastostatic(&force);
     let hash = mesh_hash(&mesh);
     let (model, directions, force_scale) = match &settings.direction_field {

@@ -31,6 +31,7 @@ pub mod motion_fit;
 pub mod motion_models;
 pub mod operator;
 pub mod orient;
+pub mod patient_motion;
 pub mod pv;
 pub mod smooth;
 pub mod surface_checks;

@@ -108,6 +108,11 @@ pub struct BakeSettings {
     /// operator are unchanged).
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub direction_field: Option<crate::deform::field::Field>,
+    /// An applied force field fitted to the patient's breath-hold pair (`lungdyn fit-motion
+    /// --exhale/--inhale`): when present, the force on each vertex before the operator instead of
+    /// `c7..c9`'s linear one (the operator and everything after it are unchanged).
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub force_field: Option<crate::deform::field::ForceField>,
     /// Regional elasticity.
     pub elasticity: Elasticity,
     /// Pitcher tolerance for a unit force.
@@ -161,6 +166,7 @@ impl BakeSettings {
         Self {
             motion: MotionConstants::default_for(side),
             direction_field: None,
+            force_field: None,
             elasticity: Elasticity::default(),
             tolerance: DEFAULT_TOLERANCE,
             sh_bands: DEFAULT_SH_BANDS,

@@ -1487,16 +1487,21 @@ impl Scene {
         &self,
         side: Side,
     ) -> Result<crate::kernel::BakeSettings, crate::deform::MotionFileError> {
-        let (motion, direction_field) = match &self.lungs.motion {
+        let (motion, direction_field, force_field) = match &self.lungs.motion {
             Some(path) => {
                 let f = crate::deform::MotionFile::load(path)?;
-                (f.for_side(side), f.field_for_side(side).cloned())
+                (
+                    f.for_side(side),
+                    f.field_for_side(side).cloned(),
+                    f.force_for_side(side).cloned(),
+                )
             }
-            None => (self.lungs.directions.constants(side), None),
+            None => (self.lungs.directions.constants(side), None, None),
         };
         Ok(crate::kernel::BakeSettings {
             motion,
             direction_field,
+            force_field,
             elasticity: self.lungs.elasticity,
             tolerance: self.lungs.transfer_tolerance,
             // The one error-budget rule: with a budget the bake keeps the fewest bands, from 1 up to

@@ -66,6 +66,54 @@ pub enum Field {
     },
 }
 
+/// An applied-force field fitted to a patient's breath (lungdyn, beyond the seed): the force on each
+/// vertex before the operator, a polynomial of total degree ≤ 5 in box coordinates `[-1, 1]³` of the
+/// fitted lung — the seed's applied force (eq. 6.17's `c7·x̂ + c8·ŷ + c9·ẑ`, EQUATIONS §2.4) is the
+/// degree-1 case. The operator turns it into the elastostatic force exactly as it turns the seed's
+/// (`F = T·f`), so a patient's fit keeps the chapter-6 pipeline and only gives it the freedom a real
+/// breath needs. Evaluated like [`Field`]: the mesh's box mapped onto the fitted box.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct ForceField {
+    /// Box of the fitted lung (its exhale surface), mm.
+    pub lo: [f64; 3],
+    /// Box, upper corner.
+    pub hi: [f64; 3],
+    /// Total degree, 1..=5.
+    pub degree: u8,
+    /// One coefficient per monomial of [`monomials`]`(degree)`, in that order.
+    pub coeffs: Vec<f64>,
+}
+
+impl ForceField {
+    /// The applied force at `p` of a lung whose box is (`lo`, `hi`).
+    pub fn value_in_box(&self, p: DVec3, lo: DVec3, hi: DVec3) -> f64 {
+        let (flo, fhi) = (DVec3::from(self.lo), DVec3::from(self.hi));
+        let t = (p - lo) / (hi - lo);
+        let u = box_coords(flo + t * (fhi - flo), flo, fhi);
+        monomials(self.degree)
+            .iter()
+            .zip(&self.coeffs)
+            .map(|(e, c)| c * u.x.powi(e[0] as i32) * u.y.powi(e[1] as i32) * u.z.powi(e[2] as i32))
+            .sum()
+    }
+
+    /// Every number finite, one coefficient per monomial, the box non-degenerate.
+    pub fn validate(&self) -> Result<(), &'static str> {
+        let (lo, hi) = (DVec3::from(self.lo), DVec3::from(self.hi));
+        if !(lo.is_finite() && hi.is_finite() && (hi - lo).min_element() > 1e-9) {
+            return Err("the force field's box is not finite or has no extent");
+        }
+        if !(1..=5).contains(&self.degree) || self.coeffs.len() != monomials(self.degree).len() {
+            return Err("a force field needs degree 1..=5 and one coefficient per monomial");
+        }
+        if !self.coeffs.iter().all(|c| c.is_finite()) {
+            return Err("force field coefficients must be finite");
+        }
+        Ok(())
+    }
+}
+
 /// The monomials `u^i v^j w^k` of total degree ≤ `degree` in graded order (1, u, v, w, u², uv, …):
 /// a lower degree's basis is a prefix of a higher one's.
 pub fn monomials(degree: u8) -> Vec<[u8; 3]> {

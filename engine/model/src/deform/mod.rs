@@ -155,6 +155,13 @@ pub struct MotionFile {
     /// Format 2: the right lung's displacement field.
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub right_field: Option<field::Field>,
+    /// Format 2, from a breath-hold pair (`fit-motion --exhale/--inhale`): the left lung's
+    /// applied force field, replacing `c7..c9`'s linear force before the operator.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub left_force: Option<field::ForceField>,
+    /// Format 2: the right lung's applied force field.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub right_force: Option<field::ForceField>,
 }
 
 impl MotionFile {
@@ -191,6 +198,15 @@ impl MotionFile {
                 })?;
             }
         }
+        for (side, force) in [("left", &f.left_force), ("right", &f.right_force)] {
+            if let Some(force) = force {
+                force.validate().map_err(|reason| MotionFileError::Field {
+                    path: path_buf(),
+                    side,
+                    reason,
+                })?;
+            }
+        }
         for (side, k) in [("left", &f.left), ("right", &f.right)] {
             if let Some(k) = k {
                 check_constants(k).map_err(|source| MotionFileError::Constants {
@@ -208,6 +224,14 @@ impl MotionFile {
         match side {
             Side::Left => self.left_field.as_ref(),
             Side::Right => self.right_field.as_ref(),
+        }
+    }
+
+    /// The applied force field of `side`, if the file has one (a breath-hold pair's fit).
+    pub fn force_for_side(&self, side: Side) -> Option<&field::ForceField> {
+        match side {
+            Side::Left => self.left_force.as_ref(),
+            Side::Right => self.right_force.as_ref(),
         }
     }
 

@@ -1,0 +1,823 @@
+//! # patient_motion: a breath-hold pair's motion, fitted on the chapter-6 operator
+//!
+//! A patient's exhale and inhale lung surfaces (two breath-hold CTs, not registered to each other)
+//! give the motion that patient's lung makes between the two volumes. The seed's motion (eq.
+//! 6.14–6.17) has nine constants: a linear applied force and a separable power law of directions.
+//! On the shared COPDgene pairs that cannot hold a real lung even in-sample (issue 34: 6.5 mm on a
+//! right lung where leaving it still gave 6.3 mm), so this fit gives the same pipeline the freedom
+//! the data need and nothing else:
+//!
+//! * **the applied force** `f(x)` is a polynomial of total degree ≤ `force_degree` in the lung's box
+//!   coordinates (the seed's is the degree-1 case), turned into the elastostatic force by the same
+//!   Green's-function operator the bake uses (`F = T·f`, seed §6.3, eq. 6.9–6.13);
+//! * **the directions** `d(x)` come from a smooth displacement field (a polynomial of degree
+//!   `field_degree`, [`Field::Poly`]), normalised, as `fit-motion` already gives the bake;
+//! * the vertex moves by `s·F_i·d_i`, `s` set by the volume — exactly the kernel's unit displacement,
+//!   driven to the inhale volume.
+//!
+//! **Alignment (argued).** The two scans are not registered: the patient lay down twice. One
+//! translation per lung puts the inhale apex on the exhale apex, then a trimmed, translation-only
+//! ICP fits the inhale apical cap (the top quarter of the exhale lung's height) onto the exhale
+//! surface. The apex moves least in breathing (the base and the front move most), so the cap
+//! carries the patient's repositioning and little of the breath; a rotation is not fitted because
+//! on these pairs a rotating ICP tilted the lungs 0.9–6.4° to fit the breath itself
+//! (docs/masks/breath_hold_baselines.md).
+//!
+//! **The fit.** Symmetric non-rigid ICP: each round moves the exhale surface by the current model,
+//! pairs every moved vertex with its closest inhale point and every inhale vertex with its closest
+//! moved point (so no part of the inhale surface is ignored), refits the direction field to the
+//! paired displacements and the force coefficients to their magnitudes along the directions (ridge
+//! least squares through the operator's columns). Start: uniform scaling to the inhale volume.
+//!
+//! **Held-out error.** The exhale surface is cut into patches (farthest-point seeds, nearest-seed
+//! regions, [`PATCHES_PER_FOLD`] per fold); the patches are dealt into folds by a seeded shuffle;
+//! each fold is fitted without its
+//! patches' vertices and without the inhale points nearest to them, then measured there only. Every
+//! vertex is held out once; the figure is the symmetric mean over the held-out parts.
+//!
+//! Everything is deterministic (fixed seeds, fixed iteration counts, sums in index order).
+
+use glam::DVec3;
+use nalgebra::{DMatrix, DVector};
+use serde::Serialize;
+use thiserror::Error;
+
+use lung_model::deform::field::{box_coords, monomial_values, monomials, Field, ForceField};
+use lung_model::deform::LungModel;
+use lung_model::kernel::BakeSettings;
+use lung_model::mesh::{Side, TriMesh};
+
+use crate::motion_models::{fit_field, folds, Config};
+use crate::operator::{compute_transfer, NodeGraph, Schedule};
+
+/// How the pair is fitted.
+#[derive(Debug, Clone, Copy, PartialEq, Serialize)]
+pub struct PairOptions {
+    /// Total degree of the applied force polynomial (1 = the seed's linear force), 1..=5.
+    pub force_degree: u8,
+    /// Total degree of the direction field polynomial, 1..=5.
+    pub field_degree: u8,
+    /// Ridge weight of the direction field (times the number of points).
+    pub field_ridge: f64,
+    /// ICP rounds.
+    pub iterations: usize,
+    /// Folds of the held-out error (0: none), 2..=10 otherwise.
+    pub folds: usize,
+    /// Seed of the patches' deal into folds.
+    pub seed: u64,
+    /// Apical cap for the alignment, as a share of the exhale lung's height.
+    pub cap_fraction: f64,
+}
+
+impl Default for PairOptions {
+    fn default() -> Self {
+        Self {
+            force_degree: 3,
+            field_degree: 4,
+            field_ridge: 1e-6,
+            iterations: 50,
+            folds: 5,
+            seed: 34,
+            cap_fraction: 0.25,
+        }
+    }
+}
+
+/// What went wrong.
+#[derive(Debug, Error)]
+pub enum PairFitError {
+    /// A surface is not a closed lung surface.
+    #[error("the {what} surface: {message}")]
+    Surface {
+        /// Which.
+        what: &'static str,
+        /// Why.
+        message: String,
+    },
+    /// An option is out of range.
+    #[error("{0}")]
+    Option(String),
+    /// The inhale lung is not larger than the exhale one.
+    #[error(
+        "the inhale surface ({inhale_ml:.0} ml) is not larger than the exhale one ({exhale_ml:.0} \
+         ml): is it the same phase twice, or are --exhale and --inhale the other way round?"
+    )]
+    NotInhaled {
+        /// Exhale volume, ml.
+        exhale_ml: f64,
+        /// Inhale volume, ml.
+        inhale_ml: f64,
+    },
+    /// The operator could not be built or the model does not expand.
+    #[error(transparent)]
+    Bake(#[from] crate::kernel::BakeError),
+    /// A least-squares system was singular.
+    #[error("the {0} fit is singular: too few points for its degree")]
+    Singular(&'static str),
+}
+
+/// The rigid (translation-only) alignment of the inhale surface onto the exhale one.
+#[derive(Debug, Clone, Copy, PartialEq, Serialize)]
+pub struct Alignment {
+    /// Added to every inhale point, mm.
+    pub translation_mm: [f64; 3],
+    /// The apex-on-apex start, mm.
+    pub apex_translation_mm: [f64; 3],
+    /// Cap depth, mm.
+    pub cap_depth_mm: f64,
+    /// Inhale vertices in the cap.
+    pub cap_points: usize,
+    /// Mean distance of the aligned cap to the exhale surface (the trimmed 90 %), mm.
+    pub cap_residual_mm: f64,
+}
+
+/// Distances between a moved surface and the target, area-weighted means over vertices.
+#[derive(Debug, Clone, Copy, PartialEq, Serialize)]
+pub struct SurfaceDistance {
+    /// Mean symmetric surface distance, mm: the mean of the two directed means.
+    pub mssd_mm: f64,
+    /// Moved exhale surface → inhale surface, mm.
+    pub exhale_to_inhale_mm: f64,
+    /// Inhale surface → moved exhale surface, mm.
+    pub inhale_to_exhale_mm: f64,
+    /// 95th percentile of all vertex distances (both directions), mm.
+    pub p95_mm: f64,
+    /// Largest, mm (symmetric Hausdorff over vertices).
+    pub max_mm: f64,
+}
+
+/// One lung's fit.
+#[derive(Debug, Clone, Serialize)]
+pub struct PairFit {
+    /// Which lung.
+    pub side: Side,
+    /// The applied force field (what `bake` uses with the direction field).
+    pub force: ForceField,
+    /// The direction field.
+    pub direction: Field,
+    /// The inhale surface's alignment.
+    pub alignment: Alignment,
+    /// Exhale surface volume, ml.
+    pub exhale_ml: f64,
+    /// Inhale surface volume, ml.
+    pub inhale_ml: f64,
+    /// The fitted kernel driven to the inhale volume, against the aligned inhale surface.
+    pub in_sample: SurfaceDistance,
+    /// The same, each part of the surface fitted without itself (None with `folds` 0).
+    pub cross_validated: Option<SurfaceDistance>,
+    /// Leaving the exhale surface where it is.
+    pub no_motion: SurfaceDistance,
+    /// Scaling the exhale surface about its centroid to the inhale volume.
+    pub uniform_scaling: SurfaceDistance,
+    /// The options used.
+    pub options: PairOptions,
+    /// The exhale surface driven to the inhale volume by the fitted kernel (what a bake draws).
+    #[serde(skip)]
+    pub moved: TriMesh,
+    /// The aligned inhale surface (the target the errors are measured against).
+    #[serde(skip)]
+    pub inhale_aligned: TriMesh,
+}
+
+/// A closed surface indexed for closest points.
+struct Surface {
+    mesh: parry3d::shape::TriMesh,
+    tris: Vec<[u32; 3]>,
+    p: Vec<DVec3>,
+}
+
+impl Surface {
+    fn new(p: &[DVec3], tris: &[[u32; 3]]) -> Option<Self> {
+        let v = p
+            .iter()
+            .map(|q| parry3d::math::Vector::new(q.x as f32, q.y as f32, q.z as f32))
+            .collect();
+        let mesh = parry3d::shape::TriMesh::new(v, tris.to_vec()).ok()?;
+        Some(Self {
+            mesh,
+            tris: tris.to_vec(),
+            p: p.to_vec(),
+        })
+    }
+
+    /// The closest surface point to `q`, and the vertex of its triangle nearest to it.
+    fn closest(&self, q: DVec3) -> (DVec3, u32) {
+        use parry3d::query::PointQueryWithLocation;
+        let x = parry3d::math::Vector::new(q.x as f32, q.y as f32, q.z as f32);
+        let (proj, (tri, _)) = self.mesh.project_local_point_and_get_location(x, false);
+        let c = DVec3::new(
+            proj.point.x as f64,
+            proj.point.y as f64,
+            proj.point.z as f64,
+        );
+        let t = self.tris[tri as usize];
+        let near = *t
+            .iter()
+            .min_by(|a, b| {
+                (self.p[**a as usize] - c)
+                    .length_squared()
+                    .total_cmp(&(self.p[**b as usize] - c).length_squared())
+            })
+            .unwrap_or(&t[0]);
+        (c, near)
+    }
+}
+
+fn points(mesh: &TriMesh) -> Vec<DVec3> {
+    mesh.positions
+        .iter()
+        .map(|q| DVec3::from(q.map(|v| v as f64)))
+        .collect()
+}
+
+/// A third of each incident triangle's area, per vertex, mm².
+fn vertex_areas(p: &[DVec3], tris: &[[u32; 3]]) -> Vec<f64> {
+    let mut a = vec![0.0; p.len()];
+    for t in tris {
+        let [x, y, z] = t.map(|v| p[v as usize]);
+        let area = 0.5 * (y - x).cross(z - x).length();
+        for &v in t {
+            a[v as usize] += area / 3.0;
+        }
+    }
+    a
+}
+
+fn volume_ml(p: &[DVec3], tris: &[[u32; 3]]) -> f64 {
+    lung_model::mesh::enclosed_volume_with(tris, |i| p[i as usize].to_array()) / 1000.0
+}
+
+/// Translation of the inhale surface onto the exhale one: apex on apex, then a trimmed,
+/// translation-only ICP of the inhale apical cap onto the exhale surface.
+pub fn align(exhale: &TriMesh, inhale: &TriMesh, cap_fraction: f64) -> Option<Alignment> {
+    let (pe, pi) = (points(exhale), points(inhale));
+    let target = Surface::new(&pe, &exhale.triangles)?;
+    let top = |p: &[DVec3]| {
+        p.iter()
+            .copied()
+            .max_by(|a, b| a.z.total_cmp(&b.z))
+            .unwrap_or(DVec3::ZERO)
+    };
+    let height = pe.iter().map(|p| p.z).fold(f64::NEG_INFINITY, f64::max)
+        - pe.iter().map(|p| p.z).fold(f64::INFINITY, f64::min);
+    let depth = cap_fraction * height;
+    let apex_i = top(&pi);
+    let cap: Vec<DVec3> = pi
+        .iter()
+        .copied()
+        .filter(|p| p.z >= apex_i.z - depth)
+        .collect();
+    let apex_t = top(&pe) - apex_i;
+    let mut t = apex_t;
+    let mut residual = 0.0;
+    for _ in 0..100 {
+        let mut r: Vec<(f64, DVec3)> = cap
+            .iter()
+            .map(|&q| {
+                let (c, _) = target.closest(q + t);
+                let d = c - (q + t);
+                (d.length(), d)
+            })
+            .collect();
+        r.sort_by(|a, b| a.0.total_cmp(&b.0));
+        let keep = &r[..(r.len() * 9 / 10).max(1)];
+        let step = keep.iter().map(|x| x.1).sum::<DVec3>() / keep.len() as f64;
+        residual = keep.iter().map(|x| x.0).sum::<f64>() / keep.len() as f64;
+        t += step;
+        if step.length() < 1e-4 {
+            break;
+        }
+    }
+    Some(Alignment {
+        translation_mm: t.to_array(),
+        apex_translation_mm: apex_t.to_array(),
+        cap_depth_mm: depth,
+        cap_points: cap.len(),
+        cap_residual_mm: residual,
+    })
+}
+
+/// Distances between the surface (`moved`, `tris`) and `target`, over the vertices `keep_moved`
+/// of the moved surface and `keep_target` of the target (area-weighted means).
+fn distances(
+    moved: &[DVec3],
+    tris: &[[u32; 3]],
+    target: &Surface,
+    keep_moved: &dyn Fn(usize) -> bool,
+    keep_target: &dyn Fn(usize) -> bool,
+) -> Option<(f64, f64, f64, f64, Vec<f64>)> {
+    let moved_surface = Surface::new(moved, tris)?;
+    let am = vertex_areas(moved, tris);
+    let at = vertex_areas(&target.p, &target.tris);
+    let (mut fw, mut fa, mut rw, mut ra) = (0.0, 0.0, 0.0, 0.0);
+    let mut all = Vec::new();
+    for (i, &q) in moved.iter().enumerate() {
+        if keep_moved(i) {
+            let d = (target.closest(q).0 - q).length();
+            fw += am[i] * d;
+            fa += am[i];
+            all.push(d);
+        }
+    }
+    for (j, &v) in target.p.iter().enumerate() {
+        if keep_target(j) {
+            let d = (moved_surface.closest(v).0 - v).length();
+            rw += at[j] * d;
+            ra += at[j];
+            all.push(d);
+        }
+    }
+    Some((fw, fa, rw, ra, all))
+}
+
+fn summarise(fw: f64, fa: f64, rw: f64, ra: f64, mut all: Vec<f64>) -> SurfaceDistance {
+    all.sort_by(|a, b| a.total_cmp(b));
+    let forward = fw / fa.max(1e-300);
+    let reverse = rw / ra.max(1e-300);
+    SurfaceDistance {
+        mssd_mm: 0.5 * (forward + reverse),
+        exhale_to_inhale_mm: forward,
+        inhale_to_exhale_mm: reverse,
+        p95_mm: all
+            .get(((all.len() as f64 * 0.95) as usize).min(all.len().saturating_sub(1)))
+            .copied()
+            .unwrap_or(0.0),
+        max_mm: all.last().copied().unwrap_or(0.0),
+    }
+}
+
+/// Whole-surface distances.
+fn distance(moved: &[DVec3], tris: &[[u32; 3]], target: &Surface) -> SurfaceDistance {
+    match distances(moved, tris, target, &|_| true, &|_| true) {
+        Some((fw, fa, rw, ra, all)) => summarise(fw, fa, rw, ra, all),
+        None => SurfaceDistance {
+            mssd_mm: f64::INFINITY,
+            exhale_to_inhale_mm: f64::INFINITY,
+            inhale_to_exhale_mm: f64::INFINITY,
+            p95_mm: f64::INFINITY,
+            max_mm: f64::INFINITY,
+        },
+    }
+}
+
+/// The exhale lung with its operator: what every round of the fit needs.
+struct Problem<'a> {
+    side: Side,
+    mesh: &'a TriMesh,
+    p: Vec<DVec3>,
+    /// `T·m_k` for each monomial `m_k` of the force degree (box coordinates), one column each.
+    columns: Vec<Vec<f64>>,
+    lo: DVec3,
+    hi: DVec3,
+    target: Surface,
+    inhale_ml: f64,
+    /// Per inhale vertex, the exhale vertex it lies nearest to (for the folds).
+    owner: Vec<u32>,
+    opts: PairOptions,
+}
+
+/// One fitted model: force coefficients and direction field.
+struct Model {
+    theta: Vec<f64>,
+    field: Field,
+}
+
+impl Problem<'_> {
+    /// Per-vertex elastostatic force `F = Σ θ_k T·m_k`.
+    fn force(&self, theta: &[f64]) -> Vec<f64> {
+        (0..self.p.len())
+            .map(|i| {
+                theta
+                    .iter()
+                    .zip(&self.columns)
+                    .map(|(t, c)| t * c[i])
+                    .sum()
+            })
+            .collect()
+    }
+
+    /// The model's directions at the exhale vertices (the field evaluated in place).
+    fn directions(&self, field: &Field) -> Vec<DVec3> {
+        self.p
+            .iter()
+            .map(|&x| {
+                let d = field.displacement(x);
+                let l = d.length();
+                if l > 1e-300 && l.is_finite() {
+                    d / l
+                } else {
+                    DVec3::ZERO
+                }
+            })
+            .collect()
+    }
+
+    /// The exhale vertices driven to the inhale volume by a kernel with these forces and
+    /// directions (the bake's own normalisation and volume cubic).
+    fn driven(&self, force: &[f64], dirs: Vec<DVec3>) -> Result<Vec<DVec3>, PairFitError> {
+        let (model, _, _) = LungModel::from_force_and_directions(
+            self.side,
+            self.mesh.clone(),
+            dirs,
+            force,
+        )
+        .map_err(crate::kernel::BakeError::from)?;
+        let s = model.scale_for_delta(self.inhale_ml - model.start_volume_ml) as f32;
+        let mut out = vec![[0.0f32; 3]; self.p.len()];
+        model.deform_into(s, &mut out);
+        Ok(out.iter().map(|q| DVec3::from(q.map(|v| v as f64))).collect())
+    }
+
+    /// Fit on the exhale vertices with `train[i]` (and the inhale vertices they own).
+    fn fit(&self, train: &[bool]) -> Result<Model, PairFitError> {
+        let n = self.p.len();
+        let tris = &self.mesh.triangles;
+        let e_ml = volume_ml(&self.p, tris);
+        let centre = self.p.iter().sum::<DVec3>() / n as f64;
+        let k = (self.inhale_ml / e_ml).cbrt() - 1.0;
+        let mut u: Vec<DVec3> = self.p.iter().map(|&x| k * (x - centre)).collect();
+        let mut model = None;
+        for _ in 0..self.opts.iterations {
+            let q: Vec<DVec3> = self.p.iter().zip(&u).map(|(a, b)| *a + *b).collect();
+            let moved = Surface::new(&q, tris).ok_or(PairFitError::Singular("surface"))?;
+            // Pulls: each training vertex to its closest inhale point; each inhale point owned by
+            // a training vertex pulls the moved surface's nearest vertex towards it.
+            let mut pull = vec![DVec3::ZERO; n];
+            let mut count = vec![0.0f64; n];
+            for i in (0..n).filter(|&i| train[i]) {
+                pull[i] += self.target.closest(q[i]).0 - q[i];
+                count[i] += 1.0;
+            }
+            for (j, &v) in self.target.p.iter().enumerate() {
+                if !train[self.owner[j] as usize] {
+                    continue;
+                }
+                let (c, near) = moved.closest(v);
+                if train[near as usize] {
+                    pull[near as usize] += v - c;
+                    count[near as usize] += 1.0;
+                }
+            }
+            let (mut at, mut goal) = (Vec::new(), Vec::new());
+            for i in (0..n).filter(|&i| train[i] && count[i] > 0.0) {
+                at.push(self.p[i]);
+                goal.push(u[i] + pull[i] / count[i]);
+            }
+            let field = fit_field(
+                Config::Poly {
+                    degree: self.opts.field_degree,
+                    lambda: self.opts.field_ridge,
+                },
+                self.side,
+                &at,
+                &goal,
+            )
+            .map_err(|_| PairFitError::Singular("direction field"))?;
+            let dirs = self.directions(&field);
+            let idx: Vec<usize> = (0..n).filter(|&i| train[i] && count[i] > 0.0).collect();
+            let magnitude: Vec<f64> = idx
+                .iter()
+                .zip(&goal)
+                .map(|(&i, g)| dirs[i].dot(*g))
+                .collect();
+            let theta = self.solve_force(&idx, &magnitude)?;
+            let force = self.force(&theta);
+            u = (0..n).map(|i| force[i] * dirs[i]).collect();
+            model = Some(Model { theta, field });
+        }
+        model.ok_or(PairFitError::Option("--iterations must be at least 1".into()))
+    }
+
+    /// Ridge least squares `min Σ ((Σ_k θ_k C_k)_i − m_i)² + λ‖θ‖²` over the rows `idx`.
+    fn solve_force(&self, idx: &[usize], m: &[f64]) -> Result<Vec<f64>, PairFitError> {
+        let kk = self.columns.len();
+        let mut a = DMatrix::<f64>::zeros(kk, kk);
+        let mut b = DVector::<f64>::zeros(kk);
+        for (r, &i) in idx.iter().enumerate() {
+            for x in 0..kk {
+                let cx = self.columns[x][i];
+                b[x] += cx * m[r];
+                for y in 0..kk {
+                    a[(x, y)] += cx * self.columns[y][i];
+                }
+            }
+        }
+        let trace = (0..kk).map(|x| a[(x, x)]).sum::<f64>() / kk as f64;
+        for x in 0..kk {
+            a[(x, x)] += 1e-9 * trace;
+        }
+        let theta = a
+            .cholesky()
+            .ok_or(PairFitError::Singular("force"))?
+            .solve(&b);
+        theta
+            .iter()
+            .all(|v| v.is_finite())
+            .then(|| theta.iter().copied().collect())
+            .ok_or(PairFitError::Singular("force"))
+    }
+}
+
+/// Patches of the surface (nearest of `count` farthest-point seeds, the first the highest vertex).
+fn patches(p: &[DVec3], count: usize) -> Vec<usize> {
+    let mut seeds = vec![p
+        .iter()
+        .enumerate()
+        .max_by(|a, b| a.1.z.total_cmp(&b.1.z))
+        .map_or(0, |x| x.0)];
+    let mut near: Vec<f64> = p.iter().map(|x| (*x - p[seeds[0]]).length()).collect();
+    while seeds.len() < count.min(p.len()) {
+        let far = near
+            .iter()
+            .enumerate()
+            .max_by(|a, b| a.1.total_cmp(b.1))
+            .map_or(0, |x| x.0);
+        seeds.push(far);
+        for (i, x) in p.iter().enumerate() {
+            near[i] = near[i].min((*x - p[far]).length());
+        }
+    }
+    p.iter()
+        .map(|x| {
+            (0..seeds.len())
+                .min_by(|&a, &b| {
+                    (*x - p[seeds[a]])
+                        .length_squared()
+                        .total_cmp(&(*x - p[seeds[b]]).length_squared())
+                })
+                .unwrap_or(0)
+        })
+        .collect()
+}
+
+/// Fit `side`'s motion from the exhale surface to the inhale surface (both closed, mm, body frame,
+/// not registered). `settings` gives the operator (elasticity, tolerance, amplitude smoothing) the
+/// bake will use; `progress` hears each stage.
+pub fn fit_pair(
+    side: Side,
+    exhale: &TriMesh,
+    inhale: &TriMesh,
+    settings: &BakeSettings,
+    opts: &PairOptions,
+    progress: &dyn Fn(&str),
+) -> Result<PairFit, PairFitError> {
+    for (what, m) in [("exhale", exhale), ("inhale", inhale)] {
+        lung_model::mesh::check(m).map_err(|e| PairFitError::Surface {
+            what,
+            message: e.to_string(),
+        })?;
+    }
+    if !(1..=5).contains(&opts.force_degree) || !(1..=5).contains(&opts.field_degree) {
+        return Err(PairFitError::Option(
+            "--force-degree and --field-degree take 1 to 5".into(),
+        ));
+    }
+    if opts.folds == 1 || opts.folds > 10 {
+        return Err(PairFitError::Option("--folds takes 0 (none) or 2 to 10".into()));
+    }
+    let (exhale_ml, inhale_ml) = (exhale.enclosed_volume_ml(), inhale.enclosed_volume_ml());
+    if !(inhale_ml > exhale_ml) {
+        return Err(PairFitError::NotInhaled {
+            exhale_ml,
+            inhale_ml,
+        });
+    }
+    progress("aligning the inhale apex and apical cap onto the exhale surface");
+    let alignment = align(exhale, inhale, opts.cap_fraction).ok_or(PairFitError::Surface {
+        what: "exhale",
+        message: "could not be indexed for closest points".into(),
+    })?;
+    let t = DVec3::from(alignment.translation_mm);
+    // Rounded to f32 as it is kept (and written with --surfaces-out), so the target measured
+    // against is exactly the surface anyone checking gets.
+    let pi: Vec<DVec3> = points(inhale)
+        .iter()
+        .map(|&x| (x + t).as_vec3().as_dvec3())
+        .collect();
+    let target = Surface::new(&pi, &inhale.triangles).ok_or(PairFitError::Surface {
+        what: "inhale",
+        message: "could not be indexed for closest points".into(),
+    })?;
+    progress("building the exhale lung's operator (the bake's Green's-function pass)");
+    let bb = exhale.aabb();
+    let norm = |q| lung_model::deform::normalised_position(q, &bb, side);
+    let graph = NodeGraph::from_mesh(exhale, &settings.elasticity, norm)
+        .map_err(crate::kernel::BakeError::from)?;
+    let mut transfer = compute_transfer(&graph, settings.tolerance, Schedule::SpringsForward, &|_| {})
+        .map_err(crate::kernel::BakeError::from)?;
+    crate::smooth::smooth_amplitude(&mut transfer, exhale, settings.amplitude_smoothing_mm)
+        .map_err(crate::kernel::BakeError::from)?;
+    let p = points(exhale);
+    let (lo, hi) = (
+        DVec3::from(bb.min.map(|v| v as f64)),
+        DVec3::from(bb.max.map(|v| v as f64)),
+    );
+    let exps = monomials(opts.force_degree);
+    let mut values = Vec::new();
+    let mut basis = vec![vec![0.0; p.len()]; exps.len()];
+    for (i, &x) in p.iter().enumerate() {
+        monomial_values(box_coords(x, lo, hi), &exps, &mut values);
+        for (k, v) in values.iter().enumerate() {
+            basis[k][i] = *v;
+        }
+    }
+    let columns: Vec<Vec<f64>> = basis.iter().map(|b| transfer.elastostatic(b)).collect();
+    let exhale_surface = Surface::new(&p, &exhale.triangles).ok_or(PairFitError::Surface {
+        what: "exhale",
+        message: "could not be indexed for closest points".into(),
+    })?;
+    let owner: Vec<u32> = pi.iter().map(|&v| exhale_surface.closest(v).1).collect();
+    let problem = Problem {
+        side,
+        mesh: exhale,
+        p: p.clone(),
+        columns,
+        lo,
+        hi,
+        target,
+        inhale_ml,
+        owner,
+        opts: *opts,
+    };
+    progress("fitting the force and direction fields (symmetric ICP)");
+    let all = vec![true; p.len()];
+    let fitted = problem.fit(&all)?;
+    let force = ForceField {
+        lo: problem.lo.to_array(),
+        hi: problem.hi.to_array(),
+        degree: opts.force_degree,
+        coeffs: fitted.theta.clone(),
+    };
+    // What the bake does with these fields (kernel::bake: applied forces, the operator, the
+    // field's directions in the mesh's box, the volume normalisation), driven to the inhale volume.
+    let mut baked = settings.clone();
+    baked.force_field = Some(force.clone());
+    baked.direction_field = Some(fitted.field.clone());
+    let applied = crate::kernel::applied_forces(exhale, side, &baked);
+    let elastostatic = transfer.elastostatic(&applied);
+    let dirs = LungModel::field_directions(exhale, &fitted.field);
+    let moved = problem.driven(&elastostatic, dirs)?;
+    let in_sample = distance(&moved, &exhale.triangles, &problem.target);
+    let cross_validated = if opts.folds >= 2 {
+        progress("held-out error: each part of the surface fitted without itself");
+        Some(cross_validate(&problem)?)
+    } else {
+        None
+    };
+    let centre = p.iter().sum::<DVec3>() / p.len() as f64;
+    let k = (inhale_ml / exhale_ml).cbrt();
+    let scaled: Vec<DVec3> = p.iter().map(|&x| centre + k * (x - centre)).collect();
+    let to_mesh = |q: &[DVec3]| TriMesh {
+        positions: q.iter().map(|x| x.as_vec3().to_array()).collect(),
+        triangles: exhale.triangles.clone(),
+    };
+    Ok(PairFit {
+        side,
+        force,
+        direction: fitted.field,
+        alignment,
+        exhale_ml,
+        inhale_ml,
+        in_sample,
+        cross_validated,
+        no_motion: distance(&p, &exhale.triangles, &problem.target),
+        uniform_scaling: distance(&scaled, &exhale.triangles, &problem.target),
+        options: *opts,
+        moved: to_mesh(&moved),
+        inhale_aligned: TriMesh {
+            positions: pi.iter().map(|x| x.as_vec3().to_array()).collect(),
+            triangles: inhale.triangles.clone(),
+        },
+    })
+}
+
+/// Patches each fold holds out: ten scattered patches (each about 2 % of the surface at five
+/// folds, a few centimetres across), so a fold tests the fit across holes the size of a lobe's
+/// corner rather than across a missing quarter of the lung, where a polynomial can only
+/// extrapolate.
+pub const PATCHES_PER_FOLD: usize = 10;
+
+/// Held-out symmetric distance: patches dealt into folds, each fold fitted without itself.
+fn cross_validate(problem: &Problem) -> Result<SurfaceDistance, PairFitError> {
+    let k = problem.opts.folds;
+    let patch = patches(&problem.p, PATCHES_PER_FOLD * k);
+    let fold_of_patch = folds(PATCHES_PER_FOLD * k, k, problem.opts.seed);
+    let fold: Vec<usize> = patch.iter().map(|&c| fold_of_patch[c]).collect();
+    let (mut fw, mut fa, mut rw, mut ra) = (0.0, 0.0, 0.0, 0.0);
+    let mut all = Vec::new();
+    for f in 0..k {
+        let train: Vec<bool> = fold.iter().map(|&x| x != f).collect();
+        let model = problem.fit(&train)?;
+        let force = problem.force(&model.theta);
+        let moved = problem.driven(&force, problem.directions(&model.field))?;
+        let held = |i: usize| fold[i] == f;
+        let owned = |j: usize| fold[problem.owner[j] as usize] == f;
+        let (a, b, c, d, e) = distances(
+            &moved,
+            &problem.mesh.triangles,
+            &problem.target,
+            &held,
+            &owned,
+        )
+        .ok_or(PairFitError::Singular("held-out surface"))?;
+        fw += a;
+        fa += b;
+        rw += c;
+        ra += d;
+        all.extend(e);
+    }
+    Ok(summarise(fw, fa, rw, ra, all))
+}
+
+/// Mean symmetric surface distance (and its parts) between two closed surfaces, area-weighted
+/// over vertices, exact point-to-triangle: how `fit_pair` measures, for anyone checking a bake.
+pub fn surface_distance(moved: &TriMesh, target: &TriMesh) -> Option<SurfaceDistance> {
+    let t = Surface::new(&points(target), &target.triangles)?;
+    let (fw, fa, rw, ra, all) =
+        distances(&points(moved), &moved.triangles, &t, &|_| true, &|_| true)?;
+    Some(summarise(fw, fa, rw, ra, all))
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use lung_model::mesh::anatomy;
+
+    /// A known breath: zero at the apex, growing towards the base (down, forward, outward), then
+    /// the whole inhale lung shifted as a patient lying down again would be.
+    fn breathe(mesh: &TriMesh, shift: DVec3) -> TriMesh {
+        let p = points(mesh);
+        let top = p.iter().map(|x| x.z).fold(f64::NEG_INFINITY, f64::max);
+        let bottom = p.iter().map(|x| x.z).fold(f64::INFINITY, f64::min);
+        let c = p.iter().sum::<DVec3>() / p.len() as f64;
+        TriMesh {
+            positions: p
+                .iter()
+                .map(|&x| {
+                    let t = (top - x.z) / (top - bottom);
+                    let d = t * t * DVec3::new(0.12 * (x.x - c.x), 0.1 * (x.y - c.y) + 4.0, -22.0);
+                    (x + d + shift).as_vec3().to_array()
+                })
+                .collect(),
+            triangles: mesh.triangles.clone(),
+        }
+    }
+
+    #[test]
+    fn a_known_breath_is_recovered_through_the_operator_and_beats_the_baselines() {
+        let exhale = anatomy::lung(Side::Right, 3000).unwrap();
+        let shift = DVec3::new(4.0, -3.0, 35.0);
+        let inhale = breathe(&exhale, shift);
+        let opts = PairOptions {
+            iterations: 30,
+            folds: 3,
+            ..PairOptions::default()
+        };
+        let settings = BakeSettings::default_for(Side::Right);
+        let fit = fit_pair(Side::Right, &exhale, &inhale, &settings, &opts, &|_| {}).unwrap();
+        // The apex does not move in this breath: the alignment undoes the shift.
+        let t = DVec3::from(fit.alignment.translation_mm);
+        assert!((t + shift).length() < 2.0, "translation {t} for shift {shift}");
+        let (none, scale, ins) = (
+            fit.no_motion.mssd_mm,
+            fit.uniform_scaling.mssd_mm,
+            fit.in_sample.mssd_mm,
+        );
+        assert!(ins < 0.35 * none && ins < scale, "fit {ins} none {none} scaling {scale}");
+        let cv = fit.cross_validated.unwrap().mssd_mm;
+        assert!(cv.is_finite() && cv >= 0.0 && cv < none, "held out {cv}, none {none}");
+        // The moved surface is the fitted kernel driven to the inhale volume.
+        assert!((fit.moved.enclosed_volume_ml() / fit.inhale_ml - 1.0).abs() < 1e-3);
+        // The figure is the distance between the two surfaces it keeps.
+        let again = surface_distance(&fit.moved, &fit.inhale_aligned).unwrap();
+        assert!((again.mssd_mm - ins).abs() < 1e-9);
+        // Deterministic: the same inputs give the same bits.
+        let twice = fit_pair(Side::Right, &exhale, &inhale, &settings, &opts, &|_| {}).unwrap();
+        assert_eq!(twice.force, fit.force);
+        assert_eq!(twice.in_sample, fit.in_sample);
+    }
+
+    #[test]
+    fn a_pair_the_wrong_way_round_or_with_bad_options_is_refused() {
+        let exhale = anatomy::lung(Side::Left, 1500).unwrap();
+        let inhale = breathe(&exhale, DVec3::ZERO);
+        let settings = BakeSettings::default_for(Side::Left);
+        let e = fit_pair(Side::Left, &inhale, &exhale, &settings, &PairOptions::default(), &|_| {})
+            .unwrap_err()
+            .to_string();
+        assert!(e.contains("not larger") && e.contains("other way round"), "{e}");
+        for bad in [
+            PairOptions { force_degree: 0, ..PairOptions::default() },
+            PairOptions { field_degree: 6, ..PairOptions::default() },
+            PairOptions { folds: 1, ..PairOptions::default() },
+        ] {
+            assert!(fit_pair(Side::Left, &exhale, &inhale, &settings, &bad, &|_| {}).is_err());
+        }
+        let mut open = exhale.clone();
+        open.triangles.pop();
+        let e = fit_pair(Side::Left, &open, &inhale, &settings, &PairOptions::default(), &|_| {})
+            .unwrap_err()
+            .to_string();
+        assert!(e.contains("exhale surface"), "{e}");
+    }
+}
