@@ -71,8 +71,9 @@ pub struct FitMotionArgs {
     /// linear force), 1-5.
     #[arg(long, default_value_t = 3)]
     pub force_degree: u8,
-    /// With --exhale/--inhale: total degree of the direction field polynomial, 1-5.
-    #[arg(long, default_value_t = 4)]
+    /// With --exhale/--inhale: total degree of the direction field polynomial, 1-5 (higher
+    /// degrees fit closer in-sample but slide and fold the surface: docs/masks/patient_motion.md).
+    #[arg(long, default_value_t = 2)]
     pub field_degree: u8,
     /// With --exhale/--inhale: rounds of the symmetric ICP.
     #[arg(long, default_value_t = 50)]

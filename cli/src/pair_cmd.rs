@@ -220,7 +220,8 @@ pub fn run(args: &FitMotionArgs) -> anyhow::Result<PairReport> {
     })
 }
 
-fn write(out: &Path, exhale: &Path, inhale: &Path, lungs: &[PairLung]) -> anyhow::Result<()> {
+/// Write the motion file of `lungs` (a breath-hold pair's fits) atomically.
+pub fn write(out: &Path, exhale: &Path, inhale: &Path, lungs: &[PairLung]) -> anyhow::Result<()> {
     let mut file = MotionFile {
         format: 2,
         left: None,
@@ -264,7 +265,7 @@ fn write(out: &Path, exhale: &Path, inhale: &Path, lungs: &[PairLung]) -> anyhow
         .reduce(f64::max);
     let text = format!(
         "# lungdyn motion (fit-motion, a breath-hold pair: {} → {}).\n# Use: lungdyn bake --mesh \
-         EXHALE_SURFACE --lung L --motion this.toml (the surface the fit used: --surfaces-out)\n\
+         EXHALE_SURFACE --lung L --motion this.toml (the exhale surface the fit used: --surfaces-out writes it; `lungdyn patient` bakes its own)\n\
          {notes}{}",
         exhale.display(),
         inhale.display(),
@@ -313,6 +314,20 @@ pub fn text(r: &PairReport) -> String {
         s += &row("fitted kernel (in-sample)", &f.in_sample);
         if let Some(c) = &f.cross_validated {
             s += &row(&format!("fitted, held out ({} folds)", f.options.folds), c);
+        }
+        s += &format!(
+            "  displacement at the inhale volume: median {:.1} mm, 99th percentile {:.1} mm, largest {:.1} mm\n",
+            f.displacement_mm[0], f.displacement_mm[1], f.displacement_mm[2]
+        );
+        if f.folds_at_inhale > 0 {
+            s += &format!(
+                "  WARNING: the fitted kernel folds the surface at the inhale volume ({} crossing triangle \
+                 pairs): a surface pair cannot see sliding within the surface and the fit slid part of it \
+                 (largest displacement {:.0} mm); the fold shows on screen near end-inspiration — try a \
+                 lower --field-degree, or keep the population motion; it draws no fold up to \
+                 {:+.0} ml (a tidal breath is ~250 ml a lung)\n",
+                f.folds_at_inhale, f.displacement_mm[2], f.fold_free_ml
+            );
         }
         s += &format!("  surfaces {:.1} s, fit {:.1} s\n", l.seconds[0], l.seconds[1]);
     }

@@ -21,7 +21,10 @@ error says when it is left out):
 
 OUT receives right.ply, left.ply (the surfaces, with their lobes), right.kernel, left.kernel,
 pv.toml (the PV constants with FRC = the exhale lungs' volume), scene.toml and patient.json (what
-was made and measured); with --inhale also right_inhale.ply and left_inhale.ply. The lungs are
+was made and measured); with --inhale also right_inhale.ply and left_inhale.ply, and each lung's
+motion fitted to the breath-hold pair (motion.toml; the kernels are baked with it, and the report
+says how far the kernel at the inhale volume lies from the inhale surface beside no motion and
+uniform scaling; --population-motion bakes the built-in motion instead). The lungs are
 moved by one translation, the same for both and said in scene.toml, so they sit where the
 renderer draws the built-in lungs; their shape, size and relative placement are the patient's."
 )]
@@ -56,6 +59,10 @@ pub struct PatientArgs {
     /// Vertices per lung, about.
     #[arg(long, default_value_t = 20_000)]
     pub vertices: usize,
+    /// With --inhale: bake the built-in (population) motion instead of the motion fitted to this
+    /// patient's breath-hold pair (`fit-motion --exhale/--inhale`, written to OUT/motion.toml).
+    #[arg(long)]
+    pub population_motion: bool,
     /// Keep the image's own coordinates instead of moving the lungs to where the built-in ones
     /// are drawn (for a workstation registered to the CT's frame).
     #[arg(long)]
@@ -100,6 +107,27 @@ pub struct PatientLung {
     pub seconds: [f64; 2],
     /// The inhale mask's lung volume, ml (with --inhale).
     pub inhale_volume_ml: Option<f64>,
+    /// The motion baked: "fitted to the breath-hold pair" or "population".
+    pub motion: &'static str,
+    /// With the fitted motion: the baked kernel driven to the inhale volume against the inhale
+    /// surface (MSSD, mm), beside no motion and uniform scaling (`fit-motion` gives held-out
+    /// figures too).
+    pub motion_mssd_mm: Option<MotionFigures>,
+}
+
+/// How far the fitted kernel, and the two baselines, land from the inhale surface (MSSD, mm).
+#[derive(Debug, Serialize, Clone, Copy)]
+pub struct MotionFigures {
+    /// The fitted kernel driven to the inhale volume.
+    pub fitted: f64,
+    /// Leaving the exhale lung where it is.
+    pub no_motion: f64,
+    /// Scaling it about its centroid to the inhale volume.
+    pub uniform_scaling: f64,
+    /// Crossing triangle pairs of the fitted kernel's surface at the inhale volume (0: no fold).
+    pub folds_at_inhale: usize,
+    /// The largest volume change (ml above FRC) the kernel draws without a fold.
+    pub fold_free_ml: f64,
 }
 
 /// What `lungdyn patient` made.
@@ -171,8 +199,13 @@ fn joint_centre<'a>(meshes: impl IntoIterator<Item = &'a TriMesh>) -> DVec3 {
     (lo + hi) * 0.5
 }
 
-/// Bake one lung (the population motion, the default settings) keeping its lobes; seconds taken.
-fn bake_lung(side: Side, m: &mask::FromMask, kernel_path: &Path) -> anyhow::Result<f64> {
+/// Bake one lung (the default settings with `settings`' motion) keeping its lobes; seconds taken.
+fn bake_lung(
+    side: Side,
+    m: &mask::FromMask,
+    kernel_path: &Path,
+    settings: &lung_model::kernel::BakeSettings,
+) -> anyhow::Result<f64> {
     eprintln!(
         "lungdyn: baking the {} lung ({} vertices) into {}",
         side.name(),
@@ -186,8 +219,7 @@ fn bake_lung(side: Side, m: &mask::FromMask, kernel_path: &Path) -> anyhow::Resu
             .expect("valid template")
             .progress_chars("=> "),
     );
-    let settings = lung_model::kernel::BakeSettings::default_for(side);
-    let mut kernel = lung_bake::kernel::bake(side, m.mesh.clone(), &settings, &|rows| {
+    let mut kernel = lung_bake::kernel::bake(side, m.mesh.clone(), settings, &|rows| {
         bar.inc(rows as u64)
     })
     .with_context(|| format!("baking the {} lung", side.name()))?;
@@ -195,6 +227,51 @@ fn bake_lung(side: Side, m: &mask::FromMask, kernel_path: &Path) -> anyhow::Resu
     kernel.lobes = Some(m.lobes.clone());
     kernel.write(kernel_path)?;
     Ok(t.elapsed().as_secs_f64())
+}
+
+/// With an inhale pair (and without --population-motion): each lung's motion fitted to it
+/// (`lung_bake::patient_motion`, no held-out folds here: `fit-motion` measures those), written to
+/// OUT/motion.toml.
+fn fit_motion(
+    args: &PatientArgs,
+    made: &[(Side, mask::FromMask, f64)],
+    inhale: &[(Side, TriMesh, Vec<u8>)],
+) -> anyhow::Result<Vec<crate::pair_cmd::PairLung>> {
+    if inhale.is_empty() || args.population_motion {
+        return Ok(Vec::new());
+    }
+    let opts = lung_bake::patient_motion::PairOptions {
+        folds: 0,
+        ..Default::default()
+    };
+    let mut lungs = Vec::new();
+    for (side, m, _) in made {
+        let Some((_, target, _)) = inhale.iter().find(|(s, _, _)| s == side) else {
+            continue;
+        };
+        let t = std::time::Instant::now();
+        let name = side.name();
+        let settings = lung_model::kernel::BakeSettings::default_for(*side);
+        let fit = lung_bake::patient_motion::fit_pair(*side, &m.mesh, target, &settings, &opts, &|stage| {
+            eprintln!("lungdyn: {name} lung's motion: {stage}")
+        })
+        .with_context(|| format!("fitting the {name} lung's motion to the breath-hold pair"))?;
+        lungs.push(crate::pair_cmd::PairLung {
+            vertices: m.mesh.positions.len(),
+            fit,
+            exhale_from: "mask",
+            inhale_from: "mask",
+            surfaces: None,
+            seconds: [0.0, t.elapsed().as_secs_f64()],
+        });
+    }
+    crate::pair_cmd::write(
+        &args.out.join("motion.toml"),
+        &args.exhale[0],
+        &args.inhale[0],
+        &lungs,
+    )?;
+    Ok(lungs)
 }
 
 /// Write pv.toml (the default preset's curves with this patient's FRC) and the scene naming it
@@ -205,6 +282,7 @@ fn write_scene(
     frc_ml: f64,
     volumes: [f64; 2],
     translation: DVec3,
+    fitted: bool,
 ) -> anyhow::Result<()> {
     // PV constants: the default preset's curve with this patient's FRC.
     let preset = lung_model::pv::preset(lung_model::pv::DEFAULT_PRESET)?;
@@ -235,6 +313,7 @@ fn write_scene(
          # breath is the {preset} preset's curve with that FRC (pv.toml). Both lungs were moved by\n\
          # ({tx:.1}, {ty:.1}, {tz:.1}) mm from the image's frame (body frame: +X left, +Y anterior,\n\
          # +Z superior) so they sit where the built-in lungs are drawn.\n\
+         # {motion}\n\
          # Run: lungdyn demo --scene {scene}\n\
          [pv]\n\
          constants = \"pv.toml\"\n\n\
@@ -254,6 +333,11 @@ fn write_scene(
         ty = translation.y,
         tz = translation.z,
         scene = scene_path.display(),
+        motion = if fitted {
+            "Motion: fitted to this patient's breath-hold pair (motion.toml); the kernels were baked with it."
+        } else {
+            "Motion: the built-in (population) motion."
+        },
     );
     outfile::write_atomically(&scene_path, |w| {
         use std::io::Write;
@@ -359,12 +443,19 @@ pub fn run(args: &PatientArgs) -> anyhow::Result<PatientSummary> {
             &args.out.join(format!("{}_inhale.ply", side.name())),
         )?;
     }
+    let fits = fit_motion(args, &made, &inhale_meshes)?;
     let mut lungs = Vec::new();
     for (k, (side, m, mesh_seconds)) in made.iter().enumerate() {
         let mesh_path = args.out.join(format!("{}.ply", side.name()));
         io::write_mesh_with_lobes(&m.mesh, &m.lobes, &mesh_path)?;
         let kernel_path = args.out.join(format!("{}.kernel", side.name()));
-        let bake_seconds = bake_lung(*side, m, &kernel_path)?;
+        let mut settings = lung_model::kernel::BakeSettings::default_for(*side);
+        let fit = fits.iter().find(|l| l.fit.side == *side).map(|l| &l.fit);
+        if let Some(f) = fit {
+            settings.force_field = Some(f.force.clone());
+            settings.direction_field = Some(f.direction.clone());
+        }
+        let bake_seconds = bake_lung(*side, m, &kernel_path, &settings)?;
         lungs.push(PatientLung {
             lung: side.name(),
             mesh: mesh_path.display().to_string(),
@@ -379,6 +470,18 @@ pub fn run(args: &PatientArgs) -> anyhow::Result<PatientSummary> {
             sides_from: m.sides_from,
             seconds: [*mesh_seconds, bake_seconds],
             inhale_volume_ml: inhale_volumes.get(k).copied(),
+            motion: if fit.is_some() {
+                "fitted to the breath-hold pair"
+            } else {
+                "population"
+            },
+            motion_mssd_mm: fit.map(|f| MotionFigures {
+                fitted: f.in_sample.mssd_mm,
+                no_motion: f.no_motion.mssd_mm,
+                uniform_scaling: f.uniform_scaling.mssd_mm,
+                folds_at_inhale: f.folds_at_inhale,
+                fold_free_ml: f.fold_free_ml,
+            }),
         });
     }
     let frc_ml: f64 = lungs.iter().map(|l| l.volume_ml).sum();
@@ -388,6 +491,7 @@ pub fn run(args: &PatientArgs) -> anyhow::Result<PatientSummary> {
         frc_ml,
         [lungs[0].volume_ml, lungs[1].volume_ml],
         translation,
+        !fits.is_empty(),
     )?;
     let summary = PatientSummary {
         scene: scene_path.display().to_string(),
@@ -435,6 +539,23 @@ pub fn text(s: &PatientSummary) -> String {
             l.seconds[0],
             l.seconds[1],
         ));
+        if let Some(m) = &l.motion_mssd_mm {
+            out.push_str(&format!(
+                "  motion fitted to the breath-hold pair: the kernel at the inhale volume lies {:.2} mm (MSSD) \
+                 from the inhale surface; no motion {:.2} mm, uniform scaling {:.2} mm\n",
+                m.fitted, m.no_motion, m.uniform_scaling
+            ));
+            if m.folds_at_inhale > 0 {
+                out.push_str(&format!(
+                    "  WARNING: that kernel folds the surface at the inhale volume ({} crossing triangle pairs); \
+                     it draws no fold up to {:+.0} ml above FRC (this lung's share of a tidal breath is \
+                     about {:.0} ml); --population-motion bakes the built-in motion\n",
+                    m.folds_at_inhale,
+                    m.fold_free_ml,
+                    500.0 * l.volume_ml / s.frc_ml
+                ));
+            }
+        }
     }
     out.push_str(&format!(
         "FRC {:.0} ml (the exhale lungs){}; lungs moved by ({:.1}, {:.1}, {:.1}) mm\nwrote {}\nrun it: {}\n",

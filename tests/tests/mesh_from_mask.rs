@@ -758,6 +758,36 @@ fn patient_makes_a_scene_that_scene_check_accepts_with_frc_from_the_masks() {
         codes.iter().all(|c| (1..=3).contains(c)),
         "a right kernel with another lobe"
     );
+    // With an inhale mask (the same voxels under a header with larger spacing: the lungs 19 % larger),
+    // each lung's motion is fitted to the pair, written, and baked into the kernels.
+    let mut big = rows;
+    for row in big.iter_mut() {
+        for (c, f) in [1.05, 1.05, 1.08].iter().enumerate() {
+            row[c] *= f;
+        }
+    }
+    let inhale = tmp.write("lobes_inhale.nii", &nifti(body, Some(big), &d));
+    let out2 = tmp.path("patient_pair");
+    let r = lungdyn(&[
+        "patient", "--exhale", s(&nii), "--inhale", s(&inhale), "--vertices", "2000", "--out",
+        s(&out2), "--json",
+    ]);
+    assert_eq!(r.code, Some(0), "stderr: {}", r.stderr);
+    let j: serde_json::Value = serde_json::from_str(r.stdout.trim()).expect("one JSON object");
+    for l in j["lungs"].as_array().unwrap() {
+        assert_eq!(l["motion"], "fitted to the breath-hold pair", "{l}");
+        let m = &l["motion_mssd_mm"];
+        assert!(
+            m["fitted"].as_f64().unwrap() < m["no_motion"].as_f64().unwrap(),
+            "{l}"
+        );
+    }
+    let motion = std::fs::read_to_string(out2.join("motion.toml")).unwrap();
+    assert!(motion.contains("[right_force]") && motion.contains("[left_field]"), "{motion}");
+    let k = lung_model::kernel::KernelFile::open(&out2.join("left.kernel")).unwrap();
+    assert!(k.meta().settings.force_field.is_some(), "the kernel was not baked with the fit");
+    let c = lungdyn(&["scene", "check", s(&out2.join("scene.toml"))]);
+    assert_eq!(c.code, Some(0), "scene check: {}\n{}", c.stdout, c.stderr);
     // A second run does not overwrite it.
     let again = lungdyn(&[
         "patient",

@@ -85,7 +85,7 @@ pub enum BakeError {
 }
 
 /// The applied force on each vertex of `mesh`: the fitted force field where the settings carry one
-/// (a breath-hold pair's fit), else eq. 6.17's `c7·x̂ + c8·ŷ + c9·ẑ` (EQUATIONS §2.4).
+/// (a breath-hold pair's fit), else eq. 6.18's `c7·x̂ + c8·ŷ + c9·ẑ` (EQUATIONS §2.4).
 pub fn applied_forces(mesh: &TriMesh, side: Side, settings: &BakeSettings) -> Vec<f64> {
     let bb = mesh.aabb();
     match &settings.force_field {

@@ -2,7 +2,7 @@
 //!
 //! A patient's exhale and inhale lung surfaces (two breath-hold CTs, not registered to each other)
 //! give the motion that patient's lung makes between the two volumes. The seed's motion (eq.
-//! 6.14–6.17) has nine constants: a linear applied force and a separable power law of directions.
+//! 6.14–6.16, 6.18) has nine constants: a linear applied force and a separable power law of directions.
 //! On the shared COPDgene pairs that cannot hold a real lung even in-sample (issue 34: 6.5 mm on a
 //! right lung where leaving it still gave 6.3 mm), so this fit gives the same pipeline the freedom
 //! the data need and nothing else:
@@ -73,7 +73,7 @@ impl Default for PairOptions {
     fn default() -> Self {
         Self {
             force_degree: 3,
-            field_degree: 4,
+            field_degree: 2,
             field_ridge: 1e-6,
             iterations: 50,
             folds: 5,
@@ -167,8 +167,18 @@ pub struct PairFit {
     pub cross_validated: Option<SurfaceDistance>,
     /// Leaving the exhale surface where it is.
     pub no_motion: SurfaceDistance,
-    /// Scaling the exhale surface about its centroid to the inhale volume.
+    /// Scaling the exhale surface about its volume centroid to the inhale volume.
     pub uniform_scaling: SurfaceDistance,
+    /// Crossing triangle pairs of the fitted kernel's surface at the inhale volume (0: no fold; at
+    /// most 100,000 counted). A surface pair cannot see sliding within the surface, and the fit
+    /// may slide parts of it far enough to fold it: said, never hidden.
+    pub folds_at_inhale: usize,
+    /// The largest volume change above the exhale volume (ml, to 1/64 of the pair's) at which the
+    /// fitted kernel draws no fold: the pair's whole change when it never folds.
+    pub fold_free_ml: f64,
+    /// Vertex displacement at the inhale volume, mm: median, 99th percentile, largest (the real
+    /// motion is a few centimetres at the base; far more is sliding the surface pair cannot see).
+    pub displacement_mm: [f64; 3],
     /// The options used.
     pub options: PairOptions,
     /// The exhale surface driven to the inhale volume by the fitted kernel (what a bake draws).
@@ -245,6 +255,18 @@ fn vertex_areas(p: &[DVec3], tris: &[[u32; 3]]) -> Vec<f64> {
 
 fn volume_ml(p: &[DVec3], tris: &[[u32; 3]]) -> f64 {
     lung_model::mesh::enclosed_volume_with(tris, |i| p[i as usize].to_array()) / 1000.0
+}
+
+/// Centroid of the volume a closed surface encloses (signed tetrahedra from the origin).
+fn volume_centroid(p: &[DVec3], tris: &[[u32; 3]]) -> DVec3 {
+    let (mut six_v, mut moment) = (0.0, DVec3::ZERO);
+    for t in tris {
+        let [a, b, c] = t.map(|v| p[v as usize]);
+        let v6 = a.dot(b.cross(c));
+        six_v += v6;
+        moment += v6 * (a + b + c);
+    }
+    moment / (4.0 * six_v)
 }
 
 /// Translation of the inhale surface onto the exhale one: apex on apex, then a trimmed,
@@ -415,6 +437,12 @@ impl Problem<'_> {
     /// The exhale vertices driven to the inhale volume by a kernel with these forces and
     /// directions (the bake's own normalisation and volume cubic).
     fn driven(&self, force: &[f64], dirs: Vec<DVec3>) -> Result<Vec<DVec3>, PairFitError> {
+        let model = self.model(force, dirs)?;
+        Ok(at_volume(&model, self.inhale_ml - model.start_volume_ml))
+    }
+
+    /// The kernel's model for these forces and directions (the bake's normalisation).
+    fn model(&self, force: &[f64], dirs: Vec<DVec3>) -> Result<LungModel, PairFitError> {
         let (model, _, _) = LungModel::from_force_and_directions(
             self.side,
             self.mesh.clone(),
@@ -422,10 +450,7 @@ impl Problem<'_> {
             force,
         )
         .map_err(crate::kernel::BakeError::from)?;
-        let s = model.scale_for_delta(self.inhale_ml - model.start_volume_ml) as f32;
-        let mut out = vec![[0.0f32; 3]; self.p.len()];
-        model.deform_into(s, &mut out);
-        Ok(out.iter().map(|q| DVec3::from(q.map(|v| v as f64))).collect())
+        Ok(model)
     }
 
     /// Fit on the exhale vertices with `train[i]` (and the inhale vertices they own).
@@ -516,6 +541,41 @@ impl Problem<'_> {
             .then(|| theta.iter().copied().collect())
             .ok_or(PairFitError::Singular("force"))
     }
+}
+
+/// The model's surface `delta_ml` above its start volume (f32, as the GPU draws it).
+fn at_volume(model: &LungModel, delta_ml: f64) -> Vec<DVec3> {
+    let s = model.scale_for_delta(delta_ml) as f32;
+    let mut out = vec![[0.0f32; 3]; model.mesh.positions.len()];
+    model.deform_into(s, &mut out);
+    out.iter().map(|q| DVec3::from(q.map(|v| v as f64))).collect()
+}
+
+/// The largest share of `delta_ml` (to 1/64) at which the model's surface does not cross itself:
+/// 1 when it never folds up to `delta_ml` (bisection: folds appear past a threshold as the
+/// displacement grows linearly).
+fn fold_free_share(model: &LungModel, delta_ml: f64) -> f64 {
+    let folds = |share: f64| {
+        let q = at_volume(model, share * delta_ml);
+        let mesh = TriMesh {
+            positions: q.iter().map(|x| x.as_vec3().to_array()).collect(),
+            triangles: model.mesh.triangles.clone(),
+        };
+        crate::surface_checks::self_intersections(&mesh, 1).count > 0
+    };
+    if !folds(1.0) {
+        return 1.0;
+    }
+    let (mut lo, mut hi) = (0.0, 1.0);
+    for _ in 0..6 {
+        let mid = 0.5 * (lo + hi);
+        if folds(mid) {
+            hi = mid;
+        } else {
+            lo = mid;
+        }
+    }
+    lo
 }
 
 /// Patches of the surface (nearest of `count` farthest-point seeds, the first the highest vertex).
@@ -656,23 +716,40 @@ pub fn fit_pair(
     let applied = crate::kernel::applied_forces(exhale, side, &baked);
     let elastostatic = transfer.elastostatic(&applied);
     let dirs = LungModel::field_directions(exhale, &fitted.field);
-    let moved = problem.driven(&elastostatic, dirs)?;
+    let kernel_model = problem.model(&elastostatic, dirs)?;
+    let delta_ml = inhale_ml - kernel_model.start_volume_ml;
+    let moved = at_volume(&kernel_model, delta_ml);
     let in_sample = distance(&moved, &exhale.triangles, &problem.target);
+    let mut lengths: Vec<f64> = moved.iter().zip(&p).map(|(a, b)| (*a - *b).length()).collect();
+    lengths.sort_by(|a, b| a.total_cmp(b));
+    let at = |q: f64| lengths[((lengths.len() - 1) as f64 * q).round() as usize];
+    let displacement_mm = [at(0.5), at(0.99), at(1.0)];
     let cross_validated = if opts.folds >= 2 {
         progress("held-out error: each part of the surface fitted without itself");
         Some(cross_validate(&problem)?)
     } else {
         None
     };
-    let centre = p.iter().sum::<DVec3>() / p.len() as f64;
+    let centre = volume_centroid(&p, &exhale.triangles);
     let k = (inhale_ml / exhale_ml).cbrt();
     let scaled: Vec<DVec3> = p.iter().map(|&x| centre + k * (x - centre)).collect();
     let to_mesh = |q: &[DVec3]| TriMesh {
         positions: q.iter().map(|x| x.as_vec3().to_array()).collect(),
         triangles: exhale.triangles.clone(),
     };
+    let moved_mesh = to_mesh(&moved);
+    let folds_at_inhale = crate::surface_checks::self_intersections(&moved_mesh, 100_000).count;
+    let fold_free_ml = if folds_at_inhale == 0 {
+        delta_ml
+    } else {
+        progress("finding the largest volume change the kernel draws without a fold");
+        fold_free_share(&kernel_model, delta_ml) * delta_ml
+    };
     Ok(PairFit {
         side,
+        folds_at_inhale,
+        fold_free_ml,
+        displacement_mm,
         force,
         direction: fitted.field,
         alignment,
@@ -683,7 +760,7 @@ pub fn fit_pair(
         no_motion: distance(&p, &exhale.triangles, &problem.target),
         uniform_scaling: distance(&scaled, &exhale.triangles, &problem.target),
         options: *opts,
-        moved: to_mesh(&moved),
+        moved: moved_mesh,
         inhale_aligned: TriMesh {
             positions: pi.iter().map(|x| x.as_vec3().to_array()).collect(),
             triangles: inhale.triangles.clone(),

@@ -68,7 +68,7 @@ pub enum Field {
 
 /// An applied-force field fitted to a patient's breath (lungdyn, beyond the seed): the force on each
 /// vertex before the operator, a polynomial of total degree ≤ 5 in box coordinates `[-1, 1]³` of the
-/// fitted lung — the seed's applied force (eq. 6.17's `c7·x̂ + c8·ŷ + c9·ẑ`, EQUATIONS §2.4) is the
+/// fitted lung — the seed's applied force (eq. 6.18's `c7·x̂ + c8·ŷ + c9·ẑ`, EQUATIONS §2.4) is the
 /// degree-1 case. The operator turns it into the elastostatic force exactly as it turns the seed's
 /// (`F = T·f`), so a patient's fit keeps the chapter-6 pipeline and only gives it the freedom a real
 /// breath needs. Evaluated like [`Field`]: the mesh's box mapped onto the fitted box.
