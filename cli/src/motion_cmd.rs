@@ -942,7 +942,11 @@ pub fn run(args: &FitMotionArgs) -> anyhow::Result<Outcome> {
     let delta: Vec<DVec3> = a.iter().zip(&b).map(|(p, q)| *q - *p).collect();
     let (_, lungs, _) = motion_models::split(&a, &delta, side)?;
     // --lung: the set is that lung; say so when its motion says otherwise.
-    let side_warning = side_warning(args.from_path(), side, motion_fit::side_from_motion(&a, &delta));
+    let side_warning = side_warning(
+        args.from_path(),
+        side,
+        motion_fit::side_from_motion(&a, &delta),
+    );
     let frame_check = motion_models::check_frame(&lungs);
     if let Some(w) = &frame_check.warning {
         eprintln!("lungdyn: WARNING: {w}");

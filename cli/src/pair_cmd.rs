@@ -103,7 +103,10 @@ fn surface(
 fn check(args: &FitMotionArgs) -> anyhow::Result<(PathBuf, PathBuf, PairOptions)> {
     let exhale = args.exhale.clone().unwrap_or_default();
     let inhale = args.inhale.clone().unwrap_or_default();
-    let same = match (std::fs::canonicalize(&exhale), std::fs::canonicalize(&inhale)) {
+    let same = match (
+        std::fs::canonicalize(&exhale),
+        std::fs::canonicalize(&inhale),
+    ) {
         (Ok(a), Ok(b)) => a == b,
         _ => exhale == inhale,
     };
@@ -130,9 +133,15 @@ fn check(args: &FitMotionArgs) -> anyhow::Result<(PathBuf, PathBuf, PairOptions)
         anyhow::bail!("--iterations {}: give 1 to 200", args.iterations);
     }
     if !(2..=10).contains(&args.folds) {
-        anyhow::bail!("--folds {} with --exhale/--inhale: give 2 to 10", args.folds);
+        anyhow::bail!(
+            "--folds {} with --exhale/--inhale: give 2 to 10",
+            args.folds
+        );
     }
-    for (flag, d) in [("--force-degree", args.force_degree), ("--field-degree", args.field_degree)] {
+    for (flag, d) in [
+        ("--force-degree", args.force_degree),
+        ("--field-degree", args.field_degree),
+    ] {
         if !(1..=5).contains(&d) {
             anyhow::bail!("{flag} {d}: give 1 to 5");
         }
@@ -176,7 +185,10 @@ pub fn run(args: &FitMotionArgs) -> anyhow::Result<PairReport> {
     let mut lungs = Vec::new();
     for side in sides {
         let clock = std::time::Instant::now();
-        eprintln!("lungdyn: {} lung: the exhale and inhale surfaces", side.name());
+        eprintln!(
+            "lungdyn: {} lung: the exhale and inhale surfaces",
+            side.name()
+        );
         let (e, exhale_from) = surface(&exhale, side, ax, args, &mut warnings)?;
         let (i, inhale_from) = surface(&inhale, side, inhale_ax, args, &mut warnings)?;
         let made = clock.elapsed().as_secs_f64();
@@ -329,7 +341,10 @@ pub fn text(r: &PairReport) -> String {
                 f.folds_at_inhale, f.displacement_mm[2], f.fold_free_ml
             );
         }
-        s += &format!("  surfaces {:.1} s, fit {:.1} s\n", l.seconds[0], l.seconds[1]);
+        s += &format!(
+            "  surfaces {:.1} s, fit {:.1} s\n",
+            l.seconds[0], l.seconds[1]
+        );
     }
     if let Some(o) = &r.out {
         s += &format!("wrote {o}\n");

@@ -199,13 +199,19 @@ fn joint_centre<'a>(meshes: impl IntoIterator<Item = &'a TriMesh>) -> DVec3 {
     (lo + hi) * 0.5
 }
 
-/// Bake one lung (the default settings with `settings`' motion) keeping its lobes; seconds taken.
+/// Bake one lung (the default settings, with the motion fitted to its pair where there is one)
+/// keeping its lobes; seconds taken.
 fn bake_lung(
     side: Side,
     m: &mask::FromMask,
     kernel_path: &Path,
-    settings: &lung_model::kernel::BakeSettings,
+    fit: Option<&lung_bake::patient_motion::PairFit>,
 ) -> anyhow::Result<f64> {
+    let mut settings = lung_model::kernel::BakeSettings::default_for(side);
+    if let Some(f) = fit {
+        settings.force_field = Some(f.force.clone());
+        settings.direction_field = Some(f.direction.clone());
+    }
     eprintln!(
         "lungdyn: baking the {} lung ({} vertices) into {}",
         side.name(),
@@ -219,7 +225,7 @@ fn bake_lung(
             .expect("valid template")
             .progress_chars("=> "),
     );
-    let mut kernel = lung_bake::kernel::bake(side, m.mesh.clone(), settings, &|rows| {
+    let mut kernel = lung_bake::kernel::bake(side, m.mesh.clone(), &settings, &|rows| {
         bar.inc(rows as u64)
     })
     .with_context(|| format!("baking the {} lung", side.name()))?;
@@ -227,6 +233,44 @@ fn bake_lung(
     kernel.lobes = Some(m.lobes.clone());
     kernel.write(kernel_path)?;
     Ok(t.elapsed().as_secs_f64())
+}
+
+/// What `patient` reports of one lung.
+fn lung_summary(
+    side: Side,
+    m: &mask::FromMask,
+    paths: [PathBuf; 2],
+    seconds: [f64; 2],
+    inhale_volume_ml: Option<f64>,
+    fit: Option<&lung_bake::patient_motion::PairFit>,
+) -> PatientLung {
+    PatientLung {
+        lung: side.name(),
+        mesh: paths[0].display().to_string(),
+        kernel: paths[1].display().to_string(),
+        vertices: m.mesh.positions.len(),
+        volume_ml: m.mesh.enclosed_volume_ml(),
+        mask_volume_ml: m.mask_volume_ml,
+        genus_before: m.genus_before,
+        closing_mm: m.closing_mm,
+        distance_to_mask_mm: m.distance_to_mask.mean_mm,
+        lobes_from: m.lobes_from,
+        sides_from: m.sides_from,
+        seconds,
+        inhale_volume_ml,
+        motion: if fit.is_some() {
+            "fitted to the breath-hold pair"
+        } else {
+            "population"
+        },
+        motion_mssd_mm: fit.map(|f| MotionFigures {
+            fitted: f.in_sample.mssd_mm,
+            no_motion: f.no_motion.mssd_mm,
+            uniform_scaling: f.uniform_scaling.mssd_mm,
+            folds_at_inhale: f.folds_at_inhale,
+            fold_free_ml: f.fold_free_ml,
+        }),
+    }
 }
 
 /// With an inhale pair (and without --population-motion): each lung's motion fitted to it
@@ -252,9 +296,14 @@ fn fit_motion(
         let t = std::time::Instant::now();
         let name = side.name();
         let settings = lung_model::kernel::BakeSettings::default_for(*side);
-        let fit = lung_bake::patient_motion::fit_pair(*side, &m.mesh, target, &settings, &opts, &|stage| {
-            eprintln!("lungdyn: {name} lung's motion: {stage}")
-        })
+        let fit = lung_bake::patient_motion::fit_pair(
+            *side,
+            &m.mesh,
+            target,
+            &settings,
+            &opts,
+            &|stage| eprintln!("lungdyn: {name} lung's motion: {stage}"),
+        )
         .with_context(|| format!("fitting the {name} lung's motion to the breath-hold pair"))?;
         lungs.push(crate::pair_cmd::PairLung {
             vertices: m.mesh.positions.len(),
@@ -449,40 +498,16 @@ pub fn run(args: &PatientArgs) -> anyhow::Result<PatientSummary> {
         let mesh_path = args.out.join(format!("{}.ply", side.name()));
         io::write_mesh_with_lobes(&m.mesh, &m.lobes, &mesh_path)?;
         let kernel_path = args.out.join(format!("{}.kernel", side.name()));
-        let mut settings = lung_model::kernel::BakeSettings::default_for(*side);
         let fit = fits.iter().find(|l| l.fit.side == *side).map(|l| &l.fit);
-        if let Some(f) = fit {
-            settings.force_field = Some(f.force.clone());
-            settings.direction_field = Some(f.direction.clone());
-        }
-        let bake_seconds = bake_lung(*side, m, &kernel_path, &settings)?;
-        lungs.push(PatientLung {
-            lung: side.name(),
-            mesh: mesh_path.display().to_string(),
-            kernel: kernel_path.display().to_string(),
-            vertices: m.mesh.positions.len(),
-            volume_ml: m.mesh.enclosed_volume_ml(),
-            mask_volume_ml: m.mask_volume_ml,
-            genus_before: m.genus_before,
-            closing_mm: m.closing_mm,
-            distance_to_mask_mm: m.distance_to_mask.mean_mm,
-            lobes_from: m.lobes_from,
-            sides_from: m.sides_from,
-            seconds: [*mesh_seconds, bake_seconds],
-            inhale_volume_ml: inhale_volumes.get(k).copied(),
-            motion: if fit.is_some() {
-                "fitted to the breath-hold pair"
-            } else {
-                "population"
-            },
-            motion_mssd_mm: fit.map(|f| MotionFigures {
-                fitted: f.in_sample.mssd_mm,
-                no_motion: f.no_motion.mssd_mm,
-                uniform_scaling: f.uniform_scaling.mssd_mm,
-                folds_at_inhale: f.folds_at_inhale,
-                fold_free_ml: f.fold_free_ml,
-            }),
-        });
+        let bake_seconds = bake_lung(*side, m, &kernel_path, fit)?;
+        lungs.push(lung_summary(
+            *side,
+            m,
+            [mesh_path, kernel_path],
+            [*mesh_seconds, bake_seconds],
+            inhale_volumes.get(k).copied(),
+            fit,
+        ));
     }
     let frc_ml: f64 = lungs.iter().map(|l| l.volume_ml).sum();
     write_scene(

@@ -769,8 +769,16 @@ fn patient_makes_a_scene_that_scene_check_accepts_with_frc_from_the_masks() {
     let inhale = tmp.write("lobes_inhale.nii", &nifti(body, Some(big), &d));
     let out2 = tmp.path("patient_pair");
     let r = lungdyn(&[
-        "patient", "--exhale", s(&nii), "--inhale", s(&inhale), "--vertices", "2000", "--out",
-        s(&out2), "--json",
+        "patient",
+        "--exhale",
+        s(&nii),
+        "--inhale",
+        s(&inhale),
+        "--vertices",
+        "2000",
+        "--out",
+        s(&out2),
+        "--json",
     ]);
     assert_eq!(r.code, Some(0), "stderr: {}", r.stderr);
     let j: serde_json::Value = serde_json::from_str(r.stdout.trim()).expect("one JSON object");
@@ -783,9 +791,15 @@ fn patient_makes_a_scene_that_scene_check_accepts_with_frc_from_the_masks() {
         );
     }
     let motion = std::fs::read_to_string(out2.join("motion.toml")).unwrap();
-    assert!(motion.contains("[right_force]") && motion.contains("[left_field]"), "{motion}");
+    assert!(
+        motion.contains("[right_force]") && motion.contains("[left_field]"),
+        "{motion}"
+    );
     let k = lung_model::kernel::KernelFile::open(&out2.join("left.kernel")).unwrap();
-    assert!(k.meta().settings.force_field.is_some(), "the kernel was not baked with the fit");
+    assert!(
+        k.meta().settings.force_field.is_some(),
+        "the kernel was not baked with the fit"
+    );
     let c = lungdyn(&["scene", "check", s(&out2.join("scene.toml"))]);
     assert_eq!(c.code, Some(0), "scene check: {}\n{}", c.stdout, c.stderr);
     // A second run does not overwrite it.
@@ -813,8 +827,16 @@ fn patient_makes_a_scene_that_scene_check_accepts_with_frc_from_the_masks() {
 fn fit_motion_on_a_pair_reports_what_the_bake_of_its_file_draws() {
     let tmp = Tmp::new("pair");
     let exhale = anatomy::lung(Side::Right, 2500).unwrap();
-    let top = exhale.positions.iter().map(|p| p[2]).fold(f32::MIN, f32::max) as f64;
-    let bottom = exhale.positions.iter().map(|p| p[2]).fold(f32::MAX, f32::min) as f64;
+    let top = exhale
+        .positions
+        .iter()
+        .map(|p| p[2])
+        .fold(f32::MIN, f32::max) as f64;
+    let bottom = exhale
+        .positions
+        .iter()
+        .map(|p| p[2])
+        .fold(f32::MAX, f32::min) as f64;
     let inhale = TriMesh {
         positions: exhale
             .positions
@@ -834,8 +856,22 @@ fn fit_motion_on_a_pair_reports_what_the_bake_of_its_file_draws() {
     lung_model::mesh::io::write_mesh(&inhale, &i).unwrap();
     let (motion, dir) = (tmp.path("motion.toml"), tmp.path("fit"));
     let r = lungdyn(&[
-        "fit-motion", "--exhale", s(&e), "--inhale", s(&i), "--lung", "right", "--iterations", "20",
-        "--folds", "3", "--out", s(&motion), "--surfaces-out", s(&dir), "--json",
+        "fit-motion",
+        "--exhale",
+        s(&e),
+        "--inhale",
+        s(&i),
+        "--lung",
+        "right",
+        "--iterations",
+        "20",
+        "--folds",
+        "3",
+        "--out",
+        s(&motion),
+        "--surfaces-out",
+        s(&dir),
+        "--json",
     ]);
     assert_eq!(r.code, Some(0), "{}", r.stderr);
     let j: serde_json::Value = serde_json::from_str(&r.stdout).unwrap();
@@ -849,14 +885,27 @@ fn fit_motion_on_a_pair_reports_what_the_bake_of_its_file_draws() {
     // What a user does with the file: bake the surface the fit used, drive it to the inhale volume.
     let kernel = tmp.path("right.kernel");
     let b = lungdyn(&[
-        "bake", "--mesh", s(&dir.join("right_exhale.ply")), "--lung", "right", "--motion", s(&motion),
-        "--out", s(&kernel),
+        "bake",
+        "--mesh",
+        s(&dir.join("right_exhale.ply")),
+        "--lung",
+        "right",
+        "--motion",
+        s(&motion),
+        "--out",
+        s(&kernel),
     ]);
     assert_eq!(b.code, Some(0), "{}", b.stderr);
     let dv = lung["inhale_ml"].as_f64().unwrap() - lung["exhale_ml"].as_f64().unwrap();
     let drawn = tmp.path("drawn.ply");
     let x = lungdyn(&[
-        "kernel", "export", s(&kernel), "--delta-ml", &format!("{dv}"), "--out", s(&drawn),
+        "kernel",
+        "export",
+        s(&kernel),
+        "--delta-ml",
+        &format!("{dv}"),
+        "--out",
+        s(&drawn),
     ]);
     assert_eq!(x.code, Some(0), "{}", x.stderr);
     let read = |p: &Path| {
@@ -876,16 +925,37 @@ fn fit_motion_on_a_pair_reports_what_the_bake_of_its_file_draws() {
     );
     // Refused, nothing written: the pair the wrong way round; one file twice; a landmark option.
     for (case, args, words) in [
-        ("reversed", vec!["--exhale", s(&i), "--inhale", s(&e)], vec!["not larger"]),
-        ("same file", vec!["--exhale", s(&e), "--inhale", s(&e)], vec!["same file"]),
-        ("plot", vec!["--exhale", s(&e), "--inhale", s(&i), "--plot", "x.png"], vec!["--plot"]),
-        ("degree", vec!["--exhale", s(&e), "--inhale", s(&i), "--force-degree", "9"], vec!["--force-degree"]),
+        (
+            "reversed",
+            vec!["--exhale", s(&i), "--inhale", s(&e)],
+            vec!["not larger"],
+        ),
+        (
+            "same file",
+            vec!["--exhale", s(&e), "--inhale", s(&e)],
+            vec!["same file"],
+        ),
+        (
+            "plot",
+            vec!["--exhale", s(&e), "--inhale", s(&i), "--plot", "x.png"],
+            vec!["--plot"],
+        ),
+        (
+            "degree",
+            vec!["--exhale", s(&e), "--inhale", s(&i), "--force-degree", "9"],
+            vec!["--force-degree"],
+        ),
     ] {
         let out = tmp.path(&format!("{}.toml", case.replace(' ', "_")));
         let mut full = vec!["fit-motion", "--lung", "right", "--out", s(&out)];
         full.extend(args);
         let r = lungdyn(&full);
-        assert!(matches!(r.code, Some(c) if c != 0 && c != 101), "{case}: {:?} {}", r.code, r.stderr);
+        assert!(
+            matches!(r.code, Some(c) if c != 0 && c != 101),
+            "{case}: {:?} {}",
+            r.code,
+            r.stderr
+        );
         for w in words {
             assert!(r.stderr.contains(w), "{case}: {}", r.stderr);
         }

@@ -408,13 +408,7 @@ impl Problem<'_> {
     /// Per-vertex elastostatic force `F = Σ θ_k T·m_k`.
     fn force(&self, theta: &[f64]) -> Vec<f64> {
         (0..self.p.len())
-            .map(|i| {
-                theta
-                    .iter()
-                    .zip(&self.columns)
-                    .map(|(t, c)| t * c[i])
-                    .sum()
-            })
+            .map(|i| theta.iter().zip(&self.columns).map(|(t, c)| t * c[i]).sum())
             .collect()
     }
 
@@ -443,13 +437,9 @@ impl Problem<'_> {
 
     /// The kernel's model for these forces and directions (the bake's normalisation).
     fn model(&self, force: &[f64], dirs: Vec<DVec3>) -> Result<LungModel, PairFitError> {
-        let (model, _, _) = LungModel::from_force_and_directions(
-            self.side,
-            self.mesh.clone(),
-            dirs,
-            force,
-        )
-        .map_err(crate::kernel::BakeError::from)?;
+        let (model, _, _) =
+            LungModel::from_force_and_directions(self.side, self.mesh.clone(), dirs, force)
+                .map_err(crate::kernel::BakeError::from)?;
         Ok(model)
     }
 
@@ -510,7 +500,9 @@ impl Problem<'_> {
             u = (0..n).map(|i| force[i] * dirs[i]).collect();
             model = Some(Model { theta, field });
         }
-        model.ok_or(PairFitError::Option("--iterations must be at least 1".into()))
+        model.ok_or(PairFitError::Option(
+            "--iterations must be at least 1".into(),
+        ))
     }
 
     /// Ridge least squares `min Σ ((Σ_k θ_k C_k)_i − m_i)² + λ‖θ‖²` over the rows `idx`.
@@ -548,7 +540,9 @@ fn at_volume(model: &LungModel, delta_ml: f64) -> Vec<DVec3> {
     let s = model.scale_for_delta(delta_ml) as f32;
     let mut out = vec![[0.0f32; 3]; model.mesh.positions.len()];
     model.deform_into(s, &mut out);
-    out.iter().map(|q| DVec3::from(q.map(|v| v as f64))).collect()
+    out.iter()
+        .map(|q| DVec3::from(q.map(|v| v as f64)))
+        .collect()
 }
 
 /// The largest share of `delta_ml` (to 1/64) at which the model's surface does not cross itself:
@@ -610,6 +604,45 @@ fn patches(p: &[DVec3], count: usize) -> Vec<usize> {
         .collect()
 }
 
+/// The exhale lung's transfer (as the bake builds it: graph, pitcher–catcher pass, amplitude
+/// smoothing) and its response `Tᵀm_k` to each monomial of the force degree, with the lung's box.
+fn operator_columns(
+    side: Side,
+    exhale: &TriMesh,
+    settings: &BakeSettings,
+    degree: u8,
+) -> Result<(crate::operator::Transfer, Vec<Vec<f64>>, DVec3, DVec3), PairFitError> {
+    let bb = exhale.aabb();
+    let norm = |q| lung_model::deform::normalised_position(q, &bb, side);
+    let graph = NodeGraph::from_mesh(exhale, &settings.elasticity, norm)
+        .map_err(crate::kernel::BakeError::from)?;
+    let mut transfer = compute_transfer(
+        &graph,
+        settings.tolerance,
+        Schedule::SpringsForward,
+        &|_| {},
+    )
+    .map_err(crate::kernel::BakeError::from)?;
+    crate::smooth::smooth_amplitude(&mut transfer, exhale, settings.amplitude_smoothing_mm)
+        .map_err(crate::kernel::BakeError::from)?;
+    let p = points(exhale);
+    let (lo, hi) = (
+        DVec3::from(bb.min.map(|v| v as f64)),
+        DVec3::from(bb.max.map(|v| v as f64)),
+    );
+    let exps = monomials(degree);
+    let mut values = Vec::new();
+    let mut basis = vec![vec![0.0; p.len()]; exps.len()];
+    for (i, &x) in p.iter().enumerate() {
+        monomial_values(box_coords(x, lo, hi), &exps, &mut values);
+        for (k, v) in values.iter().enumerate() {
+            basis[k][i] = *v;
+        }
+    }
+    let columns = basis.iter().map(|b| transfer.elastostatic(b)).collect();
+    Ok((transfer, columns, lo, hi))
+}
+
 /// Fit `side`'s motion from the exhale surface to the inhale surface (both closed, mm, body frame,
 /// not registered). `settings` gives the operator (elasticity, tolerance, amplitude smoothing) the
 /// bake will use; `progress` hears each stage.
@@ -633,7 +666,9 @@ pub fn fit_pair(
         ));
     }
     if opts.folds == 1 || opts.folds > 10 {
-        return Err(PairFitError::Option("--folds takes 0 (none) or 2 to 10".into()));
+        return Err(PairFitError::Option(
+            "--folds takes 0 (none) or 2 to 10".into(),
+        ));
     }
     let (exhale_ml, inhale_ml) = (exhale.enclosed_volume_ml(), inhale.enclosed_volume_ml());
     if !(inhale_ml > exhale_ml) {
@@ -659,29 +694,8 @@ pub fn fit_pair(
         message: "could not be indexed for closest points".into(),
     })?;
     progress("building the exhale lung's operator (the bake's Green's-function pass)");
-    let bb = exhale.aabb();
-    let norm = |q| lung_model::deform::normalised_position(q, &bb, side);
-    let graph = NodeGraph::from_mesh(exhale, &settings.elasticity, norm)
-        .map_err(crate::kernel::BakeError::from)?;
-    let mut transfer = compute_transfer(&graph, settings.tolerance, Schedule::SpringsForward, &|_| {})
-        .map_err(crate::kernel::BakeError::from)?;
-    crate::smooth::smooth_amplitude(&mut transfer, exhale, settings.amplitude_smoothing_mm)
-        .map_err(crate::kernel::BakeError::from)?;
+    let (transfer, columns, lo, hi) = operator_columns(side, exhale, settings, opts.force_degree)?;
     let p = points(exhale);
-    let (lo, hi) = (
-        DVec3::from(bb.min.map(|v| v as f64)),
-        DVec3::from(bb.max.map(|v| v as f64)),
-    );
-    let exps = monomials(opts.force_degree);
-    let mut values = Vec::new();
-    let mut basis = vec![vec![0.0; p.len()]; exps.len()];
-    for (i, &x) in p.iter().enumerate() {
-        monomial_values(box_coords(x, lo, hi), &exps, &mut values);
-        for (k, v) in values.iter().enumerate() {
-            basis[k][i] = *v;
-        }
-    }
-    let columns: Vec<Vec<f64>> = basis.iter().map(|b| transfer.elastostatic(b)).collect();
     let exhale_surface = Surface::new(&p, &exhale.triangles).ok_or(PairFitError::Surface {
         what: "exhale",
         message: "could not be indexed for closest points".into(),
@@ -720,7 +734,11 @@ pub fn fit_pair(
     let delta_ml = inhale_ml - kernel_model.start_volume_ml;
     let moved = at_volume(&kernel_model, delta_ml);
     let in_sample = distance(&moved, &exhale.triangles, &problem.target);
-    let mut lengths: Vec<f64> = moved.iter().zip(&p).map(|(a, b)| (*a - *b).length()).collect();
+    let mut lengths: Vec<f64> = moved
+        .iter()
+        .zip(&p)
+        .map(|(a, b)| (*a - *b).length())
+        .collect();
     lengths.sort_by(|a, b| a.total_cmp(b));
     let at = |q: f64| lengths[((lengths.len() - 1) as f64 * q).round() as usize];
     let displacement_mm = [at(0.5), at(0.99), at(1.0)];
@@ -854,15 +872,24 @@ mod tests {
         let fit = fit_pair(Side::Right, &exhale, &inhale, &settings, &opts, &|_| {}).unwrap();
         // The apex does not move in this breath: the alignment undoes the shift.
         let t = DVec3::from(fit.alignment.translation_mm);
-        assert!((t + shift).length() < 2.0, "translation {t} for shift {shift}");
+        assert!(
+            (t + shift).length() < 2.0,
+            "translation {t} for shift {shift}"
+        );
         let (none, scale, ins) = (
             fit.no_motion.mssd_mm,
             fit.uniform_scaling.mssd_mm,
             fit.in_sample.mssd_mm,
         );
-        assert!(ins < 0.35 * none && ins < scale, "fit {ins} none {none} scaling {scale}");
+        assert!(
+            ins < 0.35 * none && ins < scale,
+            "fit {ins} none {none} scaling {scale}"
+        );
         let cv = fit.cross_validated.unwrap().mssd_mm;
-        assert!(cv.is_finite() && cv >= 0.0 && cv < none, "held out {cv}, none {none}");
+        assert!(
+            cv.is_finite() && cv >= 0.0 && cv < none,
+            "held out {cv}, none {none}"
+        );
         // The moved surface is the fitted kernel driven to the inhale volume.
         assert!((fit.moved.enclosed_volume_ml() / fit.inhale_ml - 1.0).abs() < 1e-3);
         // The figure is the distance between the two surfaces it keeps.
@@ -879,22 +906,48 @@ mod tests {
         let exhale = anatomy::lung(Side::Left, 1500).unwrap();
         let inhale = breathe(&exhale, DVec3::ZERO);
         let settings = BakeSettings::default_for(Side::Left);
-        let e = fit_pair(Side::Left, &inhale, &exhale, &settings, &PairOptions::default(), &|_| {})
-            .unwrap_err()
-            .to_string();
-        assert!(e.contains("not larger") && e.contains("other way round"), "{e}");
+        let e = fit_pair(
+            Side::Left,
+            &inhale,
+            &exhale,
+            &settings,
+            &PairOptions::default(),
+            &|_| {},
+        )
+        .unwrap_err()
+        .to_string();
+        assert!(
+            e.contains("not larger") && e.contains("other way round"),
+            "{e}"
+        );
         for bad in [
-            PairOptions { force_degree: 0, ..PairOptions::default() },
-            PairOptions { field_degree: 6, ..PairOptions::default() },
-            PairOptions { folds: 1, ..PairOptions::default() },
+            PairOptions {
+                force_degree: 0,
+                ..PairOptions::default()
+            },
+            PairOptions {
+                field_degree: 6,
+                ..PairOptions::default()
+            },
+            PairOptions {
+                folds: 1,
+                ..PairOptions::default()
+            },
         ] {
             assert!(fit_pair(Side::Left, &exhale, &inhale, &settings, &bad, &|_| {}).is_err());
         }
         let mut open = exhale.clone();
         open.triangles.pop();
-        let e = fit_pair(Side::Left, &open, &inhale, &settings, &PairOptions::default(), &|_| {})
-            .unwrap_err()
-            .to_string();
+        let e = fit_pair(
+            Side::Left,
+            &open,
+            &inhale,
+            &settings,
+            &PairOptions::default(),
+            &|_| {},
+        )
+        .unwrap_err()
+        .to_string();
         assert!(e.contains("exhale surface"), "{e}");
     }
 }

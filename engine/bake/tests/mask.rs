@@ -698,14 +698,19 @@ fn one_lung_in_an_image_is_never_returned_as_the_other() {
     };
     voxelise(&r, &mut body, |_| 1);
     let (d, rows) = in_file_order(&body, Axes::RAS, Axes::RAS);
-    let path = write("one_right_lung.nii.gz", &gzip(&nifti(&body, Some(rows), &d)));
+    let path = write(
+        "one_right_lung.nii.gz",
+        &gzip(&nifti(&body, Some(rows), &d)),
+    );
     let m = mask::mesh_from_mask(&[path.clone()], &opts(Side::Right, 4000)).unwrap();
     assert_eq!(m.sides_from, "one lung in the image");
     let e = mask::mesh_from_mask(&[path], &opts(Side::Left, 4000))
         .unwrap_err()
         .to_string();
     assert!(
-        e.contains("holds one lung") && e.contains("it is the right lung") && e.contains("--lung right"),
+        e.contains("holds one lung")
+            && e.contains("it is the right lung")
+            && e.contains("--lung right"),
         "{e}"
     );
 }

@@ -536,11 +536,236 @@ fn close_and_extract(
     Ok(None)
 }
 
+/// What the anatomy says of the frame's three axes.
+struct Verdict {
+    flip_lr: bool,
+    flip_ap: bool,
+    flip_si: bool,
+    /// Strong enough to refuse without --axes.
+    strong: bool,
+    findings: Vec<String>,
+    warnings: Vec<String>,
+    reason: String,
+}
+
+/// The image's frame judged from both lungs' voxels (one verdict, whichever lung is asked).
+fn image_verdict(right: LungStats, left: LungStats, header_axes: Axes) -> Verdict {
+    use crate::surface_checks::{AP_SWAP_WARN, UPSIDE_DOWN_REFUSE, UPSIDE_DOWN_WARN};
+    let mut warnings = Vec::new();
+    let mut findings = Vec::new();
+    let mut strong = false;
+    let taper = (right.taper + left.taper) / 2.0;
+    let share = right.volume_ml / (right.volume_ml + left.volume_ml);
+    // Each A/P cue votes +1 (anterior and posterior look swapped), −1 (they look as the
+    // frame states) or 0 (too weak, or the two lungs disagree).
+    let vote = |a: f64, b: f64, dead: f64| {
+        let mean = (a + b) / 2.0;
+        if a > 0.0 && b > 0.0 && mean > dead {
+            1
+        } else if a < 0.0 && b < 0.0 && mean < -dead {
+            -1
+        } else {
+            0
+        }
+    };
+    let base_vote = vote(right.base_offset, left.base_offset, AP_SWAP_WARN);
+    let bulk_vote = -vote(right.bulk, left.bulk, 0.1);
+    let ap_votes = base_vote + bulk_vote;
+    let smaller_right = share < 0.5;
+    // A half turn about the long axis (an LPS image under an RAS header, or the reverse)
+    // swaps anterior with posterior and left with right, and no lung's shape shows the
+    // second: the frame's right lung the smaller (a right lung is 53–56 % of both) is
+    // its sign. Both A/P cues swapped, or one swapped and the other silent or outvoted
+    // by the sizes, decide it.
+    let half_turn = smaller_right && ap_votes >= 0 && (base_vote > 0 || bulk_vote > 0);
+    let flip_ap = ap_votes >= 2 || half_turn || ap_votes == 1;
+    let flip_lr = half_turn;
+    let flip_si = taper > UPSIDE_DOWN_WARN && right.taper > 0.0 && left.taper > 0.0;
+    let numbers = format!(
+        "both lungs' voxels (right / left): base (lowest 5 % slab) {:+.2} / {:+.2} of the \
+         lung's depth from its centroid along +Y (a lung's lowest point is posterior, so \
+         negative), posterior-to-anterior bulk ln {:+.2} / {:+.2} (a lung is deeper \
+         posteriorly, so positive), taper {:+.2} / {:+.2} (negative = narrower at +Z); \
+         the frame's right lung {:.0} % of both ({:.0} against {:.0} ml; usually 53–56 %)",
+        right.base_offset,
+        left.base_offset,
+        right.bulk,
+        left.bulk,
+        right.taper,
+        left.taper,
+        100.0 * share,
+        right.volume_ml,
+        left.volume_ml
+    );
+    if flip_ap {
+        strong |= ap_votes >= 2 || half_turn;
+        findings.push(format!(
+            "{} — +Y looks posterior, not anterior{} ({numbers})",
+            match (base_vote, bulk_vote) {
+                (1, 1) => "both lungs' lowest parts lie towards +Y and their bulk towards −Y",
+                (1, _) => "both lungs' lowest parts lie towards +Y",
+                _ => "both lungs' bulk lies towards −Y",
+            },
+            if half_turn {
+                ", and the lung the frame calls right is the smaller: together a half \
+                 turn about the long axis, which swaps left and right too"
+            } else {
+                ""
+            }
+        ));
+    }
+    if flip_si {
+        strong |= taper > UPSIDE_DOWN_REFUSE;
+        findings.push(format!(
+            "both lungs are wider at +Z than at −Z, but a lung narrows towards the apex: \
+             +Z looks inferior ({numbers})"
+        ));
+    }
+    let lower_by = left.lowest_mm - right.lowest_mm;
+    if !flip_ap && share < 0.47 && lower_by > 5.0 {
+        warnings.push(format!(
+            "in the image's frame the right lung is the smaller ({:.0} % of both lungs, \
+             {:.0} ml against {:.0} ml) and its base {:.0} mm lower than the left's; a \
+             right lung is usually the larger (53–56 %) with the higher base. If the \
+             image's left-right axis is mirrored (a header written with the wrong \
+             directions), pass --axes {}",
+            100.0 * share,
+            right.volume_ml,
+            left.volume_ml,
+            lower_by,
+            fixed_axes(header_axes, true, false, false).code()
+        ));
+    }
+    let reason = if findings.is_empty() {
+        format!("anterior, posterior, superior and inferior look as the frame states: {numbers}")
+    } else {
+        numbers
+    };
+    Verdict {
+        flip_lr,
+        flip_ap,
+        flip_si,
+        strong,
+        findings,
+        warnings,
+        reason,
+    }
+}
+
+/// One lung's surface judged alone (the image holds no other lung to weigh it against).
+fn surface_verdict(mesh: &TriMesh) -> Verdict {
+    let orientation = crate::surface_checks::infer_orientation(mesh);
+    let (flip_ap, flip_si) = (
+        orientation.anterior_posterior_swapped,
+        orientation.upside_down,
+    );
+    let mut findings = Vec::new();
+    if flip_ap || flip_si {
+        findings.push(format!(
+            "lies {} ({})",
+            if flip_ap {
+                "with anterior and posterior swapped"
+            } else {
+                "upside down"
+            },
+            orientation.reason
+        ));
+    }
+    Verdict {
+        flip_lr: false,
+        flip_ap,
+        flip_si,
+        strong: (flip_ap || flip_si) && orientation.strong,
+        findings,
+        warnings: Vec::new(),
+        reason: orientation.reason,
+    }
+}
+
 /// Where the image holds one lung only: how far its centre lies from the image's centre along
 /// the body's X, as a share of the image's X extent (negative: towards the patient's right).
 #[derive(Debug, Clone, Copy)]
 struct OneLung {
     offset: f64,
+}
+
+/// One lung in the image, one label: which lung it is comes from its shape (its concave,
+/// mediastinal face) and where it lies in the image, never from what was asked — the other side
+/// is refused; a weak or disagreeing verdict is a warning.
+fn one_lung_side(
+    one: OneLung,
+    side: Side,
+    side_evidence: &crate::surface_checks::SideEvidence,
+    header_axes: Axes,
+    warnings: &mut Vec<String>,
+) -> Result<(), String> {
+    let confident = side_evidence.confidence >= crate::surface_checks::SIDE_MISMATCH_CONFIDENCE;
+    // One lung in the image, one label: which lung it is comes from its shape (its concave,
+    // mediastinal face) and where it lies in the image, never from what was asked.
+    let by_place = if one.offset.abs() >= 0.1 {
+        Some(if one.offset < 0.0 {
+            Side::Right
+        } else {
+            Side::Left
+        })
+    } else {
+        None
+    };
+    let by_shape = side_evidence.side.filter(|_| confident);
+    let seen = by_shape.or(by_place);
+    let place = format!(
+        "its centre lies {:.0} % of the image's width to the patient's {} of the image's centre",
+        100.0 * one.offset.abs(),
+        if one.offset < 0.0 { "right" } else { "left" }
+    );
+    match seen {
+        Some(seen) if seen != side => {
+            return Err(format!(
+                "--lung {asked}: the image holds one lung, and it is the {seen} lung (its shape: \
+                 {}; {place}). Ask for --lung {seen}; if the image's left-right axis is \
+                 mirrored, pass --axes {}",
+                side_evidence.reason,
+                fixed_axes(header_axes, true, false, false).code(),
+                asked = side.name(),
+                seen = seen.name(),
+            ));
+        }
+        Some(_) if by_shape.is_some() && by_place.is_some_and(|p| p != side) => {
+            warnings.push(format!(
+                "the image holds one lung: its shape is a {} lung's ({}), but {place}; check \
+                 the image's left-right axis",
+                side.name(),
+                side_evidence.reason
+            ));
+        }
+        Some(_) => {}
+        None => warnings.push(format!(
+            "the image holds one lung, and neither its shape ({}) nor its place ({place}) \
+             says which: it was meshed as the {} lung because you asked so; check it",
+            side_evidence.reason,
+            side.name()
+        )),
+    }
+    Ok(())
+}
+
+/// Where the one lung of a one-lung image lies, from the image's centre along the body's X.
+fn one_lung_place(volume: &LabelVolume, mesh: &TriMesh) -> OneLung {
+    let [nx, ny, nz] = volume.dims;
+    let centre = mesh.positions.iter().map(|p| p[0] as f64).sum::<f64>()
+        / mesh.positions.len().max(1) as f64;
+    let mid = volume
+        .to_body
+        .apply(DVec3::new(
+            (nx as f64 - 1.0) / 2.0,
+            (ny as f64 - 1.0) / 2.0,
+            (nz as f64 - 1.0) / 2.0,
+        ))
+        .x;
+    let extent = image_x_extent(volume).unwrap_or(1.0).max(1e-9);
+    OneLung {
+        offset: (centre - mid) / extent,
+    }
 }
 
 /// What the anatomy says against the image's frame: `Err` with the `--axes` that answers all of
@@ -560,127 +785,21 @@ fn frame_findings(
     one_lung: Option<OneLung>,
     axes_given: bool,
 ) -> Result<(Vec<String>, String, String), String> {
-    use crate::surface_checks::{
-        AP_SWAP_WARN, SIDE_MISMATCH_CONFIDENCE, UPSIDE_DOWN_REFUSE,
-        UPSIDE_DOWN_WARN,
-    };
+    use crate::surface_checks::SIDE_MISMATCH_CONFIDENCE;
     let side_evidence = crate::surface_checks::infer_side(mesh);
     let header_axes = Axes(volume.to_body.voxel_axes().0);
-    let mut warnings = Vec::new();
-    let mut findings = Vec::new();
-    let mut strong = false;
-    let (mut flip_lr, flip_ap, flip_si);
-    let orientation_reason;
-    match both {
-        Some((right, left)) => {
-            let taper = (right.taper + left.taper) / 2.0;
-            let share = right.volume_ml / (right.volume_ml + left.volume_ml);
-            // Each A/P cue votes +1 (anterior and posterior look swapped), −1 (they look as the
-            // frame states) or 0 (too weak, or the two lungs disagree).
-            let vote = |a: f64, b: f64, dead: f64| {
-                let mean = (a + b) / 2.0;
-                if a > 0.0 && b > 0.0 && mean > dead {
-                    1
-                } else if a < 0.0 && b < 0.0 && mean < -dead {
-                    -1
-                } else {
-                    0
-                }
-            };
-            let base_vote = vote(right.base_offset, left.base_offset, AP_SWAP_WARN);
-            let bulk_vote = -vote(right.bulk, left.bulk, 0.1);
-            let ap_votes = base_vote + bulk_vote;
-            let smaller_right = share < 0.5;
-            // A half turn about the long axis (an LPS image under an RAS header, or the reverse)
-            // swaps anterior with posterior and left with right, and no lung's shape shows the
-            // second: the frame's right lung the smaller (a right lung is 53–56 % of both) is
-            // its sign. Both A/P cues swapped, or one swapped and the other silent or outvoted
-            // by the sizes, decide it.
-            let half_turn = smaller_right && ap_votes >= 0 && (base_vote > 0 || bulk_vote > 0);
-            flip_ap = ap_votes >= 2 || half_turn || ap_votes == 1;
-            flip_lr = half_turn;
-            flip_si = taper > UPSIDE_DOWN_WARN && right.taper > 0.0 && left.taper > 0.0;
-            let numbers = format!(
-                "both lungs' voxels (right / left): base (lowest 5 % slab) {:+.2} / {:+.2} of the \
-                 lung's depth from its centroid along +Y (a lung's lowest point is posterior, so \
-                 negative), posterior-to-anterior bulk ln {:+.2} / {:+.2} (a lung is deeper \
-                 posteriorly, so positive), taper {:+.2} / {:+.2} (negative = narrower at +Z); \
-                 the frame's right lung {:.0} % of both ({:.0} against {:.0} ml; usually 53–56 %)",
-                right.base_offset,
-                left.base_offset,
-                right.bulk,
-                left.bulk,
-                right.taper,
-                left.taper,
-                100.0 * share,
-                right.volume_ml,
-                left.volume_ml
-            );
-            if flip_ap {
-                strong |= ap_votes >= 2 || half_turn;
-                findings.push(format!(
-                    "{} — +Y looks posterior, not anterior{} ({numbers})",
-                    match (base_vote, bulk_vote) {
-                        (1, 1) => "both lungs' lowest parts lie towards +Y and their bulk towards −Y",
-                        (1, _) => "both lungs' lowest parts lie towards +Y",
-                        _ => "both lungs' bulk lies towards −Y",
-                    },
-                    if half_turn {
-                        ", and the lung the frame calls right is the smaller: together a half \
-                         turn about the long axis, which swaps left and right too"
-                    } else {
-                        ""
-                    }
-                ));
-            }
-            if flip_si {
-                strong |= taper > UPSIDE_DOWN_REFUSE;
-                findings.push(format!(
-                    "both lungs are wider at +Z than at −Z, but a lung narrows towards the apex: \
-                     +Z looks inferior ({numbers})"
-                ));
-            }
-            let lower_by = left.lowest_mm - right.lowest_mm;
-            if !flip_ap && share < 0.47 && lower_by > 5.0 {
-                warnings.push(format!(
-                    "in the image's frame the right lung is the smaller ({:.0} % of both lungs, \
-                     {:.0} ml against {:.0} ml) and its base {:.0} mm lower than the left's; a \
-                     right lung is usually the larger (53–56 %) with the higher base. If the \
-                     image's left-right axis is mirrored (a header written with the wrong \
-                     directions), pass --axes {}",
-                    100.0 * share,
-                    right.volume_ml,
-                    left.volume_ml,
-                    lower_by,
-                    fixed_axes(header_axes, true, false, false).code()
-                ));
-            }
-            orientation_reason = if findings.is_empty() {
-                format!("anterior, posterior, superior and inferior look as the frame states: {numbers}")
-            } else {
-                numbers
-            };
-        }
-        None => {
-            let orientation = crate::surface_checks::infer_orientation(mesh);
-            flip_ap = orientation.anterior_posterior_swapped;
-            flip_si = orientation.upside_down;
-            flip_lr = false;
-            if flip_ap || flip_si {
-                strong |= orientation.strong;
-                findings.push(format!(
-                    "lies {} ({})",
-                    if flip_ap {
-                        "with anterior and posterior swapped"
-                    } else {
-                        "upside down"
-                    },
-                    orientation.reason
-                ));
-            }
-            orientation_reason = orientation.reason;
-        }
-    }
+    let Verdict {
+        mut flip_lr,
+        flip_ap,
+        flip_si,
+        mut strong,
+        mut findings,
+        mut warnings,
+        reason: orientation_reason,
+    } = match both {
+        Some((right, left)) => image_verdict(right, left, header_axes),
+        None => surface_verdict(mesh),
+    };
     let confident = side_evidence.confidence >= SIDE_MISMATCH_CONFIDENCE;
     if let Some(seen) = side_evidence.side.filter(|_| confident) {
         if by_label && seen != side && !flip_lr {
@@ -696,48 +815,7 @@ fn frame_findings(
         }
     }
     if let Some(one) = one_lung {
-        // One lung in the image, one label: which lung it is comes from its shape (its concave,
-        // mediastinal face) and where it lies in the image, never from what was asked.
-        let by_place = if one.offset.abs() >= 0.1 {
-            Some(if one.offset < 0.0 { Side::Right } else { Side::Left })
-        } else {
-            None
-        };
-        let by_shape = side_evidence.side.filter(|_| confident);
-        let seen = by_shape.or(by_place);
-        let place = format!(
-            "its centre lies {:.0} % of the image's width to the patient's {} of the image's centre",
-            100.0 * one.offset.abs(),
-            if one.offset < 0.0 { "right" } else { "left" }
-        );
-        match seen {
-            Some(seen) if seen != side => {
-                return Err(format!(
-                    "--lung {asked}: the image holds one lung, and it is the {seen} lung (its shape: \
-                     {}; {place}). Ask for --lung {seen}; if the image's left-right axis is \
-                     mirrored, pass --axes {}",
-                    side_evidence.reason,
-                    fixed_axes(header_axes, true, false, false).code(),
-                    asked = side.name(),
-                    seen = seen.name(),
-                ));
-            }
-            Some(_) if by_shape.is_some() && by_place.is_some_and(|p| p != side) => {
-                warnings.push(format!(
-                    "the image holds one lung: its shape is a {} lung's ({}), but {place}; check \
-                     the image's left-right axis",
-                    side.name(),
-                    side_evidence.reason
-                ));
-            }
-            Some(_) => {}
-            None => warnings.push(format!(
-                "the image holds one lung, and neither its shape ({}) nor its place ({place}) \
-                 says which: it was meshed as the {} lung because you asked so; check it",
-                side_evidence.reason,
-                side.name()
-            )),
-        }
+        one_lung_side(one, side, &side_evidence, header_axes, &mut warnings)?;
     }
     if !findings.is_empty() {
         let fix = fixed_axes(header_axes, flip_lr, flip_ap, flip_si);
@@ -899,32 +977,7 @@ pub fn mesh_from_mask(paths: &[PathBuf], opts: &MaskOptions) -> Result<FromMask,
     }
     crate::import::check_size(&mesh, crate::import::Units::Mm, true)
         .map_err(|e| surface_err(format!("{e}")))?;
-    let one_lung = (separated.sides_from == ONE_LUNG).then(|| {
-        let [nx, _, _] = volume.dims;
-        let x_of = |i: f64| volume.to_body.apply(DVec3::new(i, 0.0, 0.0)).x;
-        let (a, b) = (x_of(0.0), x_of(nx.saturating_sub(1) as f64));
-        let width = (b - a).abs().max(1e-9);
-        let centre = mesh
-            .positions
-            .iter()
-            .map(|p| p[0] as f64)
-            .sum::<f64>()
-            / mesh.positions.len().max(1) as f64;
-        // Image centre along body X (the voxel X axis may not be the body's: the box's corners).
-        let [_, ny, nz] = volume.dims;
-        let mid = volume
-            .to_body
-            .apply(DVec3::new(
-                (nx as f64 - 1.0) / 2.0,
-                (ny as f64 - 1.0) / 2.0,
-                (nz as f64 - 1.0) / 2.0,
-            ))
-            .x;
-        let extent = image_x_extent(&volume).unwrap_or(width);
-        OneLung {
-            offset: (centre - mid) / extent,
-        }
-    });
+    let one_lung = (separated.sides_from == ONE_LUNG).then(|| one_lung_place(&volume, &mesh));
     let (frame_warnings, side_reason, orientation_reason) = frame_findings(
         &mesh,
         &volume,
@@ -1026,30 +1079,13 @@ fn extract(
     let min_spacing = spacing.iter().cloned().fold(f64::INFINITY, f64::min);
     let mut h_grid_max = (2.0 * sigma).max(spacing.iter().cloned().fold(0.0, f64::max));
     let mut h_vol = h.min(h_grid_max);
-    // Marching tetrahedra's surface is closed, so E = 3F/2 and χ = V − F/2.
-    let genus_0 = |m: &TriMesh| m.positions.len() as i64 - m.triangles.len() as i64 / 2 == 2;
     let mut iso = 0.5;
     let mut first = surface::marching_tetrahedra(&field, iso, spacing.map(|s| h_vol / s));
-    // A handle at the first grid is almost always kept by the search's grids (the same field,
-    // at the same level): the next closing is tried at once instead of after the whole search —
-    // except where the count asked is had by decimating the finest grid: there a finer grid
-    // may not puncture the thin sheet that made the handle, and is tried first.
     if need_genus_0 && !genus_0(&first) {
-        let mut finer = None;
-        if h > h_grid_max {
-            for f in [1.5, 2.25] {
-                let hf = h_grid_max / f;
-                if hf < 0.5 * min_spacing {
-                    break;
-                }
-                let m = surface::marching_tetrahedra(&field, iso, spacing.map(|s| hf / s));
-                if genus_0(&m) {
-                    finer = Some((hf, m));
-                    break;
-                }
-            }
-        }
-        let Some((hf, m)) = finer else {
+        // A handle at the first grid is almost always kept by the search's grids (the same
+        // field, at the same level): the next closing is tried at once instead of after the
+        // whole search — except where a finer grid may lose it (`finer_without_handle`).
+        let Some((hf, m)) = finer_without_handle(&field, iso, h, h_grid_max, min_spacing) else {
             return Ok(None);
         };
         h_grid_max = hf;
@@ -1150,6 +1186,38 @@ fn extract(
         euler: topology.euler,
         crossing,
     }))
+}
+
+/// Marching tetrahedra's surface is closed, so E = 3F/2 and χ = V − F/2: genus 0 is χ = 2.
+fn genus_0(m: &TriMesh) -> bool {
+    m.positions.len() as i64 - m.triangles.len() as i64 / 2 == 2
+}
+
+/// Where the count asked is had by decimating the finest grid (`h` > `h_grid_max`), a finer grid
+/// may not puncture the thin sheet that made a handle: the first finer grid (÷1.5, ÷2.25, not
+/// below half a voxel) whose surface has none, with that surface.
+fn finer_without_handle(
+    field: &surface::Field,
+    iso: f64,
+    h: f64,
+    h_grid_max: f64,
+    min_spacing: f64,
+) -> Option<(f64, TriMesh)> {
+    if h <= h_grid_max {
+        return None;
+    }
+    let spacing = field.to_body.spacing();
+    for f in [1.5, 2.25] {
+        let hf = h_grid_max / f;
+        if hf < 0.5 * min_spacing {
+            break;
+        }
+        let m = surface::marching_tetrahedra(field, iso, spacing.map(|s| hf / s));
+        if genus_0(&m) {
+            return Some((hf, m));
+        }
+    }
+    None
 }
 
 /// `axes` with its L/R, A/P and S/I letters reversed as asked.
@@ -1274,19 +1342,18 @@ fn lung_stats(volume: &LabelVolume, pick: impl Fn(u16) -> bool) -> LungStats {
 
 fn part_stats(g: &Grid, to_body: &VoxelToBody, voxel_ml: f64) -> LungStats {
     let [nx, ny, _] = g.dims;
-    let points: Vec<DVec3> = g
-        .on
-        .iter()
-        .enumerate()
-        .filter(|&(_, &on)| on)
-        .map(|(idx, _)| {
-            to_body.apply(DVec3::new(
-                (idx % nx) as f64,
-                ((idx / nx) % ny) as f64,
-                (idx / (nx * ny)) as f64,
-            ))
-        })
-        .collect();
+    let points: Vec<DVec3> =
+        g.on.iter()
+            .enumerate()
+            .filter(|&(_, &on)| on)
+            .map(|(idx, _)| {
+                to_body.apply(DVec3::new(
+                    (idx % nx) as f64,
+                    ((idx / nx) % ny) as f64,
+                    (idx / (nx * ny)) as f64,
+                ))
+            })
+            .collect();
     stats_of(&points, voxel_ml)
 }
 

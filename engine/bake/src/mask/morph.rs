@@ -187,20 +187,17 @@ fn along_lines(
     let mut gathered = vec![0.0f64; d.len()];
     {
         let d = &*d;
-        gathered
-            .par_chunks_mut(len)
-            .enumerate()
-            .for_each_init(
-                || (vec![0.0f64; len], vec![0usize; len], vec![0.0f64; len + 1]),
-                |(out, v, z), (l, line)| {
-                    let s = start(l);
-                    for (q, x) in line.iter_mut().enumerate() {
-                        *x = d[s + q * stride];
-                    }
-                    f(line, out, v, z);
-                    line.copy_from_slice(out);
-                },
-            );
+        gathered.par_chunks_mut(len).enumerate().for_each_init(
+            || (vec![0.0f64; len], vec![0usize; len], vec![0.0f64; len + 1]),
+            |(out, v, z), (l, line)| {
+                let s = start(l);
+                for (q, x) in line.iter_mut().enumerate() {
+                    *x = d[s + q * stride];
+                }
+                f(line, out, v, z);
+                line.copy_from_slice(out);
+            },
+        );
     }
     for l in 0..lines {
         let s = start(l);
@@ -331,10 +328,10 @@ pub fn genus(g: &Grid) -> i64 {
         }
         [v, e, f, c]
     };
-    let [v, e, f, c] = (0..=nz as isize)
-        .into_par_iter()
-        .map(plane)
-        .reduce(|| [0; 4], |a, b| [a[0] + b[0], a[1] + b[1], a[2] + b[2], a[3] + b[3]]);
+    let [v, e, f, c] = (0..=nz as isize).into_par_iter().map(plane).reduce(
+        || [0; 4],
+        |a, b| [a[0] + b[0], a[1] + b[1], a[2] + b[2], a[3] + b[3]],
+    );
     1 - (v - e + f - c)
 }
 
