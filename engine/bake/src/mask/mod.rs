@@ -493,6 +493,7 @@ struct Closed {
 /// the groove prevents — and the surface made.
 fn close_and_extract(
     as_labelled: &Grid,
+    genus_as_labelled: i64,
     to_body: VoxelToBody,
     voxel_ml: f64,
     sigma: f64,
@@ -515,7 +516,13 @@ fn close_and_extract(
             filled = morph::fill_cavities(&mut g).0;
             morph::keep_largest(&mut g);
         }
-        if !opts.keep_tunnels && r < *radii.last().unwrap_or(&0.0) && morph::genus(&g) != 0 {
+        // (No closing: the genus is the caller's, already measured.)
+        let genus = if r > 0.0 {
+            morph::genus(&g)
+        } else {
+            genus_as_labelled
+        };
+        if !opts.keep_tunnels && r < *radii.last().unwrap_or(&0.0) && genus != 0 {
             continue;
         }
         let volume_ml = g.count() as f64 * voxel_ml;
@@ -953,8 +960,15 @@ pub fn mesh_from_mask(paths: &[PathBuf], opts: &MaskOptions) -> Result<FromMask,
     let mask_volume_ml = grid.count() as f64 * volume.voxel_ml();
     let (cavities_filled, _) = morph::fill_cavities(&mut grid);
     let genus_before = morph::genus(&grid);
-    let closed = close_and_extract(&grid, crop_to_body, volume.voxel_ml(), sigma, opts)?
-        .ok_or_else(|| surface_err("internal error: no surface was made".into()))?;
+    let closed = close_and_extract(
+        &grid,
+        genus_before,
+        crop_to_body,
+        volume.voxel_ml(),
+        sigma,
+        opts,
+    )?
+    .ok_or_else(|| surface_err("internal error: no surface was made".into()))?;
     let Extracted {
         mesh, h, crossing, ..
     } = closed.made;

@@ -280,59 +280,60 @@ pub fn close(g: &Grid, radius_mm: f64) -> Grid {
 /// Genus of the boundary of a voxel set that is one 26-connected body without cavities: from the
 /// Euler characteristic of its closed cubes, χ = V − E + F − C = 1 − genus.
 pub fn genus(g: &Grid) -> i64 {
-    let [nx, ny, nz] = g.dims;
-    let inside = |i: isize, j: isize, k: isize| -> bool {
-        i >= 0
-            && j >= 0
-            && k >= 0
-            && (i as usize) < nx
-            && (j as usize) < ny
-            && (k as usize) < nz
-            && g.on[g.at(i as usize, j as usize, k as usize)]
-    };
     use rayon::prelude::*;
-    // Each lattice plane counted in parallel; integer sums, so the order does not matter.
-    let plane = |k: isize| -> [i64; 4] {
-        let (mut v, mut e, mut f, mut c) = (0i64, 0i64, 0i64, 0i64);
-        for j in 0..=ny as isize {
-            for i in 0..=nx as isize {
-                // The lattice point (i, j, k) is the corner shared by voxels (i−1..i, j−1..j, k−1..k).
-                let vox = |a: isize, b: isize, cc: isize| inside(i - a, j - b, k - cc);
-                if (0..8).any(|m| vox(m & 1, (m >> 1) & 1, (m >> 2) & 1)) {
-                    v += 1;
-                }
-                // Edge from this point along +x: voxels (i, j−1..j, k−1..k).
-                if (0..4).any(|m| inside(i, j - (m & 1), k - ((m >> 1) & 1))) {
-                    e += 1;
-                }
-                if (0..4).any(|m| inside(i - (m & 1), j, k - ((m >> 1) & 1))) {
-                    e += 1;
-                }
-                if (0..4).any(|m| inside(i - (m & 1), j - ((m >> 1) & 1), k)) {
-                    e += 1;
-                }
-                // Faces at this point normal to x, y, z.
-                if inside(i, j, k) || inside(i - 1, j, k) {
-                    f += 1;
-                }
-                if inside(i, j, k) || inside(i, j - 1, k) {
-                    f += 1;
-                }
-                if inside(i, j, k) || inside(i, j, k - 1) {
-                    f += 1;
-                }
-                if inside(i, j, k) {
-                    c += 1;
-                }
+    let [nx, ny, nz] = g.dims;
+    // The voxels with one empty voxel of padding on every side, so each lattice point's eight
+    // voxels are read without bounds checks.
+    let (px, py) = (nx + 2, ny + 2);
+    let mut pad = vec![0u8; px * py * (nz + 2)];
+    for k in 0..nz {
+        for j in 0..ny {
+            for i in 0..nx {
+                pad[(i + 1) + px * ((j + 1) + py * (k + 1))] = g.on[g.at(i, j, k)] as u8;
             }
         }
-        [v, e, f, c]
-    };
-    let [v, e, f, c] = (0..=nz as isize).into_par_iter().map(plane).reduce(
-        || [0; 4],
-        |a, b| [a[0] + b[0], a[1] + b[1], a[2] + b[2], a[3] + b[3]],
-    );
-    1 - (v - e + f - c)
+    }
+    // A lattice point's eight voxels as a code, bit a + 2b + 4c set when voxel (i−a, j−b, k−c) is
+    // inside; its share of V − E + F − C (the point, the three edges and three faces leaving it
+    // along +x, +y, +z, and the cube beyond it) depends on the code alone.
+    let table: Vec<i64> = (0..256u32)
+        .map(|code| {
+            let bit = |a: u32, b: u32, c: u32| code >> (a + 2 * b + 4 * c) & 1 == 1;
+            let any = |f: &dyn Fn(u32, u32, u32) -> bool| {
+                (0..8).any(|m| {
+                    f(m & 1, (m >> 1) & 1, (m >> 2) & 1) && bit(m & 1, (m >> 1) & 1, (m >> 2) & 1)
+                })
+            };
+            let v = (code != 0) as i64;
+            let e = any(&|a, _, _| a == 0) as i64
+                + any(&|_, b, _| b == 0) as i64
+                + any(&|_, _, c| c == 0) as i64;
+            let f = (bit(0, 0, 0) || bit(1, 0, 0)) as i64
+                + (bit(0, 0, 0) || bit(0, 1, 0)) as i64
+                + (bit(0, 0, 0) || bit(0, 0, 1)) as i64;
+            let c = bit(0, 0, 0) as i64;
+            v - e + f - c
+        })
+        .collect();
+    let chi: i64 = (0..=nz)
+        .into_par_iter()
+        .map(|k| {
+            let mut sum = 0i64;
+            for j in 0..=ny {
+                for i in 0..=nx {
+                    let mut code = 0usize;
+                    for m in 0..8 {
+                        let (a, b, c) = (m & 1, (m >> 1) & 1, (m >> 2) & 1);
+                        code |= (pad[(i + 1 - a) + px * ((j + 1 - b) + py * (k + 1 - c))] as usize)
+                            << m;
+                    }
+                    sum += table[code];
+                }
+            }
+            sum
+        })
+        .sum();
+    1 - chi
 }
 
 /// Split one body that holds both lungs touching (the anterior junction line, a shared hilum in a

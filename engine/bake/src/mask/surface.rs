@@ -507,7 +507,7 @@ pub fn vertex_normals(p: &[DVec3], tris: &[[u32; 3]]) -> Vec<DVec3> {
 }
 
 /// `y.atan2(x)` within 2e-6 rad (a degree-11 odd polynomial on the octant), several times faster
-/// than libm's: [`star_turns`] sums a handful of angles per vertex against a 0.05 rad tolerance,
+/// than libm's: [`star_turn`] sums a handful of angles per vertex against a 0.05 rad tolerance,
 /// for every vertex at every relaxation step, where the exact `atan2` was most of the time.
 fn atan2_approx(y: f64, x: f64) -> f64 {
     use std::f64::consts::{FRAC_PI_2, PI};
@@ -539,30 +539,25 @@ fn atan2_approx(y: f64, x: f64) -> f64 {
     }
 }
 
-/// Per vertex, the sum of its triangles' angles at it, each signed about the vertex's normal: a
-/// full turn (2π) where its star is an unfolded fan.
-fn star_turns(p: &[DVec3], tris: &[[u32; 3]]) -> Vec<f64> {
-    use rayon::prelude::*;
-    let normals = vertex_normals(p, tris);
-    // The angles in parallel (atan2 is most of the cost), summed in triangle order.
-    let angles: Vec<[f64; 3]> = tris
-        .par_iter()
-        .map(|t| {
-            std::array::from_fn(|k| {
-                let v = t[k] as usize;
-                let (a, b) = (
-                    p[t[(k + 1) % 3] as usize] - p[v],
-                    p[t[(k + 2) % 3] as usize] - p[v],
-                );
-                atan2_approx(normals[v].dot(a.cross(b)), a.dot(b))
-            })
-        })
-        .collect();
-    let mut turn = vec![0.0f64; p.len()];
-    for (t, a) in tris.iter().zip(&angles) {
-        for k in 0..3 {
-            turn[t[k] as usize] += a[k];
-        }
+/// The sum of vertex `v`'s triangles' angles at it, each signed about its normal (its triangles'
+/// area-weighted normals): a full turn (2π) where its star is an unfolded fan. From its triangles
+/// `vt[v]`, in triangle order.
+fn star_turn(v: usize, p: &[DVec3], tris: &[[u32; 3]], vt: &[Vec<u32>]) -> f64 {
+    let mut n = DVec3::ZERO;
+    for &t in &vt[v] {
+        let [a, b, c] = tris[t as usize].map(|i| p[i as usize]);
+        n += (b - a).cross(c - a);
+    }
+    let n = n.normalize_or_zero();
+    let mut turn = 0.0;
+    for &t in &vt[v] {
+        let tri = tris[t as usize];
+        let k = tri.iter().position(|&i| i as usize == v).unwrap_or(0);
+        let (a, b) = (
+            p[tri[(k + 1) % 3] as usize] - p[v],
+            p[tri[(k + 2) % 3] as usize] - p[v],
+        );
+        turn += atan2_approx(n.dot(a.cross(b)), a.dot(b));
     }
     turn
 }
@@ -680,6 +675,12 @@ pub fn relax_onto(mesh: &mut TriMesh, field: &Field, iso: f64, iterations: usize
         .map(|q| DVec3::from(q.map(|v| v as f64)))
         .collect();
     let (offsets, flat) = neighbour_rows(p.len(), &mesh.triangles);
+    let mut vt: Vec<Vec<u32>> = vec![Vec::new(); p.len()];
+    for (t, tri) in mesh.triangles.iter().enumerate() {
+        for &v in tri {
+            vt[v as usize].push(t as u32);
+        }
+    }
     for _ in 0..iterations {
         let normals = vertex_normals(&p, &mesh.triangles);
         let coherence = normal_coherence(&p, &mesh.triangles);
@@ -704,6 +705,9 @@ pub fn relax_onto(mesh: &mut TriMesh, field: &Field, iso: f64, iterations: usize
         // fan once around it (its triangles' angles at the vertex, signed about its normal, add
         // up to a full turn): where either fails, those vertices stay where they were (repeated
         // until nothing fails, a few rounds at most).
+        let mut winding = vec![0.0f64; p.len()];
+        let mut changed: Vec<u32> = Vec::new();
+        let mut first_round = true;
         for _ in 0..8 {
             let mut reverted = false;
             for t in &mesh.triangles {
@@ -713,17 +717,51 @@ pub fn relax_onto(mesh: &mut TriMesh, field: &Field, iso: f64, iterations: usize
                 let n1 = (after[1] - after[0]).cross(after[2] - after[0]);
                 if n1.dot(n0) < 0.5 * n0.length() * n1.length() && after != before {
                     for &v in t {
-                        next[v as usize] = p[v as usize];
+                        if next[v as usize] != p[v as usize] {
+                            next[v as usize] = p[v as usize];
+                            changed.push(v);
+                        }
                     }
                     reverted = true;
                 }
             }
-            let winding = star_turns(&next, &mesh.triangles);
-            for (v, &turn) in winding.iter().enumerate() {
-                if (turn - std::f64::consts::TAU).abs() > 0.05 && next[v] != p[v] {
+            // The winding of every vertex whose star changed since it was last measured (all
+            // of them in the first round): a star's turn depends only on its own ring.
+            let dirty: Vec<u32> = if first_round {
+                (0..p.len() as u32).collect()
+            } else {
+                let mut d: Vec<u32> = changed
+                    .iter()
+                    .flat_map(|&v| {
+                        std::iter::once(v).chain(
+                            flat[offsets[v as usize]..offsets[v as usize + 1]]
+                                .iter()
+                                .copied(),
+                        )
+                    })
+                    .collect();
+                d.sort_unstable();
+                d.dedup();
+                d
+            };
+            let turns: Vec<f64> = dirty
+                .par_iter()
+                .map(|&v| star_turn(v as usize, &next, &mesh.triangles, &vt))
+                .collect();
+            for (&v, t) in dirty.iter().zip(turns) {
+                winding[v as usize] = t;
+            }
+            first_round = false;
+            changed.clear();
+            for v in 0..p.len() {
+                if (winding[v] - std::f64::consts::TAU).abs() > 0.05 && next[v] != p[v] {
                     next[v] = p[v];
+                    changed.push(v as u32);
                     for &w in &flat[offsets[v]..offsets[v + 1]] {
-                        next[w as usize] = p[w as usize];
+                        if next[w as usize] != p[w as usize] {
+                            next[w as usize] = p[w as usize];
+                            changed.push(w);
+                        }
                     }
                     reverted = true;
                 }
