@@ -901,6 +901,48 @@ mod tests {
         assert_eq!(twice.in_sample, fit.in_sample);
     }
 
+    /// The population motion shipped in scenes/motion (bench/population_motion.py) loads as a
+    /// motion file and moves each built-in lung down at a tidal volume without folding it.
+    #[test]
+    fn the_shipped_population_motion_draws_the_built_in_lungs_without_a_fold() {
+        let path = std::path::Path::new(env!("CARGO_MANIFEST_DIR"))
+            .join("../../scenes/motion/breath_hold_population.toml");
+        let file = lung_model::deform::MotionFile::load(&path).unwrap();
+        for side in [Side::Right, Side::Left] {
+            let mesh = anatomy::lung(side, 3000).unwrap();
+            let mut settings = BakeSettings::default_for(side);
+            settings.force_field = file.force_for_side(side).cloned();
+            settings.direction_field = file.field_for_side(side).cloned();
+            assert!(settings.force_field.is_some() && settings.direction_field.is_some());
+            let (transfer, _, _, _) = operator_columns(side, &mesh, &settings, 1).unwrap();
+            let force =
+                transfer.elastostatic(&crate::kernel::applied_forces(&mesh, side, &settings));
+            let dirs =
+                LungModel::field_directions(&mesh, settings.direction_field.as_ref().unwrap());
+            let (model, _, _) =
+                LungModel::from_force_and_directions(side, mesh.clone(), dirs, &force).unwrap();
+            let moved = at_volume(&model, 250.0);
+            let moved_mesh = TriMesh {
+                positions: moved.iter().map(|x| x.as_vec3().to_array()).collect(),
+                triangles: mesh.triangles.clone(),
+            };
+            assert_eq!(
+                crate::surface_checks::self_intersections(&moved_mesh, 10).count,
+                0
+            );
+            let p = points(&mesh);
+            let before = volume_centroid(&p, &mesh.triangles);
+            let after = volume_centroid(&moved, &mesh.triangles);
+            assert!(
+                after.z < before.z - 3.0,
+                "{side:?}: centroid {before} -> {after}"
+            );
+            assert!(
+                (moved_mesh.enclosed_volume_ml() - mesh.enclosed_volume_ml() - 250.0).abs() < 0.5
+            );
+        }
+    }
+
     #[test]
     fn a_pair_the_wrong_way_round_or_with_bad_options_is_refused() {
         let exhale = anatomy::lung(Side::Left, 1500).unwrap();
