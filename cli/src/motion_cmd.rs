@@ -39,7 +39,7 @@ from the written file, driven to the inhale volume, beside no motion, uniform sc
 cross-validated figure (each part of the surface fitted without itself).\n\n\
 Example: lungdyn fit-motion --exhale case_05_exp_mask.nii.gz --inhale case_05_insp_mask.nii.gz \
 --axes LPS --lung right --out motion.toml --surfaces-out fit/  then  lungdyn bake --mesh fit/right_exhale.ply \
---lung right --motion motion.toml --out right.kernel"
+--frame body --lung right --motion motion.toml --out right.kernel"
 )]
 pub struct FitMotionArgs {
     /// Points (or mesh) at the reference phase: end-exhalation (FRC).

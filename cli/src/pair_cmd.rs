@@ -277,7 +277,7 @@ pub fn write(out: &Path, exhale: &Path, inhale: &Path, lungs: &[PairLung]) -> an
         .reduce(f64::max);
     let text = format!(
         "# lungdyn motion (fit-motion, a breath-hold pair: {} → {}).\n# Use: lungdyn bake --mesh \
-         EXHALE_SURFACE --lung L --motion this.toml (the exhale surface the fit used: --surfaces-out writes it; `lungdyn patient` bakes its own)\n\
+         EXHALE_SURFACE --frame body --lung L --motion this.toml (the exhale surface the fit used: --surfaces-out writes it; `lungdyn patient` bakes its own)\n\
          {notes}{}",
         exhale.display(),
         inhale.display(),
