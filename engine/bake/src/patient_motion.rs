@@ -659,6 +659,18 @@ pub fn fit_pair(
             what,
             message: e.to_string(),
         })?;
+        // One lung: a surface of both lungs (or with stray pieces) would be fitted as one body.
+        let bodies = crate::surface_checks::components(m).count;
+        if bodies != 1 {
+            return Err(PairFitError::Surface {
+                what,
+                message: format!(
+                    "it holds {bodies} separate bodies; a breath-hold pair is fitted one lung at a \
+                     time: give one lung's surface (e.g. `lungdyn mesh from-mask ... --lung L`, or \
+                     the masks themselves)"
+                ),
+            });
+        }
     }
     if !(1..=5).contains(&opts.force_degree) || !(1..=5).contains(&opts.field_degree) {
         return Err(PairFitError::Option(
@@ -978,6 +990,24 @@ mod tests {
         ] {
             assert!(fit_pair(Side::Left, &exhale, &inhale, &settings, &bad, &|_| {}).is_err());
         }
+        // Two lungs in one surface: refused, not fitted as one body.
+        let mut two = exhale.clone();
+        let n = two.positions.len() as u32;
+        two.positions
+            .extend(exhale.positions.iter().map(|p| [p[0] + 300.0, p[1], p[2]]));
+        two.triangles
+            .extend(exhale.triangles.iter().map(|t| t.map(|v| v + n)));
+        let e = fit_pair(
+            Side::Left,
+            &two,
+            &inhale,
+            &settings,
+            &PairOptions::default(),
+            &|_| {},
+        )
+        .unwrap_err()
+        .to_string();
+        assert!(e.contains("2 separate bodies"), "{e}");
         let mut open = exhale.clone();
         open.triangles.pop();
         let e = fit_pair(
