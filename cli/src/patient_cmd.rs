@@ -24,7 +24,8 @@ pv.toml (the PV constants with FRC = the exhale lungs' volume), scene.toml and p
 was made and measured); with --inhale also right_inhale.ply and left_inhale.ply, and each lung's
 motion fitted to the breath-hold pair (motion.toml; the kernels are baked with it, and the report
 says how far the kernel at the inhale volume lies from the inhale surface beside no motion and
-uniform scaling; --population-motion bakes the built-in motion instead). The lungs are
+uniform scaling; --motion chooses: auto bakes the fit for each lung whose kernel draws a tidal
+breath without a fold, the built-in motion otherwise). The lungs are
 moved by one translation, the same for both and said in scene.toml, so they sit where the
 renderer draws the built-in lungs; their shape, size and relative placement are the patient's."
 )]
@@ -59,10 +60,12 @@ pub struct PatientArgs {
     /// Vertices per lung, about.
     #[arg(long, default_value_t = 20_000)]
     pub vertices: usize,
-    /// With --inhale: bake the built-in (population) motion instead of the motion fitted to this
-    /// patient's breath-hold pair (`fit-motion --exhale/--inhale`, written to OUT/motion.toml).
-    #[arg(long)]
-    pub population_motion: bool,
+    /// With --inhale, the motion baked: "auto" (the motion fitted to this patient's breath-hold
+    /// pair, written to OUT/motion.toml, for each lung whose fitted kernel draws a tidal breath
+    /// without a fold; the built-in population motion for a lung where it would fold), "fitted"
+    /// (always the fit) or "population" (the built-in motion, no fit).
+    #[arg(long, value_enum, default_value_t = MotionChoice::Auto)]
+    pub motion: MotionChoice,
     /// Keep the image's own coordinates instead of moving the lungs to where the built-in ones
     /// are drawn (for a workstation registered to the CT's frame).
     #[arg(long)]
@@ -76,6 +79,17 @@ pub struct PatientArgs {
     /// Print one JSON object on stdout (also written to OUT/patient.json).
     #[arg(long)]
     pub json: bool,
+}
+
+/// `patient --motion`.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, clap::ValueEnum)]
+pub enum MotionChoice {
+    /// The fit where it draws a tidal breath without a fold, else the built-in motion.
+    Auto,
+    /// The fit, always.
+    Fitted,
+    /// The built-in population motion, no fit.
+    Population,
 }
 
 /// One lung of the patient.
@@ -128,6 +142,9 @@ pub struct MotionFigures {
     pub folds_at_inhale: usize,
     /// The largest volume change (ml above FRC) the kernel draws without a fold.
     pub fold_free_ml: f64,
+    /// This lung's share of the default breath's tidal volume, ml (the fit is baked by "auto"
+    /// only when it draws that without a fold).
+    pub tidal_share_ml: f64,
 }
 
 /// What `lungdyn patient` made.
@@ -269,11 +286,12 @@ fn lung_summary(
             uniform_scaling: f.uniform_scaling.mssd_mm,
             folds_at_inhale: f.folds_at_inhale,
             fold_free_ml: f.fold_free_ml,
+            tidal_share_ml: 0.0,
         }),
     }
 }
 
-/// With an inhale pair (and without --population-motion): each lung's motion fitted to it
+/// With an inhale pair (and without --motion population): each lung's motion fitted to it
 /// (`lung_bake::patient_motion`, no held-out folds here: `fit-motion` measures those), written to
 /// OUT/motion.toml.
 fn fit_motion(
@@ -281,7 +299,7 @@ fn fit_motion(
     made: &[(Side, mask::FromMask, f64)],
     inhale: &[(Side, TriMesh, Vec<u8>)],
 ) -> anyhow::Result<Vec<crate::pair_cmd::PairLung>> {
-    if inhale.is_empty() || args.population_motion {
+    if inhale.is_empty() || args.motion == MotionChoice::Population {
         return Ok(Vec::new());
     }
     let opts = lung_bake::patient_motion::PairOptions {
@@ -331,7 +349,7 @@ fn write_scene(
     frc_ml: f64,
     volumes: [f64; 2],
     translation: DVec3,
-    fitted: bool,
+    lungs: &[PatientLung],
 ) -> anyhow::Result<()> {
     // PV constants: the default preset's curve with this patient's FRC.
     let preset = lung_model::pv::preset(lung_model::pv::DEFAULT_PRESET)?;
@@ -382,11 +400,10 @@ fn write_scene(
         ty = translation.y,
         tz = translation.z,
         scene = scene_path.display(),
-        motion = if fitted {
-            "Motion: fitted to this patient's breath-hold pair (motion.toml); the kernels were baked with it."
-        } else {
-            "Motion: the built-in (population) motion."
-        },
+        motion = format!(
+            "Motion baked: right lung {}, left lung {} (the fit, where there is one: motion.toml).",
+            lungs[0].motion, lungs[1].motion
+        ),
     );
     outfile::write_atomically(&scene_path, |w| {
         use std::io::Write;
@@ -493,21 +510,44 @@ pub fn run(args: &PatientArgs) -> anyhow::Result<PatientSummary> {
         )?;
     }
     let fits = fit_motion(args, &made, &inhale_meshes)?;
+    // A lung's share of the default breath's tidal volume: where the fitted kernel folds before
+    // it, "auto" bakes the built-in motion for that lung (a fold on screen at every breath).
+    let tv_ml = lung_model::pv::preset(lung_model::pv::DEFAULT_PRESET)?
+        .boundary
+        .tv_ml;
+    let exhale_total: f64 = made
+        .iter()
+        .map(|(_, m, _)| m.mesh.enclosed_volume_ml())
+        .sum();
     let mut lungs = Vec::new();
     for (k, (side, m, mesh_seconds)) in made.iter().enumerate() {
         let mesh_path = args.out.join(format!("{}.ply", side.name()));
         io::write_mesh_with_lobes(&m.mesh, &m.lobes, &mesh_path)?;
         let kernel_path = args.out.join(format!("{}.kernel", side.name()));
         let fit = fits.iter().find(|l| l.fit.side == *side).map(|l| &l.fit);
-        let bake_seconds = bake_lung(*side, m, &kernel_path, fit)?;
-        lungs.push(lung_summary(
+        let tidal_share_ml = tv_ml * m.mesh.enclosed_volume_ml() / exhale_total;
+        // (No fold up to the pair's own inspiration: kept, whatever the tidal share.)
+        let used = fit.filter(|f| {
+            args.motion == MotionChoice::Fitted
+                || f.folds_at_inhale == 0
+                || f.fold_free_ml >= tidal_share_ml
+        });
+        let bake_seconds = bake_lung(*side, m, &kernel_path, used)?;
+        let mut lung = lung_summary(
             *side,
             m,
             [mesh_path, kernel_path],
             [*mesh_seconds, bake_seconds],
             inhale_volumes.get(k).copied(),
             fit,
-        ));
+        );
+        if fit.is_some() && used.is_none() {
+            lung.motion = "population (the fitted motion folds within a tidal breath)";
+        }
+        if let Some(f) = lung.motion_mssd_mm.as_mut() {
+            f.tidal_share_ml = tidal_share_ml;
+        }
+        lungs.push(lung);
     }
     let frc_ml: f64 = lungs.iter().map(|l| l.volume_ml).sum();
     write_scene(
@@ -516,7 +556,7 @@ pub fn run(args: &PatientArgs) -> anyhow::Result<PatientSummary> {
         frc_ml,
         [lungs[0].volume_ml, lungs[1].volume_ml],
         translation,
-        !fits.is_empty(),
+        &lungs,
     )?;
     let summary = PatientSummary {
         scene: scene_path.display().to_string(),
@@ -574,12 +614,11 @@ pub fn text(s: &PatientSummary) -> String {
                 out.push_str(&format!(
                     "  WARNING: that kernel folds the surface at the inhale volume ({} crossing triangle pairs); \
                      it draws no fold up to {:+.0} ml above FRC (this lung's share of a tidal breath is \
-                     about {:.0} ml); --population-motion bakes the built-in motion\n",
-                    m.folds_at_inhale,
-                    m.fold_free_ml,
-                    500.0 * l.volume_ml / s.frc_ml
+                     about {:.0} ml)\n",
+                    m.folds_at_inhale, m.fold_free_ml, m.tidal_share_ml
                 ));
             }
+            out.push_str(&format!("  motion baked: {}\n", l.motion));
         }
     }
     out.push_str(&format!(

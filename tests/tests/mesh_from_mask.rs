@@ -782,12 +782,29 @@ fn patient_makes_a_scene_that_scene_check_accepts_with_frc_from_the_masks() {
     ]);
     assert_eq!(r.code, Some(0), "stderr: {}", r.stderr);
     let j: serde_json::Value = serde_json::from_str(r.stdout.trim()).expect("one JSON object");
+    // "auto": each lung gets the fit unless its kernel folds before the lung's share of a tidal
+    // breath; the kernel says which it was baked with.
     for l in j["lungs"].as_array().unwrap() {
-        assert_eq!(l["motion"], "fitted to the breath-hold pair", "{l}");
         let m = &l["motion_mssd_mm"];
         assert!(
             m["fitted"].as_f64().unwrap() < m["no_motion"].as_f64().unwrap(),
             "{l}"
+        );
+        let folds = m["folds_at_inhale"].as_u64().unwrap();
+        let keeps = folds == 0
+            || m["fold_free_ml"].as_f64().unwrap() >= m["tidal_share_ml"].as_f64().unwrap();
+        let want = if keeps {
+            "fitted to the breath-hold pair"
+        } else {
+            "population (the fitted motion folds within a tidal breath)"
+        };
+        assert_eq!(l["motion"], want, "{l}");
+        let name = l["lung"].as_str().unwrap();
+        let k = lung_model::kernel::KernelFile::open(&out2.join(format!("{name}.kernel"))).unwrap();
+        assert_eq!(
+            k.meta().settings.force_field.is_some(),
+            keeps,
+            "{name}: {l}"
         );
     }
     let motion = std::fs::read_to_string(out2.join("motion.toml")).unwrap();
@@ -795,11 +812,26 @@ fn patient_makes_a_scene_that_scene_check_accepts_with_frc_from_the_masks() {
         motion.contains("[right_force]") && motion.contains("[left_field]"),
         "{motion}"
     );
-    let k = lung_model::kernel::KernelFile::open(&out2.join("left.kernel")).unwrap();
-    assert!(
-        k.meta().settings.force_field.is_some(),
-        "the kernel was not baked with the fit"
-    );
+    // --motion fitted bakes the fit whatever it draws.
+    let out3 = tmp.path("patient_fitted");
+    let r = lungdyn(&[
+        "patient",
+        "--exhale",
+        s(&nii),
+        "--inhale",
+        s(&inhale),
+        "--vertices",
+        "2000",
+        "--motion",
+        "fitted",
+        "--out",
+        s(&out3),
+    ]);
+    assert_eq!(r.code, Some(0), "stderr: {}", r.stderr);
+    for name in ["right", "left"] {
+        let k = lung_model::kernel::KernelFile::open(&out3.join(format!("{name}.kernel"))).unwrap();
+        assert!(k.meta().settings.force_field.is_some(), "{name}");
+    }
     let c = lungdyn(&["scene", "check", s(&out2.join("scene.toml"))]);
     assert_eq!(c.code, Some(0), "scene check: {}\n{}", c.stdout, c.stderr);
     // A second run does not overwrite it.
