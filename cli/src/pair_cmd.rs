@@ -49,18 +49,8 @@ pub struct PairReport {
     pub warnings: Vec<String>,
 }
 
-fn is_mask(p: &Path) -> bool {
-    let name = p
-        .file_name()
-        .and_then(|n| n.to_str())
-        .unwrap_or("")
-        .to_ascii_lowercase();
-    [".nii", ".nii.gz", ".nrrd", ".mha", ".mhd"]
-        .iter()
-        .any(|e| name.ends_with(e))
-}
-
-fn axes(flag: &str, s: &Option<String>) -> anyhow::Result<Option<Axes>> {
+/// `--axes`-style option `flag` parsed (also `lungdyn patient`'s).
+pub(crate) fn axes(flag: &str, s: &Option<String>) -> anyhow::Result<Option<Axes>> {
     s.as_deref()
         .map(str::parse::<Axes>)
         .transpose()
@@ -75,7 +65,7 @@ fn surface(
     args: &FitMotionArgs,
     warnings: &mut Vec<String>,
 ) -> anyhow::Result<(TriMesh, &'static str)> {
-    if is_mask(path) {
+    if crate::patient_cmd::is_mask(path) {
         let mut o = MaskOptions::new(side);
         o.vertices = args.vertices;
         o.axes = axes;

@@ -170,13 +170,6 @@ pub struct PatientSummary {
     pub run: String,
 }
 
-fn axes(s: &Option<String>) -> anyhow::Result<Option<Axes>> {
-    s.as_deref()
-        .map(str::parse::<Axes>)
-        .transpose()
-        .map_err(|e| anyhow::anyhow!("--axes: {e}"))
-}
-
 fn mask_options(args: &PatientArgs, side: Side, axes: Option<Axes>) -> anyhow::Result<MaskOptions> {
     let mut o = MaskOptions::new(side);
     o.vertices = args.vertices;
@@ -440,8 +433,8 @@ pub fn run(args: &PatientArgs) -> anyhow::Result<PatientSummary> {
     }
     std::fs::create_dir_all(&args.out)
         .with_context(|| format!("cannot create {}", args.out.display()))?;
-    let exhale_axes = axes(&args.axes)?;
-    let inhale_axes = axes(&args.inhale_axes)?.or(exhale_axes);
+    let exhale_axes = crate::pair_cmd::axes("--axes", &args.axes)?;
+    let inhale_axes = crate::pair_cmd::axes("--inhale-axes", &args.inhale_axes)?.or(exhale_axes);
     let mut warnings = Vec::new();
     let mut made = Vec::new();
     for side in [Side::Right, Side::Left] {

@@ -977,6 +977,31 @@ fn fit_motion_on_a_pair_reports_what_the_bake_of_its_file_draws() {
             vec!["--exhale", s(&e), "--inhale", s(&i), "--force-degree", "9"],
             vec!["--force-degree"],
         ),
+        (
+            "folds",
+            vec!["--exhale", s(&e), "--inhale", s(&i), "--folds", "12"],
+            vec!["--folds 12"],
+        ),
+        (
+            "iterations",
+            vec!["--exhale", s(&e), "--inhale", s(&i), "--iterations", "0"],
+            vec!["--iterations 0"],
+        ),
+        (
+            "vertices",
+            vec!["--exhale", s(&e), "--inhale", s(&i), "--vertices", "10"],
+            vec!["--vertices 10"],
+        ),
+        (
+            "axes on a surface",
+            vec!["--exhale", s(&e), "--inhale", s(&i), "--axes", "LPS"],
+            vec!["--axes", "surface"],
+        ),
+        (
+            "exhale missing",
+            vec!["--exhale", "/nonexistent/e.ply", "--inhale", s(&i)],
+            vec!["/nonexistent/e.ply"],
+        ),
     ] {
         let out = tmp.path(&format!("{}.toml", case.replace(' ', "_")));
         let mut full = vec!["fit-motion", "--lung", "right", "--out", s(&out)];

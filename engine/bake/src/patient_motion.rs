@@ -955,6 +955,58 @@ mod tests {
         }
     }
 
+    /// A motion file's force field that is not one (bake --motion input): each refused naming the
+    /// lung and the reason, never baked.
+    #[test]
+    fn a_bad_force_field_in_a_motion_file_is_refused() {
+        let good = std::fs::read_to_string(
+            std::path::Path::new(env!("CARGO_MANIFEST_DIR"))
+                .join("../../scenes/motion/breath_hold_population.toml"),
+        )
+        .unwrap();
+        let start = good.find("[left_force]").unwrap();
+        let (head, force) = good.split_at(start);
+        let coeffs_line = force.lines().find(|l| l.starts_with("coeffs")).unwrap();
+        let dir = std::env::temp_dir().join(format!("lungdyn-force-{}", std::process::id()));
+        std::fs::create_dir_all(&dir).unwrap();
+        for (case, bad, words) in [
+            (
+                "degree",
+                force.replace("degree = 3", "degree = 6"),
+                "degree 1..=5",
+            ),
+            (
+                "count",
+                force.replace(coeffs_line, "coeffs = [1.0, 2.0]"),
+                "one coefficient per monomial",
+            ),
+            (
+                "nan",
+                force.replace(
+                    coeffs_line,
+                    &format!(
+                        "coeffs = [nan{}",
+                        &coeffs_line[coeffs_line.find(',').unwrap()..]
+                    ),
+                ),
+                "finite",
+            ),
+            (
+                "box",
+                force.replace("hi = [1.0, 1.0, 1.0]", "hi = [-1.0, 1.0, 1.0]"),
+                "no extent",
+            ),
+        ] {
+            let path = dir.join(format!("{case}.toml"));
+            std::fs::write(&path, format!("{head}{bad}")).unwrap();
+            let e = lung_model::deform::MotionFile::load(&path)
+                .map(|_| "loaded".to_string())
+                .unwrap_or_else(|e| e.to_string());
+            assert!(e != "loaded" && e.contains(words), "{case}: {e}");
+        }
+        std::fs::remove_dir_all(&dir).ok();
+    }
+
     #[test]
     fn a_pair_the_wrong_way_round_or_with_bad_options_is_refused() {
         let exhale = anatomy::lung(Side::Left, 1500).unwrap();
@@ -997,29 +1049,28 @@ mod tests {
             .extend(exhale.positions.iter().map(|p| [p[0] + 300.0, p[1], p[2]]));
         two.triangles
             .extend(exhale.triangles.iter().map(|t| t.map(|v| v + n)));
-        let e = fit_pair(
-            Side::Left,
-            &two,
-            &inhale,
-            &settings,
-            &PairOptions::default(),
-            &|_| {},
-        )
-        .unwrap_err()
-        .to_string();
+        let refused = |e: &TriMesh| {
+            fit_pair(
+                Side::Left,
+                e,
+                &inhale,
+                &settings,
+                &PairOptions::default(),
+                &|_| {},
+            )
+            .unwrap_err()
+            .to_string()
+        };
+        let e = refused(&two);
         assert!(e.contains("2 separate bodies"), "{e}");
         let mut open = exhale.clone();
         open.triangles.pop();
-        let e = fit_pair(
-            Side::Left,
-            &open,
-            &inhale,
-            &settings,
-            &PairOptions::default(),
-            &|_| {},
-        )
-        .unwrap_err()
-        .to_string();
+        let e = refused(&open);
         assert!(e.contains("exhale surface"), "{e}");
+        // A non-finite vertex.
+        let mut nan = exhale.clone();
+        nan.positions[0][2] = f32::NAN;
+        let e = refused(&nan);
+        assert!(e.contains("exhale surface") && e.contains("NaN"), "{e}");
     }
 }

@@ -80,6 +80,25 @@ fn voxelise(mesh: &TriMesh, body: &mut Body, value: impl Fn(DVec3) -> u16) {
     }
 }
 
+/// An empty label volume at `spacing` holding `meshes` with a 10 mm margin.
+fn empty_body_around(meshes: &[&TriMesh], spacing: [f64; 3]) -> Body {
+    let (mut lo, mut hi) = (DVec3::splat(f64::INFINITY), DVec3::splat(f64::NEG_INFINITY));
+    for m in meshes {
+        for q in &m.positions {
+            let v = DVec3::from(q.map(|v| v as f64));
+            lo = lo.min(v);
+            hi = hi.max(v);
+        }
+    }
+    let dims = [0, 1, 2].map(|a| ((hi[a] - lo[a] + 20.0) / spacing[a]).ceil() as usize + 1);
+    Body {
+        dims,
+        spacing,
+        origin: lo - DVec3::splat(10.0),
+        labels: vec![0; dims[0] * dims[1] * dims[2]],
+    }
+}
+
 /// Both built-in lungs (4k vertices each) at `spacing`, right = `right`, left = `left` (a closure
 /// may give lobes), on a grid that holds both with a margin.
 fn both_lungs(
@@ -89,22 +108,7 @@ fn both_lungs(
 ) -> (Body, [TriMesh; 2]) {
     let r = anatomy::lung(Side::Right, 4000).unwrap();
     let l = anatomy::lung(Side::Left, 4000).unwrap();
-    let (mut lo, mut hi) = (DVec3::splat(f64::INFINITY), DVec3::splat(f64::NEG_INFINITY));
-    for m in [&r, &l] {
-        for q in &m.positions {
-            let v = DVec3::from(q.map(|v| v as f64));
-            lo = lo.min(v);
-            hi = hi.max(v);
-        }
-    }
-    let origin = lo - DVec3::splat(10.0);
-    let dims = [0, 1, 2].map(|a| ((hi[a] - lo[a] + 20.0) / spacing[a]).ceil() as usize + 1);
-    let mut body = Body {
-        dims,
-        spacing,
-        origin,
-        labels: vec![0; dims[0] * dims[1] * dims[2]],
-    };
+    let mut body = empty_body_around(&[&r, &l], spacing);
     voxelise(&r, &mut body, &right);
     voxelise(&l, &mut body, &left);
     (body, [r, l])
@@ -683,19 +687,7 @@ fn a_real_copdgene_mask_gives_two_checked_lungs() {
 fn one_lung_in_an_image_is_never_returned_as_the_other() {
     let spacing = [1.5, 1.5, 2.0];
     let r = anatomy::lung(Side::Right, 4000).unwrap();
-    let bb = r.aabb();
-    let (lo, hi) = (
-        DVec3::from(bb.min.map(|v| v as f64)),
-        DVec3::from(bb.max.map(|v| v as f64)),
-    );
-    let origin = lo - DVec3::splat(10.0);
-    let dims = [0, 1, 2].map(|a| ((hi[a] - lo[a] + 20.0) / spacing[a]).ceil() as usize + 1);
-    let mut body = Body {
-        dims,
-        spacing,
-        origin,
-        labels: vec![0; dims[0] * dims[1] * dims[2]],
-    };
+    let mut body = empty_body_around(&[&r], spacing);
     voxelise(&r, &mut body, |_| 1);
     let (d, rows) = in_file_order(&body, Axes::RAS, Axes::RAS);
     let path = write(
