@@ -112,6 +112,13 @@ pub struct DemoArgs {
     /// The window of --max-restarts, seconds.
     #[arg(long, value_name = "S", default_value_t = 60.0)]
     pub restart_window_s: f64,
+    /// A process that stops answering — no frame from the renderer, engine or tracker-bridge for
+    /// this long (stopped with SIGSTOP for good, deadlocked, stuck in a driver) — is killed and
+    /// restarted like a dead one, within --max-restarts (0: never; the headset would show a
+    /// frozen picture until the run ends). Above the longest pause `lungdyn faults` injects (700
+    /// ms), so a process that is only paused comes back by itself.
+    #[arg(long, value_name = "S", default_value_t = 1.0)]
+    pub hang_after_s: f64,
     /// How the lungs are drawn over the patient (overrides the scene's `[render] look`): "opaque"
     /// (lit tissue; hides what is behind it, a tumour drawn through it), "translucent" (lit tissue
     /// with a fresnel rim, both lungs blended order-independently: the far wall, the other lung and
@@ -334,10 +341,19 @@ pub struct DemoReport {
     pub calibration: Option<String>,
     /// The HMD optics file the renderer drew the eyes from (none: the scene's IPD and field of view).
     pub hmd: Option<String>,
-    /// Processes restarted after they died.
+    /// Processes restarted after they died or stopped answering.
     pub restarts: usize,
+    /// Of those, processes that stopped answering (no frame for --hang-after-s), killed and
+    /// restarted.
+    pub hung_restarts: usize,
     /// Each restart: the process, how it ended, when, what was cleaned, the time to a fresh frame.
     pub restart_log: Vec<crate::supervise::Restart>,
+    /// The launcher's own stalls (stopped, or starved of CPU) longer than half of --hang-after-s:
+    /// the children's silence meanwhile is not held against them. Reports published meanwhile wait
+    /// in the launcher's 512-report buffer (8.5 s at 60 Hz); any beyond it count in lost_reports.
+    pub launcher_stalls: u64,
+    /// The longest the launcher went between two looks at its processes, ms.
+    pub launcher_max_gap_ms: f64,
     /// Restarted engines whose first frame did not show the breath an uninterrupted run shows at
     /// that tick (must be 0).
     pub phase_errors: u64,
@@ -503,6 +519,7 @@ pub fn run_watched(args: &DemoArgs, watch: &mut dyn Watch) -> anyhow::Result<Dem
     }
     check_counts(args)?;
     crate::supervise::Intensity::checked(args.max_restarts, args.restart_window_s)?;
+    let liveness = crate::supervise::Liveness::checked(args.hang_after_s, args.startup_timeout)?;
     let record = args
         .record
         .as_deref()
@@ -721,12 +738,19 @@ pub fn run_watched(args: &DemoArgs, watch: &mut dyn Watch) -> anyhow::Result<Dem
     // restarted engine resumes at the next one, a restarted renderer takes only the snapshots still
     // ahead.
     let mut engine_frames = services.engine_inlet(&node)?;
+    // The bridge's frames, read only as its sign of life (it publishes on its schedule even while
+    // its device is silent).
+    let mut tracker_frames = services.tracker_inlet(&node)?;
     let last_tick: std::cell::Cell<Option<u64>> = std::cell::Cell::new(None);
     let intensity = crate::supervise::Intensity::checked(args.max_restarts, args.restart_window_s)?;
     let mut supervisor = crate::supervise::Supervisor::new(
         intensity,
         Box::new(|| transport::iox::remove_dead_nodes(&services).map_err(anyhow::Error::from)),
-    );
+    )
+    .with_liveness(liveness);
+    for role in ["renderer", "engine", "tracker-bridge"] {
+        supervisor.watch(role);
+    }
     let (exe, spread_ticks) = (&exe, &spread_ticks);
     let out_dir = args.out.display().to_string();
     let last_seen = &last_tick;
@@ -858,10 +882,12 @@ pub fn run_watched(args: &DemoArgs, watch: &mut dyn Watch) -> anyhow::Result<Dem
         }
         // Recovered: a frame from a live engine, showing a sample of the live bridge.
         let mut fresh = false;
+        let (mut renderer_beat, mut engine_beat, mut bridge_beat) = (None, None, None);
         reports.drain(&mut |r: &FrameReport| {
             if first_frame_ns.is_none() {
                 first_frame_ns = Some(now_ns());
             }
+            renderer_beat = Some(r.stamps.renderer_submit_ns.max(r.present_ns));
             let new_sample = bridge_died_at.is_none_or(|f| r.tracker_frame != f);
             if r.flags & ipc_types::report_flags::STALE_ENGINE == 0 && new_sample {
                 fresh = true;
@@ -873,6 +899,7 @@ pub fn run_watched(args: &DemoArgs, watch: &mut dyn Watch) -> anyhow::Result<Dem
         })?;
         let now = now_ns();
         engine_frames.drain(&mut |f: &ipc_types::EngineFrame| {
+            engine_beat = Some(f.stamps.engine_publish_ns);
             if resumed_at == Some(f.tick) {
                 resumed_at = None;
                 phase.check(f);
@@ -880,6 +907,18 @@ pub fn run_watched(args: &DemoArgs, watch: &mut dyn Watch) -> anyhow::Result<Dem
             last_tick.set(Some(f.tick));
             watch.engine_frame(f);
         })?;
+        tracker_frames.drain(&mut |f: &ipc_types::TrackerFrame| {
+            bridge_beat = Some(f.stamps.bridge_publish_ns);
+        })?;
+        for (role, beat) in [
+            ("renderer", renderer_beat),
+            ("engine", engine_beat),
+            ("tracker-bridge", bridge_beat),
+        ] {
+            if let Some(published) = beat {
+                supervisor.beat(role, published, now);
+            }
+        }
         if first_frame_ns.is_some() {
             supervisor.pipeline_running();
         }
@@ -905,10 +944,17 @@ pub fn run_watched(args: &DemoArgs, watch: &mut dyn Watch) -> anyhow::Result<Dem
                         "engine" => {
                             resumed_at = last_tick.get().map(|t| t + 1);
                             eprintln!(
-                                "lungdyn: the engine process died ({}); restarted, resuming at tick {}",
-                                r.ended,
+                                "lungdyn: the engine process {}; restarted, resuming at tick {}",
+                                if r.hung {
+                                    r.ended.clone()
+                                } else {
+                                    format!("died ({})", r.ended)
+                                },
                                 resumed_at.unwrap_or(0)
                             );
+                        }
+                        _ if r.hung => {
+                            eprintln!("lungdyn: the {role} process {}; restarted", r.ended)
                         }
                         _ => eprintln!("lungdyn: the {role} process died ({}); restarted", r.ended),
                     }
@@ -970,9 +1016,11 @@ pub fn run_watched(args: &DemoArgs, watch: &mut dyn Watch) -> anyhow::Result<Dem
     // Whatever never reached a frame by the end (a renderer stopped for good) is missed.
     stats.finish(end_ns);
     let restart_log = supervisor.restarts.clone();
+    let stalls = supervisor.stalls;
     drop(supervisor);
     drop(reports);
     drop(engine_frames);
+    drop(tracker_frames);
     node.try_cleanup_dead_nodes();
     drop(node);
     // Every process of the instance has exited and the prefix is the instance's own: remove its
@@ -1143,7 +1191,10 @@ pub fn run_watched(args: &DemoArgs, watch: &mut dyn Watch) -> anyhow::Result<Dem
             .map(|p| p.display().to_string()),
         hmd: scene.render.hmd.as_ref().map(|p| p.display().to_string()),
         restarts: restart_log.len(),
+        hung_restarts: restart_log.iter().filter(|r| r.hung).count(),
         restart_log,
+        launcher_stalls: stalls.count,
+        launcher_max_gap_ms: stalls.max_gap_ms,
         phase_errors: phase.errors,
         ended: match (&failure, interrupted) {
             (Some(f), _) => f.clone(),
@@ -1298,6 +1349,14 @@ pub fn table(r: &DemoReport) -> String {
             r.phase_errors
         );
     }
+    if r.launcher_stalls > 0 {
+        let _ = writeln!(
+            s,
+            "LAUNCHER STALLED {} times (longest {:.0} ms between two looks at its processes: it was \
+             stopped or starved of CPU); their silence meanwhile was not counted as a hang",
+            r.launcher_stalls, r.launcher_max_gap_ms
+        );
+    }
     let _ = writeln!(s, "run ended: {}", r.ended);
     if r.pngs.is_empty() {
         let _ = writeln!(s, "PNG frames: none");
@@ -1328,16 +1387,33 @@ pub fn table(r: &DemoReport) -> String {
 mod tests {
     use super::*;
 
-    #[test]
-    fn counts_and_cores_are_checked_before_any_work() {
+    /// `lungdyn demo ARGS…`'s arguments.
+    fn args(a: &[&str]) -> DemoArgs {
         use clap::Parser;
         #[derive(clap::Parser)]
         struct Cli {
             #[command(flatten)]
             demo: DemoArgs,
         }
-        let args =
-            |a: &[&str]| Cli::parse_from(std::iter::once("demo").chain(a.iter().copied())).demo;
+        Cli::parse_from(std::iter::once("demo").chain(a.iter().copied())).demo
+    }
+
+    #[test]
+    fn a_hang_time_out_of_range_is_refused_before_any_work() {
+        for bad in ["0.01", "-1", "1e9", "NaN"] {
+            // (An --out nothing could write to: the refusal comes before it is tried.)
+            let flag = format!("--hang-after-s={bad}");
+            let e = run(&args(&[&flag, "--out", "/proc/lungdyn-no"])).unwrap_err();
+            let msg = format!("{e:#}");
+            assert!(
+                msg.contains("--hang-after-s") && msg.contains("or 0"),
+                "{bad}: {msg}"
+            );
+        }
+    }
+
+    #[test]
+    fn counts_and_cores_are_checked_before_any_work() {
         assert!(check_counts(&args(&[])).is_ok());
         // 3 s at 60 Hz, 12/min (300-tick cycles): spread from the first second, increasing.
         assert_eq!(partial_breath_ticks(3, 180, 60, 300), vec![60, 100, 140]);

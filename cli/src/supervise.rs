@@ -8,6 +8,15 @@
 //! death within the window stops the run with an error naming the process, its status and the
 //! limit. Each restart is recorded ([`Restart`]) with the time until the pipeline showed a fresh
 //! frame again (set by the caller, which sees the frames: [`Supervisor::recovered`]).
+//!
+//! A process can also stop answering without dying (stopped for good with SIGSTOP, deadlocked,
+//! stuck in a driver call): the headset would show a frozen picture until the run ends. With a
+//! [`Liveness`] the supervisor treats it like a dead one: the caller reports each sign of life
+//! ([`Supervisor::beat`]: a frame the process published), and a watched process silent for longer
+//! than [`Liveness::hang_ns`] is killed (SIGKILL), reaped and restarted under the same intensity
+//! limit, its restart recorded as hung. The launcher's own stalls (it was stopped, or starved of
+//! CPU) are told apart: a gap between two checks longer than half the hang time re-arms every
+//! process's clock instead of blaming them, and is counted ([`Stalls`]).
 
 use std::collections::VecDeque;
 use std::path::Path;
@@ -25,6 +34,14 @@ pub enum Ended {
     Status(std::process::ExitStatus),
     /// Its status could not be collected.
     Unknown(String),
+    /// It stopped answering (no frame for `silent_ms`) and was killed with SIGKILL; `stopped`: it
+    /// was in the stopped state (SIGSTOP) when judged.
+    Hung {
+        /// How long it had been silent, ms.
+        silent_ms: u64,
+        /// It was stopped (state T) rather than running or sleeping.
+        stopped: bool,
+    },
 }
 
 impl Ended {
@@ -44,6 +61,15 @@ impl std::fmt::Display for Ended {
         match self {
             Ended::Status(s) => write!(f, "{s}"),
             Ended::Unknown(e) => write!(f, "status unknown: {e}"),
+            Ended::Hung { silent_ms, stopped } => write!(
+                f,
+                "stopped answering: no frame for {silent_ms} ms{}; killed (SIGKILL)",
+                if *stopped {
+                    " (it was stopped, state T)"
+                } else {
+                    ""
+                }
+            ),
         }
     }
 }
@@ -59,16 +85,33 @@ pub struct Proc {
     role: &'static str,
     child: Child,
     ended: Option<Ended>,
+    /// When it was started (the launcher's clock, ns).
+    spawned_ns: u64,
+    /// Its latest sign of life ([`Supervisor::beat`]), ns; `None` until the first.
+    beat_ns: Option<u64>,
 }
 
 impl Proc {
-    /// Hold `child` of `role`.
+    /// Hold `child` of `role`, started now.
     pub fn new(role: &'static str, child: Child) -> Self {
         Proc {
             role,
             child,
             ended: None,
+            spawned_ns: now_ns(),
+            beat_ns: None,
         }
+    }
+
+    /// How long it has been silent at `now` when that is longer than `liveness` allows: since its
+    /// latest sign of life, or since its start when it has shown none.
+    fn silent_for(&self, now: u64, liveness: &Liveness) -> Option<u64> {
+        let (since, allowed) = match self.beat_ns {
+            Some(b) => (b, liveness.hang_ns),
+            None => (self.spawned_ns, liveness.first_beat_ns),
+        };
+        let silent = now.saturating_sub(since);
+        (silent > allowed).then_some(silent)
     }
 
     /// The role it runs.
@@ -252,13 +295,57 @@ impl Intensity {
     }
 }
 
+/// When a process that is still there counts as hung.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct Liveness {
+    /// A watched process silent this long after a sign of life is killed and restarted, ns.
+    pub hang_ns: u64,
+    /// A watched process (re)started once the pipeline runs, and silent this long since its
+    /// start, is killed and restarted too, ns (it gets the start-up time a first start gets).
+    pub first_beat_ns: u64,
+}
+
+impl Liveness {
+    /// From `--hang-after-s` (0: off) and the start-up timeout, checked: the hang time from 0.1 s
+    /// to 10 minutes.
+    pub fn checked(hang_after_s: f64, startup_s: f64) -> anyhow::Result<Option<Self>> {
+        if hang_after_s == 0.0 {
+            return Ok(None);
+        }
+        if !(hang_after_s.is_finite() && (0.1..=600.0).contains(&hang_after_s)) {
+            anyhow::bail!(
+                "--hang-after-s {}: must be from 0.1 s to 600 s, or 0 to never restart a process \
+                 that stops answering",
+                lung_model::plausible::compact(hang_after_s)
+            );
+        }
+        Ok(Some(Self {
+            hang_ns: (hang_after_s * 1e9) as u64,
+            first_beat_ns: (startup_s.max(hang_after_s) * 1e9) as u64,
+        }))
+    }
+}
+
+/// The launcher's own stalls: gaps between two [`Supervisor::check`]s longer than half the hang
+/// time (it was stopped, or starved of CPU), when the children's silence is not theirs to answer
+/// for.
+#[derive(Debug, Clone, Copy, Default, PartialEq, Serialize)]
+pub struct Stalls {
+    /// Gaps longer than half the hang time.
+    pub count: u64,
+    /// The longest gap between two checks, ms (whether or not it counted).
+    pub max_gap_ms: f64,
+}
+
 /// One restart: who died, how, and how long the run took to recover.
 #[derive(Debug, Clone, Serialize)]
 pub struct Restart {
     /// The process restarted.
     pub role: &'static str,
-    /// How it ended (exit status or signal).
+    /// How it ended (exit status or signal, or how long it was silent).
     pub ended: String,
+    /// It had stopped answering (killed by the supervisor), rather than dying by itself.
+    pub hung: bool,
     /// When its death was seen, seconds since the supervisor started.
     pub at_s: f64,
     /// Dead iceoryx2 nodes whose resources were removed before the restart.
@@ -288,6 +375,12 @@ pub struct Supervisor<'a> {
     running: bool,
     /// Every restart so far, in order.
     pub restarts: Vec<Restart>,
+    liveness: Option<Liveness>,
+    /// Roles whose signs of life are reported ([`Supervisor::watch`]).
+    watched: Vec<&'static str>,
+    last_check_ns: Option<u64>,
+    /// The launcher's own stalls seen by [`Supervisor::check`].
+    pub stalls: Stalls,
 }
 
 impl<'a> Supervisor<'a> {
@@ -302,6 +395,35 @@ impl<'a> Supervisor<'a> {
             started_ns: now_ns(),
             running: false,
             restarts: Vec::new(),
+            liveness: None,
+            watched: Vec::new(),
+            last_check_ns: None,
+            stalls: Stalls::default(),
+        }
+    }
+
+    /// Restart a watched process that stops answering ([`Liveness`]); `None` turns it off.
+    pub fn with_liveness(mut self, liveness: Option<Liveness>) -> Self {
+        self.liveness = liveness;
+        self
+    }
+
+    /// Judge `role` by its signs of life: the caller reports each one with [`Supervisor::beat`].
+    /// (A process without a stream the launcher reads is judged by its exit alone.)
+    pub fn watch(&mut self, role: &'static str) {
+        if !self.watched.contains(&role) {
+            self.watched.push(role);
+        }
+    }
+
+    /// `role` showed a sign of life at `now`: a frame it published at `published_ns` (the shared
+    /// monotonic clock; 0 when unstamped). A frame published before the running process started
+    /// is its predecessor's, still queued, and says nothing about this one.
+    pub fn beat(&mut self, role: &str, published_ns: u64, now: u64) {
+        if let Some(p) = self.children.procs.iter_mut().find(|p| p.role == role) {
+            if published_ns == 0 || published_ns >= p.spawned_ns {
+                p.beat_ns = Some(now);
+            }
         }
     }
 
@@ -322,63 +444,122 @@ impl<'a> Supervisor<'a> {
         Ok(())
     }
 
-    /// Restart whichever process died (each at most once per call); returns the roles restarted.
-    /// An error once a death would exceed the intensity limit (nothing is restarted then), or when
+    /// Restart whichever process died (each at most once per call), and, with a [`Liveness`],
+    /// kill and restart a watched one that stopped answering; returns the roles restarted. An
+    /// error once a death would exceed the intensity limit (nothing is restarted then), or when
     /// cleaning or starting fails.
     pub fn check(&mut self) -> anyhow::Result<Vec<&'static str>> {
+        self.check_at(now_ns())
+    }
+
+    /// [`Supervisor::check`] at `now` (the launcher's clock, ns).
+    pub fn check_at(&mut self, now: u64) -> anyhow::Result<Vec<&'static str>> {
+        self.launcher_gap(now);
         let mut restarted = Vec::new();
         for k in 0..self.children.procs.len() {
-            let p = &mut self.children.procs[k];
-            let Some(ended) = p.poll().cloned() else {
+            let Some(ended) = self.ended_or_hung(k, now) else {
                 continue;
             };
             if ended.success() {
                 // Finished its work (a replay reached its end): not a fault, see `finished`.
                 continue;
             }
-            let role = p.role;
+            let role = self.children.procs[k].role;
             if !self.running && ended.failed_by_itself() {
                 anyhow::bail!(
                     "the {role} process exited ({ended}) before the pipeline's first frame: not \
                      restarted, as a start-up error would only repeat — see its message above"
                 );
             }
-            let now = now_ns();
-            let window = (self.intensity.within_s * 1e9) as u64;
-            while self
-                .recent
-                .front()
-                .is_some_and(|&t| now.saturating_sub(t) > window)
-            {
-                self.recent.pop_front();
-            }
-            if self.recent.len() >= self.intensity.max_restarts as usize {
-                anyhow::bail!(
-                    "the {role} process exited ({ended}) after {} restart(s) within {} s: more than \
-                     the limit (--max-restarts {} within --restart-window-s {}); giving up — see its \
-                     message above",
-                    self.recent.len(),
-                    self.intensity.within_s,
-                    self.intensity.max_restarts,
-                    self.intensity.within_s
-                );
-            }
-            let cleaned_nodes =
-                (self.clean)().with_context(|| format!("before restarting the {role} process"))?;
-            let child = (self.spawns[k])()?;
-            self.children.procs[k] = Proc::new(role, child);
-            self.recent.push_back(now);
-            self.restarts.push(Restart {
-                role,
-                ended: ended.to_string(),
-                at_s: now.saturating_sub(self.started_ns) as f64 / 1e9,
-                cleaned_nodes,
-                recover_ms: None,
-                seen_ns: now,
-            });
+            self.restart(k, ended, now)?;
             restarted.push(role);
         }
         Ok(restarted)
+    }
+
+    /// The launcher's gap since the previous check: a stall (longer than half the hang time)
+    /// re-arms every clock, the children's silence meanwhile not being theirs.
+    fn launcher_gap(&mut self, now: u64) {
+        let gap = self
+            .last_check_ns
+            .map_or(0, |prev| now.saturating_sub(prev));
+        self.last_check_ns = Some(now);
+        self.stalls.max_gap_ms = self.stalls.max_gap_ms.max(gap as f64 / 1e6);
+        let Some(l) = self.liveness else {
+            return;
+        };
+        if gap > l.hang_ns / 2 {
+            self.stalls.count += 1;
+            for p in &mut self.children.procs {
+                p.spawned_ns = p.spawned_ns.max(now);
+                p.beat_ns = p.beat_ns.map(|_| now);
+            }
+        }
+    }
+
+    /// How process `k` ended, or — watched, the pipeline running, silent past the limit — that it
+    /// hung, after killing and reaping it.
+    fn ended_or_hung(&mut self, k: usize, now: u64) -> Option<Ended> {
+        let (running, liveness) = (self.running, self.liveness);
+        let watched = self.watched.contains(&self.children.procs[k].role);
+        let p = &mut self.children.procs[k];
+        if let Some(ended) = p.poll().cloned() {
+            return Some(ended);
+        }
+        let silent = liveness
+            .filter(|_| running && watched)
+            .and_then(|l| p.silent_for(now, &l))?;
+        let stopped = p.stopped();
+        p.kill_and_reap();
+        let ended = Ended::Hung {
+            silent_ms: silent / 1_000_000,
+            stopped,
+        };
+        p.ended = Some(ended.clone());
+        Some(ended)
+    }
+
+    /// Start process `k` again after it `ended`, within the intensity limit.
+    fn restart(&mut self, k: usize, ended: Ended, now: u64) -> anyhow::Result<()> {
+        let role = self.children.procs[k].role;
+        let window = (self.intensity.within_s * 1e9) as u64;
+        while self
+            .recent
+            .front()
+            .is_some_and(|&t| now.saturating_sub(t) > window)
+        {
+            self.recent.pop_front();
+        }
+        let how = match ended {
+            Ended::Hung { .. } => "was killed",
+            _ => "exited",
+        };
+        if self.recent.len() >= self.intensity.max_restarts as usize {
+            anyhow::bail!(
+                "the {role} process {how} ({ended}) after {} restart(s) within {} s: more than the \
+                 limit (--max-restarts {} within --restart-window-s {}); giving up — see its \
+                 message above",
+                self.recent.len(),
+                self.intensity.within_s,
+                self.intensity.max_restarts,
+                self.intensity.within_s
+            );
+        }
+        let cleaned_nodes =
+            (self.clean)().with_context(|| format!("before restarting the {role} process"))?;
+        let child = (self.spawns[k])()?;
+        self.children.procs[k] = Proc::new(role, child);
+        self.recent.push_back(now);
+        self.restarts.push(Restart {
+            role,
+            ended: ended.to_string(),
+            hung: matches!(ended, Ended::Hung { .. }),
+            at_s: now.saturating_sub(self.started_ns) as f64 / 1e9,
+            cleaned_nodes,
+            recover_ms: None,
+            seen_ns: now,
+        });
+        Ok(())
     }
 
     /// The first process that exited successfully (transient, as in OTP: a process that finished
@@ -503,7 +684,7 @@ mod tests {
     fn code(e: &Ended) -> Option<i32> {
         match e {
             Ended::Status(s) => s.code(),
-            Ended::Unknown(_) => None,
+            Ended::Unknown(_) | Ended::Hung { .. } => None,
         }
     }
 
@@ -511,7 +692,7 @@ mod tests {
         use std::os::unix::process::ExitStatusExt;
         match e {
             Ended::Status(s) => s.signal(),
-            Ended::Unknown(_) => None,
+            Ended::Unknown(_) | Ended::Hung { .. } => None,
         }
     }
 
@@ -708,6 +889,146 @@ mod tests {
         assert_eq!(until(|| s.finished()), "replay");
         assert!(s.check().unwrap().is_empty());
         assert_eq!((starts.get(), s.restarts.len()), (1, 0));
+    }
+
+    const MS: u64 = 1_000_000;
+
+    fn liveness() -> Option<Liveness> {
+        Liveness::checked(1.0, 5.0).unwrap()
+    }
+
+    #[test]
+    fn a_watched_process_that_stops_answering_is_killed_and_restarted() {
+        let (a, b) = (std::cell::Cell::new(0), std::cell::Cell::new(0));
+        let mut s = Supervisor::new(Intensity::checked(3, 60.0).unwrap(), no_cleaning())
+            .with_liveness(liveness());
+        s.start("renderer", shell("exec sleep 30", &a)).unwrap();
+        s.start("remote", shell("exec sleep 30", &b)).unwrap();
+        s.watch("renderer");
+        s.pipeline_running();
+        let t0 = now_ns();
+        s.beat("renderer", t0, t0);
+        // Stopped for good (SIGSTOP), and so is the unwatched one: only exits judge that.
+        assert!(s.children.procs[0].signal(libc::SIGSTOP));
+        assert!(s.children.procs[1].signal(libc::SIGSTOP));
+        until(|| s.children.procs[0].stopped().then_some(()));
+        // Checked often (no launcher stall), it is silent for just under, then just over, 1 s.
+        let mut t = t0;
+        while t < t0 + 990 * MS {
+            t += 100 * MS;
+            assert!(s.check_at(t.min(t0 + 990 * MS)).unwrap().is_empty());
+        }
+        assert_eq!(s.check_at(t0 + 1010 * MS).unwrap(), vec!["renderer"]);
+        let r = &s.restarts[0];
+        assert!(r.hung, "{r:?}");
+        assert!(
+            r.ended.contains("no frame for 1010 ms") && r.ended.contains("state T"),
+            "{}",
+            r.ended
+        );
+        assert_eq!(
+            (a.get(), b.get()),
+            (2, 1),
+            "the renderer alone started again"
+        );
+        assert!(
+            s.children.procs[0].poll().is_none(),
+            "the new renderer runs"
+        );
+        assert!(
+            s.children.procs[1].stopped(),
+            "the unwatched one is left alone"
+        );
+        assert!(s.children.stop(Duration::from_secs(5)).is_empty());
+    }
+
+    #[test]
+    fn a_hung_process_counts_against_the_restart_limit() {
+        let a = std::cell::Cell::new(0);
+        let mut s = Supervisor::new(Intensity::checked(0, 60.0).unwrap(), no_cleaning())
+            .with_liveness(liveness());
+        s.start("engine", shell("exec sleep 30", &a)).unwrap();
+        s.watch("engine");
+        s.pipeline_running();
+        let t0 = now_ns();
+        s.beat("engine", t0, t0);
+        s.check_at(t0 + 400 * MS).unwrap();
+        s.check_at(t0 + 800 * MS).unwrap();
+        let e = s.check_at(t0 + 1200 * MS).unwrap_err();
+        let msg = format!("{e:#}");
+        assert!(
+            msg.contains("engine process was killed (stopped answering: no frame for 1200 ms")
+                && msg.contains("--max-restarts 0"),
+            "{msg}"
+        );
+        assert_eq!(a.get(), 1);
+    }
+
+    #[test]
+    fn the_launchers_own_stall_is_counted_and_blames_no_one() {
+        let a = std::cell::Cell::new(0);
+        let mut s = Supervisor::new(Intensity::checked(3, 60.0).unwrap(), no_cleaning())
+            .with_liveness(liveness());
+        s.start("engine", shell("exec sleep 30", &a)).unwrap();
+        s.watch("engine");
+        s.pipeline_running();
+        let t0 = now_ns();
+        s.beat("engine", t0, t0);
+        s.check_at(t0 + 10 * MS).unwrap();
+        // The launcher itself was frozen 3 s (Ctrl-Z of the whole job): nobody is restarted.
+        assert!(s.check_at(t0 + 3010 * MS).unwrap().is_empty());
+        assert_eq!(s.stalls.count, 1);
+        assert!(
+            (s.stalls.max_gap_ms - 3000.0).abs() < 1e-6,
+            "{:?}",
+            s.stalls
+        );
+        // The clock started again at the stall's end: silent 1 s after it, the engine is hung.
+        assert!(s.check_at(t0 + 3500 * MS).unwrap().is_empty());
+        assert!(s.check_at(t0 + 3900 * MS).unwrap().is_empty());
+        assert_eq!(s.check_at(t0 + 4100 * MS).unwrap(), vec!["engine"]);
+        assert!(!s.restarts[0].ended.contains("state T"), "it was running");
+        assert!(s.children.stop(Duration::from_secs(5)).is_empty());
+    }
+
+    #[test]
+    fn a_frame_of_the_predecessor_is_no_sign_of_life_and_a_silent_start_gets_the_start_up_time() {
+        let a = std::cell::Cell::new(0);
+        let mut s = Supervisor::new(Intensity::checked(3, 60.0).unwrap(), no_cleaning())
+            .with_liveness(liveness());
+        let before = now_ns();
+        s.start("renderer", shell("exec sleep 30", &a)).unwrap();
+        s.watch("renderer");
+        // Not judged before the pipeline's first frame (the start-up timeout is the caller's).
+        assert!(s.check_at(before + 9000 * MS).unwrap().is_empty());
+        s.pipeline_running();
+        let t0 = now_ns();
+        s.last_check_ns = Some(t0);
+        // A report its predecessor published before this one started: not this one's.
+        s.beat("renderer", before.saturating_sub(1), t0);
+        assert!(s.children.procs[0].beat_ns.is_none());
+        // Silent since its start: it has the start-up time (5 s), not the hang time (1 s).
+        let mut t = t0;
+        while t < t0 + 4500 * MS {
+            t += 400 * MS;
+            assert!(s.check_at(t).unwrap().is_empty(), "at {} ms", (t - t0) / MS);
+        }
+        assert_eq!(s.check_at(t0 + 5200 * MS).unwrap(), vec!["renderer"]);
+        assert!(s.children.stop(Duration::from_secs(5)).is_empty());
+    }
+
+    #[test]
+    fn the_hang_time_is_checked() {
+        assert_eq!(Liveness::checked(0.0, 60.0).unwrap(), None);
+        let l = Liveness::checked(1.5, 60.0).unwrap().unwrap();
+        assert_eq!(
+            (l.hang_ns, l.first_beat_ns),
+            (1_500_000_000, 60_000_000_000)
+        );
+        for bad in [-1.0, 0.05, 601.0, f64::NAN, f64::INFINITY] {
+            let e = Liveness::checked(bad, 60.0).unwrap_err().to_string();
+            assert!(e.contains("--hang-after-s") && e.contains("or 0"), "{e}");
+        }
     }
 
     #[test]

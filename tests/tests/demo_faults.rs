@@ -1,6 +1,7 @@
 //! The demo under faults: it survives SIGKILL of its engine and of its tracker-bridge (each
 //! restarted, the engine resuming with the breath an uninterrupted run shows), reports the restarts
-//! and leaves nothing behind; a renderer stopped for good shows as missed deadlines; a restart storm
+//! and leaves nothing behind; a renderer or engine stopped for good is killed and restarted like a
+//! dead one, its silence showing as missed deadlines; the launcher's own stall blames no one; a restart storm
 //! past the limit ends the run with a clear error — and the report so far still printed.
 
 use std::os::unix::process::CommandExt;
@@ -160,8 +161,11 @@ fn the_demo_survives_sigkill_of_its_engine_and_tracker_bridge() {
     assert!(v["skipped_ticks"].as_u64().unwrap() < 30, "{v}");
 }
 
+/// A renderer stopped for good (SIGSTOP, never continued) is a frozen picture on the headset: the
+/// launcher sees no frame from it for --hang-after-s (1 s), kills it and starts another, whose
+/// first frame comes well within a second; the second of silence shows as missed deadlines.
 #[test]
-fn a_renderer_stopped_for_good_shows_as_missed_deadlines() {
+fn a_renderer_stopped_for_good_is_killed_and_restarted_and_its_silence_shows_as_missed_deadlines() {
     if renderer::gpu::Gpu::for_tests().is_none() {
         return;
     }
@@ -171,10 +175,73 @@ fn a_renderer_stopped_for_good_shows_as_missed_deadlines() {
     demo.signal("renderer", libc::SIGSTOP);
     let (ok, v, err) = demo.finish();
     assert!(ok, "{err}");
-    assert!(v["deadline_misses"].as_u64().unwrap() > 60, "{v}");
-    assert!(v["missed_frame_slots"].as_u64().unwrap() > 60, "{v}");
+    assert_eq!(
+        (v["restarts"].as_u64(), v["hung_restarts"].as_u64()),
+        (Some(1), Some(1)),
+        "{v}"
+    );
+    let r = &v["restart_log"][0];
+    assert_eq!(
+        (r["role"].as_str(), r["hung"].as_bool()),
+        (Some("renderer"), Some(true)),
+        "{r}"
+    );
+    let ended = r["ended"].as_str().unwrap();
+    assert!(
+        ended.contains("stopped answering") && ended.contains("state T"),
+        "{ended}"
+    );
+    assert!(
+        r["recover_ms"].as_f64().unwrap() < 1000.0,
+        "first frame within 1 s: {r}"
+    );
+    assert!(v["deadline_misses"].as_u64().unwrap() > 50, "{v}");
+    assert!(v["missed_frame_slots"].as_u64().unwrap() > 50, "{v}");
     assert!(v["worst_case_ms"].as_f64().unwrap() > 1000.0, "{v}");
+    assert_eq!(v["launcher_stalls"], 0, "{v}");
+    assert_eq!(v["ended"], "completed");
     assert_eq!(v["remaining_files"], 0);
+    assert!(err.contains("renderer process stopped answering"), "{err}");
+}
+
+/// An engine stopped for good is killed and restarted like a dead one, and the new engine resumes
+/// the breath where the stream left it (checked bit for bit); with --hang-after-s 0 the same stop
+/// is left alone (the picture stays frozen, stale, to the end).
+#[test]
+fn an_engine_that_stops_answering_is_restarted_and_resumes_the_breath() {
+    if renderer::gpu::Gpu::for_tests().is_none() {
+        return;
+    }
+    let demo = Demo::start("hang-engine", "5", &[]);
+    demo.wait_until_drawing();
+    std::thread::sleep(Duration::from_millis(1000));
+    demo.signal("engine", libc::SIGSTOP);
+    let (ok, v, err) = demo.finish();
+    assert!(ok, "{err}");
+    assert_eq!(
+        (v["restarts"].as_u64(), v["hung_restarts"].as_u64()),
+        (Some(1), Some(1)),
+        "{v}"
+    );
+    assert_eq!(v["restart_log"][0]["role"], "engine", "{v}");
+    assert!(
+        v["restart_log"][0]["recover_ms"].as_f64().unwrap() < 1000.0,
+        "{v}"
+    );
+    assert_eq!(v["phase_errors"], 0, "{err}");
+    assert!(
+        err.contains("engine process stopped answering") && err.contains("resuming at tick"),
+        "{err}"
+    );
+
+    let demo = Demo::start("hang-off", "4", &["--hang-after-s", "0"]);
+    demo.wait_until_drawing();
+    std::thread::sleep(Duration::from_millis(1000));
+    demo.signal("engine", libc::SIGSTOP);
+    let (ok, v, err) = demo.finish();
+    assert!(ok, "{err}");
+    assert_eq!(v["restarts"], 0, "{v}");
+    assert!(v["stale_frames"].as_u64().unwrap() > 60, "{v}");
 }
 
 /// Ctrl-Z then `fg` at a terminal: the whole job is stopped (SIGTSTP to its process group) and
@@ -205,6 +272,9 @@ fn ctrl_z_then_fg_pauses_the_whole_run_and_it_completes() {
     assert!(ok, "{err}");
     assert_eq!(v["ended"], "completed", "{v}");
     assert_eq!(v["restarts"], 0, "{v}");
+    // The launcher was stopped too: its own stall is counted, and no child blamed for it.
+    assert!(v["launcher_stalls"].as_u64().unwrap() >= 1, "{v}");
+    assert!(v["launcher_max_gap_ms"].as_f64().unwrap() > 1500.0, "{v}");
     // Two seconds stopped are 120 slots of the 60 Hz schedule: they show as missed.
     assert!(v["missed_frame_slots"].as_u64().unwrap() >= 100, "{v}");
     assert!(v["frames_rendered"].as_u64().unwrap() > 0, "{v}");
