@@ -33,6 +33,12 @@ command -v pgrep >/dev/null || die "no pgrep: apt-get install procps"
 [ -x "$BIN" ] || die "no lungdyn binary at $BIN: cargo build --release --bin lungdyn, or name it"
 mkdir -p "$OUT" "$ROOTFS/opt/lungdyn-check"
 cp "$BIN" "$ROOTFS/opt/lungdyn-check/lungdyn"
+# The units run the thin role binaries, which install takes from beside lungdyn.
+for role in engine renderer tracker-bridge; do
+  [ -x "$(dirname "$BIN")/$role" ] ||
+    die "no $role binary beside $BIN: cargo build --release -p engine -p renderer -p tracker-bridge"
+  cp "$(dirname "$BIN")/$role" "$ROOTFS/opt/lungdyn-check/$role"
+done
 # A binary built against a newer C library than ROOTFS's would only fail inside the container.
 chroot "$ROOTFS" /opt/lungdyn-check/lungdyn --version >/dev/null 2>"$OUT/version.err" ||
   die "$BIN does not run in $ROOTFS: $(head -3 "$OUT/version.err") (build it on a system no newer than ROOTFS)"

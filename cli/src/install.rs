@@ -128,6 +128,13 @@ impl Role {
         }
     }
 
+    /// The thin binary the unit runs, as installed (`cargo build` names it after its crate,
+    /// [`Role::name`]; installed with the `lungdyn-` prefix, so /usr/local/bin gets no bare
+    /// `engine`).
+    pub fn binary(self) -> String {
+        format!("lungdyn-{}", self.name())
+    }
+
     /// The unit's file name.
     pub fn unit_name(self) -> String {
         format!("lungdyn-{}.service", self.name())
@@ -137,8 +144,9 @@ impl Role {
 /// What every unit needs to know.
 #[derive(Debug, Clone, PartialEq)]
 pub struct UnitSettings {
-    /// The installed `lungdyn` binary (absolute).
-    pub bin: PathBuf,
+    /// The folder of the installed binaries (absolute): each unit runs its thin role binary there,
+    /// `lungdyn-<role>`.
+    pub bin_dir: PathBuf,
     /// The prepared scene (absolute).
     pub scene: PathBuf,
     /// Instance name.
@@ -184,7 +192,11 @@ pub fn unit(role: Role, s: &UnitSettings) -> Result<String, String> {
         .cpus
         .get(Role::ALL.iter().position(|r| *r == role).unwrap_or(0))
         .copied();
-    let mut exec = format!("{} {name} --instance {}", systemd_word(&s.bin)?, s.instance);
+    let mut exec = format!(
+        "{} --instance {}",
+        systemd_word(&s.bin_dir.join(role.binary()))?,
+        s.instance
+    );
     match role {
         Role::TrackerBridge => {
             // `--source=VALUE`, one word: a value beginning with '-' stays the source's value.
@@ -338,6 +350,50 @@ fn write_file(path: &Path, bytes: &[u8], mode: u32) -> anyhow::Result<()> {
     Ok(())
 }
 
+/// The thin role binaries built beside `exe` (`cargo build --release` puts `engine`, `renderer`
+/// and `tracker-bridge` in the same folder as `lungdyn`): each found and answering `--help` as
+/// that role, or an error naming the build command — the units never run the whole `lungdyn`
+/// (with lung-bake, plotters and zenoh) as a service.
+pub fn thin_binaries(exe: &Path) -> anyhow::Result<Vec<(Role, PathBuf)>> {
+    let dir = exe.parent().unwrap_or(Path::new("."));
+    let build = "cargo build --release -p engine -p renderer -p tracker-bridge";
+    let missing: Vec<String> = Role::ALL
+        .iter()
+        .map(|r| dir.join(r.name()))
+        .filter(|p| !p.is_file())
+        .map(|p| p.display().to_string())
+        .collect();
+    if !missing.is_empty() {
+        anyhow::bail!(
+            "the processes' own binaries are not beside {} (missing: {}): the units run the thin \
+             role binaries, not lungdyn; build them with `{build}` and run install again",
+            exe.display(),
+            missing.join(", ")
+        );
+    }
+    Role::ALL
+        .iter()
+        .map(|&role| {
+            let path = dir.join(role.name());
+            let out = std::process::Command::new(&path)
+                .arg("--help")
+                .stdin(std::process::Stdio::null())
+                .output()
+                .map_err(|e| anyhow::anyhow!("cannot run {} --help: {e}", path.display()))?;
+            let help = String::from_utf8_lossy(&out.stdout);
+            if !(out.status.success() && help.starts_with(&format!("lungdyn {}", role.name()))) {
+                anyhow::bail!(
+                    "{} is not lungdyn's {} binary (its --help does not say so); rebuild with \
+                     `{build}`",
+                    path.display(),
+                    role.name()
+                );
+            }
+            Ok((role, path))
+        })
+        .collect()
+}
+
 /// Install under `args.prefix`.
 pub fn run(args: &InstallArgs) -> anyhow::Result<InstallReport> {
     transport::Instance::new(&args.instance)?;
@@ -358,36 +414,63 @@ pub fn run(args: &InstallArgs) -> anyhow::Result<InstallReport> {
         })
     };
 
-    let bin = prefix.join("bin/lungdyn");
     let exe = std::env::current_exe()?;
+    // The thin role binaries the units run, found beside this one before anything is written.
+    let thin = thin_binaries(&exe)?;
+    let bin_dir = prefix.join("bin");
+    let bin = bin_dir.join("lungdyn");
     let bytes =
         std::fs::read(&exe).map_err(|e| anyhow::anyhow!("cannot read {}: {e}", exe.display()))?;
     write_file(&bin, &bytes, 0o755)?;
     wrote(
         bin.clone(),
-        "the lungdyn binary (all three processes are its subcommands)",
+        "the lungdyn binary (install, doctor, scene event, instances: the tools, not the service)",
     );
+    for (role, from) in thin {
+        let to = bin_dir.join(role.binary());
+        let bytes = std::fs::read(&from)
+            .map_err(|e| anyhow::anyhow!("cannot read {}: {e}", from.display()))?;
+        write_file(&to, &bytes, 0o755)?;
+        wrote(
+            to,
+            &format!(
+                "the {} process's own binary (its unit runs it: {})",
+                role.name(),
+                role.what()
+            ),
+        );
+    }
 
     let share = prefix.join("share/lungdyn");
-    let prepared = crate::prepare::run(&crate::prepare::PrepareArgs {
-        scene: args.scene.clone(),
-        out: share.clone(),
-        json: false,
-    })?;
+    crate::demo::check_writable(&share)?;
+    // The scene's own files travel with it: the installed scene keeps working once the folder it
+    // came from is gone.
+    let (prepared, carried) = crate::prepare::prepare_carrying(
+        scene.clone(),
+        &share.join("kernels"),
+        Some(&share.join("files")),
+    )?;
     for k in &prepared.kernels {
         wrote(
             PathBuf::from(&k.path),
             &format!("the {} lung's kernel", k.lung),
         );
     }
-    let scene_path = std::path::absolute(&prepared.scene)?;
+    for c in &carried {
+        wrote(
+            PathBuf::from(&c.to),
+            &format!("{} (copied from {})", c.key, c.from),
+        );
+    }
+    let scene = prepared.scene;
+    let scene_path = std::path::absolute(&prepared.path)?;
     wrote(
         scene_path.clone(),
         "the prepared scene the engine and renderer load",
     );
 
     let settings = UnitSettings {
-        bin,
+        bin_dir,
         scene: scene_path,
         instance: args.instance.clone(),
         source: scene.tracker.source.clone(),
@@ -503,7 +586,7 @@ mod tests {
 
     fn settings(user: bool, cpus: Vec<usize>) -> UnitSettings {
         UnitSettings {
-            bin: "/usr/local/bin/lungdyn".into(),
+            bin_dir: "/usr/local/bin".into(),
             scene: "/usr/local/share/lungdyn/kernels/scene.resolved.toml".into(),
             instance: "workstation".into(),
             source: "igtl-server".into(),
@@ -532,14 +615,17 @@ mod tests {
             "User=lungdyn",
             "SyslogIdentifier=lungdyn-engine",
             "PartOf=lungdyn.target",
-            "ExecStart=/usr/local/bin/lungdyn engine --instance workstation --scene \
+            "ExecStart=/usr/local/bin/lungdyn-engine --instance workstation --scene \
              /usr/local/share/lungdyn/kernels/scene.resolved.toml --cpu 2",
         ] {
             assert!(e.lines().any(|l| l == line), "{line:?} missing in:\n{e}");
         }
         let b = unit(Role::TrackerBridge, &s).unwrap();
         assert!(
-            b.contains("tracker-bridge --instance workstation --source=igtl-server --cpu 1\n"),
+            b.contains(
+                "ExecStart=/usr/local/bin/lungdyn-tracker-bridge --instance workstation \
+                 --source=igtl-server --cpu 1\n"
+            ),
             "{b}"
         );
         assert!(b.contains("CPUAffinity=1\n"));

@@ -219,7 +219,30 @@ pub struct Prepared {
 }
 
 /// Bake what `scene` lacks into `dir` and write `dir/scene.resolved.toml` atomically.
-pub fn prepare(mut scene: Scene, dir: &Path) -> anyhow::Result<Prepared> {
+pub fn prepare(scene: Scene, dir: &Path) -> anyhow::Result<Prepared> {
+    prepare_carrying(scene, dir, None).map(|(p, _)| p)
+}
+
+/// One file a scene names, copied beside the prepared scene.
+#[derive(Debug, Clone, Serialize)]
+pub struct Carried {
+    /// The scene's key (`[pv] waveform`, `[tracker] source`, …).
+    pub key: String,
+    /// Where it was.
+    pub from: String,
+    /// Where the prepared scene now names it.
+    pub to: String,
+}
+
+/// [`prepare`], and with `carry`, every file the scene names that lies outside `dir` (PV
+/// constants, the ventilator waveform, the motion file, its own kernels, the calibration, the HMD
+/// optics, a replayed tracker recording) copied into `carry`, atomically, and named there by the
+/// written scene: an installed scene that keeps working when the folder it came from is gone.
+pub fn prepare_carrying(
+    mut scene: Scene,
+    dir: &Path,
+    carry: Option<&Path>,
+) -> anyhow::Result<(Prepared, Vec<Carried>)> {
     // Say where, before writing: the default folder is ./out, which a person may not expect.
     eprintln!(
         "lungdyn: kernels and the resolved scene go to {} (--out to choose)",
@@ -229,6 +252,10 @@ pub fn prepare(mut scene: Scene, dir: &Path) -> anyhow::Result<Prepared> {
     );
     let kernels = ensure_kernels(&mut scene, dir)?;
     std::fs::create_dir_all(dir).with_context(|| format!("cannot create {}", dir.display()))?;
+    let carried = match carry {
+        Some(to) => carry_files(&mut scene, dir, to)?,
+        None => Vec::new(),
+    };
     let path = std::path::absolute(dir.join("scene.resolved.toml"))
         .unwrap_or_else(|_| dir.join("scene.resolved.toml"));
     let text = toml::to_string(&scene).context("the resolved scene does not serialise")?;
@@ -237,11 +264,72 @@ pub fn prepare(mut scene: Scene, dir: &Path) -> anyhow::Result<Prepared> {
         w.write_all(b"# Written by lungdyn: every lung has a kernel; start the engine and the renderer with --scene <this file>\n")?;
         w.write_all(text.as_bytes())
     })?;
-    Ok(Prepared {
-        scene,
-        path,
-        kernels,
-    })
+    Ok((
+        Prepared {
+            scene,
+            path,
+            kernels,
+        },
+        carried,
+    ))
+}
+
+/// Copy every file `scene` names outside `keep` into `to` (named `<key>-<file name>`) and name the
+/// copy in `scene`.
+fn carry_files(scene: &mut Scene, keep: &Path, to: &Path) -> anyhow::Result<Vec<Carried>> {
+    let keep = std::path::absolute(keep)?;
+    let mut carried = Vec::new();
+    let mut copy = |key: &str, tag: &str, from: &Path| -> anyhow::Result<PathBuf> {
+        let from = std::path::absolute(from)?;
+        if from.starts_with(&keep) {
+            return Ok(from);
+        }
+        let name = from
+            .file_name()
+            .map(|n| n.to_string_lossy().into_owned())
+            .unwrap_or_else(|| "file".into());
+        let dest = std::path::absolute(to.join(format!("{tag}-{name}")))?;
+        let bytes = std::fs::read(&from)
+            .with_context(|| format!("{key} {}: cannot read it to install", from.display()))?;
+        std::fs::create_dir_all(to).with_context(|| format!("cannot create {}", to.display()))?;
+        outfile::write_atomically(&dest, |w| std::io::Write::write_all(w, &bytes))?;
+        carried.push(Carried {
+            key: key.to_string(),
+            from: from.display().to_string(),
+            to: dest.display().to_string(),
+        });
+        Ok(dest)
+    };
+    let fields: [(&str, &str, &mut Option<PathBuf>); 5] = [
+        ("[pv] constants", "pv-constants", &mut scene.pv.constants),
+        ("[pv] waveform", "pv-waveform", &mut scene.pv.waveform),
+        ("[lungs] motion", "lungs-motion", &mut scene.lungs.motion),
+        (
+            "[render] calibration",
+            "render-calibration",
+            &mut scene.render.calibration,
+        ),
+        ("[render] hmd", "render-hmd", &mut scene.render.hmd),
+    ];
+    for (key, tag, field) in fields {
+        if let Some(f) = field.as_ref() {
+            *field = Some(copy(key, tag, f)?);
+        }
+    }
+    for side in [Side::Left, Side::Right] {
+        if let Some(k) = scene.lungs.kernels.get(side).map(Path::to_path_buf) {
+            let key = format!("[lungs.kernels] {}", side.name());
+            let tag = format!("kernel-{}", side.name());
+            scene.lungs.kernels.set(side, copy(&key, &tag, &k)?);
+        }
+    }
+    if let tracker_bridge::source::SourceSpec::Replay { path } =
+        tracker_bridge::source::SourceSpec::parse(&scene.tracker.source)?
+    {
+        let copied = copy("[tracker] source", "tracker-replay", &path)?;
+        scene.tracker.source = format!("replay:{}", copied.display());
+    }
+    Ok(carried)
 }
 
 /// Options of `lungdyn scene prepare`.

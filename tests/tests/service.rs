@@ -136,9 +136,9 @@ fn the_engine_notifies_ready_pings_the_watchdog_from_its_loop_and_stops_pinging_
     stamp_datagrams(&sock);
     let instance = unique_instance("notify");
     // WATCHDOG_USEC 200 ms: a ping every 100 ms.
-    let child = std::process::Command::new(bin("lungdyn"))
+    // The thin binary the unit runs (installed as lungdyn-engine).
+    let child = std::process::Command::new(bin("engine"))
         .args([
-            "engine",
             "--instance",
             &instance,
             "--seconds",
@@ -223,9 +223,8 @@ fn the_engine_notifies_ready_pings_the_watchdog_from_its_loop_and_stops_pinging_
 #[test]
 fn without_notify_socket_the_engine_runs_as_before() {
     let instance = unique_instance("nonotify");
-    let out = Command::new(bin("lungdyn"))
+    let out = Command::new(bin("engine"))
         .args([
-            "engine",
             "--instance",
             &instance,
             "--seconds",
@@ -277,17 +276,28 @@ fn install_writes_under_its_prefix_and_the_units_verify() {
             .iter()
             .map(|w| w["path"].as_str().unwrap())
             .collect();
-        assert_eq!(written.len(), 9, "{written:?}");
+        assert_eq!(written.len(), 12, "{written:?}");
         for w in &written {
             assert!(w.starts_with(p), "{w} outside {p}");
             assert!(std::path::Path::new(w).is_file(), "{w}");
         }
         use std::os::unix::fs::PermissionsExt;
-        let bin = prefix.join("bin/lungdyn");
-        assert_eq!(
-            std::fs::metadata(&bin).unwrap().permissions().mode() & 0o777,
-            0o755
-        );
+        for b in [
+            "lungdyn",
+            "lungdyn-engine",
+            "lungdyn-renderer",
+            "lungdyn-tracker-bridge",
+        ] {
+            assert_eq!(
+                std::fs::metadata(prefix.join("bin").join(b))
+                    .unwrap()
+                    .permissions()
+                    .mode()
+                    & 0o777,
+                0o755,
+                "{b}"
+            );
+        }
         let unit_dir = prefix.join(if user {
             "share/systemd/user"
         } else {
@@ -295,7 +305,22 @@ fn install_writes_under_its_prefix_and_the_units_verify() {
         });
         let engine = std::fs::read_to_string(unit_dir.join("lungdyn-engine.service")).unwrap();
         assert!(engine.contains("CPUAffinity=1\n"), "{engine}");
-        assert!(engine.contains(&format!("ExecStart={} engine", bin.display())));
+        // The units run the thin role binaries, never the whole lungdyn.
+        for (unit, binary) in [
+            ("lungdyn-engine.service", "lungdyn-engine"),
+            ("lungdyn-renderer.service", "lungdyn-renderer"),
+            ("lungdyn-tracker-bridge.service", "lungdyn-tracker-bridge"),
+        ] {
+            let text = std::fs::read_to_string(unit_dir.join(unit)).unwrap();
+            let exec = prefix.join("bin").join(binary);
+            assert!(
+                text.contains(&format!("ExecStart={} --instance", exec.display())),
+                "{text}"
+            );
+            let installed = std::fs::read(&exec).unwrap();
+            let built = std::fs::read(bin(binary.trim_start_matches("lungdyn-"))).unwrap();
+            assert!(installed == built, "{binary} is the crate's own binary");
+        }
         let units: Vec<String> = [
             "lungdyn-tracker-bridge.service",
             "lungdyn-engine.service",
@@ -326,5 +351,180 @@ fn install_writes_under_its_prefix_and_the_units_verify() {
             if user { " --user" } else { "" }
         );
     }
+    let _ = std::fs::remove_dir_all(&root);
+}
+
+/// The deployed processes are thin (issue 33, the architecture's rule): the crates whose binaries
+/// the units run link no baking (lung-bake), plotting (plotters), networking (zenoh, the remote
+/// crate) or the whole CLI — read from `cargo tree` of each crate's normal dependencies, which must
+/// also name the transport they do need (so an empty or failed listing cannot pass).
+#[test]
+fn the_deployed_binaries_link_no_baking_plotting_or_networking() {
+    let cargo = std::env::var_os("CARGO").unwrap_or_else(|| "cargo".into());
+    let root = std::path::Path::new(env!("CARGO_MANIFEST_DIR")).join("..");
+    for krate in ["engine", "renderer", "tracker-bridge"] {
+        let out = Command::new(&cargo)
+            .args([
+                "tree",
+                "--offline",
+                "-p",
+                krate,
+                "-e",
+                "normal",
+                "--prefix",
+                "none",
+            ])
+            .args(["--format", "{p}"])
+            .current_dir(&root)
+            .output()
+            .expect("run cargo tree");
+        let tree = String::from_utf8_lossy(&out.stdout);
+        assert!(
+            out.status.success(),
+            "cargo tree -p {krate}: {}",
+            String::from_utf8_lossy(&out.stderr)
+        );
+        let names: std::collections::BTreeSet<&str> = tree
+            .lines()
+            .filter_map(|l| l.split_whitespace().next())
+            .collect();
+        assert!(names.contains("iceoryx2"), "{krate}: {names:?}");
+        for banned in [
+            "lung-bake",
+            "plotters",
+            "zenoh",
+            "lungdyn-remote",
+            "lungdyn",
+        ] {
+            assert!(
+                !names.contains(banned),
+                "the {krate} binary links {banned}: `cargo tree -p {krate} -e normal -i {banned}`"
+            );
+        }
+    }
+}
+
+/// `install` from a lungdyn with no thin role binaries beside it (a `cargo install` of the CLI
+/// alone), or with something else under a role's name, is refused naming the build command, and
+/// nothing is written under the prefix.
+#[test]
+fn install_without_the_thin_binaries_is_refused_and_writes_nothing() {
+    use std::os::unix::fs::PermissionsExt;
+    // A hard link (current_exe would see through a symbolic one) in a folder of its own.
+    let dir = lungdyn_tests::bin_dir().join(unique_instance("thinless"));
+    std::fs::create_dir_all(&dir).unwrap();
+    let alone = dir.join("lungdyn");
+    std::fs::hard_link(bin("lungdyn"), &alone).unwrap();
+    let prefix = dir.join("prefix");
+    let install = |what: &str| {
+        let out = Command::new(&alone)
+            .args(["install", "--prefix", prefix.to_str().unwrap()])
+            .output()
+            .unwrap();
+        let err = String::from_utf8_lossy(&out.stderr).into_owned();
+        assert!(!out.status.success(), "{what}: {err}");
+        assert!(
+            err.contains("cargo build --release -p engine -p renderer -p tracker-bridge"),
+            "{what}: {err}"
+        );
+        assert!(!prefix.exists(), "{what}: nothing written");
+        err
+    };
+    let err = install("no thin binaries");
+    for role in ["engine", "renderer", "tracker-bridge"] {
+        assert!(
+            err.contains(&format!("{}/{role}", dir.display())),
+            "{role}: {err}"
+        );
+    }
+    // Something else answering to the role's name.
+    for role in ["engine", "renderer", "tracker-bridge"] {
+        std::fs::hard_link(bin(role), dir.join(role)).unwrap();
+    }
+    std::fs::remove_file(dir.join("renderer")).unwrap();
+    std::fs::write(
+        dir.join("renderer"),
+        "#!/bin/sh\necho 'some other renderer'\n",
+    )
+    .unwrap();
+    std::fs::set_permissions(dir.join("renderer"), std::fs::Permissions::from_mode(0o755)).unwrap();
+    let err = install("a foreign renderer");
+    assert!(err.contains("is not lungdyn's renderer binary"), "{err}");
+    std::fs::remove_dir_all(&dir).unwrap();
+}
+
+/// An installed scene carries the files it names: a `[pv] waveform` recording and a replayed
+/// tracker recording are copied under the prefix and named there (the bridge's unit too), so the
+/// service keeps working once the folder the scene came from is gone.
+#[test]
+fn an_installed_scene_carries_the_files_it_names() {
+    let root = std::env::temp_dir().join(unique_instance("carry"));
+    let src = root.join("src");
+    std::fs::create_dir_all(src.join("recordings")).unwrap();
+    let repo = std::path::Path::new(env!("CARGO_MANIFEST_DIR")).join("..");
+    std::fs::copy(
+        repo.join("scenes/recordings/ventilated_vc_synthetic.csv"),
+        src.join("recordings/vc.csv"),
+    )
+    .unwrap();
+    let poses = src.join("poses.rec");
+    let (ok, _, err) = lungdyn_tests::lungdyn(&[
+        "tracker",
+        "simulate",
+        "--out",
+        poses.to_str().unwrap(),
+        "--seconds",
+        "1",
+    ]);
+    assert!(ok, "{err}");
+    let scene = src.join("scene.toml");
+    std::fs::write(
+        &scene,
+        format!(
+            "[pv]\npreset = \"venegas-human\"\nwaveform = \"recordings/vc.csv\"\n[lungs]\n\
+             vertices = 600\n[tracker]\nsource = \"replay:{}\"\n",
+            poses.display()
+        ),
+    )
+    .unwrap();
+    let prefix = root.join("prefix");
+    let (ok, out, err) = lungdyn_tests::lungdyn(&[
+        "install",
+        "--prefix",
+        prefix.to_str().unwrap(),
+        "--scene",
+        scene.to_str().unwrap(),
+        "--json",
+    ]);
+    assert!(ok, "{err}");
+    let r: serde_json::Value = serde_json::from_str(out.trim()).unwrap();
+    let carried: Vec<&str> = r["written"]
+        .as_array()
+        .unwrap()
+        .iter()
+        .filter(|w| w["what"].as_str().unwrap().contains("copied from"))
+        .map(|w| w["path"].as_str().unwrap())
+        .collect();
+    assert_eq!(carried.len(), 2, "{r}");
+    std::fs::remove_dir_all(&src).unwrap();
+    let resolved = prefix.join("share/lungdyn/kernels/scene.resolved.toml");
+    let (ok, _, err) = lungdyn_tests::lungdyn(&["scene", "check", resolved.to_str().unwrap()]);
+    assert!(ok, "the installed scene without its source folder: {err}");
+    let text = std::fs::read_to_string(&resolved).unwrap();
+    let files = prefix.join("share/lungdyn/files");
+    assert!(
+        text.contains(&format!("{}/pv-waveform-vc.csv", files.display())),
+        "{text}"
+    );
+    let bridge =
+        std::fs::read_to_string(prefix.join("lib/systemd/system/lungdyn-tracker-bridge.service"))
+            .unwrap();
+    assert!(
+        bridge.contains(&format!(
+            "--source=replay:{}/tracker-replay-poses.rec",
+            files.display()
+        )),
+        "{bridge}"
+    );
     let _ = std::fs::remove_dir_all(&root);
 }

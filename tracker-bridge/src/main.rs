@@ -4,7 +4,7 @@ use clap::Parser;
 #[derive(Parser)]
 #[command(
     name = "tracker-bridge",
-    about = "lungdyn tracker bridge: publishes tracker frames at 60 Hz over iceoryx2"
+    about = "lungdyn tracker-bridge: publishes tracker frames at 60 Hz over iceoryx2"
 )]
 struct Cli {
     #[command(flatten)]
