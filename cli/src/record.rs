@@ -203,8 +203,21 @@ fn write_mp4(frames: &[PathBuf], delays_ms: &[u32], out: &Path) -> anyhow::Resul
             "30",
         ])
         .arg(&tmp)
-        .status();
+        .stdin(std::process::Stdio::null())
+        .spawn()
+        .and_then(|child| wait_bounded(child, encoder_timeout(frames.len())));
     let _ = std::fs::remove_file(&list);
+    let status = match status {
+        Ok(Waited::Exited(s)) => Ok(s),
+        Ok(Waited::Killed(why)) => {
+            let _ = std::fs::remove_file(&tmp);
+            bail!(
+                "ffmpeg was stopped before it wrote {}: {why}",
+                out.display()
+            )
+        }
+        Err(e) => Err(e),
+    };
     match status {
         Ok(s) if s.success() => {
             std::fs::rename(&tmp, out)
@@ -219,6 +232,50 @@ fn write_mp4(frames: &[PathBuf], delays_ms: &[u32], out: &Path) -> anyhow::Resul
     }
 }
 
+/// How long an encoder may take for `frames` frames: a minute, and half a second a frame (a
+/// breath of 240 frames encodes in seconds; an encoder that hangs must not hold the run forever).
+pub fn encoder_timeout(frames: usize) -> std::time::Duration {
+    std::time::Duration::from_secs(60) + std::time::Duration::from_millis(500 * frames as u64)
+}
+
+/// How a bounded wait for a child ended.
+#[derive(Debug)]
+pub enum Waited {
+    /// It exited by itself.
+    Exited(std::process::ExitStatus),
+    /// It was killed (SIGKILL) and reaped: past its time, or the run was asked to stop.
+    Killed(String),
+}
+
+/// Wait for `child` at most `limit`, and no longer than the run's stop request (SIGTERM, SIGINT,
+/// SIGHUP latched by `transport::stop`): past either it is killed and reaped, and says which.
+pub fn wait_bounded(
+    mut child: std::process::Child,
+    limit: std::time::Duration,
+) -> std::io::Result<Waited> {
+    let start = std::time::Instant::now();
+    loop {
+        if let Some(s) = child.try_wait()? {
+            return Ok(Waited::Exited(s));
+        }
+        let why = if start.elapsed() > limit {
+            Some(format!(
+                "it ran past {:.0} s without finishing",
+                limit.as_secs_f64()
+            ))
+        } else if !transport::stop::idle(std::time::Duration::from_millis(20)) {
+            Some("the run was asked to stop".to_string())
+        } else {
+            None
+        };
+        if let Some(why) = why {
+            let _ = child.kill();
+            let _ = child.wait();
+            return Ok(Waited::Killed(why));
+        }
+    }
+}
+
 /// `count` of `n` items, evenly spread, the first always included (the strip's frames out of a
 /// recording's).
 pub fn spread(n: usize, count: usize) -> Vec<usize> {
@@ -229,6 +286,22 @@ pub fn spread(n: usize, count: usize) -> Vec<usize> {
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    #[test]
+    fn an_encoder_that_never_exits_is_killed_past_its_time() {
+        let child = Command::new("sleep").arg("30").spawn().unwrap();
+        let t = std::time::Instant::now();
+        let w = wait_bounded(child, std::time::Duration::from_millis(200)).unwrap();
+        assert!(
+            matches!(&w, Waited::Killed(why) if why.contains("ran past")),
+            "{w:?}"
+        );
+        assert!(t.elapsed() < std::time::Duration::from_secs(10));
+        let child = Command::new("true").spawn().unwrap();
+        let w = wait_bounded(child, std::time::Duration::from_secs(10)).unwrap();
+        assert!(matches!(w, Waited::Exited(s) if s.success()), "{w:?}");
+        assert_eq!(encoder_timeout(240), std::time::Duration::from_secs(180));
+    }
 
     #[test]
     fn formats_come_from_the_extension() {

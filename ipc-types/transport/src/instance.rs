@@ -246,7 +246,7 @@ impl Instance {
         if held == Some(false) {
             return None;
         }
-        let text = std::fs::read_to_string(&path).ok()?;
+        let text = read_lock_text(&path)?;
         let pid: u32 = text
             .strip_prefix("process ")?
             .split_whitespace()
@@ -270,20 +270,43 @@ impl Instance {
         };
         std::fs::create_dir_all(&dir).map_err(io)?;
         let path = dir.join(format!("{}.{role}.lock", self.name));
-        let mut file = std::fs::OpenOptions::new()
-            .read(true)
-            .write(true)
-            .create(true)
-            .truncate(false)
-            .open(&path)
-            .map_err(io)?;
+        // Not through a symbolic link (the folder is shared: a link placed there would have this
+        // process write into the file it names), never blocking on a FIFO, and only a regular file.
+        let mut file = {
+            use std::os::unix::fs::OpenOptionsExt;
+            std::fs::OpenOptions::new()
+                .read(true)
+                .write(true)
+                .create(true)
+                .truncate(false)
+                .mode(0o644)
+                .custom_flags(libc::O_NONBLOCK | libc::O_NOFOLLOW)
+                .open(&path)
+        }
+        .map_err(|e| {
+            io(if e.raw_os_error() == Some(libc::ELOOP) {
+                not_a_lock_file(&path, "a symbolic link")
+            } else {
+                e
+            })
+        })?;
+        match file.metadata() {
+            Ok(m) if m.is_file() => {}
+            Ok(_) => {
+                return Err(io(not_a_lock_file(
+                    &path,
+                    "not a regular file (a FIFO, socket or device)",
+                )))
+            }
+            Err(e) => return Err(io(e)),
+        }
         // SAFETY: flock on a file descriptor we own; non-blocking.
         let r = unsafe { libc::flock(file.as_raw_fd(), libc::LOCK_EX | libc::LOCK_NB) };
         if r != 0 {
             let err = std::io::Error::last_os_error();
             if err.raw_os_error() == Some(libc::EWOULDBLOCK) {
                 let mut holder = String::new();
-                let _ = file.read_to_string(&mut holder);
+                let _ = (&mut file).take(LOCK_TEXT_MAX).read_to_string(&mut holder);
                 return Err(PortError::InstanceBusy {
                     instance: self.name.clone(),
                     role: role.to_string(),
@@ -308,6 +331,49 @@ impl Instance {
     }
 }
 
+/// The most of a lock file read: "process PID (command line)" is far shorter; a larger file (a
+/// stray or hostile one in the shared folder) is not read whole.
+const LOCK_TEXT_MAX: u64 = 64 * 1024;
+
+/// A lock file opened to be read as untrusted input (the lock folder is shared by every user of
+/// the machine): never blocking (a FIFO put in its place would hang `open` until a writer came),
+/// never through a symbolic link, and only a regular file.
+fn open_lock_file(path: &std::path::Path) -> Option<std::fs::File> {
+    use std::os::unix::fs::OpenOptionsExt;
+    let file = std::fs::OpenOptions::new()
+        .read(true)
+        .custom_flags(libc::O_NONBLOCK | libc::O_NOFOLLOW)
+        .open(path)
+        .ok()?;
+    file.metadata().ok().filter(|m| m.is_file())?;
+    Some(file)
+}
+
+/// A lock file's text, at most [`LOCK_TEXT_MAX`] bytes of it, read as untrusted input
+/// ([`open_lock_file`]); `None` when it is not a regular file or not text.
+fn read_lock_text(path: &std::path::Path) -> Option<String> {
+    use std::io::Read;
+    let mut text = String::new();
+    open_lock_file(path)?
+        .take(LOCK_TEXT_MAX)
+        .read_to_string(&mut text)
+        .ok()?;
+    Some(text)
+}
+
+/// The error for something other than a lock file in a lock file's place.
+fn not_a_lock_file(path: &std::path::Path, what: &str) -> std::io::Error {
+    std::io::Error::new(
+        std::io::ErrorKind::InvalidInput,
+        format!(
+            "{} is {what}, not a lock file: something else was put in the lock folder; remove it \
+             (rm {}) and start again",
+            path.display(),
+            path.display()
+        ),
+    )
+}
+
 /// A `struct flock` covering the whole file.
 fn ofd_whole_file(kind: libc::c_int) -> libc::flock {
     // SAFETY: `flock` is plain old data; all zeros is a valid value (l_start 0, l_len 0 = to the end).
@@ -324,7 +390,7 @@ fn ofd_whole_file(kind: libc::c_int) -> libc::flock {
 /// lists the reader's pid namespace only). `None` when neither can answer (file gone, unreadable).
 pub fn lock_held(path: &std::path::Path, held: Option<&HeldLocks>) -> Option<bool> {
     use std::os::fd::AsRawFd;
-    let ofd = std::fs::File::open(path).ok().and_then(|file| {
+    let ofd = open_lock_file(path).and_then(|file| {
         let mut probe = ofd_whole_file(libc::F_WRLCK);
         // SAFETY: fcntl on a file descriptor we own with a valid `struct flock`; F_OFD_GETLK only
         // reports, it takes nothing.
@@ -392,7 +458,7 @@ impl Instance {
             if lock_held(&entry.path(), held.as_ref()) == Some(false) {
                 continue;
             }
-            let Ok(text) = std::fs::read_to_string(entry.path()) else {
+            let Some(text) = read_lock_text(&entry.path()) else {
                 continue;
             };
             let Some((pid, cmdline)) = text
@@ -546,6 +612,75 @@ pub(crate) mod tests {
         drop(held);
         let again = i.lock("engine").unwrap();
         assert!(again.path().exists());
+    }
+
+    /// `f()` on a thread, within 10 s: a call that blocks (an `open` of a FIFO waits for a
+    /// writer forever) fails the test instead of hanging it.
+    fn within_10_s<T: Send + 'static>(what: &str, f: impl FnOnce() -> T + Send + 'static) -> T {
+        let (tx, rx) = std::sync::mpsc::channel();
+        std::thread::spawn(move || {
+            let _ = tx.send(f());
+        });
+        rx.recv_timeout(std::time::Duration::from_secs(10))
+            .unwrap_or_else(|_| panic!("{what} blocked on a FIFO in the lock folder"))
+    }
+
+    #[test]
+    fn a_fifo_a_link_or_a_huge_file_in_the_lock_folder_neither_hangs_nor_is_trusted() {
+        let dir = Instance::lock_dir();
+        std::fs::create_dir_all(&dir).unwrap();
+        let tag = std::process::id();
+        // A FIFO in a launcher's lock file's place.
+        let fifo_name = format!("fifo-test-{tag}");
+        let fifo = dir.join(format!("{fifo_name}.launcher.lock"));
+        let _ = std::fs::remove_file(&fifo);
+        let c = std::ffi::CString::new(fifo.to_str().unwrap()).unwrap();
+        // SAFETY: mkfifo with a valid NUL-terminated path.
+        assert_eq!(unsafe { libc::mkfifo(c.as_ptr(), 0o644) }, 0);
+        // A sparse 1 GiB lock file (no disk used): not read whole.
+        let huge_name = format!("huge-test-{tag}");
+        let huge = dir.join(format!("{huge_name}.engine.lock"));
+        std::fs::File::create(&huge)
+            .unwrap()
+            .set_len(1 << 30)
+            .unwrap();
+        // A symbolic link to a file of ours: taking the lock must not write into the file.
+        let target = std::env::temp_dir().join(format!("lungdyn-link-target-{tag}"));
+        std::fs::write(&target, "precious").unwrap();
+        let link_name = format!("link-test-{tag}");
+        let link = dir.join(format!("{link_name}.renderer.lock"));
+        let _ = std::fs::remove_file(&link);
+        std::os::unix::fs::symlink(&target, &link).unwrap();
+
+        let running = within_10_s("Instance::running", Instance::running);
+        assert!(
+            running
+                .iter()
+                .all(|r| ![&fifo_name, &huge_name, &link_name].contains(&&r.name)),
+            "{running:?}"
+        );
+        let fifo_instance = Instance::new(&fifo_name).unwrap();
+        let (holder, lock) = within_10_s("holder and lock", move || {
+            (
+                fifo_instance.holder("launcher"),
+                fifo_instance.lock("launcher").map(|_| ()),
+            )
+        });
+        assert_eq!(holder, None);
+        let e = lock.unwrap_err().to_string();
+        assert!(e.contains("not a regular file") && e.contains("rm "), "{e}");
+        within_10_s("sweep_dead", Instance::sweep_dead);
+        let e = Instance::new(&link_name)
+            .unwrap()
+            .lock("renderer")
+            .unwrap_err()
+            .to_string();
+        assert!(e.contains("a symbolic link"), "{e}");
+        assert_eq!(std::fs::read_to_string(&target).unwrap(), "precious");
+        assert_eq!(Instance::new(&huge_name).unwrap().holder("engine"), None);
+        for f in [&fifo, &huge, &link, &target] {
+            std::fs::remove_file(f).unwrap();
+        }
     }
 
     #[test]
