@@ -379,38 +379,6 @@ pub fn bridge_posture(p: lung_model::scene::Posture) -> tracker_bridge::syntheti
     }
 }
 
-/// Check `dir` can take our PNGs: create it, write and remove a probe file.
-pub fn check_writable(dir: &Path) -> anyhow::Result<()> {
-    if let Ok(meta) = std::fs::metadata(dir) {
-        if !meta.is_dir() {
-            use std::os::unix::fs::FileTypeExt;
-            let t = meta.file_type();
-            let what = if t.is_char_device() {
-                "a character device"
-            } else if t.is_block_device() {
-                "a block device"
-            } else if t.is_fifo() {
-                "a FIFO (named pipe)"
-            } else if t.is_socket() {
-                "a socket"
-            } else {
-                "a file"
-            };
-            bail!(
-                "--out {}: exists and is {what}, not a folder: give a folder to write into",
-                dir.display()
-            );
-        }
-    }
-    std::fs::create_dir_all(dir)
-        .with_context(|| format!("--out {}: cannot create the folder", dir.display()))?;
-    let probe = dir.join(format!(".lungdyn-write-probe-{}", std::process::id()));
-    std::fs::write(&probe, b"probe")
-        .with_context(|| format!("--out {}: the folder is not writable", dir.display()))?;
-    std::fs::remove_file(&probe).ok();
-    Ok(())
-}
-
 /// The snapshot ticks of a run too short for one whole breath: `count` spread evenly from the
 /// warm-up (at most a third of the run) to the run's end; empty when a whole breath fits after the
 /// warm-up even if its start is a cycle away (then the renderer plans one breath), or `count` is 0.
@@ -499,6 +467,133 @@ pub fn run(args: &DemoArgs) -> anyhow::Result<DemoReport> {
 pub fn run_watched(args: &DemoArgs, watch: &mut dyn Watch) -> anyhow::Result<DemoReport> {
     // SIGTERM, SIGINT and SIGHUP stop the run (latched: a SIGCONT after them changes nothing).
     transport::stop::install()?;
+    // Validate: every argument checked before anything is written.
+    let checked = validate(args)?;
+    let Resolved { scene, launch } = resolve_scene(args)?;
+    let instance = args
+        .instance
+        .clone()
+        .unwrap_or_else(|| format!("demo-{}", std::process::id()));
+    let services = Instance::new(&instance)?;
+    // One launcher per instance: a second run with this name is refused here, before it writes or
+    // removes anything (its cleanup would otherwise delete the first run's shared memory).
+    let _lock = services.lock("launcher")?;
+    // What a killed launcher (or process) of an earlier run left behind goes first.
+    let swept = Instance::sweep_dead().len();
+    if swept > 0 {
+        eprintln!("lungdyn: removed {swept} files of earlier runs that are no longer running");
+    }
+    eprintln!(
+        "lungdyn: instance {instance} (`lungdyn instances` lists running ones; `lungdyn scene event \
+         {instance} …` acts on this one)"
+    );
+    crate::outputs::check_writable(&args.out)?;
+    // Prepare: every lung runs from a kernel file: the scene's own, or the generated default baked
+    // once into <out>/kernels (reused while the scene's mesh and bake settings are unchanged); all
+    // three processes read the same resolved scene.
+    let prepared = crate::prepare::prepare(scene, &args.out.join("kernels"))?;
+    let (scene, kernels) = (prepared.scene, prepared.kernels);
+    let plan = SnapshotPlan::new(args, &scene, checked.record.is_some());
+
+    // Subscribe to the reports before anything can publish them.
+    let node = iox::node(&services, "launcher")?;
+    let mut ports = LauncherPorts {
+        reports: services.report_inlet(&node)?,
+        // The engine tick last published (a restarted engine resumes at the next one, a restarted
+        // renderer takes only the snapshots still ahead).
+        engine: services.engine_inlet(&node)?,
+        // The bridge's frames, read only as its sign of life (it publishes on its schedule even
+        // while its device is silent).
+        tracker: services.tracker_inlet(&node)?,
+    };
+    // Snapshots already in --out, with their modification times: a file this run writes again (the
+    // same command run twice into one folder names the same ticks) counts as this run's.
+    let existing = Existing::of(&args.out);
+    let trace_dir = match &args.trace {
+        Some(_) => Some(crate::launch::start_trace(&args.out, &instance)?),
+        None => None,
+    };
+    // Spawn: one role table, each role's arguments and how it is started again.
+    let roles = Roles::new(args, &scene, &launch, &instance, &plan, &prepared.path)?;
+    let mut supervisor = crate::supervise::Supervisor::new(
+        checked.intensity,
+        Box::new(|| transport::iox::remove_dead_nodes(&services).map_err(anyhow::Error::from)),
+    )
+    .with_liveness(checked.liveness);
+    roles.start(&mut supervisor)?;
+    // Watch, until the run's time is up, it fails or it is stopped.
+    let mut w = Watching::new(&scene, !args.json);
+    w.run(
+        args,
+        &mut supervisor,
+        &mut ports,
+        &roles.last_tick,
+        &services,
+        &scene,
+        watch,
+    );
+    // Stop, clean, report.
+    let end_ns = now_ns();
+    let measured_s = w
+        .first_frame_ns
+        .map(|t0| (end_ns - t0) as f64 / 1e9)
+        .unwrap_or(0.0);
+    watch.before_stop(&supervisor.children.pids());
+    let killed = supervisor.children.stop(Duration::from_secs(5));
+    let _ = ports.reports.drain(&mut |r: &FrameReport| {
+        w.stats.record(r);
+        watch.report(r);
+    });
+    // Whatever never reached a frame by the end (a renderer stopped for good) is missed.
+    w.stats.finish(end_ns);
+    let restart_log = supervisor.restarts.clone();
+    let stalls = supervisor.stalls;
+    drop(supervisor);
+    drop(ports);
+    node.try_cleanup_dead_nodes();
+    drop(node);
+    let (leftovers, remaining) = remove_leftovers(&services);
+    if !killed.is_empty() {
+        eprintln!("lungdyn: warning: had to kill {killed:?} after SIGINT");
+    }
+    if let (Some(dir), Some(file)) = (&trace_dir, &args.trace) {
+        let stages = crate::launch::finish_trace(dir, file)?;
+        watch.stages(&stages);
+    }
+    if w.interrupted && w.stats.frames == 0 && w.failure.is_none() {
+        w.failure = Some("interrupted before any frame was drawn".to_string());
+    }
+    if let Some(t) = w.resumed_at {
+        w.failure.get_or_insert(format!(
+            "the restarted engine never published its resume tick {t}"
+        ));
+    }
+    let pictures = pictures(args, &existing, checked.record, &plan, &mut w.failure);
+    Ok(report(Ended {
+        w,
+        scene: &scene,
+        cpus: launch.cpus,
+        measured_s,
+        pictures,
+        restart_log,
+        stalls,
+        leftovers: leftovers.len(),
+        remaining,
+        kernels,
+        instance,
+        swept,
+    }))
+}
+
+/// What [`validate`] found: the recording's format, the restart limits.
+struct Checked {
+    record: Option<crate::record::RecordFormat>,
+    intensity: crate::supervise::Intensity,
+    liveness: Option<crate::supervise::Liveness>,
+}
+
+/// Every argument checked before anything is written or started.
+fn validate(args: &DemoArgs) -> anyhow::Result<Checked> {
     let s = args.seconds;
     if !(s.is_finite() && s > 0.0 && s <= transport::process::MAX_SECONDS) {
         bail!(
@@ -518,7 +613,7 @@ pub fn run_watched(args: &DemoArgs, watch: &mut dyn Watch) -> anyhow::Result<Dem
         );
     }
     check_counts(args)?;
-    crate::supervise::Intensity::checked(args.max_restarts, args.restart_window_s)?;
+    let intensity = crate::supervise::Intensity::checked(args.max_restarts, args.restart_window_s)?;
     let liveness = crate::supervise::Liveness::checked(args.hang_after_s, args.startup_timeout)?;
     let record = args
         .record
@@ -557,13 +652,36 @@ pub fn run_watched(args: &DemoArgs, watch: &mut dyn Watch) -> anyhow::Result<Dem
             args.sweep_period_s
         );
     }
+    Ok(Checked {
+        record,
+        intensity,
+        liveness,
+    })
+}
+
+/// The scene the processes run, with the command line's overrides, and how they are started.
+struct Resolved {
+    scene: lung_model::scene::Scene,
+    launch: Launch,
+}
+
+/// What the processes are started with besides the scene.
+struct Launch {
+    /// Cores of tracker-bridge, engine, renderer (empty: not pinned).
+    cpus: Vec<usize>,
+    /// The bridge's source and the synthetic patient's posture.
+    tracker_source: String,
+    posture: String,
+}
+
+/// The GPU adapter found, the scene loaded and overridden by the command line, checked.
+fn resolve_scene(args: &DemoArgs) -> anyhow::Result<Resolved> {
     // The renderer needs a GPU adapter: find out now, in the first second, rather than after
     // baking the lungs (a fresh machine without a Vulkan driver is the common case). The error names
     // the package and `./run demo`, which installs it.
     ensure_runtime_dir();
     let adapter = renderer::gpu::probe_adapter()?;
     eprintln!("lungdyn: GPU adapter {adapter}");
-    // Every argument is checked before anything is written (kernels are baked below).
     let mut loaded = lung_model::scene::Scene::load_or_default(args.scene.as_deref())?;
     if let Some(mode) = args.mode {
         loaded.lungs.mode = mode;
@@ -629,285 +747,416 @@ pub fn run_watched(args: &DemoArgs, watch: &mut dyn Watch) -> anyhow::Result<Dem
             loaded.lungs.mode
         );
     }
-    let instance = args
-        .instance
-        .clone()
-        .unwrap_or_else(|| format!("demo-{}", std::process::id()));
-    let services = Instance::new(&instance)?;
-    // One launcher per instance: a second run with this name is refused here, before it writes or
-    // removes anything (its cleanup would otherwise delete the first run's shared memory).
-    let _lock = services.lock("launcher")?;
-    // What a killed launcher (or process) of an earlier run left behind goes first.
-    let swept = Instance::sweep_dead().len();
-    if swept > 0 {
-        eprintln!("lungdyn: removed {swept} files of earlier runs that are no longer running");
-    }
-    eprintln!(
-        "lungdyn: instance {instance} (`lungdyn instances` lists running ones; `lungdyn scene event \
-         {instance} …` acts on this one)"
-    );
-    check_writable(&args.out)?;
-    // Every lung runs from a kernel file: the scene's own, or the generated default baked once into
-    // <out>/kernels (reused while the scene's mesh and bake settings are unchanged); all three
-    // processes read the same resolved scene.
-    let prepared = crate::prepare::prepare(loaded, &args.out.join("kernels"))?;
-    let (scene, kernels, resolved_scene) = (prepared.scene, prepared.kernels, prepared.path);
-    let tick_hz = scene.engine.tick_hz;
-    // (--snapshot-at-s was checked with the other counts, before anything was written.)
-    let warmup_ticks = args.snapshot_at_s.map_or(tick_hz as u64, |at| {
-        ((at * tick_hz) as u64).max(tick_hz as u64)
-    });
-    // The renderer plans the frames when the breath starts, at that breath's own rate (a disease
-    // may breathe faster than the scene's [pv] rate), from the front of the patient.
-    let breath_frames = match record {
-        Some(_) => args.record_frames.max(args.snapshots),
-        None => args.snapshots,
-    };
-    // A run too short to hold a whole breath after the warm-up (waiting for the next cycle start
-    // can take a cycle) still gets its snapshots: spread over what the run has, from the same front
-    // view, and it says so (a strip of part of a breath). A recording always wants a whole breath.
-    let spread_ticks = partial_breath_ticks(
-        if record.is_some() { 0 } else { breath_frames },
-        (args.seconds * tick_hz) as u64,
-        warmup_ticks,
-        (60.0 / scene.pv.breaths_per_min * tick_hz).round().max(1.0) as u64,
-    );
-    if !spread_ticks.is_empty() {
-        eprintln!(
-            "demo: {} s is too short for one whole breath after the first second (a cycle is {:.1} s); \
-             the {breath_frames} snapshots are spread over the run, part of a breath — run \
-             --seconds {:.0} or more for a strip of one whole breath",
-            args.seconds,
-            60.0 / scene.pv.breaths_per_min,
-            (warmup_ticks as f64 / tick_hz + 2.0 * 60.0 / scene.pv.breaths_per_min).ceil()
+    Ok(Resolved {
+        scene: loaded,
+        launch: Launch {
+            cpus,
+            tracker_source,
+            posture,
+        },
+    })
+}
+
+/// When the renderer writes the run's pictures.
+struct SnapshotPlan {
+    tick_hz: f64,
+    /// The first tick a breath's frames may be planned from (the first second is warm-up).
+    warmup_ticks: u64,
+    /// Frames of the breath (the strip's, or the recording's).
+    breath_frames: u32,
+    /// A run too short for a whole breath: the ticks its snapshots are spread over.
+    spread_ticks: Vec<u64>,
+}
+
+impl SnapshotPlan {
+    fn new(args: &DemoArgs, scene: &lung_model::scene::Scene, recording: bool) -> Self {
+        let tick_hz = scene.engine.tick_hz;
+        // (--snapshot-at-s was checked with the other counts, before anything was written.)
+        let warmup_ticks = args.snapshot_at_s.map_or(tick_hz as u64, |at| {
+            ((at * tick_hz) as u64).max(tick_hz as u64)
+        });
+        // The renderer plans the frames when the breath starts, at that breath's own rate (a
+        // disease may breathe faster than the scene's [pv] rate), from the front of the patient.
+        let breath_frames = if recording {
+            args.record_frames.max(args.snapshots)
+        } else {
+            args.snapshots
+        };
+        // A run too short to hold a whole breath after the warm-up (waiting for the next cycle
+        // start can take a cycle) still gets its snapshots: spread over what the run has, from the
+        // same front view, and it says so (a strip of part of a breath). A recording always wants
+        // a whole breath.
+        let spread_ticks = partial_breath_ticks(
+            if recording { 0 } else { breath_frames },
+            (args.seconds * tick_hz) as u64,
+            warmup_ticks,
+            (60.0 / scene.pv.breaths_per_min * tick_hz).round().max(1.0) as u64,
         );
+        if !spread_ticks.is_empty() {
+            eprintln!(
+                "demo: {} s is too short for one whole breath after the first second (a cycle is \
+                 {:.1} s); the {breath_frames} snapshots are spread over the run, part of a breath \
+                 — run --seconds {:.0} or more for a strip of one whole breath",
+                args.seconds,
+                60.0 / scene.pv.breaths_per_min,
+                (warmup_ticks as f64 / tick_hz + 2.0 * 60.0 / scene.pv.breaths_per_min).ceil()
+            );
+        }
+        Self {
+            tick_hz,
+            warmup_ticks,
+            breath_frames,
+            spread_ticks,
+        }
+    }
+}
+
+/// The launcher's subscriptions: what it measures, and each process's sign of life.
+struct LauncherPorts {
+    reports: transport::iox::Inlet<FrameReport>,
+    engine: transport::iox::Inlet<ipc_types::EngineFrame>,
+    tracker: transport::iox::Inlet<ipc_types::TrackerFrame>,
+}
+
+/// The PNGs in --out before the run, with their modification times.
+struct Existing(std::collections::HashMap<PathBuf, Option<std::time::SystemTime>>);
+
+impl Existing {
+    fn of(dir: &Path) -> Self {
+        Self(
+            list_pngs(dir)
+                .into_iter()
+                .map(|p| {
+                    let t = modified(&p);
+                    (p, t)
+                })
+                .collect(),
+        )
     }
 
-    // Subscribe to the reports before anything can publish them.
-    let node = iox::node(&services, "launcher")?;
-    let mut reports = services.report_inlet(&node)?;
-
-    let exe = std::env::current_exe()
-        .context("cannot find the lungdyn executable to start the processes")?;
-    let mut common = vec!["--instance".to_string(), instance.clone()];
-    // Children outlive a stuck launcher by at most this long.
-    let child_seconds = (args.seconds + args.startup_timeout + 30.0)
-        .min(transport::process::MAX_SECONDS)
-        .to_string();
-    common.extend(["--seconds".to_string(), child_seconds]);
-    if scene.processes.realtime {
-        common.push("--realtime".to_string());
+    /// Written by this run: new, or written again.
+    fn written_now(&self, p: &Path) -> bool {
+        self.0
+            .get(p)
+            .is_none_or(|&t| t.is_none() || modified(p) != t)
     }
-    let with_scene = |mut v: Vec<String>| {
-        v.extend(["--scene".to_string(), resolved_scene.display().to_string()]);
-        v
-    };
-    let cpu = |i: usize| {
-        cpus.get(i)
-            .map(|c| vec!["--cpu".to_string(), c.to_string()])
-            .unwrap_or_default()
-    };
-    let mut renderer_args = with_scene([common.clone(), cpu(2)].concat());
-    renderer_args.push("--predict-ms".into());
-    renderer_args.push(args.predict_ms.to_string());
-    renderer_args.push("--hud".into());
-    renderer_args.push(
-        match args.hud {
+}
+
+fn modified(p: &Path) -> Option<std::time::SystemTime> {
+    std::fs::metadata(p).and_then(|m| m.modified()).ok()
+}
+
+/// The role table: each process's command line, and how it is started again after a death.
+struct Roles<'p> {
+    exe: PathBuf,
+    renderer: Vec<String>,
+    engine: Vec<String>,
+    bridge: Vec<String>,
+    /// `remote serve`'s, when the scene's [remote] role is source.
+    remote: Option<Vec<String>>,
+    plan: &'p SnapshotPlan,
+    out_dir: String,
+    /// The engine tick last published (set by the watch loop).
+    last_tick: std::cell::Cell<Option<u64>>,
+}
+
+impl<'p> Roles<'p> {
+    fn new(
+        args: &DemoArgs,
+        scene: &lung_model::scene::Scene,
+        launch: &Launch,
+        instance: &str,
+        plan: &'p SnapshotPlan,
+        resolved_scene: &Path,
+    ) -> anyhow::Result<Self> {
+        let exe = std::env::current_exe()
+            .context("cannot find the lungdyn executable to start the processes")?;
+        let mut common = vec!["--instance".to_string(), instance.to_string()];
+        // Children outlive a stuck launcher by at most this long.
+        let child_seconds = (args.seconds + args.startup_timeout + 30.0)
+            .min(transport::process::MAX_SECONDS)
+            .to_string();
+        common.extend(["--seconds".to_string(), child_seconds]);
+        if scene.processes.realtime {
+            common.push("--realtime".to_string());
+        }
+        let with_scene = |mut v: Vec<String>| {
+            v.extend(["--scene".to_string(), resolved_scene.display().to_string()]);
+            v
+        };
+        let cpu = |i: usize| {
+            launch
+                .cpus
+                .get(i)
+                .map(|c| vec!["--cpu".to_string(), c.to_string()])
+                .unwrap_or_default()
+        };
+        let mut renderer = with_scene([common.clone(), cpu(2)].concat());
+        let hud = match args.hud {
             renderer::process::HudSwitch::On => "on",
             renderer::process::HudSwitch::Off => "off",
-        }
-        .into(),
-    );
-    renderer_args.extend(args.output.to_args());
-    // Snapshots already in --out, with their modification times: a file this run writes again (the
-    // same command run twice into one folder names the same ticks) counts as this run's.
-    let modified = |p: &Path| std::fs::metadata(p).and_then(|m| m.modified()).ok();
-    let existing: std::collections::HashMap<PathBuf, Option<std::time::SystemTime>> =
-        list_pngs(&args.out)
-            .into_iter()
-            .map(|p| {
-                let t = modified(&p);
-                (p, t)
-            })
-            .collect();
-    let trace_dir = match &args.trace {
-        Some(_) => Some(crate::launch::start_trace(&args.out, &instance)?),
-        None => None,
-    };
-    // The engine tick last published (the launcher subscribes to the engine stream too): a
-    // restarted engine resumes at the next one, a restarted renderer takes only the snapshots still
-    // ahead.
-    let mut engine_frames = services.engine_inlet(&node)?;
-    // The bridge's frames, read only as its sign of life (it publishes on its schedule even while
-    // its device is silent).
-    let mut tracker_frames = services.tracker_inlet(&node)?;
-    let last_tick: std::cell::Cell<Option<u64>> = std::cell::Cell::new(None);
-    let intensity = crate::supervise::Intensity::checked(args.max_restarts, args.restart_window_s)?;
-    let mut supervisor = crate::supervise::Supervisor::new(
-        intensity,
-        Box::new(|| transport::iox::remove_dead_nodes(&services).map_err(anyhow::Error::from)),
-    )
-    .with_liveness(liveness);
-    for role in ["renderer", "engine", "tracker-bridge"] {
-        supervisor.watch(role);
-    }
-    let (exe, spread_ticks) = (&exe, &spread_ticks);
-    let out_dir = args.out.display().to_string();
-    let last_seen = &last_tick;
-    supervisor.start(
-        "renderer",
-        Box::new(move || {
-            let mut a = renderer_args.clone();
-            if !spread_ticks.is_empty() {
-                let ahead: Vec<String> = spread_ticks
-                    .iter()
-                    .filter(|&&t| last_seen.get().is_none_or(|l| t > l))
-                    .map(|t| t.to_string())
-                    .collect();
-                if !ahead.is_empty() {
-                    a.extend([
-                        "--snapshot-ticks".to_string(),
-                        ahead.join(","),
-                        "--snapshot-view".to_string(),
-                        "front".to_string(),
-                        "--snapshot-dir".to_string(),
-                        out_dir.clone(),
-                    ]);
-                }
-            } else if breath_frames > 0 {
-                // A restarted renderer plans its breath after the last tick shown (a strip across
-                // a restart can hold frames of two breaths).
-                let after = last_seen
-                    .get()
-                    .map_or(warmup_ticks, |l| warmup_ticks.max(l + 1));
-                a.extend([
-                    "--snapshot-breath".to_string(),
-                    breath_frames.to_string(),
-                    "--snapshot-after-tick".to_string(),
-                    after.to_string(),
-                    "--snapshot-view".to_string(),
-                    "front".to_string(),
-                    "--snapshot-dir".to_string(),
-                    out_dir.clone(),
-                ]);
-            }
-            Children::spawn(exe, "renderer", &a)
-        }),
-    )?;
-    let engine_args = with_scene([common.clone(), cpu(1)].concat());
-    supervisor.start(
-        "engine",
-        Box::new(move || {
-            let mut a = engine_args.clone();
-            if let Some(t) = last_seen.get() {
-                a.extend(["--start-tick".to_string(), (t + 1).to_string()]);
-            }
-            Children::spawn(exe, "engine", &a)
-        }),
-    )?;
-    // A scene whose [remote] role is "source" shares this engine with remote sites: `remote serve`
-    // runs beside it, supervised like the other processes (restarted if it dies; a restarted one
-    // takes the engine's current state from its stream's history).
-    if scene
-        .remote
-        .as_ref()
-        .is_some_and(|r| r.role == lung_model::scene_remote::RemoteRole::Source)
-    {
-        let serve_args = with_scene(
-            [
-                vec!["serve".to_string()],
-                common
+        };
+        renderer.extend([
+            "--predict-ms".into(),
+            args.predict_ms.to_string(),
+            "--hud".into(),
+            hud.into(),
+        ]);
+        renderer.extend(args.output.to_args());
+        let engine = with_scene([common.clone(), cpu(1)].concat());
+        // A scene whose [remote] role is "source" shares this engine with remote sites.
+        let remote = scene
+            .remote
+            .as_ref()
+            .is_some_and(|r| r.role == lung_model::scene_remote::RemoteRole::Source)
+            .then(|| {
+                let plain: Vec<String> = common
                     .iter()
                     .filter(|a| *a != "--realtime")
                     .cloned()
-                    .collect(),
-            ]
-            .concat(),
-        );
-        eprintln!(
-            "lungdyn: the scene's [remote] role is source: starting `lungdyn remote serve` (sites \
-             join with `lungdyn remote join --scene SITE_SCENE`)"
-        );
-        supervisor.start(
-            "remote",
-            Box::new(move || Children::spawn(exe, "remote", &serve_args)),
-        )?;
+                    .collect();
+                with_scene([vec!["serve".to_string()], plain].concat())
+            });
+        let bridge = [
+            common,
+            cpu(0),
+            vec![
+                "--roll-deg".to_string(),
+                args.roll_deg.to_string(),
+                "--pitch-deg".to_string(),
+                args.pitch_deg.to_string(),
+                "--sweep-period-s".to_string(),
+                args.sweep_period_s.to_string(),
+                "--source".to_string(),
+                launch.tracker_source.clone(),
+                "--posture".to_string(),
+                launch.posture.clone(),
+            ],
+        ]
+        .concat();
+        Ok(Self {
+            exe,
+            renderer,
+            engine,
+            bridge,
+            remote,
+            plan,
+            out_dir: args.out.display().to_string(),
+            last_tick: std::cell::Cell::new(None),
+        })
     }
-    let sweep = vec![
-        "--roll-deg".to_string(),
-        args.roll_deg.to_string(),
-        "--pitch-deg".to_string(),
-        args.pitch_deg.to_string(),
-        "--sweep-period-s".to_string(),
-        args.sweep_period_s.to_string(),
-    ];
-    let bridge_args = [
-        common.clone(),
-        cpu(0),
-        sweep,
-        vec![
-            "--source".to_string(),
-            tracker_source.clone(),
-            "--posture".to_string(),
-            posture.to_string(),
-        ],
-    ]
-    .concat();
-    supervisor.start(
-        "tracker-bridge",
-        Box::new(move || Children::spawn(exe, "tracker-bridge", &bridge_args)),
-    )?;
 
-    let mut stats = LatencyStats::new();
-    let started = now_ns();
-    let mut first_frame_ns: Option<u64> = None;
-    let mut interrupted = false;
-    let mut failure: Option<String> = None;
-    let mut last_progress = 0u64;
-    let show_progress = !args.json && std::io::IsTerminal::is_terminal(&std::io::stderr());
-    // A restarted engine's first tick, checked against the deterministic expectation.
-    let mut resumed_at: Option<u64> = None;
-    let mut finished: Option<&'static str> = None;
-    // The sample shown when the tracker-bridge died, and the one shown last.
-    let (mut bridge_died_at, mut last_sample): (Option<u64>, u64) = (None, 0);
-    let mut phase = crate::supervise::PhaseCheck::new(&scene);
-    loop {
-        if !transport::stop::idle(Duration::from_millis(5)) {
-            interrupted = true;
+    /// The renderer's arguments now: a restarted one takes only the snapshots still ahead, and
+    /// plans its breath after the last tick shown (a strip across a restart can hold frames of
+    /// two breaths).
+    fn renderer_args(&self) -> Vec<String> {
+        let mut a = self.renderer.clone();
+        let last = self.last_tick.get();
+        let plan = self.plan;
+        let (key, value) = if !plan.spread_ticks.is_empty() {
+            let ahead: Vec<String> = plan
+                .spread_ticks
+                .iter()
+                .filter(|&&t| last.is_none_or(|l| t > l))
+                .map(|t| t.to_string())
+                .collect();
+            if ahead.is_empty() {
+                return a;
+            }
+            ("--snapshot-ticks", ahead.join(","))
+        } else if plan.breath_frames > 0 {
+            a.extend([
+                "--snapshot-breath".to_string(),
+                plan.breath_frames.to_string(),
+            ]);
+            let after = last.map_or(plan.warmup_ticks, |l| plan.warmup_ticks.max(l + 1));
+            ("--snapshot-after-tick", after.to_string())
+        } else {
+            return a;
+        };
+        a.extend([
+            key.to_string(),
+            value,
+            "--snapshot-view".to_string(),
+            "front".to_string(),
+            "--snapshot-dir".to_string(),
+            self.out_dir.clone(),
+        ]);
+        a
+    }
+
+    /// Start every role under `supervisor`, each watched by its stream but `remote serve`.
+    fn start<'s>(
+        &'s self,
+        supervisor: &mut crate::supervise::Supervisor<'s>,
+    ) -> anyhow::Result<()> {
+        let exe = &self.exe;
+        supervisor.start(
+            "renderer",
+            Box::new(move || Children::spawn(exe, "renderer", &self.renderer_args())),
+        )?;
+        supervisor.start(
+            "engine",
+            Box::new(move || {
+                let mut a = self.engine.clone();
+                if let Some(t) = self.last_tick.get() {
+                    a.extend(["--start-tick".to_string(), (t + 1).to_string()]);
+                }
+                Children::spawn(exe, "engine", &a)
+            }),
+        )?;
+        // `remote serve` runs beside the engine, supervised like the other processes (restarted if
+        // it dies; a restarted one takes the engine's current state from its stream's history).
+        if let Some(serve) = &self.remote {
             eprintln!(
-                "lungdyn: interrupted ({}), stopping the processes",
-                transport::stop::signal().map_or("a stop signal", transport::stop::name)
+                "lungdyn: the scene's [remote] role is source: starting `lungdyn remote serve` \
+                 (sites join with `lungdyn remote join --scene SITE_SCENE`)"
             );
-            break;
+            supervisor.start(
+                "remote",
+                Box::new(move || Children::spawn(exe, "remote", serve)),
+            )?;
         }
+        supervisor.start(
+            "tracker-bridge",
+            Box::new(move || Children::spawn(exe, "tracker-bridge", &self.bridge)),
+        )?;
+        for role in ["renderer", "engine", "tracker-bridge"] {
+            supervisor.watch(role);
+        }
+        Ok(())
+    }
+}
+
+/// The watch loop's state: what it measured and how the run is ending.
+struct Watching {
+    stats: LatencyStats,
+    first_frame_ns: Option<u64>,
+    interrupted: bool,
+    failure: Option<String>,
+    /// A process that finished its work (the end of a replay).
+    finished: Option<&'static str>,
+    /// A restarted engine's first tick, checked against the deterministic expectation.
+    resumed_at: Option<u64>,
+    /// The sample shown when the tracker-bridge died, and the one shown last.
+    bridge_died_at: Option<u64>,
+    last_sample: u64,
+    phase: crate::supervise::PhaseCheck,
+    last_progress: u64,
+    show_progress: bool,
+}
+
+impl Watching {
+    fn new(scene: &lung_model::scene::Scene, text: bool) -> Self {
+        Self {
+            stats: LatencyStats::new(),
+            first_frame_ns: None,
+            interrupted: false,
+            failure: None,
+            finished: None,
+            resumed_at: None,
+            bridge_died_at: None,
+            last_sample: 0,
+            phase: crate::supervise::PhaseCheck::new(scene),
+            last_progress: 0,
+            show_progress: text && std::io::IsTerminal::is_terminal(&std::io::stderr()),
+        }
+    }
+
+    /// Pass after pass, every 5 ms, until the run ends.
+    #[allow(clippy::too_many_arguments)]
+    fn run(
+        &mut self,
+        args: &DemoArgs,
+        supervisor: &mut crate::supervise::Supervisor<'_>,
+        ports: &mut LauncherPorts,
+        last_tick: &std::cell::Cell<Option<u64>>,
+        services: &Instance,
+        scene: &lung_model::scene::Scene,
+        watch: &mut dyn Watch,
+    ) {
+        let started = now_ns();
+        loop {
+            if !transport::stop::idle(Duration::from_millis(5)) {
+                self.interrupted = true;
+                eprintln!(
+                    "lungdyn: interrupted ({}), stopping the processes",
+                    transport::stop::signal().map_or("a stop signal", transport::stop::name)
+                );
+                break;
+            }
+            let now = match self.drain(supervisor, ports, last_tick, watch) {
+                Ok(now) => now,
+                Err(e) => {
+                    self.failure = Some(format!("{e:#}"));
+                    break;
+                }
+            };
+            if !self.supervise(supervisor, last_tick.get()) {
+                break;
+            }
+            let mut view = Run {
+                supervisor: &mut *supervisor,
+                services,
+                scene,
+                last_tick: last_tick.get(),
+                first_frame_ns: self.first_frame_ns,
+                now_ns: now,
+            };
+            match watch.pass(&mut view) {
+                Ok(true) => {}
+                Ok(false) => break,
+                Err(e) => {
+                    self.failure = Some(format!("{e:#}"));
+                    break;
+                }
+            }
+            if !self.on_time(args, started, now) {
+                break;
+            }
+        }
+        if self.show_progress && self.last_progress > 0 {
+            eprintln!();
+        }
+    }
+
+    /// Take every report and frame queued: measure, note each process's sign of life, check a
+    /// resumed engine's breath. Returns the pass's time.
+    fn drain(
+        &mut self,
+        supervisor: &mut crate::supervise::Supervisor<'_>,
+        ports: &mut LauncherPorts,
+        last_tick: &std::cell::Cell<Option<u64>>,
+        watch: &mut dyn Watch,
+    ) -> anyhow::Result<u64> {
         // Recovered: a frame from a live engine, showing a sample of the live bridge.
         let mut fresh = false;
         let (mut renderer_beat, mut engine_beat, mut bridge_beat) = (None, None, None);
-        reports.drain(&mut |r: &FrameReport| {
-            if first_frame_ns.is_none() {
-                first_frame_ns = Some(now_ns());
+        ports.reports.drain(&mut |r: &FrameReport| {
+            if self.first_frame_ns.is_none() {
+                self.first_frame_ns = Some(now_ns());
             }
             renderer_beat = Some(r.stamps.renderer_submit_ns.max(r.present_ns));
-            let new_sample = bridge_died_at.is_none_or(|f| r.tracker_frame != f);
+            let new_sample = self.bridge_died_at.is_none_or(|f| r.tracker_frame != f);
             if r.flags & ipc_types::report_flags::STALE_ENGINE == 0 && new_sample {
                 fresh = true;
-                bridge_died_at = None;
+                self.bridge_died_at = None;
             }
-            last_sample = r.tracker_frame;
-            stats.record(r);
+            self.last_sample = r.tracker_frame;
+            self.stats.record(r);
             watch.report(r);
         })?;
         let now = now_ns();
-        engine_frames.drain(&mut |f: &ipc_types::EngineFrame| {
+        ports.engine.drain(&mut |f: &ipc_types::EngineFrame| {
             engine_beat = Some(f.stamps.engine_publish_ns);
-            if resumed_at == Some(f.tick) {
-                resumed_at = None;
-                phase.check(f);
+            if self.resumed_at == Some(f.tick) {
+                self.resumed_at = None;
+                self.phase.check(f);
             }
             last_tick.set(Some(f.tick));
             watch.engine_frame(f);
         })?;
-        tracker_frames.drain(&mut |f: &ipc_types::TrackerFrame| {
+        ports.tracker.drain(&mut |f: &ipc_types::TrackerFrame| {
             bridge_beat = Some(f.stamps.bridge_publish_ns);
         })?;
         for (role, beat) in [
@@ -919,113 +1168,89 @@ pub fn run_watched(args: &DemoArgs, watch: &mut dyn Watch) -> anyhow::Result<Dem
                 supervisor.beat(role, published, now);
             }
         }
-        if first_frame_ns.is_some() {
+        if self.first_frame_ns.is_some() {
             supervisor.pipeline_running();
         }
         if fresh && supervisor.recovering() {
             supervisor.recovered(now);
         }
+        Ok(now)
+    }
+
+    /// Restart what died or hung; false when the run ends (a process finished its work, or the
+    /// restarts went past the limit).
+    fn supervise(
+        &mut self,
+        supervisor: &mut crate::supervise::Supervisor<'_>,
+        last_tick: Option<u64>,
+    ) -> bool {
         if let Some(role) = supervisor.finished() {
             // A replay shorter than --seconds ends the run cleanly (it is not looped: the
             // recording's samples would jump back in time); the report covers what was played.
             eprintln!("lungdyn: the {role} finished (its source ended); stopping the run");
-            finished = Some(role);
-            break;
+            self.finished = Some(role);
+            return false;
         }
-        match supervisor.check() {
+        let restarted = match supervisor.check() {
             Err(e) => {
-                failure = Some(format!("{e:#}"));
-                break;
+                self.failure = Some(format!("{e:#}"));
+                return false;
             }
-            Ok(restarted) => {
-                for role in restarted {
-                    let r = supervisor.restarts.last().expect("just restarted");
-                    match role {
-                        "engine" => {
-                            resumed_at = last_tick.get().map(|t| t + 1);
-                            eprintln!(
-                                "lungdyn: the engine process {}; restarted, resuming at tick {}",
-                                if r.hung {
-                                    r.ended.clone()
-                                } else {
-                                    format!("died ({})", r.ended)
-                                },
-                                resumed_at.unwrap_or(0)
-                            );
-                        }
-                        _ if r.hung => {
-                            eprintln!("lungdyn: the {role} process {}; restarted", r.ended)
-                        }
-                        _ => eprintln!("lungdyn: the {role} process died ({}); restarted", r.ended),
-                    }
-                    if role == "tracker-bridge" {
-                        bridge_died_at = Some(last_sample);
-                    }
-                    stats.restarted(role);
-                }
-            }
-        }
-        let mut view = Run {
-            supervisor: &mut supervisor,
-            services: &services,
-            scene: &scene,
-            last_tick: last_tick.get(),
-            first_frame_ns,
-            now_ns: now,
+            Ok(restarted) => restarted,
         };
-        match watch.pass(&mut view) {
-            Ok(true) => {}
-            Ok(false) => break,
-            Err(e) => {
-                failure = Some(format!("{e:#}"));
-                break;
+        for role in restarted {
+            let r = supervisor.restarts.last().expect("just restarted");
+            let how = if r.hung {
+                r.ended.clone()
+            } else {
+                format!("died ({})", r.ended)
+            };
+            if role == "engine" {
+                self.resumed_at = last_tick.map(|t| t + 1);
+                eprintln!(
+                    "lungdyn: the engine process {how}; restarted, resuming at tick {}",
+                    self.resumed_at.unwrap_or(0)
+                );
+            } else {
+                eprintln!("lungdyn: the {role} process {how}; restarted");
             }
+            if role == "tracker-bridge" {
+                self.bridge_died_at = Some(self.last_sample);
+            }
+            self.stats.restarted(role);
         }
-        match first_frame_ns {
+        true
+    }
+
+    /// The run's clock: false when its time is up, or the pipeline never started; the progress
+    /// line at a terminal.
+    fn on_time(&mut self, args: &DemoArgs, started: u64, now: u64) -> bool {
+        match self.first_frame_ns {
             None if now - started > (args.startup_timeout * 1e9) as u64 => {
-                failure = Some(format!(
+                self.failure = Some(format!(
                     "no frame reached the renderer within {} s: the pipeline did not start",
                     args.startup_timeout
                 ));
-                break;
+                false
             }
-            Some(t0) if now - t0 >= (args.seconds * 1e9) as u64 => break,
-            Some(t0) if show_progress && (now - t0) / 1_000_000_000 > last_progress => {
-                last_progress = (now - t0) / 1_000_000_000;
+            Some(t0) if now - t0 >= (args.seconds * 1e9) as u64 => false,
+            Some(t0) if self.show_progress && (now - t0) / 1_000_000_000 > self.last_progress => {
+                self.last_progress = (now - t0) / 1_000_000_000;
                 eprint!(
-                    "\rlungdyn: {last_progress:>4} s / {} s, {} frames",
-                    args.seconds, stats.frames
+                    "\rlungdyn: {:>4} s / {} s, {} frames",
+                    self.last_progress, args.seconds, self.stats.frames
                 );
+                true
             }
-            _ => {}
+            _ => true,
         }
     }
-    if show_progress && last_progress > 0 {
-        eprintln!();
-    }
-    let end_ns = now_ns();
-    let measured_s = first_frame_ns
-        .map(|t0| (end_ns - t0) as f64 / 1e9)
-        .unwrap_or(0.0);
-    watch.before_stop(&supervisor.children.pids());
-    let killed = supervisor.children.stop(Duration::from_secs(5));
-    let _ = reports.drain(&mut |r: &FrameReport| {
-        stats.record(r);
-        watch.report(r);
-    });
-    // Whatever never reached a frame by the end (a renderer stopped for good) is missed.
-    stats.finish(end_ns);
-    let restart_log = supervisor.restarts.clone();
-    let stalls = supervisor.stalls;
-    drop(supervisor);
-    drop(reports);
-    drop(engine_frames);
-    drop(tracker_frames);
-    node.try_cleanup_dead_nodes();
-    drop(node);
-    // Every process of the instance has exited and the prefix is the instance's own: remove its
-    // files. iceoryx2's node counter is expected; anything else a process failed to clean up is
-    // worth saying.
+}
+
+/// Every process of the instance has exited and the prefix is the instance's own: remove its
+/// files. iceoryx2's node counter is expected; anything else a process failed to clean up is worth
+/// saying. Returns (the unexpected files removed, the files still there).
+fn remove_leftovers(services: &Instance) -> (Vec<PathBuf>, usize) {
     let cleanup = services.remove_leftovers();
     if !cleanup.unexpected.is_empty() {
         eprintln!(
@@ -1036,30 +1261,29 @@ pub fn run_watched(args: &DemoArgs, watch: &mut dyn Watch) -> anyhow::Result<Dem
             eprintln!("  {}", f.display());
         }
     }
-    let leftovers = cleanup.unexpected;
-    let remaining = services.leftovers().len();
-    if !killed.is_empty() {
-        eprintln!("lungdyn: warning: had to kill {killed:?} after SIGINT");
-    }
-    if let (Some(dir), Some(file)) = (&trace_dir, &args.trace) {
-        let stages = crate::launch::finish_trace(dir, file)?;
-        watch.stages(&stages);
-    }
-    if interrupted && stats.frames == 0 && failure.is_none() {
-        failure = Some("interrupted before any frame was drawn".to_string());
-    }
-    if let Some(t) = resumed_at {
-        failure.get_or_insert(format!(
-            "the restarted engine never published its resume tick {t}"
-        ));
-    }
+    (cleanup.unexpected, services.leftovers().len())
+}
+
+/// The run's pictures: its PNGs in breath order, the recording, the strip.
+struct Pictures {
+    pngs: Vec<String>,
+    substituted_frames: usize,
+    recording: Option<String>,
+    strip: Option<String>,
+}
+
+/// Gather the PNGs this run wrote, encode the recording and the strip; a failure of either is the
+/// run's failure (the first one kept).
+fn pictures(
+    args: &DemoArgs,
+    existing: &Existing,
+    record: Option<crate::record::RecordFormat>,
+    plan: &SnapshotPlan,
+    failure: &mut Option<String>,
+) -> Pictures {
     let mut frames: Vec<PathBuf> = list_pngs(&args.out)
         .into_iter()
-        .filter(|p| {
-            existing
-                .get(p)
-                .is_none_or(|&t| t.is_none() || modified(p) != t)
-        })
+        .filter(|p| existing.written_now(p))
         .collect();
     // In breath order (the engine tick in each name; the index alone sorts 100 before 11).
     frames.sort_by_key(|p| (crate::record::tick_of(p), p.clone()));
@@ -1073,27 +1297,27 @@ pub fn run_watched(args: &DemoArgs, watch: &mut dyn Watch) -> anyhow::Result<Dem
         );
     }
     let recording = match (record, &args.record) {
+        (Some(_), Some(path)) if frames.len() < plan.breath_frames as usize => {
+            failure.get_or_insert(format!(
+                "--record {}: the run ended after {} of the breath's {} frames; run longer \
+                 (--seconds) so a whole breath fits after the first second",
+                path.display(),
+                frames.len(),
+                plan.breath_frames
+            ));
+            None
+        }
         (Some(format), Some(path)) => {
-            if frames.len() < breath_frames as usize {
-                failure.get_or_insert(format!(
-                    "--record {}: the run ended after {} of the breath's {breath_frames} frames; \
-                     run longer (--seconds) so a whole breath fits after the first second",
-                    path.display(),
-                    frames.len()
-                ));
-                None
-            } else {
-                let ticks: Vec<u64> = frames
-                    .iter()
-                    .map(|p| crate::record::tick_of(p).unwrap_or(0))
-                    .collect();
-                let delays = crate::record::frame_delays_ms(&ticks, tick_hz);
-                match crate::record::write(format, &frames, &delays, path) {
-                    Ok(()) => Some(path.display().to_string()),
-                    Err(e) => {
-                        failure.get_or_insert(format!("{e:#}"));
-                        None
-                    }
+            let ticks: Vec<u64> = frames
+                .iter()
+                .map(|p| crate::record::tick_of(p).unwrap_or(0))
+                .collect();
+            let delays = crate::record::frame_delays_ms(&ticks, plan.tick_hz);
+            match crate::record::write(format, &frames, &delays, path) {
+                Ok(()) => Some(path.display().to_string()),
+                Err(e) => {
+                    failure.get_or_insert(format!("{e:#}"));
+                    None
                 }
             }
         }
@@ -1114,13 +1338,46 @@ pub fn run_watched(args: &DemoArgs, watch: &mut dyn Watch) -> anyhow::Result<Dem
             None
         }
     };
+    Pictures {
+        pngs,
+        substituted_frames,
+        recording,
+        strip,
+    }
+}
+
+/// Everything the report is made of, once the processes are gone.
+struct Ended<'s> {
+    w: Watching,
+    scene: &'s lung_model::scene::Scene,
+    cpus: Vec<usize>,
+    measured_s: f64,
+    pictures: Pictures,
+    restart_log: Vec<crate::supervise::Restart>,
+    stalls: crate::supervise::Stalls,
+    leftovers: usize,
+    remaining: usize,
+    kernels: Vec<KernelUse>,
+    instance: String,
+    swept: usize,
+}
+
+/// The run's report.
+fn report(e: Ended<'_>) -> DemoReport {
+    let (stats, scene) = (&e.w.stats, e.scene);
     let e2e = stats.end_to_end();
     let sched = stats.sample_latency();
     let to_present = stats.submit_to_present();
     let (present_code, frame_latency) = stats
         .present_mode
         .unwrap_or((ipc_types::present_mode::NONE, 0));
-    Ok(DemoReport {
+    let b = scene.processes.budget_ms;
+    let (volume_min_ml, volume_max_ml) = if stats.frames > 0 {
+        stats.volume_range
+    } else {
+        (0.0, 0.0)
+    };
+    DemoReport {
         frames_rendered: stats.frames,
         deadline_misses: stats.sample_deadline_misses,
         tracker_samples: stats.tracker_samples,
@@ -1131,23 +1388,20 @@ pub fn run_watched(args: &DemoArgs, watch: &mut dyn Watch) -> anyhow::Result<Dem
         end_to_end_p50_ms: e2e.p50_ms,
         end_to_end_p99_ms: e2e.p99_ms,
         end_to_end_max_ms: e2e.max_ms,
-        pngs,
-        strip,
-        recording,
-        substituted_frames,
+        pngs: e.pictures.pngs,
+        strip: e.pictures.strip,
+        recording: e.pictures.recording,
+        substituted_frames: e.pictures.substituted_frames,
         hops: stats.rows(),
-        budgets: {
-            let b = scene.processes.budget_ms;
-            vec![
-                stats.budget_row("tracker-bridge", 0, b.tracker_bridge),
-                stats.budget_row("engine", 2, b.engine),
-                stats.budget_row("renderer", 4, b.renderer),
-            ]
-        },
-        cpus: cpus.clone(),
-        seconds: measured_s,
-        fps: if measured_s > 0.0 {
-            stats.frames as f64 / measured_s
+        budgets: vec![
+            stats.budget_row("tracker-bridge", 0, b.tracker_bridge),
+            stats.budget_row("engine", 2, b.engine),
+            stats.budget_row("renderer", 4, b.renderer),
+        ],
+        cpus: e.cpus,
+        seconds: e.measured_s,
+        fps: if e.measured_s > 0.0 {
+            stats.frames as f64 / e.measured_s
         } else {
             0.0
         },
@@ -1165,20 +1419,12 @@ pub fn run_watched(args: &DemoArgs, watch: &mut dyn Watch) -> anyhow::Result<Dem
         bad_stamps: stats.bad_stamps,
         untracked_frames: stats.untracked_frames,
         implausible_samples: stats.implausible_samples,
-        volume_min_ml: if stats.frames > 0 {
-            stats.volume_range.0
-        } else {
-            0.0
-        },
-        volume_max_ml: if stats.frames > 0 {
-            stats.volume_range.1
-        } else {
-            0.0
-        },
-        leftover_files: leftovers.len(),
-        remaining_files: remaining,
-        kernels,
-        instance,
+        volume_min_ml,
+        volume_max_ml,
+        leftover_files: e.leftovers,
+        remaining_files: e.remaining,
+        kernels: e.kernels,
+        instance: e.instance,
         mode: scene.lungs.mode.name().to_string(),
         look: scene.render.look.name().to_string(),
         color: scene.render.color.name().to_string(),
@@ -1190,24 +1436,23 @@ pub fn run_watched(args: &DemoArgs, watch: &mut dyn Watch) -> anyhow::Result<Dem
             .as_ref()
             .map(|p| p.display().to_string()),
         hmd: scene.render.hmd.as_ref().map(|p| p.display().to_string()),
-        restarts: restart_log.len(),
-        hung_restarts: restart_log.iter().filter(|r| r.hung).count(),
-        restart_log,
-        launcher_stalls: stalls.count,
-        launcher_max_gap_ms: stalls.max_gap_ms,
-        phase_errors: phase.errors,
-        ended: match (&failure, interrupted) {
-            (Some(f), _) => f.clone(),
-            (None, true) => "interrupted".to_string(),
-            (None, false) if finished.is_some() => format!(
-                "the {} finished before --seconds (its source ended: the end of the replay)",
-                finished.unwrap_or_default()
+        restarts: e.restart_log.len(),
+        hung_restarts: e.restart_log.iter().filter(|r| r.hung).count(),
+        restart_log: e.restart_log,
+        launcher_stalls: e.stalls.count,
+        launcher_max_gap_ms: e.stalls.max_gap_ms,
+        phase_errors: e.w.phase.errors,
+        ended: match (&e.w.failure, e.w.interrupted, e.w.finished) {
+            (Some(f), _, _) => f.clone(),
+            (None, true, _) => "interrupted".to_string(),
+            (None, false, Some(role)) => format!(
+                "the {role} finished before --seconds (its source ended: the end of the replay)"
             ),
-            (None, false) => "completed".to_string(),
+            (None, false, None) => "completed".to_string(),
         },
-        failure,
-        swept_files: swept,
-    })
+        failure: e.w.failure,
+        swept_files: e.swept,
+    }
 }
 
 fn list_pngs(dir: &Path) -> Vec<PathBuf> {
@@ -1226,6 +1471,41 @@ fn list_pngs(dir: &Path) -> Vec<PathBuf> {
 }
 
 /// The human-readable latency table.
+/// The table's lines on restarts and the launcher's own stalls (none when there were none).
+fn restart_lines(s: &mut String, r: &DemoReport) {
+    use std::fmt::Write;
+    if r.restarts > 0 {
+        let _ = writeln!(
+            *s,
+            "RESTARTS {}: {}; breathing-phase errors after engine restarts: {}",
+            r.restarts,
+            r.restart_log
+                .iter()
+                .map(|x| format!(
+                    "{} at {:.1} s ({}), {}",
+                    x.role,
+                    x.at_s,
+                    x.ended,
+                    x.recover_ms
+                        .map_or("never recovered".to_string(), |m| format!(
+                            "fresh frames again after {m:.0} ms"
+                        ))
+                ))
+                .collect::<Vec<_>>()
+                .join("; "),
+            r.phase_errors
+        );
+    }
+    if r.launcher_stalls > 0 {
+        let _ = writeln!(
+            *s,
+            "LAUNCHER STALLED {} times (longest {:.0} ms between two looks at its processes: it was \
+             stopped or starved of CPU); their silence meanwhile was not counted as a hang",
+            r.launcher_stalls, r.launcher_max_gap_ms
+        );
+    }
+}
+
 pub fn table(r: &DemoReport) -> String {
     use std::fmt::Write;
     let mut s = String::new();
@@ -1327,36 +1607,7 @@ pub fn table(r: &DemoReport) -> String {
             r.implausible_samples
         );
     }
-    if r.restarts > 0 {
-        let _ = writeln!(
-            s,
-            "RESTARTS {}: {}; breathing-phase errors after engine restarts: {}",
-            r.restarts,
-            r.restart_log
-                .iter()
-                .map(|x| format!(
-                    "{} at {:.1} s ({}), {}",
-                    x.role,
-                    x.at_s,
-                    x.ended,
-                    x.recover_ms
-                        .map_or("never recovered".to_string(), |m| format!(
-                            "fresh frames again after {m:.0} ms"
-                        ))
-                ))
-                .collect::<Vec<_>>()
-                .join("; "),
-            r.phase_errors
-        );
-    }
-    if r.launcher_stalls > 0 {
-        let _ = writeln!(
-            s,
-            "LAUNCHER STALLED {} times (longest {:.0} ms between two looks at its processes: it was \
-             stopped or starved of CPU); their silence meanwhile was not counted as a hang",
-            r.launcher_stalls, r.launcher_max_gap_ms
-        );
-    }
+    restart_lines(&mut s, r);
     let _ = writeln!(s, "run ended: {}", r.ended);
     if r.pngs.is_empty() {
         let _ = writeln!(s, "PNG frames: none");
@@ -1445,7 +1696,8 @@ mod tests {
 
     #[test]
     fn an_unwritable_out_folder_is_a_clear_error() {
-        let e = check_writable(Path::new("/proc/lungdyn-cannot-exist")).unwrap_err();
+        let e =
+            crate::outputs::check_writable(Path::new("/proc/lungdyn-cannot-exist")).unwrap_err();
         assert!(
             format!("{e:#}").contains("--out /proc/lungdyn-cannot-exist"),
             "{e:#}"

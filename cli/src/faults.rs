@@ -675,7 +675,7 @@ pub fn check(args: &FaultsArgs) -> anyhow::Result<()> {
     if let Some(s) = &args.scene {
         lung_model::scene::Scene::load(s)?;
     }
-    crate::demo::check_writable(&args.out)
+    crate::outputs::check_writable(&args.out)
 }
 
 /// One round: a demo pipeline with the injector watching.

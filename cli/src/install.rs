@@ -394,6 +394,47 @@ pub fn thin_binaries(exe: &Path) -> anyhow::Result<Vec<(Role, PathBuf)>> {
         .collect()
 }
 
+/// The commands to run as root after the install (udev rule, group, the units enabled).
+fn next_steps(args: &InstallArgs, rule: &Path, unit_dir: &Path) -> Vec<String> {
+    let g = &args.group;
+    let mut next = vec![
+        format!("sudo cp {} /etc/udev/rules.d/ && sudo udevadm control --reload && sudo udevadm trigger", rule.display()),
+        format!("sudo groupadd -f -r {g} && sudo usermod -aG {g} $USER"),
+    ];
+    if args.user {
+        let standard = dirs_user_unit_dir();
+        if standard.as_deref() != Some(unit_dir) {
+            next.push(format!(
+                "systemctl --user link {}/*.service {}/lungdyn.target   # {} is not in the user manager's search path",
+                unit_dir.display(),
+                unit_dir.display(),
+                unit_dir.display()
+            ));
+        }
+        next.push(
+            "systemctl --user daemon-reload && systemctl --user enable --now lungdyn.target".into(),
+        );
+        next.push("sudo loginctl enable-linger $USER   # start at boot, before a login".into());
+    } else {
+        next.push(format!(
+            "sudo useradd -r -g {g} -G video,render,dialout {g}   # once"
+        ));
+        if !unit_dir.starts_with("/usr/local/lib/systemd/system")
+            && !unit_dir.starts_with("/etc/systemd/system")
+        {
+            next.push(format!(
+                "sudo systemctl link {0}/*.service {0}/lungdyn.target   # {0} is not in systemd's search path",
+                unit_dir.display()
+            ));
+        }
+        next.push(
+            "sudo systemctl daemon-reload && sudo systemctl enable --now lungdyn.target".into(),
+        );
+    }
+    next.push("lungdyn doctor; journalctl -f -t lungdyn-engine -t lungdyn-renderer -t lungdyn-tracker-bridge".into());
+    next
+}
+
 /// Install under `args.prefix`.
 pub fn run(args: &InstallArgs) -> anyhow::Result<InstallReport> {
     transport::Instance::new(&args.instance)?;
@@ -442,7 +483,7 @@ pub fn run(args: &InstallArgs) -> anyhow::Result<InstallReport> {
     }
 
     let share = prefix.join("share/lungdyn");
-    crate::demo::check_writable(&share)?;
+    crate::outputs::check_writable(&share)?;
     // The scene's own files travel with it: the installed scene keeps working once the folder it
     // came from is gone.
     let (prepared, carried) = crate::prepare::prepare_carrying(
@@ -514,42 +555,7 @@ pub fn run(args: &InstallArgs) -> anyhow::Result<InstallReport> {
         "the udev rule naming the tracker's serial adapter",
     );
 
-    let g = &args.group;
-    let mut next = vec![
-        format!("sudo cp {} /etc/udev/rules.d/ && sudo udevadm control --reload && sudo udevadm trigger", rule.display()),
-        format!("sudo groupadd -f -r {g} && sudo usermod -aG {g} $USER"),
-    ];
-    if args.user {
-        let standard = dirs_user_unit_dir();
-        if standard.as_deref() != Some(unit_dir.as_path()) {
-            next.push(format!(
-                "systemctl --user link {}/*.service {}/lungdyn.target   # {} is not in the user manager's search path",
-                unit_dir.display(),
-                unit_dir.display(),
-                unit_dir.display()
-            ));
-        }
-        next.push(
-            "systemctl --user daemon-reload && systemctl --user enable --now lungdyn.target".into(),
-        );
-        next.push("sudo loginctl enable-linger $USER   # start at boot, before a login".into());
-    } else {
-        next.push(format!(
-            "sudo useradd -r -g {g} -G video,render,dialout {g}   # once"
-        ));
-        if !unit_dir.starts_with("/usr/local/lib/systemd/system")
-            && !unit_dir.starts_with("/etc/systemd/system")
-        {
-            next.push(format!(
-                "sudo systemctl link {0}/*.service {0}/lungdyn.target   # {0} is not in systemd's search path",
-                unit_dir.display()
-            ));
-        }
-        next.push(
-            "sudo systemctl daemon-reload && sudo systemctl enable --now lungdyn.target".into(),
-        );
-    }
-    next.push("lungdyn doctor; journalctl -f -t lungdyn-engine -t lungdyn-renderer -t lungdyn-tracker-bridge".into());
+    let next = next_steps(args, &rule, &unit_dir);
     Ok(InstallReport {
         prefix: prefix.display().to_string(),
         written,

@@ -911,7 +911,7 @@ impl Recorder {
 /// Run the harness; writes latency.json, latency.md and latency.png/.svg into `--out`.
 pub fn run(args: &LatencyArgs) -> anyhow::Result<LatencyOutput> {
     let load = check_args(args)?;
-    crate::demo::check_writable(&args.out)?;
+    crate::outputs::check_writable(&args.out)?;
     let json_path = args.out.join("latency.json");
     let md_path = args.out.join("latency.md");
     let png_path = args.out.join("latency.png");

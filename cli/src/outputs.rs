@@ -112,6 +112,40 @@ fn normalise(path: &Path) -> PathBuf {
     }
 }
 
+/// Check the `--out` folder `dir` can take a command's files: create it, write and remove a probe
+/// file.
+pub fn check_writable(dir: &Path) -> anyhow::Result<()> {
+    use anyhow::Context;
+    if let Ok(meta) = std::fs::metadata(dir) {
+        if !meta.is_dir() {
+            use std::os::unix::fs::FileTypeExt;
+            let t = meta.file_type();
+            let what = if t.is_char_device() {
+                "a character device"
+            } else if t.is_block_device() {
+                "a block device"
+            } else if t.is_fifo() {
+                "a FIFO (named pipe)"
+            } else if t.is_socket() {
+                "a socket"
+            } else {
+                "a file"
+            };
+            bail!(
+                "--out {}: exists and is {what}, not a folder: give a folder to write into",
+                dir.display()
+            );
+        }
+    }
+    std::fs::create_dir_all(dir)
+        .with_context(|| format!("--out {}: cannot create the folder", dir.display()))?;
+    let probe = dir.join(format!(".lungdyn-write-probe-{}", std::process::id()));
+    std::fs::write(&probe, b"probe")
+        .with_context(|| format!("--out {}: the folder is not writable", dir.display()))?;
+    std::fs::remove_file(&probe).ok();
+    Ok(())
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;

@@ -360,7 +360,7 @@ pub struct PrepareReport {
 /// `lungdyn scene prepare`.
 pub fn run(args: &PrepareArgs) -> anyhow::Result<PrepareReport> {
     let scene = Scene::load_or_default(args.scene.as_deref())?;
-    crate::demo::check_writable(&args.out)?;
+    crate::outputs::check_writable(&args.out)?;
     let p = prepare(scene, &args.out.join("kernels"))?;
     Ok(PrepareReport {
         scene: p.path.display().to_string(),

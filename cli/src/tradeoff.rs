@@ -300,7 +300,7 @@ pub fn run(args: &TradeoffArgs) -> anyhow::Result<Tradeoff> {
         Some(d) => d.clone(),
         None => crate::outputs::new_folder(Path::new("out"), "tradeoff")?,
     };
-    crate::demo::check_writable(&out_dir)?;
+    crate::outputs::check_writable(&out_dir)?;
     // Every output refused now if it is a device, FIFO or folder, not after minutes of measuring
     // with some of the four already written.
     for ext in ["md", "csv", "png", "svg"] {
