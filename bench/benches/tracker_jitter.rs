@@ -21,7 +21,7 @@ use ipc_types::{TrackerFrame, MAX_TOOLS};
 use tracker_bridge::assemble::{Assembler, BridgeConfig};
 use tracker_bridge::igtl::{Body, Message, QtDataElement, Timestamp};
 use tracker_bridge::ndi_sim::{SimDevice, SimTool};
-use tracker_bridge::run::{run_loop, RealTime};
+use tracker_bridge::run::run_loop;
 use tracker_bridge::sample::ToolName;
 use tracker_bridge::source::igtl_client::IgtlClient;
 use tracker_bridge::source::igtl_server::IgtlServer;
@@ -167,7 +167,7 @@ fn measure(
         &mut asm,
         &mut timed,
         &mut None,
-        &RealTime,
+        &transport::Monotonic,
         &mut |now| now >= stop_at,
         &mut |_, _| {},
     )

@@ -1,6 +1,7 @@
 //! `lungdyn mesh from-mask`: a patient's lung surface (and lobes) from a CT lung segmentation
 //! (`lung_bake::mask`).
 
+use std::path::Path;
 use std::path::PathBuf;
 
 use lung_bake::mask::{self, labels::Convention, volume::Axes, MaskOptions};
@@ -249,4 +250,8 @@ pub fn text(s: &FromMaskSummary) -> String {
         lobes.join(", "),
         s.geometry_side_reason,
     )
+}
+/// Whether `path` looks like a label image `lungdyn patient` and `fit-motion --exhale/--inhale` read.
+pub fn is_mask(path: &Path) -> bool {
+    mask::read::Format::of(path).is_some()
 }

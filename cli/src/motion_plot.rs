@@ -8,7 +8,7 @@ use std::path::Path;
 use glam::DVec3;
 use plotters::prelude::*;
 
-use crate::motion_cmd::PointsReport;
+use crate::motion_report::PointsReport;
 
 /// Draw into `png` (a temporary sibling, then renamed).
 pub fn write(png: &Path, start: &[DVec3], report: &PointsReport) -> anyhow::Result<()> {

@@ -12,7 +12,7 @@ use lung_model::deform::MotionFile;
 use lung_model::mesh::{io, Side, TriMesh};
 use serde::Serialize;
 
-use crate::motion_cmd::FitMotionArgs;
+use crate::motion_input::FitMotionArgs;
 
 /// One lung of the pair.
 #[derive(Debug, Serialize)]
@@ -65,7 +65,7 @@ fn surface(
     args: &FitMotionArgs,
     warnings: &mut Vec<String>,
 ) -> anyhow::Result<(TriMesh, &'static str)> {
-    if crate::patient_cmd::is_mask(path) {
+    if crate::mask_cmd::is_mask(path) {
         let mut o = MaskOptions::new(side);
         o.vertices = args.vertices;
         o.axes = axes;
@@ -83,8 +83,8 @@ fn surface(
             path.display()
         );
     }
-    let frame = crate::motion_cmd::frame_of(args)?;
-    let imported = crate::motion_cmd::import_scaled(path, &frame, &args.input)
+    let frame = crate::motion_input::frame_of(args)?;
+    let imported = crate::motion_input::import_scaled(path, &frame, &args.input)
         .with_context(|| format!("{}", path.display()))?;
     Ok((imported, "surface"))
 }

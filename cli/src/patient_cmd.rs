@@ -626,8 +626,3 @@ pub fn text(s: &PatientSummary) -> String {
     ));
     out
 }
-
-/// Whether `path` looks like a label image `lungdyn patient` reads.
-pub fn is_mask(path: &Path) -> bool {
-    mask::read::Format::of(path).is_some()
-}

@@ -11,7 +11,7 @@ use anyhow::{bail, Context};
 use ipc_types::{TrackerFrame, TOOL_HMD, TOOL_PATIENT};
 use serde_json::{json, Value};
 use tracker_bridge::record::{Record, RecordReader};
-use tracker_bridge::run::{run_loop, RealTime, Reporter};
+use tracker_bridge::run::{run_loop, Reporter};
 use tracker_bridge::sample::ToolName;
 use tracker_bridge::stats::status_names;
 use tracker_pose::predict::{
@@ -94,7 +94,7 @@ pub fn listen(args: &ListenArgs) -> anyhow::Result<Value> {
         &mut assembler,
         &mut watch,
         &mut recorder,
-        &RealTime,
+        &transport::Monotonic,
         &mut |now| transport::stop::requested() || stop_at.is_some_and(|t| now >= t),
         &mut |e, now| reporter.event(e, now),
     )?;

@@ -12,21 +12,24 @@
 //! queries where the adapter has them.
 //!
 //! The lungs come from the scene's kernel files (`lung-model`); the renderer never bakes. Frames
-//! arrive from the engine through the port traits of `transport` ([`process::Session`]).
+//! arrive from the engine through the port traits of `transport` ([`session::Session`]).
 //!
 //! Allocation on the frame path: lungdyn allocates nothing per frame; wgpu itself allocates command
 //! buffers and staging memory for `write_buffer` inside its own pools.
 
 pub mod camera;
 pub mod deform;
+pub mod display;
 pub mod draw;
 pub mod gpu;
 pub mod hud;
 pub mod lod;
+pub mod options;
 pub mod predict;
 pub mod present;
 pub mod process;
 pub mod record;
+pub mod session;
 pub mod tumour;
 pub mod window;
 pub mod xr;

@@ -410,7 +410,7 @@ impl XrSystem {
     }
 }
 
-/// The OpenXR session as the renderer's [`crate::process::FrameOutput`].
+/// The OpenXR session as the renderer's [`crate::session::FrameOutput`].
 pub struct XrOutput {
     // Dropped in this order: the swapchain and session before the instance.
     /// Each swapchain image wrapped into wgpu, with its view (made once: none per frame).
@@ -879,7 +879,7 @@ impl XrOutput {
     }
 }
 
-impl crate::process::FrameOutput for XrOutput {
+impl crate::session::FrameOutput for XrOutput {
     fn display_time_ns(&mut self) -> Option<u64> {
         match self.wait_frame() {
             Ok(t) => t,

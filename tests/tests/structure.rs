@@ -5,8 +5,8 @@
 //!   the rule came are listed in [`LONG_FUNCTIONS`] with the length they had: a listed one may only
 //!   shrink, a fixed one must leave the list, and any other function over the limit fails.
 //! - **No import cycle among a crate's files** through `crate::` or `super::` paths (comments and
-//!   doc links aside, and a module naming its own children aside). The cycles there were are listed
-//!   in [`CYCLES`]; a new one fails, and one that is gone must leave the list.
+//!   doc links aside, and a module naming its own children aside). [`CYCLES`] is empty: a new one
+//!   fails.
 //!
 //! The source is read by a small lexer of our own (comments, strings, characters and lifetimes
 //! told apart, so braces are counted only in code): `syn` would need proc-macro2's span-locations
@@ -28,7 +28,7 @@ const LONG_FUNCTIONS: &[(&str, &str, usize)] = &[
     ("remote/src/harness.rs", "run", 262),
     ("renderer/src/lib.rs", "with_rig", 259),
     ("renderer/src/draw/mod.rs", "new", 252),
-    ("renderer/src/process.rs", "step", 214),
+    ("renderer/src/session.rs", "step", 214),
     ("engine/model/src/disease/tension.rs", "advance", 203),
     ("cli/src/scene_check.rs", "run_scene", 200),
     ("cli/src/pv_cmd.rs", "fit", 199),
@@ -50,34 +50,12 @@ const LONG_FUNCTIONS: &[(&str, &str, usize)] = &[
     ("engine/bake/src/patient_motion.rs", "fit_pair", 151),
 ];
 
-/// Import cycles among a crate's files when the rule came (each the files of one strongly
-/// connected component): to break, never to grow.
-const CYCLES: &[&[&str]] = &[
-    &[
-        "ipc-types/transport/src/instance.rs",
-        "ipc-types/transport/src/iox.rs",
-    ],
-    &[
-        "engine/model/src/mesh/anatomy.rs",
-        "engine/model/src/mesh/generate.rs",
-        "engine/model/src/mesh/teardrop.rs",
-    ],
-    &[
-        "tracker-bridge/src/run.rs",
-        "tracker-bridge/src/source/mod.rs",
-    ],
-    &[
-        "renderer/src/process.rs",
-        "renderer/src/window.rs",
-        "renderer/src/xr_runtime.rs",
-    ],
-    &[
-        "cli/src/motion_cmd.rs",
-        "cli/src/motion_plot.rs",
-        "cli/src/pair_cmd.rs",
-        "cli/src/patient_cmd.rs",
-    ],
-];
+/// Import cycles among a crate's files tolerated (each the files of one strongly connected
+/// component): none. The six there were when the rule came are broken (the launcher's check moved
+/// to `outputs`, one clock trait, iceoryx2's root folder beside the instance files, the lung
+/// builder in its own file, fit-motion's inputs and report in their own modules, the renderer's
+/// session, options and display options in theirs). List one here only with its reason.
+const CYCLES: &[&[&str]] = &[];
 
 /// Workspace members whose `src/` is production code (the test-support crates `tests`,
 /// `tests/needs` and the `bench` crate are left out, as the rule leaves tests and benches out).

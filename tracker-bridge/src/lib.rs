@@ -41,7 +41,7 @@ use transport::{iox, Instance, PortError};
 
 use crate::assemble::{BridgeConfig, ConfigError};
 use crate::record::{RecordError, RecordWriter};
-use crate::run::{run_loop, Ended, RealTime, Reporter};
+use crate::run::{run_loop, Ended, Reporter};
 use crate::sample::{NameError, ToolName};
 use crate::source::{Source, SourceError, SourceOptions, SourceSpec};
 use crate::validate::{Validation, Volume};
@@ -379,7 +379,7 @@ pub fn run(args: &BridgeArgs) -> Result<(), BridgeError> {
         &mut assembler,
         &mut outlet as &mut dyn transport::Publish<TrackerFrame>,
         &mut recorder,
-        &RealTime,
+        &transport::Monotonic,
         &mut |now| {
             // Checked every pass of the loop: a hung source read stops the watchdog's pings.
             watchdog.ping(now);

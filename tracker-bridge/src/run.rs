@@ -10,12 +10,12 @@
 //! whatever a sender does. The synthetic source and replays make their samples on the tick and
 //! keep the absolute-deadline schedule.
 //!
-//! Written against [`Pace`] (time and sleeping), [`Source`] and [`Publish`], so tests drive it on a
+//! Written against [`transport::Clock`] (time and sleeping), [`Source`] and [`Publish`], so tests drive it on a
 //! fake clock with in-memory ports. Per tick it does not allocate (the source's samples are
 //! fixed-size, the recorder writes into a buffer, the frame is reused).
 
 use ipc_types::TrackerFrame;
-use transport::{FakeClock, Publish};
+use transport::{Clock, Publish};
 
 use crate::assemble::{Assembler, Outcome};
 use crate::record::RecordWriter;
@@ -26,38 +26,6 @@ use crate::BridgeError;
 
 /// Arrival-driven frames are at least this far apart (≤ 4 kHz, whatever the sender's rate), ns.
 pub const MIN_ARRIVAL_SPACING_NS: u64 = 250_000;
-
-/// Time and sleeping, for the loop.
-pub trait Pace {
-    /// Monotonic now, ns.
-    fn now_ns(&self) -> u64;
-    /// Sleep until `deadline_ns` (absolute; returns at once when it has passed).
-    fn sleep_until(&self, deadline_ns: u64);
-}
-
-/// The host's monotonic clock.
-#[derive(Debug, Clone, Copy, Default)]
-pub struct RealTime;
-
-impl Pace for RealTime {
-    fn now_ns(&self) -> u64 {
-        transport::now_ns()
-    }
-    fn sleep_until(&self, deadline_ns: u64) {
-        transport::clock::sleep_until_ns(deadline_ns);
-    }
-}
-
-impl Pace for FakeClock {
-    fn now_ns(&self) -> u64 {
-        transport::Clock::now_ns(self)
-    }
-    fn sleep_until(&self, deadline_ns: u64) {
-        if deadline_ns > transport::Clock::now_ns(self) {
-            self.set(deadline_ns);
-        }
-    }
-}
 
 /// Prints source events for a person without flooding: the first few of each kind, then one line
 /// with how many were not shown, at most every ten seconds.
@@ -141,7 +109,7 @@ pub fn run_loop(
     asm: &mut Assembler,
     outlet: &mut dyn Publish<TrackerFrame>,
     recorder: &mut Option<RecordWriter>,
-    pace: &dyn Pace,
+    pace: &dyn Clock,
     should_stop: &mut dyn FnMut(u64) -> bool,
     report: &mut dyn FnMut(&Event, u64),
 ) -> Result<Ended, BridgeError> {
@@ -265,6 +233,7 @@ mod tests {
     use crate::source::SourceError;
     use crate::validate::Volume;
     use transport::memory::Recorder;
+    use transport::FakeClock;
 
     /// A device source on a fake clock: inputs arrive at scripted times.
     struct Scripted {
@@ -287,7 +256,7 @@ mod tests {
             self.clock.advance(self.poll_cost_ns);
             Ok(Poll::Tick { at_ns: now_ns })
         }
-        fn wait(&mut self, pace: &dyn Pace, deadline_ns: u64) -> bool {
+        fn wait(&mut self, pace: &dyn Clock, deadline_ns: u64) -> bool {
             match self.arrivals.front() {
                 // Already queued: at once, whatever the deadline (as `Inbox::wait`).
                 Some(&(t, _)) if t <= pace.now_ns() => true,

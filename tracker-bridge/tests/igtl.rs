@@ -10,7 +10,7 @@ use std::time::{Duration, Instant};
 use ipc_types::{tool_status, TrackerFrame, TOOL_HMD, TOOL_PATIENT};
 use tracker_bridge::assemble::{Assembler, BridgeConfig};
 use tracker_bridge::igtl::{Body, Message, QtDataElement, TDataElement, Timestamp, Transform};
-use tracker_bridge::run::{run_loop, RealTime};
+use tracker_bridge::run::run_loop;
 use tracker_bridge::sample::Reject;
 use tracker_bridge::source::igtl_client::IgtlClient;
 use tracker_bridge::source::igtl_server::IgtlServer;
@@ -72,7 +72,7 @@ fn run(
         &mut asm,
         &mut out,
         &mut None,
-        &RealTime,
+        &transport::Monotonic,
         &mut |_| start.elapsed() > limit || done(),
         &mut |e, _| eprintln!("igtl test: {}", e.text),
     )

@@ -12,7 +12,7 @@ use ipc_types::{tool_status, TrackerFrame, MAX_TOOLS, TOOL_HMD, TOOL_PATIENT};
 use tracker_bridge::assemble::{Assembler, BridgeConfig};
 use tracker_bridge::ndi::{self, HandleStatus};
 use tracker_bridge::ndi_sim::{Fault, SimDevice, SimTool};
-use tracker_bridge::run::{run_loop, RealTime};
+use tracker_bridge::run::run_loop;
 use tracker_bridge::sample::{Reject, ToolName};
 use tracker_bridge::source::ndi_link::{sample_of, NdiSource};
 use tracker_bridge::source::{Source, SourceOptions};
@@ -59,7 +59,7 @@ fn run(
         &mut asm,
         &mut out,
         &mut None,
-        &RealTime,
+        &transport::Monotonic,
         &mut |_| {
             assert!(
                 start.elapsed() < Duration::from_secs(20),
@@ -452,7 +452,7 @@ fn stays_fresh_at(how: Misbehave, polls: u32, poll_hz: f64) -> tracker_bridge::s
         &mut asm,
         &mut out,
         &mut None,
-        &RealTime,
+        &transport::Monotonic,
         &mut |_| {
             assert!(start.elapsed() < Duration::from_secs(30), "too slow");
             sent.lock().unwrap().len() as u32 >= polls

@@ -13,7 +13,7 @@ use std::time::{Duration, Instant};
 
 use tracker_bridge::assemble::{Assembler, BridgeConfig};
 use tracker_bridge::record::{Record, RecordReader, RecordWriter};
-use tracker_bridge::run::{run_loop, RealTime};
+use tracker_bridge::run::run_loop;
 use tracker_bridge::sample::{Reject, Rotation, Sample};
 use tracker_bridge::source::igtl_client::IgtlClient;
 use tracker_bridge::source::igtl_server::IgtlServer;
@@ -134,7 +134,7 @@ fn exchange(
         &mut asm,
         &mut out,
         &mut recorder,
-        &RealTime,
+        &transport::Monotonic,
         &mut |_| {
             assert!(
                 start.elapsed() < Duration::from_secs(60),

@@ -7,10 +7,15 @@
 use std::cell::Cell;
 use std::rc::Rc;
 
-/// Monotonic nanoseconds.
+/// Monotonic nanoseconds, and sleeping on them: the one time trait every loop is written
+/// against (the engine's and renderer's pacing, the bridge's schedule), so tests drive each on a
+/// [`FakeClock`].
 pub trait Clock {
     /// Now, ns.
     fn now_ns(&self) -> u64;
+    /// Sleep until `deadline_ns` (absolute; returns at once when it has passed). A fake clock
+    /// jumps there.
+    fn sleep_until(&self, deadline_ns: u64);
 }
 
 /// The host's CLOCK_MONOTONIC.
@@ -20,6 +25,9 @@ pub struct Monotonic;
 impl Clock for Monotonic {
     fn now_ns(&self) -> u64 {
         now_ns()
+    }
+    fn sleep_until(&self, deadline_ns: u64) {
+        sleep_until_ns(deadline_ns);
     }
 }
 
@@ -84,6 +92,11 @@ impl FakeClock {
 impl Clock for FakeClock {
     fn now_ns(&self) -> u64 {
         self.now.get()
+    }
+    fn sleep_until(&self, deadline_ns: u64) {
+        if deadline_ns > self.now.get() {
+            self.now.set(deadline_ns);
+        }
     }
 }
 

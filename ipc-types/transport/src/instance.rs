@@ -188,11 +188,22 @@ impl Instance {
     }
 }
 
+/// iceoryx2's root folder (where node and service files live besides `/dev/shm`), from its
+/// default config.
+pub fn root_path() -> PathBuf {
+    PathBuf::from(
+        iceoryx2::config::Config::default()
+            .global
+            .root_path()
+            .as_str(),
+    )
+}
+
 /// Files whose name starts with `prefix` in shared memory (`/dev/shm`) or anywhere under
 /// iceoryx2's root folder, sorted.
 fn files_named(prefix: &str) -> Vec<PathBuf> {
     let mut found = Vec::new();
-    let mut stack = vec![PathBuf::from("/dev/shm"), crate::iox::root_path()];
+    let mut stack = vec![PathBuf::from("/dev/shm"), root_path()];
     while let Some(dir) = stack.pop() {
         let Ok(entries) = std::fs::read_dir(&dir) else {
             continue;

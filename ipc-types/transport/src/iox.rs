@@ -10,7 +10,6 @@
 //! attributable and two runs never share a segment.
 
 use core::time::Duration;
-use std::path::PathBuf;
 
 use iceoryx2::node::NodeView;
 use iceoryx2::prelude::*;
@@ -85,9 +84,7 @@ impl Topic for FrameReport {
 pub type IoxNode = Node<ipc::Service>;
 
 /// iceoryx2's root folder (where node and service files live besides `/dev/shm`).
-pub fn root_path() -> PathBuf {
-    PathBuf::from(Config::default().global.root_path().as_str())
-}
+pub use crate::instance::root_path;
 
 /// An iceoryx2 config whose files carry the instance's prefix.
 pub fn config(instance: &Instance) -> Result<Config, PortError> {

@@ -199,7 +199,7 @@ impl Source for IgtlServer {
         Ok(Poll::Tick { at_ns: now_ns })
     }
 
-    fn wait(&mut self, _pace: &dyn crate::run::Pace, deadline_ns: u64) -> bool {
+    fn wait(&mut self, _pace: &dyn transport::Clock, deadline_ns: u64) -> bool {
         // A reader thread on the host's clock: publish on arrival.
         self.inbox.wait(deadline_ns)
     }

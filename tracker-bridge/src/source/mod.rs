@@ -61,7 +61,7 @@ pub trait Source {
     /// an input is waiting — the loop then takes it and publishes on arrival. Sources whose
     /// samples are made on the tick (synthetic, replay) sleep until the deadline and return false:
     /// they keep the absolute-deadline schedule.
-    fn wait(&mut self, pace: &dyn crate::run::Pace, deadline_ns: u64) -> bool {
+    fn wait(&mut self, pace: &dyn transport::Clock, deadline_ns: u64) -> bool {
         pace.sleep_until(deadline_ns);
         false
     }

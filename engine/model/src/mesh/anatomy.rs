@@ -43,7 +43,7 @@
 
 use glam::DVec3;
 
-use super::generate::{build, smoothstep, GenerateError, Placement};
+use super::builder::{build, smoothstep, GenerateError, Placement};
 use super::{Side, TriMesh};
 
 /// Height of both apices in the body frame, mm: the lungs hang from a common apex level (the

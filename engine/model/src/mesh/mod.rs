@@ -23,6 +23,7 @@
 //! `lung_bake::import`.
 
 pub mod anatomy;
+pub mod builder;
 pub mod generate;
 pub mod io;
 pub mod lobes;

@@ -17,7 +17,7 @@
 
 use glam::DVec3;
 
-use super::generate::{build, smoothstep, GenerateError, Placement};
+use super::builder::{build, smoothstep, GenerateError, Placement};
 use super::{Side, TriMesh};
 
 /// Shape parameters of one teardrop lung.
