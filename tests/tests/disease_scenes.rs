@@ -6,7 +6,7 @@ use std::path::{Path, PathBuf};
 use std::process::Command;
 
 fn lungdyn(args: &[&str]) -> (bool, String, String) {
-    let exe = Path::new(env!("CARGO_MANIFEST_DIR")).join("../target/release/lungdyn");
+    let exe = lungdyn_tests::bin("lungdyn");
     let o = Command::new(exe)
         .args(args)
         .output()
@@ -239,7 +239,7 @@ fn bad_disease_tables_name_their_key() {
 
 #[test]
 fn a_trainee_decompresses_a_running_tension_pneumothorax() {
-    let exe = Path::new(env!("CARGO_MANIFEST_DIR")).join("../target/release/lungdyn");
+    let exe = lungdyn_tests::bin("lungdyn");
     let instance = format!("tension-live-{}", std::process::id());
     let out = tmp("tension_live");
     let s = scene("tension_pneumothorax.toml");
@@ -611,7 +611,7 @@ fn the_windows_intervention_keys_reach_a_running_engine() {
     let v: serde_json::Value = serde_json::from_str(&stdout).unwrap();
     let resolved = v["scene"].as_str().unwrap().to_string();
     let instance = format!("keys-{}", std::process::id());
-    let exe = Path::new(env!("CARGO_MANIFEST_DIR")).join("../target/release/lungdyn");
+    let exe = lungdyn_tests::bin("lungdyn");
     let mut engine = Command::new(exe)
         .args([
             "engine",
@@ -677,7 +677,7 @@ fn every_shipped_scene_runs_in_a_window() {
     if !lungdyn_tests::xvfb_available() {
         return;
     }
-    let exe = Path::new(env!("CARGO_MANIFEST_DIR")).join("../target/release/lungdyn");
+    let exe = lungdyn_tests::bin("lungdyn");
     // One folder: the scenes share their kernels where the bake settings agree.
     let out = tmp("windowed");
     for name in [

@@ -23,6 +23,9 @@ pub mod assemble;
 pub mod head_motion;
 pub mod igtl;
 pub mod ndi;
+/// A simulated NDI tracker for tests and benchmarks: built only for them (the `testing` feature),
+/// never into the deployed bridge.
+#[cfg(any(test, feature = "testing"))]
 pub mod ndi_sim;
 pub mod record;
 pub mod run;

@@ -383,3 +383,27 @@ pub fn free_local_port() -> u16 {
         }
     }
 }
+
+/// The command-line check every lungdyn binary's tests share (`cli`, `engine`, `renderer`,
+/// `tracker-bridge`: each crate's `tests/command_line.rs`, which also makes `cargo test` build the
+/// binary the multi-process tests start): `--help` succeeds, explains (a usage line) and names the
+/// binary as `lungdyn <name>` in its first line (what `lungdyn install` checks a thin role binary
+/// by); an unknown flag is one clear error naming it, with a non-zero exit and no panic.
+pub fn check_command_line(exe: &str, name: &str) {
+    use std::process::Command;
+    let help = Command::new(exe).arg("--help").output().unwrap();
+    assert!(help.status.success(), "{exe} --help");
+    let text = String::from_utf8_lossy(&help.stdout);
+    assert!(text.contains("Usage"), "{text}");
+    assert!(
+        text.starts_with(&format!("lungdyn {name}")) || name == "lungdyn",
+        "the first line of {exe} --help names it as `lungdyn {name}`: {text}"
+    );
+    let bad = Command::new(exe).arg("--no-such-flag").output().unwrap();
+    assert!(!bad.status.success());
+    let err = String::from_utf8_lossy(&bad.stderr);
+    assert!(
+        err.contains("--no-such-flag") && !err.contains("panicked"),
+        "{err}"
+    );
+}
