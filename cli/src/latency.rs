@@ -340,27 +340,7 @@ pub struct Recorder {
     frames: u64,
     launcher_cpu_start_s: f64,
     cpu: Vec<ProcessCpu>,
-    stages: Vec<StageRow>,
-}
-
-/// One stage's timer in one process over the whole run (its `tracing` span; see
-/// `transport::trace`).
-#[derive(Debug, Clone, Serialize)]
-pub struct StageRow {
-    /// Process.
-    pub process: String,
-    /// Stage (span name).
-    pub stage: String,
-    /// Times it ran (warm-up included).
-    pub count: u64,
-    /// Total time, ms.
-    pub total_ms: f64,
-    /// Median, ms (log-linear buckets: at most 12.5 % over).
-    pub p50_ms: f64,
-    /// 99th percentile, ms (same).
-    pub p99_ms: f64,
-    /// Maximum, ms.
-    pub max_ms: f64,
+    stages: Vec<transport::trace::StageSummary>,
 }
 
 /// One child's CPU use over the run.
@@ -511,18 +491,7 @@ impl Watch for Recorder {
     }
 
     fn stages(&mut self, stages: &[transport::trace::StageSummary]) {
-        self.stages = stages
-            .iter()
-            .map(|s| StageRow {
-                process: s.process.clone(),
-                stage: s.stage.clone(),
-                count: s.count,
-                total_ms: s.total_ms,
-                p50_ms: s.p50_ms,
-                p99_ms: s.p99_ms,
-                max_ms: s.max_ms,
-            })
-            .collect();
+        self.stages = stages.to_vec();
     }
 
     fn before_stop(&mut self, children: &[(&'static str, u32)]) {
@@ -653,7 +622,7 @@ pub struct LatencyReport {
     /// Per process: period jitter and CPU time.
     pub processes: Vec<ProcessRow>,
     /// Per process and stage: the stage timers (the processes' spans).
-    pub stages: Vec<StageRow>,
+    pub stages: Vec<transport::trace::StageSummary>,
     /// The launcher's measuring thread's CPU time, s.
     pub launcher_cpu_s: f64,
     /// Vertices per generated lung.

@@ -244,7 +244,7 @@ pub fn stages_file(dir: &Path, role: &str, pid: u32) -> PathBuf {
 }
 
 /// One stage's times over a whole run (what [`flush`] writes per span name).
-#[derive(Debug, Clone, PartialEq)]
+#[derive(Debug, Clone, PartialEq, serde::Serialize)]
 pub struct StageSummary {
     /// Process role.
     pub process: String,
