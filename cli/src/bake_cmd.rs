@@ -168,60 +168,7 @@ pub fn bake(args: &BakeArgs) -> anyhow::Result<BakeSummary> {
     }
     // A device, FIFO or folder is refused now, not after the bake.
     outfile::check(&args.out)?;
-    let scene = lung_model::scene::Scene::load_or_default(args.scene.as_deref())?;
-    let mut settings = scene.bake_settings(side)?;
-    if let Some(d) = &args.directions {
-        let preset: lung_model::deform::DirectionPreset = d.parse().map_err(anyhow::Error::msg)?;
-        settings.motion = preset.constants(side);
-        settings.direction_field = None;
-        settings.force_field = None;
-    }
-    if let Some(m) = &args.motion {
-        let f = lung_model::deform::MotionFile::load(m)?;
-        settings.motion = f.for_side(side);
-        settings.direction_field = f.field_for_side(side).cloned();
-        settings.force_field = f.force_for_side(side).cloned();
-    }
-    if let Some(l) = args.smoothing_mm {
-        if !lung_model::kernel::amplitude_smoothing_ok(l) {
-            anyhow::bail!(
-                "--smoothing-mm {l} must be 0 (the seed's unsmoothed reading) or a length within 0..{} mm ({} is the default)",
-                lung_model::kernel::MAX_AMPLITUDE_SMOOTHING_MM,
-                lung_model::kernel::DEFAULT_AMPLITUDE_SMOOTHING_MM
-            );
-        }
-        settings.amplitude_smoothing_mm = l;
-    }
-    if let Some(t) = args.tolerance {
-        if !(t.is_finite() && (1e-9..=0.5).contains(&t)) {
-            anyhow::bail!(
-                "--tolerance {t} must be within 1e-9..0.5 (1e-5 is the default; 1e-6 doubles the bake time, \
-                 smaller values take far longer)"
-            );
-        }
-        settings.tolerance = t;
-    }
-    if let Some(e) = args.max_error_mm {
-        if !(e.is_finite() && e > 0.0 && e <= 50.0) {
-            anyhow::bail!("--max-error-mm {e} must be a positive number of millimetres up to 50");
-        }
-        settings.max_error_mm = Some(e);
-        settings.sh_bands = lung_model::kernel::MAX_RUNTIME_BANDS;
-    }
-    if let Some(b) = args.bands {
-        if b > lung_model::kernel::MAX_RUNTIME_BANDS {
-            anyhow::bail!(
-                "--bands {b}: 0 (none) to {} (64 coefficients per lung travel in every engine frame)",
-                lung_model::kernel::MAX_RUNTIME_BANDS
-            );
-        }
-        if b == 0 && args.max_error_mm.is_some() {
-            anyhow::bail!(
-                "--max-error-mm chooses a band count: it needs --bands ≥ 1 (or none: up to 8)"
-            );
-        }
-        settings.sh_bands = b;
-    }
+    let settings = settings(args)?;
     let (imported, side_warning, frame_warning) = crate::mesh_cmd::import_lung(
         &args.mesh,
         &args.units,
@@ -311,6 +258,66 @@ pub fn bake(args: &BakeArgs) -> anyhow::Result<BakeSummary> {
         orientations: orientation.map_or(0, |o| o.orientations_checked),
         tumour: k.meta.tumour.clone(),
     })
+}
+
+/// The bake settings: the scene's for this lung, with the command line's overrides, each checked.
+fn settings(args: &BakeArgs) -> anyhow::Result<lung_bake::kernel::BakeSettings> {
+    let side = args.lung;
+    let scene = lung_model::scene::Scene::load_or_default(args.scene.as_deref())?;
+    let mut settings = scene.bake_settings(side)?;
+    if let Some(d) = &args.directions {
+        let preset: lung_model::deform::DirectionPreset = d.parse().map_err(anyhow::Error::msg)?;
+        settings.motion = preset.constants(side);
+        settings.direction_field = None;
+        settings.force_field = None;
+    }
+    if let Some(m) = &args.motion {
+        let f = lung_model::deform::MotionFile::load(m)?;
+        settings.motion = f.for_side(side);
+        settings.direction_field = f.field_for_side(side).cloned();
+        settings.force_field = f.force_for_side(side).cloned();
+    }
+    if let Some(l) = args.smoothing_mm {
+        if !lung_model::kernel::amplitude_smoothing_ok(l) {
+            anyhow::bail!(
+                "--smoothing-mm {l} must be 0 (the seed's unsmoothed reading) or a length within 0..{} mm ({} is the default)",
+                lung_model::kernel::MAX_AMPLITUDE_SMOOTHING_MM,
+                lung_model::kernel::DEFAULT_AMPLITUDE_SMOOTHING_MM
+            );
+        }
+        settings.amplitude_smoothing_mm = l;
+    }
+    if let Some(t) = args.tolerance {
+        if !(t.is_finite() && (1e-9..=0.5).contains(&t)) {
+            anyhow::bail!(
+                "--tolerance {t} must be within 1e-9..0.5 (1e-5 is the default; 1e-6 doubles the bake time, \
+                 smaller values take far longer)"
+            );
+        }
+        settings.tolerance = t;
+    }
+    if let Some(e) = args.max_error_mm {
+        if !(e.is_finite() && e > 0.0 && e <= 50.0) {
+            anyhow::bail!("--max-error-mm {e} must be a positive number of millimetres up to 50");
+        }
+        settings.max_error_mm = Some(e);
+        settings.sh_bands = lung_model::kernel::MAX_RUNTIME_BANDS;
+    }
+    if let Some(b) = args.bands {
+        if b > lung_model::kernel::MAX_RUNTIME_BANDS {
+            anyhow::bail!(
+                "--bands {b}: 0 (none) to {} (64 coefficients per lung travel in every engine frame)",
+                lung_model::kernel::MAX_RUNTIME_BANDS
+            );
+        }
+        if b == 0 && args.max_error_mm.is_some() {
+            anyhow::bail!(
+                "--max-error-mm chooses a band count: it needs --bands ≥ 1 (or none: up to 8)"
+            );
+        }
+        settings.sh_bands = b;
+    }
+    Ok(settings)
 }
 
 /// Human-readable bake report.

@@ -452,45 +452,23 @@ pub fn run(args: &PatientArgs) -> anyhow::Result<PatientSummary> {
         );
         made.push((side, m, t.elapsed().as_secs_f64()));
     }
-    let mut inhale_volumes = Vec::new();
-    let mut inhale_meshes = Vec::new();
-    if !args.inhale.is_empty() {
-        for side in [Side::Right, Side::Left] {
-            eprintln!(
-                "lungdyn: the {} lung's inhale surface from {} …",
-                side.name(),
-                args.inhale[0].display()
-            );
-            let m = mask::mesh_from_mask(&args.inhale, &mask_options(args, side, inhale_axes)?)?;
-            warnings.extend(
-                m.warnings
-                    .iter()
-                    .map(|w| format!("inhale {}: {w}", side.name())),
-            );
-            inhale_volumes.push(m.mesh.enclosed_volume_ml());
-            inhale_meshes.push((side, m.mesh, m.lobes));
-        }
-    }
+    let mut inhale_meshes = inhale_surfaces(args, inhale_axes, &mut warnings)?;
+    let inhale_volumes: Vec<f64> = inhale_meshes
+        .iter()
+        .map(|(_, m, _)| m.enclosed_volume_ml())
+        .collect();
     // One translation for both lungs (and the inhale ones, each pair about its own centre: the
     // two scans are not registered to each other).
     let translation = if args.keep_origin {
         DVec3::ZERO
     } else {
-        let builtin = [
-            lung_model::mesh::anatomy::lung(Side::Right, 2_000)?,
-            lung_model::mesh::anatomy::lung(Side::Left, 2_000)?,
-        ];
-        joint_centre(&builtin) - joint_centre(made.iter().map(|(_, m, _)| &m.mesh))
+        builtin_centre()? - joint_centre(made.iter().map(|(_, m, _)| &m.mesh))
     };
     for (_, m, _) in &mut made {
         translate(&mut m.mesh, translation);
     }
     if !inhale_meshes.is_empty() && !args.keep_origin {
-        let builtin_centre = joint_centre(&[
-            lung_model::mesh::anatomy::lung(Side::Right, 2_000)?,
-            lung_model::mesh::anatomy::lung(Side::Left, 2_000)?,
-        ]);
-        let t = builtin_centre - joint_centre(inhale_meshes.iter().map(|(_, m, _)| m));
+        let t = builtin_centre()? - joint_centre(inhale_meshes.iter().map(|(_, m, _)| m));
         for (_, m, _) in &mut inhale_meshes {
             translate(m, t);
         }
@@ -576,6 +554,41 @@ pub fn run(args: &PatientArgs) -> anyhow::Result<PatientSummary> {
         w.write_all(json.as_bytes())
     })?;
     Ok(summary)
+}
+
+/// Both lungs' inhale surfaces (none without --inhale), their warnings added to `warnings`.
+fn inhale_surfaces(
+    args: &PatientArgs,
+    axes: Option<Axes>,
+    warnings: &mut Vec<String>,
+) -> anyhow::Result<Vec<(Side, lung_model::mesh::TriMesh, Vec<u8>)>> {
+    let mut meshes = Vec::new();
+    if args.inhale.is_empty() {
+        return Ok(meshes);
+    }
+    for side in [Side::Right, Side::Left] {
+        eprintln!(
+            "lungdyn: the {} lung's inhale surface from {} …",
+            side.name(),
+            args.inhale[0].display()
+        );
+        let m = mask::mesh_from_mask(&args.inhale, &mask_options(args, side, axes)?)?;
+        warnings.extend(
+            m.warnings
+                .iter()
+                .map(|w| format!("inhale {}: {w}", side.name())),
+        );
+        meshes.push((side, m.mesh, m.lobes));
+    }
+    Ok(meshes)
+}
+
+/// The joint centre of the built-in lungs: where the renderer draws lungs.
+fn builtin_centre() -> anyhow::Result<DVec3> {
+    Ok(joint_centre(&[
+        lung_model::mesh::anatomy::lung(Side::Right, 2_000)?,
+        lung_model::mesh::anatomy::lung(Side::Left, 2_000)?,
+    ]))
 }
 
 /// The summary for a person.

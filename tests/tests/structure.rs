@@ -41,11 +41,9 @@ const LONG_FUNCTIONS: &[(&str, &str, usize)] = &[
     ("cli/src/tradeoff.rs", "markdown", 179),
     ("engine/src/runtime/mod.rs", "step", 175),
     ("engine/bake/src/kernel.rs", "bake", 173),
-    ("cli/src/patient_cmd.rs", "run", 160),
     ("tracker-bridge/pose/src/optics.rs", "from_toml", 159),
     ("remote/src/site.rs", "open", 155),
     ("engine/bake/src/motion_models.rs", "held_out_errors", 155),
-    ("cli/src/bake_cmd.rs", "bake", 152),
     ("engine/model/src/disease/closed.rs", "plan", 151),
     ("engine/bake/src/patient_motion.rs", "fit_pair", 151),
 ];
