@@ -495,45 +495,9 @@ pub fn run(args: &FitMotionArgs) -> anyhow::Result<Outcome> {
     let frame = frame_of(args)?;
     let side: Option<Side> = args.lung;
     check_distinct_files(args)?;
-    // Every output checked before any work.
-    let mut outputs = Vec::new();
-    if let Some(path) = &args.out {
-        outputs.push(crate::outputs::Output {
-            flag: "--out",
-            path,
-            extensions: &[],
-        });
-    }
-    if let Some(path) = &args.plot {
-        outputs.push(crate::outputs::Output {
-            flag: "--plot",
-            path,
-            extensions: &["png"],
-        });
-    }
-    crate::outputs::check_all(&outputs, &[])?;
+    check_outputs(args)?;
     if is_mesh(args.from_path()) && is_mesh(args.to_path()) {
-        let ma = import_scaled(args.from_path(), &frame, &args.input)?;
-        let mb = import_scaled(args.to_path(), &frame, &args.input)?;
-        let same_vertices =
-            ma.positions.len() == mb.positions.len() && ma.triangles == mb.triangles;
-        if same_vertices {
-            let pts = |m: &lung_model::mesh::TriMesh| -> Vec<DVec3> {
-                m.positions
-                    .iter()
-                    .map(|p| DVec3::from(p.map(|v| v as f64)))
-                    .collect()
-            };
-            check_some_motion(&pts(&ma), &pts(&mb), args.to_path(), args)?;
-        }
-        return Ok(Outcome::Kernel(run_surface(
-            args,
-            &ma,
-            &mb,
-            &frame,
-            side,
-            same_vertices && !args.surface,
-        )?));
+        return Ok(Outcome::Kernel(run_meshes(args, &frame, side)?));
     } else if args.surface {
         anyhow::bail!("--surface needs two meshes (.obj, .ply, .stl) for --from and --to");
     }
@@ -599,27 +563,7 @@ pub fn run(args: &FitMotionArgs) -> anyhow::Result<Outcome> {
     } else {
         models.last().expect("the asked model")
     };
-    let phases = also
-        .iter()
-        .map(|(name, c)| {
-            let dc: Vec<DVec3> = a.iter().zip(c).map(|(p, q)| *q - *p).collect();
-            let r = motion_models::evaluate_phase(
-                chosen.model,
-                &chosen.fit,
-                &a,
-                &delta,
-                &dc,
-                side,
-                k,
-                args.seed,
-            )?;
-            Ok(PhaseRow {
-                file: name.clone(),
-                mean_error_mm: r.in_sample.mean_mm,
-                report: r,
-            })
-        })
-        .collect::<anyhow::Result<Vec<_>>>()?;
+    let phases = predicted_phases(&also, chosen, &a, &delta, side, args)?;
     let report = PointsReport {
         mode: "points",
         frame: frame.name(),
@@ -659,6 +603,79 @@ pub fn run(args: &FitMotionArgs) -> anyhow::Result<Outcome> {
         )?;
     }
     Ok(Outcome::Points(Box::new(report)))
+}
+
+/// Every output of `fit-motion` checked before any work.
+fn check_outputs(args: &FitMotionArgs) -> anyhow::Result<()> {
+    let mut outputs = Vec::new();
+    if let Some(path) = &args.out {
+        outputs.push(crate::outputs::Output {
+            flag: "--out",
+            path,
+            extensions: &[],
+        });
+    }
+    if let Some(path) = &args.plot {
+        outputs.push(crate::outputs::Output {
+            flag: "--plot",
+            path,
+            extensions: &["png"],
+        });
+    }
+    crate::outputs::check_all(&outputs, &[])
+}
+
+/// Two meshes: the kernel's own model through the operator (corresponding vertices when they
+/// share their vertex order and `--surface` is not asked, else surface to surface).
+fn run_meshes(
+    args: &FitMotionArgs,
+    frame: &Frame,
+    side: Option<Side>,
+) -> anyhow::Result<MotionFit> {
+    let ma = import_scaled(args.from_path(), frame, &args.input)?;
+    let mb = import_scaled(args.to_path(), frame, &args.input)?;
+    let same_vertices = ma.positions.len() == mb.positions.len() && ma.triangles == mb.triangles;
+    if same_vertices {
+        let pts = |m: &lung_model::mesh::TriMesh| -> Vec<DVec3> {
+            m.positions
+                .iter()
+                .map(|p| DVec3::from(p.map(|v| v as f64)))
+                .collect()
+        };
+        check_some_motion(&pts(&ma), &pts(&mb), args.to_path(), args)?;
+    }
+    run_surface(args, &ma, &mb, frame, side, same_vertices && !args.surface)
+}
+
+/// The chosen model's prediction of each further phase (`--also`) with one scale.
+fn predicted_phases(
+    also: &[(String, Vec<DVec3>)],
+    chosen: &ModelReport,
+    a: &[DVec3],
+    delta: &[DVec3],
+    side: Option<Side>,
+    args: &FitMotionArgs,
+) -> anyhow::Result<Vec<PhaseRow>> {
+    also.iter()
+        .map(|(name, c)| {
+            let dc: Vec<DVec3> = a.iter().zip(c).map(|(p, q)| *q - *p).collect();
+            let r = motion_models::evaluate_phase(
+                chosen.model,
+                &chosen.fit,
+                a,
+                delta,
+                &dc,
+                side,
+                args.folds as usize,
+                args.seed,
+            )?;
+            Ok(PhaseRow {
+                file: name.clone(),
+                mean_error_mm: r.in_sample.mean_mm,
+                report: r,
+            })
+        })
+        .collect()
 }
 
 /// Human-readable report.

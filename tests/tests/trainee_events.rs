@@ -10,7 +10,7 @@ use std::process::{Child, Command, Output, Stdio};
 use std::time::{Duration, Instant};
 
 fn exe() -> PathBuf {
-    Path::new(env!("CARGO_MANIFEST_DIR")).join("../target/release/lungdyn")
+    lungdyn_tests::bin("lungdyn")
 }
 
 fn tmp(name: &str) -> PathBuf {
