@@ -1,5 +1,5 @@
 //! `lungdyn mesh from-mask` through the real binary: a two-lung label image made here (the built-in
-//! lungs voxelised and written as NIfTI-1 by hand, as `engine/bake/tests/mask.rs` does) becomes a
+//! lungs voxelised and written as NIfTI-1 by `lung_bake::mask::synthetic`) becomes a
 //! right lung that `mesh check` accepts and `bake` bakes with the mesh's own lobes; bad inputs are
 //! refused with a non-zero exit, no panic, a message naming the problem and no output written (an
 //! existing file at `--out` left as it was); `--help` names the formats, `--axes` and the body
@@ -10,6 +10,7 @@ use std::process::Command;
 use std::sync::OnceLock;
 
 use glam::DVec3;
+use lung_bake::mask::synthetic::{both_lungs, in_file_order, nifti, Body};
 use lung_bake::mask::volume::Axes;
 use lung_model::mesh::{anatomy, lobes, Side, TriMesh};
 use lungdyn_tests::bin;
@@ -119,179 +120,8 @@ fn refused(case: &str, args: &[&str], out: &Path, words: &[&str]) -> String {
     r.stderr
 }
 
-// ---- A label volume in the body frame, voxelised from the built-in lungs (copied from
-// ---- engine/bake/tests/mask.rs, trimmed).
-
-#[derive(Clone)]
-struct Body {
-    dims: [usize; 3],
-    spacing: [f64; 3],
-    origin: DVec3,
-    labels: Vec<u16>,
-}
-
-/// Inside test by ray parity along +X for every voxel row.
-fn voxelise(mesh: &TriMesh, body: &mut Body, value: impl Fn(DVec3) -> u16) {
-    let [nx, ny, nz] = body.dims;
-    let p = |i: u32| DVec3::from(mesh.positions[i as usize].map(|v| v as f64));
-    for k in 0..nz {
-        let z = body.origin.z + k as f64 * body.spacing[2];
-        let tris: Vec<[DVec3; 3]> = mesh
-            .triangles
-            .iter()
-            .map(|t| t.map(p))
-            .filter(|c| {
-                let lo = c.iter().map(|v| v.z).fold(f64::INFINITY, f64::min);
-                let hi = c.iter().map(|v| v.z).fold(f64::NEG_INFINITY, f64::max);
-                lo <= z && z < hi
-            })
-            .collect();
-        for j in 0..ny {
-            let y = body.origin.y + j as f64 * body.spacing[1] + 1e-7;
-            let mut xs: Vec<f64> = Vec::new();
-            for c in &tris {
-                let e1 = c[1] - c[0];
-                let e2 = c[2] - c[0];
-                let n = e1.cross(e2);
-                if n.x.abs() < 1e-12 {
-                    continue;
-                }
-                let x = c[0].x - (n.y * (y - c[0].y) + n.z * (z - c[0].z)) / n.x;
-                let q = DVec3::new(x, y, z);
-                let w0 = (c[1] - c[0]).cross(q - c[0]).dot(n);
-                let w1 = (c[2] - c[1]).cross(q - c[1]).dot(n);
-                let w2 = (c[0] - c[2]).cross(q - c[2]).dot(n);
-                if (w0 >= 0.0 && w1 >= 0.0 && w2 >= 0.0) || (w0 <= 0.0 && w1 <= 0.0 && w2 <= 0.0) {
-                    xs.push(x);
-                }
-            }
-            xs.sort_by(|a, b| a.total_cmp(b));
-            for pair in xs.chunks_exact(2) {
-                for i in 0..nx {
-                    let x = body.origin.x + i as f64 * body.spacing[0];
-                    if x >= pair[0] && x < pair[1] {
-                        body.labels[i + nx * (j + ny * k)] = value(DVec3::new(x, y, z));
-                    }
-                }
-            }
-        }
-    }
-}
-
-/// Both built-in lungs at `spacing` on a grid that holds both with a margin.
-fn both_lungs(
-    spacing: [f64; 3],
-    right: impl Fn(DVec3) -> u16,
-    left: impl Fn(DVec3) -> u16,
-) -> Body {
-    let r = anatomy::lung(Side::Right, 4000).unwrap();
-    let l = anatomy::lung(Side::Left, 4000).unwrap();
-    let (mut lo, mut hi) = (DVec3::splat(f64::INFINITY), DVec3::splat(f64::NEG_INFINITY));
-    for m in [&r, &l] {
-        for q in &m.positions {
-            let v = DVec3::from(q.map(|v| v as f64));
-            lo = lo.min(v);
-            hi = hi.max(v);
-        }
-    }
-    let origin = lo - DVec3::splat(10.0);
-    let dims = [0, 1, 2].map(|a| ((hi[a] - lo[a] + 20.0) / spacing[a]).ceil() as usize + 1);
-    let mut body = Body {
-        dims,
-        spacing,
-        origin,
-        labels: vec![0; dims[0] * dims[1] * dims[2]],
-    };
-    voxelise(&r, &mut body, &right);
-    voxelise(&l, &mut body, &left);
-    body
-}
-
-/// The voxel data in file order for voxel axes `axes` (sign changes of L, A, S only), and the
-/// voxel → `world` (RAS or LPS) matrix rows.
-fn in_file_order(body: &Body, axes: Axes, world: Axes) -> (Vec<u16>, [[f64; 4]; 3]) {
-    let [nx, ny, nz] = body.dims;
-    let sign: [f64; 3] = [0, 1, 2].map(|a| if axes.0[a].body()[a] > 0.0 { 1.0 } else { -1.0 });
-    let mut data = vec![0u16; body.labels.len()];
-    for k in 0..nz {
-        for j in 0..ny {
-            for i in 0..nx {
-                let src = [i, j, k];
-                let dst: [usize; 3] = [0, 1, 2].map(|a| {
-                    if sign[a] > 0.0 {
-                        src[a]
-                    } else {
-                        body.dims[a] - 1 - src[a]
-                    }
-                });
-                data[dst[0] + nx * (dst[1] + ny * dst[2])] = body.labels[i + nx * (j + ny * k)];
-            }
-        }
-    }
-    let first = body.origin
-        + DVec3::from([0, 1, 2].map(|a| {
-            if sign[a] > 0.0 {
-                0.0
-            } else {
-                (body.dims[a] - 1) as f64 * body.spacing[a]
-            }
-        }));
-    let to_world = world.to_body().transpose();
-    let mut rows = [[0.0; 4]; 3];
-    for a in 0..3 {
-        let w = to_world * (axes.0[a].body() * body.spacing[a]);
-        for r in 0..3 {
-            rows[r][a] = w[r];
-        }
-    }
-    let o = to_world * first;
-    for r in 0..3 {
-        rows[r][3] = o[r];
-    }
-    (data, rows)
-}
-
-fn put_f32(b: &mut [u8], at: usize, v: f32) {
-    b[at..at + 4].copy_from_slice(&v.to_le_bytes());
-}
-fn put_i16(b: &mut [u8], at: usize, v: i16) {
-    b[at..at + 2].copy_from_slice(&v.to_le_bytes());
-}
-
-/// A NIfTI-1 file (int16 data) with the given sform rows (RAS), or no sform/qform when `None`.
-fn nifti(body: &Body, rows: Option<[[f64; 4]; 3]>, data: &[u16]) -> Vec<u8> {
-    let mut h = vec![0u8; 352];
-    h[0..4].copy_from_slice(&348i32.to_le_bytes());
-    put_i16(&mut h, 40, 3);
-    for a in 0..3 {
-        put_i16(&mut h, 42 + 2 * a, body.dims[a] as i16);
-    }
-    for a in 3..8 {
-        put_i16(&mut h, 42 + 2 * a, 1);
-    }
-    put_i16(&mut h, 70, 4); // int16
-    put_i16(&mut h, 72, 16);
-    put_f32(&mut h, 76, 1.0);
-    for a in 0..3 {
-        put_f32(&mut h, 80 + 4 * a, body.spacing[a] as f32);
-    }
-    put_f32(&mut h, 108, 352.0);
-    put_f32(&mut h, 112, 1.0);
-    h[123] = 2; // mm
-    if let Some(rows) = rows {
-        put_i16(&mut h, 254, 2);
-        for (r, row) in rows.iter().enumerate() {
-            for c in 0..4 {
-                put_f32(&mut h, 280 + 16 * r + 4 * c, row[c] as f32);
-            }
-        }
-    }
-    h[344..348].copy_from_slice(b"n+1\0");
-    for &v in data {
-        h.extend_from_slice(&(v as i16).to_le_bytes());
-    }
-    h
-}
+// ---- Label volumes voxelised from the built-in lungs: lung_bake::mask::synthetic (the one copy
+// ---- lung-bake's own mask tests use too).
 
 const SPACING: [f64; 3] = [2.5, 2.5, 2.5];
 
@@ -299,7 +129,7 @@ const SPACING: [f64; 3] = [2.5, 2.5, 2.5];
 fn single_label_nii() -> &'static [u8] {
     static BYTES: OnceLock<Vec<u8>> = OnceLock::new();
     BYTES.get_or_init(|| {
-        let body = both_lungs(SPACING, |_| 1, |_| 1);
+        let body = both_lungs(SPACING, |_| 1, |_| 1).0;
         let (d, rows) = in_file_order(&body, Axes::RAS, Axes::RAS);
         nifti(&body, Some(rows), &d)
     })
@@ -328,6 +158,7 @@ fn lobes_body() -> &'static Body {
             |p| code(Side::Right, &rb, &fr, p),
             |p| code(Side::Left, &lb, &fl, p),
         )
+        .0
     })
 }
 
@@ -457,7 +288,7 @@ fn unreadable_or_unknown_files_are_refused_without_output() {
 #[test]
 fn a_nifti_without_sform_or_qform_is_refused_naming_axes() {
     let tmp = Tmp::new("plain");
-    let body = both_lungs(SPACING, |_| 1, |_| 1);
+    let body = both_lungs(SPACING, |_| 1, |_| 1).0;
     let (d, _) = in_file_order(&body, Axes::RAS, Axes::RAS);
     let plain = tmp.write("plain.nii", &nifti(&body, None, &d));
     let out = tmp.path("plain.ply");
@@ -645,7 +476,7 @@ fn a_lying_header_is_refused_with_the_axes_that_fix_it_and_does_not_clobber_out(
 
     // One label for both lungs under the same lying header, the right lung asked: refused too,
     // naming the same axes (the sides told apart by geometry, the half turn seen from the sizes).
-    let single = both_lungs(SPACING, |_| 1, |_| 1);
+    let single = both_lungs(SPACING, |_| 1, |_| 1).0;
     let (d_single, _) = in_file_order(&single, Axes::LPS, Axes::LPS);
     let nii_single = tmp.write("lying-single.nii", &nifti(&single, Some(lying), &d_single));
     let out_single = tmp.path("lying-single.ply");

@@ -17,6 +17,9 @@ pub mod labels;
 pub mod morph;
 pub mod read;
 pub mod surface;
+/// Label images made from the built-in lungs, for tests (the `testing` feature).
+#[cfg(any(test, feature = "testing"))]
+pub mod synthetic;
 pub mod volume;
 
 use std::path::{Path, PathBuf};
