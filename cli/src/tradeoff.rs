@@ -869,6 +869,16 @@ fn markdown(t: &Tradeoff, stem: &str) -> String {
                 .join(", ")
         }
     );
+    bandwidth_section(&mut s, t);
+    orientation_section(&mut s, t);
+    stereo_section(&mut s, t);
+    seed_section(&mut s, t);
+    s
+}
+
+/// The report's memory-bandwidth section.
+fn bandwidth_section(s: &mut String, t: &Tradeoff) {
+    use std::fmt::Write;
     let _ = writeln!(
         s,
         "## Memory bandwidth (CPU, same run)\n\nThe mode and a one-thread copy of the same bytes, timed \
@@ -892,6 +902,11 @@ fn markdown(t: &Tradeoff, stem: &str) -> String {
             100.0 * c.fraction_of_copy
         );
     }
+}
+
+/// The report's orientation-methods section.
+fn orientation_section(s: &mut String, t: &Tradeoff) {
+    use std::fmt::Write;
     let _ = writeln!(s, "\n## Orientation methods (smallest lung)\n");
     let _ = writeln!(
         s,
@@ -911,6 +926,11 @@ fn markdown(t: &Tradeoff, stem: &str) -> String {
             o.method, o.sweep, o.error.rms_mm, o.error.max_mm, o.error.rms_percent
         );
     }
+}
+
+/// The report's stereo section (none without stereo timings).
+fn stereo_section(s: &mut String, t: &Tradeoff) {
+    use std::fmt::Write;
     if !t.stereo.is_empty() {
         let _ = writeln!(
             s,
@@ -943,6 +963,11 @@ fn markdown(t: &Tradeoff, stem: &str) -> String {
             );
         }
     }
+}
+
+/// The report's comparison with the seed's figures.
+fn seed_section(s: &mut String, t: &Tradeoff) {
+    use std::fmt::Write;
     let _ = writeln!(
         s,
         "\n## Beside the seed's figures\n\n\
@@ -979,7 +1004,6 @@ fn markdown(t: &Tradeoff, stem: &str) -> String {
             .collect::<Vec<_>>()
             .join("; ")
     );
-    s
 }
 
 fn csv(t: &Tradeoff) -> String {

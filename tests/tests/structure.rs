@@ -37,7 +37,6 @@ const LONG_FUNCTIONS: &[(&str, &str, usize)] = &[
     ("engine/model/src/recording.rs", "parse_csv", 196),
     ("engine/src/runtime/process.rs", "run_loop", 188),
     ("engine/model/src/kernel.rs", "verify_layout", 184),
-    ("cli/src/tradeoff.rs", "markdown", 179),
     ("engine/src/runtime/mod.rs", "step", 175),
     ("engine/bake/src/kernel.rs", "bake", 173),
     ("tracker-bridge/pose/src/optics.rs", "from_toml", 159),
