@@ -222,20 +222,7 @@ fn main() -> std::process::ExitCode {
         }
     }
     let result = match cli.command {
-        Command::Doctor(args) => {
-            return match lungdyn::doctor::run(&args).and_then(|r| {
-                if args.json {
-                    println!("{}", serde_json::to_string(&r)?);
-                } else {
-                    print!("{}", lungdyn::doctor::text(&r));
-                }
-                Ok(r.worst())
-            }) {
-                Ok(lungdyn::doctor::Status::Missing) => std::process::ExitCode::from(2),
-                Ok(_) => std::process::ExitCode::SUCCESS,
-                Err(e) => fail(e),
-            };
-        }
+        Command::Doctor(args) => return doctor(&args),
         Command::Demo(args) => lungdyn::demo::run(&args).and_then(|report| {
             // The report so far is printed whatever ended the run; a failure then exits non-zero.
             print_report(args.json, &lungdyn::demo::table(&report), &report)?;
@@ -260,71 +247,18 @@ fn main() -> std::process::ExitCode {
             print_report(args.json, &lungdyn::latency::summary(&out), &out)
         }),
         Command::Mesh(MeshCommand::Generate(args)) => lungdyn::mesh_cmd::run(&args).and_then(|m| {
-            if args.json {
-                println!("{}", serde_json::to_string(&m)?);
-            } else {
-                println!(
-                    "wrote {}: {} lung, {} vertices, {} triangles, {:.1} ml, {:.0} x {:.0} x {:.0} mm (closed 2-manifold)",
+            emit(args.json, &m, |m| {
+                format!(
+                    "wrote {}: {} lung, {} vertices, {} triangles, {:.1} ml, {:.0} x {:.0} x {:.0} mm (closed 2-manifold)\n",
                     m.path, m.lung, m.vertices, m.triangles, m.volume_ml, m.size_mm[0], m.size_mm[1], m.size_mm[2]
-                );
-            }
-            Ok(())
+                )
+            })
         }),
-        Command::Patient(args) => lungdyn::patient_cmd::run(&args).and_then(|s| {
-            if args.json {
-                println!("{}", serde_json::to_string(&s)?);
-            } else {
-                print!("{}", lungdyn::patient_cmd::text(&s));
-            }
-            Ok(())
-        }),
-        Command::Mesh(MeshCommand::FromMask(args)) => lungdyn::mask_cmd::run(&args).and_then(|s| {
-            if args.json {
-                println!("{}", serde_json::to_string(&s)?);
-            } else {
-                print!("{}", lungdyn::mask_cmd::text(&s));
-            }
-            Ok(())
-        }),
-        Command::Mesh(MeshCommand::Check(args)) => lungdyn::mesh_cmd::check_mesh(&args).and_then(|c| {
-            if args.json {
-                println!("{}", serde_json::to_string(&c)?);
-            } else {
-                let r = &c.repairs;
-                println!(
-                    "{}: closed 2-manifold surface, {} vertices, {} triangles, Euler {}, {:.1} ml, {:.0} x {:.0} x {:.0} mm",
-                    c.path, c.vertices, c.triangles, c.euler, c.volume_ml, c.size_mm[0], c.size_mm[1], c.size_mm[2]
-                );
-                println!(
-                    "repairs: {} vertices welded, {} degenerate and {} duplicate triangles removed, {} unused vertices removed{}",
-                    r.welded_vertices,
-                    r.degenerate_triangles,
-                    r.duplicate_triangles,
-                    r.unused_vertices,
-                    if r.flipped_inside_out { ", winding flipped (was inside out)" } else { "" }
-                );
-                if !c.lobes.is_empty() {
-                    let parts: Vec<String> = c
-                        .lobes
-                        .iter()
-                        .map(|l| format!("{} {} vertices {:.0} mm²", l.name, l.vertices, l.area_mm2))
-                        .collect();
-                    println!("lobes (fissure planes): {}", parts.join(", "));
-                }
-                if let Some(out) = &c.out {
-                    println!("wrote {out} (mm, body frame)");
-                }
-            }
-            Ok(())
-        }),
-        Command::Bench(BenchCommand::Tradeoff(args)) => lungdyn::tradeoff::run(&args).and_then(|t| {
-            if args.json {
-                println!("{}", serde_json::to_string(&t)?);
-            } else {
-                print!("{}", lungdyn::tradeoff::text(&t));
-            }
-            Ok(())
-        }),
+        Command::Patient(args) => lungdyn::patient_cmd::run(&args).and_then(|s| emit(args.json, &s, lungdyn::patient_cmd::text)),
+        Command::Mesh(MeshCommand::FromMask(args)) => lungdyn::mask_cmd::run(&args).and_then(|s| emit(args.json, &s, lungdyn::mask_cmd::text)),
+        Command::Mesh(MeshCommand::Check(args)) => lungdyn::mesh_cmd::check_mesh(&args)
+            .and_then(|c| emit(args.json, &c, mesh_check_text)),
+        Command::Bench(BenchCommand::Tradeoff(args)) => lungdyn::tradeoff::run(&args).and_then(|t| emit(args.json, &t, lungdyn::tradeoff::text)),
         Command::Bake(args) => lungdyn::bake_cmd::bake(&args).and_then(|b| {
             if let (Some(budget), Some(false), Some(rms)) = (b.sh_budget_mm, b.sh_budget_met, b.sh_rms_mm) {
                 eprintln!(
@@ -341,43 +275,25 @@ fn main() -> std::process::ExitCode {
             Ok(())
         }),
         Command::Kernel(KernelCommand::Inspect(args)) => lungdyn::bake_cmd::inspect(&args).and_then(|i| {
-            if args.json {
-                println!("{}", serde_json::to_string(&i)?);
-            } else {
-                print!("{}", lungdyn::bake_cmd::inspect_text(&i));
+            emit(args.json, &i, |i| {
+                let mut t = lungdyn::bake_cmd::inspect_text(i);
                 if let Some(png) = &args.plot {
-                    println!("wrote {}", png.display());
+                    t.push_str(&format!("wrote {}\n", png.display()));
                 }
-            }
-            Ok(())
+                t
+            })
         }),
-        Command::FitMotion(args) => lungdyn::motion_cmd::run(&args).and_then(|f| {
-            if args.json {
-                println!("{}", serde_json::to_string(&f)?);
-            } else {
-                print!("{}", lungdyn::motion_cmd::text(&f, &args));
-            }
-            Ok(())
-        }),
+        Command::FitMotion(args) => lungdyn::motion_cmd::run(&args)
+            .and_then(|f| emit(args.json, &f, |f| lungdyn::motion_cmd::text(f, &args))),
         Command::Kernel(KernelCommand::Export(args)) => lungdyn::bake_cmd::export(&args).and_then(|e| {
-            if args.json {
-                println!("{}", serde_json::to_string(&e)?);
-            } else {
-                println!(
-                    "wrote {}: {:+.1} ml -> {:.1} ml (start {:.1} ml), scale {:.3}, largest displacement {:.2} mm",
+            emit(args.json, &e, |e| {
+                format!(
+                    "wrote {}: {:+.1} ml -> {:.1} ml (start {:.1} ml), scale {:.3}, largest displacement {:.2} mm\n",
                     e.path, e.delta_ml, e.volume_ml, e.start_volume_ml, e.scale, e.max_displacement_mm
-                );
-            }
-            Ok(())
+                )
+            })
         }),
-        Command::Install(args) => lungdyn::install::run(&args).and_then(|r| {
-            if args.json {
-                println!("{}", serde_json::to_string(&r)?);
-            } else {
-                print!("{}", lungdyn::install::text(&r));
-            }
-            Ok(())
-        }),
+        Command::Install(args) => lungdyn::install::run(&args).and_then(|r| emit(args.json, &r, lungdyn::install::text)),
         Command::Instances(args) => {
             let list = lungdyn::instances::list();
             if args.json {
@@ -390,44 +306,10 @@ fn main() -> std::process::ExitCode {
             }
         }
         Command::Scene(SceneCommand::Event(args)) => lungdyn::scene_event::run(&args),
-        Command::Scene(SceneCommand::Run(args)) => lungdyn::scene_check::run_scene(&args).and_then(|v| {
-            if args.json {
-                println!("{}", serde_json::to_string(&v)?);
-            } else {
-                print!("{}", lungdyn::scene_check::run_text(&v));
-            }
-            Ok(())
-        }),
-        Command::Scene(SceneCommand::Check(args)) => lungdyn::scene_check::run(&args).and_then(|v| {
-            if args.json {
-                println!("{}", serde_json::to_string(&v)?);
-            } else {
-                print!("{}", lungdyn::scene_check::text(&v));
-            }
-            Ok(())
-        }),
-        Command::Scene(SceneCommand::Prepare(args)) => lungdyn::prepare::run(&args).and_then(|p| {
-            if args.json {
-                println!("{}", serde_json::to_string(&p)?);
-            } else {
-                for k in &p.kernels {
-                    println!(
-                        "{} lung: {}{}",
-                        k.lung,
-                        k.path,
-                        if k.baked_now { format!(" (baked now, {:.1} s)", k.bake_seconds) } else { String::new() }
-                    );
-                    match (&k.sh_budget_reason, k.sh_bands) {
-                        (Some(r), _) => println!("  sh mode, {r}"),
-                        (None, 0) => {}
-                        (None, n) => println!("  sh mode, {n} bands (the scene's), RMS error {:.3} mm", k.sh_rms_mm.unwrap_or(f64::NAN)),
-                    }
-                }
-                println!("mode: {}", p.mode);
-                println!("wrote {}: start the engine and the renderer with --scene {}", p.scene, p.scene);
-            }
-            Ok(())
-        }),
+        Command::Scene(SceneCommand::Run(args)) => lungdyn::scene_check::run_scene(&args).and_then(|v| emit(args.json, &v, lungdyn::scene_check::run_text)),
+        Command::Scene(SceneCommand::Check(args)) => lungdyn::scene_check::run(&args).and_then(|v| emit(args.json, &v, lungdyn::scene_check::text)),
+        Command::Scene(SceneCommand::Prepare(args)) => lungdyn::prepare::run(&args)
+            .and_then(|p| emit(args.json, &p, prepare_text)),
         Command::Pv(cmd) => lungdyn::pv_cmd::run(&cmd),
         Command::Tracker(TrackerCommand::Listen(args)) => lungdyn::tracker_cmd::listen(&args).and_then(|v| {
             if args.json {
@@ -436,40 +318,16 @@ fn main() -> std::process::ExitCode {
             lungdyn::tracker_cmd::heard_something(&v)
         }),
         Command::Tracker(TrackerCommand::Simulate(args)) => lungdyn::tracker_cmd::simulate(&args).and_then(|v| {
-            if args.json {
-                println!("{}", serde_json::to_string(&v)?);
-            } else {
-                println!(
-                    "wrote {}: {} samples per tool, {} s of head motion at {} Hz (seed {})",
+            emit(args.json, &v, |v| {
+                format!(
+                    "wrote {}: {} samples per tool, {} s of head motion at {} Hz (seed {})\n",
                     v["recording"].as_str().unwrap_or(""), v["samples_per_tool"], v["seconds"], v["rate_hz"], v["seed"]
-                );
-            }
-            Ok(())
+                )
+            })
         }),
-        Command::Tracker(TrackerCommand::Predict(args)) => lungdyn::tracker_cmd::predict(&args).and_then(|v| {
-            if args.json {
-                println!("{}", serde_json::to_string(&v)?);
-            } else {
-                print!("{}", lungdyn::tracker_cmd::predict_text(&v));
-            }
-            Ok(())
-        }),
-        Command::Register(args) => lungdyn::register_cmd::run(&args).and_then(|v| {
-            if args.json {
-                println!("{}", serde_json::to_string(&v)?);
-            } else {
-                print!("{}", lungdyn::register_cmd::text(&v));
-            }
-            Ok(())
-        }),
-        Command::Hmd(HmdCommand::Check(args)) => lungdyn::register_cmd::hmd(&args).and_then(|v| {
-            if args.json {
-                println!("{}", serde_json::to_string(&v)?);
-            } else {
-                print!("{}", lungdyn::register_cmd::hmd_text(&v));
-            }
-            Ok(())
-        }),
+        Command::Tracker(TrackerCommand::Predict(args)) => lungdyn::tracker_cmd::predict(&args).and_then(|v| emit(args.json, &v, lungdyn::tracker_cmd::predict_text)),
+        Command::Register(args) => lungdyn::register_cmd::run(&args).and_then(|v| emit(args.json, &v, lungdyn::register_cmd::text)),
+        Command::Hmd(HmdCommand::Check(args)) => lungdyn::register_cmd::hmd(&args).and_then(|v| emit(args.json, &v, lungdyn::register_cmd::hmd_text)),
         Command::Remote(RemoteCommand::Serve(args)) => {
             lungdyn_remote::roles::serve(&args).map_err(Into::into)
         }
@@ -482,21 +340,7 @@ fn main() -> std::process::ExitCode {
         Command::Remote(RemoteCommand::HarnessSource(args)) => {
             lungdyn_remote::harness::source_child(&args).map_err(Into::into)
         }
-        Command::Remote(RemoteCommand::Harness(mut args)) => {
-            // The source in its own process (this executable), so its CPU and bytes are its own.
-            args.source_exe = std::env::current_exe().ok();
-            lungdyn_remote::harness::run(&args).and_then(|r| {
-                if args.json {
-                    serde_json::to_string_pretty(&r)
-                        .map(|j| println!("{j}"))
-                        .map_err(|e| lungdyn_remote::RemoteError::Usage(e.to_string()))
-                } else {
-                    lungdyn_remote::harness::print(&r);
-                    Ok(())
-                }
-            })
-            .map_err(Into::into)
-        }
+        Command::Remote(RemoteCommand::Harness(args)) => remote_harness(args),
         Command::TrackerBridge(args) => tracker_bridge::run(&args).map_err(Into::into),
         Command::Engine(args) => engine::runtime::run(&args).map_err(Into::into),
         Command::Renderer(args) => renderer::process::run(&args).map_err(Into::into),
@@ -505,6 +349,110 @@ fn main() -> std::process::ExitCode {
         Ok(()) => std::process::ExitCode::SUCCESS,
         Err(e) => fail(e),
     }
+}
+
+/// `lungdyn doctor`: exit status 2 when anything is missing.
+fn doctor(args: &lungdyn::doctor::DoctorArgs) -> std::process::ExitCode {
+    match lungdyn::doctor::run(args).and_then(|r| {
+        emit(args.json, &r, lungdyn::doctor::text)?;
+        Ok(r.worst())
+    }) {
+        Ok(lungdyn::doctor::Status::Missing) => std::process::ExitCode::from(2),
+        Ok(_) => std::process::ExitCode::SUCCESS,
+        Err(e) => fail(e),
+    }
+}
+
+/// `lungdyn remote harness`: the source in its own process (this executable), so its CPU and
+/// bytes are its own.
+fn remote_harness(mut args: lungdyn_remote::harness::HarnessArgs) -> anyhow::Result<()> {
+    args.source_exe = std::env::current_exe().ok();
+    lungdyn_remote::harness::run(&args)
+        .and_then(|r| {
+            if args.json {
+                serde_json::to_string_pretty(&r)
+                    .map(|j| println!("{j}"))
+                    .map_err(|e| lungdyn_remote::RemoteError::Usage(e.to_string()))
+            } else {
+                lungdyn_remote::harness::print(&r);
+                Ok(())
+            }
+        })
+        .map_err(Into::into)
+}
+
+/// Print a command's result: one JSON object on stdout with `--json`, else its text for a person.
+fn emit<T: serde::Serialize>(
+    json: bool,
+    value: &T,
+    text: impl FnOnce(&T) -> String,
+) -> anyhow::Result<()> {
+    if json {
+        println!("{}", serde_json::to_string(value)?);
+    } else {
+        print!("{}", text(value));
+    }
+    Ok(())
+}
+
+/// `mesh check`'s text.
+fn mesh_check_text(c: &lungdyn::mesh_cmd::CheckSummary) -> String {
+    let r = &c.repairs;
+    let mut t = format!(
+        "{}: closed 2-manifold surface, {} vertices, {} triangles, Euler {}, {:.1} ml, {:.0} x {:.0} x {:.0} mm\n",
+        c.path, c.vertices, c.triangles, c.euler, c.volume_ml, c.size_mm[0], c.size_mm[1], c.size_mm[2]
+    );
+    t.push_str(&format!(
+        "repairs: {} vertices welded, {} degenerate and {} duplicate triangles removed, {} unused vertices removed{}\n",
+        r.welded_vertices,
+        r.degenerate_triangles,
+        r.duplicate_triangles,
+        r.unused_vertices,
+        if r.flipped_inside_out { ", winding flipped (was inside out)" } else { "" }
+    ));
+    if !c.lobes.is_empty() {
+        let parts: Vec<String> = c
+            .lobes
+            .iter()
+            .map(|l| format!("{} {} vertices {:.0} mm²", l.name, l.vertices, l.area_mm2))
+            .collect();
+        t.push_str(&format!("lobes (fissure planes): {}\n", parts.join(", ")));
+    }
+    if let Some(out) = &c.out {
+        t.push_str(&format!("wrote {out} (mm, body frame)\n"));
+    }
+    t
+}
+
+/// `scene prepare`'s text.
+fn prepare_text(p: &lungdyn::prepare::PrepareReport) -> String {
+    let mut t = String::new();
+    for k in &p.kernels {
+        t.push_str(&format!(
+            "{} lung: {}{}\n",
+            k.lung,
+            k.path,
+            if k.baked_now {
+                format!(" (baked now, {:.1} s)", k.bake_seconds)
+            } else {
+                String::new()
+            }
+        ));
+        match (&k.sh_budget_reason, k.sh_bands) {
+            (Some(r), _) => t.push_str(&format!("  sh mode, {r}\n")),
+            (None, 0) => {}
+            (None, n) => t.push_str(&format!(
+                "  sh mode, {n} bands (the scene's), RMS error {:.3} mm\n",
+                k.sh_rms_mm.unwrap_or(f64::NAN)
+            )),
+        }
+    }
+    t.push_str(&format!("mode: {}\n", p.mode));
+    t.push_str(&format!(
+        "wrote {}: start the engine and the renderer with --scene {}\n",
+        p.scene, p.scene
+    ));
+    t
 }
 
 /// A run's report: with `json`, one JSON object on stdout and the table on stderr; else the table

@@ -24,7 +24,6 @@ const LONG_FUNCTIONS: &[(&str, &str, usize)] = &[
     ("cli/src/tradeoff.rs", "run", 387),
     ("renderer/src/deform/mod.rs", "new", 356),
     ("engine/bake/src/pv/curve.rs", "parse_curve", 305),
-    ("cli/src/main.rs", "main", 297),
     ("remote/src/harness.rs", "run", 262),
     ("renderer/src/lib.rs", "with_rig", 259),
     ("renderer/src/draw/mod.rs", "new", 252),
