@@ -442,40 +442,7 @@ fn fit(a: &FitArgs) -> anyhow::Result<()> {
         },
     )?;
     if !a.json {
-        for (col, what, u, to) in [
-            (
-                &curve.pressure_column,
-                "pressure",
-                curve.pressure_unit,
-                "cmH2O",
-            ),
-            (&curve.volume_column, "volume", curve.volume_unit, "ml"),
-        ] {
-            if u.factor != 1.0 {
-                eprintln!(
-                    "lungdyn: {what} column {col:?} is in {} ({}): converted to {to} (x{})",
-                    u.name, u.from, u.factor
-                );
-            } else if u.from == "default" {
-                eprintln!(
-                    "lungdyn: {what} column {col:?} names no unit: read as {to} (name it in the header to be sure)"
-                );
-            }
-        }
-        if let Some(frc) = curve.frc_added_ml {
-            let why = match curve.relative {
-                Some(("header", _)) => format!(" (the header {:?} says so)", curve.volume_column),
-                Some(("--relative", _)) => " (--relative)".to_string(),
-                _ => String::new(),
-            };
-            eprintln!("lungdyn: volumes are changes above FRC{why}: {frc} ml added to each");
-            if curve.relative.is_some_and(|r| r.1) {
-                eprintln!(
-                    "lungdyn: FRC not given: Table 5.2's {frc} ml assumed (pass --frc ML for this \
-                     patient's FRC; the fitted shape does not depend on it, the boundary values do)"
-                );
-            }
-        }
+        say_units(&curve);
     }
     let opts = FitOptions {
         q: a.q,
@@ -558,6 +525,50 @@ fn fit(a: &FitArgs) -> anyhow::Result<()> {
         println!("{}", serde_json::to_string(&report)?);
         return Ok(());
     }
+    print_fit(a, &fit, seconds, &report);
+    Ok(())
+}
+
+/// Say how the curve's columns were read: units converted or assumed, FRC added.
+fn say_units(curve: &lung_bake::pv::curve::CurveFile) {
+    for (col, what, u, to) in [
+        (
+            &curve.pressure_column,
+            "pressure",
+            curve.pressure_unit,
+            "cmH2O",
+        ),
+        (&curve.volume_column, "volume", curve.volume_unit, "ml"),
+    ] {
+        if u.factor != 1.0 {
+            eprintln!(
+                "lungdyn: {what} column {col:?} is in {} ({}): converted to {to} (x{})",
+                u.name, u.from, u.factor
+            );
+        } else if u.from == "default" {
+            eprintln!(
+                "lungdyn: {what} column {col:?} names no unit: read as {to} (name it in the header to be sure)"
+            );
+        }
+    }
+    if let Some(frc) = curve.frc_added_ml {
+        let why = match curve.relative {
+            Some(("header", _)) => format!(" (the header {:?} says so)", curve.volume_column),
+            Some(("--relative", _)) => " (--relative)".to_string(),
+            _ => String::new(),
+        };
+        eprintln!("lungdyn: volumes are changes above FRC{why}: {frc} ml added to each");
+        if curve.relative.is_some_and(|r| r.1) {
+            eprintln!(
+                "lungdyn: FRC not given: Table 5.2's {frc} ml assumed (pass --frc ML for this \
+                 patient's FRC; the fitted shape does not depend on it, the boundary values do)"
+            );
+        }
+    }
+}
+
+/// The fit for a person: each phase's error and constants, the boundary values, what was written.
+fn print_fit(a: &FitArgs, fit: &lung_bake::pv::fit::CurveFit, seconds: f64, report: &FitJson) {
     println!("fit of {} ({:.2} s)", a.input.display(), seconds);
     if fit.driving_pressure_sign < 0.0 {
         println!(
@@ -610,7 +621,6 @@ fn fit(a: &FitArgs) -> anyhow::Result<()> {
     for p in &report.plots {
         println!("wrote {p}");
     }
-    Ok(())
 }
 
 fn fit_panels(
