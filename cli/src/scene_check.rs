@@ -1178,99 +1178,111 @@ pub fn run_scene(args: &RunArgs) -> anyhow::Result<RunReport> {
             delivery: core.disease().and_then(|d| d.delivery()),
         }),
     };
-    if let Some(d) = &scene.disease {
-        let mut disease = RunDisease {
-            kind: d.kind.name(),
-            tension: None,
-            tumour: None,
-            affected: None,
-        };
-        if let Some(engine::runtime::disease::DiseaseRun::Tension(run)) = core.disease() {
-            disease.tension = Some(RunTension {
-                cycles_run: run.cycles_run,
-                first_arrest_cycle: run.first_arrest,
-                events: run
-                    .events
-                    .iter()
-                    .map(|e| EventReport {
-                        tick: e.tick,
-                        cycle: e.cycle,
-                        kind: e.kind,
-                        side: e.side.name(),
-                        outcome: format!("{:?}", e.outcome),
-                    })
-                    .collect(),
-            });
-        }
-        if let (Some(engine::runtime::disease::DiseaseRun::Tumour(run)), Some(t)) =
-            (core.disease(), &follow)
-        {
-            let (amp, normal_amp) = t.amplitudes();
-            let csv = args.out.join("tumour_trajectory.csv");
-            t.write_csv(&csv, hz)?;
-            let m = &t.meta;
-            let xyz = |a: [f64; 3]| Xyz {
-                x: a[0],
-                y: a[1],
-                z: a[2],
-            };
-            disease.tumour = Some(RunTumour {
-                tumour: TumourRun {
-                    side: run.side.name(),
-                    centre_mm: m.centre_mm.map(r3),
-                    volume_ml: r3(m.volume_ml),
-                    vertices_affected: m.vertices_affected,
-                    kernel_entries_changed: m.entries_changed,
-                    kernel_entries_clamped: m.entries_clamped,
-                    affected_motion_change_percent: MeanMax {
-                        mean: r3(m.affected_motion_change_percent[0]),
-                        max: r3(m.affected_motion_change_percent[1]),
-                    },
-                    resistance_x: InhaleExhale {
-                        inhale: run.resistance[0].x,
-                        exhale: run.resistance[1].x,
-                    },
-                    trajectory_csv: csv.display().to_string(),
-                    trajectory_ticks: if t.last.is_empty() {
-                        t.current.len()
-                    } else {
-                        t.last.len()
-                    },
-                    non_finite_positions: t.bad,
-                },
-                tumour_motion_mm: xyz(amp),
-                tumour_motion_normal_mm: xyz(normal_amp),
-            });
-        }
-        if matches!(
-            d.kind,
-            lung_model::scene_disease::DiseaseKind::ClosedPneumothorax
-                | lung_model::scene_disease::DiseaseKind::BilateralPneumothorax
-        ) {
-            let sides: Vec<Side> = scene.lungs.sides.clone();
-            let spec = d.validate(&sides, scene.lungs.shape)?;
-            if let DiseaseSpec::Closed(c) = spec {
-                let per = sides
-                    .iter()
-                    .filter_map(|&side| {
-                        c.index_of(side).map(|i| {
-                            let dv =
-                                lung_model::disease::volume_fraction_lost(i).unwrap_or(f64::NAN);
-                            AffectedLung {
-                                side: side.name(),
-                                pneumothorax_index: i,
-                                dv: r3(dv),
-                                drop_mm: r3(lung_model::disease::drop_for_index(i).drop_mm),
-                            }
-                        })
-                    })
-                    .collect();
-                disease.affected = Some(per);
-            }
-        }
-        out.disease = Some(disease);
-    }
+    out.disease = disease_report(args, &scene, &core, follow.as_ref(), hz)?;
     Ok(out)
+}
+
+/// The disease state's part of the report: a tension pneumothorax's cycles and events, a tumour's
+/// motion (its trajectory written to `--out`), a closed pneumothorax's affected lungs.
+fn disease_report(
+    args: &RunArgs,
+    scene: &Scene,
+    core: &engine::runtime::EngineCore,
+    follow: Option<&TumourFollow>,
+    hz: f64,
+) -> anyhow::Result<Option<RunDisease>> {
+    let Some(d) = &scene.disease else {
+        return Ok(None);
+    };
+    let mut disease = RunDisease {
+        kind: d.kind.name(),
+        tension: None,
+        tumour: None,
+        affected: None,
+    };
+    if let Some(engine::runtime::disease::DiseaseRun::Tension(run)) = core.disease() {
+        disease.tension = Some(RunTension {
+            cycles_run: run.cycles_run,
+            first_arrest_cycle: run.first_arrest,
+            events: run
+                .events
+                .iter()
+                .map(|e| EventReport {
+                    tick: e.tick,
+                    cycle: e.cycle,
+                    kind: e.kind,
+                    side: e.side.name(),
+                    outcome: format!("{:?}", e.outcome),
+                })
+                .collect(),
+        });
+    }
+    if let (Some(engine::runtime::disease::DiseaseRun::Tumour(run)), Some(t)) =
+        (core.disease(), follow)
+    {
+        let (amp, normal_amp) = t.amplitudes();
+        let csv = args.out.join("tumour_trajectory.csv");
+        t.write_csv(&csv, hz)?;
+        let m = &t.meta;
+        let xyz = |a: [f64; 3]| Xyz {
+            x: a[0],
+            y: a[1],
+            z: a[2],
+        };
+        disease.tumour = Some(RunTumour {
+            tumour: TumourRun {
+                side: run.side.name(),
+                centre_mm: m.centre_mm.map(r3),
+                volume_ml: r3(m.volume_ml),
+                vertices_affected: m.vertices_affected,
+                kernel_entries_changed: m.entries_changed,
+                kernel_entries_clamped: m.entries_clamped,
+                affected_motion_change_percent: MeanMax {
+                    mean: r3(m.affected_motion_change_percent[0]),
+                    max: r3(m.affected_motion_change_percent[1]),
+                },
+                resistance_x: InhaleExhale {
+                    inhale: run.resistance[0].x,
+                    exhale: run.resistance[1].x,
+                },
+                trajectory_csv: csv.display().to_string(),
+                trajectory_ticks: if t.last.is_empty() {
+                    t.current.len()
+                } else {
+                    t.last.len()
+                },
+                non_finite_positions: t.bad,
+            },
+            tumour_motion_mm: xyz(amp),
+            tumour_motion_normal_mm: xyz(normal_amp),
+        });
+    }
+    if matches!(
+        d.kind,
+        lung_model::scene_disease::DiseaseKind::ClosedPneumothorax
+            | lung_model::scene_disease::DiseaseKind::BilateralPneumothorax
+    ) {
+        let sides: Vec<Side> = scene.lungs.sides.clone();
+        let spec = d.validate(&sides, scene.lungs.shape)?;
+        if let DiseaseSpec::Closed(c) = spec {
+            let per = sides
+                .iter()
+                .filter_map(|&side| {
+                    c.index_of(side).map(|i| {
+                        let dv = lung_model::disease::volume_fraction_lost(i).unwrap_or(f64::NAN);
+                        AffectedLung {
+                            side: side.name(),
+                            pneumothorax_index: i,
+                            dv: r3(dv),
+                            drop_mm: r3(lung_model::disease::drop_for_index(i).drop_mm),
+                        }
+                    })
+                })
+                .collect();
+            disease.affected = Some(per);
+        }
+    }
+    Ok(Some(disease))
 }
 
 /// What `lungdyn scene run` reports (`--json` writes it; [`run_text`] prints it).

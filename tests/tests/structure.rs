@@ -29,7 +29,6 @@ const LONG_FUNCTIONS: &[(&str, &str, usize)] = &[
     ("renderer/src/draw/mod.rs", "new", 252),
     ("renderer/src/session.rs", "step", 214),
     ("engine/model/src/disease/tension.rs", "advance", 203),
-    ("cli/src/scene_check.rs", "run_scene", 200),
     ("remote/src/roles.rs", "join", 196),
     ("engine/model/src/scene_disease.rs", "resolve", 196),
     ("engine/model/src/recording.rs", "parse_csv", 196),
