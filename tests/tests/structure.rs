@@ -36,7 +36,6 @@ const LONG_FUNCTIONS: &[(&str, &str, usize)] = &[
     ("engine/model/src/kernel.rs", "verify_layout", 184),
     ("engine/src/runtime/mod.rs", "step", 175),
     ("engine/bake/src/kernel.rs", "bake", 173),
-    ("tracker-bridge/pose/src/optics.rs", "from_toml", 159),
     ("remote/src/site.rs", "open", 155),
     ("engine/bake/src/motion_models.rs", "held_out_errors", 155),
     ("engine/model/src/disease/closed.rs", "plan", 151),

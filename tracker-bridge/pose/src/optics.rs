@@ -160,6 +160,65 @@ impl Default for Optics {
     }
 }
 
+/// The display's size, field of view and depth range, each in the range the renderer draws.
+fn check_display(d: &DisplayText, path: &str) -> Result<(), FileError> {
+    let invalid = |field, reason: String| FileError::Invalid {
+        path: path.into(),
+        field,
+        reason,
+    };
+    for (field, v) in [
+        ("display.width_px", d.width_px),
+        ("display.height_px", d.height_px),
+    ] {
+        if !(i64::from(MIN_EYE_PX)..=i64::from(MAX_EYE_PX)).contains(&v) {
+            return Err(invalid(
+                field,
+                format!(
+                    "{v} px is outside {MIN_EYE_PX}..={MAX_EYE_PX}, the per-eye sizes the \
+                     renderer draws"
+                ),
+            ));
+        }
+    }
+    if !(d.horizontal_fov_deg.is_finite() && (10.0..=170.0).contains(&d.horizontal_fov_deg)) {
+        return Err(invalid(
+            "display.horizontal_fov_deg",
+            format!("{} is outside 10..170 degrees", d.horizontal_fov_deg),
+        ));
+    }
+    if !(d.near_mm.is_finite()
+        && d.far_mm.is_finite()
+        && d.near_mm >= MIN_NEAR_MM
+        && d.near_mm < d.far_mm
+        && d.far_mm <= 100_000.0)
+    {
+        return Err(invalid(
+            "display.near_mm/far_mm",
+            format!(
+                "need {MIN_NEAR_MM} <= near < far <= 100000 mm, got {:?} and {:?} (a near plane \
+                 under {MIN_NEAR_MM} mm collapses the depth test: one depth step at 1 m would \
+                 be {:.3e} mm)",
+                d.near_mm,
+                d.far_mm,
+                depth_step_mm(d.near_mm, 1000.0)
+            ),
+        ));
+    }
+    if d.far_mm / d.near_mm > MAX_FAR_OVER_NEAR {
+        return Err(invalid(
+            "display.near_mm/far_mm",
+            format!(
+                "far/near = {:.3e} is above {MAX_FAR_OVER_NEAR:.0e}: the depth steps at the far \
+                 plane would be {:.1} mm; raise near_mm or lower far_mm",
+                d.far_mm / d.near_mm,
+                depth_step_mm(d.near_mm, d.far_mm)
+            ),
+        ));
+    }
+    Ok(())
+}
+
 impl Optics {
     /// Parse and check an optics text (`path` names it in errors).
     pub fn from_toml(text: &str, path: &str) -> Result<Self, FileError> {
@@ -179,55 +238,7 @@ impl Optics {
             ));
         }
         let d = &f.display;
-        for (field, v) in [
-            ("display.width_px", d.width_px),
-            ("display.height_px", d.height_px),
-        ] {
-            if !(i64::from(MIN_EYE_PX)..=i64::from(MAX_EYE_PX)).contains(&v) {
-                return Err(invalid(
-                    field,
-                    format!(
-                        "{v} px is outside {MIN_EYE_PX}..={MAX_EYE_PX}, the per-eye sizes the \
-                         renderer draws"
-                    ),
-                ));
-            }
-        }
-        if !(d.horizontal_fov_deg.is_finite() && (10.0..=170.0).contains(&d.horizontal_fov_deg)) {
-            return Err(invalid(
-                "display.horizontal_fov_deg",
-                format!("{} is outside 10..170 degrees", d.horizontal_fov_deg),
-            ));
-        }
-        if !(d.near_mm.is_finite()
-            && d.far_mm.is_finite()
-            && d.near_mm >= MIN_NEAR_MM
-            && d.near_mm < d.far_mm
-            && d.far_mm <= 100_000.0)
-        {
-            return Err(invalid(
-                "display.near_mm/far_mm",
-                format!(
-                    "need {MIN_NEAR_MM} <= near < far <= 100000 mm, got {:?} and {:?} (a near plane \
-                     under {MIN_NEAR_MM} mm collapses the depth test: one depth step at 1 m would \
-                     be {:.3e} mm)",
-                    d.near_mm,
-                    d.far_mm,
-                    depth_step_mm(d.near_mm, 1000.0)
-                ),
-            ));
-        }
-        if d.far_mm / d.near_mm > MAX_FAR_OVER_NEAR {
-            return Err(invalid(
-                "display.near_mm/far_mm",
-                format!(
-                    "far/near = {:.3e} is above {MAX_FAR_OVER_NEAR:.0e}: the depth steps at the far \
-                     plane would be {:.1} mm; raise near_mm or lower far_mm",
-                    d.far_mm / d.near_mm,
-                    depth_step_mm(d.near_mm, d.far_mm)
-                ),
-            ));
-        }
+        check_display(d, path)?;
         let ipd = f.eyes.ipd_mm;
         if !(ipd.is_finite() && (40.0..=85.0).contains(&ipd)) {
             return Err(invalid(
