@@ -37,7 +37,6 @@ const LONG_FUNCTIONS: &[(&str, &str, usize)] = &[
     ("engine/src/runtime/mod.rs", "step", 175),
     ("engine/bake/src/kernel.rs", "bake", 173),
     ("remote/src/site.rs", "open", 155),
-    ("engine/bake/src/motion_models.rs", "held_out_errors", 155),
     ("engine/model/src/disease/closed.rs", "plan", 151),
     ("engine/bake/src/patient_motion.rs", "fit_pair", 151),
 ];

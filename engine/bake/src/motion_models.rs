@@ -305,134 +305,12 @@ fn held_out_errors(
     sum: &mut [f64],
 ) {
     let (lo, hi) = bbox(tp);
-    let add = |g: usize, err: f64, sum: &mut [f64]| {
-        sum[g] += if err.is_finite() { err } else { f64::INFINITY };
-    };
     match kind {
         ModelKind::Poly if (hi - lo).min_element() > 1e-9 => {
-            let exps = monomials(5);
-            let (g5, b5) = poly_normal_equations(tp, td, lo, hi, &exps);
-            let mut phi = Vec::new();
-            let test: Vec<Vec<f64>> = hp
-                .iter()
-                .map(|x| {
-                    monomial_values(box_coords(*x, lo, hi), &exps, &mut phi);
-                    phi.clone()
-                })
-                .collect();
-            for (g, cfg) in grid.iter().enumerate() {
-                let Config::Poly { degree, lambda } = *cfg else {
-                    continue;
-                };
-                let m = monomials(degree).len();
-                let sub = g5.view((0, 0), (m, m)).into_owned();
-                let rhs = b5.view((0, 0), (m, 3)).into_owned();
-                let err = match ridge_solve(&sub, &rhs, tp.len(), lambda) {
-                    Some(c) => test
-                        .iter()
-                        .zip(hd)
-                        .map(|(v, d)| {
-                            let pred: DVec3 = (0..m).map(|r| DVec3::from(c[r]) * v[r]).sum();
-                            (pred - *d).length()
-                        })
-                        .sum(),
-                    None => f64::INFINITY,
-                };
-                add(g, err, sum);
-            }
+            poly_held_out(grid, tp, td, hp, hd, (lo, hi), sum)
         }
         ModelKind::Tps if (hi - lo).min_element() > 1e-9 && tp.len() > 8 => {
-            // All smoothing values at once (as the prototype does): with T = Q1·R and P = I − Q1Q1ᵀ,
-            // the weights live in the complement of T's columns, where K is positive definite
-            // (−r is conditionally positive definite). One eigendecomposition of P·K·P per stretch,
-            // then each λ costs O(n²): W = Σ v_i (v_iᵀΔ)/(e_i + λ) over the complement,
-            // A = R⁻¹Q1ᵀ(Δ − (K + λI)W).
-            let n = tp.len();
-            let mut t = DMatrix::<f64>::zeros(n, 4);
-            let mut delta = DMatrix::<f64>::zeros(n, 3);
-            for i in 0..n {
-                let u = box_coords(tp[i], lo, hi);
-                for (k, v) in [1.0, u.x, u.y, u.z].into_iter().enumerate() {
-                    t[(i, k)] = v;
-                }
-                for k in 0..3 {
-                    delta[(i, k)] = td[i][k];
-                }
-            }
-            // Full orthonormal basis: QR of [T | I] puts span(T) in the first four columns of Q and
-            // its complement in the rest, so the weights' constraint Tᵀ W = 0 holds by construction.
-            let mut ti = DMatrix::<f64>::zeros(n, n + 4);
-            ti.view_mut((0, 0), (n, 4)).copy_from(&t);
-            ti.view_mut((0, 4), (n, n)).fill_with_identity();
-            let q = ti.qr().q();
-            let q1 = q.columns(0, 4).into_owned();
-            let q2 = q.columns(4, n - 4).into_owned();
-            let r = q1.transpose() * &t;
-            let Some(r_inv) = r.try_inverse() else {
-                for (g, cfg) in grid.iter().enumerate() {
-                    if matches!(cfg, Config::Tps { .. }) {
-                        add(g, f64::INFINITY, sum);
-                    }
-                }
-                return;
-            };
-            let test_t: Vec<[f64; 4]> = hp
-                .iter()
-                .map(|x| {
-                    let u = box_coords(*x, lo, hi);
-                    [1.0, u.x, u.y, u.z]
-                })
-                .collect();
-            for s_z in [1.0, 2.0] {
-                let sc = DVec3::new(1.0, 1.0, s_z);
-                let k = DMatrix::<f64>::from_fn(n, n, |i, j| -((tp[i] - tp[j]) * sc).length());
-                let kte =
-                    DMatrix::<f64>::from_fn(hp.len(), n, |i, j| -((hp[i] - tp[j]) * sc).length());
-                let mut sm = q2.transpose() * &k * &q2;
-                sm = (&sm + sm.transpose()) * 0.5;
-                let eig = nalgebra::SymmetricEigen::new(sm);
-                // Weights W = Q2·V·diag(1/(e + λ))·Vᵀ·Q2ᵀ·Δ.
-                let basis = &q2 * &eig.eigenvectors;
-                let z = basis.transpose() * &delta;
-                for (g, cfg) in grid.iter().enumerate() {
-                    let Config::Tps { s_z: gs, lambda } = *cfg else {
-                        continue;
-                    };
-                    if gs != s_z {
-                        continue;
-                    }
-                    let mut scaled = z.clone();
-                    let mut ok = true;
-                    for c in 0..n - 4 {
-                        let den = eig.eigenvalues[c] + lambda;
-                        if !(den > 0.0) {
-                            ok = false;
-                            break;
-                        }
-                        for qq in 0..3 {
-                            scaled[(c, qq)] /= den;
-                        }
-                    }
-                    if !ok {
-                        add(g, f64::INFINITY, sum);
-                        continue;
-                    }
-                    let w = &basis * scaled;
-                    let resid = &delta - (&k * &w + &w * lambda);
-                    let a = &r_inv * (q1.transpose() * resid);
-                    let pred = &kte * &w;
-                    let err: f64 = (0..hp.len())
-                        .map(|i| {
-                            let mut d = DVec3::new(pred[(i, 0)], pred[(i, 1)], pred[(i, 2)]);
-                            for (qq, tv) in test_t[i].iter().enumerate() {
-                                d += DVec3::new(a[(qq, 0)], a[(qq, 1)], a[(qq, 2)]) * *tv;
-                            }
-                            (d - hd[i]).length()
-                        })
-                        .sum();
-                    add(g, err, sum);
-                }
-            }
+            tps_held_out(grid, tp, td, hp, hd, (lo, hi), sum)
         }
         _ => {
             for (g, cfg) in grid.iter().enumerate() {
@@ -444,8 +322,159 @@ fn held_out_errors(
                         .sum::<f64>(),
                     Err(_) => f64::INFINITY,
                 };
-                add(g, err, sum);
+                add_error(sum, g, err);
             }
+        }
+    }
+}
+
+/// Add a fold's held-out error to configuration `g`'s sum (a non-finite one makes it infinite).
+fn add_error(sum: &mut [f64], g: usize, err: f64) {
+    sum[g] += if err.is_finite() { err } else { f64::INFINITY };
+}
+
+/// [`held_out_errors`] for the polynomial grid: one Gram matrix of degree 5 per split, each degree
+/// its leading block.
+fn poly_held_out(
+    grid: &[Config],
+    tp: &[DVec3],
+    td: &[DVec3],
+    hp: &[DVec3],
+    hd: &[DVec3],
+    (lo, hi): (DVec3, DVec3),
+    sum: &mut [f64],
+) {
+    let exps = monomials(5);
+    let (g5, b5) = poly_normal_equations(tp, td, lo, hi, &exps);
+    let mut phi = Vec::new();
+    let test: Vec<Vec<f64>> = hp
+        .iter()
+        .map(|x| {
+            monomial_values(box_coords(*x, lo, hi), &exps, &mut phi);
+            phi.clone()
+        })
+        .collect();
+    for (g, cfg) in grid.iter().enumerate() {
+        let Config::Poly { degree, lambda } = *cfg else {
+            continue;
+        };
+        let m = monomials(degree).len();
+        let sub = g5.view((0, 0), (m, m)).into_owned();
+        let rhs = b5.view((0, 0), (m, 3)).into_owned();
+        let err = match ridge_solve(&sub, &rhs, tp.len(), lambda) {
+            Some(c) => test
+                .iter()
+                .zip(hd)
+                .map(|(v, d)| {
+                    let pred: DVec3 = (0..m).map(|r| DVec3::from(c[r]) * v[r]).sum();
+                    (pred - *d).length()
+                })
+                .sum(),
+            None => f64::INFINITY,
+        };
+        add_error(sum, g, err);
+    }
+}
+
+/// [`held_out_errors`] for the thin-plate spline grid: every smoothing value at once from one
+/// eigendecomposition per stretch.
+fn tps_held_out(
+    grid: &[Config],
+    tp: &[DVec3],
+    td: &[DVec3],
+    hp: &[DVec3],
+    hd: &[DVec3],
+    (lo, hi): (DVec3, DVec3),
+    sum: &mut [f64],
+) {
+    // All smoothing values at once (as the prototype does): with T = Q1·R and P = I − Q1Q1ᵀ,
+    // the weights live in the complement of T's columns, where K is positive definite
+    // (−r is conditionally positive definite). One eigendecomposition of P·K·P per stretch,
+    // then each λ costs O(n²): W = Σ v_i (v_iᵀΔ)/(e_i + λ) over the complement,
+    // A = R⁻¹Q1ᵀ(Δ − (K + λI)W).
+    let n = tp.len();
+    let mut t = DMatrix::<f64>::zeros(n, 4);
+    let mut delta = DMatrix::<f64>::zeros(n, 3);
+    for i in 0..n {
+        let u = box_coords(tp[i], lo, hi);
+        for (k, v) in [1.0, u.x, u.y, u.z].into_iter().enumerate() {
+            t[(i, k)] = v;
+        }
+        for k in 0..3 {
+            delta[(i, k)] = td[i][k];
+        }
+    }
+    // Full orthonormal basis: QR of [T | I] puts span(T) in the first four columns of Q and
+    // its complement in the rest, so the weights' constraint Tᵀ W = 0 holds by construction.
+    let mut ti = DMatrix::<f64>::zeros(n, n + 4);
+    ti.view_mut((0, 0), (n, 4)).copy_from(&t);
+    ti.view_mut((0, 4), (n, n)).fill_with_identity();
+    let q = ti.qr().q();
+    let q1 = q.columns(0, 4).into_owned();
+    let q2 = q.columns(4, n - 4).into_owned();
+    let r = q1.transpose() * &t;
+    let Some(r_inv) = r.try_inverse() else {
+        for (g, cfg) in grid.iter().enumerate() {
+            if matches!(cfg, Config::Tps { .. }) {
+                add_error(sum, g, f64::INFINITY);
+            }
+        }
+        return;
+    };
+    let test_t: Vec<[f64; 4]> = hp
+        .iter()
+        .map(|x| {
+            let u = box_coords(*x, lo, hi);
+            [1.0, u.x, u.y, u.z]
+        })
+        .collect();
+    for s_z in [1.0, 2.0] {
+        let sc = DVec3::new(1.0, 1.0, s_z);
+        let k = DMatrix::<f64>::from_fn(n, n, |i, j| -((tp[i] - tp[j]) * sc).length());
+        let kte = DMatrix::<f64>::from_fn(hp.len(), n, |i, j| -((hp[i] - tp[j]) * sc).length());
+        let mut sm = q2.transpose() * &k * &q2;
+        sm = (&sm + sm.transpose()) * 0.5;
+        let eig = nalgebra::SymmetricEigen::new(sm);
+        // Weights W = Q2·V·diag(1/(e + λ))·Vᵀ·Q2ᵀ·Δ.
+        let basis = &q2 * &eig.eigenvectors;
+        let z = basis.transpose() * &delta;
+        for (g, cfg) in grid.iter().enumerate() {
+            let Config::Tps { s_z: gs, lambda } = *cfg else {
+                continue;
+            };
+            if gs != s_z {
+                continue;
+            }
+            let mut scaled = z.clone();
+            let mut ok = true;
+            for c in 0..n - 4 {
+                let den = eig.eigenvalues[c] + lambda;
+                if !(den > 0.0) {
+                    ok = false;
+                    break;
+                }
+                for qq in 0..3 {
+                    scaled[(c, qq)] /= den;
+                }
+            }
+            if !ok {
+                add_error(sum, g, f64::INFINITY);
+                continue;
+            }
+            let w = &basis * scaled;
+            let resid = &delta - (&k * &w + &w * lambda);
+            let a = &r_inv * (q1.transpose() * resid);
+            let pred = &kte * &w;
+            let err: f64 = (0..hp.len())
+                .map(|i| {
+                    let mut d = DVec3::new(pred[(i, 0)], pred[(i, 1)], pred[(i, 2)]);
+                    for (qq, tv) in test_t[i].iter().enumerate() {
+                        d += DVec3::new(a[(qq, 0)], a[(qq, 1)], a[(qq, 2)]) * *tv;
+                    }
+                    (d - hd[i]).length()
+                })
+                .sum();
+            add_error(sum, g, err);
         }
     }
 }
