@@ -377,26 +377,7 @@ impl Site {
             .map_err(zerr("declare the site's liveliness token"))?;
         let relay = match clock {
             ClockSync::Source => None,
-            ClockSync::Relay => {
-                let p = path.clone();
-                Some(
-                    session
-                        .liveliness()
-                        .declare_subscriber(keys.relay_presence())
-                        .history(true)
-                        .callback(move |s| match s.kind() {
-                            zenoh::sample::SampleKind::Put => {
-                                p.relay_present.store(true, Ordering::Relaxed);
-                            }
-                            zenoh::sample::SampleKind::Delete => {
-                                p.relay_present.store(false, Ordering::Relaxed);
-                                p.relay_lost.fetch_add(1, Ordering::Relaxed);
-                            }
-                        })
-                        .wait()
-                        .map_err(zerr("declare the relay presence subscriber"))?,
-                )
-            }
+            ClockSync::Relay => Some(relay_presence(&session, keys, &path)?),
         };
         let (probe_key, warm) = match clock {
             ClockSync::Source => (keys.probe(), keys.warm()),
@@ -650,6 +631,31 @@ impl Runner {
     pub fn core(&self) -> &EngineCore {
         &self.core
     }
+}
+
+/// Watch the relay's presence (a site that takes its clock from the relay): present, or lost
+/// (counted).
+fn relay_presence(
+    session: &zenoh::Session,
+    keys: &Keys,
+    path: &Arc<PathFigures>,
+) -> Result<zenoh::pubsub::Subscriber<()>, RemoteError> {
+    let p = path.clone();
+    session
+        .liveliness()
+        .declare_subscriber(keys.relay_presence())
+        .history(true)
+        .callback(move |s| match s.kind() {
+            zenoh::sample::SampleKind::Put => {
+                p.relay_present.store(true, Ordering::Relaxed);
+            }
+            zenoh::sample::SampleKind::Delete => {
+                p.relay_present.store(false, Ordering::Relaxed);
+                p.relay_lost.fetch_add(1, Ordering::Relaxed);
+            }
+        })
+        .wait()
+        .map_err(zerr("declare the relay presence subscriber"))
 }
 
 #[cfg(test)]

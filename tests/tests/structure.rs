@@ -36,7 +36,6 @@ const LONG_FUNCTIONS: &[(&str, &str, usize)] = &[
     ("engine/model/src/kernel.rs", "verify_layout", 184),
     ("engine/src/runtime/mod.rs", "step", 175),
     ("engine/bake/src/kernel.rs", "bake", 173),
-    ("remote/src/site.rs", "open", 155),
     ("engine/model/src/disease/closed.rs", "plan", 151),
     ("engine/bake/src/patient_motion.rs", "fit_pair", 151),
 ];
