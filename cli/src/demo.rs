@@ -365,20 +365,6 @@ pub struct DemoReport {
     pub swept_files: usize,
 }
 
-/// The synthetic source's posture for a scene's (the bridge does not depend on the lung model, so
-/// each crate has its enum; this match is where they meet, checked by the compiler).
-pub fn bridge_posture(p: lung_model::scene::Posture) -> tracker_bridge::synthetic::Posture {
-    use lung_model::scene::Posture as S;
-    use tracker_bridge::synthetic::Posture as B;
-    match p {
-        S::Supine => B::Supine,
-        S::Sitting => B::Sitting,
-        S::Prone => B::Prone,
-        S::LeftLateral => B::LeftLateral,
-        S::RightLateral => B::RightLateral,
-    }
-}
-
 /// The snapshot ticks of a run too short for one whole breath: `count` spread evenly from the
 /// warm-up (at most a third of the run) to the run's end; empty when a whole breath fits after the
 /// warm-up even if its start is a cycle away (then the renderer plans one breath), or `count` is 0.
@@ -669,9 +655,6 @@ struct Resolved {
 struct Launch {
     /// Cores of tracker-bridge, engine, renderer (empty: not pinned).
     cpus: Vec<usize>,
-    /// The bridge's source and the synthetic patient's posture.
-    tracker_source: String,
-    posture: String,
 }
 
 /// The GPU adapter found, the scene loaded and overridden by the command line, checked.
@@ -730,16 +713,11 @@ fn resolve_scene(args: &DemoArgs) -> anyhow::Result<Resolved> {
     if let Some(h) = &args.hmd {
         loaded.render.hmd = Some(h.clone());
     }
-    let tracker_source = args
-        .tracker
-        .clone()
-        .unwrap_or_else(|| loaded.tracker.source.clone());
-    tracker_bridge::source::SourceSpec::parse(&tracker_source)?;
-    let posture = bridge_posture(loaded.tracker.posture);
-    let posture = clap::ValueEnum::to_possible_value(&posture)
-        .expect("every posture has a name")
-        .get_name()
-        .to_string();
+    // The bridge reads its source and posture from the resolved scene's [tracker] table itself.
+    if let Some(t) = &args.tracker {
+        loaded.tracker.source = t.clone();
+    }
+    tracker_bridge::source::SourceSpec::parse(&loaded.tracker.source)?;
     if (args.roll_deg > 0.0 || args.pitch_deg > 0.0) && !loaded.lungs.mode.follows_orientation() {
         eprintln!(
             "lungdyn: note: the {} mode keeps the supine breath whatever the patient's orientation; \
@@ -749,11 +727,7 @@ fn resolve_scene(args: &DemoArgs) -> anyhow::Result<Resolved> {
     }
     Ok(Resolved {
         scene: loaded,
-        launch: Launch {
-            cpus,
-            tracker_source,
-            posture,
-        },
+        launch: Launch { cpus },
     })
 }
 
@@ -917,23 +891,21 @@ impl<'p> Roles<'p> {
                     .collect();
                 with_scene([vec!["serve".to_string()], plain].concat())
             });
-        let bridge = [
-            common,
-            cpu(0),
-            vec![
-                "--roll-deg".to_string(),
-                args.roll_deg.to_string(),
-                "--pitch-deg".to_string(),
-                args.pitch_deg.to_string(),
-                "--sweep-period-s".to_string(),
-                args.sweep_period_s.to_string(),
-                "--source".to_string(),
-                launch.tracker_source.clone(),
-                "--posture".to_string(),
-                launch.posture.clone(),
-            ],
-        ]
-        .concat();
+        let bridge = with_scene(
+            [
+                common,
+                cpu(0),
+                vec![
+                    "--roll-deg".to_string(),
+                    args.roll_deg.to_string(),
+                    "--pitch-deg".to_string(),
+                    args.pitch_deg.to_string(),
+                    "--sweep-period-s".to_string(),
+                    args.sweep_period_s.to_string(),
+                ],
+            ]
+            .concat(),
+        );
         Ok(Self {
             exe,
             renderer,

@@ -28,7 +28,7 @@ pub struct InstallArgs {
     pub user: bool,
     /// The scene the service runs (prepared here: its kernels baked into PREFIX/share/lungdyn); the
     /// built-in scene when omitted. Its [processes] cpus become each unit's CPUAffinity, its
-    /// [tracker] source the bridge's source.
+    /// [tracker] table the bridge's source and posture (the bridge reads it from the prepared scene).
     #[arg(long, value_name = "FILE")]
     pub scene: Option<PathBuf>,
     /// Instance name the three processes share.
@@ -151,8 +151,6 @@ pub struct UnitSettings {
     pub scene: PathBuf,
     /// Instance name.
     pub instance: String,
-    /// The bridge's source.
-    pub source: String,
     /// Cores for tracker-bridge, engine, renderer (empty: unpinned).
     pub cpus: Vec<usize>,
     /// User units (else system units run as `group`).
@@ -197,17 +195,9 @@ pub fn unit(role: Role, s: &UnitSettings) -> Result<String, String> {
         systemd_word(&s.bin_dir.join(role.binary()))?,
         s.instance
     );
-    match role {
-        Role::TrackerBridge => {
-            // `--source=VALUE`, one word: a value beginning with '-' stays the source's value.
-            let source = systemd_word(Path::new(&s.source))
-                .map_err(|e| format!("the tracker source: {e}"))?;
-            exec.push_str(&format!(" --source={source}"));
-        }
-        Role::Engine | Role::Renderer => {
-            exec.push_str(&format!(" --scene {}", systemd_word(&s.scene)?));
-        }
-    }
+    // Every process reads its own tables from the prepared scene (the bridge its [tracker] source
+    // and posture): no scene value is written into the unit.
+    exec.push_str(&format!(" --scene {}", systemd_word(&s.scene)?));
     if role == Role::Renderer {
         exec.push_str(" --fullscreen");
         if let Some(d) = &s.display {
@@ -514,7 +504,6 @@ pub fn run(args: &InstallArgs) -> anyhow::Result<InstallReport> {
         bin_dir,
         scene: scene_path,
         instance: args.instance.clone(),
-        source: scene.tracker.source.clone(),
         cpus: scene.processes.cpus.clone(),
         user: args.user,
         group: args.group.clone(),
@@ -595,7 +584,6 @@ mod tests {
             bin_dir: "/usr/local/bin".into(),
             scene: "/usr/local/share/lungdyn/kernels/scene.resolved.toml".into(),
             instance: "workstation".into(),
-            source: "igtl-server".into(),
             cpus,
             user,
             group: "lungdyn".into(),
@@ -629,8 +617,8 @@ mod tests {
         let b = unit(Role::TrackerBridge, &s).unwrap();
         assert!(
             b.contains(
-                "ExecStart=/usr/local/bin/lungdyn-tracker-bridge --instance workstation \
-                 --source=igtl-server --cpu 1\n"
+                "ExecStart=/usr/local/bin/lungdyn-tracker-bridge --instance workstation --scene \
+                 /usr/local/share/lungdyn/kernels/scene.resolved.toml --cpu 1\n"
             ),
             "{b}"
         );
@@ -676,21 +664,14 @@ mod tests {
             assert!(systemd_word(Path::new(bad)).is_err(), "{bad:?}");
         }
         let mut s = settings(true, vec![]);
-        s.source = "replay:/a b".into();
-        assert!(unit(Role::TrackerBridge, &s).is_err());
-        // A quote or a backslash in the source (systemd-analyze: "unbalanced quoting") is refused
-        // with the reason, not written raw.
-        for bad in ["replay:/a\"b", "replay:/a\\b", "igtl-client:h;rm"] {
-            s.source = bad.into();
-            let e = unit(Role::TrackerBridge, &s).unwrap_err();
-            assert!(e.contains("tracker source"), "{bad:?}: {e}");
-        }
-        // A value that looks like an option stays one word with its option.
-        s.source = "--help".into();
+        // No scene value reaches a unit: a source with quotes, backslashes or spaces stays in the
+        // scene file, which the bridge reads (`--scene`), where TOML's quoting holds it.
         let u = unit(Role::TrackerBridge, &s).unwrap();
-        assert!(u.lines().any(|l| l.ends_with(" --source=--help")), "{u}");
+        assert!(!u.contains("--source") && !u.contains("--posture"), "{u}");
         s.scene = "/x y/scene.toml".into();
-        assert!(unit(Role::Engine, &s).is_err());
+        for role in Role::ALL {
+            assert!(unit(role, &s).is_err(), "{role:?}");
+        }
     }
 
     #[test]

@@ -1098,11 +1098,10 @@ pub fn run_scene(args: &RunArgs) -> anyhow::Result<RunReport> {
     let mut non_finite = 0u64;
     // A fixed patient in the scene's posture (the synthetic source without drift): the headless run
     // has no tracker, and a patient who does not move costs one orientation evaluation per lung.
-    let posture = crate::demo::bridge_posture(scene.tracker.posture);
     let patient = tracker_bridge::synthetic::Synthetic {
         rate_hz: scene.engine.tick_hz,
         drift_deg: 0.0,
-        posture,
+        posture: scene.tracker.posture,
         ..Default::default()
     };
     for tick in 0..ticks {

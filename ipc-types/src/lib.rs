@@ -9,8 +9,7 @@
 //!
 //! This crate is only the protocol. How a payload travels (iceoryx2 shared memory, an in-process
 //! queue in tests, a recorded file) is the `transport` crate's business; this crate depends on
-//! nothing but `bytemuck` (and `serde`, for the names of [`Intervention`] and [`wake::WakeMode`] in
-//! scene files).
+//! nothing but `bytemuck` (and `serde`, for the names of [`Intervention`] in scene files).
 //!
 //! Every payload carries [`HopStamps`]: the monotonic time (CLOCK_MONOTONIC, ns, shared by all
 //! processes on the host) at which it passed each hop, so the latency harness can attribute every
@@ -38,8 +37,6 @@
 use core::mem::{align_of, offset_of, size_of};
 
 use bytemuck::{Pod, Zeroable};
-
-pub mod wake;
 
 /// Version of every payload layout in this crate. Part of each payload's type name.
 pub const LAYOUT_VERSION: u32 = 5;

@@ -519,12 +519,30 @@ fn an_installed_scene_carries_the_files_it_names() {
     let bridge =
         std::fs::read_to_string(prefix.join("lib/systemd/system/lungdyn-tracker-bridge.service"))
             .unwrap();
+    // The unit passes the scene, not its values: the bridge reads the carried recording from the
+    // installed scene's [tracker] table itself.
     assert!(
-        bridge.contains(&format!(
-            "--source=replay:{}/tracker-replay-poses.rec",
-            files.display()
-        )),
+        bridge.contains(&format!("--scene {}", resolved.display())) && !bridge.contains("--source"),
         "{bridge}"
     );
+    assert!(
+        text.contains(&format!(
+            "source = \"replay:{}/tracker-replay-poses.rec\"",
+            files.display()
+        )),
+        "{text}"
+    );
+    let out = std::process::Command::new(lungdyn_tests::bin("tracker-bridge"))
+        .args(["--instance", &format!("svc-carry-{}", std::process::id())])
+        .args(["--scene", resolved.to_str().unwrap(), "--seconds", "1"])
+        .args(["--as-fast-as-possible"])
+        .output()
+        .unwrap();
+    let err = String::from_utf8_lossy(&out.stderr);
+    assert!(
+        out.status.success(),
+        "the installed bridge on its scene: {err}"
+    );
+    assert!(err.contains("tracker-replay-poses.rec"), "{err}");
     let _ = std::fs::remove_dir_all(&root);
 }

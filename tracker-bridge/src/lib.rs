@@ -38,6 +38,7 @@ pub mod validate;
 use std::path::PathBuf;
 
 use ipc_types::{TrackerFrame, MAX_TOOLS};
+use lungdyn_scene::tracker::{Posture, TrackerScene};
 use thiserror::Error;
 use transport::process::{pin_to_core, run_ns, ArgError, PinError};
 use transport::{iox, Instance, PortError};
@@ -52,10 +53,15 @@ use crate::validate::{Validation, Volume};
 /// Options that choose and shape the source, shared by the bridge and `lungdyn tracker listen`.
 #[derive(Debug, Clone, clap::Args)]
 pub struct SourceArgs {
+    /// The scene file whose [tracker] table gives the source and the synthetic patient's posture
+    /// (`--source` and `--posture` given here win); the other tables are not read.
+    #[arg(long, value_name = "FILE")]
+    pub scene: Option<PathBuf>,
     /// Tracker source: synthetic, igtl-client:HOST[:PORT], igtl-server[:BIND[:PORT]] (default
     /// 0.0.0.0:18944), ndi-serial:DEVICE, ndi-tcp:HOST[:PORT] (default port 8765), replay:FILE.
-    #[arg(long, default_value = "synthetic", value_name = "URI")]
-    pub source: String,
+    /// Default: the scene's [tracker] source, else synthetic.
+    #[arg(long, value_name = "URI")]
+    pub source: Option<String>,
     /// The patient reference tool's name at the source (slot 0): an OpenIGTLink device or tool
     /// name, an NDI port handle (0A) or ROM file stem.
     #[arg(long, default_value = "Patient", value_name = "NAME")]
@@ -99,9 +105,10 @@ pub struct SourceArgs {
     #[arg(long, value_name = "S", default_value_t = 20.0)]
     pub sweep_period_s: f32,
     /// Synthetic source: the patient's posture — supine, sitting, prone, left-lateral or
-    /// right-lateral (a fixed turn before the drift and the sweeps).
-    #[arg(long, value_enum, default_value_t = synthetic::Posture::Supine)]
-    pub posture: synthetic::Posture,
+    /// right-lateral (a fixed turn before the drift and the sweeps). Default: the scene's [tracker]
+    /// posture, else supine.
+    #[arg(long, value_enum)]
+    pub posture: Option<Posture>,
     /// Record every received sample with its receive time to FILE (never overwritten).
     #[arg(long, value_name = "FILE")]
     pub record: Option<PathBuf>,
@@ -126,7 +133,8 @@ pub struct SourceArgs {
 impl Default for SourceArgs {
     fn default() -> Self {
         SourceArgs {
-            source: "synthetic".into(),
+            scene: None,
+            source: None,
             patient_tool: "Patient".into(),
             hmd_tool: "HMD".into(),
             volume: "auto".into(),
@@ -139,7 +147,7 @@ impl Default for SourceArgs {
             roll_deg: 0.0,
             pitch_deg: 0.0,
             sweep_period_s: 20.0,
-            posture: synthetic::Posture::Supine,
+            posture: None,
             record: None,
             as_fast_as_possible: false,
             ndi_rom: Vec::new(),
@@ -162,6 +170,23 @@ pub struct Resolved {
 }
 
 impl SourceArgs {
+    /// The source and posture in force: the command line's, else the scene's `[tracker]` table's
+    /// (`--scene`), else the defaults (synthetic, supine).
+    pub fn tracker_table(&self) -> Result<TrackerScene, BridgeError> {
+        let mut t = match &self.scene {
+            Some(path) => lungdyn_scene::read_table::<TrackerScene>(path, "tracker")
+                .map_err(|e| BridgeError::Scene(e.to_string()))?,
+            None => TrackerScene::default(),
+        };
+        if let Some(s) = &self.source {
+            t.source = s.clone();
+        }
+        if let Some(p) = self.posture {
+            t.posture = p;
+        }
+        Ok(t)
+    }
+
     /// Check every option and resolve `auto`.
     pub fn resolve(&self) -> Result<Resolved, BridgeError> {
         if !(self.drift_deg.is_finite() && (0.0..=45.0).contains(&self.drift_deg)) {
@@ -188,7 +213,8 @@ impl SourceArgs {
                 self.stale_ms
             )));
         }
-        let spec = SourceSpec::parse(&self.source)?;
+        let tracker = self.tracker_table()?;
+        let spec = SourceSpec::parse(&tracker.source)?;
         let volume = if self.volume.trim().eq_ignore_ascii_case("auto") {
             if spec.is_device() {
                 Volume::SEED_CONE
@@ -226,7 +252,7 @@ impl SourceArgs {
                 roll_deg: self.roll_deg,
                 pitch_deg: self.pitch_deg,
                 sweep_period_s: self.sweep_period_s,
-                posture: self.posture,
+                posture: tracker.posture,
                 ..Default::default()
             },
             ..SourceOptions::default()
@@ -312,6 +338,9 @@ pub enum BridgeError {
     /// Another option is out of range.
     #[error("{0}")]
     Option(String),
+    /// `--scene`'s `[tracker]` table could not be read.
+    #[error("--scene: {0}")]
+    Scene(String),
     /// A tool name cannot be used.
     #[error(transparent)]
     Name(#[from] NameError),
@@ -424,11 +453,58 @@ mod tests {
     use super::*;
 
     #[test]
+    fn the_scenes_tracker_table_is_read_and_the_command_line_wins() {
+        let dir = std::env::temp_dir().join(format!("bridge-scene-{}", std::process::id()));
+        std::fs::create_dir_all(&dir).unwrap();
+        let scene = dir.join("s.toml");
+        std::fs::write(
+            &scene,
+            "[render]\nlook = \"translucent\"\n[tracker]\nsource = \"igtl-server\"\n\
+             posture = \"left-lateral\"\n",
+        )
+        .unwrap();
+        let from_scene = SourceArgs {
+            scene: Some(scene.clone()),
+            ..Default::default()
+        };
+        let t = from_scene.tracker_table().unwrap();
+        assert_eq!(
+            (t.source.as_str(), t.posture),
+            ("igtl-server", Posture::LeftLateral)
+        );
+        let r = from_scene.resolve().unwrap();
+        assert_eq!(r.spec, SourceSpec::parse("igtl-server").unwrap());
+        assert_eq!(r.options.synthetic.posture, Posture::LeftLateral);
+        let overridden = SourceArgs {
+            scene: Some(scene.clone()),
+            source: Some("synthetic".into()),
+            posture: Some(Posture::Prone),
+            ..Default::default()
+        };
+        let t = overridden.tracker_table().unwrap();
+        assert_eq!(
+            (t.source.as_str(), t.posture),
+            ("synthetic", Posture::Prone)
+        );
+        // Without a scene: synthetic, supine.
+        let t = SourceArgs::default().tracker_table().unwrap();
+        assert_eq!(t, TrackerScene::default());
+        // A bad table is refused naming the option, the file and the key.
+        std::fs::write(&scene, "[tracker]\nposture = \"standing\"\n").unwrap();
+        let e = from_scene.resolve().unwrap_err().to_string();
+        assert!(
+            e.starts_with("--scene: ") && e.contains("s.toml") && e.contains("standing"),
+            "{e}"
+        );
+        std::fs::remove_dir_all(&dir).unwrap();
+    }
+
+    #[test]
     fn auto_volume_is_the_seed_cone_for_trackers_and_none_for_synthetic() {
         let r = SourceArgs::default().resolve().unwrap();
         assert_eq!(r.config.validation.volume, Volume::Unbounded);
         let r = SourceArgs {
-            source: "igtl-server".into(),
+            source: Some("igtl-server".into()),
             ..Default::default()
         }
         .resolve()

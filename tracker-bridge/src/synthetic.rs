@@ -40,36 +40,20 @@ pub struct Synthetic {
     pub posture: Posture,
 }
 
-/// A patient's posture on the bed (`--posture`: supine, sitting, prone, left-lateral,
-/// right-lateral).
-#[derive(Debug, Clone, Copy, PartialEq, Eq, Default, clap::ValueEnum)]
-pub enum Posture {
-    /// On the back.
-    #[default]
-    Supine,
-    /// Sitting upright: head up.
-    Sitting,
-    /// On the front.
-    Prone,
-    /// On the left side (patient's left down).
-    LeftLateral,
-    /// On the right side.
-    RightLateral,
-}
+/// A patient's posture on the bed: the scene's `[tracker] posture`, the bridge's `--posture`.
+pub use lungdyn_scene::tracker::Posture;
 
-impl Posture {
-    /// The room-frame turn from supine (head at +X, +Z up): sitting turns the head up about the
-    /// bed's cross axis, prone rolls 180° about its long axis, the lateral postures roll 90°
-    /// (left-lateral puts the patient's left side, room −Y when supine, down: +90° about room X).
-    pub fn turn(self) -> Quat {
-        use std::f32::consts::{FRAC_PI_2, PI};
-        match self {
-            Posture::Supine => Quat::IDENTITY,
-            Posture::Sitting => Quat::from_rotation_y(-FRAC_PI_2),
-            Posture::Prone => Quat::from_rotation_x(PI),
-            Posture::LeftLateral => Quat::from_rotation_x(FRAC_PI_2),
-            Posture::RightLateral => Quat::from_rotation_x(-FRAC_PI_2),
-        }
+/// The room-frame turn of a posture from supine (head at +X, +Z up): sitting turns the head up
+/// about the bed's cross axis, prone rolls 180° about its long axis, the lateral postures roll 90°
+/// (left-lateral puts the patient's left side, room −Y when supine, down: +90° about room X).
+pub fn posture_turn(posture: Posture) -> Quat {
+    use std::f32::consts::{FRAC_PI_2, PI};
+    match posture {
+        Posture::Supine => Quat::IDENTITY,
+        Posture::Sitting => Quat::from_rotation_y(-FRAC_PI_2),
+        Posture::Prone => Quat::from_rotation_x(PI),
+        Posture::LeftLateral => Quat::from_rotation_x(FRAC_PI_2),
+        Posture::RightLateral => Quat::from_rotation_x(-FRAC_PI_2),
     }
 }
 
@@ -130,7 +114,7 @@ impl Synthetic {
             0.0,
         );
         pose(
-            (drift * self.posture.turn() * supine()).normalize(),
+            (drift * posture_turn(self.posture) * supine()).normalize(),
             STERNUM_MM + shift,
         )
     }
@@ -317,6 +301,8 @@ mod posture_tests {
                 "right-lateral"
             ]
         );
+        // The command line's names are the scene's (one type, one set of names).
+        assert_eq!(names, Posture::ALL.map(|p| p.name()));
         for (name, p) in names.iter().zip(Posture::value_variants()) {
             assert_eq!(Posture::from_str(name, false), Ok(*p));
         }

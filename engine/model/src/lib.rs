@@ -37,6 +37,7 @@ pub mod pv;
 pub mod recording;
 pub mod scene;
 pub mod scene_disease;
-pub mod scene_remote;
+/// The `[remote]` table (`lungdyn_scene::remote`, under its old name).
+pub use lungdyn_scene::remote as scene_remote;
 pub mod sh;
 pub mod units;

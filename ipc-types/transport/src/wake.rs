@@ -19,7 +19,7 @@
 //! is not a mutex); the event is drained before spinning, so wake-ups the spin made unnecessary do
 //! not pile up in the listener.
 
-use ipc_types::wake::WakeMode;
+use lungdyn_scene::wake::WakeMode;
 use thiserror::Error;
 
 /// How an [`crate::iox::Inlet`] waits (see the module documentation).

@@ -31,7 +31,12 @@ impl SyntheticSource {
 
 impl Source for SyntheticSource {
     fn describe(&self) -> String {
-        "synthetic source (supine patient, HMD walking round the bed)".to_string()
+        // The posture named (the scene's [tracker] posture or --posture): a run that should show a
+        // sitting patient says so at start, and a recording keeps it in its header.
+        format!(
+            "synthetic source ({} patient, HMD walking round the bed)",
+            self.scene.posture.name()
+        )
     }
 
     fn poll(&mut self, now_ns: u64, sink: &mut dyn FnMut(&Input)) -> Result<Poll, SourceError> {

@@ -1,6 +1,5 @@
 //! How a receiving process waits for its next sample: the names scenes use (`[processes] wake`) and
-//! the transport acts on (`transport::wake`). Named here, beside the protocol, because both the scene
-//! (lung-model) and the transport read them and neither depends on the other.
+//! the transport acts on (`transport::wake`).
 
 /// A receiver's wake strategy as a scene asks for it.
 #[derive(

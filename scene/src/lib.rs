@@ -1,0 +1,250 @@
+//! # lungdyn-scene: the scene tables each process reads for itself
+//!
+//! A scene file (TOML, `docs/SCENES.md`) describes one run. Its physics tables (`[pv]`,
+//! `[engine]`, `[lungs]`, `[disease]`) are `lung-model`'s: their values are physics types (presets,
+//! deformation modes, elasticity fields) and their checks need the physics. The tables here carry no
+//! physics and are read by processes that do not link the lung model:
+//! * [`tracker`] — `[tracker]`: where poses come from and the synthetic patient's posture; the
+//!   tracker-bridge reads it from the scene file itself ([`read_table`]), nothing re-stringified;
+//! * [`processes`] — `[processes]`: cores, per-process budgets, real-time scheduling and each
+//!   receiver's [`wake::WakeMode`];
+//! * [`render`] — `[render]`: how the renderer draws;
+//! * [`remote`] — `[remote]`: this machine's part in a shared session;
+//! * [`wake`] — the wake strategies' names, shared by the scene and the transport.
+//!
+//! `lung_model::scene::Scene` holds every table (these re-exported there under their old names) and
+//! calls each table's `validate` here; each check's message names its table and key.
+
+pub mod processes;
+pub mod remote;
+pub mod render;
+pub mod tracker;
+pub mod wake;
+
+use std::io::Read;
+use std::path::{Path, PathBuf};
+
+pub use processes::FRAME_DEADLINE_MS;
+
+/// A value of the `[processes]` or `[render]` table that parses but cannot be used; each names its
+/// table and key.
+#[derive(Debug, Clone, PartialEq, thiserror::Error)]
+pub enum TableError {
+    /// Image size out of range.
+    #[error("[render] width/height {width}x{height} must be within 16..8192")]
+    ImageSize {
+        /// Width of one eye.
+        width: u32,
+        /// Height.
+        height: u32,
+    },
+    /// Field of view out of range.
+    #[error("[render] fov_y_deg = {0} must be within 1..170")]
+    FieldOfView(f32),
+    /// An MSAA sample count the renderer does not offer.
+    #[error("[render] msaa = {0}: give 4 (anti-aliased) or 1 (off)")]
+    Msaa(u32),
+    /// IPD or splat size out of range.
+    #[error(
+        "[render] ipd_mm = {ipd_mm} must be within 0..200 and splat_mm = {splat_mm} within 0..100"
+    )]
+    EyeOrSplat {
+        /// IPD given.
+        ipd_mm: f32,
+        /// Splat size given.
+        splat_mm: f32,
+    },
+    /// `[processes] cpus` is not three cores.
+    #[error(
+        "[processes] cpus = {0:?}: give three cores (tracker-bridge, engine, renderer), or none"
+    )]
+    ProcessCpus(Vec<usize>),
+    /// A budget is out of range, or together they exceed the frame deadline.
+    #[error("[processes] budget_ms: {0}")]
+    ProcessBudget(String),
+    /// A wake strategy the cores cannot hold, or a spin window out of range.
+    #[error("[processes] {0}")]
+    ProcessWake(String),
+}
+
+/// A number as the checks' messages print it: three decimals at most, exponent form outside
+/// 1e-3..1e7 (`lung_model::plausible::compact`'s rule).
+pub(crate) fn compact(v: f64) -> String {
+    if v == 0.0 {
+        return "0".into();
+    }
+    if v.is_finite() && v.abs() >= 1e-3 && v.abs() < 1e7 {
+        format!("{}", (v * 1000.0).round() / 1000.0)
+    } else {
+        format!("{v:e}")
+    }
+}
+
+/// The largest scene file [`read_table`] reads (a scene is a few kilobytes; `lung-model` allows the
+/// same).
+pub const MAX_SCENE_BYTES: u64 = 4 << 20;
+
+/// Why one table could not be read from a scene file.
+#[derive(Debug, thiserror::Error)]
+pub enum ReadTableError {
+    /// The file could not be opened or read.
+    #[error("cannot read scene {}: {why}", path.display())]
+    Read {
+        /// The scene file.
+        path: PathBuf,
+        /// What went wrong.
+        why: String,
+    },
+    /// The file is not TOML.
+    #[error("scene {} is not valid TOML: {why}", path.display())]
+    Toml {
+        /// The scene file.
+        path: PathBuf,
+        /// The parser's message (line and column).
+        why: String,
+    },
+    /// The table is there but one of its values cannot be used.
+    #[error("scene {}: [{table}] {why}", path.display())]
+    Table {
+        /// The scene file.
+        path: PathBuf,
+        /// The table's name.
+        table: String,
+        /// The message (the key and what it expected).
+        why: String,
+    },
+}
+
+/// Read table `name` of the scene file at `path` as `T` (`T::default()` when the file has no such
+/// table). The other tables are not this reader's business and are not looked at beyond parsing the
+/// file as TOML; the launcher has checked the whole scene. The file must be a regular file of at most
+/// [`MAX_SCENE_BYTES`] (a FIFO or a device named as a scene is refused, never waited on).
+pub fn read_table<T>(path: &Path, name: &str) -> Result<T, ReadTableError>
+where
+    T: serde::de::DeserializeOwned + Default,
+{
+    let read = |why: String| ReadTableError::Read {
+        path: path.to_path_buf(),
+        why,
+    };
+    let meta = std::fs::metadata(path).map_err(|e| read(e.to_string()))?;
+    if !meta.is_file() {
+        return Err(read("not a regular file".into()));
+    }
+    if meta.len() > MAX_SCENE_BYTES {
+        return Err(read(format!(
+            "{} bytes, more than the {} a scene may have",
+            meta.len(),
+            MAX_SCENE_BYTES
+        )));
+    }
+    let mut bytes = Vec::new();
+    std::fs::File::open(path)
+        .and_then(|f| f.take(MAX_SCENE_BYTES + 1).read_to_end(&mut bytes))
+        .map_err(|e| read(e.to_string()))?;
+    if bytes.len() as u64 > MAX_SCENE_BYTES {
+        return Err(read(format!(
+            "more than the {MAX_SCENE_BYTES} bytes a scene may have"
+        )));
+    }
+    let text = String::from_utf8(bytes).map_err(|e| read(format!("not UTF-8 ({e})")))?;
+    table_of(&text, name).map_err(|e| match e {
+        TableOf::Toml(why) => ReadTableError::Toml {
+            path: path.to_path_buf(),
+            why,
+        },
+        TableOf::Table(why) => ReadTableError::Table {
+            path: path.to_path_buf(),
+            table: name.to_string(),
+            why,
+        },
+    })
+}
+
+enum TableOf {
+    Toml(String),
+    Table(String),
+}
+
+fn table_of<T>(text: &str, name: &str) -> Result<T, TableOf>
+where
+    T: serde::de::DeserializeOwned + Default,
+{
+    let mut doc: toml::Table = text
+        .parse()
+        .map_err(|e: toml::de::Error| TableOf::Toml(e.to_string().trim_end().to_string()))?;
+    match doc.remove(name) {
+        None => Ok(T::default()),
+        Some(toml::Value::Table(t)) => t
+            .try_into()
+            .map_err(|e: toml::de::Error| TableOf::Table(e.message().trim_end().to_string())),
+        Some(other) => Err(TableOf::Table(format!(
+            "is a {}, not a table",
+            other.type_str()
+        ))),
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::tracker::{Posture, TrackerScene};
+
+    #[test]
+    fn a_table_is_read_alone_and_defaults_when_absent() {
+        let t: TrackerScene = table_of(
+            "[pv]\npreset = \"anything: not this reader's\"\n[tracker]\nposture = \"prone\"\n",
+            "tracker",
+        )
+        .ok()
+        .unwrap();
+        assert_eq!(t.posture, Posture::Prone);
+        assert_eq!(t.source, "synthetic");
+        let t: TrackerScene = table_of("[render]\nwidth = 3\n", "tracker").ok().unwrap();
+        assert_eq!(t, TrackerScene::default());
+    }
+
+    #[test]
+    fn bad_tables_name_the_key() {
+        let e = |text: &str| match table_of::<TrackerScene>(text, "tracker") {
+            Err(TableOf::Table(m)) | Err(TableOf::Toml(m)) => m,
+            Ok(t) => panic!("accepted {t:?}"),
+        };
+        assert!(e("[tracker]\nposture = \"standing\"\n").contains("standing"));
+        assert!(e("[tracker]\nsorce = \"synthetic\"\n").contains("sorce"));
+        assert!(e("tracker = 3\n").contains("not a table"));
+        assert!(e("[tracker\n").contains("line 1"), "{}", e("[tracker\n"));
+    }
+
+    #[test]
+    fn read_table_refuses_what_is_not_a_small_regular_file() {
+        let dir = std::env::temp_dir().join(format!("lungdyn-scene-test-{}", std::process::id()));
+        std::fs::create_dir_all(&dir).unwrap();
+        let e = read_table::<TrackerScene>(&dir, "tracker").unwrap_err();
+        assert!(e.to_string().contains("not a regular file"), "{e}");
+        let missing = dir.join("missing.toml");
+        let e = read_table::<TrackerScene>(&missing, "tracker").unwrap_err();
+        assert!(e.to_string().contains("missing.toml"), "{e}");
+        let big = dir.join("big.toml");
+        std::fs::write(&big, vec![b'#'; MAX_SCENE_BYTES as usize + 1]).unwrap();
+        let e = read_table::<TrackerScene>(&big, "tracker").unwrap_err();
+        assert!(e.to_string().contains("more than"), "{e}");
+        let bad = dir.join("bad.toml");
+        std::fs::write(&bad, b"[tracker]\nposture = \"upside-down\"\n").unwrap();
+        let e = read_table::<TrackerScene>(&bad, "tracker").unwrap_err();
+        assert!(
+            e.to_string().contains("[tracker]") && e.to_string().contains("bad.toml"),
+            "{e}"
+        );
+        std::fs::remove_dir_all(&dir).unwrap();
+    }
+
+    #[test]
+    fn compact_matches_lung_models_rule() {
+        assert_eq!(compact(0.0), "0");
+        assert_eq!(compact(2.5), "2.5");
+        assert_eq!(compact(1.23456), "1.235");
+        assert_eq!(compact(f64::INFINITY), "inf");
+        assert_eq!(compact(1e-9), "1e-9");
+    }
+}
