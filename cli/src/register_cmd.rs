@@ -27,10 +27,7 @@ use tracker_pose::optics::Optics;
 use tracker_pose::registration::{register, COLLINEAR_RATIO, THIN_RATIO};
 
 use crate::input_args::InputArgs;
-
-/// What a calibration's model points are (JSON `model_frame`, see the module doc).
-pub const MODEL_FRAME: &str =
-    "ras: the body-frame points with X negated (lung_model::frame::body_to_ras)";
+pub use lungdyn_launcher::rig_json::{calibration_json, optics_json, MODEL_FRAME};
 
 /// Most fiducials read from one file.
 pub const MAX_POINTS: usize = 10_000;
@@ -268,48 +265,6 @@ pub fn hmd(args: &HmdArgs) -> anyhow::Result<Value> {
         None => Optics::default(),
     };
     Ok(optics_json(args.file.as_deref(), &o))
-}
-
-/// An optics file as `lungdyn hmd check --json` shows it (also in `lungdyn scene check`).
-pub fn optics_json(file: Option<&Path>, o: &Optics) -> Value {
-    let eyes: Vec<Value> = (0..2)
-        .map(|i| {
-            let e = &o.eyes[i];
-            let q = e.rotation.quaternion();
-            json!({
-                "eye": if i == 0 { "left" } else { "right" },
-                "offset_mm": [e.offset_mm.x, e.offset_mm.y, e.offset_mm.z],
-                "rotation_xyzw": [q.i, q.j, q.k, q.w],
-                "horizontal_fov_deg": o.horizontal_fov_deg(i),
-                "vertical_fov_deg": o.vertical_fov_deg(i),
-                "projection_col_major": o.projection(i),
-            })
-        })
-        .collect();
-    json!({
-        "file": file.map(|p| p.display().to_string()),
-        "width_px": o.width_px,
-        "height_px": o.height_px,
-        "ipd_mm": o.ipd_mm,
-        "near_mm": o.near_mm,
-        "far_mm": o.far_mm,
-        "eyes": eyes,
-    })
-}
-
-/// A calibration as `lungdyn scene check` shows it.
-pub fn calibration_json(file: &Path, c: &Calibration) -> Value {
-    let q = c.rotation.quaternion();
-    let t = c.translation_mm;
-    json!({
-        "file": file.display().to_string(),
-        "rotation_xyzw": [q.i, q.j, q.k, q.w],
-        "rotation_deg": c.rotation.angle().to_degrees(),
-        "model_frame": MODEL_FRAME,
-        "translation_mm": [t.x, t.y, t.z],
-        "fre_rms_mm": c.registration.as_ref().map(|r| r.fre_rms_mm),
-        "fiducials": c.registration.as_ref().map(|r| r.fiducials),
-    })
 }
 
 /// What `lungdyn hmd check` prints.

@@ -808,7 +808,7 @@ fn markdown(t: &Tradeoff, stem: &str) -> String {
     let _ = writeln!(s, "# The deformation modes: speed against accuracy\n");
     let _ = writeln!(
         s,
-        "Written by `lungdyn bench tradeoff` (see `cli/src/tradeoff.rs`); regenerate with \
+        "Written by `lungdyn bench tradeoff` (see `launcher/src/tradeoff.rs`); regenerate with \
          `cargo run --release --bin lungdyn -- bench tradeoff --out docs`. Generated left \
          lung, Table 6.1 constants, default elasticity and tolerance. Errors are displacements \
          against eq. 7.1 evaluated in f64, at the reference volume (+250 ml, a tidal breath's share \

@@ -121,7 +121,7 @@ pub struct CalibrationSeen {
 
 impl Serialize for CalibrationSeen {
     fn serialize<S: serde::Serializer>(&self, s: S) -> Result<S::Ok, S::Error> {
-        crate::register_cmd::calibration_json(&self.file, &self.calibration).serialize(s)
+        crate::rig_json::calibration_json(&self.file, &self.calibration).serialize(s)
     }
 }
 
@@ -136,7 +136,7 @@ pub struct OpticsSeen {
 
 impl Serialize for OpticsSeen {
     fn serialize<S: serde::Serializer>(&self, s: S) -> Result<S::Ok, S::Error> {
-        crate::register_cmd::optics_json(Some(&self.file), &self.optics).serialize(s)
+        crate::rig_json::optics_json(Some(&self.file), &self.optics).serialize(s)
     }
 }
 
