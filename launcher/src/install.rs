@@ -96,7 +96,8 @@ pub fn parse_name(s: &str) -> Result<String, String> {
     }
 }
 
-/// The three processes, in the scene's `[processes] cpus` order.
+/// The service's processes: the three in the scene's `[processes] cpus` order, and a shared
+/// session's relay when the scene is a session's source.
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]
 pub enum Role {
     /// tracker-bridge.
@@ -105,10 +106,12 @@ pub enum Role {
     Engine,
     /// renderer.
     Renderer,
+    /// `remote serve`: the engine's control state to the remote sites (a `[remote]` source only).
+    Remote,
 }
 
 impl Role {
-    /// All three, in the cpus order.
+    /// The three every workstation runs, in the cpus order.
     pub const ALL: [Role; 3] = [Role::TrackerBridge, Role::Engine, Role::Renderer];
 
     /// The subcommand (and unit suffix).
@@ -117,6 +120,7 @@ impl Role {
             Role::TrackerBridge => "tracker-bridge",
             Role::Engine => "engine",
             Role::Renderer => "renderer",
+            Role::Remote => "remote",
         }
     }
 
@@ -125,7 +129,28 @@ impl Role {
             Role::TrackerBridge => "tracker poses to shared memory",
             Role::Engine => "the breathing state, one tick per tracker frame",
             Role::Renderer => "the deformed lungs, side-by-side stereo on the headset",
+            Role::Remote => "the engine's control state to the shared session's sites over Zenoh",
         }
+    }
+
+    /// The processes a scene's service runs: the three, and `remote serve` beside a `[remote]`
+    /// source. A site's or an observer's scene is refused: its engine follows a source (`lungdyn
+    /// remote join`), which these units do not run, so they would show a breath of its own.
+    pub fn for_scene(scene: &lung_model::scene::Scene) -> anyhow::Result<Vec<Role>> {
+        use lung_model::scene_remote::RemoteRole;
+        let mut roles = Role::ALL.to_vec();
+        match scene.remote.as_ref().map(|r| r.role) {
+            None => {}
+            Some(RemoteRole::Source) => roles.push(Role::Remote),
+            Some(role @ (RemoteRole::Site | RemoteRole::Observer)) => anyhow::bail!(
+                "the scene's [remote] role is \"{}\": lungdyn install sets up a workstation that \
+                 runs its own engine (and, for a session's source, `lungdyn-remote serve` beside \
+                 it); a site's engine follows the source, so run it as `lungdyn remote join --scene \
+                 SCENE --instance NAME` with a renderer on that instance (docs/REMOTE.md)",
+                if role == RemoteRole::Site { "site" } else { "observer" }
+            ),
+        }
+        Ok(roles)
     }
 
     /// The thin binary the unit runs, as installed (`cargo build` names it after its crate,
@@ -186,13 +211,16 @@ pub fn systemd_word(p: &Path) -> Result<String, String> {
 /// The unit of one process.
 pub fn unit(role: Role, s: &UnitSettings) -> Result<String, String> {
     let name = role.name();
-    let cpu = s
-        .cpus
-        .get(Role::ALL.iter().position(|r| *r == role).unwrap_or(0))
+    // The relay is not one of the three pinned processes: it runs unpinned.
+    let cpu = Role::ALL
+        .iter()
+        .position(|r| *r == role)
+        .and_then(|i| s.cpus.get(i))
         .copied();
     let mut exec = format!(
-        "{} --instance {}",
+        "{}{} --instance {}",
         systemd_word(&s.bin_dir.join(role.binary()))?,
+        if role == Role::Remote { " serve" } else { "" },
         s.instance
     );
     // Every process reads its own tables from the prepared scene (the bridge its [tracker] source
@@ -227,26 +255,11 @@ pub fn unit(role: Role, s: &UnitSettings) -> Result<String, String> {
     if role == Role::Renderer && s.user {
         u.push_str("After=graphical-session.target\n");
     }
-    u.push_str(&format!(
-        "\n[Service]\n\
-         # READY=1 once its ports are open; WATCHDOG=1 from its loop every WatchdogSec/2.\n\
-         Type=notify\n\
-         NotifyAccess=main\n\
-         ExecStart={exec}\n\
-         Restart=on-failure\n\
-         # A hung loop stops pinging: systemd aborts it at most WatchdogSec after the hang and starts\n\
-         # it again RestartSec later, so it is back within WatchdogSec + 1 s (start to READY took\n\
-         # 0.05-0.2 s: deploy/watchdog_check.sh). StartLimitBurst keeps a crash loop from spinning.\n\
-         RestartSec=300ms\n\
-         WatchdogSec={}\n\
-         TimeoutStartSec=120\n\
-         # Stop: SIGTERM then SIGCONT, latched by the process (a later SIGCONT cannot cancel it);\n\
-         # SIGKILL after TimeoutStopSec.\n\
-         TimeoutStopSec=5\n\
-         LimitRTPRIO=90\n\
-         LimitMEMLOCK=infinity\n",
-        s.watchdog_sec
-    ));
+    if role == Role::Remote {
+        u.push_str(&remote_service(&exec));
+    } else {
+        u.push_str(&notify_service(&exec, s.watchdog_sec));
+    }
     if let Some(c) = cpu {
         u.push_str(&format!("CPUAffinity={c}\n"));
     }
@@ -269,9 +282,51 @@ pub fn unit(role: Role, s: &UnitSettings) -> Result<String, String> {
     Ok(u)
 }
 
-/// The target that starts the three processes.
-pub fn target(user: bool) -> String {
-    let wants = Role::ALL.map(Role::unit_name).join(" ");
+/// The `[Service]` section of a process on the frame's path: notify and watchdog, real-time limits.
+fn notify_service(exec: &str, watchdog_sec: u32) -> String {
+    format!(
+        "\n[Service]\n\
+         # READY=1 once its ports are open; WATCHDOG=1 from its loop every WatchdogSec/2.\n\
+         Type=notify\n\
+         NotifyAccess=main\n\
+         ExecStart={exec}\n\
+         Restart=on-failure\n\
+         # A hung loop stops pinging: systemd aborts it at most WatchdogSec after the hang and starts\n\
+         # it again RestartSec later, so it is back within WatchdogSec + 1 s (start to READY took\n\
+         # 0.05-0.2 s: deploy/watchdog_check.sh). StartLimitBurst keeps a crash loop from spinning.\n\
+         RestartSec=300ms\n\
+         WatchdogSec={}\n\
+         TimeoutStartSec=120\n\
+         # Stop: SIGTERM then SIGCONT, latched by the process (a later SIGCONT cannot cancel it);\n\
+         # SIGKILL after TimeoutStopSec.\n\
+         TimeoutStopSec=5\n\
+         LimitRTPRIO=90\n\
+         LimitMEMLOCK=infinity\n",
+        watchdog_sec
+    )
+}
+
+/// The `[Service]` section of the session's relay: off the frame's path (it reads the engine's
+/// control state and sends it on), so no watchdog and no real-time limits; it waits for the
+/// engine's stream and is restarted like the others when it fails.
+fn remote_service(exec: &str) -> String {
+    format!(
+        "After=lungdyn-engine.service\n\
+         \n[Service]\n\
+         Type=simple\n\
+         ExecStart={exec}\n\
+         Restart=on-failure\n\
+         RestartSec=1s\n\
+         TimeoutStopSec=5\n"
+    )
+}
+
+/// The target that starts the service's processes (`roles`, [`Role::for_scene`]).
+pub fn target(user: bool, roles: &[Role]) -> String {
+    let wants: Vec<String> = roles.iter().map(|r| r.unit_name()).collect();
+    let wants = wants.join(" ");
+    let names: Vec<&str> = roles.iter().map(|r| r.name()).collect();
+    let names = names.join(", ");
     let (after, wanted_by) = if user {
         ("graphical-session.target", "graphical-session.target")
     } else {
@@ -280,7 +335,7 @@ pub fn target(user: bool) -> String {
     format!(
         "# Written by `lungdyn install` (docs/DEPLOY.md).\n\
          [Unit]\n\
-         Description=lungdyn on the HMD workstation (tracker-bridge, engine, renderer)\n\
+         Description=lungdyn on the HMD workstation ({names})\n\
          Wants={wants}\n\
          After={after}\n\
          \n\
@@ -344,10 +399,14 @@ fn write_file(path: &Path, bytes: &[u8], mode: u32) -> anyhow::Result<()> {
 /// and `tracker-bridge` in the same folder as `lungdyn`): each found and answering `--help` as
 /// that role, or an error naming the build command — the units never run the whole `lungdyn`
 /// (with lung-bake, plotters and zenoh) as a service.
-pub fn thin_binaries(exe: &Path) -> anyhow::Result<Vec<(Role, PathBuf)>> {
+pub fn thin_binaries(exe: &Path, roles: &[Role]) -> anyhow::Result<Vec<(Role, PathBuf)>> {
     let dir = exe.parent().unwrap_or(Path::new("."));
-    let build = "cargo build --release -p engine -p renderer -p tracker-bridge";
-    let missing: Vec<String> = Role::ALL
+    let build = if roles.contains(&Role::Remote) {
+        "cargo build --release -p engine -p renderer -p tracker-bridge -p lungdyn-remote"
+    } else {
+        "cargo build --release -p engine -p renderer -p tracker-bridge"
+    };
+    let missing: Vec<String> = roles
         .iter()
         .map(|r| dir.join(r.name()))
         .filter(|p| !p.is_file())
@@ -361,7 +420,7 @@ pub fn thin_binaries(exe: &Path) -> anyhow::Result<Vec<(Role, PathBuf)>> {
             missing.join(", ")
         );
     }
-    Role::ALL
+    roles
         .iter()
         .map(|&role| {
             let path = dir.join(role.name());
@@ -447,7 +506,8 @@ pub fn run(args: &InstallArgs) -> anyhow::Result<InstallReport> {
 
     let exe = std::env::current_exe()?;
     // The thin role binaries the units run, found beside this one before anything is written.
-    let thin = thin_binaries(&exe)?;
+    let roles = Role::for_scene(&scene)?;
+    let thin = thin_binaries(&exe, &roles)?;
     let bin_dir = prefix.join("bin");
     let bin = bin_dir.join("lungdyn");
     let bytes =
@@ -516,7 +576,7 @@ pub fn run(args: &InstallArgs) -> anyhow::Result<InstallReport> {
         prefix.join("lib/systemd/system")
     };
     let mut units = Vec::new();
-    for role in Role::ALL {
+    for &role in &roles {
         let text = unit(role, &settings).map_err(anyhow::Error::msg)?;
         units.push((
             unit_dir.join(role.unit_name()),
@@ -526,8 +586,8 @@ pub fn run(args: &InstallArgs) -> anyhow::Result<InstallReport> {
     }
     units.push((
         unit_dir.join("lungdyn.target"),
-        target(args.user),
-        "the target starting all three".into(),
+        target(args.user, &roles),
+        format!("the target starting all {}", roles.len()),
     ));
     for (path, text, what) in units {
         write_file(&path, text.as_bytes(), 0o644)?;
@@ -642,10 +702,73 @@ mod tests {
             "{u}"
         );
         assert!(u.contains("After=graphical-session.target"));
-        assert!(target(true).contains("WantedBy=graphical-session.target"));
-        assert!(target(false).contains(
+        assert!(target(true, &Role::ALL).contains("WantedBy=graphical-session.target"));
+        assert!(target(false, &Role::ALL).contains(
             "Wants=lungdyn-tracker-bridge.service lungdyn-engine.service lungdyn-renderer.service"
         ));
+    }
+
+    #[test]
+    fn a_sessions_source_installs_its_relay_unpinned_and_a_site_is_refused() {
+        let source = lung_model::scene::Scene::parse(
+            "[remote]\nrole = \"source\"\nroom = \"ward-3\"\n",
+            "source.toml",
+        )
+        .unwrap();
+        let roles = Role::for_scene(&source).unwrap();
+        assert_eq!(
+            roles,
+            [
+                Role::TrackerBridge,
+                Role::Engine,
+                Role::Renderer,
+                Role::Remote
+            ]
+        );
+        assert_eq!(
+            Role::for_scene(&lung_model::scene::Scene::default()).unwrap(),
+            Role::ALL
+        );
+        let s = settings(false, vec![1, 2, 3]);
+        let u = unit(Role::Remote, &s).unwrap();
+        for line in [
+            "ExecStart=/usr/local/bin/lungdyn-remote serve --instance workstation --scene \
+             /usr/local/share/lungdyn/kernels/scene.resolved.toml",
+            "Type=simple",
+            "Restart=on-failure",
+            "After=lungdyn-engine.service",
+            "PartOf=lungdyn.target",
+            "SyslogIdentifier=lungdyn-remote",
+            "User=lungdyn",
+        ] {
+            assert!(u.lines().any(|l| l == line), "{line:?} missing in:\n{u}");
+        }
+        // Off the frame's path: no watchdog, no real-time limits, no core of the three.
+        for absent in [
+            "WatchdogSec",
+            "LimitRTPRIO",
+            "CPUAffinity",
+            "--cpu",
+            "Type=notify",
+        ] {
+            assert!(!u.contains(absent), "{absent} in:\n{u}");
+        }
+        assert!(target(false, &roles).contains(
+            "Wants=lungdyn-tracker-bridge.service lungdyn-engine.service lungdyn-renderer.service \
+             lungdyn-remote.service"
+        ));
+        for role in ["site", "observer"] {
+            let site = lung_model::scene::Scene::parse(
+                &format!(
+                    "[remote]\nrole = \"{role}\"\nroom = \"ward-3\"\nconnect = \
+                     [\"tcp/10.0.0.1:7447\"]\n"
+                ),
+                "site.toml",
+            )
+            .unwrap();
+            let e = Role::for_scene(&site).unwrap_err().to_string();
+            assert!(e.contains(role) && e.contains("lungdyn remote join"), "{e}");
+        }
     }
 
     #[test]

@@ -354,15 +354,109 @@ fn install_writes_under_its_prefix_and_the_units_verify() {
     let _ = std::fs::remove_dir_all(&root);
 }
 
+/// A shared session's source installs its relay as its own thin binary (`lungdyn-remote serve`)
+/// beside the three, in a unit `systemd-analyze verify` accepts; a site's scene is refused and
+/// nothing is written.
+#[test]
+fn a_sessions_source_installs_its_relay_and_a_site_is_refused() {
+    let root = std::env::temp_dir().join(unique_instance("install-remote"));
+    std::fs::create_dir_all(&root).unwrap();
+    let scene = root.join("source.toml");
+    std::fs::write(
+        &scene,
+        "[lungs]\nvertices = 600\n[remote]\nrole = \"source\"\nroom = \"ward-3\"\n",
+    )
+    .unwrap();
+    let prefix = root.join("p");
+    let (ok, out, err) = lungdyn_tests::lungdyn(&[
+        "install",
+        "--prefix",
+        prefix.to_str().unwrap(),
+        "--scene",
+        scene.to_str().unwrap(),
+        "--json",
+    ]);
+    assert!(ok, "{err}");
+    let r: serde_json::Value = serde_json::from_str(out.trim()).unwrap();
+    assert!(r.to_string().contains("lungdyn-remote.service"), "{r}");
+    let unit_dir = prefix.join("lib/systemd/system");
+    let unit = std::fs::read_to_string(unit_dir.join("lungdyn-remote.service")).unwrap();
+    let exe = prefix.join("bin/lungdyn-remote");
+    assert!(
+        unit.contains(&format!("ExecStart={} serve --instance", exe.display())),
+        "{unit}"
+    );
+    assert!(std::fs::read(&exe).unwrap() == std::fs::read(bin("remote")).unwrap());
+    let target = std::fs::read_to_string(unit_dir.join("lungdyn.target")).unwrap();
+    assert!(target.contains("lungdyn-remote.service"), "{target}");
+    let units: Vec<String> = [
+        "lungdyn-tracker-bridge.service",
+        "lungdyn-engine.service",
+        "lungdyn-renderer.service",
+        "lungdyn-remote.service",
+        "lungdyn.target",
+    ]
+    .iter()
+    .map(|u| unit_dir.join(u).to_string_lossy().into_owned())
+    .collect();
+    if let Some(v) = lungdyn_needs::require(
+        lungdyn_needs::Need::Systemd,
+        Command::new("systemd-analyze")
+            .arg("verify")
+            .args(&units)
+            .output(),
+    ) {
+        let verr = String::from_utf8_lossy(&v.stderr);
+        assert!(
+            v.status.success() && verr.trim().is_empty(),
+            "systemd-analyze verify: {verr}"
+        );
+    }
+    let site = root.join("site.toml");
+    std::fs::write(
+        &site,
+        "[remote]\nrole = \"site\"\nroom = \"ward-3\"\nconnect = [\"tcp/127.0.0.1:7447\"]\n",
+    )
+    .unwrap();
+    let site_prefix = root.join("site");
+    let (ok, _, err) = lungdyn_tests::lungdyn(&[
+        "install",
+        "--prefix",
+        site_prefix.to_str().unwrap(),
+        "--scene",
+        site.to_str().unwrap(),
+    ]);
+    assert!(!ok && err.contains("lungdyn remote join"), "{err}");
+    assert!(!site_prefix.exists(), "nothing written for a refused scene");
+    let _ = std::fs::remove_dir_all(&root);
+}
+
 /// The deployed processes are thin (issue 33, the architecture's rule): the crates whose binaries
 /// the units run link no baking (lung-bake), plotting (plotters), networking (zenoh, the remote
 /// crate) or the whole CLI — read from `cargo tree` of each crate's normal dependencies, which must
 /// also name the transport they do need (so an empty or failed listing cannot pass).
 #[test]
 fn the_deployed_binaries_link_no_baking_plotting_or_networking() {
+    const BANNED: &[&str] = &[
+        "lung-bake",
+        "plotters",
+        "zenoh",
+        "lungdyn-remote",
+        "lungdyn",
+    ];
     let cargo = std::env::var_os("CARGO").unwrap_or_else(|| "cargo".into());
     let root = std::path::Path::new(env!("CARGO_MANIFEST_DIR")).join("..");
-    for krate in ["engine", "renderer", "tracker-bridge"] {
+    for (krate, needs, banned) in [
+        ("engine", "iceoryx2", BANNED),
+        ("renderer", "iceoryx2", BANNED),
+        ("tracker-bridge", "iceoryx2", BANNED),
+        // The session's relay is networking by design: zenoh, and nothing that bakes or plots.
+        (
+            "lungdyn-remote",
+            "zenoh",
+            &["lung-bake", "plotters", "lungdyn", "renderer"][..],
+        ),
+    ] {
         let out = Command::new(&cargo)
             .args([
                 "tree",
@@ -388,14 +482,8 @@ fn the_deployed_binaries_link_no_baking_plotting_or_networking() {
             .lines()
             .filter_map(|l| l.split_whitespace().next())
             .collect();
-        assert!(names.contains("iceoryx2"), "{krate}: {names:?}");
-        for banned in [
-            "lung-bake",
-            "plotters",
-            "zenoh",
-            "lungdyn-remote",
-            "lungdyn",
-        ] {
+        assert!(names.contains(needs), "{krate}: {names:?}");
+        for &banned in banned {
             assert!(
                 !names.contains(banned),
                 "the {krate} binary links {banned}: `cargo tree -p {krate} -e normal -i {banned}`"
