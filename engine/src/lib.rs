@@ -6,6 +6,9 @@
 //! [`runtime::process`] paces it on the tracker stream and publishes. The lung model it reads is
 //! `lung-model`; it never bakes (`lung-bake`) and links none of the fitting or import code.
 //!
+//! [`headless`] runs the same tick function without processes (`lungdyn scene run`).
+//!
 //! The binary (`engine`, and `lungdyn engine`) only parses arguments and calls [`runtime::run`].
 
+pub mod headless;
 pub mod runtime;

@@ -1084,18 +1084,8 @@ pub fn run_scene(args: &RunArgs) -> anyhow::Result<RunReport> {
     let origin = args.file.display().to_string();
     let prepared = crate::prepare::prepare(scene, &args.out.join("kernels"))?;
     let scene = prepared.scene;
-    let mut core = engine::runtime::EngineCore::new(&scene)?;
     let mut follow = TumourFollow::new(&scene)?;
     let ticks = (s * scene.engine.tick_hz).round().max(1.0) as u64;
-    let mut f = ipc_types::EngineFrame::default();
-    let n = ipc_types::NUM_LUNGS;
-    let (mut vmin, mut vmax) = (vec![f64::INFINITY; n], vec![f64::NEG_INFINITY; n]);
-    // The last complete breath of each lung: its volume range and length.
-    let mut cur: Vec<(f64, f64, u64)> = vec![(f64::INFINITY, f64::NEG_INFINITY, 0); n];
-    let mut last_breath: Vec<Option<(f64, f64, u64)>> = vec![None; n];
-    let mut last_cycle = vec![0u32; n];
-    let mut started = vec![0u64; n];
-    let mut non_finite = 0u64;
     // A fixed patient in the scene's posture (the synthetic source without drift): the headless run
     // has no tracker, and a patient who does not move costs one orientation evaluation per lung.
     let patient = tracker_bridge::synthetic::Synthetic {
@@ -1104,51 +1094,36 @@ pub fn run_scene(args: &RunArgs) -> anyhow::Result<RunReport> {
         posture: scene.tracker.posture,
         ..Default::default()
     };
-    for tick in 0..ticks {
-        let mut input = patient.frame(tick, 0);
-        // The patient's pose only: its quaternion is constant, so is gravity.
-        input.tools[ipc_types::TOOL_PATIENT].pose.translation_mm =
-            tracker_bridge::synthetic::STERNUM_MM.to_array();
-        core.step(tick, Some(&input), &mut f);
-        if let Some(t) = &mut follow {
-            t.record(tick, &f);
-        }
-        for (k, l) in f.lungs.iter().enumerate() {
-            if !l.is_active() {
-                continue;
+    let run = engine::headless::run(
+        &scene,
+        ticks,
+        &mut |tick| {
+            let mut input = patient.frame(tick, 0);
+            // The patient's pose only: its quaternion is constant, so is gravity.
+            input.tools[ipc_types::TOOL_PATIENT].pose.translation_mm =
+                tracker_bridge::synthetic::STERNUM_MM.to_array();
+            input
+        },
+        &mut |tick, f| {
+            if let Some(t) = &mut follow {
+                t.record(tick, f);
             }
-            let v = l.volume_ml as f64;
-            if !(v.is_finite() && l.deform_scale.is_finite()) {
-                non_finite += 1;
-            }
-            vmin[k] = vmin[k].min(v);
-            vmax[k] = vmax[k].max(v);
-            if l.cycle != last_cycle[k] {
-                last_breath[k] = Some((cur[k].0, cur[k].1, tick - started[k]));
-                cur[k] = (f64::INFINITY, f64::NEG_INFINITY, 0);
-                started[k] = tick;
-                last_cycle[k] = l.cycle;
-            }
-            cur[k].0 = cur[k].0.min(v);
-            cur[k].1 = cur[k].1.max(v);
-        }
-        core.prepare_ahead()?;
-    }
+        },
+    )?;
+    let (core, f) = (&run.core, &run.last);
     let hz = scene.engine.tick_hz;
     let mut lungs = Vec::new();
     for &side in &scene.lungs.sides {
         let k = side.index();
         let l = &f.lungs[k];
-        let (tidal, bpm) = match last_breath[k] {
-            Some((lo, hi, len)) if len > 0 => (hi - lo, 60.0 * hz / len as f64),
-            _ => (vmax[k] - vmin[k], f64::NAN),
-        };
+        let summary = &run.lungs[k];
+        let (tidal, bpm) = summary.tidal_and_rate(hz);
         lungs.push(RunLung {
             side: side.name(),
-            volume_min_ml: r3(vmin[k]),
-            volume_max_ml: r3(vmax[k]),
+            volume_min_ml: r3(summary.volume_range_ml.0),
+            volume_max_ml: r3(summary.volume_range_ml.1),
             tidal_volume_ml: r3(tidal),
-            breaths_per_min: bpm.is_finite().then(|| r3(bpm)),
+            breaths_per_min: bpm.map(r3),
             offset_mm: l.offset_mm.map(|v| r3(v as f64)),
             collapse: r3(l.collapse as f64),
             held: l.flags & ipc_types::lung_flags::HELD != 0,
@@ -1161,6 +1136,7 @@ pub fn run_scene(args: &RunArgs) -> anyhow::Result<RunReport> {
             cycles: l.cycle,
         });
     }
+    let non_finite = run.non_finite_frames;
     let mut out = RunReport {
         scene: origin,
         posture: scene.tracker.posture.name(),
@@ -1177,7 +1153,7 @@ pub fn run_scene(args: &RunArgs) -> anyhow::Result<RunReport> {
             delivery: core.disease().and_then(|d| d.delivery()),
         }),
     };
-    out.disease = disease_report(args, &scene, &core, follow.as_ref(), hz)?;
+    out.disease = disease_report(args, &scene, core, follow.as_ref(), hz)?;
     Ok(out)
 }
 

@@ -1681,3 +1681,39 @@ fn run_publishing_state(
     .unwrap();
     (stats, published)
 }
+
+/// The headless runner (`lungdyn scene run`) is the engine's tick function: its frames are those of
+/// the same core stepped by hand, bit for bit, and its per-lung summary is the frames' own (the
+/// default scene's 12 breaths a minute, the tidal swing of the last whole breath).
+#[test]
+fn the_headless_run_is_the_tick_function_and_summarises_its_frames() {
+    let ticks = 60 * 20;
+    let mut seen = Vec::new();
+    let run = crate::headless::run_core(core(), ticks, &mut |t| frame(t, true), &mut |_, f| {
+        seen.push(*f)
+    })
+    .unwrap();
+    let mut by_hand = core();
+    let mut f = EngineFrame::default();
+    for (tick, s) in (0..ticks).zip(&seen) {
+        by_hand.step(tick, Some(&frame(tick, true)), &mut f);
+        assert_eq!(bytemuck::bytes_of(&f), bytemuck::bytes_of(s), "tick {tick}");
+        by_hand.prepare_ahead().unwrap();
+    }
+    assert_eq!(seen.len() as u64, ticks);
+    assert_eq!(bytemuck::bytes_of(&run.last), bytemuck::bytes_of(&f));
+    assert_eq!(run.non_finite_frames, 0);
+    for k in [LUNG_LEFT, LUNG_RIGHT] {
+        let vols: Vec<f64> = seen.iter().map(|f| f.lungs[k].volume_ml as f64).collect();
+        let lo = vols.iter().copied().fold(f64::INFINITY, f64::min);
+        let hi = vols.iter().copied().fold(f64::NEG_INFINITY, f64::max);
+        assert_eq!(run.lungs[k].volume_range_ml, (lo, hi));
+        let (tidal, rate) = run.lungs[k].tidal_and_rate(60.0);
+        let rate = rate.expect("whole breaths in 20 s");
+        assert!((rate - 12.0).abs() < 0.1, "lung {k}: {rate} breaths/min");
+        assert!(
+            tidal > 0.0 && tidal <= hi - lo + 1e-9,
+            "lung {k}: {tidal} ml"
+        );
+    }
+}
