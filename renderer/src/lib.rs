@@ -790,14 +790,17 @@ impl LungRenderer {
         }
     }
 
-    /// Record the draw phases ([`draw`]) for `eyes` eyes: opaque, translucent, overlay. The opaque
-    /// and see-through looks take one render pass; the translucent look three (the opaque phase,
+    /// Record the draw phases for `eyes` eyes, each drawable where [`draw::phases`] puts it for the
+    /// look: opaque, translucent, overlay. The opaque and see-through looks take one render pass; the translucent look three (the opaque phase,
     /// the OIT targets, their composite). The opaque phase's pass resolves the multisampled image
     /// (the translucent look's composite blends over the resolved image: see `draw::composite`);
     /// the last pass writes the end timestamp.
     fn encode_phases(&self, encoder: &mut wgpu::CommandEncoder, warning: PoseWarning, eyes: usize) {
         let look = self.settings.look;
+        let phases = draw::phases(look);
+        // The OIT targets and composite exist for the look whose phases blend (and only for it).
         let translucent = self.oit.as_ref().zip(self.draw.composite.as_ref());
+        debug_assert_eq!(translucent.is_some(), !phases.oit.is_empty());
         let (target, resolve) = match &self.msaa_view {
             Some(ms) => (ms, Some(&self.color_view)),
             None => (&self.color_view, None),
@@ -847,18 +850,8 @@ impl LungRenderer {
                 occlusion_query_set: None,
                 multiview_mask: None,
             });
-            match look {
-                Look::Opaque => {
-                    self.draw_lungs(&mut pass, eyes);
-                    // Overlay: the tumour through the lungs it lies inside.
-                    self.draw_tumours(&mut pass, eyes);
-                }
-                // Opaque: the tumour; translucent: the lungs' light, added.
-                Look::SeeThrough => {
-                    self.draw_tumours(&mut pass, eyes);
-                    self.draw_lungs(&mut pass, eyes);
-                }
-                Look::Translucent => self.draw_tumours(&mut pass, eyes),
+            for &d in phases.first_pass {
+                self.draw_one(d, &mut pass, eyes);
             }
         }
         let Some((oit, (composite, _))) = translucent else {
@@ -884,7 +877,9 @@ impl LungRenderer {
                 occlusion_query_set: None,
                 multiview_mask: None,
             });
-            self.draw_lungs(&mut pass, eyes);
+            for &d in phases.oit {
+                self.draw_one(d, &mut pass, eyes);
+            }
         }
         let mut pass = encoder.begin_render_pass(&wgpu::RenderPassDescriptor {
             label: Some("lungdyn composite"),
@@ -918,6 +913,14 @@ impl LungRenderer {
             1.0,
         );
         pass.set_bind_group(0, &self.draw.eye_groups[i], &[]);
+    }
+
+    /// One drawable of a phase ([`draw::phases`]) into `pass`, for each eye.
+    fn draw_one(&self, d: draw::Drawable, pass: &mut wgpu::RenderPass<'_>, eyes: usize) {
+        match d {
+            draw::Drawable::Lungs => self.draw_lungs(pass, eyes),
+            draw::Drawable::Tumours => self.draw_tumours(pass, eyes),
+        }
     }
 
     /// Both lungs, in the look's pipeline, for each eye.

@@ -34,6 +34,50 @@ use lung_model::scene::{ColorMode, DrawMode, Look};
 
 use crate::camera::EyeUniform;
 
+/// What a frame draws ([`phases`]): the lungs (the look's pipeline) or every tumour. The HUD is not
+/// one: it is drawn over the finished frame (`hud`).
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub enum Drawable {
+    /// Both lungs.
+    Lungs,
+    /// Every tumour.
+    Tumours,
+}
+
+/// A look's phases as the encoder runs them (the table above as data): what the first render pass
+/// draws, in order — the opaque phase, then what needs no targets of its own (the overlay drawn
+/// without depth test, the see-through look's additive light) — and what the OIT pass draws
+/// (weighted blended targets, then their composite; empty: no such pass).
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub struct Phases {
+    /// The first pass's drawables, in drawing order.
+    pub first_pass: &'static [Drawable],
+    /// The OIT pass's drawables.
+    pub oit: &'static [Drawable],
+}
+
+/// The phases of `look`.
+pub const fn phases(look: Look) -> Phases {
+    use Drawable::{Lungs, Tumours};
+    match look {
+        // Opaque lungs, then the tumour as an overlay through the lungs it lies inside.
+        Look::Opaque => Phases {
+            first_pass: &[Lungs, Tumours],
+            oit: &[],
+        },
+        // The opaque tumour, then the lungs' light added over it.
+        Look::SeeThrough => Phases {
+            first_pass: &[Tumours, Lungs],
+            oit: &[],
+        },
+        // The opaque tumour; the lungs blended order-independently over it.
+        Look::Translucent => Phases {
+            first_pass: &[Tumours],
+            oit: &[Lungs],
+        },
+    }
+}
+
 /// Colour format of the offscreen target (sRGB bytes, what a PNG stores).
 pub const COLOR_FORMAT: wgpu::TextureFormat = wgpu::TextureFormat::Rgba8UnormSrgb;
 /// Depth format.
@@ -578,5 +622,24 @@ mod tests {
         assert!(attrs
             .iter()
             .all(|a| *a == surface(Material::LeftLung, 0, false)));
+    }
+}
+
+#[cfg(test)]
+mod phase_tests {
+    use super::*;
+
+    /// Every look draws the lungs once and the tumours once; only the translucent look has an OIT
+    /// pass (the renderer makes its targets and composite for that look alone: `DrawPipelines`).
+    #[test]
+    fn every_look_draws_each_drawable_once_and_only_translucent_blends() {
+        for look in Look::ALL {
+            let p = phases(look);
+            let all: Vec<Drawable> = p.first_pass.iter().chain(p.oit).copied().collect();
+            for d in [Drawable::Lungs, Drawable::Tumours] {
+                assert_eq!(all.iter().filter(|x| **x == d).count(), 1, "{look:?} {d:?}");
+            }
+            assert_eq!(!p.oit.is_empty(), look == Look::Translucent, "{look:?}");
+        }
     }
 }
