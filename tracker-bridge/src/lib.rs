@@ -33,6 +33,10 @@ pub mod sample;
 pub mod source;
 pub mod stats;
 pub mod synthetic;
+/// The loop run for a test ([`testing::run_source`]): built only for tests and benchmarks (the
+/// `testing` feature).
+#[cfg(any(test, feature = "testing"))]
+pub mod testing;
 pub mod validate;
 
 use std::path::PathBuf;

@@ -10,13 +10,12 @@ use std::time::{Duration, Instant};
 use ipc_types::{tool_status, TrackerFrame, TOOL_HMD, TOOL_PATIENT};
 use tracker_bridge::assemble::{Assembler, BridgeConfig};
 use tracker_bridge::igtl::{Body, Message, QtDataElement, TDataElement, Timestamp, Transform};
-use tracker_bridge::run::run_loop;
 use tracker_bridge::sample::Reject;
 use tracker_bridge::source::igtl_client::IgtlClient;
 use tracker_bridge::source::igtl_server::IgtlServer;
 use tracker_bridge::source::{Source, SourceOptions};
+use tracker_bridge::testing::run_source;
 use tracker_bridge::validate::{Validation, Volume};
-use transport::memory::Recorder;
 use transport::Monotonic;
 
 fn config() -> BridgeConfig {
@@ -64,20 +63,17 @@ fn run(
     limit: Duration,
     mut done: impl FnMut() -> bool,
 ) -> (Vec<TrackerFrame>, Assembler) {
-    let mut asm = Assembler::new(config());
-    let mut out = Recorder::new(&Monotonic);
     let start = Instant::now();
-    run_loop(
+    let r = run_source(
         source,
-        &mut asm,
-        &mut out,
+        config(),
+        &Monotonic,
         &mut None,
-        &transport::Monotonic,
-        &mut |_| start.elapsed() > limit || done(),
-        &mut |e, _| eprintln!("igtl test: {}", e.text),
+        &mut || start.elapsed() > limit || done(),
+        "igtl test",
     )
     .unwrap();
-    (out.values(), asm)
+    (r.frames, r.assembler)
 }
 
 #[test]

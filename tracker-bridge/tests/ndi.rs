@@ -16,8 +16,8 @@ use tracker_bridge::run::run_loop;
 use tracker_bridge::sample::{Reject, ToolName};
 use tracker_bridge::source::ndi_link::{sample_of, NdiSource};
 use tracker_bridge::source::{Source, SourceOptions};
+use tracker_bridge::testing::run_source;
 use tracker_bridge::validate::{Validation, Volume};
-use transport::memory::Recorder;
 use transport::Monotonic;
 
 const PATIENT_AT: [f32; 3] = [10.5, -20.25, -1000.0];
@@ -51,16 +51,13 @@ fn run(
     dev: &Arc<Mutex<SimDevice>>,
     mut control: impl FnMut(&mut SimDevice, u32) -> bool,
 ) -> (Vec<TrackerFrame>, Assembler) {
-    let mut asm = Assembler::new(config());
-    let mut out = Recorder::new(&Monotonic);
     let start = Instant::now();
-    run_loop(
+    let r = run_source(
         source,
-        &mut asm,
-        &mut out,
+        config(),
+        &Monotonic,
         &mut None,
-        &transport::Monotonic,
-        &mut |_| {
+        &mut || {
             assert!(
                 start.elapsed() < Duration::from_secs(20),
                 "the session did not get through its script"
@@ -69,10 +66,10 @@ fn run(
             let polls = d.frame - 1000;
             control(&mut d, polls)
         },
-        &mut |e, _| eprintln!("ndi test: {}", e.text),
+        "ndi test",
     )
     .unwrap();
-    (out.values(), asm)
+    (r.frames, r.assembler)
 }
 
 fn count(frames: &[TrackerFrame], slot: usize, bit: u32) -> usize {

@@ -13,12 +13,11 @@ use std::time::{Duration, Instant};
 
 use tracker_bridge::assemble::{Assembler, BridgeConfig};
 use tracker_bridge::record::{Record, RecordReader, RecordWriter};
-use tracker_bridge::run::run_loop;
 use tracker_bridge::sample::{Reject, Rotation, Sample};
 use tracker_bridge::source::igtl_client::IgtlClient;
 use tracker_bridge::source::igtl_server::IgtlServer;
 use tracker_bridge::source::{Source, SourceOptions};
-use transport::memory::Recorder;
+use tracker_bridge::testing::run_source;
 use transport::Monotonic;
 
 const SCRIPT: &str = r#"
@@ -125,17 +124,14 @@ fn exchange(
     let _ = std::fs::remove_file(&path);
     let config = BridgeConfig::default();
     let mut recorder = Some(RecordWriter::create(&path, &config, &source.describe()).unwrap());
-    let mut asm = Assembler::new(config);
-    let mut out = Recorder::new(&Monotonic);
     let start = Instant::now();
     let mut exited_at: Option<Instant> = None;
-    run_loop(
+    let run = run_source(
         source,
-        &mut asm,
-        &mut out,
+        config,
+        &Monotonic,
         &mut recorder,
-        &transport::Monotonic,
-        &mut |_| {
+        &mut || {
             assert!(
                 start.elapsed() < Duration::from_secs(60),
                 "pyigtl exchange took too long"
@@ -145,7 +141,7 @@ fn exchange(
             }
             exited_at.is_some_and(|t| t.elapsed() > Duration::from_millis(300))
         },
-        &mut |e, _| eprintln!("pyigtl test: {}", e.text),
+        "pyigtl test",
     )
     .unwrap();
     recorder.take().unwrap().finish().unwrap();
@@ -172,7 +168,7 @@ fn exchange(
         }
     }
     let _ = std::fs::remove_file(&path);
-    (sent, got, asm)
+    (sent, got, run.assembler)
 }
 
 fn check_exact(sent: &[Sent], got: &[Sample]) {

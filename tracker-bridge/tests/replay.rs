@@ -5,14 +5,14 @@
 use ipc_types::{tool_status, TrackerFrame, TOOL_HMD, TOOL_PATIENT};
 use tracker_bridge::assemble::{Assembler, BridgeConfig};
 use tracker_bridge::record::RecordWriter;
-use tracker_bridge::run::{run_loop, Ended};
+use tracker_bridge::run::Ended;
 use tracker_bridge::sample::{Event, Input, Reject, Rotation, Sample, ToolName};
 use tracker_bridge::source::replay::Replay;
 use tracker_bridge::source::synthetic::SyntheticSource;
 use tracker_bridge::source::{Poll, Source, SourceError};
 use tracker_bridge::synthetic::Synthetic;
+use tracker_bridge::testing::run_source;
 use tracker_bridge::validate::{Validation, Volume};
-use transport::memory::Recorder;
 use transport::FakeClock;
 
 const MS: u64 = 1_000_000;
@@ -115,29 +115,26 @@ fn run(
     ticks: u64,
     record: Option<&std::path::Path>,
 ) -> (Vec<TrackerFrame>, Assembler) {
-    let mut asm = Assembler::new(config.clone());
-    let mut out = Recorder::new(clock);
     let mut recorder =
         record.map(|p| RecordWriter::create(p, &config, &source.describe()).unwrap());
     let mut n = 0;
-    let ended = run_loop(
+    let r = run_source(
         source,
-        &mut asm,
-        &mut out,
-        &mut recorder,
+        config,
         clock,
-        &mut |_| {
+        &mut recorder,
+        &mut || {
             n += 1;
             n > ticks
         },
-        &mut |_, _| {},
+        "",
     )
     .unwrap();
-    if let Some(r) = recorder {
-        r.finish().unwrap();
+    if let Some(w) = recorder {
+        w.finish().unwrap();
     }
-    assert!(ended == Ended::Stopped || ended == Ended::SourceEnded);
-    (out.values(), asm)
+    assert!(r.ended == Ended::Stopped || r.ended == Ended::SourceEnded);
+    (r.frames, r.assembler)
 }
 
 fn without_stamps(frames: &[TrackerFrame]) -> Vec<TrackerFrame> {
