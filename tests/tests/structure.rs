@@ -37,8 +37,6 @@ const LONG_FUNCTIONS: &[(&str, &str, usize)] = &[
     ("engine/model/src/kernel.rs", "verify_layout", 184),
     ("engine/src/runtime/mod.rs", "step", 175),
     ("engine/bake/src/kernel.rs", "bake", 173),
-    ("engine/model/src/disease/closed.rs", "plan", 151),
-    ("engine/bake/src/patient_motion.rs", "fit_pair", 151),
 ];
 
 /// Import cycles among a crate's files tolerated (each the files of one strongly connected

@@ -643,17 +643,13 @@ fn operator_columns(
     Ok((transfer, columns, lo, hi))
 }
 
-/// Fit `side`'s motion from the exhale surface to the inhale surface (both closed, mm, body frame,
-/// not registered). `settings` gives the operator (elasticity, tolerance, amplitude smoothing) the
-/// bake will use; `progress` hears each stage.
-pub fn fit_pair(
-    side: Side,
+/// What [`fit_pair`] checks before fitting: two closed one-body surfaces, the options' ranges, and
+/// an inhale larger than the exhale. Their volumes (exhale, inhale), ml.
+fn check_pair(
     exhale: &TriMesh,
     inhale: &TriMesh,
-    settings: &BakeSettings,
     opts: &PairOptions,
-    progress: &dyn Fn(&str),
-) -> Result<PairFit, PairFitError> {
+) -> Result<(f64, f64), PairFitError> {
     for (what, m) in [("exhale", exhale), ("inhale", inhale)] {
         lung_model::mesh::check(m).map_err(|e| PairFitError::Surface {
             what,
@@ -689,6 +685,21 @@ pub fn fit_pair(
             inhale_ml,
         });
     }
+    Ok((exhale_ml, inhale_ml))
+}
+
+/// Fit `side`'s motion from the exhale surface to the inhale surface (both closed, mm, body frame,
+/// not registered). `settings` gives the operator (elasticity, tolerance, amplitude smoothing) the
+/// bake will use; `progress` hears each stage.
+pub fn fit_pair(
+    side: Side,
+    exhale: &TriMesh,
+    inhale: &TriMesh,
+    settings: &BakeSettings,
+    opts: &PairOptions,
+    progress: &dyn Fn(&str),
+) -> Result<PairFit, PairFitError> {
+    let (exhale_ml, inhale_ml) = check_pair(exhale, inhale, opts)?;
     progress("aligning the inhale apex and apical cap onto the exhale surface");
     let alignment = align(exhale, inhale, opts.cap_fraction).ok_or(PairFitError::Surface {
         what: "exhale",

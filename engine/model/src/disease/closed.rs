@@ -167,103 +167,10 @@ impl ClosedPneumothorax {
         for lung in lungs {
             lung.validate()?;
             let plan = match self.index_of(lung.side) {
-                Some(index) => {
-                    let dv = volume_fraction_lost(index)?;
-                    let drop = drop_for_index(index);
-                    let collapse = collapse_for_loss(dv)?;
-                    let base = lung.start_volume_ml * (1.0 - dv);
-                    let tv_new = tv * (1.0 - dv);
-                    let held = dv >= 1.0;
-                    let (inhale, exhale, reports) = if dv == 0.0 {
-                        (
-                            normal.inhale.clone(),
-                            normal.exhale.clone(),
-                            (
-                                ResistanceReport {
-                                    identity: true,
-                                    ..Default::default()
-                                },
-                                ResistanceReport {
-                                    identity: true,
-                                    ..Default::default()
-                                },
-                            ),
-                        )
-                    } else {
-                        let x = self.phi * dv;
-                        let (t_in, t_ex) = resistance::PNEUMOTHORAX;
-                        let mut i = normal.inhale.clone();
-                        let mut e = normal.exhale.clone();
-                        let ri = resistance::phase_into(&normal.inhale, t_in, x, &mut i)?;
-                        let re = resistance::phase_into(&normal.exhale, t_ex, x, &mut e)?;
-                        (i, e, (ri, re))
-                    };
-                    LungPlan {
-                        side: lung.side,
-                        index: Some(index),
-                        dv,
-                        drop: Some(drop),
-                        state: LungState {
-                            side: lung.side,
-                            collapse,
-                            base_volume_ml: base,
-                            tidal_ml: if held { 0.0 } else { lung.share * tv_new },
-                            held_ml: held.then_some(base),
-                            offset_mm: [
-                                0.0,
-                                0.0,
-                                if drop.drop_mm > 0.0 {
-                                    -drop.drop_mm
-                                } else {
-                                    0.0
-                                },
-                            ],
-                            resistance_dv: dv,
-                        },
-                        boundary: (!held).then_some(Boundary {
-                            tv_ml: tv_new,
-                            ..normal.boundary
-                        }),
-                        inhale,
-                        exhale,
-                        resistance: reports,
-                        base_lift_mm: collapse * (lung.hilum_mm[2] - lung.base_z_mm),
-                    }
-                }
+                Some(index) => self.affected_lung(normal, lung, index)?,
                 None => {
                     let alpha = if any_pneumothorax { alpha } else { 0.0 };
-                    let tv_new = if alpha == 0.0 {
-                        tv
-                    } else {
-                        tv + alpha / lung.share
-                    };
-                    LungPlan {
-                        side: lung.side,
-                        index: None,
-                        dv: 0.0,
-                        drop: None,
-                        state: LungState {
-                            tidal_ml: lung.share * tv + alpha,
-                            ..LungState::normal(lung, &normal.boundary)
-                        },
-                        boundary: Some(Boundary {
-                            tv_ml: tv_new,
-                            ..normal.boundary
-                        }),
-                        inhale: normal.inhale.clone(),
-                        exhale: normal.exhale.clone(),
-                        resistance: (
-                            ResistanceReport {
-                                identity: true,
-                                ..Default::default()
-                            },
-                            ResistanceReport {
-                                identity: true,
-                                ..Default::default()
-                            },
-                        ),
-                        base_lift_mm: 0.0,
-                    }
+                    unaffected_lung(normal, lung, alpha)
                 }
             };
             out.push(plan);
@@ -286,6 +193,108 @@ impl ClosedPneumothorax {
             timing,
             lungs: out,
         })
+    }
+
+    /// The plan of a lung with a pneumothorax of `index`: its volume lost (eq. 8.1), collapse and
+    /// drop (eq. 8.2), tidal volume shrunk in proportion (eq. 8.6), held when wholly collapsed, and
+    /// its phases' control constants raised by φ·ΔV (eq. 8.8–8.9).
+    fn affected_lung(
+        &self,
+        normal: &NormalBreathing,
+        lung: &LungBaseline,
+        index: f64,
+    ) -> Result<LungPlan, DiseaseError> {
+        let tv = normal.boundary.tv_ml;
+        let dv = volume_fraction_lost(index)?;
+        let drop = drop_for_index(index);
+        let collapse = collapse_for_loss(dv)?;
+        let base = lung.start_volume_ml * (1.0 - dv);
+        let tv_new = tv * (1.0 - dv);
+        let held = dv >= 1.0;
+        let (inhale, exhale, reports) = if dv == 0.0 {
+            (
+                normal.inhale.clone(),
+                normal.exhale.clone(),
+                identity_reports(),
+            )
+        } else {
+            let x = self.phi * dv;
+            let (t_in, t_ex) = resistance::PNEUMOTHORAX;
+            let mut i = normal.inhale.clone();
+            let mut e = normal.exhale.clone();
+            let ri = resistance::phase_into(&normal.inhale, t_in, x, &mut i)?;
+            let re = resistance::phase_into(&normal.exhale, t_ex, x, &mut e)?;
+            (i, e, (ri, re))
+        };
+        Ok(LungPlan {
+            side: lung.side,
+            index: Some(index),
+            dv,
+            drop: Some(drop),
+            state: LungState {
+                side: lung.side,
+                collapse,
+                base_volume_ml: base,
+                tidal_ml: if held { 0.0 } else { lung.share * tv_new },
+                held_ml: held.then_some(base),
+                offset_mm: [
+                    0.0,
+                    0.0,
+                    if drop.drop_mm > 0.0 {
+                        -drop.drop_mm
+                    } else {
+                        0.0
+                    },
+                ],
+                resistance_dv: dv,
+            },
+            boundary: (!held).then_some(Boundary {
+                tv_ml: tv_new,
+                ..normal.boundary
+            }),
+            inhale,
+            exhale,
+            resistance: reports,
+            base_lift_mm: collapse * (lung.hilum_mm[2] - lung.base_z_mm),
+        })
+    }
+}
+
+/// Both phases' resistance reports of a lung whose resistance is not changed.
+fn identity_reports() -> (ResistanceReport, ResistanceReport) {
+    let identity = || ResistanceReport {
+        identity: true,
+        ..Default::default()
+    };
+    (identity(), identity())
+}
+
+/// The plan of a lung without a pneumothorax: normal breathing, its tidal volume raised by the
+/// compensation `alpha_ml` (eq. 8.7; 0 when no lung has a pneumothorax).
+fn unaffected_lung(normal: &NormalBreathing, lung: &LungBaseline, alpha_ml: f64) -> LungPlan {
+    let tv = normal.boundary.tv_ml;
+    let tv_new = if alpha_ml == 0.0 {
+        tv
+    } else {
+        tv + alpha_ml / lung.share
+    };
+    LungPlan {
+        side: lung.side,
+        index: None,
+        dv: 0.0,
+        drop: None,
+        state: LungState {
+            tidal_ml: lung.share * tv + alpha_ml,
+            ..LungState::normal(lung, &normal.boundary)
+        },
+        boundary: Some(Boundary {
+            tv_ml: tv_new,
+            ..normal.boundary
+        }),
+        inhale: normal.inhale.clone(),
+        exhale: normal.exhale.clone(),
+        resistance: identity_reports(),
+        base_lift_mm: 0.0,
     }
 }
 
