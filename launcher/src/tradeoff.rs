@@ -274,9 +274,60 @@ fn sh_coeffs(alpha: f64, projection: &[f64], w: &ForceWeights) -> Vec<f32> {
         .collect()
 }
 
+/// What the study gathers over the lung sizes.
+#[derive(Default)]
+struct Gathered {
+    rows: Vec<Row>,
+    copies: Vec<CopyFigure>,
+    orientation: Vec<OrientationRow>,
+    stereo: Vec<StereoFigure>,
+}
+
 /// Run the trade study.
 pub fn run(args: &TradeoffArgs) -> anyhow::Result<Tradeoff> {
     let load_at_start = lungdyn_remote::measure::load_average();
+    let out_dir = check_args(args)?;
+    let gpu = open_gpu(args.gpu)?;
+    let gpu_name = gpu.as_ref().map(|g| g.describe());
+    let settings = {
+        let mut s = BakeSettings::default_for(Side::Left);
+        s.sh_bands = 0;
+        s
+    };
+    let mut gathered = Gathered::default();
+    let mut sizes = args.sizes.clone();
+    sizes.sort_unstable();
+    for (size_index, &n) in sizes.iter().enumerate() {
+        let bench = SizeBench::bake(n, &settings, args.runs, gpu.as_ref())?;
+        bench.measure(args.max_bands, size_index == 0, &mut gathered)?;
+        eprintln!(
+            "lungdyn: {n} vertices done ({} CPU threads{})",
+            rayon::current_num_threads(),
+            gpu_name
+                .as_deref()
+                .map(|g| format!(", GPU {g}"))
+                .unwrap_or_default()
+        );
+    }
+    let mut result = Tradeoff {
+        rows: gathered.rows,
+        orientation: gathered.orientation,
+        cpu_threads: rayon::current_num_threads(),
+        cpu: cpu_model(),
+        gpu: gpu_name,
+        stereo: gathered.stereo,
+        copy: gathered.copies,
+        load_average: [load_at_start, lungdyn_remote::measure::load_average()],
+        min_slope_ratio: lung_model::orientation::DEFAULT_MIN_SLOPE_RATIO,
+        files: Vec::new(),
+    };
+    result.files = write_outputs(&out_dir.join("tradeoff"), &result)?;
+    Ok(result)
+}
+
+/// The options checked and the output folder made (every output refused now if it is a device,
+/// FIFO or folder, not after minutes of measuring with some of the four already written).
+fn check_args(args: &TradeoffArgs) -> anyhow::Result<PathBuf> {
     if args.sizes.is_empty()
         || args
             .sizes
@@ -301,8 +352,6 @@ pub fn run(args: &TradeoffArgs) -> anyhow::Result<Tradeoff> {
         None => crate::outputs::new_folder(Path::new("out"), "tradeoff")?,
     };
     crate::outputs::check_writable(&out_dir)?;
-    // Every output refused now if it is a device, FIFO or folder, not after minutes of measuring
-    // with some of the four already written.
     for ext in ["md", "csv", "png", "svg"] {
         outfile::check(&out_dir.join(format!("tradeoff.{ext}")))?;
     }
@@ -310,7 +359,12 @@ pub fn run(args: &TradeoffArgs) -> anyhow::Result<Tradeoff> {
         "lungdyn bench tradeoff: writing {}",
         out_dir.join("tradeoff.{md,csv,png,svg}").display()
     );
-    let gpu = match args.gpu {
+    Ok(out_dir)
+}
+
+/// The GPU `--gpu` asks for: none when off, or when `auto` finds no adapter (said).
+fn open_gpu(want: GpuUse) -> anyhow::Result<Option<renderer::gpu::Gpu>> {
+    Ok(match want {
         GpuUse::Off => None,
         want => match renderer::gpu::Gpu::new() {
             Ok(g) => Some(g),
@@ -320,39 +374,57 @@ pub fn run(args: &TradeoffArgs) -> anyhow::Result<Tradeoff> {
                 None
             }
         },
-    };
-    let gpu_name = gpu.as_ref().map(|g| g.describe());
-    let side = Side::Left;
-    let settings = {
-        let mut s = BakeSettings::default_for(side);
-        s.sh_bands = 0;
-        s
-    };
-    let c = settings.motion.c;
-    let c789 = [c[6], c[7], c[8]];
-    let orientations = orientation_set();
-    let mut rows = Vec::new();
-    let mut copies = Vec::new();
-    let mut orientation_rows = Vec::new();
-    let mut stereo = Vec::new();
-    let mut sizes = args.sizes.clone();
-    sizes.sort_unstable();
-    for (size_index, &n) in sizes.iter().enumerate() {
+    })
+}
+
+/// One lung size baked, and what every mode's measurement of it shares: the exact responses and
+/// volume forms, the reference volume change and the supine scale the modes are timed at.
+struct SizeBench<'g> {
+    n: usize,
+    side: Side,
+    runs: usize,
+    gpu: Option<&'g renderer::gpu::Gpu>,
+    k: lung_bake::kernel::Kernel,
+    c789: [f64; 3],
+    orientations: Vec<DVec3>,
+    transfer_bake_s: f64,
+    basis_bake_s: f64,
+    /// What every kernel holds (header, metadata, the ch. 6 sections), bytes, less the basis
+    /// section, counted per mode.
+    base_bytes: f64,
+    responses: Responses,
+    exact_forms: lung_model::deform::modes::VolumeForms,
+    delta_ml: f64,
+    supine: ForceWeights,
+    s_supine: f32,
+    /// The kernel's directions times its force scale.
+    kd: Vec<[f32; 3]>,
+}
+
+impl<'g> SizeBench<'g> {
+    /// Bake the generated left lung of `n` vertices and its exact responses.
+    fn bake(
+        n: usize,
+        settings: &BakeSettings,
+        runs: usize,
+        gpu: Option<&'g renderer::gpu::Gpu>,
+    ) -> anyhow::Result<Self> {
+        let side = Side::Left;
+        let c = settings.motion.c;
+        let c789 = [c[6], c[7], c[8]];
         eprintln!("lungdyn: {n} vertices: baking the transfer rows ...");
         let t = Instant::now();
-        let k = bake(side, generate::lung(side, n)?, &settings, &|_| {})?;
+        let k = bake(side, generate::lung(side, n)?, settings, &|_| {})?;
         let transfer_bake_s = t.elapsed().as_secs_f64();
         let v = k.mesh.positions.len();
         let base_bytes = {
-            // What every kernel holds: header, metadata and the ch. 6 sections.
             let dir = std::env::temp_dir().join(format!("lungdyn-tradeoff-{}", std::process::id()));
             std::fs::create_dir_all(&dir)?;
             let path = dir.join("k.kernel");
             let len = k.write(&path)?;
             let _ = std::fs::remove_file(&path);
-            len as f64 - (v * 16) as f64 // minus the basis section, counted per mode
+            len as f64 - (v * 16) as f64
         };
-        let mib = |extra_bytes: f64| (base_bytes + extra_bytes) / 1048576.0;
         let t = Instant::now();
         let mut responses = Responses::compute(
             &k.mesh,
@@ -368,62 +440,137 @@ pub fn run(args: &TradeoffArgs) -> anyhow::Result<Tradeoff> {
         let delta_ml = reference_delta_ml(k.meta.start_volume_ml);
         let supine = responses.weights(SUPINE_GRAVITY);
         let s_supine = exact_forms.cubic(&supine).solve_delta(delta_ml * 1000.0) as f32;
-        let kd: Vec<[f32; 3]> = k
+        let kd = k
             .directions
             .iter()
             .map(|d| d.map(|x| x * k.meta.force_scale as f32))
             .collect();
-        let mut outputs = vec![[0.0f32; 3]; v];
-        let time_cpu = |lung: &mut CpuLung, coeffs: &[f32], out: &mut [[f32; 3]]| {
-            median(args.runs, || {
-                lung.deform_into(s_supine, coeffs, [0.0; 3], out)
-                    .expect("coefficient count");
-                std::hint::black_box(&out);
-            }) * 1e3
-        };
-        let render_lung = |lung: &CpuLung| renderer::RenderLung {
+        Ok(Self {
+            n,
             side,
+            runs,
+            gpu,
+            k,
+            c789,
+            orientations: orientation_set(),
+            transfer_bake_s,
+            basis_bake_s,
+            base_bytes,
+            responses,
+            exact_forms,
+            delta_ml,
+            supine,
+            s_supine,
+            kd,
+        })
+    }
+
+    /// The kernel's size with `extra_bytes` of a mode's own sections, MiB.
+    fn mib(&self, extra_bytes: f64) -> f64 {
+        (self.base_bytes + extra_bytes) / 1048576.0
+    }
+
+    /// `lung`'s CPU pass at the supine scale, median ms.
+    fn time_cpu(&self, lung: &mut CpuLung, coeffs: &[f32], out: &mut [[f32; 3]]) -> f64 {
+        median(self.runs, || {
+            lung.deform_into(self.s_supine, coeffs, [0.0; 3], out)
+                .expect("coefficient count");
+            std::hint::black_box(&out);
+        }) * 1e3
+    }
+
+    /// `lung`'s GPU deformation pass by timestamp queries, median ms; none without a GPU (or when
+    /// the renderer cannot take this lung, said).
+    fn time_gpu(&self, lung: &CpuLung, coeffs: &[f32]) -> anyhow::Result<Option<f64>> {
+        let Some(gpu) = self.gpu else { return Ok(None) };
+        let mut scene = lung_model::scene::RenderScene::default();
+        scene.width = 64;
+        scene.height = 64;
+        let render_lung = renderer::RenderLung {
+            side: self.side,
             kernel_id: 0,
             lung: lung.clone(),
             tumour: None,
             lobes: None,
         };
-        let time_gpu = |lung: &CpuLung, coeffs: &[f32]| -> anyhow::Result<Option<f64>> {
-            let Some(gpu) = &gpu else { return Ok(None) };
-            let mut scene = lung_model::scene::RenderScene::default();
-            scene.width = 64;
-            scene.height = 64;
-            let r = match renderer::LungRenderer::new(gpu, &scene, &[render_lung(lung)]) {
-                Ok(r) => r,
-                Err(e) => {
-                    eprintln!("lungdyn: {n} vertices, {}: {e}", lung.data.mode());
-                    return Ok(None);
-                }
-            };
-            let mut state = renderer::DrawState {
-                deform_scale: [0.0; 2],
-                offset_mm: [[0.0; 3]; 2],
-                collapse: [0.0; 2],
-                hilum_mm: [[0.0; 3]; 2],
-                coeffs: [[0.0; ipc_types::MAX_COEFFS]; 2],
-                patient: ipc_types::Pose::IDENTITY,
-                hmd: ipc_types::Pose::IDENTITY,
-                pose_warning: Default::default(),
-            };
-            let slot = side.index();
-            state.deform_scale[slot] = s_supine;
-            state.coeffs[slot][..coeffs.len()].copy_from_slice(coeffs);
-            let _ = r.time_deform(gpu, &state);
-            let times: Vec<f64> = (0..args.runs)
-                .filter_map(|_| r.time_deform(gpu, &state))
-                .map(|ns| ns as f64 / 1e6)
-                .collect();
-            Ok(median_of(times))
+        let r = match renderer::LungRenderer::new(gpu, &scene, &[render_lung]) {
+            Ok(r) => r,
+            Err(e) => {
+                eprintln!("lungdyn: {} vertices, {}: {e}", self.n, lung.data.mode());
+                return Ok(None);
+            }
         };
-        let threads = rayon::current_num_threads();
-        let mesh = k.mesh.clone();
+        let mut state = renderer::DrawState {
+            deform_scale: [0.0; 2],
+            offset_mm: [[0.0; 3]; 2],
+            collapse: [0.0; 2],
+            hilum_mm: [[0.0; 3]; 2],
+            coeffs: [[0.0; ipc_types::MAX_COEFFS]; 2],
+            patient: ipc_types::Pose::IDENTITY,
+            hmd: ipc_types::Pose::IDENTITY,
+            pose_warning: Default::default(),
+        };
+        let slot = self.side.index();
+        state.deform_scale[slot] = self.s_supine;
+        state.coeffs[slot][..coeffs.len()].copy_from_slice(coeffs);
+        let _ = r.time_deform(gpu, &state);
+        let times: Vec<f64> = (0..self.runs)
+            .filter_map(|_| r.time_deform(gpu, &state))
+            .map(|ns| ns as f64 / 1e6)
+            .collect();
+        Ok(median_of(times))
+    }
 
-        // Precomputed: the supine field, error over the orientation set (it ignores them).
+    /// A row of `mode` with what every row of this size shares (no bands, no SH figures).
+    #[allow(clippy::too_many_arguments)]
+    fn row(
+        &self,
+        mode: &str,
+        floats_per_vertex: f64,
+        error: ErrorStats,
+        cpu_ms: f64,
+        gpu_ms: Option<f64>,
+        mode_bake_s: f64,
+        extra_bytes: f64,
+    ) -> Row {
+        Row {
+            vertices: self.k.mesh.positions.len(),
+            mode: mode.into(),
+            bands: None,
+            floats_per_vertex,
+            error,
+            cpu_ms,
+            gpu_ms,
+            mode_bake_s,
+            transfer_bake_s: self.transfer_bake_s,
+            kernel_mib: self.mib(extra_bytes),
+            alpha: None,
+            quantisation_max_mm: None,
+            cpu_speedup_vs_direct: None,
+        }
+    }
+
+    /// The precomputed field's error over the orientation set (it ignores them: the supine
+    /// field at the supine scale against each orientation's exact displacement).
+    fn precomputed_error(&self) -> ErrorStats {
+        let (r, forms, delta) = (&self.responses, &self.exact_forms, self.delta_ml * 1000.0);
+        let mut acc = ErrorAccumulator::default();
+        let supine_force = r.force(&self.supine);
+        for &g in &self.orientations {
+            let w = r.weights(g);
+            let s_ref = forms.cubic(&w).solve_delta(delta);
+            let s_pre = forms.cubic(&self.supine).solve_delta(delta);
+            acc.add(&r.kd, s_ref, &r.force(&w), s_pre, &supine_force);
+        }
+        acc.stats()
+    }
+
+    /// Every mode of this size: precomputed, basis, eq. 7.1 itself, SH for 1..`max_bands` bands;
+    /// the copy references; the orientation methods on the first size; stereo against mono.
+    fn measure(&self, max_bands: usize, first_size: bool, g: &mut Gathered) -> anyhow::Result<()> {
+        let (k, n, v) = (&self.k, self.n, self.k.mesh.positions.len());
+        let mut outputs = vec![[0.0f32; 3]; v];
+        let mesh = k.mesh.clone();
         eprintln!("lungdyn: {n} vertices: precomputed, basis, eq. 7.1 ...");
         let mut pre = CpuLung::new(
             mesh.clone(),
@@ -432,71 +579,36 @@ pub fn run(args: &TradeoffArgs) -> anyhow::Result<Tradeoff> {
                 unit: k.unit_displacement.clone(),
             },
         );
-        let pre_ms = time_cpu(&mut pre, &[], &mut outputs);
-        let pre_gpu = time_gpu(&pre, &[])?;
-        let pre_err = {
-            let mut acc = ErrorAccumulator::default();
-            let supine_force = responses.force(&supine);
-            for &g in &orientations {
-                let w = responses.weights(g);
-                let s_ref = exact_forms.cubic(&w).solve_delta(delta_ml * 1000.0);
-                let s_pre = exact_forms.cubic(&supine).solve_delta(delta_ml * 1000.0);
-                acc.add(
-                    &responses.kd,
-                    s_ref,
-                    &responses.force(&w),
-                    s_pre,
-                    &supine_force,
-                );
-            }
-            acc.stats()
-        };
-        rows.push(Row {
-            vertices: v,
-            mode: "precomputed".into(),
-            bands: None,
-            floats_per_vertex: 3.0,
-            error: pre_err,
-            cpu_ms: pre_ms,
-            gpu_ms: pre_gpu,
-            mode_bake_s: 0.0,
-            transfer_bake_s,
-            kernel_mib: mib(0.0),
-            alpha: None,
-            quantisation_max_mm: None,
-            cpu_speedup_vs_direct: None,
-        });
-        // Basis.
-        let basis = responses.stored();
+        let pre_ms = self.time_cpu(&mut pre, &[], &mut outputs);
+        let pre_gpu = self.time_gpu(&pre, &[])?;
+        let pre_err = self.precomputed_error();
+        g.rows
+            .push(self.row("precomputed", 3.0, pre_err, pre_ms, pre_gpu, 0.0, 0.0));
+        let basis = self.responses.stored();
         let basis_err = basis_error(
             &k.transfer,
-            &responses,
+            &self.responses,
             &basis,
             &k.directions,
             k.meta.force_scale,
-            &exact_forms,
-            &orientations,
-            delta_ml,
+            &self.exact_forms,
+            &self.orientations,
+            self.delta_ml,
         );
-        let w32 = supine.map(|x| x as f32);
-        let mut basis_lung = CpuLung::new(mesh.clone(), kd.clone(), ModeData::Basis { g: basis });
-        let basis_ms = time_cpu(&mut basis_lung, &w32, &mut outputs);
-        let basis_gpu = time_gpu(&basis_lung, &w32)?;
-        rows.push(Row {
-            vertices: v,
-            mode: "basis".into(),
-            bands: None,
-            floats_per_vertex: 7.0,
-            error: basis_err,
-            cpu_ms: basis_ms,
-            gpu_ms: basis_gpu,
-            mode_bake_s: basis_bake_s,
-            transfer_bake_s,
-            kernel_mib: mib((v * 16) as f64),
-            alpha: None,
-            quantisation_max_mm: None,
-            cpu_speedup_vs_direct: None,
-        });
+        let w32 = self.supine.map(|x| x as f32);
+        let mut basis_lung =
+            CpuLung::new(mesh.clone(), self.kd.clone(), ModeData::Basis { g: basis });
+        let basis_ms = self.time_cpu(&mut basis_lung, &w32, &mut outputs);
+        let basis_gpu = self.time_gpu(&basis_lung, &w32)?;
+        g.rows.push(self.row(
+            "basis",
+            7.0,
+            basis_err,
+            basis_ms,
+            basis_gpu,
+            self.basis_bake_s,
+            (v * 16) as f64,
+        ));
         // Memory-copy references of the same traffic, same run, timed alternately with the mode
         // (a slow phase of a shared machine falls on both).
         for (mode, bytes) in [("precomputed", 36usize), ("basis", 52)] {
@@ -505,80 +617,111 @@ pub fn run(args: &TradeoffArgs) -> anyhow::Result<Tradeoff> {
             } else {
                 (&mut pre, &[])
             };
-            copies.push(copy_figure(
+            g.copies.push(copy_figure(
                 mode,
                 bytes,
-                args.runs,
+                self.runs,
                 lung,
-                s_supine,
+                self.s_supine,
                 coeffs,
                 &mut outputs,
             ));
         }
         // Eq. 7.1 itself: the reference (its error is the f32 evaluation's round-off).
-        let columns = k.transfer.transposed();
         let mut direct = CpuLung::new(
             mesh.clone(),
-            kd.clone(),
+            self.kd.clone(),
             ModeData::Direct {
-                columns,
-                nhat: box_coordinates(&mesh, side),
+                columns: k.transfer.transposed(),
+                nhat: box_coordinates(&mesh, self.side),
                 force: vec![0.0; v],
                 elastostatic: vec![0.0; v],
             },
         );
-        let direct_ms = time_cpu(&mut direct, &w32, &mut outputs);
-        let mut direct_out = vec![[0.0f32; 3]; v];
-        let direct_gpu = time_gpu(&direct, &w32)?;
-        rows.push(Row {
-            vertices: v,
-            mode: "direct (eq. 7.1)".into(),
-            bands: None,
-            floats_per_vertex: 2.0 * k.meta.transfer.mean_row_nnz + 7.0,
-            error: ErrorStats::default(),
-            cpu_ms: direct_ms,
-            gpu_ms: direct_gpu,
-            mode_bake_s: 0.0,
-            transfer_bake_s,
-            kernel_mib: mib(0.0),
-            alpha: None,
-            quantisation_max_mm: None,
-            cpu_speedup_vs_direct: None,
-        });
-        // SH, 1..max bands (eq. 7.1 stays loaded: each band's speed-up is timed against it): each band count projected and fitted on its own (bake time per n).
+        let direct_ms = self.time_cpu(&mut direct, &w32, &mut outputs);
+        let direct_gpu = self.time_gpu(&direct, &w32)?;
+        g.rows.push(self.row(
+            "direct (eq. 7.1)",
+            2.0 * k.meta.transfer.mean_row_nnz + 7.0,
+            ErrorStats::default(),
+            direct_ms,
+            direct_gpu,
+            0.0,
+            0.0,
+        ));
+        self.sh_rows(max_bands, &mut direct, &w32, &mut outputs, g)?;
+        // Orientation methods on the smallest lung; stereo on every lung, at a typical and at a
+        // tiny eye size (where drawing costs next to nothing even on a software rasteriser).
+        if first_size {
+            g.orientation =
+                orientation_methods(&self.responses, &self.exact_forms, self.c789, self.delta_ml);
+        }
+        if let Some(gpu) = self.gpu {
+            for eye in STEREO_EYES {
+                eprintln!(
+                    "lungdyn: {n} vertices: stereo against mono, {}×{} per eye ...",
+                    eye.0, eye.1
+                );
+                g.stereo.push(stereo_figure(
+                    gpu,
+                    &basis_lung,
+                    self.s_supine,
+                    &w32,
+                    self.runs,
+                    eye,
+                )?);
+            }
+        }
+        Ok(())
+    }
+
+    /// SH with 1..`max_bands` bands, each projected and fitted on its own (bake time per band
+    /// count), each timed against eq. 7.1 (`direct`, still loaded) for its speed-up; the seed's 16
+    /// coefficients also against a copy of their bytes.
+    fn sh_rows(
+        &self,
+        max_bands: usize,
+        direct: &mut CpuLung,
+        w32: &[f32; 4],
+        outputs: &mut [[f32; 3]],
+        g: &mut Gathered,
+    ) -> anyhow::Result<()> {
+        let (k, n, v) = (&self.k, self.n, self.k.mesh.positions.len());
+        let mesh = &k.mesh;
         let columns = k.transfer.transposed();
-        for bands in 1..=args.max_bands {
+        let mut direct_out = vec![[0.0f32; 3]; v];
+        for bands in 1..=max_bands {
             eprintln!("lungdyn: {n} vertices: SH with {bands} bands ...");
             let t = Instant::now();
-            let projection = ShProjection::compute(&mesh, &columns, &responses.nhat, bands)?;
+            let projection = ShProjection::compute(mesh, &columns, &self.responses.nhat, bands)?;
             let fit = projection.fit(
                 bands,
-                &mesh,
-                &responses,
-                &exact_forms,
-                &orientations,
-                delta_ml,
+                mesh,
+                &self.responses,
+                &self.exact_forms,
+                &self.orientations,
+                self.delta_ml,
             );
             let sh_bake_s = t.elapsed().as_secs_f64();
-            let coeffs = sh_coeffs(fit.alpha, &projection.projection(bands), &supine);
+            let coeffs = sh_coeffs(fit.alpha, &projection.projection(bands), &self.supine);
             let mut lung = CpuLung::new(
                 mesh.clone(),
-                kd.clone(),
+                self.kd.clone(),
                 ModeData::Sh {
                     t: projection.quantised(bands),
                 },
             );
-            let ms = time_cpu(&mut lung, &coeffs, &mut outputs);
+            let ms = self.time_cpu(&mut lung, &coeffs, outputs);
             let (_, _, direct_over_sh) = median_pair(
-                args.runs,
+                self.runs,
                 || {
-                    lung.deform_into(s_supine, &coeffs, [0.0; 3], &mut outputs)
+                    lung.deform_into(self.s_supine, &coeffs, [0.0; 3], outputs)
                         .expect("coefficient count");
-                    std::hint::black_box(&outputs);
+                    std::hint::black_box(&*outputs);
                 },
                 || {
                     direct
-                        .deform_into(s_supine, &w32, [0.0; 3], &mut direct_out)
+                        .deform_into(self.s_supine, w32, [0.0; 3], &mut direct_out)
                         .expect("coefficient count");
                     std::hint::black_box(&direct_out);
                 },
@@ -590,77 +733,36 @@ pub fn run(args: &TradeoffArgs) -> anyhow::Result<Tradeoff> {
                     unreachable!("an SH lung")
                 };
                 let bytes = 12 + t.bytes_per_vertex() + 12 + 12;
-                copies.push(copy_figure(
+                g.copies.push(copy_figure(
                     "sh, 16 coefficients",
                     bytes,
-                    args.runs,
+                    self.runs,
                     &mut lung,
-                    s_supine,
+                    self.s_supine,
                     &coeffs,
-                    &mut outputs,
+                    outputs,
                 ));
             }
-            let gpu_ms = time_gpu(&lung, &coeffs)?;
-            rows.push(Row {
-                vertices: v,
-                mode: "sh".into(),
+            let gpu_ms = self.time_gpu(&lung, &coeffs)?;
+            g.rows.push(Row {
                 bands: Some(bands),
-                // 16-bit coefficients: half a float each.
-                floats_per_vertex: (bands * bands) as f64 / 2.0 + 3.0,
-                error: fit.error,
-                cpu_ms: ms,
-                gpu_ms,
-                mode_bake_s: sh_bake_s,
-                transfer_bake_s,
-                kernel_mib: mib((v * 16 + v * bands * bands * 4) as f64),
                 alpha: Some(fit.alpha),
                 quantisation_max_mm: Some(fit.quantisation_max_mm),
                 cpu_speedup_vs_direct: Some(direct_over_sh),
+                // 16-bit coefficients: half a float each.
+                ..self.row(
+                    "sh",
+                    (bands * bands) as f64 / 2.0 + 3.0,
+                    fit.error,
+                    ms,
+                    gpu_ms,
+                    sh_bake_s,
+                    (v * 16 + v * bands * bands * 4) as f64,
+                )
             });
         }
-        // Orientation methods on the smallest lung; stereo on every lung, at a typical and at a
-        // tiny eye size (where drawing costs next to nothing even on a software rasteriser).
-        if size_index == 0 {
-            orientation_rows = orientation_methods(&responses, &exact_forms, c789, delta_ml);
-        }
-        if let Some(gpu) = &gpu {
-            for eye in STEREO_EYES {
-                eprintln!(
-                    "lungdyn: {n} vertices: stereo against mono, {}×{} per eye ...",
-                    eye.0, eye.1
-                );
-                stereo.push(stereo_figure(
-                    gpu,
-                    &basis_lung,
-                    s_supine,
-                    &w32,
-                    args.runs,
-                    eye,
-                )?);
-            }
-        }
-        eprintln!(
-            "lungdyn: {n} vertices done ({threads} CPU threads{})",
-            gpu_name
-                .as_deref()
-                .map(|g| format!(", GPU {g}"))
-                .unwrap_or_default()
-        );
+        Ok(())
     }
-    let mut result = Tradeoff {
-        rows,
-        orientation: orientation_rows,
-        cpu_threads: rayon::current_num_threads(),
-        cpu: cpu_model(),
-        gpu: gpu_name,
-        stereo,
-        copy: copies,
-        load_average: [load_at_start, lungdyn_remote::measure::load_average()],
-        min_slope_ratio: lung_model::orientation::DEFAULT_MIN_SLOPE_RATIO,
-        files: Vec::new(),
-    };
-    result.files = write_outputs(&out_dir.join("tradeoff"), &result)?;
-    Ok(result)
 }
 
 /// The orientation methods over roll and pitch sweeps, against eq. 7.1 with the true force.
