@@ -168,6 +168,341 @@ struct Dispatch {
     group: wgpu::BindGroup,
 }
 
+/// Uploads storage buffers within the adapter's binding limit, counting the bytes.
+struct Uploader<'d> {
+    device: &'d wgpu::Device,
+    adapter: &'d str,
+    limit: u64,
+    uploaded: u64,
+}
+
+impl Uploader<'_> {
+    /// A storage buffer of `bytes` (`what` names it in the error when it exceeds the limit).
+    fn storage(
+        &mut self,
+        what: &'static str,
+        label: &str,
+        bytes: &[u8],
+        extra: wgpu::BufferUsages,
+    ) -> Result<wgpu::Buffer, UploadError> {
+        // wgpu refuses zero-sized bindings: keep one element.
+        let bytes: &[u8] = if bytes.is_empty() { &[0u8; 16] } else { bytes };
+        if bytes.len() as u64 > self.limit {
+            return Err(UploadError::TooLarge {
+                what,
+                mib: bytes.len() as f64 / 1048576.0,
+                limit_mib: self.limit as f64 / 1048576.0,
+                adapter: self.adapter.to_string(),
+            });
+        }
+        self.uploaded += bytes.len() as u64;
+        Ok(self
+            .device
+            .create_buffer_init(&wgpu::util::BufferInitDescriptor {
+                label: Some(label),
+                contents: bytes,
+                usage: wgpu::BufferUsages::STORAGE | extra,
+            }))
+    }
+}
+
+/// Makes a compute dispatch of `deform.wgsl`'s entry points.
+struct Maker<'d> {
+    device: &'d wgpu::Device,
+    module: wgpu::ShaderModule,
+}
+
+impl Maker<'_> {
+    /// The pipeline of `entry` (an auto layout: exactly the bindings it uses) and its bind group.
+    fn make(&self, entry: &str, bindings: &[(u32, &wgpu::Buffer)]) -> Dispatch {
+        let pipeline = self
+            .device
+            .create_compute_pipeline(&wgpu::ComputePipelineDescriptor {
+                label: Some(entry),
+                layout: None,
+                module: &self.module,
+                entry_point: Some(entry),
+                compilation_options: Default::default(),
+                cache: None,
+            });
+        let entries: Vec<wgpu::BindGroupEntry<'_>> = bindings
+            .iter()
+            .map(|(binding, buffer)| wgpu::BindGroupEntry {
+                binding: *binding,
+                resource: buffer.as_entire_binding(),
+            })
+            .collect();
+        let group = self.device.create_bind_group(&wgpu::BindGroupDescriptor {
+            label: Some(entry),
+            layout: &pipeline.get_bind_group_layout(0),
+            entries: &entries,
+        });
+        Dispatch { pipeline, group }
+    }
+}
+
+/// The buffers every dispatch binds: the parameters (0), the rest positions (1), the deformed
+/// positions (3).
+struct Shared {
+    params: wgpu::Buffer,
+    base: wgpu::Buffer,
+    deformed: wgpu::Buffer,
+}
+
+/// Every lung's per-vertex arrays of one kind, concatenated.
+fn vec4s(lungs: &[RenderLung], f: &dyn Fn(&RenderLung) -> Vec<[f32; 4]>) -> Vec<[f32; 4]> {
+    lungs.iter().flat_map(f).collect()
+}
+
+/// The directions times the force scale (`k·d`), as vec4s.
+fn directions(lungs: &[RenderLung], up: &mut Uploader<'_>) -> Result<wgpu::Buffer, UploadError> {
+    let kd = vec4s(lungs, &|l| {
+        l.lung
+            .scaled_directions
+            .iter()
+            .map(|d| [d[0], d[1], d[2], 0.0])
+            .collect()
+    });
+    up.storage(
+        "directions",
+        "lungdyn directions",
+        bytemuck::cast_slice(&kd),
+        wgpu::BufferUsages::empty(),
+    )
+}
+
+/// The mode's data uploaded and its dispatches (eq. 7.1's two for the direct mode).
+fn mode_dispatches(
+    mode: DeformMode,
+    lungs: &[RenderLung],
+    up: &mut Uploader<'_>,
+    mk: &Maker<'_>,
+    b: &Shared,
+) -> Result<Vec<Dispatch>, UploadError> {
+    let none = wgpu::BufferUsages::empty();
+    Ok(match mode {
+        DeformMode::Precomputed => {
+            let unit = vec4s(lungs, &|l| match &l.lung.data {
+                ModeData::Precomputed { unit } => {
+                    unit.iter().map(|u| [u[0], u[1], u[2], 0.0]).collect()
+                }
+                _ => unreachable!("one mode"),
+            });
+            let unit = up.storage(
+                "unit displacements",
+                "lungdyn unit displacement",
+                bytemuck::cast_slice(&unit),
+                none,
+            )?;
+            vec![mk.make(
+                "deform_precomputed",
+                &[(0, &b.params), (1, &b.base), (2, &unit), (3, &b.deformed)],
+            )]
+        }
+        DeformMode::Basis => {
+            let g = vec4s(lungs, &|l| match &l.lung.data {
+                ModeData::Basis { g } => g.clone(),
+                _ => unreachable!("one mode"),
+            });
+            let g = up.storage(
+                "basis responses",
+                "lungdyn basis responses",
+                bytemuck::cast_slice(&g),
+                none,
+            )?;
+            let kd = directions(lungs, up)?;
+            vec![mk.make(
+                "deform_basis",
+                &[
+                    (0, &b.params),
+                    (1, &b.base),
+                    (3, &b.deformed),
+                    (4, &kd),
+                    (5, &g),
+                ],
+            )]
+        }
+        DeformMode::Sh => {
+            // 16-bit integers in pairs, as the CPU holds them (lung_model::deform::sh_coeffs).
+            let t: Vec<u32> = lungs
+                .iter()
+                .flat_map(|l| match &l.lung.data {
+                    ModeData::Sh { t } => t.gpu_words(),
+                    _ => unreachable!("one mode"),
+                })
+                .collect();
+            let t = up.storage(
+                "spherical-harmonic transfer coefficients",
+                "lungdyn sh coefficients",
+                bytemuck::cast_slice(&t),
+                none,
+            )?;
+            let kd = directions(lungs, up)?;
+            vec![mk.make(
+                "deform_sh",
+                &[
+                    (0, &b.params),
+                    (1, &b.base),
+                    (3, &b.deformed),
+                    (4, &kd),
+                    (6, &t),
+                ],
+            )]
+        }
+        DeformMode::Direct => direct_dispatches(lungs, up, mk, b)?,
+    })
+}
+
+/// Eq. 7.1 on the GPU: the transfer columns of both lungs as one CSR (source indices offset by the
+/// lungs before), the box coordinates, a force buffer; the force pass, then the gather.
+fn direct_dispatches(
+    lungs: &[RenderLung],
+    up: &mut Uploader<'_>,
+    mk: &Maker<'_>,
+    b: &Shared,
+) -> Result<Vec<Dispatch>, UploadError> {
+    let none = wgpu::BufferUsages::empty();
+    let vertices: usize = lungs.iter().map(|l| l.lung.len()).sum();
+    let mut ptr: Vec<u32> = Vec::with_capacity(vertices + 1);
+    let mut src: Vec<u32> = Vec::new();
+    let mut val: Vec<f32> = Vec::new();
+    let mut nhat: Vec<[f32; 4]> = Vec::new();
+    ptr.push(0);
+    let mut first = 0u32;
+    for l in lungs {
+        let ModeData::Direct {
+            columns, nhat: nh, ..
+        } = &l.lung.data
+        else {
+            unreachable!("one mode")
+        };
+        let (p, s, v) = columns.raw();
+        let at = *ptr.last().unwrap_or(&0) as u64;
+        for w in p.windows(2) {
+            let end = at + w[1];
+            ptr.push(u32::try_from(end).map_err(|_| UploadError::Index("transfer rows"))?);
+        }
+        src.extend(s.iter().map(|&j| j + first));
+        val.extend_from_slice(v);
+        nhat.extend_from_slice(nh);
+        first += l.lung.len() as u32;
+    }
+    let ptr = up.storage(
+        "transfer rows",
+        "lungdyn col ptr",
+        bytemuck::cast_slice(&ptr),
+        none,
+    )?;
+    let src = up.storage(
+        "transfer rows",
+        "lungdyn col src",
+        bytemuck::cast_slice(&src),
+        none,
+    )?;
+    let val = up.storage(
+        "transfer rows",
+        "lungdyn col val",
+        bytemuck::cast_slice(&val),
+        none,
+    )?;
+    let nhat = up.storage(
+        "box coordinates",
+        "lungdyn nhat",
+        bytemuck::cast_slice(&nhat),
+        none,
+    )?;
+    let force = up.storage(
+        "forces",
+        "lungdyn force",
+        bytemuck::cast_slice(&vec![0.0f32; vertices]),
+        none,
+    )?;
+    let kd = directions(lungs, up)?;
+    Ok(vec![
+        mk.make(
+            "direct_force",
+            &[(0, &b.params), (1, &b.base), (7, &nhat), (8, &force)],
+        ),
+        mk.make(
+            "deform_direct",
+            &[
+                (0, &b.params),
+                (1, &b.base),
+                (3, &b.deformed),
+                (4, &kd),
+                (8, &force),
+                (9, &ptr),
+                (10, &src),
+                (11, &val),
+            ],
+        ),
+    ])
+}
+
+/// The vertex normals' pass: each vertex's incident triangles (CSR), the triangles, the rest
+/// incident areas (for the expansion field).
+fn normals_dispatch(
+    lungs: &[RenderLung],
+    up: &mut Uploader<'_>,
+    mk: &Maker<'_>,
+    b: &Shared,
+    normals: &wgpu::Buffer,
+) -> Result<Dispatch, UploadError> {
+    let none = wgpu::BufferUsages::empty();
+    let mut inc_ptr: Vec<u32> = vec![0];
+    let mut inc_tris: Vec<u32> = Vec::new();
+    let mut indices: Vec<u32> = Vec::new();
+    let mut rest_area: Vec<f32> = Vec::new();
+    let (mut vfirst, mut tfirst) = (0u32, 0u32);
+    for l in lungs {
+        let inc = &l.lung.incidence;
+        let at = *inc_ptr.last().unwrap_or(&0);
+        inc_ptr.extend(inc.ptr[1..].iter().map(|&p| p + at));
+        inc_tris.extend(inc.tris.iter().map(|&t| t + tfirst));
+        indices.extend(l.lung.triangles.iter().flat_map(|t| t.map(|v| v + vfirst)));
+        rest_area.extend(incident_areas(&l.lung.positions, &l.lung.triangles));
+        vfirst += l.lung.len() as u32;
+        tfirst += l.lung.triangles.len() as u32;
+    }
+    let inc_ptr = up.storage(
+        "normal data",
+        "lungdyn inc ptr",
+        bytemuck::cast_slice(&inc_ptr),
+        none,
+    )?;
+    let inc_tris = up.storage(
+        "normal data",
+        "lungdyn inc tris",
+        bytemuck::cast_slice(&inc_tris),
+        none,
+    )?;
+    let indices = up.storage(
+        "normal data",
+        "lungdyn triangle indices",
+        bytemuck::cast_slice(&indices),
+        none,
+    )?;
+    let rest_area = up.storage(
+        "normal data",
+        "lungdyn rest areas",
+        bytemuck::cast_slice(&rest_area),
+        none,
+    )?;
+    Ok(mk.make(
+        "vertex_normals",
+        &[
+            (0, &b.params),
+            (1, &b.base),
+            (16, &rest_area),
+            (3, &b.deformed),
+            (12, normals),
+            (13, &inc_ptr),
+            (14, &inc_tris),
+            (15, &indices),
+        ],
+    ))
+}
+
 /// GPU buffers and pipelines of the deformation pass.
 pub struct DeformPass {
     mode: DeformMode,
@@ -208,29 +543,12 @@ impl DeformPass {
         if let Some(other) = lungs.iter().map(RenderLung::mode).find(|m| *m != mode) {
             return Err(UploadError::MixedModes(mode, other));
         }
-        let limit = device.limits().max_storage_buffer_binding_size as u64;
-        let mut uploaded = 0u64;
-        let mut storage =
-            |what: &'static str, label: &str, bytes: &[u8], extra: wgpu::BufferUsages| {
-                // wgpu refuses zero-sized bindings: keep one element.
-                let bytes: &[u8] = if bytes.is_empty() { &[0u8; 16] } else { bytes };
-                if bytes.len() as u64 > limit {
-                    return Err(UploadError::TooLarge {
-                        what,
-                        mib: bytes.len() as f64 / 1048576.0,
-                        limit_mib: limit as f64 / 1048576.0,
-                        adapter: adapter.to_string(),
-                    });
-                }
-                uploaded += bytes.len() as u64;
-                Ok(
-                    device.create_buffer_init(&wgpu::util::BufferInitDescriptor {
-                        label: Some(label),
-                        contents: bytes,
-                        usage: wgpu::BufferUsages::STORAGE | extra,
-                    }),
-                )
-            };
+        let mut up = Uploader {
+            device,
+            adapter,
+            limit: device.limits().max_storage_buffer_binding_size as u64,
+            uploaded: 0,
+        };
         let none = wgpu::BufferUsages::empty();
         // Vertex arrays, both lungs concatenated (w of a position = the lung's slot).
         let mut base: Vec<[f32; 4]> = Vec::new();
@@ -254,284 +572,47 @@ impl DeformPass {
             base.extend(l.lung.positions.iter().map(|p| [p[0], p[1], p[2], w]));
         }
         let count = base.len() as u32;
-        let base_buf = storage(
-            "positions",
-            "lungdyn base positions",
-            bytemuck::cast_slice(&base),
-            none,
-        )?;
-        let deformed = storage(
-            "deformed positions",
-            "lungdyn deformed positions",
-            bytemuck::cast_slice(&base),
-            wgpu::BufferUsages::VERTEX | wgpu::BufferUsages::COPY_SRC,
-        )?;
-        let zeros = vec![[0.0f32; 4]; base.len()];
-        let normals_buf = storage(
+        let drawn = wgpu::BufferUsages::VERTEX | wgpu::BufferUsages::COPY_SRC;
+        let bufs = Shared {
+            params: device.create_buffer(&wgpu::BufferDescriptor {
+                label: Some("lungdyn deform params"),
+                size: std::mem::size_of::<DeformParams>() as u64,
+                usage: wgpu::BufferUsages::UNIFORM | wgpu::BufferUsages::COPY_DST,
+                mapped_at_creation: false,
+            }),
+            base: up.storage(
+                "positions",
+                "lungdyn base positions",
+                bytemuck::cast_slice(&base),
+                none,
+            )?,
+            deformed: up.storage(
+                "deformed positions",
+                "lungdyn deformed positions",
+                bytemuck::cast_slice(&base),
+                drawn,
+            )?,
+        };
+        let normals_buf = up.storage(
             "normals",
             "lungdyn normals",
-            bytemuck::cast_slice(&zeros),
-            wgpu::BufferUsages::VERTEX | wgpu::BufferUsages::COPY_SRC,
+            bytemuck::cast_slice(&vec![[0.0f32; 4]; base.len()]),
+            drawn,
         )?;
-        drop(zeros);
-        let vec4s = |f: &dyn Fn(&RenderLung) -> Vec<[f32; 4]>| -> Vec<[f32; 4]> {
-            lungs.iter().flat_map(f).collect()
-        };
-        let kd = || {
-            vec4s(&|l| {
-                l.lung
-                    .scaled_directions
-                    .iter()
-                    .map(|d| [d[0], d[1], d[2], 0.0])
-                    .collect()
-            })
-        };
         // Entry points and the bindings each uses (auto layouts hold exactly those).
-        let module = device.create_shader_module(wgpu::include_wgsl!("deform.wgsl"));
-        let params = device.create_buffer(&wgpu::BufferDescriptor {
-            label: Some("lungdyn deform params"),
-            size: std::mem::size_of::<DeformParams>() as u64,
-            usage: wgpu::BufferUsages::UNIFORM | wgpu::BufferUsages::COPY_DST,
-            mapped_at_creation: false,
-        });
-        let make = |entry: &str, bindings: &[(u32, &wgpu::Buffer)]| {
-            let pipeline = device.create_compute_pipeline(&wgpu::ComputePipelineDescriptor {
-                label: Some(entry),
-                layout: None,
-                module: &module,
-                entry_point: Some(entry),
-                compilation_options: Default::default(),
-                cache: None,
-            });
-            let entries: Vec<wgpu::BindGroupEntry<'_>> = bindings
-                .iter()
-                .map(|(binding, buffer)| wgpu::BindGroupEntry {
-                    binding: *binding,
-                    resource: buffer.as_entire_binding(),
-                })
-                .collect();
-            let group = device.create_bind_group(&wgpu::BindGroupDescriptor {
-                label: Some(entry),
-                layout: &pipeline.get_bind_group_layout(0),
-                entries: &entries,
-            });
-            Dispatch { pipeline, group }
+        let maker = Maker {
+            device,
+            module: device.create_shader_module(wgpu::include_wgsl!("deform.wgsl")),
         };
-        let mut dispatches = Vec::new();
-        match mode {
-            DeformMode::Precomputed => {
-                let unit = vec4s(&|l| match &l.lung.data {
-                    ModeData::Precomputed { unit } => {
-                        unit.iter().map(|u| [u[0], u[1], u[2], 0.0]).collect()
-                    }
-                    _ => unreachable!("one mode"),
-                });
-                let unit = storage(
-                    "unit displacements",
-                    "lungdyn unit displacement",
-                    bytemuck::cast_slice(&unit),
-                    none,
-                )?;
-                dispatches.push(make(
-                    "deform_precomputed",
-                    &[(0, &params), (1, &base_buf), (2, &unit), (3, &deformed)],
-                ));
-            }
-            DeformMode::Basis => {
-                let g = vec4s(&|l| match &l.lung.data {
-                    ModeData::Basis { g } => g.clone(),
-                    _ => unreachable!("one mode"),
-                });
-                let g = storage(
-                    "basis responses",
-                    "lungdyn basis responses",
-                    bytemuck::cast_slice(&g),
-                    none,
-                )?;
-                let kd = storage(
-                    "directions",
-                    "lungdyn directions",
-                    bytemuck::cast_slice(&kd()),
-                    none,
-                )?;
-                dispatches.push(make(
-                    "deform_basis",
-                    &[
-                        (0, &params),
-                        (1, &base_buf),
-                        (3, &deformed),
-                        (4, &kd),
-                        (5, &g),
-                    ],
-                ));
-            }
-            DeformMode::Sh => {
-                // 16-bit integers in pairs, as the CPU holds them (lung_model::deform::sh_coeffs).
-                let t: Vec<u32> = lungs
-                    .iter()
-                    .flat_map(|l| match &l.lung.data {
-                        ModeData::Sh { t } => t.gpu_words(),
-                        _ => unreachable!("one mode"),
-                    })
-                    .collect();
-                let t = storage(
-                    "spherical-harmonic transfer coefficients",
-                    "lungdyn sh coefficients",
-                    bytemuck::cast_slice(&t),
-                    none,
-                )?;
-                let kd = storage(
-                    "directions",
-                    "lungdyn directions",
-                    bytemuck::cast_slice(&kd()),
-                    none,
-                )?;
-                dispatches.push(make(
-                    "deform_sh",
-                    &[
-                        (0, &params),
-                        (1, &base_buf),
-                        (3, &deformed),
-                        (4, &kd),
-                        (6, &t),
-                    ],
-                ));
-            }
-            DeformMode::Direct => {
-                let mut ptr: Vec<u32> = Vec::with_capacity(base.len() + 1);
-                let mut src: Vec<u32> = Vec::new();
-                let mut val: Vec<f32> = Vec::new();
-                let mut nhat: Vec<[f32; 4]> = Vec::new();
-                ptr.push(0);
-                let mut first = 0u32;
-                for l in lungs {
-                    let ModeData::Direct {
-                        columns, nhat: nh, ..
-                    } = &l.lung.data
-                    else {
-                        unreachable!("one mode")
-                    };
-                    let (p, s, v) = columns.raw();
-                    let at = *ptr.last().unwrap_or(&0) as u64;
-                    for w in p.windows(2) {
-                        let end = at + w[1];
-                        ptr.push(
-                            u32::try_from(end).map_err(|_| UploadError::Index("transfer rows"))?,
-                        );
-                    }
-                    src.extend(s.iter().map(|&j| j + first));
-                    val.extend_from_slice(v);
-                    nhat.extend_from_slice(nh);
-                    first += l.lung.len() as u32;
-                }
-                let ptr = storage(
-                    "transfer rows",
-                    "lungdyn col ptr",
-                    bytemuck::cast_slice(&ptr),
-                    none,
-                )?;
-                let src = storage(
-                    "transfer rows",
-                    "lungdyn col src",
-                    bytemuck::cast_slice(&src),
-                    none,
-                )?;
-                let val = storage(
-                    "transfer rows",
-                    "lungdyn col val",
-                    bytemuck::cast_slice(&val),
-                    none,
-                )?;
-                let nhat = storage(
-                    "box coordinates",
-                    "lungdyn nhat",
-                    bytemuck::cast_slice(&nhat),
-                    none,
-                )?;
-                let force = storage(
-                    "forces",
-                    "lungdyn force",
-                    bytemuck::cast_slice(&vec![0.0f32; base.len()]),
-                    none,
-                )?;
-                let kd = storage(
-                    "directions",
-                    "lungdyn directions",
-                    bytemuck::cast_slice(&kd()),
-                    none,
-                )?;
-                dispatches.push(make(
-                    "direct_force",
-                    &[(0, &params), (1, &base_buf), (7, &nhat), (8, &force)],
-                ));
-                dispatches.push(make(
-                    "deform_direct",
-                    &[
-                        (0, &params),
-                        (1, &base_buf),
-                        (3, &deformed),
-                        (4, &kd),
-                        (8, &force),
-                        (9, &ptr),
-                        (10, &src),
-                        (11, &val),
-                    ],
-                ));
-            }
-        }
+        let dispatches = mode_dispatches(mode, lungs, &mut up, &maker, &bufs)?;
         let normals_pass = if normals {
-            let mut inc_ptr: Vec<u32> = vec![0];
-            let mut inc_tris: Vec<u32> = Vec::new();
-            let mut indices: Vec<u32> = Vec::new();
-            let mut rest_area: Vec<f32> = Vec::new();
-            let (mut vfirst, mut tfirst) = (0u32, 0u32);
-            for l in lungs {
-                let inc = &l.lung.incidence;
-                let at = *inc_ptr.last().unwrap_or(&0);
-                inc_ptr.extend(inc.ptr[1..].iter().map(|&p| p + at));
-                inc_tris.extend(inc.tris.iter().map(|&t| t + tfirst));
-                indices.extend(l.lung.triangles.iter().flat_map(|t| t.map(|v| v + vfirst)));
-                rest_area.extend(incident_areas(&l.lung.positions, &l.lung.triangles));
-                vfirst += l.lung.len() as u32;
-                tfirst += l.lung.triangles.len() as u32;
-            }
-            let inc_ptr = storage(
-                "normal data",
-                "lungdyn inc ptr",
-                bytemuck::cast_slice(&inc_ptr),
-                none,
-            )?;
-            let inc_tris = storage(
-                "normal data",
-                "lungdyn inc tris",
-                bytemuck::cast_slice(&inc_tris),
-                none,
-            )?;
-            let indices = storage(
-                "normal data",
-                "lungdyn triangle indices",
-                bytemuck::cast_slice(&indices),
-                none,
-            )?;
-            let rest_area = storage(
-                "normal data",
-                "lungdyn rest areas",
-                bytemuck::cast_slice(&rest_area),
-                none,
-            )?;
-            Some(make(
-                "vertex_normals",
-                &[
-                    (0, &params),
-                    (1, &base_buf),
-                    (16, &rest_area),
-                    (3, &deformed),
-                    (12, &normals_buf),
-                    (13, &inc_ptr),
-                    (14, &inc_tris),
-                    (15, &indices),
-                ],
-            ))
+            Some(normals_dispatch(
+                lungs,
+                &mut up,
+                &maker,
+                &bufs,
+                &normals_buf,
+            )?)
         } else {
             None
         };
@@ -540,13 +621,13 @@ impl DeformPass {
             field,
             dispatches,
             normals_pass,
-            params,
+            params: bufs.params,
             lung_info,
             sh_scale,
-            deformed,
+            deformed: bufs.deformed,
             normals: normals_buf,
             count,
-            uploaded_bytes: uploaded,
+            uploaded_bytes: up.uploaded,
         })
     }
 
