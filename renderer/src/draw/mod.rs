@@ -283,7 +283,6 @@ impl DrawPipelines {
         color: ColorMode,
         samples: u32,
     ) -> Self {
-        let module = device.create_shader_module(wgpu::include_wgsl!("draw.wgsl"));
         let uniform = |binding| wgpu::BindGroupLayoutEntry {
             binding,
             visibility: wgpu::ShaderStages::VERTEX_FRAGMENT,
@@ -298,74 +297,132 @@ impl DrawPipelines {
             label: Some("lungdyn eye"),
             entries: &[uniform(0), uniform(1)],
         });
-        let layout = device.create_pipeline_layout(&wgpu::PipelineLayoutDescriptor {
-            label: Some("lungdyn draw"),
-            bind_group_layouts: &[Some(&layout_bg)],
-            immediate_size: 0,
-        });
-        let multisample = wgpu::MultisampleState {
-            count: samples,
-            ..Default::default()
+        let b = Builder {
+            device,
+            module: device.create_shader_module(wgpu::include_wgsl!("draw.wgsl")),
+            layout: device.create_pipeline_layout(&wgpu::PipelineLayoutDescriptor {
+                label: Some("lungdyn draw"),
+                bind_group_layouts: &[Some(&layout_bg)],
+                immediate_size: 0,
+            }),
+            multisample: wgpu::MultisampleState {
+                count: samples,
+                ..Default::default()
+            },
         };
-        let attrs: [&[wgpu::VertexAttribute]; 3] = [
-            &[wgpu::VertexAttribute {
-                format: wgpu::VertexFormat::Float32x4,
-                offset: 0,
-                shader_location: 0,
-            }],
-            &[wgpu::VertexAttribute {
-                format: wgpu::VertexFormat::Float32x4,
-                offset: 0,
-                shader_location: 1,
-            }],
-            &[
-                wgpu::VertexAttribute {
-                    format: wgpu::VertexFormat::Uint8x4,
-                    offset: 0,
-                    shader_location: 2,
-                },
-                wgpu::VertexAttribute {
-                    format: wgpu::VertexFormat::Snorm16x2,
-                    offset: 4,
-                    shader_location: 7,
-                },
-            ],
-        ];
-        // Position, normal (w: the colour field), surface attribute: per vertex for triangles,
-        // per instance for splats.
-        let buffers = |step_mode| {
-            [16u64, 16, std::mem::size_of::<SurfaceAttr>() as u64]
-                .iter()
-                .zip(&attrs)
-                .map(move |(&stride, a)| {
-                    Some(wgpu::VertexBufferLayout {
-                        array_stride: stride,
-                        step_mode,
-                        attributes: a,
-                    })
-                })
-        };
-        let per_vertex: Vec<_> = buffers(wgpu::VertexStepMode::Vertex).collect();
-        let per_instance: Vec<_> = buffers(wgpu::VertexStepMode::Instance).collect();
-        let colour = |blend| {
-            Some(wgpu::ColorTargetState {
-                format: COLOR_FORMAT,
-                blend,
-                write_mask: wgpu::ColorWrites::ALL,
+        let lungs = lung_pipeline(&b, mode, look);
+        // The tumour: drawn through the opaque lungs it lies inside (the planner's target), a
+        // solid body inside the translucent or glowing ones.
+        let tumour = b.pipeline(
+            "lungdyn tumour",
+            ("vs_triangles", "fs_opaque_triangles"),
+            &vertex_buffers(wgpu::VertexStepMode::Vertex),
+            Some(wgpu::Face::Back),
+            if look == Look::Opaque {
+                Depth::Ignore
+            } else {
+                Depth::Write
+            },
+            &[colour_target(None)],
+        );
+        let composite = (look == Look::Translucent).then(|| composite(device));
+        let (eye_buffers, style, eye_groups) = eye_bindings(device, &layout_bg, color);
+        Self {
+            lungs,
+            tumour,
+            composite,
+            eye_buffers,
+            style,
+            eye_groups,
+        }
+    }
+}
+
+/// The vertex attributes of the three vertex buffers: position (0), normal (1; w the colour
+/// field), surface attribute (2: material and lobe; 7: fissure distances).
+const VERTEX_ATTRIBUTES: [&[wgpu::VertexAttribute]; 3] = [
+    &[wgpu::VertexAttribute {
+        format: wgpu::VertexFormat::Float32x4,
+        offset: 0,
+        shader_location: 0,
+    }],
+    &[wgpu::VertexAttribute {
+        format: wgpu::VertexFormat::Float32x4,
+        offset: 0,
+        shader_location: 1,
+    }],
+    &[
+        wgpu::VertexAttribute {
+            format: wgpu::VertexFormat::Uint8x4,
+            offset: 0,
+            shader_location: 2,
+        },
+        wgpu::VertexAttribute {
+            format: wgpu::VertexFormat::Snorm16x2,
+            offset: 4,
+            shader_location: 7,
+        },
+    ],
+];
+
+/// Position, normal, surface attribute: per vertex for triangles, per instance for splats.
+fn vertex_buffers(
+    step_mode: wgpu::VertexStepMode,
+) -> Vec<Option<wgpu::VertexBufferLayout<'static>>> {
+    [16u64, 16, std::mem::size_of::<SurfaceAttr>() as u64]
+        .iter()
+        .zip(&VERTEX_ATTRIBUTES)
+        .map(|(&stride, a)| {
+            Some(wgpu::VertexBufferLayout {
+                array_stride: stride,
+                step_mode,
+                attributes: a,
             })
-        };
-        let pipeline = |label,
-                        vs,
-                        fs,
-                        buffers: &[Option<wgpu::VertexBufferLayout<'_>>],
-                        cull_mode,
-                        depth: Depth,
-                        targets: &[Option<wgpu::ColorTargetState>]| {
-            device.create_render_pipeline(&wgpu::RenderPipelineDescriptor {
+        })
+        .collect()
+}
+
+/// The colour target in [`COLOR_FORMAT`] with `blend`.
+fn colour_target(blend: Option<wgpu::BlendState>) -> Option<wgpu::ColorTargetState> {
+    Some(wgpu::ColorTargetState {
+        format: COLOR_FORMAT,
+        blend,
+        write_mask: wgpu::ColorWrites::ALL,
+    })
+}
+
+/// Light (or weight) that adds: `src + dst`.
+const ADDITIVE: wgpu::BlendComponent = wgpu::BlendComponent {
+    src_factor: wgpu::BlendFactor::One,
+    dst_factor: wgpu::BlendFactor::One,
+    operation: wgpu::BlendOperation::Add,
+};
+
+/// What every draw pipeline shares: `draw.wgsl`, the eye's layout, the sample count.
+struct Builder<'d> {
+    device: &'d wgpu::Device,
+    module: wgpu::ShaderModule,
+    layout: wgpu::PipelineLayout,
+    multisample: wgpu::MultisampleState,
+}
+
+impl Builder<'_> {
+    /// A triangle-list pipeline of `(vertex, fragment)` entry points.
+    fn pipeline(
+        &self,
+        label: &str,
+        (vs, fs): (&str, &str),
+        buffers: &[Option<wgpu::VertexBufferLayout<'_>>],
+        cull_mode: Option<wgpu::Face>,
+        depth: Depth,
+        targets: &[Option<wgpu::ColorTargetState>],
+    ) -> wgpu::RenderPipeline {
+        self.device
+            .create_render_pipeline(&wgpu::RenderPipelineDescriptor {
                 label: Some(label),
-                layout: Some(&layout),
+                layout: Some(&self.layout),
                 vertex: wgpu::VertexState {
-                    module: &module,
+                    module: &self.module,
                     entry_point: Some(vs),
                     compilation_options: Default::default(),
                     buffers,
@@ -387,9 +444,9 @@ impl DrawPipelines {
                     stencil: Default::default(),
                     bias: Default::default(),
                 }),
-                multisample,
+                multisample: self.multisample,
                 fragment: Some(wgpu::FragmentState {
-                    module: &module,
+                    module: &self.module,
                     entry_point: Some(fs),
                     compilation_options: Default::default(),
                     targets,
@@ -397,137 +454,118 @@ impl DrawPipelines {
                 multiview_mask: None,
                 cache: None,
             })
-        };
-        let (vs, lung_buffers) = match mode {
-            DrawMode::Triangles => ("vs_triangles", &per_vertex),
-            DrawMode::Points => ("vs_splats", &per_instance),
-        };
-        let fs = |triangles, splats| match mode {
-            DrawMode::Triangles => triangles,
-            DrawMode::Points => splats,
-        };
-        // Closed, outward-wound surfaces: an opaque one's back faces are never visible. The
-        // translucent look shows them (the far wall through the near one); splats have no faces.
-        let cull = |back: bool| (back && mode == DrawMode::Triangles).then_some(wgpu::Face::Back);
-        let additive = wgpu::BlendComponent {
-            src_factor: wgpu::BlendFactor::One,
-            dst_factor: wgpu::BlendFactor::One,
-            operation: wgpu::BlendOperation::Add,
-        };
-        let lungs = match look {
-            Look::Opaque => pipeline(
-                "lungdyn lungs opaque",
-                vs,
-                fs("fs_opaque_triangles", "fs_opaque_splats"),
-                lung_buffers,
-                cull(true),
-                Depth::Write,
-                &[colour(None)],
-            ),
-            Look::Translucent => pipeline(
-                "lungdyn lungs translucent",
-                vs,
-                fs("fs_oit_triangles", "fs_oit_splats"),
-                lung_buffers,
-                cull(false),
-                Depth::Test,
-                &[
-                    Some(wgpu::ColorTargetState {
-                        format: ACCUM_FORMAT,
-                        blend: Some(wgpu::BlendState {
-                            color: additive,
-                            alpha: additive,
-                        }),
-                        write_mask: wgpu::ColorWrites::ALL,
-                    }),
-                    Some(wgpu::ColorTargetState {
-                        format: REVEAL_FORMAT,
-                        blend: Some(wgpu::BlendState {
-                            color: wgpu::BlendComponent {
-                                src_factor: wgpu::BlendFactor::Zero,
-                                dst_factor: wgpu::BlendFactor::OneMinusSrc,
-                                operation: wgpu::BlendOperation::Add,
-                            },
-                            alpha: wgpu::BlendComponent::REPLACE,
-                        }),
-                        write_mask: wgpu::ColorWrites::ALL,
-                    }),
-                ],
-            ),
-            // Light adds: the order of the surfaces does not matter, the near wall alone shows
-            // the outline (back faces culled).
-            Look::SeeThrough => pipeline(
-                "lungdyn lungs see-through",
-                vs,
-                fs("fs_glow_triangles", "fs_glow_splats"),
-                lung_buffers,
-                cull(true),
-                Depth::Test,
-                &[colour(Some(wgpu::BlendState {
-                    color: additive,
-                    alpha: additive,
-                }))],
-            ),
-        };
-        // The tumour: drawn through the opaque lungs it lies inside (the planner's target), a
-        // solid body inside the translucent or glowing ones.
-        let tumour = pipeline(
-            "lungdyn tumour",
-            "vs_triangles",
-            "fs_opaque_triangles",
-            &per_vertex,
-            Some(wgpu::Face::Back),
-            if look == Look::Opaque {
-                Depth::Ignore
-            } else {
-                Depth::Write
-            },
-            &[colour(None)],
-        );
-        let composite = (look == Look::Translucent).then(|| composite(device));
-        let eye_buffer = |label| {
-            device.create_buffer(&wgpu::BufferDescriptor {
-                label: Some(label),
-                size: std::mem::size_of::<EyeUniform>() as u64,
-                usage: wgpu::BufferUsages::UNIFORM | wgpu::BufferUsages::COPY_DST,
-                mapped_at_creation: false,
-            })
-        };
-        let eye_buffers = [eye_buffer("lungdyn eye 0"), eye_buffer("lungdyn eye 1")];
-        let style = wgpu::util::DeviceExt::create_buffer_init(
-            device,
-            &wgpu::util::BufferInitDescriptor {
-                label: Some("lungdyn style"),
-                contents: bytemuck::bytes_of(&StyleUniform::new(color)),
-                usage: wgpu::BufferUsages::UNIFORM,
-            },
-        );
-        let group = |b: &wgpu::Buffer| {
-            device.create_bind_group(&wgpu::BindGroupDescriptor {
-                label: Some("lungdyn eye"),
-                layout: &layout_bg,
-                entries: &[
-                    wgpu::BindGroupEntry {
-                        binding: 0,
-                        resource: b.as_entire_binding(),
-                    },
-                    wgpu::BindGroupEntry {
-                        binding: 1,
-                        resource: style.as_entire_binding(),
-                    },
-                ],
-            })
-        };
-        let eye_groups = [group(&eye_buffers[0]), group(&eye_buffers[1])];
-        Self {
-            lungs,
-            tumour,
-            composite,
-            eye_buffers,
-            style,
-            eye_groups,
-        }
     }
+}
+
+/// The lungs' pipeline in `look`: opaque, OIT (weighted blended targets) or additive light;
+/// triangles or splats.
+fn lung_pipeline(b: &Builder<'_>, mode: DrawMode, look: Look) -> wgpu::RenderPipeline {
+    let (vs, buffers) = match mode {
+        DrawMode::Triangles => ("vs_triangles", vertex_buffers(wgpu::VertexStepMode::Vertex)),
+        DrawMode::Points => ("vs_splats", vertex_buffers(wgpu::VertexStepMode::Instance)),
+    };
+    let fs = |triangles, splats| match mode {
+        DrawMode::Triangles => triangles,
+        DrawMode::Points => splats,
+    };
+    // Closed, outward-wound surfaces: an opaque one's back faces are never visible. The
+    // translucent look shows them (the far wall through the near one); splats have no faces.
+    let cull = |back: bool| (back && mode == DrawMode::Triangles).then_some(wgpu::Face::Back);
+    match look {
+        Look::Opaque => b.pipeline(
+            "lungdyn lungs opaque",
+            (vs, fs("fs_opaque_triangles", "fs_opaque_splats")),
+            &buffers,
+            cull(true),
+            Depth::Write,
+            &[colour_target(None)],
+        ),
+        Look::Translucent => b.pipeline(
+            "lungdyn lungs translucent",
+            (vs, fs("fs_oit_triangles", "fs_oit_splats")),
+            &buffers,
+            cull(false),
+            Depth::Test,
+            &[
+                Some(wgpu::ColorTargetState {
+                    format: ACCUM_FORMAT,
+                    blend: Some(wgpu::BlendState {
+                        color: ADDITIVE,
+                        alpha: ADDITIVE,
+                    }),
+                    write_mask: wgpu::ColorWrites::ALL,
+                }),
+                Some(wgpu::ColorTargetState {
+                    format: REVEAL_FORMAT,
+                    blend: Some(wgpu::BlendState {
+                        color: wgpu::BlendComponent {
+                            src_factor: wgpu::BlendFactor::Zero,
+                            dst_factor: wgpu::BlendFactor::OneMinusSrc,
+                            operation: wgpu::BlendOperation::Add,
+                        },
+                        alpha: wgpu::BlendComponent::REPLACE,
+                    }),
+                    write_mask: wgpu::ColorWrites::ALL,
+                }),
+            ],
+        ),
+        // Light adds: the order of the surfaces does not matter, the near wall alone shows
+        // the outline (back faces culled).
+        Look::SeeThrough => b.pipeline(
+            "lungdyn lungs see-through",
+            (vs, fs("fs_glow_triangles", "fs_glow_splats")),
+            &buffers,
+            cull(true),
+            Depth::Test,
+            &[colour_target(Some(wgpu::BlendState {
+                color: ADDITIVE,
+                alpha: ADDITIVE,
+            }))],
+        ),
+    }
+}
+
+/// Each eye's uniform buffer, the colour mode's uniform, and each eye's bind group over both.
+fn eye_bindings(
+    device: &wgpu::Device,
+    layout: &wgpu::BindGroupLayout,
+    color: ColorMode,
+) -> ([wgpu::Buffer; 2], wgpu::Buffer, [wgpu::BindGroup; 2]) {
+    let eye_buffer = |label| {
+        device.create_buffer(&wgpu::BufferDescriptor {
+            label: Some(label),
+            size: std::mem::size_of::<EyeUniform>() as u64,
+            usage: wgpu::BufferUsages::UNIFORM | wgpu::BufferUsages::COPY_DST,
+            mapped_at_creation: false,
+        })
+    };
+    let eye_buffers = [eye_buffer("lungdyn eye 0"), eye_buffer("lungdyn eye 1")];
+    let style = wgpu::util::DeviceExt::create_buffer_init(
+        device,
+        &wgpu::util::BufferInitDescriptor {
+            label: Some("lungdyn style"),
+            contents: bytemuck::bytes_of(&StyleUniform::new(color)),
+            usage: wgpu::BufferUsages::UNIFORM,
+        },
+    );
+    let group = |b: &wgpu::Buffer| {
+        device.create_bind_group(&wgpu::BindGroupDescriptor {
+            label: Some("lungdyn eye"),
+            layout,
+            entries: &[
+                wgpu::BindGroupEntry {
+                    binding: 0,
+                    resource: b.as_entire_binding(),
+                },
+                wgpu::BindGroupEntry {
+                    binding: 1,
+                    resource: style.as_entire_binding(),
+                },
+            ],
+        })
+    };
+    let eye_groups = [group(&eye_buffers[0]), group(&eye_buffers[1])];
+    (eye_buffers, style, eye_groups)
 }
 
 /// The OIT composite: a fullscreen triangle reading the (resolved) accumulation and revealage
