@@ -151,6 +151,243 @@ struct OitTargets {
     group: wgpu::BindGroup,
 }
 
+/// Every lung vertex's surface attribute ([`draw::lung_surface`]), both lungs concatenated.
+fn surface_buffer(device: &wgpu::Device, lungs: &[RenderLung]) -> wgpu::Buffer {
+    let surface: Vec<draw::SurfaceAttr> = lungs
+        .iter()
+        .flat_map(|l| {
+            draw::lung_surface(
+                l.side.index(),
+                &l.lung.positions,
+                &l.lung.triangles,
+                l.lobe_codes(),
+            )
+        })
+        .collect();
+    device.create_buffer_init(&wgpu::util::BufferInitDescriptor {
+        label: Some("lungdyn surface attributes"),
+        contents: bytemuck::cast_slice(&surface),
+        usage: wgpu::BufferUsages::VERTEX,
+    })
+}
+
+/// The rest lungs' bounding box (finite positions), mm; none without a vertex.
+fn lung_box(lungs: &[RenderLung]) -> Option<(glam::Vec3, glam::Vec3)> {
+    lungs
+        .iter()
+        .flat_map(|l| l.lung.positions.iter())
+        .map(|&p| glam::Vec3::from(p))
+        .filter(|p| p.is_finite())
+        .fold(None, |b: Option<(glam::Vec3, glam::Vec3)>, p| {
+            Some(b.map_or((p, p), |(lo, hi)| (lo.min(p), hi.max(p))))
+        })
+}
+
+/// The GPU's two timestamps around a frame's passes, where the adapter has them.
+fn timestamps(gpu: &Gpu) -> Option<Timestamps> {
+    let device = &gpu.device;
+    gpu.timestamps.then(|| Timestamps {
+        set: device.create_query_set(&wgpu::QuerySetDescriptor {
+            label: Some("lungdyn timestamps"),
+            ty: wgpu::QueryType::Timestamp,
+            count: 2,
+        }),
+        resolve: device.create_buffer(&wgpu::BufferDescriptor {
+            label: Some("lungdyn timestamp resolve"),
+            size: 16,
+            usage: wgpu::BufferUsages::QUERY_RESOLVE | wgpu::BufferUsages::COPY_SRC,
+            mapped_at_creation: false,
+        }),
+        read: device.create_buffer(&wgpu::BufferDescriptor {
+            label: Some("lungdyn timestamp read"),
+            size: 16,
+            usage: wgpu::BufferUsages::COPY_DST | wgpu::BufferUsages::MAP_READ,
+            mapped_at_creation: false,
+        }),
+        period_ns: gpu.queue.get_timestamp_period(),
+    })
+}
+
+/// The draw levels of detail of both lungs in one index buffer ([`lod`]).
+struct DrawLevels {
+    index: wgpu::Buffer,
+    ranges: Vec<std::ops::Range<u32>>,
+    triangles: Vec<u32>,
+    /// A level the topology check refused, per lung, said at start.
+    refused: Vec<String>,
+    /// The level a fixed `lod = N` draws (the coarsest the meshes have when they are too small).
+    fixed: usize,
+}
+
+impl DrawLevels {
+    /// Simplified here at load: none with `lod = "off"` or splats (one splat per vertex: nothing
+    /// to simplify).
+    fn build(device: &wgpu::Device, settings: &RenderScene, lungs: &[RenderLung]) -> Self {
+        let coarsest = match (settings.mode, settings.lod) {
+            (DrawMode::Points, _) | (_, Lod::Off) => 0,
+            (_, Lod::Auto) => lung_model::scene::MAX_LOD_LEVEL,
+            (_, Lod::Level(n)) => n,
+        };
+        let per_lung: Vec<_> = lungs
+            .iter()
+            .map(|l| lod::lung_levels(&l.lung.positions, &l.lung.triangles, coarsest))
+            .collect();
+        // A level the topology check refused ends that lung's levels; the start line says so.
+        let refused: Vec<String> = lungs
+            .iter()
+            .zip(&per_lung)
+            .filter_map(|(l, b)| {
+                let (k, why) = b.refused.as_ref()?;
+                let side = format!("{:?}", l.side).to_lowercase();
+                Some(format!("the {side} lung's level {k} not drawn: {why}"))
+            })
+            .collect();
+        let per_lung: Vec<_> = per_lung.into_iter().map(|b| b.levels).collect();
+        let counts: Vec<u32> = lungs.iter().map(|l| l.lung.len() as u32).collect();
+        let levels = lod::Levels::join(&per_lung, &counts);
+        let triangles: Vec<u32> = (0..levels.ranges.len())
+            .map(|k| levels.triangles(k))
+            .collect();
+        let index = device.create_buffer_init(&wgpu::util::BufferInitDescriptor {
+            label: Some("lungdyn indices"),
+            contents: bytemuck::cast_slice(&levels.indices),
+            usage: wgpu::BufferUsages::INDEX,
+        });
+        let fixed = match settings.lod {
+            Lod::Level(n) => (n as usize).min(levels.ranges.len().saturating_sub(1)),
+            _ => 0,
+        };
+        Self {
+            index,
+            ranges: levels.ranges,
+            triangles,
+            refused,
+            fixed,
+        }
+    }
+}
+
+/// The frame's render targets: colour (resolved, sampled, copied out), its multisampled twin,
+/// depth, and the translucent look's OIT targets.
+struct Targets {
+    color: wgpu::Texture,
+    /// Whether the colour target may be viewed as plain bytes (no sRGB decode).
+    bytes_views: bool,
+    msaa_view: Option<wgpu::TextureView>,
+    depth_view: wgpu::TextureView,
+    oit: Option<OitTargets>,
+}
+
+impl Targets {
+    /// Targets of `size` at `samples` per pixel; OIT targets when the look has a composite
+    /// (`composite`: its bind group layout).
+    fn new(
+        gpu: &Gpu,
+        size: wgpu::Extent3d,
+        samples: u32,
+        composite: Option<&wgpu::BindGroupLayout>,
+    ) -> Self {
+        let device = &gpu.device;
+        let texture = |label, format, sample_count, usage| {
+            device.create_texture(&wgpu::TextureDescriptor {
+                label: Some(label),
+                size,
+                mip_level_count: 1,
+                sample_count,
+                dimension: wgpu::TextureDimension::D2,
+                format,
+                usage,
+                view_formats: &[],
+            })
+        };
+        let attachment = wgpu::TextureUsages::RENDER_ATTACHMENT;
+        // The colour target may also be viewed as plain bytes (no sRGB decode): the window's
+        // present pass copies it texel for texel that way when the window is the frame's size.
+        // Only where the adapter allows a texture other view formats (not wgpu's GL backend).
+        let bytes_views = gpu
+            .adapter
+            .get_downlevel_capabilities()
+            .flags
+            .contains(wgpu::DownlevelFlags::VIEW_FORMATS);
+        let bytes_format = [draw::COLOR_FORMAT.remove_srgb_suffix()];
+        let color = device.create_texture(&wgpu::TextureDescriptor {
+            label: Some("lungdyn colour"),
+            size,
+            mip_level_count: 1,
+            sample_count: 1,
+            dimension: wgpu::TextureDimension::D2,
+            format: draw::COLOR_FORMAT,
+            usage: attachment
+                | wgpu::TextureUsages::COPY_SRC
+                | wgpu::TextureUsages::TEXTURE_BINDING,
+            view_formats: if bytes_views { &bytes_format } else { &[] },
+        });
+        let view = |t: wgpu::Texture| t.create_view(&Default::default());
+        let msaa_view = (samples > 1).then(|| {
+            view(texture(
+                "lungdyn colour (multisampled)",
+                draw::COLOR_FORMAT,
+                samples,
+                attachment,
+            ))
+        });
+        let depth = texture("lungdyn depth", draw::DEPTH_FORMAT, samples, attachment);
+        let oit = composite.map(|layout| {
+            let sampled = attachment | wgpu::TextureUsages::TEXTURE_BINDING;
+            let accum = view(texture("lungdyn oit accum", draw::ACCUM_FORMAT, 1, sampled));
+            let reveal = view(texture(
+                "lungdyn oit reveal",
+                draw::REVEAL_FORMAT,
+                1,
+                sampled,
+            ));
+            let multisampled = (samples > 1).then(|| {
+                (
+                    view(texture(
+                        "lungdyn oit accum (multisampled)",
+                        draw::ACCUM_FORMAT,
+                        samples,
+                        attachment,
+                    )),
+                    view(texture(
+                        "lungdyn oit reveal (multisampled)",
+                        draw::REVEAL_FORMAT,
+                        samples,
+                        attachment,
+                    )),
+                )
+            });
+            let group = device.create_bind_group(&wgpu::BindGroupDescriptor {
+                label: Some("lungdyn composite"),
+                layout,
+                entries: &[
+                    wgpu::BindGroupEntry {
+                        binding: 0,
+                        resource: wgpu::BindingResource::TextureView(&accum),
+                    },
+                    wgpu::BindGroupEntry {
+                        binding: 1,
+                        resource: wgpu::BindingResource::TextureView(&reveal),
+                    },
+                ],
+            });
+            OitTargets {
+                multisampled,
+                accum,
+                reveal,
+                group,
+            }
+        });
+        Self {
+            color,
+            bytes_views,
+            msaa_view,
+            depth_view: depth.create_view(&Default::default()),
+            oit,
+        }
+    }
+}
+
 /// The renderer's GPU state for a fixed set of lungs and a fixed output size.
 pub struct LungRenderer {
     deform: deform::DeformPass,
@@ -238,22 +475,7 @@ impl LungRenderer {
             settings.color,
             samples,
         );
-        let surface: Vec<draw::SurfaceAttr> = lungs
-            .iter()
-            .flat_map(|l| {
-                draw::lung_surface(
-                    l.side.index(),
-                    &l.lung.positions,
-                    &l.lung.triangles,
-                    l.lobe_codes(),
-                )
-            })
-            .collect();
-        let surface = device.create_buffer_init(&wgpu::util::BufferInitDescriptor {
-            label: Some("lungdyn surface attributes"),
-            contents: bytemuck::cast_slice(&surface),
-            usage: wgpu::BufferUsages::VERTEX,
-        });
+        let surface = surface_buffer(device, lungs);
         let tumours = lungs
             .iter()
             .filter_map(|l| {
@@ -266,43 +488,7 @@ impl LungRenderer {
                 ))
             })
             .collect();
-        // Draw levels of detail, simplified here at load: none with `lod = "off"` or splats
-        // (one splat per vertex: nothing to simplify).
-        let coarsest = match (settings.mode, settings.lod) {
-            (DrawMode::Points, _) | (_, Lod::Off) => 0,
-            (_, Lod::Auto) => lung_model::scene::MAX_LOD_LEVEL,
-            (_, Lod::Level(n)) => n,
-        };
-        let per_lung: Vec<_> = lungs
-            .iter()
-            .map(|l| lod::lung_levels(&l.lung.positions, &l.lung.triangles, coarsest))
-            .collect();
-        // A level the topology check refused ends that lung's levels; the start line says so.
-        let lod_refused: Vec<String> = lungs
-            .iter()
-            .zip(&per_lung)
-            .filter_map(|(l, b)| {
-                let (k, why) = b.refused.as_ref()?;
-                let side = format!("{:?}", l.side).to_lowercase();
-                Some(format!("the {side} lung's level {k} not drawn: {why}"))
-            })
-            .collect();
-        let per_lung: Vec<_> = per_lung.into_iter().map(|b| b.levels).collect();
-        let counts: Vec<u32> = lungs.iter().map(|l| l.lung.len() as u32).collect();
-        let levels = lod::Levels::join(&per_lung, &counts);
-        let lod_triangles: Vec<u32> = (0..levels.ranges.len())
-            .map(|k| levels.triangles(k))
-            .collect();
-        let index = device.create_buffer_init(&wgpu::util::BufferInitDescriptor {
-            label: Some("lungdyn indices"),
-            contents: bytemuck::cast_slice(&levels.indices),
-            usage: wgpu::BufferUsages::INDEX,
-        });
-        // A fixed level the meshes are too small for: their coarsest.
-        let fixed = match settings.lod {
-            Lod::Level(n) => (n as usize).min(levels.ranges.len().saturating_sub(1)),
-            _ => 0,
-        };
+        let levels = DrawLevels::build(device, settings, lungs);
         let eyes = if settings.stereo { 2 } else { 1 };
         let width = eye_width * eyes as u32;
         let size = wgpu::Extent3d {
@@ -310,96 +496,7 @@ impl LungRenderer {
             height: eye_height,
             depth_or_array_layers: 1,
         };
-        let texture = |label, format, sample_count, usage| {
-            device.create_texture(&wgpu::TextureDescriptor {
-                label: Some(label),
-                size,
-                mip_level_count: 1,
-                sample_count,
-                dimension: wgpu::TextureDimension::D2,
-                format,
-                usage,
-                view_formats: &[],
-            })
-        };
-        let attachment = wgpu::TextureUsages::RENDER_ATTACHMENT;
-        // The colour target may also be viewed as plain bytes (no sRGB decode): the window's
-        // present pass copies it texel for texel that way when the window is the frame's size.
-        // Only where the adapter allows a texture other view formats (not wgpu's GL backend).
-        let bytes_views = gpu
-            .adapter
-            .get_downlevel_capabilities()
-            .flags
-            .contains(wgpu::DownlevelFlags::VIEW_FORMATS);
-        let bytes_format = [draw::COLOR_FORMAT.remove_srgb_suffix()];
-        let color = device.create_texture(&wgpu::TextureDescriptor {
-            label: Some("lungdyn colour"),
-            size,
-            mip_level_count: 1,
-            sample_count: 1,
-            dimension: wgpu::TextureDimension::D2,
-            format: draw::COLOR_FORMAT,
-            usage: attachment
-                | wgpu::TextureUsages::COPY_SRC
-                | wgpu::TextureUsages::TEXTURE_BINDING,
-            view_formats: if bytes_views { &bytes_format } else { &[] },
-        });
-        let view = |t: wgpu::Texture| t.create_view(&Default::default());
-        let msaa_view = (samples > 1).then(|| {
-            view(texture(
-                "lungdyn colour (multisampled)",
-                draw::COLOR_FORMAT,
-                samples,
-                attachment,
-            ))
-        });
-        let depth = texture("lungdyn depth", draw::DEPTH_FORMAT, samples, attachment);
-        let oit = draw.composite.as_ref().map(|(_, layout)| {
-            let sampled = attachment | wgpu::TextureUsages::TEXTURE_BINDING;
-            let accum = view(texture("lungdyn oit accum", draw::ACCUM_FORMAT, 1, sampled));
-            let reveal = view(texture(
-                "lungdyn oit reveal",
-                draw::REVEAL_FORMAT,
-                1,
-                sampled,
-            ));
-            let multisampled = (samples > 1).then(|| {
-                (
-                    view(texture(
-                        "lungdyn oit accum (multisampled)",
-                        draw::ACCUM_FORMAT,
-                        samples,
-                        attachment,
-                    )),
-                    view(texture(
-                        "lungdyn oit reveal (multisampled)",
-                        draw::REVEAL_FORMAT,
-                        samples,
-                        attachment,
-                    )),
-                )
-            });
-            let group = device.create_bind_group(&wgpu::BindGroupDescriptor {
-                label: Some("lungdyn composite"),
-                layout,
-                entries: &[
-                    wgpu::BindGroupEntry {
-                        binding: 0,
-                        resource: wgpu::BindingResource::TextureView(&accum),
-                    },
-                    wgpu::BindGroupEntry {
-                        binding: 1,
-                        resource: wgpu::BindingResource::TextureView(&reveal),
-                    },
-                ],
-            });
-            OitTargets {
-                multisampled,
-                accum,
-                reveal,
-                group,
-            }
-        });
+        let targets = Targets::new(gpu, size, samples, draw.composite.as_ref().map(|c| &c.1));
         let padded_row = (width * 4).div_ceil(wgpu::COPY_BYTES_PER_ROW_ALIGNMENT)
             * wgpu::COPY_BYTES_PER_ROW_ALIGNMENT;
         let readback = device.create_buffer(&wgpu::BufferDescriptor {
@@ -408,55 +505,27 @@ impl LungRenderer {
             usage: wgpu::BufferUsages::COPY_DST | wgpu::BufferUsages::MAP_READ,
             mapped_at_creation: false,
         });
-        let timestamps = gpu.timestamps.then(|| Timestamps {
-            set: device.create_query_set(&wgpu::QuerySetDescriptor {
-                label: Some("lungdyn timestamps"),
-                ty: wgpu::QueryType::Timestamp,
-                count: 2,
-            }),
-            resolve: device.create_buffer(&wgpu::BufferDescriptor {
-                label: Some("lungdyn timestamp resolve"),
-                size: 16,
-                usage: wgpu::BufferUsages::QUERY_RESOLVE | wgpu::BufferUsages::COPY_SRC,
-                mapped_at_creation: false,
-            }),
-            read: device.create_buffer(&wgpu::BufferDescriptor {
-                label: Some("lungdyn timestamp read"),
-                size: 16,
-                usage: wgpu::BufferUsages::COPY_DST | wgpu::BufferUsages::MAP_READ,
-                mapped_at_creation: false,
-            }),
-            period_ns: gpu.queue.get_timestamp_period(),
-        });
-        let lung_box = lungs
-            .iter()
-            .flat_map(|l| l.lung.positions.iter())
-            .map(|&p| glam::Vec3::from(p))
-            .filter(|p| p.is_finite())
-            .fold(None, |b: Option<(glam::Vec3, glam::Vec3)>, p| {
-                Some(b.map_or((p, p), |(lo, hi)| (lo.min(p), hi.max(p))))
-            });
         Ok(Self {
-            lung_box,
+            lung_box: lung_box(lungs),
             deform,
             draw,
-            index,
+            index: levels.index,
             lod_ranges: levels.ranges,
-            lod_triangles,
-            lod_refused,
-            lod_level: fixed.into(),
+            lod_triangles: levels.triangles,
+            lod_refused: levels.refused,
+            lod_level: levels.fixed.into(),
             surface,
-            color_view: color.create_view(&Default::default()),
-            color_bytes_view: bytes_views.then(|| {
-                color.create_view(&wgpu::TextureViewDescriptor {
+            color_view: targets.color.create_view(&Default::default()),
+            color_bytes_view: targets.bytes_views.then(|| {
+                targets.color.create_view(&wgpu::TextureViewDescriptor {
                     format: Some(draw::COLOR_FORMAT.remove_srgb_suffix()),
                     ..Default::default()
                 })
             }),
-            color,
-            msaa_view,
-            depth_view: depth.create_view(&Default::default()),
-            oit,
+            color: targets.color,
+            msaa_view: targets.msaa_view,
+            depth_view: targets.depth_view,
+            oit: targets.oit,
             samples,
             readback,
             padded_row,
@@ -465,7 +534,7 @@ impl LungRenderer {
             eyes,
             settings: settings.clone(),
             rig: *rig,
-            timestamps,
+            timestamps: timestamps(gpu),
             tumours,
         })
     }

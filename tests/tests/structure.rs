@@ -24,7 +24,6 @@ const MAX_LINES: usize = 150;
 const LONG_FUNCTIONS: &[(&str, &str, usize)] = &[
     ("engine/bake/src/pv/curve.rs", "parse_curve", 305),
     ("remote/src/harness.rs", "run", 262),
-    ("renderer/src/lib.rs", "with_rig", 259),
     ("renderer/src/session.rs", "step", 214),
     ("engine/model/src/disease/tension.rs", "advance", 203),
     ("remote/src/roles.rs", "join", 196),
