@@ -127,13 +127,40 @@ pub fn read_curve(path: &Path, opts: &CurveOptions) -> Result<CurveFile, CurveEr
 
 /// Parse PV curve CSV bytes; errors carry the 1-based line (0: the file as a whole).
 pub fn parse_curve(bytes: &[u8], opts: &CurveOptions) -> Result<CurveFile, (u64, String)> {
-    use lung_model::plausible::{
-        volume_unit_hint, LUNGS_VOLUME_ML, PRESSURE_CMH2O, PRESSURE_SWING_CMH2O, TIDAL_VOLUME_ML,
-    };
     if lung_model::input::looks_binary(bytes) {
         return Err((0, "this is binary data, not a CSV table".into()));
     }
     check_separators(bytes)?;
+    let (headers, records) = read_rows(bytes)?;
+    let cols = Columns::choose(&headers, &records)?;
+    let units = Units::of(&cols, opts)?;
+    let mut samples = Vec::with_capacity(records.len());
+    // The volume column as given, in ml, before --frc is added: (lowest, highest).
+    let mut raw_ml = (f64::INFINITY, f64::NEG_INFINITY);
+    for (line, rec) in &records {
+        samples.push(sample_of(*line, rec, &cols, &units, &mut raw_ml)?);
+    }
+    if let (Some(frc), Some((why, _))) = (units.frc_add, units.relative) {
+        check_relative(raw_ml, frc, &cols.v_header, why)?;
+    }
+    check_swings(&samples, &cols, &units)?;
+    Ok(CurveFile {
+        samples,
+        pressure_column: cols.p_header,
+        volume_column: cols.v_header,
+        has_phase: cols.phase.is_some(),
+        pressure_unit: units.pressure,
+        volume_unit: units.volume,
+        frc_added_ml: units.frc_add,
+        relative: units.relative,
+    })
+}
+
+/// The header and the data rows (blank rows dropped), each with its 1-based line.
+type Rows = (csv::StringRecord, Vec<(u64, csv::StringRecord)>);
+
+/// Read the header (checked) and the non-blank rows; at least one row.
+fn read_rows(bytes: &[u8]) -> Result<Rows, (u64, String)> {
     let mut reader = csv::ReaderBuilder::new()
         .flexible(true)
         .trim(csv::Trim::All)
@@ -156,238 +183,266 @@ pub fn parse_curve(bytes: &[u8], opts: &CurveOptions) -> Result<CurveFile, (u64,
                 .unwrap_or(true)
         })
         .collect::<Result<_, _>>()?;
-    let Some((first_line, first)) = records.first() else {
+    if records.is_empty() {
         return Err((2, "no data rows after the header".into()));
-    };
-    let phase_col = headers.iter().position(|h| h.eq_ignore_ascii_case("phase"));
-    let numeric: Vec<usize> = (0..first.len())
-        .filter(|&i| Some(i) != phase_col && first.get(i).is_some_and(|f| f.parse::<f64>().is_ok()))
-        .collect();
-    if numeric.len() < 2 {
-        let tabs = headers.len() == 1 && headers.get(0).is_some_and(|h| h.contains('\t'));
-        return Err((
-            *first_line,
-            format!(
-                "need two numeric columns (pressure, then volume) in the first data row{}",
-                if tabs {
-                    "; the columns are separated by tabs: lungdyn reads comma-separated values \
-                     (export as CSV with ',' between columns)"
-                } else {
-                    ""
-                }
-            ),
-        ));
     }
-    // Columns named for what they hold win (a time column often comes first); else the first two.
-    let named = |keys: &[&str]| {
-        numeric.iter().copied().find(|&i| {
-            let h = headers.get(i).unwrap_or("");
-            let lower = h.to_ascii_lowercase();
-            keys.iter().any(|k| lower.contains(k))
-                || header_unit(h, PRESSURE_UNITS).is_some() && keys.contains(&"pressure")
-        })
-    };
-    let named_volume = |pc: usize| {
-        numeric
-            .iter()
-            .copied()
-            .find(|&i| i != pc && looks_volume(headers.get(i).unwrap_or("")))
-    };
-    const PRESSURE_KEYS: &[&str] = &["pressure", "pes", "paw", "ptp", "pleural", "airway"];
-    // Two columns that both look like pressures (or volumes): which one is meant is a guess, and a
-    // wrong guess is a silently wrong fit.
-    let looks_pressure = |i: usize| {
-        let h = headers.get(i).unwrap_or("");
-        let lower = h.to_ascii_lowercase();
-        PRESSURE_KEYS.iter().any(|k| lower.contains(k)) || header_unit(h, PRESSURE_UNITS).is_some()
-    };
-    let pressures: Vec<usize> = numeric
-        .iter()
-        .copied()
-        .filter(|&i| looks_pressure(i))
-        .collect();
-    ambiguous(&headers, &pressures, "pressures")?;
-    let pc = named(PRESSURE_KEYS).unwrap_or(numeric[0]);
-    let volumes: Vec<usize> = numeric
-        .iter()
-        .copied()
-        .filter(|&i| i != pc && looks_volume(headers.get(i).unwrap_or("")))
-        .collect();
-    ambiguous(&headers, &volumes, "volumes")?;
-    let vc = named_volume(pc).unwrap_or(
-        *numeric
-            .iter()
-            .find(|&&i| i != pc)
-            .expect("two numeric columns"),
-    );
-    let p_header = headers.get(pc).unwrap_or("").to_string();
-    let v_header = headers.get(vc).unwrap_or("").to_string();
-    let pressure_unit = match header_unit(&p_header, PRESSURE_UNITS) {
-        Some((name, factor)) => ColumnUnit {
-            name,
-            factor,
-            from: "header",
-        },
-        None => ColumnUnit {
-            name: "cmH2O",
-            factor: 1.0,
-            from: "default",
-        },
-    };
-    let header_volume = header_unit(&v_header, VOLUME_UNITS);
-    // Changes above FRC: declared by a flag, or by the header (`delta_volume_ml`, `volume above
-    // FRC (L)`, `dV_ml` is not enough: it must say delta or above FRC).
-    let header_relative = {
-        let t: Vec<String> = lung_model::units::tokens(&v_header).collect();
-        t.iter().any(|w| w == "delta" || w == "abovefrc")
-            || t.windows(2).any(|w| w[0] == "above" && w[1] == "frc")
-    };
-    let relative: Option<(&'static str, bool)> = if opts.frc_ml.is_some() {
-        Some(("--frc", false))
-    } else if opts.relative {
-        Some(("--relative", true))
-    } else if header_relative {
-        Some(("header", true))
-    } else {
-        None
-    };
-    let frc_add = opts.frc_ml.or(relative.map(|_| Boundary::HUMAN.frc_ml));
-    let volume_unit = match (header_volume, opts.volume_unit) {
-        (Some((name, _)), Some(flag)) if (flag == VolumeUnit::Litre) != (name == "L") => {
+    Ok((headers, records))
+}
+
+/// Which columns hold the pressure, the volume and (optionally) the phase, and their headers.
+struct Columns {
+    phase: Option<usize>,
+    pressure: usize,
+    volume: usize,
+    p_header: String,
+    v_header: String,
+}
+
+/// Header words that name a pressure column.
+const PRESSURE_KEYS: &[&str] = &["pressure", "pes", "paw", "ptp", "pleural", "airway"];
+
+impl Columns {
+    /// Columns named for what they hold win (a time column often comes first); else the first two
+    /// numeric ones. Two columns that both look like pressures (or volumes) are refused: which one
+    /// is meant is a guess, and a wrong guess is a silently wrong fit.
+    fn choose(
+        headers: &csv::StringRecord,
+        records: &[(u64, csv::StringRecord)],
+    ) -> Result<Self, (u64, String)> {
+        let (first_line, first) = &records[0];
+        let phase = headers.iter().position(|h| h.eq_ignore_ascii_case("phase"));
+        let numeric: Vec<usize> = (0..first.len())
+            .filter(|&i| Some(i) != phase && first.get(i).is_some_and(|f| f.parse::<f64>().is_ok()))
+            .collect();
+        if numeric.len() < 2 {
+            let tabs = headers.len() == 1 && headers.get(0).is_some_and(|h| h.contains('\t'));
             return Err((
-                1,
+                *first_line,
                 format!(
-                    "the volume column {v_header:?} says {name}, but --volume-unit says {}: drop the flag \
-                     or fix the header",
-                    if flag == VolumeUnit::Litre { "l" } else { "ml" }
-                ),
-            ));
-        }
-        (Some((name, factor)), _) => ColumnUnit {
-            name,
-            factor,
-            from: "header",
-        },
-        (None, Some(VolumeUnit::Litre)) => ColumnUnit {
-            name: "L",
-            factor: 1000.0,
-            from: "flag",
-        },
-        (None, Some(VolumeUnit::Ml)) => ColumnUnit {
-            name: "ml",
-            factor: 1.0,
-            from: "flag",
-        },
-        (None, None) => ColumnUnit {
-            name: "ml",
-            factor: 1.0,
-            from: "default",
-        },
-    };
-    let mut samples = Vec::with_capacity(records.len());
-    // The volume column as given, in ml, before --frc is added: (lowest, highest).
-    let mut raw_ml = (f64::INFINITY, f64::NEG_INFINITY);
-    for (line, rec) in &records {
-        let value = |col: usize, what: &str| -> Result<f64, (u64, String)> {
-            let field = rec.get(col).unwrap_or("");
-            let v: f64 = field
-                .parse()
-                .map_err(|_| (*line, format!("{what} {field:?} is not a number")))?;
-            if v.is_finite() {
-                Ok(v)
-            } else {
-                Err((
-                    *line,
-                    format!("{what} is {field}: every sample must be a finite number"),
-                ))
-            }
-        };
-        let phase = match phase_col {
-            None => None,
-            Some(c) => match rec.get(c).unwrap_or("").to_ascii_lowercase().as_str() {
-                "inhale" | "inhalation" | "inspiration" | "in" => Some(Phase::Inhale),
-                "exhale" | "exhalation" | "expiration" | "ex" => Some(Phase::Exhale),
-                other => return Err((*line, format!("phase {other:?}: use inhale or exhale"))),
-            },
-        };
-        let pressure = value(pc, "pressure")? * pressure_unit.factor;
-        let raw_volume = value(vc, "volume")?;
-        raw_ml = (
-            raw_ml.0.min(raw_volume * volume_unit.factor),
-            raw_ml.1.max(raw_volume * volume_unit.factor),
-        );
-        let volume = raw_volume * volume_unit.factor + frc_add.unwrap_or(0.0);
-        if !PRESSURE_CMH2O.contains(pressure) {
-            // Swapped columns: the "pressure" looks like lung volumes and the "volume" like pressures.
-            let swapped = LUNGS_VOLUME_ML.contains(pressure)
-                && PRESSURE_CMH2O.contains(raw_volume * volume_unit.factor);
-            return Err((
-                *line,
-                format!(
-                    "{}{}",
-                    PRESSURE_CMH2O.check(pressure, None).unwrap_err(),
-                    if swapped {
-                        format!(
-                            ": column {p_header:?} (taken as pressure) holds lung volumes — are the columns \
-                             swapped? Name them in the header (e.g. pressure_cmH2O, volume_ml)"
-                        )
-                    } else if pressure_unit.from == "default" {
-                        format!(
-                            ": column {p_header:?} states no unit and was read as cmH2O; name its unit in the \
-                             header (pressure_kPa, pressure_mmHg, pressure_Pa, ...)"
-                        )
+                    "need two numeric columns (pressure, then volume) in the first data row{}",
+                    if tabs {
+                        "; the columns are separated by tabs: lungdyn reads comma-separated values \
+                         (export as CSV with ',' between columns)"
                     } else {
-                        String::new()
+                        ""
                     }
                 ),
             ));
         }
-        if !LUNGS_VOLUME_ML.contains(volume) {
-            // Below the smallest lung (a neonate's FRC) the column cannot hold absolute volumes:
-            // it looks like changes above FRC, as ventilators and compliance curves give them.
-            // A wrong unit, or (below the smallest lung, a neonate's FRC) changes above FRC as
-            // ventilators and compliance curves give them: both said when both fit.
-            let unit = if volume_unit.from != "header" {
-                volume_unit_hint(
-                    volume,
-                    if volume_unit.factor == 1000.0 {
-                        "l"
-                    } else {
-                        "ml"
-                    },
-                )
-            } else {
-                None
-            };
-            let relative = (frc_add.is_none()
-                && raw_volume * volume_unit.factor < LUNGS_VOLUME_ML.lo)
-                .then(|| {
+        let header = |i: usize| headers.get(i).unwrap_or("");
+        let looks_pressure = |i: usize| {
+            let lower = header(i).to_ascii_lowercase();
+            PRESSURE_KEYS.iter().any(|k| lower.contains(k))
+                || header_unit(header(i), PRESSURE_UNITS).is_some()
+        };
+        let pressures: Vec<usize> = numeric
+            .iter()
+            .copied()
+            .filter(|&i| looks_pressure(i))
+            .collect();
+        ambiguous(headers, &pressures, "pressures")?;
+        let pc = numeric
+            .iter()
+            .copied()
+            .find(|&i| looks_pressure(i))
+            .unwrap_or(numeric[0]);
+        let volumes: Vec<usize> = numeric
+            .iter()
+            .copied()
+            .filter(|&i| i != pc && looks_volume(header(i)))
+            .collect();
+        ambiguous(headers, &volumes, "volumes")?;
+        let vc = volumes.first().copied().unwrap_or(
+            *numeric
+                .iter()
+                .find(|&&i| i != pc)
+                .expect("two numeric columns"),
+        );
+        Ok(Self {
+            phase,
+            pressure: pc,
+            volume: vc,
+            p_header: header(pc).to_string(),
+            v_header: header(vc).to_string(),
+        })
+    }
+}
+
+/// The columns' units, and whether the volumes are changes above FRC (and what is added).
+struct Units {
+    pressure: ColumnUnit,
+    volume: ColumnUnit,
+    /// Why the volumes are read as changes above FRC ("--frc", "--relative", "header"), and
+    /// whether Table 5.2's FRC was assumed.
+    relative: Option<(&'static str, bool)>,
+    /// The FRC added to every volume, ml.
+    frc_add: Option<f64>,
+}
+
+impl Units {
+    /// From the headers and the options; a header and a flag that disagree are refused.
+    fn of(cols: &Columns, opts: &CurveOptions) -> Result<Self, (u64, String)> {
+        let v_header = &cols.v_header;
+        let pressure = match header_unit(&cols.p_header, PRESSURE_UNITS) {
+            Some((name, factor)) => ColumnUnit {
+                name,
+                factor,
+                from: "header",
+            },
+            None => ColumnUnit {
+                name: "cmH2O",
+                factor: 1.0,
+                from: "default",
+            },
+        };
+        // Changes above FRC: declared by a flag, or by the header (`delta_volume_ml`, `volume
+        // above FRC (L)`; `dV_ml` is not enough: it must say delta or above FRC).
+        let header_relative = {
+            let t: Vec<String> = lung_model::units::tokens(v_header).collect();
+            t.iter().any(|w| w == "delta" || w == "abovefrc")
+                || t.windows(2).any(|w| w[0] == "above" && w[1] == "frc")
+        };
+        let relative: Option<(&'static str, bool)> = if opts.frc_ml.is_some() {
+            Some(("--frc", false))
+        } else if opts.relative {
+            Some(("--relative", true))
+        } else if header_relative {
+            Some(("header", true))
+        } else {
+            None
+        };
+        let frc_add = opts.frc_ml.or(relative.map(|_| Boundary::HUMAN.frc_ml));
+        let unit = |name, factor, from| ColumnUnit { name, factor, from };
+        let volume = match (header_unit(v_header, VOLUME_UNITS), opts.volume_unit) {
+            (Some((name, _)), Some(flag)) if (flag == VolumeUnit::Litre) != (name == "L") => {
+                return Err((
+                    1,
                     format!(
-                        "a lung volume is absolute and at least {} ml; column {v_header:?} looks like \
-                         changes above FRC: pass --relative (with --frc ML, else Table 5.2's {} ml is \
-                         assumed) or name the column volume_above_frc_ml",
-                        LUNGS_VOLUME_ML.lo,
-                        Boundary::HUMAN.frc_ml
-                    )
-                });
-            let hint = match (unit, relative) {
-                (Some(u), Some(r)) => Some(format!("{r}; or, {u}")),
-                (u, r) => u.or(r),
-            };
-            return Err((
-                *line,
-                LUNGS_VOLUME_ML.check(volume, hint).unwrap_err().to_string(),
-            ));
-        }
-        samples.push(PvSample {
+                        "the volume column {v_header:?} says {name}, but --volume-unit says {}: drop \
+                         the flag or fix the header",
+                        if flag == VolumeUnit::Litre { "l" } else { "ml" }
+                    ),
+                ));
+            }
+            (Some((name, factor)), _) => unit(name, factor, "header"),
+            (None, Some(VolumeUnit::Litre)) => unit("L", 1000.0, "flag"),
+            (None, Some(VolumeUnit::Ml)) => unit("ml", 1.0, "flag"),
+            (None, None) => unit("ml", 1.0, "default"),
+        };
+        Ok(Self {
             pressure,
             volume,
-            phase,
-        });
+            relative,
+            frc_add,
+        })
     }
-    if let (Some(frc), Some((why, _))) = (frc_add, relative) {
-        check_relative(raw_ml, frc, &v_header, why)?;
+}
+
+/// One row as a sample (cmH2O, ml), each value checked against the physical ranges with what
+/// probably went wrong (swapped columns, a unit, changes above FRC); `raw_ml` gathers the volume
+/// column's range as given.
+fn sample_of(
+    line: u64,
+    rec: &csv::StringRecord,
+    cols: &Columns,
+    units: &Units,
+    raw_ml: &mut (f64, f64),
+) -> Result<PvSample, (u64, String)> {
+    use lung_model::plausible::{volume_unit_hint, LUNGS_VOLUME_ML, PRESSURE_CMH2O};
+    let (p_header, v_header) = (&cols.p_header, &cols.v_header);
+    let value = |col: usize, what: &str| -> Result<f64, (u64, String)> {
+        let field = rec.get(col).unwrap_or("");
+        let v: f64 = field
+            .parse()
+            .map_err(|_| (line, format!("{what} {field:?} is not a number")))?;
+        if v.is_finite() {
+            Ok(v)
+        } else {
+            Err((
+                line,
+                format!("{what} is {field}: every sample must be a finite number"),
+            ))
+        }
+    };
+    let phase = match cols.phase {
+        None => None,
+        Some(c) => match rec.get(c).unwrap_or("").to_ascii_lowercase().as_str() {
+            "inhale" | "inhalation" | "inspiration" | "in" => Some(Phase::Inhale),
+            "exhale" | "exhalation" | "expiration" | "ex" => Some(Phase::Exhale),
+            other => return Err((line, format!("phase {other:?}: use inhale or exhale"))),
+        },
+    };
+    let pressure = value(cols.pressure, "pressure")? * units.pressure.factor;
+    let raw_volume = value(cols.volume, "volume")?;
+    let volume_factor = units.volume.factor;
+    *raw_ml = (
+        raw_ml.0.min(raw_volume * volume_factor),
+        raw_ml.1.max(raw_volume * volume_factor),
+    );
+    let volume = raw_volume * volume_factor + units.frc_add.unwrap_or(0.0);
+    if !PRESSURE_CMH2O.contains(pressure) {
+        // Swapped columns: the "pressure" looks like lung volumes and the "volume" like pressures.
+        let swapped = LUNGS_VOLUME_ML.contains(pressure)
+            && PRESSURE_CMH2O.contains(raw_volume * volume_factor);
+        return Err((
+            line,
+            format!(
+                "{}{}",
+                PRESSURE_CMH2O.check(pressure, None).unwrap_err(),
+                if swapped {
+                    format!(
+                        ": column {p_header:?} (taken as pressure) holds lung volumes — are the columns \
+                         swapped? Name them in the header (e.g. pressure_cmH2O, volume_ml)"
+                    )
+                } else if units.pressure.from == "default" {
+                    format!(
+                        ": column {p_header:?} states no unit and was read as cmH2O; name its unit in the \
+                         header (pressure_kPa, pressure_mmHg, pressure_Pa, ...)"
+                    )
+                } else {
+                    String::new()
+                }
+            ),
+        ));
     }
+    if !LUNGS_VOLUME_ML.contains(volume) {
+        // A wrong unit, or (below the smallest lung, a neonate's FRC) changes above FRC as
+        // ventilators and compliance curves give them: both said when both fit.
+        let unit = if units.volume.from != "header" {
+            volume_unit_hint(volume, if volume_factor == 1000.0 { "l" } else { "ml" })
+        } else {
+            None
+        };
+        let relative = (units.frc_add.is_none() && raw_volume * volume_factor < LUNGS_VOLUME_ML.lo)
+            .then(|| {
+                format!(
+                    "a lung volume is absolute and at least {} ml; column {v_header:?} looks like \
+                     changes above FRC: pass --relative (with --frc ML, else Table 5.2's {} ml is \
+                     assumed) or name the column volume_above_frc_ml",
+                    LUNGS_VOLUME_ML.lo,
+                    Boundary::HUMAN.frc_ml
+                )
+            });
+        let hint = match (unit, relative) {
+            (Some(u), Some(r)) => Some(format!("{r}; or, {u}")),
+            (u, r) => u.or(r),
+        };
+        return Err((
+            line,
+            LUNGS_VOLUME_ML.check(volume, hint).unwrap_err().to_string(),
+        ));
+    }
+    Ok(PvSample {
+        pressure,
+        volume,
+        phase,
+    })
+}
+
+/// The loop's pressure and volume swings against human ranges: a loop with no change at all is the
+/// fit's to refuse (with its own message); a change of the wrong size is a unit question.
+fn check_swings(samples: &[PvSample], cols: &Columns, units: &Units) -> Result<(), (u64, String)> {
+    use lung_model::plausible::{PRESSURE_SWING_CMH2O, TIDAL_VOLUME_ML};
     let span = |f: fn(&PvSample) -> f64| {
         samples
             .iter()
@@ -396,15 +451,13 @@ pub fn parse_curve(bytes: &[u8], opts: &CurveOptions) -> Result<CurveFile, (u64,
     };
     let (p_lo, p_hi) = span(|s| s.pressure);
     let (v_lo, v_hi) = span(|s| s.volume);
-    // A loop with no change at all is the fit's to refuse (with its own message); a change of the
-    // wrong size is a unit question.
     if samples.len() > 1 && p_hi > p_lo {
         PRESSURE_SWING_CMH2O
             .check(
                 p_hi - p_lo,
                 Some(format!(
-                    "pressure column {p_header:?} read in {} ({}); check its unit",
-                    pressure_unit.name, pressure_unit.from
+                    "pressure column {:?} read in {} ({}); check its unit",
+                    cols.p_header, units.pressure.name, units.pressure.from
                 )),
             )
             .map_err(|e| (0, e.to_string()))?;
@@ -414,22 +467,13 @@ pub fn parse_curve(bytes: &[u8], opts: &CurveOptions) -> Result<CurveFile, (u64,
             .check(
                 v_hi - v_lo,
                 Some(format!(
-                    "volume column {v_header:?} read in {} ({}); check its unit",
-                    volume_unit.name, volume_unit.from
+                    "volume column {:?} read in {} ({}); check its unit",
+                    cols.v_header, units.volume.name, units.volume.from
                 )),
             )
             .map_err(|e| (0, e.to_string()))?;
     }
-    Ok(CurveFile {
-        samples,
-        pressure_column: p_header,
-        volume_column: v_header,
-        has_phase: phase_col.is_some(),
-        pressure_unit,
-        volume_unit,
-        frc_added_ml: frc_add,
-        relative,
-    })
+    Ok(())
 }
 
 /// Whether a volume column's header names a volume (and not a flow, which shares its units).
