@@ -303,6 +303,54 @@ fn parse_csv(bytes: &[u8]) -> Result<Recording, (u64, String)> {
         .headers()
         .map_err(|e| (1, format!("cannot read the header row: {e}")))?
         .clone();
+    let columns = csv_columns(&headers)?;
+    let col = |q: &str| {
+        columns
+            .iter()
+            .find(|(_, c)| c.quantity == q)
+            .map(|(i, c)| (*i, c.factor))
+    };
+    let cols = RowColumns {
+        time: col("time").expect("checked"),
+        flow: col("flow").expect("checked"),
+        pressure: col("pressure").expect("checked"),
+        volume: col("volume"),
+        pes: col("oesophageal pressure"),
+    };
+    let mut rec = Recording {
+        format: Format::GenericCsv,
+        t_s: Vec::new(),
+        flow_lps: Vec::new(),
+        paw_cmh2o: Vec::new(),
+        volume_ml: cols.volume.map(|_| Vec::new()),
+        pes_cmh2o: cols.pes.map(|_| Vec::new()),
+        columns: columns.into_iter().map(|(_, c)| c).collect(),
+        vent_breaths: Vec::new(),
+    };
+    for (i, r) in reader.records().enumerate() {
+        let r = r.map_err(|e| (i as u64 + 2, e.to_string()))?;
+        let line = r.position().map(|p| p.line()).unwrap_or(i as u64 + 2);
+        if r.iter().all(|f| f.is_empty()) {
+            continue;
+        }
+        push_row(&mut rec, line, &r, &cols)?;
+    }
+    Ok(rec)
+}
+
+/// A generic recording's columns: each quantity's (index, factor to lungdyn's unit).
+struct RowColumns {
+    time: (usize, f64),
+    flow: (usize, f64),
+    pressure: (usize, f64),
+    volume: Option<(usize, f64)>,
+    pes: Option<(usize, f64)>,
+}
+
+/// The header's columns: each quantity's column exactly once with a recognised unit, and time,
+/// flow and airway pressure there (a semicolon or tab table, or a PV curve, refused naming what it
+/// is).
+fn csv_columns(headers: &csv::StringRecord) -> Result<Vec<(usize, ColumnNote)>, (u64, String)> {
     let headers: Vec<String> = headers
         .iter()
         .map(|h| h.trim_start_matches('\u{feff}').to_string())
@@ -400,94 +448,85 @@ fn parse_csv(bytes: &[u8]) -> Result<Recording, (u64, String)> {
             ),
         ));
     }
-    let (tc, tf) = col("time").expect("checked");
-    let (fc, ff) = col("flow").expect("checked");
-    let (pc, pf) = col("pressure").expect("checked");
-    let vcol = col("volume");
-    let ecol = col("oesophageal pressure");
-    let mut rec = Recording {
-        format: Format::GenericCsv,
-        t_s: Vec::new(),
-        flow_lps: Vec::new(),
-        paw_cmh2o: Vec::new(),
-        volume_ml: vcol.map(|_| Vec::new()),
-        pes_cmh2o: ecol.map(|_| Vec::new()),
-        columns: columns.into_iter().map(|(_, c)| c).collect(),
-        vent_breaths: Vec::new(),
+    Ok(columns)
+}
+
+/// Row `r` (at `line`) checked and appended: time increasing without a gap, flow and pressure in
+/// range, the volume no larger than a lung, the oesophageal pressure in range.
+fn push_row(
+    rec: &mut Recording,
+    line: u64,
+    r: &csv::StringRecord,
+    cols: &RowColumns,
+) -> Result<(), (u64, String)> {
+    let ((tc, tf), (fc, ff), (pc, pf)) = (cols.time, cols.flow, cols.pressure);
+    let (vcol, ecol) = (cols.volume, cols.pes);
+    let value = |c: usize, what: &str| -> Result<f64, (u64, String)> {
+        let field = r.get(c).unwrap_or("");
+        let v: f64 = field.parse().map_err(|_| {
+            (
+                line,
+                format!("{what} {field:?} (column {}) is not a number", c + 1),
+            )
+        })?;
+        if v.is_finite() {
+            Ok(v)
+        } else {
+            Err((
+                line,
+                format!("{what} is {field}: every sample must be a finite number"),
+            ))
+        }
     };
-    for (i, r) in reader.records().enumerate() {
-        let r = r.map_err(|e| (i as u64 + 2, e.to_string()))?;
-        let line = r.position().map(|p| p.line()).unwrap_or(i as u64 + 2);
-        if r.iter().all(|f| f.is_empty()) {
-            continue;
+    let t = value(tc, "time")? * tf;
+    let fl = value(fc, "flow")? * ff;
+    let pr = value(pc, "pressure")? * pf;
+    check_value(line, fl, pr)?;
+    if let Some(&last) = rec.t_s.last() {
+        if t <= last {
+            return Err((
+                line,
+                format!("time {t} s does not increase (the previous sample is at {last} s)"),
+            ));
         }
-        let value = |c: usize, what: &str| -> Result<f64, (u64, String)> {
-            let field = r.get(c).unwrap_or("");
-            let v: f64 = field.parse().map_err(|_| {
-                (
-                    line,
-                    format!("{what} {field:?} (column {}) is not a number", c + 1),
-                )
-            })?;
-            if v.is_finite() {
-                Ok(v)
-            } else {
-                Err((
-                    line,
-                    format!("{what} is {field}: every sample must be a finite number"),
-                ))
-            }
-        };
-        let t = value(tc, "time")? * tf;
-        let fl = value(fc, "flow")? * ff;
-        let pr = value(pc, "pressure")? * pf;
-        check_value(line, fl, pr)?;
-        if let Some(&last) = rec.t_s.last() {
-            if t <= last {
-                return Err((
-                    line,
-                    format!("time {t} s does not increase (the previous sample is at {last} s)"),
-                ));
-            }
-            if t - last > MAX_SAMPLE_GAP_S {
-                return Err((
-                    line,
-                    format!(
-                        "a gap of {} s between samples (more than {MAX_SAMPLE_GAP_S} s): flow cannot be \
-                         integrated across it; check the time column's unit or split the recording",
-                        crate::plausible::compact(t - last)
-                    ),
-                ));
-            }
-        }
-        rec.t_s.push(t);
-        rec.flow_lps.push(fl);
-        rec.paw_cmh2o.push(pr);
-        if let (Some((c, f)), Some(v)) = (vcol, rec.volume_ml.as_mut()) {
-            let ml = value(c, "volume")? * f;
-            // Ventilators record volume above the breath's start (or above FRC): any sign, but
-            // never more than a whole lung.
-            let most = crate::plausible::LUNGS_VOLUME_ML.hi;
-            if ml.abs() > most {
-                return Err((
-                    line,
-                    format!(
-                        "volume {} ml is larger than any lung ({most} ml): check the volume column's unit",
-                        crate::plausible::compact(ml)
-                    ),
-                ));
-            }
-            v.push(ml);
-        }
-        if let (Some((c, f)), Some(v)) = (ecol, rec.pes_cmh2o.as_mut()) {
-            let p = value(c, "oesophageal pressure")? * f;
-            PRESSURE_CMH2O
-                .check(p, None)
-                .map_err(|e| (line, e.to_string()))?;
-            v.push(p);
+        if t - last > MAX_SAMPLE_GAP_S {
+            return Err((
+                line,
+                format!(
+                    "a gap of {} s between samples (more than {MAX_SAMPLE_GAP_S} s): flow cannot be \
+                     integrated across it; check the time column's unit or split the recording",
+                    crate::plausible::compact(t - last)
+                ),
+            ));
         }
     }
-    Ok(rec)
+    rec.t_s.push(t);
+    rec.flow_lps.push(fl);
+    rec.paw_cmh2o.push(pr);
+    if let (Some((c, f)), Some(v)) = (vcol, rec.volume_ml.as_mut()) {
+        let ml = value(c, "volume")? * f;
+        // Ventilators record volume above the breath's start (or above FRC): any sign, but
+        // never more than a whole lung.
+        let most = crate::plausible::LUNGS_VOLUME_ML.hi;
+        if ml.abs() > most {
+            return Err((
+                line,
+                format!(
+                    "volume {} ml is larger than any lung ({most} ml): check the volume column's unit",
+                    crate::plausible::compact(ml)
+                ),
+            ));
+        }
+        v.push(ml);
+    }
+    if let (Some((c, f)), Some(v)) = (ecol, rec.pes_cmh2o.as_mut()) {
+        let p = value(c, "oesophageal pressure")? * f;
+        PRESSURE_CMH2O
+            .check(p, None)
+            .map_err(|e| (line, e.to_string()))?;
+        v.push(p);
+    }
+    Ok(())
 }
 
 /// Minimum number of samples in a recording.
