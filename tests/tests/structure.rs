@@ -28,7 +28,6 @@ const LONG_FUNCTIONS: &[(&str, &str, usize)] = &[
     ("remote/src/roles.rs", "join", 196),
     ("engine/model/src/scene_disease.rs", "resolve", 196),
     ("engine/src/runtime/process.rs", "run_loop", 188),
-    ("engine/model/src/kernel.rs", "verify_layout", 184),
     ("engine/src/runtime/mod.rs", "step", 175),
     ("engine/bake/src/kernel.rs", "bake", 173),
 ];

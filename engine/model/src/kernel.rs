@@ -757,6 +757,17 @@ fn expected_shape(kind: u32, meta: &KernelMeta) -> Option<(u32, u64)> {
 /// The header, the section table, the metadata and the shape of every known section (sizes and
 /// counts against the metadata) — everything but the other sections' bytes.
 pub fn verify_layout(b: &[u8]) -> Result<(KernelMeta, Vec<Section>), FormatError> {
+    let (count, table_end) = verify_header(b)?;
+    let sections = section_table(b, count, table_end)?;
+    let meta = read_meta(b, &sections)?;
+    check_meta(&meta)?;
+    check_shapes(&sections, &meta)?;
+    Ok((meta, sections))
+}
+
+/// The header (magic, version, byte order, checksum, length) and the section table's checksum:
+/// the section count and where the table ends.
+fn verify_header(b: &[u8]) -> Result<(usize, usize), FormatError> {
     if b.len() < HEADER {
         return Err(FormatError::TooShort {
             len: b.len() as u64,
@@ -794,6 +805,13 @@ pub fn verify_layout(b: &[u8]) -> Result<(KernelMeta, Vec<Section>), FormatError
     if xxh3_64(table) != u64_at(b, 32) {
         return Err(FormatError::TableChecksum);
     }
+    Ok((count, table_end))
+}
+
+/// The section table's entries: each inside the file, aligned after the table, a whole number of
+/// elements, no kind twice.
+fn section_table(b: &[u8], count: usize, table_end: usize) -> Result<Vec<Section>, FormatError> {
+    let table = &b[HEADER..table_end];
     let mut sections: Vec<Section> = Vec::with_capacity(count);
     for s in 0..count {
         let e = &table[s * ENTRY..(s + 1) * ENTRY];
@@ -830,6 +848,11 @@ pub fn verify_layout(b: &[u8]) -> Result<(KernelMeta, Vec<Section>), FormatError
             checksum,
         });
     }
+    Ok(sections)
+}
+
+/// The metadata section, checksummed and parsed.
+fn read_meta(b: &[u8], sections: &[Section]) -> Result<KernelMeta, FormatError> {
     let (meta_index, meta_section) = sections
         .iter()
         .enumerate()
@@ -853,8 +876,16 @@ pub fn verify_layout(b: &[u8]) -> Result<(KernelMeta, Vec<Section>), FormatError
     }
     let meta: KernelMeta =
         serde_json::from_slice(meta_bytes).map_err(|e| FormatError::Metadata(e.to_string()))?;
+    Ok(meta)
+}
+
+/// The metadata's values: units mm, positive finite volumes and scale, well-formed SH and
+/// orientation records.
+fn check_meta(meta: &KernelMeta) -> Result<(), FormatError> {
     if meta.units != "mm" {
-        return Err(FormatError::Units { found: meta.units });
+        return Err(FormatError::Units {
+            found: meta.units.clone(),
+        });
     }
     for (name, v) in [
         ("unit_volume_ml", meta.unit_volume_ml),
@@ -894,6 +925,11 @@ pub fn verify_layout(b: &[u8]) -> Result<(KernelMeta, Vec<Section>), FormatError
             ));
         }
     }
+    Ok(())
+}
+
+/// The required sections present, and the shape of every known one against the metadata.
+fn check_shapes(sections: &[Section], meta: &KernelMeta) -> Result<(), FormatError> {
     // Required sections, and the shape of every known one.
     let required = [
         section::POSITIONS,
@@ -919,8 +955,8 @@ pub fn verify_layout(b: &[u8]) -> Result<(KernelMeta, Vec<Section>), FormatError
             return Err(FormatError::MissingSection { kind });
         }
     }
-    for s in &sections {
-        if let Some((elem, n)) = expected_shape(s.kind, &meta) {
+    for s in sections {
+        if let Some((elem, n)) = expected_shape(s.kind, meta) {
             if s.elem != elem {
                 return Err(FormatError::ElementSize {
                     kind: s.kind,
@@ -938,7 +974,7 @@ pub fn verify_layout(b: &[u8]) -> Result<(KernelMeta, Vec<Section>), FormatError
             }
         }
     }
-    Ok((meta, sections))
+    Ok(())
 }
 
 /// One section's checksum and content (floats finite, indices in range, offsets monotone), given
