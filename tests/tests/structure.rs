@@ -26,7 +26,6 @@ const LONG_FUNCTIONS: &[(&str, &str, usize)] = &[
     ("renderer/src/session.rs", "step", 214),
     ("engine/model/src/disease/tension.rs", "advance", 203),
     ("remote/src/roles.rs", "join", 196),
-    ("engine/model/src/scene_disease.rs", "resolve", 196),
     ("engine/src/runtime/process.rs", "run_loop", 188),
     ("engine/src/runtime/mod.rs", "step", 175),
     ("engine/bake/src/kernel.rs", "bake", 173),

@@ -383,6 +383,47 @@ impl DiseaseScene {
     /// Validate and convert into a [`DiseaseSpec`] (everything that does not need the lungs but
     /// their `shape`, `[lungs] shape`: a tumour placed by lobe alone sits inside that shape's lobe).
     pub fn resolve(&self, shape: Shape) -> Result<DiseaseSpec, DiseaseSceneError> {
+        self.check_keys()?;
+        let kind = self.kind.name();
+        let side = || {
+            self.side
+                .ok_or(DiseaseSceneError::Missing { key: "side", kind })
+        };
+        let phi = self.phi.unwrap_or(PHI_SEED);
+        let alpha = self.alpha_ml.unwrap_or(ALPHA_SEED_ML);
+        match self.kind {
+            DiseaseKind::ClosedPneumothorax => {
+                let index = self
+                    .index
+                    .ok_or(DiseaseSceneError::Missing { key: "index", kind })?;
+                // Validate under the scene's key name `index`.
+                crate::disease::volume_fraction_lost(index)?;
+                let c = ClosedPneumothorax::unilateral(side()?, index, alpha, phi)
+                    .with_model(self.model.unwrap_or_default());
+                c.validate()?;
+                Ok(DiseaseSpec::Closed(c))
+            }
+            DiseaseKind::BilateralPneumothorax => {
+                let l = self.index_left.ok_or(DiseaseSceneError::Missing {
+                    key: "index_left",
+                    kind,
+                })?;
+                let r = self.index_right.ok_or(DiseaseSceneError::Missing {
+                    key: "index_right",
+                    kind,
+                })?;
+                let c = ClosedPneumothorax::bilateral(l, r, phi)
+                    .with_model(self.model.unwrap_or_default());
+                c.validate()?;
+                Ok(DiseaseSpec::Closed(c))
+            }
+            DiseaseKind::TensionPneumothorax => self.tension(side()?, alpha, phi),
+            DiseaseKind::Tumour => self.tumour_spec(shape),
+        }
+    }
+
+    /// Every key given applies to this kind (and, for a tension pneumothorax, to its model).
+    fn check_keys(&self) -> Result<(), DiseaseSceneError> {
         let kind = self.kind.name();
         let uses: &'static str = match self.kind {
             DiseaseKind::ClosedPneumothorax => "model, side, index, alpha_ml, phi",
@@ -437,146 +478,128 @@ impl DiseaseScene {
                 return Err(DiseaseSceneError::NotApplicable { key, kind, uses });
             }
         }
-        let side = || {
-            self.side
-                .ok_or(DiseaseSceneError::Missing { key: "side", kind })
+        Ok(())
+    }
+
+    /// A tension pneumothorax's parameters (each key's default where not given), its onset and
+    /// its timed events.
+    fn tension(&self, side: Side, alpha: f64, phi: f64) -> Result<DiseaseSpec, DiseaseSceneError> {
+        let d = TensionParams::new(side);
+        let params = TensionParams {
+            source: self.source.unwrap_or(d.source),
+            inflow_ml: self.v_p_ml.unwrap_or(d.inflow_ml),
+            tau: self.tau.unwrap_or(d.tau),
+            v1_max_ml: self.v1_max_ml,
+            v2_max_ml: self.v2_max_ml,
+            beta_mm: self.beta_mm.unwrap_or(d.beta_mm),
+            alpha_ml: alpha,
+            phi,
+            needle_vent_cycles: self.needle_vent_cycles.unwrap_or(d.needle_vent_cycles),
+            needle_residual: self.needle_residual.unwrap_or(d.needle_residual),
+            chest_tube_ml_per_cycle: self
+                .chest_tube_ml_per_cycle
+                .unwrap_or(d.chest_tube_ml_per_cycle),
+            hyperexpansion_cycles: self
+                .hyperexpansion_cycles
+                .unwrap_or(d.hyperexpansion_cycles),
+            model: self.model.unwrap_or_default(),
+            mediastinal_compliance_ml_per_cmh2o: self
+                .mediastinal_compliance_ml_per_cmh2o
+                .unwrap_or(d.mediastinal_compliance_ml_per_cmh2o),
+            needle_tau_cycles: self.needle_tau_cycles.unwrap_or(d.needle_tau_cycles),
+            contralateral_compression: match self.model.unwrap_or_default() {
+                CourseModel::Seed => 0.0,
+                CourseModel::Clinical => self
+                    .contralateral_compression
+                    .unwrap_or(d.contralateral_compression),
+            },
+            ..d
         };
-        let phi = self.phi.unwrap_or(PHI_SEED);
-        let alpha = self.alpha_ml.unwrap_or(ALPHA_SEED_ML);
-        match self.kind {
-            DiseaseKind::ClosedPneumothorax => {
-                let index = self
-                    .index
-                    .ok_or(DiseaseSceneError::Missing { key: "index", kind })?;
-                // Validate under the scene's key name `index`.
-                crate::disease::volume_fraction_lost(index)?;
-                let c = ClosedPneumothorax::unilateral(side()?, index, alpha, phi)
-                    .with_model(self.model.unwrap_or_default());
-                c.validate()?;
-                Ok(DiseaseSpec::Closed(c))
-            }
-            DiseaseKind::BilateralPneumothorax => {
-                let l = self.index_left.ok_or(DiseaseSceneError::Missing {
-                    key: "index_left",
-                    kind,
-                })?;
-                let r = self.index_right.ok_or(DiseaseSceneError::Missing {
-                    key: "index_right",
-                    kind,
-                })?;
-                let c = ClosedPneumothorax::bilateral(l, r, phi)
-                    .with_model(self.model.unwrap_or_default());
-                c.validate()?;
-                Ok(DiseaseSpec::Closed(c))
-            }
-            DiseaseKind::TensionPneumothorax => {
-                let d = TensionParams::new(side()?);
-                let params = TensionParams {
-                    source: self.source.unwrap_or(d.source),
-                    inflow_ml: self.v_p_ml.unwrap_or(d.inflow_ml),
-                    tau: self.tau.unwrap_or(d.tau),
-                    v1_max_ml: self.v1_max_ml,
-                    v2_max_ml: self.v2_max_ml,
-                    beta_mm: self.beta_mm.unwrap_or(d.beta_mm),
-                    alpha_ml: alpha,
-                    phi,
-                    needle_vent_cycles: self.needle_vent_cycles.unwrap_or(d.needle_vent_cycles),
-                    needle_residual: self.needle_residual.unwrap_or(d.needle_residual),
-                    chest_tube_ml_per_cycle: self
-                        .chest_tube_ml_per_cycle
-                        .unwrap_or(d.chest_tube_ml_per_cycle),
-                    hyperexpansion_cycles: self
-                        .hyperexpansion_cycles
-                        .unwrap_or(d.hyperexpansion_cycles),
-                    model: self.model.unwrap_or_default(),
-                    mediastinal_compliance_ml_per_cmh2o: self
-                        .mediastinal_compliance_ml_per_cmh2o
-                        .unwrap_or(d.mediastinal_compliance_ml_per_cmh2o),
-                    needle_tau_cycles: self.needle_tau_cycles.unwrap_or(d.needle_tau_cycles),
-                    contralateral_compression: match self.model.unwrap_or_default() {
-                        CourseModel::Seed => 0.0,
-                        CourseModel::Clinical => self
-                            .contralateral_compression
-                            .unwrap_or(d.contralateral_compression),
-                    },
-                    ..d
-                };
-                params.validate()?;
-                for (key, v) in [
-                    ("v1_max_ml", params.v1_max_ml),
-                    ("v2_max_ml", params.v2_max_ml),
-                ] {
-                    if let Some(v) = v {
-                        crate::disease::check_range(
-                            key,
-                            v,
-                            f64::MIN_POSITIVE,
-                            6000.0,
-                            "within (0, 6000] ml",
-                        )?;
-                    }
-                }
-                let onset_s = crate::disease::check_range(
-                    "onset_s",
-                    self.onset_s.unwrap_or(0.0),
-                    0.0,
-                    MAX_TIME_S,
-                    "within 0..=1e7 s",
+        params.validate()?;
+        for (key, v) in [
+            ("v1_max_ml", params.v1_max_ml),
+            ("v2_max_ml", params.v2_max_ml),
+        ] {
+            if let Some(v) = v {
+                crate::disease::check_range(
+                    key,
+                    v,
+                    f64::MIN_POSITIVE,
+                    6000.0,
+                    "within (0, 6000] ml",
                 )?;
-                if self.events.len() > MAX_EVENTS {
-                    return Err(DiseaseSceneError::TooManyEvents {
-                        count: self.events.len(),
-                    });
-                }
-                let mut events = Vec::with_capacity(self.events.len());
-                for (k, e) in self.events.iter().enumerate() {
-                    let bad = |reason: String| DiseaseSceneError::Event {
-                        number: k + 1,
-                        at_s: e.at_s,
-                        reason,
-                    };
-                    if !(e.at_s.is_finite() && (0.0..=MAX_TIME_S).contains(&e.at_s)) {
-                        return Err(bad("at_s must be within 0..=1e7 s".into()));
-                    }
-                    if e.at_s < onset_s {
-                        return Err(bad(format!(
-                            "at_s is before onset_s = {onset_s} s: there is nothing to treat yet"
-                        )));
-                    }
-                    events.push(TimedEvent {
-                        at_s: e.at_s,
-                        kind: e.kind,
-                        side: e.side,
-                    });
-                }
-                // Stable: events at the same time keep the file's order.
-                events.sort_by(|a, b| a.at_s.total_cmp(&b.at_s));
-                Ok(DiseaseSpec::Tension {
-                    params,
-                    onset_s,
-                    events,
-                })
-            }
-            DiseaseKind::Tumour => {
-                let t = self.tumour.as_ref().ok_or(DiseaseSceneError::Missing {
-                    key: "tumour",
-                    kind,
-                })?;
-                let side = side()?;
-                let centre = tumour_centre(side, shape, t)?;
-                let d = Tumour::new(side, centre, t.radii_mm);
-                let tumour = Tumour {
-                    expandability: t.expandability.unwrap_or(d.expandability),
-                    falloff: t.falloff.unwrap_or(d.falloff),
-                    coupling: t.coupling.unwrap_or(d.coupling),
-                    phi: t.phi_variant.unwrap_or(d.phi),
-                    resistance_phi: t.resistance_phi.unwrap_or(d.resistance_phi),
-                    ..d
-                };
-                tumour.validate()?;
-                Ok(DiseaseSpec::Tumour(tumour))
             }
         }
+        let onset_s = crate::disease::check_range(
+            "onset_s",
+            self.onset_s.unwrap_or(0.0),
+            0.0,
+            MAX_TIME_S,
+            "within 0..=1e7 s",
+        )?;
+        let events = self.tension_events(onset_s)?;
+        Ok(DiseaseSpec::Tension {
+            params,
+            onset_s,
+            events,
+        })
+    }
+
+    /// The timed events, checked (within the run's time, not before the onset) and sorted by time.
+    fn tension_events(&self, onset_s: f64) -> Result<Vec<TimedEvent>, DiseaseSceneError> {
+        if self.events.len() > MAX_EVENTS {
+            return Err(DiseaseSceneError::TooManyEvents {
+                count: self.events.len(),
+            });
+        }
+        let mut events = Vec::with_capacity(self.events.len());
+        for (k, e) in self.events.iter().enumerate() {
+            let bad = |reason: String| DiseaseSceneError::Event {
+                number: k + 1,
+                at_s: e.at_s,
+                reason,
+            };
+            if !(e.at_s.is_finite() && (0.0..=MAX_TIME_S).contains(&e.at_s)) {
+                return Err(bad("at_s must be within 0..=1e7 s".into()));
+            }
+            if e.at_s < onset_s {
+                return Err(bad(format!(
+                    "at_s is before onset_s = {onset_s} s: there is nothing to treat yet"
+                )));
+            }
+            events.push(TimedEvent {
+                at_s: e.at_s,
+                kind: e.kind,
+                side: e.side,
+            });
+        }
+        // Stable: events at the same time keep the file's order.
+        events.sort_by(|a, b| a.at_s.total_cmp(&b.at_s));
+        Ok(events)
+    }
+
+    /// A tumour placed by centre or by lobe in `shape`, each key's default where not given.
+    fn tumour_spec(&self, shape: Shape) -> Result<DiseaseSpec, DiseaseSceneError> {
+        let kind = self.kind.name();
+        let t = self.tumour.as_ref().ok_or(DiseaseSceneError::Missing {
+            key: "tumour",
+            kind,
+        })?;
+        let side = self
+            .side
+            .ok_or(DiseaseSceneError::Missing { key: "side", kind })?;
+        let centre = tumour_centre(side, shape, t)?;
+        let d = Tumour::new(side, centre, t.radii_mm);
+        let tumour = Tumour {
+            expandability: t.expandability.unwrap_or(d.expandability),
+            falloff: t.falloff.unwrap_or(d.falloff),
+            coupling: t.coupling.unwrap_or(d.coupling),
+            phi: t.phi_variant.unwrap_or(d.phi),
+            resistance_phi: t.resistance_phi.unwrap_or(d.resistance_phi),
+            ..d
+        };
+        tumour.validate()?;
+        Ok(DiseaseSpec::Tumour(tumour))
     }
 
     /// [`Self::validate`] for a scene whose breath is a ventilator recording (`[pv] waveform`;
