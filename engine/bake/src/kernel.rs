@@ -180,53 +180,16 @@ pub fn bake(
         delta_ml,
     );
     let (sh_meta, sh) = if settings.sh_bands > 0 {
-        let n_max = settings.sh_bands as usize;
-        let projection =
-            ShProjection::compute(&model.mesh, &transfer.transposed(), &responses.nhat, n_max)?;
-        let fit = |n| {
-            projection.fit(
-                n,
-                &model.mesh,
-                &responses,
-                &exact_forms,
-                &orientations,
-                delta_ml,
-            )
-        };
-        // The one error-budget rule (`bake --max-error-mm`, `bake --scene`, `scene prepare`): the
-        // fewest bands from 1 up to `sh_bands` whose RMS error meets the budget, else `sh_bands`.
-        let mut trials = Vec::new();
-        let chosen = match settings.max_error_mm {
-            None => fit(n_max),
-            Some(budget) => {
-                let mut n = 1;
-                loop {
-                    let f = fit(n);
-                    trials.push(f.error.rms_mm);
-                    if f.error.rms_mm <= budget || n >= n_max {
-                        break f;
-                    }
-                    n += 1;
-                }
-            }
-        };
-        (
-            Some(ShMeta {
-                bands: chosen.n as u32,
-                centre_mm: projection.centre,
-                alpha: chosen.alpha,
-                projection: projection.projection(chosen.n),
-                volume_forms: chosen.forms.clone(),
-                rms_percent: chosen.error.rms_percent,
-                rms_mm: chosen.error.rms_mm,
-                max_mm: chosen.error.max_mm,
-                quantisation_max_mm: chosen.quantisation_max_mm,
-                foldover_nodes: projection.weights.foldover_vertices.len() as u64,
-                budget_mm: settings.max_error_mm,
-                budget_trials_rms_mm: trials,
-            }),
-            Some(projection.stored(chosen.n)),
-        )
+        let (m, t) = sh_section(
+            settings,
+            &model.mesh,
+            &transfer,
+            &responses,
+            &exact_forms,
+            &orientations,
+            delta_ml,
+        )?;
+        (Some(m), Some(t))
     } else {
         (None, None)
     };
@@ -281,6 +244,58 @@ pub fn bake(
         sh,
         lobes: None,
     })
+}
+
+/// Seed ch. 7's spherical harmonics: the projection up to `settings.sh_bands`, the band count the
+/// error budget chooses (the fewest meeting it, else the most), its record and its stored
+/// coefficients.
+#[allow(clippy::too_many_arguments)]
+fn sh_section(
+    settings: &BakeSettings,
+    mesh: &TriMesh,
+    transfer: &Transfer,
+    responses: &Responses,
+    exact_forms: &lung_model::deform::modes::VolumeForms,
+    orientations: &[glam::DVec3],
+    delta_ml: f64,
+) -> Result<(ShMeta, Vec<f32>), BakeError> {
+    let n_max = settings.sh_bands as usize;
+    let projection = ShProjection::compute(mesh, &transfer.transposed(), &responses.nhat, n_max)?;
+    let fit = |n| projection.fit(n, mesh, responses, exact_forms, orientations, delta_ml);
+    // The one error-budget rule (`bake --max-error-mm`, `bake --scene`, `scene prepare`): the
+    // fewest bands from 1 up to `sh_bands` whose RMS error meets the budget, else `sh_bands`.
+    let mut trials = Vec::new();
+    let chosen = match settings.max_error_mm {
+        None => fit(n_max),
+        Some(budget) => {
+            let mut n = 1;
+            loop {
+                let f = fit(n);
+                trials.push(f.error.rms_mm);
+                if f.error.rms_mm <= budget || n >= n_max {
+                    break f;
+                }
+                n += 1;
+            }
+        }
+    };
+    Ok((
+        ShMeta {
+            bands: chosen.n as u32,
+            centre_mm: projection.centre,
+            alpha: chosen.alpha,
+            projection: projection.projection(chosen.n),
+            volume_forms: chosen.forms.clone(),
+            rms_percent: chosen.error.rms_percent,
+            rms_mm: chosen.error.rms_mm,
+            max_mm: chosen.error.max_mm,
+            quantisation_max_mm: chosen.quantisation_max_mm,
+            foldover_nodes: projection.weights.foldover_vertices.len() as u64,
+            budget_mm: settings.max_error_mm,
+            budget_trials_rms_mm: trials,
+        },
+        projection.stored(chosen.n),
+    ))
 }
 
 /// The tumour's parameters, its lung and that its centre lies inside the surface (winding number).
