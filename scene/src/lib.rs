@@ -67,9 +67,10 @@ pub enum TableError {
     ProcessWake(String),
 }
 
-/// A number as the checks' messages print it: three decimals at most, exponent form outside
-/// 1e-3..1e7 (`lung_model::plausible::compact`'s rule).
-pub(crate) fn compact(v: f64) -> String {
+/// A number as every check's message prints it: three decimals at most within 1e-3..1e7, else in
+/// exponent form (`1e308`, not 309 digits). The one implementation: `lung_model::plausible::compact`
+/// is this.
+pub fn compact(v: f64) -> String {
     if v == 0.0 {
         return "0".into();
     }
@@ -240,7 +241,7 @@ mod tests {
     }
 
     #[test]
-    fn compact_matches_lung_models_rule() {
+    fn compact_prints_three_decimals_or_an_exponent() {
         assert_eq!(compact(0.0), "0");
         assert_eq!(compact(2.5), "2.5");
         assert_eq!(compact(1.23456), "1.235");

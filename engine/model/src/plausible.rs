@@ -166,14 +166,8 @@ pub fn compact(v: f64) -> String {
 }
 
 fn fmt(v: f64) -> String {
-    if v == 0.0 {
-        return "0".into();
-    }
-    if v.is_finite() && v.abs() >= 1e-3 && v.abs() < 1e7 {
-        format!("{}", (v * 1000.0).round() / 1000.0)
-    } else {
-        format!("{v:e}")
-    }
+    // One rule for every message, the scene tables' checks included.
+    lungdyn_scene::compact(v)
 }
 
 fn value_text(limit: &Limit, v: f64) -> String {
