@@ -843,6 +843,40 @@ struct SourceOutcome {
     cost: Option<SourceCost>,
 }
 
+impl SourceOutcome {
+    /// A source in the harness's process: its counts; its cost is the sites' too, so none.
+    fn here(src: &Source, recs: Vec<Rec>, cost: SourceCost) -> Self {
+        let c = &src.counts;
+        SourceOutcome {
+            recs,
+            states: c.states.load(Ordering::Relaxed),
+            state_bytes: c.state_bytes.load(Ordering::Relaxed),
+            probes: cost.probes,
+            sites_seen: src.sites(),
+            deadlines_skipped: cost.deadlines_skipped,
+            // Its process is the sites' too: not the source's own cost.
+            cost: None,
+        }
+    }
+
+    /// A source in its own process: what it reported, its cost included.
+    fn own(c: ChildReport) -> Self {
+        SourceOutcome {
+            recs: c
+                .recs
+                .iter()
+                .map(|r| (r.0, r.1, r.2, f32::from_bits(r.3), r.4))
+                .collect(),
+            states: c.states,
+            state_bytes: c.state_bytes,
+            probes: c.cost.probes,
+            sites_seen: c.sites_seen,
+            deadlines_skipped: c.cost.deadlines_skipped,
+            cost: Some(c.cost),
+        }
+    }
+}
+
 /// The relay's counters at the start of the measured window.
 #[derive(Debug, Clone, Copy)]
 struct Snapshot {
@@ -1028,35 +1062,10 @@ pub fn run(args: &HarnessArgs) -> Result<HarnessReport, RemoteError> {
         }
         let r = match &mut side {
             SourceSide::Here(src) => {
-                timed_source(core.clone(), hz, src, source_id, args.seconds, &stop).map(
-                    |(recs, cost)| {
-                        let c = &src.counts;
-                        SourceOutcome {
-                            recs,
-                            states: c.states.load(Ordering::Relaxed),
-                            state_bytes: c.state_bytes.load(Ordering::Relaxed),
-                            probes: cost.probes,
-                            sites_seen: src.sites(),
-                            deadlines_skipped: cost.deadlines_skipped,
-                            // Its process is the sites' too: not the source's own cost.
-                            cost: None,
-                        }
-                    },
-                )
+                timed_source(core.clone(), hz, src, source_id, args.seconds, &stop)
+                    .map(|(recs, cost)| SourceOutcome::here(src, recs, cost))
             }
-            SourceSide::Own(child) => child.run().map(|c| SourceOutcome {
-                recs: c
-                    .recs
-                    .iter()
-                    .map(|r| (r.0, r.1, r.2, f32::from_bits(r.3), r.4))
-                    .collect(),
-                states: c.states,
-                state_bytes: c.state_bytes,
-                probes: c.cost.probes,
-                sites_seen: c.sites_seen,
-                deadlines_skipped: c.cost.deadlines_skipped,
-                cost: Some(c.cost),
-            }),
+            SourceSide::Own(child) => child.run().map(SourceOutcome::own),
         };
         stop.store(true, Ordering::Relaxed);
         r
@@ -1070,10 +1079,30 @@ pub fn run(args: &HarnessArgs) -> Result<HarnessReport, RemoteError> {
     if let Some(e) = result.lock().expect("result").take() {
         return Err(e);
     }
-    let source_recs = outcome.recs;
-    let mut per_site = Vec::new();
+    let source_recs = &outcome.recs;
     let mut recs = recs.into_inner().expect("records");
     recs.sort_by_key(|(k, _)| *k);
+    let per_site: Vec<SiteReport> = recs
+        .iter()
+        .map(|(k, r)| site_report(&sites[*k], r, source_recs, tv))
+        .collect();
+    Ok(harness_report(
+        args,
+        &imp,
+        clock,
+        hz,
+        tv,
+        &outcome,
+        per_site,
+        relay_report,
+        harness_cpu_s,
+    ))
+}
+
+/// One site's figures against the source's record: drift of the volume (against the source's
+/// tick and its schedule), phase error, ticks that differ bit for bit, the site's counts and its
+/// path and clock.
+fn site_report(site: &Site, r: &[Rec], source_recs: &[Rec], tv: f64) -> SiteReport {
     let end = source_recs.last().map_or(0, |r| r.1 as i128);
     // The source's record of tick `k`, found by its tick number rather than assumed at place `k`
     // (the same today: the source records every tick from 0, a skipped deadline shifting when a
@@ -1085,47 +1114,60 @@ pub fn run(args: &HarnessArgs) -> Result<HarnessReport, RemoteError> {
             .map(|i| &source_recs[i])
     };
     let sched_of = |k: u64| source_tick(k).map(|r| r.0);
-    for (k, r) in &recs {
-        let site = &sites[*k];
-        let from = r.first().map_or(end, |x| x.1 as i128);
-        let (mean, worst) = drift(&source_recs, r, from, end, tv, false);
-        let (mean_s, _) = drift(&source_recs, r, from, end, tv, true);
-        let phase: Vec<(i128, f64)> = r
-            .iter()
-            .filter_map(|x| sched_of(x.2).map(|s| (s, (x.0 - s).abs() as f64 / 1e6)))
-            .collect();
-        let last_5_s = phase
-            .iter()
-            .filter(|p| p.0 >= end - 5_000_000_000)
-            .map(|p| p.1)
-            .fold(0.0, f64::max);
-        let phase: Vec<f64> = phase.into_iter().map(|p| p.1).collect();
-        let differing = r
-            .iter()
-            .filter(|x| source_tick(x.2).is_some_and(|s| s.3.to_bits() != x.3.to_bits()))
-            .count();
-        let c = &site.counts;
-        per_site.push(SiteReport {
-            drift_percent_mean: mean,
-            drift_percent_worst: worst,
-            drift_percent_mean_scheduled: mean_s,
-            phase_error_ms_mean: phase.iter().sum::<f64>() / phase.len().max(1) as f64,
-            phase_error_ms_worst: phase.iter().copied().fold(0.0, f64::max),
-            phase_error_ms_worst_last_5_s: last_5_s,
-            ticks: r.len(),
-            ticks_differing: differing,
-            states_applied: c.applied.load(Ordering::Relaxed),
-            refused: c.refused.load(Ordering::Relaxed),
-            lost: site.link_counts().lost.load(Ordering::Relaxed),
-            predicted_cycles: c.predicted_cycles.load(Ordering::Relaxed),
-            delay_ms: site.path.delay_ns.load(Ordering::Relaxed) as f64 / 1e6,
-            jitter_ms: site.path.jitter_ns.load(Ordering::Relaxed) as f64 / 1e6,
-            offset_ms: site.path.offset_at(site.own_clock.now()).unwrap_or(0) as f64 / 1e6,
-            clock: ClockFigures::of(&site.path, site.own_clock),
-            lateness: lateness(r),
-        });
+    let from = r.first().map_or(end, |x| x.1 as i128);
+    let (mean, worst) = drift(source_recs, r, from, end, tv, false);
+    let (mean_s, _) = drift(source_recs, r, from, end, tv, true);
+    let phase: Vec<(i128, f64)> = r
+        .iter()
+        .filter_map(|x| sched_of(x.2).map(|s| (s, (x.0 - s).abs() as f64 / 1e6)))
+        .collect();
+    let last_5_s = phase
+        .iter()
+        .filter(|p| p.0 >= end - 5_000_000_000)
+        .map(|p| p.1)
+        .fold(0.0, f64::max);
+    let phase: Vec<f64> = phase.into_iter().map(|p| p.1).collect();
+    let differing = r
+        .iter()
+        .filter(|x| source_tick(x.2).is_some_and(|s| s.3.to_bits() != x.3.to_bits()))
+        .count();
+    let c = &site.counts;
+    SiteReport {
+        drift_percent_mean: mean,
+        drift_percent_worst: worst,
+        drift_percent_mean_scheduled: mean_s,
+        phase_error_ms_mean: phase.iter().sum::<f64>() / phase.len().max(1) as f64,
+        phase_error_ms_worst: phase.iter().copied().fold(0.0, f64::max),
+        phase_error_ms_worst_last_5_s: last_5_s,
+        ticks: r.len(),
+        ticks_differing: differing,
+        states_applied: c.applied.load(Ordering::Relaxed),
+        refused: c.refused.load(Ordering::Relaxed),
+        lost: site.link_counts().lost.load(Ordering::Relaxed),
+        predicted_cycles: c.predicted_cycles.load(Ordering::Relaxed),
+        delay_ms: site.path.delay_ns.load(Ordering::Relaxed) as f64 / 1e6,
+        jitter_ms: site.path.jitter_ns.load(Ordering::Relaxed) as f64 / 1e6,
+        offset_ms: site.path.offset_at(site.own_clock.now()).unwrap_or(0) as f64 / 1e6,
+        clock: ClockFigures::of(&site.path, site.own_clock),
+        lateness: lateness(r),
     }
-    let minutes = source_recs.len() as f64 / hz / 60.0;
+}
+
+/// The run's report: the sites' figures averaged (or their worst), the traffic per minute, the
+/// source's own cost (when it ran in its own process) and how the run was set up.
+#[allow(clippy::too_many_arguments)]
+fn harness_report(
+    args: &HarnessArgs,
+    imp: &Impairment,
+    clock: ClockSync,
+    hz: f64,
+    tv: f64,
+    outcome: &SourceOutcome,
+    per_site: Vec<SiteReport>,
+    relay_report: Option<RelayReport>,
+    harness_cpu_s: f64,
+) -> HarnessReport {
+    let minutes = outcome.recs.len() as f64 / hz / 60.0;
     let states = outcome.states as f64;
     let n = args.sites as f64;
     let mean = |f: fn(&SiteReport) -> f64| {
@@ -1133,10 +1175,10 @@ pub fn run(args: &HarnessArgs) -> Result<HarnessReport, RemoteError> {
     };
     let max = |f: fn(&SiteReport) -> f64| per_site.iter().map(f).fold(0.0, f64::max);
     let packets = states * n / minutes;
-    let per_frame = source_recs.len() as f64 * n / minutes;
+    let per_frame = outcome.recs.len() as f64 * n / minutes;
     let cost = outcome.cost;
     let per_minute = |f: fn(&SourceCost) -> f64| cost.map(|c| f(&c) / c.wall_s * 60.0);
-    Ok(HarnessReport {
+    HarnessReport {
         sites: args.sites,
         seconds: minutes * 60.0,
         delay_ms: args.delay_ms,
@@ -1182,7 +1224,7 @@ pub fn run(args: &HarnessArgs) -> Result<HarnessReport, RemoteError> {
         relay: relay_report,
         probes_per_minute: outcome.probes as f64 / minutes,
         sites_seen_by_source: outcome.sites_seen,
-        source_lateness: lateness(&source_recs),
+        source_lateness: lateness(&outcome.recs),
         source_deadlines_skipped: outcome.deadlines_skipped,
         source_cpu_s: cost.map(|c| c.cpu_s),
         source_cpu_percent: per_minute(|c| c.cpu_s).map(|v| v / 60.0 * 100.0),
@@ -1193,7 +1235,7 @@ pub fn run(args: &HarnessArgs) -> Result<HarnessReport, RemoteError> {
         harness_cpu_s,
         load_average_1min: crate::measure::load_average(),
         per_site,
-    })
+    }
 }
 
 /// A lateness summary in words.

@@ -495,22 +495,8 @@ pub fn join(args: &JoinArgs) -> Result<(), RemoteError> {
     transport::stop::install()?;
     let until = deadline(args.seconds)?;
     let table = remote_table(args.scene.as_deref())?;
-    if let Some(t) = table.as_ref().filter(|t| t.role == RemoteRole::Source) {
-        return Err(RemoteError::Usage(format!(
-            "the scene's [remote] role is {:?}: the source runs `lungdyn remote serve` (or `lungdyn \
-             demo`); a site's scene says role = \"site\" or \"observer\"",
-            t.role
-        )));
-    }
-    let observer = args.observer
-        || table
-            .as_ref()
-            .is_some_and(|t| t.role == RemoteRole::Observer);
-    let role = if observer {
-        RemoteRole::Observer
-    } else {
-        RemoteRole::Site
-    };
+    let role = join_role(args, table.as_ref())?;
+    let observer = role == RemoteRole::Observer;
     // Endpoints are checked before anything is loaded or opened.
     let (remote, net, keys) = settings(table, role, &[], &args.connect, &args.session, args.clock)?;
     let clock = remote.clock();
@@ -527,7 +513,7 @@ pub fn join(args: &JoinArgs) -> Result<(), RemoteError> {
     // A sender on the site (`lungdyn scene event`) is answered as by an engine: received when sent
     // to the source, applied when the source announces it (with its tick, cycle and outcome).
     let mut replies = instance.control_reply_outlet(&node)?;
-    let mut sent: Vec<(u64, ControlPacket)> = Vec::new();
+    let mut local = LocalEvents::default();
     let site = Site::open(
         &net,
         &keys,
@@ -555,7 +541,6 @@ pub fn join(args: &JoinArgs) -> Result<(), RemoteError> {
         .ok_or_else(|| RemoteError::Usage("the site's runner was taken".into()))?;
     let mut first = true;
     let mut rate_word = "unknown";
-    let mut told = 0usize;
     while !transport::stop::requested() && until.is_none_or(|t| now_ns() < t) {
         let now = now_ns();
         if runner.poll(now)?.is_some() {
@@ -576,59 +561,121 @@ pub fn join(args: &JoinArgs) -> Result<(), RemoteError> {
         if let Some(news) = site.path.rate_news(&mut rate_word) {
             eprintln!("remote join[{}]: {news}", instance.name());
         }
-        // Each event the source announced, once: who raised it and the cycle every site applies it.
+        local.tell_announced(&instance, &site, &mut replies)?;
+        let tick = runner.last_tick().unwrap_or(0);
+        local.forward(&instance, &site, tick, &mut control, &mut replies)?;
+        let wake = runner
+            .next_wake()
+            .map(|t| t - now_ns() as i128)
+            .unwrap_or(2_000_000)
+            .clamp(0, 2_000_000);
+        std::thread::sleep(Duration::from_nanos(wake as u64));
+    }
+    say_join_counts(&instance, &site);
+    Ok(())
+}
+
+/// The role a joining engine takes: the scene's (`site` or `observer`) or `--observer`; a
+/// source's scene is refused.
+fn join_role(args: &JoinArgs, table: Option<&RemoteScene>) -> Result<RemoteRole, RemoteError> {
+    if let Some(t) = table.filter(|t| t.role == RemoteRole::Source) {
+        return Err(RemoteError::Usage(format!(
+            "the scene's [remote] role is {:?}: the source runs `lungdyn remote serve` (or `lungdyn \
+             demo`); a site's scene says role = \"site\" or \"observer\"",
+            t.role
+        )));
+    }
+    let observer = args.observer || table.is_some_and(|t| t.role == RemoteRole::Observer);
+    Ok(if observer {
+        RemoteRole::Observer
+    } else {
+        RemoteRole::Site
+    })
+}
+
+/// The events this site's own senders (`lungdyn scene event`) gave it: sent to the source and
+/// answered as by an engine — received when sent, applied when the source announces it.
+#[derive(Default)]
+struct LocalEvents {
+    /// Sent to the source and not yet announced by it (its number there, the packet): the last 64.
+    sent: Vec<(u64, ControlPacket)>,
+    /// How many of the source's announced events were told already.
+    told: usize,
+}
+
+impl LocalEvents {
+    /// Each event the source announced, once: who raised it and the cycle every site applies it;
+    /// one of ours is answered "applied".
+    fn tell_announced(
+        &mut self,
+        instance: &Instance,
+        site: &Site,
+        replies: &mut dyn Publish<ControlReply>,
+    ) -> Result<(), RemoteError> {
         let mut announced = Vec::new();
         if let Ok(seen) = site.events.lock() {
-            announced.extend(seen.iter().skip(told).copied());
-            told = seen.len();
+            announced.extend(seen.iter().skip(self.told).copied());
+            self.told = seen.len();
         }
-        {
-            for e in &announced {
-                eprintln!(
-                    "remote join[{}]: {} on the {} lung from {} (its #{}) applies at the \
-                     source's breathing cycle {} (tick {}), the disease course's cycle {}",
-                    instance.name(),
-                    ipc_types::kind_words(e.kind),
-                    ipc_types::lung_words(e.lung),
-                    if e.origin == site.id {
-                        "this site".to_string()
-                    } else {
-                        format!("site {:016x}", e.origin)
-                    },
-                    e.sequence,
-                    e.apply_cycle,
-                    e.apply_tick,
-                    e.course_cycle
-                );
-                let Some(k) = sent
-                    .iter()
-                    .position(|(n, _)| e.origin == site.id && *n == e.sequence)
-                else {
-                    continue;
-                };
-                let (_, p) = sent.remove(k);
-                let mut r = ControlReply {
-                    status: ipc_types::REPLY_APPLIED,
-                    sequence: p.sequence,
-                    tick: e.apply_tick,
-                    // The disease course's cycle, as the source's engine answers (not the
-                    // breathing cycle `apply_cycle`).
-                    cycle: e.course_cycle,
-                    kind: e.kind,
-                    lung: e.lung,
-                    outcome: e.outcome,
-                    ..Default::default()
-                };
-                r.set_text(&["applied by the source; every site switches at that tick"]);
-                replies.publish(&r)?;
-            }
+        for e in &announced {
+            eprintln!(
+                "remote join[{}]: {} on the {} lung from {} (its #{}) applies at the source's \
+                 breathing cycle {} (tick {}), the disease course's cycle {}",
+                instance.name(),
+                ipc_types::kind_words(e.kind),
+                ipc_types::lung_words(e.lung),
+                if e.origin == site.id {
+                    "this site".to_string()
+                } else {
+                    format!("site {:016x}", e.origin)
+                },
+                e.sequence,
+                e.apply_cycle,
+                e.apply_tick,
+                e.course_cycle
+            );
+            let Some(k) = self
+                .sent
+                .iter()
+                .position(|(n, _)| e.origin == site.id && *n == e.sequence)
+            else {
+                continue;
+            };
+            let (_, p) = self.sent.remove(k);
+            let mut r = ControlReply {
+                status: ipc_types::REPLY_APPLIED,
+                sequence: p.sequence,
+                tick: e.apply_tick,
+                // The disease course's cycle, as the source's engine answers (not the breathing
+                // cycle `apply_cycle`).
+                cycle: e.course_cycle,
+                kind: e.kind,
+                lung: e.lung,
+                outcome: e.outcome,
+                ..Default::default()
+            };
+            r.set_text(&["applied by the source; every site switches at that tick"]);
+            replies.publish(&r)?;
         }
+        Ok(())
+    }
+
+    /// The site's own senders' packets, each sent to the source and answered (received, or
+    /// ignored with the reason); `tick` is the site's last tick.
+    fn forward(
+        &mut self,
+        instance: &Instance,
+        site: &Site,
+        tick: u64,
+        control: &mut dyn Receive<ControlPacket>,
+        replies: &mut dyn Publish<ControlReply>,
+    ) -> Result<(), RemoteError> {
         let mut events = Vec::new();
         control.drain(&mut |p: &ControlPacket| events.push(*p))?;
         for p in events {
             let mut r = ControlReply {
                 sequence: p.sequence,
-                tick: runner.last_tick().unwrap_or(0),
+                tick,
                 kind: p.kind,
                 lung: p.lung,
                 ..Default::default()
@@ -643,10 +690,10 @@ pub fn join(args: &JoinArgs) -> Result<(), RemoteError> {
                     );
                     r.status = ipc_types::REPLY_RECEIVED;
                     r.set_text(&["sent to the source; it applies it at a cycle it announces"]);
-                    if sent.len() == 64 {
-                        sent.remove(0);
+                    if self.sent.len() == 64 {
+                        self.sent.remove(0);
                     }
-                    sent.push((n, p));
+                    self.sent.push((n, p));
                 }
                 Err(e) => {
                     eprintln!("remote join[{}]: {e}", instance.name());
@@ -656,13 +703,13 @@ pub fn join(args: &JoinArgs) -> Result<(), RemoteError> {
             }
             replies.publish(&r)?;
         }
-        let wake = runner
-            .next_wake()
-            .map(|t| t - now_ns() as i128)
-            .unwrap_or(2_000_000)
-            .clamp(0, 2_000_000);
-        std::thread::sleep(Duration::from_nanos(wake as u64));
+        Ok(())
     }
+}
+
+/// A joined site's closing counts on stderr: disease cycles announced in time or late, states
+/// applied, repeated and refused, cycles breathed on prediction.
+fn say_join_counts(instance: &Instance, site: &Site) {
     let c = &site.counts;
     eprintln!(
         "remote join[{}]: {} disease cycle(s) announced in time, {} late",
@@ -685,7 +732,6 @@ pub fn join(args: &JoinArgs) -> Result<(), RemoteError> {
             .unwrap_or_default(),
         c.predicted_cycles.load(Ordering::Relaxed)
     );
-    Ok(())
 }
 
 #[cfg(test)]

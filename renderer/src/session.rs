@@ -517,152 +517,20 @@ impl Session {
         else {
             return Ok(false);
         };
-        let mut flags = 0u32;
-        let mut frame = match (tick.wake, self.last) {
-            (Wake::Sample(f), _) => {
-                f.check_layout().map_err(PortError::from)?;
-                if self.last.is_none() {
-                    eprintln!(
-                        "renderer[{}]: engine connected (tick {})",
-                        self.instance, f.tick
-                    );
-                } else if self.engine_down() {
-                    eprintln!(
-                        "renderer[{}]: engine back after {:.0} ms without frames (tick {})",
-                        self.instance,
-                        tick.at_ns.saturating_sub(self.last_fresh_ns) as f64 / 1e6,
-                        f.tick
-                    );
-                }
-                self.stale_run = 0;
-                self.last_fresh_ns = tick.at_ns;
-                f
-            }
-            (Wake::Deadline, Some(f)) => {
-                flags |= report_flags::STALE_ENGINE;
-                self.stats.stale_frames += 1;
-                self.stale_run += 1;
-                if self.stale_run == report_flags::ENGINE_DOWN_FRAMES {
-                    eprintln!(
-                        "renderer[{}]: no engine frame since tick {}: the engine is restarting or \
-                         stopped; presenting its last frame, flagged stale",
-                        self.instance, f.tick
-                    );
-                }
-                f
-            }
-            (Wake::Deadline, None) => return Ok(false),
+        let Some((mut frame, mut flags)) = self.take_engine_frame(&tick)? else {
+            return Ok(false);
         };
         let now = tick.at_ns;
         frame.stamps.renderer_receive_ns = now;
-        // Late latch: the freshest HMD pose at draw time.
-        if let Some(t) = self.ports.tracker.take_latest()? {
-            self.last_tracker = Some(t);
-            if let Some(pose) = t.valid_tool(TOOL_HMD) {
-                self.hmd = pose;
-                self.predictor
-                    .update(t.frame_number, t.stamps.capture_ns, pose);
-            }
-        }
-        let mut state = DrawState {
-            deform_scale: [0.0; 2],
-            offset_mm: [[0.0; 3]; 2],
-            collapse: [0.0; 2],
-            hilum_mm: [[0.0; 3]; 2],
-            coeffs: [[0.0; ipc_types::MAX_COEFFS]; 2],
-            patient: frame.patient_pose,
-            hmd: self.hmd,
-            pose_warning: crate::PoseWarning::of_engine_state(frame.state),
-        };
-        if self.engine_down() {
-            flags |= report_flags::ENGINE_DOWN;
-            state.pose_warning = crate::PoseWarning::EngineDown;
-        }
-        match state.pose_warning {
-            crate::PoseWarning::None | crate::PoseWarning::EngineDown => {}
-            crate::PoseWarning::Held => flags |= report_flags::PATIENT_POSE_HELD,
-            crate::PoseWarning::Stale => {
-                flags |= report_flags::PATIENT_POSE_HELD | report_flags::PATIENT_POSE_STALE
-            }
-        }
-        let mismatch = self.lungs_to_draw(&frame, &mut state);
-        if mismatch {
-            flags |= report_flags::KERNEL_MISMATCH;
-            self.stats.kernel_mismatch_frames += 1;
-        }
-        if let Some(plan) = self.snapshots.breath.as_mut() {
-            if let Some(ticks) = plan.observe(&frame) {
-                // Planned once per run (the only allocation of the plan).
-                self.snapshots.ticks.extend(ticks);
-                self.snapshots.ticks.sort_unstable();
-                self.snapshots.breath = None;
-            }
-        }
-        let targets = &self.snapshots.ticks;
-        let capture = self.next_target < targets.len() && frame.tick >= targets[self.next_target];
+        self.latch_hmd()?;
+        let mut state = self.draw_state(&frame, &mut flags);
+        let capture = self.plan_capture(&frame);
         if capture {
             flags |= report_flags::SNAPSHOT;
         }
-        // Drawn where the head will be when the frame is shown (predict.rs); the snapshots of a
-        // breath keep the first frame's view.
-        let mut view = match output.display_time_ns() {
-            Some(t) => self.predictor.pose_at_display(t, self.hmd),
-            None => self.predictor.pose_at(now, self.hmd),
-        };
-        if let Some(eyes) = output.eyes() {
-            self.renderer.set_eyes(eyes);
-        }
-        if capture {
-            match self.snapshots.view {
-                SnapshotView::Hmd => {}
-                SnapshotView::First => view = *self.snapshot_view.get_or_insert(self.hmd),
-                SnapshotView::Front => {
-                    // The lungs framed clear of the HUD, whether or not it is shown now (the H
-                    // key does not move the strip's viewpoint).
-                    let band = self
-                        .hud
-                        .as_ref()
-                        .map_or(crate::record::FRONT_VIEW_BAND, |h| h.lungs_band());
-                    if let Some(pose) = self.renderer.front_view_in(&state.patient, band) {
-                        view = pose;
-                    }
-                }
-            }
-        }
-        state.hmd = view;
+        state.hmd = self.view(output, now, capture, &state);
         self.read_replies()?;
-        let hud_on = self.hud_on;
-        let timing = {
-            let _draw = tracing::info_span!(target: transport::trace::TARGET, "draw").entered();
-            match self.hud.as_mut().filter(|_| hud_on) {
-                Some(hud) => {
-                    let (cpu_ns, gpu_ns, latency_ns) = self.last_timing;
-                    let shown = crate::hud::HudFrame {
-                        frame: &frame,
-                        tracker: self.last_tracker.as_ref(),
-                        warning: state.pose_warning,
-                        cpu_ns,
-                        gpu_ns,
-                        latency_ns,
-                        lod: self.renderer.lod_shown(),
-                        outcome: self.outcome_standing.map(|s| (self.outcome.as_str(), s)),
-                    };
-                    let gpu = &self.gpu;
-                    self.renderer.render_with_overlay(
-                        gpu,
-                        &state,
-                        capture,
-                        |encoder, target, eyes| {
-                            hud.encode(&gpu.device, &gpu.queue, encoder, target, eyes, &shown)
-                        },
-                        |e| output.encode(e),
-                    )
-                }
-                None => self
-                    .renderer
-                    .render_with(&self.gpu, &state, capture, |e| output.encode(e)),
-            }
-        };
+        let timing = self.draw(output, &frame, &state, capture);
         frame.stamps.renderer_submit_ns = timing.submit_ns;
         let present_ns = output.present().unwrap_or(0);
         let (present_mode, frame_latency) = output.mode();
@@ -696,31 +564,217 @@ impl Session {
         };
         self.ports.report.publish(&report)?;
         if capture {
-            // Every planned tick this frame reaches gets a snapshot: a tick whose own frame was
-            // skipped (the renderer under load took a newer engine frame) takes this, the next
-            // drawn frame, so a breath's recording keeps all its planned frames.
-            let img = self
-                .renderer
-                .read_image(&self.gpu)
-                .ok_or(RendererError::Readback {
-                    frame: self.stats.frames,
-                })?;
-            while self.next_target < self.snapshots.ticks.len()
-                && frame.tick >= self.snapshots.ticks[self.next_target]
-            {
-                let planned = self.snapshots.ticks[self.next_target];
-                self.next_target += 1;
-                // The same tick planned twice (a short breath over many frames) is one frame.
-                if self.next_target < self.snapshots.ticks.len()
-                    && self.snapshots.ticks[self.next_target] == planned
-                {
-                    continue;
-                }
-                self.write_snapshot(&frame, planned, &img)?;
-            }
+            self.write_snapshots(&frame)?;
         }
         self.last = Some(frame);
         Ok(true)
+    }
+
+    /// The frame to draw for this wake: the engine's new one, or (at a deadline with none) its
+    /// last one flagged stale; `None` before the engine's first frame. Says on stderr when the
+    /// engine connects, goes quiet and comes back.
+    fn take_engine_frame(
+        &mut self,
+        tick: &transport::pacer::Tick<EngineFrame>,
+    ) -> Result<Option<(EngineFrame, u32)>, RendererError> {
+        let mut flags = 0u32;
+        let frame = match (tick.wake, self.last) {
+            (Wake::Sample(f), _) => {
+                f.check_layout().map_err(PortError::from)?;
+                if self.last.is_none() {
+                    eprintln!(
+                        "renderer[{}]: engine connected (tick {})",
+                        self.instance, f.tick
+                    );
+                } else if self.engine_down() {
+                    eprintln!(
+                        "renderer[{}]: engine back after {:.0} ms without frames (tick {})",
+                        self.instance,
+                        tick.at_ns.saturating_sub(self.last_fresh_ns) as f64 / 1e6,
+                        f.tick
+                    );
+                }
+                self.stale_run = 0;
+                self.last_fresh_ns = tick.at_ns;
+                f
+            }
+            (Wake::Deadline, Some(f)) => {
+                flags |= report_flags::STALE_ENGINE;
+                self.stats.stale_frames += 1;
+                self.stale_run += 1;
+                if self.stale_run == report_flags::ENGINE_DOWN_FRAMES {
+                    eprintln!(
+                        "renderer[{}]: no engine frame since tick {}: the engine is restarting or \
+                         stopped; presenting its last frame, flagged stale",
+                        self.instance, f.tick
+                    );
+                }
+                f
+            }
+            (Wake::Deadline, None) => return Ok(None),
+        };
+        Ok(Some((frame, flags)))
+    }
+
+    /// Late latch: the freshest HMD pose at draw time (and the tracker frame the HUD shows).
+    fn latch_hmd(&mut self) -> Result<(), RendererError> {
+        if let Some(t) = self.ports.tracker.take_latest()? {
+            self.last_tracker = Some(t);
+            if let Some(pose) = t.valid_tool(TOOL_HMD) {
+                self.hmd = pose;
+                self.predictor
+                    .update(t.frame_number, t.stamps.capture_ns, pose);
+            }
+        }
+        Ok(())
+    }
+
+    /// What the GPU draws of `frame`: the lungs' deformation and the poses, with the warning
+    /// the engine's state calls for (flags for the report added to `flags`).
+    fn draw_state(&mut self, frame: &EngineFrame, flags: &mut u32) -> DrawState {
+        let mut state = DrawState {
+            deform_scale: [0.0; 2],
+            offset_mm: [[0.0; 3]; 2],
+            collapse: [0.0; 2],
+            hilum_mm: [[0.0; 3]; 2],
+            coeffs: [[0.0; ipc_types::MAX_COEFFS]; 2],
+            patient: frame.patient_pose,
+            hmd: self.hmd,
+            pose_warning: crate::PoseWarning::of_engine_state(frame.state),
+        };
+        if self.engine_down() {
+            *flags |= report_flags::ENGINE_DOWN;
+            state.pose_warning = crate::PoseWarning::EngineDown;
+        }
+        match state.pose_warning {
+            crate::PoseWarning::None | crate::PoseWarning::EngineDown => {}
+            crate::PoseWarning::Held => *flags |= report_flags::PATIENT_POSE_HELD,
+            crate::PoseWarning::Stale => {
+                *flags |= report_flags::PATIENT_POSE_HELD | report_flags::PATIENT_POSE_STALE
+            }
+        }
+        if self.lungs_to_draw(frame, &mut state) {
+            *flags |= report_flags::KERNEL_MISMATCH;
+            self.stats.kernel_mismatch_frames += 1;
+        }
+        state
+    }
+
+    /// Whether this frame is a snapshot's (the breath's snapshot ticks planned once, from the
+    /// first frames that show the breath).
+    fn plan_capture(&mut self, frame: &EngineFrame) -> bool {
+        if let Some(plan) = self.snapshots.breath.as_mut() {
+            if let Some(ticks) = plan.observe(frame) {
+                // Planned once per run (the only allocation of the plan).
+                self.snapshots.ticks.extend(ticks);
+                self.snapshots.ticks.sort_unstable();
+                self.snapshots.breath = None;
+            }
+        }
+        let targets = &self.snapshots.ticks;
+        self.next_target < targets.len() && frame.tick >= targets[self.next_target]
+    }
+
+    /// The viewpoint to draw from: where the head will be when the frame is shown (predict.rs);
+    /// the snapshots of a breath keep the first frame's view (or the front view).
+    fn view(
+        &mut self,
+        output: &mut impl FrameOutput,
+        now: u64,
+        capture: bool,
+        state: &DrawState,
+    ) -> Pose {
+        let mut view = match output.display_time_ns() {
+            Some(t) => self.predictor.pose_at_display(t, self.hmd),
+            None => self.predictor.pose_at(now, self.hmd),
+        };
+        if let Some(eyes) = output.eyes() {
+            self.renderer.set_eyes(eyes);
+        }
+        if capture {
+            match self.snapshots.view {
+                SnapshotView::Hmd => {}
+                SnapshotView::First => view = *self.snapshot_view.get_or_insert(self.hmd),
+                SnapshotView::Front => {
+                    // The lungs framed clear of the HUD, whether or not it is shown now (the H
+                    // key does not move the strip's viewpoint).
+                    let band = self
+                        .hud
+                        .as_ref()
+                        .map_or(crate::record::FRONT_VIEW_BAND, |h| h.lungs_band());
+                    if let Some(pose) = self.renderer.front_view_in(&state.patient, band) {
+                        view = pose;
+                    }
+                }
+            }
+        }
+        view
+    }
+
+    /// Draws the frame (with the HUD over it when it is on) and encodes the output's own work.
+    fn draw(
+        &mut self,
+        output: &mut impl FrameOutput,
+        frame: &EngineFrame,
+        state: &DrawState,
+        capture: bool,
+    ) -> crate::FrameTiming {
+        let hud_on = self.hud_on;
+        let _draw = tracing::info_span!(target: transport::trace::TARGET, "draw").entered();
+        match self.hud.as_mut().filter(|_| hud_on) {
+            Some(hud) => {
+                let (cpu_ns, gpu_ns, latency_ns) = self.last_timing;
+                let shown = crate::hud::HudFrame {
+                    frame,
+                    tracker: self.last_tracker.as_ref(),
+                    warning: state.pose_warning,
+                    cpu_ns,
+                    gpu_ns,
+                    latency_ns,
+                    lod: self.renderer.lod_shown(),
+                    outcome: self.outcome_standing.map(|s| (self.outcome.as_str(), s)),
+                };
+                let gpu = &self.gpu;
+                self.renderer.render_with_overlay(
+                    gpu,
+                    state,
+                    capture,
+                    |encoder, target, eyes| {
+                        hud.encode(&gpu.device, &gpu.queue, encoder, target, eyes, &shown)
+                    },
+                    |e| output.encode(e),
+                )
+            }
+            None => self
+                .renderer
+                .render_with(&self.gpu, state, capture, |e| output.encode(e)),
+        }
+    }
+
+    /// Every planned tick this frame reaches gets a snapshot: a tick whose own frame was skipped
+    /// (the renderer under load took a newer engine frame) takes this, the next drawn frame, so a
+    /// breath's recording keeps all its planned frames.
+    fn write_snapshots(&mut self, frame: &EngineFrame) -> Result<(), RendererError> {
+        let img = self
+            .renderer
+            .read_image(&self.gpu)
+            .ok_or(RendererError::Readback {
+                frame: self.stats.frames,
+            })?;
+        while self.next_target < self.snapshots.ticks.len()
+            && frame.tick >= self.snapshots.ticks[self.next_target]
+        {
+            let planned = self.snapshots.ticks[self.next_target];
+            self.next_target += 1;
+            // The same tick planned twice (a short breath over many frames) is one frame.
+            if self.next_target < self.snapshots.ticks.len()
+                && self.snapshots.ticks[self.next_target] == planned
+            {
+                continue;
+            }
+            self.write_snapshot(frame, planned, &img)?;
+        }
+        Ok(())
     }
 
     /// Write `img`, the drawn `frame`, as the snapshot planned for engine tick `planned`:

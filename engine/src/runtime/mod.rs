@@ -309,6 +309,154 @@ pub enum CoreError {
     DiseaseScene(#[from] lung_model::scene_disease::DiseaseSceneError),
 }
 
+/// What one lung's tick says about the frame's state.
+struct LungTick {
+    /// The lung is on its inhaling branch.
+    inhaling: bool,
+    /// The pose lay outside the fitted orientations (weights clamped).
+    orientation_limited: bool,
+    /// The volume, scale or coefficients were not finite: the lung was drawn at rest instead.
+    non_finite: bool,
+}
+
+/// One lung's part of a tick: its volume on its breath (or held), the breathing scale solved for
+/// that volume (on the collapsed cubic for a collapsed lung), the force coefficients for the
+/// patient's gravity, and what a heads-up display shows of the breath, all written into `slot`.
+/// No allocation.
+fn lung_tick(
+    geometry: &mut LungGeometry,
+    breath: &mut LungBreath,
+    tick: u64,
+    gravity: DVec3,
+    slot: &mut LungFrame,
+    counts: &mut StageCounts,
+) -> LungTick {
+    let local = breath.local_tick(tick);
+    let ct = breath.breathing.cycle_ticks();
+    let mut flags = lung_flags::ACTIVE;
+    let volume = match breath.held_ml {
+        Some(v) => {
+            flags |= lung_flags::HELD;
+            v
+        }
+        None => {
+            let (delta, inhaling) = breath.delta_at(local);
+            if inhaling {
+                flags |= lung_flags::INHALING;
+            }
+            breath.base_ml.unwrap_or(geometry.start_volume_ml) + delta
+        }
+    };
+    if breath.changed_at == Some(tick) {
+        flags |= lung_flags::CYCLE_CHANGED;
+    }
+    let delta_mm3 = (volume - geometry.start_volume_ml) * 1000.0;
+    // A collapsed lung (EQUATIONS.md §4.1): its breathing scale is solved on the collapsed
+    // cubic for the volume above the collapsed lung's own (exactly the healthy solve at 0).
+    let collapse = breath.collapse;
+    let solve = |cubic: &VolumeCubic| {
+        if collapse == 0.0 {
+            cubic.solve_delta(delta_mm3)
+        } else {
+            let k = 1.0 - collapse;
+            let collapsed_ml = geometry.start_volume_ml * k * k * k;
+            lung_model::disease::scale_on_collapsed(cubic, collapse, volume - collapsed_ml)
+        }
+    };
+    let mut orientation_limited = false;
+    let scale = match &mut geometry.follow {
+        None => solve(&geometry.cubic),
+        Some(follow) => {
+            let (cubic, limited) = follow.coefficients(gravity, slot, counts);
+            orientation_limited = limited;
+            solve(&cubic)
+        }
+    };
+    let coeffs_finite = slot.coeffs.iter().all(|c| c.is_finite());
+    let non_finite = !(scale.is_finite() && volume.is_finite() && coeffs_finite);
+    if !non_finite {
+        slot.volume_ml = volume as f32;
+        slot.deform_scale = scale as f32;
+    } else {
+        // Unreachable for validated scenes and kernels; a NaN must never reach a frame.
+        slot.volume_ml = geometry.start_volume_ml as f32;
+        slot.deform_scale = 0.0;
+        slot.coeffs = [0.0; ipc_types::MAX_COEFFS];
+    }
+    slot.kernel_id = geometry.kernel_id;
+    slot.phase = (local as f64 / ct as f64) as f32;
+    slot.cycle = breath.cycle;
+    slot.offset_mm = breath.offset_mm.map(|v| v as f32);
+    if collapse != 0.0 {
+        slot.collapse = collapse as f32;
+        slot.hilum_mm = geometry.hilum_mm.unwrap_or_default().map(|v| v as f32);
+    }
+    // What a heads-up display shows of this lung's breath (no effect on the motion).
+    let b = &breath.breathing;
+    slot.cycle_ticks = ct;
+    slot.inhale_ticks = b.inhale_ticks();
+    slot.pressure_cmh2o = match breath.held_ml {
+        Some(_) => b.boundary().rp_cmh2o as f32,
+        None => b.pressure_at(local) as f32,
+    };
+    slot.tidal_ml = match breath.held_ml {
+        Some(_) => 0.0,
+        None => (b.boundary().tv_ml * breath.share) as f32,
+    };
+    slot.flags = flags;
+    LungTick {
+        inhaling: flags & lung_flags::INHALING != 0,
+        orientation_limited,
+        non_finite,
+    }
+}
+
+impl Follow {
+    /// The force weights for `gravity` (cached while the patient has not moved) written into
+    /// `slot` as the mode's coefficients (the four weights, or their SH projection), with the
+    /// volume cubic for those weights and whether the weights were limited.
+    fn coefficients(
+        &mut self,
+        gravity: DVec3,
+        slot: &mut LungFrame,
+        counts: &mut StageCounts,
+    ) -> (VolumeCubic, bool) {
+        let key = gravity.to_array().map(f64::to_bits);
+        let (w, limited, cubic) = match &self.cache {
+            Some((k, w, limited, cubic)) if *k == key => (*w, *limited, *cubic),
+            _ => {
+                let (w, limited) = self.orientation.weights(gravity);
+                let cubic = self.forms.cubic(&w);
+                self.cache = Some((key, w, limited, cubic));
+                counts.orientation_evaluations += 1;
+                (w, limited, cubic)
+            }
+        };
+        slot.coeff_kind = self.mode.coeff_kind();
+        match &self.sh {
+            None => {
+                slot.coeff_count = 4;
+                for (c, w) in slot.coeffs.iter_mut().zip(w) {
+                    *c = w as f32;
+                }
+            }
+            Some((alpha, p)) => {
+                counts.sh_projections += 1;
+                let n2 = p.len() / 4;
+                slot.coeff_count = n2 as u32;
+                for (k, c) in slot.coeffs.iter_mut().take(n2).enumerate() {
+                    let f = w[0] * p[k]
+                        + w[1] * p[n2 + k]
+                        + w[2] * p[2 * n2 + k]
+                        + w[3] * p[3 * n2 + k];
+                    *c = (alpha * f) as f32;
+                }
+            }
+        }
+        (cubic, limited)
+    }
+}
+
 /// How often each stage of the tick did its work (`lungdyn scene run --json`): what a scene does
 /// not need is never computed.
 #[derive(Debug, Clone, Copy, Default, PartialEq, Eq, serde::Serialize)]
@@ -644,6 +792,51 @@ impl EngineCore {
     /// must not go backwards. Writes every field of `out` except the engine's own hop stamps (set
     /// by the process loop). No allocation.
     pub fn step(&mut self, tick: u64, input: Option<&TrackerFrame>, out: &mut EngineFrame) {
+        let (mut state, mut fault_word) = self.take_tracker(tick, input, out);
+        let gravity = self.gravity_body;
+        self.counts.ticks += 1;
+        self.counts.volume_solves += self.lungs.len() as u64;
+        if let Some(d) = &mut self.disease {
+            d.before_tick(tick, &mut self.lungs);
+        }
+        if self.remote_pending.as_ref().is_some_and(|p| tick >= p.tick) {
+            if let Some(mut p) = self.remote_pending.take() {
+                p.put_into(&mut self.lungs);
+                self.remote_spent = Some(p);
+            }
+        }
+        out.lungs = [LungFrame::default(); NUM_LUNGS];
+        for (k, (geometry, breath)) in self.lungs.iter_mut().enumerate() {
+            let slot = &mut out.lungs[geometry.side.index()];
+            let lung = lung_tick(geometry, breath, tick, gravity, slot, &mut self.counts);
+            if k == 0 && lung.inhaling {
+                state |= engine_state::INHALING;
+            }
+            if lung.orientation_limited {
+                state |= engine_state::ORIENTATION_LIMITED;
+            }
+            if lung.non_finite {
+                fault_word = fault::NON_FINITE_VOLUME;
+            }
+        }
+        out.layout_version = LAYOUT_VERSION;
+        out.state = state;
+        out.fault = fault_word;
+        out._pad = 0;
+        out.tick = tick;
+        out.tracker_frame = self.last_tracker_frame;
+        out.patient_pose = self.patient_pose;
+    }
+
+    /// The tracker's part of a tick: take the frame's patient pose (a pose that is not a rotation
+    /// is refused like a missing sample), copy its stamps into `out`, and say how fresh the
+    /// tracker and the pose are (the state bits, and `TRACKER_LOST` past the staleness limit).
+    fn take_tracker(
+        &mut self,
+        tick: u64,
+        input: Option<&TrackerFrame>,
+        out: &mut EngineFrame,
+    ) -> (u32, u32) {
         let mut state = 0u32;
         let mut fault_word = fault::NONE;
         match input {
@@ -686,137 +879,7 @@ impl EngineCore {
         if self.pose_invalid {
             state |= engine_state::POSE_INVALID;
         }
-        let gravity = self.gravity_body;
-        self.counts.ticks += 1;
-        self.counts.volume_solves += self.lungs.len() as u64;
-        if let Some(d) = &mut self.disease {
-            d.before_tick(tick, &mut self.lungs);
-        }
-        if self.remote_pending.as_ref().is_some_and(|p| tick >= p.tick) {
-            if let Some(mut p) = self.remote_pending.take() {
-                p.put_into(&mut self.lungs);
-                self.remote_spent = Some(p);
-            }
-        }
-        out.lungs = [LungFrame::default(); NUM_LUNGS];
-        for (k, (geometry, breath)) in self.lungs.iter_mut().enumerate() {
-            let local = breath.local_tick(tick);
-            let ct = breath.breathing.cycle_ticks();
-            let slot = &mut out.lungs[geometry.side.index()];
-            let mut flags = lung_flags::ACTIVE;
-            let volume = match breath.held_ml {
-                Some(v) => {
-                    flags |= lung_flags::HELD;
-                    v
-                }
-                None => {
-                    let (delta, inhaling) = breath.delta_at(local);
-                    if inhaling {
-                        flags |= lung_flags::INHALING;
-                    }
-                    breath.base_ml.unwrap_or(geometry.start_volume_ml) + delta
-                }
-            };
-            if breath.changed_at == Some(tick) {
-                flags |= lung_flags::CYCLE_CHANGED;
-            }
-            if k == 0 && flags & lung_flags::INHALING != 0 {
-                state |= engine_state::INHALING;
-            }
-            let delta_mm3 = (volume - geometry.start_volume_ml) * 1000.0;
-            // A collapsed lung (EQUATIONS.md §4.1): its breathing scale is solved on the collapsed
-            // cubic for the volume above the collapsed lung's own (exactly the healthy solve at 0).
-            let collapse = breath.collapse;
-            let solve = |cubic: &VolumeCubic| {
-                if collapse == 0.0 {
-                    cubic.solve_delta(delta_mm3)
-                } else {
-                    let k = 1.0 - collapse;
-                    let collapsed_ml = geometry.start_volume_ml * k * k * k;
-                    lung_model::disease::scale_on_collapsed(cubic, collapse, volume - collapsed_ml)
-                }
-            };
-            let scale = match &mut geometry.follow {
-                None => solve(&geometry.cubic),
-                Some(follow) => {
-                    let key = gravity.to_array().map(f64::to_bits);
-                    let (w, limited, cubic) = match &follow.cache {
-                        Some((k, w, limited, cubic)) if *k == key => (*w, *limited, *cubic),
-                        _ => {
-                            let (w, limited) = follow.orientation.weights(gravity);
-                            let cubic = follow.forms.cubic(&w);
-                            follow.cache = Some((key, w, limited, cubic));
-                            self.counts.orientation_evaluations += 1;
-                            (w, limited, cubic)
-                        }
-                    };
-                    if limited {
-                        state |= engine_state::ORIENTATION_LIMITED;
-                    }
-                    slot.coeff_kind = follow.mode.coeff_kind();
-                    match &follow.sh {
-                        None => {
-                            slot.coeff_count = 4;
-                            for (c, w) in slot.coeffs.iter_mut().zip(w) {
-                                *c = w as f32;
-                            }
-                        }
-                        Some((alpha, p)) => {
-                            self.counts.sh_projections += 1;
-                            let n2 = p.len() / 4;
-                            slot.coeff_count = n2 as u32;
-                            for (k, c) in slot.coeffs.iter_mut().take(n2).enumerate() {
-                                let f = w[0] * p[k]
-                                    + w[1] * p[n2 + k]
-                                    + w[2] * p[2 * n2 + k]
-                                    + w[3] * p[3 * n2 + k];
-                                *c = (alpha * f) as f32;
-                            }
-                        }
-                    }
-                    solve(&cubic)
-                }
-            };
-            let coeffs_finite = slot.coeffs.iter().all(|c| c.is_finite());
-            if scale.is_finite() && volume.is_finite() && coeffs_finite {
-                slot.volume_ml = volume as f32;
-                slot.deform_scale = scale as f32;
-            } else {
-                // Unreachable for validated scenes and kernels; a NaN must never reach a frame.
-                fault_word = fault::NON_FINITE_VOLUME;
-                slot.volume_ml = geometry.start_volume_ml as f32;
-                slot.deform_scale = 0.0;
-                slot.coeffs = [0.0; ipc_types::MAX_COEFFS];
-            }
-            slot.kernel_id = geometry.kernel_id;
-            slot.phase = (local as f64 / ct as f64) as f32;
-            slot.cycle = breath.cycle;
-            slot.offset_mm = breath.offset_mm.map(|v| v as f32);
-            if collapse != 0.0 {
-                slot.collapse = collapse as f32;
-                slot.hilum_mm = geometry.hilum_mm.unwrap_or_default().map(|v| v as f32);
-            }
-            // What a heads-up display shows of this lung's breath (no effect on the motion).
-            let b = &breath.breathing;
-            slot.cycle_ticks = ct;
-            slot.inhale_ticks = b.inhale_ticks();
-            slot.pressure_cmh2o = match breath.held_ml {
-                Some(_) => b.boundary().rp_cmh2o as f32,
-                None => b.pressure_at(local) as f32,
-            };
-            slot.tidal_ml = match breath.held_ml {
-                Some(_) => 0.0,
-                None => (b.boundary().tv_ml * breath.share) as f32,
-            };
-            slot.flags = flags;
-        }
-        out.layout_version = LAYOUT_VERSION;
-        out.state = state;
-        out.fault = fault_word;
-        out._pad = 0;
-        out.tick = tick;
-        out.tracker_frame = self.last_tracker_frame;
-        out.patient_pose = self.patient_pose;
+        (state, fault_word)
     }
 }
 

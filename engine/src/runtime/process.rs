@@ -306,6 +306,171 @@ impl StatePublisher {
     }
 }
 
+/// The disease worker of a run and what it prepared.
+#[derive(Default)]
+struct Preparation {
+    worker: Option<Worker>,
+    prepared_cycles: u64,
+    prepare_max_ns: u64,
+    /// Cycles the loop had to wait for (due before the worker delivered them).
+    late: u64,
+}
+
+impl Preparation {
+    /// A disease cycle that starts now must be in the core before the tick, whatever the worker's
+    /// timing: wait for it (counted; the worker has a whole breath to build it).
+    fn before_tick(&mut self, core: &mut EngineCore, tick: u64) -> Result<(), EngineError> {
+        if core.due_undelivered(tick) {
+            if let Some(w) = self.worker.as_mut() {
+                let (cycle, took) = w.wait()?;
+                core.deliver(cycle);
+                self.prepared_cycles += 1;
+                self.prepare_max_ns = self.prepare_max_ns.max(took);
+                self.late += 1;
+            }
+        }
+        Ok(())
+    }
+
+    /// The disease state's next cycle: its cheap step here, the PV tables on the worker (started
+    /// the first time one is needed); a cycle the worker finished is delivered.
+    fn after_tick(&mut self, core: &mut EngineCore, clock: &dyn Clock) -> Result<(), EngineError> {
+        if let Some(recipe) = core.next_recipe()? {
+            let worker = self.worker.get_or_insert_with(Worker::start);
+            worker.request(recipe, clock.now_ns());
+        }
+        if let Some(w) = self.worker.as_mut() {
+            if let Some((cycle, took)) = w.try_take()? {
+                core.deliver(cycle);
+                self.prepared_cycles += 1;
+                self.prepare_max_ns = self.prepare_max_ns.max(took);
+            }
+        }
+        Ok(())
+    }
+}
+
+/// A run's live actions: the packets seen, the tags that map an applied event back to its
+/// sender, and the counts.
+struct Live {
+    seen: Seen,
+    tags: Tags,
+    counts: ActionCounts,
+}
+
+impl Live {
+    /// Every pending packet, in the order the stream gives them (none is left behind or dropped:
+    /// the stream's buffer holds one from each sender even after a stall), each answered.
+    fn drain(
+        &mut self,
+        c: &mut Controls<'_>,
+        core: &mut EngineCore,
+        tick: u64,
+        announce: Option<&str>,
+    ) -> Result<(), EngineError> {
+        let mut failed = None;
+        c.inlet.drain(&mut |p: &ControlPacket| {
+            if failed.is_some() {
+                return;
+            }
+            if !self.seen.first(p.origin, p.sequence) {
+                self.counts.repeated += 1;
+                return;
+            }
+            let tag = self.tags.issue(p.origin, p.sequence);
+            let reply = live_action(core, tick, p, tag, announce);
+            match reply.status {
+                ipc_types::REPLY_RECEIVED => self.counts.received += 1,
+                ipc_types::REPLY_REFUSED => self.counts.refused += 1,
+                _ => self.counts.ignored += 1,
+            }
+            if let Err(e) = c.replies.publish(&reply) {
+                failed = Some(e);
+            }
+        })?;
+        match failed {
+            Some(e) => Err(e.into()),
+            None => Ok(()),
+        }
+    }
+
+    /// The tension pneumothorax's new events: announced on stderr; a live action's (tag: the
+    /// engine's, for its sender's origin and sequence) answered and announced to remote sites; a
+    /// timed one not.
+    fn report_applied(
+        &mut self,
+        core: &mut EngineCore,
+        mut control: Option<&mut Controls<'_>>,
+        states: &mut StatePublisher,
+        announce: Option<&str>,
+    ) -> Result<(), EngineError> {
+        let Some(super::disease::DiseaseRun::Tension(run)) = core.disease_mut() else {
+            return Ok(());
+        };
+        let affected = run.affected();
+        for (e, tag) in run.take_new_events() {
+            let (word, detail) = e.outcome.words(e.kind);
+            if let Some(name) = announce {
+                eprintln!(
+                    "engine[{name}]: {} on the {} lung (arrived at tick {}, shows from disease \
+                     cycle {}): {word} — {detail}{}",
+                    e.kind.name(),
+                    e.side.name(),
+                    e.tick,
+                    e.cycle,
+                    if e.side != affected && e.outcome != Outcome::WrongSide {
+                        " (the pneumothorax is on the other side)"
+                    } else {
+                        ""
+                    }
+                );
+            }
+            let sender = self.tags.get(tag);
+            let (Some(c), Some((origin, sequence))) = (control.as_deref_mut(), sender) else {
+                continue;
+            };
+            let mut reply = ControlReply {
+                status: ipc_types::REPLY_APPLIED,
+                sequence,
+                tick: e.tick,
+                cycle: e.cycle,
+                kind: e.kind.code(),
+                lung: e.side.index() as u32,
+                outcome: match e.outcome {
+                    Outcome::Applied => ipc_types::OUTCOME_APPLIED,
+                    Outcome::WrongSide => ipc_types::OUTCOME_WRONG_SIDE,
+                    Outcome::AlreadyApplied => ipc_types::OUTCOME_ALREADY_APPLIED,
+                    Outcome::NoEffect(_) => ipc_types::OUTCOME_NO_EFFECT,
+                },
+                ..Default::default()
+            };
+            reply.set_text(&[detail]);
+            c.replies.publish(&reply)?;
+            self.counts.applied += 1;
+            if let Some(out) = c.state.as_ref() {
+                let event = control_state::RemoteEvent {
+                    origin: if origin == ipc_types::ORIGIN_LOCAL {
+                        out.source
+                    } else {
+                        origin
+                    },
+                    sequence,
+                    kind: e.kind.code(),
+                    lung: e.side.index() as u32,
+                    // Stamped when announced: the tick and breathing cycle its course cycle
+                    // starts.
+                    apply_cycle: 0,
+                    apply_tick: 0,
+                    course_cycle: e.cycle,
+                    outcome: reply.outcome,
+                };
+                states.event(event, e.cycle);
+            }
+        }
+        Ok(())
+    }
+}
+
 /// Sequence numbers seen lately, per origin (a repeated packet is one action): a fixed ring, no
 /// allocation.
 struct Seen {
@@ -374,15 +539,15 @@ pub fn run_loop(
     first_tick: u64,
 ) -> Result<LoopStats, EngineError> {
     let mut control = control;
-    let mut seen = Seen {
-        ring: [(0, 0); 128],
-        next: 0,
+    let mut live = Live {
+        seen: Seen {
+            ring: [(0, 0); 128],
+            next: 0,
+        },
+        tags: Tags::new(),
+        counts: ActionCounts::default(),
     };
-    let mut tags = Tags::new();
-    let mut actions = ActionCounts::default();
-    let (mut prepared_cycles, mut prepare_max_ns) = (0u64, 0u64);
-    let mut late_preparations = 0u64;
-    let mut worker: Option<Worker> = None;
+    let mut prep = Preparation::default();
     let mut pacer = Pacer::new(pacer, clock.now_ns());
     let mut frame = EngineFrame::default();
     let mut tick: u64 = first_tick;
@@ -408,17 +573,7 @@ pub fn run_loop(
             }
             Wake::Deadline => None,
         };
-        // A disease cycle that starts now must be in the core before the tick, whatever the worker's
-        // timing: wait for it (counted; the worker has a whole breath to build it).
-        if core.due_undelivered(tick) {
-            if let Some(w) = worker.as_mut() {
-                let (cycle, took) = w.wait()?;
-                core.deliver(cycle);
-                prepared_cycles += 1;
-                prepare_max_ns = prepare_max_ns.max(took);
-                late_preparations += 1;
-            }
-        }
+        prep.before_tick(core, tick)?;
         {
             let _tick = tracing::info_span!(target: transport::trace::TARGET, "tick").entered();
             core.step(tick, input.as_ref(), &mut frame);
@@ -435,114 +590,17 @@ pub fn run_loop(
             states.after_tick(core, tick, t.due_ns, t.skipped > 0, out)?;
         }
         if let Some(c) = control.as_mut() {
-            // Every pending packet, in the order the stream gives them (none is left behind or
-            // dropped: the stream's buffer holds one from each sender even after a stall).
-            let mut failed = None;
-            c.inlet.drain(&mut |p: &ControlPacket| {
-                if failed.is_some() {
-                    return;
-                }
-                if !seen.first(p.origin, p.sequence) {
-                    actions.repeated += 1;
-                    return;
-                }
-                let tag = tags.issue(p.origin, p.sequence);
-                let reply = live_action(core, tick, p, tag, announce);
-                match reply.status {
-                    ipc_types::REPLY_RECEIVED => actions.received += 1,
-                    ipc_types::REPLY_REFUSED => actions.refused += 1,
-                    _ => actions.ignored += 1,
-                }
-                if let Err(e) = c.replies.publish(&reply) {
-                    failed = Some(e);
-                }
-            })?;
-            if let Some(e) = failed {
-                return Err(e.into());
-            }
+            live.drain(c, core, tick, announce)?;
         }
-        // The disease state's next cycle: its cheap step here, the PV tables on the worker.
-        if let Some(recipe) = core.next_recipe()? {
-            let worker = worker.get_or_insert_with(Worker::start);
-            worker.request(recipe, clock.now_ns());
-        }
-        if let Some(w) = worker.as_mut() {
-            if let Some((cycle, took)) = w.try_take()? {
-                core.deliver(cycle);
-                prepared_cycles += 1;
-                prepare_max_ns = prepare_max_ns.max(took);
-            }
-        }
-        if let Some(super::disease::DiseaseRun::Tension(run)) = core.disease_mut() {
-            let affected = run.affected();
-            for (e, tag) in run.take_new_events() {
-                let (word, detail) = e.outcome.words(e.kind);
-                if let Some(name) = announce {
-                    eprintln!(
-                        "engine[{name}]: {} on the {} lung (arrived at tick {}, shows from disease \
-                         cycle {}): {word} — {detail}{}",
-                        e.kind.name(),
-                        e.side.name(),
-                        e.tick,
-                        e.cycle,
-                        if e.side != affected && e.outcome != Outcome::WrongSide {
-                            " (the pneumothorax is on the other side)"
-                        } else {
-                            ""
-                        }
-                    );
-                }
-                // A live action (tag: the engine's, for its sender's origin and sequence) is
-                // answered and announced to remote sites; a timed one is not.
-                let sender = tags.get(tag);
-                if let (Some(c), Some((origin, sequence))) = (control.as_mut(), sender) {
-                    let mut reply = ControlReply {
-                        status: ipc_types::REPLY_APPLIED,
-                        sequence,
-                        tick: e.tick,
-                        cycle: e.cycle,
-                        kind: e.kind.code(),
-                        lung: e.side.index() as u32,
-                        outcome: match e.outcome {
-                            Outcome::Applied => ipc_types::OUTCOME_APPLIED,
-                            Outcome::WrongSide => ipc_types::OUTCOME_WRONG_SIDE,
-                            Outcome::AlreadyApplied => ipc_types::OUTCOME_ALREADY_APPLIED,
-                            Outcome::NoEffect(_) => ipc_types::OUTCOME_NO_EFFECT,
-                        },
-                        ..Default::default()
-                    };
-                    reply.set_text(&[detail]);
-                    c.replies.publish(&reply)?;
-                    actions.applied += 1;
-                    if let Some(out) = c.state.as_ref() {
-                        let event = control_state::RemoteEvent {
-                            origin: if origin == ipc_types::ORIGIN_LOCAL {
-                                out.source
-                            } else {
-                                origin
-                            },
-                            sequence,
-                            kind: e.kind.code(),
-                            lung: e.side.index() as u32,
-                            // Stamped when announced: the tick and breathing cycle its course
-                            // cycle starts.
-                            apply_cycle: 0,
-                            apply_tick: 0,
-                            course_cycle: e.cycle,
-                            outcome: reply.outcome,
-                        };
-                        states.event(event, e.cycle);
-                    }
-                }
-            }
-        }
+        prep.after_tick(core, clock)?;
+        live.report_applied(core, control.as_mut(), &mut states, announce)?;
         tick += 1;
     }
     Ok(LoopStats {
-        actions,
-        late_preparations,
-        prepared_cycles,
-        prepare_max_ns,
+        actions: live.counts,
+        late_preparations: prep.late,
+        prepared_cycles: prep.prepared_cycles,
+        prepare_max_ns: prep.prepare_max_ns,
         ticks: tick - first_tick,
         pacer: pacer.stats(),
         states_published: states.published,

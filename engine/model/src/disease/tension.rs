@@ -735,38 +735,95 @@ impl Tension {
         }
     }
 
-    /// Advance to the next breathing cycle and return its state. No allocation.
-    pub fn advance(&mut self) -> TensionCycle {
-        let t = self.next_cycle;
+    /// The pleural air's change into cycle `t` (> 0): the inhalation of cycle t − 1 lets air in
+    /// while the leak is open (none in arrest: no breathing then), a chest tube drains it, a vent
+    /// lets it out. Returns the air that came in.
+    fn move_air(&mut self, t: u64) -> f64 {
         let p = &self.params;
         let mut inflow_ml = 0.0;
-        if t > 0 {
-            // The inhalation of cycle t − 1 (no breathing in arrest, so no air then).
-            if self.inflow_open && !self.arrested {
-                inflow_ml = p.inflow_ml * (-p.tau * (t - 1) as f64).exp();
-                self.pleural_ml += inflow_ml;
+        if self.inflow_open && !self.arrested {
+            inflow_ml = p.inflow_ml * (-p.tau * (t - 1) as f64).exp();
+            self.pleural_ml += inflow_ml;
+        }
+        if self.draining {
+            self.pleural_ml = (self.pleural_ml - p.chest_tube_ml_per_cycle).max(0.0);
+            return inflow_ml;
+        }
+        match self.vent {
+            Some(Vent::Linear {
+                per_cycle_ml,
+                floor_ml,
+            }) if self.pleural_ml > floor_ml => {
+                self.pleural_ml = (self.pleural_ml - per_cycle_ml).max(floor_ml);
             }
-            if self.draining {
-                self.pleural_ml = (self.pleural_ml - p.chest_tube_ml_per_cycle).max(0.0);
-            } else {
-                match self.vent {
-                    Some(Vent::Linear {
-                        per_cycle_ml,
-                        floor_ml,
-                    }) if self.pleural_ml > floor_ml => {
-                        self.pleural_ml = (self.pleural_ml - per_cycle_ml).max(floor_ml);
-                    }
-                    Some(Vent::Linear { .. }) => {}
-                    // The needle opens the pleural space to the atmosphere: the air goes to its
-                    // volume at atmospheric pressure, out under tension, in below it (Pulse's
-                    // PleuralToEnvironment path is a resistor: flow either way).
-                    Some(Vent::Exponential { keep, floor_ml }) => {
-                        self.pleural_ml = floor_ml + (self.pleural_ml - floor_ml) * keep;
-                    }
-                    None => {}
+            Some(Vent::Linear { .. }) => {}
+            // The needle opens the pleural space to the atmosphere: the air goes to its volume at
+            // atmospheric pressure, out under tension, in below it (Pulse's PleuralToEnvironment
+            // path is a resistor: flow either way).
+            Some(Vent::Exponential { keep, floor_ml }) => {
+                self.pleural_ml = floor_ml + (self.pleural_ml - floor_ml) * keep;
+            }
+            None => {}
+        }
+        inflow_ml
+    }
+
+    /// Hyperexpansion of the other lung while the vena cava is closed (up over
+    /// `hyperexpansion_cycles`, down again when it opens); arrest when it is closed and the
+    /// hyperexpansion complete. Returns whether cycle `t` is in arrest.
+    fn track_hyperexpansion(&mut self, svc_closed: bool, t: u64) -> bool {
+        let n_h = self.params.hyperexpansion_cycles;
+        self.hyper = if svc_closed {
+            (self.hyper + 1).min(n_h)
+        } else {
+            self.hyper.saturating_sub(1)
+        };
+        let arrest = svc_closed && self.hyper >= n_h;
+        self.arrested = arrest;
+        if arrest && self.first_arrest.is_none() {
+            self.first_arrest = Some(t);
+        }
+        arrest
+    }
+
+    /// The cycle's phase times: the seed's from `dv` (eq. 8.4–8.6); the clinical model's from the
+    /// tidal volume still breathing (`breathing_tidal_ml`, both lungs) against the normal one.
+    /// Cannot fail here (the normal timing was checked in new(), dv ∈ [0, 1], the tidal volumes
+    /// are finite and ≥ 0); all zero if it did.
+    fn cycle_times(&self, dv: f64, air: f64, breathing_tidal_ml: f64) -> PhaseTimes {
+        let tv = self.normal_boundary.tv_ml;
+        match self.params.model {
+            CourseModel::Seed => phase_times(&self.normal_timing, dv),
+            CourseModel::Clinical => {
+                let normal_total =
+                    self.affected.share * tv + self.unaffected.map_or(0.0, |u| u.share * tv);
+                if air > 0.0 {
+                    clinical_phase_times(&self.normal_timing, normal_total, breathing_tidal_ml)
+                } else {
+                    phase_times(&self.normal_timing, 0.0)
                 }
             }
         }
+        .unwrap_or(PhaseTimes {
+            cycle_s: 0.0,
+            inhale_s: 0.0,
+            exhale_s: 0.0,
+            dt_s: 0.0,
+            new_inhale_s: 0.0,
+            new_exhale_s: 0.0,
+            raw_inhale_s: 0.0,
+            raw_exhale_s: 0.0,
+            inhale_clamped: false,
+            exhale_clamped: false,
+            min_phase_s: 0.0,
+        })
+    }
+
+    /// Advance to the next breathing cycle and return its state. No allocation.
+    pub fn advance(&mut self) -> TensionCycle {
+        let t = self.next_cycle;
+        let inflow_ml = if t > 0 { self.move_air(t) } else { 0.0 };
+        let p = &self.params;
         let air = self.pleural_ml;
         let v_aff = self.affected.start_volume_ml;
         let (displaced, shift_mm, compressed) = match p.model {
@@ -789,19 +846,10 @@ impl Tension {
             CourseModel::Seed => (air / self.v1_max_ml).clamp(0.0, 1.0),
             CourseModel::Clinical => (displaced / self.v1_max_ml).clamp(0.0, 1.0),
         };
-        let svc_closed = shift_mm >= p.beta_mm;
+        let svc_closed = shift_mm >= self.params.beta_mm;
+        let arrest = self.track_hyperexpansion(svc_closed, t);
+        let p = &self.params;
         let n_h = p.hyperexpansion_cycles;
-        self.hyper = if svc_closed {
-            (self.hyper + 1).min(n_h)
-        } else {
-            self.hyper.saturating_sub(1)
-        };
-        let arrest = svc_closed && self.hyper >= n_h;
-        self.arrested = arrest;
-        if arrest && self.first_arrest.is_none() {
-            self.first_arrest = Some(t);
-        }
-
         let tv = self.normal_boundary.tv_ml;
         let stopped = dv >= 1.0 || arrest;
         // α of eq. 8.7: the seed adds it in full as soon as there is air; the clinical model in
@@ -838,39 +886,13 @@ impl Tension {
         } else {
             None
         });
-        // Both computations cannot fail here: the normal timing was checked in new(), dv ∈ [0, 1],
-        // the tidal volumes are finite and ≥ 0.
-        let times = match p.model {
-            CourseModel::Seed => phase_times(&self.normal_timing, dv),
-            CourseModel::Clinical => {
-                let normal_total =
-                    self.affected.share * tv + self.unaffected.map_or(0.0, |u| u.share * tv);
-                let total = affected_tidal
-                    + if unaffected_held.is_some() {
-                        0.0
-                    } else {
-                        unaffected_tidal.unwrap_or(0.0)
-                    };
-                if air > 0.0 {
-                    clinical_phase_times(&self.normal_timing, normal_total, total)
-                } else {
-                    phase_times(&self.normal_timing, 0.0)
-                }
-            }
-        }
-        .unwrap_or(PhaseTimes {
-            cycle_s: 0.0,
-            inhale_s: 0.0,
-            exhale_s: 0.0,
-            dt_s: 0.0,
-            new_inhale_s: 0.0,
-            new_exhale_s: 0.0,
-            raw_inhale_s: 0.0,
-            raw_exhale_s: 0.0,
-            inhale_clamped: false,
-            exhale_clamped: false,
-            min_phase_s: 0.0,
-        });
+        let breathing_tidal = affected_tidal
+            + if unaffected_held.is_some() {
+                0.0
+            } else {
+                unaffected_tidal.unwrap_or(0.0)
+            };
+        let times = self.cycle_times(dv, air, breathing_tidal);
         let timing = times.timing(&self.normal_timing);
         let drop = drop_for_index(equivalent_index(loss_fraction));
         let collapse = collapse_for_loss(loss_fraction).unwrap_or(0.0);
