@@ -246,10 +246,22 @@ impl Assembler {
     }
 
     /// Take one sample: map, validate, check its frame number against the tool's history.
+    ///
+    /// The per-name counters are updated from what became of the sample, after it was judged: a
+    /// repeat is counted as a repeat, not as accepted, and an unmapped name is never accepted, so
+    /// the tools' `accepted` add up to [`Stats::accepted`] and each tool's `last_pose` is one that
+    /// was published.
     pub fn ingest(&mut self, s: &Sample) -> Outcome {
         self.stats.samples += 1;
         let slot_index = self.config.slot_of(&s.name);
         let verdict = self.config.validation.check(s);
+        let outcome = match slot_index {
+            Some(i) => self.judge(i, s, &verdict),
+            None => {
+                self.stats.reject(Reject::Unmapped, 1);
+                Outcome::Rejected(Reject::Unmapped)
+            }
+        };
         if let Some(t) = self.stats.tool_mut(&s.name, slot_index.map(|i| i as u8)) {
             if t.samples == 0 {
                 t.first_ns = s.receive_ns;
@@ -258,15 +270,24 @@ impl Assembler {
             t.last_ns = s.receive_ns;
             t.last_flags = verdict.flags;
             t.last_rms_mm = verdict.rms_error_mm;
-            if let Some(p) = verdict.pose {
-                t.accepted += 1;
-                t.last_pose = Some(p);
+            match outcome {
+                Outcome::Accepted => {
+                    t.accepted += 1;
+                    t.last_pose = verdict.pose;
+                }
+                Outcome::Repeat => {
+                    t.repeats += 1;
+                    t.last_flags |= tool_status::FRAME_REPEAT;
+                }
+                Outcome::Rejected(_) => {}
             }
         }
-        let Some(i) = slot_index else {
-            self.stats.reject(Reject::Unmapped, 1);
-            return Outcome::Rejected(Reject::Unmapped);
-        };
+        outcome
+    }
+
+    /// What becomes of a sample mapped to slot `i` that validation judged `verdict`: a repeat of
+    /// a device frame already seen, the slot's new pose, or rejected (counted here).
+    fn judge(&mut self, i: usize, s: &Sample, verdict: &crate::validate::Verdict) -> Outcome {
         let slot = &mut self.slots[i];
         // Gaps and repeats: the device frame counter when there is one, else its timestamp.
         let mut repeat = false;
@@ -315,7 +336,9 @@ impl Assembler {
 
     /// Build the frame of the tick at `at_ns` (the same clock as the samples' receive times):
     /// frame number +1, every configured slot's state, `capture_ns` = the newest sample's receive
-    /// time (the tick time before any). `bridge_publish_ns` is left 0 for the loop to stamp.
+    /// time, at most `at_ns` (the tick time before any). A tool is stale when its newest sample is
+    /// more than the staleness bound away from the tick on either side. `bridge_publish_ns` is
+    /// left 0 for the loop to stamp.
     pub fn frame(&mut self, at_ns: u64, out: &mut TrackerFrame) {
         self.frame_number += 1;
         self.stats.frames += 1;
@@ -342,9 +365,13 @@ impl Assembler {
                 status |= tool_status::MISSING;
                 self.stats.never_seen += 1;
             } else {
-                capture = capture.max(slot.last_new_ns);
+                // A receive time after the tick is a reader thread's stamp taken a few µs after
+                // the loop read its clock; one further ahead than the staleness bound (a damaged
+                // recording, a clock that jumped) gives no age, so it goes stale like a silent
+                // tool instead of looking fresh for ever. The capture stamp never leads the tick.
+                capture = capture.max(slot.last_new_ns.min(at_ns));
                 status |= slot.newest_flags;
-                if at_ns.saturating_sub(slot.last_new_ns) > self.config.stale_ns {
+                if at_ns.abs_diff(slot.last_new_ns) > self.config.stale_ns {
                     status |= tool_status::STALE;
                     self.stats.stale += 1;
                 }
@@ -429,6 +456,110 @@ mod tests {
     }
 
     #[test]
+    fn a_configured_tool_keeps_its_entry_whatever_junk_names_came_first() {
+        use crate::stats::NAME_TABLE;
+        let mut a = Assembler::new(config());
+        let capacity = a.stats.tools.capacity();
+        assert!(capacity >= NAME_TABLE + MAX_TOOLS);
+        for k in 0..40u64 {
+            a.ingest(&s(&format!("junk{k}"), k, None, 0.0));
+        }
+        // The configured name in any case: one entry, the slot's, named as first spelt.
+        for (k, name) in ["Patient", "PATIENT", "patient"].iter().enumerate() {
+            assert_eq!(
+                a.ingest(&s(name, 100 + k as u64, None, 1.0)),
+                Outcome::Accepted
+            );
+        }
+        let patient: Vec<_> = a.stats.tools.iter().filter(|t| t.slot == Some(0)).collect();
+        assert_eq!(patient.len(), 1, "{:?}", a.stats.tools);
+        assert_eq!(
+            (
+                patient[0].name.as_str(),
+                patient[0].samples,
+                patient[0].accepted
+            ),
+            ("Patient", 3, 3)
+        );
+        assert_eq!(a.stats.other_names, 40 - NAME_TABLE as u64);
+        assert_eq!(a.stats.rejected_for(Reject::Unmapped), 40);
+        // More junk still finds no room; the other configured tool still does.
+        a.ingest(&s("junk99", 200, None, 0.0));
+        a.ingest(&s("HMD", 201, None, 2.0));
+        assert_eq!(a.stats.other_names, 40 - NAME_TABLE as u64 + 1);
+        assert_eq!(a.stats.tools.len(), NAME_TABLE + 2);
+        assert_eq!(a.stats.tools.capacity(), capacity, "never reallocated");
+        let json = a.stats.to_json();
+        let names: Vec<&str> = json["tools"]
+            .as_array()
+            .unwrap()
+            .iter()
+            .filter_map(|t| t["name"].as_str())
+            .collect();
+        assert!(
+            names.contains(&"Patient") && names.contains(&"HMD"),
+            "{names:?}"
+        );
+    }
+
+    #[test]
+    fn a_constant_device_timestamp_counts_as_repeats_not_as_accepted() {
+        let mut a = Assembler::new(config());
+        for k in 0..70u64 {
+            let out = a.ingest(&Sample {
+                device_time_ns: 100,
+                ..s("Patient", k * MS, None, k as f32 + 1.0)
+            });
+            let expected = if k == 0 {
+                Outcome::Accepted
+            } else {
+                Outcome::Repeat
+            };
+            assert_eq!(out, expected, "sample {k}");
+        }
+        assert_eq!(
+            a.ingest(&s("Pointer", 71 * MS, None, 5.0)),
+            Outcome::Rejected(Reject::Unmapped)
+        );
+        let tool = |name: &str| {
+            *a.stats
+                .tools
+                .iter()
+                .find(|t| t.name.as_str() == name)
+                .unwrap()
+        };
+        let p = tool("Patient");
+        assert_eq!((p.samples, p.accepted, p.repeats), (70, 1, 69));
+        assert_eq!(
+            p.last_pose.unwrap().translation_mm[0],
+            1.0,
+            "the pose published, not the last repeat's"
+        );
+        assert_ne!(p.last_flags & tool_status::FRAME_REPEAT, 0);
+        let pointer = tool("Pointer");
+        assert_eq!(
+            (pointer.samples, pointer.accepted, pointer.last_pose),
+            (1, 0, None),
+            "an unmapped name is never accepted"
+        );
+        assert_eq!((a.stats.accepted, a.stats.frame_repeats), (1, 69));
+        let sum: u64 = a.stats.tools.iter().map(|t| t.accepted).sum();
+        assert_eq!(sum, a.stats.accepted);
+        let json = a.stats.to_json();
+        let patient = json["tools"]
+            .as_array()
+            .unwrap()
+            .iter()
+            .find(|t| t["name"] == "Patient")
+            .unwrap()
+            .clone();
+        assert_eq!(
+            (patient["accepted"].as_u64(), patient["repeats"].as_u64()),
+            (Some(1), Some(69))
+        );
+    }
+
+    #[test]
     fn a_tool_never_seen_is_missing_and_a_silent_one_goes_stale() {
         let mut a = Assembler::new(config());
         a.ingest(&s("Patient", 0, None, 1.0));
@@ -454,6 +585,37 @@ mod tests {
             "a new sample heals it"
         );
         assert_eq!(a.stats.stale, 1);
+    }
+
+    #[test]
+    fn a_sample_stamped_far_after_its_tick_goes_stale_and_never_leads_the_capture_stamp() {
+        let mut a = Assembler::new(config());
+        let mut f = TrackerFrame::default();
+        a.ingest(&s("Patient", u64::MAX, None, 1.0));
+        for at in [10 * MS, 11 * MS] {
+            a.frame(at, &mut f);
+            assert_ne!(f.tools[0].status & tool_status::STALE, 0, "at {at}");
+            assert!(!f.tools[0].is_valid());
+            assert!(f.stamps.capture_ns <= at, "{}", f.stamps.capture_ns);
+        }
+        // A real sample repairs the slot.
+        a.ingest(&s("Patient", 20 * MS, None, 2.0));
+        a.frame(20 * MS, &mut f);
+        assert_eq!(f.tools[0].status, tool_status::VALID);
+        // A reader thread's stamp a little after the loop read its clock is fresh, and the
+        // capture stamp is the tick's.
+        a.ingest(&s("Patient", 30 * MS + 100_000, None, 3.0));
+        a.frame(30 * MS, &mut f);
+        assert_eq!(f.tools[0].status, tool_status::VALID);
+        assert_eq!(f.stamps.capture_ns, 30 * MS);
+        // Exactly the bound ahead is still fresh; beyond it, stale.
+        a.ingest(&s("Patient", 40 * MS + 50 * MS, None, 4.0));
+        a.frame(40 * MS, &mut f);
+        assert_eq!(f.tools[0].status, tool_status::VALID);
+        a.ingest(&s("Patient", 100 * MS + 50 * MS + 1, None, 5.0));
+        a.frame(100 * MS, &mut f);
+        assert_eq!(f.tools[0].status, tool_status::STALE);
+        assert_eq!(a.stats.stale, 3);
     }
 
     #[test]

@@ -31,7 +31,7 @@
 //! |---|---|---|
 //! | 1 sample | 120 | receive ns u64 · device time ns u64 · device frame u64 · tool id u32 · device flags u32 · has frame u8 · rotation kind u8 (0 quaternion xyzw, 1 matrix row-major, 2 none) · has RMS u8 · name length u8 · rotation 9×f32 (a quaternion uses the first 4, the rest 0) · translation mm 3×f32 · RMS mm f32 · name 32 bytes (zero-padded) |
 //! | 2 tick | 16 | tick time ns u64 (the clock of the receive times) · frame number u64 |
-//! | 3 event | 80 | event kind u8 · reject reason u8 (255 none) · text length u8 · 0 u8 · value u32 · text 72 bytes (UTF-8, cut) |
+//! | 3 event | 80 | event kind u8 (0 connected, 1 disconnected, 2 retrying, 3 rejected, 4 device status, 5 ignored, 6 note, 7 connection refused or idle one evicted: value 0 or 1; a build older than kind 7 refuses a file that holds it) · reject reason u8 (255 none) · text length u8 · 0 u8 · value u32 · text 72 bytes (UTF-8, cut) |
 //! | 4 end | 24 | samples u64 · ticks u64 · events u64 (counts of the records before it) |
 //!
 //! Every record belongs to the tick that follows it: the samples and events a tick took, then the
@@ -324,6 +324,7 @@ fn event_kind(k: u8) -> Option<EventKind> {
         4 => EventKind::DeviceStatus,
         5 => EventKind::Ignored,
         6 => EventKind::Note,
+        7 => EventKind::ConnectionRefused,
         _ => return None,
     })
 }
@@ -822,6 +823,26 @@ mod tests {
             RecordWriter::create(&path, &config, "again"),
             Err(RecordError::Exists { .. })
         ));
+        let _ = std::fs::remove_file(&path);
+    }
+
+    #[test]
+    fn a_connection_refused_event_reads_back() {
+        let path = tmp("refused");
+        let mut w = RecordWriter::create(&path, &BridgeConfig::default(), "server").unwrap();
+        let events = [
+            Event::new(EventKind::ConnectionRefused, 0, "refused 127.0.0.1:5"),
+            Event::new(EventKind::ConnectionRefused, 1, "closing 127.0.0.1:6"),
+        ];
+        for e in &events {
+            w.event(e).unwrap();
+        }
+        w.tick(1000, 1).unwrap();
+        w.finish().unwrap();
+        let mut r = RecordReader::open(&path).unwrap();
+        for e in &events {
+            assert_eq!(r.next_record().unwrap(), Some(Record::Event(e.clone())));
+        }
         let _ = std::fs::remove_file(&path);
     }
 

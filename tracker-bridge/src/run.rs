@@ -27,13 +27,19 @@ use crate::BridgeError;
 /// Arrival-driven frames are at least this far apart (≤ 4 kHz, whatever the sender's rate), ns.
 pub const MIN_ARRIVAL_SPACING_NS: u64 = 250_000;
 
+/// The [`Reporter`]'s first key for a rejection reason: one past the last [`EventKind`].
+const FIRST_REASON_KEY: usize = EventKind::ConnectionRefused as usize + 1;
+
+/// The [`Reporter`]'s counters: every event kind, then every rejection reason.
+const KEYS: usize = FIRST_REASON_KEY + crate::sample::Reject::ALL.len();
+
 /// Prints source events for a person without flooding: the first few of each kind, then one line
 /// with how many were not shown, at most every ten seconds.
 #[derive(Debug)]
 pub struct Reporter {
     prefix: String,
-    shown: [u32; 16],
-    hidden: [u64; 16],
+    shown: [u32; KEYS],
+    hidden: [u64; KEYS],
     last_summary_ns: u64,
     quiet: bool,
 }
@@ -43,16 +49,18 @@ impl Reporter {
     pub fn new(prefix: impl Into<String>, quiet: bool) -> Self {
         Reporter {
             prefix: prefix.into(),
-            shown: [0; 16],
-            hidden: [0; 16],
+            shown: [0; KEYS],
+            hidden: [0; KEYS],
             last_summary_ns: 0,
             quiet,
         }
     }
 
+    /// Each kind of event its own counter, and each reason of a rejection its own: the kinds
+    /// first (0..=7), the rejections after them, so no kind shares a limit with a reason.
     fn key(e: &Event) -> usize {
         match (e.kind, e.reason) {
-            (EventKind::Rejected, Some(r)) => (7 + r as usize).min(15),
+            (EventKind::Rejected, Some(r)) => (FIRST_REASON_KEY + r as usize).min(KEYS - 1),
             (k, _) => k as usize,
         }
     }
@@ -86,7 +94,7 @@ impl Reporter {
                     "{}: {n} more such messages (counted in the statistics)",
                     self.prefix
                 );
-                self.hidden = [0; 16];
+                self.hidden = [0; KEYS];
             }
         }
     }
@@ -328,6 +336,34 @@ mod tests {
                 )
             })
             .collect()
+    }
+
+    #[test]
+    fn every_event_kind_and_rejection_reason_has_its_own_reporter_limit() {
+        use crate::sample::Reject;
+        let kinds = [
+            EventKind::Connected,
+            EventKind::Disconnected,
+            EventKind::Retrying,
+            EventKind::DeviceStatus,
+            EventKind::Ignored,
+            EventKind::Note,
+            EventKind::ConnectionRefused,
+        ];
+        let mut keys: Vec<usize> = kinds
+            .iter()
+            .map(|&k| Reporter::key(&crate::sample::Event::new(k, 0, "")))
+            .collect();
+        keys.extend(
+            Reject::ALL
+                .iter()
+                .map(|&r| Reporter::key(&crate::sample::Event::rejected(r, 1, ""))),
+        );
+        let n = keys.len();
+        assert!(keys.iter().all(|&k| k < KEYS), "{keys:?}");
+        keys.sort_unstable();
+        keys.dedup();
+        assert_eq!(keys.len(), n, "two share a key");
     }
 
     #[test]

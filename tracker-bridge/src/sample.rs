@@ -268,6 +268,11 @@ pub enum EventKind {
     Ignored = 5,
     /// Anything else worth a line (`text`).
     Note = 6,
+    /// The OpenIGTLink server had every sender slot taken when a new connection came: `value` 0,
+    /// the newcomer was refused (every connection had sent within the eviction window); 1, the
+    /// idlest connection was closed to make room for it (`text`: who and why). Its own kind, not
+    /// a [`EventKind::Note`], so the statistics count it (a Note's `value` carries other data).
+    ConnectionRefused = 7,
 }
 
 /// Something that happened on a source's link. Rare by construction (connection changes, errors,

@@ -2,16 +2,19 @@
 //! link's ups and downs, each tool's rate and latest pose, and the loop's period jitter. Printed at
 //! exit, written as JSON with `--stats-json`, and what `lungdyn tracker listen` shows.
 //!
-//! Counting never allocates: the per-name table has a fixed capacity (names beyond it are counted
-//! together), and the jitter histogram is sized up front.
+//! Counting never allocates: the per-name table's capacity is reserved up front (one entry per
+//! tool slot, always; unmapped names up to a cap, the rest counted together), and the jitter
+//! histogram is sized up front.
 
 use hdrhistogram::Histogram;
-use ipc_types::{tool_status, Pose};
+use ipc_types::{tool_status, Pose, MAX_TOOLS};
 use serde_json::{json, Map, Value};
 
 use crate::sample::{Event, EventKind, Reject, ToolName};
 
-/// Distinct tool names tracked one by one; more are counted in [`Stats::other_names`].
+/// Distinct unmapped tool names tracked one by one; samples for more are counted in
+/// [`Stats::other_names`]. The configured tools' entries are on top of these (one per slot), so
+/// junk names, however many and in whatever order, never crowd a configured tool out.
 pub const NAME_TABLE: usize = 32;
 
 /// One tool name's counters.
@@ -23,13 +26,16 @@ pub struct ToolStats {
     pub slot: Option<u8>,
     /// Samples received.
     pub samples: u64,
-    /// Samples that became the tool's pose.
+    /// Samples that became the tool's pose (never for an unmapped name).
     pub accepted: u64,
+    /// Samples that repeated a device frame or timestamp already seen, so changed nothing: a
+    /// sender whose timestamps do not advance shows here instead of as accepted.
+    pub repeats: u64,
     /// Receive time of the first and the latest sample, ns.
     pub first_ns: u64,
     /// See `first_ns`.
     pub last_ns: u64,
-    /// The latest accepted pose.
+    /// The latest accepted pose (the one the tool's slot published).
     pub last_pose: Option<Pose>,
     /// The latest sample's [`tool_status`] bits (validation and device).
     pub last_flags: u32,
@@ -38,6 +44,22 @@ pub struct ToolStats {
 }
 
 impl ToolStats {
+    /// An entry with nothing counted yet.
+    fn new(name: ToolName, slot: Option<u8>) -> Self {
+        ToolStats {
+            name,
+            slot,
+            samples: 0,
+            accepted: 0,
+            repeats: 0,
+            first_ns: 0,
+            last_ns: 0,
+            last_pose: None,
+            last_flags: 0,
+            last_rms_mm: 0.0,
+        }
+    }
+
     /// Samples per second between the first and the latest sample (0 with fewer than two).
     pub fn rate_hz(&self) -> f64 {
         if self.samples < 2 || self.last_ns <= self.first_ns {
@@ -106,10 +128,17 @@ pub struct Stats {
     pub ignored: u64,
     /// Device status reports.
     pub device_status: u64,
-    /// Per-name counters (at most [`NAME_TABLE`]).
+    /// Per-name counters: one entry per configured slot that has had a sample (named as the
+    /// source first spelt it), then unmapped names, at most [`NAME_TABLE`] of them.
     pub tools: Vec<ToolStats>,
-    /// Samples for names beyond the table's capacity.
+    /// Samples for unmapped names that found no room in the table (names beyond
+    /// [`NAME_TABLE`]); every unmapped sample is also in `rejected.unmapped`.
     pub other_names: u64,
+    /// Connections refused because every sender slot was taken by a recent one
+    /// ([`EventKind::ConnectionRefused`] with value 0).
+    pub refused_connections: u64,
+    /// Idle connections closed to make room for a new one (value 1).
+    pub evicted_idle_connections: u64,
     /// Lateness of each tick against its schedule slot, ns.
     pub jitter: Histogram<u64>,
     /// FNV-1a 64 digest of every published frame's bytes with its hop stamps zeroed: equal digests
@@ -155,8 +184,11 @@ impl Stats {
             retries: 0,
             ignored: 0,
             device_status: 0,
-            tools: Vec::with_capacity(NAME_TABLE),
+            // Every entry there can ever be, so the per-sample path never reallocates.
+            tools: Vec::with_capacity(NAME_TABLE + MAX_TOOLS),
             other_names: 0,
+            refused_connections: 0,
+            evicted_idle_connections: 0,
             // 1 µs resolution would hide nothing of interest; 1 ns .. 10 s at 3 digits.
             jitter: Histogram::new_with_bounds(1, 10_000_000_000, 3)
                 .expect("static histogram bounds are valid"),
@@ -179,27 +211,31 @@ impl Stats {
         self.rejected[reason as usize]
     }
 
-    /// The entry of `name`, created when there is room.
+    /// The entry of a sample named `name` and mapped to `slot`, created when there is room. A
+    /// mapped sample's entry is its slot's (whatever the spelling: slots match names without
+    /// regard to case) and always has room; an unmapped name's is its own, while fewer than
+    /// [`NAME_TABLE`] unmapped names have one (else the sample is counted in `other_names`).
     pub fn tool_mut(&mut self, name: &ToolName, slot: Option<u8>) -> Option<&mut ToolStats> {
-        let i = match self.tools.iter().position(|t| t.name == *name) {
+        let found = match slot {
+            Some(k) => self.tools.iter().position(|t| t.slot == Some(k)),
+            None => self
+                .tools
+                .iter()
+                .position(|t| t.slot.is_none() && t.name == *name),
+        };
+        let i = match found {
             Some(i) => i,
-            None if self.tools.len() < NAME_TABLE => {
-                self.tools.push(ToolStats {
-                    name: *name,
-                    slot,
-                    samples: 0,
-                    accepted: 0,
-                    first_ns: 0,
-                    last_ns: 0,
-                    last_pose: None,
-                    last_flags: 0,
-                    last_rms_mm: 0.0,
-                });
-                self.tools.len() - 1
-            }
             None => {
-                self.other_names += 1;
-                return None;
+                let room = match slot {
+                    Some(k) => usize::from(k) < MAX_TOOLS,
+                    None => self.tools.iter().filter(|t| t.slot.is_none()).count() < NAME_TABLE,
+                };
+                if !room {
+                    self.other_names += 1;
+                    return None;
+                }
+                self.tools.push(ToolStats::new(*name, slot));
+                self.tools.len() - 1
             }
         };
         self.tools.get_mut(i)
@@ -218,6 +254,13 @@ impl Stats {
             }
             EventKind::Ignored => self.ignored += u64::from(e.value.max(1)),
             EventKind::DeviceStatus => self.device_status += 1,
+            EventKind::ConnectionRefused => {
+                if e.value == 1 {
+                    self.evicted_idle_connections += 1;
+                } else {
+                    self.refused_connections += 1;
+                }
+            }
             EventKind::Note => {}
         }
     }
@@ -231,8 +274,9 @@ impl Stats {
     }
 
     /// Everything as one JSON object: `frames`, `samples`, `accepted`, `rejected` (by reason),
-    /// `flagged`, `link`, `tools` (name, slot, frames, rate, last pose as position mm +
-    /// quaternion xyzw, flags), `jitter_us`, `frames_digest`.
+    /// `flagged`, `link` (with the refused and evicted connections), `tools` (name, slot, frames,
+    /// accepted, repeats, rate, last pose as position mm + quaternion xyzw, flags), `other_names`,
+    /// `jitter_us`, `frames_digest`.
     pub fn to_json(&self) -> Value {
         let mut rejected = Map::new();
         for r in Reject::ALL {
@@ -247,6 +291,7 @@ impl Stats {
                     "slot": t.slot,
                     "frames": t.samples,
                     "accepted": t.accepted,
+                    "repeats": t.repeats,
                     "rate_hz": t.rate_hz(),
                     "last_pose": t.last_pose.map(|p| json!({
                         "position_mm": p.translation_mm,
@@ -278,6 +323,8 @@ impl Stats {
                 "retries": self.retries,
                 "ignored_messages": self.ignored,
                 "device_status_reports": self.device_status,
+                "refused_connections": self.refused_connections,
+                "evicted_idle_connections": self.evicted_idle_connections,
             },
             "tools": tools,
             "other_names": self.other_names,
@@ -315,8 +362,13 @@ impl Stats {
             self.frame_gaps, self.frames_lost, self.frame_repeats, self.stale, self.never_seen, self.partially_visible
         );
         s += &format!(
-            "  link: {} connects, {} disconnects, {} retries, {} ignored messages\n",
-            self.connects, self.disconnects, self.retries, self.ignored
+            "  link: {} connects, {} disconnects, {} retries, {} ignored messages, {} refused connections, {} idle connections closed to make room\n",
+            self.connects,
+            self.disconnects,
+            self.retries,
+            self.ignored,
+            self.refused_connections,
+            self.evicted_idle_connections
         );
         for t in &self.tools {
             let slot = match t.slot {
@@ -339,10 +391,12 @@ impl Stats {
                 None => "no good pose".into(),
             };
             s += &format!(
-                "  {:<20} {:<9} {:>7} samples {:>6.1} Hz  {}  [{}]\n",
+                "  {:<20} {:<9} {:>7} samples ({} accepted, {} repeats) {:>6.1} Hz  {}  [{}]\n",
                 t.name.as_str(),
                 slot,
                 t.samples,
+                t.accepted,
+                t.repeats,
                 t.rate_hz(),
                 pose,
                 if t.last_flags == 0 {

@@ -29,17 +29,18 @@ fn config() -> BridgeConfig {
 }
 
 fn transform(name: &str, k: u32) -> Vec<u8> {
+    transform_stamped(name, k, Timestamp::from_parts(1_700_000_000, k * 1000))
+}
+
+/// A TRANSFORM at x = `k` mm with the device timestamp `stamp`.
+fn transform_stamped(name: &str, k: u32, stamp: Timestamp) -> Vec<u8> {
     let t = Transform {
         translation_mm: [k as f32, 0.0, -1000.0],
         ..Transform::IDENTITY
     };
-    Message::new(
-        name,
-        Timestamp::from_parts(1_700_000_000, k * 1000),
-        Body::Transform(t),
-    )
-    .encode()
-    .unwrap()
+    Message::new(name, stamp, Body::Transform(t))
+        .encode()
+        .unwrap()
 }
 
 fn qtdata(name: &str, k: u32) -> Vec<u8> {
@@ -52,6 +53,27 @@ fn qtdata(name: &str, k: u32) -> Vec<u8> {
             position_mm: [0.0, k as f32, -900.0],
             quaternion: [0.0, 0.0, 0.0, 1.0],
         }]),
+    )
+    .encode()
+    .unwrap()
+}
+
+/// One QTDATA with an element per name, in order, all at y = `k` mm.
+fn qtdata_many(names: &[&str], k: u32) -> Vec<u8> {
+    Message::new(
+        "Tracker",
+        Timestamp::from_parts(1_700_000_000, k * 1000 + 1),
+        Body::QtData(
+            names
+                .iter()
+                .map(|name| QtDataElement {
+                    name: (*name).into(),
+                    instrument_type: 2,
+                    position_mm: [0.0, k as f32, -900.0],
+                    quaternion: [0.0, 0.0, 0.0, 1.0],
+                })
+                .collect(),
+        ),
     )
     .encode()
     .unwrap()
@@ -178,6 +200,87 @@ fn a_server_takes_several_senders_and_survives_every_kind_of_bad_input() {
 }
 
 #[test]
+fn forty_junk_names_before_the_patient_in_each_qtdata_do_not_push_it_out_of_the_tools_list() {
+    let mut server = IgtlServer::bind("127.0.0.1", 0, &SourceOptions::default()).unwrap();
+    let addr = server.local_addr();
+    let sender = std::thread::spawn(move || {
+        let junk: Vec<String> = (0..40).map(|k| format!("junk{k}")).collect();
+        let mut names: Vec<&str> = junk.iter().map(String::as_str).collect();
+        names.push("Patient");
+        let mut s = TcpStream::connect(addr).unwrap();
+        for k in 0..20 {
+            s.write_all(&qtdata_many(&names, k)).unwrap();
+            std::thread::sleep(Duration::from_millis(16));
+        }
+        std::thread::sleep(Duration::from_millis(200));
+    });
+    let (frames, asm) = run(&mut server, Duration::from_secs(15), || {
+        sender.is_finished()
+    });
+    let s = &asm.stats;
+    let patient = s.tools.iter().find(|t| t.slot == Some(TOOL_PATIENT as u8));
+    assert_eq!(
+        patient.map(|p| (p.name.as_str(), p.samples, p.accepted)),
+        Some(("Patient", 20, 20)),
+        "{}",
+        s.text()
+    );
+    assert_eq!(s.rejected_for(Reject::Unmapped), 20 * 40);
+    assert_eq!(s.accepted, 20);
+    let json = s.to_json();
+    let listed = json["tools"]
+        .as_array()
+        .unwrap()
+        .iter()
+        .find(|t| t["name"] == "Patient")
+        .cloned();
+    assert_eq!(
+        listed.map(|t| (t["frames"].as_u64(), t["accepted"].as_u64())),
+        Some((Some(20), Some(20))),
+        "{json}"
+    );
+    assert!(frames.iter().any(|f| f.tools[TOOL_PATIENT].is_valid()));
+}
+
+#[test]
+fn a_sender_whose_timestamp_never_advances_counts_one_accepted_pose_and_the_rest_as_repeats() {
+    let mut server = IgtlServer::bind("127.0.0.1", 0, &SourceOptions::default()).unwrap();
+    let addr = server.local_addr();
+    let sender = std::thread::spawn(move || {
+        let mut s = TcpStream::connect(addr).unwrap();
+        for k in 1..=70 {
+            let stamp = Timestamp::from_parts(1_700_000_000, 0);
+            s.write_all(&transform_stamped("Patient", k, stamp))
+                .unwrap();
+            std::thread::sleep(Duration::from_millis(5));
+        }
+        std::thread::sleep(Duration::from_millis(200));
+    });
+    let (frames, asm) = run(&mut server, Duration::from_secs(15), || {
+        sender.is_finished()
+    });
+    let s = &asm.stats;
+    let patient = s.tools.iter().find(|t| t.name.as_str() == "Patient");
+    assert_eq!(
+        patient.map(|p| (p.samples, p.accepted, p.repeats)),
+        Some((70, 1, 69)),
+        "{}",
+        s.text()
+    );
+    assert_eq!(patient.unwrap().last_pose.unwrap().translation_mm[0], 1.0);
+    assert_eq!((s.accepted, s.frame_repeats), (1, 69));
+    let mut published: Vec<f32> = frames
+        .iter()
+        .filter(|f| f.tools[TOOL_PATIENT].is_valid())
+        .map(|f| f.tools[TOOL_PATIENT].pose.translation_mm[0])
+        .collect();
+    published.dedup();
+    assert_eq!(published, [1.0], "one pose was published");
+    let json = s.to_json();
+    assert_eq!(json["tools"][0]["repeats"], 69, "{json}");
+}
+
+#[test]
 fn a_client_reconnects_with_backoff_when_its_server_goes_and_comes_back() {
     // Find a free port, then let the client try it before anything listens (below the ephemeral
     // range: a port from bind(0) once reached another test's server here).
@@ -290,12 +393,62 @@ fn sixteen_idle_connections_do_not_lock_a_real_sender_out() {
         s.text()
     );
     assert_eq!(s.connects as usize, MAX_SENDERS + 2);
+    assert_eq!(
+        (s.evicted_idle_connections, s.refused_connections),
+        (2, 0),
+        "the real sender's connection and the late one each closed an idle one"
+    );
+    let link = &s.to_json()["link"];
+    assert_eq!(
+        (
+            link["evicted_idle_connections"].as_u64(),
+            link["refused_connections"].as_u64()
+        ),
+        (Some(2), Some(0))
+    );
     let published: Vec<f32> = frames
         .iter()
         .filter(|f| f.tools[TOOL_PATIENT].is_valid())
         .map(|f| f.tools[TOOL_PATIENT].pose.translation_mm[0])
         .collect();
     assert!(published.contains(&1.0) && published.contains(&60.0));
+}
+
+#[test]
+fn a_connection_beyond_sixteen_fresh_ones_is_refused_and_counted() {
+    use tracker_bridge::source::igtl_server::MAX_SENDERS;
+    let mut server = IgtlServer::bind("127.0.0.1", 0, &SourceOptions::default()).unwrap();
+    let addr = server.local_addr();
+    let sender = std::thread::spawn(move || {
+        let fresh: Vec<TcpStream> = (0..MAX_SENDERS)
+            .map(|_| TcpStream::connect(addr).unwrap())
+            .collect();
+        // At once, well inside EVICT_AFTER: none of the sixteen may be closed for it, so it is
+        // refused (the server closes it: the read sees the end of the stream).
+        let mut extra = TcpStream::connect(addr).unwrap();
+        extra
+            .set_read_timeout(Some(Duration::from_secs(5)))
+            .unwrap();
+        let mut buf = [0u8; 1];
+        let n = std::io::Read::read(&mut extra, &mut buf).unwrap_or(1);
+        std::thread::sleep(Duration::from_millis(200));
+        drop(fresh);
+        n
+    });
+    let (_, asm) = run(&mut server, Duration::from_secs(15), || {
+        sender.is_finished()
+    });
+    assert_eq!(sender.join().unwrap(), 0, "the newcomer was closed");
+    let s = &asm.stats;
+    assert_eq!(
+        (s.refused_connections, s.evicted_idle_connections),
+        (1, 0),
+        "{}",
+        s.text()
+    );
+    assert_eq!(s.connects as usize, MAX_SENDERS);
+    assert_eq!(s.to_json()["link"]["refused_connections"], 1);
+    assert!(s.text().contains("1 refused connections"), "{}", s.text());
 }
 
 #[test]

@@ -6,7 +6,7 @@ use ipc_types::{tool_status, TrackerFrame, TOOL_HMD, TOOL_PATIENT};
 use tracker_bridge::assemble::{Assembler, BridgeConfig};
 use tracker_bridge::record::RecordWriter;
 use tracker_bridge::run::Ended;
-use tracker_bridge::sample::{Event, Input, Reject, Rotation, Sample, ToolName};
+use tracker_bridge::sample::{Event, EventKind, Input, Reject, Rotation, Sample, ToolName};
 use tracker_bridge::source::replay::Replay;
 use tracker_bridge::source::synthetic::SyntheticSource;
 use tracker_bridge::source::{Poll, Source, SourceError};
@@ -282,4 +282,55 @@ fn a_sender_that_falls_silent_goes_stale_within_the_bound() {
             assert!(valid, "frame {} age {}", f.frame_number, age);
         }
     }
+}
+
+#[test]
+fn a_recorded_sample_stamped_at_the_end_of_time_goes_stale_on_replay() {
+    let path = tmp("future");
+    let t0 = 5_000_000_000;
+    let mut w = RecordWriter::create(&path, &config(), "probe").unwrap();
+    let Input::Sample(far) = sample("Patient", u64::MAX, 1, 0.0) else {
+        unreachable!()
+    };
+    w.sample(&far).unwrap();
+    w.tick(t0, 1).unwrap();
+    for k in 1..=10u64 {
+        w.tick(t0 + k * 16_666_667, k + 1).unwrap();
+    }
+    w.finish().unwrap();
+
+    let clock = FakeClock::at(77_000_000_000);
+    let mut replay = Replay::open(&path, false).unwrap();
+    let (frames, asm) = run(&mut replay, config(), &clock, u64::MAX, None);
+    assert_eq!(frames.len(), 11);
+    for f in &frames {
+        let p = f.tools[TOOL_PATIENT];
+        assert!(
+            p.status & tool_status::STALE != 0 && !p.is_valid(),
+            "frame {}: status {:#x}",
+            f.frame_number,
+            p.status
+        );
+    }
+    assert_eq!(asm.stats.stale, 11);
+
+    // The replay says why, once.
+    let mut replay = Replay::open(&path, false).unwrap();
+    let mut notes = Vec::new();
+    while let Poll::Tick { .. } = replay
+        .poll(0, &mut |i| {
+            if let Input::Event(e) = i {
+                notes.push(e.clone());
+            }
+        })
+        .unwrap()
+    {}
+    assert_eq!(notes.len(), 1, "{notes:?}");
+    assert_eq!(notes[0].kind, EventKind::Note);
+    assert!(
+        notes[0].text.contains("clock is damaged"),
+        "{}",
+        notes[0].text
+    );
+    let _ = std::fs::remove_file(&path);
 }

@@ -7,7 +7,9 @@
 //! [`MAX_SENDERS`] are served at once, and when a new one arrives with every slot taken, the
 //! idlest connection — the one longest without a message, if that is at least [`EVICT_AFTER`] —
 //! is closed to make room (a live tracker sends every few milliseconds, so it is never the one).
-//! Only when every connection is live is the newcomer refused.
+//! Only when every connection has sent (or connected) within [`EVICT_AFTER`] is the newcomer
+//! refused. Both are [`EventKind::ConnectionRefused`] events, so they are counted in the
+//! statistics (`link.refused_connections`, `link.evicted_idle_connections`), not only printed.
 
 use std::net::{SocketAddr, TcpListener, TcpStream};
 use std::sync::atomic::{AtomicU64, Ordering};
@@ -106,8 +108,8 @@ fn accept_thread(listener: TcpListener, feed: &Feed, options: &SourceOptions) {
                         Some(i) => {
                             let s = &senders[i];
                             feed.event(Event::new(
-                                EventKind::Note,
-                                0,
+                                EventKind::ConnectionRefused,
+                                1,
                                 format!(
                                     "closing {} (no message for {:.1} s) to make room for {peer}",
                                     s.peer,
@@ -120,10 +122,10 @@ fn accept_thread(listener: TcpListener, feed: &Feed, options: &SourceOptions) {
                         }
                         None => {
                             feed.event(Event::new(
-                                EventKind::Note,
+                                EventKind::ConnectionRefused,
                                 0,
                                 format!(
-                                    "refused {peer}: already {MAX_SENDERS} senders connected, all of them sending"
+                                    "refused {peer}: {MAX_SENDERS} senders connected, none quiet for {EVICT_AFTER:?}"
                                 ),
                             ));
                             continue;

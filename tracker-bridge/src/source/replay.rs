@@ -3,7 +3,8 @@
 //! it saw when the recording was made (the grouping of samples into frames and the staleness times
 //! included) and builds the same frames. Paced, one recorded tick per bridge period (the recorded
 //! rate); with `--as-fast-as-possible`, without waiting. A recording cut short plays up to its last
-//! complete tick and says so.
+//! complete tick and says so. A sample stamped after its tick by more than the staleness bound
+//! (a damaged clock: the assembler shows its tool stale) is named once, so the replay says why.
 
 use std::fs::File;
 use std::io::BufReader;
@@ -22,6 +23,10 @@ pub struct Replay {
     paced: bool,
     config: BridgeConfig,
     ended: bool,
+    /// The latest receive time of the samples handed over since the last tick, ns.
+    latest_ns: u64,
+    /// A sample stamped far after its tick has been named (once per replay: not a flood).
+    told_future: bool,
 }
 
 impl Replay {
@@ -35,6 +40,8 @@ impl Replay {
             paced,
             config,
             ended: false,
+            latest_ns: 0,
+            told_future: false,
         })
     }
 
@@ -64,9 +71,27 @@ impl Source for Replay {
         }
         loop {
             match self.reader.next_record() {
-                Ok(Some(Record::Sample(s))) => sink(&Input::Sample(s)),
+                Ok(Some(Record::Sample(s))) => {
+                    self.latest_ns = self.latest_ns.max(s.receive_ns);
+                    sink(&Input::Sample(s));
+                }
                 Ok(Some(Record::Event(e))) => sink(&Input::Event(e)),
-                Ok(Some(Record::Tick { at_ns, .. })) => return Ok(Poll::Tick { at_ns }),
+                Ok(Some(Record::Tick { at_ns, .. })) => {
+                    let ahead = self.latest_ns.saturating_sub(at_ns);
+                    if !self.told_future && ahead > self.config.stale_ns {
+                        self.told_future = true;
+                        sink(&Input::Event(Event::new(
+                            EventKind::Note,
+                            0,
+                            format!(
+                                "a sample is stamped {:.3} s after its tick: the recording's clock is damaged, its tool is shown stale",
+                                ahead as f64 / 1e9
+                            ),
+                        )));
+                    }
+                    self.latest_ns = 0;
+                    return Ok(Poll::Tick { at_ns });
+                }
                 Ok(Some(Record::End { .. })) | Ok(None) => {
                     self.ended = true;
                     return Ok(Poll::End);
