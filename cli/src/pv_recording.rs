@@ -146,6 +146,11 @@ pub fn run(a: &RecordingArgs) -> anyhow::Result<()> {
         },
         ..Default::default()
     };
+    // Units and signs first, from the breaths' characters (cheap): the PV fits of a recording in the
+    // wrong unit take seconds each and would only be thrown away.
+    let characters = lung_model::recording::classify::characterise_all(&rec, &opts.segment);
+    lung_model::recording::checks::check_plausible(&rec, &characters.iter().collect::<Vec<_>>())
+        .map_err(|e| anyhow::anyhow!("{}: {e}", a.file.display()))?;
     let reports = analyse(&rec, &opts);
     if reports.is_empty() {
         anyhow::bail!(

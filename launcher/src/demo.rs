@@ -760,11 +760,19 @@ impl SnapshotPlan {
         // start can take a cycle) still gets its snapshots: spread over what the run has, from the
         // same front view, and it says so (a strip of part of a breath). A recording always wants
         // a whole breath.
+        // A waveform scene breathes at its recording's rate, not [pv] breaths_per_min (read
+        // already when the scene was resolved, so it reads again here).
+        let cycle_s = 60.0
+            / scene
+                .pv_waveform()
+                .ok()
+                .flatten()
+                .map_or(scene.pv.breaths_per_min, |w| w.rate_per_min);
         let spread_ticks = partial_breath_ticks(
             if recording { 0 } else { breath_frames },
             (args.seconds * tick_hz) as u64,
             warmup_ticks,
-            (60.0 / scene.pv.breaths_per_min * tick_hz).round().max(1.0) as u64,
+            (cycle_s * tick_hz).round().max(1.0) as u64,
         );
         if !spread_ticks.is_empty() {
             eprintln!(
@@ -772,8 +780,8 @@ impl SnapshotPlan {
                  {:.1} s); the {breath_frames} snapshots are spread over the run, part of a breath \
                  — run --seconds {:.0} or more for a strip of one whole breath",
                 args.seconds,
-                60.0 / scene.pv.breaths_per_min,
-                (warmup_ticks as f64 / tick_hz + 2.0 * 60.0 / scene.pv.breaths_per_min).ceil()
+                cycle_s,
+                (warmup_ticks as f64 / tick_hz + 2.0 * cycle_s).ceil()
             );
         }
         Self {

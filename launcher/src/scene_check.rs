@@ -405,7 +405,10 @@ pub fn run(args: &CheckArgs) -> anyhow::Result<CheckReport> {
             constants: scene.pv.constants.as_ref().map(|p| p.display().to_string()),
             waveform: scene.pv.waveform.as_ref().map(|p| p.display().to_string()),
             waveform_breaths_used: waveform.as_ref().map(|w| w.breaths_used),
-            waveform_control: waveform.as_ref().map(|w| control_choice(w, &scene)),
+            waveform_control: waveform
+                .as_ref()
+                .map(|w| control_choice(w, &scene))
+                .transpose()?,
             frc_ml,
             tidal_volume_ml: (tv_ml * 1000.0).round() / 1000.0,
             breaths_per_min: timing.breaths_per_min,
@@ -474,12 +477,12 @@ pub fn run(args: &CheckArgs) -> anyhow::Result<CheckReport> {
 fn control_choice(
     w: &lung_model::recording::Waveform,
     scene: &Scene,
-) -> lung_model::scene::ControlChoice {
-    let c = Scene::waveform_control(w, scene.pv.waveform_control);
+) -> Result<lung_model::scene::ControlChoice, lung_model::scene::SceneValueError> {
+    let c = Scene::waveform_control(w, scene.pv.waveform_control)?;
     if let Some(warning) = &c.warning {
         eprintln!("warning: {warning}");
     }
-    c
+    Ok(c)
 }
 
 /// A tumour's report without baking: where its centre is, that it lies inside the lung, how many
@@ -1148,10 +1151,13 @@ pub fn run_scene(args: &RunArgs) -> anyhow::Result<RunReport> {
         stage_counts: core.stage_counts(),
         kernels: prepared.kernels.iter().map(|k| k.path.clone()).collect(),
         disease: None,
-        ventilator: scene.pv_waveform()?.map(|w| RunVentilator {
-            control: control_choice(&w, &scene),
-            delivery: core.disease().and_then(|d| d.delivery()),
-        }),
+        ventilator: match scene.pv_waveform()? {
+            Some(w) => Some(RunVentilator {
+                control: control_choice(&w, &scene)?,
+                delivery: core.disease().and_then(|d| d.delivery()),
+            }),
+            None => None,
+        },
     };
     out.disease = disease_report(args, &scene, core, follow.as_ref(), hz)?;
     Ok(out)

@@ -148,3 +148,41 @@ fn bad_curve_files_are_refused_with_file_and_line() {
     assert!(!ok && err.contains("must end in .png"), "{err}");
     assert!(!err.contains("panicked"));
 }
+
+/// `lungdyn pv recording` on a recording whose pressure column is in kPa under a cmH2O header
+/// (every sample in range; a compliance of ≈ 500 ml/cmH2O) exits non-zero naming the file, the
+/// figures and the unit the column is in; the same file with the right header is read.
+#[test]
+fn a_recording_with_a_mislabelled_pressure_unit_is_refused_with_the_unit_named() {
+    let rec = lung_model::recording::Synthetic {
+        breaths: 4,
+        ..Default::default()
+    }
+    .recording();
+    let write = |name: &str, header: &str| {
+        let mut s = format!("time_s,flow_L/s,{header}\n");
+        for i in 0..rec.t_s.len() {
+            s.push_str(&format!(
+                "{},{},{}\n",
+                rec.t_s[i],
+                rec.flow_lps[i],
+                rec.paw_cmh2o[i] / 10.197_162
+            ));
+        }
+        let p = tmp(name);
+        std::fs::write(&p, s).unwrap();
+        p
+    };
+    let wrong = write("kpa_as_cmh2o.csv", "paw_cmH2O");
+    let (ok, _, err) = lungdyn(&["pv", "recording", wrong.to_str().unwrap()]);
+    assert!(!ok, "a kPa column read as cmH2O was accepted");
+    assert!(
+        err.contains("kpa_as_cmh2o.csv")
+            && err.contains("compliance")
+            && err.contains("is the column in kPa?"),
+        "{err}"
+    );
+    let right = write("kpa.csv", "paw_kPa");
+    let (ok, _, err) = lungdyn(&["pv", "recording", right.to_str().unwrap(), "--json"]);
+    assert!(ok, "{err}");
+}

@@ -16,6 +16,11 @@
 //!   capacity and total lung capacity", Eur Respir J 1995;8:492–506 — infants: FRC ≈ 25–30 ml/kg.
 //! * [ATS/ERS-2002] ATS/ERS Statement on respiratory muscle testing, Am J Respir Crit Care Med
 //!   2002;166:518–624 — maximal inspiratory/expiratory mouth pressures ≈ −150…+250 cmH2O.
+//! * [ARDSNet-2000] The ARDS Network, "Ventilation with lower tidal volumes ...", N Engl J Med
+//!   2000;342:1301–1308 — plateau pressure ≤ 30 cmH2O; [ARDSNet-2004] Brower RG et al., "Higher versus
+//!   lower positive end-expiratory pressures ...", N Engl J Med 2004;351:327–336 — PEEP up to 24 cmH2O.
+//! * [Bates-2009] Bates JHT, *Lung Mechanics*, Cambridge 2009, ch. 2 — compliance of the lungs and the
+//!   respiratory system, adult and neonate.
 //! * [Gray-2016] Standring S (ed.), Gray's Anatomy, 41st ed., 2016, ch. 54 (pleura, lungs) — adult lung
 //!   height ≈ 20–30 cm; the default lungs of `mesh::generate` are 230/240 mm.
 
@@ -144,6 +149,38 @@ pub const BREATHS_PER_MIN: Limit = Limit {
     hi: 150.0,
     unit: "breaths/min",
     source: "slow deep breathing ≈ 4/min to neonatal tachypnoea ≈ 100/min",
+};
+
+/// End-expiratory airway pressure of a recording (the median over its whole breaths).
+pub const PEEP_CMH2O: Limit = Limit {
+    what: "end-expiratory pressure (PEEP)",
+    lo: -2.0,
+    hi: 30.0,
+    unit: "cmH2O",
+    source:
+        "0 breathing room air (−2 for a sensor's offset) to the ARDS Network's highest PEEP, 24 \
+             cmH2O [ARDSNet-2004]",
+};
+/// Peak airway pressure of a recording (the median over its whole breaths: one cough is not a
+/// recording's PIP).
+pub const PIP_CMH2O: Limit = Limit {
+    what: "peak inspiratory pressure (PIP)",
+    lo: -2.0,
+    hi: 80.0,
+    unit: "cmH2O",
+    source:
+        "≈ 0 breathing room air to a ventilator's high-pressure limit (PB-840: settable to 100 \
+             cmH2O; lung-protective plateaus ≤ 30 [ARDSNet-2000])",
+};
+/// Compliance of the respiratory system from the equation of motion of passive breaths.
+pub const COMPLIANCE_ML_PER_CMH2O: Limit = Limit {
+    what: "compliance",
+    lo: 0.5,
+    hi: 250.0,
+    unit: "ml/cmH2O",
+    source:
+        "a preterm neonate ≈ 0.5–1 to a healthy adult's lungs ≈ 200 (respiratory system ≈ 100) \
+             [Bates-2009]",
 };
 
 /// A value outside its documented range (a non-finite one is said to be no number at all, never

@@ -20,6 +20,7 @@
 
 use std::path::{Path, PathBuf};
 
+pub mod checks;
 pub mod classify;
 
 use crate::input::{read_bounded, InputError, ReadLimits};
@@ -854,16 +855,23 @@ fn held(t: &[f64], v: &[f64], x: f64) -> f64 {
 }
 
 /// The whole, clean breaths of `rec` ([`whole_breath`], with an inspiration), characterised, and
-/// the breaths left out with the reason; with every breath's class summarised.
+/// the breaths left out with the reason; with every breath's class summarised. A recording whose
+/// breaths are not what its header says (a pressure unit, the flow's sign, a volume column:
+/// [`checks::check_plausible`]) is refused.
+#[allow(clippy::type_complexity)]
 fn usable_breaths(
     rec: &Recording,
     opts: &SegmentOptions,
-) -> (
-    Vec<classify::BreathCharacter>,
-    Vec<(usize, String)>,
-    classify::ControlSummary,
-) {
+) -> Result<
+    (
+        Vec<classify::BreathCharacter>,
+        Vec<(usize, String)>,
+        classify::ControlSummary,
+    ),
+    String,
+> {
     let all = classify::characterise_all(rec, opts);
+    checks::check_plausible(rec, &all.iter().collect::<Vec<_>>())?;
     let summary = classify::ControlSummary::of(&all);
     let mut used = Vec::new();
     let mut skipped = Vec::new();
@@ -874,7 +882,7 @@ fn usable_breaths(
             Err(why) => skipped.push((c.index, why)),
         }
     }
-    (used, skipped, summary)
+    Ok((used, skipped, summary))
 }
 
 /// The refusal when no breath of a recording can be played.
@@ -899,7 +907,7 @@ pub fn average_breath(
     opts: &SegmentOptions,
     tick_hz: f64,
 ) -> Result<Waveform, String> {
-    let (used, skipped, control) = usable_breaths(rec, opts);
+    let (used, skipped, control) = usable_breaths(rec, opts)?;
     if used.is_empty() {
         return Err(none_usable(&skipped));
     }

@@ -380,6 +380,12 @@ pub enum SceneValueError {
     /// The recording named by `[pv] waveform` is unusable, or combined with what it replaces.
     #[error("[pv] waveform: {0}")]
     Waveform(String),
+    /// A key that a `[pv] waveform` scene does not use, set beside one.
+    #[error(
+        "[pv] {0} is set beside [pv] waveform, which plays the recording's own rate and I:E: drop it \
+         (or drop the waveform to breathe the PV model at that {0})"
+    )]
+    BesideWaveform(&'static str),
     /// A key that applies only to a `[pv] waveform` scene, without one.
     #[error("[pv] {0} is set but [pv] waveform is not: it applies only to a scene that plays a recording")]
     WithoutWaveform(&'static str),
@@ -617,7 +623,10 @@ impl Scene {
         if let Some(w) = &scene.pv.waveform {
             let resolved = base.join(w);
             scene.pv.waveform = Some(resolved);
-            scene.pv_waveform().map_err(invalid)?;
+            if let Some(w) = scene.pv_waveform().map_err(invalid)? {
+                // A control the recording cannot give is refused when the scene is read.
+                Self::waveform_control(&w, scene.pv.waveform_control).map_err(invalid)?;
+            }
         }
         if let Some(m) = &scene.lungs.motion {
             let resolved = base.join(m);
@@ -715,6 +724,18 @@ impl Scene {
         }
         if self.pv.waveform.is_none() && self.pv.waveform_control != WaveformControl::Auto {
             return Err(E::WithoutWaveform("waveform_control"));
+        }
+        // A recording plays its own rate and I:E: a rate or I:E set beside it would be ignored
+        // without a word. (One set to the default value cannot be told from one left out, and
+        // changes nothing either way.)
+        if self.pv.waveform.is_some() {
+            let default = PvScene::default();
+            if self.pv.breaths_per_min != default.breaths_per_min {
+                return Err(E::BesideWaveform("breaths_per_min"));
+            }
+            if self.pv.ie_ratio != default.ie_ratio {
+                return Err(E::BesideWaveform("ie_ratio"));
+            }
         }
         if self.lungs.sides.is_empty() {
             return Err(E::NoLungs);
@@ -852,12 +873,41 @@ impl Scene {
 
     /// The control mode of a `[pv] waveform` scene's ventilator (`None` without a waveform): the
     /// recording's majority class unless `[pv] waveform_control` overrides it, with a warning when the
-    /// override contradicts the recording (EQUATIONS §4.7).
-    pub fn waveform_control(w: &crate::recording::Waveform, set: WaveformControl) -> ControlChoice {
+    /// override contradicts the recording (EQUATIONS §4.7). Pressure control plays the averaged
+    /// breath's equation of motion, which only passive breaths give: on a recording with none (every
+    /// breath the patient's effort, as under pressure support) `"pressure"` is refused and `"auto"`
+    /// plays volume control, saying why.
+    pub fn waveform_control(
+        w: &crate::recording::Waveform,
+        set: WaveformControl,
+    ) -> Result<ControlChoice, SceneValueError> {
         use crate::recording::classify::ControlMode;
         let found = w.control.mode();
         let recording = w.control.describe();
+        let passive = w.control.passive_volume_controlled + w.control.passive_pressure_controlled;
+        let no_passive = |why: &str| {
+            format!(
+                "{why}: none of the recording's whole breaths is passive ({recording}), so its airway \
+                 pressure is not what drives the volume and no equation of motion can be fitted to it"
+            )
+        };
         let (mode, set_by) = match set {
+            WaveformControl::Pressure if passive == 0 => {
+                return Err(SceneValueError::Waveform(no_passive(
+                    "waveform_control = \"pressure\" needs passive breaths; use \"volume\"",
+                )))
+            }
+            WaveformControl::Auto if passive == 0 && found == ControlMode::Pressure => {
+                return Ok(ControlChoice {
+                    mode: ControlMode::Volume,
+                    set_by: "recording",
+                    warning: Some(no_passive(
+                        "the recording's breaths hold their pressure, but a disease is played as \
+                         volume control",
+                    )),
+                    recording,
+                });
+            }
             WaveformControl::Auto => (found, "recording"),
             WaveformControl::Volume => (ControlMode::Volume, "scene"),
             WaveformControl::Pressure => (ControlMode::Pressure, "scene"),
@@ -873,12 +923,12 @@ impl Scene {
                 }
             )
         });
-        ControlChoice {
+        Ok(ControlChoice {
             mode,
             set_by,
             recording,
             warning,
-        }
+        })
     }
 
     /// The ventilator of a `[pv] waveform` scene whose simulated lungs are `baselines` (`None`
@@ -895,7 +945,7 @@ impl Scene {
             return Ok(None);
         };
         let recorded = self.breathing_of(&w)?;
-        let choice = Self::waveform_control(&w, self.pv.waveform_control);
+        let choice = Self::waveform_control(&w, self.pv.waveform_control)?;
         let control = match choice.mode {
             crate::recording::classify::ControlMode::Volume => Control::Volume,
             crate::recording::classify::ControlMode::Pressure => {
@@ -1348,5 +1398,90 @@ mod tests {
             let e = bad.parse::<Lod>().unwrap_err();
             assert!(e.contains("auto") && e.contains("off"), "{bad:?}: {e}");
         }
+    }
+
+    /// A recording plays its own rate and I:E: a rate or an I:E set beside it is refused naming
+    /// the key (it would be ignored without a word); the defaults a resolved scene writes back
+    /// still parse.
+    #[test]
+    fn a_rate_or_an_ie_ratio_beside_a_waveform_is_refused() {
+        for (key, value) in [("breaths_per_min", "20"), ("ie_ratio", "[1, 1]")] {
+            let e = Scene::parse(
+                &format!("[pv]\nwaveform = \"r.csv\"\n{key} = {value}\n"),
+                "s.toml",
+            )
+            .unwrap_err()
+            .to_string();
+            assert!(e.contains(key) && e.contains("beside [pv] waveform"), "{e}");
+        }
+        let mut resolved = Scene::default();
+        resolved.pv.waveform = Some("r.csv".into());
+        Scene::parse(&toml::to_string(&resolved).unwrap(), "s.toml").unwrap();
+    }
+
+    /// Pressure control plays the averaged breath's equation of motion, which only passive breaths
+    /// give: on a pressure-support-like recording (the ventilator holds the pressure, every breath
+    /// triggered by the patient) `"pressure"` is refused when the scene is read, `"auto"` plays
+    /// volume control with a warning, `"volume"` plays.
+    #[test]
+    fn pressure_control_needs_passive_breaths_in_the_recording() {
+        use crate::recording::classify::ControlMode;
+        use crate::recording::{Synthetic, SyntheticMode};
+        let dir = std::env::temp_dir().join(format!("lungdyn-scene-effort-{}", std::process::id()));
+        std::fs::create_dir_all(&dir).unwrap();
+        let mut rec = Synthetic {
+            mode: SyntheticMode::Pressure {
+                above_peep_cmh2o: 15.0,
+            },
+            breaths: 6,
+            ..Default::default()
+        }
+        .recording();
+        // A trigger dip of 3 cmH2O 0.18–0.12 s before every breath (inside the trigger's 0.2 s,
+        // before the 0.1 s the previous breath's PEEP is read over); the file starts in the first
+        // breath's expiration (that cut breath is an artefact), so no breath is passive.
+        let starts: Vec<usize> = rec.vent_breaths.iter().map(|b| b.0).collect();
+        for &at in &starts[1..] {
+            for j in at - 9..at - 5 {
+                rec.paw_cmh2o[j] -= 3.0;
+            }
+        }
+        let mut csv = String::from("time_s,flow_L/s,paw_cmH2O\n");
+        for i in starts[1] - 10..rec.t_s.len() {
+            csv.push_str(&format!(
+                "{},{},{}\n",
+                rec.t_s[i], rec.flow_lps[i], rec.paw_cmh2o[i]
+            ));
+        }
+        std::fs::write(dir.join("effort.csv"), csv).unwrap();
+        let scene = |control: &str| {
+            let p = dir.join(format!("{control}.toml"));
+            std::fs::write(
+                &p,
+                format!("[pv]\nwaveform = \"effort.csv\"\nwaveform_control = \"{control}\"\n"),
+            )
+            .unwrap();
+            Scene::load(&p)
+        };
+        let auto = scene("auto").unwrap();
+        let w = auto.pv_waveform().unwrap().unwrap();
+        let c = &w.control;
+        assert_eq!(
+            c.passive_volume_controlled + c.passive_pressure_controlled,
+            0,
+            "{}",
+            c.describe()
+        );
+        assert_eq!(c.mode(), ControlMode::Pressure, "{}", c.describe());
+        let choice = Scene::waveform_control(&w, WaveformControl::Auto).unwrap();
+        assert_eq!(choice.mode, ControlMode::Volume);
+        assert!(choice.warning.unwrap().contains("volume control"));
+        let e = scene("pressure").unwrap_err().to_string();
+        assert!(
+            e.contains("needs passive breaths") && e.contains("use \"volume\""),
+            "{e}"
+        );
+        scene("volume").unwrap();
+        std::fs::remove_dir_all(&dir).ok();
     }
 }
