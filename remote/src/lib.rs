@@ -60,6 +60,14 @@ pub enum RemoteError {
     /// The scene could not be loaded.
     #[error(transparent)]
     Scene(Box<lung_model::scene::SceneError>),
+    /// A site's run ended without applying one state from the source.
+    #[error("remote join: no state from the source at {connect} was applied: {why}")]
+    NoState {
+        /// Where the site connected.
+        connect: String,
+        /// What was heard, and what to check.
+        why: String,
+    },
     /// The source engine's loop stopped with an error.
     #[error(transparent)]
     Engine(Box<engine::runtime::process::EngineError>),

@@ -572,6 +572,30 @@ pub fn join(args: &JoinArgs) -> Result<(), RemoteError> {
         std::thread::sleep(Duration::from_nanos(wake as u64));
     }
     say_join_counts(&instance, &site);
+    // A site that never breathed the source's breath did not do its job: say why, exit non-zero.
+    let c = &site.counts;
+    let (applied, heard) = (
+        c.applied.load(Ordering::Relaxed),
+        c.applied.load(Ordering::Relaxed)
+            + c.repeated.load(Ordering::Relaxed)
+            + c.refused.load(Ordering::Relaxed),
+    );
+    if applied == 0 {
+        return Err(RemoteError::NoState {
+            connect: net.connect.join(", "),
+            why: if heard == 0 {
+                "nothing came from the source: is `lungdyn remote serve` (or a source's `lungdyn \
+                 demo`) running there, in the same --room, and does the network let the port \
+                 through?"
+                    .into()
+            } else {
+                format!(
+                    "{heard} state(s) came and none could be applied (refused or repeated; the last \
+                     refusal is above)"
+                )
+            },
+        });
+    }
     Ok(())
 }
 

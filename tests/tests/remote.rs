@@ -387,3 +387,41 @@ fn the_harness_through_a_router_reports_the_sources_own_cost() {
         assert!(s["ticks"].as_u64().unwrap() > 120, "{s}");
     }
 }
+
+/// `remote join` with nothing listening at `--connect` runs its seconds, then exits non-zero saying
+/// no state came from the source and what to check (it used to exit 0 after "0 states applied",
+/// never saying the source was not reached).
+#[test]
+fn a_join_that_never_hears_the_source_fails_saying_so() {
+    // A port nothing listens on: bound, read and released.
+    let port = std::net::TcpListener::bind("127.0.0.1:0")
+        .unwrap()
+        .local_addr()
+        .unwrap()
+        .port();
+    let scene = lungdyn_tests::prepared_scene(
+        "remote-nobody",
+        &format!(
+            "[remote]\nrole = \"site\"\nroom = \"nobody-here\"\nconnect = [\"tcp/127.0.0.1:{port}\"]\n"
+        ),
+    );
+    let instance = unique_instance("join-nobody");
+    let (ok, _, err) = lungdyn(&[
+        "remote",
+        "join",
+        "--scene",
+        scene.to_str().unwrap(),
+        "--instance",
+        &instance,
+        "--seconds",
+        "2",
+    ]);
+    assert!(!ok, "exited 0: {err}");
+    assert!(
+        err.contains("no state from the source")
+            && err.contains(&format!("127.0.0.1:{port}"))
+            && err.contains("nothing came from the source"),
+        "{err}"
+    );
+    assert!(!err.contains("panicked"), "{err}");
+}
