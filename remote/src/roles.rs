@@ -574,12 +574,8 @@ pub fn join(args: &JoinArgs) -> Result<(), RemoteError> {
     say_join_counts(&instance, &site);
     // A site that never breathed the source's breath did not do its job: say why, exit non-zero.
     let c = &site.counts;
-    let (applied, heard) = (
-        c.applied.load(Ordering::Relaxed),
-        c.applied.load(Ordering::Relaxed)
-            + c.repeated.load(Ordering::Relaxed)
-            + c.refused.load(Ordering::Relaxed),
-    );
+    let applied = c.applied.load(Ordering::Relaxed);
+    let heard = applied + c.repeated.load(Ordering::Relaxed) + c.refused.load(Ordering::Relaxed);
     if applied == 0 {
         return Err(RemoteError::NoState {
             connect: net.connect.join(", "),
