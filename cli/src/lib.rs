@@ -8,6 +8,7 @@
 //! library entry points as the standalone binaries.
 
 pub mod bake_cmd;
+pub mod breathing_cmd;
 pub mod input_args;
 pub mod kernel_plot;
 pub mod mask_cmd;

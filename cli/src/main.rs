@@ -66,6 +66,10 @@ enum Command {
     /// Trackers: listen to a source, simulate head motion, evaluate pose prediction.
     #[command(subcommand)]
     Tracker(TrackerCommand),
+    /// Breathing with the patient: a respiratory recording replayed as the live signal through the
+    /// engine's follower (calibration, breaths, prediction to the display time).
+    #[command(subcommand)]
+    Breathing(BreathingCommand),
     /// Register the lungs' model frame onto the patient reference from fiducials (Horn/Umeyama) and
     /// write the calibration file; reports each fiducial's registration error.
     Register(lungdyn::register_cmd::RegisterArgs),
@@ -146,6 +150,15 @@ enum TrackerCommand {
 }
 
 #[derive(Subcommand)]
+enum BreathingCommand {
+    /// Replay a ventilator recording as if it were the live respiratory signal, capture-to-display
+    /// latency included, and compare the volume the lungs would show at each frame's display time
+    /// with the recording's own: RMS error (% of the tidal volume) with each predictor and without,
+    /// end-inspiration lag, breaths found, irregular breaths and pauses — against issue 35's goal.
+    Check(lungdyn::breathing_cmd::CheckArgs),
+}
+
+#[derive(Subcommand)]
 enum HmdCommand {
     /// Load and check an HMD optics file (IPD, eye offsets, fields of view) and show the eyes.
     Check(lungdyn::register_cmd::HmdArgs),
@@ -197,6 +210,7 @@ impl Command {
                 | Command::FitMotion(_)
                 | Command::Kernel(_)
                 | Command::Register(_)
+                | Command::Breathing(_)
                 | Command::Hmd(_)
                 | Command::Doctor(_)
                 | Command::Instances(_)
@@ -326,6 +340,7 @@ fn main() -> std::process::ExitCode {
             })
         }),
         Command::Tracker(TrackerCommand::Predict(args)) => lungdyn::tracker_cmd::predict(&args).and_then(|v| emit(args.json, &v, lungdyn::tracker_cmd::predict_text)),
+        Command::Breathing(BreathingCommand::Check(args)) => lungdyn::breathing_cmd::check(&args).and_then(|r| emit(args.json, &r, lungdyn::breathing_cmd::check_text)),
         Command::Register(args) => lungdyn::register_cmd::run(&args).and_then(|v| emit(args.json, &v, lungdyn::register_cmd::text)),
         Command::Hmd(HmdCommand::Check(args)) => lungdyn::register_cmd::hmd(&args).and_then(|v| emit(args.json, &v, lungdyn::register_cmd::hmd_text)),
         Command::Remote(RemoteCommand::Serve(args)) => {

@@ -18,12 +18,15 @@
 //! * [`disease`] — the seed's disease states (chapter 8): closed and tension pneumothorax with
 //!   interventions, tumour-influenced lungs;
 //! * [`scene`] — what a run models ([`scene_disease`]: its `[disease]` table);
+//! * [`breathing`] — a live respiratory signal followed: calibrated to volume, predicted to the
+//!   display time, breaths and pauses found (issue 35; beyond the seed, §7.5);
 //! * [`input`] — bounded reading of every input file; [`plausible`] — the physical ranges every input
 //!   is checked against, with their sources.
 
 // `!(x > 0.0)` is how this crate refuses NaN together with out-of-range values; keep it.
 #![allow(clippy::neg_cmp_op_on_partial_ord)]
 
+pub mod breathing;
 pub mod deform;
 pub mod disease;
 pub mod frame;

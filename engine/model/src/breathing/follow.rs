@@ -1,0 +1,276 @@
+//! Samples in, the lungs' volume above FRC at a frame's display time out.
+//!
+//! [`Follower::push`] takes each sample as it arrives (invalid, non-finite, repeated and
+//! out-of-order samples are counted and left out; a gap longer than the loss limit restarts the
+//! grid and the predictor). [`Follower::volume_at`] gives, for a frame computed at `now` and shown at
+//! `display`, the volume `gain · (ŝ(display) − baseline(display))` with ŝ the predicted signal and
+//! the baseline the detector's end-expiration level with its drift; beside it the same volume with
+//! the newest sample unpredicted (so every frame can report what prediction bought). The volume
+//! is kept within −0.5…3 typical tidal volumes (a forced expiration below FRC, a sigh above it;
+//! a wild sample is not drawn as a fold), and flagged when it was kept.
+
+use super::detect::{Counts, Detector, Pause};
+use super::grid::{Arrival, Grid};
+use super::predict::{PredictorKind, SignalPredictor};
+use super::{secs, SignalSample};
+
+/// Lowest volume drawn, in typical tidal volumes below the end-expiration baseline.
+pub const BELOW_BASELINE_TIDALS: f64 = 0.5;
+/// Highest volume drawn, in typical tidal volumes above the baseline.
+pub const ABOVE_BASELINE_TIDALS: f64 = 3.0;
+/// Regular breaths before the calibration is trusted.
+pub const CALIBRATION_BREATHS: usize = 2;
+
+/// How the signal's unit becomes ml.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub enum Calibration {
+    /// The signal is a volume in ml already (a ventilator's or spirometer's).
+    Volume,
+    /// The typical breath is `tidal_ml` (the scene's tidal volume): the gain is refitted on every
+    /// regular breath from the median of the last five amplitudes.
+    Auto {
+        /// Tidal volume, ml.
+        tidal_ml: f64,
+    },
+    /// A spirometry calibration: ml per signal unit.
+    Fixed {
+        /// Gain, ml per unit.
+        ml_per_unit: f64,
+    },
+}
+
+/// A follower's settings.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct FollowerConfig {
+    /// The source's sample period, ns (the grid's).
+    pub period_ns: u64,
+    /// No sample for this long: the signal is lost (and a longer gap restarts the grid).
+    pub lost_after_ns: u64,
+    /// The predictor.
+    pub predictor: PredictorKind,
+    /// The calibration.
+    pub calibration: Calibration,
+}
+
+impl FollowerConfig {
+    /// A source at `rate_hz` with the default predictor, lost after 100 ms (the HUD's veil goal) or
+    /// three sample periods if longer.
+    pub fn at_rate(rate_hz: f64, calibration: Calibration) -> Self {
+        let period_ns = if rate_hz.is_finite() && rate_hz > 0.0 {
+            (1e9 / rate_hz).round().max(1.0) as u64
+        } else {
+            20_000_000
+        };
+        Self {
+            period_ns,
+            lost_after_ns: (3 * period_ns).max(100_000_000),
+            predictor: PredictorKind::DEFAULT,
+            calibration,
+        }
+    }
+}
+
+/// Where the following stands.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, serde::Serialize)]
+#[serde(rename_all = "snake_case")]
+pub enum SignalState {
+    /// Fewer than [`CALIBRATION_BREATHS`] regular breaths seen (since the start or a loss).
+    Calibrating,
+    /// Following the patient.
+    Following,
+    /// No turning point for a while (see [`Pause`]).
+    Paused(Pause),
+    /// No valid sample within the loss limit.
+    Lost,
+}
+
+impl SignalState {
+    /// Words for a display.
+    pub fn describe(self) -> &'static str {
+        match self {
+            SignalState::Calibrating => "calibrating",
+            SignalState::Following => "following patient",
+            SignalState::Paused(Pause::BreathHold) => "breath-hold",
+            SignalState::Paused(Pause::Apnoea) => "apnoea",
+            SignalState::Paused(Pause::Resting) => "pause",
+            SignalState::Lost => "signal lost",
+        }
+    }
+}
+
+/// The volume for one frame.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct Followed {
+    /// Volume above the end-expiration baseline at the display time, ml (predicted).
+    pub volume_ml: f64,
+    /// The same from the newest sample, not predicted, ml.
+    pub unpredicted_ml: f64,
+    /// Where the following stands.
+    pub state: SignalState,
+    /// Inspiration under way.
+    pub inhaling: bool,
+    /// The volume was kept within the drawn range.
+    pub clamped: bool,
+    /// The predictor's guard replaced its value with the line's.
+    pub fell_back: bool,
+    /// ml per signal unit in use.
+    pub gain_ml_per_unit: f64,
+    /// Display time minus the newest sample's time, s (what was predicted across).
+    pub lead_s: f64,
+}
+
+/// Samples the follower left out.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Default, serde::Serialize)]
+pub struct SampleCounts {
+    /// Samples taken.
+    pub used: u64,
+    /// Flagged invalid by the source, or not finite.
+    pub invalid: u64,
+    /// At or before the previous sample's time (a repeat or a reordering).
+    pub not_newer: u64,
+    /// Gaps longer than the loss limit (each restarts the grid and the predictor).
+    pub restarts: u64,
+}
+
+/// The follower.
+#[derive(Debug, Clone, PartialEq)]
+pub struct Follower {
+    config: FollowerConfig,
+    grid: Grid,
+    predictor: SignalPredictor,
+    detector: Detector,
+    samples: SampleCounts,
+    peaks: u64,
+}
+
+impl Follower {
+    /// A follower that has seen nothing.
+    pub fn new(config: FollowerConfig) -> Self {
+        Self {
+            grid: Grid::new(config.period_ns, config.lost_after_ns),
+            predictor: SignalPredictor::new(config.predictor),
+            detector: Detector::new(),
+            samples: SampleCounts::default(),
+            peaks: 0,
+            config,
+        }
+    }
+
+    /// The settings.
+    pub fn config(&self) -> &FollowerConfig {
+        &self.config
+    }
+
+    /// The breath detector (typical amplitude and period, counts).
+    pub fn detector(&self) -> &Detector {
+        &self.detector
+    }
+
+    /// What happened to the samples.
+    pub fn samples(&self) -> SampleCounts {
+        self.samples
+    }
+
+    /// End-inspiration peaks confirmed.
+    pub fn peaks(&self) -> u64 {
+        self.peaks
+    }
+
+    /// Breaths found (see [`Detector::counts`]).
+    pub fn counts(&self) -> Counts {
+        self.detector.counts()
+    }
+
+    /// Take one sample as it arrives.
+    pub fn push(&mut self, s: SignalSample) {
+        if !s.valid || !s.value.is_finite() {
+            self.samples.invalid += 1;
+            return;
+        }
+        match self.grid.begin(s.t_ns, s.value) {
+            Arrival::NotNewer => {
+                self.samples.not_newer += 1;
+                return;
+            }
+            Arrival::Restarted => {
+                if self.samples.used > 0 {
+                    self.samples.restarts += 1;
+                }
+                self.predictor.reset();
+                self.detector.restart();
+                self.see(s.t_ns, s.value);
+            }
+            Arrival::Follows => {
+                while self.grid.step() {
+                    self.predictor.learn(&self.grid);
+                    let (t, v) = (
+                        self.grid.newest_ns(),
+                        self.grid.back(0).expect("just added"),
+                    );
+                    self.see(t, v);
+                }
+            }
+        }
+        self.samples.used += 1;
+    }
+
+    fn see(&mut self, t_ns: u64, v: f64) {
+        if let Some(super::detect::Turn::Peak(..)) = self.detector.push(t_ns, v) {
+            self.peaks += 1;
+        }
+    }
+
+    /// ml per signal unit now, when known.
+    pub fn gain(&self) -> Option<f64> {
+        match self.config.calibration {
+            Calibration::Volume => Some(1.0),
+            Calibration::Fixed { ml_per_unit } => Some(ml_per_unit),
+            Calibration::Auto { tidal_ml } => {
+                let a = self.detector.typical_amplitude()?;
+                let g = tidal_ml / a;
+                (a > 0.0 && g.is_finite()).then_some(g)
+            }
+        }
+    }
+
+    /// The volume for a frame computed at `now_ns` and shown at `display_ns`; `None` before the
+    /// first sample.
+    pub fn volume_at(&self, now_ns: u64, display_ns: u64) -> Option<Followed> {
+        let (t_last, v_last) = self.grid.last_sample()?;
+        let state = if now_ns.saturating_sub(t_last) > self.config.lost_after_ns {
+            SignalState::Lost
+        } else if let Some(p) = self.detector.pause() {
+            SignalState::Paused(p)
+        } else if self.detector.regular_breaths() < CALIBRATION_BREATHS {
+            SignalState::Calibrating
+        } else {
+            SignalState::Following
+        };
+        let display_ns = display_ns.max(self.grid.newest_ns());
+        let prediction = self.predictor.predict(&self.grid, display_ns)?;
+        let baseline = self.detector.baseline_at(display_ns).unwrap_or(v_last);
+        let gain = self.gain().unwrap_or(0.0);
+        let tidal = gain * self.detector.typical_amplitude().unwrap_or(0.0);
+        let keep = |v: f64| -> (f64, bool) {
+            if !(tidal > 0.0) || !v.is_finite() {
+                return (0.0, v != 0.0);
+            }
+            let lo = -BELOW_BASELINE_TIDALS * tidal;
+            let hi = ABOVE_BASELINE_TIDALS * tidal;
+            let k = v.clamp(lo, hi);
+            (k, k != v)
+        };
+        let (volume_ml, clamped) = keep(gain * (prediction.value - baseline));
+        let (unpredicted_ml, _) = keep(gain * (v_last - baseline));
+        Some(Followed {
+            volume_ml,
+            unpredicted_ml,
+            state,
+            inhaling: self.detector.inhaling(),
+            clamped,
+            fell_back: prediction.fell_back,
+            gain_ml_per_unit: gain,
+            lead_s: secs(display_ns as i128 - t_last as i128),
+        })
+    }
+}
