@@ -8,8 +8,6 @@
 //! library entry points as the standalone binaries.
 
 pub mod bake_cmd;
-pub mod breathing_cmd;
-pub mod input_args;
 pub mod kernel_plot;
 pub mod mask_cmd;
 pub mod mesh_cmd;
@@ -25,6 +23,6 @@ pub mod register_cmd;
 pub mod tracker_cmd;
 
 pub use lungdyn_launcher::{
-    demo, doctor, faults, install, instances, latency, launch, outputs, plot, prepare, record,
-    scene_check, scene_event, stats, strip, supervise, tradeoff,
+    breathing_check, demo, doctor, faults, input_args, install, instances, latency, launch,
+    outputs, plot, prepare, record, scene_check, scene_event, stats, strip, supervise, tradeoff,
 };

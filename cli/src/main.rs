@@ -155,7 +155,7 @@ enum BreathingCommand {
     /// latency included, and compare the volume the lungs would show at each frame's display time
     /// with the recording's own: RMS error (% of the tidal volume) with each predictor and without,
     /// end-inspiration lag, breaths found, irregular breaths and pauses — against issue 35's goal.
-    Check(lungdyn::breathing_cmd::CheckArgs),
+    Check(lungdyn::breathing_check::CheckArgs),
 }
 
 #[derive(Subcommand)]
@@ -340,7 +340,7 @@ fn main() -> std::process::ExitCode {
             })
         }),
         Command::Tracker(TrackerCommand::Predict(args)) => lungdyn::tracker_cmd::predict(&args).and_then(|v| emit(args.json, &v, lungdyn::tracker_cmd::predict_text)),
-        Command::Breathing(BreathingCommand::Check(args)) => lungdyn::breathing_cmd::check(&args).and_then(|r| emit(args.json, &r, lungdyn::breathing_cmd::check_text)),
+        Command::Breathing(BreathingCommand::Check(args)) => lungdyn::breathing_check::check(&args).and_then(|r| emit(args.json, &r, lungdyn::breathing_check::check_text)),
         Command::Register(args) => lungdyn::register_cmd::run(&args).and_then(|v| emit(args.json, &v, lungdyn::register_cmd::text)),
         Command::Hmd(HmdCommand::Check(args)) => lungdyn::register_cmd::hmd(&args).and_then(|v| emit(args.json, &v, lungdyn::register_cmd::hmd_text)),
         Command::Remote(RemoteCommand::Serve(args)) => {

@@ -10,13 +10,17 @@
 //!   display schedule), [`faults`] (injected faults and their recovery);
 //! * the headless engine run and the scene checks ([`scene_check`]), a trainee's events into a
 //!   running scene ([`scene_event`]);
-//! * the speed–accuracy trade-off evaluator ([`tradeoff`]) and the plots ([`plot`]);
+//! * the speed–accuracy trade-off evaluator ([`tradeoff`]), a respiratory recording followed as
+//!   if live against its hindsight volume ([`breathing_check`]), and the plots ([`plot`]); the input
+//!   options every command that reads files takes ([`input_args`]);
 //! * deployment: [`install`] (thin role binaries, units, udev rule) and [`doctor`] (what this machine
 //!   can run); [`rig_json`], the rig's files as the reports show them.
 
+pub mod breathing_check;
 pub mod demo;
 pub mod doctor;
 pub mod faults;
+pub mod input_args;
 pub mod install;
 pub mod instances;
 pub mod latency;

@@ -1,5 +1,5 @@
 //! Units named in column headers: the tables every table reader (PV curves, ventilator recordings)
-//! recognises, each with its factor to lungdyn's unit (cmH2O, ml, L/s, s).
+//! recognises, each with its factor to lungdyn's unit (cmH2O, ml, L/s, s, mm).
 
 /// Pressure units recognised in a column header (token of the header, case-insensitive).
 pub const PRESSURE_UNITS: &[(&str, &str, f64)] = &[
@@ -26,6 +26,14 @@ pub const VOLUME_UNITS: &[(&str, &str, f64)] = &[
     ("litres", "L", 1000.0),
     ("liters", "L", 1000.0),
     ("dl", "dL", 100.0),
+];
+
+/// Length units recognised in a column header (a chest marker's excursion), with the factor to mm.
+pub const LENGTH_UNITS: &[(&str, &str, f64)] = &[
+    ("mm", "mm", 1.0),
+    ("cm", "cm", 10.0),
+    ("m", "m", 1000.0),
+    ("um", "µm", 1e-3),
 ];
 
 /// The lower-case alphanumeric tokens of a column header (`"Paw (cmH2O)"` → `paw`, `cmh2o`).

@@ -27,7 +27,7 @@
 //!
 //! The thresholds are this module's (stated here, tested, not the seed's).
 
-use super::{median_of, secs, Ring};
+use super::{fit_line, median_of, secs, Ring};
 
 /// Hysteresis as a fraction of the typical amplitude.
 pub const HYSTERESIS: f64 = 0.25;
@@ -231,22 +231,14 @@ impl Detector {
         if n < 3 {
             return Some(v_last);
         }
-        let (mut sx, mut sy, mut sxx, mut sxy) = (0.0, 0.0, 0.0, 0.0);
-        for k in 0..n {
-            let (t, v) = self.troughs.back(k).expect("k < n");
-            let x = secs(t as i128 - t_last as i128);
-            sx += x;
-            sy += v;
-            sxx += x * x;
-            sxy += x * v;
-        }
-        let m = n as f64;
-        let den = m * sxx - sx * sx;
-        if !(den > 0.0) {
+        let points = (0..n)
+            .filter_map(|k| self.troughs.back(k))
+            .map(|(t, v)| (secs(t as i128 - t_last as i128), v));
+        let Some((slope, _)) = fit_line(points) else {
             return Some(v_last);
-        }
+        };
         let limit = MAX_DRIFT_AMPLITUDES_PER_S * self.typical_amplitude().unwrap_or(0.0);
-        let slope = ((m * sxy - sx * sy) / den).clamp(-limit, limit);
+        let slope = slope.clamp(-limit, limit);
         let ahead = secs(t_ns as i128 - t_last as i128).max(0.0);
         let v = v_last + slope * ahead;
         Some(if v.is_finite() { v } else { v_last })

@@ -17,7 +17,7 @@ use super::detect::{BreathKind, Detector, Turn};
 use super::follow::Calibration;
 use super::follow::{Followed, Follower, FollowerConfig, SampleCounts, SignalState};
 use super::trace::{SignalTrace, SignalUnit};
-use super::SignalSample;
+use super::{SignalSample, TRACE_START_NS};
 use crate::recording::{breath_volume, segment, Recording, SegmentOptions};
 
 /// A trace and its hindsight volume.
@@ -47,9 +47,6 @@ fn median(mut v: Vec<f64>) -> Option<f64> {
     v.sort_by(f64::total_cmp);
     v.get(v.len() / 2).copied()
 }
-
-/// Where a trace's time starts on the replay clock: 1 s, so no stamp is 0.
-pub const TRACE_START_NS: u64 = 1_000_000_000;
 
 impl Trace {
     /// A ventilator recording as a live volume source: the flow integrated from its first sample

@@ -16,12 +16,14 @@
 //!   calibration;
 //! * [`follow`] — the three together: samples in, `volume_at(now, display)` out, with the state a
 //!   head-up display shows (calibrating, following, paused, lost);
+//! * [`check`] — one file read as a trace and replayed at each latency with every predictor;
 //! * [`evaluate`] — a recorded trace replayed as if live against its own hindsight volume: RMS error
 //!   with and without prediction, end-inspiration lag, breaths detected.
 //!
 //! Times are nanoseconds on the host's monotonic clock (the tracker bridge's stamps); values are
 //! in the signal's own unit until [`follow::Calibration`] turns them into ml.
 
+pub mod check;
 pub mod detect;
 pub mod evaluate;
 pub mod follow;
@@ -45,9 +47,31 @@ pub struct SignalSample {
     pub valid: bool,
 }
 
+/// Where a recorded trace's time starts on the replay clock: 1 s, so no stamp is 0.
+pub const TRACE_START_NS: u64 = 1_000_000_000;
+
 /// Nanoseconds to seconds.
 pub(crate) fn secs(ns: i128) -> f64 {
     ns as f64 * 1e-9
+}
+
+/// The least-squares line through `points` (x, y): `(slope, intercept at x = 0)`; `None` where the
+/// x do not spread (fewer than two distinct).
+pub(crate) fn fit_line(points: impl Iterator<Item = (f64, f64)>) -> Option<(f64, f64)> {
+    let (mut n, mut sx, mut sy, mut sxx, mut sxy) = (0.0, 0.0, 0.0, 0.0, 0.0);
+    for (x, y) in points {
+        n += 1.0;
+        sx += x;
+        sy += y;
+        sxx += x * x;
+        sxy += x * y;
+    }
+    let den = n * sxx - sx * sx;
+    if !(den > 0.0) {
+        return None;
+    }
+    let slope = (n * sxy - sx * sy) / den;
+    Some((slope, (sy - slope * sx) / n))
 }
 
 /// Median of up to a few values (copied: the rings are small), `None` when empty.

@@ -251,19 +251,10 @@ fn line(grid: &Grid, window: usize, t_ns: u64) -> Option<f64> {
         return Some(newest);
     }
     // x = −k for the k-th newest point.
-    let (mut sx, mut sy, mut sxx, mut sxy) = (0.0, 0.0, 0.0, 0.0);
-    for k in 0..m {
-        let x = -(k as f64);
-        let y = grid.back(k)?;
-        sx += x;
-        sy += y;
-        sxx += x * x;
-        sxy += x * y;
-    }
-    let n = m as f64;
-    let den = n * sxx - sx * sx;
-    let slope = (n * sxy - sx * sy) / den;
-    let intercept = (sy - slope * sx) / n;
+    let points = (0..m).filter_map(|k| grid.back(k).map(|y| (-(k as f64), y)));
+    let Some((slope, intercept)) = super::fit_line(points) else {
+        return Some(newest);
+    };
     let v = intercept + slope * steps_to(grid, t_ns);
     Some(if v.is_finite() { v } else { newest })
 }
@@ -329,6 +320,8 @@ impl ArRls {
         Some(d)
     }
 
+    // Indices as in the RLS update (P, φ, k): clearer than iterator chains over rows and columns.
+    #[allow(clippy::needless_range_loop)]
     fn learn(&mut self, grid: &Grid) {
         let Some(d) = self.differences(grid) else {
             return;

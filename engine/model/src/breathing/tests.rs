@@ -4,11 +4,11 @@
 //! when absent).
 
 use super::detect::{BreathKind, Detector, Pause, Turn};
-use super::evaluate::{evaluate, peaks, EvalOptions, Trace, TRACE_START_NS};
+use super::evaluate::{evaluate, peaks, EvalOptions, Trace};
 use super::follow::{Calibration, Follower, FollowerConfig, SignalState};
 use super::grid::{Arrival, Grid};
 use super::predict::{PredictorKind, SignalPredictor};
-use super::SignalSample;
+use super::{SignalSample, TRACE_START_NS};
 use crate::recording::{read_recording, Synthetic};
 use proptest::prelude::*;
 
@@ -525,5 +525,47 @@ proptest! {
                 prop_assert!(g.volume_ml >= -0.5 * tidal - 1e-6 * tidal.abs() - 1e-9, "{g:?} {tidal}");
             }
         }
+    }
+}
+
+#[test]
+fn csv_trace_headers_name_their_units_as_every_table_reader_does() {
+    use super::trace::{parse_trace, SignalUnit};
+    let table = |header: &str, time_scale: f64| {
+        let mut s = format!("{header}\n");
+        for i in 0..500 {
+            let t = i as f64 * 0.04;
+            s += &format!("{},{:.6}\n", t * time_scale, (t * 1.3).sin());
+        }
+        s
+    };
+    for (header, time_scale, unit, factor) in [
+        ("time_s,amplitude_mm", 1.0, SignalUnit::Mm, 1.0),
+        ("t (s),Amplitude (cm)", 1.0, SignalUnit::Mm, 10.0),
+        ("Time [ms],excursion_mm", 1000.0, SignalUnit::Mm, 1.0),
+        ("time_s,signal (a.u.)", 1.0, SignalUnit::Arbitrary, 1.0),
+        ("time_s,amplitude_au", 1.0, SignalUnit::Arbitrary, 1.0),
+        ("time_s,volume_L", 1.0, SignalUnit::Ml, 1000.0),
+        ("time_s,Volume (ml)", 1.0, SignalUnit::Ml, 1.0),
+    ] {
+        let t = parse_trace(table(header, time_scale).as_bytes())
+            .unwrap_or_else(|e| panic!("{header}: {e:?}"));
+        assert_eq!(t.unit, unit, "{header}");
+        let want = (10.0f64 * 0.04 * 1.3).sin() * factor;
+        assert!(
+            (t.samples[10].value - want).abs() < 1e-4 * factor,
+            "{header}: {:?}",
+            t.samples[10]
+        );
+        assert!((t.rate_hz - 25.0).abs() < 0.1, "{header}: {} Hz", t.rate_hz);
+    }
+    for header in [
+        "time,amplitude_mm",
+        "time_s,amplitude",
+        "time_s,volume_kg",
+        "time_s,pressure_cmH2O",
+    ] {
+        let e = parse_trace(table(header, 1.0).as_bytes()).expect_err(header);
+        assert!(e.1.contains("unit"), "{header}: {e:?}");
     }
 }

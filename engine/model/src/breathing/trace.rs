@@ -22,33 +22,20 @@
 //! is refused: it cannot be replayed at its own rate), no gap over 5 s, a rate of 1–1000 Hz, values
 //! finite, at least 10 s of valid signal.
 
-use std::path::{Path, PathBuf};
+use std::path::Path;
 
 use super::SignalSample;
-use crate::input::{read_bounded, InputError, ReadLimits};
+use crate::input::{read_bounded, ReadLimits};
+use crate::units;
 
 /// Longest gap between two samples, s (a loss longer than this is two recordings).
 pub const MAX_TRACE_GAP_S: f64 = 5.0;
 /// Shortest trace with valid signal, s (two or three breaths).
 pub const MIN_TRACE_S: f64 = 10.0;
 
-/// Errors reading a trace.
-#[derive(Debug, thiserror::Error)]
-pub enum TraceError {
-    /// The file could not be read within the limits.
-    #[error(transparent)]
-    Input(#[from] InputError),
-    /// Malformed or implausible content (line 0: the file as a whole).
-    #[error("{}{}: {message}", path.display(), if *line > 0 { format!(": line {line}") } else { String::new() })]
-    Parse {
-        /// Path.
-        path: PathBuf,
-        /// 1-based line.
-        line: u64,
-        /// What is wrong.
-        message: String,
-    },
-}
+/// Errors reading a trace: the same as a ventilator recording's (both are tables read within the
+/// input limits; a parse error names the line).
+pub use crate::recording::RecordingError as TraceError;
 
 /// A trace's format.
 #[derive(Debug, Clone, Copy, PartialEq, Eq, serde::Serialize)]
@@ -294,42 +281,30 @@ fn stamp(trace: &mut SignalTrace, times: &[f64], to_s: f64) -> Result<(), (u64, 
                 ),
             ));
         }
-        s.t_ns = super::evaluate::TRACE_START_NS + (since * 1e9).round() as u64;
+        s.t_ns = super::TRACE_START_NS + (since * 1e9).round() as u64;
     }
     Ok(())
 }
 
-/// A CSV header's quantity and factor to lungdyn's unit.
+/// A CSV header's quantity and factor to lungdyn's unit (the units every table reader knows:
+/// [`crate::units`]).
 fn csv_column(header: &str) -> Option<(&'static str, f64, Option<SignalUnit>)> {
-    let h = header.trim().to_ascii_lowercase();
-    let unit = h
-        .rsplit(|c| c == '_' || c == '(' || c == ' ' || c == '[')
-        .next()
-        .unwrap_or("")
-        .trim_end_matches([')', ']'])
-        .trim();
-    let name = h
-        .split(|c| c == '_' || c == '(' || c == ' ' || c == '[')
-        .next()
-        .unwrap_or("");
-    match name {
-        "time" | "t" => match unit {
-            "s" => Some(("time", 1.0, None)),
-            "ms" => Some(("time", 1e-3, None)),
-            _ => None,
-        },
+    let name = units::tokens(header).next()?;
+    let arbitrary = || {
+        let t: Vec<String> = units::tokens(header).collect();
+        (t.iter().any(|t| t == "au") || t.windows(2).any(|w| w[0] == "a" && w[1] == "u"))
+            .then_some(("signal", 1.0, Some(SignalUnit::Arbitrary)))
+    };
+    match name.as_str() {
+        "time" | "t" => units::time_unit(header).map(|(_, f)| ("time", f, None)),
         "valid" => Some(("valid", 1.0, None)),
-        "amplitude" | "signal" | "excursion" | "displacement" => match unit {
-            "mm" => Some(("signal", 1.0, Some(SignalUnit::Mm))),
-            "cm" => Some(("signal", 10.0, Some(SignalUnit::Mm))),
-            "au" | "a.u." => Some(("signal", 1.0, Some(SignalUnit::Arbitrary))),
-            _ => None,
-        },
-        "volume" => match unit {
-            "ml" => Some(("signal", 1.0, Some(SignalUnit::Ml))),
-            "l" => Some(("signal", 1000.0, Some(SignalUnit::Ml))),
-            _ => None,
-        },
+        "amplitude" | "signal" | "excursion" | "displacement" => {
+            units::header_unit(header, units::LENGTH_UNITS)
+                .map(|(_, f)| ("signal", f, Some(SignalUnit::Mm)))
+                .or_else(arbitrary)
+        }
+        "volume" => units::header_unit(header, units::VOLUME_UNITS)
+            .map(|(_, f)| ("signal", f, Some(SignalUnit::Ml))),
         _ => None,
     }
 }
@@ -344,6 +319,16 @@ fn parse_csv(text: &str) -> Result<SignalTrace, (u64, String)> {
         .headers()
         .map_err(|e| (1, format!("cannot read the header row: {e}")))?
         .clone();
+    if let [only] = headers.iter().collect::<Vec<_>>()[..] {
+        if let Some(sep) = [';', '\t'].into_iter().find(|c| only.contains(*c)) {
+            return Err((
+                1,
+                format!(
+                    "one column {only:?}: its columns are separated by {sep:?}, not commas —                      write a comma-separated file with decimal points (time_s,amplitude_mm)"
+                ),
+            ));
+        }
+    }
     let (mut time, mut signal, mut valid) = (None, None, None);
     for (i, h) in headers.iter().enumerate() {
         match csv_column(h) {

@@ -1,23 +1,21 @@
 //! `lungdyn breathing check FILE`: a respiratory recording replayed as if it were the live signal,
 //! through the follower the engine will use (calibration, breath detection, prediction to the
 //! display time), against the recording's own hindsight volume — with every predictor beside
-//! "none", at each latency asked (issue 35's measurement, offline; docs/BREATHING.md).
+//! "none", at each latency asked (issue 35's measurement, offline; the arithmetic is
+//! `lung_model::breathing::check`'s, the arguments, the plot and the table are here).
 
 use std::path::PathBuf;
 
-use lung_model::breathing::evaluate::{evaluate, frames, EvalOptions, Evaluation, Trace};
-use lung_model::breathing::follow::{FollowerConfig, SignalState};
+use lung_model::breathing::check::{
+    predictors_at, read_trace_or_recording, replay_options, sweep, GoalRow, GOAL_IMPROVEMENT,
+    GOAL_PERCENT_OF_TIDAL,
+};
+use lung_model::breathing::evaluate::{frames, EvalOptions, Evaluation, Trace};
+use lung_model::breathing::follow::SignalState;
 use lung_model::breathing::predict::PredictorKind;
-use lung_model::breathing::trace::{looks_like_trace, parse_trace, TraceError, TraceFormat};
-use lung_model::recording::{parse_recording, RecordingError};
 use serde::Serialize;
 
 use crate::plot::{self, Panel, Series, DATA, EXHALE, INHALE};
-
-/// The goal issue 35 sets: RMS error at display time ≤ 3 % of the tidal volume with prediction…
-pub const GOAL_PERCENT_OF_TIDAL: f64 = 3.0;
-/// …and at least this many times lower than without.
-pub const GOAL_IMPROVEMENT: f64 = 2.0;
 
 /// Options of `lungdyn breathing check`.
 #[derive(Debug, Clone, clap::Args)]
@@ -95,21 +93,6 @@ pub struct CheckReport {
     pub plots: Vec<String>,
 }
 
-/// One latency's verdict.
-#[derive(Debug, Clone, Serialize)]
-pub struct GoalRow {
-    /// Latency, ms.
-    pub latency_ms: f64,
-    /// With prediction, % of tidal.
-    pub percent_of_tidal: f64,
-    /// Without, % of tidal.
-    pub percent_of_tidal_without_prediction: f64,
-    /// Without ÷ with.
-    pub improvement: f64,
-    /// Both goals met.
-    pub met: bool,
-}
-
 fn check_args(a: &CheckArgs) -> anyhow::Result<PredictorKind> {
     if a.latency_ms.is_empty() {
         anyhow::bail!("--latency-ms: give at least one latency, e.g. --latency-ms 100");
@@ -146,128 +129,23 @@ pub fn check(a: &CheckArgs) -> anyhow::Result<CheckReport> {
         &a.file,
         a.input_args.limits(lung_model::input::ReadLimits::TABLE),
     )?;
-    let (trace, kind) = if looks_like_trace(&bytes) {
-        let signal = parse_trace(&bytes).map_err(|(line, message)| TraceError::Parse {
-            path: a.file.clone(),
-            line,
-            message,
-        })?;
-        let kind = format!(
-            "{} trace of {} ({} invalid samples{})",
-            match signal.format {
-                TraceFormat::Vxp => "Varian RPM",
-                TraceFormat::Csv => "CSV",
-            },
-            signal.unit.symbol(),
-            signal.invalid,
-            if signal.format == TraceFormat::Vxp {
-                format!(", {} flagged non-periodic", signal.non_periodic)
-            } else {
-                String::new()
-            }
-        );
-        let trace = Trace::from_signal(&signal, a.tidal_ml).ok_or_else(|| {
-            anyhow::anyhow!(
-                "{}: fewer than two end-expirations found: no breathing to follow in this signal",
-                a.file.display()
-            )
-        })?;
-        (trace, kind)
-    } else {
-        let rec = parse_recording(&bytes).map_err(|(line, message)| RecordingError::Parse {
-            path: a.file.clone(),
-            line,
-            message,
-        })?;
-        // The units and the flow's sign first: a recording in the wrong unit would be "followed"
-        // perfectly into nonsense.
-        let characters = lung_model::recording::classify::characterise_all(
-            &rec,
-            &lung_model::recording::SegmentOptions::default(),
-        );
-        lung_model::recording::checks::check_plausible(
-            &rec,
-            &characters.iter().collect::<Vec<_>>(),
-        )
-        .map_err(|e| anyhow::anyhow!("{}: {e}", a.file.display()))?;
-        let trace = Trace::from_recording(&rec).ok_or_else(|| {
-            anyhow::anyhow!(
-                "{}: no complete breath (inspiration and a whole expiration): nothing to follow or \
-                 compare with",
-                a.file.display()
-            )
-        })?;
-        (
-            trace,
-            format!(
-                "ventilator recording ({}), flow integrated",
-                rec.format.describe()
-            ),
-        )
-    };
-    // Every predictor at every latency, the chosen one first; the previous-cycle predictor compares
-    // its two at the latency replayed.
-    let kinds_at = |latency_ms: f64| {
-        let at = |k: PredictorKind| match k {
-            PredictorKind::Cycle { .. } => PredictorKind::Cycle {
-                horizon_ms: latency_ms.round() as u32,
-            },
-            k => k,
-        };
-        let mut kinds = vec![at(chosen)];
-        for k in [
-            PredictorKind::Cycle { horizon_ms: 0 },
-            PredictorKind::DEFAULT,
-            PredictorKind::LINE,
-            PredictorKind::Hold,
-        ] {
-            if !kinds.contains(&at(k)) {
-                kinds.push(at(k));
-            }
-        }
-        kinds
-    };
-    let options = |latency_ms: f64, predictor| {
-        let mut follower = FollowerConfig::at_rate(trace.rate_hz, trace.calibration);
-        follower.predictor = predictor;
-        EvalOptions {
-            latency_ns: (latency_ms * 1e6).round() as u64,
-            frame_period_ns: (1e9 / a.frame_rate_hz).round() as u64,
-            follower,
-        }
-    };
-    let mut results = Vec::new();
-    let mut goal = Vec::new();
-    for &l in &a.latency_ms {
-        for (i, &k) in kinds_at(l).iter().enumerate() {
-            let e = evaluate(&trace, &options(l, k));
-            if i == 0 {
-                let improvement = e.rms_error_ml_without_prediction / e.rms_error_ml;
-                goal.push(GoalRow {
-                    latency_ms: l,
-                    percent_of_tidal: e.rms_error_percent_of_tidal,
-                    percent_of_tidal_without_prediction: e
-                        .rms_error_percent_of_tidal_without_prediction,
-                    improvement,
-                    met: e.rms_error_percent_of_tidal <= GOAL_PERCENT_OF_TIDAL
-                        && improvement >= GOAL_IMPROVEMENT,
-                });
-            }
-            results.push(e);
-        }
-    }
+    let (trace, kind) = read_trace_or_recording(&a.file, &bytes, a.tidal_ml)?;
+    let (results, goal) = sweep(&trace, chosen, &a.latency_ms, a.frame_rate_hz);
     let plots = match &a.plot {
-        Some(png) => plot::render(
-            png,
-            &panels(
+        Some(png) => {
+            let first = a.latency_ms[0];
+            let shown = replay_options(
                 &trace,
-                &options(a.latency_ms[0], kinds_at(a.latency_ms[0])[0]),
-            ),
-        )?
-        .commit()?
-        .iter()
-        .map(|p| p.display().to_string())
-        .collect(),
+                first,
+                a.frame_rate_hz,
+                predictors_at(chosen, first)[0],
+            );
+            plot::render(png, &panels(&trace, &shown))?
+                .commit()?
+                .iter()
+                .map(|p| p.display().to_string())
+                .collect()
+        }
         None => Vec::new(),
     };
     let n = trace.samples.len();

@@ -1,0 +1,163 @@
+//! Issue 35's measurement on one file: a recording (a ventilator's, or one respiratory signal)
+//! read as a [`Trace`], then replayed at each latency with every predictor beside "none", and the
+//! verdict's predictor held against the goal (`lungdyn breathing check` prints it).
+
+use std::path::Path;
+
+use super::evaluate::{evaluate, EvalOptions, Evaluation, Trace};
+use super::follow::FollowerConfig;
+use super::predict::PredictorKind;
+use super::trace::{looks_like_trace, parse_trace, TraceError, TraceFormat};
+use crate::recording::{checks, classify, parse_recording, SegmentOptions};
+
+/// The goal issue 35 sets: RMS error at display time ≤ 3 % of the tidal volume with prediction…
+pub const GOAL_PERCENT_OF_TIDAL: f64 = 3.0;
+/// …and at least this many times lower than without.
+pub const GOAL_IMPROVEMENT: f64 = 2.0;
+
+/// One latency's verdict.
+#[derive(Debug, Clone, PartialEq, serde::Serialize)]
+pub struct GoalRow {
+    /// Latency, ms.
+    pub latency_ms: f64,
+    /// With prediction, % of tidal.
+    pub percent_of_tidal: f64,
+    /// Without, % of tidal.
+    pub percent_of_tidal_without_prediction: f64,
+    /// Without ÷ with.
+    pub improvement: f64,
+    /// Both goals met.
+    pub met: bool,
+}
+
+/// A file's bytes as a trace, and what it was read as. A one-signal trace (RPM `.vxp`, a CSV of one
+/// signal) is calibrated in hindsight to `tidal_ml`; a ventilator recording is checked for its
+/// units and its flow's sign first (a recording in the wrong unit would be "followed" perfectly
+/// into nonsense), and its flow integrated.
+pub fn read_trace_or_recording(
+    path: &Path,
+    bytes: &[u8],
+    tidal_ml: f64,
+) -> Result<(Trace, String), TraceError> {
+    let whole = |message: String| TraceError::Parse {
+        path: path.to_path_buf(),
+        line: 0,
+        message,
+    };
+    let at_line = |(line, message): (u64, String)| TraceError::Parse {
+        path: path.to_path_buf(),
+        line,
+        message,
+    };
+    if looks_like_trace(bytes) {
+        let signal = parse_trace(bytes).map_err(at_line)?;
+        let kind = format!(
+            "{} trace of {} ({} invalid samples{})",
+            match signal.format {
+                TraceFormat::Vxp => "Varian RPM",
+                TraceFormat::Csv => "CSV",
+            },
+            signal.unit.symbol(),
+            signal.invalid,
+            if signal.format == TraceFormat::Vxp {
+                format!(", {} flagged non-periodic", signal.non_periodic)
+            } else {
+                String::new()
+            }
+        );
+        let trace = Trace::from_signal(&signal, tidal_ml).ok_or_else(|| {
+            whole(
+                "fewer than two end-expirations found: no breathing to follow in this signal"
+                    .into(),
+            )
+        })?;
+        return Ok((trace, kind));
+    }
+    let rec = parse_recording(bytes).map_err(at_line)?;
+    let characters = classify::characterise_all(&rec, &SegmentOptions::default());
+    checks::check_plausible(&rec, &characters.iter().collect::<Vec<_>>())
+        .map_err(|e| whole(e.to_string()))?;
+    let trace = Trace::from_recording(&rec).ok_or_else(|| {
+        whole(
+            "no complete breath (inspiration and a whole expiration): nothing to follow or \
+             compare with"
+                .into(),
+        )
+    })?;
+    let kind = format!(
+        "ventilator recording ({}), flow integrated",
+        rec.format.describe()
+    );
+    Ok((trace, kind))
+}
+
+/// The predictors replayed at `latency_ms`: `chosen` first, then the previous cycle's, the
+/// autoregression, the line and none (each once); the previous-cycle predictor compares its
+/// candidates at the latency replayed.
+pub fn predictors_at(chosen: PredictorKind, latency_ms: f64) -> Vec<PredictorKind> {
+    let at = |k: PredictorKind| match k {
+        PredictorKind::Cycle { .. } => PredictorKind::Cycle {
+            horizon_ms: latency_ms.round() as u32,
+        },
+        k => k,
+    };
+    let mut kinds = vec![at(chosen)];
+    for k in [
+        PredictorKind::Cycle { horizon_ms: 0 },
+        PredictorKind::DEFAULT,
+        PredictorKind::LINE,
+        PredictorKind::Hold,
+    ] {
+        if !kinds.contains(&at(k)) {
+            kinds.push(at(k));
+        }
+    }
+    kinds
+}
+
+/// The replay's options: shown `latency_ms` after capture at `frame_rate_hz`, followed with
+/// `predictor` at the trace's own rate and calibration.
+pub fn replay_options(
+    trace: &Trace,
+    latency_ms: f64,
+    frame_rate_hz: f64,
+    predictor: PredictorKind,
+) -> EvalOptions {
+    let mut follower = FollowerConfig::at_rate(trace.rate_hz, trace.calibration);
+    follower.predictor = predictor;
+    EvalOptions {
+        latency_ns: (latency_ms * 1e6).round() as u64,
+        frame_period_ns: (1e9 / frame_rate_hz).round() as u64,
+        follower,
+    }
+}
+
+/// Every predictor ([`predictors_at`]) at every latency, and per latency the verdict on `chosen`.
+pub fn sweep(
+    trace: &Trace,
+    chosen: PredictorKind,
+    latencies_ms: &[f64],
+    frame_rate_hz: f64,
+) -> (Vec<Evaluation>, Vec<GoalRow>) {
+    let mut results = Vec::new();
+    let mut goal = Vec::new();
+    for &l in latencies_ms {
+        for (i, k) in predictors_at(chosen, l).into_iter().enumerate() {
+            let e = evaluate(trace, &replay_options(trace, l, frame_rate_hz, k));
+            if i == 0 {
+                let improvement = e.rms_error_ml_without_prediction / e.rms_error_ml;
+                goal.push(GoalRow {
+                    latency_ms: l,
+                    percent_of_tidal: e.rms_error_percent_of_tidal,
+                    percent_of_tidal_without_prediction: e
+                        .rms_error_percent_of_tidal_without_prediction,
+                    improvement,
+                    met: e.rms_error_percent_of_tidal <= GOAL_PERCENT_OF_TIDAL
+                        && improvement >= GOAL_IMPROVEMENT,
+                });
+            }
+            results.push(e);
+        }
+    }
+    (results, goal)
+}
