@@ -17,7 +17,7 @@
 //!
 //! ## Layout versioning
 //! [`LAYOUT_VERSION`] is written into every payload ([`Message::layout_version`]) and into every
-//! payload's type name ([`Message::TYPE_NAME`], `"lungdyn.EngineFrame.v5"`), which the transport
+//! payload's type name ([`Message::TYPE_NAME`], `"lungdyn.EngineFrame.v6"`), which the transport
 //! hands to iceoryx2: iceoryx2 refuses to open a service whose payload type name, size or alignment
 //! differ from the creator's, so a process built from another layout fails at start-up instead of
 //! reading garbage; the field in the payload is a second check for peers that bypass the type name.
@@ -32,14 +32,20 @@
 //! latency harness's submit-to-present), and the renderer's GPU-done time (capture → GPU done), and
 //! what a heads-up display shows of each lung's breath: its PV-model pressure, tidal volume and the
 //! ticks of its current cycle and inhalation (so a disease's own rate is shown, not the scene's); v5
-//! gives each [`ControlPacket`] its origin (the remote site that raised it, or [`ORIGIN_LOCAL`]).
+//! gives each [`ControlPacket`] its origin (the remote site that raised it, or [`ORIGIN_LOCAL`]); v6
+//! adds to each [`TrackerFrame`] the respiratory signal's samples that arrived since the previous one
+//! ([`SignalBlock`], issue 35: breathing with the patient).
 
 use core::mem::{align_of, offset_of, size_of};
 
 use bytemuck::{Pod, Zeroable};
 
 /// Version of every payload layout in this crate. Part of each payload's type name.
-pub const LAYOUT_VERSION: u32 = 5;
+pub const LAYOUT_VERSION: u32 = 6;
+
+/// Most respiratory-signal samples one [`TrackerFrame`] carries (8 per frame at the bridge's 60 Hz:
+/// 480 Hz; a slower source sends one or none per frame, a faster one's rest waits for the next).
+pub const MAX_SIGNAL_SAMPLES: usize = 8;
 
 /// Maximum number of tracked tools in one [`TrackerFrame`].
 pub const MAX_TOOLS: usize = 4;
@@ -229,6 +235,67 @@ pub struct TrackerFrame {
     pub stamps: HopStamps,
     /// Tool poses; slot [`TOOL_PATIENT`] is the patient reference, [`TOOL_HMD`] the HMD.
     pub tools: [ToolPose; MAX_TOOLS],
+    /// The respiratory signal's samples that arrived since the previous frame (v6).
+    pub signal: SignalBlock,
+}
+
+/// The unit of a [`SignalBlock`]'s values.
+pub mod signal_unit {
+    /// No signal source.
+    pub const NONE: u32 = 0;
+    /// Millimetres of chest (marker) excursion, + = inspiration.
+    pub const MM: u32 = 1;
+    /// Millilitres (a ventilator's or spirometer's volume).
+    pub const ML: u32 = 2;
+    /// A device's own amplitude unit, + = inspiration.
+    pub const ARBITRARY: u32 = 3;
+}
+
+/// Bits of [`SignalBlock::status`].
+pub mod signal_status {
+    /// The bridge has a respiratory signal source.
+    pub const CONFIGURED: u32 = 1 << 0;
+    /// The source has ended (a replayed trace reached its end): no more samples will come.
+    pub const ENDED: u32 = 1 << 1;
+    /// The source is cut on purpose (a loss being tested): samples are withheld.
+    pub const CUT: u32 = 1 << 2;
+}
+
+/// One respiratory-signal sample as its source stamped it.
+#[derive(Debug, Clone, Copy, Default, PartialEq, Pod, Zeroable)]
+#[repr(C)]
+pub struct SignalWire {
+    /// Capture time, ns, host monotonic clock.
+    pub t_ns: u64,
+    /// The value in [`SignalBlock::unit`]; 0 when not valid (never NaN).
+    pub value: f64,
+}
+
+/// A tracker frame's respiratory-signal samples (issue 35): what arrived since the previous frame,
+/// oldest first.
+#[derive(Debug, Clone, Copy, Default, PartialEq, Pod, Zeroable)]
+#[repr(C)]
+pub struct SignalBlock {
+    /// Samples used in `samples`.
+    pub count: u32,
+    /// [`signal_unit`] of the values.
+    pub unit: u32,
+    /// [`signal_status`] bits.
+    pub status: u32,
+    /// Bit `i` set: sample `i` is valid (its source said so, and it is finite).
+    pub valid_mask: u32,
+    /// The source's nominal sample period, ns (0 before it is known).
+    pub period_ns: u64,
+    /// The samples.
+    pub samples: [SignalWire; MAX_SIGNAL_SAMPLES],
+}
+
+impl SignalBlock {
+    /// Sample `i` with its validity, when `i < count`.
+    pub fn sample(&self, i: usize) -> Option<(SignalWire, bool)> {
+        (i < (self.count as usize).min(MAX_SIGNAL_SAMPLES))
+            .then(|| (self.samples[i], self.valid_mask & (1 << i) != 0))
+    }
 }
 
 impl TrackerFrame {
@@ -260,6 +327,16 @@ pub mod engine_state {
     /// The orientation is where the supine-fitted direction model barely expands a lung: its
     /// force weights were limited towards supine (`lung_model::orientation::VolumeLimit`).
     pub const ORIENTATION_LIMITED: u32 = 1 << 7;
+    /// The scene breathes with the patient's signal (`[breathing] source = "signal"`), and these
+    /// volumes are the signal's (following, or paused on a breath-hold or apnoea).
+    pub const SIGNAL_FOLLOWING: u32 = 1 << 8;
+    /// The signal is being calibrated (its first regular breaths): the model breathes meanwhile.
+    pub const SIGNAL_CALIBRATING: u32 = 1 << 9;
+    /// No valid signal sample within the loss limit (or none yet): the model breathes, carried on
+    /// from the signal's last volume and phase.
+    pub const SIGNAL_LOST: u32 = 1 << 10;
+    /// The signal shows no breath lately (a breath-hold, an apnoea, a pause): its volume is drawn.
+    pub const SIGNAL_PAUSED: u32 = 1 << 11;
 }
 
 /// Bits of [`LungFrame::flags`].
@@ -704,7 +781,7 @@ impl core::str::FromStr for Intervention {
 
 impl Message for ControlPacket {
     const NAME: &'static str = "ControlPacket";
-    const TYPE_NAME: &'static str = "lungdyn.ControlPacket.v5";
+    const TYPE_NAME: &'static str = "lungdyn.ControlPacket.v6";
     fn layout_version(&self) -> u32 {
         self.layout_version
     }
@@ -712,35 +789,35 @@ impl Message for ControlPacket {
 
 impl Message for ControlReply {
     const NAME: &'static str = "ControlReply";
-    const TYPE_NAME: &'static str = "lungdyn.ControlReply.v5";
+    const TYPE_NAME: &'static str = "lungdyn.ControlReply.v6";
     fn layout_version(&self) -> u32 {
         self.layout_version
     }
 }
 
-const VERSION_SUFFIX: &str = ".v5";
+const VERSION_SUFFIX: &str = ".v6";
 const _: () = assert!(
-    LAYOUT_VERSION == 5,
+    LAYOUT_VERSION == 6,
     "bump VERSION_SUFFIX with LAYOUT_VERSION"
 );
 
 impl Message for TrackerFrame {
     const NAME: &'static str = "TrackerFrame";
-    const TYPE_NAME: &'static str = "lungdyn.TrackerFrame.v5";
+    const TYPE_NAME: &'static str = "lungdyn.TrackerFrame.v6";
     fn layout_version(&self) -> u32 {
         self.layout_version
     }
 }
 impl Message for EngineFrame {
     const NAME: &'static str = "EngineFrame";
-    const TYPE_NAME: &'static str = "lungdyn.EngineFrame.v5";
+    const TYPE_NAME: &'static str = "lungdyn.EngineFrame.v6";
     fn layout_version(&self) -> u32 {
         self.layout_version
     }
 }
 impl Message for FrameReport {
     const NAME: &'static str = "FrameReport";
-    const TYPE_NAME: &'static str = "lungdyn.FrameReport.v5";
+    const TYPE_NAME: &'static str = "lungdyn.FrameReport.v6";
     fn layout_version(&self) -> u32 {
         self.layout_version
     }
@@ -805,12 +882,29 @@ const _: () = {
     assert!(offset_of!(ToolPose, rms_error_mm) == 40);
     assert!(offset_of!(ToolPose, _pad) == 44);
 
-    assert!(size_of::<TrackerFrame>() == 256 && align_of::<TrackerFrame>() == 8);
+    assert!(size_of::<SignalWire>() == 16 && align_of::<SignalWire>() == 8);
+    assert!(offset_of!(SignalWire, t_ns) == 0);
+    assert!(offset_of!(SignalWire, value) == 8);
+    assert!(
+        size_of::<SignalBlock>() == 24 + 16 * MAX_SIGNAL_SAMPLES && align_of::<SignalBlock>() == 8
+    );
+    assert!(offset_of!(SignalBlock, count) == 0);
+    assert!(offset_of!(SignalBlock, unit) == 4);
+    assert!(offset_of!(SignalBlock, status) == 8);
+    assert!(offset_of!(SignalBlock, valid_mask) == 12);
+    assert!(offset_of!(SignalBlock, period_ns) == 16);
+    assert!(offset_of!(SignalBlock, samples) == 24);
+
+    assert!(
+        size_of::<TrackerFrame>() == 256 + 24 + 16 * MAX_SIGNAL_SAMPLES
+            && align_of::<TrackerFrame>() == 8
+    );
     assert!(offset_of!(TrackerFrame, layout_version) == 0);
     assert!(offset_of!(TrackerFrame, tool_count) == 4);
     assert!(offset_of!(TrackerFrame, frame_number) == 8);
     assert!(offset_of!(TrackerFrame, stamps) == 16);
     assert!(offset_of!(TrackerFrame, tools) == 64);
+    assert!(offset_of!(TrackerFrame, signal) == 256);
 
     assert!(size_of::<LungFrame>() == 80 + 4 * MAX_COEFFS && align_of::<LungFrame>() == 8);
     assert!(offset_of!(LungFrame, kernel_id) == 0);

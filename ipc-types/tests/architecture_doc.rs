@@ -305,8 +305,9 @@ fn a_stale_layout_version_is_reported() {
 #[test]
 fn a_stale_type_name_or_prose_size_is_reported() {
     let wrong = format!(
-        "{}\nThe renderer opens `lungdyn.FrameReport.v4`; an `EngineFrame` is 752 B, a TrackerFrame 256 bytes.\n",
-        read_doc()
+        "{}\nThe renderer opens `lungdyn.FrameReport.v4`; an `EngineFrame` is 752 B, a TrackerFrame {} bytes.\n",
+        read_doc(),
+        size_of::<TrackerFrame>()
     );
     let found = problems(&wrong).join("\n");
     let size = size_of::<EngineFrame>();
@@ -320,5 +321,8 @@ fn a_stale_type_name_or_prose_size_is_reported() {
         )),
         "{found}"
     );
-    assert!(!found.contains("TrackerFrame"), "256 is right: {found}");
+    assert!(
+        !found.contains("TrackerFrame"),
+        "the TrackerFrame's size is right: {found}"
+    );
 }

@@ -129,7 +129,8 @@ pub fn check(a: &CheckArgs) -> anyhow::Result<CheckReport> {
         &a.file,
         a.input_args.limits(lung_model::input::ReadLimits::TABLE),
     )?;
-    let (trace, kind) = read_trace_or_recording(&a.file, &bytes, a.tidal_ml)?;
+    let read = read_trace_or_recording(&a.file, &bytes, a.tidal_ml)?;
+    let (trace, kind) = (read.trace, read.kind);
     let (results, goal) = sweep(&trace, chosen, &a.latency_ms, a.frame_rate_hz);
     let plots = match &a.plot {
         Some(png) => {

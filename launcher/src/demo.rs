@@ -80,6 +80,13 @@ pub struct DemoArgs {
     /// scene's [tracker] source (synthetic).
     #[arg(long, value_name = "URI")]
     pub tracker: Option<String>,
+    /// What the lungs breathe to: model (the scene's PV model, its own clock) or the patient's
+    /// respiratory signal followed live — trace:FILE (a Varian RPM .vxp, a CSV trace with time_s and
+    /// amplitude_mm/volume_ml, or a ventilator recording, replayed at its own rate). The HUD says
+    /// "following patient", "calibrating" or "signal lost" (a blue veil: the model carries on).
+    /// Default: the scene's [breathing] table (model).
+    #[arg(long, value_name = "SOURCE")]
+    pub breathing: Option<String>,
     /// Deformation mode (overrides the scene's [lungs] mode): "precomputed" (one baked field,
     /// supine only, 3 MACs per vertex), "basis" (exact for any orientation, 4 MACs), "sh" (eq. 7.7
     /// with the scene's bands), "direct" (eq. 7.1 every frame, the accuracy reference).
@@ -718,6 +725,19 @@ fn resolve_scene(args: &DemoArgs) -> anyhow::Result<Resolved> {
         loaded.tracker.source = t.clone();
     }
     tracker_bridge::source::SourceSpec::parse(&loaded.tracker.source)?;
+    // The engine follows the signal the bridge reads, both from the resolved scene's [breathing].
+    if let Some(b) = &args.breathing {
+        match breathing_override(b)? {
+            None => loaded.breathing.source = lung_model::scene::BreathSource::Model,
+            Some(signal) => {
+                loaded.breathing.source = lung_model::scene::BreathSource::Signal;
+                loaded.breathing.signal = signal;
+            }
+        }
+        loaded
+            .validate()
+            .map_err(|e| anyhow::anyhow!("the scene with --breathing {b}: {e}"))?;
+    }
     if (args.roll_deg > 0.0 || args.pitch_deg > 0.0) && !loaded.lungs.mode.follows_orientation() {
         eprintln!(
             "lungdyn: note: the {} mode keeps the supine breath whatever the patient's orientation; \
@@ -1612,6 +1632,33 @@ pub fn table(r: &DemoReport) -> String {
         let _ = writeln!(s, "breath strip (frames + motion panel: green = newly covered at end-inspiration, red = vacated): {strip}");
     }
     s
+}
+
+/// `--breathing`: `model` (`None`), or a signal source with its file made absolute and checked
+/// (the processes run elsewhere than this shell's folder).
+fn breathing_override(text: &str) -> anyhow::Result<Option<String>> {
+    use tracker_bridge::signal::SignalSpec;
+    if text.trim().eq_ignore_ascii_case("model") {
+        return Ok(None);
+    }
+    match SignalSpec::parse(text).map_err(|e| anyhow::anyhow!("{e}; or model"))? {
+        SignalSpec::None => Ok(None),
+        SignalSpec::Trace(path) => {
+            let abs = std::path::absolute(&path)
+                .map_err(|e| anyhow::anyhow!("--breathing trace:{}: {e}", path.display()))?;
+            if !abs.is_file() {
+                anyhow::bail!(
+                    "--breathing trace:{}: no such file (a Varian RPM .vxp, a CSV trace or a \
+                     ventilator recording)",
+                    path.display()
+                );
+            }
+            // Read now: a file the bridge cannot follow is refused before anything starts.
+            let replay = tracker_bridge::signal::TraceReplay::open(&abs)?;
+            eprintln!("lungdyn: breathing signal: {}", replay.describe());
+            Ok(Some(format!("trace:{}", abs.display())))
+        }
+    }
 }
 
 #[cfg(test)]

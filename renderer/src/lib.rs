@@ -80,6 +80,9 @@ pub enum PoseWarning {
     /// No engine frame for a while ([`ipc_types::report_flags::ENGINE_DOWN`]): the engine is
     /// restarting; lungs and pose are the last frame's (violet veil, and the window title says so).
     EngineDown,
+    /// The scene breathes with the patient's signal and it is lost (the engine's `SIGNAL_LOST`):
+    /// the model breathes, carried on from the signal's last volume, not the patient (blue veil).
+    SignalLost,
 }
 
 impl PoseWarning {
@@ -90,6 +93,8 @@ impl PoseWarning {
             PoseWarning::Stale
         } else if state & e::PATIENT_POSE_HELD != 0 {
             PoseWarning::Held
+        } else if state & e::SIGNAL_LOST != 0 {
+            PoseWarning::SignalLost
         } else {
             PoseWarning::None
         }
@@ -116,6 +121,12 @@ impl PoseWarning {
                 r: 0.14,
                 g: 0.03,
                 b: 0.22,
+                a: 1.0,
+            },
+            PoseWarning::SignalLost => wgpu::Color {
+                r: 0.0,
+                g: 0.07,
+                b: 0.18,
                 a: 1.0,
             },
         }

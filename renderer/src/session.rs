@@ -647,7 +647,9 @@ impl Session {
             state.pose_warning = crate::PoseWarning::EngineDown;
         }
         match state.pose_warning {
-            crate::PoseWarning::None | crate::PoseWarning::EngineDown => {}
+            crate::PoseWarning::None
+            | crate::PoseWarning::EngineDown
+            | crate::PoseWarning::SignalLost => {}
             crate::PoseWarning::Held => *flags |= report_flags::PATIENT_POSE_HELD,
             crate::PoseWarning::Stale => {
                 *flags |= report_flags::PATIENT_POSE_HELD | report_flags::PATIENT_POSE_STALE

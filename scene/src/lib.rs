@@ -10,11 +10,14 @@
 //!   receiver's [`wake::WakeMode`];
 //! * [`render`] — `[render]`: how the renderer draws;
 //! * [`remote`] — `[remote]`: this machine's part in a shared session;
+//! * [`breathing`] — `[breathing]`: the scene's model or the patient's signal; the bridge reads its
+//!   `signal` (where the samples come from) itself;
 //! * [`wake`] — the wake strategies' names, shared by the scene and the transport.
 //!
 //! `lung_model::scene::Scene` holds every table (these re-exported there under their old names) and
 //! calls each table's `validate` here; each check's message names its table and key.
 
+pub mod breathing;
 pub mod processes;
 pub mod remote;
 pub mod render;
@@ -65,6 +68,9 @@ pub enum TableError {
     /// A wake strategy the cores cannot hold, or a spin window out of range.
     #[error("[processes] {0}")]
     ProcessWake(String),
+    /// A `[breathing]` value out of range.
+    #[error("[breathing] {0}")]
+    Breathing(String),
 }
 
 /// A number as every check's message prints it: three decimals at most within 1e-3..1e7, else in

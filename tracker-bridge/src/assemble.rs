@@ -227,6 +227,8 @@ pub struct Assembler {
     frame_number: u64,
     /// The run's counters.
     pub stats: Stats,
+    /// The respiratory signal, when there is one (`--breathing`).
+    signal: Option<crate::signal::TraceReplay>,
 }
 
 impl Assembler {
@@ -237,6 +239,30 @@ impl Assembler {
             slots: [Slot::default(); MAX_TOOLS],
             frame_number: 0,
             stats: Stats::new(),
+            signal: None,
+        }
+    }
+
+    /// Send this respiratory signal in every frame's signal block from now on.
+    pub fn set_signal(&mut self, signal: crate::signal::TraceReplay) {
+        self.stats.signal = Some(signal.counts);
+        self.signal = Some(signal);
+    }
+
+    /// The respiratory signal, when there is one.
+    pub fn signal(&self) -> Option<&crate::signal::TraceReplay> {
+        self.signal.as_ref()
+    }
+
+    /// The signal's samples due by `now_ns` (the run's clock) into `out` (an empty block without a
+    /// signal).
+    pub fn fill_signal(&mut self, now_ns: u64, out: &mut ipc_types::SignalBlock) {
+        match &mut self.signal {
+            Some(s) => {
+                s.fill(now_ns, out);
+                self.stats.signal = Some(s.counts);
+            }
+            None => *out = Default::default(),
         }
     }
 

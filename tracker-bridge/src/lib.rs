@@ -10,6 +10,8 @@
 //!   what the device said);
 //! * [`assemble`] — samples mapped to tool slots by name, frame-number gaps and repeats, staleness,
 //!   one [`TrackerFrame`] per tick;
+//! * [`signal`] — `--breathing`: the patient's respiratory signal, a source beside the tracker's,
+//!   its samples carried in each frame's signal block;
 //! * [`record`] — `--record FILE`: every sample with its receive time, replayable bit for bit;
 //! * [`run`] — the shared loop: device samples published on arrival, an absolute-deadline schedule
 //!   for the synthetic source, replays and a silent device;
@@ -30,6 +32,7 @@ pub mod ndi_sim;
 pub mod record;
 pub mod run;
 pub mod sample;
+pub mod signal;
 pub mod source;
 pub mod stats;
 pub mod synthetic;
@@ -132,6 +135,18 @@ pub struct SourceArgs {
     /// pyigtl POSITION items: quaternion component order as the sender packed them.
     #[arg(long, value_enum, default_value_t = igtl::QuatOrder::Xyzw)]
     pub pyigtl_quat_order: igtl::QuatOrder,
+    /// The patient's respiratory signal, sent in every frame beside the poses: trace:FILE (a Varian
+    /// RPM .vxp, a CSV trace or a ventilator recording, replayed at its own rate from the start) or
+    /// none. Default: the scene's [breathing] signal, else none.
+    #[arg(long, value_name = "SOURCE")]
+    pub breathing: Option<String>,
+    /// Withhold the signal's samples from S seconds after the start (a signal loss, to test one;
+    /// with --breathing-cut-for).
+    #[arg(long, value_name = "S", requires = "breathing_cut_for")]
+    pub breathing_cut_at: Option<f64>,
+    /// How long the cut lasts, s.
+    #[arg(long, value_name = "S", requires = "breathing_cut_at")]
+    pub breathing_cut_for: Option<f64>,
 }
 
 impl Default for SourceArgs {
@@ -158,6 +173,9 @@ impl Default for SourceArgs {
             ndi_tx: false,
             ndi_poll_hz: None,
             pyigtl_quat_order: igtl::QuatOrder::Xyzw,
+            breathing: None,
+            breathing_cut_at: None,
+            breathing_cut_for: None,
         }
     }
 }
@@ -171,6 +189,8 @@ pub struct Resolved {
     pub options: SourceOptions,
     /// Mapping, validation, staleness, rate (a replay uses its recorded one instead).
     pub config: BridgeConfig,
+    /// The respiratory signal's source.
+    pub signal: signal::SignalSpec,
 }
 
 impl SourceArgs {
@@ -261,11 +281,44 @@ impl SourceArgs {
             },
             ..SourceOptions::default()
         };
+        let signal_text = match &self.breathing {
+            Some(b) => b.clone(),
+            None => self.breathing_table()?.signal,
+        };
+        let signal = signal::SignalSpec::parse(&signal_text).map_err(BridgeError::Option)?;
+        if let (Some(at), Some(dur)) = (self.breathing_cut_at, self.breathing_cut_for) {
+            signal::check_cut(at, dur)?;
+        }
+        if self.breathing_cut_at.is_some() && signal == signal::SignalSpec::None {
+            return Err(BridgeError::Option(
+                "--breathing-cut-at: there is no signal to cut (give --breathing trace:FILE)"
+                    .into(),
+            ));
+        }
         Ok(Resolved {
             spec,
             options,
             config,
+            signal,
         })
+    }
+
+    /// The scene's `[breathing]` table (`--scene`), else its defaults.
+    fn breathing_table(&self) -> Result<lungdyn_scene::breathing::BreathingScene, BridgeError> {
+        use lungdyn_scene::breathing::{trace_relative_to, BreathingScene};
+        match &self.scene {
+            Some(path) => {
+                let mut t: BreathingScene = lungdyn_scene::read_table(path, "breathing")
+                    .map_err(|e| BridgeError::Scene(e.to_string()))?;
+                // A scene's files are relative to the scene file.
+                let base = path.parent().unwrap_or(std::path::Path::new("."));
+                if let Some(f) = trace_relative_to(&t.signal, base) {
+                    t.signal = format!("trace:{}", f.display());
+                }
+                Ok(t)
+            }
+            None => Ok(Default::default()),
+        }
     }
 }
 
@@ -285,13 +338,25 @@ pub fn open(args: &SourceArgs) -> Result<Opened, BridgeError> {
     let r = args.resolve()?;
     let source = source::open(&r.spec, &r.options)?;
     let config = source.recorded_config().cloned().unwrap_or(r.config);
+    let mut assembler = assemble::Assembler::new(config);
+    if let signal::SignalSpec::Trace(path) = &r.signal {
+        let mut replay = signal::TraceReplay::open(path)?;
+        if let (Some(at), Some(dur)) = (args.breathing_cut_at, args.breathing_cut_for) {
+            replay.cut(at, dur)?;
+        }
+        assembler.set_signal(replay);
+    }
     let recorder = match &args.record {
-        Some(path) => Some(RecordWriter::create(path, &config, &source.describe())?),
+        Some(path) => Some(RecordWriter::create(
+            path,
+            assembler.config(),
+            &source.describe(),
+        )?),
         None => None,
     };
     Ok(Opened {
         source,
-        assembler: assemble::Assembler::new(config),
+        assembler,
         recorder,
     })
 }
@@ -366,6 +431,9 @@ pub enum BridgeError {
     /// The stream failed.
     #[error(transparent)]
     Port(#[from] PortError),
+    /// The respiratory signal cannot be used.
+    #[error(transparent)]
+    Signal(#[from] signal::SignalError),
     /// The statistics could not be written (or `--stats-json` names a device, FIFO, folder, …).
     #[error("--stats-json: {0}")]
     Stats(outfile::WriteError),
@@ -396,10 +464,14 @@ pub fn run(args: &BridgeArgs) -> Result<(), BridgeError> {
     let mut outlet = instance.tracker_outlet(&node)?;
     let prefix = format!("tracker-bridge[{}]", instance.name());
     eprintln!(
-        "{prefix}: {} at {} Hz publishing on {:?}{}",
+        "{prefix}: {} at {} Hz publishing on {:?}{}{}",
         source.describe(),
         assembler.config().rate_hz,
         instance.tracker(),
+        assembler
+            .signal()
+            .map(|s| format!(", breathing signal: {}", s.describe()))
+            .unwrap_or_default(),
         recorder
             .as_ref()
             .map(|r| format!(", recording to {}", r.path().display()))

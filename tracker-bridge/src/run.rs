@@ -187,6 +187,8 @@ pub fn run_loop(
                     tracing::info_span!(target: transport::trace::TARGET, "assemble + publish")
                         .entered();
                 asm.frame(at_ns, &mut frame);
+                // The respiratory signal on the run's clock (a replayed trace plays in real time).
+                asm.fill_signal(now, &mut frame.signal);
                 if let Some(r) = recorder.as_mut() {
                     if let Err(e) = r.tick(at_ns, frame.frame_number) {
                         record_error.get_or_insert(e);

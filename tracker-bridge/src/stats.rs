@@ -144,6 +144,8 @@ pub struct Stats {
     /// FNV-1a 64 digest of every published frame's bytes with its hop stamps zeroed: equal digests
     /// mean equal frames (a replay proves itself with it).
     pub frames_digest: u64,
+    /// The respiratory signal's counts, when there is one.
+    pub signal: Option<crate::signal::SignalCounts>,
 }
 
 /// FNV-1a 64 offset basis.
@@ -193,6 +195,7 @@ impl Stats {
             jitter: Histogram::new_with_bounds(1, 10_000_000_000, 3)
                 .expect("static histogram bounds are valid"),
             frames_digest: FNV_START,
+            signal: None,
         }
     }
 
@@ -334,6 +337,12 @@ impl Stats {
                 "max": if self.jitter.is_empty() { 0.0 } else { self.jitter.max() as f64 / 1000.0 },
             },
             "frames_digest": format!("{:016x}", self.frames_digest),
+            "signal": self.signal.map(|c| json!({
+                "samples_sent": c.sent,
+                "invalid": c.invalid,
+                "withheld_by_cut": c.cut,
+                "full_blocks": c.full_blocks,
+            })),
         })
     }
 
@@ -404,6 +413,12 @@ impl Stats {
                 } else {
                     status_names(t.last_flags).join(",")
                 }
+            );
+        }
+        if let Some(c) = self.signal {
+            s += &format!(
+                "  breathing signal: {} samples sent ({} flagged invalid), {} withheld by the cut, {} frames with a full block\n",
+                c.sent, c.invalid, c.cut, c.full_blocks
             );
         }
         s

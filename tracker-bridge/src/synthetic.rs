@@ -155,6 +155,7 @@ impl Synthetic {
                 ..HopStamps::default()
             },
             tools,
+            signal: Default::default(),
         }
     }
 }

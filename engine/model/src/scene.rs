@@ -12,6 +12,7 @@ use serde::{Deserialize, Serialize};
 use crate::mesh::Side;
 // The tables a process reads for itself (`[tracker]`, `[processes]`, `[render]`, `[remote]`) are
 // `lungdyn-scene`'s; re-exported here so that `Scene`'s users name every table from one place.
+pub use lungdyn_scene::breathing::{BreathSource, BreathingScene};
 pub use lungdyn_scene::processes::*;
 pub use lungdyn_scene::render::*;
 pub use lungdyn_scene::tracker::*;
@@ -41,6 +42,8 @@ pub struct Scene {
     /// This machine's part in a shared session (`[remote]`, [`crate::scene_remote`]); none alone.
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub remote: Option<crate::scene_remote::RemoteScene>,
+    /// What the lungs breathe to: the PV model, or the patient's signal (`[breathing]`).
+    pub breathing: BreathingScene,
 }
 
 /// `[pv]` table.
@@ -646,6 +649,21 @@ impl Scene {
                 scene.lungs.kernels.set(side, resolved);
             }
         }
+        // The breathing signal's file (`[breathing] signal = "trace:FILE"`): the bridge reads it.
+        if let Some(resolved) =
+            lungdyn_scene::breathing::trace_relative_to(&scene.breathing.signal, base)
+        {
+            if !resolved.is_file() {
+                return Err(invalid(SceneValueError::Table(TableError::Breathing(
+                    format!(
+                        "signal = {:?}: {} is not a file (a path relative to the scene file)",
+                        scene.breathing.signal,
+                        resolved.display()
+                    ),
+                ))));
+            }
+            scene.breathing.signal = format!("trace:{}", resolved.display());
+        }
         // The calibration and HMD optics files must exist here; their content is checked where they
         // are read (the renderer, `lungdyn scene check`, the launcher), as lung-model does not know
         // tracker files.
@@ -781,7 +799,23 @@ impl Scene {
         }
         self.processes.validate()?;
         self.render.validate()?;
+        self.breathing.validate()?;
+        self.breathing_predictor()?;
         Ok(())
+    }
+
+    /// The `[breathing]` predictor, its horizon the table's latency.
+    pub fn breathing_predictor(
+        &self,
+    ) -> Result<crate::breathing::predict::PredictorKind, TableError> {
+        use crate::breathing::predict::PredictorKind;
+        match PredictorKind::parse(&self.breathing.predictor) {
+            Ok(PredictorKind::Cycle { .. }) => Ok(PredictorKind::Cycle {
+                horizon_ms: self.breathing.latency_ms.round() as u32,
+            }),
+            Ok(k) => Ok(k),
+            Err(e) => Err(TableError::Breathing(format!("predictor: {e}"))),
+        }
     }
 
     /// The PV constants and boundary values of this scene: the fitted file if named, else the preset.

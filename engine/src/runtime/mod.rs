@@ -42,6 +42,7 @@ use thiserror::Error;
 pub mod disease;
 pub mod process;
 pub mod remote;
+pub mod signal;
 pub use process::run;
 
 /// What the engine needs of one lung's geometry: its kernel's identity, volume cubic, and for the
@@ -184,6 +185,10 @@ pub struct LungBreath {
     cycle_start: u64,
     cycle: u32,
     changed_at: Option<u64>,
+    /// This tick's volume change above FRC from the patient's signal (whole patient, before the
+    /// share), whether it is inhaling, and its weight against the model's (rising from 0 to 1 over
+    /// [`signal::TAKEOVER_TICKS`] when the signal takes over); `None`: the model's cycle ([`signal`]).
+    driven: Option<(f64, bool, f64)>,
 }
 
 impl LungBreath {
@@ -200,7 +205,34 @@ impl LungBreath {
             cycle_start: 0,
             cycle: 0,
             changed_at: None,
+            driven: None,
         }
+    }
+
+    /// The signal's volume change above FRC drives this lung (whole patient, ml; this lung takes
+    /// its share), or `None`: its model cycle.
+    pub fn driven(&self) -> Option<(f64, bool, f64)> {
+        self.driven
+    }
+
+    /// Carry on with the model from where the signal left the lungs: place the cycle at the tick
+    /// whose volume change above FRC is nearest `volume_ml` on the same branch (inhaling or
+    /// exhaling), so the volume does not jump. One pass over the cycle's ticks, nothing allocated.
+    pub fn resume_model_at(&mut self, tick: u64, volume_ml: f64, inhaling: bool) {
+        let b = &self.breathing;
+        let (ct, it) = (b.cycle_ticks() as u64, b.inhale_ticks() as u64);
+        let frc = b.boundary().frc_ml;
+        let (from, to) = if inhaling { (0, it) } else { (it, ct) };
+        let mut best = (f64::INFINITY, from);
+        for local in from..to.max(from + 1).min(ct) {
+            let d = (b.volume_at(local) - frc - volume_ml).abs();
+            if d < best.0 {
+                best = (d, local);
+            }
+        }
+        let local = best.1;
+        // A cycle cannot start before tick 0: early on, the nearest start is tick 0's.
+        self.cycle_start = tick.saturating_sub(local);
     }
 
     /// The cycle in force.
@@ -298,6 +330,9 @@ pub enum CoreError {
     /// A lung could not be loaded.
     #[error(transparent)]
     Lung(#[from] LungLoadError),
+    /// The `[breathing]` signal cannot be followed as configured.
+    #[error("[breathing] {0}")]
+    Signal(String),
     /// A kernel cannot serve the scene's mode.
     #[error(transparent)]
     Geometry(#[from] GeometryError),
@@ -340,7 +375,15 @@ fn lung_tick(
             v
         }
         None => {
-            let (delta, inhaling) = breath.delta_at(local);
+            let (delta, inhaling) = match breath.driven {
+                Some((volume_ml, inhaling, w)) if w >= 1.0 => (volume_ml * breath.share, inhaling),
+                Some((volume_ml, inhaling, w)) => {
+                    // The signal taking over: blended from the model's breath, no jump.
+                    let (model, _) = breath.delta_at(local);
+                    (w * volume_ml * breath.share + (1.0 - w) * model, inhaling)
+                }
+                None => breath.delta_at(local),
+            };
             if inhaling {
                 flags |= lung_flags::INHALING;
             }
@@ -503,6 +546,8 @@ pub struct EngineCore {
     remote_pending: Option<remote::RemotePending>,
     /// The last one put in, freed off the tick (by the next state applied).
     remote_spent: Option<remote::RemotePending>,
+    /// The patient's signal, when the scene breathes with it (`[breathing] source = "signal"`).
+    signal: Option<signal::SignalDrive>,
     counts: StageCounts,
 }
 
@@ -725,6 +770,12 @@ impl EngineCore {
             }
         };
         let frc = breathing.boundary().frc_ml;
+        let signal = match scene.breathing.source {
+            lung_model::scene::BreathSource::Signal => {
+                Some(signal::SignalDrive::new(scene, breathing.boundary().tv_ml)?)
+            }
+            lung_model::scene::BreathSource::Model => None,
+        };
         let lungs = lungs
             .into_iter()
             .map(|g| {
@@ -745,8 +796,14 @@ impl EngineCore {
             disease: None,
             remote_pending: None,
             remote_spent: None,
+            signal,
             counts,
         })
+    }
+
+    /// The patient's signal and its follower, when the scene breathes with it.
+    pub fn signal(&self) -> Option<&signal::SignalDrive> {
+        self.signal.as_ref()
     }
 
     /// The active lungs' geometry.
@@ -798,6 +855,9 @@ impl EngineCore {
         self.counts.volume_solves += self.lungs.len() as u64;
         if let Some(d) = &mut self.disease {
             d.before_tick(tick, &mut self.lungs);
+        }
+        if let Some(drive) = &mut self.signal {
+            state |= drive.tick(tick, input, &mut self.lungs);
         }
         if self.remote_pending.as_ref().is_some_and(|p| tick >= p.tick) {
             if let Some(mut p) = self.remote_pending.take() {

@@ -738,6 +738,7 @@ pub fn run(args: &EngineArgs) -> Result<(), EngineError> {
         scene.engine.tick_hz,
         instance.tracker()
     );
+    announce_signal(&core, &scene, instance.name());
     let stats = run_loop(
         &mut core,
         &mut tracker,
@@ -804,6 +805,7 @@ pub fn run(args: &EngineArgs) -> Result<(), EngineError> {
             }
         ));
     }
+    report_signal(&core, instance.name());
     if stats.prepared_cycles > 0 {
         transport::process::say(&format!(
             "engine[{}]: {} disease cycles built on the worker thread, the longest in {:.2} ms; {} \
@@ -815,6 +817,45 @@ pub fn run(args: &EngineArgs) -> Result<(), EngineError> {
         ));
     }
     Ok(())
+}
+
+/// Say at start-up that the scene breathes with the patient's signal.
+fn announce_signal(core: &EngineCore, scene: &Scene, name: &str) {
+    if core.signal().is_some() {
+        eprintln!(
+            "engine[{name}]: breathing with the patient's signal ({}), predicted {} ms ahead; the \
+             model breathes while it calibrates or is lost",
+            scene.breathing.signal, scene.breathing.latency_ms
+        );
+    }
+}
+
+/// The breathing signal's counts at exit, when the scene follows one.
+fn report_signal(core: &EngineCore, name: &str) {
+    if let Some(signal) = core.signal() {
+        let f = signal.follower();
+        let (c, n) = (f.counts(), f.samples());
+        transport::process::say(&format!(
+            "engine[{}]: breathing signal: {} samples used ({} invalid, {} not newer, {} losses), {} \
+             breaths ({} sighs, {} coughs), last state: {}{}",
+            name,
+            n.used,
+            n.invalid,
+            n.not_newer,
+            n.restarts,
+            c.breaths,
+            c.sighs,
+            c.coughs,
+            signal
+                .followed()
+                .map_or("no sample", |x| x.state.describe()),
+            if signal.source_ended() {
+                " (the source ended)"
+            } else {
+                ""
+            }
+        ));
+    }
 }
 
 #[cfg(test)]

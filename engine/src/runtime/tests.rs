@@ -1717,3 +1717,249 @@ fn the_headless_run_is_the_tick_function_and_summarises_its_frames() {
         );
     }
 }
+
+// ---- Breathing with the patient's signal (issue 35; runtime::signal) ----
+
+const TICK_NS: u64 = 16_666_667;
+const T0_NS: u64 = 1_000_000_000;
+
+fn signal_core(latency_ms: f64) -> EngineCore {
+    let mut scene = Scene::default();
+    scene.breathing.source = lung_model::scene::BreathSource::Signal;
+    scene.breathing.signal = "trace:unused-by-the-engine".into();
+    scene.breathing.latency_ms = latency_ms;
+    scene.validate().unwrap();
+    EngineCore::with_geometry(&scene, baked_geometry()).unwrap()
+}
+
+/// A chest marker's excursion, mm: a breath every 4.7 s (not a whole number of 25 Hz samples),
+/// inspiration the shorter part, each breath's depth 10 mm ± 10 % (so no breath is the last one's
+/// copy and the calibration is a median).
+fn chest_mm(t_s: f64) -> f64 {
+    let cycles = t_s / 4.7;
+    let depth = 10.0 * (1.0 + 0.1 * (cycles.floor() * 1.3).sin());
+    let phase = cycles.fract();
+    if phase < 0.4 {
+        depth * (0.5 - 0.5 * (std::f64::consts::PI * phase / 0.4).cos())
+    } else {
+        depth * (0.5 + 0.5 * (std::f64::consts::PI * (phase - 0.4) / 0.6).cos())
+    }
+}
+
+/// The tracker frame of `tick` (60 Hz) carrying the 25 Hz samples of `signal` due since the
+/// previous tick's, those in `cut` (seconds) withheld; `value` may spoil a sample.
+fn signal_frame(
+    tick: u64,
+    cut: Option<(f64, f64)>,
+    value: &dyn Fn(u64, f64) -> (f64, bool),
+) -> TrackerFrame {
+    let mut f = frame(tick, true);
+    let now = T0_NS + tick * TICK_NS;
+    f.stamps.capture_ns = now;
+    f.stamps.bridge_publish_ns = now;
+    f.signal.status = ipc_types::signal_status::CONFIGURED;
+    f.signal.unit = ipc_types::signal_unit::MM;
+    f.signal.period_ns = 40_000_000;
+    let prev = now.saturating_sub(TICK_NS);
+    let first = (prev.saturating_sub(T0_NS)) / 40_000_000;
+    for k in first..=(now - T0_NS) / 40_000_000 {
+        let t = T0_NS + k * 40_000_000;
+        let t_s = (t - T0_NS) as f64 * 1e-9;
+        if t <= prev && tick > 0 || t > now || cut.is_some_and(|(a, b)| t_s >= a && t_s < b) {
+            continue;
+        }
+        let i = f.signal.count as usize;
+        let (v, valid) = value(k, t_s);
+        f.signal.samples[i] = ipc_types::SignalWire { t_ns: t, value: v };
+        if valid {
+            f.signal.valid_mask |= 1 << i;
+        }
+        f.signal.count += 1;
+    }
+    f
+}
+
+/// Run `seconds` of ticks: (time s, both lungs' volume above FRC ml, state bits) per tick.
+fn follow_run(
+    core: &mut EngineCore,
+    seconds: f64,
+    cut: Option<(f64, f64)>,
+    value: &dyn Fn(u64, f64) -> (f64, bool),
+) -> Vec<(f64, f64, u32)> {
+    let frc: f64 = core.geometry().map(|g| g.start_volume_ml).sum();
+    let ticks = (seconds * 60.0) as u64;
+    let mut out = Vec::new();
+    let mut f = EngineFrame::default();
+    for tick in 0..ticks {
+        let input = signal_frame(tick, cut, value);
+        core.step(tick, Some(&input), &mut f);
+        let v: f64 = f
+            .lungs
+            .iter()
+            .filter(|l| l.is_active())
+            .map(|l| l.volume_ml as f64)
+            .sum();
+        out.push((tick as f64 / 60.0, v - frc, f.state));
+    }
+    out
+}
+
+fn clean(_: u64, t_s: f64) -> (f64, bool) {
+    (chest_mm(t_s), true)
+}
+
+#[test]
+fn the_lungs_follow_the_patients_signal_once_calibrated() {
+    use ipc_types::engine_state as e;
+    let mut core = signal_core(50.0);
+    let tidal = core.lung(Side::Right).unwrap().breathing().boundary().tv_ml;
+    let run = follow_run(&mut core, 60.0, None, &clean);
+    // First the model breathes while the signal calibrates; following within three breaths.
+    assert!(run[0].2 & e::SIGNAL_CALIBRATING != 0, "{:b}", run[0].2);
+    let following = run
+        .iter()
+        .position(|r| r.2 & e::SIGNAL_FOLLOWING != 0)
+        .expect("follows");
+    assert!(
+        run[following].0 < 16.0,
+        "following from {} s",
+        run[following].0
+    );
+    assert!(run[following..]
+        .iter()
+        .all(|r| r.2 & e::SIGNAL_FOLLOWING != 0));
+    // Over the last 30 s the drawn volume is the signal at the display time (50 ms after the
+    // frame's stamp) calibrated to the model's tidal volume (10 mm, the median depth): within 5 %
+    // of it, RMS.
+    let mut sq = 0.0;
+    let mut n = 0.0;
+    for &(t, v, _) in run.iter().filter(|r| r.0 >= 30.0) {
+        let want = tidal * chest_mm(t + 0.05) / 10.0;
+        sq += (v - want).powi(2);
+        n += 1.0;
+    }
+    let rms = (sq / n).sqrt();
+    eprintln!(
+        "following from {:.2} s; RMS {rms:.1} ml of a {tidal:.0} ml tidal volume over 30-60 s",
+        run[following].0
+    );
+    assert!(
+        rms < 0.05 * tidal,
+        "RMS {rms:.1} ml of a {tidal:.0} ml tidal volume"
+    );
+    assert!(core.signal().unwrap().follower().counts().breaths >= 10);
+}
+
+#[test]
+fn a_lost_signal_is_flagged_within_100_ms_and_the_model_carries_on_without_a_jump() {
+    use ipc_types::engine_state as e;
+    let core = signal_core(50.0);
+    let tidal = core.lung(Side::Right).unwrap().breathing().boundary().tv_ml;
+    // Cut mid-inspiration and mid-expiration in two runs.
+    for cut_at in [41.0, 43.5] {
+        let mut core = signal_core(50.0);
+        let run = follow_run(&mut core, 60.0, Some((cut_at, cut_at + 5.0)), &clean);
+        let last_sample = run.iter().rposition(|r| r.0 < cut_at).unwrap();
+        let lost = run
+            .iter()
+            .position(|r| r.0 >= cut_at && r.2 & e::SIGNAL_LOST != 0)
+            .expect("the loss is flagged");
+        let after_ms = (run[lost].0 - run[last_sample].0) * 1000.0;
+        assert!(
+            after_ms <= 100.0 + 17.0,
+            "lost said {after_ms:.0} ms after the last sample"
+        );
+        // Phase-continuous: the step at the handover is no larger than the breath's own steps.
+        let step = (run[lost].1 - run[lost - 1].1).abs();
+        let own = run[lost - 30..lost - 1]
+            .windows(2)
+            .map(|w| (w[1].1 - w[0].1).abs())
+            .fold(0.0, f64::max);
+        assert!(
+            step <= own.max(0.02 * tidal) * 1.5,
+            "cut at {cut_at} s: a {step:.1} ml jump at the handover (the breath's own steps up to {own:.1} ml)"
+        );
+        // The model breathes during the loss (its volume moves), and the signal takes over again.
+        let during: Vec<f64> = run
+            .iter()
+            .filter(|r| r.0 > cut_at + 0.5 && r.0 < cut_at + 4.5)
+            .map(|r| r.1)
+            .collect();
+        let swing = during.iter().cloned().fold(f64::MIN, f64::max)
+            - during.iter().cloned().fold(f64::MAX, f64::min);
+        assert!(
+            swing > 0.5 * tidal,
+            "the model breathes while the signal is lost: {swing:.0} ml"
+        );
+        let back = run
+            .iter()
+            .position(|r| r.0 > cut_at + 5.0 && r.2 & e::SIGNAL_FOLLOWING != 0)
+            .expect("following again after the loss");
+        assert!(
+            run[back].0 < cut_at + 5.0 + 1.0,
+            "cut at {cut_at} s: following again {:.2} s after the samples came back",
+            run[back].0 - cut_at - 5.0
+        );
+        eprintln!(
+            "cut at {cut_at} s: lost said after {after_ms:.0} ms, handover step {step:.1} ml (own steps up to {own:.1} ml), model swing {swing:.0} ml"
+        );
+        // The signal takes over blended in from the model's breath: no jump either.
+        let step = (run[back].1 - run[back - 1].1).abs();
+        eprintln!(
+            "cut at {cut_at} s: following again after {:.2} s, takeover step {step:.1} ml",
+            run[back].0 - cut_at - 5.0
+        );
+        assert!(
+            step <= own * 1.5 + tidal / signal::TAKEOVER_TICKS as f64 + 0.02 * tidal,
+            "cut at {cut_at} s: a {step:.1} ml jump when the signal took over again"
+        );
+        assert!(run.last().unwrap().2 & e::SIGNAL_FOLLOWING != 0);
+    }
+    drop(core);
+}
+
+#[test]
+fn a_signal_run_replays_bitwise_and_bad_samples_never_reach_a_frame() {
+    // Every fifth sample flagged invalid with a NaN or a huge value behind it; every 37th a
+    // valid absurdity.
+    let spoilt = |k: u64, t_s: f64| match k % 37 {
+        0 => (1e300, true),
+        _ if k % 5 == 4 => (if k % 2 == 0 { f64::NAN } else { -1e12 }, false),
+        _ => (chest_mm(t_s), true),
+    };
+    let frames = |core: &mut EngineCore| {
+        let mut out = Vec::new();
+        let mut f = EngineFrame::default();
+        for tick in 0..3600u64 {
+            let mut input = signal_frame(tick, Some((30.0, 33.0)), &spoilt);
+            if tick % 13 == 7 {
+                // A foreign frame's block: more samples claimed than it holds, all "valid".
+                input.signal.count = u32::MAX;
+                input.signal.valid_mask = u32::MAX;
+            }
+            // Every 11th tick without a frame (the deadline fallback).
+            core.step(tick, (tick % 11 != 5).then_some(&input), &mut f);
+            out.push(f);
+        }
+        out
+    };
+    let a = frames(&mut signal_core(80.0));
+    let b = frames(&mut signal_core(80.0));
+    assert!(a == b, "the same inputs, the same frames");
+    for f in &a {
+        for l in f.lungs.iter().filter(|l| l.is_active()) {
+            assert!(
+                l.volume_ml.is_finite() && l.deform_scale.is_finite(),
+                "{l:?}"
+            );
+            assert!(l.volume_ml > 0.0 && l.volume_ml < 8000.0, "{}", l.volume_ml);
+        }
+        assert_eq!(f.fault, fault::NONE);
+    }
+    let c = signal_core(80.0);
+    assert!(c.signal().is_some());
+    assert!(
+        core().signal().is_none(),
+        "a model scene has no signal drive"
+    );
+}

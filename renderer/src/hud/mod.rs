@@ -65,6 +65,9 @@ pub struct HudConfig {
     /// The lobes colour mode's legend (`None` in the other modes): per lung slot, `None` where no
     /// lung is loaded, else whether it has lobe codes.
     pub lobes: Option<[Option<bool>; NUM_LUNGS]>,
+    /// The scene breathes with the patient's signal (`[breathing] source = "signal"`): the phase
+    /// line says what drives the breath, and room is kept for its longest wording.
+    pub signal: bool,
 }
 
 impl HudConfig {
@@ -106,6 +109,7 @@ impl HudConfig {
             fov_y_deg: scene.render.fov_y_deg,
             lung_boxes,
             lobes: (scene.render.color == lung_model::scene::ColorMode::Lobes).then_some(lobes),
+            signal: scene.breathing.source == lung_model::scene::BreathSource::Signal,
         }
     }
 }
@@ -539,9 +543,18 @@ impl Hud {
         let disease_rows = self.rows[DISEASE];
         let keys = text::key_help(self.config.interventions);
         self.shape(KEYS, keys);
+        let phase_rows = if self.config.signal {
+            worst.state = ipc_types::engine_state::SIGNAL_CALIBRATING;
+            text::phase_line(&mut line, &worst);
+            self.shape(PHASE, &line);
+            self.rows[PHASE]
+        } else {
+            1
+        };
         self.reserved_rows = (0..PANEL_LINES)
             .filter(|&k| self.shown_at_size(k))
             .map(|k| match k {
+                PHASE => phase_rows,
                 DISEASE => disease_rows,
                 KEYS => self.rows[KEYS],
                 OUTCOME => OUTCOME_RESERVED_ROWS,
@@ -666,12 +679,7 @@ impl Hud {
         let tick_hz = self.config.tick_hz;
         let l = &mut self.lines;
         text::volume_line(&mut l[VOLUME], f.frame, tick_hz);
-        l[PHASE].clear();
-        match text::breath_phase(f.frame) {
-            Some((_, true, _)) => l[PHASE].push_str("inspiration"),
-            Some((_, false, _)) => l[PHASE].push_str("expiration"),
-            None => l[PHASE].push_str("not breathing"),
-        }
+        text::phase_line(&mut l[PHASE], f.frame);
         let disease = self.config.disease.as_ref().map(|(k, s)| (k.as_str(), *s));
         text::disease_line(&mut l[DISEASE], disease, f.frame);
         self.colors[DISEASE] = if disease.is_some() { AMBER } else { GREEN };
@@ -690,10 +698,10 @@ impl Hud {
         l[VEIL].clear();
         if let Some(w) = text::veil_words(f.warning) {
             l[VEIL].push_str(w);
-            self.colors[VEIL] = if f.warning == PoseWarning::Stale {
-                RED
-            } else {
-                AMBER
+            self.colors[VEIL] = match f.warning {
+                PoseWarning::Stale => RED,
+                PoseWarning::SignalLost => CYAN,
+                _ => AMBER,
             };
         }
         // Reshape only what changed.

@@ -359,7 +359,36 @@ pub fn veil_words(warning: crate::PoseWarning) -> Option<&'static str> {
         crate::PoseWarning::EngineDown => {
             Some("ENGINE RESTARTING — last frame shown, the breath is frozen")
         }
+        crate::PoseWarning::SignalLost => {
+            Some("BREATHING SIGNAL LOST — the model breathes, not the patient")
+        }
     }
+}
+
+/// The breath's phase in words and, when the scene breathes with the patient's signal, what drives
+/// it: "inspiration · following patient", "expiration · model (signal lost)".
+pub fn phase_line(out: &mut String, frame: &EngineFrame) {
+    use ipc_types::engine_state as e;
+    out.clear();
+    let signal = frame.state
+        & (e::SIGNAL_FOLLOWING | e::SIGNAL_CALIBRATING | e::SIGNAL_LOST | e::SIGNAL_PAUSED);
+    let paused = signal & e::SIGNAL_PAUSED != 0;
+    out.push_str(match breath_phase(frame) {
+        _ if paused => "pause",
+        Some((_, true, _)) => "inspiration",
+        Some((_, false, _)) => "expiration",
+        None => "not breathing",
+    });
+    if signal == 0 {
+        return;
+    }
+    out.push_str(if signal & e::SIGNAL_FOLLOWING != 0 {
+        " · following patient"
+    } else if signal & e::SIGNAL_CALIBRATING != 0 {
+        " · model (calibrating signal)"
+    } else {
+        " · model (signal lost)"
+    });
 }
 
 /// Phase bins of the traced PV loop: one point per bin of the followed lung's cycle.
@@ -827,6 +856,41 @@ mod tests {
     }
 
     #[test]
+    fn the_phase_line_says_what_drives_the_breath() {
+        use ipc_types::engine_state as e;
+        let mut f = EngineFrame::default();
+        f.lungs[LUNG_RIGHT] = lung(1400.0, 270.0, 300, 150, 0.25, lung_flags::INHALING);
+        let mut s = String::new();
+        phase_line(&mut s, &f);
+        assert_eq!(s, "inspiration", "a model scene says no more");
+        for (state, want) in [
+            (e::SIGNAL_FOLLOWING, "inspiration · following patient"),
+            (
+                e::SIGNAL_FOLLOWING | e::SIGNAL_PAUSED,
+                "pause · following patient",
+            ),
+            (
+                e::SIGNAL_CALIBRATING,
+                "inspiration · model (calibrating signal)",
+            ),
+            (e::SIGNAL_LOST, "inspiration · model (signal lost)"),
+        ] {
+            f.state = state;
+            phase_line(&mut s, &f);
+            assert_eq!(s, want);
+        }
+        assert_eq!(
+            crate::PoseWarning::of_engine_state(e::SIGNAL_LOST),
+            crate::PoseWarning::SignalLost
+        );
+        assert_eq!(
+            crate::PoseWarning::of_engine_state(e::SIGNAL_LOST | e::PATIENT_POSE_STALE),
+            crate::PoseWarning::Stale,
+            "a stale pose is the graver warning"
+        );
+    }
+
+    #[test]
     fn veil_words_name_the_pose_state() {
         assert_eq!(veil_words(crate::PoseWarning::None), None);
         assert!(veil_words(crate::PoseWarning::Held)
@@ -835,6 +899,9 @@ mod tests {
         assert!(veil_words(crate::PoseWarning::Stale)
             .unwrap()
             .contains("STALE"));
+        assert!(veil_words(crate::PoseWarning::SignalLost)
+            .unwrap()
+            .contains("SIGNAL LOST"));
         assert!(key_help(true).contains("N needle"));
         assert!(!key_help(false).contains("N needle"));
     }

@@ -7,7 +7,7 @@ use std::path::Path;
 use super::evaluate::{evaluate, EvalOptions, Evaluation, Trace};
 use super::follow::FollowerConfig;
 use super::predict::PredictorKind;
-use super::trace::{looks_like_trace, parse_trace, TraceError, TraceFormat};
+use super::trace::{looks_like_trace, parse_trace, SignalUnit, TraceError, TraceFormat};
 use crate::recording::{checks, classify, parse_recording, SegmentOptions};
 
 /// The goal issue 35 sets: RMS error at display time ≤ 3 % of the tidal volume with prediction…
@@ -30,6 +30,17 @@ pub struct GoalRow {
     pub met: bool,
 }
 
+/// A file read as a respiratory signal.
+#[derive(Debug, Clone, PartialEq)]
+pub struct ReadTrace {
+    /// The live signal and its hindsight volume.
+    pub trace: Trace,
+    /// What the file was read as, for a person.
+    pub kind: String,
+    /// The unit of the trace's samples (ml for a ventilator recording's integrated flow).
+    pub unit: SignalUnit,
+}
+
 /// A file's bytes as a trace, and what it was read as. A one-signal trace (RPM `.vxp`, a CSV of one
 /// signal) is calibrated in hindsight to `tidal_ml`; a ventilator recording is checked for its
 /// units and its flow's sign first (a recording in the wrong unit would be "followed" perfectly
@@ -38,7 +49,7 @@ pub fn read_trace_or_recording(
     path: &Path,
     bytes: &[u8],
     tidal_ml: f64,
-) -> Result<(Trace, String), TraceError> {
+) -> Result<ReadTrace, TraceError> {
     let whole = |message: String| TraceError::Parse {
         path: path.to_path_buf(),
         line: 0,
@@ -71,7 +82,11 @@ pub fn read_trace_or_recording(
                     .into(),
             )
         })?;
-        return Ok((trace, kind));
+        return Ok(ReadTrace {
+            trace,
+            kind,
+            unit: signal.unit,
+        });
     }
     let rec = parse_recording(bytes).map_err(at_line)?;
     let characters = classify::characterise_all(&rec, &SegmentOptions::default());
@@ -88,7 +103,11 @@ pub fn read_trace_or_recording(
         "ventilator recording ({}), flow integrated",
         rec.format.describe()
     );
-    Ok((trace, kind))
+    Ok(ReadTrace {
+        trace,
+        kind,
+        unit: SignalUnit::Ml,
+    })
 }
 
 /// The predictors replayed at `latency_ms`: `chosen` first, then the previous cycle's, the

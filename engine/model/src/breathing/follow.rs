@@ -156,6 +156,20 @@ impl Follower {
         }
     }
 
+    /// Start again with a source of another period or calibration (a device's rate or unit
+    /// became known), keeping the predictor's kind: in place, nothing allocated (the engine's tick
+    /// may call it).
+    pub fn reconfigure(&mut self, period_ns: u64, calibration: Calibration) {
+        self.config.period_ns = period_ns.max(1);
+        self.config.lost_after_ns = (3 * self.config.period_ns).max(100_000_000);
+        self.config.calibration = calibration;
+        self.grid = Grid::new(self.config.period_ns, self.config.lost_after_ns);
+        self.predictor.reset();
+        self.detector = Detector::new();
+        self.samples = SampleCounts::default();
+        self.peaks = 0;
+    }
+
     /// The settings.
     pub fn config(&self) -> &FollowerConfig {
         &self.config

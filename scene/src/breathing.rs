@@ -1,0 +1,163 @@
+//! The `[breathing]` table: what the lungs breathe to — the scene's own PV model, or the patient's
+//! respiratory signal followed live (issue 35; docs/BREATHING.md). The tracker-bridge reads `signal`
+//! (where the samples come from) from the scene file itself; the engine reads the rest through
+//! `lung_model::scene::Scene`, which also checks `predictor` (its names are the follower's).
+//!
+//! ```toml
+//! [breathing]
+//! source = "signal"                 # "model" (default): the PV model's own breaths
+//! signal = "trace:patient.vxp"      # the bridge's signal source (`lungdyn demo --breathing`)
+//! predictor = "cycle"               # none, linear[:N], ar[:ORDER[:LAMBDA]], cycle
+//! latency_ms = 50                   # capture → display, predicted across
+//! # tidal_ml = 500                  # an amplitude's typical breath; default: the PV model's
+//! ```
+
+use serde::{Deserialize, Serialize};
+
+use crate::TableError;
+
+/// What the lungs breathe to.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Default, Serialize, Deserialize)]
+#[serde(rename_all = "kebab-case")]
+pub enum BreathSource {
+    /// The scene's PV model (`[pv]`): its own clock.
+    #[default]
+    Model,
+    /// The patient's respiratory signal (`signal`), calibrated to volume and predicted to the
+    /// display time; the model breathes while the signal calibrates or is lost, carried on from the
+    /// signal's last volume and phase.
+    Signal,
+}
+
+impl BreathSource {
+    /// The name in scenes.
+    pub fn name(self) -> &'static str {
+        match self {
+            BreathSource::Model => "model",
+            BreathSource::Signal => "signal",
+        }
+    }
+}
+
+/// The predictor a scene gets by default: the previous breath's course where it has lately
+/// predicted better than the autoregression, compared at the latency (measured in docs/BREATHING.md).
+pub const DEFAULT_PREDICTOR: &str = "cycle";
+/// Capture-to-display latency predicted across by default, ms: the sensor's tens of ms and the
+/// pipeline's two to three frames (`lungdyn latency` measures the pipeline's part).
+pub const DEFAULT_LATENCY_MS: f64 = 50.0;
+
+/// `[breathing]` table.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields, default)]
+pub struct BreathingScene {
+    /// `model` or `signal`.
+    pub source: BreathSource,
+    /// The signal's source at the bridge: `trace:FILE` (a Varian RPM `.vxp`, a CSV trace, or a
+    /// ventilator recording as `lungdyn pv recording` reads it, replayed at its own rate from the
+    /// run's start); empty: none. `lungdyn demo --breathing` overrides it.
+    pub signal: String,
+    /// The predictor's name (`lungdyn breathing check --predictor` takes the same).
+    pub predictor: String,
+    /// Capture-to-display latency the volume is predicted across, ms.
+    pub latency_ms: f64,
+    /// The volume an amplitude signal's typical breath is calibrated to, ml; default the PV model's
+    /// tidal volume. A signal in ml is taken as it is.
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub tidal_ml: Option<f64>,
+}
+
+impl Default for BreathingScene {
+    fn default() -> Self {
+        Self {
+            source: BreathSource::Model,
+            signal: String::new(),
+            predictor: DEFAULT_PREDICTOR.into(),
+            latency_ms: DEFAULT_LATENCY_MS,
+            tidal_ml: None,
+        }
+    }
+}
+
+impl BreathingScene {
+    /// Range checks (the predictor's grammar is checked where it is parsed, in `lung-model`).
+    pub fn validate(&self) -> Result<(), TableError> {
+        let bad = |why: String| Err(TableError::Breathing(why));
+        if self.source == BreathSource::Signal && self.signal.trim().is_empty() {
+            return bad(
+                "source = \"signal\" needs signal = \"trace:FILE\" (or lungdyn demo --breathing trace:FILE)"
+                    .into(),
+            );
+        }
+        if !(self.latency_ms.is_finite() && (0.0..=2000.0).contains(&self.latency_ms)) {
+            return bad(format!(
+                "latency_ms = {}: a capture-to-display latency is 0..2000 ms (the pipeline's is tens of ms)",
+                crate::compact(self.latency_ms)
+            ));
+        }
+        if let Some(t) = self.tidal_ml {
+            if !(t.is_finite() && (50.0..=3000.0).contains(&t)) {
+                return bad(format!(
+                    "tidal_ml = {}: an adult's tidal volume is 300-800 ml, a child's from 50 (50..3000 accepted)",
+                    crate::compact(t)
+                ));
+            }
+        }
+        Ok(())
+    }
+}
+
+/// The file of a `trace:FILE` signal, relative to `base` (a scene's folder) when it is relative;
+/// `None` for any other signal.
+pub fn trace_relative_to(signal: &str, base: &std::path::Path) -> Option<std::path::PathBuf> {
+    let (kind, path) = signal.trim().split_once(':')?;
+    (kind.eq_ignore_ascii_case("trace") && !path.trim().is_empty()).then(|| base.join(path))
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn the_default_is_the_model_and_a_signal_scene_names_its_source() {
+        let d = BreathingScene::default();
+        assert_eq!(d.source, BreathSource::Model);
+        assert!(d.validate().is_ok());
+        let t: BreathingScene =
+            toml::from_str("source = \"signal\"\nsignal = \"trace:a.vxp\"\nlatency_ms = 80\n")
+                .unwrap();
+        assert_eq!(t.source, BreathSource::Signal);
+        assert_eq!(t.latency_ms, 80.0);
+        assert_eq!(t.predictor, DEFAULT_PREDICTOR);
+        assert!(t.validate().is_ok());
+        for (text, words) in [
+            ("source = \"signal\"\n", "needs signal"),
+            ("latency_ms = -1\n", "latency_ms = -1"),
+            ("latency_ms = 1e9\n", "latency_ms = 1e9"),
+            ("tidal_ml = 5\n", "tidal_ml = 5"),
+        ] {
+            let t: BreathingScene = toml::from_str(text).unwrap();
+            let e = t.validate().unwrap_err().to_string();
+            assert!(
+                e.starts_with("[breathing] ") && e.contains(words),
+                "{text}: {e}"
+            );
+        }
+        assert!(toml::from_str::<BreathingScene>("source = \"patient\"\n").is_err());
+        assert!(toml::from_str::<BreathingScene>("signl = \"x\"\n").is_err());
+    }
+
+    #[test]
+    fn a_trace_path_is_relative_to_the_scene() {
+        let base = std::path::Path::new("/scenes");
+        assert_eq!(
+            trace_relative_to("trace:p/a.vxp", base),
+            Some("/scenes/p/a.vxp".into())
+        );
+        assert_eq!(
+            trace_relative_to("trace:/abs/a.csv", base),
+            Some("/abs/a.csv".into())
+        );
+        assert_eq!(trace_relative_to("none", base), None);
+        assert_eq!(trace_relative_to("trace:", base), None);
+    }
+}
