@@ -480,6 +480,11 @@ pub mod report_flags {
     /// No engine frame for [`ENGINE_DOWN_FRAMES`] frame periods or more: the engine is restarting
     /// (or stopped); the last frame is presented, stale, under a violet veil that says so.
     pub const ENGINE_DOWN: u32 = 1 << 6;
+    /// The patient's respiratory signal drove the lungs drawn (the engine's `SIGNAL_FOLLOWING`).
+    pub const SIGNAL_FOLLOWING: u32 = 1 << 7;
+    /// The scene follows a signal and it was lost: the model breathed, under the blue veil (the
+    /// engine's `SIGNAL_LOST`).
+    pub const SIGNAL_LOST: u32 = 1 << 8;
     /// Stale frames in a row after which the renderer says the engine is down (100 ms at 60 Hz:
     /// longer than any jitter of a running engine, short next to a restart).
     pub const ENGINE_DOWN_FRAMES: u64 = 6;

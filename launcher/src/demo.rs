@@ -310,6 +310,11 @@ pub struct DemoReport {
     pub patient_pose_held_frames: u64,
     /// Of those, frames whose held pose was stale or never arrived (tinted red on screen).
     pub patient_pose_stale_frames: u64,
+    /// Frames whose lungs the patient's respiratory signal drove (`--breathing`; 0 otherwise).
+    pub signal_following_frames: u64,
+    /// Frames drawn while the followed signal was lost, ended or not yet there: the model breathed,
+    /// under the blue veil.
+    pub signal_lost_frames: u64,
     /// Engine ticks never drawn.
     pub skipped_ticks: u64,
     /// Reports lost between renderer and launcher.
@@ -1414,6 +1419,8 @@ fn report(e: Ended<'_>) -> DemoReport {
         stale_frames: stats.stale_frames,
         patient_pose_held_frames: stats.pose_held_frames,
         patient_pose_stale_frames: stats.pose_stale_frames,
+        signal_following_frames: stats.signal_following_frames,
+        signal_lost_frames: stats.signal_lost_frames,
         skipped_ticks: stats.skipped_ticks,
         lost_reports: stats.lost_reports,
         bad_stamps: stats.bad_stamps,
@@ -1592,6 +1599,14 @@ pub fn table(r: &DemoReport) -> String {
             "PATIENT POSE HELD in {} of {} frames ({} of them stale: no patient sample in time, or \
              none yet) — drawn over a tinted background, amber held, red stale",
             r.patient_pose_held_frames, r.frames_rendered, r.patient_pose_stale_frames
+        );
+    }
+    if r.signal_following_frames + r.signal_lost_frames > 0 {
+        let _ = writeln!(
+            s,
+            "breathing: the patient's signal drove {} of {} frames; in {} it was lost, ended or not \
+             yet there (the model breathed, under a blue veil); the rest calibrated it",
+            r.signal_following_frames, r.frames_rendered, r.signal_lost_frames
         );
     }
     let _ = writeln!(

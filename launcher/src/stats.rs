@@ -56,6 +56,10 @@ pub struct LatencyStats {
     pub pose_held_frames: u64,
     /// Of those, frames whose held pose was stale (past the limit, or none ever arrived).
     pub pose_stale_frames: u64,
+    /// Frames whose lungs the patient's respiratory signal drove.
+    pub signal_following_frames: u64,
+    /// Frames drawn while a followed signal was lost (the model breathed, under the blue veil).
+    pub signal_lost_frames: u64,
     /// Reports missing from the stream (gaps in the renderer's frame counter).
     pub lost_reports: u64,
     /// Engine ticks never drawn (gaps in the drawn tick sequence).
@@ -120,6 +124,8 @@ impl LatencyStats {
             stale_frames: 0,
             pose_held_frames: 0,
             pose_stale_frames: 0,
+            signal_following_frames: 0,
+            signal_lost_frames: 0,
             lost_reports: 0,
             skipped_ticks: 0,
             bad_stamps: 0,
@@ -149,6 +155,12 @@ impl LatencyStats {
         }
         if r.flags & report_flags::PATIENT_POSE_STALE != 0 {
             self.pose_stale_frames += 1;
+        }
+        if r.flags & report_flags::SIGNAL_FOLLOWING != 0 {
+            self.signal_following_frames += 1;
+        }
+        if r.flags & report_flags::SIGNAL_LOST != 0 {
+            self.signal_lost_frames += 1;
         }
         if r.flags & report_flags::STALE_ENGINE != 0 {
             self.stale_frames += 1;

@@ -642,6 +642,12 @@ impl Session {
             hmd: self.hmd,
             pose_warning: crate::PoseWarning::of_engine_state(frame.state),
         };
+        if frame.state & ipc_types::engine_state::SIGNAL_FOLLOWING != 0 {
+            *flags |= report_flags::SIGNAL_FOLLOWING;
+        }
+        if frame.state & ipc_types::engine_state::SIGNAL_LOST != 0 {
+            *flags |= report_flags::SIGNAL_LOST;
+        }
         if self.engine_down() {
             *flags |= report_flags::ENGINE_DOWN;
             state.pose_warning = crate::PoseWarning::EngineDown;

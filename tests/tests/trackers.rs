@@ -751,3 +751,101 @@ fn the_demo_draws_with_a_calibration_and_hmd_optics() {
     }
     std::fs::remove_dir_all(&dir).ok();
 }
+
+/// A 15 s chest trace (3 s breaths, 25 Hz) written for the test: synthetic, not patient data.
+fn breathing_trace(path: &std::path::Path) {
+    let mut s = String::from("time_s,amplitude_mm,valid\n");
+    for k in 0..375 {
+        let t = k as f64 * 0.04;
+        let phase = (t / 3.0).fract();
+        let depth = 8.0 * (1.0 + 0.05 * ((t / 3.0).floor() * 1.7).sin());
+        let v = depth * 0.5 * (1.0 - (2.0 * std::f64::consts::PI * phase).cos());
+        s += &format!("{t:.3},{v:.4},1\n");
+    }
+    std::fs::write(path, s).unwrap();
+}
+
+/// `lungdyn demo --breathing trace:FILE` through the three processes: the bridge replays the trace,
+/// the engine follows it (calibrates, then the signal drives the lungs) and, when the trace ends,
+/// says the signal is lost; the renderer reports which frames the signal drove and which it veiled
+/// blue (docs/BREATHING.md).
+#[test]
+fn the_demo_follows_a_replayed_breathing_trace_and_says_when_it_ends() {
+    if renderer::gpu::Gpu::for_tests().is_none() {
+        return;
+    }
+    let dir = std::env::temp_dir().join(format!("lungdyn-trackers-breath-{}", std::process::id()));
+    let scene = small_demo_scene(&dir);
+    let trace = dir.with_extension("csv");
+    breathing_trace(&trace);
+    let (ok, stdout, err) = lungdyn(&[
+        "demo",
+        "--seconds",
+        "22",
+        "--snapshots",
+        "0",
+        "--json",
+        "--out",
+        dir.to_str().unwrap(),
+        "--scene",
+        scene.to_str().unwrap(),
+        "--breathing",
+        &format!("trace:{}", trace.display()),
+    ]);
+    assert!(ok, "{err}");
+    let v: serde_json::Value = serde_json::from_str(stdout.trim()).unwrap();
+    lungdyn_tests::assert_demo_report_is_consistent(&v, &err);
+    assert!(err.contains("breathing signal: CSV trace of mm"), "{err}");
+    let engine = err
+        .lines()
+        .find(|l| l.contains("engine[") && l.contains("breathing signal:"))
+        .unwrap_or_else(|| panic!("the engine's breathing line: {err}"));
+    let number_before = |words: &str| -> u64 {
+        let at = engine
+            .find(words)
+            .unwrap_or_else(|| panic!("{words:?} in {engine}"));
+        engine[..at]
+            .split_whitespace()
+            .last()
+            .and_then(|w| w.trim_start_matches('(').parse().ok())
+            .unwrap_or_else(|| panic!("a number before {words:?} in {engine}"))
+    };
+    assert!(number_before("samples used") >= 350, "{engine}");
+    assert!(number_before("breaths (") >= 3, "{engine}");
+    let following = engine
+        .split("ticks following ")
+        .nth(1)
+        .and_then(|r| r.split(',').next())
+        .and_then(|n| n.trim().parse::<u64>().ok())
+        .unwrap_or_else(|| panic!("ticks following in {engine}"));
+    assert!(
+        following >= 60,
+        "the signal drove the lungs for a while: {engine}"
+    );
+    assert!(
+        engine.contains("signal lost (the source ended)"),
+        "{engine}"
+    );
+    // The renderer's reports: the signal drove frames, and after the trace's 15 s the model
+    // breathed under the blue veil (about the last 7 s of the 22).
+    let (drawn, followed, lost) = (
+        v["frames_rendered"].as_u64().unwrap(),
+        v["signal_following_frames"].as_u64().unwrap(),
+        v["signal_lost_frames"].as_u64().unwrap(),
+    );
+    assert!(
+        followed >= drawn / 10,
+        "{followed} of {drawn} frames followed the signal: {v}"
+    );
+    assert!(
+        lost >= drawn / 5 && lost < drawn,
+        "{lost} of {drawn} frames after the trace ended: {v}"
+    );
+    assert!(
+        err.contains("breathing: the patient's signal drove"),
+        "{err}"
+    );
+    std::fs::remove_dir_all(&dir).ok();
+    std::fs::remove_file(&scene).ok();
+    std::fs::remove_file(&trace).ok();
+}

@@ -837,7 +837,8 @@ fn report_signal(core: &EngineCore, name: &str) {
         let (c, n) = (f.counts(), f.samples());
         transport::process::say(&format!(
             "engine[{}]: breathing signal: {} samples used ({} invalid, {} not newer, {} losses), {} \
-             breaths ({} sighs, {} coughs), last state: {}{}",
+             breaths ({} sighs, {} coughs); ticks following {}, calibrating {}, lost {}; last state: \
+             {}{}",
             name,
             n.used,
             n.invalid,
@@ -846,6 +847,9 @@ fn report_signal(core: &EngineCore, name: &str) {
             c.breaths,
             c.sighs,
             c.coughs,
+            signal.ticks().following,
+            signal.ticks().calibrating,
+            signal.ticks().lost,
             signal
                 .followed()
                 .map_or("no sample", |x| x.state.describe()),

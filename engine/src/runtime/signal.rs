@@ -51,6 +51,18 @@ pub struct SignalDrive {
     /// The newest following figures, for reports.
     followed: Option<Followed>,
     source_ended: bool,
+    ticks: SignalTicks,
+}
+
+/// Ticks by what drove the lungs.
+#[derive(Debug, Clone, Copy, Default, PartialEq, Eq)]
+pub struct SignalTicks {
+    /// The signal drove them (following, or paused on a breath-hold or apnoea).
+    pub following: u64,
+    /// The model, while the signal calibrated.
+    pub calibrating: u64,
+    /// The model, with no signal (lost, ended, none yet).
+    pub lost: u64,
 }
 
 impl SignalDrive {
@@ -80,6 +92,7 @@ impl SignalDrive {
             last: None,
             followed: None,
             source_ended: false,
+            ticks: SignalTicks::default(),
         })
     }
 
@@ -96,6 +109,11 @@ impl SignalDrive {
     /// The bridge said its source ended (a replayed trace reached its end).
     pub fn source_ended(&self) -> bool {
         self.source_ended
+    }
+
+    /// Ticks so far by what drove the lungs.
+    pub fn ticks(&self) -> SignalTicks {
+        self.ticks
     }
 
     /// Take this tick's input, decide what drives each lung, and return the state bits. A lung
@@ -162,6 +180,13 @@ impl SignalDrive {
         if self.unit == signal_unit::NONE {
             bits |= engine_state::SIGNAL_LOST;
             bits &= !engine_state::SIGNAL_CALIBRATING;
+        }
+        if bits & engine_state::SIGNAL_FOLLOWING != 0 {
+            self.ticks.following += 1;
+        } else if bits & engine_state::SIGNAL_CALIBRATING != 0 {
+            self.ticks.calibrating += 1;
+        } else {
+            self.ticks.lost += 1;
         }
         bits
     }

@@ -1848,6 +1848,9 @@ fn the_lungs_follow_the_patients_signal_once_calibrated() {
         "RMS {rms:.1} ml of a {tidal:.0} ml tidal volume"
     );
     assert!(core.signal().unwrap().follower().counts().breaths >= 10);
+    let t = core.signal().unwrap().ticks();
+    assert_eq!(t.following + t.calibrating + t.lost, run.len() as u64);
+    assert_eq!(t.following, (run.len() - following) as u64);
 }
 
 #[test]
