@@ -205,11 +205,19 @@ mod tests {
         let lost = link.counts().lost.load(Ordering::Relaxed) as usize;
         assert_eq!(got.len() + lost, 200);
         assert!((5..=40).contains(&lost), "{lost} of 200 lost at 10 %");
-        for (k, at) in got.iter() {
-            let d = (*at - sent[*k as usize]) as f64 / 1e6;
-            // The send stamp is taken just before push: allow scheduling slack above.
-            assert!((14.9..=40.0).contains(&d), "packet {k}: {d} ms");
+        let mut delays: Vec<f64> = got
+            .iter()
+            .map(|(k, at)| (*at - sent[*k as usize]) as f64 / 1e6)
+            .collect();
+        for (d, (k, _)) in delays.iter().zip(got.iter()) {
+            // Never early; late only by the scheduler (a loaded 2-core machine stalled one packet
+            // 51 ms once, so no packet's lateness is held against a wall clock here).
+            assert!(*d >= 14.9 && *d < 1000.0, "packet {k}: {d} ms");
         }
+        // The delay and jitter as set (20 ± 5 ms): the median, which one stall does not move.
+        delays.sort_by(f64::total_cmp);
+        let median = delays[delays.len() / 2];
+        assert!((17.0..=30.0).contains(&median), "median delay {median} ms");
     }
 
     #[test]
