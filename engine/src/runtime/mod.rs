@@ -209,12 +209,6 @@ impl LungBreath {
         }
     }
 
-    /// The signal's volume change above FRC drives this lung (whole patient, ml; this lung takes
-    /// its share), or `None`: its model cycle.
-    pub fn driven(&self) -> Option<(f64, bool, f64)> {
-        self.driven
-    }
-
     /// Carry on with the model from where the signal left the lungs: place the cycle at the tick
     /// whose volume change above FRC is nearest `volume_ml` on the same branch (inhaling or
     /// exhaling), so the volume does not jump. One pass over the cycle's ticks, nothing allocated.

@@ -24,6 +24,9 @@ use super::{CoreError, LungBreath, LungGeometry};
 
 /// Sample period assumed before a source states its own, ns (50 Hz).
 const PERIOD_BEFORE_KNOWN_NS: u64 = 20_000_000;
+/// Shortest and longest sample period followed, ns (1 kHz … 1 Hz: every respiratory source's).
+const MIN_PERIOD_NS: u64 = 1_000_000;
+const MAX_PERIOD_NS: u64 = 1_000_000_000;
 /// Ticks over which the signal takes over from the model (0.5 s at 60 Hz): the drawn volume blends
 /// from the model's breath into the patient's instead of jumping.
 pub const TAKEOVER_TICKS: u64 = 30;
@@ -208,13 +211,21 @@ impl SignalDrive {
             return;
         }
         self.source_ended = block.status & signal_status::ENDED != 0;
+        // A unit the protocol does not name, or a period no respiratory source has (a foreign or
+        // damaged frame), is not followed: the block's samples are left out.
         let unit = block.unit;
-        let period = if block.period_ns > 0 {
-            block.period_ns
-        } else {
-            PERIOD_BEFORE_KNOWN_NS
+        if !matches!(
+            unit,
+            signal_unit::MM | signal_unit::ML | signal_unit::ARBITRARY
+        ) {
+            return;
+        }
+        let period = match block.period_ns {
+            0 => PERIOD_BEFORE_KNOWN_NS,
+            p if (MIN_PERIOD_NS..=MAX_PERIOD_NS).contains(&p) => p,
+            _ => return,
         };
-        if unit != signal_unit::NONE && (unit != self.unit || period != self.period_ns) {
+        if unit != self.unit || period != self.period_ns {
             let calibration = if unit == signal_unit::ML {
                 Calibration::Volume
             } else {
@@ -225,9 +236,6 @@ impl SignalDrive {
             self.follower.reconfigure(period, calibration);
             self.unit = unit;
             self.period_ns = period;
-        }
-        if self.unit == signal_unit::NONE {
-            return;
         }
         for i in 0..ipc_types::MAX_SIGNAL_SAMPLES {
             let Some((s, valid)) = block.sample(i) else {

@@ -1940,6 +1940,11 @@ fn a_signal_run_replays_bitwise_and_bad_samples_never_reach_a_frame() {
                 input.signal.count = u32::MAX;
                 input.signal.valid_mask = u32::MAX;
             }
+            if tick % 17 == 3 {
+                // ... and a unit and a period no source has.
+                input.signal.unit = 99;
+                input.signal.period_ns = u64::MAX;
+            }
             // Every 11th tick without a frame (the deadline fallback).
             core.step(tick, (tick % 11 != 5).then_some(&input), &mut f);
             out.push(f);

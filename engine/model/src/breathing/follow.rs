@@ -161,7 +161,7 @@ impl Follower {
     /// may call it).
     pub fn reconfigure(&mut self, period_ns: u64, calibration: Calibration) {
         self.config.period_ns = period_ns.max(1);
-        self.config.lost_after_ns = (3 * self.config.period_ns).max(100_000_000);
+        self.config.lost_after_ns = self.config.period_ns.saturating_mul(3).max(100_000_000);
         self.config.calibration = calibration;
         self.grid = Grid::new(self.config.period_ns, self.config.lost_after_ns);
         self.predictor.reset();
