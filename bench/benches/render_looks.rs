@@ -412,6 +412,7 @@ fn main() {
                 gpu_ns: Some(11_000_000),
                 latency_ns: Some(9_000_000),
                 lod: r.lod_shown(),
+                governor: None,
                 outcome: Some((
                     "needle decompression, left, applied 01:02 — air venting",
                     renderer::hud::text::Standing::Done,

@@ -485,6 +485,59 @@ pub mod report_flags {
     /// The scene follows a signal and it was lost: the model breathed, under the blue veil (the
     /// engine's `SIGNAL_LOST`).
     pub const SIGNAL_LOST: u32 = 1 << 8;
+    /// The renderer's quality governor has given up every step it may and the frames are still
+    /// over its target: the deadline is not held (`renderer::governor`).
+    pub const GOVERNOR_FLOOR: u32 = 1 << 9;
+    /// Drawn with multisampling off by the governor (the scene asked for 4×).
+    pub const QUALITY_MSAA_OFF: u32 = 1 << 10;
+    /// Drawn opaque by the governor (the scene's look is translucent).
+    pub const QUALITY_OPAQUE: u32 = 1 << 11;
+    /// Bits 16..18: draw levels coarser than the level of detail chose, by the governor (0..7).
+    pub const QUALITY_LOD_SHIFT: u32 = 16;
+    /// The mask of [`QUALITY_LOD_SHIFT`]'s bits.
+    pub const QUALITY_LOD_MASK: u32 = 0x7 << QUALITY_LOD_SHIFT;
+    /// Every bit that says the governor drew below the scene's quality.
+    pub const QUALITY_LOWERED: u32 = QUALITY_MSAA_OFF | QUALITY_OPAQUE | QUALITY_LOD_MASK;
+
+    /// The bits of a frame drawn with multisampling off, `lod_bias` levels coarser (at most 7)
+    /// and opaque instead of translucent.
+    pub const fn quality_bits(msaa_off: bool, lod_bias: u8, opaque: bool) -> u32 {
+        let lod = if lod_bias > 7 { 7 } else { lod_bias as u32 };
+        (if msaa_off { QUALITY_MSAA_OFF } else { 0 })
+            | (if opaque { QUALITY_OPAQUE } else { 0 })
+            | (lod << QUALITY_LOD_SHIFT)
+    }
+
+    /// A frame's quality in words from its flags: "full", or what the governor gave up ("MSAA off,
+    /// LOD +2, opaque look").
+    pub fn describe_quality(flags: u32) -> String {
+        let mut s = String::new();
+        let _ = write_quality(&mut s, flags);
+        s
+    }
+
+    /// [`describe_quality`] into `w`, allocating nothing (the HUD's per-frame line).
+    pub fn write_quality(w: &mut impl core::fmt::Write, flags: u32) -> core::fmt::Result {
+        let lod = (flags & QUALITY_LOD_MASK) >> QUALITY_LOD_SHIFT;
+        let mut sep = "";
+        if flags & QUALITY_MSAA_OFF != 0 {
+            w.write_str("MSAA off")?;
+            sep = ", ";
+        }
+        if lod > 0 {
+            write!(w, "{sep}LOD +{lod}")?;
+            sep = ", ";
+        }
+        if flags & QUALITY_OPAQUE != 0 {
+            write!(w, "{sep}opaque look")?;
+            sep = ", ";
+        }
+        if sep.is_empty() {
+            w.write_str("full")?;
+        }
+        Ok(())
+    }
+
     /// Stale frames in a row after which the renderer says the engine is down (100 ms at 60 Hz:
     /// longer than any jitter of a running engine, short next to a restart).
     pub const ENGINE_DOWN_FRAMES: u64 = 6;

@@ -19,6 +19,28 @@ use serde::Serialize;
 
 use crate::stats::{HopRow, LatencyStats, DEADLINE_NS};
 
+/// Frames drawn at one quality (the demo's JSON).
+#[derive(Debug, Clone, serde::Serialize)]
+pub struct QualityFrames {
+    /// "full", or what the governor gave up.
+    pub quality: String,
+    /// Frames drawn at it.
+    pub frames: u64,
+}
+
+/// Frames per quality, most first, in words.
+fn quality_frames(seen: &[(u32, u64)]) -> Vec<QualityFrames> {
+    let mut v: Vec<QualityFrames> = seen
+        .iter()
+        .map(|&(q, frames)| QualityFrames {
+            quality: ipc_types::report_flags::describe_quality(q),
+            frames,
+        })
+        .collect();
+    v.sort_by(|a, b| b.frames.cmp(&a.frames).then(a.quality.cmp(&b.quality)));
+    v
+}
+
 /// Options of `lungdyn demo`.
 #[derive(Debug, Clone, clap::Args)]
 pub struct DemoArgs {
@@ -151,6 +173,13 @@ pub struct DemoArgs {
     /// frame-time line shows the level drawn.
     #[arg(long, value_name = "LOD")]
     pub lod: Option<lung_model::scene::Lod>,
+    /// The quality governor (overrides the scene's `[render] governor`): "hold-deadline" (the
+    /// default) draws less when frames run late — MSAA off, then coarser draw levels, then the
+    /// translucent look opaque, never a coarser deformation — and takes it back when there is time
+    /// again, each change said on stderr and on the HUD; "off" always draws the scene's quality.
+    /// docs/LATENCY.md "The governor".
+    #[arg(long, value_name = "GOVERNOR")]
+    pub governor: Option<lung_model::scene::Governor>,
     /// Vertices per generated default lung (overrides the scene's `[lungs] vertices`; baked once
     /// into <out>/kernels and reused).
     #[arg(long, value_name = "N")]
@@ -315,6 +344,19 @@ pub struct DemoReport {
     /// Frames drawn while the followed signal was lost, ended or not yet there: the model breathed,
     /// under the blue veil.
     pub signal_lost_frames: u64,
+    /// The quality governor (`[render] governor`, `--governor`): "hold-deadline" or "off".
+    pub governor: String,
+    /// Frames the governor drew below the scene's quality.
+    pub lowered_frames: u64,
+    /// Frames drawn with every step the governor may take given up and still over its target: the
+    /// deadline was not held by drawing less.
+    pub governor_floor_frames: u64,
+    /// Times the quality drawn changed between frames.
+    pub quality_changes: u64,
+    /// The quality of the last frame: "full", or what the governor gave up ("LOD +2").
+    pub final_quality: String,
+    /// Frames drawn at each quality, most frames first.
+    pub quality_frames: Vec<QualityFrames>,
     /// Engine ticks never drawn.
     pub skipped_ticks: u64,
     /// Reports lost between renderer and launcher.
@@ -695,6 +737,9 @@ fn resolve_scene(args: &DemoArgs) -> anyhow::Result<Resolved> {
     }
     if let Some(lod) = args.lod {
         loaded.render.lod = lod;
+    }
+    if let Some(g) = args.governor {
+        loaded.render.governor = g;
     }
     if let Some(v) = args.vertices {
         loaded.lungs.vertices = v;
@@ -1421,6 +1466,12 @@ fn report(e: Ended<'_>) -> DemoReport {
         patient_pose_stale_frames: stats.pose_stale_frames,
         signal_following_frames: stats.signal_following_frames,
         signal_lost_frames: stats.signal_lost_frames,
+        governor: scene.render.governor.name().to_string(),
+        lowered_frames: stats.lowered_frames,
+        governor_floor_frames: stats.governor_floor_frames,
+        quality_changes: stats.quality_changes,
+        final_quality: ipc_types::report_flags::describe_quality(stats.last_quality),
+        quality_frames: quality_frames(&stats.quality_frames),
         skipped_ticks: stats.skipped_ticks,
         lost_reports: stats.lost_reports,
         bad_stamps: stats.bad_stamps,
@@ -1509,6 +1560,36 @@ fn restart_lines(s: &mut String, r: &DemoReport) {
             "LAUNCHER STALLED {} times (longest {:.0} ms between two looks at its processes: it was \
              stopped or starved of CPU); their silence meanwhile was not counted as a hang",
             r.launcher_stalls, r.launcher_max_gap_ms
+        );
+    }
+}
+
+/// The table's line on the quality governor, when it drew anything below the scene's quality.
+fn governor_line(s: &mut String, r: &DemoReport) {
+    use std::fmt::Write as _;
+    if r.lowered_frames + r.governor_floor_frames > 0 {
+        let at: Vec<String> = r
+            .quality_frames
+            .iter()
+            .map(|q| format!("{} {}", q.quality, q.frames))
+            .collect();
+        let _ = writeln!(
+            s,
+            "quality governor: {} of {} frames drawn with less ({}; {} change(s), the last frame \
+             {}){}",
+            r.lowered_frames,
+            r.frames_rendered,
+            at.join(", "),
+            r.quality_changes,
+            r.final_quality,
+            if r.governor_floor_frames > 0 {
+                format!(
+                    "; DEADLINE NOT HELD in {} frames with everything given up",
+                    r.governor_floor_frames
+                )
+            } else {
+                String::new()
+            }
         );
     }
 }
@@ -1609,6 +1690,7 @@ pub fn table(r: &DemoReport) -> String {
             r.signal_following_frames, r.frames_rendered, r.signal_lost_frames
         );
     }
+    governor_line(&mut s, r);
     let _ = writeln!(
         s,
         "stale frames {}, engine ticks not drawn {}, reports lost {}, shm files left by iceoryx2 {} (remaining {})",

@@ -85,6 +85,11 @@ pub struct LatencyArgs {
     /// in ui.perfetto.dev).
     #[arg(long, value_name = "FILE")]
     pub trace: Option<PathBuf>,
+    /// The quality governor (overrides the scene's `[render] governor`): "hold-deadline" draws
+    /// less when frames run late, "off" always the scene's quality — measure both back to back to
+    /// see what it buys (the report says the quality it settled at). docs/LATENCY.md.
+    #[arg(long, value_name = "GOVERNOR")]
+    pub governor: Option<lung_model::scene::Governor>,
 }
 
 /// `--load`: background work while measuring.
@@ -638,6 +643,16 @@ pub struct LatencyReport {
     pub realtime: bool,
     /// Frames beyond the preallocated time series (not plotted; still in the histograms).
     pub series_dropped: u64,
+    /// The quality governor: "hold-deadline" or "off".
+    pub governor: String,
+    /// The quality of the last frame: "full", or what the governor gave up ("LOD +2").
+    pub final_quality: String,
+    /// Frames drawn at each quality over the whole run (warm-up included), most first.
+    pub quality_frames: Vec<crate::demo::QualityFrames>,
+    /// Times the quality changed, over the whole run.
+    pub quality_changes: u64,
+    /// Frames with every governor step given up and still over its target, over the whole run.
+    pub governor_floor_frames: u64,
 }
 
 /// A sweep's result.
@@ -747,6 +762,7 @@ fn measure(
     demo.vertices = vertices;
     demo.json = true;
     demo.realtime = args.realtime;
+    demo.governor = args.governor;
     // The stage timers come with the spans: always on here, into --out unless --trace names a file.
     demo.trace = Some(trace.map_or_else(|| args.out.join("latency.trace.json"), Path::to_path_buf));
     let mut scene = lung_model::scene::Scene::load_or_default(args.scene.as_deref())?;
@@ -872,6 +888,11 @@ impl Recorder {
             window: self.window,
             realtime,
             series_dropped: self.series_dropped,
+            governor: demo.governor.clone(),
+            final_quality: demo.final_quality.clone(),
+            quality_frames: demo.quality_frames.clone(),
+            quality_changes: demo.quality_changes,
+            governor_floor_frames: demo.governor_floor_frames,
         };
         (report, self.series)
     }
@@ -1061,6 +1082,35 @@ fn write_plot(png: &Path, r: &LatencyReport, series: &[SeriesPoint]) -> anyhow::
     Ok(())
 }
 
+/// The report's line on the quality governor: the frames at each quality, its changes, its floor.
+fn governor_line(r: &LatencyReport) -> String {
+    let at: Vec<String> = r
+        .quality_frames
+        .iter()
+        .map(|q| format!("{} {}", q.quality, q.frames))
+        .collect();
+    format!(
+        "Quality governor: {}; frames at each quality over the whole run: {}; {} change(s); the \
+         last frame drawn with {} quality{}.\n",
+        r.governor,
+        if at.is_empty() {
+            "none".to_string()
+        } else {
+            at.join(", ")
+        },
+        r.quality_changes,
+        r.final_quality,
+        if r.governor_floor_frames > 0 {
+            format!(
+                "; **{} frames with everything given up still over the deadline**",
+                r.governor_floor_frames
+            )
+        } else {
+            String::new()
+        }
+    )
+}
+
 /// The markdown report.
 pub fn markdown(o: &LatencyOutput) -> String {
     use std::fmt::Write;
@@ -1126,6 +1176,7 @@ pub fn markdown(o: &LatencyOutput) -> String {
         r.missed_frame_slots,
         r.schedule_misses
     );
+    let _ = writeln!(s, "{}", governor_line(r));
     if !r.deadline_miss_stages.is_empty() {
         let _ = writeln!(
             s,
@@ -1198,7 +1249,8 @@ pub fn summary(o: &LatencyOutput) -> String {
     let r = &o.run;
     let mut s = format!(
         "lungdyn latency: {} frames in {:.1} s, {} vertices per lung ({} mode): capture -> submit p99 \
-         {:.2} ms, capture -> GPU done p99 {:.2} ms{}, {} deadline misses\n",
+         {:.2} ms, capture -> GPU done p99 {:.2} ms{}, {} deadline misses; governor {}, last frame \
+         at {} quality\n",
         r.frames,
         r.seconds,
         r.mesh_vertices,
@@ -1207,7 +1259,9 @@ pub fn summary(o: &LatencyOutput) -> String {
         r.capture_to_gpu_done_p99_ms,
         r.capture_to_present_p99_ms
             .map_or(String::new(), |p| format!(", capture -> present p99 {p:.2} ms")),
-        r.deadline_misses
+        r.deadline_misses,
+        r.governor,
+        r.final_quality
     );
     if let Some(l) = o.largest_mesh_vertices {
         s.push_str(&format!(

@@ -60,6 +60,16 @@ pub struct LatencyStats {
     pub signal_following_frames: u64,
     /// Frames drawn while a followed signal was lost (the model breathed, under the blue veil).
     pub signal_lost_frames: u64,
+    /// Frames the quality governor drew below the scene's quality (`report_flags::QUALITY_LOWERED`).
+    pub lowered_frames: u64,
+    /// Frames drawn with every governor step given up and still over its target.
+    pub governor_floor_frames: u64,
+    /// Times the drawn quality changed from one frame to the next.
+    pub quality_changes: u64,
+    /// The quality bits of the last frame (`report_flags::QUALITY_LOWERED`), and per quality seen,
+    /// its frames (a handful of distinct qualities at most).
+    pub last_quality: u32,
+    pub quality_frames: Vec<(u32, u64)>,
     /// Reports missing from the stream (gaps in the renderer's frame counter).
     pub lost_reports: u64,
     /// Engine ticks never drawn (gaps in the drawn tick sequence).
@@ -126,6 +136,11 @@ impl LatencyStats {
             pose_stale_frames: 0,
             signal_following_frames: 0,
             signal_lost_frames: 0,
+            lowered_frames: 0,
+            governor_floor_frames: 0,
+            quality_changes: 0,
+            last_quality: 0,
+            quality_frames: Vec::with_capacity(16),
             lost_reports: 0,
             skipped_ticks: 0,
             bad_stamps: 0,
@@ -162,6 +177,7 @@ impl LatencyStats {
         if r.flags & report_flags::SIGNAL_LOST != 0 {
             self.signal_lost_frames += 1;
         }
+        self.record_quality(r.flags);
         if r.flags & report_flags::STALE_ENGINE != 0 {
             self.stale_frames += 1;
         } else if let Some(prev) = self.last_tick {
@@ -203,6 +219,26 @@ impl LatencyStats {
         }
         if r.flags & report_flags::GPU_TIMED != 0 && r.gpu_frame_ns > 0 {
             let _ = self.gpu.record(r.gpu_frame_ns);
+        }
+    }
+
+    /// The governor's part of a report: what it gave up for the frame and whether at its floor.
+    fn record_quality(&mut self, flags: u32) {
+        let quality = flags & report_flags::QUALITY_LOWERED;
+        if quality != 0 {
+            self.lowered_frames += 1;
+        }
+        if flags & report_flags::GOVERNOR_FLOOR != 0 {
+            self.governor_floor_frames += 1;
+        }
+        if self.frames > 1 && quality != self.last_quality {
+            self.quality_changes += 1;
+        }
+        self.last_quality = quality;
+        match self.quality_frames.iter_mut().find(|(q, _)| *q == quality) {
+            Some((_, n)) => *n += 1,
+            // Bounded: 3 bits of draw levels, MSAA, the look (at most 32 distinct).
+            None => self.quality_frames.push((quality, 1)),
         }
     }
 

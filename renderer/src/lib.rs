@@ -21,6 +21,7 @@ pub mod camera;
 pub mod deform;
 pub mod display;
 pub mod draw;
+pub mod governor;
 pub mod gpu;
 pub mod hud;
 pub mod lod;
@@ -38,7 +39,7 @@ pub mod xr_runtime;
 
 pub use deform::{LungInputs, RenderLung, UploadError};
 use ipc_types::{Pose, MAX_COEFFS};
-use lung_model::scene::{ColorMode, DrawMode, Lod, Look, RenderScene};
+use lung_model::scene::{ColorMode, DrawMode, Governor, Lod, Look, RenderScene};
 use wgpu::util::DeviceExt;
 
 use crate::gpu::Gpu;
@@ -278,39 +279,17 @@ impl DrawLevels {
     }
 }
 
-/// The frame's render targets: colour (resolved, sampled, copied out), its multisampled twin,
-/// depth, and the translucent look's OIT targets.
+/// The frame's colour target (resolved, sampled, copied out), shared by every [`Variant`].
 struct Targets {
     color: wgpu::Texture,
     /// Whether the colour target may be viewed as plain bytes (no sRGB decode).
     bytes_views: bool,
-    msaa_view: Option<wgpu::TextureView>,
-    depth_view: wgpu::TextureView,
-    oit: Option<OitTargets>,
 }
 
 impl Targets {
-    /// Targets of `size` at `samples` per pixel; OIT targets when the look has a composite
-    /// (`composite`: its bind group layout).
-    fn new(
-        gpu: &Gpu,
-        size: wgpu::Extent3d,
-        samples: u32,
-        composite: Option<&wgpu::BindGroupLayout>,
-    ) -> Self {
+    /// The colour target of `size`.
+    fn new(gpu: &Gpu, size: wgpu::Extent3d) -> Self {
         let device = &gpu.device;
-        let texture = |label, format, sample_count, usage| {
-            device.create_texture(&wgpu::TextureDescriptor {
-                label: Some(label),
-                size,
-                mip_level_count: 1,
-                sample_count,
-                dimension: wgpu::TextureDimension::D2,
-                format,
-                usage,
-                view_formats: &[],
-            })
-        };
         let attachment = wgpu::TextureUsages::RENDER_ATTACHMENT;
         // The colour target may also be viewed as plain bytes (no sRGB decode): the window's
         // present pass copies it texel for texel that way when the window is the frame's size.
@@ -333,6 +312,49 @@ impl Targets {
                 | wgpu::TextureUsages::TEXTURE_BINDING,
             view_formats: if bytes_views { &bytes_format } else { &[] },
         });
+        Self { color, bytes_views }
+    }
+}
+
+/// One way of drawing a frame: a look's pipelines at a sample count with their own targets (the
+/// multisampled colour, depth, the translucent look's OIT targets), resolved into the shared
+/// colour target. The scene's own is the first; the governor's lower qualities may add one with
+/// multisampling off and one drawn opaque, built at start so a change never compiles a pipeline
+/// mid-run ([`governor`]).
+struct Variant {
+    look: Look,
+    samples: u32,
+    draw: draw::DrawPipelines,
+    msaa_view: Option<wgpu::TextureView>,
+    depth_view: wgpu::TextureView,
+    oit: Option<OitTargets>,
+}
+
+impl Variant {
+    /// `look`'s pipelines for `settings` at `samples` per pixel, with targets of `size`.
+    fn new(
+        gpu: &Gpu,
+        settings: &RenderScene,
+        look: Look,
+        samples: u32,
+        size: wgpu::Extent3d,
+    ) -> Self {
+        let device = &gpu.device;
+        let draw = draw::DrawPipelines::new(device, settings.mode, look, settings.color, samples);
+        let texture = |label, format, sample_count, usage| {
+            device.create_texture(&wgpu::TextureDescriptor {
+                label: Some(label),
+                size,
+                mip_level_count: 1,
+                sample_count,
+                dimension: wgpu::TextureDimension::D2,
+                format,
+                usage,
+                view_formats: &[],
+            })
+        };
+        let attachment = wgpu::TextureUsages::RENDER_ATTACHMENT;
+        let composite = draw.composite.as_ref().map(|c| &c.1);
         let view = |t: wgpu::Texture| t.create_view(&Default::default());
         let msaa_view = (samples > 1).then(|| {
             view(texture(
@@ -390,8 +412,9 @@ impl Targets {
             }
         });
         Self {
-            color,
-            bytes_views,
+            look,
+            samples,
+            draw,
             msaa_view,
             depth_view: depth.create_view(&Default::default()),
             oit,
@@ -402,7 +425,14 @@ impl Targets {
 /// The renderer's GPU state for a fixed set of lungs and a fixed output size.
 pub struct LungRenderer {
     deform: deform::DeformPass,
-    draw: draw::DrawPipelines,
+    /// The scene's way of drawing first, then those the governor's steps need ([`Variant`]).
+    variants: Vec<Variant>,
+    /// The variant drawn now.
+    active: usize,
+    /// Draw levels coarser than the chosen one (the governor's [`governor::Quality::lod_bias`]).
+    lod_bias: u8,
+    /// What the governor may give up, in its order (empty with `[render] governor = "off"`).
+    steps: Vec<governor::Step>,
     /// Every draw level's triangles over the one vertex buffer ([`lod`]), level 0 first.
     index: wgpu::Buffer,
     /// Per level, its range in `index`.
@@ -420,11 +450,6 @@ pub struct LungRenderer {
     /// The same target viewed as plain bytes (`Rgba8Unorm`), for the present pass's exact copy;
     /// `None` where the adapter allows no other view format.
     color_bytes_view: Option<wgpu::TextureView>,
-    /// The multisampled colour target (MSAA on), resolved into `color` by the frame's last pass.
-    msaa_view: Option<wgpu::TextureView>,
-    depth_view: wgpu::TextureView,
-    oit: Option<OitTargets>,
-    samples: u32,
     readback: wgpu::Buffer,
     padded_row: u32,
     eye_width: u32,
@@ -479,13 +504,6 @@ impl LungRenderer {
             field,
         )?;
         let samples = msaa_samples(settings, gpu);
-        let draw = draw::DrawPipelines::new(
-            device,
-            settings.mode,
-            settings.look,
-            settings.color,
-            samples,
-        );
         let surface = surface_buffer(device, lungs);
         let tumours = lungs
             .iter()
@@ -507,7 +525,22 @@ impl LungRenderer {
             height: eye_height,
             depth_or_array_layers: 1,
         };
-        let targets = Targets::new(gpu, size, samples, draw.composite.as_ref().map(|c| &c.1));
+        let targets = Targets::new(gpu, size);
+        let steps = match settings.governor {
+            Governor::HoldDeadline => {
+                governor::ladder(settings, samples, levels.ranges.len().saturating_sub(1))
+            }
+            Governor::Off => Vec::new(),
+        };
+        // The scene's way of drawing, then each other one a number of the governor's steps reach.
+        let mut variants = vec![Variant::new(gpu, settings, settings.look, samples, size)];
+        for taken in 1..=steps.len() {
+            let (look, n) =
+                variant_of(settings.look, samples, governor::Quality::of(&steps, taken));
+            if !variants.iter().any(|v| v.look == look && v.samples == n) {
+                variants.push(Variant::new(gpu, settings, look, n, size));
+            }
+        }
         let padded_row = (width * 4).div_ceil(wgpu::COPY_BYTES_PER_ROW_ALIGNMENT)
             * wgpu::COPY_BYTES_PER_ROW_ALIGNMENT;
         let readback = device.create_buffer(&wgpu::BufferDescriptor {
@@ -519,7 +552,10 @@ impl LungRenderer {
         Ok(Self {
             lung_box: lung_box(lungs),
             deform,
-            draw,
+            variants,
+            active: 0,
+            lod_bias: 0,
+            steps,
             index: levels.index,
             lod_ranges: levels.ranges,
             lod_triangles: levels.triangles,
@@ -534,10 +570,6 @@ impl LungRenderer {
                 })
             }),
             color: targets.color,
-            msaa_view: targets.msaa_view,
-            depth_view: targets.depth_view,
-            oit: targets.oit,
-            samples,
             readback,
             padded_row,
             eye_width,
@@ -597,7 +629,7 @@ impl LungRenderer {
 
     /// The draw level of detail of the last frame ([`lod`]).
     pub fn lod_shown(&self) -> lod::Shown {
-        let level = self.lod_level.load(std::sync::atomic::Ordering::Relaxed);
+        let level = self.drawn_level();
         lod::Shown {
             level: level as u8,
             coarsest: self.lod_triangles.len().saturating_sub(1) as u8,
@@ -653,9 +685,47 @@ impl LungRenderer {
         self.lod_level.store(level, Relaxed);
     }
 
-    /// Samples per pixel drawn (`[render] msaa`, or its default for this adapter).
+    /// The draw level drawn: the chosen one, coarser by the governor's bias, within the levels
+    /// built.
+    fn drawn_level(&self) -> usize {
+        let chosen = self.lod_level.load(std::sync::atomic::Ordering::Relaxed);
+        (chosen + self.lod_bias as usize).min(self.lod_triangles.len().saturating_sub(1))
+    }
+
+    /// The way of drawing in use now.
+    fn variant(&self) -> &Variant {
+        &self.variants[self.active]
+    }
+
+    /// Samples per pixel drawn now (`[render] msaa`, or its default for this adapter; 1 where the
+    /// governor turned multisampling off).
     pub fn samples(&self) -> u32 {
-        self.samples
+        self.variant().samples
+    }
+
+    /// The scene's samples per pixel, whatever the governor draws with now.
+    pub fn scene_samples(&self) -> u32 {
+        self.variants[0].samples
+    }
+
+    /// What the quality governor may give up here, in its order ([`governor::ladder`]; empty with
+    /// `[render] governor = "off"` or nothing to give up).
+    pub fn governor_steps(&self) -> &[governor::Step] {
+        &self.steps
+    }
+
+    /// Draw from the next frame on at `quality` (the governor's change): its variant — built at
+    /// start for every quality the steps reach — and its draw-level bias.
+    pub fn set_quality(&mut self, quality: governor::Quality) {
+        let (look, samples) = variant_of(self.settings.look, self.variants[0].samples, quality);
+        if let Some(k) = self
+            .variants
+            .iter()
+            .position(|v| v.look == look && v.samples == samples)
+        {
+            self.active = k;
+        }
+        self.lod_bias = quality.lod_bias;
     }
 
     /// Draw the eyes of `eyes` from the next frame on (an OpenXR runtime's views, located per
@@ -775,7 +845,7 @@ impl LungRenderer {
             aspect,
             s.splat_mm,
         );
-        for (buffer, eye) in self.draw.eye_buffers.iter().zip(&eyes[..n]) {
+        for (buffer, eye) in self.variant().draw.eye_buffers.iter().zip(&eyes[..n]) {
             queue.write_buffer(buffer, 0, bytemuck::bytes_of(eye));
         }
         self.choose_lod(&eyes[..n], &state.offset_mm);
@@ -876,12 +946,13 @@ impl LungRenderer {
     /// (the translucent look's composite blends over the resolved image: see `draw::composite`);
     /// the last pass writes the end timestamp.
     fn encode_phases(&self, encoder: &mut wgpu::CommandEncoder, warning: PoseWarning, eyes: usize) {
-        let look = self.settings.look;
+        let v = self.variant();
+        let look = v.look;
         let phases = draw::phases(look);
         // The OIT targets and composite exist for the look whose phases blend (and only for it).
-        let translucent = self.oit.as_ref().zip(self.draw.composite.as_ref());
+        let translucent = v.oit.as_ref().zip(v.draw.composite.as_ref());
         debug_assert_eq!(translucent.is_some(), !phases.oit.is_empty());
-        let (target, resolve) = match &self.msaa_view {
+        let (target, resolve) = match &v.msaa_view {
             Some(ms) => (ms, Some(&self.color_view)),
             None => (&self.color_view, None),
         };
@@ -915,7 +986,7 @@ impl LungRenderer {
                 label: Some("lungdyn opaque"),
                 color_attachments: &[colour(wgpu::LoadOp::Clear(warning.background(look)))],
                 depth_stencil_attachment: Some(wgpu::RenderPassDepthStencilAttachment {
-                    view: &self.depth_view,
+                    view: &v.depth_view,
                     depth_ops: Some(wgpu::Operations {
                         load: wgpu::LoadOp::Clear(1.0),
                         store: if last {
@@ -946,7 +1017,7 @@ impl LungRenderer {
                     oit_target(&oit.reveal, ms.map(|m| &m.1), wgpu::Color::WHITE),
                 ],
                 depth_stencil_attachment: Some(wgpu::RenderPassDepthStencilAttachment {
-                    view: &self.depth_view,
+                    view: &v.depth_view,
                     depth_ops: Some(wgpu::Operations {
                         load: wgpu::LoadOp::Load,
                         store: wgpu::StoreOp::Discard,
@@ -992,7 +1063,7 @@ impl LungRenderer {
             0.0,
             1.0,
         );
-        pass.set_bind_group(0, &self.draw.eye_groups[i], &[]);
+        pass.set_bind_group(0, &self.variant().draw.eye_groups[i], &[]);
     }
 
     /// One drawable of a phase ([`draw::phases`]) into `pass`, for each eye.
@@ -1005,14 +1076,14 @@ impl LungRenderer {
 
     /// Both lungs, in the look's pipeline, for each eye.
     fn draw_lungs(&self, pass: &mut wgpu::RenderPass<'_>, eyes: usize) {
-        pass.set_pipeline(&self.draw.lungs);
+        pass.set_pipeline(&self.variant().draw.lungs);
         pass.set_vertex_buffer(0, self.deform.deformed.slice(..));
         pass.set_vertex_buffer(1, self.deform.normals.slice(..));
         pass.set_vertex_buffer(2, self.surface.slice(..));
         if self.settings.mode == DrawMode::Triangles {
             pass.set_index_buffer(self.index.slice(..), wgpu::IndexFormat::Uint32);
         }
-        let level = self.lod_level.load(std::sync::atomic::Ordering::Relaxed);
+        let level = self.drawn_level();
         let triangles = self.lod_ranges.get(level).cloned().unwrap_or(0..0);
         for i in 0..eyes {
             self.set_eye(pass, i);
@@ -1028,7 +1099,7 @@ impl LungRenderer {
         if self.tumours.is_empty() {
             return;
         }
-        pass.set_pipeline(&self.draw.tumour);
+        pass.set_pipeline(&self.variant().draw.tumour);
         for i in 0..eyes {
             self.set_eye(pass, i);
             for t in &self.tumours {
@@ -1101,6 +1172,14 @@ pub fn msaa_samples(settings: &RenderScene, gpu: &Gpu) -> u32 {
         } else {
             4
         })
+}
+
+/// The look and samples a frame at `quality` is drawn with, for a scene of `look` at `samples`.
+fn variant_of(look: Look, samples: u32, quality: governor::Quality) -> (Look, u32) {
+    (
+        if quality.opaque { Look::Opaque } else { look },
+        if quality.msaa_off { 1 } else { samples },
+    )
 }
 
 /// A cleared OIT target: the multisampled view resolved into `single`, or `single` itself.

@@ -120,6 +120,9 @@ pub struct Session {
     /// Stale frames in a row, and the time of the last fresh engine frame (the engine-down notice).
     stale_run: u64,
     last_fresh_ns: u64,
+    /// The quality governor (`[render] governor = "hold-deadline"`), and whether its floor was said.
+    governor: Option<crate::governor::Governor>,
+    floor_said: bool,
 }
 
 /// Where a drawn frame goes after the offscreen draw: a window surface, an OpenXR swapchain, or
@@ -270,7 +273,7 @@ impl Session {
         transport::notify::ready(&format!("renderer[{}]: drawing", instance.name()));
         let (w, h) = session.renderer.image_size();
         eprintln!(
-            "renderer[{}]: {} vertices in the {} mode ({:.1} MiB on the GPU), {}x{} {:?}{}, {} look, {} colour, {}x MSAA, {} on {}{}; waiting for engine frames on {:?}",
+            "renderer[{}]: {} vertices in the {} mode ({:.1} MiB on the GPU), {}x{} {:?}{}, {} look, {} colour, {}x MSAA, {}, {} on {}{}; waiting for engine frames on {:?}",
             instance.name(),
             session.renderer.vertex_count(),
             session.renderer.mode(),
@@ -283,6 +286,7 @@ impl Session {
             scene.render.color,
             session.renderer.samples(),
             session.renderer.describe_lod(),
+            session.describe_governor(),
             session.gpu.describe(),
             rig_files.describe(),
             instance.engine()
@@ -347,7 +351,128 @@ impl Session {
             watchdog: transport::notify::Watchdog::every(None),
             stale_run: 0,
             last_fresh_ns: 0,
+            governor: None,
+            floor_said: false,
         }
+        .with_governor(scene, period_ns)
+    }
+
+    /// The quality governor for `scene` at a frame period of `period_ns`: it holds each frame's
+    /// cost to the period less the tracker bridge's and the engine's budgets (what is left once
+    /// the renderer's inputs have arrived; 13.7 ms by default), with the steps the renderer built.
+    fn with_governor(mut self, scene: &Scene, period_ns: u64) -> Self {
+        if scene.render.governor == lung_model::scene::Governor::HoldDeadline {
+            let b = &scene.processes.budget_ms;
+            let upstream_ns = ((b.tracker_bridge + b.engine) * 1e6) as u64;
+            let target = period_ns.saturating_sub(upstream_ns).max(period_ns / 2);
+            let steps = self.renderer.governor_steps().to_vec();
+            self.governor = Some(crate::governor::Governor::new(steps, target));
+        }
+        self
+    }
+
+    /// Hold frames to `target_ns` instead of the scene's (a test's way to make any machine's
+    /// frames late, or all of them on time); nothing without a governor.
+    pub fn set_governor_target_ns(&mut self, target_ns: u64) {
+        if let Some(g) = self.governor.as_mut() {
+            g.set_target_ns(target_ns);
+        }
+    }
+
+    /// The governor in words, for the start line.
+    pub fn describe_governor(&self) -> String {
+        match &self.governor {
+            None => "governor off".to_string(),
+            Some(g) if g.steps().is_empty() => format!(
+                "governor hold-deadline ({:.1} ms a frame; nothing this scene draws can be given up)",
+                g.target_ns() as f64 / 1e6
+            ),
+            Some(g) => {
+                let steps: Vec<&str> = g.steps().iter().map(|s| s.name()).collect();
+                format!(
+                    "governor hold-deadline ({:.1} ms a frame; may give up, in order: {})",
+                    g.target_ns() as f64 / 1e6,
+                    steps.join(", ")
+                )
+            }
+        }
+    }
+
+    /// Feed the governor the frame that cost `cost_ns` (0: not measured) and apply its change,
+    /// saying it on stderr (changes are few: each waits for a window of frames). Returns the
+    /// frame's governor bits for its report.
+    fn govern(&mut self, cost_ns: u64) -> u32 {
+        use crate::governor::Change;
+        let Some(g) = self.governor.as_mut() else {
+            return 0;
+        };
+        let drawn = g.quality().report_bits();
+        let change = g.observe(cost_ns);
+        let floor = if g.at_floor() {
+            report_flags::GOVERNOR_FLOOR
+        } else {
+            0
+        };
+        let target_ms = g.target_ns() as f64 / 1e6;
+        let ms = |ns: u64| ns as f64 / 1e6;
+        match change {
+            None => {}
+            Some(Change::Down {
+                step,
+                quality,
+                cost_ns,
+            }) => {
+                let _span =
+                    tracing::info_span!(target: transport::trace::TARGET, "quality down").entered();
+                self.renderer.set_quality(quality);
+                eprintln!(
+                    "renderer[{}]: governor: gives up {} (frames took {:.1} ms, 75th percentile, over the \
+                     {target_ms:.1} ms target); drawing with {}",
+                    self.instance,
+                    step.name(),
+                    ms(cost_ns),
+                    quality.describe()
+                );
+            }
+            Some(Change::Up {
+                step,
+                quality,
+                cost_ns,
+                predicted_ns,
+            }) => {
+                let _span =
+                    tracing::info_span!(target: transport::trace::TARGET, "quality up").entered();
+                self.renderer.set_quality(quality);
+                eprintln!(
+                    "renderer[{}]: governor: {} taken back (frames took {:.1} ms, median; {:.1} ms \
+                     predicted with it, within {:.0} % of the {target_ms:.1} ms target); drawing \
+                     with {} quality",
+                    self.instance,
+                    step.name(),
+                    ms(cost_ns),
+                    ms(predicted_ns),
+                    crate::governor::UP_MARGIN * 100.0,
+                    quality.describe()
+                );
+            }
+            Some(Change::Floor { cost_ns }) => {
+                let _span = tracing::info_span!(target: transport::trace::TARGET, "quality floor")
+                    .entered();
+                if !self.floor_said {
+                    self.floor_said = true;
+                    eprintln!(
+                        "renderer[{}]: governor: at its floor: with {} the frames still take {:.1} ms \
+                         (75th percentile) against its {target_ms:.1} ms target and nothing is left \
+                         to give up; frames may miss the deadline (those at the floor are counted \
+                         and flagged)",
+                        self.instance,
+                        g.quality().describe(),
+                        ms(cost_ns)
+                    );
+                }
+            }
+        }
+        drawn | floor
     }
 
     /// Send a trainee's intervention on the tension pneumothorax's side to the engine; `None` when
@@ -530,7 +655,10 @@ impl Session {
         }
         state.hmd = self.view(output, now, capture, &state);
         self.read_replies()?;
+        // The governor's clock: the real one, whatever clock paces the session (tests' fake ones).
+        let started_ns = transport::now_ns();
         let timing = self.draw(output, &frame, &state, capture);
+        flags |= self.govern(timing.gpu_done_ns.saturating_sub(started_ns));
         frame.stamps.renderer_submit_ns = timing.submit_ns;
         let present_ns = output.present().unwrap_or(0);
         let (present_mode, frame_latency) = output.mode();
@@ -740,6 +868,14 @@ impl Session {
                     gpu_ns,
                     latency_ns,
                     lod: self.renderer.lod_shown(),
+                    governor: self.governor.as_ref().map(|g| {
+                        let floor = if g.at_floor() {
+                            report_flags::GOVERNOR_FLOOR
+                        } else {
+                            0
+                        };
+                        g.quality().report_bits() | floor
+                    }),
                     outcome: self.outcome_standing.map(|s| (self.outcome.as_str(), s)),
                 };
                 let gpu = &self.gpu;
@@ -825,6 +961,17 @@ impl Session {
             s.snapshots_substituted,
             self.predictor.predicted_frames
         ));
+        if let Some(g) = &self.governor {
+            transport::process::say(&format!(
+                "renderer[{}]: governor: {} change(s), drawing with {} quality at the end, {} frame(s) \
+                     at its floor (every step given up, still over {:.1} ms)",
+                self.instance,
+                g.changes,
+                g.quality().describe(),
+                g.floor_frames,
+                g.target_ns() as f64 / 1e6
+            ));
+        }
     }
 }
 

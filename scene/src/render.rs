@@ -106,6 +106,34 @@ macro_rules! named_enum_text {
 }
 named_enum_text!(Look, "look");
 named_enum_text!(ColorMode, "colour mode");
+named_enum_text!(Governor, "governor");
+
+/// Whether the renderer trades drawing quality for the frame's deadline (`[render] governor`,
+/// `lungdyn demo --governor`; docs/LATENCY.md "The governor").
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize, Default)]
+#[serde(rename_all = "kebab-case")]
+pub enum Governor {
+    /// When frames take longer than the display period allows, draw less — in a fixed order:
+    /// MSAA off, coarser draw levels, the translucent look made opaque — and take it back when
+    /// there is time again. The deformation (mode, bands) is never touched.
+    #[default]
+    HoldDeadline,
+    /// Always draw at the scene's quality, late or not.
+    Off,
+}
+
+impl Governor {
+    /// Every setting, in the order `--help` lists them.
+    pub const ALL: [Governor; 2] = [Governor::HoldDeadline, Governor::Off];
+
+    /// The name in scene files and on the command line.
+    pub fn name(self) -> &'static str {
+        match self {
+            Governor::HoldDeadline => "hold-deadline",
+            Governor::Off => "off",
+        }
+    }
+}
 
 /// The coarsest draw level of detail a scene may force (`[render] lod = N`): level k draws about
 /// 4⁻ᵏ of the lungs' triangles; a lung whose mesh is too small for level N draws its coarsest.
@@ -209,6 +237,8 @@ pub struct RenderScene {
     /// Draw level of detail: "auto" (fewer triangles when the lungs cover few pixels), "off" or a
     /// fixed level ([`Lod`]).
     pub lod: Lod,
+    /// Whether drawing quality gives way to the frame's deadline ([`Governor`]).
+    pub governor: Governor,
     /// Side-by-side stereo from the HMD pose.
     pub stereo: bool,
     /// Inter-pupillary distance, mm.
@@ -241,6 +271,7 @@ impl Default for RenderScene {
             color: ColorMode::Tissue,
             msaa: None,
             lod: Lod::Auto,
+            governor: Governor::HoldDeadline,
             stereo: false,
             ipd_mm: 63.0,
             width: 800,

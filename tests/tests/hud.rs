@@ -103,6 +103,11 @@ fn render_hud(
         gpu_ns: None,
         latency_ns: Some(9_000_000),
         lod: r.lod_shown(),
+        // The longest timing line: the governor gave up everything and is at its floor.
+        governor: Some(
+            ipc_types::report_flags::quality_bits(true, 2, true)
+                | ipc_types::report_flags::GOVERNOR_FLOOR,
+        ),
         // "": no intervention sent yet.
         outcome: (!outcome.is_empty()).then_some((outcome, renderer::hud::text::Standing::Done)),
     };

@@ -1434,6 +1434,27 @@ mod tests {
         }
     }
 
+    #[test]
+    fn render_governor_is_hold_deadline_by_default_and_refuses_other_words() {
+        assert_eq!(Scene::default().render.governor, Governor::HoldDeadline);
+        for g in Governor::ALL {
+            let s = Scene::parse(&format!("[render]\ngovernor = \"{g}\"\n"), "s.toml").unwrap();
+            assert_eq!(s.render.governor, g);
+            // The resolved scene the launcher hands the renderer reads back the same.
+            let back = Scene::parse(&toml::to_string(&s).unwrap(), "s.toml").unwrap();
+            assert_eq!(back.render.governor, g);
+            assert_eq!(g.to_string().parse::<Governor>(), Ok(g));
+        }
+        for bad in ["\"fast\"", "\"Off\"", "\"\"", "true", "1"] {
+            let e = Scene::parse(&format!("[render]\ngovernor = {bad}\n"), "s.toml")
+                .unwrap_err()
+                .to_string();
+            assert!(e.contains("governor"), "{bad}: {e}");
+        }
+        let e = "on".parse::<Governor>().unwrap_err();
+        assert!(e.contains("hold-deadline") && e.contains("off"), "{e}");
+    }
+
     /// A recording plays its own rate and I:E: a rate or an I:E set beside it is refused naming
     /// the key (it would be ignored without a word); the defaults a resolved scene writes back
     /// still parse.

@@ -131,6 +131,9 @@ pub struct HudFrame<'a> {
     pub latency_ns: Option<u64>,
     /// The draw level of detail of the previous frame ([`crate::LungRenderer::lod_shown`]).
     pub lod: crate::lod::Shown,
+    /// The quality governor's report bits for the previous frame (`None`: governor off): what it
+    /// gave up ([`ipc_types::report_flags::QUALITY_LOWERED`]) and whether it is at its floor.
+    pub governor: Option<u32>,
     /// The latest intervention's line and how it stands.
     pub outcome: Option<(&'a str, Standing)>,
 }
@@ -524,7 +527,7 @@ impl Hud {
     }
 
     /// The panel rows the lungs' framing leaves room for ([`Self::lungs_band`]): one per line
-    /// shown, the key help's and the disease line's longest wording (its kind and side, every lung
+    /// shown, the frame-time line's, the key help's and the disease line's longest wording (its kind and side, every lung
     /// collapsed and held) as wrapped at this size, and [`OUTCOME_RESERVED_ROWS`] for an outcome.
     fn reserve_rows(&mut self) {
         let mut worst = EngineFrame::default();
@@ -551,10 +554,31 @@ impl Hud {
         } else {
             1
         };
+        // The frame-time line at its longest: two-digit times, a draw level, and the governor at
+        // its floor having given up everything.
+        let widest_lod = crate::lod::Shown {
+            level: 5,
+            coarsest: 5,
+            triangles: 0,
+            auto: true,
+        };
+        let flags = ipc_types::report_flags::quality_bits(true, 7, true)
+            | ipc_types::report_flags::GOVERNOR_FLOOR;
+        text::timing_line(
+            &mut line,
+            99_900_000,
+            Some(99_900_000),
+            &widest_lod,
+            Some(flags),
+            Some(99_900_000),
+        );
+        self.shape(TIMING, &line);
+        let timing_rows = self.rows[TIMING];
         self.reserved_rows = (0..PANEL_LINES)
             .filter(|&k| self.shown_at_size(k))
             .map(|k| match k {
                 PHASE => phase_rows,
+                TIMING => timing_rows,
                 DISEASE => disease_rows,
                 KEYS => self.rows[KEYS],
                 OUTCOME => OUTCOME_RESERVED_ROWS,
@@ -694,7 +718,14 @@ impl Hud {
         }
         let ok = text::tracker_line(&mut l[TRACKER], f.tracker);
         self.colors[TRACKER] = if ok { WHITE } else { AMBER };
-        text::timing_line(&mut l[TIMING], f.cpu_ns, f.gpu_ns, &f.lod, f.latency_ns);
+        text::timing_line(
+            &mut l[TIMING],
+            f.cpu_ns,
+            f.gpu_ns,
+            &f.lod,
+            f.governor,
+            f.latency_ns,
+        );
         l[VEIL].clear();
         if let Some(w) = text::veil_words(f.warning) {
             l[VEIL].push_str(w);

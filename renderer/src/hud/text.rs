@@ -275,12 +275,14 @@ pub fn tracker_line(out: &mut String, tracker: Option<&TrackerFrame>) -> bool {
 }
 
 /// Frame time and end-to-end latency (tracker capture → frame submitted) of the last frame:
-/// "frame 3.1 ms (GPU 1.2 ms) · latency 11.8 ms".
+/// "frame 3.1 ms (GPU 1.2 ms) · latency 11.8 ms"; with what the quality governor gave up
+/// ([`governor_words`]).
 pub fn timing_line(
     out: &mut String,
     cpu_ns: u64,
     gpu_ns: Option<u64>,
     lod: &crate::lod::Shown,
+    governor: Option<u32>,
     latency_ns: Option<u64>,
 ) {
     out.clear();
@@ -295,11 +297,39 @@ pub fn timing_line(
         (false, c) if c > 0 || lod.level > 0 => write!(out, " · LOD {} fixed", lod.level),
         _ => write!(out, " · LOD off"),
     };
+    if let Some(bits) = governor {
+        governor_words(out, bits);
+    }
     match latency_ns {
         Some(l) => {
             let _ = write!(out, " · latency {:.1} ms", l as f64 / 1e6);
         }
         None => out.push_str(" · latency --"),
+    }
+}
+
+/// The governor's part of the timing line, short so the line keeps to one row: nothing at full
+/// quality; " · less: AA LOD+2 OIT" for what it gave up (multisampling, draw levels, the translucent
+/// look), "LATE" instead of "less" at its floor (everything given up, frames still over target).
+fn governor_words(out: &mut String, bits: u32) {
+    use ipc_types::report_flags as r;
+    let floor = bits & r::GOVERNOR_FLOOR != 0;
+    if bits & r::QUALITY_LOWERED == 0 && !floor {
+        return;
+    }
+    out.push_str(if floor { " · LATE:" } else { " · less:" });
+    if bits & r::QUALITY_MSAA_OFF != 0 {
+        out.push_str(" AA");
+    }
+    let lod = (bits & r::QUALITY_LOD_MASK) >> r::QUALITY_LOD_SHIFT;
+    if lod > 0 {
+        let _ = write!(out, " LOD+{lod}");
+    }
+    if bits & r::QUALITY_OPAQUE != 0 {
+        out.push_str(" OIT");
+    }
+    if bits & r::QUALITY_LOWERED == 0 {
+        out.push_str(" nothing to give up");
     }
 }
 
@@ -766,9 +796,16 @@ mod tests {
             triangles: 10_000,
             auto: true,
         };
-        timing_line(&mut s, 3_140_000, Some(1_200_000), &auto, Some(11_850_000));
+        timing_line(
+            &mut s,
+            3_140_000,
+            Some(1_200_000),
+            &auto,
+            None,
+            Some(11_850_000),
+        );
         assert_eq!(s, "frame 3.1 ms (GPU 1.2 ms) · LOD 1/3 · latency 11.8 ms");
-        timing_line(&mut s, 0, None, &Shown::default(), None);
+        timing_line(&mut s, 0, None, &Shown::default(), None, None);
         assert_eq!(s, "frame 0.0 ms · LOD off · latency --");
         let fixed = Shown {
             level: 2,
@@ -776,7 +813,7 @@ mod tests {
             auto: false,
             ..auto
         };
-        timing_line(&mut s, 0, None, &fixed, None);
+        timing_line(&mut s, 0, None, &fixed, None, None);
         assert_eq!(s, "frame 0.0 ms · LOD 2 fixed · latency --");
         // Auto on a mesh too small for levels: every triangle.
         let small = Shown {
@@ -784,8 +821,30 @@ mod tests {
             coarsest: 0,
             ..auto
         };
-        timing_line(&mut s, 0, None, &small, None);
+        timing_line(&mut s, 0, None, &small, None, None);
         assert_eq!(s, "frame 0.0 ms · LOD off · latency --");
+        // The governor: nothing given up says nothing; what it gave up and its floor are said.
+        timing_line(&mut s, 0, None, &auto, Some(0), None);
+        assert_eq!(s, "frame 0.0 ms · LOD 1/3 · latency --");
+        let lowered = ipc_types::report_flags::quality_bits(true, 2, false);
+        timing_line(&mut s, 0, None, &auto, Some(lowered), None);
+        assert_eq!(s, "frame 0.0 ms · LOD 1/3 · less: AA LOD+2 · latency --");
+        let floor = lowered | ipc_types::report_flags::GOVERNOR_FLOOR;
+        timing_line(&mut s, 0, None, &auto, Some(floor), None);
+        assert_eq!(s, "frame 0.0 ms · LOD 1/3 · LATE: AA LOD+2 · latency --");
+        let all = ipc_types::report_flags::quality_bits(true, 1, true);
+        timing_line(&mut s, 0, None, &auto, Some(all), None);
+        assert_eq!(
+            s,
+            "frame 0.0 ms · LOD 1/3 · less: AA LOD+1 OIT · latency --"
+        );
+        // At the floor with nothing to give up (a scene with no steps).
+        let none = ipc_types::report_flags::GOVERNOR_FLOOR;
+        timing_line(&mut s, 0, None, &auto, Some(none), None);
+        assert_eq!(
+            s,
+            "frame 0.0 ms · LOD 1/3 · LATE: nothing to give up · latency --"
+        );
     }
 
     #[test]

@@ -1,0 +1,575 @@
+//! The quality governor (`[render] governor = "hold-deadline"`, the default; docs/LATENCY.md "The
+//! governor"): when the renderer's frames take longer than its share of the 16.7 ms frame, it draws
+//! less — one step at a time, in a fixed order — and takes the steps back when there is time again.
+//!
+//! **The order** ([`ladder`]), cheapest loss first, each step only where the scene has something to
+//! give up: multisampling off (4× → 1×), then the draw level of detail one level coarser at a time
+//! (the same deformed vertices under fewer triangles: [`crate::lod`]), then the translucent look
+//! drawn opaque (its two extra passes over half-float targets). The deformation — its mode, bands
+//! and every vertex — is never touched: the picture is coarser, never wrong. A render-scale step
+//! (fewer pixels) is not among them: on the software rasteriser this project is measured on, the
+//! frame's cost does not follow its pixels (the default lungs at 800 × 600 and 200 × 150: 23.3 and
+//! 22.0 ms, `render_looks -- --lod`), and it wants an upscaling pass and a HUD drawn after it.
+//!
+//! **What it measures**: each frame's cost from the renderer's wake to the wait on its GPU fence
+//! returning (the CPU's encode and the GPU's work: what must fit), against a target — the frame's
+//! deadline less the tracker bridge's and the engine's budgets (`[processes.budget_ms]`; 13.7 ms by
+//! default), the time left to the renderer once its inputs have arrived.
+//!
+//! **When it moves** (frames, not clock time: a run's decisions follow from its frame costs alone):
+//! - down one step when the 75th percentile of the last [`DOWN_WINDOW`] frames is over the target;
+//!   the first [`SETTLE`] frames after any change are not counted (a new pipeline's first use);
+//! - at the last step and still over: at its floor, said once ([`Change::Floor`]) and flagged on
+//!   every such frame ([`ipc_types::report_flags::GOVERNOR_FLOOR`]);
+//! - up one step after at least [`HOLD_FRAMES`] frames at the present step, when the median of the
+//!   last [`UP_WINDOW`] frames times what that step bought when it was taken (the median before it
+//!   over the median after it) is at most [`UP_MARGIN`] of the target — a frame predicted to fit
+//!   with room to spare, so a cost near the target does not swing between two steps;
+//! - a step taken back that has to be given up again within [`RELAPSE_FRAMES`] doubles the hold
+//!   before the next try (up to [`MAX_HOLD_FRAMES`], a minute at 60 Hz), and a step kept for
+//!   [`RELAPSE_FRAMES`] resets it.
+//!
+//! Nothing here allocates after [`Governor::new`]; a frame's decision sorts a copy of at most
+//! [`UP_WINDOW`] costs on the stack.
+
+use lung_model::scene::{DrawMode, Look, RenderScene};
+
+/// One thing the governor can give up.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub enum Step {
+    /// Multisampling off (the scene's 4× drawn with one sample per pixel).
+    MsaaOff,
+    /// The draw level one coarser than the level of detail chooses (again for each such step).
+    CoarserLod,
+    /// The translucent look drawn opaque.
+    Opaque,
+}
+
+impl Step {
+    /// In words, for the start line and the change lines.
+    pub fn name(self) -> &'static str {
+        match self {
+            Step::MsaaOff => "MSAA off",
+            Step::CoarserLod => "LOD +1",
+            Step::Opaque => "opaque look",
+        }
+    }
+}
+
+/// What a frame is drawn with below the scene's own quality: the sum of the steps taken.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Default)]
+pub struct Quality {
+    /// Multisampling dropped.
+    pub msaa_off: bool,
+    /// Draw levels coarser than the chosen one.
+    pub lod_bias: u8,
+    /// The translucent look drawn opaque.
+    pub opaque: bool,
+}
+
+impl Quality {
+    /// The scene's own quality: nothing given up.
+    pub const FULL: Quality = Quality {
+        msaa_off: false,
+        lod_bias: 0,
+        opaque: false,
+    };
+
+    /// With the first `taken` of `steps` given up.
+    pub fn of(steps: &[Step], taken: usize) -> Self {
+        let mut q = Quality::FULL;
+        for s in &steps[..taken.min(steps.len())] {
+            match s {
+                Step::MsaaOff => q.msaa_off = true,
+                Step::CoarserLod => q.lod_bias = q.lod_bias.saturating_add(1),
+                Step::Opaque => q.opaque = true,
+            }
+        }
+        q
+    }
+
+    /// The frame report's bits for it ([`ipc_types::report_flags::quality_bits`]).
+    pub fn report_bits(self) -> u32 {
+        ipc_types::report_flags::quality_bits(self.msaa_off, self.lod_bias, self.opaque)
+    }
+
+    /// "full", or what is given up: "MSAA off, LOD +2, opaque look".
+    pub fn describe(self) -> String {
+        ipc_types::report_flags::describe_quality(self.report_bits())
+    }
+}
+
+/// The steps a scene can give up, in the governor's order: `samples` the scene draws with,
+/// `coarser_levels` the draw levels built beyond every triangle (0 with `lod = "off"` or splats).
+pub fn ladder(settings: &RenderScene, samples: u32, coarser_levels: usize) -> Vec<Step> {
+    let mut steps = Vec::new();
+    if samples > 1 {
+        steps.push(Step::MsaaOff);
+    }
+    if settings.mode == DrawMode::Triangles {
+        steps.extend(std::iter::repeat_n(
+            Step::CoarserLod,
+            coarser_levels.min(MAX_LOD_STEPS),
+        ));
+    }
+    if settings.look == Look::Translucent {
+        steps.push(Step::Opaque);
+    }
+    steps
+}
+
+/// Most draw-level steps (the report's bits hold a bias up to 7).
+pub const MAX_LOD_STEPS: usize = 7;
+/// Frames after a change not counted (the new pipelines' first use, the targets' first touch).
+pub const SETTLE: u32 = 4;
+/// Frames whose 75th percentile decides a step down.
+pub const DOWN_WINDOW: usize = 12;
+/// Frames whose median decides a step up.
+pub const UP_WINDOW: usize = 60;
+/// Least frames at a step before one is taken back.
+pub const HOLD_FRAMES: u32 = 90;
+/// Longest hold, after steps taken back and given up again.
+pub const MAX_HOLD_FRAMES: u32 = 3600;
+/// A step given up again within this many frames of being taken back doubles the hold.
+pub const RELAPSE_FRAMES: u32 = 300;
+/// A step is taken back when the frame is predicted to take at most this share of the target.
+pub const UP_MARGIN: f64 = 0.8;
+
+/// A change the governor made (or its floor reached), for the caller to apply and say.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub enum Change {
+    /// One more step given up: `step`, now drawing at `quality`; the frames' 75th percentile that
+    /// decided it, ns.
+    Down {
+        step: Step,
+        quality: Quality,
+        cost_ns: u64,
+    },
+    /// One step taken back: `step`, now drawing at `quality`; the median that decided it and the
+    /// frame predicted with the step back, ns.
+    Up {
+        step: Step,
+        quality: Quality,
+        cost_ns: u64,
+        predicted_ns: u64,
+    },
+    /// Every step given up and the frames still over the target (75th percentile, ns).
+    Floor { cost_ns: u64 },
+}
+
+/// The governor's state over a run.
+#[derive(Debug, Clone)]
+pub struct Governor {
+    steps: Vec<Step>,
+    taken: usize,
+    target_ns: u64,
+    /// The newest frame costs since the last change (a ring of `UP_WINDOW`).
+    ring: [u64; UP_WINDOW],
+    len: usize,
+    next: usize,
+    /// Frames since the last change (counted ones and settling ones).
+    since_change: u32,
+    /// Per step k: the 75th percentile that gave it up, and the median of the first full window
+    /// after (0: not yet measured) — what the step bought.
+    before: [u64; MAX_STEPS],
+    after: [u64; MAX_STEPS],
+    hold: u32,
+    /// Frames since the last step taken back (`u32::MAX`: none yet).
+    since_up: u32,
+    at_floor: bool,
+    /// Changes made, and frames at the floor.
+    pub changes: u32,
+    pub floor_frames: u64,
+}
+
+/// Most steps a ladder can have (MSAA, the draw levels, the look).
+const MAX_STEPS: usize = 2 + MAX_LOD_STEPS;
+
+impl Governor {
+    /// A governor over `steps` (from [`ladder`]) holding frames to `target_ns`.
+    pub fn new(steps: Vec<Step>, target_ns: u64) -> Self {
+        let mut steps = steps;
+        steps.truncate(MAX_STEPS);
+        Self {
+            steps,
+            taken: 0,
+            target_ns: target_ns.max(1),
+            ring: [0; UP_WINDOW],
+            len: 0,
+            next: 0,
+            since_change: 0,
+            before: [0; MAX_STEPS],
+            after: [0; MAX_STEPS],
+            hold: HOLD_FRAMES,
+            since_up: u32::MAX,
+            at_floor: false,
+            changes: 0,
+            floor_frames: 0,
+        }
+    }
+
+    /// The steps it may take, in order.
+    pub fn steps(&self) -> &[Step] {
+        &self.steps
+    }
+
+    /// The frame cost it holds to, ns.
+    pub fn target_ns(&self) -> u64 {
+        self.target_ns
+    }
+
+    /// Hold frames to `target_ns` from the next frame on.
+    pub fn set_target_ns(&mut self, target_ns: u64) {
+        self.target_ns = target_ns.max(1);
+    }
+
+    /// The quality frames are drawn at now.
+    pub fn quality(&self) -> Quality {
+        Quality::of(&self.steps, self.taken)
+    }
+
+    /// Steps given up now.
+    pub fn taken(&self) -> usize {
+        self.taken
+    }
+
+    /// Whether every step is given up and frames are still over the target.
+    pub fn at_floor(&self) -> bool {
+        self.at_floor
+    }
+
+    /// The frames before the next one may take a step back (the hold, doubled after relapses).
+    pub fn hold(&self) -> u32 {
+        self.hold
+    }
+
+    /// One drawn frame's cost (wake → GPU done, ns; 0: not measured, ignored): the change to make
+    /// before the next frame, if any.
+    pub fn observe(&mut self, cost_ns: u64) -> Option<Change> {
+        self.since_change = self.since_change.saturating_add(1);
+        self.since_up = self.since_up.saturating_add(1);
+        // The step last taken back was kept (no change since): the hold is back to its least.
+        if self.since_up == RELAPSE_FRAMES && self.since_change >= RELAPSE_FRAMES {
+            self.hold = HOLD_FRAMES;
+        }
+        if self.at_floor {
+            self.floor_frames += 1;
+        }
+        if cost_ns == 0 || self.since_change <= SETTLE {
+            return None;
+        }
+        self.ring[self.next] = cost_ns;
+        self.next = (self.next + 1) % UP_WINDOW;
+        self.len = (self.len + 1).min(UP_WINDOW);
+        if self.len < DOWN_WINDOW {
+            return None;
+        }
+        let recent = self.quantile(DOWN_WINDOW, 0.75);
+        if self.taken > 0 && self.len == DOWN_WINDOW && self.after[self.taken - 1] == 0 {
+            self.after[self.taken - 1] = self.quantile(DOWN_WINDOW, 0.5);
+        }
+        if recent > self.target_ns {
+            return self.down(recent);
+        }
+        self.at_floor = false;
+        self.up()
+    }
+
+    fn down(&mut self, recent: u64) -> Option<Change> {
+        if self.taken == self.steps.len() {
+            if self.at_floor {
+                return None;
+            }
+            self.at_floor = true;
+            return Some(Change::Floor { cost_ns: recent });
+        }
+        if self.since_up < RELAPSE_FRAMES {
+            self.hold = self.hold.saturating_mul(2).min(MAX_HOLD_FRAMES);
+        }
+        let k = self.taken;
+        self.before[k] = recent;
+        self.after[k] = 0;
+        self.taken += 1;
+        self.changed();
+        Some(Change::Down {
+            step: self.steps[k],
+            quality: self.quality(),
+            cost_ns: recent,
+        })
+    }
+
+    fn up(&mut self) -> Option<Change> {
+        if self.taken == 0 || self.since_change < self.hold || self.len < UP_WINDOW {
+            return None;
+        }
+        let k = self.taken - 1;
+        let median = self.quantile(UP_WINDOW, 0.5);
+        // What the step bought when it was given up (never taken as a gain below 1: a step that
+        // bought nothing is predicted to cost nothing back).
+        let bought = if self.after[k] > 0 {
+            (self.before[k] as f64 / self.after[k] as f64).max(1.0)
+        } else {
+            1.0
+        };
+        let predicted = (median as f64 * bought) as u64;
+        if predicted as f64 > UP_MARGIN * self.target_ns as f64 {
+            return None;
+        }
+        self.taken = k;
+        self.since_up = 0;
+        self.changed();
+        Some(Change::Up {
+            step: self.steps[k],
+            quality: self.quality(),
+            cost_ns: median,
+            predicted_ns: predicted,
+        })
+    }
+
+    fn changed(&mut self) {
+        self.len = 0;
+        self.next = 0;
+        self.since_change = 0;
+        self.at_floor = false;
+        self.changes += 1;
+    }
+
+    /// The `q` quantile (nearest rank) of the newest `n` costs.
+    fn quantile(&self, n: usize, q: f64) -> u64 {
+        let n = n.min(self.len);
+        let mut window = [0u64; UP_WINDOW];
+        for (i, w) in window[..n].iter_mut().enumerate() {
+            *w = self.ring[(self.next + UP_WINDOW - 1 - i) % UP_WINDOW];
+        }
+        let window = &mut window[..n];
+        window.sort_unstable();
+        let rank = ((q * n as f64).ceil() as usize).clamp(1, n);
+        window[rank - 1]
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use lung_model::scene::Lod;
+
+    const MS: u64 = 1_000_000;
+
+    /// A frame's cost at `quality` on a made-up GPU: `base` ms, MSAA 4× doubling it, each coarser
+    /// level taking off `lod_ms`, the translucent look adding `oit_ms`.
+    fn cost(q: Quality, base: f64, lod_ms: f64, oit_ms: f64) -> u64 {
+        let mut c = base - lod_ms * q.lod_bias as f64;
+        if !q.opaque {
+            c += oit_ms;
+        }
+        if !q.msaa_off {
+            c *= 2.0;
+        }
+        (c.max(0.5) * MS as f64) as u64
+    }
+
+    fn translucent_msaa() -> Vec<Step> {
+        let scene = RenderScene {
+            look: Look::Translucent,
+            ..Default::default()
+        };
+        ladder(&scene, 4, 2)
+    }
+
+    #[test]
+    fn the_ladder_has_only_what_the_scene_can_give_up_in_order() {
+        let opaque = RenderScene::default();
+        assert_eq!(ladder(&opaque, 1, 2), [Step::CoarserLod, Step::CoarserLod]);
+        assert_eq!(
+            translucent_msaa(),
+            [
+                Step::MsaaOff,
+                Step::CoarserLod,
+                Step::CoarserLod,
+                Step::Opaque
+            ]
+        );
+        let points = RenderScene {
+            mode: DrawMode::Points,
+            lod: Lod::Off,
+            ..Default::default()
+        };
+        assert_eq!(ladder(&points, 4, 0), [Step::MsaaOff]);
+        assert!(ladder(&points, 1, 0).is_empty());
+        // A see-through look is never made opaque (black is the world on an additive display).
+        let see = RenderScene {
+            look: Look::SeeThrough,
+            ..Default::default()
+        };
+        assert_eq!(ladder(&see, 1, 1), [Step::CoarserLod]);
+    }
+
+    #[test]
+    fn quality_sums_the_steps_taken() {
+        let steps = translucent_msaa();
+        assert_eq!(Quality::of(&steps, 0), Quality::FULL);
+        assert_eq!(
+            Quality::of(&steps, 3),
+            Quality {
+                msaa_off: true,
+                lod_bias: 2,
+                opaque: false
+            }
+        );
+        assert_eq!(
+            Quality::of(&steps, 99).describe(),
+            "MSAA off, LOD +2, opaque look"
+        );
+        assert_eq!(Quality::FULL.describe(), "full");
+    }
+
+    /// Frames through `g` at `frame_cost(quality, frame)`; the qualities drawn, one per frame.
+    fn run(
+        g: &mut Governor,
+        frames: usize,
+        frame_cost: impl Fn(Quality, usize) -> u64,
+    ) -> Vec<Quality> {
+        (0..frames)
+            .map(|f| {
+                let q = g.quality();
+                g.observe(frame_cost(q, f));
+                q
+            })
+            .collect()
+    }
+
+    #[test]
+    fn over_the_target_it_steps_down_until_the_frame_fits_and_stays() {
+        let mut g = Governor::new(translucent_msaa(), 13 * MS);
+        // 6 ms opaque, OIT +2, coarser levels -1.5 each; MSAA doubles: 16 ms at full quality.
+        let drawn = run(&mut g, 600, |q, _| cost(q, 6.0, 1.5, 2.0));
+        // MSAA off (8 ms) fits: one step, then nothing more for 10 s of frames.
+        assert_eq!(g.taken(), 1);
+        assert_eq!(g.changes, 1);
+        assert!(!g.at_floor());
+        assert_eq!(drawn[0], Quality::FULL);
+        // It took no longer than a window and the settling frames to decide.
+        let first_down = drawn.iter().position(|q| *q != Quality::FULL).unwrap();
+        assert!(
+            first_down <= SETTLE as usize + DOWN_WINDOW + 1,
+            "{first_down}"
+        );
+    }
+
+    #[test]
+    fn when_nothing_is_left_to_give_up_it_says_so_once_and_counts_the_frames() {
+        let mut g = Governor::new(vec![Step::CoarserLod], 10 * MS);
+        let mut floors = 0;
+        for _ in 0..300 {
+            let q = g.quality();
+            if let Some(Change::Floor { cost_ns }) = g.observe(cost(q, 30.0, 1.0, 0.0)) {
+                assert!(cost_ns > 10 * MS);
+                floors += 1;
+            }
+        }
+        assert_eq!(floors, 1);
+        assert!(g.at_floor());
+        assert_eq!(g.taken(), 1);
+        assert!(g.floor_frames > 250, "{}", g.floor_frames);
+    }
+
+    #[test]
+    fn a_load_that_passes_gives_the_quality_back() {
+        let mut g = Governor::new(translucent_msaa(), 13 * MS);
+        // Ten seconds of a machine loaded 3× (every step taken), then unloaded.
+        let drawn = run(&mut g, 1800, |q, f| {
+            let c = cost(q, 6.0, 1.5, 2.0);
+            if f < 600 {
+                c * 3
+            } else {
+                c
+            }
+        });
+        assert_eq!(drawn[599].describe(), "MSAA off, LOD +2, opaque look");
+        // Back to what fits unloaded (MSAA off alone: 8 ms; full is 16 ms, over the target).
+        assert_eq!(g.quality(), Quality::of(&translucent_msaa(), 1));
+        // Never the full quality, which does not fit: no swing into it and back.
+        assert!(drawn[600..].iter().all(|q| *q != Quality::FULL));
+    }
+
+    #[test]
+    fn a_cost_at_the_edge_does_not_swing_between_two_steps() {
+        // Full quality costs just over the target, one step just under it: noise around both.
+        let mut g = Governor::new(vec![Step::CoarserLod], 10 * MS);
+        let drawn = run(&mut g, 3600, |q, f| {
+            // ±0.5 ms, scattered over the frames (7919 is prime to 1000).
+            let jitter = (f as i64 * 7919 % 1000) * 1000 - 500_000;
+            let base = if q.lod_bias == 0 {
+                10_400_000
+            } else {
+                9_000_000
+            };
+            (base + jitter) as u64
+        });
+        let changes = drawn.windows(2).filter(|w| w[0] != w[1]).count();
+        assert!(changes <= 3, "{changes} changes in a minute of frames");
+        assert_eq!(g.taken(), 1);
+    }
+
+    #[test]
+    fn a_step_taken_back_that_does_not_fit_is_given_up_again_and_not_soon_retried() {
+        // Under load the coarser level bought little (12 → 11 ms); the load goes, the coarser
+        // level draws in 3 ms, the full one still takes 12: one try, given up again, not retried.
+        let mut g = Governor::new(vec![Step::CoarserLod], 10 * MS);
+        let drawn = run(&mut g, 3600, |q, f| match (q.lod_bias, f < 600) {
+            (0, _) => 12 * MS,
+            (_, true) => 11 * MS,
+            (_, false) => 3 * MS,
+        });
+        let tries = drawn
+            .windows(2)
+            .filter(|w| w[0].lod_bias == 1 && w[1].lod_bias == 0)
+            .count();
+        assert_eq!(
+            tries, 1,
+            "the try measured what the step buys: 4x, 12 ms, over"
+        );
+        assert_eq!(g.taken(), 1);
+        // The relapse doubled the hold and it stays doubled: the step was not kept.
+        assert_eq!(g.hold(), 2 * HOLD_FRAMES);
+    }
+
+    #[test]
+    fn a_step_kept_after_it_was_taken_back_resets_the_hold() {
+        let mut g = Governor::new(vec![Step::CoarserLod], 10 * MS);
+        // Loaded (everything 12 ms, the step bought nothing), then a try that relapses (the full
+        // quality 12 ms, the coarser 3), then the machine quiet (both halved): kept.
+        run(&mut g, 2400, |q, f| match (q.lod_bias, f) {
+            (_, f) if f < 600 => 12 * MS,
+            (0, f) if f < 900 => 12 * MS,
+            (_, f) if f < 900 => 3 * MS,
+            (0, _) => 6 * MS,
+            (_, _) => 3 * MS / 2,
+        });
+        assert_eq!(g.taken(), 0);
+        assert_eq!(g.hold(), HOLD_FRAMES);
+    }
+
+    #[test]
+    fn unmeasured_frames_and_settling_frames_do_not_count() {
+        let mut g = Governor::new(vec![Step::CoarserLod], 10 * MS);
+        for _ in 0..1000 {
+            assert_eq!(g.observe(0), None);
+        }
+        assert_eq!(g.taken(), 0);
+        // One huge frame among fast ones is not a reason to step down (75th percentile).
+        for f in 0..200 {
+            g.observe(if f == 50 { 500 * MS } else { 2 * MS });
+        }
+        assert_eq!(g.taken(), 0);
+    }
+
+    #[test]
+    fn no_steps_means_nothing_to_do_but_say_the_floor() {
+        let mut g = Governor::new(Vec::new(), 10 * MS);
+        let changes: Vec<_> = (0..100).filter_map(|_| g.observe(20 * MS)).collect();
+        assert_eq!(changes.len(), 1);
+        assert!(matches!(changes[0], Change::Floor { .. }));
+        assert_eq!(g.quality(), Quality::FULL);
+    }
+}
