@@ -344,6 +344,9 @@ pub struct DemoReport {
     /// Frames drawn while the followed signal was lost, ended or not yet there: the model breathed,
     /// under the blue veil.
     pub signal_lost_frames: u64,
+    /// Seconds from the command's start to the first frame drawn (bake, start-up and the draw
+    /// levels included); null when none was drawn.
+    pub first_frame_s: Option<f64>,
     /// The quality governor (`[render] governor`, `--governor`): "hold-deadline" or "off".
     pub governor: String,
     /// Frames the governor drew below the scene's quality.
@@ -505,6 +508,7 @@ pub fn run(args: &DemoArgs) -> anyhow::Result<DemoReport> {
 
 /// Run the demo with `watch` looking on (see [`Watch`]); returns the report.
 pub fn run_watched(args: &DemoArgs, watch: &mut dyn Watch) -> anyhow::Result<DemoReport> {
+    let started_ns = now_ns();
     // SIGTERM, SIGINT and SIGHUP stop the run (latched: a SIGCONT after them changes nothing).
     transport::stop::install()?;
     // Validate: every argument checked before anything is written.
@@ -609,7 +613,11 @@ pub fn run_watched(args: &DemoArgs, watch: &mut dyn Watch) -> anyhow::Result<Dem
         ));
     }
     let pictures = pictures(args, &existing, checked.record, &plan, &mut w.failure);
+    let first_frame_s = w
+        .first_frame_ns
+        .map(|t| t.saturating_sub(started_ns) as f64 / 1e9);
     Ok(report(Ended {
+        first_frame_s,
         w,
         scene: &scene,
         cpus: launch.cpus,
@@ -1398,6 +1406,7 @@ fn pictures(
 
 /// Everything the report is made of, once the processes are gone.
 struct Ended<'s> {
+    first_frame_s: Option<f64>,
     w: Watching,
     scene: &'s lung_model::scene::Scene,
     cpus: Vec<usize>,
@@ -1428,6 +1437,7 @@ fn report(e: Ended<'_>) -> DemoReport {
         (0.0, 0.0)
     };
     DemoReport {
+        first_frame_s: e.first_frame_s,
         frames_rendered: stats.frames,
         deadline_misses: stats.sample_deadline_misses,
         tracker_samples: stats.tracker_samples,

@@ -263,6 +263,13 @@ pub fn unit(role: Role, s: &UnitSettings) -> Result<String, String> {
     if let Some(c) = cpu {
         u.push_str(&format!("CPUAffinity={c}\n"));
     }
+    if role == Role::Renderer {
+        // systemd makes the folder, owned by the unit's user, and names it in $CACHE_DIRECTORY.
+        u.push_str(
+            "# Large lungs' draw levels, kept between starts (renderer/src/lod_cache.rs).\n\
+             CacheDirectory=lungdyn\n",
+        );
+    }
     u.push_str(&format!(
         "# stderr goes to the journal: journalctl -t lungdyn-{name}\n\
          StandardError=journal\n\
@@ -685,7 +692,9 @@ mod tests {
         assert!(b.contains("CPUAffinity=1\n"));
         let r = unit(Role::Renderer, &s).unwrap();
         assert!(
-            r.contains("--fullscreen --cpu 3\n") && r.contains("Environment=DISPLAY=:0"),
+            r.contains("--fullscreen --cpu 3\n")
+                && r.contains("Environment=DISPLAY=:0")
+                && r.contains("CacheDirectory=lungdyn\n"),
             "{r}"
         );
         // The headset's display by name; a name systemd would split is refused.

@@ -25,6 +25,7 @@ pub mod governor;
 pub mod gpu;
 pub mod hud;
 pub mod lod;
+pub mod lod_cache;
 pub mod options;
 pub mod predict;
 pub mod present;
@@ -227,6 +228,8 @@ struct DrawLevels {
     triangles: Vec<u32>,
     /// A level the topology check refused, per lung, said at start.
     refused: Vec<String>,
+    /// Where large lungs' levels came from or went ([`lod_cache`]), said at start.
+    cached: Vec<String>,
     /// The level a fixed `lod = N` draws (the coarsest the meshes have when they are too small).
     fixed: usize,
 }
@@ -240,9 +243,42 @@ impl DrawLevels {
             (_, Lod::Auto) => lung_model::scene::MAX_LOD_LEVEL,
             (_, Lod::Level(n)) => n,
         };
-        let per_lung: Vec<_> = lungs
+        let cache = lod_cache::dir_from_env();
+        let (per_lung, sources): (Vec<_>, Vec<_>) = lungs
             .iter()
-            .map(|l| lod::lung_levels(&l.lung.positions, &l.lung.triangles, coarsest))
+            .map(|l| {
+                lod_cache::lung_levels(
+                    &l.lung.positions,
+                    &l.lung.triangles,
+                    coarsest,
+                    cache.as_deref(),
+                )
+            })
+            .unzip();
+        let cached = lungs
+            .iter()
+            .zip(&sources)
+            .filter_map(|(l, s)| {
+                let side = format!("{:?}", l.side).to_lowercase();
+                match s {
+                    lod_cache::Source::Built => None,
+                    lod_cache::Source::Loaded(p) => Some(format!(
+                        "the {side} lung's levels read from {}",
+                        p.display()
+                    )),
+                    lod_cache::Source::Cached(p, why) => Some(format!(
+                        "the {side} lung's levels built and kept in {}{}",
+                        p.display(),
+                        why.as_ref().map_or(String::new(), |w| format!(
+                            " (the file there was refused: {w})"
+                        ))
+                    )),
+                    lod_cache::Source::NotWritten(p, e) => Some(format!(
+                        "the {side} lung's levels built, not kept: {}: {e}",
+                        p.display()
+                    )),
+                }
+            })
             .collect();
         // A level the topology check refused ends that lung's levels; the start line says so.
         let refused: Vec<String> = lungs
@@ -274,6 +310,7 @@ impl DrawLevels {
             ranges: levels.ranges,
             triangles,
             refused,
+            cached,
             fixed,
         }
     }
@@ -439,7 +476,8 @@ pub struct LungRenderer {
     lod_ranges: Vec<std::ops::Range<u32>>,
     /// Per level, its triangles (both lungs).
     lod_triangles: Vec<u32>,
-    /// Levels the topology check refused, in words for the start line (empty: none).
+    /// Levels the topology check refused, and the cache's reads and writes, in words for the
+    /// start line (empty: none).
     lod_refused: Vec<String>,
     /// The level drawn last frame (`[render] lod = "auto"`: chosen per frame, [`lod::Chooser`]).
     lod_level: std::sync::atomic::AtomicUsize,
@@ -559,7 +597,7 @@ impl LungRenderer {
             index: levels.index,
             lod_ranges: levels.ranges,
             lod_triangles: levels.triangles,
-            lod_refused: levels.refused,
+            lod_refused: levels.refused.into_iter().chain(levels.cached).collect(),
             lod_level: levels.fixed.into(),
             surface,
             color_view: targets.color.create_view(&Default::default()),

@@ -293,6 +293,19 @@ fn the_demo_prints_json_with_frames_latency_and_pngs() {
     }
     let p50 = v["end_to_end_p50_ms"].as_f64().unwrap();
     assert!(p50 > 0.0 && p50 <= v["end_to_end_max_ms"].as_f64().unwrap());
+    // The first frame came after the start, and within the run.
+    let first = v["first_frame_s"].as_f64().unwrap();
+    assert!(first > 0.0 && first < 60.0, "{v}");
+    // The governor's account: every frame at some quality, and the last one's named.
+    assert_eq!(v["governor"], "hold-deadline", "{v}");
+    let at_quality: u64 = v["quality_frames"]
+        .as_array()
+        .unwrap()
+        .iter()
+        .map(|q| q["frames"].as_u64().unwrap())
+        .sum();
+    assert_eq!(at_quality, v["frames_rendered"].as_u64().unwrap(), "{v}");
+    assert!(v["final_quality"].is_string(), "{v}");
     let pngs = v["pngs"].as_array().unwrap();
     assert_eq!(pngs.len(), 3, "{v}");
     for p in pngs {
