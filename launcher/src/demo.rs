@@ -28,6 +28,17 @@ pub struct QualityFrames {
     pub frames: u64,
 }
 
+impl QualityFrames {
+    /// "LOD +2 676, LOD +1 16, full 16" (empty: none).
+    pub fn list(all: &[QualityFrames]) -> String {
+        let at: Vec<String> = all
+            .iter()
+            .map(|q| format!("{} {}", q.quality, q.frames))
+            .collect();
+        at.join(", ")
+    }
+}
+
 /// Frames per quality, most first, in words.
 fn quality_frames(seen: &[(u32, u64)]) -> Vec<QualityFrames> {
     let mut v: Vec<QualityFrames> = seen
@@ -1477,7 +1488,12 @@ fn report(e: Ended<'_>) -> DemoReport {
         signal_following_frames: stats.signal_following_frames,
         signal_lost_frames: stats.signal_lost_frames,
         governor: scene.render.governor.name().to_string(),
-        lowered_frames: stats.lowered_frames,
+        lowered_frames: stats
+            .quality_frames
+            .iter()
+            .filter(|(q, _)| *q != 0)
+            .map(|(_, n)| n)
+            .sum(),
         governor_floor_frames: stats.governor_floor_frames,
         quality_changes: stats.quality_changes,
         final_quality: ipc_types::report_flags::describe_quality(stats.last_quality),
@@ -1578,18 +1594,13 @@ fn restart_lines(s: &mut String, r: &DemoReport) {
 fn governor_line(s: &mut String, r: &DemoReport) {
     use std::fmt::Write as _;
     if r.lowered_frames + r.governor_floor_frames > 0 {
-        let at: Vec<String> = r
-            .quality_frames
-            .iter()
-            .map(|q| format!("{} {}", q.quality, q.frames))
-            .collect();
         let _ = writeln!(
             s,
             "quality governor: {} of {} frames drawn with less ({}; {} change(s), the last frame \
              {}){}",
             r.lowered_frames,
             r.frames_rendered,
-            at.join(", "),
+            QualityFrames::list(&r.quality_frames),
             r.quality_changes,
             r.final_quality,
             if r.governor_floor_frames > 0 {

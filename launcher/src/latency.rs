@@ -1084,20 +1084,12 @@ fn write_plot(png: &Path, r: &LatencyReport, series: &[SeriesPoint]) -> anyhow::
 
 /// The report's line on the quality governor: the frames at each quality, its changes, its floor.
 fn governor_line(r: &LatencyReport) -> String {
-    let at: Vec<String> = r
-        .quality_frames
-        .iter()
-        .map(|q| format!("{} {}", q.quality, q.frames))
-        .collect();
+    let at = crate::demo::QualityFrames::list(&r.quality_frames);
     format!(
         "Quality governor: {}; frames at each quality over the whole run: {}; {} change(s); the \
          last frame drawn with {} quality{}.\n",
         r.governor,
-        if at.is_empty() {
-            "none".to_string()
-        } else {
-            at.join(", ")
-        },
+        if at.is_empty() { "none" } else { at.as_str() },
         r.quality_changes,
         r.final_quality,
         if r.governor_floor_frames > 0 {

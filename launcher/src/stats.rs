@@ -60,14 +60,13 @@ pub struct LatencyStats {
     pub signal_following_frames: u64,
     /// Frames drawn while a followed signal was lost (the model breathed, under the blue veil).
     pub signal_lost_frames: u64,
-    /// Frames the quality governor drew below the scene's quality (`report_flags::QUALITY_LOWERED`).
-    pub lowered_frames: u64,
     /// Frames drawn with every governor step given up and still over its target.
     pub governor_floor_frames: u64,
     /// Times the drawn quality changed from one frame to the next.
     pub quality_changes: u64,
     /// The quality bits of the last frame (`report_flags::QUALITY_LOWERED`), and per quality seen,
-    /// its frames (a handful of distinct qualities at most).
+    /// its frames (a handful of distinct qualities at most; those not 0 are the frames the governor
+    /// drew below the scene's quality).
     pub last_quality: u32,
     pub quality_frames: Vec<(u32, u64)>,
     /// Reports missing from the stream (gaps in the renderer's frame counter).
@@ -136,7 +135,6 @@ impl LatencyStats {
             pose_stale_frames: 0,
             signal_following_frames: 0,
             signal_lost_frames: 0,
-            lowered_frames: 0,
             governor_floor_frames: 0,
             quality_changes: 0,
             last_quality: 0,
@@ -225,9 +223,6 @@ impl LatencyStats {
     /// The governor's part of a report: what it gave up for the frame and whether at its floor.
     fn record_quality(&mut self, flags: u32) {
         let quality = flags & report_flags::QUALITY_LOWERED;
-        if quality != 0 {
-            self.lowered_frames += 1;
-        }
         if flags & report_flags::GOVERNOR_FLOOR != 0 {
             self.governor_floor_frames += 1;
         }

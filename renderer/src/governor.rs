@@ -233,6 +233,17 @@ impl Governor {
         self.taken
     }
 
+    /// The report's bits for frames drawn now: the quality and, at the floor,
+    /// [`ipc_types::report_flags::GOVERNOR_FLOOR`].
+    pub fn report_bits(&self) -> u32 {
+        let floor = if self.at_floor {
+            ipc_types::report_flags::GOVERNOR_FLOOR
+        } else {
+            0
+        };
+        self.quality().report_bits() | floor
+    }
+
     /// Whether every step is given up and frames are still over the target.
     pub fn at_floor(&self) -> bool {
         self.at_floor

@@ -258,27 +258,7 @@ impl DrawLevels {
         let cached = lungs
             .iter()
             .zip(&sources)
-            .filter_map(|(l, s)| {
-                let side = format!("{:?}", l.side).to_lowercase();
-                match s {
-                    lod_cache::Source::Built => None,
-                    lod_cache::Source::Loaded(p) => Some(format!(
-                        "the {side} lung's levels read from {}",
-                        p.display()
-                    )),
-                    lod_cache::Source::Cached(p, why) => Some(format!(
-                        "the {side} lung's levels built and kept in {}{}",
-                        p.display(),
-                        why.as_ref().map_or(String::new(), |w| format!(
-                            " (the file there was refused: {w})"
-                        ))
-                    )),
-                    lod_cache::Source::NotWritten(p, e) => Some(format!(
-                        "the {side} lung's levels built, not kept: {}: {e}",
-                        p.display()
-                    )),
-                }
-            })
+            .filter_map(|(l, s)| s.describe(l.side.name()))
             .collect();
         // A level the topology check refused ends that lung's levels; the start line says so.
         let refused: Vec<String> = lungs
@@ -286,8 +266,10 @@ impl DrawLevels {
             .zip(&per_lung)
             .filter_map(|(l, b)| {
                 let (k, why) = b.refused.as_ref()?;
-                let side = format!("{:?}", l.side).to_lowercase();
-                Some(format!("the {side} lung's level {k} not drawn: {why}"))
+                Some(format!(
+                    "the {} lung's level {k} not drawn: {why}",
+                    l.side.name()
+                ))
             })
             .collect();
         let per_lung: Vec<_> = per_lung.into_iter().map(|b| b.levels).collect();

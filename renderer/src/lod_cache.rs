@@ -45,6 +45,31 @@ pub enum Source {
     NotWritten(PathBuf, String),
 }
 
+impl Source {
+    /// For the renderer's start line: where the `side` lung's levels came from or went; `None`
+    /// when they were simply built.
+    pub fn describe(&self, side: &str) -> Option<String> {
+        match self {
+            Source::Built => None,
+            Source::Loaded(p) => Some(format!(
+                "the {side} lung's levels read from {}",
+                p.display()
+            )),
+            Source::Cached(p, why) => Some(format!(
+                "the {side} lung's levels built and kept in {}{}",
+                p.display(),
+                why.as_ref().map_or(String::new(), |w| format!(
+                    " (the file there was refused: {w})"
+                ))
+            )),
+            Source::NotWritten(p, e) => Some(format!(
+                "the {side} lung's levels built, not kept: {}: {e}",
+                p.display()
+            )),
+        }
+    }
+}
+
 /// The cache folder from the environment ([`ENV_DIR`], XDG, home), if any.
 pub fn dir_from_env() -> Option<PathBuf> {
     let var = |k: &str| std::env::var_os(k).filter(|v| !v.is_empty());
@@ -329,5 +354,24 @@ mod tests {
         let big = lung(60_000);
         let (_, s) = lung_levels(&big.positions, &big.triangles, 3, None);
         assert_eq!(s, Source::Built);
+    }
+
+    #[test]
+    fn a_cache_folder_that_cannot_be_made_builds_and_says_why() {
+        // LUNGDYN_CACHE_DIR naming a file, not a folder: the levels are built, not kept, and the
+        // start line says where and why; nothing is written over the file.
+        let big = lung(60_000);
+        let file = temp("a-file");
+        std::fs::write(&file, b"not a folder").unwrap();
+        let (built, s) = lung_levels(&big.positions, &big.triangles, 3, Some(&file));
+        assert_eq!(built, lod::lung_levels(&big.positions, &big.triangles, 3));
+        let said = s.describe("right").unwrap();
+        assert!(matches!(s, Source::NotWritten(..)), "{s:?}");
+        assert!(
+            said.contains("not kept") && said.contains("a-file"),
+            "{said}"
+        );
+        assert_eq!(std::fs::read(&file).unwrap(), b"not a folder");
+        std::fs::remove_file(&file).ok();
     }
 }

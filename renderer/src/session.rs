@@ -408,11 +408,7 @@ impl Session {
         };
         let drawn = g.quality().report_bits();
         let change = g.observe(cost_ns);
-        let floor = if g.at_floor() {
-            report_flags::GOVERNOR_FLOOR
-        } else {
-            0
-        };
+        let floor = g.report_bits() & report_flags::GOVERNOR_FLOOR;
         let target_ms = g.target_ns() as f64 / 1e6;
         let ms = |ns: u64| ns as f64 / 1e6;
         match change {
@@ -868,14 +864,7 @@ impl Session {
                     gpu_ns,
                     latency_ns,
                     lod: self.renderer.lod_shown(),
-                    governor: self.governor.as_ref().map(|g| {
-                        let floor = if g.at_floor() {
-                            report_flags::GOVERNOR_FLOOR
-                        } else {
-                            0
-                        };
-                        g.quality().report_bits() | floor
-                    }),
+                    governor: self.governor.as_ref().map(|g| g.report_bits()),
                     outcome: self.outcome_standing.map(|s| (self.outcome.as_str(), s)),
                 };
                 let gpu = &self.gpu;
