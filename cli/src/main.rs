@@ -184,6 +184,9 @@ enum RemoteCommand {
     Router(lungdyn_remote::roles::RouterArgs),
     /// A source and N sites on loopback: drift per cycle, phase error, packets per minute.
     Harness(lungdyn_remote::harness::HarnessArgs),
+    /// Make a room's authority and each participant's certificate and private key (mutual TLS,
+    /// sealed packets): `--room ROOM --out DIR [--participant NAME:ROLE ...]`.
+    Keys(lungdyn_remote::roles::MakeKeysArgs),
     /// The harness's source in its own process (started by `remote harness`).
     #[command(hide = true)]
     HarnessSource(lungdyn_remote::harness::SourceChildArgs),
@@ -356,6 +359,9 @@ fn main() -> std::process::ExitCode {
             lungdyn_remote::harness::source_child(&args).map_err(Into::into)
         }
         Command::Remote(RemoteCommand::Harness(args)) => remote_harness(args),
+        Command::Remote(RemoteCommand::Keys(args)) => {
+            lungdyn_remote::roles::make_keys(&args).map_err(Into::into)
+        }
         Command::TrackerBridge(args) => tracker_bridge::run(&args).map_err(Into::into),
         Command::Engine(args) => engine::runtime::run(&args).map_err(Into::into),
         Command::Renderer(args) => renderer::process::run(&args).map_err(Into::into),

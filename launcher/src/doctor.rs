@@ -28,6 +28,11 @@ pub struct DoctorArgs {
     /// both are then reported as warnings saying they were not checked.
     #[arg(long)]
     pub no_gpu: bool,
+    /// A remote room's keys (`lungdyn remote keys`) to check: the authority, every certificate
+    /// (room, role, expiry) and the private keys (mode 0600, matching their certificates).
+    /// Default: the scene's `[remote] keys`.
+    #[arg(long, value_name = "DIR")]
+    pub keys: Option<PathBuf>,
 }
 
 /// How a check came out.
@@ -98,7 +103,7 @@ impl Report {
 }
 
 /// The names of the checks [`run`] makes, in order (the CLI test holds the JSON to this list).
-pub const CHECKS: [&str; 13] = [
+pub const CHECKS: [&str; 14] = [
     "gpu",
     "displays",
     "session",
@@ -112,6 +117,7 @@ pub const CHECKS: [&str; 13] = [
     "igtl_port",
     "iceoryx2_folders",
     "systemd",
+    "remote_keys",
 ];
 
 /// The real-time priority the units allow (`LimitRTPRIO=` in deploy/*.service).
@@ -708,10 +714,24 @@ fn systemd_check() -> Check {
 
 /// Run every check on this machine.
 pub fn run(args: &DoctorArgs) -> anyhow::Result<Report> {
-    let scene_cpus = match &args.scene {
-        Some(path) => lung_model::scene::Scene::load(path)?.processes.cpus,
-        None => Vec::new(),
-    };
+    let scene = args
+        .scene
+        .as_ref()
+        .map(|p| lung_model::scene::Scene::load(p))
+        .transpose()?;
+    let scene_cpus = scene
+        .as_ref()
+        .map(|s| s.processes.cpus.clone())
+        .unwrap_or_default();
+    let remote = scene.as_ref().and_then(|s| s.remote.as_ref());
+    let keys_dir = args.keys.clone().or_else(|| {
+        let base = args
+            .scene
+            .as_ref()
+            .and_then(|p| p.parent())
+            .unwrap_or(Path::new("."));
+        remote.and_then(|r| r.keys.as_ref()).map(|k| base.join(k))
+    });
     let limits = read("/proc/self/limits").unwrap_or_default();
     let rtprio = parse_limit(&limits, "Max realtime priority");
     let rtprio_ok = rtprio.is_some_and(|(s, _)| s.at_least(RTPRIO_WANTED));
@@ -759,9 +779,109 @@ pub fn run(args: &DoctorArgs) -> anyhow::Result<Report> {
         igtl_check(args.igtl_port),
         iceoryx_check(),
         systemd_check(),
+        remote_keys_check(
+            keys_dir.as_deref(),
+            remote.is_some(),
+            keys_dir.as_deref().map(lungdyn_remote::keys::inspect),
+            unix_now(),
+        ),
     ];
     debug_assert_eq!(checks.iter().map(|c| c.name).collect::<Vec<_>>(), CHECKS);
     Ok(Report { checks })
+}
+
+fn unix_now() -> i64 {
+    std::time::SystemTime::now()
+        .duration_since(std::time::UNIX_EPOCH)
+        .map(|d| d.as_secs() as i64)
+        .unwrap_or(0)
+}
+
+/// A remote room's keys: none named (plain TCP when the scene is remote), or what
+/// [`lungdyn_remote::keys::inspect`] found in the folder at `now` (Unix seconds).
+fn remote_keys_check(
+    dir: Option<&Path>,
+    remote_scene: bool,
+    found: Option<Result<lungdyn_remote::keys::Inspection, lungdyn_remote::keys::KeysError>>,
+    now: i64,
+) -> Check {
+    const NAME: &str = "remote_keys";
+    let make = "lungdyn remote keys --room ROOM --out DIR, then --keys DIR (or [remote] keys)";
+    let (Some(dir), Some(found)) = (dir, found) else {
+        return if remote_scene {
+            check(
+                NAME,
+                Status::Warning,
+                "the scene's [remote] session has no keys: plain TCP, unencrypted, open to anyone \
+                 who reaches the port (a closed lab network only)",
+                make,
+            )
+        } else {
+            check(
+                NAME,
+                Status::Ok,
+                "no remote session (no --keys, no [remote] table)",
+                "nothing",
+            )
+        };
+    };
+    let ins = match found {
+        Ok(i) => i,
+        Err(e) => return check(NAME, Status::Missing, e.to_string(), make),
+    };
+    let mut problems: Vec<String> = ins.refused.clone();
+    for (name, p) in &ins.keys {
+        if let Some(p) = p {
+            problems.push(format!("{name}.key: {p}"));
+        }
+    }
+    if !ins.keys.iter().any(|(n, _)| n != "authority") {
+        problems.push(format!(
+            "no participant's private key in {} (each machine needs its own NAME.key)",
+            dir.display()
+        ));
+    }
+    let soonest = ins
+        .members
+        .iter()
+        .map(|m| m.not_after_unix)
+        .chain([ins.authority_not_after_unix])
+        .min()
+        .unwrap_or(now);
+    let days = (soonest - now) / 86_400;
+    let members: Vec<String> = ins
+        .members
+        .iter()
+        .map(|m| format!("{} ({})", m.name, m.role.name()))
+        .collect();
+    let detail = format!(
+        "room {} in {}: {}; the first certificate expires in {days} day(s)",
+        ins.room,
+        dir.display(),
+        members.join(", ")
+    );
+    if !problems.is_empty() {
+        return check(
+            NAME,
+            Status::Missing,
+            format!("{detail}; {}", problems.join("; ")),
+            "fix each named file as it says, or make new keys: lungdyn remote keys",
+        );
+    }
+    if days < 30 {
+        return check(
+            NAME,
+            Status::Warning,
+            detail,
+            "make the room's keys again before they expire: lungdyn remote keys --room ROOM --out NEW_DIR",
+        );
+    }
+    check(
+        NAME,
+        Status::Ok,
+        detail,
+        "keep authority.key off the participants' machines",
+    )
 }
 
 /// The report as a table: one line per check, then its fix when it is not ok.
@@ -791,6 +911,51 @@ pub fn text(r: &Report) -> String {
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    #[test]
+    fn remote_keys_are_checked_for_expiry_permissions_and_the_plain_tcp_case() {
+        use std::os::unix::fs::PermissionsExt;
+        let d = std::env::temp_dir().join(format!("lungdyn-doctor-keys-{}", std::process::id()));
+        let _ = std::fs::remove_dir_all(&d);
+        lungdyn_remote::keys::make(
+            "ward",
+            &d,
+            &lungdyn_remote::keys::default_participants(),
+            90,
+        )
+        .unwrap();
+        let now = unix_now();
+        let inspect = || Some(lungdyn_remote::keys::inspect(&d));
+        let c = remote_keys_check(Some(&d), true, inspect(), now);
+        assert_eq!(c.status, Status::Ok, "{c:?}");
+        assert!(
+            c.detail.contains("room ward") && c.detail.contains("site (site)"),
+            "{c:?}"
+        );
+        // 70 days on: within 30 days of expiry.
+        let c = remote_keys_check(Some(&d), true, inspect(), now + 70 * 86_400);
+        assert_eq!(c.status, Status::Warning, "{c:?}");
+        // A private key others can read.
+        std::fs::set_permissions(d.join("site.key"), std::fs::Permissions::from_mode(0o640))
+            .unwrap();
+        let c = remote_keys_check(Some(&d), true, inspect(), now);
+        assert_eq!(c.status, Status::Missing, "{c:?}");
+        assert!(c.detail.contains("chmod 600"), "{c:?}");
+        // No keys for a remote scene: plain TCP, said as such.
+        let c = remote_keys_check(None, true, None, now);
+        assert_eq!(c.status, Status::Warning);
+        assert!(c.detail.contains("plain TCP"), "{c:?}");
+        // A folder that is not a room.
+        let c = remote_keys_check(
+            Some(Path::new("/nonexistent")),
+            true,
+            Some(lungdyn_remote::keys::inspect(Path::new("/nonexistent"))),
+            now,
+        );
+        assert_eq!(c.status, Status::Missing);
+        assert!(c.detail.contains("not found"), "{c:?}");
+        std::fs::remove_dir_all(&d).unwrap();
+    }
 
     const LIMITS: &str =
         "Limit                     Soft Limit           Hard Limit           Units     \n\

@@ -97,6 +97,78 @@ pub struct HarnessArgs {
     /// tests) the source shares the harness's process and its cost is not reported.
     #[arg(skip)]
     pub source_exe: Option<std::path::PathBuf>,
+    /// tls (default): every participant with its own certificate of a room made for this run
+    /// (mutual TLS, sealed packets); tcp: plain TCP and plain packets, for the comparison.
+    #[arg(long, value_enum, default_value_t = Transport::Tls)]
+    pub transport: Transport,
+    /// The run's keys (set by the harness for its source process).
+    #[arg(long, hide = true)]
+    pub keys_dir: Option<std::path::PathBuf>,
+}
+
+/// The harness's `--transport`.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, clap::ValueEnum)]
+pub enum Transport {
+    /// Mutual TLS with the run's own room keys; every packet sealed.
+    Tls,
+    /// Plain TCP, plain packets (a closed lab network; the comparison).
+    Tcp,
+}
+
+/// A room's keys made for one harness run (removed when dropped): the source, the router and
+/// one identity per site (`site-K`, observers when `--observer`).
+pub struct RunKeys {
+    /// The folder.
+    pub dir: std::path::PathBuf,
+}
+
+impl Drop for RunKeys {
+    fn drop(&mut self) {
+        let _ = std::fs::remove_dir_all(&self.dir);
+    }
+}
+
+impl RunKeys {
+    fn make(sites: usize, observer: bool) -> Result<Self, RemoteError> {
+        use crate::keys::{Participant, Role};
+        let dir = std::env::temp_dir().join(format!(
+            "lungdyn-harness-keys-{}-{:x}",
+            std::process::id(),
+            now_ns()
+        ));
+        let mut ps = vec![
+            Participant {
+                name: "source".into(),
+                role: Role::Source,
+            },
+            Participant {
+                name: "router".into(),
+                role: Role::Router,
+            },
+        ];
+        for k in 1..=sites {
+            ps.push(Participant {
+                name: format!("site-{k}"),
+                role: if observer { Role::Observer } else { Role::Site },
+            });
+        }
+        crate::keys::make("harness", &dir, &ps, 1)
+            .map_err(|e| RemoteError::Usage(format!("the harness's keys: {e}")))?;
+        Ok(Self { dir })
+    }
+}
+
+/// `identity`'s keys in `dir` (none: plain TCP).
+fn run_room(
+    dir: Option<&std::path::Path>,
+    identity: &str,
+) -> Result<Option<std::sync::Arc<crate::keys::Room>>, RemoteError> {
+    dir.map(|d| {
+        crate::keys::Room::load(d, identity)
+            .map(std::sync::Arc::new)
+            .map_err(|e| RemoteError::Usage(format!("the harness's keys: {e}")))
+    })
+    .transpose()
 }
 
 /// Options of the hidden `lungdyn remote harness-source`: the harness's source in its own process.
@@ -282,6 +354,10 @@ pub struct HarnessReport {
     pub loss: f64,
     /// How the network was emulated and, with an impairment, why not with netem (probed once).
     pub emulation: String,
+    /// `tls` (mutual TLS with the run's own room keys, every packet sealed) or `tcp` (plain).
+    pub transport: &'static str,
+    /// Packets the sites refused because their seal did not hold (0 in a run with no outsider).
+    pub refused_seals: u64,
     /// Mean over sites of each site's mean drift, %.
     pub drift_percent_mean: f64,
     /// Worst cycle of any site, %.
@@ -400,8 +476,8 @@ pub fn locator(session: &zenoh::Session) -> Result<String, RemoteError> {
         .wait()
         .into_iter()
         .map(|l| l.to_string())
-        .find(|l| l.starts_with("tcp/"))
-        .ok_or_else(|| RemoteError::Usage("the source listens on no tcp locator".into()))
+        .find(|l| l.starts_with("tcp/") || l.starts_with("tls/"))
+        .ok_or_else(|| RemoteError::Usage("the source listens on no tcp or tls locator".into()))
 }
 
 /// A tracker that never sends: the source engine ticks on its deadlines (sleeping until each,
@@ -589,22 +665,29 @@ fn drift(source: &[Rec], site: &[Rec], from: i128, to: i128, tv: f64, sched: boo
 /// The harness's link lease, ms (a lost peer is seen fast).
 const LEASE_MS: u64 = 2000;
 
-/// A session on 127.0.0.1: `mode` listening on a free port (`via` none) or connecting to `via`.
-fn local_net(mode: &'static str, via: Option<&str>) -> Net {
+/// A session on 127.0.0.1: `mode` listening on a free port (`via` none) or connecting to `via`;
+/// TLS and sealed packets with `auth`.
+fn local_net(
+    mode: &'static str,
+    via: Option<&str>,
+    auth: Option<std::sync::Arc<crate::keys::Room>>,
+) -> Net {
+    let proto = if auth.is_some() { "tls" } else { "tcp" };
     Net {
         listen: match via {
-            None => vec!["tcp/127.0.0.1:0".to_string()],
+            None => vec![format!("{proto}/127.0.0.1:0")],
             Some(_) => Vec::new(),
         },
         connect: via.map(|v| vec![v.to_string()]).unwrap_or_default(),
         lease_ms: LEASE_MS,
         mode,
+        auth,
     }
 }
 
 /// The source's session: a peer listening on 127.0.0.1, or a client of the router `via`.
-fn source_net(via: Option<&str>) -> Net {
-    local_net(if via.is_some() { "client" } else { "peer" }, via)
+fn source_net(via: Option<&str>, auth: Option<std::sync::Arc<crate::keys::Room>>) -> Net {
+    local_net(if via.is_some() { "client" } else { "peer" }, via, auth)
 }
 
 /// Check the harness's options; the emulated impairment.
@@ -705,7 +788,8 @@ pub fn source_child(args: &SourceChildArgs) -> Result<(), RemoteError> {
     let (scene, core) = harness_core(h.breaths_per_min)?;
     let keys = Keys::new("harness")?;
     let id = site_id(0);
-    let source = Source::open(&source_net(args.via.as_deref()), &keys, id, imp)?;
+    let auth = run_room(h.keys_dir.as_deref(), "source")?;
+    let source = Source::open(&source_net(args.via.as_deref(), auth), &keys, id, imp)?;
     let endpoint = match &args.via {
         Some(v) => v.clone(),
         None => locator(source.session())?,
@@ -783,6 +867,12 @@ impl ChildSource {
         if let Some(v) = via {
             cmd.arg("--via").arg(v);
         }
+        if let Some(d) = &args.keys_dir {
+            cmd.arg("--keys-dir").arg(d);
+        }
+        if args.observer {
+            cmd.arg("--observer");
+        }
         let io = |e: std::io::Error| {
             RemoteError::Usage(format!("the source process ({}): {e}", exe.display()))
         };
@@ -799,7 +889,7 @@ impl ChildSource {
         };
         let mut line = String::new();
         me.stdout.read_line(&mut line).map_err(io)?;
-        if !line.trim().starts_with("tcp/") {
+        if !(line.trim().starts_with("tcp/") || line.trim().starts_with("tls/")) {
             return Err(RemoteError::Usage(format!(
                 "the source process did not start (it printed {line:?}; its error is above)"
             )));
@@ -977,6 +1067,15 @@ pub fn run(args: &HarnessArgs) -> Result<HarnessReport, RemoteError> {
         .map(|l| l.breathing().boundary().tv_ml)
         .unwrap_or(500.0);
     let keys = Keys::new("harness")?;
+    // Every participant's own certificate of a room made for this run (removed at the end).
+    let run_keys = match args.transport {
+        Transport::Tls => Some(RunKeys::make(args.sites, args.observer)?),
+        Transport::Tcp => None,
+    };
+    let mut args = args.clone();
+    args.keys_dir = run_keys.as_ref().map(|k| k.dir.clone());
+    let args = &args;
+    let kd = args.keys_dir.as_deref();
     // The emulated clocks (equal to the host's now, then running at their rates).
     let epoch = now_ns();
     let skewed = |ppm: f64| {
@@ -985,7 +1084,7 @@ pub fn run(args: &HarnessArgs) -> Result<HarnessReport, RemoteError> {
     let (site_clock, relay_clock) = (skewed(args.skew_ppm)?, skewed(args.relay_skew_ppm)?);
     // A router in this process: everyone else is its client.
     let router = if args.router {
-        Some(local_net("router", None).open()?)
+        Some(local_net("router", None, run_room(kd, "router")?).open()?)
     } else {
         None
     };
@@ -996,7 +1095,15 @@ pub fn run(args: &HarnessArgs) -> Result<HarnessReport, RemoteError> {
             let mut i = imp;
             i.seed = args.seed.wrapping_add(0x7e1a);
             i.clock = relay_clock;
-            Some(Relay::open(r, &keys, site_id(1000), i, args.probe_ms)?)
+            let guard = crate::seal::Guard::new(run_room(kd, "router")?);
+            Some(Relay::open(
+                r,
+                &keys,
+                site_id(1000),
+                i,
+                args.probe_ms,
+                guard,
+            )?)
         }
         None => None,
     };
@@ -1008,7 +1115,7 @@ pub fn run(args: &HarnessArgs) -> Result<HarnessReport, RemoteError> {
     let source_id = site_id(0);
     let side = match &args.source_exe {
         None => SourceSide::Here(Box::new(Source::open(
-            &source_net(via.as_deref()),
+            &source_net(via.as_deref(), run_room(kd, "source")?),
             &keys,
             source_id,
             imp,
@@ -1020,15 +1127,16 @@ pub fn run(args: &HarnessArgs) -> Result<HarnessReport, RemoteError> {
         (None, SourceSide::Here(s)) => locator(s.session())?,
         (None, SourceSide::Own(c)) => c.endpoint.clone(),
     };
-    let site_net = local_net(
-        if via.is_some() { "client" } else { "peer" },
-        Some(&endpoint),
-    );
     let mut sites = Vec::new();
     for k in 0..args.sites {
         let mut i = imp;
         i.seed = args.seed.wrapping_add(k as u64 + 1);
         i.clock = site_clock;
+        let site_net = local_net(
+            if via.is_some() { "client" } else { "peer" },
+            Some(&endpoint),
+            run_room(kd, &format!("site-{}", k + 1))?,
+        );
         sites.push(Site::open(
             &site_net,
             &keys,
@@ -1096,6 +1204,7 @@ pub fn run(args: &HarnessArgs) -> Result<HarnessReport, RemoteError> {
         per_site,
         relay_report,
         harness_cpu_s,
+        sites.iter().map(|s| s.guard.refusals.total()).sum(),
     ))
 }
 
@@ -1166,6 +1275,7 @@ fn harness_report(
     per_site: Vec<SiteReport>,
     relay_report: Option<RelayReport>,
     harness_cpu_s: f64,
+    refused_seals: u64,
 ) -> HarnessReport {
     let minutes = outcome.recs.len() as f64 / hz / 60.0;
     let states = outcome.states as f64;
@@ -1192,6 +1302,11 @@ fn harness_report(
                 netem_probe()
             )
         },
+        transport: match args.transport {
+            Transport::Tls => "tls",
+            Transport::Tcp => "tcp",
+        },
+        refused_seals,
         drift_percent_mean: mean(|s| s.drift_percent_mean),
         drift_percent_worst: max(|s| s.drift_percent_worst),
         drift_percent_mean_scheduled: mean(|s| s.drift_percent_mean_scheduled),

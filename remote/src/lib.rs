@@ -25,10 +25,12 @@
 
 pub mod clock;
 pub mod harness;
+pub mod keys;
 pub mod link;
 pub mod measure;
 pub mod relay;
 pub mod roles;
+pub mod seal;
 pub mod site;
 pub mod source;
 
@@ -182,6 +184,10 @@ pub struct Net {
     pub lease_ms: u64,
     /// `peer`, `router` (the others connect to this session) or `client` (through a router).
     pub mode: &'static str,
+    /// The room's keys as this participant (`--keys DIR --identity NAME`): TLS with mutual
+    /// authentication on `tls/` endpoints, and every packet sealed ([`seal`]). None: plain TCP
+    /// and plain packets, for a closed lab network only.
+    pub auth: Option<std::sync::Arc<keys::Room>>,
 }
 
 impl Net {
@@ -192,6 +198,27 @@ impl Net {
             connect: connect.to_vec(),
             lease_ms: 10_000,
             mode: "peer",
+            auth: None,
+        }
+    }
+
+    /// The same session with `room`'s keys.
+    pub fn with_keys(mut self, room: Option<std::sync::Arc<keys::Room>>) -> Self {
+        self.auth = room;
+        self
+    }
+
+    /// This participant's seal and opener ([`seal::Guard`]).
+    pub fn guard(&self) -> seal::Guard {
+        seal::Guard::new(self.auth.clone())
+    }
+
+    /// How this session is protected, in words (start-up lines, JSON's `transport`).
+    pub fn transport_word(&self) -> &'static str {
+        if self.auth.is_some() {
+            "tls"
+        } else {
+            "tcp"
         }
     }
 
@@ -203,16 +230,31 @@ impl Net {
             connect: r.connect.clone(),
             lease_ms: r.lease_ms,
             mode: r.mode.name(),
+            auth: None,
         }
     }
 
     /// The Zenoh configuration: explicit endpoints, no multicast scouting, the lease.
     pub fn config(&self) -> Result<zenoh::Config, RemoteError> {
+        let want = if self.auth.is_some() { "tls/" } else { "tcp/" };
         for e in self.listen.iter().chain(&self.connect) {
-            if !e.starts_with("tcp/") {
-                return Err(RemoteError::Usage(format!(
-                    "endpoint {e:?}: only tcp/HOST:PORT is built in (e.g. tcp/192.168.1.10:7447)"
-                )));
+            if !e.starts_with(want) {
+                return Err(RemoteError::Usage(if self.auth.is_some() {
+                    format!(
+                        "endpoint {e:?}: with the room's keys (--keys) the endpoints are \
+                         tls/HOST:PORT (e.g. tls/192.168.1.10:7447)"
+                    )
+                } else if e.starts_with("tls/") {
+                    format!(
+                        "endpoint {e:?}: TLS needs the room's keys: --keys DIR --identity NAME \
+                         (make them with `lungdyn remote keys --room ROOM --out DIR`)"
+                    )
+                } else {
+                    format!(
+                        "endpoint {e:?}: use tls/HOST:PORT with the room's keys, or tcp/HOST:PORT \
+                         on a closed lab network (e.g. tls/192.168.1.10:7447)"
+                    )
+                }));
             }
         }
         let mut c = zenoh::Config::default();
@@ -234,6 +276,38 @@ impl Net {
             &self.lease_ms.to_string(),
         )?;
         set(&mut c, "transport/link/tx/keep_alive", "4")?;
+        if let Some(room) = &self.auth {
+            let path = |p: &std::path::Path| format!("{:?}", p.display().to_string());
+            let t = &room.tls;
+            set(
+                &mut c,
+                "transport/link/tls/root_ca_certificate",
+                &path(&t.authority),
+            )?;
+            for side in ["listen", "connect"] {
+                set(
+                    &mut c,
+                    &format!("transport/link/tls/{side}_certificate"),
+                    &path(&t.certificate),
+                )?;
+                set(
+                    &mut c,
+                    &format!("transport/link/tls/{side}_private_key"),
+                    &path(&t.key),
+                )?;
+            }
+            // Both ends present a certificate of the room's authority.
+            set(&mut c, "transport/link/tls/enable_mtls", "true")?;
+            // Participants are reached by address, not by a name in their certificate; who they
+            // are is the room's authority's word, and every packet is sealed by its origin.
+            set(&mut c, "transport/link/tls/verify_name_on_connect", "false")?;
+            // An expired certificate ends the link, not only the next handshake.
+            set(
+                &mut c,
+                "transport/link/tls/close_link_on_expiration",
+                "true",
+            )?;
+        }
         Ok(c)
     }
 

@@ -123,6 +123,7 @@ impl Relay {
         id: u64,
         imp: Impairment,
         probe_ms: u64,
+        guard: crate::seal::Guard,
     ) -> Result<Self, RemoteError> {
         let counts = Arc::new(RelayCounts::default());
         let path = Arc::new(PathFigures::default());
@@ -132,8 +133,14 @@ impl Relay {
         } else {
             DelayEstimator::default()
         };
+        let (g2, mut inbox) = (guard.clone(), guard.inbox());
         let link = link::start(&format!("remote-relay-{id:x}"), imp, move |bytes, at| {
-            match decode(&bytes) {
+            use crate::seal::Kind;
+            let Some((_, payload)) = inbox.open(&bytes, at, &[Kind::Reply, Kind::Probe]) else {
+                c.refused.fetch_add(1, Ordering::Relaxed);
+                return;
+            };
+            match decode(payload) {
                 Ok(ref packet @ Packet::ProbeReply { to, .. }) if to == id => {
                     let Some((from, stamps)) = ProbeStamps::of_reply(packet, id, at) else {
                         return;
@@ -166,6 +173,7 @@ impl Relay {
                             t2_ns,
                         };
                         if let Ok(b) = encode_to_vec(&reply) {
+                            let b = g2.wrap(Kind::Reply, b);
                             let n = b.len() as u64;
                             if s2.put(k2.reply(from), b).wait().is_ok() {
                                 c.answered.fetch_add(1, Ordering::Relaxed);
@@ -208,6 +216,7 @@ impl Relay {
         let c3 = counts.clone();
         Prober {
             name: format!("remote-relay-probe-{id:x}"),
+            guard,
             session: session.clone(),
             key: keys.probe(),
             warm: keys.warm(),

@@ -65,6 +65,140 @@ pub struct SessionArgs {
     /// Link lease, ms (default: the scene's, else 10000).
     #[arg(long)]
     pub lease_ms: Option<u64>,
+    /// The room's keys and this machine's identity in them.
+    #[command(flatten)]
+    pub keys: KeysArgs,
+}
+
+/// `--keys DIR --identity NAME`: mutual TLS and sealed packets.
+#[derive(Debug, Clone, Default, clap::Args)]
+pub struct KeysArgs {
+    /// The room's keys (made by `lungdyn remote keys`): mutual TLS on tls/HOST:PORT endpoints and
+    /// every packet sealed by its origin (default: the scene's [remote] keys; none: plain TCP, for
+    /// a closed lab network only).
+    #[arg(long, value_name = "DIR")]
+    pub keys: Option<std::path::PathBuf>,
+    /// This machine's certificate in the keys (default: the scene's [remote] identity, else the
+    /// role: source, site, observer or router).
+    #[arg(long, value_name = "NAME")]
+    pub identity: Option<String>,
+}
+
+/// Options of `lungdyn remote keys`.
+#[derive(Debug, Clone, clap::Args)]
+pub struct MakeKeysArgs {
+    /// The room the keys are for (every participant's --room).
+    #[arg(long)]
+    pub room: String,
+    /// The folder to write (created; never overwritten).
+    #[arg(long, value_name = "DIR")]
+    pub out: std::path::PathBuf,
+    /// A participant as NAME:ROLE (roles: source, site, observer, router); repeat for each.
+    /// Default: source:source, site:site, observer:observer, router:router.
+    #[arg(long, value_name = "NAME:ROLE")]
+    pub participant: Vec<crate::keys::Participant>,
+    /// Days the certificates are valid.
+    #[arg(long, default_value_t = crate::keys::DEFAULT_DAYS)]
+    pub days: u32,
+}
+
+/// Run `lungdyn remote keys`: say what was written and what goes where.
+pub fn make_keys(args: &MakeKeysArgs) -> Result<(), RemoteError> {
+    let ps = if args.participant.is_empty() {
+        crate::keys::default_participants()
+    } else {
+        args.participant.clone()
+    };
+    let made = crate::keys::make(&args.room, &args.out, &ps, args.days)
+        .map_err(|e| RemoteError::Usage(format!("remote keys: {e}")))?;
+    println!(
+        "remote keys: room {:?}, {} participant(s), valid {} day(s), in {}",
+        args.room,
+        ps.len(),
+        args.days,
+        args.out.display()
+    );
+    for p in &ps {
+        println!("  {:<12} {}", p.name, p.role.name());
+    }
+    println!(
+        "  {} files written (private keys 0600); what goes to which machine: {}",
+        made.files.len(),
+        args.out.join("README.txt").display()
+    );
+    println!(
+        "  start each with --keys DIR --identity NAME on tls/HOST:PORT endpoints; check with \
+         `lungdyn doctor --keys {}`",
+        args.out.display()
+    );
+    Ok(())
+}
+
+/// Load the room's keys: the flag's folder, else the scene's (relative to the scene's folder);
+/// the identity from the flag, the scene, else `role`. None without keys.
+fn load_room(
+    k: &KeysArgs,
+    table: Option<&RemoteScene>,
+    scene: Option<&std::path::Path>,
+    role: &str,
+) -> Result<Option<std::sync::Arc<crate::keys::Room>>, RemoteError> {
+    let dir = match (&k.keys, table.and_then(|t| t.keys.as_ref())) {
+        (Some(d), _) => d.clone(),
+        (None, Some(d)) => {
+            let base = scene
+                .and_then(|s| s.parent())
+                .unwrap_or(std::path::Path::new("."));
+            base.join(d)
+        }
+        (None, None) => {
+            if k.identity.is_some() {
+                return Err(RemoteError::Usage(
+                    "--identity without --keys: name the room's keys folder too".into(),
+                ));
+            }
+            return Ok(None);
+        }
+    };
+    let identity = k
+        .identity
+        .clone()
+        .or_else(|| table.and_then(|t| t.identity.clone()))
+        .unwrap_or_else(|| role.to_string());
+    let room = crate::keys::Room::load(&dir, &identity)
+        .map_err(|e| RemoteError::Usage(format!("the room's keys: {e}")))?;
+    Ok(Some(std::sync::Arc::new(room)))
+}
+
+/// The room a router serves: its keys' when it has them.
+fn keys_room(net: &Net, flag: &str) -> String {
+    net.auth
+        .as_ref()
+        .map(|r| r.room.clone())
+        .unwrap_or_else(|| flag.to_string())
+}
+
+/// Say how this session is protected (start-up): the identity and room, or that it is open.
+pub fn say_transport(who: &str, net: &Net) {
+    match &net.auth {
+        Some(room) => {
+            let me = room.identity();
+            eprintln!(
+                "{who}: mutual TLS as {} ({}) of room {} ({} participants); every packet sealed",
+                me.name,
+                me.role.name(),
+                room.room,
+                room.members.len()
+            );
+            for w in &room.warnings {
+                eprintln!("{who}: keys: {w}");
+            }
+        }
+        None => eprintln!(
+            "{who}: PLAIN TCP: unencrypted and unauthenticated, anyone who reaches the port can \
+             listen, send events and answer clock probes; for a closed lab network only (make \
+             keys with `lungdyn remote keys` and start with --keys)"
+        ),
+    }
 }
 
 /// The `--mode` values.
@@ -123,7 +257,10 @@ fn settings(
     connect: &[String],
     session: &SessionArgs,
     clock: Option<ClockSync>,
+    scene: Option<&std::path::Path>,
+    identity: crate::keys::Role,
 ) -> Result<(RemoteScene, Net, Keys), RemoteError> {
+    let auth = load_room(&session.keys, table.as_ref(), scene, identity.name())?;
     let mut r = table.unwrap_or(RemoteScene {
         role,
         room: "lungdyn".into(),
@@ -133,7 +270,26 @@ fn settings(
         lease_ms: lung_model::scene_remote::DEFAULT_LEASE_MS,
         site_id: None,
         clock: None,
+        keys: None,
+        identity: None,
     });
+    if let Some(room) = &auth {
+        // With keys the default endpoint is TLS's; the room is the keys' unless named.
+        if r.listen.is_none() && role == RemoteRole::Source && listen.is_empty() {
+            r.listen = Some(vec![
+                lung_model::scene_remote::DEFAULT_LISTEN.replace("tcp/", "tls/")
+            ]);
+        }
+        if session.room.is_none() && r.room == "lungdyn" {
+            r.room = room.room.clone();
+        }
+        if r.room != room.room {
+            return Err(RemoteError::Usage(format!(
+                "room {:?}, but the keys are room {:?}'s: use --room {} (or the keys made for {:?})",
+                r.room, room.room, room.room, r.room
+            )));
+        }
+    }
     if !listen.is_empty() {
         r.listen = Some(listen.to_vec());
     }
@@ -158,7 +314,7 @@ fn settings(
              --lease-ms, --clock)"
         ))
     })?;
-    let net = Net::of(&r);
+    let net = Net::of(&r).with_keys(auth);
     let keys = Keys::new(&r.room)?;
     Ok((r, net, keys))
 }
@@ -208,6 +364,9 @@ pub struct RouterArgs {
     /// How often the relay probes the source, ms (the source answers only these).
     #[arg(long, default_value_t = 100)]
     pub probe_ms: u64,
+    /// The room's keys and the router's identity in them (default identity: router).
+    #[command(flatten)]
+    pub keys: KeysArgs,
     /// Stop after this many seconds.
     #[arg(long)]
     pub seconds: Option<f64>,
@@ -252,8 +411,11 @@ pub fn serve(args: &ServeArgs) -> Result<(), RemoteError> {
         &args.connect,
         &args.session,
         None,
+        args.scene.as_deref(),
+        crate::keys::Role::Source,
     )?;
     net.config()?;
+    say_transport("remote serve", &net);
     let instance = Instance::new(&args.instance)?;
     let node = iox::node(&instance, "remote-serve")?;
     let mut states = instance.control_state_inlet(&node)?;
@@ -268,8 +430,10 @@ pub fn serve(args: &ServeArgs) -> Result<(), RemoteError> {
         )
     } else {
         format!(
-            "on {:?}: sites join with lungdyn remote join --connect tcp/THIS_HOST:PORT --room {}",
-            net.listen, remote.room
+            "on {:?}: sites join with lungdyn remote join --connect {}/THIS_HOST:PORT --room {}",
+            net.listen,
+            net.transport_word(),
+            remote.room
         )
     };
     eprintln!(
@@ -418,12 +582,17 @@ pub fn router(args: &RouterArgs) -> Result<(), RemoteError> {
         &args.listen,
         &[],
         &SessionArgs {
-            room: Some(args.room.clone()),
+            // The default room gives way to the keys' room.
+            room: (args.room != "lungdyn").then(|| args.room.clone()),
             mode: Some(ZenohMode::Router),
             lease_ms: Some(args.lease_ms),
+            keys: args.keys.clone(),
         },
         None,
+        None,
+        crate::keys::Role::Router,
     )?;
+    say_transport("remote router", &net);
     let session = net.open()?;
     let relay = crate::relay::Relay::open(
         &session,
@@ -431,12 +600,14 @@ pub fn router(args: &RouterArgs) -> Result<(), RemoteError> {
         site_id(0),
         Impairment::default(),
         args.probe_ms,
+        net.guard(),
     )?;
+    let (proto, room) = (net.transport_word(), keys_room(&net, &args.room));
     eprintln!(
-        "remote router: a Zenoh router on {:?} with the time relay for room {} (the source runs \
-         `lungdyn remote serve --mode client --connect tcp/THIS_HOST:PORT --room {}`, each site \
-         `lungdyn remote join --mode client --connect tcp/THIS_HOST:PORT --room {}`)",
-        net.listen, args.room, args.room, args.room
+        "remote router: a Zenoh router on {:?} with the time relay for room {room} (the source runs \
+         `lungdyn remote serve --mode client --connect {proto}/THIS_HOST:PORT --room {room}`, each \
+         site `lungdyn remote join --mode client --connect {proto}/THIS_HOST:PORT --room {room}`)",
+        net.listen
     );
     let mut synced = false;
     let mut rate_word = "unknown";
@@ -498,9 +669,23 @@ pub fn join(args: &JoinArgs) -> Result<(), RemoteError> {
     let role = join_role(args, table.as_ref())?;
     let observer = role == RemoteRole::Observer;
     // Endpoints are checked before anything is loaded or opened.
-    let (remote, net, keys) = settings(table, role, &[], &args.connect, &args.session, args.clock)?;
+    let (remote, net, keys) = settings(
+        table,
+        role,
+        &[],
+        &args.connect,
+        &args.session,
+        args.clock,
+        args.scene.as_deref(),
+        if observer {
+            crate::keys::Role::Observer
+        } else {
+            crate::keys::Role::Site
+        },
+    )?;
     let clock = remote.clock();
     net.config()?;
+    say_transport("remote join", &net);
     let instance = Instance::new(&args.instance)?;
     let _lock = instance.lock("engine")?;
     let scene = Scene::load_or_default(args.scene.as_deref())?;
@@ -758,6 +943,8 @@ fn say_join_counts(instance: &Instance, site: &Site) {
 mod tests {
     use super::*;
 
+    use crate::keys::Role;
+
     fn session(mode: ZenohMode) -> SessionArgs {
         SessionArgs {
             mode: Some(mode),
@@ -778,6 +965,8 @@ mod tests {
             &[],
             &session(ZenohMode::Router),
             None,
+            None,
+            Role::Source,
         )
         .unwrap();
         assert_eq!(
@@ -785,17 +974,35 @@ mod tests {
             ("router", "router", 2000)
         );
         for role in [RemoteRole::Site, RemoteRole::Observer] {
-            let e = settings(None, role, &[], &listen, &session(ZenohMode::Router), None)
-                .unwrap_err()
-                .to_string();
+            let e = settings(
+                None,
+                role,
+                &[],
+                &listen,
+                &session(ZenohMode::Router),
+                None,
+                None,
+                Role::Site,
+            )
+            .unwrap_err()
+            .to_string();
             assert!(
                 e.contains("remote serve --mode router")
                     && e.contains("client")
                     && e.contains("--mode"),
                 "{e}"
             );
-            let (r, net, _) =
-                settings(None, role, &[], &listen, &session(ZenohMode::Client), None).unwrap();
+            let (r, net, _) = settings(
+                None,
+                role,
+                &[],
+                &listen,
+                &session(ZenohMode::Client),
+                None,
+                None,
+                Role::Site,
+            )
+            .unwrap();
             assert_eq!(net.mode, "client");
             // Through a router a site syncs with the relay unless told otherwise.
             assert_eq!(r.clock(), lung_model::scene_remote::ClockSync::Relay);
@@ -806,6 +1013,8 @@ mod tests {
                 &listen,
                 &session(ZenohMode::Client),
                 Some(ClockSync::Source),
+                None,
+                Role::Site,
             )
             .unwrap();
             assert_eq!(r.clock(), lung_model::scene_remote::ClockSync::Source);
@@ -816,6 +1025,8 @@ mod tests {
                 &listen,
                 &session(ZenohMode::Peer),
                 Some(ClockSync::Relay),
+                None,
+                Role::Site,
             )
             .unwrap_err()
             .to_string();

@@ -45,6 +45,10 @@ pub struct SiteCounts {
     pub announced_late: AtomicU64,
 }
 
+/// The largest step between one source's consecutive states a site takes (a state per breath
+/// or change: 2²⁴ is years of a session).
+pub const MAX_SEQUENCE_LEAP: u64 = 1 << 24;
+
 /// Events kept per site (the latest; older ones are dropped from this record only).
 pub const EVENTS_KEPT: usize = 256;
 
@@ -186,6 +190,8 @@ pub const WARM_UP_MS: u64 = 1;
 /// each [`WARM_UP_MS`] after a 1-byte packet on `warm`.
 pub(crate) struct Prober {
     pub name: String,
+    /// Seals each probe.
+    pub guard: crate::seal::Guard,
     pub session: zenoh::Session,
     pub key: String,
     pub warm: String,
@@ -204,6 +210,7 @@ impl Prober {
     ) -> std::io::Result<()> {
         let Prober {
             name,
+            guard,
             session,
             key,
             warm,
@@ -221,7 +228,12 @@ impl Prober {
                     id: n,
                     t0_ns: clock.now(),
                 };
-                let sent = encode_to_vec(&probe).is_ok_and(|b| session.put(&key, b).wait().is_ok());
+                let sent = encode_to_vec(&probe).is_ok_and(|b| {
+                    session
+                        .put(&key, guard.wrap(crate::seal::Kind::Probe, b))
+                        .wait()
+                        .is_ok()
+                });
                 after(sent);
                 std::thread::sleep(Duration::from_millis(
                     interval_ms(n).saturating_sub(WARM_UP_MS).max(1),
@@ -241,6 +253,8 @@ pub struct Site {
     pub observer: bool,
     session: zenoh::Session,
     keys: Keys,
+    /// Seals this site's probes and events; counts the packets whose seal did not hold.
+    pub guard: crate::seal::Guard,
     _states: zenoh_ext::AdvancedSubscriber<()>,
     _replies: zenoh::pubsub::Subscriber<()>,
     _token: zenoh::liveliness::LivelinessToken,
@@ -309,13 +323,36 @@ impl Site {
                 *g = Some(why);
             }
         };
+        let guard = net.guard();
+        let (mut inbox, refusals) = (guard.inbox(), guard.refusals.clone());
         let link = link::start(&format!("remote-site-{id:x}"), imp, move |bytes, at| {
-            match decode(&bytes) {
+            use crate::seal::Kind;
+            let Some((_, payload)) = inbox.open(&bytes, at, &[Kind::State, Kind::Reply]) else {
+                let why = refusals.last.lock().ok().and_then(|g| g.clone());
+                refuse(&r, &c, why.unwrap_or_else(|| "a packet refused".into()));
+                return;
+            };
+            match decode(payload) {
                 Ok(Packet::State(s)) => {
                     // A restarted source has a new epoch: its states are taken from then on.
                     let key = (s.epoch, s.sequence);
                     if newest.is_some_and(|(e, q)| e == key.0 && q >= key.1) {
                         c.repeated.fetch_add(1, Ordering::Relaxed);
+                        return;
+                    }
+                    // A source numbers its states one by one: a leap no run could make is a
+                    // forgery (on plain TCP), and taking it would make every real state after it
+                    // look old.
+                    if newest.is_some_and(|(e, q)| e == key.0 && key.1 - q > MAX_SEQUENCE_LEAP) {
+                        let q = newest.map(|n| n.1).unwrap_or(0);
+                        refuse(
+                            &r,
+                            &c,
+                            format!(
+                                "a state numbered {} after {q}: a leap no source makes (forged?)",
+                                key.1
+                            ),
+                        );
                         return;
                     }
                     if !s.events.is_empty() {
@@ -386,6 +423,7 @@ impl Site {
         let stop = Arc::new(AtomicBool::new(false));
         Prober {
             name: format!("remote-probe-{id:x}"),
+            guard: guard.clone(),
             session: session.clone(),
             key: probe_key,
             warm,
@@ -399,6 +437,7 @@ impl Site {
             observer,
             session,
             keys: keys.clone(),
+            guard,
             _states: states,
             _replies: replies,
             _token: token,
@@ -436,7 +475,10 @@ impl Site {
         }))
         .map_err(|e| RemoteError::Usage(e.to_string()))?;
         self.session
-            .put(self.keys.event(), b)
+            .put(
+                self.keys.event(),
+                self.guard.wrap(crate::seal::Kind::Event, b),
+            )
             .wait()
             .map_err(zerr("send an event"))?;
         Ok(sequence)

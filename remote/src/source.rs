@@ -14,6 +14,7 @@ use zenoh::Wait;
 use zenoh_ext::{AdvancedPublisherBuilderExt, CacheConfig, MissDetectionConfig};
 
 use crate::link::{self, Impairment, LinkIn};
+use crate::seal::{Guard, Kind};
 use crate::{zerr, Keys, Net, RemoteError};
 
 /// What the source did.
@@ -27,7 +28,8 @@ pub struct SourceCounts {
     pub probes: AtomicU64,
     /// Events taken from sites.
     pub events: AtomicU64,
-    /// Packets refused (bad bytes, a state from another source).
+    /// Packets refused (bad bytes, a state from another source, a seal that does not hold: the
+    /// reasons in [`Source::guard`]'s refusals).
     pub refused: AtomicU64,
     /// States the engine handed over that Zenoh would not put (the session closing).
     pub put_failures: AtomicU64,
@@ -53,6 +55,8 @@ pub struct Source {
     sites: Arc<AtomicUsize>,
     /// Counters.
     pub counts: Arc<SourceCounts>,
+    /// Seals the states and answers; counts the packets whose seal did not hold, by reason.
+    pub guard: Guard,
 }
 
 impl Source {
@@ -73,9 +77,15 @@ impl Source {
         let counts = Arc::new(SourceCounts::default());
         let (etx, events) = sync_channel(256);
         let (c, s2, k2) = (counts.clone(), session.clone(), keys.clone());
-        // Probes and events: decoded on the link worker, never on Zenoh's threads.
+        let guard = net.guard();
+        let (g2, mut inbox) = (guard.clone(), guard.inbox());
+        // Probes and events: opened and decoded on the link worker, never on Zenoh's threads.
         let link = link::start("remote-source-in", imp, move |bytes, at| {
-            match decode(&bytes) {
+            let Some((_, payload)) = inbox.open(&bytes, at, &[Kind::Probe, Kind::Event]) else {
+                c.refused.fetch_add(1, Ordering::Relaxed);
+                return;
+            };
+            match decode(payload) {
                 Ok(Packet::Probe {
                     from,
                     to,
@@ -91,7 +101,11 @@ impl Source {
                         t2_ns: imp.clock.now(),
                     };
                     if let Ok(b) = encode_to_vec(&reply) {
-                        if s2.put(k2.reply(from), b).wait().is_ok() {
+                        if s2
+                            .put(k2.reply(from), g2.wrap(Kind::Reply, b))
+                            .wait()
+                            .is_ok()
+                        {
                             c.probes.fetch_add(1, Ordering::Relaxed);
                         }
                     }
@@ -187,13 +201,14 @@ impl Source {
             events: std::sync::Mutex::new(events),
             sites,
             counts,
+            guard,
         })
     }
 
     /// Publish one encoded state (bytes as [`control_state::encode`] wrote them).
     pub fn publish(&self, bytes: &[u8]) -> Result<(), RemoteError> {
         self.publisher
-            .put(bytes.to_vec())
+            .put(self.guard.wrap(Kind::State, bytes.to_vec()))
             .wait()
             .map_err(zerr("publish a control state"))?;
         self.counts.states.fetch_add(1, Ordering::Relaxed);

@@ -32,6 +32,8 @@ fn args(sites: usize, seconds: f64, loss: f64) -> HarnessArgs {
         relay_skew_ppm: 0.0,
         no_clock_rate: false,
         source_exe: None,
+        transport: harness::Transport::Tls,
+        keys_dir: None,
     }
 }
 
@@ -70,6 +72,8 @@ fn site_net(source: &Source) -> Net {
 #[test]
 fn a_site_joins_and_breathes_the_sources_ticks_bit_for_bit() {
     let r = harness::run(&args(2, 3.0, 0.0)).unwrap();
+    // Through mutual TLS with the run's own keys, every packet sealed, none refused.
+    assert_eq!((r.transport, r.refused_seals), ("tls", 0), "{r:?}");
     for s in &r.per_site {
         assert!(s.ticks > 120, "{s:?}");
         assert_eq!(s.ticks_differing, 0, "{s:?}");
@@ -145,7 +149,11 @@ fn lost_states_are_counted_and_the_sites_stay_in_step() {
     // 10 s of 2 s cycles. A site starts comparing only once its Zenoh session is open and its first
     // state has arrived, which on a loaded 2-core machine (the other loopback tests run beside this
     // one) took up to 3.5 s: 6 s runs then compared fewer than two cycles and failed the count below.
-    let r = harness::run(&args(2, 10.0, 0.3)).unwrap();
+    // Plain TCP here: the comparison path stays tested.
+    let mut a = args(2, 10.0, 0.3);
+    a.transport = harness::Transport::Tcp;
+    let r = harness::run(&a).unwrap();
+    assert_eq!(r.transport, "tcp");
     let lost: u64 = r.per_site.iter().map(|s| s.lost).sum();
     assert!(lost > 0, "{r:?}");
     // Two whole 2 s cycles of the 60 Hz engine compared against the source, bit for bit.
@@ -606,7 +614,15 @@ fn router_with_relay(keys: &Keys, probe_ms: u64) -> (zenoh::Session, Relay, Stri
     net.mode = "router";
     net.lease_ms = 2000;
     let router = net.open().unwrap();
-    let relay = Relay::open(&router, keys, site_id(900), Impairment::default(), probe_ms).unwrap();
+    let relay = Relay::open(
+        &router,
+        keys,
+        site_id(900),
+        Impairment::default(),
+        probe_ms,
+        lungdyn_remote::seal::Guard::new(None),
+    )
+    .unwrap();
     (router, relay, format!("tcp/127.0.0.1:{port}"))
 }
 
@@ -746,7 +762,15 @@ fn when_the_relay_goes_the_site_says_so_keeps_its_offset_and_takes_a_new_one() {
     assert_eq!(site.counts.probes.load(Ordering::Relaxed), n);
     assert_eq!(p.offset_ns.load(Ordering::Relaxed), o);
     assert!(p.have_offset.load(Ordering::Relaxed));
-    let again = Relay::open(&router, &keys, site_id(901), Impairment::default(), 50).unwrap();
+    let again = Relay::open(
+        &router,
+        &keys,
+        site_id(901),
+        Impairment::default(),
+        50,
+        lungdyn_remote::seal::Guard::new(None),
+    )
+    .unwrap();
     wait_for("the new relay's answers", || {
         site.counts.probes.load(Ordering::Relaxed) >= n + 5
     });

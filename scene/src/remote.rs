@@ -12,7 +12,13 @@
 //! site_id = "00000000000000a1"          # optional: a fixed id (hex) instead of a fresh one
 //! clock = "relay"                       # a site's clock sync: "relay" (beside the router; the
 //!                                       # default in client mode) or "source" (peer's default)
+//! keys = "keys/ward-3"                   # the room's keys (`lungdyn remote keys`), relative to
+//!                                       # this file: mutual TLS on tls/ endpoints, sealed packets
+//! identity = "source"                   # this machine's certificate in keys (default: the role)
 //! ```
+//!
+//! Without `keys` the session is plain TCP: unencrypted and open to anyone who reaches the port,
+//! for a closed lab network only (said at start-up and by `lungdyn doctor`).
 //!
 //! Through a router a site syncs its clock with the time relay `lungdyn remote router` runs beside
 //! the router (it alone probes the source), so the source's cost does not grow with the sites;
@@ -117,6 +123,14 @@ pub struct RemoteScene {
     /// [`ClockSync::Source`]); see [`Self::clock`].
     #[serde(default)]
     pub clock: Option<ClockSync>,
+    /// The room's keys folder (`lungdyn remote keys`), relative to the scene file; absent: plain
+    /// TCP (a closed lab network only).
+    #[serde(default)]
+    pub keys: Option<String>,
+    /// This machine's certificate in `keys` (absent: the role's name, `source`, `site` or
+    /// `observer`).
+    #[serde(default)]
+    pub identity: Option<String>,
 }
 
 fn default_room() -> String {
@@ -129,9 +143,9 @@ fn default_lease() -> u64 {
     DEFAULT_LEASE_MS
 }
 
-/// Whether `e` is `tcp/HOST:PORT` with a port (the only transport built in).
+/// Whether `e` is `tcp/HOST:PORT` or `tls/HOST:PORT` with a port (the transports built in).
 pub fn endpoint_ok(e: &str) -> bool {
-    let Some(rest) = e.strip_prefix("tcp/") else {
+    let Some(rest) = e.strip_prefix("tcp/").or_else(|| e.strip_prefix("tls/")) else {
         return false;
     };
     let Some((host, port)) = rest.rsplit_once(':') else {
@@ -187,8 +201,8 @@ impl RemoteScene {
             }
             if let Some(bad) = list.iter().find(|e| !endpoint_ok(e)) {
                 return Err(format!(
-                    "{key} = {bad:?}: only tcp/HOST:PORT is built in (e.g. \
-                     \"tcp/192.168.1.10:7447\")"
+                    "{key} = {bad:?}: use tls/HOST:PORT with the room's keys, or tcp/HOST:PORT on \
+                     a closed lab network (e.g. \"tls/192.168.1.10:7447\")"
                 ));
             }
         }
