@@ -618,7 +618,12 @@ fn igtl_check(port: u16) -> Check {
             "igtl_port",
             Status::Ok,
             format!("TCP port {port} is free for the OpenIGTLink server"),
-            format!("keep it free (and open in the firewall for the tracking PC: `sudo ufw allow {port}/tcp`)"),
+            format!(
+                "keep it free; the server serves loopback only until told the tracking PC: \
+                 `[tracker] allow = [\"TRACKING_PC_IP\"]` in the scene or `--igtl-allow \
+                 TRACKING_PC_IP`, and the firewall: `sudo ufw allow from TRACKING_PC_IP to any port \
+                 {port} proto tcp`"
+            ),
         ),
         Err(e) => check(
             "igtl_port",

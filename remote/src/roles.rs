@@ -603,10 +603,16 @@ pub fn router(args: &RouterArgs) -> Result<(), RemoteError> {
         net.guard(),
     )?;
     let (proto, room) = (net.transport_word(), keys_room(&net, &args.room));
+    let keys_flags = if net.auth.is_some() {
+        " --keys DIR --identity NAME"
+    } else {
+        ""
+    };
     eprintln!(
         "remote router: a Zenoh router on {:?} with the time relay for room {room} (the source runs \
-         `lungdyn remote serve --mode client --connect {proto}/THIS_HOST:PORT --room {room}`, each \
-         site `lungdyn remote join --mode client --connect {proto}/THIS_HOST:PORT --room {room}`)",
+         `lungdyn remote serve --mode client --connect {proto}/THIS_HOST:PORT --room \
+         {room}{keys_flags}`, each site `lungdyn remote join --mode client --connect \
+         {proto}/THIS_HOST:PORT --room {room}{keys_flags}`)",
         net.listen
     );
     let mut synced = false;

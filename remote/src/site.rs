@@ -49,6 +49,29 @@ pub struct SiteCounts {
 /// or change: 2²⁴ is years of a session).
 pub const MAX_SEQUENCE_LEAP: u64 = 1 << 24;
 
+/// Where a state `(epoch, sequence)` stands against the newest taken.
+enum StateOrder {
+    /// Newer (or of a new epoch: a restarted source).
+    New,
+    /// Already taken (history and live delivery of the same state, a retransmission).
+    Repeated,
+    /// A leap no source makes: refused, with why.
+    Leap(String),
+}
+
+fn state_order(newest: Option<(u64, u64)>, key: (u64, u64)) -> StateOrder {
+    match newest {
+        Some((e, q)) if e == key.0 && q >= key.1 => StateOrder::Repeated,
+        // A source numbers its states one by one: a leap no run could make is a forgery (on plain
+        // TCP), and taking it would make every real state after it look old.
+        Some((e, q)) if e == key.0 && key.1 - q > MAX_SEQUENCE_LEAP => StateOrder::Leap(format!(
+            "a state numbered {} after {q}: a leap no source makes (forged?)",
+            key.1
+        )),
+        _ => StateOrder::New,
+    }
+}
+
 /// Events kept per site (the latest; older ones are dropped from this record only).
 pub const EVENTS_KEPT: usize = 256;
 
@@ -336,24 +359,13 @@ impl Site {
                 Ok(Packet::State(s)) => {
                     // A restarted source has a new epoch: its states are taken from then on.
                     let key = (s.epoch, s.sequence);
-                    if newest.is_some_and(|(e, q)| e == key.0 && q >= key.1) {
-                        c.repeated.fetch_add(1, Ordering::Relaxed);
-                        return;
-                    }
-                    // A source numbers its states one by one: a leap no run could make is a
-                    // forgery (on plain TCP), and taking it would make every real state after it
-                    // look old.
-                    if newest.is_some_and(|(e, q)| e == key.0 && key.1 - q > MAX_SEQUENCE_LEAP) {
-                        let q = newest.map(|n| n.1).unwrap_or(0);
-                        refuse(
-                            &r,
-                            &c,
-                            format!(
-                                "a state numbered {} after {q}: a leap no source makes (forged?)",
-                                key.1
-                            ),
-                        );
-                        return;
+                    match state_order(newest, key) {
+                        StateOrder::New => {}
+                        StateOrder::Repeated => {
+                            c.repeated.fetch_add(1, Ordering::Relaxed);
+                            return;
+                        }
+                        StateOrder::Leap(why) => return refuse(&r, &c, why),
                     }
                     if !s.events.is_empty() {
                         if let Ok(mut seen) = ev.lock() {
@@ -768,6 +780,29 @@ mod tests {
         assert_eq!(runner.last_tick(), Some(ticks - 1));
         assert_eq!(counts.applied.load(Ordering::Relaxed), 3);
         assert_eq!(counts.predicted_cycles.load(Ordering::Relaxed), 2);
+    }
+
+    #[test]
+    fn a_states_order_takes_new_ones_counts_repeats_and_refuses_a_leap() {
+        assert!(matches!(state_order(None, (1, 1 << 62)), StateOrder::New));
+        assert!(matches!(state_order(Some((1, 5)), (1, 6)), StateOrder::New));
+        assert!(matches!(
+            state_order(Some((1, 5)), (1, 5)),
+            StateOrder::Repeated
+        ));
+        assert!(matches!(
+            state_order(Some((1, 5)), (1, 4)),
+            StateOrder::Repeated
+        ));
+        assert!(matches!(state_order(Some((1, 5)), (2, 0)), StateOrder::New));
+        assert!(matches!(
+            state_order(Some((1, 5)), (1, 1 << 62)),
+            StateOrder::Leap(w) if w.contains("leap")
+        ));
+        assert!(matches!(
+            state_order(Some((1, 5)), (1, 5 + MAX_SEQUENCE_LEAP)),
+            StateOrder::New
+        ));
     }
 
     #[test]

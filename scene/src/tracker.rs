@@ -14,6 +14,9 @@ pub struct TrackerScene {
     /// The synthetic patient's posture (`lungdyn scene run` uses it too): the breath follows gravity
     /// in the orientation modes.
     pub posture: Posture,
+    /// The OpenIGTLink server's senders besides loopback: addresses or networks
+    /// (`["10.0.0.5", "192.168.1.0/24"]`); the bridge's `--igtl-allow` adds to them.
+    pub allow: Vec<String>,
 }
 
 impl Default for TrackerScene {
@@ -21,6 +24,7 @@ impl Default for TrackerScene {
         Self {
             source: "synthetic".into(),
             posture: Posture::Supine,
+            allow: Vec::new(),
         }
     }
 }

@@ -132,6 +132,11 @@ pub struct SourceArgs {
     /// NDI: polling rate, Hz (default: the tick rate).
     #[arg(long, value_name = "HZ")]
     pub ndi_poll_hz: Option<f64>,
+    /// igtl-server: also serve senders at ADDR (an address, 10.0.0.5, or a network, 10.0.0.0/24);
+    /// repeat for several. Loopback is always served; no one else unless named here, since any
+    /// host that reaches the port could otherwise stream the patient tool's pose.
+    #[arg(long = "igtl-allow", value_name = "ADDR")]
+    pub igtl_allow: Vec<String>,
     /// pyigtl POSITION items: quaternion component order as the sender packed them.
     #[arg(long, value_enum, default_value_t = igtl::QuatOrder::Xyzw)]
     pub pyigtl_quat_order: igtl::QuatOrder,
@@ -172,6 +177,7 @@ impl Default for SourceArgs {
             ndi_rom: Vec::new(),
             ndi_tx: false,
             ndi_poll_hz: None,
+            igtl_allow: Vec::new(),
             pyigtl_quat_order: igtl::QuatOrder::Xyzw,
             breathing: None,
             breathing_cut_at: None,
@@ -265,6 +271,10 @@ impl SourceArgs {
         };
         config.check()?;
         let options = SourceOptions {
+            igtl_allow: crate::source::igtl_server::AllowList::parse(
+                &[tracker.allow.clone(), self.igtl_allow.clone()].concat(),
+            )
+            .map_err(BridgeError::Option)?,
             pyigtl_quat_order: self.pyigtl_quat_order,
             ndi_roms: self.ndi_rom.clone(),
             ndi_tx: self.ndi_tx,

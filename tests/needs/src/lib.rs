@@ -3,7 +3,8 @@
 //! A test that needs a GPU adapter, a display or a peer program and cannot get one **fails**, naming
 //! the package that provides it and the command that installs it — a green run that tested none of
 //! the renderer is worse than a red one. The person running the tests may opt out explicitly, per
-//! need (`LUNGDYN_SKIP_GPU=1`, `LUNGDYN_SKIP_DISPLAY=1`, `LUNGDYN_SKIP_PYIGTL=1`, or
+//! need (`LUNGDYN_SKIP_GPU=1`, `LUNGDYN_SKIP_DISPLAY=1`, `LUNGDYN_SKIP_PYIGTL=1`,
+//! `LUNGDYN_SKIP_PYZENOH=1`, or
 //! `LUNGDYN_SKIP_ALL=1`); then the test returns early and the skip is said aloud twice:
 //!
 //! - at once, on the terminal's stderr, past the test harness's output capture (so a passing test's
@@ -32,6 +33,8 @@ pub enum Need {
     Display,
     /// Python 3 with pyigtl and numpy: a real OpenIGTLink peer for the interop tests.
     Pyigtl,
+    /// Python 3 with eclipse-zenoh: an outside Zenoh client for the remote sessions' hostile tests.
+    PyZenoh,
     /// systemd's `systemd-analyze` (package systemd), to verify the service units.
     Systemd,
     /// An OpenXR runtime's manifest (`LUNGDYN_XR_RUNTIME`) and a launcher
@@ -41,10 +44,11 @@ pub enum Need {
 
 impl Need {
     /// Every need, for listings.
-    pub const ALL: [Need; 5] = [
+    pub const ALL: [Need; 6] = [
         Need::Gpu,
         Need::Display,
         Need::Pyigtl,
+        Need::PyZenoh,
         Need::Systemd,
         Need::OpenXr,
     ];
@@ -55,6 +59,7 @@ impl Need {
             Need::Gpu => "LUNGDYN_SKIP_GPU",
             Need::Display => "LUNGDYN_SKIP_DISPLAY",
             Need::Pyigtl => "LUNGDYN_SKIP_PYIGTL",
+            Need::PyZenoh => "LUNGDYN_SKIP_PYZENOH",
             Need::Systemd => "LUNGDYN_SKIP_SYSTEMD",
             Need::OpenXr => "LUNGDYN_SKIP_XR",
         }
@@ -65,6 +70,7 @@ impl Need {
         match self {
             Need::Gpu | Need::Display => "LUNGDYN_REQUIRE_GPU",
             Need::Pyigtl => "LUNGDYN_REQUIRE_PYIGTL",
+            Need::PyZenoh => "LUNGDYN_REQUIRE_PYZENOH",
             Need::Systemd => "LUNGDYN_REQUIRE_SYSTEMD",
             Need::OpenXr => "LUNGDYN_REQUIRE_XR",
         }
@@ -86,6 +92,11 @@ impl Need {
                 "install the pyigtl Python package (a real OpenIGTLink peer): `./run test` makes a \
                  virtual environment with it under target/pyenv; or `python3 -m pip install pyigtl` and \
                  point LUNGDYN_PYTHON at that python"
+            }
+            Need::PyZenoh => {
+                "install the eclipse-zenoh Python package (an outside Zenoh client): `./run test` \
+                 puts it in the virtual environment under target/pyenv; or `python3 -m pip install \
+                 eclipse-zenoh==1.10.2` and point LUNGDYN_PYTHON at that python"
             }
             Need::Systemd => {
                 "install systemd's tools for `systemd-analyze verify`: `sudo apt-get install systemd` \
@@ -113,6 +124,7 @@ impl Need {
             Need::Gpu => "GPU adapter",
             Need::Display => "display",
             Need::Pyigtl => "pyigtl",
+            Need::PyZenoh => "eclipse-zenoh",
             Need::Systemd => "systemd-analyze",
             Need::OpenXr => "OpenXR runtime",
         }
@@ -222,6 +234,36 @@ pub fn display() -> bool {
         missing(Need::Display, "xvfb-run is not on PATH");
     }
     found
+}
+
+/// The Python that has eclipse-zenoh: `LUNGDYN_PYTHON`, else `target/pyenv/bin/python3`, else
+/// `python3` on PATH — the first that imports zenoh, or [`missing`].
+pub fn zenoh_python(workspace_root: &std::path::Path) -> Option<PathBuf> {
+    let mut tried = Vec::new();
+    let candidates = std::env::var_os("LUNGDYN_PYTHON")
+        .map(PathBuf::from)
+        .into_iter()
+        .chain([
+            workspace_root.join("target/pyenv/bin/python3"),
+            PathBuf::from("python3"),
+        ]);
+    for py in candidates {
+        let ok = std::process::Command::new(&py)
+            .args(["-c", "import zenoh"])
+            .stdout(std::process::Stdio::null())
+            .stderr(std::process::Stdio::null())
+            .status()
+            .is_ok_and(|s| s.success());
+        if ok {
+            return Some(py);
+        }
+        tried.push(py.display().to_string());
+    }
+    missing(
+        Need::PyZenoh,
+        &format!("none of {} imports zenoh (eclipse-zenoh)", tried.join(", ")),
+    );
+    None
 }
 
 /// The Python that has pyigtl: `LUNGDYN_PYTHON`, else `target/pyenv/bin/python3` under the workspace

@@ -10,6 +10,12 @@
 //! Only when every connection has sent (or connected) within [`EVICT_AFTER`] is the newcomer
 //! refused. Both are [`EventKind::ConnectionRefused`] events, so they are counted in the
 //! statistics (`link.refused_connections`, `link.evicted_idle_connections`), not only printed.
+//!
+//! Only senders on the allow-list are served ([`AllowList`]): loopback always, other hosts only
+//! when named (`--igtl-allow 10.0.0.5` or a network, `--igtl-allow 10.0.0.0/24`). Listening on
+//! 0.0.0.0 without the list would let any host on the network stream a pose for the patient tool
+//! and move the overlay. A sender refused is a [`EventKind::ConnectionRefused`] event naming it
+//! and the flag that admits it.
 
 use std::net::{SocketAddr, TcpListener, TcpStream};
 use std::sync::atomic::{AtomicU64, Ordering};
@@ -29,11 +35,71 @@ pub const MAX_SENDERS: usize = 16;
 /// A connection quiet this long may be closed to make room for a new one.
 pub const EVICT_AFTER: Duration = Duration::from_millis(500);
 
+/// The networks a sender may connect from: loopback always, and these.
+#[derive(Debug, Clone, Default, PartialEq, Eq)]
+pub struct AllowList {
+    nets: Vec<ipnet::IpNet>,
+}
+
+impl AllowList {
+    /// From `--igtl-allow` values: an address (`10.0.0.5`, `fe80::1`) or a network
+    /// (`10.0.0.0/24`).
+    pub fn parse(items: &[String]) -> Result<Self, String> {
+        let mut nets = Vec::with_capacity(items.len());
+        for item in items {
+            let t = item.trim();
+            let net = match t.parse::<ipnet::IpNet>() {
+                Ok(n) => n.trunc(),
+                Err(_) => match t.parse::<std::net::IpAddr>() {
+                    Ok(ip) => ipnet::IpNet::from(ip),
+                    Err(_) => {
+                        return Err(format!(
+                            "--igtl-allow {t:?}: not an address or network (write 10.0.0.5 or \
+                             10.0.0.0/24; host names are not taken: a name can change what it means)"
+                        ))
+                    }
+                },
+            };
+            if net.prefix_len() == 0 {
+                return Err(format!(
+                    "--igtl-allow {t:?} admits every host: name the tracking PC's address or its \
+                     network instead"
+                ));
+            }
+            nets.push(net);
+        }
+        Ok(Self { nets })
+    }
+
+    /// Whether a sender at `ip` is served (an IPv4 address seen as IPv6-mapped counts as IPv4).
+    pub fn allows(&self, ip: std::net::IpAddr) -> bool {
+        let ip = match ip {
+            std::net::IpAddr::V6(v6) => v6.to_ipv4_mapped().map(std::net::IpAddr::V4).unwrap_or(ip),
+            v4 => v4,
+        };
+        ip.is_loopback() || self.nets.iter().any(|n| n.contains(&ip))
+    }
+
+    /// The list in words (start-up, JSON).
+    pub fn describe(&self) -> String {
+        let mut words = vec!["loopback".to_string()];
+        words.extend(self.nets.iter().map(|n| {
+            if n.prefix_len() == n.max_prefix_len() {
+                n.addr().to_string()
+            } else {
+                n.to_string()
+            }
+        }));
+        words.join(", ")
+    }
+}
+
 /// The OpenIGTLink server source.
 #[derive(Debug)]
 pub struct IgtlServer {
     inbox: Inbox,
     local: SocketAddr,
+    allowed: String,
 }
 
 impl IgtlServer {
@@ -49,13 +115,18 @@ impl IgtlServer {
         let local = listener.local_addr().map_err(bind_err)?;
         let mut inbox = Inbox::new();
         let feed = inbox.feed();
-        let options = options.clone();
+        let opts = options.clone();
         let t = std::thread::Builder::new()
             .name("igtl-server".into())
-            .spawn(move || accept_thread(listener, &feed, &options))
+            .spawn(move || accept_thread(listener, &feed, &opts))
             .expect("spawning a thread");
         inbox.adopt(t);
-        Ok(IgtlServer { inbox, local })
+        let allowed = options.igtl_allow.describe();
+        Ok(IgtlServer {
+            inbox,
+            local,
+            allowed,
+        })
     }
 
     /// The address it listens on.
@@ -100,6 +171,19 @@ fn accept_thread(listener: TcpListener, feed: &Feed, options: &SourceOptions) {
     let mut senders: Vec<Sender> = Vec::with_capacity(MAX_SENDERS);
     while !feed.stopping() {
         match listener.accept() {
+            Ok((stream, peer)) if !options.igtl_allow.allows(peer.ip()) => {
+                feed.event(Event::new(
+                    EventKind::ConnectionRefused,
+                    0,
+                    format!(
+                        "refused {peer}: not on the allow-list ({}); a tracking PC there is \
+                         admitted with --igtl-allow {}",
+                        options.igtl_allow.describe(),
+                        peer.ip()
+                    ),
+                ));
+                drop(stream);
+            }
             Ok((stream, peer)) => {
                 senders.retain(|s| !s.thread.is_finished());
                 if senders.len() >= MAX_SENDERS {
@@ -193,7 +277,10 @@ fn serve(
 
 impl Source for IgtlServer {
     fn describe(&self) -> String {
-        format!("OpenIGTLink server on {}", self.local)
+        format!(
+            "OpenIGTLink server on {} serving senders from {}",
+            self.local, self.allowed
+        )
     }
 
     fn poll(&mut self, now_ns: u64, sink: &mut dyn FnMut(&Input)) -> Result<Poll, SourceError> {
@@ -204,5 +291,101 @@ impl Source for IgtlServer {
     fn wait(&mut self, _pace: &dyn transport::Clock, deadline_ns: u64) -> bool {
         // A reader thread on the host's clock: publish on arrival.
         self.inbox.wait(deadline_ns)
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn the_allow_list_takes_loopback_and_the_named_hosts_and_networks_only() {
+        let ip = |s: &str| s.parse::<std::net::IpAddr>().unwrap();
+        let none = AllowList::default();
+        assert!(none.allows(ip("127.0.0.1")) && none.allows(ip("::1")));
+        assert!(none.allows(ip("::ffff:127.0.0.1")));
+        assert!(!none.allows(ip("10.0.0.5")));
+        assert_eq!(none.describe(), "loopback");
+        let l = AllowList::parse(&["10.0.0.5".into(), "192.168.7.9/24".into(), "fe80::1".into()])
+            .unwrap();
+        assert!(l.allows(ip("10.0.0.5")) && !l.allows(ip("10.0.0.6")));
+        assert!(l.allows(ip("192.168.7.200")) && !l.allows(ip("192.168.8.1")));
+        assert!(l.allows(ip("::ffff:10.0.0.5")));
+        assert!(l.allows(ip("fe80::1")) && !l.allows(ip("fe80::2")));
+        assert_eq!(l.describe(), "loopback, 10.0.0.5, 192.168.7.0/24, fe80::1");
+        for (bad, word) in [
+            ("tracker.local", "not an address"),
+            ("10.0.0.0/33", "not an address"),
+            ("0.0.0.0/0", "every host"),
+            ("", "not an address"),
+        ] {
+            let e = AllowList::parse(&[bad.into()]).unwrap_err();
+            assert!(e.contains(word), "{bad}: {e}");
+        }
+    }
+
+    /// This machine's first IPv4 address that is not loopback (getifaddrs), if any.
+    fn non_loopback_v4() -> Option<std::net::Ipv4Addr> {
+        let mut list: *mut libc::ifaddrs = std::ptr::null_mut();
+        // SAFETY: getifaddrs fills `list`, freed below; each entry's address is read only when it
+        // is non-null and of the AF_INET family (a sockaddr_in).
+        unsafe {
+            if libc::getifaddrs(&mut list) != 0 {
+                return None;
+            }
+            let mut found = None;
+            let mut p = list;
+            while !p.is_null() {
+                let a = (*p).ifa_addr;
+                if !a.is_null() && i32::from((*a).sa_family) == libc::AF_INET {
+                    let sin = &*(a as *const libc::sockaddr_in);
+                    let ip = std::net::Ipv4Addr::from(u32::from_be(sin.sin_addr.s_addr));
+                    if !ip.is_loopback() {
+                        found = Some(ip);
+                        break;
+                    }
+                }
+                p = (*p).ifa_next;
+            }
+            libc::freeifaddrs(list);
+            found
+        }
+    }
+
+    /// Whether the server closed a connection from `ip` at once (refused) or kept it (served).
+    fn closed_at_once(server: &IgtlServer, ip: std::net::Ipv4Addr) -> bool {
+        use std::io::Read;
+        let mut c = TcpStream::connect((ip, server.local_addr().port())).unwrap();
+        c.set_read_timeout(Some(Duration::from_millis(1500)))
+            .unwrap();
+        let mut b = [0u8; 1];
+        match c.read(&mut b) {
+            Ok(0) => true,
+            Err(e) => e.kind() == std::io::ErrorKind::ConnectionReset,
+            Ok(_) => false,
+        }
+    }
+
+    #[test]
+    fn a_sender_from_another_host_is_refused_unless_allowed() {
+        let Some(ip) = non_loopback_v4() else {
+            eprintln!("no IPv4 address but loopback on this machine: the refusal is tested by the unit test above only");
+            return;
+        };
+        let refused = IgtlServer::bind("0.0.0.0", 0, &SourceOptions::default()).unwrap();
+        assert!(
+            closed_at_once(&refused, ip),
+            "a sender from {ip} was served by default"
+        );
+        assert!(refused.describe().contains("serving senders from loopback"));
+        let opts = SourceOptions {
+            igtl_allow: AllowList::parse(&[ip.to_string()]).unwrap(),
+            ..Default::default()
+        };
+        let served = IgtlServer::bind("0.0.0.0", 0, &opts).unwrap();
+        assert!(
+            !closed_at_once(&served, ip),
+            "a sender from {ip} on the list was refused"
+        );
     }
 }

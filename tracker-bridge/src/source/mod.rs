@@ -471,6 +471,8 @@ pub struct SourceOptions {
     pub as_fast_as_possible: bool,
     /// The synthetic source's parameters.
     pub synthetic: crate::synthetic::Synthetic,
+    /// The OpenIGTLink server's senders: loopback and these (`--igtl-allow`).
+    pub igtl_allow: igtl_server::AllowList,
 }
 
 impl Default for SourceOptions {
@@ -484,6 +486,7 @@ impl Default for SourceOptions {
             ndi_poll_hz: 60.0,
             as_fast_as_possible: false,
             synthetic: crate::synthetic::Synthetic::default(),
+            igtl_allow: igtl_server::AllowList::default(),
         }
     }
 }
