@@ -239,37 +239,19 @@ pub fn display() -> bool {
 /// The Python that has eclipse-zenoh: `LUNGDYN_PYTHON`, else `target/pyenv/bin/python3`, else
 /// `python3` on PATH — the first that imports zenoh, or [`missing`].
 pub fn zenoh_python(workspace_root: &std::path::Path) -> Option<PathBuf> {
-    let mut tried = Vec::new();
-    let candidates = std::env::var_os("LUNGDYN_PYTHON")
-        .map(PathBuf::from)
-        .into_iter()
-        .chain([
-            workspace_root.join("target/pyenv/bin/python3"),
-            PathBuf::from("python3"),
-        ]);
-    for py in candidates {
-        let ok = std::process::Command::new(&py)
-            .args(["-c", "import zenoh"])
-            .stdout(std::process::Stdio::null())
-            .stderr(std::process::Stdio::null())
-            .status()
-            .is_ok_and(|s| s.success());
-        if ok {
-            return Some(py);
-        }
-        tried.push(py.display().to_string());
-    }
-    missing(
-        Need::PyZenoh,
-        &format!("none of {} imports zenoh (eclipse-zenoh)", tried.join(", ")),
-    );
-    None
+    python_with(workspace_root, "zenoh", Need::PyZenoh)
 }
 
 /// The Python that has pyigtl: `LUNGDYN_PYTHON`, else `target/pyenv/bin/python3` under the workspace
 /// (made by `./run test`), else `python3` on PATH — the first that imports pyigtl and numpy, or
 /// [`missing`].
 pub fn pyigtl_python(workspace_root: &std::path::Path) -> Option<PathBuf> {
+    python_with(workspace_root, "pyigtl, numpy", Need::Pyigtl)
+}
+
+/// The first of `LUNGDYN_PYTHON`, the workspace's `target/pyenv` and `python3` that runs
+/// `import {imports}`, or [`missing`] `need`.
+fn python_with(workspace_root: &std::path::Path, imports: &str, need: Need) -> Option<PathBuf> {
     let mut tried = Vec::new();
     let candidates = std::env::var_os("LUNGDYN_PYTHON")
         .map(PathBuf::from)
@@ -280,7 +262,7 @@ pub fn pyigtl_python(workspace_root: &std::path::Path) -> Option<PathBuf> {
         ]);
     for py in candidates {
         let ok = std::process::Command::new(&py)
-            .args(["-c", "import pyigtl, numpy"])
+            .args(["-c", &format!("import {imports}")])
             .stdout(std::process::Stdio::null())
             .stderr(std::process::Stdio::null())
             .status()
@@ -291,8 +273,8 @@ pub fn pyigtl_python(workspace_root: &std::path::Path) -> Option<PathBuf> {
         tried.push(py.display().to_string());
     }
     missing(
-        Need::Pyigtl,
-        &format!("none of {} imports pyigtl and numpy", tried.join(", ")),
+        need,
+        &format!("none of {} imports {imports}", tried.join(", ")),
     );
     None
 }
