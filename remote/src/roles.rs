@@ -261,6 +261,20 @@ fn settings(
     identity: crate::keys::Role,
 ) -> Result<(RemoteScene, Net, Keys), RemoteError> {
     let auth = load_room(&session.keys, table.as_ref(), scene, identity.name())?;
+    if let Some(room) = &auth {
+        let me = room.identity();
+        if me.role != identity {
+            return Err(RemoteError::Usage(format!(
+                "--identity {}: its certificate is a {}'s, and this runs the {} (use the {}'s \
+                 identity, or make one with `lungdyn remote keys --participant NAME:{}`)",
+                me.name,
+                me.role.name(),
+                identity.name(),
+                identity.name(),
+                identity.name()
+            )));
+        }
+    }
     let mut r = table.unwrap_or(RemoteScene {
         role,
         room: "lungdyn".into(),
@@ -950,6 +964,44 @@ mod tests {
     use super::*;
 
     use crate::keys::Role;
+
+    #[test]
+    fn an_identity_of_another_role_and_a_room_of_another_name_are_refused() {
+        let d = std::env::temp_dir().join(format!("lungdyn-roles-keys-{}", std::process::id()));
+        let _ = std::fs::remove_dir_all(&d);
+        crate::keys::make("ward", &d, &crate::keys::default_participants(), 10).unwrap();
+        let connect = ["tls/127.0.0.1:7447".to_string()];
+        let with = |identity: &str, room: Option<&str>| SessionArgs {
+            room: room.map(str::to_string),
+            keys: KeysArgs {
+                keys: Some(d.clone()),
+                identity: Some(identity.into()),
+            },
+            ..Default::default()
+        };
+        let run = |s: &SessionArgs| {
+            settings(
+                None,
+                RemoteRole::Site,
+                &[],
+                &connect,
+                s,
+                None,
+                None,
+                Role::Site,
+            )
+        };
+        let (r, net, _) = run(&with("site", None)).unwrap();
+        assert_eq!((r.room.as_str(), net.transport_word()), ("ward", "tls"));
+        let e = run(&with("observer", None)).unwrap_err().to_string();
+        assert!(
+            e.contains("observer's") && e.contains("runs the site"),
+            "{e}"
+        );
+        let e = run(&with("site", Some("other"))).unwrap_err().to_string();
+        assert!(e.contains("--room ward"), "{e}");
+        std::fs::remove_dir_all(&d).unwrap();
+    }
 
     fn session(mode: ZenohMode) -> SessionArgs {
         SessionArgs {

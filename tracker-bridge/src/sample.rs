@@ -197,11 +197,14 @@ pub enum Reject {
     /// A tracker reply that answered an earlier poll (it came late) or no poll (the tracker
     /// answered twice): dropped, so the bridge never falls behind the device.
     StaleReply = 15,
+    /// A second OpenIGTLink sender streaming a tool another sender streams: the first keeps it
+    /// until it is quiet for [`crate::source::igtl_server::TAKEOVER_AFTER`] or gone.
+    CompetingSender = 16,
 }
 
 impl Reject {
     /// Every reason, in order.
-    pub const ALL: [Reject; 16] = [
+    pub const ALL: [Reject; 17] = [
         Reject::Crc,
         Reject::Malformed,
         Reject::Oversized,
@@ -218,6 +221,7 @@ impl Reject {
         Reject::HighRms,
         Reject::DeviceFault,
         Reject::StaleReply,
+        Reject::CompetingSender,
     ];
 
     /// The reason's key in statistics and JSON.
@@ -239,6 +243,7 @@ impl Reject {
             Reject::HighRms => "high_rms",
             Reject::DeviceFault => "device_fault",
             Reject::StaleReply => "stale_reply",
+            Reject::CompetingSender => "competing_sender",
         }
     }
 

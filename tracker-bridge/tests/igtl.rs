@@ -502,3 +502,61 @@ fn keepalive_is_set_on_a_connection() {
     assert_eq!(get(libc::IPPROTO_TCP, libc::TCP_KEEPINTVL), 1);
     assert_eq!(get(libc::IPPROTO_TCP, libc::TCP_KEEPCNT), 3);
 }
+
+/// Two senders stream "Patient" at once (the case: two pyigtl senders from different
+/// positions): the first keeps the tool, every sample of the second is refused as a competing
+/// sender and counted, and only the first's positions reach the frames; when the first stops, the
+/// second takes over and that is said.
+#[test]
+fn a_second_sender_of_the_same_tool_is_refused_counted_and_takes_over_when_the_first_stops() {
+    let mut server = IgtlServer::bind("127.0.0.1", 0, &SourceOptions::default()).unwrap();
+    let addr = server.local_addr();
+    let senders = std::thread::spawn(move || {
+        let mut first = TcpStream::connect(addr).unwrap();
+        first.write_all(&transform("Patient", 1)).unwrap();
+        std::thread::sleep(Duration::from_millis(100));
+        let second = std::thread::spawn(move || {
+            let mut s = TcpStream::connect(addr).unwrap();
+            // At x = 100 + k mm (inside the tracking volume): never the first sender's (1..=30).
+            for k in 0..60 {
+                s.write_all(&transform("Patient", 100 + k)).unwrap();
+                std::thread::sleep(Duration::from_millis(16));
+            }
+        });
+        for k in 2..=30 {
+            first.write_all(&transform("Patient", k)).unwrap();
+            std::thread::sleep(Duration::from_millis(16));
+        }
+        drop(first);
+        second.join().unwrap();
+        std::thread::sleep(Duration::from_millis(200));
+    });
+    let (frames, asm) = run(&mut server, Duration::from_secs(15), || {
+        senders.is_finished()
+    });
+    let s = &asm.stats;
+    let competing = s.rejected_for(Reject::CompetingSender);
+    assert!(competing >= 20, "{}", s.text());
+    let json = s.to_json();
+    assert!(json.to_string().contains("competing_sender"), "{json}");
+    // While the first streamed, no frame carried the second's positions.
+    let xs: Vec<f32> = frames
+        .iter()
+        .filter(|f| f.tools[TOOL_PATIENT].is_valid())
+        .map(|f| f.tools[TOOL_PATIENT].pose.translation_mm[0])
+        .collect();
+    let first_end = xs
+        .iter()
+        .rposition(|&x| x <= 30.0)
+        .expect("the first sender's poses");
+    assert!(
+        xs[..=first_end].iter().all(|&x| x <= 30.0),
+        "interleaved: {xs:?}"
+    );
+    // After it left, the second took over.
+    assert!(
+        xs[first_end + 1..].iter().any(|&x| x >= 100.0),
+        "no takeover: {xs:?}\n{}",
+        s.text()
+    );
+}

@@ -199,6 +199,7 @@ pub fn pump(
     peer: &str,
     options: &SourceOptions,
     last_message_ns: &AtomicU64,
+    owners: Option<&super::igtl_server::ToolOwners>,
 ) -> (PumpEnd, bool) {
     let _ = stream.set_nodelay(true);
     if let Err(e) = keepalive(stream) {
@@ -270,6 +271,16 @@ pub fn pump(
                     last = receive_ns;
                     last_message_ns.store(receive_ns, Ordering::Relaxed);
                     message_inputs(&msg, receive_ns, options.pyigtl_quat_order, &mut |i| {
+                        if let (Some(o), Input::Sample(s)) = (owners, &i) {
+                            match o.claim(s.name.as_str(), peer, receive_ns) {
+                                Ok(None) => {}
+                                Ok(Some(note)) => feed.event(Event::new(EventKind::Note, 0, note)),
+                                Err(why) => {
+                                    feed.event(Event::rejected(Reject::CompetingSender, 1, why));
+                                    return;
+                                }
+                            }
+                        }
                         feed.send(i)
                     });
                 }
@@ -333,7 +344,8 @@ fn client_thread(host: &str, port: u16, peer: &str, feed: &Feed, options: &Sourc
                     0,
                     format!("connected to {peer}"),
                 ));
-                let (end, got_any) = pump(&mut stream, feed, peer, options, &AtomicU64::new(0));
+                let (end, got_any) =
+                    pump(&mut stream, feed, peer, options, &AtomicU64::new(0), None);
                 if got_any {
                     backoff.reset();
                 }

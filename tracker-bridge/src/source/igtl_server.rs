@@ -32,6 +32,61 @@ use crate::source::{Feed, Inbox, Poll, Source, SourceError, SourceOptions};
 /// Connections served at once.
 pub const MAX_SENDERS: usize = 16;
 
+/// A tool's sender that has not sent it for this long gives it up to another sender.
+pub const TAKEOVER_AFTER: Duration = Duration::from_millis(500);
+
+/// Which sender streams each tool: the first to send it keeps it while it keeps sending (a second
+/// sender's samples of it are refused as [`crate::sample::Reject::CompetingSender`], both named);
+/// when the owner has not sent it for [`TAKEOVER_AFTER`], or has gone, the next sender takes it
+/// over and that is said. Two trackers (or a tracker and a forgotten test sender) streaming
+/// "Patient" from different places would otherwise interleave two poses.
+#[derive(Debug, Default)]
+pub struct ToolOwners {
+    map: std::sync::Mutex<std::collections::HashMap<String, (String, u64)>>,
+}
+
+impl ToolOwners {
+    /// Whether `peer` may stream `tool` at `now_ns`: `Ok(None)` yes, `Ok(Some(note))` yes, taking
+    /// it over (said), `Err(why)` no.
+    pub fn claim(&self, tool: &str, peer: &str, now_ns: u64) -> Result<Option<String>, String> {
+        let Ok(mut map) = self.map.lock() else {
+            return Ok(None);
+        };
+        let key = tool.to_ascii_lowercase();
+        let quiet = u64::try_from(TAKEOVER_AFTER.as_nanos()).unwrap_or(u64::MAX);
+        match map.get_mut(&key) {
+            None => {
+                map.insert(key, (peer.to_string(), now_ns));
+                Ok(None)
+            }
+            Some((owner, last)) if owner == peer => {
+                *last = now_ns;
+                Ok(None)
+            }
+            Some((owner, last)) if now_ns.saturating_sub(*last) >= quiet => {
+                let note = format!(
+                    "tool {tool:?} now from {peer} ({owner} had not sent it for {:.1} s)",
+                    now_ns.saturating_sub(*last) as f64 / 1e9
+                );
+                *owner = peer.to_string();
+                *last = now_ns;
+                Ok(Some(note))
+            }
+            Some((owner, _)) => Err(format!(
+                "{peer} sent tool {tool:?}, which {owner} is streaming: refused (the first sender \
+                 keeps a tool until it is quiet for {TAKEOVER_AFTER:?}; stop one of them)"
+            )),
+        }
+    }
+
+    /// `peer` has gone: its tools are free at once.
+    pub fn release(&self, peer: &str) {
+        if let Ok(mut map) = self.map.lock() {
+            map.retain(|_, (owner, _)| owner != peer);
+        }
+    }
+}
+
 /// A connection quiet this long may be closed to make room for a new one.
 pub const EVICT_AFTER: Duration = Duration::from_millis(500);
 
@@ -169,6 +224,7 @@ fn idlest(senders: &[Sender], now: u64) -> Option<usize> {
 
 fn accept_thread(listener: TcpListener, feed: &Feed, options: &SourceOptions) {
     let mut senders: Vec<Sender> = Vec::with_capacity(MAX_SENDERS);
+    let owners = Arc::new(ToolOwners::default());
     while !feed.stopping() {
         match listener.accept() {
             Ok((stream, peer)) if !options.igtl_allow.allows(peer.ip()) => {
@@ -216,7 +272,7 @@ fn accept_thread(listener: TcpListener, feed: &Feed, options: &SourceOptions) {
                         }
                     }
                 }
-                if let Some(s) = serve(stream, peer, feed, options) {
+                if let Some(s) = serve(stream, peer, feed, options, &owners) {
                     senders.push(s);
                 }
             }
@@ -244,11 +300,13 @@ fn serve(
     peer: SocketAddr,
     feed: &Feed,
     options: &SourceOptions,
+    owners: &Arc<ToolOwners>,
 ) -> Option<Sender> {
     stream.set_nonblocking(false).ok()?;
     let socket = stream.try_clone().ok()?;
     let last_message_ns = Arc::new(AtomicU64::new(0));
     let (feed, options, last) = (feed.clone(), options.clone(), last_message_ns.clone());
+    let owners = owners.clone();
     let thread = std::thread::Builder::new()
         .name("igtl-sender".into())
         .spawn(move || {
@@ -258,7 +316,8 @@ fn serve(
                 0,
                 format!("sender {name} connected"),
             ));
-            let (end, _) = pump(&mut stream, &feed, &name, &options, &last);
+            let (end, _) = pump(&mut stream, &feed, &name, &options, &last, Some(&owners));
+            owners.release(&name);
             // Close it now: the accept thread's handle (for eviction) would keep it open.
             let _ = stream.shutdown(std::net::Shutdown::Both);
             if let PumpEnd::Lost(why) = end {
@@ -297,6 +356,35 @@ impl Source for IgtlServer {
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    #[test]
+    fn the_first_sender_keeps_a_tool_until_quiet_or_gone() {
+        let o = ToolOwners::default();
+        let ms = 1_000_000u64;
+        assert_eq!(o.claim("Patient", "a", 0), Ok(None));
+        assert_eq!(
+            o.claim("patient", "a", 10 * ms),
+            Ok(None),
+            "names match in any case"
+        );
+        let e = o.claim("Patient", "b", 20 * ms).unwrap_err();
+        assert!(
+            e.contains("b sent tool") && e.contains("a is streaming"),
+            "{e}"
+        );
+        assert_eq!(
+            o.claim("HMD", "b", 20 * ms),
+            Ok(None),
+            "another tool is b's"
+        );
+        // a quiet for 500 ms: b takes it over, said.
+        let note = o.claim("Patient", "b", 510 * ms).unwrap().unwrap();
+        assert!(note.contains("now from b"), "{note}");
+        assert!(o.claim("Patient", "a", 520 * ms).is_err());
+        // b gone: a takes it at once.
+        o.release("b");
+        assert_eq!(o.claim("Patient", "a", 530 * ms), Ok(None));
+    }
 
     #[test]
     fn the_allow_list_takes_loopback_and_the_named_hosts_and_networks_only() {
