@@ -628,6 +628,49 @@ mod tests {
         std::fs::remove_dir_all(d).unwrap();
     }
 
+    proptest::proptest! {
+        #![proptest_config(proptest::prelude::ProptestConfig::with_cases(256))]
+        /// Any bytes, and any truncation or one-byte change of a real sealed packet, neither
+        /// panic nor open (only the packet as sealed opens), and every refusal is counted.
+        #[test]
+        fn no_bytes_but_the_sealed_ones_open(
+            junk in proptest::collection::vec(proptest::prelude::any::<u8>(), 0..300),
+            cut in 0usize..200,
+            at in 0usize..200,
+            flip in 1u8..=255,
+        ) {
+            let (d, load) = shared_room();
+            let source = Sealer::new(load("source"));
+            let mut at_site = Opener::new(load("site"), Arc::default());
+            proptest::prop_assert!(at_site.open(&junk, 0).is_err());
+            let p = source.seal(Kind::State, b"a state's bytes");
+            let cut = cut % p.len();
+            proptest::prop_assert!(at_site.open(&p[..cut], 0).is_err());
+            let mut q = p.clone();
+            q[at % p.len()] ^= flip;
+            proptest::prop_assert!(at_site.open(&q, 0).is_err());
+            proptest::prop_assert!(at_site.open(&p, 0).is_ok());
+            proptest::prop_assert_eq!(at_site.refusals.total(), 3);
+            let _ = d;
+        }
+    }
+
+    /// One room for every proptest case (making keys per case would be most of the test's time).
+    fn shared_room() -> (std::path::PathBuf, impl Fn(&str) -> Arc<Room>) {
+        static MADE: std::sync::OnceLock<std::path::PathBuf> = std::sync::OnceLock::new();
+        let d = MADE
+            .get_or_init(|| {
+                let d =
+                    std::env::temp_dir().join(format!("lungdyn-seal-prop-{}", std::process::id()));
+                let _ = std::fs::remove_dir_all(&d);
+                keys::make("ward", &d, &keys::default_participants(), 365).unwrap();
+                d
+            })
+            .clone();
+        let d2 = d.clone();
+        (d, move |who: &str| Arc::new(Room::load(&d2, who).unwrap()))
+    }
+
     #[test]
     fn without_keys_the_guard_passes_packets_as_they_are() {
         let g = Guard::new(None);

@@ -4,10 +4,11 @@
 //! the wrong role forges nothing (a state, an event, a clock answer), replays nothing, and junk is
 //! refused; every refusal is counted by reason while the source and its site keep breathing.
 
+mod common;
+use common::wait_for;
 use std::path::PathBuf;
 use std::sync::atomic::{AtomicBool, Ordering};
 use std::sync::Arc;
-use std::time::{Duration, Instant};
 
 use lungdyn_remote::harness::{harness_core, run_source};
 use lungdyn_remote::keys::{self, Participant, Room};
@@ -70,17 +71,6 @@ fn client_with(endpoint: &str, extra: &[(&str, String)]) -> Result<zenoh::Sessio
         set(k, v);
     }
     zenoh::open(c).wait().map_err(|e| e.to_string())
-}
-
-fn wait_for(what: &str, ok: impl Fn() -> bool) {
-    let began = Instant::now();
-    while !ok() {
-        assert!(
-            began.elapsed() < Duration::from_secs(30),
-            "timed out waiting for {what}"
-        );
-        std::thread::sleep(Duration::from_millis(20));
-    }
 }
 
 #[test]

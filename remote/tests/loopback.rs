@@ -3,6 +3,8 @@
 //! source, a site's event applied at the same cycle everywhere, a source restart, a site dropping
 //! out and rejoining.
 
+mod common;
+use common::wait_for;
 use std::sync::atomic::{AtomicBool, Ordering};
 use std::sync::Arc;
 use std::time::{Duration, Instant};
@@ -631,18 +633,6 @@ fn client(via: &str) -> Net {
     n.mode = "client";
     n.lease_ms = 2000;
     n
-}
-
-/// Wait (up to 30 s: slow starts on a loaded machine) until `ok`.
-fn wait_for(what: &str, ok: impl Fn() -> bool) {
-    let began = Instant::now();
-    while !ok() {
-        assert!(
-            began.elapsed() < Duration::from_secs(30),
-            "timed out waiting for {what}"
-        );
-        std::thread::sleep(Duration::from_millis(20));
-    }
 }
 
 /// Through a router, 3 sites probing every 20 ms sync their clocks with the relay beside it
