@@ -238,6 +238,11 @@ impl Source {
         n
     }
 
+    /// Packets the link handed to the worker, and those dropped because it was behind.
+    pub fn link_counts(&self) -> &Arc<link::LinkCounts> {
+        self._link.counts()
+    }
+
     /// Sites present now (their liveliness tokens).
     pub fn sites(&self) -> usize {
         self.sites.load(Ordering::Relaxed)
