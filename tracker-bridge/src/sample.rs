@@ -198,7 +198,7 @@ pub enum Reject {
     /// answered twice): dropped, so the bridge never falls behind the device.
     StaleReply = 15,
     /// A second OpenIGTLink sender streaming a tool another sender streams: the first keeps it
-    /// until it is quiet for [`crate::source::igtl_server::TAKEOVER_AFTER`] or gone.
+    /// until it is quiet for [`crate::source::igtl_owners::TAKEOVER_AFTER`] or gone.
     CompetingSender = 16,
 }
 

@@ -199,7 +199,7 @@ pub fn pump(
     peer: &str,
     options: &SourceOptions,
     last_message_ns: &AtomicU64,
-    owners: Option<&super::igtl_server::ToolOwners>,
+    owners: Option<&super::igtl_owners::ToolOwners>,
 ) -> (PumpEnd, bool) {
     let _ = stream.set_nodelay(true);
     if let Err(e) = keepalive(stream) {

@@ -18,6 +18,7 @@
 //! counted (`queue_full`).
 
 pub mod igtl_client;
+pub mod igtl_owners;
 pub mod igtl_server;
 pub mod ndi_link;
 pub mod replay;
