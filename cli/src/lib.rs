@@ -23,6 +23,6 @@ pub mod register_cmd;
 pub mod tracker_cmd;
 
 pub use lungdyn_launcher::{
-    breathing_check, demo, doctor, faults, input_args, install, instances, latency, launch,
+    breathing_check, demo, doctor, export, faults, input_args, install, instances, latency, launch,
     outputs, plot, prepare, record, scene_check, scene_event, stats, strip, supervise, tradeoff,
 };

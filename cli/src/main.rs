@@ -76,6 +76,10 @@ enum Command {
     /// HMD optics files.
     #[command(subcommand)]
     Hmd(HmdCommand),
+    /// One breath out of lungdyn: `export gltf` writes it as binary glTF (both lungs breathing as
+    /// morph targets, lobes as materials, the tumour, the scene's figures) for any glTF viewer.
+    #[command(subcommand)]
+    Export(ExportCommand),
     /// Measurements: the deformation modes' speed/accuracy trade.
     #[command(subcommand)]
     Bench(BenchCommand),
@@ -114,6 +118,12 @@ enum MeshCommand {
     /// or one label for both lungs, separated where they touch), tunnels closed, smoothed keeping
     /// the volume, the vertex count asked, the checks `mesh check` runs, lobes from lobe labels.
     FromMask(lungdyn::mask_cmd::FromMaskArgs),
+}
+
+#[derive(Subcommand)]
+enum ExportCommand {
+    /// One breath of a scene as a .glb (kernels baked when missing, as `scene prepare` does).
+    Gltf(lungdyn::export::GltfArgs),
 }
 
 #[derive(Subcommand)]
@@ -326,8 +336,9 @@ fn main() -> std::process::ExitCode {
         Command::Scene(SceneCommand::Run(args)) => lungdyn::scene_check::run_scene(&args).and_then(|v| emit(args.json, &v, lungdyn::scene_check::run_text)),
         Command::Scene(SceneCommand::Check(args)) => lungdyn::scene_check::run(&args).and_then(|v| emit(args.json, &v, lungdyn::scene_check::text)),
         Command::Scene(SceneCommand::Prepare(args)) => lungdyn::prepare::run(&args)
-            .and_then(|p| emit(args.json, &p, prepare_text)),
+            .and_then(|p| emit(args.json, &p, lungdyn::prepare::text)),
         Command::Pv(cmd) => lungdyn::pv_cmd::run(&cmd),
+        Command::Export(ExportCommand::Gltf(a)) => lungdyn::export::run(&a).and_then(|v| emit(a.json, &v, lungdyn::export::text)),
         Command::Tracker(TrackerCommand::Listen(args)) => lungdyn::tracker_cmd::listen(&args).and_then(|v| {
             if args.json {
                 println!("{}", serde_json::to_string(&v)?);
@@ -442,37 +453,6 @@ fn mesh_check_text(c: &lungdyn::mesh_cmd::CheckSummary) -> String {
     if let Some(out) = &c.out {
         t.push_str(&format!("wrote {out} (mm, body frame)\n"));
     }
-    t
-}
-
-/// `scene prepare`'s text.
-fn prepare_text(p: &lungdyn::prepare::PrepareReport) -> String {
-    let mut t = String::new();
-    for k in &p.kernels {
-        t.push_str(&format!(
-            "{} lung: {}{}\n",
-            k.lung,
-            k.path,
-            if k.baked_now {
-                format!(" (baked now, {:.1} s)", k.bake_seconds)
-            } else {
-                String::new()
-            }
-        ));
-        match (&k.sh_budget_reason, k.sh_bands) {
-            (Some(r), _) => t.push_str(&format!("  sh mode, {r}\n")),
-            (None, 0) => {}
-            (None, n) => t.push_str(&format!(
-                "  sh mode, {n} bands (the scene's), RMS error {:.3} mm\n",
-                k.sh_rms_mm.unwrap_or(f64::NAN)
-            )),
-        }
-    }
-    t.push_str(&format!("mode: {}\n", p.mode));
-    t.push_str(&format!(
-        "wrote {}: start the engine and the renderer with --scene {}\n",
-        p.scene, p.scene
-    ));
     t
 }
 

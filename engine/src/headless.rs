@@ -63,10 +63,24 @@ pub fn run(
 
 /// [`run`] on a core already made (e.g. over geometry in memory, as the tests make it).
 pub fn run_core(
-    mut core: EngineCore,
+    core: EngineCore,
     ticks: u64,
     input: &mut dyn FnMut(u64) -> TrackerFrame,
     on_frame: &mut dyn FnMut(u64, &EngineFrame),
+) -> Result<HeadlessRun, CoreError> {
+    run_while(core, ticks, input, &mut |tick, f| {
+        on_frame(tick, f);
+        true
+    })
+}
+
+/// [`run_core`] for at most `ticks` ticks, stopping after the first frame for which `on_frame`
+/// returns `false` (`lungdyn export gltf` stops once it has the breath it wants).
+pub fn run_while(
+    mut core: EngineCore,
+    ticks: u64,
+    input: &mut dyn FnMut(u64) -> TrackerFrame,
+    on_frame: &mut dyn FnMut(u64, &EngineFrame) -> bool,
 ) -> Result<HeadlessRun, CoreError> {
     let mut f = EngineFrame::default();
     let mut lungs = [LungSummary::EMPTY; NUM_LUNGS];
@@ -77,7 +91,7 @@ pub fn run_core(
     for tick in 0..ticks {
         let frame_in = input(tick);
         core.step(tick, Some(&frame_in), &mut f);
-        on_frame(tick, &f);
+        let go_on = on_frame(tick, &f);
         for (k, l) in f.lungs.iter().enumerate() {
             if !l.is_active() {
                 continue;
@@ -95,6 +109,9 @@ pub fn run_core(
                 cycle[k] = l.cycle;
             }
             *c = (c.0.min(v), c.1.max(v), c.2);
+        }
+        if !go_on {
+            break;
         }
         core.prepare_ahead()?;
     }

@@ -13,12 +13,14 @@
 //! * the speed–accuracy trade-off evaluator ([`tradeoff`]), a respiratory recording followed as
 //!   if live against its hindsight volume ([`breathing_check`]), and the plots ([`plot`]); the input
 //!   options every command that reads files takes ([`input_args`]);
+//! * a breath out of lungdyn: [`export`] (one breath as glTF for any viewer);
 //! * deployment: [`install`] (thin role binaries, units, udev rule) and [`doctor`] (what this machine
 //!   can run); [`rig_json`], the rig's files as the reports show them.
 
 pub mod breathing_check;
 pub mod demo;
 pub mod doctor;
+pub mod export;
 pub mod faults;
 pub mod input_args;
 pub mod install;

@@ -245,7 +245,7 @@ pub fn prepare_carrying(
 ) -> anyhow::Result<(Prepared, Vec<Carried>)> {
     // Say where, before writing: the default folder is ./out, which a person may not expect.
     eprintln!(
-        "lungdyn: kernels and the resolved scene go to {} (--out to choose)",
+        "lungdyn: kernels and the resolved scene go to {} (--out chooses; --kernels for export)",
         std::path::absolute(dir)
             .unwrap_or_else(|_| dir.to_path_buf())
             .display()
@@ -355,6 +355,37 @@ pub struct PrepareReport {
     /// The deformation mode the processes will run (the scene's, or "basis" where an error budget
     /// could not be met with spherical harmonics).
     pub mode: String,
+}
+
+/// `scene prepare`'s text.
+pub fn text(p: &PrepareReport) -> String {
+    let mut t = String::new();
+    for k in &p.kernels {
+        t.push_str(&format!(
+            "{} lung: {}{}\n",
+            k.lung,
+            k.path,
+            if k.baked_now {
+                format!(" (baked now, {:.1} s)", k.bake_seconds)
+            } else {
+                String::new()
+            }
+        ));
+        match (&k.sh_budget_reason, k.sh_bands) {
+            (Some(r), _) => t.push_str(&format!("  sh mode, {r}\n")),
+            (None, 0) => {}
+            (None, n) => t.push_str(&format!(
+                "  sh mode, {n} bands (the scene's), RMS error {:.3} mm\n",
+                k.sh_rms_mm.unwrap_or(f64::NAN)
+            )),
+        }
+    }
+    t.push_str(&format!("mode: {}\n", p.mode));
+    t.push_str(&format!(
+        "wrote {}: start the engine and the renderer with --scene {}\n",
+        p.scene, p.scene
+    ));
+    t
 }
 
 /// `lungdyn scene prepare`.

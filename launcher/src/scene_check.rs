@@ -1072,6 +1072,25 @@ impl TumourFollow {
     }
 }
 
+/// The headless runs' tracker: a fixed patient in the scene's posture (the synthetic source without
+/// drift). The headless run has no tracker, and a patient who does not move costs one orientation
+/// evaluation per lung.
+pub fn still_patient(scene: &Scene) -> impl FnMut(u64) -> ipc_types::TrackerFrame {
+    let patient = tracker_bridge::synthetic::Synthetic {
+        rate_hz: scene.engine.tick_hz,
+        drift_deg: 0.0,
+        posture: scene.tracker.posture,
+        ..Default::default()
+    };
+    move |tick| {
+        let mut input = patient.frame(tick, 0);
+        // The patient's pose only: its quaternion is constant, so is gravity.
+        input.tools[ipc_types::TOOL_PATIENT].pose.translation_mm =
+            tracker_bridge::synthetic::STERNUM_MM.to_array();
+        input
+    }
+}
+
 /// Run `args.file` through the engine's tick function for `--seconds` of simulated time (fixed
 /// supine patient, the scene's timed interventions) and report per lung what the renderer would
 /// draw, the disease state's course and how often each stage of the tick did work.
@@ -1089,30 +1108,11 @@ pub fn run_scene(args: &RunArgs) -> anyhow::Result<RunReport> {
     let scene = prepared.scene;
     let mut follow = TumourFollow::new(&scene)?;
     let ticks = (s * scene.engine.tick_hz).round().max(1.0) as u64;
-    // A fixed patient in the scene's posture (the synthetic source without drift): the headless run
-    // has no tracker, and a patient who does not move costs one orientation evaluation per lung.
-    let patient = tracker_bridge::synthetic::Synthetic {
-        rate_hz: scene.engine.tick_hz,
-        drift_deg: 0.0,
-        posture: scene.tracker.posture,
-        ..Default::default()
-    };
-    let run = engine::headless::run(
-        &scene,
-        ticks,
-        &mut |tick| {
-            let mut input = patient.frame(tick, 0);
-            // The patient's pose only: its quaternion is constant, so is gravity.
-            input.tools[ipc_types::TOOL_PATIENT].pose.translation_mm =
-                tracker_bridge::synthetic::STERNUM_MM.to_array();
-            input
-        },
-        &mut |tick, f| {
-            if let Some(t) = &mut follow {
-                t.record(tick, f);
-            }
-        },
-    )?;
+    let run = engine::headless::run(&scene, ticks, &mut still_patient(&scene), &mut |tick, f| {
+        if let Some(t) = &mut follow {
+            t.record(tick, f);
+        }
+    })?;
     let (core, f) = (&run.core, &run.last);
     let hz = scene.engine.tick_hz;
     let mut lungs = Vec::new();

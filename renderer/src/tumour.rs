@@ -19,8 +19,9 @@ const SEGMENTS: usize = 24;
 /// Vertices of the ellipsoid mesh.
 pub const VERTICES: usize = (RINGS - 1) * SEGMENTS + 2;
 
-/// A unit sphere as (positions, triangles), outward wound (counter-clockwise seen from outside).
-fn sphere() -> (Vec<[f32; 3]>, Vec<[u32; 3]>) {
+/// A unit sphere as (positions, triangles), outward wound (counter-clockwise seen from outside):
+/// the tumour's ellipsoid here and in `lungdyn export gltf`.
+pub fn unit_sphere() -> (Vec<[f32; 3]>, Vec<[u32; 3]>) {
     let mut p = Vec::with_capacity(VERTICES);
     p.push([0.0, 0.0, 1.0]);
     for r in 1..RINGS {
@@ -78,7 +79,7 @@ pub struct TumourDraw {
 impl TumourDraw {
     /// The tumour of lung `slot` in `mode`.
     pub fn new(device: &wgpu::Device, slot: usize, meta: &TumourMeta, mode: DeformMode) -> Self {
-        let (unit, triangles) = sphere();
+        let (unit, triangles) = unit_sphere();
         let r = meta.tumour.radii_mm;
         let local: Vec<[f32; 3]> = unit
             .iter()
@@ -192,7 +193,7 @@ mod tests {
 
     #[test]
     fn the_sphere_is_closed_and_outward() {
-        let (p, t) = sphere();
+        let (p, t) = unit_sphere();
         assert_eq!(p.len(), VERTICES);
         let mesh = lung_model::mesh::TriMesh {
             positions: p.iter().map(|v| v.map(|c| c * 10.0)).collect(),

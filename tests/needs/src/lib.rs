@@ -4,7 +4,7 @@
 //! the package that provides it and the command that installs it — a green run that tested none of
 //! the renderer is worse than a red one. The person running the tests may opt out explicitly, per
 //! need (`LUNGDYN_SKIP_GPU=1`, `LUNGDYN_SKIP_DISPLAY=1`, `LUNGDYN_SKIP_PYIGTL=1`,
-//! `LUNGDYN_SKIP_PYZENOH=1`, or
+//! `LUNGDYN_SKIP_PYZENOH=1`, `LUNGDYN_SKIP_GLTF=1`, `LUNGDYN_SKIP_BROWSER=1`, or
 //! `LUNGDYN_SKIP_ALL=1`); then the test returns early and the skip is said aloud twice:
 //!
 //! - at once, on the terminal's stderr, past the test harness's output capture (so a passing test's
@@ -40,17 +40,25 @@ pub enum Need {
     /// An OpenXR runtime's manifest (`LUNGDYN_XR_RUNTIME`) and a launcher
     /// built with the `openxr` feature. Opt-in: skipped unless named or required.
     OpenXr,
+    /// Node.js with the Khronos glTF validator (npm `gltf-validator`), the independent judge of
+    /// `lungdyn export gltf`'s files.
+    GltfValidator,
+    /// A real browser: Chromium driven by playwright-core, showing a glTF file in Google's
+    /// `<model-viewer>` (npm `@google/model-viewer`).
+    Browser,
 }
 
 impl Need {
     /// Every need, for listings.
-    pub const ALL: [Need; 6] = [
+    pub const ALL: [Need; 8] = [
         Need::Gpu,
         Need::Display,
         Need::Pyigtl,
         Need::PyZenoh,
         Need::Systemd,
         Need::OpenXr,
+        Need::GltfValidator,
+        Need::Browser,
     ];
 
     /// The opt-out variable for this need.
@@ -62,6 +70,8 @@ impl Need {
             Need::PyZenoh => "LUNGDYN_SKIP_PYZENOH",
             Need::Systemd => "LUNGDYN_SKIP_SYSTEMD",
             Need::OpenXr => "LUNGDYN_SKIP_XR",
+            Need::GltfValidator => "LUNGDYN_SKIP_GLTF",
+            Need::Browser => "LUNGDYN_SKIP_BROWSER",
         }
     }
 
@@ -73,6 +83,8 @@ impl Need {
             Need::PyZenoh => "LUNGDYN_REQUIRE_PYZENOH",
             Need::Systemd => "LUNGDYN_REQUIRE_SYSTEMD",
             Need::OpenXr => "LUNGDYN_REQUIRE_XR",
+            Need::GltfValidator => "LUNGDYN_REQUIRE_GLTF",
+            Need::Browser => "LUNGDYN_REQUIRE_BROWSER",
         }
     }
 
@@ -109,6 +121,17 @@ impl Need {
                  (XRT_COMPOSITOR_NULL=1 for Monado without a display) and build the launcher with \
                  `cargo build --release -p lungdyn --features openxr`"
             }
+            Need::GltfValidator => {
+                "install Node.js and the Khronos glTF validator: `./run test` installs them \
+                 (`sudo apt-get install nodejs npm`, then `npm install --prefix target/npm \
+                 gltf-validator@2.0.0-dev.3.10`); or point LUNGDYN_NODE_MODULES at a node_modules \
+                 folder that has it"
+            }
+            Need::Browser => {
+                "install Chromium and the page's packages: `./run test` installs them (`sudo apt-get \
+                 install chromium`, then `npm install --prefix target/npm playwright-core@1.65.2 \
+                 @google/model-viewer@4.4.0`); LUNGDYN_CHROMIUM names another Chromium"
+            }
         }
     }
 
@@ -127,6 +150,8 @@ impl Need {
             Need::PyZenoh => "eclipse-zenoh",
             Need::Systemd => "systemd-analyze",
             Need::OpenXr => "OpenXR runtime",
+            Need::GltfValidator => "glTF validator",
+            Need::Browser => "browser",
         }
     }
 }
@@ -234,6 +259,76 @@ pub fn display() -> bool {
         missing(Need::Display, "xvfb-run is not on PATH");
     }
     found
+}
+
+/// The `node_modules` folder with every one of `packages` and a `node` that runs:
+/// `LUNGDYN_NODE_MODULES`, else `target/npm/node_modules` under the workspace (made by `./run test`),
+/// or [`missing`] `need`.
+pub fn node_modules(
+    workspace_root: &std::path::Path,
+    packages: &[&str],
+    need: Need,
+) -> Option<PathBuf> {
+    let dir = std::env::var_os("LUNGDYN_NODE_MODULES")
+        .map(PathBuf::from)
+        .unwrap_or_else(|| workspace_root.join("target/npm/node_modules"));
+    let node = std::process::Command::new("node")
+        .arg("--version")
+        .output()
+        .is_ok_and(|o| o.status.success());
+    if !node {
+        missing(
+            need,
+            "`node --version` does not run: Node.js is not on PATH",
+        );
+        return None;
+    }
+    let absent: Vec<&str> = packages
+        .iter()
+        .copied()
+        .filter(|p| !dir.join(p).join("package.json").is_file())
+        .collect();
+    if !absent.is_empty() {
+        missing(
+            need,
+            &format!("{} has no {}", dir.display(), absent.join(", ")),
+        );
+        return None;
+    }
+    Some(dir)
+}
+
+/// A Chromium to drive: `LUNGDYN_CHROMIUM`, else `chromium` or `chromium-browser` on PATH, the first
+/// that answers `--version`, or [`missing`] [`Need::Browser`].
+pub fn chromium() -> Option<PathBuf> {
+    let candidates = std::env::var_os("LUNGDYN_CHROMIUM")
+        .map(PathBuf::from)
+        .into_iter()
+        .chain(["chromium", "chromium-browser"].map(PathBuf::from));
+    let mut tried = Vec::new();
+    for c in candidates {
+        let ok = std::process::Command::new(&c)
+            .arg("--version")
+            .output()
+            .is_ok_and(|o| o.status.success());
+        if ok {
+            // playwright wants a path, not a name to look up.
+            return Some(which(&c).unwrap_or(c));
+        }
+        tried.push(c.display().to_string());
+    }
+    missing(Need::Browser, &format!("none of {} runs", tried.join(", ")));
+    None
+}
+
+/// `name` found on PATH (a path with a slash is itself).
+fn which(name: &std::path::Path) -> Option<PathBuf> {
+    if name.components().count() > 1 {
+        return Some(name.to_path_buf());
+    }
+    std::env::split_paths(&std::env::var_os("PATH")?)
+        .map(|d| d.join(name))
+        .find(|p| p.is_file())
 }
 
 /// The Python that has eclipse-zenoh: `LUNGDYN_PYTHON`, else `target/pyenv/bin/python3`, else

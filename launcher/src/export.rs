@@ -1,0 +1,1041 @@
+//! `lungdyn export gltf`: one breath of a scene as binary glTF 2.0 (`.glb`), for any glTF viewer, a
+//! web page (`<model-viewer>`), Blender, a slide or a headset's own viewer.
+//!
+//! What the file holds:
+//! * each lung as one mesh: the breath's first frame (the start of inspiration) as the base and every
+//!   later frame as a morph target (positions only, each frame's difference from the base), and one
+//!   animation, `breath`, that steps the weights from frame to frame (linear between neighbours) and
+//!   back to the first frame at the breath's period, so a viewer that loops it breathes seamlessly;
+//! * the lobes as materials, in the renderer's lobe colours (one primitive per lobe sharing the
+//!   lung's vertices; a triangle belongs to the lobe most of its corners belong to), or one "lung"
+//!   material where the kernel has no lobes;
+//! * the tumour, where the scene has one: an ellipsoid of its radii moved along its centre's path
+//!   (a translation animation on the same keys);
+//! * the scene's figures as metadata (`asset.extras.lungdyn`): the scene, the mode, the breath's
+//!   period and rate, each frame's time and each lung's volume, the tumour's motion.
+//!
+//! The frames are the engine's own: the headless tick function `lungdyn scene run` uses, with a
+//! still patient in the scene's posture ([`crate::scene_check::still_patient`]), deformed on the CPU
+//! by the renderer's reference (`CpuLung`, plus a collapsing lung's pull towards its hilum as
+//! `deform.wgsl` applies it, EQUATIONS.md §4.1), so the file shows what the HMD draws.
+//!
+//! Units and axes: glTF is metres, +Y up, the asset's front facing +Z, right-handed; the body frame
+//! is mm with +X patient left, +Y anterior, +Z superior, left-handed (docs/ARCHITECTURE.md
+//! "Registration"). glTF (x, y, z) = body (X, Z, Y) / 1000 ([`body_to_gltf`]): the patient stands
+//! facing the viewer, their left on the viewer's right. The map is a reflection, so every triangle's
+//! corners are reversed to stay counter-clockwise seen from outside.
+//!
+//! Normals are the first frame's (a morph target of normals too would double the file for a shading
+//! change a breath hardly shows).
+
+use std::path::PathBuf;
+use std::time::Instant;
+
+use anyhow::Context;
+use gltf::json;
+use gltf::json::validation::Checked::Valid;
+use gltf::json::validation::USize64;
+use ipc_types::{EngineFrame, LungFrame, MAX_COEFFS};
+use lung_model::mesh::lobes::Lobe;
+use lung_model::mesh::Side;
+use lung_model::scene::Scene;
+use renderer::deform::RenderLung;
+use serde::Serialize;
+
+/// Frames per breath when `--frames` is not given.
+pub const DEFAULT_FRAMES: u32 = 24;
+/// The most frames a breath may be exported with (morph targets cost a copy of the mesh each).
+pub const MAX_FRAMES: u32 = 240;
+/// Simulated seconds within which the breath asked for must have ended.
+const MAX_SIMULATED_S: f64 = 300.0;
+
+/// Options of `lungdyn export gltf`.
+#[derive(Debug, Clone, clap::Args)]
+pub struct GltfArgs {
+    /// Scene file (TOML); the built-in default scene when omitted.
+    #[arg(long)]
+    pub scene: Option<PathBuf>,
+    /// The file to write: binary glTF (`.glb`), written atomically (an existing file is replaced
+    /// only once the new one is complete).
+    #[arg(long, default_value = "out/breath.glb")]
+    pub out: PathBuf,
+    /// Frames over the breath, 2..=240: the first is the base mesh, each later one a morph target.
+    #[arg(long, default_value_t = DEFAULT_FRAMES)]
+    pub frames: u32,
+    /// Which complete breath to export, counted from the start of the run (the first starts from
+    /// the scene's initial state; the second, the default, is the steady breath).
+    #[arg(long, default_value_t = 2)]
+    pub breath: u32,
+    /// Vertices per generated default lung (overrides the scene's `[lungs] vertices`).
+    #[arg(long, value_name = "N")]
+    pub vertices: Option<usize>,
+    /// The lungs' opacity, 0.05..=1: below 1 they are see-through (glTF's BLEND), so the tumour
+    /// inside shows. Default: 0.5 when the scene has a tumour, else 1 (opaque).
+    #[arg(long, value_name = "F")]
+    pub opacity: Option<f32>,
+    /// Folder for the kernels the scene lacks (baked once, as `lungdyn scene prepare` bakes them,
+    /// and reused by later runs).
+    #[arg(long, default_value = "out/kernels")]
+    pub kernels: PathBuf,
+    /// Print one JSON object on stdout.
+    #[arg(long)]
+    pub json: bool,
+}
+
+/// What `lungdyn export gltf` wrote.
+#[derive(Debug, Clone, Serialize)]
+pub struct GltfReport {
+    /// The file written.
+    pub out: String,
+    /// Its size, bytes.
+    pub bytes: u64,
+    /// The scene exported (its file, or "built-in default").
+    pub scene: String,
+    /// The deformation mode the frames were computed in.
+    pub mode: String,
+    /// Frames over the breath (the base and one morph target per later frame).
+    pub frames: u32,
+    /// Which complete breath of the run.
+    pub breath: u32,
+    /// The breath's length, s.
+    pub period_s: f64,
+    /// Per lung.
+    pub lungs: Vec<LungExport>,
+    /// The tumour's centre, where the scene has one.
+    pub tumour: Option<TumourExport>,
+    /// The lungs' opacity (1: opaque).
+    pub opacity: f32,
+    /// Wall-clock seconds (preparing the kernels included).
+    pub seconds: f64,
+}
+
+/// One lung in the file.
+#[derive(Debug, Clone, Serialize)]
+pub struct LungExport {
+    /// "right" or "left".
+    pub side: &'static str,
+    /// Vertices.
+    pub vertices: usize,
+    /// Triangles.
+    pub triangles: usize,
+    /// The lobes drawn as materials (empty: the kernel has none, one "lung" material).
+    pub lobes: Vec<&'static str>,
+    /// Smallest and largest volume over the exported frames (the engine's), ml.
+    pub volume_ml: [f64; 2],
+    /// The largest distance any vertex moves from the first frame, mm.
+    pub max_motion_mm: f64,
+}
+
+/// The tumour in the file.
+#[derive(Debug, Clone, Serialize)]
+pub struct TumourExport {
+    /// Its lung.
+    pub side: &'static str,
+    /// Radii, mm (body frame axes).
+    pub radii_mm: [f64; 3],
+    /// The centre's range of motion per body axis over the exported frames, mm.
+    pub motion_mm: [f64; 3],
+}
+
+/// glTF position (m) of a body-frame point (mm): glTF (x, y, z) = body (X, Z, Y) / 1000.
+pub fn body_to_gltf(p: [f32; 3]) -> [f32; 3] {
+    [p[0] * 1e-3, p[2] * 1e-3, p[1] * 1e-3]
+}
+
+/// One breath's frames as the engine wrote them.
+struct Breath {
+    /// The frames, evenly spaced over the breath (the first at its start).
+    frames: Vec<EngineFrame>,
+    /// Each frame's time from the breath's start, s.
+    times_s: Vec<f32>,
+    /// The breath's length, s.
+    period_s: f64,
+}
+
+/// `lungdyn export gltf`.
+pub fn run(args: &GltfArgs) -> anyhow::Result<GltfReport> {
+    let started = Instant::now();
+    check_args(args)?;
+    let mut scene = Scene::load_or_default(args.scene.as_deref())?;
+    if let Some(v) = args.vertices {
+        scene.lungs.vertices = v;
+        scene.validate()?;
+    }
+    let origin = args.scene.as_ref().map_or_else(
+        || "built-in default".to_string(),
+        |p| p.display().to_string(),
+    );
+    let prepared = crate::prepare::prepare(scene, &args.kernels)?;
+    let scene = prepared.scene;
+    eprintln!(
+        "lungdyn: running the scene to its breath {} ({} frames)",
+        args.breath, args.frames
+    );
+    let breath = sample_breath(&scene, args.frames as usize, args.breath)?;
+    let mut lungs = Vec::new();
+    for &side in &scene.lungs.sides {
+        let kernel = scene.lung_kernel(side)?;
+        let lung = RenderLung::from_kernel(&kernel, scene.lungs.mode)
+            .with_context(|| format!("the {} lung's kernel", side.name()))?;
+        let positions = deformed_frames(&lung, &breath.frames)?;
+        lungs.push((lung, positions));
+    }
+    let tumour = tumour_track(&scene, &lungs, &breath.frames)?;
+    let name = args.scene.as_ref().and_then(|p| p.file_stem()).map_or_else(
+        || "default".to_string(),
+        |s| s.to_string_lossy().into_owned(),
+    );
+    let mut report = GltfReport {
+        out: args.out.display().to_string(),
+        bytes: 0,
+        scene: origin,
+        mode: scene.lungs.mode.to_string(),
+        frames: args.frames,
+        breath: args.breath,
+        period_s: breath.period_s,
+        lungs: lungs
+            .iter()
+            .map(|(l, p)| lung_summary(l, p, &breath.frames))
+            .collect(),
+        tumour: tumour.as_ref().map(|t| t.summary.clone()),
+        opacity: args
+            .opacity
+            .unwrap_or(if tumour.is_some() { 0.5 } else { 1.0 }),
+        seconds: 0.0,
+    };
+    let glb = build(&name, &report, &breath, &lungs, tumour.as_ref())?;
+    outfile::write_atomically(&args.out, |w| {
+        use std::io::Write;
+        w.write_all(&glb)
+    })
+    .with_context(|| format!("cannot write {}", args.out.display()))?;
+    report.bytes = glb.len() as u64;
+    report.seconds = (started.elapsed().as_secs_f64() * 1000.0).round() / 1000.0;
+    Ok(report)
+}
+
+fn check_args(args: &GltfArgs) -> anyhow::Result<()> {
+    if !(2..=MAX_FRAMES).contains(&args.frames) {
+        anyhow::bail!(
+            "--frames {}: give 2 to {MAX_FRAMES} frames over the breath ({DEFAULT_FRAMES} by default; \
+             each frame after the first adds a copy of the lungs' positions to the file)",
+            args.frames
+        );
+    }
+    if let Some(o) = args.opacity {
+        if !(0.05..=1.0).contains(&o) {
+            anyhow::bail!(
+                "--opacity {o}: give the lungs' opacity from 0.05 (almost clear) to 1 (opaque)"
+            );
+        }
+    }
+    if args.breath == 0 {
+        anyhow::bail!(
+            "--breath 0: breaths are counted from 1 (the first complete breath of the run)"
+        );
+    }
+    let ext = args.out.extension().and_then(|e| e.to_str()).unwrap_or("");
+    if !ext.eq_ignore_ascii_case("glb") {
+        anyhow::bail!(
+            "--out {}: lungdyn writes binary glTF; name the file .glb (one file with its buffers, \
+             which every viewer opens)",
+            args.out.display()
+        );
+    }
+    crate::outputs::check_writable(args.out.parent().unwrap_or(std::path::Path::new(".")))?;
+    Ok(())
+}
+
+/// Run `scene` headless to the end of its `breath`-th complete breath (counted on its first lung:
+/// a breath runs from one cycle change to the next) and keep `n` frames evenly spread over it.
+fn sample_breath(scene: &Scene, n: usize, breath: u32) -> anyhow::Result<Breath> {
+    let hz = scene.engine.tick_hz;
+    let reference = *scene
+        .lungs
+        .sides
+        .first()
+        .context("the scene has no lungs to export")?;
+    let slot = reference.index();
+    let max_ticks = (MAX_SIMULATED_S * hz).round() as u64;
+    let mut changes = 0u32;
+    let mut last_cycle: Option<u32> = None;
+    let mut kept: Vec<EngineFrame> = Vec::new();
+    let mut done = false;
+    engine::headless::run_while(
+        engine::runtime::EngineCore::new(scene)?,
+        max_ticks,
+        &mut crate::scene_check::still_patient(scene),
+        &mut |_tick, f| {
+            let l = &f.lungs[slot];
+            if l.is_active() {
+                if last_cycle.is_some_and(|c| c != l.cycle) {
+                    changes += 1;
+                }
+                last_cycle = Some(l.cycle);
+            }
+            if changes == breath + 1 {
+                done = true;
+                return false;
+            }
+            if changes == breath {
+                kept.push(*f);
+            }
+            true
+        },
+    )?;
+    if !done || kept.len() < n {
+        anyhow::bail!(
+            "the {} lung completed {} breath(s) in {MAX_SIMULATED_S} s of simulated time, not the {} \
+             asked for with at least {n} ticks: a held, arrested or very slow breath has no breath \
+             to export (lungdyn scene run shows the scene's course)",
+            reference.name(),
+            changes.saturating_sub(1),
+            breath
+        );
+    }
+    let len = kept.len();
+    let picks: Vec<usize> = (0..n).map(|i| i * len / n).collect();
+    Ok(Breath {
+        frames: picks.iter().map(|&i| kept[i]).collect(),
+        times_s: picks.iter().map(|&i| (i as f64 / hz) as f32).collect(),
+        period_s: len as f64 / hz,
+    })
+}
+
+/// One lung's positions (body frame, mm) as the renderer draws them for frame `l`:
+/// `h + (1 − c)(p − h) + s·u + o` (EQUATIONS.md §4.1), the deformation by `CpuLung`.
+fn lung_positions(lung: &mut RenderLung, l: &LungFrame) -> anyhow::Result<Vec<[f32; 3]>> {
+    let side = lung.side.name();
+    if !l.is_active() {
+        anyhow::bail!("the {side} lung is not active in the engine's frame; it cannot be exported");
+    }
+    let n = (l.coeff_count as usize).min(MAX_COEFFS);
+    let c = l.collapse;
+    let offset = [0, 1, 2].map(|a| l.offset_mm[a] + c * l.hilum_mm[a]);
+    let mut out = vec![[0.0f32; 3]; lung.lung.len()];
+    lung.lung
+        .deform_into(l.deform_scale, &l.coeffs[..n], offset, &mut out)
+        .with_context(|| format!("the {side} lung"))?;
+    if c != 0.0 {
+        for (q, p) in out.iter_mut().zip(&lung.lung.positions) {
+            for a in 0..3 {
+                q[a] -= c * p[a];
+            }
+        }
+    }
+    if let Some(i) = out.iter().position(|q| !q.iter().all(|v| v.is_finite())) {
+        anyhow::bail!(
+            "the {side} lung's vertex {i} is not finite at volume {} ml (scale {}, collapse {c}): \
+             a bug, please report it with the scene",
+            l.volume_ml,
+            l.deform_scale
+        );
+    }
+    Ok(out)
+}
+
+/// Every frame's positions of `lung` (body frame, mm).
+fn deformed_frames(
+    lung: &RenderLung,
+    frames: &[EngineFrame],
+) -> anyhow::Result<Vec<Vec<[f32; 3]>>> {
+    let mut lung = lung.clone();
+    let slot = lung.side.index();
+    frames
+        .iter()
+        .map(|f| lung_positions(&mut lung, &f.lungs[slot]))
+        .collect()
+}
+
+fn lung_summary(lung: &RenderLung, frames: &[Vec<[f32; 3]>], engine: &[EngineFrame]) -> LungExport {
+    let slot = lung.side.index();
+    let volumes = engine.iter().map(|f| f.lungs[slot].volume_ml as f64);
+    let lo = volumes.clone().fold(f64::INFINITY, f64::min);
+    let hi = volumes.fold(f64::NEG_INFINITY, f64::max);
+    let base = &frames[0];
+    let moved = frames
+        .iter()
+        .flat_map(|f| f.iter().zip(base).map(|(p, q)| dist(*p, *q)))
+        .fold(0.0f64, f64::max);
+    LungExport {
+        side: lung.side.name(),
+        vertices: lung.lung.len(),
+        triangles: lung.lung.triangles.len(),
+        lobes: lobe_groups(lung)
+            .iter()
+            .filter_map(|(l, _)| *l)
+            .map(Lobe::name)
+            .collect(),
+        volume_ml: [r3(lo), r3(hi)],
+        max_motion_mm: r3(moved),
+    }
+}
+
+fn dist(a: [f32; 3], b: [f32; 3]) -> f64 {
+    (0..3)
+        .map(|k| ((a[k] - b[k]) as f64).powi(2))
+        .sum::<f64>()
+        .sqrt()
+}
+
+fn r3(v: f64) -> f64 {
+    (v * 1000.0).round() / 1000.0
+}
+
+/// The triangles of each lobe (`None`: the kernel has no lobe codes, every triangle), in code order.
+fn lobe_groups(lung: &RenderLung) -> Vec<(Option<Lobe>, Vec<[u32; 3]>)> {
+    let tris = &lung.lung.triangles;
+    let Some(codes) = lung.lobe_codes() else {
+        return vec![(None, tris.clone())];
+    };
+    let mut groups: Vec<(Option<Lobe>, Vec<[u32; 3]>)> = Vec::new();
+    for t in tris {
+        let c = t.map(|v| codes[v as usize]);
+        // Most corners' lobe; three different: the first corner's.
+        let code = if c[1] == c[2] { c[1] } else { c[0] };
+        let lobe = Lobe::from_code(code).unwrap_or(Lobe::Unknown);
+        match groups.iter_mut().find(|(l, _)| *l == Some(lobe)) {
+            Some((_, g)) => g.push(*t),
+            None => groups.push((Some(lobe), vec![*t])),
+        }
+    }
+    groups.sort_by_key(|(l, _)| l.map(Lobe::code));
+    groups
+}
+
+/// The tumour's ellipsoid and its centre per frame (body frame, mm).
+struct TumourTrack {
+    /// Its lung's slot.
+    side: Side,
+    radii_mm: [f64; 3],
+    centres_mm: Vec<[f64; 3]>,
+    summary: TumourExport,
+}
+
+fn tumour_track(
+    scene: &Scene,
+    lungs: &[(RenderLung, Vec<Vec<[f32; 3]>>)],
+    frames: &[EngineFrame],
+) -> anyhow::Result<Option<TumourTrack>> {
+    let Some(t) = scene.tumour() else {
+        return Ok(None);
+    };
+    let Some((lung, _)) = lungs.iter().find(|(l, _)| l.side == t.side) else {
+        return Ok(None);
+    };
+    let meta = lung.tumour.as_ref().with_context(|| {
+        format!(
+            "the {} lung's kernel has no tumour record (baked before lungdyn recorded it); bake it again",
+            t.side.name()
+        )
+    })?;
+    let mut centres = Vec::with_capacity(frames.len());
+    for f in frames {
+        let l = &f.lungs[t.side.index()];
+        let n = (l.coeff_count as usize).min(MAX_COEFFS);
+        let d = meta
+            .displacement_mm(scene.lungs.mode, &l.coeffs[..n])
+            .context("the tumour record does not fit the scene's mode; bake the kernel again")?;
+        let p = meta.position_mm(
+            d,
+            l.deform_scale as f64,
+            l.collapse as f64,
+            l.hilum_mm.map(f64::from),
+            l.offset_mm.map(f64::from),
+        );
+        if !p.iter().all(|v| v.is_finite()) {
+            anyhow::bail!(
+                "the tumour centre is not finite: a bug, please report it with the scene"
+            );
+        }
+        centres.push(p);
+    }
+    let motion = [0, 1, 2].map(|a| {
+        let (lo, hi) = centres
+            .iter()
+            .fold((f64::INFINITY, f64::NEG_INFINITY), |(lo, hi), c| {
+                (lo.min(c[a]), hi.max(c[a]))
+            });
+        r3(hi - lo)
+    });
+    Ok(Some(TumourTrack {
+        side: t.side,
+        radii_mm: t.radii_mm,
+        centres_mm: centres,
+        summary: TumourExport {
+            side: t.side.name(),
+            radii_mm: t.radii_mm,
+            motion_mm: motion,
+        },
+    }))
+}
+
+/// The glTF document and its one binary buffer as they are assembled.
+struct Doc {
+    root: json::Root,
+    bin: Vec<u8>,
+}
+
+impl Doc {
+    /// A buffer view over `bytes` (appended at a 4-byte boundary).
+    fn view(
+        &mut self,
+        bytes: &[u8],
+        target: Option<json::buffer::Target>,
+    ) -> json::Index<json::buffer::View> {
+        while self.bin.len() % 4 != 0 {
+            self.bin.push(0);
+        }
+        let offset = self.bin.len();
+        self.bin.extend_from_slice(bytes);
+        self.root.push(json::buffer::View {
+            buffer: json::Index::new(0),
+            byte_length: USize64::from(bytes.len()),
+            byte_offset: Some(USize64::from(offset)),
+            byte_stride: None,
+            name: None,
+            target: target.map(Valid),
+            extensions: None,
+            extras: Default::default(),
+        })
+    }
+
+    /// An accessor of `count` elements of `type_` over a new view of `bytes`.
+    #[allow(clippy::too_many_arguments)]
+    fn accessor(
+        &mut self,
+        bytes: &[u8],
+        target: Option<json::buffer::Target>,
+        count: usize,
+        component: json::accessor::ComponentType,
+        type_: json::accessor::Type,
+        bounds: Option<(serde_json::Value, serde_json::Value)>,
+        name: &str,
+    ) -> json::Index<json::Accessor> {
+        let view = self.view(bytes, target);
+        let (min, max) = bounds.map_or((None, None), |(a, b)| (Some(a), Some(b)));
+        self.root.push(json::Accessor {
+            buffer_view: Some(view),
+            byte_offset: None,
+            count: USize64::from(count),
+            component_type: Valid(json::accessor::GenericComponentType(component)),
+            extensions: None,
+            extras: Default::default(),
+            type_: Valid(type_),
+            min,
+            max,
+            name: Some(name.to_string()),
+            normalized: false,
+            sparse: None,
+        })
+    }
+
+    /// Three-component floats (with the bounds glTF requires of positions when `bounded`).
+    fn vec3(
+        &mut self,
+        v: &[[f32; 3]],
+        vertex: bool,
+        bounded: bool,
+        name: &str,
+    ) -> json::Index<json::Accessor> {
+        let bytes: Vec<u8> = v.iter().flatten().flat_map(|x| x.to_le_bytes()).collect();
+        let bounds = bounded.then(|| {
+            let (mut lo, mut hi) = ([f32::INFINITY; 3], [f32::NEG_INFINITY; 3]);
+            for p in v {
+                for a in 0..3 {
+                    lo[a] = lo[a].min(p[a]);
+                    hi[a] = hi[a].max(p[a]);
+                }
+            }
+            (serde_json::json!(lo), serde_json::json!(hi))
+        });
+        let target = vertex.then_some(json::buffer::Target::ArrayBuffer);
+        self.accessor(
+            &bytes,
+            target,
+            v.len(),
+            json::accessor::ComponentType::F32,
+            json::accessor::Type::Vec3,
+            bounds,
+            name,
+        )
+    }
+
+    /// Scalar floats (an animation's key times carry their bounds).
+    fn scalars(&mut self, v: &[f32], bounded: bool, name: &str) -> json::Index<json::Accessor> {
+        let bytes: Vec<u8> = v.iter().flat_map(|x| x.to_le_bytes()).collect();
+        let bounds = bounded.then(|| {
+            let lo = v.iter().copied().fold(f32::INFINITY, f32::min);
+            let hi = v.iter().copied().fold(f32::NEG_INFINITY, f32::max);
+            (serde_json::json!([lo]), serde_json::json!([hi]))
+        });
+        self.accessor(
+            &bytes,
+            None,
+            v.len(),
+            json::accessor::ComponentType::F32,
+            json::accessor::Type::Scalar,
+            bounds,
+            name,
+        )
+    }
+
+    /// Triangle indices, corners reversed (the body → glTF map is a reflection), 16-bit where the
+    /// vertices allow.
+    fn indices(
+        &mut self,
+        tris: &[[u32; 3]],
+        vertices: usize,
+        name: &str,
+    ) -> json::Index<json::Accessor> {
+        let flat = tris.iter().flat_map(|t| [t[0], t[2], t[1]]);
+        let (bytes, component): (Vec<u8>, _) = if vertices <= u16::MAX as usize {
+            (
+                flat.flat_map(|i| (i as u16).to_le_bytes()).collect(),
+                json::accessor::ComponentType::U16,
+            )
+        } else {
+            (
+                flat.flat_map(u32::to_le_bytes).collect(),
+                json::accessor::ComponentType::U32,
+            )
+        };
+        let target = Some(json::buffer::Target::ElementArrayBuffer);
+        self.accessor(
+            &bytes,
+            target,
+            tris.len() * 3,
+            component,
+            json::accessor::Type::Scalar,
+            None,
+            name,
+        )
+    }
+
+    /// A material of an sRGB colour (converted to glTF's linear base colour factor), blended at
+    /// `opacity` below 1.
+    fn material(&mut self, name: &str, srgb: [u8; 3], opacity: f32) -> json::Index<json::Material> {
+        let lin = |c: u8| {
+            let c = c as f32 / 255.0;
+            if c <= 0.04045 {
+                c / 12.92
+            } else {
+                ((c + 0.055) / 1.055).powf(2.4)
+            }
+        };
+        self.root.push(json::Material {
+            name: Some(name.to_string()),
+            pbr_metallic_roughness: json::material::PbrMetallicRoughness {
+                base_color_factor: json::material::PbrBaseColorFactor([
+                    lin(srgb[0]),
+                    lin(srgb[1]),
+                    lin(srgb[2]),
+                    opacity,
+                ]),
+                metallic_factor: json::material::StrengthFactor(0.0),
+                roughness_factor: json::material::StrengthFactor(0.55),
+                ..Default::default()
+            },
+            alpha_mode: Valid(if opacity < 1.0 {
+                json::material::AlphaMode::Blend
+            } else {
+                json::material::AlphaMode::Opaque
+            }),
+            ..Default::default()
+        })
+    }
+}
+
+fn extras(v: &serde_json::Value) -> anyhow::Result<json::Extras> {
+    Ok(Some(serde_json::value::to_raw_value(v)?))
+}
+
+fn node(name: &str) -> json::Node {
+    json::Node {
+        name: Some(name.to_string()),
+        ..Default::default()
+    }
+}
+
+/// The `.glb` bytes: the lungs, the tumour, the breath's animation and the metadata.
+fn build(
+    name: &str,
+    report: &GltfReport,
+    breath: &Breath,
+    lungs: &[(RenderLung, Vec<Vec<[f32; 3]>>)],
+    tumour: Option<&TumourTrack>,
+) -> anyhow::Result<Vec<u8>> {
+    let mut doc = Doc {
+        root: json::Root::default(),
+        bin: Vec::new(),
+    };
+    // Key times: each frame, then the breath's end showing the first frame again (seamless loop).
+    let mut keys = breath.times_s.clone();
+    keys.push(breath.period_s as f32);
+    let input = doc.scalars(&keys, true, "breath key times (s)");
+    let mut animation = json::Animation {
+        extensions: None,
+        extras: Default::default(),
+        channels: Vec::new(),
+        name: Some("breath".to_string()),
+        samplers: Vec::new(),
+    };
+    let mut children = Vec::new();
+    for (lung, frames) in lungs {
+        let n = lung_node(
+            &mut doc,
+            lung,
+            frames,
+            breath,
+            report.opacity,
+            input,
+            &mut animation,
+        )?;
+        children.push(n);
+    }
+    if let Some(t) = tumour {
+        children.push(tumour_node(&mut doc, t, input, &mut animation));
+    }
+    doc.root.animations.push(animation);
+    let mut top = node(&format!("lungdyn: {name}"));
+    top.children = Some(children);
+    let top = doc.root.push(top);
+    let scene = doc.root.push(json::Scene {
+        extensions: None,
+        extras: Default::default(),
+        name: Some(name.to_string()),
+        nodes: vec![top],
+    });
+    doc.root.scene = Some(scene);
+    doc.root.asset = json::Asset {
+        copyright: None,
+        extensions: None,
+        extras: extras(&metadata(name, report, breath, lungs))?,
+        generator: Some(format!(
+            "lungdyn {} (export gltf)",
+            env!("CARGO_PKG_VERSION")
+        )),
+        min_version: None,
+        version: "2.0".to_string(),
+    };
+    while doc.bin.len() % 4 != 0 {
+        doc.bin.push(0);
+    }
+    doc.root.buffers.push(json::Buffer {
+        byte_length: USize64::from(doc.bin.len()),
+        name: None,
+        uri: None,
+        extensions: None,
+        extras: Default::default(),
+    });
+    let json = json::serialize::to_vec(&doc.root)?;
+    let glb = gltf::binary::Glb {
+        header: gltf::binary::Header {
+            magic: *b"glTF",
+            version: 2,
+            length: 0, // computed by `to_vec`
+        },
+        json: json.into(),
+        bin: Some(doc.bin.into()),
+    };
+    Ok(glb.to_vec()?)
+}
+
+/// One lung: its mesh (base, normals, one morph target per later frame, a primitive per lobe), its
+/// node, and its weights' channel in `animation`.
+fn lung_node(
+    doc: &mut Doc,
+    lung: &RenderLung,
+    frames: &[Vec<[f32; 3]>],
+    breath: &Breath,
+    opacity: f32,
+    input: json::Index<json::Accessor>,
+    animation: &mut json::Animation,
+) -> anyhow::Result<json::Index<json::Node>> {
+    let side = lung.side.name();
+    let base: Vec<[f32; 3]> = frames[0].iter().map(|&p| body_to_gltf(p)).collect();
+    let mut normals = vec![[0.0f32; 3]; base.len()];
+    lung.lung.normals_into(&frames[0], &mut normals);
+    let normals: Vec<[f32; 3]> = normals
+        .iter()
+        .map(|&n| {
+            let g = [n[0], n[2], n[1]];
+            let len = (g[0] * g[0] + g[1] * g[1] + g[2] * g[2]).sqrt();
+            if len > 0.0 && len.is_finite() {
+                g.map(|v| v / len)
+            } else {
+                [0.0, 1.0, 0.0]
+            }
+        })
+        .collect();
+    let position = doc.vec3(&base, true, true, &format!("{side} lung: first frame (m)"));
+    let normal = doc.vec3(&normals, true, false, &format!("{side} lung: normals"));
+    let mut targets = Vec::new();
+    let mut target_names = Vec::new();
+    for (k, f) in frames.iter().enumerate().skip(1) {
+        let delta: Vec<[f32; 3]> = f
+            .iter()
+            .zip(&base)
+            .map(|(&p, b)| {
+                let g = body_to_gltf(p);
+                [g[0] - b[0], g[1] - b[1], g[2] - b[2]]
+            })
+            .collect();
+        let name = format!(
+            "frame {} of {}, {:.2} s, {:.0} ml",
+            k + 1,
+            frames.len(),
+            breath.times_s[k],
+            breath.frames[k].lungs[lung.side.index()].volume_ml
+        );
+        let acc = doc.vec3(&delta, true, true, &format!("{side} lung: {name}"));
+        targets.push(json::mesh::MorphTarget {
+            positions: Some(acc),
+            normals: None,
+            tangents: None,
+        });
+        target_names.push(name);
+    }
+    let mut primitives = Vec::new();
+    for (lobe, tris) in lobe_groups(lung) {
+        let (label, colour) = match lobe {
+            Some(l) => (format!("{l}"), l.colour()),
+            None => (format!("{side} lung"), Lobe::Unknown.colour()),
+        };
+        let material = doc.material(&label, colour, opacity);
+        let indices = doc.indices(&tris, base.len(), &format!("{label}: triangles"));
+        let mut attributes = std::collections::BTreeMap::new();
+        attributes.insert(Valid(json::mesh::Semantic::Positions), position);
+        attributes.insert(Valid(json::mesh::Semantic::Normals), normal);
+        primitives.push(json::mesh::Primitive {
+            attributes,
+            extensions: None,
+            extras: Default::default(),
+            indices: Some(indices),
+            material: Some(material),
+            mode: Valid(json::mesh::Mode::Triangles),
+            targets: Some(targets.clone()),
+        });
+    }
+    let mesh = doc.root.push(json::Mesh {
+        extensions: None,
+        extras: extras(&serde_json::json!({ "targetNames": target_names }))?,
+        name: Some(format!("{side} lung")),
+        primitives,
+        weights: Some(vec![0.0; targets.len()]),
+    });
+    let mut n = node(&format!("{side} lung"));
+    n.mesh = Some(mesh);
+    let n = doc.root.push(n);
+    // Key k shows frame k: weight 1 on its target (frame 0 is the base: all 0); the last key the
+    // first frame again.
+    let t = targets.len();
+    let mut weights = vec![0.0f32; (frames.len() + 1) * t];
+    for k in 1..frames.len() {
+        weights[k * t + (k - 1)] = 1.0;
+    }
+    let output = doc.scalars(&weights, false, &format!("{side} lung: weights per key"));
+    push_channel(
+        animation,
+        input,
+        output,
+        n,
+        json::animation::Property::MorphTargetWeights,
+    );
+    Ok(n)
+}
+
+fn push_channel(
+    animation: &mut json::Animation,
+    input: json::Index<json::Accessor>,
+    output: json::Index<json::Accessor>,
+    node: json::Index<json::Node>,
+    path: json::animation::Property,
+) {
+    let sampler = json::Index::new(animation.samplers.len() as u32);
+    animation.samplers.push(json::animation::Sampler {
+        extensions: None,
+        extras: Default::default(),
+        input,
+        interpolation: Valid(json::animation::Interpolation::Linear),
+        output,
+    });
+    animation.channels.push(json::animation::Channel {
+        sampler,
+        target: json::animation::Target {
+            extensions: None,
+            extras: Default::default(),
+            node,
+            path: Valid(path),
+        },
+        extensions: None,
+        extras: Default::default(),
+    });
+}
+
+/// The tumour: an ellipsoid of its radii about its node's origin, the node moved along the centre's
+/// path on the breath's keys.
+fn tumour_node(
+    doc: &mut Doc,
+    t: &TumourTrack,
+    input: json::Index<json::Accessor>,
+    animation: &mut json::Animation,
+) -> json::Index<json::Node> {
+    let (unit, tris) = renderer::tumour::unit_sphere();
+    let r = t.radii_mm.map(|v| v as f32);
+    let p: Vec<[f32; 3]> = unit
+        .iter()
+        .map(|u| body_to_gltf([u[0] * r[0], u[1] * r[1], u[2] * r[2]]))
+        .collect();
+    let normals: Vec<[f32; 3]> = unit
+        .iter()
+        .map(|u| {
+            // An ellipsoid's normal: the unit sphere's divided by the radii, normalised.
+            let n = body_to_gltf([u[0] / r[0], u[1] / r[1], u[2] / r[2]]);
+            let len = (n[0] * n[0] + n[1] * n[1] + n[2] * n[2]).sqrt();
+            n.map(|v| v / len)
+        })
+        .collect();
+    let position = doc.vec3(&p, true, true, "tumour: ellipsoid (m)");
+    let normal = doc.vec3(&normals, true, false, "tumour: normals");
+    let indices = doc.indices(&tris, p.len(), "tumour: triangles");
+    let material = doc.material("tumour", [140, 235, 30], 1.0);
+    let mut attributes = std::collections::BTreeMap::new();
+    attributes.insert(Valid(json::mesh::Semantic::Positions), position);
+    attributes.insert(Valid(json::mesh::Semantic::Normals), normal);
+    let mesh = doc.root.push(json::Mesh {
+        extensions: None,
+        extras: Default::default(),
+        name: Some("tumour".to_string()),
+        primitives: vec![json::mesh::Primitive {
+            attributes,
+            extensions: None,
+            extras: Default::default(),
+            indices: Some(indices),
+            material: Some(material),
+            mode: Valid(json::mesh::Mode::Triangles),
+            targets: None,
+        }],
+        weights: None,
+    });
+    let centre = |c: &[f64; 3]| body_to_gltf(c.map(|v| v as f32));
+    let mut n = node(&format!("tumour ({} lung)", t.side.name()));
+    n.mesh = Some(mesh);
+    n.translation = Some(centre(&t.centres_mm[0]));
+    let n = doc.root.push(n);
+    let mut path: Vec<[f32; 3]> = t.centres_mm.iter().map(centre).collect();
+    path.push(path[0]);
+    let output = doc.vec3(&path, false, false, "tumour: centre per key (m)");
+    push_channel(
+        animation,
+        input,
+        output,
+        n,
+        json::animation::Property::Translation,
+    );
+    n
+}
+
+/// `asset.extras.lungdyn`: what a reader of the file needs to know of it.
+fn metadata(
+    name: &str,
+    report: &GltfReport,
+    breath: &Breath,
+    lungs: &[(RenderLung, Vec<Vec<[f32; 3]>>)],
+) -> serde_json::Value {
+    let volumes: serde_json::Map<String, serde_json::Value> = lungs
+        .iter()
+        .map(|(l, _)| {
+            let v: Vec<f64> = breath
+                .frames
+                .iter()
+                .map(|f| (f.lungs[l.side.index()].volume_ml as f64 * 10.0).round() / 10.0)
+                .collect();
+            (l.side.name().to_string(), serde_json::json!(v))
+        })
+        .collect();
+    serde_json::json!({
+        "lungdyn": {
+            "scene": name,
+            "scene_file": report.scene,
+            "mode": report.mode,
+            "breath": report.breath,
+            "frames": report.frames,
+            "period_s": r3(report.period_s),
+            "breaths_per_min": r3(60.0 / report.period_s),
+            "frame_times_s": breath.times_s,
+            "volume_ml": volumes,
+            "lungs": report.lungs,
+            "tumour": report.tumour,
+            "opacity": report.opacity,
+            "frame": "glTF metres: +X patient left, +Y superior, +Z anterior (lungdyn's body frame \
+                      (X, Y, Z) mm → glTF (X, Z, Y) / 1000)",
+            "animation": "'breath': key k shows frame k (morph target k, frame 1 the base mesh), the \
+                          last key frame 1 again; linear between keys",
+        }
+    })
+}
+
+/// Text of the report.
+pub fn text(r: &GltfReport) -> String {
+    let mut s = format!(
+        "wrote {} ({:.2} MB): one breath of {} ({} mode), breath {} of the run, {} frames over {:.2} s \
+         ({:.1} breaths/min)\n",
+        r.out,
+        r.bytes as f64 / 1e6,
+        r.scene,
+        r.mode,
+        r.breath,
+        r.frames,
+        r.period_s,
+        60.0 / r.period_s
+    );
+    for l in &r.lungs {
+        s += &format!(
+            "  {} lung: {} vertices, {} triangles, {} ml → {} ml, moves up to {:.1} mm; {}\n",
+            l.side,
+            l.vertices,
+            l.triangles,
+            l.volume_ml[0].round(),
+            l.volume_ml[1].round(),
+            l.max_motion_mm,
+            if l.lobes.is_empty() {
+                "no lobes in the kernel (one material)".to_string()
+            } else {
+                format!("lobes: {}", l.lobes.join(", "))
+            }
+        );
+    }
+    if let Some(t) = &r.tumour {
+        s += &format!(
+            "  tumour in the {} lung: radii {:?} mm, its centre moves {:.1} / {:.1} / {:.1} mm \
+             (left-right / anterior-posterior / superior-inferior)\n",
+            t.side, t.radii_mm, t.motion_mm[0], t.motion_mm[1], t.motion_mm[2]
+        );
+    }
+    if r.opacity < 1.0 {
+        s += &format!(
+            "  the lungs are see-through (opacity {}; --opacity 1 for opaque)\n",
+            r.opacity
+        );
+    }
+    s += &format!(
+        "  open it in any glTF viewer (its animation 'breath' loops the breath), e.g. drop it on \
+         https://gltf-viewer.donmccurdy.com or Blender (File > Import > glTF 2.0); took {:.1} s\n",
+        r.seconds
+    );
+    s
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn the_body_frame_maps_onto_gltf_with_the_patient_facing_the_viewer() {
+        // Patient left (+X) stays +x; superior (+Z) becomes up (+y); anterior (+Y) the front (+z).
+        assert_eq!(body_to_gltf([1000.0, 0.0, 0.0]), [1.0, 0.0, 0.0]);
+        assert_eq!(body_to_gltf([0.0, 0.0, 1000.0]), [0.0, 1.0, 0.0]);
+        assert_eq!(body_to_gltf([0.0, 1000.0, 0.0]), [0.0, 0.0, 1.0]);
+    }
+}

@@ -1,0 +1,369 @@
+//! `lungdyn export gltf` judged from outside (issue 38 item 2): one breath of the tumour scene
+//! (both lungs with their lobes and the tumour) written as .glb, then
+//! * read back with the `gltf` crate's reader: every frame rebuilt from the base and its morph
+//!   target encloses the volume the engine gave that frame (a wrong target, a lost frame or an
+//!   inward winding shows), the right lung on the patient's right (−x), the tumour inside it;
+//! * judged by the Khronos glTF validator (npm `gltf-validator`): no error, no warning;
+//! * shown by Google's `<model-viewer>` in headless Chromium: both lungs in the picture, the right
+//!   lung's middle lobe (green) on the viewer's left of the left lung's upper lobe (orange), as a
+//!   patient facing the viewer, the tumour showing through the see-through lungs, and at the
+//!   breath's largest volume the lungs larger and the tumour lower than at its start.
+
+use std::path::{Path, PathBuf};
+use std::process::Command;
+use std::sync::OnceLock;
+
+use lungdyn_tests::lungdyn;
+
+fn workspace_root() -> PathBuf {
+    Path::new(env!("CARGO_MANIFEST_DIR"))
+        .parent()
+        .unwrap()
+        .to_path_buf()
+}
+
+const FRAMES: usize = 12;
+
+struct Exported {
+    glb: PathBuf,
+    report: serde_json::Value,
+    dir: PathBuf,
+}
+
+/// The tumour scene at 2000 vertices per lung, exported once for the tests of this file.
+fn exported() -> &'static Exported {
+    static ONCE: OnceLock<Exported> = OnceLock::new();
+    ONCE.get_or_init(|| {
+        let dir = std::env::temp_dir().join(format!("lungdyn-gltf-{}", std::process::id()));
+        let _ = std::fs::remove_dir_all(&dir);
+        std::fs::create_dir_all(&dir).unwrap();
+        let glb = dir.join("breath.glb");
+        let scene = workspace_root().join("scenes/tumour_right_lower.toml");
+        let frames = FRAMES.to_string();
+        let (ok, out, err) = lungdyn(&[
+            "export",
+            "gltf",
+            "--scene",
+            scene.to_str().unwrap(),
+            "--vertices",
+            "2000",
+            "--frames",
+            &frames,
+            "--out",
+            glb.to_str().unwrap(),
+            "--kernels",
+            dir.join("kernels").to_str().unwrap(),
+            "--json",
+        ]);
+        assert!(ok, "export gltf failed: {err}");
+        let report: serde_json::Value = serde_json::from_str(out.trim()).expect("--json");
+        Exported { glb, report, dir }
+    })
+}
+
+/// The file as the `gltf` crate's reader sees it (its own GLB parsing and validation).
+fn read(path: &Path) -> gltf::Gltf {
+    gltf::Gltf::from_slice(&std::fs::read(path).unwrap()).expect("the gltf crate reads the file")
+}
+
+/// `asset.extras`, where the export puts the scene's figures.
+fn asset_extras(file: &gltf::Gltf) -> serde_json::Value {
+    let raw = file
+        .document
+        .as_json()
+        .asset
+        .extras
+        .as_ref()
+        .expect("asset extras");
+    serde_json::from_str(raw.get()).unwrap()
+}
+
+/// Enclosed volume of a closed triangle mesh, in the units cubed (positive: wound outward).
+fn signed_volume(p: &[[f32; 3]], tris: &[[u32; 3]]) -> f64 {
+    tris.iter()
+        .map(|t| {
+            let [a, b, c] = t.map(|i| p[i as usize].map(f64::from));
+            (a[0] * (b[1] * c[2] - b[2] * c[1]) - a[1] * (b[0] * c[2] - b[2] * c[0])
+                + a[2] * (b[0] * c[1] - b[1] * c[0]))
+                / 6.0
+        })
+        .sum()
+}
+
+#[test]
+fn the_exported_breath_reads_back_with_the_engines_volumes_and_the_patients_anatomy() {
+    let e = exported();
+    let file = read(&e.glb);
+    let doc = &file.document;
+    let blob = file.blob.as_deref().expect("the .glb's binary chunk");
+    let meta = &e.report;
+    assert_eq!(meta["frames"], FRAMES, "{meta}");
+    let extras = asset_extras(&file);
+    let lungdyn = &extras["lungdyn"];
+    let anim = doc.animations().next().expect("one animation");
+    assert_eq!(anim.name(), Some("breath"));
+    let mut centroids = Vec::new();
+    for node in doc
+        .nodes()
+        .filter(|n| n.name().is_some_and(|s| s.ends_with("lung")))
+    {
+        let side = node.name().unwrap().split(' ').next().unwrap().to_string();
+        let mesh = node.mesh().unwrap();
+        let mut tris: Vec<[u32; 3]> = Vec::new();
+        let mut base: Vec<[f32; 3]> = Vec::new();
+        let mut targets: Vec<Vec<[f32; 3]>> = Vec::new();
+        for prim in mesh.primitives() {
+            let r = prim.reader(|b| (b.index() == 0).then_some(blob));
+            let idx: Vec<u32> = r.read_indices().unwrap().into_u32().collect();
+            tris.extend(idx.chunks(3).map(|c| [c[0], c[1], c[2]]));
+            base = r.read_positions().unwrap().collect();
+            targets = r
+                .read_morph_targets()
+                .map(|(p, _, _)| p.unwrap().collect())
+                .collect();
+        }
+        assert_eq!(
+            targets.len(),
+            FRAMES - 1,
+            "{side}: a target per frame after the first"
+        );
+        let volumes = lungdyn["volume_ml"][&side].as_array().unwrap();
+        for k in 0..FRAMES {
+            let p: Vec<[f32; 3]> = if k == 0 {
+                base.clone()
+            } else {
+                base.iter()
+                    .zip(&targets[k - 1])
+                    .map(|(b, d)| [b[0] + d[0], b[1] + d[1], b[2] + d[2]])
+                    .collect()
+            };
+            // m³ → ml.
+            let v = signed_volume(&p, &tris) * 1e6;
+            let engine = volumes[k].as_f64().unwrap();
+            assert!(
+                (v - engine).abs() < 0.01 * engine,
+                "{side} lung, frame {k}: the file's mesh encloses {v:.1} ml, the engine gave {engine} ml"
+            );
+        }
+        let c = base.iter().fold([0.0f64; 3], |s, p| {
+            [0, 1, 2].map(|a| s[a] + p[a] as f64 / base.len() as f64)
+        });
+        centroids.push((side, c, base));
+    }
+    assert_eq!(centroids.len(), 2, "both lungs");
+    for (side, c, _) in &centroids {
+        // glTF +x is the patient's left (a patient facing the viewer).
+        let expected = if side == "right" { -1.0 } else { 1.0 };
+        assert!(
+            c[0] * expected > 0.02,
+            "{side} lung's centre at x = {:.3} m",
+            c[0]
+        );
+    }
+    // The tumour sits in the right lower lobe: inside the right lung's box, in its lower half.
+    let tumour = doc
+        .nodes()
+        .find(|n| n.name().is_some_and(|s| s.starts_with("tumour")))
+        .expect("a tumour node");
+    let t = tumour.transform().decomposed().0;
+    let (_, _, right) = centroids.iter().find(|(s, _, _)| s == "right").unwrap();
+    let (lo, hi) = right
+        .iter()
+        .fold(([f32::MAX; 3], [f32::MIN; 3]), |(lo, hi), p| {
+            (
+                [0, 1, 2].map(|a| lo[a].min(p[a])),
+                [0, 1, 2].map(|a| hi[a].max(p[a])),
+            )
+        });
+    assert!(
+        (0..3).all(|a| t[a] > lo[a] && t[a] < hi[a]) && t[1] < 0.5 * (lo[1] + hi[1]),
+        "tumour at {t:?} m, right lung within {lo:?}..{hi:?}"
+    );
+    let motion = &meta["tumour"]["motion_mm"];
+    assert!(
+        motion[2].as_f64().unwrap() > 1.0,
+        "the tumour moves with the breath, superior-inferior most: {motion}"
+    );
+}
+
+#[test]
+fn the_khronos_validator_finds_no_error_and_no_warning() {
+    let root = workspace_root();
+    let Some(modules) = lungdyn_needs::node_modules(
+        &root,
+        &["gltf-validator"],
+        lungdyn_needs::Need::GltfValidator,
+    ) else {
+        return;
+    };
+    let e = exported();
+    let out = Command::new("node")
+        .arg(root.join("tests/peers/gltf_validate.mjs"))
+        .arg(&modules)
+        .arg(&e.glb)
+        .output()
+        .unwrap();
+    assert!(
+        out.status.success(),
+        "{}",
+        String::from_utf8_lossy(&out.stderr)
+    );
+    let v: serde_json::Value = serde_json::from_slice(&out.stdout).unwrap();
+    let issues = &v["issues"];
+    let fixture = format!(
+        "validator {}: {} errors, {} warnings, {} infos, {} hints; messages: {}",
+        v["validatorVersion"],
+        issues["numErrors"],
+        issues["numWarnings"],
+        issues["numInfos"],
+        issues["numHints"],
+        issues["messages"]
+    );
+    eprintln!("{fixture}");
+    assert_eq!(issues["numErrors"], 0, "{fixture}");
+    assert_eq!(issues["numWarnings"], 0, "{fixture}");
+    assert_eq!(v["info"]["animationCount"], 1, "{v}");
+}
+
+/// What a screenshot shows, by colour.
+#[derive(Debug, Clone, Copy, Default)]
+struct Shot {
+    /// Pixels of any lung (coloured, not the white page).
+    lung: usize,
+    /// The right lung's middle lobe (green, pale): count and mean x.
+    green: (usize, f64),
+    /// The left lung's upper lobe (orange): count and mean x.
+    orange: (usize, f64),
+    /// The tumour (saturated yellow-green): count and mean y.
+    tumour: (usize, f64),
+}
+
+fn read_shot(path: &Path) -> Shot {
+    let img = image::open(path).unwrap().to_rgb8();
+    let mut s = Shot::default();
+    let add = |acc: &mut (usize, f64), v: u32| {
+        acc.0 += 1;
+        acc.1 += v as f64;
+    };
+    for (x, y, p) in img.enumerate_pixels() {
+        let [r, g, b] = p.0.map(|c| c as f64 / 255.0);
+        let (max, min) = (r.max(g).max(b), r.min(g).min(b));
+        let sat = if max > 0.0 { (max - min) / max } else { 0.0 };
+        if max - min < 0.04 || sat < 0.08 {
+            continue; // the white page, greys
+        }
+        s.lung += 1;
+        let hue = if max == r {
+            60.0 * ((g - b) / (max - min)).rem_euclid(6.0)
+        } else if max == g {
+            60.0 * ((b - r) / (max - min) + 2.0)
+        } else {
+            60.0 * ((r - g) / (max - min) + 4.0)
+        };
+        if sat > 0.5 && (70.0..=110.0).contains(&hue) {
+            add(&mut s.tumour, y);
+        } else if (100.0..=150.0).contains(&hue) {
+            add(&mut s.green, x);
+        } else if (25.0..=60.0).contains(&hue) {
+            add(&mut s.orange, x);
+        }
+    }
+    for acc in [&mut s.green, &mut s.orange, &mut s.tumour] {
+        acc.1 /= acc.0.max(1) as f64;
+    }
+    s
+}
+
+#[test]
+fn model_viewer_in_chromium_shows_both_lungs_breathing_the_right_way_round() {
+    let root = workspace_root();
+    let Some(modules) = lungdyn_needs::node_modules(
+        &root,
+        &["playwright-core", "@google/model-viewer"],
+        lungdyn_needs::Need::Browser,
+    ) else {
+        return;
+    };
+    let Some(chromium) = lungdyn_needs::chromium() else {
+        return;
+    };
+    let e = exported();
+    let extras = &e.report;
+    // The breath's start, and the frame of the right lung's largest volume.
+    let meta = asset_extras(&read(&e.glb));
+    let vols: Vec<f64> = meta["lungdyn"]["volume_ml"]["right"]
+        .as_array()
+        .unwrap()
+        .iter()
+        .map(|v| v.as_f64().unwrap())
+        .collect();
+    let top = (0..vols.len())
+        .max_by(|&a, &b| vols[a].total_cmp(&vols[b]))
+        .unwrap();
+    let t_top = meta["lungdyn"]["frame_times_s"][top].as_f64().unwrap();
+    let prefix = e.dir.join("shot");
+    let out = Command::new("node")
+        .arg(root.join("tests/peers/gltf_view.mjs"))
+        .arg(&modules)
+        .arg(&chromium)
+        .arg(&e.glb)
+        .arg(&prefix)
+        .args(["0", &format!("{t_top}")])
+        .output()
+        .unwrap();
+    assert!(
+        out.status.success(),
+        "{}\n{}",
+        String::from_utf8_lossy(&out.stdout),
+        String::from_utf8_lossy(&out.stderr)
+    );
+    let v: serde_json::Value = serde_json::from_slice(&out.stdout).unwrap();
+    assert_eq!(v["loaded"], true, "model-viewer did not load the file: {v}");
+    assert_eq!(v["animations"][0], "breath", "{v}");
+    let period = extras["period_s"].as_f64().unwrap();
+    assert!(
+        (v["duration_s"].as_f64().unwrap() - period).abs() < 0.01,
+        "the viewer's animation lasts {} s, the breath {period} s",
+        v["duration_s"]
+    );
+    let start = read_shot(&PathBuf::from(format!("{}_0.png", prefix.display())));
+    let full = read_shot(&PathBuf::from(format!("{}_1.png", prefix.display())));
+    eprintln!(
+        "screenshots: start {start:?}, largest volume {full:?}; in {}",
+        e.dir.display()
+    );
+    for (what, s) in [("start", start), ("largest volume", full)] {
+        assert!(
+            s.lung > 20_000,
+            "{what}: only {} lung pixels of 480000",
+            s.lung
+        );
+        assert!(
+            s.green.0 > 500 && s.orange.0 > 500,
+            "{what}: both lungs' lobes in view: {s:?}"
+        );
+        assert!(
+            s.green.1 < 400.0 && s.orange.1 > 400.0,
+            "{what}: the right lung (green middle lobe, mean x {:.0}) must be on the viewer's left \
+             and the left lung (orange upper lobe, {:.0}) on the right: {s:?}",
+            s.green.1,
+            s.orange.1
+        );
+        assert!(
+            s.tumour.0 > 100,
+            "{what}: the tumour shows through the lungs: {s:?}"
+        );
+    }
+    assert!(
+        full.lung as f64 > 1.01 * start.lung as f64,
+        "the lungs at their largest volume cover {} px, at the start {} px: no breath seen",
+        full.lung,
+        start.lung
+    );
+    assert!(
+        full.tumour.1 > start.tumour.1 + 2.0,
+        "the tumour descends with the diaphragm on inspiration (image y {:.1} → {:.1} px)",
+        start.tumour.1,
+        full.tumour.1
+    );
+}
