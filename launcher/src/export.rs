@@ -46,6 +46,10 @@ use serde::Serialize;
 pub const DEFAULT_FRAMES: u32 = 24;
 /// The most frames a breath may be exported with (morph targets cost a copy of the mesh each).
 pub const MAX_FRAMES: u32 = 240;
+/// The latest breath `--breath` may ask for (each costs a breath of simulated time).
+pub const MAX_BREATH: u32 = 50;
+/// The largest file written: past it, fewer frames or vertices are asked for.
+pub const MAX_FILE_BYTES: u64 = 1 << 30;
 /// Simulated seconds within which the breath asked for must have ended.
 const MAX_SIMULATED_S: f64 = 300.0;
 
@@ -62,7 +66,7 @@ pub struct GltfArgs {
     /// Frames over the breath, 2..=240: the first is the base mesh, each later one a morph target.
     #[arg(long, default_value_t = DEFAULT_FRAMES)]
     pub frames: u32,
-    /// Which complete breath to export, counted from the start of the run (the first starts from
+    /// Which breath to export, 1..=50, counted from the start of the run (the first starts from
     /// the scene's initial state; the second, the default, is the steady breath).
     #[arg(long, default_value_t = 2)]
     pub breath: u32,
@@ -165,6 +169,24 @@ pub fn run(args: &GltfArgs) -> anyhow::Result<GltfReport> {
         || "built-in default".to_string(),
         |p| p.display().to_string(),
     );
+    // The generated lungs' size is known before baking them: refuse an oversized file first.
+    let generated = scene
+        .lungs
+        .sides
+        .iter()
+        .filter(|&&side| scene.lungs.kernels.get(side).is_none())
+        .count() as u64;
+    let early = generated * scene.lungs.vertices as u64 * 12 * (u64::from(args.frames) + 1);
+    if early > MAX_FILE_BYTES {
+        anyhow::bail!(
+            "the file would be more than {:.1} GB ({} frames of {generated} × {} vertices): at most \
+             {:.1} GB is written; ask for fewer --frames or --vertices",
+            early as f64 / 1e9,
+            args.frames,
+            scene.lungs.vertices,
+            MAX_FILE_BYTES as f64 / 1e9
+        );
+    }
     let prepared = crate::prepare::prepare(scene, &args.kernels)?;
     let scene = prepared.scene;
     eprintln!(
@@ -172,14 +194,18 @@ pub fn run(args: &GltfArgs) -> anyhow::Result<GltfReport> {
         args.breath, args.frames
     );
     let breath = sample_breath(&scene, args.frames as usize, args.breath)?;
-    let mut lungs = Vec::new();
+    let mut loaded = Vec::new();
     for &side in &scene.lungs.sides {
         let kernel = scene.lung_kernel(side)?;
         let lung = RenderLung::from_kernel(&kernel, scene.lungs.mode)
             .with_context(|| format!("the {} lung's kernel", side.name()))?;
-        let positions = deformed_frames(&lung, &breath.frames)?;
-        lungs.push((lung, positions));
+        loaded.push(lung);
     }
+    check_size(&loaded, args.frames)?;
+    let lungs = loaded
+        .into_iter()
+        .map(|lung| deformed_frames(&lung, &breath.frames).map(|p| (lung, p)))
+        .collect::<anyhow::Result<Vec<_>>>()?;
     let tumour = tumour_track(&scene, &lungs, &breath.frames)?;
     let name = args.scene.as_ref().and_then(|p| p.file_stem()).map_or_else(
         || "default".to_string(),
@@ -214,6 +240,28 @@ pub fn run(args: &GltfArgs) -> anyhow::Result<GltfReport> {
     Ok(report)
 }
 
+/// Refuse a file past [`MAX_FILE_BYTES`] before computing its frames (each frame after the first
+/// costs 12 bytes per vertex; GLB cannot hold more than 4 GiB).
+fn check_size(lungs: &[RenderLung], frames: u32) -> anyhow::Result<()> {
+    let estimate: u64 = lungs
+        .iter()
+        .map(|l| {
+            let (v, t) = (l.lung.len() as u64, l.lung.triangles.len() as u64);
+            v * 12 * (u64::from(frames) + 1) + t * 12
+        })
+        .sum();
+    if estimate > MAX_FILE_BYTES {
+        anyhow::bail!(
+            "the file would be about {:.1} GB ({frames} frames of {} vertices): at most {:.1} GB is \
+             written; ask for fewer --frames or --vertices",
+            estimate as f64 / 1e9,
+            lungs.iter().map(|l| l.lung.len()).sum::<usize>(),
+            MAX_FILE_BYTES as f64 / 1e9
+        );
+    }
+    Ok(())
+}
+
 fn check_args(args: &GltfArgs) -> anyhow::Result<()> {
     if !(2..=MAX_FRAMES).contains(&args.frames) {
         anyhow::bail!(
@@ -229,9 +277,11 @@ fn check_args(args: &GltfArgs) -> anyhow::Result<()> {
             );
         }
     }
-    if args.breath == 0 {
+    if args.breath == 0 || args.breath > MAX_BREATH {
         anyhow::bail!(
-            "--breath 0: breaths are counted from 1 (the first complete breath of the run)"
+            "--breath {}: give 1 to {MAX_BREATH} (breaths are counted from 1, the run's first, which \
+             starts from the scene's initial state)",
+            args.breath
         );
     }
     let ext = args.out.extension().and_then(|e| e.to_str()).unwrap_or("");
@@ -246,8 +296,9 @@ fn check_args(args: &GltfArgs) -> anyhow::Result<()> {
     Ok(())
 }
 
-/// Run `scene` headless to the end of its `breath`-th complete breath (counted on its first lung:
-/// a breath runs from one cycle change to the next) and keep `n` frames evenly spread over it.
+/// Run `scene` headless to the end of its `breath`-th breath (counted on its first lung: the engine
+/// starts a lung at the start of inspiration, so its first breath runs from tick 0 to its first cycle
+/// change, each later one from a change to the next) and keep `n` frames evenly spread over it.
 fn sample_breath(scene: &Scene, n: usize, breath: u32) -> anyhow::Result<Breath> {
     let hz = scene.engine.tick_hz;
     let reference = *scene
@@ -257,7 +308,9 @@ fn sample_breath(scene: &Scene, n: usize, breath: u32) -> anyhow::Result<Breath>
         .context("the scene has no lungs to export")?;
     let slot = reference.index();
     let max_ticks = (MAX_SIMULATED_S * hz).round() as u64;
-    let mut changes = 0u32;
+    // Breaths begun so far: the first active frame begins one when it is at the start of
+    // inspiration (a run that starts mid-breath waits for the next cycle change).
+    let mut begun = 0u32;
     let mut last_cycle: Option<u32> = None;
     let mut kept: Vec<EngineFrame> = Vec::new();
     let mut done = false;
@@ -268,29 +321,54 @@ fn sample_breath(scene: &Scene, n: usize, breath: u32) -> anyhow::Result<Breath>
         &mut |_tick, f| {
             let l = &f.lungs[slot];
             if l.is_active() {
-                if last_cycle.is_some_and(|c| c != l.cycle) {
-                    changes += 1;
+                match last_cycle {
+                    None if l.phase.abs() < 1e-6 => begun = 1,
+                    Some(c) if c != l.cycle => begun += 1,
+                    _ => {}
                 }
                 last_cycle = Some(l.cycle);
             }
-            if changes == breath + 1 {
+            if begun > breath {
                 done = true;
                 return false;
             }
-            if changes == breath {
+            if begun == breath {
                 kept.push(*f);
             }
             true
         },
     )?;
-    if !done || kept.len() < n {
+    let side = reference.name();
+    if !done {
         anyhow::bail!(
-            "the {} lung completed {} breath(s) in {MAX_SIMULATED_S} s of simulated time, not the {} \
-             asked for with at least {n} ticks: a held, arrested or very slow breath has no breath \
-             to export (lungdyn scene run shows the scene's course)",
-            reference.name(),
-            changes.saturating_sub(1),
-            breath
+            "the {side} lung completed {} breath(s) in {MAX_SIMULATED_S} s of simulated time, not the \
+             {breath} --breath asks for: an arrested or very slow breath has no breath to export \
+             (lungdyn scene run shows the scene's course)",
+            begun.saturating_sub(1)
+        );
+    }
+    if kept.len() < n {
+        anyhow::bail!(
+            "breath {breath} of the {side} lung lasts {} engine ticks, fewer than the {n} --frames asked \
+             for: give at most {} frames",
+            kept.len(),
+            kept.len()
+        );
+    }
+    let held = kept
+        .iter()
+        .any(|f| f.lungs[slot].flags & ipc_types::lung_flags::HELD != 0);
+    let (lo, hi) = kept
+        .iter()
+        .fold((f32::INFINITY, f32::NEG_INFINITY), |(lo, hi), f| {
+            let v = f.lungs[slot].volume_ml;
+            (lo.min(v), hi.max(v))
+        });
+    if held || hi - lo < 1.0 {
+        anyhow::bail!(
+            "the {side} lung does not breathe in breath {breath} (volume {lo:.0}–{hi:.0} ml{}): \
+             nothing to export as a breath",
+            if held { ", held" } else { "" }
         );
     }
     let len = kept.len();
@@ -970,8 +1048,9 @@ fn metadata(
             "opacity": report.opacity,
             "frame": "glTF metres: +X patient left, +Y superior, +Z anterior (lungdyn's body frame \
                       (X, Y, Z) mm → glTF (X, Z, Y) / 1000)",
-            "animation": "'breath': key k shows frame k (morph target k, frame 1 the base mesh), the \
-                          last key frame 1 again; linear between keys",
+            "animation": "'breath': key 0 shows frame 0 (the base mesh, every weight 0), key k > 0 \
+                          frame k (weight 1 on morph target k - 1), the last key frame 0 again; \
+                          linear between keys",
         }
     })
 }
@@ -1037,5 +1116,49 @@ mod tests {
         assert_eq!(body_to_gltf([1000.0, 0.0, 0.0]), [1.0, 0.0, 0.0]);
         assert_eq!(body_to_gltf([0.0, 0.0, 1000.0]), [0.0, 1.0, 0.0]);
         assert_eq!(body_to_gltf([0.0, 1000.0, 0.0]), [0.0, 0.0, 1.0]);
+    }
+
+    #[test]
+    fn indices_are_16_bit_up_to_65535_vertices_then_32_bit_with_the_corners_reversed() {
+        let tris = [[0u32, 1, 65_535], [2, 3, 4]];
+        for (vertices, size, kind) in [
+            (65_535usize, 2usize, json::accessor::ComponentType::U16),
+            (70_000, 4, json::accessor::ComponentType::U32),
+        ] {
+            let mut doc = Doc {
+                root: json::Root::default(),
+                bin: Vec::new(),
+            };
+            let a = doc.indices(&tris, vertices, "t");
+            let acc = &doc.root.accessors[a.value()];
+            assert_eq!(acc.count.0, 6);
+            match &acc.component_type {
+                Valid(json::accessor::GenericComponentType(k)) => assert_eq!(*k, kind),
+                other => panic!("{other:?}"),
+            }
+            assert_eq!(doc.bin.len(), 6 * size);
+            let read = |i: usize| {
+                let b = &doc.bin[i * size..(i + 1) * size];
+                b.iter().rev().fold(0u32, |v, &x| (v << 8) | x as u32)
+            };
+            let v: Vec<u32> = (0..6).map(read).collect();
+            assert_eq!(v, [0, 65_535, 1, 2, 4, 3]);
+        }
+    }
+
+    #[test]
+    fn position_bounds_are_the_datas_own_and_every_view_starts_on_four_bytes() {
+        let mut doc = Doc {
+            root: json::Root::default(),
+            bin: Vec::new(),
+        };
+        doc.indices(&[[0, 1, 2]], 3, "odd: 6 bytes");
+        let a = doc.vec3(&[[1.0, -2.0, 0.5], [-1.0, 3.0, 0.25]], true, true, "p");
+        let acc = &doc.root.accessors[a.value()];
+        assert_eq!(acc.min, Some(serde_json::json!([-1.0, -2.0, 0.25])));
+        assert_eq!(acc.max, Some(serde_json::json!([1.0, 3.0, 0.5])));
+        for v in &doc.root.buffer_views {
+            assert_eq!(v.byte_offset.map_or(0, |o| o.0) % 4, 0);
+        }
     }
 }

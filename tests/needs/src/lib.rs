@@ -129,7 +129,7 @@ impl Need {
             }
             Need::Browser => {
                 "install Chromium and the page's packages: `./run test` installs them (`sudo apt-get \
-                 install chromium`, then `npm install --prefix target/npm playwright-core@1.65.2 \
+                 install chromium`, then `npm install --prefix target/npm playwright-core@1.58.2 \
                  @google/model-viewer@4.4.0`); LUNGDYN_CHROMIUM names another Chromium"
             }
         }
