@@ -146,6 +146,18 @@ pub fn body_to_gltf(p: [f32; 3]) -> [f32; 3] {
     [p[0] * 1e-3, p[2] * 1e-3, p[1] * 1e-3]
 }
 
+/// A body-frame direction as a glTF unit vector (the axes of [`body_to_gltf`], no scaling); +y for
+/// a zero or non-finite one.
+fn unit_gltf_direction(d: [f32; 3]) -> [f32; 3] {
+    let g = [d[0], d[2], d[1]];
+    let len = (g[0] * g[0] + g[1] * g[1] + g[2] * g[2]).sqrt();
+    if len > 0.0 && len.is_finite() {
+        g.map(|v| v / len)
+    } else {
+        [0.0, 1.0, 0.0]
+    }
+}
+
 /// One breath's frames as the engine wrote them.
 struct Breath {
     /// The frames, evenly spaced over the breath (the first at its start).
@@ -693,14 +705,7 @@ impl Doc {
     /// A material of an sRGB colour (converted to glTF's linear base colour factor), blended at
     /// `opacity` below 1.
     fn material(&mut self, name: &str, srgb: [u8; 3], opacity: f32) -> json::Index<json::Material> {
-        let lin = |c: u8| {
-            let c = c as f32 / 255.0;
-            if c <= 0.04045 {
-                c / 12.92
-            } else {
-                ((c + 0.055) / 1.055).powf(2.4)
-            }
-        };
+        let lin = renderer::draw::srgb_to_linear;
         self.root.push(json::Material {
             name: Some(name.to_string()),
             pbr_metallic_roughness: json::material::PbrMetallicRoughness {
@@ -834,18 +839,7 @@ fn lung_node(
     let base: Vec<[f32; 3]> = frames[0].iter().map(|&p| body_to_gltf(p)).collect();
     let mut normals = vec![[0.0f32; 3]; base.len()];
     lung.lung.normals_into(&frames[0], &mut normals);
-    let normals: Vec<[f32; 3]> = normals
-        .iter()
-        .map(|&n| {
-            let g = [n[0], n[2], n[1]];
-            let len = (g[0] * g[0] + g[1] * g[1] + g[2] * g[2]).sqrt();
-            if len > 0.0 && len.is_finite() {
-                g.map(|v| v / len)
-            } else {
-                [0.0, 1.0, 0.0]
-            }
-        })
-        .collect();
+    let normals: Vec<[f32; 3]> = normals.iter().map(|&n| unit_gltf_direction(n)).collect();
     let position = doc.vec3(&base, true, true, &format!("{side} lung: first frame (m)"));
     let normal = doc.vec3(&normals, true, false, &format!("{side} lung: normals"));
     let mut targets = Vec::new();
@@ -967,12 +961,8 @@ fn tumour_node(
         .collect();
     let normals: Vec<[f32; 3]> = unit
         .iter()
-        .map(|u| {
-            // An ellipsoid's normal: the unit sphere's divided by the radii, normalised.
-            let n = body_to_gltf([u[0] / r[0], u[1] / r[1], u[2] / r[2]]);
-            let len = (n[0] * n[0] + n[1] * n[1] + n[2] * n[2]).sqrt();
-            n.map(|v| v / len)
-        })
+        // An ellipsoid's normal: the unit sphere's divided by the radii, normalised.
+        .map(|u| unit_gltf_direction([u[0] / r[0], u[1] / r[1], u[2] / r[2]]))
         .collect();
     let position = doc.vec3(&p, true, true, "tumour: ellipsoid (m)");
     let normal = doc.vec3(&normals, true, false, "tumour: normals");

@@ -82,14 +82,7 @@ fn asset_extras(file: &gltf::Gltf) -> serde_json::Value {
 
 /// Enclosed volume of a closed triangle mesh, in the units cubed (positive: wound outward).
 fn signed_volume(p: &[[f32; 3]], tris: &[[u32; 3]]) -> f64 {
-    tris.iter()
-        .map(|t| {
-            let [a, b, c] = t.map(|i| p[i as usize].map(f64::from));
-            (a[0] * (b[1] * c[2] - b[2] * c[1]) - a[1] * (b[0] * c[2] - b[2] * c[0])
-                + a[2] * (b[0] * c[1] - b[1] * c[0]))
-                / 6.0
-        })
-        .sum()
+    lung_model::mesh::enclosed_volume_with(tris, |i| p[i as usize].map(f64::from))
 }
 
 #[test]
