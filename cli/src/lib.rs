@@ -24,5 +24,6 @@ pub mod tracker_cmd;
 
 pub use lungdyn_launcher::{
     breathing_check, demo, doctor, export, faults, input_args, install, instances, latency, launch,
-    outputs, plot, prepare, record, scene_check, scene_event, stats, strip, supervise, tradeoff,
+    outputs, plot, prepare, record, scene_check, scene_event, slicer, stats, strip, supervise,
+    tradeoff,
 };

@@ -203,6 +203,20 @@ pub struct DemoArgs {
     /// FILE (open it in ui.perfetto.dev). Off by default.
     #[arg(long, value_name = "FILE")]
     pub trace: Option<PathBuf>,
+    /// Send the breathing lungs to 3D Slicer over OpenIGTLink while the demo runs: lungdyn listens
+    /// on PORT (18945 when none is given; 18944 is the tracker's) and Slicer's OpenIGTLinkIF
+    /// connects as a client. Each frame: the meshes "RightLung"/"LeftLung" (RAS, mm, lobe codes as
+    /// the point scalar "Lobe"), the tumour, and "BreathState" (JSON). Loopback only unless
+    /// --igtl-serve-allow names more. Also the scene's `[slicer]`. docs/SLICER.md.
+    #[arg(long, value_name = "PORT", num_args = 0..=1)]
+    pub igtl_serve: Option<Option<u16>>,
+    /// Meshes sent to Slicer per second, 1 to 60 (default: the scene's `[slicer] rate_hz`, 30).
+    #[arg(long, value_name = "HZ")]
+    pub igtl_serve_rate: Option<f64>,
+    /// Also serve Slicer at ADDR (an address, 10.0.0.5, or a network, 10.0.0.0/24); repeatable.
+    /// The port is then bound on every interface, and other hosts are still refused.
+    #[arg(long, value_name = "ADDR")]
+    pub igtl_serve_allow: Vec<String>,
 }
 
 /// Most `--snapshots`: one per 60 Hz display frame of a 4-second breath (15 breaths/min). More are
@@ -431,6 +445,8 @@ pub struct DemoReport {
     pub failure: Option<String>,
     /// Files of dead earlier instances (a killed launcher's) removed at start.
     pub swept_files: usize,
+    /// What the link to 3D Slicer did (`--igtl-serve`; null when off).
+    pub slicer: Option<crate::slicer::SlicerReport>,
 }
 
 /// The snapshot ticks of a run too short for one whole breath: `count` spread evenly from the
@@ -525,6 +541,12 @@ pub fn run_watched(args: &DemoArgs, watch: &mut dyn Watch) -> anyhow::Result<Dem
     // Validate: every argument checked before anything is written.
     let checked = validate(args)?;
     let Resolved { scene, launch } = resolve_scene(args)?;
+    let slicer = crate::slicer::SlicerOptions::resolve(
+        &scene,
+        args.igtl_serve,
+        args.igtl_serve_rate,
+        &args.igtl_serve_allow,
+    )?;
     let instance = args
         .instance
         .clone()
@@ -549,6 +571,12 @@ pub fn run_watched(args: &DemoArgs, watch: &mut dyn Watch) -> anyhow::Result<Dem
     let prepared = crate::prepare::prepare(scene, &args.out.join("kernels"))?;
     let (scene, kernels) = (prepared.scene, prepared.kernels);
     let plan = SnapshotPlan::new(args, &scene, checked.record.is_some());
+    // Slicer's link binds now (a taken port is an error before any process starts) and serves the
+    // engine's frames from its own thread.
+    let slicer = match &slicer {
+        Some(o) => Some(crate::slicer::SlicerServer::start(&instance, &scene, o)?),
+        None => None,
+    };
 
     // Subscribe to the reports before anything can publish them.
     let node = iox::node(&services, "launcher")?;
@@ -593,6 +621,7 @@ pub fn run_watched(args: &DemoArgs, watch: &mut dyn Watch) -> anyhow::Result<Dem
         .first_frame_ns
         .map(|t0| (end_ns - t0) as f64 / 1e9)
         .unwrap_or(0.0);
+    let slicer = slicer.map(crate::slicer::SlicerServer::stop);
     watch.before_stop(&supervisor.children.pids());
     let killed = supervisor.children.stop(Duration::from_secs(5));
     let _ = ports.reports.drain(&mut |r: &FrameReport| {
@@ -641,6 +670,7 @@ pub fn run_watched(args: &DemoArgs, watch: &mut dyn Watch) -> anyhow::Result<Dem
         kernels,
         instance,
         swept,
+        slicer,
     }))
 }
 
@@ -1430,6 +1460,7 @@ struct Ended<'s> {
     kernels: Vec<KernelUse>,
     instance: String,
     swept: usize,
+    slicer: Option<crate::slicer::SlicerReport>,
 }
 
 /// The run's report.
@@ -1536,6 +1567,7 @@ fn report(e: Ended<'_>) -> DemoReport {
         },
         failure: e.w.failure,
         swept_files: e.swept,
+        slicer: e.slicer,
     }
 }
 
@@ -1712,6 +1744,9 @@ pub fn table(r: &DemoReport) -> String {
         );
     }
     governor_line(&mut s, r);
+    if let Some(sl) = &r.slicer {
+        let _ = writeln!(s, "{}", sl.text());
+    }
     let _ = writeln!(
         s,
         "stale frames {}, engine ticks not drawn {}, reports lost {}, shm files left by iceoryx2 {} (remaining {})",

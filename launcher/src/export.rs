@@ -395,16 +395,27 @@ fn sample_breath(scene: &Scene, n: usize, breath: u32) -> anyhow::Result<Breath>
 /// One lung's positions (body frame, mm) as the renderer draws them for frame `l`:
 /// `h + (1 − c)(p − h) + s·u + o` (EQUATIONS.md §4.1), the deformation by `CpuLung`.
 fn lung_positions(lung: &mut RenderLung, l: &LungFrame) -> anyhow::Result<Vec<[f32; 3]>> {
+    let mut out = vec![[0.0f32; 3]; lung.lung.len()];
+    lung_positions_into(lung, l, &mut out)?;
+    Ok(out)
+}
+
+/// [`lung_positions`] into `out` (one entry per vertex of the lung): `lungdyn demo --igtl-serve`
+/// sends these to Slicer every frame, without allocating.
+pub fn lung_positions_into(
+    lung: &mut RenderLung,
+    l: &LungFrame,
+    out: &mut [[f32; 3]],
+) -> anyhow::Result<()> {
     let side = lung.side.name();
     if !l.is_active() {
-        anyhow::bail!("the {side} lung is not active in the engine's frame; it cannot be exported");
+        anyhow::bail!("the {side} lung is not active in the engine's frame");
     }
     let n = (l.coeff_count as usize).min(MAX_COEFFS);
     let c = l.collapse;
     let offset = [0, 1, 2].map(|a| l.offset_mm[a] + c * l.hilum_mm[a]);
-    let mut out = vec![[0.0f32; 3]; lung.lung.len()];
     lung.lung
-        .deform_into(l.deform_scale, &l.coeffs[..n], offset, &mut out)
+        .deform_into(l.deform_scale, &l.coeffs[..n], offset, out)
         .with_context(|| format!("the {side} lung"))?;
     if c != 0.0 {
         for (q, p) in out.iter_mut().zip(&lung.lung.positions) {
@@ -421,7 +432,30 @@ fn lung_positions(lung: &mut RenderLung, l: &LungFrame) -> anyhow::Result<Vec<[f
             l.deform_scale
         );
     }
-    Ok(out)
+    Ok(())
+}
+
+/// The tumour's centre (body frame, mm) in frame `l` of its lung, as the renderer places it.
+pub fn tumour_centre(
+    meta: &lung_model::kernel::TumourMeta,
+    mode: lung_model::deform::modes::DeformMode,
+    l: &LungFrame,
+) -> anyhow::Result<[f64; 3]> {
+    let n = (l.coeff_count as usize).min(MAX_COEFFS);
+    let d = meta
+        .displacement_mm(mode, &l.coeffs[..n])
+        .context("the tumour record does not fit the scene's mode; bake the kernel again")?;
+    let p = meta.position_mm(
+        d,
+        l.deform_scale as f64,
+        l.collapse as f64,
+        l.hilum_mm.map(f64::from),
+        l.offset_mm.map(f64::from),
+    );
+    if !p.iter().all(|v| v.is_finite()) {
+        anyhow::bail!("the tumour centre is not finite: a bug, please report it with the scene");
+    }
+    Ok(p)
 }
 
 /// Every frame's positions of `lung` (body frame, mm).
@@ -521,24 +555,11 @@ fn tumour_track(
     })?;
     let mut centres = Vec::with_capacity(frames.len());
     for f in frames {
-        let l = &f.lungs[t.side.index()];
-        let n = (l.coeff_count as usize).min(MAX_COEFFS);
-        let d = meta
-            .displacement_mm(scene.lungs.mode, &l.coeffs[..n])
-            .context("the tumour record does not fit the scene's mode; bake the kernel again")?;
-        let p = meta.position_mm(
-            d,
-            l.deform_scale as f64,
-            l.collapse as f64,
-            l.hilum_mm.map(f64::from),
-            l.offset_mm.map(f64::from),
-        );
-        if !p.iter().all(|v| v.is_finite()) {
-            anyhow::bail!(
-                "the tumour centre is not finite: a bug, please report it with the scene"
-            );
-        }
-        centres.push(p);
+        centres.push(tumour_centre(
+            meta,
+            scene.lungs.mode,
+            &f.lungs[t.side.index()],
+        )?);
     }
     let motion = [0, 1, 2].map(|a| {
         let (lo, hi) = centres

@@ -34,6 +34,7 @@ pub mod record;
 pub mod rig_json;
 pub mod scene_check;
 pub mod scene_event;
+pub mod slicer;
 pub mod stats;
 pub mod strip;
 pub mod supervise;

@@ -21,6 +21,7 @@ pub mod breathing;
 pub mod processes;
 pub mod remote;
 pub mod render;
+pub mod slicer;
 pub mod tracker;
 pub mod wake;
 
@@ -71,6 +72,9 @@ pub enum TableError {
     /// A `[breathing]` value out of range.
     #[error("[breathing] {0}")]
     Breathing(String),
+    /// A `[slicer]` value out of range.
+    #[error("[slicer] {0}")]
+    Slicer(String),
 }
 
 /// A number as every check's message prints it: three decimals at most within 1e-3..1e7, else in

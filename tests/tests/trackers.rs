@@ -849,3 +849,328 @@ fn the_demo_follows_a_replayed_breathing_trace_and_says_when_it_ends() {
     std::fs::remove_file(&scene).ok();
     std::fs::remove_file(&trace).ok();
 }
+
+/// `lungdyn demo --igtl-serve` (issue 38): lungdyn as the OpenIGTLink server 3D Slicer connects to.
+/// pyigtl, as the client (its own receive loop, then its header parser, CRC and message classes on
+/// an ordered capture; POLYDATA's unpack mended in `tests/peers/slicer_client.py`), receives each
+/// frame as RightLung, LeftLung, Tumour (POLYDATA), TumourCentre (TRANSFORM) and BreathState
+/// (STRING) with one timestamp; the points equal the renderer's CPU reference for the frame's tick
+/// (the engine run headless to it), reflected to RAS, to 1 µm; the triangles are the mesh's with
+/// their corners reversed; the lobe codes come as the point scalar "Lobe". The scene deforms in the
+/// precomputed mode: the demo's synthetic patient drifts ±3° (which the orientation modes follow,
+/// so its frames are not the headless still patient's); the orientation modes' frames are checked
+/// against the CPU reference in `lungdyn-launcher`'s `slicer` tests.
+#[test]
+fn slicer_receives_the_breathing_lungs_and_the_tumour_over_openigtlink() {
+    if renderer::gpu::Gpu::for_tests().is_none() {
+        return;
+    }
+    let root = std::path::Path::new(env!("CARGO_MANIFEST_DIR")).join("..");
+    let Some(python) = lungdyn_needs::pyigtl_python(&root) else {
+        return;
+    };
+    let dir = tmp("slicer");
+    let scene_path = dir.with_extension("toml");
+    std::fs::write(
+        &scene_path,
+        "[lungs]\nvertices = 1500\nmode = \"precomputed\"\n[render]\nwidth = 160\nheight = 120\n\
+         [disease]\nkind = \"tumour\"\nside = \"right\"\n[disease.tumour]\nlobe = \"right lower\"\nradii_mm = [12.0, 10.0, 15.0]\n",
+    )
+    .unwrap();
+    let port = lungdyn_needs::free_local_port();
+    let capture = dir.with_extension("json");
+    let frames = 30;
+    let mut client = std::process::Command::new(&python)
+        .arg(root.join("tests/peers/slicer_client.py"))
+        .args([port.to_string(), frames.to_string()])
+        .arg(&capture)
+        .stderr(std::process::Stdio::piped())
+        .spawn()
+        .unwrap();
+    let (ok, stdout, err) = lungdyn(&[
+        "demo",
+        "--seconds",
+        "8",
+        "--snapshots",
+        "0",
+        "--json",
+        "--out",
+        dir.to_str().unwrap(),
+        "--scene",
+        scene_path.to_str().unwrap(),
+        "--igtl-serve",
+        &port.to_string(),
+    ]);
+    let peer = client.wait_with_output_timeout();
+    assert!(ok, "{err}");
+    assert!(peer.0, "the pyigtl client failed: {}\ndemo: {err}", peer.1);
+    let v: serde_json::Value = serde_json::from_str(stdout.trim()).unwrap();
+    let s = &v["slicer"];
+    assert!(s["failure"].is_null(), "{s}");
+    assert!(s["clients"].as_u64().unwrap() >= 2, "{s}");
+    assert!(s["frames"].as_u64().unwrap() >= frames, "{s}");
+    assert_eq!(s["refused"], 0, "{s}");
+    assert!(
+        err.contains(&format!(
+            "serving the lungs to 3D Slicer on 127.0.0.1:{port}"
+        )),
+        "{err}"
+    );
+    assert!(
+        err.contains("Slicer (OpenIGTLink on"),
+        "the summary says what was sent: {err}"
+    );
+
+    let got: serde_json::Value =
+        serde_json::from_str(&std::fs::read_to_string(&capture).unwrap()).unwrap();
+    let phase1 = &got["pyigtl_client"];
+    assert_eq!(phase1["BreathState"], "STRING", "{phase1}");
+    assert_eq!(phase1["RightLung"], "POLYDATA", "{phase1}");
+    assert_eq!(
+        got["crc_errors"], 0,
+        "pyigtl's CRC-64 agrees with every header"
+    );
+    let captured = got["frames"].as_array().unwrap();
+    assert_eq!(captured.len() as u64, frames);
+    let order = [
+        "RightLung",
+        "LeftLung",
+        "Tumour",
+        "TumourCentre",
+        "BreathState",
+    ];
+    let mut last_tick = None;
+    for f in captured {
+        let names: Vec<&str> = f["order"]
+            .as_array()
+            .unwrap()
+            .iter()
+            .map(|d| d.as_str().unwrap())
+            .collect();
+        assert_eq!(names, order, "{}", f["types"]);
+        let ts: Vec<f64> = f["timestamps"]
+            .as_array()
+            .unwrap()
+            .iter()
+            .map(|t| t.as_f64().unwrap())
+            .collect();
+        assert!(
+            ts.iter().all(|&t| t == ts[0] && t > 1.6e9),
+            "one wall-clock timestamp a frame: {ts:?}"
+        );
+        let tick = f["tick"].as_u64().unwrap();
+        assert!(last_tick.is_none_or(|t| tick > t), "frames in tick order");
+        last_tick = Some(tick);
+    }
+
+    // The reference: the same kernels (the demo baked them into --out/kernels), the engine run
+    // headless to each kept tick, the renderer's CPU deformation, reflected to RAS.
+    let scene = lung_model::scene::Scene::load(&scene_path).unwrap();
+    let scene = lungdyn::prepare::prepare(scene, &dir.join("kernels"))
+        .unwrap()
+        .scene;
+    let kept: Vec<&serde_json::Value> = captured
+        .iter()
+        .filter(|f| f.get("messages").is_some())
+        .collect();
+    let ticks: Vec<u64> = kept.iter().map(|f| f["tick"].as_u64().unwrap()).collect();
+    let mut reference = std::collections::HashMap::new();
+    engine::headless::run_while(
+        EngineCore::new(&scene).unwrap(),
+        ticks.iter().max().unwrap() + 2,
+        &mut lungdyn::scene_check::still_patient(&scene),
+        &mut |_, f| {
+            if ticks.contains(&f.tick) {
+                reference.insert(f.tick, *f);
+            }
+            true
+        },
+    )
+    .unwrap();
+    let mut worst = 0.0f32;
+    for (k, f) in kept.iter().enumerate() {
+        let e = &reference[&f["tick"].as_u64().unwrap()];
+        let m = &f["messages"];
+        for &side in &scene.lungs.sides {
+            let device = if side == lung_model::mesh::Side::Right {
+                "RightLung"
+            } else {
+                "LeftLung"
+            };
+            let mut lung = renderer::RenderLung::from_kernel(
+                &scene.lung_kernel(side).unwrap(),
+                scene.lungs.mode,
+            )
+            .unwrap();
+            let mut body = vec![[0.0f32; 3]; lung.lung.len()];
+            lungdyn::export::lung_positions_into(&mut lung, &e.lungs[side.index()], &mut body)
+                .unwrap();
+            let msg = &m[device];
+            assert_eq!(
+                msg["consumed"], msg["content_length"],
+                "{device}: every byte read"
+            );
+            let pts: Vec<f32> = msg["points"]
+                .as_array()
+                .unwrap()
+                .iter()
+                .map(|x| x.as_f64().unwrap() as f32)
+                .collect();
+            assert_eq!(pts.len(), body.len() * 3, "{device}");
+            for (i, p) in body.iter().enumerate() {
+                let ras = lungdyn::slicer::body_to_ras(*p);
+                for a in 0..3 {
+                    worst = worst.max((pts[3 * i + a] - ras[a]).abs());
+                }
+            }
+            assert_eq!(
+                msg["polygon_count"].as_u64().unwrap() as usize,
+                lung.lung.triangles.len()
+            );
+            assert_eq!(
+                msg["vertices_bytes"], 0,
+                "no vertex cells (Slicer mishandles them)"
+            );
+            if k == 0 {
+                let polys: Vec<u32> = msg["polygons"]
+                    .as_array()
+                    .unwrap()
+                    .iter()
+                    .map(|x| x.as_u64().unwrap() as u32)
+                    .collect();
+                let expect: Vec<u32> = lungdyn::slicer::ras_triangles(&lung.lung.triangles)
+                    .iter()
+                    .flat_map(|t| [3, t[0], t[1], t[2]])
+                    .collect();
+                assert!(
+                    polys == expect,
+                    "{device}: the mesh's triangles, corners reversed"
+                );
+            }
+            let attrs = msg["attributes"].as_array().unwrap();
+            let codes = lung.lobe_codes().expect("generated lungs have lobes");
+            assert_eq!(attrs.len(), 1, "{device}");
+            assert_eq!(
+                (
+                    attrs[0]["name"].as_str(),
+                    attrs[0]["type"].as_u64(),
+                    attrs[0]["components"].as_u64()
+                ),
+                (Some("Lobe"), Some(0), Some(1))
+            );
+            let lobes: Vec<u8> = attrs[0]["data"]
+                .as_array()
+                .unwrap()
+                .iter()
+                .map(|x| x.as_f64().unwrap() as u8)
+                .collect();
+            assert_eq!(lobes, codes, "{device}: lobe codes per vertex");
+        }
+        // The tumour: its centre as the TRANSFORM's translation, its mesh around it.
+        let t = scene.tumour().unwrap();
+        let lung = renderer::RenderLung::from_kernel(
+            &scene.lung_kernel(t.side).unwrap(),
+            scene.lungs.mode,
+        )
+        .unwrap();
+        let c = lungdyn::export::tumour_centre(
+            lung.tumour.as_ref().unwrap(),
+            scene.lungs.mode,
+            &e.lungs[t.side.index()],
+        )
+        .unwrap();
+        let c = lungdyn::slicer::body_to_ras(c.map(|v| v as f32));
+        let mat: Vec<f64> = m["TumourCentre"]["matrix"]
+            .as_array()
+            .unwrap()
+            .iter()
+            .map(|x| x.as_f64().unwrap())
+            .collect();
+        for a in 0..3 {
+            assert!(
+                (mat[4 * a + 3] as f32 - c[a]).abs() < 1e-3,
+                "tumour centre {mat:?} vs {c:?}"
+            );
+            assert!(
+                (mat[5 * a] - 1.0).abs() < 1e-9,
+                "a pure translation: {mat:?}"
+            );
+        }
+        let tp: Vec<f64> = m["Tumour"]["points"]
+            .as_array()
+            .unwrap()
+            .iter()
+            .map(|x| x.as_f64().unwrap())
+            .collect();
+        let n = tp.len() / 3;
+        for a in 0..3 {
+            let (lo, hi) = (0..n)
+                .map(|i| tp[3 * i + a])
+                .fold((f64::MAX, f64::MIN), |(l, h), v| (l.min(v), h.max(v)));
+            assert!(
+                ((hi + lo) / 2.0 - c[a] as f64).abs() < 0.05,
+                "the ellipsoid sits on its centre"
+            );
+            assert!(
+                (hi - lo - 2.0 * t.radii_mm[a]).abs() < 0.05,
+                "its radii: {} vs {:?}",
+                hi - lo,
+                t.radii_mm
+            );
+        }
+        let state: serde_json::Value =
+            serde_json::from_str(m["BreathState"]["string"].as_str().unwrap()).unwrap();
+        assert_eq!(state["disease"].as_str().unwrap(), "tumour, right");
+        for l in state["lungs"].as_array().unwrap() {
+            let slot = if l["side"] == "right" { 0 } else { 1 };
+            let vol = l["volume_ml"].as_f64().unwrap();
+            assert!(
+                (vol - e.lungs[slot].volume_ml as f64).abs() < 0.06,
+                "{l} vs {}",
+                e.lungs[slot].volume_ml
+            );
+        }
+    }
+    eprintln!(
+        "Slicer link: {} frames captured by pyigtl, {} checked whole; largest difference from the CPU \
+         reference {worst:e} mm; {}",
+        captured.len(),
+        kept.len(),
+        s
+    );
+    assert!(
+        worst <= 1e-3,
+        "points within 1 µm of the CPU reference: {worst} mm"
+    );
+    std::fs::remove_dir_all(&dir).ok();
+    std::fs::remove_file(&scene_path).ok();
+    std::fs::remove_file(&capture).ok();
+}
+
+/// A child's exit and its stderr, waiting at most two minutes (then killed).
+trait WaitTimeout {
+    fn wait_with_output_timeout(&mut self) -> (bool, String);
+}
+
+impl WaitTimeout for std::process::Child {
+    fn wait_with_output_timeout(&mut self) -> (bool, String) {
+        let until = std::time::Instant::now() + Duration::from_secs(120);
+        let status = loop {
+            if let Some(s) = self.try_wait().unwrap() {
+                break Some(s);
+            }
+            if std::time::Instant::now() > until {
+                let _ = self.kill();
+                let _ = self.wait();
+                break None;
+            }
+            std::thread::sleep(Duration::from_millis(50));
+        };
+        let mut err = String::new();
+        if let Some(mut e) = self.stderr.take() {
+            use std::io::Read;
+            let _ = e.read_to_string(&mut err);
+        }
+        (status.is_some_and(|s| s.success()), err)
+    }
+}

@@ -1,5 +1,5 @@
 //! OpenIGTLink POLYDATA content: the first piece of lungdyn speaking to 3D Slicer (issue 38 item 1;
-//! the server that sends it is not built yet). Layout as the OpenIGTLink library packs it
+//! `lungdyn demo --igtl-serve` sends it, framed by `crate::igtl_send`). Layout as the OpenIGTLink library packs it
 //! (`Source/igtlutil/igtl_polydata.c`, `igtlPolyDataMessage.cxx`), all big-endian, no padding
 //! between sections:
 //!
@@ -185,6 +185,18 @@ pub fn encode(
     scalars: &[PointScalars<'_>],
     out: &mut Vec<u8>,
 ) -> Result<(), PolyDataError> {
+    out.clear();
+    append(points, topology, scalars, out)
+}
+
+/// [`encode`] appending to `out` (behind a header the sender seals, `crate::igtl_send`); on an
+/// error nothing is appended.
+pub fn append(
+    points: &[[f32; 3]],
+    topology: &Topology,
+    scalars: &[PointScalars<'_>],
+    out: &mut Vec<u8>,
+) -> Result<(), PolyDataError> {
     if points.len() != topology.points {
         return Err(PolyDataError::PointCount {
             expected: topology.points,
@@ -217,7 +229,6 @@ pub fn encode(
     }
     let npoints = count32("points", points.len())?;
     let nattr = count32("attributes", scalars.len())?;
-    out.clear();
     for v in [
         npoints,
         0,

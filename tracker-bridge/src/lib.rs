@@ -25,6 +25,7 @@ pub mod assemble;
 pub mod head_motion;
 pub mod igtl;
 pub mod igtl_polydata;
+pub mod igtl_send;
 pub mod ndi;
 /// A simulated NDI tracker for tests and benchmarks: built only for them (the `testing` feature),
 /// never into the deployed bridge.

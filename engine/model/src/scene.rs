@@ -15,6 +15,7 @@ use crate::mesh::Side;
 pub use lungdyn_scene::breathing::{BreathSource, BreathingScene};
 pub use lungdyn_scene::processes::*;
 pub use lungdyn_scene::render::*;
+pub use lungdyn_scene::slicer::{self, SlicerScene};
 pub use lungdyn_scene::tracker::*;
 pub use lungdyn_scene::wake::WakeMode;
 pub use lungdyn_scene::TableError;
@@ -44,6 +45,8 @@ pub struct Scene {
     pub remote: Option<crate::scene_remote::RemoteScene>,
     /// What the lungs breathe to: the PV model, or the patient's signal (`[breathing]`).
     pub breathing: BreathingScene,
+    /// The lungs sent to 3D Slicer over OpenIGTLink during a demo (`[slicer]`; off by default).
+    pub slicer: SlicerScene,
 }
 
 /// `[pv]` table.
@@ -801,6 +804,7 @@ impl Scene {
         self.render.validate()?;
         self.breathing.validate()?;
         self.breathing_predictor()?;
+        self.slicer.validate()?;
         Ok(())
     }
 

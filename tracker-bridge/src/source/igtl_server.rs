@@ -46,6 +46,11 @@ impl AllowList {
     /// From `--igtl-allow` values: an address (`10.0.0.5`, `fe80::1`) or a network
     /// (`10.0.0.0/24`).
     pub fn parse(items: &[String]) -> Result<Self, String> {
+        Self::parse_as(items, "--igtl-allow")
+    }
+
+    /// [`Self::parse`], naming `option` (where the values came from) in its errors.
+    pub fn parse_as(items: &[String], option: &str) -> Result<Self, String> {
         let mut nets = Vec::with_capacity(items.len());
         for item in items {
             let t = item.trim();
@@ -55,7 +60,7 @@ impl AllowList {
                     Ok(ip) => ipnet::IpNet::from(ip),
                     Err(_) => {
                         return Err(format!(
-                            "--igtl-allow {t:?}: not an address or network (write 10.0.0.5 or \
+                            "{option} {t:?}: not an address or network (write 10.0.0.5 or \
                              10.0.0.0/24; host names are not taken: a name can change what it means)"
                         ))
                     }
@@ -63,8 +68,8 @@ impl AllowList {
             };
             if net.prefix_len() == 0 {
                 return Err(format!(
-                    "--igtl-allow {t:?} admits every host: name the tracking PC's address or its \
-                     network instead"
+                    "{option} {t:?} admits every host: name the address of the computer that \
+                     connects, or its network, instead"
                 ));
             }
             nets.push(net);
