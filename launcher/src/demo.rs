@@ -546,7 +546,9 @@ pub fn run_watched(args: &DemoArgs, watch: &mut dyn Watch) -> anyhow::Result<Dem
         args.igtl_serve,
         args.igtl_serve_rate,
         &args.igtl_serve_allow,
-    )?;
+    )?
+    .map(|o| o.bind().map(|l| (o, l)))
+    .transpose()?;
     let instance = args
         .instance
         .clone()
@@ -571,10 +573,11 @@ pub fn run_watched(args: &DemoArgs, watch: &mut dyn Watch) -> anyhow::Result<Dem
     let prepared = crate::prepare::prepare(scene, &args.out.join("kernels"))?;
     let (scene, kernels) = (prepared.scene, prepared.kernels);
     let plan = SnapshotPlan::new(args, &scene, checked.record.is_some());
-    // Slicer's link binds now (a taken port is an error before any process starts) and serves the
-    // engine's frames from its own thread.
-    let slicer = match &slicer {
-        Some(o) => Some(crate::slicer::SlicerServer::start(&instance, &scene, o)?),
+    // Slicer's link (bound before the bake) serves the engine's frames from its own thread.
+    let slicer = match slicer {
+        Some((o, listener)) => Some(crate::slicer::SlicerServer::start(
+            &instance, &scene, &o, listener,
+        )?),
         None => None,
     };
 

@@ -90,6 +90,11 @@ pub struct LatencyArgs {
     /// see what it buys (the report says the quality it settled at). docs/LATENCY.md.
     #[arg(long, value_name = "GOVERNOR")]
     pub governor: Option<lung_model::scene::Governor>,
+    /// Serve the lungs to 3D Slicer while measuring (the demo's --igtl-serve [PORT]; frames are
+    /// made only while a client is connected): measure with and without it back to back to see
+    /// what the link costs the frame (docs/SLICER.md).
+    #[arg(long, value_name = "PORT", num_args = 0..=1)]
+    pub igtl_serve: Option<Option<u16>>,
 }
 
 /// `--load`: background work while measuring.
@@ -594,6 +599,8 @@ pub struct StageMisses {
 /// The result of one measured run.
 #[derive(Debug, Clone, Serialize)]
 pub struct LatencyReport {
+    /// What the link to 3D Slicer did (`--igtl-serve`; null when off).
+    pub slicer: Option<crate::slicer::SlicerReport>,
     /// Frames drawn and reported after the warm-up.
     pub frames: u64,
     /// Frames of the warm-up (not measured).
@@ -763,6 +770,7 @@ fn measure(
     demo.json = true;
     demo.realtime = args.realtime;
     demo.governor = args.governor;
+    demo.igtl_serve = args.igtl_serve;
     // The stage timers come with the spans: always on here, into --out unless --trace names a file.
     demo.trace = Some(trace.map_or_else(|| args.out.join("latency.trace.json"), Path::to_path_buf));
     let mut scene = lung_model::scene::Scene::load_or_default(args.scene.as_deref())?;
@@ -860,6 +868,7 @@ impl Recorder {
             });
         }
         let report = LatencyReport {
+            slicer: demo.slicer.clone(),
             frames: self.frames,
             warmup_frames: self.warmup_frames,
             seconds: (demo.seconds - self.warmup_ns as f64 / 1e9).max(0.0),
@@ -1255,6 +1264,10 @@ pub fn summary(o: &LatencyOutput) -> String {
         r.governor,
         r.final_quality
     );
+    if let Some(sl) = &r.slicer {
+        s.push_str(&sl.text());
+        s.push('\n');
+    }
     if let Some(l) = o.largest_mesh_vertices {
         s.push_str(&format!(
             "largest mesh holding 60 Hz with zero misses: {}\n",
