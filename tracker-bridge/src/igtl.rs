@@ -295,8 +295,8 @@ impl std::error::Error for IgtlError {}
 // CRC-64/ECMA-182
 
 /// OpenIGTLink's CRC: CRC-64/ECMA-182 (poly 0x42F0E1EBA9EA3693, not reflected, init 0, no final
-/// XOR), from the `crc` crate with slice-by-16 tables (a POLYDATA body of 2 × 10k vertices, ~1 MB,
-/// is checked every frame; the byte-wise table this replaced took about 2 ms for it).
+/// XOR), from the `crc` crate with slice-by-16 tables: 0.81 ms per MiB on the 2-core VM against the
+/// byte-wise table's 3.9 ms, and `demo --igtl-serve` checks ~1 MB every frame (docs/SLICER.md).
 const CRC64: crc::Crc<u64, crc::Table<16>> =
     crc::Crc::<u64, crc::Table<16>>::new(&crc::CRC_64_ECMA_182);
 
