@@ -4,7 +4,9 @@
 # parsing), on the built-in default scene (2 × ~10k vertices).
 #
 # usage: bench/slicer_latency.sh [SECONDS] [OUT]     (default 30 s measured per run, out/slicer_latency)
-# Prints both summaries; the JSON of each run is in OUT/{without,with}.json.
+# Prints both summaries; the JSON of each run is in OUT/{without,with}.json. READER_NICE=10 runs the
+# reader at nice 10 (to tell its cost from the link's when both share the cores); SCENE=FILE measures
+# that scene instead (its [slicer] rate_hz is the link's rate).
 set -euo pipefail
 seconds=${1:-30}
 out=${2:-out/slicer_latency}
@@ -12,9 +14,10 @@ root=$(cd "$(dirname "$0")/.." && pwd)
 lungdyn=${LUNGDYN:-$root/target/release/lungdyn}
 port=${PORT:-18965}
 mkdir -p "$out"
-"$lungdyn" latency --seconds "$seconds" --out "$out/without" --json > "$out/without.json"
+scene=(${SCENE:+--scene "$SCENE"})
+"$lungdyn" latency --seconds "$seconds" --out "$out/without" --json "${scene[@]}" > "$out/without.json"
 # The reader connects when the port opens and reads until the demo closes it.
-python3 - "$port" "$((seconds + 120))" > "$out/reader.txt" <<'PY' &
+nice -n "${READER_NICE:-0}" python3 - "$port" "$((seconds + 120))" > "$out/reader.txt" <<'PY' &
 import socket, sys, time
 port, limit = int(sys.argv[1]), float(sys.argv[2])
 t0, total = time.time(), 0
@@ -34,7 +37,7 @@ while time.time() - t0 < limit:
 print(f"reader: {total} bytes in {time.time() - t0:.1f} s")
 PY
 reader=$!
-"$lungdyn" latency --seconds "$seconds" --out "$out/with" --json --igtl-serve "$port" > "$out/with.json"
+"$lungdyn" latency --seconds "$seconds" --out "$out/with" --json --igtl-serve "$port" "${scene[@]}" > "$out/with.json"
 wait "$reader" || true
 python3 - "$out" <<'PY'
 import json, sys

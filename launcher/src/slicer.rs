@@ -40,7 +40,8 @@ use tracker_bridge::igtl_send;
 use tracker_bridge::source::igtl_server::AllowList;
 use transport::{iox, Instance, Receive};
 
-/// Clients served at once (a Slicer or two, a recorder); more are refused and told why.
+/// Clients served at once (a Slicer or two, a recorder); more are refused (closed, and the demo says
+/// why).
 pub const MAX_CLIENTS: usize = 4;
 /// The device names, as Slicer shows its nodes.
 pub const RIGHT_LUNG: &str = "RightLung";
@@ -111,21 +112,27 @@ impl SlicerOptions {
     /// Listen (a taken port is an error here, before anything is baked or started).
     pub fn bind(&self) -> anyhow::Result<TcpListener> {
         let bind = self.bind_address();
-        TcpListener::bind((bind, self.port)).with_context(|| {
+        let first = TcpListener::bind((bind, self.port));
+        // Every interface: dual-stack where the host has IPv6, else IPv4's.
+        let (bind, listening) = match first {
+            Err(_) if bind == "::" => ("0.0.0.0", TcpListener::bind(("0.0.0.0", self.port))),
+            other => (bind, other),
+        };
+        listening.with_context(|| {
             format!(
-                "--igtl-serve: cannot listen on {bind}:{} (another program, or another lungdyn, has \
-                 it? 18944 is the tracker's OpenIGTLink port; give another with --igtl-serve PORT)",
+                "--igtl-serve: cannot listen on {bind} port {} (another program, or another lungdyn, \
+                 has it? 18944 is the tracker's OpenIGTLink port; give another with --igtl-serve PORT)",
                 self.port
             )
         })
     }
 
-    /// Loopback only, or every interface when the allow-list names other hosts.
+    /// Loopback only, or every interface (`::`, IPv4 too) when the allow-list names other hosts.
     pub fn bind_address(&self) -> &'static str {
         if self.allow == AllowList::default() {
             "127.0.0.1"
         } else {
-            "0.0.0.0"
+            "::"
         }
     }
 }
@@ -150,6 +157,12 @@ pub struct SlicerReport {
     pub dropped: u64,
     /// Bytes written to clients.
     pub bytes: u64,
+    /// Clients closed because they took nothing for [`STALLED_AFTER`].
+    pub stalled: u64,
+    /// Frames that could not be made (skipped; the link went on).
+    pub bad_frames: u64,
+    /// Why the first of them could not.
+    pub first_bad_frame: Option<String>,
     /// Bytes of one frame (meshes, tumour, state), the last made.
     pub frame_bytes: u64,
     /// CPU time (the thread's own) to make one frame (deform, encode, CRC), ms: median, 99th
@@ -233,15 +246,19 @@ impl SlicerServer {
             .name("igtl-serve".into())
             .spawn(move || {
                 lower_priority();
-                let mut serve = Serve {
-                    listener,
-                    options: opts,
-                    clients: Vec::new(),
-                    frame,
-                    report,
-                    make_us: hdrhistogram::Histogram::new(3).expect("3 significant figures"),
-                };
                 let started = Instant::now();
+                let mut serve = match Serve::new(listener, opts, frame, report.clone()) {
+                    Ok(s) => s,
+                    Err(e) => {
+                        eprintln!(
+                            "lungdyn: the Slicer link did not start: {e:#} (the demo goes on)"
+                        );
+                        return SlicerReport {
+                            failure: Some(format!("{e:#}")),
+                            ..report
+                        };
+                    }
+                };
                 if let Err(e) = serve.run(&name, &flag) {
                     serve.report.failure = Some(format!("{e:#}"));
                     eprintln!("lungdyn: the Slicer link stopped: {e:#} (the demo goes on)");
@@ -297,6 +314,67 @@ struct Client {
     peer: SocketAddr,
     pending: Vec<u8>,
     written: usize,
+    /// When it last took bytes (or connected).
+    progress: Instant,
+}
+
+impl Client {
+    /// Still taking a frame: bytes of it not yet written, or written but still in this side's
+    /// kernel queue (`SIOCOUTQ`: unsent or unacknowledged). The send buffer is held to about one
+    /// frame, so at most one frame is ever between lungdyn and the client's own receive buffer.
+    fn busy(&self) -> bool {
+        self.written < self.pending.len() || unsent_bytes(&self.stream) > 0
+    }
+}
+
+/// Bytes in the socket's send queue not yet acknowledged by the peer (0 where it cannot be asked).
+fn unsent_bytes(stream: &TcpStream) -> usize {
+    use std::os::fd::AsRawFd;
+    let mut n: libc::c_int = 0;
+    // SAFETY: TIOCOUTQ (SIOCOUTQ) on a TCP socket we own writes one int.
+    let ok = unsafe { libc::ioctl(stream.as_raw_fd(), libc::TIOCOUTQ, &mut n) } == 0;
+    if ok {
+        n.max(0) as usize
+    } else {
+        0
+    }
+}
+
+/// Holds the kernel's send buffer of `stream` to about `bytes` (Linux doubles what it is given).
+fn limit_send_buffer(stream: &TcpStream, bytes: usize) {
+    use std::os::fd::AsRawFd;
+    let v = libc::c_int::try_from(bytes / 2).unwrap_or(libc::c_int::MAX);
+    // SAFETY: SO_SNDBUF takes one int we own.
+    unsafe {
+        libc::setsockopt(
+            stream.as_raw_fd(),
+            libc::SOL_SOCKET,
+            libc::SO_SNDBUF,
+            (&v as *const libc::c_int).cast(),
+            std::mem::size_of::<libc::c_int>() as libc::socklen_t,
+        );
+    }
+}
+
+/// A client that has taken nothing for this long is closed (its place goes to another).
+pub const STALLED_AFTER: Duration = Duration::from_secs(10);
+/// Most bytes read from one client per pass (what a client sends is read and dropped).
+const READ_PER_PASS: usize = 64 * 1024;
+/// Refusals said one by one; after these, once, then only counted.
+const REFUSALS_SAID: u64 = 10;
+
+/// Why a connection from `ip` is refused when `clients` are served already (`None`: served).
+pub fn refusal(allow: &AllowList, ip: std::net::IpAddr, clients: usize) -> Option<String> {
+    if !allow.allows(ip) {
+        Some(format!(
+            "not on the allow-list ({}); admit it with --igtl-serve-allow {ip}",
+            allow.describe()
+        ))
+    } else if clients >= MAX_CLIENTS {
+        Some(format!("{MAX_CLIENTS} clients are served already"))
+    } else {
+        None
+    }
 }
 
 struct Serve {
@@ -304,11 +382,38 @@ struct Serve {
     options: SlicerOptions,
     clients: Vec<Client>,
     frame: FrameMaker,
+    /// One worker at the link's priority: the deformation's parallel loops run here, not on the
+    /// global pool's workers at normal priority, and its CPU time is this worker's.
+    pool: rayon::ThreadPool,
     report: SlicerReport,
     make_us: hdrhistogram::Histogram<u64>,
+    stalled_after: Duration,
 }
 
 impl Serve {
+    fn new(
+        listener: TcpListener,
+        options: SlicerOptions,
+        frame: FrameMaker,
+        report: SlicerReport,
+    ) -> anyhow::Result<Self> {
+        let pool = rayon::ThreadPoolBuilder::new()
+            .num_threads(1)
+            .thread_name(|_| "igtl-deform".into())
+            .start_handler(|_| lower_priority())
+            .build()?;
+        Ok(Self {
+            listener,
+            options,
+            clients: Vec::new(),
+            frame,
+            pool,
+            report,
+            make_us: hdrhistogram::Histogram::new_with_bounds(1, 60_000_000, 3)?,
+            stalled_after: STALLED_AFTER,
+        })
+    }
+
     fn run(&mut self, instance: &str, stop: &AtomicBool) -> anyhow::Result<()> {
         let services = Instance::new(instance)?;
         let node = iox::node(&services, "slicer")?;
@@ -317,7 +422,7 @@ impl Serve {
         let mut next = Instant::now();
         let mut latest: Option<EngineFrame> = None;
         let mut sent_tick = None;
-        let mut scratch = [0u8; 4096];
+        let mut scratch = vec![0u8; 4096];
         while !stop.load(Ordering::Relaxed) && !transport::stop::requested() {
             self.accept();
             if let Some(f) = engine.take_latest()? {
@@ -333,43 +438,65 @@ impl Serve {
                 };
                 if let Some(f) = latest.as_ref().filter(|f| Some(f.tick) != sent_tick) {
                     if !self.clients.is_empty() {
-                        self.send(f)?;
+                        self.send(f);
                         sent_tick = Some(f.tick);
                     }
                 }
             }
             self.flush(&mut scratch);
-            let busy = self.clients.iter().any(|c| c.written < c.pending.len());
-            let wait = next.saturating_duration_since(Instant::now());
-            std::thread::sleep(if busy {
-                wait.min(Duration::from_millis(1))
-            } else {
-                wait.min(Duration::from_millis(5))
-            });
+            self.wait(next);
         }
         Ok(())
+    }
+
+    /// Sleep until `next`, a client can take more or sends something, or a new one knocks (at most
+    /// 5 ms, so a stop request is seen soon).
+    fn wait(&self, next: Instant) {
+        use std::os::fd::AsRawFd;
+        let idle = libc::pollfd {
+            fd: -1,
+            events: 0,
+            revents: 0,
+        };
+        let mut fds = [idle; MAX_CLIENTS + 1];
+        fds[0] = libc::pollfd {
+            fd: self.listener.as_raw_fd(),
+            events: libc::POLLIN,
+            revents: 0,
+        };
+        for (slot, c) in fds[1..].iter_mut().zip(&self.clients) {
+            let out = if c.written < c.pending.len() {
+                libc::POLLOUT
+            } else {
+                0
+            };
+            *slot = libc::pollfd {
+                fd: c.stream.as_raw_fd(),
+                events: libc::POLLIN | out,
+                revents: 0,
+            };
+        }
+        let ms = next
+            .saturating_duration_since(Instant::now())
+            .min(Duration::from_millis(5))
+            .as_millis() as libc::c_int;
+        // SAFETY: pollfds we own, their count, a timeout in ms.
+        unsafe { libc::poll(fds.as_mut_ptr(), fds.len() as libc::nfds_t, ms) };
     }
 
     fn accept(&mut self) {
         loop {
             match self.listener.accept() {
                 Ok((stream, peer)) => {
-                    let why = if !self.options.allow.allows(peer.ip()) {
-                        Some(format!(
-                            "not on the allow-list ({}); admit it with --igtl-serve-allow {}",
-                            self.options.allow.describe(),
-                            peer.ip()
-                        ))
-                    } else if self.clients.len() >= MAX_CLIENTS {
-                        Some(format!("{MAX_CLIENTS} clients are served already"))
-                    } else {
-                        None
-                    };
-                    if let Some(why) = why {
+                    if let Some(why) = refusal(&self.options.allow, peer.ip(), self.clients.len()) {
                         self.report.refused += 1;
-                        // Once per refusal is bounded by the accept rate; a flood says so once.
-                        if self.report.refused <= 10 {
+                        if self.report.refused <= REFUSALS_SAID {
                             eprintln!("lungdyn: Slicer link: refused {peer}: {why}");
+                        } else if self.report.refused == REFUSALS_SAID + 1 {
+                            eprintln!(
+                                "lungdyn: Slicer link: more connections refused; from now on only \
+                                 counted (the report says how many)"
+                            );
                         }
                         continue;
                     }
@@ -377,6 +504,7 @@ impl Serve {
                         continue;
                     }
                     let _ = stream.set_nodelay(true);
+                    limit_send_buffer(&stream, self.frame.bytes.len().max(1 << 20));
                     self.report.clients += 1;
                     eprintln!("lungdyn: Slicer link: {peer} connected");
                     self.clients.push(Client {
@@ -384,6 +512,7 @@ impl Serve {
                         peer,
                         pending: Vec::new(),
                         written: 0,
+                        progress: Instant::now(),
                     });
                 }
                 Err(e) if e.kind() == ErrorKind::WouldBlock => return,
@@ -394,21 +523,37 @@ impl Serve {
         }
     }
 
-    /// Make frame `f` and hand it to every client that has taken the previous one.
-    fn send(&mut self, f: &EngineFrame) -> anyhow::Result<()> {
+    /// Make frame `f` and hand it to every client that has taken the previous one. A frame that
+    /// cannot be made (a lung the engine runs with another kernel, a non-finite vertex) is skipped
+    /// and counted; the link goes on.
+    fn send(&mut self, f: &EngineFrame) {
         // No client can take it: each misses it, and it is not made.
-        if self.clients.iter().all(|c| c.written < c.pending.len()) {
+        if self.clients.iter().all(Client::busy) {
             self.report.dropped += self.clients.len() as u64;
-            return Ok(());
+            return;
         }
-        let t0 = thread_cpu_ns();
-        self.frame.make(f)?;
-        let us = thread_cpu_ns().saturating_sub(t0) / 1000;
-        let _ = self.make_us.record(us.max(1));
+        let (pool, frame) = (&self.pool, &mut self.frame);
+        let (made, cpu_ns) = pool.install(|| {
+            let t0 = thread_cpu_ns();
+            let made = frame.make(f);
+            (made, thread_cpu_ns().saturating_sub(t0))
+        });
+        if let Err(e) = made {
+            self.report.bad_frames += 1;
+            if self.report.bad_frames == 1 {
+                eprintln!(
+                    "lungdyn: Slicer link: frame of tick {} not sent: {e:#}",
+                    f.tick
+                );
+                self.report.first_bad_frame = Some(format!("tick {}: {e:#}", f.tick));
+            }
+            return;
+        }
+        let _ = self.make_us.record((cpu_ns / 1000).max(1));
         self.report.frames += 1;
         self.report.frame_bytes = self.frame.bytes.len() as u64;
         for c in &mut self.clients {
-            if c.written < c.pending.len() {
+            if c.busy() {
                 self.report.dropped += 1;
                 continue;
             }
@@ -416,21 +561,23 @@ impl Serve {
             c.pending.extend_from_slice(&self.frame.bytes);
             c.written = 0;
         }
-        Ok(())
     }
 
     /// Write what each client can take now; read and drop what it sends (Slicer's own messages,
-    /// which are not asked for); drop clients that closed.
+    /// which are not asked for); close clients that closed, failed, or took nothing for
+    /// [`STALLED_AFTER`].
     fn flush(&mut self, scratch: &mut [u8]) {
         let report = &mut self.report;
+        let stalled_after = self.stalled_after;
         self.clients.retain_mut(|c| {
-            loop {
+            let mut read = 0;
+            while read < READ_PER_PASS {
                 match c.stream.read(scratch) {
                     Ok(0) => {
                         eprintln!("lungdyn: Slicer link: {} disconnected", c.peer);
                         return false;
                     }
-                    Ok(_) => continue,
+                    Ok(n) => read += n,
                     Err(e) if e.kind() == ErrorKind::WouldBlock => break,
                     Err(e) if e.kind() == ErrorKind::Interrupted => continue,
                     Err(e) => {
@@ -444,6 +591,7 @@ impl Serve {
                     Ok(0) => return false,
                     Ok(n) => {
                         c.written += n;
+                        c.progress = Instant::now();
                         report.bytes += n as u64;
                     }
                     Err(e) if e.kind() == ErrorKind::WouldBlock => break,
@@ -454,6 +602,18 @@ impl Serve {
                     }
                 }
             }
+            if c.busy() && c.progress.elapsed() > stalled_after {
+                report.stalled += 1;
+                eprintln!(
+                    "lungdyn: Slicer link: {} took nothing for {} s: closed",
+                    c.peer,
+                    stalled_after.as_secs()
+                );
+                return false;
+            }
+            if !c.busy() {
+                c.progress = Instant::now();
+            }
             true
         });
     }
@@ -461,7 +621,7 @@ impl Serve {
     fn finish(mut self, started: Instant) -> SlicerReport {
         self.clients.clear();
         let h = &self.make_us;
-        let ms = |us: u64| (us as f64 / 1000.0 * 1000.0).round() / 1000.0;
+        let ms = |us: u64| us as f64 / 1000.0;
         if !h.is_empty() {
             self.report.make_ms_p50 = ms(h.value_at_quantile(0.5));
             self.report.make_ms_p99 = ms(h.value_at_quantile(0.99));
@@ -506,9 +666,7 @@ pub struct FrameMaker {
 
 /// Body frame (+X left, +Y anterior, +Z superior; left-handed) → the patient's RAS frame:
 /// `lung_model::frame::BODY_TO_RAS = diag(−1, 1, 1)`.
-pub fn body_to_ras(p: [f32; 3]) -> [f32; 3] {
-    [-p[0], p[1], p[2]]
-}
+pub use lung_model::frame::body_to_ras_f32 as body_to_ras;
 
 /// Triangles as Slicer gets them: corners reversed (the reflection to RAS turns a counter-clockwise
 /// triangle clockwise; reversed, it faces outward again).
@@ -556,7 +714,8 @@ impl FrameMaker {
                     )
                 })?;
                 let (unit, tris) = renderer::tumour::unit_sphere();
-                let r = t.radii_mm;
+                // The kernel's tumour, as the renderer draws it.
+                let r = meta.tumour.radii_mm;
                 let shape: Vec<[f32; 3]> = unit
                     .iter()
                     .map(|p| [0, 1, 2].map(|a| p[a] * r[a] as f32))
@@ -589,11 +748,10 @@ impl FrameMaker {
         self.bytes.clear();
         let ts = Timestamp::from_unix_ns(unix_ns());
         for l in &mut self.lungs {
-            let lf = &f.lungs[l.lung.side.index()];
-            if !lf.is_active() {
+            let Some(lf) = drawn(&f.lungs[l.lung.side.index()], &l.lung)? else {
                 continue;
-            }
-            crate::export::lung_positions_into(&mut l.lung, lf, &mut l.positions)?;
+            };
+            crate::export::lung_positions_into(&mut l.lung, &lf, &mut l.positions)?;
             for p in &mut l.positions {
                 *p = body_to_ras(*p);
             }
@@ -613,9 +771,14 @@ impl FrameMaker {
         }
         let mut centre = None;
         if let Some(t) = &mut self.tumour {
-            let lf = &f.lungs[t.slot];
-            if lf.is_active() {
-                let c = crate::export::tumour_centre(&t.meta, self.mode, lf)?;
+            let lf = f.lungs[t.slot];
+            let lung = self.lungs.iter().find(|l| l.lung.side.index() == t.slot);
+            let lf = match lung {
+                Some(l) => drawn(&lf, &l.lung)?,
+                None => None,
+            };
+            if let Some(lf) = lf {
+                let c = crate::export::tumour_centre(&t.meta, self.mode, &lf)?;
                 let c = body_to_ras(c.map(|v| v as f32));
                 for (q, p) in t.positions.iter_mut().zip(&t.shape) {
                     *q = body_to_ras(*p);
@@ -644,9 +807,15 @@ impl FrameMaker {
         s.clear();
         let disease = self.disease.as_ref().map(|(k, side)| (k.as_str(), *side));
         renderer::hud::text::disease_line(&mut self.disease_text, disease, f);
+        let fault = match f.fault {
+            ipc_types::fault::NONE => "none",
+            ipc_types::fault::TRACKER_LOST => "tracker lost",
+            ipc_types::fault::NON_FINITE_VOLUME => "non-finite volume held",
+            _ => "unknown",
+        };
         let _ = write!(
             s,
-            "{{\"tick\":{},\"time_s\":{:.3},\"disease\":",
+            "{{\"tick\":{},\"time_s\":{:.3},\"fault\":\"{fault}\",\"disease\":",
             f.tick,
             f.tick as f64 / self.tick_hz
         );
@@ -673,6 +842,30 @@ impl FrameMaker {
         }
         s.push(b'}');
     }
+}
+
+/// Frame `l` as the renderer would draw it for `lung` (`renderer::session`'s checks): `None` for an
+/// inactive slot; an error when the engine runs the lung with another kernel (an engine restarted on
+/// another scene: the mesh held here is not the one it deforms); a collapse outside [0, 1] or a
+/// non-finite hilum is not applied.
+fn drawn(l: &LungFrame, lung: &RenderLung) -> anyhow::Result<Option<LungFrame>> {
+    if !l.is_active() {
+        return Ok(None);
+    }
+    if lung.kernel_id != 0 && l.kernel_id != lung.kernel_id {
+        anyhow::bail!(
+            "the engine runs the {} lung with kernel {:016x}, the link loaded {:016x}",
+            lung.side.name(),
+            l.kernel_id,
+            lung.kernel_id
+        );
+    }
+    let mut l = *l;
+    if !((0.0..=1.0).contains(&l.collapse) && l.hilum_mm.iter().all(|v| v.is_finite())) {
+        l.collapse = 0.0;
+        l.hilum_mm = [0.0; 3];
+    }
+    Ok(Some(l))
 }
 
 fn lung_json(s: &mut Vec<u8>, slot: usize, l: &LungFrame) {
@@ -734,6 +927,7 @@ fn unix_ns() -> u64 {
 #[cfg(test)]
 mod tests {
     use super::*;
+    use lung_model::deform::modes::DeformMode;
 
     #[test]
     fn the_body_frame_reaches_slicer_as_ras_with_triangles_reversed() {
@@ -762,10 +956,7 @@ mod tests {
         let o = SlicerOptions::resolve(&scene, None, Some(5.0), &["10.0.0.0/24".into()])
             .unwrap()
             .unwrap();
-        assert_eq!(
-            (o.port, o.rate_hz, o.bind_address()),
-            (20000, 5.0, "0.0.0.0")
-        );
+        assert_eq!((o.port, o.rate_hz, o.bind_address()), (20000, 5.0, "::"));
         let o = SlicerOptions::resolve(&scene, Some(Some(20001)), None, &[])
             .unwrap()
             .unwrap();
@@ -778,7 +969,7 @@ mod tests {
         };
         let e = format!("{:#}", taken.bind().unwrap_err());
         assert!(
-            e.contains("cannot listen on 127.0.0.1:") && e.contains("--igtl-serve PORT"),
+            e.contains("cannot listen on 127.0.0.1 port") && e.contains("--igtl-serve PORT"),
             "{e}"
         );
         for (serve, rate, allow, words) in [
@@ -806,17 +997,18 @@ mod tests {
         }
     }
 
-    /// The frame of the built-in lungs: both meshes with their lobes, then the state; every message
-    /// decodes (our reader) and the points are the CPU reference's, reflected.
-    #[test]
-    fn a_frame_is_both_lungs_then_the_state_and_its_points_are_the_cpu_references() {
-        use tracker_bridge::igtl::{Limits, Message};
-        let dir = std::env::temp_dir().join(format!("lungdyn-slicer-{}", std::process::id()));
+    /// The built-in lungs at 1200 vertices in `mode`, prepared into a folder of their own, and the
+    /// engine's first 200 frames (a still patient).
+    fn small(mode: DeformMode, tag: &str) -> (Scene, Vec<EngineFrame>, std::path::PathBuf) {
+        let dir = std::env::temp_dir().join(format!(
+            "lungdyn-slicer-{}-{tag}-{}",
+            std::process::id(),
+            mode.name()
+        ));
         let mut scene = Scene::default();
         scene.lungs.vertices = 1200;
-        let prepared = crate::prepare::prepare(scene, &dir).unwrap();
-        let scene = prepared.scene;
-        let mut maker = FrameMaker::new(&scene).unwrap();
+        scene.lungs.mode = mode;
+        let scene = crate::prepare::prepare(scene, &dir).unwrap().scene;
         let mut frames = Vec::new();
         engine::headless::run_while(
             engine::runtime::EngineCore::new(&scene).unwrap(),
@@ -828,46 +1020,216 @@ mod tests {
             },
         )
         .unwrap();
-        let f = frames[150];
-        maker.make(&f).unwrap();
-        let limits = Limits {
-            max_body_bytes: 64 << 20,
-            ..Limits::default()
+        (scene, frames, dir)
+    }
+
+    fn be32(b: &[u8], at: usize) -> u32 {
+        u32::from_be_bytes([b[at], b[at + 1], b[at + 2], b[at + 3]])
+    }
+
+    /// Points and triangles of the POLYDATA message at `at` (read from the bytes, not by our encoder).
+    fn mesh_at(b: &[u8], at: usize) -> (Vec<[f32; 3]>, Vec<[u32; 3]>) {
+        let c = at + HEADER_SIZE;
+        let (n, polys) = (be32(b, c) as usize, be32(b, c + 20) as usize);
+        let p0 = c + 40;
+        let pts = (0..n)
+            .map(|i| [0, 1, 2].map(|a| f32::from_bits(be32(b, p0 + 12 * i + 4 * a))))
+            .collect();
+        let t0 = p0 + 12 * n;
+        let tris = (0..polys)
+            .map(|k| {
+                assert_eq!(be32(b, t0 + 16 * k), 3);
+                [1, 2, 3].map(|j| be32(b, t0 + 16 * k + 4 * j))
+            })
+            .collect();
+        (pts, tris)
+    }
+
+    /// Volume enclosed by a closed triangle mesh in a right-handed frame: positive when every
+    /// triangle is wound counter-clockwise seen from outside.
+    fn signed_volume_ml(p: &[[f32; 3]], t: &[[u32; 3]]) -> f64 {
+        let v = |i: u32| p[i as usize].map(f64::from);
+        let mut s = 0.0;
+        for &[a, b, c] in t {
+            let (a, b, c) = (v(a), v(b), v(c));
+            s += a[0] * (b[1] * c[2] - b[2] * c[1]) - a[1] * (b[0] * c[2] - b[2] * c[0])
+                + a[2] * (b[0] * c[1] - b[1] * c[0]);
+        }
+        s / 6.0 / 1000.0
+    }
+
+    use tracker_bridge::igtl::HEADER_SIZE;
+
+    /// In every deformation mode, a frame is both lungs then the state: every message decodes with
+    /// our reader; every point is the CPU reference's for that frame, reflected to RAS; the meshes
+    /// enclose a positive volume in RAS (the corners' reversal keeps them outward) close to the
+    /// engine's; the state holds the tick and the engine's volumes.
+    #[test]
+    fn in_every_mode_a_frame_is_both_lungs_then_the_state_with_the_cpu_references_points() {
+        use tracker_bridge::igtl::{Limits, Message};
+        for mode in DeformMode::ALL {
+            let (scene, frames, dir) = small(mode, "modes");
+            let mut maker = FrameMaker::new(&scene).unwrap();
+            let f = frames[150];
+            maker.make(&f).unwrap();
+            let limits = Limits {
+                max_body_bytes: 64 << 20,
+                ..Limits::default()
+            };
+            let (mut at, mut seen) = (0, Vec::new());
+            while at < maker.bytes.len() {
+                let (m, n) = Message::decode(&maker.bytes[at..], &limits).unwrap();
+                seen.push((m.device_name.clone(), m.body.type_name().to_string(), at));
+                at += n;
+            }
+            let names: Vec<(&str, &str)> = seen
+                .iter()
+                .map(|(a, b, _)| (a.as_str(), b.as_str()))
+                .collect();
+            assert_eq!(
+                names,
+                [
+                    (RIGHT_LUNG, "POLYDATA"),
+                    (LEFT_LUNG, "POLYDATA"),
+                    (BREATH_STATE, "STRING")
+                ],
+                "{mode:?}"
+            );
+            for (k, lung) in maker.lungs.iter().enumerate() {
+                let mut l = lung.lung.clone();
+                let mut expect = vec![[0.0; 3]; l.lung.len()];
+                let lf = &f.lungs[l.side.index()];
+                crate::export::lung_positions_into(&mut l, lf, &mut expect).unwrap();
+                let (pts, tris) = mesh_at(&maker.bytes, seen[k].2);
+                let ras: Vec<[f32; 3]> = expect.iter().map(|&p| body_to_ras(p)).collect();
+                assert!(
+                    pts == ras,
+                    "{mode:?} {}: every point the reference's",
+                    l.side.name()
+                );
+                let v = signed_volume_ml(&pts, &tris);
+                assert!(
+                    v > 0.0 && (v - f64::from(lf.volume_ml)).abs() < 0.1 * f64::from(lf.volume_ml),
+                    "{mode:?} {}: {v} ml enclosed, outward, near the engine's {}",
+                    l.side.name(),
+                    lf.volume_ml
+                );
+            }
+            let state_start = maker.bytes.len() - maker.state.len();
+            let v: serde_json::Value = serde_json::from_slice(&maker.bytes[state_start..]).unwrap();
+            assert_eq!(v["tick"], f.tick);
+            assert_eq!(
+                (v["disease"].as_str(), v["fault"].as_str()),
+                (Some("healthy lungs"), Some("none"))
+            );
+            let vol = v["lungs"][0]["volume_ml"].as_f64().unwrap();
+            assert!((vol - f64::from(f.lungs[0].volume_ml)).abs() < 0.06);
+            // A frame of a lung the engine runs with another kernel is refused, not sent wrong.
+            let mut other = f;
+            other.lungs[0].kernel_id ^= 1;
+            let e = maker.make(&other).unwrap_err().to_string();
+            assert!(
+                e.contains("another kernel") || e.contains("with kernel"),
+                "{e}"
+            );
+            let _ = std::fs::remove_dir_all(&dir);
+        }
+    }
+
+    #[test]
+    fn hosts_off_the_allow_list_and_a_fifth_client_are_refused_with_the_reason() {
+        let ip = |s: &str| s.parse::<std::net::IpAddr>().unwrap();
+        let allow = AllowList::parse_as(&["10.0.0.0/24".into()], "--igtl-serve-allow").unwrap();
+        assert_eq!(refusal(&allow, ip("127.0.0.1"), 0), None);
+        assert_eq!(refusal(&allow, ip("::ffff:10.0.0.9"), 3), None);
+        let e = refusal(&allow, ip("10.0.1.9"), 0).unwrap();
+        assert!(
+            e.contains("--igtl-serve-allow 10.0.1.9") && e.contains("10.0.0.0/24"),
+            "{e}"
+        );
+        let e = refusal(&allow, ip("127.0.0.1"), MAX_CLIENTS).unwrap();
+        assert!(e.contains("clients are served already"), "{e}");
+    }
+
+    /// A client that never reads: it takes what the socket buffers hold, then misses frames
+    /// (counted, none kept beyond the one it was given), and is closed once it has taken nothing for
+    /// the stall limit; a client that reads gets whole frames meanwhile.
+    #[test]
+    fn a_client_that_does_not_read_misses_frames_then_is_closed_and_nothing_piles_up() {
+        let (scene, frames, dir) = small(DeformMode::Precomputed, "deaf");
+        let maker = FrameMaker::new(&scene).unwrap();
+        let listener = TcpListener::bind("127.0.0.1:0").unwrap();
+        listener.set_nonblocking(true).unwrap();
+        let addr = listener.local_addr().unwrap();
+        let options = SlicerOptions {
+            port: addr.port(),
+            rate_hz: 30.0,
+            allow: AllowList::default(),
         };
+        let mut serve = Serve::new(listener, options, maker, SlicerReport::default()).unwrap();
+        serve.stalled_after = Duration::from_millis(400);
+        let _deaf = TcpStream::connect(addr).unwrap();
+        let reader = std::thread::spawn(move || {
+            let mut s = TcpStream::connect(addr).unwrap();
+            let mut all = Vec::new();
+            let _ = s.read_to_end(&mut all);
+            all
+        });
+        let until = Instant::now() + Duration::from_secs(5);
+        while serve.clients.len() < 2 && Instant::now() < until {
+            serve.accept();
+            std::thread::sleep(Duration::from_millis(5));
+        }
+        assert_eq!(serve.clients.len(), 2);
+        let mut scratch = vec![0u8; 4096];
+        let sends = 150;
+        for k in 0..sends {
+            serve.send(&frames[50 + k % 150]);
+            for _ in 0..3 {
+                serve.flush(&mut scratch);
+                std::thread::sleep(Duration::from_millis(1));
+            }
+            let most = serve.frame.bytes.len();
+            assert!(serve.clients.iter().all(|c| c.pending.len() <= most));
+        }
+        let frame_bytes = serve.frame.bytes.len() as u64;
+        assert!(serve.report.dropped > 0, "{:?}", serve.report);
+        assert!(
+            serve.report.dropped < sends as u64 + 10,
+            "the reading client misses few: {:?}",
+            serve.report
+        );
+        std::thread::sleep(Duration::from_millis(500));
+        serve.flush(&mut scratch);
+        // The reading client's last frame goes out whole before the link stops.
+        let until = Instant::now() + Duration::from_secs(5);
+        while serve.clients.iter().any(|c| c.written < c.pending.len()) && Instant::now() < until {
+            serve.flush(&mut scratch);
+            std::thread::sleep(Duration::from_millis(1));
+        }
+        assert_eq!(
+            (serve.report.stalled, serve.clients.len()),
+            (1, 1),
+            "{:?}",
+            serve.report
+        );
+        let report = serve.finish(Instant::now());
+        let got = reader.join().unwrap();
+        assert!(
+            got.len() as u64 >= frame_bytes,
+            "the reading client got whole frames"
+        );
         let mut at = 0;
-        let mut names = Vec::new();
-        while at < maker.bytes.len() {
-            let (m, n) = Message::decode(&maker.bytes[at..], &limits).unwrap();
-            names.push((m.device_name.clone(), m.body.type_name().to_string()));
+        let limits = tracker_bridge::igtl::Limits {
+            max_body_bytes: 64 << 20,
+            ..Default::default()
+        };
+        while at < got.len() {
+            let (_, n) = tracker_bridge::igtl::Message::decode(&got[at..], &limits).unwrap();
             at += n;
         }
-        let names: Vec<(&str, &str)> = names
-            .iter()
-            .map(|(a, b)| (a.as_str(), b.as_str()))
-            .collect();
-        assert_eq!(
-            names,
-            [
-                (RIGHT_LUNG, "POLYDATA"),
-                (LEFT_LUNG, "POLYDATA"),
-                (BREATH_STATE, "STRING")
-            ]
-        );
-        // The right lung's first point, read from the bytes: header 58 + counts 40.
-        let mut lung = maker.lungs[0].lung.clone();
-        let mut expect = vec![[0.0; 3]; lung.lung.len()];
-        crate::export::lung_positions_into(&mut lung, &f.lungs[0], &mut expect).unwrap();
-        let p = &maker.bytes[98..110];
-        let got: Vec<f32> = p
-            .chunks(4)
-            .map(|c| f32::from_be_bytes([c[0], c[1], c[2], c[3]]))
-            .collect();
-        assert_eq!(got, body_to_ras(expect[0]).to_vec());
-        let state_start = maker.bytes.len() - maker.state.len();
-        let v: serde_json::Value = serde_json::from_slice(&maker.bytes[state_start..]).unwrap();
-        assert_eq!(v["tick"], f.tick);
-        assert_eq!(v["disease"], "healthy lungs");
-        assert_eq!(v["lungs"].as_array().unwrap().len(), 2);
+        assert_eq!(at, got.len(), "only whole messages");
+        assert_eq!(report.bad_frames, 0);
         let _ = std::fs::remove_dir_all(&dir);
     }
 }

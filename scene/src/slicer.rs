@@ -17,7 +17,7 @@ use crate::TableError;
 pub const DEFAULT_PORT: u16 = 18945;
 /// Meshes per second by default.
 pub const DEFAULT_RATE_HZ: f64 = 30.0;
-/// The fastest rate accepted: the engine's frame rate (a faster send repeats frames).
+/// The fastest rate accepted: the engine's frame rate (a frame is never sent twice).
 pub const MAX_RATE_HZ: f64 = 60.0;
 
 /// `[slicer]` table.
@@ -30,7 +30,8 @@ pub struct SlicerScene {
     pub port: u16,
     /// Meshes per second.
     pub rate_hz: f64,
-    /// Clients besides loopback: addresses or networks; `--igtl-serve-allow` adds to them.
+    /// Clients besides loopback: addresses or networks; `--igtl-serve-allow` adds to them (checked
+    /// when the demo starts, before anything is baked).
     pub allow: Vec<String>,
 }
 

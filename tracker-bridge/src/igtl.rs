@@ -608,42 +608,33 @@ impl Header {
     /// Encodes the header; refuses versions other than 1/2 and names that are empty (type),
     /// too long or not printable ASCII.
     pub fn encode(&self) -> Result<[u8; HEADER_SIZE], IgtlError> {
-        if self.version != 1 && self.version != 2 {
-            return Err(IgtlError::BadVersion(self.version));
-        }
-        if self.type_name.is_empty() {
-            return Err(IgtlError::BadName {
-                field: "type name",
-                reason: "is empty",
-            });
-        }
-        let mut v = Vec::with_capacity(HEADER_SIZE);
-        v.extend_from_slice(&self.version.to_be_bytes());
-        put_name(&mut v, &self.type_name, TYPE_NAME_LEN, "type name")?;
-        put_name(&mut v, &self.device_name, DEVICE_NAME_LEN, "device name")?;
-        v.extend_from_slice(&self.timestamp.0.to_be_bytes());
-        v.extend_from_slice(&self.body_size.to_be_bytes());
-        v.extend_from_slice(&self.crc.to_be_bytes());
-        <[u8; HEADER_SIZE]>::try_from(v.as_slice()).map_err(|_| IgtlError::Unencodable {
-            reason: "internal error: header is not 58 bytes",
-        })
+        let mut head = [0u8; HEADER_SIZE];
+        write_header(
+            &mut head,
+            self.version,
+            &self.type_name,
+            &self.device_name,
+            self.timestamp,
+            self.body_size,
+            self.crc,
+        )?;
+        Ok(head)
     }
 }
 
-/// Writes a version-1 header into `message[..HEADER_SIZE]` for the body after it (its size and
-/// CRC), in place and without allocating: a sender reserves the header's bytes, appends the body,
-/// then seals (`crate::igtl_send`). Refuses a buffer shorter than a header and names that are
-/// empty (type), too long or not printable ASCII.
-pub fn seal(
-    message: &mut [u8],
+/// The one header writer ([`Header::encode`], [`seal`]): checks the version and names, then fills
+/// `head`.
+fn write_header(
+    head: &mut [u8; HEADER_SIZE],
+    version: u16,
     type_name: &str,
     device_name: &str,
     timestamp: Timestamp,
+    body_size: u64,
+    crc: u64,
 ) -> Result<(), IgtlError> {
-    if message.len() < HEADER_SIZE {
-        return Err(IgtlError::Unencodable {
-            reason: "a message is at least its 58-byte header",
-        });
+    if version != 1 && version != 2 {
+        return Err(IgtlError::BadVersion(version));
     }
     if type_name.is_empty() {
         return Err(IgtlError::BadName {
@@ -669,18 +660,49 @@ pub fn seal(
             });
         }
     }
-    let (head, body) = message.split_at_mut(HEADER_SIZE);
-    let crc = crc64(body);
     head.fill(0);
-    head[0..2].copy_from_slice(&1u16.to_be_bytes());
+    head[0..2].copy_from_slice(&version.to_be_bytes());
     head[2..2 + type_name.len()].copy_from_slice(type_name.as_bytes());
     let d = 2 + TYPE_NAME_LEN;
     head[d..d + device_name.len()].copy_from_slice(device_name.as_bytes());
     let t = d + DEVICE_NAME_LEN;
     head[t..t + 8].copy_from_slice(&timestamp.0.to_be_bytes());
-    head[t + 8..t + 16].copy_from_slice(&(body.len() as u64).to_be_bytes());
+    head[t + 8..t + 16].copy_from_slice(&body_size.to_be_bytes());
     head[t + 16..t + 24].copy_from_slice(&crc.to_be_bytes());
     Ok(())
+}
+
+/// Writes a version-1 header into `message[..HEADER_SIZE]` for the body after it (its size and
+/// CRC), in place and without allocating: a sender reserves the header's bytes, appends the body,
+/// then seals (`crate::igtl_send`). Refuses a buffer shorter than a header and names that are
+/// empty (type), too long or not printable ASCII.
+pub fn seal(
+    message: &mut [u8],
+    type_name: &str,
+    device_name: &str,
+    timestamp: Timestamp,
+) -> Result<(), IgtlError> {
+    let (head, body) = match message.split_at_mut_checked(HEADER_SIZE) {
+        Some(parts) => parts,
+        None => {
+            return Err(IgtlError::Unencodable {
+                reason: "a message is at least its 58-byte header",
+            })
+        }
+    };
+    let crc = crc64(body);
+    let head: &mut [u8; HEADER_SIZE] = head.try_into().map_err(|_| IgtlError::Unencodable {
+        reason: "internal error: header is not 58 bytes",
+    })?;
+    write_header(
+        head,
+        1,
+        type_name,
+        device_name,
+        timestamp,
+        body.len() as u64,
+        crc,
+    )
 }
 
 /// Checks version and body size of a raw header against the limits; returns the message length.

@@ -77,6 +77,11 @@ pub fn ras_to_body_f32(p: [f32; 3]) -> [f32; 3] {
     [-p[0], p[1], p[2]]
 }
 
+/// `[f32; 3]` form of [`body_to_ras`] (mesh vertices sent to 3D Slicer).
+pub fn body_to_ras_f32(p: [f32; 3]) -> [f32; 3] {
+    [-p[0], p[1], p[2]]
+}
+
 /// `[f32; 3]` form of [`lps_to_body`] (mesh vertices).
 pub fn lps_to_body_f32(p: [f32; 3]) -> [f32; 3] {
     ras_to_body_f32([-p[0], -p[1], p[2]])
