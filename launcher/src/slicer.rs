@@ -1045,19 +1045,6 @@ mod tests {
         (pts, tris)
     }
 
-    /// Volume enclosed by a closed triangle mesh in a right-handed frame: positive when every
-    /// triangle is wound counter-clockwise seen from outside.
-    fn signed_volume_ml(p: &[[f32; 3]], t: &[[u32; 3]]) -> f64 {
-        let v = |i: u32| p[i as usize].map(f64::from);
-        let mut s = 0.0;
-        for &[a, b, c] in t {
-            let (a, b, c) = (v(a), v(b), v(c));
-            s += a[0] * (b[1] * c[2] - b[2] * c[1]) - a[1] * (b[0] * c[2] - b[2] * c[0])
-                + a[2] * (b[0] * c[1] - b[1] * c[0]);
-        }
-        s / 6.0 / 1000.0
-    }
-
     use tracker_bridge::igtl::HEADER_SIZE;
 
     /// In every deformation mode, a frame is both lungs then the state: every message decodes with
@@ -1107,7 +1094,9 @@ mod tests {
                     "{mode:?} {}: every point the reference's",
                     l.side.name()
                 );
-                let v = signed_volume_ml(&pts, &tris);
+                let v = lung_model::mesh::enclosed_volume_with(&tris, |i| {
+                    pts[i as usize].map(f64::from)
+                }) / 1000.0;
                 assert!(
                     v > 0.0 && (v - f64::from(lf.volume_ml)).abs() < 0.1 * f64::from(lf.volume_ml),
                     "{mode:?} {}: {v} ml enclosed, outward, near the engine's {}",

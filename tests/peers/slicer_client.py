@@ -72,8 +72,10 @@ def pyigtl_client_phase(port):
     client = pyigtl.OpenIGTLinkClient(host="127.0.0.1", port=port)
     got = {}
     try:
-        for device in ("BreathState", "RightLung"):
-            m = client.wait_for_message(device, timeout=30)
+        # The port is open before the demo has baked its lungs and started its processes: the first
+        # frame may be a minute away on a loaded machine.
+        for device, timeout in (("BreathState", 180), ("RightLung", 30)):
+            m = client.wait_for_message(device, timeout=timeout)
             got[device] = None if m is None else m._message_type
             if m is not None and m._message_type == "POLYDATA":
                 got["RightLung_points"] = int(len(m.points))
