@@ -166,6 +166,11 @@ enum BreathingCommand {
     /// with the recording's own: RMS error (% of the tidal volume) with each predictor and without,
     /// end-inspiration lag, breaths found, irregular breaths and pauses — against issue 35's goal.
     Check(lungdyn::breathing_check::CheckArgs),
+    /// Run the three processes with a recording replayed live as the patient's signal and hold
+    /// every drawn frame against the recording at the moment it was shown: RMS error with and
+    /// without prediction, end-inspiration lag, breaths followed, the latency measured; a CSV of
+    /// every frame (--frames-out), a signal loss (--drop-at/--drop-for), a plot (--plot).
+    Follow(lungdyn::breathing_follow::FollowArgs),
 }
 
 #[derive(Subcommand)]
@@ -223,7 +228,7 @@ impl Command {
                 | Command::FitMotion(_)
                 | Command::Kernel(_)
                 | Command::Register(_)
-                | Command::Breathing(_)
+                | Command::Breathing(BreathingCommand::Check(_))
                 | Command::Hmd(_)
                 | Command::Doctor(_)
                 | Command::Instances(_)
@@ -355,6 +360,7 @@ fn main() -> std::process::ExitCode {
         }),
         Command::Tracker(TrackerCommand::Predict(args)) => lungdyn::tracker_cmd::predict(&args).and_then(|v| emit(args.json, &v, lungdyn::tracker_cmd::predict_text)),
         Command::Breathing(BreathingCommand::Check(args)) => lungdyn::breathing_check::check(&args).and_then(|r| emit(args.json, &r, lungdyn::breathing_check::check_text)),
+        Command::Breathing(BreathingCommand::Follow(args)) => lungdyn::breathing_follow::follow(&args).and_then(|r| emit(args.json, &r, lungdyn::breathing_follow::follow_text)),
         Command::Register(args) => lungdyn::register_cmd::run(&args).and_then(|v| emit(args.json, &v, lungdyn::register_cmd::text)),
         Command::Hmd(HmdCommand::Check(args)) => lungdyn::register_cmd::hmd(&args).and_then(|v| emit(args.json, &v, lungdyn::register_cmd::hmd_text)),
         Command::Remote(RemoteCommand::Serve(args)) => {

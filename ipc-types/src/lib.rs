@@ -17,7 +17,7 @@
 //!
 //! ## Layout versioning
 //! [`LAYOUT_VERSION`] is written into every payload ([`Message::layout_version`]) and into every
-//! payload's type name ([`Message::TYPE_NAME`], `"lungdyn.EngineFrame.v6"`), which the transport
+//! payload's type name ([`Message::TYPE_NAME`], `"lungdyn.EngineFrame.v7"`), which the transport
 //! hands to iceoryx2: iceoryx2 refuses to open a service whose payload type name, size or alignment
 //! differ from the creator's, so a process built from another layout fails at start-up instead of
 //! reading garbage; the field in the payload is a second check for peers that bypass the type name.
@@ -34,14 +34,18 @@
 //! ticks of its current cycle and inhalation (so a disease's own rate is shown, not the scene's); v5
 //! gives each [`ControlPacket`] its origin (the remote site that raised it, or [`ORIGIN_LOCAL`]); v6
 //! adds to each [`TrackerFrame`] the respiratory signal's samples that arrived since the previous one
-//! ([`SignalBlock`], issue 35: breathing with the patient).
+//! ([`SignalBlock`], issue 35: breathing with the patient); v7 adds to each [`SignalBlock`] a replayed
+//! recording's origin on the host's clock, and to each [`EngineFrame`] what the engine followed of
+//! the signal ([`SignalFollowed`]: the volume it predicted for the display time, the volume without
+//! the prediction, and that display time), so a run can be held against the recording frame by
+//! frame (`lungdyn breathing follow`).
 
 use core::mem::{align_of, offset_of, size_of};
 
 use bytemuck::{Pod, Zeroable};
 
 /// Version of every payload layout in this crate. Part of each payload's type name.
-pub const LAYOUT_VERSION: u32 = 6;
+pub const LAYOUT_VERSION: u32 = 7;
 
 /// Most respiratory-signal samples one [`TrackerFrame`] carries (8 per frame at the bridge's 60 Hz:
 /// 480 Hz; a slower source sends one or none per frame, a faster one's rest waits for the next).
@@ -288,6 +292,11 @@ pub struct SignalBlock {
     pub period_ns: u64,
     /// The samples.
     pub samples: [SignalWire; MAX_SIGNAL_SAMPLES],
+    /// A replayed recording's clock on this host (layout v7): the monotonic time, ns, at which its
+    /// first sample's time fell, so a sample recorded `t` after the first is stamped `origin_ns + t`
+    /// (and `lungdyn breathing follow` places every drawn frame on the recording's own time axis).
+    /// 0 for a live source, whose stamps are arrival times with no recording behind them.
+    pub origin_ns: u64,
 }
 
 impl SignalBlock {
@@ -442,6 +451,25 @@ pub struct EngineFrame {
     pub patient_pose: Pose,
     /// Per-lung state, indexed by [`LUNG_RIGHT`] and [`LUNG_LEFT`].
     pub lungs: [LungFrame; NUM_LUNGS],
+    /// What the engine followed of the patient's respiratory signal this tick (layout v7); zero
+    /// when the scene breathes with the model or no sample has come yet.
+    pub signal: SignalFollowed,
+}
+
+/// The patient's respiratory signal as the engine followed it on one tick (issue 35), whole patient
+/// (before each lung's share), whether or not it drove the lungs: [`engine_state`]'s
+/// `SIGNAL_FOLLOWING` says whether it did. Never NaN (0 when there is nothing to say).
+#[derive(Debug, Clone, Copy, Default, PartialEq, Pod, Zeroable)]
+#[repr(C)]
+pub struct SignalFollowed {
+    /// The display time the engine predicted for (CLOCK_MONOTONIC, ns): the newest input's time
+    /// plus `[breathing] latency_ms`; 0 when nothing was followed.
+    pub display_ns: u64,
+    /// The volume above FRC predicted for `display_ns`, ml: what drives the lungs.
+    pub volume_ml: f32,
+    /// The volume above FRC from the newest sample with no prediction, ml: the baseline a
+    /// predictor must beat, kept from the same run.
+    pub unpredicted_ml: f32,
 }
 
 impl Default for EngineFrame {
@@ -839,7 +867,7 @@ impl core::str::FromStr for Intervention {
 
 impl Message for ControlPacket {
     const NAME: &'static str = "ControlPacket";
-    const TYPE_NAME: &'static str = "lungdyn.ControlPacket.v6";
+    const TYPE_NAME: &'static str = "lungdyn.ControlPacket.v7";
     fn layout_version(&self) -> u32 {
         self.layout_version
     }
@@ -847,35 +875,35 @@ impl Message for ControlPacket {
 
 impl Message for ControlReply {
     const NAME: &'static str = "ControlReply";
-    const TYPE_NAME: &'static str = "lungdyn.ControlReply.v6";
+    const TYPE_NAME: &'static str = "lungdyn.ControlReply.v7";
     fn layout_version(&self) -> u32 {
         self.layout_version
     }
 }
 
-const VERSION_SUFFIX: &str = ".v6";
+const VERSION_SUFFIX: &str = ".v7";
 const _: () = assert!(
-    LAYOUT_VERSION == 6,
+    LAYOUT_VERSION == 7,
     "bump VERSION_SUFFIX with LAYOUT_VERSION"
 );
 
 impl Message for TrackerFrame {
     const NAME: &'static str = "TrackerFrame";
-    const TYPE_NAME: &'static str = "lungdyn.TrackerFrame.v6";
+    const TYPE_NAME: &'static str = "lungdyn.TrackerFrame.v7";
     fn layout_version(&self) -> u32 {
         self.layout_version
     }
 }
 impl Message for EngineFrame {
     const NAME: &'static str = "EngineFrame";
-    const TYPE_NAME: &'static str = "lungdyn.EngineFrame.v6";
+    const TYPE_NAME: &'static str = "lungdyn.EngineFrame.v7";
     fn layout_version(&self) -> u32 {
         self.layout_version
     }
 }
 impl Message for FrameReport {
     const NAME: &'static str = "FrameReport";
-    const TYPE_NAME: &'static str = "lungdyn.FrameReport.v6";
+    const TYPE_NAME: &'static str = "lungdyn.FrameReport.v7";
     fn layout_version(&self) -> u32 {
         self.layout_version
     }
@@ -944,7 +972,7 @@ const _: () = {
     assert!(offset_of!(SignalWire, t_ns) == 0);
     assert!(offset_of!(SignalWire, value) == 8);
     assert!(
-        size_of::<SignalBlock>() == 24 + 16 * MAX_SIGNAL_SAMPLES && align_of::<SignalBlock>() == 8
+        size_of::<SignalBlock>() == 32 + 16 * MAX_SIGNAL_SAMPLES && align_of::<SignalBlock>() == 8
     );
     assert!(offset_of!(SignalBlock, count) == 0);
     assert!(offset_of!(SignalBlock, unit) == 4);
@@ -952,9 +980,10 @@ const _: () = {
     assert!(offset_of!(SignalBlock, valid_mask) == 12);
     assert!(offset_of!(SignalBlock, period_ns) == 16);
     assert!(offset_of!(SignalBlock, samples) == 24);
+    assert!(offset_of!(SignalBlock, origin_ns) == 24 + 16 * MAX_SIGNAL_SAMPLES);
 
     assert!(
-        size_of::<TrackerFrame>() == 256 + 24 + 16 * MAX_SIGNAL_SAMPLES
+        size_of::<TrackerFrame>() == 256 + 32 + 16 * MAX_SIGNAL_SAMPLES
             && align_of::<TrackerFrame>() == 8
     );
     assert!(offset_of!(TrackerFrame, layout_version) == 0);
@@ -982,7 +1011,12 @@ const _: () = {
     assert!(offset_of!(LungFrame, cycle_ticks) == 72 + 4 * MAX_COEFFS);
     assert!(offset_of!(LungFrame, inhale_ticks) == 76 + 4 * MAX_COEFFS);
 
-    assert!(size_of::<EngineFrame>() == 784 && align_of::<EngineFrame>() == 8);
+    assert!(size_of::<SignalFollowed>() == 16 && align_of::<SignalFollowed>() == 8);
+    assert!(offset_of!(SignalFollowed, display_ns) == 0);
+    assert!(offset_of!(SignalFollowed, volume_ml) == 8);
+    assert!(offset_of!(SignalFollowed, unpredicted_ml) == 12);
+
+    assert!(size_of::<EngineFrame>() == 800 && align_of::<EngineFrame>() == 8);
     assert!(offset_of!(EngineFrame, layout_version) == 0);
     assert!(offset_of!(EngineFrame, state) == 4);
     assert!(offset_of!(EngineFrame, fault) == 8);
@@ -992,6 +1026,7 @@ const _: () = {
     assert!(offset_of!(EngineFrame, stamps) == 32);
     assert!(offset_of!(EngineFrame, patient_pose) == 80);
     assert!(offset_of!(EngineFrame, lungs) == 112);
+    assert!(offset_of!(EngineFrame, signal) == 784);
 
     assert!(size_of::<FrameReport>() == 128 && align_of::<FrameReport>() == 8);
     assert!(offset_of!(FrameReport, layout_version) == 0);
@@ -1140,7 +1175,7 @@ mod tests {
         f.lungs[LUNG_LEFT].kernel_id = 0xdead_beef_0123_4567;
         f.lungs[LUNG_RIGHT].offset_mm = [1.0, -2.0, 3.5];
         let bytes = bytemuck::bytes_of(&f).to_vec();
-        assert_eq!(bytes.len(), 784);
+        assert_eq!(bytes.len(), 800);
         let back: EngineFrame = bytemuck::pod_read_unaligned(&bytes);
         assert_eq!(back, f);
         // Little-endian on every supported host: the kernel id sits at byte 112 + 336 (left lung).
@@ -1153,12 +1188,12 @@ mod tests {
     #[test]
     fn a_payload_of_another_layout_is_refused_by_name() {
         let f = EngineFrame {
-            layout_version: 7,
+            layout_version: 8,
             ..Default::default()
         };
         let e = f.check_layout().unwrap_err();
-        assert_eq!(e.theirs, 7);
-        assert!(e.to_string().contains("EngineFrame with layout v7"), "{e}");
+        assert_eq!(e.theirs, 8);
+        assert!(e.to_string().contains("EngineFrame with layout v8"), "{e}");
         assert!(TrackerFrame {
             layout_version: LAYOUT_VERSION,
             ..Default::default()

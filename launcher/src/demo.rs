@@ -120,6 +120,14 @@ pub struct DemoArgs {
     /// Default: the scene's [breathing] table (model).
     #[arg(long, value_name = "SOURCE")]
     pub breathing: Option<String>,
+    /// Withhold the breathing signal from S seconds into its recording (with --breathing-cut-for):
+    /// a signal loss, to see the blue veil, the model carry on and the lungs take the patient's
+    /// breath up again.
+    #[arg(long, value_name = "S", requires = "breathing_cut_for")]
+    pub breathing_cut_at: Option<f64>,
+    /// How long --breathing-cut-at withholds the signal, seconds.
+    #[arg(long, value_name = "S", requires = "breathing_cut_at")]
+    pub breathing_cut_for: Option<f64>,
     /// Deformation mode (overrides the scene's [lungs] mode): "precomputed" (one baked field,
     /// supine only, 3 MACs per vertex), "basis" (exact for any orientation, 4 MACs), "sh" (eq. 7.7
     /// with the scene's bands), "direct" (eq. 7.1 every frame, the accuracy reference).
@@ -514,6 +522,9 @@ pub trait Watch {
     fn report(&mut self, _r: &FrameReport) {}
     /// An engine frame, as it reaches the launcher.
     fn engine_frame(&mut self, _f: &ipc_types::EngineFrame) {}
+    /// A tracker frame, as it reaches the launcher (the stream keeps only the newest few: a
+    /// watcher may miss some).
+    fn tracker_frame(&mut self, _f: &ipc_types::TrackerFrame) {}
     /// Once per pass, after dead processes were restarted. `Ok(false)` ends the run now (as
     /// completed); an error ends it as a failure.
     fn pass(&mut self, _run: &mut Run<'_, '_>) -> anyhow::Result<bool> {
@@ -840,6 +851,15 @@ fn resolve_scene(args: &DemoArgs) -> anyhow::Result<Resolved> {
             .validate()
             .map_err(|e| anyhow::anyhow!("the scene with --breathing {b}: {e}"))?;
     }
+    if let (Some(at), Some(dur)) = (args.breathing_cut_at, args.breathing_cut_for) {
+        tracker_bridge::signal::check_cut(at, dur)?;
+        if loaded.breathing.source != lung_model::scene::BreathSource::Signal {
+            anyhow::bail!(
+                "--breathing-cut-at {at}: there is no breathing signal to cut; follow one with \
+                 --breathing trace:FILE (or the scene's [breathing] source = \"signal\")"
+            );
+        }
+    }
     if (args.roll_deg > 0.0 || args.pitch_deg > 0.0) && !loaded.lungs.mode.follows_orientation() {
         eprintln!(
             "lungdyn: note: the {} mode keeps the supine breath whatever the patient's orientation; \
@@ -1033,6 +1053,15 @@ impl<'p> Roles<'p> {
                     "--sweep-period-s".to_string(),
                     args.sweep_period_s.to_string(),
                 ],
+                match (args.breathing_cut_at, args.breathing_cut_for) {
+                    (Some(at), Some(dur)) => vec![
+                        "--breathing-cut-at".to_string(),
+                        at.to_string(),
+                        "--breathing-cut-for".to_string(),
+                        dur.to_string(),
+                    ],
+                    _ => Vec::new(),
+                },
             ]
             .concat(),
         );
@@ -1260,6 +1289,7 @@ impl Watching {
         })?;
         ports.tracker.drain(&mut |f: &ipc_types::TrackerFrame| {
             bridge_beat = Some(f.stamps.bridge_publish_ns);
+            watch.tracker_frame(f);
         })?;
         for (role, beat) in [
             ("renderer", renderer_beat),

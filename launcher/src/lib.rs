@@ -18,6 +18,7 @@
 //!   can run); [`rig_json`], the rig's files as the reports show them.
 
 pub mod breathing_check;
+pub mod breathing_follow;
 pub mod demo;
 pub mod doctor;
 pub mod export;

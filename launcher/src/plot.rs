@@ -109,16 +109,18 @@ where
                 .label(&s.label)
                 .legend(move |(x, y)| Circle::new((x + 10, y), 3, color.filled()));
         } else {
-            chart
+            let drawn = chart
                 .draw_series(LineSeries::new(
                     s.points.iter().copied(),
                     color.stroke_width(2),
                 ))
-                .map_err(|e| anyhow::anyhow!("plot: {e}"))?
-                .label(&s.label)
-                .legend(move |(x, y)| {
+                .map_err(|e| anyhow::anyhow!("plot: {e}"))?;
+            // An unlabelled series (a later stretch of one already in the legend) has no entry.
+            if !s.label.is_empty() {
+                drawn.label(&s.label).legend(move |(x, y)| {
                     PathElement::new(vec![(x, y), (x + 20, y)], color.stroke_width(2))
                 });
+            }
         }
     }
     chart

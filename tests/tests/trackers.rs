@@ -755,7 +755,7 @@ fn the_demo_draws_with_a_calibration_and_hmd_optics() {
 /// A 15 s chest trace (3 s breaths, 25 Hz) written for the test: synthetic, not patient data.
 fn breathing_trace(path: &std::path::Path) {
     let mut s = String::from("time_s,amplitude_mm,valid\n");
-    for k in 0..375 {
+    for k in 0..600 {
         let t = k as f64 * 0.04;
         let phase = (t / 3.0).fract();
         let depth = 8.0 * (1.0 + 0.05 * ((t / 3.0).floor() * 1.7).sin());
@@ -765,36 +765,42 @@ fn breathing_trace(path: &std::path::Path) {
     std::fs::write(path, s).unwrap();
 }
 
-/// `lungdyn demo --breathing trace:FILE` through the three processes: the bridge replays the trace,
-/// the engine follows it (calibrates, then the signal drives the lungs) and, when the trace ends,
-/// says the signal is lost; the renderer reports which frames the signal drove and which it veiled
-/// blue (docs/BREATHING.md).
+/// `lungdyn breathing follow FILE` (issue 35): the three processes with a 24 s trace replayed live
+/// by the bridge; the engine follows it (calibrates, then the signal drives the lungs), loses it
+/// in a 2 s cut (the model carries on under the blue veil) and takes it up again, and says the
+/// signal is lost when the trace ends. Every drawn frame comes out on the trace's own clock (the
+/// CSV), and the figures hold the followed volume against the trace at each frame's display time
+/// (docs/BREATHING.md).
 #[test]
-fn the_demo_follows_a_replayed_breathing_trace_and_says_when_it_ends() {
+fn breathing_follow_replays_a_trace_live_and_holds_every_drawn_frame_against_it() {
     if renderer::gpu::Gpu::for_tests().is_none() {
         return;
     }
     let dir = std::env::temp_dir().join(format!("lungdyn-trackers-breath-{}", std::process::id()));
+    std::fs::create_dir_all(&dir).unwrap();
     let scene = small_demo_scene(&dir);
     let trace = dir.with_extension("csv");
     breathing_trace(&trace);
+    let frames = dir.join("frames.csv");
     let (ok, stdout, err) = lungdyn(&[
-        "demo",
-        "--seconds",
-        "22",
-        "--snapshots",
-        "0",
+        "breathing",
+        "follow",
+        trace.to_str().unwrap(),
         "--json",
         "--out",
         dir.to_str().unwrap(),
         "--scene",
         scene.to_str().unwrap(),
-        "--breathing",
-        &format!("trace:{}", trace.display()),
+        "--drop-at",
+        "15",
+        "--drop-for",
+        "2",
+        "--frames-out",
+        frames.to_str().unwrap(),
     ]);
     assert!(ok, "{err}");
     let v: serde_json::Value = serde_json::from_str(stdout.trim()).unwrap();
-    lungdyn_tests::assert_demo_report_is_consistent(&v, &err);
+    lungdyn_tests::assert_demo_report_is_consistent(&v["run"], &err);
     assert!(err.contains("breathing signal: CSV trace of mm"), "{err}");
     let engine = err
         .lines()
@@ -810,40 +816,73 @@ fn the_demo_follows_a_replayed_breathing_trace_and_says_when_it_ends() {
             .and_then(|w| w.trim_start_matches('(').parse().ok())
             .unwrap_or_else(|| panic!("a number before {words:?} in {engine}"))
     };
-    assert!(number_before("samples used") >= 350, "{engine}");
+    // 600 samples, 50 of them in the cut.
+    assert!(number_before("samples used") >= 500, "{engine}");
     assert!(number_before("breaths (") >= 3, "{engine}");
-    let following = engine
-        .split("ticks following ")
-        .nth(1)
-        .and_then(|r| r.split(',').next())
-        .and_then(|n| n.trim().parse::<u64>().ok())
-        .unwrap_or_else(|| panic!("ticks following in {engine}"));
-    assert!(
-        following >= 60,
-        "the signal drove the lungs for a while: {engine}"
-    );
     assert!(
         engine.contains("signal lost (the source ended)"),
         "{engine}"
     );
-    // The renderer's reports: the signal drove frames, and after the trace's 15 s the model
-    // breathed under the blue veil (about the last 7 s of the 22).
+    let run = &v["run"];
     let (drawn, followed, lost) = (
-        v["frames_rendered"].as_u64().unwrap(),
-        v["signal_following_frames"].as_u64().unwrap(),
-        v["signal_lost_frames"].as_u64().unwrap(),
+        run["frames_rendered"].as_u64().unwrap(),
+        run["signal_following_frames"].as_u64().unwrap(),
+        run["signal_lost_frames"].as_u64().unwrap(),
+    );
+    assert!(followed >= drawn / 10, "{followed} of {drawn} frames: {v}");
+    assert!(lost > 0 && lost < drawn, "{lost} of {drawn}: {v}");
+    // The figures: the trace's own numbers, and the run's, consistent with each other.
+    let n = |k: &str| v[k].as_f64().unwrap_or_else(|| panic!("{k}: {v}"));
+    assert_eq!(n("frames_drawn") as u64, drawn);
+    assert!(
+        n("frames_following") > 0.0 && n("frames_compared") > 0.0,
+        "{v}"
+    );
+    assert!(n("frames_lost") > 0.0, "the cut and the end: {v}");
+    assert!(n("breaths_in_recording") >= 6.0, "{v}");
+    assert!(n("breaths_detected") >= 1.0, "{v}");
+    let rms = n("rms_error_percent_of_tidal");
+    assert!(rms.is_finite() && rms > 0.0 && rms < 60.0, "{v}");
+    assert!(
+        n("rms_error_percent_of_tidal_without_prediction").is_finite(),
+        "{v}"
+    );
+    let latency = n("latency_ms_measured_median");
+    assert!(latency > 0.0 && latency < 2000.0, "{v}");
+    assert!(
+        n("drawn_vs_followed_rms_ml") < 5.0,
+        "the lungs drew what the engine followed: {v}"
     );
     assert!(
-        followed >= drawn / 10,
-        "{followed} of {drawn} frames followed the signal: {v}"
+        n("recording_played_s") > 20.0 && n("recording_played_s") < 30.0,
+        "{v}"
+    );
+    let cut = &v["drop"];
+    assert_eq!(cut["at_s"].as_f64(), Some(15.0));
+    assert!(
+        cut["resync_s"].as_f64().is_some_and(|s| s < 6.0),
+        "following again after the cut: {v}"
+    );
+    assert!(v["goals"]["rms_within_3_percent"].is_boolean(), "{v}");
+    // Every frame on the trace's clock, in order, its volume both lungs' (FRC included).
+    let csv = std::fs::read_to_string(&frames).unwrap();
+    let mut lines = csv.lines();
+    assert_eq!(lines.next(), Some("display_time_s,volume_ml"));
+    let rows: Vec<(f64, f64)> = lines
+        .map(|l| {
+            let (t, ml) = l.split_once(',').unwrap();
+            (t.parse().unwrap(), ml.parse().unwrap())
+        })
+        .collect();
+    assert_eq!(rows.len() as f64, n("frames_on_recording"));
+    assert!(
+        rows.windows(2).all(|w| w[1].0 >= w[0].0),
+        "in display order"
     );
     assert!(
-        lost >= drawn / 5 && lost < drawn,
-        "{lost} of {drawn} frames after the trace ended: {v}"
-    );
-    assert!(
-        err.contains("breathing: the patient's signal drove"),
-        "{err}"
+        rows.iter()
+            .all(|r| r.0 >= 0.0 && r.0 < 30.0 && r.1 > 500.0 && r.1 < 9000.0),
+        "{csv}"
     );
     std::fs::remove_dir_all(&dir).ok();
     std::fs::remove_file(&scene).ok();

@@ -168,6 +168,7 @@ impl TraceReplay {
             unit: self.unit,
             status: signal_status::CONFIGURED,
             period_ns: self.period_ns,
+            origin_ns: start,
             ..Default::default()
         };
         let since = now_ns.saturating_sub(start);
@@ -260,6 +261,10 @@ mod tests {
             r.fill(now, &mut block);
             assert_eq!(block.unit, signal_unit::MM);
             assert_eq!(block.period_ns, 40_000_000);
+            assert_eq!(
+                block.origin_ns, t0,
+                "every block names where the recording's first sample fell on this clock"
+            );
             for i in 0..block.count as usize {
                 let (s, valid) = block.sample(i).unwrap();
                 assert!(s.t_ns <= now, "a sample at {} went out at {now}", s.t_ns);

@@ -850,8 +850,10 @@ impl EngineCore {
         if let Some(d) = &mut self.disease {
             d.before_tick(tick, &mut self.lungs);
         }
+        out.signal = ipc_types::SignalFollowed::default();
         if let Some(drive) = &mut self.signal {
             state |= drive.tick(tick, input, &mut self.lungs);
+            out.signal = drive.wire();
         }
         if self.remote_pending.as_ref().is_some_and(|p| tick >= p.tick) {
             if let Some(mut p) = self.remote_pending.take() {

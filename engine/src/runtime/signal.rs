@@ -114,6 +114,21 @@ impl SignalDrive {
         self.source_ended
     }
 
+    /// What this tick followed, for the engine frame ([`ipc_types::SignalFollowed`]): the display
+    /// time predicted for, and the volume with and without the prediction (0 where none; a value
+    /// that is not finite is never written).
+    pub fn wire(&self) -> ipc_types::SignalFollowed {
+        let finite = |v: f64| if v.is_finite() { v as f32 } else { 0.0 };
+        match self.followed {
+            Some(f) => ipc_types::SignalFollowed {
+                display_ns: self.now_ns.saturating_add(self.latency_ns),
+                volume_ml: finite(f.volume_ml),
+                unpredicted_ml: finite(f.unpredicted_ml),
+            },
+            None => ipc_types::SignalFollowed::default(),
+        }
+    }
+
     /// Ticks so far by what drove the lungs.
     pub fn ticks(&self) -> SignalTicks {
         self.ticks

@@ -1853,6 +1853,57 @@ fn the_lungs_follow_the_patients_signal_once_calibrated() {
     assert_eq!(t.following, (run.len() - following) as u64);
 }
 
+/// The engine frame says what the engine followed (layout v7, `lungdyn breathing follow` reads it):
+/// the display time it predicted for — the newest input's stamp plus `latency_ms` — and the volume
+/// above FRC with and without the prediction, of which the lungs draw a fixed share once the
+/// takeover's blend is over; a scene that breathes with the model says nothing.
+#[test]
+fn the_engine_frame_carries_what_it_followed_of_the_signal() {
+    use ipc_types::engine_state as e;
+    let mut eng = signal_core(50.0);
+    let frc: f64 = eng.geometry().map(|g| g.start_volume_ml).sum();
+    let mut f = EngineFrame::default();
+    let (mut newest, mut since, mut ratios) = (0u64, None, Vec::new());
+    for tick in 0..40 * 60 {
+        let input = signal_frame(tick, None, &clean);
+        newest = newest.max(input.stamps.bridge_publish_ns.max(input.stamps.capture_ns));
+        eng.step(tick, Some(&input), &mut f);
+        let s = f.signal;
+        assert!(s.volume_ml.is_finite() && s.unpredicted_ml.is_finite());
+        if s.display_ns != 0 {
+            assert_eq!(s.display_ns, newest + 50_000_000, "tick {tick}");
+        }
+        if f.state & e::SIGNAL_FOLLOWING == 0 {
+            continue;
+        }
+        let from = *since.get_or_insert(tick);
+        if tick >= from + super::signal::TAKEOVER_TICKS && s.volume_ml.abs() > 50.0 {
+            let drawn: f64 = f
+                .lungs
+                .iter()
+                .filter(|l| l.is_active())
+                .map(|l| l.volume_ml as f64)
+                .sum::<f64>()
+                - frc;
+            ratios.push(drawn / s.volume_ml as f64);
+        }
+    }
+    assert!(ratios.len() > 300, "{} frames compared", ratios.len());
+    let (lo, hi) = ratios
+        .iter()
+        .fold((f64::MAX, f64::MIN), |a, &r| (a.0.min(r), a.1.max(r)));
+    assert!(
+        hi - lo < 1e-3,
+        "the lungs' share of the followed volume: {lo}..{hi}"
+    );
+    // With the model breathing there is nothing to say.
+    let mut model = core();
+    for tick in 0..120 {
+        model.step(tick, Some(&signal_frame(tick, None, &clean)), &mut f);
+        assert_eq!(f.signal, ipc_types::SignalFollowed::default());
+    }
+}
+
 #[test]
 fn a_lost_signal_is_flagged_within_100_ms_and_the_model_carries_on_without_a_jump() {
     use ipc_types::engine_state as e;

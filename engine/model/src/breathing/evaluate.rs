@@ -398,7 +398,7 @@ pub fn peaks(times: &[u64], values: &[f64], h: f64) -> Vec<u64> {
 
 /// Mean of drawn − recorded end-inspiration over recorded ones with a drawn one within ±1 s, ms;
 /// and how many matched.
-fn lag(recorded: &[u64], drawn: &[u64]) -> (Option<f64>, usize) {
+pub fn lag(recorded: &[u64], drawn: &[u64]) -> (Option<f64>, usize) {
     let mut sum = 0.0;
     let mut n = 0usize;
     for &r in recorded {
