@@ -63,6 +63,11 @@ pub struct FollowArgs {
     /// How long --drop-at cuts the signal, seconds.
     #[arg(long, value_name = "S", requires = "drop_at")]
     pub drop_for: Option<f64>,
+    /// The latency, ms, each frame's volume is predicted across (overrides the scene's
+    /// [breathing] latency_ms, 50 by default): set it to the latency this command measures
+    /// (`latency_ms_measured_median`) to predict for this machine.
+    #[arg(long, value_name = "MS")]
+    pub latency_ms: Option<f64>,
     /// Scene file (TOML): its lungs, PV model (whose tidal volume an amplitude is calibrated to) and
     /// `[breathing]` predictor and latency_ms; the built-in default scene when omitted.
     #[arg(long)]
@@ -567,6 +572,13 @@ fn check_args(a: &FollowArgs) -> anyhow::Result<Checked> {
         .with_context(|| format!("the recording {}", a.file.display()))?;
     let read = read_trace_or_recording(&a.file, &bytes, tidal_ml)?;
     let duration_s = duration_s(&read.trace);
+    let mut scene = scene;
+    if let Some(ms) = a.latency_ms {
+        scene.breathing.latency_ms = ms;
+        scene
+            .validate()
+            .map_err(|e| anyhow::anyhow!("--latency-ms {ms}: {e}"))?;
+    }
     if let (Some(at), Some(dur)) = (a.drop_at, a.drop_for) {
         tracker_bridge::signal::check_cut(at, dur).map_err(|e| {
             anyhow::anyhow!("{}", e.to_string().replace("--breathing-cut", "--drop"))
@@ -633,6 +645,7 @@ fn demo_args(a: &FollowArgs, duration_s: f64) -> anyhow::Result<crate::demo::Dem
     demo.breathing = Some(format!("trace:{}", file.display()));
     demo.breathing_cut_at = a.drop_at;
     demo.breathing_cut_for = a.drop_for;
+    demo.breathing_latency_ms = a.latency_ms;
     Ok(demo)
 }
 

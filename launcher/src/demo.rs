@@ -128,6 +128,11 @@ pub struct DemoArgs {
     /// How long --breathing-cut-at withholds the signal, seconds.
     #[arg(long, value_name = "S", requires = "breathing_cut_at")]
     pub breathing_cut_for: Option<f64>,
+    /// The signal's capture-to-display latency, ms, that each frame's volume is predicted across
+    /// (overrides the scene's [breathing] latency_ms, 50 by default; `lungdyn breathing follow`
+    /// measures the one this machine has).
+    #[arg(long, value_name = "MS")]
+    pub breathing_latency_ms: Option<f64>,
     /// Deformation mode (overrides the scene's [lungs] mode): "precomputed" (one baked field,
     /// supine only, 3 MACs per vertex), "basis" (exact for any orientation, 4 MACs), "sh" (eq. 7.7
     /// with the scene's bands), "direct" (eq. 7.1 every frame, the accuracy reference).
@@ -850,6 +855,18 @@ fn resolve_scene(args: &DemoArgs) -> anyhow::Result<Resolved> {
         loaded
             .validate()
             .map_err(|e| anyhow::anyhow!("the scene with --breathing {b}: {e}"))?;
+    }
+    if let Some(ms) = args.breathing_latency_ms {
+        if loaded.breathing.source != lung_model::scene::BreathSource::Signal {
+            anyhow::bail!(
+                "--breathing-latency-ms {ms}: there is no breathing signal to predict; follow one \
+                 with --breathing trace:FILE (or the scene's [breathing] source = \"signal\")"
+            );
+        }
+        loaded.breathing.latency_ms = ms;
+        loaded
+            .validate()
+            .map_err(|e| anyhow::anyhow!("--breathing-latency-ms {ms}: {e}"))?;
     }
     if let (Some(at), Some(dur)) = (args.breathing_cut_at, args.breathing_cut_for) {
         tracker_bridge::signal::check_cut(at, dur)?;

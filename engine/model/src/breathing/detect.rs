@@ -215,20 +215,25 @@ impl Detector {
         median_of(&buf[..n])
     }
 
+    /// End-expirations behind the baseline (up to five; kept across a loss).
+    pub fn end_expirations(&self) -> usize {
+        self.troughs.len()
+    }
+
     /// Breaths behind the typical figures (up to five).
     pub fn regular_breaths(&self) -> usize {
         self.amplitudes.len()
     }
 
     /// The end-expiration level at `t_ns`: the last regular trough, moved by the drift the last
-    /// troughs show (a least-squares slope over up to five, once there are three; its size kept
+    /// troughs show (a least-squares slope over up to five, once there are two; its size kept
     /// below [`MAX_DRIFT_AMPLITUDES_PER_S`]). Before any trough, the lowest value seen lately.
     pub fn baseline_at(&self, t_ns: u64) -> Option<f64> {
         let Some((t_last, v_last)) = self.troughs.back(0) else {
             return self.lo.is_finite().then_some(self.lo);
         };
         let n = self.troughs.len();
-        if n < 3 {
+        if n < 2 {
             return Some(v_last);
         }
         let points = (0..n)
@@ -239,15 +244,19 @@ impl Detector {
         };
         let limit = MAX_DRIFT_AMPLITUDES_PER_S * self.typical_amplitude().unwrap_or(0.0);
         let slope = slope.clamp(-limit, limit);
-        let ahead = secs(t_ns as i128 - t_last as i128).max(0.0);
+        // The drift is followed up to a typical breath past the last trough (the next trough is
+        // due by then): beyond, and across a gap in the signal, it is held, not extrapolated for
+        // the gap's length.
+        let horizon = self.typical_period_s().unwrap_or(PAUSE_MIN_S);
+        let ahead = secs(t_ns as i128 - t_last as i128).clamp(0.0, horizon);
         let v = v_last + slope * ahead;
         Some(if v.is_finite() { v } else { v_last })
     }
 
-    /// The baseline's drift, signal units per second (0 before three troughs).
+    /// The baseline's drift, signal units per second (0 before two troughs).
     pub fn drift_per_s(&self) -> f64 {
         match self.troughs.back(0) {
-            Some((t, v)) if self.troughs.len() >= 3 => {
+            Some((t, v)) if self.troughs.len() >= 2 => {
                 self.baseline_at(t + 1_000_000_000).map_or(0.0, |b| b - v)
             }
             _ => 0.0,
@@ -280,17 +289,19 @@ impl Detector {
         (HYSTERESIS * a).max(NOISE_MULTIPLE * self.noise)
     }
 
-    /// Forget the signal (its grid restarted after a loss) but keep what breaths look like.
+    /// Forget the signal (its grid restarted after a loss) but keep what breaths look like and
+    /// where the end-expiration baseline was: no breath spans the gap (its last peak and trough
+    /// are forgotten), and the signal's range is learnt again before the first turning point.
     pub fn restart(&mut self) {
         self.phase = Phase::Learning;
         self.start_ns = None;
         self.seen = 0;
         self.pause = None;
-        if self.amplitudes.len() == 0 {
-            self.lo = f64::INFINITY;
-            self.hi = f64::NEG_INFINITY;
-            self.block = (0, f64::INFINITY, f64::NEG_INFINITY);
-        }
+        self.last_peak = None;
+        self.last_trough = None;
+        self.lo = f64::INFINITY;
+        self.hi = f64::NEG_INFINITY;
+        self.block = (0, f64::INFINITY, f64::NEG_INFINITY);
     }
 
     /// Take the next grid point; returns the turning point it confirmed, if any.
@@ -305,7 +316,7 @@ impl Detector {
         }
         self.prev = [v, self.prev[0]];
         self.seen += 1;
-        if self.amplitudes.len() == 0 {
+        if self.amplitudes.len() == 0 || self.phase == Phase::Learning {
             self.see_range(t_ns, v);
         }
         let h = self.threshold();

@@ -18,7 +18,9 @@ use super::{secs, SignalSample};
 pub const BELOW_BASELINE_TIDALS: f64 = 0.5;
 /// Highest volume drawn, in typical tidal volumes above the baseline.
 pub const ABOVE_BASELINE_TIDALS: f64 = 3.0;
-/// Regular breaths before the calibration is trusted.
+/// Regular breaths before an amplitude's calibration ([`Calibration::Auto`]) is trusted. A signal
+/// whose gain is known (a volume, a spirometry calibration) needs only its end-expiration baseline:
+/// it is followed from the first end-expiration found.
 pub const CALIBRATION_BREATHS: usize = 2;
 
 /// How the signal's unit becomes ml.
@@ -74,7 +76,8 @@ impl FollowerConfig {
 #[derive(Debug, Clone, Copy, PartialEq, Eq, serde::Serialize)]
 #[serde(rename_all = "snake_case")]
 pub enum SignalState {
-    /// Fewer than [`CALIBRATION_BREATHS`] regular breaths seen (since the start or a loss).
+    /// No end-expiration found yet, or for an amplitude's calibration fewer than
+    /// [`CALIBRATION_BREATHS`] regular breaths (since the start).
     Calibrating,
     /// Following the patient.
     Following,
@@ -234,6 +237,16 @@ impl Follower {
         }
     }
 
+    /// Whether the signal can drive the lungs: its baseline found, and its gain (an amplitude's,
+    /// from [`CALIBRATION_BREATHS`] regular breaths).
+    pub fn calibrated(&self) -> bool {
+        self.detector.end_expirations() > 0
+            && match self.config.calibration {
+                Calibration::Auto { .. } => self.detector.regular_breaths() >= CALIBRATION_BREATHS,
+                Calibration::Volume | Calibration::Fixed { .. } => true,
+            }
+    }
+
     /// ml per signal unit now, when known.
     pub fn gain(&self) -> Option<f64> {
         match self.config.calibration {
@@ -255,7 +268,7 @@ impl Follower {
             SignalState::Lost
         } else if let Some(p) = self.detector.pause() {
             SignalState::Paused(p)
-        } else if self.detector.regular_breaths() < CALIBRATION_BREATHS {
+        } else if !self.calibrated() {
             SignalState::Calibrating
         } else {
             SignalState::Following

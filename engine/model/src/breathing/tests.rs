@@ -297,6 +297,79 @@ fn a_lost_signal_is_said_within_100_ms_and_the_follower_recovers() {
     assert_eq!(f.volume_at(t, t).unwrap().state, SignalState::Following);
 }
 
+/// A volume (its gain known) drives the lungs from its first end-expiration; an amplitude waits for
+/// its gain, two regular breaths.
+#[test]
+fn a_volume_is_followed_from_its_first_end_expiration_an_amplitude_after_two_breaths() {
+    let state_at = |calibration: Calibration, seconds: f64| {
+        let mut f = Follower::new(FollowerConfig::at_rate(50.0, calibration));
+        feed(&mut f, seconds, 50.0, |t| breathing(t, 500.0, 0.0));
+        let t = TRACE_START_NS + (seconds * 1e9) as u64;
+        (
+            f.volume_at(t, t).unwrap().state,
+            f.detector().end_expirations(),
+        )
+    };
+    // The first trough at 4 s is confirmed once the signal has risen past the hysteresis.
+    assert_eq!(
+        state_at(Calibration::Volume, 3.9),
+        (SignalState::Calibrating, 0)
+    );
+    assert_eq!(
+        state_at(Calibration::Volume, 5.0),
+        (SignalState::Following, 1)
+    );
+    let auto = Calibration::Auto { tidal_ml: 500.0 };
+    assert_eq!(state_at(auto, 5.0).0, SignalState::Calibrating);
+    assert_eq!(state_at(auto, 9.0).0, SignalState::Calibrating);
+    assert_eq!(state_at(auto, 13.0).0, SignalState::Following);
+}
+
+/// After a 5 s loss the follower is in step again within one breath: the baseline's drift is not
+/// extrapolated across the gap (here the integrator's offset was zeroed during it, as a
+/// ventilator's auto-zero does), and no breath is made of the turning points on either side.
+#[test]
+fn after_a_loss_the_follower_is_in_step_within_one_breath() {
+    let mut f = volume_follower(50.0);
+    let (gap_from, gap_to) = (20.5, 25.5);
+    let signal = |t: f64| breathing(t, 500.0, 0.0) + 10.0 * t.min(gap_from);
+    let mut errors: Vec<(f64, f64)> = Vec::new();
+    for i in 0..(40 * 50) {
+        let t_s = i as f64 * 0.02;
+        if (gap_from..gap_to).contains(&t_s) {
+            continue;
+        }
+        let t = TRACE_START_NS + (t_s * 1e9) as u64;
+        f.push(sample(t, signal(t_s)));
+        if t_s >= gap_to {
+            let v = f.volume_at(t, t).unwrap();
+            assert_eq!(v.state, SignalState::Following, "{t_s} s");
+            errors.push((t_s, v.unpredicted_ml - breathing(t_s, 500.0, 0.0)));
+        }
+    }
+    assert_eq!(f.samples().restarts, 1);
+    let rms = |from: f64, to: f64| {
+        let e: Vec<f64> = errors
+            .iter()
+            .filter(|e| (from..to).contains(&e.0))
+            .map(|e| e.1 * e.1)
+            .collect();
+        (e.iter().sum::<f64>() / e.len() as f64).sqrt()
+    };
+    // The first breath after the gap (to its end-expiration at 28 s): the baseline held where it
+    // was; from the next, the new end-expiration: within 3 % of the tidal volume.
+    let (first, next) = (rms(gap_to, 28.0), rms(28.5, 40.0));
+    assert!(first < 0.1 * 500.0, "{first:.1} ml");
+    assert!(
+        next < 0.03 * 500.0,
+        "{next:.1} ml (first breath {first:.1} ml)"
+    );
+    assert!(
+        f.detector().typical_period_s().unwrap() < 4.5,
+        "no breath spans the gap"
+    );
+}
+
 #[test]
 fn bad_samples_are_counted_and_never_reach_the_volume() {
     let mut f = volume_follower(50.0);
@@ -481,8 +554,10 @@ fn the_real_ventilator_recordings_are_followed_better_with_prediction() {
             assert!(e.rms_error_ml.is_finite(), "{name}: {e:?}");
             if must_beat {
                 assert!(e.frames_compared > 100, "{name}: {e:?}");
+                // With no latency there is nothing to predict: the two agree within 1 %.
+                let slack = if latency == 0 { 1.01 } else { 1.0 };
                 assert!(
-                    e.rms_error_ml < e.rms_error_ml_without_prediction,
+                    e.rms_error_ml < slack * e.rms_error_ml_without_prediction,
                     "{name} {latency} ms: {e:?}"
                 );
             } else {
