@@ -97,14 +97,14 @@ fn run_xr(args: &RendererArgs) -> Result<(), RendererError> {
     failed.map_or(Ok(()), |e| Err(xr(e)))
 }
 
-/// Without the `openxr` feature `--xr` says how to get it.
+/// Without the `openxr` feature (a `--no-default-features` build) `--xr` says how to get it.
 #[cfg(not(feature = "openxr"))]
 #[allow(clippy::result_large_err)] // RendererError is large everywhere (see scene_and_rig)
 fn run_xr(_: &RendererArgs) -> Result<(), RendererError> {
     Err(RendererError::Xr(
-        "this build has no OpenXR support: build it with `cargo build --release --features openxr` \
-         (the OpenXR loader is opened at run time, so building needs no system library), then install \
-         an OpenXR runtime (Monado) or set XR_RUNTIME_JSON"
+        "this build has no OpenXR support (built with --no-default-features): build it with the \
+         default features or `--features openxr` (the OpenXR loader is opened at run time, so building \
+         needs no system library), then install an OpenXR runtime (Monado) or set XR_RUNTIME_JSON"
             .into(),
     ))
 }

@@ -74,8 +74,8 @@ fn the_demo_runs_through_an_openxr_runtime_both_eyes_every_frame() {
         // LUNGDYN_REQUIRE_XR=1.
         lungdyn_needs::missing(
             Need::OpenXr,
-            "the launcher was built without its `openxr` feature (`cargo build --release -p lungdyn \
-             --features openxr`)",
+            "the launcher was built without its `openxr` feature (with --no-default-features: \
+             `cargo build --release -p lungdyn --features openxr`)",
         );
         return;
     }
