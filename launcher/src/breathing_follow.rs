@@ -623,15 +623,7 @@ fn duration_s(trace: &Trace) -> f64 {
 
 /// The demo's arguments for the run.
 fn demo_args(a: &FollowArgs, duration_s: f64) -> anyhow::Result<crate::demo::DemoArgs> {
-    use clap::Parser;
-    #[derive(Parser)]
-    struct Demo {
-        #[command(flatten)]
-        demo: crate::demo::DemoArgs,
-    }
-    let mut demo = Demo::try_parse_from(["demo"])
-        .expect("the demo's defaults parse")
-        .demo;
+    let mut demo = crate::demo::DemoArgs::defaults();
     let file = std::path::absolute(&a.file)
         .with_context(|| format!("the recording {}", a.file.display()))?;
     // Frames flow a few seconds after the replay starts (processes, kernels): the run ends at the

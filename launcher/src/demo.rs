@@ -232,6 +232,30 @@ pub struct DemoArgs {
     pub igtl_serve_allow: Vec<String>,
 }
 
+impl DemoArgs {
+    /// `lungdyn demo`'s options parsed from `argv` (its first item the program's name), for
+    /// commands that run the demo with some of them set (fault rounds, tests).
+    pub fn from_args<I, T>(argv: I) -> Result<Self, clap::Error>
+    where
+        I: IntoIterator<Item = T>,
+        T: Into<std::ffi::OsString> + Clone,
+    {
+        use clap::Parser;
+        #[derive(Parser)]
+        struct Demo {
+            #[command(flatten)]
+            demo: DemoArgs,
+        }
+        Ok(Demo::try_parse_from(argv)?.demo)
+    }
+
+    /// The demo's defaults, as `lungdyn demo` with no options has them (the latency harness and
+    /// `breathing follow` set a few of them).
+    pub fn defaults() -> Self {
+        Self::from_args(["demo"]).expect("the demo's defaults parse")
+    }
+}
+
 /// Most `--snapshots`: one per 60 Hz display frame of a 4-second breath (15 breaths/min). More are
 /// frames of one breath closer together than the renderer draws them, and every one is a PNG of the
 /// window's size written to disk (a billion asked for ran a run to 16 GiB before this limit).
@@ -1870,13 +1894,7 @@ mod tests {
 
     /// `lungdyn demo ARGS…`'s arguments.
     fn args(a: &[&str]) -> DemoArgs {
-        use clap::Parser;
-        #[derive(clap::Parser)]
-        struct Cli {
-            #[command(flatten)]
-            demo: DemoArgs,
-        }
-        Cli::parse_from(std::iter::once("demo").chain(a.iter().copied())).demo
+        DemoArgs::from_args(std::iter::once("demo").chain(a.iter().copied())).unwrap()
     }
 
     #[test]

@@ -706,12 +706,7 @@ fn run_round<'x>(
     if storm {
         demo_args.extend(["--max-restarts".into(), "2".into()]);
     }
-    #[derive(clap::Parser)]
-    struct DemoCli {
-        #[command(flatten)]
-        demo: crate::demo::DemoArgs,
-    }
-    let demo = <DemoCli as clap::Parser>::try_parse_from(&demo_args)?.demo;
+    let demo = crate::demo::DemoArgs::from_args(&demo_args)?;
     let mut inj = Injector::new(round, plan, exe, period_ns);
     let report = match crate::demo::run_watched(&demo, &mut inj) {
         Ok(report) => report,

@@ -95,6 +95,11 @@ pub struct LatencyArgs {
     /// what the link costs the frame (docs/SLICER.md).
     #[arg(long, value_name = "PORT", num_args = 0..=1)]
     pub igtl_serve: Option<Option<u16>>,
+    /// Breathe to a respiratory signal while measuring (the demo's --breathing SOURCE, e.g.
+    /// trace:FILE replayed live): the report adds "signal arrival -> GPU done", from the newest
+    /// signal sample the engine had for a frame to that frame's GPU completion (docs/BREATHING.md).
+    #[arg(long, value_name = "SOURCE")]
+    pub breathing: Option<String>,
 }
 
 /// `--load`: background work while measuring.
@@ -233,6 +238,8 @@ const ROWS: [(&str, usize, usize); 11] = [
     ("capture -> present", 0, PRESENT),
     ("renderer wake -> GPU done", 4, GPU_DONE),
 ];
+/// The row a breathing signal adds (after [`ROWS`]).
+const SIGNAL_ROW: &str = "signal arrival -> GPU done";
 const ROW_SUBMIT: usize = 7;
 const ROW_GPU_DONE: usize = 8;
 const ROW_PRESENT: usize = 9;
@@ -351,6 +358,58 @@ pub struct Recorder {
     launcher_cpu_start_s: f64,
     cpu: Vec<ProcessCpu>,
     stages: Vec<transport::trace::StageSummary>,
+    signal: SignalArrivals,
+}
+
+/// Where the breathing signal's newest sample had arrived by each tracker frame, for the row
+/// "signal arrival -> GPU done": a fixed ring indexed by tracker frame number (the launcher sees
+/// most tracker frames; a frame it missed is not measured, and counted).
+struct SignalArrivals {
+    /// (tracker frame number, the newest sample's arrival by then, ns).
+    ring: Vec<(u64, u64)>,
+    newest_ns: u64,
+    hist: Histogram<u64>,
+    unmatched: u64,
+}
+
+const SIGNAL_RING: usize = 512;
+
+impl SignalArrivals {
+    fn new() -> Self {
+        Self {
+            ring: vec![(u64::MAX, 0); SIGNAL_RING],
+            newest_ns: 0,
+            hist: histogram(),
+            unmatched: 0,
+        }
+    }
+
+    fn tracker_frame(&mut self, f: &ipc_types::TrackerFrame) {
+        for i in 0..f.signal.count as usize {
+            if let Some((s, true)) = f.signal.sample(i) {
+                self.newest_ns = self.newest_ns.max(s.t_ns);
+            }
+        }
+        if self.newest_ns > 0 {
+            self.ring[(f.frame_number % SIGNAL_RING as u64) as usize] =
+                (f.frame_number, self.newest_ns);
+        }
+    }
+
+    /// A drawn frame made from `tracker_frame`, its GPU work done at `gpu_done_ns`.
+    fn drawn(&mut self, tracker_frame: u64, gpu_done_ns: u64) {
+        if self.newest_ns == 0 {
+            return;
+        }
+        match self.ring[(tracker_frame % SIGNAL_RING as u64) as usize] {
+            (n, t) if n == tracker_frame && gpu_done_ns >= t => {
+                let _ = self
+                    .hist
+                    .record_correct((gpu_done_ns - t).max(1), DEADLINE_NS);
+            }
+            _ => self.unmatched += 1,
+        }
+    }
 }
 
 /// One child's CPU use over the run.
@@ -401,6 +460,7 @@ impl Recorder {
             launcher_cpu_start_s: 0.0,
             cpu: Vec::new(),
             stages: Vec::new(),
+            signal: SignalArrivals::new(),
         }
     }
 }
@@ -453,6 +513,8 @@ impl Watch for Recorder {
         let gpu_ok = p[GPU_DONE] >= p[5];
         if !gpu_ok {
             self.no_gpu_done += 1;
+        } else {
+            self.signal.drawn(r.tracker_frame, p[GPU_DONE]);
         }
         // The frame is done when its GPU work is (in a window: when it is presented).
         let end = if self.window && p[PRESENT] >= p[GPU_DONE] && gpu_ok {
@@ -502,6 +564,10 @@ impl Watch for Recorder {
 
     fn stages(&mut self, stages: &[transport::trace::StageSummary]) {
         self.stages = stages.to_vec();
+    }
+
+    fn tracker_frame(&mut self, f: &ipc_types::TrackerFrame) {
+        self.signal.tracker_frame(f);
     }
 
     fn before_stop(&mut self, children: &[(&'static str, u32)]) {
@@ -660,6 +726,14 @@ pub struct LatencyReport {
     pub quality_changes: u64,
     /// Frames with every governor step given up and still over its target, over the whole run.
     pub governor_floor_frames: u64,
+    /// With a breathing signal (`--breathing`): the newest signal sample's arrival → the GPU done
+    /// of the frame made with it, 99th percentile (coordinated-omission corrected), ms; null
+    /// without a signal.
+    pub signal_arrival_to_gpu_done_p99_ms: Option<f64>,
+    /// The same, median, ms.
+    pub signal_arrival_to_gpu_done_p50_ms: Option<f64>,
+    /// Drawn frames whose tracker frame the launcher did not see (not in the signal row).
+    pub signal_frames_unmatched: u64,
 }
 
 /// A sweep's result.
@@ -750,16 +824,8 @@ fn measure(
     load: Load,
     trace: Option<&Path>,
 ) -> anyhow::Result<(LatencyReport, Vec<SeriesPoint>)> {
-    use clap::Parser;
-    #[derive(Parser)]
-    struct Demo {
-        #[command(flatten)]
-        demo: crate::demo::DemoArgs,
-    }
     // The demo's defaults for everything the harness does not set.
-    let mut demo = Demo::try_parse_from(["demo"])
-        .expect("the demo's defaults parse")
-        .demo;
+    let mut demo = crate::demo::DemoArgs::defaults();
     demo.seconds = seconds + args.warmup;
     demo.out = args.out.clone();
     demo.snapshots = 0;
@@ -771,6 +837,7 @@ fn measure(
     demo.realtime = args.realtime;
     demo.governor = args.governor;
     demo.igtl_serve = args.igtl_serve;
+    demo.breathing = args.breathing.clone();
     // The stage timers come with the spans: always on here, into --out unless --trace names a file.
     demo.trace = Some(trace.map_or_else(|| args.out.join("latency.trace.json"), Path::to_path_buf));
     let mut scene = lung_model::scene::Scene::load_or_default(args.scene.as_deref())?;
@@ -811,12 +878,14 @@ impl Recorder {
         tick_hz: f64,
     ) -> (LatencyReport, Vec<SeriesPoint>) {
         self.load_threads = None;
-        let rows: Vec<Row> = ROWS
+        let mut rows: Vec<Row> = ROWS
             .iter()
             .zip(&self.rows)
             .filter(|(_, h)| !h.is_empty())
             .map(|(&(name, _, _), h)| Row::of(name, h))
             .collect();
+        let signal = (!self.signal.hist.is_empty()).then(|| Row::of(SIGNAL_ROW, &self.signal.hist));
+        rows.extend(signal.clone());
         let p99 = |i: usize| Row::of(ROWS[i].0, &self.rows[i]).p99_ms;
         let cpu_of = |role: &str| self.cpu.iter().find(|c| c.process == role).map(|c| c.cpu_s);
         let processes = [
@@ -902,6 +971,9 @@ impl Recorder {
             quality_frames: demo.quality_frames.clone(),
             quality_changes: demo.quality_changes,
             governor_floor_frames: demo.governor_floor_frames,
+            signal_arrival_to_gpu_done_p99_ms: signal.as_ref().map(|r| r.p99_ms),
+            signal_arrival_to_gpu_done_p50_ms: signal.as_ref().map(|r| r.p50_ms),
+            signal_frames_unmatched: self.signal.unmatched,
         };
         (report, self.series)
     }
@@ -1268,6 +1340,16 @@ pub fn summary(o: &LatencyOutput) -> String {
         s.push_str(&sl.text());
         s.push('\n');
     }
+    if let (Some(p50), Some(p99)) = (
+        r.signal_arrival_to_gpu_done_p50_ms,
+        r.signal_arrival_to_gpu_done_p99_ms,
+    ) {
+        s.push_str(&format!(
+            "breathing signal: its newest sample's arrival -> GPU done median {p50:.2} ms, p99 \
+             {p99:.2} ms ({} frames not matched to their tracker frame)\n",
+            r.signal_frames_unmatched
+        ));
+    }
     if let Some(l) = o.largest_mesh_vertices {
         s.push_str(&format!(
             "largest mesh holding 60 Hz with zero misses: {}\n",
@@ -1285,6 +1367,46 @@ pub fn summary(o: &LatencyOutput) -> String {
 mod tests {
     use super::*;
     use ipc_types::HopStamps;
+
+    /// The signal row: each drawn frame is measured from the newest valid sample that had arrived by
+    /// its tracker frame (a frame without samples carries the newest before it); an invalid sample
+    /// is not an arrival; a drawn frame whose tracker frame was not seen is counted, not measured.
+    #[test]
+    fn the_signal_row_measures_from_the_newest_sample_by_each_tracker_frame() {
+        let mut a = SignalArrivals::new();
+        let frame = |n: u64, samples: &[(u64, bool)]| {
+            let mut f = ipc_types::TrackerFrame::default();
+            f.frame_number = n;
+            f.signal.count = samples.len() as u32;
+            for (i, &(t, valid)) in samples.iter().enumerate() {
+                f.signal.samples[i].t_ns = t;
+                if valid {
+                    f.signal.valid_mask |= 1 << i;
+                }
+            }
+            f
+        };
+        // No signal yet: nothing measured, nothing counted.
+        a.tracker_frame(&frame(1, &[]));
+        a.drawn(1, 50_000_000);
+        assert!(a.hist.is_empty() && a.unmatched == 0);
+        a.tracker_frame(&frame(2, &[(100_000_000, true), (120_000_000, true)]));
+        a.tracker_frame(&frame(3, &[]));
+        a.tracker_frame(&frame(4, &[(150_000_000, false)]));
+        a.drawn(2, 130_000_000); // 10 ms after the sample at 120 ms
+        a.drawn(3, 135_000_000); // frame 3 carried none: still from 120 ms
+        a.drawn(4, 160_000_000); // the sample at 150 ms was invalid: from 120 ms
+        a.drawn(9, 170_000_000); // never seen
+        assert_eq!(a.unmatched, 1);
+        // Three frames, and the 40 ms one corrected for coordinated omission (one more at 23.3 ms).
+        assert_eq!(a.hist.len(), 4);
+        assert!((a.hist.min() as f64 - 10e6).abs() < 1e4, "{}", a.hist.min());
+        assert!((a.hist.max() as f64 - 40e6).abs() < 1e5, "{}", a.hist.max());
+        // The ring wraps: frame 2 + 512 replaces frame 2.
+        a.tracker_frame(&frame(2 + SIGNAL_RING as u64, &[(200_000_000, true)]));
+        a.drawn(2, 210_000_000);
+        assert_eq!(a.unmatched, 2);
+    }
 
     #[test]
     fn load_specs_parse_and_bad_ones_say_why() {

@@ -77,6 +77,10 @@ fn a_short_latency_run_reports_capture_to_gpu_done_and_writes_its_report() {
         assert!(q.windows(2).all(|w| w[0] <= w[1]), "{r}");
     }
     assert!(rows.iter().any(|r| r["hop"] == "submit -> GPU done"), "{v}");
+    assert!(
+        v["signal_arrival_to_gpu_done_p99_ms"].is_null(),
+        "no signal: {v}"
+    );
     // Each process's period and CPU time.
     let procs = v["processes"].as_array().expect("processes");
     assert_eq!(procs.len(), 3, "{v}");
@@ -150,6 +154,66 @@ fn assert_merged_trace(path: &std::path::Path) {
             "{role}: no {span:?} span in {spans:?}"
         );
     }
+}
+
+/// With a breathing signal (`--breathing trace:FILE`, replayed live) the harness measures from the
+/// newest sample's arrival to the GPU done of the frame made with it (issue 35), beside capture ->
+/// GPU done: a sample arrives at most a sample period before the tracker frame that carries it.
+#[test]
+fn a_run_with_a_breathing_signal_measures_signal_arrival_to_gpu_done() {
+    if renderer::gpu::Gpu::for_tests().is_none() {
+        return;
+    }
+    let out = std::env::temp_dir().join(format!("lungdyn-latency-signal-{}", std::process::id()));
+    std::fs::create_dir_all(&out).expect("the output folder");
+    // A 20 s chest trace at 25 Hz, 3 s breaths (synthetic, written for the test).
+    let trace = out.join("trace.csv");
+    let mut csv = String::from("time_s,amplitude_mm\n");
+    for k in 0..500 {
+        let t = k as f64 * 0.04;
+        let v = 4.0 * (1.0 - (2.0 * std::f64::consts::PI * t / 3.0).cos());
+        csv += &format!("{t:.3},{v:.4}\n");
+    }
+    std::fs::write(&trace, csv).unwrap();
+    let output = std::process::Command::new(bin("lungdyn"))
+        .args([
+            "latency",
+            "--seconds",
+            "4",
+            "--warmup",
+            "0.5",
+            "--mesh",
+            "1000",
+            "--json",
+        ])
+        .arg("--breathing")
+        .arg(format!("trace:{}", trace.display()))
+        .arg("--out")
+        .arg(&out)
+        .output()
+        .expect("run lungdyn latency");
+    let err = String::from_utf8_lossy(&output.stderr);
+    assert!(output.status.success(), "{err}");
+    let v: serde_json::Value =
+        serde_json::from_slice(&output.stdout).unwrap_or_else(|e| panic!("JSON: {e}: {err}"));
+    let p50 = v["signal_arrival_to_gpu_done_p50_ms"]
+        .as_f64()
+        .unwrap_or_else(|| panic!("the signal row: {v}"));
+    let p99 = v["signal_arrival_to_gpu_done_p99_ms"].as_f64().unwrap();
+    assert!(p50 > 0.0 && p50 <= p99 && p99 < 5_000.0, "{v}");
+    let row = v["rows"]
+        .as_array()
+        .unwrap()
+        .iter()
+        .find(|r| r["hop"] == "signal arrival -> GPU done")
+        .unwrap_or_else(|| panic!("the row: {v}"))
+        .clone();
+    let frames = v["frames"].as_u64().unwrap();
+    let unmatched = v["signal_frames_unmatched"].as_u64().unwrap();
+    assert!(unmatched < frames / 2, "most frames matched: {v}");
+    assert!(row["count"].as_u64().unwrap() > 0, "{row}");
+    let md = std::fs::read_to_string(out.join("latency.md")).expect("latency.md");
+    assert!(md.contains("signal arrival -> GPU done"), "{md}");
 }
 
 #[test]
