@@ -881,12 +881,7 @@ fn resolve_scene(args: &DemoArgs) -> anyhow::Result<Resolved> {
             .map_err(|e| anyhow::anyhow!("the scene with --breathing {b}: {e}"))?;
     }
     if let Some(ms) = args.breathing_latency_ms {
-        if loaded.breathing.source != lung_model::scene::BreathSource::Signal {
-            anyhow::bail!(
-                "--breathing-latency-ms {ms}: there is no breathing signal to predict; follow one \
-                 with --breathing trace:FILE (or the scene's [breathing] source = \"signal\")"
-            );
-        }
+        require_signal(&loaded, &format!("--breathing-latency-ms {ms}"), "predict")?;
         loaded.breathing.latency_ms = ms;
         loaded
             .validate()
@@ -894,12 +889,7 @@ fn resolve_scene(args: &DemoArgs) -> anyhow::Result<Resolved> {
     }
     if let (Some(at), Some(dur)) = (args.breathing_cut_at, args.breathing_cut_for) {
         tracker_bridge::signal::check_cut(at, dur)?;
-        if loaded.breathing.source != lung_model::scene::BreathSource::Signal {
-            anyhow::bail!(
-                "--breathing-cut-at {at}: there is no breathing signal to cut; follow one with \
-                 --breathing trace:FILE (or the scene's [breathing] source = \"signal\")"
-            );
-        }
+        require_signal(&loaded, &format!("--breathing-cut-at {at}"), "cut")?;
     }
     if (args.roll_deg > 0.0 || args.pitch_deg > 0.0) && !loaded.lungs.mode.follows_orientation() {
         eprintln!(
@@ -1859,6 +1849,18 @@ pub fn table(r: &DemoReport) -> String {
         let _ = writeln!(s, "breath strip (frames + motion panel: green = newly covered at end-inspiration, red = vacated): {strip}");
     }
     s
+}
+
+/// A signal option (`flag`, as given) refused when the scene breathes with the model: there is no
+/// signal to `what`.
+fn require_signal(scene: &lung_model::scene::Scene, flag: &str, what: &str) -> anyhow::Result<()> {
+    if scene.breathing.source != lung_model::scene::BreathSource::Signal {
+        anyhow::bail!(
+            "{flag}: there is no breathing signal to {what}; follow one with --breathing \
+             trace:FILE (or the scene's [breathing] source = \"signal\")"
+        );
+    }
+    Ok(())
 }
 
 /// `--breathing`: `model` (`None`), or a signal source with its file made absolute and checked
