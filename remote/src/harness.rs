@@ -264,6 +264,22 @@ pub struct SiteReport {
     pub clock: ClockFigures,
     /// How late the site's tick thread stepped each tick after its scheduled time.
     pub lateness: Lateness,
+    /// How long it took to join.
+    #[serde(flatten)]
+    pub join: Join,
+}
+
+/// A site's time to join the room.
+#[derive(Debug, Clone, Copy, Serialize)]
+pub struct Join {
+    /// `Site::open`: the session's link up (TCP, or TLS with both certificates checked), the
+    /// subscriptions and the liveliness token declared, ms.
+    #[serde(rename = "join_open_ms")]
+    pub open_ms: f64,
+    /// From the start of the opening to the first clock answer taken (the first probe goes out
+    /// on opening); none before the harness's 1 s settling after the last site opened, ms.
+    #[serde(rename = "join_first_clock_answer_ms")]
+    pub first_clock_answer_ms: Option<f64>,
 }
 
 /// A clock estimate's error and rate at the end of a run.
@@ -358,6 +374,13 @@ pub struct HarnessReport {
     pub transport: &'static str,
     /// Packets the sites refused because their seal did not hold (0 in a run with no outsider).
     pub refused_seals: u64,
+    /// Mean over sites of the time to open a site's session ([`Join::open_ms`]), ms.
+    pub join_open_ms_mean: f64,
+    /// The slowest site's, ms.
+    pub join_open_ms_worst: f64,
+    /// The slowest site's first clock answer from the start of its opening; none when a site
+    /// had none within the 1 s settling, ms.
+    pub join_first_clock_answer_ms_worst: Option<f64>,
     /// Mean over sites of each site's mean drift, %.
     pub drift_percent_mean: f64,
     /// Worst cycle of any site, %.
@@ -682,6 +705,7 @@ fn local_net(
         lease_ms: LEASE_MS,
         mode,
         auth,
+        acl: true,
     }
 }
 
@@ -764,7 +788,7 @@ fn timed_source(
     })?;
     let (recs, stats) = recs;
     let (sent, received) = match (b0, tcp_bytes()) {
-        (Some(a), Some(b)) => (b.0.saturating_sub(a.0), b.1.saturating_sub(a.1)),
+        (Some(a), Some(b)) => b.since(&a),
         _ => (0, 0),
     };
     let cost = SourceCost {
@@ -1127,28 +1151,19 @@ pub fn run(args: &HarnessArgs) -> Result<HarnessReport, RemoteError> {
         (None, SourceSide::Here(s)) => locator(s.session())?,
         (None, SourceSide::Own(c)) => c.endpoint.clone(),
     };
-    let mut sites = Vec::new();
-    for k in 0..args.sites {
-        let mut i = imp;
-        i.seed = args.seed.wrapping_add(k as u64 + 1);
-        i.clock = site_clock;
-        let site_net = local_net(
-            if via.is_some() { "client" } else { "peer" },
-            Some(&endpoint),
-            run_room(kd, &format!("site-{}", k + 1))?,
-        );
-        sites.push(Site::open(
-            &site_net,
-            &keys,
-            site_id(k as u64 + 1),
-            args.observer,
-            i,
-            args.probe_ms,
-            clock,
-        )?);
-    }
+    let (sites, joins) = open_sites(
+        args,
+        imp,
+        site_clock,
+        &endpoint,
+        via.is_some(),
+        kd,
+        &keys,
+        clock,
+    )?;
     // Let the probes measure the path before the first state.
     std::thread::sleep(Duration::from_millis(1000));
+    let first_answer = first_answers(&sites, &joins);
     let stop = AtomicBool::new(false);
     let recs: Mutex<Vec<(usize, Vec<Rec>)>> = Mutex::new(Vec::new());
     let result: Mutex<Option<RemoteError>> = Mutex::new(None);
@@ -1192,7 +1207,13 @@ pub fn run(args: &HarnessArgs) -> Result<HarnessReport, RemoteError> {
     recs.sort_by_key(|(k, _)| *k);
     let per_site: Vec<SiteReport> = recs
         .iter()
-        .map(|(k, r)| site_report(&sites[*k], r, source_recs, tv))
+        .map(|(k, r)| {
+            let join = Join {
+                open_ms: joins[*k].1,
+                first_clock_answer_ms: first_answer[*k],
+            };
+            site_report(&sites[*k], r, source_recs, tv, join)
+        })
         .collect();
     Ok(harness_report(
         args,
@@ -1208,10 +1229,62 @@ pub fn run(args: &HarnessArgs) -> Result<HarnessReport, RemoteError> {
     ))
 }
 
+/// Open the harness's `args.sites` sites on `endpoint` (clients of the router when `routed`), each
+/// with its own seed; with each, when it began to open and how long its opening took (the link's
+/// handshake, the subscriptions, the liveliness token): the time to join.
+#[allow(clippy::too_many_arguments)]
+fn open_sites(
+    args: &HarnessArgs,
+    imp: Impairment,
+    site_clock: crate::clock::LocalClock,
+    endpoint: &str,
+    routed: bool,
+    kd: Option<&std::path::Path>,
+    keys: &Keys,
+    clock: ClockSync,
+) -> Result<(Vec<Site>, Vec<(u64, f64)>), RemoteError> {
+    let mut sites = Vec::new();
+    let mut joins: Vec<(u64, f64)> = Vec::new();
+    for k in 0..args.sites {
+        let mut i = imp;
+        i.seed = args.seed.wrapping_add(k as u64 + 1);
+        i.clock = site_clock;
+        let site_net = local_net(
+            if routed { "client" } else { "peer" },
+            Some(endpoint),
+            run_room(kd, &format!("site-{}", k + 1))?,
+        );
+        let began = now_ns();
+        sites.push(Site::open(
+            &site_net,
+            keys,
+            site_id(k as u64 + 1),
+            args.observer,
+            i,
+            args.probe_ms,
+            clock,
+        )?);
+        joins.push((began, (now_ns() - began) as f64 / 1e6));
+    }
+    Ok((sites, joins))
+}
+
+/// Each site's first clock answer, ms from when it began to open (`joins`); none yet.
+fn first_answers(sites: &[Site], joins: &[(u64, f64)]) -> Vec<Option<f64>> {
+    sites
+        .iter()
+        .zip(joins)
+        .map(|(site, (began, _))| {
+            let at = site.counts.first_probe_ns.load(Ordering::Relaxed);
+            (at > 0).then(|| at.saturating_sub(*began) as f64 / 1e6)
+        })
+        .collect()
+}
+
 /// One site's figures against the source's record: drift of the volume (against the source's
 /// tick and its schedule), phase error, ticks that differ bit for bit, the site's counts and its
 /// path and clock.
-fn site_report(site: &Site, r: &[Rec], source_recs: &[Rec], tv: f64) -> SiteReport {
+fn site_report(site: &Site, r: &[Rec], source_recs: &[Rec], tv: f64, join: Join) -> SiteReport {
     let end = source_recs.last().map_or(0, |r| r.1 as i128);
     // The source's record of tick `k`, found by its tick number rather than assumed at place `k`
     // (the same today: the source records every tick from 0, a skipped deadline shifting when a
@@ -1259,6 +1332,7 @@ fn site_report(site: &Site, r: &[Rec], source_recs: &[Rec], tv: f64) -> SiteRepo
         offset_ms: site.path.offset_at(site.own_clock.now()).unwrap_or(0) as f64 / 1e6,
         clock: ClockFigures::of(&site.path, site.own_clock),
         lateness: lateness(r),
+        join,
     }
 }
 
@@ -1307,6 +1381,12 @@ fn harness_report(
             Transport::Tcp => "tcp",
         },
         refused_seals,
+        join_open_ms_mean: mean(|s| s.join.open_ms),
+        join_open_ms_worst: max(|s| s.join.open_ms),
+        join_first_clock_answer_ms_worst: per_site
+            .iter()
+            .map(|s| s.join.first_clock_answer_ms)
+            .try_fold(0.0, |w: f64, a| a.map(|a| w.max(a))),
         drift_percent_mean: mean(|s| s.drift_percent_mean),
         drift_percent_worst: max(|s| s.drift_percent_worst),
         drift_percent_mean_scheduled: mean(|s| s.drift_percent_mean_scheduled),
@@ -1408,6 +1488,17 @@ pub fn print(r: &HarnessReport) {
             r.skew_ppm, r.relay_skew_ppm
         );
     }
+    println!(
+        "joining ({}): a site's session open in {:.1} ms mean, {:.1} ms worst; its first clock \
+         answer {}",
+        r.transport,
+        r.join_open_ms_mean,
+        r.join_open_ms_worst,
+        r.join_first_clock_answer_ms_worst.map_or(
+            "missing for a site after the 1 s settling".to_string(),
+            |w| format!("within {w:.1} ms of its start")
+        )
+    );
     println!(
         "step lateness (actual − scheduled): source {}",
         lateness_words(&r.source_lateness)

@@ -23,6 +23,7 @@
 //! copies) and hands over through a bounded channel; building PV tables happens on a worker; the
 //! tick loop takes what is ready with `try_recv`.
 
+pub mod acl;
 pub mod clock;
 pub mod harness;
 pub mod keys;
@@ -188,6 +189,9 @@ pub struct Net {
     /// authentication on `tls/` endpoints, and every packet sealed ([`seal`]). None: plain TCP
     /// and plain packets, for a closed lab network only.
     pub auth: Option<std::sync::Arc<keys::Room>>,
+    /// With keys, Zenoh's access control by the role in each link's certificate ([`acl`]), the
+    /// wall before the seals. Off only to test the seals alone.
+    pub acl: bool,
 }
 
 impl Net {
@@ -199,6 +203,7 @@ impl Net {
             lease_ms: 10_000,
             mode: "peer",
             auth: None,
+            acl: true,
         }
     }
 
@@ -231,6 +236,7 @@ impl Net {
             lease_ms: r.lease_ms,
             mode: r.mode.name(),
             auth: None,
+            acl: true,
         }
     }
 
@@ -276,6 +282,11 @@ impl Net {
             &self.lease_ms.to_string(),
         )?;
         set(&mut c, "transport/link/tx/keep_alive", "4")?;
+        // Opening returns once the configured endpoints are connected and their declarations
+        // heard, without also waiting up to Zenoh's 500 ms scouting delay for peers learnt by
+        // gossip (a room's sites do not connect to each other): a site joined peer to peer in
+        // about 500 ms, now in a few (docs/REMOTE.md, the time to join).
+        set(&mut c, "open/return_conditions/connect_scouted", "false")?;
         if let Some(room) = &self.auth {
             let path = |p: &std::path::Path| format!("{:?}", p.display().to_string());
             let t = &room.tls;
@@ -307,6 +318,13 @@ impl Net {
                 "transport/link/tls/close_link_on_expiration",
                 "true",
             )?;
+            if self.acl {
+                let table = acl::config(room)?.to_string();
+                set(&mut c, "access_control", &table)?;
+                // Its drops are read from this session's own admin space (acl::refusals); the
+                // table above refuses the admin space to every other participant.
+                set(&mut c, "adminspace/enabled", "true")?;
+            }
         }
         Ok(c)
     }

@@ -29,24 +29,41 @@ pub fn cpu_s(who: Who) -> f64 {
     }
 }
 
-/// Bytes over this process's TCP sockets now: (sent and acknowledged, received), summed over
-/// every open TCP socket (`tcpi_bytes_acked` and `tcpi_bytes_received` of Linux's `tcp_info`,
-/// kernel 4.1 on; a socket closed earlier no longer counts). On loopback every byte sent is
-/// acknowledged within microseconds, so the first is the bytes sent. `None` where `/proc/self/fd`
-/// cannot be read or the kernel's `tcp_info` is too short.
-pub fn tcp_bytes() -> Option<(u64, u64)> {
+/// Bytes over this process's TCP sockets now, socket by socket (by the socket's inode): (sent
+/// and acknowledged, received) (`tcpi_bytes_acked` and `tcpi_bytes_received` of Linux's
+/// `tcp_info`, kernel 4.1 on). On loopback every byte sent is acknowledged within microseconds, so
+/// the first is the bytes sent.
+#[derive(Debug, Clone, Default)]
+pub struct TcpBytes(std::collections::BTreeMap<String, (u64, u64)>);
+
+impl TcpBytes {
+    /// (sent, received) since `earlier`: each socket's growth, a socket opened since counted
+    /// whole. A socket closed in between no longer counts (its last bytes are lost to the
+    /// measure); before this was per socket, a link replaced during a run made the process's sum
+    /// fall and the run's bytes read 0.
+    pub fn since(&self, earlier: &TcpBytes) -> (u64, u64) {
+        self.0.iter().fold((0, 0), |(s, r), (ino, (s1, r1))| {
+            let (s0, r0) = earlier.0.get(ino).copied().unwrap_or((0, 0));
+            (s + s1.saturating_sub(s0), r + r1.saturating_sub(r0))
+        })
+    }
+}
+
+/// This process's TCP sockets' bytes now ([`TcpBytes`]); `None` where `/proc/self/fd` cannot be
+/// read or the kernel's `tcp_info` is too short.
+pub fn tcp_bytes() -> Option<TcpBytes> {
     // struct tcp_info: 8 one-byte fields, 24 u32 (to tcpi_total_retrans), then u64 pacing_rate,
     // max_pacing_rate, bytes_acked (offset 120), bytes_received (offset 128).
     const ACKED: usize = 120;
     const RECEIVED: usize = 128;
-    let mut sent = 0u64;
-    let mut received = 0u64;
+    let mut out = TcpBytes::default();
     let mut any_short = false;
     for entry in std::fs::read_dir("/proc/self/fd").ok()?.flatten() {
         let Ok(target) = std::fs::read_link(entry.path()) else {
             continue;
         };
-        if !target.to_string_lossy().starts_with("socket:") {
+        let target = target.to_string_lossy().into_owned();
+        if !target.starts_with("socket:") {
             continue;
         }
         let Some(fd) = entry
@@ -77,10 +94,9 @@ pub fn tcp_bytes() -> Option<(u64, u64)> {
             continue;
         }
         let at = |o: usize| u64::from_ne_bytes(buf[o..o + 8].try_into().expect("8 bytes"));
-        sent += at(ACKED);
-        received += at(RECEIVED);
+        out.0.insert(target, (at(ACKED), at(RECEIVED)));
     }
-    (!any_short).then_some((sent, received))
+    (!any_short).then_some(out)
 }
 
 /// How late a thread stepped its ticks: each tick's actual step time (taken after the step) minus
@@ -146,7 +162,7 @@ mod tests {
         let l = std::net::TcpListener::bind("127.0.0.1:0").unwrap();
         let mut a = std::net::TcpStream::connect(l.local_addr().unwrap()).unwrap();
         let (mut b, _) = l.accept().unwrap();
-        let (s0, r0) = tcp_bytes().unwrap();
+        let before = tcp_bytes().unwrap();
         a.write_all(&[7u8; 10_000]).unwrap();
         let mut got = vec![0u8; 10_000];
         b.read_exact(&mut got).unwrap();
@@ -154,8 +170,27 @@ mod tests {
         // whatever other tests' sockets carried meanwhile.
         let mut ok = false;
         for _ in 0..100 {
-            let (s1, r1) = tcp_bytes().unwrap();
-            if s1 - s0 >= 10_000 && r1 - r0 >= 10_000 {
+            let (s, r) = tcp_bytes().unwrap().since(&before);
+            if s >= 10_000 && r >= 10_000 {
+                ok = true;
+                break;
+            }
+            std::thread::sleep(std::time::Duration::from_millis(10));
+        }
+        assert!(ok);
+        // A socket opened after the first reading is counted whole, and one that closed no
+        // longer takes its bytes off the others'.
+        let mut c = std::net::TcpStream::connect(l.local_addr().unwrap()).unwrap();
+        let (mut d, _) = l.accept().unwrap();
+        let middle = tcp_bytes().unwrap();
+        drop((a, b));
+        c.write_all(&[1u8; 5_000]).unwrap();
+        let mut got = vec![0u8; 5_000];
+        d.read_exact(&mut got).unwrap();
+        let mut ok = false;
+        for _ in 0..100 {
+            let (s, r) = tcp_bytes().unwrap().since(&middle);
+            if s >= 5_000 && r >= 5_000 {
                 ok = true;
                 break;
             }

@@ -183,11 +183,18 @@ pub fn say_transport(who: &str, net: &Net) {
         Some(room) => {
             let me = room.identity();
             eprintln!(
-                "{who}: mutual TLS as {} ({}) of room {} ({} participants); every packet sealed",
+                "{who}: mutual TLS as {} ({}) of room {} ({} participants); every packet sealed; \
+                 {}",
                 me.name,
                 me.role.name(),
                 room.room,
-                room.members.len()
+                room.members.len(),
+                if net.acl {
+                    "access control by each link's role (states and clock answers only from the \
+                     source or router, events only from sites or router)"
+                } else {
+                    "access control off"
+                }
             );
             for w in &room.warnings {
                 eprintln!("{who}: keys: {w}");
@@ -436,6 +443,11 @@ pub fn serve(args: &ServeArgs) -> Result<(), RemoteError> {
     let mut control = instance.control_outlet(&node)?;
     let id = remote.site_id().unwrap_or_else(|| site_id(0));
     let source = Source::open(&net, &keys, id, Impairment::default())?;
+    let _acl = crate::acl::Watch::start(
+        &net,
+        source.session(),
+        &format!("remote serve[{}]", instance.name()),
+    );
     let how = if net.mode == "client" {
         format!(
             "through the router {:?}: sites join with lungdyn remote join --mode client --connect \
@@ -499,13 +511,14 @@ pub fn serve(args: &ServeArgs) -> Result<(), RemoteError> {
     let c = &source.counts;
     eprintln!(
         "remote serve[{}]: {} states ({} bytes) published, {} probes answered, {} events, {} \
-         refused",
+         refused{}",
         instance.name(),
         c.states.load(Ordering::Relaxed),
         c.state_bytes.load(Ordering::Relaxed),
         c.probes.load(Ordering::Relaxed),
         c.events.load(Ordering::Relaxed),
-        refused + c.refused.load(Ordering::Relaxed)
+        refused + c.refused.load(Ordering::Relaxed),
+        crate::acl::closing_words(&net, source.session())
     );
     Ok(())
 }
@@ -608,6 +621,7 @@ pub fn router(args: &RouterArgs) -> Result<(), RemoteError> {
     )?;
     say_transport("remote router", &net);
     let session = net.open()?;
+    let _acl = crate::acl::Watch::start(&net, &session, "remote router");
     let relay = crate::relay::Relay::open(
         &session,
         &keys,
@@ -670,13 +684,14 @@ pub fn router(args: &RouterArgs) -> Result<(), RemoteError> {
     let c = &relay.counts;
     eprintln!(
         "remote router: relay sent {} probes to the source ({} answered); answered {} site \
-         probes, {} before it had {} source replies, {} refused",
+         probes, {} before it had {} source replies, {} refused{}",
         c.probes_to_source.load(Ordering::Relaxed),
         c.source_replies.load(Ordering::Relaxed),
         c.answered.load(Ordering::Relaxed),
         c.unanswered.load(Ordering::Relaxed),
         crate::relay::MIN_REPLIES,
-        c.refused.load(Ordering::Relaxed)
+        c.refused.load(Ordering::Relaxed),
+        crate::acl::closing_words(&net, &session)
     );
     Ok(())
 }
@@ -740,6 +755,11 @@ pub fn join(args: &JoinArgs) -> Result<(), RemoteError> {
             lung_model::scene_remote::ClockSync::Source => "source",
         }
     );
+    let _acl = crate::acl::Watch::start(
+        &net,
+        site.session(),
+        &format!("remote join[{}]", instance.name()),
+    );
     let mut relay_watch = RelayWatch::new(now_ns());
     let mut runner = site
         .runner(core, hz)
@@ -776,7 +796,7 @@ pub fn join(args: &JoinArgs) -> Result<(), RemoteError> {
             .clamp(0, 2_000_000);
         std::thread::sleep(Duration::from_nanos(wake as u64));
     }
-    say_join_counts(&instance, &site);
+    say_join_counts(&instance, &site, &net);
     // A site that never breathed the source's breath did not do its job: say why, exit non-zero.
     let c = &site.counts;
     let applied = c.applied.load(Ordering::Relaxed);
@@ -934,7 +954,7 @@ impl LocalEvents {
 
 /// A joined site's closing counts on stderr: disease cycles announced in time or late, states
 /// applied, repeated and refused, cycles breathed on prediction.
-fn say_join_counts(instance: &Instance, site: &Site) {
+fn say_join_counts(instance: &Instance, site: &Site, net: &Net) {
     let c = &site.counts;
     eprintln!(
         "remote join[{}]: {} disease cycle(s) announced in time, {} late",
@@ -944,7 +964,7 @@ fn say_join_counts(instance: &Instance, site: &Site) {
     );
     eprintln!(
         "remote join[{}]: {} states applied, {} repeated, {} refused{}, {} cycle(s) breathed on \
-         prediction (their state late or lost)",
+         prediction (their state late or lost){}",
         instance.name(),
         c.applied.load(Ordering::Relaxed),
         c.repeated.load(Ordering::Relaxed),
@@ -955,7 +975,8 @@ fn say_join_counts(instance: &Instance, site: &Site) {
             .and_then(|g| g.clone())
             .map(|w| format!(" (last: {w})"))
             .unwrap_or_default(),
-        c.predicted_cycles.load(Ordering::Relaxed)
+        c.predicted_cycles.load(Ordering::Relaxed),
+        crate::acl::closing_words(net, site.session())
     );
 }
 

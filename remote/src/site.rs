@@ -9,6 +9,7 @@ use control_state::{decode, encode_to_vec, Packet, RemoteEvent};
 use engine::runtime::remote::{BreathCache, Prepared};
 use engine::runtime::EngineCore;
 use ipc_types::EngineFrame;
+use transport::clock::now_ns;
 use zenoh::Wait;
 use zenoh_ext::{AdvancedSubscriberBuilderExt, HistoryConfig, RecoveryConfig};
 
@@ -29,6 +30,8 @@ pub struct SiteCounts {
     pub repeated: AtomicU64,
     /// Probe replies taken.
     pub probes: AtomicU64,
+    /// When the first was taken (host clock, ns; 0 before): the end of joining.
+    pub first_probe_ns: AtomicU64,
     /// States the tick loop applied.
     pub applied: AtomicU64,
     /// Breathing cycles the site breathed on its own prediction because the source's state for
@@ -43,6 +46,15 @@ pub struct SiteCounts {
     /// Disease cycles whose announcement reached the engine after their start tick (put in at
     /// once; the ticks between showed the previous cycle's breath).
     pub announced_late: AtomicU64,
+}
+
+impl SiteCounts {
+    /// A probe reply taken: counted, the first one's time kept.
+    fn took_probe(&self) {
+        if self.probes.fetch_add(1, Ordering::Relaxed) == 0 {
+            self.first_probe_ns.store(now_ns(), Ordering::Relaxed);
+        }
+    }
 }
 
 /// The largest step between one source's consecutive states a site takes (a state per breath
@@ -395,7 +407,7 @@ impl Site {
                         return;
                     };
                     if p.take(&mut estimator, stamps, from) {
-                        c.probes.fetch_add(1, Ordering::Relaxed);
+                        c.took_probe();
                     }
                 }
                 Ok(_) => {}
@@ -494,6 +506,11 @@ impl Site {
             .wait()
             .map_err(zerr("send an event"))?;
         Ok(sequence)
+    }
+
+    /// This site's Zenoh session.
+    pub fn session(&self) -> &zenoh::Session {
+        &self.session
     }
 
     /// The engine runner fed by this site's states (once: `None` after the first call).

@@ -73,6 +73,44 @@ fn client_with(endpoint: &str, extra: &[(&str, String)]) -> Result<zenoh::Sessio
     zenoh::open(c).wait().map_err(|e| e.to_string())
 }
 
+/// A client of the router at `endpoint` as `who` of `d`, with Zenoh's access control on or off.
+fn client_net(d: &Dir, endpoint: &str, who: &str, acl: bool) -> Net {
+    let mut n = net(&[], &[endpoint.to_string()], Some(load(d, who)));
+    n.mode = "client";
+    n.acl = acl;
+    n
+}
+
+/// A classroom across networks in room "ward" of `d`: a router on a free TLS port, and as its
+/// clients the source (id `site_id(0)`) and a site probing the source every 100 ms; Zenoh's
+/// access control on or off everywhere (`acl`). Returns the router's session and endpoint.
+fn classroom(d: &Dir, acl: bool) -> (zenoh::Session, String, Source, Site) {
+    let keys = Keys::new("ward").unwrap();
+    let endpoint = format!("tls/127.0.0.1:{}", lungdyn_needs::free_local_port());
+    let mut router_net = net(&[endpoint.clone()], &[], Some(load(d, "router")));
+    router_net.mode = "router";
+    router_net.acl = acl;
+    let router = router_net.open().unwrap();
+    let source = Source::open(
+        &client_net(d, &endpoint, "source", acl),
+        &keys,
+        site_id(0),
+        Impairment::default(),
+    )
+    .unwrap();
+    let site = Site::open(
+        &client_net(d, &endpoint, "site", acl),
+        &keys,
+        site_id(1),
+        false,
+        Impairment::default(),
+        100,
+        ClockSync::Source,
+    )
+    .unwrap();
+    (router, endpoint, source, site)
+}
+
 #[test]
 fn outsiders_without_the_rooms_certificate_cannot_connect() {
     let ours = room("ward", "outsiders-ours");
@@ -121,39 +159,21 @@ fn outsiders_without_the_rooms_certificate_cannot_connect() {
 
 #[test]
 fn a_participant_of_the_wrong_role_forges_nothing_and_replays_nothing() {
+    // The seals alone: Zenoh's access control off everywhere, so every forgery reaches them (the
+    // next test has the access control on, where the router stops these before they are relayed).
     let d = room("ward", "roles");
     let (scene, core) = harness_core(Some(30.0)).unwrap();
     let hz = scene.engine.tick_hz;
     let keys = Keys::new("ward").unwrap();
     // Everyone a client of the room's router (what a classroom across networks runs): the
     // attacker's session hears what the router forwards to it, a captured event included.
-    let port = lungdyn_needs::free_local_port();
-    let endpoint = format!("tls/127.0.0.1:{port}");
-    let mut router_net = net(&[endpoint.clone()], &[], Some(load(&d, "router")));
-    router_net.mode = "router";
-    let _router = router_net.open().unwrap();
-    let client = |who: &str| {
-        let mut n = net(&[], &[endpoint.clone()], Some(load(&d, who)));
-        n.mode = "client";
-        n
-    };
+    let (_router, endpoint, source, site) = classroom(&d, false);
     let id = site_id(0);
-    let source = Source::open(&client("source"), &keys, id, Impairment::default()).unwrap();
-    let site = Site::open(
-        &client("site"),
-        &keys,
-        site_id(1),
-        false,
-        Impairment::default(),
-        100,
-        ClockSync::Source,
-    )
-    .unwrap();
     // The attacker: this room's observer, with its own certificate and key.
     let observer = load(&d, "observer");
-    let rogue = net(&[], &[endpoint.clone()], Some(observer.clone()))
-        .open()
-        .unwrap();
+    let mut rogue = net(&[], &[endpoint.clone()], Some(observer.clone()));
+    rogue.acl = false;
+    let rogue = rogue.open().unwrap();
     let forger = Sealer::new(observer);
     // It listens to everything it can reach.
     let captured = Arc::new(std::sync::Mutex::new(Vec::<(String, Vec<u8>)>::new()));
@@ -279,5 +299,118 @@ fn a_participant_of_the_wrong_role_forges_nothing_and_replays_nothing() {
         site.counts.refused.load(Ordering::Relaxed),
         at_site.total(),
         "every refusal at the site is a seal's"
+    );
+}
+
+#[test]
+fn the_routers_access_control_stops_a_wrong_roles_packets_and_a_flood_before_they_are_relayed() {
+    // The classroom as shipped: Zenoh's access control on (the default with keys). An observer
+    // sends a state, an event and a clock answer, then 10 000 events a second for 10 s, and the
+    // site a state: the router drops every one on arrival and counts it by the sender's
+    // certificate name; the source and the site never see them (their seals refuse nothing) and
+    // keep breathing.
+    let d = room("ward", "acl");
+    let (scene, core) = harness_core(Some(30.0)).unwrap();
+    let hz = scene.engine.tick_hz;
+    let keys = Keys::new("ward").unwrap();
+    let (router, endpoint, source, site) = classroom(&d, true);
+    let client = |who: &str| client_net(&d, &endpoint, who, true);
+    let id = site_id(0);
+    let observer = load(&d, "observer");
+    let rogue = client("observer").open().unwrap();
+    let forger = Sealer::new(observer);
+    let stop = Arc::new(AtomicBool::new(false));
+    let n = |a: &std::sync::atomic::AtomicU64| a.load(Ordering::Relaxed);
+    let (mut sent, mut states, mut probes) = (0u64, (0, 0), (0, 0));
+    std::thread::scope(|s| {
+        let (src, st, c) = (&source, stop.clone(), core.clone());
+        let h = s.spawn(move || run_source(c, hz, src, id, transport::clock::now_ns(), &st));
+        let _stop_on_panic = StopOnDrop(stop.clone());
+        wait_for("the site's first state", || n(&site.counts.states) >= 1);
+        wait_for("the site's first clock answer", || {
+            n(&site.counts.probes) >= 1
+        });
+        let put = |key: String, b: Vec<u8>| rogue.put(key, b).wait().unwrap();
+        put(keys.state(), forger.seal(Kind::State, b"state"));
+        put(keys.event(), forger.seal(Kind::Event, b"needle"));
+        put(keys.reply(site.id), forger.seal(Kind::Reply, b"answer"));
+        sent += 3;
+        // The site's certificate on a link of its own, sending a state: stopped too.
+        let site_key = Sealer::new(load(&d, "site"));
+        let site_rogue = client("site").open().unwrap();
+        let publisher = site_rogue.declare_publisher(keys.state()).wait().unwrap();
+        // A client sends a put only once it has heard of a subscriber (the source's own
+        // subscriber is enough; the router drops the put on arrival all the same).
+        wait_for("the second site session hearing of a subscriber", || {
+            publisher.matching_status().wait().unwrap().matching()
+        });
+        publisher
+            .put(site_key.seal(Kind::State, b"state"))
+            .wait()
+            .unwrap();
+        states.0 = n(&site.counts.states);
+        probes.0 = n(&site.counts.probes);
+        // 10 000 a second for 10 s, in 1 ms steps of 10.
+        let flood = forger.seal(Kind::Event, b"flood");
+        let t0 = std::time::Instant::now();
+        for ms in 0..10_000u32 {
+            for _ in 0..10 {
+                put(keys.event(), flood.clone());
+            }
+            sent += 10;
+            let due = std::time::Duration::from_millis(u64::from(ms) + 1);
+            if let Some(wait) = due.checked_sub(t0.elapsed()) {
+                std::thread::sleep(wait);
+            }
+        }
+        states.1 = n(&site.counts.states);
+        probes.1 = n(&site.counts.probes);
+        stop.store(true, Ordering::Relaxed);
+        h.join().unwrap().unwrap();
+    });
+    // Counted by the router, named by the certificate; a put Zenoh drops on the rogue's own
+    // congested queue never reaches the router, so most, not all, are counted there.
+    let stopped = lungdyn_remote::acl::refusals(&router).unwrap();
+    let by_observer = stopped.get("observer").copied().unwrap_or(0);
+    eprintln!(
+        "access control at the router: {} of {sent} sent ({})",
+        by_observer,
+        lungdyn_remote::acl::words(&stopped)
+    );
+    assert!(by_observer >= sent / 2, "{stopped:?} of {sent}");
+    assert!(by_observer <= sent, "{stopped:?} of {sent}");
+    assert_eq!(
+        stopped.get("site"),
+        Some(&1),
+        "the site's state: {stopped:?}"
+    );
+    assert_eq!(
+        stopped.len(),
+        2,
+        "only the observer and the site's state: {stopped:?}"
+    );
+    // Nothing reached the source or the site.
+    assert_eq!(n(&source.counts.events), 0);
+    assert_eq!(
+        source.guard.refusals.total(),
+        0,
+        "{}",
+        source.guard.refusals.json()
+    );
+    assert_eq!(
+        site.guard.refusals.total(),
+        0,
+        "{}",
+        site.guard.refusals.json()
+    );
+    // The site kept taking the source's states (2 s cycles: 5 in 10 s) and its clock answers
+    // (a probe every 100 ms) through the flood.
+    assert!(
+        states.1 - states.0 >= 3,
+        "states applied during the flood: {states:?}"
+    );
+    assert!(
+        probes.1 - probes.0 >= 50,
+        "clock answers during the flood: {probes:?}"
     );
 }
