@@ -818,7 +818,8 @@ fn remote_keys_check(
                 NAME,
                 Status::Warning,
                 "the scene's [remote] session has no keys: plain TCP, unencrypted, open to anyone \
-                 who reaches the port (a closed lab network only)",
+                 who reaches the port; it stays on this machine (127.0.0.1) unless the scene says \
+                 insecure_lab_network = true (a closed lab network only)",
                 make,
             )
         } else {

@@ -38,7 +38,8 @@ pub struct ServeArgs {
     /// The scene whose `[remote]` table gives the settings below (the flags win).
     #[arg(long)]
     pub scene: Option<std::path::PathBuf>,
-    /// Zenoh endpoint to listen on (default: the scene's, else tcp/0.0.0.0:7447).
+    /// Zenoh endpoint to listen on (default: the scene's, else tls/0.0.0.0:7447 with --keys and
+    /// tcp/127.0.0.1:7447 without, this machine only).
     #[arg(long)]
     pub listen: Vec<String>,
     /// Zenoh endpoints to connect to (a router, other peers).
@@ -82,6 +83,12 @@ pub struct KeysArgs {
     /// role: source, site, observer or router).
     #[arg(long, value_name = "NAME")]
     pub identity: Option<String>,
+    /// Without keys, allow plain TCP beyond this machine (a listen or connect endpoint that is
+    /// not 127.0.0.1, ::1 or localhost): unencrypted, and anyone who reaches the port can listen,
+    /// send events and answer clock probes. For a closed lab network only (also the scene's
+    /// [remote] insecure_lab_network = true).
+    #[arg(long)]
+    pub insecure_lab_network: bool,
 }
 
 /// Options of `lungdyn remote keys`.
@@ -200,11 +207,21 @@ pub fn say_transport(who: &str, net: &Net) {
                 eprintln!("{who}: keys: {w}");
             }
         }
-        None => eprintln!(
-            "{who}: PLAIN TCP: unencrypted and unauthenticated, anyone who reaches the port can \
-             listen, send events and answer clock probes; for a closed lab network only (make \
-             keys with `lungdyn remote keys` and start with --keys)"
-        ),
+        None => match lung_model::scene_remote::plain_beyond_loopback(
+            net.listen.iter().chain(&net.connect),
+        ) {
+            None => eprintln!(
+                "{who}: PLAIN TCP on this machine only (loopback): unencrypted and \
+                 unauthenticated; to reach other machines make the room's keys with `lungdyn \
+                 remote keys` and start with --keys"
+            ),
+            Some(e) => eprintln!(
+                "{who}: PLAIN TCP beyond this machine ({e}, --insecure-lab-network): unencrypted \
+                 and unauthenticated, anyone who reaches the port can listen, send events and \
+                 answer clock probes; for a closed lab network only (make keys with `lungdyn \
+                 remote keys` and start with --keys)"
+            ),
+        },
     }
 }
 
@@ -293,12 +310,13 @@ fn settings(
         clock: None,
         keys: None,
         identity: None,
+        insecure_lab_network: false,
     });
     if let Some(room) = &auth {
         // With keys the default endpoint is TLS's; the room is the keys' unless named.
         if r.listen.is_none() && role == RemoteRole::Source && listen.is_empty() {
             r.listen = Some(vec![
-                lung_model::scene_remote::DEFAULT_LISTEN.replace("tcp/", "tls/")
+                lung_model::scene_remote::DEFAULT_LISTEN_TLS.to_string()
             ]);
         }
         if session.room.is_none() && r.room == "lungdyn" {
@@ -335,6 +353,22 @@ fn settings(
              --lease-ms, --clock)"
         ))
     })?;
+    if session.keys.insecure_lab_network {
+        r.insecure_lab_network = true;
+    }
+    if auth.is_none() && !r.insecure_lab_network {
+        if let Some(e) =
+            lung_model::scene_remote::plain_beyond_loopback(r.listen().iter().chain(&r.connect))
+        {
+            return Err(RemoteError::Usage(format!(
+                "endpoint {e:?}: plain TCP beyond this machine is unencrypted and open to anyone \
+                 who reaches the port; make the room's keys (`lungdyn remote keys --room {} --out \
+                 DIR`) and use --keys DIR with tls/HOST:PORT endpoints, or, on a closed lab network \
+                 only, add --insecure-lab-network (scene: [remote] insecure_lab_network = true)",
+                r.room
+            )));
+        }
+    }
     let net = Net::of(&r).with_keys(auth);
     let keys = Keys::new(&r.room)?;
     Ok((r, net, keys))
@@ -373,8 +407,9 @@ pub struct JoinArgs {
 /// it (the source and the sites connect to it as clients).
 #[derive(Debug, Clone, clap::Args)]
 pub struct RouterArgs {
-    /// Zenoh endpoint to listen on.
-    #[arg(long, default_value = lung_model::scene_remote::DEFAULT_LISTEN)]
+    /// Zenoh endpoint to listen on (default: tls/0.0.0.0:7447 with --keys, else tcp/127.0.0.1:7447,
+    /// this machine only).
+    #[arg(long)]
     pub listen: Vec<String>,
     /// The shared session's name (the source's and the sites' `--room`).
     #[arg(long, default_value = "lungdyn")]
@@ -997,6 +1032,7 @@ mod tests {
             keys: KeysArgs {
                 keys: Some(d.clone()),
                 identity: Some(identity.into()),
+                ..Default::default()
             },
             ..Default::default()
         };

@@ -5,7 +5,7 @@
 //! [remote]
 //! role = "source"                       # "source" (the HMD workstation), "site" or "observer"
 //! room = "ward-3"                       # the shared session's name (every machine the same)
-//! listen = ["tcp/0.0.0.0:7447"]         # endpoints this machine listens on
+//! listen = ["tls/0.0.0.0:7447"]         # endpoints this machine listens on
 //! connect = []                          # endpoints it connects to (the source, a router)
 //! mode = "peer"                         # "peer", "router" or "client" (through a router)
 //! lease_ms = 10000                      # a lost peer is seen within it
@@ -15,10 +15,13 @@
 //! keys = "keys/ward-3"                   # the room's keys (`lungdyn remote keys`), relative to
 //!                                       # this file: mutual TLS on tls/ endpoints, sealed packets
 //! identity = "source"                   # this machine's certificate in keys (default: the role)
+//! insecure_lab_network = false          # without keys, allow plain TCP beyond this machine
 //! ```
 //!
-//! Without `keys` the session is plain TCP: unencrypted and open to anyone who reaches the port,
-//! for a closed lab network only (said at start-up and by `lungdyn doctor`).
+//! Without `keys` the session is plain TCP: unencrypted and open to anyone who reaches the port.
+//! It then stays on this machine (a source listens on `tcp/127.0.0.1:7447` by default) unless
+//! `insecure_lab_network = true` (`--insecure-lab-network`) says the network is a closed lab's;
+//! said at start-up and by `lungdyn doctor`.
 //!
 //! Through a router a site syncs its clock with the time relay `lungdyn remote router` runs beside
 //! the router (it alone probes the source), so the source's cost does not grow with the sites;
@@ -86,8 +89,11 @@ impl ClockSync {
     }
 }
 
-/// The default listen endpoint of a source.
-pub const DEFAULT_LISTEN: &str = "tcp/0.0.0.0:7447";
+/// The default listen endpoint of a source without the room's keys: plain TCP on this machine
+/// only (beyond it plain TCP needs [`RemoteScene::insecure_lab_network`]).
+pub const DEFAULT_LISTEN: &str = "tcp/127.0.0.1:7447";
+/// The default listen endpoint with the room's keys: every address, mutual TLS.
+pub const DEFAULT_LISTEN_TLS: &str = "tls/0.0.0.0:7447";
 /// The default link lease, ms.
 pub const DEFAULT_LEASE_MS: u64 = 10_000;
 /// The shortest lease accepted, ms (below it a busy machine's keep-alives miss it).
@@ -131,6 +137,10 @@ pub struct RemoteScene {
     /// `observer`).
     #[serde(default)]
     pub identity: Option<String>,
+    /// Without keys, allow plain TCP endpoints beyond this machine's loopback: a closed lab
+    /// network's choice, never a default (see [`plain_beyond_loopback`]).
+    #[serde(default)]
+    pub insecure_lab_network: bool,
 }
 
 fn default_room() -> String {
@@ -152,6 +162,25 @@ pub fn endpoint_ok(e: &str) -> bool {
         return false;
     };
     !host.is_empty() && !host.contains(char::is_whitespace) && port.parse::<u16>().is_ok()
+}
+
+/// The first plain `tcp/` endpoint of `endpoints` whose host is not this machine's loopback
+/// (`127.0.0.0/8`, `::1`, `localhost`): plain TCP there is unencrypted and open to anyone who
+/// reaches it.
+pub fn plain_beyond_loopback<'a>(
+    endpoints: impl IntoIterator<Item = &'a String>,
+) -> Option<&'a str> {
+    endpoints.into_iter().map(String::as_str).find(|e| {
+        let Some(rest) = e.strip_prefix("tcp/") else {
+            return false;
+        };
+        let host = rest.rsplit_once(':').map_or(rest, |(h, _)| h);
+        let host = host.trim_start_matches('[').trim_end_matches(']');
+        !(host.eq_ignore_ascii_case("localhost")
+            || host
+                .parse::<std::net::IpAddr>()
+                .is_ok_and(|ip| ip.is_loopback()))
+    })
 }
 
 impl RemoteScene {
@@ -305,6 +334,41 @@ mod tests {
         assert_eq!(r.site_id(), Some(0xa1));
         let e = parse("role = \"site\"\n").unwrap_err();
         assert!(e.contains("needs connect"), "{e}");
+    }
+
+    #[test]
+    fn plain_tcp_beyond_loopback_is_found_and_loopback_and_tls_are_not() {
+        let v = |xs: &[&str]| xs.iter().map(|x| x.to_string()).collect::<Vec<_>>();
+        for ok in [
+            "tcp/127.0.0.1:7447",
+            "tcp/127.8.9.1:0",
+            "tcp/[::1]:7447",
+            "tcp/localhost:7447",
+            "tcp/LOCALHOST:1",
+            "tls/0.0.0.0:7447",
+            "tls/192.0.2.7:7447",
+        ] {
+            assert_eq!(plain_beyond_loopback(&v(&[ok])), None, "{ok}");
+        }
+        for bad in [
+            "tcp/0.0.0.0:7447",
+            "tcp/[::]:7447",
+            "tcp/192.0.2.7:7447",
+            "tcp/ward-3.example.org:7447",
+            "tcp/128.0.0.1:7447",
+        ] {
+            assert_eq!(
+                plain_beyond_loopback(&v(&["tcp/127.0.0.1:1", bad])),
+                Some(bad),
+                "{bad}"
+            );
+        }
+        // The default is this machine's; the scene's key is off unless set.
+        let r = parse("role = \"source\"\n").unwrap();
+        assert_eq!(plain_beyond_loopback(&r.listen()), None);
+        assert!(!r.insecure_lab_network);
+        let r = parse("role = \"source\"\ninsecure_lab_network = true\n").unwrap();
+        assert!(r.insecure_lab_network);
     }
 
     #[test]
