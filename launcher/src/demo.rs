@@ -115,9 +115,10 @@ pub struct DemoArgs {
     pub tracker: Option<String>,
     /// What the lungs breathe to: model (the scene's PV model, its own clock) or the patient's
     /// respiratory signal followed live — trace:FILE (a Varian RPM .vxp, a CSV trace with time_s and
-    /// amplitude_mm/volume_ml, or a ventilator recording, replayed at its own rate). The HUD says
-    /// "following patient", "calibrating" or "signal lost" (a blue veil: the model carries on).
-    /// Default: the scene's [breathing] table (model).
+    /// amplitude_mm/volume_ml, or a ventilator recording, replayed at its own rate), or recorded
+    /// (the signal a --tracker replay:FILE recording was made with, played bit for bit). The HUD
+    /// says "following patient", "calibrating" or "signal lost" (a blue veil: the model carries
+    /// on). Default: the scene's [breathing] table (model).
     #[arg(long, value_name = "SOURCE")]
     pub breathing: Option<String>,
     /// Withhold the breathing signal from S seconds into its recording (with --breathing-cut-for):
@@ -879,6 +880,7 @@ fn resolve_scene(args: &DemoArgs) -> anyhow::Result<Resolved> {
         loaded
             .validate()
             .map_err(|e| anyhow::anyhow!("the scene with --breathing {b}: {e}"))?;
+        recorded_signal_check(&loaded.tracker.source, &loaded.breathing.signal)?;
     }
     if let Some(ms) = args.breathing_latency_ms {
         require_signal(&loaded, &format!("--breathing-latency-ms {ms}"), "predict")?;
@@ -1863,6 +1865,36 @@ fn require_signal(scene: &lung_model::scene::Scene, flag: &str, what: &str) -> a
     Ok(())
 }
 
+/// `--breathing recorded` needs `--tracker replay:FILE` whose recording carries a signal; a
+/// recording that carries one refuses another signal beside it (the bridge's own rule, said here
+/// before any process starts).
+fn recorded_signal_check(tracker: &str, signal: &str) -> anyhow::Result<()> {
+    use tracker_bridge::signal::SignalSpec;
+    let spec = SignalSpec::parse(signal).map_err(|e| anyhow::anyhow!("{e}"))?;
+    let replay = match tracker_bridge::source::SourceSpec::parse(tracker)? {
+        tracker_bridge::source::SourceSpec::Replay { path } => Some(path),
+        _ => None,
+    };
+    let carries = |p: &std::path::Path| tracker_bridge::record::carries_signal(p);
+    match (spec, replay) {
+        (SignalSpec::Recorded, None) => anyhow::bail!(
+            "--breathing recorded: plays the signal a tracker recording carries; use it with \
+             --tracker replay:FILE (a recording made with --record and a --breathing signal)"
+        ),
+        (SignalSpec::Recorded, Some(p)) if !carries(&p)? => anyhow::bail!(
+            "--breathing recorded: {} carries no respiratory signal (it was recorded without \
+             --breathing); give a signal with --breathing trace:FILE, or model",
+            p.display()
+        ),
+        (SignalSpec::Trace(_), Some(p)) if carries(&p)? => anyhow::bail!(
+            "--breathing {signal}: {} carries the respiratory signal it was recorded with and plays \
+             it; use --breathing recorded",
+            p.display()
+        ),
+        _ => Ok(()),
+    }
+}
+
 /// `--breathing`: `model` (`None`), or a signal source with its file made absolute and checked
 /// (the processes run elsewhere than this shell's folder).
 fn breathing_override(text: &str) -> anyhow::Result<Option<String>> {
@@ -1872,6 +1904,8 @@ fn breathing_override(text: &str) -> anyhow::Result<Option<String>> {
     }
     match SignalSpec::parse(text).map_err(|e| anyhow::anyhow!("{e}; or model"))? {
         SignalSpec::None => Ok(None),
+        // The bridge checks the replayed recording carries one (before anything starts below).
+        SignalSpec::Recorded => Ok(Some("recorded".into())),
         SignalSpec::Trace(path) => {
             let abs = std::path::absolute(&path)
                 .map_err(|e| anyhow::anyhow!("--breathing trace:{}: {e}", path.display()))?;

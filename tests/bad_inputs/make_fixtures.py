@@ -809,6 +809,21 @@ def make_recordings():
     out("scene_waveform_control_without_waveform.toml", '[pv]\nwaveform_control = "pressure"\n')
 
 
+def make_tracker_recordings():
+    """Tracker recordings (`--record`), 0.2 s of the synthetic tools: one made without a
+    respiratory signal, one with a 12 s amplitude trace (a sine, 4 s breaths) as its signal."""
+    rows = ["time_s,amplitude_mm"] + ["%.3f,%.4f" % (k * 0.04, 5 * (1 - math.cos(2 * math.pi * k * 0.04 / 4)))
+                                      for k in range(300)]
+    out("trace_sine_12s.csv", "\n".join(rows) + "\n")
+    for name, extra in [("tracker_recording_no_signal.ldtr", []),
+                        ("tracker_recording_with_signal.ldtr",
+                         ["--breathing", "trace:" + os.path.join(HERE, "trace_sine_12s.csv")])]:
+        path = os.path.join(HERE, name)
+        if os.path.exists(path):
+            os.remove(path)
+        run("tracker", "listen", "--seconds", "0.2", "--record", path, *extra)
+
+
 def main():
     if not os.path.exists(BIN):
         sys.exit("lungdyn binary not found: %s (pass its path)" % BIN)
@@ -819,12 +834,16 @@ def main():
     if os.environ.get("LUNGDYN_FIXTURES_ONLY") == "recordings":
         make_recordings()
         return
+    if os.environ.get("LUNGDYN_FIXTURES_ONLY") == "tracker-recordings":
+        make_tracker_recordings()
+        return
     if os.environ.get("LUNGDYN_FIXTURES_ONLY") == "render-files":
         with tempfile.TemporaryDirectory() as tmp:
             make_render_files(tmp)
         return
     with tempfile.TemporaryDirectory() as tmp:
         make_recordings()
+        make_tracker_recordings()
         make_meshes(tmp)
         c = make_pv(tmp); make_constants(tmp, c)
         make_kernels(tmp); make_points(tmp); make_motion(tmp); make_scenes(tmp)

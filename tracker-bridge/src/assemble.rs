@@ -266,6 +266,19 @@ impl Assembler {
         }
     }
 
+    /// Publish `b`, the block a replayed recording carries for this tick, into `out`, counting
+    /// its samples as a live signal's are (the bridge's summary and JSON say what was played).
+    pub fn replay_signal(&mut self, b: &ipc_types::SignalBlock, out: &mut ipc_types::SignalBlock) {
+        *out = *b;
+        let c = self.stats.signal.get_or_insert_with(Default::default);
+        let n = (b.count as usize).min(ipc_types::MAX_SIGNAL_SAMPLES);
+        c.sent += n as u64;
+        c.invalid += (0..n).filter(|&i| b.valid_mask & (1 << i) == 0).count() as u64;
+        if n == ipc_types::MAX_SIGNAL_SAMPLES {
+            c.full_blocks += 1;
+        }
+    }
+
     /// The configuration.
     pub fn config(&self) -> &BridgeConfig {
         &self.config

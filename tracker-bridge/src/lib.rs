@@ -143,8 +143,9 @@ pub struct SourceArgs {
     #[arg(long, value_enum, default_value_t = igtl::QuatOrder::Xyzw)]
     pub pyigtl_quat_order: igtl::QuatOrder,
     /// The patient's respiratory signal, sent in every frame beside the poses: trace:FILE (a Varian
-    /// RPM .vxp, a CSV trace or a ventilator recording, replayed at its own rate from the start) or
-    /// none. Default: the scene's [breathing] signal, else none.
+    /// RPM .vxp, a CSV trace or a ventilator recording, replayed at its own rate from the start),
+    /// recorded (the signal a --source replay:FILE recording was made with; --record writes the
+    /// signal of a run that has one) or none. Default: the scene's [breathing] signal, else none.
     #[arg(long, value_name = "SOURCE")]
     pub breathing: Option<String>,
     /// Withhold the signal's samples from S seconds after the start (a signal loss, to test one;
@@ -345,9 +346,46 @@ pub struct Opened {
     pub recorder: Option<RecordWriter>,
 }
 
+/// A replayed recording's signal against `--breathing`: `recorded` needs a replay whose file
+/// carries a signal; a file that carries one plays it, so another signal beside it is refused.
+fn check_recorded_signal(r: &Resolved) -> Result<(), BridgeError> {
+    let replay = match &r.spec {
+        source::SourceSpec::Replay { path } => Some(path),
+        _ => None,
+    };
+    match (&r.signal, replay) {
+        (signal::SignalSpec::Recorded, None) => Err(BridgeError::Option(
+            "--breathing recorded: plays the signal a tracker recording carries; use it with \
+             --source replay:FILE (a recording made with --record and a --breathing signal)"
+                .into(),
+        )),
+        (signal::SignalSpec::Recorded, Some(path)) => {
+            if record::carries_signal(path)? {
+                Ok(())
+            } else {
+                Err(BridgeError::Option(format!(
+                    "--breathing recorded: {} carries no respiratory signal (it was recorded \
+                     without --breathing); give a signal with --breathing trace:FILE, or none",
+                    path.display()
+                )))
+            }
+        }
+        (signal::SignalSpec::Trace(t), Some(path)) if record::carries_signal(path)? => {
+            Err(BridgeError::Option(format!(
+                "--breathing trace:{}: {} carries the respiratory signal it was recorded with and \
+                 plays it; use --breathing recorded (or replay a recording made without one)",
+                t.display(),
+                path.display()
+            )))
+        }
+        _ => Ok(()),
+    }
+}
+
 /// Open what `args` describe.
 pub fn open(args: &SourceArgs) -> Result<Opened, BridgeError> {
     let r = args.resolve()?;
+    check_recorded_signal(&r)?;
     let source = source::open(&r.spec, &r.options)?;
     let config = source.recorded_config().cloned().unwrap_or(r.config);
     let mut assembler = assemble::Assembler::new(config);

@@ -33,9 +33,10 @@
 //! | 2 tick | 16 | tick time ns u64 (the clock of the receive times) · frame number u64 |
 //! | 3 event | 80 | event kind u8 (0 connected, 1 disconnected, 2 retrying, 3 rejected, 4 device status, 5 ignored, 6 note, 7 connection refused or idle one evicted: value 0 or 1; a build older than kind 7 refuses a file that holds it) · reject reason u8 (255 none) · text length u8 · 0 u8 · value u32 · text 72 bytes (UTF-8, cut) |
 //! | 4 end | 24 | samples u64 · ticks u64 · events u64 (counts of the records before it) |
+//! | 5 signal | 160 | the respiratory signal's block the tick published (issue 35): count u32 (≤ 8) · unit u32 · status u32 · valid mask u32 · period ns u64 · origin ns u64 · 8 × (sample time ns u64 · value f64 bits; finite) — times on the receive times' clock; written only when the run has a signal, before its tick; a build older than kind 5 skips it and replays without the signal |
 //!
-//! Every record belongs to the tick that follows it: the samples and events a tick took, then the
-//! tick. A clean end is an `end` record whose counts match; a file cut short (a crash, a full disk)
+//! Every record belongs to the tick that follows it: the samples and events a tick took, the
+//! signal block it published, then the tick. The end record's counts leave signal records out. A clean end is an `end` record whose counts match; a file cut short (a crash, a full disk)
 //! ends at its last complete record, which the reader reports as [`RecordError::Truncated`] and a
 //! replay plays up to. A record whose CRC fails, a length that does not fit its kind, or bytes
 //! after `end` are [`RecordError::Corrupt`].
@@ -68,10 +69,12 @@ const KIND_SAMPLE: u8 = 1;
 const KIND_TICK: u8 = 2;
 const KIND_EVENT: u8 = 3;
 const KIND_END: u8 = 4;
+const KIND_SIGNAL: u8 = 5;
 const LEN_SAMPLE: usize = 120;
 const LEN_TICK: usize = 16;
 const LEN_EVENT: usize = 80;
 const LEN_END: usize = 24;
+const LEN_SIGNAL: usize = 32 + 16 * ipc_types::MAX_SIGNAL_SAMPLES;
 const EVENT_TEXT: usize = 72;
 
 const fn crc_table() -> [u32; 256] {
@@ -208,6 +211,8 @@ pub enum Record {
     },
     /// A link event.
     Event(Event),
+    /// The respiratory signal's block the next tick published (times on the receive clock).
+    Signal(ipc_types::SignalBlock),
     /// The clean end.
     End {
         /// Samples recorded.
@@ -217,6 +222,46 @@ pub enum Record {
         /// Events recorded.
         events: u64,
     },
+}
+
+fn encode_signal(b: &ipc_types::SignalBlock, p: &mut [u8; LEN_SIGNAL]) {
+    put_u32(p, 0, b.count);
+    put_u32(p, 4, b.unit);
+    put_u32(p, 8, b.status);
+    put_u32(p, 12, b.valid_mask);
+    put_u64(p, 16, b.period_ns);
+    put_u64(p, 24, b.origin_ns);
+    for (i, s) in b.samples.iter().enumerate() {
+        put_u64(p, 32 + 16 * i, s.t_ns);
+        put_u64(p, 40 + 16 * i, s.value.to_bits());
+    }
+}
+
+fn decode_signal(p: &[u8]) -> Result<ipc_types::SignalBlock, String> {
+    let mut b = ipc_types::SignalBlock {
+        count: get_u32(p, 0),
+        unit: get_u32(p, 4),
+        status: get_u32(p, 8),
+        valid_mask: get_u32(p, 12),
+        period_ns: get_u64(p, 16),
+        origin_ns: get_u64(p, 24),
+        ..Default::default()
+    };
+    if b.count as usize > ipc_types::MAX_SIGNAL_SAMPLES {
+        return Err(format!(
+            "a signal block of {} samples (at most {})",
+            b.count,
+            ipc_types::MAX_SIGNAL_SAMPLES
+        ));
+    }
+    for (i, s) in b.samples.iter_mut().enumerate() {
+        s.t_ns = get_u64(p, 32 + 16 * i);
+        s.value = f64::from_bits(get_u64(p, 40 + 16 * i));
+        if !s.value.is_finite() {
+            return Err(format!("a signal sample {i} that is not finite"));
+        }
+    }
+    Ok(b)
 }
 
 fn put_u64(b: &mut [u8], at: usize, v: u64) {
@@ -461,6 +506,13 @@ impl RecordWriter {
         self.put(KIND_EVENT, &p)
     }
 
+    /// Record the respiratory signal's block of the tick about to be recorded.
+    pub fn signal(&mut self, b: &ipc_types::SignalBlock) -> std::io::Result<()> {
+        let mut p = [0u8; LEN_SIGNAL];
+        encode_signal(b, &mut p);
+        self.put(KIND_SIGNAL, &p)
+    }
+
     /// Record a tick (flushed to the OS once a second at 60 Hz, so a crash loses at most that).
     pub fn tick(&mut self, at_ns: u64, frame_number: u64) -> std::io::Result<()> {
         let mut p = [0u8; LEN_TICK];
@@ -489,6 +541,27 @@ impl RecordWriter {
         let file = self.w.into_inner().map_err(|e| io(e.into_error()))?;
         file.sync_all().map_err(io)?;
         Ok(path)
+    }
+}
+
+/// Whether the recording at `path` carries a respiratory signal: a signal record among its first
+/// 600 ticks (a run with a signal records one before every tick that has samples or a status).
+pub fn carries_signal(path: &Path) -> Result<bool, RecordError> {
+    let mut r = RecordReader::open(path)?;
+    let mut ticks = 0;
+    loop {
+        match r.next_record() {
+            Ok(Some(Record::Signal(_))) => return Ok(true),
+            Ok(Some(Record::Tick { .. })) => {
+                ticks += 1;
+                if ticks >= 600 {
+                    return Ok(false);
+                }
+            }
+            Ok(Some(_)) => {}
+            Ok(None) | Err(RecordError::Truncated { .. }) => return Ok(false),
+            Err(e) => return Err(e),
+        }
     }
 }
 
@@ -665,6 +738,7 @@ impl<R: Read> RecordReader<R> {
             KIND_TICK => Some(LEN_TICK),
             KIND_EVENT => Some(LEN_EVENT),
             KIND_END => Some(LEN_END),
+            KIND_SIGNAL => Some(LEN_SIGNAL),
             _ => None,
         };
         if expected.is_some_and(|e| e != len) {
@@ -700,6 +774,7 @@ impl<R: Read> RecordReader<R> {
                 self.counts[2] += 1;
                 Record::Event(decode_event(p).map_err(|e| self.corrupt(start, e))?)
             }
+            KIND_SIGNAL => Record::Signal(decode_signal(p).map_err(|e| self.corrupt(start, e))?),
             KIND_END => {
                 let (samples, ticks, events) = (get_u64(p, 0), get_u64(p, 8), get_u64(p, 16));
                 if [samples, ticks, events] != self.counts {
@@ -824,6 +899,76 @@ mod tests {
             Err(RecordError::Exists { .. })
         ));
         let _ = std::fs::remove_file(&path);
+    }
+
+    #[test]
+    fn a_signal_block_reads_back_bit_for_bit_and_a_damaged_one_is_refused() {
+        let path = tmp("signal");
+        let mut w = RecordWriter::create(&path, &BridgeConfig::default(), "with signal").unwrap();
+        let mut b = ipc_types::SignalBlock {
+            count: 3,
+            unit: ipc_types::signal_unit::ML,
+            status: 0x5,
+            valid_mask: 0b101,
+            period_ns: 40_000_000,
+            origin_ns: 123_456_789,
+            ..Default::default()
+        };
+        for (i, v) in [412.5, -0.0, f64::MIN_POSITIVE].into_iter().enumerate() {
+            b.samples[i] = ipc_types::SignalWire {
+                t_ns: 1_000 + i as u64,
+                value: v,
+            };
+        }
+        w.signal(&b).unwrap();
+        w.tick(2000, 7).unwrap();
+        w.finish().unwrap();
+        let mut r = RecordReader::open(&path).unwrap();
+        match r.next_record().unwrap() {
+            Some(Record::Signal(back)) => {
+                assert_eq!(bytemuck::bytes_of(&back), bytemuck::bytes_of(&b))
+            }
+            other => panic!("{other:?}"),
+        }
+        assert!(matches!(
+            r.next_record().unwrap(),
+            Some(Record::Tick { .. })
+        ));
+        // The end record's counts leave the signal out.
+        assert!(matches!(
+            r.next_record().unwrap(),
+            Some(Record::End {
+                samples: 0,
+                ticks: 1,
+                events: 0
+            })
+        ));
+        let _ = std::fs::remove_file(&path);
+        // More samples than a block holds, and a value that is not finite: refused, by name.
+        for (damage, word) in [
+            (ipc_types::SignalBlock { count: 9, ..b }, "9 samples"),
+            (
+                {
+                    let mut d = b;
+                    d.samples[7].value = f64::NAN;
+                    d
+                },
+                "not finite",
+            ),
+        ] {
+            let path = tmp("signal-bad");
+            let mut w = RecordWriter::create(&path, &BridgeConfig::default(), "bad").unwrap();
+            w.signal(&damage).unwrap();
+            w.finish().unwrap();
+            let mut r = RecordReader::open(&path).unwrap();
+            match r.next_record() {
+                Err(e @ RecordError::Corrupt { .. }) => {
+                    assert!(e.to_string().contains(word), "{e}")
+                }
+                other => panic!("{other:?}"),
+            }
+            let _ = std::fs::remove_file(&path);
+        }
     }
 
     #[test]

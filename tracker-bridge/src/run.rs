@@ -187,10 +187,23 @@ pub fn run_loop(
                     tracing::info_span!(target: transport::trace::TARGET, "assemble + publish")
                         .entered();
                 asm.frame(at_ns, &mut frame);
-                // The respiratory signal on the run's clock (a replayed trace plays in real time).
-                asm.fill_signal(now, &mut frame.signal);
+                // The respiratory signal on the run's clock (a replayed trace plays in real time),
+                // or the one a replayed recording carries, on the recording's clock until moved
+                // below (the digest sees it as recorded).
+                let replayed = source.recorded_signal();
+                match &replayed {
+                    Some(b) => asm.replay_signal(b, &mut frame.signal),
+                    None => asm.fill_signal(now, &mut frame.signal),
+                }
                 if let Some(r) = recorder.as_mut() {
-                    if let Err(e) = r.tick(at_ns, frame.frame_number) {
+                    let mut put = || -> std::io::Result<()> {
+                        // The signal's block before its tick, when the run has a signal.
+                        if frame.signal != ipc_types::SignalBlock::default() {
+                            r.signal(&frame.signal)?;
+                        }
+                        r.tick(at_ns, frame.frame_number)
+                    };
+                    if let Err(e) = put() {
                         record_error.get_or_insert(e);
                     }
                 }
@@ -201,6 +214,9 @@ pub fn run_loop(
                 // The stamps are this run's times: a replayed sample is as old at its tick as it
                 // was when recorded.
                 frame.stamps.capture_ns = now.saturating_sub(at_ns.saturating_sub(capture)).max(1);
+                if replayed.is_some() {
+                    crate::signal::shift(&mut frame.signal, i128::from(now) - i128::from(at_ns));
+                }
                 frame.stamps.bridge_publish_ns = pace.now_ns().max(frame.stamps.capture_ns);
                 outlet.publish(&frame)?;
                 last_publish = frame.stamps.bridge_publish_ns;

@@ -25,14 +25,19 @@ pub enum SignalSpec {
     None,
     /// A file replayed at its own rate.
     Trace(PathBuf),
+    /// The signal a replayed tracker recording (`--source replay:FILE`) was made with.
+    Recorded,
 }
 
 impl SignalSpec {
-    /// Parse `trace:FILE`; empty or `none` is no signal.
+    /// Parse `trace:FILE` or `recorded`; empty or `none` is no signal.
     pub fn parse(text: &str) -> Result<Self, String> {
         let t = text.trim();
         if t.is_empty() || t.eq_ignore_ascii_case("none") {
             return Ok(SignalSpec::None);
+        }
+        if t.eq_ignore_ascii_case("recorded") {
+            return Ok(SignalSpec::Recorded);
         }
         match t.split_once(':') {
             Some((kind, path)) if kind.eq_ignore_ascii_case("trace") => {
@@ -45,7 +50,8 @@ impl SignalSpec {
             }
             _ => Err(format!(
                 "--breathing {text:?}: not a signal source; use trace:FILE (a Varian RPM .vxp, a CSV \
-                 trace, or a ventilator recording) or none"
+                 trace, or a ventilator recording), recorded (the signal a --source replay:FILE \
+                 recording carries) or none"
             )),
         }
     }
@@ -88,6 +94,19 @@ pub enum SignalError {
     /// The file could not be read as a signal.
     #[error("--breathing: {0}")]
     Read(String),
+}
+
+/// Move a block's sample times (and a recording's origin) by `by_ns`: a replayed block's times
+/// from the recording's clock to this run's, as a replayed sample's capture time is moved.
+pub fn shift(b: &mut ipc_types::SignalBlock, by_ns: i128) {
+    let moved = |t: u64| (i128::from(t) + by_ns).clamp(1, i128::from(u64::MAX)) as u64;
+    let n = (b.count as usize).min(ipc_types::MAX_SIGNAL_SAMPLES);
+    for s in &mut b.samples[..n] {
+        s.t_ns = moved(s.t_ns);
+    }
+    if b.origin_ns != 0 {
+        b.origin_ns = moved(b.origin_ns);
+    }
 }
 
 /// A cut's window, checked: it starts at 0 s or later and lasts more than 0 s, within a week.

@@ -34,7 +34,18 @@ pub fn run_source<C: Clock + Clone + 'static>(
     stop: &mut dyn FnMut() -> bool,
     tag: &str,
 ) -> Result<TestRun, BridgeError> {
-    let mut assembler = Assembler::new(config);
+    run_assembled(source, Assembler::new(config), clock, recorder, stop, tag)
+}
+
+/// [`run_source`] with an assembler of the caller's (a respiratory signal set on it).
+pub fn run_assembled<C: Clock + Clone + 'static>(
+    source: &mut dyn Source,
+    mut assembler: Assembler,
+    clock: &C,
+    recorder: &mut Option<RecordWriter>,
+    stop: &mut dyn FnMut() -> bool,
+    tag: &str,
+) -> Result<TestRun, BridgeError> {
     let mut out = Recorder::new(clock);
     let ended = run_loop(
         source,

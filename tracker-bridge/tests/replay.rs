@@ -1,6 +1,7 @@
 //! The shared loop on a fake clock: the synthetic source gives the frames the bridge gave before
 //! sources existed, a recorded session (with bad, missing, late and unknown samples) replays into
-//! the same frames bit for bit, paced or as fast as possible, and a silent sender shows as stale.
+//! the same frames bit for bit, paced or as fast as possible (with the respiratory signal it was
+//! recorded with), and a silent sender shows as stale.
 
 use ipc_types::{tool_status, TrackerFrame, TOOL_HMD, TOOL_PATIENT};
 use tracker_bridge::assemble::{Assembler, BridgeConfig};
@@ -11,7 +12,7 @@ use tracker_bridge::source::replay::Replay;
 use tracker_bridge::source::synthetic::SyntheticSource;
 use tracker_bridge::source::{Poll, Source, SourceError};
 use tracker_bridge::synthetic::Synthetic;
-use tracker_bridge::testing::run_source;
+use tracker_bridge::testing::{run_assembled, run_source};
 use tracker_bridge::validate::{Validation, Volume};
 use transport::FakeClock;
 
@@ -252,6 +253,88 @@ fn a_recorded_session_replays_into_the_same_frames_bit_for_bit() {
         }
     }
     let _ = std::fs::remove_file(&path);
+}
+
+#[test]
+fn a_recording_made_with_a_respiratory_signal_replays_it_bit_for_bit() {
+    // A 25 Hz amplitude trace (mm) of 12 s (a reader wants 10 s at least), one sample invalid,
+    // played live beside the 3 s scripted session.
+    let trace =
+        std::env::temp_dir().join(format!("lungdyn-bridge-{}-trace.csv", std::process::id()));
+    let mut csv = String::from("time_s,amplitude_mm,valid\n");
+    for k in 0..300 {
+        let t = k as f64 * 0.04;
+        let valid = if k == 30 { 0 } else { 1 };
+        csv.push_str(&format!(
+            "{t:.3},{:.4},{valid}\n",
+            5.0 * (1.0 - (std::f64::consts::TAU * t / 4.0).cos())
+        ));
+    }
+    std::fs::write(&trace, csv).unwrap();
+    let start = 5_000_000_000;
+    let clock = FakeClock::at(start);
+    let mut live = ScriptedSource {
+        clock: clock.clone(),
+        script: script(start).into(),
+    };
+    let path = tmp("session-signal");
+    let mut asm = Assembler::new(config());
+    asm.set_signal(tracker_bridge::signal::TraceReplay::open(&trace).unwrap());
+    let mut recorder = Some(RecordWriter::create(&path, &config(), "scripted").unwrap());
+    let mut n = 0;
+    let r = run_assembled(
+        &mut live,
+        asm,
+        &clock,
+        &mut recorder,
+        &mut || {
+            n += 1;
+            n > 185
+        },
+        "",
+    )
+    .unwrap();
+    recorder.unwrap().finish().unwrap();
+    let live_frames = r.frames;
+    let with_signal = live_frames.iter().filter(|f| f.signal.count > 0).count();
+    assert!(
+        with_signal > 60,
+        "{with_signal} frames carried signal samples"
+    );
+    assert!(live_frames
+        .iter()
+        .any(|f| f.signal.count > 0 && f.signal.valid_mask != (1 << f.signal.count) - 1));
+    for paced in [false, true] {
+        let clock = FakeClock::at(77_000_000_000);
+        let mut replay = Replay::open(&path, paced).unwrap();
+        let cfg = replay.recorded_config().unwrap().clone();
+        // No signal on the replay's assembler: the recording carries it.
+        let (frames, asm) = run(&mut replay, cfg, &clock, u64::MAX, None);
+        assert_eq!(frames.len(), live_frames.len(), "paced {paced}");
+        assert_eq!(asm.stats.frames_digest, r.assembler.stats.frames_digest);
+        // The replay counts what it played as the live run counted what it sent.
+        let counts = |s: &tracker_bridge::stats::Stats| s.signal.map(|c| (c.sent, c.invalid));
+        assert_eq!(counts(&asm.stats), counts(&r.assembler.stats));
+        assert_eq!(counts(&asm.stats).unwrap().1, 1, "the one invalid sample");
+        for (x, y) in live_frames.iter().zip(&frames) {
+            let (a, b) = (&x.signal, &y.signal);
+            assert_eq!(
+                (a.count, a.unit, a.status, a.valid_mask, a.period_ns),
+                (b.count, b.unit, b.status, b.valid_mask, b.period_ns),
+                "frame {}",
+                x.frame_number
+            );
+            // Each sample as old against its frame's capture as when recorded; values bit for bit.
+            let age = |f: &TrackerFrame, t: u64| i128::from(t) - i128::from(f.stamps.capture_ns);
+            for i in 0..a.count as usize {
+                assert_eq!(a.samples[i].value.to_bits(), b.samples[i].value.to_bits());
+                assert_eq!(age(x, a.samples[i].t_ns), age(y, b.samples[i].t_ns));
+            }
+            assert_eq!(age(x, a.origin_ns), age(y, b.origin_ns));
+        }
+    }
+    let _ = std::fs::remove_file(&path);
+    let _ = std::fs::remove_file(&trace);
 }
 
 #[test]

@@ -77,6 +77,13 @@ pub trait Source {
     fn recorded_config(&self) -> Option<&BridgeConfig> {
         None
     }
+
+    /// The respiratory signal's block recorded with the tick the last `poll` returned (a replay
+    /// of a recording made with a signal), taken once; the loop publishes it in place of the
+    /// run's own signal.
+    fn recorded_signal(&mut self) -> Option<ipc_types::SignalBlock> {
+        None
+    }
 }
 
 /// Why a source could not start or stopped.

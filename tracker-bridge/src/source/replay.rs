@@ -5,6 +5,8 @@
 //! rate); with `--as-fast-as-possible`, without waiting. A recording cut short plays up to its last
 //! complete tick and says so. A sample stamped after its tick by more than the staleness bound
 //! (a damaged clock: the assembler shows its tool stale) is named once, so the replay says why.
+//! A recording made with a respiratory signal plays it back: each tick publishes the block it
+//! recorded, its times moved to this run's clock as the samples' are.
 
 use std::fs::File;
 use std::io::BufReader;
@@ -27,6 +29,8 @@ pub struct Replay {
     latest_ns: u64,
     /// A sample stamped far after its tick has been named (once per replay: not a flood).
     told_future: bool,
+    /// The signal block recorded for the tick being returned.
+    signal: Option<ipc_types::SignalBlock>,
 }
 
 impl Replay {
@@ -42,6 +46,7 @@ impl Replay {
             ended: false,
             latest_ns: 0,
             told_future: false,
+            signal: None,
         })
     }
 
@@ -76,6 +81,7 @@ impl Source for Replay {
                     sink(&Input::Sample(s));
                 }
                 Ok(Some(Record::Event(e))) => sink(&Input::Event(e)),
+                Ok(Some(Record::Signal(b))) => self.signal = Some(b),
                 Ok(Some(Record::Tick { at_ns, .. })) => {
                     let ahead = self.latest_ns.saturating_sub(at_ns);
                     if !self.told_future && ahead > self.config.stale_ns {
@@ -116,5 +122,9 @@ impl Source for Replay {
 
     fn recorded_config(&self) -> Option<&BridgeConfig> {
         Some(&self.config)
+    }
+
+    fn recorded_signal(&mut self) -> Option<ipc_types::SignalBlock> {
+        self.signal.take()
     }
 }
