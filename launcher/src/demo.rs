@@ -115,8 +115,10 @@ pub struct DemoArgs {
     pub tracker: Option<String>,
     /// What the lungs breathe to: model (the scene's PV model, its own clock) or the patient's
     /// respiratory signal followed live — trace:FILE (a Varian RPM .vxp, a CSV trace with time_s and
-    /// amplitude_mm/volume_ml, or a ventilator recording, replayed at its own rate), or recorded
-    /// (the signal a --tracker replay:FILE recording was made with, played bit for bit). The HUD
+    /// amplitude_mm/volume_ml, or a ventilator recording, replayed at its own rate), udp:[BIND:]PORT
+    /// (a live amplitude stream, one `mm=VALUE`, `ml=VALUE` or `au=VALUE` per datagram; senders
+    /// off loopback only from the tracker's allow-list), or recorded (the signal a --tracker
+    /// replay:FILE recording was made with, played bit for bit). The HUD
     /// says "following patient", "calibrating" or "signal lost" (a blue veil: the model carries
     /// on). Default: the scene's [breathing] table (model).
     #[arg(long, value_name = "SOURCE")]
@@ -1886,7 +1888,7 @@ fn recorded_signal_check(tracker: &str, signal: &str) -> anyhow::Result<()> {
              --breathing); give a signal with --breathing trace:FILE, or model",
             p.display()
         ),
-        (SignalSpec::Trace(_), Some(p)) if carries(&p)? => anyhow::bail!(
+        (SignalSpec::Trace(_) | SignalSpec::Udp(_), Some(p)) if carries(&p)? => anyhow::bail!(
             "--breathing {signal}: {} carries the respiratory signal it was recorded with and plays \
              it; use --breathing recorded",
             p.display()
@@ -1906,6 +1908,8 @@ fn breathing_override(text: &str) -> anyhow::Result<Option<String>> {
         SignalSpec::None => Ok(None),
         // The bridge checks the replayed recording carries one (before anything starts below).
         SignalSpec::Recorded => Ok(Some("recorded".into())),
+        // Bound by the bridge (a taken port fails it at start-up, named).
+        SignalSpec::Udp(addr) => Ok(Some(format!("udp:{addr}"))),
         SignalSpec::Trace(path) => {
             let abs = std::path::absolute(&path)
                 .map_err(|e| anyhow::anyhow!("--breathing trace:{}: {e}", path.display()))?;

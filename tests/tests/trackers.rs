@@ -223,6 +223,75 @@ fn listen_records_and_a_replay_through_the_command_gives_the_same_frames_digest(
     }
 }
 
+#[test]
+fn a_udp_amplitude_stream_is_heard_recorded_and_replayed_with_its_signal() {
+    // A breathing belt's PC on this machine: 25 Hz, one `mm=VALUE` per datagram, one sample it
+    // marks invalid and one junk datagram, for 3.5 s (the listener hears 2 s of it).
+    let port = std::net::UdpSocket::bind("127.0.0.1:0")
+        .unwrap()
+        .local_addr()
+        .unwrap()
+        .port();
+    let sender = std::thread::spawn(move || {
+        let tx = std::net::UdpSocket::bind("127.0.0.1:0").unwrap();
+        for k in 0..88u32 {
+            let t = f64::from(k) * 0.04;
+            let d = match k {
+                40 => "mm=".to_string(),
+                41 => "mm=1;2".to_string(),
+                _ => format!(
+                    "mm={:.3}",
+                    3.0 * (1.0 - (std::f64::consts::TAU * t / 4.0).cos())
+                ),
+            };
+            let _ = tx.send_to(d.as_bytes(), ("127.0.0.1", port));
+            std::thread::sleep(Duration::from_millis(40));
+        }
+    });
+    let path = tmp("udp-signal.ldtr");
+    let p = path.to_str().unwrap();
+    let spec = format!("udp:{port}");
+    let (ok, out, err) = lungdyn(&[
+        "tracker",
+        "listen",
+        "--source",
+        "synthetic",
+        "--breathing",
+        &spec,
+        "--seconds",
+        "2",
+        "--record",
+        p,
+        "--json",
+    ]);
+    sender.join().unwrap();
+    assert!(ok, "{err}");
+    let live: serde_json::Value = serde_json::from_str(out.trim()).unwrap();
+    let signal = &live["signal"];
+    assert!(signal["samples_sent"].as_u64().unwrap() >= 30, "{signal}");
+    assert_eq!(signal["invalid"], 1, "{signal}");
+    assert_eq!(signal["malformed"], 1, "{signal}");
+    assert_eq!(signal["refused_senders"], 0, "{signal}");
+    // The recording plays the stream back: the same frames, signal included, bit for bit.
+    let src = format!("replay:{p}");
+    let (ok, out, err) = lungdyn(&[
+        "tracker",
+        "listen",
+        "--source",
+        &src,
+        "--breathing",
+        "recorded",
+        "--json",
+        "--as-fast-as-possible",
+    ]);
+    assert!(ok, "{err}");
+    let back: serde_json::Value = serde_json::from_str(out.trim()).unwrap();
+    assert_eq!(back["frames_digest"], live["frames_digest"]);
+    assert_eq!(back["signal"]["samples_sent"], signal["samples_sent"]);
+    assert_eq!(back["signal"]["invalid"], signal["invalid"]);
+    let _ = std::fs::remove_file(&path);
+}
+
 fn qtdata(k: u32) -> Vec<u8> {
     let e = |name: &str, p: [f32; 3], q: [f32; 4]| QtDataElement {
         name: name.into(),

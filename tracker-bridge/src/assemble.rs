@@ -228,7 +228,7 @@ pub struct Assembler {
     /// The run's counters.
     pub stats: Stats,
     /// The respiratory signal, when there is one (`--breathing`).
-    signal: Option<crate::signal::TraceReplay>,
+    signal: Option<crate::signal::SignalSource>,
 }
 
 impl Assembler {
@@ -244,13 +244,14 @@ impl Assembler {
     }
 
     /// Send this respiratory signal in every frame's signal block from now on.
-    pub fn set_signal(&mut self, signal: crate::signal::TraceReplay) {
-        self.stats.signal = Some(signal.counts);
+    pub fn set_signal(&mut self, signal: impl Into<crate::signal::SignalSource>) {
+        let signal = signal.into();
+        self.stats.signal = Some(signal.counts());
         self.signal = Some(signal);
     }
 
     /// The respiratory signal, when there is one.
-    pub fn signal(&self) -> Option<&crate::signal::TraceReplay> {
+    pub fn signal(&self) -> Option<&crate::signal::SignalSource> {
         self.signal.as_ref()
     }
 
@@ -260,7 +261,7 @@ impl Assembler {
         match &mut self.signal {
             Some(s) => {
                 s.fill(now_ns, out);
-                self.stats.signal = Some(s.counts);
+                self.stats.signal = Some(s.counts());
             }
             None => *out = Default::default(),
         }

@@ -21,6 +21,7 @@
 //! its newest good pose, or not valid with its last good pose and the reasons as
 //! [`ipc_types::tool_status`] bits.
 
+pub mod allow;
 pub mod assemble;
 pub mod head_motion;
 pub mod igtl;
@@ -35,6 +36,7 @@ pub mod record;
 pub mod run;
 pub mod sample;
 pub mod signal;
+pub mod signal_udp;
 pub mod source;
 pub mod stats;
 pub mod synthetic;
@@ -144,7 +146,9 @@ pub struct SourceArgs {
     pub pyigtl_quat_order: igtl::QuatOrder,
     /// The patient's respiratory signal, sent in every frame beside the poses: trace:FILE (a Varian
     /// RPM .vxp, a CSV trace or a ventilator recording, replayed at its own rate from the start),
-    /// recorded (the signal a --source replay:FILE recording was made with; --record writes the
+    /// udp:[BIND:]PORT (a live amplitude stream, one `mm=VALUE`, `ml=VALUE` or `au=VALUE` per
+    /// datagram, stamped on arrival; 127.0.0.1 unless a BIND is given, senders off loopback only
+    /// from --igtl-allow / [tracker] allow), recorded (the signal a --source replay:FILE recording was made with; --record writes the
     /// signal of a run that has one) or none. Default: the scene's [breathing] signal, else none.
     #[arg(long, value_name = "SOURCE")]
     pub breathing: Option<String>,
@@ -302,6 +306,13 @@ impl SourceArgs {
         if let (Some(at), Some(dur)) = (self.breathing_cut_at, self.breathing_cut_for) {
             signal::check_cut(at, dur)?;
         }
+        if self.breathing_cut_at.is_some() && matches!(signal, signal::SignalSpec::Udp(_)) {
+            return Err(BridgeError::Option(
+                "--breathing-cut-at: a live UDP stream is not cut by the bridge (stop its sender to \
+                 test a loss); the cut is for trace:FILE"
+                    .into(),
+            ));
+        }
         if self.breathing_cut_at.is_some() && signal == signal::SignalSpec::None {
             return Err(BridgeError::Option(
                 "--breathing-cut-at: there is no signal to cut (give --breathing trace:FILE)"
@@ -370,11 +381,17 @@ fn check_recorded_signal(r: &Resolved) -> Result<(), BridgeError> {
                 )))
             }
         }
-        (signal::SignalSpec::Trace(t), Some(path)) if record::carries_signal(path)? => {
+        (signal::SignalSpec::Trace(_) | signal::SignalSpec::Udp(_), Some(path))
+            if record::carries_signal(path)? =>
+        {
             Err(BridgeError::Option(format!(
-                "--breathing trace:{}: {} carries the respiratory signal it was recorded with and \
-                 plays it; use --breathing recorded (or replay a recording made without one)",
-                t.display(),
+                "--breathing {}: {} carries the respiratory signal it was recorded with and plays \
+                 it; use --breathing recorded (or replay a recording made without one)",
+                match &r.signal {
+                    signal::SignalSpec::Trace(t) => format!("trace:{}", t.display()),
+                    signal::SignalSpec::Udp(a) => format!("udp:{a}"),
+                    _ => String::new(),
+                },
                 path.display()
             )))
         }
@@ -395,6 +412,11 @@ pub fn open(args: &SourceArgs) -> Result<Opened, BridgeError> {
             replay.cut(at, dur)?;
         }
         assembler.set_signal(replay);
+    }
+    if let signal::SignalSpec::Udp(addr) = &r.signal {
+        let udp = signal_udp::UdpSignal::bind(*addr, r.options.igtl_allow.clone())
+            .map_err(signal::SignalError::Spec)?;
+        assembler.set_signal(udp);
     }
     let recorder = match &args.record {
         Some(path) => Some(RecordWriter::create(

@@ -13,7 +13,7 @@
 
 use std::path::{Path, PathBuf};
 
-use ipc_types::{signal_status, signal_unit, SignalBlock, SignalWire, MAX_SIGNAL_SAMPLES};
+use ipc_types::{signal_status, signal_unit, SignalBlock};
 use lung_model::breathing::check::read_trace_or_recording;
 use lung_model::breathing::trace::SignalUnit;
 use lung_model::input::ReadLimits;
@@ -27,10 +27,12 @@ pub enum SignalSpec {
     Trace(PathBuf),
     /// The signal a replayed tracker recording (`--source replay:FILE`) was made with.
     Recorded,
+    /// A live amplitude stream, one sample per UDP datagram ([`crate::signal_udp`]).
+    Udp(std::net::SocketAddr),
 }
 
 impl SignalSpec {
-    /// Parse `trace:FILE` or `recorded`; empty or `none` is no signal.
+    /// Parse `trace:FILE`, `udp:[BIND:]PORT` or `recorded`; empty or `none` is no signal.
     pub fn parse(text: &str) -> Result<Self, String> {
         let t = text.trim();
         if t.is_empty() || t.eq_ignore_ascii_case("none") {
@@ -48,10 +50,14 @@ impl SignalSpec {
                 }
                 Ok(SignalSpec::Trace(PathBuf::from(path)))
             }
+            Some((kind, rest)) if kind.eq_ignore_ascii_case("udp") => {
+                crate::signal_udp::parse_bind(rest).map(SignalSpec::Udp)
+            }
             _ => Err(format!(
                 "--breathing {text:?}: not a signal source; use trace:FILE (a Varian RPM .vxp, a CSV \
-                 trace, or a ventilator recording), recorded (the signal a --source replay:FILE \
-                 recording carries) or none"
+                 trace, or a ventilator recording), udp:[BIND:]PORT (a live amplitude stream, one \
+                 `mm=VALUE` per datagram), recorded (the signal a --source replay:FILE recording \
+                 carries) or none"
             )),
         }
     }
@@ -68,6 +74,64 @@ pub struct SignalCounts {
     pub cut: u64,
     /// Frames whose block was full, the rest left for the next frame.
     pub full_blocks: u64,
+    /// A live stream's datagrams from hosts not allowed.
+    pub refused_senders: u64,
+    /// A live stream's datagrams that were not one sample in the stream's unit.
+    pub malformed: u64,
+}
+
+/// The bridge's respiratory signal source.
+#[derive(Debug)]
+pub enum SignalSource {
+    /// A file replayed at its own rate.
+    Trace(TraceReplay),
+    /// A live UDP amplitude stream.
+    Udp(crate::signal_udp::UdpSignal),
+}
+
+impl SignalSource {
+    /// The samples due by `now_ns` into `block`.
+    pub fn fill(&mut self, now_ns: u64, block: &mut SignalBlock) {
+        match self {
+            SignalSource::Trace(t) => t.fill(now_ns, block),
+            SignalSource::Udp(u) => u.fill(now_ns, block),
+        }
+    }
+
+    /// What it sent and withheld.
+    pub fn counts(&self) -> SignalCounts {
+        match self {
+            SignalSource::Trace(t) => t.counts,
+            SignalSource::Udp(u) => SignalCounts {
+                sent: u.counts.sent,
+                invalid: u.counts.invalid,
+                cut: 0,
+                full_blocks: u.counts.full_blocks,
+                refused_senders: u.counts.refused_senders,
+                malformed: u.counts.malformed,
+            },
+        }
+    }
+
+    /// What it reads, for messages.
+    pub fn describe(&self) -> &str {
+        match self {
+            SignalSource::Trace(t) => t.describe(),
+            SignalSource::Udp(u) => u.describe(),
+        }
+    }
+}
+
+impl From<TraceReplay> for SignalSource {
+    fn from(t: TraceReplay) -> Self {
+        SignalSource::Trace(t)
+    }
+}
+
+impl From<crate::signal_udp::UdpSignal> for SignalSource {
+    fn from(u: crate::signal_udp::UdpSignal) -> Self {
+        SignalSource::Udp(u)
+    }
 }
 
 /// A file replayed as a live respiratory signal.
@@ -201,21 +265,11 @@ impl TraceReplay {
                 self.next += 1;
                 continue;
             }
-            let i = block.count as usize;
-            if i == MAX_SIGNAL_SAMPLES {
+            if !crate::signal_udp::push_sample(block, start.saturating_add(t), value, valid) {
                 self.counts.full_blocks += 1;
                 break;
             }
-            block.samples[i] = SignalWire {
-                t_ns: start.saturating_add(t),
-                value: if valid { value } else { 0.0 },
-            };
-            if valid {
-                block.valid_mask |= 1 << i;
-            } else {
-                self.counts.invalid += 1;
-            }
-            block.count += 1;
+            self.counts.invalid += u64::from(!valid);
             self.counts.sent += 1;
             self.next += 1;
         }
@@ -236,6 +290,7 @@ impl TraceReplay {
 #[cfg(test)]
 mod tests {
     use super::*;
+    use ipc_types::MAX_SIGNAL_SAMPLES;
 
     fn replay_of(samples: Vec<(u64, f64, bool)>) -> TraceReplay {
         TraceReplay {
@@ -258,8 +313,19 @@ mod tests {
             SignalSpec::parse("trace:/tmp/a b.vxp").unwrap(),
             SignalSpec::Trace("/tmp/a b.vxp".into())
         );
-        let e = SignalSpec::parse("udp:5000").unwrap_err();
-        assert!(e.contains("trace:FILE") && e.contains("udp:5000"), "{e}");
+        assert_eq!(
+            SignalSpec::parse("udp:5000").unwrap(),
+            SignalSpec::Udp("127.0.0.1:5000".parse().unwrap())
+        );
+        assert_eq!(SignalSpec::parse("recorded").unwrap(), SignalSpec::Recorded);
+        let e = SignalSpec::parse("serial:/dev/ttyUSB0").unwrap_err();
+        assert!(
+            e.contains("trace:FILE") && e.contains("udp:[BIND:]PORT") && e.contains("serial:"),
+            "{e}"
+        );
+        assert!(SignalSpec::parse("udp:99999")
+            .unwrap_err()
+            .contains("udp:PORT"));
         assert!(SignalSpec::parse("trace:")
             .unwrap_err()
             .contains("needs a file"));

@@ -342,6 +342,8 @@ impl Stats {
                 "invalid": c.invalid,
                 "withheld_by_cut": c.cut,
                 "full_blocks": c.full_blocks,
+                "refused_senders": c.refused_senders,
+                "malformed": c.malformed,
             })),
         })
     }
@@ -420,6 +422,12 @@ impl Stats {
                 "  breathing signal: {} samples sent ({} flagged invalid), {} withheld by the cut, {} frames with a full block\n",
                 c.sent, c.invalid, c.cut, c.full_blocks
             );
+            if c.refused_senders + c.malformed > 0 {
+                s += &format!(
+                    "  breathing signal refused: {} datagram(s) from hosts not allowed, {} not one sample in the stream's unit\n",
+                    c.refused_senders, c.malformed
+                );
+            }
         }
         s
     }
