@@ -113,6 +113,16 @@ pub struct DemoArgs {
     /// scene's [tracker] source (synthetic).
     #[arg(long, value_name = "URI")]
     pub tracker: Option<String>,
+    /// A shared session's source (the scene's [remote] role = "source"): the room's keys (made by
+    /// `lungdyn remote keys`), so `remote serve` beside the engine speaks mutual TLS and seals
+    /// every packet; the scene's tcp/ endpoints become tls/ (default: the scene's [remote] keys;
+    /// none: plain TCP on this machine only).
+    #[arg(long, value_name = "DIR")]
+    pub keys: Option<PathBuf>,
+    /// This workstation's certificate in --keys (default: the scene's [remote] identity, else
+    /// source).
+    #[arg(long, value_name = "NAME", requires = "keys")]
+    pub identity: Option<String>,
     /// What the lungs breathe to: model (the scene's PV model, its own clock) or the patient's
     /// respiratory signal followed live — trace:FILE (a Varian RPM .vxp, a CSV trace with time_s and
     /// amplitude_mm/volume_ml, or a ventilator recording, replayed at its own rate), udp:[BIND:]PORT
@@ -870,6 +880,9 @@ fn resolve_scene(args: &DemoArgs) -> anyhow::Result<Resolved> {
         loaded.tracker.source = t.clone();
     }
     tracker_bridge::source::SourceSpec::parse(&loaded.tracker.source)?;
+    if let Some(dir) = &args.keys {
+        use_keys(&mut loaded, dir, args.identity.as_deref())?;
+    }
     // The engine follows the signal the bridge reads, both from the resolved scene's [breathing].
     if let Some(b) = &args.breathing {
         match breathing_override(b)? {
@@ -1867,6 +1880,58 @@ fn require_signal(scene: &lung_model::scene::Scene, flag: &str, what: &str) -> a
     Ok(())
 }
 
+/// `--keys DIR [--identity NAME]`: the source's room keys into the resolved scene's [remote]
+/// table (absolute: the processes run elsewhere), loaded now so a wrong folder, identity or role
+/// is refused before anything starts.
+fn use_keys(
+    loaded: &mut lung_model::scene::Scene,
+    dir: &Path,
+    identity: Option<&str>,
+) -> anyhow::Result<()> {
+    let Some(r) = loaded
+        .remote
+        .as_mut()
+        .filter(|r| r.role == lung_model::scene_remote::RemoteRole::Source)
+    else {
+        anyhow::bail!(
+            "--keys {}: this scene shares no session (its [remote] role is not \"source\"); run a \
+             source scene (scenes/remote_source.toml), or join one with `lungdyn remote join --keys`",
+            dir.display()
+        );
+    };
+    let abs =
+        std::path::absolute(dir).map_err(|e| anyhow::anyhow!("--keys {}: {e}", dir.display()))?;
+    let name = identity
+        .map(str::to_string)
+        .or_else(|| r.identity.clone())
+        .unwrap_or_else(|| "source".into());
+    let room = lungdyn_remote::keys::Room::load(&abs, &name)
+        .map_err(|e| anyhow::anyhow!("--keys {}: {e}", dir.display()))?;
+    if room.identity().role != lungdyn_remote::keys::Role::Source {
+        anyhow::bail!(
+            "--identity {name}: its certificate is a {}'s, and the demo's engine is the source \
+             (use the source's identity, or make one with `lungdyn remote keys --participant \
+             NAME:source`)",
+            room.identity().role.name()
+        );
+    }
+    r.keys = Some(abs.display().to_string());
+    r.identity = Some(name);
+    // With keys the endpoints are TLS's: the scene's plain ones are moved over, and said.
+    let to_tls = |v: &mut Vec<String>| {
+        for e in v.iter_mut().filter(|e| e.starts_with("tcp/")) {
+            let tls = e.replacen("tcp/", "tls/", 1);
+            eprintln!("lungdyn: --keys: the scene's {e} becomes {tls}");
+            *e = tls;
+        }
+    };
+    if let Some(listen) = r.listen.as_mut() {
+        to_tls(listen);
+    }
+    to_tls(&mut r.connect);
+    Ok(())
+}
+
 /// `--breathing recorded` needs `--tracker replay:FILE` whose recording carries a signal; a
 /// recording that carries one refuses another signal beside it (the bridge's own rule, said here
 /// before any process starts).
@@ -1980,6 +2045,40 @@ mod tests {
             let e = check_counts(&args(&a)).unwrap_err();
             assert!(e.to_string().contains("needs three cores"), "{a:?}: {e}");
         }
+    }
+
+    #[test]
+    fn keys_go_into_a_source_scene_with_tls_endpoints_and_a_wrong_role_is_refused() {
+        let dir = std::env::temp_dir().join(format!("lungdyn-demo-keys-{}", std::process::id()));
+        let _ = std::fs::remove_dir_all(&dir);
+        lungdyn_remote::keys::make(
+            "ward",
+            &dir,
+            &lungdyn_remote::keys::default_participants(),
+            10,
+        )
+        .unwrap();
+        let scene = |role: &str| -> lung_model::scene::Scene {
+            toml::from_str(&format!(
+                "[remote]\nrole = \"{role}\"\nroom = \"ward\"\nlisten = [\"tcp/127.0.0.1:7447\"]\n\
+                 connect = [\"tcp/127.0.0.1:7448\"]\n"
+            ))
+            .unwrap()
+        };
+        let mut s = scene("source");
+        use_keys(&mut s, &dir, None).unwrap();
+        let r = s.remote.as_ref().unwrap();
+        assert_eq!(r.keys.as_deref(), Some(dir.display().to_string().as_str()));
+        assert_eq!(r.identity.as_deref(), Some("source"));
+        assert_eq!(r.listen, Some(vec!["tls/127.0.0.1:7447".to_string()]));
+        assert_eq!(r.connect, vec!["tls/127.0.0.1:7448".to_string()]);
+        let e = use_keys(&mut scene("source"), &dir, Some("site")).unwrap_err();
+        assert!(format!("{e:#}").contains("a site's"), "{e:#}");
+        let e = use_keys(&mut scene("site"), &dir, None).unwrap_err();
+        assert!(format!("{e:#}").contains("shares no session"), "{e:#}");
+        let e = use_keys(&mut scene("source"), &dir.join("nothing"), None).unwrap_err();
+        assert!(format!("{e:#}").contains("lungdyn remote keys"), "{e:#}");
+        let _ = std::fs::remove_dir_all(&dir);
     }
 
     #[test]
