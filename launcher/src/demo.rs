@@ -1932,34 +1932,15 @@ fn use_keys(
     Ok(())
 }
 
-/// `--breathing recorded` needs `--tracker replay:FILE` whose recording carries a signal; a
-/// recording that carries one refuses another signal beside it (the bridge's own rule, said here
-/// before any process starts).
+/// `--breathing recorded` needs `--tracker replay:FILE` whose recording carries a signal, and a
+/// recording that carries one refuses another signal beside it: the bridge's rule
+/// ([`tracker_bridge::check_recorded_signal`]), said here before any process starts.
 fn recorded_signal_check(tracker: &str, signal: &str) -> anyhow::Result<()> {
-    use tracker_bridge::signal::SignalSpec;
-    let spec = SignalSpec::parse(signal).map_err(|e| anyhow::anyhow!("{e}"))?;
-    let replay = match tracker_bridge::source::SourceSpec::parse(tracker)? {
-        tracker_bridge::source::SourceSpec::Replay { path } => Some(path),
-        _ => None,
-    };
-    let carries = |p: &std::path::Path| tracker_bridge::record::carries_signal(p);
-    match (spec, replay) {
-        (SignalSpec::Recorded, None) => anyhow::bail!(
-            "--breathing recorded: plays the signal a tracker recording carries; use it with \
-             --tracker replay:FILE (a recording made with --record and a --breathing signal)"
-        ),
-        (SignalSpec::Recorded, Some(p)) if !carries(&p)? => anyhow::bail!(
-            "--breathing recorded: {} carries no respiratory signal (it was recorded without \
-             --breathing); give a signal with --breathing trace:FILE, or model",
-            p.display()
-        ),
-        (SignalSpec::Trace(_) | SignalSpec::Udp(_), Some(p)) if carries(&p)? => anyhow::bail!(
-            "--breathing {signal}: {} carries the respiratory signal it was recorded with and plays \
-             it; use --breathing recorded",
-            p.display()
-        ),
-        _ => Ok(()),
-    }
+    let spec =
+        tracker_bridge::signal::SignalSpec::parse(signal).map_err(|e| anyhow::anyhow!("{e}"))?;
+    let source = tracker_bridge::source::SourceSpec::parse(tracker)?;
+    tracker_bridge::check_recorded_signal(&spec, &source, "--tracker", "model")?;
+    Ok(())
 }
 
 /// `--breathing`: `model` (`None`), or a signal source with its file made absolute and checked

@@ -359,27 +359,30 @@ pub struct Opened {
 
 /// A replayed recording's signal against `--breathing`: `recorded` needs a replay whose file
 /// carries a signal; a file that carries one plays it, so another signal beside it is refused.
-fn check_recorded_signal(r: &Resolved) -> Result<(), BridgeError> {
-    let replay = match &r.spec {
+/// `source_flag` names the option that chose the replay (`--source`, the demo's `--tracker`) and
+/// `no_signal` the word for no signal (`none`, the demo's `model`). The launcher checks with it
+/// before any process starts; the bridge again when it opens.
+pub fn check_recorded_signal(
+    signal: &signal::SignalSpec,
+    spec: &source::SourceSpec,
+    source_flag: &str,
+    no_signal: &str,
+) -> Result<(), BridgeError> {
+    let replay = match spec {
         source::SourceSpec::Replay { path } => Some(path),
         _ => None,
     };
-    match (&r.signal, replay) {
-        (signal::SignalSpec::Recorded, None) => Err(BridgeError::Option(
+    match (signal, replay) {
+        (signal::SignalSpec::Recorded, None) => Err(BridgeError::Option(format!(
             "--breathing recorded: plays the signal a tracker recording carries; use it with \
-             --source replay:FILE (a recording made with --record and a --breathing signal)"
-                .into(),
-        )),
-        (signal::SignalSpec::Recorded, Some(path)) => {
-            if record::carries_signal(path)? {
-                Ok(())
-            } else {
-                Err(BridgeError::Option(format!(
-                    "--breathing recorded: {} carries no respiratory signal (it was recorded \
-                     without --breathing); give a signal with --breathing trace:FILE, or none",
-                    path.display()
-                )))
-            }
+             {source_flag} replay:FILE (a recording made with --record and a --breathing signal)"
+        ))),
+        (signal::SignalSpec::Recorded, Some(path)) if !record::carries_signal(path)? => {
+            Err(BridgeError::Option(format!(
+                "--breathing recorded: {} carries no respiratory signal (it was recorded without \
+                 --breathing); give a signal with --breathing trace:FILE, or {no_signal}",
+                path.display()
+            )))
         }
         (signal::SignalSpec::Trace(_) | signal::SignalSpec::Udp(_), Some(path))
             if record::carries_signal(path)? =>
@@ -387,7 +390,7 @@ fn check_recorded_signal(r: &Resolved) -> Result<(), BridgeError> {
             Err(BridgeError::Option(format!(
                 "--breathing {}: {} carries the respiratory signal it was recorded with and plays \
                  it; use --breathing recorded (or replay a recording made without one)",
-                match &r.signal {
+                match signal {
                     signal::SignalSpec::Trace(t) => format!("trace:{}", t.display()),
                     signal::SignalSpec::Udp(a) => format!("udp:{a}"),
                     _ => String::new(),
@@ -402,7 +405,7 @@ fn check_recorded_signal(r: &Resolved) -> Result<(), BridgeError> {
 /// Open what `args` describe.
 pub fn open(args: &SourceArgs) -> Result<Opened, BridgeError> {
     let r = args.resolve()?;
-    check_recorded_signal(&r)?;
+    check_recorded_signal(&r.signal, &r.spec, "--source", "none")?;
     let source = source::open(&r.spec, &r.options)?;
     let config = source.recorded_config().cloned().unwrap_or(r.config);
     let mut assembler = assemble::Assembler::new(config);
