@@ -594,6 +594,8 @@ def make_scenes(tmp):
     s("remote_role_teacher", SCENE_BASE + "[remote]\nrole = \"teacher\"\n")
     s("remote_site_no_connect", SCENE_BASE + "[remote]\nrole = \"site\"\n")
     s("remote_udp_endpoint", SCENE_BASE + "[remote]\nrole = \"source\"\nlisten = [\"udp/0.0.0.0:7447\"]\n")
+    s("remote_plain_on_network", SCENE_BASE + "[remote]\nrole = \"source\"\nlisten = [\"tcp/0.0.0.0:7447\"]\n")
+    s("remote_lab_network_yes", SCENE_BASE + "[remote]\nrole = \"source\"\ninsecure_lab_network = \"yes\"\n")
     s("remote_no_port", SCENE_BASE + "[remote]\nrole = \"site\"\nconnect = [\"tcp/10.0.0.2\"]\n")
     s("remote_mode_mesh", SCENE_BASE + "[remote]\nrole = \"source\"\nmode = \"mesh\"\n")
     s("remote_client_no_connect", SCENE_BASE + "[remote]\nrole = \"source\"\nmode = \"client\"\n")
