@@ -21,7 +21,7 @@
 
 use std::collections::BTreeMap;
 use std::sync::atomic::{AtomicBool, Ordering};
-use std::sync::{Arc, Mutex};
+use std::sync::Arc;
 use std::time::Duration;
 
 use serde_json::json;
@@ -125,7 +125,6 @@ pub fn refusals(session: &zenoh::Session) -> Result<BTreeMap<String, u64>, Remot
 /// A thread that reads [`refusals`] every 2 s and says when they grew, off the caller's loop
 /// (a source's relay, a site's tick loop, the router's watch).
 pub struct Watch {
-    last: Arc<Mutex<BTreeMap<String, u64>>>,
     stop: Arc<AtomicBool>,
 }
 
@@ -136,14 +135,8 @@ impl Watch {
         if net.auth.is_none() || !net.acl {
             return None;
         }
-        let last: Arc<Mutex<BTreeMap<String, u64>>> = Arc::default();
         let stop = Arc::new(AtomicBool::new(false));
-        let (l, st, session, who) = (
-            Arc::clone(&last),
-            Arc::clone(&stop),
-            session.clone(),
-            who.to_string(),
-        );
+        let (st, session, who) = (Arc::clone(&stop), session.clone(), who.to_string());
         std::thread::Builder::new()
             .name("acl-watch".into())
             .spawn(move || {
@@ -167,16 +160,10 @@ impl Watch {
                         );
                         said = total;
                     }
-                    *l.lock().unwrap_or_else(|e| e.into_inner()) = now;
                 }
             })
             .ok()?;
-        Some(Watch { last, stop })
-    }
-
-    /// The counts last read.
-    pub fn last(&self) -> BTreeMap<String, u64> {
-        self.last.lock().unwrap_or_else(|e| e.into_inner()).clone()
+        Some(Watch { stop })
     }
 }
 
