@@ -224,7 +224,15 @@ fn a_participant_of_the_wrong_role_forges_nothing_and_replays_nothing() {
             };
             (find("/state"), find("/event"))
         };
-        let put = |key: String, b: Vec<u8>| rogue.put(key, b).wait().unwrap();
+        // Blocking on a full queue rather than dropping (Zenoh's default for a put): under load a
+        // dropped junk packet (the 100 kB one, in fragments) never reached the seals to be counted.
+        let put = |key: String, b: Vec<u8>| {
+            rogue
+                .put(key, b)
+                .congestion_control(zenoh::qos::CongestionControl::Block)
+                .wait()
+                .unwrap()
+        };
         // 1. States: the observer's own (its role may not), the source's replayed, one bit of the
         //    source's flipped, the source's with a far sequence and no valid signature.
         put(
