@@ -37,10 +37,10 @@ pub struct BakeArgs {
     /// otherwise).
     #[arg(long, conflicts_with = "directions")]
     pub motion: Option<PathBuf>,
-    /// Constants without a motion file (overrides the scene's `[lungs] directions`): "population"
-    /// (diaphragm-driven, matched to DIR-Lab 4DCT; the default) or "seed" (Table 6.1, mostly
-    /// anterior). See EQUATIONS.md §2.4.
-    #[arg(long, value_parser = ["population", "seed"])]
+    /// The motion without a motion file (overrides the scene's `[lungs] directions`): "population"
+    /// (diaphragm-driven, matched to DIR-Lab 4DCT; the default), "breath-hold" (the population of six
+    /// real breath-hold pairs' fits) or "seed" (Table 6.1, mostly anterior). See EQUATIONS.md §2.4.
+    #[arg(long, value_parser = ["population", "breath-hold", "seed"])]
     pub directions: Option<String>,
     /// Length in mm over which the elastostatic amplitude is made smooth on the surface so the
     /// deformed lung does not fold (overrides the scene's [lungs] amplitude_smoothing_mm; default
@@ -267,9 +267,10 @@ fn settings(args: &BakeArgs) -> anyhow::Result<lung_bake::kernel::BakeSettings> 
     let mut settings = scene.bake_settings(side)?;
     if let Some(d) = &args.directions {
         let preset: lung_model::deform::DirectionPreset = d.parse().map_err(anyhow::Error::msg)?;
-        settings.motion = preset.constants(side);
-        settings.direction_field = None;
-        settings.force_field = None;
+        let m = preset.motion(side);
+        settings.motion = m.constants;
+        settings.direction_field = m.direction_field;
+        settings.force_field = m.force_field;
     }
     if let Some(m) = &args.motion {
         let f = lung_model::deform::MotionFile::load(m)?;

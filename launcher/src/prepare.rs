@@ -124,7 +124,11 @@ pub fn ensure_kernels(
             scene.lungs.vertices
         )));
         let reusable = lung_model::kernel::KernelFile::open(&path)
-            .map(|f| f.meta().side == side && f.meta().settings == settings)
+            .map(|f| {
+                f.meta().side == side
+                    && f.meta().settings == settings
+                    && !f.meta().orientation_predates_fitted_force()
+            })
             .unwrap_or(false);
         let mut meta = None;
         let mut seconds = 0.0;

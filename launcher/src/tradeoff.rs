@@ -22,7 +22,7 @@ use lung_bake::orient::{
     basis_error, orientation_set, reference_delta_ml, ErrorAccumulator, ErrorStats, Responses,
     ShProjection,
 };
-use lung_model::deform::modes::{box_coordinates, CpuLung, ModeData};
+use lung_model::deform::modes::{CpuLung, ModeData};
 use lung_model::mesh::{generate, Side};
 use lung_model::orientation::{ForceWeights, SeedBlend, SUPINE_GRAVITY};
 
@@ -426,14 +426,7 @@ impl<'g> SizeBench<'g> {
             len as f64 - (v * 16) as f64
         };
         let t = Instant::now();
-        let mut responses = Responses::compute(
-            &k.mesh,
-            side,
-            &k.transfer,
-            &k.directions,
-            k.meta.force_scale,
-            c789,
-        );
+        let mut responses = k.responses();
         let exact_forms = responses.forms_of(&k.mesh, &responses.g);
         responses.set_limit(&exact_forms);
         let basis_bake_s = t.elapsed().as_secs_f64();
@@ -633,7 +626,13 @@ impl<'g> SizeBench<'g> {
             self.kd.clone(),
             ModeData::Direct {
                 columns: k.transfer.transposed(),
-                nhat: box_coordinates(&mesh, self.side),
+                // The basis functions the bake used (the fitted supine force first, if any).
+                nhat: self
+                    .responses
+                    .nhat
+                    .iter()
+                    .map(|n| n.map(|v| v as f32))
+                    .collect(),
                 force: vec![0.0; v],
                 elastostatic: vec![0.0; v],
             },
@@ -784,7 +783,9 @@ fn orientation_methods(
     ];
     let methods: [(&str, &dyn Fn(DVec3) -> ForceWeights); 3] = [
         ("exact rotation", &|g| responses.weights(g)),
-        ("seed eq. 7.8-7.9", &|g| limited(seed.weights(g))),
+        ("seed eq. 7.8-7.9", &|g| {
+            limited(responses.as_drawn(seed.weights(g)))
+        }),
         ("fixed (supine)", &|_| responses.weights(SUPINE_GRAVITY)),
     ];
     let mut out = Vec::new();

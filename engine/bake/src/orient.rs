@@ -24,7 +24,8 @@ use lung_model::deform::normalised_position;
 use lung_model::mesh::{Side, TriMesh};
 use lung_model::operator::{Columns, Transfer};
 use lung_model::orientation::{
-    exact_weights, ForceWeights, VolumeLimit, DEFAULT_MIN_SLOPE_RATIO, SUPINE_GRAVITY,
+    exact_weights, fitted_weights, ForceWeights, VolumeLimit, DEFAULT_MIN_SLOPE_RATIO,
+    SUPINE_GRAVITY,
 };
 use lung_model::sh;
 
@@ -85,10 +86,16 @@ pub struct Responses {
     pub side: Side,
     /// The volume limit on the weights (set from the exact forms, [`Self::set_limit`]).
     pub limit: Option<VolumeLimit>,
+    /// The first basis function is the lung's fitted supine force, not 1
+    /// ([`lung_model::orientation::Orientation::with_fitted_supine`]).
+    pub fitted: bool,
 }
 
 impl Responses {
-    /// `G_a = Tᵀ·x̂_a` for a lung with stored directions `directions` and force scale `k`.
+    /// `G_a = Tᵀ·x̂_a` for a lung with stored directions `directions` and force scale `k`. With
+    /// `fitted_supine` (the lung's fitted supine force per vertex,
+    /// [`lung_model::deform::fitted_supine_force`]) the first basis function is that force instead of
+    /// 1, so the weights [`lung_model::orientation::FITTED_SUPINE`] draw it exactly (EQUATIONS.md §3.3).
     pub fn compute(
         mesh: &TriMesh,
         side: Side,
@@ -96,14 +103,16 @@ impl Responses {
         directions: &[[f32; 3]],
         k: f64,
         c789: [f64; 3],
+        fitted_supine: Option<&[f64]>,
     ) -> Self {
         let bb = mesh.aabb();
         let nhat: Vec<[f64; 4]> = mesh
             .positions
             .iter()
-            .map(|&p| {
+            .enumerate()
+            .map(|(i, &p)| {
                 let n = normalised_position(p, &bb, side);
-                [1.0, n.x, n.y, n.z]
+                [fitted_supine.map_or(1.0, |f| f[i]), n.x, n.y, n.z]
             })
             .collect();
         let per_axis: Vec<Vec<f64>> = (0..4)
@@ -134,23 +143,37 @@ impl Responses {
             c789,
             side,
             limit: None,
+            fitted: fitted_supine.is_some(),
         }
     }
 
     /// Limit the weights as the run time does by default ([`DEFAULT_MIN_SLOPE_RATIO`]), from the
     /// exact fields' volume forms.
     pub fn set_limit(&mut self, exact_forms: &VolumeForms) {
-        self.limit = Some(VolumeLimit::new(
+        self.limit = Some(VolumeLimit::around(
             exact_forms.l,
-            self.c789,
-            self.side,
+            self.weights_unlimited(SUPINE_GRAVITY),
             DEFAULT_MIN_SLOPE_RATIO,
         ));
     }
 
+    /// What the run time makes of `w`, eq. 6.18's weights for a posture: `w` itself, or with a
+    /// fitted supine force [`fitted_weights`] (the fitted force plus the posture's change).
+    pub fn as_drawn(&self, w: ForceWeights) -> ForceWeights {
+        if self.fitted {
+            fitted_weights(w, exact_weights(self.c789, self.side, SUPINE_GRAVITY))
+        } else {
+            w
+        }
+    }
+
+    fn weights_unlimited(&self, g: DVec3) -> ForceWeights {
+        self.as_drawn(exact_weights(self.c789, self.side, g))
+    }
+
     /// Force weights of gravity `g` (exact, EQUATIONS.md §3.3), limited as the run time limits them.
     pub fn weights(&self, g: DVec3) -> ForceWeights {
-        let w = exact_weights(self.c789, self.side, g);
+        let w = self.weights_unlimited(g);
         match &self.limit {
             Some(l) => l.apply(w).0,
             None => w,
@@ -565,17 +588,7 @@ mod tests {
             &|_| {},
         )
         .unwrap();
-        let r = Responses::compute(
-            &k.mesh,
-            side,
-            &k.transfer,
-            &k.directions,
-            k.meta.force_scale,
-            {
-                let c = &k.meta.settings.motion.c;
-                [c[6], c[7], c[8]]
-            },
-        );
+        let r = k.responses();
         let d = r.force(&r.weights(SUPINE_GRAVITY));
         for (a, b) in d.iter().zip(&k.elastostatic) {
             assert!(
@@ -635,17 +648,7 @@ mod tests {
             &|_| {},
         )
         .unwrap();
-        let r = Responses::compute(
-            &k.mesh,
-            side,
-            &k.transfer,
-            &k.directions,
-            k.meta.force_scale,
-            {
-                let c = &k.meta.settings.motion.c;
-                [c[6], c[7], c[8]]
-            },
-        );
+        let r = k.responses();
         let forms = r.forms_of(&k.mesh, &r.g);
         let mut r = r;
         r.set_limit(&forms);

@@ -160,13 +160,19 @@ fn default_sh_bands() -> u32 {
 pub const DEFAULT_TOLERANCE: f64 = 1e-5;
 
 impl BakeSettings {
-    /// The default constants ([`MotionConstants::default_for`], the population preset), the default
-    /// elasticity field and tolerance.
+    /// The default motion ([`crate::deform::DirectionPreset::default`], the population
+    /// constants), the default elasticity field and tolerance.
     pub fn default_for(side: Side) -> Self {
+        Self::for_preset(crate::deform::DirectionPreset::default(), side)
+    }
+
+    /// [`Self::default_for`] with the motion of `preset`.
+    pub fn for_preset(preset: crate::deform::DirectionPreset, side: Side) -> Self {
+        let m = preset.motion(side);
         Self {
-            motion: MotionConstants::default_for(side),
-            direction_field: None,
-            force_field: None,
+            motion: m.constants,
+            direction_field: m.direction_field,
+            force_field: m.force_field,
             elasticity: Elasticity::default(),
             tolerance: DEFAULT_TOLERANCE,
             sh_bands: DEFAULT_SH_BANDS,
@@ -208,6 +214,13 @@ pub struct OrientationMeta {
     pub reference_delta_ml: f64,
     /// Orientations the errors were taken over.
     pub orientations_checked: u32,
+    /// The first basis function is the fitted supine force
+    /// ([`crate::deform::fitted_supine_force`]) instead of the constant 1: the kernel was baked with a
+    /// force field and every orientation mode draws it supine (EQUATIONS.md §3.3, "A fitted supine
+    /// force"). Absent (false) in kernels baked before; such a kernel with a force field is refused
+    /// by the orientation modes ([`KernelMeta::orientation_predates_fitted_force`]).
+    #[serde(default)]
+    pub fitted_supine_force: bool,
 }
 
 /// The spherical-harmonic form (seed eq. 7.2–7.7, EQUATIONS.md §3.2) as baked.
@@ -321,6 +334,19 @@ pub struct KernelMeta {
     /// The tumour the kernel was baked with, and how its centre moves (seed §8.2).
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub tumour: Option<TumourMeta>,
+}
+
+impl KernelMeta {
+    /// A kernel baked with a fitted force field by a lungdyn whose orientation modes drew eq. 6.18's
+    /// linear force instead of the fit (before [`OrientationMeta::fitted_supine_force`]): its basis,
+    /// SH and direct data describe another motion than its precomputed field. Bake it again.
+    pub fn orientation_predates_fitted_force(&self) -> bool {
+        self.settings.force_field.is_some()
+            && self
+                .orientation
+                .as_ref()
+                .is_some_and(|o| !o.fitted_supine_force)
+    }
 }
 
 /// What a kernel baked with a tumour records of it ([`KernelMeta::tumour`]): the region, what the

@@ -237,6 +237,20 @@ impl VolumeLimit {
         }
     }
 
+    /// The limit around given supine weights (a kernel with a fitted supine force,
+    /// [`Orientation::with_fitted_supine`], whose supine weights are [`FITTED_SUPINE`]).
+    pub fn around(linear: [f64; 4], supine: ForceWeights, ratio: f64) -> Self {
+        Self {
+            linear,
+            supine,
+            ratio: if min_slope_ratio_ok(ratio) {
+                ratio
+            } else {
+                0.0
+            },
+        }
+    }
+
     fn slope(&self, w: &ForceWeights) -> f64 {
         (0..4).map(|a| w[a] * self.linear[a]).sum()
     }
@@ -269,6 +283,22 @@ pub struct Orientation {
     side: Side,
     seed: SeedBlend,
     limit: Option<VolumeLimit>,
+    /// The kernel's first basis function is its fitted supine force ([`Self::with_fitted_supine`]).
+    fitted: bool,
+}
+
+/// The supine weights of a kernel with a fitted supine force: the fitted force alone.
+pub const FITTED_SUPINE: ForceWeights = [1.0, 0.0, 0.0, 0.0];
+
+/// Weights `w` of eq. 6.18's force for a posture, as weights of a kernel whose first basis function
+/// is a fitted supine force `F` (EQUATIONS.md §3.3, "A fitted supine force"): `F` once, plus the
+/// change of eq. 6.18's linear part from its supine weights `supine`. Exactly [`FITTED_SUPINE`] at
+/// `w = supine`. The constant offset `w0` is not carried over: the basis has no constant function
+/// left (the fitted force has its own level). Carrying it through the constant's least-squares
+/// weights in `(F, x̂, ŷ, ẑ)` was tried and folded the breath-hold population's lungs in more
+/// postures (225 surfaces against 196 of 416, EQUATIONS.md §3.3).
+pub fn fitted_weights(w: ForceWeights, supine: ForceWeights) -> ForceWeights {
+    [1.0, w[1] - supine[1], w[2] - supine[2], w[3] - supine[3]]
 }
 
 impl Orientation {
@@ -288,7 +318,26 @@ impl Orientation {
             side,
             seed: SeedBlend::new(c789, side),
             limit: linear.map(|l| VolumeLimit::new(l, c789, side, min_slope_ratio)),
+            fitted: false,
         }
+    }
+
+    /// The same model for a kernel baked with a fitted supine force (a breath-hold fit or the
+    /// breath-hold population, `KernelMeta::orientation.fitted_supine_force`): its basis is
+    /// `(F, x̂, ŷ, ẑ)` with `F` the fitted force, and the weights are [`fitted_weights`] — exactly
+    /// `F` supine, so every orientation mode draws the fitted motion there; eq. 6.18's change with
+    /// posture added elsewhere. The volume limit is kept, around [`FITTED_SUPINE`].
+    pub fn with_fitted_supine(mut self) -> Self {
+        self.fitted = true;
+        self.limit = self
+            .limit
+            .map(|l| VolumeLimit::around(l.linear, FITTED_SUPINE, l.ratio));
+        self
+    }
+
+    /// Whether the weights are those of a fitted supine force ([`Self::with_fitted_supine`]).
+    pub fn is_fitted(&self) -> bool {
+        self.fitted
     }
 
     /// The method.
@@ -303,6 +352,11 @@ impl Orientation {
             OrientationMethod::Fixed => exact_weights(self.c789, self.side, SUPINE_GRAVITY),
             OrientationMethod::Exact => exact_weights(self.c789, self.side, g),
             OrientationMethod::Seed => self.seed.weights(g),
+        };
+        let w = if self.fitted {
+            fitted_weights(w, exact_weights(self.c789, self.side, SUPINE_GRAVITY))
+        } else {
+            w
         };
         match &self.limit {
             Some(l) => l.apply(w),

@@ -145,8 +145,9 @@ pub struct LungsScene {
     /// `directions` preset when absent.
     #[serde(skip_serializing_if = "Option::is_none")]
     pub motion: Option<std::path::PathBuf>,
-    /// Constants without a motion file: "population" (diaphragm-driven, matched to 4DCT; the
-    /// default) or "seed" (Table 6.1). EQUATIONS.md §2.4.
+    /// The motion without a motion file: "population" (diaphragm-driven constants matched to 4DCT;
+    /// the default), "breath-hold" (the population of six breath-hold pairs) or "seed" (Table 6.1).
+    /// EQUATIONS.md §2.4.
     pub directions: crate::deform::DirectionPreset,
     /// Length (mm) over which the bake makes the elastostatic amplitude smooth on the surface, so the
     /// deformed lungs do not fold (EQUATIONS.md §2.4); 0 is the seed's unsmoothed reading.
@@ -569,6 +570,13 @@ impl Scene {
             return Err(needs(
                 "basis responses (baked before the orientation modes)",
                 "`lungdyn bake`",
+            ));
+        }
+        if mode.follows_orientation() && file.meta().orientation_predates_fitted_force() {
+            return Err(needs(
+                "basis responses of its fitted force (baked when the orientation modes drew eq. \
+                 6.18's linear force instead of the fit)",
+                "`lungdyn bake` (or mode = \"precomputed\")",
             ));
         }
         if mode == DeformMode::Sh {
@@ -1026,7 +1034,10 @@ impl Scene {
                     f.force_for_side(side).cloned(),
                 )
             }
-            None => (self.lungs.directions.constants(side), None, None),
+            None => {
+                let m = self.lungs.directions.motion(side);
+                (m.constants, m.direction_field, m.force_field)
+            }
         };
         Ok(crate::kernel::BakeSettings {
             motion,

@@ -90,6 +90,17 @@ pub enum GeometryError {
         /// Mode.
         mode: DeformMode,
     },
+    /// A fitted force field baked before the orientation modes drew it.
+    #[error(
+        "{path}: the kernel's motion is a fitted force field, baked by a lungdyn whose {mode} mode \
+         drew eq. 6.18's linear force instead of it; bake it again (or use mode = \"precomputed\")"
+    )]
+    FittedForceStale {
+        /// Kernel.
+        path: String,
+        /// Mode.
+        mode: DeformMode,
+    },
 }
 
 impl LungGeometry {
@@ -129,6 +140,12 @@ impl LungGeometry {
             DeformMode::Precomputed => None,
             _ => {
                 let o = meta.orientation.as_ref().ok_or_else(missing)?;
+                if meta.orientation_predates_fitted_force() {
+                    return Err(GeometryError::FittedForceStale {
+                        path: kernel.path().display().to_string(),
+                        mode,
+                    });
+                }
                 let c = &meta.settings.motion.c;
                 let orientation = Orientation::new(
                     method,
@@ -137,6 +154,12 @@ impl LungGeometry {
                     Some(o.volume_forms.l),
                     min_slope_ratio,
                 );
+                // A fitted supine force is the first basis function (EQUATIONS.md §3.3).
+                let orientation = if o.fitted_supine_force {
+                    orientation.with_fitted_supine()
+                } else {
+                    orientation
+                };
                 let (forms, sh) = if mode == DeformMode::Sh {
                     let sh = meta.sh.as_ref().ok_or_else(missing)?;
                     (

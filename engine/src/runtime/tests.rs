@@ -332,15 +332,21 @@ fn a_scene_without_kernels_is_refused_with_the_way_to_get_them() {
 
 /// Both default lungs at 1000 vertices baked with `bands` SH bands into kernel files (the engine
 /// reads the orientation data from a kernel's metadata), once per process.
-fn kernels(bands: u32) -> Vec<std::path::PathBuf> {
-    let dir = std::env::temp_dir().join(format!("lungdyn-engine-{}-{bands}", std::process::id()));
+/// Both generated lungs at 1000 vertices with `bands` SH bands and the motion of `preset`, baked
+/// once per test process.
+fn kernels_of(bands: u32, preset: lung_model::deform::DirectionPreset) -> Vec<std::path::PathBuf> {
+    let dir = std::env::temp_dir().join(format!(
+        "lungdyn-engine-{}-{bands}-{}",
+        std::process::id(),
+        preset.name()
+    ));
     std::fs::create_dir_all(&dir).unwrap();
     [Side::Right, Side::Left]
         .into_iter()
         .map(|side| {
             let path = dir.join(format!("{}.kernel", side.name()));
             if !path.exists() {
-                let mut s = lung_bake::kernel::BakeSettings::default_for(side);
+                let mut s = lung_bake::kernel::BakeSettings::for_preset(preset, side);
                 s.sh_bands = bands;
                 lung_bake::kernel::bake(side, generate::lung(side, 1000).unwrap(), &s, &|_| {})
                     .unwrap()
@@ -353,7 +359,16 @@ fn kernels(bands: u32) -> Vec<std::path::PathBuf> {
 }
 
 fn core_in(mode: DeformMode, method: OrientationMethod) -> (EngineCore, Vec<KernelFile>) {
-    let files: Vec<KernelFile> = kernels(4)
+    core_of(mode, method, lung_model::deform::DirectionPreset::default())
+}
+
+/// [`core_in`] with kernels of `preset`'s motion.
+fn core_of(
+    mode: DeformMode,
+    method: OrientationMethod,
+    preset: lung_model::deform::DirectionPreset,
+) -> (EngineCore, Vec<KernelFile>) {
+    let files: Vec<KernelFile> = kernels_of(4, preset)
         .iter()
         .map(|p| KernelFile::open_lazy(p).unwrap())
         .collect();
@@ -2021,4 +2036,162 @@ fn a_signal_run_replays_bitwise_and_bad_samples_never_reach_a_frame() {
         core().signal().is_none(),
         "a model scene has no signal drive"
     );
+}
+
+/// The surfaces the engine's frame draws in `mode` for the patient turned by `turn` from supine, at
+/// tick 150 (mid-inhalation), with kernels of `preset`: one position list per lung.
+fn drawn_in(
+    mode: DeformMode,
+    preset: lung_model::deform::DirectionPreset,
+    turn: glam::DQuat,
+) -> Vec<Vec<[f32; 3]>> {
+    use lung_model::deform::modes::CpuLung;
+    let (mut core, files) = core_of(mode, OrientationMethod::Exact, preset);
+    let mut f = EngineFrame::default();
+    core.step(150, Some(&posed(150, turn * supine())), &mut f);
+    files
+        .iter()
+        .zip(&f.lungs)
+        .map(|(k, lung)| {
+            let mut cpu = CpuLung::from_kernel(k, mode).unwrap();
+            let mut out = vec![[0.0f32; 3]; cpu.len()];
+            cpu.deform_into(
+                lung.deform_scale,
+                &lung.coeffs[..lung.coeff_count as usize],
+                [0.0; 3],
+                &mut out,
+            )
+            .unwrap();
+            out
+        })
+        .collect()
+}
+
+/// A kernel whose motion is a fitted force field (the breath-hold population, as a breath-hold
+/// pair's `fit-motion` writes) is drawn supine by every orientation-following mode as its
+/// precomputed field: the fitted supine force is the first basis function (EQUATIONS.md §3.3, "A
+/// fitted supine force"). Before, the basis, SH and direct modes drew eq. 6.18's linear force with
+/// Table 6.1's constants and the fitted directions: 7.1 mm (mean) from the fitted motion on the
+/// left lung at +250 ml, where the motion itself is 8.8 mm. Turned onto its side the lung moves
+/// otherwise (the posture still counts), with no NaN, and basis and direct agree.
+#[test]
+fn a_fitted_force_is_drawn_supine_by_every_mode_as_its_precomputed_field() {
+    use lung_model::deform::DirectionPreset;
+    let preset = DirectionPreset::BreathHold;
+    let supine_turn = glam::DQuat::IDENTITY;
+    let reference = drawn_in(DeformMode::Precomputed, preset, supine_turn);
+    let files: Vec<KernelFile> = kernels_of(4, preset)
+        .iter()
+        .map(|p| KernelFile::open_lazy(p).unwrap())
+        .collect();
+    let rest: Vec<Vec<[f32; 3]>> = files.iter().map(|k| k.mesh().positions).collect();
+    let distance = |a: &[f32; 3], b: &[f32; 3]| {
+        ((a[0] - b[0]).powi(2) + (a[1] - b[1]).powi(2) + (a[2] - b[2]).powi(2)).sqrt() as f64
+    };
+    let mean = |a: &[[f32; 3]], b: &[[f32; 3]]| {
+        a.iter().zip(b).map(|(a, b)| distance(a, b)).sum::<f64>() / a.len() as f64
+    };
+    for (k, (lung, start)) in files.iter().zip(reference.iter().zip(&rest)) {
+        assert!(k.meta().orientation.as_ref().unwrap().fitted_supine_force);
+        let moved = mean(lung, start);
+        assert!(
+            moved > 1.0,
+            "{:?}: the breath moves {moved} mm",
+            k.meta().side
+        );
+    }
+    for (mode, tolerance_mm) in [
+        (DeformMode::Basis, 0.01),
+        (DeformMode::Direct, 0.01),
+        // Four bands: the projection's own error (its RMS against eq. 7.1 is in the kernel).
+        (DeformMode::Sh, 0.0),
+    ] {
+        let drawn = drawn_in(mode, preset, supine_turn);
+        for (k, (d, r)) in files.iter().zip(drawn.iter().zip(&reference)) {
+            let worst = d
+                .iter()
+                .zip(r)
+                .map(|(a, b)| distance(a, b))
+                .fold(0.0, f64::max);
+            let rms = (d
+                .iter()
+                .zip(r)
+                .map(|(a, b)| distance(a, b).powi(2))
+                .sum::<f64>()
+                / d.len() as f64)
+                .sqrt();
+            let allowed = if mode == DeformMode::Sh {
+                // The SH error is measured at the reference volume (250 ml or less) over the
+                // orientation set; mid-inhalation is within it.
+                3.0 * k.meta().sh.as_ref().unwrap().rms_mm + 0.05
+            } else {
+                tolerance_mm
+            };
+            let measured = if mode == DeformMode::Sh { rms } else { worst };
+            assert!(
+                measured <= allowed,
+                "{mode} {:?}: {measured} mm from the precomputed field (allowed {allowed})",
+                k.meta().side
+            );
+        }
+    }
+    let turned = glam::DQuat::from_rotation_y(std::f64::consts::FRAC_PI_2);
+    let basis = drawn_in(DeformMode::Basis, preset, turned);
+    let direct = drawn_in(DeformMode::Direct, preset, turned);
+    for ((b, d), r) in basis.iter().zip(&direct).zip(&reference) {
+        assert!(b.iter().flatten().all(|v| v.is_finite()));
+        assert!(mean(b, r) > 0.1, "the turned lung moves as the supine one");
+        let worst = b
+            .iter()
+            .zip(d)
+            .map(|(a, c)| distance(a, c))
+            .fold(0.0, f64::max);
+        assert!(worst < 0.01, "basis and direct differ by {worst} mm turned");
+    }
+}
+
+/// A kernel with a fitted force baked before the orientation modes drew it (its metadata lacks
+/// `fitted_supine_force`) is refused by every orientation-following mode, naming what to do, and
+/// still drawn by the precomputed mode (whose field was always the fit).
+#[test]
+fn a_fitted_force_baked_before_the_orientation_modes_drew_it_is_refused_by_them() {
+    use lung_model::deform::modes::CpuLung;
+    use lung_model::deform::DirectionPreset;
+    let side = Side::Left;
+    let mut k = lung_bake::kernel::bake(
+        side,
+        generate::lung(side, 300).unwrap(),
+        &lung_bake::kernel::BakeSettings::for_preset(DirectionPreset::BreathHold, side),
+        &|_| {},
+    )
+    .unwrap();
+    k.meta.orientation.as_mut().unwrap().fitted_supine_force = false;
+    let dir = std::env::temp_dir().join(format!("lungdyn-stale-fit-{}", std::process::id()));
+    std::fs::create_dir_all(&dir).unwrap();
+    let path = dir.join("left.kernel");
+    k.write(&path).unwrap();
+    let file = KernelFile::open_lazy(&path).unwrap();
+    assert!(file.meta().orientation_predates_fitted_force());
+    for mode in [DeformMode::Basis, DeformMode::Sh, DeformMode::Direct] {
+        let err = LungGeometry::from_kernel(
+            &file,
+            mode,
+            OrientationMethod::Exact,
+            lung_model::orientation::DEFAULT_MIN_SLOPE_RATIO,
+        )
+        .err()
+        .unwrap()
+        .to_string();
+        assert!(err.contains("bake it again"), "{mode}: {err}");
+        let err = CpuLung::from_kernel(&file, mode).err().unwrap().to_string();
+        assert!(err.contains("bake it again"), "{mode}: {err}");
+    }
+    assert!(LungGeometry::from_kernel(
+        &file,
+        DeformMode::Precomputed,
+        OrientationMethod::Exact,
+        lung_model::orientation::DEFAULT_MIN_SLOPE_RATIO,
+    )
+    .is_ok());
+    let _ = std::fs::remove_dir_all(&dir);
 }

@@ -52,11 +52,6 @@ fn exactly_nine<'de, D: serde::Deserializer<'de>>(d: D) -> Result<[f64; 9], D::E
 }
 
 impl MotionConstants {
-    /// The default constants of `side` (the population preset, [`DirectionPreset::Population`]).
-    pub fn default_for(side: Side) -> Self {
-        DirectionPreset::default().constants(side)
-    }
-
     /// Population constants (lungdyn, EQUATIONS.md §2.4 "Breathing like a person"): a diaphragm
     /// drive. The direction turns from anterior at the apex (`ŷ`, chest wall) to inferior at the
     /// base (`ẑ²`, diaphragm); the applied force grows towards the base and anteriorly. Chosen so
@@ -81,27 +76,70 @@ impl MotionConstants {
     }
 }
 
-/// Which constants a bake uses without a motion file (scene `[lungs] directions`, `lungdyn bake
-/// --directions`).
+/// Which motion a bake uses without a motion file (scene `[lungs] directions`, `lungdyn bake
+/// --directions`). EQUATIONS.md §2.4.
 #[derive(Debug, Clone, Copy, PartialEq, Eq, Default, serde::Serialize, serde::Deserialize)]
-#[serde(rename_all = "lowercase")]
+#[serde(try_from = "String", into = "&'static str")]
 pub enum DirectionPreset {
-    /// [`MotionConstants::population`]: diaphragm-driven, matched to DIR-Lab 4DCT (the default).
+    /// [`MotionConstants::population`]: diaphragm-driven constants matched to DIR-Lab 4DCT
+    /// landmarks (the default).
     #[default]
     Population,
+    /// The population of six real breath-hold pairs: the mean of each COPDgene pair's `fit-motion
+    /// --exhale/--inhale` fit (a direction field and an applied force field), made scale-free
+    /// ([`BREATH_HOLD_POPULATION`]). Held out by patient it lands 2–3× closer to the real inhale
+    /// surface than no motion or uniform scaling on 12 of 12 lungs, where the default is worse than no
+    /// motion on 8 (docs/masks/population_motion_table.md, breath_hold_baselines.md); not yet the
+    /// default: the generated right lung folds beyond its share of FRC + 500 ml (EQUATIONS.md §2.4).
+    BreathHold,
     /// [`MotionConstants::table_6_1`]: the seed's Table 6.1 (gravity-driven, mostly anterior).
     Seed,
 }
 
+/// The breath-hold population's motion file (`bench/population_motion.py` wrote it; the same file
+/// a scene can name as `motion = ...`), built in.
+pub const BREATH_HOLD_POPULATION: &str =
+    include_str!("../../../../scenes/motion/breath_hold_population.toml");
+
+/// A preset's motion for one lung: the constants and, for a fitted preset, its direction and
+/// applied force fields (as a motion file gives them, [`MotionFile`]).
+#[derive(Debug, Clone, PartialEq)]
+pub struct PresetMotion {
+    /// `c1..c9` (for a fitted preset Table 6.1's, whose `c7..c9` give the posture's change of the
+    /// force in the orientation modes, EQUATIONS.md §3.3).
+    pub constants: MotionConstants,
+    /// The direction field, if any.
+    pub direction_field: Option<field::Field>,
+    /// The applied force field, if any.
+    pub force_field: Option<field::ForceField>,
+}
+
 impl DirectionPreset {
     /// Every preset, in the order they are listed.
-    pub const ALL: [DirectionPreset; 2] = [DirectionPreset::Population, DirectionPreset::Seed];
+    pub const ALL: [DirectionPreset; 3] = [
+        DirectionPreset::Population,
+        DirectionPreset::BreathHold,
+        DirectionPreset::Seed,
+    ];
 
-    /// The preset's constants for `side`.
-    pub fn constants(self, side: Side) -> MotionConstants {
+    /// The preset's motion for `side`.
+    pub fn motion(self, side: Side) -> PresetMotion {
+        let constants = |constants| PresetMotion {
+            constants,
+            direction_field: None,
+            force_field: None,
+        };
         match self {
-            DirectionPreset::Population => MotionConstants::population(side),
-            DirectionPreset::Seed => MotionConstants::table_6_1(side),
+            DirectionPreset::Population => constants(MotionConstants::population(side)),
+            DirectionPreset::BreathHold => {
+                let f = breath_hold_population();
+                PresetMotion {
+                    constants: f.for_side(side),
+                    direction_field: f.field_for_side(side).cloned(),
+                    force_field: f.force_for_side(side).cloned(),
+                }
+            }
+            DirectionPreset::Seed => constants(MotionConstants::table_6_1(side)),
         }
     }
 
@@ -109,8 +147,35 @@ impl DirectionPreset {
     pub fn name(self) -> &'static str {
         match self {
             DirectionPreset::Population => "population",
+            DirectionPreset::BreathHold => "breath-hold",
             DirectionPreset::Seed => "seed",
         }
+    }
+}
+
+/// The built-in breath-hold population, parsed and checked once (a broken built-in file is a
+/// build defect: a test reads it).
+fn breath_hold_population() -> &'static MotionFile {
+    static FILE: std::sync::OnceLock<MotionFile> = std::sync::OnceLock::new();
+    FILE.get_or_init(|| {
+        MotionFile::parse(
+            BREATH_HOLD_POPULATION,
+            std::path::Path::new("scenes/motion/breath_hold_population.toml (built in)"),
+        )
+        .expect("the built-in breath-hold population is a valid motion file")
+    })
+}
+
+impl From<DirectionPreset> for &'static str {
+    fn from(p: DirectionPreset) -> Self {
+        p.name()
+    }
+}
+
+impl TryFrom<String> for DirectionPreset {
+    type Error = String;
+    fn try_from(s: String) -> Result<Self, String> {
+        s.parse()
     }
 }
 
@@ -121,7 +186,7 @@ impl std::str::FromStr for DirectionPreset {
             .into_iter()
             .find(|p| p.name() == s)
             .ok_or_else(|| {
-                format!("directions \"{s}\": expected \"population\" (diaphragm-driven, the default) or \"seed\" (Table 6.1)")
+                format!("directions \"{s}\": expected \"population\" (diaphragm-driven, the default), \"breath-hold\" (six patients' breath-hold pairs) or \"seed\" (Table 6.1)")
             })
     }
 }
@@ -167,10 +232,15 @@ pub struct MotionFile {
 impl MotionFile {
     /// Read and validate `path`.
     pub fn load(path: &std::path::Path) -> Result<Self, MotionFileError> {
-        let path_buf = || path.to_path_buf();
         let text = crate::input::read_text_bounded(path, crate::input::ReadLimits::CONFIG)
             .map_err(|source| MotionFileError::Input { source })?;
-        let f: Self = toml::from_str(&text).map_err(|e| MotionFileError::Toml {
+        Self::parse(&text, path)
+    }
+
+    /// Parse and validate `text`, naming `path` in errors.
+    pub fn parse(text: &str, path: &std::path::Path) -> Result<Self, MotionFileError> {
+        let path_buf = || path.to_path_buf();
+        let f: Self = toml::from_str(text).map_err(|e| MotionFileError::Toml {
             path: path_buf(),
             message: e.to_string(),
         })?;
@@ -347,6 +417,51 @@ pub fn direction(n: DVec3, k: &MotionConstants, side: Side) -> DVec3 {
 /// Applied-force magnitude of eq. 6.18 (before normalisation).
 pub fn applied_force(n: DVec3, k: &MotionConstants) -> f64 {
     k.c[6] * n.x + k.c[7] * n.y + k.c[8] * n.z
+}
+
+/// The supine applied force of a lung whose motion carries a fitted force field (a breath-hold
+/// pair's fit or the breath-hold population; EQUATIONS.md §3.3, "A fitted supine force"): the
+/// field at each vertex of `mesh` in its own box, scaled so that its RMS over the vertices is that of
+/// eq. 6.18's supine force with the same constants (`k`'s `c7..c9`, the weights of
+/// [`crate::orientation::exact_weights`] at supine). The precomputed mode never sees the scale (its
+/// field is normalised to a unit volume); the orientation modes add eq. 6.18's change with posture
+/// to this force, so the scale gives the posture the share of the force it has in the seed's model.
+/// Used by the bake and by every mode that evaluates the force itself (direct), so all agree.
+pub fn fitted_supine_force(
+    mesh: &TriMesh,
+    side: Side,
+    k: &MotionConstants,
+    field: &field::ForceField,
+) -> Vec<f64> {
+    let bb = mesh.aabb();
+    let (lo, hi) = (
+        DVec3::from(bb.min.map(|v| v as f64)),
+        DVec3::from(bb.max.map(|v| v as f64)),
+    );
+    let mut f: Vec<f64> = mesh
+        .positions
+        .iter()
+        .map(|p| field.value_in_box(DVec3::from(p.map(|v| v as f64)), lo, hi))
+        .collect();
+    let w = crate::orientation::exact_weights(
+        [k.c[6], k.c[7], k.c[8]],
+        side,
+        crate::orientation::SUPINE_GRAVITY,
+    );
+    let (mut linear, mut fitted) = (0.0, 0.0);
+    for (p, v) in mesh.positions.iter().zip(&f) {
+        let n = normalised_position(*p, &bb, side);
+        let l = w[0] + w[1] * n.x + w[2] * n.y + w[3] * n.z;
+        linear += l * l;
+        fitted += v * v;
+    }
+    if linear > 0.0 && fitted > 0.0 && (linear / fitted).is_finite() {
+        let scale = (linear / fitted).sqrt();
+        for v in &mut f {
+            *v *= scale;
+        }
+    }
+    f
 }
 
 /// Enclosed volume of `p + s·u` as an exact cubic in `s`: `V(s) = v0 + v1·s + v2·s² + v3·s³` (mm³).

@@ -375,6 +375,11 @@ impl CpuLung {
             mode,
             what,
         };
+        if mode != DeformMode::Precomputed && kernel.meta().orientation_predates_fitted_force() {
+            return Err(missing(
+                "orientation data of its fitted force (baked before the orientation modes drew it)",
+            ));
+        }
         let mesh = kernel.mesh();
         let k = kernel.meta().force_scale as f32;
         let scaled_directions = kernel
@@ -416,7 +421,7 @@ impl CpuLung {
                 let n = mesh.positions.len();
                 ModeData::Direct {
                     columns,
-                    nhat: box_coordinates(&mesh, kernel.meta().side),
+                    nhat: force_basis(&mesh, kernel.meta()),
                     force: vec![0.0; n],
                     elastostatic: vec![0.0; n],
                 }
@@ -591,6 +596,25 @@ pub fn box_coordinates(mesh: &TriMesh, side: crate::mesh::Side) -> Vec<[f32; 4]>
             [1.0, n.x as f32, n.y as f32, n.z as f32]
         })
         .collect()
+}
+
+/// The force's basis functions at every vertex, as the kernel's orientation modes were baked with
+/// them: [`box_coordinates`], with the first replaced by the fitted supine force
+/// ([`super::fitted_supine_force`]) when the kernel carries one
+/// ([`crate::kernel::OrientationMeta::fitted_supine_force`]).
+pub fn force_basis(mesh: &TriMesh, meta: &crate::kernel::KernelMeta) -> Vec<[f32; 4]> {
+    let mut nhat = box_coordinates(mesh, meta.side);
+    let fitted = meta
+        .orientation
+        .as_ref()
+        .is_some_and(|o| o.fitted_supine_force);
+    if let (true, Some(field)) = (fitted, &meta.settings.force_field) {
+        let f = super::fitted_supine_force(mesh, meta.side, &meta.settings.motion, field);
+        for (n, f) in nhat.iter_mut().zip(f) {
+            n[0] = f as f32;
+        }
+    }
+    nhat
 }
 
 #[cfg(test)]
