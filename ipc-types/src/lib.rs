@@ -67,6 +67,9 @@ pub const LUNG_LEFT: usize = 1;
 pub const TOOL_PATIENT: usize = 0;
 /// Conventional tool slot of the head-mounted display.
 pub const TOOL_HMD: usize = 1;
+/// Conventional tool slot of a tool on the chest whose motion is the respiratory signal
+/// (`--breathing tool:NAME`); unused otherwise.
+pub const TOOL_CHEST: usize = 2;
 
 /// A payload of the protocol: plain bytes with a versioned name.
 pub trait Message: Pod + core::fmt::Debug + Send + 'static {

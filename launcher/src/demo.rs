@@ -127,8 +127,10 @@ pub struct DemoArgs {
     /// respiratory signal followed live — trace:FILE (a Varian RPM .vxp, a CSV trace with time_s and
     /// amplitude_mm/volume_ml, or a ventilator recording, replayed at its own rate), udp:[BIND:]PORT
     /// (a live amplitude stream, one `mm=VALUE`, `ml=VALUE` or `au=VALUE` per datagram; senders
-    /// off loopback only from the tracker's allow-list), or recorded (the signal a --tracker
-    /// replay:FILE recording was made with, played bit for bit). The HUD
+    /// off loopback only from the tracker's allow-list), tool:NAME (a tracked tool on the chest:
+    /// its rise along the patient reference's anterior axis, with an OpenIGTLink or NDI --tracker),
+    /// or recorded (the signal a --tracker replay:FILE recording was made with, played bit for
+    /// bit). The HUD
     /// says "following patient", "calibrating" or "signal lost" (a blue veil: the model carries
     /// on). Default: the scene's [breathing] table (model).
     #[arg(long, value_name = "SOURCE")]
@@ -1956,6 +1958,8 @@ fn breathing_override(text: &str) -> anyhow::Result<Option<String>> {
         SignalSpec::Recorded => Ok(Some("recorded".into())),
         // Bound by the bridge (a taken port fails it at start-up, named).
         SignalSpec::Udp(addr) => Ok(Some(format!("udp:{addr}"))),
+        // Tracked by the bridge beside the patient reference (its name checked there).
+        SignalSpec::Tool(name) => Ok(Some(format!("tool:{name}"))),
         SignalSpec::Trace(path) => {
             let abs = std::path::absolute(&path)
                 .map_err(|e| anyhow::anyhow!("--breathing trace:{}: {e}", path.display()))?;

@@ -407,6 +407,147 @@ fn the_bridge_process_publishes_what_an_openigtlink_sender_sends() {
     services.remove_leftovers();
 }
 
+/// The chest's rise in mm at sender frame `k` (60 Hz): 5 mm + 4 mm at 15 breaths a minute.
+fn chest_rise_mm(k: u32) -> f64 {
+    5.0 + 4.0 * (2.0 * std::f64::consts::PI * k as f64 / 240.0).sin()
+}
+
+/// QTDATA of a patient reference turned 30° about the camera's Y and tilted 10°, drifting, the
+/// HMD, and — for `k < chest_until` — a chest tool
+/// [`chest_rise_mm`] anterior of the reference (and 60 mm cranial of it, 20 mm to the left).
+fn qtdata_with_chest(k: u32, chest_until: u32) -> Vec<u8> {
+    use glam::{DQuat, DVec3};
+    let e = |name: &str, p: DVec3, q: DQuat| QtDataElement {
+        name: name.into(),
+        instrument_type: 2,
+        position_mm: p.to_array().map(|v| v as f32),
+        quaternion: q.to_array().map(|v| v as f32),
+    };
+    // RAS → camera: anterior up (the camera's +Y), turned 30° about it and tilted 10°.
+    let q = DQuat::from_rotation_y(30f64.to_radians()) * DQuat::from_rotation_z(10f64.to_radians());
+    let at = DVec3::new(k as f64 * 0.05, 0.0, -1200.0);
+    let mut tools = vec![
+        e("Patient", at, q),
+        e("HMD", DVec3::new(0.0, 100.0, -700.0), DQuat::IDENTITY),
+    ];
+    if k < chest_until {
+        let offset = DVec3::new(-20.0, chest_rise_mm(k), 60.0);
+        tools.push(e("Chest", at + q * offset, q));
+    }
+    Message::new(
+        "Tracker",
+        Timestamp::from_parts(1_700_000_000, k * 1000),
+        Body::QtData(tools),
+    )
+    .encode()
+    .unwrap()
+}
+
+/// A tracked tool on the chest is the respiratory signal (`--breathing tool:Chest`): each of its
+/// measurements is one sample in the frame's signal block, in mm along the patient reference's
+/// anterior axis (the reference turned 30° and drifting: neither is breathing), equal to the sent
+/// rise; the tool has its own slot; when the tool stops coming the samples are flagged invalid,
+/// never held.
+#[test]
+fn a_chest_tool_is_the_respiratory_signal_along_the_patients_anterior_axis() {
+    let instance = unique_instance("chest");
+    let port = lungdyn_needs::free_local_port();
+    let bridge = std::process::Command::new(bin("tracker-bridge"))
+        .args([
+            "--instance",
+            &instance,
+            "--seconds",
+            "30",
+            "--source",
+            &format!("igtl-server:127.0.0.1:{port}"),
+            "--breathing",
+            "tool:Chest",
+        ])
+        .stderr(std::process::Stdio::piped())
+        .spawn()
+        .unwrap();
+    let services = Instance::new(&instance).unwrap();
+    let node = iox::node(&services, "test").unwrap();
+    let mut inlet = services.tracker_inlet(&node).unwrap();
+    let send = std::thread::spawn(move || {
+        let waiting = std::time::Instant::now();
+        let mut s = loop {
+            match TcpStream::connect(("127.0.0.1", port)) {
+                Ok(s) => break s,
+                Err(_) if waiting.elapsed() < Duration::from_secs(120) => {
+                    std::thread::sleep(Duration::from_millis(20))
+                }
+                Err(e) => panic!("the bridge never listened on {port}: {e}"),
+            }
+        };
+        // 4 s with the chest tool, then 1 s without it.
+        for k in 1..=300u32 {
+            if s.write_all(&qtdata_with_chest(k, 240)).is_err() {
+                break;
+            }
+            std::thread::sleep(Duration::from_micros(16_667));
+        }
+    });
+    let mut frames = Vec::new();
+    let start = std::time::Instant::now();
+    while !send.is_finished() && start.elapsed() < Duration::from_secs(60) {
+        inlet
+            .drain(&mut |f: &TrackerFrame| frames.push(*f))
+            .unwrap();
+        std::thread::sleep(Duration::from_millis(5));
+    }
+    send.join().unwrap();
+    std::thread::sleep(Duration::from_millis(200));
+    inlet
+        .drain(&mut |f: &TrackerFrame| frames.push(*f))
+        .unwrap();
+    // SAFETY: signalling our own child.
+    unsafe { libc::kill(bridge.id() as libc::pid_t, libc::SIGINT) };
+    let out = bridge.wait_with_output().unwrap();
+    let err = String::from_utf8_lossy(&out.stderr);
+    assert!(out.status.success(), "{err}");
+    let samples: Vec<(f64, bool)> = frames
+        .iter()
+        .flat_map(|f| (0..f.signal.count as usize).map(move |i| f.signal.sample(i).unwrap()))
+        .map(|(w, valid)| (w.value, valid))
+        .collect();
+    assert!(frames
+        .iter()
+        .all(|f| f.signal.status & ipc_types::signal_status::CONFIGURED != 0));
+    assert!(frames
+        .iter()
+        .filter(|f| f.signal.count > 0)
+        .all(|f| f.signal.unit == ipc_types::signal_unit::MM));
+    let valid: Vec<f64> = samples.iter().filter(|s| s.1).map(|s| s.0).collect();
+    assert!(valid.len() > 150, "{} valid samples: {err}", valid.len());
+    // Every value is a sent rise (f32 poses: within 0.01 mm), and the breath's range is seen.
+    for v in &valid {
+        assert!(
+            (1..240u32).any(|k| (chest_rise_mm(k) - v).abs() < 0.01),
+            "{v} mm is no rise that was sent"
+        );
+    }
+    let (lo, hi) = valid
+        .iter()
+        .fold((f64::INFINITY, f64::NEG_INFINITY), |(l, h), v| {
+            (l.min(*v), h.max(*v))
+        });
+    assert!(lo < 1.5 && hi > 8.5, "range {lo}..{hi}");
+    // The chest tool in its own slot while it came; then flagged samples, none valid after them.
+    assert!(frames
+        .iter()
+        .any(|f| f.tools[ipc_types::TOOL_CHEST].is_valid()));
+    let last_valid = samples.iter().rposition(|s| s.1).unwrap();
+    let flagged = samples.len() - last_valid - 1;
+    assert!(
+        flagged > 30,
+        "{flagged} flagged after the chest tool went: {err}"
+    );
+    drop(inlet);
+    drop(node);
+    services.remove_leftovers();
+}
+
 /// A small, quick scene for demos driven by a device source, written next to `dir`.
 fn small_demo_scene(dir: &std::path::Path) -> std::path::PathBuf {
     let scene = dir.with_extension("toml");

@@ -257,10 +257,33 @@ impl Assembler {
 
     /// The signal's samples due by `now_ns` (the run's clock) into `out` (an empty block without a
     /// signal).
-    pub fn fill_signal(&mut self, now_ns: u64, out: &mut ipc_types::SignalBlock) {
+    /// `tools` are the tools of the frame just built ([`Self::frame`]): a chest tool's signal reads
+    /// them.
+    pub fn fill_signal(
+        &mut self,
+        now_ns: u64,
+        tools: &[ToolPose; MAX_TOOLS],
+        out: &mut ipc_types::SignalBlock,
+    ) {
+        let usable = |t: &ToolPose| {
+            (t.is_valid() && t.status & tool_status::STALE == 0 && t.pose.is_finite())
+                .then_some(t.pose)
+        };
+        let chest = &tools[ipc_types::TOOL_CHEST];
+        let slot = &self.slots[ipc_types::TOOL_CHEST];
+        let view = crate::signal_tool::ToolView {
+            chest_arrival_ns: if slot.seen {
+                slot.last_new_ns.max(1)
+            } else {
+                0
+            },
+            chest: usable(chest),
+            patient: usable(&tools[ipc_types::TOOL_PATIENT]),
+            chest_silent: !slot.seen || chest.status & tool_status::STALE != 0,
+        };
         match &mut self.signal {
             Some(s) => {
-                s.fill(now_ns, out);
+                s.fill(now_ns, &view, out);
                 self.stats.signal = Some(s.counts());
             }
             None => *out = Default::default(),

@@ -36,6 +36,7 @@ pub mod record;
 pub mod run;
 pub mod sample;
 pub mod signal;
+pub mod signal_tool;
 pub mod signal_udp;
 pub mod source;
 pub mod stats;
@@ -148,8 +149,11 @@ pub struct SourceArgs {
     /// RPM .vxp, a CSV trace or a ventilator recording, replayed at its own rate from the start),
     /// udp:[BIND:]PORT (a live amplitude stream, one `mm=VALUE`, `ml=VALUE` or `au=VALUE` per
     /// datagram, stamped on arrival; 127.0.0.1 unless a BIND is given, senders off loopback only
-    /// from --igtl-allow / [tracker] allow), recorded (the signal a --source replay:FILE recording was made with; --record writes the
-    /// signal of a run that has one) or none. Default: the scene's [breathing] signal, else none.
+    /// from --igtl-allow / [tracker] allow), tool:NAME (a tracked tool on the chest, by its name at
+    /// the source: its rise along the patient reference's anterior axis, mm, one sample per
+    /// measurement), recorded (the signal a --source replay:FILE recording was made with; --record
+    /// writes the signal of a run that has one) or none. Default: the scene's [breathing] signal,
+    /// else none.
     #[arg(long, value_name = "SOURCE")]
     pub breathing: Option<String>,
     /// Withhold the signal's samples from S seconds after the start (a signal loss, to test one;
@@ -262,9 +266,31 @@ impl SourceArgs {
             Volume::parse(&self.volume)
                 .map_err(|e| BridgeError::Option(format!("--volume: {e}")))?
         };
+        let signal_text = match &self.breathing {
+            Some(b) => b.clone(),
+            None => self.breathing_table()?.signal,
+        };
+        let signal = signal::SignalSpec::parse(&signal_text).map_err(BridgeError::Option)?;
         let mut slots = [None; MAX_TOOLS];
         slots[ipc_types::TOOL_PATIENT] = Some(ToolName::new(&self.patient_tool)?);
         slots[ipc_types::TOOL_HMD] = Some(ToolName::new(&self.hmd_tool)?);
+        if let signal::SignalSpec::Tool(name) = &signal {
+            if name.eq_ignore_ascii_case(&self.patient_tool)
+                || name.eq_ignore_ascii_case(&self.hmd_tool)
+            {
+                return Err(BridgeError::Option(format!(
+                    "--breathing tool:{name}: that is the {} tool; the chest tool is a tool of its \
+                     own, tracked beside the patient reference (its motion relative to the \
+                     reference is the breath)",
+                    if name.eq_ignore_ascii_case(&self.patient_tool) {
+                        "patient reference"
+                    } else {
+                        "HMD"
+                    }
+                )));
+            }
+            slots[ipc_types::TOOL_CHEST] = Some(ToolName::new(name)?);
+        }
         let config = BridgeConfig {
             rate_hz: self.rate_hz,
             slots,
@@ -298,18 +324,18 @@ impl SourceArgs {
             },
             ..SourceOptions::default()
         };
-        let signal_text = match &self.breathing {
-            Some(b) => b.clone(),
-            None => self.breathing_table()?.signal,
-        };
-        let signal = signal::SignalSpec::parse(&signal_text).map_err(BridgeError::Option)?;
         if let (Some(at), Some(dur)) = (self.breathing_cut_at, self.breathing_cut_for) {
             signal::check_cut(at, dur)?;
         }
-        if self.breathing_cut_at.is_some() && matches!(signal, signal::SignalSpec::Udp(_)) {
+        if self.breathing_cut_at.is_some()
+            && matches!(
+                signal,
+                signal::SignalSpec::Udp(_) | signal::SignalSpec::Tool(_)
+            )
+        {
             return Err(BridgeError::Option(
-                "--breathing-cut-at: a live UDP stream is not cut by the bridge (stop its sender to \
-                 test a loss); the cut is for trace:FILE"
+                "--breathing-cut-at: a live UDP stream or chest tool is not cut by the bridge \
+                 (stop its sender, or cover the tool, to test a loss); the cut is for trace:FILE"
                     .into(),
             ));
         }
@@ -377,6 +403,14 @@ pub fn check_recorded_signal(
             "--breathing recorded: plays the signal a tracker recording carries; use it with \
              {source_flag} replay:FILE (a recording made with --record and a --breathing signal)"
         ))),
+        // A replay's tools are those it was recorded with: the chest tool's signal is recorded
+        // with the run (`--record` writes it) and played as `recorded`.
+        (signal::SignalSpec::Tool(name), Some(path)) => Err(BridgeError::Option(format!(
+            "--breathing tool:{name}: {} is a replayed recording, whose tools and signal are \
+             those it was recorded with; record a run with --breathing tool:{name} and replay it \
+             with --breathing recorded",
+            path.display()
+        ))),
         (signal::SignalSpec::Recorded, Some(path)) if !record::carries_signal(path)? => {
             Err(BridgeError::Option(format!(
                 "--breathing recorded: {} carries no respiratory signal (it was recorded without \
@@ -393,6 +427,7 @@ pub fn check_recorded_signal(
                 match signal {
                     signal::SignalSpec::Trace(t) => format!("trace:{}", t.display()),
                     signal::SignalSpec::Udp(a) => format!("udp:{a}"),
+                    signal::SignalSpec::Tool(n) => format!("tool:{n}"),
                     _ => String::new(),
                 },
                 path.display()
@@ -420,6 +455,12 @@ pub fn open(args: &SourceArgs) -> Result<Opened, BridgeError> {
         let udp = signal_udp::UdpSignal::bind(*addr, r.options.igtl_allow.clone())
             .map_err(signal::SignalError::Spec)?;
         assembler.set_signal(udp);
+    }
+    if let signal::SignalSpec::Tool(name) = &r.signal {
+        assembler.set_signal(signal_tool::ToolSignal::new(
+            name,
+            assembler.config().rate_hz,
+        ));
     }
     let recorder = match &args.record {
         Some(path) => Some(RecordWriter::create(

@@ -193,7 +193,7 @@ pub fn run_loop(
                 let replayed = source.recorded_signal();
                 match &replayed {
                     Some(b) => asm.replay_signal(b, &mut frame.signal),
-                    None => asm.fill_signal(now, &mut frame.signal),
+                    None => asm.fill_signal(now, &frame.tools, &mut frame.signal),
                 }
                 if let Some(r) = recorder.as_mut() {
                     let mut put = || -> std::io::Result<()> {

@@ -29,6 +29,8 @@ pub enum SignalSpec {
     Recorded,
     /// A live amplitude stream, one sample per UDP datagram ([`crate::signal_udp`]).
     Udp(std::net::SocketAddr),
+    /// A tracked tool on the chest, by its name at the source ([`crate::signal_tool`]).
+    Tool(String),
 }
 
 impl SignalSpec {
@@ -53,10 +55,21 @@ impl SignalSpec {
             Some((kind, rest)) if kind.eq_ignore_ascii_case("udp") => {
                 crate::signal_udp::parse_bind(rest).map(SignalSpec::Udp)
             }
+            Some((kind, name)) if kind.eq_ignore_ascii_case("tool") => {
+                crate::sample::ToolName::new(name.trim())
+                    .map(|_| SignalSpec::Tool(name.trim().to_string()))
+                    .map_err(|e| {
+                        format!(
+                            "--breathing {text:?}: tool: needs the chest tool's name at the source \
+                             (tool:Chest): {e}"
+                        )
+                    })
+            }
             _ => Err(format!(
                 "--breathing {text:?}: not a signal source; use trace:FILE (a Varian RPM .vxp, a CSV \
                  trace, or a ventilator recording), udp:[BIND:]PORT (a live amplitude stream, one \
-                 `mm=VALUE` per datagram), recorded (the signal a --source replay:FILE recording \
+                 `mm=VALUE` per datagram), tool:NAME (a tracked tool on the chest, along the patient \
+                 reference's anterior axis), recorded (the signal a --source replay:FILE recording \
                  carries) or none"
             )),
         }
@@ -87,14 +100,23 @@ pub enum SignalSource {
     Trace(TraceReplay),
     /// A live UDP amplitude stream.
     Udp(crate::signal_udp::UdpSignal),
+    /// A tracked tool on the chest.
+    Tool(crate::signal_tool::ToolSignal),
 }
 
 impl SignalSource {
-    /// The samples due by `now_ns` into `block`.
-    pub fn fill(&mut self, now_ns: u64, block: &mut SignalBlock) {
+    /// The samples due by `now_ns` into `block`; `tools` is the frame's view of the chest tool and
+    /// the patient reference (read by a tool source only).
+    pub fn fill(
+        &mut self,
+        now_ns: u64,
+        tools: &crate::signal_tool::ToolView,
+        block: &mut SignalBlock,
+    ) {
         match self {
             SignalSource::Trace(t) => t.fill(now_ns, block),
             SignalSource::Udp(u) => u.fill(now_ns, block),
+            SignalSource::Tool(t) => t.fill(now_ns, tools, block),
         }
     }
 
@@ -110,6 +132,11 @@ impl SignalSource {
                 refused_senders: u.counts.refused_senders,
                 malformed: u.counts.malformed,
             },
+            SignalSource::Tool(t) => SignalCounts {
+                sent: t.sent,
+                invalid: t.invalid,
+                ..Default::default()
+            },
         }
     }
 
@@ -118,7 +145,14 @@ impl SignalSource {
         match self {
             SignalSource::Trace(t) => t.describe(),
             SignalSource::Udp(u) => u.describe(),
+            SignalSource::Tool(t) => t.describe(),
         }
+    }
+}
+
+impl From<crate::signal_tool::ToolSignal> for SignalSource {
+    fn from(t: crate::signal_tool::ToolSignal) -> Self {
+        SignalSource::Tool(t)
     }
 }
 
