@@ -385,6 +385,7 @@ impl Stats {
             let slot = match t.slot {
                 Some(0) => "patient".to_string(),
                 Some(1) => "hmd".to_string(),
+                Some(2) => "chest".to_string(),
                 Some(k) => format!("slot {k}"),
                 None => "unmapped".to_string(),
             };
