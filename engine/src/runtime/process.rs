@@ -550,13 +550,16 @@ pub fn run_loop(
     let mut prep = Preparation::default();
     let mut pacer = Pacer::new(pacer, clock.now_ns());
     let mut frame = EngineFrame::default();
-    let mut tick: u64 = first_tick;
+    let mut steps: u64 = 0;
     let mut announced = false;
     let mut states = StatePublisher::new();
     while !stop() {
         let Some(t) = pacer.poll(clock, rx)? else {
             continue;
         };
+        // The pacer numbers the ticks (by the clock in the engine process: the breathing clock
+        // keeps time whatever the tracker's rate; a number may repeat, never go back).
+        let tick = first_tick + t.number;
         let input = match t.wake {
             Wake::Sample(s) => {
                 s.check_layout().map_err(PortError::from)?;
@@ -594,14 +597,14 @@ pub fn run_loop(
         }
         prep.after_tick(core, clock)?;
         live.report_applied(core, control.as_mut(), &mut states, announce)?;
-        tick += 1;
+        steps += 1;
     }
     Ok(LoopStats {
         actions: live.counts,
         late_preparations: prep.late,
         prepared_cycles: prep.prepared_cycles,
         prepare_max_ns: prep.prepare_max_ns,
-        ticks: tick - first_tick,
+        ticks: steps,
         pacer: pacer.stats(),
         states_published: states.published,
         events_announced: states.announced,
@@ -754,7 +757,7 @@ pub fn run(args: &EngineArgs) -> Result<(), EngineError> {
             }),
         }),
         &Monotonic,
-        PacerConfig::for_period(period_ns),
+        PacerConfig::clock_numbered(period_ns),
         &mut || {
             // The stop check runs every pass of the loop: the watchdog's ping lives here, so a hung
             // tick stops it (at most one datagram per WatchdogSec/2).
@@ -769,12 +772,16 @@ pub fn run(args: &EngineArgs) -> Result<(), EngineError> {
     transport::trace::flush();
     transport::process::say(&format!(
         "engine[{}]: stopped after {} ticks ({} on a tracker sample, {} on the deadline, {} deadlines \
-         skipped)",
+         skipped; breathing clock: {} tick(s) repeated its number, the input faster than {} Hz, {} \
+         number(s) passed over)",
         instance.name(),
         stats.ticks,
         stats.pacer.sample_ticks,
         stats.pacer.deadline_ticks,
-        stats.pacer.skipped_deadlines
+        stats.pacer.skipped_deadlines,
+        stats.pacer.repeated_numbers,
+        scene.engine.tick_hz,
+        stats.pacer.skipped_numbers
     ));
     let a = stats.actions;
     if a != ActionCounts::default() {
@@ -885,6 +892,14 @@ mod tests {
 
     /// Run the loop on scripted tracker arrivals until the fake clock reaches `until`.
     fn run(arrivals: Vec<(u64, TrackerFrame)>, until: u64) -> (Vec<(u64, EngineFrame)>, LoopStats) {
+        run_paced(arrivals, until, PacerConfig::for_period(P))
+    }
+
+    fn run_paced(
+        arrivals: Vec<(u64, TrackerFrame)>,
+        until: u64,
+        pacer: PacerConfig,
+    ) -> (Vec<(u64, EngineFrame)>, LoopStats) {
         let clock = FakeClock::at(0);
         let mut rx = Scripted::new(&clock, arrivals, 4);
         let mut tx = Recorder::new(&clock);
@@ -896,13 +911,52 @@ mod tests {
             &mut tx,
             None,
             &clock,
-            PacerConfig::for_period(P),
+            pacer,
             &mut || c.now_ns() >= until,
             None,
             0,
         )
         .unwrap();
         (out.records(), stats)
+    }
+
+    /// The breathing clock keeps time whatever the tracker's rate. Found with a pyigtl sender
+    /// that sends each tool in its own message: the bridge published 87 frames a second, the
+    /// engine ticked on each and the model breathed 1.45x fast (3398 ticks in a 40 s demo). Numbered
+    /// by the clock (the engine process's pacer), every frame's tick is within one of the clock's
+    /// 60 Hz slot and a breath takes its own time; counted, the same input runs 1.45x ahead.
+    #[test]
+    fn the_breath_keeps_the_clocks_time_whatever_the_trackers_rate() {
+        let seconds = 12;
+        for hz in [40u64, 50, 87, 120] {
+            let arrivals: Vec<(u64, TrackerFrame)> = (1..=hz * seconds)
+                .map(|k| (k * 1_000_000_000 / hz, tracker(k)))
+                .collect();
+            let until = seconds * 1_000_000_000;
+            let (frames, stats) =
+                run_paced(arrivals.clone(), until, PacerConfig::clock_numbered(P));
+            for (at, f) in &frames {
+                assert!(
+                    f.tick.abs_diff(at / P) <= 1,
+                    "{hz} Hz: tick {} at {at} ns",
+                    f.tick
+                );
+            }
+            let used = frames.iter().filter(|(_, f)| f.tracker_frame > 0).count();
+            assert!(
+                used as u64 >= hz.min(120) * seconds * 9 / 10,
+                "{hz} Hz: {used}"
+            );
+            let (_, counted) = run_paced(arrivals, until, PacerConfig::for_period(P));
+            let last = frames.last().map_or(0, |(_, f)| f.tick);
+            if hz > 60 {
+                assert!(
+                    counted.ticks > last * 13 / 10,
+                    "{hz} Hz: {counted:?} vs {last}"
+                );
+                assert!(stats.pacer.repeated_numbers > 0, "{hz} Hz: {stats:?}");
+            }
+        }
     }
 
     /// Regression (engine loop): a tracker sample that arrives within half a period of the

@@ -18,6 +18,14 @@
 //! 4. otherwise, once the deadline has passed, a deadline tick runs; if the deadline is more than
 //!    `max_catch_up` periods in the past (the process was stopped, the machine suspended, the clock
 //!    jumped) the missed deadlines are skipped and counted instead of being replayed as a burst.
+//!
+//! Each tick has a number ([`Tick::number`]). By default it is how many ticks ran before it. Numbered
+//! by the clock ([`PacerConfig::clock_numbered`], the engine's, whose tick number is its breathing
+//! clock), it follows the schedule's slots of one period from the start, whatever the input's rate:
+//! from 0 the previous number plus one, held within one of the slot the tick is due in — so an input
+//! faster than the period (a 120 Hz tracker, a sender that sends each tool in its own message)
+//! repeats a number now and then (its extra ticks move the pose, not the breath), and a slower one
+//! (a 50 Hz tracker) skips one. No tick waits for it: rule 3 alone decides when ticks run.
 
 use crate::clock::Clock;
 use crate::port::{PortError, Receive};
@@ -33,6 +41,8 @@ pub struct PacerConfig {
     pub min_spacing_ns: u64,
     /// Deadlines further behind than this many periods are skipped, not caught up.
     pub max_catch_up: u64,
+    /// Number ticks by the clock's slots, not by count (see the module documentation).
+    pub clock_numbered: bool,
 }
 
 impl PacerConfig {
@@ -45,6 +55,15 @@ impl PacerConfig {
             grace_ns: period_ns / 4,
             min_spacing_ns: period_ns / 2,
             max_catch_up: 2,
+            clock_numbered: false,
+        }
+    }
+
+    /// [`Self::for_period`] with ticks numbered by the clock (the engine's breathing clock).
+    pub fn clock_numbered(period_ns: u64) -> Self {
+        Self {
+            clock_numbered: true,
+            ..Self::for_period(period_ns)
         }
     }
 }
@@ -70,6 +89,10 @@ pub struct Tick<T> {
     pub due_ns: u64,
     /// Deadlines skipped right before this tick (the loop was stalled or the clock jumped).
     pub skipped: u64,
+    /// The tick's number, never lower than the last one's: by count (0, 1, 2, …) or, numbered
+    /// by the clock, within one of the slot of the schedule `due_ns` lies in (see the module
+    /// documentation).
+    pub number: u64,
 }
 
 /// What the pacer has done so far.
@@ -85,12 +108,22 @@ pub struct PacerStats {
     pub held: u64,
     /// Deadlines skipped because they were more than `max_catch_up` periods in the past.
     pub skipped_deadlines: u64,
+    /// Numbered by the clock: ticks that repeated the last number (the input was faster than
+    /// the period).
+    pub repeated_numbers: u64,
+    /// Numbered by the clock: numbers passed over (the input was slower than the period, or
+    /// the loop stalled).
+    pub skipped_numbers: u64,
 }
 
 /// Wake-on-sample with an absolute-deadline fallback (see the module documentation).
 #[derive(Debug, Clone)]
 pub struct Pacer<T> {
     cfg: PacerConfig,
+    start: u64,
+    /// The last tick's number and how many ticks ran.
+    last_number: Option<u64>,
+    ticks: u64,
     deadline: u64,
     earliest: u64,
     pending: Option<T>,
@@ -103,6 +136,9 @@ impl<T: Copy> Pacer<T> {
     pub fn new(cfg: PacerConfig, start_ns: u64) -> Self {
         Self {
             cfg,
+            start: start_ns,
+            last_number: None,
+            ticks: 0,
             deadline: start_ns.saturating_add(cfg.period_ns + cfg.grace_ns),
             earliest: start_ns,
             pending: None,
@@ -119,6 +155,31 @@ impl<T: Copy> Pacer<T> {
     /// Counters so far.
     pub fn stats(&self) -> PacerStats {
         self.stats
+    }
+
+    /// The number of a tick due at `due_ns` (see [`Tick::number`]), counted.
+    fn number(&mut self, due_ns: u64) -> u64 {
+        let n = if self.cfg.clock_numbered {
+            let slot = due_ns.saturating_sub(self.start) / self.cfg.period_ns;
+            match self.last_number {
+                // The run's first tick is its tick 0 (where a disease's onset or a resumed run
+                // starts), whenever it is due.
+                None => 0,
+                Some(last) => {
+                    let n = (last + 1).clamp(slot.saturating_sub(1), slot + 1).max(last);
+                    if n == last {
+                        self.stats.repeated_numbers += 1;
+                    }
+                    self.stats.skipped_numbers += n.saturating_sub(last + 1);
+                    n
+                }
+            }
+        } else {
+            self.ticks
+        };
+        self.ticks += 1;
+        self.last_number = Some(n);
+        n
     }
 
     /// When the next poll will wake at the latest, ns.
@@ -164,6 +225,7 @@ impl<T: Copy> Pacer<T> {
                 at_ns: now,
                 due_ns: now,
                 skipped: 0,
+                number: self.number(now),
             }));
         }
         if now < self.deadline {
@@ -186,6 +248,7 @@ impl<T: Copy> Pacer<T> {
             at_ns: now,
             due_ns,
             skipped,
+            number: self.number(due_ns),
         }))
     }
 }
@@ -400,5 +463,99 @@ mod tests {
         assert_eq!(deadlines.first(), Some(&(2 * P + P / 4)));
         assert!(deadlines.iter().all(|&d| d < 10 * P));
         assert_eq!(deadlines.len(), 8, "{deadlines:?}");
+    }
+
+    /// Arrivals at `hz` from `first_ns` for `seconds`, each jittered by up to ±`jitter_ns`
+    /// (a fixed pattern), numbered from 1.
+    fn arrivals_at(hz: f64, first_ns: u64, seconds: f64, jitter_ns: u64) -> Vec<(u64, u32)> {
+        let n = (hz * seconds) as u64;
+        (0..n)
+            .map(|k| {
+                let t = first_ns + (k as f64 * 1e9 / hz) as u64;
+                let j = (k * 7919 % 2001) as i64 - 1000; // -1000..=1000, deterministic
+                let t = (t as i64 + j * jitter_ns as i64 / 1000).max(1) as u64;
+                (t, k as u32 + 1)
+            })
+            .collect()
+    }
+
+    /// The engine's breathing clock: whatever the tracker's rate (and a sender that sends each
+    /// tool in its own message looks like a faster one), the tick numbers stay within one of the
+    /// clock's slot, never go back, and no tick waits for them. Before numbering by the clock the
+    /// engine counted its ticks: an 87 Hz input breathed 1.45x fast, a 50 Hz one 0.83x slow.
+    #[test]
+    fn ticks_numbered_by_the_clock_follow_it_whatever_the_input_rate() {
+        for hz in [25.0, 40.0, 50.0, 59.9, 60.0, 60.1, 87.0, 120.0] {
+            for (first, jitter) in [(3 * P / 10, 0), (P - 20_000, 300_000), (10, 1_500_000)] {
+                let clock = FakeClock::at(0);
+                let arrivals = arrivals_at(hz, first, 10.0, jitter);
+                let mut src = Scripted::new(&clock, arrivals.clone(), 4);
+                let mut pacer = Pacer::new(PacerConfig::clock_numbered(P), 0);
+                let ticks = run(&clock, &mut src, &mut pacer, 10_000_000_000);
+                let what = format!("{hz} Hz, first {first}, jitter {jitter}");
+                let mut last = 0;
+                for t in &ticks {
+                    let slot = t.due_ns / P;
+                    assert!(
+                        t.number + 1 >= slot && t.number <= slot + 1,
+                        "{what}: tick {} due in slot {slot}",
+                        t.number
+                    );
+                    assert!(t.number >= last, "{what}: {} after {last}", t.number);
+                    last = t.number;
+                }
+                // The breath's clock at the end is the wall clock's, within a tick.
+                assert!((598..=601).contains(&last), "{what}: last {last}");
+                // Every sample drove a tick at its arrival or, when it came within half a
+                // period of the tick before, when that spacing passed: nothing waited for a number.
+                let arrived: std::collections::HashMap<u32, u64> =
+                    arrivals.iter().map(|&(t, k)| (k, t)).collect();
+                for w in ticks.windows(2) {
+                    if let Wake::Sample(k) = w[1].wake {
+                        let spaced = w[0].at_ns + P / 2;
+                        assert_eq!(w[1].at_ns, arrived[&k].max(spaced), "{what}: sample {k}");
+                    }
+                }
+                let st = pacer.stats();
+                if hz > 61.0 {
+                    assert!(st.repeated_numbers > 0, "{what}: {st:?}");
+                }
+                if hz < 59.0 && hz > 41.0 {
+                    assert!(st.skipped_numbers > 0, "{what}: {st:?}");
+                }
+            }
+        }
+    }
+
+    #[test]
+    fn ticks_not_numbered_by_the_clock_are_counted() {
+        let clock = FakeClock::at(0);
+        let mut src = Scripted::new(&clock, arrivals_at(120.0, P / 3, 1.0, 0), 4);
+        let mut pacer = Pacer::new(PacerConfig::for_period(P), 0);
+        let ticks = run(&clock, &mut src, &mut pacer, 1_000_000_000);
+        assert!(ticks.len() > 100, "{}", ticks.len());
+        for (k, t) in ticks.iter().enumerate() {
+            assert_eq!(t.number, k as u64);
+        }
+        assert_eq!(pacer.stats().repeated_numbers, 0);
+    }
+
+    #[test]
+    fn after_a_stall_the_clock_numbered_ticks_jump_to_the_clock() {
+        let clock = FakeClock::at(0);
+        let mut src = Scripted::<u32>::new(&clock, vec![], 4);
+        let mut pacer = Pacer::new(PacerConfig::clock_numbered(P), 0);
+        let before = run(&clock, &mut src, &mut pacer, 5 * P);
+        let numbers: Vec<u64> = before.iter().map(|t| t.number).collect();
+        assert_eq!(numbers, [0, 1, 2, 3, 4], "the first is 0, due in slot 1");
+        clock.advance(10_000_000_000);
+        let t = loop {
+            if let Some(t) = pacer.poll(&clock, &mut src).unwrap() {
+                break t;
+            }
+        };
+        assert_eq!(t.number.abs_diff(t.due_ns / P), 1, "{t:?}");
+        assert!(t.number > 600, "{t:?}");
+        assert_eq!(pacer.stats().skipped_numbers, t.number - 5);
     }
 }
