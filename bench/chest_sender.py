@@ -1,13 +1,16 @@
 #!/usr/bin/env python3
-"""A breathing chest tool over OpenIGTLink, for `lungdyn demo --breathing tool:Chest` without a tracker.
+"""A breathing chest tool over OpenIGTLink, for `lungdyn demo --breathing tool:Chest` (or
+`--breathing igtl:Resp`) without a tracker.
 
 Streams three TRANSFORMs at 60 Hz with pyigtl (as PLUS or 3D Slicer would): `Patient` (the patient
 reference, turned 30 degrees about the camera's Y and tilted 10, drifting along X), `HMD`, and `Chest`,
 5 mm anterior of the reference plus a breath: 12 a minute, inspiration 1.67 s, 8 mm rise whose size
-changes +-15 % from breath to breath. Connects when the server listens (the bridge's igtl-server).
+changes +-15 % from breath to breath. Beside them, at 30 Hz, the same rise as a belt would send it:
+a STRING `mm=VALUE` from the device `Resp`. Connects when the server listens (the bridge's igtl-server).
 
     target/pyenv/bin/python bench/chest_sender.py 18944 60 &
     lungdyn demo --tracker igtl-server:127.0.0.1:18944 --breathing tool:Chest --seconds 40
+    lungdyn demo --tracker igtl-server:127.0.0.1:18944 --breathing igtl:Resp --seconds 40
 
 (target/pyenv is made by `./run setup test`; any Python with pyigtl and numpy will do.)
 """
@@ -74,6 +77,9 @@ def main():
                         ("HMD", matrix(np.eye(3), [0.0, 100.0, -700.0])),
                         ("Chest", matrix(turn, chest))):
             client.send_message(pyigtl.TransformMessage(m, device_name=name), wait=False)
+        if k % 2 == 0:
+            belt = pyigtl.StringMessage(f"mm={rise_mm(t):.3f}", device_name="Resp")
+            client.send_message(belt, wait=False)
         k += 1
         time.sleep(max(0.0, start + k / 60.0 - time.time()))
     client.stop()

@@ -129,7 +129,8 @@ pub struct DemoArgs {
     /// (a live amplitude stream, one `mm=VALUE`, `ml=VALUE` or `au=VALUE` per datagram; senders
     /// off loopback only from the tracker's allow-list), tool:NAME (a tracked tool on the chest:
     /// its rise along the patient reference's anterior axis, with an OpenIGTLink or NDI --tracker),
-    /// or recorded (the signal a --tracker replay:FILE recording was made with, played bit for
+    /// igtl:NAME (an amplitude from the OpenIGTLink device NAME on an OpenIGTLink --tracker: SENSOR
+    /// in mm, ml or no unit, or STRING `mm=VALUE`), or recorded (the signal a --tracker replay:FILE recording was made with, played bit for
     /// bit). The HUD
     /// says "following patient", "calibrating" or "signal lost" (a blue veil: the model carries
     /// on). Default: the scene's [breathing] table (model).
@@ -1960,6 +1961,8 @@ fn breathing_override(text: &str) -> anyhow::Result<Option<String>> {
         SignalSpec::Udp(addr) => Ok(Some(format!("udp:{addr}"))),
         // Tracked by the bridge beside the patient reference (its name checked there).
         SignalSpec::Tool(name) => Ok(Some(format!("tool:{name}"))),
+        // Read by the bridge from its OpenIGTLink link (the source checked with the tracker's).
+        SignalSpec::Igtl(name) => Ok(Some(format!("igtl:{name}"))),
         SignalSpec::Trace(path) => {
             let abs = std::path::absolute(&path)
                 .map_err(|e| anyhow::anyhow!("--breathing trace:{}: {e}", path.display()))?;

@@ -548,6 +548,102 @@ fn a_chest_tool_is_the_respiratory_signal_along_the_patients_anterior_axis() {
     services.remove_leftovers();
 }
 
+/// A respiratory amplitude over OpenIGTLink (`--breathing igtl:Resp`) from pyigtl, an outside
+/// sender (`tests/peers/amplitude_sender.py`: STRING `mm=VALUE` from "Resp", k/10 mm for k = 1..90
+/// at 30 Hz, "Other"'s `mm=99` every tenth frame, a Patient pose, then `mm=` marked invalid): every
+/// sent value reaches a frame's signal block once, in order, in mm, stamped when the bridge took
+/// it (never before the frame that carries it); the other device's never; the invalid one flagged.
+#[test]
+fn an_amplitude_over_openigtlink_from_pyigtl_is_the_respiratory_signal() {
+    let root = std::path::Path::new(env!("CARGO_MANIFEST_DIR")).join("..");
+    let Some(python) = lungdyn_needs::pyigtl_python(&root) else {
+        return;
+    };
+    let instance = unique_instance("igtl-amplitude");
+    let port = lungdyn_needs::free_local_port();
+    let bridge = std::process::Command::new(bin("tracker-bridge"))
+        .args([
+            "--instance",
+            &instance,
+            "--seconds",
+            "60",
+            "--source",
+            &format!("igtl-server:127.0.0.1:{port}"),
+            "--breathing",
+            "igtl:Resp",
+        ])
+        .stderr(std::process::Stdio::piped())
+        .spawn()
+        .unwrap();
+    let services = Instance::new(&instance).unwrap();
+    let node = iox::node(&services, "test").unwrap();
+    let mut inlet = services.tracker_inlet(&node).unwrap();
+    let n = 90;
+    let mut sender = std::process::Command::new(&python)
+        .arg(root.join("tests/peers/amplitude_sender.py"))
+        .args([port.to_string(), n.to_string()])
+        .stdout(std::process::Stdio::piped())
+        .stderr(std::process::Stdio::piped())
+        .spawn()
+        .unwrap();
+    let mut frames = Vec::new();
+    let start = std::time::Instant::now();
+    while sender.try_wait().unwrap().is_none() && start.elapsed() < Duration::from_secs(90) {
+        inlet
+            .drain(&mut |f: &TrackerFrame| frames.push(*f))
+            .unwrap();
+        std::thread::sleep(Duration::from_millis(5));
+    }
+    let (sent_ok, said) = sender.wait_with_output_timeout();
+    std::thread::sleep(Duration::from_millis(200));
+    inlet
+        .drain(&mut |f: &TrackerFrame| frames.push(*f))
+        .unwrap();
+    // SAFETY: signalling our own child.
+    unsafe { libc::kill(bridge.id() as libc::pid_t, libc::SIGINT) };
+    let out = bridge.wait_with_output().unwrap();
+    let err = String::from_utf8_lossy(&out.stderr);
+    assert!(sent_ok, "the pyigtl sender failed: {said}\nbridge: {err}");
+    assert!(out.status.success(), "{err}");
+    let mut samples = Vec::new();
+    for f in &frames {
+        assert_ne!(f.signal.status & ipc_types::signal_status::CONFIGURED, 0);
+        for i in 0..f.signal.count as usize {
+            let (w, valid) = f.signal.sample(i).unwrap();
+            assert!(
+                w.t_ns <= f.stamps.bridge_publish_ns,
+                "a sample stamped after its frame"
+            );
+            assert_eq!(f.signal.unit, ipc_types::signal_unit::MM);
+            samples.push((w.t_ns, w.value, valid));
+        }
+    }
+    let valid: Vec<f64> = samples.iter().filter(|s| s.2).map(|s| s.1).collect();
+    let want: Vec<f64> = (1..=n).map(|k| f64::from(k) / 10.0).collect();
+    assert_eq!(valid.len(), want.len(), "{valid:?}\n{err}");
+    for (v, w) in valid.iter().zip(&want) {
+        assert!((v - w).abs() < 1e-9, "{v} mm where {w} mm was sent");
+    }
+    assert!(
+        samples.windows(2).all(|w| w[0].0 <= w[1].0),
+        "stamps in order"
+    );
+    let last = samples.last().unwrap();
+    assert!(!last.2, "the sender's `mm=` is flagged invalid: {last:?}");
+    assert_eq!(
+        samples.len(),
+        n as usize + 1,
+        "Other's 99s are not the signal"
+    );
+    assert!(
+        err.contains("OpenIGTLink amplitude from device \"Resp\""),
+        "{err}"
+    );
+    drop(inlet);
+    drop(node);
+    services.remove_leftovers();
+}
+
 /// A small, quick scene for demos driven by a device source, written next to `dir`.
 fn small_demo_scene(dir: &std::path::Path) -> std::path::PathBuf {
     let scene = dir.with_extension("toml");

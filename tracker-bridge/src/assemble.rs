@@ -290,6 +290,21 @@ impl Assembler {
         }
     }
 
+    /// A reading (OpenIGTLink `SENSOR` or `STRING`) for an OpenIGTLink amplitude signal: true when
+    /// it is the signal's device's (queued for the next frame, or refused and counted), false when
+    /// there is no such signal or it is another device's.
+    pub fn take_reading(&mut self, r: &crate::sample::Reading) -> bool {
+        match &mut self.signal {
+            Some(crate::signal::SignalSource::Igtl(s)) => {
+                s.take(r);
+                let mine = s.is_device(&r.name);
+                self.stats.signal = Some(crate::signal::SignalSource::counts_of_igtl(s));
+                mine
+            }
+            _ => false,
+        }
+    }
+
     /// Publish `b`, the block a replayed recording carries for this tick, into `out`, counting
     /// its samples as a live signal's are (the bridge's summary and JSON say what was played).
     pub fn replay_signal(&mut self, b: &ipc_types::SignalBlock, out: &mut ipc_types::SignalBlock) {

@@ -14,7 +14,8 @@
 //!   conversion, so encoded headers are byte-identical to the C/C++ library and pyigtl;
 //! - bodies: `TRANSFORM`, `POSITION` (12/24/28-byte standard forms and pyigtl's 152-byte items),
 //!   `TDATA`, `QTDATA`, `STATUS`, `STT_TDATA`/`STT_QTDATA`, `STP_TDATA`/`STP_QTDATA`,
-//!   `RTS_TDATA`/`RTS_QTDATA`; every other type decodes to [`Body::Other`] (skip it, count it);
+//!   `RTS_TDATA`/`RTS_QTDATA`, and for a respiratory amplitude `SENSOR` (float64 values with their
+//!   SI unit) and `STRING`; every other type decodes to [`Body::Other`] (skip it, count it);
 //! - a streaming [`Decoder`] for TCP and encoders for every body above.
 //!
 //! ## Sources
@@ -23,7 +24,7 @@
 //! - openigtlink/OpenIGTLink `Source/igtlutil/igtl_header.h`, `igtl_header.c` (header),
 //!   `Source/igtlutil/igtl_util.c` (CRC-64 table, `igtl_nanosec_to_frac`/`igtl_frac_to_nanosec`),
 //!   `Source/igtlMessageBase.cxx` (Pack/Unpack, extended header, metadata),
-//!   `Source/igtlutil/igtl_{transform,position,tdata,qtdata,status}.h`,
+//!   `Source/igtlutil/igtl_{transform,position,tdata,qtdata,status,sensor,string,unit}.h`,
 //!   `Source/igtl{TrackingData,Position,Status}Message.cxx`, `Source/igtlMessageFactory.cxx`
 //!   (type names), `Documents/Protocol/{header,timestamp,transform,position,trackingdata,
 //!   v3_proposal}.md`;
@@ -86,6 +87,10 @@ const TRANSFORM_LEN: usize = 48;
 const TDATA_ELEMENT_LEN: usize = 70;
 const QTDATA_ELEMENT_LEN: usize = 50;
 const STATUS_FIXED_LEN: usize = 30;
+/// `SENSOR` before its values: LARRAY, STATUS, UNIT.
+const SENSOR_FIXED_LEN: usize = 10;
+/// `STRING` before its bytes: ENCODING, LENGTH.
+const STRING_FIXED_LEN: usize = 4;
 const STT_LEN: usize = 36;
 const PYIGTL_POSITION_LEN: usize = 152;
 
@@ -466,6 +471,9 @@ impl<'a> Reader<'a> {
             *v = f32::from_be_bytes(self.array()?);
         }
         Ok(out)
+    }
+    fn f64(&mut self) -> Result<f64, IgtlError> {
+        Ok(f64::from_be_bytes(self.array()?))
     }
 }
 
@@ -1045,6 +1053,41 @@ pub struct QtDataElement {
     pub quaternion: [f32; 4],
 }
 
+/// A `SENSOR` body: `LARRAY u8, STATUS u8, UNIT u64, DATA f64[LARRAY]` (OpenIGTLink
+/// `igtl_sensor.h`, `Documents/Protocol/sensordata.md`); the unit as
+/// [`crate::signal_igtl::SensorUnit`] decodes it. Equal when bit for bit equal (NaN included).
+#[derive(Debug, Clone)]
+pub struct Sensor {
+    /// Reserved by the protocol (0).
+    pub status: u8,
+    /// The packed unit: a prefix and up to six SI units with exponents.
+    pub unit: u64,
+    /// The readings (at most 255), faithfully (NaN and infinity kept).
+    pub values: Vec<f64>,
+}
+
+impl PartialEq for Sensor {
+    fn eq(&self, other: &Self) -> bool {
+        self.status == other.status
+            && self.unit == other.unit
+            && self.values.len() == other.values.len()
+            && self
+                .values
+                .iter()
+                .zip(&other.values)
+                .all(|(a, b)| a.to_bits() == b.to_bits())
+    }
+}
+
+/// A `STRING` body: `ENCODING u16` (IANA MIBenum: 3 US-ASCII, 106 UTF-8), `LENGTH u16`, the bytes.
+#[derive(Debug, Clone, PartialEq, Eq)]
+pub struct Text {
+    /// The character set, as sent.
+    pub encoding: u16,
+    /// The text (lossy UTF-8 on receive).
+    pub text: String,
+}
+
 /// A `STATUS` body.
 #[derive(Debug, Clone, PartialEq, Eq)]
 pub struct Status {
@@ -1111,6 +1154,10 @@ pub enum Body {
     QtData(Vec<QtDataElement>),
     /// `STATUS`.
     Status(Status),
+    /// `SENSOR`.
+    Sensor(Sensor),
+    /// `STRING`.
+    Text(Text),
     /// `STT_TDATA` / `STT_QTDATA`: ask the peer to start streaming.
     StartStream {
         /// Which stream.
@@ -1151,12 +1198,14 @@ fn stream_type(prefix: &'static str, kind: StreamKind) -> &'static str {
     }
 }
 
-const KNOWN_TYPES: [&str; 11] = [
+const KNOWN_TYPES: [&str; 13] = [
     "TRANSFORM",
     "POSITION",
     "TDATA",
     "QTDATA",
     "STATUS",
+    "SENSOR",
+    "STRING",
     "STT_TDATA",
     "STT_QTDATA",
     "STP_TDATA",
@@ -1234,6 +1283,8 @@ impl Body {
             Body::TData(_) => "TDATA",
             Body::QtData(_) => "QTDATA",
             Body::Status(_) => "STATUS",
+            Body::Sensor(_) => "SENSOR",
+            Body::Text(_) => "STRING",
             Body::StartStream { kind, .. } => stream_type("STT", *kind),
             Body::StopStream { kind } => stream_type("STP", *kind),
             Body::StreamReply { kind, .. } => stream_type("RTS", *kind),
@@ -1313,6 +1364,39 @@ impl Body {
                     subcode,
                     error_name,
                     message,
+                })
+            }
+            "SENSOR" => {
+                let n = usize::from(*content.first().ok_or_else(|| r.short(SENSOR_FIXED_LEN))?);
+                exact_len(
+                    type_name,
+                    len,
+                    SENSOR_FIXED_LEN + 8 * n,
+                    "10 bytes and 8 per value (LARRAY)",
+                )?;
+                let _larray = r.u8()?;
+                let status = r.u8()?;
+                let unit = r.u64()?;
+                let mut values = Vec::with_capacity(n);
+                for _ in 0..n {
+                    values.push(r.f64()?);
+                }
+                Body::Sensor(Sensor {
+                    status,
+                    unit,
+                    values,
+                })
+            }
+            "STRING" => {
+                if len < STRING_FIXED_LEN {
+                    return Err(r.short(STRING_FIXED_LEN));
+                }
+                let encoding = r.u16()?;
+                let n = usize::from(r.u16()?);
+                exact_len(type_name, len, STRING_FIXED_LEN + n, "4 bytes and LENGTH")?;
+                Body::Text(Text {
+                    encoding,
+                    text: String::from_utf8_lossy(r.bytes(n)?).into_owned(),
                 })
             }
             "STT_TDATA" | "STT_QTDATA" => {
@@ -1409,6 +1493,25 @@ impl Body {
                 }
                 out.extend_from_slice(s.message.as_bytes());
                 out.push(0);
+            }
+            Body::Sensor(sn) => {
+                let n = u8::try_from(sn.values.len()).map_err(|_| IgtlError::Unencodable {
+                    reason: "a SENSOR carries at most 255 values",
+                })?;
+                out.push(n);
+                out.push(sn.status);
+                out.extend_from_slice(&sn.unit.to_be_bytes());
+                for v in &sn.values {
+                    out.extend_from_slice(&v.to_be_bytes());
+                }
+            }
+            Body::Text(t) => {
+                let n = u16::try_from(t.text.len()).map_err(|_| IgtlError::Unencodable {
+                    reason: "a STRING carries at most 65535 bytes",
+                })?;
+                out.extend_from_slice(&t.encoding.to_be_bytes());
+                out.extend_from_slice(&n.to_be_bytes());
+                out.extend_from_slice(t.text.as_bytes());
             }
             Body::StartStream {
                 resolution_ms,
@@ -2237,6 +2340,29 @@ mod tests {
                 error_name: "NOT_READY".into(),
                 message: "Kamera wärmt auf\nbitte warten".into(),
             }),
+            Body::Sensor(Sensor {
+                status: 0,
+                unit: 0xB040_0000_0000_0000,
+                values: vec![12.5],
+            }),
+            Body::Sensor(Sensor {
+                status: 7,
+                unit: 0,
+                values: vec![f64::NAN, -0.0, f64::INFINITY],
+            }),
+            Body::Sensor(Sensor {
+                status: 0,
+                unit: u64::MAX,
+                values: vec![],
+            }),
+            Body::Text(Text {
+                encoding: 3,
+                text: "mm=12.5".into(),
+            }),
+            Body::Text(Text {
+                encoding: 106,
+                text: String::new(),
+            }),
             Body::StartStream {
                 kind: StreamKind::TData,
                 resolution_ms: 0,
@@ -2990,12 +3116,14 @@ mod tests {
         }
     }
 
-    const TYPES: [&str; 13] = [
+    const TYPES: [&str; 15] = [
         "TRANSFORM",
         "POSITION",
         "TDATA",
         "QTDATA",
         "STATUS",
+        "SENSOR",
+        "STRING",
         "STT_TDATA",
         "STT_QTDATA",
         "STP_TDATA",

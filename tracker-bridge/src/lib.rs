@@ -36,6 +36,7 @@ pub mod record;
 pub mod run;
 pub mod sample;
 pub mod signal;
+pub mod signal_igtl;
 pub mod signal_tool;
 pub mod signal_udp;
 pub mod source;
@@ -151,7 +152,8 @@ pub struct SourceArgs {
     /// datagram, stamped on arrival; 127.0.0.1 unless a BIND is given, senders off loopback only
     /// from --igtl-allow / [tracker] allow), tool:NAME (a tracked tool on the chest, by its name at
     /// the source: its rise along the patient reference's anterior axis, mm, one sample per
-    /// measurement), recorded (the signal a --source replay:FILE recording was made with; --record
+    /// measurement), igtl:NAME (an amplitude from the OpenIGTLink device NAME on an igtl: or
+    /// igtl-server: source: SENSOR in a length, volume or no unit, or STRING `mm=VALUE`), recorded (the signal a --source replay:FILE recording was made with; --record
     /// writes the signal of a run that has one) or none. Default: the scene's [breathing] signal,
     /// else none.
     #[arg(long, value_name = "SOURCE")]
@@ -330,12 +332,15 @@ impl SourceArgs {
         if self.breathing_cut_at.is_some()
             && matches!(
                 signal,
-                signal::SignalSpec::Udp(_) | signal::SignalSpec::Tool(_)
+                signal::SignalSpec::Udp(_)
+                    | signal::SignalSpec::Tool(_)
+                    | signal::SignalSpec::Igtl(_)
             )
         {
             return Err(BridgeError::Option(
-                "--breathing-cut-at: a live UDP stream or chest tool is not cut by the bridge \
-                 (stop its sender, or cover the tool, to test a loss); the cut is for trace:FILE"
+                "--breathing-cut-at: a live stream (UDP, OpenIGTLink) or chest tool is not cut by \
+                 the bridge (stop its sender, or cover the tool, to test a loss); the cut is for \
+                 trace:FILE"
                     .into(),
             ));
         }
@@ -383,8 +388,9 @@ pub struct Opened {
     pub recorder: Option<RecordWriter>,
 }
 
-/// A replayed recording's signal against `--breathing`: `recorded` needs a replay whose file
-/// carries a signal; a file that carries one plays it, so another signal beside it is refused.
+/// The signal against the tracker source: an OpenIGTLink amplitude (`igtl:NAME`) needs an
+/// OpenIGTLink source; `recorded` needs a replay whose file carries a signal; a file that carries
+/// one plays it, so another signal beside it is refused.
 /// `source_flag` names the option that chose the replay (`--source`, the demo's `--tracker`) and
 /// `no_signal` the word for no signal (`none`, the demo's `model`). The launcher checks with it
 /// before any process starts; the bridge again when it opens.
@@ -398,6 +404,20 @@ pub fn check_recorded_signal(
         source::SourceSpec::Replay { path } => Some(path),
         _ => None,
     };
+    if let signal::SignalSpec::Igtl(name) = signal {
+        if !matches!(
+            spec,
+            source::SourceSpec::IgtlClient { .. }
+                | source::SourceSpec::IgtlServer { .. }
+                | source::SourceSpec::Replay { .. }
+        ) {
+            return Err(BridgeError::Option(format!(
+                "--breathing igtl:{name}: reads the amplitude from the OpenIGTLink link the tracker \
+                 comes on; use it with {source_flag} igtl:HOST:PORT or igtl-server:[BIND:]PORT (for \
+                 a stream beside another tracker, send it over UDP: --breathing udp:PORT)"
+            )));
+        }
+    }
     match (signal, replay) {
         (signal::SignalSpec::Recorded, None) => Err(BridgeError::Option(format!(
             "--breathing recorded: plays the signal a tracker recording carries; use it with \
@@ -409,6 +429,12 @@ pub fn check_recorded_signal(
             "--breathing tool:{name}: {} is a replayed recording, whose tools and signal are \
              those it was recorded with; record a run with --breathing tool:{name} and replay it \
              with --breathing recorded",
+            path.display()
+        ))),
+        (signal::SignalSpec::Igtl(name), Some(path)) => Err(BridgeError::Option(format!(
+            "--breathing igtl:{name}: {} is a replayed recording, whose signal is the one it was \
+             recorded with; record a run with --breathing igtl:{name} and replay it with \
+             --breathing recorded",
             path.display()
         ))),
         (signal::SignalSpec::Recorded, Some(path)) if !record::carries_signal(path)? => {
@@ -455,6 +481,9 @@ pub fn open(args: &SourceArgs) -> Result<Opened, BridgeError> {
         let udp = signal_udp::UdpSignal::bind(*addr, r.options.igtl_allow.clone())
             .map_err(signal::SignalError::Spec)?;
         assembler.set_signal(udp);
+    }
+    if let signal::SignalSpec::Igtl(name) = &r.signal {
+        assembler.set_signal(signal_igtl::IgtlSignal::new(ToolName::new(name)?));
     }
     if let signal::SignalSpec::Tool(name) = &r.signal {
         assembler.set_signal(signal_tool::ToolSignal::new(

@@ -167,6 +167,15 @@ pub fn run_loop(
                         samples += 1;
                     }
                 }
+                // An amplitude for the respiratory signal (not recorded as it came: the frame's
+                // signal block is); another device's reading is ignored, as any other message is.
+                Input::Reading(reading) => {
+                    if stats_sink.take_reading(reading) {
+                        samples += 1;
+                    } else if let Err(err) = ignore_reading(reading, rec, stats_sink, report, now) {
+                        record_error.get_or_insert(err);
+                    }
+                }
                 Input::Event(e) => {
                     if let Some(r) = rec.as_mut() {
                         if let Err(err) = r.event(e) {
@@ -248,6 +257,31 @@ pub fn run_loop(
                 next += missed * period;
             }
         }
+    }
+}
+
+/// Another device's reading (or one without an OpenIGTLink signal): ignored, as any message the
+/// bridge does not use is — recorded as such, counted and reported.
+fn ignore_reading(
+    reading: &crate::sample::Reading,
+    recorder: &mut Option<RecordWriter>,
+    asm: &mut Assembler,
+    report: &mut dyn FnMut(&Event, u64),
+    now: u64,
+) -> std::io::Result<()> {
+    let e = Event::new(
+        EventKind::Ignored,
+        1,
+        format!(
+            "a reading (SENSOR or STRING) from {:?}: not the signal's device",
+            reading.name.as_str()
+        ),
+    );
+    asm.stats.event(&e);
+    report(&e, now);
+    match recorder.as_mut() {
+        Some(r) => r.event(&e),
+        None => Ok(()),
     }
 }
 

@@ -323,6 +323,32 @@ pub enum Input {
     Sample(Sample),
     /// Something that happened on the link.
     Event(Event),
+    /// A one-dimensional reading (an OpenIGTLink `SENSOR` or `STRING`): a respiratory amplitude
+    /// when its device is the one `--breathing igtl:NAME` names.
+    Reading(Reading),
+}
+
+/// A one-dimensional reading as it came, stamped on arrival.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct Reading {
+    /// When the bridge received it: CLOCK_MONOTONIC ns.
+    pub receive_ns: u64,
+    /// The sender's device name.
+    pub name: ToolName,
+    /// Its unit (`ipc_types::signal_unit::MM`, `ML` or `ARBITRARY`) and value in that unit
+    /// (`None`: not a finite number, or marked invalid by its sender), or why it is no amplitude.
+    pub value: Result<(u32, Option<f64>), NotAmplitude>,
+}
+
+/// Why a reading is no respiratory amplitude.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub enum NotAmplitude {
+    /// A `SENSOR` whose unit is neither a length, a volume nor none (the packed unit).
+    Unit(u64),
+    /// A `SENSOR` with other than one value.
+    Values(usize),
+    /// A `STRING` that is not one `UNIT=VALUE` (mm, ml, au) in ASCII or UTF-8.
+    Text,
 }
 
 #[cfg(test)]

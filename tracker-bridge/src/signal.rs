@@ -31,6 +31,8 @@ pub enum SignalSpec {
     Udp(std::net::SocketAddr),
     /// A tracked tool on the chest, by its name at the source ([`crate::signal_tool`]).
     Tool(String),
+    /// An amplitude from an OpenIGTLink device, by its name ([`crate::signal_igtl`]).
+    Igtl(String),
 }
 
 impl SignalSpec {
@@ -55,6 +57,16 @@ impl SignalSpec {
             Some((kind, rest)) if kind.eq_ignore_ascii_case("udp") => {
                 crate::signal_udp::parse_bind(rest).map(SignalSpec::Udp)
             }
+            Some((kind, name)) if kind.eq_ignore_ascii_case("igtl") => {
+                crate::sample::ToolName::new(name.trim())
+                    .map(|_| SignalSpec::Igtl(name.trim().to_string()))
+                    .map_err(|e| {
+                        format!(
+                            "--breathing {text:?}: igtl: needs the sending device's name (igtl:Resp): \
+                             {e}"
+                        )
+                    })
+            }
             Some((kind, name)) if kind.eq_ignore_ascii_case("tool") => {
                 crate::sample::ToolName::new(name.trim())
                     .map(|_| SignalSpec::Tool(name.trim().to_string()))
@@ -69,7 +81,8 @@ impl SignalSpec {
                 "--breathing {text:?}: not a signal source; use trace:FILE (a Varian RPM .vxp, a CSV \
                  trace, or a ventilator recording), udp:[BIND:]PORT (a live amplitude stream, one \
                  `mm=VALUE` per datagram), tool:NAME (a tracked tool on the chest, along the patient \
-                 reference's anterior axis), recorded (the signal a --source replay:FILE recording \
+                 reference's anterior axis), igtl:NAME (an amplitude from the OpenIGTLink device NAME: \
+                 SENSOR in mm, ml or no unit, or STRING `mm=VALUE`), recorded (the signal a --source replay:FILE recording \
                  carries) or none"
             )),
         }
@@ -102,6 +115,8 @@ pub enum SignalSource {
     Udp(crate::signal_udp::UdpSignal),
     /// A tracked tool on the chest.
     Tool(crate::signal_tool::ToolSignal),
+    /// An amplitude over OpenIGTLink.
+    Igtl(crate::signal_igtl::IgtlSignal),
 }
 
 impl SignalSource {
@@ -117,6 +132,7 @@ impl SignalSource {
             SignalSource::Trace(t) => t.fill(now_ns, block),
             SignalSource::Udp(u) => u.fill(now_ns, block),
             SignalSource::Tool(t) => t.fill(now_ns, tools, block),
+            SignalSource::Igtl(s) => s.fill(block),
         }
     }
 
@@ -124,14 +140,8 @@ impl SignalSource {
     pub fn counts(&self) -> SignalCounts {
         match self {
             SignalSource::Trace(t) => t.counts,
-            SignalSource::Udp(u) => SignalCounts {
-                sent: u.counts.sent,
-                invalid: u.counts.invalid,
-                cut: 0,
-                full_blocks: u.counts.full_blocks,
-                refused_senders: u.counts.refused_senders,
-                malformed: u.counts.malformed,
-            },
+            SignalSource::Udp(u) => Self::stream_counts(&u.counts),
+            SignalSource::Igtl(s) => Self::counts_of_igtl(s),
             SignalSource::Tool(t) => SignalCounts {
                 sent: t.sent,
                 invalid: t.invalid,
@@ -140,12 +150,29 @@ impl SignalSource {
         }
     }
 
+    fn stream_counts(c: &crate::signal_udp::StreamCounts) -> SignalCounts {
+        SignalCounts {
+            sent: c.sent,
+            invalid: c.invalid,
+            cut: 0,
+            full_blocks: c.full_blocks,
+            refused_senders: c.refused_senders,
+            malformed: c.malformed,
+        }
+    }
+
+    /// An OpenIGTLink amplitude's counts.
+    pub fn counts_of_igtl(s: &crate::signal_igtl::IgtlSignal) -> SignalCounts {
+        Self::stream_counts(&s.counts)
+    }
+
     /// What it reads, for messages.
     pub fn describe(&self) -> &str {
         match self {
             SignalSource::Trace(t) => t.describe(),
             SignalSource::Udp(u) => u.describe(),
             SignalSource::Tool(t) => t.describe(),
+            SignalSource::Igtl(s) => s.describe(),
         }
     }
 }
@@ -153,6 +180,12 @@ impl SignalSource {
 impl From<crate::signal_tool::ToolSignal> for SignalSource {
     fn from(t: crate::signal_tool::ToolSignal) -> Self {
         SignalSource::Tool(t)
+    }
+}
+
+impl From<crate::signal_igtl::IgtlSignal> for SignalSource {
+    fn from(s: crate::signal_igtl::IgtlSignal) -> Self {
+        SignalSource::Igtl(s)
     }
 }
 

@@ -35,20 +35,16 @@ const INTERVALS: usize = 16;
 pub struct UdpSignal {
     socket: UdpSocket,
     allow: AllowList,
-    unit: Option<u32>,
-    intervals: [u64; INTERVALS],
-    n_intervals: usize,
-    period_ns: u64,
-    last_arrival: Option<u64>,
+    stream: AmplitudeStream,
     describe: String,
     buf: [u8; DATAGRAM],
     /// What was sent and refused.
-    pub counts: UdpCounts,
+    pub counts: StreamCounts,
 }
 
-/// What a UDP stream sent and refused.
+/// What a live amplitude stream sent and refused.
 #[derive(Debug, Clone, Copy, Default, PartialEq, Eq)]
-pub struct UdpCounts {
+pub struct StreamCounts {
     /// Samples sent in frames.
     pub sent: u64,
     /// Of those, flagged invalid by their sender.
@@ -57,8 +53,72 @@ pub struct UdpCounts {
     pub full_blocks: u64,
     /// Datagrams from hosts not allowed.
     pub refused_senders: u64,
-    /// Datagrams that were not one sample in the stream's unit.
+    /// Messages that were not one sample in the stream's unit.
     pub malformed: u64,
+}
+
+/// A live amplitude stream's unit (held to its first sample's) and period (from its arrivals),
+/// shared by the UDP and OpenIGTLink streams.
+#[derive(Debug, Default)]
+pub(crate) struct AmplitudeStream {
+    unit: Option<u32>,
+    intervals: [u64; INTERVALS],
+    n_intervals: usize,
+    period_ns: u64,
+    last_arrival: Option<u64>,
+}
+
+impl AmplitudeStream {
+    /// A sample in `unit` that arrived at `t_ns` (`value` `None`: its sender marked it invalid)
+    /// into `block`, counted; false when its unit is not the stream's (refused, counted
+    /// malformed). The caller checks that the block has room.
+    pub(crate) fn take(
+        &mut self,
+        block: &mut SignalBlock,
+        counts: &mut StreamCounts,
+        t_ns: u64,
+        unit: u32,
+        value: Option<f64>,
+    ) -> bool {
+        if *self.unit.get_or_insert(unit) != unit {
+            counts.malformed += 1;
+            return false;
+        }
+        self.arrived(t_ns);
+        push_sample(block, t_ns, value.unwrap_or(0.0), value.is_some());
+        counts.invalid += u64::from(value.is_none());
+        counts.sent += 1;
+        true
+    }
+
+    /// The block's unit and period after a frame's samples (`counts`: a full block is counted).
+    pub(crate) fn finish(&self, block: &mut SignalBlock, counts: &mut StreamCounts) {
+        if block.count as usize == MAX_SIGNAL_SAMPLES {
+            counts.full_blocks += 1;
+        }
+        block.unit = self.unit.unwrap_or(signal_unit::NONE);
+        block.period_ns = self.period_ns;
+    }
+
+    fn arrived(&mut self, now_ns: u64) {
+        if let Some(last) = self.last_arrival {
+            let d = now_ns.saturating_sub(last);
+            // Samples taken in one frame arrived together: not an interval of the sender's.
+            if d > 0 {
+                self.intervals[self.n_intervals % INTERVALS] = d;
+                self.n_intervals += 1;
+            }
+        }
+        self.last_arrival = Some(now_ns);
+        let n = self.n_intervals.min(INTERVALS);
+        if n >= 8 {
+            let mean = self.intervals[..n].iter().sum::<u64>() / n as u64;
+            let held = self.period_ns;
+            if held == 0 || mean.abs_diff(held) * 5 > held {
+                self.period_ns = (mean + 500_000) / 1_000_000 * 1_000_000;
+            }
+        }
+    }
 }
 
 /// Append a sample to `block` (`valid`: its value is used, else 0 is sent flagged invalid);
@@ -116,13 +176,9 @@ impl UdpSignal {
             ),
             socket,
             allow,
-            unit: None,
-            intervals: [0; INTERVALS],
-            n_intervals: 0,
-            period_ns: 0,
-            last_arrival: None,
+            stream: AmplitudeStream::default(),
             buf: [0; DATAGRAM],
-            counts: UdpCounts::default(),
+            counts: StreamCounts::default(),
         })
     }
 
@@ -157,46 +213,16 @@ impl UdpSignal {
                 self.counts.malformed += 1;
                 continue;
             };
-            if *self.unit.get_or_insert(unit) != unit {
-                self.counts.malformed += 1;
-                continue;
-            }
-            self.arrived(now_ns);
-            push_sample(block, now_ns, value.unwrap_or(0.0), value.is_some());
-            self.counts.invalid += u64::from(value.is_none());
-            self.counts.sent += 1;
+            self.stream
+                .take(block, &mut self.counts, now_ns, unit, value);
         }
-        if block.count as usize == MAX_SIGNAL_SAMPLES {
-            self.counts.full_blocks += 1;
-        }
-        block.unit = self.unit.unwrap_or(signal_unit::NONE);
-        block.period_ns = self.period_ns;
-    }
-
-    fn arrived(&mut self, now_ns: u64) {
-        if let Some(last) = self.last_arrival {
-            let d = now_ns.saturating_sub(last);
-            // Samples taken in one frame arrived together: not an interval of the sender's.
-            if d > 0 {
-                self.intervals[self.n_intervals % INTERVALS] = d;
-                self.n_intervals += 1;
-            }
-        }
-        self.last_arrival = Some(now_ns);
-        let n = self.n_intervals.min(INTERVALS);
-        if n >= 8 {
-            let mean = self.intervals[..n].iter().sum::<u64>() / n as u64;
-            let held = self.period_ns;
-            if held == 0 || mean.abs_diff(held) * 5 > held {
-                self.period_ns = (mean + 500_000) / 1_000_000 * 1_000_000;
-            }
-        }
+        self.stream.finish(block, &mut self.counts);
     }
 }
 
 /// `UNIT=VALUE` (an optional trailing newline): the unit, and the value when it is a finite
 /// number (`None`: the sender marks the sample invalid). `None` for anything else.
-fn parse_datagram(bytes: &[u8]) -> Option<(u32, Option<f64>)> {
+pub(crate) fn parse_datagram(bytes: &[u8]) -> Option<(u32, Option<f64>)> {
     let text = std::str::from_utf8(bytes).ok()?;
     let line = text
         .strip_suffix("\r\n")

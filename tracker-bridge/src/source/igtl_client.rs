@@ -172,6 +172,15 @@ pub fn message_inputs(
                 s.message
             ),
         ))),
+        body @ (Body::Sensor(_) | Body::Text(_)) => {
+            if let Some(value) = crate::signal_igtl::reading_of(body) {
+                out(Input::Reading(crate::sample::Reading {
+                    receive_ns,
+                    name: device,
+                    value,
+                }));
+            }
+        }
         other => out(Input::Event(Event::new(
             EventKind::Ignored,
             1,
@@ -390,5 +399,67 @@ impl Source for IgtlClient {
     fn wait(&mut self, _pace: &dyn transport::Clock, deadline_ns: u64) -> bool {
         // A reader thread on the host's clock: publish on arrival.
         self.inbox.wait(deadline_ns)
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::igtl::{Sensor, Text, Timestamp};
+    use crate::sample::{NotAmplitude, Reading};
+
+    fn inputs(device: &str, body: Body) -> Vec<Input> {
+        let m = Message::new(device, Timestamp::from_parts(1_700_000_000, 0), body);
+        let mut out = Vec::new();
+        message_inputs(&m, 42, QuatOrder::Xyzw, &mut |i| out.push(i));
+        out
+    }
+
+    /// A SENSOR or STRING becomes a reading stamped with its arrival, in the unit its message
+    /// states (a SENSOR in micro-m³ is ml); a SENSOR in another unit says why it is no amplitude.
+    #[test]
+    fn sensor_and_string_messages_are_readings_stamped_on_arrival() {
+        let resp = ToolName::new("Resp").unwrap();
+        let ml = crate::signal_igtl::SensorUnit::pack(0xC, &[(1, 3)]);
+        let got = inputs(
+            "Resp",
+            Body::Sensor(Sensor {
+                status: 0,
+                unit: ml,
+                values: vec![420.0],
+            }),
+        );
+        assert_eq!(
+            got,
+            [Input::Reading(Reading {
+                receive_ns: 42,
+                name: resp,
+                value: Ok((ipc_types::signal_unit::ML, Some(420.0))),
+            })]
+        );
+        let pascal = crate::signal_igtl::SensorUnit::pack(0, &[(0x0C, 1)]);
+        let got = inputs(
+            "Resp",
+            Body::Sensor(Sensor {
+                status: 0,
+                unit: pascal,
+                values: vec![3.0],
+            }),
+        );
+        assert!(
+            matches!(&got[..], [Input::Reading(Reading { value: Err(NotAmplitude::Unit(u)), .. })] if *u == pascal),
+            "{got:?}"
+        );
+        let got = inputs(
+            "Resp",
+            Body::Text(Text {
+                encoding: 106,
+                text: "au=0.25\n".into(),
+            }),
+        );
+        assert!(
+            matches!(&got[..], [Input::Reading(Reading { value: Ok((u, Some(v))), .. })] if *u == ipc_types::signal_unit::ARBITRARY && *v == 0.25),
+            "{got:?}"
+        );
     }
 }
