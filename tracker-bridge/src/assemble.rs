@@ -206,6 +206,8 @@ struct Slot {
     /// FRAME_GAP / FRAME_REPEAT since the last frame.
     pending: u32,
     tool_id: u32,
+    /// A new sample (not a repeat) came since the last frame.
+    fresh: bool,
 }
 
 /// What became of one sample.
@@ -391,6 +393,7 @@ impl Assembler {
             return Outcome::Repeat;
         }
         slot.seen = true;
+        slot.fresh = true;
         slot.last_new_ns = s.receive_ns;
         slot.newest_flags = verdict.flags;
         slot.newest_ok = verdict.pose.is_some();
@@ -410,6 +413,24 @@ impl Assembler {
                 Outcome::Rejected(r)
             }
         }
+    }
+
+    /// Whether the device's frame is complete at `now_ns`: every configured tool that is live (seen,
+    /// its newest sample within the staleness bound) has a new sample since the last frame. A
+    /// sender that sends each tool in its own message (pyigtl, PLUS, 3D Slicer) completes a frame
+    /// message by message; the loop gathers them into one frame (see [`crate::run`]).
+    pub fn frame_complete(&self, now_ns: u64) -> bool {
+        let count = self.config.tool_count();
+        self.slots
+            .iter()
+            .zip(self.config.slots.iter())
+            .take(count)
+            .all(|(slot, name)| {
+                name.is_none()
+                    || !slot.seen
+                    || slot.fresh
+                    || now_ns.saturating_sub(slot.last_new_ns) > self.config.stale_ns
+            })
     }
 
     /// Build the frame of the tick at `at_ns` (the same clock as the samples' receive times):
@@ -439,6 +460,7 @@ impl Assembler {
             }
             let mut status = slot.pending;
             slot.pending = 0;
+            slot.fresh = false;
             if !slot.seen {
                 status |= tool_status::MISSING;
                 self.stats.never_seen += 1;

@@ -7,7 +7,11 @@
 //! never waits for the bridge's own tick; the schedule then only keeps frames going (stale-flagged)
 //! when the device falls silent, its next slot 1.5 periods after the last arrival. Arrivals closer
 //! than [`MIN_ARRIVAL_SPACING_NS`] are gathered into one frame, which bounds the publish rate
-//! whatever a sender does. The synthetic source and replays make their samples on the tick and
+//! whatever a sender does. A sender that sends each tool in its own message (pyigtl, PLUS, 3D
+//! Slicer) completes a device frame message by message: after an arrival the loop waits at most
+//! [`GATHER_NS`] for every live configured tool to have a new sample
+//! ([`Assembler::frame_complete`]), so one device frame is one published frame with all its tools
+//! (before: 75–87 frames a second from a 60 Hz sender of three tools, each new in one tool only). The synthetic source and replays make their samples on the tick and
 //! keep the absolute-deadline schedule.
 //!
 //! Written against [`transport::Clock`] (time and sleeping), [`Source`] and [`Publish`], so tests drive it on a
@@ -26,6 +30,44 @@ use crate::BridgeError;
 
 /// Arrival-driven frames are at least this far apart (≤ 4 kHz, whatever the sender's rate), ns.
 pub const MIN_ARRIVAL_SPACING_NS: u64 = 250_000;
+
+pub use crate::stats::GATHER_NS;
+
+/// Gathering a device frame's tools sent in messages of their own (see the module documentation).
+#[derive(Debug, Default)]
+struct Gather {
+    /// Until when, once an arrival started it.
+    until: Option<u64>,
+    /// The frame was held back at least once.
+    held: bool,
+}
+
+impl Gather {
+    /// The loop's wait ends at the schedule's slot or the gather window's end.
+    fn deadline(&self, next: u64) -> u64 {
+        self.until.map_or(next, |g| g.min(next))
+    }
+
+    /// Whether to hold the frame back now: new samples came (or a gather is on), the schedule's
+    /// slot has not come, the window (from `started`) is open and a live tool has no new sample.
+    fn hold(&mut self, asm: &Assembler, samples: u64, due: bool, started: u64, now: u64) -> bool {
+        let hold = !due
+            && (samples > 0 || self.until.is_some())
+            && now < *self.until.get_or_insert(started + GATHER_NS)
+            && !asm.frame_complete(now);
+        self.held |= hold;
+        hold
+    }
+
+    /// A frame is published: count it when it was held back, and end the gather.
+    fn published(&mut self, asm: &mut Assembler, now: u64) {
+        if let (Some(until), true) = (self.until.take(), self.held) {
+            asm.stats.gathered_frames += 1;
+            asm.stats.gather_timeouts += u64::from(now >= until);
+        }
+        self.held = false;
+    }
+}
 
 /// The [`Reporter`]'s first key for a rejection reason: one past the last [`EventKind`].
 const FIRST_REASON_KEY: usize = EventKind::ConnectionRefused as usize + 1;
@@ -126,6 +168,8 @@ pub fn run_loop(
     let mut frame = TrackerFrame::default();
     let mut next = pace.now_ns();
     let mut last_publish = 0u64;
+    // Gathering a device frame's tools until then (see the module documentation).
+    let mut gather = Gather::default();
     loop {
         if should_stop(pace.now_ns()) {
             return Ok(Ended::Stopped);
@@ -133,7 +177,7 @@ pub fn run_loop(
         // A device's sample ends the wait (published on arrival); else the schedule's slot.
         let arrived = {
             let _wait = tracing::info_span!(target: transport::trace::TARGET, "wait").entered();
-            paced && source.wait(pace, next)
+            paced && source.wait(pace, gather.deadline(next))
         };
         if arrived && pace.now_ns() < last_publish + MIN_ARRIVAL_SPACING_NS {
             pace.sleep_until(last_publish + MIN_ARRIVAL_SPACING_NS);
@@ -142,7 +186,7 @@ pub fn run_loop(
         // The schedule's slot has come (also when inputs arrived: a flood of link events must not
         // hold back the frames that say a silent tool is stale).
         let due = paced && now >= next;
-        if paced && !arrived {
+        if paced && !arrived && gather.until.is_none() {
             asm.stats
                 .jitter
                 .saturating_record(now.saturating_sub(next).max(1));
@@ -187,11 +231,15 @@ pub fn run_loop(
                 }
             })?
         };
+        let quiet = arrived && samples == 0 && !due && gather.until.is_none();
+        // A device frame's tools still coming, each in its own message: wait for them (bounded).
+        let gathering = paced && !quiet && gather.hold(asm, samples, due, now, pace.now_ns());
         match poll {
             Poll::End => return Ok(Ended::SourceEnded),
             // Only link events or repeats arrived (a connection, a rejected message): no frame.
-            Poll::Tick { .. } if arrived && samples == 0 && !due => {}
+            Poll::Tick { .. } if quiet || gathering => {}
             Poll::Tick { at_ns } => {
+                gather.published(asm, pace.now_ns());
                 let _publish =
                     tracing::info_span!(target: transport::trace::TARGET, "assemble + publish")
                         .entered();
@@ -232,19 +280,7 @@ pub fn run_loop(
             }
         }
         if let Some(e) = record_error {
-            let path = recorder
-                .as_ref()
-                .map(|r| r.path().display().to_string())
-                .unwrap_or_default();
-            *recorder = None;
-            report(
-                &Event::new(
-                    EventKind::Note,
-                    0,
-                    format!("recording to {path} failed and stopped: {e}"),
-                ),
-                now,
-            );
+            stop_recording(recorder, &e, report, now);
         }
         if arrived && samples > 0 {
             next = pace.now_ns() + period + period / 2;
@@ -258,6 +294,28 @@ pub fn run_loop(
             }
         }
     }
+}
+
+/// A recording that failed is reported and dropped; the loop goes on.
+fn stop_recording(
+    recorder: &mut Option<RecordWriter>,
+    e: &std::io::Error,
+    report: &mut dyn FnMut(&Event, u64),
+    now: u64,
+) {
+    let path = recorder
+        .as_ref()
+        .map(|r| r.path().display().to_string())
+        .unwrap_or_default();
+    *recorder = None;
+    report(
+        &Event::new(
+            EventKind::Note,
+            0,
+            format!("recording to {path} failed and stopped: {e}"),
+        ),
+        now,
+    );
 }
 
 /// Another device's reading (or one without an OpenIGTLink signal): ignored, as any message the
@@ -528,5 +586,125 @@ mod tests {
                 (10 * MS + MIN_ARRIVAL_SPACING_NS, 10 * MS + 200_000, 3.0),
             ]
         );
+    }
+
+    fn tool_sample(at: u64, name: &str, x: f32) -> (u64, Input) {
+        (
+            at,
+            Input::Sample(Sample::quat(
+                at,
+                ToolName::new(name).unwrap(),
+                [0.0, 0.0, 0.0, 1.0],
+                [x, 0.0, -1000.0],
+            )),
+        )
+    }
+
+    /// Every frame published until `until_ns`.
+    fn frames_of(arrivals: Vec<(u64, Input)>, until_ns: u64) -> Vec<TrackerFrame> {
+        frames_stats_of(arrivals, until_ns).0
+    }
+
+    fn frames_stats_of(
+        arrivals: Vec<(u64, Input)>,
+        until_ns: u64,
+    ) -> (Vec<TrackerFrame>, crate::stats::Stats) {
+        let clock = FakeClock::at(0);
+        let mut source = Scripted {
+            arrivals: arrivals.into(),
+            clock: clock.clone(),
+            poll_cost_ns: 0,
+        };
+        let mut config = BridgeConfig::default();
+        config.validation.volume = Volume::Unbounded;
+        let mut asm = Assembler::new(config);
+        let mut out = Recorder::new(&clock);
+        run_loop(
+            &mut source,
+            &mut asm,
+            &mut out,
+            &mut None,
+            &clock,
+            &mut |now| now >= until_ns,
+            &mut |_, _| {},
+        )
+        .unwrap();
+        (out.values(), asm.stats.clone())
+    }
+
+    fn x(f: &TrackerFrame, slot: usize) -> f32 {
+        f.tools[slot].pose.translation_mm[0]
+    }
+
+    /// pyigtl, PLUS and Slicer send each tool in its own message: the patient reference, then the
+    /// HMD 0.3 ms later. One device frame is one published frame with both tools new, published
+    /// when the last came (before: two frames, the first with the HMD a frame old). (The first
+    /// device frame, before the HMD was ever seen, goes out as it comes.)
+    #[test]
+    fn a_device_frame_sent_tool_by_tool_is_one_frame_with_every_tool() {
+        use ipc_types::{TOOL_HMD, TOOL_PATIENT};
+        let t = |k: u64| 10 * MS + k * P;
+        let mut arrivals = Vec::new();
+        for k in 0..5u64 {
+            arrivals.push(tool_sample(t(k), "Patient", k as f32));
+            arrivals.push(tool_sample(t(k) + 300_000, "HMD", 10.0 + k as f32));
+        }
+        let frames = frames_of(arrivals, t(4) + P);
+        let got: Vec<(u64, f32, f32)> = frames
+            .iter()
+            // From the second device frame to the last (the schedule's heartbeat after it left out).
+            .filter(|f| (t(1)..t(5)).contains(&f.stamps.bridge_publish_ns))
+            .map(|f| {
+                (
+                    f.stamps.bridge_publish_ns,
+                    x(f, TOOL_PATIENT),
+                    x(f, TOOL_HMD),
+                )
+            })
+            .collect();
+        let want: Vec<(u64, f32, f32)> = (1..5u64)
+            .map(|k| (t(k) + 300_000, k as f32, 10.0 + k as f32))
+            .collect();
+        assert_eq!(got, want);
+    }
+
+    /// A tool slower than the others (an HMD at 30 Hz beside a 60 Hz reference) holds a frame
+    /// back at most [`GATHER_NS`]; a tool gone silent past the staleness bound holds back none.
+    #[test]
+    fn a_slower_or_silent_tool_holds_a_frame_back_at_most_the_gather_window() {
+        use ipc_types::TOOL_PATIENT;
+        let t = |k: u64| 10 * MS + k * P;
+        let mut arrivals = Vec::new();
+        for k in 0..12u64 {
+            arrivals.push(tool_sample(t(k), "Patient", k as f32));
+            // The HMD at 30 Hz for four frames, then silent.
+            if k % 2 == 0 && k < 4 {
+                arrivals.push(tool_sample(t(k) + 100_000, "HMD", 0.0));
+            }
+        }
+        let (frames, stats) = frames_stats_of(arrivals, t(11) + P);
+        // Frames 1, 3, 4, 5 waited the window out; the start-up's HMD-only frame waited too.
+        assert_eq!(
+            (stats.gathered_frames, stats.gather_timeouts),
+            (6, 5),
+            "{stats:?}"
+        );
+        let at: Vec<(f32, u64)> = frames
+            .iter()
+            .filter(|f| (t(1)..t(12)).contains(&f.stamps.bridge_publish_ns))
+            .map(|f| (x(f, TOOL_PATIENT), f.stamps.bridge_publish_ns))
+            .collect();
+        assert_eq!(at.len(), 11, "one frame per reference sample: {at:?}");
+        for (k, &(xk, published)) in at.iter().enumerate() {
+            let k = k as u64 + 1;
+            assert_eq!(xk, k as f32);
+            let late = published - t(k);
+            match k {
+                2 => assert_eq!(late, 100_000, "frame {k}: complete with the HMD"),
+                // Waiting for an HMD that comes every other frame, then until it is stale (50 ms).
+                1 | 3 | 4 | 5 => assert_eq!(late, GATHER_NS, "frame {k}"),
+                _ => assert_eq!(late, 0, "frame {k}: the HMD is stale, nothing to wait for"),
+            }
+        }
     }
 }

@@ -93,6 +93,10 @@ pub fn status_names(status: u32) -> Vec<&'static str> {
         .collect()
 }
 
+/// After an arrival, how long the bridge's loop waits at most for the device frame's other tools
+/// (sent in messages of their own) before it publishes what it has, ns ([`crate::run`]).
+pub const GATHER_NS: u64 = 2_000_000;
+
 /// Counters of one bridge run.
 #[derive(Debug, Clone)]
 pub struct Stats {
@@ -100,6 +104,12 @@ pub struct Stats {
     pub frames: u64,
     /// Schedule slots skipped because the loop overran.
     pub ticks_skipped: u64,
+    /// Frames held back to gather a device frame's tools sent in messages of their own, and of
+    /// those the ones published when the gather window ran out (a tool slower than the others, or
+    /// late) ([`GATHER_NS`]).
+    pub gathered_frames: u64,
+    /// See `gathered_frames`.
+    pub gather_timeouts: u64,
     /// Samples received from the source.
     pub samples: u64,
     /// Samples that became a tool's pose.
@@ -172,6 +182,8 @@ impl Stats {
         Stats {
             frames: 0,
             ticks_skipped: 0,
+            gathered_frames: 0,
+            gather_timeouts: 0,
             samples: 0,
             accepted: 0,
             rejected: [0; Reject::ALL.len()],
@@ -308,6 +320,8 @@ impl Stats {
         json!({
             "frames": self.frames,
             "ticks_skipped": self.ticks_skipped,
+            "gathered_frames": self.gathered_frames,
+            "gather_timeouts": self.gather_timeouts,
             "samples": self.samples,
             "accepted": self.accepted,
             "rejected_total": self.rejected_total(),
@@ -360,6 +374,15 @@ impl Stats {
             self.jitter_us(0.5),
             self.jitter_us(0.99),
         );
+        if self.gathered_frames > 0 {
+            s += &format!(
+                "  {} frames gathered from a device frame's messages ({} published when the {} ms \
+                 window ran out, a tool slower or later than the others)\n",
+                self.gathered_frames,
+                self.gather_timeouts,
+                GATHER_NS as f64 / 1e6
+            );
+        }
         let reasons: Vec<String> = Reject::ALL
             .iter()
             .filter(|r| self.rejected_for(**r) > 0)
