@@ -11,8 +11,9 @@
 //! Slicer) completes a device frame message by message: after an arrival the loop waits at most
 //! [`GATHER_NS`] for every live configured tool to have a new sample
 //! ([`Assembler::frame_complete`]), so one device frame is one published frame with all its tools
-//! (before: 75–87 frames a second from a 60 Hz sender of three tools, each new in one tool only). The synthetic source and replays make their samples on the tick and
-//! keep the absolute-deadline schedule.
+//! (before: 75–87 frames a second from a 60 Hz sender of three tools, each new in one tool only);
+//! the end of that wait is not a slot of the schedule. The synthetic source and replays make their
+//! samples on the tick and keep the absolute-deadline schedule.
 //!
 //! Written against [`transport::Clock`] (time and sleeping), [`Source`] and [`Publish`], so tests drive it on a
 //! fake clock with in-memory ports. Per tick it does not allocate (the source's samples are
@@ -179,6 +180,8 @@ pub fn run_loop(
             let _wait = tracing::info_span!(target: transport::trace::TARGET, "wait").entered();
             paced && source.wait(pace, gather.deadline(next))
         };
+        // Woken by the gather window's end, not by the schedule.
+        let gather_wake = !arrived && gather.until.is_some();
         if arrived && pace.now_ns() < last_publish + MIN_ARRIVAL_SPACING_NS {
             pace.sleep_until(last_publish + MIN_ARRIVAL_SPACING_NS);
         }
@@ -186,7 +189,7 @@ pub fn run_loop(
         // The schedule's slot has come (also when inputs arrived: a flood of link events must not
         // hold back the frames that say a silent tool is stale).
         let due = paced && now >= next;
-        if paced && !arrived && gather.until.is_none() {
+        if paced && !arrived && !gather_wake {
             asm.stats
                 .jitter
                 .saturating_record(now.saturating_sub(next).max(1));
@@ -284,7 +287,7 @@ pub fn run_loop(
         }
         if arrived && samples > 0 {
             next = pace.now_ns() + period + period / 2;
-        } else if paced && (due || !arrived) {
+        } else if paced && (due || (!arrived && !gather_wake)) {
             next += period;
             let now = pace.now_ns();
             if now > next + period {
@@ -416,27 +419,8 @@ mod tests {
         until_ns: u64,
         poll_cost_ns: u64,
     ) -> Vec<(u64, u64, f32)> {
-        let clock = FakeClock::at(0);
-        let mut source = Scripted {
-            arrivals: arrivals.into(),
-            clock: clock.clone(),
-            poll_cost_ns,
-        };
-        let mut config = BridgeConfig::default();
-        config.validation.volume = Volume::Unbounded;
-        let mut asm = Assembler::new(config);
-        let mut out = Recorder::new(&clock);
-        run_loop(
-            &mut source,
-            &mut asm,
-            &mut out,
-            &mut None,
-            &clock,
-            &mut |now| now >= until_ns,
-            &mut |_, _| {},
-        )
-        .unwrap();
-        out.values()
+        frames_stats_of(arrivals, until_ns, poll_cost_ns)
+            .0
             .iter()
             .map(|f: &TrackerFrame| {
                 (
@@ -602,18 +586,20 @@ mod tests {
 
     /// Every frame published until `until_ns`.
     fn frames_of(arrivals: Vec<(u64, Input)>, until_ns: u64) -> Vec<TrackerFrame> {
-        frames_stats_of(arrivals, until_ns).0
+        frames_stats_of(arrivals, until_ns, 0).0
     }
 
+    /// Every frame published until `until_ns`, each poll taking `poll_cost_ns`, and the counters.
     fn frames_stats_of(
         arrivals: Vec<(u64, Input)>,
         until_ns: u64,
+        poll_cost_ns: u64,
     ) -> (Vec<TrackerFrame>, crate::stats::Stats) {
         let clock = FakeClock::at(0);
         let mut source = Scripted {
             arrivals: arrivals.into(),
             clock: clock.clone(),
-            poll_cost_ns: 0,
+            poll_cost_ns,
         };
         let mut config = BridgeConfig::default();
         config.validation.volume = Volume::Unbounded;
@@ -682,7 +668,7 @@ mod tests {
                 arrivals.push(tool_sample(t(k) + 100_000, "HMD", 0.0));
             }
         }
-        let (frames, stats) = frames_stats_of(arrivals, t(11) + P);
+        let (frames, stats) = frames_stats_of(arrivals, t(11) + P, 0);
         // Frames 1, 3, 4, 5 waited the window out; the start-up's HMD-only frame waited too.
         assert_eq!(
             (stats.gathered_frames, stats.gather_timeouts),
@@ -706,5 +692,29 @@ mod tests {
                 _ => assert_eq!(late, 0, "frame {k}: the HMD is stale, nothing to wait for"),
             }
         }
+    }
+
+    /// The end of a gather window is not a slot of the schedule: after a frame published when the
+    /// window ran out, a device gone silent still gets its heartbeat 1.5 periods after its last
+    /// sample (it came a period later when the window's end counted as a slot).
+    #[test]
+    fn the_gather_windows_end_does_not_move_the_schedule() {
+        let t0 = 10 * MS;
+        let t1 = t0 + P;
+        let frames = frames_of(
+            vec![
+                tool_sample(t0, "Patient", 0.0),
+                tool_sample(t0 + 100_000, "HMD", 0.0),
+                tool_sample(t1, "Patient", 1.0),
+            ],
+            t1 + 2 * P,
+        );
+        let at: Vec<u64> = frames
+            .iter()
+            .map(|f| f.stamps.bridge_publish_ns)
+            .filter(|&t| t >= t1)
+            .collect();
+        assert_eq!(at[0], t1 + GATHER_NS, "held for the HMD: {at:?}");
+        assert_eq!(at[1], t1 + P + P / 2, "then the heartbeat on time: {at:?}");
     }
 }
