@@ -922,7 +922,7 @@ mod tests {
 
     /// The breathing clock keeps time whatever the tracker's rate. Found with a pyigtl sender
     /// that sends each tool in its own message: the bridge published 87 frames a second, the
-    /// engine ticked on each and the model breathed 1.45x fast (3398 ticks in a 40 s demo). Numbered
+    /// engine ticked on each and the model breathed 1.4x fast (3398 ticks in a 40 s demo). Numbered
     /// by the clock (the engine process's pacer), every frame's tick is within one of the clock's
     /// 60 Hz slot and a breath takes its own time; counted, the same input runs 1.45x ahead.
     #[test]
