@@ -298,8 +298,7 @@ impl Assembler {
     pub fn take_reading(&mut self, r: &crate::sample::Reading) -> bool {
         match &mut self.signal {
             Some(crate::signal::SignalSource::Igtl(s)) => {
-                s.take(r);
-                let mine = s.is_device(&r.name);
+                let mine = s.take(r);
                 self.stats.signal = Some(crate::signal::SignalSource::counts_of_igtl(s));
                 mine
             }

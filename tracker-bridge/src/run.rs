@@ -322,7 +322,8 @@ fn stop_recording(
 }
 
 /// Another device's reading (or one without an OpenIGTLink signal): ignored, as any message the
-/// bridge does not use is — recorded as such, counted and reported.
+/// bridge does not use is, and counted. Such readings may come every frame and this is the loop's
+/// thread: only the first is said and recorded (an event's text allocates), the rest counted.
 fn ignore_reading(
     reading: &crate::sample::Reading,
     recorder: &mut Option<RecordWriter>,
@@ -330,11 +331,17 @@ fn ignore_reading(
     report: &mut dyn FnMut(&Event, u64),
     now: u64,
 ) -> std::io::Result<()> {
+    asm.stats.ignored_readings += 1;
+    if asm.stats.ignored_readings > 1 {
+        asm.stats.ignored += 1;
+        return Ok(());
+    }
     let e = Event::new(
         EventKind::Ignored,
         1,
         format!(
-            "a reading (SENSOR or STRING) from {:?}: not the signal's device",
+            "a reading (SENSOR or STRING) from {:?}: not the signal's device (the next ones \
+             only counted)",
             reading.name.as_str()
         ),
     );

@@ -197,17 +197,13 @@ impl IgtlSignal {
         &self.describe
     }
 
-    /// Whether `name` is the signal's device.
-    pub fn is_device(&self, name: &ToolName) -> bool {
-        *name == self.name
-    }
-
     /// Take a reading the source decoded (the loop hands every one here); the device's own are
-    /// queued for the next frame, the rest counted.
-    pub fn take(&mut self, r: &Reading) {
+    /// queued for the next frame (or refused and counted): true; another device's are counted:
+    /// false.
+    pub fn take(&mut self, r: &Reading) -> bool {
         if r.name != self.name {
             self.refused.other_devices += 1;
-            return;
+            return false;
         }
         match r.value {
             Ok((unit, value)) if self.queued < QUEUE => {
@@ -222,6 +218,7 @@ impl IgtlSignal {
             }
             Err(_) => self.counts.malformed += 1,
         }
+        true
     }
 
     /// The readings queued since the last frame into `block` (at most [`MAX_SIGNAL_SAMPLES`]; the

@@ -136,6 +136,9 @@ pub struct Stats {
     pub retries: u64,
     /// Messages of types the bridge does not use.
     pub ignored: u64,
+    /// Of those, readings (SENSOR, STRING) of a device that is not the respiratory signal's: the
+    /// first is said, the rest counted (they may come every frame).
+    pub ignored_readings: u64,
     /// Device status reports.
     pub device_status: u64,
     /// Per-name counters: one entry per configured slot that has had a sample (named as the
@@ -197,6 +200,7 @@ impl Stats {
             disconnects: 0,
             retries: 0,
             ignored: 0,
+            ignored_readings: 0,
             device_status: 0,
             // Every entry there can ever be, so the per-sample path never reallocates.
             tools: Vec::with_capacity(NAME_TABLE + MAX_TOOLS),
@@ -339,6 +343,7 @@ impl Stats {
                 "disconnects": self.disconnects,
                 "retries": self.retries,
                 "ignored_messages": self.ignored,
+                "ignored_readings": self.ignored_readings,
                 "device_status_reports": self.device_status,
                 "refused_connections": self.refused_connections,
                 "evicted_idle_connections": self.evicted_idle_connections,
