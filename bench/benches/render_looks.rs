@@ -21,6 +21,7 @@
 use glam::{Mat3, Quat, Vec3};
 use ipc_types::Pose;
 use lung_model::deform::LungModel;
+use lung_model::scene::SceneExt;
 use lung_model::scene::{ColorMode, DrawMode, Lod, Look, RenderScene, Scene};
 use renderer::gpu::Gpu;
 use renderer::hud::{Hud, HudConfig, HudFrame};

@@ -10,6 +10,7 @@
 
 use criterion::{criterion_group, criterion_main, Criterion, Throughput};
 use lung_model::scene::Scene;
+use lung_model::scene::SceneExt;
 use lungdyn_launcher::slicer::FrameMaker;
 
 fn kernels() -> std::path::PathBuf {

@@ -7,6 +7,7 @@ use anyhow::Context;
 use lung_bake::kernel;
 use lung_model::kernel::KernelFile;
 use lung_model::mesh::Side;
+use lung_model::scene::SceneExt;
 use serde::Serialize;
 
 /// Options of `lungdyn bake`.
@@ -267,7 +268,7 @@ fn settings(args: &BakeArgs) -> anyhow::Result<lung_bake::kernel::BakeSettings> 
     let mut settings = scene.bake_settings(side)?;
     if let Some(d) = &args.directions {
         let preset: lung_model::deform::DirectionPreset = d.parse().map_err(anyhow::Error::msg)?;
-        let m = preset.motion(side);
+        let m = lung_model::deform::preset_motion(preset, side);
         settings.motion = m.constants;
         settings.direction_field = m.direction_field;
         settings.force_field = m.force_field;

@@ -16,6 +16,7 @@ pub use crate::motion_input::{
 };
 use crate::motion_input::{import_mesh_in, import_scaled};
 pub use crate::motion_report::{PhaseRow, PointsReport};
+use lung_model::scene::SceneExt;
 
 /// Read a point file (in `frame`) or a mesh's vertices (mm, `frame` must be body, lps or ras), in
 /// the body frame, bounded, sizes checked against lungs.

@@ -13,6 +13,7 @@ use lung_model::mesh::{io, Side, TriMesh};
 use serde::Serialize;
 
 use crate::motion_input::FitMotionArgs;
+use lung_model::scene::SceneExt;
 
 /// One lung of the pair.
 #[derive(Debug, Serialize)]

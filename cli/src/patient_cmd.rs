@@ -8,6 +8,7 @@ use anyhow::Context;
 use glam::DVec3;
 use lung_bake::mask::{self, labels::Convention, volume::Axes, MaskOptions};
 use lung_model::mesh::{io, Side, TriMesh};
+use lung_model::scene::SceneExt;
 use serde::Serialize;
 
 /// Options of `lungdyn patient`.

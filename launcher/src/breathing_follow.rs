@@ -31,6 +31,7 @@ use serde::Serialize;
 
 use crate::demo::{Run, Watch};
 use crate::plot::{self, Panel, Series, DATA, EXHALE, INHALE};
+use lung_model::scene::SceneExt;
 
 /// The goal issue 35 sets on the end-inspiration lag, ms (either way).
 pub const GOAL_LAG_MS: f64 = 20.0;

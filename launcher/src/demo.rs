@@ -18,6 +18,7 @@ use crate::supervise::Children;
 use serde::Serialize;
 
 use crate::stats::{HopRow, LatencyStats, DEADLINE_NS};
+use lung_model::scene::SceneExt;
 
 /// Frames drawn at one quality (the demo's JSON).
 #[derive(Debug, Clone, serde::Serialize)]

@@ -9,6 +9,7 @@
 use std::net::TcpListener;
 use std::path::{Path, PathBuf};
 
+use lung_model::scene::SceneExt;
 use serde::Serialize;
 
 /// Command-line options of `lungdyn doctor`.

@@ -39,6 +39,7 @@ use ipc_types::{EngineFrame, LungFrame, MAX_COEFFS};
 use lung_model::mesh::lobes::Lobe;
 use lung_model::mesh::Side;
 use lung_model::scene::Scene;
+use lung_model::scene::SceneExt;
 use renderer::deform::RenderLung;
 use serde::Serialize;
 

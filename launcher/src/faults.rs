@@ -28,6 +28,7 @@ use serde::Serialize;
 use transport::{iox, now_ns, Instance, Publish};
 
 use crate::demo::{Run, Watch};
+use lung_model::scene::SceneExt;
 
 /// Options of `lungdyn faults`.
 #[derive(Debug, Clone, clap::Args)]

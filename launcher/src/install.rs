@@ -12,6 +12,7 @@
 
 use std::path::{Path, PathBuf};
 
+use lung_model::scene::SceneExt;
 use serde::Serialize;
 
 /// Command-line options of `lungdyn install`.

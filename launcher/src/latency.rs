@@ -1066,6 +1066,7 @@ pub fn run(args: &LatencyArgs) -> anyhow::Result<LatencyOutput> {
     Ok(out)
 }
 
+use lung_model::scene::SceneExt;
 use std::io::Write;
 
 fn write_plot(png: &Path, r: &LatencyReport, series: &[SeriesPoint]) -> anyhow::Result<()> {

@@ -13,6 +13,7 @@ use lung_model::deform::modes::DeformMode;
 use lung_model::kernel::KernelMeta;
 use lung_model::mesh::Side;
 use lung_model::scene::Scene;
+use lung_model::scene::SceneExt;
 use serde::Serialize;
 
 /// A kernel the demo used.

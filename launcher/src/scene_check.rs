@@ -16,6 +16,8 @@ use lung_model::disease::ventilated::Ventilator;
 use lung_model::disease::{LungBaseline, LungState, NormalBreathing};
 use lung_model::mesh::{Side, TriMesh};
 use lung_model::scene::Scene;
+use lung_model::scene::SceneExt;
+use lung_model::scene_disease::DiseaseSceneExt;
 use lung_model::scene_disease::DiseaseSpec;
 use serde::Serialize;
 

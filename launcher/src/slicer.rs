@@ -33,6 +33,7 @@ use anyhow::Context;
 use ipc_types::{EngineFrame, LungFrame, NUM_LUNGS};
 use lung_model::mesh::Side;
 use lung_model::scene::Scene;
+use lung_model::scene::SceneExt;
 use renderer::RenderLung;
 use tracker_bridge::igtl::{Timestamp, Transform};
 use tracker_bridge::igtl_polydata::{PointScalars, Topology};

@@ -27,6 +27,7 @@ use crate::link::Impairment;
 use crate::site::Site;
 use crate::source::Source;
 use crate::{site_id, Keys, Net, RemoteError};
+use lung_model::scene::SceneExt;
 use lung_model::scene_remote::{RemoteRole, RemoteScene};
 
 /// Options of `lungdyn remote serve`.

@@ -9,6 +9,7 @@ use std::sync::atomic::{AtomicBool, Ordering};
 use std::sync::Arc;
 use std::time::{Duration, Instant};
 
+use lung_model::scene::SceneExt;
 use lungdyn_remote::harness::{self, harness_core, locator, run_source, HarnessArgs};
 use lungdyn_remote::link::Impairment;
 use lungdyn_remote::relay::Relay;

@@ -10,6 +10,7 @@ use transport::process::{ArgError, PinError, ProcessArgs};
 use transport::PortError;
 
 use crate::gpu::GpuError;
+use lung_model::scene::SceneExt;
 
 /// Command-line options of the `renderer` process.
 #[derive(Debug, Clone, clap::Args)]

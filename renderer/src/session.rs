@@ -32,6 +32,7 @@ use crate::gpu::Gpu;
 use crate::{DrawState, LungRenderer};
 
 use crate::options::{HudSwitch, RendererArgs, RendererError, SnapshotView};
+use lung_model::scene::SceneExt;
 
 /// The streams a session reads and writes.
 pub struct Ports {

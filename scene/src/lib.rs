@@ -1,9 +1,14 @@
-//! # lungdyn-scene: the scene tables each process reads for itself
+//! # lungdyn-scene: the scene schema, every table of it
 //!
-//! A scene file (TOML, `docs/SCENES.md`) describes one run. Its physics tables (`[pv]`,
-//! `[engine]`, `[lungs]`, `[disease]`) are `lung-model`'s: their values are physics types (presets,
-//! deformation modes, elasticity fields) and their checks need the physics. The tables here carry no
-//! physics and are read by processes that do not link the lung model:
+//! A scene file (TOML, `docs/SCENES.md`) describes one run. This crate owns its schema: every
+//! table's types, their defaults (`Scene::default()` is the default scene, mirrored by
+//! `scenes/default.toml`) and the checks that need no physics. Unknown keys are errors: a misspelt
+//! key must not silently fall back to a default in a clinical tool.
+//! * [`pv`] — `[pv]`: the pressure–volume preset and timing, or a ventilator recording to play;
+//! * [`engine`] — `[engine]`: the tick, pose staleness, gravity and the orientation method;
+//! * [`lungs`] — `[lungs]`: which lungs, their shape, kernels, motion and deformation mode (and the
+//!   names of that vocabulary: [`lungs::Side`], [`lungs::DeformMode`]...);
+//! * [`disease`] — `[disease]`: a disease state and its interventions;
 //! * [`tracker`] — `[tracker]`: where poses come from and the synthetic patient's posture; the
 //!   tracker-bridge reads it from the scene file itself ([`read_table`]), nothing re-stringified;
 //! * [`processes`] — `[processes]`: cores, per-process budgets, real-time scheduling and each
@@ -12,13 +17,22 @@
 //! * [`remote`] — `[remote]`: this machine's part in a shared session;
 //! * [`breathing`] — `[breathing]`: the scene's model or the patient's signal; the bridge reads its
 //!   `signal` (where the samples come from) itself;
+//! * [`slicer`] — `[slicer]`: the lungs sent to 3D Slicer;
 //! * [`wake`] — the wake strategies' names, shared by the scene and the transport.
 //!
-//! `lung_model::scene::Scene` holds every table (these re-exported there under their old names) and
-//! calls each table's `validate` here; each check's message names its table and key.
+//! The physics tables' checks call the physics (a preset's constants, the PV timing, a disease
+//! against the lungs' shapes, a kernel against the mode) and live in `lung-model`:
+//! `lung_model::scene::SceneExt` reads, validates and resolves a [`Scene`]
+//! (`lung_model::scene::Scene` is this one, re-exported). The tables a process reads for itself
+//! ([`tracker`], [`processes`], [`render`], [`remote`], [`breathing`], [`slicer`]) are checked here, by
+//! each table's `validate`; each check's message names its table and key.
 
 pub mod breathing;
+pub mod disease;
+pub mod engine;
+pub mod lungs;
 pub mod processes;
+pub mod pv;
 pub mod remote;
 pub mod render;
 pub mod slicer;
@@ -29,6 +43,45 @@ use std::io::Read;
 use std::path::{Path, PathBuf};
 
 pub use processes::FRAME_DEADLINE_MS;
+use serde::{Deserialize, Serialize};
+
+use breathing::BreathingScene;
+use engine::EngineScene;
+use lungs::LungsScene;
+use processes::ProcessesScene;
+use pv::PvScene;
+use render::RenderScene;
+use slicer::SlicerScene;
+use tracker::TrackerScene;
+
+/// A complete scene.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields, default)]
+#[derive(Default)]
+pub struct Scene {
+    /// Pressure–volume model.
+    pub pv: PvScene,
+    /// Engine timing.
+    pub engine: EngineScene,
+    /// Lung geometry.
+    pub lungs: LungsScene,
+    /// Rendering.
+    pub render: RenderScene,
+    /// Disease state (`[disease]`, [`crate::disease`]); none for normal breathing.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub disease: Option<crate::disease::DiseaseScene>,
+    /// Where the patient and HMD poses come from.
+    pub tracker: TrackerScene,
+    /// Where each process runs and what it may spend per tracker sample.
+    pub processes: ProcessesScene,
+    /// This machine's part in a shared session (`[remote]`, [`crate::remote`]); none alone.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub remote: Option<crate::remote::RemoteScene>,
+    /// What the lungs breathe to: the PV model, or the patient's signal (`[breathing]`).
+    pub breathing: BreathingScene,
+    /// The lungs sent to 3D Slicer over OpenIGTLink during a demo (`[slicer]`; off by default).
+    pub slicer: SlicerScene,
+}
 
 /// A value of the `[processes]` or `[render]` table that parses but cannot be used; each names its
 /// table and key.

@@ -1,5 +1,6 @@
 //! Helpers shared by the workspace-level tests.
 
+use lung_model::scene::SceneExt;
 use std::path::PathBuf;
 
 /// The folder holding the workspace's built binaries (`target/<profile>`), derived from the test
@@ -266,6 +267,7 @@ pub fn engine_frame(
 #[cfg(test)]
 mod tests {
     use ipc_types::{lung_flags, LUNG_LEFT, LUNG_RIGHT};
+    use lung_model::scene::SceneExt;
 
     /// Each lung's kernel id, flags and volume land in its side's entry for either `[lungs] sides`
     /// order, and a lung the scene leaves out stays inactive (slot order once put the flags of a

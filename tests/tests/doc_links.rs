@@ -256,3 +256,27 @@ fn the_checker_sees_links_anchors_and_code() {
         PathBuf::from("README.md")
     );
 }
+
+/// Most lines the README may have: a first screen (the two commands), what lungdyn does with pictures,
+/// and links; a topic's detail belongs in `docs/` (issue 33: it had grown to 855 lines, with a
+/// changelog of branch names in its remote section).
+const README_MAX_LINES: usize = 300;
+
+#[test]
+fn the_readme_stays_a_first_screen_and_links() {
+    let root = repo_root();
+    let text = std::fs::read_to_string(root.join("README.md")).expect("README.md");
+    let lines = text.lines().count();
+    assert!(
+        lines <= README_MAX_LINES,
+        "README.md has {lines} lines, more than {README_MAX_LINES}: move a section's detail into docs/ \
+         and leave a line and a link"
+    );
+    let first_screen: Vec<&str> = text.lines().take(40).collect();
+    for command in ["./run demo", "./run test"] {
+        assert!(
+            first_screen.iter().any(|l| l.trim() == command),
+            "the README's first 40 lines must give `{command}` on a line of its own"
+        );
+    }
+}

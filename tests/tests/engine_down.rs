@@ -5,6 +5,7 @@
 
 use ipc_types::{report_flags, FrameReport};
 use lung_model::scene::Scene;
+use lung_model::scene::SceneExt;
 use lungdyn_tests::prepared_scene;
 use renderer::gpu::Gpu;
 use renderer::process::{Ports, Session, Snapshots};

@@ -7,6 +7,7 @@
 
 use ipc_types::{report_flags as rf, FrameReport};
 use lung_model::scene::Scene;
+use lung_model::scene::SceneExt;
 use lungdyn_tests::prepared_scene;
 use renderer::governor::{Quality, Step};
 use renderer::gpu::Gpu;

@@ -7,6 +7,7 @@ use ipc_types::{
     lung_flags, report_flags, EngineFrame, FrameReport, LAYOUT_VERSION, LUNG_LEFT, LUNG_RIGHT,
 };
 use lung_model::scene::Scene;
+use lung_model::scene::SceneExt;
 use lungdyn_tests::prepared_scene;
 use renderer::gpu::Gpu;
 use renderer::process::{Ports, Session, Snapshots};

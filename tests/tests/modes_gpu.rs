@@ -10,6 +10,7 @@ use ipc_types::{EngineFrame, Pose, ToolPose, TrackerFrame, LAYOUT_VERSION, TOOL_
 use lung_model::deform::modes::{CpuLung, DeformMode};
 use lung_model::kernel::section;
 use lung_model::scene::Scene;
+use lung_model::scene::SceneExt;
 use renderer::gpu::Gpu;
 use renderer::{DrawState, LungRenderer, RenderLung};
 

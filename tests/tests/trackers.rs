@@ -11,6 +11,7 @@ use std::time::Duration;
 use engine::runtime::{EngineCore, LungGeometry};
 use ipc_types::{EngineFrame, TrackerFrame, TOOL_HMD, TOOL_PATIENT};
 use lung_model::deform::LungModel;
+use lung_model::scene::SceneExt;
 use lungdyn_tests::{assert_clean_failure, bin, lungdyn, unique_instance};
 use tracker_bridge::assemble::Assembler;
 use tracker_bridge::igtl::{Body, Message, QtDataElement, Timestamp};

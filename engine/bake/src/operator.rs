@@ -237,7 +237,7 @@ impl NodeGraph {
         let modulus: Vec<f64> = mesh
             .positions
             .iter()
-            .map(|&p| elasticity.youngs_modulus(normalised(p)))
+            .map(|&p| lung_model::operator::youngs_modulus(elasticity, normalised(p)))
             .collect();
         Self::new(&positions, mesh_edges(mesh), &modulus)
     }
@@ -791,7 +791,12 @@ mod tests {
             let modulus: Vec<f64> = mesh
                 .positions
                 .iter()
-                .map(|&p| e.youngs_modulus(normalised_position(p, &bb, Side::Left)))
+                .map(|&p| {
+                    lung_model::operator::youngs_modulus(
+                        &e,
+                        normalised_position(p, &bb, Side::Left),
+                    )
+                })
                 .collect();
             NodeGraph::new(&positions, mesh_edges(&mesh), &modulus).unwrap()
         };

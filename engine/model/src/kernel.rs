@@ -41,6 +41,11 @@
 //! floats finite): a truncated, foreign or corrupted file is refused with a specific
 //! [`FormatError`].
 
+// The scene file's names for this module's vocabulary are `lungdyn-scene`'s (the schema crate).
+pub use lungdyn_scene::lungs::{
+    DEFAULT_AMPLITUDE_SMOOTHING_MM, DEFAULT_SH_BANDS, DEFAULT_TOLERANCE,
+};
+
 use std::path::{Path, PathBuf};
 
 use serde::{Deserialize, Serialize};
@@ -137,8 +142,6 @@ pub struct BakeSettings {
     pub amplitude_smoothing_mm: f64,
 }
 
-/// Default smoothing length of the elastostatic amplitude, mm (EQUATIONS.md §2.4).
-pub const DEFAULT_AMPLITUDE_SMOOTHING_MM: f64 = 10.0;
 /// Largest smoothing length accepted, mm (a lung is ≈ 100–250 mm across).
 pub const MAX_AMPLITUDE_SMOOTHING_MM: f64 = 100.0;
 
@@ -147,17 +150,12 @@ pub fn amplitude_smoothing_ok(length_mm: f64) -> bool {
     length_mm == 0.0 || (length_mm > 0.0 && length_mm <= MAX_AMPLITUDE_SMOOTHING_MM)
 }
 
-/// Bands baked by default (the seed's 16 coefficients).
-pub const DEFAULT_SH_BANDS: u32 = 4;
 /// Most bands a kernel may carry for the run time (`ipc_types::MAX_COEFFS` = 64 = 8²).
 pub const MAX_RUNTIME_BANDS: u32 = 8;
 
 fn default_sh_bands() -> u32 {
     DEFAULT_SH_BANDS
 }
-
-/// Default pitcher tolerance for a unit force (see `docs/EQUATIONS.md` §2.3 for what it gives).
-pub const DEFAULT_TOLERANCE: f64 = 1e-5;
 
 impl BakeSettings {
     /// The default motion ([`crate::deform::DirectionPreset::default`], the population
@@ -168,7 +166,7 @@ impl BakeSettings {
 
     /// [`Self::default_for`] with the motion of `preset`.
     pub fn for_preset(preset: crate::deform::DirectionPreset, side: Side) -> Self {
-        let m = preset.motion(side);
+        let m = crate::deform::preset_motion(preset, side);
         Self {
             motion: m.constants,
             direction_field: m.direction_field,

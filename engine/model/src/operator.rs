@@ -7,95 +7,16 @@
 //! ([`TransferStats`]). Building `T` (node graph, eq. 6.7, the pass itself) is bake time and lives
 //! in `lung-bake`'s `operator`.
 
+// The scene file's names for this module's vocabulary are `lungdyn-scene`'s (the schema crate).
+pub use lungdyn_scene::lungs::{Elasticity, ElasticityError, MODULUS_RANGE};
+
 use glam::DVec3;
 use rayon::prelude::*;
-use thiserror::Error;
 
-/// Regional elasticity: relative Young's modulus over the normalised position (x̂, ŷ, ẑ) of
-/// eq. 6.14–6.16 (ẑ apex → base, ŷ posterior → anterior).
-///
-/// `E(ŷ, ẑ) = (apex + (base − apex)·ẑ) · (1 − dependent·(1 − ŷ))`: stiff at the apex where the
-/// alveoli expand least, compliant at the base (diaphragm) where they expand most, and softer again
-/// on the gravity-dependent (posterior, for a supine patient) side. The defaults are the prototype of
-/// EQUATIONS.md §2.3 (E from 4 at the apex to 1 at the base) with a 30 % dependent softening.
-#[derive(Debug, Clone, Copy, PartialEq, serde::Serialize, serde::Deserialize)]
-#[serde(deny_unknown_fields, default)]
-pub struct Elasticity {
-    /// Relative Young's modulus at the apex (ẑ = 0).
-    pub apex: f64,
-    /// Relative Young's modulus at the base (ẑ = 1).
-    pub base: f64,
-    /// Fraction by which `E` drops towards the dependent (posterior) side, in [0, 1).
-    pub dependent: f64,
-}
-
-impl Default for Elasticity {
-    fn default() -> Self {
-        Self {
-            apex: 4.0,
-            base: 1.0,
-            dependent: 0.3,
-        }
-    }
-}
-
-impl Elasticity {
-    /// A uniform modulus (validation cases, tests).
-    pub fn uniform(e: f64) -> Self {
-        Self {
-            apex: e,
-            base: e,
-            dependent: 0.0,
-        }
-    }
-
-    /// Check the field gives a finite, positive modulus everywhere: `apex` and `base` within
-    /// [`MODULUS_RANGE`], `dependent` in [0, 1).
-    pub fn validate(&self) -> Result<(), ElasticityError> {
-        let ok = |v: f64| v.is_finite() && (MODULUS_RANGE.0..=MODULUS_RANGE.1).contains(&v);
-        if !ok(self.apex) || !ok(self.base) {
-            return Err(ElasticityError::Moduli {
-                apex: self.apex,
-                base: self.base,
-            });
-        }
-        if !(self.dependent.is_finite() && (0.0..1.0).contains(&self.dependent)) {
-            return Err(ElasticityError::Dependent(self.dependent));
-        }
-        Ok(())
-    }
-
-    /// Relative Young's modulus at normalised position `n`.
-    pub fn youngs_modulus(&self, n: DVec3) -> f64 {
-        (self.apex + (self.base - self.apex) * n.z) * (1.0 - self.dependent * (1.0 - n.y))
-    }
-}
-
-/// Range of the relative Young's moduli `apex` and `base`. Only their ratio shapes the operator (the
-/// defaults are 4 and 1, EQUATIONS.md §2.3); regional lung compliance varies a few times from apex to
-/// base, so 0.01–100 is ample. Outside it the apex-to-base ramp loses the modulus to rounding (apex
-/// 1e308 and base 1 give a modulus of exactly 0 at the base).
-pub const MODULUS_RANGE: (f64, f64) = (0.01, 100.0);
-
-/// The elasticity field is unusable.
-#[derive(Debug, Clone, PartialEq, Error)]
-pub enum ElasticityError {
-    /// A modulus is not finite and within [`MODULUS_RANGE`].
-    #[error(
-        "apex = {} and base = {} must each be within 0.01–100 (relative Young's moduli: only their \
-         ratio matters; the default is apex 4, base 1)",
-        crate::plausible::compact(*.apex),
-        crate::plausible::compact(*.base)
-    )]
-    Moduli {
-        /// Modulus at the apex.
-        apex: f64,
-        /// Modulus at the base.
-        base: f64,
-    },
-    /// The dependent softening is outside [0, 1).
-    #[error("dependent = {} must be in [0, 1)", crate::plausible::compact(*.0))]
-    Dependent(f64),
+/// Relative Young's modulus of `e` at normalised position `n` (eq. 6.14–6.16's ẑ and ŷ; the field's
+/// form is [`Elasticity`]'s).
+pub fn youngs_modulus(e: &Elasticity, n: DVec3) -> f64 {
+    (e.apex + (e.base - e.apex) * n.z) * (1.0 - e.dependent * (1.0 - n.y))
 }
 
 /// Order in which pitchers are emptied. Both run eq. 6.11–6.13 to the same fixed point; they differ
@@ -316,10 +237,10 @@ mod tests {
         }
         let e = Elasticity::default();
         assert_eq!(
-            e.youngs_modulus(DVec3::new(0.5, 1.0, 0.0)),
+            youngs_modulus(&e, DVec3::new(0.5, 1.0, 0.0)),
             4.0,
             "apex, anterior"
         );
-        assert_eq!(e.youngs_modulus(DVec3::new(0.5, 1.0, 1.0)), 1.0, "base");
+        assert_eq!(youngs_modulus(&e, DVec3::new(0.5, 1.0, 1.0)), 1.0, "base");
     }
 }

@@ -47,6 +47,9 @@
 //!
 //! Everything is f64 and allocation-free: the engine calls [`Orientation::weights`] every tick.
 
+// The scene file's names for this module's vocabulary are `lungdyn-scene`'s (the schema crate).
+pub use lungdyn_scene::engine::{OrientationMethod, DEFAULT_MIN_SLOPE_RATIO};
+
 use glam::{DMat3, DQuat, DVec3, EulerRot};
 use thiserror::Error;
 
@@ -184,25 +187,6 @@ impl SeedBlend {
         out
     }
 }
-
-/// How the engine turns the patient's pose into force weights (scene `[engine] orientation`).
-#[derive(Debug, Clone, Copy, PartialEq, Eq, serde::Serialize, serde::Deserialize)]
-#[serde(rename_all = "lowercase")]
-pub enum OrientationMethod {
-    /// The patient is taken as supine whatever the tracker says (Table 6.1's force).
-    Fixed,
-    /// The exact rotation of the weights (EQUATIONS.md §3.3).
-    Exact,
-    /// The seed's eq. 7.8–7.9 blend of 12 precomputed orientations (for comparison).
-    Seed,
-}
-
-/// Smallest volume slope, as a fraction of the supine one, the weights may give by default
-/// ([`VolumeLimit`], scene `[engine] min_slope_ratio`). EQUATIONS.md §3.3: at 0.8 no posture of the
-/// bake's orientation set folds either default lung from FRC − 500 to FRC + 1500 ml (1000 and 10k
-/// vertices) and the largest vertex move stays within 1.7× the supine one; at the earlier 0.5 the
-/// turned breath moved up to 3.2× as far and folded the surface beyond FRC + 500 ml.
-pub const DEFAULT_MIN_SLOPE_RATIO: f64 = 0.8;
 
 /// Whether `ratio` is a usable [`VolumeLimit`] ratio: finite, in `[0, 1]` (0: no limit).
 pub fn min_slope_ratio_ok(ratio: f64) -> bool {

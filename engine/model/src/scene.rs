@@ -1,17 +1,27 @@
-//! # scene: what a run models, and nothing more
+//! # scene: what the physics makes of a scene
 //!
-//! A scene file (TOML) names the lungs, the PV preset and timing, the mesh resolution and how the
-//! renderer draws. Every field has a default ([`Scene::default`], mirrored by `scenes/default.toml`),
-//! so an empty file is the default scene. Unknown keys are errors: a misspelt key must not silently
-//! fall back to a default in a clinical tool.
+//! The scene file's schema — every table's types, defaults and the checks that need no physics — is
+//! `lungdyn-scene`'s ([`Scene`] is its, re-exported here with every table so that callers name them
+//! from one place). This module is the half that needs the physics, as [`SceneExt`]: reading a scene
+//! file within limits (with the scenes beside a mistyped path), checking the physics tables' values
+//! against the models (a preset that exists, a timing that gives a cycle, a disease against the lungs'
+//! shapes, files that exist), and resolving a scene into what runs: the lungs' run-time models from
+//! their kernels, the PV model or recording it breathes, its disease and its bake settings. Every field
+//! has a default (`Scene::default()`, mirrored by `scenes/default.toml`), so an empty file is the
+//! default scene; unknown keys are errors.
+
+pub use lungdyn_scene::engine::EngineScene;
+pub use lungdyn_scene::lungs::{KernelPaths, LungsScene};
+pub use lungdyn_scene::pv::{PvScene, WaveformControl};
+pub use lungdyn_scene::Scene;
 
 use std::path::Path;
 
-use serde::{Deserialize, Serialize};
+use serde::Serialize;
 
 use crate::mesh::Side;
-// The tables a process reads for itself (`[tracker]`, `[processes]`, `[render]`, `[remote]`) are
-// `lungdyn-scene`'s; re-exported here so that `Scene`'s users name every table from one place.
+use crate::scene_disease::DiseaseSceneExt;
+// The tables a process reads for itself, re-exported beside the physics tables above.
 pub use lungdyn_scene::breathing::{BreathSource, BreathingScene};
 pub use lungdyn_scene::processes::*;
 pub use lungdyn_scene::render::*;
@@ -19,76 +29,6 @@ pub use lungdyn_scene::slicer::{self, SlicerScene};
 pub use lungdyn_scene::tracker::*;
 pub use lungdyn_scene::wake::WakeMode;
 pub use lungdyn_scene::TableError;
-
-/// A complete scene.
-#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
-#[serde(deny_unknown_fields, default)]
-#[derive(Default)]
-pub struct Scene {
-    /// Pressure–volume model.
-    pub pv: PvScene,
-    /// Engine timing.
-    pub engine: EngineScene,
-    /// Lung geometry.
-    pub lungs: LungsScene,
-    /// Rendering.
-    pub render: RenderScene,
-    /// Disease state (`[disease]`, [`crate::scene_disease`]); none for normal breathing.
-    #[serde(default, skip_serializing_if = "Option::is_none")]
-    pub disease: Option<crate::scene_disease::DiseaseScene>,
-    /// Where the patient and HMD poses come from.
-    pub tracker: TrackerScene,
-    /// Where each process runs and what it may spend per tracker sample.
-    pub processes: ProcessesScene,
-    /// This machine's part in a shared session (`[remote]`, [`crate::scene_remote`]); none alone.
-    #[serde(default, skip_serializing_if = "Option::is_none")]
-    pub remote: Option<crate::scene_remote::RemoteScene>,
-    /// What the lungs breathe to: the PV model, or the patient's signal (`[breathing]`).
-    pub breathing: BreathingScene,
-    /// The lungs sent to 3D Slicer over OpenIGTLink during a demo (`[slicer]`; off by default).
-    pub slicer: SlicerScene,
-}
-
-/// `[pv]` table.
-#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
-#[serde(deny_unknown_fields, default)]
-pub struct PvScene {
-    /// Preset name from Table 5.1 (see `lungdyn pv` presets).
-    pub preset: String,
-    /// Breaths per minute.
-    pub breaths_per_min: f64,
-    /// I:E ratio as `[I, E]` (default [`crate::pv::DEFAULT_IE_RATIO`], 1:2, quiet breathing;
-    /// `[1, 1]` is the seed's, [`crate::pv::SEED_IE_RATIO`]; EQUATIONS §1.1).
-    pub ie_ratio: [f64; 2],
-    /// A constants file written by `lungdyn pv fit` (relative to the scene file); replaces the
-    /// preset's constants and boundary values when given.
-    #[serde(skip_serializing_if = "Option::is_none")]
-    pub constants: Option<std::path::PathBuf>,
-    /// A ventilator recording (relative to the scene file; any file `lungdyn pv recording` reads):
-    /// the lungs play its measured volume–time curve — its whole, clean breaths averaged into one,
-    /// resampled to the tick and looped — above the preset's FRC, at the recording's own rate and
-    /// I:E (`breaths_per_min`, `ie_ratio` and the PV constants are not used; no PV model is built).
-    #[serde(skip_serializing_if = "Option::is_none")]
-    pub waveform: Option<std::path::PathBuf>,
-    /// What the ventilator of a `[pv] waveform` scene holds fixed when a disease changes the lungs
-    /// (EQUATIONS §4.7): `"auto"` (default) the recording's own classification (the majority of its
-    /// whole breaths), `"volume"` or `"pressure"` to override it (`scene check` warns when that
-    /// contradicts the recording).
-    pub waveform_control: WaveformControl,
-}
-
-/// `[pv] waveform_control`.
-#[derive(Debug, Clone, Copy, PartialEq, Eq, Default, Serialize, Deserialize)]
-#[serde(rename_all = "snake_case")]
-pub enum WaveformControl {
-    /// The recording's classification decides.
-    #[default]
-    Auto,
-    /// Volume control: the recorded volume is delivered (up to the pressure limit).
-    Volume,
-    /// Pressure control: the recorded pressure is held; the volume follows the compliance.
-    Pressure,
-}
 
 /// The control mode a `[pv] waveform` scene's ventilator runs in, and why.
 #[derive(Debug, Clone, PartialEq, Serialize)]
@@ -102,146 +42,6 @@ pub struct ControlChoice {
     /// The scene's choice contradicts the recording's classification.
     #[serde(skip_serializing_if = "Option::is_none")]
     pub warning: Option<String>,
-}
-
-/// `[engine]` table.
-#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
-#[serde(deny_unknown_fields, default)]
-pub struct EngineScene {
-    /// Tick rate, Hz.
-    pub tick_hz: f64,
-    /// Ticks the patient pose may be held before it is reported stale.
-    pub pose_staleness_ticks: u32,
-    /// Gravity ("down") in the tracker's room frame, unit vector: the synthetic tracker's room has
-    /// +Z up. A real tracker's camera frame is mounted however it is: state it.
-    pub gravity_room: [f64; 3],
-    /// How the patient's pose becomes the applied force (EQUATIONS.md §3.3): "exact" (the rotated
-    /// weights), "seed" (eq. 7.8–7.9's blend, for comparison), or "fixed" (always supine).
-    pub orientation: crate::orientation::OrientationMethod,
-    /// Where the supine model ends (EQUATIONS.md §3.3): a turned patient's force weights are moved
-    /// towards supine until the field's volume slope is at least this fraction of the supine one.
-    /// Default 0.8 (no posture folds the default lungs to FRC + 1500 ml); 0.5 was lungdyn's earlier
-    /// value; 0 is no limit (the seed's eq. 7.8–7.9 limit nothing).
-    pub min_slope_ratio: f64,
-}
-
-/// `[lungs]` table.
-#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
-#[serde(deny_unknown_fields, default)]
-pub struct LungsScene {
-    /// Which lungs the scene simulates and draws.
-    pub sides: Vec<Side>,
-    /// Vertices per generated default lung (what the launcher bakes for a lung without a kernel).
-    pub vertices: usize,
-    /// Shape of the generated lungs (a lung with a kernel ignores it): "anatomical" (the default:
-    /// lobes, hilum, cardiac notch, domed base; `mesh::anatomy`) or "teardrop" (the earlier smooth
-    /// shape; `mesh::teardrop`).
-    pub shape: crate::mesh::generate::Shape,
-    /// Regional elasticity of the operator (`[lungs.elasticity]`: apex, base, dependent).
-    pub elasticity: crate::operator::Elasticity,
-    /// Pitcher tolerance of the transfer pass for a unit force.
-    pub transfer_tolerance: f64,
-    /// Motion constants written by `lungdyn fit-motion` (relative to the scene file); the
-    /// `directions` preset when absent.
-    #[serde(skip_serializing_if = "Option::is_none")]
-    pub motion: Option<std::path::PathBuf>,
-    /// The motion without a motion file: "population" (diaphragm-driven constants matched to 4DCT;
-    /// the default), "breath-hold" (the population of six breath-hold pairs) or "seed" (Table 6.1).
-    /// EQUATIONS.md §2.4.
-    pub directions: crate::deform::DirectionPreset,
-    /// Length (mm) over which the bake makes the elastostatic amplitude smooth on the surface, so the
-    /// deformed lungs do not fold (EQUATIONS.md §2.4); 0 is the seed's unsmoothed reading.
-    pub amplitude_smoothing_mm: f64,
-    /// How the lungs deform (EQUATIONS.md §3): "precomputed" (one baked field, supine, 3 MACs per
-    /// vertex), "basis" (exact for any orientation, 4 MACs), "sh" (eq. 7.7 with `bands` bands),
-    /// "direct" (eq. 7.1 every frame, the accuracy reference). Only what the mode needs is loaded.
-    pub mode: crate::deform::modes::DeformMode,
-    /// Spherical-harmonic bands a bake stores (n² coefficients per vertex, 1..8; the seed's 16
-    /// coefficients are 4 bands).
-    pub bands: u32,
-    /// Error budget, mm (RMS displacement against eq. 7.1): the bake keeps the fewest bands that meet
-    /// it; with `mode` left at its default, the launcher picks the cheapest orientation-following mode
-    /// that meets it (the exact basis, whose error is round-off).
-    #[serde(skip_serializing_if = "Option::is_none")]
-    pub max_error_mm: Option<f64>,
-    /// Baked kernels (`lungdyn bake`), relative to the scene file: `[lungs.kernels] left = "l.kernel"`.
-    /// The engine and renderer processes need one per lung; the launcher (`lungdyn demo`,
-    /// `lungdyn scene prepare`) bakes the generated default lung for a lung without one, once.
-    pub kernels: KernelPaths,
-}
-
-/// `[lungs.kernels]` table.
-#[derive(Debug, Clone, PartialEq, Default, Serialize, Deserialize)]
-#[serde(deny_unknown_fields, default)]
-pub struct KernelPaths {
-    /// Left lung kernel.
-    #[serde(skip_serializing_if = "Option::is_none")]
-    pub left: Option<std::path::PathBuf>,
-    /// Right lung kernel.
-    #[serde(skip_serializing_if = "Option::is_none")]
-    pub right: Option<std::path::PathBuf>,
-}
-
-impl KernelPaths {
-    /// The kernel of `side`, if any.
-    pub fn get(&self, side: Side) -> Option<&std::path::Path> {
-        match side {
-            Side::Left => self.left.as_deref(),
-            Side::Right => self.right.as_deref(),
-        }
-    }
-
-    /// Set the kernel of `side`.
-    pub fn set(&mut self, side: Side, path: std::path::PathBuf) {
-        match side {
-            Side::Left => self.left = Some(path),
-            Side::Right => self.right = Some(path),
-        }
-    }
-}
-
-impl Default for PvScene {
-    fn default() -> Self {
-        Self {
-            preset: crate::pv::DEFAULT_PRESET.to_string(),
-            breaths_per_min: 12.0,
-            ie_ratio: crate::pv::DEFAULT_IE_RATIO,
-            constants: None,
-            waveform: None,
-            waveform_control: WaveformControl::Auto,
-        }
-    }
-}
-
-impl Default for EngineScene {
-    fn default() -> Self {
-        Self {
-            tick_hz: 60.0,
-            pose_staleness_ticks: 30,
-            gravity_room: [0.0, 0.0, -1.0],
-            orientation: crate::orientation::OrientationMethod::Exact,
-            min_slope_ratio: crate::orientation::DEFAULT_MIN_SLOPE_RATIO,
-        }
-    }
-}
-
-impl Default for LungsScene {
-    fn default() -> Self {
-        Self {
-            sides: vec![Side::Right, Side::Left],
-            vertices: 10_000,
-            shape: crate::mesh::generate::Shape::Anatomical,
-            elasticity: crate::operator::Elasticity::default(),
-            transfer_tolerance: crate::kernel::DEFAULT_TOLERANCE,
-            motion: None,
-            directions: crate::deform::DirectionPreset::Population,
-            amplitude_smoothing_mm: crate::kernel::DEFAULT_AMPLITUDE_SMOOTHING_MM,
-            mode: crate::deform::modes::DeformMode::Basis,
-            bands: crate::kernel::DEFAULT_SH_BANDS,
-            max_error_mm: None,
-            kernels: KernelPaths::default(),
-        }
-    }
 }
 
 /// Why a scene file could not be read, without repeating its path (the message names it once).
@@ -516,17 +316,109 @@ fn describe_tumour(t: Option<&crate::disease::tumour::Tumour>, baked: bool) -> S
     }
 }
 
-impl Scene {
+/// What the physics makes of a [`Scene`] (the schema is `lungdyn-scene`'s): reading and checking a
+/// scene file, the lungs' run-time models, the PV model or recording it breathes, its disease and its
+/// bake. `use lung_model::scene::SceneExt` brings these to `Scene` (`Scene::load(path)`,
+/// `scene.pv_model(..)`) as they were before the schema had its own crate.
+pub trait SceneExt: Sized {
     /// The run-time model of `side` from its kernel (memory-mapped, verified); a run-time process
     /// never bakes, so a scene without a kernel for `side` is an error that says how to get one.
-    pub fn lung(&self, side: Side) -> Result<crate::deform::LungModel, LungLoadError> {
-        Ok(self.lung_kernel(side)?.lung_model())
-    }
+    fn lung(&self, side: Side) -> Result<crate::deform::LungModel, LungLoadError>;
 
     /// The kernel of `side`, mapped lazily ([`crate::kernel::KernelFile::open_lazy`]: the sections
     /// the scene's mode does not read are never checked or paged in) and checked: plausible size,
     /// the right lung, and what the scene's `[lungs] mode` needs.
-    pub fn lung_kernel(&self, side: Side) -> Result<crate::kernel::KernelFile, LungLoadError> {
+    fn lung_kernel(&self, side: Side) -> Result<crate::kernel::KernelFile, LungLoadError>;
+
+    /// Every lung the scene simulates, in scene order.
+    fn lung_models(&self) -> Result<Vec<crate::deform::LungModel>, LungLoadError>;
+
+    /// Load a scene from a TOML file and validate it.
+    fn load(path: &Path) -> Result<Self, SceneError>;
+
+    /// Parse and validate scene TOML; `origin` names it in errors.
+    fn parse(text: &str, origin: &str) -> Result<Self, SceneError>;
+
+    /// How the scene at `path` (or the built-in default) is named in messages.
+    fn origin(path: Option<&Path>) -> String;
+
+    /// Load `path` if given, else the default scene.
+    fn load_or_default(path: Option<&Path>) -> Result<Self, SceneError>;
+
+    /// Range checks that serde cannot express.
+    fn validate(&self) -> Result<(), SceneValueError>;
+
+    /// The `[breathing]` predictor, its horizon the table's latency.
+    fn breathing_predictor(&self) -> Result<crate::breathing::predict::PredictorKind, TableError>;
+
+    /// The PV constants and boundary values of this scene: the fitted file if named, else the preset.
+    fn pv_model(
+        &self,
+    ) -> Result<
+        (
+            crate::pv::PhaseConstants,
+            crate::pv::PhaseConstants,
+            crate::pv::Boundary,
+        ),
+        SceneValueError,
+    >;
+
+    /// The breathing of a `[pv] waveform` scene, read from its recording (`None` without one).
+    /// Reads the file (bounded): call at load time.
+    fn pv_waveform(&self) -> Result<Option<crate::recording::Waveform>, SceneValueError>;
+
+    /// The scene's disease state, validated against its lungs (`None` without `[disease]`). On a
+    /// `[pv] waveform` scene the course runs on the ventilator's recorded breath
+    /// ([`crate::scene_disease::DiseaseSceneExt::validate_ventilated`], EQUATIONS §4.7).
+    fn disease_spec(
+        &self,
+    ) -> Result<Option<crate::scene_disease::DiseaseSpec>, crate::scene_disease::DiseaseSceneError>;
+
+    /// The breathing cycle of a `[pv] waveform` scene: its averaged breath above the preset's FRC
+    /// (`None` without a waveform: the PV model gives the cycle). Reads the recording: call at load
+    /// time.
+    fn waveform_breathing(&self) -> Result<Option<crate::pv::Breathing>, SceneValueError>;
+
+    /// The control mode of a `[pv] waveform` scene's ventilator (`None` without a waveform): the
+    /// recording's majority class unless `[pv] waveform_control` overrides it, with a warning when the
+    /// override contradicts the recording (EQUATIONS §4.7). Pressure control plays the averaged
+    /// breath's equation of motion, which only passive breaths give: on a recording with none (every
+    /// breath the patient's effort, as under pressure support) `"pressure"` is refused and `"auto"`
+    /// plays volume control, saying why.
+    fn waveform_control(
+        w: &crate::recording::Waveform,
+        set: WaveformControl,
+    ) -> Result<ControlChoice, SceneValueError>;
+
+    /// The ventilator of a `[pv] waveform` scene whose simulated lungs are `baselines` (`None`
+    /// without a waveform): the recorded breath, the volume it delivers to them and its control
+    /// ([`Self::waveform_control`]; pressure control needs a passive equation of motion of the
+    /// averaged breath). Reads the recording: call at load time.
+    fn ventilator(
+        &self,
+        baselines: &[crate::disease::LungBaseline],
+    ) -> Result<Option<(crate::disease::ventilated::Ventilator, ControlChoice)>, SceneValueError>;
+
+    /// The bake settings of `side` in this scene (motion file or the `directions` preset,
+    /// elasticity, tolerance).
+    fn bake_settings(
+        &self,
+        side: Side,
+    ) -> Result<crate::kernel::BakeSettings, crate::deform::MotionFileError>;
+
+    /// The scene's tumour, if its `[disease]` is one (validated when the scene was loaded).
+    fn tumour(&self) -> Option<crate::disease::tumour::Tumour>;
+
+    /// Breathing timing of this scene.
+    fn timing(&self) -> crate::pv::Timing;
+}
+
+impl SceneExt for Scene {
+    fn lung(&self, side: Side) -> Result<crate::deform::LungModel, LungLoadError> {
+        Ok(self.lung_kernel(side)?.lung_model())
+    }
+
+    fn lung_kernel(&self, side: Side) -> Result<crate::kernel::KernelFile, LungLoadError> {
         use crate::deform::modes::DeformMode;
         let path = self
             .lungs
@@ -606,13 +498,11 @@ impl Scene {
         Ok(file)
     }
 
-    /// Every lung the scene simulates, in scene order.
-    pub fn lung_models(&self) -> Result<Vec<crate::deform::LungModel>, LungLoadError> {
+    fn lung_models(&self) -> Result<Vec<crate::deform::LungModel>, LungLoadError> {
         self.lungs.sides.iter().map(|&s| self.lung(s)).collect()
     }
 
-    /// Load a scene from a TOML file and validate it.
-    pub fn load(path: &Path) -> Result<Self, SceneError> {
+    fn load(path: &Path) -> Result<Self, SceneError> {
         let p = path.display().to_string();
         let invalid = |source| SceneError::Invalid {
             path: p.clone(),
@@ -711,8 +601,7 @@ impl Scene {
         Ok(scene)
     }
 
-    /// Parse and validate scene TOML; `origin` names it in errors.
-    pub fn parse(text: &str, origin: &str) -> Result<Self, SceneError> {
+    fn parse(text: &str, origin: &str) -> Result<Self, SceneError> {
         let scene: Scene = toml::from_str(text).map_err(|e| SceneError::Parse {
             path: origin.to_string(),
             message: e.to_string(),
@@ -724,24 +613,21 @@ impl Scene {
         Ok(scene)
     }
 
-    /// How the scene at `path` (or the built-in default) is named in messages.
-    pub fn origin(path: Option<&Path>) -> String {
+    fn origin(path: Option<&Path>) -> String {
         path.map_or_else(
             || "(built-in default)".to_string(),
             |p| p.display().to_string(),
         )
     }
 
-    /// Load `path` if given, else the default scene.
-    pub fn load_or_default(path: Option<&Path>) -> Result<Self, SceneError> {
+    fn load_or_default(path: Option<&Path>) -> Result<Self, SceneError> {
         match path {
             Some(p) => Self::load(p),
             None => Ok(Self::default()),
         }
     }
 
-    /// Range checks that serde cannot express.
-    pub fn validate(&self) -> Result<(), SceneValueError> {
+    fn validate(&self) -> Result<(), SceneValueError> {
         use SceneValueError as E;
         crate::pv::preset(&self.pv.preset).map_err(E::Preset)?;
         crate::plausible::BREATHS_PER_MIN
@@ -816,10 +702,7 @@ impl Scene {
         Ok(())
     }
 
-    /// The `[breathing]` predictor, its horizon the table's latency.
-    pub fn breathing_predictor(
-        &self,
-    ) -> Result<crate::breathing::predict::PredictorKind, TableError> {
+    fn breathing_predictor(&self) -> Result<crate::breathing::predict::PredictorKind, TableError> {
         use crate::breathing::predict::PredictorKind;
         match PredictorKind::parse(&self.breathing.predictor) {
             Ok(PredictorKind::Cycle { .. }) => Ok(PredictorKind::Cycle {
@@ -830,8 +713,7 @@ impl Scene {
         }
     }
 
-    /// The PV constants and boundary values of this scene: the fitted file if named, else the preset.
-    pub fn pv_model(
+    fn pv_model(
         &self,
     ) -> Result<
         (
@@ -854,9 +736,7 @@ impl Scene {
         }
     }
 
-    /// The breathing of a `[pv] waveform` scene, read from its recording (`None` without one).
-    /// Reads the file (bounded): call at load time.
-    pub fn pv_waveform(&self) -> Result<Option<crate::recording::Waveform>, SceneValueError> {
+    fn pv_waveform(&self) -> Result<Option<crate::recording::Waveform>, SceneValueError> {
         let Some(path) = &self.pv.waveform else {
             return Ok(None);
         };
@@ -876,10 +756,7 @@ impl Scene {
         .map_err(|e| SceneValueError::Waveform(format!("{}: {e}", path.display())))
     }
 
-    /// The scene's disease state, validated against its lungs (`None` without `[disease]`). On a
-    /// `[pv] waveform` scene the course runs on the ventilator's recorded breath
-    /// ([`crate::scene_disease::DiseaseScene::validate_ventilated`], EQUATIONS §4.7).
-    pub fn disease_spec(
+    fn disease_spec(
         &self,
     ) -> Result<Option<crate::scene_disease::DiseaseSpec>, crate::scene_disease::DiseaseSceneError>
     {
@@ -894,36 +771,14 @@ impl Scene {
         .map(Some)
     }
 
-    /// The breathing cycle of a `[pv] waveform` scene: its averaged breath above the preset's FRC
-    /// (`None` without a waveform: the PV model gives the cycle). Reads the recording: call at load
-    /// time.
-    pub fn waveform_breathing(&self) -> Result<Option<crate::pv::Breathing>, SceneValueError> {
+    fn waveform_breathing(&self) -> Result<Option<crate::pv::Breathing>, SceneValueError> {
         let Some(w) = self.pv_waveform()? else {
             return Ok(None);
         };
-        self.breathing_of(&w).map(Some)
+        breathing_of(self, &w).map(Some)
     }
 
-    /// The breathing cycle that plays `w` above the preset's FRC.
-    fn breathing_of(
-        &self,
-        w: &crate::recording::Waveform,
-    ) -> Result<crate::pv::Breathing, SceneValueError> {
-        let frc = crate::pv::preset(&self.pv.preset)
-            .map_err(SceneValueError::Preset)?
-            .boundary
-            .frc_ml;
-        crate::pv::Breathing::from_volume_table(&w.volume_ml, w.inhale_ticks, frc)
-            .map_err(|e| SceneValueError::Waveform(e.to_string()))
-    }
-
-    /// The control mode of a `[pv] waveform` scene's ventilator (`None` without a waveform): the
-    /// recording's majority class unless `[pv] waveform_control` overrides it, with a warning when the
-    /// override contradicts the recording (EQUATIONS §4.7). Pressure control plays the averaged
-    /// breath's equation of motion, which only passive breaths give: on a recording with none (every
-    /// breath the patient's effort, as under pressure support) `"pressure"` is refused and `"auto"`
-    /// plays volume control, saying why.
-    pub fn waveform_control(
+    fn waveform_control(
         w: &crate::recording::Waveform,
         set: WaveformControl,
     ) -> Result<ControlChoice, SceneValueError> {
@@ -977,11 +832,7 @@ impl Scene {
         })
     }
 
-    /// The ventilator of a `[pv] waveform` scene whose simulated lungs are `baselines` (`None`
-    /// without a waveform): the recorded breath, the volume it delivers to them and its control
-    /// ([`Self::waveform_control`]; pressure control needs a passive equation of motion of the
-    /// averaged breath). Reads the recording: call at load time.
-    pub fn ventilator(
+    fn ventilator(
         &self,
         baselines: &[crate::disease::LungBaseline],
     ) -> Result<Option<(crate::disease::ventilated::Ventilator, ControlChoice)>, SceneValueError>
@@ -990,7 +841,7 @@ impl Scene {
         let Some(w) = self.pv_waveform()? else {
             return Ok(None);
         };
-        let recorded = self.breathing_of(&w)?;
+        let recorded = breathing_of(self, &w)?;
         let choice = Self::waveform_control(&w, self.pv.waveform_control)?;
         let control = match choice.mode {
             crate::recording::classify::ControlMode::Volume => Control::Volume,
@@ -1019,9 +870,7 @@ impl Scene {
         )))
     }
 
-    /// The bake settings of `side` in this scene (motion file or the `directions` preset,
-    /// elasticity, tolerance).
-    pub fn bake_settings(
+    fn bake_settings(
         &self,
         side: Side,
     ) -> Result<crate::kernel::BakeSettings, crate::deform::MotionFileError> {
@@ -1035,7 +884,7 @@ impl Scene {
                 )
             }
             None => {
-                let m = self.lungs.directions.motion(side);
+                let m = crate::deform::preset_motion(self.lungs.directions, side);
                 (m.constants, m.direction_field, m.force_field)
             }
         };
@@ -1059,16 +908,14 @@ impl Scene {
         })
     }
 
-    /// The scene's tumour, if its `[disease]` is one (validated when the scene was loaded).
-    pub fn tumour(&self) -> Option<crate::disease::tumour::Tumour> {
+    fn tumour(&self) -> Option<crate::disease::tumour::Tumour> {
         match self.disease.as_ref()?.resolve(self.lungs.shape).ok()? {
             crate::scene_disease::DiseaseSpec::Tumour(t) => Some(t),
             _ => None,
         }
     }
 
-    /// Breathing timing of this scene.
-    pub fn timing(&self) -> crate::pv::Timing {
+    fn timing(&self) -> crate::pv::Timing {
         crate::pv::Timing {
             tick_hz: self.engine.tick_hz,
             breaths_per_min: self.pv.breaths_per_min,
@@ -1076,6 +923,19 @@ impl Scene {
             ie_exhale: self.pv.ie_ratio[1],
         }
     }
+}
+
+/// The breathing cycle that plays `w` above the preset's FRC.
+fn breathing_of(
+    this: &Scene,
+    w: &crate::recording::Waveform,
+) -> Result<crate::pv::Breathing, SceneValueError> {
+    let frc = crate::pv::preset(&this.pv.preset)
+        .map_err(SceneValueError::Preset)?
+        .boundary
+        .frc_ml;
+    crate::pv::Breathing::from_volume_table(&w.volume_ml, w.inhale_ticks, frc)
+        .map_err(|e| SceneValueError::Waveform(e.to_string()))
 }
 
 #[cfg(test)]

@@ -1,6 +1,8 @@
-//! # scene_disease: the `[disease]` table of a scene
+//! # scene_disease: the `[disease]` table of a scene, checked and resolved
 //!
-//! What a scene says about a disease state (docs/EQUATIONS.md §4): its kind, the parameters of that
+//! The table's types are `lungdyn-scene`'s (`lungdyn_scene::disease`, re-exported here); its checks
+//! need the disease models and the lungs' shapes, so they are here, as [`DiseaseSceneExt`]. What a
+//! scene says about a disease state (docs/EQUATIONS.md §4): its kind, the parameters of that
 //! kind and — for a tension pneumothorax — the trainee's interventions as timed events:
 //!
 //! ```toml
@@ -18,7 +20,7 @@
 //! ```
 //!
 //! Unknown keys are refused by serde (with the parser's line and column). A key that exists but does
-//! not apply to the kind, a missing key and a value out of range are refused by [`DiseaseScene::resolve`]
+//! not apply to the kind, a missing key and a value out of range are refused by [`DiseaseSceneExt::resolve`]
 //! with an error that names the key. Every key but the kind's required ones has a documented default
 //! (the `disease` module's constants). Checks that need the lungs (`v1_max_ml` against the affected
 //! lung's volume, the tumour centre inside the lung) are made when the state is built from them.
@@ -26,159 +28,18 @@
 //! Documented conversions: `at_s` becomes the engine tick `round(at_s·tick_hz)` ([`TimedEvent::tick`]);
 //! events are applied in time order (a stable sort: events at the same time keep the file's order).
 
-use serde::{Deserialize, Serialize};
+pub use lungdyn_scene::disease::{
+    DiseaseKind, DiseaseScene, EventScene, TumourScene, MAX_EVENTS, MAX_TIME_S,
+};
+
 use thiserror::Error;
 
 use crate::disease::closed::ClosedPneumothorax;
-use crate::disease::tension::{Intervention, LeakSource, TensionParams};
-use crate::disease::tumour::{PhiVariant, Tumour};
+use crate::disease::tension::{Intervention, TensionParams};
+use crate::disease::tumour::Tumour;
 use crate::disease::{resistance::PHI_SEED, CourseModel, DiseaseError, ALPHA_SEED_ML};
 use crate::mesh::generate::Shape;
 use crate::mesh::Side;
-
-/// Most events a scene may list (fixed capacity).
-pub const MAX_EVENTS: usize = 1000;
-
-/// Latest time an event or onset may name, s (≈ 116 days: far beyond any run, finite ticks).
-pub const MAX_TIME_S: f64 = 1.0e7;
-
-/// `[disease] kind`.
-#[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize)]
-#[serde(rename_all = "kebab-case")]
-pub enum DiseaseKind {
-    /// Closed pneumothorax of one lung (eq. 8.1–8.9).
-    ClosedPneumothorax,
-    /// Tension pneumothorax of one lung with interventions (eq. 8.10–8.13).
-    TensionPneumothorax,
-    /// Closed pneumothorax of both lungs.
-    BilateralPneumothorax,
-    /// Tumour-influenced lung (eq. 8.14–8.22).
-    Tumour,
-}
-
-impl DiseaseKind {
-    /// Name as in scenes.
-    pub fn name(self) -> &'static str {
-        match self {
-            DiseaseKind::ClosedPneumothorax => "closed-pneumothorax",
-            DiseaseKind::TensionPneumothorax => "tension-pneumothorax",
-            DiseaseKind::BilateralPneumothorax => "bilateral-pneumothorax",
-            DiseaseKind::Tumour => "tumour",
-        }
-    }
-}
-
-/// The `[disease]` table.
-#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
-#[serde(deny_unknown_fields)]
-pub struct DiseaseScene {
-    /// Which disease state.
-    pub kind: DiseaseKind,
-    /// Affected lung (closed, tension, tumour).
-    #[serde(default, skip_serializing_if = "Option::is_none")]
-    pub side: Option<Side>,
-    /// Pneumothorax index `I ∈ [0, 1]` (closed).
-    #[serde(default, skip_serializing_if = "Option::is_none")]
-    pub index: Option<f64>,
-    /// Left lung's index (bilateral).
-    #[serde(default, skip_serializing_if = "Option::is_none")]
-    pub index_left: Option<f64>,
-    /// Right lung's index (bilateral).
-    #[serde(default, skip_serializing_if = "Option::is_none")]
-    pub index_right: Option<f64>,
-    /// Extra effort α of eq. 8.7, ml (closed, tension; default 100, the seed's demo).
-    #[serde(default, skip_serializing_if = "Option::is_none")]
-    pub alpha_ml: Option<f64>,
-    /// φ of eq. 8.8–8.9 (closed, bilateral, tension; default 0.1).
-    #[serde(default, skip_serializing_if = "Option::is_none")]
-    pub phi: Option<f64>,
-    /// Onset of the tension pneumothorax, s from the scene's start (default 0).
-    #[serde(default, skip_serializing_if = "Option::is_none")]
-    pub onset_s: Option<f64>,
-    /// Where the air comes from, "lung" or "wound" (tension; default lung).
-    #[serde(default, skip_serializing_if = "Option::is_none")]
-    pub source: Option<LeakSource>,
-    /// `V_p` of eq. 8.10, ml in the first cycle (tension).
-    #[serde(default, skip_serializing_if = "Option::is_none")]
-    pub v_p_ml: Option<f64>,
-    /// `τ` of eq. 8.10, per cycle (tension).
-    #[serde(default, skip_serializing_if = "Option::is_none")]
-    pub tau: Option<f64>,
-    /// `V1max`, ml (tension; default 0.8 × the affected lung's volume).
-    #[serde(default, skip_serializing_if = "Option::is_none")]
-    pub v1_max_ml: Option<f64>,
-    /// `V2max`, ml (tension; default the unaffected lung's end-inspiratory volume with α).
-    #[serde(default, skip_serializing_if = "Option::is_none")]
-    pub v2_max_ml: Option<f64>,
-    /// β, mm (tension; default 18, the seed's).
-    #[serde(default, skip_serializing_if = "Option::is_none")]
-    pub beta_mm: Option<f64>,
-    /// Cycles a needle decompression vents over (tension).
-    #[serde(default, skip_serializing_if = "Option::is_none")]
-    pub needle_vent_cycles: Option<u32>,
-    /// Share of the pleural air a needle leaves (tension).
-    #[serde(default, skip_serializing_if = "Option::is_none")]
-    pub needle_residual: Option<f64>,
-    /// Chest-tube drainage, ml per cycle (tension).
-    #[serde(default, skip_serializing_if = "Option::is_none")]
-    pub chest_tube_ml_per_cycle: Option<f64>,
-    /// Cycles from the SVC's closure to arrest (tension).
-    #[serde(default, skip_serializing_if = "Option::is_none")]
-    pub hyperexpansion_cycles: Option<u32>,
-    /// Which reading of chapter 8: "clinical" (default, EQUATIONS §4.6) or "seed" (the seed's
-    /// literal reading, §4.1–4.3) (closed, bilateral, tension).
-    #[serde(default, skip_serializing_if = "Option::is_none")]
-    pub model: Option<CourseModel>,
-    /// Compliance of the mediastinum, ml/cmH₂O (tension, clinical model).
-    #[serde(default, skip_serializing_if = "Option::is_none")]
-    pub mediastinal_compliance_ml_per_cmh2o: Option<f64>,
-    /// Time constant of a needle's venting, cycles (tension, clinical model).
-    #[serde(default, skip_serializing_if = "Option::is_none")]
-    pub needle_tau_cycles: Option<f64>,
-    /// Share of the mediastinal displacement taken from the other lung, 0..=1 (tension, clinical
-    /// model; default 0.5; 0: the other lung is not compressed).
-    #[serde(default, skip_serializing_if = "Option::is_none")]
-    pub contralateral_compression: Option<f64>,
-    /// `[disease.tumour]` (tumour).
-    #[serde(default, skip_serializing_if = "Option::is_none")]
-    pub tumour: Option<TumourScene>,
-    /// `[[disease.events]]` (tension).
-    #[serde(default, skip_serializing_if = "Vec::is_empty")]
-    pub events: Vec<EventScene>,
-}
-
-/// `[disease.tumour]`.
-#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
-#[serde(deny_unknown_fields)]
-pub struct TumourScene {
-    /// Centre in normalised lung coordinates `[x̂, ŷ, ẑ]` (mediastinum → lateral, posterior →
-    /// anterior, apex → base), each in [0, 1]. Optional when `lobe` is given.
-    #[serde(default, skip_serializing_if = "Option::is_none")]
-    pub centre: Option<[f64; 3]>,
-    /// The lobe the tumour is in ("right lower", "left upper", or "RLL"...; `mesh::lobes`): without
-    /// `centre`, the centre is a point well inside that lobe of the scene's `[lungs] shape` (a lung
-    /// with its own kernel gets that shape's point, in its own bounding box); with it, the centre
-    /// must lie in it.
-    #[serde(default, skip_serializing_if = "Option::is_none")]
-    pub lobe: Option<String>,
-    /// Radii along the body X, Y, Z axes, mm.
-    pub radii_mm: [f64; 3],
-    /// Expandability inside the tumour, (0, 1] (default 0.1).
-    #[serde(default, skip_serializing_if = "Option::is_none")]
-    pub expandability: Option<f64>,
-    /// Falloff width in radii (default 1).
-    #[serde(default, skip_serializing_if = "Option::is_none")]
-    pub falloff: Option<f64>,
-    /// Structural constant `B` of eq. 8.19 (default 0.25).
-    #[serde(default, skip_serializing_if = "Option::is_none")]
-    pub coupling: Option<f64>,
-    /// `φ_I` variant: "none", "distance", "distance-squared" (default none).
-    #[serde(default, skip_serializing_if = "Option::is_none")]
-    pub phi_variant: Option<PhiVariant>,
-    /// φ of eq. 8.9 for the raised resistance (default 0.1).
-    #[serde(default, skip_serializing_if = "Option::is_none")]
-    pub resistance_phi: Option<f64>,
-}
 
 /// The tumour's centre in normalised lung coordinates from `centre` and/or `lobe` (see
 /// [`TumourScene::lobe`]); a lobe alone gives its interior point in the lung of `shape` (the scene's
@@ -217,18 +78,6 @@ fn tumour_centre(side: Side, shape: Shape, t: &TumourScene) -> Result<[f64; 3], 
             ))
         }),
     }
-}
-
-/// `[[disease.events]]`: an intervention at a time.
-#[derive(Debug, Clone, Copy, PartialEq, Serialize, Deserialize)]
-#[serde(deny_unknown_fields)]
-pub struct EventScene {
-    /// Time from the scene's start, s.
-    pub at_s: f64,
-    /// What is done.
-    pub kind: Intervention,
-    /// On which side.
-    pub side: Side,
 }
 
 /// An intervention at a validated time.
@@ -338,52 +187,33 @@ impl From<DiseaseError> for DiseaseSceneError {
     }
 }
 
-impl DiseaseScene {
-    /// The keys present, by name (for the applicability check).
-    fn present(&self) -> [(&'static str, bool); 23] {
-        [
-            ("side", self.side.is_some()),
-            ("index", self.index.is_some()),
-            ("index_left", self.index_left.is_some()),
-            ("index_right", self.index_right.is_some()),
-            ("alpha_ml", self.alpha_ml.is_some()),
-            ("phi", self.phi.is_some()),
-            ("onset_s", self.onset_s.is_some()),
-            ("source", self.source.is_some()),
-            ("v_p_ml", self.v_p_ml.is_some()),
-            ("tau", self.tau.is_some()),
-            ("v1_max_ml", self.v1_max_ml.is_some()),
-            ("v2_max_ml", self.v2_max_ml.is_some()),
-            ("beta_mm", self.beta_mm.is_some()),
-            ("needle_vent_cycles", self.needle_vent_cycles.is_some()),
-            ("needle_residual", self.needle_residual.is_some()),
-            (
-                "chest_tube_ml_per_cycle",
-                self.chest_tube_ml_per_cycle.is_some(),
-            ),
-            (
-                "hyperexpansion_cycles",
-                self.hyperexpansion_cycles.is_some(),
-            ),
-            ("tumour", self.tumour.is_some()),
-            ("events", !self.events.is_empty()),
-            ("model", self.model.is_some()),
-            (
-                "mediastinal_compliance_ml_per_cmh2o",
-                self.mediastinal_compliance_ml_per_cmh2o.is_some(),
-            ),
-            ("needle_tau_cycles", self.needle_tau_cycles.is_some()),
-            (
-                "contralateral_compression",
-                self.contralateral_compression.is_some(),
-            ),
-        ]
-    }
-
+/// What the physics makes of a `[disease]` table: its keys checked for its kind, its values against
+/// the models' ranges and the scene's lungs, and the [`DiseaseSpec`] that builds the state.
+pub trait DiseaseSceneExt {
     /// Validate and convert into a [`DiseaseSpec`] (everything that does not need the lungs but
     /// their `shape`, `[lungs] shape`: a tumour placed by lobe alone sits inside that shape's lobe).
-    pub fn resolve(&self, shape: Shape) -> Result<DiseaseSpec, DiseaseSceneError> {
-        self.check_keys()?;
+    fn resolve(&self, shape: Shape) -> Result<DiseaseSpec, DiseaseSceneError>;
+
+    /// [`Self::validate`] for a scene whose breath is a ventilator recording (`[pv] waveform`;
+    /// EQUATIONS §4.7): the ventilator delivers the recorded volume and the lungs share it, so what
+    /// shapes a spontaneous breath does not apply and is refused when given — `alpha_ml` (eq. 8.7's
+    /// extra effort: a passive patient makes none), `phi` and `tumour.resistance_phi` (eq. 8.8–8.9
+    /// reshape the PV model's curve; under volume control the resistance changes the airway pressure,
+    /// not the delivered volume) — and so is a closed pneumothorax that collapses every simulated
+    /// lung completely (no lung is left to take the recorded volume). α is 0 in the spec returned.
+    fn validate_ventilated(
+        &self,
+        sides: &[Side],
+        shape: Shape,
+    ) -> Result<DiseaseSpec, DiseaseSceneError>;
+
+    /// [`Self::resolve`] and check the affected lungs are among the scene's `sides`.
+    fn validate(&self, sides: &[Side], shape: Shape) -> Result<DiseaseSpec, DiseaseSceneError>;
+}
+
+impl DiseaseSceneExt for DiseaseScene {
+    fn resolve(&self, shape: Shape) -> Result<DiseaseSpec, DiseaseSceneError> {
+        check_keys(self)?;
         let kind = self.kind.name();
         let side = || {
             self.side
@@ -417,199 +247,12 @@ impl DiseaseScene {
                 c.validate()?;
                 Ok(DiseaseSpec::Closed(c))
             }
-            DiseaseKind::TensionPneumothorax => self.tension(side()?, alpha, phi),
-            DiseaseKind::Tumour => self.tumour_spec(shape),
+            DiseaseKind::TensionPneumothorax => tension(self, side()?, alpha, phi),
+            DiseaseKind::Tumour => tumour_spec(self, shape),
         }
     }
 
-    /// Every key given applies to this kind (and, for a tension pneumothorax, to its model).
-    fn check_keys(&self) -> Result<(), DiseaseSceneError> {
-        let kind = self.kind.name();
-        let uses: &'static str = match self.kind {
-            DiseaseKind::ClosedPneumothorax => "model, side, index, alpha_ml, phi",
-            DiseaseKind::BilateralPneumothorax => "model, index_left, index_right, phi",
-            DiseaseKind::TensionPneumothorax => match self.model.unwrap_or_default() {
-                CourseModel::Seed => {
-                    "model, side, alpha_ml, phi, onset_s, source, v_p_ml, tau, v1_max_ml, v2_max_ml, \
-                     beta_mm, needle_vent_cycles, needle_residual, chest_tube_ml_per_cycle, \
-                     hyperexpansion_cycles, events"
-                }
-                CourseModel::Clinical => {
-                    "model, side, alpha_ml, phi, onset_s, source, v_p_ml, tau, v1_max_ml, v2_max_ml, \
-                     beta_mm, mediastinal_compliance_ml_per_cmh2o, needle_tau_cycles, \
-                     contralateral_compression, chest_tube_ml_per_cycle, hyperexpansion_cycles, \
-                     events"
-                }
-            },
-            DiseaseKind::Tumour => "side, tumour",
-        };
-        if self.kind == DiseaseKind::TensionPneumothorax {
-            let model = self.model.unwrap_or_default();
-            let (keys, reason): (&[(&'static str, bool)], &'static str) = match model {
-                CourseModel::Clinical => (
-                    &[
-                        ("needle_vent_cycles", self.needle_vent_cycles.is_some()),
-                        ("needle_residual", self.needle_residual.is_some()),
-                    ],
-                    "applies to model = \"seed\" only (the clinical needle vents to atmospheric \
-                     pleural pressure with time constant needle_tau_cycles; EQUATIONS §4.6)",
-                ),
-                CourseModel::Seed => (
-                    &[
-                        (
-                            "mediastinal_compliance_ml_per_cmh2o",
-                            self.mediastinal_compliance_ml_per_cmh2o.is_some(),
-                        ),
-                        ("needle_tau_cycles", self.needle_tau_cycles.is_some()),
-                        (
-                            "contralateral_compression",
-                            self.contralateral_compression.is_some(),
-                        ),
-                    ],
-                    "applies to model = \"clinical\" only (EQUATIONS §4.6)",
-                ),
-            };
-            if let Some(&(name, _)) = keys.iter().find(|k| k.1) {
-                return Err(DiseaseError::NotApplicable { name, reason }.into());
-            }
-        }
-        for (key, present) in self.present() {
-            if present && !uses.split(", ").any(|k| k == key) {
-                return Err(DiseaseSceneError::NotApplicable { key, kind, uses });
-            }
-        }
-        Ok(())
-    }
-
-    /// A tension pneumothorax's parameters (each key's default where not given), its onset and
-    /// its timed events.
-    fn tension(&self, side: Side, alpha: f64, phi: f64) -> Result<DiseaseSpec, DiseaseSceneError> {
-        let d = TensionParams::new(side);
-        let params = TensionParams {
-            source: self.source.unwrap_or(d.source),
-            inflow_ml: self.v_p_ml.unwrap_or(d.inflow_ml),
-            tau: self.tau.unwrap_or(d.tau),
-            v1_max_ml: self.v1_max_ml,
-            v2_max_ml: self.v2_max_ml,
-            beta_mm: self.beta_mm.unwrap_or(d.beta_mm),
-            alpha_ml: alpha,
-            phi,
-            needle_vent_cycles: self.needle_vent_cycles.unwrap_or(d.needle_vent_cycles),
-            needle_residual: self.needle_residual.unwrap_or(d.needle_residual),
-            chest_tube_ml_per_cycle: self
-                .chest_tube_ml_per_cycle
-                .unwrap_or(d.chest_tube_ml_per_cycle),
-            hyperexpansion_cycles: self
-                .hyperexpansion_cycles
-                .unwrap_or(d.hyperexpansion_cycles),
-            model: self.model.unwrap_or_default(),
-            mediastinal_compliance_ml_per_cmh2o: self
-                .mediastinal_compliance_ml_per_cmh2o
-                .unwrap_or(d.mediastinal_compliance_ml_per_cmh2o),
-            needle_tau_cycles: self.needle_tau_cycles.unwrap_or(d.needle_tau_cycles),
-            contralateral_compression: match self.model.unwrap_or_default() {
-                CourseModel::Seed => 0.0,
-                CourseModel::Clinical => self
-                    .contralateral_compression
-                    .unwrap_or(d.contralateral_compression),
-            },
-            ..d
-        };
-        params.validate()?;
-        for (key, v) in [
-            ("v1_max_ml", params.v1_max_ml),
-            ("v2_max_ml", params.v2_max_ml),
-        ] {
-            if let Some(v) = v {
-                crate::disease::check_range(
-                    key,
-                    v,
-                    f64::MIN_POSITIVE,
-                    6000.0,
-                    "within (0, 6000] ml",
-                )?;
-            }
-        }
-        let onset_s = crate::disease::check_range(
-            "onset_s",
-            self.onset_s.unwrap_or(0.0),
-            0.0,
-            MAX_TIME_S,
-            "within 0..=1e7 s",
-        )?;
-        let events = self.tension_events(onset_s)?;
-        Ok(DiseaseSpec::Tension {
-            params,
-            onset_s,
-            events,
-        })
-    }
-
-    /// The timed events, checked (within the run's time, not before the onset) and sorted by time.
-    fn tension_events(&self, onset_s: f64) -> Result<Vec<TimedEvent>, DiseaseSceneError> {
-        if self.events.len() > MAX_EVENTS {
-            return Err(DiseaseSceneError::TooManyEvents {
-                count: self.events.len(),
-            });
-        }
-        let mut events = Vec::with_capacity(self.events.len());
-        for (k, e) in self.events.iter().enumerate() {
-            let bad = |reason: String| DiseaseSceneError::Event {
-                number: k + 1,
-                at_s: e.at_s,
-                reason,
-            };
-            if !(e.at_s.is_finite() && (0.0..=MAX_TIME_S).contains(&e.at_s)) {
-                return Err(bad("at_s must be within 0..=1e7 s".into()));
-            }
-            if e.at_s < onset_s {
-                return Err(bad(format!(
-                    "at_s is before onset_s = {onset_s} s: there is nothing to treat yet"
-                )));
-            }
-            events.push(TimedEvent {
-                at_s: e.at_s,
-                kind: e.kind,
-                side: e.side,
-            });
-        }
-        // Stable: events at the same time keep the file's order.
-        events.sort_by(|a, b| a.at_s.total_cmp(&b.at_s));
-        Ok(events)
-    }
-
-    /// A tumour placed by centre or by lobe in `shape`, each key's default where not given.
-    fn tumour_spec(&self, shape: Shape) -> Result<DiseaseSpec, DiseaseSceneError> {
-        let kind = self.kind.name();
-        let t = self.tumour.as_ref().ok_or(DiseaseSceneError::Missing {
-            key: "tumour",
-            kind,
-        })?;
-        let side = self
-            .side
-            .ok_or(DiseaseSceneError::Missing { key: "side", kind })?;
-        let centre = tumour_centre(side, shape, t)?;
-        let d = Tumour::new(side, centre, t.radii_mm);
-        let tumour = Tumour {
-            expandability: t.expandability.unwrap_or(d.expandability),
-            falloff: t.falloff.unwrap_or(d.falloff),
-            coupling: t.coupling.unwrap_or(d.coupling),
-            phi: t.phi_variant.unwrap_or(d.phi),
-            resistance_phi: t.resistance_phi.unwrap_or(d.resistance_phi),
-            ..d
-        };
-        tumour.validate()?;
-        Ok(DiseaseSpec::Tumour(tumour))
-    }
-
-    /// [`Self::validate`] for a scene whose breath is a ventilator recording (`[pv] waveform`;
-    /// EQUATIONS §4.7): the ventilator delivers the recorded volume and the lungs share it, so what
-    /// shapes a spontaneous breath does not apply and is refused when given — `alpha_ml` (eq. 8.7's
-    /// extra effort: a passive patient makes none), `phi` and `tumour.resistance_phi` (eq. 8.8–8.9
-    /// reshape the PV model's curve; under volume control the resistance changes the airway pressure,
-    /// not the delivered volume) — and so is a closed pneumothorax that collapses every simulated
-    /// lung completely (no lung is left to take the recorded volume). α is 0 in the spec returned.
-    pub fn validate_ventilated(
+    fn validate_ventilated(
         &self,
         sides: &[Side],
         shape: Shape,
@@ -657,8 +300,7 @@ impl DiseaseScene {
         Ok(spec)
     }
 
-    /// [`Self::resolve`] and check the affected lungs are among the scene's `sides`.
-    pub fn validate(&self, sides: &[Side], shape: Shape) -> Result<DiseaseSpec, DiseaseSceneError> {
+    fn validate(&self, sides: &[Side], shape: Shape) -> Result<DiseaseSpec, DiseaseSceneError> {
         let spec = self.resolve(shape)?;
         for s in spec.affected() {
             if !sides.contains(&s) {
@@ -669,10 +311,232 @@ impl DiseaseScene {
     }
 }
 
+/// The keys present, by name (for the applicability check).
+fn present(this: &DiseaseScene) -> [(&'static str, bool); 23] {
+    [
+        ("side", this.side.is_some()),
+        ("index", this.index.is_some()),
+        ("index_left", this.index_left.is_some()),
+        ("index_right", this.index_right.is_some()),
+        ("alpha_ml", this.alpha_ml.is_some()),
+        ("phi", this.phi.is_some()),
+        ("onset_s", this.onset_s.is_some()),
+        ("source", this.source.is_some()),
+        ("v_p_ml", this.v_p_ml.is_some()),
+        ("tau", this.tau.is_some()),
+        ("v1_max_ml", this.v1_max_ml.is_some()),
+        ("v2_max_ml", this.v2_max_ml.is_some()),
+        ("beta_mm", this.beta_mm.is_some()),
+        ("needle_vent_cycles", this.needle_vent_cycles.is_some()),
+        ("needle_residual", this.needle_residual.is_some()),
+        (
+            "chest_tube_ml_per_cycle",
+            this.chest_tube_ml_per_cycle.is_some(),
+        ),
+        (
+            "hyperexpansion_cycles",
+            this.hyperexpansion_cycles.is_some(),
+        ),
+        ("tumour", this.tumour.is_some()),
+        ("events", !this.events.is_empty()),
+        ("model", this.model.is_some()),
+        (
+            "mediastinal_compliance_ml_per_cmh2o",
+            this.mediastinal_compliance_ml_per_cmh2o.is_some(),
+        ),
+        ("needle_tau_cycles", this.needle_tau_cycles.is_some()),
+        (
+            "contralateral_compression",
+            this.contralateral_compression.is_some(),
+        ),
+    ]
+}
+
+/// Every key given applies to this kind (and, for a tension pneumothorax, to its model).
+fn check_keys(this: &DiseaseScene) -> Result<(), DiseaseSceneError> {
+    let kind = this.kind.name();
+    let uses: &'static str = match this.kind {
+        DiseaseKind::ClosedPneumothorax => "model, side, index, alpha_ml, phi",
+        DiseaseKind::BilateralPneumothorax => "model, index_left, index_right, phi",
+        DiseaseKind::TensionPneumothorax => match this.model.unwrap_or_default() {
+            CourseModel::Seed => {
+                "model, side, alpha_ml, phi, onset_s, source, v_p_ml, tau, v1_max_ml, v2_max_ml, \
+                 beta_mm, needle_vent_cycles, needle_residual, chest_tube_ml_per_cycle, \
+                 hyperexpansion_cycles, events"
+            }
+            CourseModel::Clinical => {
+                "model, side, alpha_ml, phi, onset_s, source, v_p_ml, tau, v1_max_ml, v2_max_ml, \
+                 beta_mm, mediastinal_compliance_ml_per_cmh2o, needle_tau_cycles, \
+                 contralateral_compression, chest_tube_ml_per_cycle, hyperexpansion_cycles, \
+                 events"
+            }
+        },
+        DiseaseKind::Tumour => "side, tumour",
+    };
+    if this.kind == DiseaseKind::TensionPneumothorax {
+        let model = this.model.unwrap_or_default();
+        let (keys, reason): (&[(&'static str, bool)], &'static str) = match model {
+            CourseModel::Clinical => (
+                &[
+                    ("needle_vent_cycles", this.needle_vent_cycles.is_some()),
+                    ("needle_residual", this.needle_residual.is_some()),
+                ],
+                "applies to model = \"seed\" only (the clinical needle vents to atmospheric \
+                 pleural pressure with time constant needle_tau_cycles; EQUATIONS §4.6)",
+            ),
+            CourseModel::Seed => (
+                &[
+                    (
+                        "mediastinal_compliance_ml_per_cmh2o",
+                        this.mediastinal_compliance_ml_per_cmh2o.is_some(),
+                    ),
+                    ("needle_tau_cycles", this.needle_tau_cycles.is_some()),
+                    (
+                        "contralateral_compression",
+                        this.contralateral_compression.is_some(),
+                    ),
+                ],
+                "applies to model = \"clinical\" only (EQUATIONS §4.6)",
+            ),
+        };
+        if let Some(&(name, _)) = keys.iter().find(|k| k.1) {
+            return Err(DiseaseError::NotApplicable { name, reason }.into());
+        }
+    }
+    for (key, present) in present(this) {
+        if present && !uses.split(", ").any(|k| k == key) {
+            return Err(DiseaseSceneError::NotApplicable { key, kind, uses });
+        }
+    }
+    Ok(())
+}
+
+/// A tension pneumothorax's parameters (each key's default where not given), its onset and
+/// its timed events.
+fn tension(
+    this: &DiseaseScene,
+    side: Side,
+    alpha: f64,
+    phi: f64,
+) -> Result<DiseaseSpec, DiseaseSceneError> {
+    let d = TensionParams::new(side);
+    let params = TensionParams {
+        source: this.source.unwrap_or(d.source),
+        inflow_ml: this.v_p_ml.unwrap_or(d.inflow_ml),
+        tau: this.tau.unwrap_or(d.tau),
+        v1_max_ml: this.v1_max_ml,
+        v2_max_ml: this.v2_max_ml,
+        beta_mm: this.beta_mm.unwrap_or(d.beta_mm),
+        alpha_ml: alpha,
+        phi,
+        needle_vent_cycles: this.needle_vent_cycles.unwrap_or(d.needle_vent_cycles),
+        needle_residual: this.needle_residual.unwrap_or(d.needle_residual),
+        chest_tube_ml_per_cycle: this
+            .chest_tube_ml_per_cycle
+            .unwrap_or(d.chest_tube_ml_per_cycle),
+        hyperexpansion_cycles: this
+            .hyperexpansion_cycles
+            .unwrap_or(d.hyperexpansion_cycles),
+        model: this.model.unwrap_or_default(),
+        mediastinal_compliance_ml_per_cmh2o: this
+            .mediastinal_compliance_ml_per_cmh2o
+            .unwrap_or(d.mediastinal_compliance_ml_per_cmh2o),
+        needle_tau_cycles: this.needle_tau_cycles.unwrap_or(d.needle_tau_cycles),
+        contralateral_compression: match this.model.unwrap_or_default() {
+            CourseModel::Seed => 0.0,
+            CourseModel::Clinical => this
+                .contralateral_compression
+                .unwrap_or(d.contralateral_compression),
+        },
+        ..d
+    };
+    params.validate()?;
+    for (key, v) in [
+        ("v1_max_ml", params.v1_max_ml),
+        ("v2_max_ml", params.v2_max_ml),
+    ] {
+        if let Some(v) = v {
+            crate::disease::check_range(key, v, f64::MIN_POSITIVE, 6000.0, "within (0, 6000] ml")?;
+        }
+    }
+    let onset_s = crate::disease::check_range(
+        "onset_s",
+        this.onset_s.unwrap_or(0.0),
+        0.0,
+        MAX_TIME_S,
+        "within 0..=1e7 s",
+    )?;
+    let events = tension_events(this, onset_s)?;
+    Ok(DiseaseSpec::Tension {
+        params,
+        onset_s,
+        events,
+    })
+}
+
+/// The timed events, checked (within the run's time, not before the onset) and sorted by time.
+fn tension_events(this: &DiseaseScene, onset_s: f64) -> Result<Vec<TimedEvent>, DiseaseSceneError> {
+    if this.events.len() > MAX_EVENTS {
+        return Err(DiseaseSceneError::TooManyEvents {
+            count: this.events.len(),
+        });
+    }
+    let mut events = Vec::with_capacity(this.events.len());
+    for (k, e) in this.events.iter().enumerate() {
+        let bad = |reason: String| DiseaseSceneError::Event {
+            number: k + 1,
+            at_s: e.at_s,
+            reason,
+        };
+        if !(e.at_s.is_finite() && (0.0..=MAX_TIME_S).contains(&e.at_s)) {
+            return Err(bad("at_s must be within 0..=1e7 s".into()));
+        }
+        if e.at_s < onset_s {
+            return Err(bad(format!(
+                "at_s is before onset_s = {onset_s} s: there is nothing to treat yet"
+            )));
+        }
+        events.push(TimedEvent {
+            at_s: e.at_s,
+            kind: e.kind,
+            side: e.side,
+        });
+    }
+    // Stable: events at the same time keep the file's order.
+    events.sort_by(|a, b| a.at_s.total_cmp(&b.at_s));
+    Ok(events)
+}
+
+/// A tumour placed by centre or by lobe in `shape`, each key's default where not given.
+fn tumour_spec(this: &DiseaseScene, shape: Shape) -> Result<DiseaseSpec, DiseaseSceneError> {
+    let kind = this.kind.name();
+    let t = this.tumour.as_ref().ok_or(DiseaseSceneError::Missing {
+        key: "tumour",
+        kind,
+    })?;
+    let side = this
+        .side
+        .ok_or(DiseaseSceneError::Missing { key: "side", kind })?;
+    let centre = tumour_centre(side, shape, t)?;
+    let d = Tumour::new(side, centre, t.radii_mm);
+    let tumour = Tumour {
+        expandability: t.expandability.unwrap_or(d.expandability),
+        falloff: t.falloff.unwrap_or(d.falloff),
+        coupling: t.coupling.unwrap_or(d.coupling),
+        phi: t.phi_variant.unwrap_or(d.phi),
+        resistance_phi: t.resistance_phi.unwrap_or(d.resistance_phi),
+        ..d
+    };
+    tumour.validate()?;
+    Ok(DiseaseSpec::Tumour(tumour))
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;
-    use crate::scene::Scene;
+    use crate::disease::tension::LeakSource;
+    use crate::disease::tumour::PhiVariant;
+    use crate::scene::{Scene, SceneExt};
 
     /// A scene's error names `[disease]` once (it read "[disease]: [disease] index = 2 …").
     #[test]

@@ -36,6 +36,7 @@ use lung_model::kernel::KernelFile;
 use lung_model::mesh::Side;
 use lung_model::orientation::{gravity_in_body, Orientation, OrientationMethod, SUPINE_GRAVITY};
 use lung_model::pv::{Breathing, PvError};
+use lung_model::scene::SceneExt;
 use lung_model::scene::{LungLoadError, Scene, SceneValueError};
 use thiserror::Error;
 

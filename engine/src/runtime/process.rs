@@ -19,6 +19,7 @@ use transport::{iox, Instance, Pacer, PortError, Publish, Receive};
 use lung_model::disease::tension::Outcome;
 
 use super::{CoreError, EngineCore};
+use lung_model::scene::SceneExt;
 
 /// Command-line options of the `engine` process.
 #[derive(Debug, Clone, clap::Args)]

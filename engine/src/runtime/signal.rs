@@ -21,6 +21,7 @@ use lung_model::breathing::SignalSample;
 use lung_model::scene::Scene;
 
 use super::{CoreError, LungBreath, LungGeometry};
+use lung_model::scene::SceneExt;
 
 /// Sample period assumed before a source states its own, ns (50 Hz).
 const PERIOD_BEFORE_KNOWN_NS: u64 = 20_000_000;

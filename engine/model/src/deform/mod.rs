@@ -25,6 +25,9 @@ pub mod field;
 pub mod modes;
 pub mod sh_coeffs;
 
+// The scene file's names for this module's vocabulary are `lungdyn-scene`'s (the schema crate).
+pub use lungdyn_scene::lungs::DirectionPreset;
+
 use glam::DVec3;
 use thiserror::Error;
 
@@ -76,26 +79,6 @@ impl MotionConstants {
     }
 }
 
-/// Which motion a bake uses without a motion file (scene `[lungs] directions`, `lungdyn bake
-/// --directions`). EQUATIONS.md §2.4.
-#[derive(Debug, Clone, Copy, PartialEq, Eq, Default, serde::Serialize, serde::Deserialize)]
-#[serde(try_from = "String", into = "&'static str")]
-pub enum DirectionPreset {
-    /// [`MotionConstants::population`]: diaphragm-driven constants matched to DIR-Lab 4DCT
-    /// landmarks (the default).
-    #[default]
-    Population,
-    /// The population of six real breath-hold pairs: the mean of each COPDgene pair's `fit-motion
-    /// --exhale/--inhale` fit (a direction field and an applied force field), made scale-free
-    /// ([`BREATH_HOLD_POPULATION`]). Held out by patient it lands 2–3× closer to the real inhale
-    /// surface than no motion or uniform scaling on 12 of 12 lungs, where the default is worse than no
-    /// motion on 8 (docs/masks/population_motion_table.md, breath_hold_baselines.md); not yet the
-    /// default: the generated right lung folds beyond its share of FRC + 500 ml (EQUATIONS.md §2.4).
-    BreathHold,
-    /// [`MotionConstants::table_6_1`]: the seed's Table 6.1 (gravity-driven, mostly anterior).
-    Seed,
-}
-
 /// The breath-hold population's motion file (`bench/population_motion.py` wrote it; the same file
 /// a scene can name as `motion = ...`), built in.
 pub const BREATH_HOLD_POPULATION: &str =
@@ -114,42 +97,24 @@ pub struct PresetMotion {
     pub force_field: Option<field::ForceField>,
 }
 
-impl DirectionPreset {
-    /// Every preset, in the order they are listed.
-    pub const ALL: [DirectionPreset; 3] = [
-        DirectionPreset::Population,
-        DirectionPreset::BreathHold,
-        DirectionPreset::Seed,
-    ];
-
-    /// The preset's motion for `side`.
-    pub fn motion(self, side: Side) -> PresetMotion {
-        let constants = |constants| PresetMotion {
-            constants,
-            direction_field: None,
-            force_field: None,
-        };
-        match self {
-            DirectionPreset::Population => constants(MotionConstants::population(side)),
-            DirectionPreset::BreathHold => {
-                let f = breath_hold_population();
-                PresetMotion {
-                    constants: f.for_side(side),
-                    direction_field: f.field_for_side(side).cloned(),
-                    force_field: f.force_for_side(side).cloned(),
-                }
+/// The motion of `preset` for `side`.
+pub fn preset_motion(preset: DirectionPreset, side: Side) -> PresetMotion {
+    let constants = |constants| PresetMotion {
+        constants,
+        direction_field: None,
+        force_field: None,
+    };
+    match preset {
+        DirectionPreset::Population => constants(MotionConstants::population(side)),
+        DirectionPreset::BreathHold => {
+            let f = breath_hold_population();
+            PresetMotion {
+                constants: f.for_side(side),
+                direction_field: f.field_for_side(side).cloned(),
+                force_field: f.force_for_side(side).cloned(),
             }
-            DirectionPreset::Seed => constants(MotionConstants::table_6_1(side)),
         }
-    }
-
-    /// Its name in scenes and on the command line.
-    pub fn name(self) -> &'static str {
-        match self {
-            DirectionPreset::Population => "population",
-            DirectionPreset::BreathHold => "breath-hold",
-            DirectionPreset::Seed => "seed",
-        }
+        DirectionPreset::Seed => constants(MotionConstants::table_6_1(side)),
     }
 }
 
@@ -164,31 +129,6 @@ fn breath_hold_population() -> &'static MotionFile {
         )
         .expect("the built-in breath-hold population is a valid motion file")
     })
-}
-
-impl From<DirectionPreset> for &'static str {
-    fn from(p: DirectionPreset) -> Self {
-        p.name()
-    }
-}
-
-impl TryFrom<String> for DirectionPreset {
-    type Error = String;
-    fn try_from(s: String) -> Result<Self, String> {
-        s.parse()
-    }
-}
-
-impl std::str::FromStr for DirectionPreset {
-    type Err = String;
-    fn from_str(s: &str) -> Result<Self, String> {
-        Self::ALL
-            .into_iter()
-            .find(|p| p.name() == s)
-            .ok_or_else(|| {
-                format!("directions \"{s}\": expected \"population\" (diaphragm-driven, the default), \"breath-hold\" (six patients' breath-hold pairs) or \"seed\" (Table 6.1)")
-            })
-    }
 }
 
 /// Motion constants of both lungs as written by `lungdyn fit-motion` (TOML). Format 1: `c1..c9` per

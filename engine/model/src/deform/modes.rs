@@ -20,9 +20,11 @@
 //! face normals), as the GPU's normal pass does. [`VolumeForms`] make `s` exact for every
 //! orientation with 84 multiply-adds per tick instead of a pass over the triangles.
 
+// The scene file's names for this module's vocabulary are `lungdyn-scene`'s (the schema crate).
+pub use lungdyn_scene::lungs::DeformMode;
+
 use glam::DVec3;
 use rayon::prelude::*;
-use serde::{Deserialize, Serialize};
 
 use crate::deform::VolumeCubic;
 use crate::kernel::TumourMeta;
@@ -34,70 +36,6 @@ pub use super::sh_coeffs::{ShCoeffs, ShCoeffsError};
 
 /// Vertices per parallel chunk of the CPU passes.
 const CHUNK: usize = 8192;
-
-/// How the lungs deform (scene `[lungs] mode`, `lungdyn demo --mode`).
-#[derive(Debug, Clone, Copy, PartialEq, Eq, Hash, Serialize, Deserialize)]
-#[serde(rename_all = "lowercase")]
-pub enum DeformMode {
-    /// `p + s·u`: one baked field, the supine orientation (3 MACs per vertex).
-    Precomputed,
-    /// Eq. 7.1 every frame over the stored transfer rows: the accuracy reference.
-    Direct,
-    /// Eq. 7.7 with the kernel's SH bands.
-    Sh,
-    /// The exact basis responses (4 MACs per vertex).
-    Basis,
-}
-
-impl DeformMode {
-    /// Every mode, cheapest-to-load first.
-    pub const ALL: [DeformMode; 4] = [
-        DeformMode::Precomputed,
-        DeformMode::Basis,
-        DeformMode::Sh,
-        DeformMode::Direct,
-    ];
-
-    /// The scene/CLI name.
-    pub fn name(self) -> &'static str {
-        match self {
-            DeformMode::Precomputed => "precomputed",
-            DeformMode::Direct => "direct",
-            DeformMode::Sh => "sh",
-            DeformMode::Basis => "basis",
-        }
-    }
-
-    /// Whether the deformation follows the patient's orientation.
-    pub fn follows_orientation(self) -> bool {
-        self != DeformMode::Precomputed
-    }
-
-    /// What a frame's coefficients hold in this mode ([`ipc_types::coeff_kind`]).
-    pub fn coeff_kind(self) -> u32 {
-        match self {
-            DeformMode::Precomputed => ipc_types::coeff_kind::NONE,
-            DeformMode::Direct | DeformMode::Basis => ipc_types::coeff_kind::FORCE_WEIGHTS,
-            DeformMode::Sh => ipc_types::coeff_kind::SH_FORCE,
-        }
-    }
-}
-
-impl std::fmt::Display for DeformMode {
-    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
-        f.write_str(self.name())
-    }
-}
-
-impl std::str::FromStr for DeformMode {
-    type Err = String;
-    fn from_str(s: &str) -> Result<Self, String> {
-        DeformMode::ALL
-            .into_iter()
-            .find(|m| m.name() == s)
-            .ok_or_else(|| format!("unknown mode {s:?} (precomputed, direct, sh, basis)"))
-    }
-}
 
 /// Evaluation of the kernel's [`VolumeForms`] record (the record itself is file format,
 /// `crate::kernel`).

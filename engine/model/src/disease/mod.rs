@@ -31,6 +31,9 @@ pub mod tension;
 pub mod tumour;
 pub mod ventilated;
 
+// The scene file's names for this module's vocabulary are `lungdyn-scene`'s (the schema crate).
+pub use lungdyn_scene::disease::CourseModel;
+
 use thiserror::Error;
 
 use crate::mesh::{Side, TriMesh};
@@ -53,35 +56,6 @@ pub const ALPHA_MAX_ML: f64 = 2500.0;
 
 /// Seed demo value of α, ml (L3619–3620).
 pub const ALPHA_SEED_ML: f64 = 100.0;
-
-/// Which reading of chapter 8 a disease course follows (scene key `model`).
-///
-/// * [`CourseModel::Seed`] — the seed's literal reading of eq. 8.1–8.13 with lungdyn's decisions of
-///   EQUATIONS §4.1–4.3 (the clamp of eq. 8.3–8.5 at 40 breaths/min, I:E 1:1 there; α added in full for
-///   any pneumothorax; the mediastinum moves only after complete collapse; a needle vents linearly).
-/// * [`CourseModel::Clinical`] (default) — the changes of EQUATIONS §4.6 (issue 25), each with its
-///   source: the rate keeps the alveolar ventilation ([`clinical_phase_times`]), α grows with the
-///   collapse, the pleural air is shared between the lung and the mediastinum by compliance from the
-///   onset, and a needle vents the tension within a few breaths ([`tension`]).
-#[derive(Debug, Clone, Copy, PartialEq, Eq, Default, serde::Serialize, serde::Deserialize)]
-#[serde(rename_all = "kebab-case")]
-pub enum CourseModel {
-    /// The seed's literal reading (the figures of EQUATIONS §4.1–4.3).
-    Seed,
-    /// The clinical course of EQUATIONS §4.6.
-    #[default]
-    Clinical,
-}
-
-impl CourseModel {
-    /// Name as in scenes.
-    pub fn name(self) -> &'static str {
-        match self {
-            CourseModel::Seed => "seed",
-            CourseModel::Clinical => "clinical",
-        }
-    }
-}
 
 /// Dead space as a fraction of the normal tidal volume (clinical model): the anatomic dead space is
 /// about 150 ml of a 500 ml breath, `V_D/V_T ≈ 0.3` (West, *Respiratory Physiology: The Essentials*,

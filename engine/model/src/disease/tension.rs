@@ -57,6 +57,9 @@
 //! constant (Pulse's needle: a low resistance to the environment; ATLS); the unaffected lung takes
 //! `α·dV_t`, not α, and the rate keeps the alveolar ventilation ([`super::clinical_phase_times`]).
 
+// The scene file's names for this module's vocabulary are `lungdyn-scene`'s (the schema crate).
+pub use lungdyn_scene::disease::LeakSource;
+
 use super::collapse::collapse_for_loss;
 use super::resistance;
 use super::{
@@ -143,16 +146,6 @@ pub const CONTRALATERAL_MAX_LOSS: f64 = V1MAX_FRACTION;
 
 /// Longest course [`Tension::cycles_to_arrest`] looks at, cycles.
 pub const ARREST_SEARCH_CYCLES: u64 = 10_000_000;
-
-/// Where the air comes from.
-#[derive(Debug, Clone, Copy, PartialEq, Eq, serde::Serialize, serde::Deserialize)]
-#[serde(rename_all = "kebab-case")]
-pub enum LeakSource {
-    /// A leak from the lung (closed tension pneumothorax): a dressing cannot stop it.
-    Lung,
-    /// An open (sucking) chest-wall wound acting as a one-way valve: an occlusive dressing stops it.
-    Wound,
-}
 
 /// A trainee's intervention: the protocol's enum, which also holds its scene names and wire codes.
 pub use ipc_types::Intervention;

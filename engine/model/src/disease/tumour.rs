@@ -58,6 +58,9 @@
 //!   mean-value interpolation (Ju, Schaefer & Warren, SIGGRAPH 2005) of the surface's unit
 //!   displacement, exact for affine motion, so the centre moves `s·ū` at deformation scale `s`.
 
+// The scene file's names for this module's vocabulary are `lungdyn-scene`'s (the schema crate).
+pub use lungdyn_scene::disease::PhiVariant;
+
 use glam::DVec3;
 use thiserror::Error;
 
@@ -72,19 +75,6 @@ pub const EXPANDABILITY: f64 = 0.1;
 pub const FALLOFF: f64 = 1.0;
 /// Default structural constant `B` (kernel reaches per unit of expandability).
 pub const COUPLING: f64 = 0.25;
-
-/// How `φ_I` is set (Fig. 8.6).
-#[derive(Debug, Clone, Copy, PartialEq, Eq, Default, serde::Serialize, serde::Deserialize)]
-#[serde(rename_all = "kebab-case")]
-pub enum PhiVariant {
-    /// `φ_I = 0`: eq. 8.15 reduces to eq. 8.16.
-    #[default]
-    None,
-    /// Fig. 8.6a: the normalised distance from the posterior (supporting) surface, `ŷ`.
-    Distance,
-    /// Fig. 8.6b: its square, `ŷ²`.
-    DistanceSquared,
-}
 
 /// Why a tumour cannot be applied.
 #[derive(Debug, Clone, PartialEq, Error)]

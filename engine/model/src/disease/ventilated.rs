@@ -23,7 +23,7 @@
 //!   and the clinical rate (the respiratory centre quickening the breath) are replaced by the
 //!   ventilator's rate and I:E (the recording's), eq. 8.8–8.9 (the PV curve's resistance) leave the
 //!   delivered volume alone. The scene keys that set them are refused on a waveform scene
-//!   (`DiseaseScene::validate_ventilated`).
+//!   (`DiseaseSceneExt::validate_ventilated`).
 //! * **The pressure limit.** One factor `k` scales every breathing lung, so every lung's driving
 //!   pressure is `k` times the normal one (`ΔP = tidal/C` with `C` in proportion to the course's
 //!   tidal volume). A ventilator ends the inspiration at its high-pressure limit (the alarm and

@@ -14,50 +14,11 @@
 //! Every step is deterministic: the same `(shape, side, vertices)` always gives bit-identical
 //! meshes, which is what lets the engine and the renderer build the same lung independently.
 
+// The scene file's names for this module's vocabulary are `lungdyn-scene`'s (the schema crate).
+pub use lungdyn_scene::lungs::Shape;
+
 pub use super::builder::{subdivision_for, GenerateError, MAX_VERTICES, MIN_VERTICES};
 use super::{Side, TriMesh};
-
-/// Which built-in lung shape.
-#[derive(
-    Debug, Clone, Copy, PartialEq, Eq, Hash, Default, serde::Serialize, serde::Deserialize,
-)]
-#[serde(rename_all = "lowercase")]
-pub enum Shape {
-    /// Anatomical lungs ([`super::anatomy`]): the default.
-    #[default]
-    Anatomical,
-    /// The smooth teardrop ([`super::teardrop`]).
-    Teardrop,
-}
-
-impl Shape {
-    /// Every shape, the default first.
-    pub const ALL: [Shape; 2] = [Shape::Anatomical, Shape::Teardrop];
-
-    /// Name as used on the command line and in scenes.
-    pub fn name(self) -> &'static str {
-        match self {
-            Shape::Anatomical => "anatomical",
-            Shape::Teardrop => "teardrop",
-        }
-    }
-}
-
-impl std::fmt::Display for Shape {
-    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
-        f.write_str(self.name())
-    }
-}
-
-impl std::str::FromStr for Shape {
-    type Err = String;
-    fn from_str(s: &str) -> Result<Self, String> {
-        Shape::ALL
-            .into_iter()
-            .find(|shape| shape.name() == s)
-            .ok_or_else(|| format!("unknown lung shape {s:?}: use anatomical or teardrop"))
-    }
-}
 
 /// Generate the default adult lung ([`Shape::default`], anatomical) of `side` with at least
 /// `vertices` vertices (exactly `6·n² + 2` for the smallest such `n`).

@@ -29,54 +29,10 @@ pub mod io;
 pub mod lobes;
 pub mod teardrop;
 
+// The scene file's names for this module's vocabulary are `lungdyn-scene`'s (the schema crate).
+pub use lungdyn_scene::lungs::Side;
+
 use thiserror::Error;
-
-/// Which lung.
-#[derive(Debug, Clone, Copy, PartialEq, Eq, Hash, serde::Serialize, serde::Deserialize)]
-#[serde(rename_all = "lowercase")]
-pub enum Side {
-    /// The patient's right lung (three lobes, at −X).
-    Right,
-    /// The patient's left lung (two lobes, cardiac notch, at +X).
-    Left,
-}
-
-impl Side {
-    /// Index into per-lung arrays (`ipc_types::LUNG_RIGHT` / `LUNG_LEFT`).
-    pub fn index(self) -> usize {
-        match self {
-            Side::Right => ipc_types::LUNG_RIGHT,
-            Side::Left => ipc_types::LUNG_LEFT,
-        }
-    }
-
-    /// Unit vector from the mediastinum outwards (lateral), in the body frame's X.
-    pub fn lateral_sign(self) -> f32 {
-        match self {
-            Side::Right => -1.0,
-            Side::Left => 1.0,
-        }
-    }
-
-    /// Name as used on the command line.
-    pub fn name(self) -> &'static str {
-        match self {
-            Side::Right => "right",
-            Side::Left => "left",
-        }
-    }
-}
-
-impl std::str::FromStr for Side {
-    type Err = String;
-    fn from_str(s: &str) -> Result<Self, String> {
-        match s {
-            "left" => Ok(Side::Left),
-            "right" => Ok(Side::Right),
-            other => Err(format!("unknown lung {other:?}: use left or right")),
-        }
-    }
-}
 
 /// A triangle surface mesh.
 #[derive(Debug, Clone, PartialEq)]

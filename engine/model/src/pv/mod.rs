@@ -21,6 +21,9 @@
 
 pub mod files;
 
+// The scene file's names for this module's vocabulary are `lungdyn-scene`'s (the schema crate).
+pub use lungdyn_scene::pv::{DEFAULT_IE_RATIO, DEFAULT_PRESET, SEED_IE_RATIO};
+
 use thiserror::Error;
 
 /// Substeps of the phase integration per engine tick: keeps the curve (nearly)
@@ -277,9 +280,6 @@ pub const PRESET_NAMES: [&str; 8] = [
     "subject-4",
 ];
 
-/// The default preset of the demo and of scenes that name none.
-pub const DEFAULT_PRESET: &str = "venegas-human";
-
 /// Look up a preset of Table 5.1 by name.
 pub fn preset(name: &str) -> Result<Preset, PvError> {
     let same = |name, source, chi: &[f64], q, boundary| Preset {
@@ -521,19 +521,6 @@ pub const IE_PART_RANGE: (f64, f64) = (0.1, 10.0);
 /// ventilation); spontaneous breathing is about 1:2 and the seed's default 1:1 (Tobin MJ, Principles and
 /// Practice of Mechanical Ventilation, 3rd ed., 2013: I:E settings 1:1 to 1:4, inverse ratio to 4:1).
 pub const IE_RATIO_RANGE: (f64, f64) = (0.2, 4.0);
-
-/// The seed's I:E, 1:1: its normal breathing is a 2.5 s inhalation and a 2.5 s exhalation at 12
-/// breaths/min (§5.3, Table 5.2). [`Timing::default`] keeps it (the figures checked by hand against
-/// the seed); a scene reaches it with `[pv] ie_ratio = [1, 1]`.
-pub const SEED_IE_RATIO: [f64; 2] = [1.0, 1.0];
-
-/// The project's default I:E for a scene's `[pv] ie_ratio`, 1:2 (EQUATIONS §1.1, "I:E"): quiet
-/// spontaneous breathing spends about a third of the cycle in inspiration (West, *Respiratory
-/// Physiology: The Essentials*, 10th ed., 2016, ch. 1: "inspiration ... about one third of the
-/// respiratory cycle"; Tobin et al., Chest 1983;84:202–205, normal subjects at rest: `Ti/Ttot` ≈ 0.42,
-/// i.e. 1:1.4); a ventilator's default setting is 1:2 (Tobin, *Principles and Practice of Mechanical
-/// Ventilation*, 3rd ed., 2013). At 12 breaths/min: 1.67 s in, 3.33 s out.
-pub const DEFAULT_IE_RATIO: [f64; 2] = [1.0, 2.0];
 
 /// Timing of the breathing cycle.
 #[derive(Debug, Clone, Copy, PartialEq, serde::Serialize, serde::Deserialize)]
