@@ -53,7 +53,7 @@ fn slicer_frame(c: &mut Criterion) {
     );
     g.bench_function(
         "default lungs (deform, RAS, POLYDATA ×2, STRING, CRC)",
-        |b| b.iter(|| maker.make(std::hint::black_box(&f)).expect("a frame")),
+        |b| b.iter(|| one.install(|| maker.make(std::hint::black_box(&f)).expect("a frame"))),
     );
     let tumour = Scene::load(
         &std::path::Path::new(env!("CARGO_MANIFEST_DIR")).join("../scenes/tumour_right_lower.toml"),

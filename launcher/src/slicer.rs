@@ -36,7 +36,7 @@ use lung_model::scene::Scene;
 use lung_model::scene::SceneExt;
 use renderer::RenderLung;
 use tracker_bridge::igtl::{Timestamp, Transform};
-use tracker_bridge::igtl_polydata::{PointScalars, Topology};
+use tracker_bridge::igtl_polydata::{FixedMesh, PointScalars, Topology};
 use tracker_bridge::igtl_send;
 use tracker_bridge::source::igtl_server::AllowList;
 use transport::{iox, Instance, Receive};
@@ -633,14 +633,13 @@ impl Serve {
     }
 }
 
-/// One lung as it is sent: its mesh's triangles (reversed, RAS) encoded once, the deformed
-/// positions' buffer, the lobe codes.
+/// One lung as it is sent: its mesh's triangles (reversed, RAS) and lobe codes encoded and CRC'd
+/// once, the deformed positions' buffer.
 struct SentLung {
     lung: RenderLung,
     device: &'static str,
-    topology: Topology,
+    mesh: FixedMesh,
     positions: Vec<[f32; 3]>,
-    lobes: Option<Vec<f32>>,
 }
 
 /// The tumour as it is sent: the unit sphere scaled to its radii, moved to its centre each frame.
@@ -648,7 +647,7 @@ struct SentTumour {
     slot: usize,
     meta: lung_model::kernel::TumourMeta,
     shape: Vec<[f32; 3]>,
-    topology: Topology,
+    mesh: FixedMesh,
     positions: Vec<[f32; 3]>,
 }
 
@@ -686,9 +685,16 @@ impl FrameMaker {
             let n = lung.lung.len();
             let topology = Topology::triangles(&ras_triangles(&lung.lung.triangles), n)
                 .with_context(|| format!("the {} lung's mesh", side.name()))?;
-            let lobes = lung
+            let lobes: Option<Vec<f32>> = lung
                 .lobe_codes()
                 .map(|c| c.iter().map(|&v| f32::from(v)).collect());
+            let lobes = lobes.as_deref().map(|values| PointScalars {
+                name: LOBE_SCALAR,
+                components: 1,
+                values,
+            });
+            let mesh = FixedMesh::new(&topology, lobes.as_slice())
+                .with_context(|| format!("the {} lung's lobe codes", side.name()))?;
             lungs.push(SentLung {
                 device: if side == Side::Right {
                     RIGHT_LUNG
@@ -696,9 +702,8 @@ impl FrameMaker {
                     LEFT_LUNG
                 },
                 lung,
-                topology,
+                mesh,
                 positions: vec![[0.0; 3]; n],
-                lobes,
             });
         }
         let tumour = match scene.tumour() {
@@ -727,7 +732,7 @@ impl FrameMaker {
                     meta,
                     positions: vec![[0.0; 3]; shape.len()],
                     shape,
-                    topology,
+                    mesh: FixedMesh::new(&topology, &[])?,
                 })
             }
         };
@@ -756,19 +761,7 @@ impl FrameMaker {
             for p in &mut l.positions {
                 *p = body_to_ras(*p);
             }
-            let lobes = l.lobes.as_deref().map(|values| PointScalars {
-                name: LOBE_SCALAR,
-                components: 1,
-                values,
-            });
-            igtl_send::polydata(
-                &mut self.bytes,
-                l.device,
-                ts,
-                &l.positions,
-                &l.topology,
-                lobes.as_slice(),
-            )?;
+            igtl_send::fixed_polydata(&mut self.bytes, l.device, ts, &l.positions, &l.mesh)?;
         }
         let mut centre = None;
         if let Some(t) = &mut self.tumour {
@@ -787,7 +780,7 @@ impl FrameMaker {
                         q[a] += c[a];
                     }
                 }
-                igtl_send::polydata(&mut self.bytes, TUMOUR, ts, &t.positions, &t.topology, &[])?;
+                igtl_send::fixed_polydata(&mut self.bytes, TUMOUR, ts, &t.positions, &t.mesh)?;
                 let tf = Transform {
                     translation_mm: c,
                     ..Transform::IDENTITY

@@ -197,16 +197,30 @@ pub fn append(
     scalars: &[PointScalars<'_>],
     out: &mut Vec<u8>,
 ) -> Result<(), PolyDataError> {
-    if points.len() != topology.points {
+    check_points(points, topology.points)?;
+    check_scalars(scalars, points.len())?;
+    out.extend_from_slice(&counts(topology, scalars)?);
+    append_points(points, out);
+    append_tail(topology, scalars, out);
+    Ok(())
+}
+
+/// The points fit the topology and are finite.
+fn check_points(points: &[[f32; 3]], expected: usize) -> Result<(), PolyDataError> {
+    if points.len() != expected {
         return Err(PolyDataError::PointCount {
-            expected: topology.points,
+            expected,
             got: points.len(),
         });
     }
     if let Some(index) = points.iter().position(|p| !p.iter().all(|v| v.is_finite())) {
         return Err(PolyDataError::NotFinite { index });
     }
-    let mut names_len = 0usize;
+    Ok(())
+}
+
+/// Every attribute has a usable name and one value per point and component.
+fn check_scalars(scalars: &[PointScalars<'_>], points: usize) -> Result<(), PolyDataError> {
     for s in scalars {
         if s.name.is_empty() || s.name.len() > MAX_NAME_BYTES || s.name.contains('\0') {
             return Err(PolyDataError::BadName {
@@ -216,20 +230,32 @@ pub fn append(
         }
         if s.components == 0
             || s.components > MAX_COMPONENTS
-            || s.values.len() != points.len() * s.components as usize
+            || s.values.len() != points * s.components as usize
         {
             return Err(PolyDataError::AttributeLength {
                 name: s.name.to_string(),
                 values: s.values.len(),
-                points: points.len(),
+                points,
                 components: s.components,
             });
         }
-        names_len += s.name.len() + 1;
     }
-    let npoints = count32("points", points.len())?;
+    Ok(())
+}
+
+/// Bytes of the ten counts that open the content.
+const COUNTS_BYTES: usize = 40;
+
+/// The ten counts that open the content: points, vertices, lines, polygons, strips (each a count
+/// and a byte size), attributes.
+fn counts(
+    topology: &Topology,
+    scalars: &[PointScalars<'_>],
+) -> Result<[u8; COUNTS_BYTES], PolyDataError> {
+    let npoints = count32("points", topology.points)?;
     let nattr = count32("attributes", scalars.len())?;
-    for v in [
+    let mut out = [0u8; COUNTS_BYTES];
+    let values = [
         npoints,
         0,
         0,
@@ -240,23 +266,40 @@ pub fn append(
         0,
         0,
         nattr,
-    ] {
-        out.extend_from_slice(&v.to_be_bytes());
+    ];
+    for (chunk, v) in out.chunks_exact_mut(4).zip(values) {
+        chunk.copy_from_slice(&v.to_be_bytes());
     }
-    for p in points {
-        for v in p {
-            out.extend_from_slice(&v.to_be_bytes());
-        }
+    Ok(out)
+}
+
+/// The points, big-endian `f32`s.
+fn append_points(points: &[[f32; 3]], out: &mut Vec<u8>) {
+    let start = out.len();
+    out.resize(start + points.len() * 12, 0);
+    for (chunk, v) in out[start..]
+        .chunks_exact_mut(4)
+        .zip(points.iter().flatten())
+    {
+        chunk.copy_from_slice(&v.to_be_bytes());
     }
+}
+
+/// Everything after the points: the polygons, the attributes' headers, names and values (checked
+/// by [`check_scalars`]).
+fn append_tail(topology: &Topology, scalars: &[PointScalars<'_>], out: &mut Vec<u8>) {
+    let npoints = topology.points as u32;
     out.extend_from_slice(&topology.bytes);
     for s in scalars {
         out.push(POINT_SCALAR);
         out.push(s.components);
         out.extend_from_slice(&npoints.to_be_bytes());
     }
+    let mut names_len = 0usize;
     for s in scalars {
         out.extend_from_slice(s.name.as_bytes());
         out.push(0);
+        names_len += s.name.len() + 1;
     }
     if names_len % 2 == 1 {
         out.push(0);
@@ -266,7 +309,48 @@ pub fn append(
             out.extend_from_slice(&v.to_be_bytes());
         }
     }
-    Ok(())
+}
+
+/// A mesh whose triangles and point scalars stay fixed while its points move (a breathing lung
+/// with its lobe codes): everything but the points encoded and CRC'd once, so a frame costs the
+/// points' bytes and their CRC-64 — a third of the message for a triangle mesh — not the whole
+/// body (`crate::igtl::CrcShift`). [`FixedMesh::append`] gives the same bytes as [`append`].
+#[derive(Debug, Clone)]
+pub struct FixedMesh {
+    points: usize,
+    counts: [u8; COUNTS_BYTES],
+    tail: Vec<u8>,
+    tail_crc: u64,
+    over_tail: crate::igtl::CrcShift,
+}
+
+impl FixedMesh {
+    /// The fixed part of meshes over `topology` with `scalars`.
+    pub fn new(topology: &Topology, scalars: &[PointScalars<'_>]) -> Result<Self, PolyDataError> {
+        check_scalars(scalars, topology.points)?;
+        let counts = counts(topology, scalars)?;
+        let mut tail = Vec::new();
+        append_tail(topology, scalars, &mut tail);
+        Ok(Self {
+            points: topology.points,
+            counts,
+            tail_crc: crate::igtl::crc64(&tail),
+            over_tail: crate::igtl::CrcShift::zero_bytes(tail.len() as u64),
+            tail,
+        })
+    }
+
+    /// The content of the mesh at `points`, appended to `out`; returns its CRC-64 (on an error
+    /// nothing is appended).
+    pub fn append(&self, points: &[[f32; 3]], out: &mut Vec<u8>) -> Result<u64, PolyDataError> {
+        check_points(points, self.points)?;
+        let start = out.len();
+        out.extend_from_slice(&self.counts);
+        append_points(points, out);
+        let front = crate::igtl::crc64(&out[start..]);
+        out.extend_from_slice(&self.tail);
+        Ok(self.over_tail.combine(front, self.tail_crc))
+    }
 }
 
 #[cfg(test)]
@@ -380,5 +464,71 @@ mod tests {
                 Err(PolyDataError::AttributeLength { .. })
             ));
         }
+    }
+
+    /// A fixed mesh gives the plain encoder's bytes and the CRC of those bytes, frame after frame,
+    /// with one scalar, several, an odd name length (the pad) and none; bad points append nothing.
+    #[test]
+    fn a_fixed_mesh_gives_the_plain_encoders_bytes_and_their_crc() {
+        let tris = [[0u32, 1, 2], [0, 2, 3], [0, 3, 1], [1, 3, 2]];
+        let topology = Topology::triangles(&tris, 4).unwrap();
+        let lobes = [1.0f32, 2.0, 3.0, 4.0];
+        let pairs = [0.5f32, -1.0, 2.0, 3.0, 1e-3, 7.0, 8.0, 9.0];
+        let sets: [&[PointScalars<'_>]; 3] = [
+            &[],
+            &[PointScalars {
+                name: "Lobe",
+                components: 1,
+                values: &lobes,
+            }],
+            &[
+                PointScalars {
+                    name: "odd",
+                    components: 1,
+                    values: &lobes,
+                },
+                PointScalars {
+                    name: "Pairs",
+                    components: 2,
+                    values: &pairs,
+                },
+            ],
+        ];
+        for scalars in sets {
+            let mesh = FixedMesh::new(&topology, scalars).unwrap();
+            for frame in 0..3 {
+                let t = frame as f32;
+                let points = [[t, 0.0, 0.0], [1.0, t, 0.0], [0.0, 1.0, t], [-t, 2.5, 1e-7]];
+                let mut plain = vec![9u8];
+                append(&points, &topology, scalars, &mut plain).unwrap();
+                let mut fixed = vec![9u8];
+                let crc = mesh.append(&points, &mut fixed).unwrap();
+                assert_eq!(fixed, plain);
+                assert_eq!(crc, crate::igtl::crc64(&fixed[1..]));
+            }
+            let mut out = vec![1u8, 2];
+            let nan = [[f32::NAN, 0.0, 0.0], [0.0; 3], [0.0; 3], [0.0; 3]];
+            assert!(matches!(
+                mesh.append(&nan, &mut out),
+                Err(PolyDataError::NotFinite { index: 0 })
+            ));
+            assert!(matches!(
+                mesh.append(&[[0.0; 3]; 3], &mut out),
+                Err(PolyDataError::PointCount {
+                    expected: 4,
+                    got: 3
+                })
+            ));
+            assert_eq!(out, [1, 2]);
+        }
+        let short = [PointScalars {
+            name: "Lobe",
+            components: 1,
+            values: &lobes[..3],
+        }];
+        assert!(matches!(
+            FixedMesh::new(&topology, &short),
+            Err(PolyDataError::AttributeLength { .. })
+        ));
     }
 }

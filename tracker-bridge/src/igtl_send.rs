@@ -9,8 +9,8 @@
 
 use thiserror::Error;
 
-use crate::igtl::{seal, IgtlError, Timestamp, Transform, HEADER_SIZE};
-use crate::igtl_polydata::{PointScalars, PolyDataError, Topology};
+use crate::igtl::{seal, seal_with_crc, IgtlError, Timestamp, Transform, HEADER_SIZE};
+use crate::igtl_polydata::{FixedMesh, PointScalars, PolyDataError, Topology};
 
 /// MIBenum of US-ASCII.
 pub const US_ASCII: u16 = 3;
@@ -70,6 +70,36 @@ pub fn polydata(
         timestamp,
         |o| crate::igtl_polydata::append(points, topology, scalars, o).map_err(SendError::from),
     )
+}
+
+/// A POLYDATA message of `points` over a [`FixedMesh`] (its triangles and scalars encoded and CRC'd
+/// once): the same bytes as [`polydata`], with only the points encoded and CRC'd per call.
+pub fn fixed_polydata(
+    out: &mut Vec<u8>,
+    device: &str,
+    timestamp: Timestamp,
+    points: &[[f32; 3]],
+    mesh: &FixedMesh,
+) -> Result<(), SendError> {
+    let start = out.len();
+    out.resize(start + HEADER_SIZE, 0);
+    let sealed = mesh
+        .append(points, out)
+        .map_err(SendError::from)
+        .and_then(|crc| {
+            seal_with_crc(
+                &mut out[start..],
+                crate::igtl_polydata::TYPE_NAME,
+                device,
+                timestamp,
+                crc,
+            )
+            .map_err(SendError::from)
+        });
+    if sealed.is_err() {
+        out.truncate(start);
+    }
+    sealed
 }
 
 /// A STRING message of `text` (US-ASCII when it is, else UTF-8).
@@ -183,5 +213,31 @@ mod tests {
         assert!(polydata(&mut out, "L", Timestamp(1), &bad, &topo, &[]).is_err());
         assert!(out.is_empty());
         assert!(seal(&mut [0u8; 10], "STRING", "", Timestamp(0)).is_err());
+    }
+
+    /// A POLYDATA over a fixed mesh is the same message, byte for byte, as the plain one, and
+    /// decodes with its CRC checked; on bad points the buffer is left alone.
+    #[test]
+    fn a_fixed_mesh_message_is_the_plain_message() {
+        let topo = Topology::triangles(&[[0, 1, 2], [0, 2, 1]], 3).unwrap();
+        let lobes = [1.0f32, 1.0, 2.0];
+        let scalars = [PointScalars {
+            name: "Lobe",
+            components: 1,
+            values: &lobes,
+        }];
+        let mesh = FixedMesh::new(&topo, &scalars).unwrap();
+        let ts = Timestamp::from_parts(1_700_000_000, 7);
+        let pts = [[0.0, 0.0, 0.0], [1.0, 0.0, 0.0], [0.0, 1.0, 0.5]];
+        let mut plain = Vec::new();
+        polydata(&mut plain, "LeftLung", ts, &pts, &topo, &scalars).unwrap();
+        let mut fixed = Vec::new();
+        fixed_polydata(&mut fixed, "LeftLung", ts, &pts, &mesh).unwrap();
+        assert_eq!(fixed, plain);
+        let (m, n) = Message::decode(&fixed, &limits()).unwrap();
+        assert_eq!((m.body.type_name(), n), ("POLYDATA", fixed.len()));
+        let bad = [[0.0, f32::INFINITY, 0.0]; 3];
+        assert!(fixed_polydata(&mut fixed, "LeftLung", ts, &bad, &mesh).is_err());
+        assert_eq!(fixed, plain);
     }
 }
