@@ -65,6 +65,18 @@ fn render_hud(
     outcome: &str,
     edit: impl FnOnce(&mut Vec<RenderLung>),
 ) -> Option<(image::RgbaImage, image::RgbaImage, [Option<EyeLayout>; 2])> {
+    render_hud_over(scene, warning, outcome, edit, &[engine_frame()])
+}
+
+/// As [`render_hud`], the HUD drawn over `frames` one after another (what it keeps from frame to
+/// frame, the PV loop and the signal trace, built up); the image is the last frame's.
+fn render_hud_over(
+    scene: &Scene,
+    warning: PoseWarning,
+    outcome: &str,
+    edit: impl FnOnce(&mut Vec<RenderLung>),
+    frames: &[EngineFrame],
+) -> Option<(image::RgbaImage, image::RgbaImage, [Option<EyeLayout>; 2])> {
     let gpu = Gpu::for_tests()?;
     let models = lungdyn_tests::baked_models(scene);
     let mut lungs: Vec<RenderLung> = models.iter().map(RenderLung::from_model).collect();
@@ -94,9 +106,8 @@ fn render_hud(
     };
     r.render(&gpu, &state, true);
     let plain = r.read_image(&gpu).unwrap();
-    let frame = engine_frame();
-    let shown = HudFrame {
-        frame: &frame,
+    let shown = |frame| HudFrame {
+        frame,
         tracker: None,
         warning,
         cpu_ns: 2_500_000,
@@ -117,16 +128,25 @@ fn render_hud(
         let _ = plain.save(format!("{dir}/plain_{w}x{h}_{}.png", scene.render.stereo));
     }
     let mut layout = [None; 2];
-    r.render_with_overlay(
-        &gpu,
-        &state,
-        true,
-        |encoder, target, eye_cams| {
-            hud.encode(&gpu.device, &gpu.queue, encoder, target, eye_cams, &shown);
-            layout = hud.layout(eye_cams, &frame);
-        },
-        |_| {},
-    );
+    for frame in frames {
+        r.render_with_overlay(
+            &gpu,
+            &state,
+            true,
+            |encoder, target, eye_cams| {
+                hud.encode(
+                    &gpu.device,
+                    &gpu.queue,
+                    encoder,
+                    target,
+                    eye_cams,
+                    &shown(frame),
+                );
+                layout = hud.layout(eye_cams, frame);
+            },
+            |_| {},
+        );
+    }
     let with_hud = r.read_image(&gpu).unwrap();
     if let Ok(dir) = std::env::var("LUNGDYN_HUD_TEST_PNG") {
         let _ = with_hud.save(format!(
@@ -205,6 +225,72 @@ fn the_hud_draws_its_panel_and_pv_loop_in_every_eye() {
                     .collect::<Vec<_>>()
             };
             assert_ne!(row(0), row(480), "a stereo HUD needs a disparity");
+        }
+    }
+}
+
+/// A scene that breathes with the patient's signal shows, in the PV loop's box, the last ten seconds
+/// of the lungs' volume (white) and the patient's measured volume (blue, only while it drives the
+/// lungs), its title saying which is which; a scene that breathes with the model shows no blue
+/// there. (The trace's points, gaps and scale: `renderer::hud::text`'s unit test.)
+#[test]
+fn a_scene_breathing_with_the_signal_shows_its_trace_in_the_pv_box() {
+    let blue_in = |img: &image::RgbaImage, (x0, y0, w, h): (u32, u32, u32, u32)| {
+        (x0..x0 + w)
+            .flat_map(|x| (y0..y0 + h).map(move |y| (x, y)))
+            .filter(|&(x, y)| {
+                let p = img.get_pixel(x, y);
+                p[2] > 200 && p[1] > 150 && p[0] < 150
+            })
+            .count()
+    };
+    // Six seconds at 60 Hz: one breath of 5 s, the signal driving it from the second second.
+    let frames: Vec<EngineFrame> = (0..360u64)
+        .map(|tick| {
+            let mut f = engine_frame();
+            f.tick = tick;
+            let breath = (tick as f32 / 300.0 * std::f32::consts::TAU).sin();
+            f.lungs[LUNG_RIGHT].volume_ml = 1400.0 + 150.0 * breath;
+            f.lungs[LUNG_LEFT].volume_ml = 1250.0 + 130.0 * breath;
+            if tick >= 120 {
+                f.state = ipc_types::engine_state::SIGNAL_FOLLOWING;
+                f.signal.display_ns = 1 + tick;
+                f.signal.volume_ml = 280.0 * breath;
+                // The newest sample, 30 ml behind what the prediction drew.
+                f.signal.unpredicted_ml = 280.0 * breath - 30.0;
+            }
+            f
+        })
+        .collect();
+    for signal in [true, false] {
+        let mut scene = Scene::default();
+        scene.lungs.vertices = 2000;
+        scene.render.width = 960;
+        scene.render.height = 540;
+        if signal {
+            scene.breathing.source = lung_model::scene::BreathSource::Signal;
+        }
+        let Some((plain, hud, layout)) =
+            render_hud_over(&scene, PoseWarning::None, "", |_| {}, &frames)
+        else {
+            return;
+        };
+        let pv = layout[0].expect("one eye").pv;
+        let pv_box = (pv.x as u32, pv.y as u32, pv.w as u32, pv.h as u32);
+        let blue = blue_in(&hud, pv_box);
+        assert_eq!(
+            blue_in(&plain, pv_box),
+            0,
+            "no blue lung pixels under the box"
+        );
+        if signal {
+            // Four seconds of the measured line, two pixels wide, across about 40 % of the box.
+            assert!(
+                blue as f32 > pv.w * 0.3,
+                "signal scene: {blue} blue pixels in the PV box {pv:?}"
+            );
+        } else {
+            assert_eq!(blue, 0, "a model scene draws no patient line");
         }
     }
 }

@@ -44,8 +44,9 @@ const FAMILY: &str = "DejaVu Sans Mono";
 /// of a patient at arm's length... behind the lungs only for a viewer further than this).
 pub const HUD_DEPTH_MM: f32 = 1750.0;
 
-/// Most shape vertices per frame (two eyes of panels, bar and a loop of [`text::PV_BINS`] segments).
-const MAX_SHAPE_VERTICES: usize = 6 * 512;
+/// Most shape vertices per frame (two eyes of panels, bar and a loop of [`text::PV_BINS`] segments,
+/// or the signal trace's two lines of [`text::TRACE_POINTS`] points).
+const MAX_SHAPE_VERTICES: usize = 6 * 1024;
 
 /// What the HUD is told once: the scene's facts.
 #[derive(Debug, Clone)]
@@ -193,6 +194,9 @@ pub struct Hud {
     vertex_buffer: wgpu::Buffer,
     vertices: Vec<ShapeVertex>,
     pv: text::PvTrace,
+    /// The breath drawn beside the patient's signal (shown instead of the PV loop when the scene
+    /// breathes with the signal).
+    trace: text::SignalTrace,
     eye_width: u32,
     height: u32,
     eyes: u32,
@@ -428,6 +432,7 @@ impl Hud {
             vertex_buffer,
             vertices: Vec::with_capacity(MAX_SHAPE_VERTICES),
             pv: text::PvTrace::default(),
+            trace: text::SignalTrace::default(),
             eye_width,
             height,
             eyes,
@@ -480,17 +485,29 @@ impl Hud {
         hud
     }
 
-    /// The PV loop's title: the longest of its wordings that fits the box at this size (the axes
-    /// named in full from about 1500 px wide, shorter below, "PV" alone at the smallest).
+    /// The PV box's title: the longest of its wordings that fits the box at this size (the axes
+    /// named in full from about 1500 px wide, shorter below, "PV" alone at the smallest). A scene
+    /// that breathes with the patient's signal shows the signal trace there, and says so.
     fn choose_pv_title(&mut self) {
         let room = self.pv_box(0.0).2 - 8.0;
-        for title in [
-            "PV loop  P → cmH2O, V ↑ ml",
-            "PV  P → cmH2O, V ↑ ml",
-            "PV  P→cmH2O V↑ml",
-            "PV  P→ V↑",
-            "PV",
-        ] {
+        let titles: &[&str] = if self.config.signal {
+            &[
+                "last 10 s: lungs white, patient blue",
+                "10 s: lungs white, patient blue",
+                "lungs white, patient blue",
+                "10 s trace",
+                "trace",
+            ]
+        } else {
+            &[
+                "PV loop  P → cmH2O, V ↑ ml",
+                "PV  P → cmH2O, V ↑ ml",
+                "PV  P→cmH2O V↑ml",
+                "PV  P→ V↑",
+                "PV",
+            ]
+        };
+        for &title in titles {
             self.shape(PV_TITLE, title);
             if self.widths[PV_TITLE] <= room {
                 break;
@@ -772,6 +789,40 @@ impl Hud {
         let (a, b, c, d) = (ndc(x, y), ndc(x + w, y), ndc(x + w, y + h), ndc(x, y + h));
         for pos in [a, b, c, a, c, d] {
             self.vertices.push(ShapeVertex { pos, color });
+        }
+    }
+
+    /// The signal trace in the box `inner`: the lungs' drawn volume in white, the patient's
+    /// measured volume in blue, each a line broken where it has no point, the newest at the right
+    /// edge marked.
+    fn push_trace(&mut self, inner: (f32, f32, f32, f32)) {
+        let Some(range) = self.trace.range() else {
+            return;
+        };
+        let white = linear(230, 230, 235, 0.9);
+        let blue = linear(120, 210, 255, 0.95);
+        let mut prev: [Option<(f32, f32)>; 2] = [None, None];
+        let mut newest = None;
+        for k in 0..text::TRACE_POINTS {
+            let Some(p) = self.trace.point(k) else {
+                continue;
+            };
+            for (line, (v, colour)) in [(p.drawn_ml, white), (p.measured_ml, blue)]
+                .into_iter()
+                .enumerate()
+            {
+                let q = v.map(|v| text::SignalTrace::to_px(k, v, range, inner));
+                if let (Some(a), Some(b)) = (prev[line], q) {
+                    self.push_line(a, b, 2.0, colour);
+                }
+                prev[line] = q;
+            }
+            newest = p
+                .drawn_ml
+                .map(|v| text::SignalTrace::to_px(k, v, range, inner));
+        }
+        if let Some((cx, cy)) = newest {
+            self.push_rect((cx - 4.5, cy - 4.5, 9.0, 9.0), linear(255, 196, 64, 1.0));
         }
     }
 
@@ -1112,6 +1163,9 @@ impl Hud {
         f: &HudFrame,
     ) {
         self.pv.record(f.frame);
+        if self.config.signal {
+            self.trace.record(f.frame, self.config.tick_hz);
+        }
         self.update_lines(f);
         self.vertices.clear();
         let lh = self.line_height();
@@ -1154,7 +1208,9 @@ impl Hud {
             for k in 0..4 {
                 self.push_line(corners[k], corners[(k + 1) % 4], 1.0, frame_color);
             }
-            if let Some(scale) = text::PvScale::fit(self.pv.points()) {
+            if self.config.signal {
+                self.push_trace((px + 4.0, py + 4.0, pw - 8.0, ph - 8.0));
+            } else if let Some(scale) = text::PvScale::fit(self.pv.points()) {
                 let inner = (px + 4.0, py + 4.0, pw - 8.0, ph - 8.0);
                 let mut prev: Option<(f32, f32)> = None;
                 for k in 0..text::PV_BINS {

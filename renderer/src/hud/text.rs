@@ -535,6 +535,148 @@ impl PvScale {
     }
 }
 
+/// Seconds of breathing the signal trace shows.
+pub const TRACE_SECONDS: f64 = 10.0;
+
+/// Points of the signal trace: one every twelfth of a second over [`TRACE_SECONDS`].
+pub const TRACE_POINTS: usize = 120;
+
+/// One point of the [`SignalTrace`], both lungs together, ml.
+#[derive(Debug, Clone, Copy, PartialEq, Default)]
+pub struct TracePoint {
+    /// The volume the lungs were drawn at (`None`: no frame in this twelfth of a second — a stall
+    /// shows as a gap, never as a line drawn through it).
+    pub drawn_ml: Option<f32>,
+    /// The patient's measured volume on the same scale — the newest sample's, before prediction —
+    /// while the signal drives the lungs (following, or paused on a breath-hold); `None` while the
+    /// model breathes (calibrating, lost) or in a scene that breathes with the model.
+    pub measured_ml: Option<f32>,
+}
+
+/// The last [`TRACE_SECONDS`] of the breath as drawn, beside the patient's signal (issue 35): the
+/// HUD's box shows it instead of the PV loop when the scene breathes with the patient's signal, so
+/// whoever looks sees whether the lungs follow the patient, and when they do not.
+///
+/// The measured volume is put on the drawn volume's scale through the engine's own figures: the
+/// lungs are drawn at FRC plus the predicted volume ([`ipc_types::SignalFollowed::volume_ml`]), so
+/// `drawn − predicted + unpredicted` is FRC plus the newest sample's volume; the gap between the
+/// two lines is what the prediction moved the lungs ahead. Points are kept by the frame's engine
+/// tick (one per twelfth of a second of the engine's clock, a repeated frame adds nothing), in a
+/// fixed ring: recording allocates nothing.
+#[derive(Debug, Clone)]
+pub struct SignalTrace {
+    points: [TracePoint; TRACE_POINTS],
+    /// Points recorded, at most [`TRACE_POINTS`].
+    len: usize,
+    /// Where the next point goes.
+    next: usize,
+    /// The slot (twelfth of a second of engine time) of the newest point.
+    slot: Option<u64>,
+}
+
+impl Default for SignalTrace {
+    fn default() -> Self {
+        Self {
+            points: [TracePoint::default(); TRACE_POINTS],
+            len: 0,
+            next: 0,
+            slot: None,
+        }
+    }
+}
+
+impl SignalTrace {
+    /// Record frame `frame` of an engine ticking at `tick_hz`: a new point when its tick is in a new
+    /// slot, gaps for slots no frame came in (at most the whole trace), a fresh trace when the tick
+    /// went back (a restarted run). A non-finite volume is left out.
+    pub fn record(&mut self, frame: &EngineFrame, tick_hz: f64) {
+        use ipc_types::engine_state as e;
+        let per_slot = tick_hz * TRACE_SECONDS / TRACE_POINTS as f64;
+        if !(per_slot.is_finite() && per_slot > 0.0) {
+            return;
+        }
+        let slot = (frame.tick as f64 / per_slot).floor() as u64;
+        match self.slot {
+            Some(s) if slot == s => return,
+            Some(s) if slot < s => *self = Self::default(),
+            Some(s) => {
+                for _ in 0..(slot - s - 1).min(TRACE_POINTS as u64) {
+                    self.push(TracePoint::default());
+                }
+            }
+            None => {}
+        }
+        self.slot = Some(slot);
+        let active = frame.lungs.iter().filter(|l| l.is_active());
+        let drawn: f32 = active.map(|l| l.volume_ml).sum();
+        let drawn = drawn.is_finite().then_some(drawn);
+        let following = frame.state & (e::SIGNAL_FOLLOWING | e::SIGNAL_PAUSED) != 0
+            && frame.signal.display_ns != 0;
+        let measured = drawn
+            .filter(|_| following)
+            .map(|d| d - frame.signal.volume_ml + frame.signal.unpredicted_ml)
+            .filter(|m| m.is_finite());
+        self.push(TracePoint {
+            drawn_ml: drawn,
+            measured_ml: measured,
+        });
+    }
+
+    fn push(&mut self, p: TracePoint) {
+        self.points[self.next] = p;
+        self.next = (self.next + 1) % TRACE_POINTS;
+        self.len = (self.len + 1).min(TRACE_POINTS);
+    }
+
+    /// The points, oldest first, each with its place on the time axis (0 the oldest slot the
+    /// trace can hold, [`TRACE_POINTS`]` − 1` the newest): a young trace fills from the right.
+    pub fn points(&self) -> impl Iterator<Item = (usize, TracePoint)> + '_ {
+        let first = (self.next + TRACE_POINTS - self.len) % TRACE_POINTS;
+        (0..self.len).map(move |k| {
+            (
+                TRACE_POINTS - self.len + k,
+                self.points[(first + k) % TRACE_POINTS],
+            )
+        })
+    }
+
+    /// The point at place `k` of the time axis (as [`Self::points`] numbers them), if recorded.
+    pub fn point(&self, k: usize) -> Option<TracePoint> {
+        let empty = TRACE_POINTS - self.len;
+        let age = k.checked_sub(empty).filter(|&a| a < self.len)?;
+        let first = (self.next + TRACE_POINTS - self.len) % TRACE_POINTS;
+        Some(self.points[(first + age) % TRACE_POINTS])
+    }
+
+    /// The volume range shown: every drawn and measured volume with an 8 % margin, at least ±25 ml
+    /// (a held breath is a line in the middle); `None` without a volume.
+    pub fn range(&self) -> Option<(f32, f32)> {
+        let mut r: Option<(f32, f32)> = None;
+        for (_, p) in self.points() {
+            for v in [p.drawn_ml, p.measured_ml].into_iter().flatten() {
+                let (lo, hi) = r.unwrap_or((v, v));
+                r = Some((lo.min(v), hi.max(v)));
+            }
+        }
+        let (lo, hi) = r?;
+        let m = ((hi - lo) * 0.08).max(25.0);
+        Some((lo - m, hi + m))
+    }
+
+    /// Where point `(k, volume)` lies in the box `(x, y, w, h)` over `range`.
+    pub fn to_px(
+        k: usize,
+        volume_ml: f32,
+        (lo, hi): (f32, f32),
+        (x, y, w, h): (f32, f32, f32, f32),
+    ) -> (f32, f32) {
+        let u = k as f32 / (TRACE_POINTS - 1) as f32;
+        let t = ((volume_ml - lo) / (hi - lo)).clamp(0.0, 1.0);
+        let t = if t.is_finite() { t } else { 0.5 };
+        (x + u * w, y + (1.0 - t) * h)
+    }
+}
+
 /// Horizontal disparity (pixels, one eye's shift) that puts a screen-space HUD at `depth_mm` in a
 /// parallel stereo pair: half of `f·IPD/depth` with the focal length in pixels from the vertical
 /// field of view. The left eye's HUD moves right by it, the right eye's left.
@@ -963,5 +1105,90 @@ mod tests {
             .contains("SIGNAL LOST"));
         assert!(key_help(true).contains("N needle"));
         assert!(!key_help(false).contains("N needle"));
+    }
+
+    /// The trace keeps one point per twelfth of a second of engine time (a repeated frame adds
+    /// nothing), the measured line only while the signal drives the lungs, on the drawn volume's
+    /// scale; a stall leaves gaps, a run that starts again a fresh trace; the ring holds the last
+    /// ten seconds, oldest first, and a NaN never reaches a point.
+    #[test]
+    fn the_signal_trace_keeps_ten_seconds_of_the_drawn_and_measured_breath() {
+        use ipc_types::engine_state as e;
+        let mut t = SignalTrace::default();
+        assert_eq!(t.range(), None);
+        let mut f = EngineFrame::default();
+        f.lungs[LUNG_RIGHT] = lung(1300.0, 270.0, 300, 150, 0.0, lung_flags::INHALING);
+        f.lungs[LUNG_LEFT] = lung(1100.0, 230.0, 300, 150, 0.0, lung_flags::INHALING);
+        // Calibrating: the model breathes, no measured point.
+        f.state = e::SIGNAL_CALIBRATING;
+        f.signal.display_ns = 5;
+        for tick in 0..10 {
+            f.tick = tick;
+            t.record(&f, 60.0);
+        }
+        let pts: Vec<_> = t.points().collect();
+        assert_eq!(
+            pts.len(),
+            2,
+            "ticks 0..10 at 60 Hz are two twelfths of a second"
+        );
+        assert_eq!(pts[1].0, TRACE_POINTS - 1, "the newest on the right");
+        assert_eq!(pts[1].1.drawn_ml, Some(2400.0));
+        assert_eq!(pts[1].1.measured_ml, None);
+        assert_eq!(t.point(TRACE_POINTS - 1), Some(pts[1].1));
+        assert_eq!(t.point(TRACE_POINTS - 3), None);
+        assert_eq!(t.point(TRACE_POINTS), None);
+        // Following: drawn at FRC + the predicted 300 ml; the newest sample said 280 ml.
+        f.state = e::SIGNAL_FOLLOWING;
+        f.signal.volume_ml = 300.0;
+        f.signal.unpredicted_ml = 280.0;
+        f.tick = 10;
+        t.record(&f, 60.0);
+        let newest = t.points().last().unwrap().1;
+        assert_eq!(newest.measured_ml, Some(2380.0));
+        // A repeated frame adds nothing; a stall of 65 ticks (slots 3..=14) leaves twelve gaps.
+        t.record(&f, 60.0);
+        assert_eq!(t.points().count(), 3);
+        f.tick = 75;
+        t.record(&f, 60.0);
+        let pts: Vec<_> = t.points().collect();
+        assert_eq!(pts.len(), 3 + 12 + 1);
+        assert_eq!(pts.iter().filter(|(_, p)| p.drawn_ml.is_none()).count(), 12);
+        // The range holds both lines with a margin.
+        let (lo, hi) = t.range().unwrap();
+        assert!(lo < 2380.0 && hi > 2400.0 && hi - lo >= 50.0);
+        // A NaN volume is no point; a lost signal no measured point.
+        f.lungs[LUNG_LEFT].volume_ml = f32::NAN;
+        f.tick = 80;
+        t.record(&f, 60.0);
+        assert_eq!(t.points().last().unwrap().1, TracePoint::default());
+        f.lungs[LUNG_LEFT].volume_ml = 1100.0;
+        f.state = e::SIGNAL_LOST;
+        f.tick = 85;
+        t.record(&f, 60.0);
+        assert_eq!(t.points().last().unwrap().1.measured_ml, None);
+        // Long runs keep the last ten seconds, oldest first.
+        for tick in 90..2000u64 {
+            f.tick = tick;
+            f.lungs[LUNG_RIGHT].volume_ml = tick as f32;
+            t.record(&f, 60.0);
+        }
+        let pts: Vec<_> = t.points().collect();
+        assert_eq!(pts.len(), TRACE_POINTS);
+        assert!(pts.windows(2).all(|w| w[0].0 + 1 == w[1].0));
+        let drawn: Vec<f32> = pts.iter().filter_map(|(_, p)| p.drawn_ml).collect();
+        assert!(drawn.windows(2).all(|w| w[0] < w[1]), "oldest first");
+        assert_eq!(*drawn.last().unwrap(), 1995.0 + 1100.0);
+        // A run that starts again (its tick went back) starts a fresh trace.
+        f.tick = 3;
+        t.record(&f, 60.0);
+        assert_eq!(t.points().count(), 1);
+        // A box maps the oldest slot to its left edge and the newest to its right.
+        let b = (10.0, 20.0, 119.0, 50.0);
+        assert_eq!(SignalTrace::to_px(0, 0.0, (0.0, 10.0), b), (10.0, 70.0));
+        assert_eq!(
+            SignalTrace::to_px(TRACE_POINTS - 1, 10.0, (0.0, 10.0), b),
+            (129.0, 20.0)
+        );
     }
 }
