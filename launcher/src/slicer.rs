@@ -694,7 +694,7 @@ impl FrameMaker {
                 values,
             });
             let mesh = FixedMesh::new(&topology, lobes.as_slice())
-                .with_context(|| format!("the {} lung's lobe codes", side.name()))?;
+                .with_context(|| format!("the {} lung's mesh and lobe codes", side.name()))?;
             lungs.push(SentLung {
                 device: if side == Side::Right {
                     RIGHT_LUNG
@@ -732,7 +732,7 @@ impl FrameMaker {
                     meta,
                     positions: vec![[0.0; 3]; shape.len()],
                     shape,
-                    mesh: FixedMesh::new(&topology, &[])?,
+                    mesh: FixedMesh::new(&topology, &[]).context("the tumour's mesh")?,
                 })
             }
         };

@@ -1,7 +1,8 @@
 //! The `[breathing]` table: what the lungs breathe to — the scene's own PV model, or the patient's
 //! respiratory signal followed live (issue 35; docs/BREATHING.md). The tracker-bridge reads `signal`
 //! (where the samples come from) from the scene file itself; the engine reads the rest through
-//! `lung_model::scene::Scene`, which also checks `predictor` (its names are the follower's).
+//! `lung_model::scene::SceneExt` (`breathing_predictor`), which also checks `predictor` (its names are
+//! the follower's).
 //!
 //! ```toml
 //! [breathing]

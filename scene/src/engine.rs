@@ -50,8 +50,8 @@ pub enum OrientationMethod {
 }
 
 /// Smallest volume slope, as a fraction of the supine one, the weights may give by default
-/// (`lung_model::orientation::VolumeLimit`, scene `[engine] min_slope_ratio`). EQUATIONS.md §3.3: at 0.8 no posture of the
-/// bake's orientation set folds either default lung from FRC − 500 to FRC + 1500 ml (1000 and 10k
+/// (`lung_model::orientation::VolumeLimit`, scene `[engine] min_slope_ratio`). EQUATIONS.md §3.3:
+/// at 0.8 no posture of the bake's orientation set folds either default lung from FRC − 500 to FRC + 1500 ml (1000 and 10k
 /// vertices) and the largest vertex move stays within 1.7× the supine one; at the earlier 0.5 the
 /// turned breath moved up to 3.2× as far and folded the surface beyond FRC + 500 ml.
 pub const DEFAULT_MIN_SLOPE_RATIO: f64 = 0.8;

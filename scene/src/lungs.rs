@@ -325,7 +325,7 @@ pub struct LungsScene {
     /// Vertices per generated default lung (what the launcher bakes for a lung without a kernel).
     pub vertices: usize,
     /// Shape of the generated lungs (a lung with a kernel ignores it): "anatomical" (the default:
-    /// lobes, hilum, cardiac notch, domed base; `mesh::anatomy`) or "teardrop" (the earlier smooth
+    /// lobes, hilum, cardiac notch, domed base; `lung_model::mesh::anatomy`) or "teardrop" (the earlier smooth
     /// shape; `mesh::teardrop`).
     pub shape: crate::lungs::Shape,
     /// Regional elasticity of the operator (`[lungs.elasticity]`: apex, base, dependent).

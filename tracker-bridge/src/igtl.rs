@@ -758,12 +758,28 @@ pub fn seal(
     timestamp: Timestamp,
 ) -> Result<(), IgtlError> {
     let crc = crc64(message.get(HEADER_SIZE..).unwrap_or_default());
-    seal_with_crc(message, type_name, device_name, timestamp, crc)
+    write_sealed(message, type_name, device_name, timestamp, crc)
 }
 
 /// [`seal`] with the body's CRC-64 already known (a sender that combined it from parts,
 /// [`CrcShift`]); `crc` must be [`crc64`] of `message[HEADER_SIZE..]` (checked in debug builds).
 pub fn seal_with_crc(
+    message: &mut [u8],
+    type_name: &str,
+    device_name: &str,
+    timestamp: Timestamp,
+    crc: u64,
+) -> Result<(), IgtlError> {
+    debug_assert_eq!(
+        crc,
+        crc64(message.get(HEADER_SIZE..).unwrap_or_default()),
+        "the CRC given is not the body's"
+    );
+    write_sealed(message, type_name, device_name, timestamp, crc)
+}
+
+/// The header of `message` written for its body with `crc`.
+fn write_sealed(
     message: &mut [u8],
     type_name: &str,
     device_name: &str,
@@ -778,7 +794,6 @@ pub fn seal_with_crc(
             })
         }
     };
-    debug_assert_eq!(crc, crc64(body), "the CRC given is not the body's");
     let head: &mut [u8; HEADER_SIZE] = head.try_into().map_err(|_| IgtlError::Unencodable {
         reason: "internal error: header is not 58 bytes",
     })?;

@@ -17,7 +17,8 @@
 //!   constants files a scene loads;
 //! * [`disease`] — the seed's disease states (chapter 8): closed and tension pneumothorax with
 //!   interventions, tumour-influenced lungs;
-//! * [`scene`] — what a run models ([`scene_disease`]: its `[disease]` table);
+//! * [`scene`] — what the physics makes of a scene (`SceneExt`: reading, checking, the lungs' models,
+//!   the PV model or recording; the schema is `lungdyn-scene`'s; [`scene_disease`]: its `[disease]` table);
 //! * [`breathing`] — a live respiratory signal followed: calibrated to volume, predicted to the
 //!   display time, breaths and pauses found (issue 35; beyond the seed, §7.5);
 //! * [`input`] — bounded reading of every input file; [`plausible`] — the physical ranges every input

@@ -1200,7 +1200,7 @@ impl Hud {
                 }
                 None => self.push_rect((bx, by, bar_w, bh), linear(60, 60, 60, 0.9)),
             }
-            // The PV loop.
+            // The PV loop's box: the loop, or the signal trace in a scene that follows the signal.
             let (px, py, pw, ph) = self.pv_box(ox);
             self.push_rect(layout.pv.tuple(), linear(0, 0, 0, 0.45));
             let frame_color = linear(120, 130, 140, 0.9);

@@ -557,10 +557,15 @@ pub struct TracePoint {
 /// HUD's box shows it instead of the PV loop when the scene breathes with the patient's signal, so
 /// whoever looks sees whether the lungs follow the patient, and when they do not.
 ///
-/// The measured volume is put on the drawn volume's scale through the engine's own figures: the
-/// lungs are drawn at FRC plus the predicted volume ([`ipc_types::SignalFollowed::volume_ml`]), so
-/// `drawn − predicted + unpredicted` is FRC plus the newest sample's volume; the gap between the
-/// two lines is what the prediction moved the lungs ahead. Points are kept by the frame's engine
+/// The measured volume is put on the drawn volume's scale through the engine's own figures: with
+/// both lungs breathing freely the lungs are drawn at FRC plus the predicted volume
+/// ([`ipc_types::SignalFollowed::volume_ml`]; each lung takes its share of it, the shares making
+/// the whole), so `drawn − predicted + unpredicted` is FRC plus the newest sample's volume and the
+/// gap between the two lines is what the prediction moved the lungs ahead. With one lung simulated,
+/// or a lung held or collapsed (a pneumothorax), the lungs drawn take only part of the signal's
+/// volume, in a proportion the frame does not carry: there the measured line is left out rather
+/// than drawn on a wrong scale. (The half second in which the signal takes over from the model
+/// blends the two, so the lines part there.) Points are kept by the frame's engine
 /// tick (one per twelfth of a second of the engine's clock, a repeated frame adds nothing), in a
 /// fixed ring: recording allocates nothing.
 #[derive(Debug, Clone)]
@@ -610,8 +615,13 @@ impl SignalTrace {
         let active = frame.lungs.iter().filter(|l| l.is_active());
         let drawn: f32 = active.map(|l| l.volume_ml).sum();
         let drawn = drawn.is_finite().then_some(drawn);
+        // Both lungs breathing freely: together they take the whole of the signal's volume.
+        let whole = frame.lungs.iter().all(|l| {
+            l.is_active() && l.flags & ipc_types::lung_flags::HELD == 0 && l.collapse == 0.0
+        });
         let following = frame.state & (e::SIGNAL_FOLLOWING | e::SIGNAL_PAUSED) != 0
-            && frame.signal.display_ns != 0;
+            && frame.signal.display_ns != 0
+            && whole;
         let measured = drawn
             .filter(|_| following)
             .map(|d| d - frame.signal.volume_ml + frame.signal.unpredicted_ml)
@@ -1146,6 +1156,21 @@ mod tests {
         t.record(&f, 60.0);
         let newest = t.points().last().unwrap().1;
         assert_eq!(newest.measured_ml, Some(2380.0));
+        // A held or collapsed lung, or one lung alone, takes only part of the signal's volume: no
+        // measured point then.
+        let edits: [fn(&mut EngineFrame); 3] = [
+            |f| f.lungs[LUNG_LEFT].flags |= lung_flags::HELD,
+            |f| f.lungs[LUNG_RIGHT].collapse = 0.2,
+            |f| f.lungs[LUNG_LEFT] = LungFrame::default(),
+        ];
+        for (k, edit) in edits.into_iter().enumerate() {
+            let mut g = f;
+            edit(&mut g);
+            let mut u = SignalTrace::default();
+            u.record(&g, 60.0);
+            let p = u.points().last().unwrap().1;
+            assert!(p.drawn_ml.is_some() && p.measured_ml.is_none(), "case {k}");
+        }
         // A repeated frame adds nothing; a stall of 65 ticks (slots 3..=14) leaves twelve gaps.
         t.record(&f, 60.0);
         assert_eq!(t.points().count(), 3);
