@@ -511,11 +511,15 @@ fn close_and_extract(
         .into_iter()
         .filter(|&r| r == 0.0 || r >= min_spacing)
         .collect();
+    // The dilation's distance transform is the same for every radius: made once, when a closing
+    // is first needed.
+    let mut to_in: Option<Vec<f64>> = None;
     for (attempt, &r) in radii.iter().enumerate() {
         let mut g = as_labelled.clone();
         let mut filled = 0;
         if r > 0.0 {
-            g = morph::close(as_labelled, r);
+            let to_in = to_in.get_or_insert_with(|| morph::distance_sq(as_labelled, true));
+            g = morph::close_with(as_labelled, to_in, r);
             filled = morph::fill_cavities(&mut g).0;
             morph::keep_largest(&mut g);
         }

@@ -264,8 +264,17 @@ pub fn close(g: &Grid, radius_mm: f64) -> Grid {
     if radius_mm <= 0.0 {
         return g.clone();
     }
+    close_with(g, &distance_sq(g, true), radius_mm)
+}
+
+/// [`close`] given `to_in = distance_sq(g, true)`, which does not depend on the radius: a caller
+/// trying several radii computes it once (the dilation's transform; the erosion's depends on the
+/// radius).
+pub fn close_with(g: &Grid, to_in: &[f64], radius_mm: f64) -> Grid {
+    if radius_mm <= 0.0 {
+        return g.clone();
+    }
     let r2 = radius_mm * radius_mm;
-    let to_in = distance_sq(g, true);
     let dilated = Grid {
         on: to_in.iter().map(|&d| d <= r2).collect(),
         ..g.clone()
