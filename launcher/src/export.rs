@@ -309,16 +309,29 @@ fn check_args(args: &GltfArgs) -> anyhow::Result<()> {
     Ok(())
 }
 
-/// Run `scene` headless to the end of its `breath`-th breath (counted on its first lung: the engine
-/// starts a lung at the start of inspiration, so its first breath runs from tick 0 to its first cycle
-/// change, each later one from a change to the next) and keep `n` frames evenly spread over it.
+/// The lung whose breaths the export counts and loops: the first of `[lungs] sides` that the scene's
+/// disease leaves alone, else the first (a complete pneumothorax of the first lung holds it still,
+/// and its breath was once the one counted: nothing to export although the other lung breathed).
+fn reference_lung(scene: &Scene) -> anyhow::Result<lung_model::mesh::Side> {
+    let affected = match scene.disease_spec() {
+        Ok(Some(d)) => d.affected(),
+        _ => Vec::new(),
+    };
+    let sides = &scene.lungs.sides;
+    sides
+        .iter()
+        .find(|s| !affected.contains(s))
+        .or(sides.first())
+        .copied()
+        .context("the scene has no lungs to export")
+}
+
+/// Run `scene` headless to the end of its `breath`-th breath (counted on its [`reference_lung`]: the
+/// engine starts a lung at the start of inspiration, so its first breath runs from tick 0 to its first
+/// cycle change, each later one from a change to the next) and keep `n` frames evenly spread over it.
 fn sample_breath(scene: &Scene, n: usize, breath: u32) -> anyhow::Result<Breath> {
     let hz = scene.engine.tick_hz;
-    let reference = *scene
-        .lungs
-        .sides
-        .first()
-        .context("the scene has no lungs to export")?;
+    let reference = reference_lung(scene)?;
     let slot = reference.index();
     let max_ticks = (MAX_SIMULATED_S * hz).round() as u64;
     // Breaths begun so far: the first active frame begins one when it is at the start of
@@ -1121,6 +1134,28 @@ pub fn text(r: &GltfReport) -> String {
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    /// The breath is counted on a lung the disease leaves alone: a complete pneumothorax of the
+    /// first lung listed no longer leaves nothing to export.
+    #[test]
+    fn the_breath_is_counted_on_a_lung_the_disease_leaves_alone() {
+        let scene = |text: &str| Scene::parse(text, "test").expect("a valid scene");
+        let sides = "[lungs]\nsides = [\"right\", \"left\"]\n";
+        let side = |text: String| reference_lung(&scene(&text)).unwrap();
+        use lung_model::mesh::Side;
+        assert_eq!(side(sides.to_string()), Side::Right);
+        let closed = |s: &str| {
+            format!(
+                "{sides}[disease]\nkind = \"closed-pneumothorax\"\nside = \"{s}\"\nindex = 1.0\n"
+            )
+        };
+        assert_eq!(side(closed("right")), Side::Left);
+        assert_eq!(side(closed("left")), Side::Right);
+        let both = format!(
+            "{sides}[disease]\nkind = \"bilateral-pneumothorax\"\nindex_left = 0.1\nindex_right = 0.2\n"
+        );
+        assert_eq!(side(both), Side::Right, "both affected: the first listed");
+    }
 
     #[test]
     fn the_body_frame_maps_onto_gltf_with_the_patient_facing_the_viewer() {
