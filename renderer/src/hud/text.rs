@@ -577,6 +577,8 @@ pub struct SignalTrace {
     next: usize,
     /// The slot (twelfth of a second of engine time) of the newest point.
     slot: Option<u64>,
+    /// The newest frame's tick (a tick that goes back starts a fresh trace, even within a slot).
+    tick: u64,
 }
 
 impl Default for SignalTrace {
@@ -586,6 +588,7 @@ impl Default for SignalTrace {
             len: 0,
             next: 0,
             slot: None,
+            tick: 0,
         }
     }
 }
@@ -601,6 +604,10 @@ impl SignalTrace {
             return;
         }
         let slot = (frame.tick as f64 / per_slot).floor() as u64;
+        if frame.tick < self.tick {
+            *self = Self::default();
+        }
+        self.tick = frame.tick;
         match self.slot {
             Some(s) if slot == s => return,
             Some(s) if slot < s => *self = Self::default(),
@@ -1204,10 +1211,17 @@ mod tests {
         let drawn: Vec<f32> = pts.iter().filter_map(|(_, p)| p.drawn_ml).collect();
         assert!(drawn.windows(2).all(|w| w[0] < w[1]), "oldest first");
         assert_eq!(*drawn.last().unwrap(), 1995.0 + 1100.0);
-        // A run that starts again (its tick went back) starts a fresh trace.
+        // A run that starts again (its tick went back) starts a fresh trace, even within a slot.
         f.tick = 3;
         t.record(&f, 60.0);
         assert_eq!(t.points().count(), 1);
+        f.tick = 4;
+        t.record(&f, 60.0);
+        f.tick = 2;
+        f.lungs[LUNG_RIGHT].volume_ml = 777.0;
+        t.record(&f, 60.0);
+        assert_eq!(t.points().count(), 1);
+        assert_eq!(t.points().last().unwrap().1.drawn_ml, Some(777.0 + 1100.0));
         // A box maps the oldest slot to its left edge and the newest to its right.
         let b = (10.0, 20.0, 119.0, 50.0);
         assert_eq!(SignalTrace::to_px(0, 0.0, (0.0, 10.0), b), (10.0, 70.0));
