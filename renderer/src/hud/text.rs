@@ -648,13 +648,7 @@ impl SignalTrace {
     /// The points, oldest first, each with its place on the time axis (0 the oldest slot the
     /// trace can hold, [`TRACE_POINTS`]` − 1` the newest): a young trace fills from the right.
     pub fn points(&self) -> impl Iterator<Item = (usize, TracePoint)> + '_ {
-        let first = (self.next + TRACE_POINTS - self.len) % TRACE_POINTS;
-        (0..self.len).map(move |k| {
-            (
-                TRACE_POINTS - self.len + k,
-                self.points[(first + k) % TRACE_POINTS],
-            )
-        })
+        (TRACE_POINTS - self.len..TRACE_POINTS).filter_map(move |k| Some((k, self.point(k)?)))
     }
 
     /// The point at place `k` of the time axis (as [`Self::points`] numbers them), if recorded.
