@@ -13,16 +13,30 @@ use lungdyn_tests::bin;
 struct Xvfb {
     child: Child,
     display: String,
+    log: std::path::PathBuf,
 }
 
 impl Xvfb {
     fn start(w: u32, h: u32) -> Self {
         // -displayfd: Xvfb picks a free display and writes its number once it accepts clients.
+        // -noreset: without it the server resets whenever its last client leaves (each
+        // `xwininfo` poll below), and a client connecting during that reset is refused — the
+        // demo once failed "Failed to open connection to X server" so (CI, 2026-12-06).
+        let log =
+            std::env::temp_dir().join(format!("lungdyn-xvfb-{}-{w}x{h}.log", std::process::id()));
         let mut child = Command::new("Xvfb")
-            .args(["-displayfd", "1", "-nolisten", "tcp", "-screen", "0"])
+            .args([
+                "-displayfd",
+                "1",
+                "-noreset",
+                "-nolisten",
+                "tcp",
+                "-screen",
+                "0",
+            ])
             .arg(format!("{w}x{h}x24"))
             .stdout(Stdio::piped())
-            .stderr(Stdio::null())
+            .stderr(std::fs::File::create(&log).expect("create the Xvfb log"))
             .spawn()
             .expect("start Xvfb (package xvfb)");
         let mut line = String::new();
@@ -36,7 +50,19 @@ impl Xvfb {
         Self {
             child,
             display: format!(":{n}"),
+            log,
         }
+    }
+
+    /// What the server said on stderr, and whether it is still running: for a failure's message.
+    fn said(&mut self) -> String {
+        let state = match self.child.try_wait() {
+            Ok(None) => "running".to_string(),
+            Ok(Some(status)) => format!("exited ({status})"),
+            Err(e) => format!("unknown ({e})"),
+        };
+        let log = std::fs::read_to_string(&self.log).unwrap_or_default();
+        format!("Xvfb {} {state}; its stderr:\n{log}", self.display)
     }
 }
 
@@ -44,6 +70,7 @@ impl Drop for Xvfb {
     fn drop(&mut self) {
         let _ = self.child.kill();
         let _ = self.child.wait();
+        let _ = std::fs::remove_file(&self.log);
     }
 }
 
@@ -96,13 +123,13 @@ fn fullscreen_stereo_fills_a_1280x720_screen_and_draws_both_eyes() {
         return;
     }
     let (w, h) = (1280u32, 720u32);
-    let x = Xvfb::start(w, h);
+    let mut x = Xvfb::start(w, h);
     let dir = std::env::temp_dir().join(format!("lungdyn-fullscreen-{}", std::process::id()));
     std::fs::create_dir_all(&dir).unwrap();
     let scene = dir.join("scene.toml");
     // The scene asks for 800x600 eyes: fullscreen makes them half the screen each instead.
     write_scene(&scene, "width = 800\nheight = 600\n");
-    let demo = Command::new(bin("lungdyn"))
+    let mut demo = Command::new(bin("lungdyn"))
         .args(["demo", "--fullscreen", "--display", "0", "--seconds", "4"])
         .args(["--snapshots", "1", "--json", "--out"])
         .arg(dir.join("out"))
@@ -118,7 +145,9 @@ fn fullscreen_stereo_fills_a_1280x720_screen_and_draws_both_eyes() {
     let mut geometry = None;
     while t0.elapsed() < Duration::from_secs(120) {
         geometry = window_geometry(&x.display);
-        if geometry == Some((0, 0, w as i64, h as i64)) {
+        // Stop looking once the demo has ended (its window with it): a failed start is said at
+        // once rather than after the whole wait.
+        if geometry == Some((0, 0, w as i64, h as i64)) || !matches!(demo.try_wait(), Ok(None)) {
             break;
         }
         std::thread::sleep(Duration::from_millis(200));
@@ -126,11 +155,12 @@ fn fullscreen_stereo_fills_a_1280x720_screen_and_draws_both_eyes() {
     let out = demo.wait_with_output().unwrap();
     let stdout = String::from_utf8_lossy(&out.stdout);
     let stderr = String::from_utf8_lossy(&out.stderr);
-    assert!(out.status.success(), "{stderr}");
+    assert!(out.status.success(), "{stderr}\n{}", x.said());
     assert_eq!(
         geometry,
         Some((0, 0, w as i64, h as i64)),
-        "the window does not cover the {w}x{h} screen: {stderr}"
+        "the window does not cover the {w}x{h} screen: {stderr}\n{}",
+        x.said()
     );
     let v: serde_json::Value =
         serde_json::from_str(stdout.trim()).unwrap_or_else(|e| panic!("{e}: {stdout}"));
