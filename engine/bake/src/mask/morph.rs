@@ -75,29 +75,83 @@ impl Grid {
 /// 6-connected components of the voxels where `on == value`: a component id per voxel (0 = not
 /// `value`, 1.. by first voxel) and each component's size.
 pub fn components(g: &Grid, value: bool) -> (Vec<u32>, Vec<usize>) {
-    let mut id = vec![0u32; g.on.len()];
-    let mut sizes = Vec::new();
-    let mut queue = VecDeque::new();
-    let mut nb = [0usize; 6];
-    for start in 0..g.on.len() {
-        if g.on[start] != value || id[start] != 0 {
-            continue;
+    // Runs of `value` along x, row by row (row r = j + ny·k): each run joined with the runs it
+    // touches in the row before (j − 1) and the slice before (k − 1) — 6-connectivity is an
+    // overlap of x-intervals there — by union-find on the runs; the components are numbered by
+    // their first run in scan order, i.e. by their lowest voxel, as a flood fill from each
+    // unlabelled voxel in scan order numbers them. (A flood fill per voxel was most of a closing's
+    // time on a 20-million-voxel lung.)
+    let [nx, ny, nz] = g.dims;
+    let rows = ny * nz;
+    let mut runs: Vec<(usize, usize)> = Vec::new(); // [start, end) as linear indices
+    let mut row_first = Vec::with_capacity(rows + 1);
+    for r in 0..rows {
+        row_first.push(runs.len());
+        let line = &g.on[r * nx..(r + 1) * nx];
+        let mut i = 0;
+        while i < nx {
+            if line[i] == value {
+                let s = i;
+                while i < nx && line[i] == value {
+                    i += 1;
+                }
+                runs.push((r * nx + s, r * nx + i));
+            } else {
+                i += 1;
+            }
         }
-        let c = sizes.len() as u32 + 1;
-        id[start] = c;
-        queue.push_back(start);
-        let mut size = 0;
-        while let Some(v) = queue.pop_front() {
-            size += 1;
-            let n = g.neighbours(v, &mut nb);
-            for &w in &nb[..n] {
-                if g.on[w] == value && id[w] == 0 {
-                    id[w] = c;
-                    queue.push_back(w);
+    }
+    row_first.push(runs.len());
+    let mut parent: Vec<u32> = (0..runs.len() as u32).collect();
+    fn root(parent: &mut [u32], mut a: u32) -> u32 {
+        while parent[a as usize] != a {
+            let up = parent[parent[a as usize] as usize];
+            parent[a as usize] = up;
+            a = up;
+        }
+        a
+    }
+    for r in 0..rows {
+        let (j, k) = (r % ny, r / ny);
+        let here = row_first[r]..row_first[r + 1];
+        for before in [(j > 0).then(|| r - 1), (k > 0).then(|| r - ny)]
+            .into_iter()
+            .flatten()
+        {
+            let shift = (r - before) * nx;
+            let (mut a, mut b) = (here.start, row_first[before]);
+            let b_end = row_first[before + 1];
+            while a < here.end && b < b_end {
+                let (s0, e0) = runs[a];
+                let (s1, e1) = (runs[b].0 + shift, runs[b].1 + shift);
+                if s0 < e1 && s1 < e0 {
+                    let (ra, rb) = (root(&mut parent, a as u32), root(&mut parent, b as u32));
+                    // The lower run stays the root: a component's root is its first run.
+                    let (lo, hi) = if ra < rb { (ra, rb) } else { (rb, ra) };
+                    parent[hi as usize] = lo;
+                }
+                if e0 <= e1 {
+                    a += 1;
+                } else {
+                    b += 1;
                 }
             }
         }
-        sizes.push(size);
+    }
+    let mut id = vec![0u32; g.on.len()];
+    let mut sizes: Vec<usize> = Vec::new();
+    let mut label = vec![0u32; runs.len()];
+    for (n, &(s, e)) in runs.iter().enumerate() {
+        let r = root(&mut parent, n as u32) as usize;
+        if r == n {
+            sizes.push(0);
+            label[n] = sizes.len() as u32;
+        } else {
+            label[n] = label[r];
+        }
+        let c = label[n];
+        sizes[c as usize - 1] += e - s;
+        id[s..e].fill(c);
     }
     (id, sizes)
 }
@@ -413,6 +467,57 @@ pub fn split_two(
 #[cfg(test)]
 mod tests {
     use super::*;
+    use proptest::prelude::*;
+
+    /// The flood fill `components` replaced, as the reference it must equal.
+    fn components_by_flood(g: &Grid, value: bool) -> (Vec<u32>, Vec<usize>) {
+        let mut id = vec![0u32; g.on.len()];
+        let mut sizes = Vec::new();
+        let mut queue = VecDeque::new();
+        let mut nb = [0usize; 6];
+        for start in 0..g.on.len() {
+            if g.on[start] != value || id[start] != 0 {
+                continue;
+            }
+            let c = sizes.len() as u32 + 1;
+            id[start] = c;
+            queue.push_back(start);
+            let mut size = 0;
+            while let Some(v) = queue.pop_front() {
+                size += 1;
+                let n = g.neighbours(v, &mut nb);
+                for &w in &nb[..n] {
+                    if g.on[w] == value && id[w] == 0 {
+                        id[w] = c;
+                        queue.push_back(w);
+                    }
+                }
+            }
+            sizes.push(size);
+        }
+        (id, sizes)
+    }
+
+    proptest! {
+        #![proptest_config(ProptestConfig::with_cases(200))]
+        /// The run labelling numbers and sizes every component as the flood fill does, for
+        /// either value, on random grids of any density and shape (1-wide included).
+        #[test]
+        fn run_labelling_equals_the_flood_fill(
+            (dims, on) in (1usize..9, 1usize..9, 1usize..9, 0.0f64..1.0).prop_flat_map(
+                |(x, y, z, density)| {
+                    let voxels = proptest::collection::vec(prop::bool::weighted(density), x * y * z);
+                    (Just([x, y, z]), voxels)
+                },
+            ),
+        ) {
+            let mut g = Grid::new(dims, [1.0; 3]);
+            g.on = on;
+            for value in [true, false] {
+                prop_assert_eq!(components(&g, value), components_by_flood(&g, value));
+            }
+        }
+    }
 
     fn ball(dims: [usize; 3], spacing: [f64; 3], centre: [f64; 3], r: f64) -> Grid {
         let mut g = Grid::new(dims, spacing);

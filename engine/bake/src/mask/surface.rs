@@ -19,8 +19,6 @@
 //! 5. **Volume kept**: a uniform offset along the vertex normals brings the enclosed volume to the
 //!    mask's voxel volume (`δ = ΔV / area`, twice), the "volume-keeping smoothing" of the design.
 
-use std::collections::HashMap;
-
 use glam::{DMat3, DVec3};
 use lung_model::mesh::TriMesh;
 
@@ -207,79 +205,137 @@ pub fn marching_tetrahedra(field: &Field, iso: f64, step: [f64; 3]) -> TriMesh {
     }
     let mut positions: Vec<DVec3> = Vec::new();
     let mut triangles: Vec<[u32; 3]> = Vec::new();
-    let mut cut: HashMap<(usize, usize), u32> = HashMap::new();
     let pos_of = |idx: usize| -> DVec3 {
         let i = idx % n[0];
         let j = (idx / n[0]) % n[1];
         let k = idx / (n[0] * n[1]);
         field.to_body.apply(grid_u(i, j, k))
     };
-    // A cut kept a little inside its edge, so no two cuts coincide with a node and every polygon
-    // has an orientation in f64 (the slivers this leaves are collapsed afterwards).
-    let mut vertex = |a: usize, b: usize, positions: &mut Vec<DVec3>| -> u32 {
-        let key = if a < b { (a, b) } else { (b, a) };
-        *cut.entry(key).or_insert_with(|| {
+    // Each cut's vertex, found again by its edge: every edge of a Kuhn tetrahedron joins a corner
+    // to one whose bits include its own, so an edge is (its lower node, the corner bits added:
+    // 1..=7), and a cell of layer k touches nodes of planes k and k + 1 only — two planes of
+    // seven slots per node hold every edge a layer can meet (plane p in half p % 2; the half
+    // of plane k is cleared when layer k + 1 starts, being plane k + 2's). Vertices are made in
+    // the same order as a map keyed by the edge would make them.
+    const NONE: u32 = u32::MAX;
+    let plane = n[0] * n[1];
+    let mut cut = vec![[NONE; 7]; 2 * plane];
+    // The cut on edge a–b (a lerp from a, as the first polygon to meet it asks), kept under the
+    // edge's lower node `lo` and the corner bits it adds. A cut is kept a little inside its edge,
+    // so no two cuts coincide with a node and every polygon has an orientation in f64 (the
+    // slivers this leaves are collapsed afterwards).
+    let vertex = |cut: &mut [[u32; 7]],
+                  a: usize,
+                  b: usize,
+                  lo: usize,
+                  bits: usize,
+                  positions: &mut Vec<DVec3>| {
+        let slot = &mut cut[(lo / plane % 2) * plane + lo % plane][bits - 1];
+        if *slot == NONE {
             let (va, vb) = (values[a], values[b]);
             let t = (va / (va - vb)).clamp(1e-3, 1.0 - 1e-3);
             positions.push(pos_of(a).lerp(pos_of(b), t));
-            (positions.len() - 1) as u32
-        })
+            *slot = (positions.len() - 1) as u32;
+        }
+        *slot
     };
-    for k in 0..n[2].saturating_sub(1) {
-        for j in 0..n[1].saturating_sub(1) {
-            for i in 0..n[0].saturating_sub(1) {
-                let corner: [usize; 8] = std::array::from_fn(|m| {
-                    node(i + (m & 1), j + ((m >> 1) & 1), k + ((m >> 2) & 1))
-                });
-                let inside = corner.map(|c| values[c] > 0.0);
-                if inside.iter().all(|&b| b) || inside.iter().all(|&b| !b) {
-                    continue;
-                }
-                for tet in KUHN {
-                    let c = tet.map(|m| corner[m]);
-                    let ins: Vec<usize> = (0..4).filter(|&q| values[c[q]] > 0.0).collect();
-                    let outs: Vec<usize> = (0..4).filter(|&q| values[c[q]] <= 0.0).collect();
-                    let polygon: Vec<u32> = match (ins.len(), outs.len()) {
-                        (1, 3) | (3, 1) => {
-                            let (lone, others) = if ins.len() == 1 {
-                                (ins[0], &outs)
-                            } else {
-                                (outs[0], &ins)
-                            };
-                            others
-                                .iter()
-                                .map(|&o| vertex(c[lone], c[o], &mut positions))
-                                .collect()
+    let corners = |i: usize, j: usize, k: usize| -> [usize; 8] {
+        std::array::from_fn(|m| node(i + (m & 1), j + ((m >> 1) & 1), k + ((m >> 2) & 1)))
+    };
+    // The cells the level crosses (corners on both sides), each layer's in (j, i) order: found in
+    // parallel, then visited one layer after another in that order, so the vertices and triangles
+    // come out as one pass over every cell would make them — most cells are wholly inside or
+    // outside, and the scan of them was most of the time.
+    let crossed: Vec<Vec<u32>> = {
+        use rayon::prelude::*;
+        (0..n[2].saturating_sub(1))
+            .into_par_iter()
+            .map(|k| {
+                let mut cells = Vec::new();
+                for j in 0..n[1].saturating_sub(1) {
+                    for i in 0..n[0].saturating_sub(1) {
+                        let inside = corners(i, j, k).map(|c| values[c] > 0.0);
+                        if inside.iter().any(|&b| b) && !inside.iter().all(|&b| b) {
+                            cells.push((i + n[0] * j) as u32);
                         }
-                        (2, 2) => vec![
-                            vertex(c[ins[0]], c[outs[0]], &mut positions),
-                            vertex(c[ins[0]], c[outs[1]], &mut positions),
-                            vertex(c[ins[1]], c[outs[1]], &mut positions),
-                            vertex(c[ins[1]], c[outs[0]], &mut positions),
-                        ],
-                        _ => continue,
-                    };
-                    // Outward: from the inside corners' centre towards the outside ones'. The
-                    // polygon is oriented as a whole (Newell's normal), then fanned, so a quad's
-                    // two triangles always agree.
-                    let centre = |qs: &[usize]| {
-                        qs.iter().map(|&q| pos_of(c[q])).sum::<DVec3>() / qs.len() as f64
-                    };
-                    let outward = centre(&outs) - centre(&ins);
-                    let p = |v: u32| positions[v as usize];
-                    let mut newell = DVec3::ZERO;
-                    for q in 0..polygon.len() {
-                        let (a, b) = (p(polygon[q]), p(polygon[(q + 1) % polygon.len()]));
-                        newell += a.cross(b);
                     }
-                    let mut poly = polygon;
-                    if newell.dot(outward) < 0.0 {
-                        poly.reverse();
+                }
+                cells
+            })
+            .collect()
+    };
+    for (k, cells) in crossed.iter().enumerate() {
+        if k > 0 {
+            // Plane k + 1 takes the half plane k − 1 had.
+            let half = ((k + 1) % 2) * plane;
+            cut[half..half + plane].fill([NONE; 7]);
+        }
+        for &cell in cells {
+            let (i, j) = (cell as usize % n[0], cell as usize / n[0]);
+            let corner = corners(i, j, k);
+            for tet in KUHN {
+                let c = tet.map(|m| corner[m]);
+                // The edge from tetrahedron corner q to r (either order).
+                let mut edge = |q: usize, r: usize, positions: &mut Vec<DVec3>| {
+                    let lo = if tet[q] < tet[r] { q } else { r };
+                    vertex(&mut cut, c[q], c[r], c[lo], tet[q] ^ tet[r], positions)
+                };
+                let (mut ins, mut outs) = ([0usize; 4], [0usize; 4]);
+                let (mut n_in, mut n_out) = (0, 0);
+                for q in 0..4 {
+                    if values[c[q]] > 0.0 {
+                        ins[n_in] = q;
+                        n_in += 1;
+                    } else {
+                        outs[n_out] = q;
+                        n_out += 1;
                     }
-                    triangles.push([poly[0], poly[1], poly[2]]);
-                    if poly.len() == 4 {
-                        triangles.push([poly[0], poly[2], poly[3]]);
+                }
+                let (ins, outs) = (&ins[..n_in], &outs[..n_out]);
+                let mut polygon = [0u32; 4];
+                let len = match (n_in, n_out) {
+                    (1, 3) | (3, 1) => {
+                        let (lone, others) = if n_in == 1 {
+                            (ins[0], outs)
+                        } else {
+                            (outs[0], ins)
+                        };
+                        for (v, &o) in polygon.iter_mut().zip(others) {
+                            *v = edge(lone, o, &mut positions);
+                        }
+                        3
                     }
+                    (2, 2) => {
+                        polygon = [
+                            edge(ins[0], outs[0], &mut positions),
+                            edge(ins[0], outs[1], &mut positions),
+                            edge(ins[1], outs[1], &mut positions),
+                            edge(ins[1], outs[0], &mut positions),
+                        ];
+                        4
+                    }
+                    _ => continue,
+                };
+                let poly = &mut polygon[..len];
+                // Outward: from the inside corners' centre towards the outside ones'. The
+                // polygon is oriented as a whole (Newell's normal), then fanned, so a quad's
+                // two triangles always agree.
+                let centre = |qs: &[usize]| {
+                    qs.iter().map(|&q| pos_of(c[q])).sum::<DVec3>() / qs.len() as f64
+                };
+                let outward = centre(outs) - centre(ins);
+                let p = |v: u32| positions[v as usize];
+                let mut newell = DVec3::ZERO;
+                for q in 0..len {
+                    let (a, b) = (p(poly[q]), p(poly[(q + 1) % len]));
+                    newell += a.cross(b);
+                }
+                if newell.dot(outward) < 0.0 {
+                    poly.reverse();
+                }
+                triangles.push([poly[0], poly[1], poly[2]]);
+                if len == 4 {
+                    triangles.push([poly[0], poly[2], poly[3]]);
                 }
             }
         }
