@@ -515,14 +515,16 @@ fn close_and_extract(
     // is first needed.
     let mut to_in: Option<Vec<f64>> = None;
     for (attempt, &r) in radii.iter().enumerate() {
-        let mut g = as_labelled.clone();
         let mut filled = 0;
-        if r > 0.0 {
+        let g = if r > 0.0 {
             let to_in = to_in.get_or_insert_with(|| morph::distance_sq(as_labelled, true));
-            g = morph::close_with(as_labelled, to_in, r);
+            let mut g = morph::close_with(as_labelled, to_in, r);
             filled = morph::fill_cavities(&mut g).0;
             morph::keep_largest(&mut g);
-        }
+            g
+        } else {
+            as_labelled.clone()
+        };
         // (No closing: the genus is the caller's, already measured.)
         let genus = if r > 0.0 {
             morph::genus(&g)

@@ -329,15 +329,15 @@ pub fn close_with(g: &Grid, to_in: &[f64], radius_mm: f64) -> Grid {
         return g.clone();
     }
     let r2 = radius_mm * radius_mm;
-    let dilated = Grid {
-        on: to_in.iter().map(|&d| d <= r2).collect(),
-        ..g.clone()
+    // The two grids take `g`'s box and spacing, not its voxels.
+    let on_box = |on: Vec<bool>| Grid {
+        dims: g.dims,
+        spacing: g.spacing,
+        on,
     };
+    let dilated = on_box(to_in.iter().map(|&d| d <= r2).collect());
     let to_out = distance_sq(&dilated, false);
-    Grid {
-        on: to_out.iter().map(|&d| d > r2).collect(),
-        ..g.clone()
-    }
+    on_box(to_out.iter().map(|&d| d > r2).collect())
 }
 
 /// Genus of the boundary of a voxel set that is one 26-connected body without cavities: from the
