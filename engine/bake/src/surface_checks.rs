@@ -1670,8 +1670,27 @@ mod tests {
         every_size_passes(&[1_000_000]);
     }
 
+    /// The built-in lungs at every cube subdivision from 2168 to 12 152 vertices (n = 19…45, both
+    /// sides): their rounded inferior border spans a number of vertex rows that changes with the
+    /// resolution (`anatomy::border_round`), so each one is checked, not a few sizes. (Below 2k
+    /// the coarsest meshes can cross themselves: the right lung at n = 14, 1178 vertices, near
+    /// the anterior end of its inferior border.)
+    #[test]
+    #[cfg_attr(
+        debug_assertions,
+        ignore = "slow in a debug build: cargo test --release -p lung-bake every_generated_size"
+    )]
+    fn every_generated_size_passes_the_surface_checks_at_each_subdivision_from_2k() {
+        let sizes: Vec<usize> = (19..=45).map(|n| 6 * n * n + 2).collect();
+        every_size_passes_of(&[generate::Shape::Anatomical], &sizes);
+    }
+
     fn every_size_passes(sizes: &[usize]) {
-        for shape in generate::Shape::ALL {
+        every_size_passes_of(&generate::Shape::ALL, sizes);
+    }
+
+    fn every_size_passes_of(shapes: &[generate::Shape], sizes: &[usize]) {
+        for &shape in shapes {
             for &n in sizes {
                 for side in [Side::Left, Side::Right] {
                     let lung = generate::lung_of(shape, side, n).expect("lung");

