@@ -5,6 +5,8 @@ table of docs/masks/patient_motion.md (in-sample, held out, no motion, uniform s
 
     python3 bench/patient_motion.py [--lungdyn target/release/lungdyn] [--vertices 10000]
         [--json-dir DIR]   # keep (or reuse, with --reuse) each fit's JSON there
+        [--field-degree N] [--force-degree N]   # fit-motion's, its defaults when omitted
+        [--surfaces-out DIR]   # each case's surfaces, what bench/population_motion.py --surfaces reads
         [--out docs/masks/patient_motion_table.md]
 
 Each fit prints the error of the kernel `bake --motion` makes from the file it writes, driven to
@@ -23,6 +25,10 @@ def main():
     ap.add_argument("--vertices", type=int, default=10000)
     ap.add_argument("--json-dir", default="/tmp/lungdyn-patient-motion")
     ap.add_argument("--reuse", action="store_true", help="read existing JSONs from --json-dir")
+    ap.add_argument("--field-degree", type=int, help="fit-motion's --field-degree (its default when omitted)")
+    ap.add_argument("--force-degree", type=int, help="fit-motion's --force-degree (its default when omitted)")
+    ap.add_argument("--surfaces-out", help="fit-motion's --surfaces-out, a folder per case under this one "
+                    "(what bench/population_motion.py --surfaces reads)")
     ap.add_argument("--out", default=os.path.join(ROOT, "docs", "masks", "patient_motion_table.md"))
     a = ap.parse_args()
     if not os.path.isdir(DATA):
@@ -38,6 +44,11 @@ def main():
                        "--exhale", os.path.join(DATA, f"case_{case}_exp_mask.nii.gz"),
                        "--inhale", os.path.join(DATA, f"case_{case}_insp_mask.nii.gz"),
                        "--axes", "LPS", "--lung", lung, "--vertices", str(a.vertices), "--json"]
+                for flag, value in (("--field-degree", a.field_degree), ("--force-degree", a.force_degree)):
+                    if value is not None:
+                        cmd += [flag, str(value)]
+                if a.surfaces_out:
+                    cmd += ["--surfaces-out", os.path.join(a.surfaces_out, f"case_{case}")]
                 p = subprocess.run(cmd, capture_output=True, text=True)
                 if p.returncode != 0:
                     print(f"case {case} {lung}: exit {p.returncode}: {p.stderr[-500:]}", file=sys.stderr)
