@@ -7,8 +7,8 @@
 //!   animation, `breath`, that steps the weights from frame to frame (linear between neighbours) and
 //!   back to the first frame at the breath's period, so a viewer that loops it breathes seamlessly;
 //! * the lobes as materials, in the renderer's lobe colours (one primitive per lobe sharing the
-//!   lung's vertices; a triangle belongs to the lobe most of its corners belong to), or one "lung"
-//!   material where the kernel has no lobes;
+//!   lung's vertices; a triangle whose corners lie in two or three lobes is cut between them at its
+//!   edges' midpoints, [`LobeSplit`]), or one "lung" material where the kernel has no lobes;
 //! * the tumour, where the scene has one: an ellipsoid of its radii moved along its centre's path
 //!   (a translation animation on the same keys);
 //! * the scene's figures as metadata (`asset.extras.lungdyn`): the scene, the mode, the breath's
@@ -499,7 +499,8 @@ fn lung_summary(lung: &RenderLung, frames: &[Vec<[f32; 3]>], engine: &[EngineFra
         side: lung.side.name(),
         vertices: lung.lung.len(),
         triangles: lung.lung.triangles.len(),
-        lobes: lobe_groups(lung)
+        lobes: LobeSplit::of(lung)
+            .groups
             .iter()
             .filter_map(|(l, _)| *l)
             .map(Lobe::name)
@@ -520,25 +521,172 @@ fn r3(v: f64) -> f64 {
     (v * 1000.0).round() / 1000.0
 }
 
-/// The triangles of each lobe (`None`: the kernel has no lobe codes, every triangle), in code order.
-fn lobe_groups(lung: &RenderLung) -> Vec<(Option<Lobe>, Vec<[u32; 3]>)> {
-    let tris = &lung.lung.triangles;
-    let Some(codes) = lung.lobe_codes() else {
-        return vec![(None, tris.clone())];
-    };
-    let mut groups: Vec<(Option<Lobe>, Vec<[u32; 3]>)> = Vec::new();
-    for t in tris {
-        let c = t.map(|v| codes[v as usize]);
-        // Most corners' lobe; three different: the first corner's.
-        let code = if c[1] == c[2] { c[1] } else { c[0] };
-        let lobe = Lobe::from_code(code).unwrap_or(Lobe::Unknown);
-        match groups.iter_mut().find(|(l, _)| *l == Some(lobe)) {
-            Some((_, g)) => g.push(*t),
-            None => groups.push((Some(lobe), vec![*t])),
+/// A vertex the lobe cut adds: a point of an edge, `(1 − t)·a + t·b` (`a < b`), or a triangle's
+/// centre, the mean of its corners.
+#[derive(Debug, Clone, Copy, PartialEq)]
+enum Added {
+    Edge(u32, u32, f32),
+    Centre(u32, u32, u32),
+}
+
+/// The lung's triangles by lobe, with every triangle whose corners lie in two or three lobes cut
+/// between them: on each edge whose ends lie in two lobes (where the fissure plane between those
+/// lobes crosses it, [`fissure_cut`], else its midpoint) and at its centre where all three differ,
+/// each piece given to the lobe of the corners it holds. The boundary then runs across the
+/// triangles as the renderer draws it (`draw.wgsl` finds a fragment's lobe from the same planes),
+/// where giving each whole triangle to one lobe made a triangle-wide zig-zag. A cut point is an
+/// added vertex, a fixed blend of two or three of the mesh's, and so it is in every frame
+/// ([`Self::extend`]): a morph target moves it exactly as the surface it lies on, the pieces are
+/// coplanar with the triangle they cut (same volume, same winding) and an edge's cut point is
+/// shared by both its triangles (the surface stays closed).
+struct LobeSplit {
+    /// Vertices after the mesh's own, in the order their indices were given.
+    added: Vec<Added>,
+    /// The triangles of each lobe (`None`: the kernel has no lobe codes, every triangle), in code
+    /// order, indexing the mesh's vertices then [`Self::added`].
+    groups: Vec<(Option<Lobe>, Vec<[u32; 3]>)>,
+}
+
+impl LobeSplit {
+    fn of(lung: &RenderLung) -> Self {
+        let codes = lung.lobe_codes();
+        let at = codes.map(|c| fissure_cut(lung.side, &lung.lung.positions, c));
+        Self::cut(&lung.lung.triangles, lung.lung.len(), codes, |a, b| {
+            at.as_ref().map_or(0.5, |f| f(a, b))
+        })
+    }
+
+    /// The cut of `triangles` over `n` vertices of lobe codes `codes` (one per vertex), an edge
+    /// `a < b` between two lobes cut at `(1 − t)·a + t·b`, `t = at(a, b)`.
+    fn cut(
+        triangles: &[[u32; 3]],
+        n: usize,
+        codes: Option<&[u8]>,
+        at: impl Fn(u32, u32) -> f32,
+    ) -> Self {
+        let Some(codes) = codes else {
+            return Self {
+                added: Vec::new(),
+                groups: vec![(None, triangles.to_vec())],
+            };
+        };
+        let mut added = Vec::new();
+        let mut midpoints = std::collections::HashMap::new();
+        let mut by_code: std::collections::BTreeMap<u8, Vec<[u32; 3]>> = Default::default();
+        let add = |a: Added, added: &mut Vec<Added>| -> u32 {
+            added.push(a);
+            (n + added.len() - 1) as u32
+        };
+        for &t in triangles {
+            let c = t.map(|v| codes[v as usize]);
+            if c[0] == c[1] && c[1] == c[2] {
+                by_code.entry(c[0]).or_default().push(t);
+                continue;
+            }
+            let mut mid = |a: u32, b: u32, added: &mut Vec<Added>| -> u32 {
+                let (lo, hi) = (a.min(b), a.max(b));
+                *midpoints
+                    .entry((lo, hi))
+                    .or_insert_with(|| add(Added::Edge(lo, hi, at(lo, hi)), added))
+            };
+            if c[0] != c[1] && c[1] != c[2] && c[0] != c[2] {
+                // Three lobes: each corner's quarter, (corner, next edge's midpoint, centre,
+                // previous edge's midpoint), counter-clockwise as the triangle.
+                let m = [0, 1, 2].map(|k| mid(t[k], t[(k + 1) % 3], &mut added));
+                let g = add(Added::Centre(t[0], t[1], t[2]), &mut added);
+                for k in 0..3 {
+                    let piece = by_code.entry(c[k]).or_default();
+                    piece.push([t[k], m[k], g]);
+                    piece.push([t[k], g, m[(k + 2) % 3]]);
+                }
+                continue;
+            }
+            // Two lobes: turned so that corners 0 and 1 share one and corner 2 is alone.
+            let r = if c[0] == c[1] {
+                0
+            } else if c[1] == c[2] {
+                1
+            } else {
+                2
+            };
+            let [a, b, o] = [t[r], t[(r + 1) % 3], t[(r + 2) % 3]];
+            let (ca, co) = (codes[a as usize], codes[o as usize]);
+            let mb = mid(b, o, &mut added);
+            let ma = mid(o, a, &mut added);
+            let pair = by_code.entry(ca).or_default();
+            pair.push([a, b, mb]);
+            pair.push([a, mb, ma]);
+            by_code.entry(co).or_default().push([mb, o, ma]);
+        }
+        let groups = by_code
+            .into_iter()
+            .map(|(code, tris)| (Some(Lobe::from_code(code).unwrap_or(Lobe::Unknown)), tris))
+            .collect();
+        Self { added, groups }
+    }
+
+    /// `v` (one value per mesh vertex) with the added vertices' blends after it.
+    fn extend(&self, v: &[[f32; 3]]) -> Vec<[f32; 3]> {
+        let blend = |w: &[(u32, f64)]| {
+            let s = w.iter().fold([0.0f64; 3], |s, &(i, w)| {
+                let p = v[i as usize];
+                [0, 1, 2].map(|a| s[a] + w * p[a] as f64)
+            });
+            s.map(|x| x as f32)
+        };
+        let mut out = Vec::with_capacity(v.len() + self.added.len());
+        out.extend_from_slice(v);
+        out.extend(self.added.iter().map(|a| match *a {
+            Added::Edge(p, q, t) => blend(&[(p, 1.0 - t as f64), (q, t as f64)]),
+            Added::Centre(p, q, r) => blend(&[(p, 1.0 / 3.0), (q, 1.0 / 3.0), (r, 1.0 / 3.0)]),
+        }));
+        out
+    }
+}
+
+/// Where an edge between two lobes is cut: `t` along it from its first vertex to its second, at the
+/// fissure plane that separates those lobes (the oblique one from a lower lobe, the horizontal one
+/// between the right upper and middle lobes), with the signed distances the renderer draws by
+/// (`renderer::draw::lung_surface`: `lobes::Fissures::adult` over the rest mesh's box), kept within
+/// the middle 80 % of the edge so no piece is a sliver. Where the plane does not separate the two
+/// ends (lobe codes from a labelmap rather than from the planes, or an unknown lobe): the midpoint.
+fn fissure_cut(side: Side, rest: &[[f32; 3]], codes: &[u8]) -> impl Fn(u32, u32) -> f32 {
+    use lung_model::mesh::{lobes as lb, Aabb};
+    let bb = rest.iter().fold(
+        Aabb {
+            min: [f32::INFINITY; 3],
+            max: [f32::NEG_INFINITY; 3],
+        },
+        |b, p| Aabb {
+            min: [0, 1, 2].map(|a| b.min[a].min(p[a])),
+            max: [0, 1, 2].map(|a| b.max[a].max(p[a])),
+        },
+    );
+    let fissures = lb::Fissures::adult(side);
+    let d: Vec<[f64; 2]> = rest
+        .iter()
+        .map(|p| fissures.signed(lb::normalise(side, &bb, p.map(|v| v as f64))))
+        .collect();
+    let codes = codes.to_vec();
+    move |a: u32, b: u32| {
+        let (ca, cb) = (codes[a as usize], codes[b as usize]);
+        let lower = [Lobe::RightLower.code(), Lobe::LeftLower.code()];
+        let plane = if lower.contains(&ca) != lower.contains(&cb) {
+            0
+        } else if [ca, cb].contains(&Lobe::RightUpper.code())
+            && [ca, cb].contains(&Lobe::RightMiddle.code())
+        {
+            1
+        } else {
+            return 0.5;
+        };
+        let (da, db) = (d[a as usize][plane], d[b as usize][plane]);
+        if da * db < 0.0 {
+            (da / (da - db)).clamp(0.1, 0.9) as f32
+        } else {
+            0.5
         }
     }
-    groups.sort_by_key(|(l, _)| l.map(Lobe::code));
-    groups
 }
 
 /// The tumour's ellipsoid and its centre per frame (body frame, mm).
@@ -871,16 +1019,27 @@ fn lung_node(
     animation: &mut json::Animation,
 ) -> anyhow::Result<json::Index<json::Node>> {
     let side = lung.side.name();
-    let base: Vec<[f32; 3]> = frames[0].iter().map(|&p| body_to_gltf(p)).collect();
-    let mut normals = vec![[0.0f32; 3]; base.len()];
+    let split = LobeSplit::of(lung);
+    let base: Vec<[f32; 3]> = split
+        .extend(&frames[0])
+        .into_iter()
+        .map(body_to_gltf)
+        .collect();
+    let mut normals = vec![[0.0f32; 3]; lung.lung.len()];
     lung.lung.normals_into(&frames[0], &mut normals);
-    let normals: Vec<[f32; 3]> = normals.iter().map(|&n| unit_gltf_direction(n)).collect();
+    // An added vertex's normal: the mean of its corners', made unit again.
+    let normals: Vec<[f32; 3]> = split
+        .extend(&normals)
+        .into_iter()
+        .map(unit_gltf_direction)
+        .collect();
     let position = doc.vec3(&base, true, true, &format!("{side} lung: first frame (m)"));
     let normal = doc.vec3(&normals, true, false, &format!("{side} lung: normals"));
     let mut targets = Vec::new();
     let mut target_names = Vec::new();
     for (k, f) in frames.iter().enumerate().skip(1) {
-        let delta: Vec<[f32; 3]> = f
+        let delta: Vec<[f32; 3]> = split
+            .extend(f)
             .iter()
             .zip(&base)
             .map(|(&p, b)| {
@@ -904,7 +1063,7 @@ fn lung_node(
         target_names.push(name);
     }
     let mut primitives = Vec::new();
-    for (lobe, tris) in lobe_groups(lung) {
+    for (lobe, tris) in split.groups {
         let (label, colour) = match lobe {
             Some(l) => (format!("{l}"), l.colour()),
             None => (format!("{side} lung"), Lobe::Unknown.colour()),
@@ -1155,6 +1314,154 @@ mod tests {
             "{sides}[disease]\nkind = \"bilateral-pneumothorax\"\nindex_left = 0.1\nindex_right = 0.2\n"
         );
         assert_eq!(side(both), Side::Right, "both affected: the first listed");
+    }
+
+    /// Twice the area vector of triangle `t` of `p` (its normal times twice its area).
+    fn area_vector(p: &[[f32; 3]], t: [u32; 3]) -> [f64; 3] {
+        let [a, b, c] = t.map(|i| p[i as usize].map(|v| v as f64));
+        let (u, v) = (
+            [0, 1, 2].map(|k| b[k] - a[k]),
+            [0, 1, 2].map(|k| c[k] - a[k]),
+        );
+        [
+            u[1] * v[2] - u[2] * v[1],
+            u[2] * v[0] - u[0] * v[2],
+            u[0] * v[1] - u[1] * v[0],
+        ]
+    }
+
+    /// One triangle cut between two lobes and between three: the pieces cover it exactly (their
+    /// area vectors sum to its own, so none is flipped or missing), each piece holds one or two of
+    /// its corners and is their lobe, and the cut points are the edges' midpoints and centre.
+    #[test]
+    fn a_triangle_in_two_or_three_lobes_is_cut_at_its_midpoints_into_pieces_that_cover_it() {
+        let p = [[0.0f32, 0.0, 0.0], [4.0, 0.0, 0.0], [0.0, 4.0, 1.0]];
+        let t = [0u32, 1, 2];
+        let whole = area_vector(&p, t);
+        for codes in [[1u8, 1, 2], [1, 2, 1], [2, 1, 1], [1, 2, 3], [3, 1, 2]] {
+            let split = LobeSplit::cut(&[t], 3, Some(&codes), |_, _| 0.5);
+            let all = split.extend(&p);
+            let mut sum = [0.0f64; 3];
+            for (lobe, tris) in &split.groups {
+                let code = lobe.unwrap().code();
+                for &piece in tris {
+                    let a = area_vector(&all, piece);
+                    sum = [0, 1, 2].map(|k| sum[k] + a[k]);
+                    let dot: f64 = (0..3).map(|k| a[k] * whole[k]).sum();
+                    assert!(dot > 0.0, "{codes:?}: piece {piece:?} is flipped");
+                    let own: Vec<u32> = piece.iter().copied().filter(|&v| v < 3).collect();
+                    assert!(!own.is_empty(), "{codes:?}: {piece:?} holds no corner");
+                    for v in own {
+                        assert_eq!(codes[v as usize], code, "{codes:?}: {piece:?}");
+                    }
+                }
+            }
+            for k in 0..3 {
+                assert!(
+                    (sum[k] - whole[k]).abs() < 1e-9,
+                    "{codes:?}: {sum:?} vs {whole:?}"
+                );
+            }
+            let three = codes[0] != codes[1] && codes[1] != codes[2] && codes[0] != codes[2];
+            assert_eq!(split.added.len(), if three { 4 } else { 2 }, "{codes:?}");
+            assert!(split.added.iter().all(|a| match *a {
+                Added::Edge(i, j, t) => i < j && j < 3 && t == 0.5,
+                Added::Centre(..) => three,
+            }));
+        }
+        // One lobe, or no lobe codes: nothing is cut.
+        assert!(LobeSplit::cut(&[t], 3, Some(&[2, 2, 2]), |_, _| 0.5)
+            .added
+            .is_empty());
+        let plain = LobeSplit::cut(&[t], 3, None, |_, _| 0.5);
+        assert_eq!(plain.groups, vec![(None, vec![t])]);
+    }
+
+    /// The built-in lungs with their lobes, cut: still one closed surface (every edge between
+    /// exactly two pieces, once each way), enclosing the volume it did (the pieces are coplanar
+    /// with what they cut), each lobe's pieces hold only that lobe's vertices, and the cut points are
+    /// the boundary's edges' midpoints, each once, and the centres of triangles in three lobes.
+    #[test]
+    fn the_built_in_lungs_cut_by_lobe_stay_closed_and_keep_their_volume() {
+        use lung_model::mesh::{anatomy, lobes};
+        for side in [Side::Right, Side::Left] {
+            let mesh = anatomy::lung(side, 4000).unwrap();
+            let codes = lobes::classify(side, &mesh);
+            let at = fissure_cut(side, &mesh.positions, &codes);
+            let split = LobeSplit::cut(&mesh.triangles, mesh.positions.len(), Some(&codes), &at);
+            let p = split.extend(&mesh.positions);
+            let tris: Vec<[u32; 3]> = split.groups.iter().flat_map(|(_, t)| t.clone()).collect();
+            let mut directed = std::collections::HashMap::new();
+            for t in &tris {
+                for k in 0..3 {
+                    *directed.entry((t[k], t[(k + 1) % 3])).or_insert(0u32) += 1;
+                }
+            }
+            for (&(a, b), &n) in &directed {
+                assert_eq!(n, 1, "{side:?}: edge {a}->{b} used {n} times");
+                assert_eq!(
+                    directed.get(&(b, a)),
+                    Some(&1),
+                    "{side:?}: edge {a}-{b} open"
+                );
+            }
+            let before = mesh.enclosed_volume_ml();
+            let after =
+                lung_model::mesh::enclosed_volume_with(&tris, |i| p[i as usize].map(|v| v as f64))
+                    / 1000.0;
+            assert!(
+                (after - before).abs() < 1e-6 * before,
+                "{side:?}: {after} vs {before} ml"
+            );
+            let n = mesh.positions.len() as u32;
+            for (lobe, pieces) in &split.groups {
+                let code = lobe.unwrap().code();
+                for t in pieces {
+                    for &v in t.iter().filter(|&&v| v < n) {
+                        assert_eq!(codes[v as usize], code, "{side:?}: {t:?} in {lobe:?}");
+                    }
+                }
+            }
+            let lobes_here = split.groups.len();
+            assert_eq!(lobes_here, if side == Side::Right { 3 } else { 2 });
+            // A cut point per edge between two lobes, and one per triangle in three.
+            let mut crossing = std::collections::HashSet::new();
+            let mut three = 0;
+            for t in &mesh.triangles {
+                let c = t.map(|v| codes[v as usize]);
+                three += usize::from(c[0] != c[1] && c[1] != c[2] && c[0] != c[2]);
+                for k in 0..3 {
+                    let (a, b) = (t[k], t[(k + 1) % 3]);
+                    if codes[a as usize] != codes[b as usize] {
+                        crossing.insert((a.min(b), a.max(b)));
+                    }
+                }
+            }
+            assert_eq!(split.added.len(), crossing.len() + three, "{side:?}");
+            // The codes came from the fissure planes, so every edge is cut where a plane crosses
+            // it (the renderer's boundary), unless that is within a tenth of an end.
+            let bb = mesh.aabb();
+            let fissures = lobes::Fissures::adult(side);
+            let (mut on_plane, mut edges) = (0, 0);
+            for (k, a) in split.added.iter().enumerate() {
+                if let Added::Edge(i, j, t) = *a {
+                    edges += 1;
+                    let q = p[mesh.positions.len() + k].map(|v| v as f64);
+                    let d = fissures.signed(lobes::normalise(side, &bb, q));
+                    let (ci, cj) = (codes[i as usize], codes[j as usize]);
+                    let plane = usize::from(ci != 3 && cj != 3 && ci != 5 && cj != 5);
+                    if t > 0.1 && t < 0.9 {
+                        assert!(d[plane].abs() < 1e-5, "{side:?}: cut {i}-{j} at {t}: {d:?}");
+                        on_plane += 1;
+                    }
+                }
+            }
+            eprintln!("{side:?}: {on_plane} of {edges} edge cuts on their plane");
+            assert!(
+                on_plane * 10 >= edges * 7,
+                "{side:?}: {on_plane} of {edges}"
+            );
+        }
     }
 
     #[test]
