@@ -1092,8 +1092,10 @@ fn extract(
     // the volume by the level keeps the surface a level set, which never crosses itself; an
     // offset along the normals afterwards can, where the lung is thin.
     let target_mm3 = volume_ml * 1000.0;
-    let volume_at = |iso: f64, h: f64| {
-        surface::marching_tetrahedra(&field, iso, spacing.map(|s| h / s)).enclosed_volume_mm3()
+    // The grid last sampled, kept while the level is searched on it.
+    let mut nodes: Option<surface::Nodes> = None;
+    let volume_at = |nodes: &mut Option<surface::Nodes>, iso: f64, h: f64| {
+        marching_tetrahedra_kept(&field, nodes, iso, spacing.map(|s| h / s)).enclosed_volume_mm3()
     };
     // The grid is never coarser than twice the smoothing: a sheet of lung thinner than the grid
     // step (an anterior border, a costophrenic recess) would be punctured by the piecewise-linear
@@ -1103,7 +1105,7 @@ fn extract(
     let mut h_grid_max = (2.0 * sigma).max(spacing.iter().cloned().fold(0.0, f64::max));
     let mut h_vol = h.min(h_grid_max);
     let mut iso = 0.5;
-    let mut first = surface::marching_tetrahedra(&field, iso, spacing.map(|s| h_vol / s));
+    let mut first = marching_tetrahedra_kept(&field, &mut nodes, iso, spacing.map(|s| h_vol / s));
     if need_genus_0 && !genus_0(&first) {
         // A handle at the first grid is almost always kept by the search's grids (the same
         // field, at the same level): the next closing is tried at once instead of after the
@@ -1117,7 +1119,7 @@ fn extract(
     }
     let mut v0 = first.enclosed_volume_mm3();
     let mut iso_prev = if v0 < target_mm3 { 0.45 } else { 0.55 };
-    let mut v_prev = volume_at(iso_prev, h_vol);
+    let mut v_prev = volume_at(&mut nodes, iso_prev, h_vol);
     for _ in 0..4 {
         if (v0 / target_mm3 - 1.0).abs() < 2e-4 || v0 == v_prev {
             break;
@@ -1126,7 +1128,7 @@ fn extract(
         iso_prev = iso;
         v_prev = v0;
         iso = next;
-        v0 = volume_at(iso, h_vol);
+        v0 = volume_at(&mut nodes, iso, h_vol);
     }
     // The spacing `h` is searched for the vertex count asked: the count falls as h grows (about
     // as 1/h² on the grid, faster in the decimation, whose collapse length joins the grid's at
@@ -1136,10 +1138,10 @@ fn extract(
     let (mut below, mut above): (Option<f64>, Option<f64>) = (None, None); // h with too many / too few
     for _round in 0..8 {
         let mut candidate = if h <= h_grid_max {
-            surface::marching_tetrahedra(&field, iso, spacing.map(|s| h / s))
+            marching_tetrahedra_kept(&field, &mut nodes, iso, spacing.map(|s| h / s))
         } else {
             fine.get_or_insert_with(|| {
-                surface::marching_tetrahedra(&field, iso, spacing.map(|s| h_grid_max / s))
+                marching_tetrahedra_kept(&field, &mut nodes, iso, spacing.map(|s| h_grid_max / s))
             })
             .clone()
         };
@@ -1178,6 +1180,7 @@ fn extract(
         });
     };
     let h = h_used;
+    drop(nodes);
     let internal = |e: String| MaskError::Surface {
         path: PathBuf::new(),
         message: format!(
@@ -1209,6 +1212,24 @@ fn extract(
         euler: topology.euler,
         crossing,
     }))
+}
+
+/// [`surface::marching_tetrahedra`] of `field` at `iso` on the grid of `step` voxels, the grid's
+/// samples taken from `nodes` when it holds that grid and kept there otherwise (the same surface,
+/// without sampling the field again for each level tried on one grid).
+fn marching_tetrahedra_kept(
+    field: &surface::Field,
+    nodes: &mut Option<surface::Nodes>,
+    iso: f64,
+    step: [f64; 3],
+) -> TriMesh {
+    let kept = match nodes.take() {
+        Some(k) if k.step() == step => k,
+        _ => surface::Nodes::sample(field, step),
+    };
+    let mesh = surface::marching_tetrahedra_at(field, &kept, iso);
+    *nodes = Some(kept);
+    mesh
 }
 
 /// Marching tetrahedra's surface is closed, so E = 3F/2 and χ = V − F/2: genus 0 is χ = 2.
