@@ -240,6 +240,54 @@ impl Nodes {
     pub fn step(&self) -> [f64; 3] {
         self.step
     }
+
+    /// Each node's value less `iso`; a value exactly at the level counts as just below it, so
+    /// every cut lies strictly inside its edge.
+    fn relative_to(&self, iso: f64) -> Vec<f64> {
+        use rayon::prelude::*;
+        self.samples
+            .par_iter()
+            .map(|&s| {
+                let v = s - iso;
+                if v == 0.0 {
+                    -1e-9
+                } else {
+                    v
+                }
+            })
+            .collect()
+    }
+}
+
+/// The eight nodes of cell `(i, j, k)` of a grid of `n` nodes (corner bits: x = 1, y = 2, z = 4).
+fn cell_corners(n: [usize; 3], i: usize, j: usize, k: usize) -> [usize; 8] {
+    std::array::from_fn(|m| {
+        (i + (m & 1)) + n[0] * ((j + ((m >> 1) & 1)) + n[1] * (k + ((m >> 2) & 1)))
+    })
+}
+
+/// The cells the level crosses (corners on both sides of 0 in `values`), per layer k in (j, i)
+/// order as `i + n[0]·j`: found in parallel, then visited one layer after another in that order by
+/// [`marching_tetrahedra_at`], so the vertices and triangles come out as one pass over every cell
+/// would make them — most cells are wholly inside or outside, and the scan of them was most of the
+/// time.
+fn crossed_cells(n: [usize; 3], values: &[f64]) -> Vec<Vec<u32>> {
+    use rayon::prelude::*;
+    (0..n[2].saturating_sub(1))
+        .into_par_iter()
+        .map(|k| {
+            let mut cells = Vec::new();
+            for j in 0..n[1].saturating_sub(1) {
+                for i in 0..n[0].saturating_sub(1) {
+                    let inside = cell_corners(n, i, j, k).map(|c| values[c] > 0.0);
+                    if inside.iter().any(|&b| b) && !inside.iter().all(|&b| b) {
+                        cells.push((i + n[0] * j) as u32);
+                    }
+                }
+            }
+            cells
+        })
+        .collect()
 }
 
 /// Marching tetrahedra of `field` at level `iso` on a grid of `step` voxels along each axis
@@ -252,27 +300,10 @@ pub fn marching_tetrahedra(field: &Field, iso: f64, step: [f64; 3]) -> TriMesh {
 /// [`marching_tetrahedra`] on a grid already sampled ([`Nodes::sample`] of the same `field`).
 pub fn marching_tetrahedra_at(field: &Field, nodes: &Nodes, iso: f64) -> TriMesh {
     let (n, step) = (nodes.n, nodes.step);
-    let node = |i: usize, j: usize, k: usize| i + n[0] * (j + n[1] * k);
     let grid_u = |i: usize, j: usize, k: usize| {
         DVec3::new(i as f64 * step[0], j as f64 * step[1], k as f64 * step[2])
     };
-    // Values at the grid's nodes; a value exactly at the level counts as just below it, so every
-    // cut lies strictly inside its edge.
-    let values: Vec<f64> = {
-        use rayon::prelude::*;
-        nodes
-            .samples
-            .par_iter()
-            .map(|&s| {
-                let v = s - iso;
-                if v == 0.0 {
-                    -1e-9
-                } else {
-                    v
-                }
-            })
-            .collect()
-    };
+    let values = nodes.relative_to(iso);
     let mut positions: Vec<DVec3> = Vec::new();
     let mut triangles: Vec<[u32; 3]> = Vec::new();
     let pos_of = |idx: usize| -> DVec3 {
@@ -309,32 +340,8 @@ pub fn marching_tetrahedra_at(field: &Field, nodes: &Nodes, iso: f64) -> TriMesh
         }
         *slot
     };
-    let corners = |i: usize, j: usize, k: usize| -> [usize; 8] {
-        std::array::from_fn(|m| node(i + (m & 1), j + ((m >> 1) & 1), k + ((m >> 2) & 1)))
-    };
-    // The cells the level crosses (corners on both sides), each layer's in (j, i) order: found in
-    // parallel, then visited one layer after another in that order, so the vertices and triangles
-    // come out as one pass over every cell would make them — most cells are wholly inside or
-    // outside, and the scan of them was most of the time.
-    let crossed: Vec<Vec<u32>> = {
-        use rayon::prelude::*;
-        (0..n[2].saturating_sub(1))
-            .into_par_iter()
-            .map(|k| {
-                let mut cells = Vec::new();
-                for j in 0..n[1].saturating_sub(1) {
-                    for i in 0..n[0].saturating_sub(1) {
-                        let inside = corners(i, j, k).map(|c| values[c] > 0.0);
-                        if inside.iter().any(|&b| b) && !inside.iter().all(|&b| b) {
-                            cells.push((i + n[0] * j) as u32);
-                        }
-                    }
-                }
-                cells
-            })
-            .collect()
-    };
-    for (k, cells) in crossed.iter().enumerate() {
+    let corners = |i: usize, j: usize, k: usize| cell_corners(n, i, j, k);
+    for (k, cells) in crossed_cells(n, &values).iter().enumerate() {
         if k > 0 {
             // Plane k + 1 takes the half plane k − 1 had.
             let half = ((k + 1) % 2) * plane;
