@@ -647,26 +647,11 @@ impl LobeSplit {
 /// Where an edge between two lobes is cut: `t` along it from its first vertex to its second, at the
 /// fissure plane that separates those lobes (the oblique one from a lower lobe, the horizontal one
 /// between the right upper and middle lobes), with the signed distances the renderer draws by
-/// (`renderer::draw::lung_surface`: `lobes::Fissures::adult` over the rest mesh's box), kept within
+/// (`lobes::fissure_distances` of the rest mesh), kept within
 /// the middle 80 % of the edge so no piece is a sliver. Where the plane does not separate the two
 /// ends (lobe codes from a labelmap rather than from the planes, or an unknown lobe): the midpoint.
 fn fissure_cut(side: Side, rest: &[[f32; 3]], codes: &[u8]) -> impl Fn(u32, u32) -> f32 {
-    use lung_model::mesh::{lobes as lb, Aabb};
-    let bb = rest.iter().fold(
-        Aabb {
-            min: [f32::INFINITY; 3],
-            max: [f32::NEG_INFINITY; 3],
-        },
-        |b, p| Aabb {
-            min: [0, 1, 2].map(|a| b.min[a].min(p[a])),
-            max: [0, 1, 2].map(|a| b.max[a].max(p[a])),
-        },
-    );
-    let fissures = lb::Fissures::adult(side);
-    let d: Vec<[f64; 2]> = rest
-        .iter()
-        .map(|p| fissures.signed(lb::normalise(side, &bb, p.map(|v| v as f64))))
-        .collect();
+    let d = lung_model::mesh::lobes::fissure_distances(side, rest);
     let codes = codes.to_vec();
     move |a: u32, b: u32| {
         let (ca, cb) = (codes[a as usize], codes[b as usize]);

@@ -162,33 +162,19 @@ pub fn lung_surface(
     triangles: &[[u32; 3]],
     lobes: Option<&[u8]>,
 ) -> Vec<SurfaceAttr> {
-    use lung_model::mesh::{lobes as lb, Aabb, Side};
+    use lung_model::mesh::{lobes as lb, Side};
     let material = Material::lung(slot);
     let Some(codes) = lobes else {
         return vec![surface(material, 0, false); positions.len()];
     };
     let side = if slot == 1 { Side::Left } else { Side::Right };
-    let fissures = lb::Fissures::adult(side);
-    let bb = positions.iter().fold(
-        Aabb {
-            min: [f32::INFINITY; 3],
-            max: [f32::NEG_INFINITY; 3],
-        },
-        |b, p| Aabb {
-            min: [0, 1, 2].map(|a| b.min[a].min(p[a])),
-            max: [0, 1, 2].map(|a| b.max[a].max(p[a])),
-        },
-    );
     let snorm = |d: f64| (d.clamp(-1.0, 1.0) * 32767.0).round() as i16;
     let mut out: Vec<SurfaceAttr> = codes
         .iter()
-        .zip(positions)
-        .map(|(&c, p)| {
-            let d = fissures.signed(lb::normalise(side, &bb, p.map(|v| v as f64)));
-            SurfaceAttr {
-                fissure_d: d.map(snorm),
-                ..surface(material, c, false)
-            }
+        .zip(lb::fissure_distances(side, positions))
+        .map(|(&c, d)| SurfaceAttr {
+            fissure_d: d.map(snorm),
+            ..surface(material, c, false)
         })
         .collect();
     for t in triangles {

@@ -216,6 +216,19 @@ pub fn classify(side: Side, mesh: &TriMesh) -> Vec<u8> {
         .collect()
 }
 
+/// Each of `positions`' signed distances from the fissure planes of `side` ([`Fissures::signed`]:
+/// oblique, horizontal) over the positions' own box: the planes [`classify`] gives lobes by, which
+/// the renderer colours each fragment by (`renderer::draw::lung_surface`) and `lungdyn export gltf`
+/// cuts the lobes apart at.
+pub fn fissure_distances(side: Side, positions: &[[f32; 3]]) -> Vec<[f64; 2]> {
+    let bb = super::Aabb::of(positions);
+    let fissures = Fissures::adult(side);
+    positions
+        .iter()
+        .map(|p| fissures.signed(normalise(side, &bb, p.map(|v| v as f64))))
+        .collect()
+}
+
 /// One lobe's share of a surface.
 #[derive(Debug, Clone, PartialEq, Serialize)]
 pub struct LobeSummary {

@@ -53,6 +53,25 @@ pub struct Aabb {
 }
 
 impl Aabb {
+    /// Bounding box of `points` (a zero box for none).
+    pub fn of(points: &[[f32; 3]]) -> Aabb {
+        let mut min = [f32::INFINITY; 3];
+        let mut max = [f32::NEG_INFINITY; 3];
+        for p in points {
+            for a in 0..3 {
+                min[a] = min[a].min(p[a]);
+                max[a] = max[a].max(p[a]);
+            }
+        }
+        if points.is_empty() {
+            return Aabb {
+                min: [0.0; 3],
+                max: [0.0; 3],
+            };
+        }
+        Aabb { min, max }
+    }
+
     /// Extent along each axis.
     pub fn size(&self) -> [f32; 3] {
         [
@@ -66,21 +85,7 @@ impl Aabb {
 impl TriMesh {
     /// Bounding box of the vertices (a zero box for an empty mesh).
     pub fn aabb(&self) -> Aabb {
-        let mut min = [f32::INFINITY; 3];
-        let mut max = [f32::NEG_INFINITY; 3];
-        for p in &self.positions {
-            for a in 0..3 {
-                min[a] = min[a].min(p[a]);
-                max[a] = max[a].max(p[a]);
-            }
-        }
-        if self.positions.is_empty() {
-            return Aabb {
-                min: [0.0; 3],
-                max: [0.0; 3],
-            };
-        }
-        Aabb { min, max }
+        Aabb::of(&self.positions)
     }
 
     /// Enclosed volume in mm³ by the divergence theorem (sum of signed tetrahedra), in f64.
