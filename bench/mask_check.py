@@ -27,7 +27,11 @@ object with:
       [--lobe-labels 5:4,6:5] [--samples 100000]
 Everything heavy runs on the labelled bounding box + 2 voxels (handles 512x512x630 masks).
 """
-import argparse, json, sys
+import argparse, json, os, sys
+
+sys.path.insert(0, os.path.dirname(os.path.abspath(__file__)))
+from pyneeds import need  # noqa: E402
+need(["numpy", "scipy", "trimesh"], __file__)
 
 import numpy as np
 from scipy import ndimage

@@ -34,7 +34,11 @@ lungdyn's by more than 0.1 mm + 5 % of lungdyn's, or a mesh check fails; 0 other
   python3 bench/pair_check.py --dir DIR --lung right --fit-json fit.json [--samples 200000]
       [--seed 46] [--out check.json]
 """
-import argparse, json, sys
+import argparse, json, os, sys
+
+sys.path.insert(0, os.path.dirname(os.path.abspath(__file__)))
+from pyneeds import need  # noqa: E402
+need(["numpy", "trimesh", "rtree", "scipy"], __file__)
 
 import numpy as np
 import trimesh

@@ -7,7 +7,11 @@ coronal planes through the exhale lung's centroid (trimesh sections, matplotlib)
 
 FIT_DIR is a `lungdyn fit-motion --exhale/--inhale --surfaces-out FIT_DIR` folder.
 """
-import argparse, os
+import argparse, os, sys
+
+sys.path.insert(0, os.path.dirname(os.path.abspath(__file__)))
+from pyneeds import need  # noqa: E402
+need(["matplotlib", "numpy", "trimesh"], __file__)
 
 import matplotlib
 matplotlib.use("Agg")

@@ -18,6 +18,10 @@ Inputs: per case and lung, a fit's JSON (with the fields, from bench/patient_mot
 """
 import argparse, json, os, subprocess, sys, tempfile, time
 
+sys.path.insert(0, os.path.dirname(os.path.abspath(__file__)))
+from pyneeds import need  # noqa: E402
+need(["numpy", "trimesh", "rtree", "scipy"], __file__)
+
 import numpy as np
 import trimesh
 
