@@ -7,8 +7,9 @@
 //!   animation, `breath`, that steps the weights from frame to frame (linear between neighbours) and
 //!   back to the first frame at the breath's period, so a viewer that loops it breathes seamlessly;
 //! * the lobes as materials, in the renderer's lobe colours (one primitive per lobe sharing the
-//!   lung's vertices; a triangle whose corners lie in two or three lobes is cut between them at its
-//!   edges' midpoints, [`LobeSplit`]), or one "lung" material where the kernel has no lobes;
+//!   lung's vertices; a triangle whose corners lie in two or three lobes is cut between them where
+//!   the fissure planes cross its edges, [`LobeSplit`]), or one "lung" material where the kernel has
+//!   no lobes;
 //! * the tumour, where the scene has one: an ellipsoid of its radii moved along its centre's path
 //!   (a translation animation on the same keys);
 //! * the scene's figures as metadata (`asset.extras.lungdyn`): the scene, the mode, the breath's
@@ -571,7 +572,8 @@ impl LobeSplit {
             };
         };
         let mut added = Vec::new();
-        let mut midpoints = std::collections::HashMap::new();
+        // Each cut edge's added vertex, by the edge (shared by the two triangles on it).
+        let mut cuts = std::collections::HashMap::new();
         let mut by_code: std::collections::BTreeMap<u8, Vec<[u32; 3]>> = Default::default();
         let add = |a: Added, added: &mut Vec<Added>| -> u32 {
             added.push(a);
@@ -583,16 +585,16 @@ impl LobeSplit {
                 by_code.entry(c[0]).or_default().push(t);
                 continue;
             }
-            let mut mid = |a: u32, b: u32, added: &mut Vec<Added>| -> u32 {
+            let mut cut_on = |a: u32, b: u32, added: &mut Vec<Added>| -> u32 {
                 let (lo, hi) = (a.min(b), a.max(b));
-                *midpoints
+                *cuts
                     .entry((lo, hi))
                     .or_insert_with(|| add(Added::Edge(lo, hi, at(lo, hi)), added))
             };
             if c[0] != c[1] && c[1] != c[2] && c[0] != c[2] {
-                // Three lobes: each corner's quarter, (corner, next edge's midpoint, centre,
-                // previous edge's midpoint), counter-clockwise as the triangle.
-                let m = [0, 1, 2].map(|k| mid(t[k], t[(k + 1) % 3], &mut added));
+                // Three lobes: each corner's piece, (corner, its next edge's cut, centre, its
+                // previous edge's cut), counter-clockwise as the triangle.
+                let m = [0, 1, 2].map(|k| cut_on(t[k], t[(k + 1) % 3], &mut added));
                 let g = add(Added::Centre(t[0], t[1], t[2]), &mut added);
                 for k in 0..3 {
                     let piece = by_code.entry(c[k]).or_default();
@@ -611,8 +613,8 @@ impl LobeSplit {
             };
             let [a, b, o] = [t[r], t[(r + 1) % 3], t[(r + 2) % 3]];
             let (ca, co) = (codes[a as usize], codes[o as usize]);
-            let mb = mid(b, o, &mut added);
-            let ma = mid(o, a, &mut added);
+            let mb = cut_on(b, o, &mut added);
+            let ma = cut_on(o, a, &mut added);
             let pair = by_code.entry(ca).or_default();
             pair.push([a, b, mb]);
             pair.push([a, mb, ma]);
@@ -647,9 +649,9 @@ impl LobeSplit {
 /// Where an edge between two lobes is cut: `t` along it from its first vertex to its second, at the
 /// fissure plane that separates those lobes (the oblique one from a lower lobe, the horizontal one
 /// between the right upper and middle lobes), with the signed distances the renderer draws by
-/// (`lobes::fissure_distances` of the rest mesh), kept within
-/// the middle 80 % of the edge so no piece is a sliver. Where the plane does not separate the two
-/// ends (lobe codes from a labelmap rather than from the planes, or an unknown lobe): the midpoint.
+/// (`lobes::fissure_distances` of the rest mesh), kept within the middle 80 % of the edge so no
+/// piece is a sliver. Where the plane does not separate the two ends (lobe codes from a labelmap
+/// rather than from the planes, or an unknown lobe): the midpoint.
 fn fissure_cut(side: Side, rest: &[[f32; 3]], codes: &[u8]) -> impl Fn(u32, u32) -> f32 {
     let d = lung_model::mesh::lobes::fissure_distances(side, rest);
     let codes = codes.to_vec();
@@ -1365,7 +1367,7 @@ mod tests {
     /// The built-in lungs with their lobes, cut: still one closed surface (every edge between
     /// exactly two pieces, once each way), enclosing the volume it did (the pieces are coplanar
     /// with what they cut), each lobe's pieces hold only that lobe's vertices, and the cut points are
-    /// the boundary's edges' midpoints, each once, and the centres of triangles in three lobes.
+    /// one per boundary edge, each once, and the centres of triangles in three lobes.
     #[test]
     fn the_built_in_lungs_cut_by_lobe_stay_closed_and_keep_their_volume() {
         use lung_model::mesh::{anatomy, lobes};
