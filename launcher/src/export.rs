@@ -500,12 +500,15 @@ fn lung_summary(lung: &RenderLung, frames: &[Vec<[f32; 3]>], engine: &[EngineFra
         side: lung.side.name(),
         vertices: lung.lung.len(),
         triangles: lung.lung.triangles.len(),
-        lobes: LobeSplit::of(lung)
-            .groups
-            .iter()
-            .filter_map(|(l, _)| *l)
-            .map(Lobe::name)
-            .collect(),
+        // The lobes its vertices are in, in code order (the lobes `LobeSplit` makes a primitive of),
+        // without cutting the mesh a second time for their names.
+        lobes: lung.lobe_codes().map_or_else(Vec::new, |codes| {
+            let present: std::collections::BTreeSet<u8> = codes.iter().copied().collect();
+            present
+                .into_iter()
+                .map(|c| Lobe::from_code(c).unwrap_or(Lobe::Unknown).name())
+                .collect()
+        }),
         volume_ml: [r3(lo), r3(hi)],
         max_motion_mm: r3(moved),
     }
