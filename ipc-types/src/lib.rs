@@ -523,12 +523,16 @@ pub mod report_flags {
     pub const QUALITY_MSAA_OFF: u32 = 1 << 10;
     /// Drawn opaque by the governor (the scene's look is translucent).
     pub const QUALITY_OPAQUE: u32 = 1 << 11;
+    /// Drawn with only the drawn level's vertices deformed, their normals from its triangles, by
+    /// the governor (every drawn vertex's position is the full pass's; `renderer::governor`).
+    pub const QUALITY_DRAWN_ONLY: u32 = 1 << 12;
     /// Bits 16..18: draw levels coarser than the level of detail chose, by the governor (0..7).
     pub const QUALITY_LOD_SHIFT: u32 = 16;
     /// The mask of [`QUALITY_LOD_SHIFT`]'s bits.
     pub const QUALITY_LOD_MASK: u32 = 0x7 << QUALITY_LOD_SHIFT;
     /// Every bit that says the governor drew below the scene's quality.
-    pub const QUALITY_LOWERED: u32 = QUALITY_MSAA_OFF | QUALITY_OPAQUE | QUALITY_LOD_MASK;
+    pub const QUALITY_LOWERED: u32 =
+        QUALITY_MSAA_OFF | QUALITY_OPAQUE | QUALITY_DRAWN_ONLY | QUALITY_LOD_MASK;
 
     /// The bits of a frame drawn with multisampling off, `lod_bias` levels coarser (at most 7)
     /// and opaque instead of translucent.
@@ -540,7 +544,7 @@ pub mod report_flags {
     }
 
     /// A frame's quality in words from its flags: "full", or what the governor gave up ("MSAA off,
-    /// LOD +2, opaque look").
+    /// LOD +2, drawn vertices only, opaque look").
     pub fn describe_quality(flags: u32) -> String {
         let mut s = String::new();
         let _ = write_quality(&mut s, flags);
@@ -557,6 +561,10 @@ pub mod report_flags {
         }
         if lod > 0 {
             write!(w, "{sep}LOD +{lod}")?;
+            sep = ", ";
+        }
+        if flags & QUALITY_DRAWN_ONLY != 0 {
+            write!(w, "{sep}drawn vertices only")?;
             sep = ", ";
         }
         if flags & QUALITY_OPAQUE != 0 {

@@ -215,9 +215,10 @@ pub struct DemoArgs {
     #[arg(long, value_name = "LOD")]
     pub lod: Option<lung_model::scene::Lod>,
     /// The quality governor (overrides the scene's `[render] governor`): "hold-deadline" (the
-    /// default) draws less when frames run late — MSAA off, then coarser draw levels, then the
-    /// translucent look opaque, never a coarser deformation — and takes it back when there is time
-    /// again, each change said on stderr and on the HUD; "off" always draws the scene's quality.
+    /// default) draws less when frames run late — MSAA off, then coarser draw levels, then only
+    /// the drawn level's vertices moved, then the translucent look opaque, never a coarser
+    /// deformation — and takes it back when there is time again, each change said on stderr and
+    /// on the HUD; "off" always draws the scene's quality.
     /// docs/LATENCY.md "The governor".
     #[arg(long, value_name = "GOVERNOR")]
     pub governor: Option<lung_model::scene::Governor>,

@@ -4,9 +4,13 @@
 //!
 //! **The order** ([`ladder`]), cheapest loss first, each step only where the scene has something to
 //! give up: multisampling off (4× → 1×), then the draw level of detail one level coarser at a time
-//! (the same deformed vertices under fewer triangles: [`crate::lod`]), then the translucent look
-//! drawn opaque (its two extra passes over half-float targets). The deformation — its mode, bands
-//! and every vertex — is never touched: the picture is coarser, never wrong. A render-scale step
+//! (the same deformed vertices under fewer triangles: [`crate::lod`]), then the deformation pass
+//! limited to the vertices the drawn level uses, their normals from its triangles ("drawn vertices
+//! only": a coarse level references a few percent of the vertices, and moving all of them was most
+//! of a coarse frame's GPU time on lavapipe), then the translucent look drawn opaque (its two extra
+//! passes over half-float targets). The deformation's accuracy — its mode, its bands, the position
+//! of every vertex drawn — is never touched: each drawn vertex is where the full pass puts it, bit
+//! for bit, and what changes is what is drawn and how it is shaded. A render-scale step
 //! (fewer pixels) is not among them: on the software rasteriser this project is measured on, the
 //! frame's cost does not follow its pixels (the default lungs at 800 × 600 and 200 × 150: 23.3 and
 //! 22.0 ms, `render_looks -- --lod`), and it wants an upscaling pass and a HUD drawn after it.
@@ -41,6 +45,8 @@ pub enum Step {
     MsaaOff,
     /// The draw level one coarser than the level of detail chooses (again for each such step).
     CoarserLod,
+    /// Only the drawn level's vertices deformed, their normals from its triangles.
+    DrawnOnly,
     /// The translucent look drawn opaque.
     Opaque,
 }
@@ -51,6 +57,7 @@ impl Step {
         match self {
             Step::MsaaOff => "MSAA off",
             Step::CoarserLod => "LOD +1",
+            Step::DrawnOnly => "drawn vertices only",
             Step::Opaque => "opaque look",
         }
     }
@@ -63,6 +70,8 @@ pub struct Quality {
     pub msaa_off: bool,
     /// Draw levels coarser than the chosen one.
     pub lod_bias: u8,
+    /// Only the drawn level's vertices deformed, normals from its triangles.
+    pub drawn_only: bool,
     /// The translucent look drawn opaque.
     pub opaque: bool,
 }
@@ -72,6 +81,7 @@ impl Quality {
     pub const FULL: Quality = Quality {
         msaa_off: false,
         lod_bias: 0,
+        drawn_only: false,
         opaque: false,
     };
 
@@ -82,6 +92,7 @@ impl Quality {
             match s {
                 Step::MsaaOff => q.msaa_off = true,
                 Step::CoarserLod => q.lod_bias = q.lod_bias.saturating_add(1),
+                Step::DrawnOnly => q.drawn_only = true,
                 Step::Opaque => q.opaque = true,
             }
         }
@@ -90,10 +101,15 @@ impl Quality {
 
     /// The frame report's bits for it ([`ipc_types::report_flags::quality_bits`]).
     pub fn report_bits(self) -> u32 {
-        ipc_types::report_flags::quality_bits(self.msaa_off, self.lod_bias, self.opaque)
+        let drawn = if self.drawn_only {
+            ipc_types::report_flags::QUALITY_DRAWN_ONLY
+        } else {
+            0
+        };
+        ipc_types::report_flags::quality_bits(self.msaa_off, self.lod_bias, self.opaque) | drawn
     }
 
-    /// "full", or what is given up: "MSAA off, LOD +2, opaque look".
+    /// "full", or what is given up: "MSAA off, LOD +2, drawn vertices only, opaque look".
     pub fn describe(self) -> String {
         ipc_types::report_flags::describe_quality(self.report_bits())
     }
@@ -106,11 +122,12 @@ pub fn ladder(settings: &RenderScene, samples: u32, coarser_levels: usize) -> Ve
     if samples > 1 {
         steps.push(Step::MsaaOff);
     }
-    if settings.mode == DrawMode::Triangles {
+    if settings.mode == DrawMode::Triangles && coarser_levels > 0 {
         steps.extend(std::iter::repeat_n(
             Step::CoarserLod,
             coarser_levels.min(MAX_LOD_STEPS),
         ));
+        steps.push(Step::DrawnOnly);
     }
     if settings.look == Look::Translucent {
         steps.push(Step::Opaque);
@@ -182,8 +199,8 @@ pub struct Governor {
     pub floor_frames: u64,
 }
 
-/// Most steps a ladder can have (MSAA, the draw levels, the look).
-const MAX_STEPS: usize = 2 + MAX_LOD_STEPS;
+/// Most steps a ladder can have (MSAA, the draw levels, drawn vertices only, the look).
+const MAX_STEPS: usize = 3 + MAX_LOD_STEPS;
 
 impl Governor {
     /// A governor over `steps` (from [`ladder`]) holding frames to `target_ns`.
@@ -390,16 +407,23 @@ mod tests {
     #[test]
     fn the_ladder_has_only_what_the_scene_can_give_up_in_order() {
         let opaque = RenderScene::default();
-        assert_eq!(ladder(&opaque, 1, 2), [Step::CoarserLod, Step::CoarserLod]);
+        assert_eq!(
+            ladder(&opaque, 1, 2),
+            [Step::CoarserLod, Step::CoarserLod, Step::DrawnOnly]
+        );
         assert_eq!(
             translucent_msaa(),
             [
                 Step::MsaaOff,
                 Step::CoarserLod,
                 Step::CoarserLod,
+                Step::DrawnOnly,
                 Step::Opaque
             ]
         );
+        // No coarser level built (`lod = "off"`, or meshes too small): nothing to limit the
+        // deformation to.
+        assert!(ladder(&opaque, 1, 0).is_empty());
         let points = RenderScene {
             mode: DrawMode::Points,
             lod: Lod::Off,
@@ -412,7 +436,7 @@ mod tests {
             look: Look::SeeThrough,
             ..Default::default()
         };
-        assert_eq!(ladder(&see, 1, 1), [Step::CoarserLod]);
+        assert_eq!(ladder(&see, 1, 1), [Step::CoarserLod, Step::DrawnOnly]);
     }
 
     #[test]
@@ -424,12 +448,17 @@ mod tests {
             Quality {
                 msaa_off: true,
                 lod_bias: 2,
+                drawn_only: false,
                 opaque: false
             }
         );
         assert_eq!(
+            Quality::of(&steps, 4).describe(),
+            "MSAA off, LOD +2, drawn vertices only"
+        );
+        assert_eq!(
             Quality::of(&steps, 99).describe(),
-            "MSAA off, LOD +2, opaque look"
+            "MSAA off, LOD +2, drawn vertices only, opaque look"
         );
         assert_eq!(Quality::FULL.describe(), "full");
     }
@@ -496,7 +525,10 @@ mod tests {
                 c
             }
         });
-        assert_eq!(drawn[599].describe(), "MSAA off, LOD +2, opaque look");
+        assert_eq!(
+            drawn[599].describe(),
+            "MSAA off, LOD +2, drawn vertices only, opaque look"
+        );
         // Back to what fits unloaded (MSAA off alone: 8 ms; full is 16 ms, over the target).
         assert_eq!(g.quality(), Quality::of(&translucent_msaa(), 1));
         // Never the full quality, which does not fit: no swing into it and back.

@@ -224,6 +224,8 @@ fn timestamps(gpu: &Gpu) -> Option<Timestamps> {
 /// The draw levels of detail of both lungs in one index buffer ([`lod`]).
 struct DrawLevels {
     index: wgpu::Buffer,
+    /// Every level's indices (what `index` holds), level 0 first.
+    indices: Vec<u32>,
     ranges: Vec<std::ops::Range<u32>>,
     triangles: Vec<u32>,
     /// A level the topology check refused, per lung, said at start.
@@ -289,6 +291,7 @@ impl DrawLevels {
         };
         Self {
             index,
+            indices: levels.indices,
             ranges: levels.ranges,
             triangles,
             refused,
@@ -450,6 +453,9 @@ pub struct LungRenderer {
     active: usize,
     /// Draw levels coarser than the chosen one (the governor's [`governor::Quality::lod_bias`]).
     lod_bias: u8,
+    /// Only the drawn level's vertices deformed (the governor's
+    /// [`governor::Quality::drawn_only`]).
+    drawn_only: bool,
     /// What the governor may give up, in its order (empty with `[render] governor = "off"`).
     steps: Vec<governor::Step>,
     /// Every draw level's triangles over the one vertex buffer ([`lod`]), level 0 first.
@@ -516,14 +522,32 @@ impl LungRenderer {
             ColorMode::Displacement => deform::Field::Displacement,
             ColorMode::Ventilation => deform::Field::Expansion,
         };
+        let samples = msaa_samples(settings, gpu);
+        let levels = DrawLevels::build(device, settings, lungs);
+        let steps = match settings.governor {
+            Governor::HoldDeadline => {
+                governor::ladder(settings, samples, levels.ranges.len().saturating_sub(1))
+            }
+            Governor::Off => Vec::new(),
+        };
+        // The governor's "drawn vertices only" moves a coarser level's vertices alone: each level
+        // from 1 gets its own pass, built here.
+        let listed: Vec<&[u32]> = if steps.contains(&governor::Step::DrawnOnly) {
+            levels.ranges[1..]
+                .iter()
+                .map(|r| &levels.indices[r.start as usize..r.end as usize])
+                .collect()
+        } else {
+            Vec::new()
+        };
         let deform = deform::DeformPass::new(
             device,
             &gpu.info.name,
             lungs,
             settings.mode == DrawMode::Triangles,
             field,
+            &listed,
         )?;
-        let samples = msaa_samples(settings, gpu);
         let surface = surface_buffer(device, lungs);
         let tumours = lungs
             .iter()
@@ -537,7 +561,6 @@ impl LungRenderer {
                 ))
             })
             .collect();
-        let levels = DrawLevels::build(device, settings, lungs);
         let eyes = if settings.stereo { 2 } else { 1 };
         let width = eye_width * eyes as u32;
         let size = wgpu::Extent3d {
@@ -546,12 +569,6 @@ impl LungRenderer {
             depth_or_array_layers: 1,
         };
         let targets = Targets::new(gpu, size);
-        let steps = match settings.governor {
-            Governor::HoldDeadline => {
-                governor::ladder(settings, samples, levels.ranges.len().saturating_sub(1))
-            }
-            Governor::Off => Vec::new(),
-        };
         // The scene's way of drawing, then each other one a number of the governor's steps reach.
         let mut variants = vec![Variant::new(gpu, settings, settings.look, samples, size)];
         for taken in 1..=steps.len() {
@@ -575,6 +592,7 @@ impl LungRenderer {
             variants,
             active: 0,
             lod_bias: 0,
+            drawn_only: false,
             steps,
             index: levels.index,
             lod_ranges: levels.ranges,
@@ -734,8 +752,20 @@ impl LungRenderer {
         &self.steps
     }
 
+    /// Vertices the deformation pass moves each frame now: every vertex, or with the governor's
+    /// "drawn vertices only" those of the level drawn.
+    pub fn vertices_moved(&self) -> u32 {
+        let level = if self.drawn_only {
+            self.drawn_level()
+        } else {
+            0
+        };
+        self.deform.moved_at(level)
+    }
+
     /// Draw from the next frame on at `quality` (the governor's change): its variant — built at
-    /// start for every quality the steps reach — and its draw-level bias.
+    /// start for every quality the steps reach —, its draw-level bias and whether the deformation
+    /// moves the drawn level's vertices only.
     pub fn set_quality(&mut self, quality: governor::Quality) {
         let (look, samples) = variant_of(self.settings.look, self.variants[0].samples, quality);
         if let Some(k) = self
@@ -746,6 +776,7 @@ impl LungRenderer {
             self.active = k;
         }
         self.lod_bias = quality.lod_bias;
+        self.drawn_only = quality.drawn_only;
     }
 
     /// Draw the eyes of `eyes` from the next frame on (an OpenXR runtime's views, located per
@@ -844,16 +875,6 @@ impl LungRenderer {
         extra: impl FnOnce(&mut wgpu::CommandEncoder),
     ) -> FrameTiming {
         let queue = &gpu.queue;
-        self.deform.set_lungs(
-            queue,
-            &LungInputs {
-                scale: state.deform_scale,
-                offset: state.offset_mm,
-                collapse: state.collapse,
-                hilum: state.hilum_mm,
-                coeffs: state.coeffs,
-            },
-        );
         let aspect = self.eye_width as f32 / self.height as f32;
         let s = &self.settings;
         let (eyes, n) = self.rig.eyes(
@@ -869,6 +890,23 @@ impl LungRenderer {
             queue.write_buffer(buffer, 0, bytemuck::bytes_of(eye));
         }
         self.choose_lod(&eyes[..n], &state.offset_mm);
+        // The level whose vertices alone are moved (0: every vertex).
+        let moved = if self.drawn_only {
+            self.drawn_level()
+        } else {
+            0
+        };
+        self.deform.set_lungs_at(
+            queue,
+            &LungInputs {
+                scale: state.deform_scale,
+                offset: state.offset_mm,
+                collapse: state.collapse,
+                hilum: state.hilum_mm,
+                coeffs: state.coeffs,
+            },
+            moved,
+        );
         for t in &self.tumours {
             let k = t.slot;
             t.update(
@@ -887,7 +925,7 @@ impl LungRenderer {
             .create_command_encoder(&wgpu::CommandEncoderDescriptor {
                 label: Some("lungdyn frame"),
             });
-        self.deform.encode(
+        self.deform.encode_at(
             &mut encoder,
             self.timestamps
                 .as_ref()
@@ -896,6 +934,7 @@ impl LungRenderer {
                     beginning_of_pass_write_index: Some(0),
                     end_of_pass_write_index: None,
                 }),
+            moved,
         );
         self.encode_phases(&mut encoder, state.pose_warning, n);
         overlay(&mut encoder, &self.color_view, &eyes[..n]);

@@ -114,8 +114,9 @@ named_enum_text!(Governor, "governor");
 #[serde(rename_all = "kebab-case")]
 pub enum Governor {
     /// When frames take longer than the display period allows, draw less — in a fixed order:
-    /// MSAA off, coarser draw levels, the translucent look made opaque — and take it back when
-    /// there is time again. The deformation (mode, bands) is never touched.
+    /// MSAA off, coarser draw levels, only the drawn level's vertices moved (their normals from
+    /// its triangles), the translucent look made opaque — and take it back when there is time
+    /// again. The deformation's accuracy (mode, bands, each drawn vertex) is never touched.
     #[default]
     HoldDeadline,
     /// Always draw at the scene's quality, late or not.

@@ -1,9 +1,9 @@
 //! The quality governor through the renderer's session, on whatever GPU the tests get: its target
 //! set below any real frame makes every frame late, so it gives up each step of a translucent,
-//! multisampled scene in order — multisampling, the draw levels, the look — drawing each (a
-//! variant built at start: no validation error, no pipeline compiled mid-run), flags every frame's
-//! report with what it gave up and, with nothing left, its floor; its target set far above any
-//! frame gives everything back. Driven in process on in-memory ports and a fake clock.
+//! multisampled scene in order — multisampling, the draw levels, the drawn vertices only, the
+//! look — drawing each (a variant built at start: no validation error, no pipeline compiled
+//! mid-run), flags every frame's report with what it gave up and, with nothing left, its floor;
+//! its target set far above any frame gives everything back. Driven in process on in-memory ports and a fake clock.
 
 use ipc_types::{report_flags as rf, FrameReport};
 use lung_model::scene::Scene;
@@ -50,6 +50,7 @@ fn late_frames_give_up_each_step_in_order_and_time_to_spare_takes_them_back() {
     assert!(levels >= 2, "3000-vertex lungs build coarser draw levels");
     let mut expected = vec![Step::MsaaOff];
     expected.extend(std::iter::repeat_n(Step::CoarserLod, levels - 1));
+    expected.push(Step::DrawnOnly);
     expected.push(Step::Opaque);
     assert_eq!(steps, expected, "the ladder of a translucent 4x scene");
     let mut session = Session::assemble(

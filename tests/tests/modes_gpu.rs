@@ -309,3 +309,156 @@ fn sh_coefficients_held_in_16_bits_agree_on_gpu_and_cpu_at_odd_counts() {
         }
     }
 }
+
+/// The governor's "drawn vertices only" (`renderer::governor::Step::DrawnOnly`) in every mode:
+/// each vertex of the level drawn lands where the full pass puts it, bit for bit; its normal (and
+/// the ventilation colour's expansion) comes from that level's triangles; no other vertex is
+/// touched; and the full quality moves every vertex again in its first frame.
+#[test]
+fn drawn_vertices_only_moves_the_drawn_levels_vertices_exactly_and_nothing_else() {
+    use lung_model::scene::ColorMode;
+    use renderer::deform::Incidence;
+    use renderer::governor::{Quality, Step};
+    use renderer::lod;
+    let Some(gpu) = Gpu::for_tests() else { return };
+    let base = lungdyn_tests::scene_with_kernels(scene(DeformMode::Basis), "modes-gpu-drawn");
+    for mode in DeformMode::ALL {
+        let mut scene = base.clone();
+        scene.lungs.mode = mode;
+        // One mode with the expansion field in each normal's w.
+        if mode == DeformMode::Basis {
+            scene.render.color = ColorMode::Ventilation;
+        }
+        let lungs: Vec<RenderLung> = scene
+            .lungs
+            .sides
+            .iter()
+            .map(|&s| RenderLung::from_kernel(&scene.lung_kernel(s).unwrap(), mode).unwrap())
+            .collect();
+        let mut r = LungRenderer::new(&gpu, &scene.render, &lungs).unwrap();
+        assert!(
+            r.governor_steps().contains(&Step::DrawnOnly),
+            "{mode}: the ladder has the step"
+        );
+        let count = r.vertex_count() as usize;
+        // At rest (scale 0), and a breath: scales, offsets, coefficients of both signs, the left
+        // lung collapsing towards its hilum.
+        let rest_state = DrawState {
+            deform_scale: [0.0; 2],
+            offset_mm: [[0.0; 3]; 2],
+            collapse: [0.0, 0.2],
+            hilum_mm: [[0.0; 3], [-40.0, 10.0, 120.0]],
+            coeffs: [[0.0; ipc_types::MAX_COEFFS]; 2],
+            patient: Default::default(),
+            hmd: Default::default(),
+            pose_warning: Default::default(),
+        };
+        let mut breath = rest_state;
+        for l in &lungs {
+            let s = l.side.index();
+            breath.deform_scale[s] = 1.5 + 0.25 * s as f32;
+            breath.offset_mm[s] = [1.0, -2.0, 0.5 * s as f32];
+            for k in 0..l.lung.coeff_count().min(ipc_types::MAX_COEFFS) {
+                breath.coeffs[s][k] = [0.9, -0.4, 0.3, 0.7][k % 4] / (1.0 + k as f32);
+            }
+        }
+        r.render(&gpu, &rest_state, false);
+        let rest = r.read_deformed(&gpu).unwrap();
+        r.render(&gpu, &breath, false);
+        let full = r.read_deformed(&gpu).unwrap();
+        assert!(
+            (0..count).any(|i| full[i] != rest[i]),
+            "{mode}: the breath moves the lungs"
+        );
+        // Back to rest, then the breath with the drawn level's vertices only, at the coarsest.
+        r.render(&gpu, &rest_state, false);
+        r.set_quality(Quality {
+            lod_bias: 7,
+            drawn_only: true,
+            ..Quality::FULL
+        });
+        r.render(&gpu, &breath, false);
+        let level = r.lod_shown().level as usize;
+        assert!(level >= 1, "{mode}: a coarser level is drawn");
+        let listed = r.read_deformed(&gpu).unwrap();
+        let normals = r.read_normals(&gpu).unwrap();
+        // The level's triangles as the renderer builds them.
+        let per_lung: Vec<_> = lungs
+            .iter()
+            .map(|l| {
+                lod::lung_levels(
+                    &l.lung.positions,
+                    &l.lung.triangles,
+                    lung_model::scene::MAX_LOD_LEVEL,
+                )
+                .levels
+            })
+            .collect();
+        let counts: Vec<u32> = lungs.iter().map(|l| l.lung.len() as u32).collect();
+        let levels = lod::Levels::join(&per_lung, &counts);
+        let range = levels.ranges[level].clone();
+        let indices = &levels.indices[range.start as usize..range.end as usize];
+        // The rest areas are the FRC surface's (the lungs' own positions, no collapse).
+        let rest_xyz: Vec<[f32; 3]> = lungs
+            .iter()
+            .flat_map(|l| l.lung.positions.iter().copied())
+            .collect();
+        let inc = Incidence::of_level(indices, &rest_xyz);
+        assert_eq!(r.vertices_moved() as usize, inc.vertices.len(), "{mode}");
+        assert!(
+            inc.vertices.len() * 2 < count,
+            "{mode}: level {level} uses {} of {count} vertices",
+            inc.vertices.len()
+        );
+        let mut drawn = vec![false; count];
+        for &v in &inc.vertices {
+            drawn[v as usize] = true;
+        }
+        for i in 0..count {
+            let want = if drawn[i] { full[i] } else { rest[i] };
+            assert!(
+                listed[i].map(f32::to_bits) == want.map(f32::to_bits),
+                "{mode}: vertex {i} (drawn {}) at {:?}, want {want:?}",
+                drawn[i],
+                listed[i]
+            );
+        }
+        let (mut worst_n, mut worst_field) = (0.0f32, 0.0f32);
+        for (g, &v) in inc.vertices.iter().enumerate() {
+            let (mut n, mut area2) = (glam::Vec3::ZERO, 0.0f32);
+            for &t in &inc.tris[inc.ptr[g] as usize..inc.ptr[g + 1] as usize] {
+                let c = &indices[3 * t as usize..3 * t as usize + 3];
+                let [a, b, d] =
+                    [c[0], c[1], c[2]].map(|i| glam::Vec4::from(full[i as usize]).truncate());
+                let x = (b - a).cross(d - a);
+                n += x;
+                area2 += x.length();
+            }
+            let got = glam::Vec4::from(normals[v as usize]);
+            worst_n = worst_n.max((got.truncate() - n.normalize()).abs().max_element());
+            if mode == DeformMode::Basis {
+                let want = (0.5 * area2 / inc.rest_area[g]).powf(1.5) - 1.0;
+                worst_field = worst_field.max((got.w - want).abs() / want.abs().max(0.01));
+            }
+        }
+        assert!(
+            worst_n <= 1e-3,
+            "{mode}: level normals differ by {worst_n:e}"
+        );
+        assert!(
+            worst_field <= 1e-3,
+            "{mode}: expansion differs by {worst_field:e}"
+        );
+        // Everything back: the first frame at full quality moves every vertex again.
+        r.set_quality(Quality::FULL);
+        r.render(&gpu, &breath, false);
+        assert_eq!(r.vertices_moved() as usize, count);
+        let again = r.read_deformed(&gpu).unwrap();
+        for i in 0..count {
+            assert!(
+                again[i].map(f32::to_bits) == full[i].map(f32::to_bits),
+                "{mode}: vertex {i} after the full quality came back"
+            );
+        }
+    }
+}

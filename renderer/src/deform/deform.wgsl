@@ -15,6 +15,13 @@
 //
 // The CPU reference of every entry point is lung_model::deform::modes::CpuLung; the two agree to
 // 1e-4 relative (tests/tests/modes_gpu.rs).
+//
+// Drawn vertices only (the quality governor's step, renderer/src/governor.rs): with params.listed
+// > 0, invocation g moves vertex listed_vertices[g] of a draw level's vertex list instead of vertex
+// g, with the same arithmetic (so each listed vertex lands where the full pass puts it, bit for
+// bit), and vertex_normals reads that level's triangles: the incidence CSR and the rest areas are
+// indexed by g, the triangles' corners are global vertex indices. direct_force always runs over
+// every node (each gathered vertex needs every force).
 
 struct Params {
     // Deformation scale per lung slot: x = right lung (slot 0), y = left lung (slot 1); z, w: the
@@ -28,7 +35,8 @@ struct Params {
     count: u32,
     // The field vertex_normals writes into normals.w: 0 none, 1 displacement, 2 expansion.
     field: u32,
-    _pad1: u32,
+    // Vertices in listed_vertices this frame; 0: every vertex, in order.
+    listed: u32,
     _pad2: u32,
     // Per slot: x = first vertex, y = SH coefficients per vertex, z = first SH word.
     lung_info: array<vec4<u32>, 2>,
@@ -68,6 +76,24 @@ struct Params {
 @group(0) @binding(15) var<storage, read> indices: array<u32>;
 // Σ of the incident triangles' areas at rest (FRC), mm², per vertex (the expansion field).
 @group(0) @binding(16) var<storage, read> rest_area: array<f32>;
+// A draw level's vertices (global indices, ascending), when params.listed > 0.
+@group(0) @binding(17) var<storage, read> listed_vertices: array<u32>;
+
+const NO_VERTEX: u32 = 0xffffffffu;
+
+// The vertex invocation g moves: g itself, or the g-th listed one; NO_VERTEX past the end.
+fn vertex_of(g: u32) -> u32 {
+    if (params.listed > 0u) {
+        if (g >= params.listed) {
+            return NO_VERTEX;
+        }
+        return listed_vertices[g];
+    }
+    if (g >= params.count) {
+        return NO_VERTEX;
+    }
+    return g;
+}
 
 fn slot_of(b: vec4<f32>) -> u32 {
     return select(0u, 1u, b.w > 0.5);
@@ -83,8 +109,8 @@ fn keep_of(slot: u32) -> f32 {
 
 @compute @workgroup_size(256)
 fn deform_precomputed(@builtin(global_invocation_id) gid: vec3<u32>) {
-    let i = gid.x;
-    if (i >= params.count) {
+    let i = vertex_of(gid.x);
+    if (i == NO_VERTEX) {
         return;
     }
     let b = base[i];
@@ -94,8 +120,8 @@ fn deform_precomputed(@builtin(global_invocation_id) gid: vec3<u32>) {
 
 @compute @workgroup_size(256)
 fn deform_basis(@builtin(global_invocation_id) gid: vec3<u32>) {
-    let i = gid.x;
-    if (i >= params.count) {
+    let i = vertex_of(gid.x);
+    if (i == NO_VERTEX) {
         return;
     }
     let b = base[i];
@@ -106,8 +132,8 @@ fn deform_basis(@builtin(global_invocation_id) gid: vec3<u32>) {
 
 @compute @workgroup_size(256)
 fn deform_sh(@builtin(global_invocation_id) gid: vec3<u32>) {
-    let i = gid.x;
-    if (i >= params.count) {
+    let i = vertex_of(gid.x);
+    if (i == NO_VERTEX) {
         return;
     }
     let b = base[i];
@@ -137,8 +163,8 @@ fn direct_force(@builtin(global_invocation_id) gid: vec3<u32>) {
 
 @compute @workgroup_size(256)
 fn deform_direct(@builtin(global_invocation_id) gid: vec3<u32>) {
-    let i = gid.x;
-    if (i >= params.count) {
+    let i = vertex_of(gid.x);
+    if (i == NO_VERTEX) {
         return;
     }
     let b = base[i];
@@ -152,14 +178,15 @@ fn deform_direct(@builtin(global_invocation_id) gid: vec3<u32>) {
 
 @compute @workgroup_size(256)
 fn vertex_normals(@builtin(global_invocation_id) gid: vec3<u32>) {
-    let i = gid.x;
-    if (i >= params.count) {
+    let g = gid.x;
+    let i = vertex_of(g);
+    if (i == NO_VERTEX) {
         return;
     }
     var n = vec3<f32>(0.0, 0.0, 0.0);
     // Twice the incident area.
     var area2 = 0.0;
-    for (var k = inc_ptr[i]; k < inc_ptr[i + 1u]; k = k + 1u) {
+    for (var k = inc_ptr[g]; k < inc_ptr[g + 1u]; k = k + 1u) {
         let t = inc_tris[k] * 3u;
         let a = deformed[indices[t]].xyz;
         let b = deformed[indices[t + 1u]].xyz;
@@ -178,7 +205,7 @@ fn vertex_normals(@builtin(global_invocation_id) gid: vec3<u32>) {
         let p = deformed[i].xyz - base[i].xyz;
         field = length(p);
     } else if (params.field == 2u) {
-        let a0 = rest_area[i];
+        let a0 = rest_area[g];
         if (a0 > 0.0) {
             field = pow(0.5 * area2 / a0, 1.5) - 1.0;
         }

@@ -101,8 +101,11 @@ pub struct DeformParams {
     pub count: u32,
     /// The field the normals pass writes into each normal's w ([`Field`] as u32).
     pub field: u32,
+    /// Vertices of a draw level's list moved this frame (the governor's "drawn vertices only");
+    /// 0: every vertex.
+    pub listed: u32,
     /// Padding to 16 bytes.
-    pub _pad: [u32; 2],
+    pub _pad: u32,
     /// Per slot: first vertex, SH coefficients per vertex, first SH word (two 16-bit coefficients
     /// each), unused.
     pub lung_info: [[u32; 4]; 2],
@@ -166,6 +169,82 @@ pub enum Field {
 struct Dispatch {
     pipeline: wgpu::ComputePipeline,
     group: wgpu::BindGroup,
+    /// The buffers bound, kept to bind a draw level's list instead ([`LevelPass`]); empty for a
+    /// dispatch that always runs over every vertex (the direct mode's forces).
+    bindings: Vec<(u32, wgpu::Buffer)>,
+}
+
+/// Binding of a draw level's vertex list in `deform.wgsl`.
+const LISTED: u32 = 17;
+
+/// The deformation of one draw level's vertices only (the governor's
+/// [`crate::governor::Step::DrawnOnly`]): the vertices its triangles use, and the bind groups
+/// that list them, with the normals from its triangles.
+struct LevelPass {
+    /// Vertices listed.
+    count: u32,
+    /// Per mode dispatch, its group for this level (`None`: the dispatch's own, over every node).
+    groups: Vec<Option<wgpu::BindGroup>>,
+    /// The normals' group over this level's triangles.
+    normals: Option<wgpu::BindGroup>,
+}
+
+/// What the normals pass reads for a triangle list: per vertex (listed, or every vertex in order)
+/// its incident triangles as a CSR, the triangles' global corners, the rest incident areas.
+#[derive(Debug, Clone, Default, PartialEq)]
+pub struct Incidence {
+    /// The vertices, global indices ascending (a draw level's; empty for every vertex).
+    pub vertices: Vec<u32>,
+    /// Per listed vertex, its range in `tris` (one more entry than vertices).
+    pub ptr: Vec<u32>,
+    /// Incident triangles, as their numbers in the list.
+    pub tris: Vec<u32>,
+    /// Σ of each listed vertex's incident triangles' areas at rest, mm².
+    pub rest_area: Vec<f32>,
+}
+
+impl Incidence {
+    /// The vertices a draw level's `indices` (global, three per triangle) use, their incident
+    /// triangles among those, and their incident areas at `rest` (every vertex's rest position).
+    pub fn of_level(indices: &[u32], rest: &[[f32; 3]]) -> Self {
+        let mut slot = vec![u32::MAX; rest.len()];
+        for &i in indices {
+            slot[i as usize] = 0;
+        }
+        let mut vertices = Vec::new();
+        for (i, s) in slot.iter_mut().enumerate() {
+            if *s == 0 {
+                *s = vertices.len() as u32;
+                vertices.push(i as u32);
+            }
+        }
+        let mut ptr = vec![0u32; vertices.len() + 1];
+        for &i in indices {
+            ptr[slot[i as usize] as usize + 1] += 1;
+        }
+        for k in 1..ptr.len() {
+            ptr[k] += ptr[k - 1];
+        }
+        let mut fill = ptr.clone();
+        let mut tris = vec![0u32; indices.len()];
+        let mut rest_area = vec![0.0f32; vertices.len()];
+        for (t, c) in indices.chunks_exact(3).enumerate() {
+            let [a, b, d] = [c[0], c[1], c[2]].map(|i| glam::Vec3::from(rest[i as usize]));
+            let area = 0.5 * (b - a).cross(d - a).length();
+            for &i in c {
+                let v = slot[i as usize] as usize;
+                tris[fill[v] as usize] = t as u32;
+                fill[v] += 1;
+                rest_area[v] += area;
+            }
+        }
+        Self {
+            vertices,
+            ptr,
+            tris,
+            rest_area,
+        }
+    }
 }
 
 /// Uploads storage buffers within the adapter's binding limit, counting the bytes.
@@ -213,7 +292,8 @@ struct Maker<'d> {
 }
 
 impl Maker<'_> {
-    /// The pipeline of `entry` (an auto layout: exactly the bindings it uses) and its bind group.
+    /// The pipeline of `entry` (an auto layout: exactly the bindings it uses) and its bind group;
+    /// an entry point that moves listed vertices binds [`LISTED`] among `bindings`.
     fn make(&self, entry: &str, bindings: &[(u32, &wgpu::Buffer)]) -> Dispatch {
         let pipeline = self
             .device
@@ -225,6 +305,29 @@ impl Maker<'_> {
                 compilation_options: Default::default(),
                 cache: None,
             });
+        let group = self.group(&pipeline, entry, bindings);
+        let listable = bindings.iter().any(|(b, _)| *b == LISTED);
+        Dispatch {
+            pipeline,
+            group,
+            bindings: if listable {
+                bindings
+                    .iter()
+                    .map(|(b, buf)| (*b, (*buf).clone()))
+                    .collect()
+            } else {
+                Vec::new()
+            },
+        }
+    }
+
+    /// A bind group of `pipeline` over `bindings`.
+    fn group(
+        &self,
+        pipeline: &wgpu::ComputePipeline,
+        label: &str,
+        bindings: &[(u32, &wgpu::Buffer)],
+    ) -> wgpu::BindGroup {
         let entries: Vec<wgpu::BindGroupEntry<'_>> = bindings
             .iter()
             .map(|(binding, buffer)| wgpu::BindGroupEntry {
@@ -232,21 +335,39 @@ impl Maker<'_> {
                 resource: buffer.as_entire_binding(),
             })
             .collect();
-        let group = self.device.create_bind_group(&wgpu::BindGroupDescriptor {
-            label: Some(entry),
+        self.device.create_bind_group(&wgpu::BindGroupDescriptor {
+            label: Some(label),
             layout: &pipeline.get_bind_group_layout(0),
             entries: &entries,
-        });
-        Dispatch { pipeline, group }
+        })
+    }
+
+    /// `d`'s group with `replace`'s buffers in their bindings' places (`None` for a dispatch
+    /// over every node).
+    fn regroup(&self, d: &Dispatch, replace: &[(u32, &wgpu::Buffer)]) -> Option<wgpu::BindGroup> {
+        if d.bindings.is_empty() {
+            return None;
+        }
+        let bindings: Vec<(u32, &wgpu::Buffer)> = d
+            .bindings
+            .iter()
+            .map(|(b, buf)| {
+                let with = replace.iter().find(|(r, _)| r == b).map(|(_, x)| *x);
+                (*b, with.unwrap_or(buf))
+            })
+            .collect();
+        Some(self.group(&d.pipeline, "lungdyn drawn level", &bindings))
     }
 }
 
 /// The buffers every dispatch binds: the parameters (0), the rest positions (1), the deformed
-/// positions (3).
+/// positions (3), and a placeholder for a draw level's vertex list ([`LISTED`]; unread while the
+/// pass moves every vertex).
 struct Shared {
     params: wgpu::Buffer,
     base: wgpu::Buffer,
     deformed: wgpu::Buffer,
+    listed: wgpu::Buffer,
 }
 
 /// Every lung's per-vertex arrays of one kind, concatenated.
@@ -296,7 +417,13 @@ fn mode_dispatches(
             )?;
             vec![mk.make(
                 "deform_precomputed",
-                &[(0, &b.params), (1, &b.base), (2, &unit), (3, &b.deformed)],
+                &[
+                    (0, &b.params),
+                    (1, &b.base),
+                    (2, &unit),
+                    (3, &b.deformed),
+                    (LISTED, &b.listed),
+                ],
             )]
         }
         DeformMode::Basis => {
@@ -319,6 +446,7 @@ fn mode_dispatches(
                     (3, &b.deformed),
                     (4, &kd),
                     (5, &g),
+                    (LISTED, &b.listed),
                 ],
             )]
         }
@@ -346,6 +474,7 @@ fn mode_dispatches(
                     (3, &b.deformed),
                     (4, &kd),
                     (6, &t),
+                    (LISTED, &b.listed),
                 ],
             )]
         }
@@ -434,6 +563,7 @@ fn direct_dispatches(
                 (9, &ptr),
                 (10, &src),
                 (11, &val),
+                (LISTED, &b.listed),
             ],
         ),
     ])
@@ -499,8 +629,65 @@ fn normals_dispatch(
             (13, &inc_ptr),
             (14, &inc_tris),
             (15, &indices),
+            (LISTED, &b.listed),
         ],
     ))
+}
+
+/// The pass over draw level `indices` (global corners, three per triangle) only: its vertex
+/// list, the mode dispatches regrouped to list them, the normals from its triangles.
+fn level_pass(
+    indices: &[u32],
+    rest: &[[f32; 3]],
+    up: &mut Uploader<'_>,
+    mk: &Maker<'_>,
+    dispatches: &[Dispatch],
+    normals: Option<&Dispatch>,
+) -> Result<LevelPass, UploadError> {
+    let none = wgpu::BufferUsages::empty();
+    let inc = Incidence::of_level(indices, rest);
+    let listed = up.storage(
+        "draw level data",
+        "lungdyn drawn vertices",
+        bytemuck::cast_slice(&inc.vertices),
+        none,
+    )?;
+    let groups = dispatches
+        .iter()
+        .map(|d| mk.regroup(d, &[(LISTED, &listed)]))
+        .collect();
+    let normals = match normals {
+        Some(d) => {
+            let buffers = [
+                ("lungdyn level inc ptr", bytemuck::cast_slice(&inc.ptr)),
+                ("lungdyn level inc tris", bytemuck::cast_slice(&inc.tris)),
+                ("lungdyn level indices", bytemuck::cast_slice(indices)),
+                (
+                    "lungdyn level rest areas",
+                    bytemuck::cast_slice(&inc.rest_area),
+                ),
+            ]
+            .map(|(label, bytes)| up.storage("draw level data", label, bytes, none));
+            let [ptr, tris, corners, area] = buffers;
+            let (ptr, tris, corners, area) = (ptr?, tris?, corners?, area?);
+            mk.regroup(
+                d,
+                &[
+                    (13, &ptr),
+                    (14, &tris),
+                    (15, &corners),
+                    (16, &area),
+                    (LISTED, &listed),
+                ],
+            )
+        }
+        None => None,
+    };
+    Ok(LevelPass {
+        count: inc.vertices.len() as u32,
+        groups,
+        normals,
+    })
 }
 
 /// GPU buffers and pipelines of the deformation pass.
@@ -509,6 +696,8 @@ pub struct DeformPass {
     field: Field,
     dispatches: Vec<Dispatch>,
     normals_pass: Option<Dispatch>,
+    /// Per draw level from 1, the pass over its vertices only (empty: not built).
+    levels: Vec<LevelPass>,
     params: wgpu::Buffer,
     lung_info: [[u32; 4]; 2],
     /// Per slot, the scale of each SH coefficient index (`T ≈ q·scale/32767`; 0 beyond the lung's
@@ -527,13 +716,16 @@ pub struct DeformPass {
 impl DeformPass {
     /// Upload `lungs` (all in one mode) and build the pass; `normals`: also compute vertex normals
     /// each frame (triangle drawing); `field`: the scalar each normal's w carries (a field other
-    /// than [`Field::None`] runs the normals pass whatever `normals` says).
+    /// than [`Field::None`] runs the normals pass whatever `normals` says); `levels`: the draw
+    /// levels from 1 (global corners, three per triangle) whose vertices alone it may move
+    /// ([`Self::encode_at`]; empty: always every vertex).
     pub fn new(
         device: &wgpu::Device,
         adapter: &str,
         lungs: &[RenderLung],
         normals: bool,
         field: Field,
+        levels: &[&[u32]],
     ) -> Result<Self, UploadError> {
         let normals = normals || field != Field::None;
         let mode = lungs
@@ -592,6 +784,7 @@ impl DeformPass {
                 bytemuck::cast_slice(&base),
                 drawn,
             )?,
+            listed: up.storage("draw level data", "lungdyn no list", &[], none)?,
         };
         let normals_buf = up.storage(
             "normals",
@@ -616,11 +809,26 @@ impl DeformPass {
         } else {
             None
         };
+        let rest: Vec<[f32; 3]> = base.iter().map(|p| [p[0], p[1], p[2]]).collect();
+        let levels = levels
+            .iter()
+            .map(|indices| {
+                level_pass(
+                    indices,
+                    &rest,
+                    &mut up,
+                    &maker,
+                    &dispatches,
+                    normals_pass.as_ref(),
+                )
+            })
+            .collect::<Result<Vec<_>, _>>()?;
         Ok(Self {
             mode,
             field,
             dispatches,
             normals_pass,
+            levels,
             params: bufs.params,
             lung_info,
             sh_scale,
@@ -641,8 +849,30 @@ impl DeformPass {
         self.normals_pass.is_some()
     }
 
+    /// The pass over draw level `level`'s vertices only, where built (level 0: none).
+    fn level(&self, level: usize) -> Option<&LevelPass> {
+        level.checked_sub(1).and_then(|k| self.levels.get(k))
+    }
+
+    /// Draw levels (from 1) whose vertices alone the pass can move.
+    pub fn listed_levels(&self) -> usize {
+        self.levels.len()
+    }
+
+    /// Vertices the pass moves at `level` ([`Self::encode_at`]): every vertex at level 0 or a
+    /// level not built.
+    pub fn moved_at(&self, level: usize) -> u32 {
+        self.level(level).map_or(self.count, |l| l.count)
+    }
+
     /// Set this frame's per-lung scales, rigid offsets and coefficients.
     pub fn set_lungs(&self, queue: &wgpu::Queue, inputs: &LungInputs) {
+        self.set_lungs_at(queue, inputs, 0);
+    }
+
+    /// As [`Self::set_lungs`], for a pass over draw level `level`'s vertices only
+    /// ([`Self::encode_at`] with the same level).
+    pub fn set_lungs_at(&self, queue: &wgpu::Queue, inputs: &LungInputs, level: usize) {
         // `h + (1 − c)(p − h) + s·u + o = (1 − c)·p + s·u + (o + c·h)`: the shader scales the rest
         // position by `keep = 1 − c` (scale.zw) and the offset carries `c·h`; at c = 0 both are the
         // healthy lung's exactly (×1.0, +0.0).
@@ -669,7 +899,8 @@ impl DeformPass {
             weights: [[0.0; 4]; 2],
             count: self.count,
             field: self.field as u32,
-            _pad: [0; 2],
+            listed: self.level(level).map_or(0, |l| l.count),
+            _pad: 0,
             lung_info: self.lung_info,
             sh_f: [[0.0; 4]; 32],
         };
@@ -692,15 +923,44 @@ impl DeformPass {
         encoder: &mut wgpu::CommandEncoder,
         timestamps: Option<wgpu::ComputePassTimestampWrites<'_>>,
     ) {
+        self.encode_at(encoder, timestamps, 0);
+    }
+
+    /// As [`Self::encode`], moving only draw level `level`'s vertices (and their normals from its
+    /// triangles) where that level's pass was built, every vertex otherwise; the parameters must
+    /// have been set for the same level ([`Self::set_lungs_at`]). The vertices moved are where
+    /// the full pass puts them, bit for bit; the others keep the last frame that moved them.
+    pub fn encode_at(
+        &self,
+        encoder: &mut wgpu::CommandEncoder,
+        timestamps: Option<wgpu::ComputePassTimestampWrites<'_>>,
+        level: usize,
+    ) {
         let mut pass = encoder.begin_compute_pass(&wgpu::ComputePassDescriptor {
             label: Some("lungdyn deform"),
             timestamp_writes: timestamps,
         });
-        let groups = self.count.div_ceil(WORKGROUP);
-        for d in self.dispatches.iter().chain(&self.normals_pass) {
+        let every = self.count.div_ceil(WORKGROUP);
+        let listed = self.level(level);
+        for (k, d) in self.dispatches.iter().enumerate() {
+            let group = listed.and_then(|l| l.groups[k].as_ref());
             pass.set_pipeline(&d.pipeline);
-            pass.set_bind_group(0, &d.group, &[]);
-            pass.dispatch_workgroups(groups, 1, 1);
+            pass.set_bind_group(0, group.unwrap_or(&d.group), &[]);
+            let n = match (group, listed) {
+                (Some(_), Some(l)) => l.count.div_ceil(WORKGROUP),
+                _ => every,
+            };
+            pass.dispatch_workgroups(n, 1, 1);
+        }
+        if let Some(d) = &self.normals_pass {
+            let group = listed.and_then(|l| l.normals.as_ref());
+            pass.set_pipeline(&d.pipeline);
+            pass.set_bind_group(0, group.unwrap_or(&d.group), &[]);
+            let n = match (group, listed) {
+                (Some(_), Some(l)) => l.count.div_ceil(WORKGROUP),
+                _ => every,
+            };
+            pass.dispatch_workgroups(n, 1, 1);
         }
     }
 }

@@ -580,6 +580,7 @@ impl Hud {
             auto: true,
         };
         let flags = ipc_types::report_flags::quality_bits(true, 7, true)
+            | ipc_types::report_flags::QUALITY_DRAWN_ONLY
             | ipc_types::report_flags::GOVERNOR_FLOOR;
         text::timing_line(
             &mut line,

@@ -309,8 +309,9 @@ pub fn timing_line(
 }
 
 /// The governor's part of the timing line, short so the line keeps to one row: nothing at full
-/// quality; " · less: AA LOD+2 OIT" for what it gave up (multisampling, draw levels, the translucent
-/// look), "LATE" instead of "less" at its floor (everything given up, frames still over target).
+/// quality; " · less: AA LOD+2 VTX OIT" for what it gave up (multisampling, draw levels, the
+/// vertices of other levels not moved, the translucent look), "LATE" instead of "less" at its
+/// floor (everything given up, frames still over target).
 fn governor_words(out: &mut String, bits: u32) {
     use ipc_types::report_flags as r;
     let floor = bits & r::GOVERNOR_FLOOR != 0;
@@ -324,6 +325,9 @@ fn governor_words(out: &mut String, bits: u32) {
     let lod = (bits & r::QUALITY_LOD_MASK) >> r::QUALITY_LOD_SHIFT;
     if lod > 0 {
         let _ = write!(out, " LOD+{lod}");
+    }
+    if bits & r::QUALITY_DRAWN_ONLY != 0 {
+        out.push_str(" VTX");
     }
     if bits & r::QUALITY_OPAQUE != 0 {
         out.push_str(" OIT");
@@ -985,11 +989,12 @@ mod tests {
         let floor = lowered | ipc_types::report_flags::GOVERNOR_FLOOR;
         timing_line(&mut s, 0, None, &auto, Some(floor), None);
         assert_eq!(s, "frame 0.0 ms · LOD 1/3 · LATE: AA LOD+2 · latency --");
-        let all = ipc_types::report_flags::quality_bits(true, 1, true);
+        let all = ipc_types::report_flags::quality_bits(true, 1, true)
+            | ipc_types::report_flags::QUALITY_DRAWN_ONLY;
         timing_line(&mut s, 0, None, &auto, Some(all), None);
         assert_eq!(
             s,
-            "frame 0.0 ms · LOD 1/3 · less: AA LOD+1 OIT · latency --"
+            "frame 0.0 ms · LOD 1/3 · less: AA LOD+1 VTX OIT · latency --"
         );
         // At the floor with nothing to give up (a scene with no steps).
         let none = ipc_types::report_flags::GOVERNOR_FLOOR;
