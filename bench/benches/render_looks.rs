@@ -16,7 +16,9 @@
 //! needed: the draw's cost does not depend on the field) drawn small on screen (default 160×120
 //! per eye, the view of the image tests from 2.5× as far), at every level fixed, then `lod = "off"`
 //! against `"auto"` in mono and stereo: frame time per level, the deformation pass alone and the
-//! stereo/mono frame-rate ratio.
+//! stereo/mono frame-rate ratio; then each coarser level with the governor's "drawn vertices only"
+//! (the deformation pass over that level's vertices alone), and that pass's own time at the
+//! coarsest (the column "triangles" gives the vertices moved on the deformation rows).
 
 use glam::{Mat3, Quat, Vec3};
 use ipc_types::Pose;
@@ -160,9 +162,28 @@ fn lod_study(gpu: &Gpu, args: &[String], frames: usize) {
             configs.push((format!("lod {lod}, {eyes}"), at(lod, stereo)));
         }
     }
+    // The governor's "drawn vertices only" at each coarser level: the deformation pass over that
+    // level's vertices alone.
+    let drawn_from = configs.len();
+    for k in 1..levels.len() {
+        configs.push((
+            format!("level {k}, drawn only"),
+            at(Lod::Level(k as u8), false),
+        ));
+    }
     let renderers: Vec<LungRenderer> = configs
         .iter()
-        .map(|(_, r)| LungRenderer::new(gpu, r, &lungs).expect("upload"))
+        .enumerate()
+        .map(|(i, (_, r))| {
+            let mut r = LungRenderer::new(gpu, r, &lungs).expect("upload");
+            if i >= drawn_from {
+                r.set_quality(renderer::governor::Quality {
+                    drawn_only: true,
+                    ..renderer::governor::Quality::FULL
+                });
+            }
+            r
+        })
         .collect();
     let far = |k: usize| {
         let mut s = state(40.0 * (k as f32 / frames as f32));
@@ -207,19 +228,27 @@ fn lod_study(gpu: &Gpu, args: &[String], frames: usize) {
             g
         );
     }
-    // The deformation alone (its compute pass, by timestamps): the floor no level goes under.
-    let deform_ms: Vec<f64> = (0..frames)
-        .filter_map(|k| renderers[0].time_deform(gpu, &far(k)))
-        .map(|ns| ns as f64 / 1e6)
-        .collect();
-    if !deform_ms.is_empty() {
-        println!(
-            "{:<24} {:>10} {:>14} {:>12.2}",
-            "deformation only",
-            "",
-            "",
-            median(deform_ms)
-        );
+    // The deformation alone (its compute pass, by timestamps): the floor no level goes under
+    // while every vertex is moved; and over the coarsest level's vertices alone.
+    let coarsest_drawn = (renderers.len() > drawn_from).then(|| renderers.len() - 1);
+    for (label, i) in [
+        ("deformation only", Some(0)),
+        ("  over the coarsest's", coarsest_drawn),
+    ] {
+        let Some(i) = i else { continue };
+        let deform_ms: Vec<f64> = (0..frames)
+            .filter_map(|k| renderers[i].time_deform(gpu, &far(k)))
+            .map(|ns| ns as f64 / 1e6)
+            .collect();
+        if !deform_ms.is_empty() {
+            println!(
+                "{:<24} {:>10} {:>14} {:>12.2}",
+                label,
+                renderers[i].vertices_moved(),
+                "",
+                median(deform_ms)
+            );
+        }
     }
     let n = levels.len();
     for (k, lod) in ["off", "auto"].iter().enumerate() {

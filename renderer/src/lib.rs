@@ -755,12 +755,16 @@ impl LungRenderer {
     /// Vertices the deformation pass moves each frame now: every vertex, or with the governor's
     /// "drawn vertices only" those of the level drawn.
     pub fn vertices_moved(&self) -> u32 {
-        let level = if self.drawn_only {
+        self.deform.moved_at(self.moved_level())
+    }
+
+    /// The draw level whose vertices alone the deformation moves now (0: every vertex).
+    fn moved_level(&self) -> usize {
+        if self.drawn_only {
             self.drawn_level()
         } else {
             0
-        };
-        self.deform.moved_at(level)
+        }
     }
 
     /// Draw from the next frame on at `quality` (the governor's change): its variant — built at
@@ -810,10 +814,12 @@ impl LungRenderer {
 
     /// GPU time of the deformation pass alone (the mode's dispatches and the normals) for `state`,
     /// from timestamp queries around that one compute pass; `None` without timestamps. For the
-    /// trade study: a frame's deformation cost apart from its drawing.
+    /// trade study: a frame's deformation cost apart from its drawing. The pass runs as the last
+    /// frame's did: over every vertex, or with "drawn vertices only" over the last frame's level's.
     pub fn time_deform(&self, gpu: &Gpu, state: &DrawState) -> Option<u64> {
         let t = self.timestamps.as_ref()?;
-        self.deform.set_lungs(
+        let moved = self.moved_level();
+        self.deform.set_lungs_at(
             &gpu.queue,
             &LungInputs {
                 scale: state.deform_scale,
@@ -822,19 +828,21 @@ impl LungRenderer {
                 hilum: state.hilum_mm,
                 coeffs: state.coeffs,
             },
+            moved,
         );
         let mut encoder = gpu
             .device
             .create_command_encoder(&wgpu::CommandEncoderDescriptor {
                 label: Some("lungdyn deform timing"),
             });
-        self.deform.encode(
+        self.deform.encode_at(
             &mut encoder,
             Some(wgpu::ComputePassTimestampWrites {
                 query_set: &t.set,
                 beginning_of_pass_write_index: Some(0),
                 end_of_pass_write_index: Some(1),
             }),
+            moved,
         );
         encoder.resolve_query_set(&t.set, 0..2, &t.resolve, 0);
         encoder.copy_buffer_to_buffer(&t.resolve, 0, &t.read, 0, 16);
@@ -890,12 +898,7 @@ impl LungRenderer {
             queue.write_buffer(buffer, 0, bytemuck::bytes_of(eye));
         }
         self.choose_lod(&eyes[..n], &state.offset_mm);
-        // The level whose vertices alone are moved (0: every vertex).
-        let moved = if self.drawn_only {
-            self.drawn_level()
-        } else {
-            0
-        };
+        let moved = self.moved_level();
         self.deform.set_lungs_at(
             queue,
             &LungInputs {
