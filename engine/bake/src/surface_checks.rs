@@ -1672,9 +1672,7 @@ mod tests {
 
     /// The built-in lungs at every cube subdivision from 2168 to 12 152 vertices (n = 19…45, both
     /// sides): their rounded inferior border spans a number of vertex rows that changes with the
-    /// resolution (`anatomy::border_round`), so each one is checked, not a few sizes. (Below 2k
-    /// the coarsest meshes can cross themselves: the right lung at n = 14, 1178 vertices, near
-    /// the anterior end of its inferior border.)
+    /// resolution (`anatomy::border_round`), so each one is checked, not a few sizes.
     #[test]
     #[cfg_attr(
         debug_assertions,
@@ -1682,6 +1680,16 @@ mod tests {
     )]
     fn every_generated_size_passes_the_surface_checks_at_each_subdivision_from_2k() {
         let sizes: Vec<usize> = (19..=45).map(|n| 6 * n * n + 2).collect();
+        every_size_passes_of(&[generate::Shape::Anatomical], &sizes);
+    }
+
+    /// The coarsest built-in lungs, every subdivision from 152 to 1946 vertices (n = 5…18, both
+    /// sides): the anterior border is widened to two columns of vertices there
+    /// (`anatomy::ridge_width`); before, the right lung at n = 14 (1178 vertices) crossed itself
+    /// where that border meets the inferior border.
+    #[test]
+    fn every_coarse_generated_size_passes_the_surface_checks() {
+        let sizes: Vec<usize> = (5..=18).map(|n| 6 * n * n + 2).collect();
         every_size_passes_of(&[generate::Shape::Anatomical], &sizes);
     }
 

@@ -155,8 +155,8 @@ pub fn lung_with(side: Side, vertices: usize, shape: &LungShape) -> Result<TriMe
         mediastinum_half_mm: shape.mediastinum_half_mm,
         apex_z_mm: APEX_Z_MM,
     };
-    let round = border_round(subdivision_for(vertices));
-    build(side, vertices, placement, |s| shape_point(s, shape, round))
+    let detail = Detail::at(subdivision_for(vertices));
+    build(side, vertices, placement, |s| shape_point(s, shape, detail))
 }
 
 /// A smooth periodic bump in the azimuth: 1 at `phi0`, `≈ exp(−Δφ²/2w²)` near it (von Mises).
@@ -190,7 +190,7 @@ const WALL_SHARE: f64 = 0.74;
 /// Horizontal radius of the section at azimuth `phi` and wall parameter `a` (0 apex, 1 inferior
 /// border), before the volume scaling: a four-quadrant ellipse (C¹) shaped by the module doc's
 /// features. Every factor is positive, so each horizontal section stays star-shaped about the axis.
-fn section_radius(phi: f64, a: f64, shape: &LungShape) -> f64 {
+fn section_radius(phi: f64, a: f64, shape: &LungShape, ridge: f64) -> f64 {
     let (s, c) = phi.sin_cos();
     let x = if c >= 0.0 {
         shape.lateral_mm
@@ -210,7 +210,7 @@ fn section_radius(phi: f64, a: f64, shape: &LungShape) -> f64 {
         + shape.anterior_border
             * below_apex
             * (1.0 - notch)
-            * around(phi, azimuth::ANTERIOR_BORDER, 0.2);
+            * around(phi, azimuth::ANTERIOR_BORDER, ridge);
     let notch_cut = 1.0 - 0.6 * notch * around(phi, azimuth::ANTERIOR_BORDER + 0.2, 0.4);
     let lingula = 1.0
         + shape.lingula * band(a, 0.93, 0.08) * around(phi, azimuth::ANTERIOR_BORDER - 0.05, 0.22);
@@ -240,9 +240,10 @@ fn rim_drop(phi: f64, shape: &LungShape) -> f64 {
 /// the base a graph over radius, and the base stays inside the wall, whose radius never shrinks
 /// downwards faster than the paraboloid — so the surface is an embedded sphere: closed, manifold,
 /// not self-intersecting. The rounded border lies inside the triangle of the wall's point, the
-/// corner and the base's point, so it keeps that; `round` is its half-width in the polar fraction
-/// ([`border_round`]).
-fn shape_point(s: DVec3, shape: &LungShape, round: f64) -> DVec3 {
+/// corner and the base's point, so it keeps that; `detail` holds its half-width in the polar
+/// fraction and the anterior border's width, as the resolution allows ([`Detail::at`]).
+fn shape_point(s: DVec3, shape: &LungShape, detail: Detail) -> DVec3 {
+    let (round, ridge) = (detail.round, detail.ridge);
     let u = s.z.clamp(-1.0, 1.0).acos() / std::f64::consts::PI;
     let phi = s.y.atan2(s.x);
     let (sin_phi, cos_phi) = phi.sin_cos();
@@ -252,18 +253,53 @@ fn shape_point(s: DVec3, shape: &LungShape, round: f64) -> DVec3 {
     // as a saw-tooth edge in every picture, at every resolution. The border stays sharp to the
     // eye (4–7 mm each side from 10k vertices up, 10 mm on the coarsest meshes, of a 230 mm lung).
     let (radius, z) = if (u - WALL_SHARE).abs() < round {
-        let a = meridian(WALL_SHARE - round, phi, shape);
-        let corner = meridian(WALL_SHARE, phi, shape);
-        let b = meridian(WALL_SHARE + round, phi, shape);
+        let a = meridian(WALL_SHARE - round, phi, shape, ridge);
+        let corner = meridian(WALL_SHARE, phi, shape, ridge);
+        let b = meridian(WALL_SHARE + round, phi, shape, ridge);
         let t = (u - (WALL_SHARE - round)) / (2.0 * round);
         let m =
             |p: f64, q: f64, r: f64| (1.0 - t).powi(2) * p + 2.0 * t * (1.0 - t) * q + t * t * r;
         (m(a.0, corner.0, b.0), m(a.1, corner.1, b.1))
     } else {
-        meridian(u, phi, shape)
+        meridian(u, phi, shape, ridge)
     };
     DVec3::new(radius * cos_phi, radius * sin_phi, z)
 }
+
+/// What the resolution changes in the shape: features narrower than a few rows or columns of
+/// vertices are widened to them, so a coarse mesh samples them instead of folding over them.
+#[derive(Debug, Clone, Copy)]
+struct Detail {
+    /// The rounded inferior border's half-width, a fraction of the polar angle ([`border_round`]).
+    round: f64,
+    /// The anterior border's width in azimuth, rad ([`ridge_width`]).
+    ridge: f64,
+}
+
+impl Detail {
+    /// For a spherified cube of `n` subdivisions.
+    fn at(n: usize) -> Self {
+        Self {
+            round: border_round(n),
+            ridge: ridge_width(n),
+        }
+    }
+}
+
+/// The anterior border's width in azimuth (the von Mises width of its bump) for a spherified cube
+/// of `n` subdivisions: [`RIDGE_WIDTH`], and never under [`RIDGE_COLUMNS`] columns of vertices (a
+/// side face's n columns span a quarter turn). At 1178 vertices (n = 14) the 0.2 rad ridge spanned
+/// under two columns and the right lung's surface crossed itself where it meets the inferior
+/// border; only meshes under ≈ 1400 vertices (n ≤ 15) are widened.
+fn ridge_width(n: usize) -> f64 {
+    (RIDGE_COLUMNS * std::f64::consts::FRAC_PI_2 / n.max(1) as f64).max(RIDGE_WIDTH)
+}
+
+/// The anterior border's width in azimuth, rad: a thin, sharp border.
+const RIDGE_WIDTH: f64 = 0.2;
+
+/// Columns of vertices the anterior border spans, at least.
+const RIDGE_COLUMNS: f64 = 2.0;
 
 /// Half the stretch of the sphere's polar angle (as a fraction of π) over which the inferior
 /// border is rounded, for a spherified cube of `n` subdivisions: at least [`BORDER_ROUND_MIN`]
@@ -290,7 +326,7 @@ const BORDER_ROWS: f64 = 1.5;
 
 /// The meridian at polar fraction `u` and azimuth `phi`: (radius, height) in mm, the border a
 /// sharp corner at `u` = [`WALL_SHARE`] ([`shape_point`] rounds it).
-fn meridian(u: f64, phi: f64, shape: &LungShape) -> (f64, f64) {
+fn meridian(u: f64, phi: f64, shape: &LungShape, ridge: f64) -> (f64, f64) {
     let h = shape.height_mm;
     let z_rim = -h * rim_drop(phi, shape);
     let z_apex = h * (1.0 - shape.posterior_recess);
@@ -300,13 +336,13 @@ fn meridian(u: f64, phi: f64, shape: &LungShape) -> (f64, f64) {
         let dome = (1.0 - (1.0 - a).powi(4)).sqrt();
         let taper = shape.apex_taper + (1.0 - shape.apex_taper) * smoothstep(0.0, 0.7, a);
         (
-            dome * taper * section_radius(phi, a, shape),
+            dome * taper * section_radius(phi, a, shape, ridge),
             z_apex + a * (z_rim - z_apex),
         )
     } else {
         let b = (u - WALL_SHARE) / (1.0 - WALL_SHARE);
         let z_top = h * shape.diaphragm_dome;
-        let rim = section_radius(phi, 1.0, shape);
+        let rim = section_radius(phi, 1.0, shape, ridge);
         (
             rim * (1.0 - b),
             z_rim + (z_top - z_rim) * (1.0 - (1.0 - b).powi(2)),
