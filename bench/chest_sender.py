@@ -12,6 +12,10 @@ a STRING `mm=VALUE` from the device `Resp`. Connects when the server listens (th
     lungdyn demo --tracker igtl-server:127.0.0.1:18944 --breathing tool:Chest --seconds 40
     lungdyn demo --tracker igtl-server:127.0.0.1:18944 --breathing igtl:Resp --seconds 40
 
+A third argument, `--mount DEG`, mounts the reference off the patient's frame: the chest then rises
+along the reference's anterior axis turned DEG degrees about its X axis (towards its superior axis),
+as a marker block taped at an angle sees it — what `--breathing tool:Chest:auto` learns.
+
 (target/pyenv is made by `./run setup test`; any Python with pyigtl and numpy will do.)
 """
 import math
@@ -48,9 +52,12 @@ def matrix(r, p):
 
 
 def main():
-    if len(sys.argv) != 3:
-        sys.exit("usage: chest_sender.py PORT SECONDS")
+    if len(sys.argv) not in (3, 5) or (len(sys.argv) == 5 and sys.argv[3] != "--mount"):
+        sys.exit("usage: chest_sender.py PORT SECONDS [--mount DEG]")
     port, seconds = int(sys.argv[1]), float(sys.argv[2])
+    mount = math.radians(float(sys.argv[4])) if len(sys.argv) == 5 else 0.0
+    # The breath's direction in the reference's frame: anterior, turned by the mount.
+    up = np.array([0.0, math.cos(mount), math.sin(mount)])
     waited = time.time()
     while True:
         try:
@@ -72,7 +79,7 @@ def main():
     while time.time() - start < seconds:
         t = time.time() - start
         at = np.array([(0.05 * k) % 40.0, 0.0, -1200.0])
-        chest = at + turn @ np.array([-20.0, 5.0 + rise_mm(t), 60.0])
+        chest = at + turn @ (np.array([-20.0, 5.0, 60.0]) + rise_mm(t) * up)
         for name, m in (("Patient", matrix(turn, at)),
                         ("HMD", matrix(np.eye(3), [0.0, 100.0, -700.0])),
                         ("Chest", matrix(turn, chest))):

@@ -129,7 +129,8 @@ pub struct DemoArgs {
     /// amplitude_mm/volume_ml, or a ventilator recording, replayed at its own rate), udp:[BIND:]PORT
     /// (a live amplitude stream, one `mm=VALUE`, `ml=VALUE` or `au=VALUE` per datagram; senders
     /// off loopback only from the tracker's allow-list), tool:NAME (a tracked tool on the chest:
-    /// its rise along the patient reference's anterior axis, with an OpenIGTLink or NDI --tracker),
+    /// its rise along the patient reference's anterior axis, with an OpenIGTLink or NDI --tracker;
+    /// tool:NAME:auto along the axis it moves on, learnt from its first 12 s),
     /// igtl:NAME (an amplitude from the OpenIGTLink device NAME on an OpenIGTLink --tracker: SENSOR
     /// in mm, ml or no unit, or STRING `mm=VALUE`), or recorded (the signal a --tracker replay:FILE recording was made with, played bit for
     /// bit). The HUD
@@ -1962,7 +1963,7 @@ fn breathing_override(text: &str) -> anyhow::Result<Option<String>> {
         // Bound by the bridge (a taken port fails it at start-up, named).
         SignalSpec::Udp(addr) => Ok(Some(format!("udp:{addr}"))),
         // Tracked by the bridge beside the patient reference (its name checked there).
-        SignalSpec::Tool(name) => Ok(Some(format!("tool:{name}"))),
+        SignalSpec::Tool(name, axis) => Ok(Some(format!("tool:{name}{}", axis.suffix()))),
         // Read by the bridge from its OpenIGTLink link (the source checked with the tracker's).
         SignalSpec::Igtl(name) => Ok(Some(format!("igtl:{name}"))),
         SignalSpec::Trace(path) => {

@@ -55,8 +55,8 @@ pub struct BreathingScene {
     pub source: BreathSource,
     /// The signal's source at the bridge: `trace:FILE` (a Varian RPM `.vxp`, a CSV trace, or a
     /// ventilator recording as `lungdyn pv recording` reads it, replayed at its own rate from the
-    /// run's start), `udp:[BIND:]PORT` (a live amplitude stream), `tool:NAME` (a tracked tool on
-    /// the chest), `igtl:NAME` (an amplitude from an OpenIGTLink device) or `recorded` (the signal
+    /// run's start), `udp:[BIND:]PORT` (a live amplitude stream), `tool:NAME[:auto]` (a tracked tool
+    /// on the chest, along the reference's anterior axis or the axis it moves on), `igtl:NAME` (an amplitude from an OpenIGTLink device) or `recorded` (the signal
     /// a replayed tracker recording carries); empty: none. `lungdyn demo --breathing` overrides it.
     pub signal: String,
     /// The predictor's name (`lungdyn breathing check --predictor` takes the same).

@@ -287,6 +287,9 @@ impl Assembler {
             Some(s) => {
                 s.fill(now_ns, &view, out);
                 self.stats.signal = Some(s.counts());
+                if let crate::signal::SignalSource::Tool(t) = s {
+                    self.stats.chest_axis = t.learnt();
+                }
             }
             None => *out = Default::default(),
         }

@@ -152,7 +152,8 @@ pub struct SourceArgs {
     /// datagram, stamped on arrival; 127.0.0.1 unless a BIND is given, senders off loopback only
     /// from --igtl-allow / [tracker] allow), tool:NAME (a tracked tool on the chest, by its name at
     /// the source: its rise along the patient reference's anterior axis, mm, one sample per
-    /// measurement), igtl:NAME (an amplitude from the OpenIGTLink device NAME on an igtl: or
+    /// measurement; tool:NAME:auto along the axis the tool moves on, learnt from its first 12 s,
+    /// for a reference not mounted on the patient's RAS frame), igtl:NAME (an amplitude from the OpenIGTLink device NAME on an igtl: or
     /// igtl-server: source: SENSOR in a length, volume or no unit, or STRING `mm=VALUE`), recorded (the signal a --source replay:FILE recording was made with; --record
     /// writes the signal of a run that has one) or none. Default: the scene's [breathing] signal,
     /// else none.
@@ -276,7 +277,7 @@ impl SourceArgs {
         let mut slots = [None; MAX_TOOLS];
         slots[ipc_types::TOOL_PATIENT] = Some(ToolName::new(&self.patient_tool)?);
         slots[ipc_types::TOOL_HMD] = Some(ToolName::new(&self.hmd_tool)?);
-        if let signal::SignalSpec::Tool(name) = &signal {
+        if let signal::SignalSpec::Tool(name, _) = &signal {
             if name.eq_ignore_ascii_case(&self.patient_tool)
                 || name.eq_ignore_ascii_case(&self.hmd_tool)
             {
@@ -333,7 +334,7 @@ impl SourceArgs {
             && matches!(
                 signal,
                 signal::SignalSpec::Udp(_)
-                    | signal::SignalSpec::Tool(_)
+                    | signal::SignalSpec::Tool(..)
                     | signal::SignalSpec::Igtl(_)
             )
         {
@@ -425,7 +426,7 @@ pub fn check_recorded_signal(
         ))),
         // A replay's tools are those it was recorded with: the chest tool's signal is recorded
         // with the run (`--record` writes it) and played as `recorded`.
-        (signal::SignalSpec::Tool(name), Some(path)) => Err(BridgeError::Option(format!(
+        (signal::SignalSpec::Tool(name, _), Some(path)) => Err(BridgeError::Option(format!(
             "--breathing tool:{name}: {} is a replayed recording, whose tools and signal are \
              those it was recorded with; record a run with --breathing tool:{name} and replay it \
              with --breathing recorded",
@@ -453,7 +454,7 @@ pub fn check_recorded_signal(
                 match signal {
                     signal::SignalSpec::Trace(t) => format!("trace:{}", t.display()),
                     signal::SignalSpec::Udp(a) => format!("udp:{a}"),
-                    signal::SignalSpec::Tool(n) => format!("tool:{n}"),
+                    signal::SignalSpec::Tool(n, a) => format!("tool:{n}{}", a.suffix()),
                     _ => String::new(),
                 },
                 path.display()
@@ -485,10 +486,11 @@ pub fn open(args: &SourceArgs) -> Result<Opened, BridgeError> {
     if let signal::SignalSpec::Igtl(name) = &r.signal {
         assembler.set_signal(signal_igtl::IgtlSignal::new(ToolName::new(name)?));
     }
-    if let signal::SignalSpec::Tool(name) = &r.signal {
+    if let signal::SignalSpec::Tool(name, axis) = &r.signal {
         assembler.set_signal(signal_tool::ToolSignal::new(
             name,
             assembler.config().rate_hz,
+            *axis,
         ));
     }
     let recorder = match &args.record {

@@ -29,8 +29,9 @@ pub enum SignalSpec {
     Recorded,
     /// A live amplitude stream, one sample per UDP datagram ([`crate::signal_udp`]).
     Udp(std::net::SocketAddr),
-    /// A tracked tool on the chest, by its name at the source ([`crate::signal_tool`]).
-    Tool(String),
+    /// A tracked tool on the chest, by its name at the source, and the axis it is read along
+    /// ([`crate::signal_tool`]).
+    Tool(String, crate::signal_tool::AxisChoice),
     /// An amplitude from an OpenIGTLink device, by its name ([`crate::signal_igtl`]).
     Igtl(String),
 }
@@ -67,21 +68,39 @@ impl SignalSpec {
                         )
                     })
             }
-            Some((kind, name)) if kind.eq_ignore_ascii_case("tool") => {
-                crate::sample::ToolName::new(name.trim())
-                    .map(|_| SignalSpec::Tool(name.trim().to_string()))
+            Some((kind, rest)) if kind.eq_ignore_ascii_case("tool") => {
+                use crate::signal_tool::AxisChoice;
+                let rest = rest.trim();
+                let (name, axis) = match rest.rsplit_once(':') {
+                    Some((n, a)) if a.trim().eq_ignore_ascii_case("auto") => {
+                        (n.trim(), AxisChoice::Auto)
+                    }
+                    Some((n, a)) if a.trim().eq_ignore_ascii_case("anterior") => {
+                        (n.trim(), AxisChoice::Anterior)
+                    }
+                    Some((_, a)) => {
+                        return Err(format!(
+                            "--breathing {text:?}: {a:?} is not an axis; tool:NAME reads the chest \
+                             tool along the patient reference's anterior axis, tool:NAME:auto along \
+                             the axis it moves on (learnt from its first breaths)"
+                        ))
+                    }
+                    None => (rest, AxisChoice::Anterior),
+                };
+                crate::sample::ToolName::new(name)
+                    .map(|_| SignalSpec::Tool(name.to_string(), axis))
                     .map_err(|e| {
                         format!(
                             "--breathing {text:?}: tool: needs the chest tool's name at the source \
-                             (tool:Chest): {e}"
+                             (tool:Chest, or tool:Chest:auto): {e}"
                         )
                     })
             }
             _ => Err(format!(
                 "--breathing {text:?}: not a signal source; use trace:FILE (a Varian RPM .vxp, a CSV \
                  trace, or a ventilator recording), udp:[BIND:]PORT (a live amplitude stream, one \
-                 `mm=VALUE` per datagram), tool:NAME (a tracked tool on the chest, along the patient \
-                 reference's anterior axis), igtl:NAME (an amplitude from the OpenIGTLink device NAME: \
+                 `mm=VALUE` per datagram), tool:NAME[:auto] (a tracked tool on the chest, along the \
+                 patient reference's anterior axis, or the axis it moves on), igtl:NAME (an amplitude from the OpenIGTLink device NAME: \
                  SENSOR in mm, ml or no unit, or STRING `mm=VALUE`), recorded (the signal a --source replay:FILE recording \
                  carries) or none"
             )),
@@ -104,6 +123,8 @@ pub struct SignalCounts {
     pub refused_senders: u64,
     /// A live stream's datagrams that were not one sample in the stream's unit.
     pub malformed: u64,
+    /// A chest tool's valid measurements not sent while its axis was learnt (`tool:NAME:auto`).
+    pub learning: u64,
 }
 
 /// The bridge's respiratory signal source.
@@ -145,6 +166,7 @@ impl SignalSource {
             SignalSource::Tool(t) => SignalCounts {
                 sent: t.sent,
                 invalid: t.invalid,
+                learning: t.learning,
                 ..Default::default()
             },
         }
@@ -158,6 +180,7 @@ impl SignalSource {
             full_blocks: c.full_blocks,
             refused_senders: c.refused_senders,
             malformed: c.malformed,
+            learning: 0,
         }
     }
 
@@ -396,6 +419,26 @@ mod tests {
         assert!(SignalSpec::parse("trace:")
             .unwrap_err()
             .contains("needs a file"));
+        use crate::signal_tool::AxisChoice;
+        for (text, name, axis) in [
+            ("tool:Chest", "Chest", AxisChoice::Anterior),
+            ("tool:Chest:anterior", "Chest", AxisChoice::Anterior),
+            ("tool: Chest : AUTO ", "Chest", AxisChoice::Auto),
+        ] {
+            assert_eq!(
+                SignalSpec::parse(text).unwrap(),
+                SignalSpec::Tool(name.into(), axis),
+                "{text}"
+            );
+        }
+        let e = SignalSpec::parse("tool:Chest:sideways").unwrap_err();
+        assert!(
+            e.contains("not an axis") && e.contains("tool:NAME:auto"),
+            "{e}"
+        );
+        assert!(SignalSpec::parse("tool::auto")
+            .unwrap_err()
+            .contains("tool:Chest:auto"));
     }
 
     #[test]

@@ -159,6 +159,8 @@ pub struct Stats {
     pub frames_digest: u64,
     /// The respiratory signal's counts, when there is one.
     pub signal: Option<crate::signal::SignalCounts>,
+    /// The chest tool's breathing axis learnt from its motion (`tool:NAME:auto`), once it is.
+    pub chest_axis: Option<crate::signal_tool::LearntAxis>,
 }
 
 /// FNV-1a 64 offset basis.
@@ -212,6 +214,7 @@ impl Stats {
                 .expect("static histogram bounds are valid"),
             frames_digest: FNV_START,
             signal: None,
+            chest_axis: None,
         }
     }
 
@@ -363,7 +366,9 @@ impl Stats {
                 "full_blocks": c.full_blocks,
                 "refused_senders": c.refused_senders,
                 "malformed": c.malformed,
+                "withheld_while_learning_axis": c.learning,
             })),
+            "chest_axis": self.chest_axis,
         })
     }
 
@@ -451,6 +456,15 @@ impl Stats {
                 "  breathing signal: {} samples sent ({} flagged invalid), {} withheld by the cut, {} frames with a full block\n",
                 c.sent, c.invalid, c.cut, c.full_blocks
             );
+            if c.learning > 0 {
+                s += &format!(
+                    "  breathing signal: {} chest-tool measurement(s) withheld while its axis was learnt\n",
+                    c.learning
+                );
+            }
+            if let Some(a) = &self.chest_axis {
+                s += &format!("  chest tool's {}\n", a.describe());
+            }
             if c.refused_senders + c.malformed > 0 {
                 s += &format!(
                     "  breathing signal refused: {} datagram(s) from hosts not allowed, {} not one sample in the stream's unit\n",
