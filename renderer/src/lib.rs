@@ -758,6 +758,24 @@ impl LungRenderer {
         self.deform.moved_at(self.moved_level())
     }
 
+    /// Set the deformation pass's inputs for `state` at the level it moves now; that level
+    /// (0: every vertex), for its encoding.
+    fn set_lungs(&self, queue: &wgpu::Queue, state: &DrawState) -> usize {
+        let moved = self.moved_level();
+        self.deform.set_lungs_at(
+            queue,
+            &LungInputs {
+                scale: state.deform_scale,
+                offset: state.offset_mm,
+                collapse: state.collapse,
+                hilum: state.hilum_mm,
+                coeffs: state.coeffs,
+            },
+            moved,
+        );
+        moved
+    }
+
     /// The draw level whose vertices alone the deformation moves now (0: every vertex).
     fn moved_level(&self) -> usize {
         if self.drawn_only {
@@ -818,18 +836,7 @@ impl LungRenderer {
     /// frame's did: over every vertex, or with "drawn vertices only" over the last frame's level's.
     pub fn time_deform(&self, gpu: &Gpu, state: &DrawState) -> Option<u64> {
         let t = self.timestamps.as_ref()?;
-        let moved = self.moved_level();
-        self.deform.set_lungs_at(
-            &gpu.queue,
-            &LungInputs {
-                scale: state.deform_scale,
-                offset: state.offset_mm,
-                collapse: state.collapse,
-                hilum: state.hilum_mm,
-                coeffs: state.coeffs,
-            },
-            moved,
-        );
+        let moved = self.set_lungs(&gpu.queue, state);
         let mut encoder = gpu
             .device
             .create_command_encoder(&wgpu::CommandEncoderDescriptor {
@@ -898,18 +905,7 @@ impl LungRenderer {
             queue.write_buffer(buffer, 0, bytemuck::bytes_of(eye));
         }
         self.choose_lod(&eyes[..n], &state.offset_mm);
-        let moved = self.moved_level();
-        self.deform.set_lungs_at(
-            queue,
-            &LungInputs {
-                scale: state.deform_scale,
-                offset: state.offset_mm,
-                collapse: state.collapse,
-                hilum: state.hilum_mm,
-                coeffs: state.coeffs,
-            },
-            moved,
-        );
+        let moved = self.set_lungs(queue, state);
         for t in &self.tumours {
             let k = t.slot;
             t.update(

@@ -940,27 +940,22 @@ impl DeformPass {
             label: Some("lungdyn deform"),
             timestamp_writes: timestamps,
         });
-        let every = self.count.div_ceil(WORKGROUP);
         let listed = self.level(level);
-        for (k, d) in self.dispatches.iter().enumerate() {
-            let group = listed.and_then(|l| l.groups[k].as_ref());
+        // A dispatch over the level's list where it has one for it, else over every vertex.
+        let mut run = |d: &Dispatch, group: Option<&wgpu::BindGroup>| {
+            let n = match (group, listed) {
+                (Some(_), Some(l)) => l.count,
+                _ => self.count,
+            };
             pass.set_pipeline(&d.pipeline);
             pass.set_bind_group(0, group.unwrap_or(&d.group), &[]);
-            let n = match (group, listed) {
-                (Some(_), Some(l)) => l.count.div_ceil(WORKGROUP),
-                _ => every,
-            };
-            pass.dispatch_workgroups(n, 1, 1);
+            pass.dispatch_workgroups(n.div_ceil(WORKGROUP), 1, 1);
+        };
+        for (k, d) in self.dispatches.iter().enumerate() {
+            run(d, listed.and_then(|l| l.groups[k].as_ref()));
         }
         if let Some(d) = &self.normals_pass {
-            let group = listed.and_then(|l| l.normals.as_ref());
-            pass.set_pipeline(&d.pipeline);
-            pass.set_bind_group(0, group.unwrap_or(&d.group), &[]);
-            let n = match (group, listed) {
-                (Some(_), Some(l)) => l.count.div_ceil(WORKGROUP),
-                _ => every,
-            };
-            pass.dispatch_workgroups(n, 1, 1);
+            run(d, listed.and_then(|l| l.normals.as_ref()));
         }
     }
 }
