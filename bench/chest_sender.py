@@ -55,7 +55,15 @@ def main():
     if len(sys.argv) not in (3, 5) or (len(sys.argv) == 5 and sys.argv[3] != "--mount"):
         sys.exit("usage: chest_sender.py PORT SECONDS [--mount DEG]")
     port, seconds = int(sys.argv[1]), float(sys.argv[2])
-    mount = math.radians(float(sys.argv[4])) if len(sys.argv) == 5 else 0.0
+    mount = 0.0
+    if len(sys.argv) == 5:
+        try:
+            mount = float(sys.argv[4])
+        except ValueError:
+            sys.exit(f"--mount {sys.argv[4]!r}: not a number of degrees")
+        if not -180.0 <= mount <= 180.0:
+            sys.exit(f"--mount {sys.argv[4]}: degrees from -180 to 180")
+        mount = math.radians(mount)
     # The breath's direction in the reference's frame: anterior, turned by the mount.
     up = np.array([0.0, math.cos(mount), math.sin(mount)])
     waited = time.time()

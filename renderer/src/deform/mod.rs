@@ -6,7 +6,7 @@
 use wgpu::util::DeviceExt;
 
 use ipc_types::MAX_COEFFS;
-use lung_model::deform::modes::{CpuLung, DeformMode, ModeData, ModeLoadError};
+use lung_model::deform::modes::{CpuLung, DeformMode, ModeData, ModeLoadError, VertexTriangles};
 use lung_model::deform::LungModel;
 use lung_model::kernel::KernelFile;
 use lung_model::mesh::Side;
@@ -189,11 +189,11 @@ struct LevelPass {
     normals: Option<wgpu::BindGroup>,
 }
 
-/// What the normals pass reads for a triangle list: per vertex (listed, or every vertex in order)
-/// its incident triangles as a CSR, the triangles' global corners, the rest incident areas.
+/// What the normals pass reads for a draw level: the vertices its triangles use, per such vertex
+/// its incident triangles of the level as a CSR, and its incident area at rest.
 #[derive(Debug, Clone, Default, PartialEq)]
 pub struct Incidence {
-    /// The vertices, global indices ascending (a draw level's; empty for every vertex).
+    /// The vertices, global indices ascending.
     pub vertices: Vec<u32>,
     /// Per listed vertex, its range in `tris` (one more entry than vertices).
     pub ptr: Vec<u32>,
@@ -218,31 +218,18 @@ impl Incidence {
                 vertices.push(i as u32);
             }
         }
-        let mut ptr = vec![0u32; vertices.len() + 1];
-        for &i in indices {
-            ptr[slot[i as usize] as usize + 1] += 1;
-        }
-        for k in 1..ptr.len() {
-            ptr[k] += ptr[k - 1];
-        }
-        let mut fill = ptr.clone();
-        let mut tris = vec![0u32; indices.len()];
-        let mut rest_area = vec![0.0f32; vertices.len()];
-        for (t, c) in indices.chunks_exact(3).enumerate() {
-            let [a, b, d] = [c[0], c[1], c[2]].map(|i| glam::Vec3::from(rest[i as usize]));
-            let area = 0.5 * (b - a).cross(d - a).length();
-            for &i in c {
-                let v = slot[i as usize] as usize;
-                tris[fill[v] as usize] = t as u32;
-                fill[v] += 1;
-                rest_area[v] += area;
-            }
-        }
+        // The level over its own vertices: the CSR and the areas as the full mesh's are built.
+        let local: Vec<[u32; 3]> = indices
+            .chunks_exact(3)
+            .map(|c| [c[0], c[1], c[2]].map(|i| slot[i as usize]))
+            .collect();
+        let at_rest: Vec<[f32; 3]> = vertices.iter().map(|&i| rest[i as usize]).collect();
+        let VertexTriangles { ptr, tris } = VertexTriangles::of(&local, vertices.len());
         Self {
+            rest_area: incident_areas(&at_rest, &local),
             vertices,
             ptr,
             tris,
-            rest_area,
         }
     }
 }
@@ -361,8 +348,8 @@ impl Maker<'_> {
 }
 
 /// The buffers every dispatch binds: the parameters (0), the rest positions (1), the deformed
-/// positions (3), and a placeholder for a draw level's vertex list ([`LISTED`]; unread while the
-/// pass moves every vertex).
+/// positions (3), and an empty vertex list bound at [`LISTED`] (the shader reads a list only when
+/// the frame moves a draw level's vertices, with that level's list bound instead).
 struct Shared {
     params: wgpu::Buffer,
     base: wgpu::Buffer,
