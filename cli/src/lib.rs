@@ -23,7 +23,7 @@ pub mod register_cmd;
 pub mod tracker_cmd;
 
 pub use lungdyn_launcher::{
-    breathing_check, breathing_follow, demo, doctor, export, faults, input_args, install,
-    instances, latency, launch, outputs, plot, prepare, record, scene_check, scene_event, slicer,
-    stats, strip, supervise, tradeoff,
+    breathing_check, breathing_follow, breathing_sites, demo, doctor, export, faults, input_args,
+    install, instances, latency, launch, outputs, plot, prepare, record, scene_check, scene_event,
+    slicer, stats, strip, supervise, tradeoff,
 };

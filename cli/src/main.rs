@@ -171,6 +171,11 @@ enum BreathingCommand {
     /// without prediction, end-inspiration lag, breaths followed, the latency measured; a CSV of
     /// every frame (--frames-out), a signal loss (--drop-at/--drop-for), a plot (--plot).
     Follow(lungdyn::breathing_follow::FollowArgs),
+    /// How remote sites of a shared session follow a live patient: a source engine follows the
+    /// recording as its live signal, a site engine takes its control states a network delay late
+    /// and plays the patient's breath they carry; per delay, the site's volume against the
+    /// source's (RMS, % of tidal), beside a site without the patient's breath, and the lag.
+    Sites(lungdyn::breathing_sites::SitesArgs),
 }
 
 #[derive(Subcommand)]
@@ -360,6 +365,7 @@ fn main() -> std::process::ExitCode {
         }),
         Command::Tracker(TrackerCommand::Predict(args)) => lungdyn::tracker_cmd::predict(&args).and_then(|v| emit(args.json, &v, lungdyn::tracker_cmd::predict_text)),
         Command::Breathing(BreathingCommand::Check(args)) => lungdyn::breathing_check::check(&args).and_then(|r| emit(args.json, &r, lungdyn::breathing_check::check_text)),
+        Command::Breathing(BreathingCommand::Sites(args)) => lungdyn::breathing_sites::sites(&args).and_then(|r| emit(args.json, &r, lungdyn::breathing_sites::sites_text)),
         Command::Breathing(BreathingCommand::Follow(args)) => lungdyn::breathing_follow::follow(&args).and_then(|r| emit(args.json, &r, lungdyn::breathing_follow::follow_text)),
         Command::Register(args) => lungdyn::register_cmd::run(&args).and_then(|v| emit(args.json, &v, lungdyn::register_cmd::text)),
         Command::Hmd(HmdCommand::Check(args)) => lungdyn::register_cmd::hmd(&args).and_then(|v| emit(args.json, &v, lungdyn::register_cmd::hmd_text)),

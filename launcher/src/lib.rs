@@ -19,6 +19,7 @@
 
 pub mod breathing_check;
 pub mod breathing_follow;
+pub mod breathing_sites;
 pub mod demo;
 pub mod doctor;
 pub mod export;

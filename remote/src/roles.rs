@@ -802,9 +802,29 @@ pub fn join(args: &JoinArgs) -> Result<(), RemoteError> {
         .ok_or_else(|| RemoteError::Usage("the site's runner was taken".into()))?;
     let mut first = true;
     let mut rate_word = "unknown";
+    // Whether the site plays the source's patient's breath (a source following a live signal).
+    let mut patient = false;
+    let (mut patient_breaths, mut span) = (0, 0);
     while !transport::stop::requested() && until.is_none_or(|t| now_ns() < t) {
         let now = now_ns();
         if runner.poll(now)?.is_some() {
+            let live = runner.core().remote_live().map(|l| l.breaths());
+            if live.is_some() != patient {
+                patient = live.is_some();
+                patient_breaths += std::mem::take(&mut span);
+                eprintln!(
+                    "remote join[{}]: {}",
+                    instance.name(),
+                    if patient {
+                        "breathing with the source's patient (the source follows a live \
+                         respiratory signal): each breath plays the patient's previous one from \
+                         the patient's last turn"
+                    } else {
+                        "the source's model breathes (its patient's signal is calibrating or lost)"
+                    }
+                );
+            }
+            span = live.unwrap_or(span);
             if first {
                 first = false;
                 eprintln!(
@@ -833,6 +853,14 @@ pub fn join(args: &JoinArgs) -> Result<(), RemoteError> {
         std::thread::sleep(Duration::from_nanos(wake as u64));
     }
     say_join_counts(&instance, &site, &net);
+    patient_breaths += span;
+    if patient_breaths > 0 {
+        eprintln!(
+            "remote join[{}]: {patient_breaths} of the patient's breaths taken from the source \
+             (`lungdyn breathing sites FILE` measures how far a site strays at each network delay)",
+            instance.name()
+        );
+    }
     // A site that never breathed the source's breath did not do its job: say why, exit non-zero.
     let c = &site.counts;
     let applied = c.applied.load(Ordering::Relaxed);

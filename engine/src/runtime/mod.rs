@@ -44,6 +44,7 @@ pub mod disease;
 pub mod process;
 pub mod remote;
 pub mod signal;
+pub mod sites;
 pub use process::run;
 
 /// What the engine needs of one lung's geometry: its kernel's identity, volume cubic, and for the
@@ -566,6 +567,8 @@ pub struct EngineCore {
     remote_spent: Option<remote::RemotePending>,
     /// The patient's signal, when the scene breathes with it (`[breathing] source = "signal"`).
     signal: Option<signal::SignalDrive>,
+    /// The patient's breath a remote source follows (a site's engine, issue 35): played each tick.
+    remote_live: Option<remote::RemoteLive>,
     counts: StageCounts,
 }
 
@@ -815,6 +818,7 @@ impl EngineCore {
             remote_pending: None,
             remote_spent: None,
             signal,
+            remote_live: None,
             counts,
         })
     }
@@ -878,6 +882,9 @@ impl EngineCore {
         if let Some(drive) = &mut self.signal {
             state |= drive.tick(tick, input, &mut self.lungs);
             out.signal = drive.wire();
+        }
+        if let Some(live) = &mut self.remote_live {
+            state |= live.tick(tick, &mut self.lungs);
         }
         if self.remote_pending.as_ref().is_some_and(|p| tick >= p.tick) {
             if let Some(mut p) = self.remote_pending.take() {

@@ -207,6 +207,8 @@ const WAITING_EVENTS: usize = 2 * super::disease::MAX_QUEUED_ACTIONS;
 struct StatePublisher {
     starts: [u64; ipc_types::NUM_LUNGS],
     pending: Option<u64>,
+    /// [`EngineCore::live_generation`] last published (the patient's breath, issue 35).
+    live: u64,
     sequence: u64,
     frame: Box<ControlStateFrame>,
     /// Applied actions not yet announced, with the course cycle they show from.
@@ -223,6 +225,7 @@ impl StatePublisher {
         Self {
             starts: [u64::MAX; ipc_types::NUM_LUNGS],
             pending: None,
+            live: 0,
             sequence: 0,
             frame: Box::default(),
             waiting: Vec::with_capacity(WAITING_EVENTS),
@@ -234,7 +237,8 @@ impl StatePublisher {
     }
 
     /// Publish when a lung started a cycle, a disease cycle was prepared (announced before it
-    /// starts, so every site puts it in at the same tick), applied actions wait to be announced
+    /// starts, so every site puts it in at the same tick), the patient started a breath or the
+    /// signal stopped driving (a source following a live signal), applied actions wait to be announced
     /// with the tick they show from (at most `MAX_EVENTS` a state: the rest go with the next
     /// tick's) or the pacer skipped deadlines before this tick (`resync`: the ticks from here on
     /// fall a whole number of periods later than the last state's schedule, which the sites
@@ -254,6 +258,11 @@ impl StatePublisher {
                 self.starts[k] = start;
                 changed = true;
             }
+        }
+        let live = core.live_generation();
+        if live != self.live {
+            self.live = live;
+            changed = true;
         }
         let pending = core.pending_course();
         if pending != self.pending {

@@ -14,10 +14,17 @@
 //! the state it publishes as soon as the cycle is built ([`PendingCycle`], with the tick it starts
 //! at), so a site puts it into its lungs at that very tick ([`RemotePending`]) instead of learning
 //! of it one network delay after the source's cycle start.
+//!
+//! A source that follows the patient's live respiratory signal (issue 35) sends the patient's
+//! previous breath and the turns of the one in progress with every state, and a state at once at
+//! each of the patient's turns ([`LiveBreath`]: a breath's start and its expiration's); a site plays
+//! the previous breath from those turns ([`RemoteLive`]) and re-aligns at each. The site's breath is
+//! then a prediction half a breath ahead, not the source's bit for bit: how far it strays is measured
+//! (`engine/src/runtime/tests.rs`, `a_site_breathes_with_the_sources_patient`; docs/REMOTE.md).
 
 use control_state::{
-    Bounded, ControlState, Disease, LungState, PendingCycle, PendingLung, PhaseState, PvState,
-    RemoteEvent, MAX_EVENTS,
+    Bounded, ControlState, Disease, LiveBreath, LungState, PendingCycle, PendingLung, PhaseState,
+    PvState, RemoteEvent, MAX_EVENTS,
 };
 use lung_model::mesh::Side;
 use lung_model::pv::{Boundary, Breathing, PhaseConstants, PvError, Timing};
@@ -290,7 +297,107 @@ impl Prepared {
     }
 }
 
+/// Ticks over which a site's breath moves onto a newly announced patient turn (200 ms at 60 Hz):
+/// the difference between the breath it played and the new one fades out instead of jumping.
+pub const REALIGN_TICKS: u64 = 12;
+
+/// The patient's breath a site plays (a source following a live signal): the previous breath from
+/// the start of the one in progress, each lung its share, as the source's lungs take theirs.
+#[derive(Debug, Clone)]
+pub struct RemoteLive {
+    breath: LiveBreath,
+    /// A new breath arrived: re-align on the next tick.
+    fresh: bool,
+    /// The tick the patient's breath took over from the model here (the same blend as a source's).
+    from: Option<u64>,
+    /// The difference to fade out after a re-alignment, ml, and the tick it was taken at.
+    offset: (f64, u64),
+    /// The volume played on the previous tick.
+    played: Option<f64>,
+    /// Patient breaths taken from the source.
+    breaths: u64,
+}
+
+impl RemoteLive {
+    fn new(breath: LiveBreath) -> Self {
+        Self {
+            breath,
+            fresh: false,
+            from: None,
+            offset: (0.0, 0),
+            played: None,
+            breaths: 1,
+        }
+    }
+
+    /// The patient breaths taken from the source so far.
+    pub fn breaths(&self) -> u64 {
+        self.breaths
+    }
+
+    /// The breath the site plays.
+    pub fn breath(&self) -> &LiveBreath {
+        &self.breath
+    }
+
+    /// Drive every lung with the patient's breath at `tick`; the state bits. No allocation.
+    pub(super) fn tick(
+        &mut self,
+        tick: u64,
+        lungs: &mut [(super::LungGeometry, LungBreath)],
+    ) -> u32 {
+        let (v, inhaling) = self.breath.volume_at(tick);
+        if std::mem::take(&mut self.fresh) {
+            self.offset = (self.played.map_or(0.0, |p| p - v), tick);
+        }
+        let fade = 1.0 - (tick.saturating_sub(self.offset.1) as f64 / REALIGN_TICKS as f64);
+        let volume = v + self.offset.0 * fade.clamp(0.0, 1.0);
+        let from = *self.from.get_or_insert(tick);
+        let w = ((tick.saturating_sub(from) + 1) as f64 / super::signal::TAKEOVER_TICKS as f64)
+            .min(1.0);
+        for (_, b) in lungs.iter_mut() {
+            b.driven = Some((volume, inhaling, w));
+        }
+        self.played = Some(volume);
+        ipc_types::engine_state::SIGNAL_FOLLOWING
+    }
+}
+
 impl EngineCore {
+    /// The patient's breath this site plays, when its source follows a live signal.
+    pub fn remote_live(&self) -> Option<&RemoteLive> {
+        self.remote_live.as_ref()
+    }
+
+    /// Changes to what a source tells its sites of the patient's breath (a new breath, or the
+    /// signal no longer driving): the process publishes a state when it moves. 0 without a signal.
+    pub fn live_generation(&self) -> u64 {
+        self.signal.as_ref().map_or(0, |s| s.live_generation())
+    }
+
+    /// The patient's breath from a site's state: a new one re-aligns, the same one carries on,
+    /// none hands the lungs back to the model (the state's cycles say where it is).
+    fn take_live(&mut self, live: Option<LiveBreath>) {
+        match (live, &mut self.remote_live) {
+            (Some(b), Some(r)) => {
+                let new_breath = (b.breath, b.start_tick) != (r.breath.breath, r.breath.start_tick);
+                if new_breath || b.peak != r.breath.peak {
+                    r.breaths += u64::from(new_breath);
+                    r.breath = b;
+                    r.fresh = true;
+                }
+            }
+            (Some(b), None) => self.remote_live = Some(RemoteLive::new(b)),
+            (None, _) => {
+                if self.remote_live.take().is_some() {
+                    for (_, b) in self.lungs.iter_mut() {
+                        b.driven = None;
+                    }
+                }
+            }
+        }
+    }
+
     /// The control state at `tick` (call at a cycle start or after a change; allocates the
     /// constants' vectors, so after the tick's publish). `events` are the latest interventions.
     pub fn control_state(
@@ -329,6 +436,7 @@ impl EngineCore {
             gravity_body: self.gravity_body.to_array(),
             disease,
             lungs,
+            live: self.signal.as_ref().and_then(|s| s.live()),
             events: Bounded::new(events[first..].to_vec()).unwrap_or_default(),
             pending,
         })
@@ -413,7 +521,11 @@ impl EngineCore {
     /// share, held/base volume, collapse and offset, its cycle aligned to the source's tick
     /// numbers; gravity is the source's. `site_hz` is this site's tick rate. No allocation (the
     /// prepared tables are moved in).
-    pub fn apply_prepared(&mut self, p: Prepared, site_hz: f64) -> Result<(), RemoteStateError> {
+    pub fn apply_prepared(
+        &mut self,
+        mut p: Prepared,
+        site_hz: f64,
+    ) -> Result<(), RemoteStateError> {
         // The cycle put in last is freed here, off the tick it was put in at.
         self.remote_spent = None;
         let hz = p.state.tick_hz;
@@ -449,6 +561,7 @@ impl EngineCore {
         }
         // The state is the source's whole word: a cycle it no longer announces is not pending.
         self.remote_pending = p.pending;
+        self.take_live(p.state.live.take());
         Ok(())
     }
 }

@@ -14,6 +14,13 @@
 //! cycle is placed where its volume and direction match the signal's last ones, so the lungs carry
 //! on without a jump (phase-continuous); when the signal is back and calibrated it takes over again,
 //! blended in from the model's breath over [`TAKEOVER_TICKS`].
+//!
+//! For remote sites (a `[remote]` source following a live signal) the drive keeps the breath the
+//! lungs followed, tick by tick, in a buffer allocated once ([`BreathLog`]): at each of the patient's
+//! end-expirations the breath just completed is resampled to [`control_state::LIVE_SAMPLES`] points,
+//! and the next control state carries it with the new breath's start tick
+//! ([`control_state::LiveBreath`]), so every site plays the previous breath from the start of the
+//! one in progress and re-aligns at every breath.
 
 use ipc_types::{engine_state, signal_status, signal_unit, TrackerFrame};
 use lung_model::breathing::follow::{Calibration, Followed, Follower, FollowerConfig, SignalState};
@@ -22,6 +29,8 @@ use lung_model::scene::Scene;
 
 use super::{CoreError, LungBreath, LungGeometry};
 use lung_model::scene::SceneExt;
+
+use control_state::{Bounded, LiveBreath, LIVE_SAMPLES, MAX_LIVE_TICKS};
 
 /// Sample period assumed before a source states its own, ns (50 Hz).
 const PERIOD_BEFORE_KNOWN_NS: u64 = 20_000_000;
@@ -56,6 +65,208 @@ pub struct SignalDrive {
     followed: Option<Followed>,
     source_ended: bool,
     ticks: SignalTicks,
+    /// The breaths the lungs followed, for remote sites.
+    log: BreathLog,
+}
+
+/// The patient's breaths as the lungs followed them (the volume above FRC the signal gave each
+/// tick), for remote sites: the ticks since the breath in progress started and the previous whole
+/// breath resampled. A breath runs from one end-expiration to the next; each turn (end-expiration,
+/// end-inspiration) is confirmed by the follower's own turn (its hysteresis keeps noise, a slow drift
+/// and a ventilator's flow steps from making turns) and placed at the lowest or highest volume since
+/// the turn before. Allocated once; nothing per tick (a clone allocates its own buffer whole).
+#[derive(Debug)]
+struct BreathLog {
+    /// The volume each tick from the breath in progress's start (or from when following began,
+    /// before the first start), at most [`MAX_LIVE_TICKS`].
+    ticks: Vec<f32>,
+    /// The buffer filled (an apnoea over a minute): the breath in progress is not described.
+    overflowed: bool,
+    /// Tick of `ticks[0]`, and whether it is a breath's start (`false`: following began there).
+    first_tick: u64,
+    started: bool,
+    /// Whether the follower said the patient inhales on the previous tick (`None`: not following).
+    inhaling: Option<bool>,
+    /// The lowest volume since the patient began to exhale, and its tick.
+    low: (f64, u64),
+    /// The highest volume since the breath in progress started, and its tick; and, once the
+    /// follower saw the patient expire, that peak.
+    high: (f64, u64),
+    peak: Option<(u64, f32)>,
+    /// The previous whole breath: its samples, how many, its ticks and the tick of its peak (0:
+    /// none yet).
+    last: [f32; LIVE_SAMPLES],
+    last_n: usize,
+    last_ticks: u32,
+    last_peak: u32,
+    /// Breaths completed while following.
+    breaths: u64,
+    /// Changes a site must hear of (a breath started, or following stopped).
+    generation: u64,
+}
+
+impl Clone for BreathLog {
+    fn clone(&self) -> Self {
+        // `Vec::clone` keeps the length, not the capacity: the clone's tick would allocate.
+        let mut ticks = Vec::with_capacity(MAX_LIVE_TICKS as usize);
+        ticks.extend_from_slice(&self.ticks);
+        Self {
+            ticks,
+            overflowed: self.overflowed,
+            first_tick: self.first_tick,
+            started: self.started,
+            inhaling: self.inhaling,
+            low: self.low,
+            high: self.high,
+            peak: self.peak,
+            last: self.last,
+            last_n: self.last_n,
+            last_ticks: self.last_ticks,
+            last_peak: self.last_peak,
+            breaths: self.breaths,
+            generation: self.generation,
+        }
+    }
+}
+
+impl BreathLog {
+    fn new() -> Self {
+        Self {
+            ticks: Vec::with_capacity(MAX_LIVE_TICKS as usize),
+            overflowed: false,
+            first_tick: 0,
+            started: false,
+            inhaling: None,
+            low: (f64::INFINITY, 0),
+            high: (f64::NEG_INFINITY, 0),
+            peak: None,
+            last: [0.0; LIVE_SAMPLES],
+            last_n: 0,
+            last_ticks: 0,
+            last_peak: 0,
+            breaths: 0,
+            generation: 0,
+        }
+    }
+
+    /// A tick the signal drove at `volume_ml`, the follower saying whether the patient inhales.
+    /// The follower's turns (with its hysteresis against noise and a ventilator's flow steps)
+    /// confirm each turn; the turn is placed at the extreme since the one before.
+    fn take(&mut self, tick: u64, volume_ml: f64, inhaling: bool) {
+        if self.ticks.is_empty() && !self.overflowed {
+            self.first_tick = tick;
+        }
+        if self.ticks.len() < MAX_LIVE_TICKS as usize {
+            self.ticks.push(volume_ml as f32);
+        } else {
+            self.overflowed = true;
+        }
+        let was = self.inhaling.replace(inhaling);
+        match (was, inhaling) {
+            (Some(false), true) => {
+                // End-expiration confirmed: the breath started at the lowest volume since the
+                // patient began to exhale.
+                self.start_at(self.low.1);
+                self.high = (volume_ml, tick);
+            }
+            (Some(true), false) => {
+                self.low = (volume_ml, tick);
+                if self.started && self.peak.is_none() && self.high.0.is_finite() {
+                    // End-inspiration confirmed: the sites hear of it at once.
+                    self.peak = Some((self.high.1, self.high.0 as f32));
+                    if self.last_n > 0 {
+                        self.generation += 1;
+                    }
+                }
+            }
+            (None, false) => self.low = (volume_ml, tick),
+            _ => {}
+        }
+        if inhaling && volume_ml > self.high.0 {
+            self.high = (volume_ml, tick);
+        }
+        if !inhaling && volume_ml < self.low.0 {
+            self.low = (volume_ml, tick);
+        }
+    }
+
+    /// A breath started at `trough` (at or before the newest tick): the one before it, from the
+    /// last start, is the previous breath.
+    fn start_at(&mut self, trough: u64) {
+        if self.overflowed {
+            // The breath before was over a minute (or following began that long ago): not
+            // described, and its trough's tick is no longer in the buffer.
+            self.ticks.clear();
+            self.overflowed = false;
+            self.started = false;
+            return;
+        }
+        let cut = (trough.saturating_sub(self.first_tick) as usize).min(self.ticks.len());
+        if self.started && cut >= 2 {
+            let samples = cut.min(LIVE_SAMPLES);
+            let (mut hi, mut top) = (f64::NEG_INFINITY, 0);
+            for (k, v) in self.ticks[..cut].iter().enumerate() {
+                if *v as f64 > hi {
+                    hi = *v as f64;
+                    top = k;
+                }
+            }
+            for (j, out) in self.last[..samples].iter_mut().enumerate() {
+                let x = j as f64 * (cut - 1) as f64 / (samples - 1) as f64;
+                let k = (x.floor() as usize).min(cut - 2);
+                let (a, b) = (self.ticks[k] as f64, self.ticks[k + 1] as f64);
+                *out = (a + (b - a) * (x - k as f64)) as f32;
+            }
+            self.last_n = samples;
+            self.last_ticks = cut as u32;
+            self.last_peak = top as u32;
+            self.breaths += 1;
+            self.generation += 1;
+        }
+        self.ticks.drain(..cut);
+        self.first_tick = trough;
+        self.started = true;
+        self.high = (f64::NEG_INFINITY, trough);
+        self.peak = None;
+    }
+
+    /// The signal stopped driving (calibrating, lost, ended): what the sites had is void.
+    fn stop(&mut self) {
+        if self.last_n > 0 && self.started {
+            self.generation += 1;
+        }
+        self.ticks.clear();
+        self.overflowed = false;
+        self.started = false;
+        self.inhaling = None;
+        self.last_n = 0;
+        self.last_ticks = 0;
+    }
+
+    /// The breath for the sites (allocates: call after the tick).
+    fn live(&self) -> Option<LiveBreath> {
+        if !self.started {
+            return None;
+        }
+        let start_tick = self.first_tick;
+        // A value that is not finite is never sent (the packet would be refused): the sites carry
+        // on with the model until the next breath.
+        if self.last_n < 2 || !self.last[..self.last_n].iter().all(|v| v.is_finite()) {
+            return None;
+        }
+        let ml = self.last[..self.last_n]
+            .iter()
+            .map(|v| v.clamp(-control_state::MAX_LIVE_ML, control_state::MAX_LIVE_ML))
+            .collect();
+        Some(LiveBreath {
+            start_tick,
+            breath: self.breaths,
+            peak: self.peak,
+            last_ticks: self.last_ticks,
+            last_peak: self.last_peak,
+            last_ml: Bounded::new(ml)?,
+        })
+    }
 }
 
 /// Ticks by what drove the lungs.
@@ -97,7 +308,21 @@ impl SignalDrive {
             followed: None,
             source_ended: false,
             ticks: SignalTicks::default(),
+            log: BreathLog::new(),
         })
+    }
+
+    /// The patient's breath for remote sites: the previous whole breath the lungs followed and the
+    /// start of the one in progress (`None` while the model breathes, or before a whole breath was
+    /// followed). Allocates: call after the tick.
+    pub fn live(&self) -> Option<LiveBreath> {
+        self.log.live()
+    }
+
+    /// Changes to [`Self::live`] so far (a new breath, or following stopped): a source publishes
+    /// a control state when it moves.
+    pub fn live_generation(&self) -> u64 {
+        self.log.generation
     }
 
     /// The follower (its detector, counts and settings).
@@ -179,12 +404,14 @@ impl SignalDrive {
                 }
                 let w = ((tick - self.took_over + 1) as f64 / TAKEOVER_TICKS as f64).min(1.0);
                 self.last = Some((f.volume_ml, f.inhaling));
+                self.log.take(tick, f.volume_ml, f.inhaling);
                 for (_, breath) in lungs.iter_mut() {
                     breath.driven = Some((f.volume_ml, f.inhaling, w));
                 }
                 self.driving = true;
             }
             None => {
+                self.log.stop();
                 for (_, breath) in lungs.iter_mut() {
                     breath.driven = None;
                     if self.driving {

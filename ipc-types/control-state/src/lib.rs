@@ -16,7 +16,8 @@
 //! Version history: v1 had no pending cycle and events without their apply tick and outcome; v2
 //! adds them; v3 gives each event the disease course's cycle it shows from as well as the
 //! breathing cycle (the two counts a user sees: `lungdyn scene event` and the engine say the
-//! course's, frames and states count breaths).
+//! course's, frames and states count breaths); v4 adds the patient's breath a source follows from
+//! a live respiratory signal ([`LiveBreath`], issue 35), so the sites breathe with the patient too.
 //!
 //! ## Encoding
 //! [`encode`] writes `magic "LDCS" | version u16 | flags u16 | length u32 | xxh3-64 of the payload |
@@ -40,7 +41,7 @@ use thiserror::Error;
 /// Magic bytes at the start of every encoded packet.
 pub const MAGIC: [u8; 4] = *b"LDCS";
 /// Version of the encoding (header and payload); a packet of another version is refused.
-pub const FORMAT_VERSION: u16 = 3;
+pub const FORMAT_VERSION: u16 = 4;
 /// Header bytes: magic, version, flags, payload length, checksum.
 pub const HEADER_BYTES: usize = 4 + 2 + 2 + 4 + 8;
 /// Bytes a [`ControlStateFrame`] carries (the largest encoded packet).
@@ -53,6 +54,15 @@ pub const MAX_CHI: usize = 15;
 pub const MAX_LUNGS: usize = 2;
 /// Events carried in one state (the latest ones; each also travels on its own).
 pub const MAX_EVENTS: usize = 8;
+/// Samples of a [`LiveBreath`]'s previous breath (evenly over its ticks; a 4 s breath at 60 Hz is
+/// one sample every 3.8 ticks, well under the breath's curvature).
+pub const LIVE_SAMPLES: usize = 64;
+/// Longest breath a [`LiveBreath`] describes, ticks (a minute at 60 Hz; the source describes none
+/// longer: a pause that long is an apnoea, which the sites hold at its last volume).
+pub const MAX_LIVE_TICKS: u32 = 3600;
+/// Largest volume above FRC a [`LiveBreath`] carries, ml (whole patient; an adult's inspiratory
+/// capacity is 2–4 l, and a signal's trough may sit below FRC).
+pub const MAX_LIVE_ML: f32 = 8000.0;
 
 /// A `Vec` of at most `N` elements: decoding refuses a longer sequence and never preallocates more
 /// than `N` whatever length the input claims.
@@ -284,6 +294,100 @@ pub struct PendingCycle {
     pub lungs: Bounded<PendingLung, MAX_LUNGS>,
 }
 
+/// The patient's breathing, as a source engine follows it from a live respiratory signal
+/// (`[breathing] source = "signal"`, issue 35): sent with every state and at once at each of the
+/// patient's turns — the start of a breath (an end-expiration) and the start of its expiration (an
+/// end-inspiration) — so each site plays the previous breath from the last turn of the breath in
+/// progress: from the breath's start, and once the patient's expiration is announced, its
+/// expiration from there scaled to start at this breath's peak; held at its end until the next
+/// breath (a prediction at most half a breath ahead that never starts a breath before the patient
+/// does; the sites need no sample stream). `None` in a state: the source's model
+/// breathes (its signal calibrating, lost or not yet a whole breath), and the lungs' PV states say
+/// where, as for any source.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+pub struct LiveBreath {
+    /// Source tick the patient's breath in progress started at (its end-expiration).
+    pub start_tick: u64,
+    /// Breaths the source has seen the patient complete while following (each new one a new
+    /// number; a site re-aligns when it changes).
+    pub breath: u64,
+    /// Source tick the breath in progress reached its highest volume and began to expire, with that
+    /// volume above FRC, ml (`None` while it inspires).
+    pub peak: Option<(u64, f32)>,
+    /// Ticks the previous breath lasted (its start to the current breath's start).
+    pub last_ticks: u32,
+    /// Ticks from the previous breath's start to its highest volume.
+    pub last_peak: u32,
+    /// The previous breath's whole-patient volume above FRC, ml (each lung takes its share, as of
+    /// the model's breath), at [`LIVE_SAMPLES`] or fewer evenly spaced points from its first tick to
+    /// its last.
+    pub last_ml: Bounded<f32, LIVE_SAMPLES>,
+}
+
+impl LiveBreath {
+    fn check(&self) -> Result<(), &'static str> {
+        if !(2..=MAX_LIVE_TICKS).contains(&self.last_ticks) {
+            return Err("a live breath lasts under 2 ticks or over a minute");
+        }
+        if self.last_peak >= self.last_ticks {
+            return Err("a live breath's peak is not within it");
+        }
+        if self.last_ml.len() < 2 {
+            return Err("a live breath has fewer than 2 samples");
+        }
+        let volume = |v: f32| v.is_finite() && v.abs() <= MAX_LIVE_ML;
+        if !self.last_ml.iter().all(|&v| volume(v)) || !self.peak.is_none_or(|(_, v)| volume(v)) {
+            return Err("a live breath's volume is not finite or beyond 8 l above or below FRC");
+        }
+        if self.peak.is_some_and(|(t, _)| t < self.start_tick) {
+            return Err("a live breath's peak is before its start");
+        }
+        Ok(())
+    }
+
+    /// The previous breath's volume at sample position `x` (linear between samples, the last past
+    /// the end), and whether it rises there.
+    fn sample_at(&self, x: f64) -> (f64, bool) {
+        let v = &self.last_ml;
+        let n = v.len();
+        if n < 2 || x >= (n - 1) as f64 {
+            return (v.last().copied().unwrap_or(0.0) as f64, false);
+        }
+        let x = x.max(0.0);
+        let k = x.floor() as usize;
+        let (a, b) = (v[k] as f64, v[k + 1] as f64);
+        (a + (b - a) * (x - k as f64), b > a)
+    }
+
+    /// The volume above FRC a site plays at source tick `tick`, ml, and whether it rises there:
+    /// before the breath's peak is announced, the previous breath from the start; after, the
+    /// previous breath's expiration from the peak's tick, scaled from this breath's peak to the
+    /// previous breath's end; held at the end.
+    pub fn volume_at(&self, tick: u64) -> (f64, bool) {
+        let n = self.last_ml.len();
+        if n < 2 || self.last_ticks < 2 {
+            return self.sample_at(0.0);
+        }
+        let per_tick = (n - 1) as f64 / (self.last_ticks - 1) as f64;
+        let peak_x = self.last_peak as f64 * per_tick;
+        match self.peak {
+            None => self.sample_at(tick.saturating_sub(self.start_tick) as f64 * per_tick),
+            Some((at, peak_ml)) => {
+                let x = peak_x + tick.saturating_sub(at) as f64 * per_tick;
+                let (v, _) = self.sample_at(x);
+                let end = self.last_ml[n - 1] as f64;
+                let top = self.sample_at(peak_x).0;
+                let v = if top - end > 1.0 {
+                    end + (v - end) * (peak_ml as f64 - end) / (top - end)
+                } else {
+                    v
+                };
+                (v, false)
+            }
+        }
+    }
+}
+
 /// The source engine's control state at the start of a breathing cycle (or a change).
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
 pub struct ControlState {
@@ -312,6 +416,8 @@ pub struct ControlState {
     pub events: Bounded<RemoteEvent, MAX_EVENTS>,
     /// The disease cycle prepared and not yet started, if any.
     pub pending: Option<PendingCycle>,
+    /// The patient's breath the source follows from a live signal (`None`: its model breathes).
+    pub live: Option<LiveBreath>,
 }
 
 /// Everything that travels between sites.
@@ -520,6 +626,9 @@ impl Packet {
                     return Err("a pending lung's collapse is outside 0..1");
                 }
             }
+        }
+        if let Some(live) = &s.live {
+            live.check()?;
         }
         Ok(())
     }

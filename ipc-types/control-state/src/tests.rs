@@ -56,6 +56,18 @@ fn state() -> ControlState {
         lungs: Bounded::new(vec![lung(0), lung(1)]).unwrap(),
         events: Bounded::default(),
         pending: None,
+        live: None,
+    }
+}
+
+fn live(last_ml: Vec<f32>) -> LiveBreath {
+    LiveBreath {
+        start_tick: 1040,
+        breath: 3,
+        peak: None,
+        last_ticks: 240,
+        last_peak: 100,
+        last_ml: Bounded::new(last_ml).unwrap(),
     }
 }
 
@@ -120,6 +132,15 @@ fn a_full_state_fits_a_frame_and_reads_back_equal() {
         ])
         .unwrap(),
     });
+    // And the patient's breath, every sample used.
+    s.live = Some(LiveBreath {
+        start_tick: u64::MAX - 1,
+        breath: u64::MAX,
+        peak: Some((u64::MAX, -MAX_LIVE_ML)),
+        last_ticks: MAX_LIVE_TICKS,
+        last_peak: MAX_LIVE_TICKS - 1,
+        last_ml: Bounded::new(vec![-MAX_LIVE_ML; LIVE_SAMPLES]).unwrap(),
+    });
     let p = Packet::State(s);
     let mut frame = ControlStateFrame::default();
     frame.set(&p).unwrap();
@@ -138,7 +159,13 @@ fn an_unknown_version_is_refused_by_name() {
     let mut b = encode_to_vec(&Packet::State(state())).unwrap();
     b[4] = 1;
     let e = decode(&b).unwrap_err();
-    assert_eq!(e, DecodeError::UnknownVersion { theirs: 1, ours: 3 });
+    assert_eq!(
+        e,
+        DecodeError::UnknownVersion {
+            theirs: 1,
+            ours: FORMAT_VERSION
+        }
+    );
     assert!(e.to_string().contains("v1 is not understood"), "{e}");
 }
 
@@ -195,8 +222,9 @@ fn a_sequence_longer_than_its_bound_is_refused_before_it_is_allocated() {
     empty.lungs = Bounded::default();
     empty.events = Bounded::default();
     let e = postcard::to_allocvec(&Packet::State(empty)).unwrap();
-    // The encodings agree up to the lungs' count byte (then the events' count and no pending cycle).
-    let at = e.len() - 3;
+    // The encodings agree up to the lungs' count byte (then the events' count, no pending cycle and
+    // no live breath).
+    let at = e.len() - 4;
     assert_eq!(full[..at], e[..at]);
     assert_eq!(full[at], 2);
     let mut evil = e[..at].to_vec();
@@ -260,6 +288,55 @@ fn values_out_of_their_domain_are_refused_both_ways() {
                 s.pending = Some(pending(s.tick, vec![pending_lung(0, Some(pv))]));
             },
             "positive",
+        ),
+        (
+            |s| s.live = Some(live(vec![0.0, f32::NAN])),
+            "live breath's volume",
+        ),
+        (
+            |s| s.live = Some(live(vec![0.0, 9000.0])),
+            "live breath's volume",
+        ),
+        (|s| s.live = Some(live(vec![0.0])), "fewer than 2 samples"),
+        (
+            |s| {
+                let mut l = live(vec![0.0, 1.0]);
+                l.last_peak = l.last_ticks;
+                s.live = Some(l);
+            },
+            "peak is not within",
+        ),
+        (
+            |s| {
+                let mut l = live(vec![0.0, 1.0]);
+                l.peak = Some((l.start_tick - 1, 1.0));
+                s.live = Some(l);
+            },
+            "peak is before its start",
+        ),
+        (
+            |s| {
+                let mut l = live(vec![0.0, 1.0]);
+                l.peak = Some((l.start_tick, f32::INFINITY));
+                s.live = Some(l);
+            },
+            "live breath's volume",
+        ),
+        (
+            |s| {
+                let mut l = live(vec![0.0, 1.0]);
+                l.last_ticks = 1;
+                s.live = Some(l);
+            },
+            "under 2 ticks",
+        ),
+        (
+            |s| {
+                let mut l = live(vec![0.0, 1.0]);
+                l.last_ticks = MAX_LIVE_TICKS + 1;
+                s.live = Some(l);
+            },
+            "over a minute",
         ),
     ];
     for (spoil, word) in cases {
@@ -338,78 +415,123 @@ fn arb_state() -> impl Strategy<Value = ControlState> {
             any::<[u64; 3]>(),
             prop::collection::vec((prop::option::of(arb_pv()), 0f64..=1.0), 0..=2),
         )),
+        prop::option::of((
+            any::<(u64, u64, u32)>(),
+            2..=MAX_LIVE_TICKS,
+            prop::option::of(-MAX_LIVE_ML..=MAX_LIVE_ML),
+            prop::collection::vec(-MAX_LIVE_ML..=MAX_LIVE_ML, 2..=LIVE_SAMPLES),
+        )),
     )
-        .prop_map(|(ids, lungs, events, hz, held, pending)| ControlState {
-            source: ids[0],
-            epoch: ids[1],
-            sequence: ids[2],
-            tick: ids[3],
-            tick_hz: hz,
-            source_time_ns: ids[3] ^ ids[0],
-            cycle: ids[2] >> 3,
-            gravity_body: [0.0, -1.0, hz],
-            disease: Disease::TensionPneumothorax {
-                side: 1,
-                cycles_run: ids[1],
-            },
-            lungs: Bounded::new(
-                lungs
-                    .into_iter()
-                    .enumerate()
-                    .map(|(k, (pv, next, c, cycle))| LungState {
-                        side: k as u8,
-                        pv,
-                        next,
-                        share: c,
-                        held_ml: held,
-                        base_ml: held.map(|h| -h),
-                        collapse: c,
-                        offset_mm: [c, -c, 1e6],
-                        cycle,
-                        cycle_start_tick: ids[3] / 2,
-                    })
-                    .collect(),
-            )
-            .unwrap(),
-            events: Bounded::new(
-                events
-                    .into_iter()
-                    .map(
-                        |(origin, sequence, kind, lung, apply_cycle, apply_tick)| RemoteEvent {
-                            origin,
-                            sequence,
-                            kind,
-                            lung,
-                            apply_cycle,
-                            apply_tick,
-                            course_cycle: apply_cycle / 3,
-                            outcome: kind ^ lung,
-                        },
-                    )
-                    .collect(),
-            )
-            .unwrap(),
-            pending: pending.map(|(n, lungs)| PendingCycle {
-                apply_tick: ids[3].saturating_add(n[0] >> 1),
-                apply_cycle: n[1],
-                course_cycle: n[2],
+        .prop_map(
+            |(ids, lungs, events, hz, held, pending, live)| ControlState {
+                source: ids[0],
+                epoch: ids[1],
+                sequence: ids[2],
+                tick: ids[3],
+                tick_hz: hz,
+                source_time_ns: ids[3] ^ ids[0],
+                cycle: ids[2] >> 3,
+                gravity_body: [0.0, -1.0, hz],
+                disease: Disease::TensionPneumothorax {
+                    side: 1,
+                    cycles_run: ids[1],
+                },
                 lungs: Bounded::new(
                     lungs
                         .into_iter()
                         .enumerate()
-                        .map(|(k, (pv, c))| PendingLung {
+                        .map(|(k, (pv, next, c, cycle))| LungState {
                             side: k as u8,
                             pv,
-                            collapse: c,
-                            offset_mm: [c, 2.0 * c, -c],
-                            base_ml: 1000.0 * c,
+                            next,
+                            share: c,
                             held_ml: held,
+                            base_ml: held.map(|h| -h),
+                            collapse: c,
+                            offset_mm: [c, -c, 1e6],
+                            cycle,
+                            cycle_start_tick: ids[3] / 2,
                         })
                         .collect(),
                 )
                 .unwrap(),
-            }),
-        })
+                events: Bounded::new(
+                    events
+                        .into_iter()
+                        .map(|(origin, sequence, kind, lung, apply_cycle, apply_tick)| {
+                            RemoteEvent {
+                                origin,
+                                sequence,
+                                kind,
+                                lung,
+                                apply_cycle,
+                                apply_tick,
+                                course_cycle: apply_cycle / 3,
+                                outcome: kind ^ lung,
+                            }
+                        })
+                        .collect(),
+                )
+                .unwrap(),
+                pending: pending.map(|(n, lungs)| PendingCycle {
+                    apply_tick: ids[3].saturating_add(n[0] >> 1),
+                    apply_cycle: n[1],
+                    course_cycle: n[2],
+                    lungs: Bounded::new(
+                        lungs
+                            .into_iter()
+                            .enumerate()
+                            .map(|(k, (pv, c))| PendingLung {
+                                side: k as u8,
+                                pv,
+                                collapse: c,
+                                offset_mm: [c, 2.0 * c, -c],
+                                base_ml: 1000.0 * c,
+                                held_ml: held,
+                            })
+                            .collect(),
+                    )
+                    .unwrap(),
+                }),
+                live: live.map(
+                    |((start_tick, breath, k), last_ticks, peak_ml, ml)| LiveBreath {
+                        start_tick,
+                        breath,
+                        peak: peak_ml.map(|v| (start_tick.saturating_add(k as u64), v)),
+                        last_ticks,
+                        last_peak: k % last_ticks,
+                        last_ml: Bounded::new(ml).unwrap(),
+                    },
+                ),
+            },
+        )
+}
+
+#[test]
+fn a_live_breath_plays_the_previous_breath_then_expires_from_the_announced_peak() {
+    // 5 samples over 9 ticks (one every 2 ticks), the peak 4 ticks in; the breath from tick 1040.
+    let mut l = LiveBreath {
+        last_ticks: 9,
+        last_peak: 4,
+        ..live(vec![0.0, 100.0, 300.0, 200.0, 50.0])
+    };
+    assert_eq!(l.volume_at(1040), (0.0, true));
+    assert_eq!(l.volume_at(1041), (50.0, true));
+    assert_eq!(l.volume_at(1043), (200.0, true));
+    // Before the patient's expiration is announced: the previous breath's own, held at its end
+    // until the next breath starts, however long.
+    assert_eq!(l.volume_at(1045), (250.0, false));
+    assert_eq!(l.volume_at(1048), (50.0, false));
+    assert_eq!(l.volume_at(u64::MAX), (50.0, false));
+    // Before the start (a tick the site stepped before the state's): the start's volume.
+    assert_eq!(l.volume_at(0), (0.0, true));
+    // The peak announced at tick 1100 at 550 ml: the expiration from there, scaled so it starts
+    // at 550 and ends at the previous breath's 50, held there.
+    l.peak = Some((1100, 550.0));
+    assert_eq!(l.volume_at(1100), (550.0, false));
+    assert_eq!(l.volume_at(1102), (50.0 + 150.0 * 500.0 / 250.0, false));
+    assert_eq!(l.volume_at(1104), (50.0, false));
+    assert_eq!(l.volume_at(u64::MAX), (50.0, false));
 }
 
 proptest! {
