@@ -266,6 +266,9 @@ pub mod signal_status {
     pub const ENDED: u32 = 1 << 1;
     /// The source is cut on purpose (a loss being tested): samples are withheld.
     pub const CUT: u32 = 1 << 2;
+    /// The bridge is learning how to read the source (a chest tool's breathing axis,
+    /// `tool:NAME:auto`): its measurements are kept, not sent, until it has. Not a loss.
+    pub const LEARNING: u32 = 1 << 3;
 }
 
 /// One respiratory-signal sample as its source stamped it.
@@ -349,6 +352,10 @@ pub mod engine_state {
     pub const SIGNAL_LOST: u32 = 1 << 10;
     /// The signal shows no breath lately (a breath-hold, an apnoea, a pause): its volume is drawn.
     pub const SIGNAL_PAUSED: u32 = 1 << 11;
+    /// With [`SIGNAL_CALIBRATING`]: the bridge is still learning how to read its source (a chest
+    /// tool's breathing axis, `tool:NAME:auto`, over its first 12 s) and sends no samples yet; the
+    /// model breathes. Not a loss: no veil.
+    pub const SIGNAL_LEARNING: u32 = 1 << 12;
 }
 
 /// Bits of [`LungFrame::flags`].

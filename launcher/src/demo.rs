@@ -1826,7 +1826,8 @@ pub fn table(r: &DemoReport) -> String {
         let _ = writeln!(
             s,
             "breathing: the patient's signal drove {} of {} frames; in {} it was lost, ended or not \
-             yet there (the model breathed, under a blue veil); the rest calibrated it",
+             yet there (the model breathed, under a blue veil); the rest calibrated it (a chest \
+             tool's axis being learnt included)",
             r.signal_following_frames, r.frames_rendered, r.signal_lost_frames
         );
     }

@@ -118,6 +118,10 @@ impl ToolSignal {
             // A loss, said every frame while it lasts.
             self.push(block, now_ns, None);
         }
+        if self.axis().is_none() {
+            // Still learning the axis: the engine says so rather than "lost".
+            block.status |= signal_status::LEARNING;
+        }
     }
 
     /// The axis samples are read along: the anterior axis, the learnt one, or none yet.
@@ -569,6 +573,7 @@ mod tests {
         let mut s = ToolSignal::new("Chest", 60.0, AxisChoice::Auto);
         let mut b = SignalBlock::default();
         let mut sent = Vec::new();
+        let mut learning_frames = 0;
         let motion = chest_motion(truth, 20.0, lujan);
         for (k, &(t, p)) in motion.iter().enumerate() {
             let view = ToolView {
@@ -578,6 +583,12 @@ mod tests {
                 chest_silent: false,
             };
             s.fill(t + 500, &view, &mut b);
+            // Every frame before the axis is learnt says so (the engine shows "learning", not a
+            // loss); none after.
+            if b.status & signal_status::LEARNING != 0 {
+                assert!(sent.is_empty() && b.count == 0, "frame {k}");
+                learning_frames += 1;
+            }
             if b.count == 1 {
                 assert_eq!(b.valid_mask, 1);
                 sent.push((k, b.samples[0].value));
@@ -590,6 +601,9 @@ mod tests {
             "first sample at {first}"
         );
         assert_eq!(s.learning as usize, first);
+        // (The frame whose measurement completes the window sends nothing and is no longer
+        // learning: the axis is known at its end.)
+        assert_eq!(learning_frames, first - 1);
         // Along the learnt axis: the true rise plus a constant (the tool's offset).
         let offset = sent
             .iter()
@@ -611,5 +625,10 @@ mod tests {
         };
         s.fill(1_000, &view, &mut b);
         assert_eq!((b.count, b.valid_mask), (1, 0));
+        assert_ne!(b.status & signal_status::LEARNING, 0);
+        // The anterior axis needs no learning.
+        let mut s = ToolSignal::new("Chest", 60.0, AxisChoice::Anterior);
+        s.fill(1_000, &view, &mut b);
+        assert_eq!(b.status & signal_status::LEARNING, 0);
     }
 }

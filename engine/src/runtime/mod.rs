@@ -666,9 +666,13 @@ impl EngineCore {
     }
 
     /// Drive this engine from a remote source's control states only: drop its own disease course
-    /// (the states carry the source's; the hilum found for it stays for a collapsing lung).
+    /// (the states carry the source's; the hilum found for it stays for a collapsing lung) and its
+    /// own respiratory signal (the states carry the source's patient's breath).
     pub fn follow_remote(&mut self) {
         self.disease = None;
+        // A site breathes with the source's patient through the states; a signal of its own (a
+        // site scene with `[breathing] source = "signal"`) has no input here and would say "lost".
+        self.signal = None;
     }
 
     /// The disease state being run, if any.

@@ -64,6 +64,8 @@ pub struct SignalDrive {
     /// The newest following figures, for reports.
     followed: Option<Followed>,
     source_ended: bool,
+    /// The bridge is learning how to read its source (no samples yet, not a loss).
+    learning: bool,
     ticks: SignalTicks,
     /// The breaths the lungs followed, for remote sites.
     log: BreathLog,
@@ -307,6 +309,7 @@ impl SignalDrive {
             last: None,
             followed: None,
             source_ended: false,
+            learning: false,
             ticks: SignalTicks::default(),
             log: BreathLog::new(),
         })
@@ -427,6 +430,11 @@ impl SignalDrive {
             bits |= engine_state::SIGNAL_LOST;
             bits &= !engine_state::SIGNAL_CALIBRATING;
         }
+        if self.learning && bits & engine_state::SIGNAL_FOLLOWING == 0 {
+            // The bridge learns how to read its source (a chest tool's axis): calibrating, not
+            // lost (no veil), and said as such.
+            bits = engine_state::SIGNAL_CALIBRATING | engine_state::SIGNAL_LEARNING;
+        }
         if bits & engine_state::SIGNAL_FOLLOWING != 0 {
             self.ticks.following += 1;
         } else if bits & engine_state::SIGNAL_CALIBRATING != 0 {
@@ -454,6 +462,7 @@ impl SignalDrive {
             return;
         }
         self.source_ended = block.status & signal_status::ENDED != 0;
+        self.learning = block.status & signal_status::LEARNING != 0;
         // A unit the protocol does not name, or a period no respiratory source has (a foreign or
         // damaged frame), is not followed: the block's samples are left out.
         let unit = block.unit;

@@ -2292,3 +2292,38 @@ fn a_sites_live_breath_replays_bitwise() {
         x.site_ml.to_bits() == y.site_ml.to_bits() && x.site_state == y.site_state
     }));
 }
+
+/// While the bridge learns a chest tool's axis (`tool:NAME:auto`) it sends no samples and says it
+/// learns: the engine shows the model "learning", counted as calibrating, never as a loss (no veil);
+/// once samples come, it follows as any signal.
+#[test]
+fn a_chest_axis_being_learnt_is_shown_as_learning_not_as_a_loss() {
+    use ipc_types::engine_state as e;
+    let mut core = signal_core(50.0);
+    let mut f = EngineFrame::default();
+    let learn_ticks = 12 * 60;
+    for tick in 0..learn_ticks {
+        let mut input = signal_frame(tick, None, &clean);
+        input.signal.count = 0;
+        input.signal.valid_mask = 0;
+        input.signal.status |= ipc_types::signal_status::LEARNING;
+        core.step(tick, Some(&input), &mut f);
+        assert_eq!(
+            f.state & (e::SIGNAL_CALIBRATING | e::SIGNAL_LEARNING | e::SIGNAL_LOST),
+            e::SIGNAL_CALIBRATING | e::SIGNAL_LEARNING,
+            "tick {tick}"
+        );
+    }
+    let t = core.signal().unwrap().ticks();
+    assert_eq!((t.calibrating, t.lost), (learn_ticks, 0));
+    // Then the samples come: no longer learning, and following within three breaths.
+    let mut following = None;
+    for tick in learn_ticks..learn_ticks + 30 * 60 {
+        core.step(tick, Some(&signal_frame(tick, None, &clean)), &mut f);
+        assert_eq!(f.state & e::SIGNAL_LEARNING, 0);
+        if f.state & e::SIGNAL_FOLLOWING != 0 && following.is_none() {
+            following = Some(tick);
+        }
+    }
+    assert!(following.is_some());
+}

@@ -418,6 +418,8 @@ pub fn phase_line(out: &mut String, frame: &EngineFrame) {
     }
     out.push_str(if signal & e::SIGNAL_FOLLOWING != 0 {
         " · following patient"
+    } else if frame.state & e::SIGNAL_LEARNING != 0 {
+        " · model (learning the chest's axis)"
     } else if signal & e::SIGNAL_CALIBRATING != 0 {
         " · model (calibrating signal)"
     } else {
@@ -1091,11 +1093,20 @@ mod tests {
                 "inspiration · model (calibrating signal)",
             ),
             (e::SIGNAL_LOST, "inspiration · model (signal lost)"),
+            (
+                e::SIGNAL_CALIBRATING | e::SIGNAL_LEARNING,
+                "inspiration · model (learning the chest's axis)",
+            ),
         ] {
             f.state = state;
             phase_line(&mut s, &f);
             assert_eq!(s, want);
         }
+        assert_eq!(
+            crate::PoseWarning::of_engine_state(e::SIGNAL_CALIBRATING | e::SIGNAL_LEARNING),
+            crate::PoseWarning::None,
+            "learning a chest's axis is no loss: no veil"
+        );
         assert_eq!(
             crate::PoseWarning::of_engine_state(e::SIGNAL_LOST),
             crate::PoseWarning::SignalLost
