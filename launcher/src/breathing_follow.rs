@@ -246,6 +246,8 @@ pub struct Figures {
     pub breaths_in_recording: usize,
     /// Of those, breaths whose end-inspiration the signal-driven lungs drew within ±1 s.
     pub breaths_detected: usize,
+    /// The others: each one's end-inspiration, s into the recording (where to look).
+    pub breaths_missed_at_s: Vec<f64>,
     /// RMS of followed − recorded volume at display time, ml, with prediction.
     pub rms_error_ml: f64,
     /// The same for the volume with no prediction, same frames.
@@ -370,6 +372,7 @@ fn empty_figures(trace: &Trace, frames: usize, latency_ns: u64) -> Figures {
         tidal_ml: trace.tidal_ml,
         breaths_in_recording: 0,
         breaths_detected: 0,
+        breaths_missed_at_s: Vec::new(),
         rms_error_ml: f64::NAN,
         rms_error_ml_without_prediction: f64::NAN,
         rms_error_percent_of_tidal: f64::NAN,
@@ -398,10 +401,17 @@ fn breaths_and_lag(f: &mut Figures, trace: &Trace, compared: &[Compared], played
     let pred: Vec<f64> = compared.iter().map(|c| c.1).collect();
     let hold: Vec<f64> = compared.iter().map(|c| c.2).collect();
     let h = 0.25 * trace.tidal_ml;
-    let (lag_p, matched) = lag(&ends, &peaks(&times, &pred, h));
+    let drawn = peaks(&times, &pred, h);
+    let (lag_p, matched) = lag(&ends, &drawn);
     let (lag_h, _) = lag(&ends, &peaks(&times, &hold, h));
     f.breaths_in_recording = ends.len();
     f.breaths_detected = matched;
+    // The same ±1 s as `lag`'s matching.
+    f.breaths_missed_at_s = ends
+        .iter()
+        .filter(|&&r| !drawn.iter().any(|&d| d.abs_diff(r) <= 1_000_000_000))
+        .map(|&r| (r - first_t) as f64 * 1e-9)
+        .collect();
     f.lag_ms = lag_p;
     f.lag_ms_without_prediction = lag_h;
 }
@@ -785,7 +795,7 @@ pub fn follow_text(r: &FollowReport) -> String {
         "{}: {} ({:.1} s), followed live by the scene {} (predictor {})\n\
          frames drawn {}, on the recording's clock {}: following {}, calibrating {}, lost {}; \
          first following at {}\n\
-         recording played {:.1} s; breaths {} of {} followed (end-inspiration drawn within 1 s)\n\
+         recording played {:.1} s; breaths {} of {} followed (end-inspiration drawn within 1 s){}\n\
          RMS error at display time: {:.1} ml = {:.2} % of tidal ({:.0} ml) with prediction, \
          {:.1} ml = {:.2} % without ({} frames compared)\n\
          end-inspiration lag: {} with prediction, {} without\n\
@@ -804,6 +814,18 @@ pub fn follow_text(r: &FollowReport) -> String {
         f.recording_played_s,
         f.breaths_detected,
         f.breaths_in_recording,
+        if f.breaths_missed_at_s.is_empty() {
+            String::new()
+        } else {
+            format!(
+                "; missed the end-inspiration at {} s",
+                f.breaths_missed_at_s
+                    .iter()
+                    .map(|t| format!("{t:.1}"))
+                    .collect::<Vec<_>>()
+                    .join(", ")
+            )
+        },
         f.rms_error_ml,
         f.rms_error_percent_of_tidal,
         f.tidal_ml,
@@ -970,6 +992,10 @@ mod tests {
         // The breaths of the part played: the first two fell in the calibration.
         assert_eq!(f.breaths_in_recording, 15);
         assert_eq!(f.breaths_detected, 13, "{f:?}");
+        // ... and the report says which: the two before the signal first drove the lungs.
+        assert_eq!(f.breaths_missed_at_s.len(), 2, "{f:?}");
+        let first = f.first_following_s.unwrap();
+        assert!(f.breaths_missed_at_s.iter().all(|&t| t < first), "{f:?}");
         // Newest input = display_ns − 50 ms = shown − 40 ms.
         assert!((f.latency_ms_measured_median.unwrap() - 40.0).abs() < 0.01);
         assert!(f.drawn_vs_followed_rms_ml.unwrap() < 0.01);

@@ -75,6 +75,11 @@ pub struct SitesRow {
     pub rms_percent_of_tidal_all: f64,
     /// The figures behind them (ml, ms, ticks).
     pub figures: SiteFigures,
+    /// How late the patient's turns (a breath's start, its peak) reached the site after the tick
+    /// they happened at, ms: mean and largest (the source's confirmation plus the delay).
+    pub turn_heard_after_ms: Option<f64>,
+    /// The largest.
+    pub turn_heard_after_max_ms: f64,
 }
 
 /// What `lungdyn breathing sites` reports.
@@ -200,6 +205,8 @@ pub fn sites(a: &SitesArgs) -> anyhow::Result<SitesReport> {
             rms_percent_of_tidal_model: 100.0 * figures.model_rms_ml / trace.tidal_ml,
             rms_percent_of_tidal_all: 100.0 * figures.rms_all_ml / trace.tidal_ml,
             figures,
+            turn_heard_after_ms: run.turn_lag.mean_ms(tick_hz),
+            turn_heard_after_max_ms: run.turn_lag.max_ticks as f64 * 1e3 / tick_hz,
         });
     }
     Ok(SitesReport {
@@ -222,7 +229,7 @@ pub fn sites_text(r: &SitesReport) -> String {
          the source sent {} control states, {} with the patient's breath; a site follows the patient \
          from {}\n\n\
          RMS of the site's volume against the source's, % of the tidal volume:\n\
-         delay     following   its model   every tick      lag   largest step (site / source)   ticks the site followed\n",
+         delay     following   its model   every tick      lag   largest step (site / source)   ticks the site followed   turns heard after (mean, max)\n",
         r.file,
         r.kind,
         r.duration_s,
@@ -236,7 +243,7 @@ pub fn sites_text(r: &SitesReport) -> String {
     for row in &r.rows {
         let f = &row.figures;
         s += &format!(
-            "{:>5.0} ms {:>9.1} % {:>9.1} % {:>10.1} % {:>6.0} ms {:>14.1} / {:.1} ml {:>16} of {}\n",
+            "{:>5.0} ms {:>9.1} % {:>9.1} % {:>10.1} % {:>6.0} ms {:>14.1} / {:.1} ml {:>16} of {:<6} {:>8.0} ms, {:.0} ms\n",
             row.delay_ms,
             row.rms_percent_of_tidal,
             row.rms_percent_of_tidal_model,
@@ -245,7 +252,9 @@ pub fn sites_text(r: &SitesReport) -> String {
             f.largest_step_ml,
             f.source_largest_step_ml,
             f.site_following,
-            f.ticks
+            f.ticks,
+            row.turn_heard_after_ms.unwrap_or(f64::NAN),
+            row.turn_heard_after_max_ms
         );
     }
     s += "\n\"following\": the ticks the source and the site both followed the patient; \"its model\": \

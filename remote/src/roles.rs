@@ -855,10 +855,16 @@ pub fn join(args: &JoinArgs) -> Result<(), RemoteError> {
     say_join_counts(&instance, &site, &net);
     patient_breaths += span;
     if patient_breaths > 0 {
+        let lag = runner.core().patient_turn_lag();
         eprintln!(
-            "remote join[{}]: {patient_breaths} of the patient's breaths taken from the source \
-             (`lungdyn breathing sites FILE` measures how far a site strays at each network delay)",
-            instance.name()
+            "remote join[{}]: {patient_breaths} of the patient's breaths taken from the source; its \
+             turns reached this site {:.0} ms after they happened there on average, {:.0} ms at \
+             most ({} turns: the source's confirmation, the network, this site's schedule; \
+             `lungdyn breathing sites FILE` measures how far a site strays at each network delay)",
+            instance.name(),
+            lag.mean_ms(hz).unwrap_or(f64::NAN),
+            lag.max_ticks as f64 * 1e3 / hz,
+            lag.turns
         );
     }
     // A site that never breathed the source's breath did not do its job: say why, exit non-zero.

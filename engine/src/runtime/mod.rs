@@ -569,6 +569,8 @@ pub struct EngineCore {
     signal: Option<signal::SignalDrive>,
     /// The patient's breath a remote source follows (a site's engine, issue 35): played each tick.
     remote_live: Option<remote::RemoteLive>,
+    /// How late the patient's turns reached this site.
+    turn_lag: remote::TurnLag,
     counts: StageCounts,
 }
 
@@ -823,6 +825,7 @@ impl EngineCore {
             remote_spent: None,
             signal,
             remote_live: None,
+            turn_lag: remote::TurnLag::default(),
             counts,
         })
     }
@@ -889,6 +892,9 @@ impl EngineCore {
         }
         if let Some(live) = &mut self.remote_live {
             state |= live.tick(tick, &mut self.lungs);
+            if let Some(lag) = live.heard.take() {
+                self.turn_lag.add(lag);
+            }
         }
         if self.remote_pending.as_ref().is_some_and(|p| tick >= p.tick) {
             if let Some(mut p) = self.remote_pending.take() {

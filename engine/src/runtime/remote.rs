@@ -70,6 +70,9 @@ pub enum RemoteStateError {
         /// Why.
         reason: String,
     },
+    /// A state the source made cannot be sent (a value out of the packet's domain, or too large).
+    #[error("the source's control state cannot be sent: {0}")]
+    Encode(#[from] control_state::EncodeError),
     /// The site ticks at another rate than the source.
     #[error(
         "the source ticks at {source_hz} Hz, this site at {site_hz} Hz: start the site on the \
@@ -316,18 +319,55 @@ pub struct RemoteLive {
     played: Option<f64>,
     /// Patient breaths taken from the source.
     breaths: u64,
+    /// The tick of the newest turn announced (a breath's start or its peak), and how many ticks
+    /// after it the site first played it (taken by the engine's counts).
+    turn: u64,
+    pub(super) heard: Option<u64>,
+}
+
+/// How late the patient's turns reached a site: from the tick of the turn at the source (where the
+/// patient's volume was lowest or highest) to the site's first tick playing it — the source's
+/// confirmation of the turn (its follower's hysteresis) plus the network and the site's schedule.
+#[derive(Debug, Clone, Copy, Default, PartialEq, Eq)]
+pub struct TurnLag {
+    /// Turns heard.
+    pub turns: u64,
+    /// Sum and largest of their lags, ticks.
+    pub sum_ticks: u64,
+    /// Largest.
+    pub max_ticks: u64,
+}
+
+impl TurnLag {
+    pub(super) fn add(&mut self, ticks: u64) {
+        self.turns += 1;
+        self.sum_ticks += ticks;
+        self.max_ticks = self.max_ticks.max(ticks);
+    }
+
+    /// The mean lag, ms, at `tick_hz` (`None` before a turn).
+    pub fn mean_ms(&self, tick_hz: f64) -> Option<f64> {
+        (self.turns > 0).then(|| self.sum_ticks as f64 / self.turns as f64 * 1e3 / tick_hz)
+    }
 }
 
 impl RemoteLive {
     fn new(breath: LiveBreath) -> Self {
         Self {
-            breath,
-            fresh: false,
+            fresh: true,
             from: None,
             offset: (0.0, 0),
             played: None,
             breaths: 1,
+            turn: Self::turn_of(&breath),
+            heard: None,
+            breath,
         }
+    }
+
+    /// The newest turn a breath announces: its peak once expiring, else its start.
+    fn turn_of(b: &LiveBreath) -> u64 {
+        b.peak.map_or(b.start_tick, |(t, _)| t)
     }
 
     /// The patient breaths taken from the source so far.
@@ -349,6 +389,7 @@ impl RemoteLive {
         let (v, inhaling) = self.breath.volume_at(tick);
         if std::mem::take(&mut self.fresh) {
             self.offset = (self.played.map_or(0.0, |p| p - v), tick);
+            self.heard = Some(tick.saturating_sub(self.turn));
         }
         let fade = 1.0 - (tick.saturating_sub(self.offset.1) as f64 / REALIGN_TICKS as f64);
         let volume = v + self.offset.0 * fade.clamp(0.0, 1.0);
@@ -369,6 +410,12 @@ impl EngineCore {
         self.remote_live.as_ref()
     }
 
+    /// How late the patient's turns reached this site so far (a site of a source following a live
+    /// signal; nothing otherwise).
+    pub fn patient_turn_lag(&self) -> TurnLag {
+        self.turn_lag
+    }
+
     /// Changes to what a source tells its sites of the patient's breath (a new breath, or the
     /// signal no longer driving): the process publishes a state when it moves. 0 without a signal.
     pub fn live_generation(&self) -> u64 {
@@ -383,6 +430,7 @@ impl EngineCore {
                 let new_breath = (b.breath, b.start_tick) != (r.breath.breath, r.breath.start_tick);
                 if new_breath || b.peak != r.breath.peak {
                     r.breaths += u64::from(new_breath);
+                    r.turn = RemoteLive::turn_of(&b);
                     r.breath = b;
                     r.fresh = true;
                 }

@@ -89,10 +89,11 @@ struct BreathLog {
     started: bool,
     /// Whether the follower said the patient inhales on the previous tick (`None`: not following).
     inhaling: Option<bool>,
-    /// The lowest volume since the patient began to exhale, and its tick.
+    /// The lowest volume since the patient began to exhale, and the last tick the volume was
+    /// within [`TURN_BAND`] of it (where the patient left it).
     low: (f64, u64),
-    /// The highest volume since the breath in progress started, and its tick; and, once the
-    /// follower saw the patient expire, that peak.
+    /// The highest volume since the breath in progress started, and the last tick within the band
+    /// of it; and, once the follower saw the patient expire, that peak.
     high: (f64, u64),
     peak: Option<(u64, f32)>,
     /// The previous whole breath: its samples, how many, its ticks and the tick of its peak (0:
@@ -101,11 +102,16 @@ struct BreathLog {
     last_n: usize,
     last_ticks: u32,
     last_peak: u32,
+    last_depth_ml: f64,
     /// Breaths completed while following.
     breaths: u64,
     /// Changes a site must hear of (a breath started, or following stopped).
     generation: u64,
 }
+
+/// How close to a turn's extreme the volume still counts as at it, as a share of the last
+/// breath's depth: a turn is placed where the patient left it (the end of a pause or a hold).
+const TURN_BAND: f64 = 0.05;
 
 impl Clone for BreathLog {
     fn clone(&self) -> Self {
@@ -125,6 +131,7 @@ impl Clone for BreathLog {
             last_n: self.last_n,
             last_ticks: self.last_ticks,
             last_peak: self.last_peak,
+            last_depth_ml: self.last_depth_ml,
             breaths: self.breaths,
             generation: self.generation,
         }
@@ -146,6 +153,7 @@ impl BreathLog {
             last_n: 0,
             last_ticks: 0,
             last_peak: 0,
+            last_depth_ml: 0.0,
             breaths: 0,
             generation: 0,
         }
@@ -163,32 +171,57 @@ impl BreathLog {
         } else {
             self.overflowed = true;
         }
+        let band = self.band_ml();
         let was = self.inhaling.replace(inhaling);
         match (was, inhaling) {
             (Some(false), true) => {
-                // End-expiration confirmed: the breath started at the lowest volume since the
-                // patient began to exhale.
+                // End-expiration confirmed: the breath started where the patient left the lowest
+                // volume (the end of an expiratory pause, not its drifting start).
                 self.start_at(self.low.1);
                 self.high = (volume_ml, tick);
             }
             (Some(true), false) => {
-                self.low = (volume_ml, tick);
                 if self.started && self.peak.is_none() && self.high.0.is_finite() {
-                    // End-inspiration confirmed: the sites hear of it at once.
+                    // End-inspiration confirmed: the sites hear of it at once; the expiration
+                    // started where the patient left the highest volume (the end of a hold).
                     self.peak = Some((self.high.1, self.high.0 as f32));
                     if self.last_n > 0 {
                         self.generation += 1;
                     }
                 }
+                self.low = (volume_ml, tick);
             }
             (None, false) => self.low = (volume_ml, tick),
             _ => {}
         }
-        if inhaling && volume_ml > self.high.0 {
-            self.high = (volume_ml, tick);
+        // The extremes' values, and the last tick within `band` of them.
+        if inhaling && self.peak.is_none() {
+            let top = self.high.0.max(volume_ml);
+            let tick_of = if volume_ml >= top - band {
+                tick
+            } else {
+                self.high.1
+            };
+            self.high = (top, tick_of);
         }
-        if !inhaling && volume_ml < self.low.0 {
-            self.low = (volume_ml, tick);
+        if !inhaling {
+            let bottom = self.low.0.min(volume_ml);
+            let tick_of = if volume_ml <= bottom + band {
+                tick
+            } else {
+                self.low.1
+            };
+            self.low = (bottom, tick_of);
+        }
+    }
+
+    /// How close to an extreme the volume is still at it, ml: [`TURN_BAND`] of the last breath's
+    /// depth (25 ml before one).
+    fn band_ml(&self) -> f64 {
+        if self.last_depth_ml > 0.0 {
+            TURN_BAND * self.last_depth_ml
+        } else {
+            25.0
         }
     }
 
@@ -206,13 +239,17 @@ impl BreathLog {
         let cut = (trough.saturating_sub(self.first_tick) as usize).min(self.ticks.len());
         if self.started && cut >= 2 {
             let samples = cut.min(LIVE_SAMPLES);
-            let (mut hi, mut top) = (f64::NEG_INFINITY, 0);
-            for (k, v) in self.ticks[..cut].iter().enumerate() {
-                if *v as f64 > hi {
-                    hi = *v as f64;
-                    top = k;
-                }
+            let (mut lo, mut hi) = (f64::INFINITY, f64::NEG_INFINITY);
+            for v in &self.ticks[..cut] {
+                lo = lo.min(*v as f64);
+                hi = hi.max(*v as f64);
             }
+            // Its peak where the patient left the highest volume, as the sites are told.
+            let band = self.band_ml();
+            let top = self.ticks[..cut]
+                .iter()
+                .rposition(|&v| v as f64 >= hi - band)
+                .unwrap_or(0);
             for (j, out) in self.last[..samples].iter_mut().enumerate() {
                 let x = j as f64 * (cut - 1) as f64 / (samples - 1) as f64;
                 let k = (x.floor() as usize).min(cut - 2);
@@ -222,6 +259,7 @@ impl BreathLog {
             self.last_n = samples;
             self.last_ticks = cut as u32;
             self.last_peak = top as u32;
+            self.last_depth_ml = hi - lo;
             self.breaths += 1;
             self.generation += 1;
         }

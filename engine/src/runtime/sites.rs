@@ -35,6 +35,8 @@ pub struct SiteRun {
     pub ticks: Vec<SiteTick>,
     /// The states, in order (decoded from their wire bytes).
     pub states: Vec<ControlState>,
+    /// How late the patient's turns reached the site (as `remote join` reports it).
+    pub turn_lag: super::remote::TurnLag,
 }
 
 /// Run `source` over `ticks` ticks with `frame(tick)` as its input, publishing a control state as
@@ -84,11 +86,7 @@ pub fn follow(
             };
             let s = source.control_state(tick, stamp, &[])?;
             let p = control_state::Packet::State(s);
-            let wire =
-                control_state::encode_to_vec(&p).map_err(|e| RemoteStateError::Implausible {
-                    side: "either",
-                    reason: e.to_string(),
-                })?;
+            let wire = control_state::encode_to_vec(&p)?;
             if let Ok(control_state::Packet::State(s)) = control_state::decode(&wire) {
                 states.push(s);
             }
@@ -112,7 +110,11 @@ pub fn follow(
             site_state: f[1].state,
         });
     }
-    Ok(SiteRun { ticks: out, states })
+    Ok(SiteRun {
+        ticks: out,
+        states,
+        turn_lag: site.patient_turn_lag(),
+    })
 }
 
 /// Replays `samples` (times from their first, ns) as a tracker bridge does: each tick's frame
