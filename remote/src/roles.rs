@@ -802,29 +802,11 @@ pub fn join(args: &JoinArgs) -> Result<(), RemoteError> {
         .ok_or_else(|| RemoteError::Usage("the site's runner was taken".into()))?;
     let mut first = true;
     let mut rate_word = "unknown";
-    // Whether the site plays the source's patient's breath (a source following a live signal).
-    let mut patient = false;
-    let (mut patient_breaths, mut span) = (0, 0);
+    let mut patient = PatientWatch::default();
     while !transport::stop::requested() && until.is_none_or(|t| now_ns() < t) {
         let now = now_ns();
         if runner.poll(now)?.is_some() {
-            let live = runner.core().remote_live().map(|l| l.breaths());
-            if live.is_some() != patient {
-                patient = live.is_some();
-                patient_breaths += std::mem::take(&mut span);
-                eprintln!(
-                    "remote join[{}]: {}",
-                    instance.name(),
-                    if patient {
-                        "breathing with the source's patient (the source follows a live \
-                         respiratory signal): each breath plays the patient's previous one from \
-                         the patient's last turn"
-                    } else {
-                        "the source's model breathes (its patient's signal is calibrating or lost)"
-                    }
-                );
-            }
-            span = live.unwrap_or(span);
+            patient.see(&instance, runner.core());
             if first {
                 first = false;
                 eprintln!(
@@ -853,20 +835,7 @@ pub fn join(args: &JoinArgs) -> Result<(), RemoteError> {
         std::thread::sleep(Duration::from_nanos(wake as u64));
     }
     say_join_counts(&instance, &site, &net);
-    patient_breaths += span;
-    if patient_breaths > 0 {
-        let lag = runner.core().patient_turn_lag();
-        eprintln!(
-            "remote join[{}]: {patient_breaths} of the patient's breaths taken from the source; its \
-             turns reached this site {:.0} ms after they happened there on average, {:.0} ms at \
-             most ({} turns: the source's confirmation, the network, this site's schedule; \
-             `lungdyn breathing sites FILE` measures how far a site strays at each network delay)",
-            instance.name(),
-            lag.mean_ms(hz).unwrap_or(f64::NAN),
-            lag.max_ticks as f64 * 1e3 / hz,
-            lag.turns
-        );
-    }
+    patient.say(&instance, runner.core(), hz);
     // A site that never breathed the source's breath did not do its job: say why, exit non-zero.
     let c = &site.counts;
     let applied = c.applied.load(Ordering::Relaxed);
@@ -1019,6 +988,56 @@ impl LocalEvents {
             replies.publish(&r)?;
         }
         Ok(())
+    }
+}
+
+/// Whether a joined site plays the source's patient's breath (a source following a live signal),
+/// said when it starts and stops, and the breaths taken.
+#[derive(Default)]
+struct PatientWatch {
+    following: bool,
+    /// Breaths of the spans ended, and of the one under way.
+    breaths: u64,
+    span: u64,
+}
+
+impl PatientWatch {
+    fn see(&mut self, instance: &Instance, core: &engine::runtime::EngineCore) {
+        let live = core.remote_live().map(|l| l.breaths());
+        if live.is_some() != self.following {
+            self.following = live.is_some();
+            self.breaths += std::mem::take(&mut self.span);
+            eprintln!(
+                "remote join[{}]: {}",
+                instance.name(),
+                if self.following {
+                    "breathing with the source's patient (the source follows a live respiratory \
+                     signal): each breath plays the patient's previous one from the patient's last \
+                     turn"
+                } else {
+                    "the source's model breathes (its patient's signal is calibrating or lost)"
+                }
+            );
+        }
+        self.span = live.unwrap_or(self.span);
+    }
+
+    fn say(&self, instance: &Instance, core: &engine::runtime::EngineCore, hz: f64) {
+        let breaths = self.breaths + self.span;
+        if breaths == 0 {
+            return;
+        }
+        let lag = core.patient_turn_lag();
+        eprintln!(
+            "remote join[{}]: {breaths} of the patient's breaths taken from the source; its turns \
+             reached this site {:.0} ms after they happened there on average, {:.0} ms at most ({} \
+             turns: the source's confirmation, the network, this site's schedule; `lungdyn \
+             breathing sites FILE` measures how far a site strays at each network delay)",
+            instance.name(),
+            lag.mean_ms(hz).unwrap_or(f64::NAN),
+            lag.max_ticks as f64 * 1e3 / hz,
+            lag.turns
+        );
     }
 }
 
