@@ -539,3 +539,88 @@ impl SignalDrive {
         }
     }
 }
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    /// A ventilator-like breath of `period` ticks: `rise` ticks of inspiration to 500 ml, `hold`
+    /// ticks held there, a fall to 0 over `fall` ticks, then a pause at 0 (drifting up 0.2 ml a
+    /// tick); the follower's turns `lag` ticks after the patient's.
+    fn breath(k: u64, period: u64, hold: u64) -> (f64, bool) {
+        let (rise, fall) = (40, 60);
+        let t = k % period;
+        // The rise starts where the drifting pause ended: the pause's lowest is at its start.
+        let base = 0.2 * (period - rise - hold - fall) as f64;
+        if t < rise {
+            (base + (500.0 - base) * t as f64 / rise as f64, true)
+        } else if t < rise + hold {
+            (500.0, true)
+        } else if t < rise + hold + fall {
+            (
+                500.0 * (1.0 - (t - rise - hold) as f64 / fall as f64),
+                false,
+            )
+        } else {
+            (0.2 * (t - rise - hold - fall) as f64, false)
+        }
+    }
+
+    fn run(log: &mut BreathLog, from: u64, to: u64, period: u64, hold: u64, lag: u64) {
+        for k in from..to {
+            let (v, _) = breath(k, period, hold);
+            let (_, inhaling) = breath(k.saturating_sub(lag), period, hold);
+            log.take(k, v, inhaling);
+        }
+    }
+
+    /// Each turn is placed where the patient left the extreme — the end of the pause (not its
+    /// drifting start), the end of the hold — and the breath described is the previous one whole.
+    #[test]
+    fn turns_are_placed_where_the_patient_left_the_extreme() {
+        let mut log = BreathLog::new();
+        // Breaths of 240 ticks with a 30-tick hold; the follower's turns 8 ticks late.
+        run(&mut log, 0, 240 * 3 + 100, 240, 30, 8);
+        let live = log.live().expect("a whole breath");
+        assert_eq!(live.last_ticks, 240);
+        // The pause drifts up 0.2 ml a tick (28 ml over it, past the 25 ml band: 5 % of 500): the
+        // start is placed where the volume left the band — at the breath's start, within the
+        // band's 2 ticks of this rise — not 140 ticks earlier where the pause began.
+        assert!(live.start_tick.abs_diff(720) <= 2, "{live:?}");
+        // The previous breath's peak at the end of its hold (tick 70 of it; the band is 3 ticks of
+        // this fall), this one's announced there too.
+        assert!(live.last_peak.abs_diff(70) <= 3, "{live:?}");
+        assert!(live
+            .peak
+            .is_some_and(|(t, v)| t.abs_diff(790) <= 3 && v == 500.0));
+        assert_eq!(live.breath, 2);
+    }
+
+    /// A breath over a minute (an apnoea) is not described, and the one after it is, whole and in
+    /// place; a stop voids what the sites had.
+    #[test]
+    fn an_apnoea_over_a_minute_is_not_described_and_the_next_breath_is() {
+        let mut log = BreathLog::new();
+        run(&mut log, 0, 500, 240, 30, 8);
+        let before = log.live().expect("a whole breath").breath;
+        // An apnoea: the volume at 0 for 70 s, the follower exhaling.
+        for k in 500..500 + 70 * 60 {
+            log.take(k, 0.0, false);
+        }
+        let resume = 500 + 70 * 60;
+        // Breaths again, starting at `resume`.
+        for k in resume..resume + 240 * 3 {
+            let (v, _) = breath(k - resume, 240, 30);
+            let (_, inhaling) = breath((k - resume).saturating_sub(8), 240, 30);
+            log.take(k, v, inhaling);
+        }
+        let live = log.live().expect("described again");
+        assert_eq!(live.last_ticks, 240, "{live:?}");
+        assert!(live.start_tick.abs_diff(resume + 480) <= 2, "{live:?}");
+        assert!(live.breath > before);
+        let generation = log.generation;
+        log.stop();
+        assert!(log.live().is_none());
+        assert!(log.generation > generation, "the sites hear of it");
+    }
+}
