@@ -116,6 +116,14 @@ fn check_args(a: &SitesArgs) -> anyhow::Result<()> {
             );
         }
     }
+    if let Some(p) = &a.ticks_out {
+        // Written when the runs end: anything that would refuse it refuses before any work.
+        crate::outputs::check(&crate::outputs::Output {
+            flag: "--ticks-out",
+            path: p,
+            extensions: &["csv"],
+        })?;
+    }
     if !(a.tidal_ml.is_finite() && (50.0..=3000.0).contains(&a.tidal_ml)) {
         anyhow::bail!(
             "--tidal-ml {}: an adult's tidal volume is 300–800 ml, a child's from 50 (50…3000 accepted)",

@@ -202,13 +202,10 @@ pub struct StateOut<'a> {
 /// breaths' worth of queued actions.
 const WAITING_EVENTS: usize = 2 * super::disease::MAX_QUEUED_ACTIONS;
 
-/// The state publisher's bookkeeping: the last cycle starts and pending cycle published, the
-/// events not yet announced, the frame (4 KB, once).
+/// The state publisher's bookkeeping: what was last published ([`super::remote::StateSchedule`]),
+/// the events not yet announced, the frame (4 KB, once).
 struct StatePublisher {
-    starts: [u64; ipc_types::NUM_LUNGS],
-    pending: Option<u64>,
-    /// [`EngineCore::live_generation`] last published (the patient's breath, issue 35).
-    live: u64,
+    schedule: super::remote::StateSchedule,
     sequence: u64,
     frame: Box<ControlStateFrame>,
     /// Applied actions not yet announced, with the course cycle they show from.
@@ -223,9 +220,7 @@ struct StatePublisher {
 impl StatePublisher {
     fn new() -> Self {
         Self {
-            starts: [u64::MAX; ipc_types::NUM_LUNGS],
-            pending: None,
-            live: 0,
+            schedule: super::remote::StateSchedule::default(),
             sequence: 0,
             frame: Box::default(),
             waiting: Vec::with_capacity(WAITING_EVENTS),
@@ -252,23 +247,7 @@ impl StatePublisher {
         resync: bool,
         out: &mut StateOut<'_>,
     ) -> Result<(), EngineError> {
-        let mut changed = resync;
-        for (k, start) in core.cycle_starts().enumerate().take(self.starts.len()) {
-            if self.starts[k] != start {
-                self.starts[k] = start;
-                changed = true;
-            }
-        }
-        let live = core.live_generation();
-        if live != self.live {
-            self.live = live;
-            changed = true;
-        }
-        let pending = core.pending_course();
-        if pending != self.pending {
-            self.pending = pending;
-            changed |= pending.is_some();
-        }
+        let changed = self.schedule.changed(core) || resync;
         let ready = |(_, course): &(control_state::RemoteEvent, u64)| {
             core.course_cycle_start(*course).is_some()
         };

@@ -300,6 +300,52 @@ impl Prepared {
     }
 }
 
+/// When a source's control state must go out: a lung started a cycle, the patient's breath moved
+/// (a new turn, or the signal no longer driving: a source following a live signal), or a disease
+/// cycle was prepared (announced before it starts, so every site puts it in at the same tick). The
+/// engine process and [`super::sites::follow`] decide alike. A few compares, no allocation.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub struct StateSchedule {
+    starts: [u64; ipc_types::NUM_LUNGS],
+    pending: Option<u64>,
+    live: u64,
+}
+
+impl Default for StateSchedule {
+    fn default() -> Self {
+        Self {
+            starts: [u64::MAX; ipc_types::NUM_LUNGS],
+            pending: None,
+            live: 0,
+        }
+    }
+}
+
+impl StateSchedule {
+    /// Whether `core` changed since the last call in a way its sites must hear of now (the first
+    /// call always: no cycle start has been sent).
+    pub fn changed(&mut self, core: &EngineCore) -> bool {
+        let mut changed = false;
+        for (k, start) in core.cycle_starts().enumerate().take(self.starts.len()) {
+            if self.starts[k] != start {
+                self.starts[k] = start;
+                changed = true;
+            }
+        }
+        let live = core.live_generation();
+        if live != self.live {
+            self.live = live;
+            changed = true;
+        }
+        let pending = core.pending_course();
+        if pending != self.pending {
+            self.pending = pending;
+            changed |= pending.is_some();
+        }
+        changed
+    }
+}
+
 /// Ticks over which a site's breath moves onto a newly announced patient turn (200 ms at 60 Hz):
 /// the difference between the breath it played and the new one fades out instead of jumping.
 pub const REALIGN_TICKS: u64 = 12;
@@ -332,9 +378,9 @@ pub struct RemoteLive {
 pub struct TurnLag {
     /// Turns heard.
     pub turns: u64,
-    /// Sum and largest of their lags, ticks.
+    /// The sum of their lags, ticks.
     pub sum_ticks: u64,
-    /// Largest.
+    /// The largest, ticks.
     pub max_ticks: u64,
 }
 
@@ -373,11 +419,6 @@ impl RemoteLive {
     /// The patient breaths taken from the source so far.
     pub fn breaths(&self) -> u64 {
         self.breaths
-    }
-
-    /// The breath the site plays.
-    pub fn breath(&self) -> &LiveBreath {
-        &self.breath
     }
 
     /// Drive every lung with the patient's breath at `tick`; the state bits. No allocation.

@@ -8,7 +8,7 @@ use control_state::ControlState;
 use ipc_types::{signal_status, EngineFrame, SignalWire, TrackerFrame, MAX_SIGNAL_SAMPLES};
 use lung_model::breathing::SignalSample;
 
-use super::remote::{BreathCache, Prepared, RemoteStateError, StateStamp};
+use super::remote::{BreathCache, Prepared, RemoteStateError, StateSchedule, StateStamp};
 use super::EngineCore;
 
 /// One tick of a source and its sites: each one's volume above FRC (both lungs, ml) and state bits.
@@ -39,8 +39,8 @@ pub struct SiteRun {
     pub turn_lag: super::remote::TurnLag,
 }
 
-/// Run `source` over `ticks` ticks with `frame(tick)` as its input, publishing a control state as
-/// the engine's process does (a lung's cycle start, or the patient's breath); `site` gets each state
+/// Run `source` over `ticks` ticks with `frame(tick)` as its input, publishing a control state when
+/// the engine's process does ([`StateSchedule`]); `site` gets each state
 /// `delay_ticks` after its tick (over the wire: encoded and decoded), and `model_site`, a copy of
 /// `site`, gets it without the patient's breath. Both sites follow the source only
 /// ([`EngineCore::follow_remote`]). Both engines tick at `tick_hz` (the scene's).
@@ -59,8 +59,7 @@ pub fn follow(
     let mut cache = BreathCache::default();
     let mut f = [EngineFrame::default(); 3];
     let mut states: Vec<ControlState> = Vec::new();
-    let mut starts: Vec<u64> = Vec::new();
-    let mut live = 0;
+    let mut schedule = StateSchedule::default();
     let mut next = 0;
     let mut out = Vec::with_capacity(ticks as usize);
     let volume = |f: &EngineFrame| -> f64 {
@@ -73,10 +72,7 @@ pub fn follow(
     };
     for tick in 0..ticks {
         source.step(tick, Some(&frame(tick)), &mut f[0]);
-        let now: Vec<u64> = source.cycle_starts().collect();
-        if now != starts || source.live_generation() != live {
-            starts = now;
-            live = source.live_generation();
+        if schedule.changed(&source) {
             let stamp = StateStamp {
                 source: 1,
                 epoch: 1,
