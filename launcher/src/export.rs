@@ -26,8 +26,13 @@
 //! facing the viewer, their left on the viewer's right. The map is a reflection, so every triangle's
 //! corners are reversed to stay counter-clockwise seen from outside.
 //!
-//! Normals are the first frame's (a morph target of normals too would double the file for a shading
-//! change a breath hardly shows).
+//! Each morph target moves the normals too (each frame's normals less the base's), so a viewer shades
+//! every frame by its own surface. The targets are quantised (`KHR_mesh_quantization`, required by
+//! the file): position differences as 16-bit normalised integers of a metre (a step of 0.03 mm),
+//! normal differences as 8-bit ones (a step of 1/127): 12 bytes per vertex and frame, what the
+//! positions alone cost as floats. A target whose differences leave −1…1 is written as floats
+//! instead (counted in the report). `--float-targets` writes every target as floats, for a reader
+//! without the extension (twice the size).
 
 use std::path::PathBuf;
 use std::time::Instant;
@@ -43,6 +48,10 @@ use lung_model::scene::Scene;
 use lung_model::scene::SceneExt;
 use renderer::deform::RenderLung;
 use serde::Serialize;
+
+/// The glTF extension quantised morph targets need (readers without it must refuse the file, so it
+/// is required as well as used).
+const QUANTIZATION: &str = "KHR_mesh_quantization";
 
 /// Frames per breath when `--frames` is not given.
 pub const DEFAULT_FRAMES: u32 = 24;
@@ -83,9 +92,39 @@ pub struct GltfArgs {
     /// and reused by later runs).
     #[arg(long, default_value = "out/kernels")]
     pub kernels: PathBuf,
+    /// Write the morph targets as 32-bit floats, without `KHR_mesh_quantization` (about twice the
+    /// file), for a reader that lacks that extension. By default position differences are 16-bit
+    /// and normal differences 8-bit normalised integers.
+    #[arg(long)]
+    pub float_targets: bool,
     /// Print one JSON object on stdout.
     #[arg(long)]
     pub json: bool,
+}
+
+/// How the morph targets were stored, and what quantising them cost.
+#[derive(Debug, Clone, Default, Serialize)]
+pub struct TargetsExport {
+    /// "quantized" (`KHR_mesh_quantization`: position differences 16-bit, normal differences
+    /// 8-bit normalised integers) or "float".
+    pub encoding: &'static str,
+    /// The largest distance between a vertex as written and as computed, over every frame, mm.
+    pub position_error_max_mm: f64,
+    /// The largest angle between a normal as a viewer rebuilds it (the base's plus the target's,
+    /// made unit) and as computed, over every frame, degrees.
+    pub normal_error_max_deg: f64,
+    /// Targets (positions or normals of one frame) written as floats although quantised was asked
+    /// for: a difference outside −1…1.
+    pub kept_float: usize,
+}
+
+/// Bytes a morph target costs per vertex: position and normal differences.
+fn target_bytes(float_targets: bool) -> u64 {
+    if float_targets {
+        24
+    } else {
+        12
+    }
 }
 
 /// What `lungdyn export gltf` wrote.
@@ -111,6 +150,8 @@ pub struct GltfReport {
     pub tumour: Option<TumourExport>,
     /// The lungs' opacity (1: opaque).
     pub opacity: f32,
+    /// The morph targets' storage.
+    pub targets: TargetsExport,
     /// Wall-clock seconds (preparing the kernels included).
     pub seconds: f64,
 }
@@ -190,7 +231,9 @@ pub fn run(args: &GltfArgs) -> anyhow::Result<GltfReport> {
         .iter()
         .filter(|&&side| scene.lungs.kernels.get(side).is_none())
         .count() as u64;
-    let early = generated * scene.lungs.vertices as u64 * 12 * (u64::from(args.frames) + 1);
+    let early = generated
+        * scene.lungs.vertices as u64
+        * (12 + target_bytes(args.float_targets) * u64::from(args.frames));
     if early > MAX_FILE_BYTES {
         anyhow::bail!(
             "the file would be more than {:.1} GB ({} frames of {generated} × {} vertices): at most \
@@ -215,7 +258,7 @@ pub fn run(args: &GltfArgs) -> anyhow::Result<GltfReport> {
             .with_context(|| format!("the {} lung's kernel", side.name()))?;
         loaded.push(lung);
     }
-    check_size(&loaded, args.frames)?;
+    check_size(&loaded, args.frames, args.float_targets)?;
     let lungs = loaded
         .into_iter()
         .map(|lung| deformed_frames(&lung, &breath.frames).map(|p| (lung, p)))
@@ -241,9 +284,17 @@ pub fn run(args: &GltfArgs) -> anyhow::Result<GltfReport> {
         opacity: args
             .opacity
             .unwrap_or(if tumour.is_some() { 0.5 } else { 1.0 }),
+        targets: TargetsExport {
+            encoding: if args.float_targets {
+                "float"
+            } else {
+                "quantized"
+            },
+            ..Default::default()
+        },
         seconds: 0.0,
     };
-    let glb = build(&name, &report, &breath, &lungs, tumour.as_ref())?;
+    let glb = build(&name, &mut report, &breath, &lungs, tumour.as_ref())?;
     outfile::write_atomically(&args.out, |w| {
         use std::io::Write;
         w.write_all(&glb)
@@ -255,13 +306,13 @@ pub fn run(args: &GltfArgs) -> anyhow::Result<GltfReport> {
 }
 
 /// Refuse a file past [`MAX_FILE_BYTES`] before computing its frames (each frame after the first
-/// costs 12 bytes per vertex; GLB cannot hold more than 4 GiB).
-fn check_size(lungs: &[RenderLung], frames: u32) -> anyhow::Result<()> {
+/// costs [`target_bytes`] per vertex; GLB cannot hold more than 4 GiB).
+fn check_size(lungs: &[RenderLung], frames: u32, float_targets: bool) -> anyhow::Result<()> {
     let estimate: u64 = lungs
         .iter()
         .map(|l| {
             let (v, t) = (l.lung.len() as u64, l.lung.triangles.len() as u64);
-            v * 12 * (u64::from(frames) + 1) + t * 12
+            v * (24 + target_bytes(float_targets) * u64::from(frames)) + t * 12
         })
         .sum();
     if estimate > MAX_FILE_BYTES {
@@ -737,14 +788,26 @@ fn tumour_track(
 struct Doc {
     root: json::Root,
     bin: Vec<u8>,
+    /// Whether a quantised accessor was written (the file then requires `KHR_mesh_quantization`).
+    quantized: bool,
 }
 
 impl Doc {
-    /// A buffer view over `bytes` (appended at a 4-byte boundary).
+    fn new() -> Self {
+        Doc {
+            root: json::Root::default(),
+            bin: Vec::new(),
+            quantized: false,
+        }
+    }
+
+    /// A buffer view over `bytes` (appended at a 4-byte boundary), with `stride` bytes between
+    /// elements where they are padded.
     fn view(
         &mut self,
         bytes: &[u8],
         target: Option<json::buffer::Target>,
+        stride: Option<usize>,
     ) -> json::Index<json::buffer::View> {
         while self.bin.len() % 4 != 0 {
             self.bin.push(0);
@@ -755,7 +818,7 @@ impl Doc {
             buffer: json::Index::new(0),
             byte_length: USize64::from(bytes.len()),
             byte_offset: Some(USize64::from(offset)),
-            byte_stride: None,
+            byte_stride: stride.map(json::buffer::Stride),
             name: None,
             target: target.map(Valid),
             extensions: None,
@@ -763,7 +826,8 @@ impl Doc {
         })
     }
 
-    /// An accessor of `count` elements of `type_` over a new view of `bytes`.
+    /// An accessor of `count` elements of `type_` over a new view of `bytes`; `normalized` gives
+    /// the padded elements' stride of normalised integers.
     #[allow(clippy::too_many_arguments)]
     fn accessor(
         &mut self,
@@ -773,9 +837,10 @@ impl Doc {
         component: json::accessor::ComponentType,
         type_: json::accessor::Type,
         bounds: Option<(serde_json::Value, serde_json::Value)>,
+        normalized: Option<usize>,
         name: &str,
     ) -> json::Index<json::Accessor> {
-        let view = self.view(bytes, target);
+        let view = self.view(bytes, target, normalized);
         let (min, max) = bounds.map_or((None, None), |(a, b)| (Some(a), Some(b)));
         self.root.push(json::Accessor {
             buffer_view: Some(view),
@@ -788,7 +853,7 @@ impl Doc {
             min,
             max,
             name: Some(name.to_string()),
-            normalized: false,
+            normalized: normalized.is_some(),
             sparse: None,
         })
     }
@@ -820,8 +885,70 @@ impl Doc {
             json::accessor::ComponentType::F32,
             json::accessor::Type::Vec3,
             bounds,
+            None,
             name,
         )
+    }
+
+    /// Morph-target differences as signed normalised integers (`KHR_mesh_quantization`): 16-bit
+    /// (`wide`: elements of 8 bytes, 2 of them padding, a step of 1/32767) or 8-bit (4 bytes, 1
+    /// padding, a step of 1/127), each element on 4 bytes as glTF asks of vertex attributes; the
+    /// bounds, where asked, the stored integers (glTF's min and max are never normalised). Returns
+    /// the accessor and the values a viewer decodes, or None where a difference lies outside −1…1
+    /// (or is not finite), which normalised integers cannot hold.
+    fn vec3_normalized(
+        &mut self,
+        v: &[[f32; 3]],
+        wide: bool,
+        bounded: bool,
+        name: &str,
+    ) -> Option<(json::Index<json::Accessor>, Vec<[f32; 3]>)> {
+        if v.iter().flatten().any(|x| !x.is_finite() || x.abs() > 1.0) {
+            return None;
+        }
+        let scale = if wide { 32767.0f32 } else { 127.0 };
+        let q: Vec<[i16; 3]> = v
+            .iter()
+            .map(|p| p.map(|x| (x * scale).round().clamp(-scale, scale) as i16))
+            .collect();
+        let decoded = q
+            .iter()
+            .map(|c| c.map(|k| (f32::from(k) / scale).max(-1.0)))
+            .collect();
+        let (stride, component) = if wide {
+            (8, json::accessor::ComponentType::I16)
+        } else {
+            (4, json::accessor::ComponentType::I8)
+        };
+        let mut bytes = Vec::with_capacity(v.len() * stride);
+        for c in &q {
+            for &k in c {
+                if wide {
+                    bytes.extend_from_slice(&k.to_le_bytes());
+                } else {
+                    bytes.push(k as i8 as u8);
+                }
+            }
+            let used = if wide { 6 } else { 3 };
+            bytes.resize(bytes.len() + stride - used, 0);
+        }
+        let bounds = bounded.then(|| {
+            let lo = [0, 1, 2].map(|a| q.iter().map(|c| c[a]).min().unwrap_or(0));
+            let hi = [0, 1, 2].map(|a| q.iter().map(|c| c[a]).max().unwrap_or(0));
+            (serde_json::json!(lo), serde_json::json!(hi))
+        });
+        self.quantized = true;
+        let acc = self.accessor(
+            &bytes,
+            Some(json::buffer::Target::ArrayBuffer),
+            v.len(),
+            component,
+            json::accessor::Type::Vec3,
+            bounds,
+            Some(stride),
+            name,
+        );
+        Some((acc, decoded))
     }
 
     /// Scalar floats (an animation's key times carry their bounds).
@@ -839,6 +966,7 @@ impl Doc {
             json::accessor::ComponentType::F32,
             json::accessor::Type::Scalar,
             bounds,
+            None,
             name,
         )
     }
@@ -870,6 +998,7 @@ impl Doc {
             tris.len() * 3,
             component,
             json::accessor::Type::Scalar,
+            None,
             None,
             name,
         )
@@ -916,15 +1045,12 @@ fn node(name: &str) -> json::Node {
 /// The `.glb` bytes: the lungs, the tumour, the breath's animation and the metadata.
 fn build(
     name: &str,
-    report: &GltfReport,
+    report: &mut GltfReport,
     breath: &Breath,
     lungs: &[(RenderLung, Vec<Vec<[f32; 3]>>)],
     tumour: Option<&TumourTrack>,
 ) -> anyhow::Result<Vec<u8>> {
-    let mut doc = Doc {
-        root: json::Root::default(),
-        bin: Vec::new(),
-    };
+    let mut doc = Doc::new();
     // Key times: each frame, then the breath's end showing the first frame again (seamless loop).
     let mut keys = breath.times_s.clone();
     keys.push(breath.period_s as f32);
@@ -937,6 +1063,7 @@ fn build(
         samplers: Vec::new(),
     };
     let mut children = Vec::new();
+    let float_targets = report.targets.encoding == "float";
     for (lung, frames) in lungs {
         let n = lung_node(
             &mut doc,
@@ -944,10 +1071,18 @@ fn build(
             frames,
             breath,
             report.opacity,
-            input,
+            (input, float_targets),
             &mut animation,
+            &mut report.targets,
         )?;
         children.push(n);
+    }
+    let t = &mut report.targets;
+    t.position_error_max_mm = (t.position_error_max_mm * 1e4).ceil() / 1e4;
+    t.normal_error_max_deg = (t.normal_error_max_deg * 1e3).ceil() / 1e3;
+    if doc.quantized {
+        doc.root.extensions_used = vec![QUANTIZATION.to_string()];
+        doc.root.extensions_required = vec![QUANTIZATION.to_string()];
     }
     if let Some(t) = tumour {
         children.push(tumour_node(&mut doc, t, input, &mut animation));
@@ -998,16 +1133,20 @@ fn build(
 }
 
 /// One lung: its mesh (base, normals, one morph target per later frame, a primitive per lobe), its
-/// node, and its weights' channel in `animation`.
+/// node, and its weights' channel in `animation` (on the key times `keys.0`; `keys.1`: every target
+/// as floats). What quantising cost is added to `cost`.
+#[allow(clippy::too_many_arguments)]
 fn lung_node(
     doc: &mut Doc,
     lung: &RenderLung,
     frames: &[Vec<[f32; 3]>],
     breath: &Breath,
     opacity: f32,
-    input: json::Index<json::Accessor>,
+    keys: (json::Index<json::Accessor>, bool),
     animation: &mut json::Animation,
+    cost: &mut TargetsExport,
 ) -> anyhow::Result<json::Index<json::Node>> {
+    let (input, float_targets) = keys;
     let side = lung.side.name();
     let split = LobeSplit::of(lung);
     let base: Vec<[f32; 3]> = split
@@ -1015,14 +1154,18 @@ fn lung_node(
         .into_iter()
         .map(body_to_gltf)
         .collect();
-    let mut normals = vec![[0.0f32; 3]; lung.lung.len()];
-    lung.lung.normals_into(&frames[0], &mut normals);
-    // An added vertex's normal: the mean of its corners', made unit again.
-    let normals: Vec<[f32; 3]> = split
-        .extend(&normals)
-        .into_iter()
-        .map(unit_gltf_direction)
-        .collect();
+    // Each frame's unit normals in glTF's axes; an added vertex's: the mean of its corners', made
+    // unit again.
+    let mut scratch = vec![[0.0f32; 3]; lung.lung.len()];
+    let mut normals_of = |f: &[[f32; 3]]| -> Vec<[f32; 3]> {
+        lung.lung.normals_into(f, &mut scratch);
+        split
+            .extend(&scratch)
+            .into_iter()
+            .map(unit_gltf_direction)
+            .collect()
+    };
+    let normals = normals_of(&frames[0]);
     let position = doc.vec3(&base, true, true, &format!("{side} lung: first frame (m)"));
     let normal = doc.vec3(&normals, true, false, &format!("{side} lung: normals"));
     let mut targets = Vec::new();
@@ -1037,6 +1180,12 @@ fn lung_node(
                 [g[0] - b[0], g[1] - b[1], g[2] - b[2]]
             })
             .collect();
+        let frame_normals = normals_of(f);
+        let turn: Vec<[f32; 3]> = frame_normals
+            .iter()
+            .zip(&normals)
+            .map(|(n, n0)| [n[0] - n0[0], n[1] - n0[1], n[2] - n0[2]])
+            .collect();
         let name = format!(
             "frame {} of {}, {:.2} s, {:.0} ml",
             k + 1,
@@ -1044,10 +1193,35 @@ fn lung_node(
             breath.times_s[k],
             breath.frames[k].lungs[lung.side.index()].volume_ml
         );
-        let acc = doc.vec3(&delta, true, true, &format!("{side} lung: {name}"));
+        let positions = target(
+            doc,
+            &delta,
+            (true, float_targets),
+            cost,
+            &format!("{side} lung: {name}"),
+        );
+        let turned = target(
+            doc,
+            &turn,
+            (false, float_targets),
+            cost,
+            &format!("{side} lung: {name}, normals"),
+        );
+        for (i, d) in positions.1.iter().enumerate() {
+            let e = (0..3)
+                .map(|a| (d[a] - delta[i][a]).powi(2))
+                .sum::<f32>()
+                .sqrt();
+            cost.position_error_max_mm = cost.position_error_max_mm.max(f64::from(e) * 1e3);
+        }
+        for (i, d) in turned.1.iter().enumerate() {
+            let rebuilt = [0, 1, 2].map(|a| normals[i][a] + d[a]);
+            let angle = angle_deg(rebuilt, frame_normals[i]);
+            cost.normal_error_max_deg = cost.normal_error_max_deg.max(angle);
+        }
         targets.push(json::mesh::MorphTarget {
-            positions: Some(acc),
-            normals: None,
+            positions: Some(positions.0),
+            normals: Some(turned.0),
             tangents: None,
         });
         target_names.push(name);
@@ -1099,6 +1273,44 @@ fn lung_node(
         json::animation::Property::MorphTargetWeights,
     );
     Ok(n)
+}
+
+/// One morph target's differences (`kind.0`: positions, bounded and 16-bit; else normals, 8-bit):
+/// quantised unless `kind.1` asks for floats or a difference leaves −1…1 (then counted in
+/// `cost.kept_float`). Returns the accessor and the values a viewer decodes.
+fn target(
+    doc: &mut Doc,
+    v: &[[f32; 3]],
+    kind: (bool, bool),
+    cost: &mut TargetsExport,
+    name: &str,
+) -> (json::Index<json::Accessor>, Vec<[f32; 3]>) {
+    let (positions, float_targets) = kind;
+    if !float_targets {
+        if let Some(q) = doc.vec3_normalized(v, positions, positions, name) {
+            return q;
+        }
+        cost.kept_float += 1;
+    }
+    (doc.vec3(v, true, positions, name), v.to_vec())
+}
+
+/// The angle between two directions (neither need be unit), degrees; 0 where either is zero.
+fn angle_deg(a: [f32; 3], b: [f32; 3]) -> f64 {
+    let a = a.map(f64::from);
+    let b = b.map(f64::from);
+    let dot = a[0] * b[0] + a[1] * b[1] + a[2] * b[2];
+    let cross = [
+        a[1] * b[2] - a[2] * b[1],
+        a[2] * b[0] - a[0] * b[2],
+        a[0] * b[1] - a[1] * b[0],
+    ];
+    let sin = (cross[0] * cross[0] + cross[1] * cross[1] + cross[2] * cross[2]).sqrt();
+    if sin == 0.0 && dot == 0.0 {
+        0.0
+    } else {
+        sin.atan2(dot).to_degrees()
+    }
 }
 
 fn push_channel(
@@ -1220,11 +1432,12 @@ fn metadata(
             "lungs": report.lungs,
             "tumour": report.tumour,
             "opacity": report.opacity,
+            "targets": report.targets,
             "frame": "glTF metres: +X patient left, +Y superior, +Z anterior (lungdyn's body frame \
                       (X, Y, Z) mm → glTF (X, Z, Y) / 1000)",
             "animation": "'breath': key 0 shows frame 0 (the base mesh, every weight 0), key k > 0 \
                           frame k (weight 1 on morph target k - 1), the last key frame 0 again; \
-                          linear between keys",
+                          linear between keys; each target moves positions and normals",
         }
     })
 }
@@ -1266,6 +1479,23 @@ pub fn text(r: &GltfReport) -> String {
             t.side, t.radii_mm, t.motion_mm[0], t.motion_mm[1], t.motion_mm[2]
         );
     }
+    let t = &r.targets;
+    s += &if t.encoding == "float" {
+        "  morph targets (positions and normals) as 32-bit floats\n".to_string()
+    } else {
+        format!(
+            "  morph targets quantised (KHR_mesh_quantization: position differences 16-bit, normal \
+             differences 8-bit): vertices within {:.3} mm, normals within {:.2}° of the engine's{}; \
+             --float-targets for a viewer without the extension\n",
+            t.position_error_max_mm,
+            t.normal_error_max_deg,
+            if t.kept_float > 0 {
+                format!(" ({} targets kept as floats: differences past ±1)", t.kept_float)
+            } else {
+                String::new()
+            }
+        )
+    };
     if r.opacity < 1.0 {
         s += &format!(
             "  the lungs are see-through (opacity {}; --opacity 1 for opaque)\n",
@@ -1469,10 +1699,7 @@ mod tests {
             (65_535usize, 2usize, json::accessor::ComponentType::U16),
             (70_000, 4, json::accessor::ComponentType::U32),
         ] {
-            let mut doc = Doc {
-                root: json::Root::default(),
-                bin: Vec::new(),
-            };
+            let mut doc = Doc::new();
             let a = doc.indices(&tris, vertices, "t");
             let acc = &doc.root.accessors[a.value()];
             assert_eq!(acc.count.0, 6);
@@ -1492,10 +1719,7 @@ mod tests {
 
     #[test]
     fn position_bounds_are_the_datas_own_and_every_view_starts_on_four_bytes() {
-        let mut doc = Doc {
-            root: json::Root::default(),
-            bin: Vec::new(),
-        };
+        let mut doc = Doc::new();
         doc.indices(&[[0, 1, 2]], 3, "odd: 6 bytes");
         let a = doc.vec3(&[[1.0, -2.0, 0.5], [-1.0, 3.0, 0.25]], true, true, "p");
         let acc = &doc.root.accessors[a.value()];
@@ -1504,5 +1728,52 @@ mod tests {
         for v in &doc.root.buffer_views {
             assert_eq!(v.byte_offset.map_or(0, |o| o.0) % 4, 0);
         }
+    }
+
+    /// Quantised differences: each element padded to 4 or 8 bytes (the view's stride says so), the
+    /// integers rounded to nearest and decoded within half a step, the bounds the stored integers;
+    /// a difference past ±1 or not finite is refused (the caller writes floats), and nothing is
+    /// written for it.
+    #[test]
+    fn quantised_differences_are_padded_rounded_and_bounded_by_their_integers() {
+        let mut doc = Doc::new();
+        let v = [[0.5, -1.0, 1.0], [0.001, -0.0042, 0.0]];
+        for (wide, stride, scale) in [(true, 8usize, 32767.0f32), (false, 4, 127.0)] {
+            let start = doc.bin.len().next_multiple_of(4);
+            let (a, decoded) = doc.vec3_normalized(&v, wide, true, "d").unwrap();
+            let acc = &doc.root.accessors[a.value()];
+            assert!(acc.normalized);
+            let view = &doc.root.buffer_views[acc.buffer_view.unwrap().value()];
+            assert_eq!(view.byte_stride.map(|s| s.0), Some(stride));
+            assert_eq!(view.byte_length.0 as usize, 2 * stride);
+            let s = scale as i64;
+            let (lo, hi) = (
+                (0.0042 * scale).round() as i64,
+                (0.001 * scale).round() as i64,
+            );
+            assert_eq!(acc.min, Some(serde_json::json!([hi, -s, 0])));
+            assert_eq!(acc.max, Some(serde_json::json!([s / 2 + 1, -lo, s])));
+            for (d, x) in decoded.iter().flatten().zip(v.iter().flatten()) {
+                assert!((d - x).abs() <= 0.5 / scale + 1e-7, "{d} for {x}");
+            }
+            // The second element starts a stride after the first, its padding zero.
+            let second = &doc.bin[start + stride..start + 2 * stride];
+            assert!(second[stride - if wide { 2 } else { 1 }..]
+                .iter()
+                .all(|&b| b == 0));
+        }
+        assert!(doc.quantized);
+        let views = doc.root.buffer_views.len();
+        assert!(doc
+            .vec3_normalized(&[[1.01, 0.0, 0.0]], true, true, "past one")
+            .is_none());
+        assert!(doc
+            .vec3_normalized(&[[f32::NAN, 0.0, 0.0]], false, false, "nan")
+            .is_none());
+        assert_eq!(
+            doc.root.buffer_views.len(),
+            views,
+            "nothing written for a refused target"
+        );
     }
 }

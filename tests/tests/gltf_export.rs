@@ -1,8 +1,12 @@
 //! `lungdyn export gltf` judged from outside (issue 38 item 2): one breath of the tumour scene
 //! (both lungs with their lobes and the tumour) written as .glb, then
-//! * read back with the `gltf` crate's reader: every frame rebuilt from the base and its morph
+//! * read back with the `gltf` crate's reader (its accessors; the quantised morph targets decoded
+//!   here as `KHR_mesh_quantization` defines them, checked against the crate's own reading of the
+//!   same breath written with `--float-targets`): every frame rebuilt from the base and its morph
 //!   target encloses the volume the engine gave that frame (a wrong target, a lost frame or an
-//!   inward winding shows), normals point outward, the right lung on the patient's right (−x), the
+//!   inward winding shows), every frame's normals are that frame's surface's (a target without
+//!   normals, or normals of the wrong frame, shows), normals point outward, the right lung on the
+//!   patient's right (−x), the
 //!   tumour inside it with its ellipsoid's volume; the animation's keys, weights and the tumour's
 //!   path read back as a viewer plays them;
 //! * judged by the Khronos glTF validator (npm `gltf-validator`): no error, no warning;
@@ -32,40 +36,109 @@ struct Exported {
     dir: PathBuf,
 }
 
-/// The tumour scene at 2000 vertices per lung, exported once for the tests of this file.
+/// The tumour scene at 2000 vertices per lung, exported once for the tests of this file (its morph
+/// targets quantised, the default).
 fn exported() -> &'static Exported {
     static ONCE: OnceLock<Exported> = OnceLock::new();
     ONCE.get_or_init(|| {
         let dir = std::env::temp_dir().join(format!("lungdyn-gltf-{}", std::process::id()));
         let _ = std::fs::remove_dir_all(&dir);
         std::fs::create_dir_all(&dir).unwrap();
-        let glb = dir.join("breath.glb");
-        let scene = workspace_root().join("scenes/tumour_right_lower.toml");
-        let frames = FRAMES.to_string();
-        let (ok, out, err) = lungdyn(&[
-            "export",
-            "gltf",
-            "--scene",
-            scene.to_str().unwrap(),
-            "--vertices",
-            "2000",
-            "--frames",
-            &frames,
-            "--out",
-            glb.to_str().unwrap(),
-            "--kernels",
-            dir.join("kernels").to_str().unwrap(),
-            "--json",
-        ]);
-        assert!(ok, "export gltf failed: {err}");
-        let report: serde_json::Value = serde_json::from_str(out.trim()).expect("--json");
-        Exported { glb, report, dir }
+        export(&dir, "breath.glb", &[])
     })
 }
 
-/// The file as the `gltf` crate's reader sees it (its own GLB parsing and validation).
+/// The same breath with `--float-targets` (the kernels [`exported`] baked reused).
+fn exported_float() -> &'static Exported {
+    static ONCE: OnceLock<Exported> = OnceLock::new();
+    ONCE.get_or_init(|| export(&exported().dir, "float.glb", &["--float-targets"]))
+}
+
+fn export(dir: &Path, file: &str, extra: &[&str]) -> Exported {
+    let glb = dir.join(file);
+    let scene = workspace_root().join("scenes/tumour_right_lower.toml");
+    let frames = FRAMES.to_string();
+    let mut args = vec![
+        "export",
+        "gltf",
+        "--scene",
+        scene.to_str().unwrap(),
+        "--vertices",
+        "2000",
+        "--frames",
+        &frames,
+        "--out",
+        glb.to_str().unwrap(),
+        "--kernels",
+    ];
+    let kernels = dir.join("kernels");
+    args.push(kernels.to_str().unwrap());
+    args.push("--json");
+    args.extend_from_slice(extra);
+    let (ok, out, err) = lungdyn(&args);
+    assert!(ok, "export gltf failed: {err}");
+    let report: serde_json::Value = serde_json::from_str(out.trim()).expect("--json");
+    Exported {
+        glb,
+        report,
+        dir: dir.to_path_buf(),
+    }
+}
+
+/// An accessor's three-component values as a viewer decodes them: floats as stored, signed
+/// normalised integers (`KHR_mesh_quantization`) as max(c / (2^(bits − 1) − 1), −1), element by
+/// element at the view's stride.
+fn decode_vec3(acc: &gltf::Accessor, blob: &[u8]) -> Vec<[f32; 3]> {
+    use gltf::accessor::DataType;
+    assert_eq!(acc.dimensions(), gltf::accessor::Dimensions::Vec3);
+    let view = acc.view().expect("an accessor with a view");
+    let stride = view.stride().unwrap_or(acc.size());
+    let start = view.offset() + acc.offset();
+    (0..acc.count())
+        .map(|i| {
+            let e = &blob[start + i * stride..start + i * stride + acc.size()];
+            [0, 1, 2].map(|a| match (acc.data_type(), acc.normalized()) {
+                (DataType::F32, false) => {
+                    f32::from_le_bytes(e[4 * a..4 * a + 4].try_into().unwrap())
+                }
+                (DataType::I16, true) => {
+                    (f32::from(i16::from_le_bytes([e[2 * a], e[2 * a + 1]])) / 32767.0).max(-1.0)
+                }
+                (DataType::I8, true) => (f32::from(e[a] as i8) / 127.0).max(-1.0),
+                other => panic!("a morph target stored as {other:?}, which glTF does not allow"),
+            })
+        })
+        .collect()
+}
+
+/// Each morph target of `prim` as (position differences, normal differences), decoded.
+fn morph_targets(prim: &gltf::Primitive, blob: &[u8]) -> Vec<(Vec<[f32; 3]>, Vec<[f32; 3]>)> {
+    prim.morph_targets()
+        .map(|t| {
+            let p = t.positions().expect("a target moves the positions");
+            let n = t.normals().expect("a target moves the normals");
+            (decode_vec3(&p, blob), decode_vec3(&n, blob))
+        })
+        .collect()
+}
+
+/// The file as the `gltf` crate's reader sees it (its own GLB parsing; its validation too where the
+/// file needs no extension: the crate does not know `KHR_mesh_quantization`, which the Khronos
+/// validator below checks).
 fn read(path: &Path) -> gltf::Gltf {
-    gltf::Gltf::from_slice(&std::fs::read(path).unwrap()).expect("the gltf crate reads the file")
+    let bytes = std::fs::read(path).unwrap();
+    let file = gltf::Gltf::from_slice_without_validation(&bytes).expect("the gltf crate reads it");
+    let required: Vec<&str> = file.extensions_required().collect();
+    if required.is_empty() {
+        gltf::Gltf::from_slice(&bytes).expect("the gltf crate validates the file")
+    } else {
+        assert_eq!(
+            required,
+            ["KHR_mesh_quantization"],
+            "extensions the file requires"
+        );
+        file
+    }
 }
 
 /// `asset.extras`, where the export puts the scene's figures.
@@ -113,9 +186,9 @@ fn the_exported_breath_reads_back_with_the_engines_volumes_and_the_patients_anat
             tris.extend(idx.chunks(3).map(|c| [c[0], c[1], c[2]]));
             base = r.read_positions().unwrap().collect();
             normals = r.read_normals().unwrap().collect();
-            targets = r
-                .read_morph_targets()
-                .map(|(p, _, _)| p.unwrap().collect())
+            targets = morph_targets(&prim, blob)
+                .into_iter()
+                .map(|(p, _)| p)
                 .collect();
         }
         assert_eq!(
@@ -212,6 +285,186 @@ fn the_exported_breath_reads_back_with_the_engines_volumes_and_the_patients_anat
         "the tumour mesh encloses {v:.2} ml, its ellipsoid {ellipsoid_ml:.2} ml"
     );
     check_animation(&doc, blob, lungdyn, meta);
+}
+
+/// The lungs' nodes of a file: (side, positions, normals, triangles of every lobe, decoded morph
+/// targets).
+type LungRead = (
+    String,
+    Vec<[f32; 3]>,
+    Vec<[f32; 3]>,
+    Vec<[u32; 3]>,
+    Vec<(Vec<[f32; 3]>, Vec<[f32; 3]>)>,
+);
+
+fn lungs_of(file: &gltf::Gltf) -> Vec<LungRead> {
+    let blob = file.blob.as_deref().expect("the .glb's binary chunk");
+    file.document
+        .nodes()
+        .filter(|n| n.name().is_some_and(|s| s.ends_with("lung")))
+        .map(|node| {
+            let side = node.name().unwrap().split(' ').next().unwrap().to_string();
+            let prims: Vec<_> = node.mesh().unwrap().primitives().collect();
+            let r = prims[0].reader(|b| (b.index() == 0).then_some(blob));
+            let base: Vec<[f32; 3]> = r.read_positions().unwrap().collect();
+            let normals: Vec<[f32; 3]> = r.read_normals().unwrap().collect();
+            let mut tris = Vec::new();
+            for prim in &prims {
+                let r = prim.reader(|b| (b.index() == 0).then_some(blob));
+                let idx: Vec<u32> = r.read_indices().unwrap().into_u32().collect();
+                tris.extend(idx.chunks(3).map(|c| [c[0], c[1], c[2]]));
+            }
+            (side, base, normals, tris, morph_targets(&prims[0], blob))
+        })
+        .collect()
+}
+
+fn unit(v: [f32; 3]) -> [f64; 3] {
+    let v = v.map(f64::from);
+    let l = (v[0] * v[0] + v[1] * v[1] + v[2] * v[2]).sqrt();
+    v.map(|x| x / l)
+}
+
+fn angle_deg(a: [f32; 3], b: [f32; 3]) -> f64 {
+    let (a, b) = (unit(a), unit(b));
+    (a[0] * b[0] + a[1] * b[1] + a[2] * b[2])
+        .clamp(-1.0, 1.0)
+        .acos()
+        .to_degrees()
+}
+
+/// Area-weighted vertex normals of a triangle mesh.
+fn surface_normals(p: &[[f32; 3]], tris: &[[u32; 3]]) -> Vec<[f32; 3]> {
+    let mut n = vec![[0.0f32; 3]; p.len()];
+    for t in tris {
+        let [a, b, c] = t.map(|i| p[i as usize]);
+        let (u, v) = (
+            [0, 1, 2].map(|k| b[k] - a[k]),
+            [0, 1, 2].map(|k| c[k] - a[k]),
+        );
+        let x = [
+            u[1] * v[2] - u[2] * v[1],
+            u[2] * v[0] - u[0] * v[2],
+            u[0] * v[1] - u[1] * v[0],
+        ];
+        for &i in t {
+            for k in 0..3 {
+                n[i as usize][k] += x[k];
+            }
+        }
+    }
+    n
+}
+
+/// Every frame is shaded by its own surface: the normals a viewer rebuilds at frame k (the base's
+/// plus target k's, made unit) against the area-weighted normals of frame k's own triangles in the
+/// file. The first frame's normals against the same surfaces show what a file without normal
+/// targets is off by; at the frame that moves most the file's own must be at most half that.
+#[test]
+fn every_frame_is_shaded_by_its_own_surfaces_normals() {
+    let file = read(&exported().glb);
+    for (side, base, normals, tris, targets) in lungs_of(&file) {
+        assert_eq!(
+            targets.len(),
+            FRAMES - 1,
+            "{side}: a target per later frame"
+        );
+        let mut worst = (0.0f32, 0.0f64, 0.0f64, 0);
+        for (k, (dp, dn)) in targets.iter().enumerate() {
+            let p: Vec<[f32; 3]> = base
+                .iter()
+                .zip(dp)
+                .map(|(b, d)| [0, 1, 2].map(|a| b[a] + d[a]))
+                .collect();
+            let geo = surface_normals(&p, &tris);
+            let mean = |n: &dyn Fn(usize) -> [f32; 3]| {
+                (0..p.len()).map(|i| angle_deg(n(i), geo[i])).sum::<f64>() / p.len() as f64
+            };
+            let own = mean(&|i| [0, 1, 2].map(|a| normals[i][a] + dn[i][a]));
+            let first = mean(&|i| normals[i]);
+            eprintln!("{side} lung, frame {}: its normals {own:.3}° from its surface's, the first frame's {first:.3}°", k + 1);
+            assert!(
+                own < 2.0,
+                "{side} lung, frame {}: its normals lie {own:.2}° (mean) from its surface's",
+                k + 1
+            );
+            let moved = dp
+                .iter()
+                .map(|d| (d[0] * d[0] + d[1] * d[1] + d[2] * d[2]).sqrt())
+                .fold(0.0f32, f32::max);
+            if moved > worst.0 {
+                worst = (moved, own, first, k + 1);
+            }
+        }
+        let (moved, own, first, k) = worst;
+        assert!(
+            own < 0.5 * first,
+            "{side} lung, frame {k} (moves up to {:.1} mm): its normals lie {own:.3}° from its \
+             surface's, the first frame's {first:.3}°: the targets do not turn the normals",
+            moved * 1e3
+        );
+    }
+}
+
+/// The quantised targets are the float ones (the `gltf` crate's own reading of the breath written
+/// with `--float-targets`, the file validated by the crate) within half a step of their integers:
+/// this checks the decoding above as much as the export; the quantised file is about half the size
+/// and says what quantising cost.
+#[test]
+fn quantised_targets_are_the_float_ones_within_half_a_step_at_about_half_the_size() {
+    let (q, f) = (exported(), exported_float());
+    let float = read(&f.glb);
+    assert_eq!(
+        float.extensions_required().count(),
+        0,
+        "--float-targets needs no extension"
+    );
+    let blob = float.blob.as_deref().unwrap();
+    let ours = lungs_of(&read(&q.glb));
+    for node in float
+        .document
+        .nodes()
+        .filter(|n| n.name().is_some_and(|s| s.ends_with("lung")))
+    {
+        let side = node.name().unwrap().split(' ').next().unwrap();
+        let prim = node.mesh().unwrap().primitives().next().unwrap();
+        let r = prim.reader(|b| (b.index() == 0).then_some(blob));
+        let theirs: Vec<(Vec<[f32; 3]>, Vec<[f32; 3]>)> = r
+            .read_morph_targets()
+            .map(|(p, n, _)| (p.unwrap().collect(), n.unwrap().collect()))
+            .collect();
+        let (.., targets) = ours.iter().find(|l| l.0 == side).expect("the same lung");
+        assert_eq!(theirs.len(), targets.len(), "{side}: targets");
+        for (k, ((fp, fnn), (qp, qn))) in theirs.iter().zip(targets).enumerate() {
+            for (what, a, b, step) in [
+                ("position", fp, qp, 1.0 / 32767.0),
+                ("normal", fnn, qn, 1.0 / 127.0),
+            ] {
+                let off = a
+                    .iter()
+                    .zip(b)
+                    .flat_map(|(x, y)| (0..3).map(move |c| (x[c] - y[c]).abs()))
+                    .fold(0.0f32, f32::max);
+                assert!(
+                    off <= 0.5 * step + 1e-6,
+                    "{side} lung, target {k}: a {what} difference {off:e} off the float one (half \
+                     a step {:e})",
+                    0.5 * step
+                );
+            }
+        }
+    }
+    let t = &q.report["targets"];
+    assert_eq!(t["encoding"], "quantized", "{t}");
+    assert_eq!(t["kept_float"], 0, "{t}");
+    assert!(t["position_error_max_mm"].as_f64().unwrap() < 0.03, "{t}");
+    assert!(t["normal_error_max_deg"].as_f64().unwrap() < 1.0, "{t}");
+    assert_eq!(f.report["targets"]["encoding"], "float");
+    let (qb, fb) = (
+        q.report["bytes"].as_f64().unwrap(),
+        f.report["bytes"].as_f64().unwrap(),
+    );
+    assert!(qb < 0.65 * fb, "quantised {qb} bytes, float {fb}");
 }
 
 /// The `breath` animation as a viewer plays it: its keys are the frames' times and the period; each
@@ -321,6 +574,12 @@ fn the_khronos_validator_finds_no_error_and_no_warning() {
     assert_eq!(issues["numErrors"], 0, "{fixture}");
     assert_eq!(issues["numWarnings"], 0, "{fixture}");
     assert_eq!(v["info"]["animationCount"], 1, "{v}");
+    // The file judged is the quantised one: the validator checks the extension's types too.
+    assert_eq!(
+        v["info"]["extensionsRequired"],
+        serde_json::json!(["KHR_mesh_quantization"]),
+        "{v}"
+    );
 }
 
 /// What a screenshot shows, by colour.
