@@ -537,9 +537,21 @@ pub mod report_flags {
     pub const QUALITY_LOD_SHIFT: u32 = 16;
     /// The mask of [`QUALITY_LOD_SHIFT`]'s bits.
     pub const QUALITY_LOD_MASK: u32 = 0x7 << QUALITY_LOD_SHIFT;
+    /// Bits 19..22: the spherical-harmonic bands the deformation was capped at by the governor,
+    /// 1..8 (0: not capped) — an accuracy step, taken only where the scene allows it
+    /// (`[render] governor_least_bands`; `renderer::governor`).
+    pub const QUALITY_SH_SHIFT: u32 = 19;
+    /// The mask of [`QUALITY_SH_SHIFT`]'s bits.
+    pub const QUALITY_SH_MASK: u32 = 0xf << QUALITY_SH_SHIFT;
     /// Every bit that says the governor drew below the scene's quality.
     pub const QUALITY_LOWERED: u32 =
-        QUALITY_MSAA_OFF | QUALITY_OPAQUE | QUALITY_DRAWN_ONLY | QUALITY_LOD_MASK;
+        QUALITY_MSAA_OFF | QUALITY_OPAQUE | QUALITY_DRAWN_ONLY | QUALITY_LOD_MASK | QUALITY_SH_MASK;
+
+    /// The bits of a frame deformed with its spherical harmonics capped at `bands` (0: not).
+    pub const fn sh_cap_bits(bands: u8) -> u32 {
+        let b = if bands > 8 { 8 } else { bands as u32 };
+        b << QUALITY_SH_SHIFT
+    }
 
     /// The bits of a frame drawn with multisampling off, `lod_bias` levels coarser (at most 7)
     /// and opaque instead of translucent.
@@ -551,7 +563,7 @@ pub mod report_flags {
     }
 
     /// A frame's quality in words from its flags: "full", or what the governor gave up ("MSAA off,
-    /// LOD +2, drawn vertices only, opaque look").
+    /// LOD +2, drawn vertices only, opaque look, SH at 2 bands").
     pub fn describe_quality(flags: u32) -> String {
         let mut s = String::new();
         let _ = write_quality(&mut s, flags);
@@ -576,6 +588,15 @@ pub mod report_flags {
         }
         if flags & QUALITY_OPAQUE != 0 {
             write!(w, "{sep}opaque look")?;
+            sep = ", ";
+        }
+        let bands = (flags & QUALITY_SH_MASK) >> QUALITY_SH_SHIFT;
+        if bands > 0 {
+            write!(
+                w,
+                "{sep}SH at {bands} band{}",
+                if bands == 1 { "" } else { "s" }
+            )?;
             sep = ", ";
         }
         if sep.is_empty() {

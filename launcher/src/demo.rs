@@ -218,11 +218,17 @@ pub struct DemoArgs {
     /// The quality governor (overrides the scene's `[render] governor`): "hold-deadline" (the
     /// default) draws less when frames run late — MSAA off, then coarser draw levels, then only
     /// the drawn level's vertices moved, then the translucent look opaque, never a coarser
-    /// deformation — and takes it back when there is time again, each change said on stderr and
+    /// deformation unless --governor-least-bands allows it — and takes it back when there is time again, each change said on stderr and
     /// on the HUD; "off" always draws the scene's quality.
     /// docs/LATENCY.md "The governor".
     #[arg(long, value_name = "GOVERNOR")]
     pub governor: Option<lung_model::scene::Governor>,
+    /// The governor's accuracy opt-in (overrides the scene's `[render] governor_least_bands`): once
+    /// every drawing step is given up and frames are still late, it may also cap the "sh" mode's
+    /// spherical-harmonic bands, a band at a time, down to N (1..8); the HUD says "SH<N>". Without
+    /// it the deformation's accuracy is never lowered.
+    #[arg(long, value_name = "N")]
+    pub governor_least_bands: Option<u32>,
     /// Vertices per generated default lung (overrides the scene's `[lungs] vertices`; baked once
     /// into <out>/kernels and reused).
     #[arg(long, value_name = "N")]
@@ -851,6 +857,13 @@ fn resolve_scene(args: &DemoArgs) -> anyhow::Result<Resolved> {
     }
     if let Some(g) = args.governor {
         loaded.render.governor = g;
+    }
+    if let Some(n) = args.governor_least_bands {
+        loaded.render.governor_least_bands = Some(n);
+        loaded
+            .render
+            .validate()
+            .map_err(|e| anyhow::anyhow!("--governor-least-bands {n}: {e}"))?;
     }
     if let Some(v) = args.vertices {
         loaded.lungs.vertices = v;

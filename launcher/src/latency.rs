@@ -90,6 +90,10 @@ pub struct LatencyArgs {
     /// see what it buys (the report says the quality it settled at). docs/LATENCY.md.
     #[arg(long, value_name = "GOVERNOR")]
     pub governor: Option<lung_model::scene::Governor>,
+    /// The governor's accuracy opt-in (overrides the scene's `[render] governor_least_bands`): once
+    /// every drawing step is given up, it may also cap the "sh" mode's bands down to N (1..8).
+    #[arg(long, value_name = "N")]
+    pub governor_least_bands: Option<u32>,
     /// Serve the lungs to 3D Slicer while measuring (the demo's --igtl-serve [PORT]; frames are
     /// made only while a client is connected): measure with and without it back to back to see
     /// what the link costs the frame (docs/SLICER.md).
@@ -836,6 +840,7 @@ fn measure(
     demo.json = true;
     demo.realtime = args.realtime;
     demo.governor = args.governor;
+    demo.governor_least_bands = args.governor_least_bands;
     demo.igtl_serve = args.igtl_serve;
     demo.breathing = args.breathing.clone();
     // The stage timers come with the spans: always on here, into --out unless --trace names a file.

@@ -9,8 +9,11 @@
 //! only": a coarse level references a few percent of the vertices, and moving all of them was most
 //! of a coarse frame's GPU time on lavapipe), then the translucent look drawn opaque (its two extra
 //! passes over half-float targets). The deformation's accuracy — its mode, its bands, the position
-//! of every vertex drawn — is never touched: each drawn vertex is where the full pass puts it, bit
-//! for bit, and what changes is what is drawn and how it is shaded. A render-scale step
+//! of every vertex drawn — is not touched by these: each drawn vertex is where the full pass puts
+//! it, bit for bit, and what changes is what is drawn and how it is shaded. **Accuracy steps** come
+//! only where the scene opts in (`[render] governor_least_bands = N`) and only after every drawing
+//! step: the spherical-harmonic mode capped one band at a time down to N bands (its force
+//! coefficients past N² dropped; the cost in mm per band is measured in docs/LATENCY.md). A render-scale step
 //! (fewer pixels) is not among them: on the software rasteriser this project is measured on, the
 //! frame's cost does not follow its pixels (the default lungs at 800 × 600 and 200 × 150: 23.3 and
 //! 22.0 ms, `render_looks -- --lod`), and it wants an upscaling pass and a HUD drawn after it.
@@ -49,6 +52,9 @@ pub enum Step {
     DrawnOnly,
     /// The translucent look drawn opaque.
     Opaque,
+    /// The spherical-harmonic deformation capped at this many bands (an accuracy step: only where
+    /// the scene allows it, `[render] governor_least_bands`, after every drawing step).
+    ShBands(u8),
 }
 
 impl Step {
@@ -59,6 +65,15 @@ impl Step {
             Step::CoarserLod => "LOD +1",
             Step::DrawnOnly => "drawn vertices only",
             Step::Opaque => "opaque look",
+            Step::ShBands(1) => "SH at 1 band",
+            Step::ShBands(2) => "SH at 2 bands",
+            Step::ShBands(3) => "SH at 3 bands",
+            Step::ShBands(4) => "SH at 4 bands",
+            Step::ShBands(5) => "SH at 5 bands",
+            Step::ShBands(6) => "SH at 6 bands",
+            Step::ShBands(7) => "SH at 7 bands",
+            // Never built (a cap is 1..7, below a kernel's most bands, 8).
+            Step::ShBands(_) => "SH capped",
         }
     }
 }
@@ -74,6 +89,8 @@ pub struct Quality {
     pub drawn_only: bool,
     /// The translucent look drawn opaque.
     pub opaque: bool,
+    /// The spherical harmonics capped at this many bands (0: not capped).
+    pub sh_bands: u8,
 }
 
 impl Quality {
@@ -83,6 +100,7 @@ impl Quality {
         lod_bias: 0,
         drawn_only: false,
         opaque: false,
+        sh_bands: 0,
     };
 
     /// With the first `taken` of `steps` given up.
@@ -94,6 +112,7 @@ impl Quality {
                 Step::CoarserLod => q.lod_bias = q.lod_bias.saturating_add(1),
                 Step::DrawnOnly => q.drawn_only = true,
                 Step::Opaque => q.opaque = true,
+                Step::ShBands(b) => q.sh_bands = *b,
             }
         }
         q
@@ -106,7 +125,9 @@ impl Quality {
         } else {
             0
         };
-        ipc_types::report_flags::quality_bits(self.msaa_off, self.lod_bias, self.opaque) | drawn
+        ipc_types::report_flags::quality_bits(self.msaa_off, self.lod_bias, self.opaque)
+            | drawn
+            | ipc_types::report_flags::sh_cap_bits(self.sh_bands)
     }
 
     /// "full", or what is given up: "MSAA off, LOD +2, drawn vertices only, opaque look".
@@ -116,8 +137,15 @@ impl Quality {
 }
 
 /// The steps a scene can give up, in the governor's order: `samples` the scene draws with,
-/// `coarser_levels` the draw levels built beyond every triangle (0 with `lod = "off"` or splats).
-pub fn ladder(settings: &RenderScene, samples: u32, coarser_levels: usize) -> Vec<Step> {
+/// `coarser_levels` the draw levels built beyond every triangle (0 with `lod = "off"` or splats),
+/// `sh_bands` the most spherical-harmonic bands a lung deforms with (0: not the "sh" mode) — a
+/// band at a time down to `[render] governor_least_bands` where the scene allows it, last.
+pub fn ladder(
+    settings: &RenderScene,
+    samples: u32,
+    coarser_levels: usize,
+    sh_bands: u32,
+) -> Vec<Step> {
     let mut steps = Vec::new();
     if samples > 1 {
         steps.push(Step::MsaaOff);
@@ -132,8 +160,15 @@ pub fn ladder(settings: &RenderScene, samples: u32, coarser_levels: usize) -> Ve
     if settings.look == Look::Translucent {
         steps.push(Step::Opaque);
     }
+    if let Some(least) = settings.governor_least_bands {
+        let top = sh_bands.min(MAX_SH_BANDS);
+        steps.extend((least.max(1)..top).rev().map(|b| Step::ShBands(b as u8)));
+    }
     steps
 }
+
+/// Most spherical-harmonic bands a kernel holds (so at most 7 band steps).
+pub const MAX_SH_BANDS: u32 = 8;
 
 /// Most draw-level steps (the report's bits hold a bias up to 7).
 pub const MAX_LOD_STEPS: usize = 7;
@@ -199,8 +234,8 @@ pub struct Governor {
     pub floor_frames: u64,
 }
 
-/// Most steps a ladder can have (MSAA, the draw levels, drawn vertices only, the look).
-const MAX_STEPS: usize = 3 + MAX_LOD_STEPS;
+/// Most steps a ladder can have (MSAA, the draw levels, drawn vertices only, the look, the bands).
+const MAX_STEPS: usize = 3 + MAX_LOD_STEPS + MAX_SH_BANDS as usize - 1;
 
 impl Governor {
     /// A governor over `steps` (from [`ladder`]) holding frames to `target_ns`.
@@ -401,14 +436,58 @@ mod tests {
             look: Look::Translucent,
             ..Default::default()
         };
-        ladder(&scene, 4, 2)
+        ladder(&scene, 4, 2, 0)
+    }
+
+    /// Accuracy steps only where the scene opts in, only for the bands the lungs have, after
+    /// every drawing step, a band at a time down to the least allowed.
+    #[test]
+    fn bands_are_given_up_last_and_only_where_the_scene_allows_it() {
+        let mut scene = RenderScene::default();
+        assert_eq!(ladder(&scene, 1, 1, 6), [Step::CoarserLod, Step::DrawnOnly]);
+        scene.governor_least_bands = Some(3);
+        assert_eq!(
+            ladder(&scene, 1, 1, 6),
+            [
+                Step::CoarserLod,
+                Step::DrawnOnly,
+                Step::ShBands(5),
+                Step::ShBands(4),
+                Step::ShBands(3)
+            ]
+        );
+        // Not the "sh" mode, or no more bands than the least: nothing to cap.
+        assert_eq!(ladder(&scene, 1, 1, 0), [Step::CoarserLod, Step::DrawnOnly]);
+        assert_eq!(ladder(&scene, 1, 1, 3), [Step::CoarserLod, Step::DrawnOnly]);
+        scene.governor_least_bands = Some(1);
+        scene.look = Look::Translucent;
+        let all = ladder(&scene, 4, MAX_LOD_STEPS, 8);
+        assert_eq!(all.len(), MAX_STEPS, "the longest ladder fits");
+        assert_eq!(all.last(), Some(&Step::ShBands(1)));
+        let q = Quality::of(&all, all.len());
+        assert_eq!(q.sh_bands, 1);
+        assert_eq!(
+            q.describe(),
+            "MSAA off, LOD +7, drawn vertices only, opaque look, SH at 1 band"
+        );
+        let q = Quality::of(&all, all.len() - 5);
+        assert_eq!(q.sh_bands, 6);
+        assert_eq!(Step::ShBands(6).name(), "SH at 6 bands");
+        assert_eq!(Quality::of(&all, 9).sh_bands, 0, "drawing steps only");
+        // A governor over the longest ladder takes every step.
+        let mut g = Governor::new(all.clone(), MS);
+        for _ in 0..(all.len() + 1) * 40 {
+            g.observe(10 * MS);
+        }
+        assert_eq!(g.taken(), all.len());
+        assert!(g.at_floor());
     }
 
     #[test]
     fn the_ladder_has_only_what_the_scene_can_give_up_in_order() {
         let opaque = RenderScene::default();
         assert_eq!(
-            ladder(&opaque, 1, 2),
+            ladder(&opaque, 1, 2, 0),
             [Step::CoarserLod, Step::CoarserLod, Step::DrawnOnly]
         );
         assert_eq!(
@@ -423,20 +502,20 @@ mod tests {
         );
         // No coarser level built (`lod = "off"`, or meshes too small): nothing to limit the
         // deformation to.
-        assert!(ladder(&opaque, 1, 0).is_empty());
+        assert!(ladder(&opaque, 1, 0, 0).is_empty());
         let points = RenderScene {
             mode: DrawMode::Points,
             lod: Lod::Off,
             ..Default::default()
         };
-        assert_eq!(ladder(&points, 4, 0), [Step::MsaaOff]);
-        assert!(ladder(&points, 1, 0).is_empty());
+        assert_eq!(ladder(&points, 4, 0, 0), [Step::MsaaOff]);
+        assert!(ladder(&points, 1, 0, 0).is_empty());
         // A see-through look is never made opaque (black is the world on an additive display).
         let see = RenderScene {
             look: Look::SeeThrough,
             ..Default::default()
         };
-        assert_eq!(ladder(&see, 1, 1), [Step::CoarserLod, Step::DrawnOnly]);
+        assert_eq!(ladder(&see, 1, 1, 0), [Step::CoarserLod, Step::DrawnOnly]);
     }
 
     #[test]
@@ -449,7 +528,8 @@ mod tests {
                 msaa_off: true,
                 lod_bias: 2,
                 drawn_only: false,
-                opaque: false
+                opaque: false,
+                sh_bands: 0
             }
         );
         assert_eq!(

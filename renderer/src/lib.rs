@@ -524,10 +524,24 @@ impl LungRenderer {
         };
         let samples = msaa_samples(settings, gpu);
         let levels = DrawLevels::build(device, settings, lungs);
+        // The most spherical-harmonic bands a lung deforms with (n² coefficients; 0 in other modes).
+        let sh_bands = lungs
+            .iter()
+            .filter_map(|l| match &l.lung.data {
+                lung_model::deform::modes::ModeData::Sh { t } => {
+                    Some((t.n_coeffs() as f64).sqrt().round() as u32)
+                }
+                _ => None,
+            })
+            .max()
+            .unwrap_or(0);
         let steps = match settings.governor {
-            Governor::HoldDeadline => {
-                governor::ladder(settings, samples, levels.ranges.len().saturating_sub(1))
-            }
+            Governor::HoldDeadline => governor::ladder(
+                settings,
+                samples,
+                levels.ranges.len().saturating_sub(1),
+                sh_bands,
+            ),
             Governor::Off => Vec::new(),
         };
         // The governor's "drawn vertices only" moves a coarser level's vertices alone: each level
@@ -786,8 +800,9 @@ impl LungRenderer {
     }
 
     /// Draw from the next frame on at `quality` (the governor's change): its variant — built at
-    /// start for every quality the steps reach —, its draw-level bias and whether the deformation
-    /// moves the drawn level's vertices only.
+    /// start for every quality the steps reach —, its draw-level bias, whether the deformation
+    /// moves the drawn level's vertices only and the spherical-harmonic bands it sums (an accuracy
+    /// step, where the scene allowed it).
     pub fn set_quality(&mut self, quality: governor::Quality) {
         let (look, samples) = variant_of(self.settings.look, self.variants[0].samples, quality);
         if let Some(k) = self
@@ -799,6 +814,7 @@ impl LungRenderer {
         }
         self.lod_bias = quality.lod_bias;
         self.drawn_only = quality.drawn_only;
+        self.deform.cap_sh_bands(quality.sh_bands);
     }
 
     /// Draw the eyes of `eyes` from the next frame on (an OpenXR runtime's views, located per

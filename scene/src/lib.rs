@@ -101,6 +101,12 @@ pub enum TableError {
     /// An MSAA sample count the renderer does not offer.
     #[error("[render] msaa = {0}: give 4 (anti-aliased) or 1 (off)")]
     Msaa(u32),
+    /// A least band count the spherical harmonics do not have.
+    #[error(
+        "[render] governor_least_bands = {0}: give the fewest spherical-harmonic bands the governor \
+         may deform with, 1..8 (leave it out to never lower the deformation's accuracy)"
+    )]
+    LeastBands(u32),
     /// IPD or splat size out of range.
     #[error(
         "[render] ipd_mm = {ipd_mm} must be within 0..200 and splat_mm = {splat_mm} within 0..100"

@@ -116,7 +116,8 @@ pub enum Governor {
     /// When frames take longer than the display period allows, draw less — in a fixed order:
     /// MSAA off, coarser draw levels, only the drawn level's vertices moved (their normals from
     /// its triangles), the translucent look made opaque — and take it back when there is time
-    /// again. The deformation's accuracy (mode, bands, each drawn vertex) is never touched.
+    /// again. The deformation's accuracy (mode, bands, each drawn vertex) is not touched unless
+    /// the scene opts in ([`RenderScene::governor_least_bands`]).
     #[default]
     HoldDeadline,
     /// Always draw at the scene's quality, late or not.
@@ -240,6 +241,12 @@ pub struct RenderScene {
     pub lod: Lod,
     /// Whether drawing quality gives way to the frame's deadline ([`Governor`]).
     pub governor: Governor,
+    /// The accuracy opt-in: once every drawing step is given up and frames are still late, the
+    /// governor may also cap the spherical-harmonic mode's bands, one band at a time, down to this
+    /// many (1..8). Unset (the default): the deformation's accuracy is never lowered. Only the "sh"
+    /// mode has bands to give up; what each costs in millimetres is in docs/LATENCY.md.
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub governor_least_bands: Option<u32>,
     /// Side-by-side stereo from the HMD pose.
     pub stereo: bool,
     /// Inter-pupillary distance, mm.
@@ -273,6 +280,7 @@ impl Default for RenderScene {
             msaa: None,
             lod: Lod::Auto,
             governor: Governor::HoldDeadline,
+            governor_least_bands: None,
             stereo: false,
             ipd_mm: 63.0,
             width: 800,
@@ -307,6 +315,9 @@ impl RenderScene {
         }
         if let Some(n) = r.msaa.filter(|n| !MSAA_SAMPLES.contains(n)) {
             return Err(TableError::Msaa(n));
+        }
+        if let Some(n) = r.governor_least_bands.filter(|n| !(1..=8).contains(n)) {
+            return Err(TableError::LeastBands(n));
         }
         Ok(())
     }

@@ -462,3 +462,135 @@ fn drawn_vertices_only_moves_the_drawn_levels_vertices_exactly_and_nothing_else(
         }
     }
 }
+
+/// The governor's accuracy step (`renderer::governor::Step::ShBands`, where a scene sets
+/// `[render] governor_least_bands`): with the spherical harmonics capped at b bands the GPU moves
+/// every vertex exactly as the full pass does with the engine's force coefficients past b² dropped
+/// (bit for bit), and not as the full pass does; with the cap lifted it is the full pass again.
+/// Prints what each cap moves the vertices by, for engine frames at mid-inspiration and the peak
+/// in four orientations (docs/LATENCY.md "The accuracy opt-in").
+#[test]
+fn capped_bands_deform_as_the_full_pass_with_the_higher_bands_force_dropped() {
+    use renderer::governor::{Quality, Step};
+    let Some(gpu) = Gpu::for_tests() else { return };
+    let mut scene = scene(DeformMode::Sh);
+    scene.lungs.bands = 8;
+    let mut scene = lungdyn_tests::scene_with_kernels(scene, "modes-gpu-bands");
+    scene.render.governor_least_bands = Some(1);
+    let kernels: Vec<_> = scene
+        .lungs
+        .sides
+        .iter()
+        .map(|&s| scene.lung_kernel(s).unwrap())
+        .collect();
+    let lungs: Vec<RenderLung> = kernels
+        .iter()
+        .map(|k| RenderLung::from_kernel(k, DeformMode::Sh).unwrap())
+        .collect();
+    assert!(lungs.iter().all(|l| l.lung.coeff_count() == 64), "8 bands");
+    let mut r = LungRenderer::new(&gpu, &scene.render, &lungs).unwrap();
+    let caps: Vec<u8> = r
+        .governor_steps()
+        .iter()
+        .filter_map(|s| match s {
+            Step::ShBands(b) => Some(*b),
+            _ => None,
+        })
+        .collect();
+    assert_eq!(caps, [7, 6, 5, 4, 3, 2, 1], "the ladder's band steps");
+    let geometry = kernels
+        .iter()
+        .map(|k| {
+            LungGeometry::from_kernel(
+                k,
+                DeformMode::Sh,
+                scene.engine.orientation,
+                scene.engine.min_slope_ratio,
+            )
+            .unwrap()
+        })
+        .collect();
+    let mut core = EngineCore::with_geometry(&scene, geometry).unwrap();
+    let turns = [
+        DQuat::IDENTITY,
+        DQuat::from_rotation_x(std::f64::consts::FRAC_PI_2),
+        DQuat::from_rotation_y(-std::f64::consts::FRAC_PI_2),
+        DQuat::from_rotation_x(std::f64::consts::PI),
+    ];
+    let mut f = EngineFrame::default();
+    // Per cap: the largest and the sum of squares of the move from the full pass, mm.
+    let mut cost = [(0.0f64, 0.0f64, 0usize); 9];
+    for (k, turn) in turns.iter().enumerate() {
+        for tick in [60 + 300 * k as u64, 120 + 300 * k as u64] {
+            core.step(tick, Some(&posed(tick, *turn * supine())), &mut f);
+            let mut state = DrawState {
+                deform_scale: [0.0; 2],
+                offset_mm: [[0.0; 3]; 2],
+                collapse: [0.0; 2],
+                hilum_mm: [[0.0; 3]; 2],
+                coeffs: [[0.0; ipc_types::MAX_COEFFS]; 2],
+                patient: f.patient_pose,
+                hmd: f.patient_pose,
+                pose_warning: Default::default(),
+            };
+            for slot in 0..2 {
+                state.deform_scale[slot] = f.lungs[slot].deform_scale;
+                state.coeffs[slot] = f.lungs[slot].coeffs;
+            }
+            r.set_quality(Quality::FULL);
+            r.render(&gpu, &state, false);
+            let full = r.read_deformed(&gpu).unwrap();
+            for &b in &caps {
+                r.set_quality(Quality {
+                    sh_bands: b,
+                    ..Quality::FULL
+                });
+                r.render(&gpu, &state, false);
+                let capped = r.read_deformed(&gpu).unwrap();
+                let mut dropped = state;
+                for c in &mut dropped.coeffs {
+                    c[usize::from(b) * usize::from(b)..].fill(0.0);
+                }
+                r.set_quality(Quality::FULL);
+                r.render(&gpu, &dropped, false);
+                let want = r.read_deformed(&gpu).unwrap();
+                assert!(
+                    capped == want,
+                    "tick {tick}, {b} bands: the capped pass is not the full pass with the higher \
+                     bands' force dropped"
+                );
+                let moved: Vec<f64> = capped
+                    .iter()
+                    .zip(&full)
+                    .map(|(a, c)| {
+                        (0..3)
+                            .map(|i| (f64::from(a[i]) - f64::from(c[i])).powi(2))
+                            .sum::<f64>()
+                            .sqrt()
+                    })
+                    .collect();
+                let e = &mut cost[usize::from(b)];
+                e.0 = moved.iter().copied().fold(e.0, f64::max);
+                e.1 += moved.iter().map(|m| m * m).sum::<f64>();
+                e.2 += moved.len();
+            }
+            r.set_quality(Quality::FULL);
+            r.render(&gpu, &state, false);
+            assert!(
+                r.read_deformed(&gpu).unwrap() == full,
+                "tick {tick}: the cap lifted is the full pass again"
+            );
+        }
+    }
+    for &b in &caps {
+        let (max, sum, n) = cost[usize::from(b)];
+        let rms = (sum / n as f64).sqrt();
+        eprintln!(
+            "SH capped at {b} of 8 bands: vertices move {rms:.3} mm RMS, {max:.3} mm at most from \
+             the full pass (2 × 2500 vertices, mid-inspiration and peak, four orientations)"
+        );
+        assert!(max > 0.0, "{b} bands: the cap changed nothing");
+    }
+    // Fewer bands, further from the full pass (the projection's higher bands add detail).
+    assert!(cost[1].0 > cost[7].0, "{cost:?}");
+}

@@ -1330,6 +1330,32 @@ mod tests {
         assert!(e.contains("hold-deadline") && e.contains("off"), "{e}");
     }
 
+    /// The governor's accuracy opt-in: unset by default (accuracy never lowered), 1..8 read and
+    /// written back, anything else refused naming the key.
+    #[test]
+    fn governor_least_bands_is_unset_by_default_and_refuses_what_is_not_a_band_count() {
+        assert_eq!(Scene::default().render.governor_least_bands, None);
+        assert!(!toml::to_string(&Scene::default())
+            .unwrap()
+            .contains("governor_least_bands"));
+        for n in [1u32, 2, 8] {
+            let s =
+                Scene::parse(&format!("[render]\ngovernor_least_bands = {n}\n"), "s.toml").unwrap();
+            assert_eq!(s.render.governor_least_bands, Some(n));
+            let back = Scene::parse(&toml::to_string(&s).unwrap(), "s.toml").unwrap();
+            assert_eq!(back.render.governor_least_bands, Some(n));
+        }
+        for bad in ["0", "9", "-1", "2.5", "\"2\"", "true"] {
+            let e = Scene::parse(
+                &format!("[render]\ngovernor_least_bands = {bad}\n"),
+                "s.toml",
+            )
+            .unwrap_err()
+            .to_string();
+            assert!(e.contains("governor_least_bands"), "{bad}: {e}");
+        }
+    }
+
     /// A recording plays its own rate and I:E: a rate or an I:E set beside it is refused naming
     /// the key (it would be ignored without a word); the defaults a resolved scene writes back
     /// still parse.

@@ -38,7 +38,8 @@ struct Params {
     // Vertices in listed_vertices this frame; 0: every vertex, in order.
     listed: u32,
     _pad2: u32,
-    // Per slot: x = first vertex, y = SH coefficients per vertex, z = first SH word.
+    // Per slot: x = first vertex, y = SH coefficients per vertex, z = first SH word, w = the
+    // coefficients summed (y, or fewer where the governor capped the bands).
     lung_info: array<vec4<u32>, 2>,
     // SH force coefficients times their index's scale, F_k·scale_k, per slot: slot s, k →
     // sh_f[s·16 + k/4][k%4] (at most 64 each; 0 past the lung's count).
@@ -142,7 +143,9 @@ fn deform_sh(@builtin(global_invocation_id) gid: vec3<u32>) {
     let n = info.y;
     let first = info.z + (i - info.x) * ((n + 1u) / 2u);
     var d = 0.0;
-    for (var k = 0u; k < n; k = k + 2u) {
+    // info.w coefficients are summed: all n, or fewer where the governor capped the bands (the
+    // force coefficients past it are 0, so an odd cap's last pair adds nothing of the next band).
+    for (var k = 0u; k < min(n, info.w); k = k + 2u) {
         // unpack2x16snorm: max(q / 32767, −1) per half; the pad half and its sh_f entry are 0.
         let t = unpack2x16snorm(sh_t[first + k / 2u]);
         let f0 = params.sh_f[slot * 16u + k / 4u][k % 4u];

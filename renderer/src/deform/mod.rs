@@ -107,7 +107,8 @@ pub struct DeformParams {
     /// Padding to 16 bytes.
     pub _pad: u32,
     /// Per slot: first vertex, SH coefficients per vertex, first SH word (two 16-bit coefficients
-    /// each), unused.
+    /// each), the coefficients summed (fewer than stored where the governor capped the bands; the
+    /// frame's force coefficients past them are 0).
     pub lung_info: [[u32; 4]; 2],
     /// SH force coefficients times their index's scale, `F_k·scale_k`, 64 per slot (0 past the
     /// lung's count).
@@ -743,7 +744,7 @@ impl DeformPass {
                 }
                 _ => (0, 0),
             };
-            lung_info[slot] = [base.len() as u32, n_coeffs, sh_first, 0];
+            lung_info[slot] = [base.len() as u32, n_coeffs, sh_first, n_coeffs];
             sh_first = sh_first
                 .checked_add(words.saturating_mul(l.lung.len() as u32))
                 .ok_or(UploadError::Index("spherical-harmonic coefficients"))?;
@@ -852,6 +853,21 @@ impl DeformPass {
         self.level(level).map_or(self.count, |l| l.count)
     }
 
+    /// Sum at most `bands` spherical-harmonic bands (`bands`² coefficients) per lung from the next
+    /// frame on, 0: every band the kernel holds (the governor's accuracy step; nothing in other
+    /// modes). The frame's force coefficients past the cap are dropped, so a vertex moves as a
+    /// kernel of that many bands would move it with these coefficients.
+    pub fn cap_sh_bands(&mut self, bands: u8) {
+        let cap = if bands == 0 {
+            u32::MAX
+        } else {
+            u32::from(bands) * u32::from(bands)
+        };
+        for info in &mut self.lung_info {
+            info[3] = info[1].min(cap);
+        }
+    }
+
     /// Set this frame's per-lung scales, rigid offsets and coefficients.
     pub fn set_lungs(&self, queue: &wgpu::Queue, inputs: &LungInputs) {
         self.set_lungs_at(queue, inputs, 0);
@@ -896,9 +912,16 @@ impl DeformPass {
             p.weights[slot] = [c[0], c[1], c[2], c[3]];
             // `F_k·scale_k`: the shader multiplies by `unpack2x16snorm(q) = q/32767` (0 past the
             // lung's coefficient count, so a pad half never meets a stale coefficient).
+            // Past the coefficients summed (the governor's cap) 0 as well: the shader's last pair
+            // may hold one.
+            let summed = self.lung_info[slot][3] as usize;
             for k in 0..MAX_COEFFS {
                 let scale = self.sh_scale[slot][k];
-                p.sh_f[slot * 16 + k / 4][k % 4] = if scale == 0.0 { 0.0 } else { c[k] * scale };
+                p.sh_f[slot * 16 + k / 4][k % 4] = if scale == 0.0 || k >= summed {
+                    0.0
+                } else {
+                    c[k] * scale
+                };
             }
         }
         queue.write_buffer(&self.params, 0, bytemuck::bytes_of(&p));

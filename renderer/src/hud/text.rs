@@ -309,8 +309,9 @@ pub fn timing_line(
 }
 
 /// The governor's part of the timing line, short so the line keeps to one row: nothing at full
-/// quality; " · less: AA LOD+2 VTX OIT" for what it gave up (multisampling, draw levels, the
-/// vertices of other levels not moved, the translucent look), "LATE" instead of "less" at its
+/// quality; " · less: AA LOD+2 VTX OIT SH2" for what it gave up (multisampling, draw levels, the
+/// vertices of other levels not moved, the translucent look, the spherical harmonics capped at 2
+/// bands — an accuracy step the scene allowed), "LATE" instead of "less" at its
 /// floor (everything given up, frames still over target).
 fn governor_words(out: &mut String, bits: u32) {
     use ipc_types::report_flags as r;
@@ -331,6 +332,10 @@ fn governor_words(out: &mut String, bits: u32) {
     }
     if bits & r::QUALITY_OPAQUE != 0 {
         out.push_str(" OIT");
+    }
+    let bands = (bits & r::QUALITY_SH_MASK) >> r::QUALITY_SH_SHIFT;
+    if bands > 0 {
+        let _ = write!(out, " SH{bands}");
     }
     if bits & r::QUALITY_LOWERED == 0 {
         out.push_str(" nothing to give up");
@@ -997,6 +1002,12 @@ mod tests {
         assert_eq!(
             s,
             "frame 0.0 ms · LOD 1/3 · less: AA LOD+1 VTX OIT · latency --"
+        );
+        let capped = all | ipc_types::report_flags::sh_cap_bits(2);
+        timing_line(&mut s, 0, None, &auto, Some(capped), None);
+        assert_eq!(
+            s,
+            "frame 0.0 ms · LOD 1/3 · less: AA LOD+1 VTX OIT SH2 · latency --"
         );
         // At the floor with nothing to give up (a scene with no steps).
         let none = ipc_types::report_flags::GOVERNOR_FLOOR;
