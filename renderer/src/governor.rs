@@ -24,7 +24,9 @@
 //! default), the time left to the renderer once its inputs have arrived.
 //!
 //! **When it moves** (frames, not clock time: a run's decisions follow from its frame costs alone):
-//! - down one step when the 75th percentile of the last [`DOWN_WINDOW`] frames is over the target;
+//! - down one step when the 75th percentile of the last [`DOWN_WINDOW`] frames is over the target,
+//!   or sooner, after [`FAST_FRAMES`], when each of those took over [`FAR_OVER`] times the target
+//!   (a heavy scene's start: the descent took 16 frames a step, each of them late);
 //!   the first [`SETTLE`] frames after any change are not counted (a new pipeline's first use);
 //! - at the last step and still over: at its floor, said once ([`Change::Floor`]) and flagged on
 //!   every such frame ([`ipc_types::report_flags::GOVERNOR_FLOOR`]);
@@ -176,6 +178,10 @@ pub const MAX_LOD_STEPS: usize = 7;
 pub const SETTLE: u32 = 4;
 /// Frames whose 75th percentile decides a step down.
 pub const DOWN_WINDOW: usize = 12;
+/// Frames that decide a step down when each of them is [`FAR_OVER`] times the target or more.
+pub const FAST_FRAMES: usize = 4;
+/// How far over the target frames must all be for [`FAST_FRAMES`] of them to decide.
+pub const FAR_OVER: f64 = 1.5;
 /// Frames whose median decides a step up.
 pub const UP_WINDOW: usize = 60;
 /// Least frames at a step before one is taken back.
@@ -325,6 +331,17 @@ impl Governor {
         self.next = (self.next + 1) % UP_WINDOW;
         self.len = (self.len + 1).min(UP_WINDOW);
         if self.len < DOWN_WINDOW {
+            // Far over: when every one of the first FAST_FRAMES counted frames took more than
+            // FAR_OVER times the target, no window's vote is needed (a heavy scene's start).
+            if self.len >= FAST_FRAMES {
+                let least = self.quantile(FAST_FRAMES, 0.0);
+                if least as f64 > FAR_OVER * self.target_ns as f64 {
+                    if self.taken > 0 && self.after[self.taken - 1] == 0 {
+                        self.after[self.taken - 1] = self.quantile(FAST_FRAMES, 0.5);
+                    }
+                    return self.down(self.quantile(FAST_FRAMES, 0.75));
+                }
+            }
             return None;
         }
         let recent = self.quantile(DOWN_WINDOW, 0.75);
@@ -574,6 +591,42 @@ mod tests {
             first_down <= SETTLE as usize + DOWN_WINDOW + 1,
             "{first_down}"
         );
+    }
+
+    /// Frames far over the target step down after FAST_FRAMES counted frames, not a whole
+    /// window; frames a little over (or far over only now and then) still wait for the window.
+    #[test]
+    fn far_over_the_target_it_steps_down_without_waiting_for_a_window() {
+        let steps = vec![Step::CoarserLod; 5];
+        // A heavy scene: 48 ms at full quality, each level half the cost, against 13.7 ms.
+        let heavy = |q: Quality, _| (48.0 * MS as f64 * 0.5f64.powi(q.lod_bias.into())) as u64;
+        let mut g = Governor::new(steps.clone(), 13_700_000);
+        let drawn = run(&mut g, 200, heavy);
+        let settled = drawn.iter().position(|q| q.lod_bias == 2).unwrap();
+        // 48 and 24 ms are far over (> 20.55 ms): two fast steps; 12 ms fits.
+        assert_eq!(g.taken(), 2);
+        assert_eq!(
+            settled,
+            2 * (SETTLE as usize + FAST_FRAMES),
+            "frames to settle"
+        );
+        // What each fast step bought is known, so taking one back is judged as before: at 12 ms
+        // the step back predicts 24 ms and stays given up.
+        assert!(run(&mut g, 600, heavy).iter().all(|q| q.lod_bias == 2));
+        // A little over (1.2×): the window decides, as before.
+        let mut g = Governor::new(steps.clone(), 10 * MS);
+        let drawn = run(&mut g, 40, |_, _| 12 * MS);
+        let first = drawn.iter().position(|q| q.lod_bias > 0).unwrap();
+        assert_eq!(first, SETTLE as usize + DOWN_WINDOW);
+        // Far over now and then (one frame in four at 3×): the window decides.
+        let mut g = Governor::new(steps, 10 * MS);
+        let drawn = run(
+            &mut g,
+            40,
+            |_, f| if f % 4 == 0 { 30 * MS } else { 12 * MS },
+        );
+        let first = drawn.iter().position(|q| q.lod_bias > 0).unwrap();
+        assert_eq!(first, SETTLE as usize + DOWN_WINDOW);
     }
 
     #[test]
