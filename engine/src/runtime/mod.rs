@@ -214,12 +214,21 @@ pub struct LungBreath {
     /// share), whether it is inhaling, and its weight against the model's (rising from 0 to 1 over
     /// [`signal::TAKEOVER_TICKS`] when the signal takes over); `None`: the model's cycle ([`signal`]).
     driven: Option<(f64, bool, f64)>,
+    /// The tidal volume (whole patient) of the breath the lung started with: the healthy breath a
+    /// disease's cycles are measured against when the patient's signal drives the lung
+    /// ([`Self::tidal_fraction`]).
+    healthy_tv_ml: f64,
+    /// What this lung's share of the patient's signal is multiplied by this tick (exactly 1 while
+    /// every lung breathes its healthy breath; [`share_signal`]).
+    signal_factor: f64,
 }
 
 impl LungBreath {
     /// A lung following `breathing`, taking `share` of its volume change above FRC.
     pub fn new(breathing: Breathing, share: f64) -> Self {
         Self {
+            healthy_tv_ml: breathing.boundary().tv_ml,
+            signal_factor: 1.0,
             breathing,
             next: None,
             share,
@@ -231,6 +240,21 @@ impl LungBreath {
             cycle: 0,
             changed_at: None,
             driven: None,
+        }
+    }
+
+    /// This lung's breath now against the healthy one it started with: its cycle's tidal volume
+    /// over the healthy tidal volume (exactly 1 for a healthy lung), 0 for a held lung (it takes no
+    /// breath); 1 where either is not a usable volume.
+    fn tidal_fraction(&self) -> f64 {
+        if self.held_ml.is_some() {
+            return 0.0;
+        }
+        let tv = self.breathing.boundary().tv_ml;
+        if self.healthy_tv_ml > 0.0 && tv.is_finite() && tv >= 0.0 {
+            tv / self.healthy_tv_ml
+        } else {
+            1.0
         }
     }
 
@@ -373,6 +397,33 @@ struct LungTick {
     non_finite: bool,
 }
 
+/// How the patient's signal is shared between the lungs this tick (issue 35 item 4, EQUATIONS.md
+/// §4.7's decision for a recorded breath, applied to a live one): the signal is the volume the
+/// patient breathes, and the lungs share it by compliance — each its share times its breath's
+/// tidal fraction ([`LungBreath::tidal_fraction`]), normalised so the lungs together still take the
+/// whole signal. A collapsing lung's part of the breath moves to the other lung; a held lung takes
+/// none. While every lung breathes its healthy breath the factor is exactly 1 (frames bit for bit
+/// as before). A few multiplies, no allocation.
+fn share_signal(lungs: &mut [(LungGeometry, LungBreath)]) {
+    if lungs.iter().all(|(_, b)| b.tidal_fraction() == 1.0) {
+        for (_, b) in lungs.iter_mut() {
+            b.signal_factor = 1.0;
+        }
+        return;
+    }
+    let total: f64 = lungs
+        .iter()
+        .map(|(_, b)| b.share * b.tidal_fraction())
+        .sum();
+    for (_, b) in lungs.iter_mut() {
+        b.signal_factor = if total > 0.0 && total.is_finite() {
+            b.tidal_fraction() / total
+        } else {
+            1.0
+        };
+    }
+}
+
 /// One lung's part of a tick: its volume on its breath (or held), the breathing scale solved for
 /// that volume (on the collapsed cubic for a collapsed lung), the force coefficients for the
 /// patient's gravity, and what a heads-up display shows of the breath, all written into `slot`.
@@ -395,11 +446,14 @@ fn lung_tick(
         }
         None => {
             let (delta, inhaling) = match breath.driven {
-                Some((volume_ml, inhaling, w)) if w >= 1.0 => (volume_ml * breath.share, inhaling),
+                Some((volume_ml, inhaling, w)) if w >= 1.0 => {
+                    (volume_ml * breath.share * breath.signal_factor, inhaling)
+                }
                 Some((volume_ml, inhaling, w)) => {
                     // The signal taking over: blended from the model's breath, no jump.
                     let (model, _) = breath.delta_at(local);
-                    (w * volume_ml * breath.share + (1.0 - w) * model, inhaling)
+                    let driven = volume_ml * breath.share * breath.signal_factor;
+                    (w * driven + (1.0 - w) * model, inhaling)
                 }
                 None => breath.delta_at(local),
             };
@@ -902,6 +956,12 @@ impl EngineCore {
                 self.remote_spent = Some(p);
             }
         }
+        // Each lung's cycle advanced first (as its tick would: a change pending for the cycle that
+        // starts now takes effect), so the signal is shared by the breaths this tick draws.
+        for (_, b) in self.lungs.iter_mut() {
+            b.local_tick(tick);
+        }
+        share_signal(&mut self.lungs);
         out.lungs = [LungFrame::default(); NUM_LUNGS];
         for (k, (geometry, breath)) in self.lungs.iter_mut().enumerate() {
             let slot = &mut out.lungs[geometry.side.index()];

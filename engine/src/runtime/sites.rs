@@ -9,7 +9,21 @@ use ipc_types::{signal_status, EngineFrame, SignalWire, TrackerFrame, MAX_SIGNAL
 use lung_model::breathing::SignalSample;
 
 use super::remote::{BreathCache, Prepared, RemoteStateError, StateSchedule, StateStamp};
-use super::EngineCore;
+use super::{CoreError, EngineCore};
+
+/// Why [`follow`] stopped.
+#[derive(Debug, thiserror::Error)]
+pub enum SitesError {
+    /// A state could not be applied.
+    #[error(transparent)]
+    Remote(#[from] RemoteStateError),
+    /// A state could not be encoded for the wire.
+    #[error(transparent)]
+    Encode(#[from] control_state::EncodeError),
+    /// A disease cycle could not be prepared (as the engine process prepares one after each frame).
+    #[error(transparent)]
+    Core(#[from] CoreError),
+}
 
 /// One tick of a source and its sites: each one's volume above FRC (both lungs, ml) and state bits.
 #[derive(Debug, Clone, Copy, PartialEq)]
@@ -43,7 +57,9 @@ pub struct SiteRun {
 /// the engine's process does ([`StateSchedule`]); `site` gets each state
 /// `delay_ticks` after its tick (over the wire: encoded and decoded), and `model_site`, a copy of
 /// `site`, gets it without the patient's breath. Both sites follow the source only
-/// ([`EngineCore::follow_remote`]). Both engines tick at `tick_hz` (the scene's).
+/// ([`EngineCore::follow_remote`]). Both engines tick at `tick_hz` (the scene's). After each tick
+/// every engine prepares its disease state's next cycle, as the engine process does after each
+/// frame (without it a disease scene's course never advanced).
 pub fn follow(
     mut source: EngineCore,
     site: EngineCore,
@@ -51,7 +67,7 @@ pub fn follow(
     ticks: u64,
     delay_ticks: u64,
     tick_hz: f64,
-) -> Result<SiteRun, RemoteStateError> {
+) -> Result<SiteRun, SitesError> {
     let frc: f64 = source.geometry().map(|g| g.start_volume_ml).sum();
     let (mut site, mut model_site) = (site.clone(), site);
     site.follow_remote();
@@ -97,6 +113,9 @@ pub fn follow(
         }
         site.step(tick, None, &mut f[1]);
         model_site.step(tick, None, &mut f[2]);
+        for e in [&mut source, &mut site, &mut model_site] {
+            e.prepare_ahead()?;
+        }
         out.push(SiteTick {
             t_s: tick as f64 / tick_hz,
             source_ml: volume(&f[0]),

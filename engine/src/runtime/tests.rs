@@ -2339,3 +2339,76 @@ fn a_chest_axis_being_learnt_is_shown_as_learning_not_as_a_loss() {
     }
     assert!(following.is_some());
 }
+
+/// A disease course acts on the patient's own breaths (issue 35 item 4, EQUATIONS.md §4.7's
+/// reading): with the signal driving both lungs of a tension pneumothorax, the lungs share the
+/// patient's volume change by their cycles' tidal volumes — tick by tick the two lungs' changes
+/// stand as their tidal volumes do (as their shares before the course takes anything) — and
+/// together still take the whole of it. Checked to fail with the signal shared by the shares alone.
+#[test]
+fn a_pneumothorax_shares_the_patients_signal_by_the_lungs_tidal_volumes() {
+    let text = "[lungs]\nsides = [\"right\", \"left\"]\n[breathing]\nsource = \"signal\"\n\
+                signal = \"trace:unused-by-the-engine\"\n[disease]\nkind = \"tension-pneumothorax\"\n\
+                side = \"left\"\nonset_s = 2.0\nv_p_ml = 40.0\n";
+    let mut core = diseased_core(text);
+    let shares: Vec<f64> = {
+        let frc: f64 = core.geometry().map(|g| g.start_volume_ml).sum();
+        [Side::Right, Side::Left]
+            .iter()
+            .map(|&s| {
+                core.geometry()
+                    .find(|g| g.side == s)
+                    .unwrap()
+                    .start_volume_ml
+                    / frc
+            })
+            .collect()
+    };
+    let mut f = EngineFrame::default();
+    let mut last: Option<(f32, f32, f32)> = None;
+    let (mut checked, mut reduced, mut run) = (0, 0, 0u64);
+    for tick in 0..(90 * 60) {
+        core.step(tick, Some(&signal_frame(tick, None, &clean)), &mut f);
+        core.prepare_ahead().unwrap();
+        let (r, l) = (&f.lungs[ipc_types::LUNG_RIGHT], &f.lungs[LUNG_LEFT]);
+        assert!(r.volume_ml.is_finite() && l.volume_ml.is_finite());
+        // Past the takeover's blend from the model's breath (half a second).
+        run = if f.state & ipc_types::engine_state::SIGNAL_FOLLOWING != 0 {
+            run + 1
+        } else {
+            0
+        };
+        let following = run > 60;
+        let changed = (r.flags | l.flags) & (lung_flags::CYCLE_CHANGED | lung_flags::HELD) != 0;
+        if let (Some((r0, l0, s0)), true, false) = (last, following, changed) {
+            let (dr, dl) = (f64::from(r.volume_ml - r0), f64::from(l.volume_ml - l0));
+            // Past the takeover's blend, the lungs together take the signal's whole change.
+            let ds = f64::from(f.signal.volume_ml - s0);
+            if ds.abs() > 0.5 {
+                assert!(
+                    (dr + dl - ds).abs() < 0.01 * ds.abs() + 0.01,
+                    "tick {tick}: the lungs moved {:.3} ml together, the signal {ds:.3} ml",
+                    dr + dl
+                );
+            }
+            if dr.abs() > 0.5 {
+                let want = f64::from(l.tidal_ml) / f64::from(r.tidal_ml);
+                assert!(
+                    (dl / dr - want).abs() < 0.01 * want,
+                    "tick {tick}: the lungs moved {dl:.3} / {dr:.3} ml (tidal {} / {}), their tidal volumes \
+                     stand at {want:.4}", l.tidal_ml, r.tidal_ml
+                );
+                checked += 1;
+                if want < 0.9 * shares[1] / shares[0] {
+                    reduced += 1;
+                }
+            }
+        }
+        last = Some((r.volume_ml, l.volume_ml, f.signal.volume_ml));
+    }
+    assert!(checked > 1000, "{checked} ticks compared");
+    assert!(
+        reduced > 500,
+        "the course reduced the left lung's breath on {reduced} ticks"
+    );
+}
