@@ -572,10 +572,12 @@ pub struct TracePoint {
 /// both lungs breathing freely the lungs are drawn at FRC plus the predicted volume
 /// ([`ipc_types::SignalFollowed::volume_ml`]; each lung takes its share of it, the shares making
 /// the whole), so `drawn − predicted + unpredicted` is FRC plus the newest sample's volume and the
-/// gap between the two lines is what the prediction moved the lungs ahead. With one lung simulated,
-/// or a lung held or collapsed (a pneumothorax), the lungs drawn take only part of the signal's
-/// volume, in a proportion the frame does not carry: there the measured line is left out rather
-/// than drawn on a wrong scale. (The half second in which the signal takes over from the model
+/// gap between the two lines is what the prediction moved the lungs ahead. A pneumothorax keeps
+/// that: since 2026-12-06 a held or collapsing lung's part of the signal moves to the other lung
+/// (the engine's `share_signal`, EQUATIONS.md §4.7), so the lungs still take it whole, on bases the
+/// course moves at its cycle starts (both lines step together). Only with every lung held (an
+/// arrest) do the lungs take none of it: there the measured line is left out rather than drawn on
+/// a wrong scale. (The half second in which the signal takes over from the model
 /// blends the two, so the lines part there.) Points are kept by the frame's engine
 /// tick (one per twelfth of a second of the engine's clock, a repeated frame adds nothing), in a
 /// fixed ring: recording allocates nothing.
@@ -633,10 +635,12 @@ impl SignalTrace {
         let active = frame.lungs.iter().filter(|l| l.is_active());
         let drawn: f32 = active.map(|l| l.volume_ml).sum();
         let drawn = drawn.is_finite().then_some(drawn);
-        // Both lungs breathing freely: together they take the whole of the signal's volume.
-        let whole = frame.lungs.iter().all(|l| {
-            l.is_active() && l.flags & ipc_types::lung_flags::HELD == 0 && l.collapse == 0.0
-        });
+        // A lung breathing: the lungs together take the whole of the signal's volume (a held or
+        // collapsing lung's part moves to the other, the engine's `share_signal`).
+        let whole = frame
+            .lungs
+            .iter()
+            .any(|l| l.is_active() && l.flags & ipc_types::lung_flags::HELD == 0);
         let following = frame.state & (e::SIGNAL_FOLLOWING | e::SIGNAL_PAUSED) != 0
             && frame.signal.display_ns != 0
             && whole;
@@ -1184,20 +1188,31 @@ mod tests {
         t.record(&f, 60.0);
         let newest = t.points().last().unwrap().1;
         assert_eq!(newest.measured_ml, Some(2380.0));
-        // A held or collapsed lung, or one lung alone, takes only part of the signal's volume: no
-        // measured point then.
-        let edits: [fn(&mut EngineFrame); 3] = [
-            |f| f.lungs[LUNG_LEFT].flags |= lung_flags::HELD,
-            |f| f.lungs[LUNG_RIGHT].collapse = 0.2,
-            |f| f.lungs[LUNG_LEFT] = LungFrame::default(),
+        // A held or collapsed lung, or one lung alone: the lungs still take the whole signal (the
+        // other lung takes a held or collapsing one's part), so the measured point stays; every
+        // lung held (an arrest) takes none of it: no measured point.
+        let edits: [(fn(&mut EngineFrame), bool); 4] = [
+            (|f| f.lungs[LUNG_LEFT].flags |= lung_flags::HELD, true),
+            (|f| f.lungs[LUNG_RIGHT].collapse = 0.2, true),
+            (|f| f.lungs[LUNG_LEFT] = LungFrame::default(), true),
+            (
+                |f| {
+                    for l in &mut f.lungs {
+                        l.flags |= lung_flags::HELD;
+                    }
+                },
+                false,
+            ),
         ];
-        for (k, edit) in edits.into_iter().enumerate() {
+        for (k, (edit, measured)) in edits.into_iter().enumerate() {
             let mut g = f;
             edit(&mut g);
             let mut u = SignalTrace::default();
             u.record(&g, 60.0);
             let p = u.points().last().unwrap().1;
-            assert!(p.drawn_ml.is_some() && p.measured_ml.is_none(), "case {k}");
+            let drawn = p.drawn_ml.expect("a drawn point");
+            let want = measured.then_some(drawn - g.signal.volume_ml + g.signal.unpredicted_ml);
+            assert_eq!(p.measured_ml, want, "case {k}");
         }
         // A repeated frame adds nothing; a stall of 65 ticks (slots 3..=14) leaves twelve gaps.
         t.record(&f, 60.0);
