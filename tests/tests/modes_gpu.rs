@@ -48,6 +48,55 @@ fn scene(mode: DeformMode) -> Scene {
     s
 }
 
+/// An engine over `kernels` in `mode` (the scene's orientation settings).
+fn engine_over(
+    scene: &Scene,
+    kernels: &[lung_model::kernel::KernelFile],
+    mode: DeformMode,
+) -> EngineCore {
+    let geometry = kernels
+        .iter()
+        .map(|k| {
+            LungGeometry::from_kernel(
+                k,
+                mode,
+                scene.engine.orientation,
+                scene.engine.min_slope_ratio,
+            )
+            .unwrap()
+        })
+        .collect();
+    EngineCore::with_geometry(scene, geometry).unwrap()
+}
+
+/// The patient supine, turned 90° about two axes, and prone.
+const TURNS: [fn() -> DQuat; 4] = [
+    || DQuat::IDENTITY,
+    || DQuat::from_rotation_x(std::f64::consts::FRAC_PI_2),
+    || DQuat::from_rotation_y(-std::f64::consts::FRAC_PI_2),
+    || DQuat::from_rotation_x(std::f64::consts::PI),
+];
+
+/// What the renderer draws for engine frame `f`: its scales and coefficients, no offset, no
+/// collapse, the patient's pose for both poses.
+fn drawn_from(f: &EngineFrame) -> DrawState {
+    let mut state = DrawState {
+        deform_scale: [0.0; 2],
+        offset_mm: [[0.0; 3]; 2],
+        collapse: [0.0; 2],
+        hilum_mm: [[0.0; 3]; 2],
+        coeffs: [[0.0; ipc_types::MAX_COEFFS]; 2],
+        patient: f.patient_pose,
+        hmd: f.patient_pose,
+        pose_warning: Default::default(),
+    };
+    for slot in 0..2 {
+        state.deform_scale[slot] = f.lungs[slot].deform_scale;
+        state.coeffs[slot] = f.lungs[slot].coeffs;
+    }
+    state
+}
+
 #[test]
 fn every_mode_on_the_gpu_matches_the_cpu_reference_at_extreme_orientations() {
     let Some(gpu) = Gpu::for_tests() else { return };
@@ -85,43 +134,14 @@ fn every_mode_on_the_gpu_matches_the_cpu_reference_at_extreme_orientations() {
             );
         }
         let r = LungRenderer::new(&gpu, &scene.render, &lungs).unwrap();
-        let geometry = kernels
-            .iter()
-            .map(|k| {
-                LungGeometry::from_kernel(
-                    k,
-                    mode,
-                    scene.engine.orientation,
-                    scene.engine.min_slope_ratio,
-                )
-                .unwrap()
-            })
-            .collect();
-        let mut core = EngineCore::with_geometry(&scene, geometry).unwrap();
+        let mut core = engine_over(&scene, &kernels, mode);
         let mut cpus: Vec<CpuLung> = lungs.iter().map(|l| l.lung.clone()).collect();
-        let turns = [
-            DQuat::IDENTITY,
-            DQuat::from_rotation_x(std::f64::consts::FRAC_PI_2),
-            DQuat::from_rotation_y(-std::f64::consts::FRAC_PI_2),
-            DQuat::from_rotation_x(std::f64::consts::PI),
-        ];
         let mut f = EngineFrame::default();
-        for (k, turn) in turns.iter().enumerate() {
+        for (k, turn) in TURNS.iter().enumerate() {
             let tick = 120 + 300 * k as u64;
-            core.step(tick, Some(&posed(tick, *turn * supine())), &mut f);
-            let mut state = DrawState {
-                deform_scale: [0.0; 2],
-                offset_mm: [[0.0; 3]; 2],
-                collapse: [0.0; 2],
-                hilum_mm: [[0.0; 3]; 2],
-                coeffs: [[0.0; ipc_types::MAX_COEFFS]; 2],
-                patient: f.patient_pose,
-                hmd: f.patient_pose,
-                pose_warning: Default::default(),
-            };
+            core.step(tick, Some(&posed(tick, turn() * supine())), &mut f);
+            let mut state = drawn_from(&f);
             for slot in 0..2 {
-                state.deform_scale[slot] = f.lungs[slot].deform_scale;
-                state.coeffs[slot] = f.lungs[slot].coeffs;
                 state.offset_mm[slot] = [1.5 * slot as f32, -2.0, 0.25];
             }
             r.render(&gpu, &state, false);
@@ -161,7 +181,7 @@ fn every_mode_on_the_gpu_matches_the_cpu_reference_at_extreme_orientations() {
                 worst_n <= 1e-3,
                 "{mode} turn {k}: normals differ by {worst_n:e}"
             );
-            if k + 1 < turns.len() {
+            if k + 1 < TURNS.len() {
                 continue;
             }
             // A pneumothorax's collapse towards the hilum (EQUATIONS.md §4.1), left lung only:
@@ -498,45 +518,14 @@ fn capped_bands_deform_as_the_full_pass_with_the_higher_bands_force_dropped() {
         })
         .collect();
     assert_eq!(caps, [7, 6, 5, 4, 3, 2, 1], "the ladder's band steps");
-    let geometry = kernels
-        .iter()
-        .map(|k| {
-            LungGeometry::from_kernel(
-                k,
-                DeformMode::Sh,
-                scene.engine.orientation,
-                scene.engine.min_slope_ratio,
-            )
-            .unwrap()
-        })
-        .collect();
-    let mut core = EngineCore::with_geometry(&scene, geometry).unwrap();
-    let turns = [
-        DQuat::IDENTITY,
-        DQuat::from_rotation_x(std::f64::consts::FRAC_PI_2),
-        DQuat::from_rotation_y(-std::f64::consts::FRAC_PI_2),
-        DQuat::from_rotation_x(std::f64::consts::PI),
-    ];
+    let mut core = engine_over(&scene, &kernels, DeformMode::Sh);
     let mut f = EngineFrame::default();
     // Per cap: the largest and the sum of squares of the move from the full pass, mm.
     let mut cost = [(0.0f64, 0.0f64, 0usize); 9];
-    for (k, turn) in turns.iter().enumerate() {
+    for (k, turn) in TURNS.iter().enumerate() {
         for tick in [60 + 300 * k as u64, 120 + 300 * k as u64] {
-            core.step(tick, Some(&posed(tick, *turn * supine())), &mut f);
-            let mut state = DrawState {
-                deform_scale: [0.0; 2],
-                offset_mm: [[0.0; 3]; 2],
-                collapse: [0.0; 2],
-                hilum_mm: [[0.0; 3]; 2],
-                coeffs: [[0.0; ipc_types::MAX_COEFFS]; 2],
-                patient: f.patient_pose,
-                hmd: f.patient_pose,
-                pose_warning: Default::default(),
-            };
-            for slot in 0..2 {
-                state.deform_scale[slot] = f.lungs[slot].deform_scale;
-                state.coeffs[slot] = f.lungs[slot].coeffs;
-            }
+            core.step(tick, Some(&posed(tick, turn() * supine())), &mut f);
+            let state = drawn_from(&f);
             r.set_quality(Quality::FULL);
             r.render(&gpu, &state, false);
             let full = r.read_deformed(&gpu).unwrap();
