@@ -69,6 +69,24 @@ fn engine_over(
     EngineCore::with_geometry(scene, geometry).unwrap()
 }
 
+/// The scene's kernels and the lungs the renderer loads from them in `mode`.
+fn loaded(
+    scene: &Scene,
+    mode: DeformMode,
+) -> (Vec<lung_model::kernel::KernelFile>, Vec<RenderLung>) {
+    let kernels: Vec<_> = scene
+        .lungs
+        .sides
+        .iter()
+        .map(|&s| scene.lung_kernel(s).unwrap())
+        .collect();
+    let lungs = kernels
+        .iter()
+        .map(|k| RenderLung::from_kernel(k, mode).unwrap())
+        .collect();
+    (kernels, lungs)
+}
+
 /// The patient supine, turned 90° about two axes, and prone.
 const TURNS: [fn() -> DQuat; 4] = [
     || DQuat::IDENTITY,
@@ -104,16 +122,7 @@ fn every_mode_on_the_gpu_matches_the_cpu_reference_at_extreme_orientations() {
     for mode in DeformMode::ALL {
         let mut scene = base.clone();
         scene.lungs.mode = mode;
-        let kernels: Vec<_> = scene
-            .lungs
-            .sides
-            .iter()
-            .map(|&s| scene.lung_kernel(s).unwrap())
-            .collect();
-        let lungs: Vec<RenderLung> = kernels
-            .iter()
-            .map(|k| RenderLung::from_kernel(k, mode).unwrap())
-            .collect();
+        let (kernels, lungs) = loaded(&scene, mode);
         // Only what the mode needs was read.
         for k in &kernels {
             let read = |kind| k.is_verified(kind);
@@ -497,16 +506,7 @@ fn capped_bands_deform_as_the_full_pass_with_the_higher_bands_force_dropped() {
     scene.lungs.bands = 8;
     let mut scene = lungdyn_tests::scene_with_kernels(scene, "modes-gpu-bands");
     scene.render.governor_least_bands = Some(1);
-    let kernels: Vec<_> = scene
-        .lungs
-        .sides
-        .iter()
-        .map(|&s| scene.lung_kernel(s).unwrap())
-        .collect();
-    let lungs: Vec<RenderLung> = kernels
-        .iter()
-        .map(|k| RenderLung::from_kernel(k, DeformMode::Sh).unwrap())
-        .collect();
+    let (kernels, lungs) = loaded(&scene, DeformMode::Sh);
     assert!(lungs.iter().all(|l| l.lung.coeff_count() == 64), "8 bands");
     let mut r = LungRenderer::new(&gpu, &scene.render, &lungs).unwrap();
     let caps: Vec<u8> = r
