@@ -69,6 +69,10 @@ pub struct HudConfig {
     /// The scene breathes with the patient's signal (`[breathing] source = "signal"`): the phase
     /// line says what drives the breath, and room is kept for its longest wording.
     pub signal: bool,
+    /// The scene is a remote site (`[remote] role = "site"` or `"observer"`): while the source's
+    /// patient drives its lungs (the frame's `SIGNAL_FOLLOWING`), the PV box shows the trace of
+    /// the lungs' volume instead of the model's PV loop.
+    pub remote_site: bool,
 }
 
 impl HudConfig {
@@ -111,6 +115,13 @@ impl HudConfig {
             lung_boxes,
             lobes: (scene.render.color == lung_model::scene::ColorMode::Lobes).then_some(lobes),
             signal: scene.breathing.source == lung_model::scene::BreathSource::Signal,
+            remote_site: scene.remote.as_ref().is_some_and(|r| {
+                matches!(
+                    r.role,
+                    lung_model::scene_remote::RemoteRole::Site
+                        | lung_model::scene_remote::RemoteRole::Observer
+                )
+            }),
         }
     }
 }
@@ -195,8 +206,10 @@ pub struct Hud {
     vertices: Vec<ShapeVertex>,
     pv: text::PvTrace,
     /// The breath drawn beside the patient's signal (shown instead of the PV loop when the scene
-    /// breathes with the signal).
+    /// breathes with the signal, or a site's lungs breathe with the source's patient).
     trace: text::SignalTrace,
+    /// What the PV box shows now ([`text::pv_box_shows`]), its title shaped for it.
+    pv_box: text::PvBox,
     eye_width: u32,
     height: u32,
     eyes: u32,
@@ -433,6 +446,7 @@ impl Hud {
             vertices: Vec::with_capacity(MAX_SHAPE_VERTICES),
             pv: text::PvTrace::default(),
             trace: text::SignalTrace::default(),
+            pv_box: text::PvBox::Loop,
             eye_width,
             height,
             eyes,
@@ -471,6 +485,7 @@ impl Hud {
         hud.lines[LABEL_L].push('L');
         hud.lines[HEAD].push_str("▲ head");
         hud.lines[FEET].push_str("▼ feet");
+        hud.pv_box = text::pv_box_shows(&hud.config, 0);
         hud.choose_pv_title();
         hud.colors[LABEL_R] = CYAN;
         hud.colors[LABEL_L] = CYAN;
@@ -487,27 +502,11 @@ impl Hud {
 
     /// The PV box's title: the longest of its wordings that fits the box at this size (the axes
     /// named in full from about 1500 px wide, shorter below, "PV" alone at the smallest). A scene
-    /// that breathes with the patient's signal shows the signal trace there, and says so.
+    /// that breathes with the patient's signal shows the signal trace there, and says so; so does a
+    /// site while the source's patient drives its lungs ([`text::PvBox`]).
     fn choose_pv_title(&mut self) {
         let room = self.pv_box(0.0).2 - 8.0;
-        let titles: &[&str] = if self.config.signal {
-            &[
-                "last 10 s: lungs white, patient blue",
-                "10 s: lungs white, patient blue",
-                "lungs white, patient blue",
-                "10 s trace",
-                "trace",
-            ]
-        } else {
-            &[
-                "PV loop  P → cmH2O, V ↑ ml",
-                "PV  P → cmH2O, V ↑ ml",
-                "PV  P→cmH2O V↑ml",
-                "PV  P→ V↑",
-                "PV",
-            ]
-        };
-        for &title in titles {
+        for &title in self.pv_box.titles() {
             self.shape(PV_TITLE, title);
             if self.widths[PV_TITLE] <= room {
                 break;
@@ -1164,8 +1163,15 @@ impl Hud {
         f: &HudFrame,
     ) {
         self.pv.record(f.frame);
-        if self.config.signal {
+        if self.config.signal || self.config.remote_site {
             self.trace.record(f.frame, self.config.tick_hz);
+        }
+        // A site's box turns to the trace while the source's patient drives its lungs, and back
+        // (the title reshaped only on the change).
+        let shows = text::pv_box_shows(&self.config, f.frame.state);
+        if shows != self.pv_box {
+            self.pv_box = shows;
+            self.choose_pv_title();
         }
         self.update_lines(f);
         self.vertices.clear();
@@ -1209,7 +1215,7 @@ impl Hud {
             for k in 0..4 {
                 self.push_line(corners[k], corners[(k + 1) % 4], 1.0, frame_color);
             }
-            if self.config.signal {
+            if self.pv_box != text::PvBox::Loop {
                 self.push_trace((px + 4.0, py + 4.0, pw - 8.0, ph - 8.0));
             } else if let Some(scale) = text::PvScale::fit(self.pv.points()) {
                 let inner = (px + 4.0, py + 4.0, pw - 8.0, ph - 8.0);

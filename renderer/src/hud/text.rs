@@ -308,6 +308,63 @@ pub fn timing_line(
     }
 }
 
+/// What the HUD's PV box shows.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub enum PvBox {
+    /// The model's PV loop.
+    Loop,
+    /// The last 10 s of the lungs' volume and the patient's measured volume (a scene breathing
+    /// with the signal).
+    Signal,
+    /// The last 10 s of the lungs' volume at a remote site while the source's patient drives them
+    /// (the patient's samples stay at the source: the lungs' line alone).
+    SitePatient,
+}
+
+impl PvBox {
+    /// The box's titles, longest first (the longest that fits is shown).
+    pub fn titles(self) -> &'static [&'static str] {
+        match self {
+            PvBox::Signal => &[
+                "last 10 s: lungs white, patient blue",
+                "10 s: lungs white, patient blue",
+                "lungs white, patient blue",
+                "10 s trace",
+                "trace",
+            ],
+            PvBox::SitePatient => &[
+                "last 10 s: lungs, breathing with the source's patient",
+                "10 s: lungs with the source's patient",
+                "lungs with the source's patient",
+                "10 s trace",
+                "trace",
+            ],
+            PvBox::Loop => &[
+                "PV loop  P → cmH2O, V ↑ ml",
+                "PV  P → cmH2O, V ↑ ml",
+                "PV  P→cmH2O V↑ml",
+                "PV  P→ V↑",
+                "PV",
+            ],
+        }
+    }
+}
+
+/// What the PV box shows for a frame of engine `state` in a scene of `config`: the signal's trace
+/// in a scene that follows the signal; at a remote site, the lungs' trace while the source's
+/// patient drives them (`SIGNAL_FOLLOWING` or `SIGNAL_PAUSED`), the model's PV loop otherwise (its
+/// pressure is the model's, so beside the patient's volume it would draw a loop no one breathed).
+pub fn pv_box_shows(config: &super::HudConfig, state: u32) -> PvBox {
+    use ipc_types::engine_state as e;
+    if config.signal {
+        PvBox::Signal
+    } else if config.remote_site && state & (e::SIGNAL_FOLLOWING | e::SIGNAL_PAUSED) != 0 {
+        PvBox::SitePatient
+    } else {
+        PvBox::Loop
+    }
+}
+
 /// The governor's part of the timing line, short so the line keeps to one row: nothing at full
 /// quality; " · less: AA LOD+2 VTX OIT SH2" for what it gave up (multisampling, draw levels, the
 /// vertices of other levels not moved, the translucent look, the spherical harmonics capped at 2
@@ -719,6 +776,34 @@ pub fn half_disparity_px(eye_height_px: u32, fov_y_deg: f32, ipd_mm: f32, depth_
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    /// The PV box: the signal's trace in a scene following the signal; at a remote site the lungs'
+    /// trace while the source's patient drives them and the PV loop otherwise; the loop elsewhere,
+    /// whatever the frame says. The shipped site scene is a site.
+    #[test]
+    fn a_site_shows_the_lungs_trace_while_the_sources_patient_drives_them() {
+        use ipc_types::engine_state as e;
+        use lung_model::scene::SceneExt;
+        let scene = |text: &str| lung_model::scene::Scene::parse(text, "s.toml").unwrap();
+        let site = scene(include_str!("../../../scenes/remote_site.toml"));
+        let site = crate::hud::HudConfig::of(&site, &[]);
+        assert!(site.remote_site && !site.signal);
+        assert_eq!(pv_box_shows(&site, 0), PvBox::Loop);
+        assert_eq!(pv_box_shows(&site, e::SIGNAL_FOLLOWING), PvBox::SitePatient);
+        assert_eq!(pv_box_shows(&site, e::SIGNAL_PAUSED), PvBox::SitePatient);
+        assert_eq!(pv_box_shows(&site, e::SIGNAL_LOST), PvBox::Loop);
+        let plain = crate::hud::HudConfig::of(&lung_model::scene::Scene::default(), &[]);
+        assert!(!plain.remote_site);
+        assert_eq!(pv_box_shows(&plain, e::SIGNAL_FOLLOWING), PvBox::Loop);
+        let signal = scene("[breathing]\nsource = \"signal\"\nsignal = \"trace:t.csv\"\n");
+        let signal = crate::hud::HudConfig::of(&signal, &[]);
+        assert_eq!(pv_box_shows(&signal, 0), PvBox::Signal);
+        // Each box has its own titles, the shortest a word.
+        for b in [PvBox::Loop, PvBox::Signal, PvBox::SitePatient] {
+            assert!(b.titles().len() >= 3 && b.titles().last().unwrap().len() <= 5);
+        }
+        assert!(PvBox::SitePatient.titles()[0].contains("source's patient"));
+    }
     use ipc_types::{lung_flags, LungFrame, ToolPose};
 
     fn reply(status: u32, outcome: u32, tick: u64, lung: u32, text: &str) -> ControlReply {
