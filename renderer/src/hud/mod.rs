@@ -1151,6 +1151,21 @@ impl Hud {
         }
     }
 
+    /// Take `frame` into the PV loop and the trace, and choose what the PV box shows: a site's
+    /// box turns to the trace while the source's patient drives its lungs, and back (its title
+    /// reshaped only on the change).
+    fn record(&mut self, frame: &EngineFrame) {
+        self.pv.record(frame);
+        if self.config.signal || self.config.remote_site {
+            self.trace.record(frame, self.config.tick_hz);
+        }
+        let shows = text::pv_box_shows(&self.config, frame.state);
+        if shows != self.pv_box {
+            self.pv_box = shows;
+            self.choose_pv_title();
+        }
+    }
+
     /// Record the HUD pass for this frame over `target` (the resolved colour target, its eyes side
     /// by side), drawn through `eyes`' cameras.
     pub fn encode(
@@ -1162,17 +1177,7 @@ impl Hud {
         eyes: &[EyeUniform],
         f: &HudFrame,
     ) {
-        self.pv.record(f.frame);
-        if self.config.signal || self.config.remote_site {
-            self.trace.record(f.frame, self.config.tick_hz);
-        }
-        // A site's box turns to the trace while the source's patient drives its lungs, and back
-        // (the title reshaped only on the change).
-        let shows = text::pv_box_shows(&self.config, f.frame.state);
-        if shows != self.pv_box {
-            self.pv_box = shows;
-            self.choose_pv_title();
-        }
+        self.record(f.frame);
         self.update_lines(f);
         self.vertices.clear();
         let lh = self.line_height();
