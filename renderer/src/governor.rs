@@ -169,6 +169,21 @@ pub fn ladder(
     steps
 }
 
+/// What the start line says of an accuracy opt-in that has nothing to give up (`least`: the
+/// scene's `governor_least_bands`; `steps`: the ladder built): only the "sh" mode's bands above the
+/// least can be capped, so a scene in another mode, or with no more bands, is told so rather than
+/// left to think the opt-in acts. `None` where it acts or was not asked for.
+pub fn idle_accuracy_opt_in(least: Option<u32>, steps: &[Step]) -> Option<String> {
+    let least = least?;
+    if steps.iter().any(|s| matches!(s, Step::ShBands(_))) {
+        return None;
+    }
+    Some(format!(
+        "governor_least_bands = {least} has nothing to cap: only the \"sh\" mode's bands above \
+         {least} can be given up, and these lungs have none"
+    ))
+}
+
 /// Most spherical-harmonic bands a kernel holds (so at most 7 band steps).
 pub const MAX_SH_BANDS: u32 = 8;
 
@@ -498,6 +513,23 @@ mod tests {
         }
         assert_eq!(g.taken(), all.len());
         assert!(g.at_floor());
+    }
+
+    #[test]
+    fn an_accuracy_opt_in_with_nothing_to_cap_is_said() {
+        assert_eq!(idle_accuracy_opt_in(None, &[Step::CoarserLod]), None);
+        assert_eq!(
+            idle_accuracy_opt_in(
+                Some(2),
+                &[Step::DrawnOnly, Step::ShBands(3), Step::ShBands(2)]
+            ),
+            None
+        );
+        let said = idle_accuracy_opt_in(Some(2), &[Step::CoarserLod, Step::DrawnOnly]).unwrap();
+        assert!(
+            said.contains("governor_least_bands = 2") && said.contains("\"sh\""),
+            "{said}"
+        );
     }
 
     #[test]

@@ -124,6 +124,8 @@ pub struct Session {
     /// The quality governor (`[render] governor = "hold-deadline"`), and whether its floor was said.
     governor: Option<crate::governor::Governor>,
     floor_said: bool,
+    /// The accuracy opt-in asked for with nothing to cap, in words, for the start line.
+    idle_opt_in: Option<String>,
 }
 
 /// Where a drawn frame goes after the offscreen draw: a window surface, an OpenXR swapchain, or
@@ -354,6 +356,7 @@ impl Session {
             last_fresh_ns: 0,
             governor: None,
             floor_said: false,
+            idle_opt_in: None,
         }
         .with_governor(scene, period_ns)
     }
@@ -367,6 +370,8 @@ impl Session {
             let upstream_ns = ((b.tracker_bridge + b.engine) * 1e6) as u64;
             let target = period_ns.saturating_sub(upstream_ns).max(period_ns / 2);
             let steps = self.renderer.governor_steps().to_vec();
+            self.idle_opt_in =
+                crate::governor::idle_accuracy_opt_in(scene.render.governor_least_bands, &steps);
             self.governor = Some(crate::governor::Governor::new(steps, target));
         }
         self
@@ -382,6 +387,15 @@ impl Session {
 
     /// The governor in words, for the start line.
     pub fn describe_governor(&self) -> String {
+        let described = self.describe_steps();
+        match &self.idle_opt_in {
+            Some(note) => format!("{described}; {note}"),
+            None => described,
+        }
+    }
+
+    /// The governor and the steps it may take, in words.
+    fn describe_steps(&self) -> String {
         match &self.governor {
             None => "governor off".to_string(),
             Some(g) if g.steps().is_empty() => format!(
