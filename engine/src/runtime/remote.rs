@@ -70,9 +70,6 @@ pub enum RemoteStateError {
         /// Why.
         reason: String,
     },
-    /// A state the source made cannot be sent (a value out of the packet's domain, or too large).
-    #[error("the source's control state cannot be sent: {0}")]
-    Encode(#[from] control_state::EncodeError),
     /// The site ticks at another rate than the source.
     #[error(
         "the source ticks at {source_hz} Hz, this site at {site_hz} Hz: start the site on the \

@@ -17,8 +17,8 @@ pub enum SitesError {
     /// A state could not be applied.
     #[error(transparent)]
     Remote(#[from] RemoteStateError),
-    /// A state could not be encoded for the wire.
-    #[error(transparent)]
+    /// A state the source made cannot be sent (a value out of the packet's domain, or too large).
+    #[error("the source's control state cannot be sent: {0}")]
     Encode(#[from] control_state::EncodeError),
     /// A disease cycle could not be prepared (as the engine process prepares one after each frame).
     #[error(transparent)]
