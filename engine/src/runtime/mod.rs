@@ -956,12 +956,15 @@ impl EngineCore {
                 self.remote_spent = Some(p);
             }
         }
-        // Each lung's cycle advanced first (as its tick would: a change pending for the cycle that
-        // starts now takes effect), so the signal is shared by the breaths this tick draws.
-        for (_, b) in self.lungs.iter_mut() {
-            b.local_tick(tick);
+        // With a breath from the patient (the signal, or a source's), each lung's cycle advanced
+        // first (as its tick would: a change pending for the cycle that starts now takes effect),
+        // so the signal is shared by the breaths this tick draws; nothing to share otherwise.
+        if self.lungs.iter().any(|(_, b)| b.driven.is_some()) {
+            for (_, b) in self.lungs.iter_mut() {
+                b.local_tick(tick);
+            }
+            share_signal(&mut self.lungs);
         }
-        share_signal(&mut self.lungs);
         out.lungs = [LungFrame::default(); NUM_LUNGS];
         for (k, (geometry, breath)) in self.lungs.iter_mut().enumerate() {
             let slot = &mut out.lungs[geometry.side.index()];
