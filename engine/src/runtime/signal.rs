@@ -109,6 +109,13 @@ struct BreathLog {
     generation: u64,
 }
 
+/// The highest of `(value, at)` and `volume`, with the last tick the volume was within `band` of
+/// it (`tick` when `volume` is; the lowest is the highest of the negated volumes).
+fn near_extreme((value, at): (f64, u64), volume: f64, tick: u64, band: f64) -> (f64, u64) {
+    let top = value.max(volume);
+    (top, if volume >= top - band { tick } else { at })
+}
+
 /// How close to a turn's extreme the volume still counts as at it, as a share of the last
 /// breath's depth: a turn is placed where the patient left it (the end of a pause or a hold).
 const TURN_BAND: f64 = 0.05;
@@ -196,22 +203,11 @@ impl BreathLog {
         }
         // The extremes' values, and the last tick within `band` of them.
         if inhaling && self.peak.is_none() {
-            let top = self.high.0.max(volume_ml);
-            let tick_of = if volume_ml >= top - band {
-                tick
-            } else {
-                self.high.1
-            };
-            self.high = (top, tick_of);
+            self.high = near_extreme(self.high, volume_ml, tick, band);
         }
         if !inhaling {
-            let bottom = self.low.0.min(volume_ml);
-            let tick_of = if volume_ml <= bottom + band {
-                tick
-            } else {
-                self.low.1
-            };
-            self.low = (bottom, tick_of);
+            let (low, at) = near_extreme((-self.low.0, self.low.1), -volume_ml, tick, band);
+            self.low = (-low, at);
         }
     }
 
