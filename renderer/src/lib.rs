@@ -528,9 +528,7 @@ impl LungRenderer {
         let sh_bands = lungs
             .iter()
             .filter_map(|l| match &l.lung.data {
-                lung_model::deform::modes::ModeData::Sh { t } => {
-                    Some((t.n_coeffs() as f64).sqrt().round() as u32)
-                }
+                lung_model::deform::modes::ModeData::Sh { t } => Some(t.n_bands() as u32),
                 _ => None,
             })
             .max()

@@ -127,6 +127,11 @@ impl ShCoeffs {
         self.n_coeffs
     }
 
+    /// Bands (`n_coeffs = n_bands²`).
+    pub fn n_bands(&self) -> usize {
+        self.n_coeffs.isqrt()
+    }
+
     /// Vertices.
     pub fn vertices(&self) -> usize {
         self.vertices
