@@ -127,6 +127,12 @@ fn target_bytes(float_targets: bool) -> u64 {
     }
 }
 
+/// About what one lung of `vertices` and `triangles` costs the file over `frames`: its base
+/// positions and normals, a morph target per frame, its triangles' indices.
+fn lung_bytes(vertices: u64, triangles: u64, frames: u32, float_targets: bool) -> u64 {
+    vertices * (24 + target_bytes(float_targets) * u64::from(frames)) + triangles * 12
+}
+
 /// What `lungdyn export gltf` wrote.
 #[derive(Debug, Clone, Serialize)]
 pub struct GltfReport {
@@ -232,8 +238,12 @@ pub fn run(args: &GltfArgs) -> anyhow::Result<GltfReport> {
         .filter(|&&side| scene.lungs.kernels.get(side).is_none())
         .count() as u64;
     let early = generated
-        * scene.lungs.vertices as u64
-        * (12 + target_bytes(args.float_targets) * u64::from(args.frames));
+        * lung_bytes(
+            scene.lungs.vertices as u64,
+            0,
+            args.frames,
+            args.float_targets,
+        );
     if early > MAX_FILE_BYTES {
         anyhow::bail!(
             "the file would be more than {:.1} GB ({} frames of {generated} × {} vertices): at most \
@@ -312,7 +322,7 @@ fn check_size(lungs: &[RenderLung], frames: u32, float_targets: bool) -> anyhow:
         .iter()
         .map(|l| {
             let (v, t) = (l.lung.len() as u64, l.lung.triangles.len() as u64);
-            v * (24 + target_bytes(float_targets) * u64::from(frames)) + t * 12
+            lung_bytes(v, t, frames, float_targets)
         })
         .sum();
     if estimate > MAX_FILE_BYTES {
