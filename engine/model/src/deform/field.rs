@@ -83,6 +83,34 @@ pub struct ForceField {
     pub degree: u8,
     /// One coefficient per monomial of [`monomials`]`(degree)`, in that order.
     pub coeffs: Vec<f64>,
+    /// Local terms added to the polynomial (lungdyn, beyond the seed; none unless `fit-motion
+    /// --force-centres` asked for them): `Σ_j w_j·ψ(‖x − c_j‖ / radius_mm)` with Wendland's
+    /// compactly supported C² function [`wendland`], `x` the point in the fitted lung's frame (mm)
+    /// and the centres on its exhale surface. Each reaches `radius_mm` and no further, so a
+    /// centre's freedom stays in the part of the lung it was fitted on.
+    #[serde(default, skip_serializing_if = "Vec::is_empty")]
+    pub centres: Vec<[f64; 3]>,
+    /// One weight per centre.
+    #[serde(default, skip_serializing_if = "Vec::is_empty")]
+    pub weights: Vec<f64>,
+    /// Support radius of every local term, mm (0 without them).
+    #[serde(default, skip_serializing_if = "is_zero")]
+    pub radius_mm: f64,
+}
+
+fn is_zero(x: &f64) -> bool {
+    *x == 0.0
+}
+
+/// Wendland's C² function in 3-D, `ψ(r) = (1 − r)⁴(4r + 1)` for `r < 1`, 0 beyond: positive
+/// definite, smooth, with compact support (Wendland 1995).
+pub fn wendland(r: f64) -> f64 {
+    if (0.0..1.0).contains(&r) {
+        let a = 1.0 - r;
+        a * a * a * a * (4.0 * r + 1.0)
+    } else {
+        0.0
+    }
 }
 
 impl ForceField {
@@ -90,11 +118,25 @@ impl ForceField {
     pub fn value_in_box(&self, p: DVec3, lo: DVec3, hi: DVec3) -> f64 {
         let (flo, fhi) = (DVec3::from(self.lo), DVec3::from(self.hi));
         let t = (p - lo) / (hi - lo);
-        let u = box_coords(flo + t * (fhi - flo), flo, fhi);
-        monomials(self.degree)
+        let x = flo + t * (fhi - flo);
+        let u = box_coords(x, flo, fhi);
+        let poly: f64 = monomials(self.degree)
             .iter()
             .zip(&self.coeffs)
             .map(|(e, c)| c * u.x.powi(e[0] as i32) * u.y.powi(e[1] as i32) * u.z.powi(e[2] as i32))
+            .sum();
+        if self.centres.is_empty() {
+            return poly;
+        }
+        poly + self.local_value(x)
+    }
+
+    /// The local terms at `x` in the fitted lung's frame, mm.
+    pub fn local_value(&self, x: DVec3) -> f64 {
+        self.centres
+            .iter()
+            .zip(&self.weights)
+            .map(|(c, w)| w * wendland((x - DVec3::from(*c)).length() / self.radius_mm))
             .sum()
     }
 
@@ -109,6 +151,18 @@ impl ForceField {
         }
         if !self.coeffs.iter().all(|c| c.is_finite()) {
             return Err("force field coefficients must be finite");
+        }
+        if self.centres.len() != self.weights.len() {
+            return Err("a force field's local terms need one weight per centre");
+        }
+        if !self.centres.is_empty() {
+            if !(self.radius_mm.is_finite() && self.radius_mm > 0.0) {
+                return Err("a force field's local terms need a finite, positive radius_mm");
+            }
+            let finite = self.centres.iter().flatten().chain(&self.weights);
+            if !finite.into_iter().all(|v| v.is_finite()) {
+                return Err("a force field's centres and weights must be finite");
+            }
         }
         Ok(())
     }
@@ -352,5 +406,104 @@ mod tests {
         }
         .validate()
         .is_err());
+    }
+
+    #[test]
+    fn wendlands_function_is_one_at_its_centre_smooth_and_zero_past_its_reach() {
+        assert_eq!(wendland(0.0), 1.0);
+        assert_eq!(wendland(1.0), 0.0);
+        assert_eq!(wendland(1.5), 0.0);
+        assert_eq!(wendland(-0.1), 0.0);
+        assert_eq!(wendland(f64::NAN), 0.0);
+        let h = 1e-4;
+        let mut last = 1.0;
+        for k in 1..1000 {
+            let r = k as f64 / 1000.0;
+            let v = wendland(r);
+            assert!(
+                v > 0.0 && v < last,
+                "decreasing and positive inside: {r} {v}"
+            );
+            last = v;
+        }
+        // C²: first and second differences vanish at the rim, and the slope at the centre is 0.
+        let d1 = |r: f64| (wendland(r + h) - wendland(r - h)) / (2.0 * h);
+        let d2 = |r: f64| (wendland(r + h) - 2.0 * wendland(r) + wendland(r - h)) / (h * h);
+        assert!(
+            d1(1.0).abs() < 1e-8 && d2(1.0).abs() < 1e-3,
+            "{} {}",
+            d1(1.0),
+            d2(1.0)
+        );
+        assert!(d1(h).abs() < 1e-2, "{}", d1(h));
+    }
+
+    fn force_with_local(centres: Vec<[f64; 3]>, weights: Vec<f64>, radius_mm: f64) -> ForceField {
+        ForceField {
+            lo: [0.0, 0.0, 0.0],
+            hi: [100.0, 100.0, 200.0],
+            degree: 1,
+            coeffs: vec![1.0, 0.0, 0.0, 0.0],
+            centres,
+            weights,
+            radius_mm,
+        }
+    }
+
+    #[test]
+    fn a_forces_local_terms_add_where_they_reach_and_nowhere_else() {
+        let f = force_with_local(vec![[50.0, 50.0, 100.0]], vec![2.0], 20.0);
+        assert!(f.validate().is_ok());
+        let (lo, hi) = (DVec3::from(f.lo), DVec3::from(f.hi));
+        assert!((f.value_in_box(DVec3::new(50.0, 50.0, 100.0), lo, hi) - 3.0).abs() < 1e-12);
+        assert!(
+            (f.value_in_box(DVec3::new(50.0, 60.0, 100.0), lo, hi) - 1.0 - 2.0 * wendland(0.5))
+                .abs()
+                < 1e-12
+        );
+        assert_eq!(f.value_in_box(DVec3::new(50.0, 71.0, 100.0), lo, hi), 1.0);
+        // Another box: the point is mapped into the fitted lung's frame first.
+        let (lo2, hi2) = (lo + 7.0, lo + 7.0 + 2.0 * (hi - lo));
+        assert!((f.value_in_box(DVec3::new(107.0, 107.0, 207.0), lo2, hi2) - 3.0).abs() < 1e-9);
+        // Without local terms the file is what it was: no new keys, and an old file still loads.
+        let plain = force_with_local(vec![], vec![], 0.0);
+        let text = toml::to_string(&plain).unwrap();
+        assert!(
+            !text.contains("centres") && !text.contains("radius"),
+            "{text}"
+        );
+        let back: ForceField = toml::from_str(&text).unwrap();
+        assert_eq!(back, plain);
+        let back: ForceField = toml::from_str(&toml::to_string(&f).unwrap()).unwrap();
+        assert_eq!(back, f);
+    }
+
+    #[test]
+    fn a_forces_bad_local_terms_are_refused_with_the_reason() {
+        for (bad, words) in [
+            (
+                force_with_local(vec![[0.0; 3]], vec![], 10.0),
+                "one weight per centre",
+            ),
+            (
+                force_with_local(vec![[0.0; 3]], vec![1.0], 0.0),
+                "positive radius",
+            ),
+            (
+                force_with_local(vec![[0.0; 3]], vec![1.0], f64::INFINITY),
+                "positive radius",
+            ),
+            (
+                force_with_local(vec![[f64::NAN, 0.0, 0.0]], vec![1.0], 10.0),
+                "finite",
+            ),
+            (
+                force_with_local(vec![[0.0; 3]], vec![f64::NAN], 10.0),
+                "finite",
+            ),
+        ] {
+            let e = bad.validate().unwrap_err();
+            assert!(e.contains(words), "{e}");
+        }
     }
 }
