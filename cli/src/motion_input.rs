@@ -72,6 +72,16 @@ pub struct FitMotionArgs {
     /// degrees fit closer in-sample but slide and fold the surface: docs/masks/patient_motion.md).
     #[arg(long, default_value_t = 2)]
     pub field_degree: u8,
+    /// With --exhale/--inhale: local terms of the applied force, this many centres on the exhale
+    /// surface (8-1000), each reaching 2.5 times their spacing, added to the polynomial where it
+    /// cannot follow the breath, held stiff in the first rounds (docs/masks/patient_motion.md);
+    /// 0 for the polynomial alone (what the breath-hold population averages).
+    #[arg(long, default_value_t = 256)]
+    pub force_centres: usize,
+    /// With --exhale/--inhale: ridge weight of the local terms (above 0; larger is smoother),
+    /// relative to their own normal equations.
+    #[arg(long, default_value_t = 0.01)]
+    pub force_local_ridge: f64,
     /// With --exhale/--inhale: rounds of the symmetric ICP.
     #[arg(long, default_value_t = 50)]
     pub iterations: usize,

@@ -129,14 +129,6 @@ fn check(args: &FitMotionArgs) -> anyhow::Result<(PathBuf, PathBuf, PairOptions)
             args.folds
         );
     }
-    for (flag, d) in [
-        ("--force-degree", args.force_degree),
-        ("--field-degree", args.field_degree),
-    ] {
-        if !(1..=5).contains(&d) {
-            anyhow::bail!("{flag} {d}: give 1 to 5");
-        }
-    }
     let mut outputs = Vec::new();
     if let Some(path) = &args.out {
         outputs.push(crate::outputs::Output {
@@ -154,11 +146,14 @@ fn check(args: &FitMotionArgs) -> anyhow::Result<(PathBuf, PathBuf, PairOptions)
     let opts = PairOptions {
         force_degree: args.force_degree,
         field_degree: args.field_degree,
+        force_centres: args.force_centres,
+        force_local_ridge: args.force_local_ridge,
         iterations: args.iterations,
         folds: args.folds as usize,
         seed: args.seed,
         ..PairOptions::default()
     };
+    opts.validate()?;
     Ok((exhale, inhale, opts))
 }
 

@@ -717,75 +717,89 @@ fn fit_motion_on_a_pair_reports_what_the_bake_of_its_file_draws() {
     let (e, i) = (tmp.path("exhale.ply"), tmp.path("inhale.ply"));
     lung_model::mesh::io::write_mesh(&exhale, &e).unwrap();
     lung_model::mesh::io::write_mesh(&inhale, &i).unwrap();
-    let (motion, dir) = (tmp.path("motion.toml"), tmp.path("fit"));
-    let r = lungdyn(&[
-        "fit-motion",
-        "--exhale",
-        s(&e),
-        "--inhale",
-        s(&i),
-        "--lung",
-        "right",
-        "--iterations",
-        "20",
-        "--folds",
-        "3",
-        "--out",
-        s(&motion),
-        "--surfaces-out",
-        s(&dir),
-        "--json",
-    ]);
-    assert_eq!(r.code, Some(0), "{}", r.stderr);
-    let j: serde_json::Value = serde_json::from_str(&r.stdout).unwrap();
-    let lung = &j["lungs"][0];
-    let reported = lung["in_sample"]["mssd_mm"].as_f64().unwrap();
-    let (none, held) = (
-        lung["no_motion"]["mssd_mm"].as_f64().unwrap(),
-        lung["cross_validated"]["mssd_mm"].as_f64().unwrap(),
-    );
-    assert!(reported < 0.5 * none && held.is_finite(), "{lung}");
-    // What a user does with the file: bake the surface the fit used, drive it to the inhale volume.
-    let kernel = tmp.path("right.kernel");
-    let b = lungdyn(&[
-        "bake",
-        "--mesh",
-        s(&dir.join("right_exhale.ply")),
-        "--lung",
-        "right",
-        "--motion",
-        s(&motion),
-        "--out",
-        s(&kernel),
-    ]);
-    assert_eq!(b.code, Some(0), "{}", b.stderr);
-    let dv = lung["inhale_ml"].as_f64().unwrap() - lung["exhale_ml"].as_f64().unwrap();
-    let drawn = tmp.path("drawn.ply");
-    let x = lungdyn(&[
-        "kernel",
-        "export",
-        s(&kernel),
-        "--delta-ml",
-        &format!("{dv}"),
-        "--out",
-        s(&drawn),
-    ]);
-    assert_eq!(x.code, Some(0), "{}", x.stderr);
-    let read = |p: &Path| {
-        lung_bake::import::import(p, lung_bake::import::Units::Mm)
-            .unwrap()
-            .mesh
-    };
-    let again = lung_bake::patient_motion::surface_distance(
-        &read(&drawn),
-        &read(&dir.join("right_inhale_aligned.ply")),
-    )
-    .unwrap();
-    assert!(
-        (again.mssd_mm - reported).abs() < 0.01,
-        "fit-motion reported {reported} mm; its bake, exported at +{dv:.1} ml, lies {} mm",
-        again.mssd_mm
-    );
+    // The force with its local terms (the default, 256 centres) and the polynomial alone
+    // (`--force-centres 0`): either way the figure printed is the figure the bake of the written
+    // file draws.
+    let variants: [&[&str]; 2] = [&[], &["--force-centres", "0"]];
+    for (v, extra) in variants.into_iter().enumerate() {
+        let (motion, dir) = (
+            tmp.path(&format!("motion{v}.toml")),
+            tmp.path(&format!("fit{v}")),
+        );
+        let mut args = vec![
+            "fit-motion",
+            "--exhale",
+            s(&e),
+            "--inhale",
+            s(&i),
+            "--lung",
+            "right",
+            "--iterations",
+            "20",
+            "--folds",
+            "3",
+            "--out",
+            s(&motion),
+            "--surfaces-out",
+            s(&dir),
+            "--json",
+        ];
+        args.extend(extra);
+        let r = lungdyn(&args);
+        assert_eq!(r.code, Some(0), "{}", r.stderr);
+        let j: serde_json::Value = serde_json::from_str(&r.stdout).unwrap();
+        let lung = &j["lungs"][0];
+        let reported = lung["in_sample"]["mssd_mm"].as_f64().unwrap();
+        let (none, held) = (
+            lung["no_motion"]["mssd_mm"].as_f64().unwrap(),
+            lung["cross_validated"]["mssd_mm"].as_f64().unwrap(),
+        );
+        assert!(reported < 0.5 * none && held.is_finite(), "{lung}");
+        // With local terms, the file carries them (and the bake below must draw them).
+        let centres = lung["force"]["centres"].as_array().map_or(0, |c| c.len());
+        assert_eq!(centres, if extra.is_empty() { 256 } else { 0 }, "{extra:?}");
+        // What a user does with the file: bake the surface the fit used, drive it to the inhale volume.
+        let kernel = tmp.path(&format!("right{v}.kernel"));
+        let b = lungdyn(&[
+            "bake",
+            "--mesh",
+            s(&dir.join("right_exhale.ply")),
+            "--lung",
+            "right",
+            "--motion",
+            s(&motion),
+            "--out",
+            s(&kernel),
+        ]);
+        assert_eq!(b.code, Some(0), "{}", b.stderr);
+        let dv = lung["inhale_ml"].as_f64().unwrap() - lung["exhale_ml"].as_f64().unwrap();
+        let drawn = tmp.path(&format!("drawn{v}.ply"));
+        let x = lungdyn(&[
+            "kernel",
+            "export",
+            s(&kernel),
+            "--delta-ml",
+            &format!("{dv}"),
+            "--out",
+            s(&drawn),
+        ]);
+        assert_eq!(x.code, Some(0), "{}", x.stderr);
+        let read = |p: &Path| {
+            lung_bake::import::import(p, lung_bake::import::Units::Mm)
+                .unwrap()
+                .mesh
+        };
+        let again = lung_bake::patient_motion::surface_distance(
+            &read(&drawn),
+            &read(&dir.join("right_inhale_aligned.ply")),
+        )
+        .unwrap();
+        assert!(
+            (again.mssd_mm - reported).abs() < 0.01,
+            "{extra:?}: fit-motion reported {reported} mm; its bake, exported at +{dv:.1} ml, lies {} mm",
+            again.mssd_mm
+        );
+    }
     // Refused, nothing written: the pair the wrong way round; one file twice; a landmark option.
     for (case, args, words) in [
         (
@@ -807,6 +821,35 @@ fn fit_motion_on_a_pair_reports_what_the_bake_of_its_file_draws() {
             "degree",
             vec!["--exhale", s(&e), "--inhale", s(&i), "--force-degree", "9"],
             vec!["--force-degree"],
+        ),
+        (
+            "centres",
+            vec!["--exhale", s(&e), "--inhale", s(&i), "--force-centres", "5"],
+            vec!["--force-centres 5", "8 to 1000"],
+        ),
+        (
+            "local ridge",
+            vec![
+                "--exhale",
+                s(&e),
+                "--inhale",
+                s(&i),
+                "--force-local-ridge",
+                "0",
+            ],
+            vec!["--force-local-ridge 0"],
+        ),
+        (
+            "local ridge nan",
+            vec![
+                "--exhale",
+                s(&e),
+                "--inhale",
+                s(&i),
+                "--force-local-ridge",
+                "NaN",
+            ],
+            vec!["--force-local-ridge NaN"],
         ),
         (
             "folds",

@@ -42,7 +42,9 @@ use nalgebra::{DMatrix, DVector};
 use serde::Serialize;
 use thiserror::Error;
 
-use lung_model::deform::field::{box_coords, monomial_values, monomials, Field, ForceField};
+use lung_model::deform::field::{
+    box_coords, monomial_values, monomials, wendland, Field, ForceField,
+};
 use lung_model::deform::LungModel;
 use lung_model::kernel::BakeSettings;
 use lung_model::mesh::{Side, TriMesh};
@@ -57,6 +59,12 @@ pub struct PairOptions {
     pub force_degree: u8,
     /// Total degree of the direction field polynomial, 1..=5.
     pub field_degree: u8,
+    /// Local terms of the applied force ([`ForceField::centres`]): this many centres on the exhale
+    /// surface (farthest-point samples), each reaching [`LOCAL_REACH`] times their spacing; 0 for the
+    /// polynomial alone.
+    pub force_centres: usize,
+    /// Ridge weight of the local terms, times the mean diagonal of their normal equations.
+    pub force_local_ridge: f64,
     /// Ridge weight of the direction field (times the number of points).
     pub field_ridge: f64,
     /// ICP rounds.
@@ -74,12 +82,45 @@ impl Default for PairOptions {
         Self {
             force_degree: 3,
             field_degree: 2,
+            force_centres: 256,
+            force_local_ridge: 0.01,
             field_ridge: 1e-6,
             iterations: 50,
             folds: 5,
             seed: 34,
             cap_fraction: 0.25,
         }
+    }
+}
+
+impl PairOptions {
+    /// Every option in its range, or the one that is not, named as `fit-motion`'s flag with its value.
+    pub fn validate(&self) -> Result<(), PairFitError> {
+        let bad = |m: String| Err(PairFitError::Option(m));
+        for (flag, d) in [
+            ("--force-degree", self.force_degree),
+            ("--field-degree", self.field_degree),
+        ] {
+            if !(1..=5).contains(&d) {
+                return bad(format!("{flag} {d}: give 1 to 5"));
+            }
+        }
+        if self.force_centres != 0 && !(8..=1000).contains(&self.force_centres) {
+            return bad(format!(
+                "--force-centres {}: give 0 (the polynomial force alone) or 8 to 1000",
+                self.force_centres
+            ));
+        }
+        if !(self.force_local_ridge.is_finite() && self.force_local_ridge > 0.0) {
+            return bad(format!(
+                "--force-local-ridge {}: give a finite number above 0 (larger is smoother)",
+                self.force_local_ridge
+            ));
+        }
+        if self.folds == 1 || self.folds > 10 {
+            return bad(format!("--folds {}: give 0 (none) or 2 to 10", self.folds));
+        }
+        Ok(())
     }
 }
 
@@ -387,8 +428,11 @@ struct Problem<'a> {
     side: Side,
     mesh: &'a TriMesh,
     p: Vec<DVec3>,
-    /// `T·m_k` for each monomial `m_k` of the force degree (box coordinates), one column each.
+    /// `T·m_k` for each monomial `m_k` of the force degree (box coordinates), one column each,
+    /// then `T·ψ_j` for each local term's centre.
     columns: Vec<Vec<f64>>,
+    /// The local terms' centres (mm, exhale frame) and reach.
+    local: Local,
     lo: DVec3,
     hi: DVec3,
     target: Surface,
@@ -452,7 +496,11 @@ impl Problem<'_> {
         let k = (self.inhale_ml / e_ml).cbrt() - 1.0;
         let mut u: Vec<DVec3> = self.p.iter().map(|&x| k * (x - centre)).collect();
         let mut model = None;
-        for _ in 0..self.opts.iterations {
+        // Every training vertex pulls itself, so the force's rows are the training vertices in
+        // every round: its normal equations are built once (and factored once per stiffness).
+        let mut system = self.force_system((0..n).filter(|&i| train[i]).collect())?;
+        for round in 0..self.opts.iterations {
+            system.stiffen(local_stiffness(round, self.opts.iterations))?;
             let q: Vec<DVec3> = self.p.iter().zip(&u).map(|(a, b)| *a + *b).collect();
             let moved = Surface::new(&q, tris).ok_or(PairFitError::Singular("surface"))?;
             // Pulls: each training vertex to its closest inhale point; each inhale point owned by
@@ -489,13 +537,13 @@ impl Problem<'_> {
             )
             .map_err(|_| PairFitError::Singular("direction field"))?;
             let dirs = self.directions(&field);
-            let idx: Vec<usize> = (0..n).filter(|&i| train[i] && count[i] > 0.0).collect();
-            let magnitude: Vec<f64> = idx
+            let magnitude: Vec<f64> = system
+                .idx
                 .iter()
                 .zip(&goal)
                 .map(|(&i, g)| dirs[i].dot(*g))
                 .collect();
-            let theta = self.solve_force(&idx, &magnitude)?;
+            let theta = self.solve_force(&system, &magnitude)?;
             let force = self.force(&theta);
             u = (0..n).map(|i| force[i] * dirs[i]).collect();
             model = Some(Model { theta, field });
@@ -505,15 +553,16 @@ impl Problem<'_> {
         ))
     }
 
-    /// Ridge least squares `min Σ ((Σ_k θ_k C_k)_i − m_i)² + λ‖θ‖²` over the rows `idx`.
-    fn solve_force(&self, idx: &[usize], m: &[f64]) -> Result<Vec<f64>, PairFitError> {
+    /// The normal equations of `min Σ_i ((Σ_k θ_k C_k)_i − m_i)² + λ‖θ‖²` over the rows `idx`,
+    /// factored: a vanishing ridge on every coefficient (1e-9 of the mean diagonal), and
+    /// `force_local_ridge` times their own mean diagonal on the local terms'.
+    fn force_system(&self, idx: Vec<usize>) -> Result<ForceSystem, PairFitError> {
+        let first_local = self.columns.len() - self.local.centres.len();
         let kk = self.columns.len();
         let mut a = DMatrix::<f64>::zeros(kk, kk);
-        let mut b = DVector::<f64>::zeros(kk);
-        for (r, &i) in idx.iter().enumerate() {
+        for &i in &idx {
             for x in 0..kk {
                 let cx = self.columns[x][i];
-                b[x] += cx * m[r];
                 for y in 0..kk {
                     a[(x, y)] += cx * self.columns[y][i];
                 }
@@ -523,8 +572,32 @@ impl Problem<'_> {
         for x in 0..kk {
             a[(x, x)] += 1e-9 * trace;
         }
-        let theta = a
-            .cholesky()
+        let local_mean =
+            (first_local..kk).map(|x| a[(x, x)]).sum::<f64>() / (kk - first_local).max(1) as f64;
+        let mut system = ForceSystem {
+            idx,
+            chol: None,
+            gram: a,
+            first_local,
+            local_ridge: self.opts.force_local_ridge * local_mean,
+            stiffness: f64::NAN,
+        };
+        system.stiffen(1.0)?;
+        Ok(system)
+    }
+
+    /// The force coefficients for the magnitudes `m` wanted at the system's rows.
+    fn solve_force(&self, system: &ForceSystem, m: &[f64]) -> Result<Vec<f64>, PairFitError> {
+        let kk = self.columns.len();
+        let mut b = DVector::<f64>::zeros(kk);
+        for (r, &i) in system.idx.iter().enumerate() {
+            for x in 0..kk {
+                b[x] += self.columns[x][i] * m[r];
+            }
+        }
+        let theta = system
+            .chol
+            .as_ref()
             .ok_or(PairFitError::Singular("force"))?
             .solve(&b);
         theta
@@ -532,6 +605,73 @@ impl Problem<'_> {
             .all(|v| v.is_finite())
             .then(|| theta.iter().copied().collect())
             .ok_or(PairFitError::Singular("force"))
+    }
+}
+
+/// The force's normal equations over a fit's rows, factored with the local terms' ridge times a
+/// stiffness.
+struct ForceSystem {
+    idx: Vec<usize>,
+    chol: Option<nalgebra::Cholesky<f64, nalgebra::Dyn>>,
+    /// The normal equations before the local terms' ridge.
+    gram: DMatrix<f64>,
+    first_local: usize,
+    /// The local terms' ridge at stiffness 1.
+    local_ridge: f64,
+    stiffness: f64,
+}
+
+impl ForceSystem {
+    /// Refactor with the local terms' ridge times `stiffness` (nothing to do without local terms or
+    /// when it is the one in use).
+    fn stiffen(&mut self, stiffness: f64) -> Result<(), PairFitError> {
+        if stiffness == self.stiffness
+            || (self.chol.is_some() && self.first_local == self.gram.ncols())
+        {
+            return Ok(());
+        }
+        let mut a = self.gram.clone();
+        for x in self.first_local..a.ncols() {
+            a[(x, x)] += stiffness * self.local_ridge;
+        }
+        self.chol = Some(a.cholesky().ok_or(PairFitError::Singular("force"))?);
+        self.stiffness = stiffness;
+        Ok(())
+    }
+}
+
+/// The local terms' stiffness in round `round` of `rounds`: 1000, 100, 10, then 1 times their
+/// ridge over four equal stages. The first rounds' closest points are far from where each vertex
+/// belongs (the base moves centimetres); free local terms would follow them and slide the surface
+/// (annealed stiffness, as in Amberg et al. 2007's optimal-step non-rigid ICP).
+fn local_stiffness(round: usize, rounds: usize) -> f64 {
+    let stage = (4 * round / rounds.max(1)).min(3) as i32;
+    10f64.powi(3 - stage)
+}
+
+/// The applied force's local terms: centres on the exhale surface and their reach.
+#[derive(Debug, Clone, Default)]
+struct Local {
+    centres: Vec<DVec3>,
+    radius_mm: f64,
+}
+
+/// A local term reaches this many times the centres' spacing (`√(area / centres)`): a point of the
+/// surface lies within reach of about ten centres, so the sum is smooth between them.
+pub const LOCAL_REACH: f64 = 2.5;
+
+impl Local {
+    /// `count` farthest-point centres on the surface `p` (0: none).
+    fn on_surface(p: &[DVec3], tris: &[[u32; 3]], count: usize) -> Self {
+        if count == 0 {
+            return Self::default();
+        }
+        let area: f64 = vertex_areas(p, tris).iter().sum();
+        let centres = farthest_seeds(p, count).iter().map(|&i| p[i]).collect();
+        Self {
+            centres,
+            radius_mm: LOCAL_REACH * (area / count as f64).sqrt(),
+        }
     }
 }
 
@@ -572,8 +712,8 @@ fn fold_free_share(model: &LungModel, delta_ml: f64) -> f64 {
     lo
 }
 
-/// Patches of the surface (nearest of `count` farthest-point seeds, the first the highest vertex).
-fn patches(p: &[DVec3], count: usize) -> Vec<usize> {
+/// `count` farthest-point samples of `p` (indices), the first the highest point.
+fn farthest_seeds(p: &[DVec3], count: usize) -> Vec<usize> {
     let mut seeds = vec![p
         .iter()
         .enumerate()
@@ -591,6 +731,12 @@ fn patches(p: &[DVec3], count: usize) -> Vec<usize> {
             near[i] = near[i].min((*x - p[far]).length());
         }
     }
+    seeds
+}
+
+/// Patches of the surface (nearest of `count` farthest-point seeds, the first the highest vertex).
+fn patches(p: &[DVec3], count: usize) -> Vec<usize> {
+    let seeds = farthest_seeds(p, count);
     p.iter()
         .map(|x| {
             (0..seeds.len())
@@ -605,12 +751,14 @@ fn patches(p: &[DVec3], count: usize) -> Vec<usize> {
 }
 
 /// The exhale lung's transfer (as the bake builds it: graph, pitcher–catcher pass, amplitude
-/// smoothing) and its response `Tᵀm_k` to each monomial of the force degree, with the lung's box.
+/// smoothing) and its response `Tᵀm_k` to each monomial of the force degree, then to each local
+/// term, with the lung's box.
 fn operator_columns(
     side: Side,
     exhale: &TriMesh,
     settings: &BakeSettings,
     degree: u8,
+    local: &Local,
 ) -> Result<(crate::operator::Transfer, Vec<Vec<f64>>, DVec3, DVec3), PairFitError> {
     let bb = exhale.aabb();
     let norm = |q| lung_model::deform::normalised_position(q, &bb, side);
@@ -638,6 +786,13 @@ fn operator_columns(
         for (k, v) in values.iter().enumerate() {
             basis[k][i] = *v;
         }
+    }
+    for c in &local.centres {
+        basis.push(
+            p.iter()
+                .map(|x| wendland((*x - *c).length() / local.radius_mm))
+                .collect(),
+        );
     }
     let columns = basis.iter().map(|b| transfer.elastostatic(b)).collect();
     Ok((transfer, columns, lo, hi))
@@ -668,16 +823,7 @@ fn check_pair(
             });
         }
     }
-    if !(1..=5).contains(&opts.force_degree) || !(1..=5).contains(&opts.field_degree) {
-        return Err(PairFitError::Option(
-            "--force-degree and --field-degree take 1 to 5".into(),
-        ));
-    }
-    if opts.folds == 1 || opts.folds > 10 {
-        return Err(PairFitError::Option(
-            "--folds takes 0 (none) or 2 to 10".into(),
-        ));
-    }
+    opts.validate()?;
     let (exhale_ml, inhale_ml) = (exhale.enclosed_volume_ml(), inhale.enclosed_volume_ml());
     if !(inhale_ml > exhale_ml) {
         return Err(PairFitError::NotInhaled {
@@ -717,8 +863,10 @@ pub fn fit_pair(
         message: "could not be indexed for closest points".into(),
     })?;
     progress("building the exhale lung's operator (the bake's Green's-function pass)");
-    let (transfer, columns, lo, hi) = operator_columns(side, exhale, settings, opts.force_degree)?;
     let p = points(exhale);
+    let local = Local::on_surface(&p, &exhale.triangles, opts.force_centres);
+    let (transfer, columns, lo, hi) =
+        operator_columns(side, exhale, settings, opts.force_degree, &local)?;
     let exhale_surface = Surface::new(&p, &exhale.triangles).ok_or(PairFitError::Surface {
         what: "exhale",
         message: "could not be indexed for closest points".into(),
@@ -729,6 +877,7 @@ pub fn fit_pair(
         mesh: exhale,
         p: p.clone(),
         columns,
+        local,
         lo,
         hi,
         target,
@@ -739,11 +888,15 @@ pub fn fit_pair(
     progress("fitting the force and direction fields (symmetric ICP)");
     let all = vec![true; p.len()];
     let fitted = problem.fit(&all)?;
+    let n_poly = fitted.theta.len() - problem.local.centres.len();
     let force = ForceField {
         lo: problem.lo.to_array(),
         hi: problem.hi.to_array(),
         degree: opts.force_degree,
-        coeffs: fitted.theta.clone(),
+        coeffs: fitted.theta[..n_poly].to_vec(),
+        centres: problem.local.centres.iter().map(|c| c.to_array()).collect(),
+        weights: fitted.theta[n_poly..].to_vec(),
+        radius_mm: problem.local.radius_mm,
     };
     // What the bake does with these fields (kernel::bake: applied forces, the operator, the
     // field's directions in the mesh's box, the volume normalisation), driven to the inhale volume.
@@ -924,6 +1077,103 @@ mod tests {
         assert_eq!(twice.in_sample, fit.in_sample);
     }
 
+    /// A breath that moves one part of the wall, the size of a lobe's corner, twice as far as the
+    /// rest, which a cubic force cannot follow: the local terms follow it, and the kernel baked from
+    /// what is written draws it.
+    #[test]
+    fn local_force_terms_follow_a_local_bulge_the_polynomial_cannot() {
+        let exhale = anatomy::lung(Side::Right, 3000).unwrap();
+        let plain = breathe(&exhale, DVec3::ZERO);
+        let p = points(&exhale);
+        let (top, bottom) = p
+            .iter()
+            .fold((f64::MIN, f64::MAX), |(t, b), x| (t.max(x.z), b.min(x.z)));
+        let c = p.iter().sum::<DVec3>() / p.len() as f64;
+        // The most lateral vertex two thirds of the way down, where the breath moves the wall far.
+        let level = top - 0.65 * (top - bottom);
+        let at = *p
+            .iter()
+            .filter(|x| (x.z - level).abs() < 10.0)
+            .max_by(|a, b| (a.x - c.x).abs().total_cmp(&(b.x - c.x).abs()))
+            .unwrap();
+        let inhale = TriMesh {
+            positions: plain
+                .positions
+                .iter()
+                .zip(&p)
+                .map(|(q, x)| {
+                    let u = DVec3::from(q.map(|v| v as f64)) - *x;
+                    (*x + u * (1.0 + wendland((*x - at).length() / 40.0)))
+                        .as_vec3()
+                        .to_array()
+                })
+                .collect(),
+            triangles: exhale.triangles.clone(),
+        };
+        let settings = BakeSettings::default_for(Side::Right);
+        let fit = |centres| {
+            let opts = PairOptions {
+                iterations: 30,
+                folds: 0,
+                force_centres: centres,
+                force_local_ridge: 0.01,
+                ..PairOptions::default()
+            };
+            fit_pair(Side::Right, &exhale, &inhale, &settings, &opts, &|_| {}).unwrap()
+        };
+        let (poly, local) = (fit(0), fit(64));
+        assert!(poly.force.centres.is_empty() && poly.force.weights.is_empty());
+        assert_eq!(local.force.centres.len(), 64);
+        assert_eq!(local.force.weights.len(), 64);
+        assert!(local.force.radius_mm > 10.0 && local.force.validate().is_ok());
+        // Near the bulge (within its reach) the local terms land closer to the inhale surface.
+        let near = |fit: &PairFit| {
+            let t =
+                Surface::new(&points(&fit.inhale_aligned), &fit.inhale_aligned.triangles).unwrap();
+            let moved = points(&fit.moved);
+            let d: Vec<f64> = p
+                .iter()
+                .zip(&moved)
+                .filter(|(x, _)| (**x - at).length() < 30.0)
+                .map(|(_, q)| (t.closest(*q).0 - *q).length())
+                .collect();
+            d.iter().sum::<f64>() / d.len() as f64
+        };
+        let (np, nl) = (near(&poly), near(&local));
+        assert!(
+            nl < 0.75 * np,
+            "near the bulge: local {nl} mm, polynomial {np} mm"
+        );
+        assert!(
+            local.in_sample.mssd_mm < poly.in_sample.mssd_mm,
+            "{} {}",
+            local.in_sample.mssd_mm,
+            poly.in_sample.mssd_mm
+        );
+        // The figure is the bake's: the written force (local terms included) through the operator.
+        let mut baked = settings.clone();
+        baked.force_field = Some(local.force.clone());
+        baked.direction_field = Some(local.direction.clone());
+        let (transfer, _, _, _) =
+            operator_columns(Side::Right, &exhale, &settings, 1, &Local::default()).unwrap();
+        let force =
+            transfer.elastostatic(&crate::kernel::applied_forces(&exhale, Side::Right, &baked));
+        let dirs = LungModel::field_directions(&exhale, &local.direction);
+        let (model, _, _) =
+            LungModel::from_force_and_directions(Side::Right, exhale.clone(), dirs, &force)
+                .unwrap();
+        let again = at_volume(&model, local.inhale_ml - model.start_volume_ml);
+        let worst = again
+            .iter()
+            .zip(points(&local.moved))
+            .map(|(a, b)| (*a - b).length())
+            .fold(0.0, f64::max);
+        assert!(
+            worst < 1e-3,
+            "the bake of the written force differs by {worst} mm"
+        );
+    }
+
     /// The population motion shipped in scenes/motion (bench/population_motion.py) loads as a
     /// motion file and moves each built-in lung down at a tidal volume without folding it.
     #[test]
@@ -937,7 +1187,8 @@ mod tests {
             settings.force_field = file.force_for_side(side).cloned();
             settings.direction_field = file.field_for_side(side).cloned();
             assert!(settings.force_field.is_some() && settings.direction_field.is_some());
-            let (transfer, _, _, _) = operator_columns(side, &mesh, &settings, 1).unwrap();
+            let (transfer, _, _, _) =
+                operator_columns(side, &mesh, &settings, 1, &Local::default()).unwrap();
             let force =
                 transfer.elastostatic(&crate::kernel::applied_forces(&mesh, side, &settings));
             let dirs =
@@ -1007,6 +1258,19 @@ mod tests {
                 force.replace("hi = [1.0, 1.0, 1.0]", "hi = [-1.0, 1.0, 1.0]"),
                 "no extent",
             ),
+            (
+                "local weights without centres",
+                force.replace("degree = 3", "degree = 3\nweights = [1.0]"),
+                "one weight per centre",
+            ),
+            (
+                "local terms without a radius",
+                force.replace(
+                    "degree = 3",
+                    "degree = 3\ncentres = [[0.0, 0.0, 0.0]]\nweights = [1.0]",
+                ),
+                "positive radius",
+            ),
         ] {
             let path = dir.join(format!("{case}.toml"));
             std::fs::write(&path, format!("{head}{bad}")).unwrap();
@@ -1044,6 +1308,15 @@ mod tests {
             },
             PairOptions {
                 field_degree: 6,
+                ..PairOptions::default()
+            },
+            PairOptions {
+                force_centres: 7,
+                ..PairOptions::default()
+            },
+            PairOptions {
+                force_centres: 64,
+                force_local_ridge: 0.0,
                 ..PairOptions::default()
             },
             PairOptions {
