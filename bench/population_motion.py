@@ -11,7 +11,9 @@ surface with trimesh (area-weighted vertex means of exact point-to-triangle dist
 lungdyn's definition, bench/pair_check.py checks it agrees), beside no motion and uniform scaling.
 
 Inputs: per case and lung, a fit's JSON (with the fields, from bench/patient_motion.py's
---json-dir) and a --surfaces-out folder of the same case (exhale surface and aligned inhale).
+--json-dir, run with --force-centres 0: the population averages the polynomial fields, and a fit's
+local force terms sit on that patient's own surface) and a --surfaces-out folder of the same case
+(exhale surface and aligned inhale).
 
     python3 bench/population_motion.py --fits /tmp/lungdyn-patient-motion --surfaces /tmp/popsurf \
         [--lungdyn target/release/lungdyn] [--out docs/masks/population_motion.md]
@@ -47,6 +49,10 @@ def basis(degree):
 
 def normalised(fit):
     """The fit's direction coefficients (m×3) and force coefficients (m), each over its RMS on the box."""
+    if fit["force"].get("centres"):
+        # Local terms sit on that patient's own surface: they have no place on another lung's.
+        sys.exit("population_motion.py: a fit has local force terms (fit-motion --force-centres); "
+                 "the population averages polynomial fits: run bench/patient_motion.py --force-centres 0")
     d = np.array(fit["direction"]["coeffs"], float)
     f = np.array(fit["force"]["coeffs"], float)
     dv = basis(fit["direction"]["degree"]) @ d
