@@ -6,7 +6,7 @@ table of docs/masks/patient_motion.md (in-sample, held out, no motion, uniform s
     python3 bench/patient_motion.py [--lungdyn target/release/lungdyn] [--vertices 10000]
         [--json-dir DIR]   # keep (or reuse, with --reuse) each fit's JSON there
         [--field-degree N] [--force-degree N]   # fit-motion's, its defaults when omitted
-        [--force-centres N] [--force-local-ridge X]
+        [--force-centres N] [--force-local-ridge X] [--iterations N]
         [--surfaces-out DIR]   # each case's surfaces, what bench/population_motion.py --surfaces reads
         [--out docs/masks/patient_motion_table.md]
 
@@ -30,6 +30,7 @@ def main():
     ap.add_argument("--force-degree", type=int, help="fit-motion's --force-degree (its default when omitted)")
     ap.add_argument("--force-centres", type=int, help="fit-motion's --force-centres (its default when omitted)")
     ap.add_argument("--force-local-ridge", type=float, help="fit-motion's --force-local-ridge (its default when omitted)")
+    ap.add_argument("--iterations", type=int, help="fit-motion's --iterations (its default when omitted)")
     ap.add_argument("--surfaces-out", help="fit-motion's --surfaces-out, a folder per case under this one "
                     "(what bench/population_motion.py --surfaces reads)")
     ap.add_argument("--out", default=os.path.join(ROOT, "docs", "masks", "patient_motion_table.md"))
@@ -49,7 +50,8 @@ def main():
                        "--axes", "LPS", "--lung", lung, "--vertices", str(a.vertices), "--json"]
                 for flag, value in (("--field-degree", a.field_degree), ("--force-degree", a.force_degree),
                                     ("--force-centres", a.force_centres),
-                                    ("--force-local-ridge", a.force_local_ridge)):
+                                    ("--force-local-ridge", a.force_local_ridge),
+                                    ("--iterations", a.iterations)):
                     if value is not None:
                         cmd += [flag, str(value)]
                 if a.surfaces_out:

@@ -8,8 +8,10 @@
 //! the data need and nothing else:
 //!
 //! * **the applied force** `f(x)` is a polynomial of total degree ≤ `force_degree` in the lung's box
-//!   coordinates (the seed's is the degree-1 case), turned into the elastostatic force by the same
-//!   Green's-function operator the bake uses (`F = T·f`, seed §6.3, eq. 6.9–6.13);
+//!   coordinates (the seed's is the degree-1 case) plus `force_centres` local terms (compactly
+//!   supported bumps centred on the exhale surface, [`ForceField::centres`]), turned into the
+//!   elastostatic force by the same Green's-function operator the bake uses (`F = T·f`, seed §6.3,
+//!   eq. 6.9–6.13);
 //! * **the directions** `d(x)` come from a smooth displacement field (a polynomial of degree
 //!   `field_degree`, [`Field::Poly`]), normalised, as `fit-motion` already gives the bake;
 //! * the vertex moves by `s·F_i·d_i`, `s` set by the volume — exactly the kernel's unit displacement,
@@ -27,7 +29,9 @@
 //! pairs every moved vertex with its closest inhale point and every inhale vertex with its closest
 //! moved point (so no part of the inhale surface is ignored), refits the direction field to the
 //! paired displacements and the force coefficients to their magnitudes along the directions (ridge
-//! least squares through the operator's columns). Start: uniform scaling to the inhale volume.
+//! least squares through the operator's columns). Start: uniform scaling to the inhale volume. The
+//! local terms' ridge is annealed ([`local_stiffness`]): stiff while the closest points are still far
+//! from where each vertex belongs, free once they have settled.
 //!
 //! **Held-out error.** The exhale surface is cut into patches (farthest-point seeds, nearest-seed
 //! regions, [`PATCHES_PER_FOLD`] per fold); the patches are dealt into folds by a seeded shuffle;
@@ -537,6 +541,7 @@ impl Problem<'_> {
             )
             .map_err(|_| PairFitError::Singular("direction field"))?;
             let dirs = self.directions(&field);
+            debug_assert_eq!(goal.len(), system.idx.len());
             let magnitude: Vec<f64> = system
                 .idx
                 .iter()
@@ -641,7 +646,7 @@ impl ForceSystem {
 }
 
 /// The local terms' stiffness in round `round` of `rounds`: 1000, 100, 10, then 1 times their
-/// ridge over four equal stages. The first rounds' closest points are far from where each vertex
+/// ridge over four equal stages (fewer than four rounds end before the last). The first rounds' closest points are far from where each vertex
 /// belongs (the base moves centimetres); free local terms would follow them and slide the surface
 /// (annealed stiffness, as in Amberg et al. 2007's optimal-step non-rigid ICP).
 fn local_stiffness(round: usize, rounds: usize) -> f64 {
@@ -1172,6 +1177,23 @@ mod tests {
             worst < 1e-3,
             "the bake of the written force differs by {worst} mm"
         );
+    }
+
+    #[test]
+    fn the_local_terms_are_released_in_four_stages_and_end_free_from_four_rounds() {
+        let s: Vec<f64> = (0..50).map(|r| local_stiffness(r, 50)).collect();
+        assert_eq!(s[0], 1000.0);
+        assert_eq!(s[49], 1.0);
+        assert!(s.windows(2).all(|w| w[1] <= w[0]));
+        for (v, n) in [(1000.0, 13), (100.0, 12), (10.0, 13), (1.0, 12)] {
+            assert_eq!(s.iter().filter(|&&x| x == v).count(), n, "{v}");
+        }
+        for rounds in 4..=200 {
+            assert_eq!(local_stiffness(rounds - 1, rounds), 1.0, "{rounds}");
+        }
+        // Fewer rounds end before the terms are free (what `--iterations 1..3` asks for).
+        assert_eq!(local_stiffness(0, 1), 1000.0);
+        assert_eq!(local_stiffness(0, 0), 1000.0);
     }
 
     /// The population motion shipped in scenes/motion (bench/population_motion.py) loads as a
