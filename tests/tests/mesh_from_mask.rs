@@ -840,18 +840,6 @@ fn fit_motion_on_a_pair_reports_what_the_bake_of_its_file_draws() {
             vec!["--force-local-ridge 0"],
         ),
         (
-            "local ridge nan",
-            vec![
-                "--exhale",
-                s(&e),
-                "--inhale",
-                s(&i),
-                "--force-local-ridge",
-                "NaN",
-            ],
-            vec!["--force-local-ridge NaN"],
-        ),
-        (
             "folds",
             vec!["--exhale", s(&e), "--inhale", s(&i), "--folds", "12"],
             vec!["--folds 12"],
