@@ -269,10 +269,10 @@ fn lung_summary(
         sides_from: m.sides_from,
         seconds,
         inhale_volume_ml,
-        motion: if fit.is_some() {
-            "fitted to the breath-hold pair"
-        } else {
-            "population"
+        motion: match fit {
+            Some(f) if f.options.force_centres == 0 => "fitted, the polynomial force alone (with local terms it folded within a tidal breath)",
+            Some(_) => "fitted to the breath-hold pair",
+            None => "population",
         },
         motion_mssd_mm: fit.map(|f| MotionFigures {
             fitted: f.in_sample.mssd_mm,
@@ -292,6 +292,7 @@ fn fit_motion(
     args: &PatientArgs,
     made: &[(Side, mask::FromMask, f64)],
     inhale: &[(Side, TriMesh, Vec<u8>)],
+    share: &dyn Fn(&TriMesh) -> f64,
 ) -> anyhow::Result<Vec<crate::pair_cmd::PairLung>> {
     if inhale.is_empty() || args.motion == MotionChoice::Population {
         return Ok(Vec::new());
@@ -308,12 +309,15 @@ fn fit_motion(
         let t = std::time::Instant::now();
         let name = side.name();
         let settings = lung_model::kernel::BakeSettings::default_for(*side);
-        let fit = lung_bake::patient_motion::fit_pair(
+        // "auto" asks for a fit that draws this lung's tidal breath without a fold.
+        let breath_ml = (args.motion == MotionChoice::Auto).then(|| share(&m.mesh));
+        let fit = lung_bake::patient_motion::fit_pair_for_breath(
             *side,
             &m.mesh,
             target,
             &settings,
             &opts,
+            breath_ml.unwrap_or(0.0),
             &|stage| eprintln!("lungdyn: {name} lung's motion: {stage}"),
         )
         .with_context(|| format!("fitting the {name} lung's motion to the breath-hold pair"))?;
@@ -481,7 +485,6 @@ pub fn run(args: &PatientArgs) -> anyhow::Result<PatientSummary> {
             &args.out.join(format!("{}_inhale.ply", side.name())),
         )?;
     }
-    let fits = fit_motion(args, &made, &inhale_meshes)?;
     // A lung's share of the default breath's tidal volume: where the fitted kernel folds before
     // it, "auto" bakes the built-in motion for that lung (a fold on screen at every breath).
     let tv_ml = lung_model::pv::preset(lung_model::pv::DEFAULT_PRESET)?
@@ -491,18 +494,18 @@ pub fn run(args: &PatientArgs) -> anyhow::Result<PatientSummary> {
         .iter()
         .map(|(_, m, _)| m.mesh.enclosed_volume_ml())
         .sum();
+    let share = |m: &TriMesh| tv_ml * m.enclosed_volume_ml() / exhale_total;
+    let fits = fit_motion(args, &made, &inhale_meshes, &share)?;
     let mut lungs = Vec::new();
     for (k, (side, m, mesh_seconds)) in made.iter().enumerate() {
         let mesh_path = args.out.join(format!("{}.ply", side.name()));
         io::write_mesh_with_lobes(&m.mesh, &m.lobes, &mesh_path)?;
         let kernel_path = args.out.join(format!("{}.kernel", side.name()));
         let fit = fits.iter().find(|l| l.fit.side == *side).map(|l| &l.fit);
-        let tidal_share_ml = tv_ml * m.mesh.enclosed_volume_ml() / exhale_total;
-        // (No fold up to the pair's own inspiration: kept, whatever the tidal share.)
+        let tidal_share_ml = share(&m.mesh);
         let used = fit.filter(|f| {
             args.motion == MotionChoice::Fitted
-                || f.folds_at_inhale == 0
-                || f.fold_free_ml >= tidal_share_ml
+                || lung_bake::patient_motion::draws_breath(f, tidal_share_ml)
         });
         let bake_seconds = bake_lung(*side, m, &kernel_path, used)?;
         let mut lung = lung_summary(

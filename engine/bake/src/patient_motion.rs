@@ -967,6 +967,55 @@ pub fn fit_pair(
     })
 }
 
+/// Whether `fit`'s kernel draws a breath of `share_ml` above the exhale volume without a fold (none
+/// up to the pair's own inspiration counts, whatever the share).
+pub fn draws_breath(fit: &PairFit, share_ml: f64) -> bool {
+    fit.folds_at_inhale == 0 || fit.fold_free_ml >= share_ml
+}
+
+/// [`fit_pair`] for a lung that will breathe breaths of `share_ml` (its part of a tidal breath):
+/// when the fit with local force terms folds the surface within that breath (they can, on a fine
+/// mesh, where the polynomial alone does not), the polynomial force alone is fitted too and kept if
+/// it draws the breath without a fold. The fit returned says which in `options.force_centres`.
+pub fn fit_pair_for_breath(
+    side: Side,
+    exhale: &TriMesh,
+    inhale: &TriMesh,
+    settings: &BakeSettings,
+    opts: &PairOptions,
+    share_ml: f64,
+    progress: &dyn Fn(&str),
+) -> Result<PairFit, PairFitError> {
+    let fit = fit_pair(side, exhale, inhale, settings, opts, progress)?;
+    keep_for_breath(fit, share_ml, || {
+        progress(
+            "with local force terms it folds within a tidal breath: fitting the polynomial alone",
+        );
+        let plain = PairOptions {
+            force_centres: 0,
+            ..*opts
+        };
+        fit_pair(side, exhale, inhale, settings, &plain, progress)
+    })
+}
+
+/// `fit`, unless it has local terms and folds within `share_ml` while `plain()` does not.
+fn keep_for_breath(
+    fit: PairFit,
+    share_ml: f64,
+    plain: impl FnOnce() -> Result<PairFit, PairFitError>,
+) -> Result<PairFit, PairFitError> {
+    if fit.options.force_centres == 0 || draws_breath(&fit, share_ml) {
+        return Ok(fit);
+    }
+    let other = plain()?;
+    Ok(if draws_breath(&other, share_ml) {
+        other
+    } else {
+        fit
+    })
+}
+
 /// Patches each fold holds out: ten scattered patches (each about 2 % of the surface at five
 /// folds, a few centimetres across), so a fold tests the fit across holes the size of a lobe's
 /// corner rather than across a missing quarter of the lung, where a polynomial can only
@@ -1176,6 +1225,53 @@ mod tests {
         assert!(
             worst < 1e-3,
             "the bake of the written force differs by {worst} mm"
+        );
+    }
+
+    #[test]
+    fn a_fit_that_folds_within_the_breath_gives_way_to_the_polynomial_alone_if_that_does_not() {
+        let exhale = anatomy::lung(Side::Left, 1500).unwrap();
+        let inhale = breathe(&exhale, DVec3::ZERO);
+        let settings = BakeSettings::default_for(Side::Left);
+        let opts = PairOptions {
+            iterations: 8,
+            folds: 0,
+            force_centres: 16,
+            ..PairOptions::default()
+        };
+        let local = fit_pair(Side::Left, &exhale, &inhale, &settings, &opts, &|_| {}).unwrap();
+        let with = |folds: usize, free: f64, centres: usize| {
+            let mut f = local.clone();
+            f.folds_at_inhale = folds;
+            f.fold_free_ml = free;
+            f.options.force_centres = centres;
+            f
+        };
+        let asked = std::cell::Cell::new(0);
+        let plain = |folds, free| {
+            asked.set(asked.get() + 1);
+            Ok(with(folds, free, 0))
+        };
+        let pick = |fit: PairFit, p: (usize, f64)| {
+            keep_for_breath(fit, 250.0, || plain(p.0, p.1))
+                .unwrap()
+                .options
+                .force_centres
+        };
+        // Fold-free over the breath (or nowhere folded): kept, the polynomial never fitted.
+        assert_eq!(pick(with(30, 300.0, 16), (0, 0.0)), 16);
+        assert_eq!(pick(with(0, 10.0, 16), (0, 0.0)), 16);
+        assert_eq!(asked.get(), 0);
+        // Folds within the breath: the polynomial alone, if it holds the breath; else the first.
+        assert_eq!(pick(with(30, 100.0, 16), (5, 260.0)), 0);
+        assert_eq!(pick(with(30, 100.0, 16), (0, 0.0)), 0);
+        assert_eq!(pick(with(30, 100.0, 16), (5, 120.0)), 16);
+        assert_eq!(asked.get(), 3);
+        // A polynomial fit that folds is what it is: nothing to fall back to.
+        assert_eq!(pick(with(30, 100.0, 0), (0, 0.0)), 0);
+        assert_eq!(asked.get(), 3);
+        assert!(
+            draws_breath(&with(1, 250.0, 16), 250.0) && !draws_breath(&with(1, 249.9, 16), 250.0)
         );
     }
 
