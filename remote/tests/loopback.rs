@@ -153,9 +153,9 @@ fn lost_states_are_counted_and_the_sites_stay_in_step() {
     // state has arrived, which on a loaded 2-core machine (the other loopback tests run beside this
     // one) took up to 3.5 s: 6 s runs then compared fewer than two cycles and failed the count below.
     // With 30 % of the packets lost, the first states can be lost too (which ones depends on the
-    // timing): a 10 s run once compared 150 ticks (its first state taken 7.5 s in, CI 2026-12-06).
-    // At 14 s a site fails the count only if every state from its connection to 10 s is lost, four
-    // to six in a row (0.3⁴ ≈ 1 %, 0.3⁶ ≈ 0.07 %). Plain TCP here: the comparison path stays tested.
+    // timing): a 10 s run once compared 150 ticks (its first state 7.5 s in, CI 2026-12-06). At
+    // 14 s a site fails the count only if every state from its connection to 10 s is lost, four to
+    // six in a row (0.3⁴ ≈ 1 %, 0.3⁶ ≈ 0.07 %). Plain TCP here: the comparison path stays tested.
     let mut a = args(2, 14.0, 0.3);
     a.transport = harness::Transport::Tcp;
     let r = harness::run(&a).unwrap();
