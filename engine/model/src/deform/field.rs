@@ -71,7 +71,7 @@ pub enum Field {
 /// fitted lung — the seed's applied force (eq. 6.18's `c7·x̂ + c8·ŷ + c9·ẑ`, EQUATIONS §2.4) is the
 /// degree-1 case. The operator turns it into the elastostatic force exactly as it turns the seed's
 /// (`F = T·f`), so a patient's fit keeps the chapter-6 pipeline and only gives it the freedom a real
-/// breath needs. Evaluated like [`Field`]: the mesh's box mapped onto the fitted box.
+/// breath needs; local terms ([`ForceField::centres`]) may be added to the polynomial. Evaluated like [`Field`]: the mesh's box mapped onto the fitted box.
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
 #[serde(deny_unknown_fields)]
 pub struct ForceField {
@@ -101,6 +101,9 @@ pub struct ForceField {
 fn is_zero(x: &f64) -> bool {
     *x == 0.0
 }
+
+/// The most local terms a force field may hold (`fit-motion --force-centres` takes 8 to 1000).
+pub const MAX_LOCAL_TERMS: usize = 1000;
 
 /// Wendland's C² function in 3-D, `ψ(r) = (1 − r)⁴(4r + 1)` for `r < 1`, 0 beyond: positive
 /// definite, smooth, with compact support (Wendland 1995).
@@ -159,9 +162,21 @@ impl ForceField {
             if !(self.radius_mm.is_finite() && self.radius_mm > 0.0) {
                 return Err("a force field's local terms need a finite, positive radius_mm");
             }
-            let finite = self.centres.iter().flatten().chain(&self.weights);
-            if !finite.into_iter().all(|v| v.is_finite()) {
+            let mut finite = self.centres.iter().flatten().chain(&self.weights);
+            if !finite.all(|v| v.is_finite()) {
                 return Err("a force field's centres and weights must be finite");
+            }
+            if self.centres.len() > MAX_LOCAL_TERMS {
+                return Err("a force field holds at most 1000 local terms (fit-motion's limit)");
+            }
+            if self.radius_mm < 1.0 {
+                return Err("a force field's radius_mm is below 1 mm: a radius in metres?");
+            }
+            // On the fitted lung's surface: inside its box (a centre in another frame is not).
+            let (lo, hi) = (lo - self.radius_mm, hi + self.radius_mm);
+            let inside = |c: &[f64; 3]| (0..3).all(|k| c[k] >= lo[k] && c[k] <= hi[k]);
+            if !self.centres.iter().all(inside) {
+                return Err("a force field's centres lie outside its box: another frame or unit?");
             }
         }
         Ok(())
@@ -500,6 +515,18 @@ mod tests {
             (
                 force_with_local(vec![[0.0; 3]], vec![f64::NAN], 10.0),
                 "finite",
+            ),
+            (
+                force_with_local(vec![[50.0, 50.0, 100.0]; 1001], vec![1.0; 1001], 10.0),
+                "at most 1000",
+            ),
+            (
+                force_with_local(vec![[50.0, 50.0, 100.0]], vec![1.0], 0.045),
+                "in metres",
+            ),
+            (
+                force_with_local(vec![[50.0, 50.0, 400.0]], vec![1.0], 10.0),
+                "outside its box",
             ),
         ] {
             let e = bad.validate().unwrap_err();
