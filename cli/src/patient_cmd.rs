@@ -270,7 +270,7 @@ fn lung_summary(
         seconds,
         inhale_volume_ml,
         motion: match fit {
-            Some(f) if f.options.force_centres == 0 => "fitted, the polynomial force alone (with local terms it folded within a tidal breath)",
+            Some(f) if f.options.force_centres < lung_bake::patient_motion::PairOptions::default().force_centres => "fitted, the polynomial force alone (with local terms it folded within a tidal breath)",
             Some(_) => "fitted to the breath-hold pair",
             None => "population",
         },

@@ -47,7 +47,7 @@ use serde::Serialize;
 use thiserror::Error;
 
 use lung_model::deform::field::{
-    box_coords, monomial_values, monomials, wendland, Field, ForceField,
+    box_coords, monomial_values, monomials, wendland, Field, ForceField, MAX_LOCAL_TERMS,
 };
 use lung_model::deform::LungModel;
 use lung_model::kernel::BakeSettings;
@@ -109,7 +109,7 @@ impl PairOptions {
                 return bad(format!("{flag} {d}: give 1 to 5"));
             }
         }
-        if self.force_centres != 0 && !(8..=1000).contains(&self.force_centres) {
+        if self.force_centres != 0 && !(8..=MAX_LOCAL_TERMS).contains(&self.force_centres) {
             return bad(format!(
                 "--force-centres {}: give 0 (the polynomial force alone) or 8 to 1000",
                 self.force_centres
@@ -502,7 +502,7 @@ impl Problem<'_> {
         let mut model = None;
         // Every training vertex pulls itself, so the force's rows are the training vertices in
         // every round: its normal equations are built once (and factored once per stiffness).
-        let mut system = self.force_system((0..n).filter(|&i| train[i]).collect())?;
+        let mut system = self.force_system((0..n).filter(|&i| train[i]).collect());
         for round in 0..self.opts.iterations {
             system.stiffen(local_stiffness(round, self.opts.iterations))?;
             let q: Vec<DVec3> = self.p.iter().zip(&u).map(|(a, b)| *a + *b).collect();
@@ -558,10 +558,10 @@ impl Problem<'_> {
         ))
     }
 
-    /// The normal equations of `min Σ_i ((Σ_k θ_k C_k)_i − m_i)² + λ‖θ‖²` over the rows `idx`,
-    /// factored: a vanishing ridge on every coefficient (1e-9 of the mean diagonal), and
-    /// `force_local_ridge` times their own mean diagonal on the local terms'.
-    fn force_system(&self, idx: Vec<usize>) -> Result<ForceSystem, PairFitError> {
+    /// The normal equations of `min Σ_i ((Σ_k θ_k C_k)_i − m_i)² + λ‖θ‖²` over the rows `idx`, to
+    /// be factored by [`ForceSystem::stiffen`]: a vanishing ridge on every coefficient (1e-9 of the
+    /// mean diagonal), and `force_local_ridge` times their own mean diagonal on the local terms'.
+    fn force_system(&self, idx: Vec<usize>) -> ForceSystem {
         let first_local = self.columns.len() - self.local.centres.len();
         let kk = self.columns.len();
         let mut a = DMatrix::<f64>::zeros(kk, kk);
@@ -579,16 +579,14 @@ impl Problem<'_> {
         }
         let local_mean =
             (first_local..kk).map(|x| a[(x, x)]).sum::<f64>() / (kk - first_local).max(1) as f64;
-        let mut system = ForceSystem {
+        ForceSystem {
             idx,
             chol: None,
             gram: a,
             first_local,
             local_ridge: self.opts.force_local_ridge * local_mean,
             stiffness: f64::NAN,
-        };
-        system.stiffen(1.0)?;
-        Ok(system)
+        }
     }
 
     /// The force coefficients for the magnitudes `m` wanted at the system's rows.
@@ -646,9 +644,10 @@ impl ForceSystem {
 }
 
 /// The local terms' stiffness in round `round` of `rounds`: 1000, 100, 10, then 1 times their
-/// ridge over four equal stages (fewer than four rounds end before the last). The first rounds' closest points are far from where each vertex
-/// belongs (the base moves centimetres); free local terms would follow them and slide the surface
-/// (annealed stiffness, as in Amberg et al. 2007's optimal-step non-rigid ICP).
+/// ridge over four equal stages (fewer than four rounds end before the last). The first rounds'
+/// closest points are far from where each vertex belongs (the base moves centimetres); free local
+/// terms would follow them and slide the surface (annealed stiffness, as in Amberg et al. 2007's
+/// optimal-step non-rigid ICP).
 fn local_stiffness(round: usize, rounds: usize) -> f64 {
     let stage = (4 * round / rounds.max(1)).min(3) as i32;
     10f64.powi(3 - stage)
