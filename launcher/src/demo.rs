@@ -229,6 +229,14 @@ pub struct DemoArgs {
     /// it the deformation's accuracy is never lowered.
     #[arg(long, value_name = "N")]
     pub governor_least_bands: Option<u32>,
+    /// Where the governor starts (overrides the scene's `[render] governor_start`): "remembered"
+    /// (the default) where the last run of the same lungs and drawing settings on this GPU settled
+    /// — kept in the cache folder ($LUNGDYN_CACHE_DIR, else ~/.cache/lungdyn; "off" keeps
+    /// nothing) when a run ends after holding one quality for 5 s —, so a heavy scene does not
+    /// spend its first frames late stepping down; "full" at the scene's full quality. Either way
+    /// it steps up and down as frames allow from there.
+    #[arg(long, value_name = "START")]
+    pub governor_start: Option<lung_model::scene::GovernorStart>,
     /// Vertices per generated default lung (overrides the scene's `[lungs] vertices`; baked once
     /// into <out>/kernels and reused).
     #[arg(long, value_name = "N")]
@@ -445,6 +453,11 @@ pub struct DemoReport {
     pub quality_changes: u64,
     /// The quality of the last frame: "full", or what the governor gave up ("LOD +2").
     pub final_quality: String,
+    /// Where the governor started (`[render] governor_start`): "remembered" or "full".
+    pub governor_start: String,
+    /// The quality of the first frame: not "full" where the governor started where an earlier run
+    /// of the same setting settled.
+    pub first_quality: String,
     /// Frames drawn at each quality, most frames first.
     pub quality_frames: Vec<QualityFrames>,
     /// Engine ticks never drawn.
@@ -857,6 +870,9 @@ fn resolve_scene(args: &DemoArgs) -> anyhow::Result<Resolved> {
     }
     if let Some(g) = args.governor {
         loaded.render.governor = g;
+    }
+    if let Some(start) = args.governor_start {
+        loaded.render.governor_start = start;
     }
     if let Some(n) = args.governor_least_bands {
         loaded.render.governor_least_bands = Some(n);
@@ -1628,6 +1644,8 @@ fn report(e: Ended<'_>) -> DemoReport {
         governor_floor_frames: stats.governor_floor_frames,
         quality_changes: stats.quality_changes,
         final_quality: ipc_types::report_flags::describe_quality(stats.last_quality),
+        governor_start: scene.render.governor_start.name().to_string(),
+        first_quality: ipc_types::report_flags::describe_quality(stats.first_quality),
         quality_frames: quality_frames(&stats.quality_frames),
         skipped_ticks: stats.skipped_ticks,
         lost_reports: stats.lost_reports,
@@ -1728,12 +1746,13 @@ fn governor_line(s: &mut String, r: &DemoReport) {
     if r.lowered_frames + r.governor_floor_frames > 0 {
         let _ = writeln!(
             s,
-            "quality governor: {} of {} frames drawn with less ({}; {} change(s), the last frame \
-             {}){}",
+            "quality governor: {} of {} frames drawn with less ({}; {} change(s), the first frame \
+             {}, the last {}){}",
             r.lowered_frames,
             r.frames_rendered,
             QualityFrames::list(&r.quality_frames),
             r.quality_changes,
+            r.first_quality,
             r.final_quality,
             if r.governor_floor_frames > 0 {
                 format!(

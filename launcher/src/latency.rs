@@ -94,6 +94,11 @@ pub struct LatencyArgs {
     /// every drawing step is given up, it may also cap the "sh" mode's bands down to N (1..8).
     #[arg(long, value_name = "N")]
     pub governor_least_bands: Option<u32>,
+    /// Where the governor starts (overrides the scene's `[render] governor_start`): "remembered"
+    /// (the default), where the last run of the same setting on this GPU settled, or "full" — a
+    /// heavy scene's first run measures its descent, later ones start where it settled.
+    #[arg(long, value_name = "START")]
+    pub governor_start: Option<lung_model::scene::GovernorStart>,
     /// Serve the lungs to 3D Slicer while measuring (the demo's --igtl-serve [PORT]; frames are
     /// made only while a client is connected): measure with and without it back to back to see
     /// what the link costs the frame (docs/SLICER.md).
@@ -724,6 +729,10 @@ pub struct LatencyReport {
     pub governor: String,
     /// The quality of the last frame: "full", or what the governor gave up ("LOD +2").
     pub final_quality: String,
+    /// Where the governor started (`[render] governor_start`): "remembered" or "full".
+    pub governor_start: String,
+    /// The quality of the first frame (not "full" where it started where an earlier run settled).
+    pub first_quality: String,
     /// Frames drawn at each quality over the whole run (warm-up included), most first.
     pub quality_frames: Vec<crate::demo::QualityFrames>,
     /// Times the quality changed, over the whole run.
@@ -841,6 +850,7 @@ fn measure(
     demo.realtime = args.realtime;
     demo.governor = args.governor;
     demo.governor_least_bands = args.governor_least_bands;
+    demo.governor_start = args.governor_start;
     demo.igtl_serve = args.igtl_serve;
     demo.breathing = args.breathing.clone();
     // The stage timers come with the spans: always on here, into --out unless --trace names a file.
@@ -973,6 +983,8 @@ impl Recorder {
             series_dropped: self.series_dropped,
             governor: demo.governor.clone(),
             final_quality: demo.final_quality.clone(),
+            governor_start: demo.governor_start.clone(),
+            first_quality: demo.first_quality.clone(),
             quality_frames: demo.quality_frames.clone(),
             quality_changes: demo.quality_changes,
             governor_floor_frames: demo.governor_floor_frames,
@@ -1173,9 +1185,11 @@ fn write_plot(png: &Path, r: &LatencyReport, series: &[SeriesPoint]) -> anyhow::
 fn governor_line(r: &LatencyReport) -> String {
     let at = crate::demo::QualityFrames::list(&r.quality_frames);
     format!(
-        "Quality governor: {}; frames at each quality over the whole run: {}; {} change(s); the \
-         last frame drawn with {} quality{}.\n",
+        "Quality governor: {} (started {}, the first frame at {} quality); frames at each quality \
+         over the whole run: {}; {} change(s); the last frame drawn with {} quality{}.\n",
         r.governor,
+        r.governor_start,
+        r.first_quality,
         if at.is_empty() { "none" } else { at.as_str() },
         r.quality_changes,
         r.final_quality,

@@ -69,6 +69,9 @@ pub struct LatencyStats {
     /// drew below the scene's quality).
     pub last_quality: u32,
     pub quality_frames: Vec<(u32, u64)>,
+    /// The quality bits of the first frame (not 0 where the governor started where an earlier
+    /// run settled: `[render] governor_start`).
+    pub first_quality: u32,
     /// Reports missing from the stream (gaps in the renderer's frame counter).
     pub lost_reports: u64,
     /// Engine ticks never drawn (gaps in the drawn tick sequence).
@@ -139,6 +142,7 @@ impl LatencyStats {
             quality_changes: 0,
             last_quality: 0,
             quality_frames: Vec::with_capacity(16),
+            first_quality: 0,
             lost_reports: 0,
             skipped_ticks: 0,
             bad_stamps: 0,
@@ -228,6 +232,9 @@ impl LatencyStats {
         }
         if self.frames > 1 && quality != self.last_quality {
             self.quality_changes += 1;
+        }
+        if self.frames <= 1 {
+            self.first_quality = quality;
         }
         self.last_quality = quality;
         match self.quality_frames.iter_mut().find(|(q, _)| *q == quality) {

@@ -421,6 +421,47 @@ impl Governor {
         })
     }
 
+    /// Start with the first `taken` steps given up (where an earlier run settled:
+    /// [`crate::governor_memory`]), each having bought `bought[k]` (its frames' cost before it over
+    /// after it, ≥ 1), so taking one back is predicted as though this run had given it up. Called
+    /// before the first frame; `taken` past the ladder is held to it, a missing or unusable gain
+    /// is taken as 1 (a step predicted to cost nothing back). Not counted as a change.
+    pub fn start_at(&mut self, taken: usize, bought: &[f64]) {
+        self.taken = taken.min(self.steps.len());
+        for k in 0..self.taken {
+            let gain = bought
+                .get(k)
+                .copied()
+                .filter(|g| g.is_finite() && *g >= 1.0)
+                .unwrap_or(1.0);
+            // Only the ratio is read ([`Governor::up`]).
+            self.after[k] = 1_000_000;
+            self.before[k] = (gain.min(1000.0) * 1e6) as u64;
+        }
+        self.len = 0;
+        self.next = 0;
+        self.since_change = 0;
+    }
+
+    /// What each step given up now bought when it was given up (cost before over after; 1 where
+    /// not yet measured), for the next run ([`Governor::start_at`]).
+    pub fn bought(&self) -> Vec<f64> {
+        (0..self.taken)
+            .map(|k| {
+                if self.after[k] > 0 && self.before[k] > 0 {
+                    (self.before[k] as f64 / self.after[k] as f64).max(1.0)
+                } else {
+                    1.0
+                }
+            })
+            .collect()
+    }
+
+    /// Frames drawn since the last change (or the start).
+    pub fn frames_since_change(&self) -> u32 {
+        self.since_change
+    }
+
     fn changed(&mut self) {
         self.len = 0;
         self.next = 0;
@@ -779,5 +820,44 @@ mod tests {
         assert_eq!(changes.len(), 1);
         assert!(matches!(changes[0], Change::Floor { .. }));
         assert_eq!(g.quality(), Quality::FULL);
+    }
+
+    /// A run started where the last one settled draws at that quality from its first frame, takes
+    /// a step back only when the frame is predicted to fit with that step's remembered gain (the
+    /// same frames with no gain remembered step up), and hands the gains on unchanged.
+    #[test]
+    fn a_remembered_start_draws_there_and_steps_back_by_the_remembered_gains() {
+        let steps = vec![Step::MsaaOff, Step::CoarserLod];
+        let mut g = Governor::new(steps.clone(), 10 * MS);
+        g.start_at(2, &[2.0, 1.5]);
+        assert_eq!(g.taken(), 2);
+        assert_eq!(g.quality(), Quality::of(&steps, 2));
+        assert_eq!(g.changes, 0, "the start is not a change");
+        assert_eq!(g.bought(), vec![2.0, 1.5]);
+        // 6 ms frames: with the level back, 9 ms predicted — over 80 % of the target: stay.
+        for _ in 0..2000 {
+            assert_eq!(g.observe(6 * MS), None);
+        }
+        // With no gain remembered the same frames are predicted to fit: a step back.
+        let mut blind = Governor::new(steps.clone(), 10 * MS);
+        blind.start_at(2, &[]);
+        assert_eq!(blind.bought(), vec![1.0, 1.0]);
+        let first = (1..=2000).find_map(|f| blind.observe(6 * MS).map(|c| (f, c)));
+        assert!(
+            matches!(first, Some((f, Change::Up { step: Step::CoarserLod, .. })) if f >= HOLD_FRAMES),
+            "{first:?}"
+        );
+        // 4.5 ms frames: 6.75 ms predicted — back, after the hold; the next step by its own gain,
+        // 9 ms predicted, over 80 % of the target: kept.
+        let ups: Vec<u32> = (1..=2000u32)
+            .filter(|_| matches!(g.observe(9 * MS / 2), Some(Change::Up { .. })))
+            .collect();
+        assert_eq!(ups.len(), 1, "{ups:?}");
+        assert_eq!(g.taken(), 1);
+        // Past the ladder, and gains that are not gains, are held to what can be.
+        let mut odd = Governor::new(steps, 10 * MS);
+        odd.start_at(9, &[f64::NAN, 0.5, 3.0]);
+        assert_eq!(odd.taken(), 2);
+        assert_eq!(odd.bought(), vec![1.0, 1.0]);
     }
 }

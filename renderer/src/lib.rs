@@ -22,6 +22,7 @@ pub mod deform;
 pub mod display;
 pub mod draw;
 pub mod governor;
+pub mod governor_memory;
 pub mod gpu;
 pub mod hud;
 pub mod lod;

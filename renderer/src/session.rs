@@ -126,6 +126,10 @@ pub struct Session {
     floor_said: bool,
     /// The accuracy opt-in asked for with nothing to cap, in words, for the start line.
     idle_opt_in: Option<String>,
+    /// Where the governor's start is kept (`[render] governor_start = "remembered"`), whether a
+    /// file was there, and what the start found, in words for the start line.
+    memory: Option<(crate::governor_memory::Memory, bool)>,
+    start_note: Option<String>,
 }
 
 /// Where a drawn frame goes after the offscreen draw: a window surface, an OpenXR swapchain, or
@@ -270,6 +274,11 @@ impl Session {
             // Any disease scene: the outcome of an action sent from anywhere is shown.
             session.replies = Some(Box::new(instance.control_reply_inlet(&node)?));
         }
+        if scene.render.governor_start == lung_model::scene::GovernorStart::Remembered {
+            if let Some(dir) = crate::lod_cache::dir_from_env() {
+                session.start_where_settled(&dir);
+            }
+        }
         session.node = Some(node);
         session.lock = Some(lock);
         session.watchdog = transport::notify::Watchdog::from_env();
@@ -357,6 +366,8 @@ impl Session {
             governor: None,
             floor_said: false,
             idle_opt_in: None,
+            memory: None,
+            start_note: None,
         }
         .with_governor(scene, period_ns)
     }
@@ -377,6 +388,44 @@ impl Session {
         self
     }
 
+    /// Start the governor where the last run of these lungs on this adapter settled, kept in
+    /// `dir` ([`crate::governor_memory`]), and keep where this run settles there at its end.
+    pub fn start_where_settled(&mut self, dir: &std::path::Path) {
+        use crate::governor_memory::{Fingerprint, Start};
+        let Some(g) = self.governor.as_mut() else {
+            return;
+        };
+        let info = &self.gpu.info;
+        let print = Fingerprint {
+            adapter: format!(
+                "{} ({:?}, {} {}) {:?}",
+                info.name, info.backend, info.driver, info.driver_info, info.device_type
+            ),
+            steps: g.steps(),
+            target_ns: g.target_ns(),
+            image: self.renderer.image_size(),
+            samples: self.renderer.samples(),
+            lungs: format!(
+                "{}, {} vertices, levels {:?}",
+                self.renderer.mode(),
+                self.renderer.vertex_count(),
+                self.renderer.lod_triangles()
+            ),
+        };
+        let memory = print.memory(dir);
+        let start = memory.start(g.steps());
+        self.start_note = start.describe(g.steps());
+        let existed = !matches!(start, Start::Nothing) || memory.path.exists();
+        if let Start::Remembered {
+            given_up, bought, ..
+        } = &start
+        {
+            g.start_at(*given_up, bought);
+            self.renderer.set_quality(g.quality());
+        }
+        self.memory = Some((memory, existed));
+    }
+
     /// Hold frames to `target_ns` instead of the scene's (a test's way to make any machine's
     /// frames late, or all of them on time); nothing without a governor.
     pub fn set_governor_target_ns(&mut self, target_ns: u64) {
@@ -387,11 +436,12 @@ impl Session {
 
     /// The governor in words, for the start line.
     pub fn describe_governor(&self) -> String {
-        let described = self.describe_steps();
-        match &self.idle_opt_in {
-            Some(note) => format!("{described}; {note}"),
-            None => described,
+        let mut described = self.describe_steps();
+        for note in [&self.idle_opt_in, &self.start_note].into_iter().flatten() {
+            described.push_str("; ");
+            described.push_str(note);
         }
+        described
     }
 
     /// The governor and the steps it may take, in words.
@@ -975,6 +1025,13 @@ impl Session {
                 g.floor_frames,
                 g.target_ns() as f64 / 1e6
             ));
+            if let Some((memory, existed)) = &self.memory {
+                transport::process::say(&format!(
+                    "renderer[{}]: governor: {}",
+                    self.instance,
+                    memory.keep(g, self.stats.frames, *existed).describe()
+                ));
+            }
         }
     }
 }

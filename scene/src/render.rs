@@ -107,6 +107,7 @@ macro_rules! named_enum_text {
 named_enum_text!(Look, "look");
 named_enum_text!(ColorMode, "colour mode");
 named_enum_text!(Governor, "governor");
+named_enum_text!(GovernorStart, "governor start");
 
 /// Whether the renderer trades drawing quality for the frame's deadline (`[render] governor`,
 /// `lungdyn demo --governor`; docs/LATENCY.md "The governor").
@@ -134,6 +135,38 @@ impl Governor {
             Governor::HoldDeadline => "hold-deadline",
             Governor::Off => "off",
         }
+    }
+}
+
+/// Where the governor starts a run (`[render] governor_start`, `lungdyn demo --governor-start`;
+/// docs/LATENCY.md "Where a run starts").
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize, Default)]
+#[serde(rename_all = "kebab-case")]
+pub enum GovernorStart {
+    /// Where the last run of the same lungs, drawing settings and frame target on the same adapter
+    /// settled (kept in the cache folder when a run ends after holding one quality for 5 s), so a
+    /// heavy scene does not spend its first frames late stepping down; at full quality where
+    /// nothing is kept. The governor still takes steps back when there is time.
+    #[default]
+    Remembered,
+    /// Always at the scene's full quality (what the last run learnt is neither read nor kept).
+    Full,
+}
+
+impl GovernorStart {
+    /// Every setting, in the order `--help` lists them.
+    pub const ALL: [GovernorStart; 2] = [GovernorStart::Remembered, GovernorStart::Full];
+
+    /// The name in scene files and on the command line.
+    pub fn name(self) -> &'static str {
+        match self {
+            GovernorStart::Remembered => "remembered",
+            GovernorStart::Full => "full",
+        }
+    }
+
+    fn is_default(&self) -> bool {
+        *self == GovernorStart::default()
     }
 }
 
@@ -247,6 +280,10 @@ pub struct RenderScene {
     /// mode has bands to give up; what each costs in millimetres is in docs/LATENCY.md.
     #[serde(skip_serializing_if = "Option::is_none")]
     pub governor_least_bands: Option<u32>,
+    /// Where the governor starts: where the last run settled (the default) or at full quality
+    /// ([`GovernorStart`]).
+    #[serde(skip_serializing_if = "GovernorStart::is_default")]
+    pub governor_start: GovernorStart,
     /// Side-by-side stereo from the HMD pose.
     pub stereo: bool,
     /// Inter-pupillary distance, mm.
@@ -281,6 +318,7 @@ impl Default for RenderScene {
             lod: Lod::Auto,
             governor: Governor::HoldDeadline,
             governor_least_bands: None,
+            governor_start: GovernorStart::Remembered,
             stereo: false,
             ipd_mm: 63.0,
             width: 800,

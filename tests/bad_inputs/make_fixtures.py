@@ -574,7 +574,9 @@ def make_scenes(tmp):
                       ("color_lobes", "color = \"lobes\""),
                       ("msaa_8", "msaa = 8"), ("msaa_negative", "msaa = -4"),
                       ("lod_fast", "lod = \"fast\""), ("lod_9", "lod = 9"), ("lod_negative", "lod = -1"),
-                      ("lod_fraction", "lod = 1.5")):
+                      ("lod_fraction", "lod = 1.5"), ("governor_fast", "governor = \"fast\""),
+                      ("governor_bool", "governor = true"), ("least_bands_zero", "governor_least_bands = 0"),
+                      ("governor_start_last", "governor_start = \"last\"")):
         s("render_" + tag, SCENE_BASE + "[render]\n%s\n" % body)
     s("syntax_error", SCENE_BASE + "[render\nwidth = 800\n")
     s("duplicate_key", "[lungs]\nvertices = 100\nvertices = 200\n")

@@ -306,6 +306,16 @@ fn the_demo_prints_json_with_frames_latency_and_pngs() {
         .sum();
     assert_eq!(at_quality, v["frames_rendered"].as_u64().unwrap(), "{v}");
     assert!(v["final_quality"].is_string(), "{v}");
+    assert_eq!(v["governor_start"], "remembered", "{v}");
+    let first_quality = v["first_quality"].as_str().unwrap();
+    assert!(
+        v["quality_frames"]
+            .as_array()
+            .unwrap()
+            .iter()
+            .any(|q| q["quality"] == first_quality),
+        "the first frame's quality is one frames were drawn at: {v}"
+    );
     let pngs = v["pngs"].as_array().unwrap();
     assert_eq!(pngs.len(), 3, "{v}");
     for p in pngs {

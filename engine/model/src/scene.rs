@@ -1330,6 +1330,35 @@ mod tests {
         assert!(e.contains("hold-deadline") && e.contains("off"), "{e}");
     }
 
+    /// Where the governor starts: "remembered" by default (and then not written into a resolved
+    /// scene), "full" read and written back, other words refused naming the key and the choices.
+    #[test]
+    fn governor_start_is_remembered_by_default_and_refuses_other_words() {
+        assert_eq!(
+            Scene::default().render.governor_start,
+            GovernorStart::Remembered
+        );
+        assert!(!toml::to_string(&Scene::default())
+            .unwrap()
+            .contains("governor_start"));
+        for g in GovernorStart::ALL {
+            let s =
+                Scene::parse(&format!("[render]\ngovernor_start = \"{g}\"\n"), "s.toml").unwrap();
+            assert_eq!(s.render.governor_start, g);
+            let back = Scene::parse(&toml::to_string(&s).unwrap(), "s.toml").unwrap();
+            assert_eq!(back.render.governor_start, g);
+            assert_eq!(g.to_string().parse::<GovernorStart>(), Ok(g));
+        }
+        for bad in ["\"last\"", "\"Full\"", "\"\"", "true", "0"] {
+            let e = Scene::parse(&format!("[render]\ngovernor_start = {bad}\n"), "s.toml")
+                .unwrap_err()
+                .to_string();
+            assert!(e.contains("governor_start"), "{bad}: {e}");
+        }
+        let e = "fresh".parse::<GovernorStart>().unwrap_err();
+        assert!(e.contains("remembered") && e.contains("full"), "{e}");
+    }
+
     /// The governor's accuracy opt-in: unset by default (accuracy never lowered), 1..8 read and
     /// written back, anything else refused naming the key.
     #[test]
