@@ -10,12 +10,16 @@ meant to run beside them:
   1. `lungdyn latency --seconds S` with the quality governor, then `--governor off` (back to back);
   2. `lungdyn demo --seconds 12` with and without the governor (frames per second, misses);
   3. the time to the first frame, `demo --seconds 3` into a new folder and again (cold, warm);
-  4. unless --quick: `cargo bench -p lungdyn-bench --bench render_looks -- --frames 40` (each look's
+  4. a heavy scene's start (`lungdyn latency --mesh 100000 --seconds 30`): a first run that keeps
+     where the governor settled, then `--governor-start full` and `--governor-start remembered`;
+  5. unless --quick: `cargo bench -p lungdyn-bench --bench render_looks -- --frames 40` (each look's
      frame) and `-- --lod --vertices 10000 --size 800x600` (each draw level).
 Writes figures.json (every number, with the commands) and figures.md (the tables the docs quote)
 into --out, and prints figures.md. Each step's own output (latency.md and its plot and trace, the
 demo's pictures and kernels: tens of MB) goes under --runs (default out/figures-runs-DATE, not in the
-repository). Exits non-zero, naming the step, when a command fails.
+repository). Every run keeps its cache (draw levels, where the governor settled) in a folder of
+this run's own (LUNGDYN_CACHE_DIR), so no earlier run changes where these start. Exits non-zero,
+naming the step, when a command fails.
 """
 
 import argparse
@@ -59,18 +63,18 @@ def machine():
     }
 
 
-def latency(runs, seconds, governor):
-    d = os.path.join(runs, f"latency-{governor}")
+def latency(runs, seconds, governor, extra=(), tag=""):
+    d = os.path.join(runs, f"latency-{governor}{tag}")
     stdout, stderr = run(
         [LUNGDYN, "latency", "--seconds", str(seconds), "--governor", governor, "--json",
-         "--out", d],
-        f"latency, governor {governor}",
+         "--out", d] + list(extra),
+        f"latency, governor {governor} {' '.join(extra)}",
     )
     r = json.loads(stdout)
     r = r.get("run", r)
     adapter = re.search(r"GPU adapter (.+)", stderr)
     return {
-        "command": f"lungdyn latency --seconds {seconds} --governor {governor}",
+        "command": f"lungdyn latency --seconds {seconds} --governor {governor} {' '.join(extra)}".strip(),
         "adapter": adapter.group(1).strip() if adapter else None,
         "frames": r["frames"],
         "fps": r["frames"] / r["seconds"] if r["seconds"] else 0.0,
@@ -80,6 +84,7 @@ def latency(runs, seconds, governor):
         "capture_to_submit_p99_ms": r["capture_to_submit_p99_ms"],
         "capture_to_gpu_done_p99_ms": r["capture_to_gpu_done_p99_ms"],
         "final_quality": r["final_quality"],
+        "first_quality": r.get("first_quality"),
         "quality_frames": r["quality_frames"],
         "governor_floor_frames": r["governor_floor_frames"],
     }
@@ -137,6 +142,15 @@ def markdown(f):
         s.append(f"| {name} (`{r['command']}`) | {r['frames']} | {r['fps']:.1f} | "
                  f"{r['deadline_misses']} | {r['end_to_end_p99_ms']:.1f} ms | "
                  f"{r['first_frame_s']:.2f} s | {r['final_quality']} |")
+    if f.get("heavy_start"):
+        s += ["\n## A heavy scene's start: `lungdyn latency --mesh 100000 --seconds 30`\n",
+              "| run | frames | deadline misses | capture → GPU done p99 | first frame at | "
+              "last frame at |",
+              "|---|---:|---:|---:|---|---|"]
+        for name, r in f["heavy_start"].items():
+            s.append(f"| {name} | {r['frames']} | {r['deadline_misses']} | "
+                     f"{r['capture_to_gpu_done_p99_ms']:.1f} ms | {r['first_quality']} | "
+                     f"{r['final_quality']} |")
     for k, b in f.get("render_looks", {}).items():
         s += [f"\n## `{b['command']}`\n", "```"] + b["lines"] + ["```"]
     return "\n".join(s) + "\n"
@@ -157,6 +171,9 @@ def main():
                  "-p renderer -p tracker-bridge")
     os.makedirs(a.out, exist_ok=True)
     os.makedirs(a.runs, exist_ok=True)
+    cache = os.path.join(a.runs, "cache")
+    shutil.rmtree(cache, ignore_errors=True)
+    os.environ["LUNGDYN_CACHE_DIR"] = cache
     f = {"date": datetime.datetime.now(datetime.timezone.utc).isoformat(timespec="seconds"),
          "machine": machine(), "quick": a.quick, "latency": {}, "demo": {}}
     for g in ["hold-deadline", "off"]:
@@ -172,6 +189,12 @@ def main():
                 f"first frame, {when}", fresh, ["--seconds", "3", "--snapshots", "0"])
     finally:
         shutil.rmtree(fresh, ignore_errors=True)
+    f["heavy_start"] = {}
+    for name, start in [("first run (nothing kept)", "remembered"), ("from full quality", "full"),
+                        ("where the first run settled", "remembered")]:
+        f["heavy_start"][name] = latency(
+            a.runs, 30, "hold-deadline", ["--mesh", "100000", "--governor-start", start],
+            tag=f"-100k-{len(f['heavy_start'])}")
     if not a.quick:
         f["render_looks"] = {"looks": render_looks(["--frames", "40"]),
                              "levels": render_looks(["--lod", "--vertices", "10000", "--size",
