@@ -1,7 +1,7 @@
 #!/bin/bash
 # The GPU check (issues 20 and 21) on a machine with a real GPU: `lungdyn bench tradeoff --gpu
-# require`, `lungdyn latency` at 2 x 400k vertices in stereo, a demo's breath strip, and a sweep for the
-# largest stereo mesh that holds 60 Hz. Run from the repository root:
+# require`, `lungdyn latency` at 2 x 400k vertices in stereo, a demo's breath strip, a sweep for the
+# largest stereo mesh that holds 60 Hz, and the governor on and off back to back (issue 36). Run from the repository root:
 #
 #   BIN=target/release OUT=/tmp/gpu-check bench/gpu_check.sh
 #
@@ -39,6 +39,25 @@ step $T_DEMO $L demo --out $W/demo
 mkdir -p $W/res/demo; cp $W/demo/*.png $W/res/demo/ 2>/dev/null; pack
 step $T_SW $L latency --scene $SCENE --sweep --sweep-min $SMIN --sweep-max $SMAX --sweep-seconds 3 --realtime --out $W/sweep
 mkdir -p $W/res/sweep; cp $W/sweep/latency.* $W/res/sweep/ 2>/dev/null; pack
+# Issue 36's GPU goal: where the governor has nothing to do, the frame (renderer wake -> GPU done) p50
+# within 5 % of the governor off: the default scene back to back, the governor from full quality.
+for g in hold-deadline off; do
+  step ${T_GOV:-60} $L latency --seconds $LSEC --governor $g --governor-start full --json --out $W/gov-$g
+  mkdir -p $W/res/gov-$g; cp $W/gov-$g/latency.* $W/res/gov-$g/ 2>/dev/null; pack
+done
+python3 - "$W/res" > $W/res/governor.txt <<'PY' || true
+import json, sys
+p50 = {}
+for g in ("hold-deadline", "off"):
+    r = json.load(open(f"{sys.argv[1]}/gov-{g}/latency.json"))
+    r = r.get("run", r)
+    row = next(x for x in r["rows"] if x["hop"] == "renderer wake -> GPU done")
+    p50[g] = row["p50_ms"]
+    print(f"governor {g}: renderer wake -> GPU done p50 {row['p50_ms']:.3f} ms, p99 {row['p99_ms']:.3f} ms, "
+          f"{r['deadline_misses']} misses, quality at the end {r['final_quality']}, changes {r['quality_changes']}")
+print(f"on / off: {p50['hold-deadline'] / p50['off']:.3f} (goal: within 0.95..1.05)")
+PY
+cat $W/res/governor.txt; pack
 # Draw levels of detail (docs/lod.md): frame time per level and stereo/mono with LOD off and auto, 2 x 400k
 # drawn small; a cargo bench, so only where cargo is on PATH.
 if command -v cargo >/dev/null; then step ${T_LOD:-240} sh -c "cargo bench -p lungdyn-bench --bench render_looks -- --lod --vertices $MESH --size 320x240 --frames 30 > $W/res/lod.txt"; fi
