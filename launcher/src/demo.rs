@@ -263,6 +263,12 @@ pub struct DemoArgs {
     /// The port is then bound on every interface, and other hosts are still refused.
     #[arg(long, value_name = "ADDR")]
     pub igtl_serve_allow: Vec<String>,
+    /// Send the breathing lungs to a 3D Slicer that listens (its OpenIGTLinkIF connector's default
+    /// type, "Server", port 18944): lungdyn connects to HOST:PORT, tries again every second until
+    /// it answers and whenever it goes, and sends what --igtl-serve sends. Instead of --igtl-serve
+    /// (also the scene's `[slicer] connect`). docs/SLICER.md.
+    #[arg(long, value_name = "HOST:PORT")]
+    pub igtl_connect: Option<String>,
 }
 
 impl DemoArgs {
@@ -624,8 +630,9 @@ pub fn run_watched(args: &DemoArgs, watch: &mut dyn Watch) -> anyhow::Result<Dem
         args.igtl_serve,
         args.igtl_serve_rate,
         &args.igtl_serve_allow,
+        args.igtl_connect.as_deref(),
     )?
-    .map(|o| o.bind().map(|l| (o, l)))
+    .map(|o| o.open().map(|l| (o, l)))
     .transpose()?;
     let instance = args
         .instance

@@ -1,6 +1,10 @@
 //! `lungdyn demo --igtl-serve [PORT]`: the breathing lungs sent to 3D Slicer over OpenIGTLink
 //! (issue 38 item 1; docs/SLICER.md). lungdyn is the server Slicer's OpenIGTLinkIF connects to.
 //!
+//! `lungdyn demo --igtl-connect HOST:PORT` is the other way round: Slicer listens (its
+//! OpenIGTLinkIF connector's default type, "Server", port 18944) and lungdyn connects to it, trying
+//! again every second until it answers and after it goes.
+//!
 //! A thread of the launcher, not of the renderer: it subscribes to the engine's stream like any
 //! other reader, and at `rate_hz` takes the newest frame, deforms each lung with the renderer's CPU
 //! reference (`CpuLung`, the same `h + (1 − c)(p − h) + s·u + o` as `deform.wgsl`), and sends per
@@ -41,6 +45,10 @@ use tracker_bridge::igtl_send;
 use tracker_bridge::source::igtl_server::AllowList;
 use transport::{iox, Instance, Receive};
 
+/// As a client, how often a server that is not there is tried, and how long one try waits.
+pub const CONNECT_EVERY: Duration = Duration::from_secs(1);
+/// (The try runs in the link's own thread.)
+pub const CONNECT_WAIT: Duration = Duration::from_millis(250);
 /// Clients served at once (a Slicer or two, a recorder); more are refused (closed, and the demo says
 /// why).
 pub const MAX_CLIENTS: usize = 4;
@@ -57,11 +65,13 @@ pub const BREATH_STATE: &str = "BreathState";
 /// The lobe codes' point-scalar name.
 pub const LOBE_SCALAR: &str = "Lobe";
 
-/// What the server is asked to do (the scene's `[slicer]` with the command line over it).
+/// What the link is asked to do (the scene's `[slicer]` with the command line over it).
 #[derive(Debug, Clone)]
 pub struct SlicerOptions {
-    /// TCP port.
+    /// TCP port (served; unused when connecting).
     pub port: u16,
+    /// Connect to Slicer's server here (HOST:PORT, as given) instead of serving.
+    pub connect: Option<String>,
     /// Frames sent per second.
     pub rate_hz: f64,
     /// Clients besides loopback.
@@ -75,13 +85,28 @@ impl SlicerOptions {
         serve: Option<Option<u16>>,
         rate_hz: Option<f64>,
         allow: &[String],
+        connect: Option<&str>,
     ) -> anyhow::Result<Option<Self>> {
         let s = &scene.slicer;
-        if serve.is_none() && !s.serve {
+        let connect = connect.map(str::to_string).or_else(|| s.connect.clone());
+        if connect.is_some() && (serve.is_some() || s.serve) {
+            anyhow::bail!(
+                "--igtl-connect (or [slicer] connect) and --igtl-serve (or [slicer] serve = true) \
+                 both asked: lungdyn either listens for Slicer (Slicer's connector a client) or \
+                 connects to it (Slicer's connector a server), give one"
+            );
+        }
+        if connect.is_some() && !allow.is_empty() {
+            anyhow::bail!(
+                "--igtl-serve-allow names who may connect to lungdyn's server; with --igtl-connect \
+                 lungdyn connects out, to the host it names"
+            );
+        }
+        if serve.is_none() && !s.serve && connect.is_none() {
             if rate_hz.is_some() || !allow.is_empty() {
                 anyhow::bail!(
-                    "--igtl-serve-rate and --igtl-serve-allow need --igtl-serve (or [slicer] serve = \
-                     true in the scene)"
+                    "--igtl-serve-rate and --igtl-serve-allow need --igtl-serve or --igtl-connect \
+                     (or [slicer] serve = true in the scene)"
                 );
             }
             return Ok(None);
@@ -105,9 +130,36 @@ impl SlicerOptions {
         .map_err(anyhow::Error::msg)?;
         Ok(Some(Self {
             port,
+            connect,
             rate_hz,
             allow,
         }))
+    }
+
+    /// Where the link goes: the port bound ([`SlicerOptions::bind`]), or Slicer's server's address
+    /// resolved — both before anything is baked or started, so a taken port or a host that does
+    /// not resolve stops the demo at once.
+    pub fn open(&self) -> anyhow::Result<Endpoint> {
+        let Some(target) = &self.connect else {
+            return self.bind().map(Endpoint::Listen);
+        };
+        use std::net::ToSocketAddrs as _;
+        let addr = target
+            .to_socket_addrs()
+            .with_context(|| {
+                format!(
+                    "--igtl-connect {target}: give HOST:PORT of the computer running Slicer and its \
+                     OpenIGTLinkIF server's port (18944 by default)"
+                )
+            })?
+            .next()
+            .with_context(|| format!("--igtl-connect {target}: the host has no address"))?;
+        if addr.port() == 0 {
+            anyhow::bail!(
+                "--igtl-connect {target}: port 0; Slicer's server listens on 18944 by default"
+            );
+        }
+        Ok(Endpoint::Connect(addr))
     }
 
     /// Listen (a taken port is an error here, before anything is baked or started).
@@ -138,10 +190,21 @@ impl SlicerOptions {
     }
 }
 
-/// What the server did (the demo's report and JSON).
+/// Where the link goes ([`SlicerOptions::open`]).
+#[derive(Debug)]
+pub enum Endpoint {
+    /// lungdyn serves on this port; Slicer connects.
+    Listen(TcpListener),
+    /// lungdyn connects to Slicer's server here.
+    Connect(SocketAddr),
+}
+
+/// What the link did (the demo's report and JSON).
 #[derive(Debug, Clone, Default, serde::Serialize)]
 pub struct SlicerReport {
-    /// The address it listened on.
+    /// "server" (lungdyn listened) or "client" (lungdyn connected to Slicer's server).
+    pub role: String,
+    /// The address it listened on, or connected to.
     pub address: String,
     /// Who may connect, in words.
     pub allowed: String,
@@ -151,6 +214,8 @@ pub struct SlicerReport {
     pub clients: u64,
     /// Connections refused (not on the allow-list, or too many).
     pub refused: u64,
+    /// As a client: tries that found no server listening (one a second while it is away).
+    pub connect_failures: u64,
     /// Frames made (each sent to every client that had taken the one before; none is made while
     /// every client is still taking the last).
     pub frames: u64,
@@ -191,8 +256,13 @@ impl SlicerReport {
 
     /// One paragraph for the demo's summary.
     pub fn text(&self) -> String {
+        let on = if self.role == "client" {
+            "to Slicer's server at"
+        } else {
+            "on"
+        };
         let mut s = format!(
-            "Slicer (OpenIGTLink on {}, {} Hz): {} client(s), {} frame(s) made, {} missed by a slow \
+            "Slicer (OpenIGTLink {on} {}, {} Hz): {} client(s), {} frame(s) made, {} missed by a slow \
              client, {:.1} MB/s ({:.2} MB a frame); making a frame took {:.2} ms of CPU median, {:.2} ms \
              p99, {:.2} ms at most",
             self.address,
@@ -208,6 +278,13 @@ impl SlicerReport {
         );
         if self.refused > 0 {
             let _ = write!(s, "; {} connection(s) refused", self.refused);
+        }
+        if self.connect_failures > 0 {
+            let _ = write!(
+                s,
+                "; {} connection tries found no server",
+                self.connect_failures
+            );
         }
         if let Some(f) = &self.failure {
             let _ = write!(s, "; STOPPED: {f}");
@@ -230,13 +307,21 @@ impl SlicerServer {
         instance: &str,
         scene: &Scene,
         options: &SlicerOptions,
-        listener: TcpListener,
+        endpoint: Endpoint,
     ) -> anyhow::Result<Self> {
-        listener.set_nonblocking(true)?;
-        let address = listener.local_addr()?;
+        let (listener, target, address) = match endpoint {
+            Endpoint::Listen(listener) => {
+                listener.set_nonblocking(true)?;
+                let address = listener.local_addr()?;
+                (Some(listener), None, address)
+            }
+            Endpoint::Connect(addr) => (None, Some(addr), addr),
+        };
         let frame = FrameMaker::new(scene)?;
         let stop = Arc::new(AtomicBool::new(false));
+        let role = if target.is_some() { "client" } else { "server" };
         let report = SlicerReport {
+            role: role.to_string(),
             address: address.to_string(),
             allowed: options.allow.describe(),
             rate_hz: options.rate_hz,
@@ -248,7 +333,7 @@ impl SlicerServer {
             .spawn(move || {
                 lower_priority();
                 let started = Instant::now();
-                let mut serve = match Serve::new(listener, opts, frame, report.clone()) {
+                let mut serve = match Serve::new(listener, target, opts, frame, report.clone()) {
                     Ok(s) => s,
                     Err(e) => {
                         eprintln!(
@@ -266,13 +351,23 @@ impl SlicerServer {
                 }
                 serve.finish(started)
             })?;
-        eprintln!(
-            "lungdyn: serving the lungs to 3D Slicer on {address} at {} Hz (OpenIGTLinkIF: client, \
-             port {}; docs/SLICER.md); clients from {}",
-            options.rate_hz,
-            address.port(),
-            options.allow.describe()
-        );
+        if target.is_some() {
+            eprintln!(
+                "lungdyn: sending the lungs to 3D Slicer's server at {address} at {} Hz (in Slicer: \
+                 OpenIGTLinkIF, a connector of type Server on port {}, active; docs/SLICER.md); \
+                 trying every second until it answers",
+                options.rate_hz,
+                address.port()
+            );
+        } else {
+            eprintln!(
+                "lungdyn: serving the lungs to 3D Slicer on {address} at {} Hz (OpenIGTLinkIF: client, \
+                 port {}; docs/SLICER.md); clients from {}",
+                options.rate_hz,
+                address.port(),
+                options.allow.describe()
+            );
+        }
         Ok(Self {
             stop,
             thread: Some(thread),
@@ -379,7 +474,12 @@ pub fn refusal(allow: &AllowList, ip: std::net::IpAddr, clients: usize) -> Optio
 }
 
 struct Serve {
-    listener: TcpListener,
+    /// Listening for Slicer, or (`target`) connecting to its server, retried at `next_try`.
+    listener: Option<TcpListener>,
+    target: Option<SocketAddr>,
+    next_try: Instant,
+    /// The server's absence said (once each time it goes).
+    away_said: bool,
     options: SlicerOptions,
     clients: Vec<Client>,
     frame: FrameMaker,
@@ -393,7 +493,8 @@ struct Serve {
 
 impl Serve {
     fn new(
-        listener: TcpListener,
+        listener: Option<TcpListener>,
+        target: Option<SocketAddr>,
         options: SlicerOptions,
         frame: FrameMaker,
         report: SlicerReport,
@@ -405,6 +506,9 @@ impl Serve {
             .build()?;
         Ok(Self {
             listener,
+            target,
+            next_try: Instant::now(),
+            away_said: false,
             options,
             clients: Vec::new(),
             frame,
@@ -460,11 +564,13 @@ impl Serve {
             revents: 0,
         };
         let mut fds = [idle; MAX_CLIENTS + 1];
-        fds[0] = libc::pollfd {
-            fd: self.listener.as_raw_fd(),
-            events: libc::POLLIN,
-            revents: 0,
-        };
+        if let Some(listener) = &self.listener {
+            fds[0] = libc::pollfd {
+                fd: listener.as_raw_fd(),
+                events: libc::POLLIN,
+                revents: 0,
+            };
+        }
         for (slot, c) in fds[1..].iter_mut().zip(&self.clients) {
             let out = if c.written < c.pending.len() {
                 libc::POLLOUT
@@ -486,8 +592,15 @@ impl Serve {
     }
 
     fn accept(&mut self) {
+        if let Some(addr) = self.target {
+            self.connect(addr);
+            return;
+        }
         loop {
-            match self.listener.accept() {
+            let Some(accepted) = self.listener.as_ref().map(TcpListener::accept) else {
+                return;
+            };
+            match accepted {
                 Ok((stream, peer)) => {
                     if let Some(why) = refusal(&self.options.allow, peer.ip(), self.clients.len()) {
                         self.report.refused += 1;
@@ -501,25 +614,62 @@ impl Serve {
                         }
                         continue;
                     }
-                    if stream.set_nonblocking(true).is_err() {
-                        continue;
+                    if self.add(stream, peer) {
+                        eprintln!("lungdyn: Slicer link: {peer} connected");
                     }
-                    let _ = stream.set_nodelay(true);
-                    limit_send_buffer(&stream, self.frame.bytes.len().max(1 << 20));
-                    self.report.clients += 1;
-                    eprintln!("lungdyn: Slicer link: {peer} connected");
-                    self.clients.push(Client {
-                        stream,
-                        peer,
-                        pending: Vec::new(),
-                        written: 0,
-                        progress: Instant::now(),
-                    });
                 }
                 Err(e) if e.kind() == ErrorKind::WouldBlock => return,
                 Err(e) if e.kind() == ErrorKind::Interrupted => continue,
                 // A connection reset before it was taken, out of descriptors: try again later.
                 Err(_) => return,
+            }
+        }
+    }
+
+    /// A connection to serve (accepted, or made to Slicer's server); false when it cannot be set up.
+    fn add(&mut self, stream: TcpStream, peer: SocketAddr) -> bool {
+        if stream.set_nonblocking(true).is_err() {
+            return false;
+        }
+        let _ = stream.set_nodelay(true);
+        limit_send_buffer(&stream, self.frame.bytes.len().max(1 << 20));
+        self.report.clients += 1;
+        self.clients.push(Client {
+            stream,
+            peer,
+            pending: Vec::new(),
+            written: 0,
+            progress: Instant::now(),
+        });
+        true
+    }
+
+    /// As a client: connect to Slicer's server at `addr` when not connected, at most once a
+    /// second (the wait bounded to [`CONNECT_WAIT`], in this thread only); the first failure in a
+    /// row is said, the rest counted.
+    fn connect(&mut self, addr: SocketAddr) {
+        let now = Instant::now();
+        if !self.clients.is_empty() || now < self.next_try {
+            return;
+        }
+        self.next_try = now + CONNECT_EVERY;
+        match TcpStream::connect_timeout(&addr, CONNECT_WAIT) {
+            Ok(stream) => {
+                if self.add(stream, addr) {
+                    self.away_said = false;
+                    eprintln!("lungdyn: Slicer link: connected to Slicer's server at {addr}");
+                }
+            }
+            Err(e) => {
+                self.report.connect_failures += 1;
+                if !self.away_said {
+                    self.away_said = true;
+                    eprintln!(
+                        "lungdyn: Slicer link: no server at {addr} ({e}); trying every second (in \
+                         Slicer: OpenIGTLinkIF, a connector of type Server on port {}, active)",
+                        addr.port()
+                    );
+                }
             }
         }
     }
@@ -933,12 +1083,12 @@ mod tests {
     #[test]
     fn options_come_from_the_scene_with_the_command_line_over_them() {
         let mut scene = Scene::default();
-        assert!(SlicerOptions::resolve(&scene, None, None, &[])
+        assert!(SlicerOptions::resolve(&scene, None, None, &[], None)
             .unwrap()
             .is_none());
-        let e = SlicerOptions::resolve(&scene, None, Some(10.0), &[]).unwrap_err();
+        let e = SlicerOptions::resolve(&scene, None, Some(10.0), &[], None).unwrap_err();
         assert!(e.to_string().contains("need --igtl-serve"), "{e}");
-        let o = SlicerOptions::resolve(&scene, Some(None), None, &[])
+        let o = SlicerOptions::resolve(&scene, Some(None), None, &[], None)
             .unwrap()
             .unwrap();
         assert_eq!(
@@ -947,11 +1097,11 @@ mod tests {
         );
         scene.slicer.serve = true;
         scene.slicer.port = 20000;
-        let o = SlicerOptions::resolve(&scene, None, Some(5.0), &["10.0.0.0/24".into()])
+        let o = SlicerOptions::resolve(&scene, None, Some(5.0), &["10.0.0.0/24".into()], None)
             .unwrap()
             .unwrap();
         assert_eq!((o.port, o.rate_hz, o.bind_address()), (20000, 5.0, "::"));
-        let o = SlicerOptions::resolve(&scene, Some(Some(20001)), None, &[])
+        let o = SlicerOptions::resolve(&scene, Some(Some(20001)), None, &[], None)
             .unwrap()
             .unwrap();
         assert_eq!(o.port, 20001);
@@ -984,11 +1134,108 @@ mod tests {
                 "--igtl-serve-allow",
             ),
         ] {
-            let e = SlicerOptions::resolve(&scene, serve, rate, &allow)
+            let e = SlicerOptions::resolve(&scene, serve, rate, &allow, None)
                 .unwrap_err()
                 .to_string();
             assert!(e.contains(words), "{words}: {e}");
         }
+        // Connecting to Slicer's server instead: not beside serving, nor with an allow-list; the
+        // host resolved (or refused naming what to give) before anything starts.
+        scene.slicer.serve = false;
+        let o = SlicerOptions::resolve(&scene, None, None, &[], Some("127.0.0.1:18944"))
+            .unwrap()
+            .unwrap();
+        assert!(matches!(o.open().unwrap(), Endpoint::Connect(a) if a.port() == 18944));
+        for (serve, allow, connect, words) in [
+            (Some(None), vec![], "127.0.0.1:18944", "give one"),
+            (
+                None,
+                vec!["10.0.0.5".to_string()],
+                "127.0.0.1:18944",
+                "connects out",
+            ),
+        ] {
+            let e = SlicerOptions::resolve(&scene, serve, None, &allow, Some(connect))
+                .unwrap_err()
+                .to_string();
+            assert!(e.contains(words), "{words}: {e}");
+        }
+        for (connect, words) in [
+            ("slicer-host", "HOST:PORT"),
+            ("127.0.0.1:0", "port 0"),
+            (
+                "no-such-host.invalid:18944",
+                "--igtl-connect no-such-host.invalid:18944",
+            ),
+        ] {
+            let o = SlicerOptions::resolve(&scene, None, None, &[], Some(connect))
+                .unwrap()
+                .unwrap();
+            let e = format!("{:#}", o.open().unwrap_err());
+            assert!(e.contains(words), "{connect}: {e}");
+        }
+    }
+
+    /// As a client of Slicer's server: no server yet is tried once a second and counted, never an
+    /// error; once one listens the link connects and the server receives whole frames, the
+    /// first of them the right lung's POLYDATA; when the server goes the link says so and connects
+    /// again when it is back.
+    #[test]
+    fn as_a_client_it_connects_to_slicers_server_when_there_and_again_after_it_goes() {
+        let (scene, frames, dir) = small(DeformMode::Precomputed, "client");
+        let maker = FrameMaker::new(&scene).unwrap();
+        // A port nobody listens on: bind one, note it, close it.
+        let addr = TcpListener::bind("127.0.0.1:0")
+            .unwrap()
+            .local_addr()
+            .unwrap();
+        let options = SlicerOptions {
+            port: addr.port(),
+            connect: Some(addr.to_string()),
+            rate_hz: 30.0,
+            allow: AllowList::default(),
+        };
+        let mut serve =
+            Serve::new(None, Some(addr), options, maker, SlicerReport::default()).unwrap();
+        serve.accept();
+        serve.accept();
+        assert_eq!(
+            (serve.report.connect_failures, serve.clients.len()),
+            (1, 0),
+            "one try a second: {:?}",
+            serve.report
+        );
+        let slicer = TcpListener::bind(addr).unwrap();
+        let mut scratch = vec![0u8; 4096];
+        for round in 0..2 {
+            serve.next_try = Instant::now();
+            serve.accept();
+            assert_eq!(serve.clients.len(), 1, "round {round}: {:?}", serve.report);
+            let (mut got, _) = slicer.accept().unwrap();
+            serve.send(&frames[60 + round]);
+            let want = serve.frame.bytes.clone();
+            let until = Instant::now() + Duration::from_secs(5);
+            while serve.clients.iter().any(|c| c.written < c.pending.len())
+                && Instant::now() < until
+            {
+                serve.flush(&mut scratch);
+            }
+            let mut bytes = vec![0u8; want.len()];
+            got.read_exact(&mut bytes).unwrap();
+            assert!(bytes == want, "round {round}: the frame as served");
+            // An OpenIGTLink v1/v2 header: type at 2..14, device name at 14..34.
+            assert_eq!(&bytes[2..10], b"POLYDATA");
+            assert_eq!(&bytes[14..23], b"RightLung");
+            drop(got);
+            let until = Instant::now() + Duration::from_secs(5);
+            while !serve.clients.is_empty() && Instant::now() < until {
+                serve.flush(&mut scratch);
+                std::thread::sleep(Duration::from_millis(2));
+            }
+            assert!(serve.clients.is_empty(), "the server's close is seen");
+        }
+        assert_eq!(serve.report.clients, 2, "{:?}", serve.report);
+        let _ = std::fs::remove_dir_all(dir);
     }
 
     /// The built-in lungs at 1200 vertices in `mode`, prepared into a folder of their own, and the
@@ -1146,10 +1393,18 @@ mod tests {
         let addr = listener.local_addr().unwrap();
         let options = SlicerOptions {
             port: addr.port(),
+            connect: None,
             rate_hz: 30.0,
             allow: AllowList::default(),
         };
-        let mut serve = Serve::new(listener, options, maker, SlicerReport::default()).unwrap();
+        let mut serve = Serve::new(
+            Some(listener),
+            None,
+            options,
+            maker,
+            SlicerReport::default(),
+        )
+        .unwrap();
         serve.stalled_after = Duration::from_millis(400);
         let _deaf = TcpStream::connect(addr).unwrap();
         let reader = std::thread::spawn(move || {

@@ -7,6 +7,8 @@
 //! port = 18945        # 18944 is the tracker's OpenIGTLink port
 //! rate_hz = 30        # meshes sent per second (the engine's newest frame each time)
 //! allow = []          # clients besides loopback: ["10.0.0.5", "192.168.1.0/24"]
+//! # connect = "127.0.0.1:18944"  # instead of serving: connect to Slicer's server (its connector
+//! #                              # of type Server, 18944 by default), retried every second
 //! ```
 
 use serde::{Deserialize, Serialize};
@@ -33,6 +35,10 @@ pub struct SlicerScene {
     /// Clients besides loopback: addresses or networks; `--igtl-serve-allow` adds to them (checked
     /// when the demo starts, before anything is baked).
     pub allow: Vec<String>,
+    /// Instead of serving, connect to Slicer's OpenIGTLink server at HOST:PORT (its connector's
+    /// default type; `--igtl-connect` over it), retried every second.
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub connect: Option<String>,
 }
 
 impl Default for SlicerScene {
@@ -42,6 +48,7 @@ impl Default for SlicerScene {
             port: DEFAULT_PORT,
             rate_hz: DEFAULT_RATE_HZ,
             allow: Vec::new(),
+            connect: None,
         }
     }
 }
@@ -52,6 +59,22 @@ impl SlicerScene {
         let bad = |why: String| Err(TableError::Slicer(why));
         if self.port == 0 {
             return bad("port = 0: name the port Slicer connects to (18945 by default)".into());
+        }
+        if let Some(c) = &self.connect {
+            let port = c.rsplit_once(':').map(|(h, p)| (h, p.parse::<u16>()));
+            if !matches!(port, Some((h, Ok(p))) if !h.is_empty() && p > 0) {
+                return bad(format!(
+                    "connect = {c:?}: give HOST:PORT of Slicer's OpenIGTLink server, e.g. \
+                     \"127.0.0.1:18944\""
+                ));
+            }
+            if self.serve {
+                return bad(
+                    "serve = true and connect both set: lungdyn either listens for Slicer or \
+                     connects to it, give one"
+                        .into(),
+                );
+            }
         }
         if !(self.rate_hz.is_finite() && (1.0..=MAX_RATE_HZ).contains(&self.rate_hz)) {
             return bad(format!(
@@ -81,6 +104,10 @@ mod tests {
             ("rate_hz = 0.5\n", "rate_hz = 0.5"),
             ("rate_hz = 120\n", "rate_hz = 120"),
             ("rate_hz = nan\n", "rate_hz = NaN"),
+            ("connect = \"slicer-host\"\n", "HOST:PORT"),
+            ("connect = \":18944\"\n", "HOST:PORT"),
+            ("connect = \"127.0.0.1:0\"\n", "HOST:PORT"),
+            ("connect = \"127.0.0.1:18944\"\nserve = true\n", "give one"),
         ] {
             let t: SlicerScene = toml::from_str(text).unwrap();
             let e = t.validate().unwrap_err().to_string();
@@ -89,6 +116,8 @@ mod tests {
                 "{text}: {e}"
             );
         }
+        let c: SlicerScene = toml::from_str("connect = \"10.0.0.5:18944\"\n").unwrap();
+        assert!(c.validate().is_ok() && c.connect.as_deref() == Some("10.0.0.5:18944"));
         assert!(toml::from_str::<SlicerScene>("port = 70000\n").is_err());
         assert!(toml::from_str::<SlicerScene>("prot = 1\n").is_err());
     }

@@ -1196,6 +1196,107 @@ fn breathing_follow_replays_a_trace_live_and_holds_every_drawn_frame_against_it(
     std::fs::remove_file(&trace).ok();
 }
 
+/// `lungdyn demo --igtl-connect HOST:PORT`: lungdyn connects to Slicer's server (here the test's
+/// listener, as Slicer's OpenIGTLinkIF connector of type Server would listen) and sends what
+/// `--igtl-serve` sends, each frame the two lungs' POLYDATA then the state; the report names the
+/// role. (What the frames hold is checked against the CPU reference in the test below and in
+/// `lungdyn-launcher`'s `slicer` tests: the bytes are the same frame maker's.)
+#[test]
+fn the_demo_connects_to_slicers_server_with_igtl_connect() {
+    if renderer::gpu::Gpu::for_tests().is_none() {
+        return;
+    }
+    let dir = tmp("slicer-connect");
+    let scene_path = dir.with_extension("toml");
+    std::fs::write(
+        &scene_path,
+        "[lungs]\nvertices = 1500\n[render]\nwidth = 160\nheight = 120\n",
+    )
+    .unwrap();
+    let slicer = std::net::TcpListener::bind("127.0.0.1:0").unwrap();
+    let port = slicer.local_addr().unwrap().port();
+    slicer.set_nonblocking(true).unwrap();
+    let reader = std::thread::spawn(move || -> Result<Vec<(String, String)>, String> {
+        use std::io::Read;
+        let until = std::time::Instant::now() + Duration::from_secs(180);
+        let mut s = loop {
+            match slicer.accept() {
+                Ok((s, _)) => break s,
+                Err(_) if std::time::Instant::now() < until => {
+                    std::thread::sleep(Duration::from_millis(20))
+                }
+                Err(e) => return Err(format!("lungdyn never connected: {e}")),
+            }
+        };
+        s.set_nonblocking(false).map_err(|e| e.to_string())?;
+        s.set_read_timeout(Some(Duration::from_secs(30)))
+            .map_err(|e| e.to_string())?;
+        let mut got = Vec::new();
+        let text = |b: &[u8]| {
+            String::from_utf8_lossy(b)
+                .trim_end_matches('\0')
+                .to_string()
+        };
+        loop {
+            let mut head = [0u8; 58];
+            s.read_exact(&mut head).map_err(|e| e.to_string())?;
+            let size = u64::from_be_bytes(head[42..50].try_into().unwrap());
+            let mut body = vec![0u8; size as usize];
+            s.read_exact(&mut body).map_err(|e| e.to_string())?;
+            got.push((text(&head[2..14]), text(&head[14..34])));
+            if got.last().unwrap().1 == "BreathState" {
+                return Ok(got);
+            }
+        }
+    });
+    let target = format!("127.0.0.1:{port}");
+    let (ok, stdout, err) = lungdyn(&[
+        "demo",
+        "--seconds",
+        "5",
+        "--snapshots",
+        "0",
+        "--json",
+        "--out",
+        dir.to_str().unwrap(),
+        "--scene",
+        scene_path.to_str().unwrap(),
+        "--igtl-connect",
+        &target,
+    ]);
+    assert!(ok, "{err}");
+    let first = reader
+        .join()
+        .unwrap()
+        .unwrap_or_else(|e| panic!("{e}\ndemo: {err}"));
+    let pair = |t: &str, d: &str| (t.to_string(), d.to_string());
+    assert_eq!(
+        first,
+        [
+            pair("POLYDATA", "RightLung"),
+            pair("POLYDATA", "LeftLung"),
+            pair("STRING", "BreathState")
+        ],
+        "the first frame"
+    );
+    assert!(
+        err.contains(&format!(
+            "sending the lungs to 3D Slicer's server at {target}"
+        )) && err.contains("connected to Slicer's server"),
+        "{err}"
+    );
+    let v: serde_json::Value = serde_json::from_str(stdout.trim()).unwrap();
+    let s = &v["slicer"];
+    assert_eq!(
+        (&s["role"], &s["clients"]),
+        (&"client".into(), &1.into()),
+        "{s}"
+    );
+    assert!(s["frames"].as_u64().unwrap() >= 1, "{s}");
+    std::fs::remove_dir_all(&dir).ok();
+    std::fs::remove_file(&scene_path).ok();
+}
+
 /// `lungdyn demo --igtl-serve` (issue 38): lungdyn as the OpenIGTLink server 3D Slicer connects to.
 /// pyigtl, as the client (its own receive loop, then its header parser, CRC and message classes on
 /// an ordered capture; POLYDATA's unpack mended in `tests/peers/slicer_client.py`), receives each
