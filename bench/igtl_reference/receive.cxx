@@ -2,7 +2,9 @@
 // Slicer's OpenIGTLinkIF links — so lungdyn's stream is decoded by the reference implementation of
 // the protocol, not by lungdyn's code nor pyigtl's. bench/igtl_reference.sh builds and runs it.
 //
-// usage: receive PORT FRAMES OUT_JSON
+// usage: receive PORT FRAMES OUT_JSON            connect to lungdyn's server (--igtl-serve PORT)
+//        receive --listen PORT FRAMES OUT_JSON   listen, as Slicer's Server connector, for
+//                                                `lungdyn demo --igtl-connect 127.0.0.1:PORT`
 //
 // Connects (waiting for the port while the demo bakes), reads FRAMES frames — a frame ends at the
 // "BreathState" STRING — unpacking every body with the library's CRC-64 check, and writes one JSON
@@ -17,6 +19,7 @@
 #include <unistd.h>
 
 #include "igtlClientSocket.h"
+#include "igtlServerSocket.h"
 #include "igtlMessageHeader.h"
 #include "igtlPolyDataMessage.h"
 #include "igtlStringMessage.h"
@@ -99,21 +102,42 @@ std::string polydata_json(igtl::PolyDataMessage* m, std::string& polygons) {
 }  // namespace
 
 int main(int argc, char** argv) {
-  if (argc != 4) {
-    std::fprintf(stderr, "usage: %s PORT FRAMES OUT_JSON\n", argv[0]);
+  bool listen = argc == 5 && std::strcmp(argv[1], "--listen") == 0;
+  if (argc != 4 && !listen) {
+    std::fprintf(stderr, "usage: %s [--listen] PORT FRAMES OUT_JSON\n", argv[0]);
     return 2;
+  }
+  if (listen) {
+    ++argv;
   }
   int port = std::atoi(argv[1]);
   size_t frames = static_cast<size_t>(std::atol(argv[2]));
-  igtl::ClientSocket::Pointer socket = igtl::ClientSocket::New();
-  // The demo bakes and starts its processes before it listens: wait for the port.
-  int tries = 0;
-  while (socket->ConnectToServer("127.0.0.1", port) != 0) {
-    if (++tries > 1200) {
-      std::fprintf(stderr, "receive: nothing listens on 127.0.0.1:%d after 2 minutes\n", port);
+  igtl::Socket::Pointer socket;
+  igtl::ServerSocket::Pointer server;
+  if (listen) {
+    server = igtl::ServerSocket::New();
+    if (server->CreateServer(port) < 0) {
+      std::fprintf(stderr, "receive: cannot listen on port %d\n", port);
       return 1;
     }
-    igtl::Sleep(100);
+    // Wait up to 3 minutes for lungdyn (it bakes and starts its processes first).
+    for (int i = 0; i < 180 && !socket; ++i) socket = server->WaitForConnection(1000);
+    if (!socket) {
+      std::fprintf(stderr, "receive: lungdyn never connected to port %d\n", port);
+      return 1;
+    }
+  } else {
+    igtl::ClientSocket::Pointer client = igtl::ClientSocket::New();
+    // The demo bakes and starts its processes before it listens: wait for the port.
+    int tries = 0;
+    while (client->ConnectToServer("127.0.0.1", port) != 0) {
+      if (++tries > 1200) {
+        std::fprintf(stderr, "receive: nothing listens on 127.0.0.1:%d after 2 minutes\n", port);
+        return 1;
+      }
+      igtl::Sleep(100);
+    }
+    socket = client;
   }
   std::vector<std::vector<Message>> captured;
   std::vector<Message> current;

@@ -323,7 +323,11 @@ impl SlicerServer {
         let report = SlicerReport {
             role: role.to_string(),
             address: address.to_string(),
-            allowed: options.allow.describe(),
+            allowed: if target.is_some() {
+                "none (lungdyn connects out)".to_string()
+            } else {
+                options.allow.describe()
+            },
             rate_hz: options.rate_hz,
             ..SlicerReport::default()
         };
