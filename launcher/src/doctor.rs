@@ -104,7 +104,7 @@ impl Report {
 }
 
 /// The names of the checks [`run`] makes, in order (the CLI test holds the JSON to this list).
-pub const CHECKS: [&str; 14] = [
+pub const CHECKS: [&str; 15] = [
     "gpu",
     "displays",
     "session",
@@ -119,6 +119,7 @@ pub const CHECKS: [&str; 14] = [
     "iceoryx2_folders",
     "systemd",
     "remote_keys",
+    "cache",
 ];
 
 /// The real-time priority the units allow (`LimitRTPRIO=` in deploy/*.service).
@@ -638,6 +639,84 @@ fn igtl_check(port: u16) -> Check {
     }
 }
 
+/// The cache folder ([`renderer::lod_cache::dir_from_env`]): the draw levels kept for large lungs
+/// and where the quality governor settled for each setting (the next run starts there: docs/LATENCY.md
+/// "Where a run starts"), listed so a person can see why a run starts below full quality.
+pub fn cache_check(dir: Option<&Path>) -> Check {
+    let fix = "set LUNGDYN_CACHE_DIR to a writable folder (the installed units use systemd's \
+               CacheDirectory); `--governor-start full` starts a run at full quality whatever is kept";
+    let Some(dir) = dir else {
+        return check(
+            "cache",
+            Status::Warning,
+            "no cache folder (LUNGDYN_CACHE_DIR=off, or no HOME): a large lung's draw levels are \
+             built at every start and every run starts the governor at full quality",
+            fix,
+        );
+    };
+    let entries = match std::fs::read_dir(dir) {
+        Ok(e) => e,
+        Err(e) if e.kind() == std::io::ErrorKind::NotFound => {
+            return check(
+                "cache",
+                Status::Ok,
+                format!(
+                    "{} (not made yet: the first run that keeps something makes it)",
+                    dir.display()
+                ),
+                "nothing to do",
+            )
+        }
+        Err(e) => {
+            return check(
+                "cache",
+                Status::Warning,
+                format!("{}: {e}", dir.display()),
+                fix,
+            )
+        }
+    };
+    let (mut levels, mut bytes, mut settled) = (0usize, 0u64, Vec::new());
+    for entry in entries.flatten() {
+        let name = entry.file_name().to_string_lossy().into_owned();
+        if name.starts_with("lod-") && name.ends_with(".bin") {
+            levels += 1;
+            bytes += entry.metadata().map_or(0, |m| m.len());
+        } else if name.starts_with("governor-") && name.ends_with(".json") {
+            let kept = std::fs::read(entry.path())
+                .ok()
+                .and_then(|b| serde_json::from_slice::<renderer::governor_memory::Settled>(&b).ok())
+                .map_or_else(
+                    || {
+                        format!(
+                            "{name}: not readable (a run refuses it and starts at full quality)"
+                        )
+                    },
+                    |k| format!("{} on {} ({name})", k.quality, k.adapter),
+                );
+            settled.push(kept);
+        }
+    }
+    settled.sort();
+    let mut detail = format!(
+        "{}: {levels} lungs' draw levels ({:.1} MB); where the governor settled: {}",
+        dir.display(),
+        bytes as f64 / 1e6,
+        if settled.is_empty() {
+            "nothing kept (runs start at full quality)".to_string()
+        } else {
+            settled.join("; ")
+        }
+    );
+    match writable(dir) {
+        Ok(()) => check("cache", Status::Ok, detail, "nothing to do"),
+        Err(e) => {
+            detail.push_str(&format!("; not writable ({e}): nothing new is kept"));
+            check("cache", Status::Warning, detail, fix)
+        }
+    }
+}
+
 /// Whether a file can be created (and removed) in `dir`.
 fn writable(dir: &Path) -> Result<(), String> {
     let probe = dir.join(format!(".lungdyn-doctor-{}", std::process::id()));
@@ -791,6 +870,7 @@ pub fn run(args: &DoctorArgs) -> anyhow::Result<Report> {
             keys_dir.as_deref().map(lungdyn_remote::keys::inspect),
             unix_now(),
         ),
+        cache_check(renderer::lod_cache::dir_from_env().as_deref()),
     ];
     debug_assert_eq!(checks.iter().map(|c| c.name).collect::<Vec<_>>(), CHECKS);
     Ok(Report { checks })
@@ -1161,5 +1241,51 @@ mod tests {
         let p = PathBuf::from("/dev/ttyUSB0");
         assert_eq!(serial_check(&[(p.clone(), false)]).status, Status::Missing);
         assert_eq!(serial_check(&[(p, true)]).status, Status::Ok);
+    }
+
+    /// The cache folder's check lists where the governor settled (so a run that starts below full
+    /// quality is explained), counts the draw levels, names an unreadable memory, and warns where
+    /// nothing can be kept.
+    #[test]
+    fn the_cache_check_says_where_runs_start_and_what_is_kept() {
+        let none = cache_check(None);
+        assert_eq!(none.status, Status::Warning);
+        assert!(none.fix.contains("LUNGDYN_CACHE_DIR"), "{none:?}");
+        let dir = std::env::temp_dir().join(format!("lungdyn-doctor-cache-{}", std::process::id()));
+        let _ = std::fs::remove_dir_all(&dir);
+        let absent = cache_check(Some(&dir));
+        assert_eq!(absent.status, Status::Ok);
+        assert!(absent.detail.contains("not made yet"), "{absent:?}");
+        std::fs::create_dir_all(&dir).unwrap();
+        let empty = cache_check(Some(&dir));
+        assert!(empty.detail.contains("nothing kept"), "{empty:?}");
+        let kept = renderer::governor_memory::Settled {
+            format: renderer::governor_memory::FORMAT,
+            key: "0123456789abcdef".into(),
+            adapter: "llvmpipe (Vulkan) Cpu".into(),
+            steps: vec!["MSAA off".into(), "LOD +1".into()],
+            given_up: 2,
+            quality: "MSAA off, LOD +1".into(),
+            bought: vec![2.0, 1.5],
+            held_frames: 400,
+            frames: 900,
+        };
+        std::fs::write(
+            dir.join("governor-0123456789abcdef.json"),
+            serde_json::to_string(&kept).unwrap(),
+        )
+        .unwrap();
+        std::fs::write(dir.join("governor-ffffffffffffffff.json"), "{").unwrap();
+        std::fs::write(dir.join("lod-0000000000000001.bin"), [0u8; 1000]).unwrap();
+        let c = cache_check(Some(&dir));
+        assert_eq!(c.status, Status::Ok, "{c:?}");
+        for words in [
+            "1 lungs' draw levels",
+            "MSAA off, LOD +1 on llvmpipe (Vulkan) Cpu",
+            "governor-ffffffffffffffff.json: not readable",
+        ] {
+            assert!(c.detail.contains(words), "{words}: {}", c.detail);
+        }
+        let _ = std::fs::remove_dir_all(&dir);
     }
 }
