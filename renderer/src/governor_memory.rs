@@ -30,6 +30,8 @@ pub const FORMAT: u32 = 1;
 /// Frames a run must have held its last quality for at its end to keep it (5 s at 60 Hz): a run
 /// that changed in its last seconds had not settled.
 pub const SETTLED_FRAMES: u32 = 300;
+/// Largest file read (one is a few hundred bytes; anything far larger is not one).
+const MAX_BYTES: u64 = 64 * 1024;
 /// Most a remembered step may have bought (a frame 1000× faster without it is not a measurement).
 const MOST_GAIN: f64 = 1000.0;
 
@@ -139,7 +141,16 @@ impl Fingerprint<'_> {
 impl Memory {
     /// Where to start over `steps`.
     pub fn start(&self, steps: &[Step]) -> Start {
-        let bytes = match std::fs::read(&self.path) {
+        let bytes = match std::fs::metadata(&self.path).and_then(|m| {
+            if m.len() > MAX_BYTES {
+                Err(std::io::Error::other(format!(
+                    "{} bytes, larger than any governor memory ({MAX_BYTES} at most)",
+                    m.len()
+                )))
+            } else {
+                std::fs::read(&self.path)
+            }
+        }) {
             Ok(b) => b,
             Err(e) if e.kind() == std::io::ErrorKind::NotFound => return Start::Nothing,
             Err(e) => {
@@ -535,6 +546,13 @@ mod tests {
         let text = serde_json::to_string(&good).unwrap().replace("2.0", "null");
         std::fs::write(&memory.path, text).unwrap();
         assert!(matches!(memory.start(&steps), Start::Refused { .. }));
+        // A huge file is not read.
+        std::fs::write(&memory.path, vec![b' '; 100_000]).unwrap();
+        assert!(
+            matches!(memory.start(&steps), Start::Refused { ref why, .. } if why.contains("100000 bytes")),
+            "{:?}",
+            memory.start(&steps)
+        );
         // A folder where the file should be.
         std::fs::remove_file(&memory.path).unwrap();
         std::fs::create_dir_all(&memory.path).unwrap();
