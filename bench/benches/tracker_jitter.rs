@@ -170,6 +170,7 @@ fn measure(
         &transport::Monotonic,
         &mut |now| now >= stop_at,
         &mut |_, _| {},
+        &mut || 0,
     )
     .unwrap();
     let s = &asm.stats;

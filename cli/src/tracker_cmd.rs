@@ -72,12 +72,11 @@ impl Publish<TrackerFrame> for Watch {
 /// Run `lungdyn tracker listen`: the statistics as JSON (also printed as text unless `--json`).
 pub fn listen(args: &ListenArgs) -> anyhow::Result<Value> {
     let run_ns = transport::process::run_ns(args.seconds)?;
-    let opened = tracker_bridge::open(&args.source)?;
     let tracker_bridge::Opened {
         mut source,
         mut assembler,
         mut recorder,
-    } = opened;
+    } = tracker_bridge::open(&args.source)?;
     let description = source.describe();
     eprintln!("lungdyn tracker listen: {description}; Ctrl-C to stop");
     transport::stop::install()?;
@@ -97,6 +96,7 @@ pub fn listen(args: &ListenArgs) -> anyhow::Result<Value> {
         &transport::Monotonic,
         &mut |now| transport::stop::requested() || stop_at.is_some_and(|t| now >= t),
         &mut |e, now| reporter.event(e, now),
+        &mut || 0, // a tracker listened to alone: no renderer's latency to measure
     )?;
     drop(source);
     let seconds = (transport::now_ns() - start) as f64 / 1e9;

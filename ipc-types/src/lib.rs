@@ -17,7 +17,7 @@
 //!
 //! ## Layout versioning
 //! [`LAYOUT_VERSION`] is written into every payload ([`Message::layout_version`]) and into every
-//! payload's type name ([`Message::TYPE_NAME`], `"lungdyn.EngineFrame.v7"`), which the transport
+//! payload's type name ([`Message::TYPE_NAME`], `"lungdyn.EngineFrame.v8"`), which the transport
 //! hands to iceoryx2: iceoryx2 refuses to open a service whose payload type name, size or alignment
 //! differ from the creator's, so a process built from another layout fails at start-up instead of
 //! reading garbage; the field in the payload is a second check for peers that bypass the type name.
@@ -38,14 +38,17 @@
 //! recording's origin on the host's clock, and to each [`EngineFrame`] what the engine followed of
 //! the signal ([`SignalFollowed`]: the volume it predicted for the display time, the volume without
 //! the prediction, and that display time), so a run can be held against the recording frame by
-//! frame (`lungdyn breathing follow`).
+//! frame (`lungdyn breathing follow`); v8 adds to each [`SignalBlock`] the pipeline's latency as the
+//! renderer's reports measured it ([`SignalBlock::pipeline_latency_ns`]), so the engine predicts the
+//! signal across the latency measured, and a recording replays the prediction bit for bit, and to
+//! each [`SignalFollowed`] the latency the engine predicted across ([`SignalFollowed::latency_ns`]).
 
 use core::mem::{align_of, offset_of, size_of};
 
 use bytemuck::{Pod, Zeroable};
 
 /// Version of every payload layout in this crate. Part of each payload's type name.
-pub const LAYOUT_VERSION: u32 = 7;
+pub const LAYOUT_VERSION: u32 = 8;
 
 /// Most respiratory-signal samples one [`TrackerFrame`] carries (8 per frame at the bridge's 60 Hz:
 /// 480 Hz; a slower source sends one or none per frame, a faster one's rest waits for the next).
@@ -303,6 +306,12 @@ pub struct SignalBlock {
     /// (and `lungdyn breathing follow` places every drawn frame on the recording's own time axis).
     /// 0 for a live source, whose stamps are arrival times with no recording behind them.
     pub origin_ns: u64,
+    /// The pipeline's latency (layout v8): from the bridge's publish of a tracker frame to the
+    /// display of the frame drawn from it, ns — the median of the renderer's latest reports as the
+    /// bridge read them ([`FrameReport::display_ns`]); 0 while none is measured (no renderer yet,
+    /// or a recording made before v8). An input like the samples: recorded, and replayed as it was,
+    /// so the engine's prediction across it stays a pure function of its inputs.
+    pub pipeline_latency_ns: u64,
 }
 
 impl SignalBlock {
@@ -473,13 +482,17 @@ pub struct EngineFrame {
 #[repr(C)]
 pub struct SignalFollowed {
     /// The display time the engine predicted for (CLOCK_MONOTONIC, ns): the newest input's time
-    /// plus `[breathing] latency_ms`; 0 when nothing was followed.
+    /// plus [`Self::latency_ns`]; 0 when nothing was followed.
     pub display_ns: u64,
     /// The volume above FRC predicted for `display_ns`, ml: what drives the lungs.
     pub volume_ml: f32,
     /// The volume above FRC from the newest sample with no prediction, ml: the baseline a
     /// predictor must beat, kept from the same run.
     pub unpredicted_ml: f32,
+    /// The latency predicted across, ns (layout v8): the pipeline's as measured plus
+    /// `[breathing] sensor_latency_ms`, or `latency_ms` (fixed, or before a measurement); 0 when
+    /// nothing was followed.
+    pub latency_ns: u64,
 }
 
 impl Default for EngineFrame {
@@ -644,6 +657,21 @@ pub struct FrameReport {
     /// When the renderer saw the frame's GPU work complete (CLOCK_MONOTONIC, ns): the wait on the
     /// submission's fence returned (`Device::poll` with the submission index). 0: not observed.
     pub gpu_done_ns: u64,
+}
+
+impl FrameReport {
+    /// When the frame was shown, CLOCK_MONOTONIC ns: its present (in a window), else when its GPU
+    /// work was seen done, else its submit (a time before the submit is not taken).
+    pub fn display_ns(&self) -> u64 {
+        let submit = self.stamps.renderer_submit_ns;
+        if self.present_ns != 0 && self.present_ns >= submit {
+            self.present_ns
+        } else if self.gpu_done_ns != 0 && self.gpu_done_ns >= submit {
+            self.gpu_done_ns
+        } else {
+            submit
+        }
+    }
 }
 
 /// [`FrameReport::present_mode`]: how a frame reached the display.
@@ -906,7 +934,7 @@ impl core::str::FromStr for Intervention {
 
 impl Message for ControlPacket {
     const NAME: &'static str = "ControlPacket";
-    const TYPE_NAME: &'static str = "lungdyn.ControlPacket.v7";
+    const TYPE_NAME: &'static str = "lungdyn.ControlPacket.v8";
     fn layout_version(&self) -> u32 {
         self.layout_version
     }
@@ -914,35 +942,35 @@ impl Message for ControlPacket {
 
 impl Message for ControlReply {
     const NAME: &'static str = "ControlReply";
-    const TYPE_NAME: &'static str = "lungdyn.ControlReply.v7";
+    const TYPE_NAME: &'static str = "lungdyn.ControlReply.v8";
     fn layout_version(&self) -> u32 {
         self.layout_version
     }
 }
 
-const VERSION_SUFFIX: &str = ".v7";
+const VERSION_SUFFIX: &str = ".v8";
 const _: () = assert!(
-    LAYOUT_VERSION == 7,
+    LAYOUT_VERSION == 8,
     "bump VERSION_SUFFIX with LAYOUT_VERSION"
 );
 
 impl Message for TrackerFrame {
     const NAME: &'static str = "TrackerFrame";
-    const TYPE_NAME: &'static str = "lungdyn.TrackerFrame.v7";
+    const TYPE_NAME: &'static str = "lungdyn.TrackerFrame.v8";
     fn layout_version(&self) -> u32 {
         self.layout_version
     }
 }
 impl Message for EngineFrame {
     const NAME: &'static str = "EngineFrame";
-    const TYPE_NAME: &'static str = "lungdyn.EngineFrame.v7";
+    const TYPE_NAME: &'static str = "lungdyn.EngineFrame.v8";
     fn layout_version(&self) -> u32 {
         self.layout_version
     }
 }
 impl Message for FrameReport {
     const NAME: &'static str = "FrameReport";
-    const TYPE_NAME: &'static str = "lungdyn.FrameReport.v7";
+    const TYPE_NAME: &'static str = "lungdyn.FrameReport.v8";
     fn layout_version(&self) -> u32 {
         self.layout_version
     }
@@ -1011,7 +1039,7 @@ const _: () = {
     assert!(offset_of!(SignalWire, t_ns) == 0);
     assert!(offset_of!(SignalWire, value) == 8);
     assert!(
-        size_of::<SignalBlock>() == 32 + 16 * MAX_SIGNAL_SAMPLES && align_of::<SignalBlock>() == 8
+        size_of::<SignalBlock>() == 40 + 16 * MAX_SIGNAL_SAMPLES && align_of::<SignalBlock>() == 8
     );
     assert!(offset_of!(SignalBlock, count) == 0);
     assert!(offset_of!(SignalBlock, unit) == 4);
@@ -1020,9 +1048,10 @@ const _: () = {
     assert!(offset_of!(SignalBlock, period_ns) == 16);
     assert!(offset_of!(SignalBlock, samples) == 24);
     assert!(offset_of!(SignalBlock, origin_ns) == 24 + 16 * MAX_SIGNAL_SAMPLES);
+    assert!(offset_of!(SignalBlock, pipeline_latency_ns) == 32 + 16 * MAX_SIGNAL_SAMPLES);
 
     assert!(
-        size_of::<TrackerFrame>() == 256 + 32 + 16 * MAX_SIGNAL_SAMPLES
+        size_of::<TrackerFrame>() == 256 + 40 + 16 * MAX_SIGNAL_SAMPLES
             && align_of::<TrackerFrame>() == 8
     );
     assert!(offset_of!(TrackerFrame, layout_version) == 0);
@@ -1050,12 +1079,13 @@ const _: () = {
     assert!(offset_of!(LungFrame, cycle_ticks) == 72 + 4 * MAX_COEFFS);
     assert!(offset_of!(LungFrame, inhale_ticks) == 76 + 4 * MAX_COEFFS);
 
-    assert!(size_of::<SignalFollowed>() == 16 && align_of::<SignalFollowed>() == 8);
+    assert!(size_of::<SignalFollowed>() == 24 && align_of::<SignalFollowed>() == 8);
     assert!(offset_of!(SignalFollowed, display_ns) == 0);
     assert!(offset_of!(SignalFollowed, volume_ml) == 8);
     assert!(offset_of!(SignalFollowed, unpredicted_ml) == 12);
+    assert!(offset_of!(SignalFollowed, latency_ns) == 16);
 
-    assert!(size_of::<EngineFrame>() == 800 && align_of::<EngineFrame>() == 8);
+    assert!(size_of::<EngineFrame>() == 808 && align_of::<EngineFrame>() == 8);
     assert!(offset_of!(EngineFrame, layout_version) == 0);
     assert!(offset_of!(EngineFrame, state) == 4);
     assert!(offset_of!(EngineFrame, fault) == 8);
@@ -1214,7 +1244,7 @@ mod tests {
         f.lungs[LUNG_LEFT].kernel_id = 0xdead_beef_0123_4567;
         f.lungs[LUNG_RIGHT].offset_mm = [1.0, -2.0, 3.5];
         let bytes = bytemuck::bytes_of(&f).to_vec();
-        assert_eq!(bytes.len(), 800);
+        assert_eq!(bytes.len(), 808);
         let back: EngineFrame = bytemuck::pod_read_unaligned(&bytes);
         assert_eq!(back, f);
         // Little-endian on every supported host: the kernel id sits at byte 112 + 336 (left lung).
@@ -1227,12 +1257,12 @@ mod tests {
     #[test]
     fn a_payload_of_another_layout_is_refused_by_name() {
         let f = EngineFrame {
-            layout_version: 8,
+            layout_version: 9,
             ..Default::default()
         };
         let e = f.check_layout().unwrap_err();
-        assert_eq!(e.theirs, 8);
-        assert!(e.to_string().contains("EngineFrame with layout v8"), "{e}");
+        assert_eq!(e.theirs, 9);
+        assert!(e.to_string().contains("EngineFrame with layout v9"), "{e}");
         assert!(TrackerFrame {
             layout_version: LAYOUT_VERSION,
             ..Default::default()

@@ -64,9 +64,9 @@ pub struct FollowArgs {
     /// How long --drop-at cuts the signal, seconds.
     #[arg(long, value_name = "S", requires = "drop_at")]
     pub drop_for: Option<f64>,
-    /// The latency, ms, each frame's volume is predicted across (overrides the scene's
-    /// [breathing] latency_ms, 50 by default): set it to the latency this command measures
-    /// (`latency_ms_measured_median`) to predict for this machine.
+    /// Predict each frame's volume across a fixed latency, ms, instead of the pipeline's latency as
+    /// measured (the scene's [breathing] latency = "measured", by default, takes the median the
+    /// bridge reads from the renderer's reports, plus sensor_latency_ms): for comparing horizons.
     #[arg(long, value_name = "MS")]
     pub latency_ms: Option<f64>,
     /// Scene file (TOML): its lungs, PV model (whose tidal volume an amplitude is calibrated to) and
@@ -106,17 +106,9 @@ pub struct Drawn {
 impl Drawn {
     /// The frame as its report says.
     pub fn of(r: &FrameReport, origin_ns: u64) -> Self {
-        let s = &r.stamps;
-        let display_ns = if r.present_ns != 0 && r.present_ns >= s.renderer_submit_ns {
-            r.present_ns
-        } else if r.gpu_done_ns != 0 && r.gpu_done_ns >= s.renderer_submit_ns {
-            r.gpu_done_ns
-        } else {
-            s.renderer_submit_ns
-        };
         Self {
             engine_tick: r.engine_tick,
-            display_ns,
+            display_ns: r.display_ns(),
             volume_ml: f64::from(r.volume_ml[0]) + f64::from(r.volume_ml[1]),
             flags: r.flags,
             origin_ns,
@@ -260,10 +252,17 @@ pub struct Figures {
     pub lag_ms: Option<f64>,
     /// The same without prediction.
     pub lag_ms_without_prediction: Option<f64>,
-    /// What the engine predicted to: its newest input's time plus `[breathing] latency_ms`, ms.
+    /// `[breathing] latency`: "measured" (the engine predicted across the pipeline's latency the
+    /// bridge measured from the renderer's reports) or "fixed" (`latency_ms`).
+    pub latency: String,
+    /// `[breathing] latency_ms`, ms: what the engine predicted across when fixed, or before the
+    /// pipeline's latency was measured.
     pub latency_ms_configured: f64,
+    /// What the engine predicted across, ms, median over the compared frames (each engine frame
+    /// says its own: `SignalFollowed::latency_ns`).
+    pub latency_ms_predicted_median: Option<f64>,
     /// What the frames took from the engine's newest input to their display, ms, median and p99 —
-    /// the latency `[breathing] latency_ms` should be.
+    /// the latency the prediction should cross.
     pub latency_ms_measured_median: Option<f64>,
     /// The same, 99th percentile.
     pub latency_ms_measured_p99: Option<f64>,
@@ -279,19 +278,22 @@ pub struct Figures {
 type Compared = (u64, f64, f64, f64);
 
 /// The figures of `drawn` frames (with the engine's `engine` part of each tick) against `trace`.
-/// `first_t_ns` is the trace's first sample time; `latency_ns` the engine's configured latency.
+/// `first_t_ns` is the trace's first sample time; `latency` the scene's choice and `latency_ns` its
+/// `latency_ms`.
 pub fn figures(
     trace: &Trace,
     drawn: &[Drawn],
     engine: &HashMap<u64, (SignalFollowed, u32)>,
-    latency_ns: u64,
+    (latency, latency_ns): (lung_model::scene::LatencyChoice, u64),
     drop: Option<(f64, f64)>,
 ) -> (Figures, Vec<Compared>) {
     let first_t = trace.samples.first().map_or(0, |s| s.t_ns);
     let mut f = empty_figures(trace, drawn.len(), latency_ns);
+    f.latency = latency.name().into();
     let (mut sq, mut sq_hold) = (0.0, 0.0);
     let mut compared: Vec<Compared> = Vec::with_capacity(drawn.len());
     let mut latencies = Vec::with_capacity(drawn.len());
+    let mut predicted = Vec::with_capacity(drawn.len());
     let mut affine = Vec::new();
     let mut played_ns = 0u64;
     // The tick the signal last took over (its volume is blended in from the model's over
@@ -325,10 +327,11 @@ pub fn figures(
         if !blended {
             affine.push((p, d.volume_ml));
         }
-        let input_ns = s.display_ns.saturating_sub(latency_ns);
+        let input_ns = s.display_ns.saturating_sub(s.latency_ns);
         if d.display_ns >= input_ns {
             latencies.push((d.display_ns - input_ns) as f64 * 1e-6);
         }
+        predicted.push(s.latency_ns as f64 * 1e-6);
         if let Some(truth) = trace.truth_at(first_t + t) {
             sq += (p - truth).powi(2);
             sq_hold += (h - truth).powi(2);
@@ -345,14 +348,14 @@ pub fn figures(
     f.rms_error_percent_of_tidal_without_prediction =
         100.0 * f.rms_error_ml_without_prediction / trace.tidal_ml;
     breaths_and_lag(&mut f, trace, &compared, played_ns);
-    latencies.sort_by(f64::total_cmp);
-    let at = |q: f64| {
-        latencies
-            .get(((latencies.len() as f64 - 1.0) * q).round() as usize)
+    let at = |v: &mut Vec<f64>, q: f64| {
+        v.sort_by(f64::total_cmp);
+        v.get(((v.len() as f64 - 1.0) * q).round() as usize)
             .copied()
     };
-    f.latency_ms_measured_median = at(0.5);
-    f.latency_ms_measured_p99 = at(0.99);
+    f.latency_ms_measured_median = at(&mut latencies, 0.5);
+    f.latency_ms_measured_p99 = at(&mut latencies, 0.99);
+    f.latency_ms_predicted_median = at(&mut predicted, 0.5);
     f.drawn_vs_followed_rms_ml = affine_residual(&affine);
     f.drop = drop.map(|(at_s, for_s)| drop_report(trace, drawn, &compared, at_s, for_s));
     (f, compared)
@@ -379,7 +382,9 @@ fn empty_figures(trace: &Trace, frames: usize, latency_ns: u64) -> Figures {
         rms_error_percent_of_tidal_without_prediction: f64::NAN,
         lag_ms: None,
         lag_ms_without_prediction: None,
+        latency: String::new(),
         latency_ms_configured: latency_ns as f64 * 1e-6,
+        latency_ms_predicted_median: None,
         latency_ms_measured_median: None,
         latency_ms_measured_p99: None,
         drawn_vs_followed_rms_ml: None,
@@ -586,6 +591,7 @@ fn check_args(a: &FollowArgs) -> anyhow::Result<Checked> {
     let mut scene = scene;
     if let Some(ms) = a.latency_ms {
         scene.breathing.latency_ms = ms;
+        scene.breathing.latency = lung_model::scene::LatencyChoice::Fixed;
         scene
             .validate()
             .map_err(|e| anyhow::anyhow!("--latency-ms {ms}: {e}"))?;
@@ -657,13 +663,16 @@ pub fn follow(a: &FollowArgs) -> anyhow::Result<FollowReport> {
     let c = check_args(a)?;
     let duration = duration_s(&c.trace);
     let demo = demo_args(a, duration)?;
-    let latency_ns = (c.scene.breathing.latency_ms * 1e6).round() as u64;
+    let latency = (
+        c.scene.breathing.latency,
+        (c.scene.breathing.latency_ms * 1e6).round() as u64,
+    );
     let frames = ((demo.seconds.min(duration + 60.0)) * 120.0) as usize + 1024;
     let mut watch = Follow::with_capacity(frames);
     let run = crate::demo::run_watched(&demo, &mut watch)?;
     watch.place_early_frames();
     let drop = a.drop_at.zip(a.drop_for);
-    let (figures, compared) = figures(&c.trace, &watch.drawn, &watch.engine, latency_ns, drop);
+    let (figures, compared) = figures(&c.trace, &watch.drawn, &watch.engine, latency, drop);
     let frames_out = match &a.frames_out {
         Some(p) => Some(write_frames(p, &watch.drawn)?),
         None => None,
@@ -799,7 +808,7 @@ pub fn follow_text(r: &FollowReport) -> String {
          RMS error at display time: {:.1} ml = {:.2} % of tidal ({:.0} ml) with prediction, \
          {:.1} ml = {:.2} % without ({} frames compared)\n\
          end-inspiration lag: {} with prediction, {} without\n\
-         latency (newest input to display): configured {:.0} ms, measured median {}, p99 {}\n",
+         latency (newest input to display): predicted across {} ({}), measured median {}, p99 {}\n",
         r.file,
         r.kind,
         r.duration_s,
@@ -834,7 +843,15 @@ pub fn follow_text(r: &FollowReport) -> String {
         f.frames_compared,
         opt(f.lag_ms, "ms"),
         opt(f.lag_ms_without_prediction, "ms"),
-        f.latency_ms_configured,
+        opt(f.latency_ms_predicted_median, "ms"),
+        if f.latency == "measured" {
+            format!(
+                "the pipeline's as measured; {:.0} ms before a measurement",
+                f.latency_ms_configured
+            )
+        } else {
+            "fixed: latency_ms".to_string()
+        },
         opt(f.latency_ms_measured_median, "ms"),
         opt(f.latency_ms_measured_p99, "ms"),
     );
@@ -885,6 +902,7 @@ mod tests {
     use ipc_types::HopStamps;
     use lung_model::breathing::follow::Calibration;
     use lung_model::breathing::SignalSample;
+    use lung_model::scene::LatencyChoice;
 
     const MS: u64 = 1_000_000;
     /// Where the bridge's replay began on the host clock in these tests.
@@ -960,6 +978,7 @@ mod tests {
                 display_ns: display + 10 * MS,
                 volume_ml: p as f32,
                 unpredicted_ml: h as f32,
+                latency_ns: 50 * MS,
             };
             engine.insert(tick, (s, 0));
         }
@@ -970,7 +989,7 @@ mod tests {
     fn a_perfect_prediction_scores_zero_and_the_held_sample_scores_its_lag() {
         let tr = trace();
         let (drawn, engine) = run(&tr, 8.0, 100 * MS, None);
-        let (f, compared) = figures(&tr, &drawn, &engine, 50 * MS, None);
+        let (f, compared) = figures(&tr, &drawn, &engine, (LatencyChoice::Fixed, 50 * MS), None);
         assert_eq!(f.frames_drawn, drawn.len());
         assert_eq!(f.frames_on_recording, drawn.len());
         assert!(
@@ -998,6 +1017,9 @@ mod tests {
         assert!(f.breaths_missed_at_s.iter().all(|&t| t < first), "{f:?}");
         // Newest input = display_ns − 50 ms = shown − 40 ms.
         assert!((f.latency_ms_measured_median.unwrap() - 40.0).abs() < 0.01);
+        // ... whatever the horizon each engine frame says it predicted across (here 50 ms).
+        assert_eq!(f.latency_ms_predicted_median, Some(50.0));
+        assert_eq!(f.latency, "fixed");
         assert!(f.drawn_vs_followed_rms_ml.unwrap() < 0.01);
         let g = Goals::of(&f);
         assert!(g.rms_within_3_percent && g.prediction_halves_the_error && g.lag_within_20_ms);
@@ -1009,7 +1031,13 @@ mod tests {
     fn a_loss_is_timed_from_the_cut_to_the_first_frame_the_signal_drives_again() {
         let tr = trace();
         let (drawn, engine) = run(&tr, 8.0, 0, Some((20.0, 26.5)));
-        let (f, _) = figures(&tr, &drawn, &engine, 50 * MS, Some((20.0, 5.0)));
+        let (f, _) = figures(
+            &tr,
+            &drawn,
+            &engine,
+            (LatencyChoice::Fixed, 50 * MS),
+            Some((20.0, 5.0)),
+        );
         let d = f.drop.clone().unwrap();
         assert!((d.resync_s.unwrap() - 1.5).abs() < 0.02, "{d:?}");
         assert!((d.breath_period_s.unwrap() - 4.0).abs() < 1e-9);
@@ -1018,7 +1046,13 @@ mod tests {
         assert!(f.frames_lost > 350, "{f:?}");
         // A cut the lungs never recover from.
         let (drawn, engine) = run(&tr, 8.0, 0, Some((20.0, 99.0)));
-        let (f, _) = figures(&tr, &drawn, &engine, 50 * MS, Some((20.0, 5.0)));
+        let (f, _) = figures(
+            &tr,
+            &drawn,
+            &engine,
+            (LatencyChoice::Fixed, 50 * MS),
+            Some((20.0, 5.0)),
+        );
         assert_eq!(f.drop.as_ref().unwrap().resync_s, None);
         assert_eq!(Goals::of(&f).resync_within_one_breath, Some(false));
     }
@@ -1033,11 +1067,17 @@ mod tests {
         for tick in 1000..1100 {
             engine.remove(&tick);
         }
-        let (f, _) = figures(&tr, &drawn, &engine, 50 * MS, None);
+        let (f, _) = figures(&tr, &drawn, &engine, (LatencyChoice::Fixed, 50 * MS), None);
         assert_eq!(f.frames_on_recording, drawn.len() - 100);
         assert_eq!(f.frames_without_engine_frame, 100);
         // Nothing followed: every figure says so, none is a made-up number.
-        let (f, c) = figures(&tr, &drawn[..200], &engine, 50 * MS, None);
+        let (f, c) = figures(
+            &tr,
+            &drawn[..200],
+            &engine,
+            (LatencyChoice::Fixed, 50 * MS),
+            None,
+        );
         assert!(c.is_empty() && f.rms_error_ml.is_nan() && f.lag_ms.is_none());
         assert_eq!(f.breaths_detected, 0);
         let g = Goals::of(&f);

@@ -146,9 +146,10 @@ pub struct DemoArgs {
     /// How long --breathing-cut-at withholds the signal, seconds.
     #[arg(long, value_name = "S", requires = "breathing_cut_at")]
     pub breathing_cut_for: Option<f64>,
-    /// The signal's capture-to-display latency, ms, that each frame's volume is predicted across
-    /// (overrides the scene's [breathing] latency_ms, 50 by default; `lungdyn breathing follow`
-    /// measures the one this machine has).
+    /// Predict each frame's volume across this fixed latency, ms, instead of the pipeline's latency
+    /// as measured (sets the scene's [breathing] latency = "fixed" and latency_ms; by default the
+    /// engine predicts across the median the bridge reads from the renderer's reports, plus
+    /// sensor_latency_ms; `lungdyn breathing follow` reports both).
     #[arg(long, value_name = "MS")]
     pub breathing_latency_ms: Option<f64>,
     /// Deformation mode (overrides the scene's [lungs] mode): "precomputed" (one baked field,
@@ -942,6 +943,7 @@ fn resolve_scene(args: &DemoArgs) -> anyhow::Result<Resolved> {
     if let Some(ms) = args.breathing_latency_ms {
         require_signal(&loaded, &format!("--breathing-latency-ms {ms}"), "predict")?;
         loaded.breathing.latency_ms = ms;
+        loaded.breathing.latency = lung_model::scene::LatencyChoice::Fixed;
         loaded
             .validate()
             .map_err(|e| anyhow::anyhow!("--breathing-latency-ms {ms}: {e}"))?;

@@ -9,7 +9,9 @@
 //! source = "signal"                 # "model" (default): the PV model's own breaths
 //! signal = "trace:patient.vxp"      # the bridge's signal source (`lungdyn demo --breathing`)
 //! predictor = "cycle"               # none, linear[:N], ar[:ORDER[:LAMBDA]], cycle
-//! latency_ms = 50                   # capture → display, predicted across
+//! latency = "measured"              # predict across the pipeline's latency as measured ("fixed": latency_ms)
+//! latency_ms = 50                   # capture → display until measured (always, when "fixed")
+//! sensor_latency_ms = 0             # the source's own delay before the bridge, added to the measured
 //! # tidal_ml = 500                  # an amplitude's typical breath; default: the PV model's
 //! ```
 
@@ -40,6 +42,30 @@ impl BreathSource {
     }
 }
 
+/// Which latency the breath is predicted across.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Default, Serialize, Deserialize)]
+#[serde(rename_all = "kebab-case")]
+pub enum LatencyChoice {
+    /// The pipeline's latency as the renderer's reports measure it (bridge publish → display, the
+    /// median of the latest frames, carried to the engine in each tracker frame) plus
+    /// `sensor_latency_ms`; `latency_ms` until the first measurement and where nothing measures it
+    /// (no renderer: `breathing check`, `breathing sites`).
+    #[default]
+    Measured,
+    /// `latency_ms`, always.
+    Fixed,
+}
+
+impl LatencyChoice {
+    /// The name in scenes and on the command line.
+    pub fn name(self) -> &'static str {
+        match self {
+            LatencyChoice::Measured => "measured",
+            LatencyChoice::Fixed => "fixed",
+        }
+    }
+}
+
 /// The predictor a scene gets by default: the previous breath's course where it has lately
 /// predicted better than the autoregression, compared at the latency (measured in docs/BREATHING.md).
 pub const DEFAULT_PREDICTOR: &str = "cycle";
@@ -61,8 +87,14 @@ pub struct BreathingScene {
     pub signal: String,
     /// The predictor's name (`lungdyn breathing check --predictor` takes the same).
     pub predictor: String,
-    /// Capture-to-display latency the volume is predicted across, ms.
+    /// `measured` (default) or `fixed`: see [`LatencyChoice`].
+    pub latency: LatencyChoice,
+    /// Capture-to-display latency the volume is predicted across, ms: always with `latency =
+    /// "fixed"`, and until the pipeline's latency is measured with `"measured"`.
     pub latency_ms: f64,
+    /// The source's own delay from the chest's movement to the sample's arrival at the bridge, ms
+    /// (a sensor's filter, a network): added to the measured latency (a replayed file has none).
+    pub sensor_latency_ms: f64,
     /// The volume an amplitude signal's typical breath is calibrated to, ml; default the PV model's
     /// tidal volume. A signal in ml is taken as it is.
     #[serde(skip_serializing_if = "Option::is_none")]
@@ -75,7 +107,9 @@ impl Default for BreathingScene {
             source: BreathSource::Model,
             signal: String::new(),
             predictor: DEFAULT_PREDICTOR.into(),
+            latency: LatencyChoice::Measured,
             latency_ms: DEFAULT_LATENCY_MS,
+            sensor_latency_ms: 0.0,
             tidal_ml: None,
         }
     }
@@ -95,6 +129,13 @@ impl BreathingScene {
             return bad(format!(
                 "latency_ms = {}: a capture-to-display latency is 0..2000 ms (the pipeline's is tens of ms)",
                 crate::compact(self.latency_ms)
+            ));
+        }
+        if !(self.sensor_latency_ms.is_finite() && (0.0..=1000.0).contains(&self.sensor_latency_ms))
+        {
+            return bad(format!(
+                "sensor_latency_ms = {}: a source's own delay is 0..1000 ms (a marker camera's or a belt's is tens of ms)",
+                crate::compact(self.sensor_latency_ms)
             ));
         }
         if let Some(t) = self.tidal_ml {
@@ -130,12 +171,24 @@ mod tests {
                 .unwrap();
         assert_eq!(t.source, BreathSource::Signal);
         assert_eq!(t.latency_ms, 80.0);
+        assert_eq!(t.latency, LatencyChoice::Measured, "measured by default");
+        assert_eq!(t.sensor_latency_ms, 0.0);
         assert_eq!(t.predictor, DEFAULT_PREDICTOR);
+        let f: BreathingScene =
+            toml::from_str("latency = \"fixed\"\nsensor_latency_ms = 30\n").unwrap();
+        assert_eq!(
+            (f.latency, f.sensor_latency_ms),
+            (LatencyChoice::Fixed, 30.0)
+        );
+        assert!(f.validate().is_ok());
+        assert!(toml::from_str::<BreathingScene>("latency = \"learnt\"\n").is_err());
         assert!(t.validate().is_ok());
         for (text, words) in [
             ("source = \"signal\"\n", "needs signal"),
             ("latency_ms = -1\n", "latency_ms = -1"),
             ("latency_ms = 1e9\n", "latency_ms = 1e9"),
+            ("sensor_latency_ms = -5\n", "sensor_latency_ms = -5"),
+            ("sensor_latency_ms = 2000\n", "sensor_latency_ms = 2000"),
             ("tidal_ml = 5\n", "tidal_ml = 5"),
         ] {
             let t: BreathingScene = toml::from_str(text).unwrap();

@@ -11,7 +11,7 @@ derived from them here, one defect each, so a refusal can only be for that defec
 the placeholders of cases.toml. `LUNGDYN_FIXTURES_ONLY=render-files` remakes only the calibration,
 fiducial and HMD optics files (and the scenes naming them) and removes nothing.
 """
-import math, os, random, shutil, struct, subprocess, sys, tempfile
+import math, os, random, shutil, struct, subprocess, sys, tempfile, zlib
 
 HERE = os.path.dirname(os.path.abspath(__file__))
 ROOT = os.path.dirname(os.path.dirname(HERE))
@@ -826,6 +826,23 @@ def make_tracker_recordings():
         if os.path.exists(path):
             os.remove(path)
         run("tracker", "listen", "--seconds", "0.2", "--record", path, *extra)
+    derive_latency_out_of_range()
+
+
+def derive_latency_out_of_range():
+    """The recording with a signal, with a signal-latency record (kind 6, layout v8) of 5 s after
+    its first signal record, its CRC right: a latency no frame has (1 ns ... 1 s)."""
+    data = open(os.path.join(HERE, "tracker_recording_with_signal.ldtr"), "rb").read()
+    config_len, = struct.unpack_from("<I", data, 12)
+    description_len, = struct.unpack_from("<I", data, 24)
+    at = 32 + config_len + description_len
+    while data[at] != 5:
+        at += 2 + data[at + 1] + 4
+    at += 2 + data[at + 1] + 4
+    record = bytes([6, 8]) + struct.pack("<Q", 5_000_000_000)
+    record += struct.pack("<I", zlib.crc32(record) & 0xFFFFFFFF)
+    with open(os.path.join(HERE, "tracker_recording_latency_out_of_range.ldtr"), "wb") as f:
+        f.write(data[:at] + record + data[at:])
 
 
 def main():

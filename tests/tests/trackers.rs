@@ -56,6 +56,7 @@ fn frames_of(
             n > ticks
         },
         &mut |_, _| {},
+        &mut || 0,
     )
     .unwrap();
     if let Some(r) = recorder {
@@ -1156,6 +1157,20 @@ fn breathing_follow_replays_a_trace_live_and_holds_every_drawn_frame_against_it(
     );
     let latency = n("latency_ms_measured_median");
     assert!(latency > 0.0 && latency < 2000.0, "{v}");
+    // The engine predicted across the pipeline's latency as the bridge measured it from the
+    // renderer's reports (the scene's default), not the fixed 50 ms: what it predicted across and
+    // what the frames took are the same latency, each frame's a median of the frames before it.
+    assert_eq!(v["latency"], "measured", "{v}");
+    let predicted = n("latency_ms_predicted_median");
+    assert!(
+        predicted > 0.0 && (predicted - latency).abs() <= 0.5 * latency + 10.0,
+        "predicted across {predicted} ms, the frames took {latency} ms: {v}"
+    );
+    assert!(
+        err.contains("pipeline latency (bridge publish → display) from")
+            && err.contains("sent to the engine"),
+        "the bridge says what it measured: {err}"
+    );
     assert!(
         n("drawn_vs_followed_rms_ml") < 5.0,
         "the lungs drew what the engine followed: {v}"

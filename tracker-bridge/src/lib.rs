@@ -27,6 +27,7 @@ pub mod head_motion;
 pub mod igtl;
 pub mod igtl_polydata;
 pub mod igtl_send;
+pub mod latency;
 pub mod ndi;
 /// A simulated NDI tracker for tests and benchmarks: built only for them (the `testing` feature),
 /// never into the deployed bridge.
@@ -624,6 +625,14 @@ pub fn run(args: &BridgeArgs) -> Result<(), BridgeError> {
             .map(|r| format!(", recording to {}", r.path().display()))
             .unwrap_or_default()
     );
+    // The pipeline's latency for the engine's prediction of the breath (issue 35): read from the
+    // renderer's reports while the bridge carries a live signal (a replay carries the recorded one).
+    let mut meter = latency::LatencyMeter::new();
+    let mut reports = match assembler.signal() {
+        Some(_) => Some(instance.report_inlet(&node)?),
+        None => None,
+    };
+    let mut report_errors = 0u64;
     let start = transport::now_ns();
     let stop_at = run_ns.map(|d| start.saturating_add(d));
     let mut reporter = Reporter::new(prefix.clone(), false);
@@ -641,6 +650,19 @@ pub fn run(args: &BridgeArgs) -> Result<(), BridgeError> {
             transport::stop::requested() || stop_at.is_some_and(|t| now >= t)
         },
         &mut |e, now| reporter.event(e, now),
+        &mut || {
+            if let Some(inlet) = reports.as_mut() {
+                // A failed read keeps the last median; counted, said at the end.
+                if transport::Receive::drain(inlet, &mut |r| {
+                    meter.report(r);
+                })
+                .is_err()
+                {
+                    report_errors += 1;
+                }
+            }
+            meter.median_ns()
+        },
     )?;
     transport::notify::stopping();
     transport::trace::flush();
@@ -654,6 +676,18 @@ pub fn run(args: &BridgeArgs) -> Result<(), BridgeError> {
         stats.frames, stats.ticks_skipped
     ));
     eprint!("{}", indent(&stats.text(), &prefix));
+    if reports.is_some() {
+        let (taken, refused) = meter.counts();
+        eprintln!(
+            "{prefix}: pipeline latency (bridge publish → display) from {taken} renderer reports{}{}: {}",
+            if refused > 0 { format!(", {refused} refused") } else { String::new() },
+            if report_errors > 0 { format!(", {report_errors} failed reads") } else { String::new() },
+            match meter.median_ns() {
+                0 => "not measured (the engine predicted across the scene's latency_ms)".to_string(),
+                ns => format!("median {:.1} ms over the last {} at the end, sent to the engine", ns as f64 / 1e6, latency::WINDOW),
+            }
+        );
+    }
     if let Some(r) = recorder.take() {
         let path = r.finish()?;
         eprintln!("{prefix}: recorded to {}", path.display());

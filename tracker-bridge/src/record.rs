@@ -34,9 +34,10 @@
 //! | 3 event | 80 | event kind u8 (0 connected, 1 disconnected, 2 retrying, 3 rejected, 4 device status, 5 ignored, 6 note, 7 connection refused or idle one evicted: value 0 or 1; a build older than kind 7 refuses a file that holds it) · reject reason u8 (255 none) · text length u8 · 0 u8 · value u32 · text 72 bytes (UTF-8, cut) |
 //! | 4 end | 24 | samples u64 · ticks u64 · events u64 (counts of the records before it) |
 //! | 5 signal | 160 | the respiratory signal's block the tick published (issue 35): count u32 (≤ 8) · unit u32 · status u32 · valid mask u32 · period ns u64 · origin ns u64 · 8 × (sample time ns u64 · value f64 bits; finite) — times on the receive times' clock; written only when the run has a signal, before its tick; a build older than kind 5 skips it and replays without the signal |
+//! | 6 signal latency | 8 | the pipeline's latency the signal's block carried (layout v8: measured from the renderer's reports, `crate::latency`), ns u64, 1 ns … 1 s; written right after a signal record whose block has one; a build older than kind 6 skips it and replays with the scene's fixed latency |
 //!
 //! Every record belongs to the tick that follows it: the samples and events a tick took, the
-//! signal block it published, then the tick. The end record's counts leave signal records out. A clean end is an `end` record whose counts match; a file cut short (a crash, a full disk)
+//! signal block it published (and its latency), then the tick. The end record's counts leave signal records out. A clean end is an `end` record whose counts match; a file cut short (a crash, a full disk)
 //! ends at its last complete record, which the reader reports as [`RecordError::Truncated`] and a
 //! replay plays up to. A record whose CRC fails, a length that does not fit its kind, or bytes
 //! after `end` are [`RecordError::Corrupt`].
@@ -70,11 +71,13 @@ const KIND_TICK: u8 = 2;
 const KIND_EVENT: u8 = 3;
 const KIND_END: u8 = 4;
 const KIND_SIGNAL: u8 = 5;
+const KIND_SIGNAL_LATENCY: u8 = 6;
 const LEN_SAMPLE: usize = 120;
 const LEN_TICK: usize = 16;
 const LEN_EVENT: usize = 80;
 const LEN_END: usize = 24;
 const LEN_SIGNAL: usize = 32 + 16 * ipc_types::MAX_SIGNAL_SAMPLES;
+const LEN_SIGNAL_LATENCY: usize = 8;
 const EVENT_TEXT: usize = 72;
 
 const fn crc_table() -> [u32; 256] {
@@ -213,6 +216,9 @@ pub enum Record {
     Event(Event),
     /// The respiratory signal's block the next tick published (times on the receive clock).
     Signal(ipc_types::SignalBlock),
+    /// The pipeline's latency the signal block before it carried, ns
+    /// ([`ipc_types::SignalBlock::pipeline_latency_ns`]).
+    SignalLatency(u64),
     /// The clean end.
     End {
         /// Samples recorded.
@@ -506,11 +512,16 @@ impl RecordWriter {
         self.put(KIND_EVENT, &p)
     }
 
-    /// Record the respiratory signal's block of the tick about to be recorded.
+    /// Record the respiratory signal's block of the tick about to be recorded (and the latency it
+    /// carries, when one was measured).
     pub fn signal(&mut self, b: &ipc_types::SignalBlock) -> std::io::Result<()> {
         let mut p = [0u8; LEN_SIGNAL];
         encode_signal(b, &mut p);
-        self.put(KIND_SIGNAL, &p)
+        self.put(KIND_SIGNAL, &p)?;
+        if b.pipeline_latency_ns != 0 {
+            self.put(KIND_SIGNAL_LATENCY, &b.pipeline_latency_ns.to_le_bytes())?;
+        }
+        Ok(())
     }
 
     /// Record a tick (flushed to the OS once a second at 60 Hz, so a crash loses at most that).
@@ -739,6 +750,7 @@ impl<R: Read> RecordReader<R> {
             KIND_EVENT => Some(LEN_EVENT),
             KIND_END => Some(LEN_END),
             KIND_SIGNAL => Some(LEN_SIGNAL),
+            KIND_SIGNAL_LATENCY => Some(LEN_SIGNAL_LATENCY),
             _ => None,
         };
         if expected.is_some_and(|e| e != len) {
@@ -775,6 +787,15 @@ impl<R: Read> RecordReader<R> {
                 Record::Event(decode_event(p).map_err(|e| self.corrupt(start, e))?)
             }
             KIND_SIGNAL => Record::Signal(decode_signal(p).map_err(|e| self.corrupt(start, e))?),
+            KIND_SIGNAL_LATENCY => {
+                let ns = get_u64(p, 0);
+                if !(1..=crate::latency::MAX_LATENCY_NS).contains(&ns) {
+                    return Err(
+                        self.corrupt(start, format!("a signal latency of {ns} ns (1 ns … 1 s)"))
+                    );
+                }
+                Record::SignalLatency(ns)
+            }
             KIND_END => {
                 let (samples, ticks, events) = (get_u64(p, 0), get_u64(p, 8), get_u64(p, 16));
                 if [samples, ticks, events] != self.counts {
@@ -962,6 +983,66 @@ mod tests {
             w.finish().unwrap();
             let mut r = RecordReader::open(&path).unwrap();
             match r.next_record() {
+                Err(e @ RecordError::Corrupt { .. }) => {
+                    assert!(e.to_string().contains(word), "{e}")
+                }
+                other => panic!("{other:?}"),
+            }
+            let _ = std::fs::remove_file(&path);
+        }
+    }
+
+    #[test]
+    fn a_measured_latency_follows_its_signal_block_and_one_out_of_range_is_refused() {
+        let path = tmp("signal-latency");
+        let mut w = RecordWriter::create(&path, &BridgeConfig::default(), "latency").unwrap();
+        let b = ipc_types::SignalBlock {
+            count: 1,
+            unit: ipc_types::signal_unit::ML,
+            valid_mask: 1,
+            period_ns: 40_000_000,
+            pipeline_latency_ns: 9_123_456,
+            ..Default::default()
+        };
+        w.signal(&b).unwrap();
+        w.tick(2000, 1).unwrap();
+        // None measured yet: no latency record.
+        w.signal(&ipc_types::SignalBlock {
+            pipeline_latency_ns: 0,
+            ..b
+        })
+        .unwrap();
+        w.tick(3000, 2).unwrap();
+        w.finish().unwrap();
+        let mut r = RecordReader::open(&path).unwrap();
+        let kinds: Vec<Record> = std::iter::from_fn(|| r.next_record().unwrap()).collect();
+        assert!(matches!(kinds[0], Record::Signal(s) if s.pipeline_latency_ns == 0));
+        assert_eq!(kinds[1], Record::SignalLatency(9_123_456));
+        assert!(matches!(
+            kinds[2],
+            Record::Tick {
+                frame_number: 1,
+                ..
+            }
+        ));
+        assert!(matches!(kinds[3], Record::Signal(_)));
+        assert!(matches!(
+            kinds[4],
+            Record::Tick {
+                frame_number: 2,
+                ..
+            }
+        ));
+        let _ = std::fs::remove_file(&path);
+        for (ns, word) in [
+            (0u64, "latency of 0 ns"),
+            (1_000_000_001, "latency of 1000000001 ns"),
+        ] {
+            let path = tmp("signal-latency-bad");
+            let mut w = RecordWriter::create(&path, &BridgeConfig::default(), "bad").unwrap();
+            w.put(KIND_SIGNAL_LATENCY, &ns.to_le_bytes()).unwrap();
+            w.finish().unwrap();
+            match RecordReader::open(&path).unwrap().next_record() {
                 Err(e @ RecordError::Corrupt { .. }) => {
                     assert!(e.to_string().contains(word), "{e}")
                 }

@@ -154,7 +154,10 @@ pub enum Ended {
 
 /// Run until `should_stop(now)` or the source ends. Every sample and event goes to the recorder
 /// (when there is one) before the assembler; a recording that fails is reported and dropped, the
-/// loop goes on. `report` sees every event.
+/// loop goes on. `report` sees every event. `latency` gives the pipeline's latency as measured now
+/// (ns, 0 while unknown: [`crate::latency::LatencyMeter`]); a frame that carries the respiratory
+/// signal carries it too, and it is recorded with the signal (a replay gives the recorded one).
+#[allow(clippy::too_many_arguments)]
 pub fn run_loop(
     source: &mut dyn Source,
     asm: &mut Assembler,
@@ -163,6 +166,7 @@ pub fn run_loop(
     pace: &dyn Clock,
     should_stop: &mut dyn FnMut(u64) -> bool,
     report: &mut dyn FnMut(&Event, u64),
+    latency: &mut dyn FnMut() -> u64,
 ) -> Result<Ended, BridgeError> {
     let period = asm.config().period_ns();
     let paced = source.paced();
@@ -253,7 +257,12 @@ pub fn run_loop(
                 let replayed = source.recorded_signal();
                 match &replayed {
                     Some(b) => asm.replay_signal(b, &mut frame.signal),
-                    None => asm.fill_signal(now, &frame.tools, &mut frame.signal),
+                    None => {
+                        asm.fill_signal(now, &frame.tools, &mut frame.signal);
+                        if frame.signal != ipc_types::SignalBlock::default() {
+                            frame.signal.pipeline_latency_ns = latency();
+                        }
+                    }
                 }
                 if let Some(r) = recorder.as_mut() {
                     let mut put = || -> std::io::Result<()> {
@@ -620,6 +629,7 @@ mod tests {
             &clock,
             &mut |now| now >= until_ns,
             &mut |_, _| {},
+            &mut || 0,
         )
         .unwrap();
         (out.values(), asm.stats.clone())

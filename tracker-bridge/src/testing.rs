@@ -34,10 +34,19 @@ pub fn run_source<C: Clock + Clone + 'static>(
     stop: &mut dyn FnMut() -> bool,
     tag: &str,
 ) -> Result<TestRun, BridgeError> {
-    run_assembled(source, Assembler::new(config), clock, recorder, stop, tag)
+    run_assembled(
+        source,
+        Assembler::new(config),
+        clock,
+        recorder,
+        stop,
+        tag,
+        &mut || 0,
+    )
 }
 
-/// [`run_source`] with an assembler of the caller's (a respiratory signal set on it).
+/// [`run_source`] with an assembler of the caller's (a respiratory signal set on it) and the
+/// pipeline's latency as `latency` says it was measured (`run_loop`'s).
 pub fn run_assembled<C: Clock + Clone + 'static>(
     source: &mut dyn Source,
     mut assembler: Assembler,
@@ -45,6 +54,7 @@ pub fn run_assembled<C: Clock + Clone + 'static>(
     recorder: &mut Option<RecordWriter>,
     stop: &mut dyn FnMut() -> bool,
     tag: &str,
+    latency: &mut dyn FnMut() -> u64,
 ) -> Result<TestRun, BridgeError> {
     let mut out = Recorder::new(clock);
     let ended = run_loop(
@@ -59,6 +69,7 @@ pub fn run_assembled<C: Clock + Clone + 'static>(
                 eprintln!("{tag}: {}", e.text);
             }
         },
+        latency,
     )?;
     Ok(TestRun {
         frames: out.values(),

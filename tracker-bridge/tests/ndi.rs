@@ -455,6 +455,7 @@ fn stays_fresh_at(how: Misbehave, polls: u32, poll_hz: f64) -> tracker_bridge::s
             sent.lock().unwrap().len() as u32 >= polls
         },
         &mut |_, _| {},
+        &mut || 0,
     )
     .unwrap();
     drop(source);

@@ -282,6 +282,9 @@ fn a_recording_made_with_a_respiratory_signal_replays_it_bit_for_bit() {
     asm.set_signal(tracker_bridge::signal::TraceReplay::open(&trace).unwrap());
     let mut recorder = Some(RecordWriter::create(&path, &config(), "scripted").unwrap());
     let mut n = 0;
+    // The pipeline's latency as the renderer's reports measured it: none for the first frames,
+    // then one that changes from frame to frame (an input the engine predicts across).
+    let mut asked = 0u64;
     let r = run_assembled(
         &mut live,
         asm,
@@ -292,6 +295,14 @@ fn a_recording_made_with_a_respiratory_signal_replays_it_bit_for_bit() {
             n > 185
         },
         "",
+        &mut || {
+            asked += 1;
+            if asked < 20 {
+                0
+            } else {
+                9_000_000 + 1_000 * asked
+            }
+        },
     )
     .unwrap();
     recorder.unwrap().finish().unwrap();
@@ -304,6 +315,15 @@ fn a_recording_made_with_a_respiratory_signal_replays_it_bit_for_bit() {
     assert!(live_frames
         .iter()
         .any(|f| f.signal.count > 0 && f.signal.valid_mask != (1 << f.signal.count) - 1));
+    let measured: std::collections::BTreeSet<u64> = live_frames
+        .iter()
+        .map(|f| f.signal.pipeline_latency_ns)
+        .collect();
+    assert!(
+        measured.contains(&0) && measured.len() > 60,
+        "frames carry none, then the latency measured at their tick ({} values)",
+        measured.len()
+    );
     for paced in [false, true] {
         let clock = FakeClock::at(77_000_000_000);
         let mut replay = Replay::open(&path, paced).unwrap();
@@ -322,6 +342,11 @@ fn a_recording_made_with_a_respiratory_signal_replays_it_bit_for_bit() {
                 (a.count, a.unit, a.status, a.valid_mask, a.period_ns),
                 (b.count, b.unit, b.status, b.valid_mask, b.period_ns),
                 "frame {}",
+                x.frame_number
+            );
+            assert_eq!(
+                a.pipeline_latency_ns, b.pipeline_latency_ns,
+                "frame {}: the measured latency replays as it was",
                 x.frame_number
             );
             // Each sample as old against its frame's capture as when recorded; values bit for bit.

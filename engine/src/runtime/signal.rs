@@ -5,9 +5,14 @@
 //! takes its share of the model's breath.
 //!
 //! The engine predicts (the renderer draws what it is given): the display time is the newest frame's
-//! publish stamp plus `[breathing] latency_ms`, advanced by the tick period on ticks without a frame.
-//! Every time is a stamp from the input, never a clock read, so a recorded session replays
-//! bit-exactly; nothing is allocated per tick (the follower's rings are fixed).
+//! publish stamp plus the latency, advanced by the tick period on ticks without a frame. The latency
+//! is the pipeline's as measured (`[breathing] latency = "measured"`, the default): the bridge reads
+//! the renderer's reports and sends the median bridge-publish-to-display time in every tracker frame
+//! that carries the signal ([`ipc_types::SignalBlock::pipeline_latency_ns`]), to which the source's
+//! own delay (`sensor_latency_ms`) is added; `latency_ms` until the first measurement, and always
+//! with `latency = "fixed"`. Every time is a stamp or a figure from the input, never a clock read,
+//! so a recorded session (which records the measured latency with the signal) replays bit-exactly;
+//! nothing is allocated per tick (the follower's rings are fixed).
 //!
 //! While the signal calibrates (its first regular breaths) or is lost (no valid sample for 100 ms
 //! or three sample periods), the model breathes, and at the moment the signal is lost the model's
@@ -41,11 +46,20 @@ const MAX_PERIOD_NS: u64 = 1_000_000_000;
 /// from the model's breath into the patient's instead of jumping.
 pub const TAKEOVER_TICKS: u64 = 30;
 
+/// Longest measured latency predicted across, ns (the bridge sends none longer; a frame from
+/// elsewhere is bounded here too).
+const MAX_MEASURED_LATENCY_NS: u64 = 1_000_000_000;
+
 /// The signal's part of the engine.
 #[derive(Debug, Clone)]
 pub struct SignalDrive {
     follower: Follower,
+    /// The latency predicted across now, ns (the fixed one until a measured one came).
     latency_ns: u64,
+    /// Take the pipeline's measured latency from the frames (`latency = "measured"`).
+    measured: bool,
+    /// The source's own delay added to a measured latency, ns.
+    sensor_ns: u64,
     tick_ns: u64,
     /// The scene's tidal volume for an amplitude signal's calibration, ml.
     tidal_ml: f64,
@@ -332,6 +346,8 @@ impl SignalDrive {
         Ok(Self {
             follower: Follower::new(config),
             latency_ns: (scene.breathing.latency_ms * 1e6).round() as u64,
+            measured: scene.breathing.latency == lung_model::scene::LatencyChoice::Measured,
+            sensor_ns: (scene.breathing.sensor_latency_ms * 1e6).round() as u64,
             tick_ns: (1e9 / scene.engine.tick_hz).round() as u64,
             tidal_ml,
             unit: signal_unit::NONE,
@@ -387,6 +403,7 @@ impl SignalDrive {
                 display_ns: self.now_ns.saturating_add(self.latency_ns),
                 volume_ml: finite(f.volume_ml),
                 unpredicted_ml: finite(f.unpredicted_ml),
+                latency_ns: self.latency_ns,
             },
             None => ipc_types::SignalFollowed::default(),
         }
@@ -410,6 +427,13 @@ impl SignalDrive {
         match input {
             Some(frame) => {
                 self.take(&frame.signal);
+                // The pipeline's latency as measured (0: none yet; a bridge bounds it to 1 s).
+                let measured = frame.signal.pipeline_latency_ns;
+                if self.measured && measured != 0 {
+                    self.latency_ns = measured
+                        .min(MAX_MEASURED_LATENCY_NS)
+                        .saturating_add(self.sensor_ns);
+                }
                 let stamp = frame.stamps.bridge_publish_ns.max(frame.stamps.capture_ns);
                 // The frame's own time (never backwards: a frame stamped before an estimate made
                 // on a tick without one keeps the estimate).

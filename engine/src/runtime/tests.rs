@@ -1927,6 +1927,70 @@ fn the_engine_frame_carries_what_it_followed_of_the_signal() {
     }
 }
 
+/// `latency = "measured"` (the default): the engine predicts across the pipeline's latency that
+/// each frame carries (measured by the bridge from the renderer's reports) plus the source's own
+/// delay, `latency_ms` until one comes; a latency past 1 s is bounded; `latency = "fixed"` keeps
+/// `latency_ms` whatever the frames say. What is predicted follows the horizon, and the same frames
+/// give the same engine frames bit for bit.
+#[test]
+fn the_breath_is_predicted_across_the_latency_the_renderer_measured() {
+    use lung_model::scene::LatencyChoice;
+    let run = |choice: LatencyChoice, sensor_ms: f64, measured: &dyn Fn(u64) -> u64| {
+        let mut scene = Scene::default();
+        scene.breathing.source = lung_model::scene::BreathSource::Signal;
+        scene.breathing.signal = "trace:unused-by-the-engine".into();
+        scene.breathing.latency_ms = 50.0;
+        scene.breathing.latency = choice;
+        scene.breathing.sensor_latency_ms = sensor_ms;
+        scene.validate().unwrap();
+        let mut eng = EngineCore::with_geometry(&scene, baked_geometry()).unwrap();
+        let mut f = EngineFrame::default();
+        let mut out = Vec::new();
+        for tick in 0..30 * 60 {
+            let mut input = signal_frame(tick, None, &clean);
+            input.signal.pipeline_latency_ns = measured(tick);
+            eng.step(tick, Some(&input), &mut f);
+            let horizon = (f.signal.display_ns != 0).then(|| {
+                assert_eq!(
+                    f.signal.display_ns - input.stamps.bridge_publish_ns,
+                    f.signal.latency_ns,
+                    "the frame says the latency it predicted across"
+                );
+                f.signal.latency_ns
+            });
+            out.push((horizon, f));
+        }
+        out
+    };
+    let ramp = |tick: u64| match tick {
+        0..600 => 0,
+        600..1200 => 12_000_000,
+        _ => 5_000_000_000,
+    };
+    let measured = run(LatencyChoice::Measured, 5.0, &ramp);
+    let horizons: Vec<Option<u64>> = measured.iter().map(|r| r.0).collect();
+    assert!(horizons[..600].iter().flatten().all(|&h| h == 50_000_000));
+    assert!(horizons[..600].iter().flatten().count() > 500);
+    assert!(horizons[600..1200].iter().all(|&h| h == Some(17_000_000)));
+    assert!(horizons[1200..].iter().all(|&h| h == Some(1_005_000_000)));
+    let fixed = run(LatencyChoice::Fixed, 5.0, &ramp);
+    assert!(fixed.iter().filter_map(|r| r.0).all(|h| h == 50_000_000));
+    // What is predicted follows the horizon: the volumes differ while following with 17 ms.
+    let following =
+        |r: &(Option<u64>, EngineFrame)| r.1.state & ipc_types::engine_state::SIGNAL_FOLLOWING != 0;
+    let differ = (600..1200)
+        .filter(|&t| following(&measured[t]) && following(&fixed[t]))
+        .filter(|&t| measured[t].1.signal.volume_ml != fixed[t].1.signal.volume_ml)
+        .count();
+    assert!(differ > 300, "{differ} ticks predicted differently");
+    // A pure function of the frames.
+    let again = run(LatencyChoice::Measured, 5.0, &ramp);
+    assert!(measured
+        .iter()
+        .zip(&again)
+        .all(|(a, b)| bytemuck::bytes_of(&a.1) == bytemuck::bytes_of(&b.1)));
+}
+
 #[test]
 fn a_lost_signal_is_flagged_within_100_ms_and_the_model_carries_on_without_a_jump() {
     use ipc_types::engine_state as e;

@@ -82,6 +82,12 @@ impl Source for Replay {
                 }
                 Ok(Some(Record::Event(e))) => sink(&Input::Event(e)),
                 Ok(Some(Record::Signal(b))) => self.signal = Some(b),
+                // The latency the block just read carried (recorded right after it).
+                Ok(Some(Record::SignalLatency(ns))) => {
+                    if let Some(b) = self.signal.as_mut() {
+                        b.pipeline_latency_ns = ns;
+                    }
+                }
                 Ok(Some(Record::Tick { at_ns, .. })) => {
                     let ahead = self.latest_ns.saturating_sub(at_ns);
                     if !self.told_future && ahead > self.config.stale_ns {
