@@ -563,8 +563,17 @@ impl Hud {
         let keys = text::key_help(self.config.interventions);
         self.shape(KEYS, keys);
         let phase_rows = if self.config.signal {
-            worst.state = ipc_types::engine_state::SIGNAL_CALIBRATING;
+            // The longest the line says: calibrating, or following with the longest latency.
+            use ipc_types::engine_state as e;
+            worst.state = e::SIGNAL_CALIBRATING | e::SIGNAL_LEARNING;
             text::phase_line(&mut line, &worst);
+            let mut following = String::new();
+            worst.state = e::SIGNAL_FOLLOWING;
+            worst.signal.latency_ns = 2_000_000_000;
+            text::phase_line(&mut following, &worst);
+            if following.chars().count() > line.chars().count() {
+                line = following;
+            }
             self.shape(PHASE, &line);
             self.rows[PHASE]
         } else {

@@ -462,7 +462,8 @@ pub fn veil_words(warning: crate::PoseWarning) -> Option<&'static str> {
 }
 
 /// The breath's phase in words and, when the scene breathes with the patient's signal, what drives
-/// it: "inspiration · following patient", "expiration · model (signal lost)".
+/// it: "inspiration · following patient, predicted 9 ms ahead" (the latency the engine predicted
+/// the breath across), "expiration · model (signal lost)". Allocates nothing once `out` has room.
 pub fn phase_line(out: &mut String, frame: &EngineFrame) {
     use ipc_types::engine_state as e;
     out.clear();
@@ -478,9 +479,15 @@ pub fn phase_line(out: &mut String, frame: &EngineFrame) {
     if signal == 0 {
         return;
     }
-    out.push_str(if signal & e::SIGNAL_FOLLOWING != 0 {
-        " · following patient"
-    } else if frame.state & e::SIGNAL_LEARNING != 0 {
+    if signal & e::SIGNAL_FOLLOWING != 0 {
+        out.push_str(" · following patient");
+        let ms = (frame.signal.latency_ns as f64 * 1e-6).round();
+        if frame.signal.latency_ns != 0 {
+            let _ = write!(out, ", predicted {ms:.0} ms ahead");
+        }
+        return;
+    }
+    out.push_str(if frame.state & e::SIGNAL_LEARNING != 0 {
         " · model (learning the chest's axis)"
     } else if signal & e::SIGNAL_CALIBRATING != 0 {
         " · model (calibrating signal)"
@@ -1182,11 +1189,15 @@ mod tests {
         let mut s = String::new();
         phase_line(&mut s, &f);
         assert_eq!(s, "inspiration", "a model scene says no more");
+        f.signal.latency_ns = 9_400_000;
         for (state, want) in [
-            (e::SIGNAL_FOLLOWING, "inspiration · following patient"),
+            (
+                e::SIGNAL_FOLLOWING,
+                "inspiration · following patient, predicted 9 ms ahead",
+            ),
             (
                 e::SIGNAL_FOLLOWING | e::SIGNAL_PAUSED,
-                "pause · following patient",
+                "pause · following patient, predicted 9 ms ahead",
             ),
             (
                 e::SIGNAL_CALIBRATING,
@@ -1202,6 +1213,11 @@ mod tests {
             phase_line(&mut s, &f);
             assert_eq!(s, want);
         }
+        // Nothing said of a latency the frame does not carry.
+        f.state = e::SIGNAL_FOLLOWING;
+        f.signal.latency_ns = 0;
+        phase_line(&mut s, &f);
+        assert_eq!(s, "inspiration · following patient");
         assert_eq!(
             crate::PoseWarning::of_engine_state(e::SIGNAL_CALIBRATING | e::SIGNAL_LEARNING),
             crate::PoseWarning::None,
