@@ -904,6 +904,9 @@ mod tests {
     use lung_model::breathing::SignalSample;
     use lung_model::scene::LatencyChoice;
 
+    /// The latency the test runs predicted across: a fixed 50 ms.
+    const FIXED_50: (LatencyChoice, u64) = (LatencyChoice::Fixed, 50 * MS);
+
     const MS: u64 = 1_000_000;
     /// Where the bridge's replay began on the host clock in these tests.
     const ORIGIN: u64 = 50_000 * MS;
@@ -989,7 +992,7 @@ mod tests {
     fn a_perfect_prediction_scores_zero_and_the_held_sample_scores_its_lag() {
         let tr = trace();
         let (drawn, engine) = run(&tr, 8.0, 100 * MS, None);
-        let (f, compared) = figures(&tr, &drawn, &engine, (LatencyChoice::Fixed, 50 * MS), None);
+        let (f, compared) = figures(&tr, &drawn, &engine, FIXED_50, None);
         assert_eq!(f.frames_drawn, drawn.len());
         assert_eq!(f.frames_on_recording, drawn.len());
         assert!(
@@ -1031,13 +1034,7 @@ mod tests {
     fn a_loss_is_timed_from_the_cut_to_the_first_frame_the_signal_drives_again() {
         let tr = trace();
         let (drawn, engine) = run(&tr, 8.0, 0, Some((20.0, 26.5)));
-        let (f, _) = figures(
-            &tr,
-            &drawn,
-            &engine,
-            (LatencyChoice::Fixed, 50 * MS),
-            Some((20.0, 5.0)),
-        );
+        let (f, _) = figures(&tr, &drawn, &engine, FIXED_50, Some((20.0, 5.0)));
         let d = f.drop.clone().unwrap();
         assert!((d.resync_s.unwrap() - 1.5).abs() < 0.02, "{d:?}");
         assert!((d.breath_period_s.unwrap() - 4.0).abs() < 1e-9);
@@ -1046,13 +1043,7 @@ mod tests {
         assert!(f.frames_lost > 350, "{f:?}");
         // A cut the lungs never recover from.
         let (drawn, engine) = run(&tr, 8.0, 0, Some((20.0, 99.0)));
-        let (f, _) = figures(
-            &tr,
-            &drawn,
-            &engine,
-            (LatencyChoice::Fixed, 50 * MS),
-            Some((20.0, 5.0)),
-        );
+        let (f, _) = figures(&tr, &drawn, &engine, FIXED_50, Some((20.0, 5.0)));
         assert_eq!(f.drop.as_ref().unwrap().resync_s, None);
         assert_eq!(Goals::of(&f).resync_within_one_breath, Some(false));
     }
@@ -1067,17 +1058,11 @@ mod tests {
         for tick in 1000..1100 {
             engine.remove(&tick);
         }
-        let (f, _) = figures(&tr, &drawn, &engine, (LatencyChoice::Fixed, 50 * MS), None);
+        let (f, _) = figures(&tr, &drawn, &engine, FIXED_50, None);
         assert_eq!(f.frames_on_recording, drawn.len() - 100);
         assert_eq!(f.frames_without_engine_frame, 100);
         // Nothing followed: every figure says so, none is a made-up number.
-        let (f, c) = figures(
-            &tr,
-            &drawn[..200],
-            &engine,
-            (LatencyChoice::Fixed, 50 * MS),
-            None,
-        );
+        let (f, c) = figures(&tr, &drawn[..200], &engine, FIXED_50, None);
         assert!(c.is_empty() && f.rms_error_ml.is_nan() && f.lag_ms.is_none());
         assert_eq!(f.breaths_detected, 0);
         let g = Goals::of(&f);
