@@ -11,7 +11,7 @@ use lung_model::breathing::check::{
     GOAL_PERCENT_OF_TIDAL,
 };
 use lung_model::breathing::evaluate::{frames, EvalOptions, Evaluation, Trace};
-use lung_model::breathing::follow::SignalState;
+use lung_model::breathing::follow::{Calibration, SignalState};
 use lung_model::breathing::predict::PredictorKind;
 use serde::Serialize;
 
@@ -129,7 +129,13 @@ pub fn check(a: &CheckArgs) -> anyhow::Result<CheckReport> {
         &a.file,
         a.input_args.limits(lung_model::input::ReadLimits::TABLE),
     )?;
-    let read = read_trace_or_recording(&a.file, &bytes, a.tidal_ml)?;
+    let read = read_trace_or_recording(
+        &a.file,
+        &bytes,
+        Calibration::Auto {
+            tidal_ml: a.tidal_ml,
+        },
+    )?;
     let (trace, kind) = (read.trace, read.kind);
     let (results, goal) = sweep(&trace, chosen, &a.latency_ms, a.frame_rate_hz);
     let plots = match &a.plot {

@@ -27,6 +27,7 @@ use lung_model::breathing::check::{
     read_trace_or_recording, GOAL_IMPROVEMENT, GOAL_PERCENT_OF_TIDAL,
 };
 use lung_model::breathing::evaluate::{lag, peaks, Trace};
+use lung_model::breathing::follow::Calibration;
 use serde::Serialize;
 
 use crate::demo::{Run, Watch};
@@ -586,7 +587,13 @@ fn check_args(a: &FollowArgs) -> anyhow::Result<Checked> {
     };
     let bytes = lung_model::input::read_bounded(&a.file, lung_model::input::ReadLimits::TABLE)
         .with_context(|| format!("the recording {}", a.file.display()))?;
-    let read = read_trace_or_recording(&a.file, &bytes, tidal_ml)?;
+    // The recording's hindsight volume is calibrated as the engine calibrates it live: by the
+    // scene's spirometry calibration when it has one, else to its tidal volume.
+    let calibration = match scene.breathing.ml_per_unit {
+        Some(ml_per_unit) => Calibration::Fixed { ml_per_unit },
+        None => Calibration::Auto { tidal_ml },
+    };
+    let read = read_trace_or_recording(&a.file, &bytes, calibration)?;
     let duration_s = duration_s(&read.trace);
     let mut scene = scene;
     if let Some(ms) = a.latency_ms {
@@ -900,7 +907,6 @@ pub fn follow_text(r: &FollowReport) -> String {
 mod tests {
     use super::*;
     use ipc_types::HopStamps;
-    use lung_model::breathing::follow::Calibration;
     use lung_model::breathing::SignalSample;
     use lung_model::scene::LatencyChoice;
 

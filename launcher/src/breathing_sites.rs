@@ -15,6 +15,7 @@ use engine::runtime::sites::{self, SignalReplay, SiteFigures};
 use engine::runtime::EngineCore;
 use ipc_types::signal_unit;
 use lung_model::breathing::check::read_trace_or_recording;
+use lung_model::breathing::follow::Calibration;
 use lung_model::breathing::trace::SignalUnit;
 use lung_model::scene::{BreathSource, Scene, SceneExt};
 use serde::Serialize;
@@ -140,7 +141,13 @@ pub fn sites(a: &SitesArgs) -> anyhow::Result<SitesReport> {
         &a.file,
         a.input_args.limits(lung_model::input::ReadLimits::TABLE),
     )?;
-    let read = read_trace_or_recording(&a.file, &bytes, a.tidal_ml)?;
+    let read = read_trace_or_recording(
+        &a.file,
+        &bytes,
+        Calibration::Auto {
+            tidal_ml: a.tidal_ml,
+        },
+    )?;
     let trace = &read.trace;
     let mut scene = Scene::load_or_default(a.scene.as_deref())?;
     if scene.remote.is_some() {

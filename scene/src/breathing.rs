@@ -13,6 +13,7 @@
 //! latency_ms = 50                   # capture → display until measured (always, when "fixed")
 //! sensor_latency_ms = 0             # the source's own delay before the bridge, added to the measured
 //! # tidal_ml = 500                  # an amplitude's typical breath; default: the PV model's
+//! # ml_per_unit = 48                # an amplitude's spirometry calibration, ml per mm (per au)
 //! ```
 
 use serde::{Deserialize, Serialize};
@@ -99,6 +100,13 @@ pub struct BreathingScene {
     /// tidal volume. A signal in ml is taken as it is.
     #[serde(skip_serializing_if = "Option::is_none")]
     pub tidal_ml: Option<f64>,
+    /// An amplitude signal's calibration against a spirometer: ml breathed per mm of the chest
+    /// marker's excursion (per unit of an `au` signal). With it the amplitude drives the lungs from
+    /// its first end-expiration at this gain, instead of after two regular breaths at the gain that
+    /// makes its typical breath `tidal_ml`; the patient's own tidal volume is then drawn, whatever
+    /// the scene's. A signal in ml is used as it is.
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub ml_per_unit: Option<f64>,
 }
 
 impl Default for BreathingScene {
@@ -111,6 +119,7 @@ impl Default for BreathingScene {
             latency_ms: DEFAULT_LATENCY_MS,
             sensor_latency_ms: 0.0,
             tidal_ml: None,
+            ml_per_unit: None,
         }
     }
 }
@@ -137,6 +146,14 @@ impl BreathingScene {
                 "sensor_latency_ms = {}: a source's own delay is 0..1000 ms (a marker camera's or a belt's is tens of ms)",
                 crate::compact(self.sensor_latency_ms)
             ));
+        }
+        if let Some(g) = self.ml_per_unit {
+            if !(g.is_finite() && g > 0.0 && g <= 1e5) {
+                return bad(format!(
+                    "ml_per_unit = {}: a spirometry calibration is ml breathed per mm of the marker's excursion (tens: 500 ml over 10 mm is 50), above 0 and at most 1e5",
+                    crate::compact(g)
+                ));
+            }
         }
         if let Some(t) = self.tidal_ml {
             if !(t.is_finite() && (50.0..=3000.0).contains(&t)) {
@@ -189,6 +206,9 @@ mod tests {
             ("latency_ms = 1e9\n", "latency_ms = 1e9"),
             ("sensor_latency_ms = -5\n", "sensor_latency_ms = -5"),
             ("sensor_latency_ms = 2000\n", "sensor_latency_ms = 2000"),
+            ("ml_per_unit = 0\n", "ml_per_unit = 0"),
+            ("ml_per_unit = -48\n", "ml_per_unit = -48"),
+            ("ml_per_unit = 1e9\n", "ml_per_unit = 1e9"),
             ("tidal_ml = 5\n", "tidal_ml = 5"),
         ] {
             let t: BreathingScene = toml::from_str(text).unwrap();

@@ -15,6 +15,7 @@ use std::path::{Path, PathBuf};
 
 use ipc_types::{signal_status, signal_unit, SignalBlock};
 use lung_model::breathing::check::read_trace_or_recording;
+use lung_model::breathing::follow::Calibration;
 use lung_model::breathing::trace::SignalUnit;
 use lung_model::input::ReadLimits;
 
@@ -286,7 +287,7 @@ impl TraceReplay {
             .map_err(|e| SignalError::Read(e.to_string()))?;
         // The tidal volume only shapes the hindsight volume this reader also makes; the engine
         // calibrates the live samples itself.
-        let read = read_trace_or_recording(path, &bytes, 500.0)
+        let read = read_trace_or_recording(path, &bytes, Calibration::Auto { tidal_ml: 500.0 })
             .map_err(|e| SignalError::Read(e.to_string()))?;
         let samples = &read.trace.samples;
         let first = samples.first().map_or(0, |s| s.t_ns);

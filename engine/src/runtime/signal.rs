@@ -63,6 +63,8 @@ pub struct SignalDrive {
     tick_ns: u64,
     /// The scene's tidal volume for an amplitude signal's calibration, ml.
     tidal_ml: f64,
+    /// An amplitude's spirometry calibration, ml per unit (`[breathing] ml_per_unit`).
+    ml_per_unit: Option<f64>,
     /// The unit and period the follower is configured for (0: none yet).
     unit: u32,
     period_ns: u64,
@@ -350,6 +352,7 @@ impl SignalDrive {
             sensor_ns: (scene.breathing.sensor_latency_ms * 1e6).round() as u64,
             tick_ns: (1e9 / scene.engine.tick_hz).round() as u64,
             tidal_ml,
+            ml_per_unit: scene.breathing.ml_per_unit,
             unit: signal_unit::NONE,
             period_ns: 0,
             now_ns: 0,
@@ -536,12 +539,12 @@ impl SignalDrive {
             _ => return,
         };
         if unit != self.unit || period != self.period_ns {
-            let calibration = if unit == signal_unit::ML {
-                Calibration::Volume
-            } else {
-                Calibration::Auto {
+            let calibration = match (unit, self.ml_per_unit) {
+                (signal_unit::ML, _) => Calibration::Volume,
+                (_, Some(ml_per_unit)) => Calibration::Fixed { ml_per_unit },
+                (_, None) => Calibration::Auto {
                     tidal_ml: self.tidal_ml,
-                }
+                },
             };
             self.follower.reconfigure(period, calibration);
             self.unit = unit;

@@ -1876,6 +1876,60 @@ fn the_lungs_follow_the_patients_signal_once_calibrated() {
     assert_eq!(t.following, (run.len() - following) as u64);
 }
 
+/// `[breathing] ml_per_unit` (a spirometry calibration): the amplitude drives the lungs from its
+/// first end-expiration, not after two regular breaths, and at the spirometer's gain — the patient's
+/// own tidal volume (here 70 ml/mm × 10 mm = 700 ml), not the scene's.
+#[test]
+fn a_spirometry_calibration_drives_from_the_first_end_expiration_at_its_own_gain() {
+    use ipc_types::engine_state as e;
+    let first_following = |run: &[(f64, f64, u32)]| {
+        run.iter()
+            .position(|r| r.2 & e::SIGNAL_FOLLOWING != 0)
+            .expect("follows")
+    };
+    let mut auto = signal_core(50.0);
+    let tidal = auto.lung(Side::Right).unwrap().breathing().boundary().tv_ml;
+    let auto_run = follow_run(&mut auto, 40.0, None, &clean);
+    let mut scene = Scene::default();
+    scene.breathing.source = lung_model::scene::BreathSource::Signal;
+    scene.breathing.signal = "trace:unused-by-the-engine".into();
+    scene.breathing.latency_ms = 50.0;
+    scene.breathing.ml_per_unit = Some(70.0);
+    scene.validate().unwrap();
+    let mut spiro = EngineCore::with_geometry(&scene, baked_geometry()).unwrap();
+    let run = follow_run(&mut spiro, 40.0, None, &clean);
+    let (from, auto_from) = (first_following(&run), first_following(&auto_run));
+    // The first end-expiration is at 4.7 s (the trace starts at its trough, which is no turn).
+    assert!(
+        run[from].0 < 6.0 && run[from].0 + 4.0 < auto_run[auto_from].0,
+        "following from {:.2} s with the calibration, {:.2} s without",
+        run[from].0,
+        auto_run[auto_from].0
+    );
+    assert!(run[from..].iter().all(|r| r.2 & e::SIGNAL_FOLLOWING != 0));
+    // The volume is the spirometer's: 70 ml per mm, at the display time, past the takeover.
+    let (mut sq, mut n) = (0.0, 0.0);
+    for &(t, v, _) in run.iter().filter(|r| r.0 >= run[from].0 + 1.0) {
+        sq += (v - 70.0 * chest_mm(t + 0.05)).powi(2);
+        n += 1.0;
+    }
+    let rms = (sq / n).sqrt();
+    eprintln!(
+        "spirometry calibration: following from {:.2} s (without: {:.2} s), RMS {rms:.1} ml against 70 ml/mm",
+        run[from].0, auto_run[auto_from].0
+    );
+    assert!(rms < 0.05 * 700.0, "RMS {rms:.1} ml against 70 ml/mm");
+    assert!(
+        (tidal - 700.0).abs() > 100.0,
+        "the scene's tidal volume is another"
+    );
+    let spiro_peak = run.iter().map(|r| r.1).fold(f64::MIN, f64::max);
+    assert!(
+        spiro_peak > 700.0 && spiro_peak < 1.2 * 770.0,
+        "the deepest breath drawn: {spiro_peak:.0} ml (11 mm at most)"
+    );
+}
+
 /// The engine frame says what the engine followed (layout v7, `lungdyn breathing follow` reads it):
 /// the display time it predicted for — the newest input's stamp plus `latency_ms` — and the volume
 /// above FRC with and without the prediction, of which the lungs draw a fixed share once the

@@ -5,7 +5,7 @@
 use std::path::Path;
 
 use super::evaluate::{evaluate, EvalOptions, Evaluation, Trace};
-use super::follow::FollowerConfig;
+use super::follow::{Calibration, FollowerConfig};
 use super::predict::PredictorKind;
 use super::trace::{looks_like_trace, parse_trace, SignalUnit, TraceError, TraceFormat};
 use crate::recording::{checks, classify, parse_recording, SegmentOptions};
@@ -42,13 +42,14 @@ pub struct ReadTrace {
 }
 
 /// A file's bytes as a trace, and what it was read as. A one-signal trace (RPM `.vxp`, a CSV of one
-/// signal) is calibrated in hindsight to `tidal_ml`; a ventilator recording is checked for its
+/// signal) is calibrated in hindsight by `calibration` (the scene's tidal volume, or a spirometry
+/// calibration's gain: [`Trace::from_signal`]); a ventilator recording is checked for its
 /// units and its flow's sign first (a recording in the wrong unit would be "followed" perfectly
 /// into nonsense), and its flow integrated.
 pub fn read_trace_or_recording(
     path: &Path,
     bytes: &[u8],
-    tidal_ml: f64,
+    calibration: Calibration,
 ) -> Result<ReadTrace, TraceError> {
     let whole = |message: String| TraceError::Parse {
         path: path.to_path_buf(),
@@ -76,7 +77,7 @@ pub fn read_trace_or_recording(
                 String::new()
             }
         );
-        let trace = Trace::from_signal(&signal, tidal_ml).ok_or_else(|| {
+        let trace = Trace::from_signal(&signal, calibration).ok_or_else(|| {
             whole(
                 "fewer than two end-expirations found: no breathing to follow in this signal"
                     .into(),
@@ -179,4 +180,54 @@ pub fn sweep(
         }
     }
     (results, goal)
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    /// A chest trace (mm) read as a recording to compare with: its hindsight volume is calibrated
+    /// to the scene's tidal volume, or by a spirometry calibration's gain when there is one (as the
+    /// live follower calibrates), and a volume trace in ml is taken as it is either way.
+    #[test]
+    fn a_one_signal_traces_reference_is_calibrated_as_the_follower_is() {
+        let mut csv = String::from("time_s,amplitude_mm\n");
+        for k in 0..750 {
+            let t = k as f64 * 0.04;
+            let v = 4.0 * (1.0 - (std::f64::consts::TAU * t / 3.0).cos());
+            csv += &format!("{t:.3},{v:.5}\n");
+        }
+        let path = Path::new("chest.csv");
+        let read = |c: Calibration| read_trace_or_recording(path, csv.as_bytes(), c).unwrap();
+        let auto = read(Calibration::Auto { tidal_ml: 500.0 });
+        assert!(
+            (auto.trace.tidal_ml - 500.0).abs() < 5.0,
+            "{}",
+            auto.trace.tidal_ml
+        );
+        let spiro = read(Calibration::Fixed { ml_per_unit: 60.0 });
+        // 8 mm breaths at 60 ml/mm.
+        assert!(
+            (spiro.trace.tidal_ml - 480.0).abs() < 5.0,
+            "{}",
+            spiro.trace.tidal_ml
+        );
+        assert_eq!(
+            spiro.trace.calibration,
+            Calibration::Fixed { ml_per_unit: 60.0 }
+        );
+        let ml = csv.replace("amplitude_mm", "volume_ml");
+        let as_is = read_trace_or_recording(
+            path,
+            ml.as_bytes(),
+            Calibration::Fixed { ml_per_unit: 60.0 },
+        )
+        .unwrap();
+        assert!(
+            (as_is.trace.tidal_ml - 8.0).abs() < 0.1,
+            "{}",
+            as_is.trace.tidal_ml
+        );
+        assert_eq!(as_is.trace.calibration, Calibration::Volume);
+    }
 }

@@ -115,10 +115,13 @@ impl Trace {
     /// A one-signal trace (a chest marker, an RPM export, a volume) as a live source. Without an
     /// independent volume, its hindsight volume is the signal itself calibrated with the whole
     /// trace known: the baseline interpolated between the end-expirations the detector finds over
-    /// all of it (each known only afterwards live), the gain that makes the median regular breath
-    /// `tidal_ml` (a volume in ml: 1). A live follower calibrates the same way, from the breaths
-    /// seen so far ([`Calibration::Auto`]). `None` with fewer than two end-expirations.
-    pub fn from_signal(t: &SignalTrace, tidal_ml: f64) -> Option<Trace> {
+    /// all of it (each known only afterwards live), and the gain `calibration` gives: with
+    /// [`Calibration::Auto`] the one that makes the median regular breath its `tidal_ml` (a live
+    /// follower calibrates the same way, from the breaths seen so far), with [`Calibration::Fixed`]
+    /// the spirometry calibration's (a live follower uses it from the start); a volume in ml is
+    /// taken as it is, and so is any unit with [`Calibration::Volume`]. `None` with fewer than two
+    /// end-expirations.
+    pub fn from_signal(t: &SignalTrace, calibration: Calibration) -> Option<Trace> {
         let mut det = Detector::new();
         let mut troughs: Vec<(u64, f64)> = Vec::new();
         let mut amplitudes = Vec::new();
@@ -134,14 +137,15 @@ impl Trace {
             return None;
         }
         amplitudes.sort_by(f64::total_cmp);
-        let (calibration, gain) = match t.unit {
-            SignalUnit::Ml => (Calibration::Volume, 1.0),
-            _ => {
+        let (calibration, gain) = match (t.unit, calibration) {
+            (SignalUnit::Ml, _) | (_, Calibration::Volume) => (Calibration::Volume, 1.0),
+            (_, Calibration::Fixed { ml_per_unit }) => (calibration, ml_per_unit),
+            (_, Calibration::Auto { tidal_ml }) => {
                 let median = *amplitudes.get(amplitudes.len() / 2)?;
                 if !(median > 0.0) {
                     return None;
                 }
-                (Calibration::Auto { tidal_ml }, tidal_ml / median)
+                (calibration, tidal_ml / median)
             }
         };
         let mut truth_ml = vec![f64::NAN; t.samples.len()];
