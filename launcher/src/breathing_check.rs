@@ -32,6 +32,11 @@ pub struct CheckArgs {
     /// volume trace in ml is used as it is).
     #[arg(long, default_value_t = 500.0, value_name = "ML")]
     pub tidal_ml: f64,
+    /// An amplitude's spirometry calibration, ml per mm (per au): the trace is followed from its
+    /// first end-expiration at this gain, and compared with itself at the same gain (the scene's
+    /// [breathing] ml_per_unit; --tidal-ml is then not used).
+    #[arg(long, value_name = "ML")]
+    pub ml_per_unit: Option<f64>,
     /// Capture-to-display latencies to replay at, ms (what the sensor, bridge, engine and GPU add
     /// up to; `lungdyn latency` measures the pipeline's part).
     #[arg(
@@ -116,6 +121,13 @@ fn check_args(a: &CheckArgs) -> anyhow::Result<PredictorKind> {
             a.tidal_ml
         );
     }
+    if let Some(g) = a.ml_per_unit {
+        if !(g.is_finite() && g > 0.0 && g <= 1e5) {
+            anyhow::bail!(
+                "--ml-per-unit {g}: a spirometry calibration is ml breathed per mm of the marker's excursion (tens: 500 ml over 10 mm is 50), above 0 and at most 1e5"
+            );
+        }
+    }
     if let Some(p) = &a.plot {
         plot::check_path(p)?;
     }
@@ -129,13 +141,13 @@ pub fn check(a: &CheckArgs) -> anyhow::Result<CheckReport> {
         &a.file,
         a.input_args.limits(lung_model::input::ReadLimits::TABLE),
     )?;
-    let read = read_trace_or_recording(
-        &a.file,
-        &bytes,
-        Calibration::Auto {
+    let calibration = match a.ml_per_unit {
+        Some(ml_per_unit) => Calibration::Fixed { ml_per_unit },
+        None => Calibration::Auto {
             tidal_ml: a.tidal_ml,
         },
-    )?;
+    };
+    let read = read_trace_or_recording(&a.file, &bytes, calibration)?;
     let (trace, kind) = (read.trace, read.kind);
     let (results, goal) = sweep(&trace, chosen, &a.latency_ms, a.frame_rate_hz);
     let plots = match &a.plot {
