@@ -439,7 +439,7 @@ struct Problem<'a> {
     local: Local,
     lo: DVec3,
     hi: DVec3,
-    target: Surface,
+    target: &'a Surface,
     inhale_ml: f64,
     /// Per inhale vertex, the exhale vertex it lies nearest to (for the folds).
     owner: Vec<u32>,
@@ -757,6 +757,7 @@ fn patches(p: &[DVec3], count: usize) -> Vec<usize> {
 /// The exhale lung's transfer (as the bake builds it: graph, pitcher–catcher pass, amplitude
 /// smoothing) and its response `Tᵀm_k` to each monomial of the force degree, then to each local
 /// term, with the lung's box.
+#[cfg(test)]
 fn operator_columns(
     side: Side,
     exhale: &TriMesh,
@@ -764,6 +765,19 @@ fn operator_columns(
     degree: u8,
     local: &Local,
 ) -> Result<(crate::operator::Transfer, Vec<Vec<f64>>, DVec3, DVec3), PairFitError> {
+    let transfer = operator(side, exhale, settings)?;
+    let (columns, lo, hi) = columns(&transfer, exhale, degree, local);
+    Ok((transfer, columns, lo, hi))
+}
+
+/// The exhale lung's transfer, as the bake builds it (graph, pitcher–catcher pass, amplitude
+/// smoothing): the costly part of a fit, built once per pair ([`fit_pair_for_breath`]'s second fit
+/// uses it again).
+fn operator(
+    side: Side,
+    exhale: &TriMesh,
+    settings: &BakeSettings,
+) -> Result<crate::operator::Transfer, PairFitError> {
     let bb = exhale.aabb();
     let norm = |q| lung_model::deform::normalised_position(q, &bb, side);
     let graph = NodeGraph::from_mesh(exhale, &settings.elasticity, norm)
@@ -777,6 +791,18 @@ fn operator_columns(
     .map_err(crate::kernel::BakeError::from)?;
     crate::smooth::smooth_amplitude(&mut transfer, exhale, settings.amplitude_smoothing_mm)
         .map_err(crate::kernel::BakeError::from)?;
+    Ok(transfer)
+}
+
+/// The transfer's response `Tᵀm_k` to each monomial of the force degree, then to each local term,
+/// with the lung's box.
+fn columns(
+    transfer: &crate::operator::Transfer,
+    exhale: &TriMesh,
+    degree: u8,
+    local: &Local,
+) -> (Vec<Vec<f64>>, DVec3, DVec3) {
+    let bb = exhale.aabb();
     let p = points(exhale);
     let (lo, hi) = (
         DVec3::from(bb.min.map(|v| v as f64)),
@@ -799,7 +825,7 @@ fn operator_columns(
         );
     }
     let columns = basis.iter().map(|b| transfer.elastostatic(b)).collect();
-    Ok((transfer, columns, lo, hi))
+    (columns, lo, hi)
 }
 
 /// What [`fit_pair`] checks before fitting: two closed one-body surfaces, the options' ranges, and
@@ -838,17 +864,28 @@ fn check_pair(
     Ok((exhale_ml, inhale_ml))
 }
 
-/// Fit `side`'s motion from the exhale surface to the inhale surface (both closed, mm, body frame,
-/// not registered). `settings` gives the operator (elasticity, tolerance, amplitude smoothing) the
-/// bake will use; `progress` hears each stage.
-pub fn fit_pair(
+/// What a pair's fits share: the pair checked and aligned, the inhale surface indexed, the exhale
+/// lung's operator built, and which exhale vertex each inhale point lies nearest to.
+struct Prepared {
+    exhale_ml: f64,
+    inhale_ml: f64,
+    alignment: Alignment,
+    /// The aligned inhale points (f32-rounded, as kept).
+    pi: Vec<DVec3>,
+    target: Surface,
+    transfer: crate::operator::Transfer,
+    owner: Vec<u32>,
+}
+
+/// Check, align and build the operator for a pair (see [`fit_pair`]).
+fn prepare(
     side: Side,
     exhale: &TriMesh,
     inhale: &TriMesh,
     settings: &BakeSettings,
     opts: &PairOptions,
     progress: &dyn Fn(&str),
-) -> Result<PairFit, PairFitError> {
+) -> Result<Prepared, PairFitError> {
     let (exhale_ml, inhale_ml) = check_pair(exhale, inhale, opts)?;
     progress("aligning the inhale apex and apical cap onto the exhale surface");
     let alignment = align(exhale, inhale, opts.cap_fraction).ok_or(PairFitError::Surface {
@@ -867,15 +904,63 @@ pub fn fit_pair(
         message: "could not be indexed for closest points".into(),
     })?;
     progress("building the exhale lung's operator (the bake's Green's-function pass)");
+    let transfer = operator(side, exhale, settings)?;
     let p = points(exhale);
-    let local = Local::on_surface(&p, &exhale.triangles, opts.force_centres);
-    let (transfer, columns, lo, hi) =
-        operator_columns(side, exhale, settings, opts.force_degree, &local)?;
     let exhale_surface = Surface::new(&p, &exhale.triangles).ok_or(PairFitError::Surface {
         what: "exhale",
         message: "could not be indexed for closest points".into(),
     })?;
     let owner: Vec<u32> = pi.iter().map(|&v| exhale_surface.closest(v).1).collect();
+    Ok(Prepared {
+        exhale_ml,
+        inhale_ml,
+        alignment,
+        pi,
+        target,
+        transfer,
+        owner,
+    })
+}
+
+/// Fit `side`'s motion from the exhale surface to the inhale surface (both closed, mm, body frame,
+/// not registered). `settings` gives the operator (elasticity, tolerance, amplitude smoothing) the
+/// bake will use; `progress` hears each stage.
+pub fn fit_pair(
+    side: Side,
+    exhale: &TriMesh,
+    inhale: &TriMesh,
+    settings: &BakeSettings,
+    opts: &PairOptions,
+    progress: &dyn Fn(&str),
+) -> Result<PairFit, PairFitError> {
+    let prepared = prepare(side, exhale, inhale, settings, opts, progress)?;
+    fit_prepared(&prepared, side, exhale, inhale, settings, opts, progress)
+}
+
+/// [`fit_pair`] on a pair already prepared (`opts` valid: [`check_pair`] checked them, or they
+/// differ from those only in the local terms' count).
+fn fit_prepared(
+    prepared: &Prepared,
+    side: Side,
+    exhale: &TriMesh,
+    inhale: &TriMesh,
+    settings: &BakeSettings,
+    opts: &PairOptions,
+    progress: &dyn Fn(&str),
+) -> Result<PairFit, PairFitError> {
+    let Prepared {
+        exhale_ml,
+        inhale_ml,
+        alignment,
+        pi,
+        target,
+        transfer,
+        owner,
+    } = prepared;
+    let (exhale_ml, inhale_ml) = (*exhale_ml, *inhale_ml);
+    let p = points(exhale);
+    let local = Local::on_surface(&p, &exhale.triangles, opts.force_centres);
+    let (columns, lo, hi) = columns(transfer, exhale, opts.force_degree, &local);
     let problem = Problem {
         side,
         mesh: exhale,
@@ -886,7 +971,7 @@ pub fn fit_pair(
         hi,
         target,
         inhale_ml,
-        owner,
+        owner: owner.clone(),
         opts: *opts,
     };
     progress("fitting the force and direction fields (symmetric ICP)");
@@ -913,7 +998,7 @@ pub fn fit_pair(
     let kernel_model = problem.model(&elastostatic, dirs)?;
     let delta_ml = inhale_ml - kernel_model.start_volume_ml;
     let moved = at_volume(&kernel_model, delta_ml);
-    let in_sample = distance(&moved, &exhale.triangles, &problem.target);
+    let in_sample = distance(&moved, &exhale.triangles, problem.target);
     let mut lengths: Vec<f64> = moved
         .iter()
         .zip(&p)
@@ -950,13 +1035,13 @@ pub fn fit_pair(
         displacement_mm,
         force,
         direction: fitted.field,
-        alignment,
+        alignment: *alignment,
         exhale_ml,
         inhale_ml,
         in_sample,
         cross_validated,
-        no_motion: distance(&p, &exhale.triangles, &problem.target),
-        uniform_scaling: distance(&scaled, &exhale.triangles, &problem.target),
+        no_motion: distance(&p, &exhale.triangles, problem.target),
+        uniform_scaling: distance(&scaled, &exhale.triangles, problem.target),
         options: *opts,
         moved: moved_mesh,
         inhale_aligned: TriMesh {
@@ -985,7 +1070,8 @@ pub fn fit_pair_for_breath(
     share_ml: f64,
     progress: &dyn Fn(&str),
 ) -> Result<PairFit, PairFitError> {
-    let fit = fit_pair(side, exhale, inhale, settings, opts, progress)?;
+    let prepared = prepare(side, exhale, inhale, settings, opts, progress)?;
+    let fit = fit_prepared(&prepared, side, exhale, inhale, settings, opts, progress)?;
     keep_for_breath(fit, share_ml, || {
         progress(
             "with local force terms it folds within a tidal breath: fitting the polynomial alone",
@@ -994,7 +1080,8 @@ pub fn fit_pair_for_breath(
             force_centres: 0,
             ..*opts
         };
-        fit_pair(side, exhale, inhale, settings, &plain, progress)
+        // The same pair, alignment and operator: only the force's terms differ.
+        fit_prepared(&prepared, side, exhale, inhale, settings, &plain, progress)
     })
 }
 
@@ -1039,7 +1126,7 @@ fn cross_validate(problem: &Problem) -> Result<SurfaceDistance, PairFitError> {
         let (a, b, c, d, e) = distances(
             &moved,
             &problem.mesh.triangles,
-            &problem.target,
+            problem.target,
             &held,
             &owned,
         )
