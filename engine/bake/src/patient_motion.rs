@@ -866,7 +866,11 @@ fn check_pair(
 
 /// What a pair's fits share: the pair checked and aligned, the inhale surface indexed, the exhale
 /// lung's operator built, and which exhale vertex each inhale point lies nearest to.
-struct Prepared {
+struct Prepared<'a> {
+    side: Side,
+    exhale: &'a TriMesh,
+    inhale: &'a TriMesh,
+    settings: &'a BakeSettings,
     exhale_ml: f64,
     inhale_ml: f64,
     alignment: Alignment,
@@ -878,14 +882,13 @@ struct Prepared {
 }
 
 /// Check, align and build the operator for a pair (see [`fit_pair`]).
-fn prepare(
+fn prepare<'a>(
     side: Side,
-    exhale: &TriMesh,
-    inhale: &TriMesh,
-    settings: &BakeSettings,
+    (exhale, inhale): (&'a TriMesh, &'a TriMesh),
+    settings: &'a BakeSettings,
     opts: &PairOptions,
     progress: &dyn Fn(&str),
-) -> Result<Prepared, PairFitError> {
+) -> Result<Prepared<'a>, PairFitError> {
     let (exhale_ml, inhale_ml) = check_pair(exhale, inhale, opts)?;
     progress("aligning the inhale apex and apical cap onto the exhale surface");
     let alignment = align(exhale, inhale, opts.cap_fraction).ok_or(PairFitError::Surface {
@@ -912,6 +915,10 @@ fn prepare(
     })?;
     let owner: Vec<u32> = pi.iter().map(|&v| exhale_surface.closest(v).1).collect();
     Ok(Prepared {
+        side,
+        exhale,
+        inhale,
+        settings,
         exhale_ml,
         inhale_ml,
         alignment,
@@ -933,31 +940,26 @@ pub fn fit_pair(
     opts: &PairOptions,
     progress: &dyn Fn(&str),
 ) -> Result<PairFit, PairFitError> {
-    let prepared = prepare(side, exhale, inhale, settings, opts, progress)?;
-    fit_prepared(&prepared, side, exhale, inhale, settings, opts, progress)
+    let prepared = prepare(side, (exhale, inhale), settings, opts, progress)?;
+    fit_prepared(&prepared, opts, progress)
 }
 
 /// [`fit_pair`] on a pair already prepared (`opts` valid: [`check_pair`] checked them, or they
 /// differ from those only in the local terms' count).
 fn fit_prepared(
     prepared: &Prepared,
-    side: Side,
-    exhale: &TriMesh,
-    inhale: &TriMesh,
-    settings: &BakeSettings,
     opts: &PairOptions,
     progress: &dyn Fn(&str),
 ) -> Result<PairFit, PairFitError> {
     let Prepared {
-        exhale_ml,
-        inhale_ml,
-        alignment,
-        pi,
-        target,
-        transfer,
-        owner,
-    } = prepared;
-    let (exhale_ml, inhale_ml) = (*exhale_ml, *inhale_ml);
+        side,
+        exhale,
+        inhale,
+        settings,
+        ..
+    } = *prepared;
+    let (exhale_ml, inhale_ml) = (prepared.exhale_ml, prepared.inhale_ml);
+    let transfer = &prepared.transfer;
     let p = points(exhale);
     let local = Local::on_surface(&p, &exhale.triangles, opts.force_centres);
     let (columns, lo, hi) = columns(transfer, exhale, opts.force_degree, &local);
@@ -969,9 +971,9 @@ fn fit_prepared(
         local,
         lo,
         hi,
-        target,
+        target: &prepared.target,
         inhale_ml,
-        owner: owner.clone(),
+        owner: prepared.owner.clone(),
         opts: *opts,
     };
     progress("fitting the force and direction fields (symmetric ICP)");
@@ -1035,7 +1037,7 @@ fn fit_prepared(
         displacement_mm,
         force,
         direction: fitted.field,
-        alignment: *alignment,
+        alignment: prepared.alignment,
         exhale_ml,
         inhale_ml,
         in_sample,
@@ -1045,7 +1047,7 @@ fn fit_prepared(
         options: *opts,
         moved: moved_mesh,
         inhale_aligned: TriMesh {
-            positions: pi.iter().map(|x| x.as_vec3().to_array()).collect(),
+            positions: prepared.pi.iter().map(|x| x.as_vec3().to_array()).collect(),
             triangles: inhale.triangles.clone(),
         },
     })
@@ -1070,8 +1072,8 @@ pub fn fit_pair_for_breath(
     share_ml: f64,
     progress: &dyn Fn(&str),
 ) -> Result<PairFit, PairFitError> {
-    let prepared = prepare(side, exhale, inhale, settings, opts, progress)?;
-    let fit = fit_prepared(&prepared, side, exhale, inhale, settings, opts, progress)?;
+    let prepared = prepare(side, (exhale, inhale), settings, opts, progress)?;
+    let fit = fit_prepared(&prepared, opts, progress)?;
     keep_for_breath(fit, share_ml, || {
         progress(
             "with local force terms it folds within a tidal breath: fitting the polynomial alone",
@@ -1081,7 +1083,7 @@ pub fn fit_pair_for_breath(
             ..*opts
         };
         // The same pair, alignment and operator: only the force's terms differ.
-        fit_prepared(&prepared, side, exhale, inhale, settings, &plain, progress)
+        fit_prepared(&prepared, &plain, progress)
     })
 }
 
