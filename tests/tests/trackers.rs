@@ -666,20 +666,13 @@ fn the_demo_runs_on_a_device_source() {
     let scene = small_demo_scene(&dir);
     let port = lungdyn_needs::free_local_port();
     let send = sender(port, 60.0);
-    let (ok, stdout, err) = lungdyn(&[
-        "demo",
-        "--seconds",
-        "2",
-        "--snapshots",
-        "0",
-        "--json",
-        "--out",
-        dir.to_str().unwrap(),
-        "--scene",
-        scene.to_str().unwrap(),
-        "--tracker",
-        &format!("igtl-server:127.0.0.1:{port}"),
-    ]);
+    let (ok, stdout, err) = demo_json(
+        &dir,
+        &scene,
+        2,
+        0,
+        &["--tracker", &format!("igtl-server:127.0.0.1:{port}")],
+    );
     assert!(ok, "{err}");
     let v: serde_json::Value = serde_json::from_str(stdout.trim()).unwrap();
     lungdyn_tests::assert_demo_report_is_consistent(&v, &err);
@@ -709,20 +702,13 @@ fn without_patient_samples_every_frame_says_the_pose_is_stale_on_screen_and_in_t
     let scene = small_demo_scene(&dir);
     // An OpenIGTLink server nobody sends to.
     let port = lungdyn_needs::free_local_port();
-    let (ok, stdout, err) = lungdyn(&[
-        "demo",
-        "--seconds",
-        "2",
-        "--snapshots",
-        "1",
-        "--json",
-        "--out",
-        dir.to_str().unwrap(),
-        "--scene",
-        scene.to_str().unwrap(),
-        "--tracker",
-        &format!("igtl-server:127.0.0.1:{port}"),
-    ]);
+    let (ok, stdout, err) = demo_json(
+        &dir,
+        &scene,
+        2,
+        1,
+        &["--tracker", &format!("igtl-server:127.0.0.1:{port}")],
+    );
     assert!(ok, "{err}");
     let v: serde_json::Value = serde_json::from_str(stdout.trim()).unwrap();
     let frames = v["frames_rendered"].as_u64().unwrap();
@@ -1009,22 +995,18 @@ fn the_demo_draws_with_a_calibration_and_hmd_optics() {
     )
     .unwrap();
     let out = dir.join("out");
-    let (ok, stdout, err) = lungdyn(&[
-        "demo",
-        "--seconds",
-        "2",
-        "--snapshots",
-        "2",
-        "--json",
-        "--out",
-        out.to_str().unwrap(),
-        "--scene",
-        scene.to_str().unwrap(),
-        "--calibration",
-        calib.to_str().unwrap(),
-        "--hmd",
-        hmd.to_str().unwrap(),
-    ]);
+    let (ok, stdout, err) = demo_json(
+        &out,
+        &scene,
+        2,
+        2,
+        &[
+            "--calibration",
+            calib.to_str().unwrap(),
+            "--hmd",
+            hmd.to_str().unwrap(),
+        ],
+    );
     assert!(ok, "{err}");
     let v: serde_json::Value = serde_json::from_str(stdout.trim()).unwrap();
     lungdyn_tests::assert_demo_report_is_consistent(&v, &err);
@@ -1058,6 +1040,32 @@ fn the_demo_draws_with_a_calibration_and_hmd_optics() {
         }
     }
     std::fs::remove_dir_all(&dir).ok();
+}
+
+/// `lungdyn demo --seconds S --snapshots N --json --out DIR --scene SCENE` and `extra`: the tests'
+/// demo runs, which differ in their length, snapshots and what they connect to.
+fn demo_json(
+    out: &std::path::Path,
+    scene: &std::path::Path,
+    seconds: u32,
+    snapshots: u32,
+    extra: &[&str],
+) -> (bool, String, String) {
+    let (seconds, snapshots) = (seconds.to_string(), snapshots.to_string());
+    let mut args = vec![
+        "demo",
+        "--seconds",
+        &seconds,
+        "--snapshots",
+        &snapshots,
+        "--json",
+        "--out",
+        out.to_str().unwrap(),
+        "--scene",
+        scene.to_str().unwrap(),
+    ];
+    args.extend_from_slice(extra);
+    lungdyn(&args)
 }
 
 /// A 15 s chest trace (3 s breaths, 25 Hz) written for the test: synthetic, not patient data.
@@ -1265,20 +1273,7 @@ fn the_demo_connects_to_slicers_server_with_igtl_connect() {
         }
     });
     let target = format!("127.0.0.1:{port}");
-    let (ok, stdout, err) = lungdyn(&[
-        "demo",
-        "--seconds",
-        "5",
-        "--snapshots",
-        "0",
-        "--json",
-        "--out",
-        dir.to_str().unwrap(),
-        "--scene",
-        scene_path.to_str().unwrap(),
-        "--igtl-connect",
-        &target,
-    ]);
+    let (ok, stdout, err) = demo_json(&dir, &scene_path, 5, 0, &["--igtl-connect", &target]);
     assert!(ok, "{err}");
     let first = reader
         .join()
@@ -1360,20 +1355,13 @@ fn slicer_receives_the_breathing_lungs_and_the_tumour_over_openigtlink() {
         .stderr(std::process::Stdio::piped())
         .spawn()
         .unwrap();
-    let (ok, stdout, err) = lungdyn(&[
-        "demo",
-        "--seconds",
-        "8",
-        "--snapshots",
-        "0",
-        "--json",
-        "--out",
-        dir.to_str().unwrap(),
-        "--scene",
-        scene_path.to_str().unwrap(),
-        "--igtl-serve",
-        &port.to_string(),
-    ]);
+    let (ok, stdout, err) = demo_json(
+        &dir,
+        &scene_path,
+        8,
+        0,
+        &["--igtl-serve", &port.to_string()],
+    );
     let peer = client.wait_with_output_timeout();
     assert!(ok, "{err}");
     assert!(peer.0, "the pyigtl client failed: {}\ndemo: {err}", peer.1);
