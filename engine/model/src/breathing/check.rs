@@ -83,6 +83,7 @@ pub fn read_trace_or_recording(
                     .into(),
             )
         })?;
+        plausible(&trace, signal.unit).map_err(whole)?;
         return Ok(ReadTrace {
             trace,
             kind,
@@ -109,6 +110,80 @@ pub fn read_trace_or_recording(
         kind,
         unit: SignalUnit::Ml,
     })
+}
+
+/// Breaths a minute a respiratory signal may show (the median breath): slower is a breath-hold
+/// or not breathing, faster is not breathing either (a heartbeat, a vibration, a time column in
+/// the wrong unit).
+pub const BREATHS_PER_MIN: std::ops::RangeInclusive<f64> = 2.0..=70.0;
+/// The mean tidal volume a calibrated signal may show, ml (what `--tidal-ml` and the scene's
+/// `tidal_ml` accept).
+pub const TIDAL_ML: std::ops::RangeInclusive<f64> = 50.0..=3000.0;
+
+/// A one-signal trace that is breathing: its breaths' median period and its mean tidal volume in
+/// range. Figures computed on a 3 Hz vibration or on a volume 1000× off look like any others, so
+/// such a trace is refused with what looks wrong.
+pub fn plausible(trace: &Trace, unit: SignalUnit) -> Result<(), String> {
+    let mut periods: Vec<f64> = trace
+        .end_inspiration_ns
+        .windows(2)
+        .map(|w| w[1].saturating_sub(w[0]) as f64 * 1e-9)
+        .collect();
+    periods.sort_by(f64::total_cmp);
+    if let Some(&p) = periods.get(periods.len() / 2) {
+        let per_min = 60.0 / p;
+        if !BREATHS_PER_MIN.contains(&per_min) {
+            return Err(format!(
+                "its breaths come every {p:.2} s (median): {per_min:.1} a minute, where breathing \
+                 is {}–{} — is this a respiratory signal, and is its time column in the unit it \
+                 names?",
+                BREATHS_PER_MIN.start(),
+                BREATHS_PER_MIN.end()
+            ));
+        }
+    }
+    let tidal = trace.tidal_ml;
+    if !(tidal.is_finite() && TIDAL_ML.contains(&tidal)) {
+        let why = match (unit, trace.calibration) {
+            (SignalUnit::Ml, _) | (_, Calibration::Volume) => {
+                "is the volume column's unit right? ml under volume_L reads 1000× too large, \
+                 litres under volume_ml 1000× too small"
+                    .to_string()
+            }
+            (_, Calibration::Fixed { ml_per_unit }) => format!(
+                "is the spirometry calibration ({} ml per {}) for this signal's unit?",
+                number(ml_per_unit),
+                unit.symbol()
+            ),
+            (_, Calibration::Auto { tidal_ml }) if tidal.is_finite() => format!(
+                "the median breath is calibrated to {} ml, so its breaths differ too much in size \
+                 to be one patient's breathing (is the device's gain changing?)",
+                number(tidal_ml)
+            ),
+            (_, Calibration::Auto { .. }) => {
+                "the signal's values are too large or too small to calibrate (rescale them)".into()
+            }
+        };
+        return Err(format!(
+            "its breaths average {} ml, where a tidal volume is {}–{} ml: {why}",
+            number(tidal),
+            TIDAL_ML.start(),
+            TIDAL_ML.end()
+        ));
+    }
+    Ok(())
+}
+
+/// `x` for a message: plain where it reads plainly (0.001…1e7), else in exponent form (a 1e300 is
+/// not 301 digits).
+pub fn number(x: f64) -> String {
+    if (100.0..1e7).contains(&x.abs()) {
+        format!("{x:.0}")
+    } else if x == 0.0 || (1e-3..100.0).contains(&x.abs()) {
+        format!("{}", (x * 1e4).round() / 1e4)
+    } else {
+        format!("{x:.3e}")
+    }
 }
 
 /// The predictors replayed at `latency_ms`: `chosen` first, then the previous cycle's, the
@@ -186,17 +261,96 @@ pub fn sweep(
 mod tests {
     use super::*;
 
+    /// 30 s of `scale × 4·(1 − cos)` breaths every `period_s` at 25 Hz, under `column`.
+    fn sine_csv(column: &str, scale: f64, period_s: f64) -> String {
+        let mut csv = format!("time_s,{column}\n");
+        for k in 0..750 {
+            let t = k as f64 * 0.04;
+            let v = scale * 4.0 * (1.0 - (std::f64::consts::TAU * t / period_s).cos());
+            csv += &format!("{t:.3},{v:.5}\n");
+        }
+        csv
+    }
+
+    /// A sample flagged invalid has no hindsight volume; the frames beside it are still compared
+    /// with the volume across it (every other sample invalid: as many frames compared as with
+    /// every sample valid, within a few), as the live follower's grid bridges it.
+    #[test]
+    fn frames_beside_invalid_samples_are_still_compared() {
+        let path = Path::new("t.csv");
+        let auto = Calibration::Auto { tidal_ml: 500.0 };
+        let valid = sine_csv("amplitude_mm", 1.0, 4.0);
+        let alternate: String = valid
+            .lines()
+            .enumerate()
+            .map(|(i, l)| match i {
+                0 => format!("{l},valid\n"),
+                _ => format!("{l},{}\n", i % 2),
+            })
+            .collect();
+        let compared = |csv: &str| {
+            let t = read_trace_or_recording(path, csv.as_bytes(), auto)
+                .unwrap()
+                .trace;
+            evaluate(&t, &replay_options(&t, 50.0, 60.0, PredictorKind::Hold)).frames_compared
+        };
+        let (all, half) = (compared(&valid), compared(&alternate));
+        assert!(all > 800, "{all}");
+        assert!(half + 60 >= all, "{half} of {all}");
+    }
+
+    /// What is not breathing is refused naming what looks wrong, not measured: a vibration, breaths
+    /// a minute long, a volume 1000× off either way, a spirometry gain for another unit.
+    #[test]
+    fn a_trace_that_is_not_breathing_is_refused_with_what_looks_wrong() {
+        let path = Path::new("t.csv");
+        let auto = Calibration::Auto { tidal_ml: 500.0 };
+        let refused =
+            |csv: String, c: Calibration| match read_trace_or_recording(path, csv.as_bytes(), c) {
+                Ok(r) => panic!("accepted: {} ml", r.trace.tidal_ml),
+                Err(e) => e.to_string(),
+            };
+        let fast = refused(sine_csv("amplitude_mm", 1.0, 0.25), auto);
+        assert!(
+            fast.contains("a minute, where breathing is 2–70")
+                && fast.contains("respiratory signal"),
+            "{fast}"
+        );
+        let mut slow = String::from("time_s,amplitude_mm\n");
+        for k in 0..3000 {
+            let t = k as f64 * 0.2;
+            slow += &format!(
+                "{t:.3},{:.5}\n",
+                4.0 * (1.0 - (std::f64::consts::TAU * t / 40.0).cos())
+            );
+        }
+        let slow = refused(slow, auto);
+        assert!(slow.contains("1.5 a minute"), "{slow}");
+        let litres = refused(sine_csv("volume_L", 50.0, 3.0), auto);
+        assert!(
+            litres.contains("average 399825 ml") && litres.contains("volume_L"),
+            "{litres}"
+        );
+        let ml = refused(sine_csv("volume_ml", 0.05, 3.0), auto);
+        assert!(
+            ml.contains("average 0.3998 ml") && ml.contains("1000× too small"),
+            "{ml}"
+        );
+        let gain = refused(
+            sine_csv("amplitude_mm", 1.0, 3.0),
+            Calibration::Fixed { ml_per_unit: 1e-6 },
+        );
+        assert!(gain.contains("1.000e-6 ml per mm"), "{gain}");
+        // Breathing at 20 a minute, 400 ml: accepted.
+        read_trace_or_recording(path, sine_csv("volume_ml", 50.0, 3.0).as_bytes(), auto).unwrap();
+    }
+
     /// A chest trace (mm) read as a recording to compare with: its hindsight volume is calibrated
     /// to the scene's tidal volume, or by a spirometry calibration's gain when there is one (as the
     /// live follower calibrates), and a volume trace in ml is taken as it is either way.
     #[test]
     fn a_one_signal_traces_reference_is_calibrated_as_the_follower_is() {
-        let mut csv = String::from("time_s,amplitude_mm\n");
-        for k in 0..750 {
-            let t = k as f64 * 0.04;
-            let v = 4.0 * (1.0 - (std::f64::consts::TAU * t / 3.0).cos());
-            csv += &format!("{t:.3},{v:.5}\n");
-        }
+        let csv = sine_csv("amplitude_mm", 1.0, 3.0);
         let path = Path::new("chest.csv");
         let read = |c: Calibration| read_trace_or_recording(path, csv.as_bytes(), c).unwrap();
         let auto = read(Calibration::Auto { tidal_ml: 500.0 });
@@ -216,7 +370,7 @@ mod tests {
             spiro.trace.calibration,
             Calibration::Fixed { ml_per_unit: 60.0 }
         );
-        let ml = csv.replace("amplitude_mm", "volume_ml");
+        let ml = sine_csv("volume_ml", 50.0, 3.0);
         let as_is = read_trace_or_recording(
             path,
             ml.as_bytes(),
@@ -224,7 +378,7 @@ mod tests {
         )
         .unwrap();
         assert!(
-            (as_is.trace.tidal_ml - 8.0).abs() < 0.1,
+            (as_is.trace.tidal_ml - 400.0).abs() < 5.0,
             "{}",
             as_is.trace.tidal_ml
         );

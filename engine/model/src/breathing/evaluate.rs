@@ -200,13 +200,29 @@ impl Trace {
         if i == 0 || i >= self.samples.len() {
             return None;
         }
-        let (a, b) = (&self.samples[i - 1], &self.samples[i]);
-        let (va, vb) = (self.truth_ml[i - 1], self.truth_ml[i]);
-        let f = (t_ns - a.t_ns) as f64 / (b.t_ns - a.t_ns) as f64;
+        // The nearest samples with a hindsight volume on each side: an invalid sample has none,
+        // and a short run of them is bridged as the live follower's grid bridges it.
+        let near = |k: usize| {
+            self.truth_ml[k].is_finite() && self.samples[k].t_ns.abs_diff(t_ns) <= TRUTH_BRIDGE_NS
+        };
+        let a = (0..i)
+            .rev()
+            .take_while(|&k| self.samples[k].t_ns.abs_diff(t_ns) <= TRUTH_BRIDGE_NS)
+            .find(|&k| near(k))?;
+        let b = (i..self.samples.len())
+            .take_while(|&k| self.samples[k].t_ns.abs_diff(t_ns) <= TRUTH_BRIDGE_NS)
+            .find(|&k| near(k))?;
+        let (sa, sb) = (&self.samples[a], &self.samples[b]);
+        let (va, vb) = (self.truth_ml[a], self.truth_ml[b]);
+        let f = (t_ns - sa.t_ns) as f64 / (sb.t_ns - sa.t_ns) as f64;
         let v = va + (vb - va) * f;
         v.is_finite().then_some(v)
     }
 }
+
+/// How far from a frame's display time the hindsight volume is looked for on each side across
+/// invalid samples, ns (a longer run of them is a loss the volume is not compared over).
+pub const TRUTH_BRIDGE_NS: u64 = 250_000_000;
 
 /// A replay's settings.
 #[derive(Debug, Clone, Copy, PartialEq)]
@@ -252,11 +268,13 @@ pub struct Evaluation {
     pub lag_ms: Option<f64>,
     /// The same without prediction.
     pub lag_ms_without_prediction: Option<f64>,
-    /// Breaths whose end-inspiration was matched.
+    /// Breaths whose end-inspiration the drawn volume matched (within ±1 s): what a "breaths
+    /// followed" figure counts.
     pub breaths_matched: usize,
-    /// Complete breaths in the trace.
+    /// The trace's end-inspirations in the part replayed (after the first latency).
     pub breaths_in_recording: usize,
-    /// End-inspirations the follower confirmed over the replay.
+    /// End-inspirations the follower confirmed over the replay, matched or not (it may confirm a
+    /// partial last breath, or a turn the trace's hindsight does not count).
     pub breaths_detected: u64,
     /// Irregular breaths and pauses the follower found.
     pub irregular: super::detect::Counts,

@@ -332,7 +332,12 @@ fn parse_csv(text: &str) -> Result<SignalTrace, (u64, String)> {
     let (mut time, mut signal, mut valid) = (None, None, None);
     for (i, h) in headers.iter().enumerate() {
         match csv_column(h) {
-            Some(("time", f, _)) => time = Some((i, f)),
+            Some(("time", f, _)) => {
+                if time.is_some() {
+                    return Err((1, format!("two time columns (the second: {h:?}): keep one")));
+                }
+                time = Some((i, f))
+            }
             Some(("signal", f, Some(u))) => {
                 if signal.is_some() {
                     return Err((
