@@ -17,7 +17,7 @@
 //!
 //! ## Layout versioning
 //! [`LAYOUT_VERSION`] is written into every payload ([`Message::layout_version`]) and into every
-//! payload's type name ([`Message::TYPE_NAME`], `"lungdyn.EngineFrame.v8"`), which the transport
+//! payload's type name ([`Message::TYPE_NAME`], `"lungdyn.EngineFrame.v9"`), which the transport
 //! hands to iceoryx2: iceoryx2 refuses to open a service whose payload type name, size or alignment
 //! differ from the creator's, so a process built from another layout fails at start-up instead of
 //! reading garbage; the field in the payload is a second check for peers that bypass the type name.
@@ -41,14 +41,17 @@
 //! frame (`lungdyn breathing follow`); v8 adds to each [`SignalBlock`] the pipeline's latency as the
 //! renderer's reports measured it ([`SignalBlock::pipeline_latency_ns`]), so the engine predicts the
 //! signal across the latency measured, and a recording replays the prediction bit for bit, and to
-//! each [`SignalFollowed`] the latency the engine predicted across ([`SignalFollowed::latency_ns`]).
+//! each [`SignalFollowed`] the latency the engine predicted across ([`SignalFollowed::latency_ns`]);
+//! v9 adds to each [`SignalFollowed`] the patient's typical breath as followed (tidal volume and
+//! period), so a heads-up display shows the patient's rate and tidal volume, not the model's, while
+//! the signal drives the lungs.
 
 use core::mem::{align_of, offset_of, size_of};
 
 use bytemuck::{Pod, Zeroable};
 
 /// Version of every payload layout in this crate. Part of each payload's type name.
-pub const LAYOUT_VERSION: u32 = 8;
+pub const LAYOUT_VERSION: u32 = 9;
 
 /// Most respiratory-signal samples one [`TrackerFrame`] carries (8 per frame at the bridge's 60 Hz:
 /// 480 Hz; a slower source sends one or none per frame, a faster one's rest waits for the next).
@@ -493,6 +496,11 @@ pub struct SignalFollowed {
     /// `[breathing] sensor_latency_ms`, or `latency_ms` (fixed, or before a measurement); 0 when
     /// nothing was followed.
     pub latency_ns: u64,
+    /// The patient's typical tidal volume as followed (the calibrated median of the last regular
+    /// breaths), ml, whole patient (layout v9); 0 while unknown.
+    pub tidal_ml: f32,
+    /// The patient's typical breath period as followed, s (layout v9); 0 while unknown.
+    pub period_s: f32,
 }
 
 impl Default for EngineFrame {
@@ -934,7 +942,7 @@ impl core::str::FromStr for Intervention {
 
 impl Message for ControlPacket {
     const NAME: &'static str = "ControlPacket";
-    const TYPE_NAME: &'static str = "lungdyn.ControlPacket.v8";
+    const TYPE_NAME: &'static str = "lungdyn.ControlPacket.v9";
     fn layout_version(&self) -> u32 {
         self.layout_version
     }
@@ -942,35 +950,35 @@ impl Message for ControlPacket {
 
 impl Message for ControlReply {
     const NAME: &'static str = "ControlReply";
-    const TYPE_NAME: &'static str = "lungdyn.ControlReply.v8";
+    const TYPE_NAME: &'static str = "lungdyn.ControlReply.v9";
     fn layout_version(&self) -> u32 {
         self.layout_version
     }
 }
 
-const VERSION_SUFFIX: &str = ".v8";
+const VERSION_SUFFIX: &str = ".v9";
 const _: () = assert!(
-    LAYOUT_VERSION == 8,
+    LAYOUT_VERSION == 9,
     "bump VERSION_SUFFIX with LAYOUT_VERSION"
 );
 
 impl Message for TrackerFrame {
     const NAME: &'static str = "TrackerFrame";
-    const TYPE_NAME: &'static str = "lungdyn.TrackerFrame.v8";
+    const TYPE_NAME: &'static str = "lungdyn.TrackerFrame.v9";
     fn layout_version(&self) -> u32 {
         self.layout_version
     }
 }
 impl Message for EngineFrame {
     const NAME: &'static str = "EngineFrame";
-    const TYPE_NAME: &'static str = "lungdyn.EngineFrame.v8";
+    const TYPE_NAME: &'static str = "lungdyn.EngineFrame.v9";
     fn layout_version(&self) -> u32 {
         self.layout_version
     }
 }
 impl Message for FrameReport {
     const NAME: &'static str = "FrameReport";
-    const TYPE_NAME: &'static str = "lungdyn.FrameReport.v8";
+    const TYPE_NAME: &'static str = "lungdyn.FrameReport.v9";
     fn layout_version(&self) -> u32 {
         self.layout_version
     }
@@ -1079,13 +1087,15 @@ const _: () = {
     assert!(offset_of!(LungFrame, cycle_ticks) == 72 + 4 * MAX_COEFFS);
     assert!(offset_of!(LungFrame, inhale_ticks) == 76 + 4 * MAX_COEFFS);
 
-    assert!(size_of::<SignalFollowed>() == 24 && align_of::<SignalFollowed>() == 8);
+    assert!(size_of::<SignalFollowed>() == 32 && align_of::<SignalFollowed>() == 8);
     assert!(offset_of!(SignalFollowed, display_ns) == 0);
     assert!(offset_of!(SignalFollowed, volume_ml) == 8);
     assert!(offset_of!(SignalFollowed, unpredicted_ml) == 12);
     assert!(offset_of!(SignalFollowed, latency_ns) == 16);
+    assert!(offset_of!(SignalFollowed, tidal_ml) == 24);
+    assert!(offset_of!(SignalFollowed, period_s) == 28);
 
-    assert!(size_of::<EngineFrame>() == 808 && align_of::<EngineFrame>() == 8);
+    assert!(size_of::<EngineFrame>() == 816 && align_of::<EngineFrame>() == 8);
     assert!(offset_of!(EngineFrame, layout_version) == 0);
     assert!(offset_of!(EngineFrame, state) == 4);
     assert!(offset_of!(EngineFrame, fault) == 8);
@@ -1244,7 +1254,7 @@ mod tests {
         f.lungs[LUNG_LEFT].kernel_id = 0xdead_beef_0123_4567;
         f.lungs[LUNG_RIGHT].offset_mm = [1.0, -2.0, 3.5];
         let bytes = bytemuck::bytes_of(&f).to_vec();
-        assert_eq!(bytes.len(), 808);
+        assert_eq!(bytes.len(), 816);
         let back: EngineFrame = bytemuck::pod_read_unaligned(&bytes);
         assert_eq!(back, f);
         // Little-endian on every supported host: the kernel id sits at byte 112 + 336 (left lung).
@@ -1257,12 +1267,16 @@ mod tests {
     #[test]
     fn a_payload_of_another_layout_is_refused_by_name() {
         let f = EngineFrame {
-            layout_version: 9,
+            layout_version: LAYOUT_VERSION + 1,
             ..Default::default()
         };
         let e = f.check_layout().unwrap_err();
-        assert_eq!(e.theirs, 9);
-        assert!(e.to_string().contains("EngineFrame with layout v9"), "{e}");
+        assert_eq!(e.theirs, LAYOUT_VERSION + 1);
+        assert!(
+            e.to_string()
+                .contains(&format!("EngineFrame with layout v{}", LAYOUT_VERSION + 1)),
+            "{e}"
+        );
         assert!(TrackerFrame {
             layout_version: LAYOUT_VERSION,
             ..Default::default()

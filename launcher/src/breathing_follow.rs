@@ -988,6 +988,7 @@ mod tests {
                 volume_ml: p as f32,
                 unpredicted_ml: h as f32,
                 latency_ns: 50 * MS,
+                ..Default::default()
             };
             engine.insert(tick, (s, 0));
         }

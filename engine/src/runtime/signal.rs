@@ -407,9 +407,23 @@ impl SignalDrive {
                 volume_ml: finite(f.volume_ml),
                 unpredicted_ml: finite(f.unpredicted_ml),
                 latency_ns: self.latency_ns,
+                tidal_ml: self.typical_tidal_ml().map_or(0.0, finite),
+                period_s: self
+                    .follower
+                    .detector()
+                    .typical_period_s()
+                    .map_or(0.0, finite),
             },
             None => ipc_types::SignalFollowed::default(),
         }
+    }
+
+    /// The patient's typical tidal volume as followed (the gain in use times the typical breath's
+    /// amplitude), ml; `None` while either is unknown.
+    fn typical_tidal_ml(&self) -> Option<f64> {
+        let f = &self.follower;
+        let v = f.gain()? * f.detector().typical_amplitude()?;
+        (v.is_finite() && v > 0.0).then_some(v)
     }
 
     /// Ticks so far by what drove the lungs.

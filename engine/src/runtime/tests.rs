@@ -1973,6 +1973,20 @@ fn the_engine_frame_carries_what_it_followed_of_the_signal() {
         hi - lo < 1e-3,
         "the lungs' share of the followed volume: {lo}..{hi}"
     );
+    // The patient's typical breath for the heads-up display (layout v9): a breath every 4.7 s,
+    // and (an amplitude calibrated to the scene's tidal volume) the model's tidal volume.
+    let model_tv: f32 = f
+        .lungs
+        .iter()
+        .filter(|l| l.is_active())
+        .map(|l| l.tidal_ml)
+        .sum();
+    assert!((f.signal.period_s - 4.7).abs() < 0.05, "{:?}", f.signal);
+    assert!(
+        (f.signal.tidal_ml - model_tv).abs() < 1.0,
+        "{:?} against {model_tv}",
+        f.signal
+    );
     // With the model breathing there is nothing to say.
     let mut model = core();
     for tick in 0..120 {

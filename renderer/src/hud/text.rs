@@ -135,7 +135,9 @@ pub fn breathing_lung(frame: &EngineFrame) -> Option<usize> {
 }
 
 /// Total volume, total tidal volume (ml) and the followed lung's rate: "V 2650 ml  TV 500 ml
-/// 12 /min" (29 characters: one row of the compact HUD's panel at 320 px).
+/// 12 /min" (29 characters: one row of the compact HUD's panel at 320 px). While the patient's
+/// signal drives the lungs, the tidal volume and the rate are the patient's typical breath as
+/// followed (the model's would be another breath than the one drawn).
 pub fn volume_line(out: &mut String, frame: &EngineFrame, tick_hz: f64) {
     out.clear();
     let (mut v, mut tv) = (0.0f64, 0.0f64);
@@ -143,8 +145,17 @@ pub fn volume_line(out: &mut String, frame: &EngineFrame, tick_hz: f64) {
         v += l.volume_ml as f64;
         tv += l.tidal_ml as f64;
     }
+    let s = &frame.signal;
+    let following = frame.state & ipc_types::engine_state::SIGNAL_FOLLOWING != 0;
+    if following && s.tidal_ml > 0.0 && s.tidal_ml.is_finite() {
+        tv = s.tidal_ml as f64;
+    }
     let _ = write!(out, "V {v:4.0} ml  TV {tv:3.0} ml");
-    match breathing_lung(frame).and_then(|k| rate_per_min(frame.lungs[k].cycle_ticks, tick_hz)) {
+    let patient_rate =
+        (following && s.period_s > 0.0 && s.period_s.is_finite()).then(|| 60.0 / s.period_s as f64);
+    match patient_rate.or_else(|| {
+        breathing_lung(frame).and_then(|k| rate_per_min(frame.lungs[k].cycle_ticks, tick_hz))
+    }) {
         Some(r) => {
             let _ = write!(out, "  {r:2.0} /min");
         }
@@ -972,6 +983,30 @@ mod tests {
         assert_eq!(s, "V    0 ml  TV   0 ml  -- /min");
         assert_eq!(breath_phase(&empty), None);
         assert_eq!(rate_per_min(0, 60.0), None);
+    }
+
+    /// While the patient's signal drives the lungs, the line gives the patient's typical breath as
+    /// followed (20 /min, 450 ml), not the model's (12 /min, 500 ml); while it calibrates, or
+    /// before the follower knows a breath, the model's.
+    #[test]
+    fn the_patients_rate_and_tidal_volume_are_shown_while_following() {
+        use ipc_types::engine_state as e;
+        let mut f = EngineFrame::default();
+        f.lungs[LUNG_RIGHT] = lung(1400.0, 270.0, 300, 150, 0.25, lung_flags::INHALING);
+        f.lungs[LUNG_LEFT] = lung(1250.0, 230.0, 300, 150, 0.25, lung_flags::INHALING);
+        f.signal.tidal_ml = 450.0;
+        f.signal.period_s = 3.0;
+        let mut s = String::new();
+        f.state = e::SIGNAL_FOLLOWING;
+        volume_line(&mut s, &f, 60.0);
+        assert_eq!(s, "V 2650 ml  TV 450 ml  20 /min");
+        f.state = e::SIGNAL_CALIBRATING;
+        volume_line(&mut s, &f, 60.0);
+        assert_eq!(s, "V 2650 ml  TV 500 ml  12 /min");
+        f.state = e::SIGNAL_FOLLOWING;
+        f.signal = ipc_types::SignalFollowed::default();
+        volume_line(&mut s, &f, 60.0);
+        assert_eq!(s, "V 2650 ml  TV 500 ml  12 /min");
         assert_eq!(rate_per_min(300, 0.0), None);
     }
 
