@@ -41,6 +41,8 @@ def main():
                     sys.exit(f"{a.resp}: line {n}: {line!r} is not a number")
     if rate is None:
         sys.exit(f"{a.resp}: no '# Sampling Rate (Hz):= ...' header line: is this BioSPPy's resp.txt?")
+    if not (a.rate_hz > 0 and a.rate_hz < float("inf")):
+        sys.exit(f"--rate-hz {a.rate_hz}: give a rate above 0 that divides the file's {rate:g} Hz")
     block = rate / a.rate_hz
     if block < 1 or abs(block - round(block)) > 1e-9:
         sys.exit(f"--rate-hz {a.rate_hz}: give a divisor of the file's {rate:g} Hz")
@@ -48,11 +50,16 @@ def main():
     if len(values) < block * a.rate_hz * 10:
         sys.exit(f"{a.resp}: {len(values)} samples: under 10 s at {rate:g} Hz")
     tmp = a.out + ".tmp"
-    with open(tmp, "w") as f:
-        f.write("time_s,amplitude_au\n")
-        for i in range(0, len(values) - block + 1, block):
-            f.write(f"{i / rate:.3f},{sum(values[i:i + block]) / block:.2f}\n")
-    os.replace(tmp, a.out)
+    try:
+        with open(tmp, "w") as f:
+            f.write("time_s,amplitude_au\n")
+            # Each block's mean at the block's centre.
+            for i in range(0, len(values) - block + 1, block):
+                f.write(f"{(i + (block - 1) / 2) / rate:.4f},{sum(values[i:i + block]) / block:.2f}\n")
+        os.replace(tmp, a.out)
+    finally:
+        if os.path.exists(tmp):
+            os.remove(tmp)
     print(f"wrote {a.out}: {len(values) // block} samples at {a.rate_hz:g} Hz ({len(values) / rate:.1f} s)",
           file=sys.stderr)
 

@@ -496,10 +496,13 @@ pub struct SignalFollowed {
     /// `[breathing] sensor_latency_ms`, or `latency_ms` (fixed, or before a measurement); 0 when
     /// nothing was followed.
     pub latency_ns: u64,
-    /// The patient's typical tidal volume as followed (the calibrated median of the last regular
-    /// breaths), ml, whole patient (layout v9); 0 while unknown.
+    /// The patient's typical breath as drawn, ml, whole patient (layout v9): the calibrated median
+    /// of the last regular breaths — with an amplitude's automatic calibration the volume it is
+    /// calibrated to, with a spirometry gain or a volume signal the patient's own; 0 while it or
+    /// the period is unknown.
     pub tidal_ml: f32,
-    /// The patient's typical breath period as followed, s (layout v9); 0 while unknown.
+    /// The patient's typical breath period as followed (median of the last regular breaths), s
+    /// (layout v9); 0 while it or the tidal volume is unknown.
     pub period_s: f32,
 }
 

@@ -95,10 +95,10 @@ pub struct CheckReport {
     /// Per latency: whether the verdict's predictor met issue 35's goal (≤ 3 % and ≥ 2× lower).
     pub goal: Vec<GoalRow>,
     /// RMS error at no latency and without prediction, % of tidal: the live calibration (baseline
-    /// and gain from the breaths so far) against the hindsight one (from the whole recording) —
-    /// what no prediction can remove. Near 0 on a regular signal; a belt's irregular breaths
-    /// raise it.
-    pub calibration_floor_percent_of_tidal: f64,
+    /// and gain from the breaths so far) against the hindsight one (from the whole recording), plus
+    /// the newest sample's age — mostly what no prediction can remove. Near 0 on a regular signal;
+    /// a belt's irregular breaths raise it. `None` when no frame was compared.
+    pub calibration_floor_percent_of_tidal: Option<f64>,
     /// Plots written.
     pub plots: Vec<String>,
 }
@@ -209,7 +209,8 @@ pub fn check(a: &CheckArgs) -> anyhow::Result<CheckReport> {
         },
         results,
         goal,
-        calibration_floor_percent_of_tidal: floor.rms_error_percent_of_tidal,
+        calibration_floor_percent_of_tidal: (floor.frames_compared > 0)
+            .then_some(floor.rms_error_percent_of_tidal),
         plots,
     })
 }
@@ -307,20 +308,22 @@ pub fn check_text(r: &CheckReport) -> String {
             e.frames_lost
         );
     }
-    s += &format!(
-        "at 0 ms without prediction: {:.2} % of tidal — the live calibration (baseline and gain \
-         from the breaths so far) against the hindsight one (the whole recording): no prediction \
-         removes this part{}\n",
-        r.calibration_floor_percent_of_tidal,
-        if r.calibration_floor_percent_of_tidal > GOAL_PERCENT_OF_TIDAL {
-            format!(
-                "; over the goal's {GOAL_PERCENT_OF_TIDAL} % by itself: irregular breaths or a \
-                 drifting baseline (the plot shows where)"
-            )
-        } else {
-            String::new()
-        }
-    );
+    if let Some(floor) = r.calibration_floor_percent_of_tidal {
+        s += &format!(
+            "at 0 ms without prediction: {floor:.2} % of tidal — the live calibration (baseline and \
+             gain from the breaths so far) against the hindsight one (the whole recording), and the \
+             newest sample's age (half a sample period on average): prediction removes little of \
+             this part{}\n",
+            if floor > GOAL_PERCENT_OF_TIDAL {
+                format!(
+                    "; over the goal's {GOAL_PERCENT_OF_TIDAL} % by itself: irregular breaths or a \
+                     drifting baseline (the plot shows where)"
+                )
+            } else {
+                String::new()
+            }
+        );
+    }
     s += &format!(
         "\ngoal (issue 35): RMS ≤ {GOAL_PERCENT_OF_TIDAL} % of tidal with prediction and ≥ {GOAL_IMPROVEMENT}× lower than without — {}:\n",
         r.predictor

@@ -945,6 +945,7 @@ mod tests {
             tidal_ml: 500.0,
             rate_hz: 25.0,
             calibration: Calibration::Volume,
+            breath_period_s: None,
             inspiration_fraction: Some(0.375),
         }
     }

@@ -400,19 +400,30 @@ impl SignalDrive {
     /// time predicted for, and the volume with and without the prediction (0 where none; a value
     /// that is not finite is never written).
     pub fn wire(&self) -> ipc_types::SignalFollowed {
-        let finite = |v: f64| if v.is_finite() { v as f32 } else { 0.0 };
+        let finite = |v: f64| {
+            let x = v as f32;
+            if x.is_finite() {
+                x
+            } else {
+                0.0
+            }
+        };
+        // The patient's typical breath, both figures or neither (a display pairs them).
+        let (tidal, period) = match (
+            self.typical_tidal_ml(),
+            self.follower.detector().typical_period_s(),
+        ) {
+            (Some(v), Some(p)) if finite(v) > 0.0 && finite(p) > 0.0 => (finite(v), finite(p)),
+            _ => (0.0, 0.0),
+        };
         match self.followed {
             Some(f) => ipc_types::SignalFollowed {
                 display_ns: self.now_ns.saturating_add(self.latency_ns),
                 volume_ml: finite(f.volume_ml),
                 unpredicted_ml: finite(f.unpredicted_ml),
                 latency_ns: self.latency_ns,
-                tidal_ml: self.typical_tidal_ml().map_or(0.0, finite),
-                period_s: self
-                    .follower
-                    .detector()
-                    .typical_period_s()
-                    .map_or(0.0, finite),
+                tidal_ml: tidal,
+                period_s: period,
             },
             None => ipc_types::SignalFollowed::default(),
         }

@@ -8,6 +8,7 @@ use super::evaluate::{evaluate, EvalOptions, Evaluation, Trace};
 use super::follow::{Calibration, FollowerConfig};
 use super::predict::PredictorKind;
 use super::trace::{looks_like_trace, parse_trace, SignalUnit, TraceError, TraceFormat};
+use crate::plausible;
 use crate::recording::{checks, classify, parse_recording, SegmentOptions};
 
 /// The goal issue 35 sets: RMS error at display time ≤ 3 % of the tidal volume with prediction…
@@ -112,66 +113,71 @@ pub fn read_trace_or_recording(
     })
 }
 
-/// Breaths a minute a respiratory signal may show (the median breath): slower is a breath-hold
-/// or not breathing, faster is not breathing either (a heartbeat, a vibration, a time column in
-/// the wrong unit).
-pub const BREATHS_PER_MIN: std::ops::RangeInclusive<f64> = 2.0..=70.0;
-/// The mean tidal volume a calibrated signal may show, ml (what `--tidal-ml` and the scene's
-/// `tidal_ml` accept).
-pub const TIDAL_ML: std::ops::RangeInclusive<f64> = 50.0..=3000.0;
+/// How far a trace's mean calibrated breath may lie from the tidal volume an amplitude's automatic
+/// calibration makes its median breath (×¼…×4): beyond, its breaths differ too much in size to be
+/// one patient's breathing at one gain.
+pub const AUTO_MEAN_OVER_MEDIAN: std::ops::RangeInclusive<f64> = 0.25..=4.0;
 
-/// A one-signal trace that is breathing: its breaths' median period and its mean tidal volume in
-/// range. Figures computed on a 3 Hz vibration or on a volume 1000× off look like any others, so
-/// such a trace is refused with what looks wrong.
+/// A one-signal trace that is breathing: its regular breaths' median period within the project's
+/// breathing rates ([`plausible::BREATHS_PER_MIN`]) and, calibrated, its mean breath within its
+/// tidal volumes ([`plausible::TIDAL_VOLUME_ML`]; with an amplitude's automatic calibration, within
+/// [`AUTO_MEAN_OVER_MEDIAN`] of the volume it is calibrated to). Figures computed on a 3 Hz
+/// vibration or on a volume 1000× off look like any others, so such a trace is refused with what
+/// looks wrong.
 pub fn plausible(trace: &Trace, unit: SignalUnit) -> Result<(), String> {
-    let mut periods: Vec<f64> = trace
-        .end_inspiration_ns
-        .windows(2)
-        .map(|w| w[1].saturating_sub(w[0]) as f64 * 1e-9)
-        .collect();
-    periods.sort_by(f64::total_cmp);
-    if let Some(&p) = periods.get(periods.len() / 2) {
+    let (rate, tv) = (plausible::BREATHS_PER_MIN, plausible::TIDAL_VOLUME_ML);
+    if let Some(p) = trace.breath_period_s.filter(|p| *p > 0.0) {
         let per_min = 60.0 / p;
-        if !BREATHS_PER_MIN.contains(&per_min) {
+        if !rate.contains(per_min) {
             return Err(format!(
-                "its breaths come every {p:.2} s (median): {per_min:.1} a minute, where breathing \
-                 is {}–{} — is this a respiratory signal, and is its time column in the unit it \
-                 names?",
-                BREATHS_PER_MIN.start(),
-                BREATHS_PER_MIN.end()
+                "its regular breaths come every {p:.2} s (median): {per_min:.1} a minute, where \
+                 breathing is {}–{} (breath-holds and pauses are not counted as breaths) — is this \
+                 a respiratory signal, and is its time column in the unit it names?",
+                rate.lo, rate.hi
             ));
         }
     }
     let tidal = trace.tidal_ml;
-    if !(tidal.is_finite() && TIDAL_ML.contains(&tidal)) {
-        let why = match (unit, trace.calibration) {
-            (SignalUnit::Ml, _) | (_, Calibration::Volume) => {
-                "is the volume column's unit right? ml under volume_L reads 1000× too large, \
-                 litres under volume_ml 1000× too small"
-                    .to_string()
-            }
-            (_, Calibration::Fixed { ml_per_unit }) => format!(
-                "is the spirometry calibration ({} ml per {}) for this signal's unit?",
-                number(ml_per_unit),
-                unit.symbol()
-            ),
-            (_, Calibration::Auto { tidal_ml }) if tidal.is_finite() => format!(
-                "the median breath is calibrated to {} ml, so its breaths differ too much in size \
-                 to be one patient's breathing (is the device's gain changing?)",
-                number(tidal_ml)
-            ),
-            (_, Calibration::Auto { .. }) => {
-                "the signal's values are too large or too small to calibrate (rescale them)".into()
-            }
-        };
-        return Err(format!(
-            "its breaths average {} ml, where a tidal volume is {}–{} ml: {why}",
-            number(tidal),
-            TIDAL_ML.start(),
-            TIDAL_ML.end()
-        ));
+    if !tidal.is_finite() {
+        return Err(
+            "no breath's volume could be computed: its values are too large or too small to \
+             calibrate (rescale them), or invalid between its end-expirations"
+                .into(),
+        );
     }
-    Ok(())
+    let why = match (unit, trace.calibration) {
+        (_, Calibration::Auto { tidal_ml }) => {
+            let ratio = tidal / tidal_ml;
+            if AUTO_MEAN_OVER_MEDIAN.contains(&ratio) {
+                return Ok(());
+            }
+            return Err(format!(
+                "its median breath is calibrated to {} ml and its breaths average {} ml ({}×): \
+                 they differ too much in size to be one patient's breathing at one gain (is the \
+                 device's gain changing?)",
+                number(tidal_ml),
+                number(tidal),
+                number(ratio)
+            ));
+        }
+        _ if tv.contains(tidal) => return Ok(()),
+        (SignalUnit::Ml, _) | (_, Calibration::Volume) => {
+            "is the volume column's unit right? ml under volume_L reads 1000× too large, litres \
+             under volume_ml 1000× too small"
+                .to_string()
+        }
+        (_, Calibration::Fixed { ml_per_unit }) => format!(
+            "is the spirometry calibration ({} ml per {}) for this signal's unit?",
+            number(ml_per_unit),
+            unit.symbol()
+        ),
+    };
+    Err(format!(
+        "its breaths average {} ml, where a tidal volume is {}–{} ml: {why}",
+        number(tidal),
+        tv.lo,
+        tv.hi
+    ))
 }
 
 /// `x` for a message: plain where it reads plainly (0.001…1e7), else in exponent form (a 1e300 is
@@ -297,6 +303,16 @@ mod tests {
         let (all, half) = (compared(&valid), compared(&alternate));
         assert!(all > 800, "{all}");
         assert!(half + 60 >= all, "{half} of {all}");
+        // A slow source's neighbours are 500 ms apart, all valid: every frame between them is
+        // compared (the bridge's limit is for stepping over invalid samples only).
+        let mut slow = String::from("time_s,amplitude_mm\n");
+        for k in 0..60 {
+            let t = k as f64 * 0.5;
+            let v = 4.0 * (1.0 - (std::f64::consts::TAU * t / 4.0).cos());
+            slow += &format!("{t:.3},{v:.5}\n");
+        }
+        let slow = compared(&slow);
+        assert!(slow + 90 >= all, "{slow} of {all} at 2 Hz");
     }
 
     /// What is not breathing is refused naming what looks wrong, not measured: a vibration, breaths
@@ -312,7 +328,7 @@ mod tests {
             };
         let fast = refused(sine_csv("amplitude_mm", 1.0, 0.25), auto);
         assert!(
-            fast.contains("a minute, where breathing is 2–70")
+            fast.contains("a minute, where breathing is 2–150")
                 && fast.contains("respiratory signal"),
             "{fast}"
         );
@@ -341,6 +357,20 @@ mod tests {
             Calibration::Fixed { ml_per_unit: 1e-6 },
         );
         assert!(gain.contains("1.000e-6 ml per mm"), "{gain}");
+        // An amplitude whose breaths grow a hundredfold over the trace: no one gain calibrates it.
+        let mut growing = String::from("time_s,amplitude_mm\n");
+        for k in 0..750 {
+            let t = k as f64 * 0.04;
+            let v = 10f64.powf(2.0 * t / 30.0) * (1.0 - (std::f64::consts::TAU * t / 3.0).cos());
+            growing += &format!("{t:.3},{v:.5}\n");
+        }
+        let growing = refused(growing, auto);
+        assert!(
+            growing.contains("calibrated to 500 ml") && growing.contains("differ too much"),
+            "{growing}"
+        );
+        // An infant's 30 ml breaths at 40 a minute, as a volume: breathing, accepted.
+        read_trace_or_recording(path, sine_csv("volume_ml", 3.75, 1.5).as_bytes(), auto).unwrap();
         // Breathing at 20 a minute, 400 ml: accepted.
         read_trace_or_recording(path, sine_csv("volume_ml", 50.0, 3.0).as_bytes(), auto).unwrap();
     }

@@ -37,6 +37,9 @@ pub struct Trace {
     pub rate_hz: f64,
     /// How a live follower turns this signal into ml.
     pub calibration: Calibration,
+    /// The median period of the regular breaths the detector found over the whole trace, s (a
+    /// one-signal trace's; `None` for a ventilator recording, whose own checks give its rate).
+    pub breath_period_s: Option<f64>,
     /// Median fraction of a breath spent rising (inspiring): about 0.3–0.45 in quiet breathing
     /// (I:E 1:1.2–1:2.3); over 0.5 suggests the signal's sign is the wrong way round.
     pub inspiration_fraction: Option<f64>,
@@ -108,6 +111,7 @@ impl Trace {
             tidal_ml: tidal.iter().sum::<f64>() / tidal.len() as f64,
             rate_hz: (n - 1) as f64 / duration,
             calibration: Calibration::Volume,
+            breath_period_s: None,
             inspiration_fraction: median(fractions),
         })
     }
@@ -124,12 +128,13 @@ impl Trace {
     pub fn from_signal(t: &SignalTrace, calibration: Calibration) -> Option<Trace> {
         let mut det = Detector::new();
         let mut troughs: Vec<(u64, f64)> = Vec::new();
-        let mut amplitudes = Vec::new();
+        let (mut amplitudes, mut periods) = (Vec::new(), Vec::new());
         for s in t.samples.iter().filter(|s| s.valid) {
             if let Some(Turn::Trough(tt, v, breath)) = det.push(s.t_ns, s.value) {
                 troughs.push((tt, v));
                 if let Some(b) = breath.filter(|b| b.kind == BreathKind::Regular) {
                     amplitudes.push(b.amplitude);
+                    periods.push(b.period_s);
                 }
             }
         }
@@ -190,6 +195,7 @@ impl Trace {
             tidal_ml: tidal.iter().sum::<f64>() / tidal.len() as f64,
             rate_hz: t.rate_hz,
             calibration,
+            breath_period_s: median(periods),
             inspiration_fraction: median(fractions),
         })
     }
@@ -200,18 +206,18 @@ impl Trace {
         if i == 0 || i >= self.samples.len() {
             return None;
         }
-        // The nearest samples with a hindsight volume on each side: an invalid sample has none,
-        // and a short run of them is bridged as the live follower's grid bridges it.
-        let near = |k: usize| {
-            self.truth_ml[k].is_finite() && self.samples[k].t_ns.abs_diff(t_ns) <= TRUTH_BRIDGE_NS
-        };
+        // The nearest samples with a hindsight volume on each side: the neighbours themselves when
+        // they have one, however far apart (a slow source's samples); across samples without one
+        // (flagged invalid) only within the bridge, as the live follower's grid bridges them.
+        let has = |k: usize| self.truth_ml[k].is_finite();
+        let close = |k: usize| self.samples[k].t_ns.abs_diff(t_ns) <= TRUTH_BRIDGE_NS;
         let a = (0..i)
             .rev()
-            .take_while(|&k| self.samples[k].t_ns.abs_diff(t_ns) <= TRUTH_BRIDGE_NS)
-            .find(|&k| near(k))?;
+            .take_while(|&k| k == i - 1 || close(k))
+            .find(|&k| has(k))?;
         let b = (i..self.samples.len())
-            .take_while(|&k| self.samples[k].t_ns.abs_diff(t_ns) <= TRUTH_BRIDGE_NS)
-            .find(|&k| near(k))?;
+            .take_while(|&k| k == i || close(k))
+            .find(|&k| has(k))?;
         let (sa, sb) = (&self.samples[a], &self.samples[b]);
         let (va, vb) = (self.truth_ml[a], self.truth_ml[b]);
         let f = (t_ns - sa.t_ns) as f64 / (sb.t_ns - sa.t_ns) as f64;
