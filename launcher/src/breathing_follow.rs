@@ -802,6 +802,29 @@ fn panels(trace: &Trace, drawn: &[Drawn], compared: &[Compared]) -> Vec<Panel> {
     ]
 }
 
+/// The RMS line of the text report, or why there is none (no frame compared: the figures would be
+/// NaN).
+fn rms_line(f: &Figures) -> String {
+    if f.frames_compared == 0 {
+        return format!(
+            "RMS error at display time: none — no drawn frame was compared with the recording \
+             (following {}, calibrating {}, lost {}): too few breaths to calibrate on before the \
+             run ended, or the signal never drove the lungs",
+            f.frames_following, f.frames_calibrating, f.frames_lost
+        );
+    }
+    format!(
+        "RMS error at display time: {:.1} ml = {:.2} % of tidal ({:.0} ml) with prediction, {:.1} \
+         ml = {:.2} % without ({} frames compared)",
+        f.rms_error_ml,
+        f.rms_error_percent_of_tidal,
+        f.tidal_ml,
+        f.rms_error_ml_without_prediction,
+        f.rms_error_percent_of_tidal_without_prediction,
+        f.frames_compared
+    )
+}
+
 /// The report as text.
 pub fn follow_text(r: &FollowReport) -> String {
     let f = &r.figures;
@@ -812,8 +835,7 @@ pub fn follow_text(r: &FollowReport) -> String {
          frames drawn {}, on the recording's clock {}: following {}, calibrating {}, lost {}; \
          first following at {}\n\
          recording played {:.1} s; breaths {} of {} followed (end-inspiration drawn within 1 s){}\n\
-         RMS error at display time: {:.1} ml = {:.2} % of tidal ({:.0} ml) with prediction, \
-         {:.1} ml = {:.2} % without ({} frames compared)\n\
+         {}\n\
          end-inspiration lag: {} with prediction, {} without\n\
          latency (newest input to display): predicted across {} ({}), measured median {}, p99 {}\n",
         r.file,
@@ -842,12 +864,7 @@ pub fn follow_text(r: &FollowReport) -> String {
                     .join(", ")
             )
         },
-        f.rms_error_ml,
-        f.rms_error_percent_of_tidal,
-        f.tidal_ml,
-        f.rms_error_ml_without_prediction,
-        f.rms_error_percent_of_tidal_without_prediction,
-        f.frames_compared,
+        rms_line(f),
         opt(f.lag_ms, "ms"),
         opt(f.lag_ms_without_prediction, "ms"),
         opt(f.latency_ms_predicted_median, "ms"),
@@ -1073,6 +1090,12 @@ mod tests {
         let (f, c) = figures(&tr, &drawn[..200], &engine, FIXED_50, None);
         assert!(c.is_empty() && f.rms_error_ml.is_nan() && f.lag_ms.is_none());
         assert_eq!(f.breaths_detected, 0);
+        // …and the text says why there is no error figure rather than printing NaN.
+        let line = rms_line(&f);
+        assert!(
+            line.contains("none — no drawn frame was compared") && !line.contains("NaN"),
+            "{line}"
+        );
         let g = Goals::of(&f);
         assert!(!g.rms_within_3_percent && !g.lag_within_20_ms && !g.breaths_98_percent);
     }
