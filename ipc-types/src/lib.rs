@@ -42,9 +42,10 @@
 //! renderer's reports measured it ([`SignalBlock::pipeline_latency_ns`]), so the engine predicts the
 //! signal across the latency measured, and a recording replays the prediction bit for bit, and to
 //! each [`SignalFollowed`] the latency the engine predicted across ([`SignalFollowed::latency_ns`]);
-//! v9 adds to each [`SignalFollowed`] the patient's typical breath as followed (tidal volume and
-//! period), so a heads-up display shows the patient's rate and tidal volume, not the model's, while
-//! the signal drives the lungs.
+//! v9 adds to each [`SignalFollowed`] the patient's typical breath as followed (tidal volume,
+//! period, where the breath is and its inspiration's share), so a heads-up display shows the
+//! patient's rate, tidal volume and breath phase, not the model's, while the signal drives the
+//! lungs.
 
 use core::mem::{align_of, offset_of, size_of};
 
@@ -504,6 +505,12 @@ pub struct SignalFollowed {
     /// The patient's typical breath period as followed (median of the last regular breaths), s
     /// (layout v9); 0 while it or the tidal volume is unknown.
     pub period_s: f32,
+    /// Where the patient's breath is at `display_ns`: the time since the last end-expiration over
+    /// the typical period, `[0, 1)` (layout v9); 0 while the period is unknown.
+    pub phase: f32,
+    /// The patient's typical inspiration as a share of the breath, `[0, 1]` (layout v9); 0 while
+    /// unknown.
+    pub inhale_fraction: f32,
 }
 
 impl Default for EngineFrame {
@@ -1090,15 +1097,17 @@ const _: () = {
     assert!(offset_of!(LungFrame, cycle_ticks) == 72 + 4 * MAX_COEFFS);
     assert!(offset_of!(LungFrame, inhale_ticks) == 76 + 4 * MAX_COEFFS);
 
-    assert!(size_of::<SignalFollowed>() == 32 && align_of::<SignalFollowed>() == 8);
+    assert!(size_of::<SignalFollowed>() == 40 && align_of::<SignalFollowed>() == 8);
     assert!(offset_of!(SignalFollowed, display_ns) == 0);
     assert!(offset_of!(SignalFollowed, volume_ml) == 8);
     assert!(offset_of!(SignalFollowed, unpredicted_ml) == 12);
     assert!(offset_of!(SignalFollowed, latency_ns) == 16);
     assert!(offset_of!(SignalFollowed, tidal_ml) == 24);
     assert!(offset_of!(SignalFollowed, period_s) == 28);
+    assert!(offset_of!(SignalFollowed, phase) == 32);
+    assert!(offset_of!(SignalFollowed, inhale_fraction) == 36);
 
-    assert!(size_of::<EngineFrame>() == 816 && align_of::<EngineFrame>() == 8);
+    assert!(size_of::<EngineFrame>() == 824 && align_of::<EngineFrame>() == 8);
     assert!(offset_of!(EngineFrame, layout_version) == 0);
     assert!(offset_of!(EngineFrame, state) == 4);
     assert!(offset_of!(EngineFrame, fault) == 8);
@@ -1257,7 +1266,7 @@ mod tests {
         f.lungs[LUNG_LEFT].kernel_id = 0xdead_beef_0123_4567;
         f.lungs[LUNG_RIGHT].offset_mm = [1.0, -2.0, 3.5];
         let bytes = bytemuck::bytes_of(&f).to_vec();
-        assert_eq!(bytes.len(), 816);
+        assert_eq!(bytes.len(), 824);
         let back: EngineFrame = bytemuck::pod_read_unaligned(&bytes);
         assert_eq!(back, f);
         // Little-endian on every supported host: the kernel id sits at byte 112 + 336 (left lung).

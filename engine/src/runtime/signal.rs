@@ -416,14 +416,21 @@ impl SignalDrive {
             (Some(v), Some(p)) if finite(v) > 0.0 && finite(p) > 0.0 => (finite(v), finite(p)),
             _ => (0.0, 0.0),
         };
+        let display_ns = self.now_ns.saturating_add(self.latency_ns);
+        let (phase, split) = match self.follower.detector().phase_at(display_ns) {
+            Some((p, s)) if period > 0.0 => (finite(p), finite(s)),
+            _ => (0.0, 0.0),
+        };
         match self.followed {
             Some(f) => ipc_types::SignalFollowed {
-                display_ns: self.now_ns.saturating_add(self.latency_ns),
+                display_ns,
                 volume_ml: finite(f.volume_ml),
                 unpredicted_ml: finite(f.unpredicted_ml),
                 latency_ns: self.latency_ns,
                 tidal_ml: tidal,
                 period_s: period,
+                phase,
+                inhale_fraction: split,
             },
             None => ipc_types::SignalFollowed::default(),
         }

@@ -1987,6 +1987,21 @@ fn the_engine_frame_carries_what_it_followed_of_the_signal() {
         "{:?} against {model_tv}",
         f.signal
     );
+    // …and where the breath is: inspiration 40 % of each breath (chest_mm), the phase the time
+    // since the last end-expiration (the breath starts at multiples of 4.7 s; the display time is
+    // the newest input's plus 50 ms).
+    assert!(
+        (f.signal.inhale_fraction - 0.4).abs() < 0.05,
+        "{:?}",
+        f.signal
+    );
+    let display_s = (f.signal.display_ns - T0_NS) as f64 * 1e-9;
+    let expected = (display_s / 4.7).fract();
+    assert!(
+        (f64::from(f.signal.phase) - expected).abs() < 0.03,
+        "{:?} at {display_s} s: {expected}",
+        f.signal
+    );
     // With the model breathing there is nothing to say.
     let mut model = core();
     for tick in 0..120 {

@@ -164,12 +164,23 @@ pub fn volume_line(out: &mut String, frame: &EngineFrame, tick_hz: f64) {
 }
 
 /// Where the followed lung is in its breath: the fraction of the cycle done, `[0, 1)`, whether it
-/// inhales, and the fraction of the cycle that is inhalation; `None` when no lung breathes.
+/// inhales, and the fraction of the cycle that is inhalation; `None` when no lung breathes. While
+/// the patient's signal drives the lungs, the patient's breath as followed (layout v9).
 pub fn breath_phase(frame: &EngineFrame) -> Option<(f32, bool, f32)> {
     let k = breathing_lung(frame)?;
     let l = &frame.lungs[k];
     if l.flags & ipc_types::lung_flags::HELD != 0 || l.cycle_ticks == 0 || !l.phase.is_finite() {
         return None;
+    }
+    // While the patient's signal drives the lungs: the patient's breath, not the model's clock.
+    let s = &frame.signal;
+    if frame.state & ipc_types::engine_state::SIGNAL_FOLLOWING != 0
+        && s.period_s > 0.0
+        && (0.0..1.0).contains(&s.phase)
+        && (0.0..=1.0).contains(&s.inhale_fraction)
+    {
+        let inhaling = l.flags & ipc_types::lung_flags::INHALING != 0;
+        return Some((s.phase, inhaling, s.inhale_fraction));
     }
     let split = (l.inhale_ticks as f32 / l.cycle_ticks as f32).clamp(0.0, 1.0);
     Some((
@@ -1000,6 +1011,14 @@ mod tests {
         f.state = e::SIGNAL_FOLLOWING;
         volume_line(&mut s, &f, 60.0);
         assert_eq!(s, "V 2650 ml  TV 450 ml  20 /min");
+        // The phase bar: the patient's breath, 70 % through, inspiration 40 % of it (the model's
+        // is 25 % through a breath half inspiration).
+        f.signal.phase = 0.7;
+        f.signal.inhale_fraction = 0.4;
+        assert_eq!(breath_phase(&f), Some((0.7, true, 0.4)));
+        f.state = e::SIGNAL_CALIBRATING;
+        assert_eq!(breath_phase(&f), Some((0.25, true, 0.5)));
+        f.state = e::SIGNAL_FOLLOWING;
         f.state = e::SIGNAL_CALIBRATING;
         volume_line(&mut s, &f, 60.0);
         assert_eq!(s, "V 2650 ml  TV 500 ml  12 /min");
