@@ -127,11 +127,8 @@ fn check_args(a: &CheckArgs) -> anyhow::Result<PredictorKind> {
         );
     }
     if let Some(g) = a.ml_per_unit {
-        if !(g.is_finite() && g > 0.0 && g <= 1e5) {
-            anyhow::bail!(
-                "--ml-per-unit {}: a spirometry calibration is ml breathed per mm of the marker's excursion (tens: 500 ml over 10 mm is 50), above 0 and at most 1e5",
-                lung_model::breathing::check::number(g)
-            );
+        if let Err(why) = lung_model::scene::check_ml_per_unit(g) {
+            anyhow::bail!("--ml-per-unit {}: {why}", lung_model::plausible::compact(g));
         }
     }
     if let Some(p) = &a.plot {
@@ -147,12 +144,7 @@ pub fn check(a: &CheckArgs) -> anyhow::Result<CheckReport> {
         &a.file,
         a.input_args.limits(lung_model::input::ReadLimits::TABLE),
     )?;
-    let calibration = match a.ml_per_unit {
-        Some(ml_per_unit) => Calibration::Fixed { ml_per_unit },
-        None => Calibration::Auto {
-            tidal_ml: a.tidal_ml,
-        },
-    };
+    let calibration = Calibration::amplitude(a.ml_per_unit, a.tidal_ml);
     let read = read_trace_or_recording(&a.file, &bytes, calibration)?;
     let (trace, kind) = (read.trace, read.kind);
     let (results, goal) = sweep(&trace, chosen, &a.latency_ms, a.frame_rate_hz);

@@ -589,10 +589,7 @@ fn check_args(a: &FollowArgs) -> anyhow::Result<Checked> {
         .with_context(|| format!("the recording {}", a.file.display()))?;
     // The recording's hindsight volume is calibrated as the engine calibrates it live: by the
     // scene's spirometry calibration when it has one, else to its tidal volume.
-    let calibration = match scene.breathing.ml_per_unit {
-        Some(ml_per_unit) => Calibration::Fixed { ml_per_unit },
-        None => Calibration::Auto { tidal_ml },
-    };
+    let calibration = Calibration::amplitude(scene.breathing.ml_per_unit, tidal_ml);
     let read = read_trace_or_recording(&a.file, &bytes, calibration)?;
     let duration_s = duration_s(&read.trace);
     let mut scene = scene;

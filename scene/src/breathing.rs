@@ -148,11 +148,8 @@ impl BreathingScene {
             ));
         }
         if let Some(g) = self.ml_per_unit {
-            if !(g.is_finite() && g > 0.0 && g <= 1e5) {
-                return bad(format!(
-                    "ml_per_unit = {}: a spirometry calibration is ml breathed per mm of the marker's excursion (tens: 500 ml over 10 mm is 50), above 0 and at most 1e5",
-                    crate::compact(g)
-                ));
+            if let Err(why) = check_ml_per_unit(g) {
+                return bad(format!("ml_per_unit = {}: {why}", crate::compact(g)));
             }
         }
         if let Some(t) = self.tidal_ml {
@@ -164,6 +161,19 @@ impl BreathingScene {
             }
         }
         Ok(())
+    }
+}
+
+/// A spirometry calibration's gain in range (`[breathing] ml_per_unit`, `lungdyn breathing check
+/// --ml-per-unit`): `Err` says what the value is and the range, for the caller to name its key.
+pub fn check_ml_per_unit(g: f64) -> Result<(), &'static str> {
+    if g.is_finite() && g > 0.0 && g <= 1e5 {
+        Ok(())
+    } else {
+        Err(
+            "a spirometry calibration is ml breathed per mm of the marker's excursion (tens: 500 \
+             ml over 10 mm is 50), above 0 and at most 1e5",
+        )
     }
 }
 

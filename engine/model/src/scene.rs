@@ -22,7 +22,9 @@ use serde::Serialize;
 use crate::mesh::Side;
 use crate::scene_disease::DiseaseSceneExt;
 // The tables a process reads for itself, re-exported beside the physics tables above.
-pub use lungdyn_scene::breathing::{BreathSource, BreathingScene, LatencyChoice};
+pub use lungdyn_scene::breathing::{
+    check_ml_per_unit, BreathSource, BreathingScene, LatencyChoice,
+};
 pub use lungdyn_scene::processes::*;
 pub use lungdyn_scene::render::*;
 pub use lungdyn_scene::slicer::{self, SlicerScene};

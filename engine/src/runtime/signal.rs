@@ -408,18 +408,17 @@ impl SignalDrive {
                 0.0
             }
         };
-        // The patient's typical breath, both figures or neither (a display pairs them).
-        let (tidal, period) = match (
-            self.typical_tidal_ml(),
-            self.follower.detector().typical_period_s(),
-        ) {
-            (Some(v), Some(p)) if finite(v) > 0.0 && finite(p) > 0.0 => (finite(v), finite(p)),
-            _ => (0.0, 0.0),
-        };
+        // The patient's typical breath and where it is at the display time: all or nothing (a
+        // display pairs them).
         let display_ns = self.now_ns.saturating_add(self.latency_ns);
-        let (phase, split) = match self.follower.detector().phase_at(display_ns) {
-            Some((p, s)) if period > 0.0 => (finite(p), finite(s)),
-            _ => (0.0, 0.0),
+        let (tidal, period, phase, split) = match (
+            self.typical_tidal_ml(),
+            self.follower.detector().phase_at(display_ns),
+        ) {
+            (Some(v), Some((p, phase, split))) if finite(v) > 0.0 && finite(p) > 0.0 => {
+                (finite(v), finite(p), finite(phase), finite(split))
+            }
+            _ => (0.0, 0.0, 0.0, 0.0),
         };
         match self.followed {
             Some(f) => ipc_types::SignalFollowed {
@@ -571,12 +570,10 @@ impl SignalDrive {
             _ => return,
         };
         if unit != self.unit || period != self.period_ns {
-            let calibration = match (unit, self.ml_per_unit) {
-                (signal_unit::ML, _) => Calibration::Volume,
-                (_, Some(ml_per_unit)) => Calibration::Fixed { ml_per_unit },
-                (_, None) => Calibration::Auto {
-                    tidal_ml: self.tidal_ml,
-                },
+            let calibration = if unit == signal_unit::ML {
+                Calibration::Volume
+            } else {
+                Calibration::amplitude(self.ml_per_unit, self.tidal_ml)
             };
             self.follower.reconfigure(period, calibration);
             self.unit = unit;

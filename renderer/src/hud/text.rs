@@ -1018,8 +1018,6 @@ mod tests {
         assert_eq!(breath_phase(&f), Some((0.7, true, 0.4)));
         f.state = e::SIGNAL_CALIBRATING;
         assert_eq!(breath_phase(&f), Some((0.25, true, 0.5)));
-        f.state = e::SIGNAL_FOLLOWING;
-        f.state = e::SIGNAL_CALIBRATING;
         volume_line(&mut s, &f, 60.0);
         assert_eq!(s, "V 2650 ml  TV 500 ml  12 /min");
         f.state = e::SIGNAL_FOLLOWING;

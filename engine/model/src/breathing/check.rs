@@ -155,9 +155,9 @@ pub fn plausible(trace: &Trace, unit: SignalUnit) -> Result<(), String> {
                 "its median breath is calibrated to {} ml and its breaths average {} ml ({}×): \
                  they differ too much in size to be one patient's breathing at one gain (is the \
                  device's gain changing?)",
-                number(tidal_ml),
-                number(tidal),
-                number(ratio)
+                plausible::compact(tidal_ml),
+                plausible::compact(tidal),
+                plausible::compact(ratio)
             ));
         }
         _ if tv.contains(tidal) => return Ok(()),
@@ -168,28 +168,16 @@ pub fn plausible(trace: &Trace, unit: SignalUnit) -> Result<(), String> {
         }
         (_, Calibration::Fixed { ml_per_unit }) => format!(
             "is the spirometry calibration ({} ml per {}) for this signal's unit?",
-            number(ml_per_unit),
+            plausible::compact(ml_per_unit),
             unit.symbol()
         ),
     };
     Err(format!(
         "its breaths average {} ml, where a tidal volume is {}–{} ml: {why}",
-        number(tidal),
+        plausible::compact(tidal),
         tv.lo,
         tv.hi
     ))
-}
-
-/// `x` for a message: plain where it reads plainly (0.001…1e7), else in exponent form (a 1e300 is
-/// not 301 digits).
-pub fn number(x: f64) -> String {
-    if (100.0..1e7).contains(&x.abs()) {
-        format!("{x:.0}")
-    } else if x == 0.0 || (1e-3..100.0).contains(&x.abs()) {
-        format!("{}", (x * 1e4).round() / 1e4)
-    } else {
-        format!("{x:.3e}")
-    }
 }
 
 /// The predictors replayed at `latency_ms`: `chosen` first, then the previous cycle's, the
@@ -344,19 +332,19 @@ mod tests {
         assert!(slow.contains("1.5 a minute"), "{slow}");
         let litres = refused(sine_csv("volume_L", 50.0, 3.0), auto);
         assert!(
-            litres.contains("average 399825 ml") && litres.contains("volume_L"),
+            litres.contains("average 399824.57 ml") && litres.contains("volume_L"),
             "{litres}"
         );
         let ml = refused(sine_csv("volume_ml", 0.05, 3.0), auto);
         assert!(
-            ml.contains("average 0.3998 ml") && ml.contains("1000× too small"),
+            ml.contains("average 0.4 ml") && ml.contains("1000× too small"),
             "{ml}"
         );
         let gain = refused(
             sine_csv("amplitude_mm", 1.0, 3.0),
             Calibration::Fixed { ml_per_unit: 1e-6 },
         );
-        assert!(gain.contains("1.000e-6 ml per mm"), "{gain}");
+        assert!(gain.contains("1e-6 ml per mm"), "{gain}");
         // An amplitude whose breaths grow a hundredfold over the trace: no one gain calibrates it.
         let mut growing = String::from("time_s,amplitude_mm\n");
         for k in 0..750 {

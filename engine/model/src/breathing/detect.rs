@@ -223,17 +223,17 @@ impl Detector {
         median_of(&buf[..n])
     }
 
-    /// Where the breath under way is at `t_ns`: the time since the last end-expiration over the
-    /// typical period (kept below 1 when the breath runs long), and the typical inspiration's share
-    /// of a breath; `None` before a typical breath is known.
-    pub fn phase_at(&self, t_ns: u64) -> Option<(f64, f64)> {
+    /// Where the breath under way is at `t_ns`: the typical period (s), the time since the last
+    /// end-expiration over it (kept below 1 when the breath runs long), and the typical
+    /// inspiration's share of a breath; `None` before a typical breath is known.
+    pub fn phase_at(&self, t_ns: u64) -> Option<(f64, f64, f64)> {
         let period = self.typical_period_s().filter(|p| *p > 0.0)?;
         let expiration = self.typical_expiration_s()?;
         let (trough, _) = self.last_trough?;
         let since = secs(t_ns as i128 - trough as i128).max(0.0);
         let phase = (since / period).min(0.999);
         let split = (1.0 - expiration / period).clamp(0.0, 1.0);
-        (phase.is_finite() && split.is_finite()).then_some((phase, split))
+        (phase.is_finite() && split.is_finite()).then_some((period, phase, split))
     }
 
     /// End-expirations behind the baseline (up to five; kept across a loss).

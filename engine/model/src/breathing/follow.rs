@@ -41,6 +41,17 @@ pub enum Calibration {
     },
 }
 
+impl Calibration {
+    /// An amplitude's: a spirometry calibration's gain when there is one (`ml_per_unit`), else the
+    /// gain that makes its typical breath `tidal_ml`.
+    pub fn amplitude(ml_per_unit: Option<f64>, tidal_ml: f64) -> Self {
+        match ml_per_unit {
+            Some(ml_per_unit) => Calibration::Fixed { ml_per_unit },
+            None => Calibration::Auto { tidal_ml },
+        }
+    }
+}
+
 /// A follower's settings.
 #[derive(Debug, Clone, Copy, PartialEq)]
 pub struct FollowerConfig {
