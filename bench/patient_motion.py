@@ -31,6 +31,7 @@ def main():
     ap.add_argument("--force-centres", type=int, help="fit-motion's --force-centres (its default when omitted)")
     ap.add_argument("--force-local-ridge", type=float, help="fit-motion's --force-local-ridge (its default when omitted)")
     ap.add_argument("--iterations", type=int, help="fit-motion's --iterations (its default when omitted)")
+    ap.add_argument("--normal-gate", type=float, help="fit-motion's --normal-gate (its default when omitted)")
     ap.add_argument("--surfaces-out", help="fit-motion's --surfaces-out, a folder per case under this one "
                     "(what bench/population_motion.py --surfaces reads)")
     ap.add_argument("--out", default=os.path.join(ROOT, "docs", "masks", "patient_motion_table.md"))
@@ -51,7 +52,7 @@ def main():
                 for flag, value in (("--field-degree", a.field_degree), ("--force-degree", a.force_degree),
                                     ("--force-centres", a.force_centres),
                                     ("--force-local-ridge", a.force_local_ridge),
-                                    ("--iterations", a.iterations)):
+                                    ("--iterations", a.iterations), ("--normal-gate", a.normal_gate)):
                     if value is not None:
                         cmd += [flag, str(value)]
                 if a.surfaces_out:

@@ -82,6 +82,10 @@ pub struct FitMotionArgs {
     /// relative to their own normal equations.
     #[arg(long, default_value_t = 0.01)]
     pub force_local_ridge: f64,
+    /// With --exhale/--inhale: keep a correspondence only where the surfaces' normals lie within
+    /// this many degrees; 180 keeps every one (docs/masks/patient_motion.md).
+    #[arg(long, value_name = "DEG", default_value_t = lung_bake::patient_motion::NORMAL_GATE_DEG)]
+    pub normal_gate: f64,
     /// With --exhale/--inhale: rounds of the symmetric ICP.
     #[arg(long, default_value_t = 50)]
     pub iterations: usize,

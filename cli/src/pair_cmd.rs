@@ -94,14 +94,8 @@ fn surface(
 fn check(args: &FitMotionArgs) -> anyhow::Result<(PathBuf, PathBuf, PairOptions)> {
     let exhale = args.exhale.clone().unwrap_or_default();
     let inhale = args.inhale.clone().unwrap_or_default();
-    let same = match (
-        std::fs::canonicalize(&exhale),
-        std::fs::canonicalize(&inhale),
-    ) {
-        (Ok(a), Ok(b)) => a == b,
-        _ => exhale == inhale,
-    };
-    if same {
+    let canonical = |p: &PathBuf| std::fs::canonicalize(p).unwrap_or_else(|_| p.clone());
+    if canonical(&exhale) == canonical(&inhale) {
         anyhow::bail!(
             "--exhale and --inhale are the same file ({}): a breath-hold pair is two scans",
             exhale.display()
@@ -119,9 +113,6 @@ fn check(args: &FitMotionArgs) -> anyhow::Result<(PathBuf, PathBuf, PairOptions)
     }
     if !(1_000..=200_000).contains(&args.vertices) {
         anyhow::bail!("--vertices {}: give 1,000 to 200,000", args.vertices);
-    }
-    if !(1..=200).contains(&args.iterations) {
-        anyhow::bail!("--iterations {}: give 1 to 200", args.iterations);
     }
     if !(2..=10).contains(&args.folds) {
         anyhow::bail!(
@@ -148,6 +139,7 @@ fn check(args: &FitMotionArgs) -> anyhow::Result<(PathBuf, PathBuf, PairOptions)
         field_degree: args.field_degree,
         force_centres: args.force_centres,
         force_local_ridge: args.force_local_ridge,
+        normal_gate_deg: args.normal_gate,
         iterations: args.iterations,
         folds: args.folds as usize,
         seed: args.seed,

@@ -71,6 +71,9 @@ pub struct PairOptions {
     pub force_local_ridge: f64,
     /// Ridge weight of the direction field (times the number of points).
     pub field_ridge: f64,
+    /// Normal compatibility of the ICP's correspondences, degrees: a pull is kept only where the
+    /// moved surface's normal and the target's lie within this angle (180 keeps every pull).
+    pub normal_gate_deg: f64,
     /// ICP rounds.
     pub iterations: usize,
     /// Folds of the held-out error (0: none), 2..=10 otherwise.
@@ -89,6 +92,7 @@ impl Default for PairOptions {
             force_centres: 256,
             force_local_ridge: 0.01,
             field_ridge: 1e-6,
+            normal_gate_deg: NORMAL_GATE_DEG,
             iterations: 50,
             folds: 5,
             seed: 34,
@@ -120,6 +124,16 @@ impl PairOptions {
                 "--force-local-ridge {}: give a finite number above 0 (larger is smoother)",
                 self.force_local_ridge
             ));
+        }
+        if !(self.normal_gate_deg > 0.0 && self.normal_gate_deg <= 180.0) {
+            return bad(format!(
+                "--normal-gate {}: give an angle in degrees above 0 and at most 180 (180 keeps \
+                 every correspondence)",
+                self.normal_gate_deg
+            ));
+        }
+        if !(1..=200).contains(&self.iterations) {
+            return bad(format!("--iterations {}: give 1 to 200", self.iterations));
         }
         if self.folds == 1 || self.folds > 10 {
             return bad(format!("--folds {}: give 0 (none) or 2 to 10", self.folds));
@@ -239,6 +253,9 @@ struct Surface {
     mesh: parry3d::shape::TriMesh,
     tris: Vec<[u32; 3]>,
     p: Vec<DVec3>,
+    /// Unit normals: per triangle, and per vertex (area-weighted).
+    tri_n: Vec<DVec3>,
+    vert_n: Vec<DVec3>,
 }
 
 impl Surface {
@@ -248,15 +265,26 @@ impl Surface {
             .map(|q| parry3d::math::Vector::new(q.x as f32, q.y as f32, q.z as f32))
             .collect();
         let mesh = parry3d::shape::TriMesh::new(v, tris.to_vec()).ok()?;
+        let tri_n = tris
+            .iter()
+            .map(|t| {
+                let [a, b, c] = t.map(|v| p[v as usize]);
+                (b - a).cross(c - a).normalize_or_zero()
+            })
+            .collect();
+        let vert_n = crate::mask::surface::vertex_normals(p, tris);
         Some(Self {
             mesh,
             tris: tris.to_vec(),
             p: p.to_vec(),
+            tri_n,
+            vert_n,
         })
     }
 
-    /// The closest surface point to `q`, and the vertex of its triangle nearest to it.
-    fn closest(&self, q: DVec3) -> (DVec3, u32) {
+    /// The closest surface point to `q`, the vertex of its triangle nearest to it, and the
+    /// triangle's normal.
+    fn closest(&self, q: DVec3) -> (DVec3, u32, DVec3) {
         use parry3d::query::PointQueryWithLocation;
         let x = parry3d::math::Vector::new(q.x as f32, q.y as f32, q.z as f32);
         let (proj, (tri, _)) = self.mesh.project_local_point_and_get_location(x, false);
@@ -274,7 +302,7 @@ impl Surface {
                     .total_cmp(&(self.p[**b as usize] - c).length_squared())
             })
             .unwrap_or(&t[0]);
-        (c, near)
+        (c, near, self.tri_n[tri as usize])
     }
 }
 
@@ -341,7 +369,7 @@ pub fn align(exhale: &TriMesh, inhale: &TriMesh, cap_fraction: f64) -> Option<Al
         let mut r: Vec<(f64, DVec3)> = cap
             .iter()
             .map(|&q| {
-                let (c, _) = target.closest(q + t);
+                let (c, _, _) = target.closest(q + t);
                 let d = c - (q + t);
                 (d.length(), d)
             })
@@ -503,32 +531,22 @@ impl Problem<'_> {
         // Every training vertex pulls itself, so the force's rows are the training vertices in
         // every round: its normal equations are built once (and factored once per stiffness).
         let mut system = self.force_system((0..n).filter(|&i| train[i]).collect());
+        let adj = neighbours(self.mesh);
         for round in 0..self.opts.iterations {
             system.stiffen(local_stiffness(round, self.opts.iterations))?;
             let q: Vec<DVec3> = self.p.iter().zip(&u).map(|(a, b)| *a + *b).collect();
             let moved = Surface::new(&q, tris).ok_or(PairFitError::Singular("surface"))?;
-            // Pulls: each training vertex to its closest inhale point; each inhale point owned by
-            // a training vertex pulls the moved surface's nearest vertex towards it.
-            let mut pull = vec![DVec3::ZERO; n];
-            let mut count = vec![0.0f64; n];
-            for i in (0..n).filter(|&i| train[i]) {
-                pull[i] += self.target.closest(q[i]).0 - q[i];
-                count[i] += 1.0;
-            }
-            for (j, &v) in self.target.p.iter().enumerate() {
-                if !train[self.owner[j] as usize] {
-                    continue;
-                }
-                let (c, near) = moved.closest(v);
-                if train[near as usize] {
-                    pull[near as usize] += v - c;
-                    count[near as usize] += 1.0;
-                }
-            }
+            let pull = pulls(
+                &moved,
+                (self.target, &self.owner),
+                train,
+                self.opts.normal_gate_deg,
+                &adj,
+            );
             let (mut at, mut goal) = (Vec::new(), Vec::new());
-            for i in (0..n).filter(|&i| train[i] && count[i] > 0.0) {
+            for i in (0..n).filter(|&i| train[i]) {
                 at.push(self.p[i]);
-                goal.push(u[i] + pull[i] / count[i]);
+                goal.push(u[i] + pull[i]);
             }
             let field = fit_field(
                 Config::Poly {
@@ -643,6 +661,98 @@ impl ForceSystem {
     }
 }
 
+/// Each vertex's neighbours along the surface's edges.
+fn neighbours(mesh: &TriMesh) -> Vec<Vec<u32>> {
+    let mut adj = vec![Vec::new(); mesh.positions.len()];
+    for [a, b] in crate::operator::mesh_edges(mesh) {
+        adj[a as usize].push(b);
+        adj[b as usize].push(a);
+    }
+    adj
+}
+
+/// The cosine below which two normals are incompatible (none at 180°).
+fn gate_cos(normal_gate_deg: f64) -> f64 {
+    if normal_gate_deg >= 180.0 {
+        f64::NEG_INFINITY
+    } else {
+        normal_gate_deg.to_radians().cos()
+    }
+}
+
+/// One round's pull on each training vertex of the `moved` surface (zero elsewhere): the mean of
+/// its own pull to its closest target point and of the pulls of the target vertices that find it
+/// nearest (the symmetric ICP), each kept only where the two surfaces' normals there lie within
+/// `normal_gate_deg` (normal compatibility, Rusinkiewicz & Levoy 2001, as in Amberg et al. 2007's
+/// non-rigid ICP). At a deep breath the base moves centimetres: the closest point of a vertex on
+/// the posterior wall is then on the inhale diaphragm, whose normal points down where the wall's
+/// points back, and following it slides the wall down past the recess, overtaking the base (the
+/// folds). A training vertex left without a compatible pull takes the mean of its neighbours'
+/// pulls, ring by ring, rather than being held where it is.
+fn pulls(
+    moved: &Surface,
+    (target, owner): (&Surface, &[u32]),
+    train: &[bool],
+    normal_gate_deg: f64,
+    adj: &[Vec<u32>],
+) -> Vec<DVec3> {
+    let n = moved.p.len();
+    let gate = gate_cos(normal_gate_deg);
+    let mut pull = vec![DVec3::ZERO; n];
+    let mut count = vec![0.0f64; n];
+    for i in (0..n).filter(|&i| train[i]) {
+        let (c, _, normal) = target.closest(moved.p[i]);
+        if moved.vert_n[i].dot(normal) >= gate {
+            pull[i] += c - moved.p[i];
+            count[i] += 1.0;
+        }
+    }
+    for (j, &v) in target.p.iter().enumerate() {
+        if !train[owner[j] as usize] {
+            continue;
+        }
+        let (c, near, normal) = moved.closest(v);
+        if train[near as usize] && target.vert_n[j].dot(normal) >= gate {
+            pull[near as usize] += v - c;
+            count[near as usize] += 1.0;
+        }
+    }
+    for i in 0..n {
+        if count[i] > 0.0 {
+            pull[i] /= count[i];
+        }
+    }
+    fill_from_neighbours(&mut pull, &mut count, train, adj);
+    pull
+}
+
+/// Training vertices without a pull (`count` 0) take the mean pull of their neighbours that have
+/// one, ring by ring; a vertex no ring reaches keeps none.
+fn fill_from_neighbours(pull: &mut [DVec3], count: &mut [f64], train: &[bool], adj: &[Vec<u32>]) {
+    loop {
+        let mut filled = Vec::new();
+        for i in (0..pull.len()).filter(|&i| train[i] && count[i] == 0.0) {
+            let (mut sum, mut k) = (DVec3::ZERO, 0.0);
+            for j in adj[i].iter().map(|&j| j as usize) {
+                if train[j] && count[j] > 0.0 {
+                    sum += pull[j];
+                    k += 1.0;
+                }
+            }
+            if k > 0.0 {
+                filled.push((i, sum / k));
+            }
+        }
+        if filled.is_empty() {
+            return;
+        }
+        for (i, v) in filled {
+            pull[i] = v;
+            count[i] = 1.0;
+        }
+    }
+}
+
 /// The local terms' stiffness in round `round` of `rounds`: 1000, 100, 10, then 1 times their
 /// ridge over four equal stages (fewer than four rounds end before the last). The first rounds'
 /// closest points are far from where each vertex belongs (the base moves centimetres); free local
@@ -663,6 +773,9 @@ struct Local {
 /// A local term reaches this many times the centres' spacing (`√(area / centres)`): a point of the
 /// surface lies within reach of about ten centres, so the sum is smooth between them.
 pub const LOCAL_REACH: f64 = 2.5;
+
+/// Default normal compatibility of the ICP's correspondences, degrees ([`PairOptions::normal_gate_deg`]).
+pub const NORMAL_GATE_DEG: f64 = 60.0;
 
 impl Local {
     /// `count` farthest-point centres on the surface `p` (0: none).
@@ -1174,6 +1287,73 @@ mod tests {
                 .collect(),
             triangles: mesh.triangles.clone(),
         }
+    }
+
+    /// A breath that moves the base down by up to 40 mm and leaves the apex: the walls' closest
+    /// points on the moved base lie across the recess, with normals pointing another way. Kept,
+    /// they pull hundreds of vertices against their true motion and off along their normals;
+    /// gated, they are dropped and the vertices take compatible neighbours' pulls.
+    #[test]
+    fn incompatible_normals_are_not_followed_and_their_vertices_take_their_neighbours_pulls() {
+        let mesh = anatomy::lung(Side::Right, 3000).unwrap();
+        let p = points(&mesh);
+        let c = p.iter().sum::<DVec3>() / p.len() as f64;
+        let truth: Vec<DVec3> = p
+            .iter()
+            .map(|x| {
+                DVec3::new(
+                    0.0,
+                    0.0,
+                    40.0 * ((x.z - c.z) / 120.0 - 0.5).clamp(-1.5, 0.0),
+                )
+            })
+            .collect();
+        let inhale: Vec<DVec3> = p.iter().zip(&truth).map(|(x, d)| *x + *d).collect();
+        let (exhale, target) = (
+            Surface::new(&p, &mesh.triangles).unwrap(),
+            Surface::new(&inhale, &mesh.triangles).unwrap(),
+        );
+        let owner: Vec<u32> = target.p.iter().map(|&v| exhale.closest(v).1).collect();
+        let adj = neighbours(&mesh);
+        let train = vec![true; p.len()];
+        // Pulls against the true motion, and the mean error along each vertex's normal, mm.
+        let judge = |deg: f64| {
+            let pull = pulls(&exhale, (&target, &owner), &train, deg, &adj);
+            assert!(pull.iter().all(|v| v.is_finite()));
+            let opposed = pull
+                .iter()
+                .zip(&truth)
+                .filter(|(v, d)| v.dot(**d) < 0.0)
+                .count();
+            let along_normal = (0..p.len())
+                .map(|i| (pull[i] - truth[i]).dot(exhale.vert_n[i]).abs())
+                .sum::<f64>()
+                / p.len() as f64;
+            (opposed, along_normal)
+        };
+        let (all, gated) = (judge(180.0), judge(NORMAL_GATE_DEG));
+        assert!(
+            2 * gated.0 < all.0 && 2.0 * gated.1 < all.1,
+            "pulls against the motion, error along the normal: {gated:?} with the gate, {all:?} without"
+        );
+        // The lower half without pulls of its own takes the upper half's, ring by ring; vertices
+        // outside the training set keep none.
+        let mut pull: Vec<DVec3> = p.iter().map(|x| DVec3::Z * f64::from(x.z > c.z)).collect();
+        let mut count: Vec<f64> = pull.iter().map(|v| v.z).collect();
+        let odd: Vec<bool> = (0..p.len()).map(|i| i % 7 != 0).collect();
+        fill_from_neighbours(&mut pull, &mut count, &odd, &adj);
+        for i in 0..p.len() {
+            let want = if odd[i] || p[i].z > c.z {
+                DVec3::Z
+            } else {
+                DVec3::ZERO
+            };
+            assert!((pull[i] - want).length() < 1e-12, "vertex {i}: {}", pull[i]);
+        }
+        // Vertices outside the training set are neither pulled nor filled.
+        let half: Vec<bool> = (0..p.len()).map(|i| i % 2 == 0).collect();
+        let pull = pulls(&exhale, (&target, &owner), &half, NORMAL_GATE_DEG, &adj);
+        assert!((0..p.len()).all(|i| half[i] || pull[i] == DVec3::ZERO));
     }
 
     #[test]
