@@ -1046,8 +1046,8 @@ mod breathing {
     fn the_default_lungs_breathe_mostly_superior_inferior() {
         for side in [Side::Right, Side::Left] {
             // The breath-hold population was fitted to six COPDgene breath-hold pairs, not to these
-            // 4DCT landmarks: an independent check (measured: right SI 14.3, AP 2.2, LR 1.7 mm;
-            // left 12.4, 2.4, 2.8 at 10k vertices).
+            // 4DCT landmarks: an independent check (measured: right SI 16.7, AP 3.1, LR 2.1 mm;
+            // left 13.2, 2.6, 2.9; the population refitted with the ICP's normal gate, 2026-12-07).
             for preset in [DirectionPreset::Population, DirectionPreset::BreathHold] {
                 let (k, share) = baked(side, preset);
                 let [lr, ap, si] = lower_third(&k, share * DIRLAB_TIDAL_ML);
@@ -1072,7 +1072,7 @@ mod breathing {
     /// From FRC − 500 ml to FRC + 1500 ml of both lungs (each lung its share), in steps of 250 ml
     /// of the whole, neither default lung folds: every deformed surface is a closed 2-manifold
     /// without self-intersection (the exact test), with the population and seed presets (the
-    /// breath-hold population from FRC − 500 to FRC + 500 ml), the amplitude smoothed over the
+    /// breath-hold population from FRC − 500 to FRC + 750 ml), the amplitude smoothed over the
     /// default 10 mm (EQUATIONS.md §2.4). The precomputed field is the one checked here; the
     /// basis, SH and direct modes and the tumour derive from the same smoothed transfer rows (the
     /// consistency tests in `orient` and `tests/` hold them to it).
@@ -1080,11 +1080,12 @@ mod breathing {
     fn the_default_lungs_do_not_fold_over_the_whole_range() {
         for side in [Side::Right, Side::Left] {
             // The breath-hold population folds the generated right lung beyond its share of FRC +
-            // 500 ml (4 triangle pairs at +406 ml, 10k vertices): held to the tidal range below.
+            // 750 ml (4 triangle pairs at +542 ml, 10k vertices; from +406 ml before it was refitted
+            // with the ICP's normal gate on 2026-12-07): held to FRC − 500 … + 750 ml below.
             for (preset, steps) in [
                 (DirectionPreset::Population, -2..=6),
                 (DirectionPreset::Seed, -2..=6),
-                (DirectionPreset::BreathHold, -2..=2),
+                (DirectionPreset::BreathHold, -2..=3),
             ] {
                 let (k, share) = baked(side, preset);
                 for step in steps {
