@@ -191,10 +191,10 @@ pub enum DirectionPreset {
     Population,
     /// The population of six real breath-hold pairs: the mean of each COPDgene pair's `fit-motion
     /// --exhale/--inhale` fit (a direction field and an applied force field), made scale-free
-    /// (`lung_model::deform::BREATH_HOLD_POPULATION`). Held out by patient it lands 2–3× closer to the real inhale
+    /// (`lung_model::deform::BREATH_HOLD_POPULATION`). Held out by patient it lands 1.8–3.1× closer to the real inhale
     /// surface than no motion or uniform scaling on 12 of 12 lungs, where the default is worse than no
     /// motion on 8 (docs/masks/population_motion_table.md, breath_hold_baselines.md); not yet the
-    /// default: the generated right lung folds beyond its share of FRC + 500 ml (EQUATIONS.md §2.4).
+    /// default: the generated right lung folds beyond its share of FRC + 750 ml (EQUATIONS.md §2.4).
     BreathHold,
     /// `lung_model::deform::MotionConstants::table_6_1`: the seed's Table 6.1 (gravity-driven, mostly anterior).
     Seed,

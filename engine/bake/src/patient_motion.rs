@@ -125,10 +125,10 @@ impl PairOptions {
                 self.force_local_ridge
             ));
         }
-        if !(self.normal_gate_deg > 0.0 && self.normal_gate_deg <= 180.0) {
+        if !(MIN_NORMAL_GATE_DEG..=180.0).contains(&self.normal_gate_deg) {
             return bad(format!(
-                "--normal-gate {}: give an angle in degrees above 0 and at most 180 (180 keeps \
-                 every correspondence)",
+                "--normal-gate {}: give 10 to 180 degrees (180 keeps every correspondence; a \
+                 narrower gate drops nearly every one and leaves the fit at uniform scaling)",
                 self.normal_gate_deg
             ));
         }
@@ -265,13 +265,7 @@ impl Surface {
             .map(|q| parry3d::math::Vector::new(q.x as f32, q.y as f32, q.z as f32))
             .collect();
         let mesh = parry3d::shape::TriMesh::new(v, tris.to_vec()).ok()?;
-        let tri_n = tris
-            .iter()
-            .map(|t| {
-                let [a, b, c] = t.map(|v| p[v as usize]);
-                (b - a).cross(c - a).normalize_or_zero()
-            })
-            .collect();
+        let tri_n = crate::mask::surface::triangle_normals(p, tris);
         let vert_n = crate::mask::surface::vertex_normals(p, tris);
         Some(Self {
             mesh,
@@ -571,9 +565,7 @@ impl Problem<'_> {
             u = (0..n).map(|i| force[i] * dirs[i]).collect();
             model = Some(Model { theta, field });
         }
-        model.ok_or(PairFitError::Option(
-            "--iterations must be at least 1".into(),
-        ))
+        model.ok_or(PairFitError::Option("--iterations 0: give 1 to 200".into()))
     }
 
     /// The normal equations of `min Σ_i ((Σ_k θ_k C_k)_i − m_i)² + λ‖θ‖²` over the rows `idx`, to
@@ -661,14 +653,9 @@ impl ForceSystem {
     }
 }
 
-/// Each vertex's neighbours along the surface's edges.
-fn neighbours(mesh: &TriMesh) -> Vec<Vec<u32>> {
-    let mut adj = vec![Vec::new(); mesh.positions.len()];
-    for [a, b] in crate::operator::mesh_edges(mesh) {
-        adj[a as usize].push(b);
-        adj[b as usize].push(a);
-    }
-    adj
+/// Each vertex's neighbours along the surface's edges, as compressed rows (offsets, indices).
+fn neighbours(mesh: &TriMesh) -> (Vec<usize>, Vec<u32>) {
+    crate::mask::surface::neighbour_rows(mesh.positions.len(), &mesh.triangles)
 }
 
 /// The cosine below which two normals are incompatible (none at 180°).
@@ -694,7 +681,7 @@ fn pulls(
     (target, owner): (&Surface, &[u32]),
     train: &[bool],
     normal_gate_deg: f64,
-    adj: &[Vec<u32>],
+    adj: &(Vec<usize>, Vec<u32>),
 ) -> Vec<DVec3> {
     let n = moved.p.len();
     let gate = gate_cos(normal_gate_deg);
@@ -728,12 +715,17 @@ fn pulls(
 
 /// Training vertices without a pull (`count` 0) take the mean pull of their neighbours that have
 /// one, ring by ring; a vertex no ring reaches keeps none.
-fn fill_from_neighbours(pull: &mut [DVec3], count: &mut [f64], train: &[bool], adj: &[Vec<u32>]) {
+fn fill_from_neighbours(
+    pull: &mut [DVec3],
+    count: &mut [f64],
+    train: &[bool],
+    (offsets, flat): &(Vec<usize>, Vec<u32>),
+) {
     loop {
         let mut filled = Vec::new();
         for i in (0..pull.len()).filter(|&i| train[i] && count[i] == 0.0) {
             let (mut sum, mut k) = (DVec3::ZERO, 0.0);
-            for j in adj[i].iter().map(|&j| j as usize) {
+            for j in flat[offsets[i]..offsets[i + 1]].iter().map(|&j| j as usize) {
                 if train[j] && count[j] > 0.0 {
                     sum += pull[j];
                     k += 1.0;
@@ -776,6 +768,9 @@ pub const LOCAL_REACH: f64 = 2.5;
 
 /// Default normal compatibility of the ICP's correspondences, degrees ([`PairOptions::normal_gate_deg`]).
 pub const NORMAL_GATE_DEG: f64 = 60.0;
+
+/// The narrowest normal gate taken, degrees.
+pub const MIN_NORMAL_GATE_DEG: f64 = 10.0;
 
 impl Local {
     /// `count` farthest-point centres on the surface `p` (0: none).
@@ -1289,7 +1284,7 @@ mod tests {
         }
     }
 
-    /// A breath that moves the base down by up to 40 mm and leaves the apex: the walls' closest
+    /// A breath that moves the base down by up to 60 mm and leaves the apex: the walls' closest
     /// points on the moved base lie across the recess, with normals pointing another way. Kept,
     /// they pull hundreds of vertices against their true motion and off along their normals;
     /// gated, they are dropped and the vertices take compatible neighbours' pulls.
@@ -1332,6 +1327,16 @@ mod tests {
             (opposed, along_normal)
         };
         let (all, gated) = (judge(180.0), judge(NORMAL_GATE_DEG));
+        // A vertex with no pull at all is one no correspondence moves (the still apex, or a gated
+        // vertex left unfilled): the gate leaves no more of them than following every one does.
+        let still = |deg: f64| {
+            let pull = pulls(&exhale, (&target, &owner), &train, deg, &adj);
+            pull.iter().filter(|v| **v == DVec3::ZERO).count()
+        };
+        assert!(
+            still(NORMAL_GATE_DEG) <= still(180.0),
+            "gated vertices left without a pull"
+        );
         assert!(
             2 * gated.0 < all.0 && 2.0 * gated.1 < all.1,
             "pulls against the motion, error along the normal: {gated:?} with the gate, {all:?} without"
@@ -1707,6 +1712,18 @@ mod tests {
             },
             PairOptions {
                 folds: 1,
+                ..PairOptions::default()
+            },
+            PairOptions {
+                normal_gate_deg: 5.0,
+                ..PairOptions::default()
+            },
+            PairOptions {
+                normal_gate_deg: f64::NAN,
+                ..PairOptions::default()
+            },
+            PairOptions {
+                iterations: 0,
                 ..PairOptions::default()
             },
         ] {

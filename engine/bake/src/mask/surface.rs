@@ -626,6 +626,16 @@ pub fn collapse_short_edges(mesh: &mut TriMesh, min_len_mm: f64) -> usize {
     collapsed
 }
 
+/// Unit triangle normals (zero where undefined).
+pub fn triangle_normals(p: &[DVec3], tris: &[[u32; 3]]) -> Vec<DVec3> {
+    tris.iter()
+        .map(|t| {
+            let [a, b, c] = t.map(|v| p[v as usize]);
+            (b - a).cross(c - a).normalize_or_zero()
+        })
+        .collect()
+}
+
 /// Area-weighted vertex normals (unit; zero where undefined).
 pub fn vertex_normals(p: &[DVec3], tris: &[[u32; 3]]) -> Vec<DVec3> {
     let mut n = vec![DVec3::ZERO; p.len()];
@@ -777,7 +787,7 @@ pub fn untangle(mesh: &mut TriMesh, field: &Field, iso: f64, rounds: usize) -> u
 }
 
 /// Vertex neighbours as compressed rows (offsets, indices).
-fn neighbour_rows(n: usize, tris: &[[u32; 3]]) -> (Vec<usize>, Vec<u32>) {
+pub(crate) fn neighbour_rows(n: usize, tris: &[[u32; 3]]) -> (Vec<usize>, Vec<u32>) {
     let mut lists: Vec<Vec<u32>> = vec![Vec::new(); n];
     for t in tris {
         for e in 0..3 {
