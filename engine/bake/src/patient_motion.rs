@@ -53,6 +53,7 @@ use lung_model::deform::LungModel;
 use lung_model::kernel::BakeSettings;
 use lung_model::mesh::{Side, TriMesh};
 
+use crate::mask::surface::neighbour_rows;
 use crate::motion_models::{fit_field, folds, Config};
 use crate::operator::{compute_transfer, NodeGraph, Schedule};
 
@@ -525,7 +526,7 @@ impl Problem<'_> {
         // Every training vertex pulls itself, so the force's rows are the training vertices in
         // every round: its normal equations are built once (and factored once per stiffness).
         let mut system = self.force_system((0..n).filter(|&i| train[i]).collect());
-        let adj = neighbours(self.mesh);
+        let adj = neighbour_rows(n, tris);
         for round in 0..self.opts.iterations {
             system.stiffen(local_stiffness(round, self.opts.iterations))?;
             let q: Vec<DVec3> = self.p.iter().zip(&u).map(|(a, b)| *a + *b).collect();
@@ -651,11 +652,6 @@ impl ForceSystem {
         self.stiffness = stiffness;
         Ok(())
     }
-}
-
-/// Each vertex's neighbours along the surface's edges, as compressed rows (offsets, indices).
-fn neighbours(mesh: &TriMesh) -> (Vec<usize>, Vec<u32>) {
-    crate::mask::surface::neighbour_rows(mesh.positions.len(), &mesh.triangles)
 }
 
 /// The cosine below which two normals are incompatible (none at 180°).
@@ -1309,7 +1305,7 @@ mod tests {
             Surface::new(&inhale, &mesh.triangles).unwrap(),
         );
         let owner: Vec<u32> = target.p.iter().map(|&v| exhale.closest(v).1).collect();
-        let adj = neighbours(&mesh);
+        let adj = neighbour_rows(p.len(), &mesh.triangles);
         let train = vec![true; p.len()];
         // Pulls against the true motion, and the mean error along each vertex's normal, mm.
         let judge = |deg: f64| {
