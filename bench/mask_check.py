@@ -31,7 +31,7 @@ import argparse, json, os, sys
 
 sys.path.insert(0, os.path.dirname(os.path.abspath(__file__)))
 from pyneeds import need  # noqa: E402
-need(["numpy", "scipy", "trimesh"], __file__)
+need(["numpy", "scipy", "trimesh", "nibabel", "skimage"], __file__)
 
 import numpy as np
 from scipy import ndimage
@@ -65,6 +65,7 @@ def load_mask(path):
             data = data[..., 0]
         world_to_body = RAS_TO_BODY
     elif low.endswith(".nrrd"):
+        need(["nrrd"], __file__)
         import nrrd
         data, hdr = nrrd.read(path)  # index order 'F': data[i, j, k] with i fastest in file
         space = str(hdr.get("space", "")).lower()
@@ -88,6 +89,7 @@ def load_mask(path):
             data = np.moveaxis(data, lists, list(range(len(lists))))
             data = data.reshape((-1,) + data.shape[len(lists):])
     else:
+        need(["SimpleITK"], __file__)
         import SimpleITK as sitk
         img = sitk.ReadImage(path)
         data = sitk.GetArrayFromImage(img).transpose(2, 1, 0)  # (z,y,x) -> [i,j,k]

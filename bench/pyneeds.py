@@ -11,7 +11,7 @@ import os
 import sys
 
 # The pip package of each import name, where they differ.
-PIP_NAMES = {"sklearn": "scikit-learn", "nrrd": "pynrrd", "SimpleITK": "SimpleITK"}
+PIP_NAMES = {"sklearn": "scikit-learn", "skimage": "scikit-image", "nrrd": "pynrrd", "SimpleITK": "SimpleITK"}
 
 
 def need(modules, script):
