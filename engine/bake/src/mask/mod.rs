@@ -1211,7 +1211,7 @@ fn flipped_and_relaxed(mesh: &mut TriMesh, field: &surface::Field, iso: f64) -> 
     // relaxation, with a second collapse, was tried on 2026-12-07: fewer slivers, but one more of
     // the 12 COPDgene lungs folded within its tidal breath at 20 000 vertices.)
     let unflipped = mesh.clone();
-    surface::flip_edges(mesh, 4);
+    let flips = surface::flip_edges(mesh, 4);
     // Relaxed as far as the surface stays free of crossings; where untangling cannot undo what
     // the relaxation did, a gentler relaxation is taken instead, down to none. A flip only
     // re-triangulates a nearly flat quad, but on a coarse surface "nearly flat" is a fraction of a
@@ -1220,9 +1220,15 @@ fn flipped_and_relaxed(mesh: &mut TriMesh, field: &surface::Field, iso: f64) -> 
     // level set's and never cross (the collapses are checked), is relaxed instead.
     let flipped = mesh.clone();
     let mut crossing = usize::MAX;
+    // Without a flip the unflipped surface is the same: nothing to fall back to.
+    let fallback: &[TriMesh] = if flips > 0 {
+        std::slice::from_ref(&unflipped)
+    } else {
+        &[]
+    };
     for (start, iterations) in [(&flipped, 8), (&flipped, 3), (&flipped, 0)]
         .into_iter()
-        .chain([(&unflipped, 8), (&unflipped, 3), (&unflipped, 0)])
+        .chain(fallback.iter().flat_map(|m| [(m, 8), (m, 3), (m, 0)]))
     {
         *mesh = start.clone();
         surface::relax_onto(mesh, field, iso, iterations);

@@ -15,7 +15,7 @@
 //!    the same genus, and refused where it would fold a triangle.
 //! 4. **Slivers flipped**: an edge between two triangles whose angles opposite it add up to more
 //!    than π is replaced by the other diagonal where the quad is nearly flat (Delaunay flips, the
-//!    flip step of an isotropic remesh): marching tetrahedra's grid-shaped caps (angles to 0.05°)
+//!    flip step of an isotropic remesh): marching tetrahedra's grid-shaped caps (angles below 0.05°)
 //!    turn over at the smallest difference in motion, and a breathing kernel folds there.
 //! 5. **Relaxed and projected**: tangential Laplacian steps spread the vertices evenly (an
 //!    isotropic remesh's smoothing step), each followed by Newton steps back onto the field's 0.5
@@ -632,15 +632,16 @@ pub fn collapse_short_edges(mesh: &mut TriMesh, min_len_mm: f64) -> usize {
 
 /// Delaunay edge flips, the flip step of isotropic remeshing (Botsch & Kobbelt 2004): an edge `ab`
 /// shared by triangles `abc` and `bad` becomes `cd` where the angles opposite it add up to more
-/// than π (`∠acb + ∠adb > π`: the two triangles are a sliver's, and `cd` is the shorter, better
-/// diagonal) — only where the quad `acbd` is nearly flat and convex (the old diagonal crosses the new one within its middle 96 %, at most 10 % of the new
-/// diagonal's length away; the new triangles face as the old pair does), so a flip moves the surface
-/// by a small fraction of an edge and never folds it; only where `a` and `b` keep ≥ 3 neighbours
-/// and `cd` is not already an edge, so the surface stays a closed 2-manifold of the same genus.
-/// Marching tetrahedra cuts the level set into triangles whose shapes follow the grid (angles down
-/// to 0.05° at 20 000 vertices, hundreds under 10°), which the collapse and the relaxation leave;
-/// such slivers turn over at the smallest difference in their vertices' motion. Rounds until
-/// nothing flips (at most `rounds`); returns the flips made.
+/// than π (`∠acb + ∠adb > π`: the pair is not Delaunay, one of them a sliver, and the flip raises
+/// the smallest angle of the two) — only where the quad `acbd` is nearly flat and convex (the old
+/// diagonal crosses the new one within its middle 96 %, at most 10 % of the new diagonal's length
+/// away; the new triangles face as the old pair does), so a flip moves the surface by a small
+/// fraction of an edge; only where `a` and `b` keep ≥ 3 neighbours and `cd` is not already an
+/// edge, so the surface stays a closed 2-manifold of the same genus. Marching tetrahedra cuts the
+/// level set into triangles whose shapes follow the grid (angles below 0.05°, hundreds under 10° at
+/// 20 000 vertices), which the collapse and the relaxation leave; such slivers turn over at the
+/// smallest difference in their vertices' motion. Rounds until nothing flips (at most `rounds`);
+/// returns the flips made. A NaN angle (two vertices at one point) flips nothing.
 pub fn flip_edges(mesh: &mut TriMesh, rounds: usize) -> usize {
     use rayon::slice::ParallelSliceMut;
     use std::collections::HashSet;
@@ -652,8 +653,8 @@ pub fn flip_edges(mesh: &mut TriMesh, rounds: usize) -> usize {
     let key = |a: u32, b: u32| ((a.min(b) as u64) << 32) | a.max(b) as u64;
     let mut valence = vec![0usize; p.len()];
     for t in &mesh.triangles {
-        for e in 0..3 {
-            valence[t[e] as usize] += 1;
+        for &v in t {
+            valence[v as usize] += 1;
         }
     }
     let angle_at = |v: DVec3, x: DVec3, y: DVec3| (x - v).angle_between(y - v);
@@ -704,7 +705,7 @@ pub fn flip_edges(mesh: &mut TriMesh, rounds: usize) -> usize {
                     continue;
                 }
                 let [pa, pb, pc, pd] = [a, b, c, d].map(|v| p[v as usize]);
-                if angle_at(pc, pa, pb) + angle_at(pd, pa, pb) <= std::f64::consts::PI + 1e-9
+                if !(angle_at(pc, pa, pb) + angle_at(pd, pa, pb) > std::f64::consts::PI + 1e-9)
                     || exists(key(c, d))
                     || added.contains(&key(c, d))
                 {
