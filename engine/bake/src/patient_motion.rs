@@ -53,7 +53,7 @@ use lung_model::deform::LungModel;
 use lung_model::kernel::BakeSettings;
 use lung_model::mesh::{Side, TriMesh};
 
-use crate::mask::surface::neighbour_rows;
+use crate::mask::surface::{neighbour_rows, points};
 use crate::motion_models::{fit_field, folds, Config};
 use crate::operator::{compute_transfer, NodeGraph, Schedule};
 
@@ -299,13 +299,6 @@ impl Surface {
             .unwrap_or(&t[0]);
         (c, near, self.tri_n[tri as usize])
     }
-}
-
-fn points(mesh: &TriMesh) -> Vec<DVec3> {
-    mesh.positions
-        .iter()
-        .map(|q| DVec3::from(q.map(|v| v as f64)))
-        .collect()
 }
 
 /// A third of each incident triangle's area, per vertex, mm².

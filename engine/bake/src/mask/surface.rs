@@ -442,11 +442,7 @@ struct Collapsing {
 
 impl Collapsing {
     fn new(mesh: &TriMesh) -> Self {
-        let p: Vec<DVec3> = mesh
-            .positions
-            .iter()
-            .map(|q| DVec3::from(q.map(|v| v as f64)))
-            .collect();
+        let p = points(mesh);
         let mut vt: Vec<Vec<u32>> = vec![Vec::new(); p.len()];
         for (t, tri) in mesh.triangles.iter().enumerate() {
             for &v in tri {
@@ -645,11 +641,7 @@ pub fn collapse_short_edges(mesh: &mut TriMesh, min_len_mm: f64) -> usize {
 pub fn flip_edges(mesh: &mut TriMesh, rounds: usize) -> usize {
     use rayon::slice::ParallelSliceMut;
     use std::collections::HashSet;
-    let p: Vec<DVec3> = mesh
-        .positions
-        .iter()
-        .map(|q| DVec3::from(q.map(|v| v as f64)))
-        .collect();
+    let p = points(mesh);
     let key = |a: u32, b: u32| ((a.min(b) as u64) << 32) | a.max(b) as u64;
     let mut valence = vec![0usize; p.len()];
     for t in &mesh.triangles {
@@ -750,6 +742,14 @@ pub fn flip_edges(mesh: &mut TriMesh, rounds: usize) -> usize {
         }
     }
     flips
+}
+
+/// The mesh's vertices in f64 (the surface's arithmetic is done in f64; the mesh stores f32).
+pub(crate) fn points(mesh: &TriMesh) -> Vec<DVec3> {
+    mesh.positions
+        .iter()
+        .map(|q| DVec3::from(q.map(|v| v as f64)))
+        .collect()
 }
 
 /// Unit triangle normals (zero where undefined).
@@ -884,11 +884,7 @@ pub fn untangle(mesh: &mut TriMesh, field: &Field, iso: f64, rounds: usize) -> u
                 .collect();
             mark = grown;
         }
-        let mut p: Vec<DVec3> = mesh
-            .positions
-            .iter()
-            .map(|q| DVec3::from(q.map(|v| v as f64)))
-            .collect();
+        let mut p = points(mesh);
         for _ in 0..3 {
             let next: Vec<DVec3> = (0..p.len())
                 .into_par_iter()
@@ -938,11 +934,7 @@ pub(crate) fn neighbour_rows(n: usize, tris: &[[u32; 3]]) -> (Vec<usize>, Vec<u3
 pub fn relax_onto(mesh: &mut TriMesh, field: &Field, iso: f64, iterations: usize) {
     use rayon::prelude::*;
     let inverse = field.to_body.linear.inverse();
-    let mut p: Vec<DVec3> = mesh
-        .positions
-        .iter()
-        .map(|q| DVec3::from(q.map(|v| v as f64)))
-        .collect();
+    let mut p = points(mesh);
     let (offsets, flat) = neighbour_rows(p.len(), &mesh.triangles);
     let mut vt: Vec<Vec<u32>> = vec![Vec::new(); p.len()];
     for (t, tri) in mesh.triangles.iter().enumerate() {
@@ -1052,11 +1044,7 @@ pub fn relax_onto(mesh: &mut TriMesh, field: &Field, iso: f64, iterations: usize
 pub fn match_volume(mesh: &mut TriMesh, target_mm3: f64) -> f64 {
     let mut total = 0.0;
     for _ in 0..2 {
-        let p: Vec<DVec3> = mesh
-            .positions
-            .iter()
-            .map(|q| DVec3::from(q.map(|v| v as f64)))
-            .collect();
+        let p = points(mesh);
         let area = mesh.area_mm2();
         let volume = mesh.enclosed_volume_mm3();
         if !(area > 0.0) {
@@ -1235,11 +1223,7 @@ mod tests {
 
     /// Triangles with an angle under `deg` degrees.
     fn slivers(mesh: &TriMesh, deg: f64) -> usize {
-        let p: Vec<DVec3> = mesh
-            .positions
-            .iter()
-            .map(|q| DVec3::from(q.map(|v| v as f64)))
-            .collect();
+        let p = points(mesh);
         mesh.triangles
             .iter()
             .filter(|t| {
@@ -1275,11 +1259,7 @@ mod tests {
         let (v0, v1) = (before.enclosed_volume_mm3(), mesh.enclosed_volume_mm3());
         assert!((v1 / v0 - 1.0).abs() < 1e-3, "volume {v0} → {v1}");
         let c = DVec3::new(29.5 * 1.0, 29.5 * 1.25, 29.5 * 1.75);
-        let p: Vec<DVec3> = mesh
-            .positions
-            .iter()
-            .map(|q| DVec3::from(q.map(|v| v as f64)))
-            .collect();
+        let p = points(&mesh);
         for (t, n) in mesh
             .triangles
             .iter()
