@@ -241,8 +241,7 @@ pub fn sites(a: &SitesArgs) -> anyhow::Result<SitesReport> {
 pub fn sites_text(r: &SitesReport) -> String {
     let mut s = format!(
         "{} ({}): {:.1} s, tidal volume {:.0} ml, engines at {:.0} Hz\n\
-         the source sent {} control states, {} with the patient's breath; a site follows the patient \
-         from {}\n\n\
+         the source sent {} control states, {} with the patient's breath; {}\n\n\
          RMS of the site's volume against the source's, % of the tidal volume:\n\
          delay     following   its model   every tick      lag   largest step (site / source)   ticks the site followed   turns heard after (mean, max)\n",
         r.file,
@@ -252,30 +251,124 @@ pub fn sites_text(r: &SitesReport) -> String {
         r.tick_hz,
         r.states,
         r.states_with_breath,
-        r.site_following_from_s
-            .map_or("never".to_string(), |t| format!("{t:.1} s")),
+        r.site_following_from_s.map_or("no site follows the patient".to_string(), |t| format!(
+            "a site follows the patient from {t:.1} s"
+        )),
     );
+    // A figure over no tick (the site never followed) is none, not NaN.
+    let or_none = |x: f64, width: usize, unit: &str| {
+        if x.is_finite() {
+            format!("{x:>width$.1} {unit}")
+        } else {
+            format!("{:>w$}", "—", w = width + 1 + unit.chars().count())
+        }
+    };
     for row in &r.rows {
         let f = &row.figures;
+        let followed = f.site_following > 0;
         s += &format!(
-            "{:>5.0} ms {:>9.1} % {:>9.1} % {:>10.1} % {:>6.0} ms {:>14.1} / {:.1} ml {:>16} of {:<6} {:>8.0} ms, {:.0} ms\n",
+            "{:>5.0} ms {} {} {} {} {:>14.1} / {:.1} ml {:>16} of {:<6} {}\n",
             row.delay_ms,
-            row.rms_percent_of_tidal,
-            row.rms_percent_of_tidal_model,
-            row.rms_percent_of_tidal_all,
-            f.lag_ms,
+            or_none(row.rms_percent_of_tidal, 9, "%"),
+            or_none(row.rms_percent_of_tidal_model, 9, "%"),
+            or_none(row.rms_percent_of_tidal_all, 10, "%"),
+            if followed {
+                format!("{:>6.0} ms", f.lag_ms)
+            } else {
+                format!("{:>9}", "—")
+            },
             f.largest_step_ml,
             f.source_largest_step_ml,
             f.site_following,
             f.ticks,
-            row.turn_heard_after_ms.unwrap_or(f64::NAN),
-            row.turn_heard_after_max_ms
+            row.turn_heard_after_ms
+                .map_or("      none".to_string(), |m| format!(
+                    "{m:>8.0} ms, {:.0} ms",
+                    row.turn_heard_after_max_ms
+                )),
+        );
+    }
+    if r.rows.iter().all(|row| row.figures.site_following == 0) {
+        s += &format!(
+            "\nThe site never followed the patient: the source sent {} of its {} states with the \
+             patient's breath (a site needs one whole breath the source followed, from one \
+             end-expiration its follower confirmed to the next), so every site breathed the model \
+             and there is nothing to compare while following.\n",
+            r.states_with_breath, r.states
         );
     }
     s += "\n\"following\": the ticks the source and the site both followed the patient; \"its model\": \
           the same ticks on a site without the patient's breath (the model's own clock); \"every \
           tick\": every tick the source followed, the site's model before its first whole breath \
-          included. A site plays the previous breath from the patient's last turn (docs/REMOTE.md, \
-          \"A live patient\").\n";
+          included. A site plays the previous breath from the patient's last turn, and the next on the \
+          patient's rhythm once that one has played out (docs/REMOTE.md, \"A live patient\").\n";
     s
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    fn row(delay_ms: f64, followed: bool) -> SitesRow {
+        let nan_unless = |x: f64| if followed { x } else { f64::NAN };
+        SitesRow {
+            delay_ms,
+            delay_ticks: (delay_ms * 0.06).round() as u64,
+            rms_percent_of_tidal: nan_unless(12.1),
+            rms_percent_of_tidal_model: nan_unless(47.4),
+            rms_percent_of_tidal_all: 55.5,
+            figures: SiteFigures {
+                ticks: 1021,
+                site_following: if followed { 806 } else { 0 },
+                rms_ml: nan_unless(53.0),
+                model_rms_ml: nan_unless(207.6),
+                rms_all_ml: 285.1,
+                lag_ms: nan_unless(17.0),
+                largest_step_ml: 10.4,
+                source_largest_step_ml: 56.8,
+            },
+            turn_heard_after_ms: followed.then_some(158.0),
+            turn_heard_after_max_ms: if followed { 200.0 } else { 0.0 },
+        }
+    }
+
+    fn report(followed: bool) -> SitesReport {
+        SitesReport {
+            file: "rec.csv".into(),
+            kind: "ventilator recording".into(),
+            duration_s: 21.5,
+            tidal_ml: 513.0,
+            tick_hz: 60.0,
+            states: 5,
+            states_with_breath: if followed { 4 } else { 0 },
+            site_following_from_s: followed.then_some(6.5),
+            rows: vec![row(0.0, followed), row(1000.0, followed)],
+        }
+    }
+
+    /// A recording on which the site never followed (the source never sent a whole breath: found
+    /// on the shared COPD ventilator recording) reports none and says why, never "NaN %".
+    #[test]
+    fn a_site_that_never_followed_is_said_not_printed_as_nan() {
+        let text = sites_text(&report(false));
+        assert!(!text.contains("NaN"), "{text}");
+        assert!(text.contains("never followed the patient"), "{text}");
+        assert!(text.contains("0 of its 5 states"), "{text}");
+        assert!(text.contains("no site follows the patient"), "{text}");
+        let json = serde_json::to_value(report(false)).unwrap();
+        assert!(json["rows"][0]["rms_percent_of_tidal"].is_null(), "{json}");
+        assert!(json["rows"][0]["figures"]["lag_ms"].is_null(), "{json}");
+        // A site that followed: its figures, and no such sentence.
+        let text = sites_text(&report(true));
+        assert!(text.contains("12.1 %") && text.contains("17 ms"), "{text}");
+        assert!(text.contains("158 ms, 200 ms"), "{text}");
+        assert!(
+            text.contains("a site follows the patient from 6.5 s"),
+            "{text}"
+        );
+        assert!(
+            !text.contains("never followed") && !text.contains("NaN"),
+            "{text}"
+        );
+    }
 }

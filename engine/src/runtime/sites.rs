@@ -213,7 +213,8 @@ pub struct SiteFigures {
     /// site's model before its first whole breath included), ml.
     pub rms_all_ml: f64,
     /// The shift of the site's breath against the source's that fits best over the ticks both
-    /// followed (least RMS within ±1 s), ms, positive when the site is late.
+    /// followed (least RMS within ±1 s), ms, positive when the site is late (NaN when the site
+    /// never followed).
     pub lag_ms: f64,
     /// The largest change of the site's volume from one tick to the next, ml.
     pub largest_step_ml: f64,
@@ -263,7 +264,12 @@ pub fn figures(run: &SiteRun, from_s: f64, tick_hz: f64) -> SiteFigures {
         rms_ml: rms(&both, &|k| t[k].site_ml - t[k].source_ml),
         model_rms_ml: rms(&both, &|k| t[k].model_site_ml - t[k].source_ml),
         rms_all_ml: rms(&source, &|k| t[k].site_ml - t[k].source_ml),
-        lag_ms: best.1 as f64 * 1e3 / tick_hz,
+        // No lag without a tick to fit it on (NaN: `null` in a report's JSON, not 0 ms).
+        lag_ms: if both.is_empty() {
+            f64::NAN
+        } else {
+            best.1 as f64 * 1e3 / tick_hz
+        },
         largest_step_ml: step(&|x| x.site_ml),
         source_largest_step_ml: step(&|x| x.source_ml),
     }
