@@ -424,7 +424,7 @@ impl RemoteLive {
         tick: u64,
         lungs: &mut [(super::LungGeometry, LungBreath)],
     ) -> u32 {
-        let (v, inhaling) = self.breath.volume_at(tick);
+        let (v, inhaling) = self.breath.volume_on_rhythm(tick);
         if std::mem::take(&mut self.fresh) {
             self.offset = (self.played.map_or(0.0, |p| p - v), tick);
             self.heard = Some(tick.saturating_sub(self.turn));

@@ -2417,10 +2417,12 @@ fn a_site_breathes_with_the_sources_patient() {
         100.0 * f.model_rms_ml / tidal,
         run.states.len()
     );
-    // Measured (2026-12-06): following from 24.3 s; RMS 44.8 ml (9.0 % of tidal) against 320 ml
-    // for the model's breath; lag 83 ms; largest step 23 ml against the breath's own 7.1 ml (the
-    // re-alignments, faded over REALIGN_TICKS; 63 ml over 4 ticks); turns heard 641 ms late on
-    // average (the follower confirms a smooth breath's turns late), 46 ticks at most.
+    // Measured (2026-12-07, each breath started on the patient's rhythm): following from 24.3 s;
+    // RMS 26.0 ml (5.2 % of tidal) against 320 ml for the model's breath; lag 17 ms; largest step
+    // 7.7 ml against the breath's own 7.1 ml; turns heard 641 ms late on average (the follower
+    // confirms a smooth breath's turns late), 46 ticks at most. (2026-12-06, holding each breath's
+    // end until the next start was heard: 44.8 ml, 9.0 %; lag 83 ms; largest step 23 ml, the
+    // re-alignments faded over REALIGN_TICKS.)
     assert!(t[first].t_s < 25.0, "{}", t[first].t_s);
     assert_eq!(f.site_following, f.ticks);
     assert!(f.rms_ml < 0.15 * tidal, "RMS {:.1} ml", f.rms_ml);
@@ -2441,6 +2443,40 @@ fn a_site_breathes_with_the_sources_patient() {
     );
     // And it follows the patient again after.
     assert!(t.last().unwrap().site_state & e::SIGNAL_FOLLOWING != 0);
+}
+
+/// A site a second behind its source (a continent away, or a slow relay) hears each of the
+/// patient's turns over a second late: it keeps the patient's rhythm by starting each breath when
+/// the previous one has played out, instead of holding the breath's end until the next start is
+/// heard (which made every breath start a second late there, and the site no closer to the patient
+/// than the model's own breath on short breaths).
+#[test]
+fn a_site_a_second_behind_keeps_the_patients_rhythm() {
+    const DELAY: u64 = 60; // 1 s
+    let run = remote_follow(50.0, DELAY, None);
+    let tidal = signal_core(50.0)
+        .lung(Side::Right)
+        .unwrap()
+        .breathing()
+        .boundary()
+        .tv_ml;
+    let window = super::sites::SiteRun {
+        ticks: run.ticks.clone(),
+        states: Vec::new(),
+        turn_lag: run.turn_lag,
+    };
+    let f = super::sites::figures(&window, 30.0, 60.0);
+    let mean = run.turn_lag.mean_ms(60.0).unwrap();
+    eprintln!(
+        "30-50 s, the site 1 s behind: {f:?} ({:.1} % of {tidal:.0} ml against {:.1} % without the \
+         patient's breath); turns heard {mean:.0} ms late",
+        100.0 * f.rms_ml / tidal,
+        100.0 * f.model_rms_ml / tidal,
+    );
+    assert!(mean >= 1000.0, "turns heard {mean:.0} ms late");
+    assert_eq!(f.site_following, f.ticks);
+    assert!(f.rms_ml < 0.15 * tidal, "RMS {:.1} ml", f.rms_ml);
+    assert!(f.lag_ms.abs() <= 150.0, "{f:?}");
 }
 
 /// The site's breath is a pure function of the states and the ticks they arrive at: twice the same.

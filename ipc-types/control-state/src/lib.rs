@@ -299,9 +299,10 @@ pub struct PendingCycle {
 /// patient's turns — the start of a breath (an end-expiration) and the start of its expiration (an
 /// end-inspiration) — so each site plays the previous breath from the last turn of the breath in
 /// progress: from the breath's start, and once the patient's expiration is announced, its
-/// expiration from there scaled to start at this breath's peak; held at its end until the next
-/// breath (a prediction at most half a breath ahead that never starts a breath before the patient
-/// does; the sites need no sample stream). `None` in a state: the source's model
+/// expiration from there scaled to start at this breath's peak; then, until the next breath is
+/// announced, the previous breath again on the patient's rhythm ([`LiveBreath::volume_on_rhythm`]:
+/// a prediction at most a breath ahead; the sites need no sample stream). `None` in a state: the
+/// source's model
 /// breathes (its signal calibrating, lost or not yet a whole breath), and the lungs' PV states say
 /// where, as for any source.
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
@@ -385,6 +386,33 @@ impl LiveBreath {
                 (v, false)
             }
         }
+    }
+
+    /// [`Self::volume_at`] until the breath in progress has played out as the previous breath did
+    /// (to the end of its expiration), then the patient's next breath predicted on their rhythm:
+    /// the previous breath again from its start, shifted to begin where this one ended, and held at
+    /// its end — one breath ahead at most, replaced when the patient's next turn is announced. For
+    /// a site that hears the patient's turns late: [`Self::volume_at`] holds each breath's end
+    /// until the next breath's start is heard, so every breath starts that late there.
+    pub fn volume_on_rhythm(&self, tick: u64) -> (f64, bool) {
+        let n = self.last_ml.len();
+        if n < 2 || self.last_ticks < 2 {
+            return self.volume_at(tick);
+        }
+        // The tick the breath in progress plays its last sample at (the previous breath's end).
+        let end_tick = match self.peak {
+            None => self
+                .start_tick
+                .saturating_add(u64::from(self.last_ticks - 1)),
+            Some((at, _)) => at.saturating_add(u64::from(self.last_ticks - 1 - self.last_peak)),
+        };
+        if tick <= end_tick {
+            return self.volume_at(tick);
+        }
+        let per_tick = (n - 1) as f64 / (self.last_ticks - 1) as f64;
+        let (v, rising) = self.sample_at((tick - end_tick - 1) as f64 * per_tick);
+        let (first, end) = (self.last_ml[0] as f64, self.last_ml[n - 1] as f64);
+        (end + (v - first), rising)
     }
 }
 

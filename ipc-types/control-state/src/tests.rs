@@ -534,6 +534,38 @@ fn a_live_breath_plays_the_previous_breath_then_expires_from_the_announced_peak(
     assert_eq!(l.volume_at(u64::MAX), (50.0, false));
 }
 
+#[test]
+fn on_the_patients_rhythm_the_next_breath_starts_when_this_one_has_played_out() {
+    // The same breath as above: 5 samples over 9 ticks, from tick 1040; its end at 1048.
+    let mut l = LiveBreath {
+        last_ticks: 9,
+        last_peak: 4,
+        ..live(vec![10.0, 100.0, 300.0, 200.0, 50.0])
+    };
+    // Within the breath: as `volume_at`.
+    for t in [0, 1040, 1041, 1045, 1048] {
+        assert_eq!(l.volume_on_rhythm(t), l.volume_at(t), "tick {t}");
+    }
+    // Then the previous breath again, shifted to start at this one's end (50 ml): +40 ml a tick
+    // from 1049 (+45 at 1050), its peak at 1053, held at its end (90 ml) from 1057 on.
+    assert_eq!(l.volume_on_rhythm(1049), (50.0, true));
+    assert_eq!(l.volume_on_rhythm(1050), (95.0, true));
+    assert_eq!(l.volume_on_rhythm(1053), (340.0, false));
+    assert_eq!(l.volume_on_rhythm(1057), (90.0, false));
+    assert_eq!(l.volume_on_rhythm(u64::MAX), (90.0, false));
+    // With the peak announced at 1100 (550 ml), this breath's expiration ends 4 ticks later, at
+    // 1104, and the next starts at 1105.
+    l.peak = Some((1100, 550.0));
+    for t in [1100, 1102, 1104] {
+        assert_eq!(l.volume_on_rhythm(t), l.volume_at(t), "tick {t}");
+    }
+    assert_eq!(l.volume_on_rhythm(1105), (50.0, true));
+    assert_eq!(l.volume_on_rhythm(1109), (340.0, false));
+    // A peak at the end of time: no overflow, the breath's expiration held.
+    l.peak = Some((u64::MAX - 1, 550.0));
+    assert_eq!(l.volume_on_rhythm(u64::MAX), l.volume_at(u64::MAX));
+}
+
 proptest! {
     #[test]
     fn every_state_round_trips(s in arb_state()) {
