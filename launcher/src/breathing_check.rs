@@ -99,6 +99,11 @@ pub struct CheckReport {
     /// the newest sample's age — mostly what no prediction can remove. Near 0 on a regular signal;
     /// a belt's irregular breaths raise it. `None` when no frame was compared.
     pub calibration_floor_percent_of_tidal: Option<f64>,
+    /// Breaths of unequal depth turning at the signal's highest (or lowest) value: cut by the
+    /// sensor's range (`None`: none seen; a ventilator recording is not checked).
+    pub clipping: Option<lung_model::breathing::evaluate::Clipping>,
+    /// The signal's unit symbol (the clipping's value is in it).
+    pub unit: String,
     /// Plots written.
     pub plots: Vec<String>,
 }
@@ -146,7 +151,7 @@ pub fn check(a: &CheckArgs) -> anyhow::Result<CheckReport> {
     )?;
     let calibration = Calibration::amplitude(a.ml_per_unit, a.tidal_ml);
     let read = read_trace_or_recording(&a.file, &bytes, calibration)?;
-    let (trace, kind) = (read.trace, read.kind);
+    let (trace, kind, unit) = (read.trace, read.kind, read.unit);
     let (results, goal) = sweep(&trace, chosen, &a.latency_ms, a.frame_rate_hz);
     if let Some(e) = results.iter().find(|e| e.frames_compared == 0) {
         anyhow::bail!(
@@ -190,6 +195,8 @@ pub fn check(a: &CheckArgs) -> anyhow::Result<CheckReport> {
         sample_rate_hz: trace.rate_hz,
         duration_s: span_ns as f64 * 1e-9,
         inspiration_fraction: trace.inspiration_fraction,
+        clipping: trace.clipped.clone(),
+        unit: unit.symbol().to_string(),
         breaths_in_recording: trace.breaths,
         tidal_ml: trace.tidal_ml,
         frame_rate_hz: a.frame_rate_hz,
@@ -268,6 +275,9 @@ pub fn check_text(r: &CheckReport) -> String {
         r.tidal_ml,
         r.frame_rate_hz
     );
+    if let Some(c) = &r.clipping {
+        s += &format!("WARNING: {}\n", c.describe(&r.unit));
+    }
     if let Some(f) = r.inspiration_fraction {
         s += &format!("inspiration {:.0} % of a breath (median)", 100.0 * f);
         s += if f > 0.5 {

@@ -532,6 +532,11 @@ pub struct FollowReport {
     pub file: String,
     /// What it was read as.
     pub kind: String,
+    /// Breaths of unequal depth turning at the signal's highest (or lowest) value: cut by the
+    /// sensor's range (`None`: none seen; a ventilator recording is not checked).
+    pub clipping: Option<lung_model::breathing::evaluate::Clipping>,
+    /// The signal's unit symbol (the clipping's value is in it).
+    pub unit: String,
     /// Its length, s.
     pub duration_s: f64,
     /// The scene run (`built-in default` without --scene).
@@ -558,6 +563,7 @@ pub struct FollowReport {
 struct Checked {
     trace: Trace,
     kind: String,
+    unit: lung_model::breathing::trace::SignalUnit,
     scene: lung_model::scene::Scene,
 }
 
@@ -631,6 +637,7 @@ fn check_args(a: &FollowArgs) -> anyhow::Result<Checked> {
     Ok(Checked {
         trace: read.trace,
         kind: read.kind,
+        unit: read.unit,
         scene,
     })
 }
@@ -692,6 +699,8 @@ pub fn follow(a: &FollowArgs) -> anyhow::Result<FollowReport> {
     Ok(FollowReport {
         file: a.file.display().to_string(),
         kind: c.kind,
+        clipping: c.trace.clipped.clone(),
+        unit: c.unit.symbol().to_string(),
         duration_s: duration,
         scene: a
             .scene
@@ -911,6 +920,9 @@ pub fn follow_text(r: &FollowReport) -> String {
             String::new()
         }
     ));
+    if let Some(c) = &r.clipping {
+        s.push_str(&format!("WARNING: {}\n", c.describe(&r.unit)));
+    }
     for p in r.frames_out.iter().chain(&r.plots) {
         s.push_str(&format!("wrote {p}\n"));
     }
@@ -961,6 +973,7 @@ mod tests {
             calibration: Calibration::Volume,
             breath_period_s: None,
             inspiration_fraction: Some(0.375),
+            clipped: None,
         }
     }
 

@@ -474,6 +474,10 @@ pub fn open(args: &SourceArgs) -> Result<Opened, BridgeError> {
     let mut assembler = assemble::Assembler::new(config);
     if let signal::SignalSpec::Trace(path) = &r.signal {
         let mut replay = signal::TraceReplay::open(path)?;
+        if let Some(w) = replay.warning() {
+            // Said once, when the file is opened (never per sample).
+            eprintln!("tracker-bridge: warning: {}: {w}", path.display());
+        }
         if let (Some(at), Some(dur)) = (args.breathing_cut_at, args.breathing_cut_for) {
             replay.cut(at, dur)?;
         }

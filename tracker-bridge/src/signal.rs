@@ -238,6 +238,7 @@ pub struct TraceReplay {
     describe: String,
     /// What was sent and withheld.
     pub counts: SignalCounts,
+    warning: Option<String>,
 }
 
 /// Why a signal source cannot be used.
@@ -319,7 +320,18 @@ impl TraceReplay {
                 samples.last().map_or(0, |s| s.t_ns - first) as f64 * 1e-9
             ),
             counts: SignalCounts::default(),
+            warning: read
+                .trace
+                .clipped
+                .as_ref()
+                .map(|c| c.describe(read.unit.symbol())),
         })
+    }
+
+    /// What looks wrong in the file though it can be followed (a signal clipped by its sensor's
+    /// range), for the person starting the run.
+    pub fn warning(&self) -> Option<&str> {
+        self.warning.as_deref()
     }
 
     /// Withhold the samples from `at_s` to `at_s + for_s` after the start (a loss, to test one).
@@ -393,6 +405,7 @@ mod tests {
             cut: None,
             describe: String::new(),
             counts: SignalCounts::default(),
+            warning: None,
         }
     }
 

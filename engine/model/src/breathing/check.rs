@@ -266,6 +266,53 @@ mod tests {
         csv
     }
 
+    /// 60 s of breaths every 3 s at 25 Hz whose depths differ (0.6–1.4 × 4 mm, a golden-ratio
+    /// sequence), each value through `f`.
+    fn unequal_breaths(f: impl Fn(f64) -> f64) -> String {
+        breaths_varying(0.8, f)
+    }
+
+    /// As [`unequal_breaths`], the depths (1 − `vary`/2 … 1 + `vary`/2) × 4 mm.
+    fn breaths_varying(vary: f64, f: impl Fn(f64) -> f64) -> String {
+        let mut csv = String::from("time_s,amplitude_mm\n");
+        for k in 0..1500 {
+            let t = k as f64 * 0.04;
+            let b = (t / 3.0).floor();
+            let depth = 4.0 * (1.0 - vary / 2.0 + vary * (b * 0.618_034).fract());
+            let v = depth * 0.5 * (1.0 - (std::f64::consts::TAU * t / 3.0).cos());
+            csv += &format!("{t:.3},{:.5}\n", f(v));
+        }
+        csv
+    }
+
+    /// Breaths of unequal depth that all end at one value were cut there (the BioSPPy belt's top):
+    /// said, at the top or the bottom; the same breaths uncut, and breaths of equal depth (which
+    /// end together by themselves), are not called clipped.
+    #[test]
+    fn breaths_cut_at_the_sensors_range_are_said_and_others_are_not() {
+        let path = Path::new("t.csv");
+        let auto = Calibration::Auto { tidal_ml: 500.0 };
+        let clipped = |csv: String| {
+            read_trace_or_recording(path, csv.as_bytes(), auto)
+                .unwrap()
+                .trace
+                .clipped
+        };
+        let top = clipped(unequal_breaths(|v| v.min(4.8))).expect("cut at 4.8 mm");
+        assert!(top.at_top && top.value == 4.8, "{top:?}");
+        assert!(top.at_s.len() >= 3 && top.at_s.len() < top.turns, "{top:?}");
+        let said = top.describe("mm");
+        assert!(said.contains("clipped at 4.8 mm, its highest") && said.contains("shallower"));
+        assert_eq!(clipped(unequal_breaths(|v| v)), None);
+        // The mirror image (inspiration falling), cut at its lowest value.
+        let bottom = clipped(unequal_breaths(|v| (6.0 - v).max(1.2))).expect("cut at 1.2 mm");
+        assert!(!bottom.at_top && bottom.value == 1.2, "{bottom:?}");
+        assert_eq!(clipped(sine_csv("amplitude_mm", 1.0, 4.0)), None);
+        // Breaths within 2 % of each other: several end within 0.5 % of the highest by
+        // themselves, and the others as close: steady breathing, not a cut.
+        assert_eq!(clipped(breaths_varying(0.02, |v| v)), None);
+    }
+
     /// A sample flagged invalid has no hindsight volume; the frames beside it are still compared
     /// with the volume across it (every other sample invalid: as many frames compared as with
     /// every sample valid, within a few), as the live follower's grid bridges it.

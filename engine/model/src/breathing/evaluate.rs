@@ -43,6 +43,102 @@ pub struct Trace {
     /// Median fraction of a breath spent rising (inspiring): about 0.3–0.45 in quiet breathing
     /// (I:E 1:1.2–1:2.3); over 0.5 suggests the signal's sign is the wrong way round.
     pub inspiration_fraction: Option<f64>,
+    /// A one-signal trace whose breaths end at one value, their depths cut there ([`Clipping`];
+    /// `None` when none is seen, and for a ventilator recording).
+    pub clipped: Option<Clipping>,
+}
+
+/// Breaths whose turns lie within this fraction of the signal's range of its extreme are taken
+/// as reaching it (0.5 %: the BioSPPy belt's three cut breaths lie within 0.15 %).
+pub const CLIP_BAND: f64 = 0.005;
+/// At least this many breaths reach the extreme…
+pub const CLIP_MIN_BREATHS: usize = 3;
+/// …while the other turns on that side spread over at least this fraction of the range (their
+/// interquartile range): breaths of unequal depth ending at one value are cut, where breaths of
+/// equal depth (a ventilator's, a steady breather's) end together by themselves.
+pub const CLIP_SPREAD: f64 = 0.1;
+
+/// A one-signal trace that looks clipped: several breaths of unequal depth turn at one value, the
+/// signal's highest (inspirations cut: a belt stretched past its sensor's range, a converter's top,
+/// a gain set too high) or lowest. Those breaths were deeper than they read, so lungs following
+/// them breathe shallower there. Found from the detector's turns over the whole trace.
+#[derive(Debug, Clone, PartialEq, serde::Serialize)]
+pub struct Clipping {
+    /// At the signal's highest value (`true`: inspirations cut) or its lowest (expirations).
+    pub at_top: bool,
+    /// The value they turn at, in the signal's unit.
+    pub value: f64,
+    /// Seconds from the trace's first sample of each turn at it.
+    pub at_s: Vec<f64>,
+    /// Turns on that side in all.
+    pub turns: usize,
+    /// The other turns' interquartile range, fraction of the signal's range.
+    pub spread: f64,
+}
+
+impl Clipping {
+    /// For a person (`unit`: the signal's unit symbol).
+    pub fn describe(&self, unit: &str) -> String {
+        let times: Vec<String> = self.at_s.iter().map(|t| format!("{t:.1}")).collect();
+        format!(
+            "the signal looks clipped at {} {unit}, its {} value: {} of its {} breaths' {} lie \
+             there (within {:.1} % of its range, at {} s) while the others spread over {:.0} % — \
+             the sensor's range or a converter ends there, so those breaths were deeper than they \
+             read ({}) and the lungs following them breathe {}",
+            self.value,
+            if self.at_top { "highest" } else { "lowest" },
+            self.at_s.len(),
+            self.turns,
+            if self.at_top { "peaks" } else { "troughs" },
+            100.0 * CLIP_BAND,
+            times.join(", "),
+            100.0 * self.spread,
+            if self.at_top {
+                "a belt stretched past its range, a gain set too high"
+            } else {
+                "a sensor's floor, an offset set too low"
+            },
+            if self.at_top {
+                "shallower there: lower the sensor's gain, or loosen the belt"
+            } else {
+                "shallower there: check the sensor's offset"
+            }
+        )
+    }
+}
+
+/// [`Clipping`] of the turns `turns` (time ns, value; one side's) of a signal spanning `lo..=hi`
+/// from `t0_ns`: `top` for peaks.
+pub fn clipping(turns: &[(u64, f64)], lo: f64, hi: f64, t0_ns: u64, top: bool) -> Option<Clipping> {
+    let range = hi - lo;
+    if !(range > 0.0) || !range.is_finite() {
+        return None;
+    }
+    let extreme = if top { hi } else { lo };
+    let near = |v: f64| (v - extreme).abs() <= CLIP_BAND * range;
+    let at_s: Vec<f64> = turns
+        .iter()
+        .filter(|(_, v)| near(*v))
+        .map(|(t, _)| t.saturating_sub(t0_ns) as f64 * 1e-9)
+        .collect();
+    let mut others: Vec<f64> = turns
+        .iter()
+        .map(|(_, v)| *v)
+        .filter(|v| !near(*v))
+        .collect();
+    if at_s.len() < CLIP_MIN_BREATHS || others.len() < 4 {
+        return None;
+    }
+    others.sort_by(f64::total_cmp);
+    let q = |f: f64| others[((others.len() - 1) as f64 * f).round() as usize];
+    let spread = (q(0.75) - q(0.25)) / range;
+    (spread >= CLIP_SPREAD).then(|| Clipping {
+        at_top: top,
+        value: extreme,
+        at_s,
+        turns: turns.len(),
+        spread,
+    })
 }
 
 fn median(mut v: Vec<f64>) -> Option<f64> {
@@ -113,6 +209,7 @@ impl Trace {
             calibration: Calibration::Volume,
             breath_period_s: None,
             inspiration_fraction: median(fractions),
+            clipped: None,
         })
     }
 
@@ -128,14 +225,22 @@ impl Trace {
     pub fn from_signal(t: &SignalTrace, calibration: Calibration) -> Option<Trace> {
         let mut det = Detector::new();
         let mut troughs: Vec<(u64, f64)> = Vec::new();
+        let mut peaks: Vec<(u64, f64)> = Vec::new();
         let (mut amplitudes, mut periods) = (Vec::new(), Vec::new());
+        let (mut lo, mut hi) = (f64::INFINITY, f64::NEG_INFINITY);
         for s in t.samples.iter().filter(|s| s.valid) {
-            if let Some(Turn::Trough(tt, v, breath)) = det.push(s.t_ns, s.value) {
-                troughs.push((tt, v));
-                if let Some(b) = breath.filter(|b| b.kind == BreathKind::Regular) {
-                    amplitudes.push(b.amplitude);
-                    periods.push(b.period_s);
+            lo = lo.min(s.value);
+            hi = hi.max(s.value);
+            match det.push(s.t_ns, s.value) {
+                Some(Turn::Trough(tt, v, breath)) => {
+                    troughs.push((tt, v));
+                    if let Some(b) = breath.filter(|b| b.kind == BreathKind::Regular) {
+                        amplitudes.push(b.amplitude);
+                        periods.push(b.period_s);
+                    }
                 }
+                Some(Turn::Peak(tt, v)) => peaks.push((tt, v)),
+                None => {}
             }
         }
         if troughs.len() < 2 {
@@ -197,6 +302,10 @@ impl Trace {
             calibration,
             breath_period_s: median(periods),
             inspiration_fraction: median(fractions),
+            clipped: {
+                let t0 = t.samples.first().map_or(0, |s| s.t_ns);
+                clipping(&peaks, lo, hi, t0, true).or_else(|| clipping(&troughs, lo, hi, t0, false))
+            },
         })
     }
 
