@@ -369,6 +369,10 @@ pub mod engine_state {
     /// tool's breathing axis, `tool:NAME:auto`, over its first 12 s) and sends no samples yet; the
     /// model breathes. Not a loss: no veil.
     pub const SIGNAL_LEARNING: u32 = 1 << 12;
+    /// With [`SIGNAL_FOLLOWING`]: the latest breaths look cut by the sensor's range (several of
+    /// unequal depth ending at one value, the signal's highest or lowest): the patient breathed
+    /// deeper than the signal reads, so the lungs drawn from it breathe shallower.
+    pub const SIGNAL_CLIPPED: u32 = 1 << 13;
 }
 
 /// Bits of [`LungFrame::flags`].

@@ -282,19 +282,31 @@ pub fn sites_text(r: &SitesReport) -> String {
             f.site_following,
             f.ticks,
             row.turn_heard_after_ms
-                .map_or("      none".to_string(), |m| format!(
+                .map_or(format!("{:>11}", "none"), |m| format!(
                     "{m:>8.0} ms, {:.0} ms",
                     row.turn_heard_after_max_ms
                 )),
         );
     }
-    if r.rows.iter().all(|row| row.figures.site_following == 0) {
+    let none: Vec<String> = r
+        .rows
+        .iter()
+        .filter(|row| row.figures.site_following == 0)
+        .map(|row| format!("{:.0} ms", row.delay_ms))
+        .collect();
+    if r.states_with_breath == 0 {
         s += &format!(
-            "\nThe site never followed the patient: the source sent {} of its {} states with the \
-             patient's breath (a site needs one whole breath the source followed, from one \
-             end-expiration its follower confirmed to the next), so every site breathed the model \
-             and there is nothing to compare while following.\n",
-            r.states_with_breath, r.states
+            "\nNo site follows the patient: the source sent 0 of its {} states with the patient's \
+             breath (a site needs one whole breath the source followed, from one end-expiration \
+             its follower confirmed to the next), so every site breathed the model and there is \
+             nothing to compare while following.\n",
+            r.states
+        );
+    } else if !none.is_empty() {
+        s += &format!(
+            "\nAt {} the site followed no tick the source followed: the patient's breath reached \
+             it too late in the recording.\n",
+            none.join(", ")
         );
     }
     s += "\n\"following\": the ticks the source and the site both followed the patient; \"its model\": \
@@ -352,7 +364,7 @@ mod tests {
     fn a_site_that_never_followed_is_said_not_printed_as_nan() {
         let text = sites_text(&report(false));
         assert!(!text.contains("NaN"), "{text}");
-        assert!(text.contains("never followed the patient"), "{text}");
+        assert!(text.contains("No site follows the patient"), "{text}");
         assert!(text.contains("0 of its 5 states"), "{text}");
         assert!(text.contains("no site follows the patient"), "{text}");
         let json = serde_json::to_value(report(false)).unwrap();
@@ -367,8 +379,17 @@ mod tests {
             "{text}"
         );
         assert!(
-            !text.contains("never followed") && !text.contains("NaN"),
+            !text.contains("No site follows") && !text.contains("NaN"),
             "{text}"
         );
+        // Breaths sent, and one delay too long for the recording: said for that delay.
+        let mut late = report(true);
+        late.rows[1] = row(1000.0, false);
+        let text = sites_text(&late);
+        assert!(
+            text.contains("At 1000 ms the site followed no tick"),
+            "{text}"
+        );
+        assert!(!text.contains("NaN"), "{text}");
     }
 }

@@ -1013,7 +1013,8 @@ impl PatientWatch {
                 if self.following {
                     "breathing with the source's patient (the source follows a live respiratory \
                      signal): each breath plays the patient's previous one from the patient's last \
-                     turn, and the next starts on the patient's rhythm until it is heard"
+                     turn and, until the patient's next breath is heard, starts the next one on the \
+                     patient's rhythm"
                 } else {
                     "the source's model breathes (its patient's signal is calibrating or lost)"
                 }

@@ -19,7 +19,7 @@
 //! previous breath and the turns of the one in progress with every state, and a state at once at
 //! each of the patient's turns ([`LiveBreath`]: a breath's start and its expiration's); a site plays
 //! the previous breath from those turns ([`RemoteLive`]) and re-aligns at each. The site's breath is
-//! then a prediction half a breath ahead, not the source's bit for bit: how far it strays is measured
+//! then a prediction at most a breath ahead, not the source's bit for bit: how far it strays is measured
 //! (`engine/src/runtime/tests.rs`, `a_site_breathes_with_the_sources_patient`; docs/REMOTE.md).
 
 use control_state::{
@@ -366,6 +366,10 @@ pub struct RemoteLive {
     /// after it the site first played it (taken by the engine's counts).
     turn: u64,
     pub(super) heard: Option<u64>,
+    /// The longest any turn took to reach this site so far, ticks: a breath the patient started
+    /// on rhythm is heard within it, so a breath predicted on the rhythm waits that long (and
+    /// [`control_state::RHYTHM_FADE_TICKS`] more) before it is taken back.
+    slowest: u64,
 }
 
 /// How late the patient's turns reached a site: from the tick of the turn at the source (where the
@@ -404,6 +408,7 @@ impl RemoteLive {
             breaths: 1,
             turn: Self::turn_of(&breath),
             heard: None,
+            slowest: 0,
             breath,
         }
     }
@@ -424,10 +429,18 @@ impl RemoteLive {
         tick: u64,
         lungs: &mut [(super::LungGeometry, LungBreath)],
     ) -> u32 {
-        let (v, inhaling) = self.breath.volume_on_rhythm(tick);
-        if std::mem::take(&mut self.fresh) {
+        let fresh = std::mem::take(&mut self.fresh);
+        if fresh {
+            let late = tick.saturating_sub(self.turn);
+            self.heard = Some(late);
+            self.slowest = self.slowest.max(late);
+        }
+        let patience = self
+            .slowest
+            .saturating_add(control_state::RHYTHM_FADE_TICKS);
+        let (v, inhaling) = self.breath.volume_on_rhythm(tick, patience);
+        if fresh {
             self.offset = (self.played.map_or(0.0, |p| p - v), tick);
-            self.heard = Some(tick.saturating_sub(self.turn));
         }
         let fade = 1.0 - (tick.saturating_sub(self.offset.1) as f64 / REALIGN_TICKS as f64);
         let volume = v + self.offset.0 * fade.clamp(0.0, 1.0);

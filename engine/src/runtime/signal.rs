@@ -480,12 +480,19 @@ impl SignalDrive {
             .follower
             .volume_at(self.now_ns, self.now_ns.saturating_add(self.latency_ns));
         self.followed = followed;
+        let clipped = |f: &Followed| {
+            if f.clipped.is_some() {
+                engine_state::SIGNAL_CLIPPED
+            } else {
+                0
+            }
+        };
         let (drive, mut bits) = match followed {
             Some(f) => match f.state {
-                SignalState::Following => (Some(f), engine_state::SIGNAL_FOLLOWING),
+                SignalState::Following => (Some(f), engine_state::SIGNAL_FOLLOWING | clipped(&f)),
                 SignalState::Paused(_) => (
                     Some(f),
-                    engine_state::SIGNAL_FOLLOWING | engine_state::SIGNAL_PAUSED,
+                    engine_state::SIGNAL_FOLLOWING | engine_state::SIGNAL_PAUSED | clipped(&f),
                 ),
                 SignalState::Calibrating => (None, engine_state::SIGNAL_CALIBRATING),
                 SignalState::Lost => (None, engine_state::SIGNAL_LOST),

@@ -1831,6 +1831,47 @@ fn clean(_: u64, t_s: f64) -> (f64, bool) {
     (chest_mm(t_s), true)
 }
 
+/// A belt whose deeper breaths are cut by its sensor's range (depths 6-14 mm, cut at 12): the
+/// frames say so (`SIGNAL_CLIPPED`, the HUD's "SIGNAL LOOKS CLIPPED") while the lungs follow it; the
+/// same breaths uncut never do.
+#[test]
+fn a_signal_cut_by_its_sensors_range_is_flagged_on_the_frames() {
+    use ipc_types::engine_state as e;
+    let belt = |ceiling: f64| {
+        move |_: u64, t_s: f64| {
+            let c = (t_s / 4.7).floor();
+            let depth = 10.0 * (0.6 + 0.8 * (c * 0.618_034).fract());
+            let v = depth * 0.5 * (1.0 - (std::f64::consts::TAU * t_s / 4.7).cos());
+            (v.min(ceiling), true)
+        }
+    };
+    let run = |ceiling: f64| {
+        let mut core = signal_core(50.0);
+        follow_run(&mut core, 120.0, None, &belt(ceiling))
+    };
+    let cut = run(12.0);
+    let flagged: Vec<_> = cut
+        .iter()
+        .filter(|r| r.2 & e::SIGNAL_CLIPPED != 0)
+        .collect();
+    assert!(
+        flagged.len() > 60 * 30,
+        "{} of {} frames flagged",
+        flagged.len(),
+        cut.len()
+    );
+    assert!(flagged.iter().all(|r| r.2 & e::SIGNAL_FOLLOWING != 0));
+    // Once seen (three cut breaths), it stays while the last 16 breaths show it.
+    let first = cut
+        .iter()
+        .position(|r| r.2 & e::SIGNAL_CLIPPED != 0)
+        .unwrap();
+    assert!(cut[first..].iter().all(|r| r.2 & e::SIGNAL_CLIPPED != 0));
+    let uncut = run(f64::INFINITY);
+    assert!(uncut.iter().all(|r| r.2 & e::SIGNAL_CLIPPED == 0));
+    assert!(uncut.iter().any(|r| r.2 & e::SIGNAL_FOLLOWING != 0));
+}
+
 #[test]
 fn the_lungs_follow_the_patients_signal_once_calibrated() {
     use ipc_types::engine_state as e;
@@ -2473,10 +2514,63 @@ fn a_site_a_second_behind_keeps_the_patients_rhythm() {
         100.0 * f.rms_ml / tidal,
         100.0 * f.model_rms_ml / tidal,
     );
+    // Measured (2026-12-07): 29.4 ml (5.9 % of 500 ml) against 320 ml for the model's breath,
+    // lag 0 ms; turns heard 1527 ms late. Holding each breath's end until the next start was
+    // heard instead: 159.8 ml (32.0 %), lag 550 ms.
     assert!(mean >= 1000.0, "turns heard {mean:.0} ms late");
     assert_eq!(f.site_following, f.ticks);
+    assert!(f.rms_ml * 3.0 < f.model_rms_ml, "{f:?}");
     assert!(f.rms_ml < 0.15 * tidal, "RMS {:.1} ml", f.rms_ml);
     assert!(f.lag_ms.abs() <= 150.0, "{f:?}");
+}
+
+/// When the patient stops breathing (an apnoea from an end-expiration), a site predicting the
+/// next breath on the rhythm must not draw a breath the patient never took: a breath started on
+/// rhythm would have been heard within the site's usual lag, so the prediction is taken back
+/// within that lag and 200 ms, and the site holds at the breath's end as the source does.
+#[test]
+fn a_site_takes_back_a_breath_the_patient_did_not_start() {
+    const DELAY: u64 = 6; // 100 ms
+    let apnoea_s = 9.0 * 4.7; // an end-expiration of `chest_mm`
+    let apnoea = move |_: u64, t_s: f64| (if t_s < apnoea_s { chest_mm(t_s) } else { 0.0 }, true);
+    let site = EngineCore::with_geometry(&Scene::default(), baked_geometry()).unwrap();
+    let run = super::sites::follow(
+        signal_core(50.0),
+        site,
+        &mut |tick| signal_frame(tick, None, &apnoea),
+        (55.0 * 60.0) as u64,
+        DELAY,
+        60.0,
+    )
+    .unwrap();
+    let tidal = signal_core(50.0)
+        .lung(Side::Right)
+        .unwrap()
+        .breathing()
+        .boundary()
+        .tv_ml;
+    let slowest = run.turn_lag.max_ticks as f64 / 60.0;
+    // The breath predicted from the rhythm starts near the apnoea's start (the last breath's
+    // length after the last start) and is taken back once the slowest lag and 200 ms have passed
+    // without it heard, over 200 ms more (measured 2026-12-07: up to 311 ml at 43.5 s, back at the
+    // breath's end, 22 ml above the source's, from 43.8 s; turns heard up to 0.73 s late). Without
+    // the taking back the site drew the whole breath, to 47 s.
+    let back_s = apnoea_s + slowest + 0.8;
+    let after: Vec<_> = run.ticks.iter().filter(|r| r.t_s >= back_s).collect();
+    assert!(slowest < 1.5, "turns heard up to {slowest:.2} s late");
+    assert!(after.len() > 60 * 8);
+    let worst = after
+        .iter()
+        .map(|r| (r.site_ml - r.source_ml).abs())
+        .fold(0.0, f64::max);
+    eprintln!(
+        "apnoea from {apnoea_s:.1} s: after {back_s:.1} s the site within {worst:.1} ml of the \
+         source (tidal {tidal:.0} ml); turns heard up to {slowest:.2} s late"
+    );
+    assert!(
+        worst < 0.05 * tidal,
+        "the site {worst:.1} ml from the source"
+    );
 }
 
 /// The site's breath is a pure function of the states and the ticks they arrive at: twice the same.

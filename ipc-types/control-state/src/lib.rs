@@ -390,11 +390,15 @@ impl LiveBreath {
 
     /// [`Self::volume_at`] until the breath in progress has played out as the previous breath did
     /// (to the end of its expiration), then the patient's next breath predicted on their rhythm:
-    /// the previous breath again from its start, shifted to begin where this one ended, and held at
-    /// its end — one breath ahead at most, replaced when the patient's next turn is announced. For
-    /// a site that hears the patient's turns late: [`Self::volume_at`] holds each breath's end
-    /// until the next breath's start is heard, so every breath starts that late there.
-    pub fn volume_on_rhythm(&self, tick: u64) -> (f64, bool) {
+    /// the previous breath again from its start, beginning and ending at this one's end — one
+    /// breath ahead at most, replaced when the patient's next turn is announced. A site hears a
+    /// breath the patient started on rhythm within its usual lag: if none is heard `patience_ticks`
+    /// into the predicted breath, the patient has not started one (a longer pause, an apnoea), and
+    /// the prediction fades back to the breath's end over [`RHYTHM_FADE_TICKS`] and holds there, as
+    /// the source's lungs do. For a site that hears the patient's turns late: [`Self::volume_at`]
+    /// holds each breath's end until the next breath's start is heard, so every breath starts that
+    /// late there.
+    pub fn volume_on_rhythm(&self, tick: u64, patience_ticks: u64) -> (f64, bool) {
         let n = self.last_ml.len();
         if n < 2 || self.last_ticks < 2 {
             return self.volume_at(tick);
@@ -404,17 +408,30 @@ impl LiveBreath {
             None => self
                 .start_tick
                 .saturating_add(u64::from(self.last_ticks - 1)),
-            Some((at, _)) => at.saturating_add(u64::from(self.last_ticks - 1 - self.last_peak)),
+            Some((at, _)) => at.saturating_add(u64::from(
+                (self.last_ticks - 1).saturating_sub(self.last_peak),
+            )),
         };
         if tick <= end_tick {
             return self.volume_at(tick);
         }
+        let into = tick - end_tick - 1;
         let per_tick = (n - 1) as f64 / (self.last_ticks - 1) as f64;
-        let (v, rising) = self.sample_at((tick - end_tick - 1) as f64 * per_tick);
+        let x = into as f64 * per_tick;
+        let (v, rising) = self.sample_at(x);
         let (first, end) = (self.last_ml[0] as f64, self.last_ml[n - 1] as f64);
-        (end + (v - first), rising)
+        // The previous breath from its start, its own net change (end − first) taken out so the
+        // prediction ends where it began: at this breath's end, where the source holds.
+        let predicted = end + (v - first) - (end - first) * (x / (n - 1) as f64).min(1.0);
+        let fade =
+            1.0 - (into.saturating_sub(patience_ticks) as f64 / RHYTHM_FADE_TICKS as f64).min(1.0);
+        (end + (predicted - end) * fade, rising && fade == 1.0)
     }
 }
+
+/// Ticks over which a site's breath predicted on the patient's rhythm goes back to the previous
+/// breath's end when the patient's next breath is not heard in time (200 ms at 60 Hz).
+pub const RHYTHM_FADE_TICKS: u64 = 12;
 
 /// The source engine's control state at the start of a breathing cycle (or a change).
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]

@@ -542,28 +542,43 @@ fn on_the_patients_rhythm_the_next_breath_starts_when_this_one_has_played_out() 
         last_peak: 4,
         ..live(vec![10.0, 100.0, 300.0, 200.0, 50.0])
     };
+    let on = |l: &LiveBreath, t: u64| l.volume_on_rhythm(t, u64::MAX);
     // Within the breath: as `volume_at`.
     for t in [0, 1040, 1041, 1045, 1048] {
-        assert_eq!(l.volume_on_rhythm(t), l.volume_at(t), "tick {t}");
+        assert_eq!(on(&l, t), l.volume_at(t), "tick {t}");
     }
-    // Then the previous breath again, shifted to start at this one's end (50 ml): +40 ml a tick
-    // from 1049 (+45 at 1050), its peak at 1053, held at its end (90 ml) from 1057 on.
-    assert_eq!(l.volume_on_rhythm(1049), (50.0, true));
-    assert_eq!(l.volume_on_rhythm(1050), (95.0, true));
-    assert_eq!(l.volume_on_rhythm(1053), (340.0, false));
-    assert_eq!(l.volume_on_rhythm(1057), (90.0, false));
-    assert_eq!(l.volume_on_rhythm(u64::MAX), (90.0, false));
+    // Then the previous breath again from this one's end (50 ml), its own net change (+40 ml over
+    // the breath) taken out so that it ends at 50 ml too: 50 at 1049, 55 + 45 - 10 = 90 at 1050,
+    // its peak 290 + 50 - 20 = 320 at 1053, and 50 from 1057 on (the prediction's end, where the
+    // source holds).
+    assert_eq!(on(&l, 1049), (50.0, true));
+    assert_eq!(on(&l, 1050), (90.0, true));
+    assert_eq!(on(&l, 1053), (320.0, false));
+    assert_eq!(on(&l, 1057), (50.0, false));
+    assert_eq!(on(&l, u64::MAX), (50.0, false));
+    // Not heard within 2 ticks of its predicted start: the patient has not started it, and the
+    // prediction fades back to 50 ml over RHYTHM_FADE_TICKS (12) — at 1052, a twelfth of the way
+    // (the breath at 225 ml there) — and holds there: an apnoea is held at the breath's end.
+    assert_eq!(l.volume_on_rhythm(1051, 2), on(&l, 1051));
+    let (v, rising) = l.volume_on_rhythm(1052, 2);
+    assert!(
+        (v - (50.0 + 175.0 * (1.0 - 1.0 / 12.0))).abs() < 1e-9 && !rising,
+        "{v}"
+    );
+    for t in [1063, 1070, u64::MAX] {
+        assert_eq!(l.volume_on_rhythm(t, 2), (50.0, false), "tick {t}");
+    }
     // With the peak announced at 1100 (550 ml), this breath's expiration ends 4 ticks later, at
     // 1104, and the next starts at 1105.
     l.peak = Some((1100, 550.0));
     for t in [1100, 1102, 1104] {
-        assert_eq!(l.volume_on_rhythm(t), l.volume_at(t), "tick {t}");
+        assert_eq!(on(&l, t), l.volume_at(t), "tick {t}");
     }
-    assert_eq!(l.volume_on_rhythm(1105), (50.0, true));
-    assert_eq!(l.volume_on_rhythm(1109), (340.0, false));
+    assert_eq!(on(&l, 1105), (50.0, true));
+    assert_eq!(on(&l, 1109), (320.0, false));
     // A peak at the end of time: no overflow, the breath's expiration held.
     l.peak = Some((u64::MAX - 1, 550.0));
-    assert_eq!(l.volume_on_rhythm(u64::MAX), l.volume_at(u64::MAX));
+    assert_eq!(on(&l, u64::MAX), l.volume_at(u64::MAX));
 }
 
 proptest! {

@@ -563,17 +563,20 @@ impl Hud {
         let keys = text::key_help(self.config.interventions);
         self.shape(KEYS, keys);
         let phase_rows = if self.config.signal {
-            // The longest the line says: calibrating, or following with the longest latency.
+            // The longest the line says: calibrating, or following with the longest latency and
+            // a clipped signal.
             use ipc_types::engine_state as e;
             worst.state = e::SIGNAL_CALIBRATING | e::SIGNAL_LEARNING;
             text::phase_line(&mut line, &worst);
             let mut following = String::new();
-            worst.state = e::SIGNAL_FOLLOWING;
+            worst.state = e::SIGNAL_FOLLOWING | e::SIGNAL_CLIPPED;
             worst.signal.latency_ns = 2_000_000_000;
             text::phase_line(&mut following, &worst);
             if following.chars().count() > line.chars().count() {
                 line = following;
             }
+            // Room for the longest wording now: a frame that first says it allocates nothing.
+            self.lines[PHASE].reserve(line.len());
             self.shape(PHASE, &line);
             self.rows[PHASE]
         } else {

@@ -507,6 +507,10 @@ pub fn phase_line(out: &mut String, frame: &EngineFrame) {
         if frame.signal.latency_ns != 0 {
             let _ = write!(out, ", predicted {ms:.0} ms ahead");
         }
+        if frame.state & e::SIGNAL_CLIPPED != 0 {
+            // The sensor's range cuts the breaths: what is drawn is shallower than the patient.
+            out.push_str(" · SIGNAL LOOKS CLIPPED: breaths may be deeper than drawn");
+        }
         return;
     }
     out.push_str(if frame.state & e::SIGNAL_LEARNING != 0 {
@@ -1250,6 +1254,11 @@ mod tests {
             (
                 e::SIGNAL_FOLLOWING | e::SIGNAL_PAUSED,
                 "pause · following patient, predicted 9 ms ahead",
+            ),
+            (
+                e::SIGNAL_FOLLOWING | e::SIGNAL_CLIPPED,
+                "inspiration · following patient, predicted 9 ms ahead · SIGNAL LOOKS CLIPPED: \
+                 breaths may be deeper than drawn",
             ),
             (
                 e::SIGNAL_CALIBRATING,

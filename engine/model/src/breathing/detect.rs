@@ -57,6 +57,49 @@ pub const MAX_DRIFT_AMPLITUDES_PER_S: f64 = 0.1;
 /// Regular breaths remembered for the typical amplitude and period.
 const TYPICAL: usize = 5;
 
+/// Turns whose value lies within this fraction of the signal's range of its extreme are taken as
+/// reaching it (0.5 %: the BioSPPy belt's three cut breaths lie within 0.15 %).
+pub const CLIP_BAND: f64 = 0.005;
+/// At least this many turns reach the extreme…
+pub const CLIP_MIN_BREATHS: usize = 3;
+/// …while the other turns on that side spread over at least this fraction of the range (their
+/// interquartile range): breaths of unequal depth ending at one value are cut, where breaths of
+/// equal depth (a ventilator's, a steady breather's) end together by themselves.
+pub const CLIP_SPREAD: f64 = 0.1;
+/// Peaks and troughs the live detector judges clipping over (the latest).
+pub const CLIP_WINDOW: usize = 16;
+
+/// Whether one side's turns `values` (peaks, or troughs) of a signal spanning `range` look cut at
+/// `extreme` (its highest, or lowest, value): how many lie within [`CLIP_BAND`] × `range` of it and
+/// the others' interquartile range over `range`, when at least [`CLIP_MIN_BREATHS`] do and at least
+/// four others spread over [`CLIP_SPREAD`] or more. `scratch` is at least `values.len()` long;
+/// nothing is allocated (the live detector runs it on each turn).
+pub fn clip_verdict(
+    values: &[f64],
+    extreme: f64,
+    range: f64,
+    scratch: &mut [f64],
+) -> Option<(usize, f64)> {
+    if !(range > 0.0 && range.is_finite() && extreme.is_finite()) || scratch.len() < values.len() {
+        return None;
+    }
+    let near = |v: f64| (v - extreme).abs() <= CLIP_BAND * range;
+    let mut others = 0;
+    for &v in values.iter().filter(|v| v.is_finite() && !near(**v)) {
+        scratch[others] = v;
+        others += 1;
+    }
+    let at = values.iter().filter(|v| near(**v)).count();
+    if at < CLIP_MIN_BREATHS || others < 4 {
+        return None;
+    }
+    let o = &mut scratch[..others];
+    o.sort_unstable_by(f64::total_cmp);
+    let q = |f: f64| o[((others - 1) as f64 * f).round() as usize];
+    let spread = (q(0.75) - q(0.25)) / range;
+    (spread >= CLIP_SPREAD).then_some((at, spread))
+}
+
 /// What a completed breath was.
 #[derive(Debug, Clone, Copy, PartialEq, Eq, Default, serde::Serialize)]
 #[serde(rename_all = "snake_case")]
@@ -166,6 +209,10 @@ pub struct Detector {
     shallow_run: u32,
     pause: Option<Pause>,
     counts: Counts,
+    /// The latest peaks' and troughs' values, for [`Self::clipped`].
+    peak_values: Ring<f64, CLIP_WINDOW>,
+    trough_values: Ring<f64, CLIP_WINDOW>,
+    clipped: Option<bool>,
 }
 
 impl Default for Detector {
@@ -197,7 +244,36 @@ impl Detector {
             shallow_run: 0,
             pause: None,
             counts: Counts::default(),
+            peak_values: Ring::default(),
+            trough_values: Ring::default(),
+            clipped: None,
         }
+    }
+
+    /// Whether the latest breaths look cut by the sensor's range ([`clip_verdict`] over the last
+    /// [`CLIP_WINDOW`] peaks and troughs, their range the highest peak to the lowest trough):
+    /// `Some(true)` at the top (inspirations cut: the breaths were deeper than they read),
+    /// `Some(false)` at the bottom, `None` when not. Judged at each turn; allocates nothing.
+    pub fn clipped(&self) -> Option<bool> {
+        self.clipped
+    }
+
+    fn judge_clipping(&mut self) {
+        let (mut peaks, mut troughs, mut scratch) =
+            ([0.0; CLIP_WINDOW], [0.0; CLIP_WINDOW], [0.0; CLIP_WINDOW]);
+        let np = self.peak_values.copy_into(&mut peaks);
+        let nt = self.trough_values.copy_into(&mut troughs);
+        let (peaks, troughs) = (&peaks[..np], &troughs[..nt]);
+        let hi = peaks.iter().copied().fold(f64::NEG_INFINITY, f64::max);
+        let lo = troughs.iter().copied().fold(f64::INFINITY, f64::min);
+        let range = hi - lo;
+        self.clipped = if clip_verdict(peaks, hi, range, &mut scratch).is_some() {
+            Some(true)
+        } else if clip_verdict(troughs, lo, range, &mut scratch).is_some() {
+            Some(false)
+        } else {
+            None
+        };
     }
 
     /// The typical amplitude (median of the last five breaths, coughs left out); before the first
@@ -401,11 +477,15 @@ impl Detector {
     fn peak(&mut self, t: u64, v: f64) -> Turn {
         self.last_peak = Some((t, v));
         self.end_pause();
+        self.peak_values.push(v);
+        self.judge_clipping();
         Turn::Peak(t, v)
     }
 
     fn trough(&mut self, t: u64, v: f64) -> Turn {
         self.end_pause();
+        self.trough_values.push(v);
+        self.judge_clipping();
         let breath = match (self.last_trough, self.last_peak) {
             (Some((t0, v0)), Some((tp, vp))) if t0 < tp && tp < t => {
                 let amplitude = vp - v0;

@@ -48,15 +48,7 @@ pub struct Trace {
     pub clipped: Option<Clipping>,
 }
 
-/// Breaths whose turns lie within this fraction of the signal's range of its extreme are taken
-/// as reaching it (0.5 %: the BioSPPy belt's three cut breaths lie within 0.15 %).
-pub const CLIP_BAND: f64 = 0.005;
-/// At least this many breaths reach the extreme…
-pub const CLIP_MIN_BREATHS: usize = 3;
-/// …while the other turns on that side spread over at least this fraction of the range (their
-/// interquartile range): breaths of unequal depth ending at one value are cut, where breaths of
-/// equal depth (a ventilator's, a steady breather's) end together by themselves.
-pub const CLIP_SPREAD: f64 = 0.1;
+pub use super::detect::{CLIP_BAND, CLIP_MIN_BREATHS, CLIP_SPREAD};
 
 /// A one-signal trace that looks clipped: several breaths of unequal depth turn at one value, the
 /// signal's highest (inspirations cut: a belt stretched past its sensor's range, a converter's top,
@@ -80,30 +72,47 @@ impl Clipping {
     /// For a person (`unit`: the signal's unit symbol).
     pub fn describe(&self, unit: &str) -> String {
         let times: Vec<String> = self.at_s.iter().map(|t| format!("{t:.1}")).collect();
+        let side = if self.at_top { "peaks" } else { "troughs" };
+        let sensor = match unit {
+            "mm" => "the marker's tracked range",
+            "ml" => "the spirometer's or ventilator's range",
+            _ => "the sensor's range or its converter (a belt stretched past it, a gain too high)",
+        };
         format!(
-            "the signal looks clipped at {} {unit}, its {} value: {} of its {} breaths' {} lie \
-             there (within {:.1} % of its range, at {} s) while the others spread over {:.0} % — \
-             the sensor's range or a converter ends there, so those breaths were deeper than they \
-             read ({}) and the lungs following them breathe {}",
-            self.value,
+            "the signal looks clipped at {} {unit}, its {} value: {} of its {} {side} lie there \
+             (within {:.1} % of its range, at {} s) while the other {side} spread over {:.0} % of \
+             it (their interquartile range) — {sensor} likely ends there, so those breaths \
+             reached further than they read and the lungs following them breathe shallower there \
+             (unless the breaths were held at one level on purpose: a coached breath-hold, a \
+             ventilator's set volume)",
+            significant(self.value, 5),
             if self.at_top { "highest" } else { "lowest" },
             self.at_s.len(),
             self.turns,
-            if self.at_top { "peaks" } else { "troughs" },
             100.0 * CLIP_BAND,
             times.join(", "),
             100.0 * self.spread,
-            if self.at_top {
-                "a belt stretched past its range, a gain set too high"
-            } else {
-                "a sensor's floor, an offset set too low"
-            },
-            if self.at_top {
-                "shallower there: lower the sensor's gain, or loosen the belt"
-            } else {
-                "shallower there: check the sensor's offset"
-            }
         )
+    }
+}
+
+/// [`significant`] at 5 digits, for the tests.
+#[cfg(test)]
+pub(crate) fn significant_for_tests(x: f64) -> String {
+    significant(x, 5)
+}
+
+/// `x` to `digits` significant digits, for a person (no float noise such as 0.30000000000000004).
+fn significant(x: f64, digits: i32) -> String {
+    if x == 0.0 || !x.is_finite() {
+        return format!("{x}");
+    }
+    let decimals = (digits - 1 - x.abs().log10().floor() as i32).max(0) as usize;
+    let s = format!("{x:.decimals$}");
+    if s.contains('.') {
+        s.trim_end_matches('0').trim_end_matches('.').to_string()
+    } else {
+        s
     }
 }
 
@@ -111,28 +120,16 @@ impl Clipping {
 /// from `t0_ns`: `top` for peaks.
 pub fn clipping(turns: &[(u64, f64)], lo: f64, hi: f64, t0_ns: u64, top: bool) -> Option<Clipping> {
     let range = hi - lo;
-    if !(range > 0.0) || !range.is_finite() {
-        return None;
-    }
     let extreme = if top { hi } else { lo };
-    let near = |v: f64| (v - extreme).abs() <= CLIP_BAND * range;
-    let at_s: Vec<f64> = turns
+    let values: Vec<f64> = turns.iter().map(|(_, v)| *v).collect();
+    let mut scratch = vec![0.0; values.len()];
+    let (_, spread) = super::detect::clip_verdict(&values, extreme, range, &mut scratch)?;
+    let at_s = turns
         .iter()
-        .filter(|(_, v)| near(*v))
+        .filter(|(_, v)| (v - extreme).abs() <= CLIP_BAND * range)
         .map(|(t, _)| t.saturating_sub(t0_ns) as f64 * 1e-9)
         .collect();
-    let mut others: Vec<f64> = turns
-        .iter()
-        .map(|(_, v)| *v)
-        .filter(|v| !near(*v))
-        .collect();
-    if at_s.len() < CLIP_MIN_BREATHS || others.len() < 4 {
-        return None;
-    }
-    others.sort_by(f64::total_cmp);
-    let q = |f: f64| others[((others.len() - 1) as f64 * f).round() as usize];
-    let spread = (q(0.75) - q(0.25)) / range;
-    (spread >= CLIP_SPREAD).then(|| Clipping {
+    Some(Clipping {
         at_top: top,
         value: extreme,
         at_s,

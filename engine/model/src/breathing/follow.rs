@@ -123,6 +123,10 @@ pub struct Followed {
     pub state: SignalState,
     /// Inspiration under way.
     pub inhaling: bool,
+    /// The latest breaths look cut by the sensor's range: `Some(true)` at the top (the patient's
+    /// inspirations were deeper than the signal reads), `Some(false)` at the bottom
+    /// ([`super::detect::Detector::clipped`]).
+    pub clipped: Option<bool>,
     /// The volume was kept within the drawn range.
     pub clamped: bool,
     /// The predictor's guard replaced its value with the line's.
@@ -305,6 +309,7 @@ impl Follower {
             unpredicted_ml,
             state,
             inhaling: self.detector.inhaling(),
+            clipped: self.detector.clipped(),
             clamped,
             fell_back: prediction.fell_back,
             gain_ml_per_unit: gain,

@@ -165,6 +165,44 @@ fn breaths_are_counted_and_sighs_and_coughs_named() {
     assert!((d.typical_period_s().unwrap() - 4.0).abs() < 0.05);
 }
 
+/// The live detector judges clipping over its latest turns, as `breathing check` does over a
+/// whole trace: breaths of unequal depth cut at one value are said (at the top, or at the bottom),
+/// and allocates nothing to do it; equal breaths, and the same unequal breaths uncut, are not.
+#[test]
+fn the_detector_says_when_the_latest_breaths_are_cut_at_one_value() {
+    let run = |f: &dyn Fn(f64) -> f64| {
+        let mut det = Detector::new();
+        let mut said = Vec::new();
+        for i in 0..(90.0 * 25.0) as u64 {
+            let t_s = i as f64 / 25.0;
+            let b = (t_s / 4.0).floor();
+            let depth = 0.6 + 0.8 * (b * 0.618_034).fract();
+            if det
+                .push(
+                    TRACE_START_NS + i * 40_000_000,
+                    f(breathing(t_s, depth, 0.0)),
+                )
+                .is_some()
+            {
+                said.push(det.clipped());
+            }
+        }
+        said
+    };
+    let top = run(&|v| v.min(1.2));
+    assert_eq!(top.last(), Some(&Some(true)), "{top:?}");
+    assert!(!top.contains(&Some(false)));
+    let bottom = run(&|v| (2.0 - v).max(0.8));
+    assert_eq!(bottom.last(), Some(&Some(false)), "{bottom:?}");
+    assert!(run(&|v| v).iter().all(|c| c.is_none()));
+    let mut det = Detector::new();
+    for i in 0..(90.0 * 25.0) as u64 {
+        let t_s = i as f64 / 25.0;
+        det.push(TRACE_START_NS + i * 40_000_000, breathing(t_s, 1.0, 0.0));
+        assert_eq!(det.clipped(), None, "{t_s} s");
+    }
+}
+
 #[test]
 fn a_held_breath_and_an_apnoea_are_pauses_of_their_kind() {
     let mut d = Detector::new();
