@@ -568,6 +568,9 @@ pub mod report_flags {
     /// Drawn with only the drawn level's vertices deformed, their normals from its triangles, by
     /// the governor (every drawn vertex's position is the full pass's; `renderer::governor`).
     pub const QUALITY_DRAWN_ONLY: u32 = 1 << 12;
+    /// The signal driving the lungs drawn looks clipped by its sensor's range (the engine's
+    /// `SIGNAL_CLIPPED`): the patient's breaths were deeper than drawn.
+    pub const SIGNAL_CLIPPED: u32 = 1 << 13;
     /// Bits 16..18: draw levels coarser than the level of detail chose, by the governor (0..7).
     pub const QUALITY_LOD_SHIFT: u32 = 16;
     /// The mask of [`QUALITY_LOD_SHIFT`]'s bits.

@@ -446,6 +446,9 @@ pub struct DemoReport {
     /// Frames drawn while the followed signal was lost, ended or not yet there: the model breathed,
     /// under the blue veil.
     pub signal_lost_frames: u64,
+    /// Of the frames the signal drove, those whose signal looked clipped by its sensor's range (the
+    /// HUD said "SIGNAL LOOKS CLIPPED": the patient's breaths were deeper than drawn).
+    pub signal_clipped_frames: u64,
     /// Seconds from the command's start to the first frame drawn (bake, start-up and the draw
     /// levels included); null when none was drawn.
     pub first_frame_s: Option<f64>,
@@ -1643,6 +1646,7 @@ fn report(e: Ended<'_>) -> DemoReport {
         patient_pose_stale_frames: stats.pose_stale_frames,
         signal_following_frames: stats.signal_following_frames,
         signal_lost_frames: stats.signal_lost_frames,
+        signal_clipped_frames: stats.signal_clipped_frames,
         governor: scene.render.governor.name().to_string(),
         lowered_frames: stats
             .quality_frames
@@ -1871,6 +1875,15 @@ pub fn table(r: &DemoReport) -> String {
              tool's axis being learnt included)",
             r.signal_following_frames, r.frames_rendered, r.signal_lost_frames
         );
+        if r.signal_clipped_frames > 0 {
+            let _ = writeln!(
+                s,
+                "SIGNAL LOOKED CLIPPED in {} of the frames it drove: several breaths of unequal \
+                 depth ended at one value, the sensor's range — the patient breathed deeper than \
+                 drawn (lower the sensor's gain, loosen the belt)",
+                r.signal_clipped_frames
+            );
+        }
     }
     governor_line(&mut s, r);
     if let Some(sl) = &r.slicer {

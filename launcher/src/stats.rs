@@ -60,6 +60,8 @@ pub struct LatencyStats {
     pub signal_following_frames: u64,
     /// Frames drawn while a followed signal was lost (the model breathed, under the blue veil).
     pub signal_lost_frames: u64,
+    /// Frames whose driving signal looked clipped by its sensor's range.
+    pub signal_clipped_frames: u64,
     /// Frames drawn with every governor step given up and still over its target.
     pub governor_floor_frames: u64,
     /// Times the drawn quality changed from one frame to the next.
@@ -138,6 +140,7 @@ impl LatencyStats {
             pose_stale_frames: 0,
             signal_following_frames: 0,
             signal_lost_frames: 0,
+            signal_clipped_frames: 0,
             governor_floor_frames: 0,
             quality_changes: 0,
             last_quality: 0,
@@ -178,6 +181,9 @@ impl LatencyStats {
         }
         if r.flags & report_flags::SIGNAL_LOST != 0 {
             self.signal_lost_frames += 1;
+        }
+        if r.flags & report_flags::SIGNAL_CLIPPED != 0 {
+            self.signal_clipped_frames += 1;
         }
         self.record_quality(r.flags);
         if r.flags & report_flags::STALE_ENGINE != 0 {

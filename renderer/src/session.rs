@@ -837,6 +837,9 @@ impl Session {
         if frame.state & ipc_types::engine_state::SIGNAL_LOST != 0 {
             *flags |= report_flags::SIGNAL_LOST;
         }
+        if frame.state & ipc_types::engine_state::SIGNAL_CLIPPED != 0 {
+            *flags |= report_flags::SIGNAL_CLIPPED;
+        }
         if self.engine_down() {
             *flags |= report_flags::ENGINE_DOWN;
             state.pose_warning = crate::PoseWarning::EngineDown;

@@ -1147,6 +1147,11 @@ fn breathing_follow_replays_a_trace_live_and_holds_every_drawn_frame_against_it(
     );
     assert!(followed >= drawn / 10, "{followed} of {drawn} frames: {v}");
     assert!(lost > 0 && lost < drawn, "{lost} of {drawn}: {v}");
+    assert_eq!(
+        run["signal_clipped_frames"].as_u64(),
+        Some(0),
+        "a trace of breaths not cut by a sensor's range: {v}"
+    );
     // The figures: the trace's own numbers, and the run's, consistent with each other.
     let n = |k: &str| v[k].as_f64().unwrap_or_else(|| panic!("{k}: {v}"));
     assert_eq!(n("frames_drawn") as u64, drawn);

@@ -2396,6 +2396,16 @@ fn a_fitted_force_baked_before_the_orientation_modes_drew_it_is_refused_by_them(
 
 /// A source following `chest_mm` (cut over `cut`) for `seconds` and a site that gets each of its
 /// states `delay` ticks late ([`super::sites::follow`]).
+/// The tidal volume the signal scenes' sites are measured against, ml (the default PV model's).
+fn signal_tidal_ml() -> f64 {
+    signal_core(50.0)
+        .lung(Side::Right)
+        .unwrap()
+        .breathing()
+        .boundary()
+        .tv_ml
+}
+
 fn remote_follow(seconds: f64, delay: u64, cut: Option<(f64, f64)>) -> super::sites::SiteRun {
     let site = EngineCore::with_geometry(&Scene::default(), baked_geometry()).unwrap();
     super::sites::follow(
@@ -2420,12 +2430,7 @@ fn a_site_breathes_with_the_sources_patient() {
     use ipc_types::engine_state as e;
     const DELAY: u64 = 6; // 100 ms: a slow network
     let run = remote_follow(75.0, DELAY, Some((50.0, 56.0)));
-    let tidal = signal_core(50.0)
-        .lung(Side::Right)
-        .unwrap()
-        .breathing()
-        .boundary()
-        .tv_ml;
+    let tidal = signal_tidal_ml();
     let live = run.states.iter().filter(|s| s.live.is_some()).count();
     assert!(live >= 8, "{live} states carried the patient's breath");
     let t = &run.ticks;
@@ -2495,12 +2500,7 @@ fn a_site_breathes_with_the_sources_patient() {
 fn a_site_a_second_behind_keeps_the_patients_rhythm() {
     const DELAY: u64 = 60; // 1 s
     let run = remote_follow(50.0, DELAY, None);
-    let tidal = signal_core(50.0)
-        .lung(Side::Right)
-        .unwrap()
-        .breathing()
-        .boundary()
-        .tv_ml;
+    let tidal = signal_tidal_ml();
     let window = super::sites::SiteRun {
         ticks: run.ticks.clone(),
         states: Vec::new(),
@@ -2543,12 +2543,7 @@ fn a_site_takes_back_a_breath_the_patient_did_not_start() {
         60.0,
     )
     .unwrap();
-    let tidal = signal_core(50.0)
-        .lung(Side::Right)
-        .unwrap()
-        .breathing()
-        .boundary()
-        .tv_ml;
+    let tidal = signal_tidal_ml();
     let slowest = run.turn_lag.max_ticks as f64 / 60.0;
     // The breath predicted from the rhythm starts near the apnoea's start (the last breath's
     // length after the last start) and is taken back once the slowest lag and 200 ms have passed
