@@ -366,11 +366,23 @@ pub struct RemoteLive {
     /// after it the site first played it (taken by the engine's counts).
     turn: u64,
     pub(super) heard: Option<u64>,
-    /// The longest any turn took to reach this site so far, ticks: a breath the patient started
-    /// on rhythm is heard within it, so a breath predicted on the rhythm waits that long (and
-    /// [`control_state::RHYTHM_FADE_TICKS`] more) before it is taken back.
-    slowest: u64,
+    /// How long the latest turns took to reach this site, ticks (the newest [`LAGS_KEPT`]; not
+    /// the breath the site joined on, whose turn may be long past): a breath the patient started
+    /// on rhythm is heard within the longest of them, so a breath predicted on the rhythm waits
+    /// that long (and [`control_state::RHYTHM_FADE_TICKS`] more) before it is taken back.
+    lags: [u64; LAGS_KEPT],
+    /// Turns heard since joining (the newest lag at `lags[heard_turns % LAGS_KEPT]`).
+    heard_turns: usize,
+    /// The breath joined on was taken (its lag is not kept).
+    joined: bool,
 }
+
+/// Turn lags a site keeps to judge when a breath predicted on the patient's rhythm is overdue (a
+/// lag from a lost and resent state leaves them after this many turns: four breaths).
+pub const LAGS_KEPT: usize = 8;
+
+/// A site's patience before the first turn is heard after joining: 1 s at 60 Hz.
+const FIRST_PATIENCE_TICKS: u64 = 60;
 
 /// How late the patient's turns reached a site: from the tick of the turn at the source (where the
 /// patient's volume was lowest or highest) to the site's first tick playing it — the source's
@@ -408,7 +420,9 @@ impl RemoteLive {
             breaths: 1,
             turn: Self::turn_of(&breath),
             heard: None,
-            slowest: 0,
+            lags: [0; LAGS_KEPT],
+            heard_turns: 0,
+            joined: false,
             breath,
         }
     }
@@ -432,12 +446,23 @@ impl RemoteLive {
         let fresh = std::mem::take(&mut self.fresh);
         if fresh {
             let late = tick.saturating_sub(self.turn);
+            // The breath joined on is no measure of the lag (its turn may be long past).
+            if std::mem::replace(&mut self.joined, true) {
+                self.lags[self.heard_turns % LAGS_KEPT] = late;
+                self.heard_turns += 1;
+            }
             self.heard = Some(late);
-            self.slowest = self.slowest.max(late);
         }
-        let patience = self
-            .slowest
-            .saturating_add(control_state::RHYTHM_FADE_TICKS);
+        let slowest = if self.heard_turns == 0 {
+            FIRST_PATIENCE_TICKS
+        } else {
+            self.lags[..self.heard_turns.min(LAGS_KEPT)]
+                .iter()
+                .copied()
+                .max()
+                .unwrap_or(0)
+        };
+        let patience = slowest.saturating_add(control_state::RHYTHM_FADE_TICKS);
         let (v, inhaling) = self.breath.volume_on_rhythm(tick, patience);
         if fresh {
             self.offset = (self.played.map_or(0.0, |p| p - v), tick);
