@@ -1879,8 +1879,8 @@ pub fn table(r: &DemoReport) -> String {
             let _ = writeln!(
                 s,
                 "SIGNAL LOOKED CLIPPED in {} of the frames it drove: several breaths of unequal \
-                 depth ended at one value, the sensor's range — the patient breathed deeper than \
-                 drawn (lower the sensor's gain, loosen the belt)",
+                 depth ended at one value — the patient's breaths may have been deeper than drawn \
+                 (the sensor's range, or breaths held at one level on purpose)",
                 r.signal_clipped_frames
             );
         }

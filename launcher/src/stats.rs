@@ -494,6 +494,24 @@ mod tests {
         assert_eq!(s.bad_stamps, 1);
     }
 
+    /// Frames whose signal looked clipped are counted apart from those it drove.
+    #[test]
+    fn frames_with_a_clipped_signal_are_counted() {
+        let mut s = LatencyStats::new();
+        for i in 1..=10 {
+            let mut r = report(i, i, 5_000_000);
+            r.flags = report_flags::SIGNAL_FOLLOWING;
+            if i > 6 {
+                r.flags |= report_flags::SIGNAL_CLIPPED;
+            }
+            s.record(&r);
+        }
+        assert_eq!(
+            (s.signal_following_frames, s.signal_clipped_frames),
+            (10, 4)
+        );
+    }
+
     #[test]
     fn submit_to_present_is_measured_on_presented_frames_only() {
         let mut s = LatencyStats::new();

@@ -381,8 +381,9 @@ pub struct RemoteLive {
 /// lag from a lost and resent state leaves them after this many turns: four breaths).
 pub const LAGS_KEPT: usize = 8;
 
-/// A site's patience before the first turn is heard after joining: 1 s at 60 Hz.
-const FIRST_PATIENCE_TICKS: u64 = 60;
+/// A site's patience before the first turn is heard after joining: 2 s at 60 Hz (a second's
+/// network delay and the source's confirmation of a turn).
+const FIRST_PATIENCE_TICKS: u64 = 120;
 
 /// How late the patient's turns reached a site: from the tick of the turn at the source (where the
 /// patient's volume was lowest or highest) to the site's first tick playing it — the source's

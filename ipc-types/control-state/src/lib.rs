@@ -418,14 +418,17 @@ impl LiveBreath {
         let into = tick - end_tick - 1;
         let per_tick = (n - 1) as f64 / (self.last_ticks - 1) as f64;
         let x = into as f64 * per_tick;
-        let (v, rising) = self.sample_at(x);
         let (first, end) = (self.last_ml[0] as f64, self.last_ml[n - 1] as f64);
         // The previous breath from its start, its own net change (end − first) taken out so the
         // prediction ends where it began: at this breath's end, where the source holds.
-        let predicted = end + (v - first) - (end - first) * (x / (n - 1) as f64).min(1.0);
+        let predicted = |x: f64| {
+            end + (self.sample_at(x).0 - first) - (end - first) * (x / (n - 1) as f64).min(1.0)
+        };
+        let at = predicted(x);
+        let rising = predicted(x + per_tick) > at;
         let fade =
             1.0 - (into.saturating_sub(patience_ticks) as f64 / RHYTHM_FADE_TICKS as f64).min(1.0);
-        (end + (predicted - end) * fade, rising && fade == 1.0)
+        (end + (at - end) * fade, rising && fade == 1.0)
     }
 }
 

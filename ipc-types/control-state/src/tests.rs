@@ -548,7 +548,7 @@ fn on_the_patients_rhythm_the_next_breath_starts_when_this_one_has_played_out() 
         assert_eq!(on(&l, t), l.volume_at(t), "tick {t}");
     }
     // Then the previous breath again from this one's end (50 ml), its own net change (+40 ml over
-    // the breath) taken out so that it ends at 50 ml too: 50 at 1049, 55 + 45 - 10 = 90 at 1050,
+    // the breath) taken out so that it ends at 50 ml too: 50 at 1049, 50 + 45 - 5 = 90 at 1050,
     // its peak 290 + 50 - 20 = 320 at 1053, and 50 from 1057 on (the prediction's end, where the
     // source holds).
     assert_eq!(on(&l, 1049), (50.0, true));

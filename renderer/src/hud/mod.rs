@@ -575,8 +575,6 @@ impl Hud {
             if following.chars().count() > line.chars().count() {
                 line = following;
             }
-            // Room for the longest wording now: a frame that first says it allocates nothing.
-            self.lines[PHASE].reserve(line.len());
             self.shape(PHASE, &line);
             self.rows[PHASE]
         } else {

@@ -76,7 +76,10 @@ impl Clipping {
         let sensor = match unit {
             "mm" => "the marker's tracked range",
             "ml" => "the spirometer's or ventilator's range",
-            _ => "the sensor's range or its converter (a belt stretched past it, a gain too high)",
+            _ if self.at_top => {
+                "the sensor's range or its converter (a belt stretched past it, a gain too high)"
+            }
+            _ => "the sensor's floor or its converter (an offset set too low)",
         };
         format!(
             "the signal looks clipped at {} {unit}, its {} value: {} of its {} {side} lie there \

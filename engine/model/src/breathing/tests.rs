@@ -194,6 +194,7 @@ fn the_detector_says_when_the_latest_breaths_are_cut_at_one_value() {
     assert!(!top.contains(&Some(false)));
     let bottom = run(&|v| (2.0 - v).max(0.8));
     assert_eq!(bottom.last(), Some(&Some(false)), "{bottom:?}");
+    assert!(!bottom.contains(&Some(true)));
     assert!(run(&|v| v).iter().all(|c| c.is_none()));
     let mut det = Detector::new();
     for i in 0..(90.0 * 25.0) as u64 {
