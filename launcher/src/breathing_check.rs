@@ -102,8 +102,6 @@ pub struct CheckReport {
     /// Breaths of unequal depth turning at the signal's highest (or lowest) value: cut by the
     /// sensor's range (`None`: none seen; a ventilator recording is not checked).
     pub clipping: Option<lung_model::breathing::evaluate::Clipping>,
-    /// The signal's unit symbol (the clipping's value is in it).
-    pub unit: String,
     /// Plots written.
     pub plots: Vec<String>,
 }
@@ -151,7 +149,7 @@ pub fn check(a: &CheckArgs) -> anyhow::Result<CheckReport> {
     )?;
     let calibration = Calibration::amplitude(a.ml_per_unit, a.tidal_ml);
     let read = read_trace_or_recording(&a.file, &bytes, calibration)?;
-    let (trace, kind, unit) = (read.trace, read.kind, read.unit);
+    let (trace, kind) = (read.trace, read.kind);
     let (results, goal) = sweep(&trace, chosen, &a.latency_ms, a.frame_rate_hz);
     if let Some(e) = results.iter().find(|e| e.frames_compared == 0) {
         anyhow::bail!(
@@ -196,7 +194,6 @@ pub fn check(a: &CheckArgs) -> anyhow::Result<CheckReport> {
         duration_s: span_ns as f64 * 1e-9,
         inspiration_fraction: trace.inspiration_fraction,
         clipping: trace.clipped.clone(),
-        unit: unit.symbol().to_string(),
         breaths_in_recording: trace.breaths,
         tidal_ml: trace.tidal_ml,
         frame_rate_hz: a.frame_rate_hz,
@@ -276,7 +273,7 @@ pub fn check_text(r: &CheckReport) -> String {
         r.frame_rate_hz
     );
     if let Some(c) = &r.clipping {
-        s += &format!("WARNING: {}\n", c.describe(&r.unit));
+        s += &format!("WARNING: {}\n", c.describe());
     }
     if let Some(f) = r.inspiration_fraction {
         s += &format!("inspiration {:.0} % of a breath (median)", 100.0 * f);

@@ -535,8 +535,6 @@ pub struct FollowReport {
     /// Breaths of unequal depth turning at the signal's highest (or lowest) value: cut by the
     /// sensor's range (`None`: none seen; a ventilator recording is not checked).
     pub clipping: Option<lung_model::breathing::evaluate::Clipping>,
-    /// The signal's unit symbol (the clipping's value is in it).
-    pub unit: String,
     /// Its length, s.
     pub duration_s: f64,
     /// The scene run (`built-in default` without --scene).
@@ -563,7 +561,6 @@ pub struct FollowReport {
 struct Checked {
     trace: Trace,
     kind: String,
-    unit: lung_model::breathing::trace::SignalUnit,
     scene: lung_model::scene::Scene,
 }
 
@@ -637,7 +634,6 @@ fn check_args(a: &FollowArgs) -> anyhow::Result<Checked> {
     Ok(Checked {
         trace: read.trace,
         kind: read.kind,
-        unit: read.unit,
         scene,
     })
 }
@@ -700,7 +696,6 @@ pub fn follow(a: &FollowArgs) -> anyhow::Result<FollowReport> {
         file: a.file.display().to_string(),
         kind: c.kind,
         clipping: c.trace.clipped.clone(),
-        unit: c.unit.symbol().to_string(),
         duration_s: duration,
         scene: a
             .scene
@@ -921,7 +916,7 @@ pub fn follow_text(r: &FollowReport) -> String {
         }
     ));
     if let Some(c) = &r.clipping {
-        s.push_str(&format!("WARNING: {}\n", c.describe(&r.unit)));
+        s.push_str(&format!("WARNING: {}\n", c.describe()));
     }
     for p in r.frames_out.iter().chain(&r.plots) {
         s.push_str(&format!("wrote {p}\n"));

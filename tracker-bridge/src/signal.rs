@@ -320,11 +320,7 @@ impl TraceReplay {
                 samples.last().map_or(0, |s| s.t_ns - first) as f64 * 1e-9
             ),
             counts: SignalCounts::default(),
-            warning: read
-                .trace
-                .clipped
-                .as_ref()
-                .map(|c| c.describe(read.unit.symbol())),
+            warning: read.trace.clipped.as_ref().map(|c| c.describe()),
         })
     }
 

@@ -370,9 +370,7 @@ pub struct RemoteLive {
     /// the breath the site joined on, whose turn may be long past): a breath the patient started
     /// on rhythm is heard within the longest of them, so a breath predicted on the rhythm waits
     /// that long (and [`control_state::RHYTHM_FADE_TICKS`] more) before it is taken back.
-    lags: [u64; LAGS_KEPT],
-    /// Turns heard since joining (the newest lag at `lags[heard_turns % LAGS_KEPT]`).
-    heard_turns: usize,
+    lags: lung_model::breathing::Ring<u64, LAGS_KEPT>,
     /// The breath joined on was taken (its lag is not kept).
     joined: bool,
 }
@@ -421,8 +419,7 @@ impl RemoteLive {
             breaths: 1,
             turn: Self::turn_of(&breath),
             heard: None,
-            lags: [0; LAGS_KEPT],
-            heard_turns: 0,
+            lags: Default::default(),
             joined: false,
             breath,
         }
@@ -449,20 +446,14 @@ impl RemoteLive {
             let late = tick.saturating_sub(self.turn);
             // The breath joined on is no measure of the lag (its turn may be long past).
             if std::mem::replace(&mut self.joined, true) {
-                self.lags[self.heard_turns % LAGS_KEPT] = late;
-                self.heard_turns += 1;
+                self.lags.push(late);
             }
             self.heard = Some(late);
         }
-        let slowest = if self.heard_turns == 0 {
-            FIRST_PATIENCE_TICKS
-        } else {
-            self.lags[..self.heard_turns.min(LAGS_KEPT)]
-                .iter()
-                .copied()
-                .max()
-                .unwrap_or(0)
-        };
+        let slowest = (0..LAGS_KEPT)
+            .filter_map(|k| self.lags.back(k))
+            .max()
+            .unwrap_or(FIRST_PATIENCE_TICKS);
         let patience = slowest.saturating_add(control_state::RHYTHM_FADE_TICKS);
         let (v, inhaling) = self.breath.volume_on_rhythm(tick, patience);
         if fresh {

@@ -301,21 +301,15 @@ mod tests {
         let top = clipped(unequal_breaths(|v| v.min(4.8))).expect("cut at 4.8 mm");
         assert!(top.at_top && top.value == 4.8, "{top:?}");
         assert!(top.at_s.len() >= 3 && top.at_s.len() < top.turns, "{top:?}");
-        let said = top.describe("mm");
+        let said = top.describe();
         assert!(
             said.contains("clipped at 4.8 mm, its highest")
                 && said.contains("marker's tracked range")
                 && said.contains("shallower"),
             "{said}"
         );
-        assert_eq!(
-            super::super::evaluate::significant_for_tests(0.1 + 0.2),
-            "0.3"
-        );
-        assert_eq!(
-            super::super::evaluate::significant_for_tests(4087.68),
-            "4087.7"
-        );
+        assert_eq!(super::super::evaluate::significant(0.1 + 0.2, 5), "0.3");
+        assert_eq!(super::super::evaluate::significant(4087.68, 5), "4087.7");
         assert_eq!(clipped(unequal_breaths(|v| v)), None);
         // The mirror image (inspiration falling), cut at its lowest value.
         let bottom = clipped(unequal_breaths(|v| (6.0 - v).max(1.2))).expect("cut at 1.2 mm");

@@ -69,6 +69,11 @@ pub const CLIP_SPREAD: f64 = 0.1;
 /// Peaks and troughs the live detector judges clipping over (the latest).
 pub const CLIP_WINDOW: usize = 16;
 
+/// Whether `v` lies within [`CLIP_BAND`] × `range` of `extreme` (a turn reaching it).
+pub fn near_extreme(v: f64, extreme: f64, range: f64) -> bool {
+    (v - extreme).abs() <= CLIP_BAND * range
+}
+
 /// Whether one side's turns `values` (peaks, or troughs) of a signal spanning `range` look cut at
 /// `extreme` (its highest, or lowest, value): how many lie within [`CLIP_BAND`] × `range` of it and
 /// the others' interquartile range over `range`, when at least [`CLIP_MIN_BREATHS`] do and at least
@@ -83,7 +88,7 @@ pub fn clip_verdict(
     if !(range > 0.0 && range.is_finite() && extreme.is_finite()) || scratch.len() < values.len() {
         return None;
     }
-    let near = |v: f64| (v - extreme).abs() <= CLIP_BAND * range;
+    let near = |v: f64| near_extreme(v, extreme, range);
     let mut others = 0;
     for &v in values.iter().filter(|v| v.is_finite() && !near(**v)) {
         scratch[others] = v;

@@ -58,8 +58,10 @@ pub use super::detect::{CLIP_BAND, CLIP_MIN_BREATHS, CLIP_SPREAD};
 pub struct Clipping {
     /// At the signal's highest value (`true`: inspirations cut) or its lowest (expirations).
     pub at_top: bool,
-    /// The value they turn at, in the signal's unit.
+    /// The value they turn at, in the signal's unit…
     pub value: f64,
+    /// …this one's symbol (`mm`, `ml`, `a.u.`).
+    pub unit: &'static str,
     /// Seconds from the trace's first sample of each turn at it.
     pub at_s: Vec<f64>,
     /// Turns on that side in all.
@@ -69,8 +71,9 @@ pub struct Clipping {
 }
 
 impl Clipping {
-    /// For a person (`unit`: the signal's unit symbol).
-    pub fn describe(&self, unit: &str) -> String {
+    /// For a person.
+    pub fn describe(&self) -> String {
+        let unit = self.unit;
         let times: Vec<String> = self.at_s.iter().map(|t| format!("{t:.1}")).collect();
         let side = if self.at_top { "peaks" } else { "troughs" };
         let sensor = match unit {
@@ -99,14 +102,8 @@ impl Clipping {
     }
 }
 
-/// [`significant`] at 5 digits, for the tests.
-#[cfg(test)]
-pub(crate) fn significant_for_tests(x: f64) -> String {
-    significant(x, 5)
-}
-
 /// `x` to `digits` significant digits, for a person (no float noise such as 0.30000000000000004).
-fn significant(x: f64, digits: i32) -> String {
+pub(crate) fn significant(x: f64, digits: i32) -> String {
     if x == 0.0 || !x.is_finite() {
         return format!("{x}");
     }
@@ -119,9 +116,15 @@ fn significant(x: f64, digits: i32) -> String {
     }
 }
 
-/// [`Clipping`] of the turns `turns` (time ns, value; one side's) of a signal spanning `lo..=hi`
-/// from `t0_ns`: `top` for peaks.
-pub fn clipping(turns: &[(u64, f64)], lo: f64, hi: f64, t0_ns: u64, top: bool) -> Option<Clipping> {
+/// [`Clipping`] of the turns `turns` (time ns, value; one side's) of a signal in `unit` spanning
+/// `lo..=hi` from `t0_ns`: `top` for peaks.
+pub fn clipping(
+    turns: &[(u64, f64)],
+    (lo, hi): (f64, f64),
+    unit: SignalUnit,
+    t0_ns: u64,
+    top: bool,
+) -> Option<Clipping> {
     let range = hi - lo;
     let extreme = if top { hi } else { lo };
     let values: Vec<f64> = turns.iter().map(|(_, v)| *v).collect();
@@ -129,12 +132,13 @@ pub fn clipping(turns: &[(u64, f64)], lo: f64, hi: f64, t0_ns: u64, top: bool) -
     let (_, spread) = super::detect::clip_verdict(&values, extreme, range, &mut scratch)?;
     let at_s = turns
         .iter()
-        .filter(|(_, v)| (v - extreme).abs() <= CLIP_BAND * range)
+        .filter(|(_, v)| super::detect::near_extreme(*v, extreme, range))
         .map(|(t, _)| t.saturating_sub(t0_ns) as f64 * 1e-9)
         .collect();
     Some(Clipping {
         at_top: top,
         value: extreme,
+        unit: unit.symbol(),
         at_s,
         turns: turns.len(),
         spread,
@@ -304,7 +308,8 @@ impl Trace {
             inspiration_fraction: median(fractions),
             clipped: {
                 let t0 = t.samples.first().map_or(0, |s| s.t_ns);
-                clipping(&peaks, lo, hi, t0, true).or_else(|| clipping(&troughs, lo, hi, t0, false))
+                clipping(&peaks, (lo, hi), t.unit, t0, true)
+                    .or_else(|| clipping(&troughs, (lo, hi), t.unit, t0, false))
             },
         })
     }

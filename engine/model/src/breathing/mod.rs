@@ -91,9 +91,10 @@ pub(crate) fn median_of(values: &[f64]) -> Option<f64> {
     })
 }
 
-/// A fixed ring of the last `N` values, oldest first when read.
+/// A fixed ring of the last `N` values, oldest first when read (allocation-free: the detector's
+/// typical breaths, a remote site's turn lags).
 #[derive(Debug, Clone, Copy, PartialEq)]
-pub(crate) struct Ring<T: Copy + Default, const N: usize> {
+pub struct Ring<T: Copy + Default, const N: usize> {
     items: [T; N],
     len: usize,
     head: usize,
@@ -110,16 +111,22 @@ impl<T: Copy + Default, const N: usize> Default for Ring<T, N> {
 }
 
 impl<T: Copy + Default, const N: usize> Ring<T, N> {
-    pub(crate) fn push(&mut self, v: T) {
+    /// Keep `v`, dropping the oldest when full.
+    pub fn push(&mut self, v: T) {
         self.items[self.head] = v;
         self.head = (self.head + 1) % N;
         self.len = (self.len + 1).min(N);
     }
-    pub(crate) fn len(&self) -> usize {
+    /// Values kept (at most `N`).
+    pub fn len(&self) -> usize {
         self.len
     }
+    /// None kept yet.
+    pub fn is_empty(&self) -> bool {
+        self.len == 0
+    }
     /// `k`-th newest (0: the newest).
-    pub(crate) fn back(&self, k: usize) -> Option<T> {
+    pub fn back(&self, k: usize) -> Option<T> {
         (k < self.len).then(|| self.items[(self.head + N - 1 - k) % N])
     }
     /// Copy out, oldest first, into `out` (at least `N` long); returns the count.
