@@ -61,11 +61,26 @@ pub struct SiteRun {
 /// every engine prepares its disease state's next cycle, as the engine process does after each
 /// frame (without it a disease scene's course never advanced).
 pub fn follow(
+    source: EngineCore,
+    site: EngineCore,
+    frame: &mut dyn FnMut(u64) -> TrackerFrame,
+    ticks: u64,
+    delay_ticks: u64,
+    tick_hz: f64,
+) -> Result<SiteRun, SitesError> {
+    follow_joining(source, site, frame, ticks, delay_ticks, 0, tick_hz)
+}
+
+/// [`follow`] for sites that join at `join_tick`, as `lungdyn remote join` does late: until then
+/// they hear nothing (their own model breathes), then the latest state the source sent that has
+/// arrived, then every state after it.
+pub fn follow_joining(
     mut source: EngineCore,
     site: EngineCore,
     frame: &mut dyn FnMut(u64) -> TrackerFrame,
     ticks: u64,
     delay_ticks: u64,
+    join_tick: u64,
     tick_hz: f64,
 ) -> Result<SiteRun, SitesError> {
     let frc: f64 = source.geometry().map(|g| g.start_volume_ml).sum();
@@ -103,7 +118,16 @@ pub fn follow(
                 states.push(s);
             }
         }
-        while next < states.len() && states[next].tick + delay_ticks <= tick {
+        if tick == join_tick {
+            // A late joiner hears the latest state that has arrived, not the ones before it.
+            let arrived = states
+                .iter()
+                .filter(|s| s.tick + delay_ticks <= tick)
+                .count();
+            next = next.max(arrived.saturating_sub(1));
+        }
+        // Until it joins, a site hears nothing (its own model breathes).
+        while tick >= join_tick && next < states.len() && states[next].tick + delay_ticks <= tick {
             let s = states[next].clone();
             let mut stripped = s.clone();
             stripped.live = None;

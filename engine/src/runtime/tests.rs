@@ -2574,6 +2574,80 @@ fn a_site_takes_back_a_breath_the_patient_did_not_start() {
     );
 }
 
+/// A site that joins late, mid-breath (a colleague opening `lungdyn remote join` well into a
+/// session), first hears the breath in progress, whose turns are long past: it follows the patient
+/// from there, and that breath's lag is no measure of how late turns arrive — an apnoea two breaths
+/// after it joined is taken back as promptly as at a site that was there from the start.
+#[test]
+fn a_site_joining_late_follows_at_once_and_keeps_its_patience() {
+    use ipc_types::engine_state::SIGNAL_FOLLOWING;
+    const DELAY: u64 = 6; // 100 ms
+    let apnoea_s = 9.0 * 4.7; // an end-expiration of `chest_mm`
+    let join_s = 7.0 * 4.7 + 2.5; // 2.5 s into a breath, 7 s before the apnoea
+    let apnoea = move |_: u64, t_s: f64| (if t_s < apnoea_s { chest_mm(t_s) } else { 0.0 }, true);
+    let run = |join_tick: u64| {
+        let site = EngineCore::with_geometry(&Scene::default(), baked_geometry()).unwrap();
+        super::sites::follow_joining(
+            signal_core(50.0),
+            site,
+            &mut |tick| signal_frame(tick, None, &apnoea),
+            (55.0 * 60.0) as u64,
+            DELAY,
+            join_tick,
+            60.0,
+        )
+        .unwrap()
+    };
+    let (early, late) = (run(0), run((join_s * 60.0) as u64));
+    let tidal = signal_tidal_ml();
+    let following = |r: &super::sites::SiteTick| r.site_state & SIGNAL_FOLLOWING != 0;
+    let joined_at = late
+        .ticks
+        .iter()
+        .find(|r| r.t_s >= join_s && following(r))
+        .expect("the late site follows the patient")
+        .t_s;
+    // Until the apnoea, from a breath after joining: as close to the source as the early site.
+    let rms = |run: &super::sites::SiteRun| {
+        let w: Vec<_> = run
+            .ticks
+            .iter()
+            .filter(|r| r.t_s >= join_s + 4.7 && r.t_s < apnoea_s)
+            .map(|r| (r.site_ml - r.source_ml).powi(2))
+            .collect();
+        (w.iter().sum::<f64>() / w.len() as f64).sqrt()
+    };
+    // After the apnoea: both back at the breath's end by the time the early site is.
+    let back_s = apnoea_s + early.turn_lag.max_ticks as f64 / 60.0 + 1.0;
+    let worst = |run: &super::sites::SiteRun| {
+        run.ticks
+            .iter()
+            .filter(|r| r.t_s >= back_s)
+            .map(|r| (r.site_ml - r.source_ml).abs())
+            .fold(0.0, f64::max)
+    };
+    eprintln!(
+        "joined at {join_s:.1} s, following from {joined_at:.2} s; RMS to the apnoea {:.1} ml late, \
+         {:.1} ml early; after {back_s:.1} s within {:.1} ml late, {:.1} ml early (tidal \
+         {tidal:.0} ml)",
+        rms(&late),
+        rms(&early),
+        worst(&late),
+        worst(&early)
+    );
+    assert!(
+        joined_at - join_s < 0.5,
+        "following {:.2} s after joining",
+        joined_at - join_s
+    );
+    assert!(rms(&late) < 0.15 * tidal && rms(&late) < 1.5 * rms(&early) + 5.0);
+    assert!(
+        worst(&late) < 0.05 * tidal,
+        "the late site {:.1} ml from the source",
+        worst(&late)
+    );
+}
+
 /// The site's breath is a pure function of the states and the ticks they arrive at: twice the same.
 #[test]
 fn a_sites_live_breath_replays_bitwise() {
