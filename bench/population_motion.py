@@ -1,6 +1,8 @@
 #!/usr/bin/env python3
 """A population motion from the shared breath-hold pairs, judged leave-one-patient-out (issue 34
-item 4, a first measurement — not lungdyn's default).
+item 4: built in as `directions = "breath-hold"`, the motion `lungdyn patient` bakes into a patient's
+lung without a fit it can draw, where it draws the lung's tidal share without a fold; the generated
+lungs keep the built-in motion).
 
 Each patient's fitted motion (`fit-motion --exhale/--inhale`: a direction field and an applied force
 field, polynomials in the lung's box coordinates) is made scale-free (each field divided by its RMS
@@ -9,6 +11,8 @@ It is baked on the held-out patient's exhale surface (`lungdyn bake --motion`), 
 patient's inhale volume (`lungdyn kernel export --delta-ml`) and measured against the aligned inhale
 surface with trimesh (area-weighted vertex means of exact point-to-triangle distances, both ways —
 lungdyn's definition, bench/pair_check.py checks it agrees), beside no motion and uniform scaling.
+Each drawn surface is checked for folds (`lungdyn mesh check`) at the inhale volume and at the lung's
+share of a tidal breath (--tidal-ml shared by the two lungs' exhale volumes).
 
 Inputs: per case and lung, a fit's JSON (with the fields, from bench/patient_motion.py's
 --json-dir, run with --force-centres 0: the population averages the polynomial fields, and a fit's
@@ -93,6 +97,9 @@ def main():
     ap.add_argument("--surfaces", required=True)
     ap.add_argument("--lungdyn", default=os.path.join(ROOT, "target", "release", "lungdyn"))
     ap.add_argument("--out", default=os.path.join(ROOT, "docs", "masks", "population_motion_table.md"))
+    ap.add_argument("--tidal-ml", type=float, default=500.0,
+                    help="the tidal breath shared by both lungs in proportion to their exhale volumes "
+                         "(the default scene's, 500 ml): the share each lung must draw without a fold")
     ap.add_argument("--write-population", metavar="TOML",
                     help="also write the population motion of all six patients (both lungs) there")
     a = ap.parse_args()
@@ -127,21 +134,31 @@ def main():
             chk = subprocess.run([a.lungdyn, "mesh", "check", "--mesh", drawn, "--frame", "body"],
                                  capture_output=True, text=True)
             folds = "intersects itself" in chk.stderr
+            # The same at the lung's share of a tidal breath (what `lungdyn patient` asks of it).
+            both = fits[(c, "right")]["exhale_ml"] + fits[(c, "left")]["exhale_ml"]
+            share = a.tidal_ml * fit["exhale_ml"] / both
+            tidal = os.path.join(tmp, f"pop_{c}_{s}_tidal.ply")
+            run([a.lungdyn, "kernel", "export", kernel, "--delta-ml", f"{share}", "--out", tidal])
+            chk = subprocess.run([a.lungdyn, "mesh", "check", "--mesh", tidal, "--frame", "body"],
+                                 capture_output=True, text=True)
+            tidal_folds = (share, "intersects itself" in chk.stderr)
             rows.append((c, s, dv, fit["no_motion"]["mssd_mm"], fit["uniform_scaling"]["mssd_mm"], m,
-                         fit["cross_validated"]["mssd_mm"], folds))
+                         fit["cross_validated"]["mssd_mm"], folds, tidal_folds))
             print(f"case {c} {s}: population (others) {m:.2f} mm; no motion {rows[-1][3]:.2f}, "
                   f"scaling {rows[-1][4]:.2f}, own fit held out {rows[-1][6]:.2f}", file=sys.stderr)
-    lines = ["| case | lung | ΔV ml | no motion | uniform scaling | **population of the other 5 patients** | folds at inhale | own fit, held out |",
-             "|---|---|---|---|---|---|---|---|"]
-    for c, s, dv, n, u, m, cv, folds in rows:
+    lines = ["| case | lung | ΔV ml | no motion | uniform scaling | **population of the other 5 patients** | folds at inhale | folds at its tidal share (ml) | own fit, held out |",
+             "|---|---|---|---|---|---|---|---|---|"]
+    for c, s, dv, n, u, m, cv, folds, (share, tfolds) in rows:
         best = m < min(n, u)
         lines.append(f"| {c} | {s} | {dv:+.0f} | {n:.2f} | {u:.2f} | {'**' if best else ''}{m:.2f}{'**' if best else ''} "
-                     f"| {'yes' if folds else 'no'} | {cv:.2f} |")
+                     f"| {'yes' if folds else 'no'} | {'yes' if tfolds else 'no'} (+{share:.0f}) | {cv:.2f} |")
     wins = sum(1 for r in rows if r[5] < min(r[3], r[4]))
     mean = lambda k: np.mean([r[k] for r in rows])
     lines += ["", f"Means (MSSD, mm): no motion {mean(3):.2f}, uniform scaling {mean(4):.2f}, population "
               f"(leave-one-patient-out) {mean(5):.2f}, each patient's own fit held out {mean(6):.2f}. The "
-              f"population beats both baselines on {wins} of {len(rows)} lungs (bold).",
+              f"population beats both baselines on {wins} of {len(rows)} lungs (bold); it draws its lung's "
+              f"share of a {a.tidal_ml:.0f} ml tidal breath without a fold on "
+              f"{sum(1 for r in rows if not r[8][1])} of {len(rows)}.",
               "", f"Measured {time.strftime('%Y-%m-%d %H:%M UTC', time.gmtime())}, {os.cpu_count()} CPUs, "
               f"{time.time() - t0:.0f} s, with `python3 bench/population_motion.py --fits DIR --surfaces DIR`."]
     if a.write_population:

@@ -39,8 +39,9 @@ pub struct BakeArgs {
     #[arg(long, conflicts_with = "directions")]
     pub motion: Option<PathBuf>,
     /// The motion without a motion file (overrides the scene's `[lungs] directions`): "population"
-    /// (diaphragm-driven, matched to DIR-Lab 4DCT; the default), "breath-hold" (the population of six
-    /// real breath-hold pairs' fits) or "seed" (Table 6.1, mostly anterior). See EQUATIONS.md §2.4.
+    /// (diaphragm-driven, matched to DIR-Lab 4DCT on the generated lungs; the default), "breath-hold"
+    /// (the population of six real breath-hold pairs' fits: closer on a patient's lung, `lungdyn
+    /// patient`'s choice where it does not fold) or "seed" (Table 6.1). See EQUATIONS.md §2.4.
     #[arg(long, value_parser = ["population", "breath-hold", "seed"])]
     pub directions: Option<String>,
     /// Length in mm over which the elastostatic amplitude is made smooth on the surface so the

@@ -136,19 +136,9 @@ pub fn run(args: &FromMaskArgs) -> anyhow::Result<FromMaskSummary> {
     io::check_out(&args.out)?;
     let mut opts = MaskOptions::new(side);
     opts.labels = args.label.clone();
-    opts.convention = args
-        .convention
-        .as_deref()
-        .map(str::parse)
-        .transpose()
-        .map_err(anyhow::Error::msg)?;
+    opts.convention = parsed(args.convention.as_deref())?;
     opts.vertices = args.vertices;
-    opts.axes = args
-        .axes
-        .as_deref()
-        .map(str::parse::<Axes>)
-        .transpose()
-        .map_err(|e| anyhow::anyhow!("--axes: {e}"))?;
+    opts.axes = axes("--axes", &args.axes)?;
     opts.keep_tunnels = args.keep_tunnels;
     opts.smoothing_mm = args.smooth;
     opts.limits = args.input.limits(mask::read::MASK_LIMITS);
@@ -254,4 +244,20 @@ pub fn text(s: &FromMaskSummary) -> String {
 /// Whether `path` looks like a label image `lungdyn patient` and `fit-motion --exhale/--inhale` read.
 pub fn is_mask(path: &Path) -> bool {
     mask::read::Format::of(path).is_some()
+}
+
+/// An option's text parsed, its parser's message the error.
+pub(crate) fn parsed<T: std::str::FromStr>(s: Option<&str>) -> anyhow::Result<Option<T>>
+where
+    T::Err: std::fmt::Display + std::fmt::Debug + Send + Sync + 'static,
+{
+    s.map(str::parse).transpose().map_err(anyhow::Error::msg)
+}
+
+/// `--axes`-style option `flag` parsed (also `fit-motion`'s and `patient`'s).
+pub(crate) fn axes(flag: &str, s: &Option<String>) -> anyhow::Result<Option<Axes>> {
+    s.as_deref()
+        .map(str::parse::<Axes>)
+        .transpose()
+        .map_err(|e| anyhow::anyhow!("{flag}: {e}"))
 }

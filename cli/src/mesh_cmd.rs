@@ -137,12 +137,7 @@ pub fn import_lung(
 ) -> anyhow::Result<(lung_bake::import::Imported, Option<String>, Option<String>)> {
     use lung_bake::import::{ImportOptions, MeshFrame, Shells};
     let units: lung_bake::import::Units = units.parse().map_err(anyhow::Error::msg)?;
-    let stated: Option<MeshFrame> = frame
-        .frame
-        .as_deref()
-        .map(str::parse)
-        .transpose()
-        .map_err(anyhow::Error::msg)?;
+    let stated: Option<MeshFrame> = crate::mask_cmd::parsed(frame.frame.as_deref())?;
     let imported = lung_bake::import::import_with(
         mesh,
         &ImportOptions {
@@ -261,12 +256,7 @@ pub fn check_mesh(args: &CheckArgs) -> anyhow::Result<CheckSummary> {
     if let Some(out) = &args.out {
         io::check_out(out)?;
     }
-    let lung = args
-        .lung
-        .as_deref()
-        .map(str::parse::<Side>)
-        .transpose()
-        .map_err(anyhow::Error::msg)?;
+    let lung = crate::mask_cmd::parsed::<Side>(args.lung.as_deref())?;
     let (imported, side_warning, frame_warning) = import_lung(
         &args.mesh,
         &args.units,

@@ -735,15 +735,10 @@ fn points_text(r: &PointsReport, args: &FitMotionArgs) -> String {
     for l in &r.lungs {
         let c = &l.constants;
         s += &format!(
-            "{} lung, {} points, power law: c1 {:.4} c2 {:.3} c3 {:.4} c4 {:.3} c5 {:.4} c6 {:.3}\n",
+            "{} lung, {} points, power law: {}\n",
             l.lung.name(),
             l.points,
-            c[0],
-            c[1],
-            c[2],
-            c[3],
-            c[4],
-            c[5]
+            power_law(c)
         );
     }
     for p in &r.also {
@@ -765,6 +760,12 @@ fn points_text(r: &PointsReport, args: &FitMotionArgs) -> String {
     s
 }
 
+/// The power law's `c1 … c6` as the reports print them.
+fn power_law(c: &[f64]) -> String {
+    let [c1, c2, c3, c4, c5, c6] = [c[0], c[1], c[2], c[3], c[4], c[5]];
+    format!("c1 {c1:.4} c2 {c2:.3} c3 {c3:.4} c4 {c4:.3} c5 {c5:.4} c6 {c6:.3}")
+}
+
 /// Human-readable report of the kernel-model (mesh and surface) modes.
 fn kernel_text(f: &MotionFit, args: &FitMotionArgs) -> String {
     let mut s = String::new();
@@ -781,16 +782,11 @@ fn kernel_text(f: &MotionFit, args: &FitMotionArgs) -> String {
             "Table 6.1"
         };
         s += &format!(
-            "{} lung, {} points: c1 {:.4} c2 {:.3} c3 {:.4} c4 {:.3} c5 {:.4} c6 {:.3}; c7 {:.3} c8 {:.3} c9 {:.3} ({force})\n  \
+            "{} lung, {} points: {}; c7 {:.3} c8 {:.3} c9 {:.3} ({force})\n  \
              error mean {:.2} mm, max {:.2} mm, rms {:.2} mm (no-motion baseline {:.2} mm)\n",
             l.lung.name(),
             l.points,
-            c[0],
-            c[1],
-            c[2],
-            c[3],
-            c[4],
-            c[5],
+            power_law(c),
             c[6],
             c[7],
             c[8],

@@ -50,14 +50,6 @@ pub struct PairReport {
     pub warnings: Vec<String>,
 }
 
-/// `--axes`-style option `flag` parsed (also `lungdyn patient`'s).
-pub(crate) fn axes(flag: &str, s: &Option<String>) -> anyhow::Result<Option<Axes>> {
-    s.as_deref()
-        .map(str::parse::<Axes>)
-        .transpose()
-        .map_err(|e| anyhow::anyhow!("{flag}: {e}"))
-}
-
 /// One lung's surface from a mask or a surface file; warnings appended.
 fn surface(
     path: &Path,
@@ -152,8 +144,8 @@ fn check(args: &FitMotionArgs) -> anyhow::Result<(PathBuf, PathBuf, PairOptions)
 /// Fit each lung asked (both without --lung), write the motion file.
 pub fn run(args: &FitMotionArgs) -> anyhow::Result<PairReport> {
     let (exhale, inhale, opts) = check(args)?;
-    let ax = axes("--axes", &args.axes)?;
-    let inhale_ax = axes("--inhale-axes", &args.inhale_axes)?.or(ax);
+    let ax = crate::mask_cmd::axes("--axes", &args.axes)?;
+    let inhale_ax = crate::mask_cmd::axes("--inhale-axes", &args.inhale_axes)?.or(ax);
     let scene = lung_model::scene::Scene::load_or_default(args.scene.as_deref())?;
     let sides = match args.lung {
         Some(s) => vec![s],

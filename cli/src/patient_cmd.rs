@@ -7,6 +7,7 @@ use std::path::{Path, PathBuf};
 use anyhow::Context;
 use glam::DVec3;
 use lung_bake::mask::{self, labels::Convention, volume::Axes, MaskOptions};
+use lung_bake::unfitted::Choice;
 use lung_model::mesh::{io, Side, TriMesh};
 use lung_model::scene::SceneExt;
 use serde::Serialize;
@@ -26,7 +27,8 @@ was made and measured); with --inhale also right_inhale.ply and left_inhale.ply,
 motion fitted to the breath-hold pair (motion.toml; the kernels are baked with it, and the report
 says how far the kernel at the inhale volume lies from the inhale surface beside no motion and
 uniform scaling; --motion chooses: auto bakes the fit for each lung whose kernel draws a tidal
-breath without a fold, the built-in motion otherwise). The lungs are
+breath without a fold, else the breath-hold population of six patients where it draws one, else
+the built-in motion; without --inhale, the last two in that order). The lungs are
 moved by one translation, the same for both and said in scene.toml, so they sit where the
 renderer draws the built-in lungs; their shape, size and relative placement are the patient's."
 )]
@@ -61,10 +63,11 @@ pub struct PatientArgs {
     /// Vertices per lung, about.
     #[arg(long, default_value_t = 20_000)]
     pub vertices: usize,
-    /// With --inhale, the motion baked: "auto" (the motion fitted to this patient's breath-hold
+    /// The motion baked: "auto" (with --inhale, the motion fitted to this patient's breath-hold
     /// pair, written to OUT/motion.toml, for each lung whose fitted kernel draws a tidal breath
-    /// without a fold; the built-in population motion for a lung where it would fold), "fitted"
-    /// (always the fit) or "population" (the built-in motion, no fit).
+    /// without a fold; else the breath-hold population of six patients where it draws one without
+    /// a fold; else the built-in population), "fitted" (always the fit), "breath-hold" (the
+    /// breath-hold population, no fit) or "population" (the built-in motion, no fit).
     #[arg(long, value_enum, default_value_t = MotionChoice::Auto)]
     pub motion: MotionChoice,
     /// Keep the image's own coordinates instead of moving the lungs to where the built-in ones
@@ -85,10 +88,13 @@ pub struct PatientArgs {
 /// `patient --motion`.
 #[derive(Debug, Clone, Copy, PartialEq, Eq, clap::ValueEnum)]
 pub enum MotionChoice {
-    /// The fit where it draws a tidal breath without a fold, else the built-in motion.
+    /// The fit, else the breath-hold population, else the built-in: the first that draws a tidal
+    /// breath without a fold.
     Auto,
     /// The fit, always.
     Fitted,
+    /// The breath-hold population of six patients, no fit.
+    BreathHold,
     /// The built-in population motion, no fit.
     Population,
 }
@@ -122,7 +128,8 @@ pub struct PatientLung {
     pub seconds: [f64; 2],
     /// The inhale mask's lung volume, ml (with --inhale).
     pub inhale_volume_ml: Option<f64>,
-    /// The motion baked: "fitted to the breath-hold pair" or "population".
+    /// The motion baked: "fitted to the breath-hold pair", "breath-hold population" or "built-in
+    /// population", with why where the first choice folded.
     pub motion: &'static str,
     /// With the fitted motion: the baked kernel driven to the inhale volume against the inhale
     /// surface (MSSD, mm), beside no motion and uniform scaling (`fit-motion` gives held-out
@@ -176,12 +183,7 @@ fn mask_options(args: &PatientArgs, side: Side, axes: Option<Axes>) -> anyhow::R
     o.vertices = args.vertices;
     o.axes = axes;
     o.limits = args.input.limits(mask::read::MASK_LIMITS);
-    o.convention = args
-        .convention
-        .as_deref()
-        .map(str::parse)
-        .transpose()
-        .map_err(anyhow::Error::msg)?;
+    o.convention = crate::mask_cmd::parsed(args.convention.as_deref())?;
     o.labels = match side {
         Side::Right => args.right_label.clone(),
         Side::Left => args.left_label.clone(),
@@ -210,19 +212,15 @@ fn joint_centre<'a>(meshes: impl IntoIterator<Item = &'a TriMesh>) -> DVec3 {
     (lo + hi) * 0.5
 }
 
-/// Bake one lung (the default settings, with the motion fitted to its pair where there is one)
-/// keeping its lobes; seconds taken.
+/// Bake one lung keeping its lobes, with the motion fitted to its pair where there is one, else the
+/// motion `unfitted` chooses for its tidal share (ml); seconds taken, and the motion chosen.
 fn bake_lung(
     side: Side,
     m: &mask::FromMask,
     kernel_path: &Path,
     fit: Option<&lung_bake::patient_motion::PairFit>,
-) -> anyhow::Result<f64> {
-    let mut settings = lung_model::kernel::BakeSettings::default_for(side);
-    if let Some(f) = fit {
-        settings.force_field = Some(f.force.clone());
-        settings.direction_field = Some(f.direction.clone());
-    }
+    unfitted: (Choice, f64),
+) -> anyhow::Result<(f64, Option<lung_bake::unfitted::Baked>)> {
     eprintln!(
         "lungdyn: baking the {} lung ({} vertices) into {}",
         side.name(),
@@ -236,14 +234,28 @@ fn bake_lung(
             .expect("valid template")
             .progress_chars("=> "),
     );
-    let mut kernel = lung_bake::kernel::bake(side, m.mesh.clone(), &settings, &|rows| {
-        bar.inc(rows as u64)
-    })
-    .with_context(|| format!("baking the {} lung", side.name()))?;
+    let rows = |rows: usize| bar.inc(rows as u64);
+    let what = || format!("baking the {} lung", side.name());
+    let (mut kernel, baked) = if let Some(f) = fit {
+        let mut settings = lung_model::kernel::BakeSettings::default_for(side);
+        settings.force_field = Some(f.force.clone());
+        settings.direction_field = Some(f.direction.clone());
+        let kernel = lung_bake::kernel::bake(side, m.mesh.clone(), &settings, &rows);
+        (kernel.with_context(what)?, None)
+    } else {
+        // Each step said starts a bake (the built-in one after the breath-hold one that folded).
+        let say = |s: &str| {
+            bar.suspend(|| eprintln!("lungdyn: {s}"));
+            bar.set_position(0);
+        };
+        let u = lung_bake::unfitted::bake(side, &m.mesh, unfitted.1, unfitted.0, &rows, &say);
+        let u = u.with_context(what)?;
+        (u.kernel, Some(u.motion))
+    };
     bar.finish_and_clear();
     kernel.lobes = Some(m.lobes.clone());
     kernel.write(kernel_path)?;
-    Ok(t.elapsed().as_secs_f64())
+    Ok((t.elapsed().as_secs_f64(), baked))
 }
 
 /// What `patient` reports of one lung.
@@ -294,7 +306,11 @@ fn fit_motion(
     inhale: &[(Side, TriMesh, Vec<u8>)],
     share: &dyn Fn(&TriMesh) -> f64,
 ) -> anyhow::Result<Vec<crate::pair_cmd::PairLung>> {
-    if inhale.is_empty() || args.motion == MotionChoice::Population {
+    let no_fit = matches!(
+        args.motion,
+        MotionChoice::Population | MotionChoice::BreathHold
+    );
+    if inhale.is_empty() || no_fit {
         return Ok(Vec::new());
     }
     let opts = lung_bake::patient_motion::PairOptions {
@@ -361,11 +377,7 @@ fn write_scene(
         source: format!(
             "lungdyn patient: the {} preset's curves, FRC = the exhale masks' lung volume ({})",
             preset.name,
-            args.exhale
-                .iter()
-                .map(|p| p.display().to_string())
-                .collect::<Vec<_>>()
-                .join(" ")
+            names(&args.exhale).join(" ")
         ),
         boundary,
         inhale: preset.inhale,
@@ -385,11 +397,11 @@ fn write_scene(
          [lungs.kernels]\n\
          right = \"right.kernel\"\n\
          left = \"left.kernel\"\n",
-        exhale = args.exhale.iter().map(|p| p.display().to_string()).collect::<Vec<_>>().join(" "),
+        exhale = names(&args.exhale).join(" "),
         inhale = if args.inhale.is_empty() {
             String::new()
         } else {
-            format!(" (inhale: {})", args.inhale.iter().map(|p| p.display().to_string()).collect::<Vec<_>>().join(" "))
+            format!(" (inhale: {})", names(&args.inhale).join(" "))
         },
         r = volumes[0],
         l = volumes[1],
@@ -438,8 +450,8 @@ pub fn run(args: &PatientArgs) -> anyhow::Result<PatientSummary> {
     }
     std::fs::create_dir_all(&args.out)
         .with_context(|| format!("cannot create {}", args.out.display()))?;
-    let exhale_axes = crate::pair_cmd::axes("--axes", &args.axes)?;
-    let inhale_axes = crate::pair_cmd::axes("--inhale-axes", &args.inhale_axes)?.or(exhale_axes);
+    let exhale_axes = crate::mask_cmd::axes("--axes", &args.axes)?;
+    let inhale_axes = crate::mask_cmd::axes("--inhale-axes", &args.inhale_axes)?.or(exhale_axes);
     let mut warnings = Vec::new();
     let mut made = Vec::new();
     for side in [Side::Right, Side::Left] {
@@ -507,7 +519,13 @@ pub fn run(args: &PatientArgs) -> anyhow::Result<PatientSummary> {
             args.motion == MotionChoice::Fitted
                 || lung_bake::patient_motion::draws_breath(f, tidal_share_ml)
         });
-        let bake_seconds = bake_lung(*side, m, &kernel_path, used)?;
+        let unfitted = match args.motion {
+            MotionChoice::Population => Choice::Builtin,
+            MotionChoice::BreathHold => Choice::BreathHold,
+            _ => Choice::Auto,
+        };
+        let (bake_seconds, baked) =
+            bake_lung(*side, m, &kernel_path, used, (unfitted, tidal_share_ml))?;
         let mut lung = lung_summary(
             *side,
             m,
@@ -516,8 +534,8 @@ pub fn run(args: &PatientArgs) -> anyhow::Result<PatientSummary> {
             inhale_volumes.get(k).copied(),
             fit,
         );
-        if fit.is_some() && used.is_none() {
-            lung.motion = "population (the fitted motion folds within a tidal breath)";
+        if let Some(b) = baked {
+            lung.motion = b.describe(fit.is_some());
         }
         if let Some(f) = lung.motion_mssd_mm.as_mut() {
             f.tidal_share_ml = tidal_share_ml;
@@ -535,16 +553,8 @@ pub fn run(args: &PatientArgs) -> anyhow::Result<PatientSummary> {
     )?;
     let summary = PatientSummary {
         scene: scene_path.display().to_string(),
-        exhale: args
-            .exhale
-            .iter()
-            .map(|p| p.display().to_string())
-            .collect(),
-        inhale: args
-            .inhale
-            .iter()
-            .map(|p| p.display().to_string())
-            .collect(),
+        exhale: names(&args.exhale),
+        inhale: names(&args.inhale),
         lungs,
         frc_ml,
         inhale_ml: (!inhale_volumes.is_empty()).then(|| inhale_volumes.iter().sum()),
@@ -558,6 +568,11 @@ pub fn run(args: &PatientArgs) -> anyhow::Result<PatientSummary> {
         w.write_all(json.as_bytes())
     })?;
     Ok(summary)
+}
+
+/// The paths as text.
+fn names(paths: &[PathBuf]) -> Vec<String> {
+    paths.iter().map(|p| p.display().to_string()).collect()
 }
 
 /// Both lungs' inhale surfaces (none without --inhale), their warnings added to `warnings`.
@@ -628,8 +643,8 @@ pub fn text(s: &PatientSummary) -> String {
                     m.folds_at_inhale, m.fold_free_ml, m.tidal_share_ml
                 ));
             }
-            out.push_str(&format!("  motion baked: {}\n", l.motion));
         }
+        out.push_str(&format!("  motion baked: {}\n", l.motion));
     }
     out.push_str(&format!(
         "FRC {:.0} ml (the exhale lungs){}; lungs moved by ({:.1}, {:.1}, {:.1}) mm\nwrote {}\nrun it: {}\n",

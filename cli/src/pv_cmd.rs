@@ -414,12 +414,7 @@ struct FitJson {
 }
 
 fn fit(a: &FitArgs) -> anyhow::Result<()> {
-    let unit: Option<VolumeUnit> = a
-        .volume_unit
-        .as_deref()
-        .map(str::parse)
-        .transpose()
-        .map_err(anyhow::Error::msg)?;
+    let unit: Option<VolumeUnit> = crate::mask_cmd::parsed(a.volume_unit.as_deref())?;
     if let Some(frc) = a.frc {
         lung_model::plausible::FRC_ML.check(frc, Some("--frc is the FRC in ml".into()))?;
     }

@@ -557,6 +557,16 @@ fn patient_makes_a_scene_that_scene_check_accepts_with_frc_from_the_masks() {
         assert_eq!(l["lung"], name);
         assert_eq!(l["lobes_from"], "labels", "{l}");
         total += l["volume_ml"].as_f64().unwrap();
+        // Without a pair: the breath-hold population, unless it folds within the tidal share; the
+        // kernel carries the motion the report names.
+        let k = lung_model::kernel::KernelFile::open(&out.join(format!("{name}.kernel"))).unwrap();
+        let breath_hold = k.meta().settings.direction_field.is_some();
+        let want = if breath_hold {
+            "breath-hold population"
+        } else {
+            "built-in population (the breath-hold population folds within a tidal breath)"
+        };
+        assert_eq!(l["motion"], want, "{l}");
     }
     let frc = j["frc_ml"].as_f64().unwrap();
     assert!(
@@ -624,19 +634,25 @@ fn patient_makes_a_scene_that_scene_check_accepts_with_frc_from_the_masks() {
         let folds = m["folds_at_inhale"].as_u64().unwrap();
         let keeps = folds == 0
             || m["fold_free_ml"].as_f64().unwrap() >= m["tidal_share_ml"].as_f64().unwrap();
-        let want = if keeps {
-            "fitted to the breath-hold pair"
-        } else {
-            "population (the fitted motion folds within a tidal breath)"
-        };
-        assert_eq!(l["motion"], want, "{l}");
         let name = l["lung"].as_str().unwrap();
         let k = lung_model::kernel::KernelFile::open(&out2.join(format!("{name}.kernel"))).unwrap();
-        assert_eq!(
-            k.meta().settings.force_field.is_some(),
-            keeps,
-            "{name}: {l}"
-        );
+        // Where the fit folds: the breath-hold population, else the built-in (no force field).
+        let side: Side = name.parse().unwrap();
+        let preset = lung_model::deform::DirectionPreset::BreathHold;
+        let population = lung_model::kernel::BakeSettings::for_preset(preset, side).force_field;
+        let baked = &k.meta().settings.force_field;
+        let want = match (keeps, baked.is_some(), *baked == population) {
+            (true, true, false) => "fitted to the breath-hold pair",
+            (false, true, true) => {
+                "breath-hold population (the fitted motion folds within a tidal breath)"
+            }
+            (false, false, _) => {
+                "built-in population (the fitted motion and the breath-hold population fold \
+                 within a tidal breath)"
+            }
+            other => panic!("{name}: the kernel's motion {other:?} does not match {l}"),
+        };
+        assert_eq!(l["motion"], want, "{name}: {l}");
     }
     let motion = std::fs::read_to_string(out2.join("motion.toml")).unwrap();
     assert!(

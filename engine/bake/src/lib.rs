@@ -38,3 +38,4 @@ pub mod surface_checks;
 pub mod surface_fit;
 pub mod tri_intersect;
 pub mod tumour;
+pub mod unfitted;

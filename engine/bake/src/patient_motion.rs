@@ -786,6 +786,12 @@ fn at_volume(model: &LungModel, delta_ml: f64) -> Vec<DVec3> {
         .collect()
 }
 
+/// The largest volume change above the model's start volume, up to `up_to_ml` (to 1/64 of it), at
+/// which its surface does not cross itself: `up_to_ml` when it never folds up to there (one check).
+pub fn fold_free_ml(model: &LungModel, up_to_ml: f64) -> f64 {
+    fold_free_share(model, up_to_ml) * up_to_ml
+}
+
 /// The largest share of `delta_ml` (to 1/64) at which the model's surface does not cross itself:
 /// 1 when it never folds up to `delta_ml` (bisection: folds appear past a threshold as the
 /// displacement grows linearly).
@@ -1125,7 +1131,7 @@ fn fit_prepared(
         delta_ml
     } else {
         progress("finding the largest volume change the kernel draws without a fold");
-        fold_free_share(&kernel_model, delta_ml) * delta_ml
+        fold_free_ml(&kernel_model, delta_ml)
     };
     Ok(PairFit {
         side,
