@@ -468,7 +468,13 @@ impl RemoteLive {
             b.driven = Some((volume, inhaling, w));
         }
         self.played = Some(volume);
-        ipc_types::engine_state::SIGNAL_FOLLOWING
+        use ipc_types::engine_state::{SIGNAL_CLIPPED, SIGNAL_FOLLOWING};
+        let clipped = if self.breath.clipped {
+            SIGNAL_CLIPPED
+        } else {
+            0
+        };
+        SIGNAL_FOLLOWING | clipped
     }
 }
 
@@ -501,6 +507,9 @@ impl EngineCore {
                     r.turn = RemoteLive::turn_of(&b);
                     r.breath = b;
                     r.fresh = true;
+                } else {
+                    // The same breath: only what the source says of its signal may have changed.
+                    r.breath.clipped = b.clipped;
                 }
             }
             (Some(b), None) => self.remote_live = Some(RemoteLive::new(b)),

@@ -317,6 +317,7 @@ impl BreathLog {
             last_ticks: self.last_ticks,
             last_peak: self.last_peak,
             last_ml: Bounded::new(ml)?,
+            clipped: false,
         })
     }
 }
@@ -370,9 +371,10 @@ impl SignalDrive {
 
     /// The patient's breath for remote sites: the previous whole breath the lungs followed and the
     /// start of the one in progress (`None` while the model breathes, or before a whole breath was
-    /// followed). Allocates: call after the tick.
+    /// followed), with whether the signal looks clipped now. Allocates: call after the tick.
     pub fn live(&self) -> Option<LiveBreath> {
-        self.log.live()
+        let clipped = self.followed.is_some_and(|f| f.clipped.is_some());
+        self.log.live().map(|b| LiveBreath { clipped, ..b })
     }
 
     /// Changes to [`Self::live`] so far (a new breath, or following stopped): a source publishes

@@ -1831,20 +1831,22 @@ fn clean(_: u64, t_s: f64) -> (f64, bool) {
     (chest_mm(t_s), true)
 }
 
+/// A belt's breaths of depths 6-14 mm (4.7 s each), cut at `ceiling` mm by its sensor's range.
+fn belt(ceiling: f64) -> impl Fn(u64, f64) -> (f64, bool) {
+    move |_: u64, t_s: f64| {
+        let c = (t_s / 4.7).floor();
+        let depth = 10.0 * (0.6 + 0.8 * (c * 0.618_034).fract());
+        let v = depth * 0.5 * (1.0 - (std::f64::consts::TAU * t_s / 4.7).cos());
+        (v.min(ceiling), true)
+    }
+}
+
 /// A belt whose deeper breaths are cut by its sensor's range (depths 6-14 mm, cut at 12): the
 /// frames say so (`SIGNAL_CLIPPED`, the HUD's "SIGNAL LOOKS CLIPPED") while the lungs follow it; the
 /// same breaths uncut never do.
 #[test]
 fn a_signal_cut_by_its_sensors_range_is_flagged_on_the_frames() {
     use ipc_types::engine_state as e;
-    let belt = |ceiling: f64| {
-        move |_: u64, t_s: f64| {
-            let c = (t_s / 4.7).floor();
-            let depth = 10.0 * (0.6 + 0.8 * (c * 0.618_034).fract());
-            let v = depth * 0.5 * (1.0 - (std::f64::consts::TAU * t_s / 4.7).cos());
-            (v.min(ceiling), true)
-        }
-    };
     let run = |ceiling: f64| {
         let mut core = signal_core(50.0);
         follow_run(&mut core, 120.0, None, &belt(ceiling))
@@ -2646,6 +2648,55 @@ fn a_site_joining_late_follows_at_once_and_keeps_its_patience() {
         "the late site {:.1} ml from the source",
         worst(&late)
     );
+}
+
+/// A source whose signal looks clipped tells its sites (control-state v5): their frames say so
+/// as the source's do, from the next state it sends, and sites of the same breaths uncut never do.
+#[test]
+fn a_site_says_so_when_the_sources_signal_looks_clipped() {
+    use ipc_types::engine_state::{SIGNAL_CLIPPED, SIGNAL_FOLLOWING};
+    const DELAY: u64 = 6; // 100 ms
+    let run = |ceiling: f64| {
+        let site = EngineCore::with_geometry(&Scene::default(), baked_geometry()).unwrap();
+        let b = belt(ceiling);
+        super::sites::follow(
+            signal_core(50.0),
+            site,
+            &mut |tick| signal_frame(tick, None, &b),
+            120 * 60,
+            DELAY,
+            60.0,
+        )
+        .unwrap()
+    };
+    let cut = run(12.0);
+    let first = |bits: &dyn Fn(&super::sites::SiteTick) -> u32| {
+        cut.ticks.iter().position(|r| bits(r) & SIGNAL_CLIPPED != 0)
+    };
+    let source = first(&|r| r.source_state).expect("the source sees the clipping");
+    let site = first(&|r| r.site_state).expect("the site is told");
+    eprintln!(
+        "the source says clipped from {:.1} s, the site from {:.1} s",
+        source as f64 / 60.0,
+        site as f64 / 60.0
+    );
+    // With the next state: at the patient's next turn (half a breath at most), then the delay.
+    assert!(
+        site >= source + DELAY as usize && site - source <= 3 * 60,
+        "{source} {site}"
+    );
+    assert!(cut.ticks[site..]
+        .iter()
+        .all(|r| r.site_state & SIGNAL_CLIPPED != 0 && r.site_state & SIGNAL_FOLLOWING != 0));
+    let uncut = run(f64::INFINITY);
+    assert!(uncut
+        .ticks
+        .iter()
+        .all(|r| r.site_state & SIGNAL_CLIPPED == 0));
+    assert!(uncut
+        .ticks
+        .iter()
+        .any(|r| r.site_state & SIGNAL_FOLLOWING != 0));
 }
 
 /// The site's breath is a pure function of the states and the ticks they arrive at: twice the same.

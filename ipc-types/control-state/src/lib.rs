@@ -17,7 +17,9 @@
 //! adds them; v3 gives each event the disease course's cycle it shows from as well as the
 //! breathing cycle (the two counts a user sees: `lungdyn scene event` and the engine say the
 //! course's, frames and states count breaths); v4 adds the patient's breath a source follows from
-//! a live respiratory signal ([`LiveBreath`], issue 35), so the sites breathe with the patient too.
+//! a live respiratory signal ([`LiveBreath`], issue 35), so the sites breathe with the patient too;
+//! v5 adds whether that signal looks clipped by its sensor's range ([`LiveBreath::clipped`]), so the
+//! sites say so as the source does.
 //!
 //! ## Encoding
 //! [`encode`] writes `magic "LDCS" | version u16 | flags u16 | length u32 | xxh3-64 of the payload |
@@ -41,7 +43,7 @@ use thiserror::Error;
 /// Magic bytes at the start of every encoded packet.
 pub const MAGIC: [u8; 4] = *b"LDCS";
 /// Version of the encoding (header and payload); a packet of another version is refused.
-pub const FORMAT_VERSION: u16 = 4;
+pub const FORMAT_VERSION: u16 = 5;
 /// Header bytes: magic, version, flags, payload length, checksum.
 pub const HEADER_BYTES: usize = 4 + 2 + 2 + 4 + 8;
 /// Bytes a [`ControlStateFrame`] carries (the largest encoded packet).
@@ -323,6 +325,9 @@ pub struct LiveBreath {
     /// the model's breath), at [`LIVE_SAMPLES`] or fewer evenly spaced points from its first tick to
     /// its last.
     pub last_ml: Bounded<f32, LIVE_SAMPLES>,
+    /// The source's signal looks clipped by its sensor's range (breaths of unequal depth ending at
+    /// one value): the breaths may be deeper than drawn, and each site's frames say so too.
+    pub clipped: bool,
 }
 
 impl LiveBreath {

@@ -68,6 +68,7 @@ fn live(last_ml: Vec<f32>) -> LiveBreath {
         last_ticks: 240,
         last_peak: 100,
         last_ml: Bounded::new(last_ml).unwrap(),
+        clipped: false,
     }
 }
 
@@ -140,6 +141,7 @@ fn a_full_state_fits_a_frame_and_reads_back_equal() {
         last_ticks: MAX_LIVE_TICKS,
         last_peak: MAX_LIVE_TICKS - 1,
         last_ml: Bounded::new(vec![-MAX_LIVE_ML; LIVE_SAMPLES]).unwrap(),
+        clipped: true,
     });
     let p = Packet::State(s);
     let mut frame = ControlStateFrame::default();
@@ -501,6 +503,7 @@ fn arb_state() -> impl Strategy<Value = ControlState> {
                         last_ticks,
                         last_peak: k % last_ticks,
                         last_ml: Bounded::new(ml).unwrap(),
+                        clipped: k % 2 == 1,
                     },
                 ),
             },
