@@ -88,8 +88,8 @@ pub struct PatientArgs {
 /// `patient --motion`.
 #[derive(Debug, Clone, Copy, PartialEq, Eq, clap::ValueEnum)]
 pub enum MotionChoice {
-    /// The fit, else the breath-hold population, else the built-in: the first that draws a tidal
-    /// breath without a fold.
+    /// The fit, else the breath-hold population, each where it draws a tidal breath without a
+    /// fold; else the built-in (whose folds are not checked).
     Auto,
     /// The fit, always.
     Fitted,
@@ -131,6 +131,11 @@ pub struct PatientLung {
     /// The motion baked: "fitted to the breath-hold pair", "breath-hold population" or "built-in
     /// population", with why where the first choice folded.
     pub motion: &'static str,
+    /// This lung's share of the default scene's tidal breath (by exhale volume), ml.
+    pub tidal_share_ml: f64,
+    /// Where the breath-hold population was tried: how far above the exhale volume its kernel
+    /// draws no fold, ml (to 1/64 of the share; the share itself when it does not fold within it).
+    pub breath_hold_fold_free_ml: Option<f64>,
     /// With the fitted motion: the baked kernel driven to the inhale volume against the inhale
     /// surface (MSSD, mm), beside no motion and uniform scaling (`fit-motion` gives held-out
     /// figures too).
@@ -220,7 +225,7 @@ fn bake_lung(
     kernel_path: &Path,
     fit: Option<&lung_bake::patient_motion::PairFit>,
     unfitted: (Choice, f64),
-) -> anyhow::Result<(f64, Option<lung_bake::unfitted::Baked>)> {
+) -> anyhow::Result<(f64, Option<(lung_bake::unfitted::Baked, Option<f64>)>)> {
     eprintln!(
         "lungdyn: baking the {} lung ({} vertices) into {}",
         side.name(),
@@ -250,7 +255,7 @@ fn bake_lung(
         };
         let u = lung_bake::unfitted::bake(side, &m.mesh, unfitted.1, unfitted.0, &rows, &say);
         let u = u.with_context(what)?;
-        (u.kernel, Some(u.motion))
+        (u.kernel, Some((u.motion, u.breath_hold_fold_free_ml)))
     };
     bar.finish_and_clear();
     kernel.lobes = Some(m.lobes.clone());
@@ -284,8 +289,10 @@ fn lung_summary(
         motion: match fit {
             Some(f) if f.options.force_centres < lung_bake::patient_motion::PairOptions::default().force_centres => "fitted, the polynomial force alone (with local terms it folded within a tidal breath)",
             Some(_) => "fitted to the breath-hold pair",
-            None => "population",
+            None => "built-in population",
         },
+        tidal_share_ml: 0.0,
+        breath_hold_fold_free_ml: None,
         motion_mssd_mm: fit.map(|f| MotionFigures {
             fitted: f.in_sample.mssd_mm,
             no_motion: f.no_motion.mssd_mm,
@@ -297,7 +304,7 @@ fn lung_summary(
     }
 }
 
-/// With an inhale pair (and without --motion population): each lung's motion fitted to it
+/// With an inhale pair (and without --motion population or breath-hold): each lung's motion fitted to it
 /// (`lung_bake::patient_motion`, no held-out folds here: `fit-motion` measures those), written to
 /// OUT/motion.toml.
 fn fit_motion(
@@ -442,6 +449,9 @@ pub fn run(args: &PatientArgs) -> anyhow::Result<PatientSummary> {
             scene_path.display()
         );
     }
+    if args.motion == MotionChoice::Fitted && args.inhale.is_empty() {
+        anyhow::bail!("--motion fitted needs --inhale: a breath-hold pair to fit the motion to");
+    }
     if !(1_000..=400_000).contains(&args.vertices) {
         anyhow::bail!(
             "--vertices {}: give 1,000 to 400,000 per lung",
@@ -498,7 +508,8 @@ pub fn run(args: &PatientArgs) -> anyhow::Result<PatientSummary> {
         )?;
     }
     // A lung's share of the default breath's tidal volume: where the fitted kernel folds before
-    // it, "auto" bakes the built-in motion for that lung (a fold on screen at every breath).
+    // it (a fold on screen at every breath), "auto" bakes the breath-hold population, or the
+    // built-in motion where that folds too.
     let tv_ml = lung_model::pv::preset(lung_model::pv::DEFAULT_PRESET)?
         .boundary
         .tv_ml;
@@ -534,8 +545,10 @@ pub fn run(args: &PatientArgs) -> anyhow::Result<PatientSummary> {
             inhale_volumes.get(k).copied(),
             fit,
         );
-        if let Some(b) = baked {
+        lung.tidal_share_ml = tidal_share_ml;
+        if let Some((b, free)) = baked {
             lung.motion = b.describe(fit.is_some());
+            lung.breath_hold_fold_free_ml = free;
         }
         if let Some(f) = lung.motion_mssd_mm.as_mut() {
             f.tidal_share_ml = tidal_share_ml;

@@ -557,17 +557,51 @@ fn patient_makes_a_scene_that_scene_check_accepts_with_frc_from_the_masks() {
         assert_eq!(l["lung"], name);
         assert_eq!(l["lobes_from"], "labels", "{l}");
         total += l["volume_ml"].as_f64().unwrap();
-        // Without a pair: the breath-hold population, unless it folds within the tidal share; the
-        // kernel carries the motion the report names.
+        // Without a pair: the breath-hold population, unless it folds within the lung's tidal
+        // share; the kernel carries the motion the report names, and where it is the population,
+        // the kernel driven to that share draws no fold (`kernel export`, then `mesh check`).
         let k = lung_model::kernel::KernelFile::open(&out.join(format!("{name}.kernel"))).unwrap();
         let breath_hold = k.meta().settings.direction_field.is_some();
+        let share = l["tidal_share_ml"].as_f64().unwrap();
+        let free = l["breath_hold_fold_free_ml"]
+            .as_f64()
+            .expect("the population was tried");
+        assert!(share > 50.0 && share < 450.0, "{l}");
         let want = if breath_hold {
+            assert_eq!(free, share, "{l}");
+            let drawn = tmp.path(&format!("{name}_tidal.ply"));
+            let kernel = out.join(format!("{name}.kernel"));
+            let e = lungdyn(&[
+                "kernel",
+                "export",
+                s(&kernel),
+                "--delta-ml",
+                &format!("{share}"),
+                "--out",
+                s(&drawn),
+            ]);
+            assert_eq!(e.code, Some(0), "{}", e.stderr);
+            let c = lungdyn(&["mesh", "check", "--mesh", s(&drawn), "--frame", "body"]);
+            assert_eq!(
+                c.code,
+                Some(0),
+                "the population drawn at its share: {}",
+                c.stderr
+            );
             "breath-hold population"
         } else {
+            assert!(free < share, "{l}");
             "built-in population (the breath-hold population folds within a tidal breath)"
         };
         assert_eq!(l["motion"], want, "{l}");
     }
+    eprintln!(
+        "without a pair: {:?}",
+        lungs
+            .iter()
+            .map(|l| (&l["motion"], &l["breath_hold_fold_free_ml"]))
+            .collect::<Vec<_>>()
+    );
     let frc = j["frc_ml"].as_f64().unwrap();
     assert!(
         (frc - total).abs() < 1e-6,
@@ -697,6 +731,28 @@ fn patient_makes_a_scene_that_scene_check_accepts_with_frc_from_the_masks() {
         again.code
     );
     assert!(again.stderr.contains("--force"), "{}", again.stderr);
+    // --motion fitted without a pair to fit is refused, nothing written.
+    let out4 = tmp.path("patient_fitted_alone");
+    let r = lungdyn(&[
+        "patient",
+        "--exhale",
+        s(&nii),
+        "--motion",
+        "fitted",
+        "--out",
+        s(&out4),
+    ]);
+    assert!(
+        matches!(r.code, Some(c) if c != 0 && c != 101),
+        "{:?}",
+        r.code
+    );
+    assert!(
+        r.stderr.contains("--motion fitted needs --inhale"),
+        "{}",
+        r.stderr
+    );
+    assert!(!out4.join("scene.toml").exists());
 }
 
 /// `fit-motion --exhale/--inhale` on a known breath (surfaces): the error it reports is the error of

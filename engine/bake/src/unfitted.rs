@@ -40,6 +40,8 @@ pub enum Choice {
 pub enum Baked {
     /// The breath-hold population.
     BreathHold,
+    /// The breath-hold population, asked for, though it folds within the tidal share.
+    BreathHoldFolds,
     /// The built-in population, asked for.
     Builtin,
     /// The built-in population, because the breath-hold population folds within the tidal share.
@@ -53,6 +55,9 @@ impl Baked {
             (Baked::BreathHold, false) => "breath-hold population",
             (Baked::BreathHold, true) => {
                 "breath-hold population (the fitted motion folds within a tidal breath)"
+            }
+            (Baked::BreathHoldFolds, _) => {
+                "breath-hold population, as asked, though it folds within a tidal breath"
             }
             (Baked::Builtin, false) => "built-in population",
             (Baked::Builtin, true) => {
@@ -126,7 +131,11 @@ pub fn bake(
     }
     Ok(Unfitted {
         kernel,
-        motion: Baked::BreathHold,
+        motion: if folds {
+            Baked::BreathHoldFolds
+        } else {
+            Baked::BreathHold
+        },
         breath_hold_fold_free_ml: Some(free),
     })
 }
@@ -157,10 +166,11 @@ mod tests {
         assert_eq!(built.motion, Baked::Builtin);
         assert!(built.kernel.meta.settings.force_field.is_none());
         assert_eq!(built.breath_hold_fold_free_ml, None);
-        // Far past any lung's breath (3 l into a 1.5 l lung's share): the population folds there.
+        // Far past any breath (3 l into one lung): the population folds there, and says so when
+        // asked for anyway.
         let deep = 3_000.0;
         let forced = bake(Side::Right, &mesh, deep, Choice::BreathHold, &|_| {}, &say).unwrap();
-        assert_eq!(forced.motion, Baked::BreathHold);
+        assert_eq!(forced.motion, Baked::BreathHoldFolds);
         assert!(breath_hold_field(&forced.kernel));
         let free = forced.breath_hold_fold_free_ml.unwrap();
         assert!(

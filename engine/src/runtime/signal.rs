@@ -373,14 +373,19 @@ impl SignalDrive {
     /// start of the one in progress (`None` while the model breathes, or before a whole breath was
     /// followed), with whether the signal looks clipped now. Allocates: call after the tick.
     pub fn live(&self) -> Option<LiveBreath> {
-        let clipped = self.followed.is_some_and(|f| f.clipped.is_some());
+        let clipped = self.clipped();
         self.log.live().map(|b| LiveBreath { clipped, ..b })
     }
 
-    /// Changes to [`Self::live`] so far (a new breath, or following stopped): a source publishes
-    /// a control state when it moves.
+    /// The signal looks clipped now (the follower's verdict).
+    fn clipped(&self) -> bool {
+        self.followed.is_some_and(|f| f.clipped.is_some())
+    }
+
+    /// Changes to [`Self::live`] so far (a new breath, following stopped, or the clipping verdict
+    /// changed): a source publishes a control state when it moves.
     pub fn live_generation(&self) -> u64 {
-        self.log.generation
+        2 * self.log.generation + u64::from(self.clipped())
     }
 
     /// The follower (its detector, counts and settings).

@@ -2578,8 +2578,9 @@ fn a_site_takes_back_a_breath_the_patient_did_not_start() {
 
 /// A site that joins late, mid-breath (a colleague opening `lungdyn remote join` well into a
 /// session), first hears the breath in progress, whose turns are long past: it follows the patient
-/// from there, and that breath's lag is no measure of how late turns arrive — an apnoea two breaths
-/// after it joined is taken back as promptly as at a site that was there from the start.
+/// from the tick it joins, and that breath's lag is no measure of how late turns arrive — an apnoea
+/// from the second breath start after it joined (6.9 s later) is taken back as promptly as at a
+/// site that was there from the start.
 #[test]
 fn a_site_joining_late_follows_at_once_and_keeps_its_patience() {
     use ipc_types::engine_state::SIGNAL_FOLLOWING;
@@ -2651,43 +2652,62 @@ fn a_site_joining_late_follows_at_once_and_keeps_its_patience() {
 }
 
 /// A source whose signal looks clipped tells its sites (control-state v5): their frames say so
-/// as the source's do, from the next state it sends, and sites of the same breaths uncut never do.
+/// as the source's do, from the next state it sends, and stop saying so when the source does (the
+/// sensor's range widened: the cut ends at 130 s); sites of the same breaths uncut never do.
 #[test]
 fn a_site_says_so_when_the_sources_signal_looks_clipped() {
     use ipc_types::engine_state::{SIGNAL_CLIPPED, SIGNAL_FOLLOWING};
     const DELAY: u64 = 6; // 100 ms
     let run = |ceiling: f64| {
         let site = EngineCore::with_geometry(&Scene::default(), baked_geometry()).unwrap();
-        let b = belt(ceiling);
+        let (cut, free) = (belt(ceiling), belt(f64::INFINITY));
+        let b = move |tick: u64, t_s: f64| {
+            if t_s < 130.0 {
+                cut(tick, t_s)
+            } else {
+                free(tick, t_s)
+            }
+        };
         super::sites::follow(
             signal_core(50.0),
             site,
             &mut |tick| signal_frame(tick, None, &b),
-            120 * 60,
+            220 * 60,
             DELAY,
             60.0,
         )
         .unwrap()
     };
     let cut = run(12.0);
-    let first = |bits: &dyn Fn(&super::sites::SiteTick) -> u32| {
-        cut.ticks.iter().position(|r| bits(r) & SIGNAL_CLIPPED != 0)
+    let flagged = |bits: &dyn Fn(&super::sites::SiteTick) -> u32| {
+        let on = |r: &&super::sites::SiteTick| bits(r) & SIGNAL_CLIPPED != 0;
+        let t = &cut.ticks;
+        (
+            t.iter().position(|r| on(&r)),
+            t.iter().rposition(|r| on(&r)),
+        )
     };
-    let source = first(&|r| r.source_state).expect("the source sees the clipping");
-    let site = first(&|r| r.site_state).expect("the site is told");
+    let (Some(source), Some(source_end)) = flagged(&|r| r.source_state) else {
+        panic!("the source sees the clipping")
+    };
+    let (Some(site), Some(site_end)) = flagged(&|r| r.site_state) else {
+        panic!("the site is told")
+    };
     eprintln!(
-        "the source says clipped from {:.1} s, the site from {:.1} s",
+        "the source says clipped from {:.1} to {:.1} s, the site from {:.1} to {:.1} s",
         source as f64 / 60.0,
-        site as f64 / 60.0
+        source_end as f64 / 60.0,
+        site as f64 / 60.0,
+        site_end as f64 / 60.0
     );
     // With the next state: at the patient's next turn (half a breath at most), then the delay.
-    assert!(
-        site >= source + DELAY as usize && site - source <= 3 * 60,
-        "{source} {site}"
-    );
-    assert!(cut.ticks[site..]
+    let told = |from: usize, to: usize| to >= from + DELAY as usize && to - from <= 3 * 60;
+    assert!(told(source, site), "from {source} {site}");
+    assert!(told(source_end, site_end), "to {source_end} {site_end}");
+    assert!(cut.ticks[site..=site_end]
         .iter()
         .all(|r| r.site_state & SIGNAL_CLIPPED != 0 && r.site_state & SIGNAL_FOLLOWING != 0));
+    assert!(site_end < cut.ticks.len() - 60 * 10, "cleared at the end");
     let uncut = run(f64::INFINITY);
     assert!(uncut
         .ticks
