@@ -196,15 +196,8 @@ pub fn bake(args: &BakeArgs) -> anyhow::Result<BakeSummary> {
             );
         }
     }
-    let n = imported.mesh.positions.len() as u64;
-    let bar = indicatif::ProgressBar::new(n);
-    bar.set_style(
-        indicatif::ProgressStyle::with_template(
-            "baking {msg} [{bar:40}] {pos}/{len} rows, {per_sec}, eta {eta}",
-        )
-        .expect("valid template")
-        .progress_chars("=> "),
-    );
+    let template = "baking {msg} [{bar:40}] {pos}/{len} rows, {per_sec}, eta {eta}";
+    let bar = crate::prepare::rows_bar(imported.mesh.positions.len(), template);
     bar.set_message(format!("{} lung", side.name()));
     let mut k = kernel::bake(side, imported.mesh, &settings, &|rows| bar.inc(rows as u64))
         .with_context(|| format!("baking {}", args.mesh.display()))?;

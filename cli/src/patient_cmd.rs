@@ -233,12 +233,7 @@ fn bake_lung(
         kernel_path.display()
     );
     let t = std::time::Instant::now();
-    let bar = indicatif::ProgressBar::new(m.mesh.positions.len() as u64);
-    bar.set_style(
-        indicatif::ProgressStyle::with_template("  [{bar:40}] {pos}/{len} rows, eta {eta}")
-            .expect("valid template")
-            .progress_chars("=> "),
-    );
+    let bar = crate::prepare::rows_bar(m.mesh.positions.len(), crate::prepare::ROWS_BAR);
     let rows = |rows: usize| bar.inc(rows as u64);
     let what = || format!("baking the {} lung", side.name());
     let (mut kernel, baked) = if let Some(f) = fit {

@@ -144,12 +144,7 @@ pub fn ensure_kernels(
             );
             let mesh =
                 lung_model::mesh::generate::lung_of(scene.lungs.shape, side, scene.lungs.vertices)?;
-            let bar = indicatif::ProgressBar::new(mesh.positions.len() as u64);
-            bar.set_style(
-                indicatif::ProgressStyle::with_template("  [{bar:40}] {pos}/{len} rows, eta {eta}")
-                    .expect("valid template")
-                    .progress_chars("=> "),
-            );
+            let bar = rows_bar(mesh.positions.len(), ROWS_BAR);
             let kernel =
                 lung_bake::kernel::bake(side, mesh, &settings, &|rows| bar.inc(rows as u64))?;
             bar.finish_and_clear();
@@ -403,4 +398,18 @@ pub fn run(args: &PrepareArgs) -> anyhow::Result<PrepareReport> {
         kernels: p.kernels,
         mode: p.scene.lungs.mode.to_string(),
     })
+}
+
+/// How a bake's progress is drawn: its transfer rows done of all, and the time left.
+pub const ROWS_BAR: &str = "  [{bar:40}] {pos}/{len} rows, eta {eta}";
+
+/// A progress bar over a bake's `rows` transfer rows, drawn with `template` (indicatif's).
+pub fn rows_bar(rows: usize, template: &str) -> indicatif::ProgressBar {
+    let bar = indicatif::ProgressBar::new(rows as u64);
+    bar.set_style(
+        indicatif::ProgressStyle::with_template(template)
+            .expect("valid template")
+            .progress_chars("=> "),
+    );
+    bar
 }
