@@ -91,7 +91,12 @@ fn lungdyn(args: &[&str]) -> Run {
 fn refused(case: &str, args: &[&str], out: &Path, words: &[&str]) -> String {
     let mut full = vec!["mesh", "from-mask"];
     full.extend_from_slice(args);
-    let r = lungdyn(&full);
+    refused_command(case, &full, out, words)
+}
+
+/// [`refused`] for any `lungdyn` command line `full`.
+fn refused_command(case: &str, full: &[&str], out: &Path, words: &[&str]) -> String {
+    let r = lungdyn(full);
     assert!(
         matches!(r.code, Some(c) if c != 0 && c != 101),
         "{case}: exit {:?} (want non-zero, not 101, not a signal)\nargs {full:?}\nstdout: {}\nstderr: {}",
@@ -733,7 +738,7 @@ fn patient_makes_a_scene_that_scene_check_accepts_with_frc_from_the_masks() {
     assert!(again.stderr.contains("--force"), "{}", again.stderr);
     // --motion fitted without a pair to fit is refused, nothing written.
     let out4 = tmp.path("patient_fitted_alone");
-    let r = lungdyn(&[
+    let alone = [
         "patient",
         "--exhale",
         s(&nii),
@@ -741,18 +746,14 @@ fn patient_makes_a_scene_that_scene_check_accepts_with_frc_from_the_masks() {
         "fitted",
         "--out",
         s(&out4),
-    ]);
-    assert!(
-        matches!(r.code, Some(c) if c != 0 && c != 101),
-        "{:?}",
-        r.code
+    ];
+    let words = ["--motion fitted needs --inhale"];
+    refused_command(
+        "--motion fitted alone",
+        &alone,
+        &out4.join("scene.toml"),
+        &words,
     );
-    assert!(
-        r.stderr.contains("--motion fitted needs --inhale"),
-        "{}",
-        r.stderr
-    );
-    assert!(!out4.join("scene.toml").exists());
 }
 
 /// `fit-motion --exhale/--inhale` on a known breath (surfaces): the error it reports is the error of
