@@ -33,7 +33,7 @@ pub struct CheckArgs {
     #[arg(long, default_value_t = 500.0, value_name = "ML")]
     pub tidal_ml: f64,
     /// An amplitude's spirometry calibration, ml per mm (per au): the trace is followed from its
-    /// first end-expiration at this gain, and compared with itself at the same gain (the scene's
+    /// first samples at this gain, and compared with itself at the same gain (the scene's
     /// [breathing] ml_per_unit; --tidal-ml is then not used).
     #[arg(long, value_name = "ML")]
     pub ml_per_unit: Option<f64>,

@@ -102,7 +102,8 @@ pub struct BreathingScene {
     pub tidal_ml: Option<f64>,
     /// An amplitude signal's calibration against a spirometer: ml breathed per mm of the chest
     /// marker's excursion (per unit of an `au` signal). With it the amplitude drives the lungs from
-    /// its first end-expiration at this gain, instead of after two regular breaths at the gain that
+    /// its first samples at this gain (its baseline the lowest value so far until its first
+    /// end-expiration), instead of after two regular breaths at the gain that
     /// makes its typical breath `tidal_ml`; the patient's own tidal volume is then drawn, whatever
     /// the scene's. A signal in ml is used as it is.
     #[serde(skip_serializing_if = "Option::is_none")]

@@ -19,8 +19,12 @@ pub const BELOW_BASELINE_TIDALS: f64 = 0.5;
 /// Highest volume drawn, in typical tidal volumes above the baseline.
 pub const ABOVE_BASELINE_TIDALS: f64 = 3.0;
 /// Regular breaths before an amplitude's calibration ([`Calibration::Auto`]) is trusted. A signal
-/// whose gain is known (a volume, a spirometry calibration) needs only its end-expiration baseline:
-/// it is followed from the first end-expiration found.
+/// whose gain is known (a volume, a spirometry calibration) needs only its end-expiration baseline,
+/// and is followed from its first samples: until its first end-expiration is found, the baseline
+/// is the lowest value seen so far ([`super::detect::Detector::baseline_at`]), so a breath in
+/// progress when the signal begins is drawn from where it was picked up (a recording that starts
+/// at an end-expiration, as a ventilator's breath-aligned export does, exactly), and the trough
+/// that confirms the first end-expiration is that same lowest value: no step when it is found.
 pub const CALIBRATION_BREATHS: usize = 2;
 
 /// How the signal's unit becomes ml.
@@ -87,8 +91,10 @@ impl FollowerConfig {
 #[derive(Debug, Clone, Copy, PartialEq, Eq, serde::Serialize)]
 #[serde(rename_all = "snake_case")]
 pub enum SignalState {
-    /// No end-expiration found yet, or for an amplitude's calibration fewer than
-    /// [`CALIBRATION_BREATHS`] regular breaths (since the start).
+    /// An amplitude's calibration: no end-expiration found yet, or fewer than
+    /// [`CALIBRATION_BREATHS`] regular breaths (since the start). A signal whose gain is known:
+    /// before its first end-expiration, while the range it has shown is no plausible breath
+    /// ([`crate::plausible::TIDAL_VOLUME_ML`], calibrated).
     Calibrating,
     /// Following the patient.
     Following,
@@ -115,7 +121,9 @@ impl SignalState {
 /// The volume for one frame.
 #[derive(Debug, Clone, Copy, PartialEq)]
 pub struct Followed {
-    /// Volume above the end-expiration baseline at the display time, ml (predicted).
+    /// Volume above the end-expiration baseline at the display time, ml (predicted; before the
+    /// first end-expiration by a line through the last four grid points: the predictor has seen
+    /// no breath yet).
     pub volume_ml: f64,
     /// The same from the newest sample, not predicted, ml.
     pub unpredicted_ml: f64,
@@ -129,7 +137,7 @@ pub struct Followed {
     pub clipped: Option<bool>,
     /// The volume was kept within the drawn range.
     pub clamped: bool,
-    /// The predictor's guard replaced its value with the line's.
+    /// The predictor's guard replaced its value with the line's (its value, drawn or not).
     pub fell_back: bool,
     /// ml per signal unit in use.
     pub gain_ml_per_unit: f64,
@@ -252,14 +260,25 @@ impl Follower {
         }
     }
 
-    /// Whether the signal can drive the lungs: its baseline found, and its gain (an amplitude's,
-    /// from [`CALIBRATION_BREATHS`] regular breaths).
+    /// Whether the signal can drive the lungs: an amplitude's once its baseline is found and its
+    /// gain is known from [`CALIBRATION_BREATHS`] regular breaths; a signal whose gain is known
+    /// (see [`CALIBRATION_BREATHS`]) from its first end-expiration, and before it while the range
+    /// it has shown, calibrated, lies within a tidal volume's plausible range (a flat start, or
+    /// a first second that swings by litres, waits for the first breath).
     pub fn calibrated(&self) -> bool {
-        self.detector.end_expirations() > 0
-            && match self.config.calibration {
-                Calibration::Auto { .. } => self.detector.regular_breaths() >= CALIBRATION_BREATHS,
-                Calibration::Volume | Calibration::Fixed { .. } => true,
+        let found = self.detector.end_expirations() > 0;
+        match self.config.calibration {
+            Calibration::Auto { .. } => {
+                found && self.detector.regular_breaths() >= CALIBRATION_BREATHS
             }
+            Calibration::Volume | Calibration::Fixed { .. } => {
+                found
+                    || match (self.gain(), self.detector.typical_amplitude()) {
+                        (Some(g), Some(a)) => crate::plausible::TIDAL_VOLUME_ML.contains(g * a),
+                        _ => false,
+                    }
+            }
+        }
     }
 
     /// ml per signal unit now, when known.
@@ -302,7 +321,17 @@ impl Follower {
             let k = v.clamp(lo, hi);
             (k, k != v)
         };
-        let (volume_ml, clamped) = keep(gain * (prediction.value - baseline));
+        // Before the first end-expiration the predictor has seen no turn of a breath: its first
+        // forecast across one (an autoregression fitted to an inspiration alone) can land a
+        // tidal volume off — on an ICU recording, −34 ml for 493 ml, for one frame. Until a
+        // breath has been seen, the line through the last four grid points predicts (the
+        // predictor's own fallback; no prediction stays none).
+        let predicted = match self.config.predictor {
+            _ if self.detector.end_expirations() > 0 => prediction.value,
+            PredictorKind::Hold => v_last,
+            _ => super::predict::line(&self.grid, 4, display_ns).unwrap_or(v_last),
+        };
+        let (volume_ml, clamped) = keep(gain * (predicted - baseline));
         let (unpredicted_ml, _) = keep(gain * (v_last - baseline));
         Some(Followed {
             volume_ml,

@@ -241,7 +241,7 @@ fn steps_to(grid: &Grid, t_ns: u64) -> f64 {
 }
 
 /// A least-squares line through the newest `window` grid points, at `t_ns`.
-fn line(grid: &Grid, window: usize, t_ns: u64) -> Option<f64> {
+pub(super) fn line(grid: &Grid, window: usize, t_ns: u64) -> Option<f64> {
     let m = window.min(grid.len());
     if m == 0 {
         return None;

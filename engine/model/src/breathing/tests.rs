@@ -336,32 +336,143 @@ fn a_lost_signal_is_said_within_100_ms_and_the_follower_recovers() {
     assert_eq!(f.volume_at(t, t).unwrap().state, SignalState::Following);
 }
 
-/// A volume (its gain known) drives the lungs from its first end-expiration; an amplitude waits for
-/// its gain, two regular breaths.
+/// A volume (its gain known) drives the lungs from its first samples — before its first
+/// end-expiration the baseline is the lowest value seen so far —, unless the range it shows is no
+/// plausible breath; an amplitude waits for its gain, two regular breaths.
 #[test]
-fn a_volume_is_followed_from_its_first_end_expiration_an_amplitude_after_two_breaths() {
-    let state_at = |calibration: Calibration, seconds: f64| {
+fn a_volume_is_followed_from_its_first_samples_an_amplitude_after_two_breaths() {
+    let run = |calibration: Calibration, seconds: f64, signal: &dyn Fn(f64) -> f64| {
         let mut f = Follower::new(FollowerConfig::at_rate(50.0, calibration));
-        feed(&mut f, seconds, 50.0, |t| breathing(t, 500.0, 0.0));
-        let t = TRACE_START_NS + (seconds * 1e9) as u64;
-        (
-            f.volume_at(t, t).unwrap().state,
-            f.detector().end_expirations(),
-        )
+        feed(&mut f, seconds, 50.0, signal);
+        f
     };
-    // The first trough at 4 s is confirmed once the signal has risen past the hysteresis.
-    assert_eq!(
-        state_at(Calibration::Volume, 3.9),
-        (SignalState::Calibrating, 0)
+    let at = |f: &Follower, seconds: f64| {
+        let t = TRACE_START_NS + (seconds * 1e9) as u64;
+        f.volume_at(t, t).unwrap()
+    };
+    // Starting at its end-expiration (0 s): followed from the first samples, the breath drawn as
+    // the signal above where it began; the first trough (4 s) is confirmed later.
+    for calibration in [Calibration::Volume, Calibration::Fixed { ml_per_unit: 2.0 }] {
+        let gain = if calibration == Calibration::Volume {
+            1.0
+        } else {
+            2.0
+        };
+        for seconds in [0.3, 1.0, 1.5, 2.5, 3.9] {
+            let f = run(calibration, seconds, &|t| breathing(t, 250.0, 0.0));
+            let g = at(&f, seconds);
+            assert_eq!(
+                g.state,
+                SignalState::Following,
+                "{calibration:?} at {seconds} s"
+            );
+            assert_eq!(f.detector().end_expirations(), 0);
+            let last = seconds - 0.02;
+            let want = gain * breathing(last, 250.0, 0.0);
+            assert!(
+                (g.unpredicted_ml - want).abs() < 1e-6 && !g.clamped,
+                "{calibration:?} at {seconds} s: {} ml against {want} ml",
+                g.unpredicted_ml
+            );
+        }
+        let f = run(calibration, 5.0, &|t| breathing(t, 250.0, 0.0));
+        assert_eq!(at(&f, 5.0).state, SignalState::Following);
+        assert_eq!(f.detector().end_expirations(), 1);
+    }
+    // Starting half-way up an inspiration: drawn from there (the breath's first half is not
+    // seen), 0 ml through the expiration below where it began, and no step when the first
+    // end-expiration is confirmed.
+    let late = |t: f64| breathing(t + 0.75, 500.0, 0.0);
+    let mut f = Follower::new(FollowerConfig::at_rate(50.0, Calibration::Volume));
+    let (mut drawn, mut confirmed_at) = (Vec::new(), None);
+    for i in 0..400u64 {
+        let t_s = i as f64 * 0.02;
+        let t = TRACE_START_NS + (t_s * 1e9) as u64;
+        f.push(sample(t, late(t_s)));
+        let g = f.volume_at(t, t).unwrap();
+        assert!(i == 0 || g.state == SignalState::Following, "at {t_s} s");
+        // Before a breath has been seen, a display 50 ms ahead is predicted by the line through
+        // the last four samples (2.5 sample periods on), above the lowest value so far; after,
+        // by the scene's predictor.
+        let ahead = f.volume_at(t, t + 50 * MS).unwrap();
+        if f.detector().end_expirations() == 0 && i >= 4 && !ahead.clamped {
+            let y: Vec<f64> = (0..4).map(|k| late(t_s - 0.02 * k as f64)).collect();
+            // Least squares through x = 0, −1, −2, −3: mean −1.5, slope from the centred sums.
+            let mean = y.iter().sum::<f64>() / 4.0;
+            let slope = (0..4)
+                .map(|k| (-(k as f64) + 1.5) * (y[k] - mean))
+                .sum::<f64>()
+                / 5.0;
+            let lowest = (0..=i)
+                .map(|j| late(j as f64 * 0.02))
+                .fold(f64::MAX, f64::min);
+            let want = mean + slope * (2.5 + 1.5) - lowest;
+            assert!(
+                (ahead.volume_ml - want).abs() < 1e-6,
+                "at {t_s} s: {} ml against the line's {want} ml",
+                ahead.volume_ml
+            );
+        } else if (5.0..5.5).contains(&t_s) {
+            // Expiring: 50 ms ahead lies below the newest sample.
+            assert!(
+                ahead.volume_ml < ahead.unpredicted_ml - 1.0,
+                "at {t_s} s: {ahead:?}"
+            );
+        }
+        if confirmed_at.is_none() && f.detector().end_expirations() == 1 {
+            confirmed_at = Some(drawn.len());
+        }
+        drawn.push((t_s, g.unpredicted_ml));
+    }
+    let peak = drawn
+        .iter()
+        .filter(|d| d.0 < 2.0)
+        .map(|d| d.1)
+        .fold(f64::MIN, f64::max);
+    assert!(
+        (peak - 250.0).abs() < 1.0,
+        "the first peak drawn: {peak} ml"
     );
-    assert_eq!(
-        state_at(Calibration::Volume, 5.0),
-        (SignalState::Following, 1)
+    assert!(drawn
+        .iter()
+        .filter(|d| (2.3..3.2).contains(&d.0))
+        .all(|d| d.1.abs() < 1e-9));
+    let k = confirmed_at.expect("the first trough confirmed");
+    assert!(
+        (drawn[k].1 - drawn[k - 1].1).abs() < 30.0,
+        "{:?}",
+        &drawn[k - 2..k + 2]
     );
+    let second_peak = drawn
+        .iter()
+        .filter(|d| (3.5..6.0).contains(&d.0))
+        .map(|d| d.1);
+    assert!((second_peak.fold(f64::MIN, f64::max) - 500.0).abs() < 1.0);
+    // A flat start, and a first breath of 20 litres, wait for the first end-expiration.
+    assert_eq!(
+        at(&run(Calibration::Volume, 0.5, &|_| 100.0), 0.5).state,
+        SignalState::Calibrating
+    );
+    let litres = run(Calibration::Volume, 1.0, &|t| breathing(t, 20_000.0, 0.0));
+    assert_eq!(at(&litres, 1.0).state, SignalState::Calibrating);
     let auto = Calibration::Auto { tidal_ml: 500.0 };
-    assert_eq!(state_at(auto, 5.0).0, SignalState::Calibrating);
-    assert_eq!(state_at(auto, 9.0).0, SignalState::Calibrating);
-    assert_eq!(state_at(auto, 13.0).0, SignalState::Following);
+    let signal = |t: f64| breathing(t, 500.0, 0.0);
+    assert_eq!(
+        at(&run(auto, 1.0, &signal), 1.0).state,
+        SignalState::Calibrating
+    );
+    assert_eq!(
+        at(&run(auto, 5.0, &signal), 5.0).state,
+        SignalState::Calibrating
+    );
+    assert_eq!(
+        at(&run(auto, 9.0, &signal), 9.0).state,
+        SignalState::Calibrating
+    );
+    assert_eq!(
+        at(&run(auto, 13.0, &signal), 13.0).state,
+        SignalState::Following
+    );
 }
 
 /// After a 5 s loss the follower is in step again within one breath: the baseline's drift is not
