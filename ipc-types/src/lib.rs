@@ -358,7 +358,8 @@ pub mod engine_state {
     /// The scene breathes with the patient's signal (`[breathing] source = "signal"`), and these
     /// volumes are the signal's (following, or paused on a breath-hold or apnoea).
     pub const SIGNAL_FOLLOWING: u32 = 1 << 8;
-    /// The signal is being calibrated (its first regular breaths): the model breathes meanwhile.
+    /// The signal is being calibrated (an amplitude's first regular breaths; a signal whose gain
+    /// is known, until its first samples span a plausible breath): the model breathes meanwhile.
     pub const SIGNAL_CALIBRATING: u32 = 1 << 9;
     /// No valid signal sample within the loss limit (or none yet): the model breathes, carried on
     /// from the signal's last volume and phase.

@@ -310,6 +310,163 @@ fn demo_and_joined_site(via_router: bool) {
     }
 }
 
+/// A chest belt whose deeper breaths are cut by its sensor's range, as `time_s,amplitude_mm`: 2.5 s
+/// breaths 6–14 mm deep (unequal, as the golden ratio spreads them), cut at 10 mm — about half of
+/// them end at the ceiling while the others spread below it.
+fn clipped_belt(path: &std::path::Path, seconds: f64) {
+    let mut s = String::from("time_s,amplitude_mm\n");
+    for k in 0..(seconds * 25.0) as u32 {
+        let t = k as f64 * 0.04;
+        let c = (t / 2.5).floor();
+        let depth = 10.0 * (0.6 + 0.8 * (c * 0.618_034).fract());
+        let v = depth * 0.5 * (1.0 - (std::f64::consts::TAU * t / 2.5).cos());
+        s += &format!("{t:.3},{:.4}\n", v.min(10.0));
+    }
+    std::fs::write(path, s).unwrap();
+}
+
+/// Control-state v5 over a real Zenoh session (issue 35): `lungdyn demo` follows a clipped belt
+/// replayed live as a remote source, a site joins with `lungdyn remote join --observer`, and the
+/// site's own engine frames say the source's signal looks clipped (`SIGNAL_CLIPPED`) while they
+/// follow the patient — the engine test `a_site_says_so_when_the_sources_signal_looks_clipped`
+/// goes through the codec only; this goes through both processes and the network.
+#[test]
+fn a_joined_site_hears_over_zenoh_that_the_sources_signal_looks_clipped() {
+    use ipc_types::engine_state as e;
+    let port = lungdyn_needs::free_local_port();
+    let room = format!("c{}", std::process::id());
+    let endpoint = format!("tcp/127.0.0.1:{port}");
+    let belt = tmp("clipped-belt.csv");
+    clipped_belt(&belt, 60.0);
+    let scene = tmp("clipped-source.toml");
+    std::fs::write(
+        &scene,
+        format!(
+            "[breathing]\nsource = \"signal\"\nsignal = \"trace:{}\"\n[remote]\nrole = \"source\"\n\
+             room = \"{room}\"\nlisten = [\"{endpoint}\"]\nmode = \"peer\"\nlease_ms = 2000\n",
+            belt.display()
+        ),
+    )
+    .unwrap();
+    let site_scene = lungdyn_tests::prepared_scene(
+        "remote-site-clipped",
+        &format!(
+            "[remote]\nrole = \"observer\"\nroom = \"{room}\"\nconnect = [\"{endpoint}\"]\n\
+             mode = \"peer\"\nlease_ms = 2000\n"
+        ),
+    );
+    let (source_instance, site_instance) = (unique_instance("csrc"), unique_instance("csite"));
+    let demo_log = tmp("clipped-demo.log");
+    let mut demo = Proc(
+        Command::new(bin("lungdyn"))
+            .args(["demo", "--seconds", "55", "--snapshots", "0", "--instance"])
+            .arg(&source_instance)
+            .arg("--scene")
+            .arg(&scene)
+            .arg("--out")
+            .arg(tmp("clipped-demo-out"))
+            .stdout(Stdio::null())
+            .stderr(std::fs::File::create(&demo_log).unwrap())
+            .spawn()
+            .unwrap(),
+        "lungdyn demo",
+    );
+    wait_for(
+        &demo_log,
+        "relaying",
+        Duration::from_secs(120),
+        "the demo's remote serve",
+    );
+    let services = Instance::new(&source_instance).unwrap();
+    let node = iox::node(&services, "test").unwrap();
+    let mut source_frames = services.engine_inlet(&node).unwrap();
+    let site_log = tmp("clipped-join.log");
+    let mut join = Proc(
+        Command::new(bin("lungdyn"))
+            .args(["remote", "join", "--observer", "--connect", &endpoint])
+            .args(["--room", &room, "--lease-ms", "2000", "--instance"])
+            .arg(&site_instance)
+            .args(["--mode", "peer", "--scene"])
+            .arg(&site_scene)
+            .stdout(Stdio::null())
+            .stderr(std::fs::File::create(&site_log).unwrap())
+            .spawn()
+            .unwrap(),
+        "lungdyn remote join",
+    );
+    let site_services = Instance::new(&site_instance).unwrap();
+    let site_node = iox::node(&site_services, "test").unwrap();
+    let mut site_frames = None;
+    // The first tick each side's frames said "clipped" while following, and frames seen.
+    let (mut source_clipped, mut site_clipped) = (None::<u64>, None::<u64>);
+    let (mut source_seen, mut site_following) = (0u64, 0u64);
+    let clipped_following = |f: &ipc_types::EngineFrame| {
+        f.state & e::SIGNAL_CLIPPED != 0 && f.state & e::SIGNAL_FOLLOWING != 0
+    };
+    let started = Instant::now();
+    // Until the site has said so for a second (or 100 s on a loaded machine).
+    while started.elapsed() < Duration::from_secs(100)
+        && !site_clipped.is_some_and(|t| site_following > 0 && source_seen > t + 60)
+    {
+        if let Some(s) = join.0.try_wait().unwrap() {
+            panic!("remote join ended ({s}):\n{}", read(&site_log));
+        }
+        if demo.0.try_wait().unwrap().is_some() {
+            // Its 55 s are over: what the site said by then is judged below.
+            break;
+        }
+        source_frames
+            .drain(&mut |f: &ipc_types::EngineFrame| {
+                source_seen = source_seen.max(f.tick);
+                if clipped_following(f) && source_clipped.is_none() {
+                    source_clipped = Some(f.tick);
+                }
+            })
+            .unwrap();
+        if site_frames.is_none() && read(&site_log).contains("waiting for the source") {
+            site_frames = Some(site_services.engine_inlet(&site_node).unwrap());
+        }
+        if let Some(s) = site_frames.as_mut() {
+            s.drain(&mut |f: &ipc_types::EngineFrame| {
+                if f.state & e::SIGNAL_FOLLOWING != 0 {
+                    site_following += 1;
+                }
+                if clipped_following(f) && site_clipped.is_none() {
+                    site_clipped = Some(f.tick);
+                }
+            })
+            .unwrap();
+        }
+        std::thread::sleep(Duration::from_millis(3));
+    }
+    let join_status = join.interrupt_and_wait();
+    let site_text = read(&site_log);
+    let _ = demo.interrupt_and_wait();
+    let demo_text = read(&demo_log);
+    assert!(join_status.success(), "remote join failed:\n{site_text}");
+    assert!(
+        !demo_text.contains("panicked") && !site_text.contains("panicked"),
+        "{demo_text}\n{site_text}"
+    );
+    eprintln!(
+        "the source's frames said clipped from tick {source_clipped:?}, the site's from {site_clipped:?} \
+         ({site_following} site frames following the patient)"
+    );
+    let source_from = source_clipped
+        .unwrap_or_else(|| panic!("the source never said its signal looks clipped:\n{demo_text}"));
+    let site_from = site_clipped.unwrap_or_else(|| {
+        panic!(
+            "the site followed the patient for {site_following} frames and never said the \
+             source's signal looks clipped (the source did from tick {source_from}):\n{site_text}"
+        )
+    });
+    // The site hears it from the source: never before the source's own frames said so.
+    assert!(
+        site_from >= source_from,
+        "site {site_from}, source {source_from}"
+    );
+}
+
 /// `remote serve` and `remote join` take one set of session flags (--room, --mode, --lease-ms);
 /// serve's help offers router mode, join's refuses it with what to do instead.
 #[test]

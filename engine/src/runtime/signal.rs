@@ -14,7 +14,8 @@
 //! so a recorded session (which records the measured latency with the signal) replays bit-exactly;
 //! nothing is allocated per tick (the follower's rings are fixed).
 //!
-//! While the signal calibrates (its first regular breaths) or is lost (no valid sample for 100 ms
+//! While the signal calibrates (an amplitude's first regular breaths; a volume's first samples) or
+//! is lost (no valid sample for 100 ms
 //! or three sample periods), the model breathes, and at the moment the signal is lost the model's
 //! cycle is placed where its volume and direction match the signal's last ones, so the lungs carry
 //! on without a jump (phase-continuous); when the signal is back and calibrated it takes over again,
@@ -590,6 +591,11 @@ impl SignalDrive {
                 Calibration::amplitude(self.ml_per_unit, self.tidal_ml)
             };
             self.follower.reconfigure(period, calibration);
+            if block.period_ns == 0 {
+                // Reconfigured again once the rate is known: drive from the first
+                // end-expiration, not from samples on a grid of a guessed period.
+                self.follower.wait_for_first_end_expiration();
+            }
             self.unit = unit;
             self.period_ns = period;
         }

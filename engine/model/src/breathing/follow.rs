@@ -23,9 +23,17 @@ pub const ABOVE_BASELINE_TIDALS: f64 = 3.0;
 /// and is followed from its first samples: until its first end-expiration is found, the baseline
 /// is the lowest value seen so far ([`super::detect::Detector::baseline_at`]), so a breath in
 /// progress when the signal begins is drawn from where it was picked up (a recording that starts
-/// at an end-expiration, as a ventilator's breath-aligned export does, exactly), and the trough
-/// that confirms the first end-expiration is that same lowest value: no step when it is found.
+/// at an end-expiration, as a ventilator's breath-aligned export does, exactly). The first
+/// end-expiration found may lie above that lowest value (a breath that ends higher than it began:
+/// its net volume, or a drift); the baseline moves onto it over [`FIRST_TROUGH_FADE_NS`] instead
+/// of stepping. Not after a reconfiguration mid-stream, nor while the source's rate is unknown
+/// ([`Follower::wait_for_first_end_expiration`]): a follower restarted mid-breath would take the
+/// value it restarts at as its baseline.
 pub const CALIBRATION_BREATHS: usize = 2;
+
+/// Over how long the baseline moves from the lowest value seen onto the first end-expiration
+/// found, when the signal was followed before it (half a second, as the engine's takeover blend).
+pub const FIRST_TROUGH_FADE_NS: u64 = 500_000_000;
 
 /// How the signal's unit becomes ml.
 #[derive(Debug, Clone, Copy, PartialEq)]
@@ -137,7 +145,7 @@ pub struct Followed {
     pub clipped: Option<bool>,
     /// The volume was kept within the drawn range.
     pub clamped: bool,
-    /// The predictor's guard replaced its value with the line's (its value, drawn or not).
+    /// The predictor's guard replaced its value with the line's.
     pub fell_back: bool,
     /// ml per signal unit in use.
     pub gain_ml_per_unit: f64,
@@ -167,6 +175,11 @@ pub struct Follower {
     detector: Detector,
     samples: SampleCounts,
     peaks: u64,
+    /// A known gain may drive before the first end-expiration (see [`CALIBRATION_BREATHS`]).
+    from_first_samples: bool,
+    /// When the first end-expiration was found after following from the first samples, and how
+    /// far above the lowest value seen it lay (faded out over [`FIRST_TROUGH_FADE_NS`]).
+    first_trough_step: Option<(u64, f64)>,
 }
 
 impl Follower {
@@ -178,14 +191,20 @@ impl Follower {
             detector: Detector::new(),
             samples: SampleCounts::default(),
             peaks: 0,
+            from_first_samples: true,
+            first_trough_step: None,
             config,
         }
     }
 
     /// Start again with a source of another period or calibration (a device's rate or unit
     /// became known), keeping the predictor's kind: in place, nothing allocated (the engine's tick
-    /// may call it).
+    /// may call it). Once samples were taken, a signal whose gain is known then waits for its
+    /// first end-expiration again (restarted mid-breath, the lowest value seen would be wherever
+    /// it restarted).
     pub fn reconfigure(&mut self, period_ns: u64, calibration: Calibration) {
+        self.from_first_samples = self.samples.used == 0;
+        self.first_trough_step = None;
         self.config.period_ns = period_ns.max(1);
         self.config.lost_after_ns = self.config.period_ns.saturating_mul(3).max(100_000_000);
         self.config.calibration = calibration;
@@ -194,6 +213,12 @@ impl Follower {
         self.detector = Detector::new();
         self.samples = SampleCounts::default();
         self.peaks = 0;
+    }
+
+    /// Drive from the first end-expiration, not from the first samples (the source's rate is not
+    /// known yet: the follower will be reconfigured once it is).
+    pub fn wait_for_first_end_expiration(&mut self) {
+        self.from_first_samples = false;
     }
 
     /// The settings.
@@ -255,8 +280,20 @@ impl Follower {
     }
 
     fn see(&mut self, t_ns: u64, v: f64) {
-        if let Some(super::detect::Turn::Peak(..)) = self.detector.push(t_ns, v) {
-            self.peaks += 1;
+        let lowest = (self.detector.end_expirations() == 0 && self.calibrated())
+            .then(|| self.detector.baseline_at(t_ns))
+            .flatten();
+        match self.detector.push(t_ns, v) {
+            Some(super::detect::Turn::Peak(..)) => self.peaks += 1,
+            Some(super::detect::Turn::Trough(..)) => {
+                if let (Some(lo), Some(b)) = (lowest, self.detector.baseline_at(t_ns)) {
+                    let step = b - lo;
+                    self.first_trough_step =
+                        (step.is_finite() && step != 0.0 && self.detector.end_expirations() == 1)
+                            .then_some((t_ns, step));
+                }
+            }
+            None => {}
         }
     }
 
@@ -273,10 +310,11 @@ impl Follower {
             }
             Calibration::Volume | Calibration::Fixed { .. } => {
                 found
-                    || match (self.gain(), self.detector.typical_amplitude()) {
-                        (Some(g), Some(a)) => crate::plausible::TIDAL_VOLUME_ML.contains(g * a),
-                        _ => false,
-                    }
+                    || self.from_first_samples
+                        && match (self.gain(), self.detector.typical_amplitude()) {
+                            (Some(g), Some(a)) => crate::plausible::TIDAL_VOLUME_ML.contains(g * a),
+                            _ => false,
+                        }
             }
         }
     }
@@ -309,7 +347,11 @@ impl Follower {
         };
         let display_ns = display_ns.max(self.grid.newest_ns());
         let prediction = self.predictor.predict(&self.grid, display_ns)?;
-        let baseline = self.detector.baseline_at(display_ns).unwrap_or(v_last);
+        let mut baseline = self.detector.baseline_at(display_ns).unwrap_or(v_last);
+        if let Some((at, step)) = self.first_trough_step {
+            let left = 1.0 - (display_ns.saturating_sub(at) as f64 / FIRST_TROUGH_FADE_NS as f64);
+            baseline -= step * left.clamp(0.0, 1.0);
+        }
         let gain = self.gain().unwrap_or(0.0);
         let tidal = gain * self.detector.typical_amplitude().unwrap_or(0.0);
         let keep = |v: f64| -> (f64, bool) {
@@ -326,10 +368,13 @@ impl Follower {
         // tidal volume off — on an ICU recording, −34 ml for 493 ml, for one frame. Until a
         // breath has been seen, the line through the last four grid points predicts (the
         // predictor's own fallback; no prediction stays none).
-        let predicted = match self.config.predictor {
-            _ if self.detector.end_expirations() > 0 => prediction.value,
-            PredictorKind::Hold => v_last,
-            _ => super::predict::line(&self.grid, 4, display_ns).unwrap_or(v_last),
+        let (predicted, fell_back) = match self.config.predictor {
+            _ if self.detector.end_expirations() > 0 => (prediction.value, prediction.fell_back),
+            PredictorKind::Hold => (v_last, false),
+            _ => (
+                super::predict::line(&self.grid, 4, display_ns).unwrap_or(v_last),
+                false,
+            ),
         };
         let (volume_ml, clamped) = keep(gain * (predicted - baseline));
         let (unpredicted_ml, _) = keep(gain * (v_last - baseline));
@@ -340,7 +385,7 @@ impl Follower {
             inhaling: self.detector.inhaling(),
             clipped: self.detector.clipped(),
             clamped,
-            fell_back: prediction.fell_back,
+            fell_back,
             gain_ml_per_unit: gain,
             lead_s: secs(display_ns as i128 - t_last as i128),
         })

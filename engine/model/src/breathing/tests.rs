@@ -384,7 +384,7 @@ fn a_volume_is_followed_from_its_first_samples_an_amplitude_after_two_breaths() 
     // end-expiration is confirmed.
     let late = |t: f64| breathing(t + 0.75, 500.0, 0.0);
     let mut f = Follower::new(FollowerConfig::at_rate(50.0, Calibration::Volume));
-    let (mut drawn, mut confirmed_at) = (Vec::new(), None);
+    let (mut drawn, mut confirmed_at, mut on_the_line) = (Vec::new(), None, 0);
     for i in 0..400u64 {
         let t_s = i as f64 * 0.02;
         let t = TRACE_START_NS + (t_s * 1e9) as u64;
@@ -407,6 +407,7 @@ fn a_volume_is_followed_from_its_first_samples_an_amplitude_after_two_breaths() 
                 .map(|j| late(j as f64 * 0.02))
                 .fold(f64::MAX, f64::min);
             let want = mean + slope * (2.5 + 1.5) - lowest;
+            on_the_line += 1;
             assert!(
                 (ahead.volume_ml - want).abs() < 1e-6,
                 "at {t_s} s: {} ml against the line's {want} ml",
@@ -424,6 +425,10 @@ fn a_volume_is_followed_from_its_first_samples_an_amplitude_after_two_breaths() 
         }
         drawn.push((t_s, g.unpredicted_ml));
     }
+    assert!(
+        on_the_line > 100,
+        "{on_the_line} frames checked against the line"
+    );
     let peak = drawn
         .iter()
         .filter(|d| d.0 < 2.0)
@@ -473,6 +478,84 @@ fn a_volume_is_followed_from_its_first_samples_an_amplitude_after_two_breaths() 
         at(&run(auto, 13.0, &signal), 13.0).state,
         SignalState::Following
     );
+}
+
+/// A first breath that ends above where it began (here the integrator drifts 10 ml/s: 40 ml over
+/// the 4 s breath): the baseline moves from the lowest value seen onto the first end-expiration
+/// over half a second instead of stepping 40 ml in a frame.
+#[test]
+fn the_first_end_expiration_found_moves_the_baseline_without_a_step() {
+    let mut f = volume_follower(50.0);
+    let mut drawn: Vec<(f64, f64, usize)> = Vec::new();
+    for i in 0..400u64 {
+        let t_s = i as f64 * 0.02;
+        let t = TRACE_START_NS + (t_s * 1e9) as u64;
+        f.push(sample(t, breathing(t_s, 500.0, 10.0)));
+        let g = f.volume_at(t, t).unwrap();
+        // Calibrating only until the first samples span 5 ml (the smallest plausible breath).
+        assert!(t_s < 0.3 || g.state == SignalState::Following, "at {t_s} s");
+        drawn.push((t_s, g.unpredicted_ml, f.detector().end_expirations()));
+    }
+    let k = drawn
+        .iter()
+        .position(|d| d.2 == 1)
+        .expect("the first trough");
+    let jump = |a: usize, b: usize| drawn[b].1 - drawn[a].1;
+    // The signal rises about 10 ml a frame there; a 40 ml baseline step would drop it by 30.
+    let worst = (k - 3..k + 25)
+        .map(|j| jump(j - 1, j))
+        .fold(f64::MAX, f64::min);
+    assert!(
+        worst > 0.0,
+        "the drawn volume fell by {:.1} ml in a frame at {:.2} s",
+        -worst,
+        drawn[k].0
+    );
+    // Half a second later the baseline is the end-expiration itself (the drift after it aside).
+    let later = &drawn[k + 30];
+    let want = breathing(later.0, 500.0, 0.0) + 10.0 * (later.0 - 4.0);
+    assert!(
+        (later.1 - want).abs() < 3.0,
+        "{later:?} against {want:.1} ml"
+    );
+}
+
+/// A reconfiguration once samples were taken (a device's rate became known), or a source whose
+/// rate is not known yet: a signal whose gain is known waits for its first end-expiration, as a
+/// follower restarted mid-breath would otherwise take wherever it restarted as its baseline.
+#[test]
+fn a_follower_restarted_mid_stream_waits_for_its_first_end_expiration() {
+    let mut f = volume_follower(50.0);
+    feed(&mut f, 1.0, 50.0, |t| breathing(t, 500.0, 0.0));
+    let at = |f: &Follower, s: f64| {
+        let t = TRACE_START_NS + (s * 1e9) as u64;
+        f.volume_at(t, t).unwrap().state
+    };
+    assert_eq!(at(&f, 0.98), SignalState::Following);
+    f.reconfigure(20 * MS, Calibration::Volume);
+    for i in 50..400u64 {
+        let t_s = i as f64 * 0.02;
+        f.push(sample(
+            TRACE_START_NS + (t_s * 1e9) as u64,
+            breathing(t_s, 500.0, 0.0),
+        ));
+        let want = if f.detector().end_expirations() == 0 {
+            SignalState::Calibrating
+        } else {
+            SignalState::Following
+        };
+        assert_eq!(at(&f, t_s), want, "at {t_s} s");
+    }
+    assert_eq!(f.detector().end_expirations(), 1);
+    // Configured before its first sample: from the first samples, unless told to wait.
+    let mut fresh = volume_follower(50.0);
+    fresh.reconfigure(40 * MS, Calibration::Volume);
+    feed(&mut fresh, 1.0, 25.0, |t| breathing(t, 500.0, 0.0));
+    assert_eq!(at(&fresh, 0.96), SignalState::Following);
+    let mut waiting = volume_follower(50.0);
+    waiting.wait_for_first_end_expiration();
+    feed(&mut waiting, 1.0, 50.0, |t| breathing(t, 500.0, 0.0));
+    assert_eq!(at(&waiting, 0.98), SignalState::Calibrating);
 }
 
 /// After a 5 s loss the follower is in step again within one breath: the baseline's drift is not
