@@ -260,6 +260,11 @@ impl Follower {
             Arrival::Restarted => {
                 if self.samples.used > 0 {
                     self.samples.restarts += 1;
+                    if self.detector.end_expirations() == 0 {
+                        // Lost before a breath was seen: back mid-breath, the lowest value seen
+                        // would be wherever the signal came back.
+                        self.from_first_samples = false;
+                    }
                 }
                 self.predictor.reset();
                 self.detector.restart();
@@ -349,7 +354,9 @@ impl Follower {
         let prediction = self.predictor.predict(&self.grid, display_ns)?;
         let mut baseline = self.detector.baseline_at(display_ns).unwrap_or(v_last);
         if let Some((at, step)) = self.first_trough_step {
-            let left = 1.0 - (display_ns.saturating_sub(at) as f64 / FIRST_TROUGH_FADE_NS as f64);
+            // On the samples' clock, not the display's (a display one latency ahead would start
+            // the fade that far in: at a 500 ms latency, the whole step at once).
+            let left = 1.0 - (t_last.saturating_sub(at) as f64 / FIRST_TROUGH_FADE_NS as f64);
             baseline -= step * left.clamp(0.0, 1.0);
         }
         let gain = self.gain().unwrap_or(0.0);

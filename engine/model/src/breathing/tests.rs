@@ -462,22 +462,18 @@ fn a_volume_is_followed_from_its_first_samples_an_amplitude_after_two_breaths() 
     assert_eq!(at(&litres, 1.0).state, SignalState::Calibrating);
     let auto = Calibration::Auto { tidal_ml: 500.0 };
     let signal = |t: f64| breathing(t, 500.0, 0.0);
-    assert_eq!(
-        at(&run(auto, 1.0, &signal), 1.0).state,
-        SignalState::Calibrating
-    );
-    assert_eq!(
-        at(&run(auto, 5.0, &signal), 5.0).state,
-        SignalState::Calibrating
-    );
-    assert_eq!(
-        at(&run(auto, 9.0, &signal), 9.0).state,
-        SignalState::Calibrating
-    );
-    assert_eq!(
-        at(&run(auto, 13.0, &signal), 13.0).state,
-        SignalState::Following
-    );
+    for (seconds, want) in [
+        (1.0, SignalState::Calibrating),
+        (5.0, SignalState::Calibrating),
+        (9.0, SignalState::Calibrating),
+        (13.0, SignalState::Following),
+    ] {
+        assert_eq!(
+            at(&run(auto, seconds, &signal), seconds).state,
+            want,
+            "at {seconds} s"
+        );
+    }
 }
 
 /// A first breath that ends above where it began (here the integrator drifts 10 ml/s: 40 ml over
@@ -485,13 +481,21 @@ fn a_volume_is_followed_from_its_first_samples_an_amplitude_after_two_breaths() 
 /// over half a second instead of stepping 40 ml in a frame.
 #[test]
 fn the_first_end_expiration_found_moves_the_baseline_without_a_step() {
+    // Shown at once, and 100 ms and 600 ms after the newest sample (a latency: the fade runs on
+    // the samples' clock).
+    for lead_ms in [0u64, 100, 600] {
+        first_trough_without_a_step(lead_ms);
+    }
+}
+
+fn first_trough_without_a_step(lead_ms: u64) {
     let mut f = volume_follower(50.0);
     let mut drawn: Vec<(f64, f64, usize)> = Vec::new();
     for i in 0..400u64 {
         let t_s = i as f64 * 0.02;
         let t = TRACE_START_NS + (t_s * 1e9) as u64;
         f.push(sample(t, breathing(t_s, 500.0, 10.0)));
-        let g = f.volume_at(t, t).unwrap();
+        let g = f.volume_at(t, t + lead_ms * MS).unwrap();
         // Calibrating only until the first samples span 5 ml (the smallest plausible breath).
         assert!(t_s < 0.3 || g.state == SignalState::Following, "at {t_s} s");
         drawn.push((t_s, g.unpredicted_ml, f.detector().end_expirations()));
@@ -507,7 +511,7 @@ fn the_first_end_expiration_found_moves_the_baseline_without_a_step() {
         .fold(f64::MAX, f64::min);
     assert!(
         worst > 0.0,
-        "the drawn volume fell by {:.1} ml in a frame at {:.2} s",
+        "shown {lead_ms} ms ahead, the drawn volume fell by {:.1} ml in a frame at {:.2} s",
         -worst,
         drawn[k].0
     );
@@ -516,7 +520,7 @@ fn the_first_end_expiration_found_moves_the_baseline_without_a_step() {
     let want = breathing(later.0, 500.0, 0.0) + 10.0 * (later.0 - 4.0);
     assert!(
         (later.1 - want).abs() < 3.0,
-        "{later:?} against {want:.1} ml"
+        "shown {lead_ms} ms ahead: {later:?} against {want:.1} ml"
     );
 }
 
@@ -552,6 +556,19 @@ fn a_follower_restarted_mid_stream_waits_for_its_first_end_expiration() {
     fresh.reconfigure(40 * MS, Calibration::Volume);
     feed(&mut fresh, 1.0, 25.0, |t| breathing(t, 500.0, 0.0));
     assert_eq!(at(&fresh, 0.96), SignalState::Following);
+    // Lost for half a second before its first end-expiration, and back mid-breath: waits too.
+    let mut lost = volume_follower(50.0);
+    feed(&mut lost, 1.0, 50.0, |t| breathing(t, 500.0, 0.0));
+    for i in 75..150u64 {
+        let t_s = i as f64 * 0.02;
+        lost.push(sample(
+            TRACE_START_NS + (t_s * 1e9) as u64,
+            breathing(t_s, 500.0, 0.0),
+        ));
+    }
+    assert_eq!(lost.samples().restarts, 1);
+    assert_eq!(lost.detector().end_expirations(), 0);
+    assert_eq!(at(&lost, 2.98), SignalState::Calibrating);
     let mut waiting = volume_follower(50.0);
     waiting.wait_for_first_end_expiration();
     feed(&mut waiting, 1.0, 50.0, |t| breathing(t, 500.0, 0.0));
