@@ -1831,6 +1831,69 @@ fn clean(_: u64, t_s: f64) -> (f64, bool) {
     (chest_mm(t_s), true)
 }
 
+/// A spirometer's volume in ml (50 ml per mm of [`chest_mm`]: 500 ml breaths from an
+/// end-expiration at 0 s) drives the lungs from its first samples when its block states its rate;
+/// a source whose rate is not known yet (period 0, learnt by the bridge after its first samples, as
+/// a UDP or OpenIGTLink stream's) waits for its first end-expiration instead — restarted on the
+/// learnt rate mid-breath, it would take wherever it restarted as its baseline — and the takeover
+/// then blends from the model without a step.
+#[test]
+fn a_volume_drives_from_its_first_samples_once_its_rate_is_known() {
+    use ipc_types::engine_state as e;
+    let run = |unknown_until_s: f64| {
+        let mut core = signal_core(50.0);
+        let frc: f64 = core.geometry().map(|g| g.start_volume_ml).sum();
+        let mut f = EngineFrame::default();
+        let mut out = Vec::new();
+        for tick in 0..(12 * 60) {
+            let mut input = signal_frame(tick, None, &|_, t_s| (50.0 * chest_mm(t_s), true));
+            input.signal.unit = ipc_types::signal_unit::ML;
+            if (tick as f64 / 60.0) < unknown_until_s {
+                input.signal.period_ns = 0;
+            }
+            core.step(tick, Some(&input), &mut f);
+            let v: f64 = f
+                .lungs
+                .iter()
+                .filter(|l| l.is_active())
+                .map(|l| l.volume_ml as f64)
+                .sum();
+            out.push((tick as f64 / 60.0, v - frc, f.state));
+        }
+        out
+    };
+    let first_following = |r: &[(f64, f64, u32)]| {
+        r.iter()
+            .find(|x| x.2 & e::SIGNAL_FOLLOWING != 0)
+            .map(|x| x.0)
+            .expect("follows")
+    };
+    let known = run(0.0);
+    assert!(
+        first_following(&known) < 0.5,
+        "from {:.2} s",
+        first_following(&known)
+    );
+    let learnt = run(0.5);
+    let from = first_following(&learnt);
+    // The first end-expiration is at 4.7 s, confirmed once the next breath has risen past the
+    // hysteresis.
+    assert!(from > 4.7 && from < 6.5, "from {from:.2} s");
+    assert!(learnt
+        .iter()
+        .filter(|x| x.0 >= from)
+        .all(|x| x.2 & e::SIGNAL_FOLLOWING != 0));
+    let worst = learnt
+        .windows(2)
+        .map(|w| (w[1].1 - w[0].1).abs())
+        .fold(0.0, f64::max);
+    // 500 ml breaths at 60 Hz move at most about 12 ml a tick.
+    assert!(
+        worst < 25.0,
+        "the drawn volume stepped {worst:.1} ml in a tick"
+    );
+}
+
 /// A belt's breaths of depths 6-14 mm (4.7 s each), cut at `ceiling` mm by its sensor's range.
 fn belt(ceiling: f64) -> impl Fn(u64, f64) -> (f64, bool) {
     move |_: u64, t_s: f64| {
