@@ -1809,13 +1809,21 @@ fn follow_run(
     cut: Option<(f64, f64)>,
     value: &dyn Fn(u64, f64) -> (f64, bool),
 ) -> Vec<(f64, f64, u32)> {
+    run_inputs(core, seconds, &|tick| signal_frame(tick, cut, value))
+}
+
+/// [`follow_run`] with each tick's tracker frame from `input`.
+fn run_inputs(
+    core: &mut EngineCore,
+    seconds: f64,
+    input: &dyn Fn(u64) -> TrackerFrame,
+) -> Vec<(f64, f64, u32)> {
     let frc: f64 = core.geometry().map(|g| g.start_volume_ml).sum();
     let ticks = (seconds * 60.0) as u64;
     let mut out = Vec::new();
     let mut f = EngineFrame::default();
     for tick in 0..ticks {
-        let input = signal_frame(tick, cut, value);
-        core.step(tick, Some(&input), &mut f);
+        core.step(tick, Some(&input(tick)), &mut f);
         let v: f64 = f
             .lungs
             .iter()
@@ -1825,6 +1833,13 @@ fn follow_run(
         out.push((tick as f64 / 60.0, v - frc, f.state));
     }
     out
+}
+
+/// The index of the first tick of `run` the signal drove.
+fn first_following(run: &[(f64, f64, u32)]) -> usize {
+    run.iter()
+        .position(|r| r.2 & ipc_types::engine_state::SIGNAL_FOLLOWING != 0)
+        .expect("follows")
 }
 
 fn clean(_: u64, t_s: f64) -> (f64, bool) {
@@ -1841,33 +1856,16 @@ fn clean(_: u64, t_s: f64) -> (f64, bool) {
 fn a_volume_drives_from_its_first_samples_once_its_rate_is_known() {
     use ipc_types::engine_state as e;
     let run = |unknown_until_s: f64| {
-        let mut core = signal_core(50.0);
-        let frc: f64 = core.geometry().map(|g| g.start_volume_ml).sum();
-        let mut f = EngineFrame::default();
-        let mut out = Vec::new();
-        for tick in 0..(12 * 60) {
+        run_inputs(&mut signal_core(50.0), 12.0, &|tick| {
             let mut input = signal_frame(tick, None, &|_, t_s| (50.0 * chest_mm(t_s), true));
             input.signal.unit = ipc_types::signal_unit::ML;
             if (tick as f64 / 60.0) < unknown_until_s {
                 input.signal.period_ns = 0;
             }
-            core.step(tick, Some(&input), &mut f);
-            let v: f64 = f
-                .lungs
-                .iter()
-                .filter(|l| l.is_active())
-                .map(|l| l.volume_ml as f64)
-                .sum();
-            out.push((tick as f64 / 60.0, v - frc, f.state));
-        }
-        out
+            input
+        })
     };
-    let first_following = |r: &[(f64, f64, u32)]| {
-        r.iter()
-            .find(|x| x.2 & e::SIGNAL_FOLLOWING != 0)
-            .map(|x| x.0)
-            .expect("follows")
-    };
+    let first_following = |r: &[(f64, f64, u32)]| r[first_following(r)].0;
     let known = run(0.0);
     assert!(
         first_following(&known) < 0.5,
@@ -1945,10 +1943,7 @@ fn the_lungs_follow_the_patients_signal_once_calibrated() {
     let run = follow_run(&mut core, 60.0, None, &clean);
     // First the model breathes while the signal calibrates; following within three breaths.
     assert!(run[0].2 & e::SIGNAL_CALIBRATING != 0, "{:b}", run[0].2);
-    let following = run
-        .iter()
-        .position(|r| r.2 & e::SIGNAL_FOLLOWING != 0)
-        .expect("follows");
+    let following = first_following(&run);
     assert!(
         run[following].0 < 16.0,
         "following from {} s",
@@ -1989,11 +1984,6 @@ fn the_lungs_follow_the_patients_signal_once_calibrated() {
 #[test]
 fn a_spirometry_calibration_drives_from_the_first_samples_at_its_own_gain() {
     use ipc_types::engine_state as e;
-    let first_following = |run: &[(f64, f64, u32)]| {
-        run.iter()
-            .position(|r| r.2 & e::SIGNAL_FOLLOWING != 0)
-            .expect("follows")
-    };
     let mut auto = signal_core(50.0);
     let tidal = auto.lung(Side::Right).unwrap().breathing().boundary().tv_ml;
     let auto_run = follow_run(&mut auto, 40.0, None, &clean);
