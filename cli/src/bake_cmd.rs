@@ -145,6 +145,9 @@ pub struct BakeSummary {
     /// kernel change did and the centre's motion per unit scale.
     #[serde(skip_serializing_if = "Option::is_none")]
     pub tumour: Option<lung_model::kernel::TumourMeta>,
+    /// The volumes the kernel draws without its surface crossing itself (the engine marks frames
+    /// drawn outside them).
+    pub fold_free: Option<lung_model::kernel::FoldFreeMeta>,
 }
 
 /// Peak resident set size of this process in MiB (Linux), 0 elsewhere.
@@ -252,6 +255,7 @@ pub fn bake(args: &BakeArgs) -> anyhow::Result<BakeSummary> {
         reference_delta_ml: orientation.map_or(0.0, |o| o.reference_delta_ml),
         orientations: orientation.map_or(0, |o| o.orientations_checked),
         tumour: k.meta.tumour.clone(),
+        fold_free: k.meta.fold_free,
     })
 }
 
@@ -323,6 +327,7 @@ pub fn bake_text(b: &BakeSummary) -> String {
          transfer: {} non-zeros, {:.1} per row (max {}), tolerance {:e}\n\
          force per unit row: {:.1} % caught by mass nodes, truncated {:.2e} mean / {:.2e} max, conservation error {:.1e}\n\
          largest unit displacement {:.3} mm per {:.2} ml; {:.1} s, peak memory {:.0} MiB\n\
+         fold-free (supine, precomputed field): {}\n\
          orientation (errors against eq. 7.1 at +{:.0} ml over {} orientations): basis mode {:.1e} mm (exact);\n{}",
         b.path,
         b.file_bytes as f64 / 1048576.0,
@@ -342,6 +347,7 @@ pub fn bake_text(b: &BakeSummary) -> String {
         lung_model::deform::UNIT_VOLUME_ML,
         b.seconds,
         b.peak_rss_mib,
+        lung_model::kernel::FoldFreeMeta::words(b.fold_free.as_ref()),
         b.reference_delta_ml,
         b.orientations,
         b.basis_max_error_mm,
@@ -442,7 +448,8 @@ pub fn inspect_text(i: &InspectSummary) -> String {
          transfer: {} non-zeros ({:.1} per row, max {}), tolerance {:e}, truncated {:.2e} mean / {:.2e} max\n\
          motion c1..c9 = {:?}\n\
          elasticity: apex {} base {} dependent {}\n\
-         unit volume {:.3} ml, written by {}\n",
+         unit volume {:.3} ml, written by {}\n\
+         fold-free (supine, precomputed field): {}\n",
         i.path,
         i.format,
         i.file_bytes as f64 / 1048576.0,
@@ -464,7 +471,8 @@ pub fn inspect_text(i: &InspectSummary) -> String {
         e.base,
         e.dependent,
         m.unit_volume_ml,
-        m.written_by
+        m.written_by,
+        lung_model::kernel::FoldFreeMeta::words(m.fold_free.as_ref())
     )
 }
 

@@ -134,7 +134,7 @@ pub struct PatientLung {
     /// This lung's share of the default scene's tidal breath (by exhale volume), ml.
     pub tidal_share_ml: f64,
     /// Where the breath-hold population was tried: how far above the exhale volume its kernel
-    /// draws no fold, ml (to 1/64 of the share; the share itself when it does not fold within it).
+    /// draws no fold, ml (to 1/768 of the share; the share itself when it does not fold within it).
     pub breath_hold_fold_free_ml: Option<f64>,
     /// With the fitted motion: the baked kernel driven to the inhale volume against the inhale
     /// surface (MSSD, mm), beside no motion and uniform scaling (`fit-motion` gives held-out

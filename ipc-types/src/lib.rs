@@ -386,6 +386,9 @@ pub mod lung_flags {
     pub const HELD: u32 = 1 << 2;
     /// The lung's breathing changed at the start of this tick's cycle (rate, depth or constants).
     pub const CYCLE_CHANGED: u32 = 1 << 3;
+    /// The lung is drawn outside the volume range its kernel was checked free of folds at bake time
+    /// (`KernelMeta::fold_free`): its surface may cross itself.
+    pub const PAST_FOLD_FREE: u32 = 1 << 4;
 }
 
 /// What [`LungFrame::coeffs`] hold.
@@ -572,6 +575,9 @@ pub mod report_flags {
     /// The signal driving the lungs drawn looks clipped by its sensor's range (the engine's
     /// `SIGNAL_CLIPPED`): the patient's breaths were deeper than drawn.
     pub const SIGNAL_CLIPPED: u32 = 1 << 13;
+    /// A lung was drawn outside the volume range its kernel was checked free of folds at bake time
+    /// (the engine's `lung_flags::PAST_FOLD_FREE`): its surface may cross itself.
+    pub const PAST_FOLD_FREE: u32 = 1 << 14;
     /// Bits 16..18: draw levels coarser than the level of detail chose, by the governor (0..7).
     pub const QUALITY_LOD_SHIFT: u32 = 16;
     /// The mask of [`QUALITY_LOD_SHIFT`]'s bits.

@@ -449,6 +449,9 @@ pub struct DemoReport {
     /// Of the frames the signal drove, those whose signal looked clipped by its sensor's range (the
     /// HUD said "SIGNAL LOOKS CLIPPED": the patient's breaths were deeper than drawn).
     pub signal_clipped_frames: u64,
+    /// Frames that drew a lung outside the volume range its kernel was checked free of folds at
+    /// bake time (`kernel inspect` gives the range; the HUD said "PAST ITS FOLD-FREE VOLUME").
+    pub past_fold_free_frames: u64,
     /// Seconds from the command's start to the first frame drawn (bake, start-up and the draw
     /// levels included); null when none was drawn.
     pub first_frame_s: Option<f64>,
@@ -1647,6 +1650,7 @@ fn report(e: Ended<'_>) -> DemoReport {
         signal_following_frames: stats.signal_following_frames,
         signal_lost_frames: stats.signal_lost_frames,
         signal_clipped_frames: stats.signal_clipped_frames,
+        past_fold_free_frames: stats.past_fold_free_frames,
         governor: scene.render.governor.name().to_string(),
         lowered_frames: stats
             .quality_frames
@@ -1779,6 +1783,47 @@ fn governor_line(s: &mut String, r: &DemoReport) {
     }
 }
 
+/// The table's lines on what the frames showed beside the lungs: a held patient pose, the
+/// patient's signal, a lung past its fold-free volume.
+fn state_lines(s: &mut String, r: &DemoReport) {
+    use std::fmt::Write as _;
+    if r.patient_pose_held_frames > 0 {
+        let _ = writeln!(
+            s,
+            "PATIENT POSE HELD in {} of {} frames ({} of them stale: no patient sample in time, or \
+             none yet) — drawn over a tinted background, amber held, red stale",
+            r.patient_pose_held_frames, r.frames_rendered, r.patient_pose_stale_frames
+        );
+    }
+    if r.signal_following_frames + r.signal_lost_frames > 0 {
+        let _ = writeln!(
+            s,
+            "breathing: the patient's signal drove {} of {} frames; in {} it was lost, ended or not \
+             yet there (the model breathed, under a blue veil); the rest calibrated it (a chest \
+             tool's axis being learnt included)",
+            r.signal_following_frames, r.frames_rendered, r.signal_lost_frames
+        );
+        if r.signal_clipped_frames > 0 {
+            let _ = writeln!(
+                s,
+                "SIGNAL LOOKED CLIPPED in {} of the frames it drove: several breaths of unequal \
+                 depth ended at one value — the patient's breaths may have been deeper than drawn \
+                 (the sensor's range, or breaths held at one level on purpose)",
+                r.signal_clipped_frames
+            );
+        }
+    }
+    if r.past_fold_free_frames > 0 {
+        let _ = writeln!(
+            s,
+            "PAST THE FOLD-FREE VOLUME in {} of {} frames: a lung was drawn outside the volume range \
+             its kernel was checked free of folds at bake time, and its surface may have crossed \
+             itself (`lungdyn kernel inspect KERNEL` gives the range)",
+            r.past_fold_free_frames, r.frames_rendered
+        );
+    }
+}
+
 pub fn table(r: &DemoReport) -> String {
     use std::fmt::Write;
     let mut s = String::new();
@@ -1859,32 +1904,7 @@ pub fn table(r: &DemoReport) -> String {
             .collect::<Vec<_>>()
             .join("; ")
     );
-    if r.patient_pose_held_frames > 0 {
-        let _ = writeln!(
-            s,
-            "PATIENT POSE HELD in {} of {} frames ({} of them stale: no patient sample in time, or \
-             none yet) — drawn over a tinted background, amber held, red stale",
-            r.patient_pose_held_frames, r.frames_rendered, r.patient_pose_stale_frames
-        );
-    }
-    if r.signal_following_frames + r.signal_lost_frames > 0 {
-        let _ = writeln!(
-            s,
-            "breathing: the patient's signal drove {} of {} frames; in {} it was lost, ended or not \
-             yet there (the model breathed, under a blue veil); the rest calibrated it (a chest \
-             tool's axis being learnt included)",
-            r.signal_following_frames, r.frames_rendered, r.signal_lost_frames
-        );
-        if r.signal_clipped_frames > 0 {
-            let _ = writeln!(
-                s,
-                "SIGNAL LOOKED CLIPPED in {} of the frames it drove: several breaths of unequal \
-                 depth ended at one value — the patient's breaths may have been deeper than drawn \
-                 (the sensor's range, or breaths held at one level on purpose)",
-                r.signal_clipped_frames
-            );
-        }
-    }
+    state_lines(&mut s, r);
     governor_line(&mut s, r);
     if let Some(sl) = &r.slicer {
         let _ = writeln!(s, "{}", sl.text());

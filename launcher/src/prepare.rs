@@ -129,6 +129,9 @@ pub fn ensure_kernels(
                 f.meta().side == side
                     && f.meta().settings == settings
                     && !f.meta().orientation_predates_fitted_force()
+                    // Baked before the bake measured where the lung folds: baked again, so the
+                    // engine can say when a frame draws it past that.
+                    && f.meta().fold_free.is_some()
             })
             .unwrap_or(false);
         let mut meta = None;

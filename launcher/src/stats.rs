@@ -62,6 +62,8 @@ pub struct LatencyStats {
     pub signal_lost_frames: u64,
     /// Frames whose driving signal looked clipped by its sensor's range.
     pub signal_clipped_frames: u64,
+    /// Frames that drew a lung outside its kernel's fold-free volume range.
+    pub past_fold_free_frames: u64,
     /// Frames drawn with every governor step given up and still over its target.
     pub governor_floor_frames: u64,
     /// Times the drawn quality changed from one frame to the next.
@@ -141,6 +143,7 @@ impl LatencyStats {
             signal_following_frames: 0,
             signal_lost_frames: 0,
             signal_clipped_frames: 0,
+            past_fold_free_frames: 0,
             governor_floor_frames: 0,
             quality_changes: 0,
             last_quality: 0,
@@ -184,6 +187,9 @@ impl LatencyStats {
         }
         if r.flags & report_flags::SIGNAL_CLIPPED != 0 {
             self.signal_clipped_frames += 1;
+        }
+        if r.flags & report_flags::PAST_FOLD_FREE != 0 {
+            self.past_fold_free_frames += 1;
         }
         self.record_quality(r.flags);
         if r.flags & report_flags::STALE_ENGINE != 0 {
@@ -510,6 +516,20 @@ mod tests {
             (s.signal_following_frames, s.signal_clipped_frames),
             (10, 4)
         );
+    }
+
+    /// Frames that drew a lung past its kernel's fold-free range are counted.
+    #[test]
+    fn frames_past_the_fold_free_range_are_counted() {
+        let mut s = LatencyStats::new();
+        for i in 1..=10 {
+            let mut r = report(i, i, 5_000_000);
+            if i % 3 == 0 {
+                r.flags = report_flags::PAST_FOLD_FREE;
+            }
+            s.record(&r);
+        }
+        assert_eq!(s.past_fold_free_frames, 3);
     }
 
     #[test]

@@ -73,6 +73,16 @@ fn a_patient_mesh_bakes_into_a_kernel_that_the_demo_renders() {
     assert_eq!(i["meta"]["nnz"], b["nnz"]);
     let text = run_ok(&["kernel", "inspect", s(&kernel)]);
     assert!(text.contains("checksums OK"), "{text}");
+    // The volumes the bake checked free of folds travel in the kernel; both commands say them.
+    let ff = &b["fold_free"];
+    assert_eq!(i["meta"]["fold_free"], *ff);
+    let (above, searched) = (ff["above_ml"].as_f64(), ff["searched_above_ml"].as_f64());
+    assert!(above.unwrap() > 0.0 && above <= searched, "{b}");
+    assert!(ff["below_ml"].as_f64().unwrap() > 0.0, "{b}");
+    assert!(
+        text.contains("fold-free (supine, precomputed field): "),
+        "{text}"
+    );
     let png = d.join("kernel.png");
     run_ok(&["kernel", "inspect", s(&kernel), "--plot", s(&png)]);
     let img = image::open(&png).expect("the kernel picture is a PNG");

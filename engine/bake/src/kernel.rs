@@ -235,6 +235,8 @@ pub fn bake(
         )?),
         _ => None,
     };
+    // How far the lung can be drawn before its surface crosses itself (the engine marks frames past it).
+    let fold_free = Some(crate::folds::range(&model));
     let meta = KernelMeta {
         side,
         units: "mm".into(),
@@ -258,6 +260,7 @@ pub fn bake(
         }),
         sh: sh_meta,
         tumour,
+        fold_free,
     };
     Ok(Kernel {
         meta,

@@ -22,6 +22,7 @@
 // `!(x > 0.0)` is how this crate refuses NaN together with out-of-range values; keep it.
 #![allow(clippy::neg_cmp_op_on_partial_ord)]
 
+pub mod folds;
 pub mod import;
 pub mod kernel;
 pub mod landmarks;

@@ -53,6 +53,7 @@ use lung_model::deform::LungModel;
 use lung_model::kernel::BakeSettings;
 use lung_model::mesh::{Side, TriMesh};
 
+use crate::folds::at_volume;
 use crate::mask::surface::{neighbour_rows, points};
 use crate::motion_models::{fit_field, folds, Config};
 use crate::operator::{compute_transfer, NodeGraph, Schedule};
@@ -233,7 +234,7 @@ pub struct PairFit {
     /// most 100,000 counted). A surface pair cannot see sliding within the surface, and the fit
     /// may slide parts of it far enough to fold it: said, never hidden.
     pub folds_at_inhale: usize,
-    /// The largest volume change above the exhale volume (ml, to 1/64 of the pair's) at which the
+    /// The largest volume change above the exhale volume (ml, to 1/768 of the pair's) at which the
     /// fitted kernel draws no fold: the pair's whole change when it never folds.
     pub fold_free_ml: f64,
     /// Vertex displacement at the inhale volume, mm: median, 99th percentile, largest (the real
@@ -776,47 +777,11 @@ impl Local {
     }
 }
 
-/// The model's surface `delta_ml` above its start volume (f32, as the GPU draws it).
-fn at_volume(model: &LungModel, delta_ml: f64) -> Vec<DVec3> {
-    let s = model.scale_for_delta(delta_ml) as f32;
-    let mut out = vec![[0.0f32; 3]; model.mesh.positions.len()];
-    model.deform_into(s, &mut out);
-    out.iter()
-        .map(|q| DVec3::from(q.map(|v| v as f64)))
-        .collect()
-}
-
-/// The largest volume change above the model's start volume, up to `up_to_ml` (to 1/64 of it), at
-/// which its surface does not cross itself: `up_to_ml` when it never folds up to there (one check).
+/// The largest volume change above the model's start volume, up to `up_to_ml`, up to which its
+/// surface was found not to cross itself ([`crate::folds::fold_free_share`]): `up_to_ml` when no
+/// fold was found up to there.
 pub fn fold_free_ml(model: &LungModel, up_to_ml: f64) -> f64 {
-    fold_free_share(model, up_to_ml) * up_to_ml
-}
-
-/// The largest share of `delta_ml` (to 1/64) at which the model's surface does not cross itself:
-/// 1 when it never folds up to `delta_ml` (bisection: folds appear past a threshold as the
-/// displacement grows linearly).
-fn fold_free_share(model: &LungModel, delta_ml: f64) -> f64 {
-    let folds = |share: f64| {
-        let q = at_volume(model, share * delta_ml);
-        let mesh = TriMesh {
-            positions: q.iter().map(|x| x.as_vec3().to_array()).collect(),
-            triangles: model.mesh.triangles.clone(),
-        };
-        crate::surface_checks::self_intersections(&mesh, 1).count > 0
-    };
-    if !folds(1.0) {
-        return 1.0;
-    }
-    let (mut lo, mut hi) = (0.0, 1.0);
-    for _ in 0..6 {
-        let mid = 0.5 * (lo + hi);
-        if folds(mid) {
-            hi = mid;
-        } else {
-            lo = mid;
-        }
-    }
-    lo
+    crate::folds::fold_free_share(model, up_to_ml) * up_to_ml
 }
 
 /// `count` farthest-point samples of `p` (indices), the first the highest point.

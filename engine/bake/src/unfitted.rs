@@ -82,7 +82,7 @@ pub struct Unfitted {
     /// Its motion.
     pub motion: Baked,
     /// With the breath-hold population tried: how far above the exhale volume it draws no fold (ml,
-    /// to 1/64 of the tidal share; the share itself when it does not fold within it).
+    /// to 1/768 of the tidal share; the share itself when it does not fold within it).
     pub breath_hold_fold_free_ml: Option<f64>,
 }
 

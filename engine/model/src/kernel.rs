@@ -332,6 +332,72 @@ pub struct KernelMeta {
     /// The tumour the kernel was baked with, and how its centre moves (seed §8.2).
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub tumour: Option<TumourMeta>,
+    /// The volumes the kernel draws without its surface crossing itself (absent in kernels baked
+    /// before it was measured).
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub fold_free: Option<FoldFreeMeta>,
+}
+
+/// How far from its start volume a kernel's lung can be drawn before its surface crosses itself:
+/// measured at bake time on the precomputed field `p + s·u` (the lung supine, as the GPU draws it in
+/// the precomputed mode): 24 volumes stepping out from the start, the first fold refined to 1/768
+/// of each searched span (`lung_bake::folds`). A fitted motion slides the
+/// base along the chest wall and may fold a lung within a deep breath (docs/masks/patient_motion.md);
+/// the engine marks every frame that draws a lung outside this range
+/// (`ipc_types::lung_flags::PAST_FOLD_FREE`), so a fold is never drawn unannounced.
+#[derive(Debug, Clone, Copy, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct FoldFreeMeta {
+    /// Largest volume change above the start volume drawn without a fold, ml
+    /// (`searched_above_ml` when none was found up to there).
+    pub above_ml: f64,
+    /// Largest volume change below the start volume drawn without a fold, ml, as a positive number
+    /// (`searched_below_ml` when none was found down to there).
+    pub below_ml: f64,
+    /// How far above the start volume the search went, ml.
+    pub searched_above_ml: f64,
+    /// How far below the start volume the search went, ml (positive).
+    pub searched_below_ml: f64,
+}
+
+impl FoldFreeMeta {
+    /// Share of a lung's start volume searched above it: the deepest breath-hold pair shared with
+    /// lungdyn (COPDgene case 08) inhales 0.8× its exhale volume; a tidal breath is about 0.2×.
+    pub const ABOVE_SHARE: f64 = 1.0;
+    /// Share of a lung's start volume searched below it: a quarter (the engine's tests breathe both
+    /// lungs down to FRC − 500 ml, about 0.2× a lung's FRC).
+    pub const BELOW_SHARE: f64 = 0.25;
+
+    /// Whether a lung drawn `delta_ml` from its start volume lies within the range checked free of
+    /// folds (a change past the searched span is outside: not checked).
+    #[inline]
+    pub fn contains(&self, delta_ml: f64) -> bool {
+        delta_ml <= self.above_ml && delta_ml >= -self.below_ml
+    }
+
+    /// What a report says of a kernel's range, or of its absence.
+    pub fn words(range: Option<&Self>) -> String {
+        range.map_or_else(
+            || "not measured (baked by an older lungdyn: bake it again to have it)".into(),
+            Self::describe,
+        )
+    }
+
+    /// What a report says of it.
+    pub fn describe(&self) -> String {
+        let side = |found: f64, searched: f64, sign: char| {
+            if found >= searched {
+                format!("no fold to {sign}{searched:.0} ml (as far as checked)")
+            } else {
+                format!("folds past {sign}{found:.0} ml")
+            }
+        };
+        format!(
+            "{}; {}",
+            side(self.above_ml, self.searched_above_ml, '+'),
+            side(self.below_ml, self.searched_below_ml, '-')
+        )
+    }
 }
 
 impl KernelMeta {
@@ -1341,6 +1407,34 @@ impl KernelFile {
 mod tests {
     use super::*;
 
+    /// The fold-free range holds its boundaries (a lung exactly at either end is within it) and
+    /// nothing past them, a non-finite change included; its words say which side was searched out.
+    #[test]
+    fn a_fold_free_range_holds_its_boundaries_and_nothing_past_them() {
+        let r = FoldFreeMeta {
+            above_ml: 300.0,
+            below_ml: 20.0,
+            searched_above_ml: 1000.0,
+            searched_below_ml: 20.0,
+        };
+        for (delta, inside) in [
+            (0.0, true),
+            (300.0, true),
+            (300.001, false),
+            (-20.0, true),
+            (-20.001, false),
+            (f64::NAN, false),
+            (f64::INFINITY, false),
+        ] {
+            assert_eq!(r.contains(delta), inside, "{delta}");
+        }
+        assert_eq!(
+            r.describe(),
+            "folds past +300 ml; no fold to -20 ml (as far as checked)"
+        );
+        assert!(FoldFreeMeta::words(None).starts_with("not measured"));
+    }
+
     /// The smallest valid kernel: a tetrahedron whose transfer rows keep all force at home.
     fn tetra_kernel(path: &Path, scale: f32) -> u64 {
         let positions: Vec<[f32; 3]> = vec![
@@ -1377,6 +1471,7 @@ mod tests {
             orientation: None,
             sh: None,
             tumour: None,
+            fold_free: None,
         };
         write_file(
             path,

@@ -63,6 +63,9 @@ pub struct LungGeometry {
     pub follow: Option<Follow>,
     /// The hilum a collapsing lung retracts towards, mm (found only for a disease scene).
     pub hilum_mm: Option<[f64; 3]>,
+    /// The volume range the kernel draws without a fold (`None`: not measured, e.g. a kernel baked
+    /// before the bake measured it); a frame outside it carries `lung_flags::PAST_FOLD_FREE`.
+    pub fold_free: Option<lung_model::kernel::FoldFreeMeta>,
 }
 
 /// What an orientation-following mode needs per tick.
@@ -115,6 +118,7 @@ impl LungGeometry {
             start_volume_ml: model.start_volume_ml,
             follow: None,
             hilum_mm: None,
+            fold_free: None,
         }
     }
 
@@ -187,6 +191,7 @@ impl LungGeometry {
             start_volume_ml: cubic.coeffs[0] / 1000.0,
             follow,
             hilum_mm: None,
+            fold_free: meta.fold_free,
         })
     }
 
@@ -467,6 +472,16 @@ fn lung_tick(
         flags |= lung_flags::CYCLE_CHANGED;
     }
     let delta_mm3 = (volume - geometry.start_volume_ml) * 1000.0;
+    // Past the range the kernel was checked free of folds (a collapsing lung is drawn on another
+    // field): said in the frame, so a crossed surface is never drawn unannounced.
+    if breath.collapse == 0.0
+        && volume.is_finite()
+        && geometry
+            .fold_free
+            .is_some_and(|f| !f.contains(volume - geometry.start_volume_ml))
+    {
+        flags |= lung_flags::PAST_FOLD_FREE;
+    }
     // A collapsed lung (EQUATIONS.md §4.1): its breathing scale is solved on the collapsed
     // cubic for the volume above the collapsed lung's own (exactly the healthy solve at 0).
     let collapse = breath.collapse;

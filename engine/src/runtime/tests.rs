@@ -272,6 +272,84 @@ fn one_lung_can_stop_while_the_other_breathes() {
     assert_eq!(f.lungs[LUNG_LEFT].flags & lung_flags::HELD, 0);
 }
 
+/// A lung drawn outside the volume range its kernel was checked free of folds carries
+/// `PAST_FOLD_FREE` in exactly those frames (the HUD and the run's report say so); the range comes
+/// from the kernel's metadata, and a lung within its range is never marked.
+#[test]
+fn frames_drawing_a_lung_past_its_fold_free_range_say_so() {
+    let files: Vec<KernelFile> = kernels_of(0, lung_model::deform::DirectionPreset::default())
+        .iter()
+        .map(|p| KernelFile::open_lazy(p).unwrap())
+        .collect();
+    let mut geometry: Vec<LungGeometry> = files
+        .iter()
+        .map(|k| {
+            let g = LungGeometry::from_kernel(
+                k,
+                DeformMode::Precomputed,
+                OrientationMethod::Exact,
+                lung_model::orientation::DEFAULT_MIN_SLOPE_RATIO,
+            )
+            .unwrap();
+            let measured = k.meta().fold_free.expect("the bake measures the range");
+            assert_eq!(g.fold_free, Some(measured));
+            assert!(measured.above_ml > 0.0 && measured.below_ml > 0.0);
+            g
+        })
+        .collect();
+    // The right lung's range made narrower than its breath: above +60 ml or below −5 ml is past it.
+    let narrow = lung_model::kernel::FoldFreeMeta {
+        above_ml: 60.0,
+        below_ml: 5.0,
+        searched_above_ml: 60.0,
+        searched_below_ml: 5.0,
+    };
+    geometry[0].fold_free = Some(narrow);
+    let start = geometry[0].start_volume_ml;
+    let mut core = EngineCore::with_geometry(&Scene::default(), geometry).unwrap();
+    let mut f = EngineFrame::default();
+    let (mut past, mut within) = (0, 0);
+    for tick in 0..600 {
+        core.step(tick, None, &mut f);
+        let r = &f.lungs[LUNG_RIGHT];
+        let delta = r.volume_ml as f64 - start;
+        let flagged = r.flags & lung_flags::PAST_FOLD_FREE != 0;
+        assert_eq!(
+            flagged,
+            !narrow.contains(delta),
+            "tick {tick}: {delta:+.1} ml"
+        );
+        if flagged {
+            past += 1;
+        } else {
+            within += 1;
+        }
+        assert_eq!(
+            f.lungs[LUNG_LEFT].flags & lung_flags::PAST_FOLD_FREE,
+            0,
+            "tick {tick}: the left lung breathes within its measured range"
+        );
+    }
+    assert!(
+        past > 100 && within > 100,
+        "{past} frames past, {within} within"
+    );
+    // Below the start volume too (a lung held 20 ml under it is past the −5 ml, 3 ml under is not).
+    for (tick, under, past) in [(600, 20.0, true), (601, 3.0, false)] {
+        core.lung_mut(Side::Right)
+            .unwrap()
+            .hold(Some(start - under));
+        core.step(tick, None, &mut f);
+        let flags = f.lungs[LUNG_RIGHT].flags;
+        assert_ne!(flags & lung_flags::HELD, 0);
+        assert_eq!(
+            flags & lung_flags::PAST_FOLD_FREE != 0,
+            past,
+            "{under} ml under"
+        );
+    }
+}
+
 #[test]
 fn a_rate_change_takes_effect_at_the_next_cycle_start() {
     let mut core = core();

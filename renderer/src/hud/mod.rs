@@ -545,6 +545,9 @@ impl Hud {
     /// The panel rows the lungs' framing leaves room for ([`Self::lungs_band`]): one per line
     /// shown, the frame-time line's, the key help's and the disease line's longest wording (its kind and side, every lung
     /// collapsed and held) as wrapped at this size, and [`OUTCOME_RESERVED_ROWS`] for an outcome.
+    /// A lung past its fold-free volume (rare: a breath deeper than its kernel was checked for) is
+    /// not reserved for: its words may run over the band's top in those frames rather than every
+    /// frame's lungs being framed smaller (at 320 × 240 they would cover under a tenth of the image).
     fn reserve_rows(&mut self) {
         let mut worst = EngineFrame::default();
         for l in worst.lungs.iter_mut() {
@@ -733,7 +736,11 @@ impl Hud {
         text::phase_line(&mut l[PHASE], f.frame);
         let disease = self.config.disease.as_ref().map(|(k, s)| (k.as_str(), *s));
         text::disease_line(&mut l[DISEASE], disease, f.frame);
-        self.colors[DISEASE] = if disease.is_some() { AMBER } else { GREEN };
+        self.colors[DISEASE] = if disease.is_some() || text::past_fold_free(f.frame) {
+            AMBER
+        } else {
+            GREEN
+        };
         l[OUTCOME].clear();
         if let Some((line, standing)) = f.outcome {
             l[OUTCOME].push_str(line);

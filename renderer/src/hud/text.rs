@@ -192,9 +192,36 @@ pub fn breath_phase(frame: &EngineFrame) -> Option<(f32, bool, f32)> {
 
 /// The disease state in words, from the scene's `[disease]` (its kind and side) and what the
 /// frame shows of each lung: "tension pneumothorax, left: lung 62 % collapsed, not breathing".
-/// Without a disease: "healthy lungs".
+/// Without a disease: "healthy lungs". A lung drawn past its kernel's fold-free volume is named in
+/// capitals after it.
 pub fn disease_line(out: &mut String, disease: Option<(&str, Option<usize>)>, frame: &EngineFrame) {
     out.clear();
+    lungs_state(out, disease, frame);
+    // A lung drawn outside the range its kernel was checked free of folds at bake time.
+    for (k, l) in frame.lungs.iter().enumerate() {
+        if l.is_active() && l.flags & ipc_types::lung_flags::PAST_FOLD_FREE != 0 {
+            let _ = write!(
+                out,
+                " · {} LUNG PAST ITS FOLD-FREE VOLUME",
+                if k == ipc_types::LUNG_LEFT {
+                    "LEFT"
+                } else {
+                    "RIGHT"
+                }
+            );
+        }
+    }
+}
+
+/// Whether a lung is drawn past its kernel's fold-free volume (the disease line says so in amber).
+pub fn past_fold_free(frame: &EngineFrame) -> bool {
+    frame
+        .lungs
+        .iter()
+        .any(|l| l.is_active() && l.flags & ipc_types::lung_flags::PAST_FOLD_FREE != 0)
+}
+
+fn lungs_state(out: &mut String, disease: Option<(&str, Option<usize>)>, frame: &EngineFrame) {
     let Some((kind, side)) = disease else {
         out.push_str("healthy lungs");
         return;
@@ -1064,6 +1091,35 @@ mod tests {
             &healthy,
         );
         assert_eq!(s, "tension pneumothorax, left");
+    }
+
+    /// A lung drawn past its kernel's fold-free volume is named after the lungs' state; the rest
+    /// of the line is unchanged, and an inactive slot is never named.
+    #[test]
+    fn a_lung_past_its_fold_free_volume_is_named() {
+        let mut f = EngineFrame::default();
+        f.lungs[LUNG_RIGHT] = lung(1400.0, 270.0, 300, 150, 0.0, lung_flags::PAST_FOLD_FREE);
+        f.lungs[LUNG_LEFT] = lung(1250.0, 230.0, 300, 150, 0.0, 0);
+        let mut s = String::new();
+        assert!(past_fold_free(&f));
+        disease_line(&mut s, None, &f);
+        assert_eq!(s, "healthy lungs · RIGHT LUNG PAST ITS FOLD-FREE VOLUME");
+        f.lungs[LUNG_LEFT].flags |= lung_flags::PAST_FOLD_FREE;
+        f.lungs[LUNG_LEFT].collapse = 0.2;
+        disease_line(&mut s, Some(("closed pneumothorax", Some(LUNG_LEFT))), &f);
+        assert_eq!(
+            s,
+            "closed pneumothorax, left: lung 20 % collapsed · RIGHT LUNG PAST ITS FOLD-FREE VOLUME · \
+             LEFT LUNG PAST ITS FOLD-FREE VOLUME"
+        );
+        f.lungs[LUNG_RIGHT].flags = 0;
+        f.lungs[LUNG_LEFT] = LungFrame {
+            flags: lung_flags::PAST_FOLD_FREE,
+            ..LungFrame::default()
+        };
+        assert!(!past_fold_free(&f));
+        disease_line(&mut s, None, &f);
+        assert_eq!(s, "healthy lungs");
     }
 
     #[test]
