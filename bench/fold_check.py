@@ -9,14 +9,16 @@ self-intersecting faces of each with MeshLab's own test (pymeshlab,
 (`kernel export`'s `self_intersections`, capped at 16). It shares no geometry code with lungdyn.
 
     python3 bench/fold_check.py --kernel right.kernel [--lungdyn target/release/lungdyn]
-        [--extra -20,-25] [--json out.json]
+        [--extra=-20,-25] [--json out.json]
 
 Each end is checked just inside it (must be clean) and one refinement step past it (must cross, when
 the search found a fold there; the step is 1/768 of the span searched). `--extra` adds volumes (ml
-from the start volume) to check, e.g. a crossing that comes and goes. Exits 1 when MeshLab
-disagrees with the recorded range, 2 when a package or the binary is missing.
+from the start volume) to check, e.g. a crossing that comes and goes (write `--extra=-20`: a bare
+leading minus reads as an option). Exits 1 when MeshLab disagrees with the recorded range, 2 when a
+package, the binary or an argument is wrong, 3 when lungdyn refuses the kernel or has no range.
 """
 import argparse
+import importlib.metadata
 import json
 import os
 import subprocess
@@ -36,7 +38,8 @@ STEP = 1.0 / 768.0  # the bake's refinement: 1/24 of the span, then 5 bisection 
 def run(cmd):
     p = subprocess.run(cmd, capture_output=True, text=True)
     if p.returncode != 0:
-        sys.exit(f"{' '.join(cmd)} failed ({p.returncode}): {p.stderr.strip()}")
+        print(f"{' '.join(cmd)} failed ({p.returncode}): {p.stderr.strip()}", file=sys.stderr)
+        sys.exit(3)
     return p.stdout
 
 
@@ -52,7 +55,8 @@ def main():
     ap.add_argument("--kernel", required=True)
     ap.add_argument("--lungdyn", default=os.path.join(os.path.dirname(os.path.dirname(
         os.path.abspath(__file__))), "target", "release", "lungdyn"))
-    ap.add_argument("--extra", default="", help="comma-separated further volume changes, ml")
+    ap.add_argument("--extra", default="",
+                    help="comma-separated further volume changes, ml (--extra=-20,-25)")
     ap.add_argument("--json", help="write the rows here too")
     a = ap.parse_args()
     if not os.path.exists(a.lungdyn):
@@ -61,7 +65,8 @@ def main():
     meta = json.loads(run([a.lungdyn, "kernel", "inspect", a.kernel, "--json"]))["meta"]
     ff = meta.get("fold_free")
     if ff is None:
-        sys.exit(f"{a.kernel}: no fold-free range recorded (baked by an older lungdyn)")
+        print(f"{a.kernel}: no fold-free range recorded (baked by an older lungdyn)", file=sys.stderr)
+        sys.exit(3)
     checks = []  # (delta ml, expected to cross: True, False or None)
     for sign, end, span in [(1, ff["above_ml"], ff["searched_above_ml"]),
                             (-1, ff["below_ml"], ff["searched_below_ml"])]:
@@ -69,7 +74,10 @@ def main():
         if end < span:
             checks.append((sign * (end + STEP * span * 1.0001), True))
     for d in filter(None, a.extra.split(",")):
-        checks.append((float(d), None))
+        try:
+            checks.append((float(d), None))
+        except ValueError:
+            ap.error(f"--extra: {d!r} is not a volume change in ml")
     rows, bad = [], 0
     with tempfile.TemporaryDirectory() as tmp:
         for delta, crosses in checks:
@@ -88,8 +96,8 @@ def main():
           f"{'MeshLab agrees' if not bad else f'{bad} check(s) disagree'}")
     if a.json:
         with open(a.json, "w") as w:
-            json.dump({"kernel": a.kernel, "fold_free": ff, "pymeshlab": pymeshlab.__version__
-                       if hasattr(pymeshlab, "__version__") else "unknown", "rows": rows}, w, indent=1)
+            json.dump({"kernel": a.kernel, "fold_free": ff,
+                       "pymeshlab": importlib.metadata.version("pymeshlab"), "rows": rows}, w, indent=1)
     sys.exit(1 if bad else 0)
 
 

@@ -574,7 +574,7 @@ pub fn export(args: &ExportArgs) -> anyhow::Result<ExportSummary> {
     if let Some((a, b)) = folds.first {
         eprintln!(
             "lungdyn: warning: at {:+} ml the deformed surface intersects itself ({} crossing pair(s), first \
-             triangles {a} and {b}): the linear model folds it there; smaller volume changes do not",
+             triangles {a} and {b}): the linear model folds it there (`lungdyn kernel inspect` gives the range the bake found free of folds)",
             args.delta_ml, folds.count
         );
     }

@@ -193,9 +193,5 @@ mod tests {
         assert!(r.above_ml < r.searched_above_ml, "{}", r.describe());
         let step = r.searched_above_ml / (SCAN as f64 * (1 << REFINE) as f64);
         assert!(folds_at(&model, r.above_ml + step));
-        eprintln!(
-            "breath-hold population, generated right lung at 1500: {}",
-            r.describe()
-        );
     }
 }
