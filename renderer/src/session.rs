@@ -840,11 +840,7 @@ impl Session {
         if frame.state & ipc_types::engine_state::SIGNAL_CLIPPED != 0 {
             *flags |= report_flags::SIGNAL_CLIPPED;
         }
-        if frame
-            .lungs
-            .iter()
-            .any(|l| l.is_active() && l.flags & ipc_types::lung_flags::PAST_FOLD_FREE != 0)
-        {
+        if crate::hud::text::past_fold_free(frame) {
             *flags |= report_flags::PAST_FOLD_FREE;
         }
         if self.engine_down() {

@@ -988,6 +988,20 @@ fn check_meta(meta: &KernelMeta) -> Result<(), FormatError> {
             )));
         }
     }
+    if let Some(f) = &meta.fold_free {
+        let (a, b, sa, sb) = (
+            f.above_ml,
+            f.below_ml,
+            f.searched_above_ml,
+            f.searched_below_ml,
+        );
+        if ![a, b, sa, sb].iter().all(|v| v.is_finite() && *v >= 0.0) || a > sa || b > sb {
+            return Err(FormatError::Metadata(format!(
+                "fold_free = +{a:e} / -{b:e} ml (searched +{sa:e} / -{sb:e}) must be finite, not \
+                 negative, and within the spans searched"
+            )));
+        }
+    }
     if let Some(sh) = &meta.sh {
         if sh.bands == 0 || sh.bands as usize > crate::sh::MAX_BANDS {
             return Err(FormatError::Metadata(format!(
@@ -1433,6 +1447,51 @@ mod tests {
             "folds past +300 ml; no fold to -20 ml (as far as checked)"
         );
         assert!(FoldFreeMeta::words(None).starts_with("not measured"));
+    }
+
+    /// A kernel whose recorded fold-free range is not a range (non-finite, negative, past the span
+    /// searched) is refused naming it; a sound one, and none, are read.
+    #[test]
+    fn a_kernel_with_a_broken_fold_free_range_is_refused() {
+        let path = std::env::temp_dir().join(format!("lungdyn-ff-{}.kernel", std::process::id()));
+        tetra_kernel(&path, 1.0);
+        let mut meta = KernelFile::open(&path).unwrap().meta().clone();
+        let _ = std::fs::remove_file(&path);
+        assert!(check_meta(&meta).is_ok());
+        let good = FoldFreeMeta {
+            above_ml: 10.0,
+            below_ml: 2.0,
+            searched_above_ml: 10.0,
+            searched_below_ml: 5.0,
+        };
+        meta.fold_free = Some(good);
+        assert!(check_meta(&meta).is_ok());
+        for bad in [
+            FoldFreeMeta {
+                above_ml: f64::NAN,
+                ..good
+            },
+            FoldFreeMeta {
+                below_ml: -1.0,
+                ..good
+            },
+            FoldFreeMeta {
+                searched_below_ml: f64::INFINITY,
+                ..good
+            },
+            FoldFreeMeta {
+                above_ml: 11.0,
+                ..good
+            },
+            FoldFreeMeta {
+                below_ml: 6.0,
+                ..good
+            },
+        ] {
+            meta.fold_free = Some(bad);
+            let e = check_meta(&meta).unwrap_err().to_string();
+            assert!(e.contains("fold_free"), "{e}");
+        }
     }
 
     /// The smallest valid kernel: a tetrahedron whose transfer rows keep all force at home.
